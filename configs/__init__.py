@@ -1,0 +1,70 @@
+"""Typed experiment configs: one module per experiment, each with tiny / small / paper variants.
+
+``configs.get("sword:tiny")`` returns a validated ``ExperimentConfig``;
+``configs.from_argv(argv)`` reads ``--config NAME:VARIANT`` plus dotted overrides.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+
+from configs.base import ExperimentConfig
+from configs.cli import ConfigError, apply_overrides, to_dict
+
+EXPERIMENTS = ("sword", "cache_ablation")
+DEFAULT = "sword:tiny"
+
+
+def get(name: str = DEFAULT) -> ExperimentConfig:
+    """Returns the config ``experiment:variant`` (variant defaults to tiny), validated."""
+    experiment, _, variant = name.partition(":")
+    if experiment not in EXPERIMENTS:
+        raise ConfigError(f"unknown experiment {experiment!r}; known: {', '.join(EXPERIMENTS)}")
+    module = importlib.import_module(f"configs.{experiment}")
+    try:
+        cfg = module.get(variant or "tiny")
+    except KeyError as err:
+        raise ConfigError(str(err.args[0])) from None
+    return cfg.validate()
+
+
+def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentConfig, list[str]]:
+    """Parses ``--config NAME`` and dotted overrides; returns (config, remaining non-config args).
+
+    Arguments that do not start with a config section name are returned untouched so entry
+    points can read their own flags.
+    """
+    argv = list(argv)
+    name = default
+    rest: list[str] = []
+    overrides: list[str] = []
+    sections = {f for f in ExperimentConfig.__dataclass_fields__}
+    index = 0
+    while index < len(argv):
+        arg = argv[index]
+        if arg == "--config" and index + 1 < len(argv):
+            name = argv[index + 1]
+            index += 2
+            continue
+        if arg.startswith("--config="):
+            name = arg.split("=", 1)[1]
+            index += 1
+            continue
+        key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
+        if key.split(".")[0] in sections:
+            if "=" in arg or index + 1 >= len(argv):
+                overrides.append(arg)
+            else:
+                overrides.extend([arg, argv[index + 1]])
+                index += 1
+        elif arg.startswith("--") and "." in key:
+            raise ConfigError(f"unknown config key {key!r}; sections are: {', '.join(sorted(sections))}")
+        else:
+            rest.append(arg)
+        index += 1
+    cfg = apply_overrides(get(name), overrides)
+    return cfg.validate(), rest
+
+
+__all__ = ["ExperimentConfig", "ConfigError", "get", "from_argv", "apply_overrides", "to_dict"]

@@ -1,0 +1,62 @@
+"""The experiment config: one frozen dataclass composed of the library's section configs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from sim.config import SimConfig
+from sword_jax.augment.config import AugmentConfig
+from sword_jax.dit.config import DiTConfig
+from sword_jax.dlb.config import CacheConfig
+from sword_jax.metrics.config import EvalConfig
+from sword_jax.rl.config import RLConfig
+from sword_jax.sharding import MeshConfig
+from sword_jax.vae.config import VAEConfig
+from sword_jax.world_model.config import DataConfig, FlowConfig, TrainerConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    """Everything one run needs. Sections are owned by the library modules that read them."""
+
+    name: str = "sword"
+    seed: int = 0
+    workdir: str = "runs/sword"
+    model: DiTConfig = DiTConfig()
+    flow: FlowConfig = FlowConfig()
+    vae: VAEConfig = VAEConfig()
+    data: DataConfig = DataConfig()
+    cache: CacheConfig = CacheConfig()
+    trainer: TrainerConfig = TrainerConfig()
+    augment: AugmentConfig = AugmentConfig()
+    sim: SimConfig = SimConfig()
+    rl: RLConfig = RLConfig()
+    eval: EvalConfig = EvalConfig()
+    mesh: MeshConfig = MeshConfig()
+
+    def validate(self) -> "ExperimentConfig":
+        """Checks each section and the settings that span sections; returns self."""
+        for field in dataclasses.fields(self):
+            section = getattr(self, field.name)
+            if hasattr(section, "validate"):
+                section.validate()
+        spatial = 16 * self.model.patch_size[1]
+        if self.data.image_size % spatial:
+            raise ValueError(
+                f"data.image_size={self.data.image_size} must be a multiple of 16*patch={spatial} "
+                "(VAE stride 16 times the DiT patch)"
+            )
+        if self.model.in_dim != self.vae.z_dim or self.model.out_dim != self.vae.z_dim:
+            raise ValueError(
+                f"model.in_dim/out_dim ({self.model.in_dim}/{self.model.out_dim}) must equal vae.z_dim ({self.vae.z_dim})"
+            )
+        if self.sim.resolution != self.data.image_size and self.data.path == "":
+            raise ValueError(
+                f"sim.resolution={self.sim.resolution} differs from data.image_size={self.data.image_size}: "
+                "generated episodes would not match the model's frames"
+            )
+        if (self.eval.horizon_frames - 1) > (self.data.episode_frames - 1):
+            raise ValueError(
+                f"eval.horizon_frames={self.eval.horizon_frames} exceeds data.episode_frames={self.data.episode_frames}"
+            )
+        return self

@@ -1,0 +1,69 @@
+"""The Sword experiment: DLB (linear, direct, all) + style augmentation, in three sizes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from configs.base import ExperimentConfig
+from sim.config import SimConfig
+from sword_jax.dit.config import DiTConfig
+from sword_jax.metrics.config import EvalConfig
+from sword_jax.vae.config import VAEConfig
+from sword_jax.world_model.config import DataConfig, TrainerConfig
+
+
+def paper() -> ExperimentConfig:
+    """Wan 2.2 TI2V-5B shapes: dim 3072, ffn 14336, 24 heads, 30 layers, VAE z 48, 256x256 frames."""
+    return ExperimentConfig(
+        name="sword-paper",
+        workdir="runs/sword-paper",
+        model=DiTConfig(),
+        vae=VAEConfig(),
+        data=DataConfig(num_episodes=1500, episode_frames=129, image_size=256, batch_size=64),
+        trainer=TrainerConfig(steps=20000, learning_rate=1e-4, warmup_steps=500, ema_decay=0.999,
+                              log_every=50, checkpoint_every=1000),
+        sim=SimConfig(backend="mjx", resolution=256, episodes_per_task=150),
+        eval=EvalConfig(horizon_frames=129, num_episodes=50),
+    )
+
+
+def small() -> ExperimentConfig:
+    """One GPU, minutes: 128x128 frames, a 512-wide 8-layer DiT and a narrow VAE."""
+    return ExperimentConfig(
+        name="sword-small",
+        workdir="runs/sword-small",
+        model=DiTConfig(dim=512, ffn_dim=2048, freq_dim=256, num_heads=8, num_layers=8, text_dim=64, text_len=16),
+        vae=VAEConfig(dim=32, dec_dim=48, train_steps=2000, batch_size=8),
+        data=DataConfig(num_episodes=200, episode_frames=65, image_size=128, batch_size=32),
+        trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
+        sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
+        eval=EvalConfig(horizon_frames=65, num_episodes=20),
+    )
+
+
+def tiny() -> ExperimentConfig:
+    """CPU, seconds: 32x32 frames, width 32, 2 layers. Tests and the quick start use it."""
+    return ExperimentConfig(
+        name="sword-tiny",
+        workdir="runs/sword-tiny",
+        model=DiTConfig(dim=32, ffn_dim=64, freq_dim=32, num_heads=2, num_layers=2, text_dim=16, text_len=8,
+                        compute_dtype="float32"),
+        vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
+        data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2),
+        trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
+        sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120),
+        eval=EvalConfig(horizon_frames=33, num_episodes=2),
+    )
+
+
+VARIANTS = {"tiny": tiny, "small": small, "paper": paper}
+
+
+def get(variant: str = "tiny") -> ExperimentConfig:
+    if variant not in VARIANTS:
+        raise KeyError(f"sword: unknown variant {variant!r}; known: {sorted(VARIANTS)}")
+    return VARIANTS[variant]()
+
+
+def replace(cfg: ExperimentConfig, **sections) -> ExperimentConfig:
+    return dataclasses.replace(cfg, **sections)

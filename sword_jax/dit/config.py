@@ -1,0 +1,46 @@
+"""Model section of the experiment config: the Wan 2.2 TI2V DiT world model (owned by sword_jax.dit)."""
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class DiTConfig:
+    """Wan 2.2 TI2V diffusion transformer with dual action conditioning.
+
+    Defaults are the official TI2V-5B shapes.
+    """
+
+    patch_size: tuple[int, int, int] = (1, 2, 2)
+    in_dim: int = 48
+    out_dim: int = 48
+    dim: int = 3072
+    ffn_dim: int = 14336
+    freq_dim: int = 256
+    num_heads: int = 24
+    num_layers: int = 30
+    text_dim: int = 4096
+    text_len: int = 512
+    eps: float = 1e-6
+    qk_norm: bool = True
+    cross_attn_norm: bool = True
+    action_dim: int = 7
+    action_cross_attn: bool = True  # actions as cross-attention tokens
+    action_adaln: bool = True  # action chunk MLP added to the time embedding
+    remat: str = "none"  # none | full | dots
+    scan_layers: bool = True
+    compute_dtype: str = "bfloat16"
+    param_dtype: str = "float32"
+    attention_impl: str = "auto"  # auto | xla | cudnn
+
+    def validate(self) -> None:
+        if self.dim % self.num_heads:
+            raise ValueError(f"model: num_heads={self.num_heads} does not divide dim={self.dim}")
+        if (self.dim // self.num_heads) % 2:
+            raise ValueError(f"model: head_dim={self.dim // self.num_heads} must be even for RoPE")
+        if self.remat not in ("none", "full", "dots"):
+            raise ValueError(f"model.remat must be none|full|dots, got {self.remat!r}")
+        if self.attention_impl not in ("auto", "xla", "cudnn"):
+            raise ValueError(f"model.attention_impl must be auto|xla|cudnn, got {self.attention_impl!r}")
+        for name in ("compute_dtype", "param_dtype"):
+            if getattr(self, name) not in ("float32", "bfloat16"):
+                raise ValueError(f"model.{name} must be float32|bfloat16, got {getattr(self, name)!r}")

@@ -1,0 +1,278 @@
+"""Logical axis names, the rules mapping them to mesh axes, mesh construction and sharded init.
+
+Model code names *logical* axes only (``batch``, ``embed``, ``heads`` ...). One table of rules,
+set in the config, maps each logical name to zero or more of the physical mesh axes
+``data``, ``fsdp`` and ``tensor``. Nothing here touches global JAX state.
+
+Parameters are annotated with ``nnx.with_partitioning(init, ("embed", "mlp"))``; the helpers
+below read that metadata (the ``out_sharding`` field of an ``nnx.Variable``), translate it through
+the rules and build ``NamedSharding`` trees, so parameters are born sharded:
+``jax.eval_shape(init)`` -> shardings -> ``jax.jit(init, out_shardings=...)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from flax import nnx
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+MESH_AXES: tuple[str, ...] = ("data", "fsdp", "tensor")
+
+# Every logical axis name used anywhere in sword_jax. Declared once, here.
+LOGICAL_AXES: tuple[str, ...] = (
+    "batch",  # samples of a batch
+    "episodes",  # episodes of the latent cache / dataset
+    "group",  # GRPO trajectories of one start state
+    "time",  # video or latent frames
+    "length",  # token sequence
+    "height",
+    "width",
+    "channels",  # image / latent channels
+    "embed",  # model width
+    "heads",  # attention heads
+    "head_dim",
+    "mlp",  # feed-forward hidden width
+    "modulation",  # AdaLN slots
+    "layers",  # stacked (scanned) blocks
+    "conv_in",
+    "conv_out",
+    "kernel",  # spatial / temporal kernel taps
+    "action",  # action dimensions
+)
+
+# The default table: data parallel + FSDP on the batch, FSDP over model width, tensor
+# parallel over heads and the MLP hidden width.
+DEFAULT_RULES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("batch", ("data", "fsdp")),
+    ("episodes", ("data", "fsdp")),
+    ("group", ()),
+    ("time", ()),
+    ("length", ()),
+    ("height", ()),
+    ("width", ()),
+    ("channels", ()),
+    ("embed", ("fsdp",)),
+    ("heads", ("tensor",)),
+    ("head_dim", ()),
+    ("mlp", ("tensor",)),
+    ("modulation", ()),
+    ("layers", ()),
+    ("conv_in", ()),
+    ("conv_out", ("fsdp",)),
+    ("kernel", ()),
+    ("action", ()),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshConfig:
+    """Physical mesh shape and the logical -> mesh axis table.
+
+    Attributes:
+      data: size of the ``data`` axis; -1 means "all remaining devices".
+      fsdp: size of the ``fsdp`` axis; -1 means "all remaining devices".
+      tensor: size of the ``tensor`` axis; -1 means "all remaining devices".
+      rules: (logical name, mesh axes) pairs; a logical name missing here is replicated.
+      distributed: call ``jax.distributed.initialize()`` in the entry point (multi-host).
+    """
+
+    data: int = -1
+    fsdp: int = 1
+    tensor: int = 1
+    rules: tuple[tuple[str, tuple[str, ...]], ...] = DEFAULT_RULES
+    distributed: bool = False
+
+    def validate(self) -> None:
+        sizes = (self.data, self.fsdp, self.tensor)
+        if sum(s == -1 for s in sizes) > 1:
+            raise ValueError(f"mesh: at most one of data/fsdp/tensor may be -1, got {sizes}")
+        for name, size in zip(MESH_AXES, sizes):
+            if size == 0 or size < -1:
+                raise ValueError(f"mesh.{name} must be a positive size or -1, got {size}")
+        for logical, axes in self.rules:
+            if logical not in LOGICAL_AXES:
+                raise ValueError(f"mesh.rules: unknown logical axis {logical!r}; known: {LOGICAL_AXES}")
+            for axis in axes:
+                if axis not in MESH_AXES:
+                    raise ValueError(f"mesh.rules[{logical!r}]: unknown mesh axis {axis!r}; known: {MESH_AXES}")
+
+
+def mesh_shape(cfg: MeshConfig, num_devices: int) -> tuple[int, int, int]:
+    """Resolves -1 in the config to a concrete (data, fsdp, tensor) shape for ``num_devices``."""
+    cfg.validate()
+    sizes = [cfg.data, cfg.fsdp, cfg.tensor]
+    known = math.prod(s for s in sizes if s != -1)
+    if -1 in sizes:
+        if num_devices % known:
+            raise ValueError(
+                f"mesh: {num_devices} devices are not divisible by the fixed axes "
+                f"{dict(zip(MESH_AXES, sizes))} (product {known})"
+            )
+        sizes[sizes.index(-1)] = num_devices // known
+    if math.prod(sizes) != num_devices:
+        raise ValueError(
+            f"mesh: data*fsdp*tensor = {math.prod(sizes)} but {num_devices} devices are available "
+            f"({dict(zip(MESH_AXES, sizes))})"
+        )
+    return tuple(sizes)  # type: ignore[return-value]
+
+
+def make_mesh(cfg: MeshConfig, devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """Builds a (data, fsdp, tensor) mesh over ``devices`` (default: all devices)."""
+    devices = list(jax.devices() if devices is None else devices)
+    shape = mesh_shape(cfg, len(devices))
+    try:
+        device_array = jax.experimental.mesh_utils.create_device_mesh(shape, devices=devices)
+    except Exception:  # noqa: BLE001 - fall back to plain order for unusual topologies
+        device_array = np.asarray(devices, dtype=object).reshape(shape)
+    return Mesh(device_array, MESH_AXES)
+
+
+def logical_to_spec(
+    logical_axes: Sequence[str | None] | None,
+    rules: Sequence[tuple[str, Sequence[str]]],
+    mesh: Mesh | None = None,
+    shape: Sequence[int] | None = None,
+) -> PartitionSpec:
+    """Translates logical axis names into a ``PartitionSpec`` of mesh axes.
+
+    A mesh axis is used at most once per spec (first claim wins). With ``mesh`` and ``shape``
+    given, a dimension not divisible by its mesh axes' size is left replicated, so tiny test
+    shapes work on any mesh.
+    """
+    if logical_axes is None:
+        return PartitionSpec()
+    table = {name: tuple(axes) for name, axes in rules}
+    used: set[str] = set()
+    spec: list[Any] = []
+    for dim, name in enumerate(logical_axes):
+        axes = tuple(a for a in table.get(name, ()) if a not in used) if name else ()
+        if mesh is not None:
+            axes = tuple(a for a in axes if mesh.shape[a] > 1)
+            if shape is not None and axes:
+                size = math.prod(mesh.shape[a] for a in axes)
+                if shape[dim] % size:
+                    axes = ()
+        used.update(axes)
+        spec.append(None if not axes else axes[0] if len(axes) == 1 else axes)
+    while spec and spec[-1] is None:
+        spec.pop()
+    return PartitionSpec(*spec)
+
+
+def logical_sharding(
+    mesh: Mesh,
+    logical_axes: Sequence[str | None],
+    rules: Sequence[tuple[str, Sequence[str]]],
+    shape: Sequence[int] | None = None,
+) -> NamedSharding:
+    """``NamedSharding`` for an array whose dims carry the given logical names."""
+    return NamedSharding(mesh, logical_to_spec(logical_axes, rules, mesh, shape))
+
+
+def _variable_logical_axes(variable: nnx.Variable) -> tuple[str | None, ...] | None:
+    metadata = variable.get_metadata()
+    for key in ("out_sharding", "sharding_names", "sharding"):
+        axes = metadata.get(key)
+        if axes is not None:
+            return tuple(axes)
+    return None
+
+
+def state_shardings(
+    abstract_state: Any, mesh: Mesh, rules: Sequence[tuple[str, Sequence[str]]]
+) -> Any:
+    """Maps an (abstract) ``nnx.State`` to a matching tree of ``NamedSharding``.
+
+    Variables without partitioning metadata are replicated.
+    """
+
+    def one(variable):
+        if isinstance(variable, nnx.Variable):
+            value = variable.get_value() if hasattr(variable, "get_value") else variable.value
+            spec = logical_to_spec(_variable_logical_axes(variable), rules, mesh, value.shape)
+            return variable.replace(NamedSharding(mesh, spec))
+        return NamedSharding(mesh, PartitionSpec())
+
+    return jax.tree.map(one, abstract_state, is_leaf=lambda x: isinstance(x, nnx.Variable))
+
+
+def abstract_module(factory: Callable[[], nnx.Module]) -> nnx.Module:
+    """Builds a module of ``ShapeDtypeStruct`` leaves without allocating anything."""
+    with nnx.use_eager_sharding(False):
+        return nnx.eval_shape(factory)
+
+
+def create_sharded(
+    factory: Callable[[], nnx.Module],
+    mesh: Mesh,
+    rules: Sequence[tuple[str, Sequence[str]]],
+) -> tuple[nnx.GraphDef, nnx.State]:
+    """Creates a module's state directly in its sharded layout.
+
+    Args:
+      factory: builds the module; it must take its randomness from inside (e.g. ``nnx.Rngs(seed)``).
+      mesh: the device mesh.
+      rules: logical -> mesh axis table.
+
+    Returns:
+      ``(graphdef, state)`` with every parameter placed by its logical annotation.
+    """
+    graphdef, abstract_state = nnx.split(abstract_module(factory))
+    shardings = state_shardings(abstract_state, mesh, rules)
+
+    def init():
+        with nnx.use_eager_sharding(False):
+            return nnx.split(factory())[1]
+
+    state = jax.jit(init, out_shardings=shardings)()
+    return graphdef, state
+
+
+def constrain(x: jax.Array, logical_axes: Sequence[str | None], rules=None) -> jax.Array:
+    """Activation sharding constraint by logical names, a no-op outside a mesh context.
+
+    Uses the abstract mesh set by ``jax.sharding.use_mesh`` / ``jax.set_mesh`` when present, and
+    the rules installed with :func:`use_rules` (default: ``DEFAULT_RULES``).
+    """
+    mesh = _current_mesh()
+    if mesh is None or mesh.empty or math.prod(mesh.shape.values()) == 1:
+        return x
+    spec = logical_to_spec(logical_axes, rules or _ACTIVE_RULES[-1], mesh, x.shape)
+    return jax.lax.with_sharding_constraint(x, NamedSharding(mesh, spec))
+
+
+_ACTIVE_RULES: list[Sequence[tuple[str, Sequence[str]]]] = [DEFAULT_RULES]
+_ACTIVE_MESH: list[Mesh] = []
+
+
+@contextlib.contextmanager
+def use_mesh(mesh: Mesh, rules: Sequence[tuple[str, Sequence[str]]] = DEFAULT_RULES):
+    """Context in which :func:`constrain` shards activations over ``mesh`` with ``rules``."""
+    _ACTIVE_RULES.append(tuple(rules))
+    _ACTIVE_MESH.append(mesh)
+    try:
+        yield mesh
+    finally:
+        _ACTIVE_RULES.pop()
+        _ACTIVE_MESH.pop()
+
+
+def _current_mesh() -> Mesh | None:
+    return _ACTIVE_MESH[-1] if _ACTIVE_MESH else None
+
+
+def batch_sharding(mesh: Mesh, ndim: int, rules=DEFAULT_RULES, leading: str = "batch") -> NamedSharding:
+    """Sharding of an array whose leading dim is ``leading`` (batch or episodes), rest replicated."""
+    return NamedSharding(mesh, logical_to_spec((leading,) + (None,) * (ndim - 1), rules, mesh))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, PartitionSpec())

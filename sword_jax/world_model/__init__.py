@@ -1,0 +1,1 @@
+"""sword_jax.world_model."""

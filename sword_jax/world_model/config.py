@@ -1,0 +1,79 @@
+"""Flow-matching, data and trainer sections of the experiment config (owned by sword_jax.world_model)."""
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowConfig:
+    """Flow matching training target, sampler and rollout options."""
+
+    prediction: str = "velocity"  # velocity | epsilon
+    num_train_timesteps: int = 1000
+    shift: float = 5.0
+    sample_steps: int = 5
+    guidance_scale: float = 1.0
+    pixel_round_trip: bool = False  # WoVR: decode and re-encode between chunks
+    context_noise: float = 0.0  # WoVR context-noise augmentation (std); 0 = off
+
+    def validate(self) -> None:
+        if self.prediction not in ("velocity", "epsilon"):
+            raise ValueError(f"flow.prediction must be velocity|epsilon, got {self.prediction!r}")
+        if not 1 <= self.sample_steps <= 50:
+            raise ValueError(f"flow.sample_steps must be in [1, 50], got {self.sample_steps}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Video segments for world-model training.
+
+    A segment is the episode's first frame, ``context_frames`` context frames and
+    ``predict_frames`` future frames (1 + 4 + 8 = 13 by default).
+    """
+
+    path: str = ""
+    num_episodes: int = 16
+    episode_frames: int = 65  # 1 + 4k
+    image_size: int = 32
+    context_frames: int = 4
+    predict_frames: int = 8
+    batch_size: int = 4
+
+    def validate(self) -> None:
+        if (self.episode_frames - 1) % 4 or self.episode_frames < 1:
+            raise ValueError(f"data.episode_frames must be of the form 1+4k, got {self.episode_frames}")
+        if self.context_frames % 4 or self.predict_frames % 4 or self.context_frames <= 0 or self.predict_frames <= 0:
+            raise ValueError(
+                f"data.context_frames ({self.context_frames}) and data.predict_frames ({self.predict_frames}) "
+                "must be positive multiples of 4 (one latent frame = 4 video frames)"
+            )
+        if 1 + self.context_frames + self.predict_frames > self.episode_frames:
+            raise ValueError(
+                f"data: a segment of 1+{self.context_frames}+{self.predict_frames} frames does not fit in "
+                f"episodes of {self.episode_frames} frames"
+            )
+        if self.batch_size <= 0:
+            raise ValueError(f"data.batch_size must be positive, got {self.batch_size}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainerConfig:
+    """Optimiser and loop settings of the world-model trainer."""
+
+    steps: int = 100
+    learning_rate: float = 1e-4
+    warmup_steps: int = 10
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    ema_decay: float = 0.0  # 0 = no EMA
+    log_every: int = 10
+    checkpoint_every: int = 50
+    keep_checkpoints: int = 2
+    on_nonfinite: str = "stop"  # stop | skip
+
+    def validate(self) -> None:
+        if self.steps < 0 or self.warmup_steps < 0:
+            raise ValueError(f"trainer.steps/warmup_steps must be >= 0, got {self.steps}/{self.warmup_steps}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"trainer.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.on_nonfinite not in ("stop", "skip"):
+            raise ValueError(f"trainer.on_nonfinite must be stop|skip, got {self.on_nonfinite!r}")

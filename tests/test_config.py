@@ -1,0 +1,68 @@
+import dataclasses
+import re
+
+import pytest
+
+import configs
+from configs.cli import ConfigError
+
+
+@pytest.mark.parametrize("name", ["sword:tiny", "sword:small", "sword:paper", "cache_ablation:linear-direct-all",
+                                  "cache_ablation:wovr", "cache_ablation:small-tf"])
+def test_variants_validate(name):
+    assert configs.get(name).validate() is not None
+
+
+def test_paper_shapes():
+    cfg = configs.get("sword:paper")
+    assert (cfg.model.dim, cfg.model.ffn_dim, cfg.model.num_heads, cfg.model.num_layers) == (3072, 14336, 24, 30)
+    assert cfg.vae.z_dim == 48 and cfg.data.image_size == 256
+    assert (cfg.data.context_frames, cfg.data.predict_frames) == (4, 8)
+
+
+def test_cache_ablation_has_eight_designs():
+    from configs import cache_ablation
+
+    designs = {configs.get(f"cache_ablation:{d}").cache for d in cache_ablation.DESIGNS}
+    assert len(designs) == 8
+    assert configs.get("sword:tiny").cache.schedule == "linear"
+    assert configs.get("sword:tiny").cache.replacement == "direct"
+    assert configs.get("sword:tiny").cache.scope == "all"
+
+
+def test_dotted_overrides_are_typed():
+    cfg, rest = configs.from_argv(["--model.num_layers=4", "--cache.scope", "single", "--model.patch_size=1,2,2",
+                                   "--flow.pixel_round_trip=true", "--out", "x"])
+    assert cfg.model.num_layers == 4 and cfg.cache.scope == "single"
+    assert cfg.model.patch_size == (1, 2, 2) and cfg.flow.pixel_round_trip is True
+    assert rest == ["--out", "x"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.model.dim = 3  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("--model.num_layerz=4", "model.num_layerz"),
+        ("--nosection.x=1", "nosection.x"),
+        ("--model.num_layers=four", "model.num_layers"),
+        ("--cache.schedule=exp", "cache.schedule"),
+    ],
+)
+def test_bad_override_names_the_key(override, needle):
+    with pytest.raises((ConfigError, ValueError), match=needle.replace(".", r"\.")):
+        configs.from_argv([override])
+
+
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("--data.episode_frames=34", "1+4k"),
+        ("--model.num_heads=3", "num_heads"),
+        ("--data.image_size=48", "image_size"),
+        ("--eval.horizon_frames=30", "horizon_frames"),
+    ],
+)
+def test_impossible_settings_rejected(override, needle):
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        configs.from_argv([override])
