@@ -1,0 +1,118 @@
+"""Shared benchmark plumbing: timing, the GPU's measured ceilings, and the results file.
+
+Every benchmark prints a table and merges its figures into ``benchmarks/results/latest.json``,
+each as ``{"value", "target", "device", "date", "command", ...}``. Ceilings (bf16 matmul
+TFLOP/s, device copy bandwidth) are measured in the same process, so ratios are side by side.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "latest.json")
+
+
+def device_name() -> str:
+    device = jax.devices()[0]
+    return f"{getattr(device, 'device_kind', device.platform)} x{jax.device_count()} ({device.platform})"
+
+
+def command_line() -> str:
+    return "python -m benchmarks." + os.path.splitext(os.path.basename(sys.argv[0]))[0] + (
+        (" " + " ".join(sys.argv[1:])) if len(sys.argv) > 1 else ""
+    )
+
+
+def block(tree: Any) -> Any:
+    return jax.tree.map(lambda x: x.block_until_ready() if hasattr(x, "block_until_ready") else x, tree)
+
+
+def time_fn(fn: Callable[[], Any], *, warmup: int = 2, iters: int = 10) -> dict[str, float]:
+    """Median / min wall seconds of ``fn()`` (which must return device arrays), after warmup."""
+    for _ in range(warmup):
+        block(fn())
+    samples = []
+    for _ in range(iters):
+        start = time.perf_counter()
+        block(fn())
+        samples.append(time.perf_counter() - start)
+    return {"median_s": statistics.median(samples), "min_s": min(samples), "iters": iters}
+
+
+def measured_matmul_tflops(n: int = 8192, dtype=jnp.bfloat16, iters: int = 10) -> float:
+    """Peak dense matmul throughput of device 0, measured now (TFLOP/s)."""
+    if jax.devices()[0].platform == "cpu":
+        n = min(n, 1024)
+    a = jax.random.normal(jax.random.key(0), (n, n), dtype)
+    b = jax.random.normal(jax.random.key(1), (n, n), dtype)
+    # Several products per call so launch overhead does not count.
+    chain = jax.jit(lambda a, b: (a @ b) @ b + a @ (b @ b))
+    timing = time_fn(lambda: chain(a, b), warmup=2, iters=iters)
+    return 4 * 2 * n**3 / timing["min_s"] / 1e12
+
+
+def measured_copy_gbps(num_bytes: int = 2 << 30, iters: int = 10) -> float:
+    """Device-memory copy bandwidth, counting bytes read and written (GB/s)."""
+    if jax.devices()[0].platform == "cpu":
+        num_bytes = 64 << 20
+    x = jnp.ones((num_bytes // 4,), jnp.float32)
+    copy = jax.jit(lambda x: x * jnp.float32(1.0001))
+    timing = time_fn(lambda: copy(x), warmup=2, iters=iters)
+    return 2 * num_bytes / timing["min_s"] / 1e9
+
+
+def peak_memory_gb() -> float | None:
+    stats = jax.devices()[0].memory_stats() if hasattr(jax.devices()[0], "memory_stats") else None
+    if not stats:
+        return None
+    return stats.get("peak_bytes_in_use", 0) / 1e9
+
+
+def record(key: str, value: float, target: Any, **extra: Any) -> dict[str, Any]:
+    """One results entry, stamped with device, date and command."""
+    return {
+        "value": value,
+        "target": target,
+        "device": device_name(),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
+        "command": command_line(),
+        **extra,
+    }
+
+
+def merge_results(entries: dict[str, dict[str, Any]], path: str = RESULTS) -> str:
+    """Read-modify-write of ``path``: replaces only the given keys; atomic rename."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    current: dict[str, Any] = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            current = json.load(f)
+    current.update(entries)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(current, f, indent=1, sort_keys=True)
+    os.replace(tmp, path)
+    return path
+
+
+def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
+    widths = {c: max(len(c), *(len(_fmt(r.get(c))) for r in rows)) for c in columns}
+    print("  ".join(c.ljust(widths[c]) for c in columns))
+    for row in rows:
+        print("  ".join(_fmt(row.get(c)).ljust(widths[c]) for c in columns))
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return "" if value is None else str(value)
