@@ -5,7 +5,41 @@ import dataclasses
 
 @dataclasses.dataclass(frozen=True)
 class RLConfig:
-    """Policy, reward model and GRPO settings."""
+    """Policy, reward model and GRPO settings.
+
+    Attributes:
+      group_size: G, trajectories sampled per start state (GRPO group).
+      clip_low / clip_high: PPO ratio clip range ``[1 - clip_low, 1 + clip_high]`` (DAPO clip-higher).
+      kl_coef: weight of the k3 KL estimate to the reference (SFT) policy; 0 = off.
+      learning_rate: GRPO learning rate.
+      grpo_steps: GRPO updates per run.
+      ppo_epochs: gradient steps per batch of imagined rollouts (1 = on-policy GRPO).
+      max_chunks: step limit of an imagined rollout, in action chunks.
+      chunk_len: actions per chunk (= frames the simulator predicts per step).
+      action_dim: action dimensions (xyz, rotation, gripper).
+      action_bins: discretisation bins per action dimension (OpenVLA: 256).
+      success_threshold: reward-model score that counts as success (WoVR: 0.9).
+      filter_groups: drop groups whose rewards are all equal (no learning signal).
+      success_bonus: added to a trajectory's return when it reaches success (returns are the
+        summed per-chunk score changes plus this bonus).
+      loss_norm: 'trajectory' averages token losses within each trajectory (normalising by its
+        length) and then over trajectories (GRPO); 'token' averages over all valid tokens (DAPO).
+      temperature: sampling temperature of the policy during rollouts.
+      sft_steps / sft_batch_size / sft_learning_rate / sft_episodes_per_task: behaviour cloning knobs
+        (steps and number of demonstrations set how good the starting policy is).
+      reward_model_steps / reward_model_batch_size / reward_model_learning_rate: success detector.
+      positive_tail: the last this-many frames of a successful episode are positives.
+      policy_width: base width of the policy (image encoder channels, token width).
+      policy_layers: transformer layers of the instruction / fusion encoder.
+      policy_heads: attention heads of the policy transformer.
+      max_instruction_bytes: byte-level instruction tokens (padded / truncated).
+      image_size: frame size the policy and reward model see (frames are resized to it).
+      proprio_dim: proprioceptive state dimensions (0 = none).
+      reward_width: base channels of the success-detector CNN.
+      eval_every: GRPO steps between ground-truth evaluations.
+      eval_episodes_per_task: initial states per task in ground-truth evaluation (paper: 50).
+      rollout_batch: start states per GRPO step (each expanded to ``group_size`` trajectories).
+    """
 
     group_size: int = 8
     clip_low: float = 0.2
@@ -13,13 +47,57 @@ class RLConfig:
     kl_coef: float = 0.0
     learning_rate: float = 1e-5
     grpo_steps: int = 10
+    ppo_epochs: int = 1
     max_chunks: int = 8
+    chunk_len: int = 8
+    action_dim: int = 7
+    action_bins: int = 256
     success_threshold: float = 0.9
+    filter_groups: bool = True
+    success_bonus: float = 1.0
+    loss_norm: str = "trajectory"  # trajectory | token
+    temperature: float = 1.0
     sft_steps: int = 200
+    sft_batch_size: int = 32
+    sft_learning_rate: float = 3e-4
+    sft_episodes_per_task: int = 0  # 0 = all available demonstrations
     reward_model_steps: int = 200
+    reward_model_batch_size: int = 32
+    reward_model_learning_rate: float = 1e-3
+    positive_tail: int = 8
+    policy_width: int = 64
+    policy_layers: int = 2
+    policy_heads: int = 4
+    max_instruction_bytes: int = 96
+    image_size: int = 64
+    proprio_dim: int = 8
+    reward_width: int = 16
+    eval_every: int = 5
+    eval_episodes_per_task: int = 50
+    rollout_batch: int = 4
 
     def validate(self) -> None:
         if self.group_size < 2:
             raise ValueError(f"rl.group_size must be >= 2 for group-normalised advantages, got {self.group_size}")
         if not 0.0 < self.success_threshold <= 1.0:
             raise ValueError(f"rl.success_threshold must be in (0, 1], got {self.success_threshold}")
+        if not 0.0 <= self.clip_low < 1.0 or self.clip_high < 0.0:
+            raise ValueError(f"rl.clip_low must be in [0, 1) and clip_high >= 0, got {self.clip_low}/{self.clip_high}")
+        if self.kl_coef < 0.0:
+            raise ValueError(f"rl.kl_coef must be >= 0, got {self.kl_coef}")
+        if self.action_bins < 2:
+            raise ValueError(f"rl.action_bins must be >= 2, got {self.action_bins}")
+        if self.max_chunks < 1 or self.chunk_len < 1 or self.ppo_epochs < 1:
+            raise ValueError(
+                f"rl.max_chunks/chunk_len/ppo_epochs must be >= 1, got {self.max_chunks}/{self.chunk_len}/{self.ppo_epochs}"
+            )
+        if self.policy_width % self.policy_heads:
+            raise ValueError(f"rl.policy_heads={self.policy_heads} must divide policy_width={self.policy_width}")
+        if self.image_size % 8:
+            raise ValueError(f"rl.image_size must be a multiple of 8 (three stride-2 convs), got {self.image_size}")
+        if self.temperature <= 0.0:
+            raise ValueError(f"rl.temperature must be > 0, got {self.temperature}")
+        if self.loss_norm not in ("trajectory", "token"):
+            raise ValueError(f"rl.loss_norm must be trajectory|token, got {self.loss_norm!r}")
+        if self.positive_tail < 1:
+            raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")

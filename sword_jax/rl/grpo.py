@@ -1,0 +1,208 @@
+"""GRPO: group-normalised advantages, the clipped surrogate, and the pure jitted update step.
+
+For a group of G trajectories from one start state with returns ``R_1..R_G``::
+
+    A_i = (R_i - mean(R)) / (std(R) + eps)        (population std; 0 for a group with no signal)
+
+Every valid action token of trajectory i shares ``A_i`` (outcome supervision). The per-token
+surrogate with DAPO's asymmetric ("clip-higher") range is::
+
+    r = exp(logp_new - logp_old)
+    l = -min(r A, clip(r, 1 - clip_low, 1 + clip_high) A) + kl_coef * k3(logp_ref, logp_new)
+    k3 = exp(logp_ref - logp_new) - (logp_ref - logp_new) - 1
+
+``loss_norm='trajectory'`` averages ``l`` over each trajectory's valid tokens (normalisation by
+trajectory length) and then over the kept trajectories; ``'token'`` averages over all kept
+valid tokens. Groups whose returns are all equal carry no signal and are filtered out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx, struct
+from jaxtyping import Array, Float
+
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import token_log_probs
+from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
+from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
+
+SIGNAL_EPS = 1e-6
+
+
+def group_advantages(
+    returns: Float[Array, "b g"], *, eps: float = 1e-6, filter_groups: bool = True
+) -> tuple[Float[Array, "b g"], Float[Array, " b"]]:
+    """Group-normalised advantages and a per-group "has signal" mask.
+
+    Args:
+      returns: trajectory returns grouped by start state.
+      eps: added to the group std.
+      filter_groups: zero the advantages (and the mask) of groups whose returns are all equal.
+
+    Returns:
+      ``(advantages [b, g], keep [b])`` in float32.
+    """
+    returns = returns.astype(jnp.float32)
+    mean = jnp.mean(returns, axis=1, keepdims=True)
+    std = jnp.std(returns, axis=1, keepdims=True)
+    adv = (returns - mean) / (std + jnp.float32(eps))
+    has_signal = (std[:, 0] > jnp.float32(SIGNAL_EPS)).astype(jnp.float32)
+    keep = has_signal if filter_groups else jnp.ones_like(has_signal)
+    return adv * keep[:, None], keep
+
+
+def clipped_token_loss(
+    new_log_probs: Float[Array, "..."],
+    old_log_probs: Float[Array, "..."],
+    advantages: Float[Array, "..."],
+    *,
+    clip_low: float,
+    clip_high: float,
+) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """Per-token PPO clipped surrogate loss and a 0/1 "clipped" indicator (no gradient there)."""
+    ratio = jnp.exp(new_log_probs - old_log_probs)
+    clipped_ratio = jnp.clip(ratio, 1.0 - clip_low, 1.0 + clip_high)
+    unclipped = ratio * advantages
+    clipped = clipped_ratio * advantages
+    loss = -jnp.minimum(unclipped, clipped)
+    is_clipped = (clipped < unclipped).astype(jnp.float32)
+    return loss, is_clipped
+
+
+def grpo_loss(
+    new_log_probs: Float[Array, "n c t a"],
+    old_log_probs: Float[Array, "n c t a"],
+    ref_log_probs: Float[Array, "n c t a"] | None,
+    advantages: Float[Array, " n"],
+    valid: Float[Array, "n c"],
+    keep: Float[Array, " n"],
+    cfg: RLConfig,
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """The GRPO objective over a batch of trajectories (see module docstring).
+
+    Args:
+      new_log_probs / old_log_probs / ref_log_probs: per-token log-probs under the current,
+        behaviour and reference policies (``ref_log_probs`` may be None when ``kl_coef == 0``).
+      advantages: per-trajectory advantage.
+      valid: chunk validity (0 after done).
+      keep: 1 for trajectories of groups with signal.
+      cfg: clip range, KL weight and normalisation.
+
+    Returns:
+      ``(loss, metrics)``.
+    """
+    per_token = lambda x: jnp.broadcast_to(x, new_log_probs.shape)  # noqa: E731
+    adv = per_token(advantages[:, None, None, None])
+    loss, is_clipped = clipped_token_loss(new_log_probs, old_log_probs, adv, clip_low=cfg.clip_low, clip_high=cfg.clip_high)
+    kl = jnp.zeros_like(loss)
+    if cfg.kl_coef > 0.0:
+        if ref_log_probs is None:
+            raise ValueError("rl.kl_coef > 0 needs reference log-probs")
+        delta = ref_log_probs - new_log_probs
+        kl = jnp.exp(delta) - delta - 1.0
+        loss = loss + jnp.float32(cfg.kl_coef) * kl
+    mask = per_token(valid[:, :, None, None] * keep[:, None, None, None])
+    tokens_per_traj = jnp.sum(mask, axis=(1, 2, 3))
+    if cfg.loss_norm == "trajectory":
+        traj_loss = jnp.sum(loss * mask, axis=(1, 2, 3)) / jnp.maximum(tokens_per_traj, 1.0)
+        kept = (tokens_per_traj > 0).astype(jnp.float32)
+        total = jnp.sum(traj_loss * kept) / jnp.maximum(jnp.sum(kept), 1.0)
+    else:
+        total = jnp.sum(loss * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+    denom = jnp.maximum(jnp.sum(mask), 1.0)
+    metrics = {
+        "clip_fraction": jnp.sum(is_clipped * mask) / denom,
+        "kl": jnp.sum(kl * mask) / denom,
+        "ratio_mean": jnp.sum(jnp.exp(new_log_probs - old_log_probs) * mask) / denom,
+        "kept_fraction": jnp.mean(keep),
+    }
+    return total, metrics
+
+
+@struct.dataclass
+class GRPOState:
+    """Everything a GRPO step reads and writes."""
+
+    params: Any
+    opt_state: Any
+    ref_params: Any
+    step: jax.Array
+
+
+def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(cfg.learning_rate, weight_decay=0.0))
+
+
+def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
+    """Train state with the reference policy frozen at ``params`` (the SFT policy)."""
+    ref = jax.tree.map(jnp.copy, params) if cfg.kl_coef > 0.0 else None
+    return GRPOState(params=params, opt_state=make_optimizer(cfg).init(params), ref_params=ref, step=jnp.zeros((), jnp.int32))
+
+
+def _rollout_log_probs(graphdef, params, batch: Rollout) -> Float[Array, "n c t a"]:
+    policy = nnx.merge(graphdef, params)
+    n, c = batch.valid.shape
+    flat = lambda x: x.reshape((n * c,) + x.shape[2:])  # noqa: E731 - (N, C, ...) -> (N * C, ...)
+    tokens = jnp.repeat(batch.instruction_tokens, c, axis=0)
+    logits = policy(flat(batch.obs_frames), tokens, flat(batch.proprio), flat(batch.proprio_valid))
+    return token_log_probs(logits, flat(batch.tokens)).reshape(batch.tokens.shape)
+
+
+def grpo_update(
+    graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout
+) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
+    """``cfg.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts."""
+    g = cfg.group_size
+    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.filter_groups)
+    advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
+    ref_lp = None
+    if cfg.kl_coef > 0.0:
+        ref_lp = jax.lax.stop_gradient(_rollout_log_probs(graphdef, state.ref_params, batch))
+    old_lp = jax.lax.stop_gradient(batch.log_probs)
+    optimizer = make_optimizer(cfg)
+
+    def loss_fn(params):
+        new_lp = _rollout_log_probs(graphdef, params, batch)
+        return grpo_loss(new_lp, old_lp, ref_lp, advantages, batch.valid, keep, cfg)
+
+    def epoch(carry, _):
+        params, opt_state = carry
+        (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        metrics = dict(metrics, loss=loss, grad_norm=optax.global_norm(grads), update_norm=optax.global_norm(updates))
+        return (params, opt_state), metrics
+
+    (params, opt_state), metrics = jax.lax.scan(epoch, (state.params, state.opt_state), None, length=cfg.ppo_epochs)
+    metrics = jax.tree.map(lambda x: x[-1], metrics)
+    metrics["param_norm"] = optax.global_norm(params)
+    return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
+
+
+def make_train_step(
+    graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True
+) -> Callable[[GRPOState, tuple[LearnedSimulator, RewardModel, StartState], jax.Array], tuple[GRPOState, dict]]:
+    """The jitted GRPO step ``step(state, batch, key) -> (state, metrics)``.
+
+    ``batch = (simulator, reward_model, start_states [B])``: the simulator and reward model are
+    arguments (not constants) so their weights are not baked into the program. The step
+    expands each start state to ``cfg.group_size`` trajectories, rolls them out with the
+    current policy, then updates it. ``state`` is donated.
+    """
+    cfg.validate()
+
+    def step(state: GRPOState, batch, key):
+        simulator, reward_model, start = batch
+        key = jax.random.fold_in(key, state.step)
+        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model,
+                                   expand_groups(start, cfg.group_size), cfg, key=key)
+        state, metrics = grpo_update(graphdef, cfg, state, rollout)
+        return state, dict(metrics, **rollout_metrics(rollout))
+
+    return jax.jit(step, donate_argnums=(0,) if donate else ())

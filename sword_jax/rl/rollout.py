@@ -1,0 +1,166 @@
+"""Imagined rollouts: a group of G trajectories per start state, inside the learned simulator.
+
+One jitted computation: ``lax.scan`` over action chunks; per chunk the policy reads the current
+(decoded) frame, samples an 8-step action chunk, the simulator (vmapped over trajectories)
+predicts the next 8 frames, and the reward model scores them. A trajectory is *done* once the
+score passes the success threshold or the chunk limit is reached; after that its simulator
+state is frozen and it contributes no reward and no policy-gradient tokens (``valid = 0``).
+
+Trajectory arrays are laid out ``[B * G, ...]`` (start-major), sharded over the ``batch``
+logical axis; :func:`group_view` reshapes to ``[B, G, ...]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jaxtyping import Array, Bool, Float, Int
+
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import resize_frames, sample_chunk, tokens_to_actions
+from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.sharding import constrain
+
+
+class Rollout(NamedTuple):
+    """What GRPO needs from a batch of imagined trajectories (N = B * G, C = max_chunks).
+
+    Attributes:
+      obs_frames: the frame the policy acted on, at policy resolution ``[N, C, s, s, 3]``.
+      proprio / proprio_valid: policy proprio inputs ``[N, C, P]`` / ``[N, C]``.
+      instruction_tokens: ``[N, L]``.
+      tokens: sampled action tokens ``[N, C, T, A]``.
+      log_probs: their log-probs under the behaviour policy ``[N, C, T, A]``.
+      valid: 1 where the chunk was taken before the trajectory was done ``[N, C]``.
+      rewards: per-chunk reward (change of success score), 0 after done ``[N, C]``.
+      scores: success score of the chunk's last frame ``[N, C]``.
+      success: the score passed the threshold at some frame ``[N]``.
+      returns: trajectory return used for advantages ``[N]``.
+      frames: all predicted frames ``[N, C, T, H, W, 3]`` when recorded, else an empty array.
+    """
+
+    obs_frames: Float[Array, "n c s s 3"]
+    proprio: Float[Array, "n c p"]
+    proprio_valid: Float[Array, "n c"]
+    instruction_tokens: Int[Array, "n l"]
+    tokens: Int[Array, "n c t a"]
+    log_probs: Float[Array, "n c t a"]
+    valid: Float[Array, "n c"]
+    rewards: Float[Array, "n c"]
+    scores: Float[Array, "n c"]
+    success: Bool[Array, " n"]
+    returns: Float[Array, " n"]
+    frames: Float[Array, "..."]
+
+
+def expand_groups(start: StartState, group_size: int) -> StartState:
+    """Repeats each start state ``group_size`` times: leading ``[B]`` -> ``[B * G]`` (start-major)."""
+    return jax.tree.map(lambda x: jnp.repeat(x, group_size, axis=0), start)
+
+
+def group_view(x: Array, group_size: int) -> Array:
+    """``[B * G, ...]`` -> ``[B, G, ...]``."""
+    return x.reshape((x.shape[0] // group_size, group_size) + x.shape[1:])
+
+
+def imagined_rollout(
+    graphdef: nnx.GraphDef,
+    policy_params: nnx.State,
+    simulator: LearnedSimulator,
+    reward_model: RewardModel,
+    start: StartState,
+    cfg: RLConfig,
+    *,
+    key: jax.Array,
+    record_frames: bool = False,
+    greedy: bool = False,
+) -> Rollout:
+    """Rolls the policy out in the learned simulator for ``cfg.max_chunks`` chunks.
+
+    Args:
+      graphdef / policy_params: the split :class:`~sword_jax.rl.policy.VLAPolicy`.
+      simulator: the learned simulator (protocol in :mod:`sword_jax.rl.simulator`).
+      reward_model: per-frame success scorer.
+      start: start states with leading axis N (already expanded to groups).
+      cfg: RL config (threshold, chunk limit, temperature, success bonus).
+      key: rollout randomness (policy sampling and simulator noise); same key, same rollout.
+      record_frames: also return every predicted frame (for videos; memory heavy).
+      greedy: take the argmax action instead of sampling (evaluation).
+
+    Returns:
+      A :class:`Rollout`.
+    """
+    policy = nnx.merge(graphdef, policy_params)
+    n = start.frame.shape[0]
+    if start.frame.ndim != 4 or start.frame.shape[-1] != 3:
+        raise ValueError(f"start.frame must be [N, H, W, 3], got {start.frame.shape}")
+    sim_state = jax.vmap(simulator.init)(start)
+    init_score = reward_model.score(start.frame)
+    carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_))
+
+    def chunk_step(carry, chunk_index):
+        sim_state, frame, prev_score, done = carry
+        chunk_key = jax.random.fold_in(key, chunk_index)
+        policy_key, sim_key = jax.random.split(chunk_key)
+        obs = constrain(resize_frames(frame, cfg.image_size), ("batch", "height", "width", "channels"))
+        proprio, proprio_valid = jax.vmap(simulator.observe)(sim_state)
+        logits = policy(obs, start.instruction_tokens, proprio, proprio_valid)
+        if greedy:
+            tokens = jnp.argmax(logits, axis=-1).astype(jnp.int32)
+            log_probs = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), tokens[..., None], -1)[..., 0]
+        else:
+            tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.temperature)
+        actions = tokens_to_actions(tokens, cfg.action_bins)  # (N, T, A)
+        new_state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(
+            sim_state, actions, jax.random.split(sim_key, n)
+        )
+        frames = constrain(frames, ("batch", "time", "height", "width", "channels"))
+        t = frames.shape[1]
+        scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
+        success_now = jnp.any(scores >= jnp.float32(cfg.success_threshold), axis=1)
+        valid = ~done
+        # done trajectories keep their state, frame and score; they earn nothing more
+        keep = lambda new, old: jnp.where(valid.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
+        sim_state = jax.tree.map(keep, new_state, sim_state)
+        last_score = jnp.where(valid, scores[:, -1], prev_score)
+        reward = jnp.where(valid, last_score - prev_score, jnp.float32(0.0))
+        next_frame = keep(frames[:, -1], frame)
+        newly_success = valid & success_now
+        out = dict(obs=obs, proprio=proprio, proprio_valid=proprio_valid.astype(jnp.float32), tokens=tokens,
+                   log_probs=log_probs, valid=valid.astype(jnp.float32), reward=reward, score=last_score,
+                   success=newly_success)
+        if record_frames:
+            out["frames"] = frames
+        return (sim_state, next_frame, last_score, done | success_now), out
+
+    _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.max_chunks))
+    swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - (C, N, ...) -> (N, C, ...)
+    success = jnp.any(traj["success"], axis=0)
+    rewards = swap(traj["reward"])
+    returns = jnp.sum(rewards, axis=1) + jnp.float32(cfg.success_bonus) * success.astype(jnp.float32)
+    return Rollout(
+        obs_frames=swap(traj["obs"]),
+        proprio=swap(traj["proprio"]),
+        proprio_valid=swap(traj["proprio_valid"]),
+        instruction_tokens=start.instruction_tokens,
+        tokens=swap(traj["tokens"]),
+        log_probs=swap(traj["log_probs"]),
+        valid=swap(traj["valid"]),
+        rewards=rewards,
+        scores=swap(traj["score"]),
+        success=success,
+        returns=returns,
+        frames=swap(traj["frames"]) if record_frames else jnp.zeros((0,), jnp.float32),
+    )
+
+
+def rollout_metrics(rollout: Rollout) -> dict[str, Float[Array, ""]]:
+    """Scalar summaries: success rate, mean return, mean trajectory length in chunks."""
+    return {
+        "success_rate": jnp.mean(rollout.success.astype(jnp.float32)),
+        "mean_return": jnp.mean(rollout.returns),
+        "mean_chunks": jnp.mean(jnp.sum(rollout.valid, axis=1)),
+    }
