@@ -1,1 +1,9 @@
-"""sword_jax.dit."""
+"""sword_jax.dit: the Wan 2.2 TI2V diffusion transformer and the action-conditioned world model.
+
+Modules:
+  ``config``: :class:`DiTConfig` (the ``model`` config section).
+  ``layers``: linear layers with logical axes, norms, timestep sinusoid, 3D RoPE, attention.
+  ``model``: :class:`WanDiT`, the official ``WanModel`` (TI2V) port.
+  ``world_model``: :class:`WorldModel` (WanDiT + action cross-attention tokens + action AdaLN),
+  ``world_model_apply``, ``load_official_into_world_model``.
+"""

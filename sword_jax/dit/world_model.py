@@ -1,0 +1,189 @@
+"""The action-conditioned world model: Wan 2.2 TI2V DiT + dual action conditioning.
+
+Actions (one per *video* frame, ``t = 1 + 4 (f - 1)`` for ``f`` latent frames) enter twice:
+
+* **cross-attention tokens** (``cfg.action_cross_attn``): each action, together with a sinusoid
+  of its video-frame index (cross-attention has no RoPE, so the order must be in the token), goes
+  through an MLP to a ``dim``-wide token; the tokens replace the text embedding as the
+  cross-attention context of every block. Switched off, a learned null token is attended instead.
+* **AdaLN** (``cfg.action_adaln``): the chunk of actions behind each latent frame (4 actions; frame
+  0 has one action, zero-padded in front to 4) goes through an MLP whose output is added to that
+  frame's time embedding ``e``, so every block's modulation and the head see it. The MLP's last
+  layer starts at zero, so a freshly loaded official model starts with the official modulation;
+  its gradient is non-zero from the first step (it multiplies non-zero hidden activations).
+
+The official ``text_embedding`` stays inside :class:`WanDiT` so official checkpoints load whole.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jaxtyping import Array, Float
+
+from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.layers import check_shape, dtype_of, linear, timestep_sinusoid
+from sword_jax.dit.model import WanDiT
+
+ACTION_INDEX_DIM = 32  # width of the video-frame-index sinusoid fed with each action token
+FRAMES_PER_LATENT = 4  # temporal compression of the Wan 2.2 VAE
+_ARCH_FIELDS = ("patch_size", "in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers",
+                "text_dim", "text_len", "eps", "qk_norm", "cross_attn_norm")
+
+
+def num_video_frames(latent_frames: int) -> int:
+    """Video frames (= actions) behind ``latent_frames`` causal-VAE latent frames."""
+    return 1 + FRAMES_PER_LATENT * (latent_frames - 1)
+
+
+def action_chunks(actions: Float[Array, "b t a"]) -> Float[Array, "b f 4a"]:
+    """Groups per-video-frame actions by latent frame: ``[0, 0, 0, a_0], [a_1..a_4], [a_5..a_8], ...``."""
+    b, t, a = actions.shape
+    padded = jnp.concatenate([jnp.zeros((b, FRAMES_PER_LATENT - 1, a), actions.dtype), actions], axis=1)
+    return padded.reshape(b, (t + FRAMES_PER_LATENT - 1) // FRAMES_PER_LATENT, FRAMES_PER_LATENT * a)
+
+
+class WorldModel(nnx.Module):
+    """:class:`WanDiT` conditioned on actions through cross-attention tokens and AdaLN."""
+
+    def __init__(self, cfg: DiTConfig, *, rngs: nnx.Rngs):
+        if cfg.patch_size[0] != 1:
+            raise ValueError(f"model.patch_size: the world model needs temporal patch 1, got {cfg.patch_size}")
+        self.cfg = cfg
+        self.dit = WanDiT(cfg, rngs=rngs)
+        cdt, pdt = dtype_of(cfg.compute_dtype), dtype_of(cfg.param_dtype)
+        kw = dict(compute_dtype=cdt, param_dtype=pdt, rngs=rngs)
+        with nnx.use_eager_sharding(False):
+            if cfg.action_cross_attn:
+                self.action_token_in = linear(cfg.action_dim + ACTION_INDEX_DIM, cfg.dim, ("action", "embed"), **kw)
+                self.action_token_out = linear(cfg.dim, cfg.dim, ("mlp", "embed"), **kw)
+                self.null_context = None
+            else:
+                self.action_token_in = self.action_token_out = None
+                null = nnx.initializers.normal(1.0)(rngs.params(), (1, cfg.dim), pdt)
+                self.null_context = nnx.Param(null, out_sharding=(None, "embed"))
+            if cfg.action_adaln:
+                self.action_chunk_in = linear(FRAMES_PER_LATENT * cfg.action_dim, cfg.dim, ("action", "embed"), **kw)
+                self.action_chunk_out = linear(
+                    cfg.dim, cfg.dim, ("mlp", "embed"), kernel_init=nnx.initializers.zeros_init(), **kw
+                )
+            else:
+                self.action_chunk_in = self.action_chunk_out = None
+
+    def action_context(self, actions: Float[Array, "b t a"]) -> Float[Array, "b lc d"]:
+        """Cross-attention context: one token per action (or the learned null token)."""
+        b, t, _ = actions.shape
+        if self.action_token_in is None:
+            return jnp.broadcast_to(self.null_context[...].astype(jnp.float32)[None], (b, 1, self.cfg.dim))
+        index = timestep_sinusoid(jnp.arange(t, dtype=jnp.float32), ACTION_INDEX_DIM)
+        features = jnp.concatenate([actions.astype(jnp.float32), jnp.broadcast_to(index, (b, t, ACTION_INDEX_DIM))], -1)
+        hidden = jax.nn.gelu(self.action_token_in(features), approximate=True)
+        return self.action_token_out(hidden).astype(jnp.float32)
+
+    def action_time_offset(self, actions: Float[Array, "b t a"]) -> Float[Array, "b f d"] | None:
+        """Per-latent-frame addition to the time embedding (None with ``action_adaln`` off)."""
+        if self.action_chunk_in is None:
+            return None
+        hidden = jax.nn.silu(self.action_chunk_in(action_chunks(actions.astype(jnp.float32))))
+        return self.action_chunk_out(hidden).astype(jnp.float32)
+
+    def __call__(
+        self,
+        latents: Float[Array, "b f h w c"],
+        timesteps: Float[Array, "b f"],
+        actions: Float[Array, "b t a"],
+    ) -> Float[Array, "b f h w c"]:
+        """Predicts the flow target of every latent frame.
+
+        Args:
+          latents: ``[first-frame latent, context latent, future latents...]``, channels-last,
+            ``c = in_dim``; ``h, w`` divisible by the spatial patch.
+          timesteps: Wan units [0, 1000], one per latent frame (0 for clean conditioning frames).
+          actions: one ``action_dim`` action per video frame, ``t = 1 + 4 (f - 1)``.
+
+        Returns:
+          The raw prediction per latent frame, ``[b, f, h, w, out_dim]`` float32.
+        """
+        cfg = self.cfg
+        b, f, h, w, _ = latents.shape
+        check_shape("latents", latents, (None, None, None, None, cfg.in_dim))
+        check_shape("timesteps", timesteps, (b, f))
+        check_shape("actions", actions, (b, num_video_frames(f), cfg.action_dim))
+        dit = self.dit
+        grid = (f, h // cfg.patch_size[1], w // cfg.patch_size[2])
+        time_emb = dit.embed_time(timesteps)  # (B, F, D)
+        offset = self.action_time_offset(actions)
+        if offset is not None:
+            time_emb = time_emb + offset
+        out = dit.forward_tokens(
+            dit.patchify(latents), dit.grid_positions(b, grid), time_emb, self.action_context(actions)
+        )
+        return dit.unpatchify(out, grid)
+
+
+def world_model_apply(
+    graphdef: nnx.GraphDef,
+    state: nnx.State,
+    latents: Float[Array, "b f h w c"],
+    timesteps: Float[Array, "b f"],
+    actions: Float[Array, "b t a"],
+) -> Float[Array, "b f h w c"]:
+    """Functional form of :meth:`WorldModel.__call__` for use inside jitted steps."""
+    return nnx.merge(graphdef, state)(latents, timesteps, actions)
+
+
+def load_official_into_world_model(
+    path: str, cfg: DiTConfig | None = None, *, key: jax.Array | None = None
+) -> tuple[DiTConfig, nnx.GraphDef, nnx.State]:
+    """A :class:`WorldModel` with every shared parameter from an official ``WanModel`` checkpoint.
+
+    Args:
+      path: official safetensors checkpoint (config JSON in its metadata).
+      cfg: the world-model config; its architecture fields (dim, heads, layers, ...) must match
+        the checkpoint, its other fields (action switches, remat, dtypes) are used as given.
+        None: the checkpoint's architecture with default options.
+      key: randomness for the fresh action branches (default ``jax.random.key(0)``).
+
+    Returns:
+      ``(cfg, graphdef, state)``; the action branches are freshly initialised.
+    """
+    from sword_jax.convert.wan22_dit import config_from_official, fill_state, official_to_state, read_safetensors
+
+    tensors, metadata = read_safetensors(path)
+    if "config" not in metadata:
+        raise ValueError(f"{path}: safetensors metadata has no 'config' entry")
+    official = config_from_official(json.loads(metadata["config"]))
+    if cfg is None:
+        cfg = official
+    else:
+        mismatched = {k: (getattr(cfg, k), getattr(official, k)) for k in _ARCH_FIELDS
+                      if getattr(cfg, k) != getattr(official, k)}
+        if mismatched:
+            raise ValueError(f"{path}: config fields (given, checkpoint) differ: {mismatched}")
+    key = jax.random.key(0) if key is None else key
+
+    with nnx.use_eager_sharding(False):
+        graphdef, state = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg, rngs=nnx.Rngs(0))))
+        # Only the action-branch values are kept; XLA drops the DiT's initialisers as dead code.
+        fresh = jax.jit(lambda k: _branch_values(nnx.split(WorldModel(cfg, rngs=nnx.Rngs(params=k)))[1]))(key)
+    flat = {("dit",) + p: v for p, v in official_to_state(tensors, cfg).items()}
+    flat.update(fresh)
+    state = fill_state(state, flat)
+    return cfg, graphdef, state
+
+
+def _branch_values(state: nnx.State) -> dict[tuple[str, ...], Array]:
+    return {tuple(p): v.get_value() for p, v in nnx.to_flat_state(state) if p[0] != "dit"}
+
+
+def replace_options(cfg: DiTConfig, **options: Any) -> DiTConfig:
+    """Copy of ``cfg`` with non-architectural options changed (e.g. for ablations)."""
+    bad = set(options) & set(_ARCH_FIELDS)
+    if bad:
+        raise ValueError(f"replace_options: {sorted(bad)} change the architecture")
+    return dataclasses.replace(cfg, **options)
