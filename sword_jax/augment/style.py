@@ -66,6 +66,23 @@ class SegClasses:
         kwargs = {g: (v,) if isinstance(v, (int, np.integer)) else tuple(v) for g, v in mapping.items()}
         return cls(**{g: kwargs.get(g, ()) for g in known})
 
+    @classmethod
+    def from_class_names(cls, class_names: tuple[str, ...], fixtures: tuple[str, ...] = ()) -> SegClasses:
+        """From a renderer's class names (``sim.render_classes``: ids 0/1/2 = background/table/robot,
+        then one id per object or fixture; names in ``fixtures`` are fixtures, the rest objects)."""
+        names = tuple(class_names)
+        if names[:3] != ("background", "table", "robot"):
+            raise ValueError(f"SegClasses.from_class_names: ids 0-2 must be background/table/robot, got {names[:3]}")
+        unknown = set(fixtures) - set(names)
+        if unknown:
+            raise KeyError(f"SegClasses.from_class_names: fixtures {sorted(unknown)} not among {names}")
+        rest = range(3, len(names))
+        return cls(
+            background=(0,), table=(1,), robot=(2,),
+            objects=tuple(i for i in rest if names[i] not in fixtures),
+            fixtures=tuple(i for i in rest if names[i] in fixtures),
+        )
+
     def mask(self, seg: Int[Array, "*s"], group: str) -> jax.Array:
         """Boolean mask of the pixels of ``group``."""
         ids = getattr(self, group)

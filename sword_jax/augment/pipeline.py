@@ -1,0 +1,202 @@
+"""Style augmentation in world-model training: per-step on device, or pre-encoded styled copies.
+
+Two ways to feed styled video to the world model:
+
+(a) **per step** (:func:`make_step_augmenter`): inside the train step, sample a training style per
+    episode, restyle the raw pixel segment on device, VAE-encode it, train. Every step sees a
+    new style, but every step pays a VAE encode of the whole batch and the pixels (and depth /
+    segmentation) of the batch must be on device.
+(b) **pre-encoded copies** (:func:`make_styled_copies`, :func:`encode_styled_copies`): restyle
+    each episode ``n_copies`` times once, VAE-encode once, and train on latents as if the copies
+    were more episodes (the raw episode stays too). The train step touches no pixels.
+
+Decision: **(b), pre-encoded copies** (``AugmentConfig.mode = "copies"``), because the encode
+is a large fraction of a train step at every size we run, while copies cost a one-off encode and
+little memory. Figures (``benchmarks/bench_augment.py``; FLOPs from XLA's cost analysis of the
+real jitted functions, so they hold for any device):
+
+* paper sizes (Wan 2.2 VAE: dim 160, z 48; TI2V-5B DiT; batch 64 of 13-frame 256x256
+  segments): the VAE encode of one batch is ~2.2e14 FLOPs by XLA's count of the real encoder
+  (~4e6 FLOPs per pixel-frame) against ~4.9e14 for the DiT train step (6 x 5e9 params x
+  16,384 tokens): per-step augmentation would add ~45% FLOPs, and more in time, because the
+  VAE's full-resolution 3-D convolutions run far below the DiT matmuls' utilisation.
+* copies: one episode of 129 frames at 256x256 is 33 x 16 x 16 x 48 latents = 1.6 MB in
+  float32, so 1,500 episodes x (1 raw + 2 styled) is ~7 GB on host (the latent dataset lives
+  on host; the DLB cache holds its own slots) and a one-off encode of 1,500 x 2 x 129 frames
+  = about 60 train steps' worth of encode FLOPs, ~0.3% of a 20k-step run.
+* what (a) buys, a new style per step, matters little: the DiT sees each episode ~850 times
+  (20k steps x 64 / 1,500) so two styled copies already give each episode three appearances
+  drawn from the training style space; raise ``augment.styled_copies`` for more.
+
+The world-model data path (``sword_jax.world_model.data``) already trains on pre-encoded
+latents; styled copies enter it as extra episodes with the same actions.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from sword_jax.augment.config import AugmentConfig
+from sword_jax.augment.episodes import Episodes, as_episodes
+from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
+from sword_jax.augment.transforms import augment, to_signed_range
+
+
+def seg_classes_from_config(cfg: AugmentConfig) -> SegClasses:
+    """The config's id groups, or the default convention when empty."""
+    return SegClasses.from_mapping(dict(cfg.seg_classes)) if cfg.seg_classes else DEFAULT_CLASSES
+
+
+# ---------------------------------------------------------------------------------------------
+# (a) per step, on device.
+
+
+def make_step_augmenter(
+    cfg: AugmentConfig, classes: SegClasses | None = None
+) -> Callable[..., tuple[jax.Array, Style, jax.Array]]:
+    """A jittable ``fn(frames, depth, seg, *, key) -> (styled, styles, styled_mask)`` for the train step.
+
+    ``frames [B, T, H, W, 3]`` in [0, 1]; each episode gets its own *training* style (the only
+    sampler reachable from here), and a ``cfg.raw_fraction`` share stay raw. ``styled`` is in
+    [0, 1]: use :func:`~sword_jax.augment.transforms.to_signed_range` before ``vae.encode``.
+    """
+    cfg.validate()
+    classes = classes or seg_classes_from_config(cfg)
+
+    def step_augment(
+        frames: Float[Array, "b t h w 3"],
+        depth: Float[Array, "b t h w"],
+        seg: Int[Array, "b t h w"],
+        *,
+        key: jax.Array,
+    ) -> tuple[Float[Array, "b t h w 3"], Style, jax.Array]:
+        k_style, k_raw = jax.random.split(key)
+        styles = sample_styles(k_style, frames.shape[0], "train")
+        styled_mask = jax.random.uniform(k_raw, (frames.shape[0],)) >= cfg.raw_fraction
+        if not cfg.enabled:
+            styled_mask = jnp.zeros_like(styled_mask)
+        intensity = jnp.where(styled_mask, jnp.float32(cfg.intensity), jnp.float32(0.0))
+
+        def one(f, d, s, st, amount):
+            return augment(f, d, s, st, intensity=amount, classes=classes, fov_deg=cfg.fov_deg)
+
+        styled = jax.vmap(one)(frames, depth, seg, styles, intensity)
+        # Intensity 0 is the identity up to rounding; pass raw episodes through bit-exactly.
+        styled = jnp.where(styled_mask[:, None, None, None, None], styled, frames.astype(jnp.float32))
+        return styled, styles, styled_mask
+
+    return step_augment
+
+
+# ---------------------------------------------------------------------------------------------
+# (b) pre-encoded styled copies.
+
+
+class StyledCopies(NamedTuple):
+    """``C`` training-styled copies of each of ``N`` episodes.
+
+    Attributes:
+      frames: ``[N, C, T, H, W, 3]`` float32 in [0, 1] (or latents, from :func:`encode_styled_copies`).
+      styles: :class:`Style` with leading dims ``[N, C]``.
+      episode_ids: ``[N]`` the source episodes' ids.
+      actions: ``[N, T, A]`` the source episodes' actions (shared by all copies).
+    """
+
+    frames: np.ndarray
+    styles: Style
+    episode_ids: np.ndarray
+    actions: np.ndarray
+
+    def flatten(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(frames [N*C, ...], actions [N*C, T, A], episode_ids [N*C])``, copy-major within an episode."""
+        n, c = self.frames.shape[:2]
+        return (
+            self.frames.reshape(n * c, *self.frames.shape[2:]),
+            np.repeat(self.actions, c, axis=0),
+            np.repeat(self.episode_ids, c),
+        )
+
+
+def _copy_keys(key: jax.Array, episode_ids: np.ndarray, n_copies: int) -> jax.Array:
+    # Keyed by episode id, not position: a copy's style does not depend on which other episodes are in the call.
+    return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.asarray(episode_ids, jnp.uint32))
+
+
+@functools.partial(jax.jit, static_argnames=("n_copies", "classes", "fov_deg"))
+def _style_episode(frames, depth, seg, episode_key, intensity, *, n_copies: int, classes: SegClasses, fov_deg: float):
+    """``n_copies`` training styles of one episode: ``([C, T, H, W, 3], Style[C])``."""
+    styles = sample_styles(episode_key, n_copies, "train")
+    styled = jax.vmap(
+        lambda st: augment(frames, depth, seg, st, intensity=intensity, classes=classes, fov_deg=fov_deg)
+    )(styles)
+    return styled, styles
+
+
+def make_styled_copies(
+    episodes: Episodes | dict,
+    n_copies: int,
+    key: jax.Array,
+    *,
+    intensity: float = 1.0,
+    classes: SegClasses = DEFAULT_CLASSES,
+    fov_deg: float = 45.0,
+) -> StyledCopies:
+    """Restyle every episode ``n_copies`` times in training styles (episode by episode, on device).
+
+    Deterministic for ``key`` and each episode's id. The styles are checked with
+    :func:`assert_training_style` before anything is returned.
+    """
+    if n_copies < 1:
+        raise ValueError(f"make_styled_copies: n_copies must be >= 1, got {n_copies}")
+    eps = as_episodes(episodes)
+    keys = _copy_keys(key, eps.episode_ids, n_copies)
+    style_one = functools.partial(_style_episode, intensity=jnp.float32(intensity), n_copies=n_copies,
+                                  classes=classes, fov_deg=float(fov_deg))
+    frames, styles = [], []
+    for i in range(eps.num):
+        styled, st = style_one(eps.frames[i], eps.depth[i], eps.seg[i], keys[i])
+        frames.append(np.asarray(styled))
+        styles.append(st)
+    styles = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *styles)
+    assert_training_style(styles)
+    return StyledCopies(np.stack(frames), styles, eps.episode_ids.copy(), eps.actions.copy())
+
+
+def encode_styled_copies(
+    episodes: Episodes | dict,
+    n_copies: int,
+    key: jax.Array,
+    encode_fn: Callable[[Float[Array, "c t h w 3"]], jax.Array],
+    *,
+    intensity: float = 1.0,
+    classes: SegClasses = DEFAULT_CLASSES,
+    fov_deg: float = 45.0,
+) -> StyledCopies:
+    """Like :func:`make_styled_copies` but VAE-encodes each episode's copies at once, keeping only latents.
+
+    ``encode_fn`` takes ``[C, T, H, W, 3]`` video in **[-1, 1]** (e.g.
+    ``lambda v: vae_api.encode(graphdef, state, v)``) and returns ``[C, ...]`` latents; the
+    returned ``frames`` field holds the latents ``[N, C, ...]``. Pixels of at most one episode's
+    copies are alive at a time.
+    """
+    if n_copies < 1:
+        raise ValueError(f"encode_styled_copies: n_copies must be >= 1, got {n_copies}")
+    eps = as_episodes(episodes)
+    keys = _copy_keys(key, eps.episode_ids, n_copies)
+    style_one = functools.partial(_style_episode, intensity=jnp.float32(intensity), n_copies=n_copies,
+                                  classes=classes, fov_deg=float(fov_deg))
+    latents, styles = [], []
+    for i in range(eps.num):
+        styled, st = style_one(eps.frames[i], eps.depth[i], eps.seg[i], keys[i])
+        assert_training_style(st)
+        latents.append(np.asarray(encode_fn(to_signed_range(styled))))
+        styles.append(st)
+    styles = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *styles)
+    return StyledCopies(np.stack(latents), styles, eps.episode_ids.copy(), eps.actions.copy())
