@@ -8,6 +8,21 @@ class CacheConfig:
     """Dynamic Latent Bootstrapping cache: read schedule and write-back rule.
 
     Defaults are the paper's best design: linear schedule, direct replacement, write all chunks.
+
+    Attributes:
+      enabled: False = plain teacher forcing (no cache in the train state).
+      schedule: how ``read_prob`` (probability of reading the context from the cache, i.e.
+        1 - teacher-forcing share) moves from ``read_prob_start`` to ``read_prob_end``:
+        ``linear`` over ``schedule_steps`` steps from step 0 (``warmup_steps`` ignored), or
+        ``warmup_cosine``: held at the start value for ``warmup_steps``, then a cosine half-wave
+        to the end value over ``schedule_steps``. See :func:`sword_jax.dlb.schedule.read_prob`.
+      replacement: ``direct`` (slot := prediction) or ``ema`` (slot := (1 - ema_rate) * slot +
+        ema_rate * prediction; an empty slot takes the prediction).
+      ema_rate: weight of the new prediction in ``ema`` replacement.
+      scope: write the first predicted latent of each sample only (``single``) or all (``all``).
+      write_source: ``train_forward`` (x0 implied by the training forward pass) or ``sample``
+        (an extra no-grad ``write_sample_steps``-step sample from the same context).
+      dtype: storage dtype of the cache (bfloat16 keeps the paper's dataset under 5 GB).
     """
 
     enabled: bool = True
@@ -15,12 +30,13 @@ class CacheConfig:
     read_prob_start: float = 0.0
     read_prob_end: float = 0.5
     schedule_steps: int = 100
-    warmup_steps: int = 0
+    warmup_steps: int = 10
     replacement: str = "direct"  # direct | ema
     ema_rate: float = 0.5
     scope: str = "all"  # single | all
     write_source: str = "train_forward"  # train_forward | sample
     write_sample_steps: int = 2
+    dtype: str = "bfloat16"  # bfloat16 | float32
 
     def validate(self) -> None:
         if self.schedule not in ("linear", "warmup_cosine"):
@@ -29,6 +45,16 @@ class CacheConfig:
             raise ValueError(f"cache.replacement must be direct|ema, got {self.replacement!r}")
         if self.scope not in ("single", "all"):
             raise ValueError(f"cache.scope must be single|all, got {self.scope!r}")
+        if self.write_source not in ("train_forward", "sample"):
+            raise ValueError(f"cache.write_source must be train_forward|sample, got {self.write_source!r}")
+        if not 1 <= self.write_sample_steps <= 50:
+            raise ValueError(f"cache.write_sample_steps must be in [1, 50], got {self.write_sample_steps}")
+        if self.dtype not in ("bfloat16", "float32"):
+            raise ValueError(f"cache.dtype must be bfloat16|float32, got {self.dtype!r}")
+        if self.schedule_steps <= 0 or self.warmup_steps < 0:
+            raise ValueError(
+                f"cache.schedule_steps must be > 0 and warmup_steps >= 0, got {self.schedule_steps}/{self.warmup_steps}"
+            )
         for name in ("read_prob_start", "read_prob_end", "ema_rate"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:

@@ -18,6 +18,10 @@ class FlowConfig:
     def validate(self) -> None:
         if self.prediction not in ("velocity", "epsilon"):
             raise ValueError(f"flow.prediction must be velocity|epsilon, got {self.prediction!r}")
+        if self.shift <= 0 or self.num_train_timesteps <= 0:
+            raise ValueError(f"flow.shift and flow.num_train_timesteps must be positive, got {self.shift}/{self.num_train_timesteps}")
+        if self.context_noise < 0:
+            raise ValueError(f"flow.context_noise must be >= 0, got {self.context_noise}")
         if not 1 <= self.sample_steps <= 50:
             raise ValueError(f"flow.sample_steps must be in [1, 50], got {self.sample_steps}")
 
@@ -62,8 +66,13 @@ class TrainerConfig:
     steps: int = 100
     learning_rate: float = 1e-4
     warmup_steps: int = 10
+    lr_schedule: str = "constant"  # constant | cosine (after the linear warmup)
+    lr_end_fraction: float = 0.1  # cosine: final lr / peak lr
     weight_decay: float = 0.01
-    grad_clip: float = 1.0
+    adam_b1: float = 0.9
+    adam_b2: float = 0.999
+    adam_eps: float = 1e-8
+    grad_clip: float = 1.0  # global-norm clip; 0 = off
     ema_decay: float = 0.0  # 0 = no EMA
     log_every: int = 10
     checkpoint_every: int = 50
@@ -75,5 +84,11 @@ class TrainerConfig:
             raise ValueError(f"trainer.steps/warmup_steps must be >= 0, got {self.steps}/{self.warmup_steps}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"trainer.ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"trainer.lr_schedule must be constant|cosine, got {self.lr_schedule!r}")
+        if self.learning_rate <= 0 or self.grad_clip < 0:
+            raise ValueError(f"trainer.learning_rate must be > 0 and grad_clip >= 0, got {self.learning_rate}/{self.grad_clip}")
+        if self.log_every <= 0 or self.checkpoint_every <= 0 or self.keep_checkpoints <= 0:
+            raise ValueError("trainer.log_every, checkpoint_every and keep_checkpoints must be positive")
         if self.on_nonfinite not in ("stop", "skip"):
             raise ValueError(f"trainer.on_nonfinite must be stop|skip, got {self.on_nonfinite!r}")

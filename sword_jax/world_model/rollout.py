@@ -1,0 +1,131 @@
+"""Autoregressive latent rollouts of the world model, one ``lax.scan`` over chunks inside one jit.
+
+Each chunk predicts ``p`` future latents from ``[episode first-frame latent, context latent(s)]``;
+the next chunk's context is the last predicted latent(s), so the rollout never leaves latent space.
+With ``FlowConfig.pixel_round_trip`` the context instead goes through WoVR's decode -> re-encode
+round trip (a function built from the VAE, see :func:`make_pixel_round_trip`), for comparisons.
+
+Action layout (per video frame, like the training segments): a rollout of ``n`` chunks with ``k``
+context and ``p`` future latents per chunk takes ``1 + 4k + 4pn`` actions: the first frame's, the
+context frames', then every future frame's. Chunk ``i`` sees
+``[a_0] + a[1 + 4pi : 1 + 4k + 4p(i+1)]`` (its context frames and its future frames).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jaxtyping import Array, Float
+
+from sword_jax.world_model import sampler
+from sword_jax.world_model.config import FlowConfig
+
+# (first_latent [b,1,h,w,c], chunk future latents [b,p,h,w,c]) -> next context latents [b,k,h,w,c]
+RoundTripFn = Callable[[Array, Array], Array]
+
+
+def num_chunks_for(num_actions: int, num_context: int, num_future: int) -> int:
+    """Number of chunks a rollout with ``num_actions`` per-frame actions covers (validated)."""
+    body = num_actions - 1 - 4 * num_context
+    if body <= 0 or body % (4 * num_future):
+        raise ValueError(
+            f"rollout: {num_actions} actions do not fit 1 + 4*{num_context} + 4*{num_future}*n frames for any n >= 1"
+        )
+    return body // (4 * num_future)
+
+
+def chunk_actions(actions: Float[Array, "b t a"], chunk: Array | int, num_context: int, num_future: int) -> Float[Array, "b s a"]:
+    """The ``1 + 4(k + p)`` per-frame actions that chunk ``chunk`` of a rollout sees."""
+    span = 4 * (num_context + num_future)
+    start = 1 + 4 * num_future * jnp.asarray(chunk, jnp.int32)
+    body = jax.lax.dynamic_slice_in_dim(actions, start, span, axis=1)
+    return jnp.concatenate([actions[:, :1], body], axis=1)
+
+
+def predict_chunk(
+    model_fn: sampler.ModelFn,
+    first_latent: Float[Array, "b 1 h w c"],
+    context_latents: Float[Array, "b k h w c"],
+    actions: Float[Array, "b s a"],
+    *,
+    key: jax.Array,
+    num_future: int,
+    cfg: FlowConfig,
+    num_steps: int | None = None,
+    guidance_scale: float | None = None,
+) -> Float[Array, "b p h w c"]:
+    """Samples one chunk's future latents from the first-frame latent and the context latent(s)."""
+    cond = jnp.concatenate([first_latent.astype(jnp.float32), context_latents.astype(jnp.float32)], axis=1)
+    return sampler.sample(model_fn, cond, actions, key=key, num_future=num_future, cfg=cfg,
+                          num_steps=num_steps, guidance_scale=guidance_scale)
+
+
+def _as_frames(latent: Array, name: str) -> Array:
+    if latent.ndim == 4:
+        return latent[:, None]
+    if latent.ndim != 5:
+        raise ValueError(f"rollout: {name} must be [b, h, w, c] or [b, n, h, w, c], got {latent.shape}")
+    return latent
+
+
+def rollout(
+    graphdef: nnx.GraphDef,
+    state: Any,
+    first_latent: Float[Array, "b h w c"] | Float[Array, "b 1 h w c"],
+    context_latent: Float[Array, "b h w c"] | Float[Array, "b k h w c"],
+    actions: Float[Array, "b t a"],
+    *,
+    key: jax.Array,
+    cfg: FlowConfig,
+    num_future: int = 2,
+    num_steps: int | None = None,
+    guidance_scale: float | None = None,
+    round_trip: RoundTripFn | None = None,
+) -> Float[Array, "b n h w c"]:
+    """Rolls the world model out autoregressively; jit it as a whole (the chunk loop is a scan).
+
+    Args:
+      graphdef: static graph of the world model.
+      state: the model state for ``nnx.merge`` (one state / pure dict, or a tuple of them).
+      first_latent: the episode's first-frame latent, ``[b, h, w, c]`` or ``[b, 1, h, w, c]``.
+      context_latent: the initial context latent(s), ``[b, h, w, c]`` or ``[b, k, h, w, c]``.
+      actions: per-video-frame actions ``[b, 1 + 4k + 4pn, a]`` (see the module docstring).
+      key: sampling key; chunk ``i`` uses ``jax.random.split(key, n)[i]``.
+      cfg: flow settings; ``cfg.pixel_round_trip`` routes the context through ``round_trip``.
+      num_future: latents predicted per chunk ``p`` (2 = 8 video frames).
+      num_steps: Euler steps per chunk (default ``cfg.sample_steps``).
+      guidance_scale: action guidance (default ``cfg.guidance_scale``).
+      round_trip: WoVR's decode -> re-encode of the context (required iff ``cfg.pixel_round_trip``).
+
+    Returns:
+      All predicted latents in order, ``[b, n * p, h, w, c]`` float32.
+    """
+    first = _as_frames(first_latent, "first_latent").astype(jnp.float32)
+    context = _as_frames(context_latent, "context_latent").astype(jnp.float32)
+    num_context = context.shape[1]
+    if cfg.pixel_round_trip and round_trip is None:
+        raise ValueError("rollout: flow.pixel_round_trip is set but no round_trip function was given "
+                         "(build one with make_pixel_round_trip(vae_graphdef, vae_state))")
+    num_chunks = num_chunks_for(actions.shape[1], num_context, num_future)
+    model_fn = sampler.model_fn_from_state(graphdef, state)
+    chunk_keys = jax.random.split(key, num_chunks)
+
+    def one_chunk(context, inputs):
+        chunk, chunk_key = inputs
+        future = predict_chunk(model_fn, first, context, chunk_actions(actions, chunk, num_context, num_future),
+                               key=chunk_key, num_future=num_future, cfg=cfg, num_steps=num_steps,
+                               guidance_scale=guidance_scale)
+        if cfg.pixel_round_trip:
+            next_context = round_trip(first, future).astype(jnp.float32)
+        else:
+            next_context = jnp.concatenate([context, future], axis=1)[:, -num_context:]
+        return next_context, future
+
+    _, futures = jax.lax.scan(one_chunk, context, (jnp.arange(num_chunks, dtype=jnp.int32), chunk_keys))
+    # (n, b, p, h, w, c) -> (b, n * p, h, w, c)
+    futures = jnp.moveaxis(futures, 0, 1)
+    return futures.reshape((futures.shape[0], num_chunks * num_future) + futures.shape[3:])

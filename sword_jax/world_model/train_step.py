@@ -1,0 +1,166 @@
+"""The world-model train step: teacher forcing, plus Dynamic Latent Bootstrapping when enabled.
+
+``step(state, batch, key) -> (state, metrics)`` is pure. ``key`` is the run's root key; the step
+folds in ``state.step`` and splits named keys, so a resumed run draws the same numbers.
+
+Batch (global arrays, sharded over ``batch``): ``latents [b, 1 + k + p, h, w, c]`` (first frame,
+k context, p future latents), ``actions [b, 1 + 4(k + p), a]``, ``episode [b]`` and ``start [b]``
+(latent-frame index of the first context latent), as produced by
+:class:`sword_jax.world_model.data.SegmentLoader`.
+
+With the cache enabled the step (1) reads: replaces context latents by cached predictions with
+probability ``read_prob(step)`` where filled; (2) trains exactly like teacher forcing on that
+context; (3) writes the clean future estimate implied by the training forward pass (or a few-step
+no-grad sample) back into the future slots. With read probability 0 it is bitwise the
+teacher-forcing step. A non-finite loss or gradient skips the update and the cache write and
+records the step in ``state.first_nonfinite_step``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from sword_jax import sharding as shd
+from sword_jax.dlb import cache as dlb_cache
+from sword_jax.dlb import schedule as dlb_schedule
+from sword_jax.dlb.config import CacheConfig
+from sword_jax.world_model import flow, sampler
+from sword_jax.world_model.config import FlowConfig, TrainerConfig
+from sword_jax.world_model.train_state import TrainState, make_optimizer
+
+StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
+
+
+def _where_tree(pred: jax.Array, on_true: Any, on_false: Any) -> Any:
+    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+
+
+def make_train_step(
+    graphdef: nnx.GraphDef,
+    *,
+    flow_cfg: FlowConfig,
+    trainer_cfg: TrainerConfig,
+    cache_cfg: CacheConfig,
+    num_context: int,
+    num_episodes: int | None = None,
+) -> StepFn:
+    """Builds the pure train step (not yet jitted; see :func:`compile_train_step`).
+
+    Args:
+      graphdef: static graph of the world model (``model(latents, timesteps, actions)``).
+      flow_cfg: training target, shift and context-noise augmentation.
+      trainer_cfg: optimiser and EMA settings (must match those used to create the state).
+      cache_cfg: DLB settings; ``enabled=False`` gives plain teacher forcing.
+      num_context: context latents ``k`` per segment.
+      num_episodes: real episodes of the dataset (for the ``cache_filled`` metric).
+    """
+    tx = make_optimizer(trainer_cfg)
+    num_cond = 1 + num_context
+    use_cache = cache_cfg.enabled
+
+    def step(state: TrainState, batch: dict, key: jax.Array) -> tuple[TrainState, dict]:
+        key = jax.random.fold_in(key, state.step)
+        noise_key, sigma_key, context_noise_key, read_key, write_key = jax.random.split(key, 5)
+        latents = batch["latents"].astype(jnp.float32)
+        actions = batch["actions"].astype(jnp.float32)
+        batch_size = latents.shape[0]
+        if latents.shape[1] <= num_cond:
+            raise ValueError(f"train step: segments of {latents.shape[1]} latents leave no future after {num_cond}")
+        first, context, future = latents[:, :1], latents[:, 1:num_cond], latents[:, num_cond:]
+        metrics: dict[str, jax.Array] = {}
+
+        if use_cache:
+            read_prob = dlb_schedule.read_prob(cache_cfg, state.step)
+            context_frames = batch["start"][:, None] + jnp.arange(num_context, dtype=jnp.int32)[None, :]
+            context, read_mask = dlb_cache.read_context(
+                state.cache, context, batch["episode"], context_frames, read_prob, key=read_key)
+            metrics["read_prob"] = read_prob
+            metrics["read_share"] = jnp.mean(jnp.any(read_mask, axis=1).astype(jnp.float32))
+        if flow_cfg.context_noise > 0:
+            context = context + jnp.float32(flow_cfg.context_noise) * jax.random.normal(
+                context_noise_key, context.shape, jnp.float32)
+
+        segment = jnp.concatenate([first, context, future], axis=1)
+        sigma = flow.sample_sigmas(batch_size, flow_cfg, key=sigma_key)
+        noise = jax.random.normal(noise_key, future.shape, jnp.float32)
+        model_input, timesteps = flow.noisy_segment(segment, noise, sigma, num_cond, flow_cfg)
+
+        def loss_fn(params):
+            prediction = nnx.merge(graphdef, params, state.buffers)(model_input, timesteps, actions)
+            return flow.flow_loss(prediction, segment, noise, num_cond, flow_cfg), prediction
+
+        (loss, prediction), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        grad_norm = optax.global_norm(grads)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with int32 counts
+            updates, new_opt_state = tx.update(grads, state.opt_state, state.params)
+        new_params = optax.apply_updates(state.params, updates)
+        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+        params = _where_tree(finite, new_params, state.params)
+        opt_state = _where_tree(finite, new_opt_state, state.opt_state)
+        ema_params = state.ema_params
+        if ema_params is not None:
+            decay = jnp.float32(trainer_cfg.ema_decay)
+            ema_params = jax.tree.map(lambda e, p: decay * e + (jnp.float32(1.0) - decay) * p, ema_params, params)
+
+        cache = state.cache
+        if use_cache:
+            if cache_cfg.write_source == "sample":
+                model_fn = sampler.model_fn_from_state(graphdef, (jax.lax.stop_gradient(state.params), state.buffers))
+                written = sampler.sample(model_fn, segment[:, :num_cond], actions, key=write_key,
+                                         num_future=future.shape[1], cfg=flow_cfg,
+                                         num_steps=cache_cfg.write_sample_steps, guidance_scale=1.0)
+            else:
+                sigma_b = sigma[:, None, None, None, None]
+                written = flow.to_clean(prediction[:, num_cond:], model_input[:, num_cond:], sigma_b, flow_cfg)
+            cache = dlb_cache.write_predictions(
+                cache, cache_cfg, written, batch["episode"], batch["start"] + num_context, enabled=finite)
+            if num_episodes is not None:
+                metrics["cache_filled"] = dlb_cache.filled_fraction(cache, num_episodes)
+
+        first_nonfinite = jnp.where(~finite & (state.first_nonfinite_step < 0), state.step, state.first_nonfinite_step)
+        metrics.update(
+            loss=loss,
+            grad_norm=grad_norm,
+            param_norm=optax.global_norm(params),
+            update_norm=optax.global_norm(updates) * finite.astype(jnp.float32),
+            nonfinite=(~finite).astype(jnp.int32),
+        )
+        new_state = TrainState(
+            step=state.step + 1, params=params, buffers=state.buffers, opt_state=opt_state,
+            ema_params=ema_params, cache=cache, first_nonfinite_step=first_nonfinite.astype(jnp.int32),
+        )
+        return new_state, metrics
+
+    return step
+
+
+def compile_train_step(
+    step_fn: StepFn,
+    state_shardings: TrainState,
+    batch_shardings: dict[str, NamedSharding],
+    mesh: Mesh,
+    rules=shd.DEFAULT_RULES,
+) -> StepFn:
+    """``jax.jit`` with explicit in/out shardings and the state donated; activations constrained
+    through :func:`sword_jax.sharding.use_mesh` while tracing."""
+    replicated = NamedSharding(mesh, PartitionSpec())
+    jitted = jax.jit(
+        step_fn,
+        in_shardings=(state_shardings, batch_shardings, replicated),
+        out_shardings=(state_shardings, replicated),
+        donate_argnums=(0,),
+    )
+
+    def call(state: TrainState, batch: dict, key: jax.Array) -> tuple[TrainState, dict]:
+        with shd.use_mesh(mesh, rules):
+            return jitted(state, batch, key)
+
+    call.jitted = jitted  # type: ignore[attr-defined]
+    return call
