@@ -15,7 +15,14 @@ class VAEConfig:
       num_res_blocks: residual blocks per level.
       temporal_downsample: which levels halve time (two of them: temporal x4).
       checkpoint: optional path to official Wan 2.2 VAE safetensors; empty trains from scratch.
-      compute_dtype: 'float32' or 'bfloat16'.
+      compute_dtype: 'float32' or 'bfloat16' (activations/convs; params, norms, softmax and losses
+        stay float32).
+      train_steps, learning_rate, batch_size: VAE training from scratch (sword_jax.vae.train).
+      kl_weight: weight of the KL term on the (mu, log_var) posterior.
+      l1_weight, l2_weight: weights of the mean absolute / mean squared reconstruction errors.
+      perceptual_weight: weight of the optional perceptual term (a callable given to the step).
+      weight_decay: AdamW weight decay.
+      grad_clip: global-norm gradient clipping (0 disables).
     """
 
     z_dim: int = 48
@@ -30,6 +37,11 @@ class VAEConfig:
     learning_rate: float = 1e-4
     kl_weight: float = 1e-6
     batch_size: int = 8
+    l1_weight: float = 1.0
+    l2_weight: float = 1.0
+    perceptual_weight: float = 0.0
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
 
     def validate(self) -> None:
         if self.z_dim <= 0 or self.dim <= 0 or self.dec_dim <= 0:
@@ -39,3 +51,34 @@ class VAEConfig:
                 f"vae.temporal_downsample needs {len(self.dim_mult) - 1} entries (one per down level), "
                 f"got {len(self.temporal_downsample)}"
             )
+        if len(self.dim_mult) < 2 or any(m <= 0 for m in self.dim_mult):
+            raise ValueError(f"vae.dim_mult needs >= 2 positive entries, got {self.dim_mult}")
+        if self.num_res_blocks < 1:
+            raise ValueError(f"vae.num_res_blocks must be >= 1, got {self.num_res_blocks}")
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"vae.compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+        if min(self.kl_weight, self.l1_weight, self.l2_weight, self.perceptual_weight, self.weight_decay) < 0:
+            raise ValueError("vae: loss weights and weight_decay must be >= 0")
+        # AvgDown3D / DupUp3D regroup channels: in*factor must divide evenly into out groups.
+        enc = [self.dim * m for m in (1, *self.dim_mult)]
+        dec = [self.dec_dim * m for m in (self.dim_mult[-1], *self.dim_mult[::-1])]
+        levels = len(self.dim_mult)
+        for i in range(levels):
+            down = i != levels - 1
+            factor = (2 if down and self.temporal_downsample[i] else 1) * (4 if down else 1)
+            if (enc[i] * factor) % enc[i + 1]:
+                raise ValueError(f"vae: encoder level {i}: {enc[i]}*{factor} channels do not split into {enc[i + 1]} groups")
+            t_up = down and i < len(self.temporal_downsample) and self.temporal_downsample[::-1][i]
+            factor = (2 if t_up else 1) * (4 if down else 1)
+            if down and (dec[i + 1] * factor) % dec[i]:
+                raise ValueError(f"vae: decoder level {i}: {dec[i + 1]}*{factor} is not a multiple of {dec[i]}")
+
+    @property
+    def temporal_factor(self) -> int:
+        """Frames per latent frame after the first (4 for the official VAE)."""
+        return 2 ** sum(self.temporal_downsample)
+
+    @property
+    def spatial_factor(self) -> int:
+        """Pixels per latent pixel along H and W (16 for the official VAE: 2x2 patchify, three x2 levels)."""
+        return 2 * 2 ** (len(self.dim_mult) - 1)
