@@ -131,6 +131,7 @@ def make_train_step(
             param_norm=optax.global_norm(params),
             update_norm=optax.global_norm(updates) * finite.astype(jnp.float32),
             nonfinite=(~finite).astype(jnp.int32),
+            first_nonfinite_step=first_nonfinite.astype(jnp.int32),
         )
         new_state = TrainState(
             step=state.step + 1, params=params, buffers=state.buffers, opt_state=opt_state,

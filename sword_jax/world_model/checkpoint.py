@@ -1,0 +1,118 @@
+"""Checkpoints and metric logging shared by the trainers.
+
+:class:`Checkpointer` wraps an orbax ``CheckpointManager`` with two items per step: ``state`` (the
+train-state pytree, latent cache included, restored straight into its sharded layout) and ``meta``
+(JSON: data-iterator position, RNG root key data, config). :class:`MetricLogger` reads device
+metrics one log step late, so the host never waits on the step it just dispatched.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from typing import Any, TextIO
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+
+def abstract_like(tree: Any, shardings: Any | None = None) -> Any:
+    """``ShapeDtypeStruct`` tree of ``tree`` carrying ``shardings`` (default: each array's own)."""
+    if shardings is None:
+        return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=a.sharding), tree)
+    return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), tree, shardings)
+
+
+class Checkpointer:
+    """Saves and restores ``(state, meta)`` under ``directory`` (keeps the newest ``max_to_keep``)."""
+
+    def __init__(self, directory: str, *, max_to_keep: int = 2):
+        self.directory = os.path.abspath(directory)
+        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+        self.manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "meta"))
+
+    def latest_step(self) -> int | None:
+        return self.manager.latest_step()
+
+    def save(self, step: int, state: Any, meta: dict[str, Any], *, wait: bool = True) -> None:
+        """Writes checkpoint ``step``; ``meta`` must be JSON-serialisable."""
+        self.manager.save(step, args=ocp.args.Composite(
+            state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)))
+        if wait:
+            self.manager.wait_until_finished()
+
+    def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict[str, Any]]:
+        """Restores ``(state, meta)`` into the shapes/dtypes/shardings of ``abstract_state``.
+
+        Raises:
+          FileNotFoundError: no checkpoint in the directory.
+          ValueError: the checkpoint does not match ``abstract_state`` (e.g. another config).
+        """
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"checkpoint: nothing to restore in {self.directory}")
+        try:
+            restored = self.manager.restore(step, args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()))
+        except (ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"checkpoint: step {step} in {self.directory} does not match this run's state "
+                             f"(different config?): {err}") from err
+        return restored["state"], restored["meta"]
+
+    def close(self) -> None:
+        self.manager.wait_until_finished()
+        self.manager.close()
+
+
+def _format(value: float) -> str:
+    return f"{value:.4g}" if math.isfinite(value) else str(value)
+
+
+class MetricLogger:
+    """Logs scalar metrics one log step late, with progress and ETA (process 0 prints/writes).
+
+    Call :meth:`push` after dispatching each step with that step's (device) metrics; on log steps
+    they are kept, and fetched when the next step has been dispatched. :meth:`flush` fetches what
+    is pending (end of run, before checkpoints).
+    """
+
+    def __init__(self, total_steps: int, log_every: int, *, jsonl_path: str | None = None,
+                 stream: TextIO = sys.stdout, first_step: int = 0):
+        self.total_steps, self.log_every = total_steps, log_every
+        self.jsonl_path = jsonl_path if jax.process_index() == 0 else None
+        self.stream = stream
+        self.pending: tuple[int, dict[str, Any]] | None = None
+        self.start_time = time.perf_counter()
+        self.start_step = first_step
+        self.history: list[dict[str, float]] = []
+
+    def push(self, step: int, metrics: dict[str, Any]) -> dict[str, float] | None:
+        """Records metrics of ``step`` (1-based count of steps done); returns the row logged now, if any."""
+        row = self.flush()
+        if step % self.log_every == 0 or step == self.total_steps:
+            self.pending = (step, metrics)
+        return row
+
+    def flush(self) -> dict[str, float] | None:
+        if self.pending is None:
+            return None
+        step, metrics = self.pending
+        self.pending = None
+        values = {name: float(np.asarray(v)) for name, v in jax.device_get(metrics).items()}
+        elapsed = time.perf_counter() - self.start_time
+        done = max(step - self.start_step, 1)
+        eta = elapsed / done * max(self.total_steps - step, 0)
+        row = {"step": step, **values, "elapsed_s": elapsed, "eta_s": eta}
+        self.history.append(row)
+        if jax.process_index() == 0:
+            text = " ".join(f"{k}={_format(v)}" for k, v in values.items())
+            print(f"[{step}/{self.total_steps}] {text} | {elapsed:.0f}s elapsed, ETA {eta:.0f}s",
+                  file=self.stream, flush=True)
+            if self.jsonl_path:
+                with open(self.jsonl_path, "a") as out:
+                    out.write(json.dumps(row) + "\n")
+        return row

@@ -1,0 +1,186 @@
+"""Trains the action-conditioned world model: teacher forcing, or DLB when ``cache.enabled``.
+
+Usage::
+
+    python -m train.train_world_model --config sword:tiny --workdir DIR [--synthetic] [--model.num_layers=1 ...]
+    python -m train.train_world_model --config cache_ablation:linear-ema-single --workdir DIR --data.path latents.npz
+
+The latent dataset comes from ``--data.path`` (``.npz``/``.h5`` with ``latents [E, L, h, w, c]`` and
+``actions [E, 1 + 4(L-1), a]``) or, with ``--synthetic``, from action-dependent synthetic latents.
+The run auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position,
+RNG root, config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl``.
+A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
+checkpoint stays, and the faulty step's update was never applied.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+from flax import nnx
+
+import configs
+from configs.base import ExperimentConfig
+from sword_jax import sharding as shd
+from sword_jax.dit.world_model import WorldModel
+from sword_jax.dlb import cache as dlb_cache
+from sword_jax.world_model import checkpoint, data, train_state, train_step
+
+USAGE = "usage: python -m train.train_world_model --config NAME:VARIANT --workdir DIR [--synthetic] [--section.key=value ...]"
+
+
+class NonFiniteLoss(RuntimeError):
+    """Raised when the loss or gradient became non-finite and ``trainer.on_nonfinite=stop``."""
+
+
+def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
+    cfg, rest = configs.from_argv(argv)
+    workdir, synthetic, index = cfg.workdir, False, 0
+    while index < len(rest):
+        arg = rest[index]
+        if arg == "--workdir" and index + 1 < len(rest):
+            workdir, index = rest[index + 1], index + 2
+            continue
+        if arg.startswith("--workdir="):
+            workdir = arg.split("=", 1)[1]
+        elif arg == "--synthetic":
+            synthetic = True
+        else:
+            raise SystemExit(f"train_world_model: unknown argument {arg!r}\n{USAGE}")
+        index += 1
+    return cfg, workdir, synthetic
+
+
+def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
+    """``(L, h, w, c)`` of a latent episode for the config's frames and VAE."""
+    side = cfg.data.image_size // 16
+    return 1 + (cfg.data.episode_frames - 1) // 4, side, side, cfg.vae.z_dim
+
+
+def build_dataset(cfg: ExperimentConfig, synthetic: bool) -> data.LatentDataset:
+    num_latents, height, width, channels = latent_grid(cfg)
+    if synthetic or not cfg.data.path:
+        if not synthetic:
+            raise SystemExit("train_world_model: set --data.path=latents.npz or pass --synthetic")
+        return data.synthetic_latent_dataset(cfg.data.num_episodes, num_latents, height, width, channels,
+                                             seed=cfg.seed, action_dim=cfg.model.action_dim)
+    dataset = data.load_latent_dataset(cfg.data.path)
+    if dataset.shape[2:] != (height, width, channels) or dataset.actions.shape[2] != cfg.model.action_dim:
+        raise SystemExit(f"train_world_model: {cfg.data.path} holds latents {dataset.shape} / actions "
+                         f"{dataset.actions.shape}, but the config expects [E, L, {height}, {width}, {channels}] "
+                         f"and {cfg.model.action_dim}-D actions")
+    return dataset
+
+
+# Trainer keys that may change between a run and its resumption (e.g. extending the run).
+RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", "on_nonfinite")
+
+
+def _comparable(cfg_dict: dict) -> dict:
+    trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
+    return {**cfg_dict, "trainer": trainer, "workdir": None}
+
+
+def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
+    path = os.path.join(workdir, "config.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = _comparable(json.load(f))
+        current = _comparable(cfg_dict)
+        if saved != current:
+            differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
+            raise SystemExit(f"train_world_model: {workdir} was made with another config (sections differ: {differ}); "
+                             "use a new --workdir")
+    elif jax.process_index() == 0:
+        os.makedirs(workdir, exist_ok=True)
+        with open(path, "w") as f:
+            json.dump(cfg_dict, f, indent=1, sort_keys=True)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Runs (or resumes) training; returns a summary (final step, last logged metrics)."""
+    cfg, workdir, synthetic = _parse(sys.argv[1:] if argv is None else argv)
+    if cfg.mesh.distributed:
+        jax.distributed.initialize()
+    cfg_dict = configs.to_dict(cfg)
+    cfg_dict["synthetic"] = synthetic
+    _check_config_matches(workdir, cfg_dict)
+    mesh = shd.make_mesh(cfg.mesh)
+    rules = cfg.mesh.rules
+    num_context, num_future = cfg.data.context_frames // 4, cfg.data.predict_frames // 4
+    dataset = build_dataset(cfg, synthetic)
+    is_main = jax.process_index() == 0
+    if is_main:
+        print(f"[train_world_model] {cfg.name}: mesh {dict(mesh.shape)}, dataset latents {dataset.shape}, "
+              f"DLB {'on (' + cfg.cache.schedule + ', ' + cfg.cache.replacement + ', ' + cfg.cache.scope + ')' if cfg.cache.enabled else 'off'}")
+        if cfg.cache.enabled:
+            per_device = dlb_cache.cache_bytes_per_device(cfg.cache, dataset.shape, mesh, rules)
+            print(f"[train_world_model] latent cache: {per_device / 2**20:.2f} MiB per device "
+                  f"({cfg.cache.dtype}, {dlb_cache.episode_shards(mesh, rules)} episode shards)")
+
+    graphdef, state, shardings = train_state.create_train_state(
+        lambda: WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), cfg.trainer, cfg.cache, dataset.shape, mesh, rules)
+    sampler = data.SegmentSampler(dataset.shape[0], dataset.shape[1], num_context, num_future,
+                                  cfg.data.batch_size, seed=cfg.seed)
+    loader = data.SegmentLoader(dataset, sampler, num_context, num_future, mesh, rules)
+    root_key = jax.random.key(cfg.seed)
+    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=cfg.trainer.keep_checkpoints)
+    start_step = 0
+    if ckpt.latest_step() is not None:
+        state, meta = ckpt.restore(checkpoint.abstract_like(state, shardings))
+        loader.restore(meta["data_position"])
+        root_key = jax.random.wrap_key_data(np.asarray(meta["rng_root"], np.uint32))
+        start_step = int(meta["step"])
+        if is_main:
+            print(f"[train_world_model] resumed from step {start_step} in {workdir}")
+
+    step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
+                                         num_context=num_context, num_episodes=dataset.shape[0])
+    step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
+    root_key = jax.device_put(root_key, shd.replicated(mesh))
+    logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every, first_step=start_step,
+                                     jsonl_path=os.path.join(workdir, "metrics.jsonl"))
+
+    def meta_for(step_done: int) -> dict:
+        return {"step": step_done, "data_position": loader.position,
+                "rng_root": np.asarray(jax.random.key_data(root_key)).tolist(), "config": cfg_dict}
+
+    def check_finite(step_done: int) -> None:
+        first_bad = int(jax.device_get(state.first_nonfinite_step))
+        if first_bad >= 0 and cfg.trainer.on_nonfinite == "stop":
+            last = ckpt.latest_step()
+            raise NonFiniteLoss(f"train_world_model: non-finite loss/gradient at step {first_bad} (0-based; "
+                                f"update skipped); stopping at step {step_done}. Last good checkpoint: "
+                                f"{'step ' + str(last) if last is not None else 'none'} in {ckpt.directory}")
+
+    step_done = start_step
+    try:
+        for step_done in range(start_step + 1, cfg.trainer.steps + 1):
+            state, metrics = step(state, loader.next(), root_key)
+            row = logger.push(step_done, metrics)
+            if row is not None and row["first_nonfinite_step"] >= 0:
+                check_finite(step_done)
+            if step_done % cfg.trainer.checkpoint_every == 0 or step_done == cfg.trainer.steps:
+                logger.flush()
+                check_finite(step_done)
+                ckpt.save(step_done, state, meta_for(step_done))
+        logger.flush()
+        check_finite(step_done)
+    finally:
+        ckpt.close()
+    last = logger.history[-1] if logger.history else {}
+    return {"step": step_done, "metrics": last, "workdir": workdir}
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except NonFiniteLoss as err:
+        print(err, file=sys.stderr)
+        raise SystemExit(1) from None
