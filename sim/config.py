@@ -15,6 +15,10 @@ class SimConfig:
     settle_steps: int = 10
     expert_noise: float = 0.0
     wrist_camera: bool = False
+    physics_dt: float = 0.005  # s; control_hz * physics_dt * substeps = 1 (10 substeps at 20 Hz)
+    control_hz: float = 20.0
+    init: str = "fixed"  # fixed: one of the task's 50 seeded initial states | random: fresh sample
+    init_seed: int = 0  # seed of the 50 fixed initial states per task
 
     def validate(self) -> None:
         if self.backend not in ("cpu", "mjx"):
@@ -24,3 +28,17 @@ class SimConfig:
         for task in self.tasks:
             if not 0 <= task <= 9:
                 raise ValueError(f"sim.tasks: task ids are 0-9, got {task}")
+        if self.max_steps <= 0 or self.settle_steps < 0:
+            raise ValueError(f"sim.max_steps must be > 0 and settle_steps >= 0, got {self.max_steps}, {self.settle_steps}")
+        if not 0 <= self.expert_noise <= 1:
+            raise ValueError(f"sim.expert_noise must be in [0, 1], got {self.expert_noise}")
+        if not 0 < self.physics_dt <= 0.01:
+            raise ValueError(f"sim.physics_dt must be in (0, 0.01], got {self.physics_dt}")
+        substeps = 1.0 / (self.control_hz * self.physics_dt) if self.control_hz > 0 else 0.0
+        if self.control_hz <= 0 or abs(substeps - round(substeps)) > 1e-6 or round(substeps) < 1:
+            raise ValueError(
+                f"sim: 1/(control_hz*physics_dt) must be a positive integer, got "
+                f"control_hz={self.control_hz}, physics_dt={self.physics_dt}"
+            )
+        if self.init not in ("fixed", "random"):
+            raise ValueError(f"sim.init must be fixed|random, got {self.init!r}")

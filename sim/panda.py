@@ -20,12 +20,14 @@ FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 JOINT_LOWER = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
 JOINT_UPPER = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
 FINGER_OPEN = 0.04
+# Closed-gripper servo target: below the joint limit so a grasp squeezes with ~30 N per finger.
+FINGER_CLOSED_TARGET = -0.03
 # LIBERO's mounted Panda home posture (gripper down, fingers along world y).
 HOME_QPOS = np.array([0.0, -0.161, 0.0, -2.44, 0.0, 2.227, np.pi / 4])
 # Tool centre point: between the finger pads, 0.1034 m below the hand origin.
 TCP_OFFSET = 0.1034
-# Collision bits (see sim/scene.py): fingers are bit 3 and touch the grasp target only.
-FINGER_CONTYPE, FINGER_CONAFFINITY = 8, 4
+# Collision bits (see sim/scene.py): finger pads are bit 3; they touch the grasp target and static supports.
+FINGER_CONTYPE, FINGER_CONAFFINITY = 8, 5
 
 _LINK_MASS = (4.970684, 0.646926, 3.228604, 3.587895, 1.225946, 1.666555, 0.735522)
 
@@ -53,7 +55,7 @@ def _finger(side: str, quat: str) -> str:
     # Inner pad face lies at y = joint position, so the gap between pads is q1 + q2.
     return (
         f'<body name="panda_{side}_finger" pos="0 0 0.0584" quat="{quat}">'
-        f'<joint name="{joint}" type="slide" axis="0 1 0" range="0 {FINGER_OPEN}" damping="20" armature="0.05"/>'
+        f'<joint name="{joint}" type="slide" axis="0 1 0" range="0 {FINGER_OPEN}" damping="150" armature="0.05"/>'
         f'<geom name="panda_{side}_finger_body" type="box" pos="0 0.012 0.012" size="0.01 0.012 0.014" mass="0.008" '
         f'material="panda_white" contype="0" conaffinity="0" group="1"/>'
         f'<geom name="panda_{side}_finger_pad" type="box" pos="0 0.006 0.042" size="0.011 0.006 0.016" mass="0.007" '
@@ -78,7 +80,7 @@ def panda_xml(base_pos: str = "-0.66 0 0.912") -> str:
         out.append(f'<body name="{body}" pos="{pos}" quat="{quat}" gravcomp="1">')
         lo, hi = JOINT_LOWER[jidx], JOINT_UPPER[jidx]
         out.append(
-            f'<joint name="{ARM_JOINTS[jidx]}" axis="0 0 1" range="{lo} {hi}" damping="10" armature="0.1"/>'
+            f'<joint name="{ARM_JOINTS[jidx]}" axis="0 0 1" range="{lo} {hi}" damping="5" armature="0.1"/>'
         )
         share = _LINK_MASS[idx] / len(capsules)
         for k, (fromto, radius) in enumerate(capsules):
@@ -103,14 +105,14 @@ def panda_xml(base_pos: str = "-0.66 0 0.912") -> str:
 def actuators_xml() -> str:
     """Joint-position servos for the arm and the two fingers (force limited)."""
     kp = (2000, 2000, 1500, 1500, 800, 800, 400)
-    kv = (200, 200, 150, 150, 60, 60, 30)
+    kv = (40, 40, 30, 30, 10, 10, 5)
     frc = (87, 87, 87, 87, 12, 12, 12)
     rows = [
         f'<position name="act_{j}" joint="{j}" kp="{p}" kv="{v}" forcerange="{-f} {f}" ctrlrange="{lo} {hi}"/>'
         for j, p, v, f, lo, hi in zip(ARM_JOINTS, kp, kv, frc, JOINT_LOWER, JOINT_UPPER)
     ]
     rows += [
-        f'<position name="act_{j}" joint="{j}" kp="400" kv="10" forcerange="-40 40" ctrlrange="0 {FINGER_OPEN}"/>'
+        f'<position name="act_{j}" joint="{j}" kp="1000" kv="20" forcerange="-40 40" ctrlrange="{FINGER_CLOSED_TARGET} {FINGER_OPEN}"/>'
         for j in FINGER_JOINTS
     ]
     return "\n".join(rows)

@@ -16,7 +16,7 @@ Contacts are filtered with bits (contact iff ``ct_a & ca_b or ct_b & ca_a``):
   1 static supports (table top, stove, cabinet top, drawer floor),
   2 movable supports (plate, ramekin, cookie box; they rest on bit 1),
   4 bowl bases (rest on bits 1|2) and target-bowl walls (touch the fingers),
-  8 finger pads (touch bit 4 only).
+  8 finger pads (touch bits 4 and 1: the target bowl and the static supports).
 So a world has at most a few dozen candidate pairs and typically < 20 contacts.
 
 Object body origins are at the centre of their bottom face (so ``pos.z`` = resting height).
@@ -227,7 +227,7 @@ def _table() -> str:
     return "\n".join(rows)
 
 
-def scene_xml(*, timestep: float = 0.002, iterations: int = 6, ls_iterations: int = 8) -> str:
+def scene_xml(*, timestep: float = 0.005, iterations: int = 6, ls_iterations: int = 8) -> str:
     """The whole scene as an MJCF string."""
     bx, by, bz = ROBOT_BASE
     return f"""<mujoco model="libero_spatial">
@@ -269,7 +269,7 @@ def _build_cached(timestep: float, iterations: int, ls_iterations: int) -> mujoc
     return mujoco.MjModel.from_xml_string(scene_xml(timestep=timestep, iterations=iterations, ls_iterations=ls_iterations))
 
 
-def build_model(*, timestep: float = 0.002, iterations: int = 6, ls_iterations: int = 8) -> mujoco.MjModel:
+def build_model(*, timestep: float = 0.005, iterations: int = 6, ls_iterations: int = 8) -> mujoco.MjModel:
     """Compile the scene. Returns a fresh copy (callers may edit it)."""
     if not 0 < timestep <= 0.01:
         raise ValueError(f"timestep must be in (0, 0.01], got {timestep}")

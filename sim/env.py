@@ -1,0 +1,228 @@
+"""Pure LIBERO-Spatial environments: ``reset(key) -> State``, ``step(state, action) -> State``.
+
+Two backends over ONE model (``sim/scene.py``) and ONE controller (``sim/controller.py``):
+
+* ``MjxEnv``: MJX (JAX), jit/vmap-able, for accelerators. ``State.data`` is an ``mjx.Data``.
+* ``CpuEnv``: MuJoCo's C engine, numpy in and out, for CPU work (tests, data generation).
+  ``State.data`` is a ``mujoco.MjData`` that ``step`` copies, never mutates, so the API stays
+  pure. MJX's JAX implementation is far too slow on a CPU for an arm (~0.4 s per physics step
+  here), the C engine runs ~1e5 steps/s.
+
+Both share the observation, reward and success code (``_Common``, written for ``xp`` =
+numpy or jax.numpy). One control step (20 Hz) = controller once + ``substeps`` physics steps.
+``reset`` places the objects (one of the task's 50 fixed initial states, or a fresh sample)
+and runs the 10 settle steps (zero motion, gripper open) as LIBERO does. Episode limits and
+auto-reset live in ``sim/wrappers.py``, not here.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from sim import controller as ctl
+from sim import panda, scene, tasks
+from sim.config import SimConfig
+
+Renderer = Callable[[Any], dict[str, Any]]
+SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], np.float32)
+
+
+@struct.dataclass
+class State:
+    """Environment state (mujoco_playground style).
+
+    Attributes:
+      data: ``mjx.Data`` (MJX backend) or ``mujoco.MjData`` (C backend).
+      obs: dict with ``proprio`` (8,) and any images the renderer adds.
+      reward: () 1.0 when the task is solved in this state.
+      done: () 1.0 when the task is solved (time limits are a wrapper's business).
+      metrics: dict of () floats (``success``).
+      info: dict of per-env bookkeeping (wrappers add ``steps``, ``truncation`` ...).
+    """
+
+    data: Any
+    obs: dict[str, Any]
+    reward: Any
+    done: Any
+    metrics: dict[str, Any]
+    info: dict[str, Any]
+
+
+class _Common:
+    """Model ids, config and the backend-independent observation / success math."""
+
+    def __init__(self, config: SimConfig, task_id: int, renderer: Renderer | None = None,
+                 controller: ctl.ControllerConfig = ctl.ControllerConfig()):
+        config.validate()
+        controller.validate()
+        if not 0 <= task_id < tasks.NUM_TASKS:
+            raise ValueError(f"task_id must be in 0..{tasks.NUM_TASKS - 1}, got {task_id}")
+        self.config = config
+        self.task_id = int(task_id)
+        self.language = tasks.LANGUAGE[self.task_id]
+        self.controller = controller
+        self.renderer = renderer
+        self.mj_model = scene.build_model(timestep=config.physics_dt)
+        steps = 1.0 / (config.control_hz * config.physics_dt)
+        if abs(steps - round(steps)) > 1e-6:
+            raise ValueError(f"1/(control_hz*physics_dt) must be an integer, got {steps}")
+        self.substeps = int(round(steps))
+        m = self.mj_model
+        self.site_id = m.site("grip_site").id
+        self.hand_body = m.body("panda_hand").id
+        self.bowl_body = m.body(scene.TARGET_BOWL).id
+        self.plate_body = m.body("plate_1").id
+        self.init_states = tasks.fixed_init_states(self.task_id, seed=config.init_seed)
+        self.nq, self.nv = m.nq, m.nv
+
+    @property
+    def action_size(self) -> int:
+        return ctl.ACTION_DIM
+
+    @property
+    def observation_size(self) -> dict[str, tuple[int, ...]]:
+        return {"proprio": (ctl.PROPRIO_DIM,)}
+
+    def _draws_to_qpos(self, draws: Any, xp: Any) -> Any:
+        """draws (NUM_DRAWS + 1,) -> qpos: a fixed init state or a fresh sample."""
+        if self.config.init == "fixed":
+            idx = xp.minimum((draws[-1] * tasks.NUM_INIT_STATES).astype(xp.int32), tasks.NUM_INIT_STATES - 1)
+            return xp.asarray(self.init_states)[idx]
+        return tasks.init_qpos(self.task_id, draws[:-1], xp=xp)
+
+    def _obs(self, data: Any, xp: Any) -> dict[str, Any]:
+        ee_mat = data.site_xmat[self.site_id].reshape(3, 3)
+        obs = {"proprio": ctl.proprio(data.site_xpos[self.site_id], ee_mat, data.qpos[7:9], xp=xp)}
+        if self.renderer is not None:
+            obs.update(self.renderer(data))
+        return obs
+
+    def _success(self, data: Any, xp: Any) -> Any:
+        return tasks.success(data.xpos[self.bowl_body], data.xmat[self.bowl_body].reshape(3, 3)[2, 2],
+                             data.xpos[self.plate_body], xp=xp)
+
+    @staticmethod
+    def _check_action(action: Any) -> None:
+        shape = np.shape(action)
+        if shape != (ctl.ACTION_DIM,):
+            raise ValueError(f"action must have shape ({ctl.ACTION_DIM},), got {shape}")
+
+
+class CpuEnv(_Common):
+    """C-engine backend (numpy state). Same API as ``MjxEnv``."""
+
+    def __init__(self, config: SimConfig = SimConfig(), task_id: int = 0, **kwargs):
+        super().__init__(config, task_id, **kwargs)
+        self._jacp = np.zeros((3, self.nv))
+        self._jacr = np.zeros((3, self.nv))
+
+    def _draws(self, key: Any) -> np.ndarray:
+        if isinstance(key, np.random.Generator):
+            return key.random(tasks.NUM_DRAWS + 1)
+        return np.asarray(jax.random.uniform(key, (tasks.NUM_DRAWS + 1,)), np.float64)
+
+    def reset(self, key: Any) -> State:
+        """New episode from a jax PRNG key (or a ``numpy.random.Generator``)."""
+        return self.reset_to(self._draws_to_qpos(self._draws(key), np))
+
+    def reset_to(self, qpos: np.ndarray) -> State:
+        """New episode from a given initial ``qpos`` (e.g. ``init_states[i]``), then settle."""
+        qpos = np.asarray(qpos, np.float64)
+        if qpos.shape != (self.nq,) or not np.all(np.isfinite(qpos)):
+            raise ValueError(f"qpos must be finite with shape ({self.nq},), got {qpos.shape}")
+        data = mujoco.MjData(self.mj_model)
+        data.qpos[:] = qpos
+        data.ctrl[:7] = qpos[:7]
+        data.ctrl[7:] = panda.FINGER_OPEN
+        mujoco.mj_forward(self.mj_model, data)
+        for _ in range(self.config.settle_steps):
+            self._physics(data, SETTLE_ACTION)
+        return self._state(data, info={})
+
+    def _physics(self, data: mujoco.MjData, action: np.ndarray) -> None:
+        mujoco.mj_jacSite(self.mj_model, data, self._jacp, self._jacr, self.site_id)
+        data.ctrl[:] = ctl.servo_targets(np.asarray(action, np.float64), data.qpos[:7].copy(),
+                                         self._jacp[:, :7], self._jacr[:, :7], self.controller, xp=np)
+        for _ in range(self.substeps):
+            mujoco.mj_step(self.mj_model, data)
+
+    def _state(self, data: mujoco.MjData, info: dict[str, Any]) -> State:
+        solved = np.float32(self._success(data, np))
+        return State(data=data, obs=self._obs(data, np), reward=solved, done=solved,
+                     metrics={"success": solved}, info=info)
+
+    def step(self, state: State, action: np.ndarray) -> State:
+        """One 20 Hz control step; ``state`` is not modified."""
+        self._check_action(action)
+        action = np.asarray(action, np.float64)
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action}")
+        data = copy.copy(state.data)
+        self._physics(data, action)
+        if not np.all(np.isfinite(data.qpos)):
+            raise FloatingPointError("simulation diverged (non-finite qpos)")
+        return self._state(data, info=dict(state.info))
+
+
+class MjxEnv(_Common):
+    """MJX backend: ``reset``/``step`` are pure JAX functions (jit them; vmap via wrappers)."""
+
+    def __init__(self, config: SimConfig = SimConfig(backend="mjx"), task_id: int = 0, **kwargs):
+        super().__init__(config, task_id, **kwargs)
+        self.mjx_model = mjx.put_model(self.mj_model)
+        self._init_states_j = jnp.asarray(self.init_states, jnp.float32)
+
+    def _draws_to_qpos(self, draws: Any, xp: Any) -> Any:
+        if self.config.init == "fixed":
+            idx = jnp.minimum((draws[-1] * tasks.NUM_INIT_STATES).astype(jnp.int32), tasks.NUM_INIT_STATES - 1)
+            return self._init_states_j[idx]
+        return tasks.init_qpos(self.task_id, draws[:-1], xp=jnp)
+
+    def reset(self, key: jax.Array) -> State:
+        """New episode (pure). ``key``: a jax PRNG key."""
+        draws = jax.random.uniform(key, (tasks.NUM_DRAWS + 1,))
+        return self.reset_to(self._draws_to_qpos(draws, jnp))
+
+    def reset_to(self, qpos: jax.Array) -> State:
+        """New episode from a given initial qpos (nq,), then the settle steps (pure)."""
+        qpos = jnp.asarray(qpos, jnp.float32)
+        ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
+        data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
+        data = mjx.forward(self.mjx_model, data)
+        settle = jnp.asarray(SETTLE_ACTION)
+        data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
+        return self._state(data, info={})
+
+    def _physics(self, data: Any, action: jax.Array) -> Any:
+        from mujoco.mjx._src import support
+
+        jacp, jacr = support.jac(self.mjx_model, data, data.site_xpos[self.site_id], self.hand_body)  # (nv, 3)
+        ctrl = ctl.servo_targets(action.astype(jnp.float32), data.qpos[:7], jacp[:7].T, jacr[:7].T,
+                                 self.controller, xp=jnp)
+        data = data.replace(ctrl=ctrl)
+        return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+
+    def _state(self, data: Any, info: dict[str, Any]) -> State:
+        solved = self._success(data, jnp).astype(jnp.float32)
+        return State(data=data, obs=self._obs(data, jnp), reward=solved, done=solved,
+                     metrics={"success": solved}, info=info)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """One 20 Hz control step (pure; jit it)."""
+        self._check_action(action)
+        data = self._physics(state.data, jnp.asarray(action, jnp.float32))
+        return self._state(data, info=dict(state.info))
+
+
+def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
+    """The backend ``config.backend`` names."""
+    return (MjxEnv if config.backend == "mjx" else CpuEnv)(config, task_id, **kwargs)
