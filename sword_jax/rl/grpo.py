@@ -51,10 +51,12 @@ def group_advantages(
     returns = returns.astype(jnp.float32)
     mean = jnp.mean(returns, axis=1, keepdims=True)
     std = jnp.std(returns, axis=1, keepdims=True)
-    adv = (returns - mean) / (std + jnp.float32(eps))
-    has_signal = (std[:, 0] > jnp.float32(SIGNAL_EPS)).astype(jnp.float32)
-    keep = has_signal if filter_groups else jnp.ones_like(has_signal)
-    return adv * keep[:, None], keep
+    has_signal = std[:, 0] > jnp.float32(SIGNAL_EPS)
+    # a group with no signal has zero advantages (never 0/0), kept or not
+    safe_std = jnp.where(has_signal[:, None], std, jnp.float32(1.0))
+    adv = jnp.where(has_signal[:, None], (returns - mean) / (safe_std + jnp.float32(eps)), jnp.float32(0.0))
+    keep = has_signal.astype(jnp.float32) if filter_groups else jnp.ones(has_signal.shape, jnp.float32)
+    return adv, keep
 
 
 def clipped_token_loss(
@@ -139,6 +141,18 @@ def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(cfg.learning_rate, weight_decay=0.0))
 
 
+def apply_optimizer(optimizer: optax.GradientTransformation, grads: Any, opt_state: Any, params: Any):
+    """One optimizer update; returns ``(updates, opt_state, params)``.
+
+    optax's Adam mixes Python floats with its int32 step count, which strict dtype promotion
+    rejects; the update alone runs under standard promotion.
+    """
+    with jax.numpy_dtype_promotion("standard"):
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+    return updates, opt_state, params
+
+
 def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
     """Train state with the reference policy frozen at ``params`` (the SFT policy)."""
     ref = jax.tree.map(jnp.copy, params) if cfg.kl_coef > 0.0 else None
@@ -174,8 +188,7 @@ def grpo_update(
     def epoch(carry, _):
         params, opt_state = carry
         (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
+        updates, opt_state, params = apply_optimizer(optimizer, grads, opt_state, params)
         metrics = dict(metrics, loss=loss, grad_norm=optax.global_norm(grads), update_norm=optax.global_norm(updates))
         return (params, opt_state), metrics
 
