@@ -1,0 +1,139 @@
+"""World-model train step: step time, model FLOP utilisation, DLB overhead, peak memory.
+
+    python -m benchmarks.bench_dit_train                 # 5B width (dim 3072) + small config, on GPU
+    python -m benchmarks.bench_dit_train --tiny          # CPU smoke run
+
+Model FLOPs are counted the standard way: 3x the forward matmul and attention FLOPs (recomputation
+not counted), over the whole 1 + 1 + 2 latent-frame segment the step runs. MFU is judged against a
+bf16 matmul peak measured in the same process. The teacher-forcing and DLB steps run side by side
+on the same model, batch and data, so their ratio is not disturbed by drift between runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from benchmarks import common
+from sword_jax import sharding as shd
+from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.world_model import WorldModel
+from sword_jax.dlb import cache as dlb_cache
+from sword_jax.dlb.config import CacheConfig
+from sword_jax.world_model import train_state, train_step
+from sword_jax.world_model.config import FlowConfig, TrainerConfig
+
+
+def forward_flops(cfg: DiTConfig, batch: int, latent_frames: int, latent_hw: tuple[int, int], action_tokens: int) -> float:
+    """Forward matmul + attention FLOPs of the world model for one batch (multiply-add = 2)."""
+    d, ffn, n_layers = cfg.dim, cfg.ffn_dim, cfg.num_layers
+    tokens = latent_frames * (latent_hw[0] // cfg.patch_size[1]) * (latent_hw[1] // cfg.patch_size[2])
+    per_token_layer = (
+        2 * 4 * d * d  # self-attention q, k, v, o
+        + 2 * 2 * d * d  # cross-attention q, o
+        + 2 * 2 * d * ffn  # FFN
+        + 2 * 2 * tokens * d  # self-attention scores and values
+        + 2 * 2 * action_tokens * d  # cross-attention scores and values
+    )
+    per_sample = tokens * n_layers * per_token_layer
+    per_sample += n_layers * action_tokens * 2 * 2 * d * d  # cross-attention k, v of the action tokens
+    patch = cfg.patch_size[1] * cfg.patch_size[2] * cfg.in_dim
+    per_sample += tokens * (2 * patch * d + 2 * d * patch)  # patch embedding and head
+    per_sample += tokens * (2 * cfg.freq_dim * d + 2 * d * d + 2 * d * 6 * d)  # per-token time embedding + projection
+    return float(batch * per_sample)
+
+
+def _batch(cfg: DiTConfig, batch: int, hw: tuple[int, int], num_episodes: int, num_latents: int, mesh):
+    rng = np.random.default_rng(0)
+    latents = rng.standard_normal((batch, 4, hw[0], hw[1], cfg.in_dim), dtype=np.float32)
+    actions = rng.uniform(-1, 1, (batch, 13, cfg.action_dim)).astype(np.float32)
+    episode = rng.integers(0, num_episodes, batch).astype(np.int32)
+    start = rng.integers(1, num_latents - 2, batch).astype(np.int32)
+    host = {"latents": latents, "actions": actions, "episode": episode, "start": start}
+    shardings = {k: shd.batch_sharding(mesh, v.ndim) for k, v in host.items()}
+    return {k: jax.device_put(v, shardings[k]) for k, v in host.items()}, shardings
+
+
+def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int], *, peak_tflops: float,
+               iters: int, num_episodes: int = 64, num_latents: int = 32) -> dict:
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1))
+    trainer_cfg = TrainerConfig(steps=1000, warmup_steps=10)
+    flow_cfg = FlowConfig()
+    dataset_shape = (num_episodes, num_latents, hw[0], hw[1], model_cfg.in_dim)
+    data, data_shardings = _batch(model_cfg, batch, hw, num_episodes, num_latents, mesh)
+    key = jax.random.key(0)
+    row: dict = {"config": label, "layers": model_cfg.num_layers, "dim": model_cfg.dim, "batch": batch,
+                 "remat": model_cfg.remat, "attention": model_cfg.attention_impl}
+    times = {}
+    for name, cache_cfg in (("tf", CacheConfig(enabled=False)),
+                            ("dlb", CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5))):
+        graphdef, state, shardings = train_state.create_train_state(
+            lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)), trainer_cfg, cache_cfg, dataset_shape, mesh)
+        fn = train_step.make_train_step(graphdef, flow_cfg=flow_cfg, trainer_cfg=trainer_cfg, cache_cfg=cache_cfg,
+                                        num_context=1, num_episodes=num_episodes)
+        step = train_step.compile_train_step(fn, shardings, data_shardings, mesh)
+        holder = {"state": state}
+
+        def one():
+            holder["state"], metrics = step(holder["state"], data, key)
+            return metrics["loss"]
+
+        times[name] = common.time_fn(one, warmup=2, iters=iters)["median_s"]
+        loss = float(one())
+        if not np.isfinite(loss):
+            raise RuntimeError(f"{label}/{name}: non-finite loss {loss}")
+        if name == "dlb":
+            row["cache_mib_per_device"] = dlb_cache.cache_bytes_per_device(cache_cfg, dataset_shape, mesh) / 2**20
+        del holder, state
+    flops = 3 * forward_flops(model_cfg, batch, 4, hw, 13)
+    row.update(tf_step_s=times["tf"], dlb_step_s=times["dlb"], dlb_overhead=times["dlb"] / times["tf"] - 1,
+               model_tflops=flops / times["tf"] / 1e12, mfu=flops / times["tf"] / 1e12 / peak_tflops,
+               peak_mem_gb=common.peak_memory_gb())
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes")
+    parser.add_argument("--layers", type=int, default=8, help="layers at 5B width (as many as fit one GPU)")
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--remat", default="none")
+    parser.add_argument("--attention", default="auto")
+    parser.add_argument("--iters", type=int, default=10)
+    parser.add_argument("--no-record", action="store_true")
+    args = parser.parse_args()
+
+    peak = common.measured_matmul_tflops()
+    copy_gbps = common.measured_copy_gbps()
+    print(f"device {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s, copy {copy_gbps:.0f} GB/s")
+    rows = []
+    if args.tiny:
+        tiny = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
+                         compute_dtype="float32")
+        rows.append(run_config("tiny", tiny, 4, (4, 4), peak_tflops=peak, iters=2))
+    else:
+        wide = DiTConfig(num_layers=args.layers, remat=args.remat, attention_impl=args.attention)
+        rows.append(run_config("5b-width", wide, args.batch, (16, 16), peak_tflops=peak, iters=args.iters))
+        small = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16,
+                          remat=args.remat, attention_impl=args.attention)
+        rows.append(run_config("small", small, 64, (8, 8), peak_tflops=peak, iters=args.iters))
+    common.print_table(rows, ["config", "layers", "batch", "remat", "attention", "tf_step_s", "dlb_step_s",
+                              "dlb_overhead", "model_tflops", "mfu", "peak_mem_gb"])
+    if args.no_record or args.tiny:
+        return
+    wide = rows[0]
+    extra = {"measured_peak_tflops": peak, "copy_gbps": copy_gbps, "rows": rows}
+    common.merge_results({
+        "dit_train_mfu_vs_measured_peak": common.record("dit_train_mfu_vs_measured_peak", wide["mfu"], 0.65, **extra),
+        "dlb_overhead_ratio": common.record("dlb_overhead_ratio", wide["dlb_overhead"], 0.03,
+                                            tf_step_s=wide["tf_step_s"], dlb_step_s=wide["dlb_step_s"]),
+    })
+
+
+if __name__ == "__main__":
+    main()
