@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from flax import struct
-from mujoco import mjx
 
 from sim import controller as ctl
 from sim import panda, scene, tasks
@@ -173,11 +172,18 @@ class CpuEnv(_Common):
         return self._state(data, info=dict(state.info))
 
 
+def _mjx():
+    from mujoco import mjx  # imported lazily: it costs seconds and the C backend does not need it
+
+    return mjx
+
+
 class MjxEnv(_Common):
     """MJX backend: ``reset``/``step`` are pure JAX functions (jit them; vmap via wrappers)."""
 
     def __init__(self, config: SimConfig = SimConfig(backend="mjx"), task_id: int = 0, **kwargs):
         super().__init__(config, task_id, **kwargs)
+        mjx = _mjx()
         self.mjx_model = mjx.put_model(self.mj_model)
         self._init_states_j = jnp.asarray(self.init_states, jnp.float32)
 
@@ -196,6 +202,7 @@ class MjxEnv(_Common):
         """New episode from a given initial qpos (nq,), then the settle steps (pure)."""
         qpos = jnp.asarray(qpos, jnp.float32)
         ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
+        mjx = _mjx()
         data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
         data = mjx.forward(self.mjx_model, data)
         settle = jnp.asarray(SETTLE_ACTION)
@@ -209,6 +216,7 @@ class MjxEnv(_Common):
         ctrl = ctl.servo_targets(action.astype(jnp.float32), data.qpos[:7], jacp[:7].T, jacr[:7].T,
                                  self.controller, xp=jnp)
         data = data.replace(ctrl=ctrl)
+        mjx = _mjx()
         return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
 
     def _state(self, data: Any, info: dict[str, Any]) -> State:

@@ -112,7 +112,7 @@ def actuators_xml() -> str:
         for j, p, v, f, lo, hi in zip(ARM_JOINTS, kp, kv, frc, JOINT_LOWER, JOINT_UPPER)
     ]
     rows += [
-        f'<position name="act_{j}" joint="{j}" kp="1000" kv="20" forcerange="-40 40" ctrlrange="{FINGER_CLOSED_TARGET} {FINGER_OPEN}"/>'
+        f'<position name="act_{j}" joint="{j}" kp="2000" kv="20" forcerange="-40 40" ctrlrange="{FINGER_CLOSED_TARGET} {FINGER_OPEN}"/>'
         for j in FINGER_JOINTS
     ]
     return "\n".join(rows)
