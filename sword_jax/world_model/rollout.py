@@ -129,3 +129,56 @@ def rollout(
     # (n, b, p, h, w, c) -> (b, n * p, h, w, c)
     futures = jnp.moveaxis(futures, 0, 1)
     return futures.reshape((futures.shape[0], num_chunks * num_future) + futures.shape[3:])
+
+
+def make_pixel_round_trip(vae_graphdef: nnx.GraphDef, vae_state: Any, num_context: int = 1) -> RoundTripFn:
+    """WoVR's context round trip: decode ``[first, chunk]`` to frames, re-encode, keep the last ``k`` latents.
+
+    The causal VAE decodes ``1 + p`` latents to ``1 + 4p`` frames and encodes them back to ``1 + p``
+    latents, so the next context is what an encoder would make of the generated pixels.
+    """
+    from sword_jax.vae import api as vae_api
+
+    def round_trip(first_latent: Array, future: Array) -> Array:
+        latents = jnp.concatenate([first_latent, future], axis=1).astype(jnp.float32)
+        frames = vae_api.decode(vae_graphdef, vae_state, latents, clamp=True, check_values=False)
+        reencoded = vae_api.encode(vae_graphdef, vae_state, frames, check_values=False)
+        return reencoded[:, -num_context:]
+
+    return round_trip
+
+
+def decode_rollout(
+    vae_graphdef: nnx.GraphDef, vae_state: Any, first_latent: Float[Array, "b h w c"] | Float[Array, "b 1 h w c"],
+    predicted: Float[Array, "b n h w c"], *, latents_per_chunk: int = 2, clamp: bool = True,
+) -> Float[Array, "b t hh ww 3"]:
+    """Decodes ``[first-frame latent, predicted latents]`` to video with the VAE's streaming decoder.
+
+    The first chunk (the first-frame latent) gives 1 frame; each following chunk of
+    ``latents_per_chunk`` latents gives ``4 * latents_per_chunk`` frames, carried through one
+    ``lax.scan`` with the decoder's feature cache.
+
+    Returns:
+      Frames ``[b, 1 + 4n, 16h, 16w, 3]`` float32 (clamped to [-1, 1] unless ``clamp=False``).
+    """
+    from sword_jax.vae import api as vae_api
+
+    first = _as_frames(first_latent, "first_latent").astype(jnp.float32)
+    batch, num_latents = predicted.shape[:2]
+    if num_latents % latents_per_chunk:
+        raise ValueError(f"decode_rollout: {num_latents} latents are not whole chunks of {latents_per_chunk}")
+    cache = vae_api.init_decode_cache(vae_graphdef, vae_state, batch, first.shape[2], first.shape[3])
+    first_frames, cache = vae_api.decode_chunk(vae_graphdef, vae_state, first, cache, clamp=clamp, check_values=False)
+    chunks = predicted.astype(jnp.float32).reshape(
+        (batch, num_latents // latents_per_chunk, latents_per_chunk) + predicted.shape[2:])
+
+    def decode_one(features, chunk):
+        frames, new_cache = vae_api.decode_chunk(
+            vae_graphdef, vae_state, chunk, vae_api.StreamCache(features, started=True), clamp=clamp,
+            check_values=False)
+        return new_cache.features, frames
+
+    _, frames = jax.lax.scan(decode_one, cache.features, jnp.moveaxis(chunks, 1, 0))
+    frames = jnp.moveaxis(frames, 0, 1)  # (b, chunks, 4m, H, W, 3)
+    frames = frames.reshape((batch, -1) + frames.shape[3:])
+    return jnp.concatenate([first_frames, frames], axis=1)
