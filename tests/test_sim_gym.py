@@ -1,0 +1,74 @@
+"""Gymnasium registration, check_env, the vector env, and the wrappers on the C backend."""
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import sim
+from sim import expert, tasks, wrappers
+from sim.config import SimConfig
+from sim.env import CpuEnv
+
+
+def test_gymnasium_make_passes_check_env():
+    env = gymnasium.make(sim.GYM_ID, task_id=3, render_mode="rgb_array")
+    check_env(env.unwrapped, skip_render_check=False)
+    obs, info = env.reset(seed=0)
+    assert obs["proprio"].dtype == np.float32 and obs["proprio"].shape == (8,)
+    assert info["language"] == tasks.LANGUAGE[3]
+    frame = env.render()
+    assert frame.shape == (128, 128, 3) and frame.dtype == np.uint8 and frame.std() > 5
+    env.close()
+
+
+def test_gym_episode_terminates_on_success_and_seeds_reproduce():
+    env = gymnasium.make(sim.GYM_ID, task_id=2)
+    a, _ = env.reset(seed=3)
+    b, _ = env.reset(seed=3)
+    np.testing.assert_array_equal(a["proprio"], b["proprio"])
+    env.reset(options={"init_state_id": 4})
+    inner = env.unwrapped
+    est = expert.init(expert.privileged(inner.env, inner.sim_state.data))
+    for _ in range(150):
+        action, est = expert.act(expert.privileged(inner.env, inner.sim_state.data), est, np.zeros(6))
+        _, reward, terminated, truncated, info = env.step(action.astype(np.float32))
+        if terminated:
+            break
+    assert terminated and reward == 1.0 and info["is_success"] and not truncated
+    with pytest.raises(ValueError, match="init_state_id"):
+        env.reset(options={"init_state_id": 50})
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(3, np.float32))
+
+
+def test_gym_truncates_at_the_step_limit():
+    env = gymnasium.make(sim.GYM_ID, task_id=0, max_steps=3)
+    env.reset(seed=0)
+    flags = [env.step(np.zeros(7, np.float32))[3] for _ in range(3)]
+    assert flags == [False, False, True]
+
+
+def test_make_vec_gives_a_numpy_vector_env():
+    venv = gymnasium.make_vec(sim.GYM_ID, num_envs=2, task_id=1)
+    obs, _ = venv.reset(seed=0)
+    assert obs["proprio"].shape == (2, 8)
+    obs, reward, terminated, truncated, _ = venv.step(np.zeros((2, 7), np.float32))
+    assert reward.shape == (2,) and terminated.dtype == bool
+    venv.close()
+
+
+def test_episode_and_autoreset_wrappers_on_the_cpu_backend():
+    env = wrappers.AutoResetWrapper(wrappers.EpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=2))
+    state = env.reset(np.random.default_rng(0))
+    first_qpos = state.data.qpos.copy()
+    action = np.array([0.5, 0, 0, 0, 0, 0, -1.0])
+    state = env.step(state, action)
+    assert state.info["steps"] == 1 and state.done == 0
+    assert not np.allclose(state.data.qpos, first_qpos)
+    state = env.step(state, action)
+    assert state.done == 1 and state.info["truncation"] == 1
+    np.testing.assert_array_equal(state.data.qpos, first_qpos)  # auto-reset to the first state
+    assert state.info["steps"] == 0
+    with pytest.raises(ValueError, match="episode_length"):
+        wrappers.EpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=0)
