@@ -1,0 +1,465 @@
+"""Pure-JAX ray-cast renderer for MuJoCo scenes of primitive geoms: RGB, depth, segmentation.
+
+One camera ray per pixel is intersected analytically with every visible primitive geom
+(plane, sphere, capsule, ellipsoid, cylinder, box; a mesh geom is stood in for by its
+bounding box) in the geom's local frame, the nearest hit wins, and the pixel is shaded from
+the geom's colour (its material's colour where it has one) and surface normal with a
+directional light plus ambient, optionally with a hard shadow ray. Every input is a JAX
+array (``geom_xpos``/``geom_xmat`` and the camera pose), everything about the model is a
+static constant, so ``render`` runs under ``jit`` and ``vmap`` on any backend and takes the
+poses of MJX's ``Data`` or, as numpy arrays, of MuJoCo's C-engine ``MjData`` alike.
+
+Why this rather than ``mjx.ray`` (decided by measurement on the 2-core CPU, 16 envs,
+shadows off; figures from ``benchmarks/render_speed.py``, see ``RENDER_SPEED_NOTE``):
+  * ``mjx.ray`` returns only the distance and geom id; the normal, the colour and the
+    class still need a per-geom pass like this one, and it crashes on models with no
+    ``<material>`` (issue 6). It loops over geoms inside for each ray, and was slower
+    here per frame than this dense formulation (see the note).
+  * This renderer is one fused dense computation, ``(geoms, pixels)`` wide: the memory is
+    ``O(G * H * W)`` floats per env (about 4 MB for 60 geoms at 128x128), which XLA fuses
+    into the arg-min; it vectorises on CPU and maps onto GPU threads directly.
+  * ``mujoco.Renderer`` (OpenGL via EGL) is faster on CPU but cannot run under ``jit``
+    on the accelerator; it is the reference the tests compare against (``sim/render_gl``).
+
+Conventions: image row 0 is the top (as ``mujoco.Renderer`` returns it); depth is the
+distance along the camera's viewing axis in metres (as MuJoCo's depth buffer, linearised),
+``far`` where nothing is hit; ``geom_id`` is the MuJoCo geom id, -1 for background;
+``seg`` is the class map of ``RenderScene.class_names`` (0 = background).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jaxtyping import Array, Float, Int, UInt8
+
+from sim.render_classes import segmentation_classes
+
+RENDER_SPEED_NOTE = (
+    "2-core CPU, 16 envs, shadows off, scene of 13 geoms: see benchmarks/render_speed.py; "
+    "figures are recorded in benchmarks/results/latest.json under sim.render.*"
+)
+
+_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX, _MESH = (
+    int(mujoco.mjtGeom.mjGEOM_PLANE),
+    int(mujoco.mjtGeom.mjGEOM_SPHERE),
+    int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID),
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER),
+    int(mujoco.mjtGeom.mjGEOM_BOX),
+    int(mujoco.mjtGeom.mjGEOM_MESH),
+)
+_SUPPORTED = (_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX, _MESH)
+_EPS = 1e-4
+_DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)
+
+
+class Frame(NamedTuple):
+    """One rendered camera image (leading batch axes allowed when vmapped)."""
+
+    rgb: UInt8[Array, "h w 3"]
+    depth: Float[Array, "h w"]
+    geom_id: Int[Array, "h w"]
+    seg: Int[Array, "h w"]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RenderScene:
+    """Static description of what to draw, built once from an ``MjModel`` (hash = identity).
+
+    Attributes:
+      geom_ids: model geom ids drawn, (n,), sorted.
+      geom_type: their MuJoCo geom types (meshes replaced by boxes), (n,).
+      size: intersection sizes, (n, 3) (box half sizes; radius/half-length; plane extent).
+      offset: local-frame centre offset (mesh bounding boxes; zero otherwise), (n, 3).
+      rgb: base colour in [0, 1], (n, 3).
+      geom_class: class id of every model geom (ngeom,); class_names: names of class ids.
+      cameras: camera name -> (camera id, vertical field of view in degrees).
+      light_dir: unit vector towards the light (world frame); ambient, diffuse: shading.
+      background: RGB in [0, 1] where nothing is hit; far: depth there (metres).
+    """
+
+    geom_ids: np.ndarray
+    geom_type: np.ndarray
+    size: np.ndarray
+    offset: np.ndarray
+    rgb: np.ndarray
+    geom_class: np.ndarray
+    class_names: tuple[str, ...]
+    cameras: dict[str, tuple[int, float]]
+    light_dir: np.ndarray
+    ambient: float = 0.35
+    diffuse: float = 0.65
+    background: tuple[float, float, float] = (0.18, 0.2, 0.24)
+    far: float = 10.0
+
+
+def _geom_rgba(model: mujoco.MjModel, geom: int) -> np.ndarray:
+    rgba = np.asarray(model.geom_rgba[geom], np.float32)
+    matid = int(model.geom_matid[geom])
+    # MuJoCo draws the material colour unless the geom's own rgba was set explicitly.
+    if matid >= 0 and np.allclose(rgba, _DEFAULT_RGBA):
+        rgba = np.asarray(model.mat_rgba[matid], np.float32)
+    return rgba
+
+
+def build_scene(
+    model: mujoco.MjModel,
+    *,
+    geomgroups: tuple[int, ...] = (0, 1, 2),
+    class_overrides: dict[str, str] | None = None,
+    light_dir: tuple[float, float, float] = (0.3, -0.4, 1.0),
+    far: float = 10.0,
+) -> RenderScene:
+    """Collects the visible geoms of ``model`` (those MuJoCo's renderer shows by default).
+
+    Args:
+      model: the compiled MuJoCo model.
+      geomgroups: geom groups drawn (MuJoCo's default visual option shows 0, 1 and 2).
+      class_overrides: body name -> class name, passed to ``segmentation_classes``.
+      light_dir: direction towards the directional light, world frame (normalised here).
+      far: depth reported where a ray hits nothing (metres).
+
+    Returns:
+      The static ``RenderScene``.
+
+    Raises:
+      ValueError: if no geom is visible or a visible geom has an unsupported type.
+    """
+    if far <= 0:
+        raise ValueError(f"far must be positive, got {far}")
+    ids, types, sizes, offsets, colours = [], [], [], [], []
+    for geom in range(model.ngeom):
+        if int(model.geom_group[geom]) not in geomgroups:
+            continue
+        rgba = _geom_rgba(model, geom)
+        if rgba[3] <= 0.0:
+            continue
+        gtype = int(model.geom_type[geom])
+        if gtype not in _SUPPORTED:
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, geom)
+            raise ValueError(
+                f"geom {geom} ({name!r}) has type {mujoco.mjtGeom(gtype).name}, which the "
+                "JAX renderer does not draw (planes, spheres, capsules, ellipsoids, "
+                "cylinders, boxes and meshes-as-boxes only); put it in a hidden geom group"
+            )
+        size = np.asarray(model.geom_size[geom], np.float32)
+        offset = np.zeros(3, np.float32)
+        if gtype == _MESH:  # stand-in: the mesh's local bounding box
+            aabb = np.asarray(model.geom_aabb[geom], np.float32)
+            offset, size, gtype = aabb[:3], aabb[3:], _BOX
+        ids.append(geom)
+        types.append(gtype)
+        sizes.append(size)
+        offsets.append(offset)
+        colours.append(rgba[:3])
+    if not ids:
+        raise ValueError(f"no geom of the model is visible in geom groups {geomgroups}")
+    geom_class, class_names = segmentation_classes(model, overrides=class_overrides)
+    cameras = {}
+    for cam in range(model.ncam):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) or f"camera{cam}"
+        cameras[name] = (cam, float(model.cam_fovy[cam]))
+    light = np.asarray(light_dir, np.float32)
+    return RenderScene(
+        geom_ids=np.asarray(ids, np.int32),
+        geom_type=np.asarray(types, np.int32),
+        size=np.stack(sizes).astype(np.float32),
+        offset=np.stack(offsets).astype(np.float32),
+        rgb=np.stack(colours).astype(np.float32),
+        geom_class=geom_class,
+        class_names=class_names,
+        cameras=cameras,
+        light_dir=light / np.linalg.norm(light),
+        far=float(far),
+    )
+
+
+# ---------------------------------------------------------------- intersections (local frame)
+# Each takes local origins/directions (..., 3) and sizes (..., 3) broadcastable to them and
+# returns the ray parameter of the first hit in front of the origin, +inf on a miss.
+
+
+def _first_root(b, a, c):
+    """Smallest root > eps of a t^2 + 2 b t + c = 0, else inf."""
+    disc = b * b - a * c
+    safe_a = jnp.where(jnp.abs(a) > 1e-12, a, jnp.float32(1e-12))
+    sq = jnp.sqrt(jnp.maximum(disc, 0.0))
+    t = (-b - sq) / safe_a
+    return jnp.where((disc >= 0) & (t > _EPS) & (jnp.abs(a) > 1e-12), t, jnp.inf)
+
+
+def _hit_sphere(o, d, radius):
+    return _first_root(jnp.sum(o * d, -1), jnp.sum(d * d, -1), jnp.sum(o * o, -1) - radius**2)
+
+
+def _hit_ellipsoid(o, d, radii):
+    o, d = o / radii, d / radii
+    return _hit_sphere(o, d, jnp.float32(1.0))
+
+
+def _hit_plane(o, d, size):
+    dz = d[..., 2]
+    safe = jnp.where(dz < -1e-12, dz, jnp.float32(-1e-12))
+    t = -o[..., 2] / safe
+    p = o + t[..., None] * d
+    inside = ((size[..., 0] <= 0) | (jnp.abs(p[..., 0]) <= size[..., 0])) & (
+        (size[..., 1] <= 0) | (jnp.abs(p[..., 1]) <= size[..., 1])
+    )
+    # Only the front side (+z) of a plane is drawn, as in MuJoCo.
+    return jnp.where((dz < -1e-12) & (o[..., 2] > 0) & (t > _EPS) & inside, t, jnp.inf)
+
+
+def _hit_box(o, d, half):
+    safe_d = jnp.where(jnp.abs(d) > 1e-12, d, jnp.float32(1e-12))
+    t1 = (-half - o) / safe_d
+    t2 = (half - o) / safe_d
+    t_near = jnp.max(jnp.minimum(t1, t2), -1)
+    t_far = jnp.min(jnp.maximum(t1, t2), -1)
+    return jnp.where((t_near <= t_far) & (t_near > _EPS), t_near, jnp.inf)
+
+
+def _hit_tube(o, d, radius, half):
+    """Side of a z-aligned cylinder of the given radius, |z| <= half."""
+    o2, d2 = o[..., :2], d[..., :2]
+    t = _first_root(jnp.sum(o2 * d2, -1), jnp.sum(d2 * d2, -1), jnp.sum(o2 * o2, -1) - radius**2)
+    z = o[..., 2] + jnp.where(jnp.isfinite(t), t, 0.0) * d[..., 2]
+    return jnp.where(jnp.abs(z) <= half, t, jnp.inf)
+
+
+def _hit_capsule(o, d, size):
+    radius, half = size[..., 0], size[..., 1]
+    cap = jnp.stack([jnp.zeros_like(half), jnp.zeros_like(half), half], -1)
+    return jnp.minimum(
+        _hit_tube(o, d, radius, half),
+        jnp.minimum(_hit_sphere(o - cap, d, radius), _hit_sphere(o + cap, d, radius)),
+    )
+
+
+def _hit_cylinder(o, d, size):
+    radius, half = size[..., 0], size[..., 1]
+    safe = jnp.where(jnp.abs(d[..., 2]) > 1e-12, d[..., 2], jnp.float32(1e-12))
+    best = _hit_tube(o, d, radius, half)
+    for sign in (-1.0, 1.0):
+        t = (jnp.float32(sign) * half - o[..., 2]) / safe
+        p = o + t[..., None] * d
+        ok = (t > _EPS) & (jnp.sum(p[..., :2] ** 2, -1) <= radius**2)
+        best = jnp.minimum(best, jnp.where(ok, t, jnp.inf))
+    return best
+
+
+_HIT = {
+    _PLANE: _hit_plane,
+    _SPHERE: lambda o, d, s: _hit_sphere(o, d, s[..., 0]),
+    _CAPSULE: _hit_capsule,
+    _ELLIPSOID: _hit_ellipsoid,
+    _CYLINDER: _hit_cylinder,
+    _BOX: _hit_box,
+}
+
+
+def _local_normal(gtype, p, size):
+    """Outward normal at local hit points p (r, 3) of geoms of types gtype (r,)."""
+    unit_z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], jnp.float32), p.shape)
+    sphere = p
+    ellipsoid = p / jnp.maximum(size, 1e-9) ** 2
+    half = size[..., 1:2]
+    capsule = p - jnp.concatenate([jnp.zeros_like(p[..., :2]), jnp.clip(p[..., 2:], -half, half)], -1)
+    radial = jnp.concatenate([p[..., :2], jnp.zeros_like(p[..., 2:])], -1)
+    on_cap = (jnp.abs(p[..., 2]) - size[..., 1]) > (jnp.linalg.norm(p[..., :2], axis=-1) - size[..., 0])
+    cylinder = jnp.where(on_cap[..., None], unit_z * jnp.sign(p[..., 2:]), radial)
+    rel = jnp.abs(p) / jnp.maximum(size, 1e-9)
+    axis = jax.nn.one_hot(jnp.argmax(rel, -1), 3, dtype=p.dtype)
+    box = axis * jnp.sign(p)
+    gt = gtype[..., None]
+    normal = jnp.where(gt == _SPHERE, sphere, unit_z)
+    normal = jnp.where(gt == _ELLIPSOID, ellipsoid, normal)
+    normal = jnp.where(gt == _CAPSULE, capsule, normal)
+    normal = jnp.where(gt == _CYLINDER, cylinder, normal)
+    normal = jnp.where(gt == _BOX, box, normal)
+    return normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+
+
+def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs):
+    """Ray parameters (n, r) of every drawn geom for rays (r, 3) from origins (r|1, 3)."""
+    # Local frame: p_local = R^T (p - x) - offset.
+    if origins.shape[0] > 1:  # (n, r, 3): one origin per ray (shadow rays)
+        local_o = jnp.einsum("gji,grj->gri", mat, origins[None, :, :] - pos[:, None, :])
+    else:  # (n, 1, 3): the camera, shared by all rays
+        local_o = jnp.einsum("gji,gj->gi", mat, origins[0][None, :] - pos)[:, None, :]
+    local_o = local_o - jnp.asarray(scene.offset)[:, None, :]
+    local_d = jnp.einsum("gji,rj->gri", mat, dirs)
+    t_all = jnp.full(local_d.shape[:2], jnp.inf, jnp.float32)
+    for gtype, hit in _HIT.items():
+        idx = np.nonzero(scene.geom_type == gtype)[0]
+        if idx.size == 0:
+            continue
+        size = jnp.asarray(scene.size[idx])[:, None, :]
+        t = hit(local_o[idx], local_d[idx], size)
+        t_all = t_all.at[idx].set(t)
+    return t_all, local_o, local_d
+
+
+def render(
+    scene: RenderScene,
+    geom_xpos: Float[Array, "ngeom 3"],
+    geom_xmat: Float[Array, "ngeom 3 3"],
+    cam_pos: Float[Array, "3"],
+    cam_mat: Float[Array, "3 3"],
+    *,
+    fovy: float,
+    height: int,
+    width: int,
+    shadows: bool = False,
+) -> Frame:
+    """Renders one camera view of one state (vmap for batches).
+
+    Args:
+      scene: static scene from ``build_scene``.
+      geom_xpos: world positions of all model geoms, (ngeom, 3).
+      geom_xmat: world orientations of all model geoms, (ngeom, 3, 3) or (ngeom, 9).
+      cam_pos: camera position, (3,). cam_mat: camera orientation (columns: right, up,
+        backward, as MuJoCo's ``cam_xmat``), (3, 3) or (9,).
+      fovy: vertical field of view in degrees. height, width: image size in pixels.
+      shadows: cast a shadow ray per pixel towards the light (about twice the cost).
+
+    Returns:
+      ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
+      int32 (-1 = background) and seg (h, w) int32 class ids.
+    """
+    ids = scene.geom_ids
+    pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
+    mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]
+    cam_pos = jnp.asarray(cam_pos, jnp.float32).reshape(3)
+    cam_mat = jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
+
+    tan_half = np.tan(np.deg2rad(fovy) / 2.0)
+    xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
+    ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
+    grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
+    # Camera-frame directions with unit forward component, so t is the planar depth.
+    cam_dirs = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
+    dirs = jnp.asarray(cam_dirs) @ cam_mat.T  # (R, 3)
+
+    t_all, local_o, local_d = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
+    nearest = jnp.argmin(t_all, axis=0)  # (R,)
+    depth = jnp.min(t_all, axis=0)
+    hit = jnp.isfinite(depth)
+    depth = jnp.where(hit, depth, jnp.float32(scene.far))
+
+    # Normal of the winning geom only.
+    rays = jnp.arange(dirs.shape[0])
+    p_local = local_o[nearest, 0 if local_o.shape[1] == 1 else rays] + depth[:, None] * local_d[nearest, rays]
+    n_local = _local_normal(
+        jnp.asarray(scene.geom_type)[nearest], p_local, jnp.asarray(scene.size)[nearest]
+    )
+    normal = jnp.einsum("rij,rj->ri", mat[nearest], n_local)
+    view = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+    normal = jnp.where(jnp.sum(normal * view, -1, keepdims=True) > 0, -normal, normal)
+
+    light = jnp.asarray(scene.light_dir)
+    lambert = jnp.maximum(normal @ light, 0.0)
+    if shadows:
+        points = cam_pos[None, :] + depth[:, None] * dirs + normal * jnp.float32(1e-3)
+        t_shadow, _, _ = _nearest_hits(scene, pos, mat, points, jnp.broadcast_to(light, dirs.shape))
+        lambert = jnp.where(jnp.isfinite(jnp.min(t_shadow, 0)), 0.0, lambert)
+    base = jnp.asarray(scene.rgb)[nearest]
+    shade = jnp.float32(scene.ambient) + jnp.float32(scene.diffuse) * lambert
+    colour = jnp.where(hit[:, None], base * shade[:, None], jnp.asarray(scene.background, jnp.float32))
+    rgb = jnp.round(jnp.clip(colour, 0.0, 1.0) * 255.0).astype(jnp.uint8)
+
+    geom_id = jnp.where(hit, jnp.asarray(ids)[nearest], -1)
+    seg = jnp.where(hit, jnp.asarray(scene.geom_class)[jnp.maximum(geom_id, 0)], 0)
+    return Frame(
+        rgb=rgb.reshape(height, width, 3),
+        depth=depth.reshape(height, width),
+        geom_id=geom_id.reshape(height, width).astype(jnp.int32),
+        seg=seg.reshape(height, width).astype(jnp.int32),
+    )
+
+
+def camera_pose(data: Any, camera_id: int) -> tuple[Any, Any]:
+    """(cam_xpos (3,), cam_xmat (3, 3)) of an ``mjx.Data`` or a ``mujoco.MjData``."""
+    return data.cam_xpos[camera_id], data.cam_xmat[camera_id].reshape(3, 3)
+
+
+def make_renderer(
+    scene: RenderScene,
+    camera: str,
+    *,
+    height: int,
+    width: int,
+    shadows: bool = False,
+) -> Callable[[Any], Frame]:
+    """A pure ``data -> Frame`` function for one camera (jit/vmap it over ``mjx.Data``).
+
+    Args:
+      scene: from ``build_scene``. camera: camera name in the model.
+      height, width: image size. shadows: see ``render``.
+
+    Raises:
+      KeyError: unknown camera. ValueError: non-positive image size.
+    """
+    if camera not in scene.cameras:
+        raise KeyError(f"camera {camera!r} not in the model; cameras: {sorted(scene.cameras)}")
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image size must be positive, got {height}x{width}")
+    cam_id, fovy = scene.cameras[camera]
+
+    def render_data(data: Any) -> Frame:
+        cam_pos, cam_mat = camera_pose(data, cam_id)
+        return render(
+            scene, data.geom_xpos, data.geom_xmat, cam_pos, cam_mat,
+            fovy=fovy, height=height, width=width, shadows=shadows,
+        )
+
+    return render_data
+
+
+@functools.partial(jax.jit, static_argnames=("scene", "fovy", "height", "width", "shadows"))
+def render_batch(
+    scene: RenderScene,
+    geom_xpos: Float[Array, "b ngeom 3"],
+    geom_xmat: Float[Array, "b ngeom 9"],
+    cam_pos: Float[Array, "b 3"],
+    cam_mat: Float[Array, "b 9"],
+    *,
+    fovy: float,
+    height: int,
+    width: int,
+    shadows: bool = False,
+) -> Frame:
+    """Jitted, vmapped ``render`` over a leading batch axis (numpy or JAX inputs)."""
+    fn = functools.partial(render, scene, fovy=fovy, height=height, width=width, shadows=shadows)
+    return jax.vmap(fn)(geom_xpos, geom_xmat, cam_pos, cam_mat)
+
+
+def render_mjdata(
+    scene: RenderScene,
+    datas: list[mujoco.MjData],
+    camera: str,
+    *,
+    height: int,
+    width: int,
+    shadows: bool = False,
+) -> Frame:
+    """Renders C-engine states (after ``mj_forward``/``mj_step``) with the same JAX function.
+
+    Returns numpy-convertible arrays with a leading axis of len(datas).
+    """
+    if camera not in scene.cameras:
+        raise KeyError(f"camera {camera!r} not in the model; cameras: {sorted(scene.cameras)}")
+    cam_id, fovy = scene.cameras[camera]
+    xpos = np.stack([d.geom_xpos for d in datas]).astype(np.float32)
+    xmat = np.stack([d.geom_xmat for d in datas]).astype(np.float32)
+    cpos = np.stack([d.cam_xpos[cam_id] for d in datas]).astype(np.float32)
+    cmat = np.stack([d.cam_xmat[cam_id] for d in datas]).astype(np.float32)
+    return render_batch(
+        scene, xpos, xmat, cpos, cmat, fovy=fovy, height=height, width=width, shadows=shadows
+    )
