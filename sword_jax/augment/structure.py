@@ -62,8 +62,8 @@ def edge_f1(reference: Bool[Array, "t h w"], candidate: Bool[Array, "t h w"], to
     """F1 of ``candidate`` edges against ``reference`` edges, matching within ``tolerance`` pixels."""
     ref = reference.astype(jnp.float32)
     cand = candidate.astype(jnp.float32)
-    precision = jnp.sum(cand * _dilate(reference, tolerance)) / jnp.maximum(jnp.sum(cand), 1.0)
-    recall = jnp.sum(ref * _dilate(candidate, tolerance)) / jnp.maximum(jnp.sum(ref), 1.0)
+    precision = jnp.sum(cand * _dilate(reference, tolerance).astype(jnp.float32)) / jnp.maximum(jnp.sum(cand), 1.0)
+    recall = jnp.sum(ref * _dilate(candidate, tolerance).astype(jnp.float32)) / jnp.maximum(jnp.sum(ref), 1.0)
     return 2 * precision * recall / jnp.maximum(precision + recall, 1e-8)
 
 
@@ -86,7 +86,7 @@ def structure_scores(
     new_edges = edges_after & ~_dilate(edges_before, 1) & untextured
     return {
         "edge_f1": edge_f1(edges_before, edges_after),
-        "boundary_recall": jnp.sum(boundary * _dilate(edges_after, 1)) / n_boundary,
-        "boundary_recall_original": jnp.sum(boundary * _dilate(edges_before, 1)) / n_boundary,
-        "off_boundary_new_edges": jnp.sum(new_edges) / jnp.maximum(jnp.sum(untextured), 1),
+        "boundary_recall": jnp.sum(boundary * _dilate(edges_after, 1).astype(jnp.float32)) / n_boundary,
+        "boundary_recall_original": jnp.sum(boundary * _dilate(edges_before, 1).astype(jnp.float32)) / n_boundary,
+        "off_boundary_new_edges": jnp.sum(new_edges.astype(jnp.float32)) / jnp.maximum(jnp.sum(untextured.astype(jnp.float32)), 1.0),
     }

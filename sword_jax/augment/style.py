@@ -19,6 +19,7 @@ set; the training pipeline calls it on every style it did not sample itself.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import jax
@@ -206,63 +207,86 @@ def identity_style() -> Style:
     )
 
 
-def _uniform_union(key: jax.Array, intervals: tuple[tuple[float, float], ...]) -> jax.Array:
-    """Uniform sample from a union of disjoint intervals (static), jittable."""
-    lows = np.array([lo for lo, _ in intervals], np.float32)
-    lengths = np.array([hi - lo for lo, hi in intervals], np.float32)
-    offsets = np.concatenate([[0.0], np.cumsum(lengths)[:-1]]).astype(np.float32)
-    # Shrink by a hair so float rounding never lands on an interval's open edge.
-    u = jax.random.uniform(key, (), jnp.float32, 0.0, float(lengths.sum()) * (1 - 1e-6))
-    index = jnp.clip(jnp.searchsorted(jnp.asarray(offsets), u, side="right") - 1, 0, len(intervals) - 1)
-    return jnp.asarray(lows)[index] + (u - jnp.asarray(offsets)[index])
+class _Uniforms:
+    """Consumes one vector of U[0, 1) draws: one threefry call per style keeps compiles small."""
+
+    SIZE = 48
+
+    def __init__(self, key: jax.Array):
+        self.values = jax.random.uniform(key, (self.SIZE,), jnp.float32)
+        self.used = 0
+
+    def take(self, n: int | None = None) -> jax.Array:
+        count = 1 if n is None else n
+        if self.used + count > self.SIZE:
+            raise RuntimeError("style sampler: _Uniforms.SIZE too small")
+        out = self.values[self.used:self.used + count]
+        self.used += count
+        return out[0] if n is None else out
+
+    def between(self, low: float, high: float, n: int | None = None) -> jax.Array:
+        return np.float32(low) + self.take(n) * np.float32(high - low)
+
+    def index(self, count: int, n: int | None = None) -> jax.Array:
+        return jnp.minimum(jnp.floor(self.take(n) * count).astype(jnp.int32), count - 1)
+
+    def union(self, intervals: tuple[tuple[float, float], ...]) -> jax.Array:
+        """Uniform over a union of disjoint (static) intervals."""
+        lows = np.array([lo for lo, _ in intervals], np.float32)
+        lengths = np.array([hi - lo for lo, hi in intervals], np.float32)
+        offsets = np.concatenate([[0.0], np.cumsum(lengths)[:-1]]).astype(np.float32)
+        # Shrink by a hair so float rounding never lands past an interval's edge.
+        u = self.take() * np.float32(float(lengths.sum()) * (1 - 1e-6))
+        index = jnp.clip(jnp.searchsorted(jnp.asarray(offsets), u, side="right") - 1, 0, len(intervals) - 1)
+        return jnp.asarray(lows)[index] + (u - jnp.asarray(offsets)[index])
 
 
-def _sample_region(key: jax.Array, split_index: int, *, plain: bool) -> RegionStyle:
-    k_pal, k_jit, k_tex, k_scale, k_angle, k_mix = jax.random.split(key, 6)
+def _sample_region(draw: _Uniforms, split_index: int, *, plain: bool) -> RegionStyle:
     colors_ids = np.asarray((TRAIN_COLORS, HELDOUT_COLORS)[split_index], np.int32)
-    palette = jnp.asarray(colors_ids)[jax.random.randint(k_pal, (2,), 0, len(colors_ids))]
-    jitter = jax.random.uniform(k_jit, (2, 3), jnp.float32, -COLOR_JITTER, COLOR_JITTER)
+    palette = jnp.asarray(colors_ids)[draw.index(len(colors_ids), 2)]
+    jitter = draw.between(-COLOR_JITTER, COLOR_JITTER, 6).reshape(2, 3)
     colors = jnp.clip(jnp.asarray(PALETTE)[palette] + jitter, 0.0, 1.0)
-    if plain:
-        texture = jnp.int32(0)
-    else:
-        textures = jnp.asarray((TRAIN_TEXTURES, HELDOUT_TEXTURES)[split_index], jnp.int32)
-        texture = textures[jax.random.randint(k_tex, (), 0, textures.shape[0])]
+    textures = np.asarray((TRAIN_TEXTURES, HELDOUT_TEXTURES)[split_index], np.int32)
+    texture = jnp.asarray(textures)[draw.index(len(textures))]
     return RegionStyle(
         palette=palette,
         colors=colors,
-        texture=texture,
-        scale=_uniform_union(k_scale, TEXTURE_SCALE[split_index]),
-        angle=jax.random.uniform(k_angle, (), jnp.float32, 0.0, np.pi),
-        mix=jax.random.uniform(k_mix, (), jnp.float32, *MIX_RANGE),
+        texture=jnp.zeros_like(texture) if plain else texture,
+        scale=draw.union(TEXTURE_SCALE[split_index]),
+        angle=draw.between(0.0, np.pi),
+        mix=draw.between(*MIX_RANGE),
     )
 
 
+@functools.partial(jax.jit, static_argnames=("split",))
 def sample_style(key: jax.Array, split: str = "train") -> Style:
     """Draw one style from the ``split`` ("train" | "heldout") region. Jittable, vmappable over keys."""
     if split not in SPLITS:
         raise ValueError(f"sample_style: split must be one of {SPLITS}, got {split!r}")
     s = SPLITS.index(split)
-    keys = jax.random.split(key, 12)
-    scalars = {name: _uniform_union(k, ranges[s]) for (name, ranges), k in zip(SPLIT_RANGES.items(), keys[:6])}
-    light_xy = jax.random.uniform(keys[6], (2,), jnp.float32, -1.0, 1.0)
-    light = jnp.concatenate([light_xy, _f32([-1.0])])
+    draw = _Uniforms(key)
+    scalars = {name: draw.union(ranges[s]) for name, ranges in SPLIT_RANGES.items()}
+    light = jnp.concatenate([draw.between(-1.0, 1.0, 2), _f32([-1.0])])
+    robot = _sample_region(draw, s, plain=True)
+    table = _sample_region(draw, s, plain=False)
+    background = _sample_region(draw, s, plain=False)
     return Style(
         brightness=scalars["brightness"],
         saturation=scalars["saturation"],
         hue_shift=scalars["hue_shift"],
         temperature=scalars["temperature"],
-        robot=_sample_region(keys[7], s, plain=True),
-        table=_sample_region(keys[8], s, plain=False),
-        background=_sample_region(keys[9], s, plain=False),
+        robot=robot,
+        table=table,
+        background=background,
         light_dir=light / jnp.linalg.norm(light),
         light_strength=scalars["light_strength"],
-        gradient_angle=jax.random.uniform(keys[10], (), jnp.float32, 0.0, 2 * np.pi),
+        gradient_angle=draw.between(0.0, 2 * np.pi),
         gradient_strength=scalars["gradient_strength"],
-        texture_seed=jax.random.randint(keys[11], (), 0, 2**30, jnp.int32),
+        texture_seed=draw.index(1 << 24),
     )
 
 
+@functools.partial(jax.jit, static_argnames=("num", "split"))
 def sample_styles(key: jax.Array, num: int, split: str = "train") -> Style:
     """``num`` independent styles (leading dim ``num`` on every leaf)."""
     return jax.vmap(lambda k: sample_style(k, split))(jax.random.split(key, num))
