@@ -26,8 +26,8 @@ FINGER_CLOSED_TARGET = -0.03
 HOME_QPOS = np.array([0.0, -0.161, 0.0, -2.44, 0.0, 2.227, np.pi / 4])
 # Tool centre point: between the finger pads, 0.1034 m below the hand origin.
 TCP_OFFSET = 0.1034
-# Collision bits (see sim/scene.py): finger pads are bit 3; they touch the grasp target and static supports.
-FINGER_CONTYPE, FINGER_CONAFFINITY = 8, 5
+# Collision bits (see sim/scene.py): finger pads are bit 8; they touch the target bowl (4) and the table (16).
+FINGER_CONTYPE, FINGER_CONAFFINITY = 8, 20
 
 _LINK_MASS = (4.970684, 0.646926, 3.228604, 3.587895, 1.225946, 1.666555, 0.735522)
 

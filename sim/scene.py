@@ -12,12 +12,16 @@ each movable object is a free-jointed root body named as in LIBERO
 Geom groups: 0 scene, 1 robot, 2 objects and fixtures; group 3 holds collision-only geoms
 that are never drawn (mujoco.Renderer's default shows groups 0-2).
 
-Contacts are filtered with bits (contact iff ``ct_a & ca_b or ct_b & ca_a``):
-  1 static supports (table top, stove, cabinet top, drawer floor),
-  2 movable supports (plate, ramekin, cookie box; they rest on bit 1),
-  4 bowl bases (rest on bits 1|2) and target-bowl walls (touch the fingers),
-  8 finger pads (touch bits 4 and 1: the target bowl and the static supports).
-So a world has at most a few dozen candidate pairs and typically < 20 contacts.
+Contacts are filtered with bits (contact iff ``ct_a & ca_b or ct_b & ca_a``), so a world
+has 31 candidate pairs (all box-box) and typically < 20 active contacts:
+  16 the table top;
+   1 fixture supports (stove top, cabinet top, top-drawer floor);
+   2 movable supports (plate, ramekin, cookie box; they rest on the table only);
+   4 the target bowl: its base rests on 16|1|2, its walls and base touch the finger pads;
+  32 the distractor bowl's base (rests on the table only);
+   8 finger pads (touch bits 4 and 16: the target bowl and the table).
+Pairs that no LIBERO-Spatial task can produce (the distractor on the plate, the plate on the
+stove, fingers on fixtures) are filtered out.
 
 Object body origins are at the centre of their bottom face (so ``pos.z`` = resting height).
 """
@@ -124,22 +128,22 @@ def _free_body(name: str, geoms: list[str]) -> str:
 def _bowl(name: str, graspable: bool) -> str:
     apothem = BOWL_RADIUS - BOWL_WALL / 2
     half_width = apothem * np.tan(np.pi / 8) + 0.002
-    walls_ca = 8 if graspable else 0
+    base_ct, base_ca = (4, 16 | 1 | 2) if graspable else (32, 16)
     geoms = [
-        _box(f"{name}_base", (0, 0, 0.004), (BOWL_BASE_HALF, BOWL_BASE_HALF, 0.004), "bowl", 4, 3, mass=0.06,
+        _box(f"{name}_base", (0, 0, 0.004), (BOWL_BASE_HALF, BOWL_BASE_HALF, 0.004), "bowl", base_ct, base_ca, mass=0.06,
              friction="1.0 0.01 0.001"),
         _box(f"{name}_base_vis", (0, 0, 0.004), (BOWL_BASE_HALF, BOWL_BASE_HALF, 0.0039), "bowl", euler=np.pi / 4,
              mass=0.0),
     ]
     geoms += _ring(name, apothem, half_width, BOWL_WALL / 2, BOWL_HEIGHT / 2, BOWL_HEIGHT / 2, "bowl", 4 if graspable else 0,
-                   walls_ca, mass=0.012)
+                   0, mass=0.012)
     return _free_body(name, geoms)
 
 
 def _plate() -> str:
     name = "plate_1"
     geoms = [
-        _box(f"{name}_collision", (0, 0, PLATE_TOP / 2), (0.056, 0.056, PLATE_TOP / 2), "collision", 2, 1, group=3,
+        _box(f"{name}_collision", (0, 0, PLATE_TOP / 2), (0.056, 0.056, PLATE_TOP / 2), "collision", 2, 16, group=3,
              mass=0.25, friction="1.0 0.01 0.001"),
         f'<geom name="{name}_dish" type="cylinder" pos="0 0 {PLATE_TOP / 2 - 0.0005}" size="{PLATE_RADIUS - 0.008} '
         f'{PLATE_TOP / 2 - 0.0005}" material="plate" contype="0" conaffinity="0" group="2" mass="0"/>',
@@ -153,7 +157,7 @@ def _ramekin() -> str:
     name = "glazed_rim_porcelain_ramekin_1"
     inner = RAMEKIN_RADIUS * np.cos(np.pi / 8) / np.sqrt(2) * 1.3
     geoms = [
-        _box(f"{name}_collision", (0, 0, RAMEKIN_HEIGHT / 2), (inner, inner, RAMEKIN_HEIGHT / 2), "collision", 2, 1,
+        _box(f"{name}_collision", (0, 0, RAMEKIN_HEIGHT / 2), (inner, inner, RAMEKIN_HEIGHT / 2), "collision", 2, 16,
              group=3, mass=0.2),
         f'<geom name="{name}_base" type="cylinder" pos="0 0 0.003" size="{RAMEKIN_RADIUS - 0.004} 0.003" '
         f'material="ramekin" contype="0" conaffinity="0" group="2" mass="0"/>',
@@ -168,7 +172,7 @@ def _cookies() -> str:
     name = "cookies_1"
     hx, hy, hz = COOKIES_HALF
     geoms = [
-        _box(f"{name}_box", (0, 0, hz), COOKIES_HALF, "cookies", 2, 1, mass=0.1),
+        _box(f"{name}_box", (0, 0, hz), COOKIES_HALF, "cookies", 2, 16, mass=0.1),
         _box(f"{name}_label", (0, 0, 2 * hz + 0.0004), (hx * 0.7, hy * 0.6, 0.0005), "cookies_label", mass=0.0),
     ]
     return _free_body(name, geoms)
@@ -218,7 +222,7 @@ def _cabinet() -> str:
 def _table() -> str:
     hx, hy, hz = TABLE_HALF
     rows = ['<body name="table" pos="0 0 0">',
-            _box("table_top", (0, 0, TABLE_TOP_Z - hz), TABLE_HALF, "table", 1, 0, group=0,
+            _box("table_top", (0, 0, TABLE_TOP_Z - hz), TABLE_HALF, "table", 16, 0, group=0,
                  friction="1.0 0.01 0.001")]
     for k, (sx, sy) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
         rows.append(_box(f"table_leg{k}", (sx * (hx - 0.05), sy * (hy - 0.05), (TABLE_TOP_Z - 2 * hz) / 2),
