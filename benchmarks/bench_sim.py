@@ -56,11 +56,9 @@ def mjx_throughput(batch: int, resolution: int, steps: int) -> tuple[float, bool
     has_renderer = importlib.util.find_spec("sim.render") is not None
     renderer = None
     if has_renderer:
-        from sim import render
+        from sim.env import camera_renderer
 
-        scene = render.build_scene(sim.load("libero_spatial").mj_model)
-        draw = render.make_renderer(scene, "agentview", height=resolution, width=resolution)
-        renderer = lambda data: {"agentview_rgb": draw(data).rgb}  # noqa: E731
+        renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution)
     env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer), 220)
     keys = jax.random.split(jax.random.key(0), batch)
     state = jax.jit(env.reset)(keys)

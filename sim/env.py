@@ -234,3 +234,29 @@ class MjxEnv(_Common):
 def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
     """The backend ``config.backend`` names."""
     return (MjxEnv if config.backend == "mjx" else CpuEnv)(config, task_id, **kwargs)
+
+
+def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
+                    depth_and_seg: bool = False) -> Renderer:
+    """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
+
+    Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
+    ``agentview_rgb`` (and ``eye_in_hand_rgb``), plus ``*_depth`` / ``*_seg`` on request.
+    """
+    from sim import render
+
+    scene_ = render.build_scene(mj_model)
+    cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
+    draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution) for cam in cameras}
+
+    def renderer(data: Any) -> dict[str, Any]:
+        out = {}
+        for cam, draw in draws.items():
+            frame = draw(data)
+            out[f"{cam}_rgb"] = frame.rgb
+            if depth_and_seg:
+                out[f"{cam}_depth"] = frame.depth
+                out[f"{cam}_seg"] = frame.seg
+        return out
+
+    return renderer

@@ -72,3 +72,45 @@ def test_episode_and_autoreset_wrappers_on_the_cpu_backend():
     assert state.info["steps"] == 0
     with pytest.raises(ValueError, match="episode_length"):
         wrappers.EpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=0)
+
+
+class _CounterEnv:
+    """A pure-JAX stand-in env (MJX compiles in minutes on CPU): done after 3 steps."""
+
+    def reset(self, key):
+        import jax
+        import jax.numpy as jnp
+
+        from sim.env import State
+
+        start = jax.random.uniform(key, ())
+        return State(data=jnp.stack([start, jnp.float32(0)]), obs={"proprio": jnp.full((8,), start)},
+                     reward=jnp.float32(0), done=jnp.float32(0), metrics={}, info={})
+
+    def step(self, state, action):
+        import jax.numpy as jnp
+
+        data = state.data + jnp.stack([action[0], jnp.float32(1)])
+        done = (data[1] >= 3).astype(jnp.float32)
+        return state.replace(data=data, obs={"proprio": jnp.full((8,), data[0])}, reward=done, done=done)
+
+
+def test_jax_wrappers_vmap_episode_limit_and_autoreset():
+    import jax
+    import jax.numpy as jnp
+
+    env = wrappers.wrap_for_training(_CounterEnv(), episode_length=2)
+    state = jax.jit(env.reset)(jax.random.split(jax.random.key(0), 3))
+    first = state.data
+    step = jax.jit(env.step)
+    actions = jnp.ones((3, 7), jnp.float32)
+    state = step(state, actions)
+    np.testing.assert_allclose(state.data[:, 0], first[:, 0] + 1)
+    np.testing.assert_array_equal(state.info["steps"], [1, 1, 1])
+    state = step(state, actions)  # hits the 2-step limit: done, truncated, back to the first state
+    np.testing.assert_array_equal(state.done, [1, 1, 1])
+    np.testing.assert_array_equal(state.info["truncation"], [1, 1, 1])
+    np.testing.assert_allclose(state.data, first)
+    np.testing.assert_array_equal(state.info["steps"], [0, 0, 0])
+    with pytest.raises(ValueError, match=r"\(B, 7\)"):
+        env.step(state, jnp.ones((7,), jnp.float32))
