@@ -34,11 +34,13 @@ class StyledEpisodeError(ValueError):
 def _to_unit(frames: np.ndarray, frames_range: str, where: str) -> np.ndarray:
     if frames.ndim != 4 or frames.shape[-1] != 3:
         raise StyledEpisodeError(f"{where}: frames must be [T, H, W, 3], got {frames.shape}")
+    if np.issubdtype(frames.dtype, np.floating) and not np.isfinite(frames).all():
+        raise StyledEpisodeError(f"{where}: frames contain NaN/inf")
     if frames_range == "auto":
         if frames.dtype == np.uint8:
             frames_range = "uint8"
         elif np.issubdtype(frames.dtype, np.floating):
-            frames_range = "signed" if np.nanmin(frames) < -1e-3 else "unit"
+            frames_range = "signed" if frames.min() < -1e-3 else "unit"
         else:
             raise StyledEpisodeError(f"{where}: frames dtype {frames.dtype} is neither uint8 nor float")
     if frames_range == "uint8":
