@@ -1,0 +1,202 @@
+"""The learned simulator as an environment: a brax-style functional env and gymnasium wrappers.
+
+* :class:`ImaginedEnv` — pure ``reset(start, key) -> EnvState`` / ``step(state, action_chunk)
+  -> EnvState`` for ONE environment, with ``EnvState`` laid out like brax's ``envs.State``
+  (``pipeline_state, obs, reward, done, metrics, info``); ``jax.vmap`` batches it, auto-reset
+  and episode limits stay outside ``step`` (brax / mujoco_playground convention, except that
+  the chunk limit is part of the task and reported as ``info['truncation']``).
+* :class:`ImaginedVectorEnv` — a ``gymnasium.vector.VectorEnv`` over a pool of start states
+  (dataset keyframes + instructions), next-step auto-reset, numpy in / numpy out.
+* :class:`ImaginedGymEnv` — the single-env ``gymnasium.Env`` (what ``check_env`` checks).
+
+An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1]. A step returns the last predicted
+frame as the observation, all predicted frames in ``info['frames']``, the change of the success
+score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from gymnasium.vector import AutoresetMode
+
+from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
+
+
+@struct.dataclass
+class EnvState:
+    """brax ``envs.State`` layout: ``pipeline_state`` is the simulator state."""
+
+    pipeline_state: Any
+    obs: dict[str, jax.Array]
+    reward: jax.Array
+    done: jax.Array
+    metrics: dict[str, jax.Array]
+    info: dict[str, Any]
+
+
+@struct.dataclass
+class ImaginedEnv:
+    """Functional env over a learned simulator and a reward model (one environment)."""
+
+    simulator: LearnedSimulator
+    reward_model: RewardModel
+    success_threshold: float = struct.field(pytree_node=False, default=0.9)
+    max_chunks: int = struct.field(pytree_node=False, default=8)
+
+    def _obs(self, sim_state, frame, tokens):
+        proprio, valid = self.simulator.observe(sim_state)
+        return {"frame": frame, "proprio": proprio.astype(jnp.float32), "proprio_valid": valid.astype(jnp.float32),
+                "instruction_tokens": tokens}
+
+    def reset(self, start: StartState, *, key: jax.Array) -> EnvState:
+        """Starts from one keyframe/instruction; ``key`` seeds the simulator's noise."""
+        sim_state = self.simulator.init(start)
+        score = self.reward_model.score(start.frame[None])[0]
+        t = self.simulator.chunk_len
+        info = {"key": key, "score": score, "chunk": jnp.zeros((), jnp.int32), "truncation": jnp.zeros((), jnp.float32),
+                "success": jnp.zeros((), jnp.float32),
+                "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}
+        return EnvState(sim_state, self._obs(sim_state, start.frame.astype(jnp.float32), start.instruction_tokens),
+                        jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32), {"score": score}, info)
+
+    def step(self, state: EnvState, action_chunk: jax.Array) -> EnvState:
+        """Advances one action chunk ``[chunk_len, action_dim]``; a done env is left unchanged."""
+        key, step_key = jax.random.split(state.info["key"])
+        actions = jnp.clip(action_chunk.astype(jnp.float32), -1.0, 1.0)
+        sim_state, frames = self.simulator.step(state.pipeline_state, actions, key=step_key)
+        scores = self.reward_model.score(frames)
+        success = jnp.any(scores >= jnp.float32(self.success_threshold)).astype(jnp.float32)
+        chunk = state.info["chunk"] + 1
+        truncation = ((chunk >= self.max_chunks) & (success == 0)).astype(jnp.float32)
+        reward = scores[-1] - state.info["score"]
+        new = EnvState(
+            sim_state, self._obs(sim_state, frames[-1].astype(jnp.float32), state.obs["instruction_tokens"]),
+            reward, jnp.maximum(success, truncation), {"score": scores[-1]},
+            {"key": key, "score": scores[-1], "chunk": chunk, "truncation": truncation, "success": success,
+             "frames": frames.astype(jnp.float32)},
+        )
+        was_done = state.done > 0
+        frozen = state.replace(reward=jnp.zeros((), jnp.float32))
+        return jax.tree.map(lambda a, b: jnp.where(was_done, a, b), frozen, new)
+
+
+def _index(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+class ImaginedVectorEnv(gym.vector.VectorEnv):
+    """``gymnasium.vector.VectorEnv`` of ``num_envs`` imagined rollouts (next-step auto-reset).
+
+    Args:
+      env: the functional env.
+      start_pool: start states with a leading pool axis ``[M, ...]``; each reset draws one per
+        env from ``self.np_random`` (or takes ``options['start_index']``, an int array ``[num_envs]``).
+      num_envs: environments stepped together (one jitted, vmapped call).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(self, env: ImaginedEnv, start_pool: StartState, num_envs: int):
+        self.env, self.pool, self.num_envs = env, start_pool, int(num_envs)
+        self.pool_size = int(start_pool.frame.shape[0])
+        h, w = start_pool.frame.shape[1:3]
+        p = start_pool.proprio.shape[-1]
+        l = start_pool.instruction_tokens.shape[-1]
+        t = env.simulator.chunk_len
+        a = 7
+        self.single_observation_space = gym.spaces.Dict({
+            "frame": gym.spaces.Box(0.0, 1.0, (h, w, 3), np.float32),
+            "proprio": gym.spaces.Box(-np.inf, np.inf, (p,), np.float32),
+            "proprio_valid": gym.spaces.Box(0.0, 1.0, (), np.float32),
+            "instruction_tokens": gym.spaces.Box(0, 256, (l,), np.int32),
+        })
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (t, a), np.float32)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self._reset_fn = jax.jit(jax.vmap(lambda e, s, k: e.reset(s, key=k), in_axes=(None, 0, 0)))
+        self._step_fn = jax.jit(jax.vmap(lambda e, s, a: e.step(s, a), in_axes=(None, 0, 0)))
+        self._select = jax.jit(lambda m, a, b: jax.tree.map(
+            lambda x, y: jnp.where(m.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b))
+        self._state: EnvState | None = None
+        self._needs_reset = np.zeros(self.num_envs, bool)
+
+    def _draw(self, count: int, start_index=None) -> tuple[StartState, jax.Array]:
+        if start_index is None:
+            start_index = self.np_random.integers(0, self.pool_size, count)
+        start_index = np.asarray(start_index, np.int64).reshape(count)
+        if np.any(start_index < 0) or np.any(start_index >= self.pool_size):
+            raise ValueError(f"start_index {start_index} outside the pool of {self.pool_size} start states")
+        seeds = self.np_random.integers(0, 2**31 - 1, count)
+        keys = jax.vmap(jax.random.key)(jnp.asarray(seeds, jnp.uint32))
+        return _index(self.pool, jnp.asarray(start_index)), keys
+
+    def _numpy_obs(self, state: EnvState) -> dict[str, np.ndarray]:
+        obs = jax.device_get(state.obs)
+        return {k: np.asarray(v, self.single_observation_space[k].dtype) for k, v in obs.items()}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        start, keys = self._draw(self.num_envs, (options or {}).get("start_index"))
+        self._state = self._reset_fn(self.env, start, keys)
+        self._needs_reset[:] = False
+        return self._numpy_obs(self._state), {"score": np.asarray(self._state.info["score"])}
+
+    def step(self, actions):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        actions = np.asarray(actions, np.float32)
+        if actions.shape != self.action_space.shape:
+            raise ValueError(f"actions must have shape {self.action_space.shape}, got {actions.shape}")
+        if not np.all(np.isfinite(actions)):
+            raise ValueError("actions contain NaN/inf")
+        stepped = self._step_fn(self.env, self._state, jnp.asarray(actions))
+        reward = np.asarray(stepped.reward, np.float32)
+        terminated = np.asarray(stepped.info["success"] > 0)
+        truncated = np.asarray(stepped.info["truncation"] > 0)
+        if self._needs_reset.any():  # next-step auto-reset: these envs ignore the action
+            start, keys = self._draw(self.num_envs)
+            fresh = self._reset_fn(self.env, start, keys)
+            mask = jnp.asarray(self._needs_reset)
+            stepped = self._select(mask, fresh, stepped)
+            reward = np.where(self._needs_reset, 0.0, reward).astype(np.float32)
+            terminated = np.where(self._needs_reset, False, terminated)
+            truncated = np.where(self._needs_reset, False, truncated)
+        self._state = stepped
+        self._needs_reset = terminated | truncated
+        info = {"frames": np.asarray(stepped.info["frames"]), "score": np.asarray(stepped.info["score"])}
+        return self._numpy_obs(stepped), reward, terminated, truncated, info
+
+
+class ImaginedGymEnv(gym.Env):
+    """Single ``gymnasium.Env`` view of :class:`ImaginedVectorEnv` (``num_envs = 1``)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, env: ImaginedEnv, start_pool: StartState):
+        self._vec = ImaginedVectorEnv(env, start_pool, 1)
+        self.observation_space = self._vec.single_observation_space
+        self.action_space = self._vec.single_action_space
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None or self._vec._np_random is None:
+            self._vec._np_random, _ = gym.utils.seeding.np_random(int(self.np_random.integers(0, 2**31 - 1)))
+        self._vec._state = None
+        start, keys = self._vec._draw(1, (options or {}).get("start_index"))
+        self._vec._state = self._vec._reset_fn(self._vec.env, start, keys)
+        obs = {k: v[0] for k, v in self._vec._numpy_obs(self._vec._state).items()}
+        return obs, {"score": float(self._vec._state.info["score"][0])}
+
+    def step(self, action):
+        if self._vec._state is None:
+            raise RuntimeError("call reset() before step()")
+        obs, reward, terminated, truncated, info = self._vec.step(np.asarray(action, np.float32)[None])
+        self._vec._needs_reset[:] = False  # a single env is reset by its caller
+        return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]), bool(truncated[0]),
+                {"frames": info["frames"][0], "score": float(info["score"][0])})

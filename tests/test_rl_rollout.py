@@ -1,0 +1,73 @@
+"""Imagined rollouts: deterministic for a key, done-masked, sharded over devices."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sword_jax import sharding as shd
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.rollout import expand_groups, group_view, imagined_rollout
+from sword_jax.rl.simulator import (ToyState, instruction_target, toy_render, toy_reward_model, toy_simulator,
+                                   toy_start_states)
+
+CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
+               action_bins=8, proprio_dim=4, max_chunks=4, group_size=4)
+TEXTS = ["pick up the black bowl on the plate", "put the bowl on the stove"]
+
+
+def _setup(noise=0.02):
+    graphdef, params = build_policy(CFG, seed=0)
+    sim, reward_model = toy_simulator(frame_size=8, step_size=0.02, noise=noise), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
+    start = toy_start_states(tokens, key=jax.random.key(5), frame_size=8)
+    # trajectory group 1 starts ON its target: the first chunk succeeds, then it must stay done
+    target = instruction_target(tokens[1])
+    proprio = start.proprio.at[1, :2].set(target)
+    frames = start.frame.at[1].set(toy_render(ToyState(target, target), 8))
+    start = start._replace(proprio=proprio, frame=frames)
+    return graphdef, params, sim, reward_model, expand_groups(start, CFG.group_size)
+
+
+def test_rollout_deterministic_and_respects_done():
+    graphdef, params, sim, reward_model, start = _setup()
+    run = jax.jit(lambda p, k: imagined_rollout(graphdef, p, sim, reward_model, start, CFG, key=k, record_frames=True))
+    a, b = run(params, jax.random.key(0)), run(params, jax.random.key(0))
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    c = run(params, jax.random.key(1))
+    assert not np.array_equal(np.asarray(a.tokens), np.asarray(c.tokens))
+
+    valid, rewards = np.asarray(a.valid), np.asarray(a.rewards)
+    assert np.all(np.diff(valid, axis=1) <= 0), "valid must never switch back on"
+    assert np.all(rewards[valid == 0] == 0.0), "no reward after done"
+    success = np.asarray(a.success)
+    started_at_goal = np.asarray(group_view(a.success, CFG.group_size))[1]
+    assert started_at_goal.all()
+    # successful trajectories stop right after the chunk that succeeded; the rest run to the limit
+    n_valid = valid.sum(1)
+    frame_scores = np.asarray(reward_model.score(a.frames.reshape((-1, 8, 8, 3)))).reshape(a.frames.shape[:3])
+    chunk_hit = (frame_scores >= CFG.success_threshold).any(axis=2)  # (N, C)
+    first_hit = np.argmax(chunk_hit, axis=1)
+    np.testing.assert_array_equal(chunk_hit.any(axis=1), success | ~valid.all(axis=1))
+    np.testing.assert_array_equal(n_valid[success], first_hit[success] + 1)
+    assert np.all(n_valid[~success] == CFG.max_chunks)
+    np.testing.assert_array_equal(n_valid[CFG.group_size:], 1)  # the on-goal group: one chunk
+    # frozen after done: the score stays put, returns = score change + bonus
+    scores = np.asarray(a.scores)
+    for i in np.flatnonzero(success):
+        assert np.all(scores[i, first_hit[i]:] == scores[i, first_hit[i]])
+    np.testing.assert_allclose(np.asarray(a.returns), rewards.sum(1) + success.astype(np.float32), rtol=1e-5)
+    assert a.frames.shape == (8, CFG.max_chunks, 8, 8, 8, 3)
+
+
+def test_rollout_sharded_over_devices_matches_single_device():
+    graphdef, params, sim, reward_model, start = _setup()
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1))
+    run = lambda p, s: imagined_rollout(graphdef, p, sim, reward_model, s, CFG, key=jax.random.key(2))  # noqa: E731
+    ref = jax.jit(run)(params, start)
+    sharded_start = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), start)
+    with shd.use_mesh(mesh):
+        out = jax.jit(run)(params, sharded_start)
+    assert len(out.returns.sharding.device_set) == len(jax.devices())
+    np.testing.assert_allclose(np.asarray(out.returns), np.asarray(ref.returns), rtol=1e-4, atol=1e-5)
