@@ -10,7 +10,7 @@ Deviations from danier97/flolpips, both documented:
     obtainable offline); the aggregation itself matches the reference to float32 rounding.
   * Zero flow difference (``sum(M) = 0``): the original divides 0/0 (NaN). Here the weights fall
     back to uniform, i.e. the layer term becomes plain LPIPS's spatial mean. Identical videos
-    therefore score exactly 0.
+    therefore score 0 (up to float32 rounding).
 """
 
 from __future__ import annotations
