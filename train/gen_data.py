@@ -1,0 +1,297 @@
+"""Expert demonstrations in LIBERO's HDF5 layout (+ depth and segmentation).
+
+    python -m train.gen_data --task 0|all --episodes N --out FILE.hdf5 \\
+        [--backend cpu|mjx] [--resolution 128] [--noise 0.0] [--seed 0] \\
+        [--renderer jax|gl] [--max-steps 220] [--no-wrist] [--overwrite]
+
+``--episodes`` is per task. Episode ``i`` of task ``k`` starts from the task's fixed initial
+state ``(seed + i) % 50``; the expert's action noise is seeded by ``(seed, k, i)``. The CPU
+backend runs MuJoCo's C engine one episode at a time; the MJX backend rolls all episodes of
+a task out at once in one jitted ``lax.scan`` (vmapped), rendering inside it.
+
+Rendering is the JAX ray-cast renderer of ``sim/render.py`` on both backends by default, so
+CPU- and GPU-generated data look the same; ``--renderer gl`` uses MuJoCo's OpenGL renderer
+(CPU backend only; a different look: textures, specular light).
+
+Observation ``t`` is what was seen before ``actions[t]``; ``rewards[t]``/``dones[t]`` are
+the success after it, and the last step of every episode has ``dones = 1`` (as LIBERO).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+_CHUNK = 16  # frames per JAX render call (fixed, so there is one compile per camera)
+
+
+@dataclasses.dataclass(frozen=True)
+class GenDataConfig:
+    """What ``generate`` writes (see the module docstring)."""
+
+    out: str
+    tasks: tuple[int, ...] = (0,)
+    episodes: int = 1
+    backend: str = "cpu"
+    resolution: int = 128
+    noise: float = 0.0
+    seed: int = 0
+    renderer: str = "jax"
+    max_steps: int = 220
+    wrist_camera: bool = True
+    overwrite: bool = False
+
+    def validate(self) -> None:
+        if not self.tasks or any(not 0 <= t <= 9 for t in self.tasks):
+            raise ValueError(f"tasks must be ids in 0..9, got {self.tasks}")
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if self.backend not in ("cpu", "mjx"):
+            raise ValueError(f"backend must be cpu|mjx, got {self.backend!r}")
+        if self.resolution < 8 or self.resolution % 8:
+            raise ValueError(f"resolution must be a positive multiple of 8, got {self.resolution}")
+        if not 0 <= self.noise <= 1:
+            raise ValueError(f"noise must be in [0, 1], got {self.noise}")
+        if self.renderer not in ("jax", "gl"):
+            raise ValueError(f"renderer must be jax|gl, got {self.renderer!r}")
+        if self.renderer == "gl" and self.backend != "cpu":
+            raise ValueError("renderer=gl needs backend=cpu (MuJoCo's OpenGL renderer reads MjData)")
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if not self.out.endswith((".hdf5", ".h5")):
+            raise ValueError(f"out must be an .hdf5/.h5 file, got {self.out!r}")
+        if os.path.exists(self.out) and not self.overwrite:
+            raise FileExistsError(f"{self.out} exists; pass --overwrite to replace it")
+
+
+def _flat_state(data: Any) -> np.ndarray:
+    """LIBERO/robosuite's flattened sim state: [time, qpos, qvel]."""
+    return np.concatenate([[float(data.time)], np.asarray(data.qpos), np.asarray(data.qvel)])
+
+
+class _JaxFrames:
+    """Chunked JAX rendering of a list of ``MjData`` (one compile per camera and size)."""
+
+    def __init__(self, scene: Any, resolution: int):
+        self.scene, self.resolution = scene, resolution
+
+    def __call__(self, datas: list[Any], camera: str) -> dict[str, np.ndarray]:
+        from sim import render
+
+        parts: dict[str, list[np.ndarray]] = {"rgb": [], "depth": [], "seg": []}
+        for start in range(0, len(datas), _CHUNK):
+            chunk = datas[start:start + _CHUNK]
+            padded = chunk + [chunk[-1]] * (_CHUNK - len(chunk))
+            frame = render.render_mjdata(self.scene, padded, camera, height=self.resolution, width=self.resolution)
+            for name in parts:
+                parts[name].append(np.asarray(getattr(frame, name))[: len(chunk)])
+        return {name: np.concatenate(values) for name, values in parts.items()}
+
+
+class _GLFrames:
+    """MuJoCo's OpenGL renderer over a list of ``MjData``."""
+
+    def __init__(self, model: Any, scene: Any, resolution: int, cameras: tuple[str, ...]):
+        from sim.render_gl import GLRenderer
+
+        self.renderers = {c: GLRenderer(model, scene, c, height=resolution, width=resolution) for c in cameras}
+
+    def __call__(self, datas: list[Any], camera: str) -> dict[str, np.ndarray]:
+        frames = [self.renderers[camera].render(d) for d in datas]
+        return {name: np.stack([getattr(f, name) for f in frames]) for name in ("rgb", "depth", "seg")}
+
+
+def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqdm):
+    from sim import expert
+    from sim.dataset import Episode
+
+    xml = _model_xml(env)
+    for i in range(cfg.episodes):
+        init_id = (cfg.seed + i) % len(env.init_states)
+        rng = np.random.default_rng([cfg.seed, task, i])
+        out = expert.rollout_cpu(env, env.init_states[init_id], cfg=expert.ExpertConfig(noise=cfg.noise),
+                                 rng=rng, max_steps=cfg.max_steps, record=True)
+        states = out["states"]
+        if len(out["actions"]) == 0:  # solved at reset: nothing to learn from
+            bar.update(1)
+            continue
+        seen = [s.data for s in states[:-1]]
+        agent = frames(seen, "agentview")
+        wrist = frames(seen, "eye_in_hand")["rgb"] if cfg.wrist_camera else None
+        proprio = np.stack([np.asarray(s.obs["proprio"]) for s in states[:-1]])
+        after = np.asarray([float(s.done) for s in states[1:]])
+        dones = after.copy()
+        dones[-1] = 1.0
+        flat = np.stack([_flat_state(d) for d in seen])
+        yield Episode(
+            actions=np.asarray(out["actions"], np.float64), states=flat, rewards=after, dones=dones,
+            agentview_rgb=agent["rgb"], agentview_depth=agent["depth"], agentview_seg=agent["seg"],
+            eye_in_hand_rgb=wrist, ee_states=proprio[:, :6], gripper_states=proprio[:, 6:8],
+            joint_states=np.stack([np.asarray(d.qpos[:7]) for d in seen]), init_state=flat[0],
+            model_file=xml, task_id=task, language_instruction=env.language,
+        ), bool(out["success"])
+        bar.update(1)
+
+
+def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm):
+    import jax
+    import jax.numpy as jnp
+
+    from sim import expert, render
+    from sim.dataset import Episode
+
+    xml = _model_xml(env)
+    init_fn, act_fn = expert.jax_policy(env, expert.ExpertConfig(noise=cfg.noise))
+    res = cfg.resolution
+    agent_view = render.make_renderer(scene, "agentview", height=res, width=res)
+    wrist_view = render.make_renderer(scene, "eye_in_hand", height=res, width=res)
+
+    def rollout(qpos, key):
+        state = env.reset_to(qpos)
+        est = init_fn(state)
+
+        def body(carry, step_key):
+            state, est = carry
+            action, est = act_fn(state, est, step_key)
+            frame = agent_view(state.data)
+            data = state.data
+            record = {
+                "actions": action, "rgb": frame.rgb, "depth": frame.depth, "seg": frame.seg.astype(jnp.uint8),
+                "wrist": wrist_view(data).rgb if cfg.wrist_camera else jnp.zeros((1,), jnp.uint8),
+                "proprio": state.obs["proprio"], "joints": data.qpos[:7],
+                "flat": jnp.concatenate([jnp.reshape(data.time, (1,)), data.qpos, data.qvel]).astype(jnp.float32),
+            }
+            state = env.step(state, action)
+            record["done"] = state.done
+            return (state, est), record
+
+        _, records = jax.lax.scan(body, (state, est), jax.random.split(key, cfg.max_steps))
+        return records
+
+    root = jax.random.fold_in(jax.random.key(cfg.seed), task)
+    ids = [(cfg.seed + i) % len(env.init_states) for i in range(cfg.episodes)]
+    qpos = jnp.asarray(np.asarray(env.init_states)[ids], jnp.float32)
+    keys = jax.random.split(root, cfg.episodes)
+    with jax.numpy_dtype_promotion("standard"):  # MJX relies on implicit promotion
+        records = jax.device_get(jax.jit(jax.vmap(rollout))(qpos, keys))
+    for i in range(cfg.episodes):
+        done = np.asarray(records["done"][i]) > 0
+        length = int(np.argmax(done)) + 1 if done.any() else cfg.max_steps
+        take = {k: np.asarray(v[i][:length]) for k, v in records.items()}
+        dones = take["done"].astype(np.float64)
+        dones[-1] = 1.0
+        yield Episode(
+            actions=take["actions"].astype(np.float64), states=take["flat"].astype(np.float64),
+            rewards=take["done"].astype(np.float64), dones=dones,
+            agentview_rgb=take["rgb"], agentview_depth=take["depth"], agentview_seg=take["seg"],
+            eye_in_hand_rgb=take["wrist"] if cfg.wrist_camera else None,
+            ee_states=take["proprio"][:, :6], gripper_states=take["proprio"][:, 6:8], joint_states=take["joints"],
+            init_state=take["flat"][0].astype(np.float64), model_file=xml, task_id=task,
+            language_instruction=env.language,
+        ), bool(done.any())
+        bar.update(1)
+
+
+def _model_xml(env: Any) -> str:
+    from sim import scene
+
+    return scene.scene_xml(timestep=env.config.physics_dt)
+
+
+def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
+    """Runs the expert on every task/episode of ``cfg`` and writes ``cfg.out``; returns the path.
+
+    Raises:
+      ValueError / FileExistsError: invalid config or an existing output without overwrite.
+    """
+    cfg.validate()
+    import sim
+    from sim import render, tasks
+    from sim.dataset import DatasetInfo, DatasetWriter
+
+    language = [tasks.LANGUAGE[t] for t in cfg.tasks]
+    single = len(cfg.tasks) == 1
+    problem = "libero_spatial" if not single else f"libero_spatial_{cfg.tasks[0]}"
+    env_kwargs = {"tasks": list(cfg.tasks), "backend": cfg.backend, "camera_heights": cfg.resolution,
+                  "camera_widths": cfg.resolution, "camera_names": ["agentview", "eye_in_hand"],
+                  "control_freq": 20, "max_steps": cfg.max_steps, "expert_noise": cfg.noise, "seed": cfg.seed,
+                  "renderer": cfg.renderer}
+    info = DatasetInfo(
+        env_name=sim.GYM_ID,
+        env_args={"type": 1, "env_name": sim.GYM_ID, "problem_name": problem, "bddl_file": "",
+                  "env_kwargs": env_kwargs},
+        problem_info={"problem_name": problem, "domain_name": "sword_libero_spatial",
+                      "language_instruction": language[0] if single else " | ".join(language)},
+        bddl_file_name=(language[0].replace(" ", "_") + ".bddl") if single else "",
+        bddl_file_content="",  # the scene is built by sim/scene.py, not from a BDDL file
+    )
+    successes = 0
+    written = 0
+    bar = tqdm(total=len(cfg.tasks) * cfg.episodes, desc="gen_data", unit="ep", disable=not progress)
+    with DatasetWriter(cfg.out, info, overwrite=cfg.overwrite) as writer:
+        for task in cfg.tasks:
+            env = sim.load("libero_spatial", task_id=task, backend=cfg.backend, resolution=cfg.resolution,
+                           max_steps=cfg.max_steps)
+            scene = render.build_scene(env.mj_model)
+            info.seg_class_names = scene.class_names
+            if cfg.backend == "cpu":
+                frames = (_GLFrames(env.mj_model, scene, cfg.resolution, ("agentview", "eye_in_hand"))
+                          if cfg.renderer == "gl" else _JaxFrames(scene, cfg.resolution))
+                episodes = _cpu_episodes(cfg, task, env, frames, bar)
+            else:
+                episodes = _mjx_episodes(cfg, task, env, scene, bar)
+            for episode, success in episodes:
+                writer.add(episode)
+                written += 1
+                successes += int(success)
+                bar.set_postfix(task=task, success=f"{successes}/{written}")
+    bar.close()
+    if written == 0:
+        raise RuntimeError("no episode was written (every episode was solved at reset)")
+    return cfg.out
+
+
+def _parse(argv: list[str] | None) -> GenDataConfig:
+    parser = argparse.ArgumentParser(prog="python -m train.gen_data", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--task", default="0", help="task id 0-9, a comma list, or 'all'")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes per task")
+    parser.add_argument("--out", required=True, help="output .hdf5 file")
+    parser.add_argument("--backend", choices=("cpu", "mjx"), default="cpu")
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--noise", type=float, default=0.0, help="expert action noise std (0-1)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--renderer", choices=("jax", "gl"), default="jax")
+    parser.add_argument("--max-steps", type=int, default=220)
+    parser.add_argument("--no-wrist", action="store_true", help="skip the eye_in_hand camera")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    if args.task == "all":
+        task_ids = tuple(range(10))
+    else:
+        try:
+            task_ids = tuple(int(t) for t in args.task.split(","))
+        except ValueError:
+            parser.error(f"--task must be 0-9, a comma list or 'all', got {args.task!r}")
+    return GenDataConfig(out=args.out, tasks=task_ids, episodes=args.episodes, backend=args.backend,
+                         resolution=args.resolution, noise=args.noise, seed=args.seed, renderer=args.renderer,
+                         max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite)
+
+
+def main(argv: list[str] | None = None) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    cfg = _parse(argv)
+    path = generate(cfg)
+    from sim.dataset import read_info
+
+    info = read_info(path)
+    print(f"wrote {info.num_demos} episodes ({info.total} steps) to {path}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
