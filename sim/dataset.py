@@ -157,6 +157,10 @@ class DatasetWriter:
         """Validates and appends one episode; returns its group name (``demo_i``)."""
         name = f"demo_{self._count}"
         episode.validate(name)
+        if episode.agentview_seg is not None:
+            seg = np.asarray(episode.agentview_seg)
+            if seg.min(initial=0) < 0 or seg.max(initial=0) > 255:
+                raise DatasetError(f"{name}: agentview_seg class ids must be in 0..255")
         grp = self._data.create_group(name)
         obs = grp.create_group("obs")
         ee = np.asarray(episode.ee_states, np.float64)
@@ -166,10 +170,7 @@ class DatasetWriter:
         if episode.agentview_depth is not None:
             self._dataset(obs, "agentview_depth", np.asarray(episode.agentview_depth, np.float32))
         if episode.agentview_seg is not None:
-            seg = np.asarray(episode.agentview_seg)
-            if seg.min(initial=0) < 0 or seg.max(initial=0) > 255:
-                raise DatasetError(f"{name}: agentview_seg class ids must be in 0..255")
-            self._dataset(obs, "agentview_seg", seg.astype(np.uint8))
+            self._dataset(obs, "agentview_seg", np.asarray(episode.agentview_seg).astype(np.uint8))
         obs.create_dataset("ee_states", data=ee)
         obs.create_dataset("ee_pos", data=ee[:, :3])
         obs.create_dataset("ee_ori", data=ee[:, 3:])
