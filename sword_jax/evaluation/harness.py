@@ -1,0 +1,149 @@
+"""Long-horizon evaluation: roll world models out on held-out episodes and score them.
+
+Two layers:
+  * :func:`evaluate_videos` takes plain arrays -- ground-truth videos per split and each model's
+    predicted videos -- and computes every metric overall and against horizon (frame 0, the given
+    first frame, is excluded: it is conditioning, not prediction).
+  * :func:`rollout_videos` produces a model's predicted videos: encode the first frame and the first
+    context chunk with the VAE, roll the world model out in latent space with the ground-truth
+    actions (:func:`sword_jax.world_model.rollout.rollout`, one scan in one jit), decode with the
+    streaming VAE decoder, map [-1, 1] -> [0, 1].
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from jaxtyping import Float
+
+from sword_jax.evaluation.horizon import Curve, horizon_windows, per_frame_curve
+from sword_jax.evaluation.results import EvalResults, ModelResult
+from sword_jax.metrics.frechet import frechet_distance_from_features
+from sword_jax.metrics.suite import MetricSuite
+
+ProgressFn = Callable[[str], None]
+
+
+def _window_curve(features_pred: list[np.ndarray], features_gt: list[np.ndarray], windows: list[tuple[int, int]]) -> Curve | None:
+    frames, values = [], []
+    for (lo, hi), fp, fg in zip(windows, features_pred, features_gt):
+        if fp.shape[0] >= 2 and fg.shape[0] >= 2:
+            frames.append((lo + hi - 1) / 2)
+            values.append(frechet_distance_from_features(fp, fg))
+    if not values:
+        return None
+    return Curve(np.asarray(frames), np.asarray(values), np.zeros(len(values)))
+
+
+def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"], *,
+                   horizon_window: int = 16) -> ModelResult:
+    """Every metric of one model's predictions against ground truth (frames 1..T-1).
+
+    Args:
+      suite: the metric networks.
+      gt, pred: videos in [0, 1]; frame 0 is the shared conditioning frame.
+      horizon_window: frames per window of the FID/FVD-vs-horizon curves.
+    """
+    gt, pred = np.asarray(gt, np.float32)[:, 1:], np.asarray(pred, np.float32)[:, 1:]
+    metrics = suite.evaluate(gt, pred)
+    curves = {name: per_frame_curve(values, frame_offset=1).to_dict() for name, values in metrics.per_frame.items()}
+    t = gt.shape[1]
+    if "fid" in suite.metrics:
+        windows = horizon_windows(t, min(horizon_window, t))
+        feats_p = suite.inception_features(pred.reshape(-1, *pred.shape[2:])).reshape(pred.shape[0], t, -1)
+        feats_g = suite.inception_features(gt.reshape(-1, *gt.shape[2:])).reshape(gt.shape[0], t, -1)
+        curve = _window_curve([feats_p[:, lo:hi].reshape(-1, feats_p.shape[-1]) for lo, hi in windows],
+                              [feats_g[:, lo:hi].reshape(-1, feats_g.shape[-1]) for lo, hi in windows], windows)
+        if curve is not None:
+            curves["fid"] = Curve(curve.frames + 1, curve.mean, curve.stderr).to_dict()
+    if "fvd" in suite.metrics and t >= suite.config.fvd_clip_frames:
+        clip = suite.config.fvd_clip_frames
+        windows = horizon_windows(t, clip)
+        curve = _window_curve([suite.i3d_features(pred[:, lo:hi]) for lo, hi in windows],
+                              [suite.i3d_features(gt[:, lo:hi]) for lo, hi in windows], windows)
+        if curve is not None:
+            curves["fvd"] = Curve(curve.frames + 1, curve.mean, curve.stderr).to_dict()
+    return ModelResult(metrics.overall, curves)
+
+
+def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
+                    predictions: dict[str, dict[str, np.ndarray]], *, horizon_window: int = 16,
+                    settings: dict | None = None, progress: ProgressFn = print) -> EvalResults:
+    """Scores several models side by side on several splits.
+
+    Args:
+      suite: the metric networks.
+      gt_by_split: ``{split: [B, T, H, W, 3]}`` ground-truth videos in [0, 1].
+      predictions: ``{model: {split: [B, T, H, W, 3]}}`` predicted videos (same shapes).
+      horizon_window: frames per FID window on the horizon curves.
+      settings: recorded in the results.
+      progress: called with one line per (split, model).
+
+    Returns:
+      Results for :func:`sword_jax.evaluation.report.write_report`.
+    """
+    models: dict[str, dict[str, ModelResult]] = {}
+    for split, gt in gt_by_split.items():
+        models[split] = {}
+        for model, per_split in predictions.items():
+            if split not in per_split:
+                raise KeyError(f"model {model!r} has no predictions for split {split!r}")
+            if per_split[split].shape != gt.shape:
+                raise ValueError(f"{model}/{split}: predictions {per_split[split].shape} != ground truth {gt.shape}")
+            models[split][model] = evaluate_model(suite, gt, per_split[split], horizon_window=horizon_window)
+            summary = ", ".join(f"{k}={v:.4g}" for k, v in models[split][model].overall.items())
+            progress(f"[evaluate] {split} / {model}: {summary}")
+    return EvalResults(suite.metrics, models, suite.random_weight_networks, suite.describe_weights(), settings or {})
+
+
+def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.GraphDef, vae_state: Any,
+                   frames: Float[np.ndarray, "b t h w 3"], actions: Float[np.ndarray, "b t a"], *, key: jax.Array,
+                   flow_cfg, num_context: int = 1, num_future: int = 2, num_steps: int | None = None) -> np.ndarray:
+    """Predicted videos of one world model from each episode's first frame and first context chunk.
+
+    Args:
+      wm_graphdef, wm_state: the world model (``state`` as :func:`rollout.rollout` takes it).
+      vae_graphdef, vae_state: the video VAE.
+      frames: ground-truth videos in [0, 1], ``T = 1 + 4k + 4pn`` frames (the horizon).
+      actions: per-frame ground-truth actions, ``[B, T, a]``.
+      key: sampling key.
+      flow_cfg: :class:`FlowConfig` of the world model.
+      num_context, num_future: latents of context / predicted per chunk (``k``, ``p``).
+      num_steps: Euler steps per chunk (default from ``flow_cfg``).
+
+    Returns:
+      ``[B, T, H, W, 3]`` in [0, 1]: frame 0 and the context frames decoded from their latents,
+      then the predicted frames.
+    """
+    from sword_jax.vae import api as vae_api
+    from sword_jax.world_model import rollout as wm_rollout
+
+    frames = np.asarray(frames, np.float32)
+    b, t = frames.shape[:2]
+    if actions.shape[:2] != (b, t):
+        raise ValueError(f"actions {actions.shape} must be [B, T, a] matching frames {frames.shape}")
+    wm_rollout.num_chunks_for(t, num_context, num_future)  # validates the horizon
+
+    @jax.jit
+    def run(video, acts, key):
+        context_video = video[:, : 1 + 4 * num_context] * jnp.float32(2) - jnp.float32(1)
+        latents = vae_api.encode(vae_graphdef, vae_state, context_video, check_values=False)
+        first, context = latents[:, :1], latents[:, 1 : 1 + num_context]
+        predicted = wm_rollout.rollout(wm_graphdef, wm_state, first, context, acts, key=key, cfg=flow_cfg,
+                                       num_future=num_future, num_steps=num_steps)
+        all_latents = jnp.concatenate([context, predicted], axis=1)
+        video_out = wm_rollout.decode_rollout(vae_graphdef, vae_state, first, all_latents,
+                                              latents_per_chunk=_chunk_size(num_context, num_future))
+        return (video_out + jnp.float32(1)) / jnp.float32(2)
+
+    out = np.asarray(run(jnp.asarray(frames), jnp.asarray(actions, jnp.float32), key))
+    return np.clip(out[:, :t], 0.0, 1.0)
+
+
+def _chunk_size(num_context: int, num_future: int) -> int:
+    """Largest latents-per-decode-chunk dividing ``k + p n`` for every n (gcd of k and p)."""
+    return int(np.gcd(num_context, num_future))

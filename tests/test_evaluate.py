@@ -1,0 +1,78 @@
+"""Evaluation harness and report on synthetic arrays (no world model needed)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from sword_jax.evaluation.harness import evaluate_videos
+from sword_jax.evaluation.horizon import binned, horizon_windows, per_frame_curve
+from sword_jax.evaluation.report import write_report
+from sword_jax.metrics.config import EvalConfig
+from sword_jax.metrics.suite import MetricSuite
+
+
+def _videos(seed, b=2, t=9, size=32):
+    rng = np.random.default_rng(seed)
+    coarse = rng.random((b, 1, size // 8, size // 8, 3)).astype(np.float32)
+    frame = np.kron(coarse, np.ones((1, 1, 8, 8, 1), np.float32))
+    return np.stack([np.roll(frame[:, 0], 2 * i, axis=2) for i in range(t)], axis=1)  # panning
+
+
+def test_horizon_curves():
+    values = np.arange(12, dtype=np.float64).reshape(2, 6)
+    curve = per_frame_curve(values, frame_offset=1)
+    np.testing.assert_array_equal(curve.frames, np.arange(1, 7))
+    np.testing.assert_allclose(curve.mean, values.mean(0))
+    np.testing.assert_allclose(curve.stderr, np.full(6, 3.0))  # std(ddof=1)=6/sqrt(2), over sqrt(2)
+    assert binned(curve, 3).mean.tolist() == [3.5, 5.5, 7.5]
+    assert horizon_windows(10, 4) == [(0, 4), (4, 8)]
+    with pytest.raises(ValueError, match="NaN"):
+        per_frame_curve(np.full((2, 3), np.nan))
+
+
+def test_harness_and_report_rank_models_and_write_files(tmp_path):
+    suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("lpips", "flolpips", "psnr", "ssim"))
+    gt = {"original": _videos(0), "mixed": _videos(1)}
+    rng = np.random.default_rng(2)
+    drift = np.linspace(0, 0.3, 9, dtype=np.float32)[None, :, None, None, None]  # error grows with horizon
+    noise = {s: rng.standard_normal(v.shape).astype(np.float32) for s, v in gt.items()}
+    predictions = {
+        "good": {s: np.clip(v + 0.1 * drift * noise[s], 0, 1) for s, v in gt.items()},
+        "bad": {s: np.clip(v + drift * noise[s], 0, 1) for s, v in gt.items()},
+    }
+    results = evaluate_videos(suite, gt, predictions, progress=lambda _: None)
+    for split in gt:
+        good, bad = results.models[split]["good"], results.models[split]["bad"]
+        assert good.overall["lpips"] < bad.overall["lpips"]
+        assert good.overall["psnr"] > bad.overall["psnr"]
+        assert good.overall["ssim"] > bad.overall["ssim"]
+        curve = bad.curves["lpips"]
+        assert curve["frames"][0] == 1 and len(curve["frames"]) == 8
+        assert curve["mean"][-1] > curve["mean"][0]  # metric vs horizon tracks the drift
+    assert results.random_weight_networks == ["flolpips", "lpips"]
+
+    videos = {s: {"ground truth": gt[s], **{m: p[s] for m, p in predictions.items()}} for s in gt}
+    md_path = write_report(str(tmp_path), results, videos, notes=["synthetic test"])
+    text = open(md_path).read()
+    assert "Random-weight metric networks" in text and "| good |" in text and "| bad |" in text
+    for rel in ("plots/original_lpips.png", "plots/mixed_psnr.png", "strips/original_ep0.png", "videos/mixed_ep1.gif"):
+        assert os.path.getsize(tmp_path / rel) > 0, rel
+        assert rel in text
+    saved = json.load(open(tmp_path / "results.json"))
+    assert saved["models"]["original"]["good"]["overall"]["lpips"] == pytest.approx(results.models["original"]["good"].overall["lpips"])
+    assert "<table>" in open(tmp_path / "report.html").read()
+
+
+def test_harness_rejects_mismatched_shapes():
+    suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("psnr",))
+    gt = {"original": _videos(0)}
+    with pytest.raises(ValueError, match="predictions"):
+        evaluate_videos(suite, gt, {"m": {"original": _videos(0)[:, :5]}}, progress=lambda _: None)
+    with pytest.raises(KeyError, match="mixed"):
+        evaluate_videos(suite, {"mixed": _videos(0)}, {"m": {"original": _videos(0)}}, progress=lambda _: None)
+    bad = _videos(0)
+    bad[0, 1, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        evaluate_videos(suite, gt, {"m": {"original": bad}}, progress=lambda _: None)
