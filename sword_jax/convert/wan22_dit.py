@@ -95,7 +95,7 @@ def official_to_state(tensors: dict[str, np.ndarray], cfg: DiTConfig) -> dict[tu
     for key, path in _LINEARS.items():
         flat[path + ("kernel",)] = take(f"{key}.weight").T
         flat[path + ("bias",)] = take(f"{key}.bias")
-    flat[("head_modulation",)] = take("head.modulation").reshape(2, cfg.dim)
+    flat[("head_modulation",)] = _table(take("head.modulation"), "head.modulation", 2, cfg.dim)
 
     per_block: dict[tuple[str, ...], list[np.ndarray]] = {}
     for n in range(cfg.num_layers):
@@ -110,7 +110,7 @@ def official_to_state(tensors: dict[str, np.ndarray], cfg: DiTConfig) -> dict[tu
         if cfg.cross_attn_norm:
             entries[("norm3", "scale")] = take(f"blocks.{n}.norm3.weight")
             entries[("norm3", "bias")] = take(f"blocks.{n}.norm3.bias")
-        entries[("modulation",)] = take(f"blocks.{n}.modulation").reshape(6, cfg.dim)
+        entries[("modulation",)] = _table(take(f"blocks.{n}.modulation"), f"blocks.{n}.modulation", 6, cfg.dim)
         for path, value in entries.items():
             per_block.setdefault(path, []).append(value)
     for path, values in per_block.items():
@@ -122,6 +122,13 @@ def official_to_state(tensors: dict[str, np.ndarray], cfg: DiTConfig) -> dict[tu
         hint = f" (blocks {extra_blocks} beyond num_layers={cfg.num_layers})" if extra_blocks else ""
         raise ValueError(f"official checkpoint has {len(unused)} keys the port does not use{hint}: {unused[:8]}")
     return flat
+
+
+def _table(value: np.ndarray, key: str, slots: int, dim: int) -> np.ndarray:
+    """A ``[1, slots, dim]`` modulation table as ``[slots, dim]``."""
+    if value.shape != (1, slots, dim):
+        raise ValueError(f"{key}: expected shape (1, {slots}, {dim}), got {value.shape}")
+    return value[0]
 
 
 def fill_state(state: nnx.State, flat: dict[tuple[str, ...], np.ndarray], *, strict: bool = True) -> nnx.State:

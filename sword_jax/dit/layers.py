@@ -230,9 +230,11 @@ def attention(
     """Softmax attention with scale 1/sqrt(d); keys at index >= ``key_lengths[b]`` are masked."""
     implementation = resolve_attention_impl(impl, query.dtype, query.shape[-1])
     lengths = None if key_lengths is None else key_lengths.astype(jnp.int32)
-    return jax.nn.dot_product_attention(
-        query, key, value, key_value_seq_lengths=lengths, implementation=implementation
-    )
+    # jax's XLA attention promotes bf16 logits to f32 implicitly, which strict promotion rejects.
+    with jax.numpy_dtype_promotion("standard"):
+        return jax.nn.dot_product_attention(
+            query, key, value, key_value_seq_lengths=lengths, implementation=implementation
+        )
 
 
 def check_shape(name: str, x: jax.Array, expected: Sequence[int | None]) -> None:

@@ -48,6 +48,48 @@ def action_chunks(actions: Float[Array, "b t a"]) -> Float[Array, "b f 4a"]:
     return padded.reshape(b, (t + FRAMES_PER_LATENT - 1) // FRAMES_PER_LATENT, FRAMES_PER_LATENT * a)
 
 
+class ActionConditioner(nnx.Module):
+    """The two action branches: cross-attention tokens and the per-frame AdaLN offset."""
+
+    def __init__(self, cfg: DiTConfig, *, rngs: nnx.Rngs):
+        self.cfg = cfg
+        cdt, pdt = dtype_of(cfg.compute_dtype), dtype_of(cfg.param_dtype)
+        kw = dict(compute_dtype=cdt, param_dtype=pdt, rngs=rngs)
+        with nnx.use_eager_sharding(False):
+            if cfg.action_cross_attn:
+                self.token_in = linear(cfg.action_dim + ACTION_INDEX_DIM, cfg.dim, ("action", "embed"), **kw)
+                self.token_out = linear(cfg.dim, cfg.dim, ("mlp", "embed"), **kw)
+                self.null_context = None
+            else:
+                self.token_in = self.token_out = None
+                null = nnx.initializers.normal(1.0)(rngs.params(), (1, cfg.dim), pdt)
+                self.null_context = nnx.Param(null, out_sharding=(None, "embed"))
+            if cfg.action_adaln:
+                self.chunk_in = linear(FRAMES_PER_LATENT * cfg.action_dim, cfg.dim, ("action", "embed"), **kw)
+                self.chunk_out = linear(
+                    cfg.dim, cfg.dim, ("mlp", "embed"), kernel_init=nnx.initializers.zeros_init(), **kw
+                )
+            else:
+                self.chunk_in = self.chunk_out = None
+
+    def context(self, actions: Float[Array, "b t a"]) -> Float[Array, "b lc d"]:
+        """Cross-attention context: one token per action (or the learned null token)."""
+        b, t, _ = actions.shape
+        if self.token_in is None:
+            return jnp.broadcast_to(self.null_context[...].astype(jnp.float32)[None], (b, 1, self.cfg.dim))
+        index = timestep_sinusoid(jnp.arange(t, dtype=jnp.float32), ACTION_INDEX_DIM)
+        features = jnp.concatenate([actions.astype(jnp.float32), jnp.broadcast_to(index, (b, t, ACTION_INDEX_DIM))], -1)
+        hidden = jax.nn.gelu(self.token_in(features), approximate=True)
+        return self.token_out(hidden).astype(jnp.float32)
+
+    def time_offset(self, actions: Float[Array, "b t a"]) -> Float[Array, "b f d"] | None:
+        """Per-latent-frame addition to the time embedding (None with ``action_adaln`` off)."""
+        if self.chunk_in is None:
+            return None
+        hidden = jax.nn.silu(self.chunk_in(action_chunks(actions.astype(jnp.float32))))
+        return self.chunk_out(hidden).astype(jnp.float32)
+
+
 class WorldModel(nnx.Module):
     """:class:`WanDiT` conditioned on actions through cross-attention tokens and AdaLN."""
 
@@ -56,41 +98,7 @@ class WorldModel(nnx.Module):
             raise ValueError(f"model.patch_size: the world model needs temporal patch 1, got {cfg.patch_size}")
         self.cfg = cfg
         self.dit = WanDiT(cfg, rngs=rngs)
-        cdt, pdt = dtype_of(cfg.compute_dtype), dtype_of(cfg.param_dtype)
-        kw = dict(compute_dtype=cdt, param_dtype=pdt, rngs=rngs)
-        with nnx.use_eager_sharding(False):
-            if cfg.action_cross_attn:
-                self.action_token_in = linear(cfg.action_dim + ACTION_INDEX_DIM, cfg.dim, ("action", "embed"), **kw)
-                self.action_token_out = linear(cfg.dim, cfg.dim, ("mlp", "embed"), **kw)
-                self.null_context = None
-            else:
-                self.action_token_in = self.action_token_out = None
-                null = nnx.initializers.normal(1.0)(rngs.params(), (1, cfg.dim), pdt)
-                self.null_context = nnx.Param(null, out_sharding=(None, "embed"))
-            if cfg.action_adaln:
-                self.action_chunk_in = linear(FRAMES_PER_LATENT * cfg.action_dim, cfg.dim, ("action", "embed"), **kw)
-                self.action_chunk_out = linear(
-                    cfg.dim, cfg.dim, ("mlp", "embed"), kernel_init=nnx.initializers.zeros_init(), **kw
-                )
-            else:
-                self.action_chunk_in = self.action_chunk_out = None
-
-    def action_context(self, actions: Float[Array, "b t a"]) -> Float[Array, "b lc d"]:
-        """Cross-attention context: one token per action (or the learned null token)."""
-        b, t, _ = actions.shape
-        if self.action_token_in is None:
-            return jnp.broadcast_to(self.null_context[...].astype(jnp.float32)[None], (b, 1, self.cfg.dim))
-        index = timestep_sinusoid(jnp.arange(t, dtype=jnp.float32), ACTION_INDEX_DIM)
-        features = jnp.concatenate([actions.astype(jnp.float32), jnp.broadcast_to(index, (b, t, ACTION_INDEX_DIM))], -1)
-        hidden = jax.nn.gelu(self.action_token_in(features), approximate=True)
-        return self.action_token_out(hidden).astype(jnp.float32)
-
-    def action_time_offset(self, actions: Float[Array, "b t a"]) -> Float[Array, "b f d"] | None:
-        """Per-latent-frame addition to the time embedding (None with ``action_adaln`` off)."""
-        if self.action_chunk_in is None:
-            return None
-        hidden = jax.nn.silu(self.action_chunk_in(action_chunks(actions.astype(jnp.float32))))
-        return self.action_chunk_out(hidden).astype(jnp.float32)
+        self.actions = ActionConditioner(cfg, rngs=rngs)
 
     def __call__(
         self,
@@ -117,11 +125,11 @@ class WorldModel(nnx.Module):
         dit = self.dit
         grid = (f, h // cfg.patch_size[1], w // cfg.patch_size[2])
         time_emb = dit.embed_time(timesteps)  # (B, F, D)
-        offset = self.action_time_offset(actions)
+        offset = self.actions.time_offset(actions)
         if offset is not None:
             time_emb = time_emb + offset
         out = dit.forward_tokens(
-            dit.patchify(latents), dit.grid_positions(b, grid), time_emb, self.action_context(actions)
+            dit.patchify(latents), dit.grid_positions(b, grid), time_emb, self.actions.context(actions)
         )
         return dit.unpatchify(out, grid)
 
@@ -169,16 +177,11 @@ def load_official_into_world_model(
 
     with nnx.use_eager_sharding(False):
         graphdef, state = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg, rngs=nnx.Rngs(0))))
-        # Only the action-branch values are kept; XLA drops the DiT's initialisers as dead code.
-        fresh = jax.jit(lambda k: _branch_values(nnx.split(WorldModel(cfg, rngs=nnx.Rngs(params=k)))[1]))(key)
+        branches = nnx.split(ActionConditioner(cfg, rngs=nnx.Rngs(params=key)))[1]
     flat = {("dit",) + p: v for p, v in official_to_state(tensors, cfg).items()}
-    flat.update(fresh)
+    flat.update({("actions",) + tuple(p): v.get_value() for p, v in nnx.to_flat_state(branches)})
     state = fill_state(state, flat)
     return cfg, graphdef, state
-
-
-def _branch_values(state: nnx.State) -> dict[tuple[str, ...], Array]:
-    return {tuple(p): v.get_value() for p, v in nnx.to_flat_state(state) if p[0] != "dit"}
 
 
 def replace_options(cfg: DiTConfig, **options: Any) -> DiTConfig:
