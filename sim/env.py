@@ -172,6 +172,11 @@ class CpuEnv(_Common):
         return self._state(data, info=dict(state.info))
 
 
+def _mjx_promotion():
+    # MJX's internals mix Python floats and bools; keep them working under strict promotion.
+    return jax.numpy_dtype_promotion("standard")
+
+
 def _mjx():
     from mujoco import mjx  # imported lazily: it costs seconds and the C backend does not need it
 
@@ -203,8 +208,9 @@ class MjxEnv(_Common):
         qpos = jnp.asarray(qpos, jnp.float32)
         ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
         mjx = _mjx()
-        data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
-        data = mjx.forward(self.mjx_model, data)
+        with _mjx_promotion():
+            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
+            data = mjx.forward(self.mjx_model, data)
         settle = jnp.asarray(SETTLE_ACTION)
         data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
         return self._state(data, info={})
@@ -212,12 +218,14 @@ class MjxEnv(_Common):
     def _physics(self, data: Any, action: jax.Array) -> Any:
         from mujoco.mjx._src import support
 
-        jacp, jacr = support.jac(self.mjx_model, data, data.site_xpos[self.site_id], self.hand_body)  # (nv, 3)
+        with _mjx_promotion():
+            jacp, jacr = support.jac(self.mjx_model, data, data.site_xpos[self.site_id], self.hand_body)  # (nv, 3)
         ctrl = ctl.servo_targets(action.astype(jnp.float32), data.qpos[:7], jacp[:7].T, jacr[:7].T,
                                  self.controller, xp=jnp)
         data = data.replace(ctrl=ctrl)
         mjx = _mjx()
-        return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+        with _mjx_promotion():
+            return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
 
     def _state(self, data: Any, info: dict[str, Any]) -> State:
         solved = self._success(data, jnp).astype(jnp.float32)

@@ -51,14 +51,14 @@ class Placement:
 # (target bowl, distractor bowl) per task, in suite order.
 BOWLS: tuple[tuple[Placement, Placement], ...] = (
     (Placement((-0.06, 0.0), jitter=0.01), Placement((0.08, -0.02))),
-    (Placement((0.07, -0.19)), Placement((-0.2, 0.17))),
+    (Placement((0.08, -0.12), jitter=0.01), Placement((0.1, 0.06))),
     (Placement((0.04, 0.02)), Placement((-0.22, -0.2))),
     (Placement((0.0, 0.0), "cookies", 0.005), Placement((0.05, -0.03))),
     (Placement((0.0, 0.0), "drawer", 0.008), Placement((0.05, 0.0))),
     (Placement((0.0, 0.0), "ramekin", 0.005), Placement((0.06, 0.04))),
     (Placement((-0.25, -0.15), jitter=0.015), Placement((0.07, 0.02))),
     (Placement((0.0, 0.0), "stove", 0.01), Placement((0.06, 0.01))),
-    (Placement((0.09, 0.2)), Placement((0.04, -0.06))),
+    (Placement((0.1, 0.19), jitter=0.01), Placement((0.06, -0.04))),
     (Placement((0.0, 0.0), "cabinet_top", 0.01), Placement((0.05, -0.04))),
 )
 

@@ -158,3 +158,25 @@ def test_registry_load_and_errors():
         sim.load("libero_spatial", task_id=12)
     with pytest.raises(ValueError, match="physics_dt"):
         sim.load("libero_spatial", physics_dt=0.003)
+
+
+def test_initial_layouts_never_overlap():
+    """Footprints (circles; the cookie box by its half-diagonal) keep >= 3 mm apart, and
+    table-level objects stay clear of the stove and of the cabinet with its open drawer."""
+    radius = (scene.BOWL_RADIUS, scene.BOWL_RADIUS, scene.PLATE_RADIUS, scene.RAMEKIN_RADIUS,
+              float(np.hypot(*scene.COOKIES_HALF[:2])))
+    rects = [(scene.STOVE_POS[:2], scene.STOVE_HALF[:2]),
+             ((scene.CABINET_POS[0] - scene.DRAWER_OUT / 2, scene.CABINET_POS[1]),
+              (scene.CABINET_HALF[0] + scene.DRAWER_OUT / 2, scene.CABINET_HALF[1]))]
+    for task_id in range(10):
+        on_table = [k for k in range(5) if k > 0 or tasks.BOWLS[task_id][0].support == "table"]
+        for qpos in tasks.fixed_init_states(task_id):
+            xy = [qpos[9 + 7 * k: 11 + 7 * k] for k in range(5)]
+            for i in on_table:
+                for j in on_table:
+                    if i < j:
+                        gap = np.linalg.norm(xy[i] - xy[j]) - radius[i] - radius[j]
+                        assert gap > 0.003, (task_id, scene.OBJECTS[i], scene.OBJECTS[j], gap)
+                for centre, half in rects:
+                    outside = np.maximum(np.abs(xy[i] - np.asarray(centre)) - np.asarray(half), 0)
+                    assert np.hypot(*outside) > radius[i], (task_id, scene.OBJECTS[i])
