@@ -172,3 +172,13 @@ def test_config_validation():
                        (dict(raw_fraction=-0.1), "raw_fraction"), (dict(seg_classes=(("arm", (2,)),)), "seg_classes")):
         with pytest.raises(ValueError, match=match):
             AugmentConfig(**bad).validate()
+
+
+def test_gallery_writes_labelled_png(tmp_path):
+    from sword_jax.augment import gallery
+
+    out = tmp_path / "gallery.png"
+    assert gallery.main(["--out", str(out), "--source", "synthetic", "--size", "32", "--styles", "2"]) == 0
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[1] == 3 * 256 and image.shape[0] > 2 * 256
+    assert image.std() > 20  # not blank
