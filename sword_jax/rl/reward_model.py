@@ -1,0 +1,104 @@
+"""Success detector: a small CNN scoring each frame in [0, 1] (WoVR's reward model).
+
+Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_jax.rl.data.success_labels`
+(the last frames of successful episodes are positives). In imagined rollouts the reward of a
+chunk is the change of the score and the trajectory succeeds once a frame scores above the
+threshold (0.9). :func:`as_reward_model` wraps trained params in the
+:class:`~sword_jax.rl.simulator.RewardModel` protocol.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx, struct
+from jaxtyping import Array, Float
+
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import resize_frames
+from sword_jax.rl.simulator import RewardModel
+
+
+class SuccessDetector(nnx.Module):
+    """Four stride-2 conv blocks -> global average pool -> MLP -> one logit per frame."""
+
+    def __init__(self, cfg: RLConfig, *, rngs: nnx.Rngs):
+        self.image_size = cfg.image_size
+        w = cfg.reward_width
+        chans = (w, 2 * w, 4 * w, 4 * w)
+        self.convs = nnx.List()
+        cin = 3
+        for c in chans:
+            self.convs.append(nnx.Conv(cin, c, (3, 3), strides=(2, 2), padding="SAME", rngs=rngs))
+            cin = c
+        self.hidden = nnx.Linear(cin, 4 * w, rngs=rngs)
+        self.out = nnx.Linear(4 * w, 1, rngs=rngs)
+
+    def __call__(self, frames: Float[Array, "n h w 3"]) -> Float[Array, " n"]:
+        """Success logits of frames in [0, 1] (any size; resized to ``cfg.image_size``)."""
+        x = resize_frames(frames, self.image_size) * jnp.float32(2.0) - jnp.float32(1.0)
+        for conv in self.convs:
+            x = jax.nn.gelu(conv(x))
+        x = jnp.mean(x, axis=(1, 2))  # (N, C)
+        return self.out(jax.nn.gelu(self.hidden(x)))[:, 0].astype(jnp.float32)
+
+
+def build_detector(cfg: RLConfig, *, seed: int = 0) -> tuple[nnx.GraphDef, nnx.State]:
+    with nnx.use_eager_sharding(False):
+        return nnx.split(SuccessDetector(cfg, rngs=nnx.Rngs(seed)))
+
+
+def as_reward_model(graphdef: nnx.GraphDef, params: nnx.State) -> RewardModel:
+    """The detector as a per-frame score in [0, 1] (sigmoid of the logit)."""
+
+    def score_fn(params, frames):
+        return jax.nn.sigmoid(nnx.merge(graphdef, params)(frames))
+
+    return RewardModel(params=params, score_fn=score_fn)
+
+
+@struct.dataclass
+class DetectorState:
+    params: Any
+    opt_state: Any
+    step: jax.Array
+
+
+def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
+    """``init(params) -> state`` and the jitted ``step(state, batch, key) -> (state, metrics)``.
+
+    ``batch = {"frames": [n, H, W, 3] uint8|float, "labels": [n] in {0, 1}}``. Brightness /
+    contrast jitter keeps the detector from keying on the world model's colour drift.
+    """
+    from sword_jax.rl.grpo import apply_optimizer
+
+    optimizer = optax.adamw(cfg.reward_model_learning_rate, weight_decay=1e-4)
+
+    def init(params) -> DetectorState:
+        return DetectorState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
+
+    def step(state: DetectorState, batch, key):
+        key = jax.random.fold_in(key, state.step)
+        frames = resize_frames(batch["frames"], cfg.image_size)
+        gain_key, bias_key = jax.random.split(key)
+        n = frames.shape[0]
+        gain = jax.random.uniform(gain_key, (n, 1, 1, 1), jnp.float32, 0.8, 1.2)
+        bias = jax.random.uniform(bias_key, (n, 1, 1, 1), jnp.float32, -0.1, 0.1)
+        frames = jnp.clip(frames * gain + bias, 0.0, 1.0)
+        labels = batch["labels"].astype(jnp.float32)
+
+        def loss_fn(params):
+            logits = nnx.merge(graphdef, params)(frames)
+            loss = jnp.mean(optax.sigmoid_binary_cross_entropy(logits, labels))
+            acc = jnp.mean(((logits > 0).astype(jnp.float32) == labels).astype(jnp.float32))
+            return loss, acc
+
+        (loss, acc), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        _, opt_state, params = apply_optimizer(optimizer, grads, state.opt_state, state.params)
+        return DetectorState(params, opt_state, state.step + 1), {"loss": loss, "accuracy": acc,
+                                                                  "grad_norm": optax.global_norm(grads)}
+
+    return init, jax.jit(step, donate_argnums=(0,))
