@@ -81,7 +81,9 @@ class RenderScene:
       rgb: base colour in [0, 1], (n, 3).
       geom_class: class id of every model geom (ngeom,); class_names: names of class ids.
       cameras: camera name -> (camera id, vertical field of view in degrees).
-      light_dir: unit vector towards the light (world frame); ambient, diffuse: shading.
+      light_dirs: unit vectors towards each directional light (world frame), (L, 3);
+        light_diffuse: their diffuse intensities (L,); ambient: ambient intensity;
+        headlight: diffuse intensity of MuJoCo's headlight (along the view ray).
       background: RGB in [0, 1] where nothing is hit; far: depth there (metres).
     """
 
@@ -93,10 +95,11 @@ class RenderScene:
     geom_class: np.ndarray
     class_names: tuple[str, ...]
     cameras: dict[str, tuple[int, float]]
-    light_dir: np.ndarray
+    light_dirs: np.ndarray
+    light_diffuse: np.ndarray
     ambient: float = 0.35
-    diffuse: float = 0.65
-    background: tuple[float, float, float] = (0.18, 0.2, 0.24)
+    headlight: float = 0.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # MuJoCo with no skybox
     far: float = 10.0
 
 
@@ -114,7 +117,7 @@ def build_scene(
     *,
     geomgroups: tuple[int, ...] = (0, 1, 2),
     class_overrides: dict[str, str] | None = None,
-    light_dir: tuple[float, float, float] = (0.3, -0.4, 1.0),
+    light_dir: tuple[float, float, float] | None = None,
     far: float = 10.0,
 ) -> RenderScene:
     """Collects the visible geoms of ``model`` (those MuJoCo's renderer shows by default).
@@ -123,7 +126,10 @@ def build_scene(
       model: the compiled MuJoCo model.
       geomgroups: geom groups drawn (MuJoCo's default visual option shows 0, 1 and 2).
       class_overrides: body name -> class name, passed to ``segmentation_classes``.
-      light_dir: direction towards the directional light, world frame (normalised here).
+      light_dir: a single directional light (direction towards it, world frame) replacing
+        the model's lights and headlight; default: the model's lights, as MuJoCo draws them
+        (directional and spot lights by their static direction, diffuse only, plus the
+        headlight and ambient terms; no textures or specular highlights).
       far: depth reported where a ray hits nothing (metres).
 
     Returns:
@@ -166,7 +172,18 @@ def build_scene(
     for cam in range(model.ncam):
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) or f"camera{cam}"
         cameras[name] = (cam, float(model.cam_fovy[cam]))
-    light = np.asarray(light_dir, np.float32)
+    if light_dir is not None or model.nlight == 0:
+        light = np.asarray(light_dir if light_dir is not None else (0.3, -0.4, 1.0), np.float32)
+        light_dirs = (light / np.linalg.norm(light))[None, :]
+        light_diffuse = np.array([0.65], np.float32)
+        ambient, headlight = 0.35, 0.0
+    else:
+        towards = -np.asarray(model.light_dir, np.float32)  # world-body lights: static
+        light_dirs = towards / np.linalg.norm(towards, axis=-1, keepdims=True)
+        light_diffuse = np.asarray(model.light_diffuse, np.float32).mean(-1)
+        active = bool(model.vis.headlight.active)
+        ambient = float(np.mean(model.light_ambient.sum(0)) + active * np.mean(model.vis.headlight.ambient))
+        headlight = float(active * np.mean(model.vis.headlight.diffuse))
     return RenderScene(
         geom_ids=np.asarray(ids, np.int32),
         geom_type=np.asarray(types, np.int32),
@@ -176,7 +193,10 @@ def build_scene(
         geom_class=geom_class,
         class_names=class_names,
         cameras=cameras,
-        light_dir=light / np.linalg.norm(light),
+        light_dirs=light_dirs,
+        light_diffuse=light_diffuse,
+        ambient=ambient,
+        headlight=headlight,
         far=float(far),
     )
 
@@ -363,14 +383,18 @@ def render(
     view = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     normal = jnp.where(jnp.sum(normal * view, -1, keepdims=True) > 0, -normal, normal)
 
-    light = jnp.asarray(scene.light_dir)
-    lambert = jnp.maximum(normal @ light, 0.0)
-    if shadows:
+    lambert = jnp.maximum(normal @ jnp.asarray(scene.light_dirs).T, 0.0)  # (R, L)
+    if shadows:  # hard shadows from the strongest light
+        strongest = int(np.argmax(scene.light_diffuse))
+        light = jnp.asarray(scene.light_dirs[strongest])
         points = cam_pos[None, :] + depth[:, None] * dirs + normal * jnp.float32(1e-3)
         t_shadow, _, _ = _nearest_hits(scene, pos, mat, points, jnp.broadcast_to(light, dirs.shape))
-        lambert = jnp.where(jnp.isfinite(jnp.min(t_shadow, 0)), 0.0, lambert)
+        lit = jnp.isfinite(jnp.min(t_shadow, 0))
+        lambert = lambert.at[:, strongest].set(jnp.where(lit, 0.0, lambert[:, strongest]))
     base = jnp.asarray(scene.rgb)[nearest]
-    shade = jnp.float32(scene.ambient) + jnp.float32(scene.diffuse) * lambert
+    facing = jnp.maximum(-jnp.sum(normal * view, -1), 0.0)
+    shade = (jnp.float32(scene.ambient) + lambert @ jnp.asarray(scene.light_diffuse)
+             + jnp.float32(scene.headlight) * facing)
     colour = jnp.where(hit[:, None], base * shade[:, None], jnp.asarray(scene.background, jnp.float32))
     rgb = jnp.round(jnp.clip(colour, 0.0, 1.0) * 255.0).astype(jnp.uint8)
 

@@ -164,7 +164,7 @@ def gl():
         pytest.skip(reason)
 
 
-@pytest.mark.parametrize("camera", ["agentview", "top"])
+@pytest.mark.parametrize("camera", ["agentview"])
 def test_matches_mujoco_renderer_on_primitives(gl, camera):
     """Segmentation agrees on >= 95% of pixels; depth within 2 mm on 99% of shared pixels."""
     model = mujoco.MjModel.from_xml_string(PRIMITIVES_XML)
