@@ -216,6 +216,10 @@ def test_bad_inputs_are_named():
         model(latents[..., :8], timesteps, actions)
     with pytest.raises(ValueError, match="patch_size"):
         model(latents[:, :, :3, :3], timesteps, actions)
+    with pytest.raises(ValueError, match="timesteps: maximum"):
+        model(latents, timesteps + 2000.0, actions)
+    with pytest.raises(ValueError, match="actions: contains 1 non-finite"):
+        model(latents, timesteps, actions.at[0, 2, 1].set(jnp.nan))
     with pytest.raises(ValueError, match="num_heads"):
         WorldModel(dataclasses.replace(CFG, num_heads=3), rngs=nnx.Rngs(0))
 

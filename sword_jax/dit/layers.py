@@ -242,3 +242,19 @@ def check_shape(name: str, x: jax.Array, expected: Sequence[int | None]) -> None
     if len(x.shape) != len(expected) or any(e is not None and s != e for s, e in zip(x.shape, expected)):
         want = tuple("*" if e is None else e for e in expected)
         raise ValueError(f"{name}: expected shape {want}, got {tuple(x.shape)}")
+
+
+def check_values(name: str, x: jax.Array, low: float | None = None, high: float | None = None) -> None:
+    """Outside a trace, raises a ValueError naming ``name`` for NaN/inf or out-of-range values.
+
+    Inside ``jit`` the values are unknown and nothing is checked (no host sync on hot paths).
+    """
+    if isinstance(x, jax.core.Tracer):
+        return
+    values = np.asarray(x)
+    if not np.isfinite(values).all():
+        raise ValueError(f"{name}: contains {int((~np.isfinite(values)).sum())} non-finite values")
+    if low is not None and values.size and values.min() < low:
+        raise ValueError(f"{name}: minimum {values.min()} is below {low}")
+    if high is not None and values.size and values.max() > high:
+        raise ValueError(f"{name}: maximum {values.max()} is above {high}")

@@ -27,7 +27,7 @@ from flax import nnx
 from jaxtyping import Array, Float
 
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.layers import check_shape, dtype_of, linear, timestep_sinusoid
+from sword_jax.dit.layers import check_shape, check_values, dtype_of, linear, timestep_sinusoid
 from sword_jax.dit.model import WanDiT
 
 ACTION_INDEX_DIM = 32  # width of the video-frame-index sinusoid fed with each action token
@@ -122,6 +122,9 @@ class WorldModel(nnx.Module):
         check_shape("latents", latents, (None, None, None, None, cfg.in_dim))
         check_shape("timesteps", timesteps, (b, f))
         check_shape("actions", actions, (b, num_video_frames(f), cfg.action_dim))
+        check_values("latents", latents)
+        check_values("timesteps", timesteps, 0.0, 1000.0)
+        check_values("actions", actions)
         dit = self.dit
         grid = (f, h // cfg.patch_size[1], w // cfg.patch_size[2])
         time_emb = dit.embed_time(timesteps)  # (B, F, D)
