@@ -160,12 +160,17 @@ class CpuEnv(_Common):
                      metrics={"success": solved}, info=info)
 
     def step(self, state: State, action: np.ndarray) -> State:
-        """One 20 Hz control step; ``state`` is not modified."""
+        """One 20 Hz control step; ``state`` is not modified (its MjData is copied)."""
+        return self.step_inplace(state.replace(data=copy.copy(state.data)), action)
+
+    def step_inplace(self, state: State, action: np.ndarray) -> State:
+        """``step`` that advances ``state.data`` in place (no MjData copy, which costs
+        more than the physics here). The old ``state`` must not be used afterwards."""
         self._check_action(action)
         action = np.asarray(action, np.float64)
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action must be finite, got {action}")
-        data = copy.copy(state.data)
+        data = state.data
         self._physics(data, action)
         if not np.all(np.isfinite(data.qpos)):
             raise FloatingPointError("simulation diverged (non-finite qpos)")

@@ -185,7 +185,7 @@ def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(
     while not success and steps < max_steps:
         noise = rng.standard_normal(6) if cfg.noise > 0 else np.zeros(6)
         action, est = act(privileged(env, state.data), est, noise, cfg, xp=np)
-        state = env.step(state, action)
+        state = env.step(state, action) if record else env.step_inplace(state, action)
         steps += 1
         success = bool(state.done)
         if record:

@@ -114,7 +114,7 @@ class LiberoSpatialGymEnv(gymnasium.Env):
             raise ValueError(f"action must have shape ({ctl.ACTION_DIM},), got {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError("action contains NaN or inf")
-        self._state = self.env.step(self._state, np.clip(action, -1.0, 1.0))
+        self._state = self.env.step_inplace(self._state, np.clip(action, -1.0, 1.0))
         self._steps += 1
         success = bool(self._state.done)
         truncated = (not success) and self._steps >= self.config.max_steps

@@ -78,6 +78,8 @@ def test_reset_and_step_are_deterministic_and_pure(env):
     b = env.step(s0, action)
     np.testing.assert_array_equal(s0.data.qpos, qpos_before)  # step did not mutate its input
     np.testing.assert_array_equal(a.data.qpos, b.data.qpos)
+    c = env.step_inplace(env.reset(np.random.default_rng(5)), action)
+    np.testing.assert_array_equal(a.data.qpos, c.data.qpos)
     assert a.obs["proprio"].shape == (8,) and np.all(np.isfinite(a.obs["proprio"]))
     with pytest.raises(ValueError, match="shape"):
         env.step(s0, np.zeros(6))
