@@ -69,6 +69,14 @@ DRAWER_OUT = 0.14  # how far the top drawer is pulled out
 DRAWER_FLOOR_Z = 0.176  # top of the top drawer's floor above the cabinet bottom
 DRAWER_CENTER_XY = (CABINET_POS[0] - CABINET_HALF[0] - DRAWER_OUT / 2 + 0.005, CABINET_POS[1])
 
+# MJX-only culling (the C engine ignores these): per collision group (geom types x condim),
+# only the nearest ``MJX_MAX_GEOM_PAIRS`` candidate pairs (bounding-sphere distance) run the
+# box-box test, and at most ``MJX_MAX_CONTACT_POINTS`` contacts per condim reach the solver.
+# The condim-3 group (supports) has 11 candidates of which <= 7 touch at once; the condim-4
+# group (finger pads) has 20, of which the pads touch <= 4 at once.
+MJX_MAX_GEOM_PAIRS = 8
+MJX_MAX_CONTACT_POINTS = 32
+
 COLORS = {
     "floor": (0.55, 0.5, 0.45, 1.0),
     "table": (0.78, 0.62, 0.43, 1.0),
@@ -238,6 +246,10 @@ def scene_xml(*, timestep: float = 0.005, iterations: int = 6, ls_iterations: in
 <compiler angle="radian" autolimits="true" inertiafromgeom="true"/>
 <option timestep="{timestep}" integrator="implicitfast" cone="pyramidal" iterations="{iterations}"
         ls_iterations="{ls_iterations}" gravity="0 0 -9.81"/>
+<custom>
+<numeric name="max_geom_pairs" data="{MJX_MAX_GEOM_PAIRS}"/>
+<numeric name="max_contact_points" data="{MJX_MAX_CONTACT_POINTS}"/>
+</custom>
 <visual><global offwidth="512" offheight="512"/><quality shadowsize="0"/></visual>
 <asset>
 {_materials()}
