@@ -10,23 +10,30 @@ Two ways to feed styled video to the world model:
     each episode ``n_copies`` times once, VAE-encode once, and train on latents as if the copies
     were more episodes (the raw episode stays too). The train step touches no pixels.
 
-Decision: **(b), pre-encoded copies** (``AugmentConfig.mode = "copies"``), because the encode
-is a large fraction of a train step at every size we run, while copies cost a one-off encode and
-little memory. Figures (``benchmarks/bench_augment.py``; FLOPs from XLA's cost analysis of the
-real jitted functions, so they hold for any device):
+Decision: **(b), pre-encoded copies** (``AugmentConfig.mode = "copies"``), because the VAE encode
+is a large fraction of a train step at every size, while copies cost a one-off encode and a
+little host memory. Figures from ``python -m benchmarks.bench_augment --variant V --flops-only``
+(XLA's FLOP count of the real jitted ``vae.encode``, lowered abstractly so it is exact at
+paper size on any machine; DiT step = 6 x params x latent tokens), per training batch:
 
-* paper sizes (Wan 2.2 VAE: dim 160, z 48; TI2V-5B DiT; batch 64 of 13-frame 256x256
-  segments): the VAE encode of one batch is ~2.2e14 FLOPs by XLA's count of the real encoder
-  (~4e6 FLOPs per pixel-frame) against ~4.9e14 for the DiT train step (6 x 5e9 params x
-  16,384 tokens): per-step augmentation would add ~45% FLOPs, and more in time, because the
-  VAE's full-resolution 3-D convolutions run far below the DiT matmuls' utilisation.
-* copies: one episode of 129 frames at 256x256 is 33 x 16 x 16 x 48 latents = 1.6 MB in
-  float32, so 1,500 episodes x (1 raw + 2 styled) is ~7 GB on host (the latent dataset lives
-  on host; the DLB cache holds its own slots) and a one-off encode of 1,500 x 2 x 129 frames
-  = about 60 train steps' worth of encode FLOPs, ~0.3% of a 20k-step run.
-* what (a) buys, a new style per step, matters little: the DiT sees each episode ~850 times
-  (20k steps x 64 / 1,500) so two styled copies already give each episode three appearances
-  drawn from the training style space; raise ``augment.styled_copies`` for more.
+==========  =====================  ==================  ================  ========  =========
+variant     batch (frames, size)   DiT step (GFLOP)    encode (GFLOP)    ratio     copies
+==========  =====================  ==================  ================  ========  =========
+paper       64 x 13 @ 256          493,400             190,800           0.39      7.3 GB
+small       32 x 13 @ 128          451                 966               2.1       0.13 GB
+tiny        2 x 13 @ 32            0.0025              0.117             46        --
+==========  =====================  ==================  ================  ========  =========
+
+* Per-step augmentation would add 39% FLOPs to every paper-size step (more in time: the
+  encoder's full-resolution 3-D convolutions run far below the DiT matmuls' utilisation; on
+  CPU, tiny: encode 135 ms vs augment 13 ms per batch) and 2x at the small size.
+* Copies: 1,500 episodes x 2 styled copies x 129 frames is a one-off encode of ~8.9e16 FLOPs
+  = ~180 paper train steps (0.9% of a 20k-step run), and the latent dataset grows from 2.4 to
+  7.3 GB of host memory (float32 latents, 33 x 16 x 16 x 48 per episode).
+* The augmentation itself is elementwise work (tiny, CPU: ~10% of an encode): not the cost.
+* What (a) buys, a new style per step, matters little: each episode is seen ~850 times
+  (20k steps x 64 / 1,500); two styled copies already give each three appearances drawn from
+  the training style space; raise ``augment.styled_copies`` for more.
 
 The world-model data path (``sword_jax.world_model.data``) already trains on pre-encoded
 latents; styled copies enter it as extra episodes with the same actions.
