@@ -1,0 +1,124 @@
+"""The world model + VAE as a :class:`~sword_jax.rl.simulator.LearnedSimulator`.
+
+Per step (one action chunk of 8 actions = 2 latent frames):
+
+1. the flow-matching sampler (:func:`sword_jax.world_model.rollout.predict_chunk`, a few Euler
+   steps) predicts the next ``p`` latents from ``[first-frame latent, k context latents]`` and the
+   per-frame actions ``[a_0, context actions (4k), chunk actions (4p)]``;
+2. the causal VAE decoder streams those latents to ``4p`` frames with its feature cache
+   (:func:`sword_jax.vae.api.decode_chunk`), so pixels are produced once per frame;
+3. the context becomes the last ``k`` predicted latents (the rollout stays in latent space).
+
+State is per trajectory; the VAE / DiT calls inside take a batch of one, and the imagined
+rollout ``vmap``s over trajectories (XLA folds the vmapped axis into the batch dimension).
+The decoder cache is warmed in ``init`` by decoding the start latents, so its static
+``started`` flag is True for every step and the ``lax.scan`` carry has a fixed structure.
+
+The world model cannot report proprio, so ``observe`` marks it invalid (the policy then uses its
+learned "missing proprio" embedding, trained by proprio dropout in SFT).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jaxtyping import Array, Float
+
+from sword_jax.rl.simulator import LearnedSimulator, StartState
+from sword_jax.vae import api as vae_api
+from sword_jax.world_model import sampler as wm_sampler
+from sword_jax.world_model.config import FlowConfig
+from sword_jax.world_model.rollout import predict_chunk
+
+FRAMES_PER_LATENT = 4
+
+
+class WMState(NamedTuple):
+    first_latent: Float[Array, "1 1 h w c"]
+    context: Float[Array, "1 k h w c"]
+    context_actions: Float[Array, "1 s a"]  # actions of the context latents' video frames
+    decode_cache: Any  # vae_api.StreamCache for a batch of one
+    proprio: Float[Array, " p"]
+
+
+def to_unit(video: Float[Array, "..."]) -> Float[Array, "..."]:
+    """VAE video in [-1, 1] -> frames in [0, 1]."""
+    return jnp.clip((video.astype(jnp.float32) + 1.0) * jnp.float32(0.5), 0.0, 1.0)
+
+
+def encode_keyframes(
+    vae_graphdef: nnx.GraphDef, vae_state: Any, frames: Float[Array, "n h w 3"], *, num_context: int = 1
+) -> Float[Array, "n l hl wl z"]:
+    """Start latents ``[first, k context]`` for keyframes: the frame held still for ``1 + 4k`` frames.
+
+    Use dataset latents instead where the keyframe's real history is available.
+    """
+    video = jnp.repeat(frames.astype(jnp.float32)[:, None] * 2.0 - 1.0, 1 + FRAMES_PER_LATENT * num_context, axis=1)
+    return vae_api.encode(vae_graphdef, vae_state, video, check_values=False)
+
+
+def world_model_simulator(
+    wm_graphdef: nnx.GraphDef,
+    wm_state: Any,
+    vae_graphdef: nnx.GraphDef,
+    vae_state: Any,
+    *,
+    flow_cfg: FlowConfig,
+    frame_size: int,
+    num_context: int = 1,
+    num_future: int = 2,
+    sample_steps: int | None = None,
+    action_dim: int = 7,
+    latent_size: int | None = None,
+    proprio_dim: int = 8,
+) -> LearnedSimulator:
+    """Builds the learned simulator from a split WorldModel and a split WanVAE.
+
+    Args:
+      wm_graphdef / wm_state: ``nnx.split`` of :class:`sword_jax.dit.world_model.WorldModel`.
+      vae_graphdef / vae_state: ``nnx.split`` of the VAE.
+      flow_cfg: flow-matching settings (shift, prediction type, guidance).
+      frame_size: decoded frame size (``16 x`` the latent size).
+      num_context / num_future: context and predicted latents per chunk (future 2 = 8 frames).
+      sample_steps: Euler steps per chunk (default ``flow_cfg.sample_steps``).
+      latent_size: latent height/width (default ``frame_size // 16``).
+      proprio_dim: size of the (invalid) proprio the policy receives.
+
+    ``StartState.latents`` must be ``[1 + num_context, h, w, z]`` (see :func:`encode_keyframes`).
+    """
+    chunk_len = FRAMES_PER_LATENT * num_future
+    hl = latent_size or frame_size // 16
+
+    def init_fn(params, start: StartState) -> WMState:
+        wm_params, vae_params = params
+        latents = jnp.asarray(start.latents, jnp.float32)
+        if latents.ndim != 4 or latents.shape[0] != 1 + num_context:
+            raise ValueError(f"world-model sim: start.latents must be [{1 + num_context}, h, w, z], got {latents.shape}")
+        cache = vae_api.init_decode_cache(vae_graphdef, vae_params, 1, hl, hl)
+        _, cache = vae_api.decode_chunk(vae_graphdef, vae_params, latents[None], cache, check_values=False)
+        return WMState(latents[None, :1], latents[None, 1:], jnp.zeros((1, FRAMES_PER_LATENT * num_context, action_dim)),
+                       cache, jnp.asarray(start.proprio, jnp.float32))
+
+    def step_fn(params, state: WMState, chunk, key):
+        wm_params, vae_params = params
+        chunk = chunk.astype(jnp.float32)[None]  # (1, T, A)
+        first_action = jnp.zeros((1, 1, action_dim), jnp.float32)
+        actions = jnp.concatenate([first_action, state.context_actions, chunk], axis=1)
+        model_fn = wm_sampler.model_fn_from_state(wm_graphdef, wm_params)
+        future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
+                               cfg=flow_cfg, num_steps=sample_steps)
+        video, cache = vae_api.decode_chunk(vae_graphdef, vae_params, future, state.decode_cache, check_values=False)
+        context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
+        context_actions = jnp.concatenate([state.context_actions, chunk], axis=1)[:, -FRAMES_PER_LATENT * num_context:]
+        frames = to_unit(video[0])  # (T, H, W, 3)
+        return WMState(state.first_latent, context, context_actions, cache, state.proprio), frames
+
+    def observe_fn(params, state: WMState):
+        del params
+        return state.proprio[:proprio_dim], jnp.float32(0.0)
+
+    return LearnedSimulator(params=(wm_state, vae_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
+                            chunk_len=chunk_len, frame_size=frame_size)
