@@ -352,7 +352,18 @@ def render(
     Returns:
       ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
       int32 (-1 = background) and seg (h, w) int32 class ids.
+
+    Raises:
+      ValueError: poses whose shapes do not fit the scene's model (checked at trace time).
     """
+    ngeom = len(scene.geom_class)
+    if np.shape(geom_xpos) != (ngeom, 3) or np.size(geom_xmat) != ngeom * 9:
+        raise ValueError(
+            f"geom poses must be ({ngeom}, 3) and ({ngeom}, 3, 3) for this scene's model, got "
+            f"{np.shape(geom_xpos)} and {np.shape(geom_xmat)} (vmap over batch axes)"
+        )
+    if np.size(cam_pos) != 3 or np.size(cam_mat) != 9:
+        raise ValueError(f"camera pose must be (3,) and (3, 3), got {np.shape(cam_pos)} and {np.shape(cam_mat)}")
     ids = scene.geom_ids
     pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
     mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]

@@ -40,3 +40,12 @@ def test_gen_data_config_errors(tmp_path):
         gen_data.GenDataConfig(out=str(tmp_path / "a.txt")).validate()
     with pytest.raises(SystemExit):
         gen_data.main(["--task", "seven", "--out", str(tmp_path / "a.hdf5")])
+
+
+def test_config_from_sim_section(tmp_path):
+    from sim.config import SimConfig
+
+    cfg = gen_data.config_from_sim(SimConfig(tasks=(1, 4), episodes_per_task=3, resolution=64, expert_noise=0.1),
+                                   str(tmp_path / "d.hdf5"), seed=5)
+    cfg.validate()
+    assert cfg.tasks == (1, 4) and cfg.episodes == 3 and cfg.resolution == 64 and cfg.noise == 0.1 and cfg.seed == 5

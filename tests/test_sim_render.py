@@ -95,6 +95,10 @@ def test_deterministic_and_camera_errors():
         R.make_renderer(scene, "nope", height=8, width=8)
     with pytest.raises(ValueError, match="positive"):
         R.make_renderer(scene, "top", height=0, width=8)
+    cam_id, fovy = scene.cameras["top"]
+    with pytest.raises(ValueError, match="geom poses must be"):
+        R.render(scene, data.geom_xpos[:-1], data.geom_xmat[:-1], data.cam_xpos[cam_id], data.cam_xmat[cam_id],
+                 fovy=fovy, height=8, width=8)
     hidden = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "hidden")
     assert hidden not in scene.geom_ids  # group 3 is not drawn, as in MuJoCo's default
 

@@ -54,8 +54,8 @@ class GenDataConfig:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if self.backend not in ("cpu", "mjx"):
             raise ValueError(f"backend must be cpu|mjx, got {self.backend!r}")
-        if self.resolution < 8 or self.resolution % 8:
-            raise ValueError(f"resolution must be a positive multiple of 8, got {self.resolution}")
+        if self.resolution < 16 or self.resolution % 16:
+            raise ValueError(f"resolution must be a positive multiple of 16, got {self.resolution}")
         if not 0 <= self.noise <= 1:
             raise ValueError(f"noise must be in [0, 1], got {self.noise}")
         if self.renderer not in ("jax", "gl"):
@@ -68,6 +68,14 @@ class GenDataConfig:
             raise ValueError(f"out must be an .hdf5/.h5 file, got {self.out!r}")
         if os.path.exists(self.out) and not self.overwrite:
             raise FileExistsError(f"{self.out} exists; pass --overwrite to replace it")
+
+
+def config_from_sim(sim_config: Any, out: str, *, seed: int = 0, overwrite: bool = False) -> GenDataConfig:
+    """The ``GenDataConfig`` of an experiment's ``sim`` section (``SimConfig``)."""
+    return GenDataConfig(out=out, tasks=tuple(sim_config.tasks), episodes=sim_config.episodes_per_task,
+                         backend=sim_config.backend, resolution=sim_config.resolution,
+                         noise=sim_config.expert_noise, seed=seed, max_steps=sim_config.max_steps,
+                         wrist_camera=True, overwrite=overwrite)
 
 
 def _flat_state(data: Any) -> np.ndarray:
