@@ -30,6 +30,7 @@ _GRASP_RADIUS = scene.BOWL_RADIUS - scene.BOWL_WALL / 2  # wall centre line
 _GRASP_HEIGHT = 0.028  # tool centre above the bowl's bottom while grasping
 _HOVER = 0.10  # pre-grasp height above the rim
 _CARRY_CLEARANCE = 0.10  # bowl bottom above the plate top while carrying
+_NOISE_BY_PHASE = (1.0, 0.2, 0.0, 1.0, 1.0, 0.2, 0.0, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +155,11 @@ def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = 
     ])[est.phase]
     move = xp.clip(pos_err / 0.05 * cfg.gain, -cfg.max_speed, cfg.max_speed)
     turn = xp.clip(rot_err / 0.5 * cfg.gain, -1.0, 1.0)
-    motion = xp.concatenate([move, turn]) + cfg.noise * xp.asarray(noise, dtype)
+    # Noise is for diverse demonstrations: full in the gross phases, damped where precision
+    # matters (descend, place) and off while the gripper acts; rotation noise is smaller.
+    phase_noise = xp.asarray(_NOISE_BY_PHASE, dtype)[est.phase]
+    noise_scale = xp.asarray([1.0, 1.0, 1.0, 0.3, 0.3, 0.3], dtype) * (cfg.noise * phase_noise)
+    motion = xp.concatenate([move, turn]) + noise_scale * xp.asarray(noise, dtype)
     action = xp.concatenate([xp.clip(motion, -1.0, 1.0), xp.reshape(grip[est.phase], (1,))]).astype(dtype)
     phase = xp.where(done, xp.minimum(est.phase + 1, RETREAT), est.phase)
     # Lost the bowl while carrying or placing (it is no longer between the fingers): start over.
