@@ -12,6 +12,7 @@ Two layers:
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable
 
 import jax
@@ -119,7 +120,6 @@ def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.G
       ``[B, T, H, W, 3]`` in [0, 1]: frame 0 and the context frames decoded from their latents,
       then the predicted frames.
     """
-    from sword_jax.vae import api as vae_api
     from sword_jax.world_model import rollout as wm_rollout
 
     frames = np.asarray(frames, np.float32)
@@ -127,9 +127,19 @@ def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.G
     if actions.shape[:2] != (b, t):
         raise ValueError(f"actions {actions.shape} must be [B, T, a] matching frames {frames.shape}")
     wm_rollout.num_chunks_for(t, num_context, num_future)  # validates the horizon
+    run = _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context, num_future, num_steps)
+    out = np.asarray(run(wm_state, vae_state, jnp.asarray(frames), jnp.asarray(actions, jnp.float32), key))
+    return np.clip(out[:, :t], 0.0, 1.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context: int, num_future: int, num_steps: int | None):
+    """One compiled encode -> rollout -> decode per (model graph, VAE graph, settings)."""
+    from sword_jax.vae import api as vae_api
+    from sword_jax.world_model import rollout as wm_rollout
 
     @jax.jit
-    def run(video, acts, key):
+    def run(wm_state, vae_state, video, acts, key):
         context_video = video[:, : 1 + 4 * num_context] * jnp.float32(2) - jnp.float32(1)
         latents = vae_api.encode(vae_graphdef, vae_state, context_video, check_values=False)
         first, context = latents[:, :1], latents[:, 1 : 1 + num_context]
@@ -140,8 +150,7 @@ def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.G
                                               latents_per_chunk=_chunk_size(num_context, num_future))
         return (video_out + jnp.float32(1)) / jnp.float32(2)
 
-    out = np.asarray(run(jnp.asarray(frames), jnp.asarray(actions, jnp.float32), key))
-    return np.clip(out[:, :t], 0.0, 1.0)
+    return run
 
 
 def _chunk_size(num_context: int, num_future: int) -> int:

@@ -22,8 +22,13 @@ from sword_jax.metrics.suite import LOWER_IS_BETTER
 _LABEL = {"lpips": "LPIPS", "flolpips": "FloLPIPS", "psnr": "PSNR (dB)", "ssim": "SSIM", "fid": "FID", "fvd": "FVD"}
 
 
-def _u8(frames: np.ndarray) -> np.ndarray:
-    return np.clip(np.rint(np.asarray(frames, np.float32) * 255.0), 0, 255).astype(np.uint8)
+def _u8(frames: np.ndarray, *, min_side: int = 96) -> np.ndarray:
+    """uint8 frames, small ones upscaled (nearest) so that the shorter side is at least ``min_side``."""
+    frames = np.clip(np.rint(np.asarray(frames, np.float32) * 255.0), 0, 255).astype(np.uint8)
+    factor = max(1, -(-min_side // min(frames.shape[-3:-1])))
+    if factor > 1:
+        frames = np.repeat(np.repeat(frames, factor, axis=-3), factor, axis=-2)
+    return frames
 
 
 def _label_bar(text: str, width: int, height: int = 12) -> np.ndarray:
@@ -146,7 +151,7 @@ def write_report(out_dir: str, results: EvalResults, videos: dict[str, dict[str,
     if results.random_weight_networks:
         caveats.insert(0, "**Random-weight metric networks** (no published weights found) for: "
                        + ", ".join(results.random_weight_networks)
-                       + ". Their numbers rank models consistently but are NOT comparable to published values.")
+                       + ". Their numbers only compare models within this report; they are NOT comparable to published values.")
     for line in caveats:
         md.append(f"- {line}")
         body_html.append(f"<p>{html.escape(line.replace('**', ''))}</p>")
