@@ -235,3 +235,22 @@ def test_psnr_ssim_values():
     assert 1 > s[0] > s[1] > s[2]
     with pytest.raises(ValueError, match="shape"):
         ssim(x, x[:, :16])
+
+
+def test_lpips_heads_from_installed_lpips_wheel(shared_dir, monkeypatch):
+    """With the lpips wheel installed its real v0.1 heads are found without configuration."""
+    from sword_jax.metrics.networks import package_file
+
+    heads = package_file("lpips", "weights", "v0.1", "alex.pth")
+    if heads is None:
+        pytest.skip("lpips package not installed")
+    monkeypatch.delenv("SWORD_LPIPS_LIN_WEIGHTS", raising=False)
+    shipped = load_torch_file(heads)
+    reference = load_torch_file(_ref(shared_dir, "lpips_alex", "lpips_v0.1_alex_lin.pth"))  # byte copy
+    for key in reference:
+        np.testing.assert_array_equal(shipped[key], reference[key])
+    net = build_lpips(EvalConfig(lpips_weights=_ref(shared_dir, "lpips_alex", "alexnet_features.pth")))
+    assert heads in net.source and not net.random_weights
+    random_backbone = build_lpips(EvalConfig(allow_random_weights=True))
+    assert random_backbone.random_weights and heads in random_backbone.source
+    np.testing.assert_array_equal(np.asarray(random_backbone.module.lins[0][...]), shipped["lin0.model.1.weight"].reshape(-1))
