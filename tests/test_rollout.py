@@ -10,7 +10,7 @@ import configs
 from sword_jax.dit.world_model import WorldModel
 from sword_jax.world_model import rollout, sampler
 from sword_jax.world_model.config import FlowConfig
-from test_wm_common import MixerWorldModel
+from tests.test_wm_common import MixerWorldModel
 
 
 def _setup(keys, chunks=3, batch=2):

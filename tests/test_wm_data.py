@@ -1,0 +1,81 @@
+"""Latent dataset: segment layout, deterministic resumable sampler, file loading, bad input."""
+
+import h5py
+import jax
+import numpy as np
+import pytest
+
+from sword_jax.world_model import data
+from tests.test_wm_common import full_mesh, tiny_dataset
+
+
+def test_segment_layout_matches_slots():
+    ds = tiny_dataset(num_episodes=3, num_latents=6)
+    batch = ds.segment(np.array([2, 0]), np.array([3, 1]), 1, 2)
+    np.testing.assert_array_equal(batch["latents"][0], ds.latents[2, [0, 3, 4, 5]])
+    np.testing.assert_array_equal(batch["latents"][1], ds.latents[0, [0, 1, 2, 3]])
+    # actions: frame 0, then video frames 4*3-3 = 9 .. 4*5 = 20
+    np.testing.assert_array_equal(batch["actions"][0], ds.actions[2, [0] + list(range(9, 21))])
+    np.testing.assert_array_equal(batch["actions"][1], ds.actions[0, list(range(0, 13))])
+    assert batch["actions"].shape == (2, 13, 7)
+    with pytest.raises(ValueError, match="out of range"):
+        ds.segment(np.array([0]), np.array([4]), 1, 2)
+
+
+def test_sampler_visits_every_segment_once_per_epoch_and_resumes_exactly():
+    sampler = data.SegmentSampler(5, 6, 1, 2, 4, seed=3)  # 5 episodes x 3 starts = 15 segments
+    first_epoch = [sampler.next_indices() for _ in range(3)]  # 12 of 15
+    saved = sampler.position
+    rest = [sampler.next_indices() for _ in range(4)]  # crosses into epoch 1
+    seen = np.concatenate([np.stack(b, 1) for b in first_epoch] + [np.stack(rest[0], 1)[:3]])
+    assert len({tuple(s) for s in seen}) == 15
+    resumed = data.SegmentSampler(5, 6, 1, 2, 4, seed=3)
+    resumed.restore(saved)
+    for expected in rest:
+        got = resumed.next_indices()
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
+    other_seed = data.SegmentSampler(5, 6, 1, 2, 4, seed=4).next_indices()
+    assert not np.array_equal(np.stack(other_seed), np.stack(first_epoch[0]))
+    with pytest.raises(ValueError, match="position"):
+        resumed.restore({"epoch": 0, "index": 99})
+
+
+def test_loader_batches_are_global_and_sharded():
+    mesh = full_mesh()
+    ds = tiny_dataset()
+    loader = data.SegmentLoader(ds, data.SegmentSampler(8, 6, 1, 2, 8, seed=0), 1, 2, mesh)
+    batch = loader.next()
+    assert batch["latents"].shape == (8, 4, 2, 2, 8)
+    assert len(batch["latents"].sharding.device_set) == 8 and batch["latents"].sharding.spec[0] is not None
+    expected = ds.segment(np.asarray(batch["episode"]), np.asarray(batch["start"]), 1, 2)
+    np.testing.assert_array_equal(np.asarray(batch["latents"]), expected["latents"])
+
+
+def test_load_npz_and_h5_and_reject_bad_files(tmp_path):
+    ds = tiny_dataset(num_episodes=2, num_latents=3)
+    np.savez(tmp_path / "d.npz", latents=ds.latents, actions=ds.actions)
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        f["latents"], f["actions"] = ds.latents, ds.actions
+    for name in ("d.npz", "d.h5"):
+        loaded = data.load_latent_dataset(str(tmp_path / name))
+        np.testing.assert_array_equal(loaded.latents, ds.latents)
+    np.savez(tmp_path / "bad.npz", latents=ds.latents)
+    with pytest.raises(ValueError, match="actions"):
+        data.load_latent_dataset(str(tmp_path / "bad.npz"))
+    (tmp_path / "corrupt.h5").write_bytes(b"not hdf5")
+    with pytest.raises(ValueError, match="cannot read"):
+        data.load_latent_dataset(str(tmp_path / "corrupt.h5"))
+    with pytest.raises(ValueError, match="actions shape"):
+        data.LatentDataset(ds.latents, ds.actions[:, :-1])
+    nan = ds.latents.copy()
+    nan[0, 0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        data.LatentDataset(nan, ds.actions)
+
+
+def test_synthetic_latents_depend_on_actions():
+    a = data.synthetic_latent_dataset(2, 4, 2, 2, 8, seed=0)
+    assert a.latents.shape == (2, 4, 2, 2, 8) and a.actions.shape == (2, 13, 7)
+    np.testing.assert_array_equal(a.latents, data.synthetic_latent_dataset(2, 4, 2, 2, 8, seed=0).latents)
+    assert jax.numpy.isfinite(a.latents).all()
