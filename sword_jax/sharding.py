@@ -276,3 +276,17 @@ def batch_sharding(mesh: Mesh, ndim: int, rules=DEFAULT_RULES, leading: str = "b
 
 def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
+
+
+def put(value: Any, target: NamedSharding) -> jax.Array:
+    """Places a host value (or a typed PRNG key) as a global array with ``target`` sharding.
+
+    Works on one process and across hosts (each process materialises only its own shards), where
+    ``jax.device_put`` refuses a sharding that spans non-addressable devices.
+    """
+    if isinstance(value, jax.Array) and jax.dtypes.issubdtype(value.dtype, jax.dtypes.prng_key):
+        data = put(np.asarray(jax.random.key_data(value)), target)
+        impl = jax.random.key_impl(value)
+        return jax.jit(lambda d: jax.random.wrap_key_data(d, impl=impl), out_shardings=target)(data)
+    host = np.asarray(value)
+    return jax.make_array_from_callback(host.shape, target, lambda index: host[index])

@@ -120,3 +120,27 @@ def test_converter_rejects_bad_checkpoints(official, tmp_path):
     (tmp_path / "corrupt.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(ValueError, match="corrupt.safetensors"):
         wan22_dit.load_official(str(tmp_path / "corrupt.safetensors"))
+
+
+def test_load_released_directory_with_bf16_shards(official, tmp_path):
+    """A released checkpoint layout: config.json + several safetensors shards, bf16 tensors."""
+    import ml_dtypes
+    from safetensors.numpy import save_file
+
+    tensors, metadata = official
+    keys = sorted(tensors)
+    half = len(keys) // 2
+    for i, part in enumerate((keys[:half], keys[half:])):
+        save_file({k: tensors[k].astype(ml_dtypes.bfloat16) for k in part},
+                  str(tmp_path / f"diffusion_pytorch_model-0000{i + 1}-of-00002.safetensors"))
+    config = dict(json.loads(metadata["config"]), _class_name="WanModel")
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    cfg, _, state = wan22_dit.load_official(str(tmp_path))
+    assert cfg.dim == config["dim"] and cfg.num_layers == config["num_layers"]
+    kernel = state["blocks"]["ffn_0"]["kernel"].get_value()
+    assert kernel.dtype == jnp.float32
+    ref = tensors["blocks.1.ffn.0.weight"].T
+    np.testing.assert_allclose(np.asarray(kernel[1]), ref, rtol=1e-2, atol=1e-2)
+    (tmp_path / "config.json").unlink()
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        wan22_dit.load_official(str(tmp_path))

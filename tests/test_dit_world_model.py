@@ -174,7 +174,10 @@ def test_sharded_matches_single_device():
         out = jax.jit(world_model_apply, static_argnums=0)(graphdef, sharded_state, *batch)
     np.testing.assert_allclose(out, expected, atol=2e-5, rtol=1e-5)
 
-    # born-sharded init equals a plain init with the same seed
+
+@pytest.mark.slow
+def test_born_sharded_init_matches_plain_init():
+    mesh = sharding.make_mesh(sharding.MeshConfig(data=2, fsdp=2, tensor=2))
     factory = lambda: WorldModel(CFG, rngs=nnx.Rngs(5))  # noqa: E731
     _, born = sharding.create_sharded(factory, mesh, sharding.DEFAULT_RULES)
     plain = nnx.split(factory())[1]

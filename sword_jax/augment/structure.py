@@ -6,6 +6,8 @@
 * ``boundary_recall``: share of segmentation-boundary pixels (where the region group changes)
   that are still on an edge of the styled frames (1-pixel tolerance): object outlines stay
   visible. Reported next to the original frames' own recall (``boundary_recall_original``).
+* ``depth_edge_recall``: the same for depth discontinuities (relative second difference > 2%):
+  geometry stays visible (``depth_edge_recall_original`` for the raw frames).
 * ``off_boundary_new_edges``: share of non-texture-region pixels that are edges in the styled
   frames, away from every original edge: made-up structure on untextured surfaces.
 """
@@ -58,6 +60,18 @@ def segmentation_boundaries(seg: Int[Array, "t h w"], classes: SegClasses = DEFA
     return boundary
 
 
+def depth_edges(depth: Float[Array, "t h w"], relative_step: float = 0.02) -> Bool[Array, "t h w"]:
+    """Pixels at a depth discontinuity: relative second difference above ``relative_step``.
+
+    A second difference ignores smooth slopes (a table receding in depth) and fires at steps.
+    """
+    d = jnp.clip(jnp.where(jnp.isfinite(depth), depth, 1e3), 1e-3, 1e3)
+    padded = jnp.pad(d, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    second_y = padded[:, 2:, 1:-1] - 2 * d + padded[:, :-2, 1:-1]
+    second_x = padded[:, 1:-1, 2:] - 2 * d + padded[:, 1:-1, :-2]
+    return jnp.maximum(jnp.abs(second_y), jnp.abs(second_x)) / d > relative_step
+
+
 def edge_f1(reference: Bool[Array, "t h w"], candidate: Bool[Array, "t h w"], tolerance: int = 1) -> jax.Array:
     """F1 of ``candidate`` edges against ``reference`` edges, matching within ``tolerance`` pixels."""
     ref = reference.astype(jnp.float32)
@@ -73,6 +87,7 @@ def structure_scores(
     seg: Int[Array, "t h w"],
     classes: SegClasses = DEFAULT_CLASSES,
     textured: tuple[str, ...] = ("table", "background"),
+    depth: Float[Array, "t h w"] | None = None,
 ) -> dict[str, jax.Array]:
     """The three structure measures of the module docstring (scalars in [0, 1])."""
     edges_before = edge_map(original)
@@ -84,7 +99,13 @@ def structure_scores(
         untextured &= ~classes.mask(seg, name)
     untextured &= ~(boundary > 0)
     new_edges = edges_after & ~_dilate(edges_before, 1) & untextured
-    return {
+    scores = {}
+    if depth is not None:
+        step = depth_edges(depth).astype(jnp.float32)
+        n_step = jnp.maximum(jnp.sum(step), 1.0)
+        scores["depth_edge_recall"] = jnp.sum(step * _dilate(edges_after, 1).astype(jnp.float32)) / n_step
+        scores["depth_edge_recall_original"] = jnp.sum(step * _dilate(edges_before, 1).astype(jnp.float32)) / n_step
+    return scores | {
         "edge_f1": edge_f1(edges_before, edges_after),
         "boundary_recall": jnp.sum(boundary * _dilate(edges_after, 1).astype(jnp.float32)) / n_boundary,
         "boundary_recall_original": jnp.sum(boundary * _dilate(edges_before, 1).astype(jnp.float32)) / n_boundary,

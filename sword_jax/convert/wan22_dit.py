@@ -58,6 +58,42 @@ def read_safetensors(path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     return tensors, metadata
 
 
+def read_checkpoint(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Official tensors and constructor config from a file or a checkpoint directory.
+
+    Args:
+      path: a safetensors file whose metadata holds the config JSON under ``config``, or a
+        directory as released (``config.json`` + ``*.safetensors`` shards, e.g. Wan2.2-TI2V-5B).
+
+    Returns:
+      ``(tensors, config)``; tensors keep their stored dtype (bf16 included).
+    """
+    if os.path.isdir(path):
+        config_path = os.path.join(path, "config.json")
+        if not os.path.isfile(config_path):
+            raise FileNotFoundError(f"{path}: checkpoint directory has no config.json")
+        with open(config_path) as f:
+            config = json.load(f)
+        shards = sorted(glob.glob(os.path.join(path, "*.safetensors")))
+        if not shards:
+            raise FileNotFoundError(f"{path}: checkpoint directory has no *.safetensors files")
+        tensors: dict[str, np.ndarray] = {}
+        for shard in shards:
+            part, _ = read_safetensors(shard)
+            duplicated = set(part) & set(tensors)
+            if duplicated:
+                raise ValueError(f"{shard}: keys also in another shard: {sorted(duplicated)[:4]}")
+            tensors.update(part)
+        return tensors, config
+    tensors, metadata = read_safetensors(path)
+    if "config" not in metadata:
+        raise ValueError(f"{path}: safetensors metadata has no 'config' entry")
+    try:
+        return tensors, json.loads(metadata["config"])
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: the 'config' metadata is not valid JSON ({err})") from err
+
+
 def config_from_official(official: dict[str, Any], **overrides: Any) -> DiTConfig:
     """Maps the official ``WanModel`` constructor arguments onto a :class:`DiTConfig`."""
     model_type = official.get("model_type", "ti2v")
@@ -161,16 +197,15 @@ def load_official(path: str, **overrides: Any) -> tuple[DiTConfig, nnx.GraphDef,
     """Loads an official ``WanModel`` safetensors checkpoint.
 
     Args:
-      path: safetensors file with official key names and a ``config`` JSON metadata entry.
+      path: safetensors file with official key names and a ``config`` JSON metadata entry, or a
+        released checkpoint directory (``config.json`` + shards), see :func:`read_checkpoint`.
       **overrides: extra :class:`DiTConfig` fields (e.g. ``compute_dtype="float32"``, ``remat``).
 
     Returns:
       ``(cfg, graphdef, state)`` of a :class:`WanDiT`.
     """
-    tensors, metadata = read_safetensors(path)
-    if "config" not in metadata:
-        raise ValueError(f"{path}: safetensors metadata has no 'config' entry")
-    cfg = config_from_official(json.loads(metadata["config"]), **overrides)
+    tensors, official = read_checkpoint(path)
+    cfg = config_from_official(official, **overrides)
     with nnx.use_eager_sharding(False):
         graphdef, state = nnx.split(nnx.eval_shape(lambda: WanDiT(cfg, rngs=nnx.Rngs(0))))
     state = fill_state(state, official_to_state(tensors, cfg))

@@ -23,7 +23,7 @@ from sword_jax.convert import CaseResult
 from sword_jax.convert.safetensors_io import CheckpointError, read_config, read_safetensors, torch_to_jax_layout
 from sword_jax.vae import api
 from sword_jax.vae.config import VAEConfig
-from sword_jax.vae.model import LatentStat
+from sword_jax.vae.model import default_latent_stats
 
 _RES_BLOCK = {"norm1": "residual.0", "conv1": "residual.2", "norm2": "residual.3", "conv2": "residual.6",
               "shortcut": "shortcut"}
@@ -145,13 +145,11 @@ def convert_state_dict(
         else:
             value = None  # a non-parameter keeps the module's default (filled below)
         flat.append((path, variable, value))
-    defaults = nnx.state(api.create_vae(cfg, key=jax.random.key(0)), LatentStat) if any(
-        v is None for _, _, v in flat) else None
-    default_flat = dict((tuple(p), v) for p, v in nnx.to_flat_state(defaults)) if defaults is not None else {}
+    default_mean, default_inv_std = default_latent_stats(cfg.z_dim)
     values = []
     for path, variable, value in flat:
         if value is None:
-            value = np.asarray(default_flat[path][...])
+            value = default_mean if path[-1] == "latent_mean" else default_inv_std
         values.append((path, variable.replace(jnp.asarray(value))))
     return graphdef, nnx.from_flat_state(values)
 

@@ -18,7 +18,6 @@ The official ``text_embedding`` stays inside :class:`WanDiT` so official checkpo
 from __future__ import annotations
 
 import dataclasses
-import json
 from typing import Any
 
 import jax
@@ -154,7 +153,8 @@ def load_official_into_world_model(
     """A :class:`WorldModel` with every shared parameter from an official ``WanModel`` checkpoint.
 
     Args:
-      path: official safetensors checkpoint (config JSON in its metadata).
+      path: official safetensors checkpoint (config JSON in its metadata) or released
+        checkpoint directory (``config.json`` + shards).
       cfg: the world-model config; its architecture fields (dim, heads, layers, ...) must match
         the checkpoint, its other fields (action switches, remat, dtypes) are used as given.
         None: the checkpoint's architecture with default options.
@@ -163,12 +163,10 @@ def load_official_into_world_model(
     Returns:
       ``(cfg, graphdef, state)``; the action branches are freshly initialised.
     """
-    from sword_jax.convert.wan22_dit import config_from_official, fill_state, official_to_state, read_safetensors
+    from sword_jax.convert.wan22_dit import config_from_official, fill_state, official_to_state, read_checkpoint
 
-    tensors, metadata = read_safetensors(path)
-    if "config" not in metadata:
-        raise ValueError(f"{path}: safetensors metadata has no 'config' entry")
-    official = config_from_official(json.loads(metadata["config"]))
+    tensors, official_config = read_checkpoint(path)
+    official = config_from_official(official_config)
     if cfg is None:
         cfg = official
     else:

@@ -24,7 +24,7 @@ from jaxtyping import Array, Float
 
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.layers import patchify, unpatchify
-from sword_jax.vae.model import WanVAE
+from sword_jax.vae.model import WanVAE, vae_rngs
 
 VIDEO_RANGE_TOL = 1e-3
 
@@ -46,7 +46,7 @@ class StreamCache:
 def create_vae(cfg: VAEConfig, *, key: jax.Array) -> WanVAE:
     """Builds a :class:`WanVAE` with fresh parameters (unsharded; see sharding.create_sharded for sharded)."""
     with nnx.use_eager_sharding(False):
-        return WanVAE(cfg, rngs=nnx.Rngs(params=key))
+        return WanVAE(cfg, rngs=vae_rngs(key))
 
 
 def abstract_vae(cfg: VAEConfig) -> WanVAE:

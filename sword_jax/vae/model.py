@@ -8,6 +8,7 @@ and the chunk's cache (see :mod:`sword_jax.vae.layers`) and returns ``(y, new_ca
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
@@ -31,6 +32,24 @@ PATCH = 2  # 2x2 patchify: 3 -> 12 channels
 
 class LatentStat(nnx.Variable):
     """Fixed per-channel latent statistics (not trained, not in the optimizer)."""
+
+
+def default_latent_stats(z_dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, inv_std): the official Wan 2.2 constants for z_dim 48, else zeros / ones."""
+    if z_dim == len(WAN22_LATENT_MEAN):
+        mean = np.asarray(WAN22_LATENT_MEAN, np.float32)
+        return mean, (np.float32(1.0) / np.asarray(WAN22_LATENT_STD, np.float32)).astype(np.float32)
+    return np.zeros(z_dim, np.float32), np.ones(z_dim, np.float32)
+
+
+def vae_rngs(key: jax.Array) -> nnx.Rngs:
+    """Init streams for :class:`WanVAE` from a root key: one threefry draw seeds an RBG key.
+
+    Threefry kernels for ~100 differently shaped parameters take minutes to compile on a small
+    CPU; the RBG generator compiles in seconds. Deterministic for a given key and backend.
+    """
+    seed = jax.random.bits(key, (), jnp.uint32)
+    return nnx.Rngs(params=jax.random.key(seed, impl="rbg"))
 
 
 class DownBlock(nnx.Module):
@@ -197,11 +216,7 @@ class WanVAE(nnx.Module):
         self.conv1 = CausalConv3d(2 * cfg.z_dim, 2 * cfg.z_dim, (1, 1, 1), spatial_pad=0, rngs=rngs)
         self.conv2 = CausalConv3d(cfg.z_dim, cfg.z_dim, (1, 1, 1), spatial_pad=0, rngs=rngs)
         self.decoder = Decoder3d(cfg, rngs=rngs)
-        if cfg.z_dim == len(WAN22_LATENT_MEAN):
-            mean = np.asarray(WAN22_LATENT_MEAN, np.float32)
-            inv_std = (np.float32(1.0) / np.asarray(WAN22_LATENT_STD, np.float32)).astype(np.float32)
-        else:
-            mean, inv_std = np.zeros(cfg.z_dim, np.float32), np.ones(cfg.z_dim, np.float32)
+        mean, inv_std = default_latent_stats(cfg.z_dim)
         self.latent_mean = LatentStat(jnp.asarray(mean))
         self.latent_inv_std = LatentStat(jnp.asarray(inv_std))
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx, struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -114,7 +115,7 @@ def create_train_state(
             raise ValueError("train state: the DLB cache is enabled but no dataset_shape was given")
         cache = dlb_cache.init_cache(cache_cfg, dataset_shape, mesh, rules)
         cache_sharding = dlb_cache.cache_shardings(dataset_shape, mesh, rules)
-    scalar = jax.device_put(jnp.zeros((), jnp.int32), _replicated(mesh))
+    scalar = shd.put(np.zeros((), np.int32), _replicated(mesh))
     state = TrainState(
         step=scalar,
         params=params,
@@ -122,7 +123,7 @@ def create_train_state(
         opt_state=opt_state,
         ema_params=ema_params,
         cache=cache,
-        first_nonfinite_step=jax.device_put(jnp.full((), -1, jnp.int32), _replicated(mesh)),
+        first_nonfinite_step=shd.put(np.full((), -1, np.int32), _replicated(mesh)),
     )
     shardings = TrainState(
         step=_replicated(mesh),
