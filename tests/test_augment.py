@@ -29,7 +29,7 @@ def run():
 
 @pytest.fixture(scope="module")
 def scores():
-    return jax.jit(structure_scores)
+    return jax.jit(structure_scores, static_argnames=("classes", "textured"))
 
 
 def _only(**changes) -> st.Style:
@@ -122,18 +122,20 @@ def test_textures_are_in_range_and_distinct():
 
 @pytest.mark.parametrize("split, min_boundary_recall, min_untextured_f1", [("train", 0.9, 0.9), ("heldout", 0.75, 0.8)])
 def test_structure_preserved(episode, run, scores, split, min_boundary_recall, min_untextured_f1):
-    """Thresholds: segmentation-boundary recall (1 px) >= 0.9 train / 0.75 held-out for every style,
+    """Thresholds: segmentation-boundary recall (1 px) >= 0.9 train / 0.75 held-out for every style (and
+    depth-discontinuity recall >= that share of the raw frames' own),
     edge-F1 >= 0.9 / 0.8 with textures off, no invented edges on untextured surfaces."""
     recalls = []
     for i in range(6):
         style = st.sample_style(jax.random.key(100 + i), split)
-        full = scores(episode["frames"], run(episode, style), episode["seg"])
+        full = scores(episode["frames"], run(episode, style), episode["seg"], depth=episode["depth"])
         flat = style._replace(table=style.table._replace(mix=jnp.float32(0)),
                               background=style.background._replace(mix=jnp.float32(0)))
         untextured = scores(episode["frames"], run(episode, flat), episode["seg"])
         assert float(full["boundary_recall"]) >= min_boundary_recall, (i, full)
         assert float(untextured["edge_f1"]) >= min_untextured_f1, (i, untextured)
         assert float(full["off_boundary_new_edges"]) <= 0.02, (i, full)
+        assert float(full["depth_edge_recall"]) >= min_boundary_recall * float(full["depth_edge_recall_original"]), (i, full)
         recalls.append(float(full["boundary_recall"]))
     assert np.mean(recalls) >= 0.9
 
