@@ -1,0 +1,136 @@
+"""Imagined-rollout throughput: policy + world model (few-step sampler) + streaming VAE decode + reward model.
+
+Measures imagined frames per second per GPU of ONE jitted :func:`sword_jax.rl.rollout.imagined_rollout`
+(``lax.scan`` over chunks, vmapped over B x G trajectories) at
+
+* ``small``: the ``sword:small`` DiT (dim 512, 8 layers) and VAE, 128x128 frames;
+* ``5b_width``: the Wan 2.2 TI2V-5B width (dim 3072, ffn 14336, 24 heads) with ``--layers`` blocks
+  (default 4 of the 30; a full-depth rollout costs ~30/layers times the DiT share) and the
+  full-size Wan 2.2 VAE decoder, 256x256 frames, bf16 compute.
+
+Usage::
+
+    python -m benchmarks.bench_imagined_rollout            # GPU: both configs, merges results
+    python -m benchmarks.bench_imagined_rollout --tiny     # CPU smoke run (tiny shapes)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+import configs
+from benchmarks import common
+from sword_jax import sharding as shd
+from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.world_model import WorldModel
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
+from sword_jax.rl.reward_model import SuccessDetector, as_reward_model
+from sword_jax.rl.rollout import expand_groups, imagined_rollout
+from sword_jax.rl.simulator import StartState
+from sword_jax.rl.world_model_sim import world_model_simulator
+from sword_jax.vae.config import VAEConfig
+from sword_jax.vae.model import WanVAE
+
+TARGET_5B = 250.0  # imagined frames/s on one H100
+
+
+def _split_sharded(factory, mesh):
+    return shd.create_sharded(factory, mesh, shd.DEFAULT_RULES)
+
+
+def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, starts: int, group: int, chunks: int,
+             sample_steps: int, rl: RLConfig, iters: int) -> dict:
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1))
+    t0 = time.perf_counter()
+    wm_graphdef, wm_state = _split_sharded(lambda: WorldModel(dit, rngs=nnx.Rngs(0)), mesh)
+    vae_graphdef, vae_state = _split_sharded(lambda: WanVAE(vae, rngs=nnx.Rngs(1)), mesh)
+    policy_graphdef, policy_params = _split_sharded(lambda: VLAPolicy(rl, rngs=nnx.Rngs(2)), mesh)
+    det_graphdef, det_params = _split_sharded(lambda: SuccessDetector(rl, rngs=nnx.Rngs(3)), mesh)
+    build_s = time.perf_counter() - t0
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=configs.get("sword:tiny").flow,
+                                frame_size=frame_size, sample_steps=sample_steps, proprio_dim=rl.proprio_dim)
+    reward_model = as_reward_model(det_graphdef, det_params)
+    n = starts * group
+    hl = frame_size // 16
+    start = StartState(
+        frame=jax.random.uniform(jax.random.key(0), (starts, frame_size, frame_size, 3), jnp.float32),
+        proprio=jnp.zeros((starts, rl.proprio_dim), jnp.float32),
+        instruction_tokens=jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate"] * starts,
+                                                             rl.max_instruction_bytes)),
+        latents=jax.random.normal(jax.random.key(1), (starts, 2, hl, hl, vae.z_dim), jnp.float32),
+    )
+    start = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), expand_groups(start, group))
+    cfg = dataclasses.replace(rl, max_chunks=chunks, group_size=group, success_threshold=1.0)  # never stop early
+
+    @jax.jit
+    def rollout(policy_params, sim, reward_model, start, key):
+        out = imagined_rollout(policy_graphdef, policy_params, sim, reward_model, start, cfg, key=key)
+        return out.returns, out.scores
+
+    with shd.use_mesh(mesh):
+        t0 = time.perf_counter()
+        common.block(rollout(policy_params, sim, reward_model, start, jax.random.key(0)))
+        compile_s = time.perf_counter() - t0
+        timing = common.time_fn(lambda: rollout(policy_params, sim, reward_model, start, jax.random.key(1)),
+                                warmup=1, iters=iters)
+    frames = n * chunks * sim.chunk_len
+    fps = frames / timing["median_s"] / jax.device_count()
+    return {"case": name, "frames_per_s_per_device": fps, "trajectories": n, "chunks": chunks, "frames": frames,
+            "rollout_s": timing["median_s"], "compile_s": compile_s, "build_s": build_s, "dit_dim": dit.dim,
+            "dit_layers": dit.num_layers, "resolution": frame_size, "sample_steps": sample_steps,
+            "peak_gb": common.peak_memory_gb()}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--tiny", action="store_true", help="CPU smoke run with tiny shapes (no results merged)")
+    parser.add_argument("--layers", type=int, default=4, help="DiT blocks at 5B width (memory / time knob)")
+    parser.add_argument("--starts", type=int, default=4)
+    parser.add_argument("--group", type=int, default=8)
+    parser.add_argument("--chunks", type=int, default=4)
+    parser.add_argument("--sample-steps", type=int, default=5)
+    parser.add_argument("--iters", type=int, default=3)
+    args = parser.parse_args(argv)
+    rows = []
+    if args.tiny:
+        tiny = configs.get("sword:tiny")
+        rl = RLConfig(image_size=16, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=48,
+                      action_bins=16, reward_width=4)
+        rows.append(run_case("tiny", tiny.model, tiny.vae, 32, starts=1, group=2, chunks=2, sample_steps=2, rl=rl,
+                             iters=1))
+    else:
+        small = configs.get("sword:small")
+        rl = RLConfig()
+        rows.append(run_case("small", dataclasses.replace(small.model, compute_dtype="bfloat16"), small.vae, 128,
+                             starts=args.starts, group=args.group, chunks=args.chunks,
+                             sample_steps=args.sample_steps, rl=rl, iters=args.iters))
+        dit5b = dataclasses.replace(DiTConfig(), num_layers=args.layers, compute_dtype="bfloat16")
+        vae = dataclasses.replace(VAEConfig(), compute_dtype="bfloat16")
+        rows.append(run_case("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
+                             sample_steps=args.sample_steps, rl=rl, iters=args.iters))
+    common.print_table(rows, ["case", "frames_per_s_per_device", "trajectories", "chunks", "rollout_s", "compile_s",
+                              "dit_dim", "dit_layers", "resolution", "sample_steps", "peak_gb"])
+    if not args.tiny:
+        by_case = {r["case"]: r for r in rows}
+        note = (f"policy + DiT dim 3072 x {args.layers} layers (of 30) with a {args.sample_steps}-step sampler + "
+                "full Wan 2.2 VAE streaming decode + reward CNN, 256x256, B*G="
+                f"{by_case['5b_width']['trajectories']}")
+        entries = {
+            "imagined_frames_per_s_5b_width": common.record(
+                "imagined_frames_per_s_5b_width", by_case["5b_width"]["frames_per_s_per_device"], TARGET_5B, note=note),
+            "imagined_frames_per_s_small": common.record(
+                "imagined_frames_per_s_small", by_case["small"]["frames_per_s_per_device"], None,
+                note="sword:small DiT/VAE, 128x128"),
+        }
+        print("merged into", common.merge_results(entries))
+
+
+if __name__ == "__main__":
+    main()
