@@ -182,3 +182,19 @@ def test_gallery_writes_labelled_png(tmp_path):
     image = cv2.imread(str(out))
     assert image is not None and image.shape[1] == 3 * 256 and image.shape[0] > 2 * 256
     assert image.std() > 20  # not blank
+
+
+def test_episodes_from_sim_dataset_records(episodes):
+    from types import SimpleNamespace
+
+    from sword_jax.augment.episodes import episodes_from_sim
+
+    sims = [SimpleNamespace(agentview_rgb=(episodes["frames"][k] * 255).round().astype(np.uint8),
+                            agentview_depth=episodes["depth"][k], agentview_seg=episodes["seg"][k].astype(np.uint8),
+                            actions=episodes["actions"][k]) for k in range(2)]
+    eps = episodes_from_sim(sims, episode_ids=[5, 6])
+    np.testing.assert_allclose(eps.frames, episodes["frames"][:2], atol=1 / 255)
+    assert eps.seg.dtype == np.int32 and list(eps.episode_ids) == [5, 6]
+    sims[1].agentview_depth = None
+    with pytest.raises(ValueError, match="depth"):
+        episodes_from_sim(sims)

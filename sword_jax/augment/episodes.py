@@ -88,3 +88,44 @@ def as_episodes(data: Episodes | dict, *, frames_range: str = "unit", require_ge
     if len(np.unique(ids)) != n:
         raise ValueError("episodes: duplicate episode_ids")
     return Episodes(frames, geometry["depth"], geometry["seg"], actions, ids)
+
+
+def episodes_from_sim(
+    sim_episodes, *, episode_ids=None, num_frames: int | None = None
+) -> Episodes:
+    """From ``sim.dataset.Episode`` objects (``read_dataset``'s output) with depth and segmentation.
+
+    Args:
+      sim_episodes: sequence of episodes with ``agentview_rgb`` (uint8), ``agentview_depth``,
+        ``agentview_seg`` and ``actions``.
+      episode_ids: ``[N]`` ids (default ``0..N-1``).
+      num_frames: crop every episode to its first ``num_frames`` (needed when lengths differ).
+
+    Raises:
+      ValueError: an episode lacks depth / segmentation, or lengths differ without ``num_frames``.
+    """
+    sim_episodes = list(sim_episodes)
+    if not sim_episodes:
+        raise ValueError("episodes_from_sim: no episodes")
+    lengths = [len(e.actions) for e in sim_episodes]
+    if num_frames is None:
+        if len(set(lengths)) != 1:
+            raise ValueError(f"episodes_from_sim: episode lengths differ ({sorted(set(lengths))[:5]}...); pass num_frames")
+        num_frames = lengths[0]
+    if min(lengths) < num_frames:
+        raise ValueError(f"episodes_from_sim: num_frames={num_frames} but the shortest episode has {min(lengths)}")
+    for k, e in enumerate(sim_episodes):
+        if e.agentview_depth is None or e.agentview_seg is None:
+            raise ValueError(f"episodes_from_sim: episode {k} has no agentview depth/segmentation "
+                             "(record them with the renderer's depth_and_seg=True)")
+    crop = slice(0, num_frames)
+    return as_episodes(
+        {
+            "frames": np.stack([e.agentview_rgb[crop] for e in sim_episodes]),
+            "depth": np.stack([e.agentview_depth[crop] for e in sim_episodes]),
+            "seg": np.stack([e.agentview_seg[crop].astype(np.int32) for e in sim_episodes]),
+            "actions": np.stack([e.actions[crop] for e in sim_episodes]),
+            "episode_ids": np.arange(len(sim_episodes)) if episode_ids is None else episode_ids,
+        },
+        frames_range="uint8",
+    )
