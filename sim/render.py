@@ -307,23 +307,36 @@ def _local_normal(gtype, p, size):
 
 
 def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs):
-    """Ray parameters (n, r) of every drawn geom for rays (r, 3) from origins (r|1, 3)."""
-    # Local frame: p_local = R^T (p - x) - offset.
-    if origins.shape[0] > 1:  # (n, r, 3): one origin per ray (shadow rays)
-        local_o = jnp.einsum("gji,grj->gri", mat, origins[None, :, :] - pos[:, None, :])
-    else:  # (n, 1, 3): the camera, shared by all rays
-        local_o = jnp.einsum("gji,gj->gi", mat, origins[0][None, :] - pos)[:, None, :]
-    local_o = local_o - jnp.asarray(scene.offset)[:, None, :]
-    local_d = jnp.einsum("gji,rj->gri", mat, dirs)
-    t_all = jnp.full(local_d.shape[:2], jnp.inf, jnp.float32)
+    """Nearest hit of rays (r, 3) from origins (r|1, 3) over every drawn geom.
+
+    A ``lax.scan`` over the geoms of each type keeps a running (t, index) minimum, so the
+    memory is O(rays) rather than O(geoms * rays) and each step stays in cache.
+
+    Returns:
+      (t (r,) ray parameter of the nearest hit, +inf on a miss; index (r,) into the
+      scene's drawn-geom arrays).
+    """
+    best_t = jnp.full(dirs.shape[:1], jnp.inf, jnp.float32)
+    best_i = jnp.zeros(dirs.shape[:1], jnp.int32)
     for gtype, hit in _HIT.items():
         idx = np.nonzero(scene.geom_type == gtype)[0]
         if idx.size == 0:
             continue
-        size = jnp.asarray(scene.size[idx])[:, None, :]
-        t = hit(local_o[idx], local_d[idx], size)
-        t_all = t_all.at[idx].set(t)
-    return t_all, local_o, local_d
+
+        def step(carry, geom, hit=hit):
+            best_t, best_i = carry
+            index, geom_pos, geom_mat, size, offset = geom
+            # Local frame: p_local = R^T (p - x) - offset, written row-wise as (p - x) R.
+            local_o = (origins - geom_pos) @ geom_mat - offset
+            local_d = dirs @ geom_mat
+            t = hit(local_o, local_d, size)
+            closer = t < best_t
+            return (jnp.where(closer, t, best_t), jnp.where(closer, index, best_i)), None
+
+        geoms = (jnp.asarray(idx, jnp.int32), pos[idx], mat[idx], jnp.asarray(scene.size[idx]),
+                 jnp.asarray(scene.offset[idx]))
+        (best_t, best_i), _ = jax.lax.scan(step, (best_t, best_i), geoms)
+    return best_t, best_i
 
 
 def render(
@@ -378,19 +391,18 @@ def render(
     cam_dirs = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
     dirs = jnp.asarray(cam_dirs) @ cam_mat.T  # (R, 3)
 
-    t_all, local_o, local_d = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
-    nearest = jnp.argmin(t_all, axis=0)  # (R,)
-    depth = jnp.min(t_all, axis=0)
+    depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
     hit = jnp.isfinite(depth)
     depth = jnp.where(hit, depth, jnp.float32(scene.far))
 
-    # Normal of the winning geom only.
-    rays = jnp.arange(dirs.shape[0])
-    p_local = local_o[nearest, 0 if local_o.shape[1] == 1 else rays] + depth[:, None] * local_d[nearest, rays]
+    # Normal of the winning geom only, from the hit point in its local frame.
+    hit_mat = mat[nearest]  # (R, 3, 3)
+    points = cam_pos[None, :] + depth[:, None] * dirs
+    p_local = jnp.einsum("ri,rij->rj", points - pos[nearest], hit_mat) - jnp.asarray(scene.offset)[nearest]
     n_local = _local_normal(
         jnp.asarray(scene.geom_type)[nearest], p_local, jnp.asarray(scene.size)[nearest]
     )
-    normal = jnp.einsum("rij,rj->ri", mat[nearest], n_local)
+    normal = jnp.einsum("rij,rj->ri", hit_mat, n_local)
     view = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     normal = jnp.where(jnp.sum(normal * view, -1, keepdims=True) > 0, -normal, normal)
 
@@ -398,10 +410,10 @@ def render(
     if shadows:  # hard shadows from the strongest light
         strongest = int(np.argmax(scene.light_diffuse))
         light = jnp.asarray(scene.light_dirs[strongest])
-        points = cam_pos[None, :] + depth[:, None] * dirs + normal * jnp.float32(1e-3)
-        t_shadow, _, _ = _nearest_hits(scene, pos, mat, points, jnp.broadcast_to(light, dirs.shape))
-        lit = jnp.isfinite(jnp.min(t_shadow, 0))
-        lambert = lambert.at[:, strongest].set(jnp.where(lit, 0.0, lambert[:, strongest]))
+        starts = points + normal * jnp.float32(1e-3)
+        t_shadow, _ = _nearest_hits(scene, pos, mat, starts, jnp.broadcast_to(light, dirs.shape))
+        occluded = jnp.isfinite(t_shadow)
+        lambert = lambert.at[:, strongest].set(jnp.where(occluded, 0.0, lambert[:, strongest]))
     base = jnp.asarray(scene.rgb)[nearest]
     facing = jnp.maximum(-jnp.sum(normal * view, -1), 0.0)
     shade = (jnp.float32(scene.ambient) + lambert @ jnp.asarray(scene.light_diffuse)
