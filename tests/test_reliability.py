@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
@@ -40,9 +41,14 @@ def _run(workdir: str, env: dict[str, str], *extra: str) -> subprocess.Completed
 
 def _final_arrays(workdir: str) -> tuple[dict[str, np.ndarray], dict]:
     directory = os.path.join(workdir, "checkpoints")
-    manager = ocp.CheckpointManager(directory, item_names=("state", "meta"))
+    manager = ocp.CheckpointManager(directory, item_handlers={"state": ocp.StandardCheckpointHandler(),
+                                                              "meta": ocp.JsonCheckpointHandler()})
     step = manager.latest_step()
-    restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(),
+    # Restore onto this process's first device, whatever topology wrote the checkpoint.
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device),
+                          manager.item_metadata(step)["state"])
+    restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
                                                              meta=ocp.args.JsonRestore()))
     manager.close()
     flat = {}

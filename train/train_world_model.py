@@ -31,6 +31,7 @@ from sword_jax import sharding as shd
 from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.world_model import checkpoint, data, train_state, train_step
+from train import distributed
 
 USAGE = "usage: python -m train.train_world_model --config NAME:VARIANT --workdir DIR [--synthetic] [--section.key=value ...]"
 
@@ -106,8 +107,7 @@ def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
 def main(argv: Sequence[str] | None = None) -> dict:
     """Runs (or resumes) training; returns a summary (final step, last logged metrics)."""
     cfg, workdir, synthetic = _parse(sys.argv[1:] if argv is None else argv)
-    if cfg.mesh.distributed:
-        jax.distributed.initialize()
+    distributed.initialize(cfg.mesh)
     cfg_dict = configs.to_dict(cfg)
     cfg_dict["synthetic"] = synthetic
     _check_config_matches(workdir, cfg_dict)
@@ -143,7 +143,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
                                          num_context=num_context, num_episodes=dataset.shape[0])
     step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
-    root_key = jax.device_put(root_key, shd.replicated(mesh))
+    root_key = shd.put(root_key, shd.replicated(mesh))
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every, first_step=start_step,
                                      jsonl_path=os.path.join(workdir, "metrics.jsonl"))
 

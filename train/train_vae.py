@@ -1,0 +1,143 @@
+"""Trains the Wan 2.2-style video VAE from scratch on simulator videos (or loads official weights).
+
+Usage::
+
+    python -m train.train_vae --config sword:tiny --workdir DIR --episodes data.hdf5 [--episodes more.hdf5]
+    python -m train.train_vae --config sword:tiny --workdir DIR --synthetic        # moving squares
+    python -m train.train_vae --config sword:paper --workdir DIR --vae.checkpoint=Wan2.2_VAE.safetensors
+
+Clips of ``1 + 4k`` frames (``k`` = 2 by default) are cut at random from the episodes' agentview
+frames. The state (params, latent statistics, optimiser state, step) is an orbax checkpoint under
+``<workdir>/checkpoints``; the run auto-resumes from it. ``<workdir>/vae/`` holds the final
+pure-dict VAE state that ``train.evaluate`` and the pipeline load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+from flax import nnx
+
+import configs
+from configs.base import ExperimentConfig
+from sword_jax import sharding as shd
+from sword_jax.vae import api as vae_api
+from sword_jax.vae import train as vae_train
+from sword_jax.world_model import checkpoint
+from train import distributed
+
+
+def load_frames(paths: Sequence[str]) -> list[np.ndarray]:
+    """Agentview videos ``[T, H, W, 3]`` in [-1, 1] from LIBERO-layout HDF5 files."""
+    from sim.dataset import read_dataset
+
+    videos = []
+    for path in paths:
+        _, episodes = read_dataset(path)
+        videos += [e.agentview_rgb.astype(np.float32) / np.float32(127.5) - np.float32(1.0) for e in episodes]
+    return videos
+
+
+def clip_batch(videos: Sequence[np.ndarray], batch: int, frames: int, rng: np.random.Generator) -> np.ndarray:
+    """``[batch, frames, H, W, 3]`` clips at random episodes and offsets (short episodes repeat their last frame)."""
+    clips = []
+    for index in rng.integers(0, len(videos), batch):
+        video = videos[index]
+        if video.shape[0] < frames:
+            video = np.concatenate([video, np.repeat(video[-1:], frames - video.shape[0], axis=0)])
+        start = rng.integers(0, video.shape[0] - frames + 1)
+        clips.append(video[start:start + frames])
+    return np.stack(clips)
+
+
+def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nnx.State) -> None:
+    """Writes the whole VAE state (params + latent statistics) as one pure dict."""
+    state = nnx.to_pure_dict(nnx.merge_state(params, constants))
+    ckpt = checkpoint.Checkpointer(path, max_to_keep=1)
+    ckpt.save(0, state, {"kind": "vae"})
+    ckpt.close()
+
+
+def load_vae(cfg: ExperimentConfig, path: str) -> tuple[nnx.GraphDef, nnx.State]:
+    """The VAE of ``cfg``: official weights if ``cfg.vae.checkpoint`` is set, else the state saved at ``path``."""
+    if cfg.vae.checkpoint:
+        from sword_jax.convert import wan22_vae
+
+        graphdef, state, official_cfg = wan22_vae.load_vae(cfg.vae.checkpoint, compute_dtype=cfg.vae.compute_dtype)
+        if (official_cfg.z_dim, official_cfg.dim, official_cfg.dec_dim) != (cfg.vae.z_dim, cfg.vae.dim, cfg.vae.dec_dim):
+            raise SystemExit(f"train_vae: {cfg.vae.checkpoint} holds a VAE with z_dim/dim/dec_dim "
+                             f"{official_cfg.z_dim}/{official_cfg.dim}/{official_cfg.dec_dim}, the config asks for "
+                             f"{cfg.vae.z_dim}/{cfg.vae.dim}/{cfg.vae.dec_dim}")
+        return graphdef, state
+    graphdef, state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))
+    ckpt = checkpoint.Checkpointer(path)
+    restored, _ = ckpt.restore(checkpoint.abstract_like(nnx.to_pure_dict(state)))
+    ckpt.close()
+    nnx.replace_by_pure_dict(state, restored)
+    return graphdef, state
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", action="append", default=[], help="LIBERO-layout HDF5 (repeatable)")
+    parser.add_argument("--synthetic", action="store_true", help="train on moving-square videos")
+    parser.add_argument("--clip-latents", type=int, default=2, help="k of the 1+4k-frame training clips")
+    cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(rest)
+    args.workdir = cfg.workdir  # --workdir is the config's top-level field
+    distributed.initialize(cfg.mesh)
+    is_main = jax.process_index() == 0
+    final_path = os.path.join(args.workdir, "vae")
+    if cfg.vae.checkpoint:
+        load_vae(cfg, final_path)  # validates the official file now
+        return {"source": cfg.vae.checkpoint, "steps": 0}
+    if not args.episodes and not args.synthetic:
+        raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
+    videos = load_frames(args.episodes) if args.episodes else None
+    frames = 1 + 4 * args.clip_latents
+    mesh = shd.make_mesh(cfg.mesh)
+    graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
+                                                 rules=cfg.mesh.rules)
+    ckpt = checkpoint.Checkpointer(os.path.join(args.workdir, "checkpoints"), max_to_keep=1)
+    shardings = jax.tree.map(lambda x: x.sharding, state)
+    start = 0
+    if ckpt.latest_step() is not None:
+        state, meta = ckpt.restore(checkpoint.abstract_like(state, shardings))
+        start = int(meta["step"])
+        if is_main:
+            print(f"[train_vae] resumed from step {start}")
+    step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules)
+    root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
+    batch_sharding = {"video": shd.batch_sharding(mesh, 5, cfg.mesh.rules)}
+    logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,
+                                     jsonl_path=os.path.join(args.workdir, "metrics.jsonl"))
+    for step in range(start + 1, cfg.vae.train_steps + 1):
+        rng = np.random.default_rng([cfg.seed, step])  # a pure function of the step: exact resume
+        if videos is not None:
+            host = clip_batch(videos, cfg.vae.batch_size, frames, rng)
+        else:
+            side = cfg.data.image_size
+            host = np.asarray(vae_train.moving_squares(key=jax.random.key(step), batch=cfg.vae.batch_size,
+                                                       frames=frames, size=side))
+        batch = {"video": shd.put(host, batch_sharding["video"])}
+        state, metrics = step_fn(state, batch, root)
+        logger.push(step, metrics)
+        if step % cfg.trainer.checkpoint_every == 0 or step == cfg.vae.train_steps:
+            logger.flush()
+            ckpt.save(step, state, {"step": step})
+    logger.flush()
+    ckpt.close()
+    save_vae(final_path, graphdef, state.params, state.constants)
+    last = logger.history[-1] if logger.history else {}
+    first = logger.history[0] if logger.history else {}
+    return {"steps": cfg.vae.train_steps, "first_loss": first.get("loss"), "final_loss": last.get("loss"),
+            "path": final_path}
+
+
+if __name__ == "__main__":
+    main()
