@@ -9,9 +9,12 @@ state ``(seed + i) % 50``; the expert's action noise is seeded by ``(seed, k, i)
 backend runs MuJoCo's C engine one episode at a time; the MJX backend rolls all episodes of
 a task out at once in one jitted ``lax.scan`` (vmapped), rendering inside it.
 
-Rendering is the JAX ray-cast renderer of ``sim/render.py`` on both backends by default, so
-CPU- and GPU-generated data look the same; ``--renderer gl`` uses MuJoCo's OpenGL renderer
-(CPU backend only; a different look: textures, specular light).
+Rendering (``--renderer``): ``jax`` is the ray-cast renderer of ``sim/render.py`` (the only
+one on the MJX backend); ``gl`` is MuJoCo's OpenGL renderer through ``sim/render_gl.py``
+(CPU backend only; same geoms, classes, depth convention, materials and lights, plus
+MuJoCo's specular highlights). ``auto`` (default) picks ``gl`` on the CPU backend where an
+OpenGL context can be made, because it is ~100x faster there at 128 px (see
+``benchmarks/render_speed.py``), and ``jax`` otherwise.
 
 Observation ``t`` is what was seen before ``actions[t]``; ``rewards[t]``/``dones[t]`` are
 the success after it, and the last step of every episode has ``dones = 1`` (as LIBERO).
@@ -29,6 +32,16 @@ import numpy as np
 from tqdm import tqdm
 
 _CHUNK = 16  # frames per JAX render call (fixed, so there is one compile per camera)
+_SCENES: dict[tuple[str, float], Any] = {}  # one RenderScene per scene model: jit caches key on it
+
+
+def _render_scene(env: Any) -> Any:
+    from sim import render
+
+    key = (type(env).__name__, float(env.config.physics_dt))
+    if key not in _SCENES:
+        _SCENES[key] = render.build_scene(env.mj_model)
+    return _SCENES[key]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,7 +55,7 @@ class GenDataConfig:
     resolution: int = 128
     noise: float = 0.0
     seed: int = 0
-    renderer: str = "jax"
+    renderer: str = "auto"
     max_steps: int = 220
     wrist_camera: bool = True
     overwrite: bool = False
@@ -58,8 +71,8 @@ class GenDataConfig:
             raise ValueError(f"resolution must be a positive multiple of 16, got {self.resolution}")
         if not 0 <= self.noise <= 1:
             raise ValueError(f"noise must be in [0, 1], got {self.noise}")
-        if self.renderer not in ("jax", "gl"):
-            raise ValueError(f"renderer must be jax|gl, got {self.renderer!r}")
+        if self.renderer not in ("auto", "jax", "gl"):
+            raise ValueError(f"renderer must be auto|jax|gl, got {self.renderer!r}")
         if self.renderer == "gl" and self.backend != "cpu":
             raise ValueError("renderer=gl needs backend=cpu (MuJoCo's OpenGL renderer reads MjData)")
         if self.max_steps < 1:
@@ -220,16 +233,21 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
     """
     cfg.validate()
     import sim
-    from sim import render, tasks
+    from sim import tasks
     from sim.dataset import DatasetInfo, DatasetWriter
 
+    renderer = cfg.renderer
+    if renderer == "auto":
+        from sim.render_gl import gl_available
+
+        renderer = "gl" if cfg.backend == "cpu" and gl_available()[0] else "jax"
     language = [tasks.LANGUAGE[t] for t in cfg.tasks]
     single = len(cfg.tasks) == 1
     problem = "libero_spatial" if not single else f"libero_spatial_{cfg.tasks[0]}"
     env_kwargs = {"tasks": list(cfg.tasks), "backend": cfg.backend, "camera_heights": cfg.resolution,
                   "camera_widths": cfg.resolution, "camera_names": ["agentview", "eye_in_hand"],
                   "control_freq": 20, "max_steps": cfg.max_steps, "expert_noise": cfg.noise, "seed": cfg.seed,
-                  "renderer": cfg.renderer}
+                  "renderer": renderer}
     info = DatasetInfo(
         env_name=sim.GYM_ID,
         env_args={"type": 1, "env_name": sim.GYM_ID, "problem_name": problem, "bddl_file": "",
@@ -246,11 +264,11 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
         for task in cfg.tasks:
             env = sim.load("libero_spatial", task_id=task, backend=cfg.backend, resolution=cfg.resolution,
                            max_steps=cfg.max_steps)
-            scene = render.build_scene(env.mj_model)
+            scene = _render_scene(env)
             info.seg_class_names = scene.class_names
             if cfg.backend == "cpu":
                 frames = (_GLFrames(env.mj_model, scene, cfg.resolution, ("agentview", "eye_in_hand"))
-                          if cfg.renderer == "gl" else _JaxFrames(scene, cfg.resolution))
+                          if renderer == "gl" else _JaxFrames(scene, cfg.resolution))
                 episodes = _cpu_episodes(cfg, task, env, frames, bar)
             else:
                 episodes = _mjx_episodes(cfg, task, env, scene, bar)
@@ -274,7 +292,7 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--noise", type=float, default=0.0, help="expert action noise std (0-1)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--renderer", choices=("jax", "gl"), default="jax")
+    parser.add_argument("--renderer", choices=("auto", "jax", "gl"), default="auto")
     parser.add_argument("--max-steps", type=int, default=220)
     parser.add_argument("--no-wrist", action="store_true", help="skip the eye_in_hand camera")
     parser.add_argument("--overwrite", action="store_true")
