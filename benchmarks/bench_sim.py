@@ -72,35 +72,37 @@ def mjx_throughput(batch: int, resolution: int, steps: int) -> tuple[float, bool
     return batch * steps / (time.perf_counter() - start), has_renderer
 
 
-def expert_success_mjx(batch: int, task_ids: list[int], horizon: int) -> dict[int, float]:
-    """Vmapped expert rollouts (lax.scan) on MJX from the first ``batch`` fixed init states."""
+def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int) -> dict[int, float]:
+    """Vmapped expert rollouts (one ``lax.scan`` in one jit) on MJX from each task's first
+    ``episodes`` fixed initial states. The tasks share one model, so all run as one batch."""
     import jax
+    import jax.numpy as jnp
 
     import sim
-    from sim import expert
+    from sim import expert, tasks
 
-    rates = {}
-    for task_id in task_ids:
-        env = sim.load("libero_spatial", backend="mjx", task_id=task_id)
-        init_fn, act_fn = expert.jax_policy(env)
-        qpos = env.init_states[np.arange(batch) % len(env.init_states)]
+    env = sim.load("libero_spatial", backend="mjx")
+    init_fn, act_fn = expert.jax_policy(env)
+    qpos = np.concatenate([tasks.fixed_init_states(t)[:episodes] for t in task_ids])
 
-        @jax.jit
-        def rollout(qpos, key):
-            state = jax.vmap(env.reset_to)(qpos)
-            est = jax.vmap(init_fn)(state)
+    @jax.jit
+    def rollout(qpos, key):
+        state = jax.vmap(env.reset_to)(qpos)
+        est = jax.vmap(init_fn)(state)
 
-            def body(carry, key):
-                state, est, solved = carry
-                action, est = jax.vmap(act_fn)(state, est, jax.random.split(key, qpos.shape[0]))
-                state = jax.vmap(env.step)(state, action)
-                return (state, est, jax.numpy.maximum(solved, state.done)), None
+        def body(carry, key):
+            state, est, solved = carry
+            action, est = jax.vmap(act_fn)(state, est, jax.random.split(key, qpos.shape[0]))
+            state = jax.vmap(env.step)(state, action)
+            return (state, est, jnp.maximum(solved, state.done)), None
 
-            (_, _, solved), _ = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, horizon))
-            return solved.mean()
+        (_, _, solved), _ = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, horizon))
+        return solved
 
-        rates[task_id] = float(rollout(qpos, jax.random.key(task_id)))
-        print(f"task {task_id}: MJX expert success {rates[task_id]:.3f}", flush=True)
+    solved = np.asarray(rollout(jnp.asarray(qpos, jnp.float32), jax.random.key(0))).reshape(len(task_ids), episodes)
+    rates = {task_id: float(solved[i].mean()) for i, task_id in enumerate(task_ids)}
+    for task_id, rate in rates.items():
+        print(f"task {task_id}: MJX expert success {rate:.3f}", flush=True)
     return rates
 
 
@@ -113,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--noise", type=float, default=0.0)
+    parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
     args = parser.parse_args(argv)
     task_ids = [int(t) for t in args.tasks.split(",")]
     episodes = args.episodes if args.episodes is not None else (5 if args.tiny else 50)
@@ -133,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         note = "physics + agentview render" if rendered else "physics only (sim/render.py missing)"
         rows.append({"figure": f"{key} (batch {args.batch}, {note})", "value": sps})
         entries[key] = common.record(key, sps, 20000, batch=args.batch, rendered=rendered)
-        mjx_rates = expert_success_mjx(min(args.batch, 50), task_ids, 220)
+        mjx_rates = expert_success_mjx(episodes, task_ids, args.horizon)
         for task_id, rate in mjx_rates.items():
             rows.append({"figure": f"expert success task {task_id} (MJX)", "value": rate})
         entries["sim_expert_success_min_mjx"] = common.record(
