@@ -31,3 +31,19 @@ def test_effective_horizon_fits_rollout_layout():
     assert evaluate.effective_horizon(cfg, 33) == (29, 1, 2)  # 1 + 4 + 8n <= 33
     with pytest.raises(SystemExit, match="cannot hold"):
         evaluate.effective_horizon(cfg, 9)
+
+
+def test_model_config_comes_from_the_workdir(tmp_path):
+    import dataclasses
+
+    import configs
+    from configs.cli import to_dict
+
+    cfg = configs.get("sword:tiny")
+    other = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_layers=1),
+                                flow=dataclasses.replace(cfg.flow, sample_steps=3))
+    json.dump(to_dict(other), open(tmp_path / "config.json", "w"))
+    loaded = evaluate.model_config(cfg, str(tmp_path))
+    assert loaded.model.num_layers == 1 and loaded.flow.sample_steps == 3
+    assert loaded.model == other.model
+    assert evaluate.model_config(cfg, None) is cfg

@@ -137,7 +137,7 @@ def test_lpips_alex_parity(shared_dir, alex, case):
 @pytest.mark.parametrize("net", ["alex", "vgg"])
 def test_lpips_zero_on_identity_and_grows_with_distortion(net, alex):
     module = alex if net == "alex" else random_fill(nnx.eval_shape(lambda: LPIPS("vgg", rngs=nnx.Rngs(0))), seed=3)
-    x = jnp.asarray(_smooth_video(0, t=2, size=64))
+    x = jnp.asarray(_smooth_video(0, t=2, size=64 if net == "alex" else 32))
     noise = jnp.asarray(np.random.default_rng(1).standard_normal(x.shape).astype(np.float32))
     score = _lpips01(module)
     assert np.abs(np.asarray(score(x, x))).max() < 1e-12  # 0 up to float32 fusion-order rounding

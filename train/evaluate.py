@@ -25,6 +25,8 @@ random initialisation, which the report then states.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import os
 import sys
 import time
@@ -93,6 +95,23 @@ def load_split(path: str, num_episodes: int) -> dict[str, np.ndarray]:
     return {"frames": frames, "actions": actions.astype(np.float32)}
 
 
+def model_config(cfg: ExperimentConfig, workdir: str | None) -> ExperimentConfig:
+    """The config a world-model workdir was trained with (its ``config.json``: model, flow, cache,
+    trainer sections), so checkpoints of different configs can be compared side by side."""
+    path = os.path.join(workdir, "config.json") if workdir else ""
+    if not path or not os.path.exists(path):
+        return cfg
+    with open(path) as f:
+        saved = json.load(f)
+    sections = {}
+    for name in ("model", "flow", "cache", "trainer"):
+        section = getattr(cfg, name)
+        names = {field.name for field in dataclasses.fields(section)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.get(name, {}).items() if k in names}
+        sections[name] = dataclasses.replace(section, **values)
+    return dataclasses.replace(cfg, **sections)
+
+
 def _world_model_state(cfg: ExperimentConfig, workdir: str | None):
     from sword_jax.dit.world_model import WorldModel
 
@@ -154,14 +173,15 @@ def main(argv: Sequence[str] | None = None) -> str:
     for name, workdir in models.items():
         if workdir is None:
             notes.append(f"Model '{name}': randomly initialised world model (pipeline smoke run).")
-        wm_graphdef, wm_state = _world_model_state(cfg, workdir)
+        model_cfg = model_config(cfg, workdir)
+        wm_graphdef, wm_state = _world_model_state(model_cfg, workdir)
         predictions[name] = {}
         for i, (split, episodes) in enumerate(splits.items()):
             t0 = time.time()
             predictions[name][split] = rollout_videos(
                 wm_graphdef, wm_state, vae_graphdef, vae_state, episodes["frames"][:, :horizon],
                 episodes["actions"][:, :horizon], key=jax.random.fold_in(jax.random.key(cfg.seed), i),
-                flow_cfg=cfg.flow, num_context=k, num_future=p)
+                flow_cfg=model_cfg.flow, num_context=k, num_future=p)
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
