@@ -517,3 +517,47 @@ def render_mjdata(
     return render_batch(
         scene, xpos, xmat, cpos, cmat, fovy=fovy, height=height, width=width, shadows=shadows
     )
+
+
+def make_obs_renderer(
+    scene: RenderScene,
+    cameras: tuple[str, ...] = ("agentview",),
+    *,
+    height: int,
+    width: int,
+    depth: bool = False,
+    seg: bool = False,
+) -> Callable[[Any], dict[str, Any]]:
+    """An env observation hook ``data -> {"<camera>_rgb": ..., ...}`` (``sim.load(renderer=...)``).
+
+    With an ``mjx.Data`` it is pure JAX (traced into the env's jitted step); with a
+    ``mujoco.MjData`` (the C backend) it calls a jitted single-frame render and returns numpy.
+
+    Args:
+      scene: from ``build_scene``. cameras: camera names. height, width: image size.
+      depth, seg: also return ``<camera>_depth`` (h, w) float32 and ``<camera>_seg`` (h, w) int32.
+
+    Raises:
+      KeyError: an unknown camera.
+    """
+    renderers = {cam: make_renderer(scene, cam, height=height, width=width) for cam in cameras}
+
+    def images(frames: dict[str, Frame]) -> dict[str, Any]:
+        out = {}
+        for cam, frame in frames.items():
+            out[f"{cam}_rgb"] = frame.rgb
+            if depth:
+                out[f"{cam}_depth"] = frame.depth
+            if seg:
+                out[f"{cam}_seg"] = frame.seg
+        return out
+
+    def obs_renderer(data: Any) -> dict[str, Any]:
+        if isinstance(data, mujoco.MjData):
+            frames = {cam: jax.tree.map(lambda x: np.asarray(x[0]),
+                                        render_mjdata(scene, [data], cam, height=height, width=width))
+                      for cam in cameras}
+            return images(frames)
+        return images({cam: fn(data) for cam, fn in renderers.items()})
+
+    return obs_renderer

@@ -43,3 +43,20 @@ def test_real_scene_matches_mujoco_renderer(states, camera):
             assert np.quantile(err, 0.99) < 2e-3, np.quantile(err, 0.99)
             # Colours come from the same materials and lights: close on average.
             assert np.abs(frames.rgb[i].astype(np.int32) - ref.rgb).mean() < 30
+
+
+def test_obs_renderer_hook_in_cpu_env():
+    """``sim.load(renderer=make_obs_renderer(...))`` adds images to the env's observations."""
+    import sim
+    from sim import scene as libero_scene
+
+    model_scene = render.build_scene(libero_scene.build_model())
+    hook = render.make_obs_renderer(model_scene, ("agentview", "eye_in_hand"), height=32, width=32, depth=True)
+    env = sim.load("libero_spatial_1", renderer=hook)
+    state = env.reset_to(env.init_states[0])
+    obs = state.obs
+    assert obs["agentview_rgb"].shape == (32, 32, 3) and obs["agentview_rgb"].dtype == np.uint8
+    assert obs["eye_in_hand_rgb"].shape == (32, 32, 3) and obs["agentview_depth"].shape == (32, 32)
+    assert 0.3 < float(np.median(obs["agentview_depth"])) < 2.5
+    moved = env.step(state, np.array([0.0, 0.0, 1.0, 0, 0, 0, -1], np.float32))
+    assert not np.array_equal(moved.obs["eye_in_hand_rgb"], obs["eye_in_hand_rgb"])
