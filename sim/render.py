@@ -509,6 +509,8 @@ def render_mjdata(
     """
     if camera not in scene.cameras:
         raise KeyError(f"camera {camera!r} not in the model; cameras: {sorted(scene.cameras)}")
+    if not datas:
+        raise ValueError("render_mjdata needs at least one MjData")
     cam_id, fovy = scene.cameras[camera]
     xpos = np.stack([d.geom_xpos for d in datas]).astype(np.float32)
     xmat = np.stack([d.geom_xmat for d in datas]).astype(np.float32)
