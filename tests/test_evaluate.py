@@ -76,3 +76,17 @@ def test_harness_rejects_mismatched_shapes():
     bad[0, 1, 0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         evaluate_videos(suite, gt, {"m": {"original": bad}}, progress=lambda _: None)
+
+
+def test_given_frames_are_excluded_from_the_metrics():
+    suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("psnr",))
+    gt = _videos(0)
+    pred = gt.copy()
+    pred[:, 5:] = np.clip(pred[:, 5:] + 0.1, 0, 1)  # only predicted frames differ
+    pred[:, :5] = 0.5  # conditioning frames are garbage but must not count
+    result = evaluate_videos(suite, {"original": gt}, {"m": {"original": pred}}, given_frames=5,
+                             progress=lambda _: None).models["original"]["m"]
+    assert result.curves["psnr"]["frames"] == [5, 6, 7, 8]
+    assert result.overall["psnr"] > 19
+    with pytest.raises(ValueError, match="given_frames"):
+        evaluate_videos(suite, {"original": gt}, {"m": {"original": pred}}, given_frames=8, progress=lambda _: None)

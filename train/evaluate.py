@@ -163,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     available = min(s["frames"].shape[1] for s in splits.values())
     horizon, k, p = effective_horizon(cfg, available)
     notes = [f"Horizon: {horizon} frames (first frame + {4 * k} context frames given, {horizon - 1 - 4 * k} predicted; "
-             f"metrics over frames 1..{horizon - 1}), {cfg.eval.num_episodes} episodes per split, "
+             f"metrics over the predicted frames {1 + 4 * k}..{horizon - 1}), {cfg.eval.num_episodes} episodes per split, "
              f"{cfg.flow.sample_steps} Euler steps per chunk."]
     if not args.vae_checkpoint:
         notes.append("VAE: random initialisation (no --vae-checkpoint): decoded frames are not meaningful.")
@@ -185,7 +185,8 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
-    results = evaluate_videos(suite, gt, predictions, settings={"horizon": horizon, "config": cfg.name})
+    results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k,
+                              settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name})
     videos = {s: {"ground truth": gt[s][: cfg.eval.report_videos],
                   **{m: predictions[m][s][: cfg.eval.report_videos] for m in predictions}} for s in gt}
     out = args.out or os.path.join(cfg.workdir, "eval")

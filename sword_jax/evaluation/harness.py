@@ -41,17 +41,22 @@ def _window_curve(features_pred: list[np.ndarray], features_gt: list[np.ndarray]
 
 
 def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"], *,
-                   horizon_window: int = 16) -> ModelResult:
-    """Every metric of one model's predictions against ground truth (frames 1..T-1).
+                   horizon_window: int = 16, given_frames: int = 1) -> ModelResult:
+    """Every metric of one model's predictions against ground truth (frames ``given_frames``..T-1).
 
     Args:
       suite: the metric networks.
-      gt, pred: videos in [0, 1]; frame 0 is the shared conditioning frame.
+      gt, pred: videos in [0, 1].
       horizon_window: frames per window of the FID/FVD-vs-horizon curves.
+      given_frames: leading frames that were conditioning, not prediction (the first frame and
+        the context chunk); excluded from every metric. Curves count horizon from frame 0.
     """
-    gt, pred = np.asarray(gt, np.float32)[:, 1:], np.asarray(pred, np.float32)[:, 1:]
+    if not 0 <= given_frames < gt.shape[1] - 1:
+        raise ValueError(f"given_frames={given_frames} leaves fewer than 2 of {gt.shape[1]} frames to score")
+    gt = np.asarray(gt, np.float32)[:, given_frames:]
+    pred = np.asarray(pred, np.float32)[:, given_frames:]
     metrics = suite.evaluate(gt, pred)
-    curves = {name: per_frame_curve(values, frame_offset=1).to_dict() for name, values in metrics.per_frame.items()}
+    curves = {name: per_frame_curve(values, frame_offset=given_frames).to_dict() for name, values in metrics.per_frame.items()}
     t = gt.shape[1]
     if "fid" in suite.metrics:
         windows = horizon_windows(t, min(horizon_window, t))
@@ -60,20 +65,20 @@ def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred:
         curve = _window_curve([feats_p[:, lo:hi].reshape(-1, feats_p.shape[-1]) for lo, hi in windows],
                               [feats_g[:, lo:hi].reshape(-1, feats_g.shape[-1]) for lo, hi in windows], windows)
         if curve is not None:
-            curves["fid"] = Curve(curve.frames + 1, curve.mean, curve.stderr).to_dict()
+            curves["fid"] = Curve(curve.frames + given_frames, curve.mean, curve.stderr).to_dict()
     if "fvd" in suite.metrics and t >= suite.config.fvd_clip_frames:
         clip = suite.config.fvd_clip_frames
         windows = horizon_windows(t, clip)
         curve = _window_curve([suite.i3d_features(pred[:, lo:hi]) for lo, hi in windows],
                               [suite.i3d_features(gt[:, lo:hi]) for lo, hi in windows], windows)
         if curve is not None:
-            curves["fvd"] = Curve(curve.frames + 1, curve.mean, curve.stderr).to_dict()
+            curves["fvd"] = Curve(curve.frames + given_frames, curve.mean, curve.stderr).to_dict()
     return ModelResult(metrics.overall, curves)
 
 
 def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
                     predictions: dict[str, dict[str, np.ndarray]], *, horizon_window: int = 16,
-                    settings: dict | None = None, progress: ProgressFn = print) -> EvalResults:
+                    given_frames: int = 1, settings: dict | None = None, progress: ProgressFn = print) -> EvalResults:
     """Scores several models side by side on several splits.
 
     Args:
@@ -81,6 +86,7 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
       gt_by_split: ``{split: [B, T, H, W, 3]}`` ground-truth videos in [0, 1].
       predictions: ``{model: {split: [B, T, H, W, 3]}}`` predicted videos (same shapes).
       horizon_window: frames per FID window on the horizon curves.
+      given_frames: leading conditioning frames excluded from the metrics (see :func:`evaluate_model`).
       settings: recorded in the results.
       progress: called with one line per (split, model).
 
@@ -95,7 +101,8 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
                 raise KeyError(f"model {model!r} has no predictions for split {split!r}")
             if per_split[split].shape != gt.shape:
                 raise ValueError(f"{model}/{split}: predictions {per_split[split].shape} != ground truth {gt.shape}")
-            models[split][model] = evaluate_model(suite, gt, per_split[split], horizon_window=horizon_window)
+            models[split][model] = evaluate_model(suite, gt, per_split[split], horizon_window=horizon_window,
+                                                  given_frames=given_frames)
             summary = ", ".join(f"{k}={v:.4g}" for k, v in models[split][model].overall.items())
             progress(f"[evaluate] {split} / {model}: {summary}")
     return EvalResults(suite.metrics, models, suite.random_weight_networks, suite.describe_weights(), settings or {})

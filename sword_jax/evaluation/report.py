@@ -88,7 +88,7 @@ def plot_curves(path: str, split: str, metric: str, curves: dict[str, dict]) -> 
         if np.any(err > 0):
             ax.fill_between(frames, mean - err, mean + err, alpha=0.2)
     arrow = "lower is better" if LOWER_IS_BETTER[metric] else "higher is better"
-    ax.set(xlabel="horizon (frames after the first)", ylabel=_LABEL[metric], title=f"{split}: {_LABEL[metric]} ({arrow})")
+    ax.set(xlabel="horizon (frame index; frame 0 = given first frame)", ylabel=_LABEL[metric], title=f"{split}: {_LABEL[metric]} ({arrow})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
