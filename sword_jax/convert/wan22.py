@@ -1,8 +1,8 @@
 """CLI for the Wan 2.2 converters.
 
 ``python -m sword_jax.convert.wan22 verify DIR [--tol 1e-4]`` runs every reference case found in
-DIR (VAE: ``vae*.npz`` with ``vae_weights.safetensors``; DiT: whatever
-``sword_jax.convert.wan22_dit.run_reference_cases`` finds, when that module exists) through the
+DIR (VAE when DIR has ``vae*`` files: ``vae*.npz`` with ``vae_weights.safetensors``; DiT when it
+has ``dit*`` files and ``sword_jax.convert.wan22_dit`` exists: its ``run_reference_cases``) through the
 JAX port in float32, prints the largest absolute and relative error per output and exits
 
 * 0 when every output is within tolerance (an output fails when both its max abs error and its
@@ -23,6 +23,10 @@ import traceback
 from collections.abc import Callable, Sequence
 
 from sword_jax.convert import CaseResult
+
+
+# Which files of a directory belong to which converter's format.
+_FILE_PREFIX = {"wan22_vae": "vae", "wan22_dit": "dit"}
 
 
 def _runners() -> list[tuple[str, Callable[[str], list[CaseResult]] | None, str | None]]:
@@ -58,6 +62,9 @@ def verify(ref_dir: str, tol: float = 1e-4) -> int:
         print(f"error: importing a converter failed: {err}", file=sys.stderr)
         return 1
     for name, run, reason in runners:
+        prefix = _FILE_PREFIX[name]
+        if run is not None and not any(f.startswith(prefix) for f in os.listdir(ref_dir)):
+            run, reason = None, f"no {prefix}* files in {ref_dir}"
         if run is None:
             print(f"[{name}] skipped: {reason}")
             continue
