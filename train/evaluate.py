@@ -45,7 +45,7 @@ from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
 
 def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="report directory")
+    parser.add_argument("--out", default="", help="report directory (default: eval.report_dir, else <workdir>/eval)")
     parser.add_argument("--model", action="append", default=[], metavar="NAME=WORKDIR")
     parser.add_argument("--episodes", action="append", default=[], metavar="SPLIT=PATH")
     parser.add_argument("--vae-checkpoint", default="")
@@ -185,11 +185,11 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
-    results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k,
+    results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k, horizon_window=cfg.eval.horizon_window,
                               settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name})
     videos = {s: {"ground truth": gt[s][: cfg.eval.report_videos],
                   **{m: predictions[m][s][: cfg.eval.report_videos] for m in predictions}} for s in gt}
-    out = args.out or os.path.join(cfg.workdir, "eval")
+    out = args.out or cfg.eval.report_dir or os.path.join(cfg.workdir, "eval")
     path = write_report(out, results, videos, title=f"World-model evaluation: {cfg.name}", notes=notes,
                         max_episodes=cfg.eval.report_videos)
     print(f"[evaluate] report written to {path} ({time.time() - start:.1f} s)", flush=True)

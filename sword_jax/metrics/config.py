@@ -26,7 +26,7 @@ class EvalConfig:
     fvd_clip_frames: int = 16  # I3D clip length; longer videos are cut into clips
     fvd_resolution: int = 224
     metric_batch_size: int = 8  # frames/clips per metric-network call
-    horizon_bins: int = 8  # metric-vs-horizon curve resolution
+    horizon_window: int = 16  # frames per FID window on the metric-vs-horizon curves
     report_dir: str = ""  # default: <workdir>/eval
     report_videos: int = 2  # episodes shown as strips/GIFs per split
 
@@ -46,5 +46,5 @@ class EvalConfig:
             raise ValueError(f"eval.fvd_clip_frames must be >= 9 (I3D's temporal receptive field), got {self.fvd_clip_frames}")
         if not 193 <= self.fvd_resolution <= 224:
             raise ValueError(f"eval.fvd_resolution must be in [193, 224], got {self.fvd_resolution}")
-        if self.metric_batch_size < 1 or self.horizon_bins < 1 or self.report_videos < 0:
-            raise ValueError("eval.metric_batch_size and eval.horizon_bins must be >= 1, eval.report_videos >= 0")
+        if self.metric_batch_size < 1 or self.horizon_window < 2 or self.report_videos < 0:
+            raise ValueError("eval.metric_batch_size must be >= 1, eval.horizon_window >= 2, eval.report_videos >= 0")
