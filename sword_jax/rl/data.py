@@ -129,3 +129,25 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
     t = (rng.random(count) * np.maximum(episodes.lengths[ep] * max_fraction, 1)).astype(np.int64)
     return {"episode": ep, "t": t, "frame": episodes.frames[ep, t], "proprio": episodes.proprio[ep, t],
             "instructions": [episodes.instructions[i] for i in ep]}
+
+
+def load_episodes(paths: Sequence[str]) -> EpisodeSet:
+    """Reads LIBERO-layout HDF5 files (``sim.dataset``) into one :class:`EpisodeSet`."""
+    from sim.dataset import read_dataset
+
+    episodes = []
+    for path in paths:
+        _, eps = read_dataset(path)
+        episodes.extend(eps)
+    return from_sim_episodes(episodes)
+
+
+def per_task_subset(episodes: EpisodeSet, per_instruction: int, rng: np.random.Generator) -> EpisodeSet:
+    """At most ``per_instruction`` episodes of each instruction (the SFT data-amount knob; 0 = all)."""
+    if per_instruction <= 0:
+        return episodes
+    keep = []
+    for text in sorted(set(episodes.instructions)):
+        idx = np.flatnonzero(np.asarray(episodes.instructions) == text)
+        keep.extend(rng.permutation(idx)[:per_instruction])
+    return episodes.subset(np.sort(np.asarray(keep)))

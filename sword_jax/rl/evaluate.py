@@ -131,7 +131,7 @@ class SuccessCurve:
         steps = [p["step"] for p in self.points]
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.plot(steps, [p["mean"] for p in self.points], "o-", color="k", lw=2, label="mean")
-        tasks = sorted({t for p in self.points for t in p["per_task"]}, key=int)
+        tasks = sorted({t for p in self.points for t in p["per_task"]}, key=lambda t: (not t.isdigit(), t.zfill(4)))
         for t in tasks:
             ax.plot(steps, [p["per_task"].get(t, np.nan) for p in self.points], lw=0.8, alpha=0.6, label=f"task {t}")
         ax.set_xlabel("GRPO step")

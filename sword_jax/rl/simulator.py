@@ -106,11 +106,13 @@ def toy_render(state: ToyState, size: int) -> Float[Array, "h w 3"]:
     return jnp.stack([red, green, blue], axis=-1)
 
 
-def toy_simulator(*, frame_size: int = 16, chunk_len: int = 8, step_size: float = 0.08, noise: float = 0.0) -> LearnedSimulator:
+def toy_simulator(
+    *, frame_size: int = 16, chunk_len: int = 8, step_size: float = 0.08, noise: float = 0.0, proprio_dim: int = 4
+) -> LearnedSimulator:
     """A point-reaching world: action dims 0-1 move the gripper; the goal comes from the text.
 
     Frames show the gripper (red) and the target (green); ``noise`` adds Gaussian jitter to the
-    motion so that the ``key`` matters. The reward depends on the action: only moving toward the
+    motion so that the ``key`` matters. Proprio is the gripper position padded to ``proprio_dim``. The reward depends on the action: only moving toward the
     text-specified target raises :func:`toy_reward_model`'s score.
     """
 
@@ -128,7 +130,7 @@ def toy_simulator(*, frame_size: int = 16, chunk_len: int = 8, step_size: float 
 
     def observe_fn(params, state: ToyState):
         del params
-        return jnp.concatenate([state.position, jnp.zeros((2,), jnp.float32)]), jnp.float32(1.0)
+        return jnp.concatenate([state.position, jnp.zeros((proprio_dim - 2,), jnp.float32)]), jnp.float32(1.0)
 
     return LearnedSimulator(params={}, init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
                             chunk_len=chunk_len, frame_size=frame_size)

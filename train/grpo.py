@@ -1,0 +1,163 @@
+"""GRPO post-training of the VLA policy inside the learned simulator, evaluated in MuJoCo.
+
+    # the real thing: world model + VAE + SFT policy + reward model, keyframes from demos
+    python -m train.grpo --config sword:small --simulator world_model --data demos.hdf5 \
+        --world-model runs/sword-small --vae runs/sword-small/vae --policy runs/sword-small/rl/policy_sft \
+        --reward runs/sword-small/rl/reward_model [--rl.grpo_steps=200 --rl.eval_every=20]
+    # smoke run: the analytic toy simulator (no checkpoints needed)
+    python -m train.grpo --config sword:tiny --simulator toy --rl.grpo_steps=4
+
+Each step samples ``rl.rollout_batch`` keyframe start states, G = ``rl.group_size`` imagined
+trajectories each, and applies the GRPO update (one jitted, donated step). Every ``rl.eval_every``
+steps (and at step 0) the policy is evaluated in the ground-truth MuJoCo envs (world_model mode)
+or by greedy imagined rollouts (toy mode); the curve goes to ``<workdir>/success_curve.{json,png}``.
+The GRPO state is checkpointed at each evaluation and the run resumes from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import configs
+from sword_jax.rl import data as rl_data
+from sword_jax.rl import grpo
+from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
+from sword_jax.rl.params_io import load_params
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.reward_model import as_reward_model, build_detector
+from sword_jax.rl.rollout import expand_groups, imagined_rollout
+from sword_jax.rl.simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
+from sword_jax.world_model import checkpoint
+
+
+def _toy_setup(cfg, rl):
+    size = rl.image_size
+    sim, reward_model = toy_simulator(frame_size=size, chunk_len=rl.chunk_len, proprio_dim=rl.proprio_dim), toy_reward_model()
+    texts = [f"reach the goal of task {t}" for t in range(max(len(cfg.sim.tasks), 2))]
+    tokens = jnp.asarray(tokenize_instructions(texts, rl.max_instruction_bytes))
+
+    def starts(key):
+        pick = jax.random.randint(key, (rl.rollout_batch,), 0, tokens.shape[0])
+        return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
+
+    eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=jax.random.key(12345), frame_size=size,
+                                                proprio_dim=rl.proprio_dim), 2)
+    return sim, reward_model, starts, eval_start
+
+
+def _world_model_setup(cfg, rl, args):
+    from train.evaluate import _vae_state, _world_model_state
+    from sword_jax.rl.world_model_sim import encode_keyframes, world_model_simulator
+
+    wm_graphdef, wm_state = _world_model_state(cfg, args.world_model)
+    vae_graphdef, vae_state = _vae_state(cfg, args.vae)
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
+                                frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
+                                proprio_dim=rl.proprio_dim)
+    det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
+    det_params, _ = load_params(args.reward, det_params, kind="reward_model")
+    reward_model = as_reward_model(det_graphdef, det_params)
+    episodes = rl_data.load_episodes(args.data)
+    rng = np.random.default_rng(cfg.seed + 1)
+
+    def starts(key):
+        del key  # keyframes come from the host rng (reproducible from the seed)
+        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, rng)
+        frames = jnp.asarray(pick["frame"], jnp.float32) / jnp.float32(255.0)
+        latents = encode_keyframes(vae_graphdef, vae_state, frames)
+        return StartState(frames, jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
+                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.max_instruction_bytes)), latents)
+
+    return sim, reward_model, starts, None
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--simulator", choices=("world_model", "toy"), default="world_model")
+    parser.add_argument("--data", action="append", default=[], help="demos whose frames are the start keyframes")
+    parser.add_argument("--world-model", default="", help="world-model workdir (train_world_model)")
+    parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
+    parser.add_argument("--policy", default="", help="SFT policy checkpoint (train_policy); empty = from scratch")
+    parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
+    parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.eval_episodes_per_task")
+    args = parser.parse_args(rest)
+    rl = cfg.rl
+    if args.simulator == "toy":
+        rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
+    elif not (args.world_model and args.reward and args.data):
+        raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --data (see --help)")
+    workdir = os.path.join(cfg.workdir, "rl", "grpo")
+    os.makedirs(workdir, exist_ok=True)
+
+    graphdef, params = build_policy(rl, seed=cfg.seed)
+    if args.policy:
+        params, _ = load_params(args.policy, params, kind="policy")
+    if args.simulator == "toy":
+        sim, reward_model, starts, eval_start = _toy_setup(cfg, rl)
+    else:
+        sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, args)
+
+    state = grpo.init_state(params, rl)
+    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
+    first_step = 0
+    if ckpt.latest_step() is not None:
+        state, meta = ckpt.restore(checkpoint.abstract_like(state))
+        first_step = int(meta["step"])
+        print(f"grpo: resumed from step {first_step}")
+    step_fn = grpo.make_train_step(graphdef, rl)
+    curve = SuccessCurve(workdir)
+    root = jax.random.key(cfg.seed)
+    episodes = args.eval_episodes or rl.eval_episodes_per_task
+
+    if eval_start is not None:
+        greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
+                                                    key=jax.random.key(0), greedy=True).success)
+
+    def evaluate(step):
+        if args.simulator == "toy":
+            success = np.asarray(greedy(state.params))
+            result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
+                      "episodes": int(success.size), "where": "imagined (toy)"}
+        else:
+            result = evaluate_in_sim(graphdef, state.params, rl, tasks=cfg.sim.tasks, episodes_per_task=episodes,
+                                     resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps)
+            result["where"] = "mujoco"
+        curve.add(step, result)
+        print(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}", flush=True)
+        return result
+
+    if first_step == 0:
+        evaluate(0)
+    start, pending = time.time(), None
+    for step in range(first_step, rl.grpo_steps):
+        batch_start = starts(jax.random.fold_in(root, 10_000 + step))
+        state, metrics = step_fn(state, (sim, reward_model, batch_start), root)
+        if pending is not None:  # read the previous step's metrics: the device never waits on the host
+            done, host = pending[0], jax.device_get(pending[1])
+            if not np.isfinite(host["loss"]):
+                raise SystemExit(f"grpo: non-finite loss at step {done}; last good checkpoint kept in {workdir}")
+            eta = (time.time() - start) / (done - first_step) * (rl.grpo_steps - done)
+            print(f"grpo step {done}/{rl.grpo_steps} imagined success {host['success_rate']:.3f} "
+                  f"return {host['mean_return']:.3f} loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} "
+                  f"kept {host['kept_fraction']:.2f} eta {eta:.0f}s", flush=True)
+        pending = (step + 1, metrics)
+        if (step + 1) % rl.eval_every == 0 or step + 1 == rl.grpo_steps:
+            evaluate(step + 1)
+            ckpt.save(step + 1, state, {"step": step + 1})
+    ckpt.close()
+    return {"curve": curve.points, "workdir": workdir}
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,73 @@
+"""Trains the success detector (reward model) on simulator episodes with success labels.
+
+    python -m train.train_reward --config sword:small --data episodes.hdf5 [--rl.reward_model_steps=1000]
+
+The last ``rl.positive_tail`` frames of successful episodes are positives, every other frame a
+negative; batches are class-balanced. Writes ``<workdir>/reward_model`` and a held-out report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import configs
+from sword_jax.rl import data as rl_data
+from sword_jax.rl.params_io import save_params
+from sword_jax.rl.reward_model import as_reward_model, build_detector, make_detector_step
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
+    parser.add_argument("--holdout", type=float, default=0.2, help="fraction of episodes held out")
+    args = parser.parse_args(rest)
+    rl = cfg.rl
+    workdir = os.path.join(cfg.workdir, "rl")
+    os.makedirs(workdir, exist_ok=True)
+    rng = np.random.default_rng(cfg.seed)
+    episodes = rl_data.load_episodes(args.data)
+    order = rng.permutation(episodes.num_episodes)
+    n_hold = int(round(args.holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
+    train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
+    labels = rl_data.success_labels(train_eps, rl.positive_tail)
+    graphdef, params = build_detector(rl, seed=cfg.seed)
+    init, step = make_detector_step(graphdef, rl)
+    state = init(params)
+    key = jax.random.key(cfg.seed)
+    metrics = {}
+    for i in range(rl.reward_model_steps):
+        state, metrics = step(state, rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size, rng), key)
+        if (i + 1) % max(rl.reward_model_steps // 10, 1) == 0:
+            print(f"reward step {i + 1}/{rl.reward_model_steps} loss {float(metrics['loss']):.4f} "
+                  f"acc {float(metrics['accuracy']):.3f}", flush=True)
+    save_params(os.path.join(workdir, "reward_model"), state.params, rl, kind="reward_model", step=int(state.step))
+    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes}
+    if n_hold:
+        hold_labels = rl_data.success_labels(hold_eps, rl.positive_tail)
+        score = jax.jit(as_reward_model(graphdef, state.params).score)
+        valid = hold_labels >= 0
+        frames = hold_eps.frames[valid]
+        scores = np.concatenate([np.asarray(score(jnp.asarray(frames[i:i + 256]))) for i in range(0, len(frames), 256)])
+        truth = hold_labels[valid] == 1
+        pred = scores >= rl.success_threshold
+        result["holdout"] = {"frames": int(valid.sum()), "positives": int(truth.sum()),
+                             "precision_at_threshold": float((pred & truth).sum() / max(pred.sum(), 1)),
+                             "recall_at_threshold": float((pred & truth).sum() / max(truth.sum(), 1)),
+                             "accuracy_at_0.5": float(((scores >= 0.5) == truth).mean())}
+        print("held out:", json.dumps(result["holdout"]))
+    with open(os.path.join(workdir, "reward_result.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    return result
+
+
+if __name__ == "__main__":
+    main()
