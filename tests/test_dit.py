@@ -144,3 +144,18 @@ def test_load_released_directory_with_bf16_shards(official, tmp_path):
     (tmp_path / "config.json").unlink()
     with pytest.raises(FileNotFoundError, match="config.json"):
         wan22_dit.load_official(str(tmp_path))
+
+
+def test_runner_detects_cases_by_content(shared_dir, tmp_path):
+    """Cases are found by their arrays, not file names; a lone padded sample with its own grid works."""
+    import shutil
+
+    ref = _ref(shared_dir)
+    shutil.copy(os.path.join(ref, "dit_weights.safetensors"), tmp_path / "dit_model.safetensors")
+    with np.load(os.path.join(ref, "dit_batch2_padded.npz")) as data:
+        np.savez(tmp_path / "dit_single_padded.npz", x_0=data["x_1"], context_0=data["context_1"],
+                 out_0=data["out_1"], t=data["t"][1:], seq_len=data["seq_len"], seq_lens=data["seq_lens"][1:],
+                 grid_sizes=data["grid_sizes"][1:], time_emb=data["time_emb"][1:])
+    results = wan22_dit.run_reference_cases(str(tmp_path))
+    assert {r.output for r in results} == {"out_0", "time_emb"}
+    assert all(r.max_abs < 1e-4 for r in results), results

@@ -257,7 +257,7 @@ def _run_case(graphdef, state, cfg: DiTConfig, case: dict[str, np.ndarray]):
         # patch embedding of sample i, [dim, F', H', W'] as the official Conv3d output
         tokens = np.asarray(inter["tokens_in"][i, : np.prod(grid)])
         outputs[f"patch_embed_{i}"] = tokens.reshape(*grid, cfg.dim).transpose(3, 0, 1, 2)
-    return outputs, {k: np.asarray(v) for k, v in inter.items()}, np.asarray(seq_lens)
+    return outputs, {k: np.asarray(v) for k, v in inter.items()}, np.asarray(seq_lens), grids
 
 
 def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[CaseResult]:
@@ -277,7 +277,13 @@ def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[Cas
     """
     from sword_jax.dit.layers import rope_table
 
-    weights = weights or os.path.join(ref_dir, "dit_weights.safetensors")
+    if weights is None:
+        weights = os.path.join(ref_dir, "dit_weights.safetensors")
+        if not os.path.isfile(weights):
+            candidates = sorted(glob.glob(os.path.join(ref_dir, "dit*.safetensors")))
+            if len(candidates) != 1:
+                raise FileNotFoundError(f"{ref_dir}: expected one dit*.safetensors weights file, found {candidates}")
+            weights = candidates[0]
     cfg, graphdef, state = load_official(weights, compute_dtype="float32", param_dtype="float32")
     results: list[CaseResult] = []
     for path in sorted(glob.glob(os.path.join(ref_dir, "dit_*.npz"))):
@@ -292,7 +298,11 @@ def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[Cas
             continue
         if not {"x_0", "context_0", "t", "seq_len"} <= set(case):
             continue
-        outputs, inter, seq_lens = _run_case(graphdef, state, cfg, case)
+        outputs, inter, seq_lens, grids = _run_case(graphdef, state, cfg, case)
+        for key, ours in (("seq_lens", seq_lens), ("grid_sizes", np.asarray(grids))):
+            if key in case and not np.array_equal(np.asarray(case[key]).reshape(ours.shape), ours):
+                raise ValueError(f"{name}: reference {key} {case[key].tolist()} != derived {ours.tolist()}")
+        seq_len = int(case["seq_len"])
         for key, ref in case.items():
             if key in outputs:
                 results.append(CaseResult.compare(name, key, outputs[key], ref))
@@ -300,9 +310,10 @@ def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[Cas
                 ours = inter[key]
                 if ours.shape != ref.shape:
                     raise ValueError(f"{name}:{key}: port shape {ours.shape} != reference {ref.shape}")
-                rows = [ours[b, : seq_lens[b]] for b in range(ref.shape[0])]
-                refs = [ref[b, : seq_lens[b]] for b in range(ref.shape[0])]
-                results.append(CaseResult.compare(name, key, np.concatenate(rows), np.concatenate(refs)))
+                if ref.ndim >= 2 and ref.shape[1] == seq_len:  # token rows: compare valid rows only
+                    ours = np.concatenate([ours[b, : seq_lens[b]] for b in range(ref.shape[0])])
+                    ref = np.concatenate([ref[b, : seq_lens[b]] for b in range(ref.shape[0])])
+                results.append(CaseResult.compare(name, key, ours, ref))
     if not results:
         raise FileNotFoundError(f"{ref_dir}: no dit_*.npz reference cases found")
     return results
