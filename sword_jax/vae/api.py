@@ -279,6 +279,7 @@ def decode_raw(
     return unpatchify(out.astype(jnp.float32))
 
 
+@functools.partial(jax.jit, static_argnames=("graphdef",))
 def reference_taps(
     graphdef: nnx.GraphDef, state: nnx.State, video: Float[Array, "b t h w 3"], latents: Float[Array, "b tl hl wl z"],
 ) -> dict[str, Array]:
