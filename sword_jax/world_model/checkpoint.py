@@ -81,7 +81,7 @@ class MetricLogger:
     """
 
     def __init__(self, total_steps: int, log_every: int, *, jsonl_path: str | None = None,
-                 stream: TextIO = sys.stdout, first_step: int = 0):
+                 stream: TextIO | None = None, first_step: int = 0):
         self.total_steps, self.log_every = total_steps, log_every
         self.jsonl_path = jsonl_path if jax.process_index() == 0 else None
         self.stream = stream
@@ -111,7 +111,7 @@ class MetricLogger:
         if jax.process_index() == 0:
             text = " ".join(f"{k}={_format(v)}" for k, v in values.items())
             print(f"[{step}/{self.total_steps}] {text} | {elapsed:.0f}s elapsed, ETA {eta:.0f}s",
-                  file=self.stream, flush=True)
+                  file=self.stream or sys.stdout, flush=True)
             if self.jsonl_path:
                 with open(self.jsonl_path, "a") as out:
                     out.write(json.dumps(row) + "\n")
