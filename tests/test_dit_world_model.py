@@ -222,6 +222,10 @@ def test_bad_inputs_are_named():
         model(latents, timesteps, actions.at[0, 2, 1].set(jnp.nan))
     with pytest.raises(ValueError, match="num_heads"):
         WorldModel(dataclasses.replace(CFG, num_heads=3), rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="freq_dim"):
+        dataclasses.replace(CFG, freq_dim=31).validate()
+    with pytest.raises(ValueError, match="temporal patch"):
+        WorldModel(dataclasses.replace(CFG, patch_size=(2, 2, 2)), rngs=nnx.Rngs(0))
 
 
 def _count(factory) -> int:

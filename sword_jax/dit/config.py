@@ -33,6 +33,16 @@ class DiTConfig:
     attention_impl: str = "auto"  # auto | xla | cudnn
 
     def validate(self) -> None:
+        if len(self.patch_size) != 3 or any(int(p) < 1 for p in self.patch_size):
+            raise ValueError(f"model.patch_size must be 3 positive ints (t, h, w), got {self.patch_size}")
+        for name in ("in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers", "text_dim",
+                     "text_len", "action_dim"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"model.{name} must be positive, got {getattr(self, name)}")
+        if self.freq_dim % 2:
+            raise ValueError(f"model.freq_dim={self.freq_dim} must be even (cos and sin halves)")
+        if not 0 < self.eps < 1:
+            raise ValueError(f"model.eps must be in (0, 1), got {self.eps}")
         if self.dim % self.num_heads:
             raise ValueError(f"model: num_heads={self.num_heads} does not divide dim={self.dim}")
         if (self.dim // self.num_heads) % 2:
