@@ -129,6 +129,10 @@ def test_verify_cli_exit_codes(shared_dir, tmp_path, capsys):
     assert verify.main([bad]) == 1
     out = capsys.readouterr().out
     assert "FAIL lpips_alex/case_b" in out and "res_3" in out
+    assert verify.main([str(tmp_path / "absent")]) == 2
+    os.remove(os.path.join(good, "lpips_alex", "alexnet_features.pth"))
+    assert verify.main([good]) == 2
+    assert "alexnet_features.pth" in capsys.readouterr().err
 
 
 @pytest.mark.slow

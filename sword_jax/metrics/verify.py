@@ -145,7 +145,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("directory", help="a reference directory holding manifest.json")
     args = parser.parse_args(argv)
     jax.config.update("jax_default_matmul_precision", "highest")
-    results, tolerance = run(args.directory)
+    try:
+        results, tolerance = run(args.directory)
+    except (OSError, ValueError, KeyError) as exc:  # missing/corrupt files, unknown manifest entries
+        print(f"verify: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+    if not results:
+        print("verify: the manifest lists no cases", file=sys.stderr)
+        return 2
     worst = max(results, key=lambda r: r.max_rel)
     failed = [r for r in results if not r.max_rel <= tolerance]
     print(f"{len(results)} outputs, largest relative error {worst.max_rel:.3e} ({worst.case}:{worst.output}); "
