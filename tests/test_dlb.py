@@ -203,3 +203,38 @@ def test_empty_dataset_shape_is_rejected():
     with pytest.raises(ValueError, match="dataset_shape"):
         dlb_cache.cache_shape((0, 4, 2, 2, 3), None)
     assert tiny_dataset().shape == (8, 6, 2, 2, 8)
+
+
+def test_ablation_configs_cover_the_eight_designs_and_baselines():
+    from configs import cache_ablation
+
+    seen = set()
+    for design in cache_ablation.DESIGNS:
+        cfg = configs_get(f"cache_ablation:{design}")
+        assert cfg.cache.enabled
+        seen.add((cfg.cache.schedule, cfg.cache.replacement, cfg.cache.scope))
+    assert len(seen) == 8
+    assert configs_get("cache_ablation:linear-direct-all").cache == CacheConfig()  # the default = paper's best
+    tf, wovr = configs_get("cache_ablation:tf"), configs_get("cache_ablation:wovr")
+    assert not tf.cache.enabled and tf.flow.context_noise == 0.0
+    assert not wovr.cache.enabled and wovr.flow.context_noise > 0.0
+
+
+def configs_get(name):
+    import configs
+
+    return configs.get(name)
+
+
+def test_sample_write_source_writes_a_few_step_sample(key):
+    mesh = single_device_mesh()
+    caches = []
+    for source in ("train_forward", "sample"):
+        _, state, _, step, loader = build(mesh=mesh, cache_cfg=CacheConfig(write_source=source, write_sample_steps=2,
+                                                                           **F32_CACHE))
+        state, _ = step(state, loader.next(), key)
+        caches.append(jax.device_get(state.cache))
+    np.testing.assert_array_equal(caches[0].filled, caches[1].filled)
+    written = caches[1].filled
+    assert written.any() and np.all(np.isfinite(caches[1].latents[written]))
+    assert not np.allclose(caches[0].latents[written], caches[1].latents[written])
