@@ -60,7 +60,7 @@ def _batch(cfg: DiTConfig, batch: int, hw: tuple[int, int], num_episodes: int, n
 
 
 def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int], *, peak_tflops: float,
-               iters: int, num_episodes: int = 64, num_latents: int = 32) -> dict:
+               iters: int, num_episodes: int = 64, num_latents: int = 32, with_dlb: bool = True) -> dict:
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     trainer_cfg = TrainerConfig(steps=1000, warmup_steps=10)
     flow_cfg = FlowConfig()
@@ -70,8 +70,10 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
     row: dict = {"config": label, "layers": model_cfg.num_layers, "dim": model_cfg.dim, "batch": batch,
                  "remat": model_cfg.remat, "attention": model_cfg.attention_impl}
     times = {}
-    for name, cache_cfg in (("tf", CacheConfig(enabled=False)),
-                            ("dlb", CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5))):
+    variants = [("tf", CacheConfig(enabled=False))]
+    if with_dlb:
+        variants.append(("dlb", CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5)))
+    for name, cache_cfg in variants:
         graphdef, state, shardings = train_state.create_train_state(
             lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)), trainer_cfg, cache_cfg, dataset_shape, mesh)
         fn = train_step.make_train_step(graphdef, flow_cfg=flow_cfg, trainer_cfg=trainer_cfg, cache_cfg=cache_cfg,
@@ -91,9 +93,10 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
             row["cache_mib_per_device"] = dlb_cache.cache_bytes_per_device(cache_cfg, dataset_shape, mesh) / 2**20
         del holder, state
     flops = 3 * forward_flops(model_cfg, batch, 4, hw, 13)
-    row.update(tf_step_s=times["tf"], dlb_step_s=times["dlb"], dlb_overhead=times["dlb"] / times["tf"] - 1,
-               model_tflops=flops / times["tf"] / 1e12, mfu=flops / times["tf"] / 1e12 / peak_tflops,
-               peak_mem_gb=common.peak_memory_gb())
+    row.update(tf_step_s=times["tf"], model_tflops=flops / times["tf"] / 1e12,
+               mfu=flops / times["tf"] / 1e12 / peak_tflops, peak_mem_gb=common.peak_memory_gb())
+    if with_dlb:
+        row.update(dlb_step_s=times["dlb"], dlb_overhead=times["dlb"] / times["tf"] - 1)
     return row
 
 
@@ -101,8 +104,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes")
     parser.add_argument("--layers", type=int, default=8, help="layers at 5B width (as many as fit one GPU)")
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--remat", default="none")
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--remat", default="dots")
+    parser.add_argument("--sweep", default="", help="extra 5B-width settings to try first, LAYERSxBATCHxREMAT,...;"
+                        " the fastest (by MFU) is then measured with and without DLB and recorded")
     parser.add_argument("--attention", default="auto")
     parser.add_argument("--iters", type=int, default=10)
     parser.add_argument("--no-record", action="store_true")
@@ -117,10 +122,25 @@ def main() -> None:
                          compute_dtype="float32")
         rows.append(run_config("tiny", tiny, 4, (4, 4), peak_tflops=peak, iters=2))
     else:
-        wide = DiTConfig(num_layers=args.layers, remat=args.remat, attention_impl=args.attention)
-        rows.append(run_config("5b-width", wide, args.batch, (16, 16), peak_tflops=peak, iters=args.iters))
+        best = (args.layers, args.batch, args.remat)
+        if args.sweep:
+            trials = [best] + [(int(l), int(b), r) for l, b, r in (t.split("x") for t in args.sweep.split(","))]
+            scored = []
+            for layers, batch, remat in trials:
+                cfg = DiTConfig(num_layers=layers, remat=remat, attention_impl=args.attention)
+                try:
+                    row = run_config("sweep", cfg, batch, (16, 16), peak_tflops=peak, iters=args.iters, with_dlb=False)
+                except Exception as err:  # noqa: BLE001 - out of memory etc.: report and go on
+                    print(f"sweep {layers}x{batch}x{remat}: failed ({type(err).__name__}: {str(err)[:120]})")
+                    continue
+                rows.append(row)
+                scored.append((row["mfu"], (layers, batch, remat)))
+            best = max(scored)[1] if scored else best
+        layers, batch, remat = best
+        wide = DiTConfig(num_layers=layers, remat=remat, attention_impl=args.attention)
+        rows.insert(0, run_config("5b-width", wide, batch, (16, 16), peak_tflops=peak, iters=args.iters))
         small = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16,
-                          remat=args.remat, attention_impl=args.attention)
+                          attention_impl=args.attention)
         rows.append(run_config("small", small, 64, (8, 8), peak_tflops=peak, iters=args.iters))
     common.print_table(rows, ["config", "layers", "batch", "remat", "attention", "tf_step_s", "dlb_step_s",
                               "dlb_overhead", "model_tflops", "mfu", "peak_mem_gb"])

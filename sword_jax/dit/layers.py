@@ -207,16 +207,22 @@ def apply_rope(
     return rotated.reshape(b, l, n, d).astype(x.dtype)
 
 
-def resolve_attention_impl(impl: str, dtype: jnp.dtype, head_dim: int) -> str | None:
-    """Maps the config's ``auto|xla|cudnn`` to a ``jax.nn.dot_product_attention`` implementation."""
+def resolve_attention_impl(impl: str, dtype: jnp.dtype, head_dim: int, q_len: int = 2, kv_len: int = 2) -> str | None:
+    """Maps the config's ``auto|xla|cudnn`` to a ``jax.nn.dot_product_attention`` implementation.
+
+    cuDNN's fused (flash) kernel is used for bf16/fp16 with head_dim a multiple of 8 up to 128 and
+    even query/key lengths (its masked training kernels reject odd lengths). Attention that does
+    not qualify -- e.g. cross-attention over the 13 action tokens of a segment, a negligible share
+    of the FLOPs -- runs on XLA even under ``cudnn``.
+    """
     if impl == "xla":
         return "xla"
-    if impl == "cudnn":
-        return "cudnn"
     on_gpu = jax.default_backend() == "gpu"
-    if on_gpu and dtype in (jnp.bfloat16, jnp.float16) and head_dim % 8 == 0 and head_dim <= 128:
-        return "cudnn"
-    return "xla"
+    fits = dtype in (jnp.bfloat16, jnp.float16) and head_dim % 8 == 0 and head_dim <= 128
+    fits = fits and q_len % 2 == 0 and kv_len % 2 == 0
+    if impl == "cudnn":
+        return "cudnn" if fits else "xla"
+    return "cudnn" if on_gpu and fits else "xla"
 
 
 def attention(
@@ -228,7 +234,7 @@ def attention(
     impl: str,
 ) -> Float[Array, "b lq n d"]:
     """Softmax attention with scale 1/sqrt(d); keys at index >= ``key_lengths[b]`` are masked."""
-    implementation = resolve_attention_impl(impl, query.dtype, query.shape[-1])
+    implementation = resolve_attention_impl(impl, query.dtype, query.shape[-1], query.shape[1], key.shape[1])
     lengths = None if key_lengths is None else key_lengths.astype(jnp.int32)
     # jax's XLA attention promotes bf16 logits to f32 implicitly, which strict promotion rejects.
     with jax.numpy_dtype_promotion("standard"):
@@ -249,9 +255,10 @@ def check_values(name: str, x: jax.Array, low: float | None = None, high: float 
 
     Inside ``jit`` the values are unknown and nothing is checked (no host sync on hot paths).
     """
-    if isinstance(x, jax.core.Tracer):
-        return
-    values = np.asarray(x)
+    try:
+        values = np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return  # traced: values unknown
     if not np.isfinite(values).all():
         raise ValueError(f"{name}: contains {int((~np.isfinite(values)).sum())} non-finite values")
     if low is not None and values.size and values.min() < low:
