@@ -1,1 +1,11 @@
-"""sword_jax.world_model."""
+"""sword_jax.world_model: flow matching, sampling, rollouts, data and the train step of the world model.
+
+Modules (import them directly; importing this package has no side effects):
+
+* ``flow``: Wan's shifted flow-matching schedule, noising, velocity/epsilon targets, loss.
+* ``sampler``: shifted Euler sampler (one ``lax.scan``) with optional action guidance.
+* ``rollout``: autoregressive latent rollouts (one jit), WoVR pixel round trip, streaming decode.
+* ``data``: the pre-encoded latent dataset, the resumable segment sampler and sharded loader.
+* ``train_state`` / ``train_step``: the pure ``step(state, batch, key)`` (teacher forcing or DLB).
+* ``checkpoint``: orbax checkpointer (state + cache + data position + RNG) and the metric logger.
+"""
