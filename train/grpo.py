@@ -1,7 +1,7 @@
 """GRPO post-training of the VLA policy inside the learned simulator, evaluated in MuJoCo.
 
     # the real thing: world model + VAE + SFT policy + reward model, keyframes from demos
-    python -m train.grpo --config sword:small --simulator world_model --data demos.hdf5 \
+    python -m train.grpo --config sword:small --simulator world_model --demos demos.hdf5 \
         --world-model runs/sword-small --vae runs/sword-small/vae --policy runs/sword-small/rl/policy_sft \
         --reward runs/sword-small/rl/reward_model [--rl.grpo_steps=200 --rl.eval_every=20]
     # smoke run: the analytic toy simulator (no checkpoints needed)
@@ -67,7 +67,7 @@ def _world_model_setup(cfg, rl, args):
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
-    episodes = rl_data.load_episodes(args.data)
+    episodes = rl_data.load_episodes(args.demos)
     rng = np.random.default_rng(cfg.seed + 1)
 
     def starts(key):
@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--simulator", choices=("world_model", "toy"), default="world_model")
-    parser.add_argument("--data", action="append", default=[], help="demos whose frames are the start keyframes")
+    parser.add_argument("--demos", action="append", default=[], help="demos whose frames are the start keyframes")
     parser.add_argument("--world-model", default="", help="world-model workdir (train_world_model)")
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
     parser.add_argument("--policy", default="", help="SFT policy checkpoint (train_policy); empty = from scratch")
@@ -95,8 +95,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     rl = cfg.rl
     if args.simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
-    elif not (args.world_model and args.reward and args.data):
-        raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --data (see --help)")
+    elif not (args.world_model and args.reward and args.demos):
+        raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
     workdir = os.path.join(cfg.workdir, "rl", "grpo")
     os.makedirs(workdir, exist_ok=True)
 

@@ -1,6 +1,6 @@
 """Behaviour cloning (SFT) of the VLA policy on expert demonstrations: the GRPO starting point.
 
-    python -m train.train_policy --config sword:small --data demos.hdf5 [--rl.sft_steps=2000]
+    python -m train.train_policy --config sword:small --demos demos.hdf5 [--rl.sft_steps=2000]
         [--rl.sft_episodes_per_task=10] [--workdir DIR] [--eval-episodes 10]
 
 The knobs that set how good the starting policy is: ``rl.sft_steps`` and
@@ -31,14 +31,14 @@ from sword_jax.rl.sft import make_sft_step
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
+    parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="fixed initial states per task to evaluate on")
     args = parser.parse_args(rest)
     rl = cfg.rl
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.per_task_subset(rl_data.load_episodes(args.data), rl.sft_episodes_per_task, rng)
+    episodes = rl_data.per_task_subset(rl_data.load_episodes(args.demos), rl.sft_episodes_per_task, rng)
     episodes = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio[..., : rl.proprio_dim],
                                   episodes.lengths, episodes.success, episodes.instructions)
     print(f"train_policy: {episodes.num_episodes} demonstrations, {len(set(episodes.instructions))} instructions")

@@ -1,6 +1,6 @@
 """Trains the success detector (reward model) on simulator episodes with success labels.
 
-    python -m train.train_reward --config sword:small --data episodes.hdf5 [--rl.reward_model_steps=1000]
+    python -m train.train_reward --config sword:small --demos episodes.hdf5 [--rl.reward_model_steps=1000]
 
 The last ``rl.positive_tail`` frames of successful episodes are positives, every other frame a
 negative; batches are class-balanced. Writes ``<workdir>/reward_model`` and a held-out report.
@@ -27,14 +27,14 @@ from sword_jax.rl.reward_model import as_reward_model, build_detector, make_dete
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
+    parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
     parser.add_argument("--holdout", type=float, default=0.2, help="fraction of episodes held out")
     args = parser.parse_args(rest)
     rl = cfg.rl
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.load_episodes(args.data)
+    episodes = rl_data.load_episodes(args.demos)
     order = rng.permutation(episodes.num_episodes)
     n_hold = int(round(args.holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
