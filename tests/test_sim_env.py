@@ -186,3 +186,20 @@ def test_initial_layouts_never_overlap():
                 for centre, half in rects:
                     outside = np.maximum(np.abs(xy[i] - np.asarray(centre)) - np.asarray(half), 0)
                     assert np.hypot(*outside) > radius[i], (task_id, scene.OBJECTS[i])
+
+
+@pytest.mark.slow  # ~30 s here: the JAX renderer runs op by op on C-engine data
+def test_camera_renderer_plugs_images_into_observations():
+    pytest.importorskip("sim.render")
+    from sim.env import camera_renderer
+
+    base = CpuEnv(SimConfig(), 0)
+    renderer = camera_renderer(base.mj_model, resolution=16, wrist_camera=True, depth_and_seg=True)
+    env = CpuEnv(SimConfig(), 0, renderer=renderer)
+    state = env.reset_to(env.init_states[0])
+    rgb = np.asarray(state.obs["agentview_rgb"])
+    assert rgb.shape == (16, 16, 3) and rgb.dtype == np.uint8 and rgb.std() > 3
+    assert np.asarray(state.obs["eye_in_hand_rgb"]).shape == (16, 16, 3)
+    assert np.asarray(state.obs["agentview_depth"]).shape == (16, 16)
+    assert len(np.unique(np.asarray(state.obs["agentview_seg"]))) >= 2
+    np.testing.assert_array_equal(state.obs["proprio"], base.reset_to(base.init_states[0]).obs["proprio"])
