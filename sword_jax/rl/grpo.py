@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import chex
 import jax
 import jax.numpy as jnp
 import optax
@@ -218,4 +219,5 @@ def make_train_step(
         state, metrics = grpo_update(graphdef, cfg, state, rollout)
         return state, dict(metrics, **rollout_metrics(rollout))
 
-    return jax.jit(step, donate_argnums=(0,) if donate else ())
+    # one trace per step function: a retrace (changed shapes / static config) is a bug in the caller
+    return jax.jit(chex.assert_max_traces(step, n=1), donate_argnums=(0,) if donate else ())
