@@ -76,6 +76,11 @@ def test_rollout_with_real_world_model_is_finite_and_action_dependent(keys):
     cfg = configs.get("sword:tiny")
     model_cfg = cfg.model.__class__(**{**cfg.model.__dict__, "num_layers": 1})
     graphdef, state = nnx.split(WorldModel(model_cfg, rngs=nnx.Rngs(0)))
+    # zero-initialised output/action layers would hide the inputs; perturb every weight a little
+    leaves, treedef = jax.tree.flatten(state)
+    noise_keys = jax.random.split(keys[5], len(leaves))
+    state = jax.tree.unflatten(treedef, [x + 0.05 * jax.random.normal(k, x.shape, x.dtype) if jnp.issubdtype(x.dtype, jnp.floating)
+                                         else x for x, k in zip(leaves, noise_keys)])
     first = jax.random.normal(keys[0], (1, 2, 2, 48))
     context = jax.random.normal(keys[1], (1, 2, 2, 48))
     actions = jax.random.uniform(keys[2], (1, 1 + 4 + 16, 7), minval=-1.0, maxval=1.0)
