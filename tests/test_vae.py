@@ -180,3 +180,26 @@ def test_params_carry_logical_axes(tiny_vae):
     kernel = state["encoder"]["conv1"]["kernel"]
     assert kernel.get_metadata()["out_sharding"] == ("kernel", "kernel", "kernel", "conv_in", "conv_out")
     assert api.param_count(vae.tiny_config()) > 0
+
+
+@pytest.mark.slow
+def test_decode_chunk_inside_scan(tiny_vae):
+    """Rollout-style streaming: first latent, then 2-latent chunks through lax.scan in one jit."""
+    graphdef, state = tiny_vae
+    latents = jax.random.normal(jax.random.key(1), (1, 5, 2, 2, 48), jnp.float32)
+    whole = vae.decode(graphdef, state, latents)
+
+    @jax.jit
+    def rollout(state, latents):
+        cache = vae.init_decode_cache(graphdef, state, 1, 2, 2)
+        first, cache = vae.decode_chunk(graphdef, state, latents[:, :1], cache)
+        chunks = latents[:, 1:].reshape(1, 2, 2, 2, 2, 48).transpose(1, 0, 2, 3, 4, 5)  # (N, B, 2, h, w, z)
+
+        def body(cache, chunk):
+            frames, cache = vae.decode_chunk(graphdef, state, chunk, cache)
+            return cache, frames
+
+        _, frames = jax.lax.scan(body, cache, chunks)  # (N, B, 8, H, W, 3)
+        return jnp.concatenate([first, frames.transpose(1, 0, 2, 3, 4, 5).reshape(1, 16, 32, 32, 3)], axis=1)
+
+    np.testing.assert_allclose(rollout(state, latents), whole, atol=2e-5)
