@@ -7,7 +7,8 @@ Functional API (``graphdef, state = nnx.split(vae)``; channels-last; all jittabl
   ``init_encode_cache / encode_chunk``: streaming encode, first chunk ``1+4m`` frames, then
       chunks of ``4m``; ``init_decode_cache / decode_chunk``: streaming decode, first chunk
       ``1+m`` latents, then any ``m >= 1``. ``(out, cache) = *_chunk(graphdef, state, x, cache)``;
-      the outputs concatenated equal the whole-sequence call. ``StreamCache`` is a pytree.
+      the outputs concatenated equal the whole-sequence call. ``StreamCache`` is a pytree
+      (``started`` static), so later chunks can be decoded inside ``lax.scan``.
   ``encode_moments`` / ``decode_raw``: raw posterior and raw-latent decode (training).
   ``compute_dtype='bfloat16'`` runs convs/attention in bf16 (params, norms, softmax, outputs float32).
   Shapes are validated at trace time; NaN/range checks run on the host for concrete inputs
@@ -17,6 +18,8 @@ Construction: ``create_vae(cfg, key=...)``, ``abstract_vae(cfg)``, ``param_count
 ``tiny_config()``. Official checkpoints: :mod:`sword_jax.convert.wan22_vae`. Training:
 :mod:`sword_jax.vae.train`.
 """
+
+import dataclasses
 
 from sword_jax.vae.api import (
     StreamCache,
@@ -41,8 +44,6 @@ from sword_jax.vae.model import LatentStat, WanVAE
 
 def tiny_config(**overrides) -> VAEConfig:
     """A tiny VAE for tests (dim 8, dec_dim 8, dim_mult (1, 2, 2, 2), 1 res block, z 48): fast to compile."""
-    import dataclasses
-
     return dataclasses.replace(
         VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
         **overrides,
