@@ -10,7 +10,6 @@ naming the key, as is any shape mismatch. ``run_reference_cases`` runs the refer
 from __future__ import annotations
 
 import glob
-import json
 import os
 from typing import Any
 
@@ -264,8 +263,3 @@ def _streaming_results(name, ref, graphdef, state, video, latents_ref) -> list[C
         CaseResult.compare(name, "decoded[streamed 1 latent/chunk]", _to_torch_layout(decoded_streamed), ref["decoded"]),
     ]
 
-
-def describe(ref_dir: str) -> str:
-    """One line on the VAE config found in ``ref_dir`` (for the CLI)."""
-    _, metadata = read_safetensors(_find_weights(ref_dir))
-    return json.dumps(read_config(metadata, ref_dir))
