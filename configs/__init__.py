@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Sequence
 
@@ -39,7 +40,9 @@ def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentCo
     name = default
     rest: list[str] = []
     overrides: list[str] = []
-    sections = {f for f in ExperimentConfig.__dataclass_fields__}
+    fields = ExperimentConfig.__dataclass_fields__
+    scalars = {name for name, f in fields.items() if not dataclasses.is_dataclass(f.default)}
+    sections = set(fields)
     index = 0
     while index < len(argv):
         arg = argv[index]
@@ -52,7 +55,8 @@ def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentCo
             index += 1
             continue
         key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
-        if key.split(".")[0] in sections:
+        # "--model.dim=8" and "--seed 3" are config overrides; a bare "--model X" is an entry point's own flag.
+        if ("." in key and key.split(".")[0] in sections) or key in scalars:
             if "=" in arg or index + 1 >= len(argv):
                 overrides.append(arg)
             else:

@@ -34,10 +34,10 @@ def small() -> ExperimentConfig:
         workdir="runs/sword-small",
         model=DiTConfig(dim=512, ffn_dim=2048, freq_dim=256, num_heads=8, num_layers=8, text_dim=64, text_len=16),
         vae=VAEConfig(dim=32, dec_dim=48, train_steps=2000, batch_size=8),
-        data=DataConfig(num_episodes=200, episode_frames=65, image_size=128, batch_size=32),
+        data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32),
         trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
         sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
-        eval=EvalConfig(horizon_frames=65, num_episodes=20),
+        eval=EvalConfig(horizon_frames=69, num_episodes=20, allow_random_weights=True),
     )
 
 
@@ -52,7 +52,7 @@ def tiny() -> ExperimentConfig:
         data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
         sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120),
-        eval=EvalConfig(horizon_frames=33, num_episodes=2),
+        eval=EvalConfig(horizon_frames=33, num_episodes=2, allow_random_weights=True),
     )
 
 

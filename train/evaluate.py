@@ -123,9 +123,11 @@ def _world_model_state(cfg: ExperimentConfig, workdir: str | None):
     from sword_jax.world_model import checkpoint, train_state
 
     mesh = shd.make_mesh(cfg.mesh)
-    graphdef, state, shardings = train_state.create_train_state(
-        lambda: WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), cfg.trainer, cfg.cache, None, mesh)
     ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"))
+    # A DLB run's state holds the latent cache: size it from the checkpoint itself.
+    cache_shape = ckpt.array_shape("cache.latents") if cfg.cache.enabled else None
+    graphdef, state, shardings = train_state.create_train_state(
+        lambda: WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), cfg.trainer, cfg.cache, cache_shape, mesh)
     state, _ = ckpt.restore(checkpoint.abstract_like(state, shardings))
     ckpt.close()
     return graphdef, (state.ema_params if state.ema_params is not None else state.params, state.buffers)

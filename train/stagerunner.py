@@ -31,6 +31,9 @@ class Context:
     cfg: Any
     workdir: str
     results: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    cfg_name: str = "sword:tiny"  # experiment:variant the config came from
+    overrides: list[str] = dataclasses.field(default_factory=list)  # dotted overrides, forwarded to entry points
+    is_main: bool = True  # process 0
 
     def path(self, *parts: str) -> str:
         full = os.path.join(self.workdir, *parts)

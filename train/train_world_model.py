@@ -85,7 +85,8 @@ RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", 
 
 def _comparable(cfg_dict: dict) -> dict:
     trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
-    return {**cfg_dict, "trainer": trainer, "workdir": None}
+    # The mesh may change between runs: checkpoints restore onto any device count.
+    return {**cfg_dict, "trainer": trainer, "workdir": None, "mesh": None}
 
 
 def _check_config_matches(workdir: str, cfg_dict: dict) -> None:

@@ -63,6 +63,24 @@ class Checkpointer:
                              f"(different config?): {err}") from err
         return restored["state"], restored["meta"]
 
+    def array_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
+        """Shape of the saved state array ``name`` (dotted path, e.g. ``cache.latents``), from metadata only."""
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"checkpoint: nothing saved in {self.directory}")
+        handlers = {"state": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+        reader = ocp.CheckpointManager(self.directory, item_handlers=handlers)
+        try:
+            node = reader.item_metadata(step)["state"]
+        finally:
+            reader.close()
+        node = getattr(node, "tree", node)  # orbax's tree-metadata wrapper -> nested dict
+        for part in name.split("."):
+            if part not in node:
+                raise KeyError(f"checkpoint: {name!r} is not in the state saved at step {step} in {self.directory}")
+            node = node[part]
+        return tuple(node.shape)
+
     def close(self) -> None:
         self.manager.wait_until_finished()
         self.manager.close()

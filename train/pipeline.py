@@ -1,0 +1,149 @@
+"""The main job: the whole Sword method on one config, each stage resumable.
+
+    python -m train.pipeline                                   # tiny default config, CPU, minutes
+    python -m train.pipeline --config sword:small --workdir runs/small
+    python -m train.pipeline --config cache_ablation:wovr --workdir runs/wovr --vae.checkpoint=Wan2.2_VAE.safetensors
+
+Stages (each writes ``<workdir>/stages/<name>.json`` and is skipped when already done):
+expert data (train + held-out) -> VAE (trained, or official Wan 2.2 weights) -> latents (with
+styled copies) -> world model (DLB or the configured variant) -> long-horizon evaluation on
+LIBERO-Original / LIBERO-Mixed -> reward model -> supervised policy -> GRPO inside the world model
+-> policy evaluation in the simulator -> report. Writes ``report.md`` and ``results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+import configs
+from train import stagerunner
+from train.stagerunner import Context, Stage
+
+
+def _sub_argv(ctx: Context, *extra: str) -> list[str]:
+    """argv that reproduces the pipeline's config for a sub entry point (plus ``extra``)."""
+    return ["--config", ctx.cfg_name, *ctx.overrides, *extra]
+
+
+def stage_data(ctx: Context) -> dict:
+    from train import gen_data
+
+    cfg = ctx.cfg
+    results = {}
+    for split, seed, per_task in (("train", cfg.seed, cfg.sim.episodes_per_task),
+                                  ("heldout", cfg.seed + 25, max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks))))):
+        path = ctx.path("data", f"{split}.hdf5")
+        gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
+                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise, seed=seed,
+                                     max_steps=cfg.sim.max_steps, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
+                                     renderer="jax")  # one look on every backend (and no GL context per process)
+        gen_data.generate(gen, progress=ctx.is_main)
+        results[split] = {"path": path, "episodes": per_task * len(cfg.sim.tasks)}
+    return results
+
+
+def stage_vae(ctx: Context) -> dict:
+    from train import train_vae
+
+    workdir = ctx.path("vae_run", "x")[:-2]
+    summary = train_vae.main(_sub_argv(ctx, "--workdir", workdir, "--episodes", ctx.results["data"]["train"]["path"]))
+    summary["path"] = os.path.join(workdir, "vae")
+    return summary
+
+
+def stage_latents(ctx: Context) -> dict:
+    from train import pipeline_data
+
+    return pipeline_data.encode_training_latents(ctx)
+
+
+def stage_world_model(ctx: Context) -> dict:
+    from train import train_world_model
+
+    workdir = ctx.path("world_model", "x")[:-2]
+    latents = ctx.results["latents"]
+    summary = train_world_model.main(_sub_argv(ctx, "--workdir", workdir, f"--data.path={latents['path']}"))
+    return {"workdir": workdir, "final_step": summary["step"], "final_metrics": summary["metrics"],
+            "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}
+
+
+def stage_evaluate(ctx: Context) -> dict:
+    from train import evaluate, pipeline_data
+
+    splits = pipeline_data.write_eval_splits(ctx)
+    out = ctx.path("eval", "x")[:-2]
+    argv = _sub_argv(ctx, "--out", out, "--model", f"{ctx.cfg.name}={ctx.results['world_model']['workdir']}",
+                     "--vae-checkpoint", ctx.results["vae"]["path"])
+    for split, path in splits.items():
+        argv += ["--episodes", f"{split}={path}"]
+    report = evaluate.main(argv)
+    return {"report": report, "splits": splits, "metrics": pipeline_data.read_eval_results(out)}
+
+
+def stage_policy(ctx: Context) -> dict:
+    from train import pipeline_policy
+
+    return pipeline_policy.run(ctx)
+
+
+def stage_report(ctx: Context) -> dict:
+    from train import pipeline_report
+
+    return pipeline_report.write(ctx)
+
+
+STAGES = [
+    Stage("data", stage_data, "expert demonstrations (train + held-out) in LIBERO's HDF5 layout"),
+    Stage("vae", stage_vae, "the video VAE (trained from scratch, or official Wan 2.2 weights)"),
+    Stage("latents", stage_latents, "encode training episodes and their styled copies to latents"),
+    Stage("world_model", stage_world_model, "train the world model (DLB or the configured variant)"),
+    Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed"),
+    Stage("policy", stage_policy, "reward model, supervised policy, GRPO in the world model, simulator evaluation"),
+    Stage("report", stage_report, "report.md and results.json"),
+]
+
+
+def _first_logged(path: str, key: str):
+    import json
+
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        for line in f:
+            row = json.loads(line)
+            if key in row:
+                return row[key]
+    return None
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--restart", action="store_true", help="discard finished stages of this work dir")
+    parser.add_argument("--only", default="", help="comma-separated stages that may run now (others must be done)")
+    cfg, rest = configs.from_argv(argv)
+    args = parser.parse_args(rest)
+    name = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"),
+                next((a.split("=", 1)[1] for a in argv if a.startswith("--config=")), configs.DEFAULT))
+    overrides = [a for a in argv if a.startswith("--") and a.split("=", 1)[0][2:].split(".")[0]
+                 in cfg.__dataclass_fields__ and "=" in a and not a.startswith("--workdir")]
+    workdir = cfg.workdir
+    if args.restart and os.path.isdir(os.path.join(workdir, "stages")):
+        import shutil
+
+        shutil.rmtree(workdir)
+    stagerunner.check_workdir_config(cfg, workdir)
+    ctx = Context(cfg=cfg, workdir=workdir, cfg_name=name, overrides=overrides)
+    start = time.perf_counter()
+    results = stagerunner.run_stages(STAGES, ctx, only=set(args.only.split(",")) if args.only else None)
+    print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
+          f"report: {os.path.join(workdir, 'report.md')}")
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""Pipeline glue between the simulator's episodes, the VAE, style augmentation and evaluation.
+
+Episodes are cut (or, when short, padded by holding the last frame with zero arm motion) to
+``data.episode_frames`` frames. Style augmentation is applied as pre-encoded styled copies: each
+training episode is encoded raw plus ``augment.styled_copies`` times in training styles (see
+:mod:`sword_jax.augment.pipeline` for why copies rather than per-step augmentation). Held-out
+episodes make LIBERO-Original (raw) and LIBERO-Mixed (half in held-out styles).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import numpy as np
+
+from train.stagerunner import Context
+
+
+def fixed_length(episodes, num_frames: int) -> list:
+    """Episodes with exactly ``num_frames`` steps (longer ones cut, shorter ones hold their last state)."""
+    import dataclasses
+
+    out = []
+    for episode in episodes:
+        steps = episode.num_samples
+        if steps >= num_frames:
+            cut = slice(0, num_frames)
+            out.append(dataclasses.replace(episode, **{
+                f.name: getattr(episode, f.name)[cut] for f in dataclasses.fields(episode)
+                if isinstance(getattr(episode, f.name), np.ndarray) and f.name != "init_state"}))
+            continue
+        pad = num_frames - steps
+        fields = {}
+        for f in dataclasses.fields(episode):
+            value = getattr(episode, f.name)
+            if not isinstance(value, np.ndarray) or f.name == "init_state":
+                continue
+            tail = np.repeat(value[-1:], pad, axis=0)
+            if f.name == "actions":
+                tail = np.zeros_like(tail)
+                tail[:, -1] = value[-1, -1]  # keep the gripper command, stop the arm
+            fields[f.name] = np.concatenate([value, tail])
+        out.append(dataclasses.replace(episode, **fields))
+    return out
+
+
+def load_episodes(path: str, num_frames: int):
+    """``(sim episodes, augment.Episodes)`` of a LIBERO-layout file, fixed to ``num_frames``."""
+    from sim.dataset import read_dataset
+    from sword_jax.augment.episodes import episodes_from_sim
+
+    _, episodes = read_dataset(path)
+    episodes = fixed_length(episodes, num_frames)
+    return episodes, episodes_from_sim(episodes, num_frames=num_frames)
+
+
+def _vae(ctx: Context):
+    from train import train_vae
+
+    return train_vae.load_vae(ctx.cfg, ctx.results["vae"]["path"])
+
+
+def encode_training_latents(ctx: Context) -> dict:
+    """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model."""
+    from sword_jax.augment.pipeline import make_styled_copies
+    from sword_jax.vae import api as vae_api
+
+    cfg = ctx.cfg
+    _, episodes = load_episodes(ctx.results["data"]["train"]["path"], cfg.data.episode_frames)
+    graphdef, state = _vae(ctx)
+    encode = jax.jit(lambda video: vae_api.encode(graphdef, state, video))
+    videos = [episodes.frames]
+    copies = 0
+    if cfg.augment.enabled and cfg.augment.styled_copies > 0:
+        styled = make_styled_copies(episodes, cfg.augment.styled_copies, jax.random.key(cfg.seed + 7),
+                                    intensity=cfg.augment.intensity)
+        videos.append(styled.flatten()[0])
+        copies = cfg.augment.styled_copies
+    frames = np.concatenate(videos)  # [E, T, H, W, 3] in [0, 1]
+    actions = np.concatenate([episodes.actions] * (1 + copies)).astype(np.float32)
+    latents = []
+    for start in range(0, frames.shape[0], max(cfg.vae.batch_size, 1)):
+        video = frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)
+        latents.append(np.asarray(encode(video)))
+    latents = np.concatenate(latents).astype(np.float32)
+    path = ctx.path("data", "latents.npz")
+    np.savez(path, latents=latents, actions=actions)
+    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num),
+            "styled_copies": copies, "latent_shape": list(latents.shape[1:])}
+
+
+def write_eval_splits(ctx: Context) -> dict[str, str]:
+    """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate``."""
+    from sword_jax.augment.eval_splits import build_eval_splits
+
+    cfg = ctx.cfg
+    _, episodes = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
+    episodes = episodes.take(np.arange(min(episodes.num, cfg.eval.num_episodes)))
+    splits = build_eval_splits(episodes, seed=cfg.seed + 11, mixed_fraction=cfg.augment.mixed_fraction,
+                               intensity=cfg.augment.intensity)
+    splits.write_manifest(ctx.path("eval_splits", "manifest.json"))
+    paths = {}
+    for name, split in (("original", splits.original), ("mixed", splits.mixed)):
+        if name not in cfg.eval.splits:
+            continue
+        paths[name] = ctx.path("eval_splits", f"{name}.npz")
+        np.savez(paths[name], frames=split.frames.astype(np.float32), actions=split.actions.astype(np.float32),
+                 episode_ids=split.episode_ids, styled=split.styled)
+    return paths
+
+
+def read_eval_results(out_dir: str) -> dict:
+    """The overall metrics per split and model from ``train.evaluate``'s ``results.json``."""
+    path = os.path.join(out_dir, "results.json")
+    if not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        results = json.load(f)
+    return {split: {model: r["overall"] for model, r in per.items()} for split, per in results.get("models", {}).items()}
