@@ -226,6 +226,7 @@ def configs_get(name):
     return configs.get(name)
 
 
+@pytest.mark.slow
 def test_sample_write_source_writes_a_few_step_sample(key):
     mesh = single_device_mesh()
     caches = []

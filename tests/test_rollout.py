@@ -71,6 +71,7 @@ def test_round_trip_option_routes_context_through_given_function(keys):
     assert not np.allclose(shifted[:, 2:], plain[:, 2:])
 
 
+@pytest.mark.slow
 def test_rollout_with_real_world_model_is_finite_and_action_dependent(keys):
     """The real DiT (1 layer): finite output, and other actions give another future."""
     cfg = configs.get("sword:tiny")

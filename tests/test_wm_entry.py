@@ -20,6 +20,7 @@ def _params_at(workdir, step):
     return ocp.StandardCheckpointer().restore(path)
 
 
+@pytest.mark.slow
 def test_train_resume_equals_uninterrupted(tmp_path, capsys):
     straight, split = str(tmp_path / "straight"), str(tmp_path / "split")
     out = train_world_model.main(ARGS + ["--workdir", straight, "--trainer.steps=4"])

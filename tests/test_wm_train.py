@@ -6,6 +6,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from flax import nnx
 
 import configs
@@ -31,6 +32,7 @@ def _eval_loss_fn(graphdef, buffers, batch, *, key):
     return jax.jit(loss)
 
 
+@pytest.mark.slow
 def test_loss_falls_on_action_dependent_latents_with_real_dit(key):
     cfg = configs.get("sword:tiny")
     model_cfg = dataclasses.replace(cfg.model, num_layers=1)
@@ -81,6 +83,7 @@ def test_ema_params_follow_the_decay(key):
     assert not np.allclose(params1["frame_mix"], ema0["frame_mix"])
 
 
+@pytest.mark.slow
 def test_teacher_forcing_step_sharded_equals_single_device(key):
     cfg = CacheConfig(enabled=False)
     out = []
@@ -92,6 +95,7 @@ def test_teacher_forcing_step_sharded_equals_single_device(key):
     chex.assert_trees_all_close(out[0], out[1], rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_mesh_with_fsdp_shards_params_and_cache(key):
     mesh = shd.make_mesh(shd.MeshConfig(data=4, fsdp=2))
     _, state, _, step, loader = build(mesh=mesh, cache_cfg=CacheConfig())
