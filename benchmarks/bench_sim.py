@@ -136,6 +136,8 @@ def main(argv: list[str] | None = None) -> None:
         note = "physics + agentview render" if rendered else "physics only (sim/render.py missing)"
         rows.append({"figure": f"{key} (batch {args.batch}, {note})", "value": sps})
         entries[key] = common.record(key, sps, 20000, batch=args.batch, rendered=rendered)
+        print(f"{key}: {sps:.0f} env-steps/s (batch {args.batch}, {note})", flush=True)
+        common.merge_results(entries)  # keep the throughput even if the MJX expert run below is cut short
         mjx_rates = expert_success_mjx(episodes, task_ids, args.horizon)
         for task_id, rate in mjx_rates.items():
             rows.append({"figure": f"expert success task {task_id} (MJX)", "value": rate})

@@ -26,18 +26,24 @@ class _Frames:
     """Renders ``mujoco.MjData`` frames: MuJoCo's OpenGL renderer where a GL context can be
     made (fast on CPU), else the JAX ray-cast renderer of ``sim/render.py``."""
 
-    def __init__(self, model: Any, resolution: int):
+    def __init__(self, model: Any, resolution: int, renderer: str = "auto"):
         import mujoco
 
+        if renderer not in ("auto", "gl", "jax"):
+            raise ValueError(f"renderer must be auto|gl|jax, got {renderer!r}")
         self.model = model
         self.resolution = resolution
         self._jax_scene = None
-        try:
-            self._gl = mujoco.Renderer(model, resolution, resolution)
-        except Exception:  # no OpenGL here: fall back to the JAX renderer
+        self._gl = None
+        if renderer != "jax":
+            try:
+                self._gl = mujoco.Renderer(model, resolution, resolution)
+            except Exception:  # no OpenGL here: fall back to the JAX renderer
+                if renderer == "gl":
+                    raise
+        if self._gl is None:
             from sim import render as jax_render
 
-            self._gl = None
             self._jax_render = jax_render
             self._jax_scene = jax_render.build_scene(model)
 
@@ -62,7 +68,7 @@ class LiberoSpatialGymEnv(gymnasium.Env):
 
     def __init__(self, task_id: int = 0, render_mode: str | None = None, resolution: int = 128,
                  image_obs: bool = False, wrist_camera: bool = False, max_steps: int = 220,
-                 init: str = "fixed", init_seed: int = 0):
+                 init: str = "fixed", init_seed: int = 0, renderer: str = "auto"):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.config = SimConfig(backend="cpu", resolution=resolution, max_steps=max_steps, init=init,
@@ -81,7 +87,8 @@ class LiberoSpatialGymEnv(gymnasium.Env):
             if wrist_camera:
                 obs_spaces["eye_in_hand_rgb"] = image
         self.observation_space = spaces.Dict(obs_spaces)
-        self._frames = _Frames(self.env.mj_model, resolution) if (render_mode or image_obs) else None
+        # renderer: "jax" gives the look of data generated with sim/render.py (the pipeline's data).
+        self._frames = _Frames(self.env.mj_model, resolution, renderer) if (render_mode or image_obs) else None
         self._state = None
         self._steps = 0
 

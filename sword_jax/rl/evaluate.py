@@ -44,6 +44,7 @@ def evaluate_in_sim(
     resolution: int,
     max_steps: int = 220,
     env_factory: Any = None,
+    renderer: str = "jax",
 ) -> dict[str, Any]:
     """Runs the policy from each task's first ``episodes_per_task`` fixed initial states.
 
@@ -55,6 +56,8 @@ def evaluate_in_sim(
       resolution: rendered frame size of the environment.
       max_steps: environment step limit (LIBERO-Spatial: 220).
       env_factory: ``(task_id) -> gymnasium.Env`` override (default: the sim's C-backend env).
+      renderer: the env's frame renderer: "jax" (default) looks like the data ``train.gen_data`` makes
+        with the JAX renderer, so the policy sees no renderer shift; "gl" is MuJoCo's OpenGL renderer.
 
     Returns:
       ``{"per_task": {task: success rate}, "mean": float, "episodes": int}``.
@@ -63,7 +66,8 @@ def evaluate_in_sim(
         from sim.gym_env import LiberoSpatialGymEnv
 
         def env_factory(task_id):
-            return LiberoSpatialGymEnv(task_id=task_id, resolution=resolution, image_obs=True, max_steps=max_steps)
+            return LiberoSpatialGymEnv(task_id=task_id, resolution=resolution, image_obs=True, max_steps=max_steps,
+                                       renderer=renderer)
 
     act = make_act_fn(graphdef, cfg)
     envs, task_of, obs = [], [], []
