@@ -121,6 +121,8 @@ class LiberoSpatialGymEnv(gymnasium.Env):
             raise ValueError(f"action must have shape ({ctl.ACTION_DIM},), got {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError("action contains NaN or inf")
+        if np.any(np.abs(action) > 1.0 + 1e-5):
+            raise ValueError(f"action outside [-1, 1] (LIBERO's normalised actions): {action.tolist()}")
         self._state = self.env.step_inplace(self._state, np.clip(action, -1.0, 1.0))
         self._steps += 1
         success = bool(self._state.done)

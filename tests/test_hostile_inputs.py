@@ -53,10 +53,17 @@ def test_world_model_wrong_shapes(world_model):
         world_model(latents[..., :8], timesteps, actions)
 
 
-def test_world_model_nan_actions(world_model):
+def test_world_model_nan_actions_and_out_of_range_sim_actions(world_model):
     latents, timesteps, actions = _wm_inputs()
     with pytest.raises(ValueError, match="(?i)nan|finite"):
         world_model(latents, timesteps, actions.at[0, 0, 0].set(jnp.nan))
+    from sim.gym_env import LiberoSpatialGymEnv
+
+    env = LiberoSpatialGymEnv(task_id=0)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action"):
+        env.step(np.full(7, 3.0, np.float32))
+    env.close()
 
 
 def test_vae_frames_not_1_plus_4k_and_range(tiny_vae):
