@@ -7,6 +7,8 @@ import dataclasses
 from configs.base import ExperimentConfig
 from sim.config import SimConfig
 from sword_jax.dit.config import DiTConfig
+from sword_jax.dlb.config import CacheConfig
+from sword_jax.rl.config import RLConfig
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.vae.config import VAEConfig
 from sword_jax.world_model.config import DataConfig, TrainerConfig
@@ -24,6 +26,7 @@ def paper() -> ExperimentConfig:
                               log_every=50, checkpoint_every=1000),
         sim=SimConfig(backend="mjx", resolution=256, episodes_per_task=150),
         eval=EvalConfig(horizon_frames=129, num_episodes=50),
+        cache=CacheConfig(schedule_steps=20000),
     )
 
 
@@ -38,6 +41,8 @@ def small() -> ExperimentConfig:
         trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
         sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
         eval=EvalConfig(horizon_frames=69, num_episodes=20, allow_random_weights=True),
+        rl=RLConfig(grpo_steps=100, eval_every=20, eval_episodes_per_task=10, sft_steps=2000, reward_model_steps=1000),
+        cache=CacheConfig(schedule_steps=5000),
     )
 
 
@@ -53,6 +58,11 @@ def tiny() -> ExperimentConfig:
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
         sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120),
         eval=EvalConfig(horizon_frames=33, num_episodes=2, allow_random_weights=True),
+        # The read schedule completes within the tiny run, so the cache is really read.
+        cache=CacheConfig(schedule_steps=20, warmup_steps=2),
+        rl=RLConfig(group_size=4, grpo_steps=4, eval_every=2, eval_episodes_per_task=1, rollout_batch=2,
+                    max_chunks=2, sft_steps=60, sft_batch_size=8, reward_model_steps=60, reward_model_batch_size=16,
+                    policy_width=32, policy_layers=1, image_size=32, reward_width=8),
     )
 
 

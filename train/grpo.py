@@ -109,6 +109,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
         sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, args)
 
     state = grpo.init_state(params, rl)
+    if args.simulator == "world_model":
+        # The world model lives on the config's mesh; placing the policy state there too keeps the
+        # step's input and output shardings equal, so it compiles once.
+        from sword_jax import sharding as shd
+
+        state = jax.device_put(state, shd.replicated(shd.make_mesh(cfg.mesh)))
     ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
     first_step = 0
     if ckpt.latest_step() is not None:
