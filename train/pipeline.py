@@ -42,7 +42,11 @@ def stage_data(ctx: Context) -> dict:
                                      max_steps=cfg.sim.max_steps, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
                                      renderer="jax")  # one look on every backend (and no GL context per process)
         gen_data.generate(gen, progress=ctx.is_main)
-        results[split] = {"path": path, "episodes": per_task * len(cfg.sim.tasks)}
+        from sim.dataset import read_dataset
+
+        _, episodes = read_dataset(path)
+        success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
+        results[split] = {"path": path, "episodes": len(episodes), "success_rate": success}
     return results
 
 
