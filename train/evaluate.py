@@ -136,16 +136,11 @@ def _world_model_state(cfg: ExperimentConfig, workdir: str | None):
 def _vae_state(cfg: ExperimentConfig, path: str):
     from sword_jax.vae import api as vae_api
 
-    vae = vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed))
-    graphdef, state = nnx.split(vae)
-    if path:
-        from sword_jax.world_model import checkpoint
+    if path or cfg.vae.checkpoint:  # a trained VAE (train.train_vae) or official weights
+        from train.train_vae import load_vae
 
-        ckpt = checkpoint.Checkpointer(path)
-        restored, _ = ckpt.restore(checkpoint.abstract_like(nnx.to_pure_dict(state)))
-        ckpt.close()
-        nnx.replace_by_pure_dict(state, restored)
-    return graphdef, state
+        return load_vae(cfg, path)
+    return nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))
 
 
 def main(argv: Sequence[str] | None = None) -> str:
