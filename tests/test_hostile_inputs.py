@@ -142,6 +142,8 @@ def test_unknown_config_key_and_impossible_config():
         configs.from_argv(["--cache.schedul=linear"])
     with pytest.raises(ValueError, match="image_size"):
         configs.from_argv(["--data.image_size=40"])
+    with pytest.raises(ValueError, match="flow.shift"):
+        configs.from_argv(["--flow.shift=nan"])
 
 
 def test_train_entry_point_rejects_mismatched_latents(tmp_path):

@@ -18,7 +18,7 @@ class FlowConfig:
     def validate(self) -> None:
         if self.prediction not in ("velocity", "epsilon"):
             raise ValueError(f"flow.prediction must be velocity|epsilon, got {self.prediction!r}")
-        if self.shift <= 0 or self.num_train_timesteps <= 0:
+        if not self.shift > 0 or self.shift == float("inf") or self.num_train_timesteps <= 0:  # also rejects NaN
             raise ValueError(f"flow.shift and flow.num_train_timesteps must be positive, got {self.shift}/{self.num_train_timesteps}")
         if self.context_noise < 0:
             raise ValueError(f"flow.context_noise must be >= 0, got {self.context_noise}")
