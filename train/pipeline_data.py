@@ -64,27 +64,26 @@ def _vae(ctx: Context):
 
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model."""
-    from sword_jax.augment.pipeline import make_styled_copies
+    from sword_jax.augment.pipeline import encode_styled_copies
     from sword_jax.vae import api as vae_api
 
     cfg = ctx.cfg
     _, episodes = load_episodes(ctx.results["data"]["train"]["path"], cfg.data.episode_frames)
     graphdef, state = _vae(ctx)
     encode = jax.jit(lambda video: vae_api.encode(graphdef, state, video))
-    videos = [episodes.frames]
+    raw = [np.asarray(encode(episodes.frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)))
+           for start in range(0, episodes.num, max(cfg.vae.batch_size, 1))]
+    latents, actions = [np.concatenate(raw)], [episodes.actions]
     copies = 0
     if cfg.augment.enabled and cfg.augment.styled_copies > 0:
-        styled = make_styled_copies(episodes, cfg.augment.styled_copies, jax.random.key(cfg.seed + 7),
-                                    intensity=cfg.augment.intensity)
-        videos.append(styled.flatten()[0])
         copies = cfg.augment.styled_copies
-    frames = np.concatenate(videos)  # [E, T, H, W, 3] in [0, 1]
-    actions = np.concatenate([episodes.actions] * (1 + copies)).astype(np.float32)
-    latents = []
-    for start in range(0, frames.shape[0], max(cfg.vae.batch_size, 1)):
-        video = frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)
-        latents.append(np.asarray(encode(video)))
+        styled = encode_styled_copies(episodes, copies, jax.random.key(cfg.seed + 7), encode,
+                                      intensity=cfg.augment.intensity)
+        styled_latents, styled_actions, _ = styled.flatten()
+        latents.append(styled_latents)
+        actions.append(styled_actions)
     latents = np.concatenate(latents).astype(np.float32)
+    actions = np.concatenate(actions).astype(np.float32)
     path = ctx.path("data", "latents.npz")
     np.savez(path, latents=latents, actions=actions)
     return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num),

@@ -146,6 +146,26 @@ def _style_episode(frames, depth, seg, episode_key, intensity, *, n_copies: int,
     return styled, styles
 
 
+def _styled_copies(episodes, n_copies: int, key: jax.Array, keep: Callable, *, name: str, intensity: float,
+                   classes: SegClasses, fov_deg: float) -> StyledCopies:
+    """Styles each episode ``n_copies`` times, checks the styles are training styles and keeps
+    ``keep(styled [C, T, H, W, 3] in [0, 1])`` per episode (only one episode's pixels alive at a time)."""
+    if n_copies < 1:
+        raise ValueError(f"{name}: n_copies must be >= 1, got {n_copies}")
+    eps = as_episodes(episodes)
+    keys = _copy_keys(key, eps.episode_ids, n_copies)
+    style_one = functools.partial(_style_episode, intensity=jnp.float32(intensity), n_copies=n_copies,
+                                  classes=classes, fov_deg=float(fov_deg))
+    kept, styles = [], []
+    for i in range(eps.num):
+        styled, st = style_one(eps.frames[i], eps.depth[i], eps.seg[i], keys[i])
+        assert_training_style(st)
+        kept.append(np.asarray(keep(styled)))
+        styles.append(st)
+    styles = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *styles)
+    return StyledCopies(np.stack(kept), styles, eps.episode_ids.copy(), eps.actions.copy())
+
+
 def make_styled_copies(
     episodes: Episodes | dict,
     n_copies: int,
@@ -160,20 +180,8 @@ def make_styled_copies(
     Deterministic for ``key`` and each episode's id. The styles are checked with
     :func:`assert_training_style` before anything is returned.
     """
-    if n_copies < 1:
-        raise ValueError(f"make_styled_copies: n_copies must be >= 1, got {n_copies}")
-    eps = as_episodes(episodes)
-    keys = _copy_keys(key, eps.episode_ids, n_copies)
-    style_one = functools.partial(_style_episode, intensity=jnp.float32(intensity), n_copies=n_copies,
-                                  classes=classes, fov_deg=float(fov_deg))
-    frames, styles = [], []
-    for i in range(eps.num):
-        styled, st = style_one(eps.frames[i], eps.depth[i], eps.seg[i], keys[i])
-        frames.append(np.asarray(styled))
-        styles.append(st)
-    styles = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *styles)
-    assert_training_style(styles)
-    return StyledCopies(np.stack(frames), styles, eps.episode_ids.copy(), eps.actions.copy())
+    return _styled_copies(episodes, n_copies, key, lambda styled: styled, name="make_styled_copies",
+                          intensity=intensity, classes=classes, fov_deg=fov_deg)
 
 
 def encode_styled_copies(
@@ -193,17 +201,5 @@ def encode_styled_copies(
     returned ``frames`` field holds the latents ``[N, C, ...]``. Pixels of at most one episode's
     copies are alive at a time.
     """
-    if n_copies < 1:
-        raise ValueError(f"encode_styled_copies: n_copies must be >= 1, got {n_copies}")
-    eps = as_episodes(episodes)
-    keys = _copy_keys(key, eps.episode_ids, n_copies)
-    style_one = functools.partial(_style_episode, intensity=jnp.float32(intensity), n_copies=n_copies,
-                                  classes=classes, fov_deg=float(fov_deg))
-    latents, styles = [], []
-    for i in range(eps.num):
-        styled, st = style_one(eps.frames[i], eps.depth[i], eps.seg[i], keys[i])
-        assert_training_style(st)
-        latents.append(np.asarray(encode_fn(to_signed_range(styled))))
-        styles.append(st)
-    styles = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *styles)
-    return StyledCopies(np.stack(latents), styles, eps.episode_ids.copy(), eps.actions.copy())
+    return _styled_copies(episodes, n_copies, key, lambda styled: encode_fn(to_signed_range(styled)),
+                          name="encode_styled_copies", intensity=intensity, classes=classes, fov_deg=fov_deg)
