@@ -45,31 +45,53 @@ def expert_success_cpu(episodes: int, task_ids: list[int], noise: float) -> tupl
     return rates, steps / max(seconds, 1e-9)
 
 
-def mjx_throughput(batch: int, resolution: int, steps: int) -> tuple[float, bool]:
-    """Vmapped, jitted MJX env-steps/s with agentview rendering (if ``sim/render.py`` exists)."""
+def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = True) -> dict[str, float]:
+    """Vmapped, jitted MJX env-steps/s, with the agentview camera rendered (RGB + depth + segmentation).
+
+    Returns ``env_steps_per_s`` (physics + render in one jit when ``render``) and, to show where the
+    time goes, ``physics_steps_per_s`` (the same env without a renderer) and ``render_frames_per_s``
+    (the renderer alone on the batch's states), all at this batch.
+    """
     import jax
     import jax.numpy as jnp
 
     import sim
     from sim import wrappers
+    from sim.env import camera_renderer
 
-    has_renderer = importlib.util.find_spec("sim.render") is not None
+    def steps_per_s(renderer) -> tuple[float, object]:
+        env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer), 220)
+        keys = jax.random.split(jax.random.key(0), batch)
+        state = jax.jit(env.reset)(keys)
+        step = jax.jit(env.step)
+        actions = jax.random.uniform(jax.random.key(1), (batch, 7), jnp.float32, -0.3, 0.3)
+        state = common.block(step(state, actions))
+        start = time.perf_counter()
+        for _ in range(steps):
+            state = step(state, actions)
+        common.block(state.obs)
+        return batch * steps / (time.perf_counter() - start), state
+
+    out = {}
     renderer = None
-    if has_renderer:
-        from sim.env import camera_renderer
-
-        renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution)
-    env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer), 220)
-    keys = jax.random.split(jax.random.key(0), batch)
-    state = jax.jit(env.reset)(keys)
-    step = jax.jit(env.step)
-    actions = jax.random.uniform(jax.random.key(1), (batch, 7), jnp.float32, -0.3, 0.3)
-    state = common.block(step(state, actions))
-    start = time.perf_counter()
-    for _ in range(steps):
-        state = step(state, actions)
-    common.block(state.obs)
-    return batch * steps / (time.perf_counter() - start), has_renderer
+    if render:
+        renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution, depth_and_seg=True)
+        out["env_steps_per_s"], _ = steps_per_s(renderer)
+    out["physics_steps_per_s"], state = steps_per_s(None)
+    if render:
+        draw = jax.jit(jax.vmap(renderer))
+        frames = common.block(draw(state.data))
+        for key in ("agentview_rgb", "agentview_depth", "agentview_seg"):
+            if key not in frames:
+                raise RuntimeError(f"renderer output lacks {key}")
+        start = time.perf_counter()
+        for _ in range(steps):
+            frames = draw(state.data)
+        common.block(frames)
+        out["render_frames_per_s"] = batch * steps / (time.perf_counter() - start)
+    else:
+        out["env_steps_per_s"] = out["physics_steps_per_s"]
+    return out
 
 
 def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int) -> dict[int, float]:
@@ -114,6 +136,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--no-expert", action="store_true", help="skip the MJX expert rollouts (throughput only)")
+    parser.add_argument("--batch-sweep", default="", help="more batch sizes for the MJX throughput, e.g. 4096,8192")
     parser.add_argument("--noise", type=float, default=0.0)
     parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
     args = parser.parse_args(argv)
@@ -131,13 +155,25 @@ def main(argv: list[str] | None = None) -> None:
         "sim_expert_success_min", min(rates.values()), 0.9, backend="cpu", episodes_per_task=episodes,
         per_task={str(k): v for k, v in rates.items()}, noise=args.noise)
     if not args.tiny:
-        sps, rendered = mjx_throughput(args.batch, args.resolution, args.steps)
         key = f"mjx_env_steps_per_s_{args.resolution}px"
-        note = "physics + agentview render" if rendered else "physics only (sim/render.py missing)"
-        rows.append({"figure": f"{key} (batch {args.batch}, {note})", "value": sps})
-        entries[key] = common.record(key, sps, 20000, batch=args.batch, rendered=rendered)
-        print(f"{key}: {sps:.0f} env-steps/s (batch {args.batch}, {note})", flush=True)
+        sweep = []
+        for batch in sorted({args.batch, *(int(b) for b in args.batch_sweep.split(",") if b)}):
+            try:
+                figures = mjx_throughput(batch, args.resolution, args.steps)
+            except Exception as err:  # noqa: BLE001 - out of memory at a large batch: report and go on
+                print(f"batch {batch}: failed ({type(err).__name__}: {str(err)[:160]})", flush=True)
+                continue
+            sweep.append({"batch": batch, **figures})
+            for name, value in figures.items():
+                rows.append({"figure": f"{name} (batch {batch}, {args.resolution}px RGB + depth + seg)", "value": value})
+            print(f"batch {batch}: " + ", ".join(f"{k} {v:.0f}" for k, v in figures.items()), flush=True)
+        if not sweep:
+            raise SystemExit("bench_sim: every MJX batch size failed")
+        best = max(sweep, key=lambda r: r["env_steps_per_s"])
+        entries[key] = common.record(key, best["env_steps_per_s"], 20000, batch=best["batch"], rendered=True,
+                                     outputs="agentview RGB + depth + segmentation", sweep=sweep)
         common.merge_results(entries)  # keep the throughput even if the MJX expert run below is cut short
+    if not args.tiny and not args.no_expert:
         mjx_rates = expert_success_mjx(episodes, task_ids, args.horizon)
         for task_id, rate in mjx_rates.items():
             rows.append({"figure": f"expert success task {task_id} (MJX)", "value": rate})

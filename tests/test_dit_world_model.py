@@ -152,7 +152,7 @@ def test_unscanned_forward_matches_scanned():
 @pytest.mark.slow
 def test_scan_and_remat_variants_match_in_value_and_gradient():
     _assert_variants_match_plain([dict(scan_layers=False), dict(remat="full"), dict(remat="dots"),
-                                  dict(remat="dots", scan_layers=False)])
+                                  dict(remat="dots", scan_layers=False), dict(remat="dots_acts")])
 
 
 def test_sharded_matches_single_device():

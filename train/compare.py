@@ -2,6 +2,7 @@
 
     python -m train.compare --size small --seeds 0,1,2 --out runs/compare       # one GPU, hours
     python -m train.compare --size tiny --seeds 0 --out /tmp/compare              # CPU smoke run
+    python -m train.compare --size small --trainer.steps=2000                     # overrides apply to every run
 
 1. DLB (linear, direct, all) vs teacher forcing: long-horizon LPIPS / FID / FVD / FloLPIPS on
    LIBERO-Original and LIBERO-Mixed.
@@ -11,6 +12,13 @@
 
 Every run is ``train.pipeline`` in ``<out>/<run>/seed<k>`` (resumable, so an interrupted
 comparison continues); the table goes to ``<out>/comparison.md`` and ``<out>/comparison.json``.
+
+What the runs share. The seeds vary what is compared: world-model training (initialisation, batch
+order, DLB reads) and GRPO. Stages that do not depend on the compared choice are made once, by the
+first run at the first seed, and adopted by the others when their config sections agree: expert
+data and held-out episodes (so every run is scored on the same episodes), the VAE, the encoded
+latents (per augmentation setting), the reward model and the supervised policy. Runs outside
+comparison 3 stop after the evaluation. ``--no-share`` makes every run from scratch.
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-METRICS = ("lpips", "fid", "fvd", "flolpips")
+METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim")  # psnr / ssim need no network weights
 
 
 def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
@@ -35,6 +43,45 @@ def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
         "no_augmentation": (f"cache_ablation:{prefix}linear-direct-all", ["--augment.enabled=false"]),
         "wovr": (f"cache_ablation:{prefix}wovr", []),
     }
+
+
+# Stage -> the config sections its result depends on (beyond the seed, which only the first seed's run uses).
+SHAREABLE = {
+    "data": ("sim", "data", "eval"),
+    "vae": ("sim", "data", "vae"),
+    "latents": ("sim", "data", "vae", "augment"),
+    "reward_model": ("sim", "data", "rl"),
+    "sft_policy": ("sim", "data", "rl"),
+}
+
+
+def _sections(cfg, names: Sequence[str]) -> dict:
+    from configs.cli import to_dict
+
+    full = to_dict(cfg)
+    return {name: full[name] for name in names}
+
+
+def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:
+    """Copies the donor run's finished-stage records into ``workdir`` where the config sections agree.
+
+    The records point at the donor's files, so nothing is copied but the small JSON markers. A stage
+    ``workdir`` has already finished is left alone. Returns the stages adopted.
+    """
+    import shutil
+
+    adopted = []
+    os.makedirs(os.path.join(workdir, "stages"), exist_ok=True)
+    for stage in stages:
+        source = os.path.join(donor, "stages", f"{stage}.json")
+        target = os.path.join(workdir, "stages", f"{stage}.json")
+        if os.path.exists(target) or not os.path.exists(source):
+            continue
+        if _sections(cfg, SHAREABLE[stage]) != _sections(donor_cfg, SHAREABLE[stage]):
+            continue
+        shutil.copyfile(source, target)
+        adopted.append(stage)
+    return adopted
 
 
 COMPARISONS = (
@@ -92,28 +139,65 @@ def to_markdown(table: dict, seeds: Sequence[int]) -> str:
     return "\n".join(lines)
 
 
+def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int], **extra) -> dict:
+    """Writes ``comparison.{json,md}`` for the runs finished so far (rewritten after every run)."""
+    table = aggregate(results)
+    os.makedirs(out, exist_ok=True)
+    finished = {run: len(per_seed) for run, per_seed in results.items()}
+    with open(os.path.join(out, "comparison.json"), "w") as f:
+        json.dump({"seeds": list(seeds), "finished_seeds_per_run": finished, **extra, "runs": table}, f, indent=1)
+    with open(os.path.join(out, "comparison.md"), "w") as f:
+        f.write(to_markdown(table, seeds))
+    return table
+
+
+def _needs_policy(run: str) -> bool:
+    return any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS if not splits)
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--out", default="runs/compare")
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    parser.add_argument("--no-share", action="store_true", help="make every stage of every run from scratch")
+    parser.add_argument("--runs", default="", help="comma-separated subset of runs (default: all four)")
+    # Anything else is a dotted config override applied to every run, e.g. --trainer.steps=2000.
+    args, overrides = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
+    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    if bad:
+        raise SystemExit(f"train.compare: not a dotted config override (--section.key=value): {bad}")
     seeds = [int(s) for s in args.seeds.split(",")]
+    import time
+
+    import configs
     from train import pipeline
 
+    runs = runs_for(args.size)
+    if args.runs:
+        missing = sorted(set(args.runs.split(",")) - set(runs))
+        if missing:
+            raise SystemExit(f"train.compare: unknown runs {missing}; known: {sorted(runs)}")
+        runs = {name: runs[name] for name in args.runs.split(",")}
     results: dict[str, list[dict]] = {}
-    for run, (config, extra) in runs_for(args.size).items():
-        for seed in seeds:
+    timings: dict[str, list[float]] = {}
+    donors: list[tuple[str, object]] = []  # (workdir, config) of finished runs, first seed first
+    for seed in seeds:
+        for run, (config, extra) in runs.items():
             workdir = os.path.join(args.out, run, f"seed{seed}")
-            pipeline.main(["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra])
-            with open(os.path.join(workdir, "results.json")) as f:
-                results.setdefault(run, []).append(json.load(f))
-    table = aggregate(results)
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "comparison.json"), "w") as f:
-        json.dump({"seeds": seeds, "size": args.size, "runs": table}, f, indent=1)
-    with open(os.path.join(args.out, "comparison.md"), "w") as f:
-        f.write(to_markdown(table, seeds))
+            argv_run = ["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra, *overrides]
+            cfg, _ = configs.from_argv(argv_run)
+            if not args.no_share:
+                for donor, donor_cfg in donors:
+                    adopted = adopt_stages(workdir, donor, cfg, donor_cfg)
+                    if adopted:
+                        print(f"[compare] {run} seed {seed}: adopts {', '.join(adopted)} from {donor}")
+            start = time.perf_counter()
+            stages = pipeline.main(argv_run + ([] if _needs_policy(run) else ["--stop-after", "evaluate"]))
+            timings.setdefault(run, []).append(time.perf_counter() - start)
+            donors.append((workdir, cfg))
+            results.setdefault(run, []).append({"stages": stages})
+            table = write_tables(args.out, results, seeds, size=args.size, overrides=overrides, timings=timings)
     print(to_markdown(table, seeds))
     return table
 

@@ -8,7 +8,8 @@ Stages (each writes ``<workdir>/stages/<name>.json`` and is skipped when already
 expert data (train + held-out) -> VAE (trained, or official Wan 2.2 weights) -> latents (with
 styled copies) -> world model (DLB or the configured variant) -> long-horizon evaluation on
 LIBERO-Original / LIBERO-Mixed -> reward model -> supervised policy -> GRPO inside the world model
--> policy evaluation in the simulator -> report. Writes ``report.md`` and ``results.json``.
+with policy evaluation in the simulator -> report. ``--stop-after STAGE`` ends a run early (the
+finished stages stay, so a later run continues from there). Writes ``report.md`` and ``results.json``.
 """
 
 from __future__ import annotations
@@ -88,10 +89,22 @@ def stage_evaluate(ctx: Context) -> dict:
     return {"report": report, "splits": splits, "metrics": pipeline_data.read_eval_results(out)}
 
 
+def stage_reward_model(ctx: Context) -> dict:
+    from train import pipeline_policy
+
+    return pipeline_policy.reward_model(ctx)
+
+
+def stage_sft_policy(ctx: Context) -> dict:
+    from train import pipeline_policy
+
+    return pipeline_policy.sft_policy(ctx)
+
+
 def stage_policy(ctx: Context) -> dict:
     from train import pipeline_policy
 
-    return pipeline_policy.run(ctx)
+    return pipeline_policy.grpo_in_world_model(ctx)
 
 
 def stage_report(ctx: Context) -> dict:
@@ -106,7 +119,9 @@ STAGES = [
     Stage("latents", stage_latents, "encode training episodes and their styled copies to latents"),
     Stage("world_model", stage_world_model, "train the world model (DLB or the configured variant)"),
     Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed"),
-    Stage("policy", stage_policy, "reward model, supervised policy, GRPO in the world model, simulator evaluation"),
+    Stage("reward_model", stage_reward_model, "the success detector that rewards imagined rollouts"),
+    Stage("sft_policy", stage_sft_policy, "the supervised (behaviour-cloned) VLA policy"),
+    Stage("policy", stage_policy, "GRPO inside the world model, policy success in the simulator over steps"),
     Stage("report", stage_report, "report.md and results.json"),
 ]
 
@@ -129,6 +144,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--restart", action="store_true", help="discard finished stages of this work dir")
     parser.add_argument("--only", default="", help="comma-separated stages that may run now (others must be done)")
+    parser.add_argument("--stop-after", default="", choices=["", *(s.name for s in STAGES)],
+                        help="end after this stage (finished stages are kept; a later run continues)")
     cfg, rest = configs.from_argv(argv)
     args = parser.parse_args(rest)
     name = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"),
@@ -143,9 +160,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
     stagerunner.check_workdir_config(cfg, workdir)
     ctx = Context(cfg=cfg, workdir=workdir, cfg_name=name, overrides=overrides)
     start = time.perf_counter()
-    results = stagerunner.run_stages(STAGES, ctx, only=set(args.only.split(",")) if args.only else None)
-    print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
-          f"report: {os.path.join(workdir, 'report.md')}")
+    stages = STAGES
+    if args.stop_after:
+        stages = STAGES[:[s.name for s in STAGES].index(args.stop_after) + 1]
+    results = stagerunner.run_stages(stages, ctx, only=set(args.only.split(",")) if args.only else None)
+    if stages is STAGES:
+        print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
+              f"report: {os.path.join(workdir, 'report.md')}")
+    else:
+        print(f"[pipeline] {cfg.name}: stages up to {args.stop_after} done in {time.perf_counter() - start:.1f} s")
     return results
 
 

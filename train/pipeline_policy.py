@@ -1,8 +1,10 @@
-"""Pipeline stage: reward model, supervised policy, GRPO inside the world model, simulator evaluation.
+"""Pipeline stages: reward model, supervised policy, then GRPO inside the world model with simulator evaluation.
 
 Each part is its own entry point (``train.train_reward``, ``train.train_policy``, ``train.grpo``),
-run here on the pipeline's config with its work dir; the success curve (before and during GRPO, in
-the MuJoCo environments) lands in ``<workdir>/rl/grpo/success_curve.{json,png}``.
+run here on the pipeline's config with its work dir. They are three stages so that each resumes on
+its own and so that runs which differ only in the world model (``train.compare``) can share the
+reward model and the supervised policy. The success curve (before and during GRPO, in the MuJoCo
+environments) lands in ``<workdir>/rl/grpo/success_curve.{json,png}``.
 """
 
 from __future__ import annotations
@@ -25,23 +27,37 @@ def _scalars(result: dict) -> dict:
     return out
 
 
-def run(ctx: Context) -> dict:
-    from train import grpo, train_policy, train_reward
+def _base(ctx: Context) -> list[str]:
+    return ["--config", ctx.cfg_name, *ctx.overrides, f"--workdir={ctx.workdir}"]
 
-    demos = ctx.results["data"]["train"]["path"]
-    base = ["--config", ctx.cfg_name, *ctx.overrides, f"--workdir={ctx.workdir}"]
-    reward = train_reward.main(base + ["--demos", demos])
-    sft = train_policy.main(base + ["--demos", demos])
-    rl_dir = os.path.join(ctx.workdir, "rl")
-    result = grpo.main(base + [
-        "--simulator", "world_model", "--demos", demos,
+
+def reward_model(ctx: Context) -> dict:
+    from train import train_reward
+
+    result = _scalars(train_reward.main(_base(ctx) + ["--demos", ctx.results["data"]["train"]["path"]]))
+    return {**result, "path": os.path.join(ctx.workdir, "rl", "reward_model")}
+
+
+def sft_policy(ctx: Context) -> dict:
+    from train import train_policy
+
+    result = _scalars(train_policy.main(_base(ctx) + ["--demos", ctx.results["data"]["train"]["path"]]))
+    return {**result, "path": os.path.join(ctx.workdir, "rl", "policy_sft")}
+
+
+def grpo_in_world_model(ctx: Context) -> dict:
+    from train import grpo
+
+    result = grpo.main(_base(ctx) + [
+        "--simulator", "world_model", "--demos", ctx.results["data"]["train"]["path"],
         "--world-model", ctx.results["world_model"]["workdir"], "--vae", ctx.results["vae"]["path"],
-        "--policy", os.path.join(rl_dir, "policy_sft"), "--reward", os.path.join(rl_dir, "reward_model"),
+        "--policy", ctx.results["sft_policy"]["path"], "--reward", ctx.results["reward_model"]["path"],
     ])
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
+    drop = ("seconds", "path")
     return {
-        "reward_model": _scalars(reward),
-        "sft": _scalars(sft),
+        "reward_model": {k: v for k, v in ctx.results["reward_model"].items() if k not in drop},
+        "sft": {k: v for k, v in ctx.results["sft_policy"].items() if k not in drop},
         "grpo": {"steps": ctx.cfg.rl.grpo_steps, "workdir": result["workdir"]},
         "success": success,
         "success_curve_png": os.path.join(result["workdir"], "success_curve.png"),

@@ -19,6 +19,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import nnx
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float, Int
 
 from sword_jax import sharding
@@ -75,7 +76,7 @@ class WanAttention(nnx.Module):
         v = v.reshape(b, source.shape[1], heads, d // heads)
         if rope is not None:
             q, k = apply_rope(q, *rope), apply_rope(k, *rope)
-        out = attention(q, k, v, key_lengths=key_lengths, impl=self.impl)
+        out = checkpoint_name(attention(q, k, v, key_lengths=key_lengths, impl=self.impl), "attention_out")
         aux = {"q_roped": q, "k_roped": k, "v": v, "attn": out}
         return self.o(out.reshape(b, l, d)), aux
 
@@ -115,7 +116,8 @@ class WanBlock(nnx.Module):
 
         cdt = self.compute_dtype
         h = grouped(layer_norm(x, self.eps)) * (1 + scale_sa) + shift_sa
-        sa_out, aux = self.self_attn(h.reshape(b, l, d).astype(cdt), rope=rope, key_lengths=key_lengths)
+        h = checkpoint_name(h.reshape(b, l, d).astype(cdt), "modulated_in")
+        sa_out, aux = self.self_attn(h, rope=rope, key_lengths=key_lengths)
         x = x + (grouped(sa_out.astype(jnp.float32)) * gate_sa).reshape(b, l, d)
 
         normed = self.norm3(x) if self.norm3 is not None else x
@@ -123,17 +125,30 @@ class WanBlock(nnx.Module):
         x = x + ca_out.astype(jnp.float32)
 
         h = grouped(layer_norm(x, self.eps)) * (1 + scale_ff) + shift_ff
-        ffn_out = self.ffn_2(jax.nn.gelu(self.ffn_0(h.reshape(b, l, d).astype(cdt)), approximate=True))
+        h = checkpoint_name(h.reshape(b, l, d).astype(cdt), "modulated_in")
+        hidden = checkpoint_name(jax.nn.gelu(self.ffn_0(h), approximate=True), "ffn_hidden")
+        ffn_out = self.ffn_2(hidden)
         x = x + (grouped(ffn_out.astype(jnp.float32)) * gate_ff).reshape(b, l, d)
         aux = {f"sa_{k}": v for k, v in aux.items()}
         aux.update(self_attn_out=sa_out, cross_attn_out=ca_out, ffn_out=ffn_out)
         return x, aux
 
 
+REMAT_POLICIES = ("none", "full", "dots", "dots_acts")
+
+
 def _remat_policy(name: str):
+    """``dots``: keep matmul outputs, recompute the rest. ``dots_acts``: also keep the bf16
+    matmul inputs that are costly to recompute (the modulated norms, the attention output -- which
+    otherwise reruns the attention kernel -- and the FFN's GELU output)."""
+    policies = jax.checkpoint_policies
     if name == "dots":
-        return jax.checkpoint_policies.dots_with_no_batch_dims_saveable
-    return jax.checkpoint_policies.nothing_saveable
+        return policies.dots_with_no_batch_dims_saveable
+    if name == "dots_acts":
+        return policies.save_from_both_policies(
+            policies.dots_with_no_batch_dims_saveable,
+            policies.save_only_these_names("modulated_in", "attention_out", "ffn_hidden"))
+    return policies.nothing_saveable
 
 
 class WanDiT(nnx.Module):
