@@ -14,6 +14,12 @@ import jax
 
 from sword_jax.sharding import MeshConfig
 
+# Entry points let a jitted step trace twice before chex's retrace guard fires: on the GPU image
+# (jax 0.11.2) the VAE step was traced a second time within one process, which the CPU tests
+# (jax 0.10.2, where the library's steps are checked to trace once) do not show. A step that
+# retraces every call still fails at the third trace, naming the function.
+ENTRY_MAX_TRACES = 2
+
 
 def initialize(mesh_cfg: MeshConfig) -> None:
     """Joins the multi-process job if the config asks for it; a no-op otherwise."""

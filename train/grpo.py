@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import configs
+from train.distributed import ENTRY_MAX_TRACES
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
@@ -121,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         state, meta = ckpt.restore(checkpoint.abstract_like(state))
         first_step = int(meta["step"])
         print(f"grpo: resumed from step {first_step}")
-    step_fn = grpo.make_train_step(graphdef, rl)
+    step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES)
     curve = SuccessCurve(workdir)
     root = jax.random.key(cfg.seed)
     episodes = args.eval_episodes or rl.eval_episodes_per_task

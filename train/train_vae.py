@@ -24,6 +24,7 @@ import numpy as np
 from flax import nnx
 
 import configs
+from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
 from sword_jax.vae import api as vae_api
@@ -111,7 +112,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         start = int(meta["step"])
         if is_main:
             print(f"[train_vae] resumed from step {start}")
-    step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules)
+    step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
+                                          max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
     batch_sharding = {"video": shd.batch_sharding(mesh, 5, cfg.mesh.rules)}
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,

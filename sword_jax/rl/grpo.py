@@ -21,13 +21,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import chex
 import jax
 import jax.numpy as jnp
 import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float
 
+from sword_jax import tracing
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import token_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
@@ -200,7 +200,7 @@ def grpo_update(
 
 
 def make_train_step(
-    graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True
+    graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True, max_traces: int = 1
 ) -> Callable[[GRPOState, tuple[LearnedSimulator, RewardModel, StartState], jax.Array], tuple[GRPOState, dict]]:
     """The jitted GRPO step ``step(state, batch, key) -> (state, metrics)``.
 
@@ -219,5 +219,5 @@ def make_train_step(
         state, metrics = grpo_update(graphdef, cfg, state, rollout)
         return state, dict(metrics, **rollout_metrics(rollout))
 
-    # one trace per step function: a retrace (changed shapes / static config) is a bug in the caller
-    return jax.jit(chex.assert_max_traces(step, n=1), donate_argnums=(0,) if donate else ())
+    # A retrace (changed shapes / static config) is a bug in the caller; ``max_traces`` bounds it.
+    return jax.jit(tracing.max_traces(step, n=max_traces), donate_argnums=(0,) if donate else ())

@@ -13,14 +13,13 @@ import dataclasses
 import functools
 from collections.abc import Callable, Sequence
 
-import chex
 import jax
 import jax.numpy as jnp
 import optax
 from flax import nnx
 from jaxtyping import Array, Float
 
-from sword_jax import sharding
+from sword_jax import sharding, tracing
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.layers import patchify, unpatchify
 from sword_jax.vae.model import WanVAE, vae_rngs
@@ -143,14 +142,14 @@ def make_train_step(
       mesh: when given, ``batch["video"]`` is sharded over the ``batch`` logical axis (data/fsdp).
       rules: logical -> mesh axis table.
       perceptual_fn: optional ``(video, recon) -> scalar`` (e.g. LPIPS), weighted by ``perceptual_weight``.
-      max_traces: ``chex.assert_max_traces`` bound on recompilations.
+      max_traces: bound on traces of this step (:func:`sword_jax.tracing.max_traces`).
 
     ``key`` is the run's root key; the step folds in ``state.step`` (exact resume).
     Metrics: loss, l1, l2, kl, perceptual, grad_norm, param_norm, update_norm (float32 scalars).
     """
     tx = make_optimizer(cfg)
 
-    @chex.assert_max_traces(n=max_traces)
+    @functools.partial(tracing.max_traces, n=max_traces)
     def step(state: VAETrainState, batch: dict[str, Array], key: jax.Array):
         step_key = jax.random.fold_in(key, state.step)
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)

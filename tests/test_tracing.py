@@ -1,0 +1,43 @@
+"""The per-function retrace guard used by the VAE and GRPO steps."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from sword_jax import tracing
+
+
+def _make():
+    def step(x):
+        return x * 2
+
+    return jax.jit(tracing.max_traces(step, n=1))
+
+
+def test_each_built_step_has_its_own_count():
+    # Two runs in one process build the same step twice (train.compare); neither is a retrace.
+    for _ in range(2):
+        step = _make()
+        step(jnp.ones(3))
+        step(jnp.ones(3))
+
+
+def test_a_retrace_names_the_function_and_the_bound():
+    step = _make()
+    step(jnp.ones(3))
+    with pytest.raises(RuntimeError, match="step was traced 2 times .at most 1"):
+        step(jnp.ones(4))
+
+
+def test_vae_step_built_twice_in_one_process_trains():
+    from sword_jax.vae import train as vae_train
+    from sword_jax.vae.config import VAEConfig
+
+    cfg = VAEConfig(dim=4, dec_dim=4, z_dim=4, dim_mult=(1, 1, 1, 1), num_res_blocks=1, batch_size=1)
+    video = jax.random.uniform(jax.random.key(0), (1, 5, 32, 32, 3), jnp.float32, -1, 1)
+    for _ in range(2):
+        graphdef, state = vae_train.init_train_state(cfg, key=jax.random.key(0))
+        step = vae_train.make_train_step(graphdef, cfg)
+        for _ in range(2):
+            state, metrics = step(state, {"video": video}, jax.random.key(1))
+        assert jnp.isfinite(metrics["loss"])
