@@ -278,6 +278,26 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
+def settle(tree: Any) -> Any:
+    """The same arrays, re-made by an identity ``jax.jit`` with their own shardings (donated).
+
+    From jax 0.11 an array's abstract type records the mesh of the ``NamedSharding`` a jitted
+    function gave it; arrays made otherwise (``device_put``, eager ops, a checkpoint restore, a jit
+    without ``out_shardings``) record none. A train step fed such a state returns one whose types
+    differ, so its second call traces and compiles again. Settling the state once before the loop
+    makes the step's input and output types equal. Older JAX: a no-op copy. Leaves that are not
+    arrays with a ``NamedSharding`` pass through unchanged.
+    """
+    leaves, treedef = jax.tree.flatten(tree)
+    index = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array) and isinstance(x.sharding, NamedSharding)]
+    if index:
+        chosen = [leaves[i] for i in index]
+        settled = jax.jit(lambda t: t, out_shardings=[x.sharding for x in chosen], donate_argnums=0)(chosen)
+        for i, x in zip(index, settled):
+            leaves[i] = x
+    return jax.tree.unflatten(treedef, leaves)
+
+
 def put(value: Any, target: NamedSharding) -> jax.Array:
     """Places a host value (or a typed PRNG key) as a global array with ``target`` sharding.
 

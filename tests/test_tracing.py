@@ -41,3 +41,18 @@ def test_vae_step_built_twice_in_one_process_trains():
         for _ in range(2):
             state, metrics = step(state, {"video": video}, jax.random.key(1))
         assert jnp.isfinite(metrics["loss"])
+
+
+def test_settle_keeps_values_and_shardings():
+    import numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    from sword_jax import sharding as shd
+
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1))
+    target = NamedSharding(mesh, PartitionSpec("data"))
+    tree = {"a": jax.device_put(np.arange(16, dtype=np.float32), target), "b": jnp.int32(3)}
+    settled = shd.settle(tree)
+    assert settled["a"].sharding == target
+    np.testing.assert_array_equal(np.asarray(settled["a"]), np.arange(16, dtype=np.float32))
+    assert int(settled["b"]) == 3

@@ -122,6 +122,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         state, meta = ckpt.restore(checkpoint.abstract_like(state))
         first_step = int(meta["step"])
         print(f"grpo: resumed from step {first_step}")
+    if args.simulator == "world_model":
+        from sword_jax import sharding as shd
+
+        state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES)
     curve = SuccessCurve(workdir)
     root = jax.random.key(cfg.seed)

@@ -112,6 +112,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         start = int(meta["step"])
         if is_main:
             print(f"[train_vae] resumed from step {start}")
+    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
                                           max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))

@@ -141,6 +141,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if is_main:
             print(f"[train_world_model] resumed from step {start_step} in {workdir}")
 
+    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
                                          num_context=num_context, num_episodes=dataset.shape[0])
     step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
