@@ -116,15 +116,23 @@ def aggregate(results: dict[str, list[dict]]) -> dict:
     return table
 
 
+def _cell(entry: dict, seeds: int, fmt: str) -> str:
+    text = fmt.format(entry["mean"])
+    if entry["n"] > 1:
+        text += f" ± {entry['std']:.2g}"
+    return text if entry["n"] >= seeds else f"{text} (n={entry['n']})"
+
+
 def to_markdown(table: dict, seeds: Sequence[int]) -> str:
-    lines = [f"# Sword comparisons ({len(seeds)} seeds: {', '.join(map(str, seeds))}; mean ± std)", ""]
+    lines = [f"# Sword comparisons ({len(seeds)} seeds: {', '.join(map(str, seeds))}; mean ± std over the seeds "
+             "finished, with n where fewer than all finished)", ""]
     for title, ours, baseline, splits in COMPARISONS:
         lines += [f"## {title}", ""]
         if splits:
             keys = [f"{s}/{m}" for s in splits for m in METRICS]
             lines += ["| run | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
             for run in (ours, baseline):
-                cells = [f"{table[run]['metrics'][k]['mean']:.4g} ± {table[run]['metrics'][k]['std']:.2g}"
+                cells = [_cell(table[run]["metrics"][k], len(seeds), "{:.4g}")
                          if k in table.get(run, {}).get("metrics", {}) else "" for k in keys]
                 lines.append(f"| {run} | " + " | ".join(cells) + " |")
         else:
@@ -134,7 +142,7 @@ def to_markdown(table: dict, seeds: Sequence[int]) -> str:
             for run in (ours, baseline):
                 success = table.get(run, {}).get("success", {})
                 lines.append(f"| {run} | " + " | ".join(
-                    f"{success[l]['mean']:.3f} ± {success[l]['std']:.2g}" if l in success else "" for l in labels) + " |")
+                    _cell(success[l], len(seeds), "{:.3f}") if l in success else "" for l in labels) + " |")
         lines.append("")
     return "\n".join(lines)
 

@@ -1,0 +1,29 @@
+"""The pipeline's stage runner: --stop-after, resuming after it, and the stage order."""
+
+from train import pipeline
+from train.stagerunner import Stage
+
+
+def test_stop_after_then_resume(tmp_path, monkeypatch):
+    calls = []
+
+    def make(name):
+        def run(ctx):
+            calls.append(name)
+            return {"upstream": sorted(ctx.results)}
+
+        return Stage(name, run, name)
+
+    monkeypatch.setattr(pipeline, "STAGES", [make("a"), make("b"), make("c")])
+    workdir = f"--workdir={tmp_path / 'run'}"
+    results = pipeline.main([workdir, "--stop-after", "b"])
+    assert calls == ["a", "b"] and set(results) == {"a", "b"}
+    results = pipeline.main([workdir])
+    assert calls == ["a", "b", "c"]  # a and b were done: skipped, their results reused
+    assert results["c"]["upstream"] == ["a", "b"]
+
+
+def test_policy_work_is_three_resumable_stages_before_the_report():
+    names = [stage.name for stage in pipeline.STAGES]
+    assert names[-4:] == ["reward_model", "sft_policy", "policy", "report"]
+    assert names.index("world_model") < names.index("policy")
