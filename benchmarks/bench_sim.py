@@ -1,9 +1,10 @@
 """Sim benchmark: env-steps/s and the scripted expert's success per task.
 
-GPU (default): the MJX backend, ``jit(vmap(step))`` over ``--batch`` worlds, with the
-agentview camera rendered at ``--resolution`` by ``sim/render.py`` inside the same jit (when
-that module exists; else physics only, and the table says so), plus the vmapped expert's
-success per task over ``lax.scan`` rollouts. Key: ``mjx_env_steps_per_s_128px``.
+GPU (default): the MJX backend, ``jit(vmap(step))`` over ``--batch`` worlds (and each of
+``--batch-sweep``), with the agentview camera's RGB, depth and segmentation rendered at
+``--resolution`` by ``sim/render.py`` inside the same jit; beside it, physics alone and the
+renderer alone at the same batch. Then the vmapped expert's success per task over ``lax.scan``
+rollouts (``--no-expert`` skips it). Key: ``mjx_env_steps_per_s_128px`` (the best batch).
 
 ``--tiny`` (CPU): MuJoCo's C engine (the CPU backend): env-steps/s of one env, and the
 expert's success on each task's fixed initial states (all 50 with ``--episodes 50``).
@@ -15,7 +16,6 @@ expert's success on each task's fixed initial states (all 50 with ``--episodes 5
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import time
 
 import numpy as np
@@ -104,23 +104,8 @@ def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int) -> dict
     from sim import expert, tasks
 
     env = sim.load("libero_spatial", backend="mjx")
-    init_fn, act_fn = expert.jax_policy(env)
     qpos = np.concatenate([tasks.fixed_init_states(t)[:episodes] for t in task_ids])
-
-    @jax.jit
-    def rollout(qpos, key):
-        state = jax.vmap(env.reset_to)(qpos)
-        est = jax.vmap(init_fn)(state)
-
-        def body(carry, key):
-            state, est, solved = carry
-            action, est = jax.vmap(act_fn)(state, est, jax.random.split(key, qpos.shape[0]))
-            state = jax.vmap(env.step)(state, action)
-            return (state, est, jnp.maximum(solved, state.done)), None
-
-        (_, _, solved), _ = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, horizon))
-        return solved
-
+    rollout = jax.jit(lambda qpos, key: expert.rollout_mjx(env, qpos, key, horizon)[0])
     solved = np.asarray(rollout(jnp.asarray(qpos, jnp.float32), jax.random.key(0))).reshape(len(task_ids), episodes)
     rates = {task_id: float(solved[i].mean()) for i, task_id in enumerate(task_ids)}
     for task_id, rate in rates.items():

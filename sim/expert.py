@@ -218,3 +218,24 @@ def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
         return act(privileged(env, state.data), est, noise, cfg, xp=jnp)
 
     return init_fn, act_fn
+
+
+def rollout_mjx(env: Any, qpos: Any, key: jax.Array, horizon: int, cfg: ExpertConfig = ExpertConfig()):
+    """The expert on MJX from a batch of initial qpos for ``horizon`` steps (pure; jit it).
+
+    Returns:
+      ``(solved [n], phases [horizon, n])``: whether each episode succeeded at any step, and the
+      expert's phase after every step.
+    """
+    init_fn, act_fn = jax_policy(env, cfg)
+    state = jax.vmap(env.reset_to)(qpos)
+    est = jax.vmap(init_fn)(state)
+
+    def body(carry, step_key):
+        state, est, solved = carry
+        action, est = jax.vmap(act_fn)(state, est, jax.random.split(step_key, qpos.shape[0]))
+        state = jax.vmap(env.step)(state, action)
+        return (state, est, jnp.maximum(solved, state.done)), est.phase
+
+    (_, _, solved), phases = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, horizon))
+    return solved, phases

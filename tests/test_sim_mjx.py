@@ -92,22 +92,7 @@ def test_vmapped_jax_expert_solves_the_task_on_mjx():
     from sim.env import MjxEnv
 
     env = MjxEnv(SimConfig(backend="mjx"), 2)
-    init_fn, act_fn = expert.jax_policy(env)
     qpos = jnp.asarray(env.init_states[:2], jnp.float32)
-
-    @jax.jit
-    def rollout(qpos, key):
-        state = jax.vmap(env.reset_to)(qpos)
-        est = jax.vmap(init_fn)(state)
-
-        def body(carry, key):
-            state, est, solved = carry
-            action, est = jax.vmap(act_fn)(state, est, jax.random.split(key, qpos.shape[0]))
-            state = jax.vmap(env.step)(state, action)
-            return (state, est, jnp.maximum(solved, state.done)), est.phase
-
-        (_, _, solved), phases = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, 90))
-        return solved, phases
-
+    rollout = jax.jit(lambda qpos, key: expert.rollout_mjx(env, qpos, key, 90))
     solved, phases = rollout(qpos, jax.random.key(0))
     assert np.all(np.asarray(solved) == 1), f"phases reached: {np.asarray(phases).max(axis=0)}"

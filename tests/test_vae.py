@@ -39,18 +39,24 @@ def test_reference_parity_fp32(shared_dir):
     assert worst.max_abs < 1e-4, worst
 
 
+def _streamed(step, graphdef, state, x, chunks, cache):
+    """``step`` (encode_chunk / decode_chunk) over consecutive chunks of ``x``'s time axis, concatenated."""
+    pieces, start = [], 0
+    for length in chunks:
+        out, cache = step(graphdef, state, x[:, start:start + length], cache)
+        pieces.append(out)
+        start += length
+    return np.concatenate(pieces, axis=1)
+
+
 def test_encode_chunks_equal_whole_sequence(tiny_vae, tiny_video):
     graphdef, state = tiny_vae
     whole = vae.encode(graphdef, state, tiny_video)
     assert whole.shape == (1, 3, 2, 2, 48)
     for chunks in ([1, 4, 4],):  # the whole-sequence call is itself a first chunk of 1 + 4*2 frames
         cache = vae.init_encode_cache(graphdef, state, 1, 32, 32)
-        pieces, start = [], 0
-        for length in chunks:
-            latents, cache = vae.encode_chunk(graphdef, state, tiny_video[:, start:start + length], cache)
-            pieces.append(latents)
-            start += length
-        np.testing.assert_allclose(np.concatenate(pieces, axis=1), whole, atol=2e-5, err_msg=str(chunks))
+        streamed = _streamed(vae.encode_chunk, graphdef, state, tiny_video, chunks, cache)
+        np.testing.assert_allclose(streamed, whole, atol=2e-5, err_msg=str(chunks))
 
 
 def test_decode_chunks_equal_whole_sequence(tiny_vae):
@@ -60,12 +66,8 @@ def test_decode_chunks_equal_whole_sequence(tiny_vae):
     assert whole.shape == (1, 9, 32, 32, 3)
     for chunks in ([1, 1, 1], [1, 2]):  # later chunks of 1 or 2 latents, as rollouts decode
         cache = vae.init_decode_cache(graphdef, state, 1, 2, 2)
-        pieces, start = [], 0
-        for length in chunks:
-            frames, cache = vae.decode_chunk(graphdef, state, latents[:, start:start + length], cache)
-            pieces.append(frames)
-            start += length
-        np.testing.assert_allclose(np.concatenate(pieces, axis=1), whole, atol=2e-5, err_msg=str(chunks))
+        streamed = _streamed(vae.decode_chunk, graphdef, state, latents, chunks, cache)
+        np.testing.assert_allclose(streamed, whole, atol=2e-5, err_msg=str(chunks))
     # The cache carries real context: a later chunk decoded from a blank (started) cache differs.
     first, cache = vae.decode_chunk(graphdef, state, latents[:, :1], vae.init_decode_cache(graphdef, state, 1, 2, 2))
     blank = vae.StreamCache(jax.tree.map(jnp.zeros_like, cache.features), started=True)

@@ -55,13 +55,6 @@ SHAREABLE = {
 }
 
 
-def _sections(cfg, names: Sequence[str]) -> dict:
-    from configs.cli import to_dict
-
-    full = to_dict(cfg)
-    return {name: full[name] for name in names}
-
-
 def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:
     """Copies the donor run's finished-stage records into ``workdir`` where the config sections agree.
 
@@ -70,6 +63,9 @@ def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str]
     """
     import shutil
 
+    from configs.cli import to_dict
+
+    mine, theirs = to_dict(cfg), to_dict(donor_cfg)
     adopted = []
     os.makedirs(os.path.join(workdir, "stages"), exist_ok=True)
     for stage in stages:
@@ -77,7 +73,7 @@ def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str]
         target = os.path.join(workdir, "stages", f"{stage}.json")
         if os.path.exists(target) or not os.path.exists(source):
             continue
-        if _sections(cfg, SHAREABLE[stage]) != _sections(donor_cfg, SHAREABLE[stage]):
+        if any(mine[section] != theirs[section] for section in SHAREABLE[stage]):
             continue
         shutil.copyfile(source, target)
         adopted.append(stage)

@@ -30,6 +30,7 @@ import numpy as np
 
 import configs
 from train.distributed import ENTRY_MAX_TRACES
+from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
@@ -113,8 +114,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.simulator == "world_model":
         # The world model lives on the config's mesh; placing the policy state there too keeps the
         # step's input and output shardings equal, so it compiles once.
-        from sword_jax import sharding as shd
-
         state = jax.device_put(state, shd.replicated(shd.make_mesh(cfg.mesh)))
     ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
     first_step = 0
@@ -122,10 +121,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         state, meta = ckpt.restore(checkpoint.abstract_like(state))
         first_step = int(meta["step"])
         print(f"grpo: resumed from step {first_step}")
-    if args.simulator == "world_model":
-        from sword_jax import sharding as shd
-
-        state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
+    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES)
     curve = SuccessCurve(workdir)
     root = jax.random.key(cfg.seed)

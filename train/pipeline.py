@@ -25,11 +25,6 @@ from train import stagerunner
 from train.stagerunner import Context, Stage
 
 
-def _sub_argv(ctx: Context, *extra: str) -> list[str]:
-    """argv that reproduces the pipeline's config for a sub entry point (plus ``extra``)."""
-    return ["--config", ctx.cfg_name, *ctx.overrides, *extra]
-
-
 def stage_data(ctx: Context) -> dict:
     from train import gen_data
 
@@ -55,7 +50,7 @@ def stage_vae(ctx: Context) -> dict:
     from train import train_vae
 
     workdir = ctx.path("vae_run", "x")[:-2]
-    summary = train_vae.main(_sub_argv(ctx, "--workdir", workdir, "--episodes", ctx.results["data"]["train"]["path"]))
+    summary = train_vae.main(ctx.entry_argv("--workdir", workdir, "--episodes", ctx.results["data"]["train"]["path"]))
     summary["path"] = os.path.join(workdir, "vae")
     return summary
 
@@ -71,7 +66,7 @@ def stage_world_model(ctx: Context) -> dict:
 
     workdir = ctx.path("world_model", "x")[:-2]
     latents = ctx.results["latents"]
-    summary = train_world_model.main(_sub_argv(ctx, "--workdir", workdir, f"--data.path={latents['path']}"))
+    summary = train_world_model.main(ctx.entry_argv("--workdir", workdir, f"--data.path={latents['path']}"))
     return {"workdir": workdir, "final_step": summary["step"], "final_metrics": summary["metrics"],
             "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}
 
@@ -81,7 +76,7 @@ def stage_evaluate(ctx: Context) -> dict:
 
     splits = pipeline_data.write_eval_splits(ctx)
     out = ctx.path("eval", "x")[:-2]
-    argv = _sub_argv(ctx, "--out", out, "--model", f"{ctx.cfg.name}={ctx.results['world_model']['workdir']}",
+    argv = ctx.entry_argv("--out", out, "--model", f"{ctx.cfg.name}={ctx.results['world_model']['workdir']}",
                      "--vae-checkpoint", ctx.results["vae"]["path"])
     for split, path in splits.items():
         argv += ["--episodes", f"{split}={path}"]

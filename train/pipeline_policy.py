@@ -27,32 +27,28 @@ def _scalars(result: dict) -> dict:
     return out
 
 
-def _base(ctx: Context) -> list[str]:
-    return ["--config", ctx.cfg_name, *ctx.overrides, f"--workdir={ctx.workdir}"]
-
-
 def reward_model(ctx: Context) -> dict:
     from train import train_reward
 
-    result = _scalars(train_reward.main(_base(ctx) + ["--demos", ctx.results["data"]["train"]["path"]]))
-    return {**result, "path": os.path.join(ctx.workdir, "rl", "reward_model")}
+    return _scalars(train_reward.main(
+        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", ctx.results["data"]["train"]["path"])))
 
 
 def sft_policy(ctx: Context) -> dict:
     from train import train_policy
 
-    result = _scalars(train_policy.main(_base(ctx) + ["--demos", ctx.results["data"]["train"]["path"]]))
-    return {**result, "path": os.path.join(ctx.workdir, "rl", "policy_sft")}
+    return _scalars(train_policy.main(
+        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", ctx.results["data"]["train"]["path"])))
 
 
 def grpo_in_world_model(ctx: Context) -> dict:
     from train import grpo
 
-    result = grpo.main(_base(ctx) + [
-        "--simulator", "world_model", "--demos", ctx.results["data"]["train"]["path"],
+    result = grpo.main(ctx.entry_argv(
+        f"--workdir={ctx.workdir}", "--simulator", "world_model", "--demos", ctx.results["data"]["train"]["path"],
         "--world-model", ctx.results["world_model"]["workdir"], "--vae", ctx.results["vae"]["path"],
         "--policy", ctx.results["sft_policy"]["path"], "--reward", ctx.results["reward_model"]["path"],
-    ])
+    ))
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     drop = ("seconds", "path")
     return {

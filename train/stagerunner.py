@@ -35,6 +35,10 @@ class Context:
     overrides: list[str] = dataclasses.field(default_factory=list)  # dotted overrides, forwarded to entry points
     is_main: bool = True  # process 0
 
+    def entry_argv(self, *extra: str) -> list[str]:
+        """argv that reproduces the pipeline's config for a sub entry point (plus ``extra``)."""
+        return ["--config", self.cfg_name, *self.overrides, *extra]
+
     def path(self, *parts: str) -> str:
         full = os.path.join(self.workdir, *parts)
         os.makedirs(os.path.dirname(full), exist_ok=True)

@@ -57,8 +57,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
             eta = (time.time() - start) / (i + 1) * (rl.sft_steps - i - 1)
             print(f"sft step {i + 1}/{rl.sft_steps} loss {loss:.4f} "
                   f"token_acc {float(metrics['token_accuracy']):.3f} eta {eta:.0f}s", flush=True)
-    save_params(os.path.join(workdir, "policy_sft"), state.params, rl, kind="policy", step=int(state.step))
-    result = {"steps": rl.sft_steps, "demos": episodes.num_episodes,
+    path = os.path.join(workdir, "policy_sft")
+    save_params(path, state.params, rl, kind="policy", step=int(state.step))
+    result = {"steps": rl.sft_steps, "demos": episodes.num_episodes, "path": path,
               "final_loss": float(metrics["loss"]) if metrics else None}
     if args.eval_episodes:
         result["eval"] = evaluate_in_sim(graphdef, state.params, rl, tasks=cfg.sim.tasks,

@@ -49,8 +49,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if (i + 1) % max(rl.reward_model_steps // 10, 1) == 0:
             print(f"reward step {i + 1}/{rl.reward_model_steps} loss {float(metrics['loss']):.4f} "
                   f"acc {float(metrics['accuracy']):.3f}", flush=True)
-    save_params(os.path.join(workdir, "reward_model"), state.params, rl, kind="reward_model", step=int(state.step))
-    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes}
+    path = os.path.join(workdir, "reward_model")
+    save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
+    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path}
     if n_hold:
         hold_labels = rl_data.success_labels(hold_eps, rl.positive_tail)
         score = jax.jit(as_reward_model(graphdef, state.params).score)

@@ -2,6 +2,8 @@
 
 import dataclasses
 
+REMAT_POLICIES = ("none", "full", "dots", "dots_acts")
+
 
 @dataclasses.dataclass(frozen=True)
 class DiTConfig:
@@ -26,7 +28,7 @@ class DiTConfig:
     action_dim: int = 7
     action_cross_attn: bool = True  # actions as cross-attention tokens
     action_adaln: bool = True  # action chunk MLP added to the time embedding
-    remat: str = "none"  # none | full | dots | dots_acts (see model._remat_policy)
+    remat: str = "none"  # one of REMAT_POLICIES (see model._remat_policy)
     scan_layers: bool = True
     compute_dtype: str = "bfloat16"
     param_dtype: str = "float32"
@@ -47,8 +49,8 @@ class DiTConfig:
             raise ValueError(f"model: num_heads={self.num_heads} does not divide dim={self.dim}")
         if (self.dim // self.num_heads) % 2:
             raise ValueError(f"model: head_dim={self.dim // self.num_heads} must be even for RoPE")
-        if self.remat not in ("none", "full", "dots", "dots_acts"):
-            raise ValueError(f"model.remat must be none|full|dots|dots_acts, got {self.remat!r}")
+        if self.remat not in REMAT_POLICIES:
+            raise ValueError(f"model.remat must be {'|'.join(REMAT_POLICIES)}, got {self.remat!r}")
         if self.attention_impl not in ("auto", "xla", "cudnn"):
             raise ValueError(f"model.attention_impl must be auto|xla|cudnn, got {self.attention_impl!r}")
         for name in ("compute_dtype", "param_dtype"):

@@ -134,9 +134,6 @@ class WanBlock(nnx.Module):
         return x, aux
 
 
-REMAT_POLICIES = ("none", "full", "dots", "dots_acts")
-
-
 def _remat_policy(name: str):
     """``dots``: keep matmul outputs, recompute the rest. ``dots_acts``: also keep the bf16
     matmul inputs that are costly to recompute (the modulated norms, the attention output -- which
