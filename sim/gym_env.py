@@ -24,11 +24,10 @@ from sim.env import CpuEnv
 
 class _Frames:
     """Renders ``mujoco.MjData`` frames: MuJoCo's OpenGL renderer where a GL context can be
-    made (fast on CPU), else the JAX ray-cast renderer of ``sim/render.py``."""
+    made (fast on CPU; EGL or OSMesa on a headless machine), else the JAX ray-cast renderer of
+    ``sim/render.py``."""
 
     def __init__(self, model: Any, resolution: int, renderer: str = "auto"):
-        import mujoco
-
         if renderer not in ("auto", "gl", "jax"):
             raise ValueError(f"renderer must be auto|gl|jax, got {renderer!r}")
         self.model = model
@@ -36,9 +35,11 @@ class _Frames:
         self._jax_scene = None
         self._gl = None
         if renderer != "jax":
-            try:
-                self._gl = mujoco.Renderer(model, resolution, resolution)
-            except Exception:  # no OpenGL here: fall back to the JAX renderer
+            from sim.render_gl import GLUnavailableError, make_renderer
+
+            try:  # picks EGL/OSMesa on a headless machine (see sim/render_gl.py)
+                self._gl = make_renderer(model, resolution, resolution)
+            except GLUnavailableError:  # no OpenGL here: fall back to the JAX renderer
                 if renderer == "gl":
                     raise
         if self._gl is None:

@@ -6,28 +6,122 @@ rgb uint8, depth in metres (planar, from MuJoCo's linearised depth buffer), geom
 background or non-geom objects) and seg (class ids of ``RenderScene.class_names``).
 Only geoms are drawn: sites, joints, lights and frames are switched off in the visual
 options so segmentation contains geoms alone, as in the JAX renderer.
+
+Headless machines: with ``MUJOCO_GL`` unset, MuJoCo picks GLFW, which needs a display; on a
+machine without one, a failed GLFW context followed by a second ``mujoco.Renderer`` aborts the
+process (libc++abi "recursive initialization"). ``make_renderer`` therefore chooses the backend
+once per process: the user's ``MUJOCO_GL`` or a display is respected as is; otherwise EGL, then
+OSMesa, each probed in a subprocess (a broken GL stack cannot take this process down), and the
+first that works is installed as MuJoCo's context class. A backend that failed once is never
+tried again in this process; callers then fall back to the JAX renderer.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
 import os
+import platform
+import subprocess
+import sys
 
 import mujoco
 import numpy as np
 
 from sim.render import Frame, RenderScene
 
+HEADLESS_BACKENDS = ("egl", "osmesa")
+_PROBE = (
+    "import mujoco\n"
+    "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>')\n"
+    "r = mujoco.Renderer(m, 8, 8); r.render(); r.close()\n"
+)
+
+
+class GLUnavailableError(RuntimeError):
+    """No OpenGL context can be made in this process (the message says why)."""
+
+
+def _has_display() -> bool:
+    if platform.system() != "Linux":
+        return True  # macOS (CGL) and Windows (WGL) need no display variable
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _probe(backend: str) -> bool:
+    env = {**os.environ, "MUJOCO_GL": backend}
+    env.pop("PYOPENGL_PLATFORM", None)  # mujoco.<backend> sets the matching one
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return proc.returncode == 0
+
+
+def _install(backend: str) -> None:
+    """Makes ``mujoco.Renderer`` create ``backend`` contexts, as ``MUJOCO_GL=backend`` at import would."""
+    context_cls = importlib.import_module(f"mujoco.{backend}").GLContext
+    # mujoco >= 3.4 keeps the selection in rendering.classic; older versions in mujoco.gl_context.
+    for name in ("mujoco.rendering.classic.gl_context", "mujoco.gl_context"):
+        try:
+            module = importlib.import_module(name)
+        except ImportError:
+            continue
+        module.GLContext = context_cls
+    os.environ["MUJOCO_GL"] = backend  # subprocesses and error messages see the same choice
+
+
+@functools.cache
+def gl_backend() -> str | None:
+    """The OpenGL backend ``mujoco.Renderer`` uses in this process, or None when none works.
+
+    Decided once per process. ``MUJOCO_GL`` set by the user, or a display, is taken as is
+    (``"glfw"`` stands for MuJoCo's default); a headless machine gets EGL, else OSMesa.
+    """
+    requested = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if requested or _has_display():
+        return requested or "glfw"
+    for backend in HEADLESS_BACKENDS:
+        if _probe(backend):
+            try:
+                _install(backend)
+            except Exception:  # noqa: BLE001 - e.g. PyOpenGL already loaded for another platform
+                continue
+            return backend
+    return None
+
+
+_failure: list[str] = []  # the first context failure of this process; retrying it can abort
+
+
+def make_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
+    """``mujoco.Renderer(model, height, width)`` on the backend ``gl_backend`` chose.
+
+    Raises:
+      GLUnavailableError: no backend works here, or an earlier context failed in this process.
+    """
+    if _failure:
+        raise GLUnavailableError(_failure[0])
+    backend = gl_backend()
+    if backend is None:
+        _failure.append(f"no display and no headless OpenGL ({' or '.join(HEADLESS_BACKENDS)}) works here; "
+                        "set MUJOCO_GL to a working backend")
+        raise GLUnavailableError(_failure[0])
+    try:
+        return mujoco.Renderer(model, height, width)
+    except Exception as err:  # noqa: BLE001 - any GL failure means "not available"
+        _failure.append(f"mujoco.Renderer cannot open a context with MUJOCO_GL={backend}: {err}")
+        raise GLUnavailableError(_failure[0]) from err
+
 
 def gl_available() -> tuple[bool, str]:
     """(True, "") if an offscreen OpenGL context can be made, else (False, the reason)."""
     try:
         model = mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='1'/></worldbody></mujoco>")
-        renderer = mujoco.Renderer(model, 8, 8)
-        renderer.close()
+        make_renderer(model, 8, 8).close()
         return True, ""
-    except Exception as err:  # noqa: BLE001 - any GL failure means "not available"
-        backend = os.environ.get("MUJOCO_GL", "(unset)")
-        return False, f"mujoco.Renderer cannot open a context with MUJOCO_GL={backend}: {err}"
+    except GLUnavailableError as err:
+        return False, str(err)
 
 
 class GLRenderer:
@@ -57,7 +151,7 @@ class GLRenderer:
             model.vis.global_.offwidth = max(width, model.vis.global_.offwidth)
             model.vis.global_.offheight = max(height, model.vis.global_.offheight)
         self._model, self._scene, self._camera = model, scene, camera
-        self._renderer = mujoco.Renderer(model, height, width)
+        self._renderer = make_renderer(model, height, width)
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = [int(g in geomgroups) for g in range(len(self._option.geomgroup))]
         self._option.sitegroup[:] = 0

@@ -1,5 +1,9 @@
 """Gymnasium registration, check_env, the vector env, and the wrappers on the C backend."""
 
+import os
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -20,6 +24,34 @@ def test_gymnasium_make_passes_check_env():
     frame = env.render()
     assert frame.shape == (128, 128, 3) and frame.dtype == np.uint8 and frame.std() > 5
     env.close()
+
+
+HEADLESS_SCRIPT = """
+import gymnasium, sim
+from gymnasium.utils.env_checker import check_env
+from sim import render_gl
+env = gymnasium.make(sim.GYM_ID, task_id=4, render_mode="rgb_array")
+check_env(env.unwrapped, skip_render_check=False)
+env.reset(seed=0)
+frame = env.render()
+assert frame.shape == (128, 128, 3) and frame.std() > 5, frame.std()
+print("renderer", "gl" if env.unwrapped._frames._gl is not None else "jax", render_gl.gl_backend())
+"""
+
+
+@pytest.mark.parametrize("mujoco_gl", [None, "glfw"])
+def test_gym_env_on_a_headless_machine(mujoco_gl):
+    """No display: MUJOCO_GL unset picks EGL/OSMesa; a failing user choice falls back to JAX, never aborts."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY", "PYOPENGL_PLATFORM")}
+    if mujoco_gl:
+        env["MUJOCO_GL"] = mujoco_gl
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run([sys.executable, "-c", HEADLESS_SCRIPT], env=env, cwd=root, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    if mujoco_gl == "glfw":  # GLFW cannot work without a display: the JAX renderer took over
+        assert "renderer jax glfw" in proc.stdout, proc.stdout
 
 
 def test_gym_episode_terminates_on_success_and_seeds_reproduce():
