@@ -13,7 +13,11 @@ Layout (as LIBERO's ``scripts/create_dataset.py`` writes it)::
 
 plus, from this project, ``obs/agentview_depth`` (T, H, W) float32 metres and
 ``obs/agentview_seg`` (T, H, W) uint8 class ids (class names in the ``data`` attr
-``seg_class_names``), and demo attrs ``task_id`` / ``language_instruction``.
+``seg_class_names``), ``executed_actions`` (T, 7) (what was executed when the expert's label
+``actions`` was noised, DART style), and demo attrs ``task_id`` / ``language_instruction`` /
+``init_split`` / ``init_state_id`` (which initial-state split and which state of it, see
+``sim.tasks.split_init_states``) / ``first_success`` (index of the first step with
+``rewards = 1``, -1 if none).
 
 Images are written top row first (``macros_image_convention = "cv"``); LIBERO's own files are
 ``"opengl"`` (upside down) and the reader flips those, so every ``Episode`` it returns has row
@@ -36,6 +40,7 @@ import numpy as np
 _REQUIRED_OBS = ("agentview_rgb", "ee_states", "gripper_states", "joint_states")
 _OPTIONAL_OBS = ("eye_in_hand_rgb", "agentview_depth", "agentview_seg")
 _PER_STEP = ("rewards", "dones", "states")
+_INT_ATTRS = ("task_id", "init_state_id", "first_success")
 
 
 class DatasetError(ValueError):
@@ -54,6 +59,10 @@ class Episode:
       agentview_depth: (T, H, W) float32 metres or None. agentview_seg: (T, H, W) ints or None.
       init_state: (S,) the state the episode started from. model_file: the model's MJCF.
       task_id, language_instruction: task metadata (None / "" when unknown).
+      executed_actions: (T, 7) the actions executed, where they differ from the labels
+        ``actions`` (noisy expert, DART), or None (then ``actions`` were executed).
+      init_split, init_state_id: the initial state's split and index in it ("" / None if unknown).
+      first_success: index of the first step with ``rewards = 1`` (-1 none, None unknown).
     """
 
     actions: np.ndarray
@@ -71,6 +80,10 @@ class Episode:
     model_file: str = ""
     task_id: int | None = None
     language_instruction: str = ""
+    executed_actions: np.ndarray | None = None
+    init_split: str = ""
+    init_state_id: int | None = None
+    first_success: int | None = None
 
     @property
     def num_samples(self) -> int:
@@ -84,7 +97,7 @@ class Episode:
         if not np.all(np.isfinite(actions)):
             raise DatasetError(f"{where}: actions contain non-finite values")
         steps = actions.shape[0]
-        for name in ("states", "rewards", "dones", "ee_states", "gripper_states", "joint_states",
+        for name in ("states", "rewards", "dones", "ee_states", "gripper_states", "joint_states", "executed_actions",
                      "agentview_rgb", "eye_in_hand_rgb", "agentview_depth", "agentview_seg"):
             value = getattr(self, name)
             if value is None:
@@ -106,6 +119,13 @@ class Episode:
                 raise DatasetError(f"{where}: {name} must be (T, {frame_hw[0]}, {frame_hw[1]}), got {value.shape}")
         if self.agentview_depth is not None and not np.all(np.isfinite(self.agentview_depth)):
             raise DatasetError(f"{where}: agentview_depth contains non-finite values")
+        if self.executed_actions is not None and np.shape(self.executed_actions) != actions.shape:
+            raise DatasetError(f"{where}: executed_actions must be {actions.shape}, got {np.shape(self.executed_actions)}")
+        if self.first_success is not None:
+            hits = np.flatnonzero(np.asarray(self.rewards) > 0)
+            expected = int(hits[0]) if hits.size else -1
+            if self.first_success != expected:
+                raise DatasetError(f"{where}: first_success is {self.first_success} but rewards first reach 1 at {expected}")
 
 
 @dataclasses.dataclass
@@ -177,6 +197,8 @@ class DatasetWriter:
         obs.create_dataset("gripper_states", data=np.asarray(episode.gripper_states, np.float64))
         obs.create_dataset("joint_states", data=np.asarray(episode.joint_states, np.float64))
         grp.create_dataset("actions", data=np.asarray(episode.actions, np.float64))
+        if episode.executed_actions is not None:
+            grp.create_dataset("executed_actions", data=np.asarray(episode.executed_actions, np.float64))
         grp.create_dataset("states", data=np.asarray(episode.states, np.float64))
         grp.create_dataset("robot_states", data=np.concatenate(
             [episode.gripper_states, ee[:, :3], ee[:, 3:]], axis=1).astype(np.float64))
@@ -186,9 +208,12 @@ class DatasetWriter:
         grp.attrs["model_file"] = episode.model_file
         init = episode.init_state if episode.init_state is not None else episode.states[0]
         grp.attrs["init_state"] = np.asarray(init, np.float64)
-        if episode.task_id is not None:
-            grp.attrs["task_id"] = int(episode.task_id)
+        for attr in _INT_ATTRS:
+            if getattr(episode, attr) is not None:
+                grp.attrs[attr] = int(getattr(episode, attr))
         grp.attrs["language_instruction"] = episode.language_instruction
+        if episode.init_split:
+            grp.attrs["init_split"] = episode.init_split
         self._count += 1
         self._total += episode.num_samples
         return name
@@ -278,8 +303,10 @@ def _read_episode(grp: h5py.Group, where: str, flip: bool) -> Episode:
         agentview_seg=image(maybe("obs/agentview_seg")),
         init_state=np.asarray(grp.attrs["init_state"]) if "init_state" in grp.attrs else None,
         model_file=_attr_str(grp.attrs, "model_file"),
-        task_id=int(grp.attrs["task_id"]) if "task_id" in grp.attrs else None,
         language_instruction=_attr_str(grp.attrs, "language_instruction"),
+        executed_actions=maybe("executed_actions"),
+        init_split=_attr_str(grp.attrs, "init_split"),
+        **{attr: int(grp.attrs[attr]) if attr in grp.attrs else None for attr in _INT_ATTRS},
     )
     episode.validate(where)
     if "num_samples" in grp.attrs and int(grp.attrs["num_samples"]) != episode.num_samples:

@@ -96,7 +96,18 @@ def init(priv: dict[str, Any], *, xp: Any = np) -> ExpertState:
 
 def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = ExpertConfig(),
         *, xp: Any = np) -> tuple[Any, ExpertState]:
-    """One expert action.
+    """One expert action to execute (noised by ``noise``); see ``act_labelled``.
+
+    Returns:
+      (action (7,) in [-1, 1], next memory).
+    """
+    executed, _, est = act_labelled(priv, est, noise, cfg, xp=xp)
+    return executed, est
+
+
+def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = ExpertConfig(),
+                 *, xp: Any = np) -> tuple[Any, Any, ExpertState]:
+    """One expert step, DART style: the noisy action is executed, the clean one is the label.
 
     Args:
       priv: from ``privileged``.
@@ -106,7 +117,7 @@ def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = 
       xp: numpy or jax.numpy.
 
     Returns:
-      (action (7,) in [-1, 1], next memory).
+      (executed action (7,), clean action (7,), next memory); both in [-1, 1], equal without noise.
     """
     dtype = priv["tcp_pos"].dtype
     tcp, bowl, plate = priv["tcp_pos"], priv["bowl_pos"], priv["plate_pos"]
@@ -159,8 +170,11 @@ def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = 
     # matters (descend, place) and off while the gripper acts; rotation noise is smaller.
     phase_noise = xp.asarray(_NOISE_BY_PHASE, dtype)[est.phase]
     noise_scale = xp.asarray([1.0, 1.0, 1.0, 0.3, 0.3, 0.3], dtype) * (cfg.noise * phase_noise)
-    motion = xp.concatenate([move, turn]) + noise_scale * xp.asarray(noise, dtype)
-    action = xp.concatenate([xp.clip(motion, -1.0, 1.0), xp.reshape(grip[est.phase], (1,))]).astype(dtype)
+    clean_motion = xp.concatenate([move, turn])
+    noisy_motion = clean_motion + noise_scale * xp.asarray(noise, dtype)
+    grip_action = xp.reshape(grip[est.phase], (1,))
+    clean = xp.concatenate([xp.clip(clean_motion, -1.0, 1.0), grip_action]).astype(dtype)
+    executed = xp.concatenate([xp.clip(noisy_motion, -1.0, 1.0), grip_action]).astype(dtype)
     phase = xp.where(done, xp.minimum(est.phase + 1, RETREAT), est.phase)
     # Lost the bowl while carrying or placing (it is no longer between the fingers): start over.
     held_offset = tcp - bowl
@@ -168,45 +182,56 @@ def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = 
         (xp.sqrt(xp.sum(held_offset[:2] ** 2)) > 0.08) | (held_offset[2] > 0.07))
     phase = xp.where(lost, APPROACH, phase).astype(xp.int32)
     count = xp.where(done | lost, 0, est.count + 1).astype(xp.int32)
-    return action, est.replace(phase=phase, count=count)
+    return executed, clean, est.replace(phase=phase, count=count)
 
 
 def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(), rng: np.random.Generator | None = None,
-                max_steps: int | None = None, record: bool = False) -> dict[str, Any]:
-    """Runs the expert on the C backend from an initial qpos until success or the step limit.
+                max_steps: int | None = None, record: bool = False, stop_at_success: bool = True) -> dict[str, Any]:
+    """Runs the expert on the C backend from an initial qpos.
+
+    Args:
+      stop_at_success: stop at the first success (else run exactly ``max_steps`` steps).
 
     Returns:
-      dict with ``success`` (bool), ``steps`` (int), ``phase`` (final phase name) and, with
-      ``record``, ``actions`` (T, 7) and ``states`` (list of ``State``, T + 1 long).
+      dict with ``success`` (solved at some step), ``first_success`` (index of the first action
+      after which the task was solved, -1 if never), ``steps`` (int), ``phase`` (final phase
+      name) and, with ``record``, ``actions`` (T, 7) the clean expert labels, ``executed`` (T, 7)
+      the actions actually executed (noised, DART style) and ``states`` (``State`` list, T + 1).
     """
     cfg.validate()
     rng = rng if rng is not None else np.random.default_rng(0)
     max_steps = env.config.max_steps if max_steps is None else max_steps
     state = env.reset_to(qpos)
     est = init(privileged(env, state.data), xp=np)
-    actions, states = [], [state]
-    success = bool(state.done)
+    actions, executed, states = [], [], [state]
+    solved_at_reset, first_success = bool(state.done), -1
     steps = 0
-    while not success and steps < max_steps:
+    while steps < max_steps and not (stop_at_success and (solved_at_reset or first_success >= 0)):
         noise = rng.standard_normal(6) if cfg.noise > 0 else np.zeros(6)
-        action, est = act(privileged(env, state.data), est, noise, cfg, xp=np)
+        action, label, est = act_labelled(privileged(env, state.data), est, noise, cfg, xp=np)
         state = env.step(state, action) if record else env.step_inplace(state, action)
+        if first_success < 0 and state.done:
+            first_success = steps
         steps += 1
-        success = bool(state.done)
         if record:
-            actions.append(action)
+            actions.append(label)
+            executed.append(action)
             states.append(state)
-    out = {"success": success, "steps": steps, "phase": PHASE_NAMES[int(est.phase)]}
+    out = {"success": solved_at_reset or first_success >= 0, "first_success": first_success, "steps": steps,
+           "phase": PHASE_NAMES[int(est.phase)]}
     if record:
-        out["actions"] = np.stack(actions) if actions else np.zeros((0, ctl.ACTION_DIM))
+        empty = np.zeros((0, ctl.ACTION_DIM))
+        out["actions"] = np.stack(actions) if actions else empty
+        out["executed"] = np.stack(executed) if executed else empty
         out["states"] = states
     return out
 
 
 def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
-    """(init_fn(state) -> ExpertState, act_fn(state, est, key) -> (action, est)) for MJX.
+    """(init_fn(state) -> ExpertState, act_fn(state, est, key) -> (executed, clean, est)) for MJX.
 
-    Both are pure and vmappable (one env each); ``key`` drives the action noise.
+    Both are pure and vmappable (one env each); ``key`` drives the action noise. ``executed`` is
+    the noisy action to step with, ``clean`` the expert's label (DART).
     """
     cfg.validate()
 
@@ -215,7 +240,7 @@ def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
 
     def act_fn(state, est, key):
         noise = jax.random.normal(key, (6,), jnp.float32)
-        return act(privileged(env, state.data), est, noise, cfg, xp=jnp)
+        return act_labelled(privileged(env, state.data), est, noise, cfg, xp=jnp)
 
     return init_fn, act_fn
 
@@ -233,7 +258,7 @@ def rollout_mjx(env: Any, qpos: Any, key: jax.Array, horizon: int, cfg: ExpertCo
 
     def body(carry, step_key):
         state, est, solved = carry
-        action, est = jax.vmap(act_fn)(state, est, jax.random.split(step_key, qpos.shape[0]))
+        action, _, est = jax.vmap(act_fn)(state, est, jax.random.split(step_key, qpos.shape[0]))
         state = jax.vmap(env.step)(state, action)
         return (state, est, jnp.maximum(solved, state.done)), est.phase
 

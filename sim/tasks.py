@@ -7,11 +7,19 @@ fingers open, each free object at a sampled pose. Sampling maps uniform draws in
 poses with plain arithmetic (``xp`` = numpy or jax.numpy), so the same function gives the
 50 fixed, seeded initial states per task (numpy) and fresh samples inside a jitted reset
 (jax.numpy).
+
+Initial-state splits (as LIBERO, whose demonstrations start elsewhere than its evaluation):
+``eval`` is the 50 fixed states per task (policy evaluation); ``train`` (demonstrations,
+world-model training) and ``heldout`` (world-model evaluation episodes) are two further seeded
+streams of any length. A draw that coincides with an evaluation state (or, for ``heldout``, with
+one of the first ``TRAIN_RESERVE`` training states) is rejected and redrawn, so the splits are
+disjoint by check, not by luck.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import numpy as np
@@ -32,6 +40,10 @@ LANGUAGE: tuple[str, ...] = (
 )
 NUM_TASKS = len(LANGUAGE)
 NUM_INIT_STATES = 50
+INIT_SPLITS = ("train", "eval", "heldout")
+TRAIN_RESERVE = 2000  # training states per task that held-out states are checked against
+SAME_STATE_TOL = 1e-3  # max |qpos difference| of the free objects under which two states coincide
+_SPLIT_STREAM = {"train": 1, "heldout": 2}
 
 # Nominal (x, y) of the objects that do not move between tasks (world frame, table at 0).
 PLATE_XY = (-0.06, 0.16)
@@ -133,6 +145,72 @@ def fixed_init_states(task_id: int, *, seed: int = 0, count: int = NUM_INIT_STAT
     """The task's fixed initial states: (count, nq) float32, deterministic in (task_id, seed)."""
     rng = np.random.default_rng([seed, task_id, 20240])
     return np.stack([init_qpos(task_id, rng.random(NUM_DRAWS)) for _ in range(count)])
+
+
+def _object_qpos(states: np.ndarray) -> np.ndarray:
+    from sim import panda
+
+    return np.asarray(states, np.float64)[..., len(panda.HOME_QPOS) + 2:]  # the arm starts at home in all
+
+
+def coinciding(states: np.ndarray, others: np.ndarray, *, tol: float = SAME_STATE_TOL) -> np.ndarray:
+    """(N,) bool: which of ``states`` (N, nq) lie within ``tol`` (max abs, object qpos) of any of ``others``."""
+    a, b = _object_qpos(states), _object_qpos(others)
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        return np.zeros(a.shape[0], bool)
+    return np.array([np.any(np.max(np.abs(b - row), axis=-1) < tol) for row in a])
+
+
+def assert_disjoint(states: np.ndarray, others: np.ndarray, what: str, *, tol: float = SAME_STATE_TOL) -> None:
+    """Raises ``ValueError`` if any of ``states`` coincides with one of ``others`` (object qpos)."""
+    hits = np.flatnonzero(coinciding(states, others, tol=tol))
+    if hits.size:
+        raise ValueError(f"{what}: {hits.size} initial states coincide with the other split (first at {hits[:5].tolist()})")
+
+
+@functools.lru_cache(maxsize=64)
+def _split_stream(task_id: int, split: str, count: int, seed: int) -> np.ndarray:
+    """The first ``count`` states of a non-evaluation split's stream, rejections redrawn."""
+    rng = np.random.default_rng([seed, task_id, 20240, _SPLIT_STREAM[split]])
+    excluded = [fixed_init_states(task_id, seed=seed)]
+    if split == "heldout":
+        excluded.append(_split_stream(task_id, "train", TRAIN_RESERVE, seed))
+    excluded = np.concatenate(excluded)
+    states = []
+    while len(states) < count:
+        state = init_qpos(task_id, rng.random(NUM_DRAWS))
+        if not coinciding(state[None], excluded)[0]:
+            states.append(state)
+    out = np.stack(states)
+    out.setflags(write=False)
+    return out
+
+
+def split_init_states(task_id: int, split: str, count: int, *, start: int = 0, seed: int = 0) -> np.ndarray:
+    """Initial states ``start .. start + count - 1`` of a split: (count, nq) float32.
+
+    Args:
+      task_id: 0-9.
+      split: ``eval`` (the 50 fixed states, ``fixed_init_states``), ``train`` or ``heldout``.
+      count, start: which states of the split's stream.
+      seed: the seed of all three splits (``SimConfig.init_seed``).
+
+    Raises:
+      ValueError: unknown split, ``eval`` past its 50 states, ``heldout`` past ``TRAIN_RESERVE``
+        or ``train`` states past ``TRAIN_RESERVE`` (held-out ones are only checked against those).
+    """
+    if split not in INIT_SPLITS:
+        raise ValueError(f"init split must be one of {INIT_SPLITS}, got {split!r}")
+    if start < 0 or count < 0:
+        raise ValueError(f"init states: start and count must be >= 0, got {start}, {count}")
+    if split == "eval":
+        if start + count > NUM_INIT_STATES:
+            raise ValueError(f"the eval split has {NUM_INIT_STATES} states per task; asked for {start}..{start + count - 1}")
+        return fixed_init_states(task_id, seed=seed)[start:start + count]
+    if start + count > TRAIN_RESERVE:
+        raise ValueError(f"the {split} split is checked for {TRAIN_RESERVE} states per task; asked for "
+                         f"{start}..{start + count - 1}")
+    return np.array(_split_stream(task_id, split, start + count, seed)[start:])
 
 
 def success(bowl_pos: Any, bowl_zaxis_z: Any, plate_pos: Any, *, xp: Any = np) -> Any:

@@ -1,13 +1,20 @@
 """Expert demonstrations in LIBERO's HDF5 layout (+ depth and segmentation).
 
     python -m train.gen_data --task 0|all --episodes N --out FILE.hdf5 \\
+        [--init-split train|eval|heldout] [--init-start 0] [--init-seed 0] \\
         [--backend cpu|mjx] [--resolution 128] [--noise 0.0] [--seed 0] \\
         [--renderer jax|gl] [--max-steps 220] [--no-wrist] [--overwrite]
 
-``--episodes`` is per task. Episode ``i`` of task ``k`` starts from the task's fixed initial
-state ``(seed + i) % 50``; the expert's action noise is seeded by ``(seed, k, i)``. The CPU
-backend runs MuJoCo's C engine one episode at a time; the MJX backend rolls all episodes of
-a task out at once in one jitted ``lax.scan`` (vmapped), rendering inside it.
+``--episodes`` is per task. Episode ``i`` of task ``k`` starts from initial state
+``init_start + i`` of the task's ``--init-split`` (``sim.tasks.split_init_states``): ``train``
+(default; demonstrations and world-model training) and ``heldout`` (world-model evaluation)
+are seeded streams checked disjoint from ``eval``, the 50 fixed states policies are evaluated
+on (as in LIBERO, demonstrations never start from an evaluation state). Each demo records its
+``init_split`` / ``init_state_id``. The expert's action noise is seeded by ``(seed, k, i)``
+and applied DART style: the noisy action is executed (``executed_actions``), the clean one is
+the label (``actions``). The CPU backend runs MuJoCo's C engine one episode at a time; the MJX
+backend rolls all episodes of a task out at once in one jitted ``lax.scan`` (vmapped),
+rendering inside it.
 
 Rendering (``--renderer``): ``jax`` is the ray-cast renderer of ``sim/render.py`` (the only
 one on the MJX backend); ``gl`` is MuJoCo's OpenGL renderer through ``sim/render_gl.py``
@@ -59,6 +66,9 @@ class GenDataConfig:
     max_steps: int = 220
     wrist_camera: bool = True
     overwrite: bool = False
+    init_split: str = "train"
+    init_start: int = 0
+    init_seed: int = 0
 
     def validate(self) -> None:
         if not self.tasks or any(not 0 <= t <= 9 for t in self.tasks):
@@ -77,18 +87,35 @@ class GenDataConfig:
             raise ValueError("renderer=gl needs backend=cpu (MuJoCo's OpenGL renderer reads MjData)")
         if self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        from sim import tasks
+
+        if self.init_split not in tasks.INIT_SPLITS:
+            raise ValueError(f"init_split must be one of {tasks.INIT_SPLITS}, got {self.init_split!r}")
+        limit = tasks.NUM_INIT_STATES if self.init_split == "eval" else tasks.TRAIN_RESERVE
+        if self.init_start < 0 or self.init_start + self.episodes > limit:
+            raise ValueError(f"init states {self.init_start}..{self.init_start + self.episodes - 1} are outside the "
+                             f"{self.init_split} split's {limit} per task")
         if not self.out.endswith((".hdf5", ".h5")):
             raise ValueError(f"out must be an .hdf5/.h5 file, got {self.out!r}")
         if os.path.exists(self.out) and not self.overwrite:
             raise FileExistsError(f"{self.out} exists; pass --overwrite to replace it")
 
 
-def config_from_sim(sim_config: Any, out: str, *, seed: int = 0, overwrite: bool = False) -> GenDataConfig:
+def config_from_sim(sim_config: Any, out: str, *, seed: int = 0, overwrite: bool = False,
+                    init_split: str = "train") -> GenDataConfig:
     """The ``GenDataConfig`` of an experiment's ``sim`` section (``SimConfig``)."""
     return GenDataConfig(out=out, tasks=tuple(sim_config.tasks), episodes=sim_config.episodes_per_task,
                          backend=sim_config.backend, resolution=sim_config.resolution,
                          noise=sim_config.expert_noise, seed=seed, max_steps=sim_config.max_steps,
-                         wrist_camera=True, overwrite=overwrite)
+                         wrist_camera=True, overwrite=overwrite, init_split=init_split,
+                         init_seed=sim_config.init_seed)
+
+
+def init_states(cfg: GenDataConfig, task: int) -> np.ndarray:
+    """(episodes, nq) initial states of ``task``'s episodes: ``init_start ..`` of ``cfg.init_split``."""
+    from sim import tasks
+
+    return tasks.split_init_states(task, cfg.init_split, cfg.episodes, start=cfg.init_start, seed=cfg.init_seed)
 
 
 def _flat_state(data: Any) -> np.ndarray:
@@ -130,13 +157,11 @@ class _GLFrames:
 
 def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqdm):
     from sim import expert
-    from sim.dataset import Episode
 
     xml = _model_xml(env)
-    for i in range(cfg.episodes):
-        init_id = (cfg.seed + i) % len(env.init_states)
+    for i, qpos in enumerate(init_states(cfg, task)):
         rng = np.random.default_rng([cfg.seed, task, i])
-        out = expert.rollout_cpu(env, env.init_states[init_id], cfg=expert.ExpertConfig(noise=cfg.noise),
+        out = expert.rollout_cpu(env, qpos, cfg=expert.ExpertConfig(noise=cfg.noise),
                                  rng=rng, max_steps=cfg.max_steps, record=True)
         states = out["states"]
         if len(out["actions"]) == 0:  # solved at reset: nothing to learn from
@@ -147,17 +172,30 @@ def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqd
         wrist = frames(seen, "eye_in_hand")["rgb"] if cfg.wrist_camera else None
         proprio = np.stack([np.asarray(s.obs["proprio"]) for s in states[:-1]])
         after = np.asarray([float(s.done) for s in states[1:]])
-        dones = after.copy()
-        dones[-1] = 1.0
         flat = np.stack([_flat_state(d) for d in seen])
-        yield Episode(
-            actions=np.asarray(out["actions"], np.float64), states=flat, rewards=after, dones=dones,
-            agentview_rgb=agent["rgb"], agentview_depth=agent["depth"], agentview_seg=agent["seg"],
-            eye_in_hand_rgb=wrist, ee_states=proprio[:, :6], gripper_states=proprio[:, 6:8],
-            joint_states=np.stack([np.asarray(d.qpos[:7]) for d in seen]), init_state=flat[0],
-            model_file=xml, task_id=task, language_instruction=env.language,
-        ), bool(out["success"])
+        yield _episode(cfg, task, i, env, xml, actions=out["actions"], executed=out["executed"], after=after,
+                       flat=flat, agent=agent, wrist=wrist, proprio=proprio,
+                       joints=np.stack([np.asarray(d.qpos[:7]) for d in seen])), bool(out["success"])
         bar.update(1)
+
+
+def _episode(cfg: GenDataConfig, task: int, index: int, env: Any, xml: str, *, actions: np.ndarray,
+             executed: np.ndarray, after: np.ndarray, flat: np.ndarray, agent: dict[str, np.ndarray],
+             wrist: np.ndarray | None, proprio: np.ndarray, joints: np.ndarray) -> Any:
+    """One ``Episode`` from the recorded arrays (T steps; ``after[t]`` = success after action t)."""
+    from sim.dataset import Episode
+
+    dones = after.astype(np.float64)
+    dones[-1] = 1.0
+    hits = np.flatnonzero(after > 0)
+    return Episode(
+        actions=np.asarray(actions, np.float64), states=flat.astype(np.float64), rewards=after.astype(np.float64),
+        dones=dones, agentview_rgb=agent["rgb"], agentview_depth=agent["depth"], agentview_seg=agent["seg"],
+        eye_in_hand_rgb=wrist, ee_states=proprio[:, :6], gripper_states=proprio[:, 6:8], joint_states=joints,
+        init_state=flat[0].astype(np.float64), model_file=xml, task_id=task, language_instruction=env.language,
+        executed_actions=np.asarray(executed, np.float64), init_split=cfg.init_split,
+        init_state_id=cfg.init_start + index, first_success=int(hits[0]) if hits.size else -1,
+    )
 
 
 def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm):
@@ -165,7 +203,6 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
     import jax.numpy as jnp
 
     from sim import expert, render
-    from sim.dataset import Episode
 
     xml = _model_xml(env)
     init_fn, act_fn = expert.jax_policy(env, expert.ExpertConfig(noise=cfg.noise))
@@ -179,11 +216,12 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
 
         def body(carry, step_key):
             state, est = carry
-            action, est = act_fn(state, est, step_key)
+            action, label, est = act_fn(state, est, step_key)
             frame = agent_view(state.data)
             data = state.data
             record = {
-                "actions": action, "rgb": frame.rgb, "depth": frame.depth, "seg": frame.seg.astype(jnp.uint8),
+                "actions": label, "executed": action, "rgb": frame.rgb, "depth": frame.depth,
+                "seg": frame.seg.astype(jnp.uint8),
                 "wrist": wrist_view(data).rgb if cfg.wrist_camera else jnp.zeros((1,), jnp.uint8),
                 "proprio": state.obs["proprio"], "joints": data.qpos[:7],
                 "flat": jnp.concatenate([jnp.reshape(data.time, (1,)), data.qpos, data.qvel]).astype(jnp.float32),
@@ -196,8 +234,7 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
         return records
 
     root = jax.random.fold_in(jax.random.key(cfg.seed), task)
-    ids = [(cfg.seed + i) % len(env.init_states) for i in range(cfg.episodes)]
-    qpos = jnp.asarray(np.asarray(env.init_states)[ids], jnp.float32)
+    qpos = jnp.asarray(init_states(cfg, task), jnp.float32)
     keys = jax.random.split(root, cfg.episodes)
     with jax.numpy_dtype_promotion("standard"):  # MJX relies on implicit promotion
         records = jax.device_get(jax.jit(jax.vmap(rollout))(qpos, keys))
@@ -205,17 +242,11 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
         done = np.asarray(records["done"][i]) > 0
         length = int(np.argmax(done)) + 1 if done.any() else cfg.max_steps
         take = {k: np.asarray(v[i][:length]) for k, v in records.items()}
-        dones = take["done"].astype(np.float64)
-        dones[-1] = 1.0
-        yield Episode(
-            actions=take["actions"].astype(np.float64), states=take["flat"].astype(np.float64),
-            rewards=take["done"].astype(np.float64), dones=dones,
-            agentview_rgb=take["rgb"], agentview_depth=take["depth"], agentview_seg=take["seg"],
-            eye_in_hand_rgb=take["wrist"] if cfg.wrist_camera else None,
-            ee_states=take["proprio"][:, :6], gripper_states=take["proprio"][:, 6:8], joint_states=take["joints"],
-            init_state=take["flat"][0].astype(np.float64), model_file=xml, task_id=task,
-            language_instruction=env.language,
-        ), bool(done.any())
+        yield _episode(cfg, task, i, env, xml, actions=take["actions"], executed=take["executed"],
+                       after=take["done"].astype(np.float64), flat=take["flat"],
+                       agent={k: take[k] for k in ("rgb", "depth", "seg")},
+                       wrist=take["wrist"] if cfg.wrist_camera else None, proprio=take["proprio"],
+                       joints=take["joints"]), bool(done.any())
         bar.update(1)
 
 
@@ -247,7 +278,8 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
     env_kwargs = {"tasks": list(cfg.tasks), "backend": cfg.backend, "camera_heights": cfg.resolution,
                   "camera_widths": cfg.resolution, "camera_names": ["agentview", "eye_in_hand"],
                   "control_freq": 20, "max_steps": cfg.max_steps, "expert_noise": cfg.noise, "seed": cfg.seed,
-                  "renderer": renderer}
+                  "renderer": renderer, "init_split": cfg.init_split, "init_start": cfg.init_start,
+                  "init_seed": cfg.init_seed}
     info = DatasetInfo(
         env_name=sim.GYM_ID,
         env_args={"type": 1, "env_name": sim.GYM_ID, "problem_name": problem, "bddl_file": "",
@@ -296,6 +328,10 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
     parser.add_argument("--max-steps", type=int, default=220)
     parser.add_argument("--no-wrist", action="store_true", help="skip the eye_in_hand camera")
     parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument("--init-split", choices=("train", "eval", "heldout"), default="train",
+                        help="initial states: train (demos), heldout (world-model evaluation) or eval (the 50 fixed)")
+    parser.add_argument("--init-start", type=int, default=0, help="first initial state of the split")
+    parser.add_argument("--init-seed", type=int, default=0, help="seed of the initial-state splits")
     args = parser.parse_args(argv)
     if args.task == "all":
         task_ids = tuple(range(10))
@@ -306,7 +342,8 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
             parser.error(f"--task must be 0-9, a comma list or 'all', got {args.task!r}")
     return GenDataConfig(out=args.out, tasks=task_ids, episodes=args.episodes, backend=args.backend,
                          resolution=args.resolution, noise=args.noise, seed=args.seed, renderer=args.renderer,
-                         max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite)
+                         max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite,
+                         init_split=args.init_split, init_start=args.init_start, init_seed=args.init_seed)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -26,24 +26,9 @@ from train.stagerunner import Context, Stage
 
 
 def stage_data(ctx: Context) -> dict:
-    from train import gen_data
+    from train import pipeline_data
 
-    cfg = ctx.cfg
-    results = {}
-    for split, seed, per_task in (("train", cfg.seed, cfg.sim.episodes_per_task),
-                                  ("heldout", cfg.seed + 25, max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks))))):
-        path = ctx.path("data", f"{split}.hdf5")
-        gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
-                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise, seed=seed,
-                                     max_steps=cfg.sim.max_steps, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
-                                     renderer="jax")  # one look on every backend (and no GL context per process)
-        gen_data.generate(gen, progress=ctx.is_main)
-        from sim.dataset import read_dataset
-
-        _, episodes = read_dataset(path)
-        success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
-        results[split] = {"path": path, "episodes": len(episodes), "success_rate": success}
-    return results
+    return pipeline_data.generate_expert_data(ctx)
 
 
 def stage_vae(ctx: Context) -> dict:

@@ -18,6 +18,44 @@ import numpy as np
 from train.stagerunner import Context
 
 
+def generate_expert_data(ctx: Context) -> dict:
+    """Expert episodes for training (``train`` initial states) and evaluation (``heldout`` ones).
+
+    The two files' initial states are checked disjoint (and both are disjoint from the policy's 50
+    evaluation states per task by construction of ``sim.tasks.split_init_states``).
+    """
+    from sim import tasks
+    from sim.dataset import read_dataset
+    from train import gen_data
+
+    cfg = ctx.cfg
+    results, init = {}, {}
+    for split, seed, per_task in (("train", cfg.seed, cfg.sim.episodes_per_task),
+                                  ("heldout", cfg.seed + 25, max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks))))):
+        path = ctx.path("data", f"{split}.hdf5")
+        gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
+                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise, seed=seed,
+                                     max_steps=cfg.sim.max_steps, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
+                                     renderer="jax",  # one look on every backend (and no GL context per process)
+                                     init_split=split, init_seed=cfg.sim.init_seed)
+        gen_data.generate(gen, progress=ctx.is_main)
+        _, episodes = read_dataset(path)
+        init[split] = {task: start_qpos(episodes, task) for task in cfg.sim.tasks}
+        success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
+        results[split] = {"path": path, "episodes": len(episodes), "success_rate": success}
+    for task in cfg.sim.tasks:
+        tasks.assert_disjoint(init["heldout"][task], init["train"][task], f"task {task}: held-out vs training episodes")
+    return results
+
+
+def start_qpos(episodes, task: int) -> np.ndarray:
+    """(N, nq) qpos of the initial states (after settling) of ``task``'s episodes."""
+    from sim import scene
+
+    nq = scene.build_model().nq
+    return np.asarray([e.init_state[1:1 + nq] for e in episodes if e.task_id == task], np.float64).reshape(-1, nq)
+
+
 def fixed_length(episodes, num_frames: int) -> list:
     """Episodes with exactly ``num_frames`` steps (longer ones cut, shorter ones hold their last state)."""
     import dataclasses
