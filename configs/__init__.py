@@ -11,7 +11,7 @@ import importlib
 from collections.abc import Sequence
 
 from configs.base import ExperimentConfig
-from configs.cli import ConfigError, apply_overrides, to_dict
+from configs.cli import ArgumentParser, ConfigError, apply_overrides, format_config, to_dict
 
 EXPERIMENTS = ("sword", "cache_ablation")
 DEFAULT = "sword:tiny"
@@ -30,14 +30,25 @@ def get(name: str = DEFAULT) -> ExperimentConfig:
     return cfg.validate()
 
 
+def variants() -> dict[str, tuple[str, ...]]:
+    """Each experiment's variant names, for help texts."""
+    out = {}
+    for experiment in EXPERIMENTS:
+        module = importlib.import_module(f"configs.{experiment}")
+        out[experiment] = tuple(module.VARIANTS)
+    return out
+
+
 def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentConfig, list[str]]:
     """Parses ``--config NAME`` and dotted overrides; returns (config, remaining non-config args).
 
     Arguments that do not start with a config section name are returned untouched so entry
-    points can read their own flags.
+    points can read their own flags. ``--print-config`` prints the resolved config (every
+    dotted key with its value) and exits with status 0, as ``--help`` does.
     """
     argv = list(argv)
     name = default
+    print_config = False
     rest: list[str] = []
     overrides: list[str] = []
     fields = ExperimentConfig.__dataclass_fields__
@@ -54,6 +65,9 @@ def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentCo
             name = arg.split("=", 1)[1]
             index += 1
             continue
+        if arg == "--print-config":
+            print_config, index = True, index + 1
+            continue
         key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
         # "--model.dim=8" and "--seed 3" are config overrides; a bare "--model X" is an entry point's own flag.
         if ("." in key and key.split(".")[0] in sections) or key in scalars:
@@ -68,7 +82,17 @@ def from_argv(argv: Sequence[str], default: str = DEFAULT) -> tuple[ExperimentCo
             rest.append(arg)
         index += 1
     cfg = apply_overrides(get(name), overrides)
-    return cfg.validate(), rest
+    try:
+        cfg = cfg.validate()
+    except ConfigError:
+        raise
+    except ValueError as err:  # an impossible setting given on the command line is a usage error
+        raise ConfigError(str(err)) from None
+    if print_config:
+        print(format_config(cfg, name))
+        raise SystemExit(0)
+    return cfg, rest
 
 
-__all__ = ["ExperimentConfig", "ConfigError", "get", "from_argv", "apply_overrides", "to_dict"]
+__all__ = ["ExperimentConfig", "ArgumentParser", "ConfigError", "get", "from_argv", "apply_overrides",
+           "format_config", "to_dict", "variants"]

@@ -17,6 +17,7 @@ SCHEDULES = ("linear", "warmup_cosine")
 REPLACEMENTS = ("direct", "ema")
 SCOPES = ("single", "all")
 DESIGNS = tuple("-".join(c) for c in itertools.product(SCHEDULES, REPLACEMENTS, SCOPES))
+VARIANTS = (*DESIGNS, "tf", "wovr")  # the eight DLB designs and the two teacher-forcing baselines
 
 
 def _design(base: ExperimentConfig, design: str) -> ExperimentConfig:
@@ -37,6 +38,6 @@ def _design(base: ExperimentConfig, design: str) -> ExperimentConfig:
 
 def get(variant: str = "linear-direct-all") -> ExperimentConfig:
     size, _, design = variant.partition("-") if variant.startswith(("small-", "tiny-", "paper-")) else ("tiny", "", variant)
-    if design not in DESIGNS + ("tf", "wovr"):
-        raise KeyError(f"cache_ablation: unknown variant {variant!r}; designs: {', '.join(DESIGNS + ('tf', 'wovr'))}")
+    if design not in VARIANTS:
+        raise KeyError(f"cache_ablation: unknown variant {variant!r}; designs: {', '.join(VARIANTS)}")
     return _design(sword.get(size), design)

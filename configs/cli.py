@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import typing
 from collections.abc import Sequence
 from typing import Any
 
+from sword_jax.cli import ArgumentParser as _BaseParser
+from sword_jax.cli import UsageError
 
-class ConfigError(ValueError):
-    """A bad config key or value; the message names the key."""
+
+class ConfigError(UsageError):
+    """A bad config key or value; the message names the key (a usage error: exit status 2)."""
 
 
 def _field_types(cls: type) -> dict[str, Any]:
@@ -109,3 +113,63 @@ def _set_checked(cfg: Any, key: str, value: str) -> Any:
 def to_dict(cfg: Any) -> dict[str, Any]:
     """A JSON-friendly dict of a config (for logging and checkpoints)."""
     return json.loads(json.dumps(dataclasses.asdict(cfg), default=list))
+
+
+def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:
+    """Every leaf of a config as ``{"section.key": value}``, in field order."""
+    out: dict[str, Any] = {}
+    for field in dataclasses.fields(cfg):
+        value = getattr(cfg, field.name)
+        if dataclasses.is_dataclass(value):
+            out.update(flatten(value, f"{prefix}{field.name}."))
+        else:
+            out[prefix + field.name] = value
+    return out
+
+
+def _format_value(value: Any) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, tuple):
+        if all(isinstance(v, (int, float, str)) and not isinstance(v, bool) for v in value):
+            return ",".join(str(v) for v in value)
+        return json.dumps(value, default=list)
+    return str(value)
+
+
+def format_config(cfg: Any, name: str = "") -> str:
+    """The config as ``--key=value`` lines that can be pasted back on a command line."""
+    lines = [f"# {name}" if name else f"# {getattr(cfg, 'name', type(cfg).__name__)}"]
+    lines += [f"--{key}={_format_value(value)}" for key, value in flatten(cfg).items()]
+    return "\n".join(lines)
+
+
+def config_help(experiments: dict[str, Sequence[str]], default: str) -> str:
+    """The ``--config`` help: ``sword:tiny|small|paper, cache_ablation:...``."""
+    return ("experiment config NAME:VARIANT, one of " + "; ".join(
+        f"{name}:{'|'.join(variants)}" for name, variants in experiments.items()) + f" (default {default}); "
+        "a cache_ablation design takes a size prefix, e.g. cache_ablation:small-tf")
+
+
+class ArgumentParser(_BaseParser):
+    """An entry point's parser that also documents the experiment config in ``--help``.
+
+    ``configs.from_argv`` consumes ``--config``, ``--print-config`` and the dotted overrides
+    before this parser sees the rest; the arguments here are for ``--help``.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        import configs
+
+        super().__init__(*args, **kwargs)
+        group = self.add_argument_group(
+            "configuration", "Any config key can be set as --SECTION.KEY=VALUE, e.g. --model.num_layers=4 "
+                             "--trainer.steps=100; --print-config lists every key with its value.")
+        group.add_argument("--config", metavar="NAME:VARIANT", default=argparse.SUPPRESS,
+                           help=config_help(configs.variants(), configs.DEFAULT))
+        group.add_argument("--workdir", metavar="DIR", default=argparse.SUPPRESS,
+                           help="where checkpoints, metrics and results go (the config's workdir)")
+        group.add_argument("--print-config", action="store_true", default=argparse.SUPPRESS,
+                           help="print every config key (--section.key=value, after overrides) and exit")

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sim.dataset import read_dataset
+from sword_jax.cli import UsageError
 from train import gen_data
 
 
@@ -40,7 +41,7 @@ def test_gen_data_config_errors(tmp_path):
         gen_data.GenDataConfig(out=str(tmp_path / "a.hdf5"), backend="mjx", renderer="gl").validate()
     with pytest.raises(ValueError, match="hdf5"):
         gen_data.GenDataConfig(out=str(tmp_path / "a.txt")).validate()
-    with pytest.raises(SystemExit):
+    with pytest.raises(UsageError, match="--task"):
         gen_data.main(["--task", "seven", "--out", str(tmp_path / "a.hdf5")])
 
 

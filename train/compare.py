@@ -23,13 +23,14 @@ comparison 3 stop after the evaluation. ``--no-share`` makes every run from scra
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
 from collections.abc import Sequence
 
 import numpy as np
+
+from sword_jax.cli import ArgumentParser, UsageError
 
 METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim")  # psnr / ssim need no network weights
 
@@ -160,7 +161,8 @@ def _needs_policy(run: str) -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0],
+                            epilog="Any other --SECTION.KEY=VALUE is a config override applied to every run.")
     parser.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--out", default="runs/compare")
@@ -170,7 +172,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args, overrides = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
     bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
     if bad:
-        raise SystemExit(f"train.compare: not a dotted config override (--section.key=value): {bad}")
+        raise UsageError(f"not a dotted config override (--section.key=value): {bad}")
     seeds = [int(s) for s in args.seeds.split(",")]
     import time
 
@@ -181,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.runs:
         missing = sorted(set(args.runs.split(",")) - set(runs))
         if missing:
-            raise SystemExit(f"train.compare: unknown runs {missing}; known: {sorted(runs)}")
+            raise UsageError(f"unknown runs {missing}; known: {sorted(runs)}")
         runs = {name: runs[name] for name in args.runs.split(",")}
     results: dict[str, list[dict]] = {}
     timings: dict[str, list[float]] = {}
@@ -207,4 +209,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

@@ -44,7 +44,7 @@ from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
 
 
 def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = configs.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="", help="report directory (default: eval.report_dir, else <workdir>/eval)")
     parser.add_argument("--model", action="append", default=[], metavar="NAME=WORKDIR")
     parser.add_argument("--episodes", action="append", default=[], metavar="SPLIT=PATH")
@@ -194,4 +194,6 @@ def main(argv: Sequence[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

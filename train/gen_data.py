@@ -29,7 +29,6 @@ the success after it, and the last step of every episode has ``dones = 1`` (as L
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import sys
@@ -37,6 +36,8 @@ from typing import Any
 
 import numpy as np
 from tqdm import tqdm
+
+from sword_jax.cli import ArgumentParser
 
 _CHUNK = 16  # frames per JAX render call (fixed, so there is one compile per camera)
 _SCENES: dict[tuple[str, float], Any] = {}  # one RenderScene per scene model: jit caches key on it
@@ -316,7 +317,7 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
 
 
 def _parse(argv: list[str] | None) -> GenDataConfig:
-    parser = argparse.ArgumentParser(prog="python -m train.gen_data", description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(prog="python -m train.gen_data", description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", default="0", help="task id 0-9, a comma list, or 'all'")
     parser.add_argument("--episodes", type=int, default=1, help="episodes per task")
     parser.add_argument("--out", required=True, help="output .hdf5 file")
@@ -340,10 +341,15 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
             task_ids = tuple(int(t) for t in args.task.split(","))
         except ValueError:
             parser.error(f"--task must be 0-9, a comma list or 'all', got {args.task!r}")
-    return GenDataConfig(out=args.out, tasks=task_ids, episodes=args.episodes, backend=args.backend,
-                         resolution=args.resolution, noise=args.noise, seed=args.seed, renderer=args.renderer,
-                         max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite,
-                         init_split=args.init_split, init_start=args.init_start, init_seed=args.init_seed)
+    cfg = GenDataConfig(out=args.out, tasks=task_ids, episodes=args.episodes, backend=args.backend,
+                        resolution=args.resolution, noise=args.noise, seed=args.seed, renderer=args.renderer,
+                        max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite,
+                        init_split=args.init_split, init_start=args.init_start, init_seed=args.init_seed)
+    try:
+        cfg.validate()
+    except ValueError as err:  # bad values are usage errors (exit 2)
+        parser.error(str(err))
+    return cfg
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -357,4 +363,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main, runtime_errors=(FileExistsError,))

@@ -85,7 +85,7 @@ def _world_model_setup(cfg, rl, args):
 
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--simulator", choices=("world_model", "toy"), default="world_model")
     parser.add_argument("--demos", action="append", default=[], help="demos whose frames are the start keyframes")
     parser.add_argument("--world-model", default="", help="world-model workdir (train_world_model)")
@@ -167,4 +167,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

@@ -14,7 +14,6 @@ finished stages stay, so a later run continues from there). Writes ``report.md``
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -121,7 +120,7 @@ def _first_logged(path: str, key: str):
 
 def main(argv: Sequence[str] | None = None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = configs.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--restart", action="store_true", help="discard finished stages of this work dir")
     parser.add_argument("--only", default="", help="comma-separated stages that may run now (others must be done)")
     parser.add_argument("--stop-after", default="", choices=["", *(s.name for s in STAGES)],
@@ -153,4 +152,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

@@ -30,7 +30,7 @@ from sword_jax.rl.sft import make_sft_step
 
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="fixed initial states per task to evaluate on")
     args = parser.parse_args(rest)
@@ -72,4 +72,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

@@ -26,7 +26,7 @@ from sword_jax.rl.reward_model import as_reward_model, build_detector, make_dete
 
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
     parser.add_argument("--holdout", type=float, default=0.2, help="fraction of episodes held out")
     args = parser.parse_args(rest)
@@ -71,4 +71,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

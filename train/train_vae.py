@@ -84,7 +84,7 @@ def load_vae(cfg: ExperimentConfig, path: str) -> tuple[nnx.GraphDef, nnx.State]
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = configs.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", action="append", default=[], help="LIBERO-layout HDF5 (repeatable)")
     parser.add_argument("--synthetic", action="store_true", help="train on moving-square videos")
     parser.add_argument("--clip-latents", type=int, default=2, help="k of the 1+4k-frame training clips")
@@ -143,4 +143,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from sword_jax.cli import run
+
+    run(main)

@@ -33,29 +33,17 @@ from sword_jax.dlb import cache as dlb_cache
 from sword_jax.world_model import checkpoint, data, train_state, train_step
 from train import distributed
 
-USAGE = "usage: python -m train.train_world_model --config NAME:VARIANT --workdir DIR [--synthetic] [--section.key=value ...]"
-
 
 class NonFiniteLoss(RuntimeError):
     """Raised when the loss or gradient became non-finite and ``trainer.on_nonfinite=stop``."""
 
 
 def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
+    parser = configs.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--synthetic", action="store_true", help="train on action-dependent synthetic latents")
     cfg, rest = configs.from_argv(argv)
-    workdir, synthetic, index = cfg.workdir, False, 0
-    while index < len(rest):
-        arg = rest[index]
-        if arg == "--workdir" and index + 1 < len(rest):
-            workdir, index = rest[index + 1], index + 2
-            continue
-        if arg.startswith("--workdir="):
-            workdir = arg.split("=", 1)[1]
-        elif arg == "--synthetic":
-            synthetic = True
-        else:
-            raise SystemExit(f"train_world_model: unknown argument {arg!r}\n{USAGE}")
-        index += 1
-    return cfg, workdir, synthetic
+    args = parser.parse_args(rest)
+    return cfg, cfg.workdir, args.synthetic
 
 
 def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
@@ -181,8 +169,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except NonFiniteLoss as err:
-        print(err, file=sys.stderr)
-        raise SystemExit(1) from None
+    from sword_jax.cli import run
+
+    run(main, runtime_errors=(NonFiniteLoss,))

@@ -12,7 +12,6 @@ structure-preservation scores against the original.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -20,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sword_jax import cli
 from sword_jax.augment.style import DEFAULT_CLASSES, TEXTURES, SegClasses, sample_styles
 from sword_jax.augment.structure import structure_scores
 from sword_jax.augment.synthetic import synthetic_episode
@@ -105,7 +105,7 @@ def build_gallery(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, help="PNG path")
     parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto")
     parser.add_argument("--size", type=int, default=128)
@@ -145,4 +145,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main)

@@ -13,7 +13,6 @@ JAX port in float32, prints the largest absolute and relative error per output a
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import importlib.util
 import math
@@ -22,6 +21,7 @@ import sys
 import traceback
 from collections.abc import Callable, Sequence
 
+from sword_jax import cli
 from sword_jax.convert import CaseResult
 
 
@@ -97,7 +97,7 @@ def verify(ref_dir: str, tol: float = 1e-4) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sword_jax.convert.wan22", description=__doc__.split("\n")[0])
+    parser = cli.ArgumentParser(prog="python -m sword_jax.convert.wan22", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     verify_parser = sub.add_parser("verify", help="run the reference cases of a directory through the JAX port")
     verify_parser.add_argument("dir", help="directory with *.safetensors weights and *.npz cases")
@@ -109,4 +109,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main)

@@ -9,7 +9,6 @@ Unknown networks in the manifest are reported and fail the run (nothing is silen
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -21,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from sword_jax import cli
 from sword_jax.convert import CaseResult
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.flolpips import flow_weighted_lpips
@@ -141,7 +141,7 @@ def run(directory: str) -> tuple[list[CaseResult], float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("directory", help="a reference directory holding manifest.json")
     args = parser.parse_args(argv)
     jax.config.update("jax_default_matmul_precision", "highest")
@@ -161,4 +161,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main)
