@@ -52,7 +52,8 @@ def test_entry_point_bad_arguments_give_one_line_and_status_2(module_name, capsy
 def test_entry_point_main_block_goes_through_run(module_name):
     """``python -m <module>`` must reach ``main`` through ``sword_jax.cli.run``."""
     path = os.path.join(ROOT, *module_name.split(".")) + ".py"
-    tree = ast.parse(open(path).read())
+    with open(path) as f:
+        tree = ast.parse(f.read())
     blocks = [node for node in tree.body if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test)]
     assert len(blocks) == 1
     calls = [ast.unparse(node.func) for node in ast.walk(blocks[0]) if isinstance(node, ast.Call)]

@@ -1,5 +1,6 @@
 """Entry point smoke test: train a few steps, resume exactly, stop cleanly on a non-finite loss."""
 
+import glob
 import json
 import os
 
@@ -36,6 +37,7 @@ def test_train_resume_equals_uninterrupted(tmp_path, capsys):
     assert np.asarray(b["cache"]["filled"]).any()
     rows = [json.loads(line) for line in open(os.path.join(split, "metrics.jsonl"))]
     assert [r["step"] for r in rows] == [1, 2, 3, 4]
+    assert glob.glob(os.path.join(split, "tensorboard", "events.out.tfevents.*"))  # both runs wrote events
     with pytest.raises(SystemExit, match="another config"):
         train_world_model.main(ARGS + ["--workdir", split, "--trainer.steps=5", "--trainer.learning_rate=0.5"])
 

@@ -118,7 +118,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
     batch_sharding = {"video": shd.batch_sharding(mesh, 5, cfg.mesh.rules)}
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,
-                                     jsonl_path=os.path.join(args.workdir, "metrics.jsonl"))
+                                     jsonl_path=os.path.join(args.workdir, "metrics.jsonl"),
+                                     tensorboard_dir=os.path.join(args.workdir, "tensorboard"))
     for step in range(start + 1, cfg.vae.train_steps + 1):
         rng = np.random.default_rng([cfg.seed, step])  # a pure function of the step: exact resume
         if videos is not None:
@@ -133,7 +134,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if step % cfg.trainer.checkpoint_every == 0 or step == cfg.vae.train_steps:
             logger.flush()
             ckpt.save(step, state, {"step": step})
-    logger.flush()
+    logger.close()
     ckpt.close()
     save_vae(final_path, graphdef, state.params, state.constants)
     last = logger.history[-1] if logger.history else {}

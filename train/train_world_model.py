@@ -8,7 +8,8 @@ Usage::
 The latent dataset comes from ``--data.path`` (``.npz``/``.h5`` with ``latents [E, L, h, w, c]`` and
 ``actions [E, 1 + 4(L-1), a]``) or, with ``--synthetic``, from action-dependent synthetic latents.
 The run auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position,
-RNG root, config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl``.
+RNG root, config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl`` and
+TensorBoard event files in ``<workdir>/tensorboard``.
 A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
 checkpoint stays, and the faulty step's update was never applied.
 """
@@ -135,7 +136,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
     root_key = shd.put(root_key, shd.replicated(mesh))
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every, first_step=start_step,
-                                     jsonl_path=os.path.join(workdir, "metrics.jsonl"))
+                                     jsonl_path=os.path.join(workdir, "metrics.jsonl"),
+                                     tensorboard_dir=os.path.join(workdir, "tensorboard"))
 
     def meta_for(step_done: int) -> dict:
         return {"step": step_done, "data_position": loader.position,
@@ -160,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                 logger.flush()
                 check_finite(step_done)
                 ckpt.save(step_done, state, meta_for(step_done))
-        logger.flush()
+        logger.close()
         check_finite(step_done)
     finally:
         ckpt.close()

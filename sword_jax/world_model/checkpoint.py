@@ -3,7 +3,8 @@
 :class:`Checkpointer` wraps an orbax ``CheckpointManager`` with two items per step: ``state`` (the
 train-state pytree, latent cache included, restored straight into its sharded layout) and ``meta``
 (JSON: data-iterator position, RNG root key data, config). :class:`MetricLogger` reads device
-metrics one log step late, so the host never waits on the step it just dispatched.
+metrics one log step late, so the host never waits on the step it just dispatched, and writes
+them to ``metrics.jsonl`` and TensorBoard event files.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from typing import Any, TextIO
 
 import jax
@@ -90,18 +92,40 @@ def _format(value: float) -> str:
     return f"{value:.4g}" if math.isfinite(value) else str(value)
 
 
+_TENSORBOARD_WARNED = False
+
+
+def _tensorboard_writer(logdir: str) -> Any | None:
+    """A ``tensorboardX.SummaryWriter`` for ``logdir``, or None (with one warning per process)."""
+    global _TENSORBOARD_WARNED
+    try:
+        from tensorboardX import SummaryWriter
+
+        return SummaryWriter(logdir)
+    except Exception as err:  # noqa: BLE001 - TensorBoard is optional: metrics.jsonl still has everything
+        if not _TENSORBOARD_WARNED:
+            _TENSORBOARD_WARNED = True
+            warnings.warn(f"no TensorBoard event files ({type(err).__name__}: {err}); metrics.jsonl is still "
+                          "written (pip install tensorboardX)", stacklevel=3)
+        return None
+
+
 class MetricLogger:
     """Logs scalar metrics one log step late, with progress and ETA (process 0 prints/writes).
 
     Call :meth:`push` after dispatching each step with that step's (device) metrics; on log steps
     they are kept, and fetched when the next step has been dispatched. :meth:`flush` fetches what
-    is pending (end of run, before checkpoints).
+    is pending (end of run, before checkpoints). Rows go to ``jsonl_path`` and, as scalars named
+    like the metrics, to TensorBoard event files in ``tensorboard_dir`` (skipped with a warning
+    when tensorboardX is missing).
     """
 
     def __init__(self, total_steps: int, log_every: int, *, jsonl_path: str | None = None,
-                 stream: TextIO | None = None, first_step: int = 0):
+                 tensorboard_dir: str | None = None, stream: TextIO | None = None, first_step: int = 0):
         self.total_steps, self.log_every = total_steps, log_every
         self.jsonl_path = jsonl_path if jax.process_index() == 0 else None
+        self.tensorboard_dir = tensorboard_dir if jax.process_index() == 0 else None
+        self._tensorboard: Any | None = None  # made at the first row, so a logger that logs nothing writes nothing
         self.stream = stream
         self.pending: tuple[int, dict[str, Any]] | None = None
         self.start_time = time.perf_counter()
@@ -133,4 +157,23 @@ class MetricLogger:
             if self.jsonl_path:
                 with open(self.jsonl_path, "a") as out:
                     out.write(json.dumps(row) + "\n")
+            if self.tensorboard_dir:
+                self._write_tensorboard(step, values)
         return row
+
+    def _write_tensorboard(self, step: int, values: dict[str, float]) -> None:
+        if self._tensorboard is None:
+            self._tensorboard = _tensorboard_writer(self.tensorboard_dir)
+            if self._tensorboard is None:
+                self.tensorboard_dir = None
+                return
+        for name, value in values.items():
+            self._tensorboard.add_scalar(name, value, step)
+        self._tensorboard.flush()  # readable while the run goes on
+
+    def close(self) -> None:
+        """Fetches what is pending and closes the event file."""
+        self.flush()
+        if self._tensorboard is not None:
+            self._tensorboard.close()
+            self._tensorboard = None
