@@ -13,7 +13,9 @@ class SimConfig:
     tasks: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9)
     max_steps: int = 220
     settle_steps: int = 10
-    expert_noise: float = 0.0
+    expert_noise: float = 0.1  # DART: the noisy action is executed, the clean one recorded
+    noisy_share: float = 0.5  # share of generated episodes with expert_noise (noisy ones can fail)
+    episode_steps: int = 0  # steps of a fixed-length data episode (the expert keeps moving); 0 = data.episode_frames
     wrist_camera: bool = False
     physics_dt: float = 0.005  # s; control_hz * physics_dt * substeps = 1 (10 substeps at 20 Hz)
     control_hz: float = 20.0
@@ -32,6 +34,9 @@ class SimConfig:
             raise ValueError(f"sim.max_steps must be > 0 and settle_steps >= 0, got {self.max_steps}, {self.settle_steps}")
         if not 0 <= self.expert_noise <= 1:
             raise ValueError(f"sim.expert_noise must be in [0, 1], got {self.expert_noise}")
+        if not 0 <= self.noisy_share <= 1 or self.episode_steps < 0:
+            raise ValueError(f"sim.noisy_share must be in [0, 1] and episode_steps >= 0, got "
+                             f"{self.noisy_share}, {self.episode_steps}")
         if not 0 < self.physics_dt <= 0.01:
             raise ValueError(f"sim.physics_dt must be in (0, 0.01], got {self.physics_dt}")
         substeps = 1.0 / (self.control_hz * self.physics_dt) if self.control_hz > 0 else 0.0

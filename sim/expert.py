@@ -1,7 +1,11 @@
 """Scripted expert: LIBERO-format actions that pick the target bowl and place it on the plate.
 
 A phase machine (approach, descend, grasp, lift, carry, place, release, retreat) driven by
-privileged state (tool-centre pose, bowl and plate poses). The gripper takes the bowl by its
+privileged state (tool-centre pose, bowl and plate poses). With ``ExpertConfig.cycle`` the
+expert keeps going after it succeeds (fixed-length world-model episodes with motion over the
+whole horizon): after the retreat it grasps the bowl again, carries it to a free spot on the
+table, places and releases it, retreats, brings it back to the plate, and so on, alternating
+between ``AWAY_SPOTS``. The gripper takes the bowl by its
 rim: fingers straddle the wall facing -y, the hand yawed to that wall's normal (the bowls
 are octagons of boxes). Position and rotation errors become actions by proportional control,
 clipped to [-1, 1]; the carry and place phases servo the *bowl's* measured centre onto the
@@ -31,6 +35,12 @@ _GRASP_HEIGHT = 0.028  # tool centre above the bowl's bottom while grasping
 _HOVER = 0.10  # pre-grasp height above the rim
 _CARRY_CLEARANCE = 0.10  # bowl bottom above the plate top while carrying
 _NOISE_BY_PHASE = (1.0, 0.2, 0.0, 1.0, 1.0, 0.2, 0.0, 1.0)
+# Free table spots (world xy) clear of the plate, ramekin, cookie box, cabinet, stove and every
+# task's distractor bowl, within the arm's reach; cycling visits them in turn.
+AWAY_SPOTS = ((-0.20, 0.13), (-0.12, -0.03))
+_CREEP = 0.006  # cycling: m per step the hand rises while the gripper finishes closing / opening
+_MIN_DESCENT_SPEED = 0.12  # cycling: |position action| floor while descending
+_STALL_STEPS = 100  # cycling: a phase that lasts this long gives up (retreat, then start over)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +51,7 @@ class ExpertConfig:
     max_speed: float = 0.7  # |position action| cap
     noise: float = 0.0  # std of Gaussian noise added to the motion part of the action
     grip_steps: int = 8  # control steps to close / open the gripper
+    cycle: bool = False  # after the retreat, start over: bowl to a table spot, back to the plate, ...
 
     def validate(self) -> None:
         if not 0 <= self.noise <= 1:
@@ -51,12 +62,15 @@ class ExpertConfig:
 
 @struct.dataclass
 class ExpertState:
-    """Per-episode memory: phase, steps spent in it, the grasp yaw, the lift height."""
+    """Per-episode memory: phase, steps spent in it, the grasp yaw, the lift height, where the
+    bowl goes (0 = the plate, k = ``AWAY_SPOTS[k - 1]``) and how many away trips were made."""
 
     phase: Any
     count: Any
     yaw: Any
     lift_z: Any
+    goal: Any
+    trips: Any
 
 
 def privileged(env: Any, data: Any) -> dict[str, Any]:
@@ -90,8 +104,9 @@ def init(priv: dict[str, Any], *, xp: Any = np) -> ExpertState:
     """Expert memory for a fresh episode."""
     dtype = priv["tcp_pos"].dtype
     lift_z = priv["bowl_pos"][2] + _GRASP_HEIGHT + _HOVER
-    return ExpertState(phase=xp.asarray(APPROACH, xp.int32), count=xp.asarray(0, xp.int32),
-                       yaw=xp.asarray(_grasp_yaw(priv, xp), dtype), lift_z=xp.asarray(lift_z, dtype))
+    zero = xp.asarray(0, xp.int32)
+    return ExpertState(phase=xp.asarray(APPROACH, xp.int32), count=zero, yaw=xp.asarray(_grasp_yaw(priv, xp), dtype),
+                       lift_z=xp.asarray(lift_z, dtype), goal=zero, trips=zero)
 
 
 def act(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: ExpertConfig = ExpertConfig(),
@@ -130,27 +145,37 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     normal_angle = est.yaw - np.pi / 2
     radial = xp.stack([xp.cos(normal_angle), xp.sin(normal_angle), xp.zeros_like(normal_angle)])
     grasp_xy = (bowl + _GRASP_RADIUS * radial)[:2]
-    bowl_on_plate_xy = tcp[:2] + (plate[:2] - bowl[:2])  # moves the bowl centre over the plate
     plate_top = plate[2] + scene.PLATE_TOP
-    carry_z = xp.clip(tcp[2] + (plate_top + _CARRY_CLEARANCE - bowl[2]), est.lift_z, est.lift_z + 0.1)
-    place_z = xp.maximum(tcp[2] + (plate_top + 0.002 - bowl[2]), scene.TABLE_TOP_Z + 0.02)
+    # Where the bowl goes: the plate (measured) or a table spot (fixed).
+    goal_xy = xp.concatenate([plate[None, :2], xp.asarray(AWAY_SPOTS, dtype)])[est.goal]
+    goal_top = xp.where(est.goal == 0, plate_top, scene.TABLE_TOP_Z).astype(dtype)
+    bowl_on_goal_xy = tcp[:2] + (goal_xy - bowl[:2])  # moves the bowl centre over the goal
+    carry_z = xp.clip(tcp[2] + (goal_top + _CARRY_CLEARANCE - bowl[2]), est.lift_z, est.lift_z + 0.1)
+    place_z = xp.maximum(tcp[2] + (goal_top + 0.002 - bowl[2]), scene.TABLE_TOP_Z + 0.02)
 
     def point(xy, z):
         return xp.concatenate([xy, xp.reshape(z, (1,))]).astype(dtype)
 
+    # Cycling keeps the picture moving while the gripper acts: once the fingers hold the wall
+    # (four steps) or have cleared it (two), the hand creeps upward.
+    gripping = est.phase == GRASP
+    creep = xp.where(est.count >= xp.where(gripping, 4, 2), _CREEP, xp.where(gripping & (est.count >= 2), _CREEP / 2, 0.0))
+    creep = xp.where(xp.asarray(cfg.cycle), creep, 0.0).astype(dtype)
+    hold = point(tcp[:2], tcp[2] + creep)
+
     targets = xp.stack([
         point(grasp_xy, bowl[2] + _GRASP_HEIGHT + _HOVER),  # approach
         point(grasp_xy, bowl[2] + _GRASP_HEIGHT),  # descend
-        tcp,  # grasp: hold still
+        hold,  # grasp: hold still (or creep up)
         point(tcp[:2], est.lift_z),  # lift
-        point(bowl_on_plate_xy, carry_z),  # carry
-        point(bowl_on_plate_xy, place_z),  # place
-        tcp,  # release
+        point(bowl_on_goal_xy, carry_z),  # carry
+        point(bowl_on_goal_xy, place_z),  # place
+        hold,  # release
         point(tcp[:2], plate_top + 0.2),  # retreat
     ])
     grip = xp.asarray([-1, -1, 1, 1, 1, 1, -1, -1], dtype)
     pos_err = targets[est.phase] - tcp
-    bowl_xy_err = xp.sqrt(xp.sum((plate[:2] - bowl[:2]) ** 2))
+    bowl_xy_err = xp.sqrt(xp.sum((goal_xy - bowl[:2]) ** 2))
     dist = xp.sqrt(xp.sum(pos_err * pos_err))
     rot_err = ctl.rotation_error(priv["tcp_mat"], _yaw_rot(est.yaw, xp) @ xp.asarray(_HOME_MAT, dtype), xp=xp)
     rot_ok = xp.sqrt(xp.sum(rot_err * rot_err)) < 0.05
@@ -160,11 +185,14 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
         est.count >= cfg.grip_steps,
         dist < 0.015,
         (bowl_xy_err < 0.008) & (xp.abs(pos_err[2]) < 0.02),
-        (bowl[2] - plate_top < 0.006) | (est.count >= 40),
+        (bowl[2] - goal_top < 0.006) | (est.count >= 40),
         est.count >= cfg.grip_steps,
-        xp.asarray(False),
+        xp.asarray(cfg.cycle) & (dist < 0.015),  # retreat: terminal unless cycling
     ])[est.phase]
     move = xp.clip(pos_err / 0.05 * cfg.gain, -cfg.max_speed, cfg.max_speed)
+    # Cycling: the descent ends at a minimum speed instead of creeping in exponentially.
+    floor = xp.where(xp.asarray(cfg.cycle) & (est.phase == DESCEND), _MIN_DESCENT_SPEED, 0.0)
+    move = move * xp.maximum(1.0, floor / xp.maximum(xp.sqrt(xp.sum(move * move)), 1e-6))
     turn = xp.clip(rot_err / 0.5 * cfg.gain, -1.0, 1.0)
     # Noise is for diverse demonstrations: full in the gross phases, damped where precision
     # matters (descend, place) and off while the gripper acts; rotation noise is smaller.
@@ -175,14 +203,22 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     grip_action = xp.reshape(grip[est.phase], (1,))
     clean = xp.concatenate([xp.clip(clean_motion, -1.0, 1.0), grip_action]).astype(dtype)
     executed = xp.concatenate([xp.clip(noisy_motion, -1.0, 1.0), grip_action]).astype(dtype)
-    phase = xp.where(done, xp.minimum(est.phase + 1, RETREAT), est.phase)
+    phase = xp.where(done, xp.where(est.phase == RETREAT, APPROACH, xp.minimum(est.phase + 1, RETREAT)), est.phase)
     # Lost the bowl while carrying or placing (it is no longer between the fingers): start over.
     held_offset = tcp - bowl
     lost = ((est.phase == CARRY) | (est.phase == PLACE)) & (
         (xp.sqrt(xp.sum(held_offset[:2] ** 2)) > 0.08) | (held_offset[2] > 0.07))
-    phase = xp.where(lost, APPROACH, phase).astype(xp.int32)
-    count = xp.where(done | lost, 0, est.count + 1).astype(xp.int32)
-    return executed, clean, est.replace(phase=phase, count=count)
+    phase = xp.where(lost, APPROACH, phase)
+    # Cycling never stands still: a phase that makes no progress gives up and retreats.
+    stalled = xp.asarray(cfg.cycle) & (est.count >= _STALL_STEPS) & ~done & ~lost
+    phase = xp.where(stalled, RETREAT, phase).astype(xp.int32)
+    count = xp.where(done | lost | stalled, 0, est.count + 1).astype(xp.int32)
+    # A finished trip (retreat done) sends the bowl elsewhere: plate -> a table spot -> plate -> the next spot.
+    trip_done = done & (est.phase == RETREAT)
+    next_goal = xp.where(est.goal == 0, 1 + est.trips % len(AWAY_SPOTS), 0)
+    goal = xp.where(trip_done, next_goal, est.goal).astype(xp.int32)
+    trips = xp.where(trip_done & (est.goal == 0), est.trips + 1, est.trips).astype(xp.int32)
+    return executed, clean, est.replace(phase=phase, count=count, goal=goal, trips=trips)
 
 
 def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(), rng: np.random.Generator | None = None,
@@ -228,18 +264,19 @@ def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(
 
 
 def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
-    """(init_fn(state) -> ExpertState, act_fn(state, est, key) -> (executed, clean, est)) for MJX.
+    """(init_fn(state) -> ExpertState, act_fn(state, est, key, noise_gain=1) -> (executed, clean, est)) for MJX.
 
-    Both are pure and vmappable (one env each); ``key`` drives the action noise. ``executed`` is
-    the noisy action to step with, ``clean`` the expert's label (DART).
+    Both are pure and vmappable (one env each); ``key`` drives the action noise (times
+    ``noise_gain``, 0 for a clean episode). ``executed`` is the noisy action to step with,
+    ``clean`` the expert's label (DART).
     """
     cfg.validate()
 
     def init_fn(state):
         return init(privileged(env, state.data), xp=jnp)
 
-    def act_fn(state, est, key):
-        noise = jax.random.normal(key, (6,), jnp.float32)
+    def act_fn(state, est, key, noise_gain=1.0):
+        noise = jax.random.normal(key, (6,), jnp.float32) * noise_gain
         return act_labelled(privileged(env, state.data), est, noise, cfg, xp=jnp)
 
     return init_fn, act_fn

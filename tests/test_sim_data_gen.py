@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sim.dataset import read_dataset
+from sim.dataset import Episode, read_dataset
 from sword_jax.cli import UsageError
 from train import gen_data
 
@@ -52,6 +52,9 @@ def test_config_from_sim_section(tmp_path):
                                    str(tmp_path / "d.hdf5"), seed=5)
     cfg.validate()
     assert cfg.tasks == (1, 4) and cfg.episodes == 3 and cfg.resolution == 64 and cfg.noise == 0.1 and cfg.seed == 5
+    assert cfg.stop_at_success and cfg.init_split == "train"
+    fixed = gen_data.config_from_sim(SimConfig(), str(tmp_path / "d.hdf5"), episode_steps=129, init_split="heldout")
+    assert not fixed.stop_at_success and fixed.max_steps == 129 and fixed.init_split == "heldout"
 
 
 def test_gen_data_gl_renderer_matches_jax_labels(tmp_path):
@@ -70,3 +73,48 @@ def test_gen_data_gl_renderer_matches_jax_labels(tmp_path):
     np.testing.assert_array_equal(gl.actions, jx.actions)
     assert np.mean(gl.agentview_seg == jx.agentview_seg) > 0.95
     assert np.median(np.abs(gl.agentview_depth - jx.agentview_depth)) < 1e-3
+
+
+def near_identical_share(frames: np.ndarray, threshold: float = 0.5) -> float:
+    """Share of consecutive frame pairs whose mean absolute difference is below ``threshold`` (of 255)."""
+    diff = np.abs(np.diff(frames.astype(np.float32), axis=0)).mean(axis=(1, 2, 3))
+    return float(np.mean(diff < threshold))
+
+
+def test_fixed_length_episodes_keep_moving_after_success(tmp_path):
+    """World-model data: 129 steps, the expert carries on after success, few near-identical frames."""
+    out = str(tmp_path / "wm.hdf5")
+    gen_data.main(["--task", "0", "--episodes", "1", "--out", out, "--resolution", "32", "--max-steps", "129",
+                   "--no-wrist"])
+    info, (ep,) = read_dataset(out)
+    assert ep.num_samples == 129 and not info.env_args["env_kwargs"]["stop_at_success"]
+    solved = np.flatnonzero(ep.rewards > 0)
+    assert solved.size and ep.first_success == solved[0] < 80
+    assert np.any(ep.rewards[ep.first_success:] == 0), "the bowl is moved on after success"
+    assert near_identical_share(ep.agentview_rgb) < 0.05
+    # The padded data this replaces (hold the last frame to 129) was mostly static.
+    padded = np.concatenate([ep.agentview_rgb[:ep.first_success + 1]] + [ep.agentview_rgb[ep.first_success:][:1]] *
+                            (128 - ep.first_success))
+    assert near_identical_share(padded) > 0.5
+
+
+def test_stop_at_success_demos_end_at_the_first_success(tmp_path):
+    out = str(tmp_path / "sft.hdf5")
+    gen_data.main(["--task", "2", "--episodes", "1", "--out", out, "--resolution", "16", "--max-steps", "120",
+                   "--stop-at-success", "--no-wrist", "--renderer", "jax"])
+    _, (ep,) = read_dataset(out)
+    assert ep.first_success == ep.num_samples - 1 and ep.rewards[-1] == 1 and ep.rewards[:-1].max() == 0
+
+
+def test_world_model_episodes_are_never_padded_and_use_executed_actions():
+    from train.pipeline_data import fixed_length
+
+    steps = 9
+    ep = Episode(actions=np.zeros((steps, 7)), states=np.zeros((steps, 5)), rewards=np.r_[np.zeros(6), np.ones(3)],
+                 dones=np.zeros(steps), agentview_rgb=np.zeros((steps, 4, 4, 3), np.uint8), ee_states=np.zeros((steps, 6)),
+                 gripper_states=np.zeros((steps, 2)), joint_states=np.zeros((steps, 7)),
+                 executed_actions=np.ones((steps, 7)), first_success=6)
+    (cut,) = fixed_length([ep], 5)
+    assert cut.num_samples == 5 and np.all(cut.actions == 1) and cut.first_success == -1
+    with pytest.raises(ValueError, match="padding"):
+        fixed_length([ep], 13)

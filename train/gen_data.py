@@ -1,9 +1,19 @@
 """Expert demonstrations in LIBERO's HDF5 layout (+ depth and segmentation).
 
     python -m train.gen_data --task 0|all --episodes N --out FILE.hdf5 \\
+        [--stop-at-success] [--max-steps 220] [--noise 0.0] [--noisy-share 1.0] \\
         [--init-split train|eval|heldout] [--init-start 0] [--init-seed 0] \\
-        [--backend cpu|mjx] [--resolution 128] [--noise 0.0] [--seed 0] \\
-        [--renderer jax|gl] [--max-steps 220] [--no-wrist] [--overwrite]
+        [--backend cpu|mjx] [--resolution 128] [--seed 0] [--renderer jax|gl] [--no-wrist] [--overwrite]
+
+Two kinds of episode:
+
+* fixed length (default; world-model data): every episode is exactly ``--max-steps`` steps and
+  the expert keeps moving after it succeeds (``sim.expert`` with ``cycle``: it grasps the bowl
+  again, moves it to a free table spot, back to the plate, ...), so there is motion over the
+  whole horizon and no padding. ``rewards[t]`` stays LIBERO's "task solved after action t"
+  (it drops back to 0 while the bowl is away); ``first_success`` records the first such t.
+* ``--stop-at-success`` (behaviour-cloning demos): as LIBERO, an episode ends at its first
+  success (or after ``--max-steps``).
 
 ``--episodes`` is per task. Episode ``i`` of task ``k`` starts from initial state
 ``init_start + i`` of the task's ``--init-split`` (``sim.tasks.split_init_states``): ``train``
@@ -12,7 +22,8 @@ are seeded streams checked disjoint from ``eval``, the 50 fixed states policies 
 on (as in LIBERO, demonstrations never start from an evaluation state). Each demo records its
 ``init_split`` / ``init_state_id``. The expert's action noise is seeded by ``(seed, k, i)``
 and applied DART style: the noisy action is executed (``executed_actions``), the clean one is
-the label (``actions``). The CPU backend runs MuJoCo's C engine one episode at a time; the MJX
+the label (``actions``); ``--noisy-share`` of the episodes (spread evenly) are noisy, the rest
+clean. Noisy rollouts can fail; failures are kept. The CPU backend runs MuJoCo's C engine one episode at a time; the MJX
 backend rolls all episodes of a task out at once in one jitted ``lax.scan`` (vmapped),
 rendering inside it.
 
@@ -67,6 +78,8 @@ class GenDataConfig:
     max_steps: int = 220
     wrist_camera: bool = True
     overwrite: bool = False
+    stop_at_success: bool = False
+    noisy_share: float = 1.0
     init_split: str = "train"
     init_start: int = 0
     init_seed: int = 0
@@ -82,6 +95,8 @@ class GenDataConfig:
             raise ValueError(f"resolution must be a positive multiple of 16, got {self.resolution}")
         if not 0 <= self.noise <= 1:
             raise ValueError(f"noise must be in [0, 1], got {self.noise}")
+        if not 0 <= self.noisy_share <= 1:
+            raise ValueError(f"noisy_share must be in [0, 1], got {self.noisy_share}")
         if self.renderer not in ("auto", "jax", "gl"):
             raise ValueError(f"renderer must be auto|jax|gl, got {self.renderer!r}")
         if self.renderer == "gl" and self.backend != "cpu":
@@ -103,13 +118,30 @@ class GenDataConfig:
 
 
 def config_from_sim(sim_config: Any, out: str, *, seed: int = 0, overwrite: bool = False,
-                    init_split: str = "train") -> GenDataConfig:
-    """The ``GenDataConfig`` of an experiment's ``sim`` section (``SimConfig``)."""
+                    init_split: str = "train", episode_steps: int | None = None) -> GenDataConfig:
+    """The ``GenDataConfig`` of an experiment's ``sim`` section (``SimConfig``).
+
+    With ``episode_steps`` (or ``sim_config.episode_steps`` > 0) episodes are fixed length;
+    otherwise they stop at success, at most ``sim_config.max_steps`` long.
+    """
+    steps = episode_steps or sim_config.episode_steps
     return GenDataConfig(out=out, tasks=tuple(sim_config.tasks), episodes=sim_config.episodes_per_task,
                          backend=sim_config.backend, resolution=sim_config.resolution,
-                         noise=sim_config.expert_noise, seed=seed, max_steps=sim_config.max_steps,
+                         noise=sim_config.expert_noise, noisy_share=sim_config.noisy_share, seed=seed,
+                         max_steps=steps or sim_config.max_steps, stop_at_success=not steps,
                          wrist_camera=True, overwrite=overwrite, init_split=init_split,
                          init_seed=sim_config.init_seed)
+
+
+def noisy(cfg: GenDataConfig, index: int) -> bool:
+    """Whether episode ``index`` (of each task) is a noisy one: ``noisy_share`` of them, spread evenly."""
+    return cfg.noise > 0 and int((index + 1) * cfg.noisy_share) > int(index * cfg.noisy_share)
+
+
+def expert_config(cfg: GenDataConfig) -> Any:
+    from sim import expert
+
+    return expert.ExpertConfig(noise=cfg.noise, cycle=not cfg.stop_at_success)
 
 
 def init_states(cfg: GenDataConfig, task: int) -> np.ndarray:
@@ -162,8 +194,10 @@ def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqd
     xml = _model_xml(env)
     for i, qpos in enumerate(init_states(cfg, task)):
         rng = np.random.default_rng([cfg.seed, task, i])
-        out = expert.rollout_cpu(env, qpos, cfg=expert.ExpertConfig(noise=cfg.noise),
-                                 rng=rng, max_steps=cfg.max_steps, record=True)
+        clean = not noisy(cfg, i)
+        out = expert.rollout_cpu(env, qpos, cfg=dataclasses.replace(expert_config(cfg), noise=0.0) if clean
+                                 else expert_config(cfg), rng=rng, max_steps=cfg.max_steps, record=True,
+                                 stop_at_success=cfg.stop_at_success)
         states = out["states"]
         if len(out["actions"]) == 0:  # solved at reset: nothing to learn from
             bar.update(1)
@@ -206,18 +240,18 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
     from sim import expert, render
 
     xml = _model_xml(env)
-    init_fn, act_fn = expert.jax_policy(env, expert.ExpertConfig(noise=cfg.noise))
+    init_fn, act_fn = expert.jax_policy(env, expert_config(cfg))
     res = cfg.resolution
     agent_view = render.make_renderer(scene, "agentview", height=res, width=res)
     wrist_view = render.make_renderer(scene, "eye_in_hand", height=res, width=res)
 
-    def rollout(qpos, key):
+    def rollout(qpos, key, noise_gain):
         state = env.reset_to(qpos)
         est = init_fn(state)
 
         def body(carry, step_key):
             state, est = carry
-            action, label, est = act_fn(state, est, step_key)
+            action, label, est = act_fn(state, est, step_key, noise_gain)
             frame = agent_view(state.data)
             data = state.data
             record = {
@@ -237,11 +271,12 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
     root = jax.random.fold_in(jax.random.key(cfg.seed), task)
     qpos = jnp.asarray(init_states(cfg, task), jnp.float32)
     keys = jax.random.split(root, cfg.episodes)
+    gains = jnp.asarray([float(noisy(cfg, i)) for i in range(cfg.episodes)], jnp.float32)
     with jax.numpy_dtype_promotion("standard"):  # MJX relies on implicit promotion
-        records = jax.device_get(jax.jit(jax.vmap(rollout))(qpos, keys))
+        records = jax.device_get(jax.jit(jax.vmap(rollout))(qpos, keys, gains))
     for i in range(cfg.episodes):
         done = np.asarray(records["done"][i]) > 0
-        length = int(np.argmax(done)) + 1 if done.any() else cfg.max_steps
+        length = int(np.argmax(done)) + 1 if done.any() and cfg.stop_at_success else cfg.max_steps
         take = {k: np.asarray(v[i][:length]) for k, v in records.items()}
         yield _episode(cfg, task, i, env, xml, actions=take["actions"], executed=take["executed"],
                        after=take["done"].astype(np.float64), flat=take["flat"],
@@ -279,7 +314,8 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
     env_kwargs = {"tasks": list(cfg.tasks), "backend": cfg.backend, "camera_heights": cfg.resolution,
                   "camera_widths": cfg.resolution, "camera_names": ["agentview", "eye_in_hand"],
                   "control_freq": 20, "max_steps": cfg.max_steps, "expert_noise": cfg.noise, "seed": cfg.seed,
-                  "renderer": renderer, "init_split": cfg.init_split, "init_start": cfg.init_start,
+                  "renderer": renderer, "stop_at_success": cfg.stop_at_success, "noisy_share": cfg.noisy_share,
+                  "init_split": cfg.init_split, "init_start": cfg.init_start,
                   "init_seed": cfg.init_seed}
     info = DatasetInfo(
         env_name=sim.GYM_ID,
@@ -326,7 +362,11 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
     parser.add_argument("--noise", type=float, default=0.0, help="expert action noise std (0-1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--renderer", choices=("auto", "jax", "gl"), default="auto")
-    parser.add_argument("--max-steps", type=int, default=220)
+    parser.add_argument("--max-steps", type=int, default=220,
+                        help="steps per episode (with --stop-at-success: at most)")
+    parser.add_argument("--stop-at-success", action="store_true",
+                        help="end each episode at its first success (behaviour-cloning demos)")
+    parser.add_argument("--noisy-share", type=float, default=1.0, help="share of episodes with --noise (0-1)")
     parser.add_argument("--no-wrist", action="store_true", help="skip the eye_in_hand camera")
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--init-split", choices=("train", "eval", "heldout"), default="train",
@@ -344,6 +384,7 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
     cfg = GenDataConfig(out=args.out, tasks=task_ids, episodes=args.episodes, backend=args.backend,
                         resolution=args.resolution, noise=args.noise, seed=args.seed, renderer=args.renderer,
                         max_steps=args.max_steps, wrist_camera=not args.no_wrist, overwrite=args.overwrite,
+                        stop_at_success=args.stop_at_success, noisy_share=args.noisy_share,
                         init_split=args.init_split, init_start=args.init_start, init_seed=args.init_seed)
     try:
         cfg.validate()

@@ -1,7 +1,7 @@
 """Pipeline glue between the simulator's episodes, the VAE, style augmentation and evaluation.
 
-Episodes are cut (or, when short, padded by holding the last frame with zero arm motion) to
-``data.episode_frames`` frames. Style augmentation is applied as pre-encoded styled copies: each
+Episodes are fixed length (the expert keeps moving after success) and cut to
+``data.episode_frames`` frames; shorter ones are refused, never padded. Style augmentation is applied as pre-encoded styled copies: each
 training episode is encoded raw plus ``augment.styled_copies`` times in training styles (see
 :mod:`sword_jax.augment.pipeline` for why copies rather than per-step augmentation). Held-out
 episodes make LIBERO-Original (raw) and LIBERO-Mixed (half in held-out styles).
@@ -18,8 +18,16 @@ import numpy as np
 from train.stagerunner import Context
 
 
+def episode_steps(cfg) -> int:
+    """Steps of the pipeline's fixed-length expert episodes (never fewer than the world model's frames)."""
+    return max(cfg.sim.episode_steps, cfg.data.episode_frames, cfg.eval.horizon_frames)
+
+
 def generate_expert_data(ctx: Context) -> dict:
-    """Expert episodes for training (``train`` initial states) and evaluation (``heldout`` ones).
+    """Fixed-length expert episodes for training (``train`` initial states) and evaluation (``heldout``).
+
+    The expert keeps moving after success, so world-model segments and scored windows hold no
+    padding; behaviour cloning reads the same file up to each demo's ``first_success``.
 
     The two files' initial states are checked disjoint (and both are disjoint from the policy's 50
     evaluation states per task by construction of ``sim.tasks.split_init_states``).
@@ -34,8 +42,9 @@ def generate_expert_data(ctx: Context) -> dict:
                                   ("heldout", cfg.seed + 25, max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks))))):
         path = ctx.path("data", f"{split}.hdf5")
         gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
-                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise, seed=seed,
-                                     max_steps=cfg.sim.max_steps, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
+                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
+                                     noisy_share=cfg.sim.noisy_share, seed=seed, max_steps=episode_steps(cfg),
+                                     stop_at_success=False, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
                                      renderer="jax",  # one look on every backend (and no GL context per process)
                                      init_split=split, init_seed=cfg.sim.init_seed)
         gen_data.generate(gen, progress=ctx.is_main)
@@ -57,30 +66,29 @@ def start_qpos(episodes, task: int) -> np.ndarray:
 
 
 def fixed_length(episodes, num_frames: int) -> list:
-    """Episodes with exactly ``num_frames`` steps (longer ones cut, shorter ones hold their last state)."""
+    """The first ``num_frames`` steps of every episode, with the executed actions as ``actions``.
+
+    World-model frames follow the actions that were executed (noisy ones for DART demos), so
+    those condition the world model. An episode shorter than ``num_frames`` raises: holding its
+    last frame would feed the world model padding (generate with ``sim.episode_steps``).
+    """
     import dataclasses
 
     out = []
     for episode in episodes:
-        steps = episode.num_samples
-        if steps >= num_frames:
-            cut = slice(0, num_frames)
-            out.append(dataclasses.replace(episode, **{
-                f.name: getattr(episode, f.name)[cut] for f in dataclasses.fields(episode)
-                if isinstance(getattr(episode, f.name), np.ndarray) and f.name != "init_state"}))
-            continue
-        pad = num_frames - steps
-        fields = {}
-        for f in dataclasses.fields(episode):
-            value = getattr(episode, f.name)
-            if not isinstance(value, np.ndarray) or f.name == "init_state":
-                continue
-            tail = np.repeat(value[-1:], pad, axis=0)
-            if f.name == "actions":
-                tail = np.zeros_like(tail)
-                tail[:, -1] = value[-1, -1]  # keep the gripper command, stop the arm
-            fields[f.name] = np.concatenate([value, tail])
-        out.append(dataclasses.replace(episode, **fields))
+        if episode.num_samples < num_frames:
+            raise ValueError(f"episode of task {episode.task_id} has {episode.num_samples} < {num_frames} steps: "
+                             "generate fixed-length episodes (train.gen_data without --stop-at-success, "
+                             "--max-steps >= data.episode_frames) instead of padding")
+        if episode.executed_actions is not None:
+            episode = dataclasses.replace(episode, actions=episode.executed_actions, executed_actions=None)
+        cut = slice(0, num_frames)
+        episode = dataclasses.replace(episode, **{
+            f.name: getattr(episode, f.name)[cut] for f in dataclasses.fields(episode)
+            if isinstance(getattr(episode, f.name), np.ndarray) and f.name != "init_state"})
+        if episode.first_success is not None and episode.first_success >= num_frames:
+            episode = dataclasses.replace(episode, first_success=-1)
+        out.append(episode)
     return out
 
 
