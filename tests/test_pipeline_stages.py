@@ -25,5 +25,7 @@ def test_stop_after_then_resume(tmp_path, monkeypatch):
 
 def test_policy_work_is_three_resumable_stages_before_the_report():
     names = [stage.name for stage in pipeline.STAGES]
-    assert names[-4:] == ["reward_model", "sft_policy", "policy", "report"]
+    assert names[-3:] == ["sft_policy", "policy", "report"]
     assert names.index("world_model") < names.index("policy")
+    # The probe and the success detector score action following inside the evaluation.
+    assert names.index("probe") < names.index("evaluate") and names.index("reward_model") < names.index("evaluate")

@@ -20,6 +20,12 @@ randomly initialised world model: a smoke run of the whole pipeline. Models: a w
 workdir (``<workdir>/checkpoints``, EMA params when present). VAE: ``--vae-checkpoint`` (an orbax
 checkpoint of the VAE's pure-dict state written by ``world_model.checkpoint.Checkpointer``) or a
 random initialisation, which the report then states.
+
+Action-following fidelity (optional): ``--probe PATH`` (``train.train_probe``'s ``probe.npz``) adds
+the probe's end-effector / bowl distance (cm) and gripper agreement between predicted and
+ground-truth frames against horizon, and its own floor where episodes carry the true state
+(HDF5, or npz with ``targets``); ``--reward-model DIR`` adds the success detector's agreement
+between imagined and real frames, and precision / recall against the episodes' ``rewards``.
 """
 
 from __future__ import annotations
@@ -51,6 +57,8 @@ def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
     parser.add_argument("--vae-checkpoint", default="")
     parser.add_argument("--synthetic", action="store_true")
     parser.add_argument("--metrics", default=",".join(ALL_METRICS))
+    parser.add_argument("--probe", default="", help="action-following probe (train.train_probe's probe.npz)")
+    parser.add_argument("--reward-model", default="", help="success detector (train.train_reward's reward_model dir)")
     cfg, rest = configs.from_argv(list(argv))
     return parser.parse_args(rest), cfg.validate()
 
@@ -80,10 +88,13 @@ def synthetic_split(cfg: ExperimentConfig, split: str, *, seed: int) -> dict[str
 
 
 def load_split(path: str, num_episodes: int) -> dict[str, np.ndarray]:
-    """Held-out episodes from HDF5 (LIBERO layout) or npz; frames in [0, 1]."""
+    """Held-out episodes from HDF5 (LIBERO layout) or npz; frames in [0, 1]; the true state
+    (``targets``, see :mod:`sword_jax.evaluation.probe`) and ``rewards`` where the file has them."""
+    truth = {}
     if path.endswith(".npz"):
         data = np.load(path)
         frames, actions = data["frames"][:num_episodes], data["actions"][:num_episodes]
+        truth = {k: data[k][:num_episodes] for k in ("targets", "rewards") if k in data.files}
     else:
         from sim.dataset import read_dataset
 
@@ -91,8 +102,12 @@ def load_split(path: str, num_episodes: int) -> dict[str, np.ndarray]:
         length = min(len(ep.actions) for ep in episodes[:num_episodes])
         frames = np.stack([ep.agentview_rgb[:length] for ep in episodes[:num_episodes]])
         actions = np.stack([ep.actions[:length] for ep in episodes[:num_episodes]])
+        from train.train_probe import episode_targets
+
+        truth = {"targets": np.stack([episode_targets(ep)[:length] for ep in episodes[:num_episodes]]),
+                 "rewards": np.stack([ep.rewards[:length] for ep in episodes[:num_episodes]])}
     frames = frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
-    return {"frames": frames, "actions": actions.astype(np.float32)}
+    return {"frames": frames, "actions": actions.astype(np.float32), **truth}
 
 
 def model_config(cfg: ExperimentConfig, workdir: str | None) -> ExperimentConfig:
@@ -143,6 +158,48 @@ def _vae_state(cfg: ExperimentConfig, path: str):
     return nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))
 
 
+def _fidelity(cfg: ExperimentConfig, probe_path: str, reward_path: str):
+    """The action-following scorer from a probe file and / or a reward-model checkpoint (or None)."""
+    if not probe_path and not reward_path:
+        return None
+    from sword_jax.evaluation.probe import FidelityScorer
+
+    success_score = None
+    if reward_path:
+        import jax.numpy as jnp
+
+        from sword_jax.rl.params_io import load_params
+        from sword_jax.rl.reward_model import as_reward_model, build_detector
+
+        graphdef, params = build_detector(cfg.rl, seed=cfg.seed)
+        params, _ = load_params(reward_path, params, kind="reward_model")
+        score = jax.jit(as_reward_model(graphdef, params).score)
+
+        def success_score(frames):
+            return np.concatenate([np.asarray(score(jnp.asarray(frames[i:i + 256]))) for i in range(0, len(frames), 256)])
+
+    kwargs = {"success_score": success_score, "success_threshold": cfg.rl.success_threshold}
+    return FidelityScorer.from_probe_file(probe_path, **kwargs) if probe_path else FidelityScorer(**kwargs)
+
+
+def fidelity_notes(results) -> list[str]:
+    """One line per split and model: the action-following metrics, early vs late in the horizon."""
+    lines = []
+    for split, per_model in results.models.items():
+        for model, result in per_model.items():
+            parts = []
+            for name in ("probe_ee_cm", "probe_bowl_cm", "probe_gripper_agree", "reward_agree"):
+                if name in result.curves:
+                    quarters = np.array_split(np.asarray(result.curves[name]["mean"]), 4)
+                    parts.append(f"{name} " + " / ".join(f"{q.mean():.3g}" for q in quarters if q.size))
+            floor = [f"{k} {v:.3g}" for k, v in result.overall.items() if k.startswith(("probe_floor", "reward_"))
+                     and k != "reward_agree"]
+            if parts:
+                lines.append(f"Action following, {split} / {model} (4 horizon quarters): " + "; ".join(parts)
+                             + (f"; overall {', '.join(floor)}" if floor else "") + ".")
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> str:
     args, cfg = _parse(sys.argv[1:] if argv is None else argv)
     start = time.time()
@@ -182,8 +239,12 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
+    truth = {s: {key: v[key][:, :horizon] for key in ("targets", "rewards") if key in v} for s, v in splits.items()}
     results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k, horizon_window=cfg.eval.horizon_window,
-                              settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name})
+                              settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name,
+                                        "probe": args.probe, "reward_model": args.reward_model},
+                              fidelity=_fidelity(cfg, args.probe, args.reward_model), truth_by_split=truth)
+    notes += fidelity_notes(results)
     videos = {s: {"ground truth": gt[s][: cfg.eval.report_videos],
                   **{m: predictions[m][s][: cfg.eval.report_videos] for m in predictions}} for s in gt}
     out = args.out or cfg.eval.report_dir or os.path.join(cfg.workdir, "eval")

@@ -6,8 +6,9 @@
 
 Stages (each writes ``<workdir>/stages/<name>.json`` and is skipped when already done):
 expert data (train + held-out) -> VAE (trained, or official Wan 2.2 weights) -> latents (with
-styled copies) -> world model (DLB or the configured variant) -> long-horizon evaluation on
-LIBERO-Original / LIBERO-Mixed -> reward model -> supervised policy -> GRPO inside the world model
+styled copies) -> world model (DLB or the configured variant) -> state probe -> reward model ->
+long-horizon evaluation on LIBERO-Original / LIBERO-Mixed (pixel metrics, and action following
+read by the probe and the reward model) -> supervised policy -> GRPO inside the world model
 with policy evaluation in the simulator -> report. ``--stop-after STAGE`` ends a run early (the
 finished stages stay, so a later run continues from there). Writes ``report.md`` and ``results.json``.
 """
@@ -55,6 +56,13 @@ def stage_world_model(ctx: Context) -> dict:
             "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}
 
 
+def stage_probe(ctx: Context) -> dict:
+    from train import train_probe
+
+    return train_probe.main(ctx.entry_argv("--demos", ctx.results["data"]["train"]["path"],
+                                           "--out", ctx.path("probe", "x")[:-2]))
+
+
 def stage_evaluate(ctx: Context) -> dict:
     from train import evaluate, pipeline_data
 
@@ -62,6 +70,9 @@ def stage_evaluate(ctx: Context) -> dict:
     out = ctx.path("eval", "x")[:-2]
     argv = ctx.entry_argv("--out", out, "--model", f"{ctx.cfg.name}={ctx.results['world_model']['workdir']}",
                      "--vae-checkpoint", ctx.results["vae"]["path"])
+    for flag, stage in (("--probe", "probe"), ("--reward-model", "reward_model")):
+        if ctx.results.get(stage, {}).get("path"):
+            argv += [flag, ctx.results[stage]["path"]]
     for split, path in splits.items():
         argv += ["--episodes", f"{split}={path}"]
     report = evaluate.main(argv)
@@ -97,8 +108,10 @@ STAGES = [
     Stage("vae", stage_vae, "the video VAE (trained from scratch, or official Wan 2.2 weights)"),
     Stage("latents", stage_latents, "encode training episodes and their styled copies to latents"),
     Stage("world_model", stage_world_model, "train the world model (DLB or the configured variant)"),
-    Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed"),
+    Stage("probe", stage_probe, "the state probe (frames -> end effector, gripper, bowl) that scores action following"),
+    # Before evaluation: the success detector also scores imagined vs real rollouts there.
     Stage("reward_model", stage_reward_model, "the success detector that rewards imagined rollouts"),
+    Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed"),
     Stage("sft_policy", stage_sft_policy, "the supervised (behaviour-cloned) VLA policy"),
     Stage("policy", stage_policy, "GRPO inside the world model, policy success in the simulator over steps"),
     Stage("report", stage_report, "report.md and results.json"),

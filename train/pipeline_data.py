@@ -137,11 +137,13 @@ def encode_training_latents(ctx: Context) -> dict:
 
 
 def write_eval_splits(ctx: Context) -> dict[str, str]:
-    """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate``."""
+    """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate``
+    (with each episode's true state ``targets`` and ``rewards`` for the action-following metrics)."""
     from sword_jax.augment.eval_splits import build_eval_splits
+    from train.train_probe import episode_targets
 
     cfg = ctx.cfg
-    _, episodes = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
+    sim_episodes, episodes = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
     episodes = episodes.take(np.arange(min(episodes.num, cfg.eval.num_episodes)))
     splits = build_eval_splits(episodes, seed=cfg.seed + 11, mixed_fraction=cfg.augment.mixed_fraction,
                                intensity=cfg.augment.intensity)
@@ -152,7 +154,9 @@ def write_eval_splits(ctx: Context) -> dict[str, str]:
             continue
         paths[name] = ctx.path("eval_splits", f"{name}.npz")
         np.savez(paths[name], frames=split.frames.astype(np.float32), actions=split.actions.astype(np.float32),
-                 episode_ids=split.episode_ids, styled=split.styled)
+                 episode_ids=split.episode_ids, styled=split.styled,
+                 targets=np.stack([episode_targets(sim_episodes[i]) for i in split.episode_ids]),
+                 rewards=np.stack([sim_episodes[i].rewards for i in split.episode_ids]).astype(np.float32))
     return paths
 
 

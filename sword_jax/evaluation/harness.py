@@ -22,6 +22,7 @@ from flax import nnx
 from jaxtyping import Float
 
 from sword_jax.evaluation.horizon import Curve, horizon_windows, per_frame_curve
+from sword_jax.evaluation.probe import FidelityScorer
 from sword_jax.evaluation.results import EvalResults, ModelResult
 from sword_jax.metrics.frechet import frechet_distance_from_features
 from sword_jax.metrics.suite import MetricSuite
@@ -41,7 +42,8 @@ def _window_curve(features_pred: list[np.ndarray], features_gt: list[np.ndarray]
 
 
 def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"], *,
-                   horizon_window: int = 16, given_frames: int = 1) -> ModelResult:
+                   horizon_window: int = 16, given_frames: int = 1, fidelity: FidelityScorer | None = None,
+                   truth: dict[str, np.ndarray] | None = None) -> ModelResult:
     """Every metric of one model's predictions against ground truth (frames ``given_frames``..T-1).
 
     Args:
@@ -50,6 +52,8 @@ def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred:
       horizon_window: frames per window of the FID/FVD-vs-horizon curves.
       given_frames: leading frames that were conditioning, not prediction (the first frame and
         the context chunk); excluded from every metric. Curves count horizon from frame 0.
+      fidelity: action-following probe / success detector (:mod:`sword_jax.evaluation.probe`).
+      truth: per-episode ``targets [B, T, 7]`` / ``rewards [B, T]`` of the ground truth (optional).
     """
     if not 0 <= given_frames < gt.shape[1] - 1:
         raise ValueError(f"given_frames={given_frames} leaves fewer than 2 of {gt.shape[1]} frames to score")
@@ -73,12 +77,22 @@ def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred:
                               [suite.i3d_features(gt[:, lo:hi]) for lo, hi in windows], windows)
         if curve is not None:
             curves["fvd"] = Curve(curve.frames + given_frames, curve.mean, curve.stderr).to_dict()
-    return ModelResult(metrics.overall, curves)
+    overall = dict(metrics.overall)
+    if fidelity is not None:
+        truth = {k: np.asarray(v)[:, given_frames:given_frames + t] for k, v in (truth or {}).items()}
+        per_frame, scalars = fidelity.score(gt, pred, targets=truth.get("targets"), rewards=truth.get("rewards"))
+        for name, values in per_frame.items():
+            curves[name] = per_frame_curve(values, frame_offset=given_frames).to_dict()
+            overall[name] = float(values.mean())
+        overall.update(scalars)
+    return ModelResult(overall, curves)
 
 
 def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
                     predictions: dict[str, dict[str, np.ndarray]], *, horizon_window: int = 16,
-                    given_frames: int = 1, settings: dict | None = None, progress: ProgressFn = print) -> EvalResults:
+                    given_frames: int = 1, settings: dict | None = None, progress: ProgressFn = print,
+                    fidelity: FidelityScorer | None = None,
+                    truth_by_split: dict[str, dict[str, np.ndarray]] | None = None) -> EvalResults:
     """Scores several models side by side on several splits.
 
     Args:
@@ -89,6 +103,7 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
       given_frames: leading conditioning frames excluded from the metrics (see :func:`evaluate_model`).
       settings: recorded in the results.
       progress: called with one line per (split, model).
+      fidelity, truth_by_split: action-following metrics and ``{split: truth}`` (see :func:`evaluate_model`).
 
     Returns:
       Results for :func:`sword_jax.evaluation.report.write_report`.
@@ -102,7 +117,8 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
             if per_split[split].shape != gt.shape:
                 raise ValueError(f"{model}/{split}: predictions {per_split[split].shape} != ground truth {gt.shape}")
             models[split][model] = evaluate_model(suite, gt, per_split[split], horizon_window=horizon_window,
-                                                  given_frames=given_frames)
+                                                  given_frames=given_frames, fidelity=fidelity,
+                                                  truth=(truth_by_split or {}).get(split))
             summary = ", ".join(f"{k}={v:.4g}" for k, v in models[split][model].overall.items())
             progress(f"[evaluate] {split} / {model}: {summary}")
     return EvalResults(suite.metrics, models, suite.random_weight_networks, suite.describe_weights(), settings or {})
