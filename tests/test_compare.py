@@ -1,25 +1,40 @@
-"""The comparison table's arithmetic and layout (the runs themselves are pipeline runs)."""
+"""The comparison's slices, merge and table (the runs themselves are pipeline runs, faked here)."""
+
+import json
+import os
 
 import numpy as np
+import pytest
 
-from train import compare
+from train import compare, shared_inputs
+
+FAKE_HASHES = {"data": "d" * 64, "vae": "v" * 64}
 
 
-def _result(lpips, success):
+def _record(run, seed, lpips, success, hashes=FAKE_HASHES, file=None):
     metrics = {m: lpips * (i + 1) for i, m in enumerate(compare.METRICS)}
-    return {"stages": {"evaluate": {"metrics": {"original": {"m": metrics}, "mixed": {"m": metrics}}},
-                       "policy": {"success": {"grpo step 0": success[0], "grpo step 10": success[1]}}}}
+    return {"format": compare.SLICE_FORMAT, "size": "small", "run": run, "seed": seed,
+            "metrics": {"original": metrics, "mixed": metrics},
+            "success": {"grpo step 0": success[0], "grpo step 10": success[1]},
+            "shared": {"hashes": dict(hashes)}, "device": {"kind": "NVIDIA H100"},
+            "wall_seconds": {"shared": 100.0, "slice": 300.0}, "code": {"commit": "abc123", "dirty": False}}
+
+
+def _write(directory, record):
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, f"{record['run']}_seed{record['seed']}.json"), "w") as f:
+        json.dump(record, f)
 
 
 def test_aggregate_means_and_spreads_and_markdown():
-    results = {run: [_result(0.1 + 0.1 * s, (0.2, 0.4 + 0.1 * s)) for s in range(3)]
+    results = {run: [_record(run, s, 0.1 + 0.1 * s, (0.2, 0.4 + 0.1 * s)) for s in range(3)]
                for run in ("sword", "teacher_forcing", "no_augmentation", "wovr")}
     table = compare.aggregate(results)
     lpips = table["sword"]["metrics"]["original/lpips"]
     assert np.isclose(lpips["mean"], 0.2) and np.isclose(lpips["std"], 0.1) and lpips["n"] == 3
     assert np.isclose(table["wovr"]["success"]["grpo step 10"]["mean"], 0.5)
     text = compare.to_markdown(table, [0, 1, 2])
-    assert "DLB vs teacher forcing" in text and "0.2 ± 0.1" in text
+    assert "DLB vs teacher forcing" in text and "0.2 ± 0.1 (n=3)" in text
     assert text.index("grpo step 0") < text.index("grpo step 10")
 
 
@@ -33,9 +48,6 @@ def test_runs_cover_the_three_comparisons():
 
 
 def _write_markers(workdir, stages):
-    import json
-    import os
-
     os.makedirs(os.path.join(workdir, "stages"), exist_ok=True)
     for stage in stages:
         with open(os.path.join(workdir, "stages", f"{stage}.json"), "w") as f:
@@ -43,8 +55,7 @@ def _write_markers(workdir, stages):
 
 
 def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
-    import json
-    import os
+    import dataclasses
 
     import configs
 
@@ -53,31 +64,210 @@ def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
     sword = configs.get("cache_ablation:small-linear-direct-all")
     tf = configs.get("cache_ablation:small-tf")
     wovr = configs.get("cache_ablation:small-wovr")
-    other_seed = compare.adopt_stages(str(tmp_path / "tf1"), donor, tf, sword)
-    assert other_seed == list(compare.SHAREABLE)
+    assert compare.adopt_stages(str(tmp_path / "tf1"), donor, tf, sword) == list(compare.SHAREABLE)
     # WoVR trains without augmentation: its latents (no styled copies) are its own.
     assert "latents" not in compare.adopt_stages(str(tmp_path / "wovr"), donor, wovr, sword)
     assert os.path.exists(tmp_path / "wovr" / "stages" / "data.json")
     # A different simulator section shares nothing; a finished stage is never overwritten.
-    import dataclasses
-
     other_sim = dataclasses.replace(sword, sim=dataclasses.replace(sword.sim, episodes_per_task=3))
     assert compare.adopt_stages(str(tmp_path / "other"), donor, other_sim, sword) == []
     _write_markers(str(tmp_path / "mine"), ["vae"])
-    adopted = compare.adopt_stages(str(tmp_path / "mine"), donor, sword, sword)
-    assert "vae" not in adopted
+    assert "vae" not in compare.adopt_stages(str(tmp_path / "mine"), donor, sword, sword)
     with open(tmp_path / "mine" / "stages" / "vae.json") as f:
         assert json.load(f)["results"]["path"].startswith(str(tmp_path / "mine"))
     with open(tmp_path / "tf1" / "stages" / "data.json") as f:
         assert json.load(f)["results"]["path"] == f"{donor}/data"
 
 
-def test_partial_tables_are_written_while_runs_finish(tmp_path):
-    import json
+def _write_episodes(path, frames, compression=None):
+    import h5py
 
-    results = {"sword": [_result(0.1, (0.2, 0.4))]}
-    compare.write_tables(str(tmp_path), results, [0, 1, 2], size="small")
-    with open(tmp_path / "comparison.json") as f:
-        written = json.load(f)
-    assert written["finished_seeds_per_run"] == {"sword": 1}
-    assert "teacher_forcing" in (tmp_path / "comparison.md").read_text()
+    with h5py.File(path, "w") as f:
+        for i, video in enumerate(frames):
+            demo = f.create_group(f"data/demo_{i}")
+            demo.create_dataset("actions", data=np.full((len(video), 7), 0.1 * i))
+            demo.create_dataset("rewards", data=np.zeros(len(video), np.uint8))
+            demo.create_dataset("states", data=np.random.default_rng(i + len(path)).normal(size=(len(video), 3)))
+            demo.create_dataset("obs/agentview_rgb", data=video, compression=compression)
+
+
+def test_data_hash_sees_frames_and_actions_not_the_file_layout(tmp_path):
+    frames = [np.random.default_rng(i).integers(0, 255, (3, 8, 8, 3), dtype=np.uint8) for i in range(11)]
+    _write_episodes(str(tmp_path / "a.hdf5"), frames)
+    _write_episodes(str(tmp_path / "bb.hdf5"), frames, compression="gzip")  # other layout, other `states`
+    reference = shared_inputs.hash_episodes(str(tmp_path / "a.hdf5"))
+    assert shared_inputs.hash_episodes(str(tmp_path / "bb.hdf5")) == reference
+    frames[10][2, 0, 0, 0] ^= 1  # demo_10 sorts after demo_2: numeric order, one bit
+    _write_episodes(str(tmp_path / "c.hdf5"), frames)
+    assert shared_inputs.hash_episodes(str(tmp_path / "c.hdf5")) != reference
+
+
+def _fake_stages(calls):
+    """Pipeline stages that record their calls and write what compare reads (eval results, success curve)."""
+    from train.stagerunner import Stage
+
+    def make(name):
+        def run(ctx):
+            calls.append((name, ctx.workdir, ctx.cfg.seed))
+            out = {"path": ctx.path(name, "x")}
+            if name == "data":
+                for split in ("train", "heldout"):
+                    _write_episodes(ctx.path("data", f"{split}.hdf5"), [np.full((2, 4, 4, 3), ctx.cfg.seed, np.uint8)])
+                out = {split: {"path": ctx.path("data", f"{split}.hdf5")} for split in ("train", "heldout")}
+            elif name == "latents":
+                np.savez(out["path"] + ".npz", latents=np.zeros(3), actions=np.ones(2), source=ctx.workdir)
+                out["path"] += ".npz"
+            elif name == "world_model":
+                out = {"workdir": ctx.workdir, "final_step": 20, "first_loss": 2.0, "final_metrics": {"loss": 1.0}}
+            elif name == "evaluate":
+                curves = {"lpips": {"frames": [5, 6], "mean": [0.1, 0.2000000001], "stderr": [0.01, 0.02]}}
+                per_split = {split: {ctx.cfg.name: {"overall": {"lpips": 0.15, "psnr": 20.0}, "curves": curves}}
+                             for split in ("original", "mixed")}
+                os.makedirs(ctx.path("eval"), exist_ok=True)
+                with open(ctx.path("eval", "results.json"), "w") as f:
+                    json.dump({"models": per_split}, f)
+                out = {"metrics": {s: {m: r["overall"] for m, r in p.items()} for s, p in per_split.items()}}
+            elif name in ("probe", "reward_model", "sft_policy"):
+                out = {"loss": 0.5}
+            elif name == "policy":
+                grpo_dir = ctx.path("rl", "grpo")
+                os.makedirs(grpo_dir, exist_ok=True)
+                with open(os.path.join(grpo_dir, "success_curve.json"), "w") as f:
+                    json.dump({"points": [{"step": 0, "mean": 0.25}, {"step": 10, "mean": 0.5}]}, f)
+                out = {"success": {"grpo step 0": 0.25, "grpo step 10": 0.5}, "grpo": {"workdir": grpo_dir}}
+            return out
+
+        return Stage(name, run, name)
+
+    from train import pipeline
+
+    return [make(stage.name) for stage in pipeline.STAGES]
+
+
+def test_slices_build_shared_stages_once_and_write_their_files(tmp_path, monkeypatch):
+    from train import pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+    results = tmp_path / "results"
+    argv = ["--size", "tiny", "--runs", "sword,teacher_forcing", "--seeds", "1", f"--out={tmp_path / 'w'}",
+            f"--results={results}", "--trainer.steps=3"]
+    table = compare.main(argv)
+    names = [stage.name for stage in pipeline.STAGES]
+    shareable = [name for name in names if name in compare.SHAREABLE]
+    shared = [(name, seed) for name, workdir, seed in calls if "/shared/" in workdir]
+    # The shared stages run once, at the shared seed (0), not the slice's seed; teacher forcing adopts them
+    # and stops after the evaluation.
+    assert shared == [(name, 0) for name in shareable] and {"data", "vae", "sft_policy"} <= set(shareable)
+    assert [name for name, workdir, _ in calls if "teacher_forcing/seed1" in workdir] == [
+        name for name in names[:names.index("evaluate") + 1] if name not in compare.SHAREABLE]
+    with open(results / "sword_seed1.json") as f:
+        sword = json.load(f)
+    with open(results / "teacher_forcing_seed1.json") as f:
+        tf = json.load(f)
+    assert sword["command"] == ("python -m train.compare --size tiny --runs sword --seeds 1 --trainer.steps=3")
+    assert sword["overrides"] == ["--trainer.steps=3"] and sword["config"] == "cache_ablation:linear-direct-all"
+    assert sword["shared"]["built_here"] == shareable
+    assert tf["shared"]["built_here"] == [] and tf["shared"]["seed"] == 0
+    assert set(sword["stage_seconds"]) == set(names) - set(shareable)
+    assert set(sword["shared"]["stage_seconds"]) == set(shareable)
+    assert sword["metrics"]["original"] == {"lpips": 0.15, "psnr": 20.0}
+    assert sword["curves"]["mixed"]["lpips"]["mean"] == [0.1, 0.2]  # rounded to 6 digits
+    assert [p["step"] for p in sword["success_curve"]] == [0, 10] and "success_curve" not in tf
+    assert sword["device"]["platform"] == "cpu" and len(sword["code"]["source_hash"]) == 64
+    hashes = sword["shared"]["hashes"]
+    assert hashes["vae"] == "v" * 64 and hashes["data"] == tf["shared"]["hashes"]["data"]
+    assert "latents[augment=on]" in hashes and "reward_model" not in hashes  # fake RL stages save no params
+    assert table["teacher_forcing"]["metrics"]["original/lpips"]["n"] == 1
+    assert "| sword | 1 | cpu" in (results / "comparison.md").read_text().lower()
+
+
+def test_merge_counts_seeds_per_cell(tmp_path):
+    for seed in range(3):
+        _write(tmp_path, _record("sword", seed, 0.1 * (seed + 1), (0.1, 0.3)))
+    for seed in range(2):
+        _write(tmp_path, _record("teacher_forcing", seed, 0.2, (0.1, 0.2)))
+    (tmp_path / "notes.json").write_text("[1, 2]")  # not a slice: ignored
+    table = compare.merge(str(tmp_path))
+    assert table["sword"]["metrics"]["mixed/lpips"]["n"] == 3
+    written = json.loads((tmp_path / "comparison.json").read_text())
+    assert written["finished_seeds_per_run"] == {"sword": 3, "teacher_forcing": 2}
+    assert written["seeds"] == [0, 1, 2] and written["shared_input_mismatches"] == {}
+    text = (tmp_path / "comparison.md").read_text()
+    assert "0.2 ± 0.1 (n=3)" in text and "0.2 ± 0 (n=2)" in text and "WARNING" not in text
+    assert "| teacher_forcing | 1 | NVIDIA H100 | 100 + 300 | abc123 |" in text
+
+
+def test_merge_refuses_slices_from_different_shared_inputs(tmp_path):
+    _write(tmp_path, _record("sword", 0, 0.1, (0.1, 0.3)))
+    _write(tmp_path, _record("wovr", 0, 0.1, (0.1, 0.3), hashes={**FAKE_HASHES, "vae": "e" * 64}))
+    with pytest.raises(SystemExit, match=r"different shared inputs \(vae: vvvvvvvvvvvv \(sword_seed0.json\) vs "
+                                         r"eeeeeeeeeeee \(wovr_seed0.json\)\)"):
+        compare.merge(str(tmp_path))
+    assert not (tmp_path / "comparison.md").exists()
+    compare.merge(str(tmp_path), allow_mismatch=True)
+    text = (tmp_path / "comparison.md").read_text()
+    assert text.startswith("> **WARNING") and "`vae`: vvvvvvvvvvvv in sword_seed0.json" in text
+    assert set(json.loads((tmp_path / "comparison.json").read_text())["shared_input_mismatches"]) == {"vae"}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--runs", "sword,bogus"], "--runs: unknown run(s) 'bogus'"),
+    (["--runs", "sword,sword"], "listed twice"),
+    (["--runs", "sword,"], "unknown run(s) ''"),
+    (["--seeds", "0,x"], "--seeds takes comma-separated integers"),
+    (["--seed=3"], "not a dotted config override"),  # not an abbreviation of --seeds
+    (["--size", "huge"], "invalid choice: 'huge'"),
+    (["merge"], "the following arguments are required: dir"),
+])
+def test_bad_command_lines_are_one_line_errors(argv, message, capsys):
+    from sword_jax import cli
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run(compare.main, argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err
+
+
+def test_merge_of_an_empty_folder_is_a_one_line_runtime_error(tmp_path, capsys):
+    from sword_jax import cli
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run(compare.main, ["merge", str(tmp_path)])
+    assert exit_info.value.code == 1 and "no slice files" in capsys.readouterr().err
+
+
+_BUILD_AND_HASH = """
+import json, os, sys
+import configs
+from train import compare, shared_inputs
+out = sys.argv[1]
+shared_dir, _, _ = compare.build_shared("teacher_forcing", "tiny", out=out, shared_seed=0, overrides=[])
+stages = {}
+for name in os.listdir(os.path.join(shared_dir, "stages")):
+    with open(os.path.join(shared_dir, "stages", name)) as f:
+        stages[name[:-5]] = json.load(f)["results"]
+cfg, _ = configs.from_argv(["--config", compare.runs_for("tiny")["teacher_forcing"][0], "--seed=0"])
+print("HASHES " + json.dumps(shared_inputs.shared_hashes(cfg, stages)))
+"""
+
+
+@pytest.mark.slow
+def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
+    """What lets slices run in different sessions: the same config and shared seed give the same inputs.
+
+    Teacher forcing's shared stages (data, VAE, latents, probe, reward model: about 5 minutes on 2
+    CPU cores); the supervised policy is the only shared stage it leaves out.
+    """
+    import subprocess
+    import sys
+
+    hashes = []
+    for attempt in ("a", "b"):
+        done = subprocess.run([sys.executable, "-c", _BUILD_AND_HASH, str(tmp_path / attempt)], cwd=compare.REPO,
+                              capture_output=True, text=True, check=True)
+        hashes.append(json.loads(done.stdout.rsplit("HASHES ", 1)[1]))
+    assert {"data", "vae", "latents[augment=on]", "reward_model"} <= set(hashes[0])
+    assert hashes[0] == hashes[1]

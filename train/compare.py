@@ -1,8 +1,10 @@
-"""The paper's three comparisons, each over several seeds, as one table of means and spreads.
+"""The paper's three comparisons, each over several seeds, in (run, seed) slices merged into one table.
 
-    python -m train.compare --size small --seeds 0,1,2 --out runs/compare       # one GPU, hours
-    python -m train.compare --size tiny --seeds 0 --out /tmp/compare              # CPU smoke run
-    python -m train.compare --size small --trainer.steps=2000                     # overrides apply to every run
+    python -m train.compare --size small --runs sword --seeds 0               # one slice, one GPU session
+    python -m train.compare --size small --runs sword,wovr --seeds 1          # two slices, same shared stages
+    python -m train.compare merge benchmarks/results/compare/small            # table from the slices there
+    python -m train.compare --size tiny --seeds 0 --out /tmp/compare --results /tmp/compare/slices  # CPU smoke
+    python -m train.compare --size small --runs sword --seeds 0 --trainer.steps=2000   # overrides: every run
 
 1. DLB (linear, direct, all) vs teacher forcing: long-horizon LPIPS / FID / FVD / FloLPIPS on
    LIBERO-Original and LIBERO-Mixed.
@@ -10,29 +12,39 @@
 3. GRPO inside the Sword world model vs inside a WoVR-config world model (teacher forcing +
    context noise, no augmentation): policy success in the simulator over GRPO steps.
 
-Every run is ``train.pipeline`` in ``<out>/<run>/seed<k>`` (resumable, so an interrupted
-comparison continues); the table goes to ``<out>/comparison.md`` and ``<out>/comparison.json``.
+A slice is one run at one seed: ``train.pipeline`` in ``<out>/<run>/seed<k>`` (resumable), then
+one small file ``<results>/<run>_seed<k>.json`` (default ``benchmarks/results/compare/<size>/``):
+metrics with per-horizon curves, the GRPO success curve (comparison-3 runs), the command, device,
+stage times, code version and hashes of the shared inputs. ``merge DIR`` builds
+``comparison.md``/``comparison.json`` in DIR from whatever slice files are there, with ``n`` per cell.
 
-What the runs share. The seeds vary what is compared: world-model training (initialisation, batch
-order, DLB reads) and GRPO. Stages that do not depend on the compared choice are made once, by the
-first run at the first seed, and adopted by the others when their config sections agree: expert
-data and held-out episodes (so every run is scored on the same episodes), the VAE, the encoded
-latents (per augmentation setting), the reward model and the supervised policy. Runs outside
-comparison 3 stop after the evaluation. ``--no-share`` makes every run from scratch.
+What the slices share. The seeds vary what is compared: world-model training (initialisation,
+batch order, DLB reads) and GRPO. Stages that do not depend on the compared choice -- expert data
+and held-out episodes, the VAE, the encoded latents (per augmentation setting), the state probe,
+the reward model and the supervised policy -- are built once in ``<out>/shared/<run>`` at
+``--shared-seed`` (default 0), whatever the slice's seed, and adopted by the slice. They are meant
+to be deterministic functions of the config and that seed, so that a slice run later on a fresh
+machine rebuilds the same inputs; every slice file records their hashes (``train.shared_inputs``),
+and ``merge`` refuses slices whose hashes disagree. ``--no-share`` makes every stage of every slice
+from the slice's own seed.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shlex
 import sys
+import time
 from collections.abc import Sequence
 
 import numpy as np
 
 from sword_jax.cli import ArgumentParser, UsageError
+from train.shared_inputs import REPO, code_version, device_info, shared_hashes
 
 METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim")  # psnr / ssim need no network weights
+SLICE_FORMAT = "sword-compare-slice/1"
 
 
 def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
@@ -46,11 +58,12 @@ def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
     }
 
 
-# Stage -> the config sections its result depends on (beyond the seed, which only the first seed's run uses).
+# Stage -> the config sections its result depends on (beyond the seed, which is --shared-seed for all).
 SHAREABLE = {
     "data": ("sim", "data", "eval"),
     "vae": ("sim", "data", "vae"),
     "latents": ("sim", "data", "vae", "augment"),
+    "probe": ("sim", "data"),  # the state probe that scores action following, where the pipeline has one
     "reward_model": ("sim", "data", "rl"),
     "sft_policy": ("sim", "data", "rl"),
 }
@@ -60,13 +73,15 @@ def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str]
     """Copies the donor run's finished-stage records into ``workdir`` where the config sections agree.
 
     The records point at the donor's files, so nothing is copied but the small JSON markers. A stage
-    ``workdir`` has already finished is left alone. Returns the stages adopted.
+    ``workdir`` has already finished is left alone. ``cfg``/``donor_cfg`` are configs or their
+    ``to_dict`` form (a work dir's ``config.json``). Returns the stages adopted.
     """
     import shutil
 
     from configs.cli import to_dict
 
-    mine, theirs = to_dict(cfg), to_dict(donor_cfg)
+    mine = cfg if isinstance(cfg, dict) else to_dict(cfg)
+    theirs = donor_cfg if isinstance(donor_cfg, dict) else to_dict(donor_cfg)
     adopted = []
     os.makedirs(os.path.join(workdir, "stages"), exist_ok=True)
     for stage in stages:
@@ -88,48 +103,62 @@ COMPARISONS = (
 )
 
 
+# ---- the table: means and spreads over seeds, n per cell ----
+
 def _mean_std(values: list[float]) -> dict[str, float]:
     arr = np.asarray(values, np.float64)
     return {"mean": float(arr.mean()), "std": float(arr.std(ddof=1)) if arr.size > 1 else 0.0, "n": int(arr.size)}
 
 
 def aggregate(results: dict[str, list[dict]]) -> dict:
-    """``{run: [results.json per seed]}`` -> per run: metric means/spreads per split, success curve."""
+    """``{run: [slice record per seed]}`` -> per run: metric means/spreads per split, success curve.
+
+    A record needs ``metrics`` (``{split: {metric: value}}``) and ``success`` (``{label: value}``).
+    """
     table = {}
     for run, per_seed in results.items():
         entry: dict = {"metrics": {}, "success": {}}
         for split in ("original", "mixed"):
             for metric in METRICS:
-                values = [next(iter(r["stages"]["evaluate"]["metrics"][split].values()))[metric]
-                          for r in per_seed if split in r["stages"].get("evaluate", {}).get("metrics", {})]
+                values = [r["metrics"][split][metric] for r in per_seed
+                          if metric in r.get("metrics", {}).get(split, {})]
                 if values:
                     entry["metrics"][f"{split}/{metric}"] = _mean_std(values)
         points: dict[str, list[float]] = {}
         for r in per_seed:
-            for label, value in r["stages"].get("policy", {}).get("success", {}).items():
+            for label, value in r.get("success", {}).items():
                 points.setdefault(label, []).append(value)
         entry["success"] = {label: _mean_std(v) for label, v in points.items()}
         table[run] = entry
     return table
 
 
-def _cell(entry: dict, seeds: int, fmt: str) -> str:
+def _cell(entry: dict, fmt: str) -> str:
     text = fmt.format(entry["mean"])
     if entry["n"] > 1:
         text += f" ± {entry['std']:.2g}"
-    return text if entry["n"] >= seeds else f"{text} (n={entry['n']})"
+    return f"{text} (n={entry['n']})"
 
 
-def to_markdown(table: dict, seeds: Sequence[int]) -> str:
-    lines = [f"# Sword comparisons ({len(seeds)} seeds: {', '.join(map(str, seeds))}; mean ± std over the seeds "
-             "finished, with n where fewer than all finished)", ""]
+def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = None,
+                slices: Sequence[dict] = ()) -> str:
+    lines = []
+    if mismatches:
+        lines += ["> **WARNING: the slices below were not made from the same shared inputs** (data, VAE, latents,",
+                  "> reward model or supervised policy differ), so their runs are not paired comparisons:", ">"]
+        for key, groups in mismatches.items():
+            lines.append(f"> - `{key}`: " + "; ".join(f"{digest[:12]} in {', '.join(names)}"
+                                                      for digest, names in groups.items()))
+        lines.append("")
+    lines += [f"# Sword comparisons (seeds {', '.join(map(str, seeds))}; mean ± std over the seeds finished, "
+              "n = seeds in the cell)", ""]
     for title, ours, baseline, splits in COMPARISONS:
         lines += [f"## {title}", ""]
         if splits:
             keys = [f"{s}/{m}" for s in splits for m in METRICS]
             lines += ["| run | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
             for run in (ours, baseline):
-                cells = [_cell(table[run]["metrics"][k], len(seeds), "{:.4g}")
+                cells = [_cell(table[run]["metrics"][k], "{:.4g}")
                          if k in table.get(run, {}).get("metrics", {}) else "" for k in keys]
                 lines.append(f"| {run} | " + " | ".join(cells) + " |")
         else:
@@ -139,72 +168,290 @@ def to_markdown(table: dict, seeds: Sequence[int]) -> str:
             for run in (ours, baseline):
                 success = table.get(run, {}).get("success", {})
                 lines.append(f"| {run} | " + " | ".join(
-                    _cell(success[l], len(seeds), "{:.3f}") if l in success else "" for l in labels) + " |")
+                    _cell(success[l], "{:.3f}") if l in success else "" for l in labels) + " |")
+        lines.append("")
+    if slices:
+        lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | commit | data |",
+                  "|---|---|---|---|---|---|"]
+        for s in slices:
+            wall = s.get("wall_seconds", {})
+            commit = (s.get("code", {}).get("commit") or "?")[:10] + ("+" if s.get("code", {}).get("dirty") else "")
+            lines.append(f"| {s['run']} | {s['seed']} | {s.get('device', {}).get('kind', '?')} | "
+                         f"{wall.get('shared', 0):.0f} + {wall.get('slice', 0):.0f} | {commit} | "
+                         f"{s.get('shared', {}).get('hashes', {}).get('data', '?')[:12]} |")
         lines.append("")
     return "\n".join(lines)
 
 
-def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int], **extra) -> dict:
-    """Writes ``comparison.{json,md}`` for the runs finished so far (rewritten after every run)."""
+def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int], *, mismatches: dict | None = None,
+                 slices: Sequence[dict] = (), **extra) -> dict:
+    """Writes ``comparison.{json,md}`` in ``out`` for the runs finished so far."""
     table = aggregate(results)
     os.makedirs(out, exist_ok=True)
     finished = {run: len(per_seed) for run, per_seed in results.items()}
     with open(os.path.join(out, "comparison.json"), "w") as f:
-        json.dump({"seeds": list(seeds), "finished_seeds_per_run": finished, **extra, "runs": table}, f, indent=1)
+        json.dump({"seeds": list(seeds), "finished_seeds_per_run": finished, **extra,
+                   "shared_input_mismatches": mismatches or {}, "runs": table}, f, indent=1)
     with open(os.path.join(out, "comparison.md"), "w") as f:
-        f.write(to_markdown(table, seeds))
+        f.write(to_markdown(table, seeds, mismatches=mismatches, slices=slices))
     return table
 
+
+# ---- merging slice files ----
+
+def load_slices(directory: str) -> list[dict]:
+    """Every slice record in ``directory`` (``*.json`` in the slice format), ordered by run and seed."""
+    slices = []
+    for name in sorted(os.listdir(directory)) if os.path.isdir(directory) else []:
+        if not name.endswith(".json"):
+            continue
+        with open(os.path.join(directory, name)) as f:
+            record = json.load(f)
+        if isinstance(record, dict) and record.get("format") == SLICE_FORMAT:
+            slices.append({**record, "file": name})
+    order = list(runs_for("tiny"))
+    return sorted(slices, key=lambda s: (order.index(s["run"]) if s["run"] in order else len(order), s["seed"]))
+
+
+def hash_mismatches(slices: Sequence[dict]) -> dict[str, dict[str, list[str]]]:
+    """Shared-input keys whose hash differs between slices: ``{key: {hash: [slice files]}}``."""
+    seen: dict[str, dict[str, list[str]]] = {}
+    for s in slices:
+        for key, digest in s.get("shared", {}).get("hashes", {}).items():
+            seen.setdefault(key, {}).setdefault(digest, []).append(s["file"])
+    return {key: groups for key, groups in seen.items() if len(groups) > 1}
+
+
+def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
+    """Builds ``comparison.{md,json}`` in ``directory`` from its slice files; returns the table.
+
+    Refuses (``SystemExit``) slices whose shared-input hashes disagree unless ``allow_mismatch``,
+    which writes the table with a warning at the top instead.
+    """
+    slices = load_slices(directory)
+    if not slices:
+        raise SystemExit(f"train.compare merge: no slice files ({SLICE_FORMAT}) in {directory}")
+    sizes = sorted({s["size"] for s in slices})
+    if len(sizes) > 1:
+        raise SystemExit(f"train.compare merge: {directory} mixes slices of sizes {sizes}")
+    mismatches = hash_mismatches(slices)
+    if mismatches and not allow_mismatch:
+        detail = "; ".join(f"{key}: " + " vs ".join(f"{d[:12]} ({', '.join(n)})" for d, n in groups.items())
+                           for key, groups in mismatches.items())
+        raise SystemExit(f"train.compare merge: slices in {directory} were made from different shared inputs "
+                         f"({detail}); rerun them from the same config and --shared-seed, or pass --allow-mismatch "
+                         "to write a table flagged as unpaired")
+    results: dict[str, list[dict]] = {}
+    for s in slices:
+        results.setdefault(s["run"], []).append(s)
+    seeds = sorted({s["seed"] for s in slices})
+    agreed = {k: v for s in slices for k, v in s.get("shared", {}).get("hashes", {}).items() if k not in mismatches}
+    listing = [{"file": s["file"], "run": s["run"], "seed": s["seed"], "device": s.get("device", {}).get("kind"),
+                "wall_seconds": s.get("wall_seconds"), "commit": s.get("code", {}).get("commit")} for s in slices]
+    return write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],
+                        shared_input_hashes=agreed, slice_files=listing)
+
+
+# ---- running slices ----
 
 def _needs_policy(run: str) -> bool:
     return any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS if not splits)
 
 
-def main(argv: Sequence[str] | None = None) -> dict:
-    parser = ArgumentParser(description=__doc__.splitlines()[0],
-                            epilog="Any other --SECTION.KEY=VALUE is a config override applied to every run.")
-    parser.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-    parser.add_argument("--seeds", default="0,1,2")
-    parser.add_argument("--out", default="runs/compare")
-    parser.add_argument("--no-share", action="store_true", help="make every stage of every run from scratch")
-    parser.add_argument("--runs", default="", help="comma-separated subset of runs (default: all four)")
-    # Anything else is a dotted config override applied to every run, e.g. --trainer.steps=2000.
-    args, overrides = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
-    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
-    if bad:
-        raise UsageError(f"not a dotted config override (--section.key=value): {bad}")
-    seeds = [int(s) for s in args.seeds.split(",")]
-    import time
+def _stage_names(run: str) -> list[str]:
+    """The pipeline stages a slice of ``run`` goes through (up to the evaluation outside comparison 3)."""
+    from train import pipeline
 
+    names = [stage.name for stage in pipeline.STAGES]
+    return names if _needs_policy(run) else names[:names.index("evaluate") + 1]
+
+
+def _run_argv(run: str, size: str, seed: int, workdir: str, overrides: Sequence[str]) -> tuple[str, list[str]]:
+    config, extra = runs_for(size)[run]
+    return config, ["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra, *overrides]
+
+
+def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str]) -> tuple[str, dict, list[str]]:
+    """Builds (or finds) the shared stages ``run`` needs in ``<out>/shared/<run>`` at ``shared_seed``.
+
+    Stages another run's shared dir has already made with equal config sections are adopted, not
+    rebuilt. Returns ``(shared dir, its config as a dict, stages built by this call)``.
+    """
+    import glob
+
+    import configs
+    from configs.cli import to_dict
+    from train import pipeline, stagerunner
+
+    shared_dir = os.path.join(out, "shared", run)
+    config, argv = _run_argv(run, size, shared_seed, shared_dir, overrides)
+    cfg, _ = configs.from_argv(argv)
+    stagerunner.check_workdir_config(cfg, shared_dir)
+    wanted = [name for name in _stage_names(run) if name in SHAREABLE]
+    for other in sorted(glob.glob(os.path.join(out, "shared", "*", "config.json"))):
+        donor = os.path.dirname(other)
+        if os.path.abspath(donor) != os.path.abspath(shared_dir):
+            with open(other) as f:
+                adopt_stages(shared_dir, donor, cfg, json.load(f), wanted)
+    stages = [s for s in pipeline.STAGES if s.name in wanted]
+    done = {s.name for s in stages if os.path.exists(os.path.join(shared_dir, "stages", f"{s.name}.json"))}
+    ctx = stagerunner.Context(cfg=cfg, workdir=shared_dir, cfg_name=config, overrides=[argv[2], *argv[4:]])  # seed, extra
+    stagerunner.run_stages(stages, ctx)
+    return shared_dir, to_dict(cfg), [s.name for s in stages if s.name not in done]
+
+
+def _rounded(value):
+    if isinstance(value, float):
+        return float(f"{value:.6g}")
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v) for v in value]
+    return value
+
+
+def slice_record(run: str, seed: int, stages: dict, workdir: str) -> dict:
+    """The science of one finished slice: overall metrics, per-horizon curves, success curve, losses."""
+    evaluate = stages.get("evaluate", {})
+    metrics = {split: next(iter(per_model.values())) for split, per_model in evaluate.get("metrics", {}).items()}
+    curves = {}
+    eval_results = os.path.join(workdir, "eval", "results.json")
+    if os.path.exists(eval_results):
+        with open(eval_results) as f:
+            models = json.load(f).get("models", {})
+        curves = {split: next(iter(per_model.values())).get("curves", {}) for split, per_model in models.items()}
+    record = {"run": run, "seed": seed, "metrics": metrics, "curves": curves}
+    world_model = stages.get("world_model", {})
+    record["world_model"] = {"steps": world_model.get("final_step"), "first_loss": world_model.get("first_loss"),
+                             "final_metrics": world_model.get("final_metrics", {})}
+    policy = stages.get("policy", {})
+    if policy:
+        record["success"] = policy.get("success", {})
+        curve_path = os.path.join(policy.get("grpo", {}).get("workdir", ""), "success_curve.json")
+        if os.path.exists(curve_path):
+            with open(curve_path) as f:
+                record["success_curve"] = json.load(f)["points"]
+        record["policy"] = {k: policy[k] for k in ("reward_model", "sft", "grpo") if k in policy}
+    return _rounded(record)
+
+
+def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, share: bool,
+              overrides: Sequence[str]) -> dict:
+    """Runs one (run, seed) slice (building the shared stages first where missing); returns its record."""
     import configs
     from train import pipeline
 
-    runs = runs_for(args.size)
-    if args.runs:
-        missing = sorted(set(args.runs.split(",")) - set(runs))
-        if missing:
-            raise UsageError(f"unknown runs {missing}; known: {sorted(runs)}")
-        runs = {name: runs[name] for name in args.runs.split(",")}
-    results: dict[str, list[dict]] = {}
-    timings: dict[str, list[float]] = {}
-    donors: list[tuple[str, object]] = []  # (workdir, config) of finished runs, first seed first
+    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    start = time.perf_counter()
+    workdir = os.path.join(out, run, f"seed{seed}")
+    config, argv = _run_argv(run, size, seed, workdir, overrides)
+    cfg, _ = configs.from_argv(argv)
+    shared: dict = {"seed": seed, "workdir": None, "built_here": [], "adopted": []}
+    if share:
+        shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides)
+        adopted = adopt_stages(workdir, shared_dir, cfg, shared_cfg)
+        shared.update(seed=shared_seed, workdir=shared_dir, built_here=built, adopted=adopted)
+    shared_seconds = time.perf_counter() - start
+    stages = pipeline.main(argv + ["--stop-after", _stage_names(run)[-1]])
+    slice_seconds = time.perf_counter() - start - shared_seconds
+    hash_start = time.perf_counter()
+    shared["hashes"] = shared_hashes(cfg, stages)
+    shared["stage_seconds"] = {name: stages[name].get("seconds") for name in shared["adopted"]}
+    own = {name: r.get("seconds") for name, r in stages.items() if name not in shared["adopted"]}
+    return {
+        "format": SLICE_FORMAT, "size": size, "config": config, "overrides": list(overrides), "started": started,
+        **slice_record(run, seed, stages, workdir),
+        "stage_seconds": own, "shared": shared, "device": device_info(), "code": code_version(),
+        "wall_seconds": {"shared": round(shared_seconds, 1), "slice": round(slice_seconds, 1),
+                         "hashing": round(time.perf_counter() - hash_start, 1)},
+    }
+
+
+def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bool, overrides: Sequence[str]) -> str:
+    """The command that reruns exactly this slice."""
+    argv = ["--size", size, "--runs", run, "--seeds", str(seed)]
+    argv += [f"--shared-seed={shared_seed}"] if share and shared_seed else []
+    return shlex.join(["python", "-m", "train.compare", *argv, *([] if share else ["--no-share"]), *overrides])
+
+
+def parse_runs(text: str, size: str) -> list[str]:
+    known = runs_for(size)
+    if not text:
+        return list(known)
+    names = text.split(",")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise UsageError(f"--runs: unknown run(s) {', '.join(map(repr, unknown))}; known: {', '.join(known)}")
+    if len(set(names)) < len(names):
+        raise UsageError(f"--runs: a run is listed twice in {text!r}")
+    return names
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        raise UsageError(f"--seeds takes comma-separated integers, got {text!r}") from None
+    if len(set(seeds)) < len(seeds) or min(seeds) < 0:
+        raise UsageError(f"--seeds: non-negative integers, each once, got {text!r}")
+    return seeds
+
+
+def merge_main(argv: Sequence[str]) -> dict:
+    parser = ArgumentParser(prog="python -m train.compare merge",
+                            description="comparison.md/.json from the slice files in DIR, with n per cell")
+    parser.add_argument("dir", help="a folder of slice files, e.g. benchmarks/results/compare/small")
+    parser.add_argument("--allow-mismatch", action="store_true",
+                        help="write the table even if slices' shared-input hashes differ (flagged at the top)")
+    args = parser.parse_args(argv)
+    table = merge(args.dir, allow_mismatch=args.allow_mismatch)
+    print(f"[compare] wrote {os.path.join(args.dir, 'comparison.md')} from {len(load_slices(args.dir))} slices")
+    return table
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["merge"]:
+        return merge_main(argv[1:])
+    parser = ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False,
+                            epilog="`merge DIR` builds the table from slice files. Any other --SECTION.KEY=VALUE "
+                                   "is a config override applied to every run.")
+    parser.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+    parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds; one slice per run and seed")
+    parser.add_argument("--runs", default="", help=f"comma-separated runs (default: all of {', '.join(runs_for('tiny'))})")
+    parser.add_argument("--out", default="runs/compare", help="work dirs: <out>/<run>/seed<k>, <out>/shared/<run>")
+    parser.add_argument("--results", default="", help="slice files and table (default benchmarks/results/compare/<size>)")
+    parser.add_argument("--shared-seed", type=int, default=0, help="seed of the shared stages (data, VAE, ...)")
+    parser.add_argument("--no-share", action="store_true", help="make every stage of every slice from its own seed")
+    args, overrides = parser.parse_known_args(argv)
+    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    if bad:
+        raise UsageError(f"not a dotted config override (--section.key=value): {' '.join(bad)}")
+    seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size)
+    results_dir = args.results or os.path.join(REPO, "benchmarks", "results", "compare", args.size)
+    os.makedirs(results_dir, exist_ok=True)
+    invocation = shlex.join(["python", "-m", "train.compare", *argv])
     for seed in seeds:
-        for run, (config, extra) in runs.items():
-            workdir = os.path.join(args.out, run, f"seed{seed}")
-            argv_run = ["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra, *overrides]
-            cfg, _ = configs.from_argv(argv_run)
-            if not args.no_share:
-                for donor, donor_cfg in donors:
-                    adopted = adopt_stages(workdir, donor, cfg, donor_cfg)
-                    if adopted:
-                        print(f"[compare] {run} seed {seed}: adopts {', '.join(adopted)} from {donor}")
-            start = time.perf_counter()
-            stages = pipeline.main(argv_run + ([] if _needs_policy(run) else ["--stop-after", "evaluate"]))
-            timings.setdefault(run, []).append(time.perf_counter() - start)
-            donors.append((workdir, cfg))
-            results.setdefault(run, []).append({"stages": stages})
-            table = write_tables(args.out, results, seeds, size=args.size, overrides=overrides, timings=timings)
-    print(to_markdown(table, seeds))
+        for run in runs:
+            record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
+                               share=not args.no_share, overrides=overrides)
+            record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
+                                              share=not args.no_share, overrides=overrides)
+            record["invocation"] = invocation
+            path = os.path.join(results_dir, f"{run}_seed{seed}.json")
+            from train.stagerunner import write_json_atomic
+
+            write_json_atomic(path, record)
+            wall = record["wall_seconds"]
+            print(f"[compare] slice {run} seed {seed}: {wall['shared']:.0f} s shared stages + {wall['slice']:.0f} s "
+                  f"slice -> {path}")
+            table = merge(results_dir, allow_mismatch=True)  # after every slice: a cut-off session leaves a table
+    mismatches = hash_mismatches(load_slices(results_dir))
+    if mismatches:
+        print(f"[compare] WARNING: slices in {results_dir} disagree on shared inputs {sorted(mismatches)}; "
+              "the table is flagged (see its top)", file=sys.stderr)
+    with open(os.path.join(results_dir, "comparison.md")) as f:
+        print(f.read())
     return table
 
 
