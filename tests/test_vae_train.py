@@ -45,3 +45,80 @@ def test_sharded_step_keeps_shardings():
         state, metrics = step(state, {"video": video}, jax.random.key(2))
     assert np.isfinite(float(metrics["loss"]))
     assert state.params["decoder"]["conv1"]["kernel"].value.sharding.spec[-1] == "fsdp"
+
+
+# ---------------------------------------------------------------------------------------------
+# Raw plus training-style clips; held-out styles and held-out episodes never reach the VAE.
+
+
+def _sim_episodes(num=3, t=9, size=32, init_split="train"):
+    from sim.dataset import Episode
+    from sword_jax.augment.synthetic import synthetic_episodes
+
+    data = synthetic_episodes(num, num_frames=t, size=size)
+    return [Episode(actions=data["actions"][i], states=np.zeros((t, 3), np.float32), rewards=np.zeros(t, np.float32),
+                    dones=np.zeros(t, np.uint8), agentview_rgb=np.rint(data["frames"][i] * 255).astype(np.uint8),
+                    ee_states=np.zeros((t, 6), np.float32), gripper_states=np.zeros((t, 2), np.float32),
+                    joint_states=np.zeros((t, 7), np.float32), agentview_depth=data["depth"][i],
+                    agentview_seg=data["seg"][i], task_id=0, init_split=init_split) for i in range(num)]
+
+
+def test_vae_clips_are_raw_plus_training_styles(monkeypatch):
+    from sword_jax.augment import style as style_lib
+    from sword_jax.vae import data as vae_data
+
+    clips = vae_data.clips_from_sim(_sim_episodes())
+    seen = []
+    real = vae_data.training_styles
+    monkeypatch.setattr(vae_data, "training_styles", lambda key, num: seen.append(real(key, num)) or seen[-1])
+    sampler = vae_data.ClipSampler(clips, batch=4, frames=5, seed=0, styled_fraction=0.5)
+    raw_only = vae_data.ClipSampler(clips, batch=4, frames=5, seed=0, styled_fraction=0.0)
+    styled_any = False
+    for step in range(1, 4):
+        video, raw = sampler.batch(step), raw_only.batch(step)
+        assert video.shape == (4, 5, 32, 32, 3) and video.min() >= -1.0 and video.max() <= 1.0
+        changed = np.abs(video - raw).max(axis=(1, 2, 3, 4)) > 0.05
+        unchanged = np.abs(video - raw).max(axis=(1, 2, 3, 4)) == 0
+        assert (changed | unchanged).all()  # a clip is either raw bit-exactly or restyled
+        styled_any |= bool(changed.any())
+        np.testing.assert_array_equal(video, sampler.batch(step))  # a pure function of the step
+    assert styled_any and raw_only.styled_clips == 0 and sampler.styled_clips > 0
+    assert seen and all(style_lib.style_split(jax.tree.map(lambda x, i=i: x[i], s)) == "train"
+                        for s in seen for i in range(4))
+
+    # Whatever the sampler draws, a held-out style is refused before any pixel is restyled.
+    monkeypatch.setattr(vae_data, "training_styles", real)
+    monkeypatch.setattr(vae_data, "sample_styles", lambda key, num, split: style_lib.sample_styles(key, num, "heldout"))
+    with pytest.raises(style_lib.HeldOutStyleError):
+        for step in range(1, 6):
+            sampler.batch(step)
+
+
+def test_vae_refuses_held_out_episodes_and_missing_geometry():
+    from sword_jax.vae import data as vae_data
+
+    with pytest.raises(ValueError, match="held-out"):
+        vae_data.clips_from_sim(_sim_episodes(init_split="heldout"))
+    flat = [e.__class__(**{**e.__dict__, "agentview_depth": None}) for e in _sim_episodes()]
+    clips = vae_data.clips_from_sim(flat)
+    assert not clips.can_style
+    with pytest.raises(ValueError, match="depth"):
+        vae_data.ClipSampler(clips, batch=2, frames=5, seed=0, styled_fraction=0.5)
+    vae_data.ClipSampler(clips, batch=2, frames=5, seed=0, styled_fraction=0.0).batch(1)  # raw only still works
+
+
+@pytest.mark.slow
+def test_train_vae_entry_trains_on_styled_clips(tmp_path):
+    from sim.dataset import DatasetInfo, write_dataset
+    from train import train_vae
+
+    path = str(tmp_path / "train.hdf5")
+    write_dataset(path, _sim_episodes(), DatasetInfo(env_name="test"))
+    summary = train_vae.main(["--config", "sword:tiny", "--workdir", str(tmp_path / "vae"), "--episodes", path,
+                              "--vae.train_steps=2", "--clip-latents=1", "--mesh.data=2", "--mesh.tensor=4"])
+    assert summary["styled_fraction"] == 0.5 and summary["styled_clips"] > 0
+    assert np.isfinite(summary["final_loss"])
+    held_out = str(tmp_path / "heldout.hdf5")
+    write_dataset(held_out, _sim_episodes(init_split="heldout"), DatasetInfo(env_name="test"))
+    with pytest.raises(ValueError, match="held-out"):
+        train_vae.main(["--config", "sword:tiny", "--workdir", str(tmp_path / "vae2"), "--episodes", held_out])

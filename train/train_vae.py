@@ -7,7 +7,8 @@ Usage::
     python -m train.train_vae --config sword:paper --workdir DIR --vae.checkpoint=Wan2.2_VAE.safetensors
 
 Clips of ``1 + 4k`` frames (``k`` = 2 by default) are cut at random from the episodes' agentview
-frames. The state (params, latent statistics, optimiser state, step) is an orbax checkpoint under
+frames; with ``vae.train_styles`` (default) a ``vae.styled_fraction`` share of them is restyled in
+*training* styles (:mod:`sword_jax.vae.data`; held-out styles and held-out episodes never reach the VAE). The state (params, latent statistics, optimiser state, step) is an orbax checkpoint under
 ``<workdir>/checkpoints``; the run auto-resumes from it. ``<workdir>/vae/`` holds the final
 pure-dict VAE state that ``train.evaluate`` and the pipeline load.
 """
@@ -28,32 +29,33 @@ from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
 from sword_jax.vae import api as vae_api
+from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
 from sword_jax.world_model import checkpoint
 from train import distributed
 
 
-def load_frames(paths: Sequence[str]) -> list[np.ndarray]:
-    """Agentview videos ``[T, H, W, 3]`` in [-1, 1] from LIBERO-layout HDF5 files."""
+def load_clips(paths: Sequence[str]) -> vae_data.VAEClips:
+    """Training episodes (uint8 agentview frames, depth and segmentation) from LIBERO-layout HDF5 files.
+
+    Episodes from held-out initial states are refused: evaluation data never trains the VAE.
+    """
     from sim.dataset import read_dataset
 
-    videos = []
+    episodes = []
     for path in paths:
-        _, episodes = read_dataset(path)
-        videos += [e.agentview_rgb.astype(np.float32) / np.float32(127.5) - np.float32(1.0) for e in episodes]
-    return videos
+        episodes += read_dataset(path)[1]
+    return vae_data.clips_from_sim(episodes, name="train_vae")
 
 
-def clip_batch(videos: Sequence[np.ndarray], batch: int, frames: int, rng: np.random.Generator) -> np.ndarray:
-    """``[batch, frames, H, W, 3]`` clips at random episodes and offsets (short episodes repeat their last frame)."""
-    clips = []
-    for index in rng.integers(0, len(videos), batch):
-        video = videos[index]
-        if video.shape[0] < frames:
-            video = np.concatenate([video, np.repeat(video[-1:], frames - video.shape[0], axis=0)])
-        start = rng.integers(0, video.shape[0] - frames + 1)
-        clips.append(video[start:start + frames])
-    return np.stack(clips)
+def clip_sampler(cfg: ExperimentConfig, clips: vae_data.VAEClips, frames: int) -> vae_data.ClipSampler:
+    """Raw clips plus, with ``vae.train_styles``, a ``vae.styled_fraction`` share in training styles."""
+    from sword_jax.augment.pipeline import seg_classes_from_config
+
+    return vae_data.ClipSampler(clips, batch=cfg.vae.batch_size, frames=frames, seed=cfg.seed,
+                                styled_fraction=cfg.vae.styled_fraction if cfg.vae.train_styles else 0.0,
+                                intensity=cfg.augment.intensity, classes=seg_classes_from_config(cfg.augment),
+                                fov_deg=cfg.augment.fov_deg)
 
 
 def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nnx.State) -> None:
@@ -99,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return {"source": cfg.vae.checkpoint, "steps": 0}
     if not args.episodes and not args.synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
-    videos = load_frames(args.episodes) if args.episodes else None
+    sampler = clip_sampler(cfg, load_clips(args.episodes), 1 + 4 * args.clip_latents) if args.episodes else None
     frames = 1 + 4 * args.clip_latents
     mesh = shd.make_mesh(cfg.mesh)
     graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
@@ -121,9 +123,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                      jsonl_path=os.path.join(args.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(args.workdir, "tensorboard"))
     for step in range(start + 1, cfg.vae.train_steps + 1):
-        rng = np.random.default_rng([cfg.seed, step])  # a pure function of the step: exact resume
-        if videos is not None:
-            host = clip_batch(videos, cfg.vae.batch_size, frames, rng)
+        if sampler is not None:  # a pure function of the step: exact resume
+            host = sampler.batch(step)
         else:
             side = cfg.data.image_size
             host = np.asarray(vae_train.moving_squares(key=jax.random.key(step), batch=cfg.vae.batch_size,
@@ -140,7 +141,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     last = logger.history[-1] if logger.history else {}
     first = logger.history[0] if logger.history else {}
     return {"steps": cfg.vae.train_steps, "first_loss": first.get("loss"), "final_loss": last.get("loss"),
-            "path": final_path}
+            "path": final_path, "styled_fraction": sampler.styled_fraction if sampler is not None else 0.0,
+            "styled_clips": sampler.styled_clips if sampler is not None else 0}
 
 
 if __name__ == "__main__":

@@ -23,6 +23,9 @@ class VAEConfig:
       perceptual_weight: weight of the optional perceptual term (a callable given to the step).
       weight_decay: AdamW weight decay.
       grad_clip: global-norm gradient clipping (0 disables).
+      train_styles: train on raw plus training-style frames (``sword_jax.vae.data``); held-out
+        styles (LIBERO-Mixed) never reach the VAE.
+      styled_fraction: with ``train_styles``, the share of training clips restyled.
     """
 
     z_dim: int = 48
@@ -42,6 +45,8 @@ class VAEConfig:
     perceptual_weight: float = 0.0
     weight_decay: float = 0.0
     grad_clip: float = 1.0
+    train_styles: bool = True
+    styled_fraction: float = 0.5
 
     def validate(self) -> None:
         if self.z_dim <= 0 or self.dim <= 0 or self.dec_dim <= 0:
@@ -59,6 +64,8 @@ class VAEConfig:
             raise ValueError(f"vae.compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
         if min(self.kl_weight, self.l1_weight, self.l2_weight, self.perceptual_weight, self.weight_decay) < 0:
             raise ValueError("vae: loss weights and weight_decay must be >= 0")
+        if not 0.0 <= self.styled_fraction <= 1.0:
+            raise ValueError(f"vae.styled_fraction must be in [0, 1], got {self.styled_fraction}")
         # AvgDown3D / DupUp3D regroup channels: in*factor must divide evenly into out groups.
         enc = [self.dim * m for m in (1, *self.dim_mult)]
         dec = [self.dec_dim * m for m in (self.dim_mult[-1], *self.dim_mult[::-1])]

@@ -1,0 +1,142 @@
+"""VAE training clips: raw frames plus frames restyled in *training* styles (never held-out ones).
+
+The world model's augmentation arm feeds it training-styled latents, and LIBERO-Mixed scores
+held-out-styled frames through the same VAE. A VAE that only ever saw raw frames adds its own
+reconstruction error on styled frames to *both* arms of the augmentation comparison and can hide
+the effect, so the VAE trains on raw plus training-styled clips (``vae.train_styles``).
+
+Held-out styles cannot reach the VAE from here: styles are drawn with
+``sample_styles(..., "train")`` and checked on the host with
+:func:`~sword_jax.augment.style.assert_training_style` before any pixel is restyled; held-out
+*episodes* (``init_split == "heldout"``) are refused when the clips are built from simulator data.
+
+Clips are cut on the host from uint8 episodes (a pure function of the step: exact resume), then
+restyled on device by one jitted, vmapped :func:`~sword_jax.augment.transforms.augment`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
+from sword_jax.augment.transforms import augment
+
+
+class VAEClips(NamedTuple):
+    """Training episodes for the VAE (host arrays; lengths may differ).
+
+    Attributes:
+      frames: per episode ``[T, H, W, 3]`` uint8.
+      depth: per episode ``[T, H, W]`` float32 metres, or ``None`` (no styled clips possible).
+      seg: per episode ``[T, H, W]`` integer class map, or ``None``.
+    """
+
+    frames: list[np.ndarray]
+    depth: list[np.ndarray] | None
+    seg: list[np.ndarray] | None
+
+    @property
+    def can_style(self) -> bool:
+        return self.depth is not None and self.seg is not None
+
+
+def clips_from_sim(episodes: Sequence, *, name: str = "episodes") -> VAEClips:
+    """From ``sim.dataset.Episode`` objects; refuses held-out episodes (evaluation data).
+
+    Raises:
+      ValueError: an episode comes from the ``heldout`` initial-state split.
+    """
+    held_out = [i for i, e in enumerate(episodes) if getattr(e, "init_split", "") == "heldout"]
+    if held_out:
+        raise ValueError(f"{name}: episodes {held_out[:10]} start from held-out initial states; "
+                         "the VAE trains on training episodes only")
+    frames = [np.asarray(e.agentview_rgb, np.uint8) for e in episodes]
+    geometry = all(e.agentview_depth is not None and e.agentview_seg is not None for e in episodes)
+    depth = [np.asarray(e.agentview_depth, np.float32) for e in episodes] if geometry else None
+    seg = [np.asarray(e.agentview_seg, np.int32) for e in episodes] if geometry else None
+    return VAEClips(frames, depth, seg)
+
+
+def _cut(video: np.ndarray, start: int, frames: int) -> np.ndarray:
+    if video.shape[0] < frames:  # short episodes repeat their last frame
+        video = np.concatenate([video, np.repeat(video[-1:], frames - video.shape[0], axis=0)])
+    return video[start:start + frames]
+
+
+def sample_clips(clips: VAEClips, batch: int, frames: int, rng: np.random.Generator, *, with_geometry: bool
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(frames uint8 [B, T, H, W, 3], depth [B, T, H, W] | None, seg | None)`` at random episodes/offsets."""
+    picks = []
+    for index in rng.integers(0, len(clips.frames), batch):
+        length = max(clips.frames[index].shape[0], frames)
+        picks.append((int(index), int(rng.integers(0, length - frames + 1))))
+    video = np.stack([_cut(clips.frames[i], s, frames) for i, s in picks])
+    if not with_geometry:
+        return video, None, None
+    depth = np.stack([_cut(clips.depth[i], s, frames) for i, s in picks])
+    seg = np.stack([_cut(clips.seg[i], s, frames) for i, s in picks])
+    return video, depth, seg
+
+
+def training_styles(key: jax.Array, num: int) -> Style:
+    """``num`` training styles, checked on the host (raises ``HeldOutStyleError`` otherwise)."""
+    styles = jax.device_get(sample_styles(key, num, "train"))
+    assert_training_style(styles)
+    return styles
+
+
+@functools.partial(jax.jit, static_argnames=("classes", "fov_deg"))
+def restyle(frames: Float[Array, "b t h w 3"], depth: Float[Array, "b t h w"], seg: Array, styles: Style,
+            styled: Array, *, intensity: float | Array = 1.0, classes: SegClasses = DEFAULT_CLASSES,
+            fov_deg: float = 45.0) -> Float[Array, "b t h w 3"]:
+    """Restyles the clips where ``styled [B]`` is set; the others pass through bit-exactly. Output in [0, 1]."""
+    def one(f, d, s, style):
+        return augment(f, d, s, style, intensity=intensity, classes=classes, fov_deg=fov_deg)
+
+    out = jax.vmap(one)(frames, depth, seg, styles)
+    return jnp.where(styled[:, None, None, None, None], out, frames)
+
+
+class ClipSampler:
+    """``batch(step) -> [B, T, H, W, 3]`` float32 in [-1, 1]: raw clips, a ``styled_fraction`` share of them
+    restyled in training styles. A pure function of ``(seed, step)``.
+
+    Args:
+      clips: the training episodes.
+      batch, frames: clips per batch and frames per clip.
+      seed: the run's seed.
+      styled_fraction: share of clips restyled (0 = raw only).
+      intensity, classes, fov_deg: of the restyling (``augment`` config).
+    """
+
+    def __init__(self, clips: VAEClips, *, batch: int, frames: int, seed: int, styled_fraction: float = 0.0,
+                 intensity: float = 1.0, classes: SegClasses = DEFAULT_CLASSES, fov_deg: float = 45.0):
+        if styled_fraction > 0 and not clips.can_style:
+            raise ValueError("VAE styled clips need agentview depth and segmentation in the episodes "
+                             "(record them, or set --vae.train_styles=false)")
+        self.clips, self.batch_size, self.frames, self.seed = clips, batch, frames, seed
+        self.styled_fraction, self.intensity = float(styled_fraction), float(intensity)
+        self.classes, self.fov_deg = classes, float(fov_deg)
+        self.styled_clips = 0  # running count, for the run summary
+
+    def batch(self, step: int) -> np.ndarray:
+        rng = np.random.default_rng([self.seed, step])
+        styling = self.styled_fraction > 0
+        video, depth, seg = sample_clips(self.clips, self.batch_size, self.frames, rng, with_geometry=styling)
+        unit = video.astype(np.float32) / np.float32(255.0)
+        if styling:
+            styled = rng.random(self.batch_size) < self.styled_fraction
+            if styled.any():
+                key = jax.random.fold_in(jax.random.key(self.seed + 0x57), step)
+                styles = training_styles(key, self.batch_size)
+                unit = np.asarray(restyle(unit, depth, seg, styles, styled, intensity=np.float32(self.intensity),
+                                          classes=self.classes, fov_deg=self.fov_deg))
+                self.styled_clips += int(styled.sum())
+        return unit * np.float32(2.0) - np.float32(1.0)
