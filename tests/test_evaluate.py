@@ -64,6 +64,9 @@ def test_harness_and_report_rank_models_and_write_files(tmp_path):
         assert rel in text
     saved = json.load(open(tmp_path / "results.json"))
     assert saved["models"]["original"]["good"]["overall"]["lpips"] == pytest.approx(results.models["original"]["good"].overall["lpips"])
+    curve = saved["models"]["original"]["bad"]["curves"]["lpips"]  # per-horizon bootstrap intervals over episodes
+    assert all(lo <= m <= hi for lo, m, hi in zip(curve["ci_low"], curve["mean"], curve["ci_high"]))
+    assert curve["ci_level"] == 0.95 and curve["overall_ci"][0] <= saved["models"]["original"]["bad"]["overall"]["lpips"]
     assert "<table>" in open(tmp_path / "report.html").read()
 
 
@@ -92,3 +95,21 @@ def test_given_frames_are_excluded_from_the_metrics():
     assert result.overall["psnr"] > 19
     with pytest.raises(ValueError, match="given_frames"):
         evaluate_videos(suite, {"original": gt}, {"m": {"original": pred}}, given_frames=8, progress=lambda _: None)
+
+
+def test_bootstrap_interval_matches_the_standard_error_and_narrows_with_episodes():
+    from sword_jax.evaluation.horizon import bootstrap_mean_interval
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(1.0, 2.0, (400, 3))
+    curve = per_frame_curve(values)
+    width = curve.ci_high - curve.ci_low
+    np.testing.assert_allclose(width, 2 * 1.96 * curve.stderr, rtol=0.1)  # normal data: percentile ~ +-1.96 se
+    assert (curve.ci_low < curve.mean).all() and (curve.mean < curve.ci_high).all()
+    lo, hi = curve.overall_ci
+    assert lo < values.mean() < hi and hi - lo < width.mean()  # averaging frames narrows the interval
+    small_lo, small_hi = bootstrap_mean_interval(values[:25])
+    assert ((small_hi - small_lo) > 2 * width).all()  # 16x fewer episodes: ~4x wider
+    np.testing.assert_array_equal(per_frame_curve(values).ci_low, curve.ci_low)  # deterministic
+    one = per_frame_curve(values[:1])
+    np.testing.assert_array_equal(one.ci_low, one.mean)

@@ -46,6 +46,7 @@ import configs
 from configs.base import ExperimentConfig
 from sword_jax.evaluation.harness import evaluate_videos, rollout_videos
 from sword_jax.evaluation.report import write_report
+from sword_jax.evaluation.vae_floor import vae_floor
 from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
 
 
@@ -238,6 +239,7 @@ def main(argv: Sequence[str] | None = None) -> str:
                 flow_cfg=model_cfg.flow, num_context=k, num_future=p)
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
+    rollout_s = time.time() - start  # data, models and rollouts
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
     truth = {s: {key: v[key][:, :horizon] for key in ("targets", "rewards") if key in v} for s, v in splits.items()}
     results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k, horizon_window=cfg.eval.horizon_window,
@@ -245,6 +247,12 @@ def main(argv: Sequence[str] | None = None) -> str:
                                         "probe": args.probe, "reward_model": args.reward_model},
                               fidelity=_fidelity(cfg, args.probe, args.reward_model), truth_by_split=truth)
     notes += fidelity_notes(results)
+    metrics_s = time.time() - start - rollout_s
+    results.vae_floor, floor_s = vae_floor(cfg.eval, suite.metrics, vae_graphdef, vae_state, gt, num_context=k,
+                                           num_future=p, given_frames=1 + 4 * k)
+    results.settings["episodes"] = {s: int(v.shape[0]) for s, v in gt.items()}
+    results.timing = {"rollout_s": rollout_s, "metrics_s": metrics_s, "vae_floor_s": floor_s,
+                      "total_s": time.time() - start}  # write_report adds report_s
     videos = {s: {"ground truth": gt[s][: cfg.eval.report_videos],
                   **{m: predictions[m][s][: cfg.eval.report_videos] for m in predictions}} for s in gt}
     out = args.out or cfg.eval.report_dir or os.path.join(cfg.workdir, "eval")

@@ -74,8 +74,9 @@ def write_gif(path: str, videos: dict[str, np.ndarray], *, fps: int = 8) -> None
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
 
 
-def plot_curves(path: str, split: str, metric: str, curves: dict[str, dict]) -> None:
-    """One PNG: ``metric`` against horizon for every model (shaded standard error)."""
+def plot_curves(path: str, split: str, metric: str, curves: dict[str, dict], *, floor: dict | None = None) -> None:
+    """One PNG: ``metric`` against horizon for every model, shaded with its bootstrap interval over
+    episodes (the standard error where a curve has none), and the VAE's reconstruction ``floor`` dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -85,15 +86,35 @@ def plot_curves(path: str, split: str, metric: str, curves: dict[str, dict]) -> 
     for model, curve in curves.items():
         frames, mean, err = (np.asarray(curve[k], np.float64) for k in ("frames", "mean", "stderr"))
         ax.plot(frames, mean, marker="o" if len(frames) < 20 else None, ms=3, label=model)
-        if np.any(err > 0):
+        if curve.get("ci_low") is not None:
+            ax.fill_between(frames, curve["ci_low"], curve["ci_high"], alpha=0.2)
+        elif np.any(err > 0):
             ax.fill_between(frames, mean - err, mean + err, alpha=0.2)
+    if floor is not None:
+        ax.plot(floor["frames"], floor["mean"], ls="--", color="0.4", lw=1.2, label="VAE floor (encode-decode)")
+        if floor.get("ci_low") is not None:
+            ax.fill_between(floor["frames"], floor["ci_low"], floor["ci_high"], color="0.4", alpha=0.12)
     arrow = "lower is better" if LOWER_IS_BETTER[metric] else "higher is better"
-    ax.set(xlabel="horizon (frame index; frame 0 = given first frame)", ylabel=_LABEL[metric], title=f"{split}: {_LABEL[metric]} ({arrow})")
+    level = next((c["ci_level"] for c in curves.values() if c.get("ci_level")), None)
+    shade = f"; shaded: {level:.0%} bootstrap interval over episodes" if level else ""
+    ax.set(xlabel=f"horizon (frame index; frame 0 = given first frame){shade}", ylabel=_LABEL.get(metric, metric),
+           title=f"{split}: {_LABEL.get(metric, metric)} ({arrow})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def _number(value: float) -> str:
+    return f"{value:.4f}" if abs(value) < 100 else f"{value:.1f}"
+
+
+def _cell(result, metric: str) -> str:
+    """The overall value, with its bootstrap interval over episodes where the metric has one."""
+    value = result.overall.get(metric, float("nan"))
+    interval = result.curves.get(metric, {}).get("overall_ci")
+    return _number(value) + (f" [{_number(interval[0])}, {_number(interval[1])}]" if interval else "")
 
 
 def _table(results: EvalResults, split: str) -> list[list[str]]:
@@ -107,11 +128,24 @@ def _table(results: EvalResults, split: str) -> list[list[str]]:
     for model, r in results.models[split].items():
         cells = [model]
         for m in metrics:
-            value = r.overall.get(m, float("nan"))
-            text = f"{value:.4f}" if abs(value) < 100 else f"{value:.1f}"
-            cells.append(f"**{text}**" if value == best[m] and len(results.models[split]) > 1 else text)
+            text = _cell(r, m)
+            cells.append(f"**{text}**" if r.overall.get(m) == best[m] and len(results.models[split]) > 1 else text)
         rows.append(cells)
+    floor = results.vae_floor.get(split)
+    if floor is not None:
+        rows.append(["VAE floor (encode-decode of ground truth)"]
+                    + [_cell(floor, m) if m in floor.overall else "–" for m in metrics])
     return rows
+
+
+def floor_lines(results: EvalResults) -> list[str]:
+    """One line per split: the VAE's reconstruction floor, so world-model error reads apart from VAE error."""
+    lines = []
+    for split, floor in results.vae_floor.items():
+        parts = [f"{_LABEL.get(m, m)} {_cell(floor, m)}" for m in floor.overall]
+        lines.append(f"VAE reconstruction floor on {split} (encode-decode of the ground truth, the scored frames; "
+                     f"95% bootstrap interval over episodes): " + ", ".join(parts) + ".")
+    return lines
 
 
 def _md_table(rows: list[list[str]]) -> str:
@@ -143,11 +177,17 @@ def write_report(out_dir: str, results: EvalResults, videos: dict[str, dict[str,
       notes: extra lines shown at the top (settings, caveats).
       max_episodes: episodes shown as strips and GIFs per split.
     """
+    import time
+
+    start = time.perf_counter()
     for sub in ("plots", "strips", "videos"):
         os.makedirs(os.path.join(out_dir, sub), exist_ok=True)
     md = [f"# {title}", ""]
     body_html = [f"<h1>{html.escape(title)}</h1>"]
-    caveats = list(notes)
+    caveats = list(notes) + floor_lines(results)
+    if any(c.get("ci_low") is not None for per in results.models.values() for r in per.values() for c in r.curves.values()):
+        caveats.append("Intervals (tables, shaded curves) are 95% percentile bootstrap intervals of the mean over "
+                       "episodes; FID/FVD windows have none.")
     if results.random_weight_networks:
         caveats.insert(0, "**Random-weight metric networks** (no published weights found) for: "
                        + ", ".join(results.random_weight_networks)
@@ -164,7 +204,9 @@ def write_report(out_dir: str, results: EvalResults, videos: dict[str, dict[str,
             if not curves:
                 continue
             rel = f"plots/{split}_{metric}.png"
-            plot_curves(os.path.join(out_dir, rel), split, metric, curves)
+            floor = results.vae_floor.get(split)
+            plot_curves(os.path.join(out_dir, rel), split, metric, curves,
+                        floor=floor.curves.get(metric) if floor is not None else None)
             md.append(f"![{split} {metric}]({rel})")
             body_html.append(f'<img src="{rel}" alt="{split} {metric}">')
         md.append("")
@@ -179,6 +221,14 @@ def write_report(out_dir: str, results: EvalResults, videos: dict[str, dict[str,
                 md += [f"Episode {ep}: ground truth (top) and predictions", "", f"![strip]({strip})", "",
                        f"![video]({gif})", ""]
                 body_html += [f"<h3>Episode {ep}</h3>", f'<img src="{strip}"><br><img src="{gif}">']
+    report_s = time.perf_counter() - start
+    if results.timing:
+        results.timing["report_s"] = report_s
+        results.timing["total_s"] = results.timing.get("total_s", 0.0) + report_s
+        parts = ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in results.timing.items() if k != "total_s")
+        line = f"Evaluation time: {results.timing['total_s']:.1f} s ({parts})."
+        md += [line, ""]
+        body_html.append(f"<p>{html.escape(line)}</p>")
     with open(os.path.join(out_dir, "results.json"), "w") as f:
         json.dump(results.to_dict(), f, indent=1)
     md_path = os.path.join(out_dir, "report.md")
