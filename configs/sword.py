@@ -40,7 +40,8 @@ def small() -> ExperimentConfig:
         data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32),
         trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
         sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
-        eval=EvalConfig(horizon_frames=69, num_episodes=20, allow_random_weights_for=("fid",)),
+        # 100 held-out episodes x 64 predicted frames (1 + 4 context + 8 x 8), scored with bootstrap intervals.
+        eval=EvalConfig(horizon_frames=69, num_episodes=100, allow_random_weights_for=("fid",)),
         rl=RLConfig(grpo_steps=100, eval_every=20, eval_episodes_per_task=10, sft_steps=2000, reward_model_steps=1000),
         cache=CacheConfig(schedule_steps=5000),
     )
