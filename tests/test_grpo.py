@@ -73,7 +73,7 @@ def test_clipping_zeroes_gradient_on_the_right_side(ratio, advantage, zero_grad)
 
 def _toy_cfg(**kw):
     base = dict(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                action_bins=8, proprio_dim=4, max_chunks=3, group_size=8, learning_rate=1e-2, ppo_epochs=2)
+                action_bins=8, proprio_dim=4, proprio_encoding="raw", max_chunks=3, group_size=8, learning_rate=1e-2, ppo_epochs=2)
     base.update(kw)
     return RLConfig(**base)
 

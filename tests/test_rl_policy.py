@@ -13,7 +13,7 @@ from sword_jax.rl.reward_model import as_reward_model, build_detector, make_dete
 from sword_jax.rl.sft import make_sft_step
 
 CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=48,
-               action_bins=16, proprio_dim=4, sft_learning_rate=3e-3, reward_width=4, reward_model_learning_rate=3e-3)
+               action_bins=16, proprio_dim=4, proprio_encoding="raw", sft_learning_rate=3e-3, reward_width=4, reward_model_learning_rate=3e-3)
 # LIBERO-Spatial instructions differ in a few words only
 TEXTS = ["pick up the black bowl on the plate and place it on the plate",
          "pick up the black bowl on the stove and place it on the plate"]

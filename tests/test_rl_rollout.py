@@ -12,7 +12,7 @@ from sword_jax.rl.simulator import (ToyState, instruction_target, toy_render, to
                                    toy_start_states)
 
 CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-               action_bins=8, proprio_dim=4, max_chunks=4, group_size=4)
+               action_bins=8, proprio_dim=4, proprio_encoding="raw", max_chunks=4, group_size=4)
 TEXTS = ["pick up the black bowl on the plate", "put the bowl on the stove"]
 
 

@@ -42,3 +42,49 @@ def test_world_model_simulator_rollout_deterministic_and_streams_frames():
     c = run(params, sim, jax.random.key(1))
     assert not np.allclose(np.asarray(a.frames), np.asarray(c.frames))
     np.testing.assert_array_equal(np.asarray(a.proprio_valid), 0.0)  # the world model reports no proprio
+
+
+def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatch):
+    """Frame t carries the action taken after seeing it (world_model/data.py). The policy acts on the
+    last context frame, so its first action must fill that frame's slot, not the first predicted
+    frame's; the start's real first/context actions (not zeros) condition the first chunk."""
+    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.rl import world_model_sim
+    from sword_jax.vae import api as vae_api
+
+    cfg = configs.get("sword:tiny")
+    with nnx.use_eager_sharding(False):
+        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
+    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    captured = []
+
+    def fake_predict(model_fn, first, context, actions, *, key, num_future, cfg, num_steps):
+        captured.append(np.asarray(actions[0, :, 0]))
+        return jnp.zeros((1, num_future) + context.shape[2:], jnp.float32)
+
+    monkeypatch.setattr(world_model_sim, "predict_chunk", fake_predict)
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32)
+    latents = jnp.zeros((2, 2, 2, cfg.vae.z_dim))
+    start_actions = jnp.zeros((5, 7)).at[:, 0].set(jnp.asarray([100.0, 1.0, 2.0, 3.0, 4.0]))
+    state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), (latents, start_actions)))
+    chunk = lambda base: jnp.zeros((8, 7)).at[:, 0].set(base + jnp.arange(8.0))  # noqa: E731
+    state, _ = sim.step(state, chunk(10.0), key=jax.random.key(0))
+    state, _ = sim.step(state, chunk(20.0), key=jax.random.key(1))
+    np.testing.assert_array_equal(captured[0], [100, 1, 2, 3, 10, 11, 12, 13, 14, 15, 16, 17, 17])
+    np.testing.assert_array_equal(captured[1], [100, 15, 16, 17, 20, 21, 22, 23, 24, 25, 26, 27, 27])
+
+
+def test_keyframe_starts_are_latent_aligned_with_real_history():
+    from sword_jax.rl import data as rl_data
+
+    e, t = 3, 30
+    frames = np.broadcast_to(np.arange(t, dtype=np.uint8)[None, :, None, None, None], (e, t, 4, 4, 3)).copy()
+    actions = np.broadcast_to(np.arange(t, dtype=np.float32)[None, :, None], (e, t, 7)).copy()
+    eps = rl_data.EpisodeSet(frames, actions, np.zeros((e, t, 8), np.float32), np.full(e, t), np.ones(e, bool),
+                             ("a", "b", "c"))
+    pick = rl_data.keyframe_starts(eps, 16, np.random.default_rng(0))
+    assert np.all(pick["t"] % 4 == 0) and np.all(pick["t"] >= 4) and np.all(pick["t"] <= (t - 1) // 2)
+    for i, ti in enumerate(pick["t"]):
+        np.testing.assert_array_equal(pick["history"][i, :, 0, 0, 0], np.maximum(np.arange(ti - 7, ti + 1), 0))
+        np.testing.assert_array_equal(pick["actions"][i, :, 0], [0, ti - 3, ti - 2, ti - 1, ti])
+        assert pick["frame"][i, 0, 0, 0] == ti and pick["first_frame"][i, 0, 0, 0] == 0

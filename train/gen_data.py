@@ -394,7 +394,6 @@ def _parse(argv: list[str] | None) -> GenDataConfig:
 
 
 def main(argv: list[str] | None = None) -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     cfg = _parse(argv)
     path = generate(cfg)
     from sim.dataset import read_info

@@ -4,11 +4,17 @@
     python -m train.grpo --config sword:small --simulator world_model --demos demos.hdf5 \
         --world-model runs/sword-small --vae runs/sword-small/vae --policy runs/sword-small/rl/policy_sft \
         --reward runs/sword-small/rl/reward_model [--rl.grpo_steps=200 --rl.eval_every=20]
+    # the ground truth: GRPO in the MuJoCo environments themselves (reward = true success)
+    python -m train.grpo --config sword:small --simulator env --policy runs/sword-small/rl/policy_sft \
+        [--env-workers 14] [--rl.grpo_steps=100]
     # smoke run: the analytic toy simulator (no checkpoints needed)
     python -m train.grpo --config sword:tiny --simulator toy --rl.grpo_steps=4
 
 Each step samples ``rl.rollout_batch`` keyframe start states, G = ``rl.group_size`` imagined
-trajectories each, and applies the GRPO update (one jitted, donated step). Every ``rl.eval_every``
+trajectories each, and applies the GRPO update (one jitted, donated step). With ``--simulator env``
+the start states are training-split initial states (never the 50 evaluation states), the
+trajectories run in MuJoCo's C engine (``sim.lockstep``), and the same ``grpo_update`` trains on
+them: this validates the update independently of any world model. Every ``rl.eval_every``
 steps (and at step 0) the policy is evaluated in the ground-truth MuJoCo envs (world_model mode)
 or by greedy imagined rollouts (toy mode); the curve goes to ``<workdir>/success_curve.{json,png}``.
 The GRPO state is checkpointed at each evaluation and the run resumes from it.
@@ -31,6 +37,7 @@ import numpy as np
 import configs
 from train.distributed import ENTRY_MAX_TRACES
 from sword_jax import sharding as shd
+from sword_jax import tracing
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
@@ -59,7 +66,7 @@ def _toy_setup(cfg, rl):
 
 def _world_model_setup(cfg, rl, args):
     from train.evaluate import _vae_state, _world_model_state
-    from sword_jax.rl.world_model_sim import encode_keyframes, world_model_simulator
+    from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
     wm_graphdef, wm_state = _world_model_state(cfg, args.world_model)
     vae_graphdef, vae_state = _vae_state(cfg, args.vae)
@@ -75,18 +82,93 @@ def _world_model_setup(cfg, rl, args):
     def starts(key):
         del key  # keyframes come from the host rng (reproducible from the seed)
         pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, rng)
-        frames = jnp.asarray(pick["frame"], jnp.float32) / jnp.float32(255.0)
-        latents = encode_keyframes(vae_graphdef, vae_state, frames)
-        return StartState(frames, jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
-                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.max_instruction_bytes)), latents)
+        unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
+        latents = encode_history(vae_graphdef, vae_state, unit(pick["first_frame"]), unit(pick["history"]))
+        return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
+                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.max_instruction_bytes)),
+                          (latents, jnp.asarray(pick["actions"], jnp.float32)))
 
     return sim, reward_model, starts, None
+
+
+def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
+               renderer: str = "jax") -> dict:
+    """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
+
+    Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics}``.
+    """
+    from sim import tasks as sim_tasks
+    from sim.lockstep import LockstepEnvs
+    from sword_jax.rl.env_rollout import make_act_fns, run_policy
+
+    state = grpo.init_state(params, rl)
+    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
+    first_step = 0
+    if ckpt.latest_step() is not None:
+        state, meta = ckpt.restore(checkpoint.abstract_like(state))
+        first_step = int(meta["step"])
+        print(f"grpo: resumed from step {first_step}")
+    update = jax.jit(tracing.max_traces(lambda s, batch: grpo.grpo_update(graphdef, rl, s, batch),
+                                        n=ENTRY_MAX_TRACES), donate_argnums=(0,))
+    act = make_act_fns(graphdef, rl)
+    curve = SuccessCurve(workdir, label="GRPO in the ground-truth MuJoCo environments")
+    root = jax.random.key(cfg.seed)
+    os.makedirs(workdir, exist_ok=True)
+    tasks = list(cfg.sim.tasks)
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    eval_kwargs = dict(tasks=tasks, episodes_per_task=episodes_per_task, resolution=cfg.sim.resolution,
+                       max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers, act=act)
+
+    def evaluate(step):
+        result = dict(evaluate_in_sim(graphdef, state.params, rl, **eval_kwargs), where="mujoco")
+        curve.add(step, result)
+        print(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+              f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
+        return result
+
+    if first_step == 0:
+        evaluate(0)
+    history, start = [], time.time()
+    envs = None
+    for step in range(first_step, rl.grpo_steps):
+        # start states: a function of (seed, step), so a resumed run draws the same ones
+        pick = np.random.default_rng([cfg.seed, step]).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
+                                                                  (rl.rollout_batch, 2))
+        starts = [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
+        if envs is None:  # worker processes live for the whole run; each step re-targets them
+            envs = LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+                                renderer=renderer, workers=workers)
+        rollout = run_policy(act, state.params, envs, rl, key=jax.random.fold_in(root, step), greedy=False,
+                             max_steps=cfg.sim.max_steps, episodes=starts)
+        state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
+        host = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        if not np.isfinite(host["loss"]):
+            raise SystemExit(f"grpo: non-finite loss at step {step + 1}; last good checkpoint kept in {workdir}")
+        host.update(step=step + 1, rollout_success=float(np.mean(rollout.success)))
+        history.append(host)
+        eta = (time.time() - start) / (step + 1 - first_step) * (rl.grpo_steps - step - 1)
+        print(f"grpo step {step + 1}/{rl.grpo_steps} rollout success {host['rollout_success']:.3f} "
+              f"loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} kept {host['kept_fraction']:.2f} "
+              f"eta {eta:.0f}s", flush=True)
+        if (step + 1) % rl.eval_every == 0 or step + 1 == rl.grpo_steps:
+            evaluate(step + 1)
+            ckpt.save(step + 1, state, {"step": step + 1})
+    if envs is not None:
+        envs.close()
+    ckpt.close()
+    with open(os.path.join(workdir, "train_history.jsonl"), "a") as f:
+        for point in history:
+            f.write(json.dumps(point) + "\n")
+    return {"curve": curve.points, "workdir": workdir, "history": history}
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--simulator", choices=("world_model", "toy"), default="world_model")
+    parser.add_argument("--simulator", choices=("world_model", "env", "toy"), default="world_model")
+    parser.add_argument("--env-workers", type=int, default=0, help="C-engine processes (--simulator env, evaluation)")
+    parser.add_argument("--renderer", choices=("jax", "gl"), default="jax",
+                        help="frames of the C-engine episodes: the renderer the demonstrations were made with")
     parser.add_argument("--demos", action="append", default=[], help="demos whose frames are the start keyframes")
     parser.add_argument("--world-model", default="", help="world-model workdir (train_world_model)")
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
@@ -97,6 +179,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     rl = cfg.rl
     if args.simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
+    elif args.simulator == "env":
+        pass
     elif not (args.world_model and args.reward and args.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
     workdir = os.path.join(cfg.workdir, "rl", "grpo")
@@ -105,6 +189,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     graphdef, params = build_policy(rl, seed=cfg.seed)
     if args.policy:
         params, _ = load_params(args.policy, params, kind="policy")
+    if args.simulator == "env":
+        return run_in_env(cfg, rl, graphdef, params, workdir,
+                          episodes_per_task=args.eval_episodes or rl.eval_episodes_per_task,
+                          workers=args.env_workers, renderer=args.renderer)
     if args.simulator == "toy":
         sim, reward_model, starts, eval_start = _toy_setup(cfg, rl)
     else:
@@ -138,7 +226,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       "episodes": int(success.size), "where": "imagined (toy)"}
         else:
             result = evaluate_in_sim(graphdef, state.params, rl, tasks=cfg.sim.tasks, episodes_per_task=episodes,
-                                     resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps)
+                                     resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+                                     renderer=args.renderer, workers=args.env_workers)
             result["where"] = "mujoco"
         curve.add(step, result)
         print(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}", flush=True)

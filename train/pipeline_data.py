@@ -54,7 +54,27 @@ def generate_expert_data(ctx: Context) -> dict:
         results[split] = {"path": path, "episodes": len(episodes), "success_rate": success}
     for task in cfg.sim.tasks:
         tasks.assert_disjoint(init["heldout"][task], init["train"][task], f"task {task}: held-out vs training episodes")
+    results["demos"] = _policy_demos(ctx, cfg)
     return results
+
+
+def _policy_demos(ctx: Context, cfg) -> dict:
+    """Demonstrations for the policy and the success detector: episodes that end at their first
+    success (within ``sim.max_steps``), from the train split after the world model's episodes."""
+    from sim.dataset import read_dataset
+    from train import gen_data
+
+    path = ctx.path("data", "demos.hdf5")
+    per_task = cfg.rl.sft_episodes_per_task or cfg.sim.episodes_per_task
+    gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
+                                 resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
+                                 noisy_share=cfg.sim.noisy_share, seed=cfg.seed + 50, max_steps=cfg.sim.max_steps,
+                                 stop_at_success=True, wrist_camera=False, overwrite=True, renderer="jax",
+                                 init_split="train", init_start=cfg.sim.episodes_per_task, init_seed=cfg.sim.init_seed)
+    gen_data.generate(gen, progress=ctx.is_main)
+    _, episodes = read_dataset(path)
+    success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
+    return {"path": path, "episodes": len(episodes), "success_rate": success}
 
 
 def start_qpos(episodes, task: int) -> np.ndarray:

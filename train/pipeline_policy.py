@@ -27,25 +27,31 @@ def _scalars(result: dict) -> dict:
     return out
 
 
+def _demos(ctx: Context) -> str:
+    """The policy's demonstrations (they end at success); older work dirs only have the training file."""
+    data = ctx.results["data"]
+    return data["demos"]["path"] if "demos" in data else data["train"]["path"]
+
+
 def reward_model(ctx: Context) -> dict:
     from train import train_reward
 
     return _scalars(train_reward.main(
-        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", ctx.results["data"]["train"]["path"])))
+        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", _demos(ctx))))
 
 
 def sft_policy(ctx: Context) -> dict:
     from train import train_policy
 
     return _scalars(train_policy.main(
-        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", ctx.results["data"]["train"]["path"])))
+        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", _demos(ctx))))
 
 
 def grpo_in_world_model(ctx: Context) -> dict:
     from train import grpo
 
     result = grpo.main(ctx.entry_argv(
-        f"--workdir={ctx.workdir}", "--simulator", "world_model", "--demos", ctx.results["data"]["train"]["path"],
+        f"--workdir={ctx.workdir}", "--simulator", "world_model", "--demos", _demos(ctx),
         "--world-model", ctx.results["world_model"]["workdir"], "--vae", ctx.results["vae"]["path"],
         "--policy", ctx.results["sft_policy"]["path"], "--reward", ctx.results["reward_model"]["path"],
     ))

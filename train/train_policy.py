@@ -17,7 +17,6 @@ import sys
 import time
 from collections.abc import Sequence
 
-import jax
 import numpy as np
 
 import configs
@@ -25,49 +24,48 @@ from sword_jax.rl import data as rl_data
 from sword_jax.rl.evaluate import evaluate_in_sim
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
-from sword_jax.rl.sft import make_sft_step
+from sword_jax.rl.sft import train_sft
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
-    parser.add_argument("--eval-episodes", type=int, default=0, help="fixed initial states per task to evaluate on")
+    parser.add_argument("--eval-episodes", type=int, default=0, help="fixed evaluation initial states per task")
+    parser.add_argument("--eval-workers", type=int, default=0, help="C-engine processes for the evaluation")
+    parser.add_argument("--renderer", choices=("jax", "gl"), default="jax",
+                        help="evaluation renderer: the one the demonstrations were rendered with")
+    parser.add_argument("--holdout", type=float, default=0.1, help="fraction of demonstrations held out")
     args = parser.parse_args(rest)
     rl = cfg.rl
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.per_task_subset(rl_data.load_episodes(args.demos), rl.sft_episodes_per_task, rng)
+    episodes = rl_data.successful(rl_data.load_episodes(args.demos))
     episodes = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio[..., : rl.proprio_dim],
                                   episodes.lengths, episodes.success, episodes.instructions)
-    print(f"train_policy: {episodes.num_episodes} demonstrations, {len(set(episodes.instructions))} instructions")
+    train_eps, held_out = rl_data.split_holdout(episodes, args.holdout, rng)
+    train_eps = rl_data.per_task_subset(train_eps, rl.sft_episodes_per_task, rng)
+    print(f"train_policy: {train_eps.num_episodes} demonstrations ({0 if held_out is None else held_out.num_episodes}"
+          f" held out), {len(set(train_eps.instructions))} instructions")
     graphdef, params = build_policy(rl, seed=cfg.seed)
-    init, step = make_sft_step(graphdef, rl)
-    state = init(params)
-    key = jax.random.key(cfg.seed)
-    start, metrics = time.time(), {}
-    for i in range(rl.sft_steps):
-        batch = rl_data.sample_bc_batch(episodes, rl.sft_batch_size, rl.chunk_len, rl.max_instruction_bytes, rng)
-        state, metrics = step(state, batch, key)
-        if (i + 1) % max(rl.sft_steps // 10, 1) == 0 or i + 1 == rl.sft_steps:
-            loss = float(metrics["loss"])
-            if not np.isfinite(loss):
-                raise SystemExit(f"train_policy: non-finite loss at step {i + 1}")
-            eta = (time.time() - start) / (i + 1) * (rl.sft_steps - i - 1)
-            print(f"sft step {i + 1}/{rl.sft_steps} loss {loss:.4f} "
-                  f"token_acc {float(metrics['token_accuracy']):.3f} eta {eta:.0f}s", flush=True)
+    start = time.time()
+    params, history = train_sft(graphdef, params, rl, train_eps, held_out, seed=cfg.seed,
+                                log=lambda m: print(m, flush=True))
     path = os.path.join(workdir, "policy_sft")
-    save_params(path, state.params, rl, kind="policy", step=int(state.step))
-    result = {"steps": rl.sft_steps, "demos": episodes.num_episodes, "path": path,
-              "final_loss": float(metrics["loss"]) if metrics else None}
+    save_params(path, params, rl, kind="policy", step=rl.sft_steps)
+    result = {"steps": rl.sft_steps, "demos": train_eps.num_episodes, "path": path,
+              "final_loss": history[-1]["loss"], "seconds": round(time.time() - start, 1),
+              "heldout_loss": history[-1].get("heldout_loss"), "heldout_token_accuracy":
+              history[-1].get("heldout_token_accuracy")}
     if args.eval_episodes:
-        result["eval"] = evaluate_in_sim(graphdef, state.params, rl, tasks=cfg.sim.tasks,
+        result["eval"] = evaluate_in_sim(graphdef, params, rl, tasks=cfg.sim.tasks,
                                          episodes_per_task=args.eval_episodes, resolution=cfg.sim.resolution,
-                                         max_steps=cfg.sim.max_steps)
+                                         max_steps=cfg.sim.max_steps, renderer=args.renderer,
+                                         workers=args.eval_workers)
         print("ground-truth success:", json.dumps(result["eval"]))
     with open(os.path.join(workdir, "sft_result.json"), "w") as f:
-        json.dump(result, f, indent=1)
+        json.dump(dict(result, history=history), f, indent=1)
     return result
 
 

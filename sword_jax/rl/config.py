@@ -34,7 +34,17 @@ class RLConfig:
       policy_heads: attention heads of the policy transformer.
       max_instruction_bytes: byte-level instruction tokens (padded / truncated).
       image_size: frame size the policy and reward model see (frames are resized to it).
-      proprio_dim: proprioceptive state dimensions (0 = none).
+      proprio_dim: proprioceptive state dimensions the environment reports (0 = none).
+      proprio_encoding: 'rot6d' turns the simulator's 8-D proprio (xyz, axis-angle, fingers) into
+        continuous features (the axis-angle becomes two rotation-matrix columns); 'raw' uses it as is.
+      execute_steps: actions of each predicted chunk executed before the policy re-plans
+        (``chunk_len`` = open-loop chunks; 1 = re-plan every step).
+      action_ensemble: ACT-style temporal ensembling when re-planning every step: each step
+        executes the exponentially weighted mean of every chunk's prediction for it.
+      ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
+      sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
+      sft_warmup_steps: linear warm-up of the SFT learning rate.
+      sft_eval_every: SFT steps between teacher-forced metrics on held-out demonstrations.
       reward_width: base channels of the success-detector CNN.
       eval_every: GRPO steps between ground-truth evaluations.
       eval_episodes_per_task: initial states per task in ground-truth evaluation (paper: 50).
@@ -71,6 +81,13 @@ class RLConfig:
     max_instruction_bytes: int = 96
     image_size: int = 64
     proprio_dim: int = 8
+    proprio_encoding: str = "rot6d"  # rot6d | raw
+    execute_steps: int = 4
+    action_ensemble: bool = False
+    ensemble_decay: float = 0.1
+    sft_lr_end_fraction: float = 0.1
+    sft_warmup_steps: int = 50
+    sft_eval_every: int = 100
     reward_width: int = 16
     eval_every: int = 5
     eval_episodes_per_task: int = 50
@@ -99,5 +116,20 @@ class RLConfig:
             raise ValueError(f"rl.temperature must be > 0, got {self.temperature}")
         if self.loss_norm not in ("trajectory", "token"):
             raise ValueError(f"rl.loss_norm must be trajectory|token, got {self.loss_norm!r}")
+        if self.proprio_encoding not in ("rot6d", "raw"):
+            raise ValueError(f"rl.proprio_encoding must be rot6d|raw, got {self.proprio_encoding!r}")
+        if self.proprio_encoding == "rot6d" and self.proprio_dim != 8:
+            raise ValueError(f"rl.proprio_encoding=rot6d reads the simulator's 8-D proprio; got proprio_dim="
+                             f"{self.proprio_dim} (use proprio_encoding=raw)")
+        if not 1 <= self.execute_steps <= self.chunk_len:
+            raise ValueError(f"rl.execute_steps must be in [1, chunk_len={self.chunk_len}], got {self.execute_steps}")
+        if self.action_ensemble and self.execute_steps != 1:
+            raise ValueError("rl.action_ensemble needs rl.execute_steps=1 (a new chunk every step)")
+        if self.ensemble_decay < 0.0:
+            raise ValueError(f"rl.ensemble_decay must be >= 0, got {self.ensemble_decay}")
+        if not 0.0 <= self.sft_lr_end_fraction <= 1.0:
+            raise ValueError(f"rl.sft_lr_end_fraction must be in [0, 1], got {self.sft_lr_end_fraction}")
+        if self.sft_warmup_steps < 0 or self.sft_eval_every < 1:
+            raise ValueError("rl.sft_warmup_steps must be >= 0 and rl.sft_eval_every >= 1")
         if self.positive_tail < 1:
             raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")

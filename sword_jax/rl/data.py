@@ -60,22 +60,33 @@ class EpisodeSet:
                           self.success[index], tuple(self.instructions[i] for i in index))
 
 
-def from_sim_episodes(episodes: Sequence[Any], *, success: Sequence[bool] | None = None) -> EpisodeSet:
+def success_length(episode: Any) -> int:
+    """Steps up to and including the first success (``rewards[t]`` = success after action t), or all."""
+    rewards = np.asarray(episode.rewards)
+    hits = np.flatnonzero(rewards > 0)
+    return int(hits[0]) + 1 if hits.size else int(episode.num_samples)
+
+
+def from_sim_episodes(episodes: Sequence[Any], *, success: Sequence[bool] | None = None,
+                      stop_at_success: bool = True) -> EpisodeSet:
     """Pads a list of ``sim.dataset.Episode`` to one :class:`EpisodeSet`.
 
-    Proprio is ``[ee_states (6), gripper_states (2)]`` (8-D), the sim's layout. Success defaults
-    to "the last ``dones`` flag is set".
+    Proprio is ``[ee_states (6), gripper_states (2)]`` (8-D), the sim's layout. With
+    ``stop_at_success`` an episode ends at its first success (data that keeps moving afterwards,
+    as the world model's, would otherwise teach the policy to leave the solved state). Success
+    defaults to "some step succeeded".
     """
     if not episodes:
         raise ValueError("from_sim_episodes: no episodes")
-    t = max(ep.num_samples for ep in episodes)
-    pad = lambda x: np.concatenate([x, np.repeat(x[-1:], t - len(x), axis=0)], axis=0)  # noqa: E731
-    frames = np.stack([pad(ep.agentview_rgb) for ep in episodes])
-    actions = np.stack([pad(np.asarray(ep.actions, np.float32)) for ep in episodes])
-    proprio = np.stack([pad(np.concatenate([ep.ee_states, ep.gripper_states], -1).astype(np.float32)) for ep in episodes])
-    lengths = np.asarray([ep.num_samples for ep in episodes], np.int32)
+    lengths = np.asarray([success_length(ep) if stop_at_success else ep.num_samples for ep in episodes], np.int32)
+    t = int(lengths.max())
+    pad = lambda x, n: np.concatenate([x[:n], np.repeat(x[n - 1:n], t - n, axis=0)], axis=0)  # noqa: E731
+    frames = np.stack([pad(ep.agentview_rgb, n) for ep, n in zip(episodes, lengths)])
+    actions = np.stack([pad(np.asarray(ep.actions, np.float32), n) for ep, n in zip(episodes, lengths)])
+    proprio = np.stack([pad(np.concatenate([ep.ee_states, ep.gripper_states], -1).astype(np.float32), n)
+                        for ep, n in zip(episodes, lengths)])
     if success is None:
-        success = [bool(np.asarray(ep.dones)[-1]) for ep in episodes]
+        success = [bool(np.any(np.asarray(ep.rewards) > 0)) for ep in episodes]
     instructions = tuple(ep.language_instruction for ep in episodes)
     if any(not text for text in instructions):
         raise ValueError("from_sim_episodes: every episode needs a language_instruction")
@@ -123,11 +134,28 @@ def sample_reward_batch(
     return {"frames": episodes.frames[pick[:, 0], pick[:, 1]], "labels": labels[pick[:, 0], pick[:, 1]].astype(np.float32)}
 
 
-def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5) -> dict[str, Any]:
-    """Start states for imagined rollouts: frames from the first ``max_fraction`` of episodes (WoVR keyframes)."""
+def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
+                    num_context: int = 1, frames_per_latent: int = 4) -> dict[str, Any]:
+    """Start states for imagined rollouts at latent-aligned keyframes of the first ``max_fraction`` of
+    episodes (WoVR keyframes), with the real history a world model conditions on.
+
+    A keyframe is frame ``t = 4 s`` (``s >= num_context``), the last frame of latent ``s``. Returns
+    ``frame``/``proprio`` at ``t``, the episode's ``first_frame``, ``history`` (the ``4 (k + 1)``
+    frames up to ``t``, the oldest clamped at frame 0), ``actions`` (``[1 + 4k, A]``: the first
+    frame's action then the context frames', as a training segment lays them out) and
+    ``instructions``.
+    """
+    k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
-    t = (rng.random(count) * np.maximum(episodes.lengths[ep] * max_fraction, 1)).astype(np.int64)
+    last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
+    s = k + (rng.random(count) * (last - k + 1)).astype(np.int64)
+    t = np.minimum(f * s, episodes.lengths[ep] - 1)
+    hist_idx = np.maximum(t[:, None] - f * (k + 1) + 1 + np.arange(f * (k + 1))[None], 0)
+    act_idx = np.concatenate([np.zeros((count, 1), np.int64),
+                              np.maximum(t[:, None] - f * k + 1 + np.arange(f * k)[None], 0)], axis=1)
     return {"episode": ep, "t": t, "frame": episodes.frames[ep, t], "proprio": episodes.proprio[ep, t],
+            "first_frame": episodes.frames[ep, 0], "history": episodes.frames[ep[:, None], hist_idx],
+            "actions": episodes.actions[ep[:, None], act_idx],
             "instructions": [episodes.instructions[i] for i in ep]}
 
 
@@ -140,6 +168,30 @@ def load_episodes(paths: Sequence[str]) -> EpisodeSet:
         _, eps = read_dataset(path)
         episodes.extend(eps)
     return from_sim_episodes(episodes)
+
+
+def successful(episodes: EpisodeSet) -> EpisodeSet:
+    """Only the episodes that reached success (behaviour cloning imitates solutions, not failures)."""
+    keep = np.flatnonzero(episodes.success)
+    if keep.size == 0:
+        raise ValueError("no successful episode among the demonstrations")
+    return episodes.subset(keep)
+
+
+def split_holdout(episodes: EpisodeSet, fraction: float, rng: np.random.Generator) -> tuple[EpisodeSet, EpisodeSet | None]:
+    """``(train, held_out)``: about ``fraction`` of each instruction's episodes held out (at least one
+    where an instruction has two or more; None when nothing is held out)."""
+    if fraction <= 0.0:
+        return episodes, None
+    train, held = [], []
+    for text in sorted(set(episodes.instructions)):
+        idx = rng.permutation(np.flatnonzero(np.asarray(episodes.instructions) == text))
+        n_held = min(max(int(round(fraction * len(idx))), 1), len(idx) - 1) if len(idx) > 1 else 0
+        held.extend(idx[:n_held])
+        train.extend(idx[n_held:])
+    if not held:
+        return episodes, None
+    return episodes.subset(np.sort(np.asarray(train))), episodes.subset(np.sort(np.asarray(held)))
 
 
 def per_task_subset(episodes: EpisodeSet, per_instruction: int, rng: np.random.Generator) -> EpisodeSet:

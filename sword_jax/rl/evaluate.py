@@ -1,37 +1,37 @@
 """Ground-truth evaluation of the policy in the MuJoCo LIBERO-Spatial environments, and the curve.
 
-Success per task over the tasks' fixed initial states (50 in the paper), on MuJoCo's C engine
-(``sim.gym_env.LiberoSpatialGymEnv``). All episodes advance in lockstep so the policy runs as one
-batched, jitted call per action chunk; the policy acts greedily (argmax bins) and each chunk's 8
-actions are executed open-loop (action chunking). :class:`SuccessCurve` appends one point per
-evaluation to ``success_curve.json`` and redraws ``success_curve.png``.
+Success per task over the tasks' fixed evaluation initial states (50 per task in the paper and
+LIBERO; demonstrations come from other initial states), on MuJoCo's C engine. All episodes run
+in lockstep (``sim.lockstep.LockstepEnvs``, optionally over worker processes) so the policy
+runs as one batched, jitted call per decision; the policy acts greedily (argmax bins) and
+re-plans every ``rl.execute_steps`` actions (or ensembles, ``rl.action_ensemble``). Results carry
+a 95% Wilson interval. :class:`SuccessCurve` appends one point per evaluation to
+``success_curve.json`` and redraws ``success_curve.png``.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Sequence
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.policy import greedy_chunk, resize_frames, tokenize_instructions, tokens_to_actions
+from sword_jax.rl.env_rollout import make_act_fns, run_policy, wilson_interval
 
 
-def make_act_fn(graphdef: nnx.GraphDef, cfg: RLConfig):
-    """Jitted ``act(params, frames uint8 [n,H,W,3], tokens [n,L], proprio [n,P]) -> actions [n,T,A]``."""
+def evaluation_episodes(tasks: Sequence[int], episodes_per_task: int) -> list[tuple[int, np.ndarray]]:
+    """``(task, qpos)`` of each task's first ``episodes_per_task`` fixed evaluation initial states."""
+    from sim import tasks as sim_tasks
 
-    @jax.jit
-    def act(params, frames, tokens, proprio):
-        logits = nnx.merge(graphdef, params)(resize_frames(frames, cfg.image_size), tokens, proprio)
-        return tokens_to_actions(greedy_chunk(logits), cfg.action_bins)
-
-    return act
+    if not 1 <= episodes_per_task <= sim_tasks.NUM_INIT_STATES:
+        raise ValueError(f"episodes_per_task must be in 1..{sim_tasks.NUM_INIT_STATES}, got {episodes_per_task}")
+    return [(int(t), q) for t in tasks for q in sim_tasks.fixed_init_states(int(t))[:episodes_per_task]]
 
 
 def evaluate_in_sim(
@@ -43,66 +43,50 @@ def evaluate_in_sim(
     episodes_per_task: int,
     resolution: int,
     max_steps: int = 220,
-    env_factory: Any = None,
     renderer: str = "jax",
+    workers: int = 0,
+    envs_factory: Any = None,
+    act: Any = None,
 ) -> dict[str, Any]:
-    """Runs the policy from each task's first ``episodes_per_task`` fixed initial states.
+    """Runs the policy from each task's first ``episodes_per_task`` fixed evaluation initial states.
 
     Args:
       graphdef / params: the split policy.
-      cfg: RL config (chunk length, proprio size, image size, bins).
+      cfg: RL config (chunking, re-planning, proprio size, image size, bins).
       tasks: task ids (0-9).
       episodes_per_task: initial states per task (<= 50).
-      resolution: rendered frame size of the environment.
+      resolution: rendered frame size of the environment (the data's resolution).
       max_steps: environment step limit (LIBERO-Spatial: 220).
-      env_factory: ``(task_id) -> gymnasium.Env`` override (default: the sim's C-backend env).
-      renderer: the env's frame renderer: "jax" (default) looks like the data ``train.gen_data`` makes
-        with the JAX renderer, so the policy sees no renderer shift; "gl" is MuJoCo's OpenGL renderer.
+      renderer: "jax" (default) looks like the data the pipeline makes (MJX + the JAX renderer), so
+        the policy sees no renderer shift; "gl" is MuJoCo's OpenGL renderer.
+      workers: C-engine worker processes (0 = this process).
+      envs_factory: ``(episodes) -> lockstep envs`` override (default ``sim.lockstep.LockstepEnvs``).
+      act: a :func:`~sword_jax.rl.env_rollout.make_act_fns` result to reuse (one compile per process).
 
     Returns:
-      ``{"per_task": {task: success rate}, "mean": float, "episodes": int}``.
+      ``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}``.
     """
-    if env_factory is None:
-        from sim.gym_env import LiberoSpatialGymEnv
+    episodes = evaluation_episodes(tasks, episodes_per_task)
+    if envs_factory is None:
+        from sim.lockstep import LockstepEnvs
 
-        def env_factory(task_id):
-            return LiberoSpatialGymEnv(task_id=task_id, resolution=resolution, image_obs=True, max_steps=max_steps,
-                                       renderer=renderer)
+        def envs_factory(eps):
+            return LockstepEnvs(eps, resolution=resolution, max_steps=max_steps, renderer=renderer, workers=workers)
 
-    act = make_act_fn(graphdef, cfg)
-    envs, task_of, obs = [], [], []
-    for task in tasks:
-        for i in range(episodes_per_task):
-            env = env_factory(task)
-            o, info = env.reset(options={"init_state_id": i})
-            envs.append(env)
-            task_of.append(task)
-            obs.append(o)
-    n = len(envs)
-    language = [getattr(env, "language", None) or env.unwrapped.language for env in envs]
-    tokens = jnp.asarray(tokenize_instructions(language, cfg.max_instruction_bytes))
-    done = np.zeros(n, bool)
-    success = np.zeros(n, bool)
-    step = 0
-    while not done.all() and step < max_steps:
-        frames = np.stack([o["agentview_rgb"] for o in obs])
-        proprio = np.stack([o["proprio"][: cfg.proprio_dim] for o in obs]).astype(np.float32)
-        chunk = np.asarray(act(params, jnp.asarray(frames), tokens, jnp.asarray(proprio)))
-        for t in range(cfg.chunk_len):
-            for k in np.flatnonzero(~done):
-                o, _, terminated, truncated, _ = envs[k].step(chunk[k, t])
-                obs[k] = o
-                if terminated:
-                    success[k] = True
-                if terminated or truncated:
-                    done[k] = True
-            step += 1
-            if done.all() or step >= max_steps:
-                break
-    for env in envs:
-        env.close()
-    per_task = {str(t): float(np.mean(success[np.asarray(task_of) == t])) for t in tasks}
-    return {"per_task": per_task, "mean": float(np.mean(success)), "episodes": n}
+    act = act or make_act_fns(graphdef, cfg)
+    start = time.time()
+    envs = envs_factory(episodes)
+    try:
+        rollout = run_policy(act, params, envs, cfg, key=jax.random.key(0), greedy=True, max_steps=max_steps,
+                             record=False)
+    finally:
+        envs.close()
+    success = np.asarray(rollout.success)
+    task_of = np.asarray([t for t, _ in episodes])
+    per_task = {str(t): float(np.mean(success[task_of == t])) for t in tasks}
+    wins = int(success.sum())
+    return {"per_task": per_task, "mean": float(np.mean(success)), "episodes": len(episodes), "successes": wins,
+            "ci95": list(wilson_interval(wins, len(episodes))), "seconds": round(time.time() - start, 1)}
 
 
 class SuccessCurve:

@@ -161,12 +161,18 @@ def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
 
 
 def _rollout_log_probs(graphdef, params, batch: Rollout) -> Float[Array, "n c t a"]:
+    """Log-probs of the rollout's tokens; a rollout that executed only the first ``k`` actions of
+    each chunk (re-planning, ``tokens [N, C, k, A]``) is scored on those ``k``."""
     policy = nnx.merge(graphdef, params)
     n, c = batch.valid.shape
     flat = lambda x: x.reshape((n * c,) + x.shape[2:])  # noqa: E731 - (N, C, ...) -> (N * C, ...)
     tokens = jnp.repeat(batch.instruction_tokens, c, axis=0)
-    logits = policy(flat(batch.obs_frames), tokens, flat(batch.proprio), flat(batch.proprio_valid))
-    return token_log_probs(logits, flat(batch.tokens)).reshape(batch.tokens.shape)
+    frames = flat(batch.obs_frames)
+    if frames.dtype == jnp.uint8:  # ground-truth rollouts keep policy-size frames as uint8
+        frames = frames.astype(jnp.float32) / jnp.float32(255.0)
+    logits = policy(frames, tokens, flat(batch.proprio), flat(batch.proprio_valid))
+    executed = batch.tokens.shape[2]
+    return token_log_probs(logits[:, :executed], flat(batch.tokens)).reshape(batch.tokens.shape)
 
 
 def grpo_update(

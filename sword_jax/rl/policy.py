@@ -25,6 +25,7 @@ different token sequences and different actions.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -80,6 +81,58 @@ def token_log_probs(logits: Float[Array, "... bins"], tokens: Int[Array, "..."])
     """log pi(token) under categorical ``logits`` (float32)."""
     logp = jax.nn.log_softmax(logits.astype(jnp.float32), axis=-1)
     return jnp.take_along_axis(logp, tokens[..., None], axis=-1)[..., 0]
+
+
+SIM_PROPRIO_DIM = 8  # the simulator's layout: ee xyz (3), ee axis-angle (3), finger positions (2)
+
+
+def proprio_feature_dim(cfg: RLConfig) -> int:
+    """Width of the policy's proprio features: 11 for ``rot6d`` (xyz, two rotation columns, fingers)."""
+    return 11 if cfg.proprio_encoding == "rot6d" else cfg.proprio_dim
+
+
+def axis_angle_to_matrix(axis_angle: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Rodrigues' formula; smooth at zero angle (series form of sin(t)/t and (1-cos t)/t^2)."""
+    v = axis_angle.astype(jnp.float32)
+    theta2 = jnp.sum(v * v, axis=-1)[..., None, None]
+    small = theta2 < 1e-8
+    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.where(small, 1.0, theta2))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = jnp.zeros_like(x)
+    k = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1), jnp.stack([-y, x, zero], -1)], -2)
+    eye = jnp.eye(3, dtype=jnp.float32)
+    return eye + a * k + b * (k @ k)
+
+
+def proprio_features(proprio: Float[Array, "... p"], encoding: str) -> Float[Array, "... f"]:
+    """Continuous proprio features.
+
+    The simulator's (LIBERO's) 8-D proprio stores the end-effector orientation as an axis-angle,
+    which flips sign when the rotation passes 180 degrees -- as the expert's grasps do -- so two
+    nearly equal poses can look maximally different. ``rot6d`` replaces it by the first two
+    columns of the rotation matrix (continuous everywhere); ``raw`` passes proprio through.
+
+    Args:
+      proprio: ``[..., 8]`` (``rot6d``) or ``[..., P]`` (``raw``).
+      encoding: ``rot6d`` | ``raw``.
+
+    Returns:
+      ``[..., 11]`` (xyz, rotation columns 0 and 1, fingers) or the input.
+    """
+    if encoding == "raw":
+        return proprio.astype(jnp.float32)
+    if proprio.shape[-1] != SIM_PROPRIO_DIM:
+        raise ValueError(f"rot6d proprio encoding needs the simulator's 8-D proprio, got {proprio.shape}")
+    proprio = proprio.astype(jnp.float32)
+    rot = axis_angle_to_matrix(proprio[..., 3:6])
+    columns = jnp.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)  # (..., 6)
+    return jnp.concatenate([proprio[..., :3], columns, proprio[..., 6:8]], axis=-1)
+
+
+class NormStat(nnx.Variable):
+    """A data statistic stored with the policy (saved and restored with it, never trained)."""
 
 
 def _dense(din: int, dout: int, axes: tuple[str, str], rngs: nnx.Rngs, scale: float = 1.0) -> nnx.Linear:
@@ -147,7 +200,11 @@ class VLAPolicy(nnx.Module):
         self.text_pos = nnx.Param(jax.random.normal(rngs.params(), (cfg.max_instruction_bytes, d), jnp.float32) * 0.02)
         n_views = 2 if use_wrist else 1
         self.image_pos = nnx.Param(jax.random.normal(rngs.params(), (n_views * n_img, d), jnp.float32) * 0.02)
-        self.proprio_proj = _dense(max(cfg.proprio_dim, 1), d, ("action", "embed"), rngs)
+        n_feat = max(proprio_feature_dim(cfg), 1)
+        # Normalisation of the proprio features: set from the demonstrations (set_proprio_stats).
+        self.proprio_mean = NormStat(jnp.zeros((n_feat,), jnp.float32))
+        self.proprio_std = NormStat(jnp.ones((n_feat,), jnp.float32))
+        self.proprio_proj = _dense(n_feat, d, ("action", "embed"), rngs)
         self.proprio_missing = nnx.Param(jnp.zeros((d,), jnp.float32))
         self.action_queries = nnx.Param(jax.random.normal(rngs.params(), (cfg.chunk_len, d), jnp.float32) * 0.02)
         self.text_blocks = nnx.List([_Block(d, cfg.policy_heads, rngs) for _ in range(cfg.policy_layers)])
@@ -201,7 +258,10 @@ class VLAPolicy(nnx.Module):
         image = image + self.image_pos[...][None]
         valid = jnp.ones((b,), jnp.float32) if proprio_valid is None else proprio_valid.astype(jnp.float32)
         if cfg.proprio_dim:
-            p_tok = self.proprio_proj(proprio.astype(jnp.float32))
+            feats = proprio_features(proprio, cfg.proprio_encoding)
+            mean = jax.lax.stop_gradient(self.proprio_mean[...])
+            std = jax.lax.stop_gradient(self.proprio_std[...])
+            p_tok = self.proprio_proj((feats - mean) / std)
         else:
             p_tok = jnp.zeros((b, cfg.policy_width), jnp.float32)
         p_tok = valid[:, None] * p_tok + (1.0 - valid[:, None]) * self.proprio_missing[...][None]
@@ -255,6 +315,35 @@ def build_policy(
         return sharding.create_sharded(factory, mesh, rules or sharding.DEFAULT_RULES)
     with nnx.use_eager_sharding(False):
         return nnx.split(factory())
+
+
+def compute_proprio_stats(proprio: np.ndarray, cfg: RLConfig, *, min_std: float = 1e-2) -> dict[str, np.ndarray]:
+    """Mean and std of the policy's proprio features over demonstration steps ``[..., P]``.
+
+    ``min_std`` keeps near-constant features (e.g. a rotation column the task never changes)
+    from being blown up into noise.
+    """
+    feats = np.asarray(proprio_features(jnp.asarray(proprio.reshape(-1, proprio.shape[-1])), cfg.proprio_encoding))
+    return {"mean": feats.mean(0).astype(np.float32), "std": np.maximum(feats.std(0), min_std).astype(np.float32)}
+
+
+def set_proprio_stats(params: nnx.State, stats: dict[str, np.ndarray]) -> nnx.State:
+    """``params`` with the proprio normalisation replaced by ``stats`` (from :func:`compute_proprio_stats`)."""
+    mean, std = np.asarray(stats["mean"], np.float32), np.asarray(stats["std"], np.float32)
+    if mean.shape != params["proprio_mean"][...].shape or std.shape != mean.shape or np.any(std <= 0):
+        raise ValueError(f"proprio stats must be two {params['proprio_mean'][...].shape} arrays with std > 0, "
+                         f"got {mean.shape}/{std.shape}")
+    out = jax.tree.map(lambda x: x, params)
+    out["proprio_mean"] = out["proprio_mean"].replace(jnp.asarray(mean).astype(out["proprio_mean"][...].dtype))
+    out["proprio_std"] = out["proprio_std"].replace(jnp.asarray(std).astype(out["proprio_std"][...].dtype))
+    return out
+
+
+def trainable_mask(params: nnx.State) -> Any:
+    """Pytree of bools like ``params``: False for the stored statistics (no weight decay on them)."""
+    stats = {"proprio_mean", "proprio_std"}
+    return jax.tree_util.tree_map_with_path(
+        lambda path, _: not any(getattr(k, "key", None) in stats for k in path), params)
 
 
 def policy_logits(graphdef: nnx.GraphDef, params: nnx.State, *args, **kwargs) -> Float[Array, "b t a bins"]:

@@ -18,7 +18,7 @@ from flax import nnx, struct
 
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.grpo import apply_optimizer
-from sword_jax.rl.policy import actions_to_tokens, resize_frames, token_log_probs
+from sword_jax.rl.policy import actions_to_tokens, resize_frames, token_log_probs, trainable_mask
 
 PROPRIO_DROPOUT = 0.3
 
@@ -30,35 +30,134 @@ class SFTState:
     step: jax.Array
 
 
+def sft_schedule(cfg: RLConfig, total_steps: int) -> optax.Schedule:
+    """Linear warm-up to ``sft_learning_rate``, then cosine decay to ``sft_lr_end_fraction`` of it.
+
+    optax's ``warmup_cosine_decay_schedule`` takes the END VALUE in absolute units (not a
+    fraction of the peak): passing 0.1 there made the rate climb to 0.1 over the run.
+    """
+    steps = max(int(total_steps), 1)
+    warmup = min(cfg.sft_warmup_steps, steps // 10)
+    peak = cfg.sft_learning_rate
+    return optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=peak * cfg.sft_lr_end_fraction)
+
+
+def _sft_loss(graphdef: nnx.GraphDef, cfg: RLConfig, params, batch, proprio_valid):
+    frames = resize_frames(batch["frames"], cfg.image_size)
+    targets = actions_to_tokens(batch["actions"], cfg.action_bins)
+    logits = nnx.merge(graphdef, params)(frames, batch["instruction_tokens"], batch["proprio"], proprio_valid)
+    logp = token_log_probs(logits, targets)
+    correct = (jnp.argmax(logits, -1) == targets).astype(jnp.float32)
+    # mean |error| of the argmax action in action units (bin centres), what execution feels
+    centres = (jnp.arange(cfg.action_bins, dtype=jnp.float32) + 0.5) * (2.0 / cfg.action_bins) - 1.0
+    action_error = jnp.mean(jnp.abs(centres[jnp.argmax(logits, -1)] - jnp.clip(batch["actions"], -1.0, 1.0)))
+    return -jnp.mean(logp), {"token_accuracy": jnp.mean(correct), "action_l1": action_error}
+
+
+def make_sft_eval(graphdef: nnx.GraphDef, cfg: RLConfig):
+    """Jitted ``evaluate(params, batch) -> metrics``: teacher-forced loss, token accuracy and action
+    L1 on a batch (held-out demonstrations), with proprio present."""
+
+    @jax.jit
+    def evaluate(params, batch):
+        b = batch["frames"].shape[0]
+        loss, metrics = _sft_loss(graphdef, cfg, params, batch, jnp.ones((b,), jnp.float32))
+        return dict(metrics, loss=loss)
+
+    return evaluate
+
+
 def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | None = None):
     """``init(params) -> SFTState`` and jitted ``step(state, batch, key) -> (state, metrics)``.
 
     ``batch``: ``frames [b, H, W, 3]`` (uint8 or float in [0, 1]), ``instruction_tokens [b, L]``,
     ``proprio [b, P]``, ``actions [b, chunk_len, action_dim]`` in [-1, 1].
     """
-    steps = max(total_steps or cfg.sft_steps, 1)
-    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.sft_learning_rate, min(50, steps // 10 + 1), steps, 0.1)
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=1e-4))
+    schedule = sft_schedule(cfg, total_steps or cfg.sft_steps)
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0),
+                            optax.adamw(schedule, weight_decay=1e-4, mask=trainable_mask))
 
     def init(params) -> SFTState:
         return SFTState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
 
     def step(state: SFTState, batch, key):
         key = jax.random.fold_in(key, state.step)
-        frames = resize_frames(batch["frames"], cfg.image_size)
-        b = frames.shape[0]
+        b = batch["frames"].shape[0]
         proprio_valid = (jax.random.uniform(key, (b,)) >= PROPRIO_DROPOUT).astype(jnp.float32)
-        targets = actions_to_tokens(batch["actions"], cfg.action_bins)
 
         def loss_fn(params):
-            logits = nnx.merge(graphdef, params)(frames, batch["instruction_tokens"], batch["proprio"], proprio_valid)
-            logp = token_log_probs(logits, targets)
-            acc = jnp.mean((jnp.argmax(logits, -1) == targets).astype(jnp.float32))
-            return -jnp.mean(logp), acc
+            return _sft_loss(graphdef, cfg, params, batch, proprio_valid)
 
-        (loss, acc), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         _, opt_state, params = apply_optimizer(optimizer, grads, state.opt_state, state.params)
-        return SFTState(params, opt_state, state.step + 1), {"loss": loss, "token_accuracy": acc,
-                                                            "grad_norm": optax.global_norm(grads)}
+        with jax.numpy_dtype_promotion("standard"):  # optax schedules mix Python floats and int32 steps
+            learning_rate = jnp.asarray(schedule(state.step), jnp.float32)
+        return SFTState(params, opt_state, state.step + 1), dict(
+            metrics, loss=loss, grad_norm=optax.global_norm(grads), learning_rate=learning_rate)
 
     return init, jax.jit(step, donate_argnums=(0,))
+
+
+def train_sft(
+    graphdef: nnx.GraphDef,
+    params: Any,
+    cfg: RLConfig,
+    train_episodes: Any,
+    held_out: Any = None,
+    *,
+    seed: int = 0,
+    steps: int | None = None,
+    log: Any = print,
+) -> tuple[Any, list[dict[str, float]]]:
+    """Behaviour cloning on ``train_episodes`` (an ``rl.data.EpisodeSet``) from ``params``.
+
+    The proprio normalisation is set from the training demonstrations before the first step.
+    Every ``cfg.sft_eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and
+    action L1 on ``held_out`` demonstrations are logged next to the training batch's.
+
+    Returns:
+      ``(params, history)``: the trained parameters and one dict of metrics per log point.
+
+    Raises:
+      FloatingPointError: a non-finite loss (naming the step).
+    """
+    import time
+
+    import numpy as np
+
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.policy import compute_proprio_stats, set_proprio_stats
+
+    steps = steps or cfg.sft_steps
+    rng = np.random.default_rng(seed)
+    valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
+                                  for e in range(train_episodes.num_episodes)])
+    params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
+    init, step = make_sft_step(graphdef, cfg, total_steps=steps)
+    evaluate = make_sft_eval(graphdef, cfg)
+    held_batches = []
+    if held_out is not None:
+        held_rng = np.random.default_rng(seed + 1)
+        held_batches = [rl_data.sample_bc_batch(held_out, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
+                                                held_rng) for _ in range(4)]
+    state = init(params)
+    key = jax.random.key(seed)
+    history: list[dict[str, float]] = []
+    start = time.time()
+    for i in range(steps):
+        batch = rl_data.sample_bc_batch(train_episodes, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes, rng)
+        state, metrics = step(state, batch, key)
+        if (i + 1) % cfg.sft_eval_every == 0 or i + 1 == steps:
+            point = {"step": i + 1, **{k: float(v) for k, v in metrics.items()}}
+            if not np.isfinite(point["loss"]):
+                raise FloatingPointError(f"SFT: non-finite loss at step {i + 1}")
+            for hb in held_batches:
+                for name, value in evaluate(state.params, hb).items():
+                    point[f"heldout_{name}"] = point.get(f"heldout_{name}", 0.0) + float(value) / len(held_batches)
+            history.append(point)
+            eta = (time.time() - start) / (i + 1) * (steps - i - 1)
+            held = (f" | held-out loss {point['heldout_loss']:.3f} acc {point['heldout_token_accuracy']:.3f} "
+                    f"L1 {point['heldout_action_l1']:.3f}") if held_batches else ""
+            log(f"sft step {i + 1}/{steps} loss {point['loss']:.3f} acc {point['token_accuracy']:.3f} "
+                f"lr {point['learning_rate']:.2e}{held} eta {eta:.0f}s")
+    return state.params, history

@@ -4,7 +4,12 @@ Per step (one action chunk of 8 actions = 2 latent frames):
 
 1. the flow-matching sampler (:func:`sword_jax.world_model.rollout.predict_chunk`, a few Euler
    steps) predicts the next ``p`` latents from ``[first-frame latent, k context latents]`` and the
-   per-frame actions ``[a_0, context actions (4k), chunk actions (4p)]``;
+   per-frame actions ``[a_0, context actions (4k), future actions (4p)]``, aligned as in training
+   (:mod:`sword_jax.world_model.data`): each video frame carries the action taken AFTER it is
+   seen. The policy acts on the last context frame ``4j``, so its first action ``a_4j`` belongs to
+   that frame (the last context slot) and ``a_4j+1 .. a_4j+7`` to the predicted frames; the last
+   predicted frame's own action is not known yet and holds ``a_4j+7`` until the next chunk's first
+   action replaces it;
 2. the causal VAE decoder streams those latents to ``4p`` frames with its feature cache
    (:func:`sword_jax.vae.api.decode_chunk`), so pixels are produced once per frame;
 3. the context becomes the last ``k`` predicted latents (the rollout stays in latent space).
@@ -39,6 +44,7 @@ FRAMES_PER_LATENT = 4
 class WMState(NamedTuple):
     first_latent: Float[Array, "1 1 h w c"]
     context: Float[Array, "1 k h w c"]
+    first_action: Float[Array, "1 1 a"]  # the action of the episode's first frame (training's a_0)
     context_actions: Float[Array, "1 s a"]  # actions of the context latents' video frames
     decode_cache: Any  # vae_api.StreamCache for a batch of one
     proprio: Float[Array, " p"]
@@ -54,10 +60,37 @@ def encode_keyframes(
 ) -> Float[Array, "n l hl wl z"]:
     """Start latents ``[first, k context]`` for keyframes: the frame held still for ``1 + 4k`` frames.
 
-    Use dataset latents instead where the keyframe's real history is available.
+    A fallback for keyframes without history; :func:`encode_history` uses the real one.
     """
     video = jnp.repeat(frames.astype(jnp.float32)[:, None] * 2.0 - 1.0, 1 + FRAMES_PER_LATENT * num_context, axis=1)
     return vae_api.encode(vae_graphdef, vae_state, video, check_values=False)
+
+
+def encode_history(
+    vae_graphdef: nnx.GraphDef,
+    vae_state: Any,
+    first_frames: Float[Array, "n h w 3"],
+    history: Float[Array, "n f h w 3"],
+    *,
+    num_context: int = 1,
+) -> Float[Array, "n l hl wl z"]:
+    """Start latents ``[first, k context]`` from a keyframe's real past.
+
+    Args:
+      first_frames: each episode's first frame (the world model's anchor), in [0, 1].
+      history: the ``4 (k + 1)`` frames up to and including the keyframe, in [0, 1]; the oldest
+        four only warm the causal encoder's cache (their latent is dropped), so the context
+        latents see the motion that led to the keyframe, as the dataset's latents do.
+
+    Returns:
+      ``[n, 1 + k, h, w, z]``: the first-frame latent and the ``k`` latents ending at the keyframe.
+    """
+    need = FRAMES_PER_LATENT * (num_context + 1)
+    if history.shape[1] != need:
+        raise ValueError(f"encode_history: history must hold {need} frames, got {history.shape}")
+    video = jnp.concatenate([first_frames[:, None], history], axis=1).astype(jnp.float32) * 2.0 - 1.0
+    latents = vae_api.encode(vae_graphdef, vae_state, video, check_values=False)  # (n, 2 + k, ...)
+    return jnp.concatenate([latents[:, :1], latents[:, 2:]], axis=1)
 
 
 def world_model_simulator(
@@ -87,34 +120,47 @@ def world_model_simulator(
       latent_size: latent height/width (default ``frame_size // 16``).
       proprio_dim: size of the (invalid) proprio the policy receives.
 
-    ``StartState.latents`` must be ``[1 + num_context, h, w, z]`` (see :func:`encode_keyframes`).
+    ``StartState.latents`` is ``[1 + num_context, h, w, z]`` (then every conditioning frame carries
+    a zero action, as for a keyframe held still: :func:`encode_keyframes`) or a pair ``(latents,
+    actions [1 + 4 num_context, action_dim])`` with the actions the episode's first frame and the
+    context frames really carried, laid out as a training segment's (:func:`encode_history`).
     """
     chunk_len = FRAMES_PER_LATENT * num_future
     hl = latent_size or frame_size // 16
 
     def init_fn(params, start: StartState) -> WMState:
         wm_params, vae_params = params
-        latents = jnp.asarray(start.latents, jnp.float32)
+        if isinstance(start.latents, (tuple, list)):
+            latents, actions = start.latents
+            actions = jnp.asarray(actions, jnp.float32)
+            if actions.shape != (1 + FRAMES_PER_LATENT * num_context, action_dim):
+                raise ValueError(f"world-model sim: start actions must be [{1 + FRAMES_PER_LATENT * num_context}, "
+                                 f"{action_dim}], got {actions.shape}")
+        else:
+            latents, actions = start.latents, jnp.zeros((1 + FRAMES_PER_LATENT * num_context, action_dim))
+        latents = jnp.asarray(latents, jnp.float32)
         if latents.ndim != 4 or latents.shape[0] != 1 + num_context:
             raise ValueError(f"world-model sim: start.latents must be [{1 + num_context}, h, w, z], got {latents.shape}")
         cache = vae_api.init_decode_cache(vae_graphdef, vae_params, 1, hl, hl)
         _, cache = vae_api.decode_chunk(vae_graphdef, vae_params, latents[None], cache, check_values=False)
-        return WMState(latents[None, :1], latents[None, 1:], jnp.zeros((1, FRAMES_PER_LATENT * num_context, action_dim)),
-                       cache, jnp.asarray(start.proprio, jnp.float32))
+        return WMState(latents[None, :1], latents[None, 1:], actions[None, :1], actions[None, 1:], cache,
+                       jnp.asarray(start.proprio, jnp.float32))
 
     def step_fn(params, state: WMState, chunk, key):
         wm_params, vae_params = params
-        chunk = chunk.astype(jnp.float32)[None]  # (1, T, A)
-        first_action = jnp.zeros((1, 1, action_dim), jnp.float32)
-        actions = jnp.concatenate([first_action, state.context_actions, chunk], axis=1)
+        chunk = chunk.astype(jnp.float32)[None]  # (1, T, A): a_4j .. a_4j+T-1, acting on frame 4j
+        # a_4j is the last context frame's action; the predicted frames carry a_4j+1 .. and a placeholder
+        context_actions = state.context_actions.at[:, -1].set(chunk[:, 0])
+        future_actions = jnp.concatenate([chunk[:, 1:], chunk[:, -1:]], axis=1)
+        actions = jnp.concatenate([state.first_action, context_actions, future_actions], axis=1)
         model_fn = wm_sampler.model_fn_from_state(wm_graphdef, wm_params)
         future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
                                cfg=flow_cfg, num_steps=sample_steps)
         video, cache = vae_api.decode_chunk(vae_graphdef, vae_params, future, state.decode_cache, check_values=False)
         context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
-        context_actions = jnp.concatenate([state.context_actions, chunk], axis=1)[:, -FRAMES_PER_LATENT * num_context:]
+        context_actions = jnp.concatenate([context_actions, future_actions], axis=1)[:, -FRAMES_PER_LATENT * num_context:]
         frames = to_unit(video[0])  # (T, H, W, 3)
-        return WMState(state.first_latent, context, context_actions, cache, state.proprio), frames
+        return WMState(state.first_latent, context, state.first_action, context_actions, cache, state.proprio), frames
 
     def observe_fn(params, state: WMState):
         del params

@@ -1,0 +1,164 @@
+"""Policy rollouts in a real (ground-truth) environment: evaluation and GRPO without a world model.
+
+The environment is any object with the lockstep protocol of ``sim.lockstep.LockstepEnvs``
+(the library does not import ``sim``)::
+
+    envs.n, envs.language                      # episodes, their instructions
+    envs.reset() -> {"frames" [N,H,W,3] uint8, "proprio" [N,P]}
+    envs.step(actions [N,k,7]) -> {"frames", "proprio", "success" [N], "executed" [N], "done" [N]}
+
+Every ``cfg.execute_steps`` actions the policy re-plans from the current frame: it predicts a
+chunk of ``chunk_len`` actions and the first ``execute_steps`` are executed (``chunk_len`` =
+open-loop chunks, as OpenVLA-OFT; 1 = closed loop every step). With ``cfg.action_ensemble``
+(greedy evaluation only) each step executes the exponentially weighted mean of all chunk
+predictions covering it (ACT's temporal ensembling).
+
+:func:`run_policy` returns a :class:`~sword_jax.rl.rollout.Rollout` whose "chunks" are the
+policy's decisions (``[N, C, execute_steps, A]`` tokens), so :func:`~sword_jax.rl.grpo.grpo_update`
+trains on ground-truth rollouts exactly as on imagined ones. The reward is true success.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import greedy_chunk, resize_frames, sample_chunk, token_log_probs, tokenize_instructions
+from sword_jax.rl.policy import tokens_to_actions
+from sword_jax.rl.rollout import Rollout
+
+
+def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig):
+    """Jitted policy calls on uint8 frames: ``act(params, frames, tokens, proprio, key, greedy)``.
+
+    Returns ``(frames at policy size uint8, tokens [n,T,A], log_probs [n,T,A], actions [n,T,A])``.
+    """
+
+    def act(params, frames, tokens, proprio, key, greedy: bool):
+        small = resize_frames(frames, cfg.image_size)
+        logits = nnx.merge(graphdef, params)(small, tokens, proprio)
+        if greedy:
+            chunk = greedy_chunk(logits)
+            logp = token_log_probs(logits, chunk)
+        else:
+            chunk, logp = sample_chunk(logits, key=key, temperature=cfg.temperature)
+        obs = jnp.clip(jnp.round(small * 255.0), 0, 255).astype(jnp.uint8)
+        return obs, chunk, logp, tokens_to_actions(chunk, cfg.action_bins)
+
+    return jax.jit(act, static_argnames=("greedy",))
+
+
+def max_decisions(cfg: RLConfig, max_steps: int) -> int:
+    """Policy calls an episode of ``max_steps`` actions can need."""
+    return math.ceil(max_steps / cfg.execute_steps)
+
+
+def _ensemble(history: list[np.ndarray], decay: float) -> np.ndarray:
+    """Mean of the chunk predictions for the current step (newest first), weights exp(-decay * age)."""
+    preds, weights = [], []
+    for age, chunk in enumerate(history):
+        if age < chunk.shape[1]:
+            preds.append(chunk[:, age])
+            weights.append(math.exp(-decay * age))
+    w = np.asarray(weights, np.float32)
+    return np.tensordot(w / w.sum(), np.stack(preds), axes=1)
+
+
+def run_policy(
+    act: Any,
+    params: nnx.State,
+    envs: Any,
+    cfg: RLConfig,
+    *,
+    key: jax.Array,
+    greedy: bool,
+    max_steps: int,
+    record: bool = True,
+    episodes: Any = None,
+) -> Rollout:
+    """Runs the policy in ``envs`` until every episode succeeds or reaches ``max_steps``.
+
+    Args:
+      act: from :func:`make_act_fns`.
+      params: policy parameters.
+      envs: a lockstep environment (module docstring); it is reset here.
+      cfg: chunking, re-planning and ensembling settings.
+      key: sampling randomness (decision ``c`` uses ``fold_in(key, c)``).
+      greedy: argmax actions (evaluation) instead of sampling.
+      max_steps: the episodes' step limit (the decision count is padded to it).
+      record: keep observations, tokens and log-probs for GRPO (else only outcomes).
+      episodes: new ``(task, qpos)`` start states for ``envs.reset`` (default: its own).
+
+    Returns:
+      A :class:`Rollout` with ``C = max_decisions(cfg, max_steps)``; ``success``/``returns`` are the
+      true outcomes (return = ``1 + success_bonus`` on success, else 0).
+    """
+    if cfg.action_ensemble and not greedy:
+        raise ValueError("temporal ensembling is for greedy evaluation; GRPO samples chunks (execute_steps)")
+    n, k = envs.n, cfg.execute_steps
+    obs = envs.reset() if episodes is None else envs.reset(episodes)
+    tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
+    c_max = max_decisions(cfg, max_steps)
+    done = np.zeros(n, bool)
+    success = np.zeros(n, bool)
+    rec: dict[str, list[np.ndarray]] = {"obs": [], "proprio": [], "tokens": [], "log_probs": [], "valid": []}
+    history: list[np.ndarray] = []
+    for c in range(c_max):
+        if done.all():
+            break
+        small, chunk, logp, actions = act(params, jnp.asarray(obs["frames"]), tokens_text,
+                                          jnp.asarray(obs["proprio"][:, : cfg.proprio_dim]), jax.random.fold_in(key, c),
+                                          greedy)
+        actions = np.asarray(actions)
+        if cfg.action_ensemble:
+            history = [actions] + history[: cfg.chunk_len - 1]
+            step_actions = _ensemble(history, cfg.ensemble_decay)[:, None]
+        else:
+            step_actions = actions[:, :k]
+        if record:
+            rec["obs"].append(np.asarray(small))
+            rec["proprio"].append(np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32))
+            rec["tokens"].append(np.asarray(chunk)[:, :k])
+            rec["log_probs"].append(np.asarray(logp)[:, :k])
+            rec["valid"].append((~done).astype(np.float32))
+        obs = envs.step(step_actions)
+        success |= obs["success"]
+        done = obs["done"]
+    returns = success.astype(np.float32) * (1.0 + cfg.success_bonus)
+    if not record:
+        empty = np.zeros((n, 0), np.float32)
+        return Rollout(empty, empty, empty, np.asarray(tokens_text), empty, empty, empty, empty, empty,
+                       success, returns, np.zeros((0,), np.float32))
+    taken = len(rec["valid"])
+
+    def stack(name: str) -> np.ndarray:
+        x = np.stack(rec[name], axis=1)  # (N, taken, ...)
+        pad = np.zeros((n, c_max - taken) + x.shape[2:], x.dtype)
+        return np.concatenate([x, pad], axis=1)
+
+    valid = stack("valid")
+    first_success = np.where(success, np.argmax(np.cumsum(valid, 1) == valid.sum(1, keepdims=True), 1), -1)
+    rewards = np.zeros((n, c_max), np.float32)
+    rewards[np.flatnonzero(success), first_success[success]] = 1.0
+    return Rollout(
+        obs_frames=stack("obs"), proprio=stack("proprio"), proprio_valid=np.ones((n, c_max), np.float32),
+        instruction_tokens=np.asarray(tokens_text), tokens=stack("tokens"), log_probs=stack("log_probs"),
+        valid=valid, rewards=rewards, scores=np.cumsum(rewards, 1), success=success, returns=returns,
+        frames=np.zeros((0,), np.float32))
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate."""
+    if trials <= 0:
+        return (0.0, 1.0)
+    p = successes / trials
+    denom = 1.0 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denom
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
