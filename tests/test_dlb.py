@@ -226,18 +226,3 @@ def configs_get(name):
     import configs
 
     return configs.get(name)
-
-
-@pytest.mark.slow
-def test_sample_write_source_writes_a_few_step_sample(key):
-    mesh = single_device_mesh()
-    caches = []
-    for source in ("train_forward", "sample"):
-        _, state, _, step, loader = build(mesh=mesh, cache_cfg=CacheConfig(write_source=source, write_sample_steps=2,
-                                                                           **F32_CACHE))
-        state, _ = step(state, loader.next(), key)
-        caches.append(jax.device_get(state.cache))
-    np.testing.assert_array_equal(caches[0].filled, caches[1].filled)
-    written = caches[1].filled
-    assert written.any() and np.all(np.isfinite(caches[1].latents[written]))
-    assert not np.allclose(caches[0].latents[written], caches[1].latents[written])

@@ -2,6 +2,8 @@
 
 * ``cache``: the device-resident latent cache (layout, sharding, bytes per device, read, write).
 * ``schedule``: read-probability schedules (linear, warmup + cosine).
+* ``fidelity``: what the cache is written with (``one_step`` / ``sampler``) and its distance from
+  the context inference produces.
 * ``config``: ``CacheConfig``.
 
 The DLB train step itself is :func:`sword_jax.world_model.train_step.make_train_step` with

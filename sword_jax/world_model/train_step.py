@@ -10,10 +10,17 @@ k context, p future latents), ``actions [b, 1 + 4(k + p), a]``, ``episode [b]`` 
 
 With the cache enabled the step (1) reads: replaces context latents by cached predictions with
 probability ``read_prob(step)`` where filled; (2) trains exactly like teacher forcing on that
-context; (3) writes the clean future estimate implied by the training forward pass (or a few-step
-no-grad sample) back into the future slots. With read probability 0 it is bitwise the
-teacher-forcing step. A non-finite loss or gradient skips the update and the cache write and
-records the step in ``state.first_nonfinite_step``.
+context; (3) writes back into the future slots either the clean future estimate implied by the
+training forward pass (``cache.write_source=one_step``) or the flow sampler's output on the same
+conditioning (``sampler``: no gradient, ``cache.write_sample_steps`` Euler steps), see
+:mod:`sword_jax.dlb.fidelity`. With read probability 0 it is bitwise the teacher-forcing step. A
+non-finite loss or gradient skips the update and the cache write and records the step in
+``state.first_nonfinite_step``.
+
+On log steps (``(step + 1) % trainer.log_every == 0`` or the last step) with
+``cache.log_inference_distance``, the step also samples what inference would put in the context for
+the written latents and reports ``cache_vs_inference_{rel_mse,cosine,norm_ratio}`` (NaN on other
+steps: the sampler runs under ``lax.cond``, so unlogged steps do not pay for it).
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from sword_jax import sharding as shd
 from sword_jax.dlb import cache as dlb_cache
+from sword_jax.dlb import fidelity as dlb_fidelity
 from sword_jax.dlb import schedule as dlb_schedule
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import flow, sampler
@@ -40,6 +48,16 @@ StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
 
 def _where_tree(pred: jax.Array, on_true: Any, on_false: Any) -> Any:
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+
+
+STEP_KEY_NAMES = ("noise", "sigma", "context_noise", "read", "write")
+
+
+def step_keys(root: jax.Array, step: jax.Array | int) -> dict[str, jax.Array]:
+    """The named keys of step ``step`` (0-based): ``fold_in(root, step)`` split in ``STEP_KEY_NAMES``
+    order. ``write`` draws the ``sampler`` write source's noise; ``fold_in(write, 1)`` the inference
+    reference of the ``cache_vs_inference_*`` metrics."""
+    return dict(zip(STEP_KEY_NAMES, jax.random.split(jax.random.fold_in(root, step), len(STEP_KEY_NAMES))))
 
 
 def make_train_step(
@@ -65,9 +83,26 @@ def make_train_step(
     num_cond = 1 + num_context
     use_cache = cache_cfg.enabled
 
+    def _inference_distance(step_index, written, model_fn, cond_latents, actions, *, key):
+        """``cache_vs_inference_*`` on log steps (the host reads step ``step_index + 1``), NaN otherwise."""
+        steps_done = step_index + 1
+        is_log_step = (steps_done % trainer_cfg.log_every == 0) | (steps_done == trainer_cfg.steps)
+        cached = dlb_fidelity.stored(written[:, :dlb_fidelity.num_written(cache_cfg, written.shape[1])], cache_cfg)
+
+        def measure():
+            reference = dlb_fidelity.inference_context(flow_cfg, model_fn, cond_latents, actions, key=key,
+                                                       num_future=written.shape[1])
+            return dlb_fidelity.latent_distance(cached, reference[:, :cached.shape[1]])
+
+        def skip():
+            return {name: jnp.float32(jnp.nan) for name in dlb_fidelity.DISTANCE_METRICS}
+
+        distance = jax.lax.cond(is_log_step, measure, skip)
+        return {f"cache_vs_inference_{name}": value for name, value in distance.items()}
+
     def step(state: TrainState, batch: dict, key: jax.Array) -> tuple[TrainState, dict]:
-        key = jax.random.fold_in(key, state.step)
-        noise_key, sigma_key, context_noise_key, read_key, write_key = jax.random.split(key, 5)
+        keys = step_keys(key, state.step)
+        noise_key, sigma_key, context_noise_key, read_key, write_key = (keys[n] for n in STEP_KEY_NAMES)
         latents = batch["latents"].astype(jnp.float32)
         actions = batch["actions"].astype(jnp.float32)
         batch_size = latents.shape[0]
@@ -111,16 +146,17 @@ def make_train_step(
 
         cache = state.cache
         if use_cache:
-            if cache_cfg.write_source == "sample":
-                model_fn = sampler.model_fn_from_state(graphdef, (jax.lax.stop_gradient(state.params), state.buffers))
-                written = sampler.sample(model_fn, segment[:, :num_cond], actions, key=write_key,
-                                         num_future=future.shape[1], cfg=flow_cfg,
-                                         num_steps=cache_cfg.write_sample_steps, guidance_scale=1.0)
-            else:
-                sigma_b = sigma[:, None, None, None, None]
-                written = flow.to_clean(prediction[:, num_cond:], model_input[:, num_cond:], sigma_b, flow_cfg)
+            # The model at the step's pre-update params: the one that made the training prediction.
+            model_fn = sampler.model_fn_from_state(graphdef, (jax.lax.stop_gradient(state.params), state.buffers))
+            cond_latents = segment[:, :num_cond]
+            written = dlb_fidelity.write_latents(
+                cache_cfg, flow_cfg, model_fn, cond_latents, actions, key=write_key,
+                prediction_future=prediction[:, num_cond:], noisy_future=model_input[:, num_cond:], sigma=sigma)
             cache = dlb_cache.write_predictions(
                 cache, cache_cfg, written, batch["episode"], batch["start"] + num_context, enabled=finite)
+            if cache_cfg.log_inference_distance:
+                metrics.update(_inference_distance(
+                    state.step, written, model_fn, cond_latents, actions, key=jax.random.fold_in(write_key, 1)))
             if num_episodes is not None:
                 metrics["cache_filled"] = dlb_cache.filled_fraction(cache, num_episodes)
 
