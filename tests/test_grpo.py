@@ -100,3 +100,22 @@ def test_grpo_improves_policy_on_toy_simulator():
     assert np.isfinite(float(metrics["loss"]))
     after = float(evaluate(state.params))
     assert after > before + 0.2, (before, after)
+
+
+def test_a_non_finite_batch_skips_the_update():
+    """A NaN behaviour log-prob makes the loss non-finite: the update is skipped, so NaN never reaches a
+    checkpoint. (NaN returns alone are already harmless: their group has no finite spread and is filtered.)"""
+    cfg = _toy_cfg(ppo_epochs=1)
+    graphdef, params = build_policy(cfg, seed=0)
+    sim, reward_model = toy_simulator(frame_size=8, step_size=0.08), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate", "put the bowl on the stove"], 32))
+    start = expand_groups(toy_start_states(tokens, key=jax.random.key(1), frame_size=8), cfg.group_size)
+    rollout = imagined_rollout(graphdef, params, sim, reward_model, start, cfg, key=jax.random.key(2))
+    bad = rollout._replace(log_probs=rollout.log_probs.at[0].set(jnp.nan))
+    state = grpo.init_state(params, cfg)
+    new_state, metrics = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(state, bad)
+    assert float(metrics["finite"]) == 0.0
+    for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(new_state.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    good_state, metrics = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(state, rollout)
+    assert float(metrics["finite"]) == 1.0

@@ -55,7 +55,8 @@ def _toy_setup(cfg, rl):
     texts = [f"reach the goal of task {t}" for t in range(max(len(cfg.sim.tasks), 2))]
     tokens = jnp.asarray(tokenize_instructions(texts, rl.max_instruction_bytes))
 
-    def starts(key):
+    def starts(key, step):
+        del step  # the key is already a function of the step
         pick = jax.random.randint(key, (rl.rollout_batch,), 0, tokens.shape[0])
         return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
 
@@ -77,11 +78,10 @@ def _world_model_setup(cfg, rl, args):
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
     episodes = rl_data.load_episodes(args.demos)
-    rng = np.random.default_rng(cfg.seed + 1)
 
-    def starts(key):
-        del key  # keyframes come from the host rng (reproducible from the seed)
-        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, rng)
+    def starts(key, step):
+        del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
+        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, np.random.default_rng([cfg.seed, 1, step]))
         unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
         latents = encode_history(vae_graphdef, vae_state, unit(pick["first_frame"]), unit(pick["history"]))
         return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
@@ -142,8 +142,9 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
                              max_steps=cfg.sim.max_steps, episodes=starts)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if not np.isfinite(host["loss"]):
-            raise SystemExit(f"grpo: non-finite loss at step {step + 1}; last good checkpoint kept in {workdir}")
+        if not (np.isfinite(host["loss"]) and host["finite"] > 0):
+            raise SystemExit(f"grpo: non-finite loss or gradient at step {step + 1}; its update was skipped and "
+                             f"the last good checkpoint is kept in {workdir}")
         host.update(step=step + 1, rollout_success=float(np.mean(rollout.success)))
         history.append(host)
         eta = (time.time() - start) / (step + 1 - first_step) * (rl.grpo_steps - step - 1)
@@ -236,19 +237,28 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if first_step == 0:
         evaluate(0)
     start, pending = time.time(), None
+    starts_key = jax.random.fold_in(root, 1)  # the start-state stream; the step folds in state.step itself
+
+    def report(done, metrics):
+        host = jax.device_get(metrics)
+        if not (np.isfinite(host["loss"]) and host["finite"] > 0):
+            # the update of that step was skipped (finite gate), so the state in memory is still good
+            raise SystemExit(f"grpo: non-finite loss or gradient at step {done}; its update was skipped and the "
+                             f"last good checkpoint is kept in {workdir}")
+        eta = (time.time() - start) / max(done - first_step, 1) * (rl.grpo_steps - done)
+        print(f"grpo step {done}/{rl.grpo_steps} imagined success {host['success_rate']:.3f} "
+              f"return {host['mean_return']:.3f} loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} "
+              f"kept {host['kept_fraction']:.2f} eta {eta:.0f}s", flush=True)
+
     for step in range(first_step, rl.grpo_steps):
-        batch_start = starts(jax.random.fold_in(root, 10_000 + step))
+        batch_start = starts(jax.random.fold_in(starts_key, step), step)
         state, metrics = step_fn(state, (sim, reward_model, batch_start), root)
         if pending is not None:  # read the previous step's metrics: the device never waits on the host
-            done, host = pending[0], jax.device_get(pending[1])
-            if not np.isfinite(host["loss"]):
-                raise SystemExit(f"grpo: non-finite loss at step {done}; last good checkpoint kept in {workdir}")
-            eta = (time.time() - start) / (done - first_step) * (rl.grpo_steps - done)
-            print(f"grpo step {done}/{rl.grpo_steps} imagined success {host['success_rate']:.3f} "
-                  f"return {host['mean_return']:.3f} loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} "
-                  f"kept {host['kept_fraction']:.2f} eta {eta:.0f}s", flush=True)
+            report(*pending)
         pending = (step + 1, metrics)
         if (step + 1) % rl.eval_every == 0 or step + 1 == rl.grpo_steps:
+            report(*pending)  # a checkpoint is written only after its step's loss was read
+            pending = None
             evaluate(step + 1)
             ckpt.save(step + 1, state, {"step": step + 1})
     ckpt.close()
