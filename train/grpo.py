@@ -91,6 +91,16 @@ def _world_model_setup(cfg, rl, args):
     return sim, reward_model, starts, None
 
 
+def _resume(workdir: str, state):
+    """``(checkpointer, state, first step)``: the latest GRPO checkpoint in ``workdir`` if there is one."""
+    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
+    if ckpt.latest_step() is None:
+        return ckpt, state, 0
+    state, meta = ckpt.restore(checkpoint.abstract_like(state))
+    print(f"grpo: resumed from step {int(meta['step'])}")
+    return ckpt, state, int(meta["step"])
+
+
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
                renderer: str = "jax") -> dict:
     """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
@@ -102,12 +112,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     from sword_jax.rl.env_rollout import make_act_fns, run_policy
 
     state = grpo.init_state(params, rl)
-    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
-    first_step = 0
-    if ckpt.latest_step() is not None:
-        state, meta = ckpt.restore(checkpoint.abstract_like(state))
-        first_step = int(meta["step"])
-        print(f"grpo: resumed from step {first_step}")
+    ckpt, state, first_step = _resume(workdir, state)
     update = jax.jit(tracing.max_traces(lambda s, batch: grpo.grpo_update(graphdef, rl, s, batch),
                                         n=ENTRY_MAX_TRACES), donate_argnums=(0,))
     act = make_act_fns(graphdef, rl)
@@ -204,12 +209,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         # The world model lives on the config's mesh; placing the policy state there too keeps the
         # step's input and output shardings equal, so it compiles once.
         state = jax.device_put(state, shd.replicated(shd.make_mesh(cfg.mesh)))
-    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
-    first_step = 0
-    if ckpt.latest_step() is not None:
-        state, meta = ckpt.restore(checkpoint.abstract_like(state))
-        first_step = int(meta["step"])
-        print(f"grpo: resumed from step {first_step}")
+    ckpt, state, first_step = _resume(workdir, state)
     state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES)
     curve = SuccessCurve(workdir)
