@@ -105,17 +105,27 @@ def test_grpo_improves_policy_on_toy_simulator():
 def test_a_non_finite_batch_skips_the_update():
     """A NaN behaviour log-prob makes the loss non-finite: the update is skipped, so NaN never reaches a
     checkpoint. (NaN returns alone are already harmless: their group has no finite spread and is filtered.)"""
-    cfg = _toy_cfg(ppo_epochs=1)
+    from sword_jax.rl.rollout import Rollout
+
+    cfg = _toy_cfg(ppo_epochs=1, max_chunks=2)
     graphdef, params = build_policy(cfg, seed=0)
-    sim, reward_model = toy_simulator(frame_size=8, step_size=0.08), toy_reward_model()
-    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate", "put the bowl on the stove"], 32))
-    start = expand_groups(toy_start_states(tokens, key=jax.random.key(1), frame_size=8), cfg.group_size)
-    rollout = imagined_rollout(graphdef, params, sim, reward_model, start, cfg, key=jax.random.key(2))
-    bad = rollout._replace(log_probs=rollout.log_probs.at[0].set(jnp.nan))
+    n, c, t, a = cfg.group_size, cfg.max_chunks, cfg.chunk_len, cfg.action_dim
+    rng = np.random.default_rng(0)
+    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl"] * n, 32))
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.zeros((n, c, 4)),
+        proprio_valid=jnp.ones((n, c)), instruction_tokens=tokens,
+        tokens=jnp.asarray(rng.integers(0, cfg.action_bins, (n, c, t, a)), jnp.int32),
+        log_probs=jnp.full((n, c, t, a), -np.log(cfg.action_bins), jnp.float32), valid=jnp.ones((n, c)),
+        rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
+    update = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))
     state = grpo.init_state(params, cfg)
-    new_state, metrics = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(state, bad)
+    new_state, metrics = update(state, rollout._replace(log_probs=rollout.log_probs.at[0].set(jnp.nan)))
     assert float(metrics["finite"]) == 0.0
-    for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(new_state.params)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    good_state, metrics = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(state, rollout)
+    for old, new in zip(jax.tree.leaves(state.params), jax.tree.leaves(new_state.params)):
+        np.testing.assert_array_equal(np.asarray(old), np.asarray(new))
+    good_state, metrics = update(state, rollout)
     assert float(metrics["finite"]) == 1.0
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(good_state.params)))
