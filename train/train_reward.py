@@ -21,7 +21,7 @@ import numpy as np
 import configs
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.params_io import save_params
-from sword_jax.rl.reward_model import as_reward_model, build_detector, make_detector_step
+from sword_jax.rl.reward_model import as_reward_model, build_detector, train_detector
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -40,15 +40,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
     labels = rl_data.success_labels(train_eps, rl.positive_tail)
     graphdef, params = build_detector(rl, seed=cfg.seed)
-    init, step = make_detector_step(graphdef, rl)
-    state = init(params)
     key = jax.random.key(cfg.seed)
-    metrics = {}
-    for i in range(rl.reward_model_steps):
-        state, metrics = step(state, rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size, rng), key)
-        if (i + 1) % max(rl.reward_model_steps // 10, 1) == 0:
-            print(f"reward step {i + 1}/{rl.reward_model_steps} loss {float(metrics['loss']):.4f} "
-                  f"acc {float(metrics['accuracy']):.3f}", flush=True)
+    state, _ = train_detector(graphdef, params, rl,
+                              lambda: rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size, rng),
+                              key=key, log=lambda line: print(line, flush=True))
     path = os.path.join(workdir, "reward_model")
     save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
     result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path}

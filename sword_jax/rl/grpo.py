@@ -27,7 +27,7 @@ import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float
 
-from sword_jax import tracing
+from sword_jax import optim, tracing
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import token_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
@@ -139,19 +139,8 @@ class GRPOState:
 
 
 def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(cfg.learning_rate, weight_decay=0.0))
-
-
-def apply_optimizer(optimizer: optax.GradientTransformation, grads: Any, opt_state: Any, params: Any):
-    """One optimizer update; returns ``(updates, opt_state, params)``.
-
-    optax's Adam mixes Python floats with its int32 step count, which strict dtype promotion
-    rejects; the update alone runs under standard promotion.
-    """
-    with jax.numpy_dtype_promotion("standard"):
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
-    return updates, opt_state, params
+    """Global-norm clipping at 1, then AdamW at ``cfg.learning_rate`` without weight decay."""
+    return optim.make_optimizer(cfg.learning_rate, weight_decay=0.0, grad_clip=1.0)
 
 
 def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
@@ -196,7 +185,7 @@ def grpo_update(
         params, opt_state = carry
         (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         grad_norm = optax.global_norm(grads)
-        updates, new_opt_state, new_params = apply_optimizer(optimizer, grads, opt_state, params)
+        updates, new_opt_state, new_params = optim.apply_optimizer(optimizer, grads, opt_state, params)
         # a non-finite loss or gradient skips the update: NaN never reaches the parameters or a checkpoint
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
         keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731

@@ -9,6 +9,7 @@ threshold (0.9). :func:`as_reward_model` wraps trained params in the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -17,6 +18,7 @@ import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float
 
+from sword_jax import optim
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.simulator import RewardModel
@@ -64,21 +66,27 @@ def as_reward_model(graphdef: nnx.GraphDef, params: nnx.State) -> RewardModel:
 class DetectorState:
     params: Any
     opt_state: Any
-    step: jax.Array
+    step: jax.Array  # int32 scalar, steps taken
+    first_nonfinite_step: jax.Array  # int32 scalar, 0-based step of the first non-finite loss; -1 = none yet
+
+
+def make_detector_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
+    """AdamW at a constant ``reward_model_learning_rate`` with weight decay 1e-4, no clipping."""
+    return optim.make_optimizer(cfg.reward_model_learning_rate, weight_decay=1e-4)
 
 
 def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
     """``init(params) -> state`` and the jitted ``step(state, batch, key) -> (state, metrics)``.
 
     ``batch = {"frames": [n, H, W, 3] uint8|float, "labels": [n] in {0, 1}}``. Brightness /
-    contrast jitter keeps the detector from keying on the world model's colour drift.
+    contrast jitter keeps the detector from keying on the world model's colour drift. A
+    non-finite loss or gradient skips the update and records the step in
+    ``state.first_nonfinite_step``.
     """
-    from sword_jax.rl.grpo import apply_optimizer
-
-    optimizer = optax.adamw(cfg.reward_model_learning_rate, weight_decay=1e-4)
+    optimizer = make_detector_optimizer(cfg)
 
     def init(params) -> DetectorState:
-        return DetectorState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
+        return DetectorState(params, optimizer.init(params), jnp.zeros((), jnp.int32), jnp.full((), -1, jnp.int32))
 
     def step(state: DetectorState, batch, key):
         key = jax.random.fold_in(key, state.step)
@@ -97,8 +105,51 @@ def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
             return loss, acc
 
         (loss, acc), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-        _, opt_state, params = apply_optimizer(optimizer, grads, state.opt_state, state.params)
-        return DetectorState(params, opt_state, state.step + 1), {"loss": loss, "accuracy": acc,
-                                                                  "grad_norm": optax.global_norm(grads)}
+        grad_norm = optax.global_norm(grads)
+        _, new_opt_state, new_params = optim.apply_optimizer(optimizer, grads, state.opt_state, state.params)
+        # a non-finite loss or gradient skips the update: the last good parameters stay intact
+        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+        first_nonfinite = jnp.where(~finite & (state.first_nonfinite_step < 0), state.step, state.first_nonfinite_step)
+        new_state = DetectorState(keep(new_params, state.params), keep(new_opt_state, state.opt_state),
+                                  state.step + 1, first_nonfinite.astype(jnp.int32))
+        return new_state, {"loss": loss, "accuracy": acc, "grad_norm": grad_norm, "finite": finite.astype(jnp.float32)}
 
     return init, jax.jit(step, donate_argnums=(0,))
+
+
+def train_detector(
+    graphdef: nnx.GraphDef,
+    params: Any,
+    cfg: RLConfig,
+    next_batch: Callable[[], dict],
+    *,
+    key: jax.Array,
+    steps: int | None = None,
+    log: Callable[[str], Any] = print,
+) -> tuple[DetectorState, dict[str, Array]]:
+    """``steps`` (default ``cfg.reward_model_steps``) detector steps on batches from ``next_batch()``.
+
+    Metrics are read on about ten log steps and at the end.
+
+    Returns:
+      ``(state, metrics)``: the final state and the last step's metrics.
+
+    Raises:
+      FloatingPointError: a loss or gradient became non-finite (naming the 0-based step; the
+        parameters are those from before it).
+    """
+    steps = cfg.reward_model_steps if steps is None else steps
+    log_every = max(steps // 10, 1)
+    init, step = make_detector_step(graphdef, cfg)
+    state = init(params)
+    metrics: dict[str, Array] = {}
+    for i in range(steps):
+        state, metrics = step(state, next_batch(), key)
+        if (i + 1) % log_every == 0 or i + 1 == steps:
+            first_bad = int(jax.device_get(state.first_nonfinite_step))
+            if first_bad >= 0:
+                raise FloatingPointError(f"reward model: non-finite loss or gradient at step {first_bad} (0-based); "
+                                         f"its update was skipped; stopped after step {i + 1}")
+            log(f"reward step {i + 1}/{steps} loss {float(metrics['loss']):.4f} acc {float(metrics['accuracy']):.3f}")
+    return state, metrics

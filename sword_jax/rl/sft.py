@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import optax
 from flax import nnx, struct
 
+from sword_jax import optim
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.grpo import apply_optimizer
 from sword_jax.rl.policy import actions_to_tokens, resize_frames, token_log_probs, trainable_mask
 
 PROPRIO_DROPOUT = 0.3
@@ -33,13 +33,18 @@ class SFTState:
 def sft_schedule(cfg: RLConfig, total_steps: int) -> optax.Schedule:
     """Linear warm-up to ``sft_learning_rate``, then cosine decay to ``sft_lr_end_fraction`` of it.
 
-    optax's ``warmup_cosine_decay_schedule`` takes the END VALUE in absolute units (not a
-    fraction of the peak): passing 0.1 there made the rate climb to 0.1 over the run.
+    The end is a fraction of the peak (optax's ``warmup_cosine_decay_schedule`` takes an absolute
+    end value: passing 0.1 there once made the rate climb to 0.1 over the run).
     """
     steps = max(int(total_steps), 1)
     warmup = min(cfg.sft_warmup_steps, steps // 10)
-    peak = cfg.sft_learning_rate
-    return optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=peak * cfg.sft_lr_end_fraction)
+    return optim.learning_rate_schedule(cfg.sft_learning_rate, warmup_steps=warmup, kind="cosine", total_steps=steps,
+                                        end_fraction=cfg.sft_lr_end_fraction)
+
+
+def make_sft_optimizer(schedule: optax.Schedule) -> optax.GradientTransformation:
+    """Global-norm clipping at 1, then AdamW (weight decay 1e-4, none on the policy's stored statistics)."""
+    return optim.make_optimizer(schedule, weight_decay=1e-4, grad_clip=1.0, decay_mask=trainable_mask)
 
 
 def _sft_loss(graphdef: nnx.GraphDef, cfg: RLConfig, params, batch, proprio_valid):
@@ -74,8 +79,7 @@ def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | N
     ``proprio [b, P]``, ``actions [b, chunk_len, action_dim]`` in [-1, 1].
     """
     schedule = sft_schedule(cfg, total_steps or cfg.sft_steps)
-    optimizer = optax.chain(optax.clip_by_global_norm(1.0),
-                            optax.adamw(schedule, weight_decay=1e-4, mask=trainable_mask))
+    optimizer = make_sft_optimizer(schedule)
 
     def init(params) -> SFTState:
         return SFTState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
@@ -89,9 +93,8 @@ def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | N
             return _sft_loss(graphdef, cfg, params, batch, proprio_valid)
 
         (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-        _, opt_state, params = apply_optimizer(optimizer, grads, state.opt_state, state.params)
-        with jax.numpy_dtype_promotion("standard"):  # optax schedules mix Python floats and int32 steps
-            learning_rate = jnp.asarray(schedule(state.step), jnp.float32)
+        _, opt_state, params = optim.apply_optimizer(optimizer, grads, state.opt_state, state.params)
+        learning_rate = optim.learning_rate_at(schedule, state.step)
         return SFTState(params, opt_state, state.step + 1), dict(
             metrics, loss=loss, grad_norm=optax.global_norm(grads), learning_rate=learning_rate)
 
@@ -137,7 +140,8 @@ def train_sft(
     evaluate = make_sft_eval(graphdef, cfg)
     held_batches = []
     if held_out is not None:
-        held_rng = np.random.default_rng(seed + 1)
+        from sword_jax.rng import stream_rng
+        held_rng = stream_rng(seed, "sft/held_out_batches")
         held_batches = [rl_data.sample_bc_batch(held_out, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
                                                 held_rng) for _ in range(4)]
     state = init(params)

@@ -19,7 +19,7 @@ import optax
 from flax import nnx
 from jaxtyping import Array, Float
 
-from sword_jax import sharding, tracing
+from sword_jax import optim, sharding, tracing
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.layers import patchify, unpatchify
 from sword_jax.vae.model import WanVAE, vae_rngs
@@ -48,9 +48,9 @@ class VAETrainState:
 
 
 def make_optimizer(cfg: VAEConfig) -> optax.GradientTransformation:
-    """AdamW (b2 0.99) with optional global-norm clipping."""
-    adamw = optax.adamw(cfg.learning_rate, b1=0.9, b2=0.99, weight_decay=cfg.weight_decay)
-    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), adamw) if cfg.grad_clip > 0 else adamw
+    """AdamW (b2 0.99) at a constant rate with optional global-norm clipping."""
+    return optim.make_optimizer(cfg.learning_rate, b1=0.9, b2=0.99, weight_decay=cfg.weight_decay,
+                                grad_clip=cfg.grad_clip)
 
 
 def init_train_state(
@@ -156,9 +156,7 @@ def make_train_step(
         (_, metrics), grads = grad_fn(
             state.params, state.constants, graphdef, batch["video"], key=step_key, cfg=cfg, perceptual_fn=perceptual_fn
         )
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 count
-            updates, opt_state = tx.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
+        updates, opt_state, params = optim.apply_optimizer(tx, grads, state.opt_state, state.params)
         metrics = dict(metrics, grad_norm=_tree_norm(grads), param_norm=_tree_norm(params),
                        update_norm=_tree_norm(updates))
         return VAETrainState(params, state.constants, opt_state, state.step + 1), metrics

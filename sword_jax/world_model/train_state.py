@@ -18,6 +18,7 @@ import optax
 from flax import nnx, struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from sword_jax import optim
 from sword_jax import sharding as shd
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb.config import CacheConfig
@@ -39,25 +40,14 @@ class TrainState:
 
 def learning_rate_schedule(cfg: TrainerConfig) -> optax.Schedule:
     """Linear warmup from 0 to ``learning_rate`` over ``warmup_steps``, then constant or cosine decay."""
-    warmup = optax.linear_schedule(0.0, cfg.learning_rate, max(cfg.warmup_steps, 1))
-    if cfg.lr_schedule == "cosine":
-        decay_steps = max(cfg.steps - cfg.warmup_steps, 1)
-        after = optax.cosine_decay_schedule(cfg.learning_rate, decay_steps, alpha=cfg.lr_end_fraction)
-    else:
-        after = optax.constant_schedule(cfg.learning_rate)
-    if cfg.warmup_steps == 0:
-        return after
-    return optax.join_schedules([warmup, after], [cfg.warmup_steps])
+    return optim.learning_rate_schedule(cfg.learning_rate, warmup_steps=cfg.warmup_steps, kind=cfg.lr_schedule,
+                                        total_steps=cfg.steps, end_fraction=cfg.lr_end_fraction)
 
 
 def make_optimizer(cfg: TrainerConfig) -> optax.GradientTransformation:
     """Global-norm gradient clipping then AdamW on the warmup schedule."""
-    parts = []
-    if cfg.grad_clip > 0:
-        parts.append(optax.clip_by_global_norm(cfg.grad_clip))
-    parts.append(optax.adamw(learning_rate_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2,
-                             eps=cfg.adam_eps, weight_decay=cfg.weight_decay))
-    return optax.chain(*parts)
+    return optim.make_optimizer(learning_rate_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps,
+                                weight_decay=cfg.weight_decay, grad_clip=cfg.grad_clip)
 
 
 def _replicated(mesh: Mesh) -> NamedSharding:

@@ -34,6 +34,7 @@ import optax
 from flax import nnx
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from sword_jax import optim
 from sword_jax import sharding as shd
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import fidelity as dlb_fidelity
@@ -133,9 +134,7 @@ def make_train_step(
 
         (loss, prediction), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         grad_norm = optax.global_norm(grads)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with int32 counts
-            updates, new_opt_state = tx.update(grads, state.opt_state, state.params)
-        new_params = optax.apply_updates(state.params, updates)
+        updates, new_opt_state, new_params = optim.apply_optimizer(tx, grads, state.opt_state, state.params)
         finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
         params = _where_tree(finite, new_params, state.params)
         opt_state = _where_tree(finite, new_opt_state, state.opt_state)
