@@ -4,6 +4,9 @@
     # each evaluated on the 50 fixed evaluation states of all 10 tasks (500 episodes)
     python -m benchmarks.bench_policy sft --config sword:small --out runs/policy \\
         --demos-per-task 10,25,50 --execute 4,8 --workers 14 [--record]
+    # a saved policy under other execution modes (re-plan every k actions, 'ens' = temporal ensembling)
+    python -m benchmarks.bench_policy eval --config sword:small --out runs/policy \
+        --policy runs/policy/policy_d50.npz --execute 2,ens --workers 14
     # GRPO against the ground-truth MuJoCo environments from one SFT policy
     python -m benchmarks.bench_policy grpo --config sword:small --out runs/policy \\
         --policy runs/policy/policy_d50.npz --workers 14 [--record]
@@ -141,7 +144,7 @@ def run_sft(cfg, args) -> dict:
                "history": history, "eval": {}}
         for mode in modes:
             rl_eval = dataclasses.replace(rl, execute_steps=1 if mode == "ens" else int(mode),
-                                          action_ensemble=mode == "ens")
+                                          action_ensemble=mode == "ens")  # "1" = every step, no ensembling
             result = evaluate_in_sim(graphdef, params, rl_eval, tasks=tasks, episodes_per_task=args.eval_episodes,
                                      resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps, renderer="jax",
                                      workers=args.workers, act=make_act_fns(graphdef, rl_eval))
@@ -162,6 +165,30 @@ def run_sft(cfg, args) -> dict:
             sft_steps=rl.sft_steps, sft_seconds=chosen["sft_seconds"],
             all_runs={f"d{r['demos_per_task']}": {m: [e["mean"], e["ci95"]] for m, e in r["eval"].items()}
                       for r in results["runs"]})})
+    return results
+
+
+def run_eval(cfg, args) -> dict:
+    """Evaluates a saved policy under each execution mode of ``--execute`` (no training)."""
+    from sword_jax.rl.env_rollout import make_act_fns
+    from sword_jax.rl.evaluate import evaluate_in_sim
+    from sword_jax.rl.policy import build_policy
+
+    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+    params = load_npz(args.policy, params)
+    results = {"policy": args.policy, "eval": {}}
+    for mode in args.execute.split(","):
+        rl_eval = dataclasses.replace(cfg.rl, execute_steps=1 if mode == "ens" else int(mode),
+                                      action_ensemble=mode == "ens")
+        result = evaluate_in_sim(graphdef, params, rl_eval, tasks=list(cfg.sim.tasks),
+                                 episodes_per_task=args.eval_episodes, resolution=cfg.sim.resolution,
+                                 max_steps=cfg.sim.max_steps, renderer="jax", workers=args.workers,
+                                 act=make_act_fns(graphdef, rl_eval))
+        results["eval"][mode] = result
+        print(f"execute {mode}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+              f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
+        with open(os.path.join(args.out, f"eval_results{args.tag}.json"), "w") as f:
+            json.dump(results, f, indent=1)
     return results
 
 
@@ -194,7 +221,7 @@ def run_grpo(cfg, args) -> dict:
 def main(argv=None) -> None:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("stage", choices=("sft", "grpo"))
+    parser.add_argument("stage", choices=("sft", "grpo", "eval"))
     parser.add_argument("--out", required=True)
     parser.add_argument("--demos-per-task", default="25")
     parser.add_argument("--record-amount", type=int, default=0, help="the data amount whose success is recorded")
@@ -212,10 +239,10 @@ def main(argv=None) -> None:
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "sft":
         run_sft(cfg, args)
-    else:
-        if not args.policy:
-            parser.error("grpo needs --policy")
-        run_grpo(cfg, args)
+        return
+    if not args.policy:
+        parser.error(f"{args.stage} needs --policy")
+    (run_grpo if args.stage == "grpo" else run_eval)(cfg, args)
 
 
 if __name__ == "__main__":

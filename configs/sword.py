@@ -43,10 +43,11 @@ def small() -> ExperimentConfig:
         # 100 held-out episodes x 64 predicted frames (1 + 4 context + 8 x 8), scored with bootstrap intervals.
         eval=EvalConfig(horizon_frames=69, num_episodes=100, allow_random_weights_for=("fid",)),
         # Policy and GRPO settings measured in benchmarks/bench_policy.py (README: "A policy that learns"):
-        # width 128 x 4 layers at 64 px, 4000 SFT steps at peak 1e-3, re-planning every 4 actions.
+        # width 128 x 4 layers at 64 px, 4000 SFT steps at peak 1e-3; evaluation re-plans every step with
+        # temporal ensembling (the best of the execution modes measured), GRPO rollouts re-plan every step.
         # Imagined rollouts run 16 chunks (128 actions): the expert needs up to 80, the policy more.
         rl=RLConfig(grpo_steps=100, eval_every=50, eval_episodes_per_task=50, sft_steps=4000, sft_batch_size=64,
-                    sft_learning_rate=1e-3, policy_width=128, policy_layers=4, execute_steps=4, learning_rate=1e-4,
+                    sft_learning_rate=1e-3, policy_width=128, policy_layers=4, learning_rate=1e-4,
                     rollout_batch=8, max_chunks=16, reward_model_steps=1000),
         cache=CacheConfig(schedule_steps=5000),
     )

@@ -99,7 +99,7 @@ class _CountingEnvs:
 @pytest.mark.parametrize("execute_steps", [8, 3, 1])
 def test_replanning_executes_the_configured_number_of_actions(execute_steps):
     cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=execute_steps)
+                   action_bins=16, execute_steps=execute_steps, action_ensemble=False)
     graphdef, params = build_policy(cfg, seed=0)
     envs = _CountingEnvs(n=2, solve_at=1000, max_steps=20)
     rollout = run_policy(make_act_fns(graphdef, cfg), params, envs, cfg, key=jax.random.key(0), greedy=False,
@@ -145,7 +145,7 @@ def test_grpo_against_the_mujoco_environment_improves_the_policy():
     from sword_jax.rl import grpo
 
     cfg = RLConfig(image_size=16, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=4, chunk_len=4, group_size=8, rollout_batch=2, learning_rate=3e-3,
+                   action_bins=16, execute_steps=4, action_ensemble=False, chunk_len=4, group_size=8, rollout_batch=2, learning_rate=3e-3,
                    clip_low=0.2, clip_high=0.28)
     graphdef, params = build_policy(cfg, seed=0)
     starts = [(0, q) for q in tasks.split_init_states(0, "train", 2)]
@@ -169,3 +169,17 @@ def test_grpo_against_the_mujoco_environment_improves_the_policy():
     logits = policy_logits(graphdef, state.params, jnp.asarray(rollout.obs_frames[:2, 0] / 255.0),
                            jnp.asarray(rollout.instruction_tokens[:2]), jnp.asarray(rollout.proprio[:2, 0]))
     assert np.all(np.asarray(jnp.argmax(logits[:, 0, 0, :], -1)) >= cfg.action_bins // 2)  # first x-action forward
+
+
+@pytest.mark.parametrize("greedy", [True, False])
+def test_default_execution_re_plans_every_step_and_ensembles_only_greedy_rollouts(greedy):
+    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
+                   action_bins=16)
+    assert cfg.execute_steps == 1 and cfg.action_ensemble  # the mode measured best (README)
+    graphdef, params = build_policy(cfg, seed=0)
+    envs = _CountingEnvs(n=2, solve_at=1000, max_steps=6)
+    rollout = run_policy(make_act_fns(graphdef, cfg), params, envs, cfg, key=jax.random.key(0), greedy=greedy,
+                         max_steps=6)
+    assert envs.blocks == [1] * 6 and rollout.tokens.shape == (2, 6, 1, 7)
+    with pytest.raises(ValueError, match="action_ensemble=false"):
+        dataclasses.replace(cfg, execute_steps=4).validate()

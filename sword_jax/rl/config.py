@@ -39,8 +39,12 @@ class RLConfig:
         continuous features (the axis-angle becomes two rotation-matrix columns); 'raw' uses it as is.
       execute_steps: actions of each predicted chunk executed before the policy re-plans
         (``chunk_len`` = open-loop chunks; 1 = re-plan every step).
-      action_ensemble: ACT-style temporal ensembling when re-planning every step: each step
-        executes the exponentially weighted mean of every chunk's prediction for it.
+      action_ensemble: ACT-style temporal ensembling when re-planning every step: each step of a
+        greedy (evaluation) rollout executes the exponentially weighted mean of every chunk's
+        prediction for it; sampled GRPO rollouts in the real environments re-plan every step.
+        Imagined rollouts always execute whole chunks (the world model predicts ``chunk_len`` frames
+        per call). Measured on `small` (README): ensembling 0.715, every step 0.690, every 2 actions
+        0.490, every 4 0.350, open-loop 8 0.192.
       ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
@@ -82,8 +86,8 @@ class RLConfig:
     image_size: int = 64
     proprio_dim: int = 8
     proprio_encoding: str = "rot6d"  # rot6d | raw
-    execute_steps: int = 4
-    action_ensemble: bool = False
+    execute_steps: int = 1
+    action_ensemble: bool = True
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
@@ -124,7 +128,9 @@ class RLConfig:
         if not 1 <= self.execute_steps <= self.chunk_len:
             raise ValueError(f"rl.execute_steps must be in [1, chunk_len={self.chunk_len}], got {self.execute_steps}")
         if self.action_ensemble and self.execute_steps != 1:
-            raise ValueError("rl.action_ensemble needs rl.execute_steps=1 (a new chunk every step)")
+            raise ValueError(f"rl.action_ensemble needs rl.execute_steps=1 (a new chunk every step), got "
+                             f"execute_steps={self.execute_steps}: set rl.action_ensemble=false to execute "
+                             f"{self.execute_steps} actions per chunk")
         if self.ensemble_decay < 0.0:
             raise ValueError(f"rl.ensemble_decay must be >= 0, got {self.ensemble_decay}")
         if not 0.0 <= self.sft_lr_end_fraction <= 1.0:

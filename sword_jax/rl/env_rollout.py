@@ -10,8 +10,9 @@ The environment is any object with the lockstep protocol of ``sim.lockstep.Locks
 Every ``cfg.execute_steps`` actions the policy re-plans from the current frame: it predicts a
 chunk of ``chunk_len`` actions and the first ``execute_steps`` are executed (``chunk_len`` =
 open-loop chunks, as OpenVLA-OFT; 1 = closed loop every step). With ``cfg.action_ensemble``
-(greedy evaluation only) each step executes the exponentially weighted mean of all chunk
-predictions covering it (ACT's temporal ensembling).
+each step of a greedy (evaluation) rollout executes the exponentially weighted mean of all chunk
+predictions covering it (ACT's temporal ensembling); sampled (GRPO) rollouts execute each
+decision's own sampled actions, whose log-probabilities the update needs.
 
 :func:`run_policy` returns a :class:`~sword_jax.rl.rollout.Rollout` whose "chunks" are the
 policy's decisions (``[N, C, execute_steps, A]`` tokens), so :func:`~sword_jax.rl.grpo.grpo_update`
@@ -99,9 +100,8 @@ def run_policy(
       A :class:`Rollout` with ``C = max_decisions(cfg, max_steps)``; ``success``/``returns`` are the
       true outcomes (return = ``1 + success_bonus`` on success, else 0).
     """
-    if cfg.action_ensemble and not greedy:
-        raise ValueError("temporal ensembling is for greedy evaluation; GRPO samples chunks (execute_steps)")
     n, k = envs.n, cfg.execute_steps
+    ensemble = cfg.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
     obs = envs.reset() if episodes is None else envs.reset(episodes)
     tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
     c_max = max_decisions(cfg, max_steps)
@@ -116,7 +116,7 @@ def run_policy(
                                           jnp.asarray(obs["proprio"][:, : cfg.proprio_dim]), jax.random.fold_in(key, c),
                                           greedy)
         actions = np.asarray(actions)
-        if cfg.action_ensemble:
+        if ensemble:
             history = [actions] + history[: cfg.chunk_len - 1]
             step_actions = _ensemble(history, cfg.ensemble_decay)[:, None]
         else:
