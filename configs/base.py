@@ -59,4 +59,21 @@ class ExperimentConfig:
             raise ValueError(
                 f"eval.horizon_frames={self.eval.horizon_frames} exceeds data.episode_frames={self.data.episode_frames}"
             )
+        # The policy acts in the world model: its actions are the model's, one chunk per predicted chunk.
+        if self.rl.action_dim != self.model.action_dim:
+            raise ValueError(
+                f"rl.action_dim={self.rl.action_dim} differs from model.action_dim={self.model.action_dim}: "
+                "the policy's actions condition the world model"
+            )
+        if self.rl.chunk_len != self.data.predict_frames:
+            raise ValueError(
+                f"rl.chunk_len={self.rl.chunk_len} must equal data.predict_frames={self.data.predict_frames} "
+                f"(4 x {self.data.predict_frames // 4} future latents): the learned simulator predicts one frame "
+                "per action of a chunk"
+            )
+        if self.flow.pixel_round_trip and self.data.context_frames > self.data.predict_frames:
+            raise ValueError(
+                f"flow.pixel_round_trip re-encodes one predicted chunk ({self.data.predict_frames} frames) as the next "
+                f"context, which needs data.context_frames={self.data.context_frames} <= data.predict_frames"
+            )
         return self

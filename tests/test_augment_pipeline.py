@@ -29,7 +29,7 @@ def episodes():
 
 
 def test_step_augmenter_training_styles_and_raw_share(episodes):
-    fn = jax.jit(make_step_augmenter(AugmentConfig(raw_fraction=0.5)))
+    fn = jax.jit(make_step_augmenter(AugmentConfig(), raw_fraction=0.5))
     frames, depth, seg = (jnp.asarray(episodes[k]) for k in ("frames", "depth", "seg"))
     out, styles, styled = fn(frames, depth, seg, key=jax.random.key(0))
     out2, _, _ = fn(frames, depth, seg, key=jax.random.key(0))
@@ -168,10 +168,15 @@ def test_episode_validation(episodes):
 
 def test_config_validation():
     AugmentConfig().validate()
-    for bad, match in ((dict(mode="online"), "mode"), (dict(intensity=1.5), "intensity"),
-                       (dict(raw_fraction=-0.1), "raw_fraction"), (dict(seg_classes=(("arm", (2,)),)), "seg_classes")):
+    for bad, match in ((dict(intensity=1.5), "intensity"), (dict(fov_deg=2.0), "fov_deg"),
+                       (dict(seg_classes=(("arm", (2,)),)), "seg_classes")):
         with pytest.raises(ValueError, match=match):
             AugmentConfig(**bad).validate()
+    with pytest.raises(ValueError, match="raw_fraction"):
+        make_step_augmenter(AugmentConfig(), raw_fraction=-0.1)
+    for removed in ("mode", "raw_fraction"):  # settings no pipeline read: gone, not silently ignored
+        with pytest.raises(TypeError):
+            AugmentConfig(**{removed: 0.5})
 
 
 def test_gallery_writes_labelled_png(tmp_path):

@@ -66,3 +66,22 @@ def test_bad_override_names_the_key(override, needle):
 def test_impossible_settings_rejected(override, needle):
     with pytest.raises(ValueError, match=re.escape(needle)):
         configs.from_argv([override])
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (["--rl.action_dim=6"], "rl.action_dim"),
+    (["--rl.chunk_len=4"], "rl.chunk_len"),
+    (["--flow.pixel_round_trip=true", "--data.context_frames=12"], "pixel_round_trip"),
+    (["--sim.resolution=64"], "sim.resolution"),
+])
+def test_validate_cross_checks_sections(overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        configs.from_argv(["--config", "sword:tiny", *overrides])
+
+
+def test_augment_settings_no_pipeline_reads_are_gone():
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--augment.fov_deg=60"])
+    assert cfg.augment.fov_deg == 60.0
+    for removed in ("mode", "raw_fraction"):
+        with pytest.raises(ConfigError):
+            configs.from_argv(["--config", "sword:tiny", f"--augment.{removed}=0.5"])

@@ -48,3 +48,38 @@ def test_model_config_comes_from_the_workdir(tmp_path):
     assert loaded.model.num_layers == 1 and loaded.flow.sample_steps == 3
     assert loaded.model == other.model
     assert evaluate.model_config(cfg, None) is cfg
+
+
+@pytest.mark.slow
+def test_rollout_videos_honours_pixel_round_trip():
+    """flow.pixel_round_trip used to make evaluation raise (no round-trip function was passed)."""
+    import dataclasses
+
+    import jax
+    import numpy as np
+    from flax import nnx
+
+    import configs
+    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.evaluation.harness import rollout_videos
+    from sword_jax.vae import api as vae_api
+
+    cfg = configs.get("sword:tiny")
+    with nnx.use_eager_sharding(False):
+        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
+    # zero-initialised output layers would ignore the context: perturb every weight
+    leaves, treedef = jax.tree.flatten(wm_state)
+    keys = jax.random.split(jax.random.key(5), len(leaves))
+    wm_state = jax.tree.unflatten(treedef, [leaf + 0.1 * jax.random.normal(k, leaf.shape, leaf.dtype)
+                                            if np.issubdtype(leaf.dtype, np.floating) else leaf
+                                            for leaf, k in zip(leaves, keys)])
+    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    video = np.asarray(jax.random.uniform(jax.random.key(2), (1, 21, 32, 32, 3)))
+    actions = np.asarray(jax.random.uniform(jax.random.key(3), (1, 21, 7), minval=-1, maxval=1))
+    out = {}
+    for round_trip in (False, True):
+        out[round_trip] = rollout_videos(wm_graphdef, wm_state, vae_graphdef, vae_state, video, actions,
+                                         key=jax.random.key(4), num_context=1, num_future=2, num_steps=1,
+                                         flow_cfg=dataclasses.replace(cfg.flow, pixel_round_trip=round_trip))
+    assert out[True].shape == video.shape and np.all(np.isfinite(out[True]))
+    assert not np.allclose(out[True], out[False])

@@ -88,3 +88,33 @@ def test_keyframe_starts_are_latent_aligned_with_real_history():
         np.testing.assert_array_equal(pick["history"][i, :, 0, 0, 0], np.maximum(np.arange(ti - 7, ti + 1), 0))
         np.testing.assert_array_equal(pick["actions"][i, :, 0], [0, ti - 3, ti - 2, ti - 1, ti])
         assert pick["frame"][i, 0, 0, 0] == ti and pick["first_frame"][i, 0, 0, 0] == 0
+
+
+def test_pixel_round_trip_sets_the_learned_simulators_next_context(monkeypatch):
+    """With flow.pixel_round_trip the next context is the VAE's re-encoding of the decoded chunk
+    (as in evaluation's rollout), not the predicted latent itself."""
+    import dataclasses
+
+    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.rl import world_model_sim
+    from sword_jax.vae import api as vae_api
+    from sword_jax.world_model.rollout import make_pixel_round_trip
+
+    cfg = configs.get("sword:tiny")
+    with nnx.use_eager_sharding(False):
+        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
+    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    future = jax.random.normal(jax.random.key(3), (1, 2, 2, 2, cfg.vae.z_dim))
+    monkeypatch.setattr(world_model_sim, "predict_chunk", lambda *a, **k: future)
+    latents = jax.random.normal(jax.random.key(4), (2, 2, 2, cfg.vae.z_dim))
+    contexts = {}
+    for round_trip in (False, True):
+        sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, frame_size=32,
+                                    flow_cfg=dataclasses.replace(cfg.flow, pixel_round_trip=round_trip))
+        state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), latents))
+        state, _ = sim.step(state, jnp.zeros((8, 7)), key=jax.random.key(0))
+        contexts[round_trip] = np.asarray(state.context)
+    np.testing.assert_array_equal(contexts[False], np.asarray(future[:, -1:]))
+    expected = make_pixel_round_trip(vae_graphdef, vae_state, 1)(latents[None, :1], future)
+    np.testing.assert_allclose(contexts[True], np.asarray(expected), rtol=1e-4, atol=1e-4)
+    assert not np.allclose(contexts[True], contexts[False], atol=1e-3)

@@ -48,6 +48,7 @@ from sword_jax.evaluation.harness import evaluate_videos, rollout_videos
 from sword_jax.evaluation.report import write_report
 from sword_jax.evaluation.vae_floor import vae_floor
 from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
+from sword_jax.rng import stream_key, stream_seed
 
 
 def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
@@ -206,7 +207,8 @@ def main(argv: Sequence[str] | None = None) -> str:
     start = time.time()
     splits = {}
     if args.synthetic:
-        splits = {s: synthetic_split(cfg, s, seed=cfg.seed + i) for i, s in enumerate(cfg.eval.splits)}
+        splits = {s: synthetic_split(cfg, s, seed=stream_seed(cfg.seed, f"evaluate/synthetic/{s}"))
+                  for s in cfg.eval.splits}
     for item in args.episodes:
         split, _, path = item.partition("=")
         splits[split] = load_split(path, cfg.eval.num_episodes)
@@ -231,11 +233,11 @@ def main(argv: Sequence[str] | None = None) -> str:
         model_cfg = model_config(cfg, workdir)
         wm_graphdef, wm_state = _world_model_state(model_cfg, workdir)
         predictions[name] = {}
-        for i, (split, episodes) in enumerate(splits.items()):
+        for split, episodes in splits.items():
             t0 = time.time()
             predictions[name][split] = rollout_videos(
                 wm_graphdef, wm_state, vae_graphdef, vae_state, episodes["frames"][:, :horizon],
-                episodes["actions"][:, :horizon], key=jax.random.fold_in(jax.random.key(cfg.seed), i),
+                episodes["actions"][:, :horizon], key=stream_key(jax.random.key(cfg.seed), f"evaluate/rollout/{split}"),
                 flow_cfg=model_cfg.flow, num_context=k, num_future=p)
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)

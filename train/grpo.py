@@ -46,6 +46,7 @@ from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.reward_model import as_reward_model, build_detector
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rl.simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
+from sword_jax.rng import stream_key, stream_rng
 from sword_jax.world_model import checkpoint
 
 
@@ -60,7 +61,8 @@ def _toy_setup(cfg, rl):
         pick = jax.random.randint(key, (rl.rollout_batch,), 0, tokens.shape[0])
         return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
 
-    eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=jax.random.key(12345), frame_size=size,
+    eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
+    eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=eval_key, frame_size=size,
                                                 proprio_dim=rl.proprio_dim), 2)
     return sim, reward_model, starts, eval_start
 
@@ -71,9 +73,11 @@ def _world_model_setup(cfg, rl, args):
 
     wm_graphdef, wm_state = _world_model_state(cfg, args.world_model)
     vae_graphdef, vae_state = _vae_state(cfg, args.vae)
+    # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
-                                proprio_dim=rl.proprio_dim)
+                                num_context=cfg.data.context_frames // 4, num_future=cfg.data.predict_frames // 4,
+                                action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
@@ -81,7 +85,7 @@ def _world_model_setup(cfg, rl, args):
 
     def starts(key, step):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, np.random.default_rng([cfg.seed, 1, step]))
+        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step))
         unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
         latents = encode_history(vae_graphdef, vae_state, unit(pick["first_frame"]), unit(pick["history"]))
         return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
@@ -117,7 +121,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
                                         n=ENTRY_MAX_TRACES), donate_argnums=(0,))
     act = make_act_fns(graphdef, rl)
     curve = SuccessCurve(workdir, label="GRPO in the ground-truth MuJoCo environments")
-    root = jax.random.key(cfg.seed)
+    rollout_key = stream_key(jax.random.key(cfg.seed), "grpo/env_rollouts")
     os.makedirs(workdir, exist_ok=True)
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
@@ -137,13 +141,13 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     envs = None
     for step in range(first_step, rl.grpo_steps):
         # start states: a function of (seed, step), so a resumed run draws the same ones
-        pick = np.random.default_rng([cfg.seed, step]).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
-                                                                  (rl.rollout_batch, 2))
+        pick = stream_rng(cfg.seed, "grpo/env_starts", step).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
+                                                                      (rl.rollout_batch, 2))
         starts = [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
         if envs is None:  # worker processes live for the whole run; each step re-targets them
             envs = LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                 renderer=renderer, workers=workers)
-        rollout = run_policy(act, state.params, envs, rl, key=jax.random.fold_in(root, step), greedy=False,
+        rollout = run_policy(act, state.params, envs, rl, key=jax.random.fold_in(rollout_key, step), greedy=False,
                              max_steps=cfg.sim.max_steps, episodes=starts)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
@@ -218,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
-                                                    key=jax.random.key(0), greedy=True).success)
+                                                    key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
 
     def evaluate(step):
         if args.simulator == "toy":
@@ -237,7 +241,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if first_step == 0:
         evaluate(0)
     start, pending = time.time(), None
-    starts_key = jax.random.fold_in(root, 1)  # the start-state stream; the step folds in state.step itself
+    # named streams of the root; each is folded with the step (the update folds in state.step itself)
+    starts_key, update_key = stream_key(root, "grpo/starts"), stream_key(root, "grpo/update")
 
     def report(done, metrics):
         host = jax.device_get(metrics)
@@ -252,7 +257,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     for step in range(first_step, rl.grpo_steps):
         batch_start = starts(jax.random.fold_in(starts_key, step), step)
-        state, metrics = step_fn(state, (sim, reward_model, batch_start), root)
+        state, metrics = step_fn(state, (sim, reward_model, batch_start), update_key)
         if pending is not None:  # read the previous step's metrics: the device never waits on the host
             report(*pending)
         pending = (step + 1, metrics)

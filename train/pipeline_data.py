@@ -15,6 +15,7 @@ import os
 import jax
 import numpy as np
 
+from sword_jax.rng import stream_key, stream_seed
 from train.stagerunner import Context
 
 
@@ -38,8 +39,9 @@ def generate_expert_data(ctx: Context) -> dict:
 
     cfg = ctx.cfg
     results, init = {}, {}
-    for split, seed, per_task in (("train", cfg.seed, cfg.sim.episodes_per_task),
-                                  ("heldout", cfg.seed + 25, max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks))))):
+    heldout_per_task = max(1, -(-cfg.eval.num_episodes // len(cfg.sim.tasks)))
+    for split, per_task in (("train", cfg.sim.episodes_per_task), ("heldout", heldout_per_task)):
+        seed = stream_seed(cfg.seed, f"data/{split}_episodes")  # expert-noise stream of each file
         path = ctx.path("data", f"{split}.hdf5")
         gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
                                      resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
@@ -68,7 +70,8 @@ def _policy_demos(ctx: Context, cfg) -> dict:
     per_task = cfg.rl.sft_episodes_per_task or cfg.sim.episodes_per_task
     gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
                                  resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
-                                 noisy_share=cfg.sim.noisy_share, seed=cfg.seed + 50, max_steps=cfg.sim.max_steps,
+                                 noisy_share=cfg.sim.noisy_share, seed=stream_seed(cfg.seed, "data/policy_demos"),
+                                 max_steps=cfg.sim.max_steps,
                                  stop_at_success=True, wrist_camera=False, overwrite=True, renderer="jax",
                                  init_split="train", init_start=cfg.sim.episodes_per_task, init_seed=cfg.sim.init_seed)
     gen_data.generate(gen, progress=ctx.is_main)
@@ -130,7 +133,7 @@ def _vae(ctx: Context):
 
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model."""
-    from sword_jax.augment.pipeline import encode_styled_copies
+    from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
     from sword_jax.vae import api as vae_api
 
     cfg = ctx.cfg
@@ -143,8 +146,9 @@ def encode_training_latents(ctx: Context) -> dict:
     copies = 0
     if cfg.augment.enabled and cfg.augment.styled_copies > 0:
         copies = cfg.augment.styled_copies
-        styled = encode_styled_copies(episodes, copies, jax.random.key(cfg.seed + 7), encode,
-                                      intensity=cfg.augment.intensity)
+        styled = encode_styled_copies(episodes, copies, stream_key(jax.random.key(cfg.seed), "augment/styled_copies"),
+                                      encode, intensity=cfg.augment.intensity,
+                                      classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
         styled_latents, styled_actions, _ = styled.flatten()
         latents.append(styled_latents)
         actions.append(styled_actions)
@@ -160,13 +164,15 @@ def write_eval_splits(ctx: Context) -> dict[str, str]:
     """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate``
     (with each episode's true state ``targets`` and ``rewards`` for the action-following metrics)."""
     from sword_jax.augment.eval_splits import build_eval_splits
+    from sword_jax.augment.pipeline import seg_classes_from_config
     from train.train_probe import episode_targets
 
     cfg = ctx.cfg
     sim_episodes, episodes = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
     episodes = episodes.take(np.arange(min(episodes.num, cfg.eval.num_episodes)))
-    splits = build_eval_splits(episodes, seed=cfg.seed + 11, mixed_fraction=cfg.augment.mixed_fraction,
-                               intensity=cfg.augment.intensity)
+    splits = build_eval_splits(episodes, seed=stream_seed(cfg.seed, "augment/eval_splits"),
+                               mixed_fraction=cfg.augment.mixed_fraction, intensity=cfg.augment.intensity,
+                               classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
     splits.write_manifest(ctx.path("eval_splits", "manifest.json"))
     paths = {}
     for name, split in (("original", splits.original), ("mixed", splits.mixed)):

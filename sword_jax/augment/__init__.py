@@ -15,7 +15,7 @@ Modules:
   ``textures``: depth -> camera points / normals; procedural textures.
   ``structure``: edge-F1, segmentation-boundary and depth-edge recall (``structure_scores``).
   ``pipeline``: ``make_step_augmenter`` (per step, on device), ``make_styled_copies`` /
-      ``encode_styled_copies`` (pre-encoded copies; the default, with the measurement behind it).
+      ``encode_styled_copies`` (pre-encoded copies; what the pipeline uses, with the measurement behind it).
   ``eval_splits``: ``build_eval_splits(episodes, *, seed)`` -> LIBERO-Original / LIBERO-Mixed.
   ``ingest``: ``load_styled_episodes(path, originals)`` for episodes styled elsewhere.
   ``episodes``: the ``Episodes`` container and ``as_episodes`` validation.

@@ -20,6 +20,7 @@ import numpy as np
 from sword_jax.augment.episodes import Episodes, as_episodes
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, identity_style, sample_style, split_violations, style_to_record
 from sword_jax.augment.transforms import augment
+from sword_jax.rng import stream_key
 
 
 class EvalSplit(NamedTuple):
@@ -106,14 +107,14 @@ def build_eval_splits(
             raise ValueError(f"build_eval_splits: episodes {overlap[:10].tolist()} are also training episodes")
     eps = eps.take(np.argsort(eps.episode_ids, kind="stable"))
     root = jax.random.key(seed)
+    ids_root, style_root = stream_key(root, "eval_splits/styled_ids"), stream_key(root, "eval_splits/styles")
     # Rank episodes by a per-id random number: order-independent and stable under adding episodes.
-    scores = np.asarray(jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(root, i)))(
+    scores = np.asarray(jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(ids_root, i)))(
         np.asarray(eps.episode_ids, np.uint32)))
     num_styled = int(round(mixed_fraction * eps.num))
     styled = np.zeros(eps.num, bool)
     styled[np.argsort(scores, kind="stable")[:num_styled]] = True
 
-    style_root = jax.random.fold_in(root, 0x5EED)
     identity = identity_style()
     frames, styles = eps.frames.copy(), []
     for i, episode_id in enumerate(eps.episode_ids):

@@ -24,6 +24,7 @@ from sword_jax.augment.style import DEFAULT_CLASSES, TEXTURES, SegClasses, sampl
 from sword_jax.augment.structure import structure_scores
 from sword_jax.augment.synthetic import synthetic_episode
 from sword_jax.augment.transforms import augment
+from sword_jax.rng import stream_key
 
 FIXTURE_WORDS = ("cabinet", "stove", "drawer", "shelf", "rack")
 
@@ -75,7 +76,7 @@ def build_gallery(
     scale = max(1, round(tile_px / frames.shape[1]))
     rows = []
     for split in ("train", "heldout"):
-        styles = sample_styles(jax.random.key(seed + (split == "heldout")), num_styles, split)
+        styles = sample_styles(stream_key(jax.random.key(seed), f"gallery/{split}_styles"), num_styles, split)
         # Inputs are arguments, not closed-over constants, so XLA does not constant-fold them.
         styled = jax.jit(jax.vmap(
             lambda f, d, g, s: augment(f, d, g, s, intensity=intensity, classes=classes, fov_deg=fov_deg),

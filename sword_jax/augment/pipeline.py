@@ -10,7 +10,7 @@ Two ways to feed styled video to the world model:
     each episode ``n_copies`` times once, VAE-encode once, and train on latents as if the copies
     were more episodes (the raw episode stays too). The train step touches no pixels.
 
-Decision: **(b), pre-encoded copies** (``AugmentConfig.mode = "copies"``), because the VAE encode
+Decision: **(b), pre-encoded copies** (what the pipeline does; (a) stays a library function), because the VAE encode
 is a large fraction of a train step at every size, while copies cost a one-off encode and a
 little host memory. Figures from ``python -m benchmarks.bench_augment --variant V --flops-only``
 (XLA's FLOP count of the real jitted ``vae.encode``, lowered abstractly so it is exact at
@@ -66,15 +66,17 @@ def seg_classes_from_config(cfg: AugmentConfig) -> SegClasses:
 
 
 def make_step_augmenter(
-    cfg: AugmentConfig, classes: SegClasses | None = None
+    cfg: AugmentConfig, classes: SegClasses | None = None, *, raw_fraction: float = 0.25
 ) -> Callable[..., tuple[jax.Array, Style, jax.Array]]:
     """A jittable ``fn(frames, depth, seg, *, key) -> (styled, styles, styled_mask)`` for the train step.
 
     ``frames [B, T, H, W, 3]`` in [0, 1]; each episode gets its own *training* style (the only
-    sampler reachable from here), and a ``cfg.raw_fraction`` share stay raw. ``styled`` is in
+    sampler reachable from here), and a ``raw_fraction`` share (in [0, 1]) stay raw. ``styled`` is in
     [0, 1]: use :func:`~sword_jax.augment.transforms.to_signed_range` before ``vae.encode``.
     """
     cfg.validate()
+    if not 0.0 <= raw_fraction <= 1.0:
+        raise ValueError(f"make_step_augmenter: raw_fraction must be in [0, 1], got {raw_fraction}")
     classes = classes or seg_classes_from_config(cfg)
 
     def step_augment(
@@ -86,7 +88,7 @@ def make_step_augmenter(
     ) -> tuple[Float[Array, "b t h w 3"], Style, jax.Array]:
         k_style, k_raw = jax.random.split(key)
         styles = sample_styles(k_style, frames.shape[0], "train")
-        styled_mask = jax.random.uniform(k_raw, (frames.shape[0],)) >= cfg.raw_fraction
+        styled_mask = jax.random.uniform(k_raw, (frames.shape[0],)) >= raw_fraction
         if not cfg.enabled:
             styled_mask = jnp.zeros_like(styled_mask)
         intensity = jnp.where(styled_mask, jnp.float32(cfg.intensity), jnp.float32(0.0))

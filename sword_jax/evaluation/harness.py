@@ -166,8 +166,10 @@ def _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context: int, num_futur
         context_video = video[:, : 1 + 4 * num_context] * jnp.float32(2) - jnp.float32(1)
         latents = vae_api.encode(vae_graphdef, vae_state, context_video, check_values=False)
         first, context = latents[:, :1], latents[:, 1 : 1 + num_context]
+        round_trip = (wm_rollout.make_pixel_round_trip(vae_graphdef, vae_state, num_context)
+                      if flow_cfg.pixel_round_trip else None)
         predicted = wm_rollout.rollout(wm_graphdef, wm_state, first, context, acts, key=key, cfg=flow_cfg,
-                                       num_future=num_future, num_steps=num_steps)
+                                       num_future=num_future, num_steps=num_steps, round_trip=round_trip)
         all_latents = jnp.concatenate([context, predicted], axis=1)
         video_out = wm_rollout.decode_rollout(vae_graphdef, vae_state, first, all_latents,
                                               latents_per_chunk=_chunk_size(num_context, num_future))

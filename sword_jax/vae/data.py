@@ -27,6 +27,7 @@ from jaxtyping import Array, Float
 
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
 from sword_jax.augment.transforms import augment
+from sword_jax.rng import stream_key, stream_rng
 
 
 class VAEClips(NamedTuple):
@@ -127,14 +128,14 @@ class ClipSampler:
         self.styled_clips = 0  # running count, for the run summary
 
     def batch(self, step: int) -> np.ndarray:
-        rng = np.random.default_rng([self.seed, step])
+        rng = stream_rng(self.seed, "vae/clips", step)
         styling = self.styled_fraction > 0
         video, depth, seg = sample_clips(self.clips, self.batch_size, self.frames, rng, with_geometry=styling)
         unit = video.astype(np.float32) / np.float32(255.0)
         if styling:
             styled = rng.random(self.batch_size) < self.styled_fraction
             if styled.any():
-                key = jax.random.fold_in(jax.random.key(self.seed + 0x57), step)
+                key = jax.random.fold_in(stream_key(jax.random.key(self.seed), "vae/styles"), step)
                 styles = training_styles(key, self.batch_size)
                 unit = np.asarray(restyle(unit, depth, seg, styles, styled, intensity=np.float32(self.intensity),
                                           classes=self.classes, fov_deg=self.fov_deg))
