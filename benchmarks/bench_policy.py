@@ -120,7 +120,6 @@ def run_sft(cfg, args) -> dict:
     episodes = rl_data.load_episodes(paths)
     demo_success = float(np.mean(episodes.success))
     episodes = rl_data.successful(episodes)
-    rng = np.random.default_rng(cfg.seed)
     # the same held-out demonstrations for every data amount
     held_idx, train_idx = [], []
     for text in sorted(set(episodes.instructions)):

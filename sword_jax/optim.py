@@ -3,7 +3,8 @@
 ``learning_rate_schedule`` is a linear warm-up from 0 followed by a constant rate or a cosine decay
 to a fraction of the peak; ``make_optimizer`` chains optional global-norm clipping with AdamW
 (betas, eps, weight decay, an optional weight-decay mask). ``apply_optimizer`` and
-``learning_rate_at`` hold the one workaround for optax under strict dtype promotion.
+``learning_rate_at`` hold the one workaround for optax under strict dtype promotion;
+``apply_finite_update`` is the one finite gate (a non-finite loss or gradient skips the update).
 """
 
 from __future__ import annotations
@@ -87,6 +88,19 @@ def apply_optimizer(optimizer: optax.GradientTransformation, grads: Any, opt_sta
         updates, opt_state = optimizer.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
     return updates, opt_state, params
+
+
+def apply_finite_update(optimizer: optax.GradientTransformation, loss: jax.Array, grads: Any, opt_state: Any,
+                        params: Any) -> tuple[Any, Any, Any, jax.Array]:
+    """:func:`apply_optimizer`, skipped when the loss or the gradient norm is non-finite.
+
+    Returns ``(updates, opt_state, params, finite)``: where ``finite`` is False the optimizer state
+    and parameters come back unchanged, so NaN never reaches them (or a checkpoint).
+    """
+    updates, new_opt_state, new_params = apply_optimizer(optimizer, grads, opt_state, params)
+    finite = jnp.isfinite(loss) & jnp.isfinite(optax.global_norm(grads))
+    keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+    return updates, keep(new_opt_state, opt_state), keep(new_params, params), finite
 
 
 def learning_rate_at(schedule: optax.Schedule, step: jax.Array | int) -> jax.Array:

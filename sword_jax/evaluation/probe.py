@@ -31,6 +31,8 @@ import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float
 
+from sword_jax import optim
+
 TARGET_NAMES = ("ee_x", "ee_y", "ee_z", "gripper_opening", "bowl_x", "bowl_y", "bowl_z")
 EE, GRIPPER, BOWL = slice(0, 3), 3, slice(4, 7)
 
@@ -135,7 +137,8 @@ def make_probe_step(graphdef: nnx.GraphDef, cfg: ProbeConfig):
     Brightness / contrast jitter keeps the probe from keying on a world model's colour drift. A
     non-finite loss leaves the state unchanged (``metrics["finite"] = 0``).
     """
-    optimizer = optax.adamw(optax.cosine_decay_schedule(cfg.learning_rate, cfg.steps, alpha=0.05), weight_decay=1e-4)
+    schedule = optim.learning_rate_schedule(cfg.learning_rate, kind="cosine", total_steps=cfg.steps, end_fraction=0.05)
+    optimizer = optim.make_optimizer(schedule, weight_decay=1e-4)
 
     def init(params, stats) -> ProbeState:
         return ProbeState(params, stats, optimizer.init(params), jnp.zeros((), jnp.int32))
@@ -155,12 +158,8 @@ def make_probe_step(graphdef: nnx.GraphDef, cfg: ProbeConfig):
             return jnp.mean(jnp.square(model.normalised(frames) - target))
 
         loss, grads = jax.value_and_grad(loss_fn)(state.params)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 count
-            updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-            params = optax.apply_updates(state.params, updates)
-        finite = jnp.isfinite(loss) & jnp.isfinite(optax.global_norm(grads))
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
-        new_state = ProbeState(keep(params, state.params), state.stats, keep(opt_state, state.opt_state), state.step + 1)
+        _, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, state.opt_state, state.params)
+        new_state = ProbeState(params, state.stats, opt_state, state.step + 1)
         return new_state, {"loss": loss, "grad_norm": optax.global_norm(grads), "finite": finite.astype(jnp.float32)}
 
     return init, jax.jit(step, donate_argnums=(0,))

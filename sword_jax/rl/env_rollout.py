@@ -143,9 +143,10 @@ def run_policy(
         return np.concatenate([x, pad], axis=1)
 
     valid = stack("valid")
-    first_success = np.where(success, np.argmax(np.cumsum(valid, 1) == valid.sum(1, keepdims=True), 1), -1)
+    # an episode stops being valid once done, so a success belongs to its last valid decision
+    last_decision = valid.sum(1).astype(np.int64) - 1
     rewards = np.zeros((n, c_max), np.float32)
-    rewards[np.flatnonzero(success), first_success[success]] = 1.0
+    rewards[np.flatnonzero(success), last_decision[success]] = 1.0
     return Rollout(
         obs_frames=stack("obs"), proprio=stack("proprio"), proprio_valid=np.ones((n, c_max), np.float32),
         instruction_tokens=np.asarray(tokens_text), tokens=stack("tokens"), log_probs=stack("log_probs"),

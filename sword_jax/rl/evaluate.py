@@ -31,7 +31,7 @@ def evaluation_episodes(tasks: Sequence[int], episodes_per_task: int) -> list[tu
 
     if not 1 <= episodes_per_task <= sim_tasks.NUM_INIT_STATES:
         raise ValueError(f"episodes_per_task must be in 1..{sim_tasks.NUM_INIT_STATES}, got {episodes_per_task}")
-    return [(int(t), q) for t in tasks for q in sim_tasks.fixed_init_states(int(t))[:episodes_per_task]]
+    return [(int(t), q) for t in tasks for q in sim_tasks.split_init_states(int(t), "eval", episodes_per_task)]
 
 
 def evaluate_in_sim(

@@ -185,11 +185,8 @@ def grpo_update(
         params, opt_state = carry
         (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         grad_norm = optax.global_norm(grads)
-        updates, new_opt_state, new_params = optim.apply_optimizer(optimizer, grads, opt_state, params)
         # a non-finite loss or gradient skips the update: NaN never reaches the parameters or a checkpoint
-        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
-        params, opt_state = keep(new_params, params), keep(new_opt_state, opt_state)
+        updates, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, opt_state, params)
         metrics = dict(metrics, loss=loss, grad_norm=grad_norm, update_norm=optax.global_norm(updates),
                        finite=finite.astype(jnp.float32))
         return (params, opt_state), metrics

@@ -106,13 +106,10 @@ def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
 
         (loss, acc), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         grad_norm = optax.global_norm(grads)
-        _, new_opt_state, new_params = optim.apply_optimizer(optimizer, grads, state.opt_state, state.params)
         # a non-finite loss or gradient skips the update: the last good parameters stay intact
-        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+        _, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, state.opt_state, state.params)
         first_nonfinite = jnp.where(~finite & (state.first_nonfinite_step < 0), state.step, state.first_nonfinite_step)
-        new_state = DetectorState(keep(new_params, state.params), keep(new_opt_state, state.opt_state),
-                                  state.step + 1, first_nonfinite.astype(jnp.int32))
+        new_state = DetectorState(params, opt_state, state.step + 1, first_nonfinite.astype(jnp.int32))
         return new_state, {"loss": loss, "accuracy": acc, "grad_norm": grad_norm, "finite": finite.astype(jnp.float32)}
 
     return init, jax.jit(step, donate_argnums=(0,))

@@ -18,7 +18,8 @@ from flax import nnx, struct
 
 from sword_jax import optim
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.policy import actions_to_tokens, resize_frames, token_log_probs, trainable_mask
+from sword_jax.rl.policy import (actions_to_tokens, resize_frames, token_log_probs, tokens_to_actions,
+                                 trainable_mask)
 
 PROPRIO_DROPOUT = 0.3
 
@@ -54,8 +55,8 @@ def _sft_loss(graphdef: nnx.GraphDef, cfg: RLConfig, params, batch, proprio_vali
     logp = token_log_probs(logits, targets)
     correct = (jnp.argmax(logits, -1) == targets).astype(jnp.float32)
     # mean |error| of the argmax action in action units (bin centres), what execution feels
-    centres = (jnp.arange(cfg.action_bins, dtype=jnp.float32) + 0.5) * (2.0 / cfg.action_bins) - 1.0
-    action_error = jnp.mean(jnp.abs(centres[jnp.argmax(logits, -1)] - jnp.clip(batch["actions"], -1.0, 1.0)))
+    action_error = jnp.mean(jnp.abs(tokens_to_actions(jnp.argmax(logits, -1), cfg.action_bins)
+                                    - jnp.clip(batch["actions"], -1.0, 1.0)))
     return -jnp.mean(logp), {"token_accuracy": jnp.mean(correct), "action_l1": action_error}
 
 

@@ -26,7 +26,6 @@ steps: the sampler runs under ``lax.cond``, so unlogged steps do not pay for it)
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -45,10 +44,6 @@ from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from sword_jax.world_model.train_state import TrainState, make_optimizer
 
 StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
-
-
-def _where_tree(pred: jax.Array, on_true: Any, on_false: Any) -> Any:
-    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
 STEP_KEY_NAMES = ("noise", "sigma", "context_noise", "read", "write")
@@ -134,10 +129,7 @@ def make_train_step(
 
         (loss, prediction), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         grad_norm = optax.global_norm(grads)
-        updates, new_opt_state, new_params = optim.apply_optimizer(tx, grads, state.opt_state, state.params)
-        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        params = _where_tree(finite, new_params, state.params)
-        opt_state = _where_tree(finite, new_opt_state, state.opt_state)
+        updates, opt_state, params, finite = optim.apply_finite_update(tx, loss, grads, state.opt_state, state.params)
         ema_params = state.ema_params
         if ema_params is not None:
             decay = jnp.float32(trainer_cfg.ema_decay)
