@@ -1,5 +1,6 @@
 """``python -m train.gen_data`` smoke test: one tiny expert episode at 32x32 on the C engine."""
 
+import os
 import numpy as np
 import pytest
 
@@ -118,3 +119,25 @@ def test_world_model_episodes_are_never_padded_and_use_executed_actions():
     assert cut.num_samples == 5 and np.all(cut.actions == 1) and cut.first_success == -1
     with pytest.raises(ValueError, match="padding"):
         fixed_length([ep], 13)
+
+
+def test_parallel_generation_writes_the_same_file(tmp_path):
+    """One process per task (``workers``) gives the episodes, order and attributes of one process."""
+    from sim.dataset import read_info
+
+    paths = {}
+    for workers in (0, 2):
+        paths[workers] = str(tmp_path / f"w{workers}.hdf5")
+        gen_data.generate(gen_data.GenDataConfig(out=paths[workers], tasks=(0, 3), episodes=2, resolution=16,
+                                                 max_steps=6, renderer="jax", noise=0.1, noisy_share=0.5,
+                                                 wrist_camera=False, seed=3),
+                          progress=False, workers=workers)
+    (serial_info, serial), (parallel_info, parallel) = read_dataset(paths[0]), read_dataset(paths[2])
+    assert read_info(paths[2]).env_args == read_info(paths[0]).env_args
+    assert parallel_info.seg_class_names == serial_info.seg_class_names
+    assert [e.task_id for e in parallel] == [0, 0, 3, 3]
+    for a, b in zip(serial, parallel, strict=True):
+        for name in ("actions", "states", "rewards", "agentview_rgb", "agentview_seg", "init_state"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert (a.init_state_id, a.first_success) == (b.init_state_id, b.first_success)
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".gen_data_")], "temporary files are removed"

@@ -292,16 +292,53 @@ def _model_xml(env: Any) -> str:
     return scene.scene_xml(timestep=env.config.physics_dt)
 
 
-def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
-    """Runs the expert on every task/episode of ``cfg`` and writes ``cfg.out``; returns the path.
+def _generate_task_file(cfg: GenDataConfig) -> str:
+    """One task's file, in a worker process of :func:`generate` (``workers > 1``)."""
+    return generate(cfg, progress=False)
 
-    Raises:
-      ValueError / FileExistsError: invalid config or an existing output without overwrite.
+
+def _generate_parallel(cfg: GenDataConfig, workers: int, progress: bool) -> str:
+    """:func:`generate` with one process per task (up to ``workers`` at once), then one file.
+
+    Every episode depends only on ``(seed, task, index)`` (its noise stream, its initial state), so
+    the merged file holds the same episodes, in the same order, as the one-process run.
     """
-    cfg.validate()
+    import concurrent.futures
+    import multiprocessing
+    import shutil
+    import tempfile
+
+    from sim.dataset import DatasetWriter, read_dataset, read_info
+
+    if os.path.exists(cfg.out) and not cfg.overwrite:
+        raise FileExistsError(f"{cfg.out} exists (pass overwrite=True / --overwrite to replace it)")
+    tmp = tempfile.mkdtemp(prefix=".gen_data_", dir=os.path.dirname(os.path.abspath(cfg.out)))
+    try:
+        parts = [dataclasses.replace(cfg, tasks=(task,), out=os.path.join(tmp, f"task{task}.hdf5"), overwrite=True)
+                 for task in cfg.tasks]
+        # spawn: a forked child would inherit this process's JAX runtime (threads, device handles)
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(min(workers, len(parts)), mp_context=context) as pool:
+            files = list(pool.map(_generate_task_file, parts))
+        info = _dataset_info(cfg, read_info(files[0]).seg_class_names)
+        written = 0
+        with DatasetWriter(cfg.out, info, overwrite=cfg.overwrite) as writer:
+            for path in files:
+                for episode in read_dataset(path)[1]:
+                    writer.add(episode)
+                    written += 1
+        if progress:
+            print(f"gen_data: {written} episodes of {len(cfg.tasks)} tasks in {len(files)} processes -> {cfg.out}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return cfg.out
+
+
+def _dataset_info(cfg: GenDataConfig, seg_class_names):
+    """The file's LIBERO-layout attributes for ``cfg`` (the renderer resolved)."""
     import sim
     from sim import tasks
-    from sim.dataset import DatasetInfo, DatasetWriter
+    from sim.dataset import DatasetInfo
 
     renderer = cfg.renderer
     if renderer == "auto":
@@ -326,6 +363,28 @@ def generate(cfg: GenDataConfig, *, progress: bool = True) -> str:
         bddl_file_name=(language[0].replace(" ", "_") + ".bddl") if single else "",
         bddl_file_content="",  # the scene is built by sim/scene.py, not from a BDDL file
     )
+    if seg_class_names is not None:
+        info.seg_class_names = seg_class_names
+    return info
+
+
+def generate(cfg: GenDataConfig, *, progress: bool = True, workers: int = 0) -> str:
+    """Runs the expert on every task/episode of ``cfg`` and writes ``cfg.out``; returns the path.
+
+    ``workers > 1`` generates the tasks in that many processes at once (the C engine and the
+    expert are single-threaded); the file is the same as with one process.
+
+    Raises:
+      ValueError / FileExistsError: invalid config or an existing output without overwrite.
+    """
+    cfg.validate()
+    if workers > 1 and len(cfg.tasks) > 1:
+        return _generate_parallel(cfg, workers, progress)
+    import sim
+    from sim.dataset import DatasetWriter
+
+    info = _dataset_info(cfg, None)
+    renderer = info.env_args["env_kwargs"]["renderer"]
     successes = 0
     written = 0
     bar = tqdm(total=len(cfg.tasks) * cfg.episodes, desc="gen_data", unit="ep", disable=not progress)

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from sword_jax.rng import stream_key, stream_seed
-from train.stagerunner import Context
+from train.stagerunner import Context, cpu_workers
 
 
 def episode_steps(cfg) -> int:
@@ -49,7 +49,7 @@ def generate_expert_data(ctx: Context) -> dict:
                                      stop_at_success=False, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
                                      renderer="jax",  # one look on every backend (and no GL context per process)
                                      init_split=split, init_seed=cfg.sim.init_seed)
-        gen_data.generate(gen, progress=ctx.is_main)
+        gen_data.generate(gen, progress=ctx.is_main, workers=cpu_workers())
         _, episodes = read_dataset(path)
         init[split] = {task: start_qpos(episodes, task) for task in cfg.sim.tasks}
         success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
@@ -74,7 +74,7 @@ def _policy_demos(ctx: Context, cfg) -> dict:
                                  max_steps=cfg.sim.max_steps,
                                  stop_at_success=True, wrist_camera=False, overwrite=True, renderer="jax",
                                  init_split="train", init_start=cfg.sim.episodes_per_task, init_seed=cfg.sim.init_seed)
-    gen_data.generate(gen, progress=ctx.is_main)
+    gen_data.generate(gen, progress=ctx.is_main, workers=cpu_workers())
     _, episodes = read_dataset(path)
     success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
     return {"path": path, "episodes": len(episodes), "success_rate": success}

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 
-from train.stagerunner import Context
+from train.stagerunner import Context, cpu_workers
 
 
 def _scalars(result: dict) -> dict:
@@ -54,6 +54,7 @@ def grpo_in_world_model(ctx: Context) -> dict:
         f"--workdir={ctx.workdir}", "--simulator", "world_model", "--demos", _demos(ctx),
         "--world-model", ctx.results["world_model"]["workdir"], "--vae", ctx.results["vae"]["path"],
         "--policy", ctx.results["sft_policy"]["path"], "--reward", ctx.results["reward_model"]["path"],
+        "--env-workers", str(cpu_workers()),
     ))
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     drop = ("seconds", "path")

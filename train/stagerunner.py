@@ -106,3 +106,9 @@ def run_stages(stages: list[Stage], ctx: Context, *, only: set[str] | None = Non
         write_json_atomic(marker, {"stage": stage.name, "results": ctx.results[stage.name]})
         log(f"[{index + 1}/{len(stages)}] {stage.name}: finished in {seconds:.1f} s")
     return ctx.results
+
+
+def cpu_workers() -> int:
+    """Worker processes for C-engine work (data generation, real-environment evaluation): all cores
+    but two, at most 14; 0 = in this process. Results do not depend on it (episodes are independent)."""
+    return min(14, max(0, (os.cpu_count() or 1) - 2))
