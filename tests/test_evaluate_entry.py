@@ -22,6 +22,10 @@ def test_evaluate_entry_point_writes_report(tmp_path):
     results = json.load(open(out / "results.json"))
     assert set(results["models"]) == {"original", "mixed"}
     assert results["settings"]["horizon"] == 13
+    original = results["models"]["original"]["random-init"]
+    assert original["overall"]["latent_mse"] > 0 and original["overall"]["latent_mse_hold"] >= 0
+    assert original["curves"]["latent_mse"]["frames"][0] == 5 and len(original["curves"]["latent_mse"]["mean"]) == 8
+    assert "Latent error (original, random-init)" in text
     assert os.path.getsize(out / "videos" / "original_ep0.gif") > 0
 
 
@@ -83,3 +87,20 @@ def test_rollout_videos_honours_pixel_round_trip():
                                          flow_cfg=dataclasses.replace(cfg.flow, pixel_round_trip=round_trip))
     assert out[True].shape == video.shape and np.all(np.isfinite(out[True]))
     assert not np.allclose(out[True], out[False])
+
+
+def test_latent_errors_against_the_encoded_truth_and_holding_still():
+    import numpy as np
+
+    from sword_jax.evaluation.harness import latent_errors
+
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(3, 1 + 1 + 2, 2, 2, 4)).astype(np.float32)  # first, 1 context, 2 predicted
+    perfect = latent_errors(truth[:, 2:], truth, num_context=1)
+    assert perfect["latent_mse"].shape == (3, 8) and np.all(perfect["latent_mse"] == 0)
+    hold = np.mean((truth[:, 2:] - truth[:, 1:2]) ** 2, axis=(2, 3, 4))
+    np.testing.assert_allclose(perfect["latent_mse_hold"], np.repeat(hold, 4, axis=1), rtol=1e-6)
+    shifted = latent_errors(truth[:, 2:] + 0.5, truth, num_context=1)["latent_mse"]
+    np.testing.assert_allclose(shifted, 0.25, rtol=1e-5)  # each latent's error covers its 4 frames
+    with pytest.raises(ValueError, match="ground-truth latents"):
+        latent_errors(truth[:, 1:], truth, num_context=1)

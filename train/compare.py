@@ -43,7 +43,9 @@ import numpy as np
 from sword_jax.cli import ArgumentParser, UsageError
 from train.shared_inputs import REPO, code_version, device_info, shared_hashes
 
-METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim")  # psnr / ssim need no network weights
+# psnr / ssim need no network weights; latent_mse is the world model's error before decoding (no VAE
+# error in it), probe_ee_cm the state probe's end-effector error on predicted frames (action following)
+METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim", "latent_mse", "probe_ee_cm")
 SLICE_FORMAT = "sword-compare-slice/1"
 
 

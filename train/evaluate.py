@@ -45,6 +45,7 @@ from flax import nnx
 import configs
 from configs.base import ExperimentConfig
 from sword_jax.evaluation.harness import evaluate_videos, rollout_videos
+from sword_jax.evaluation.horizon import per_frame_curve
 from sword_jax.evaluation.report import write_report
 from sword_jax.evaluation.vae_floor import vae_floor
 from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
@@ -202,6 +203,31 @@ def fidelity_notes(results) -> list[str]:
     return lines
 
 
+def add_latent_errors(results, latent: dict, *, given_frames: int, horizon: int) -> None:
+    """Adds ``latent_mse`` / ``latent_mse_hold`` (overall and per frame, bootstrap intervals) to every
+    model's results (see :func:`sword_jax.evaluation.harness.latent_errors`)."""
+    for model, per_split in latent.items():
+        for split, errors in per_split.items():
+            result = results.models[split][model]
+            for name, values in errors.items():
+                values = values[:, : horizon - given_frames]
+                result.curves[name] = per_frame_curve(values, frame_offset=given_frames).to_dict()
+                result.overall[name] = float(values.mean())
+
+
+def latent_notes(results) -> list[str]:
+    """One line per split and model: the world model's latent error against holding the context still."""
+    lines = []
+    for split, per_model in results.models.items():
+        for model, result in per_model.items():
+            if "latent_mse" in result.overall:
+                ratio = result.overall["latent_mse"] / max(result.overall["latent_mse_hold"], 1e-12)
+                lines.append(f"Latent error ({split}, {model}): MSE {result.overall['latent_mse']:.4g} against the "
+                             f"encoded ground truth, {ratio:.2f}x that of holding the last context latent still "
+                             f"({result.overall['latent_mse_hold']:.4g}); free of the VAE's reconstruction error.")
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> str:
     args, cfg = _parse(sys.argv[1:] if argv is None else argv)
     start = time.time()
@@ -227,18 +253,19 @@ def main(argv: Sequence[str] | None = None) -> str:
     vae_graphdef, vae_state = _vae_state(cfg, args.vae_checkpoint)
     gt = {s: v["frames"][:, :horizon] for s, v in splits.items()}
     predictions: dict[str, dict[str, np.ndarray]] = {}
+    latent: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # model -> split -> latent_errors()
     for name, workdir in models.items():
         if workdir is None:
             notes.append(f"Model '{name}': randomly initialised world model (pipeline smoke run).")
         model_cfg = model_config(cfg, workdir)
         wm_graphdef, wm_state = _world_model_state(model_cfg, workdir)
-        predictions[name] = {}
+        predictions[name], latent[name] = {}, {}
         for split, episodes in splits.items():
             t0 = time.time()
-            predictions[name][split] = rollout_videos(
+            predictions[name][split], latent[name][split] = rollout_videos(
                 wm_graphdef, wm_state, vae_graphdef, vae_state, episodes["frames"][:, :horizon],
                 episodes["actions"][:, :horizon], key=stream_key(jax.random.key(cfg.seed), f"evaluate/rollout/{split}"),
-                flow_cfg=model_cfg.flow, num_context=k, num_future=p)
+                flow_cfg=model_cfg.flow, num_context=k, num_future=p, with_latent_error=True)
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     rollout_s = time.time() - start  # data, models and rollouts
@@ -248,7 +275,8 @@ def main(argv: Sequence[str] | None = None) -> str:
                               settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name,
                                         "probe": args.probe, "reward_model": args.reward_model},
                               fidelity=_fidelity(cfg, args.probe, args.reward_model), truth_by_split=truth)
-    notes += fidelity_notes(results)
+    add_latent_errors(results, latent, given_frames=1 + 4 * k, horizon=horizon)
+    notes += fidelity_notes(results) + latent_notes(results)
     metrics_s = time.time() - start - rollout_s
     results.vae_floor, floor_s = vae_floor(cfg.eval, suite.metrics, vae_graphdef, vae_state, gt, num_context=k,
                                            num_future=p, given_frames=1 + 4 * k)

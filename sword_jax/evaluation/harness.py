@@ -126,7 +126,8 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
 
 def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.GraphDef, vae_state: Any,
                    frames: Float[np.ndarray, "b t h w 3"], actions: Float[np.ndarray, "b t a"], *, key: jax.Array,
-                   flow_cfg, num_context: int = 1, num_future: int = 2, num_steps: int | None = None) -> np.ndarray:
+                   flow_cfg, num_context: int = 1, num_future: int = 2, num_steps: int | None = None,
+                   with_latent_error: bool = False) -> np.ndarray | tuple[np.ndarray, dict[str, np.ndarray]]:
     """Predicted videos of one world model from each episode's first frame and first context chunk.
 
     Args:
@@ -139,9 +140,12 @@ def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.G
       num_context, num_future: latents of context / predicted per chunk (``k``, ``p``).
       num_steps: Euler steps per chunk (default from ``flow_cfg``).
 
+      with_latent_error: also return the world model's error in latent space, free of the VAE's
+        reconstruction error (:func:`latent_errors`).
+
     Returns:
       ``[B, T, H, W, 3]`` in [0, 1]: frame 0 and the context frames decoded from their latents,
-      then the predicted frames.
+      then the predicted frames; with ``with_latent_error``, also :func:`latent_errors`' dict.
     """
     from sword_jax.world_model import rollout as wm_rollout
 
@@ -151,8 +155,41 @@ def rollout_videos(wm_graphdef: nnx.GraphDef, wm_state: Any, vae_graphdef: nnx.G
         raise ValueError(f"actions {actions.shape} must be [B, T, a] matching frames {frames.shape}")
     wm_rollout.num_chunks_for(t, num_context, num_future)  # validates the horizon
     run = _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context, num_future, num_steps)
-    out = np.asarray(run(wm_state, vae_state, jnp.asarray(frames), jnp.asarray(actions, jnp.float32), key))
-    return np.clip(out[:, :t], 0.0, 1.0)
+    out, predicted, truth = run(wm_state, vae_state, jnp.asarray(frames), jnp.asarray(actions, jnp.float32), key)
+    video = np.clip(np.asarray(out)[:, :t], 0.0, 1.0)
+    if not with_latent_error:
+        return video
+    return video, latent_errors(np.asarray(predicted), np.asarray(truth), num_context=num_context)
+
+
+def latent_errors(predicted: Float[np.ndarray, "b l h w c"], truth: Float[np.ndarray, "b L h w c"], *,
+                  num_context: int) -> dict[str, np.ndarray]:
+    """Per-frame mean squared error of predicted latents against the encoded ground truth.
+
+    Pixel metrics include the VAE's reconstruction error (the "VAE floor"); where the VAE is lossy
+    they measure the VAE, not the world model. Latents are compared before decoding, so this error
+    is the world model's alone. ``latent_mse_hold`` is the same error for holding the last context
+    latent still (a model that predicts no motion), the reference that says whether the model
+    predicts motion at all.
+
+    Args:
+      predicted: ``[B, l, h, w, c]`` predicted latents (after the ``num_context`` given ones).
+      truth: ``[B, L >= 1 + num_context + l, h, w, c]`` latents of the ground-truth video (``mu``).
+
+    Returns:
+      ``{"latent_mse", "latent_mse_hold"}``, each ``[B, 4 l]``: every predicted latent's error
+      repeated over the 4 video frames it decodes to, so it lines up with the per-frame pixel metrics.
+    """
+    lead = 1 + num_context
+    target = truth[:, lead: lead + predicted.shape[1]].astype(np.float32)
+    if target.shape != predicted.shape:
+        raise ValueError(f"latent_errors: predicted {predicted.shape} vs ground-truth latents {truth.shape} "
+                         f"after {lead} given latents")
+    hold = truth[:, lead - 1: lead].astype(np.float32)
+    axes = (2, 3, 4)
+    per_latent = {"latent_mse": np.mean((predicted.astype(np.float32) - target) ** 2, axis=axes),
+                  "latent_mse_hold": np.mean((hold - target) ** 2, axis=axes)}
+    return {name: np.repeat(values, 4, axis=1) for name, values in per_latent.items()}
 
 
 @functools.lru_cache(maxsize=8)
@@ -173,7 +210,9 @@ def _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context: int, num_futur
         all_latents = jnp.concatenate([context, predicted], axis=1)
         video_out = wm_rollout.decode_rollout(vae_graphdef, vae_state, first, all_latents,
                                               latents_per_chunk=_chunk_size(num_context, num_future))
-        return (video_out + jnp.float32(1)) / jnp.float32(2)
+        # the ground truth's own latents (causal encoder: the given ones equal ``latents`` above)
+        truth = vae_api.encode(vae_graphdef, vae_state, video * jnp.float32(2) - jnp.float32(1), check_values=False)
+        return (video_out + jnp.float32(1)) / jnp.float32(2), predicted, truth
 
     return run
 
