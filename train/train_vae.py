@@ -115,8 +115,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if is_main:
             print(f"[train_vae] resumed from step {start}")
     state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
+    perceptual_fn = None
+    if cfg.vae.perceptual_weight > 0:  # LPIPS with the evaluation's weights (published AlexNet by default)
+        from sword_jax.vae.perceptual import lpips_loss
+
+        perceptual_fn, source = lpips_loss(cfg.eval)
+        if is_main:
+            print(f"[train_vae] perceptual loss: LPIPS x {cfg.vae.perceptual_weight} ({source})")
     step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
-                                          max_traces=ENTRY_MAX_TRACES)
+                                          perceptual_fn=perceptual_fn, max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
     batch_sharding = {"video": shd.batch_sharding(mesh, 5, cfg.mesh.rules)}
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,
