@@ -118,3 +118,76 @@ def test_pixel_round_trip_sets_the_learned_simulators_next_context(monkeypatch):
     expected = make_pixel_round_trip(vae_graphdef, vae_state, 1)(latents[None, :1], future)
     np.testing.assert_allclose(contexts[True], np.asarray(expected), rtol=1e-4, atol=1e-4)
     assert not np.allclose(contexts[True], contexts[False], atol=1e-3)
+
+
+def test_replanning_every_latent_executes_four_actions_and_keeps_their_frames(monkeypatch):
+    """execute_latents=1: the model predicts from the whole chunk, the first latent (4 frames, the
+    chunk's first 4 actions) becomes context, the policy re-plans; GRPO sees only executed tokens."""
+    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.rl import world_model_sim
+    from sword_jax.vae import api as vae_api
+
+    cfg = configs.get("sword:tiny")
+    with nnx.use_eager_sharding(False):
+        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
+    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    captured = []
+
+    def fake_predict(model_fn, first, context, actions, *, key, num_future, cfg, num_steps):
+        captured.append(np.asarray(actions[0, :, 0]))
+        # latent i of this call holds the call index * 10 + i, so the kept one is identifiable
+        marks = len(captured) * 10.0 + jnp.arange(num_future, dtype=jnp.float32)
+        return jnp.broadcast_to(marks[None, :, None, None, None], (1, num_future) + context.shape[2:])
+
+    monkeypatch.setattr(world_model_sim, "predict_chunk", fake_predict)
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
+                                execute_latents=1)
+    assert (sim.chunk_len, sim.frames_per_step) == (8, 4)
+    with pytest.raises(ValueError, match="execute_latents"):
+        world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
+                              execute_latents=3)
+    latents = jnp.zeros((2, 2, 2, cfg.vae.z_dim))
+    start_actions = jnp.zeros((5, 7)).at[:, 0].set(jnp.asarray([100.0, 1.0, 2.0, 3.0, 4.0]))
+    state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), (latents, start_actions)))
+    chunk = lambda base: jnp.zeros((8, 7)).at[:, 0].set(base + jnp.arange(8.0))  # noqa: E731
+    state, frames = sim.step(state, chunk(10.0), key=jax.random.key(0))
+    assert frames.shape == (4, 32, 32, 3)
+    np.testing.assert_array_equal(np.asarray(state.context)[0, :, 0, 0, 0], [10.0])  # the first latent is kept
+    state, _ = sim.step(state, chunk(20.0), key=jax.random.key(1))
+    np.testing.assert_array_equal(captured[0], [100, 1, 2, 3, 10, 11, 12, 13, 14, 15, 16, 17, 17])
+    # after 4 executed actions the last context frame is 14's frame, and its slot takes the new chunk's first
+    np.testing.assert_array_equal(captured[1], [100, 11, 12, 13, 20, 21, 22, 23, 24, 25, 26, 27, 27])
+    np.testing.assert_array_equal(np.asarray(state.context)[0, :, 0, 0, 0], [20.0])
+
+
+@pytest.mark.slow
+def test_imagined_rollout_replanning_every_latent_records_executed_tokens():
+    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.rl import grpo
+    from sword_jax.vae import api as vae_api
+
+    cfg = configs.get("sword:tiny")
+    with nnx.use_eager_sharding(False):
+        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
+    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    frames = jax.random.uniform(jax.random.key(2), (2, 32, 32, 3))
+    latents = encode_keyframes(vae_graphdef, vae_state, frames)
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
+                                sample_steps=2, execute_latents=1)
+    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
+                  action_bins=8, max_chunks=3, group_size=2, success_threshold=1.0, imagined_execute_steps=4)
+    graphdef, params = build_policy(rl)
+    tokens = jnp.asarray(tokenize_instructions(["pick up the bowl", "open the drawer"], 32))
+    start = expand_groups(StartState(frames, jnp.zeros((2, 8)), tokens, latents), 2)
+    rollout = jax.jit(lambda p, s, k: imagined_rollout(graphdef, p, s, toy_reward_model(), start, rl, key=k,
+                                                       record_frames=True))(params, sim, jax.random.key(0))
+    assert rollout.frames.shape == (4, 3, 4, 32, 32, 3) and rollout.tokens.shape == (4, 3, 4, 7)
+    state = grpo.init_state(params, rl)
+    _, metrics = grpo.grpo_update(graphdef, rl, state, rollout)
+    assert np.isfinite(float(metrics["loss"]))
+
+
+@pytest.mark.parametrize("steps", [2, 6, 12])
+def test_imagined_execute_steps_must_be_whole_latents_dividing_the_chunk(steps):
+    with pytest.raises(ValueError, match="imagined_execute_steps"):
+        RLConfig(imagined_execute_steps=steps).validate()

@@ -42,9 +42,14 @@ class RLConfig:
       action_ensemble: ACT-style temporal ensembling when re-planning every step: each step of a
         greedy (evaluation) rollout executes the exponentially weighted mean of every chunk's
         prediction for it; sampled GRPO rollouts in the real environments re-plan every step.
-        Imagined rollouts always execute whole chunks (the world model predicts ``chunk_len`` frames
-        per call). Measured on `small` (README): ensembling 0.715, every step 0.690, every 2 actions
-        0.490, every 4 0.350, open-loop 8 0.192.
+        Measured on `small` (README): ensembling 0.715, every step 0.690, every 2 actions 0.490,
+        every 4 0.350, open-loop 8 0.192.
+      imagined_execute_steps: actions of each chunk executed inside the learned simulator before
+        the policy re-plans: a multiple of 4 (the world model's latent frame) dividing ``chunk_len``.
+        ``chunk_len`` = whole chunks (one world-model call per chunk); 4 = the world model still
+        predicts the chunk's frames from all its actions, keeps the first latent's 4 frames and the
+        policy re-plans from the last of them (twice the world-model calls per action). ``max_chunks``
+        counts policy decisions either way.
       ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
@@ -88,6 +93,7 @@ class RLConfig:
     proprio_encoding: str = "rot6d"  # rot6d | raw
     execute_steps: int = 1
     action_ensemble: bool = True
+    imagined_execute_steps: int = 8
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
@@ -127,6 +133,10 @@ class RLConfig:
                              f"{self.proprio_dim} (use proprio_encoding=raw)")
         if not 1 <= self.execute_steps <= self.chunk_len:
             raise ValueError(f"rl.execute_steps must be in [1, chunk_len={self.chunk_len}], got {self.execute_steps}")
+        if (self.imagined_execute_steps < 4 or self.imagined_execute_steps % 4
+                or self.chunk_len % self.imagined_execute_steps):
+            raise ValueError(f"rl.imagined_execute_steps must be a multiple of 4 (one latent frame) dividing "
+                             f"rl.chunk_len={self.chunk_len}, got {self.imagined_execute_steps}")
         if self.action_ensemble and self.execute_steps != 1:
             raise ValueError(f"rl.action_ensemble needs rl.execute_steps=1 (a new chunk every step), got "
                              f"execute_steps={self.execute_steps}: set rl.action_ensemble=false to execute "

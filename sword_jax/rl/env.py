@@ -58,7 +58,7 @@ class ImaginedEnv:
         """Starts from one keyframe/instruction; ``key`` seeds the simulator's noise."""
         sim_state = self.simulator.init(start)
         score = self.reward_model.score(start.frame[None])[0]
-        t = self.simulator.chunk_len
+        t = self.simulator.frames_per_step
         info = {"key": key, "score": score, "chunk": jnp.zeros((), jnp.int32), "truncation": jnp.zeros((), jnp.float32),
                 "success": jnp.zeros((), jnp.float32),
                 "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}

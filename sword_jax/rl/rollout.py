@@ -32,7 +32,9 @@ class Rollout(NamedTuple):
       obs_frames: the frame the policy acted on, at policy resolution ``[N, C, s, s, 3]``.
       proprio / proprio_valid: policy proprio inputs ``[N, C, P]`` / ``[N, C]``.
       instruction_tokens: ``[N, L]``.
-      tokens: sampled action tokens ``[N, C, T, A]``.
+      tokens: the executed actions' sampled tokens ``[N, C, T, A]`` (``T`` = the simulator's
+        ``frames_per_step``: the policy's whole chunk, or its first actions where the simulator
+        re-plans sooner; GRPO scores only these).
       log_probs: their log-probs under the behaviour policy ``[N, C, T, A]``.
       valid: 1 where the chunk was taken before the trajectory was done ``[N, C]``.
       rewards: per-chunk reward (change of success score), 0 after done ``[N, C]``.
@@ -118,7 +120,8 @@ def imagined_rollout(
             sim_state, actions, jax.random.split(sim_key, n)
         )
         frames = constrain(frames, ("batch", "time", "height", "width", "channels"))
-        t = frames.shape[1]
+        t = frames.shape[1]  # actions executed (= frames predicted) this step; the policy re-plans after them
+        tokens, log_probs = tokens[:, :t], log_probs[:, :t]
         scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
         success_now = jnp.any(scores >= jnp.float32(cfg.success_threshold), axis=1)
         valid = ~done

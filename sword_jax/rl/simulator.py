@@ -4,7 +4,8 @@ A simulator is a pytree (:class:`LearnedSimulator`) holding its parameters as th
 leaves and three pure functions as static fields, all for ONE trajectory (the rollout vmaps):
 
 * ``init_fn(params, start: StartState) -> sim_state``
-* ``step_fn(params, sim_state, action_chunk [T, A], key) -> (sim_state, frames [T, H, W, 3])``
+* ``step_fn(params, sim_state, action_chunk [T, A], key) -> (sim_state, frames [E, H, W, 3])``
+  (``T = chunk_len`` actions in, the first ``E = frames_per_step`` of them executed)
 * ``observe_fn(params, sim_state) -> (proprio [P], proprio_valid [])``
 
 Passing the simulator as a jit *argument* keeps multi-GB world-model weights out of the
@@ -51,6 +52,13 @@ class LearnedSimulator:
     observe_fn: Callable = struct.field(pytree_node=False)
     chunk_len: int = struct.field(pytree_node=False, default=8)
     frame_size: int = struct.field(pytree_node=False, default=32)
+    # actions executed (= frames returned) per step: the first ``execute_len`` of the chunk's
+    # ``chunk_len``; the policy re-plans after them. None = the whole chunk.
+    execute_len: int | None = struct.field(pytree_node=False, default=None)
+
+    @property
+    def frames_per_step(self) -> int:
+        return self.chunk_len if self.execute_len is None else self.execute_len
 
     def init(self, start: StartState) -> Any:
         return self.init_fn(self.params, start)

@@ -107,6 +107,7 @@ def world_model_simulator(
     action_dim: int = 7,
     latent_size: int | None = None,
     proprio_dim: int = 8,
+    execute_latents: int | None = None,
 ) -> LearnedSimulator:
     """Builds the learned simulator from a split WorldModel and a split WanVAE.
 
@@ -120,13 +121,22 @@ def world_model_simulator(
       sample_steps: Euler steps per chunk (default ``flow_cfg.sample_steps``).
       latent_size: latent height/width (default ``frame_size // 16``).
       proprio_dim: size of the (invalid) proprio the policy receives.
+      execute_latents: predicted latents kept per step (default ``num_future``: the whole chunk).
+        Fewer re-plans sooner: the world model predicts all ``num_future`` latents from the chunk's
+        actions, the first ``execute_latents`` (``4 x`` as many frames and actions) are executed and
+        become context, the rest is discarded (the simulator's ``execute_len``).
 
     ``StartState.latents`` is ``[1 + num_context, h, w, z]`` (then every conditioning frame carries
     a zero action, as for a keyframe held still: :func:`encode_keyframes`) or a pair ``(latents,
     actions [1 + 4 num_context, action_dim])`` with the actions the episode's first frame and the
     context frames really carried, laid out as a training segment's (:func:`encode_history`).
     """
-    chunk_len = FRAMES_PER_LATENT * num_future
+    execute_latents = num_future if execute_latents is None else int(execute_latents)
+    if not 1 <= execute_latents <= num_future:
+        raise ValueError(f"world-model sim: execute_latents must be in [1, num_future={num_future}], got "
+                         f"{execute_latents}")
+    chunk_len = FRAMES_PER_LATENT * num_future  # actions per call
+    execute_len = FRAMES_PER_LATENT * execute_latents  # executed actions (= frames returned) per step
     hl = latent_size or frame_size // 16
 
     def init_fn(params, start: StartState) -> WMState:
@@ -157,13 +167,16 @@ def world_model_simulator(
         model_fn = wm_sampler.model_fn_from_state(wm_graphdef, wm_params)
         future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
                                cfg=flow_cfg, num_steps=sample_steps)
+        future = future[:, :execute_latents]  # executed; the rest of the prediction is discarded
         video, cache = vae_api.decode_chunk(vae_graphdef, vae_params, future, state.decode_cache, check_values=False)
         if flow_cfg.pixel_round_trip:  # WoVR: the next context is the re-encoded generated pixels
             context = make_pixel_round_trip(vae_graphdef, vae_params, num_context)(state.first_latent, future)
             context = context.astype(jnp.float32)
         else:
             context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
-        context_actions = jnp.concatenate([context_actions, future_actions], axis=1)[:, -FRAMES_PER_LATENT * num_context:]
+        executed_actions = future_actions[:, :execute_len]
+        context_actions = jnp.concatenate([context_actions, executed_actions],
+                                          axis=1)[:, -FRAMES_PER_LATENT * num_context:]
         frames = to_unit(video[0])  # (T, H, W, 3)
         return WMState(state.first_latent, context, state.first_action, context_actions, cache, state.proprio), frames
 
@@ -172,4 +185,4 @@ def world_model_simulator(
         return state.proprio[:proprio_dim], jnp.float32(0.0)
 
     return LearnedSimulator(params=(wm_state, vae_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
-                            chunk_len=chunk_len, frame_size=frame_size)
+                            chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len)
