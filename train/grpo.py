@@ -78,7 +78,7 @@ def _world_model_setup(cfg, rl, args):
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
                                 num_context=cfg.data.context_frames // 4, num_future=cfg.data.predict_frames // 4,
                                 action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                                execute_latents=rl.imagined_execute_steps // 4)
+                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // 4)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)

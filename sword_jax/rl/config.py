@@ -46,7 +46,7 @@ class RLConfig:
         every 4 0.350, open-loop 8 0.192.
       imagined_execute_steps: actions of each chunk executed inside the learned simulator before
         the policy re-plans: a multiple of 4 (the world model's latent frame) dividing ``chunk_len``.
-        ``chunk_len`` = whole chunks (one world-model call per chunk); 4 = the world model still
+        None (default) = ``chunk_len``, whole chunks (one world-model call per chunk); 4 = the world model still
         predicts the chunk's frames from all its actions, keeps the first latent's 4 frames and the
         policy re-plans from the last of them (twice the world-model calls per action). ``max_chunks``
         counts policy decisions either way.
@@ -93,7 +93,7 @@ class RLConfig:
     proprio_encoding: str = "rot6d"  # rot6d | raw
     execute_steps: int = 1
     action_ensemble: bool = True
-    imagined_execute_steps: int = 8
+    imagined_execute_steps: int | None = None  # None = chunk_len (whole chunks)
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
@@ -133,7 +133,8 @@ class RLConfig:
                              f"{self.proprio_dim} (use proprio_encoding=raw)")
         if not 1 <= self.execute_steps <= self.chunk_len:
             raise ValueError(f"rl.execute_steps must be in [1, chunk_len={self.chunk_len}], got {self.execute_steps}")
-        if (self.imagined_execute_steps < 4 or self.imagined_execute_steps % 4
+        if self.imagined_execute_steps is not None and (
+                self.imagined_execute_steps < 4 or self.imagined_execute_steps % 4
                 or self.chunk_len % self.imagined_execute_steps):
             raise ValueError(f"rl.imagined_execute_steps must be a multiple of 4 (one latent frame) dividing "
                              f"rl.chunk_len={self.chunk_len}, got {self.imagined_execute_steps}")
