@@ -5,7 +5,11 @@ privileged state (tool-centre pose, bowl and plate poses). With ``ExpertConfig.c
 expert keeps going after it succeeds (fixed-length world-model episodes with motion over the
 whole horizon): after the retreat it grasps the bowl again, carries it to a free spot on the
 table, places and releases it, retreats, brings it back to the plate, and so on, alternating
-between ``AWAY_SPOTS``. The gripper takes the bowl by its
+between ``AWAY_SPOTS``. Cycling also keeps the picture moving while the gripper acts (world-model
+data should have few near-identical consecutive frames): the fingers start to close over the last
+centimetre of the descent and the hand rises while they grip or open; a bowl that hangs on the
+opened fingers is gripped again rather than chased out of reach. Without ``cycle`` (the
+stop-at-success demonstrations) none of this applies. The gripper takes the bowl by its
 rim: fingers straddle the wall facing -y, the hand yawed to that wall's normal (the bowls
 are octagons of boxes). Position and rotation errors become actions by proportional control,
 clipped to [-1, 1]; the carry and place phases servo the *bowl's* measured centre onto the
@@ -39,6 +43,8 @@ _NOISE_BY_PHASE = (1.0, 0.2, 0.0, 1.0, 1.0, 0.2, 0.0, 1.0)
 # task's distractor bowl, within the arm's reach; cycling visits them in turn.
 AWAY_SPOTS = ((-0.20, 0.13), (-0.12, -0.03))
 _CREEP = 0.006  # cycling: m per step the hand rises while the gripper finishes closing / opening
+_CREEP_RAMP = ((0, 0, 0.5, 0.5, 2), (0, 1, 2, 2, 2))  # cycling: creeps per step at gripper step 0..4+ (grasp; release)
+_CLOSE_ABOVE = 0.015  # cycling: the fingers start to close this far (m) above the grasp point (aligned in xy)
 _MIN_DESCENT_SPEED = 0.12  # cycling: |position action| floor while descending
 _STALL_STEPS = 100  # cycling: a phase that lasts this long gives up (retreat, then start over)
 
@@ -156,17 +162,19 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     def point(xy, z):
         return xp.concatenate([xy, xp.reshape(z, (1,))]).astype(dtype)
 
-    # Cycling keeps the picture moving while the gripper acts: once the fingers hold the wall
-    # (four steps) or have cleared it (two), the hand creeps upward.
-    gripping = est.phase == GRASP
-    creep = xp.where(est.count >= xp.where(gripping, 4, 2), _CREEP, xp.where(gripping & (est.count >= 2), _CREEP / 2, 0.0))
-    creep = xp.where(xp.asarray(cfg.cycle), creep, 0.0).astype(dtype)
+    # Cycling keeps the picture moving while the gripper acts: the descent finishes during the
+    # first two closing steps (the fingers reach the wall on the third), then the hand creeps
+    # upward; on release it rises once the fingers have opened clear of the wall.
+    ramp = xp.asarray(_CREEP_RAMP, dtype)[xp.where(est.phase == GRASP, 0, 1), xp.minimum(est.count, 4)]
+    creep = xp.where(xp.asarray(cfg.cycle), ramp * _CREEP, 0.0).astype(dtype)
     hold = point(tcp[:2], tcp[2] + creep)
+    grasp_point = point(grasp_xy, bowl[2] + _GRASP_HEIGHT)
+    closing_descent = xp.asarray(cfg.cycle) & (est.count < 2)
 
     targets = xp.stack([
         point(grasp_xy, bowl[2] + _GRASP_HEIGHT + _HOVER),  # approach
-        point(grasp_xy, bowl[2] + _GRASP_HEIGHT),  # descend
-        hold,  # grasp: hold still (or creep up)
+        grasp_point,  # descend
+        xp.where(closing_descent, grasp_point, hold),  # grasp: hold still (or finish the descent, creep up)
         point(tcp[:2], est.lift_z),  # lift
         point(bowl_on_goal_xy, carry_z),  # carry
         point(bowl_on_goal_xy, place_z),  # place
@@ -181,7 +189,8 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     rot_ok = xp.sqrt(xp.sum(rot_err * rot_err)) < 0.05
     done = xp.stack([
         (dist < 0.01) & rot_ok,
-        dist < 0.006,
+        xp.where(xp.asarray(cfg.cycle), (xp.sqrt(xp.sum(pos_err[:2] ** 2)) < 0.006) & (xp.abs(pos_err[2]) < _CLOSE_ABOVE),
+                 dist < 0.006),
         est.count >= cfg.grip_steps,
         dist < 0.015,
         (bowl_xy_err < 0.008) & (xp.abs(pos_err[2]) < 0.02),
@@ -206,13 +215,17 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     phase = xp.where(done, xp.where(est.phase == RETREAT, APPROACH, xp.minimum(est.phase + 1, RETREAT)), est.phase)
     # Lost the bowl while carrying or placing (it is no longer between the fingers): start over.
     held_offset = tcp - bowl
-    lost = ((est.phase == CARRY) | (est.phase == PLACE)) & (
-        (xp.sqrt(xp.sum(held_offset[:2] ** 2)) > 0.08) | (held_offset[2] > 0.07))
+    near_hand = (xp.sqrt(xp.sum(held_offset[:2] ** 2)) <= 0.08) & (held_offset[2] <= 0.07)
+    lost = ((est.phase == CARRY) | (est.phase == PLACE)) & ~near_hand
     phase = xp.where(lost, APPROACH, phase)
+    # Cycling: a bowl that rises with the opened hand while it retreats hangs on the fingers (else
+    # the approach chases it out of reach): close them again, which grips it or lets it drop.
+    hanging = xp.asarray(cfg.cycle) & (est.phase == RETREAT) & near_hand & (bowl[2] - goal_top > 0.02)
+    phase = xp.where(hanging, GRASP, phase)
     # Cycling never stands still: a phase that makes no progress gives up and retreats.
-    stalled = xp.asarray(cfg.cycle) & (est.count >= _STALL_STEPS) & ~done & ~lost
+    stalled = xp.asarray(cfg.cycle) & (est.count >= _STALL_STEPS) & ~done & ~lost & ~hanging
     phase = xp.where(stalled, RETREAT, phase).astype(xp.int32)
-    count = xp.where(done | lost | stalled, 0, est.count + 1).astype(xp.int32)
+    count = xp.where(done | lost | hanging | stalled, 0, est.count + 1).astype(xp.int32)
     # A finished trip (retreat done) sends the bowl elsewhere: plate -> a table spot -> plate -> the next spot.
     trip_done = done & (est.phase == RETREAT)
     next_goal = xp.where(est.goal == 0, 1 + est.trips % len(AWAY_SPOTS), 0)

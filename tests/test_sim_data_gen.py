@@ -99,6 +99,48 @@ def test_fixed_length_episodes_keep_moving_after_success(tmp_path):
     assert near_identical_share(padded) > 0.5
 
 
+def test_world_model_data_has_few_near_identical_frames_on_several_tasks(tmp_path):
+    """Issue 18: the expert keeps the picture moving while the gripper acts (pipeline renderer, 32 px).
+
+    Before it did, these episodes had 2-37% near-identical pairs (14% on average: the hand held
+    still while the fingers closed or opened, and in task 1 a bowl hanging on the opened fingers
+    was chased out of view).
+    """
+    out = str(tmp_path / "wm.hdf5")
+    gen_data.generate(gen_data.GenDataConfig(out=out, tasks=(1, 3, 4, 7, 9), resolution=32, max_steps=129,
+                                             wrist_camera=False, renderer="jax"), progress=False)
+    _, episodes = read_dataset(out)
+    assert all(ep.num_samples == 129 and ep.first_success >= 0 for ep in episodes)
+    shares = [near_identical_share(ep.agentview_rgb) for ep in episodes]
+    assert np.mean(shares) < 0.05 and max(shares) < 0.08, shares
+
+
+def test_stop_at_success_demos_are_the_default_expert(tmp_path):
+    """Policy SFT demos (``--stop-at-success``) are untouched by the world-model data's expert options:
+    clean and DART-noisy demos equal a default-expert rollout and fingerprints recorded before the
+    options changed, while the cycling expert acts differently on the same episodes."""
+    import sim
+    from sim import expert
+
+    cfg = gen_data.GenDataConfig(out=str(tmp_path / "sft.hdf5"), tasks=(2,), episodes=2, resolution=16, noise=0.1,
+                                 noisy_share=0.5, stop_at_success=True, wrist_camera=False, renderer="jax")
+    gen_data.generate(cfg, progress=False)
+    _, episodes = read_dataset(cfg.out)
+    env = sim.load("libero_spatial", task_id=2, backend="cpu", resolution=16, max_steps=cfg.max_steps)
+    recorded = ((40, [4.25143, 2.074, -4.83815, 0.01782, -0.11857, -0.02963, 6.0]),
+                (38, [4.13541, 1.81883, -4.18697, 0.073, -0.01762, -0.01508, 6.0]))
+    for i, (ep, qpos, (steps, action_sums)) in enumerate(zip(episodes, gen_data.init_states(cfg, 2), recorded, strict=True)):
+        noise = cfg.noise if gen_data.noisy(cfg, i) else 0.0
+        runs = {cycle: expert.rollout_cpu(env, qpos, cfg=expert.ExpertConfig(noise=noise, cycle=cycle),
+                                          rng=np.random.default_rng([cfg.seed, 2, i]), max_steps=steps, record=True,
+                                          stop_at_success=not cycle) for cycle in (False, True)}
+        np.testing.assert_array_equal(ep.actions, runs[False]["actions"])
+        np.testing.assert_array_equal(ep.executed_actions, runs[False]["executed"])
+        assert ep.num_samples == steps and ep.first_success == steps - 1
+        np.testing.assert_allclose(ep.actions.sum(axis=0), action_sums, atol=1e-4)
+        assert not np.allclose(runs[True]["actions"], ep.actions), "the world-model options must change the expert"
+
+
 def test_stop_at_success_demos_end_at_the_first_success(tmp_path):
     out = str(tmp_path / "sft.hdf5")
     gen_data.main(["--task", "2", "--episodes", "1", "--out", out, "--resolution", "16", "--max-steps", "120",
