@@ -200,23 +200,12 @@ def _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context: int, num_futur
 
     @jax.jit
     def run(wm_state, vae_state, video, acts, key):
-        context_video = video[:, : 1 + 4 * num_context] * jnp.float32(2) - jnp.float32(1)
-        latents = vae_api.encode(vae_graphdef, vae_state, context_video, check_values=False)
-        first, context = latents[:, :1], latents[:, 1 : 1 + num_context]
-        round_trip = (wm_rollout.make_pixel_round_trip(vae_graphdef, vae_state, num_context)
-                      if flow_cfg.pixel_round_trip else None)
-        predicted = wm_rollout.rollout(wm_graphdef, wm_state, first, context, acts, key=key, cfg=flow_cfg,
-                                       num_future=num_future, num_steps=num_steps, round_trip=round_trip)
-        all_latents = jnp.concatenate([context, predicted], axis=1)
-        video_out = wm_rollout.decode_rollout(vae_graphdef, vae_state, first, all_latents,
-                                              latents_per_chunk=_chunk_size(num_context, num_future))
-        # the ground truth's own latents (causal encoder: the given ones equal ``latents`` above)
-        truth = vae_api.encode(vae_graphdef, vae_state, video * jnp.float32(2) - jnp.float32(1), check_values=False)
+        signed = video * jnp.float32(2) - jnp.float32(1)
+        video_out, predicted, _ = wm_rollout.rollout_video(
+            wm_graphdef, wm_state, vae_graphdef, vae_state, signed[:, : 1 + 4 * num_context], acts, key=key,
+            cfg=flow_cfg, num_future=num_future, num_steps=num_steps)
+        # the ground truth's own latents (causal encoder: the given ones equal rollout_video's)
+        truth = vae_api.encode(vae_graphdef, vae_state, signed, check_values=False)
         return (video_out + jnp.float32(1)) / jnp.float32(2), predicted, truth
 
     return run
-
-
-def _chunk_size(num_context: int, num_future: int) -> int:
-    """Largest latents-per-decode-chunk dividing ``k + p n`` for every n (gcd of k and p)."""
-    return int(np.gcd(num_context, num_future))

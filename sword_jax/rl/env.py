@@ -5,6 +5,8 @@
   (``pipeline_state, obs, reward, done, metrics, info``); ``jax.vmap`` batches it, auto-reset
   and episode limits stay outside ``step`` (brax / mujoco_playground convention, except that
   the chunk limit is part of the task and reported as ``info['truncation']``).
+* :class:`ImaginedPoolEnv` — brax's ``Env`` signature over a pool of start states: pure
+  ``reset(rng) -> EnvState`` (a start drawn from the pool by ``rng``) and ``step(state, action)``.
 * :class:`ImaginedVectorEnv` — a ``gymnasium.vector.VectorEnv`` over a pool of start states
   (dataset keyframes + instructions), next-step auto-reset, numpy in / numpy out.
 * :class:`ImaginedGymEnv` — the single-env ``gymnasium.Env`` (what ``check_env`` checks).
@@ -86,6 +88,48 @@ class ImaginedEnv:
         return jax.tree.map(lambda a, b: jnp.where(was_done, a, b), frozen, new)
 
 
+@struct.dataclass
+class ImaginedPoolEnv:
+    """brax-style env: ``reset(rng)`` starts from a start state drawn uniformly from ``pool``.
+
+    One environment, pure and jittable; batch it with ``jax.vmap(env.reset)(keys)`` and
+    ``jax.vmap(env.step)(states, actions)`` as brax envs (auto-reset and episode limits stay
+    outside ``step``; the chunk limit ``env.max_chunks`` ends an episode with ``info['truncation']``).
+
+    Attributes:
+      env: the functional env (simulator, reward model, threshold, chunk limit).
+      pool: start states with a leading pool axis ``[M, ...]`` (:class:`StartState`).
+    """
+
+    env: ImaginedEnv
+    pool: StartState
+
+    @property
+    def pool_size(self) -> int:
+        return int(self.pool.frame.shape[0])
+
+    @property
+    def observation_size(self) -> dict[str, tuple[int, ...]]:
+        """Shapes of one observation's entries (brax's dict form; traced abstractly, nothing runs)."""
+        obs = jax.eval_shape(lambda env: env.reset(jax.random.key(0)).obs, self)
+        return {name: tuple(value.shape) for name, value in obs.items()}
+
+    @property
+    def action_size(self) -> tuple[int, int]:
+        """``(chunk_len, action_dim)``: one action is a whole chunk, each entry in [-1, 1]."""
+        return self.env.simulator.chunk_len, self.env.simulator.action_dim
+
+    def reset(self, rng: jax.Array) -> EnvState:
+        """A new episode from ``pool[randint(rng)]``; the rest of ``rng`` seeds the simulator."""
+        pick_key, env_key = jax.random.split(rng)
+        index = jax.random.randint(pick_key, (), 0, self.pool_size)
+        return self.env.reset(_index(self.pool, index), key=env_key)
+
+    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+        """One action chunk ``[chunk_len, action_dim]`` (clipped to [-1, 1]); done episodes stay frozen."""
+        return self.env.step(state, action)
+
+
 def _index(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
@@ -108,8 +152,7 @@ class ImaginedVectorEnv(gym.vector.VectorEnv):
         h, w = start_pool.frame.shape[1:3]
         p = start_pool.proprio.shape[-1]
         l = start_pool.instruction_tokens.shape[-1]
-        t = env.simulator.chunk_len
-        a = 7
+        t, a = env.simulator.chunk_len, env.simulator.action_dim
         self.single_observation_space = gym.spaces.Dict({
             "frame": gym.spaces.Box(0.0, 1.0, (h, w, 3), np.float32),
             "proprio": gym.spaces.Box(-np.inf, np.inf, (p,), np.float32),

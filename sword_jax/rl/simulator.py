@@ -55,6 +55,7 @@ class LearnedSimulator:
     # actions executed (= frames returned) per step: the first ``execute_len`` of the chunk's
     # ``chunk_len``; the policy re-plans after them. None = the whole chunk.
     execute_len: int | None = struct.field(pytree_node=False, default=None)
+    action_dim: int = struct.field(pytree_node=False, default=7)  # each action of a chunk [chunk_len, action_dim]
 
     @property
     def frames_per_step(self) -> int:

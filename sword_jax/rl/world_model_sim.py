@@ -185,4 +185,4 @@ def world_model_simulator(
         return state.proprio[:proprio_dim], jnp.float32(0.0)
 
     return LearnedSimulator(params=(wm_state, vae_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
-                            chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len)
+                            chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len, action_dim=action_dim)

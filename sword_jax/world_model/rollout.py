@@ -4,6 +4,7 @@ Each chunk predicts ``p`` future latents from ``[episode first-frame latent, con
 the next chunk's context is the last predicted latent(s), so the rollout never leaves latent space.
 With ``FlowConfig.pixel_round_trip`` the context instead goes through WoVR's decode -> re-encode
 round trip (a function built from the VAE, see :func:`make_pixel_round_trip`), for comparisons.
+:func:`rollout_video` wraps it in the VAE: given frames in, decoded frames out.
 
 Action layout (per video frame, like the training segments): a rollout of ``n`` chunks with ``k``
 context and ``p`` future latents per chunk takes ``1 + 4k + 4pn`` actions: the first frame's, the
@@ -13,6 +14,7 @@ context frames', then every future frame's. Chunk ``i`` sees
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -182,3 +184,51 @@ def decode_rollout(
     frames = jnp.moveaxis(frames, 0, 1)  # (b, chunks, 4m, H, W, 3)
     frames = frames.reshape((batch, -1) + frames.shape[3:])
     return jnp.concatenate([first_frames, frames], axis=1)
+
+
+def decode_chunk_size(num_context: int, num_future: int) -> int:
+    """Largest latents-per-decode-chunk dividing ``k + p n`` for every n (gcd of k and p)."""
+    return math.gcd(num_context, num_future)
+
+
+def rollout_video(
+    graphdef: nnx.GraphDef,
+    state: Any,
+    vae_graphdef: nnx.GraphDef,
+    vae_state: Any,
+    given_video: Float[Array, "b g hh ww 3"],
+    actions: Float[Array, "b t a"],
+    *,
+    key: jax.Array,
+    cfg: FlowConfig,
+    num_future: int = 2,
+    num_steps: int | None = None,
+) -> tuple[Float[Array, "b t hh ww 3"], Float[Array, "b n hh2 ww2 c"], Float[Array, "b k1 hh2 ww2 c"]]:
+    """Pixels in, pixels out: encode the given frames, :func:`rollout`, decode; jit it as a whole.
+
+    Args:
+      graphdef / state: the world model, as for :func:`rollout`.
+      vae_graphdef / vae_state: the video VAE.
+      given_video: the episode's first frame and ``4k`` context frames, ``[b, 1 + 4k, H, W, 3]``
+        float in [-1, 1] (``k`` context latents).
+      actions: per-frame actions ``[b, 1 + 4k + 4pn, a]`` (see the module docstring).
+      key, cfg, num_future, num_steps: as for :func:`rollout`.
+
+    Returns:
+      ``(video, predicted, given_latents)``: ``video [b, 1 + 4k + 4pn, H, W, 3]`` float32 in [-1, 1]
+      (the given frames as the VAE reconstructs them, then the predicted ones), the predicted
+      latents ``[b, pn, h, w, c]`` and the given frames' latents ``[b, 1 + k, h, w, c]``.
+    """
+    from sword_jax.vae import api as vae_api
+
+    given = vae_api.encode(vae_graphdef, vae_state, given_video, check_values=False)
+    num_context = given.shape[1] - 1
+    if num_context < 1:
+        raise ValueError(f"rollout_video: given_video needs 1 + 4k frames with k >= 1, got {given_video.shape}")
+    first, context = given[:, :1], given[:, 1:]
+    round_trip = make_pixel_round_trip(vae_graphdef, vae_state, num_context) if cfg.pixel_round_trip else None
+    predicted = rollout(graphdef, state, first, context, actions, key=key, cfg=cfg, num_future=num_future,
+                        num_steps=num_steps, round_trip=round_trip)
+    video = decode_rollout(vae_graphdef, vae_state, first, jnp.concatenate([context, predicted], axis=1),
+                           latents_per_chunk=decode_chunk_size(num_context, num_future))
+    return video, predicted, given

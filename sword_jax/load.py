@@ -1,0 +1,258 @@
+"""Reading trained checkpoints outside the training loops: world model, VAE, reward model.
+
+Layouts read (what the entry points write):
+
+* world-model work dir (``train.train_world_model``): ``<dir>/config.json`` and
+  ``<dir>/checkpoints/<step>/{state,meta}``; ``state`` is the train state as a pure-dict pytree
+  (``params``, ``buffers``, ``ema_params`` or None, ``opt_state``, ``cache`` ...), ``meta`` is JSON
+  with the config the run was trained with (``meta["config"]``).
+* VAE (``train.train_vae``): ``<vae_workdir>/vae/0/{state,meta}``, the whole VAE state (params and
+  latent statistics) as one pure dict; or official Wan 2.2 weights (``vae.checkpoint``).
+* reward model / policy (:mod:`sword_jax.rl.params_io`): ``<dir>/<step>/{state,meta}`` with the
+  RL config in ``meta["rl"]``.
+
+Only the arrays needed for inference are read (orbax partial restore): a world model is loaded
+without its optimizer state or latent cache. Every failure to find or read a checkpoint raises
+:class:`CheckpointError` naming the path. Nothing here runs at import.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import typing
+from typing import Any
+
+import jax
+from flax import nnx
+
+from sword_jax import sharding as shd
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable, or does not match the model it is loaded into."""
+
+
+def _manager(directory: str):
+    import orbax.checkpoint as ocp
+
+    handlers = {"state": ocp.PyTreeCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+    # Never saves, so nothing is written or deleted (orbax's read_only mode only adds a log warning).
+    options = ocp.CheckpointManagerOptions(create=False, max_to_keep=None)
+    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_handlers=handlers)
+
+
+def checkpoint_step(directory: str, step: int | None = None) -> int:
+    """The newest complete checkpoint step in ``directory`` (or checks that ``step`` is there).
+
+    Raises:
+      CheckpointError: the directory does not exist or holds no complete checkpoint.
+    """
+    if not os.path.isdir(directory):
+        raise CheckpointError(f"checkpoint directory {directory} does not exist")
+    manager = _manager(directory)
+    try:
+        steps = manager.all_steps()
+    finally:
+        manager.close()
+    if not steps:
+        raise CheckpointError(f"no complete checkpoint in {directory} (expected <step>/state and <step>/meta "
+                              "written by a sword-jax trainer)")
+    if step is None:
+        return max(steps)
+    if step not in steps:
+        raise CheckpointError(f"no checkpoint for step {step} in {directory}; saved steps: {sorted(steps)}")
+    return step
+
+
+def read_meta(directory: str, step: int) -> dict[str, Any]:
+    """The JSON metadata saved with checkpoint ``step`` (config, data position, kind ...)."""
+    import orbax.checkpoint as ocp
+
+    manager = _manager(directory)
+    try:
+        return manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+    except Exception as err:  # noqa: BLE001 - any failure to read a file is reported with its path
+        raise CheckpointError(f"cannot read the metadata of step {step} in {directory}: "
+                              f"{type(err).__name__}: {err}") from err
+    finally:
+        manager.close()
+
+
+def saved_keys(directory: str, step: int) -> dict[str, bool]:
+    """Top-level entries of the saved state and whether each holds arrays (None entries: False)."""
+    manager = _manager(directory)
+    try:
+        node = manager.item_metadata(step)["state"]
+    except Exception as err:  # noqa: BLE001
+        raise CheckpointError(f"cannot read checkpoint step {step} in {directory}: {type(err).__name__}: {err}") from err
+    finally:
+        manager.close()
+    node = getattr(node, "tree", node)
+    if not isinstance(node, dict):
+        raise CheckpointError(f"checkpoint step {step} in {directory} does not hold a dict state")
+    return {key: value is not None for key, value in node.items()}
+
+
+def restore_subtree(directory: str, step: int, abstract: dict[str, Any]) -> dict[str, Any]:
+    """Restores the entries of ``abstract`` (``ShapeDtypeStruct`` leaves with shardings) from ``step``.
+
+    Entries of the saved state that ``abstract`` does not name are not read.
+    """
+    import orbax.checkpoint as ocp
+
+    restore_args = ocp.checkpoint_utils.construct_restore_args(abstract)
+    manager = _manager(directory)
+    try:
+        restored = manager.restore(step, args=ocp.args.Composite(
+            state=ocp.args.PyTreeRestore(item=abstract, restore_args=restore_args, partial_restore=True)))
+    except Exception as err:  # noqa: BLE001
+        raise CheckpointError(f"cannot restore step {step} from {directory} (another config, or a damaged "
+                              f"checkpoint?): {type(err).__name__}: {err}") from err
+    finally:
+        manager.close()
+    return restored["state"]
+
+
+def _section_value(value: Any, annotation: Any) -> Any:
+    if isinstance(value, list):  # JSON lists are the configs' tuples (also nested, e.g. mesh rules)
+        args = typing.get_args(annotation)
+        inner = args[0] if len(args) == 2 and args[1] is Ellipsis else None
+        return tuple(_section_value(v, inner) for v in value)
+    return value
+
+
+def section_from_dict(cls: type, values: dict[str, Any]) -> Any:
+    """A frozen config section ``cls`` from its saved JSON dict; unknown keys are ignored, missing
+    ones keep their defaults (a checkpoint from an older version still loads)."""
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {k: _section_value(v, hints.get(k)) for k, v in values.items() if k in known}
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"saved {cls.__name__} settings are not valid: {err}") from err
+
+
+def read_run_config(world_model_dir: str, step: int) -> dict[str, Any]:
+    """The config a world-model run was trained with: the checkpoint's own ``meta["config"]``,
+    else ``<dir>/config.json``."""
+    meta = read_meta(os.path.join(world_model_dir, "checkpoints"), step)
+    if isinstance(meta.get("config"), dict):
+        return meta["config"]
+    path = os.path.join(world_model_dir, "config.json")
+    if not os.path.exists(path):
+        raise CheckpointError(f"{world_model_dir}: neither the checkpoint metadata nor config.json holds the "
+                              "config the world model was trained with")
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{path}: not a readable JSON config: {err}") from err
+
+
+def single_device_mesh() -> jax.sharding.Mesh:
+    """A ``(data, fsdp, tensor)`` mesh over the first device (where a loader places weights by default)."""
+    return shd.make_mesh(shd.MeshConfig(data=1), devices=jax.devices()[:1])
+
+
+def load_world_model_params(
+    model_cfg: Any,
+    checkpoint_dir: str,
+    *,
+    seed: int = 0,
+    step: int | None = None,
+    use_ema: bool = True,
+    mesh: jax.sharding.Mesh | None = None,
+    rules=shd.DEFAULT_RULES,
+) -> tuple[nnx.GraphDef, tuple[dict, dict], int]:
+    """The world model saved under ``checkpoint_dir`` (``<workdir>/checkpoints``), for inference.
+
+    Args:
+      model_cfg: the :class:`~sword_jax.dit.config.DiTConfig` it was trained with.
+      checkpoint_dir: the trainer's orbax directory.
+      seed: only shapes the abstract module (no random values are kept).
+      step: which checkpoint (default the newest).
+      use_ema: the EMA parameters where the run kept them (``trainer.ema_decay > 0``).
+      mesh: where the weights go, sharded by their logical axes (default the first device).
+
+    Returns:
+      ``(graphdef, (params, buffers), step)``; ``(params, buffers)`` are pure dicts of float32
+      arrays, the state :func:`sword_jax.world_model.sampler.model_fn_from_state` takes.
+    """
+    from sword_jax.dit.world_model import WorldModel
+
+    step = checkpoint_step(checkpoint_dir, step)
+    mesh = single_device_mesh() if mesh is None else mesh
+    graphdef, abstract_params, abstract_rest = nnx.split(
+        shd.abstract_module(lambda: WorldModel(model_cfg, rngs=nnx.Rngs(seed))), nnx.Param, ...)
+    shardings = (shd.state_shardings(abstract_params, mesh, rules), shd.state_shardings(abstract_rest, mesh, rules))
+    params_abstract, buffers_abstract = (
+        jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
+                     nnx.to_pure_dict(abstract), nnx.to_pure_dict(sharding))
+        for abstract, sharding in zip((abstract_params, abstract_rest), shardings))
+    present = saved_keys(checkpoint_dir, step)
+    if not present.get("params"):
+        raise CheckpointError(f"{checkpoint_dir} step {step} holds no world-model params (saved: {sorted(present)})")
+    source = "ema_params" if use_ema and present.get("ema_params") else "params"
+    wanted = {source: params_abstract}
+    if jax.tree.leaves(buffers_abstract):
+        wanted["buffers"] = buffers_abstract
+    restored = restore_subtree(checkpoint_dir, step, wanted)
+    return graphdef, (restored[source], restored.get("buffers", {})), step
+
+
+def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | None = None
+                    ) -> tuple[nnx.GraphDef, nnx.State]:
+    """The VAE of ``vae_cfg``: official Wan 2.2 weights if ``vae_cfg.checkpoint`` is set, else the
+    state ``train.train_vae`` saved at ``path`` (``<vae_workdir>/vae``), replicated over ``mesh``
+    (default the first device).
+
+    Raises:
+      CheckpointError: no such checkpoint, or one of another architecture.
+    """
+    from sword_jax.vae import api as vae_api
+
+    if vae_cfg.checkpoint:
+        from sword_jax.convert import wan22_vae
+
+        graphdef, state, official = wan22_vae.load_vae(vae_cfg.checkpoint, compute_dtype=vae_cfg.compute_dtype)
+        if (official.z_dim, official.dim, official.dec_dim) != (vae_cfg.z_dim, vae_cfg.dim, vae_cfg.dec_dim):
+            raise CheckpointError(f"{vae_cfg.checkpoint} holds a VAE with z_dim/dim/dec_dim {official.z_dim}/"
+                                  f"{official.dim}/{official.dec_dim}, the config asks for "
+                                  f"{vae_cfg.z_dim}/{vae_cfg.dim}/{vae_cfg.dec_dim}")
+        return graphdef, state
+    step = checkpoint_step(path)
+    graphdef, state = nnx.split(vae_api.abstract_vae(vae_cfg))
+    replicated = shd.replicated(single_device_mesh() if mesh is None else mesh)
+    abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated),
+                            nnx.to_pure_dict(state))
+    nnx.replace_by_pure_dict(state, restore_subtree(path, step, abstract))
+    return graphdef, state
+
+
+def load_rl_params(path: str, *, kind: str, build) -> tuple[nnx.GraphDef, nnx.State, Any]:
+    """A policy / reward-model checkpoint (:mod:`sword_jax.rl.params_io`) rebuilt from its own RL config.
+
+    Args:
+      path: the orbax directory ``save_params`` wrote.
+      kind: the expected ``meta["kind"]`` (``"policy"`` or ``"reward_model"``).
+      build: ``build(rl_cfg) -> (graphdef, params)``, e.g. :func:`sword_jax.rl.reward_model.build_detector`.
+
+    Returns:
+      ``(graphdef, params, rl_cfg)``.
+    """
+    from sword_jax.rl.config import RLConfig
+
+    step = checkpoint_step(path)
+    meta = read_meta(path, step)
+    if meta.get("kind") != kind:
+        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, expected {kind!r}")
+    rl_cfg = section_from_dict(RLConfig, meta.get("rl", {}))
+    graphdef, params = build(rl_cfg)
+    abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=a.sharding),
+                            nnx.to_pure_dict(params))
+    nnx.replace_by_pure_dict(params, restore_subtree(path, step, abstract))
+    return graphdef, params, rl_cfg
+
