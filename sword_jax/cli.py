@@ -33,6 +33,7 @@ RUNTIME_ERRORS = (
     "sword_jax.augment.ingest.StyledEpisodeError",
     "sword_jax.augment.style.HeldOutStyleError",
     "sword_jax.convert.safetensors_io.CheckpointError",
+    "sword_jax.load.CheckpointError",
     "sword_jax.metrics.networks.MissingWeightsError",
     "sword_jax.metrics.torch_io.WeightFileError",
 )

@@ -152,9 +152,11 @@ def read_run_config(world_model_dir: str, step: int) -> dict[str, Any]:
         raise CheckpointError(f"{path}: not a readable JSON config: {err}") from err
 
 
-def single_device_mesh() -> jax.sharding.Mesh:
-    """A ``(data, fsdp, tensor)`` mesh over the first device (where a loader places weights by default)."""
-    return shd.make_mesh(shd.MeshConfig(data=1), devices=jax.devices()[:1])
+def _first_device() -> jax.sharding.Sharding:
+    # A plain device placement (no mesh in the arrays' types): results of jitted functions that
+    # mix these weights with the caller's unsharded arrays keep the callers' types, so a user's
+    # step function that carries its own state compiles once.
+    return jax.sharding.SingleDeviceSharding(jax.devices()[0])
 
 
 def load_world_model_params(
@@ -175,7 +177,7 @@ def load_world_model_params(
       seed: only shapes the abstract module (no random values are kept).
       step: which checkpoint (default the newest).
       use_ema: the EMA parameters where the run kept them (``trainer.ema_decay > 0``).
-      mesh: where the weights go, sharded by their logical axes (default the first device).
+      mesh: where the weights go, sharded by their logical axes (default: unsharded on the first device).
 
     Returns:
       ``(graphdef, (params, buffers), step)``; ``(params, buffers)`` are pure dicts of float32
@@ -184,14 +186,16 @@ def load_world_model_params(
     from sword_jax.dit.world_model import WorldModel
 
     step = checkpoint_step(checkpoint_dir, step)
-    mesh = single_device_mesh() if mesh is None else mesh
     graphdef, abstract_params, abstract_rest = nnx.split(
         shd.abstract_module(lambda: WorldModel(model_cfg, rngs=nnx.Rngs(seed))), nnx.Param, ...)
-    shardings = (shd.state_shardings(abstract_params, mesh, rules), shd.state_shardings(abstract_rest, mesh, rules))
-    params_abstract, buffers_abstract = (
-        jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
-                     nnx.to_pure_dict(abstract), nnx.to_pure_dict(sharding))
-        for abstract, sharding in zip((abstract_params, abstract_rest), shardings))
+
+    def placed(abstract):
+        shardings = (jax.tree.map(lambda _: _first_device(), nnx.to_pure_dict(abstract)) if mesh is None
+                     else nnx.to_pure_dict(shd.state_shardings(abstract, mesh, rules)))
+        return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
+                            nnx.to_pure_dict(abstract), shardings)
+
+    params_abstract, buffers_abstract = placed(abstract_params), placed(abstract_rest)
     present = saved_keys(checkpoint_dir, step)
     if not present.get("params"):
         raise CheckpointError(f"{checkpoint_dir} step {step} holds no world-model params (saved: {sorted(present)})")
@@ -207,7 +211,7 @@ def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | N
                     ) -> tuple[nnx.GraphDef, nnx.State]:
     """The VAE of ``vae_cfg``: official Wan 2.2 weights if ``vae_cfg.checkpoint`` is set, else the
     state ``train.train_vae`` saved at ``path`` (``<vae_workdir>/vae``), replicated over ``mesh``
-    (default the first device).
+    (default: unsharded on the first device).
 
     Raises:
       CheckpointError: no such checkpoint, or one of another architecture.
@@ -225,7 +229,7 @@ def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | N
         return graphdef, state
     step = checkpoint_step(path)
     graphdef, state = nnx.split(vae_api.abstract_vae(vae_cfg))
-    replicated = shd.replicated(single_device_mesh() if mesh is None else mesh)
+    replicated = _first_device() if mesh is None else shd.replicated(mesh)
     abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated),
                             nnx.to_pure_dict(state))
     nnx.replace_by_pure_dict(state, restore_subtree(path, step, abstract))

@@ -131,24 +131,19 @@ def model_config(cfg: ExperimentConfig, workdir: str | None) -> ExperimentConfig
 
 
 def _world_model_state(cfg: ExperimentConfig, workdir: str | None):
+    """The world model of ``workdir`` (EMA weights when kept; :func:`sword_jax.load.load_world_model_params`),
+    or a random initialisation when ``workdir`` is None."""
+    if workdir is not None:
+        from sword_jax import sharding as shd
+        from sword_jax.load import load_world_model_params
+
+        graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), seed=cfg.seed,
+                                                     mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
+        return graphdef, state
     from sword_jax.dit.world_model import WorldModel
 
-    model = WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed))
-    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-    if workdir is None:
-        return graphdef, (params, rest)
-    from sword_jax import sharding as shd
-    from sword_jax.world_model import checkpoint, train_state
-
-    mesh = shd.make_mesh(cfg.mesh)
-    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"))
-    # A DLB run's state holds the latent cache: size it from the checkpoint itself.
-    cache_shape = ckpt.array_shape("cache.latents") if cfg.cache.enabled else None
-    graphdef, state, shardings = train_state.create_train_state(
-        lambda: WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), cfg.trainer, cfg.cache, cache_shape, mesh)
-    state, _ = ckpt.restore(checkpoint.abstract_like(state, shardings))
-    ckpt.close()
-    return graphdef, (state.ema_params if state.ema_params is not None else state.params, state.buffers)
+    graphdef, params, rest = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), nnx.Param, ...)
+    return graphdef, (params, rest)
 
 
 def _vae_state(cfg: ExperimentConfig, path: str):

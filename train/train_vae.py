@@ -28,7 +28,6 @@ import configs
 from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
-from sword_jax.vae import api as vae_api
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
 from sword_jax.world_model import checkpoint
@@ -67,22 +66,11 @@ def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nn
 
 
 def load_vae(cfg: ExperimentConfig, path: str) -> tuple[nnx.GraphDef, nnx.State]:
-    """The VAE of ``cfg``: official weights if ``cfg.vae.checkpoint`` is set, else the state saved at ``path``."""
-    if cfg.vae.checkpoint:
-        from sword_jax.convert import wan22_vae
+    """The VAE of ``cfg``: official weights if ``cfg.vae.checkpoint`` is set, else the state saved at ``path``
+    (:func:`sword_jax.load.load_vae_params`)."""
+    from sword_jax.load import load_vae_params
 
-        graphdef, state, official_cfg = wan22_vae.load_vae(cfg.vae.checkpoint, compute_dtype=cfg.vae.compute_dtype)
-        if (official_cfg.z_dim, official_cfg.dim, official_cfg.dec_dim) != (cfg.vae.z_dim, cfg.vae.dim, cfg.vae.dec_dim):
-            raise SystemExit(f"train_vae: {cfg.vae.checkpoint} holds a VAE with z_dim/dim/dec_dim "
-                             f"{official_cfg.z_dim}/{official_cfg.dim}/{official_cfg.dec_dim}, the config asks for "
-                             f"{cfg.vae.z_dim}/{cfg.vae.dim}/{cfg.vae.dec_dim}")
-        return graphdef, state
-    graphdef, state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))
-    ckpt = checkpoint.Checkpointer(path)
-    restored, _ = ckpt.restore(checkpoint.abstract_like(nnx.to_pure_dict(state)))
-    ckpt.close()
-    nnx.replace_by_pure_dict(state, restored)
-    return graphdef, state
+    return load_vae_params(cfg.vae, path)
 
 
 def main(argv: Sequence[str] | None = None) -> dict:

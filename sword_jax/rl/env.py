@@ -134,6 +134,13 @@ def _index(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
 
 
+# Compiled once per env structure (simulator functions, shapes), shared by every vector env built on it.
+_batched_reset = jax.jit(jax.vmap(lambda env, start, key: env.reset(start, key=key), in_axes=(None, 0, 0)))
+_batched_step = jax.jit(jax.vmap(lambda env, state, action: env.step(state, action), in_axes=(None, 0, 0)))
+_select_envs = jax.jit(lambda mask, a, b: jax.tree.map(
+    lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b))
+
+
 class ImaginedVectorEnv(gym.vector.VectorEnv):
     """``gymnasium.vector.VectorEnv`` of ``num_envs`` imagined rollouts (next-step auto-reset).
 
@@ -162,10 +169,7 @@ class ImaginedVectorEnv(gym.vector.VectorEnv):
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (t, a), np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self._reset_fn = jax.jit(jax.vmap(lambda e, s, k: e.reset(s, key=k), in_axes=(None, 0, 0)))
-        self._step_fn = jax.jit(jax.vmap(lambda e, s, a: e.step(s, a), in_axes=(None, 0, 0)))
-        self._select = jax.jit(lambda m, a, b: jax.tree.map(
-            lambda x, y: jnp.where(m.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b))
+        self._reset_fn, self._step_fn, self._select = _batched_reset, _batched_step, _select_envs
         self._state: EnvState | None = None
         self._needs_reset = np.zeros(self.num_envs, bool)
 
@@ -233,7 +237,7 @@ class ImaginedGymEnv(gym.Env):
         self._vec._state = None
         start, keys = self._vec._draw(1, (options or {}).get("start_index"))
         self._vec._state = self._vec._reset_fn(self._vec.env, start, keys)
-        obs = {k: v[0] for k, v in self._vec._numpy_obs(self._vec._state).items()}
+        obs = {k: np.asarray(v[0]) for k, v in self._vec._numpy_obs(self._vec._state).items()}
         return obs, {"score": float(self._vec._state.info["score"][0])}
 
     def step(self, action):
@@ -241,5 +245,5 @@ class ImaginedGymEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         obs, reward, terminated, truncated, info = self._vec.step(np.asarray(action, np.float32)[None])
         self._vec._needs_reset[:] = False  # a single env is reset by its caller
-        return ({k: v[0] for k, v in obs.items()}, float(reward[0]), bool(terminated[0]), bool(truncated[0]),
+        return ({k: np.asarray(v[0]) for k, v in obs.items()}, float(reward[0]), bool(terminated[0]), bool(truncated[0]),
                 {"frames": info["frames"][0], "score": float(info["score"][0])})

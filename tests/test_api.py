@@ -1,0 +1,196 @@
+"""The public API (sword_jax.api) on a tiny trained run: loading, shapes and dtypes, envs, errors."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sword_jax
+from sword_jax import tracing
+from sword_jax.api import CheckpointError
+from tests.conftest import REPO, example_env
+
+
+@pytest.fixture(scope="module")
+def model(tiny_run):
+    return sword_jax.load_world_model(tiny_run)
+
+
+def _given(model, batch=2, seed=0):
+    spec = model.spec
+    return jax.random.uniform(jax.random.key(seed), (batch, spec.given_frames, spec.image_size, spec.image_size, 3))
+
+
+def test_import_is_light():
+    code = "import sys, sword_jax; print('jax' in sys.modules, callable(sword_jax.load_world_model), 'jax' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=example_env(), capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "True", "True"]  # jax only once an API name is used
+
+
+def test_every_path_form_loads_the_same_weights(tiny_run, model):
+    spec = model.spec
+    assert (spec.image_size, spec.num_context, spec.num_future, spec.action_dim, spec.latent_dim) == (32, 1, 2, 7, 48)
+    assert (spec.given_frames, spec.frames_per_chunk, spec.num_actions(2)) == (5, 8, 21)
+    assert spec.model.num_layers == 1  # the run's own config, not the default tiny one
+    workdir = os.path.join(tiny_run, "world_model")
+    assert model.loaded_from.world_model == workdir and model.loaded_from.step == 2
+    assert model.loaded_from.vae == os.path.join(tiny_run, "vae_run", "vae") and model.reward_model is None
+    for path in (workdir, os.path.join(workdir, "checkpoints"), os.path.join(workdir, "checkpoints", "2")):
+        other = sword_jax.load_world_model(path)
+        assert other.loaded_from.vae == model.loaded_from.vae  # the VAE is found beside the world model
+        for a, b in zip(jax.tree.leaves(other), jax.tree.leaves(model)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    leaves = jax.tree.leaves(model.world_model_params)
+    assert leaves and all(x.dtype == jnp.float32 for x in leaves)
+
+
+def test_encode_decode_rollout_shapes_dtypes_and_determinism(model):
+    given = _given(model)
+    latents = sword_jax.encode(model, given)
+    assert latents.shape == (2, 2, 2, 2, 48) and latents.dtype == jnp.float32
+    decoded = sword_jax.decode(model, latents)
+    assert decoded.shape == given.shape and decoded.dtype == jnp.float32
+    assert 0.0 <= float(decoded.min()) and float(decoded.max()) <= 1.0
+    np.testing.assert_allclose(np.asarray(sword_jax.encode(model, np.rint(np.asarray(given) * 255).astype(np.uint8))),
+                               np.asarray(sword_jax.encode(model, np.rint(given * 255) / 255)), atol=1e-5)
+    actions = jax.random.uniform(jax.random.key(1), (2, model.spec.num_actions(2), 7), minval=-1.0, maxval=1.0)
+    video = model.rollout(given, actions, key=jax.random.key(2))
+    assert video.shape == (2, 21, 32, 32, 3) and video.dtype == jnp.float32
+    assert 0.0 <= float(video.min()) and float(video.max()) <= 1.0
+    # the given frames come back as the VAE reconstructs them (streaming decode == whole decode)
+    np.testing.assert_allclose(np.asarray(video[:, :5]), np.asarray(decoded), atol=1e-4)
+    again = model.rollout(given, actions, key=jax.random.key(2))
+    other = model.rollout(given, actions, key=jax.random.key(3))
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(video))
+    assert float(jnp.abs(other[:, 5:] - video[:, 5:]).max()) > 0  # the key drives the sampler
+    with pytest.raises(ValueError, match="given_frames must be"):
+        model.rollout(given[:, :4], actions, key=jax.random.key(2))
+    with pytest.raises(ValueError, match="1 \\+ 4\\*1 \\+ 4\\*2\\*n"):
+        model.rollout(given, actions[:, :20], key=jax.random.key(2))
+    with pytest.raises(ValueError, match="\\[0, 1\\]"):
+        sword_jax.encode(model, given * 255)
+
+
+def test_latent_rollout_without_a_vae(tiny_run, tmp_path):
+    alone = tmp_path / "wm"
+    shutil.copytree(os.path.join(tiny_run, "world_model"), alone)
+    latent_only = sword_jax.load_world_model(str(alone))
+    assert latent_only.vae_params is None and latent_only.loaded_from.vae == ""
+    first = jax.random.normal(jax.random.key(0), (2, 1, 2, 2, 48))
+    context = jax.random.normal(jax.random.key(1), (2, 1, 2, 2, 48))
+    predicted = sword_jax.rollout_latents(latent_only, first, context, jnp.zeros((2, 29, 7)), key=jax.random.key(2))
+    assert predicted.shape == (2, 6, 2, 2, 48) and predicted.dtype == jnp.float32  # 3 chunks x 2 latents
+    with pytest.raises(ValueError, match="without one"):
+        sword_jax.encode(latent_only, jnp.zeros((1, 5, 32, 32, 3)))
+    with pytest.raises(ValueError, match="actions must be"):
+        sword_jax.rollout_latents(latent_only, first, context, jnp.zeros((2, 29, 6)), key=jax.random.key(2))
+
+
+def _brightness(frames):
+    return jnp.mean(frames, axis=(1, 2, 3))
+
+
+def test_brax_style_env_is_jittable_and_vmappable(model):
+    pool = sword_jax.start_states(model, _given(model, 3)[:, 0], ["pick up the bowl", "open the drawer", "wait"])
+    assert pool.latents.shape == (3, 2, 2, 2, 48) and pool.instruction_tokens.dtype == jnp.int32
+    env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2)
+    assert env.action_size == (8, 7) and env.observation_size["frame"] == (32, 32, 3)
+    reset = jax.jit(jax.vmap(env.reset))
+    step = jax.jit(tracing.max_traces(jax.vmap(env.step), n=1))  # one compile for every step
+    state = reset(jax.random.split(jax.random.key(0), 4))
+    assert state.obs["frame"].shape == (4, 32, 32, 3) and state.obs["proprio_valid"].shape == (4,)
+    actions = jax.random.uniform(jax.random.key(1), (4, 8, 7), minval=-1.0, maxval=1.0)
+    first = step(state, actions)
+    second = step(first, actions)
+    assert first.info["frames"].shape == (4, 8, 32, 32, 3) and first.reward.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(first.reward), np.asarray(_brightness(first.info["frames"][:, -1])
+                                                                    - _brightness(state.obs["frame"])), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(second.done), 1.0)  # the 2-chunk limit
+    # an env of the batch equals that env stepped alone
+    single = jax.jit(env.step)(jax.tree.map(lambda x: x[1], state), actions[1])
+    np.testing.assert_allclose(np.asarray(single.obs["frame"]), np.asarray(first.obs["frame"][1]), atol=1e-4)
+    with pytest.raises(ValueError, match="no reward model"):
+        sword_jax.make_env(model, pool)
+
+
+def test_vector_env_passes_gymnasium_checks(model):
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env, data_equivalence
+
+    from sword_jax.rl.env import ImaginedGymEnv
+
+    pool = sword_jax.start_states(model, _given(model, 3)[:, 0], ["a", "b", "c"])
+    # one env: the same compiled functions as the single-env view that check_env drives below
+    vec = sword_jax.make_vector_env(model, pool, 1, reward_model=_brightness, max_chunks=2)
+    assert isinstance(vec, gym.vector.VectorEnv) and vec.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    assert vec.action_space == gym.vector.utils.batch_space(vec.single_action_space, 1)
+    assert vec.observation_space == gym.vector.utils.batch_space(vec.single_observation_space, 1)
+    assert vec.single_action_space.shape == (8, 7) and vec.single_observation_space["frame"].shape == (32, 32, 3)
+    vec.action_space.seed(0)
+    action = vec.action_space.sample()
+    runs = []
+    for _ in range(2):  # the same seed and actions give the same episode
+        obs, info = vec.reset(seed=5)
+        runs.append((obs, info, vec.step(action), vec.step(action), vec.step(action)))
+    assert data_equivalence(runs[0], runs[1])
+    obs, _, first, second, after = runs[0]
+    for observation, reward, terminated, truncated, info in (first, second, after):
+        assert vec.observation_space.contains(observation)
+        assert reward.dtype == np.float32 and reward.shape == (1,)
+        assert terminated.dtype == np.bool_ and truncated.dtype == np.bool_ and info["frames"].shape == (1, 8, 32, 32, 3)
+    assert second[2][0] or second[3][0]  # the 2-chunk limit ends the episode ...
+    assert after[1][0] == 0.0 and not (after[2][0] or after[3][0])  # ... and the next step resets it
+    with pytest.raises(ValueError, match="shape"):
+        vec.step(np.zeros((1, 8, 6), np.float32))
+    check_env(ImaginedGymEnv(vec.env, pool), skip_render_check=True)  # gymnasium's checker, single-env view
+
+
+def test_reward_model_loads_from_its_checkpoint(tiny_run, model, tmp_path):
+    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.params_io import save_params
+    from sword_jax.rl.reward_model import as_reward_model, build_detector
+
+    rl = RLConfig(image_size=32, reward_width=8)
+    graphdef, params = build_detector(rl, seed=3)
+    path = str(tmp_path / "reward_model")
+    save_params(path, params, rl, kind="reward_model", step=7)
+    loaded = sword_jax.load_reward_model(path)
+    frames = _given(model, 1)[0]
+    np.testing.assert_allclose(np.asarray(loaded.score(frames)), np.asarray(as_reward_model(graphdef, params).score(frames)),
+                               atol=1e-6)
+    with_reward = sword_jax.load_world_model(tiny_run, reward_model=path)
+    assert with_reward.reward_model is not None and with_reward.loaded_from.reward_model == path
+    with pytest.raises(CheckpointError, match="expected 'reward_model'"):
+        save_params(str(tmp_path / "policy"), params, rl, kind="policy")
+        sword_jax.load_reward_model(str(tmp_path / "policy"))
+
+
+def test_missing_and_corrupt_checkpoints_are_named(tiny_run, tmp_path):
+    with pytest.raises(CheckpointError, match="no-such-run does not exist"):
+        sword_jax.load_world_model(str(tmp_path / "no-such-run"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="is not a world-model run"):
+        sword_jax.load_world_model(str(tmp_path / "empty"))
+    (tmp_path / "nothing_saved" / "checkpoints").mkdir(parents=True)
+    with pytest.raises(CheckpointError, match="no complete checkpoint in .*nothing_saved"):
+        sword_jax.load_world_model(str(tmp_path / "nothing_saved"))
+    with pytest.raises(CheckpointError, match="no checkpoint for step 5"):
+        sword_jax.load_world_model(tiny_run, step=5)
+    with pytest.raises(CheckpointError, match="VAE .*nowhere does not exist"):
+        sword_jax.load_world_model(tiny_run, vae=str(tmp_path / "nowhere"))
+    broken = tmp_path / "broken"
+    shutil.copytree(os.path.join(tiny_run, "world_model"), broken)
+    for root, _, files in os.walk(broken / "checkpoints" / "2" / "state"):
+        for name in files:  # every array file of the saved state: garbage of the same size
+            path = os.path.join(root, name)
+            size = os.path.getsize(path)
+            with open(path, "wb") as f:
+                f.write(b"\x00garbage" * (size // 8 + 1))
+    with pytest.raises(CheckpointError, match="broken"):
+        sword_jax.load_world_model(str(broken))
