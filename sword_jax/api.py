@@ -296,6 +296,13 @@ def check_frames(frames: Any, name: str = "frames") -> None:
                          "pass uint8 pixels as they are, or divide them by 255")
 
 
+def _check_latents(latents: Any, name: str = "latents") -> None:
+    if not isinstance(latents, jax.core.Tracer):
+        from sword_jax.vae.api import check_latent_values
+
+        check_latent_values(latents, name=name)
+
+
 def _require_vae(model: LoadedWorldModel, what: str) -> None:
     if model.vae_graphdef is None:
         raise ValueError(f"{what} needs the VAE, and this world model was loaded without one "
@@ -342,6 +349,7 @@ def _decode(model: LoadedWorldModel, latents: Array) -> Array:
 def decode(model: LoadedWorldModel, latents: Float[Array, "b l h w z"]) -> Float[Array, "b t hh ww 3"]:
     """Decodes latents ``[B, 1 + k, h, w, z]`` to video ``[B, 1 + 4k, 16h, 16w, 3]`` float32 in [0, 1]."""
     _require_vae(model, "decode")
+    _check_latents(latents)
     return _decode(model, latents)
 
 
@@ -383,6 +391,8 @@ def rollout_latents(
     if model.spec.flow.pixel_round_trip:
         _require_vae(model, "a WoVR (flow.pixel_round_trip) rollout")
     _check_actions(model, actions, first_latent.shape[0])
+    _check_latents(first_latent, "first_latent")
+    _check_latents(context_latents, "context_latents")
     return _rollout_latents(model, first_latent, context_latents, actions, key, num_steps)
 
 

@@ -23,7 +23,7 @@ def _has_gpu() -> bool:
         return False
 
 
-def pytest_collection_modifyitems(config, items):
+def _skip_gpu(items):
     if _has_gpu():
         return
     skip_gpu = pytest.mark.skip(reason="needs a GPU")
@@ -64,25 +64,54 @@ def example_env() -> dict:
     return env
 
 
-@pytest.fixture(scope="session")
-def tiny_run(tmp_path_factory):
-    """A tiny trained run (pipeline layout: vae_run/vae, world_model), built once per test session
-    by ``examples/_tiny_run.py`` (2 steps each of the tiny VAE and world model) and shared by the
-    xdist workers through a file lock."""
-    import fcntl
+def _tiny_run_root(tmp_path_factory):
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the session's dir, shared
+
+
+def _start_tiny_run(root) -> None:
+    """Starts building the tiny run in the background, unless a process of this session already did."""
     import subprocess
     import sys
 
-    base = tmp_path_factory.getbasetemp()
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the session's dir, shared
-    run = root / "tiny_run"
-    with open(root / "tiny_run.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (root / "tiny_run.done").exists():
-            code = ("import sys; sys.path.insert(0, 'examples'); from _tiny_run import tiny_run; "
-                    f"tiny_run(None, workdir={str(run)!r}, steps=2)")
-            proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=example_env(), capture_output=True,
-                                  text=True, timeout=600)
-            assert proc.returncode == 0, f"building the tiny run failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-            (root / "tiny_run.done").write_text("ok")
-    return str(run)
+    try:
+        os.close(os.open(root / "tiny_run.started", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return
+    code = ("import sys, traceback; sys.path.insert(0, 'examples')\n"
+            "try:\n    from _tiny_run import tiny_run\n"
+            f"    tiny_run(None, workdir={str(root / 'tiny_run')!r}, steps=2); marker = 'done'\n"
+            "except BaseException:\n    traceback.print_exc(); marker = 'failed'\n"
+            f"open({str(root / 'tiny_run.')!r} + marker, 'w').close()\n")
+    with open(root / "tiny_run.log", "w") as log:
+        subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=example_env(), stdout=log,
+                         stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def pytest_collection_modifyitems(config, items):
+    _skip_gpu(items)
+    # tests on the tiny run go last, so its background build (see _build_tiny_run) overlaps the others
+    items.sort(key=lambda item: "tiny_run" in getattr(item, "fixturenames", ()))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _build_tiny_run(request, tmp_path_factory):
+    if any("tiny_run" in getattr(item, "fixturenames", ()) for item in request.session.items):
+        _start_tiny_run(_tiny_run_root(tmp_path_factory))
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A tiny trained run (pipeline layout: vae_run/vae, world_model) made by ``examples/_tiny_run.py``
+    (2 steps each of the tiny VAE and world model, one CPU device), built once per test session in
+    the background from its start and shared by the xdist workers."""
+    import time
+
+    root = _tiny_run_root(tmp_path_factory)
+    _start_tiny_run(root)
+    deadline = time.monotonic() + 900
+    while not (root / "tiny_run.done").exists():
+        if (root / "tiny_run.failed").exists() or time.monotonic() > deadline:
+            pytest.fail(f"building the tiny run failed:\n{(root / 'tiny_run.log').read_text()[-4000:]}")
+        time.sleep(0.5)
+    return str(root / "tiny_run")

@@ -47,7 +47,13 @@ def test_every_path_form_loads_the_same_weights(tiny_run, model):
         for a, b in zip(jax.tree.leaves(other), jax.tree.leaves(model)):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     leaves = jax.tree.leaves(model.world_model_params)
-    assert leaves and all(x.dtype == jnp.float32 for x in leaves)
+    assert leaves and all(x.dtype == jnp.float32 and x.devices() == {jax.devices()[0]} for x in leaves)
+    from sword_jax import sharding as shd
+
+    mesh = shd.make_mesh(shd.MeshConfig())  # the tests' 8 fake devices
+    sharded = sword_jax.load_world_model(tiny_run, mesh=mesh)
+    for leaf in jax.tree.leaves((sharded.world_model_params, sharded.vae_params)):
+        assert leaf.sharding.mesh == mesh
 
 
 def test_encode_decode_rollout_shapes_dtypes_and_determinism(model):
@@ -154,16 +160,17 @@ def test_vector_env_passes_gymnasium_checks(model):
 def test_reward_model_loads_from_its_checkpoint(tiny_run, model, tmp_path):
     from sword_jax.rl.config import RLConfig
     from sword_jax.rl.params_io import save_params
-    from sword_jax.rl.reward_model import as_reward_model, build_detector
+    from sword_jax.rl.reward_model import build_detector
 
     rl = RLConfig(image_size=32, reward_width=8)
     graphdef, params = build_detector(rl, seed=3)
     path = str(tmp_path / "reward_model")
     save_params(path, params, rl, kind="reward_model", step=7)
     loaded = sword_jax.load_reward_model(path)
-    frames = _given(model, 1)[0]
-    np.testing.assert_allclose(np.asarray(loaded.score(frames)), np.asarray(as_reward_model(graphdef, params).score(frames)),
-                               atol=1e-6)
+    for a, b in zip(jax.tree.leaves(loaded.params), jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    scores = loaded.score(_given(model, 1)[0])
+    assert scores.shape == (5,) and bool(jnp.all((scores >= 0) & (scores <= 1)))
     with_reward = sword_jax.load_world_model(tiny_run, reward_model=path)
     assert with_reward.reward_model is not None and with_reward.loaded_from.reward_model == path
     with pytest.raises(CheckpointError, match="expected 'reward_model'"):
