@@ -42,14 +42,15 @@ import numpy as np
 from flax import struct
 from jaxtyping import Array, Float, Int
 
+from sword_jax import load
 from sword_jax.dit.config import DiTConfig
 from sword_jax.load import CheckpointError
 from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.rl.world_model_sim import FRAMES_PER_LATENT
 from sword_jax.vae.config import VAEConfig
-from sword_jax.world_model.config import FlowConfig
+from sword_jax.world_model.config import DataConfig, FlowConfig
 
-FRAMES_PER_LATENT = 4  # the VAE's temporal factor (sword_jax.rl.world_model_sim uses the same)
-SPATIAL_FACTOR = 16  # the VAE's spatial factor (x16 down)
+SPATIAL_FACTOR = 16  # the VAE's spatial factor (x16 down), as the trainers read latent sizes
 FRAME_RANGE_TOL = 1e-3
 
 __all__ = [
@@ -159,36 +160,6 @@ class LoadedWorldModel:
 # ----------------------------------------------------------------------------------------- loading
 
 
-def _find_run(path: str, step: int | None) -> tuple[str, str | None, int | None]:
-    """``(world-model work dir, pipeline run dir or None, step)`` for any path a user may pass."""
-    full = os.path.abspath(os.path.expanduser(str(path)))
-    if not os.path.exists(full):
-        raise CheckpointError(f"{path} does not exist")
-    name, parent = os.path.basename(full), os.path.dirname(full)
-    if os.path.isdir(os.path.join(full, "world_model", "checkpoints")):
-        return os.path.join(full, "world_model"), full, step
-    if os.path.isdir(os.path.join(full, "checkpoints")):
-        workdir = full
-    elif name == "checkpoints":
-        workdir = parent
-    elif name.isdigit() and os.path.basename(parent) == "checkpoints":
-        if step is not None and step != int(name):
-            raise CheckpointError(f"{path} is step {name}, but step={step} was asked for")
-        workdir, step = os.path.dirname(parent), int(name)
-    else:
-        raise CheckpointError(
-            f"{path} is not a world-model run: expected a pipeline work dir (<dir>/world_model/checkpoints), "
-            "a world-model work dir (<dir>/checkpoints, from train.train_world_model), its checkpoints "
-            "directory or one step of it")
-    run = os.path.dirname(workdir)
-    return workdir, (run if os.path.isdir(os.path.join(run, "vae_run")) else None), step
-
-
-def _vae_dir(path: str) -> str:
-    """A VAE work dir (``train.train_vae --workdir``) or its ``vae`` subdirectory -> the latter."""
-    return os.path.join(path, "vae") if os.path.isdir(os.path.join(path, "vae")) else path
-
-
 def load_world_model(
     path: str,
     *,
@@ -204,42 +175,42 @@ def load_world_model(
       path: a pipeline work dir (``train.pipeline --workdir``: ``<dir>/world_model``,
         ``<dir>/vae_run/vae``, ``<dir>/rl/reward_model``), a world-model work dir
         (``train.train_world_model --workdir``), its ``checkpoints`` directory, or one step of it.
-      vae: the VAE (``train.train_vae``'s work dir or its ``vae`` subdirectory). Default: the
-        run's own, else the official weights the config names (``vae.checkpoint``), else none
-        (latent space only: :func:`encode`, :func:`decode`, :func:`rollout` then raise).
+      vae: the VAE (``train.train_vae``'s work dir or its ``vae`` subdirectory, or an official Wan
+        2.2 VAE ``.safetensors`` file). Default: the run's own, else the official weights the
+        config names (``vae.checkpoint``), else none (latent space only: :func:`encode`,
+        :func:`decode`, :func:`rollout` then raise).
       reward_model: a reward-model checkpoint (``train.train_reward``); default the run's own.
       step: the checkpoint step (default the newest).
       use_ema: the EMA weights where the run kept them.
-      mesh: where the weights go (default the first device; the world model is sharded by its
-        logical axes over a mesh you give).
+      mesh: where the weights go (default unsharded on the first device; over a mesh you give, the
+        world model is sharded by its logical axes and the VAE replicated).
 
     Raises:
       CheckpointError: a missing path, no checkpoint, a damaged one, or pieces that do not fit
         together (the message names the path).
     """
-    from sword_jax import load
-
-    workdir, run, step = _find_run(path, step)
+    workdir, run, step = load.find_run(path, step)
     checkpoints = os.path.join(workdir, "checkpoints")
     step = load.checkpoint_step(checkpoints, step)
     saved = load.read_run_config(workdir, step)
     missing = [name for name in ("model", "flow", "vae", "data") if not isinstance(saved.get(name), dict)]
     if missing:
         raise CheckpointError(f"{workdir}: the saved config lacks the sections {missing}")
-    data = saved["data"]
+    data = load.section_from_dict(DataConfig, saved["data"])
     spec = WorldModelSpec(
         model=load.section_from_dict(DiTConfig, saved["model"]), flow=load.section_from_dict(FlowConfig, saved["flow"]),
-        vae=load.section_from_dict(VAEConfig, saved["vae"]), image_size=int(data["image_size"]),
-        num_context=int(data["context_frames"]) // FRAMES_PER_LATENT,
-        num_future=int(data["predict_frames"]) // FRAMES_PER_LATENT, seed=int(saved.get("seed", 0)),
-        name=str(saved.get("name", "")))
+        vae=load.section_from_dict(VAEConfig, saved["vae"]), image_size=data.image_size,
+        num_context=data.context_frames // FRAMES_PER_LATENT, num_future=data.predict_frames // FRAMES_PER_LATENT,
+        seed=int(saved.get("seed", 0)), name=str(saved.get("name", "")))
     graphdef, params, step = load.load_world_model_params(spec.model, checkpoints, seed=spec.seed, step=step,
                                                           use_ema=use_ema, mesh=mesh)
-    vae_path = _vae_dir(vae) if vae else (os.path.join(run, "vae_run", "vae") if run else "")
+    vae_path = load.vae_dir(vae) if vae else (os.path.join(run, "vae_run", "vae") if run else "")
     if vae and not os.path.exists(vae_path):
         raise CheckpointError(f"VAE {vae} does not exist")
     vae_graphdef = vae_params = None
-    if vae_path and os.path.isdir(vae_path):
+    if vae and os.path.isfile(vae_path):  # official Wan 2.2 weights (.safetensors)
+        vae_graphdef, vae_params = load.load_vae_params(dataclasses.replace(spec.vae, checkpoint=vae_path), mesh=mesh)
+    elif vae_path and os.path.isdir(vae_path):
         vae_graphdef, vae_params = load.load_vae_params(dataclasses.replace(spec.vae, checkpoint=""), vae_path,
                                                         mesh=mesh)
     elif spec.vae.checkpoint:
@@ -257,7 +228,6 @@ def load_world_model(
 def load_reward_model(path: str) -> RewardModel:
     """A success detector saved by ``train.train_reward`` (``<workdir>/rl/reward_model``), rebuilt
     from the RL config stored with it: ``score(frames [n, H, W, 3] in [0, 1]) -> [n]`` in [0, 1]."""
-    from sword_jax import load
     from sword_jax.rl.reward_model import as_reward_model, build_detector
 
     graphdef, params, _ = load.load_rl_params(path, kind="reward_model", build=build_detector)

@@ -10,6 +10,8 @@ Layouts read (what the entry points write):
   latent statistics) as one pure dict; or official Wan 2.2 weights (``vae.checkpoint``).
 * reward model / policy (:mod:`sword_jax.rl.params_io`): ``<dir>/<step>/{state,meta}`` with the
   RL config in ``meta["rl"]``.
+* pipeline work dir (``train.pipeline``): ``<run>/world_model``, ``<run>/vae_run/vae``,
+  ``<run>/rl/reward_model`` (:func:`find_run`).
 
 Only the arrays needed for inference are read (orbax partial restore): a world model is loaded
 without its optimizer state or latent cache. Every failure to find or read a checkpoint raises
@@ -157,6 +159,38 @@ def _first_device() -> jax.sharding.Sharding:
     # mix these weights with the caller's unsharded arrays keep the callers' types, so a user's
     # step function that carries its own state compiles once.
     return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+
+
+def find_run(path: str, step: int | None) -> tuple[str, str | None, int | None]:
+    """``(world-model work dir, pipeline run dir or None, step)`` for any of the paths
+    :func:`sword_jax.api.load_world_model` takes (a pipeline work dir, a world-model work dir, its
+    ``checkpoints`` directory or one step of it)."""
+    full = os.path.abspath(os.path.expanduser(str(path)))
+    if not os.path.exists(full):
+        raise CheckpointError(f"{path} does not exist")
+    name, parent = os.path.basename(full), os.path.dirname(full)
+    if os.path.isdir(os.path.join(full, "world_model", "checkpoints")):
+        return os.path.join(full, "world_model"), full, step
+    if os.path.isdir(os.path.join(full, "checkpoints")):
+        workdir = full
+    elif name == "checkpoints":
+        workdir = parent
+    elif name.isdigit() and os.path.basename(parent) == "checkpoints":
+        if step is not None and step != int(name):
+            raise CheckpointError(f"{path} is step {name}, but step={step} was asked for")
+        workdir, step = os.path.dirname(parent), int(name)
+    else:
+        raise CheckpointError(
+            f"{path} is not a world-model run: expected a pipeline work dir (<dir>/world_model/checkpoints), "
+            "a world-model work dir (<dir>/checkpoints, from train.train_world_model), its checkpoints "
+            "directory or one step of it")
+    run = os.path.dirname(workdir)
+    return workdir, (run if os.path.isdir(os.path.join(run, "vae_run")) else None), step
+
+
+def vae_dir(path: str) -> str:
+    """A VAE work dir (``train.train_vae --workdir``) or its ``vae`` subdirectory -> the latter."""
+    return os.path.join(path, "vae") if os.path.isdir(os.path.join(path, "vae")) else path
 
 
 def load_world_model_params(

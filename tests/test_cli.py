@@ -60,6 +60,16 @@ def test_entry_point_main_block_goes_through_run(module_name):
     assert any(call in ("run", "cli.run") for call in calls), calls
 
 
+def test_missing_checkpoint_is_one_line_and_status_1(capsys, tmp_path, monkeypatch):
+    from train import evaluate
+
+    monkeypatch.chdir(tmp_path)
+    code, _, err = _run(evaluate.main, ["--synthetic", "--model", f"m={tmp_path / 'no_run'}"], capsys)
+    assert code == 1 and "Traceback" not in err, err
+    assert err.strip() == f"{cli._prog()}: error: checkpoint directory {tmp_path / 'no_run' / 'checkpoints'} does not exist"
+    assert not (tmp_path / "no_run").exists()  # reading never creates directories
+
+
 def test_pipeline_command_line_in_a_subprocess():
     """The issue's example, end to end: message alone on stderr, status 2; --debug keeps the traceback."""
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
