@@ -113,3 +113,45 @@ def test_bootstrap_interval_matches_the_standard_error_and_narrows_with_episodes
     np.testing.assert_array_equal(per_frame_curve(values).ci_low, curve.ci_low)  # deterministic
     one = per_frame_curve(values[:1])
     np.testing.assert_array_equal(one.ci_low, one.mean)
+
+
+def test_shared_reference_gives_the_same_numbers_as_scoring_alone():
+    """Ground-truth flows and features computed once per split (evaluate_videos) change no number: every
+    metric and curve equals scoring each model on its own, and the FID/FVD curves equal Frechet distances
+    of features computed window by window."""
+    from sword_jax.evaluation.harness import evaluate_model
+    from sword_jax.metrics.flolpips import farneback_flow, farneback_flows
+    from sword_jax.metrics.frechet import frechet_distance_from_features
+
+    import jax.numpy as jnp
+
+    cfg = EvalConfig(allow_random_weights=True, metric_batch_size=8, fvd_clip_frames=9, horizon_window=4)
+    suite = MetricSuite(cfg, metrics=("lpips", "flolpips", "psnr", "ssim"))
+    # Inception / I3D stand-ins (the networks are tested elsewhere; this checks how features are reused):
+    # per-frame and per-clip colour statistics, so the Frechet distances are real and differ per window.
+    suite.metrics += ("fid", "fvd")
+    suite._inception = lambda x: jnp.concatenate([x.mean((1, 2)), x.std((1, 2)), x[:, ::8, ::8, 0].reshape(len(x), -1)], -1)
+    suite._i3d = lambda x: jnp.concatenate([x.mean((1, 2, 3)), x.std((1, 2, 3)), x[:, ::3, ::16, ::16, 1].reshape(len(x), -1)], -1)
+    gt = _videos(0, b=5, t=19, size=32)
+    rng = np.random.default_rng(3)
+    preds = {name: np.clip(gt + scale * rng.standard_normal(gt.shape).astype(np.float32), 0, 1)
+             for name, scale in (("a", 0.05), ("b", 0.2))}
+    shared = evaluate_videos(suite, {"s": gt}, {k: {"s": v} for k, v in preds.items()}, given_frames=1,
+                             horizon_window=4, progress=lambda _: None)
+    for name, pred in preds.items():
+        alone = evaluate_model(suite, gt, pred, given_frames=1, horizon_window=4)
+        assert shared.models["s"][name].overall == alone.overall
+        assert shared.models["s"][name].curves == alone.curves
+        scored_p, scored_g = pred[:, 1:], gt[:, 1:]
+        fid_first = frechet_distance_from_features(suite.inception_features(scored_p[:, :4].reshape(-1, 32, 32, 3)),
+                                                   suite.inception_features(scored_g[:, :4].reshape(-1, 32, 32, 3)))
+        np.testing.assert_allclose(alone.curves["fid"]["mean"][0], fid_first, rtol=1e-9)
+        fvd_second = frechet_distance_from_features(suite.i3d_features(scored_p[:, 9:18]),
+                                                    suite.i3d_features(scored_g[:, 9:18]))
+        np.testing.assert_allclose(alone.curves["fvd"]["mean"][1], fvd_second, rtol=1e-9)
+    assert set(suite.seconds) == {"lpips", "psnr", "ssim", "flolpips", "fid", "fvd"}
+    threaded = farneback_flows(list(gt), workers=3)
+    for video, flow in zip(gt, threaded):
+        np.testing.assert_array_equal(flow, farneback_flow(video))
+    with pytest.raises(ValueError, match="another ground-truth"):
+        suite.evaluate(gt, preds["a"], reference=suite.reference(preds["b"]))

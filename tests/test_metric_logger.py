@@ -60,3 +60,29 @@ def test_metric_logger_without_tensorboardx_warns_once_and_keeps_jsonl(tmp_path,
     assert len([w for w in record if "TensorBoard" in str(w.message)]) == 1
     assert len((tmp_path / "m1.jsonl").read_text().splitlines()) == 3
     assert not glob.glob(str(tmp_path / "tb*" / "events*"))
+
+
+def test_prefetched_batches_arrive_in_step_order_and_errors_at_their_step():
+    import threading
+
+    import pytest
+
+    from sword_jax.prefetch import prefetched
+
+    threads = set()
+
+    def make(step):
+        threads.add(threading.current_thread().name)
+        if step == 7:
+            raise RuntimeError("bad episode at step 7")
+        return step * 10
+
+    got = []
+    with pytest.raises(RuntimeError, match="step 7"):
+        for batch in prefetched(make, range(3, 12), depth=3):
+            got.append(batch)
+    assert got == [30, 40, 50, 60]  # everything before the failing step, in order
+    assert all(name.startswith("prefetch") for name in threads)
+    assert list(prefetched(lambda s: -s, range(1, 6), depth=1)) == [-1, -2, -3, -4, -5]
+    with pytest.raises(ValueError, match="depth"):
+        next(prefetched(make, range(3), depth=0))

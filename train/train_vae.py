@@ -28,6 +28,7 @@ import configs
 from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
+from sword_jax.prefetch import prefetched
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
 from sword_jax.world_model import checkpoint
@@ -117,9 +118,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,
                                      jsonl_path=os.path.join(args.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(args.workdir, "tensorboard"))
+    # Batches are a pure function of the step (exact resume), made one step ahead on a host thread.
+    batches = prefetched(sampler.batch, range(start + 1, cfg.vae.train_steps + 1)) if sampler is not None else None
     for step in range(start + 1, cfg.vae.train_steps + 1):
-        if sampler is not None:  # a pure function of the step: exact resume
-            host = sampler.batch(step)
+        if batches is not None:
+            host = next(batches)
         else:
             side = cfg.data.image_size
             host = np.asarray(vae_train.moving_squares(key=jax.random.key(step), batch=cfg.vae.batch_size,

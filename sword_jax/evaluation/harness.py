@@ -25,7 +25,7 @@ from sword_jax.evaluation.horizon import Curve, horizon_windows, per_frame_curve
 from sword_jax.evaluation.probe import FidelityScorer
 from sword_jax.evaluation.results import EvalResults, ModelResult
 from sword_jax.metrics.frechet import frechet_distance_from_features
-from sword_jax.metrics.suite import MetricSuite
+from sword_jax.metrics.suite import MetricSuite, Reference
 
 ProgressFn = Callable[[str], None]
 
@@ -43,7 +43,7 @@ def _window_curve(features_pred: list[np.ndarray], features_gt: list[np.ndarray]
 
 def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"], *,
                    horizon_window: int = 16, given_frames: int = 1, fidelity: FidelityScorer | None = None,
-                   truth: dict[str, np.ndarray] | None = None) -> ModelResult:
+                   truth: dict[str, np.ndarray] | None = None, reference: Reference | None = None) -> ModelResult:
     """Every metric of one model's predictions against ground truth (frames ``given_frames``..T-1).
 
     Args:
@@ -54,27 +54,29 @@ def evaluate_model(suite: MetricSuite, gt: Float[np.ndarray, "b t h w 3"], pred:
         the context chunk); excluded from every metric. Curves count horizon from frame 0.
       fidelity: action-following probe / success detector (:mod:`sword_jax.evaluation.probe`).
       truth: per-episode ``targets [B, T, 7]`` / ``rewards [B, T]`` of the ground truth (optional).
+      reference: ``suite.reference`` of the scored ground-truth frames (``gt[:, given_frames:]``), where
+        several models are scored against the same ground truth (:func:`evaluate_videos`).
     """
     if not 0 <= given_frames < gt.shape[1] - 1:
         raise ValueError(f"given_frames={given_frames} leaves fewer than 2 of {gt.shape[1]} frames to score")
     gt = np.asarray(gt, np.float32)[:, given_frames:]
     pred = np.asarray(pred, np.float32)[:, given_frames:]
-    metrics = suite.evaluate(gt, pred)
+    reference = reference if reference is not None else suite.reference(gt)
+    metrics = suite.evaluate(gt, pred, reference=reference)
     curves = {name: per_frame_curve(values, frame_offset=given_frames).to_dict() for name, values in metrics.per_frame.items()}
     t = gt.shape[1]
-    if "fid" in suite.metrics:
+    if metrics.inception is not None:  # FID per horizon window, from the features FID was computed on
         windows = horizon_windows(t, min(horizon_window, t))
-        feats_p = suite.inception_features(pred.reshape(-1, *pred.shape[2:])).reshape(pred.shape[0], t, -1)
-        feats_g = suite.inception_features(gt.reshape(-1, *gt.shape[2:])).reshape(gt.shape[0], t, -1)
+        feats_p, feats_g = metrics.inception, reference.inception
         curve = _window_curve([feats_p[:, lo:hi].reshape(-1, feats_p.shape[-1]) for lo, hi in windows],
                               [feats_g[:, lo:hi].reshape(-1, feats_g.shape[-1]) for lo, hi in windows], windows)
         if curve is not None:
             curves["fid"] = Curve(curve.frames + given_frames, curve.mean, curve.stderr).to_dict()
-    if "fvd" in suite.metrics and t >= suite.config.fvd_clip_frames:
+    if metrics.i3d is not None:  # FVD per clip: FVD's clips are the horizon's consecutive windows
         clip = suite.config.fvd_clip_frames
         windows = horizon_windows(t, clip)
-        curve = _window_curve([suite.i3d_features(pred[:, lo:hi]) for lo, hi in windows],
-                              [suite.i3d_features(gt[:, lo:hi]) for lo, hi in windows], windows)
+        curve = _window_curve([metrics.i3d[:, i] for i in range(len(windows))],
+                              [reference.i3d[:, i] for i in range(len(windows))], windows)
         if curve is not None:
             curves["fvd"] = Curve(curve.frames + given_frames, curve.mean, curve.stderr).to_dict()
     overall = dict(metrics.overall)
@@ -111,6 +113,9 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
     models: dict[str, dict[str, ModelResult]] = {}
     for split, gt in gt_by_split.items():
         models[split] = {}
+        if not 0 <= given_frames < gt.shape[1] - 1:
+            raise ValueError(f"given_frames={given_frames} leaves fewer than 2 of {gt.shape[1]} frames to score")
+        reference = suite.reference(np.asarray(gt, np.float32)[:, given_frames:])  # shared by every model
         for model, per_split in predictions.items():
             if split not in per_split:
                 raise KeyError(f"model {model!r} has no predictions for split {split!r}")
@@ -118,7 +123,7 @@ def evaluate_videos(suite: MetricSuite, gt_by_split: dict[str, np.ndarray],
                 raise ValueError(f"{model}/{split}: predictions {per_split[split].shape} != ground truth {gt.shape}")
             models[split][model] = evaluate_model(suite, gt, per_split[split], horizon_window=horizon_window,
                                                   given_frames=given_frames, fidelity=fidelity,
-                                                  truth=(truth_by_split or {}).get(split))
+                                                  truth=(truth_by_split or {}).get(split), reference=reference)
             summary = ", ".join(f"{k}={v:.4g}" for k, v in models[split][model].overall.items())
             progress(f"[evaluate] {split} / {model}: {summary}")
     return EvalResults(suite.metrics, models, suite.random_weight_networks, suite.describe_weights(), settings or {})

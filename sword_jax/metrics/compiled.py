@@ -99,13 +99,16 @@ def clear() -> None:
 
 def batched(fn: Callable, inputs: tuple[np.ndarray, ...], batch: int) -> np.ndarray:
     """Calls ``fn`` on chunks of exactly ``batch`` rows (the last one padded by repeating its last
-    row, so one compilation per input shape) and concatenates the valid rows."""
+    row, so one compilation per input shape) and concatenates the valid rows.
+
+    Every chunk is dispatched before any result is read back, so copying the next chunk to the device
+    overlaps the current one's compute."""
     n = inputs[0].shape[0]
-    outs = []
+    pending = []
     for start in range(0, n, batch):
         chunk = [x[start : start + batch] for x in inputs]
         valid = chunk[0].shape[0]
         if valid < batch:
             chunk = [np.concatenate([c, np.repeat(c[-1:], batch - valid, axis=0)]) for c in chunk]
-        outs.append(np.asarray(fn(*[jnp.asarray(c) for c in chunk]))[:valid])
-    return np.concatenate(outs)
+        pending.append((fn(*[jnp.asarray(c) for c in chunk]), valid))
+    return np.concatenate([np.asarray(out)[:valid] for out, valid in pending])

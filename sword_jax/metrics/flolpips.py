@@ -15,6 +15,10 @@ Deviations from danier97/flolpips, both documented:
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import jax.numpy as jnp
 import numpy as np
@@ -47,6 +51,19 @@ def farneback_flow(video: Float[np.ndarray, "t h w 3"]) -> Float[np.ndarray, "tm
     return np.stack(flows).astype(np.float32)
 
 
+def farneback_flows(videos: Sequence[np.ndarray], *, workers: int | None = None) -> list[np.ndarray]:
+    """:func:`farneback_flow` of every video, on ``workers`` host threads (default: every core).
+
+    OpenCV releases the GIL inside Farneback, so threads scale with cores; the result is identical to
+    calling :func:`farneback_flow` on each video in turn.
+    """
+    workers = workers or os.cpu_count() or 1
+    if workers <= 1 or len(videos) <= 1:
+        return [farneback_flow(v) for v in videos]
+    with ThreadPoolExecutor(max_workers=min(workers, len(videos))) as pool:
+        return list(pool.map(farneback_flow, videos))
+
+
 def flow_weighted_lpips(lpips: LPIPS, frames_ref: Float[Array, "n h w 3"], frames_dis: Float[Array, "n h w 3"],
                         flow_diff: Float[Array, "n h w 2"]) -> Float[Array, " n"]:
     """FloLPIPS' per-frame score on given flow differences (``FloLPIPS.forward(..., normalize=True)``).
@@ -74,7 +91,8 @@ def flow_weighted_lpips(lpips: LPIPS, frames_ref: Float[Array, "n h w 3"], frame
 
 
 def flolpips_video(lpips: LPIPS, ref_video: Float[np.ndarray, "t h w 3"], dis_video: Float[np.ndarray, "t h w 3"],
-                   *, score_fn=None) -> Float[np.ndarray, " tm1"]:
+                   *, score_fn=None, ref_flow: np.ndarray | None = None,
+                   dis_flow: np.ndarray | None = None) -> Float[np.ndarray, " tm1"]:
     """Per-frame FloLPIPS of one video pair (its mean over t is the video's FloLPIPS).
 
     Args:
@@ -82,6 +100,7 @@ def flolpips_video(lpips: LPIPS, ref_video: Float[np.ndarray, "t h w 3"], dis_vi
       ref_video, dis_video: RGB videos in [0, 1], same shape, T >= 2.
       score_fn: optional compiled ``(frames_ref, frames_dis, flow_diff) -> [N]`` (defaults to an
         eager call of :func:`flow_weighted_lpips`).
+      ref_flow, dis_flow: the videos' :func:`farneback_flow`, where already computed.
 
     Returns:
       Scores for t = 0..T-2 (host float32).
@@ -89,6 +108,8 @@ def flolpips_video(lpips: LPIPS, ref_video: Float[np.ndarray, "t h w 3"], dis_vi
     ref_video, dis_video = np.asarray(ref_video, np.float32), np.asarray(dis_video, np.float32)
     if ref_video.shape != dis_video.shape:
         raise ValueError(f"videos differ in shape: {ref_video.shape} vs {dis_video.shape}")
-    flow_diff = farneback_flow(ref_video) - farneback_flow(dis_video)
+    ref_flow = farneback_flow(ref_video) if ref_flow is None else ref_flow
+    dis_flow = farneback_flow(dis_video) if dis_flow is None else dis_flow
+    flow_diff = ref_flow - dis_flow
     fn = score_fn or (lambda r, d, f: flow_weighted_lpips(lpips, r, d, f))
     return np.asarray(fn(jnp.asarray(ref_video[:-1]), jnp.asarray(dis_video[:-1]), jnp.asarray(flow_diff)))

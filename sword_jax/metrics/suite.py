@@ -10,12 +10,18 @@ process (every suite, every evaluation stage in one process shares them), and co
     non-overlapping ``fvd_clip_frames`` clips after the common FVD resize/crop, unbiased covariance
     as common_metrics_on_video_quality's styleganv method).
 
-Videos are host arrays ``[B, T, H, W, 3]`` in [0, 1].
+Videos are host arrays ``[B, T, H, W, 3]`` in [0, 1]. Everything computed from the ground truth alone
+(its optical flow, Inception and I3D features) can be computed once with :meth:`MetricSuite.reference`
+and shared by every prediction scored against it; :attr:`MetricSuite.seconds` accumulates the wall time
+per metric.
 """
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import dataclasses
+import time
 
 import jax
 import numpy as np
@@ -23,7 +29,7 @@ from jaxtyping import Float
 
 from sword_jax.metrics import compiled
 from sword_jax.metrics.config import EvalConfig
-from sword_jax.metrics.flolpips import flolpips_video
+from sword_jax.metrics.flolpips import farneback_flows, flolpips_video
 from sword_jax.metrics.frechet import frechet_distance_from_features
 from sword_jax.metrics.image_quality import psnr, ssim
 from sword_jax.metrics.networks import MetricNetwork
@@ -44,10 +50,31 @@ class VideoMetrics:
     Attributes:
       per_frame: ``{"lpips"|"psnr"|"ssim": [B, T], "flolpips": [B, T-1]}``.
       overall: scalar per metric (per-frame metrics averaged, FID/FVD over the whole set).
+      inception, i3d: the prediction's features (``[B, T, 2048]`` per frame; ``[B, T // clip, 400]`` per
+        clip), where FID / FVD were computed, for horizon curves without a second forward pass.
     """
 
     per_frame: dict[str, np.ndarray]
     overall: dict[str, float]
+    inception: np.ndarray | None = None
+    i3d: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class Reference:
+    """What the metrics need from a ground-truth video batch alone, computed once per batch.
+
+    Attributes:
+      video: the ground truth ``[B, T, H, W, 3]`` float32 in [0, 1].
+      flows: per video, Farneback flow between consecutive frames ``[T-1, H, W, 2]`` (FloLPIPS).
+      inception: pool3 features ``[B, T, 2048]`` (FID).
+      i3d: I3D logits per non-overlapping clip ``[B, T // clip, 400]`` (FVD).
+    """
+
+    video: np.ndarray
+    flows: list[np.ndarray] | None = None
+    inception: np.ndarray | None = None
+    i3d: np.ndarray | None = None
 
 
 class MetricSuite:
@@ -78,6 +105,7 @@ class MetricSuite:
             self.networks["fvd"] = compiled.network("fvd", config)
             self._i3d = compiled.forward("fvd", "logits", config)
         self._psnr, self._ssim = _psnr, _ssim
+        self.seconds: collections.Counter = collections.Counter()  # wall time per metric, accumulated
 
     @property
     def random_weight_networks(self) -> list[str]:
@@ -103,37 +131,87 @@ class MetricSuite:
         clips = videos[:, : n_clips * clip].reshape(b * n_clips, clip, *videos.shape[2:])
         return _batched(self._i3d, (clips,), max(1, self.config.metric_batch_size // 4))
 
-    def evaluate(self, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"]) -> VideoMetrics:
-        """Every configured metric of ``pred`` against ``gt``.
+    def reference(self, gt: Float[np.ndarray, "b t h w 3"]) -> Reference:
+        """The ground truth's flows and features for the configured metrics (pass to :meth:`evaluate`).
 
         Raises:
-          ValueError: shape mismatch, NaN/Inf, values outside [0, 1].
+          ValueError: not ``[B, T, H, W, 3]``, NaN/Inf, values outside [0, 1].
+        """
+        gt = np.asarray(gt, np.float32)
+        if gt.ndim != 5 or gt.shape[-1] != 3:
+            raise ValueError(f"ground truth must be [B, T, H, W, 3], got {gt.shape}")
+        check_range(gt, 0.0, 1.0, "ground-truth video")
+        ref = Reference(gt)
+        b, t = gt.shape[:2]
+        if "flolpips" in self.metrics and t >= 2:
+            with self._timed("flolpips"):
+                ref.flows = farneback_flows(list(gt))
+        if "fid" in self.metrics:
+            with self._timed("fid"):
+                ref.inception = self.inception_features(gt.reshape(b * t, *gt.shape[2:])).reshape(b, t, -1)
+        if "fvd" in self.metrics and t >= self.config.fvd_clip_frames:
+            with self._timed("fvd"):
+                ref.i3d = self.i3d_features(gt).reshape(b, t // self.config.fvd_clip_frames, -1)
+        return ref
+
+    @contextlib.contextmanager
+    def _timed(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - start
+
+    def evaluate(self, gt: Float[np.ndarray, "b t h w 3"], pred: Float[np.ndarray, "b t h w 3"], *,
+                 reference: Reference | None = None) -> VideoMetrics:
+        """Every configured metric of ``pred`` against ``gt``.
+
+        Args:
+          gt, pred: videos in [0, 1], same shape.
+          reference: :meth:`reference` of ``gt``, where several predictions are scored against it.
+
+        Raises:
+          ValueError: shape mismatch, NaN/Inf, values outside [0, 1], a reference of another video.
         """
         gt, pred = np.asarray(gt, np.float32), np.asarray(pred, np.float32)
         if gt.shape != pred.shape or gt.ndim != 5 or gt.shape[-1] != 3:
             raise ValueError(f"gt {gt.shape} and pred {pred.shape} must both be [B, T, H, W, 3]")
-        check_range(gt, 0.0, 1.0, "ground-truth video")
         check_range(pred, 0.0, 1.0, "predicted video")
+        if reference is None:
+            reference = self.reference(gt)
+        elif reference.video.shape != gt.shape or not (reference.video is gt or np.array_equal(reference.video, gt)):
+            raise ValueError("reference was computed from another ground-truth video")
         b, t = gt.shape[:2]
         frames_gt, frames_pred = gt.reshape(b * t, *gt.shape[2:]), pred.reshape(b * t, *pred.shape[2:])
         per_frame: dict[str, np.ndarray] = {}
         batch = self.config.metric_batch_size
         if "lpips" in self.metrics:
-            per_frame["lpips"] = _batched(self._lpips, (frames_gt, frames_pred), batch).reshape(b, t)
+            with self._timed("lpips"):
+                per_frame["lpips"] = _batched(self._lpips, (frames_gt, frames_pred), batch).reshape(b, t)
         if "psnr" in self.metrics:
-            per_frame["psnr"] = _batched(self._psnr, (frames_pred, frames_gt), batch).reshape(b, t)
+            with self._timed("psnr"):
+                per_frame["psnr"] = _batched(self._psnr, (frames_pred, frames_gt), batch).reshape(b, t)
         if "ssim" in self.metrics:
-            per_frame["ssim"] = _batched(self._ssim, (frames_pred, frames_gt), batch).reshape(b, t)
+            with self._timed("ssim"):
+                per_frame["ssim"] = _batched(self._ssim, (frames_pred, frames_gt), batch).reshape(b, t)
         if "flolpips" in self.metrics and t >= 2:
-            lpips_net = self.networks["flolpips"].module
-            per_frame["flolpips"] = np.stack(
-                [flolpips_video(lpips_net, g, p, score_fn=self._flow_weighted) for g, p in zip(gt, pred)]
-            )
+            with self._timed("flolpips"):
+                lpips_net = self.networks["flolpips"].module
+                dis_flows = farneback_flows(list(pred))
+                per_frame["flolpips"] = np.stack(
+                    [flolpips_video(lpips_net, g, p, score_fn=self._flow_weighted, ref_flow=rf, dis_flow=df)
+                     for g, p, rf, df in zip(gt, pred, reference.flows, dis_flows)]
+                )
         overall = {name: float(values.mean()) for name, values in per_frame.items()}
+        inception = i3d = None
         if "fid" in self.metrics:
-            overall["fid"] = frechet_distance_from_features(
-                self.inception_features(frames_pred), self.inception_features(frames_gt)
-            )
+            with self._timed("fid"):
+                inception = self.inception_features(frames_pred).reshape(b, t, -1)
+                overall["fid"] = frechet_distance_from_features(inception.reshape(b * t, -1),
+                                                                reference.inception.reshape(b * t, -1))
         if "fvd" in self.metrics:
-            overall["fvd"] = frechet_distance_from_features(self.i3d_features(pred), self.i3d_features(gt))
-        return VideoMetrics(per_frame, overall)
+            with self._timed("fvd"):
+                i3d = self.i3d_features(pred).reshape(b, t // self.config.fvd_clip_frames, -1)
+                overall["fvd"] = frechet_distance_from_features(i3d.reshape(-1, i3d.shape[-1]),
+                                                                reference.i3d.reshape(-1, reference.i3d.shape[-1]))
+        return VideoMetrics(per_frame, overall, inception, i3d)
