@@ -218,6 +218,31 @@ class DatasetWriter:
         self._total += episode.num_samples
         return name
 
+    def add_file(self, path: str | os.PathLike) -> int:
+        """Appends every episode of another dataset file, in its order; returns how many.
+
+        Episodes are copied as stored (HDF5 object copy: compressed chunks are not decompressed and
+        compressed again), renumbered after the episodes already written; the file's per-episode
+        attributes travel with them. The result equals reading the file and :meth:`add`-ing each
+        episode.
+
+        Raises:
+          DatasetError: ``path`` is not a dataset file (no ``data`` group) or an episode lacks
+            ``num_samples``.
+        """
+        with h5py.File(path, "r") as src:
+            if "data" not in src:
+                raise DatasetError(f"{path}: not a dataset file (no 'data' group)")
+            names = sorted((k for k in src["data"] if k.startswith("demo_")), key=lambda k: int(k.split("_")[1]))
+            for name in names:
+                group = src["data"][name]
+                if "num_samples" not in group.attrs:
+                    raise DatasetError(f"{path}: {name} has no num_samples attribute")
+                src.copy(group, self._data, name=f"demo_{self._count}")
+                self._count += 1
+                self._total += int(group.attrs["num_samples"])
+        return len(names)
+
     def close(self, *, keep: bool = True) -> None:
         """Writes the totals and moves the file into place (``keep=False`` discards it)."""
         if self._file is None:

@@ -271,3 +271,21 @@ def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
         hashes.append(json.loads(done.stdout.rsplit("HASHES ", 1)[1]))
     assert {"data", "vae", "latents[augment=on]", "reward_model"} <= set(hashes[0])
     assert hashes[0] == hashes[1]
+
+
+def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
+    """--no-policy: a comparison-3 run builds no supervised policy and runs no GRPO, and says so."""
+    from train import pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+    results = tmp_path / "results"
+    compare.main(["--size", "tiny", "--runs", "sword", "--seeds", "2", "--no-policy", f"--out={tmp_path / 'w'}",
+                  f"--results={results}"])
+    names = [stage.name for stage in pipeline.STAGES]
+    ran = {name for name, _, _ in calls}
+    assert ran == set(names[:names.index("evaluate") + 1]) and "sft_policy" not in ran
+    record = json.loads((results / "sword_seed2.json").read_text())
+    assert record["policy_stages"] is False and "success_curve" not in record
+    assert record["command"] == "python -m train.compare --size tiny --runs sword --seeds 2 --no-policy"

@@ -157,3 +157,28 @@ def test_missing_file_and_bad_episode_inputs(tmp_path):
             writer.add(seg_bad)
     with h5py.File(tmp_path / "x.hdf5") as f:
         assert "demo_0" not in f["data"]  # a rejected episode leaves nothing behind
+
+
+def test_add_file_equals_adding_each_episode(tmp_path):
+    """Merging files by HDF5 object copy (parallel data generation) gives the file that adding each
+    episode gives: same episodes, numbering, attributes and totals."""
+    first, second = [_episode(5, seed=0), _episode(3, seed=1, depth=False)], [_episode(4, seed=2)]
+    write_dataset(tmp_path / "a.hdf5", first, INFO)
+    write_dataset(tmp_path / "b.hdf5", second, INFO)
+    with DatasetWriter(tmp_path / "merged.hdf5", INFO) as writer:
+        assert writer.add_file(tmp_path / "a.hdf5") == 2
+        assert writer.add_file(tmp_path / "b.hdf5") == 1
+    write_dataset(tmp_path / "direct.hdf5", first + second, INFO)
+    (merged_info, merged), (direct_info, direct) = read_dataset(tmp_path / "merged.hdf5"), read_dataset(tmp_path / "direct.hdf5")
+    assert (merged_info.num_demos, merged_info.total) == (direct_info.num_demos, direct_info.total) == (3, 12)
+    for a, b in zip(merged, direct, strict=True):
+        for name in ("actions", "states", "rewards", "agentview_rgb", "agentview_depth", "agentview_seg", "ee_states"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert (a.task_id, a.model_file, a.language_instruction) == (b.task_id, b.model_file, b.language_instruction)
+    with h5py.File(tmp_path / "merged.hdf5") as m, h5py.File(tmp_path / "direct.hdf5") as d:
+        assert sorted(m["data"]) == sorted(d["data"]) == ["demo_0", "demo_1", "demo_2"]
+        assert dict(m["data/demo_2"].attrs).keys() == dict(d["data/demo_2"].attrs).keys()
+    with h5py.File(tmp_path / "junk.hdf5", "w") as f:
+        f.create_group("other")
+    with DatasetWriter(tmp_path / "never.hdf5", INFO) as writer, pytest.raises(DatasetError, match="no 'data' group"):
+        writer.add_file(tmp_path / "junk.hdf5")

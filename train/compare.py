@@ -260,12 +260,13 @@ def _needs_policy(run: str) -> bool:
     return any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS if not splits)
 
 
-def _stage_names(run: str) -> list[str]:
-    """The pipeline stages a slice of ``run`` goes through (up to the evaluation outside comparison 3)."""
+def _stage_names(run: str, *, policy: bool = True) -> list[str]:
+    """The pipeline stages a slice of ``run`` goes through (up to the evaluation outside comparison 3, or
+    without ``policy``)."""
     from train import pipeline
 
     names = [stage.name for stage in pipeline.STAGES]
-    return names if _needs_policy(run) else names[:names.index("evaluate") + 1]
+    return names if _needs_policy(run) and policy else names[:names.index("evaluate") + 1]
 
 
 def _run_argv(run: str, size: str, seed: int, workdir: str, overrides: Sequence[str]) -> tuple[str, list[str]]:
@@ -273,7 +274,8 @@ def _run_argv(run: str, size: str, seed: int, workdir: str, overrides: Sequence[
     return config, ["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra, *overrides]
 
 
-def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str]) -> tuple[str, dict, list[str]]:
+def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str],
+                 policy: bool = True) -> tuple[str, dict, list[str]]:
     """Builds (or finds) the shared stages ``run`` needs in ``<out>/shared/<run>`` at ``shared_seed``.
 
     Stages another run's shared dir has already made with equal config sections are adopted, not
@@ -289,7 +291,7 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     config, argv = _run_argv(run, size, shared_seed, shared_dir, overrides)
     cfg, _ = configs.from_argv(argv)
     stagerunner.check_workdir_config(cfg, shared_dir)
-    wanted = [name for name in _stage_names(run) if name in SHAREABLE]
+    wanted = [name for name in _stage_names(run, policy=policy) if name in SHAREABLE]
     for other in sorted(glob.glob(os.path.join(out, "shared", "*", "config.json"))):
         donor = os.path.dirname(other)
         if os.path.abspath(donor) != os.path.abspath(shared_dir):
@@ -338,8 +340,11 @@ def slice_record(run: str, seed: int, stages: dict, workdir: str) -> dict:
 
 
 def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, share: bool,
-              overrides: Sequence[str]) -> dict:
-    """Runs one (run, seed) slice (building the shared stages first where missing); returns its record."""
+              overrides: Sequence[str], policy: bool = True) -> dict:
+    """Runs one (run, seed) slice (building the shared stages first where missing); returns its record.
+
+    ``policy=False`` stops a comparison-3 run after its evaluation (no supervised policy, no GRPO): a
+    slice for comparisons 1 and 2 only, recorded as such."""
     import configs
     from train import pipeline
 
@@ -350,11 +355,12 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     cfg, _ = configs.from_argv(argv)
     shared: dict = {"seed": seed, "workdir": None, "built_here": [], "adopted": []}
     if share:
-        shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides)
+        shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides,
+                                                     policy=policy)
         adopted = adopt_stages(workdir, shared_dir, cfg, shared_cfg)
         shared.update(seed=shared_seed, workdir=shared_dir, built_here=built, adopted=adopted)
     shared_seconds = time.perf_counter() - start
-    stages = pipeline.main(argv + ["--stop-after", _stage_names(run)[-1]])
+    stages = pipeline.main(argv + ["--stop-after", _stage_names(run, policy=policy)[-1]])
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
     shared["hashes"] = shared_hashes(cfg, stages)
@@ -364,14 +370,16 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
         "format": SLICE_FORMAT, "size": size, "config": config, "overrides": list(overrides), "started": started,
         **slice_record(run, seed, stages, workdir),
         "stage_seconds": own, "shared": shared, "device": device_info(), "code": code_version(),
+        "policy_stages": policy or not _needs_policy(run),
         "wall_seconds": {"shared": round(shared_seconds, 1), "slice": round(slice_seconds, 1),
                          "hashing": round(time.perf_counter() - hash_start, 1)},
     }
 
 
-def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bool, overrides: Sequence[str]) -> str:
+def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bool, overrides: Sequence[str],
+                  policy: bool = True) -> str:
     """The command that reruns exactly this slice."""
-    argv = ["--size", size, "--runs", run, "--seeds", str(seed)]
+    argv = ["--size", size, "--runs", run, "--seeds", str(seed), *([] if policy else ["--no-policy"])]
     argv += [f"--shared-seed={shared_seed}"] if share and shared_seed else []
     return shlex.join(["python", "-m", "train.compare", *argv, *([] if share else ["--no-share"]), *overrides])
 
@@ -425,6 +433,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--results", default="", help="slice files and table (default benchmarks/results/compare/<size>)")
     parser.add_argument("--shared-seed", type=int, default=0, help="seed of the shared stages (data, VAE, ...)")
     parser.add_argument("--no-share", action="store_true", help="make every stage of every slice from its own seed")
+    parser.add_argument("--no-policy", action="store_true",
+                        help="stop every slice after its world-model evaluation (comparisons 1 and 2 only: no "
+                             "supervised policy, no GRPO)")
     args, overrides = parser.parse_known_args(argv)
     bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
     if bad:
@@ -436,9 +447,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for seed in seeds:
         for run in runs:
             record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
-                               share=not args.no_share, overrides=overrides)
+                               share=not args.no_share, overrides=overrides, policy=not args.no_policy)
             record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
-                                              share=not args.no_share, overrides=overrides)
+                                              share=not args.no_share, overrides=overrides, policy=not args.no_policy)
             record["invocation"] = invocation
             path = os.path.join(results_dir, f"{run}_seed{seed}.json")
             from train.stagerunner import write_json_atomic

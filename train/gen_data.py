@@ -308,7 +308,7 @@ def _generate_parallel(cfg: GenDataConfig, workers: int, progress: bool) -> str:
     import shutil
     import tempfile
 
-    from sim.dataset import DatasetWriter, read_dataset, read_info
+    from sim.dataset import DatasetWriter, read_info
 
     if os.path.exists(cfg.out) and not cfg.overwrite:
         raise FileExistsError(f"{cfg.out} exists (pass overwrite=True / --overwrite to replace it)")
@@ -323,10 +323,8 @@ def _generate_parallel(cfg: GenDataConfig, workers: int, progress: bool) -> str:
         info = _dataset_info(cfg, read_info(files[0]).seg_class_names)
         written = 0
         with DatasetWriter(cfg.out, info, overwrite=cfg.overwrite) as writer:
-            for path in files:
-                for episode in read_dataset(path)[1]:
-                    writer.add(episode)
-                    written += 1
+            for path in files:  # stored chunks copied as they are (no decompress / compress again)
+                written += writer.add_file(path)
         if progress:
             print(f"gen_data: {written} episodes of {len(cfg.tasks)} tasks in {len(files)} processes -> {cfg.out}")
     finally:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from collections.abc import Sequence
 
 import jax
@@ -90,7 +91,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return {"source": cfg.vae.checkpoint, "steps": 0}
     if not args.episodes and not args.synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
+    loaded = time.perf_counter()
     sampler = clip_sampler(cfg, load_clips(args.episodes), 1 + 4 * args.clip_latents) if args.episodes else None
+    if sampler is not None and is_main:
+        print(f"[train_vae] {len(sampler.clips.frames)} training episodes loaded in "
+              f"{time.perf_counter() - loaded:.1f} s", flush=True)
     frames = 1 + 4 * args.clip_latents
     mesh = shd.make_mesh(cfg.mesh)
     graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
@@ -129,6 +134,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                                        frames=frames, size=side))
         batch = {"video": shd.put(host, batch_sharding["video"])}
         state, metrics = step_fn(state, batch, root)
+        if step == start + 1 and is_main:  # compile (and autotuning) time, separate from the step rate
+            jax.block_until_ready(metrics)
+            print(f"[train_vae] first step (compile included) done {time.perf_counter() - loaded:.1f} s after "
+                  "loading began", flush=True)
         logger.push(step, metrics)
         if step % cfg.trainer.checkpoint_every == 0 or step == cfg.vae.train_steps:
             logger.flush()
