@@ -224,6 +224,56 @@ def hash_mismatches(slices: Sequence[dict]) -> dict[str, dict[str, list[str]]]:
     return {key: groups for key, groups in seen.items() if len(groups) > 1}
 
 
+CURVE_METRICS = (("latent_mse", "latent MSE (no VAE error)"), ("lpips", "LPIPS"), ("probe_ee_cm", "end-effector error (cm)"))
+
+
+def plot_horizon_curves(slices: Sequence[dict], path: str, *, runs: tuple[str, str] = ("sword", "teacher_forcing"),
+                        splits: tuple[str, ...] = ("original", "mixed")) -> str | None:
+    """Per-horizon curves of two runs (mean over their seeds, each seed a thin line) -> ``path`` (PNG).
+
+    One panel per (split, metric in :data:`CURVE_METRICS`); the shaded band is the first seed's 95%
+    interval over episodes. Returns ``path``, or ``None`` when neither run has curves.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per_run = {run: [s for s in slices if s["run"] == run and s.get("curves")] for run in runs}
+    if not any(per_run.values()):
+        return None
+    fig, axes = plt.subplots(len(splits), len(CURVE_METRICS), figsize=(5 * len(CURVE_METRICS), 3.6 * len(splits)),
+                             squeeze=False)
+    for row, split in enumerate(splits):
+        for col, (metric, label) in enumerate(CURVE_METRICS):
+            ax = axes[row][col]
+            for colour, run in zip(("tab:red", "tab:blue"), runs):
+                curves = [s["curves"][split][metric] for s in per_run[run]
+                          if metric in s["curves"].get(split, {})]
+                if not curves:
+                    continue
+                frames = np.asarray(curves[0]["frames"])
+                means = np.stack([np.asarray(c["mean"]) for c in curves])
+                for seed_curve in means if len(curves) > 1 else ():
+                    ax.plot(frames, seed_curve, color=colour, lw=0.6, alpha=0.4)
+                band = 1.96 * np.asarray(curves[0].get("stderr", np.zeros_like(frames)))
+                ax.fill_between(frames, means[0] - band, means[0] + band, color=colour, alpha=0.15, lw=0)
+                ax.plot(frames, means.mean(0), color=colour, lw=1.8, label=f"{run} (n={len(curves)})")
+            if metric == "probe_ee_cm":
+                floor = [s["curves"][split].get("probe_floor_ee_cm") for s in per_run[runs[0]]]
+                if floor and floor[0]:
+                    ax.plot(floor[0]["frames"], floor[0]["mean"], color="k", ls="--", lw=1, label="VAE floor")
+            ax.set_title(f"{split}: {label}")
+            ax.set_xlabel("frame (horizon)")
+            ax.grid(alpha=0.3)
+            if row == 0 and col == 0:
+                ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     """Builds ``comparison.{md,json}`` in ``directory`` from its slice files; returns the table.
 
@@ -250,8 +300,10 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     agreed = {k: v for s in slices for k, v in s.get("shared", {}).get("hashes", {}).items() if k not in mismatches}
     listing = [{"file": s["file"], "run": s["run"], "seed": s["seed"], "device": s.get("device", {}).get("kind"),
                 "wall_seconds": s.get("wall_seconds"), "commit": s.get("code", {}).get("commit")} for s in slices]
-    return write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],
-                        shared_input_hashes=agreed, slice_files=listing)
+    table = write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],
+                         shared_input_hashes=agreed, slice_files=listing)
+    plot_horizon_curves(slices, os.path.join(directory, "dlb_vs_teacher_forcing.png"))
+    return table
 
 
 # ---- running slices ----

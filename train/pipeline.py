@@ -21,6 +21,7 @@ import time
 from collections.abc import Sequence
 
 import configs
+from sword_jax.cli import UsageError
 from train import stagerunner
 from train.stagerunner import Context, Stage
 
@@ -138,8 +139,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--only", default="", help="comma-separated stages that may run now (others must be done)")
     parser.add_argument("--stop-after", default="", choices=["", *(s.name for s in STAGES)],
                         help="end after this stage (finished stages are kept; a later run continues)")
+    parser.add_argument("--skip", default="",
+                        help="comma-separated stages to leave out of this run (e.g. probe,evaluate when only the "
+                             "policy is wanted); a later stage that needs one of them fails naming it")
     cfg, rest = configs.from_argv(argv)
     args = parser.parse_args(rest)
+    skip = {s for s in args.skip.split(",") if s}
+    unknown = skip - {s.name for s in STAGES}
+    if unknown:
+        raise UsageError(f"--skip: unknown stage(s) {', '.join(sorted(unknown))}; stages: "
+                         f"{', '.join(s.name for s in STAGES)}")
     name = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"),
                 next((a.split("=", 1)[1] for a in argv if a.startswith("--config=")), configs.DEFAULT))
     overrides = [a for a in argv if a.startswith("--") and a.split("=", 1)[0][2:].split(".")[0]
@@ -155,6 +164,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     stages = STAGES
     if args.stop_after:
         stages = STAGES[:[s.name for s in STAGES].index(args.stop_after) + 1]
+    if skip:
+        stages = [s for s in stages if s.name not in skip]
     results = stagerunner.run_stages(stages, ctx, only=set(args.only.split(",")) if args.only else None)
     if stages is STAGES:
         print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
