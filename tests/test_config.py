@@ -85,3 +85,23 @@ def test_augment_settings_no_pipeline_reads_are_gone():
     for removed in ("mode", "raw_fraction"):
         with pytest.raises(ConfigError):
             configs.from_argv(["--config", "sword:tiny", f"--augment.{removed}=0.5"])
+
+
+def test_eval_metrics_are_configurable_and_checked():
+    import dataclasses
+
+    import pytest
+
+    from sword_jax.metrics.config import EvalConfig
+
+    small = configs_get("small")
+    assert "fid" not in small.eval.metrics and {"lpips", "fvd", "flolpips"} <= set(small.eval.metrics)
+    for bad in ((), ("lpips", "kid"), ("lpips", "lpips")):
+        with pytest.raises(ValueError, match="eval.metrics"):
+            dataclasses.replace(EvalConfig(), metrics=bad).validate()
+
+
+def configs_get(variant):
+    from configs import sword
+
+    return sword.get(variant)

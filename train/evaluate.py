@@ -59,7 +59,8 @@ def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
     parser.add_argument("--episodes", action="append", default=[], metavar="SPLIT=PATH")
     parser.add_argument("--vae-checkpoint", default="")
     parser.add_argument("--synthetic", action="store_true")
-    parser.add_argument("--metrics", default=",".join(ALL_METRICS))
+    parser.add_argument("--metrics", default="", help=f"comma-separated subset of {','.join(ALL_METRICS)} "
+                        "(default: eval.metrics)")
     parser.add_argument("--probe", default="", help="action-following probe (train.train_probe's probe.npz)")
     parser.add_argument("--reward-model", default="", help="success detector (train.train_reward's reward_model dir)")
     cfg, rest = configs.from_argv(list(argv))
@@ -264,7 +265,7 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     rollout_s = time.time() - start  # data, models and rollouts
-    suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m))
+    suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m) or cfg.eval.metrics)
     truth = {s: {key: v[key][:, :horizon] for key in ("targets", "rewards") if key in v} for s, v in splits.items()}
     results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k, horizon_window=cfg.eval.horizon_window,
                               settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name,
