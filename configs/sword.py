@@ -37,7 +37,8 @@ def small() -> ExperimentConfig:
         workdir="runs/sword-small",
         model=DiTConfig(dim=512, ffn_dim=2048, freq_dim=256, num_heads=8, num_layers=8, text_dim=64, text_len=16),
         vae=VAEConfig(dim=32, dec_dim=48, train_steps=2000, batch_size=8),
-        data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32),
+        # + 10 rollouts per task of the supervised policy (successes and failures; see DataConfig).
+        data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32, policy_rollouts_per_task=10),
         trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
         sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
         # 100 held-out episodes x 64 predicted frames (1 + 4 context + 8 x 8), scored with bootstrap intervals.
@@ -63,7 +64,7 @@ def tiny() -> ExperimentConfig:
         model=DiTConfig(dim=32, ffn_dim=64, freq_dim=32, num_heads=2, num_layers=2, text_dim=16, text_len=8,
                         compute_dtype="float32"),
         vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
-        data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2),
+        data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
         sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120),
         eval=EvalConfig(horizon_frames=33, num_episodes=2, allow_random_weights_for=("fid",)),  # published LPIPS/FVD: ~2 s more on CPU

@@ -129,6 +129,8 @@ def _fake_stages(calls):
                 out = {"metrics": {s: {m: r["overall"] for m, r in p.items()} for s, p in per_split.items()}}
             elif name in ("probe", "reward_model", "sft_policy"):
                 out = {"loss": 0.5}
+            elif name == "policy_data":
+                out = {"path": "", "episodes": 0}
             elif name == "policy":
                 grpo_dir = ctx.path("rl", "grpo")
                 os.makedirs(grpo_dir, exist_ok=True)
@@ -285,7 +287,7 @@ def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
                   f"--results={results}"])
     names = [stage.name for stage in pipeline.STAGES]
     ran = {name for name, _, _ in calls}
-    assert ran == set(names[:names.index("evaluate") + 1]) and "sft_policy" not in ran
+    assert ran == set(names[:names.index("evaluate") + 1]) and "policy" not in ran
     record = json.loads((results / "sword_seed2.json").read_text())
     assert record["policy_stages"] is False and "success_curve" not in record
     assert record["command"] == "python -m train.compare --size tiny --runs sword --seeds 2 --no-policy"

@@ -23,9 +23,11 @@ def test_stop_after_then_resume(tmp_path, monkeypatch):
     assert results["c"]["upstream"] == ["a", "b"]
 
 
-def test_policy_work_is_three_resumable_stages_before_the_report():
+def test_policy_work_is_resumable_stages_around_the_world_model():
     names = [stage.name for stage in pipeline.STAGES]
-    assert names[-3:] == ["sft_policy", "policy", "report"]
+    assert names[-2:] == ["policy", "report"]
     assert names.index("world_model") < names.index("policy")
+    # The supervised policy's own rollouts (successes and failures) join the world model's data.
+    assert names.index("data") < names.index("sft_policy") < names.index("policy_data") < names.index("latents")
     # The probe and the success detector score action following inside the evaluation.
     assert names.index("probe") < names.index("evaluate") and names.index("reward_model") < names.index("evaluate")

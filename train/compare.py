@@ -64,7 +64,8 @@ def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
 SHAREABLE = {
     "data": ("sim", "data", "eval"),
     "vae": ("sim", "data", "vae"),
-    "latents": ("sim", "data", "vae", "augment"),
+    "latents": ("sim", "data", "vae", "augment", "rl"),  # rl: the policy's rollouts join the data
+    "policy_data": ("sim", "data", "rl"),
     "probe": ("sim", "data"),  # the state probe that scores action following, where the pipeline has one
     "reward_model": ("sim", "data", "rl"),
     "sft_policy": ("sim", "data", "rl"),

@@ -104,8 +104,18 @@ def stage_report(ctx: Context) -> dict:
     return pipeline_report.write(ctx)
 
 
+def stage_policy_data(ctx: Context) -> dict:
+    from train import policy_data
+
+    return policy_data.generate(ctx)
+
+
 STAGES = [
     Stage("data", stage_data, "expert demonstrations (train + held-out) in LIBERO's HDF5 layout"),
+    # The supervised policy needs only the demonstrations; it comes early so that its own rollouts
+    # (successes and failures, data.policy_rollouts_per_task) can join the world model's training data.
+    Stage("sft_policy", stage_sft_policy, "the supervised (behaviour-cloned) VLA policy"),
+    Stage("policy_data", stage_policy_data, "the supervised policy's own rollouts for the world model (if enabled)"),
     Stage("vae", stage_vae, "the video VAE (trained from scratch, or official Wan 2.2 weights)"),
     Stage("latents", stage_latents, "encode training episodes and their styled copies to latents"),
     Stage("world_model", stage_world_model, "train the world model (DLB or the configured variant)"),
@@ -113,7 +123,6 @@ STAGES = [
     # Before evaluation: the success detector also scores imagined vs real rollouts there.
     Stage("reward_model", stage_reward_model, "the success detector that rewards imagined rollouts"),
     Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed"),
-    Stage("sft_policy", stage_sft_policy, "the supervised (behaviour-cloned) VLA policy"),
     Stage("policy", stage_policy, "GRPO inside the world model, policy success in the simulator over steps"),
     Stage("report", stage_report, "report.md and results.json"),
 ]

@@ -115,12 +115,12 @@ def fixed_length(episodes, num_frames: int) -> list:
     return out
 
 
-def load_episodes(path: str, num_frames: int):
-    """``(sim episodes, augment.Episodes)`` of a LIBERO-layout file, fixed to ``num_frames``."""
+def load_episodes(path: str | list[str], num_frames: int):
+    """``(sim episodes, augment.Episodes)`` of LIBERO-layout file(s), in order, fixed to ``num_frames``."""
     from sim.dataset import read_dataset
     from sword_jax.augment.episodes import episodes_from_sim
 
-    _, episodes = read_dataset(path)
+    episodes = [e for p in ([path] if isinstance(path, str) else path) for e in read_dataset(p)[1]]
     episodes = fixed_length(episodes, num_frames)
     return episodes, episodes_from_sim(episodes, num_frames=num_frames)
 
@@ -132,12 +132,16 @@ def _vae(ctx: Context):
 
 
 def encode_training_latents(ctx: Context) -> dict:
-    """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model."""
+    """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model: the
+    expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``)."""
     from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
     from sword_jax.vae import api as vae_api
 
     cfg = ctx.cfg
-    _, episodes = load_episodes(ctx.results["data"]["train"]["path"], cfg.data.episode_frames)
+    files = [ctx.results["data"]["train"]["path"]]
+    if ctx.results.get("policy_data", {}).get("path"):
+        files.append(ctx.results["policy_data"]["path"])
+    _, episodes = load_episodes(files, cfg.data.episode_frames)
     graphdef, state = _vae(ctx)
     encode = jax.jit(lambda video: vae_api.encode(graphdef, state, video))
     raw = [np.asarray(encode(episodes.frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)))
@@ -156,7 +160,7 @@ def encode_training_latents(ctx: Context) -> dict:
     actions = np.concatenate(actions).astype(np.float32)
     path = ctx.path("data", "latents.npz")
     np.savez(path, latents=latents, actions=actions)
-    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num),
+    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num), "files": files,
             "styled_copies": copies, "latent_shape": list(latents.shape[1:])}
 
 

@@ -93,6 +93,8 @@ def shared_hashes(cfg, stages: dict) -> dict[str, str]:
         for split in ("train", "heldout"):
             hashes[f"data/{split}"] = hash_episodes(stages["data"][split]["path"])
         hashes["data"] = hashlib.sha256((hashes["data/train"] + hashes["data/heldout"]).encode()).hexdigest()
+    if stages.get("policy_data", {}).get("path"):
+        hashes["data/policy_rollouts"] = hash_episodes(stages["policy_data"]["path"])
     if "vae" in stages:
         hashes["vae"] = hash_vae(cfg, stages["vae"]["path"])
     if "latents" in stages:

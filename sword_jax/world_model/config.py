@@ -32,6 +32,12 @@ class DataConfig:
 
     A segment is the episode's first frame, ``context_frames`` context frames and
     ``predict_frames`` future frames (1 + 4 + 8 = 13 by default).
+
+    ``policy_rollouts_per_task``: episodes per task of the supervised policy acting in the simulator
+    (sampled actions, fixed length, successes and failures alike) added to the world model's training
+    data by the pipeline. Expert episodes alone are ~98% successful, and a world model that never saw
+    an attempt fail imagines success under any policy (measured: GRPO inside it then drove real success
+    down while imagined success rose). 0 = expert episodes only.
     """
 
     path: str = ""
@@ -41,6 +47,7 @@ class DataConfig:
     context_frames: int = 4
     predict_frames: int = 8
     batch_size: int = 4
+    policy_rollouts_per_task: int = 0
 
     def validate(self) -> None:
         if (self.episode_frames - 1) % 4 or self.episode_frames < 1:
@@ -57,6 +64,8 @@ class DataConfig:
             )
         if self.batch_size <= 0:
             raise ValueError(f"data.batch_size must be positive, got {self.batch_size}")
+        if self.policy_rollouts_per_task < 0:
+            raise ValueError(f"data.policy_rollouts_per_task must be >= 0, got {self.policy_rollouts_per_task}")
 
 
 @dataclasses.dataclass(frozen=True)
