@@ -34,10 +34,15 @@ def _demos(ctx: Context) -> str:
 
 
 def reward_model(ctx: Context) -> dict:
+    """The success detector, on the demonstrations plus the supervised policy's own rollouts where the
+    pipeline made them: its failures are the negatives a detector rewarding that policy must know."""
     from train import train_reward
 
-    return _scalars(train_reward.main(
-        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", _demos(ctx))))
+    files = ["--demos", _demos(ctx)]
+    rollouts = ctx.results.get("policy_data", {}).get("path")
+    if rollouts:
+        files += ["--demos", rollouts]
+    return _scalars(train_reward.main(ctx.entry_argv(f"--workdir={ctx.workdir}", *files)))
 
 
 def sft_policy(ctx: Context) -> dict:
