@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -136,13 +135,9 @@ def generate(ctx: Any) -> dict:
                                  max_steps=episode_steps(cfg), stop_at_success=False, wrist_camera=False,
                                  overwrite=True, renderer="jax", init_split="train", init_start=0,
                                  init_seed=cfg.sim.init_seed)
-    os.makedirs(os.path.dirname(gen.out), exist_ok=True)
     summary = write_policy_episodes(gen.out, make_act_fns(graphdef, cfg.rl), params, cfg.rl, gen,
                                     key=stream_key(jax.random.key(cfg.seed), "data/policy_rollouts"))
     if ctx.is_main:
         print(f"[policy_data] {summary['episodes']} policy episodes ({summary['success_rate']:.0%} successful) "
               f"-> {gen.out}", flush=True)
     return summary
-
-
-__all__: Sequence[str] = ("record_policy_episodes", "write_policy_episodes", "generate")

@@ -6,6 +6,9 @@ import dataclasses
 RANDOM_WEIGHT_METRICS = ("lpips", "fid", "fvd")
 
 
+ALL_METRICS = ("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")  # every metric the suite computes
+
+
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     """Long-horizon rollout evaluation and the metric networks' weights.
@@ -38,7 +41,7 @@ class EvalConfig:
     # Metrics the evaluation computes (a subset of lpips, flolpips, psnr, ssim, fid, fvd). FID's InceptionV3
     # has no installable published weights: a config without them may leave "fid" out rather than pay for a
     # random-weight number (on `small` it was 60% of the metric time).
-    metrics: tuple[str, ...] = ("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")
+    metrics: tuple[str, ...] = ALL_METRICS
 
     def validate(self) -> None:
         if (self.horizon_frames - 1) % 4:
@@ -47,9 +50,8 @@ class EvalConfig:
             raise ValueError(f"eval.horizon_frames must be >= 5, got {self.horizon_frames}")
         if self.num_episodes < 1:
             raise ValueError(f"eval.num_episodes must be >= 1, got {self.num_episodes}")
-        known = ("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")
-        if not self.metrics or set(self.metrics) - set(known) or len(set(self.metrics)) < len(self.metrics):
-            raise ValueError(f"eval.metrics must be distinct names among {known}, got {self.metrics}")
+        if not self.metrics or set(self.metrics) - set(ALL_METRICS) or len(set(self.metrics)) < len(self.metrics):
+            raise ValueError(f"eval.metrics must be distinct names among {ALL_METRICS}, got {self.metrics}")
         if self.lpips_net not in ("alex", "vgg"):
             raise ValueError(f"eval.lpips_net must be 'alex' or 'vgg', got {self.lpips_net!r}")
         if set(self.allow_random_weights_for) - set(RANDOM_WEIGHT_METRICS):

@@ -28,14 +28,13 @@ import numpy as np
 from jaxtyping import Float
 
 from sword_jax.metrics import compiled
-from sword_jax.metrics.config import EvalConfig
+from sword_jax.metrics.config import ALL_METRICS, EvalConfig
 from sword_jax.metrics.flolpips import farneback_flows, flolpips_video
 from sword_jax.metrics.frechet import frechet_distance_from_features
 from sword_jax.metrics.image_quality import psnr, ssim
 from sword_jax.metrics.networks import MetricNetwork
 from sword_jax.metrics.preprocess import check_range
 
-ALL_METRICS = ("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")
 LOWER_IS_BETTER = {"lpips": True, "flolpips": True, "psnr": False, "ssim": False, "fid": True, "fvd": True}
 
 _psnr = jax.jit(psnr)
