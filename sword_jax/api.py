@@ -487,18 +487,22 @@ def learned_simulator(
     sample_steps: int | None = None,
     execute_latents: int | None = None,
     proprio_dim: int = 8,
+    proprio_reckoning: Any = None,
 ) -> LearnedSimulator:
     """The world model + VAE as a :class:`~sword_jax.rl.simulator.LearnedSimulator` (one trajectory).
 
     ``sim.init(start) -> state``; ``sim.step(state, chunk [4p, a], key=key) -> (state, frames
     [E, H, W, 3])`` with ``E = 4 * execute_latents`` (default the whole chunk); ``sim.observe(state)
-    -> (proprio, valid=0)``. The GRPO step (:func:`sword_jax.rl.grpo.make_train_step`) and the envs
+    -> (proprio, valid)``. The GRPO step (:func:`sword_jax.rl.grpo.make_train_step`) and the envs
     below take it; its weights are pytree leaves, so pass it to jit as an argument.
 
     Args:
       sample_steps: Euler steps per chunk (default ``spec.flow.sample_steps``).
       execute_latents: predicted latents executed per step before the policy re-plans.
-      proprio_dim: size of the (invalid) proprio observation.
+      proprio_dim: size of the proprio observation.
+      proprio_reckoning: a :class:`sword_jax.rl.proprio_reckoning.ReckoningConfig` (the
+        environment's action convention) to dead-reckon proprio from the executed actions, reported
+        valid; None (default) reports it invalid.
     """
     from sword_jax.rl.world_model_sim import world_model_simulator
 
@@ -508,7 +512,7 @@ def learned_simulator(
         model.world_model_graphdef, model.world_model_params, model.vae_graphdef, model.vae_params,
         flow_cfg=spec.flow, frame_size=spec.image_size, num_context=spec.num_context, num_future=spec.num_future,
         sample_steps=sample_steps, action_dim=spec.action_dim, latent_size=spec.latent_size,
-        proprio_dim=proprio_dim, execute_latents=execute_latents)
+        proprio_dim=proprio_dim, execute_latents=execute_latents, proprio_reckoning=proprio_reckoning)
 
 
 def _reward_model(model: LoadedWorldModel, reward_model: RewardModel | Callable | None) -> RewardModel:

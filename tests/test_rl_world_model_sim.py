@@ -14,8 +14,8 @@ from sword_jax.rl.simulator import StartState, toy_reward_model
 from sword_jax.rl.world_model_sim import encode_keyframes, world_model_simulator
 
 
-@pytest.mark.slow
-def test_world_model_simulator_rollout_deterministic_and_streams_frames():
+def _tiny_models():
+    """``(cfg, wm_graphdef, wm_state, vae_graphdef, vae_state)``: the tiny world model and VAE, random weights."""
     from sword_jax.dit.world_model import WorldModel
     from sword_jax.vae import api as vae_api
 
@@ -23,6 +23,12 @@ def test_world_model_simulator_rollout_deterministic_and_streams_frames():
     with nnx.use_eager_sharding(False):
         wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
     vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    return cfg, wm_graphdef, wm_state, vae_graphdef, vae_state
+
+
+@pytest.mark.slow
+def test_world_model_simulator_rollout_deterministic_and_streams_frames():
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
     frames = jax.random.uniform(jax.random.key(2), (2, 32, 32, 3))
     latents = encode_keyframes(vae_graphdef, vae_state, frames)
     assert latents.shape == (2, 2, 2, 2, cfg.vae.z_dim)
@@ -48,14 +54,9 @@ def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatc
     """Frame t carries the action taken after seeing it (world_model/data.py). The policy acts on the
     last context frame, so its first action must fill that frame's slot, not the first predicted
     frame's; the start's real first/context actions (not zeros) condition the first chunk."""
-    from sword_jax.dit.world_model import WorldModel
     from sword_jax.rl import world_model_sim
-    from sword_jax.vae import api as vae_api
 
-    cfg = configs.get("sword:tiny")
-    with nnx.use_eager_sharding(False):
-        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
-    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
     captured = []
 
     def fake_predict(model_fn, first, context, actions, *, key, num_future, cfg, num_steps):
@@ -95,15 +96,10 @@ def test_pixel_round_trip_sets_the_learned_simulators_next_context(monkeypatch):
     (as in evaluation's rollout), not the predicted latent itself."""
     import dataclasses
 
-    from sword_jax.dit.world_model import WorldModel
     from sword_jax.rl import world_model_sim
-    from sword_jax.vae import api as vae_api
     from sword_jax.world_model.rollout import make_pixel_round_trip
 
-    cfg = configs.get("sword:tiny")
-    with nnx.use_eager_sharding(False):
-        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
-    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
     future = jax.random.normal(jax.random.key(3), (1, 2, 2, 2, cfg.vae.z_dim))
     monkeypatch.setattr(world_model_sim, "predict_chunk", lambda *a, **k: future)
     latents = jax.random.normal(jax.random.key(4), (2, 2, 2, cfg.vae.z_dim))
@@ -123,14 +119,9 @@ def test_pixel_round_trip_sets_the_learned_simulators_next_context(monkeypatch):
 def test_replanning_every_latent_executes_four_actions_and_keeps_their_frames(monkeypatch):
     """execute_latents=1: the model predicts from the whole chunk, the first latent (4 frames, the
     chunk's first 4 actions) becomes context, the policy re-plans; GRPO sees only executed tokens."""
-    from sword_jax.dit.world_model import WorldModel
     from sword_jax.rl import world_model_sim
-    from sword_jax.vae import api as vae_api
 
-    cfg = configs.get("sword:tiny")
-    with nnx.use_eager_sharding(False):
-        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
-    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
     captured = []
 
     def fake_predict(model_fn, first, context, actions, *, key, num_future, cfg, num_steps):
@@ -162,14 +153,9 @@ def test_replanning_every_latent_executes_four_actions_and_keeps_their_frames(mo
 
 @pytest.mark.slow
 def test_imagined_rollout_replanning_every_latent_records_executed_tokens():
-    from sword_jax.dit.world_model import WorldModel
     from sword_jax.rl import grpo
-    from sword_jax.vae import api as vae_api
 
-    cfg = configs.get("sword:tiny")
-    with nnx.use_eager_sharding(False):
-        wm_graphdef, wm_state = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)))
-    vae_graphdef, vae_state = nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
     frames = jax.random.uniform(jax.random.key(2), (2, 32, 32, 3))
     latents = encode_keyframes(vae_graphdef, vae_state, frames)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
@@ -191,3 +177,31 @@ def test_imagined_rollout_replanning_every_latent_records_executed_tokens():
 def test_imagined_execute_steps_must_be_whole_latents_dividing_the_chunk(steps):
     with pytest.raises(ValueError, match="imagined_execute_steps"):
         RLConfig(imagined_execute_steps=steps).validate()
+
+
+def test_reckoned_proprio_follows_the_executed_actions_and_is_valid():
+    """With proprio reckoning the policy reads the start proprio integrated over the executed actions
+    (only the executed ones, when the simulator re-plans before the chunk ends)."""
+    from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    frames = jax.random.uniform(jax.random.key(2), (1, 32, 32, 3))
+    latents = encode_keyframes(vae_graphdef, vae_state, frames)
+    proprio = jnp.asarray([0.1, 0.0, 1.0, 0.0, 0.0, 0.5, 0.04, -0.04], jnp.float32)
+    start = StartState(frames[0], proprio, jnp.zeros((32,), jnp.int32), latents[0])
+    chunk = jax.random.uniform(jax.random.key(3), (8, 7), minval=-1.0, maxval=1.0)
+    reck = ReckoningConfig(rot_gain=(1.0, 1.0, 0.4))
+    for execute_latents in (1, 2):
+        sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
+                                    sample_steps=1, execute_latents=execute_latents, proprio_reckoning=reck)
+        state = sim.init(start)
+        p0, valid0 = sim.observe(state)
+        np.testing.assert_allclose(np.asarray(p0), np.asarray(proprio))
+        state, _ = sim.step(state, chunk, key=jax.random.key(4))
+        p1, valid1 = sim.observe(state)
+        assert float(valid0) == float(valid1) == 1.0
+        want = reckon(proprio, chunk[:4 * execute_latents], reck)[-1]
+        np.testing.assert_allclose(np.asarray(p1), np.asarray(want), atol=1e-5)
+    plain = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
+                                  sample_steps=1)
+    assert float(plain.observe(plain.init(start))[1]) == 0.0

@@ -67,10 +67,30 @@ def _toy_setup(cfg, rl):
     return sim, reward_model, starts, eval_start
 
 
+def sim_reckoning(episodes):
+    """The simulator controller's action convention as a proprio ReckoningConfig, with the realised
+    fraction of each commanded axis fitted to ``episodes`` (an ``rl.data.EpisodeSet``)."""
+    from sim import controller, panda
+    from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains
+
+    ctl = controller.ControllerConfig()
+    base = ReckoningConfig(pos_scale=ctl.pos_scale, rot_scale=ctl.rot_scale, finger_open=panda.FINGER_OPEN,
+                           finger_closed_target=panda.FINGER_CLOSED_TARGET)
+    cfg = fit_gains(episodes.proprio, episodes.actions, base, lengths=episodes.lengths)
+    print(f"grpo: imagined proprio reckoned from actions, gains pos {[round(g, 3) for g in cfg.pos_gain]} "
+          f"rot {[round(g, 3) for g in cfg.rot_gain]} (fitted to {len(episodes.lengths)} demonstrations)")
+    return cfg
+
+
 def _world_model_setup(cfg, rl, args):
     from train.evaluate import _vae_state, _world_model_state
     from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
+    episodes = rl_data.load_episodes(args.demos)
+    if rl.imagined_proprio == "reckoned" and rl.proprio_dim != 8:
+        raise ValueError(f"rl.imagined_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
+                         f"{rl.proprio_dim} (use --rl.imagined_proprio=missing)")
+    reckoning = sim_reckoning(episodes) if rl.imagined_proprio == "reckoned" else None
     wm_graphdef, wm_state = _world_model_state(cfg, args.world_model)
     vae_graphdef, vae_state = _vae_state(cfg, args.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
@@ -78,11 +98,11 @@ def _world_model_setup(cfg, rl, args):
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
                                 num_context=cfg.data.context_frames // 4, num_future=cfg.data.predict_frames // 4,
                                 action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // 4)
+                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // 4,
+                                proprio_reckoning=reckoning)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
-    episodes = rl_data.load_episodes(args.demos)
 
     def starts(key, step):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same

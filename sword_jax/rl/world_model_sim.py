@@ -19,7 +19,9 @@ rollout ``vmap``s over trajectories (XLA folds the vmapped axis into the batch d
 The decoder cache is warmed in ``init`` by decoding the start latents, so its static
 ``started`` flag is True for every step and the ``lax.scan`` carry has a fixed structure.
 
-The world model cannot report proprio, so ``observe`` marks it invalid (the policy then uses its
+The world model cannot report proprio. With ``proprio_reckoning`` the simulator integrates it from
+the start state's proprio and the executed actions (:mod:`sword_jax.rl.proprio_reckoning`) and
+``observe`` reports it valid; without, ``observe`` marks it invalid (the policy then uses its
 learned "missing proprio" embedding, trained by proprio dropout in SFT).
 """
 
@@ -32,6 +34,7 @@ import jax.numpy as jnp
 from flax import nnx
 from jaxtyping import Array, Float
 
+from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
 from sword_jax.rl.simulator import LearnedSimulator, StartState
 from sword_jax.vae import api as vae_api
 from sword_jax.world_model import sampler as wm_sampler
@@ -108,6 +111,7 @@ def world_model_simulator(
     latent_size: int | None = None,
     proprio_dim: int = 8,
     execute_latents: int | None = None,
+    proprio_reckoning: ReckoningConfig | None = None,
 ) -> LearnedSimulator:
     """Builds the learned simulator from a split WorldModel and a split WanVAE.
 
@@ -120,11 +124,13 @@ def world_model_simulator(
       num_context / num_future: context and predicted latents per chunk (future 2 = 8 frames).
       sample_steps: Euler steps per chunk (default ``flow_cfg.sample_steps``).
       latent_size: latent height/width (default ``frame_size // 16``).
-      proprio_dim: size of the (invalid) proprio the policy receives.
+      proprio_dim: size of the proprio the policy receives.
       execute_latents: predicted latents kept per step (default ``num_future``: the whole chunk).
         Fewer re-plans sooner: the world model predicts all ``num_future`` latents from the chunk's
         actions, the first ``execute_latents`` (``4 x`` as many frames and actions) are executed and
         become context, the rest is discarded (the simulator's ``execute_len``).
+      proprio_reckoning: the action convention to dead-reckon proprio with (8-D, LIBERO layout); None
+        marks proprio invalid.
 
     ``StartState.latents`` is ``[1 + num_context, h, w, z]`` (then every conditioning frame carries
     a zero action, as for a keyframe held still: :func:`encode_keyframes`) or a pair ``(latents,
@@ -132,6 +138,10 @@ def world_model_simulator(
     context frames really carried, laid out as a training segment's (:func:`encode_history`).
     """
     execute_latents = num_future if execute_latents is None else int(execute_latents)
+    if proprio_reckoning is not None:
+        proprio_reckoning.validate()
+        if proprio_dim != 8:
+            raise ValueError(f"world-model sim: proprio reckoning needs the 8-D proprio, got proprio_dim={proprio_dim}")
     if not 1 <= execute_latents <= num_future:
         raise ValueError(f"world-model sim: execute_latents must be in [1, num_future={num_future}], got "
                          f"{execute_latents}")
@@ -178,11 +188,15 @@ def world_model_simulator(
         context_actions = jnp.concatenate([context_actions, executed_actions],
                                           axis=1)[:, -FRAMES_PER_LATENT * num_context:]
         frames = to_unit(video[0])  # (T, H, W, 3)
-        return WMState(state.first_latent, context, state.first_action, context_actions, cache, state.proprio), frames
+        proprio = state.proprio
+        if proprio_reckoning is not None:  # after the executed actions a_4j .. a_4j+execute_len-1
+            proprio = reckon(proprio[:8], chunk[0, :execute_len], proprio_reckoning)[-1]
+            proprio = jnp.concatenate([proprio, state.proprio[8:]]).astype(state.proprio.dtype)
+        return WMState(state.first_latent, context, state.first_action, context_actions, cache, proprio), frames
 
     def observe_fn(params, state: WMState):
         del params
-        return state.proprio[:proprio_dim], jnp.float32(0.0)
+        return state.proprio[:proprio_dim], jnp.float32(0.0 if proprio_reckoning is None else 1.0)
 
     return LearnedSimulator(params=(wm_state, vae_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
                             chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len, action_dim=action_dim)
