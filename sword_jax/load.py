@@ -294,3 +294,28 @@ def load_rl_params(path: str, *, kind: str, build) -> tuple[nnx.GraphDef, nnx.St
     nnx.replace_by_pure_dict(params, restore_subtree(path, step, abstract))
     return graphdef, params, rl_cfg
 
+
+
+def experiment_world_model(cfg: Any, workdir: str | None) -> tuple[nnx.GraphDef, Any]:
+    """``(graphdef, state)`` of an experiment's world model: the one trained in ``workdir`` (EMA weights
+    where kept; :func:`load_world_model_params`), placed by ``cfg.mesh``, or a random initialisation of
+    ``cfg.model`` (seed ``cfg.seed``) when ``workdir`` is None."""
+    if workdir is not None:
+        graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), seed=cfg.seed,
+                                                     mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
+        return graphdef, state
+    from sword_jax.dit.world_model import WorldModel
+
+    graphdef, params, rest = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), nnx.Param, ...)
+    return graphdef, (params, rest)
+
+
+def experiment_vae(cfg: Any, path: str = "") -> tuple[nnx.GraphDef, nnx.State]:
+    """``(graphdef, state)`` of an experiment's VAE: official weights if ``cfg.vae.checkpoint`` is set,
+    else the state ``train.train_vae`` saved at ``path`` (:func:`load_vae_params`), else (neither) a
+    random initialisation (seed ``cfg.seed``)."""
+    if path or cfg.vae.checkpoint:
+        return load_vae_params(cfg.vae, path)
+    from sword_jax.vae import api as vae_api
+
+    return nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))

@@ -40,7 +40,6 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
-from flax import nnx
 
 import configs
 from configs.base import ExperimentConfig
@@ -48,6 +47,7 @@ from sword_jax.evaluation.harness import evaluate_videos, rollout_videos
 from sword_jax.evaluation.horizon import per_frame_curve
 from sword_jax.evaluation.report import write_report
 from sword_jax.evaluation.vae_floor import vae_floor
+from sword_jax.load import experiment_vae, experiment_world_model
 from sword_jax.metrics.suite import ALL_METRICS, MetricSuite
 from sword_jax.rng import stream_key, stream_seed
 
@@ -129,32 +129,6 @@ def model_config(cfg: ExperimentConfig, workdir: str | None) -> ExperimentConfig
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.get(name, {}).items() if k in names}
         sections[name] = dataclasses.replace(section, **values)
     return dataclasses.replace(cfg, **sections)
-
-
-def _world_model_state(cfg: ExperimentConfig, workdir: str | None):
-    """The world model of ``workdir`` (EMA weights when kept; :func:`sword_jax.load.load_world_model_params`),
-    or a random initialisation when ``workdir`` is None."""
-    if workdir is not None:
-        from sword_jax import sharding as shd
-        from sword_jax.load import load_world_model_params
-
-        graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), seed=cfg.seed,
-                                                     mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
-        return graphdef, state
-    from sword_jax.dit.world_model import WorldModel
-
-    graphdef, params, rest = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), nnx.Param, ...)
-    return graphdef, (params, rest)
-
-
-def _vae_state(cfg: ExperimentConfig, path: str):
-    from sword_jax.vae import api as vae_api
-
-    if path or cfg.vae.checkpoint:  # a trained VAE (train.train_vae) or official weights
-        from train.train_vae import load_vae
-
-        return load_vae(cfg, path)
-    return nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))
 
 
 def _fidelity(cfg: ExperimentConfig, probe_path: str, reward_path: str):
@@ -246,7 +220,7 @@ def main(argv: Sequence[str] | None = None) -> str:
              f"{cfg.flow.sample_steps} Euler steps per chunk."]
     if not args.vae_checkpoint:
         notes.append("VAE: random initialisation (no --vae-checkpoint): decoded frames are not meaningful.")
-    vae_graphdef, vae_state = _vae_state(cfg, args.vae_checkpoint)
+    vae_graphdef, vae_state = experiment_vae(cfg, args.vae_checkpoint)
     gt = {s: v["frames"][:, :horizon] for s, v in splits.items()}
     predictions: dict[str, dict[str, np.ndarray]] = {}
     latent: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # model -> split -> latent_errors()
@@ -254,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> str:
         if workdir is None:
             notes.append(f"Model '{name}': randomly initialised world model (pipeline smoke run).")
         model_cfg = model_config(cfg, workdir)
-        wm_graphdef, wm_state = _world_model_state(model_cfg, workdir)
+        wm_graphdef, wm_state = experiment_world_model(model_cfg, workdir)
         predictions[name], latent[name] = {}, {}
         for split, episodes in splits.items():
             t0 = time.time()

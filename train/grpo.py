@@ -83,7 +83,7 @@ def sim_reckoning(episodes):
 
 
 def _world_model_setup(cfg, rl, args):
-    from train.evaluate import _vae_state, _world_model_state
+    from sword_jax.load import experiment_vae, experiment_world_model
     from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
     episodes = rl_data.load_episodes(args.demos)
@@ -91,8 +91,8 @@ def _world_model_setup(cfg, rl, args):
         raise ValueError(f"rl.imagined_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                          f"{rl.proprio_dim} (use --rl.imagined_proprio=missing)")
     reckoning = sim_reckoning(episodes) if rl.imagined_proprio == "reckoned" else None
-    wm_graphdef, wm_state = _world_model_state(cfg, args.world_model)
-    vae_graphdef, vae_state = _vae_state(cfg, args.vae)
+    wm_graphdef, wm_state = experiment_world_model(cfg, args.world_model)
+    vae_graphdef, vae_state = experiment_vae(cfg, args.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,

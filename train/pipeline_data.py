@@ -126,9 +126,9 @@ def load_episodes(path: str | list[str], num_frames: int):
 
 
 def _vae(ctx: Context):
-    from train import train_vae
+    from sword_jax.load import load_vae_params
 
-    return train_vae.load_vae(ctx.cfg, ctx.results["vae"]["path"])
+    return load_vae_params(ctx.cfg.vae, ctx.results["vae"]["path"])
 
 
 def encode_training_latents(ctx: Context) -> dict:

@@ -64,9 +64,9 @@ def hash_vae(cfg, path: str) -> str:
         return hash_checkpoint(path)
     from flax import nnx
 
-    from train import train_vae
+    from sword_jax.load import load_vae_params
 
-    _, state = train_vae.load_vae(cfg, path)
+    _, state = load_vae_params(cfg.vae, path)
     return _hash_tree(nnx.to_pure_dict(state))
 
 

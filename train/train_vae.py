@@ -15,7 +15,6 @@ pure-dict VAE state that ``train.evaluate`` and the pipeline load.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -29,6 +28,7 @@ import configs
 from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
+from sword_jax.load import load_vae_params
 from sword_jax.prefetch import prefetched
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
@@ -67,14 +67,6 @@ def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nn
     ckpt.close()
 
 
-def load_vae(cfg: ExperimentConfig, path: str) -> tuple[nnx.GraphDef, nnx.State]:
-    """The VAE of ``cfg``: official weights if ``cfg.vae.checkpoint`` is set, else the state saved at ``path``
-    (:func:`sword_jax.load.load_vae_params`)."""
-    from sword_jax.load import load_vae_params
-
-    return load_vae_params(cfg.vae, path)
-
-
 def main(argv: Sequence[str] | None = None) -> dict:
     parser = configs.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", action="append", default=[], help="LIBERO-layout HDF5 (repeatable)")
@@ -87,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     is_main = jax.process_index() == 0
     final_path = os.path.join(args.workdir, "vae")
     if cfg.vae.checkpoint:
-        load_vae(cfg, final_path)  # validates the official file now
+        load_vae_params(cfg.vae, final_path)  # validates the official file now
         return {"source": cfg.vae.checkpoint, "steps": 0}
     if not args.episodes and not args.synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
