@@ -79,3 +79,28 @@ def test_config_names_the_bad_imagined_proprio_setting():
     RLConfig(imagined_proprio="missing").validate()
     with pytest.raises(ValueError, match="pos_gain"):
         ReckoningConfig(pos_gain=(1.0, 1.0)).validate()
+
+
+def test_masked_proprio_act_runs_the_missing_proprio_mode():
+    """``make_act_fns(mask_proprio=True)`` (rl.eval_masked_proprio) is the policy with proprio marked
+    missing -- the mode GRPO trains in a simulator that reports none -- and differs from the default."""
+    from flax import nnx
+
+    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.env_rollout import make_act_fns
+    from sword_jax.rl.policy import build_policy, resize_frames, tokenize_instructions
+
+    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
+                  action_bins=8)
+    graphdef, params = build_policy(rl, seed=0)
+    frames = jax.random.randint(jax.random.key(1), (3, 16, 16, 3), 0, 256).astype(jnp.uint8)
+    tokens = jnp.asarray(tokenize_instructions(["a", "b", "c"], 32))
+    proprio = jax.random.normal(jax.random.key(2), (3, 8))
+    key = jax.random.key(3)
+    _, _, lp_valid, _ = make_act_fns(graphdef, rl)(params, frames, tokens, proprio, key, greedy=True)
+    _, chunk, lp_masked, _ = make_act_fns(graphdef, rl, mask_proprio=True)(params, frames, tokens, proprio, key,
+                                                                          greedy=True)
+    logits = nnx.merge(graphdef, params)(resize_frames(frames, 8), tokens, 0.0 * proprio, jnp.zeros((3,)))
+    want = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), chunk[..., None], -1)[..., 0]
+    np.testing.assert_allclose(np.asarray(lp_masked), np.asarray(want), atol=1e-5)  # proprio values ignored
+    assert not np.allclose(np.asarray(lp_valid), np.asarray(lp_masked))

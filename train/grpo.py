@@ -40,6 +40,7 @@ from sword_jax import sharding as shd
 from sword_jax import tracing
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
+from sword_jax.rl.env_rollout import make_act_fns
 from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
 from sword_jax.rl.params_io import load_params
 from sword_jax.rl.policy import build_policy, tokenize_instructions
@@ -134,7 +135,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     """
     from sim import tasks as sim_tasks
     from sim.lockstep import LockstepEnvs
-    from sword_jax.rl.env_rollout import make_act_fns, run_policy
+    from sword_jax.rl.env_rollout import run_policy
 
     state = grpo.init_state(params, rl)
     ckpt, state, first_step = _resume(workdir, state)
@@ -245,17 +246,25 @@ def main(argv: Sequence[str] | None = None) -> dict:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
                                                     key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
 
+    masked_act = make_act_fns(graphdef, rl, mask_proprio=True) if rl.eval_masked_proprio else None
+
     def evaluate(step):
+        extra = {}
         if args.simulator == "toy":
             success = np.asarray(greedy(state.params))
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
                       "episodes": int(success.size), "where": "imagined (toy)"}
         else:
-            result = evaluate_in_sim(graphdef, state.params, rl, tasks=cfg.sim.tasks, episodes_per_task=episodes,
-                                     resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
-                                     renderer=args.renderer, workers=args.env_workers)
+            kwargs = dict(tasks=cfg.sim.tasks, episodes_per_task=episodes, resolution=cfg.sim.resolution,
+                          max_steps=cfg.sim.max_steps, renderer=args.renderer, workers=args.env_workers)
+            result = evaluate_in_sim(graphdef, state.params, rl, **kwargs)
             result["where"] = "mujoco"
-        curve.add(step, result)
+            if rl.eval_masked_proprio:
+                masked = evaluate_in_sim(graphdef, state.params, rl, act=masked_act, **kwargs)
+                extra = {"proprio_masked": {k: masked[k] for k in ("mean", "ci95", "per_task", "episodes")}}
+                print(f"eval step {step}, proprio masked: success {masked['mean']:.3f} "
+                      f"[{masked['ci95'][0]:.3f}, {masked['ci95'][1]:.3f}]", flush=True)
+        curve.add(step, result, **extra)
         print(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}", flush=True)
         return result
 

@@ -58,6 +58,10 @@ class RLConfig:
         embedding; measured on `small` (README), GRPO then lowered real success 0.204 -> 0.038
         while imagined success stayed near its start for 30 steps: the update trained an input
         mode the real evaluation never uses.
+      eval_masked_proprio: every real-environment evaluation of GRPO in the learned simulator also
+        runs the policy with proprio masked (its "missing proprio" input mode; one more evaluation
+        each), stored as ``proprio_masked`` in the success curve: it tells whether a change in real
+        success is the mode the policy was trained in or the one it is evaluated in.
       ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
@@ -103,6 +107,7 @@ class RLConfig:
     action_ensemble: bool = True
     imagined_execute_steps: int | None = None  # None = chunk_len (whole chunks)
     imagined_proprio: str = "reckoned"  # reckoned | missing
+    eval_masked_proprio: bool = False  # also evaluate GRPO-in-the-world-model policies with proprio masked
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50

@@ -35,15 +35,19 @@ from sword_jax.rl.policy import tokens_to_actions
 from sword_jax.rl.rollout import Rollout
 
 
-def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig):
+def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig, *, mask_proprio: bool = False):
     """Jitted policy calls on uint8 frames: ``act(params, frames, tokens, proprio, key, greedy)``.
+
+    ``mask_proprio``: the policy reads its learned "missing proprio" embedding instead of the proprio
+    (the input mode of a learned simulator that reports none), to measure that mode in the real envs.
 
     Returns ``(frames at policy size uint8, tokens [n,T,A], log_probs [n,T,A], actions [n,T,A])``.
     """
 
     def act(params, frames, tokens, proprio, key, greedy: bool):
         small = resize_frames(frames, cfg.image_size)
-        logits = nnx.merge(graphdef, params)(small, tokens, proprio)
+        valid = jnp.full((proprio.shape[0],), 0.0 if mask_proprio else 1.0, jnp.float32)
+        logits = nnx.merge(graphdef, params)(small, tokens, proprio, valid)
         if greedy:
             chunk = greedy_chunk(logits)
             logp = token_log_probs(logits, chunk)
