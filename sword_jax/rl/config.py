@@ -55,9 +55,9 @@ class RLConfig:
         executed actions by the controller's action convention
         (:mod:`sword_jax.rl.proprio_reckoning`), so GRPO trains the same input mode the policy is
         evaluated with in the real environment. ``missing``: the policy's learned "missing proprio"
-        embedding; measured on `small` (README), GRPO then lowered real success 0.204 -> 0.038
-        while imagined success stayed near its start for 30 steps: the update trained an input
-        mode the real evaluation never uses.
+        embedding; measured on `small` (README), GRPO then lowered real success 0.204 -> 0.038,
+        likely (not yet separated) because the update trained an input mode the real evaluation
+        never uses.
       eval_masked_proprio: every real-environment evaluation of GRPO in the learned simulator also
         runs the policy with proprio masked (its "missing proprio" input mode; one more evaluation
         each), stored as ``proprio_masked`` in the success curve: it tells whether a change in real
