@@ -295,7 +295,6 @@ def load_rl_params(path: str, *, kind: str, build) -> tuple[nnx.GraphDef, nnx.St
     return graphdef, params, rl_cfg
 
 
-
 def experiment_world_model(cfg: Any, workdir: str | None) -> tuple[nnx.GraphDef, Any]:
     """``(graphdef, state)`` of an experiment's world model: the one trained in ``workdir`` (EMA weights
     where kept; :func:`load_world_model_params`), placed by ``cfg.mesh``, or a random initialisation of

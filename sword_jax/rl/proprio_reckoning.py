@@ -13,7 +13,7 @@ per step, clipped to ``[0, open]``. The arm does not realise every command in fu
 damped, joints saturate): :func:`fit_gains` measures the realised fraction per axis from
 demonstrations (least squares of one-step increments on the commands), which the caller passes
 in; measured on the expert's episodes the yaw gain is about 0.4. The error against the true proprio grows with the horizon
-(``benchmarks/results/policy/proprio_reckoning.json`` has it measured on the C engine); the
+(``python -m benchmarks.bench_proprio_reckoning`` measures it on the C engine); the
 values here carry no dependency on ``sim`` -- callers pass the controller's constants.
 
 Proprio layout (LIBERO's, 8-D): ee xyz, ee axis-angle, fingers (left +, right -).
