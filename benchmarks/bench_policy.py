@@ -108,7 +108,9 @@ def run_sft(cfg, args) -> dict:
     from sword_jax.rl.env_rollout import make_act_fns
     from sword_jax.rl.evaluate import evaluate_in_sim
     from sword_jax.rl.policy import build_policy
+    from sword_jax.rl.proprio_reckoning import save_reckoning
     from sword_jax.rl.sft import train_sft
+    from train.grpo import sim_reckoning
 
     rl = cfg.rl
     tasks = list(cfg.sim.tasks)
@@ -139,6 +141,7 @@ def run_sft(cfg, args) -> dict:
                                     log=lambda m: print(m, flush=True))
         sft_seconds = time.time() - t1
         save_npz(os.path.join(args.out, f"policy{args.tag}_d{amount}.npz"), params)
+        save_reckoning(reckoning_path(os.path.join(args.out, f"policy{args.tag}_d{amount}.npz")), sim_reckoning(train))
         run = {"demos_per_task": amount, "demos": train.num_episodes, "sft_seconds": round(sft_seconds, 1),
                "history": history, "eval": {}}
         for mode in modes:
@@ -191,24 +194,51 @@ def run_eval(cfg, args) -> dict:
     return results
 
 
+def reckoning_path(policy_path: str) -> str:
+    """Where the SFT stage saves the proprio reckoning fitted to the policy's demonstrations."""
+    return os.path.splitext(policy_path)[0] + ".reckoning.json"
+
+
 def run_grpo(cfg, args) -> dict:
     from sword_jax.rl.policy import build_policy
+    from sword_jax.rl.proprio_reckoning import load_reckoning
     from train import grpo as grpo_entry
 
+    mode = cfg.rl.env_proprio
+    reckoning = load_reckoning(args.reckoning or reckoning_path(args.policy)) if mode == "reckoned" else None
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params = load_npz(args.policy, params)
     start = time.time()
-    result = grpo_entry.run_in_env(cfg, cfg.rl, graphdef, params, os.path.join(args.out, "grpo_env"),
-                                   episodes_per_task=args.eval_episodes, workers=args.workers, renderer="jax")
+    workdir = os.path.join(args.out, "grpo_env" if mode == "true" else f"grpo_env_proprio_{mode}")
+    result = grpo_entry.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
+                                   workers=args.workers, renderer="jax", reckoning=reckoning)
     curve = result["curve"]
     first, last = curve[0], curve[-1]
     gain = last["mean"] - first["mean"]
     interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
     summary = {"curve": curve, "gain": gain, "gain_ci95": interval, "seconds": round(time.time() - start, 1),
-               "history": result["history"]}
-    with open(os.path.join(args.out, "grpo_env_results.json"), "w") as f:
+               "env_proprio": mode, "history": result["history"]}
+    if mode != "true" and "train_mode" in first and "train_mode" in last:
+        a, b = first["train_mode"], last["train_mode"]
+        summary["train_mode_gain"] = b["mean"] - a["mean"]
+        summary["train_mode_gain_ci95"] = diff_interval(round(a["mean"] * a["episodes"]), a["episodes"],
+                                                        round(b["mean"] * b["episodes"]), b["episodes"])
+    with open(os.path.join(args.out, f"{os.path.basename(workdir)}_results.json"), "w") as f:
         json.dump(summary, f, indent=1)
-    if args.record:
+    print(f"GRPO in the real envs, policy proprio {mode}: true-proprio success {first['mean']:.3f} -> "
+          f"{last['mean']:.3f} (gain {gain:+.3f} [{interval[0]:+.3f}, {interval[1]:+.3f}])"
+          + (f"; in its training mode {summary['train_mode_gain']:+.3f}" if "train_mode_gain" in summary else ""),
+          flush=True)
+    if args.record and mode != "true":
+        key = f"policy_grpo_ground_truth_proprio_{mode}_small"
+        common.merge_results({key: common.record(
+            key, gain, None, ci95=list(interval), start=first["mean"], end=last["mean"], episodes=last["episodes"],
+            grpo_steps=last["step"], curve=[[p["step"], p["mean"]] for p in curve],
+            train_mode_curve=[[p["step"], p["train_mode"]["mean"]] for p in curve if "train_mode" in p],
+            seconds=summary["seconds"], learning_rate=cfg.rl.learning_rate, group_size=cfg.rl.group_size,
+            rollout_batch=cfg.rl.rollout_batch,
+            value_is=f"true-proprio success gain of GRPO whose rollouts read proprio '{mode}'")})
+    elif args.record:
         common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
             "policy_grpo_ground_truth_gain_small", gain, 0.15, ci95=list(interval), start=first["mean"],
             end=last["mean"], episodes=last["episodes"], grpo_steps=last["step"],
@@ -231,6 +261,8 @@ def main(argv=None) -> None:
     parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation states per task")
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--policy", default="", help="npz of an SFT policy (grpo stage)")
+    parser.add_argument("--reckoning", default="", help="grpo with --rl.env_proprio=reckoned: the reckoning JSON "
+                                                        "(default: the one the sft stage saved beside --policy)")
     parser.add_argument("--gen-procs-per-task", type=int, default=1, help="demonstration processes per task")
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from sword_jax.rl.policy import axis_angle_to_matrix
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains, matrix_to_axis_angle, reckon, reckon_step
@@ -104,3 +105,92 @@ def test_masked_proprio_act_runs_the_missing_proprio_mode():
     want = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), chunk[..., None], -1)[..., 0]
     np.testing.assert_allclose(np.asarray(lp_masked), np.asarray(want), atol=1e-5)  # proprio values ignored
     assert not np.allclose(np.asarray(lp_valid), np.asarray(lp_masked))
+
+
+class _StillArmEnvs:
+    """A lockstep env whose proprio never moves (so reckoned and true proprio differ once it acts)."""
+
+    def __init__(self, n: int, max_steps: int):
+        self.n, self.language, self.max_steps = n, ["pick up the bowl"] * n, max_steps
+        self.start = np.tile(np.asarray([[0.1, -0.2, 1.0, 0.0, 0.0, 0.3, 0.04, -0.04]], np.float32), (n, 1))
+        self.executed: list[np.ndarray] = []
+
+    def _obs(self):
+        return {"frames": np.full((self.n, 16, 16, 3), 90, np.uint8), "proprio": self.start.copy()}
+
+    def reset(self, episodes=None):
+        self.executed = []
+        return self._obs()
+
+    def step(self, actions):
+        self.executed.append(np.asarray(actions, np.float32))
+        done = np.full(self.n, sum(a.shape[1] for a in self.executed) >= self.max_steps)
+        return dict(self._obs(), success=np.zeros(self.n, bool), executed=np.full(self.n, actions.shape[1]),
+                    done=done)
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("mode", ["true", "reckoned", "missing"])
+def test_env_rollouts_feed_the_policy_the_configured_proprio_mode(mode):
+    """rl.env_proprio: ground-truth rollouts read true, dead-reckoned or missing proprio, and record what
+    was read, so GRPO's update recomputes the same log-probs (the learned simulator's input modes,
+    isolated from world-model error)."""
+    from flax import nnx
+
+    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.env_rollout import make_act_fns, run_policy
+    from sword_jax.rl.policy import build_policy, resize_frames
+
+    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
+                  action_bins=8, execute_steps=4, action_ensemble=False, env_proprio=mode)
+    graphdef, params = build_policy(rl, seed=0)
+    envs = _StillArmEnvs(n=3, max_steps=12)
+    reckoning = ReckoningConfig(pos_gain=(0.9, 0.9, 0.8), rot_gain=(0.9, 0.8, 0.4))
+    rollout = run_policy(make_act_fns(graphdef, rl), params, envs, rl, key=jax.random.key(4), greedy=False,
+                         max_steps=12, proprio=mode, reckoning=reckoning)
+    assert rollout.proprio.shape == (3, 3, 8)
+    np.testing.assert_allclose(rollout.proprio[:, 0], envs.start)  # every mode starts from the episode's proprio
+    if mode == "reckoned":
+        executed = np.concatenate(envs.executed, axis=1)  # [n, 12, 7]
+        want = np.asarray(reckon(jnp.asarray(envs.start), jnp.asarray(executed), reckoning))
+        np.testing.assert_allclose(rollout.proprio[:, 1], want[:, 3], atol=1e-5)
+        np.testing.assert_allclose(rollout.proprio[:, 2], want[:, 7], atol=1e-5)
+        assert np.abs(rollout.proprio[:, 2] - envs.start).max() > 1e-3
+    else:
+        np.testing.assert_allclose(rollout.proprio, np.broadcast_to(envs.start[:, None], (3, 3, 8)))
+    np.testing.assert_array_equal(rollout.proprio_valid, 0.0 if mode == "missing" else 1.0)
+    # the recorded inputs reproduce the sampled tokens' log-probs (what grpo_update relies on)
+    logits = nnx.merge(graphdef, params)(resize_frames(jnp.asarray(rollout.obs_frames[:, 1]), 8),
+                                         jnp.asarray(rollout.instruction_tokens), jnp.asarray(rollout.proprio[:, 1]),
+                                         jnp.asarray(rollout.proprio_valid[:, 1]))
+    logp = jnp.take_along_axis(jax.nn.log_softmax(logits, -1)[:, :4], jnp.asarray(rollout.tokens[:, 1])[..., None],
+                               -1)[..., 0]
+    np.testing.assert_allclose(np.asarray(logp), rollout.log_probs[:, 1], atol=1e-4)
+
+
+def test_env_proprio_mode_errors_name_the_setting():
+    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.env_rollout import run_policy
+
+    with pytest.raises(ValueError, match="env_proprio"):
+        RLConfig(env_proprio="guess").validate()
+    with pytest.raises(ValueError, match="ReckoningConfig"):
+        run_policy(None, None, _StillArmEnvs(1, 4), RLConfig(), key=jax.random.key(0), greedy=True, max_steps=4,
+                   proprio="reckoned")
+
+
+def test_reckoning_file_round_trips_and_names_bad_fields(tmp_path):
+    import json
+
+    from sword_jax.rl.proprio_reckoning import load_reckoning, save_reckoning
+
+    cfg = ReckoningConfig(pos_gain=(0.87, 0.88, 0.82), rot_gain=(0.92, 0.76, 0.39))
+    save_reckoning(str(tmp_path / "r.json"), cfg)
+    assert load_reckoning(str(tmp_path / "r.json")) == cfg
+    (tmp_path / "bad.json").write_text(json.dumps({"pos_gain": [1, 1, 1], "yaw_fudge": 2}))
+    with pytest.raises(ValueError, match="yaw_fudge"):
+        load_reckoning(str(tmp_path / "bad.json"))
+    with pytest.raises(FileNotFoundError, match="missing.json"):
+        load_reckoning(str(tmp_path / "missing.json"))

@@ -128,8 +128,12 @@ def _resume(workdir: str, state):
 
 
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
-               renderer: str = "jax") -> dict:
+               renderer: str = "jax", reckoning=None) -> dict:
     """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
+
+    The policy reads proprio as ``rl.env_proprio`` says (``reckoning``: the action convention for
+    ``reckoned``, e.g. :func:`sim_reckoning`); unless it is ``true``, each evaluation also measures
+    that mode, stored as ``train_mode`` beside the true-proprio success.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics}``.
     """
@@ -149,10 +153,19 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
     eval_kwargs = dict(tasks=tasks, episodes_per_task=episodes_per_task, resolution=cfg.sim.resolution,
                        max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers, act=act)
+    mode = rl.env_proprio
+    if mode == "reckoned" and reckoning is None:
+        raise ValueError("rl.env_proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
 
     def evaluate(step):
         result = dict(evaluate_in_sim(graphdef, state.params, rl, **eval_kwargs), where="mujoco")
-        curve.add(step, result)
+        extra = {}
+        if mode != "true":
+            other = evaluate_in_sim(graphdef, state.params, rl, proprio=mode, reckoning=reckoning, **eval_kwargs)
+            extra = {"train_mode": dict(proprio=mode, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes")})}
+            print(f"eval step {step}, proprio {mode}: success {other['mean']:.3f} "
+                  f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
+        curve.add(step, result, **extra)
         print(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
               f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
         return result
@@ -170,7 +183,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
             envs = LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                 renderer=renderer, workers=workers)
         rollout = run_policy(act, state.params, envs, rl, key=jax.random.fold_in(rollout_key, step), greedy=False,
-                             max_steps=cfg.sim.max_steps, episodes=starts)
+                             max_steps=cfg.sim.max_steps, episodes=starts, proprio=mode, reckoning=reckoning)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         if not (np.isfinite(host["loss"]) and host["finite"] > 0):
@@ -222,9 +235,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.policy:
         params, _ = load_params(args.policy, params, kind="policy")
     if args.simulator == "env":
+        if rl.env_proprio == "reckoned" and not args.demos:
+            raise SystemExit("train.grpo --simulator env --rl.env_proprio=reckoned needs --demos (the reckoning's "
+                             "gains are fitted to them)")
+        reckoning = sim_reckoning(rl_data.load_episodes(args.demos)) if rl.env_proprio == "reckoned" else None
         return run_in_env(cfg, rl, graphdef, params, workdir,
                           episodes_per_task=args.eval_episodes or rl.eval_episodes_per_task,
-                          workers=args.env_workers, renderer=args.renderer)
+                          workers=args.env_workers, renderer=args.renderer, reckoning=reckoning)
     if args.simulator == "toy":
         sim, reward_model, starts, eval_start = _toy_setup(cfg, rl)
     else:

@@ -62,6 +62,12 @@ class RLConfig:
         runs the policy with proprio masked (its "missing proprio" input mode; one more evaluation
         each), stored as ``proprio_masked`` in the success curve: it tells whether a change in real
         success is the mode the policy was trained in or the one it is evaluated in.
+      env_proprio: what the policy reads as proprio in GRPO rollouts in the ground-truth environments
+        (``train.grpo --simulator env``): ``true`` (default), the environment's; ``reckoned``, dead-reckoned
+        from the executed actions as the learned simulator does (``imagined_proprio=reckoned``);
+        ``missing``, the "missing proprio" input (``imagined_proprio=missing``). The environment and
+        reward stay true, so a GRPO run in it isolates the input mode from world-model error; every
+        evaluation then also measures that mode beside the true-proprio success.
       ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
@@ -108,6 +114,7 @@ class RLConfig:
     imagined_execute_steps: int | None = None  # None = chunk_len (whole chunks)
     imagined_proprio: str = "reckoned"  # reckoned | missing
     eval_masked_proprio: bool = False  # also evaluate GRPO-in-the-world-model policies with proprio masked
+    env_proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
@@ -154,6 +161,11 @@ class RLConfig:
                              f"rl.chunk_len={self.chunk_len}, got {self.imagined_execute_steps}")
         if self.imagined_proprio not in ("reckoned", "missing"):
             raise ValueError(f"rl.imagined_proprio must be reckoned|missing, got {self.imagined_proprio!r}")
+        if self.env_proprio not in ("true", "reckoned", "missing"):
+            raise ValueError(f"rl.env_proprio must be true|reckoned|missing, got {self.env_proprio!r}")
+        if self.env_proprio == "reckoned" and self.proprio_dim != 8:
+            raise ValueError(f"rl.env_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
+                             f"{self.proprio_dim}")
         if self.action_ensemble and self.execute_steps != 1:
             raise ValueError(f"rl.action_ensemble needs rl.execute_steps=1 (a new chunk every step), got "
                              f"execute_steps={self.execute_steps}: set rl.action_ensemble=false to execute "

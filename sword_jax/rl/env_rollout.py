@@ -32,7 +32,10 @@ from flax import nnx
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import greedy_chunk, resize_frames, sample_chunk, token_log_probs, tokenize_instructions
 from sword_jax.rl.policy import tokens_to_actions
+from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
 from sword_jax.rl.rollout import Rollout
+
+PROPRIO_MODES = ("true", "reckoned", "missing")
 
 
 def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig, *, mask_proprio: bool = False):
@@ -40,13 +43,17 @@ def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig, *, mask_proprio: bool = 
 
     ``mask_proprio``: the policy reads its learned "missing proprio" embedding instead of the proprio
     (the input mode of a learned simulator that reports none), to measure that mode in the real envs.
+    A call may instead pass ``proprio_valid [n]`` (1 = read the proprio, 0 = missing), which wins.
 
     Returns ``(frames at policy size uint8, tokens [n,T,A], log_probs [n,T,A], actions [n,T,A])``.
     """
 
-    def act(params, frames, tokens, proprio, key, greedy: bool):
+    def act(params, frames, tokens, proprio, key, greedy: bool, proprio_valid=None):
         small = resize_frames(frames, cfg.image_size)
-        valid = jnp.full((proprio.shape[0],), 0.0 if mask_proprio else 1.0, jnp.float32)
+        if proprio_valid is None:
+            valid = jnp.full((proprio.shape[0],), 0.0 if mask_proprio else 1.0, jnp.float32)
+        else:
+            valid = jnp.asarray(proprio_valid, jnp.float32)
         logits = nnx.merge(graphdef, params)(small, tokens, proprio, valid)
         if greedy:
             chunk = greedy_chunk(logits)
@@ -86,6 +93,8 @@ def run_policy(
     max_steps: int,
     record: bool = True,
     episodes: Any = None,
+    proprio: str = "true",
+    reckoning: ReckoningConfig | None = None,
 ) -> Rollout:
     """Runs the policy in ``envs`` until every episode succeeds or reaches ``max_steps``.
 
@@ -99,14 +108,29 @@ def run_policy(
       max_steps: the episodes' step limit (the decision count is padded to it).
       record: keep observations, tokens and log-probs for GRPO (else only outcomes).
       episodes: new ``(task, qpos)`` start states for ``envs.reset`` (default: its own).
+      proprio: what the policy reads as proprio (``rl.env_proprio``): ``true``, the environment's;
+        ``reckoned``, integrated from the episode's first proprio and the actions executed since
+        (``reckoning``, the action convention), which is what the learned simulator gives the policy;
+        ``missing``, the policy's "missing proprio" input. The rollout records what was read, so GRPO
+        trains that input mode; the environment itself is the same in all three.
+      reckoning: the action convention for ``proprio="reckoned"``.
 
     Returns:
       A :class:`Rollout` with ``C = max_decisions(cfg, max_steps)``; ``success``/``returns`` are the
       true outcomes (return = ``1 + success_bonus`` on success, else 0).
     """
+    if proprio not in PROPRIO_MODES:
+        raise ValueError(f"run_policy: proprio must be one of {'|'.join(PROPRIO_MODES)}, got {proprio!r}")
+    if proprio == "reckoned" and (reckoning is None or cfg.proprio_dim != 8):
+        raise ValueError(f"run_policy: proprio='reckoned' needs a ReckoningConfig and the 8-D proprio "
+                         f"(got reckoning={reckoning!r}, rl.proprio_dim={cfg.proprio_dim})")
     n, k = envs.n, cfg.execute_steps
     ensemble = cfg.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
     obs = envs.reset() if episodes is None else envs.reset(episodes)
+    read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)  # what the policy reads as proprio
+    # "missing" masks whatever ``act`` was built with; otherwise ``act``'s own mode (make_act_fns) holds
+    valid_in = jnp.zeros((n,), jnp.float32) if proprio == "missing" else None
+    step_reckon = jax.jit(lambda p, a: reckon(p, a, reckoning)[:, -1]) if proprio == "reckoned" else None
     tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
     c_max = max_decisions(cfg, max_steps)
     done = np.zeros(n, bool)
@@ -116,9 +140,8 @@ def run_policy(
     for c in range(c_max):
         if done.all():
             break
-        small, chunk, logp, actions = act(params, jnp.asarray(obs["frames"]), tokens_text,
-                                          jnp.asarray(obs["proprio"][:, : cfg.proprio_dim]), jax.random.fold_in(key, c),
-                                          greedy)
+        small, chunk, logp, actions = act(params, jnp.asarray(obs["frames"]), tokens_text, jnp.asarray(read),
+                                          jax.random.fold_in(key, c), greedy, proprio_valid=valid_in)
         actions = np.asarray(actions)
         if ensemble:
             history = [actions] + history[: cfg.chunk_len - 1]
@@ -127,13 +150,17 @@ def run_policy(
             step_actions = actions[:, :k]
         if record:
             rec["obs"].append(np.asarray(small))
-            rec["proprio"].append(np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32))
+            rec["proprio"].append(read)
             rec["tokens"].append(np.asarray(chunk)[:, :k])
             rec["log_probs"].append(np.asarray(logp)[:, :k])
             rec["valid"].append((~done).astype(np.float32))
         obs = envs.step(step_actions)
         success |= obs["success"]
         done = obs["done"]
+        if step_reckon is not None:  # an episode that ended mid-chunk is done: its proprio is never read again
+            read = np.asarray(step_reckon(jnp.asarray(read), jnp.asarray(step_actions, jnp.float32)))
+        else:
+            read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)
     returns = success.astype(np.float32) * (1.0 + cfg.success_bonus)
     if not record:
         empty = np.zeros((n, 0), np.float32)
@@ -152,7 +179,8 @@ def run_policy(
     rewards = np.zeros((n, c_max), np.float32)
     rewards[np.flatnonzero(success), last_decision[success]] = 1.0
     return Rollout(
-        obs_frames=stack("obs"), proprio=stack("proprio"), proprio_valid=np.ones((n, c_max), np.float32),
+        obs_frames=stack("obs"), proprio=stack("proprio"),
+        proprio_valid=np.full((n, c_max), 0.0 if proprio == "missing" else 1.0, np.float32),
         instruction_tokens=np.asarray(tokens_text), tokens=stack("tokens"), log_probs=stack("log_probs"),
         valid=valid, rewards=rewards, scores=np.cumsum(rewards, 1), success=success, returns=returns,
         frames=np.zeros((0,), np.float32))

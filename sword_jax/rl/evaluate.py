@@ -47,6 +47,8 @@ def evaluate_in_sim(
     workers: int = 0,
     envs_factory: Any = None,
     act: Any = None,
+    proprio: str = "true",
+    reckoning: Any = None,
 ) -> dict[str, Any]:
     """Runs the policy from each task's first ``episodes_per_task`` fixed evaluation initial states.
 
@@ -62,6 +64,7 @@ def evaluate_in_sim(
       workers: C-engine worker processes (0 = this process).
       envs_factory: ``(episodes) -> lockstep envs`` override (default ``sim.lockstep.LockstepEnvs``).
       act: a :func:`~sword_jax.rl.env_rollout.make_act_fns` result to reuse (one compile per process).
+      proprio / reckoning: the policy's proprio input mode (:func:`~sword_jax.rl.env_rollout.run_policy`).
 
     Returns:
       ``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}``.
@@ -78,7 +81,7 @@ def evaluate_in_sim(
     envs = envs_factory(episodes)
     try:
         rollout = run_policy(act, params, envs, cfg, key=jax.random.key(0), greedy=True, max_steps=max_steps,
-                             record=False)
+                             record=False, proprio=proprio, reckoning=reckoning)
     finally:
         envs.close()
     success = np.asarray(rollout.success)
@@ -119,6 +122,12 @@ class SuccessCurve:
         steps = [p["step"] for p in self.points]
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.plot(steps, [p["mean"] for p in self.points], "o-", color="k", lw=2, label="mean")
+        for extra, colour in (("train_mode", "tab:red"), ("proprio_masked", "tab:blue")):
+            marked = [p for p in self.points if isinstance(p.get(extra), dict)]
+            if marked:
+                label = f"mean, proprio {marked[0][extra].get('proprio', 'masked')}"
+                ax.plot([p["step"] for p in marked], [p[extra]["mean"] for p in marked], "s--", color=colour, lw=1.5,
+                        label=label)
         tasks = sorted({t for p in self.points for t in p["per_task"]}, key=lambda t: (not t.isdigit(), t.zfill(4)))
         for t in tasks:
             ax.plot(steps, [p["per_task"].get(t, np.nan) for p in self.points], lw=0.8, alpha=0.6, label=f"task {t}")

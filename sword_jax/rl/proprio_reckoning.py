@@ -22,6 +22,8 @@ Proprio layout (LIBERO's, 8-D): ee xyz, ee axis-angle, fingers (left +, right -)
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -138,3 +140,26 @@ def fit_gains(proprio: np.ndarray, actions: np.ndarray, cfg: ReckoningConfig = R
     pos_cmd, rot_cmd = cmd[:, :3] * cfg.pos_scale, cmd[:, 3:6] * cfg.rot_scale
     return dataclasses.replace(cfg, pos_gain=tuple(gain(pos_cmd[:, i], d_pos[:, i]) for i in range(3)),
                                rot_gain=tuple(gain(rot_cmd[:, i], d_rot[:, i]) for i in range(3)))
+
+
+def save_reckoning(path: str, cfg: ReckoningConfig) -> None:
+    """Writes ``cfg`` as JSON (e.g. beside the policy whose demonstrations it was fitted to)."""
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(dataclasses.asdict(cfg), f, indent=1)
+    os.replace(tmp, path)
+
+
+def load_reckoning(path: str) -> ReckoningConfig:
+    """Reads a :func:`save_reckoning` file; a missing file or unknown field is an error naming it."""
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"proprio reckoning file not found: {path}")
+    with open(path) as f:
+        raw = json.load(f)
+    names = {f.name for f in dataclasses.fields(ReckoningConfig)}
+    unknown = sorted(set(raw) - names)
+    if unknown:
+        raise ValueError(f"{path}: unknown proprio reckoning fields {unknown}")
+    cfg = ReckoningConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.items()})
+    cfg.validate()
+    return cfg
