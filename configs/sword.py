@@ -49,9 +49,10 @@ def small() -> ExperimentConfig:
         # width 128 x 4 layers at 64 px, 4000 SFT steps at peak 1e-3; evaluation re-plans every step with
         # temporal ensembling (the best of the execution modes measured), GRPO rollouts re-plan every step.
         # Imagined rollouts run 16 chunks (128 actions): the expert needs up to 80, the policy more.
+        # The GRPO update runs 16 of the 64 trajectories at a time (all at once asked for 47 GiB on an H100).
         rl=RLConfig(grpo_steps=100, eval_every=50, eval_episodes_per_task=50, sft_steps=4000, sft_batch_size=64,
                     sft_learning_rate=1e-3, policy_width=128, policy_layers=4, learning_rate=1e-4,
-                    rollout_batch=8, max_chunks=16, reward_model_steps=1000),
+                    rollout_batch=8, max_chunks=16, reward_model_steps=1000, update_microbatch=16),
         cache=CacheConfig(schedule_steps=5000),
     )
 

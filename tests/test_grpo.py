@@ -1,5 +1,6 @@
 """GRPO: advantages and loss against hand-computed numbers, clipping, and learning on a toy simulator."""
 
+import dataclasses
 import math
 
 import jax
@@ -129,3 +130,55 @@ def test_a_non_finite_batch_skips_the_update():
     assert float(metrics["finite"]) == 1.0
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))
                for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(good_state.params)))
+
+
+@pytest.mark.parametrize("loss_norm,kl_coef", [("trajectory", 0.0), ("token", 0.1)])
+def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
+    """rl.update_microbatch sums the gradients of micro-batches of trajectories; the token weights come
+    from the whole batch, so the update (and its metrics) match the one-shot update."""
+    from sword_jax.rl.rollout import Rollout
+
+    cfg = _toy_cfg(ppo_epochs=2, max_chunks=3, loss_norm=loss_norm, kl_coef=kl_coef)
+    graphdef, params = build_policy(cfg, seed=0)
+    n, c, t, a = 2 * cfg.group_size, cfg.max_chunks, cfg.chunk_len, cfg.action_dim
+    rng = np.random.default_rng(1)
+    valid = np.ones((n, c), np.float32)
+    valid[1, 2:] = 0.0
+    valid[5, 1:] = 0.0  # trajectories of different lengths
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
+        proprio_valid=jnp.ones((n, c)),
+        instruction_tokens=jnp.asarray(tokenize_instructions(["pick up the black bowl"] * n, 32)),
+        tokens=jnp.asarray(rng.integers(0, cfg.action_bins, (n, c, t, a)), jnp.int32),
+        log_probs=jnp.asarray(-np.log(cfg.action_bins) + 0.3 * rng.normal(size=(n, c, t, a)), jnp.float32),
+        valid=jnp.asarray(valid), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
+    results = {}
+    for micro in (0, 2, cfg.group_size):
+        mcfg = dataclasses.replace(cfg, update_microbatch=micro)
+        results[micro] = jax.jit(lambda p, b, mcfg=mcfg: grpo.grpo_gradients(graphdef, mcfg, p, b, ref_params=p))(
+            params, rollout._replace(log_probs=rollout.log_probs))
+    whole_loss, whole_metrics, whole_grads = results[0]
+    scale = max(float(np.abs(np.asarray(x)).max()) for x in jax.tree.leaves(whole_grads))
+    assert scale > 0
+    for micro in (2, cfg.group_size):
+        loss, metrics, grads = results[micro]
+        np.testing.assert_allclose(float(loss), float(whole_loss), rtol=1e-5, atol=1e-7)
+        for x, y in zip(jax.tree.leaves(whole_grads), jax.tree.leaves(grads)):
+            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=0, atol=1e-5 * scale)
+        for k in ("clip_fraction", "kl", "ratio_mean", "kept_fraction"):
+            np.testing.assert_allclose(float(metrics[k]), float(whole_metrics[k]), rtol=1e-5, atol=1e-7)
+    # the micro-batched objective is grpo_loss's
+    from sword_jax.rl.grpo import _rollout_log_probs
+
+    adv, keep = grpo.group_advantages(rollout.returns.reshape(-1, cfg.group_size))
+    ref = _rollout_log_probs(graphdef, params, rollout)
+    direct, _ = grpo.grpo_loss(ref, rollout.log_probs, ref, adv.reshape(-1), rollout.valid,
+                               jnp.repeat(keep, cfg.group_size), cfg)
+    np.testing.assert_allclose(float(whole_loss), float(direct), rtol=1e-5, atol=1e-7)
+    # and the update runs micro-batched
+    state, m = grpo.grpo_update(graphdef, dataclasses.replace(cfg, update_microbatch=2), grpo.init_state(params, cfg),
+                                rollout)
+    assert float(m["finite"]) == 1.0 and float(m["update_norm"]) > 0
+    with pytest.raises(ValueError, match="update_microbatch"):
+        grpo.grpo_update(graphdef, dataclasses.replace(cfg, update_microbatch=3), grpo.init_state(params, cfg), rollout)

@@ -68,6 +68,10 @@ class RLConfig:
         ``missing``, the "missing proprio" input (``imagined_proprio=missing``). The environment and
         reward stay true, so a GRPO run in it isolates the input mode from world-model error; every
         evaluation then also measures that mode beside the true-proprio success.
+      update_microbatch: trajectories per forward/backward pass of the GRPO update (0 = the whole
+        batch at once); gradients are summed over the micro-batches, so the update is the same up to
+        float summation order while activation memory falls by batch / micro-batch (the whole
+        ``small`` batch, 64 trajectories x 55 decisions, asked for 47 GiB at once on an H100).
       ensemble_decay: weight ``exp(-decay * age)`` of a prediction made ``age`` steps ago.
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
@@ -115,6 +119,7 @@ class RLConfig:
     imagined_proprio: str = "reckoned"  # reckoned | missing
     eval_masked_proprio: bool = False  # also evaluate GRPO-in-the-world-model policies with proprio masked
     env_proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
+    update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
@@ -161,6 +166,11 @@ class RLConfig:
                              f"rl.chunk_len={self.chunk_len}, got {self.imagined_execute_steps}")
         if self.imagined_proprio not in ("reckoned", "missing"):
             raise ValueError(f"rl.imagined_proprio must be reckoned|missing, got {self.imagined_proprio!r}")
+        if self.update_microbatch < 0:
+            raise ValueError(f"rl.update_microbatch must be >= 0 (0 = the whole batch), got {self.update_microbatch}")
+        if self.update_microbatch and (self.rollout_batch * self.group_size) % self.update_microbatch:
+            raise ValueError(f"rl.update_microbatch={self.update_microbatch} must divide rl.rollout_batch x "
+                             f"rl.group_size = {self.rollout_batch * self.group_size}")
         if self.env_proprio not in ("true", "reckoned", "missing"):
             raise ValueError(f"rl.env_proprio must be true|reckoned|missing, got {self.env_proprio!r}")
         if self.env_proprio == "reckoned" and self.proprio_dim != 8:

@@ -78,6 +78,48 @@ def clipped_token_loss(
     return loss, is_clipped
 
 
+def loss_weights(valid: Float[Array, "n c"], keep: Float[Array, " n"], tokens_per_chunk: int,
+                 cfg: RLConfig) -> Float[Array, "n c"]:
+    """The weight of each valid token of chunk ``(i, c)`` in the GRPO objective (module docstring).
+
+    They depend only on which chunks are valid and kept, not on the parameters, so the objective
+    ``sum(loss * weight)`` is a plain sum over trajectories and its gradient can be accumulated
+    over micro-batches of trajectories (``rl.update_microbatch``) exactly.
+    """
+    mask = valid.astype(jnp.float32) * keep[:, None]
+    tokens_per_traj = jnp.sum(mask, axis=1) * jnp.float32(tokens_per_chunk)
+    if cfg.loss_norm == "trajectory":
+        kept = jnp.sum((tokens_per_traj > 0).astype(jnp.float32))
+        return mask / jnp.maximum(tokens_per_traj, 1.0)[:, None] / jnp.maximum(kept, 1.0)
+    return mask / jnp.maximum(jnp.sum(tokens_per_traj), 1.0)
+
+
+def _token_terms(new_log_probs, old_log_probs, ref_log_probs, advantages, valid, keep, weights, cfg):
+    """``(objective, sums)``: the weighted surrogate (+ KL) of a batch of trajectories and the
+    masked sums of the per-token diagnostics (clipped, KL, ratio)."""
+    shape = new_log_probs.shape
+    adv = jnp.broadcast_to(advantages[:, None, None, None], shape)
+    loss, is_clipped = clipped_token_loss(new_log_probs, old_log_probs, adv, clip_low=cfg.clip_low, clip_high=cfg.clip_high)
+    kl = jnp.zeros_like(loss)
+    if cfg.kl_coef > 0.0:
+        if ref_log_probs is None:
+            raise ValueError("rl.kl_coef > 0 needs reference log-probs")
+        delta = ref_log_probs - new_log_probs
+        kl = jnp.exp(delta) - delta - 1.0
+        loss = loss + jnp.float32(cfg.kl_coef) * kl
+    mask = jnp.broadcast_to((valid * keep[:, None])[:, :, None, None], shape)
+    objective = jnp.sum(loss * weights[:, :, None, None])
+    sums = {"clipped": jnp.sum(is_clipped * mask), "kl": jnp.sum(kl * mask),
+            "ratio": jnp.sum(jnp.exp(new_log_probs - old_log_probs) * mask)}
+    return objective, sums
+
+
+def _metrics_from_sums(sums, tokens, keep):
+    denom = jnp.maximum(tokens, 1.0)
+    return {"clip_fraction": sums["clipped"] / denom, "kl": sums["kl"] / denom, "ratio_mean": sums["ratio"] / denom,
+            "kept_fraction": jnp.mean(keep)}
+
+
 def grpo_loss(
     new_log_probs: Float[Array, "n c t a"],
     old_log_probs: Float[Array, "n c t a"],
@@ -100,32 +142,10 @@ def grpo_loss(
     Returns:
       ``(loss, metrics)``.
     """
-    per_token = lambda x: jnp.broadcast_to(x, new_log_probs.shape)  # noqa: E731
-    adv = per_token(advantages[:, None, None, None])
-    loss, is_clipped = clipped_token_loss(new_log_probs, old_log_probs, adv, clip_low=cfg.clip_low, clip_high=cfg.clip_high)
-    kl = jnp.zeros_like(loss)
-    if cfg.kl_coef > 0.0:
-        if ref_log_probs is None:
-            raise ValueError("rl.kl_coef > 0 needs reference log-probs")
-        delta = ref_log_probs - new_log_probs
-        kl = jnp.exp(delta) - delta - 1.0
-        loss = loss + jnp.float32(cfg.kl_coef) * kl
-    mask = per_token(valid[:, :, None, None] * keep[:, None, None, None])
-    tokens_per_traj = jnp.sum(mask, axis=(1, 2, 3))
-    if cfg.loss_norm == "trajectory":
-        traj_loss = jnp.sum(loss * mask, axis=(1, 2, 3)) / jnp.maximum(tokens_per_traj, 1.0)
-        kept = (tokens_per_traj > 0).astype(jnp.float32)
-        total = jnp.sum(traj_loss * kept) / jnp.maximum(jnp.sum(kept), 1.0)
-    else:
-        total = jnp.sum(loss * mask) / jnp.maximum(jnp.sum(mask), 1.0)
-    denom = jnp.maximum(jnp.sum(mask), 1.0)
-    metrics = {
-        "clip_fraction": jnp.sum(is_clipped * mask) / denom,
-        "kl": jnp.sum(kl * mask) / denom,
-        "ratio_mean": jnp.sum(jnp.exp(new_log_probs - old_log_probs) * mask) / denom,
-        "kept_fraction": jnp.mean(keep),
-    }
-    return total, metrics
+    t, a = new_log_probs.shape[2:]
+    weights = loss_weights(valid, keep, t * a, cfg)
+    total, sums = _token_terms(new_log_probs, old_log_probs, ref_log_probs, advantages, valid, keep, weights, cfg)
+    return total, _metrics_from_sums(sums, jnp.sum(valid * keep[:, None]) * t * a, keep)
 
 
 @struct.dataclass
@@ -164,26 +184,84 @@ def _rollout_log_probs(graphdef, params, batch: Rollout) -> Float[Array, "n c t 
     return token_log_probs(logits[:, :executed], flat(batch.tokens)).reshape(batch.tokens.shape)
 
 
+def _split_micro(x: jax.Array, parts: int) -> jax.Array:
+    return x.reshape((parts, x.shape[0] // parts) + x.shape[1:])
+
+
+def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_params: Any = None):
+    """``fn(params) -> (loss, metrics, grads)`` of the GRPO objective on ``batch``, micro-batched by
+    ``cfg.update_microbatch`` (the reference log-probs, when ``kl_coef > 0``, computed once here)."""
+    g = cfg.group_size
+    n = batch.valid.shape[0]
+    micro = cfg.update_microbatch or n
+    if n % micro:
+        raise ValueError(f"rl.update_microbatch={cfg.update_microbatch} must divide the {n} trajectories of a "
+                         f"GRPO batch (rollout_batch x group_size)")
+    parts = n // micro
+    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.filter_groups)
+    advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
+    t, a = batch.tokens.shape[2:]
+    valid = batch.valid.astype(jnp.float32)
+    weights = loss_weights(valid, keep, t * a, cfg)
+    tokens = jnp.sum(valid * keep[:, None]) * t * a
+    split = lambda x: _split_micro(x, parts)  # noqa: E731
+    data = {"obs_frames": split(batch.obs_frames), "proprio": split(batch.proprio),
+            "proprio_valid": split(batch.proprio_valid), "instruction_tokens": split(batch.instruction_tokens),
+            "tokens": split(batch.tokens), "old_lp": split(jax.lax.stop_gradient(batch.log_probs)),
+            "valid": split(valid), "keep": split(keep), "adv": split(advantages), "weights": split(weights)}
+
+    def as_rollout(part):
+        return batch._replace(obs_frames=part["obs_frames"], proprio=part["proprio"],
+                              proprio_valid=part["proprio_valid"], instruction_tokens=part["instruction_tokens"],
+                              tokens=part["tokens"], valid=part["valid"])
+
+    if cfg.kl_coef > 0.0:  # the frozen reference, once for all epochs
+        if ref_params is None:
+            raise ValueError("rl.kl_coef > 0 needs the reference policy's parameters")
+        data["ref_lp"] = jax.lax.stop_gradient(jax.lax.map(
+            lambda part: _rollout_log_probs(graphdef, ref_params, as_rollout(part)), data))
+
+    def micro_objective(params, part):
+        new_lp = _rollout_log_probs(graphdef, params, as_rollout(part))
+        return _token_terms(new_lp, part["old_lp"], part.get("ref_lp"), part["adv"], part["valid"], part["keep"],
+                            part["weights"], cfg)
+
+    def loss_and_grads(params):
+        zero_sums = {"clipped": jnp.float32(0.0), "kl": jnp.float32(0.0), "ratio": jnp.float32(0.0)}
+        zero = (jnp.float32(0.0), zero_sums, jax.tree.map(jnp.zeros_like, params))
+
+        def body(acc, part):
+            (objective, sums), grads = jax.value_and_grad(micro_objective, has_aux=True)(params, part)
+            return jax.tree.map(jnp.add, acc, (objective, sums, grads)), None
+
+        (loss, sums, grads), _ = jax.lax.scan(body, zero, data)
+        return loss, _metrics_from_sums(sums, tokens, keep), grads
+
+    return loss_and_grads
+
+
+def grpo_gradients(graphdef: nnx.GraphDef, cfg: RLConfig, params: Any, batch: Rollout, *,
+                   ref_params: Any = None) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]], Any]:
+    """``(loss, metrics, grads)`` of the GRPO objective at ``params`` (what one update step applies)."""
+    return _gradient_fn(graphdef, cfg, batch, ref_params)(params)
+
+
 def grpo_update(
     graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout
 ) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
-    """``cfg.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts."""
-    g = cfg.group_size
-    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.filter_groups)
-    advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
-    ref_lp = None
-    if cfg.kl_coef > 0.0:
-        ref_lp = jax.lax.stop_gradient(_rollout_log_probs(graphdef, state.ref_params, batch))
-    old_lp = jax.lax.stop_gradient(batch.log_probs)
-    optimizer = make_optimizer(cfg)
+    """``cfg.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts.
 
-    def loss_fn(params):
-        new_lp = _rollout_log_probs(graphdef, params, batch)
-        return grpo_loss(new_lp, old_lp, ref_lp, advantages, batch.valid, keep, cfg)
+    With ``cfg.update_microbatch = m`` the policy's forward and backward run on ``m`` trajectories
+    at a time (a ``lax.scan``) and the gradients are summed: the objective's token weights are
+    fixed by the whole batch (:func:`loss_weights`), so this is the same gradient up to float
+    summation order, with the activations of ``m`` trajectories alive instead of all of them.
+    """
+    loss_and_grads = _gradient_fn(graphdef, cfg, batch, state.ref_params)
+    optimizer = make_optimizer(cfg)
 
     def epoch(carry, _):
         params, opt_state = carry
-        (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        loss, metrics, grads = loss_and_grads(params)
         grad_norm = optax.global_norm(grads)
         # a non-finite loss or gradient skips the update: NaN never reaches the parameters or a checkpoint
         updates, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, opt_state, params)
