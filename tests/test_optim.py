@@ -191,7 +191,7 @@ def test_reward_model_optimizer_is_unchanged(variant):
 
 
 def _reward_batches(cfg, poison_at=None):
-    """Class-balanced batches of brightening frames; the batch of step ``poison_at`` holds a NaN frame."""
+    """``batch_at(step)``: class-balanced batches of brightening frames; step ``poison_at``'s holds a NaN frame."""
     e, t = 4, 12
     level = np.linspace(0, 255, t).astype(np.uint8)
     frames = np.broadcast_to(level[None, :, None, None, None], (e, t, 8, 8, 3)).copy()
@@ -199,18 +199,15 @@ def _reward_batches(cfg, poison_at=None):
     episodes = rl_data.EpisodeSet(frames, np.zeros((e, t, 7), np.float32), np.zeros((e, t, 4), np.float32),
                                   np.full(e, t), np.array([True, True, False, False]), ("a", "b", "a", "b"))
     labels = rl_data.success_labels(episodes, positive_tail=3)
-    rng = np.random.default_rng(0)
-    calls = []
 
-    def next_batch():
-        batch = rl_data.sample_reward_batch(episodes, labels, 8, rng)
-        if len(calls) == poison_at:
+    def batch_at(step):
+        batch = rl_data.sample_reward_batch(episodes, labels, 8, np.random.default_rng(step))
+        if step == poison_at:
             batch = dict(batch, frames=np.asarray(batch["frames"], np.float32) / 255.0)
             batch["frames"][0, 0, 0, 0] = np.nan
-        calls.append(1)
         return batch
 
-    return next_batch
+    return batch_at
 
 
 def test_reward_model_stops_on_a_non_finite_loss_naming_the_step():
@@ -229,13 +226,13 @@ def test_reward_model_skips_the_poisoned_update():
     cfg = dataclasses.replace(configs.get("sword:tiny").rl, image_size=8, reward_width=4)
     graphdef, params = build_detector(cfg)
     init, step = make_detector_step(graphdef, cfg)
-    next_batch = _reward_batches(cfg, poison_at=1)
-    state, _ = step(init(params), next_batch(), jax.random.key(0))
+    batch_at = _reward_batches(cfg, poison_at=1)
+    state, _ = step(init(params), batch_at(0), jax.random.key(0))
     before = jax.tree.map(np.asarray, state.params)
-    state, metrics = step(state, next_batch(), jax.random.key(0))
+    state, metrics = step(state, batch_at(1), jax.random.key(0))
     assert float(metrics["finite"]) == 0.0 and not np.isfinite(float(metrics["loss"]))
     assert int(state.first_nonfinite_step) == 1 and int(state.step) == 2
     for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(state.params), strict=True):
         np.testing.assert_array_equal(a, np.asarray(b))
-    state, metrics = step(state, next_batch(), jax.random.key(0))
+    state, metrics = step(state, batch_at(2), jax.random.key(0))
     assert float(metrics["finite"]) == 1.0 and int(state.first_nonfinite_step) == 1

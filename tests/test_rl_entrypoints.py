@@ -17,9 +17,10 @@ def _write_demos(path):
     episodes = []
     for i in range(4):
         t = 12
+        succeeds = (np.arange(t) == t - 1) & (i % 2 == 0)  # even episodes reach success (reward 1) at their end
         episodes.append(Episode(
             actions=rng.uniform(-1, 1, (t, 7)).astype(np.float32), states=np.zeros((t, 3), np.float32),
-            rewards=np.zeros(t, np.float32), dones=(np.arange(t) == t - 1).astype(np.uint8) * (i % 2 == 0),
+            rewards=succeeds.astype(np.float32), dones=succeeds.astype(np.uint8),
             agentview_rgb=rng.integers(0, 255, (t, 16, 16, 3), dtype=np.uint8),
             ee_states=np.zeros((t, 6), np.float32), gripper_states=np.zeros((t, 2), np.float32),
             joint_states=np.zeros((t, 7), np.float32), task_id=i % 2,
@@ -35,7 +36,7 @@ def test_sft_and_reward_entry_points(tmp_path):
     data = _write_demos(str(tmp_path / "demos.hdf5"))
     common = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", data] + TINY_RL
     result = train_policy.main(common + ["--rl.sft_steps=3", "--rl.sft_batch_size=4"])
-    assert result["demos"] == 4 and np.isfinite(result["final_loss"])
+    assert result["demos"] == 1 and np.isfinite(result["final_loss"])  # 2 successful demonstrations, 1 held out
     assert os.path.isdir(tmp_path / "rl" / "policy_sft")
     result = train_reward.main(common + ["--rl.reward_model_steps=3", "--rl.reward_model_batch_size=4"])
     assert "holdout" in result and os.path.isdir(tmp_path / "rl" / "reward_model")

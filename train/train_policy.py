@@ -4,8 +4,11 @@
         [--rl.sft_episodes_per_task=10] [--workdir DIR] [--eval-episodes 10]
 
 The knobs that set how good the starting policy is: ``rl.sft_steps`` and
-``rl.sft_episodes_per_task`` (demonstrations per instruction). Writes ``<workdir>/policy_sft``
-(orbax) and, with ``--eval-episodes``, the ground-truth success in the MuJoCo sim.
+``rl.sft_episodes_per_task`` (demonstrations per instruction). Writes ``<workdir>/rl/policy_sft``
+(orbax) and, with ``--eval-episodes``, the ground-truth success in the MuJoCo sim. The train state
+is checkpointed to ``<workdir>/rl/sft_checkpoints`` every ``rl.sft_checkpoint_every`` steps and a
+rerun resumes from there, ending bit-identical to an uninterrupted run; a non-finite loss stops
+the run naming the step, the last good checkpoint kept.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from sword_jax.rl.evaluate import evaluate_in_sim
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.sft import train_sft
+from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -51,7 +55,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     graphdef, params = build_policy(rl, seed=cfg.seed)
     start = time.time()
     params, history = train_sft(graphdef, params, rl, train_eps, held_out, seed=cfg.seed,
-                                log=lambda m: print(m, flush=True))
+                                log=lambda m: print(m, flush=True),
+                                checkpoint_dir=os.path.join(workdir, "sft_checkpoints"))
     path = os.path.join(workdir, "policy_sft")
     save_params(path, params, rl, kind="policy", step=rl.sft_steps)
     result = {"steps": rl.sft_steps, "demos": train_eps.num_episodes, "path": path,
@@ -72,4 +77,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 if __name__ == "__main__":
     from sword_jax.cli import run
 
-    run(main)
+    run(main, runtime_errors=(NonFiniteLoss,))

@@ -3,7 +3,11 @@
     python -m train.train_reward --config sword:small --demos episodes.hdf5 [--rl.reward_model_steps=1000]
 
 The last ``rl.positive_tail`` frames of successful episodes are positives, every other frame a
-negative; batches are class-balanced. Writes ``<workdir>/reward_model`` and a held-out report.
+negative; batches are class-balanced, the batch of step ``s`` drawn from its own stream
+(``reward/batches``, ``s``). Writes ``<workdir>/rl/reward_model`` and a held-out report. The train
+state is checkpointed to ``<workdir>/rl/reward_checkpoints`` every
+``rl.reward_model_checkpoint_every`` steps and a rerun resumes from there, ending bit-identical to
+an uninterrupted run; a non-finite loss stops the run naming the step, the last good checkpoint kept.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import configs
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.reward_model import as_reward_model, build_detector, train_detector
+from sword_jax.rng import stream_rng
+from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -41,9 +47,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     labels = rl_data.success_labels(train_eps, rl.positive_tail)
     graphdef, params = build_detector(rl, seed=cfg.seed)
     key = jax.random.key(cfg.seed)
-    state, _ = train_detector(graphdef, params, rl,
-                              lambda: rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size, rng),
-                              key=key, log=lambda line: print(line, flush=True))
+
+    def batch_at(step: int) -> dict:
+        return rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size,
+                                           stream_rng(cfg.seed, "reward/batches", step))
+
+    state, _ = train_detector(graphdef, params, rl, batch_at, key=key, log=lambda line: print(line, flush=True),
+                              checkpoint_dir=os.path.join(workdir, "reward_checkpoints"))
     path = os.path.join(workdir, "reward_model")
     save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
     result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path}
@@ -68,4 +78,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 if __name__ == "__main__":
     from sword_jax.cli import run
 
-    run(main)
+    run(main, runtime_errors=(NonFiniteLoss,))

@@ -76,6 +76,9 @@ class RLConfig:
       sft_lr_end_fraction: the SFT cosine schedule ends at this fraction of its peak.
       sft_warmup_steps: linear warm-up of the SFT learning rate.
       sft_eval_every: SFT steps between teacher-forced metrics on held-out demonstrations.
+      sft_checkpoint_every / reward_model_checkpoint_every: steps between the train-state
+        checkpoints an SFT / reward-model run resumes from (``train.train_policy`` /
+        ``train.train_reward``; the last step is always saved).
       reward_width: base channels of the success-detector CNN.
       eval_every: GRPO steps between ground-truth evaluations.
       eval_episodes_per_task: initial states per task in ground-truth evaluation (paper: 50).
@@ -124,6 +127,8 @@ class RLConfig:
     sft_lr_end_fraction: float = 0.1
     sft_warmup_steps: int = 50
     sft_eval_every: int = 100
+    sft_checkpoint_every: int = 100
+    reward_model_checkpoint_every: int = 100
     reward_width: int = 16
     eval_every: int = 5
     eval_episodes_per_task: int = 50
@@ -186,5 +191,8 @@ class RLConfig:
             raise ValueError(f"rl.sft_lr_end_fraction must be in [0, 1], got {self.sft_lr_end_fraction}")
         if self.sft_warmup_steps < 0 or self.sft_eval_every < 1:
             raise ValueError("rl.sft_warmup_steps must be >= 0 and rl.sft_eval_every >= 1")
+        for name in ("sft_checkpoint_every", "reward_model_checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"rl.{name} must be >= 1 (steps between checkpoints), got {getattr(self, name)}")
         if self.positive_tail < 1:
             raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")

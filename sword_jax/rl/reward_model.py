@@ -119,34 +119,41 @@ def train_detector(
     graphdef: nnx.GraphDef,
     params: Any,
     cfg: RLConfig,
-    next_batch: Callable[[], dict],
+    batch_at: Callable[[int], dict],
     *,
     key: jax.Array,
     steps: int | None = None,
     log: Callable[[str], Any] = print,
+    checkpoint_dir: str | None = None,
 ) -> tuple[DetectorState, dict[str, Array]]:
-    """``steps`` (default ``cfg.reward_model_steps``) detector steps on batches from ``next_batch()``.
+    """``steps`` (default ``cfg.reward_model_steps``) detector steps; step ``s`` trains on ``batch_at(s)``.
 
-    Metrics are read on about ten log steps and at the end.
+    ``batch_at`` must be a pure function of the step (e.g. drawn from ``stream_rng(seed, name, s)``):
+    with ``checkpoint_dir`` the state is saved every ``cfg.reward_model_checkpoint_every`` steps and
+    a rerun resumes from it bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Metrics are
+    read one step late on about ten log steps and at the end.
 
     Returns:
-      ``(state, metrics)``: the final state and the last step's metrics.
+      ``(state, metrics)``: the final state and the last step's metrics (empty if no step ran).
 
     Raises:
-      FloatingPointError: a loss or gradient became non-finite (naming the 0-based step; the
-        parameters are those from before it).
+      sword_jax.train_loop.NonFiniteLoss: a loss or gradient became non-finite (a
+        ``FloatingPointError`` naming the 0-based step; its update was skipped and the last good
+        checkpoint is kept).
     """
+    from sword_jax.train_loop import run_steps
+
     steps = cfg.reward_model_steps if steps is None else steps
-    log_every = max(steps // 10, 1)
     init, step = make_detector_step(graphdef, cfg)
-    state = init(params)
-    metrics: dict[str, Array] = {}
-    for i in range(steps):
-        state, metrics = step(state, next_batch(), key)
-        if (i + 1) % log_every == 0 or i + 1 == steps:
-            first_bad = int(jax.device_get(state.first_nonfinite_step))
-            if first_bad >= 0:
-                raise FloatingPointError(f"reward model: non-finite loss or gradient at step {first_bad} (0-based); "
-                                         f"its update was skipped; stopped after step {i + 1}")
-            log(f"reward step {i + 1}/{steps} loss {float(metrics['loss']):.4f} acc {float(metrics['accuracy']):.3f}")
-    return state, metrics
+
+    def report(done: int, metrics: dict[str, float], observed: None, eta: float) -> dict[str, float]:
+        del observed, eta
+        log(f"reward step {done}/{steps} loss {metrics['loss']:.4f} acc {metrics['accuracy']:.3f}")
+        return {"step": done, **metrics}
+
+    run_id = {"reward_model_batch_size": cfg.reward_model_batch_size,
+              "reward_model_learning_rate": cfg.reward_model_learning_rate}
+    result = run_steps(step, init(params), batch_at, key=key, steps=steps, log_every=max(steps // 10, 1),
+                       name="reward model", report=report, checkpoint_dir=checkpoint_dir,
+                       checkpoint_every=cfg.reward_model_checkpoint_every, run_id=run_id, log=log)
+    return result.state, result.metrics

@@ -9,6 +9,7 @@ demonstrations per task it sees).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -22,6 +23,9 @@ from sword_jax.rl.policy import (actions_to_tokens, resize_frames, token_log_pro
                                  trainable_mask)
 
 PROPRIO_DROPOUT = 0.3
+# RL config keys a resumed SFT run must share with its checkpoint (others may change between runs)
+SFT_RUN_KEYS = ("sft_batch_size", "sft_learning_rate", "sft_warmup_steps", "sft_lr_end_fraction", "chunk_len",
+                "action_bins", "image_size")
 
 
 @struct.dataclass
@@ -112,28 +116,33 @@ def train_sft(
     seed: int = 0,
     steps: int | None = None,
     log: Any = print,
+    checkpoint_dir: str | None = None,
 ) -> tuple[Any, list[dict[str, float]]]:
     """Behaviour cloning on ``train_episodes`` (an ``rl.data.EpisodeSet``) from ``params``.
 
-    The proprio normalisation is set from the training demonstrations before the first step.
-    Every ``cfg.sft_eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and
-    action L1 on ``held_out`` demonstrations are logged next to the training batch's.
+    The proprio normalisation is set from the training demonstrations before the first step. The
+    batch of step ``s`` is drawn from ``stream_rng(seed, "sft/batches", s)``, so with
+    ``checkpoint_dir`` the run saves its train state every ``cfg.sft_checkpoint_every`` steps and
+    resumes from there bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Every
+    ``cfg.sft_eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and action
+    L1 on ``held_out`` demonstrations are logged next to the training batch's, one step late.
 
     Returns:
-      ``(params, history)``: the trained parameters and one dict of metrics per log point.
+      ``(params, history)``: the trained parameters and one dict of metrics per log point (those
+      before a resume come from the checkpoint).
 
     Raises:
-      FloatingPointError: a non-finite loss (naming the step).
+      sword_jax.train_loop.NonFiniteLoss: a non-finite loss or gradient (a ``FloatingPointError``
+        naming the 0-based step; the last good checkpoint is kept).
     """
-    import time
-
     import numpy as np
 
     from sword_jax.rl import data as rl_data
     from sword_jax.rl.policy import compute_proprio_stats, set_proprio_stats
+    from sword_jax.rng import stream_rng
+    from sword_jax.train_loop import run_steps
 
     steps = steps or cfg.sft_steps
-    rng = np.random.default_rng(seed)
     valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
                                   for e in range(train_episodes.num_episodes)])
     params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
@@ -141,28 +150,29 @@ def train_sft(
     evaluate = make_sft_eval(graphdef, cfg)
     held_batches = []
     if held_out is not None:
-        from sword_jax.rng import stream_rng
         held_rng = stream_rng(seed, "sft/held_out_batches")
         held_batches = [rl_data.sample_bc_batch(held_out, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
                                                 held_rng) for _ in range(4)]
-    state = init(params)
-    key = jax.random.key(seed)
-    history: list[dict[str, float]] = []
-    start = time.time()
-    for i in range(steps):
-        batch = rl_data.sample_bc_batch(train_episodes, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes, rng)
-        state, metrics = step(state, batch, key)
-        if (i + 1) % cfg.sft_eval_every == 0 or i + 1 == steps:
-            point = {"step": i + 1, **{k: float(v) for k, v in metrics.items()}}
-            if not np.isfinite(point["loss"]):
-                raise FloatingPointError(f"SFT: non-finite loss at step {i + 1}")
-            for hb in held_batches:
-                for name, value in evaluate(state.params, hb).items():
-                    point[f"heldout_{name}"] = point.get(f"heldout_{name}", 0.0) + float(value) / len(held_batches)
-            history.append(point)
-            eta = (time.time() - start) / (i + 1) * (steps - i - 1)
-            held = (f" | held-out loss {point['heldout_loss']:.3f} acc {point['heldout_token_accuracy']:.3f} "
-                    f"L1 {point['heldout_action_l1']:.3f}") if held_batches else ""
-            log(f"sft step {i + 1}/{steps} loss {point['loss']:.3f} acc {point['token_accuracy']:.3f} "
-                f"lr {point['learning_rate']:.2e}{held} eta {eta:.0f}s")
-    return state.params, history
+
+    def batch_at(i: int) -> dict:
+        return rl_data.sample_bc_batch(train_episodes, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
+                                       stream_rng(seed, "sft/batches", i))
+
+    def report(done: int, metrics: dict[str, float], held: list, eta: float) -> dict[str, float]:
+        point = {"step": done, **metrics}
+        for batch_metrics in held:
+            for name, value in batch_metrics.items():
+                point[f"heldout_{name}"] = point.get(f"heldout_{name}", 0.0) + float(value) / len(held)
+        held_line = (f" | held-out loss {point['heldout_loss']:.3f} acc {point['heldout_token_accuracy']:.3f} "
+                     f"L1 {point['heldout_action_l1']:.3f}") if held else ""
+        log(f"sft step {done}/{steps} loss {point['loss']:.3f} acc {point['token_accuracy']:.3f} "
+            f"lr {point['learning_rate']:.2e}{held_line} eta {eta:.0f}s")
+        return point
+
+    run_id = {"seed": seed, "steps": steps, "demonstrations": int(train_episodes.num_episodes),
+              **{k: v for k, v in dataclasses.asdict(cfg).items() if k in SFT_RUN_KEYS}}
+    result = run_steps(step, init(params), batch_at, key=jax.random.key(seed), steps=steps,
+                       log_every=cfg.sft_eval_every, name="SFT", report=report,
+                       observe=lambda state: [evaluate(state.params, hb) for hb in held_batches],
+                       checkpoint_dir=checkpoint_dir, checkpoint_every=cfg.sft_checkpoint_every, run_id=run_id, log=log)
+    return result.state.params, result.history

@@ -1,0 +1,163 @@
+"""The step loop of the small trainers (SFT, reward model): resume, late metrics, finite stop, checkpoints.
+
+:func:`run_steps` drives a jitted ``step(state, batch, key) -> (state, metrics)`` whose batch is a
+pure function of the step (``batch_at(step)``, e.g. drawn from ``rng.stream_rng(seed, name, step)``),
+so the train state alone (params, optimizer state, step) is all an exact resume needs. With a
+checkpoint directory it resumes from the newest checkpoint there and saves one every
+``checkpoint_every`` steps and at the end, through :class:`~sword_jax.world_model.checkpoint.Checkpointer`.
+
+The host reads a log step's metrics after the next step was dispatched, so the device never waits
+on it. Every step's metrics go through a small device-side check that remembers the first step
+with a non-finite value; it is read with the metrics and before each checkpoint, so a checkpoint
+is written only once its step's loss was read finite, and a non-finite loss stops the run with
+:class:`NonFiniteLoss` naming the step, the last good checkpoint left as it was.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from sword_jax.prefetch import prefetched
+from sword_jax.world_model import checkpoint
+
+StepFn = Callable[[Any, Any, jax.Array], tuple[Any, dict[str, jax.Array]]]
+
+
+class NonFiniteLoss(FloatingPointError):
+    """A step's loss (or gradient norm, or another metric) was non-finite; the run stopped."""
+
+
+@dataclasses.dataclass
+class LoopResult:
+    """What :func:`run_steps` ends with.
+
+    Attributes:
+      state: the final train state.
+      metrics: the last step's metrics (device arrays; empty when no step ran).
+      history: one ``report`` point per log step of the whole run (restored ones included).
+      first_step: steps already done when this call started (> 0 after a resume).
+    """
+
+    state: Any
+    metrics: dict[str, jax.Array]
+    history: list[dict[str, Any]]
+    first_step: int
+
+
+@jax.jit
+def _note_nonfinite(first_bad: jax.Array, step: jax.Array, metrics: dict[str, jax.Array]) -> jax.Array:
+    """``first_bad``, or ``step`` if it is still -1 and a floating metric of this step is non-finite."""
+    finite = jnp.bool_(True)
+    for value in jax.tree.leaves(metrics):
+        if jnp.issubdtype(value.dtype, jnp.floating):
+            finite = finite & jnp.all(jnp.isfinite(value))
+    return jnp.where((first_bad < 0) & ~finite, step, first_bad).astype(jnp.int32)
+
+
+def _check_same_run(name: str, directory: str, saved: Any, current: dict[str, Any] | None) -> None:
+    if current is None or saved == current:
+        return
+    saved = saved if isinstance(saved, dict) else {}
+    differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
+    raise ValueError(f"{name}: the checkpoint in {directory} was made by another run (differs in {differ}); "
+                     "use a new work dir or remove it")
+
+
+def run_steps(
+    step: StepFn,
+    state: Any,
+    batch_at: Callable[[int], Any],
+    *,
+    key: jax.Array,
+    steps: int,
+    log_every: int,
+    name: str,
+    report: Callable[[int, dict[str, float], Any, float], dict[str, Any]],
+    observe: Callable[[Any], Any] | None = None,
+    checkpoint_dir: str | None = None,
+    checkpoint_every: int = 1,
+    run_id: dict[str, Any] | None = None,
+    log: Callable[[str], Any] = print,
+) -> LoopResult:
+    """Runs steps ``first_step .. steps - 1`` (0-based) of ``step`` from ``state``.
+
+    Args:
+      step: the jitted step; it may donate its state.
+      state: the initial train state (its structure and shardings are what a checkpoint restores into).
+      batch_at: the batch of a 0-based step, a pure function of it (made one step ahead on a thread).
+      key: the root key passed to every step (which folds in its own step counter).
+      steps: total steps of the run.
+      log_every: steps between log points (the last step is one too).
+      name: the trainer's name in messages (``"SFT"``, ``"reward model"``).
+      report: ``report(step_done, metrics, observed, eta_s) -> point``, called one step late with host
+        values; logs the point and returns what goes into the history.
+      observe: ``observe(state) -> device pytree`` dispatched on a log step's state before the next
+        step may donate it (e.g. held-out metrics); read with that step's metrics.
+      checkpoint_dir: where checkpoints live; None = no checkpoints and no resume.
+      checkpoint_every: steps between checkpoints (the last step is always saved).
+      run_id: JSON facts a resumed run must share with the checkpoint (seed, batch size, ...).
+      log: where the resume line goes.
+
+    Raises:
+      NonFiniteLoss: a step's metrics held a non-finite value (the message names the 0-based step and
+        the last good checkpoint).
+      ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id`` or structure).
+    """
+    ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=2) if checkpoint_dir else None
+    first_step, history, batches = 0, [], None
+    try:
+        if ckpt is not None and ckpt.latest_step() is not None:
+            state, meta = ckpt.restore(checkpoint.abstract_like(state))
+            _check_same_run(name, ckpt.directory, meta.get("run"), run_id)
+            first_step, history = int(meta["step"]), list(meta["history"])
+            log(f"{name}: resumed from step {first_step} in {ckpt.directory}")
+        first_bad = jnp.full((), -1, jnp.int32)
+        dispatched, pending, metrics = first_step, None, {}
+        start = time.perf_counter()
+
+        def stop_if_nonfinite(bad: jax.Array) -> None:
+            bad_step = int(jax.device_get(bad))
+            if bad_step >= 0:
+                last = None if ckpt is None else ckpt.latest_step()
+                kept = ("no checkpoints (no checkpoint directory)" if ckpt is None else
+                        f"last good checkpoint: {'none' if last is None else f'step {last}'} in {ckpt.directory}")
+                raise NonFiniteLoss(f"{name}: non-finite loss or gradient at step {bad_step} (0-based); "
+                                    f"stopped after step {dispatched}; {kept}")
+
+        def read(done: int, step_metrics: dict, observed: Any, bad: jax.Array) -> None:
+            stop_if_nonfinite(bad)
+            host = {k: float(v) for k, v in jax.device_get(step_metrics).items()}
+            eta = (time.perf_counter() - start) / max(dispatched - first_step, 1) * (steps - done)
+            history.append(report(done, host, jax.device_get(observed), eta))
+
+        batches = prefetched(batch_at, range(first_step, steps))
+        for i, batch in enumerate(batches, start=first_step):
+            state, metrics = step(state, batch, key)
+            first_bad = _note_nonfinite(first_bad, i, metrics)
+            dispatched = i + 1
+            if pending is not None:  # the previous log step: the device already has this step queued
+                read(*pending)
+                pending = None
+            if dispatched % log_every == 0 or dispatched == steps:
+                pending = (dispatched, metrics, observe(state) if observe else None, first_bad)
+            if ckpt is not None and (dispatched % checkpoint_every == 0 or dispatched == steps):
+                if pending is not None:
+                    read(*pending)
+                    pending = None
+                stop_if_nonfinite(first_bad)  # only a step read finite is saved
+                ckpt.save(dispatched, state, {"step": dispatched, "history": history, "run": run_id})
+        if pending is not None:
+            read(*pending)
+        stop_if_nonfinite(first_bad)
+    finally:
+        if batches is not None:
+            batches.close()
+        if ckpt is not None:
+            ckpt.close()
+    return LoopResult(state, metrics, history, first_step)

@@ -1,0 +1,146 @@
+"""Crash and resume of the SFT and reward-model trainers (``sword_jax.train_loop``).
+
+A run of ``train.train_policy`` / ``train.train_reward`` SIGKILLed partway and rerun in the same
+work dir ends with parameters (and optimizer state, and logged history) bit-identical to an
+uninterrupted run; a non-finite loss stops the run naming the step, the checkpoint before it intact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from sword_jax.rl.policy import build_policy
+from sword_jax.rl.reward_model import build_detector, train_detector
+from sword_jax.rl.sft import train_sft
+from sword_jax.train_loop import NonFiniteLoss
+from sword_jax.world_model import checkpoint
+from tests.conftest import REPO, example_env
+from tests.test_optim import _reward_batches
+from tests.test_rl_entrypoints import TINY_RL, _write_demos
+from tests.test_rl_policy import CFG, _episodes
+
+STEPS, KILL_AT = 8, 3
+ENTRY = {  # entry point, its checkpoint dir under <workdir>/rl, its knobs for a short run checkpointed every step
+    "sft": ("train.train_policy", "sft_checkpoints",
+            [f"--rl.sft_steps={STEPS}", "--rl.sft_batch_size=4", "--rl.sft_eval_every=2", "--rl.sft_warmup_steps=2",
+             "--rl.sft_checkpoint_every=1", "--holdout=0.3"]),
+    "reward": ("train.train_reward", "reward_checkpoints",
+               [f"--rl.reward_model_steps={STEPS}", "--rl.reward_model_batch_size=4",
+                "--rl.reward_model_checkpoint_every=1"]),
+}
+
+
+def _env(tmp_path) -> dict[str, str]:
+    # one CPU device, the persistent compilation cache shared by the three runs of a test
+    return dict(example_env(), JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla_cache"),
+                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", PYTHONUNBUFFERED="1")
+
+
+def _cmd(trainer: str, workdir: str, demos: str) -> list[str]:
+    module, _, knobs = ENTRY[trainer]
+    return [sys.executable, "-m", module, "--config", "sword:tiny", f"--workdir={workdir}", "--demos", demos,
+            *TINY_RL, *knobs]
+
+
+def _steps_saved(directory: str) -> list[int]:
+    return sorted(int(d) for d in os.listdir(directory) if d.isdigit()) if os.path.isdir(directory) else []
+
+
+def _final_state(directory: str, like=None) -> tuple[list[np.ndarray], dict]:
+    """The leaves of the newest checkpoint's train state (params, optimizer state, step) and its meta,
+    restored as saved (nested dicts) or into the structure of the train state ``like``."""
+    ckpt = checkpoint.Checkpointer(directory)
+    state, meta = ckpt.restore(None if like is None else checkpoint.abstract_like(like))
+    ckpt.close()
+    return [np.asarray(leaf) for leaf in jax.tree.leaves(state)], meta
+
+
+@pytest.mark.parametrize("trainer", ["sft", "reward"])
+def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
+    env = _env(tmp_path)
+    demos = _write_demos(str(tmp_path / "demos.hdf5"))
+    crashed = str(tmp_path / "crashed")  # first: it compiles, the two runs after it read the compilation cache
+    ckpt_dir = os.path.join(crashed, "rl", ENTRY[trainer][1])
+    proc = subprocess.Popen(_cmd(trainer, crashed, demos), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None and not any(s >= KILL_AT for s in _steps_saved(ckpt_dir)):
+        time.sleep(0.005)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)  # lands inside a step or a checkpoint write
+    proc.wait()
+    killed_at = max(_steps_saved(ckpt_dir))
+    assert KILL_AT <= killed_at < STEPS, killed_at
+
+    reference = str(tmp_path / "reference")
+    done = subprocess.run(_cmd(trainer, reference, demos), cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    resumed = subprocess.run(_cmd(trainer, crashed, demos), cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    match = re.search(r"resumed from step (\d+)", resumed.stdout)
+    assert match and KILL_AT <= int(match.group(1)) < STEPS, resumed.stdout[-2000:]
+
+    want, want_meta = _final_state(os.path.join(reference, "rl", ENTRY[trainer][1]))
+    got, got_meta = _final_state(ckpt_dir)
+    assert got_meta["step"] == want_meta["step"] == STEPS
+    assert len(got) == len(want) > 10
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert got_meta["history"] == want_meta["history"] and len(want_meta["history"]) >= 2
+    if trainer == "sft":  # the saved policy and the result's history (held-out metrics included) match too
+        results = [json.load(open(os.path.join(d, "rl", "sft_result.json"))) for d in (reference, crashed)]
+        assert results[0]["history"] == results[1]["history"]
+        assert "heldout_loss" in results[0]["history"][-1]
+
+
+def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path):
+    # a learning rate this large sends the parameters past float32's range within a few steps
+    cfg = dataclasses.replace(CFG, sft_learning_rate=1e30, sft_warmup_steps=0, sft_eval_every=1, sft_checkpoint_every=1)
+    graphdef, params = build_policy(cfg, seed=0)
+    directory = str(tmp_path / "sft_checkpoints")
+    with pytest.raises(NonFiniteLoss, match=r"SFT: non-finite loss or gradient at step \d+ \(0-based\)") as err:
+        train_sft(graphdef, params, cfg, _episodes(), seed=0, steps=20, log=lambda line: None,
+                  checkpoint_dir=directory)
+    bad_step = int(re.search(r"at step (\d+)", str(err.value)).group(1))
+    assert 1 <= bad_step < 20 and f"last good checkpoint: step {bad_step}" in str(err.value)
+    leaves, meta = _final_state(directory)  # every step before the bad one was saved, nothing after
+    assert meta["step"] == bad_step and meta["history"][-1]["step"] == bad_step
+    assert all(np.all(np.isfinite(a)) for a in leaves if a.dtype.kind == "f")
+
+
+def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes(tmp_path):
+    cfg = dataclasses.replace(CFG, reward_model_checkpoint_every=1)
+    directory = str(tmp_path / "reward_checkpoints")
+    graphdef, params = build_detector(cfg)
+    with pytest.raises(NonFiniteLoss, match=r"reward model: non-finite loss or gradient at step 3 \(0-based\).*"
+                                            r"last good checkpoint: step 3"):
+        train_detector(graphdef, params, cfg, _reward_batches(cfg, poison_at=3), key=jax.random.key(0), steps=6,
+                       log=lambda line: None, checkpoint_dir=directory)
+    # the kept checkpoint is exactly the state after the three good steps
+    graphdef, params = build_detector(cfg)
+    straight, _ = train_detector(graphdef, params, cfg, _reward_batches(cfg), key=jax.random.key(0), steps=3,
+                                 log=lambda line: None)
+    leaves, meta = _final_state(directory, like=straight)
+    assert meta["step"] == 3 and all(np.all(np.isfinite(a)) for a in leaves if a.dtype.kind == "f")
+    for a, b in zip(leaves, jax.tree.leaves(straight), strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    # the checkpoint belongs to its run: another batch size is refused, naming the key
+    graphdef, params = build_detector(cfg)
+    with pytest.raises(ValueError, match="reward_model_batch_size"):
+        train_detector(graphdef, params, dataclasses.replace(cfg, reward_model_batch_size=7),
+                       _reward_batches(cfg), key=jax.random.key(0), steps=6, log=lambda line: None,
+                       checkpoint_dir=directory)
