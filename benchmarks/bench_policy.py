@@ -104,6 +104,8 @@ def diff_interval(a: int, n: int, b: int, m: int) -> tuple[float, float]:
 
 
 def run_sft(cfg, args) -> dict:
+    from sim.dataset import read_dataset
+    from sim.lockstep import lockstep_evaluation
     from sword_jax.rl import data as rl_data
     from sword_jax.rl.env_rollout import make_act_fns
     from sword_jax.rl.evaluate import evaluate_in_sim
@@ -119,7 +121,7 @@ def run_sft(cfg, args) -> dict:
     paths = _gen_demos(args.out, tasks, max(amounts) + args.holdout_per_task, cfg.sim.resolution, args.noise,
                        args.noisy_share, cfg.seed, args.gen_procs_per_task)
     gen_seconds = time.time() - t0
-    episodes = rl_data.load_episodes(paths)
+    episodes = rl_data.load_episodes(paths, read=read_dataset)
     demo_success = float(np.mean(episodes.success))
     episodes = rl_data.successful(episodes)
     # the same held-out demonstrations for every data amount
@@ -147,9 +149,9 @@ def run_sft(cfg, args) -> dict:
         for mode in modes:
             rl_eval = dataclasses.replace(rl, execute_steps=1 if mode == "ens" else int(mode),
                                           action_ensemble=mode == "ens")  # "1" = every step, no ensembling
-            result = evaluate_in_sim(graphdef, params, rl_eval, tasks=tasks, episodes_per_task=args.eval_episodes,
-                                     resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps, renderer="jax",
-                                     workers=args.workers, act=make_act_fns(graphdef, rl_eval))
+            result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
+                                     **lockstep_evaluation(tasks, args.eval_episodes, resolution=cfg.sim.resolution,
+                                                           max_steps=cfg.sim.max_steps, workers=args.workers))
             run["eval"][mode] = result
             print(f"demos/task {amount} execute {mode}: success {result['mean']:.3f} "
                   f"[{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] ({result['episodes']} episodes, "
@@ -172,6 +174,7 @@ def run_sft(cfg, args) -> dict:
 
 def run_eval(cfg, args) -> dict:
     """Evaluates a saved policy under each execution mode of ``--execute`` (no training)."""
+    from sim.lockstep import lockstep_evaluation
     from sword_jax.rl.env_rollout import make_act_fns
     from sword_jax.rl.evaluate import evaluate_in_sim
     from sword_jax.rl.policy import build_policy
@@ -182,10 +185,10 @@ def run_eval(cfg, args) -> dict:
     for mode in args.execute.split(","):
         rl_eval = dataclasses.replace(cfg.rl, execute_steps=1 if mode == "ens" else int(mode),
                                       action_ensemble=mode == "ens")
-        result = evaluate_in_sim(graphdef, params, rl_eval, tasks=list(cfg.sim.tasks),
-                                 episodes_per_task=args.eval_episodes, resolution=cfg.sim.resolution,
-                                 max_steps=cfg.sim.max_steps, renderer="jax", workers=args.workers,
-                                 act=make_act_fns(graphdef, rl_eval))
+        result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
+                                 **lockstep_evaluation(list(cfg.sim.tasks), args.eval_episodes,
+                                                       resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+                                                       workers=args.workers))
         results["eval"][mode] = result
         print(f"execute {mode}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
               f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)

@@ -129,9 +129,14 @@ class CpuEnv(_Common):
             return key.random(tasks.NUM_DRAWS + 1)
         return np.asarray(jax.random.uniform(key, (tasks.NUM_DRAWS + 1,)), np.float64)
 
+    def initial_qpos(self, key: Any) -> np.ndarray:
+        """The ``(nq,)`` qpos a reset from ``key`` (jax PRNG key or ``numpy.random.Generator``) starts
+        from, before the settle steps."""
+        return self._draws_to_qpos(self._draws(key), np)
+
     def reset(self, key: Any) -> State:
         """New episode from a jax PRNG key (or a ``numpy.random.Generator``)."""
-        return self.reset_to(self._draws_to_qpos(self._draws(key), np))
+        return self.reset_to(self.initial_qpos(key))
 
     def reset_to(self, qpos: np.ndarray) -> State:
         """New episode from a given initial ``qpos`` (e.g. ``init_states[i]``), then settle."""
@@ -203,10 +208,13 @@ class MjxEnv(_Common):
             return self._init_states_j[idx]
         return tasks.init_qpos(self.task_id, draws[:-1], xp=jnp)
 
+    def initial_qpos(self, key: jax.Array) -> jax.Array:
+        """The ``(nq,)`` qpos a reset from ``key`` starts from, before the settle steps (pure)."""
+        return self._draws_to_qpos(jax.random.uniform(key, (tasks.NUM_DRAWS + 1,)), jnp)
+
     def reset(self, key: jax.Array) -> State:
         """New episode (pure). ``key``: a jax PRNG key."""
-        draws = jax.random.uniform(key, (tasks.NUM_DRAWS + 1,))
-        return self.reset_to(self._draws_to_qpos(draws, jnp))
+        return self.reset_to(self.initial_qpos(key))
 
     def reset_to(self, qpos: jax.Array) -> State:
         """New episode from a given initial qpos (nq,), then the settle steps (pure)."""

@@ -15,6 +15,7 @@ scales that linearly, and only frames the policy reads are rendered.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -254,3 +255,18 @@ class LockstepEnvs:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def lockstep_evaluation(tasks: Sequence[int], episodes_per_task: int, *, resolution: int, max_steps: int = 220,
+                        renderer: str = "jax", workers: int = 0) -> dict[str, Any]:
+    """``episodes``, ``envs_factory`` and ``max_steps`` of ``sword_jax.rl.evaluate.evaluate_in_sim``:
+    each task's first ``episodes_per_task`` fixed evaluation initial states on :class:`LockstepEnvs`.
+
+    Usage: ``evaluate_in_sim(graphdef, params, rl, **lockstep_evaluation([0, 1], 10, resolution=128))``.
+    """
+    from sim import tasks as sim_tasks
+
+    episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
+    factory = functools.partial(LockstepEnvs, resolution=resolution, max_steps=max_steps, renderer=renderer,
+                                workers=workers)
+    return {"episodes": episodes, "envs_factory": factory, "max_steps": max_steps}

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -211,6 +212,14 @@ def split_init_states(task_id: int, split: str, count: int, *, start: int = 0, s
         raise ValueError(f"the {split} split is checked for {TRAIN_RESERVE} states per task; asked for "
                          f"{start}..{start + count - 1}")
     return np.array(_split_stream(task_id, split, start + count, seed)[start:])
+
+
+def evaluation_episodes(tasks: Sequence[int], episodes_per_task: int) -> list[tuple[int, np.ndarray]]:
+    """``(task, qpos)`` of each task's first ``episodes_per_task`` fixed evaluation initial states
+    (the ``episodes`` of ``sword_jax.rl.evaluate.evaluate_in_sim`` and ``sim.lockstep.LockstepEnvs``)."""
+    if not 1 <= episodes_per_task <= NUM_INIT_STATES:
+        raise ValueError(f"episodes_per_task must be in 1..{NUM_INIT_STATES}, got {episodes_per_task}")
+    return [(int(t), q) for t in tasks for q in split_init_states(int(t), "eval", episodes_per_task)]
 
 
 def success(bowl_pos: Any, bowl_zaxis_z: Any, plate_pos: Any, *, xp: Any = np) -> Any:

@@ -189,6 +189,23 @@ def test_gallery_writes_labelled_png(tmp_path):
     assert image.std() > 20  # not blank
 
 
+def test_gallery_of_a_sim_frame_needs_the_renderer_from_train(tmp_path, capsys):
+    from sword_jax import cli
+    from sword_jax.augment import gallery
+    from train import gallery as sim_gallery
+
+    argv = ["--out", str(tmp_path / "sim.png"), "--source", "sim", "--size", "32", "--styles", "1"]
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run(gallery.main, argv)
+    assert exit_info.value.code == 2 and "python -m train.gallery" in capsys.readouterr().err
+    assert sim_gallery.main(argv) == 0
+    assert "source=sim" in capsys.readouterr().out
+    rgb, depth, seg, classes, fov = sim_gallery.sim_frame(32, 0)
+    assert rgb.shape == (1, 32, 32, 3) and depth.shape == seg.shape == (1, 32, 32) and fov > 0
+    assert len(np.unique(seg)) > 3 and rgb.std() > 0.05  # table, robot and objects in view
+    assert classes.fixtures  # the scene's cabinet / stove count as fixtures
+
+
 def test_episodes_from_sim_dataset_records(episodes):
     from types import SimpleNamespace
 

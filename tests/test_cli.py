@@ -25,6 +25,7 @@ BAD_ARGS = {
     "train.train_policy": ["--model.num_layers=0"],
     "train.train_reward": ["--demos"],
     "train.grpo": ["--simulator", "real"],
+    "train.gallery": ["--out", "unused.png", "--size", "8"],
     "sword_jax.convert.wan22": ["check"],
     "sword_jax.metrics.verify": [],
     "sword_jax.augment.gallery": ["--out", "unused.png", "--intensity", "5"],

@@ -81,3 +81,24 @@ def test_success_labels_and_detector_learns():
     scores = np.asarray(as_reward_model(graphdef, state.params).score(jnp.asarray(episodes.frames[0])))
     assert np.all((scores >= 0) & (scores <= 1))
     assert scores[-1] > 0.8 and scores[0] < 0.2, scores
+
+
+def test_load_episodes_reads_every_file_with_the_given_reader():
+    from types import SimpleNamespace
+
+    def episode(text, t, success_at):
+        rewards = np.zeros(t)
+        rewards[success_at:] = 1
+        return SimpleNamespace(agentview_rgb=np.zeros((t, 8, 8, 3), np.uint8), actions=np.zeros((t, 7)),
+                               ee_states=np.zeros((t, 6)), gripper_states=np.zeros((t, 2)), rewards=rewards,
+                               num_samples=t, language_instruction=text)
+
+    files = {"a.hdf5": [episode(TEXTS[0], 6, 3)], "b.hdf5": [episode(TEXTS[1], 5, 9), episode(TEXTS[0], 4, 1)]}
+    read = []
+    episodes = rl_data.load_episodes(["a.hdf5", "b.hdf5"], read=lambda path: (read.append(path), files[path]))
+    assert read == ["a.hdf5", "b.hdf5"]
+    assert episodes.instructions == (TEXTS[0], TEXTS[1], TEXTS[0])
+    assert episodes.lengths.tolist() == [4, 5, 2] and episodes.success.tolist() == [True, False, True]
+    assert episodes.proprio.shape == (3, 5, 8)
+    with pytest.raises(ValueError, match=r"read=sim\.dataset\.read_dataset"):
+        rl_data.load_episodes(["a.hdf5"])

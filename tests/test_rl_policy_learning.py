@@ -183,3 +183,46 @@ def test_default_execution_re_plans_every_step_and_ensembles_only_greedy_rollout
     assert envs.blocks == [1] * 6 and rollout.tokens.shape == (2, 6, 1, 7)
     with pytest.raises(ValueError, match="action_ensemble=false"):
         dataclasses.replace(cfg, execute_steps=4).validate()
+
+
+def test_evaluate_in_sim_runs_the_given_episodes_in_the_given_envs():
+    from sword_jax.rl.evaluate import evaluate_in_sim
+
+    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
+                   action_bins=16, execute_steps=2, action_ensemble=False)
+    graphdef, params = build_policy(cfg, seed=0)
+    episodes = [(3, np.zeros(2)), (3, np.ones(2)), (1, np.zeros(2)), (1, np.ones(2)), (1, np.ones(2))]
+    made = []
+
+    class Envs(_CountingEnvs):
+        def close(self):
+            made.append("closed")
+
+    def factory(eps):
+        made.append(list(eps))
+        return Envs(n=len(eps), solve_at=np.array([2, 2, 100, 100, 4]), max_steps=6)
+
+    result = evaluate_in_sim(graphdef, params, cfg, episodes=episodes, envs_factory=factory, max_steps=6)
+    assert made == [episodes, "closed"]
+    assert list(result["per_task"].items()) == [("3", 1.0), ("1", 1 / 3)]  # in the episodes' task order
+    assert (result["episodes"], result["successes"], result["mean"]) == (5, 3, 0.6)
+    assert result["ci95"] == list(wilson_interval(3, 5))
+    with pytest.raises(ValueError, match=r"needs envs_factory: .*lockstep_evaluation"):
+        evaluate_in_sim(graphdef, params, cfg, episodes=episodes)
+    with pytest.raises(ValueError, match=r"needs episodes and envs_factory"):
+        evaluate_in_sim(graphdef, params, cfg)
+
+
+def test_lockstep_evaluation_gives_the_fixed_evaluation_states_and_a_lockstep_factory():
+    from sim import tasks
+    from sim.lockstep import LockstepEnvs, lockstep_evaluation
+
+    setup = lockstep_evaluation((2, 5), 3, resolution=16, max_steps=9, renderer="gl", workers=2)
+    assert [t for t, _ in setup["episodes"]] == [2, 2, 2, 5, 5, 5] and setup["max_steps"] == 9
+    np.testing.assert_array_equal(np.stack([q for _, q in setup["episodes"][3:]]),
+                                  tasks.split_init_states(5, "eval", 3))
+    factory = setup["envs_factory"]
+    assert factory.func is LockstepEnvs
+    assert factory.keywords == dict(resolution=16, max_steps=9, renderer="gl", workers=2)
+    with pytest.raises(ValueError, match="episodes_per_task"):
+        lockstep_evaluation((0,), tasks.NUM_INIT_STATES + 1, resolution=16)

@@ -68,6 +68,12 @@ def test_reset_is_settled_and_bowls_start_where_the_task_says(task_id):
         assert data.body(scene.TARGET_BOWL).xpos[2] > scene.TABLE_TOP_Z + 0.015
 
 
+def test_reset_starts_from_initial_qpos(env):
+    qpos = env.initial_qpos(np.random.default_rng(5))
+    assert any(np.array_equal(qpos, state) for state in env.init_states)  # init="fixed": one of the 50
+    np.testing.assert_array_equal(env.reset_to(qpos).data.qpos, env.reset(np.random.default_rng(5)).data.qpos)
+
+
 def test_reset_and_step_are_deterministic_and_pure(env):
     s0 = env.reset(np.random.default_rng(5))
     s1 = env.reset(np.random.default_rng(5))

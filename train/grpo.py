@@ -84,10 +84,11 @@ def sim_reckoning(episodes):
 
 
 def _world_model_setup(cfg, rl, args):
+    from sim.dataset import read_dataset
     from sword_jax.load import experiment_vae, experiment_world_model
     from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
-    episodes = rl_data.load_episodes(args.demos)
+    episodes = rl_data.load_episodes(args.demos, read=read_dataset)
     if rl.imagined_proprio == "reckoned" and rl.proprio_dim != 8:
         raise ValueError(f"rl.imagined_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                          f"{rl.proprio_dim} (use --rl.imagined_proprio=missing)")
@@ -138,7 +139,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics}``.
     """
     from sim import tasks as sim_tasks
-    from sim.lockstep import LockstepEnvs
+    from sim.lockstep import LockstepEnvs, lockstep_evaluation
     from sword_jax.rl.env_rollout import run_policy
 
     state = grpo.init_state(params, rl)
@@ -151,8 +152,8 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     os.makedirs(workdir, exist_ok=True)
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
-    eval_kwargs = dict(tasks=tasks, episodes_per_task=episodes_per_task, resolution=cfg.sim.resolution,
-                       max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers, act=act)
+    eval_kwargs = dict(lockstep_evaluation(tasks, episodes_per_task, resolution=cfg.sim.resolution,
+                                           max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers), act=act)
     mode = rl.env_proprio
     if mode == "reckoned" and reckoning is None:
         raise ValueError("rl.env_proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
@@ -238,7 +239,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if rl.env_proprio == "reckoned" and not args.demos:
             raise SystemExit("train.grpo --simulator env --rl.env_proprio=reckoned needs --demos (the reckoning's "
                              "gains are fitted to them)")
-        reckoning = sim_reckoning(rl_data.load_episodes(args.demos)) if rl.env_proprio == "reckoned" else None
+        reckoning = None
+        if rl.env_proprio == "reckoned":
+            from sim.dataset import read_dataset
+
+            reckoning = sim_reckoning(rl_data.load_episodes(args.demos, read=read_dataset))
         return run_in_env(cfg, rl, graphdef, params, workdir,
                           episodes_per_task=args.eval_episodes or rl.eval_episodes_per_task,
                           workers=args.env_workers, renderer=args.renderer, reckoning=reckoning)
@@ -272,8 +277,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
                       "episodes": int(success.size), "where": "imagined (toy)"}
         else:
-            kwargs = dict(tasks=cfg.sim.tasks, episodes_per_task=episodes, resolution=cfg.sim.resolution,
-                          max_steps=cfg.sim.max_steps, renderer=args.renderer, workers=args.env_workers)
+            from sim.lockstep import lockstep_evaluation
+
+            kwargs = lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
+                                         max_steps=cfg.sim.max_steps, renderer=args.renderer, workers=args.env_workers)
             result = evaluate_in_sim(graphdef, state.params, rl, **kwargs)
             result["where"] = "mujoco"
             if rl.eval_masked_proprio:

@@ -32,6 +32,8 @@ from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    from sim.dataset import read_dataset
+
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
@@ -45,7 +47,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.successful(rl_data.load_episodes(args.demos))
+    episodes = rl_data.successful(rl_data.load_episodes(args.demos, read=read_dataset))
     episodes = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio[..., : rl.proprio_dim],
                                   episodes.lengths, episodes.success, episodes.instructions)
     train_eps, held_out = rl_data.split_holdout(episodes, args.holdout, rng)
@@ -64,10 +66,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
               "heldout_loss": history[-1].get("heldout_loss"), "heldout_token_accuracy":
               history[-1].get("heldout_token_accuracy")}
     if args.eval_episodes:
-        result["eval"] = evaluate_in_sim(graphdef, params, rl, tasks=cfg.sim.tasks,
-                                         episodes_per_task=args.eval_episodes, resolution=cfg.sim.resolution,
-                                         max_steps=cfg.sim.max_steps, renderer=args.renderer,
-                                         workers=args.eval_workers)
+        from sim.lockstep import lockstep_evaluation
+
+        result["eval"] = evaluate_in_sim(graphdef, params, rl, **lockstep_evaluation(
+            cfg.sim.tasks, args.eval_episodes, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+            renderer=args.renderer, workers=args.eval_workers))
         print("ground-truth success:", json.dumps(result["eval"]))
     with open(os.path.join(workdir, "sft_result.json"), "w") as f:
         json.dump(dict(result, history=history), f, indent=1)

@@ -31,6 +31,8 @@ from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    from sim.dataset import read_dataset
+
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
@@ -40,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.load_episodes(args.demos)
+    episodes = rl_data.load_episodes(args.demos, read=read_dataset)
     order = rng.permutation(episodes.num_episodes)
     n_hold = int(round(args.holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))

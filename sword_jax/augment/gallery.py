@@ -1,10 +1,12 @@
 """Gallery: one frame under several training and several held-out styles, as a labelled PNG grid.
 
-    python -m sword_jax.augment.gallery --out gallery.png [--source auto|sim|synthetic]
+    python -m train.gallery --out gallery.png [--source auto|sim|synthetic]
         [--size 128] [--styles 4] [--seed 0] [--intensity 1.0]
 
 ``--source sim`` renders a LIBERO-Spatial-like frame with ``sim/render.py`` (agent-view camera,
-task 0's scene); ``synthetic`` uses the synthetic tabletop; ``auto`` tries sim first. Row 1:
+task 0's scene); ``synthetic`` uses the synthetic tabletop; ``auto`` tries sim first. The library
+does not import ``sim``: :func:`main` takes the renderer as ``sim_frame`` (``train.gallery``
+passes it); ``python -m sword_jax.augment.gallery`` has none, so it draws the synthetic scene. Row 1:
 the original and training styles; row 2: the structure maps (depth, segmentation) and held-out
 styles. Each tile is labelled with its split and table / background textures and the
 structure-preservation scores against the original.
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,27 +29,8 @@ from sword_jax.augment.synthetic import synthetic_episode
 from sword_jax.augment.transforms import augment
 from sword_jax.rng import stream_key
 
-FIXTURE_WORDS = ("cabinet", "stove", "drawer", "shelf", "rack")
-
-
-def sim_frame(size: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, SegClasses, float]:
-    """One rendered agent-view frame of the LIBERO-like scene: (rgb [1, H, W, 3], depth, seg, classes, fovy)."""
-    import mujoco
-
-    from sim import render
-    from sim.config import SimConfig
-    from sim.env import make_env
-
-    env = make_env(SimConfig(resolution=size), 0)
-    scene = render.build_scene(env.mj_model)
-    data = mujoco.MjData(env.mj_model)
-    data.qpos[:] = env._draws_to_qpos(env._draws(np.random.default_rng(seed)), np)
-    mujoco.mj_forward(env.mj_model, data)
-    frame = render.render_mjdata(scene, [data], "agentview", height=size, width=size)
-    fixtures = tuple(n for n in scene.class_names[3:] if any(w in n for w in FIXTURE_WORDS))
-    classes = SegClasses.from_class_names(scene.class_names, fixtures=fixtures)
-    rgb = np.asarray(frame.rgb, np.float32) / 255.0
-    return rgb, np.asarray(frame.depth, np.float32), np.asarray(frame.seg, np.int32), classes, scene.cameras["agentview"][1]
+# (frames [1, H, W, 3] in [0, 1], depth [1, H, W], seg [1, H, W], classes, vertical fov in degrees)
+Frame = tuple[np.ndarray, np.ndarray, np.ndarray, SegClasses, float]
 
 
 def _label(tile: np.ndarray, lines: list[str]) -> np.ndarray:
@@ -105,7 +89,14 @@ def build_gallery(
     return np.concatenate(rows, axis=0)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, sim_frame: Callable[[int, int], Frame] | None = None) -> int:
+    """Parses ``argv`` and writes the gallery PNG.
+
+    Args:
+      argv: the command line (default ``sys.argv[1:]``).
+      sim_frame: ``(size, seed) -> Frame``, the simulator's rendered frame for ``--source sim|auto``
+        (``train.gallery.sim_frame``); None: only the synthetic scene is available.
+    """
     parser = cli.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, help="PNG path")
     parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto")
@@ -118,9 +109,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--intensity must be in [0, 1], got {args.intensity}")
     if args.size < 16 or args.styles < 1:
         parser.error("--size must be >= 16 and --styles >= 1")
+    if args.source == "sim" and sim_frame is None:
+        parser.error("--source sim needs the simulator's renderer: run python -m train.gallery")
     source = args.source
     frame = None
-    if source in ("auto", "sim"):
+    if source == "auto" and sim_frame is None:
+        print("gallery: no sim renderer here (python -m train.gallery has one); using the synthetic scene",
+              file=sys.stderr)
+    elif source in ("auto", "sim"):
         try:
             frame = sim_frame(args.size, args.seed)
             source = "sim"

@@ -5,6 +5,8 @@
   transposed to ``[in, out]``, the Conv3d patch embedding ``[dim, c, pt, ph, pw]`` becomes
   channels-last ``(pt, ph, pw, c, dim)``, and per-block keys ``blocks.N.*`` are stacked on the
   leading ``layers`` axis of the scanned block parameters.
+* ``load_official_into_world_model(path, cfg)``: a :class:`sword_jax.dit.world_model.WorldModel`
+  whose DiT is the official checkpoint and whose action branches are fresh.
 * ``run_reference_cases(ref_dir)`` runs every ``dit_*.npz`` case of a reference directory (the
   official model's inputs, outputs and intermediates) through the port and compares.
 """
@@ -26,6 +28,7 @@ from sword_jax.convert import CaseResult
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dit.layers import timestep_sinusoid
 from sword_jax.dit.model import WanDiT
+from sword_jax.dit.world_model import ARCH_FIELDS, ActionConditioner, WorldModel
 
 _CONFIG_FIELDS = ("in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers", "text_dim",
                   "text_len", "eps", "qk_norm", "cross_attn_norm")
@@ -209,6 +212,42 @@ def load_official(path: str, **overrides: Any) -> tuple[DiTConfig, nnx.GraphDef,
     with nnx.use_eager_sharding(False):
         graphdef, state = nnx.split(nnx.eval_shape(lambda: WanDiT(cfg, rngs=nnx.Rngs(0))))
     state = fill_state(state, official_to_state(tensors, cfg))
+    return cfg, graphdef, state
+
+
+def load_official_into_world_model(
+    path: str, cfg: DiTConfig | None = None, *, key: jax.Array | None = None
+) -> tuple[DiTConfig, nnx.GraphDef, nnx.State]:
+    """A :class:`WorldModel` with every shared parameter from an official ``WanModel`` checkpoint.
+
+    Args:
+      path: official safetensors checkpoint (config JSON in its metadata) or released
+        checkpoint directory (``config.json`` + shards).
+      cfg: the world-model config; its architecture fields (dim, heads, layers, ...) must match
+        the checkpoint, its other fields (action switches, remat, dtypes) are used as given.
+        None: the checkpoint's architecture with default options.
+      key: randomness for the fresh action branches (default ``jax.random.key(0)``).
+
+    Returns:
+      ``(cfg, graphdef, state)``; the action branches are freshly initialised.
+    """
+    tensors, official_config = read_checkpoint(path)
+    official = config_from_official(official_config)
+    if cfg is None:
+        cfg = official
+    else:
+        mismatched = {k: (getattr(cfg, k), getattr(official, k)) for k in ARCH_FIELDS
+                      if getattr(cfg, k) != getattr(official, k)}
+        if mismatched:
+            raise ValueError(f"{path}: config fields (given, checkpoint) differ: {mismatched}")
+    key = jax.random.key(0) if key is None else key
+
+    with nnx.use_eager_sharding(False):
+        graphdef, state = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg, rngs=nnx.Rngs(0))))
+        branches = nnx.split(ActionConditioner(cfg, rngs=nnx.Rngs(params=key)))[1]
+    flat = {("dit",) + p: v for p, v in official_to_state(tensors, cfg).items()}
+    flat.update({("actions",) + tuple(p): v.get_value() for p, v in nnx.to_flat_state(branches)})
+    state = fill_state(state, flat)
     return cfg, graphdef, state
 
 

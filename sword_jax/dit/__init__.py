@@ -5,5 +5,8 @@ Modules:
   ``layers``: linear layers with logical axes, norms, timestep sinusoid, 3D RoPE, attention.
   ``model``: :class:`WanDiT`, the official ``WanModel`` (TI2V) port.
   ``world_model``: :class:`WorldModel` (WanDiT + action cross-attention tokens + action AdaLN),
-  ``world_model_apply``, ``load_official_into_world_model``.
+  ``world_model_apply``.
+
+Official checkpoints are read by :mod:`sword_jax.convert` (``wan22_dit.load_official`` and
+``wan22_dit.load_official_into_world_model``); this package does not import it.
 """

@@ -12,7 +12,8 @@ Actions (one per *video* frame, ``t = 1 + 4 (f - 1)`` for ``f`` latent frames) e
   layer starts at zero, so a freshly loaded official model starts with the official modulation;
   its gradient is non-zero from the first step (it multiplies non-zero hidden activations).
 
-The official ``text_embedding`` stays inside :class:`WanDiT` so official checkpoints load whole.
+The official ``text_embedding`` stays inside :class:`WanDiT` so official checkpoints load whole
+(:func:`sword_jax.convert.wan22_dit.load_official_into_world_model`).
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from sword_jax.dit.model import WanDiT
 
 ACTION_INDEX_DIM = 32  # width of the video-frame-index sinusoid fed with each action token
 FRAMES_PER_LATENT = 4  # temporal compression of the Wan 2.2 VAE
-_ARCH_FIELDS = ("patch_size", "in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers",
-                "text_dim", "text_len", "eps", "qk_norm", "cross_attn_norm")
+# fields an official checkpoint fixes (the rest are options: action switches, remat, dtypes)
+ARCH_FIELDS = ("patch_size", "in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers",
+               "text_dim", "text_len", "eps", "qk_norm", "cross_attn_norm")
 
 
 def num_video_frames(latent_frames: int) -> int:
@@ -147,47 +149,9 @@ def world_model_apply(
     return nnx.merge(graphdef, state)(latents, timesteps, actions)
 
 
-def load_official_into_world_model(
-    path: str, cfg: DiTConfig | None = None, *, key: jax.Array | None = None
-) -> tuple[DiTConfig, nnx.GraphDef, nnx.State]:
-    """A :class:`WorldModel` with every shared parameter from an official ``WanModel`` checkpoint.
-
-    Args:
-      path: official safetensors checkpoint (config JSON in its metadata) or released
-        checkpoint directory (``config.json`` + shards).
-      cfg: the world-model config; its architecture fields (dim, heads, layers, ...) must match
-        the checkpoint, its other fields (action switches, remat, dtypes) are used as given.
-        None: the checkpoint's architecture with default options.
-      key: randomness for the fresh action branches (default ``jax.random.key(0)``).
-
-    Returns:
-      ``(cfg, graphdef, state)``; the action branches are freshly initialised.
-    """
-    from sword_jax.convert.wan22_dit import config_from_official, fill_state, official_to_state, read_checkpoint
-
-    tensors, official_config = read_checkpoint(path)
-    official = config_from_official(official_config)
-    if cfg is None:
-        cfg = official
-    else:
-        mismatched = {k: (getattr(cfg, k), getattr(official, k)) for k in _ARCH_FIELDS
-                      if getattr(cfg, k) != getattr(official, k)}
-        if mismatched:
-            raise ValueError(f"{path}: config fields (given, checkpoint) differ: {mismatched}")
-    key = jax.random.key(0) if key is None else key
-
-    with nnx.use_eager_sharding(False):
-        graphdef, state = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg, rngs=nnx.Rngs(0))))
-        branches = nnx.split(ActionConditioner(cfg, rngs=nnx.Rngs(params=key)))[1]
-    flat = {("dit",) + p: v for p, v in official_to_state(tensors, cfg).items()}
-    flat.update({("actions",) + tuple(p): v.get_value() for p, v in nnx.to_flat_state(branches)})
-    state = fill_state(state, flat)
-    return cfg, graphdef, state
-
-
 def replace_options(cfg: DiTConfig, **options: Any) -> DiTConfig:
     """Copy of ``cfg`` with non-architectural options changed (e.g. for ablations)."""
-    bad = set(options) & set(_ARCH_FIELDS)
+    bad = set(options) & set(ARCH_FIELDS)
     if bad:
         raise ValueError(f"replace_options: {sorted(bad)} change the architecture")
     return dataclasses.replace(cfg, **options)

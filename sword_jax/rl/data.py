@@ -8,7 +8,7 @@ arrays. Samplers are pure functions of a numpy ``Generator`` so a run is reprodu
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -159,13 +159,23 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
             "instructions": [episodes.instructions[i] for i in ep]}
 
 
-def load_episodes(paths: Sequence[str]) -> EpisodeSet:
-    """Reads LIBERO-layout HDF5 files (``sim.dataset``) into one :class:`EpisodeSet`."""
-    from sim.dataset import read_dataset
+def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequence[Any]]] | None = None
+                  ) -> EpisodeSet:
+    """Reads episode files into one :class:`EpisodeSet`.
 
+    Args:
+      paths: episode files, read in order.
+      read: ``path -> (info, episodes)`` with ``sim.dataset.Episode``-like episodes, e.g.
+        ``sim.dataset.read_dataset`` for LIBERO-layout HDF5 files (the library does not import ``sim``).
+
+    Raises:
+      ValueError: no ``read`` given.
+    """
+    if read is None:
+        raise ValueError("load_episodes needs read=(path) -> (info, episodes), e.g. read=sim.dataset.read_dataset")
     episodes = []
     for path in paths:
-        _, eps = read_dataset(path)
+        _, eps = read(path)
         episodes.extend(eps)
     return from_sim_episodes(episodes)
 

@@ -1,11 +1,12 @@
 """Ground-truth evaluation of the policy in the MuJoCo LIBERO-Spatial environments, and the curve.
 
 Success per task over the tasks' fixed evaluation initial states (50 per task in the paper and
-LIBERO; demonstrations come from other initial states), on MuJoCo's C engine. All episodes run
-in lockstep (``sim.lockstep.LockstepEnvs``, optionally over worker processes) so the policy
-runs as one batched, jitted call per decision; the policy acts greedily (argmax bins) and
-re-plans every ``rl.execute_steps`` actions (or ensembles, ``rl.action_ensemble``). Results carry
-a 95% Wilson interval. :class:`SuccessCurve` appends one point per evaluation to
+LIBERO; demonstrations come from other initial states), on MuJoCo's C engine. The caller passes
+the episodes and the environments' factory (``sim.lockstep.lockstep_evaluation`` builds both;
+the library does not import ``sim``). All episodes run in lockstep (optionally over worker
+processes) so the policy runs as one batched, jitted call per decision; the policy acts greedily
+(argmax bins) and re-plans every ``rl.execute_steps`` actions (or ensembles,
+``rl.action_ensemble``). Results carry a 95% Wilson interval. :class:`SuccessCurve` appends one point per evaluation to
 ``success_curve.json`` and redraws ``success_curve.png``.
 """
 
@@ -14,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -25,57 +26,47 @@ from sword_jax.rl.config import RLConfig
 from sword_jax.rl.env_rollout import make_act_fns, run_policy, wilson_interval
 
 
-def evaluation_episodes(tasks: Sequence[int], episodes_per_task: int) -> list[tuple[int, np.ndarray]]:
-    """``(task, qpos)`` of each task's first ``episodes_per_task`` fixed evaluation initial states."""
-    from sim import tasks as sim_tasks
-
-    if not 1 <= episodes_per_task <= sim_tasks.NUM_INIT_STATES:
-        raise ValueError(f"episodes_per_task must be in 1..{sim_tasks.NUM_INIT_STATES}, got {episodes_per_task}")
-    return [(int(t), q) for t in tasks for q in sim_tasks.split_init_states(int(t), "eval", episodes_per_task)]
-
-
 def evaluate_in_sim(
     graphdef: nnx.GraphDef,
     params: nnx.State,
     cfg: RLConfig,
     *,
-    tasks: Sequence[int],
-    episodes_per_task: int,
-    resolution: int,
+    episodes: Sequence[tuple[int, Any]] | None = None,
+    envs_factory: Callable[[Sequence[tuple[int, Any]]], Any] | None = None,
     max_steps: int = 220,
-    renderer: str = "jax",
-    workers: int = 0,
-    envs_factory: Any = None,
     act: Any = None,
     proprio: str = "true",
     reckoning: Any = None,
 ) -> dict[str, Any]:
-    """Runs the policy from each task's first ``episodes_per_task`` fixed evaluation initial states.
+    """Runs the policy greedily from each evaluation episode's initial state.
+
+    ``sim.lockstep.lockstep_evaluation(tasks, episodes_per_task, resolution=..., max_steps=...,
+    renderer=..., workers=...)`` gives ``episodes``, ``envs_factory`` and ``max_steps`` for MuJoCo's
+    LIBERO-Spatial tasks.
 
     Args:
       graphdef / params: the split policy.
       cfg: RL config (chunking, re-planning, proprio size, image size, bins).
-      tasks: task ids (0-9).
-      episodes_per_task: initial states per task (<= 50).
-      resolution: rendered frame size of the environment (the data's resolution).
+      episodes: ``(task, initial qpos)`` per episode, e.g. each task's first fixed evaluation
+        initial states (``sim.tasks.evaluation_episodes``).
+      envs_factory: ``(episodes) -> envs`` with the lockstep protocol of
+        :mod:`~sword_jax.rl.env_rollout` (e.g. ``sim.lockstep.LockstepEnvs``; its renderer "jax"
+        looks like the data the pipeline makes, so the policy sees no renderer shift).
       max_steps: environment step limit (LIBERO-Spatial: 220).
-      renderer: "jax" (default) looks like the data the pipeline makes (MJX + the JAX renderer), so
-        the policy sees no renderer shift; "gl" is MuJoCo's OpenGL renderer.
-      workers: C-engine worker processes (0 = this process).
-      envs_factory: ``(episodes) -> lockstep envs`` override (default ``sim.lockstep.LockstepEnvs``).
       act: a :func:`~sword_jax.rl.env_rollout.make_act_fns` result to reuse (one compile per process).
       proprio / reckoning: the policy's proprio input mode (:func:`~sword_jax.rl.env_rollout.run_policy`).
 
     Returns:
       ``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}``.
+
+    Raises:
+      ValueError: ``episodes`` or ``envs_factory`` missing (the library does not import ``sim``).
     """
-    episodes = evaluation_episodes(tasks, episodes_per_task)
-    if envs_factory is None:
-        from sim.lockstep import LockstepEnvs
-
-        def envs_factory(eps):
-            return LockstepEnvs(eps, resolution=resolution, max_steps=max_steps, renderer=renderer, workers=workers)
-
+    if not episodes or envs_factory is None:
+        missing = " and ".join(n for n, v in (("episodes", episodes), ("envs_factory", envs_factory)) if not v)
+        raise ValueError(f"evaluate_in_sim needs {missing}: pass episodes=[(task, qpos), ...] and "
+                         "envs_factory=(episodes) -> envs, e.g. **sim.lockstep.lockstep_evaluation(tasks, "
+                         "episodes_per_task, resolution=...)")
     act = act or make_act_fns(graphdef, cfg)
     start = time.time()
     envs = envs_factory(episodes)
@@ -86,6 +77,7 @@ def evaluate_in_sim(
         envs.close()
     success = np.asarray(rollout.success)
     task_of = np.asarray([t for t, _ in episodes])
+    tasks = dict.fromkeys(int(t) for t, _ in episodes)  # first-seen order
     per_task = {str(t): float(np.mean(success[task_of == t])) for t in tasks}
     wins = int(success.sum())
     return {"per_task": per_task, "mean": float(np.mean(success)), "episodes": len(episodes), "successes": wins,

@@ -1,0 +1,116 @@
+"""Layering: ``sword_jax`` imports neither ``sim`` nor ``train``; ``sword_jax.dit`` does not reach ``convert``.
+
+The scan reads the source (every import statement, including those inside functions, and literal
+``importlib.import_module`` / ``__import__`` names), so a lazy import cannot slip through.
+"""
+
+import ast
+import os
+
+import pytest
+
+from tests.conftest import REPO
+
+LIBRARY = os.path.join(REPO, "sword_jax")
+FORBIDDEN = ("sim", "train")  # packages the library must not import
+
+
+def _module_name(path: str) -> str:
+    rel = os.path.splitext(os.path.relpath(path, REPO))[0].split(os.sep)
+    return ".".join(rel[:-1] if rel[-1] == "__init__" else rel)
+
+
+def _imports(source: str, module: str, *, is_package: bool = False) -> list[tuple[int, str, str, bool]]:
+    """``(line, imported module, attribute or "", inside a function)`` of every import in ``source``
+    (relative ones resolved)."""
+    package = module if is_package else module.rpartition(".")[0]
+    tree = ast.parse(source)
+    lazy = {id(n) for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            for n in ast.walk(fn)}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name, "", id(node) in lazy) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                parts = parts[: len(parts) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            found += [(node.lineno, base, alias.name, id(node) in lazy) for alias in node.names]
+        elif isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant):
+            name = ast.unparse(node.func)
+            if name in ("importlib.import_module", "import_module", "__import__") and isinstance(node.args[0].value, str):
+                found.append((node.lineno, node.args[0].value, "", id(node) in lazy))
+    return found
+
+
+def _library_files() -> list[str]:
+    return sorted(os.path.join(d, f) for d, _, files in os.walk(LIBRARY) for f in files if f.endswith(".py"))
+
+
+def _read(path: str) -> str:
+    with open(path) as f:
+        return f.read()
+
+
+def _forbidden(source: str, module: str) -> list[str]:
+    return [f"line {line}: {name}" for line, name, _, _ in _imports(source, module)
+            if name.split(".")[0] in FORBIDDEN]
+
+
+def test_scan_sees_imports_inside_functions():
+    source = "def f():\n    from sim.env import make_env\n    import train.grpo\n\nimport simple\n"
+    assert _forbidden(source, "sword_jax.x") == ["line 2: sim.env", "line 3: train.grpo"]
+    assert _imports("def f():\n    from ..convert import wan22_dit\n", "sword_jax.dit.world_model") == [
+        (2, "sword_jax.convert", "wan22_dit", True)]
+
+
+def test_library_imports_neither_sim_nor_train():
+    files = _library_files()
+    assert len(files) > 50, files  # the scan really walks the package
+    offenders = {os.path.relpath(p, REPO): bad for p in files if (bad := _forbidden(_read(p), _module_name(p)))}
+    assert not offenders, f"sword_jax must not import {FORBIDDEN}; pass the sim piece as an argument: {offenders}"
+
+
+def _import_graph() -> dict[tuple[str, bool], set[tuple[str, bool]]]:
+    """``(module, init only) -> {(sword_jax module, init only)}``: what importing a module (init only)
+    or also calling its functions imports.
+
+    An imported module may have any of its functions called, so all of its imports count; the
+    packages above it only have their ``__init__`` run, so only their module-level imports count.
+    """
+    modules = {_module_name(p): p for p in _library_files()}
+    graph = {}
+    for module, path in modules.items():
+        edges = {True: set(), False: set()}
+        for _, name, attr, lazy in _imports(_read(path), module, is_package=path.endswith("__init__.py")):
+            target = f"{name}.{attr}" if f"{name}.{attr}" in modules else name
+            parts = target.split(".")
+            found = {(".".join(parts[:i]), True) for i in range(1, len(parts))} | {(target, False)}
+            found = {(m, init_only) for m, init_only in found if m in modules and m != module}
+            edges[False] |= found
+            if not lazy:
+                edges[True] |= found
+        graph[(module, True)], graph[(module, False)] = edges[True], edges[False]
+    return graph
+
+
+def _reachable(graph: dict[tuple[str, bool], set[tuple[str, bool]]], start: str) -> set[str]:
+    """Modules that importing ``start`` and calling its functions can import."""
+    seen, todo = set(), [(start, False)]
+    while todo:
+        for nxt in graph[todo.pop()] - seen:
+            seen.add(nxt)
+            todo.append(nxt)
+    return {m for m, _ in seen}
+
+
+@pytest.mark.parametrize("package", ["sword_jax.dit"])
+def test_dit_does_not_reach_convert(package):
+    graph = _import_graph()
+    assert "sword_jax.dit.model" in _reachable(graph, "sword_jax.convert.wan22_dit")  # convert -> dit is the way
+    starts = [m for m, init_only in graph if not init_only and (m == package or m.startswith(package + "."))]
+    assert len(starts) > 3, starts
+    bad = {m: sorted(r for r in _reachable(graph, m) if r.startswith("sword_jax.convert")) for m in starts}
+    assert not any(bad.values()), f"{package} must not import sword_jax.convert (converters import dit): {bad}"
