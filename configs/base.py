@@ -40,11 +40,12 @@ class ExperimentConfig:
             section = getattr(self, field.name)
             if hasattr(section, "validate"):
                 section.validate()
-        spatial = 16 * self.model.patch_size[1]
+        stride = self.vae.spatial_factor
+        spatial = stride * self.model.patch_size[1]
         if self.data.image_size % spatial:
             raise ValueError(
-                f"data.image_size={self.data.image_size} must be a multiple of 16*patch={spatial} "
-                "(VAE stride 16 times the DiT patch)"
+                f"data.image_size={self.data.image_size} must be a multiple of {stride}*patch={spatial} "
+                f"(VAE stride {stride} times the DiT patch)"
             )
         if self.model.in_dim != self.vae.z_dim or self.model.out_dim != self.vae.z_dim:
             raise ValueError(
@@ -68,8 +69,8 @@ class ExperimentConfig:
         if self.rl.chunk_len != self.data.predict_frames:
             raise ValueError(
                 f"rl.chunk_len={self.rl.chunk_len} must equal data.predict_frames={self.data.predict_frames} "
-                f"(4 x {self.data.predict_frames // 4} future latents): the learned simulator predicts one frame "
-                "per action of a chunk"
+                f"({self.vae.temporal_factor} x {self.data.predict_frames // self.vae.temporal_factor} future latents): "
+                "the learned simulator predicts one frame per action of a chunk"
             )
         if self.flow.pixel_round_trip and self.data.context_frames > self.data.predict_frames:
             raise ValueError(

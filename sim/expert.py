@@ -295,22 +295,46 @@ def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
     return init_fn, act_fn
 
 
+def episode_mjx(env: Any, qpos: Any, keys: jax.Array, cfg: ExpertConfig = ExpertConfig(), *,
+                noise_gain: Any = 1.0, observe: Any = None) -> tuple[Any, dict[str, Any]]:
+    """One expert episode on MJX from one initial qpos, one step per key (pure, vmappable; jit it).
+
+    Args:
+      keys: ``[T]`` PRNG keys, the action noise of each step (times ``noise_gain``; 0 = clean).
+      observe: ``observe(state) -> dict`` of arrays to record from the state each action is taken in.
+
+    Returns:
+      ``(initial state, records)``, records stacked over the ``T`` steps: ``observe``'s entries,
+      ``actions`` (the clean labels), ``executed`` (the noisy actions stepped with), ``phase`` (the
+      expert's phase after the step) and ``done`` (solved after the step).
+    """
+    init_fn, act_fn = jax_policy(env, cfg)
+    state = env.reset_to(qpos)
+
+    def body(carry, step_key):
+        state, est = carry
+        executed, clean, est = act_fn(state, est, step_key, noise_gain)
+        record = {**(observe(state) if observe is not None else {}), "actions": clean, "executed": executed,
+                  "phase": est.phase}
+        state = env.step(state, executed)
+        record["done"] = state.done
+        return (state, est), record
+
+    _, records = jax.lax.scan(body, (state, init_fn(state)), keys)
+    return state, records
+
+
 def rollout_mjx(env: Any, qpos: Any, key: jax.Array, horizon: int, cfg: ExpertConfig = ExpertConfig()):
     """The expert on MJX from a batch of initial qpos for ``horizon`` steps (pure; jit it).
+
+    Step ``t`` of episode ``i`` draws its noise from ``split(split(key, horizon)[t], n)[i]``.
 
     Returns:
       ``(solved [n], phases [horizon, n])``: whether each episode succeeded at any step, and the
       expert's phase after every step.
     """
-    init_fn, act_fn = jax_policy(env, cfg)
-    state = jax.vmap(env.reset_to)(qpos)
-    est = jax.vmap(init_fn)(state)
-
-    def body(carry, step_key):
-        state, est, solved = carry
-        action, _, est = jax.vmap(act_fn)(state, est, jax.random.split(step_key, qpos.shape[0]))
-        state = jax.vmap(env.step)(state, action)
-        return (state, est, jnp.maximum(solved, state.done)), est.phase
-
-    (_, _, solved), phases = jax.lax.scan(body, (state, est, state.done), jax.random.split(key, horizon))
-    return solved, phases
+    n = qpos.shape[0]
+    step_keys = jax.vmap(lambda k: jax.random.split(k, n))(jax.random.split(key, horizon))  # (horizon, n)
+    start, records = jax.vmap(lambda q, k: episode_mjx(env, q, k, cfg))(qpos, jnp.swapaxes(step_keys, 0, 1))
+    solved = jnp.maximum(start.done, jnp.max(records["done"], axis=1))
+    return solved, jnp.swapaxes(records["phase"], 0, 1)

@@ -46,11 +46,9 @@ from sword_jax import load
 from sword_jax.dit.config import DiTConfig
 from sword_jax.load import CheckpointError
 from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
-from sword_jax.rl.world_model_sim import FRAMES_PER_LATENT
 from sword_jax.vae.config import VAEConfig
 from sword_jax.world_model.config import DataConfig, FlowConfig
 
-SPATIAL_FACTOR = 16  # the VAE's spatial factor (x16 down), as the trainers read latent sizes
 FRAME_RANGE_TOL = 1e-3
 
 __all__ = [
@@ -89,7 +87,7 @@ class WorldModelSpec:
     @property
     def latent_size(self) -> int:
         """Latent height and width ``h = w = H / 16``."""
-        return self.image_size // SPATIAL_FACTOR
+        return self.image_size // self.vae.spatial_factor
 
     @property
     def latent_dim(self) -> int:
@@ -99,12 +97,12 @@ class WorldModelSpec:
     @property
     def given_frames(self) -> int:
         """Frames a pixel rollout is given: the first frame and ``4k`` context frames."""
-        return 1 + FRAMES_PER_LATENT * self.num_context
+        return 1 + self.vae.temporal_factor * self.num_context
 
     @property
     def frames_per_chunk(self) -> int:
         """Frames (and actions) each rollout chunk predicts, ``4p``."""
-        return FRAMES_PER_LATENT * self.num_future
+        return self.vae.temporal_factor * self.num_future
 
     def num_actions(self, num_chunks: int) -> int:
         """Per-frame actions a rollout of ``num_chunks`` chunks takes."""
@@ -197,10 +195,11 @@ def load_world_model(
     if missing:
         raise CheckpointError(f"{workdir}: the saved config lacks the sections {missing}")
     data = load.section_from_dict(DataConfig, saved["data"])
+    vae_cfg = load.section_from_dict(VAEConfig, saved["vae"])
     spec = WorldModelSpec(
         model=load.section_from_dict(DiTConfig, saved["model"]), flow=load.section_from_dict(FlowConfig, saved["flow"]),
-        vae=load.section_from_dict(VAEConfig, saved["vae"]), image_size=data.image_size,
-        num_context=data.context_frames // FRAMES_PER_LATENT, num_future=data.predict_frames // FRAMES_PER_LATENT,
+        vae=vae_cfg, image_size=data.image_size, num_context=data.context_frames // vae_cfg.temporal_factor,
+        num_future=data.predict_frames // vae_cfg.temporal_factor,
         seed=int(saved.get("seed", 0)), name=str(saved.get("name", "")))
     graphdef, params, step = load.load_world_model_params(spec.model, checkpoints, seed=spec.seed, step=step,
                                                           use_ema=use_ema, mesh=mesh)

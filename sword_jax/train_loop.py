@@ -60,11 +60,15 @@ def _note_nonfinite(first_bad: jax.Array, step: jax.Array, metrics: dict[str, ja
     return jnp.where((first_bad < 0) & ~finite, step, first_bad).astype(jnp.int32)
 
 
+def differing_keys(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
+    """The top-level keys (config sections) whose values differ between two run descriptions, sorted."""
+    return sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
+
+
 def _check_same_run(name: str, directory: str, saved: Any, current: dict[str, Any] | None) -> None:
     if current is None or saved == current:
         return
-    saved = saved if isinstance(saved, dict) else {}
-    differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
+    differ = differing_keys(saved if isinstance(saved, dict) else {}, current)
     raise ValueError(f"{name}: the checkpoint in {directory} was made by another run (differs in {differ}); "
                      "use a new work dir or remove it")
 

@@ -6,7 +6,8 @@ import numpy as np
 
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.env import ImaginedEnv
+from sword_jax.rl.policy import build_policy, tokenize_instructions, tokens_to_actions
 from sword_jax.rl.rollout import expand_groups, group_view, imagined_rollout
 from sword_jax.rl.simulator import (ToyState, instruction_target, toy_render, toy_reward_model, toy_simulator,
                                    toy_start_states)
@@ -59,6 +60,33 @@ def test_rollout_deterministic_and_respects_done():
         assert np.all(scores[i, first_hit[i]:] == scores[i, first_hit[i]])
     np.testing.assert_allclose(np.asarray(a.returns), rewards.sum(1) + success.astype(np.float32), rtol=1e-5)
     assert a.frames.shape == (8, CFG.max_chunks, 8, 8, 8, 3)
+
+
+def test_env_steps_by_the_rollout_rule():
+    """ImaginedEnv's rewards, done and success are the GRPO rollout's on the same world and actions."""
+    graphdef, params, sim, reward_model, start = _setup(noise=0.0)  # noise-free: the key schedules may differ
+    rollout = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, CFG, key=jax.random.key(4)))(params)
+    success = np.asarray(rollout.success)
+    assert success.any() and not success.all(), "both endings (success, chunk limit) must be exercised"
+    env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.max_chunks)
+    n = start.frame.shape[0]
+    state = jax.vmap(lambda s, k: env.reset(s, key=k))(start, jax.random.split(jax.random.key(1), n))
+    actions = tokens_to_actions(rollout.tokens, CFG.action_bins)  # (N, C, T, A): the chunks the rollout executed
+    step = jax.jit(jax.vmap(env.step))
+    rewards, scores, done = [], [], []
+    for c in range(CFG.max_chunks):
+        state = step(state, actions[:, c])
+        rewards.append(state.reward), scores.append(state.info["score"]), done.append(state.done)
+    rewards, scores, done = (np.stack(x, axis=1) for x in (rewards, scores, done))  # (N, C)
+    # the env scores [T] frames per trajectory, the rollout [N * T] at once: equal up to float rounding
+    np.testing.assert_allclose(rewards, np.asarray(rollout.rewards), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(scores, np.asarray(rollout.scores), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(done[:, :-1], 1.0 - np.asarray(rollout.valid)[:, 1:])  # done after c = c+1 not taken
+    np.testing.assert_array_equal(done[:, -1], 1.0)
+    np.testing.assert_array_equal(np.asarray(state.info["success"]) > 0, success)
+    np.testing.assert_array_equal(np.asarray(state.info["truncation"]) > 0, ~success)
+    # the env's episode return is the GRPO return without the success bonus
+    np.testing.assert_allclose(rewards.sum(1) + CFG.success_bonus * success, np.asarray(rollout.returns), atol=1e-5)
 
 
 def test_rollout_sharded_over_devices_matches_single_device():

@@ -48,8 +48,10 @@ def test_loader_batches_are_global_and_sharded():
     batch = loader.next()
     assert batch["latents"].shape == (8, 4, 2, 2, 8)
     assert len(batch["latents"].sharding.device_set) == 8 and batch["latents"].sharding.spec[0] is not None
+    assert all(batch[name].sharding == loader.shardings[name] for name in batch)
     expected = ds.segment(np.asarray(batch["episode"]), np.asarray(batch["start"]), 1, 2)
-    np.testing.assert_array_equal(np.asarray(batch["latents"]), expected["latents"])
+    for name, value in expected.items():  # every entry, placed as sharding.put places it
+        np.testing.assert_array_equal(np.asarray(batch[name]), value)
 
 
 def test_load_npz_and_h5_and_reject_bad_files(tmp_path):

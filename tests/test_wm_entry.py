@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from sword_jax.world_model import data
+from sword_jax import train_loop
 from train import train_world_model
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--model.num_layers=1", "--trainer.log_every=1",
@@ -58,3 +59,17 @@ def test_nonfinite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     with pytest.raises(train_world_model.NonFiniteLoss, match="step 0"):
         train_world_model.main(args)
     assert not os.path.exists(os.path.join(workdir, "checkpoints", "2"))
+
+
+def test_config_checks_name_the_same_differing_sections(tmp_path):
+    """The work dir's config.json check and the checkpoint's run check share one diff (top-level sections)."""
+    saved = {"data": {"image_size": 32}, "model": {"depth": 2}, "trainer": {"steps": 4}, "workdir": "a", "mesh": {}}
+    train_world_model._check_config_matches(str(tmp_path), saved)  # first use: stored
+    current = {**saved, "data": {"image_size": 64}, "model": {"depth": 3}, "trainer": {"steps": 9}, "workdir": "b"}
+    assert train_loop.differing_keys(saved, current) == ["data", "model", "trainer", "workdir"]
+    # the work dir check ignores resumable trainer keys (steps) and the work dir itself
+    with pytest.raises(SystemExit, match=r"sections differ: \['data', 'model'\]"):
+        train_world_model._check_config_matches(str(tmp_path), current)
+    with pytest.raises(ValueError, match=r"differs in \['data', 'model', 'trainer', 'workdir'\]"):
+        train_loop._check_same_run("x", str(tmp_path), saved, current)
+    train_loop._check_same_run("x", str(tmp_path), saved, dict(saved))  # the same run passes

@@ -69,12 +69,13 @@ def _parse(argv: Sequence[str]) -> tuple[argparse.Namespace, ExperimentConfig]:
 
 def effective_horizon(cfg: ExperimentConfig, available: int) -> tuple[int, int, int]:
     """``(frames, k, p)``: the longest ``1 + 4k + 4pn <= min(horizon, available)`` rollout."""
-    k, p = cfg.data.context_frames // 4, cfg.data.predict_frames // 4
+    tf = cfg.vae.temporal_factor  # frames per latent
+    k, p = cfg.data.context_frames // tf, cfg.data.predict_frames // tf
     limit = min(cfg.eval.horizon_frames, available)
-    n = (limit - 1 - 4 * k) // (4 * p)
+    n = (limit - 1 - tf * k) // (tf * p)
     if n < 1:
-        raise SystemExit(f"evaluate: {limit} frames cannot hold 1 + {4 * k} context + {4 * p} predicted frames")
-    return 1 + 4 * k + 4 * p * n, k, p
+        raise SystemExit(f"evaluate: {limit} frames cannot hold 1 + {tf * k} context + {tf * p} predicted frames")
+    return 1 + tf * k + tf * p * n, k, p
 
 
 def synthetic_split(cfg: ExperimentConfig, split: str, *, seed: int) -> dict[str, np.ndarray]:
@@ -215,8 +216,9 @@ def main(argv: Sequence[str] | None = None) -> str:
         raise SystemExit("evaluate: give --model NAME=WORKDIR (or --synthetic for a random-init smoke run)")
     available = min(s["frames"].shape[1] for s in splits.values())
     horizon, k, p = effective_horizon(cfg, available)
-    notes = [f"Horizon: {horizon} frames (first frame + {4 * k} context frames given, {horizon - 1 - 4 * k} predicted; "
-             f"metrics over the predicted frames {1 + 4 * k}..{horizon - 1}), {cfg.eval.num_episodes} episodes per split, "
+    given = 1 + cfg.vae.temporal_factor * k  # the first frame and the context frames
+    notes = [f"Horizon: {horizon} frames (first frame + {given - 1} context frames given, {horizon - given} predicted; "
+             f"metrics over the predicted frames {given}..{horizon - 1}), {cfg.eval.num_episodes} episodes per split, "
              f"{cfg.flow.sample_steps} Euler steps per chunk."]
     if not args.vae_checkpoint:
         notes.append("VAE: random initialisation (no --vae-checkpoint): decoded frames are not meaningful.")
@@ -241,15 +243,15 @@ def main(argv: Sequence[str] | None = None) -> str:
     rollout_s = time.time() - start  # data, models and rollouts
     suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m) or cfg.eval.metrics)
     truth = {s: {key: v[key][:, :horizon] for key in ("targets", "rewards") if key in v} for s, v in splits.items()}
-    results = evaluate_videos(suite, gt, predictions, given_frames=1 + 4 * k, horizon_window=cfg.eval.horizon_window,
-                              settings={"horizon": horizon, "given_frames": 1 + 4 * k, "config": cfg.name,
+    results = evaluate_videos(suite, gt, predictions, given_frames=given, horizon_window=cfg.eval.horizon_window,
+                              settings={"horizon": horizon, "given_frames": given, "config": cfg.name,
                                         "probe": args.probe, "reward_model": args.reward_model},
                               fidelity=_fidelity(cfg, args.probe, args.reward_model), truth_by_split=truth)
-    add_latent_errors(results, latent, given_frames=1 + 4 * k, horizon=horizon)
+    add_latent_errors(results, latent, given_frames=given, horizon=horizon)
     notes += fidelity_notes(results) + latent_notes(results)
     metrics_s = time.time() - start - rollout_s
     results.vae_floor, floor_s = vae_floor(cfg.eval, suite.metrics, vae_graphdef, vae_state, gt, num_context=k,
-                                           num_future=p, given_frames=1 + 4 * k)
+                                           num_future=p, given_frames=given)
     results.settings["episodes"] = {s: int(v.shape[0]) for s, v in gt.items()}
     results.timing = {"rollout_s": rollout_s, "metrics_s": metrics_s,
                       **{f"of_which_{name}_s": sec for name, sec in suite.seconds.items()},

@@ -240,32 +240,22 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
     from sim import expert, render
 
     xml = _model_xml(env)
-    init_fn, act_fn = expert.jax_policy(env, expert_config(cfg))
     res = cfg.resolution
     agent_view = render.make_renderer(scene, "agentview", height=res, width=res)
     wrist_view = render.make_renderer(scene, "eye_in_hand", height=res, width=res)
 
+    def observe(state):
+        frame, data = agent_view(state.data), state.data
+        return {
+            "rgb": frame.rgb, "depth": frame.depth, "seg": frame.seg.astype(jnp.uint8),
+            "wrist": wrist_view(data).rgb if cfg.wrist_camera else jnp.zeros((1,), jnp.uint8),
+            "proprio": state.obs["proprio"], "joints": data.qpos[:7],
+            "flat": jnp.concatenate([jnp.reshape(data.time, (1,)), data.qpos, data.qvel]).astype(jnp.float32),
+        }
+
     def rollout(qpos, key, noise_gain):
-        state = env.reset_to(qpos)
-        est = init_fn(state)
-
-        def body(carry, step_key):
-            state, est = carry
-            action, label, est = act_fn(state, est, step_key, noise_gain)
-            frame = agent_view(state.data)
-            data = state.data
-            record = {
-                "actions": label, "executed": action, "rgb": frame.rgb, "depth": frame.depth,
-                "seg": frame.seg.astype(jnp.uint8),
-                "wrist": wrist_view(data).rgb if cfg.wrist_camera else jnp.zeros((1,), jnp.uint8),
-                "proprio": state.obs["proprio"], "joints": data.qpos[:7],
-                "flat": jnp.concatenate([jnp.reshape(data.time, (1,)), data.qpos, data.qvel]).astype(jnp.float32),
-            }
-            state = env.step(state, action)
-            record["done"] = state.done
-            return (state, est), record
-
-        _, records = jax.lax.scan(body, (state, est), jax.random.split(key, cfg.max_steps))
+        _, records = expert.episode_mjx(env, qpos, jax.random.split(key, cfg.max_steps), expert_config(cfg),
+                                        noise_gain=noise_gain, observe=observe)
         return records
 
     root = jax.random.fold_in(jax.random.key(cfg.seed), task)

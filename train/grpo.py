@@ -96,11 +96,12 @@ def _world_model_setup(cfg, rl, args):
     wm_graphdef, wm_state = experiment_world_model(cfg, args.world_model)
     vae_graphdef, vae_state = experiment_vae(cfg, args.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
+    tf = cfg.vae.temporal_factor  # frames per latent
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
-                                num_context=cfg.data.context_frames // 4, num_future=cfg.data.predict_frames // 4,
+                                num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
                                 action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // 4,
+                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // tf,
                                 proprio_reckoning=reckoning)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(args.reward, det_params, kind="reward_model")

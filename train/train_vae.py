@@ -84,11 +84,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if not args.episodes and not args.synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
     loaded = time.perf_counter()
-    sampler = clip_sampler(cfg, load_clips(args.episodes), 1 + 4 * args.clip_latents) if args.episodes else None
+    frames = 1 + cfg.vae.temporal_factor * args.clip_latents
+    sampler = clip_sampler(cfg, load_clips(args.episodes), frames) if args.episodes else None
     if sampler is not None and is_main:
         print(f"[train_vae] {len(sampler.clips.frames)} training episodes loaded in "
               f"{time.perf_counter() - loaded:.1f} s", flush=True)
-    frames = 1 + 4 * args.clip_latents
     mesh = shd.make_mesh(cfg.mesh)
     graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
                                                  rules=cfg.mesh.rules)

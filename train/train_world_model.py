@@ -31,6 +31,7 @@ from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
 from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb import cache as dlb_cache
+from sword_jax.train_loop import differing_keys
 from sword_jax.world_model import checkpoint, data, train_state, train_step
 from train import distributed
 
@@ -49,8 +50,8 @@ def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
 
 def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
     """``(L, h, w, c)`` of a latent episode for the config's frames and VAE."""
-    side = cfg.data.image_size // 16
-    return 1 + (cfg.data.episode_frames - 1) // 4, side, side, cfg.vae.z_dim
+    side = cfg.data.image_size // cfg.vae.spatial_factor
+    return 1 + (cfg.data.episode_frames - 1) // cfg.vae.temporal_factor, side, side, cfg.vae.z_dim
 
 
 def build_dataset(cfg: ExperimentConfig, synthetic: bool) -> data.LatentDataset:
@@ -85,9 +86,8 @@ def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
             saved = _comparable(json.load(f))
         current = _comparable(cfg_dict)
         if saved != current:
-            differ = sorted(k for k in set(saved) | set(current) if saved.get(k) != current.get(k))
-            raise SystemExit(f"train_world_model: {workdir} was made with another config (sections differ: {differ}); "
-                             "use a new --workdir")
+            raise SystemExit(f"train_world_model: {workdir} was made with another config (sections differ: "
+                             f"{differing_keys(saved, current)}); use a new --workdir")
     elif jax.process_index() == 0:
         os.makedirs(workdir, exist_ok=True)
         with open(path, "w") as f:
@@ -103,7 +103,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     _check_config_matches(workdir, cfg_dict)
     mesh = shd.make_mesh(cfg.mesh)
     rules = cfg.mesh.rules
-    num_context, num_future = cfg.data.context_frames // 4, cfg.data.predict_frames // 4
+    num_context, num_future = (cfg.data.context_frames // cfg.vae.temporal_factor,
+                               cfg.data.predict_frames // cfg.vae.temporal_factor)
     dataset = build_dataset(cfg, synthetic)
     is_main = jax.process_index() == 0
     if is_main:

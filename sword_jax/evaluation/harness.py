@@ -206,8 +206,9 @@ def _rollout_fn(wm_graphdef, vae_graphdef, flow_cfg, num_context: int, num_futur
     @jax.jit
     def run(wm_state, vae_state, video, acts, key):
         signed = video * jnp.float32(2) - jnp.float32(1)
+        given = 1 + vae_api.factors(vae_graphdef, vae_state)[0] * num_context  # the first and the context frames
         video_out, predicted, _ = wm_rollout.rollout_video(
-            wm_graphdef, wm_state, vae_graphdef, vae_state, signed[:, : 1 + 4 * num_context], acts, key=key,
+            wm_graphdef, wm_state, vae_graphdef, vae_state, signed[:, :given], acts, key=key,
             cfg=flow_cfg, num_future=num_future, num_steps=num_steps)
         # the ground truth's own latents (causal encoder: the given ones equal rollout_video's)
         truth = vae_api.encode(vae_graphdef, vae_state, signed, check_values=False)

@@ -13,7 +13,9 @@
 
 An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1]. A step returns the last predicted
 frame as the observation, all predicted frames in ``info['frames']``, the change of the success
-score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit.
+score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit:
+the rule of the GRPO rollouts, :func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed
+rewards are a GRPO trajectory's return without its ``rl.success_bonus``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 from flax import struct
 from gymnasium.vector import AutoresetMode
 
+from sword_jax.rl.rollout import chunk_outcome
 from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
 
 
@@ -73,17 +76,16 @@ class ImaginedEnv:
         actions = jnp.clip(action_chunk.astype(jnp.float32), -1.0, 1.0)
         sim_state, frames = self.simulator.step(state.pipeline_state, actions, key=step_key)
         scores = self.reward_model.score(frames)
-        success = jnp.any(scores >= jnp.float32(self.success_threshold)).astype(jnp.float32)
-        chunk = state.info["chunk"] + 1
-        truncation = ((chunk >= self.max_chunks) & (success == 0)).astype(jnp.float32)
-        reward = scores[-1] - state.info["score"]
+        was_done = state.done > 0
+        outcome = chunk_outcome(scores, state.info["score"], was_done, state.info["chunk"],
+                                success_threshold=self.success_threshold, max_chunks=self.max_chunks)
+        success, truncation = outcome.success.astype(jnp.float32), outcome.truncated.astype(jnp.float32)
         new = EnvState(
             sim_state, self._obs(sim_state, frames[-1].astype(jnp.float32), state.obs["instruction_tokens"]),
-            reward, jnp.maximum(success, truncation), {"score": scores[-1]},
-            {"key": key, "score": scores[-1], "chunk": chunk, "truncation": truncation, "success": success,
-             "frames": frames.astype(jnp.float32)},
+            outcome.reward, outcome.done.astype(jnp.float32), {"score": outcome.score},
+            {"key": key, "score": outcome.score, "chunk": state.info["chunk"] + 1, "truncation": truncation,
+             "success": success, "frames": frames.astype(jnp.float32)},
         )
-        was_done = state.done > 0
         frozen = state.replace(reward=jnp.zeros((), jnp.float32))
         return jax.tree.map(lambda a, b: jnp.where(was_done, a, b), frozen, new)
 

@@ -5,6 +5,8 @@ One jitted computation: ``lax.scan`` over action chunks; per chunk the policy re
 predicts the next 8 frames, and the reward model scores them. A trajectory is *done* once the
 score passes the success threshold or the chunk limit is reached; after that its simulator
 state is frozen and it contributes no reward and no policy-gradient tokens (``valid = 0``).
+:func:`chunk_outcome` is that rule, the one place it is written: the functional env
+(:class:`sword_jax.rl.env.ImaginedEnv`) steps by it too.
 
 Trajectory arrays are laid out ``[B * G, ...]`` (start-major), sharded over the ``batch``
 logical axis; :func:`group_view` reshapes to ``[B, G, ...]``.
@@ -56,6 +58,50 @@ class Rollout(NamedTuple):
     success: Bool[Array, " n"]
     returns: Float[Array, " n"]
     frames: Float[Array, "..."]
+
+
+class ChunkOutcome(NamedTuple):
+    """What one action chunk earns under the task's rule (leading axes ``...``: trajectories, or none).
+
+    Attributes:
+      reward: change of the success score over the chunk; 0 where the trajectory was already done.
+      score: success score of the chunk's last frame; the previous score where already done.
+      success: a frame of the chunk scored >= the threshold, and the trajectory was not done before.
+      truncated: the chunk was the last one allowed and did not succeed.
+      done: done after the chunk (done before, succeeded, or truncated).
+    """
+
+    reward: Float[Array, "..."]
+    score: Float[Array, "..."]
+    success: Bool[Array, "..."]
+    truncated: Bool[Array, "..."]
+    done: Bool[Array, "..."]
+
+
+def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."], done: Bool[Array, "..."],
+                  chunk_index: Int[Array, "..."], *, success_threshold: float, max_chunks: int) -> ChunkOutcome:
+    """The reward and termination rule of an imagined trajectory, for one action chunk.
+
+    Args:
+      scores: the reward model's success score of each frame the chunk produced.
+      prev_score: the score before the chunk (the start frame's, then the last chunk's).
+      done: the trajectory was done before this chunk (its state is frozen; it earns nothing).
+      chunk_index: 0-based index of this chunk; the chunk ``max_chunks - 1`` is the last.
+      success_threshold: a frame scoring at least this counts as success.
+      max_chunks: the step limit, in chunks.
+
+    Returns:
+      A :class:`ChunkOutcome`. The trajectory return adds ``rl.success_bonus`` once on success
+      (:func:`imagined_rollout`).
+    """
+    valid = ~done
+    success_now = jnp.any(scores >= jnp.float32(success_threshold), axis=-1)
+    score = jnp.where(valid, scores[..., -1], prev_score)
+    reward = jnp.where(valid, score - prev_score, jnp.float32(0.0))
+    success = valid & success_now
+    truncated = valid & ~success_now & (chunk_index + 1 >= max_chunks)
+    return ChunkOutcome(reward=reward, score=score, success=success, truncated=truncated,
+                        done=done | success | truncated)
 
 
 def expand_groups(start: StartState, group_size: int) -> StartState:
@@ -123,21 +169,19 @@ def imagined_rollout(
         t = frames.shape[1]  # actions executed (= frames predicted) this step; the policy re-plans after them
         tokens, log_probs = tokens[:, :t], log_probs[:, :t]
         scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
-        success_now = jnp.any(scores >= jnp.float32(cfg.success_threshold), axis=1)
+        outcome = chunk_outcome(scores, prev_score, done, chunk_index, success_threshold=cfg.success_threshold,
+                                max_chunks=cfg.max_chunks)
         valid = ~done
-        # done trajectories keep their state, frame and score; they earn nothing more
+        # done trajectories keep their state and frame (the rule keeps their score); they earn nothing more
         keep = lambda new, old: jnp.where(valid.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
         sim_state = jax.tree.map(keep, new_state, sim_state)
-        last_score = jnp.where(valid, scores[:, -1], prev_score)
-        reward = jnp.where(valid, last_score - prev_score, jnp.float32(0.0))
         next_frame = keep(frames[:, -1], frame)
-        newly_success = valid & success_now
         out = dict(obs=obs, proprio=proprio, proprio_valid=proprio_valid.astype(jnp.float32), tokens=tokens,
-                   log_probs=log_probs, valid=valid.astype(jnp.float32), reward=reward, score=last_score,
-                   success=newly_success)
+                   log_probs=log_probs, valid=valid.astype(jnp.float32), reward=outcome.reward, score=outcome.score,
+                   success=outcome.success)
         if record_frames:
             out["frames"] = frames
-        return (sim_state, next_frame, last_score, done | success_now), out
+        return (sim_state, next_frame, outcome.score, outcome.done), out
 
     _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.max_chunks))
     swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - (C, N, ...) -> (N, C, ...)

@@ -34,14 +34,13 @@ import jax.numpy as jnp
 from flax import nnx
 from jaxtyping import Array, Float
 
+from sword_jax.dit.world_model import FRAMES_PER_LATENT  # the world model's actions per latent
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
 from sword_jax.rl.simulator import LearnedSimulator, StartState
 from sword_jax.vae import api as vae_api
 from sword_jax.world_model import sampler as wm_sampler
 from sword_jax.world_model.config import FlowConfig
 from sword_jax.world_model.rollout import make_pixel_round_trip, predict_chunk
-
-FRAMES_PER_LATENT = 4
 
 
 class WMState(NamedTuple):
@@ -120,10 +119,10 @@ def world_model_simulator(
       vae_graphdef / vae_state: ``nnx.split`` of the VAE.
       flow_cfg: flow-matching settings (shift, prediction type, guidance; ``pixel_round_trip`` makes
         each next context the VAE's re-encoding of the decoded chunk, as in evaluation).
-      frame_size: decoded frame size (``16 x`` the latent size).
+      frame_size: decoded frame size (the VAE's spatial factor times the latent size).
       num_context / num_future: context and predicted latents per chunk (future 2 = 8 frames).
       sample_steps: Euler steps per chunk (default ``flow_cfg.sample_steps``).
-      latent_size: latent height/width (default ``frame_size // 16``).
+      latent_size: latent height/width (default ``frame_size`` over the VAE's spatial factor).
       proprio_dim: size of the proprio the policy receives.
       execute_latents: predicted latents kept per step (default ``num_future``: the whole chunk).
         Fewer re-plans sooner: the world model predicts all ``num_future`` latents from the chunk's
@@ -147,7 +146,7 @@ def world_model_simulator(
                          f"{execute_latents}")
     chunk_len = FRAMES_PER_LATENT * num_future  # actions per call
     execute_len = FRAMES_PER_LATENT * execute_latents  # executed actions (= frames returned) per step
-    hl = latent_size or frame_size // 16
+    hl = latent_size or frame_size // vae_api.factors(vae_graphdef, vae_state)[1]
 
     def init_fn(params, start: StartState) -> WMState:
         wm_params, vae_params = params

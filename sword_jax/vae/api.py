@@ -69,6 +69,13 @@ def _attrs(graphdef, state) -> tuple[int, int, int, str]:
     return _ATTRS[graphdef]
 
 
+def factors(graphdef, state) -> tuple[int, int]:
+    """``(temporal_factor, spatial_factor)`` of a split VAE: frames per latent frame after the
+    first, pixels per latent pixel (:class:`~sword_jax.vae.config.VAEConfig`'s, read from the model)."""
+    _, temporal, spatial, _ = _attrs(graphdef, state)
+    return temporal, spatial
+
+
 # Python attributes per graphdef (small: one entry per distinct VAE architecture in the process).
 _ATTRS: dict = {}
 

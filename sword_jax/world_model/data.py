@@ -182,11 +182,9 @@ def batch_shardings(mesh: Mesh, batch: dict[str, np.ndarray], rules=shd.DEFAULT_
 
 
 def to_global(batch: dict[str, np.ndarray], shardings: dict[str, Any]) -> dict[str, jax.Array]:
-    """Host batch -> global arrays; each process materialises only its own devices' slices."""
-    return {
-        name: jax.make_array_from_callback(value.shape, shardings[name], lambda index, v=value: v[index])
-        for name, value in batch.items()
-    }
+    """Host batch -> global arrays (:func:`sword_jax.sharding.put` per entry: each process
+    materialises only its own devices' slices)."""
+    return {name: shd.put(value, shardings[name]) for name, value in batch.items()}
 
 
 class SegmentLoader:
