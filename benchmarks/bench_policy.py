@@ -224,8 +224,7 @@ def run_grpo(cfg, args) -> dict:
     if mode != "true" and "train_mode" in first and "train_mode" in last:
         a, b = first["train_mode"], last["train_mode"]
         summary["train_mode_gain"] = b["mean"] - a["mean"]
-        summary["train_mode_gain_ci95"] = diff_interval(round(a["mean"] * a["episodes"]), a["episodes"],
-                                                        round(b["mean"] * b["episodes"]), b["episodes"])
+        summary["train_mode_gain_ci95"] = diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"])
     with open(os.path.join(args.out, f"{os.path.basename(workdir)}_results.json"), "w") as f:
         json.dump(summary, f, indent=1)
     print(f"GRPO in the real envs, policy proprio {mode}: true-proprio success {first['mean']:.3f} -> "

@@ -83,8 +83,8 @@ def test_config_names_the_bad_imagined_proprio_setting():
 
 
 def test_masked_proprio_act_runs_the_missing_proprio_mode():
-    """``make_act_fns(mask_proprio=True)`` (rl.eval_masked_proprio) is the policy with proprio marked
-    missing -- the mode GRPO trains in a simulator that reports none -- and differs from the default."""
+    """``act(..., proprio_valid=0)`` (rl.eval_masked_proprio, env_proprio=missing) is the policy with proprio
+    marked missing -- the mode GRPO trains in a simulator that reports none -- and differs from the default."""
     from flax import nnx
 
     from sword_jax.rl.config import RLConfig
@@ -98,9 +98,9 @@ def test_masked_proprio_act_runs_the_missing_proprio_mode():
     tokens = jnp.asarray(tokenize_instructions(["a", "b", "c"], 32))
     proprio = jax.random.normal(jax.random.key(2), (3, 8))
     key = jax.random.key(3)
-    _, _, lp_valid, _ = make_act_fns(graphdef, rl)(params, frames, tokens, proprio, key, greedy=True)
-    _, chunk, lp_masked, _ = make_act_fns(graphdef, rl, mask_proprio=True)(params, frames, tokens, proprio, key,
-                                                                          greedy=True)
+    act = make_act_fns(graphdef, rl)
+    _, _, lp_valid, _ = act(params, frames, tokens, proprio, key, greedy=True)
+    _, chunk, lp_masked, _ = act(params, frames, tokens, proprio, key, greedy=True, proprio_valid=jnp.zeros((3,)))
     logits = nnx.merge(graphdef, params)(resize_frames(frames, 8), tokens, 0.0 * proprio, jnp.zeros((3,)))
     want = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), chunk[..., None], -1)[..., 0]
     np.testing.assert_allclose(np.asarray(lp_masked), np.asarray(want), atol=1e-5)  # proprio values ignored

@@ -119,6 +119,15 @@ def _world_model_setup(cfg, rl, args):
     return sim, reward_model, starts, None
 
 
+def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, **eval_kwargs) -> dict:
+    """The real-environment evaluation with the policy reading proprio as ``proprio`` (an input mode of
+    the learned simulator), as the extra point stored beside the true-proprio success."""
+    other = evaluate_in_sim(graphdef, params, rl, proprio=proprio, reckoning=reckoning, **eval_kwargs)
+    print(f"eval step {step}, proprio {proprio}: success {other['mean']:.3f} "
+          f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
+    return dict(proprio=proprio, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+
+
 def _resume(workdir: str, state):
     """``(checkpointer, state, first step)``: the latest GRPO checkpoint in ``workdir`` if there is one."""
     ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
@@ -163,10 +172,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         result = dict(evaluate_in_sim(graphdef, state.params, rl, **eval_kwargs), where="mujoco")
         extra = {}
         if mode != "true":
-            other = evaluate_in_sim(graphdef, state.params, rl, proprio=mode, reckoning=reckoning, **eval_kwargs)
-            extra = {"train_mode": dict(proprio=mode, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes")})}
-            print(f"eval step {step}, proprio {mode}: success {other['mean']:.3f} "
-                  f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
+            extra = {"train_mode": _mode_point(graphdef, state.params, rl, step, mode, reckoning, **eval_kwargs)}
         curve.add(step, result, **extra)
         print(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
               f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
@@ -269,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
                                                     key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
 
-    masked_act = make_act_fns(graphdef, rl, mask_proprio=True) if rl.eval_masked_proprio else None
+    act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
 
     def evaluate(step):
         extra = {}
@@ -280,15 +286,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
         else:
             from sim.lockstep import lockstep_evaluation
 
-            kwargs = lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
-                                         max_steps=cfg.sim.max_steps, renderer=args.renderer, workers=args.env_workers)
+            kwargs = dict(lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
+                                              max_steps=cfg.sim.max_steps, renderer=args.renderer,
+                                              workers=args.env_workers), act=act)
             result = evaluate_in_sim(graphdef, state.params, rl, **kwargs)
             result["where"] = "mujoco"
             if rl.eval_masked_proprio:
-                masked = evaluate_in_sim(graphdef, state.params, rl, act=masked_act, **kwargs)
-                extra = {"proprio_masked": {k: masked[k] for k in ("mean", "ci95", "per_task", "episodes")}}
-                print(f"eval step {step}, proprio masked: success {masked['mean']:.3f} "
-                      f"[{masked['ci95'][0]:.3f}, {masked['ci95'][1]:.3f}]", flush=True)
+                extra = {"proprio_masked": _mode_point(graphdef, state.params, rl, step, "missing", **kwargs)}
         curve.add(step, result, **extra)
         print(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}", flush=True)
         return result

@@ -21,6 +21,7 @@ trains on ground-truth rollouts exactly as on imagined ones. The reward is true 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -38,22 +39,20 @@ from sword_jax.rl.rollout import Rollout
 PROPRIO_MODES = ("true", "reckoned", "missing")
 
 
-def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig, *, mask_proprio: bool = False):
-    """Jitted policy calls on uint8 frames: ``act(params, frames, tokens, proprio, key, greedy)``.
+def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig):
+    """Jitted policy calls on uint8 frames: ``act(params, frames, tokens, proprio, key, greedy, proprio_valid)``.
 
-    ``mask_proprio``: the policy reads its learned "missing proprio" embedding instead of the proprio
-    (the input mode of a learned simulator that reports none), to measure that mode in the real envs.
-    A call may instead pass ``proprio_valid [n]`` (1 = read the proprio, 0 = missing), which wins.
+    ``proprio_valid [n]``: 1 = the policy reads ``proprio``, 0 = its learned "missing proprio"
+    embedding (the input mode of a learned simulator that reports none); default all 1.
+    :func:`run_policy` sets it from its ``proprio`` mode.
 
     Returns ``(frames at policy size uint8, tokens [n,T,A], log_probs [n,T,A], actions [n,T,A])``.
     """
 
     def act(params, frames, tokens, proprio, key, greedy: bool, proprio_valid=None):
         small = resize_frames(frames, cfg.image_size)
-        if proprio_valid is None:
-            valid = jnp.full((proprio.shape[0],), 0.0 if mask_proprio else 1.0, jnp.float32)
-        else:
-            valid = jnp.asarray(proprio_valid, jnp.float32)
+        valid = (jnp.ones((proprio.shape[0],), jnp.float32) if proprio_valid is None
+                 else jnp.asarray(proprio_valid, jnp.float32))
         logits = nnx.merge(graphdef, params)(small, tokens, proprio, valid)
         if greedy:
             chunk = greedy_chunk(logits)
@@ -64,6 +63,12 @@ def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig, *, mask_proprio: bool = 
         return obs, chunk, logp, tokens_to_actions(chunk, cfg.action_bins)
 
     return jax.jit(act, static_argnames=("greedy",))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _reckon_chunk(proprio: jax.Array, actions: jax.Array, cfg: ReckoningConfig) -> jax.Array:
+    """Proprio after the executed ``actions [n, k, 7]`` (one compile per config and ``k``)."""
+    return reckon(proprio, actions, cfg)[:, -1]
 
 
 def max_decisions(cfg: RLConfig, max_steps: int) -> int:
@@ -128,9 +133,7 @@ def run_policy(
     ensemble = cfg.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
     obs = envs.reset() if episodes is None else envs.reset(episodes)
     read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)  # what the policy reads as proprio
-    # "missing" masks whatever ``act`` was built with; otherwise ``act``'s own mode (make_act_fns) holds
-    valid_in = jnp.zeros((n,), jnp.float32) if proprio == "missing" else None
-    step_reckon = jax.jit(lambda p, a: reckon(p, a, reckoning)[:, -1]) if proprio == "reckoned" else None
+    valid_in = jnp.full((n,), 0.0 if proprio == "missing" else 1.0, jnp.float32)
     tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
     c_max = max_decisions(cfg, max_steps)
     done = np.zeros(n, bool)
@@ -157,8 +160,8 @@ def run_policy(
         obs = envs.step(step_actions)
         success |= obs["success"]
         done = obs["done"]
-        if step_reckon is not None:  # an episode that ended mid-chunk is done: its proprio is never read again
-            read = np.asarray(step_reckon(jnp.asarray(read), jnp.asarray(step_actions, jnp.float32)))
+        if proprio == "reckoned":  # an episode that ended mid-chunk is done: its proprio is never read again
+            read = np.asarray(_reckon_chunk(jnp.asarray(read), jnp.asarray(step_actions, jnp.float32), reckoning))
         else:
             read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)
     returns = success.astype(np.float32) * (1.0 + cfg.success_bonus)
