@@ -5,7 +5,11 @@ The scan reads the source (every import statement, including those inside functi
 """
 
 import ast
+import functools
+import json
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -45,6 +49,25 @@ def _imports(source: str, module: str, *, is_package: bool = False) -> list[tupl
     return found
 
 
+def _imports_fresh(items: tuple[tuple[str, str, bool], ...]) -> list[list[tuple[int, str, str, bool]]]:
+    """:func:`_imports` of each ``(source, module, is_package)``, parsed in a fresh interpreter: CPython
+    3.11's AST constructor can raise "recursion depth mismatch" depending on the caller's state
+    (cpython gh-106905), which happened inside a pytest-xdist worker of the full suite."""
+    code = ("import json, sys; from tests.test_layering import _imports; "
+            "print(json.dumps([_imports(s, m, is_package=p) for s, m, p in json.load(sys.stdin)]))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, input=json.dumps(items), capture_output=True,
+                         text=True, check=True)
+    return [[tuple(x) for x in found] for found in json.loads(out.stdout)]
+
+
+@functools.lru_cache(maxsize=None)
+def _library_imports() -> dict[str, list[tuple[int, str, str, bool]]]:
+    """Every library file's imports (one fresh interpreter for all of them)."""
+    files = _library_files()
+    items = tuple((_read(p), _module_name(p), p.endswith("__init__.py")) for p in files)
+    return dict(zip(files, _imports_fresh(items)))
+
+
 def _library_files() -> list[str]:
     return sorted(os.path.join(d, f) for d, _, files in os.walk(LIBRARY) for f in files if f.endswith(".py"))
 
@@ -54,22 +77,23 @@ def _read(path: str) -> str:
         return f.read()
 
 
-def _forbidden(source: str, module: str) -> list[str]:
-    return [f"line {line}: {name}" for line, name, _, _ in _imports(source, module)
-            if name.split(".")[0] in FORBIDDEN]
+def _forbidden(found: list[tuple[int, str, str, bool]]) -> list[str]:
+    return [f"line {line}: {name}" for line, name, _, _ in found if name.split(".")[0] in FORBIDDEN]
 
 
 def test_scan_sees_imports_inside_functions():
     source = "def f():\n    from sim.env import make_env\n    import train.grpo\n\nimport simple\n"
-    assert _forbidden(source, "sword_jax.x") == ["line 2: sim.env", "line 3: train.grpo"]
-    assert _imports("def f():\n    from ..convert import wan22_dit\n", "sword_jax.dit.world_model") == [
-        (2, "sword_jax.convert", "wan22_dit", True)]
+    found, relative = _imports_fresh(((source, "sword_jax.x", False),
+                                      ("def f():\n    from ..convert import wan22_dit\n", "sword_jax.dit.world_model",
+                                       False)))
+    assert _forbidden(found) == ["line 2: sim.env", "line 3: train.grpo"]
+    assert relative == [(2, "sword_jax.convert", "wan22_dit", True)]
 
 
 def test_library_imports_neither_sim_nor_train():
     files = _library_files()
     assert len(files) > 50, files  # the scan really walks the package
-    offenders = {os.path.relpath(p, REPO): bad for p in files if (bad := _forbidden(_read(p), _module_name(p)))}
+    offenders = {os.path.relpath(p, REPO): bad for p, found in _library_imports().items() if (bad := _forbidden(found))}
     assert not offenders, f"sword_jax must not import {FORBIDDEN}; pass the sim piece as an argument: {offenders}"
 
 
@@ -84,7 +108,7 @@ def _import_graph() -> dict[tuple[str, bool], set[tuple[str, bool]]]:
     graph = {}
     for module, path in modules.items():
         edges = {True: set(), False: set()}
-        for _, name, attr, lazy in _imports(_read(path), module, is_package=path.endswith("__init__.py")):
+        for _, name, attr, lazy in _library_imports()[path]:
             target = f"{name}.{attr}" if f"{name}.{attr}" in modules else name
             parts = target.split(".")
             found = {(".".join(parts[:i]), True) for i in range(1, len(parts))} | {(target, False)}
