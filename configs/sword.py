@@ -67,7 +67,8 @@ def tiny() -> ExperimentConfig:
         vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
         data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
-        sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120),
+        # 96 steps: the expert solves tasks 0 and 1 in 36-77, so the data shows solved frames (rl.reward_labels=state).
+        sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120, episode_steps=96),
         eval=EvalConfig(horizon_frames=33, num_episodes=2, allow_random_weights_for=("fid",)),  # published LPIPS/FVD: ~2 s more on CPU
         # The read schedule completes within the tiny run, so the cache is really read.
         cache=CacheConfig(schedule_steps=20, warmup_steps=2),

@@ -10,14 +10,14 @@ TINY_RL = ["--rl.image_size=8", "--rl.policy_width=16", "--rl.policy_heads=2", "
            "--rl.action_bins=8", "--rl.reward_width=4", "--rl.max_instruction_bytes=48"]
 
 
-def _write_demos(path):
+def _write_demos(path, solved_steps=4):
     from sim.dataset import DatasetInfo, Episode, write_dataset
 
     rng = np.random.default_rng(0)
     episodes = []
     for i in range(4):
         t = 12
-        succeeds = (np.arange(t) == t - 1) & (i % 2 == 0)  # even episodes reach success (reward 1) at their end
+        succeeds = (np.arange(t) >= t - solved_steps) & (i % 2 == 0)  # even episodes are solved over their last 4 actions
         episodes.append(Episode(
             actions=rng.uniform(-1, 1, (t, 7)).astype(np.float32), states=np.zeros((t, 3), np.float32),
             rewards=succeeds.astype(np.float32), dones=succeeds.astype(np.uint8),
@@ -40,6 +40,15 @@ def test_sft_and_reward_entry_points(tmp_path):
     assert os.path.isdir(tmp_path / "rl" / "policy_sft")
     result = train_reward.main(common + ["--rl.reward_model_steps=3", "--rl.reward_model_batch_size=4"])
     assert "holdout" in result and os.path.isdir(tmp_path / "rl" / "reward_model")
+    assert result["labels"] == "state" and "fires_on_failed" in result["holdout"]["true_success"]
+    tail = train_reward.main(common + ["--rl.reward_model_steps=3", "--rl.reward_model_batch_size=4",
+                                       "--rl.reward_labels=tail"])
+    assert tail["labels"] == "tail" and tail["holdout"]["positives"] >= 1
+    # Episodes that end where they are first solved show no solved frame: a clear error, not a detector of nothing.
+    cut = str(tmp_path / "cut.hdf5")
+    _write_demos(cut, solved_steps=1)
+    with pytest.raises(ValueError, match="no positive frame under rl.reward_labels=state"):
+        train_reward.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", cut] + TINY_RL)
 
 
 @pytest.mark.slow

@@ -1,5 +1,7 @@
 """Policy text conditioning via behaviour cloning, action binning, and the success detector."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,6 +83,59 @@ def test_success_labels_and_detector_learns():
     scores = np.asarray(as_reward_model(graphdef, state.params).score(jnp.asarray(episodes.frames[0])))
     assert np.all((scores >= 0) & (scores <= 1))
     assert scores[-1] > 0.8 and scores[0] < 0.2, scores
+
+
+def _sim_episode(text, rewards):
+    from types import SimpleNamespace
+
+    t = len(rewards)
+    return SimpleNamespace(agentview_rgb=np.zeros((t, 8, 8, 3), np.uint8), actions=np.zeros((t, 7)),
+                           ee_states=np.zeros((t, 6)), gripper_states=np.zeros((t, 2)),
+                           rewards=np.asarray(rewards, float), num_samples=t, language_instruction=text)
+
+
+def test_state_labels_mark_the_frames_that_show_a_solved_state():
+    # rewards[t] = solved after action t, so frame t + 1 is the first to show it; solved, undone, solved again.
+    rewards = [0, 0, 1, 1, 0, 0, 1, 0]
+    eps = rl_data.from_sim_episodes([_sim_episode(TEXTS[0], rewards), _sim_episode(TEXTS[1], [0] * 6)],
+                                    stop_at_success=False)
+    np.testing.assert_array_equal(eps.frame_success[0], [0, 0, 0, 1, 1, 0, 0, 1])
+    np.testing.assert_array_equal(rl_data.success_labels(eps, 3, "state")[0], [0, 0, 0, 1, 1, 0, 0, 1])
+    np.testing.assert_array_equal(rl_data.success_labels(eps, 3, "state")[1], [0] * 6 + [-1] * 2)
+    # The tail labels of the same episode read up to its first success mark only frames before it.
+    cut = rl_data.from_sim_episodes([_sim_episode(TEXTS[0], rewards)], stop_at_success=True)
+    assert cut.lengths.tolist() == [3] and not cut.frame_success[0, :3].any()
+    np.testing.assert_array_equal(rl_data.success_labels(cut, 2, "tail")[0], [0, 1, 1])
+    assert eps.subset(np.array([1])).frame_success.shape == (1, 8)
+    with pytest.raises(ValueError, match="source must be one of"):
+        rl_data.success_labels(eps, 3, "end")
+    with pytest.raises(ValueError, match="frame_success"):
+        rl_data.success_labels(_episodes(), 3, "state")
+    with pytest.raises(ValueError, match="reward_labels"):
+        dataclasses.replace(CFG, reward_labels="last").validate()
+
+
+def test_detector_report_reads_scores_as_the_rollout_rule_does():
+    from sword_jax.rl.reward_model import detector_report
+
+    # Episode 0 solved from frame 6, episode 1 never, episode 2 ends at its success (solved at its length 5).
+    solved = np.zeros((3, 10), bool)
+    solved[0, 6:] = True
+    eps = rl_data.EpisodeSet(np.zeros((3, 10, 4, 4, 3), np.uint8), np.zeros((3, 10, 7), np.float32),
+                             np.zeros((3, 10, 4), np.float32), np.array([10, 10, 5]),
+                             np.array([True, False, True]), tuple(TEXTS) + (TEXTS[0],), solved)
+    scores = np.zeros((3, 10))
+    scores[0, 1] = 0.95  # fires 5 frames early
+    scores[0, 6:] = 0.95
+    scores[1, 3] = 0.99  # a false success
+    scores[2, 7] = 0.99  # past the episode's end: ignored -> a miss
+    report = detector_report(scores, eps, 0.9)
+    assert report["frame_precision"] == 4 / 6 and report["frame_recall"] == 1.0
+    assert (report["episodes_succeeded"], report["episodes_failed"]) == (2, 1)
+    assert report["fires_on_failed"] == 1.0 and report["fires_early"] == 0.5 and report["misses"] == 0.5
+    assert report["mean_lead_frames"] == 5.0
+    with pytest.raises(ValueError, match="scores must be"):
+        detector_report(scores[:2], eps, 0.9)
 
 
 def test_load_episodes_reads_every_file_with_the_given_reader():

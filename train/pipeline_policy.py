@@ -35,10 +35,16 @@ def _demos(ctx: Context) -> str:
 
 def reward_model(ctx: Context) -> dict:
     """The success detector, on the demonstrations plus the supervised policy's own rollouts where the
-    pipeline made them: its failures are the negatives a detector rewarding that policy must know."""
+    pipeline made them: its failures are the negatives a detector rewarding that policy must know.
+    With ``rl.reward_labels=state`` the world model's fixed-length expert episodes join them: they
+    keep going after success, so they hold the solved frames (and frames solved and then undone)
+    that episodes ending at their success never show."""
     from train import train_reward
 
     files = ["--demos", _demos(ctx)]
+    train_file = ctx.results["data"]["train"]["path"]
+    if ctx.cfg.rl.reward_labels == "state" and train_file != files[1]:
+        files += ["--demos", train_file]
     rollouts = ctx.results.get("policy_data", {}).get("path")
     if rollouts:
         files += ["--demos", rollouts]

@@ -2,8 +2,10 @@
 
     python -m train.train_reward --config sword:small --demos episodes.hdf5 [--rl.reward_model_steps=1000]
 
-The last ``rl.positive_tail`` frames of successful episodes are positives, every other frame a
-negative; batches are class-balanced, the batch of step ``s`` drawn from its own stream
+Labels follow ``rl.reward_labels``: ``state`` (default) marks each frame whose state solves the task
+(the simulator's per-step success, read over whole episodes, so fixed-length episodes that keep
+moving after success give solved and unsolved-again frames); ``tail`` marks the last
+``rl.positive_tail`` frames of successful episodes read up to their first success. Batches are class-balanced, the batch of step ``s`` drawn from its own stream
 (``reward/batches``, ``s``). Writes ``<workdir>/rl/reward_model`` and a held-out report. The train
 state is checkpointed to ``<workdir>/rl/reward_checkpoints`` every
 ``rl.reward_model_checkpoint_every`` steps and a rerun resumes from there, ending bit-identical to
@@ -19,13 +21,13 @@ import sys
 from collections.abc import Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import configs
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.params_io import save_params
-from sword_jax.rl.reward_model import as_reward_model, build_detector, train_detector
+from sword_jax.rl.reward_model import (as_reward_model, build_detector, detector_report, score_episodes,
+                                      train_detector)
 from sword_jax.rng import stream_rng
 from sword_jax.train_loop import NonFiniteLoss
 
@@ -42,11 +44,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.load_episodes(args.demos, read=read_dataset)
+    episodes = rl_data.load_episodes(args.demos, read=read_dataset, stop_at_success=rl.reward_labels == "tail")
     order = rng.permutation(episodes.num_episodes)
     n_hold = int(round(args.holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
-    labels = rl_data.success_labels(train_eps, rl.positive_tail)
+    labels = rl_data.success_labels(train_eps, rl.positive_tail, rl.reward_labels)
+    if not (labels == 1).any():
+        raise ValueError(f"reward model data: no positive frame under rl.reward_labels={rl.reward_labels} in "
+                         f"{args.demos}: " + ("no episode shows a solved state (episodes that end at their "
+                                              "success never do; add fixed-length episodes that go on after it)"
+                                              if rl.reward_labels == "state" else "no episode succeeded"))
     graphdef, params = build_detector(rl, seed=cfg.seed)
     key = jax.random.key(cfg.seed)
 
@@ -58,23 +65,28 @@ def main(argv: Sequence[str] | None = None) -> dict:
                               checkpoint_dir=os.path.join(workdir, "reward_checkpoints"))
     path = os.path.join(workdir, "reward_model")
     save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
-    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path}
+    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path,
+              "labels": rl.reward_labels}
     if n_hold:
-        hold_labels = rl_data.success_labels(hold_eps, rl.positive_tail)
-        score = jax.jit(as_reward_model(graphdef, state.params).score)
-        valid = hold_labels >= 0
-        frames = hold_eps.frames[valid]
-        scores = np.concatenate([np.asarray(score(jnp.asarray(frames[i:i + 256]))) for i in range(0, len(frames), 256)])
-        truth = hold_labels[valid] == 1
-        pred = scores >= rl.success_threshold
-        result["holdout"] = {"frames": int(valid.sum()), "positives": int(truth.sum()),
-                             "precision_at_threshold": float((pred & truth).sum() / max(pred.sum(), 1)),
-                             "recall_at_threshold": float((pred & truth).sum() / max(truth.sum(), 1)),
-                             "accuracy_at_0.5": float(((scores >= 0.5) == truth).mean())}
+        result["holdout"] = holdout_report(as_reward_model(graphdef, state.params).score, hold_eps, rl)
         print("held out:", json.dumps(result["holdout"]))
     with open(os.path.join(workdir, "reward_result.json"), "w") as f:
         json.dump(result, f, indent=1)
     return result
+
+
+def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
+    """Agreement of the detector with its own labels and with true success on held-out episodes."""
+    labels = rl_data.success_labels(episodes, rl.positive_tail, rl.reward_labels)
+    scores = score_episodes(jax.jit(score), episodes.frames)
+    valid = labels >= 0
+    truth, pred = labels[valid] == 1, scores[valid] >= rl.success_threshold
+    report = {"frames": int(valid.sum()), "positives": int(truth.sum()),
+              "precision_at_threshold": float((pred & truth).sum() / max(pred.sum(), 1)),
+              "recall_at_threshold": float((pred & truth).sum() / max(truth.sum(), 1)),
+              "accuracy_at_0.5": float(((scores[valid] >= 0.5) == truth).mean())}
+    report["true_success"] = detector_report(scores, episodes, rl.success_threshold)
+    return report
 
 
 if __name__ == "__main__":

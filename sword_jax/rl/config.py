@@ -28,7 +28,14 @@ class RLConfig:
       sft_steps / sft_batch_size / sft_learning_rate / sft_episodes_per_task: behaviour cloning knobs
         (steps and number of demonstrations set how good the starting policy is).
       reward_model_steps / reward_model_batch_size / reward_model_learning_rate: success detector.
-      positive_tail: the last this-many frames of a successful episode are positives.
+      positive_tail: the last this-many frames of a successful episode are positives
+        (``reward_labels=tail``).
+      reward_labels: what the success detector learns. ``state`` (default): the task's success
+        predicate on the state each frame shows (the simulator's per-step success), over whole
+        episodes, so frames after success (bowl resting on the plate, the arm retreating) are
+        positives and frames with the bowl lifted off again negatives. ``tail``: the last
+        ``positive_tail`` frames of successful episodes read up to their first success, i.e. the
+        frames just *before* the bowl lands (the earlier recipe; see README for what it measured).
       policy_width: base width of the policy (image encoder channels, token width).
       policy_layers: transformer layers of the instruction / fusion encoder.
       policy_heads: attention heads of the policy transformer.
@@ -110,6 +117,7 @@ class RLConfig:
     reward_model_batch_size: int = 32
     reward_model_learning_rate: float = 1e-3
     positive_tail: int = 8
+    reward_labels: str = "state"  # state | tail
     policy_width: int = 64
     policy_layers: int = 2
     policy_heads: int = 4
@@ -195,5 +203,7 @@ class RLConfig:
         for name in ("sft_checkpoint_every", "reward_model_checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"rl.{name} must be >= 1 (steps between checkpoints), got {getattr(self, name)}")
+        if self.reward_labels not in ("state", "tail"):
+            raise ValueError(f"rl.reward_labels must be state|tail, got {self.reward_labels!r}")
         if self.positive_tail < 1:
             raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")

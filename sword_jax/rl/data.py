@@ -27,6 +27,8 @@ class EpisodeSet:
       lengths: ``[E]`` int true episode lengths.
       success: ``[E]`` bool, whether the episode ended in success.
       instructions: E language instructions.
+      frame_success: ``[E, T]`` bool, the task's success predicate on the state frame t shows (the
+        state after action ``t - 1``; False at t = 0), or None where unknown.
     """
 
     frames: np.ndarray
@@ -35,6 +37,7 @@ class EpisodeSet:
     lengths: np.ndarray
     success: np.ndarray
     instructions: tuple[str, ...]
+    frame_success: np.ndarray | None = None
 
     def __post_init__(self):
         e = self.frames.shape[0]
@@ -49,6 +52,9 @@ class EpisodeSet:
             raise ValueError(f"episodes: lengths must be in [1, {t}], got {self.lengths}")
         if not (np.all(np.isfinite(self.actions)) and np.all(np.isfinite(self.proprio))):
             raise ValueError("episodes: actions or proprio contain NaN/inf")
+        if self.frame_success is not None and (self.frame_success.shape != (e, t) or self.frame_success.dtype != bool):
+            raise ValueError(f"episodes: frame_success must be [E, T] = {(e, t)} bool, got "
+                             f"{self.frame_success.shape} {self.frame_success.dtype}")
 
     @property
     def num_episodes(self) -> int:
@@ -57,7 +63,8 @@ class EpisodeSet:
     def subset(self, index: np.ndarray) -> "EpisodeSet":
         index = np.asarray(index)
         return EpisodeSet(self.frames[index], self.actions[index], self.proprio[index], self.lengths[index],
-                          self.success[index], tuple(self.instructions[i] for i in index))
+                          self.success[index], tuple(self.instructions[i] for i in index),
+                          None if self.frame_success is None else self.frame_success[index])
 
 
 def success_length(episode: Any) -> int:
@@ -74,7 +81,8 @@ def from_sim_episodes(episodes: Sequence[Any], *, success: Sequence[bool] | None
     Proprio is ``[ee_states (6), gripper_states (2)]`` (8-D), the sim's layout. With
     ``stop_at_success`` an episode ends at its first success (data that keeps moving afterwards,
     as the world model's, would otherwise teach the policy to leave the solved state). Success
-    defaults to "some step succeeded".
+    defaults to "some step succeeded". ``frame_success`` comes from the episodes' ``rewards``
+    (``rewards[t]`` = solved after action t, so frame ``t + 1`` shows a solved state).
     """
     if not episodes:
         raise ValueError("from_sim_episodes: no episodes")
@@ -90,7 +98,9 @@ def from_sim_episodes(episodes: Sequence[Any], *, success: Sequence[bool] | None
     instructions = tuple(ep.language_instruction for ep in episodes)
     if any(not text for text in instructions):
         raise ValueError("from_sim_episodes: every episode needs a language_instruction")
-    return EpisodeSet(frames, actions, proprio, lengths, np.asarray(success, bool), instructions)
+    solved = np.stack([pad(np.concatenate([[False], np.asarray(ep.rewards)[:-1] > 0]), n)
+                       for ep, n in zip(episodes, lengths)])
+    return EpisodeSet(frames, actions, proprio, lengths, np.asarray(success, bool), instructions, solved)
 
 
 def sample_bc_batch(
@@ -111,12 +121,29 @@ def sample_bc_batch(
     }
 
 
-def success_labels(episodes: EpisodeSet, positive_tail: int) -> np.ndarray:
-    """``[E, T]`` 1 for the last ``positive_tail`` frames of successful episodes, else 0; -1 = padding."""
+REWARD_LABELS = ("state", "tail")
+
+
+def success_labels(episodes: EpisodeSet, positive_tail: int, source: str = "tail") -> np.ndarray:
+    """``[E, T]`` per-frame success-detector labels: 1 positive, 0 negative, -1 padding.
+
+    ``source="state"``: the task's success predicate on the state each frame shows
+    (``episodes.frame_success``), the event an imagined rollout's reward stands for.
+    ``source="tail"``: the last ``positive_tail`` frames of successful episodes (for episodes that
+    end at their first success these are the frames *before* it: the bowl still in the air).
+    """
+    if source not in REWARD_LABELS:
+        raise ValueError(f"success labels: source must be one of {REWARD_LABELS}, got {source!r}")
     e, t = episodes.frames.shape[:2]
     step = np.arange(t)[None]
     end = episodes.lengths[:, None]
-    labels = ((step >= end - positive_tail) & (step < end) & episodes.success[:, None]).astype(np.int32)
+    if source == "state":
+        if episodes.frame_success is None:
+            raise ValueError("success labels: source='state' needs episodes.frame_success (per-frame success of "
+                             "the simulator's rewards); these episodes have none")
+        labels = episodes.frame_success.astype(np.int32)
+    else:
+        labels = ((step >= end - positive_tail) & (step < end) & episodes.success[:, None]).astype(np.int32)
     return np.where(step < end, labels, -1)
 
 
@@ -159,14 +186,15 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
             "instructions": [episodes.instructions[i] for i in ep]}
 
 
-def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequence[Any]]] | None = None
-                  ) -> EpisodeSet:
+def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequence[Any]]] | None = None,
+                  stop_at_success: bool = True) -> EpisodeSet:
     """Reads episode files into one :class:`EpisodeSet`.
 
     Args:
       paths: episode files, read in order.
       read: ``path -> (info, episodes)`` with ``sim.dataset.Episode``-like episodes, e.g.
         ``sim.dataset.read_dataset`` for LIBERO-layout HDF5 files (the library does not import ``sim``).
+      stop_at_success: end each episode at its first success (:func:`from_sim_episodes`).
 
     Raises:
       ValueError: no ``read`` given.
@@ -177,7 +205,7 @@ def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequ
     for path in paths:
         _, eps = read(path)
         episodes.extend(eps)
-    return from_sim_episodes(episodes)
+    return from_sim_episodes(episodes, stop_at_success=stop_at_success)
 
 
 def successful(episodes: EpisodeSet) -> EpisodeSet:

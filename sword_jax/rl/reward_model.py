@@ -1,7 +1,7 @@
 """Success detector: a small CNN scoring each frame in [0, 1] (WoVR's reward model).
 
 Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_jax.rl.data.success_labels`
-(the last frames of successful episodes are positives). In imagined rollouts the reward of a
+(``rl.reward_labels``: by default the task's success predicate on each frame's state). In imagined rollouts the reward of a
 chunk is the change of the score and the trajectory succeeds once a frame scores above the
 threshold (0.9). :func:`as_reward_model` wraps trained params in the
 :class:`~sword_jax.rl.simulator.RewardModel` protocol.
@@ -14,6 +14,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float
@@ -157,3 +158,64 @@ def train_detector(
                        name="reward model", report=report, checkpoint_dir=checkpoint_dir,
                        checkpoint_every=cfg.reward_model_checkpoint_every, run_id=run_id, log=log)
     return result.state, result.metrics
+
+
+def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict[str, float]:
+    """How a detector's per-frame scores agree with true success, frame by frame and as the
+    imagined-rollout rule reads them (an episode succeeds at its first frame scoring ``>= threshold``).
+
+    Args:
+      scores: ``[E, T]`` detector scores of ``episodes.frames`` (entries past ``lengths`` are ignored).
+      episodes: a :class:`~sword_jax.rl.data.EpisodeSet` with ``frame_success``.
+      threshold: the success threshold (``rl.success_threshold``).
+
+    Returns:
+      ``frame_precision``/``frame_recall`` against the success predicate of each frame's state;
+      ``episodes_succeeded``/``episodes_failed``; ``fires_on_failed``: share of failed episodes where
+      some frame fires (an imagined false success); ``fires_early``: share of succeeded episodes whose
+      first firing frame comes more than 4 frames (one latent) before the first solved frame;
+      ``mean_lead_frames``: mean of (first solved frame - first firing frame) over succeeded episodes
+      that fire; ``misses``: share of succeeded episodes where no frame fires. An episode that ends at
+      its success (``success`` set, no solved frame observed) is solved at frame ``length``.
+
+    Raises:
+      ValueError: episodes without ``frame_success`` or scores of the wrong shape.
+    """
+    if episodes.frame_success is None:
+        raise ValueError("detector_report needs episodes.frame_success (per-frame true success)")
+    e, t = episodes.frames.shape[:2]
+    scores = np.asarray(scores)
+    if scores.shape != (e, t):
+        raise ValueError(f"detector_report: scores must be [E, T] = {(e, t)}, got {scores.shape}")
+    valid = np.arange(t)[None] < episodes.lengths[:, None]
+    fire = (scores >= threshold) & valid
+    truth = episodes.frame_success & valid
+    tp = float((fire & truth).sum())
+    first_fire = np.where(fire.any(1), fire.argmax(1), -1)
+    solved = np.where(truth.any(1), truth.argmax(1), np.where(episodes.success, episodes.lengths, -1))
+    ok, failed = solved >= 0, solved < 0
+    fired_ok = ok & (first_fire >= 0)
+    lead = (solved - first_fire)[fired_ok]
+    return {
+        "frames": int(valid.sum()), "solved_frames": int(truth.sum()),
+        "frame_precision": tp / max(float(fire.sum()), 1.0), "frame_recall": tp / max(float(truth.sum()), 1.0),
+        "episodes_succeeded": int(ok.sum()), "episodes_failed": int(failed.sum()),
+        "fires_on_failed": float((first_fire[failed] >= 0).mean()) if failed.any() else None,
+        "fires_early": float((lead > 4).sum() / ok.sum()) if ok.any() else None,
+        "mean_lead_frames": float(lead.mean()) if lead.size else None,
+        "misses": float((first_fire[ok] < 0).mean()) if ok.any() else None,
+    }
+
+
+def score_episodes(score: Callable[[Array], Array], frames: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """``[E, T]`` scores of ``[E, T, H, W, 3]`` uint8 frames, ``chunk`` frames per call (the last padded)."""
+    e, t = frames.shape[:2]
+    flat = frames.reshape((e * t,) + frames.shape[2:])
+    out = []
+    for i in range(0, len(flat), chunk):
+        part = flat[i:i + chunk]
+        pad = chunk - len(part)
+        if pad:
+            part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
+        out.append(np.asarray(score(jnp.asarray(part)))[:chunk - pad])
+    return np.concatenate(out).reshape(e, t)
