@@ -118,20 +118,23 @@ def test_state_labels_mark_the_frames_that_show_a_solved_state():
 def test_detector_report_reads_scores_as_the_rollout_rule_does():
     from sword_jax.rl.reward_model import detector_report
 
-    # Episode 0 solved from frame 6, episode 1 never, episode 2 ends at its success (solved at its length 5).
-    solved = np.zeros((3, 10), bool)
+    # Episode 0 solved from frame 6, episode 1 never, episode 2 ends at its success (no solved frame shown),
+    # episode 3 solved from frame 2 and never fired on.
+    solved = np.zeros((4, 10), bool)
     solved[0, 6:] = True
-    eps = rl_data.EpisodeSet(np.zeros((3, 10, 4, 4, 3), np.uint8), np.zeros((3, 10, 7), np.float32),
-                             np.zeros((3, 10, 4), np.float32), np.array([10, 10, 5]),
-                             np.array([True, False, True]), tuple(TEXTS) + (TEXTS[0],), solved)
-    scores = np.zeros((3, 10))
+    solved[3, 2:4] = True
+    eps = rl_data.EpisodeSet(np.zeros((4, 10, 4, 4, 3), np.uint8), np.zeros((4, 10, 7), np.float32),
+                             np.zeros((4, 10, 4), np.float32), np.array([10, 10, 5, 4]),
+                             np.array([True, False, True, True]), tuple(TEXTS) * 2, solved)
+    scores = np.zeros((4, 10))
     scores[0, 1] = 0.95  # fires 5 frames early
     scores[0, 6:] = 0.95
     scores[1, 3] = 0.99  # a false success
-    scores[2, 7] = 0.99  # past the episode's end: ignored -> a miss
+    scores[2, 4] = 0.99  # fires on an episode whose solved frame is never shown: frame metrics only
+    scores[3, 5] = 0.99  # past the episode's end: ignored -> a miss
     report = detector_report(scores, eps, 0.9)
-    assert report["frame_precision"] == 4 / 6 and report["frame_recall"] == 1.0
-    assert (report["episodes_succeeded"], report["episodes_failed"]) == (2, 1)
+    assert report["frame_precision"] == 4 / 7 and report["frame_recall"] == 4 / 6
+    assert (report["episodes_succeeded"], report["episodes_failed"], report["episodes_unobserved"]) == (2, 1, 1)
     assert report["fires_on_failed"] == 1.0 and report["fires_early"] == 0.5 and report["misses"] == 0.5
     assert report["mean_lead_frames"] == 5.0
     with pytest.raises(ValueError, match="scores must be"):

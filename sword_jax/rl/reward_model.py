@@ -175,8 +175,9 @@ def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict
       some frame fires (an imagined false success); ``fires_early``: share of succeeded episodes whose
       first firing frame comes more than 4 frames (one latent) before the first solved frame;
       ``mean_lead_frames``: mean of (first solved frame - first firing frame) over succeeded episodes
-      that fire; ``misses``: share of succeeded episodes where no frame fires. An episode that ends at
-      its success (``success`` set, no solved frame observed) is solved at frame ``length``.
+      that fire; ``misses``: share of succeeded episodes where no frame fires. Episodes that end at
+      their success show no solved frame (``success`` set, none in ``frame_success``): they count in
+      the frame metrics only, and ``episodes_unobserved`` says how many there were.
 
     Raises:
       ValueError: episodes without ``frame_success`` or scores of the wrong shape.
@@ -192,14 +193,16 @@ def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict
     truth = episodes.frame_success & valid
     tp = float((fire & truth).sum())
     first_fire = np.where(fire.any(1), fire.argmax(1), -1)
-    solved = np.where(truth.any(1), truth.argmax(1), np.where(episodes.success, episodes.lengths, -1))
-    ok, failed = solved >= 0, solved < 0
+    shown = truth.any(1)
+    solved = np.where(shown, truth.argmax(1), -1)
+    ok, failed = shown, ~shown & ~episodes.success
     fired_ok = ok & (first_fire >= 0)
     lead = (solved - first_fire)[fired_ok]
     return {
         "frames": int(valid.sum()), "solved_frames": int(truth.sum()),
         "frame_precision": tp / max(float(fire.sum()), 1.0), "frame_recall": tp / max(float(truth.sum()), 1.0),
         "episodes_succeeded": int(ok.sum()), "episodes_failed": int(failed.sum()),
+        "episodes_unobserved": int((~shown & episodes.success).sum()),
         "fires_on_failed": float((first_fire[failed] >= 0).mean()) if failed.any() else None,
         "fires_early": float((lead > 4).sum() / ok.sum()) if ok.any() else None,
         "mean_lead_frames": float(lead.mean()) if lead.size else None,
