@@ -1,5 +1,7 @@
 """Imagined rollouts: deterministic for a key, done-masked, sharded over devices."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,11 +56,19 @@ def test_rollout_deterministic_and_respects_done():
     np.testing.assert_array_equal(n_valid[success], first_hit[success] + 1)
     assert np.all(n_valid[~success] == CFG.max_chunks)
     np.testing.assert_array_equal(n_valid[CFG.group_size:], 1)  # the on-goal group: one chunk
-    # frozen after done: the score stays put, returns = score change + bonus
+    # frozen after done: the score stays put; the return is success alone (as in the real environments)
     scores = np.asarray(a.scores)
     for i in np.flatnonzero(success):
         assert np.all(scores[i, first_hit[i]:] == scores[i, first_hit[i]])
-    np.testing.assert_allclose(np.asarray(a.returns), rewards.sum(1) + success.astype(np.float32), rtol=1e-5)
+    assert CFG.imagined_return == "success"
+    np.testing.assert_array_equal(np.asarray(a.returns), success * (1.0 + CFG.success_bonus))
+    # imagined_return=score: the score changes plus the bonus, so failures differ by the detector's score
+    score_cfg = dataclasses.replace(CFG, imagined_return="score")
+    s = jax.jit(lambda p, k: imagined_rollout(graphdef, p, sim, reward_model, start, score_cfg, key=k))(
+        params, jax.random.key(0))
+    np.testing.assert_array_equal(np.asarray(s.success), success)
+    np.testing.assert_allclose(np.asarray(s.returns), rewards.sum(1) + success.astype(np.float32), rtol=1e-5)
+    assert np.ptp(np.asarray(s.returns)[~success]) > 0 and np.ptp(np.asarray(a.returns)[~success]) == 0
     assert a.frames.shape == (8, CFG.max_chunks, 8, 8, 8, 3)
 
 
@@ -85,8 +95,11 @@ def test_env_steps_by_the_rollout_rule():
     np.testing.assert_array_equal(done[:, -1], 1.0)
     np.testing.assert_array_equal(np.asarray(state.info["success"]) > 0, success)
     np.testing.assert_array_equal(np.asarray(state.info["truncation"]) > 0, ~success)
-    # the env's episode return is the GRPO return without the success bonus
-    np.testing.assert_allclose(rewards.sum(1) + CFG.success_bonus * success, np.asarray(rollout.returns), atol=1e-5)
+    # the env's episode return plus the success bonus is the GRPO return of imagined_return=score
+    score_cfg = dataclasses.replace(CFG, imagined_return="score")
+    scored = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, score_cfg,
+                                                key=jax.random.key(4)))(params)
+    np.testing.assert_allclose(rewards.sum(1) + CFG.success_bonus * success, np.asarray(scored.returns), atol=1e-5)
 
 
 def test_rollout_sharded_over_devices_matches_single_device():

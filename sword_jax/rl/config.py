@@ -20,8 +20,14 @@ class RLConfig:
       action_bins: discretisation bins per action dimension (OpenVLA: 256).
       success_threshold: reward-model score that counts as success (WoVR: 0.9).
       filter_groups: drop groups whose rewards are all equal (no learning signal).
-      success_bonus: added to a trajectory's return when it reaches success (returns are the
-        summed per-chunk score changes plus this bonus).
+      success_bonus: added to a trajectory's return when it reaches success.
+      imagined_return: the return of an imagined trajectory. ``success`` (default): ``1 +
+        success_bonus`` on success, else 0, the same return GRPO in the ground-truth environments
+        uses (where the update was validated: +16.4 points on `small`), so a group whose
+        trajectories all fail carries no signal and is filtered. ``score``: the summed per-chunk
+        changes of the detector's score plus the bonus on success (the earlier rule): every
+        group then has a spread, and failing groups are ranked by the detector's score on frames
+        that are not successes, a signal GRPO can climb without succeeding.
       loss_norm: 'trajectory' averages token losses within each trajectory (normalising by its
         length) and then over trajectories (GRPO); 'token' averages over all valid tokens (DAPO).
       temperature: sampling temperature of the policy during rollouts.
@@ -107,6 +113,7 @@ class RLConfig:
     success_threshold: float = 0.9
     filter_groups: bool = True
     success_bonus: float = 1.0
+    imagined_return: str = "success"  # success | score
     loss_norm: str = "trajectory"  # trajectory | token
     temperature: float = 1.0
     sft_steps: int = 200
@@ -203,6 +210,8 @@ class RLConfig:
         for name in ("sft_checkpoint_every", "reward_model_checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"rl.{name} must be >= 1 (steps between checkpoints), got {getattr(self, name)}")
+        if self.imagined_return not in ("success", "score"):
+            raise ValueError(f"rl.imagined_return must be success|score, got {self.imagined_return!r}")
         if self.reward_labels not in ("state", "tail"):
             raise ValueError(f"rl.reward_labels must be state|tail, got {self.reward_labels!r}")
         if self.positive_tail < 1:

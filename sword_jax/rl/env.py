@@ -15,7 +15,8 @@ An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1]. A step returns th
 frame as the observation, all predicted frames in ``info['frames']``, the change of the success
 score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit:
 the rule of the GRPO rollouts, :func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed
-rewards are a GRPO trajectory's return without its ``rl.success_bonus``.
+rewards are the GRPO return of ``rl.imagined_return=score`` without its ``rl.success_bonus`` (the
+default GRPO return, ``success``, pays success alone).
 """
 
 from __future__ import annotations

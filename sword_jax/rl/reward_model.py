@@ -1,9 +1,9 @@
 """Success detector: a small CNN scoring each frame in [0, 1] (WoVR's reward model).
 
 Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_jax.rl.data.success_labels`
-(``rl.reward_labels``: by default the task's success predicate on each frame's state). In imagined rollouts the reward of a
-chunk is the change of the score and the trajectory succeeds once a frame scores above the
-threshold (0.9). :func:`as_reward_model` wraps trained params in the
+(``rl.reward_labels``: by default the task's success predicate on each frame's state). An imagined
+trajectory succeeds once a frame scores at least the threshold (0.9); a chunk's reward is the change
+of the score, and the GRPO return follows ``rl.imagined_return`` (by default success alone). :func:`as_reward_model` wraps trained params in the
 :class:`~sword_jax.rl.simulator.RewardModel` protocol.
 """
 

@@ -104,6 +104,18 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
                         done=done | success | truncated)
 
 
+def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"], cfg: RLConfig) -> Float[Array, " n"]:
+    """The GRPO return of imagined trajectories by ``cfg.imagined_return``: ``success``, ``1 +
+    success_bonus`` on success and 0 otherwise (as in the ground-truth environments); ``score``, the
+    summed per-chunk score changes plus ``success_bonus`` on success."""
+    bonus = jnp.float32(cfg.success_bonus) * success.astype(jnp.float32)
+    if cfg.imagined_return == "success":
+        return success.astype(jnp.float32) + bonus
+    if cfg.imagined_return == "score":
+        return jnp.sum(rewards, axis=1) + bonus
+    raise ValueError(f"rl.imagined_return must be success|score, got {cfg.imagined_return!r}")
+
+
 def expand_groups(start: StartState, group_size: int) -> StartState:
     """Repeats each start state ``group_size`` times: leading ``[B]`` -> ``[B * G]`` (start-major)."""
     return jax.tree.map(lambda x: jnp.repeat(x, group_size, axis=0), start)
@@ -187,7 +199,7 @@ def imagined_rollout(
     swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - (C, N, ...) -> (N, C, ...)
     success = jnp.any(traj["success"], axis=0)
     rewards = swap(traj["reward"])
-    returns = jnp.sum(rewards, axis=1) + jnp.float32(cfg.success_bonus) * success.astype(jnp.float32)
+    returns = trajectory_returns(rewards, success, cfg)
     return Rollout(
         obs_frames=swap(traj["obs"]),
         proprio=swap(traj["proprio"]),
