@@ -9,7 +9,8 @@ sword-jax: any ``nnx.Module`` mapping ``(frames [N, s, s, 3] in [0, 1], instruct
 ``bins`` action bins in [-1, 1] fits :func:`sword_jax.rl.grpo.make_train_step`. So does the
 reward: a function of the imagined frames with values in [0, 1] (here "light on the right side
 of the picture"; a pipeline run also has its trained success detector, ``model.reward_model``).
-Each GRPO step rolls ``rollout_batch x group_size`` trajectories out inside the world model
+A shaped reward like this one is paid as its summed change per chunk (``imagined_return="score"``);
+the default return, ``"success"``, pays only reaching the success threshold. Each GRPO step rolls ``rollout_batch x group_size`` trajectories out inside the world model
 (one jit: policy, world model, VAE decoder, reward) and updates the policy from the
 group-normalised returns.
 """
@@ -67,7 +68,8 @@ def main(argv=None) -> dict:
     model = sword_jax.load_world_model(tiny_run(args.run, workdir=args.workdir, steps=args.train_steps))
     spec = model.spec
     rl = RLConfig(chunk_len=spec.frames_per_chunk, action_dim=spec.action_dim, image_size=spec.image_size,
-                  group_size=4, rollout_batch=2, max_chunks=2, learning_rate=1e-3, grpo_steps=args.steps)
+                  group_size=4, rollout_batch=2, max_chunks=2, learning_rate=1e-3, grpo_steps=args.steps,
+                  imagined_return="score")
     graphdef, params = nnx.split(MyPolicy(rl, rngs=nnx.Rngs(args.seed)))
 
     from sword_jax.vae.train import moving_squares  # start frames: what the tiny VAE saw
