@@ -5,19 +5,25 @@ in/out shardings on the mesh, the state donated, traced inside JAX's mesh contex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
+from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from sword_jax import sharding as shd
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import build_policy, tokenize_instructions
-from sword_jax.rl.reward_model import build_detector, make_detector_step
 from sword_jax.rl.sft import make_sft_step
 from sword_jax.rl.simulator import toy_reward_model, toy_simulator, toy_start_states
 
 CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
                action_bins=8, chunk_len=4, proprio_dim=4, proprio_encoding="raw", reward_width=4, group_size=2, max_chunks=2, ppo_epochs=1)
 BATCH_AXES = ("data", "fsdp")
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return build_policy(CFG, seed=0)  # the steps below never donate these arrays (copies go in)
 
 
 def _mesh():
@@ -44,9 +50,10 @@ def test_constrain_reads_jax_mesh_context():
     assert jax.sharding.get_abstract_mesh().empty and shd.active_rules() == shd.DEFAULT_RULES
 
 
-def test_sft_step_keeps_born_sharded_params_and_splits_the_batch():
+def test_sft_step_keeps_sharded_params_splits_the_batch_and_donates(policy):
     mesh = _mesh()
-    graphdef, params = build_policy(CFG, seed=0, mesh=mesh)
+    graphdef, params = policy
+    params = jax.device_put(params, shd.state_shardings(nnx.eval_shape(lambda: params), mesh, shd.DEFAULT_RULES))
     intended = jax.tree.map(lambda x: x.sharding, params)
     assert any(_spec(s) != PartitionSpec() for s in jax.tree.leaves(intended))  # really sharded
     init, step = make_sft_step(graphdef, CFG, total_steps=4, mesh=mesh)
@@ -54,31 +61,20 @@ def test_sft_step_keeps_born_sharded_params_and_splits_the_batch():
     batch = {"frames": rng.random((4, 8, 8, 3), np.float32),
              "instruction_tokens": tokenize_instructions(["pick", "place", "open", "close"], 16),
              "proprio": rng.random((4, 4), np.float32), "actions": rng.uniform(-1, 1, (4, 4, 7)).astype(np.float32)}
-    compiled = step.lower(init(params), batch, jax.random.key(0)).compile()
-    assert _spec(compiled.input_shardings[0][1]["frames"]) == PartitionSpec(BATCH_AXES)
-    state_out, metrics_out = compiled.output_shardings
-    for want, got in zip(jax.tree.leaves(intended), jax.tree.leaves(state_out.params)):
-        assert got == want
-    assert all(_spec(m) == PartitionSpec() and len(m.device_set) == 8 for m in metrics_out.values())
-
-
-def test_detector_step_is_compiled_on_the_mesh_and_donates():
-    mesh = _mesh()
-    graphdef, params = build_detector(CFG)
-    init, step = make_detector_step(graphdef, CFG, mesh=mesh)
-    batch = {"frames": np.random.default_rng(0).random((4, 8, 8, 3), np.float32), "labels": np.array([0, 1, 0, 1])}
     state, metrics = step(init(params), batch, jax.random.key(0))
-    assert all(x.sharding == shd.replicated(mesh) for x in jax.tree.leaves(state))
-    assert float(metrics["finite"]) == 1.0
-    placed = state
-    state, _ = step(state, batch, jax.random.key(0))
-    assert jax.tree.leaves(placed)[0].is_deleted()  # donated
+    for want, got in zip(jax.tree.leaves(intended), jax.tree.leaves(state.params)):
+        assert got.sharding == want
+    assert all(_spec(m.sharding) == PartitionSpec() and len(m.sharding.device_set) == 8 for m in metrics.values())
+    compiled = step.lower(state, batch, jax.random.key(0)).compile()  # the executable the call built
+    assert _spec(compiled.input_shardings[0][1]["frames"]) == PartitionSpec(BATCH_AXES)
+    step(state, batch, jax.random.key(1))
+    assert all(x.is_deleted() for x in jax.tree.leaves(state))  # donated
 
 
-def test_grpo_step_constrains_activations_on_the_mesh():
+def test_grpo_step_constrains_activations_on_the_mesh(policy):
     """The GRPO step used to run outside any mesh, so its rollout's ``constrain`` calls were no-ops."""
     mesh = _mesh()
-    graphdef, params = build_policy(CFG, seed=0)
+    graphdef, params = policy
     sim, reward_model = toy_simulator(frame_size=8, chunk_len=4, proprio_dim=4), toy_reward_model()
     tokens = jnp.asarray(tokenize_instructions(["pick", "place", "open", "close"], 16))
     start = toy_start_states(tokens, key=jax.random.key(1), frame_size=8, proprio_dim=4)
