@@ -44,6 +44,7 @@ from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import fidelity
 from sword_jax.dlb.config import CacheConfig
+from sword_jax.rng import stream_key, stream_seed
 from sword_jax.world_model import data, flow, sampler, train_state, train_step
 
 PAPER_DATASET = (1500, 128, 16, 16, 48)
@@ -101,7 +102,7 @@ def make_fidelity_eval(cfg, graphdef, sampler_steps: tuple[int, ...]):
         noise = jax.random.normal(keys["noise"], future.shape, jnp.float32)
         model_input, timesteps = flow.noisy_segment(latents, noise, sigma, num_cond, flow_cfg)
         prediction = model_fn(model_input, timesteps, actions)
-        reference = fidelity.inference_context(flow_cfg, model_fn, cond, actions, key=jax.random.fold_in(keys["write"], 1),
+        reference = fidelity.inference_context(flow_cfg, model_fn, cond, actions, key=stream_key(keys["write"], train_step.INFERENCE_STREAM),
                                                num_future=future.shape[1])
         out = {}
         for name, cache_cfg in sources.items():
@@ -109,7 +110,7 @@ def make_fidelity_eval(cfg, graphdef, sampler_steps: tuple[int, ...]):
                                              prediction_future=prediction[:, num_cond:],
                                              noisy_future=model_input[:, num_cond:], sigma=sigma)
             out[name] = fidelity.latent_distance(fidelity.stored(written, cache_cfg), reference)
-        floor = fidelity.inference_context(flow_cfg, model_fn, cond, actions, key=jax.random.fold_in(keys["write"], 2),
+        floor = fidelity.inference_context(flow_cfg, model_fn, cond, actions, key=stream_key(keys["write"], "dlb/inference_floor"),
                                            num_future=future.shape[1])
         out["floor"] = fidelity.latent_distance(floor, reference)
         out["sigma_median"] = {"value": jnp.median(sigma)}
@@ -149,11 +150,14 @@ def write_sources(args, cfg, mesh) -> None:
     # 2. Distances on fresh batches, same params for every source.
     evaluate = make_fidelity_eval(cfg, graphdef, sampler_steps)
     eval_loader = data.SegmentLoader(dataset, data.SegmentSampler(dataset.shape[0], dataset.shape[1], 1, 2,
-                                                                  cfg.data.batch_size, seed=cfg.seed + 1), 1, 2, mesh)
+                                                                  cfg.data.batch_size,
+                                                                  seed=stream_seed(cfg.seed, "bench_dlb/eval_segments")),
+                                        1, 2, mesh)
     params, buffers = (state.ema_params if state.ema_params is not None else state.params), state.buffers
     totals: dict[str, dict[str, list[float]]] = {}
+    eval_key = stream_key(jax.random.key(cfg.seed), "bench_dlb/eval_noise")
     for i in range(args.eval_batches):
-        out = jax.device_get(evaluate(params, buffers, eval_loader.next(), jax.random.key(1000 + i)))
+        out = jax.device_get(evaluate(params, buffers, eval_loader.next(), jax.random.fold_in(eval_key, i)))
         for name, values in out.items():
             for metric, value in values.items():
                 totals.setdefault(name, {}).setdefault(metric, []).append(float(value))

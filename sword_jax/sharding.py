@@ -21,6 +21,7 @@ from typing import Any
 import jax
 import numpy as np
 from flax import nnx
+from flax.core import spmd as flax_spmd
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 MESH_AXES: tuple[str, ...] = ("data", "fsdp", "tensor")
@@ -236,37 +237,131 @@ def create_sharded(
     return graphdef, state
 
 
+def active_rules() -> Sequence[tuple[str, Sequence[str]]]:
+    """The rules of the innermost :func:`use_mesh` (Flax's ``logical_axis_rules`` context), else
+    ``DEFAULT_RULES``."""
+    return flax_spmd.get_logical_axis_rules() or DEFAULT_RULES
+
+
 def constrain(x: jax.Array, logical_axes: Sequence[str | None], rules=None) -> jax.Array:
     """Activation sharding constraint by logical names, a no-op outside a mesh context.
 
-    Uses the abstract mesh set by ``jax.sharding.use_mesh`` / ``jax.set_mesh`` when present, and
-    the rules installed with :func:`use_rules` (default: ``DEFAULT_RULES``).
+    Reads JAX's own mesh context (``jax.sharding.get_abstract_mesh()``, set by :func:`use_mesh` or
+    ``jax.set_mesh``), so a jitted function traced inside a mesh and outside it are two traces, and
+    the rules of :func:`use_mesh` (default: ``DEFAULT_RULES``).
     """
-    mesh = _current_mesh()
-    if mesh is None or mesh.empty or math.prod(mesh.shape.values()) == 1:
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or mesh.size == 1:
         return x
-    spec = logical_to_spec(logical_axes, rules or _ACTIVE_RULES[-1], mesh, x.shape)
-    return jax.lax.with_sharding_constraint(x, NamedSharding(mesh, spec))
-
-
-_ACTIVE_RULES: list[Sequence[tuple[str, Sequence[str]]]] = [DEFAULT_RULES]
-_ACTIVE_MESH: list[Mesh] = []
+    spec = logical_to_spec(logical_axes, rules or active_rules(), mesh, x.shape)
+    return jax.lax.with_sharding_constraint(x, spec)
 
 
 @contextlib.contextmanager
 def use_mesh(mesh: Mesh, rules: Sequence[tuple[str, Sequence[str]]] = DEFAULT_RULES):
-    """Context in which :func:`constrain` shards activations over ``mesh`` with ``rules``."""
-    _ACTIVE_RULES.append(tuple(rules))
-    _ACTIVE_MESH.append(mesh)
-    try:
+    """Context in which :func:`constrain` shards activations over ``mesh`` with ``rules``.
+
+    Enters ``jax.set_mesh(mesh)`` (outside ``jax.jit`` only) and Flax's ``logical_axis_rules``; the
+    rules are not part of a jit's cache key, so a function jitted once should be called under one
+    table (the compiled steps of :func:`compile_step` always are).
+    """
+    with jax.set_mesh(mesh), flax_spmd.logical_axis_rules(tuple(rules)):
         yield mesh
-    finally:
-        _ACTIVE_RULES.pop()
-        _ACTIVE_MESH.pop()
 
 
-def _current_mesh() -> Mesh | None:
-    return _ACTIVE_MESH[-1] if _ACTIVE_MESH else None
+def shardings_on(tree: Any, mesh: Mesh) -> Any:
+    """Each array leaf's ``NamedSharding`` if it lives on ``mesh``, else replicated over ``mesh``."""
+
+    def one(x):
+        sharding = getattr(x, "sharding", None)
+        if isinstance(sharding, NamedSharding) and sharding.mesh == mesh:
+            return sharding
+        return replicated(mesh)
+
+    return jax.tree.map(one, tree)
+
+
+def leading_axis_shardings(tree: Any, mesh: Mesh, rules=DEFAULT_RULES, leading: str = "batch") -> Any:
+    """Shards every array leaf's leading dim as ``leading`` (replicated where it does not divide)."""
+    return jax.tree.map(
+        lambda x: logical_sharding(mesh, (leading,) + (None,) * (np.ndim(x) - 1), rules, np.shape(x))
+        if np.ndim(x) else replicated(mesh), tree)
+
+
+def place(tree: Any, shardings: Any, *, donate: bool = False) -> Any:
+    """``tree`` re-made by a jit with ``out_shardings``: the arrays' types then record the mesh as
+    a compiled step's outputs do (see :func:`settle`)."""
+    return jax.jit(lambda t: t, out_shardings=shardings, donate_argnums=(0,) if donate else ())(tree)
+
+
+def default_mesh(mesh: Mesh | None) -> Mesh:
+    """``mesh``, or a one-device mesh (the first device) for callers that pass none."""
+    return mesh if mesh is not None else make_mesh(MeshConfig(data=1), jax.devices()[:1])
+
+
+def compile_step(
+    step_fn: Callable[[Any, Any, jax.Array], tuple[Any, Any]],
+    mesh: Mesh,
+    rules: Sequence[tuple[str, Sequence[str]]] = DEFAULT_RULES,
+    *,
+    state_shardings: Any = None,
+    batch_shardings: Any = None,
+    donate: bool = True,
+) -> Callable[[Any, Any, jax.Array], tuple[Any, Any]]:
+    """``step(state, batch, key) -> (state, metrics)`` jitted with explicit in/out shardings, the
+    state donated, and traced inside :func:`use_mesh` so :func:`constrain` shards activations.
+
+    Args:
+      step_fn: the pure step.
+      mesh, rules: the device mesh and the logical -> mesh axis table.
+      state_shardings: the state's shardings (in and out); ``None``: taken from the first state
+        passed (:func:`shardings_on`: leaves already on ``mesh`` keep theirs, others are replicated).
+      batch_shardings: a tree of shardings, a function ``batch -> shardings``, or ``None``: the
+        leading dim of every batch leaf is ``batch`` (:func:`leading_axis_shardings`).
+      donate: donate the state (argument 0).
+
+    The first call places the state at its shardings (:func:`place`), so the step's input and
+    output types agree and it traces once; metrics come back replicated. ``call.lower(state, batch,
+    key)`` lowers it inside the mesh (``.compile().input_shardings`` etc.); ``call.jitted(batch,
+    state)`` is the underlying ``jax.jit`` for a batch's structure.
+    """
+    replicated_sharding = replicated(mesh)
+    compiled: dict[Any, Any] = {}
+    placed = [False]
+    state_tree = [state_shardings]
+
+    def batch_tree(batch):
+        if batch_shardings is None:
+            return leading_axis_shardings(batch, mesh, rules)
+        return batch_shardings(batch) if callable(batch_shardings) else batch_shardings
+
+    def jitted(batch, state=None):
+        if state_tree[0] is None:
+            state_tree[0] = shardings_on(state, mesh)
+        shardings = batch_tree(batch)
+        cache_key = (jax.tree.structure(batch), tuple(jax.tree.leaves(shardings)))
+        if cache_key not in compiled:
+            compiled[cache_key] = jax.jit(
+                step_fn,
+                in_shardings=(state_tree[0], shardings, replicated_sharding),
+                out_shardings=(state_tree[0], replicated_sharding),
+                donate_argnums=(0,) if donate else (),
+            )
+        return compiled[cache_key]
+
+    def call(state, batch, key):
+        fn = jitted(batch, state)
+        if not placed[0]:
+            state, placed[0] = place(state, state_tree[0], donate=donate), True
+        with use_mesh(mesh, rules):
+            return fn(state, batch, key)
+
+    def lower(state, batch, key):
+        with use_mesh(mesh, rules):
+            return jitted(batch, state).lower(state, batch, key)
+
+    call.jitted, call.lower = jitted, lower  # type: ignore[attr-defined]
+    return call
 
 
 def batch_sharding(mesh: Mesh, ndim: int, rules=DEFAULT_RULES, leading: str = "batch") -> NamedSharding:

@@ -9,6 +9,7 @@ import pytest
 import configs
 from sword_jax.dlb import fidelity, schedule
 from sword_jax.dlb.config import CacheConfig
+from sword_jax.rng import stream_key
 from sword_jax.world_model import checkpoint, sampler, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from tests.test_wm_common import build, single_device_mesh
@@ -74,7 +75,7 @@ def test_cache_vs_inference_distance_computed_on_log_steps_and_logged(key, tmp_p
             # The metric is the distance between what was written and the inference sampler's output.
             cond, actions, write_key = batch["latents"][:, :2], batch["actions"], train_step.step_keys(key, done - 1)["write"]
             written = sampler.sample(model_fn, cond, actions, key=write_key, num_future=2, cfg=FLOW, num_steps=2)
-            reference = fidelity.inference_context(FLOW, model_fn, cond, actions, key=jax.random.fold_in(write_key, 1),
+            reference = fidelity.inference_context(FLOW, model_fn, cond, actions, key=stream_key(write_key, train_step.INFERENCE_STREAM),
                                                    num_future=2)
             expected = fidelity.latent_distance(written, reference)
             for name in fidelity.DISTANCE_METRICS:

@@ -205,3 +205,11 @@ def test_decode_chunk_inside_scan(tiny_vae):
         return jnp.concatenate([first, frames.transpose(1, 0, 2, 3, 4, 5).reshape(1, 16, 32, 32, 3)], axis=1)
 
     np.testing.assert_allclose(rollout(state, latents), whole, atol=2e-5)
+
+
+def test_encoder_takes_the_weights_as_an_argument(tiny_vae, tiny_video):
+    """The pipeline's compiled encoder once closed over the VAE state, baking the weights into the program."""
+    graphdef, state = tiny_vae
+    encode = api.encoder(graphdef, state)
+    lowered = encode.func.lower(*encode.args, tiny_video)
+    assert len(jax.tree.leaves(lowered.args_info)) == len(jax.tree.leaves(state)) + 1

@@ -259,14 +259,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     else:
         sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, args)
 
-    state = grpo.init_state(params, rl)
-    if args.simulator == "world_model":
-        # The world model lives on the config's mesh; placing the policy state there too keeps the
-        # step's input and output shardings equal, so it compiles once.
-        state = jax.device_put(state, shd.replicated(shd.make_mesh(cfg.mesh)))
+    # The step runs on the config's mesh, where the world model already lives; the policy state and the
+    # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
+    mesh = shd.make_mesh(cfg.mesh)
+    sim, reward_model = shd.place((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
+    state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     ckpt, state, first_step = _resume(workdir, state)
     state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
-    step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES)
+    step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES, mesh=mesh, rules=cfg.mesh.rules)
     curve = SuccessCurve(workdir)
     root = jax.random.key(cfg.seed)
     episodes = args.eval_episodes or rl.eval_episodes_per_task

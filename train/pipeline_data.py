@@ -143,7 +143,7 @@ def encode_training_latents(ctx: Context) -> dict:
         files.append(ctx.results["policy_data"]["path"])
     _, episodes = load_episodes(files, cfg.data.episode_frames)
     graphdef, state = _vae(ctx)
-    encode = jax.jit(lambda video: vae_api.encode(graphdef, state, video))
+    encode = vae_api.encoder(graphdef, state)  # the weights are an argument of the jit, not baked-in constants
     raw = [np.asarray(encode(episodes.frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)))
            for start in range(0, episodes.num, max(cfg.vae.batch_size, 1))]
     latents, actions = [np.concatenate(raw)], [episodes.actions]

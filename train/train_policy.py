@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 
 import configs
+from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.evaluate import evaluate_in_sim
 from sword_jax.rl.params_io import save_params
@@ -58,7 +59,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     start = time.time()
     params, history = train_sft(graphdef, params, rl, train_eps, held_out, seed=cfg.seed,
                                 log=lambda m: print(m, flush=True),
-                                checkpoint_dir=os.path.join(workdir, "sft_checkpoints"))
+                                checkpoint_dir=os.path.join(workdir, "sft_checkpoints"), mesh=shd.make_mesh(cfg.mesh),
+                                rules=cfg.mesh.rules)
     path = os.path.join(workdir, "policy_sft")
     save_params(path, params, rl, kind="policy", step=rl.sft_steps)
     result = {"steps": rl.sft_steps, "demos": train_eps.num_episodes, "path": path,

@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 import configs
+from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.reward_model import (as_reward_model, build_detector, detector_report, score_episodes,
@@ -62,7 +63,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                            stream_rng(cfg.seed, "reward/batches", step))
 
     state, _ = train_detector(graphdef, params, rl, batch_at, key=key, log=lambda line: print(line, flush=True),
-                              checkpoint_dir=os.path.join(workdir, "reward_checkpoints"))
+                              checkpoint_dir=os.path.join(workdir, "reward_checkpoints"), mesh=shd.make_mesh(cfg.mesh),
+                              rules=cfg.mesh.rules)
     path = os.path.join(workdir, "reward_model")
     save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
     result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path,

@@ -28,6 +28,7 @@ from flax import nnx, struct
 from jaxtyping import Array, Float
 
 from sword_jax import optim, tracing
+from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import token_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
@@ -276,14 +277,20 @@ def grpo_update(
 
 
 def make_train_step(
-    graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True, max_traces: int = 1
+    graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True, max_traces: int = 1, mesh=None,
+    rules=shd.DEFAULT_RULES,
 ) -> Callable[[GRPOState, tuple[LearnedSimulator, RewardModel, StartState], jax.Array], tuple[GRPOState, dict]]:
-    """The jitted GRPO step ``step(state, batch, key) -> (state, metrics)``.
+    """The compiled GRPO step ``step(state, batch, key) -> (state, metrics)``.
 
     ``batch = (simulator, reward_model, start_states [B])``: the simulator and reward model are
     arguments (not constants) so their weights are not baked into the program. The step
     expands each start state to ``cfg.group_size`` trajectories, rolls them out with the
     current policy, then updates it. ``state`` is donated.
+
+    Compiled by :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device) and
+    traced inside it, so the rollout's activation constraints shard the trajectories: the start
+    states split over their leading dim, the simulator's and reward model's weights and the state
+    kept where they were placed on ``mesh`` (else replicated).
     """
     cfg.validate()
 
@@ -295,5 +302,13 @@ def make_train_step(
         state, metrics = grpo_update(graphdef, cfg, state, rollout)
         return state, dict(metrics, **rollout_metrics(rollout))
 
+    mesh = shd.default_mesh(mesh)
+
+    def batch_shardings(batch):
+        simulator, reward_model, start = batch
+        return (shd.shardings_on(simulator, mesh), shd.shardings_on(reward_model, mesh),
+                shd.leading_axis_shardings(start, mesh, rules))
+
     # A retrace (changed shapes / static config) is a bug in the caller; ``max_traces`` bounds it.
-    return jax.jit(tracing.max_traces(step, n=max_traces), donate_argnums=(0,) if donate else ())
+    return shd.compile_step(tracing.max_traces(step, n=max_traces), mesh, rules, batch_shardings=batch_shardings,
+                            donate=donate)

@@ -20,6 +20,7 @@ from flax import nnx, struct
 from jaxtyping import Array, Float
 
 from sword_jax import optim
+from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.simulator import RewardModel
@@ -76,13 +77,14 @@ def make_detector_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
     return optim.make_optimizer(cfg.reward_model_learning_rate, weight_decay=1e-4)
 
 
-def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
-    """``init(params) -> state`` and the jitted ``step(state, batch, key) -> (state, metrics)``.
+def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, mesh=None, rules=shd.DEFAULT_RULES):
+    """``init(params) -> state`` and the compiled ``step(state, batch, key) -> (state, metrics)``.
 
     ``batch = {"frames": [n, H, W, 3] uint8|float, "labels": [n] in {0, 1}}``. Brightness /
     contrast jitter keeps the detector from keying on the world model's colour drift. A
     non-finite loss or gradient skips the update and records the step in
-    ``state.first_nonfinite_step``.
+    ``state.first_nonfinite_step``. The step is compiled by :func:`sword_jax.sharding.compile_step`
+    over ``mesh`` (default: one device): batch split over its leading dim, state donated.
     """
     optimizer = make_detector_optimizer(cfg)
 
@@ -113,7 +115,7 @@ def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig):
         new_state = DetectorState(params, opt_state, state.step + 1, first_nonfinite.astype(jnp.int32))
         return new_state, {"loss": loss, "accuracy": acc, "grad_norm": grad_norm, "finite": finite.astype(jnp.float32)}
 
-    return init, jax.jit(step, donate_argnums=(0,))
+    return init, shd.compile_step(step, shd.default_mesh(mesh), rules)
 
 
 def train_detector(
@@ -126,13 +128,16 @@ def train_detector(
     steps: int | None = None,
     log: Callable[[str], Any] = print,
     checkpoint_dir: str | None = None,
+    mesh=None,
+    rules=shd.DEFAULT_RULES,
 ) -> tuple[DetectorState, dict[str, Array]]:
     """``steps`` (default ``cfg.reward_model_steps``) detector steps; step ``s`` trains on ``batch_at(s)``.
 
     ``batch_at`` must be a pure function of the step (e.g. drawn from ``stream_rng(seed, name, s)``):
     with ``checkpoint_dir`` the state is saved every ``cfg.reward_model_checkpoint_every`` steps and
     a rerun resumes from it bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Metrics are
-    read one step late on about ten log steps and at the end.
+    read one step late on about ten log steps and at the end. ``mesh`` / ``rules``: where the step
+    runs (see :func:`make_detector_step`).
 
     Returns:
       ``(state, metrics)``: the final state and the last step's metrics (empty if no step ran).
@@ -145,7 +150,7 @@ def train_detector(
     from sword_jax.train_loop import run_steps
 
     steps = cfg.reward_model_steps if steps is None else steps
-    init, step = make_detector_step(graphdef, cfg)
+    init, step = make_detector_step(graphdef, cfg, mesh=mesh, rules=rules)
 
     def report(done: int, metrics: dict[str, float], observed: None, eta: float) -> dict[str, float]:
         del observed, eta

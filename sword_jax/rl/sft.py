@@ -18,6 +18,7 @@ import optax
 from flax import nnx, struct
 
 from sword_jax import optim
+from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import (actions_to_tokens, resize_frames, token_log_probs, tokens_to_actions,
                                  trainable_mask)
@@ -77,11 +78,14 @@ def make_sft_eval(graphdef: nnx.GraphDef, cfg: RLConfig):
     return evaluate
 
 
-def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | None = None):
-    """``init(params) -> SFTState`` and jitted ``step(state, batch, key) -> (state, metrics)``.
+def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | None = None, mesh=None,
+                  rules=shd.DEFAULT_RULES):
+    """``init(params) -> SFTState`` and the compiled ``step(state, batch, key) -> (state, metrics)``.
 
     ``batch``: ``frames [b, H, W, 3]`` (uint8 or float in [0, 1]), ``instruction_tokens [b, L]``,
-    ``proprio [b, P]``, ``actions [b, chunk_len, action_dim]`` in [-1, 1].
+    ``proprio [b, P]``, ``actions [b, chunk_len, action_dim]`` in [-1, 1]. The step is compiled by
+    :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device): the batch split
+    over its leading dim, the state donated and kept where it was placed (else replicated).
     """
     schedule = sft_schedule(cfg, total_steps or cfg.sft_steps)
     optimizer = make_sft_optimizer(schedule)
@@ -103,7 +107,7 @@ def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | N
         return SFTState(params, opt_state, state.step + 1), dict(
             metrics, loss=loss, grad_norm=optax.global_norm(grads), learning_rate=learning_rate)
 
-    return init, jax.jit(step, donate_argnums=(0,))
+    return init, shd.compile_step(step, shd.default_mesh(mesh), rules)
 
 
 def train_sft(
@@ -117,6 +121,8 @@ def train_sft(
     steps: int | None = None,
     log: Any = print,
     checkpoint_dir: str | None = None,
+    mesh=None,
+    rules=shd.DEFAULT_RULES,
 ) -> tuple[Any, list[dict[str, float]]]:
     """Behaviour cloning on ``train_episodes`` (an ``rl.data.EpisodeSet``) from ``params``.
 
@@ -126,6 +132,8 @@ def train_sft(
     resumes from there bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Every
     ``cfg.sft_eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and action
     L1 on ``held_out`` demonstrations are logged next to the training batch's, one step late.
+
+    ``mesh`` / ``rules``: where the step runs (see :func:`make_sft_step`).
 
     Returns:
       ``(params, history)``: the trained parameters and one dict of metrics per log point (those
@@ -146,7 +154,7 @@ def train_sft(
     valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
                                   for e in range(train_episodes.num_episodes)])
     params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
-    init, step = make_sft_step(graphdef, cfg, total_steps=steps)
+    init, step = make_sft_step(graphdef, cfg, total_steps=steps, mesh=mesh, rules=rules)
     evaluate = make_sft_eval(graphdef, cfg)
     held_batches = []
     if held_out is not None:

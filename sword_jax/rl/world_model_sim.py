@@ -144,6 +144,9 @@ def world_model_simulator(
     if not 1 <= execute_latents <= num_future:
         raise ValueError(f"world-model sim: execute_latents must be in [1, num_future={num_future}], got "
                          f"{execute_latents}")
+    if flow_cfg.pixel_round_trip and execute_latents < num_context:
+        raise ValueError(f"world-model sim: flow.pixel_round_trip re-encodes the {execute_latents} executed latents "
+                         f"as the next context, fewer than its num_context={num_context}")
     chunk_len = FRAMES_PER_LATENT * num_future  # actions per call
     execute_len = FRAMES_PER_LATENT * execute_latents  # executed actions (= frames returned) per step
     hl = latent_size or frame_size // vae_api.factors(vae_graphdef, vae_state)[1]

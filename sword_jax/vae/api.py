@@ -178,6 +178,20 @@ def encode(
     return _encode_impl(graphdef, state, video, None, first=True, dtype=_dtype(graphdef, state, compute_dtype))[0]
 
 
+def encoder(graphdef: nnx.GraphDef, state: nnx.State) -> functools.partial:
+    """``video [B, 1 + 4k, H, W, 3] in [-1, 1] -> latents`` (as :func:`encode`) compiled once.
+
+    The weights are an argument of the jit (bound with ``functools.partial``), not constants baked
+    into the program as a jitted closure over ``state`` would make them.
+    """
+    return functools.partial(_encoder_jit(graphdef), state)
+
+
+@functools.lru_cache(maxsize=8)
+def _encoder_jit(graphdef: nnx.GraphDef):
+    return jax.jit(lambda state, video: encode(graphdef, state, video, check_values=False))
+
+
 def decode(
     graphdef: nnx.GraphDef, state: nnx.State, latents: Float[Array, "b tl hl wl z"], *,
     clamp: bool = False, compute_dtype: str | None = None, check_values: bool = True,

@@ -39,6 +39,7 @@ from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import fidelity as dlb_fidelity
 from sword_jax.dlb import schedule as dlb_schedule
 from sword_jax.dlb.config import CacheConfig
+from sword_jax.rng import stream_key
 from sword_jax.world_model import flow, sampler
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from sword_jax.world_model.train_state import TrainState, make_optimizer
@@ -47,12 +48,14 @@ StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
 
 
 STEP_KEY_NAMES = ("noise", "sigma", "context_noise", "read", "write")
+# the stream of the write key whose noise makes the inference reference of the cache_vs_inference metrics
+INFERENCE_STREAM = "dlb/inference_reference"
 
 
 def step_keys(root: jax.Array, step: jax.Array | int) -> dict[str, jax.Array]:
     """The named keys of step ``step`` (0-based): ``fold_in(root, step)`` split in ``STEP_KEY_NAMES``
-    order. ``write`` draws the ``sampler`` write source's noise; ``fold_in(write, 1)`` the inference
-    reference of the ``cache_vs_inference_*`` metrics."""
+    order. ``write`` draws the ``sampler`` write source's noise; its stream ``INFERENCE_STREAM`` the
+    inference reference of the ``cache_vs_inference_*`` metrics."""
     return dict(zip(STEP_KEY_NAMES, jax.random.split(jax.random.fold_in(root, step), len(STEP_KEY_NAMES))))
 
 
@@ -147,7 +150,7 @@ def make_train_step(
                 cache, cache_cfg, written, batch["episode"], batch["start"] + num_context, enabled=finite)
             if cache_cfg.log_inference_distance:
                 metrics.update(_inference_distance(
-                    state.step, written, model_fn, cond_latents, actions, key=jax.random.fold_in(write_key, 1)))
+                    state.step, written, model_fn, cond_latents, actions, key=stream_key(write_key, INFERENCE_STREAM)))
             if num_episodes is not None:
                 metrics["cache_filled"] = dlb_cache.filled_fraction(cache, num_episodes)
 
