@@ -97,7 +97,9 @@ def train_grpo(
         curve.add(done, point, **extra)
 
     def on_start(first_step: int, state: Any) -> Any:
-        state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
+        # every array committed to its device, as a restored state's are: a resumed run then compiles the
+        # same program as a fresh one (a cache hit), and the step's input types = output types (one trace)
+        state = shd.settle(jax.device_put(state, jax.tree.map(lambda x: x.sharding, state)))
         curve.drop_after(first_step)
         if first_step == 0:
             record(0, state)
