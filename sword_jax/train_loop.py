@@ -33,6 +33,10 @@ class NonFiniteLoss(FloatingPointError):
     """A step's loss (or gradient norm, or another metric) was non-finite; the run stopped."""
 
 
+class AnotherRunsCheckpoint(ValueError):
+    """The checkpoint directory holds a checkpoint of another run (its ``run_id`` differs)."""
+
+
 @dataclasses.dataclass
 class LoopResult:
     """What :func:`run_steps` ends with.
@@ -69,8 +73,8 @@ def _check_same_run(name: str, directory: str, saved: Any, current: dict[str, An
     if current is None or saved == current:
         return
     differ = differing_keys(saved if isinstance(saved, dict) else {}, current)
-    raise ValueError(f"{name}: the checkpoint in {directory} was made by another run (differs in {differ}); "
-                     "use a new work dir or remove it")
+    raise AnotherRunsCheckpoint(f"{name}: the checkpoint in {directory} was made by another run (differs in "
+                                f"{differ}); use a new work dir or remove it")
 
 
 def run_steps(
@@ -88,11 +92,14 @@ def run_steps(
     checkpoint_every: int = 1,
     run_id: dict[str, Any] | None = None,
     log: Callable[[str], Any] = print,
+    on_start: Callable[[int, Any], Any] | None = None,
+    at_checkpoint: Callable[[int, Any], None] | None = None,
 ) -> LoopResult:
     """Runs steps ``first_step .. steps - 1`` (0-based) of ``step`` from ``state``.
 
     Args:
-      step: the jitted step; it may donate its state.
+      step: the jitted step; it may donate its state (or any callable of that signature, e.g. GRPO's
+        rollout in the C engine followed by its jitted update).
       state: the initial train state (its structure and shardings are what a checkpoint restores into).
       batch_at: the batch of a 0-based step, a pure function of it (made one step ahead on a thread).
       key: the root key passed to every step (which folds in its own step counter).
@@ -107,11 +114,18 @@ def run_steps(
       checkpoint_every: steps between checkpoints (the last step is always saved).
       run_id: JSON facts a resumed run must share with the checkpoint (seed, batch size, ...).
       log: where the resume line goes.
+      on_start: ``on_start(first_step, state) -> state``, called once after any resume and before the first
+        step; the loop runs from the state it returns (GRPO settles it, forgets evaluations a killed run
+        recorded after its checkpoint, and evaluates step 0 of a fresh run).
+      at_checkpoint: ``at_checkpoint(step_done, state)`` at every checkpoint step (every ``checkpoint_every``
+        steps and the last; also without a checkpoint directory), once that step's metrics were read finite
+        and before its checkpoint is written (GRPO evaluates the policy there).
 
     Raises:
       NonFiniteLoss: a step's metrics held a non-finite value (the message names the 0-based step and
         the last good checkpoint).
-      ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id`` or structure).
+      ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id``: an
+        :class:`AnotherRunsCheckpoint`, or structure).
     """
     ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=2) if checkpoint_dir else None
     first_step, history, batches = 0, [], None
@@ -121,6 +135,8 @@ def run_steps(
             _check_same_run(name, ckpt.directory, meta.get("run"), run_id)
             first_step, history = int(meta["step"]), list(meta["history"])
             log(f"{name}: resumed from step {first_step} in {ckpt.directory}")
+        if on_start is not None:
+            state = on_start(first_step, state)
         first_bad = jnp.full((), -1, jnp.int32)
         dispatched, pending, metrics = first_step, None, {}
         start = time.perf_counter()
@@ -150,12 +166,16 @@ def run_steps(
                 pending = None
             if dispatched % log_every == 0 or dispatched == steps:
                 pending = (dispatched, metrics, observe(state) if observe else None, first_bad)
-            if ckpt is not None and (dispatched % checkpoint_every == 0 or dispatched == steps):
+            boundary = dispatched % checkpoint_every == 0 or dispatched == steps
+            if boundary and (ckpt is not None or at_checkpoint is not None):
                 if pending is not None:
                     read(*pending)
                     pending = None
                 stop_if_nonfinite(first_bad)  # only a step read finite is saved
-                ckpt.save(dispatched, state, {"step": dispatched, "history": history, "run": run_id})
+                if at_checkpoint is not None:
+                    at_checkpoint(dispatched, state)
+                if ckpt is not None:
+                    ckpt.save(dispatched, state, {"step": dispatched, "history": history, "run": run_id})
         if pending is not None:
             read(*pending)
         stop_if_nonfinite(first_bad)

@@ -1,8 +1,9 @@
-"""Crash and resume of the SFT and reward-model trainers (``sword_jax.train_loop``).
+"""Crash and resume of the SFT, reward-model and GRPO trainers (``sword_jax.train_loop``).
 
-A run of ``train.train_policy`` / ``train.train_reward`` SIGKILLed partway and rerun in the same
-work dir ends with parameters (and optimizer state, and logged history) bit-identical to an
-uninterrupted run; a non-finite loss stops the run naming the step, the checkpoint before it intact.
+A run of ``train.train_policy`` / ``train.train_reward`` / ``train.grpo`` SIGKILLed partway and rerun
+in the same work dir ends with parameters (and optimizer state, and logged history, and GRPO's success
+curve) bit-identical to an uninterrupted run; a non-finite loss stops the run naming the step, the
+checkpoint before it intact; a checkpoint of another run is refused, naming the keys that differ.
 """
 
 from __future__ import annotations
@@ -17,13 +18,17 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sword_jax.rl import grpo
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.reward_model import build_detector, train_detector
 from sword_jax.rl.sft import train_sft
-from sword_jax.train_loop import NonFiniteLoss
+from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
 from sword_jax.world_model import checkpoint
 from tests.conftest import REPO, example_env
 from tests.test_optim import _reward_batches
@@ -145,3 +150,107 @@ def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes
         train_detector(graphdef, params, dataclasses.replace(cfg, reward_model_batch_size=7),
                        _reward_batches(cfg), key=jax.random.key(0), steps=6, log=lambda line: None,
                        checkpoint_dir=directory)
+
+
+GRPO_STEPS, GRPO_KILL_AT = 4, 2
+# the toy simulator, evaluated and checkpointed every other step; XLA's cheapest CPU compile (the same program
+# in every run, so bit-identity still means what it says) keeps the one cold compile of the step short
+GRPO_ARGS = ["--simulator", "toy", "--rl.max_chunks=2", "--rl.rollout_batch=2", "--rl.group_size=2",
+             "--rl.eval_every=2", f"--rl.grpo_steps={GRPO_STEPS}"]
+FAST_COMPILE = " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+
+
+def _grpo_cmd(workdir: str, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "train.grpo", "--config", "sword:tiny", f"--workdir={workdir}", *GRPO_ARGS,
+            *TINY_RL, *extra]
+
+
+def test_grpo_sigkill_resume_is_bit_identical_and_another_runs_checkpoint_is_refused(tmp_path):
+    env = _env(tmp_path)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + FAST_COMPILE).strip()
+    crashed = str(tmp_path / "crashed")  # first: it compiles, the runs after it read the compilation cache
+    ckpt_dir = os.path.join(crashed, "rl", "grpo", "checkpoints")
+    proc = subprocess.Popen(_grpo_cmd(crashed), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while (time.time() < deadline and proc.poll() is None
+           and not any(s >= GRPO_KILL_AT for s in _steps_saved(ckpt_dir))):
+        time.sleep(0.005)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)  # lands inside a step, an evaluation or a checkpoint write
+    proc.wait()
+    killed_at = max(_steps_saved(ckpt_dir))
+    assert GRPO_KILL_AT <= killed_at < GRPO_STEPS, killed_at
+
+    reference = str(tmp_path / "reference")
+    done = subprocess.run(_grpo_cmd(reference), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    resumed = subprocess.run(_grpo_cmd(crashed), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    match = re.search(r"GRPO: resumed from step (\d+)", resumed.stdout)
+    assert match and GRPO_KILL_AT <= int(match.group(1)) < GRPO_STEPS, resumed.stdout[-2000:]
+
+    want, want_meta = _final_state(os.path.join(reference, "rl", "grpo", "checkpoints"))
+    got, got_meta = _final_state(ckpt_dir)
+    assert got_meta["step"] == want_meta["step"] == GRPO_STEPS
+    assert len(got) == len(want) > 10
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert got_meta["history"] == want_meta["history"] and len(want_meta["history"]) == GRPO_STEPS
+    curves = [json.load(open(os.path.join(d, "rl", "grpo", "success_curve.json"))) for d in (reference, crashed)]
+    assert curves[0] == curves[1] and [p["step"] for p in curves[0]["points"]] == [0, 2, 4]
+
+    # the work dir belongs to its run: another learning rate is refused in one line, naming the key
+    other = subprocess.run(_grpo_cmd(crashed, "--rl.learning_rate=1e-3"), cwd=REPO, env=env, capture_output=True,
+                           text=True, timeout=300)
+    assert other.returncode == 1 and "Traceback" not in other.stderr, other.stderr[-3000:]
+    assert "another run (differs in ['rl.learning_rate'])" in other.stderr, other.stderr[-3000:]
+
+
+def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_checkpoint(tmp_path):
+    """The loop around GRPO's step (the update's own finite gate is pinned in test_grpo): a non-finite loss
+    stops the run with the last evaluation's checkpoint and curve intact; an evaluation a killed run wrote
+    after its checkpoint is dropped on resume and recomputed."""
+    rl = RLConfig(grpo_steps=6, eval_every=2)
+    workdir = str(tmp_path / "grpo")
+    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
+
+    def make_step(bad_step: int):
+        @jax.jit
+        def step(state, batch, key):
+            params = {"w": state.params["w"] + batch}
+            loss = jnp.where(state.step == bad_step, jnp.nan, jnp.sum(params["w"]))
+            return state.replace(params=params, step=state.step + 1), {"loss": loss}
+
+        return step
+
+    def run(step, rl, run_id=run_id):
+        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
+        evaluate = lambda done, params: ({"mean": float(params["w"][0]), "per_task": {}}, {})  # noqa: E731
+        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
+                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+
+    def curve_on_disk():
+        with open(os.path.join(workdir, "success_curve.json")) as f:
+            return [(p["step"], p["mean"]) for p in json.load(f)["points"]]
+
+    with pytest.raises(NonFiniteLoss, match=r"GRPO: non-finite loss or gradient at step 4 \(0-based\).*"
+                                            r"last good checkpoint: step 4"):
+        run(make_step(bad_step=4), rl)
+    leaves, meta = _final_state(os.path.join(workdir, "checkpoints"))
+    assert meta["step"] == 4 and [p["step"] for p in meta["history"]] == [1, 2, 3, 4]
+    assert curve_on_disk() == [(0, 0.0), (2, 3.0), (4, 10.0)]  # w after 1 + 2, after 1 + 2 + 3 + 4
+
+    # a killed run's evaluation after its checkpoint (6) is dropped on resume, not kept beside the new one
+    with open(os.path.join(workdir, "success_curve.json")) as f:
+        stale = json.load(f)
+    stale["points"].append({"step": 6, "mean": -1.0, "per_task": {}})
+    with open(os.path.join(workdir, "success_curve.json"), "w") as f:
+        json.dump(stale, f)
+    _, points = run(make_step(bad_step=-1), dataclasses.replace(rl, grpo_steps=4))  # resumes at its end
+    assert [p["step"] for p in points] == [0, 2, 4] and curve_on_disk() == [(0, 0.0), (2, 3.0), (4, 10.0)]
+    result, _ = run(make_step(bad_step=-1), rl)
+    assert result.first_step == 4 and curve_on_disk() == [(0, 0.0), (2, 3.0), (4, 10.0), (6, 21.0)]
+    with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['rl.group_size'\]"):
+        run(make_step(bad_step=-1), rl, run_id=grpo_run_id(dataclasses.replace(rl, group_size=4), seed=0,
+                                                           simulator="toy", **{"sim.tasks": (0, 1)}))

@@ -17,17 +17,19 @@ trajectories run in MuJoCo's C engine (``sim.lockstep``), and the same ``grpo_up
 them: this validates the update independently of any world model. Every ``rl.eval_every``
 steps (and at step 0) the policy is evaluated in the ground-truth MuJoCo envs (world_model mode)
 or by greedy imagined rollouts (toy mode); the curve goes to ``<workdir>/success_curve.{json,png}``.
-The GRPO state is checkpointed at each evaluation and the run resumes from it.
+The GRPO state is checkpointed at each evaluation and the run resumes from it exactly (killed and
+rerun = bit-identical, curve included; :mod:`sword_jax.rl.grpo_loop`); a work dir holding another run's
+checkpoint is refused, naming the config keys that differ. A non-finite loss stops the run.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import sys
-import time
 from collections.abc import Sequence
 
 import jax
@@ -41,14 +43,17 @@ from sword_jax import tracing
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.env_rollout import make_act_fns
-from sword_jax.rl.evaluate import SuccessCurve, evaluate_in_sim
+from sword_jax.rl.evaluate import evaluate_in_sim
+from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.params_io import load_params
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.reward_model import as_reward_model, build_detector
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rl.simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rng import stream_key, stream_rng
-from sword_jax.world_model import checkpoint
+from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
+
+log = functools.partial(print, flush=True)
 
 
 def _toy_setup(cfg, rl):
@@ -128,16 +133,6 @@ def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *
     return dict(proprio=proprio, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
 
 
-def _resume(workdir: str, state):
-    """``(checkpointer, state, first step)``: the latest GRPO checkpoint in ``workdir`` if there is one."""
-    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=2)
-    if ckpt.latest_step() is None:
-        return ckpt, state, 0
-    state, meta = ckpt.restore(checkpoint.abstract_like(state))
-    print(f"grpo: resumed from step {int(meta['step'])}")
-    return ckpt, state, int(meta["step"])
-
-
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
                renderer: str = "jax", reckoning=None) -> dict:
     """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
@@ -146,19 +141,15 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     ``reckoned``, e.g. :func:`sim_reckoning`); unless it is ``true``, each evaluation also measures
     that mode, stored as ``train_mode`` beside the true-proprio success.
 
-    Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics}``.
+    Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
     """
     from sim import tasks as sim_tasks
     from sim.lockstep import LockstepEnvs, lockstep_evaluation
     from sword_jax.rl.env_rollout import run_policy
 
-    state = grpo.init_state(params, rl)
-    ckpt, state, first_step = _resume(workdir, state)
     update = jax.jit(tracing.max_traces(lambda s, batch: grpo.grpo_update(graphdef, rl, s, batch),
                                         n=ENTRY_MAX_TRACES), donate_argnums=(0,))
     act = make_act_fns(graphdef, rl)
-    curve = SuccessCurve(workdir, label="GRPO in the ground-truth MuJoCo environments")
-    rollout_key = stream_key(jax.random.key(cfg.seed), "grpo/env_rollouts")
     os.makedirs(workdir, exist_ok=True)
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
@@ -168,51 +159,53 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     if mode == "reckoned" and reckoning is None:
         raise ValueError("rl.env_proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
 
-    def evaluate(step):
-        result = dict(evaluate_in_sim(graphdef, state.params, rl, **eval_kwargs), where="mujoco")
+    def evaluate(step, params):
+        result = dict(evaluate_in_sim(graphdef, params, rl, **eval_kwargs), where="mujoco")
         extra = {}
         if mode != "true":
-            extra = {"train_mode": _mode_point(graphdef, state.params, rl, step, mode, reckoning, **eval_kwargs)}
-        curve.add(step, result, **extra)
-        print(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
-              f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
-        return result
+            extra = {"train_mode": _mode_point(graphdef, params, rl, step, mode, reckoning, **eval_kwargs)}
+        log(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+            f"({result['episodes']} episodes, {result['seconds']}s)")
+        return result, extra
 
-    if first_step == 0:
-        evaluate(0)
-    history, start = [], time.time()
-    envs = None
-    for step in range(first_step, rl.grpo_steps):
-        # start states: a function of (seed, step), so a resumed run draws the same ones
+    def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         pick = stream_rng(cfg.seed, "grpo/env_starts", step).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
                                                                       (rl.rollout_batch, 2))
-        starts = [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
-        if envs is None:  # worker processes live for the whole run; each step re-targets them
-            envs = LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
-                                renderer=renderer, workers=workers)
-        rollout = run_policy(act, state.params, envs, rl, key=jax.random.fold_in(rollout_key, step), greedy=False,
-                             max_steps=cfg.sim.max_steps, episodes=starts, proprio=mode, reckoning=reckoning)
+        return [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
+
+    envs = []  # worker processes live for the whole run; each step re-targets them
+
+    def step_in_env(state, starts, rollout_key):
+        # not one jitted function: the episodes run in the C engine, then the jitted update trains on them
+        if not envs:
+            envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+                                     renderer=renderer, workers=workers))
+        rollout = run_policy(act, state.params, envs[0], rl, key=jax.random.fold_in(rollout_key, state.step),
+                             greedy=False, max_steps=cfg.sim.max_steps, episodes=starts, proprio=mode,
+                             reckoning=reckoning)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
-        host = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if not (np.isfinite(host["loss"]) and host["finite"] > 0):
-            raise SystemExit(f"grpo: non-finite loss or gradient at step {step + 1}; its update was skipped and "
-                             f"the last good checkpoint is kept in {workdir}")
-        host.update(step=step + 1, rollout_success=float(np.mean(rollout.success)))
-        history.append(host)
-        eta = (time.time() - start) / (step + 1 - first_step) * (rl.grpo_steps - step - 1)
-        print(f"grpo step {step + 1}/{rl.grpo_steps} rollout success {host['rollout_success']:.3f} "
-              f"loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} kept {host['kept_fraction']:.2f} "
-              f"eta {eta:.0f}s", flush=True)
-        if (step + 1) % rl.eval_every == 0 or step + 1 == rl.grpo_steps:
-            evaluate(step + 1)
-            ckpt.save(step + 1, state, {"step": step + 1})
-    if envs is not None:
-        envs.close()
-    ckpt.close()
-    with open(os.path.join(workdir, "train_history.jsonl"), "a") as f:
-        for point in history:
+        return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo_steps} rollout success {point['rollout_success']:.3f} "
+                f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
+                f"eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
+        "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
+        "sim.resolution": cfg.sim.resolution})
+    try:
+        result, curve = train_grpo(step_in_env, grpo.init_state(params, rl), starts_at,
+                                   key=stream_key(jax.random.key(cfg.seed), "grpo/env_rollouts"), rl=rl,
+                                   workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
+                                   curve_label="GRPO in the ground-truth MuJoCo environments", log=log)
+    finally:
+        for env in envs:
+            env.close()
+    with open(os.path.join(workdir, "train_history.jsonl"), "w") as f:  # the whole run's, restored steps included
+        for point in result.history:
             f.write(json.dumps(point) + "\n")
-    return {"curve": curve.points, "workdir": workdir, "history": history}
+    return {"curve": curve, "workdir": workdir, "history": result.history}
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -264,10 +257,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     mesh = shd.make_mesh(cfg.mesh)
     sim, reward_model = shd.place((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    ckpt, state, first_step = _resume(workdir, state)
-    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES, mesh=mesh, rules=cfg.mesh.rules)
-    curve = SuccessCurve(workdir)
     root = jax.random.key(cfg.seed)
     episodes = args.eval_episodes or rl.eval_episodes_per_task
 
@@ -277,10 +267,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
 
-    def evaluate(step):
+    def evaluate(step, params):
         extra = {}
         if args.simulator == "toy":
-            success = np.asarray(greedy(state.params))
+            success = np.asarray(greedy(params))
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
                       "episodes": int(success.size), "where": "imagined (toy)"}
         else:
@@ -289,47 +279,31 @@ def main(argv: Sequence[str] | None = None) -> dict:
             kwargs = dict(lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
                                               max_steps=cfg.sim.max_steps, renderer=args.renderer,
                                               workers=args.env_workers), act=act)
-            result = evaluate_in_sim(graphdef, state.params, rl, **kwargs)
+            result = evaluate_in_sim(graphdef, params, rl, **kwargs)
             result["where"] = "mujoco"
             if rl.eval_masked_proprio:
-                extra = {"proprio_masked": _mode_point(graphdef, state.params, rl, step, "missing", **kwargs)}
-        curve.add(step, result, **extra)
-        print(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}", flush=True)
-        return result
+                extra = {"proprio_masked": _mode_point(graphdef, params, rl, step, "missing", **kwargs)}
+        log(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
+        return result, extra
 
-    if first_step == 0:
-        evaluate(0)
-    start, pending = time.time(), None
-    # named streams of the root; each is folded with the step (the update folds in state.step itself)
-    starts_key, update_key = stream_key(root, "grpo/starts"), stream_key(root, "grpo/update")
+    # named streams of the root; the start states' is folded with the step (the update folds in state.step itself)
+    starts_key = stream_key(root, "grpo/starts")
 
-    def report(done, metrics):
-        host = jax.device_get(metrics)
-        if not (np.isfinite(host["loss"]) and host["finite"] > 0):
-            # the update of that step was skipped (finite gate), so the state in memory is still good
-            raise SystemExit(f"grpo: non-finite loss or gradient at step {done}; its update was skipped and the "
-                             f"last good checkpoint is kept in {workdir}")
-        eta = (time.time() - start) / max(done - first_step, 1) * (rl.grpo_steps - done)
-        print(f"grpo step {done}/{rl.grpo_steps} imagined success {host['success_rate']:.3f} "
-              f"return {host['mean_return']:.3f} loss {host['loss']:.4f} clip {host['clip_fraction']:.3f} "
-              f"kept {host['kept_fraction']:.2f} eta {eta:.0f}s", flush=True)
+    def batch_at(step):
+        return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
 
-    for step in range(first_step, rl.grpo_steps):
-        batch_start = starts(jax.random.fold_in(starts_key, step), step)
-        state, metrics = step_fn(state, (sim, reward_model, batch_start), update_key)
-        if pending is not None:  # read the previous step's metrics: the device never waits on the host
-            report(*pending)
-        pending = (step + 1, metrics)
-        if (step + 1) % rl.eval_every == 0 or step + 1 == rl.grpo_steps:
-            report(*pending)  # a checkpoint is written only after its step's loss was read
-            pending = None
-            evaluate(step + 1)
-            ckpt.save(step + 1, state, {"step": step + 1})
-    ckpt.close()
-    return {"curve": curve.points, "workdir": workdir}
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo_steps} imagined success {point['success_rate']:.3f} "
+                f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
+                f"kept {point['kept_fraction']:.2f} eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator=args.simulator, **{"sim.tasks": cfg.sim.tasks})
+    _, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl, workdir=workdir,
+                          evaluate=evaluate, run_id=run_id, progress=progress, log=log)
+    return {"curve": curve, "workdir": workdir}
 
 
 if __name__ == "__main__":
     from sword_jax.cli import run
 
-    run(main)
+    run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))

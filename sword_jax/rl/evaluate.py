@@ -99,6 +99,16 @@ class SuccessCurve:
     def add(self, step: int, result: dict[str, Any], **extra: Any) -> None:
         self.points = [p for p in self.points if p["step"] != step] + [dict(step=int(step), **result, **extra)]
         self.points.sort(key=lambda p: p["step"])
+        self._write()
+
+    def drop_after(self, step: int) -> None:
+        """Forgets the points after ``step`` (evaluations a killed run made after its last checkpoint)."""
+        kept = [p for p in self.points if p["step"] <= step]
+        if len(kept) != len(self.points):
+            self.points = kept
+            self._write()
+
+    def _write(self) -> None:
         tmp = self.path + ".tmp"
         with open(tmp, "w") as f:
             json.dump({"label": self.label, "points": self.points}, f, indent=1)

@@ -1,0 +1,116 @@
+"""The GRPO run: steps through :func:`sword_jax.train_loop.run_steps`, an evaluation and a checkpoint every
+``rl.eval_every`` steps, one success curve that never runs ahead of the checkpoint after a resume.
+
+Whatever the simulator (the toy, the learned world model, the C-engine environments), a GRPO run is a
+step ``step(state, batch, key) -> (state, metrics)`` whose batch, the step's start states, is a pure
+function of the step (``batch_at``), so the train state (:class:`~sword_jax.rl.grpo.GRPOState`) is all an
+exact resume needs: a run killed at any point and rerun in its work dir ends bit-identical to an
+uninterrupted one. The step need not be one jitted function (in the real environments it rolls out in
+the C engine, then applies the jitted update). At step 0 of a fresh run, every ``rl.eval_every`` steps
+and at the last one, once the step's loss was read finite, the policy is evaluated, the point is
+appended to ``<workdir>/success_curve.{json,png}``, then the state is checkpointed under
+``<workdir>/checkpoints`` with the run's identity and per-step history. A resume drops the curve's points
+after the checkpoint (evaluations a killed run made before it could save), so they are recomputed, never
+duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming
+the keys that differ.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+
+from sword_jax import sharding as shd
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.evaluate import SuccessCurve
+from sword_jax.train_loop import LoopResult, StepFn, run_steps
+
+# RL config keys that shape a GRPO run's train state: a resumed run must share them with its checkpoint.
+# Left out: grpo_steps (a run may be extended), the evaluation's settings, the SFT and reward-model knobs.
+GRPO_RUN_KEYS = ("group_size", "clip_low", "clip_high", "kl_coef", "learning_rate", "ppo_epochs", "max_chunks",
+                 "chunk_len", "action_dim", "action_bins", "success_threshold", "filter_groups", "success_bonus",
+                 "imagined_return", "loss_norm", "temperature", "policy_width", "policy_layers", "policy_heads",
+                 "max_instruction_bytes", "image_size", "proprio_dim", "proprio_encoding", "execute_steps",
+                 "imagined_execute_steps", "imagined_proprio", "env_proprio", "update_microbatch", "rollout_batch")
+
+# evaluate(step, params) -> (curve point, extra entries stored beside it)
+Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
+
+
+def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dict[str, Any]:
+    """The identity a resumed GRPO run must share with its checkpoint, as the checkpoint stores it (JSON).
+
+    Args:
+      rl: the run's RL config (``GRPO_RUN_KEYS`` enter as ``rl.<key>``).
+      seed: the experiment seed (start states and sampling keys derive from it).
+      simulator: ``toy``, ``world_model`` or ``env``.
+      **facts: more facts under their config names, e.g. ``**{"sim.tasks": (0, 1)}``.
+    """
+    run = {"seed": seed, "simulator": simulator, **{f"rl.{k}": getattr(rl, k) for k in GRPO_RUN_KEYS}, **facts}
+    return json.loads(json.dumps(run))  # tuples as lists, as a checkpoint's JSON gives them back
+
+
+def train_grpo(
+    step: StepFn,
+    state: Any,
+    batch_at: Callable[[int], Any],
+    *,
+    key: jax.Array,
+    rl: RLConfig,
+    workdir: str,
+    evaluate: Evaluate,
+    run_id: dict[str, Any],
+    progress: Callable[[dict[str, float], float], str],
+    curve_label: str = "GRPO in the learned simulator",
+    log: Callable[[str], Any] = print,
+) -> tuple[LoopResult, list[dict[str, Any]]]:
+    """Runs GRPO steps up to ``rl.grpo_steps`` from ``state``, resuming from ``<workdir>/checkpoints``.
+
+    Args:
+      step: ``step(state, batch, key) -> (state, metrics)``; it may donate its state.
+      state: the initial :class:`~sword_jax.rl.grpo.GRPOState` (its shardings are what a resume restores into).
+      batch_at: the batch of a 0-based step (its start states), a pure function of the step.
+      key: the root key passed to every step (which folds in ``state.step``).
+      rl: the RL config (``grpo_steps``, ``eval_every``).
+      workdir: where the checkpoints and the success curve live.
+      evaluate: ``evaluate(step_done, params) -> (point, extra)`` for the success curve.
+      run_id: the run's identity (:func:`grpo_run_id`).
+      progress: ``progress(point, eta_s) -> line``, the log line of a step (``point``: its metrics and ``step``).
+      curve_label: the success curve's title.
+      log: where progress and resume lines go.
+
+    Returns:
+      ``(loop result, success-curve points)``; the result's history holds every step's metrics of the run.
+
+    Raises:
+      sword_jax.train_loop.NonFiniteLoss: a non-finite loss or gradient (the last good checkpoint is kept).
+      ValueError: the checkpoint in the work dir is another run's.
+    """
+    curve = SuccessCurve(workdir, label=curve_label)
+
+    def record(done: int, state: Any) -> None:
+        point, extra = evaluate(done, state.params)
+        curve.add(done, point, **extra)
+
+    def on_start(first_step: int, state: Any) -> Any:
+        # every array committed to its device, as a restored state's are: a resumed run then compiles the
+        # same program as a fresh one (a cache hit), and the step's input types = output types (one trace)
+        state = shd.settle(jax.device_put(state, jax.tree.map(lambda x: x.sharding, state)))
+        curve.drop_after(first_step)
+        if first_step == 0:
+            record(0, state)
+        return state
+
+    def report(done: int, metrics: dict[str, float], _: Any, eta: float) -> dict[str, float]:
+        point = {"step": done, **metrics}
+        log(progress(point, eta))
+        return point
+
+    result = run_steps(step, state, batch_at, key=key, steps=rl.grpo_steps, log_every=1, name="GRPO", report=report,
+                       checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.eval_every,
+                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=record)
+    return result, curve.points
