@@ -1,21 +1,25 @@
-"""The step loop of the small trainers (SFT, reward model): resume, late metrics, finite stop, checkpoints.
+"""The step loop of every trainer (VAE, world model, SFT, reward model, GRPO): resume, late metrics, finite stop, checkpoints.
 
 :func:`run_steps` drives a jitted ``step(state, batch, key) -> (state, metrics)`` whose batch is a
 pure function of the step (``batch_at(step)``, e.g. drawn from ``rng.stream_rng(seed, name, step)``),
-so the train state alone (params, optimizer state, step) is all an exact resume needs. With a
-checkpoint directory it resumes from the newest checkpoint there and saves one every
-``checkpoint_every`` steps and at the end, through :class:`~sword_jax.world_model.checkpoint.Checkpointer`.
+so the train state alone (params, optimizer state, step, the latent cache) is all an exact resume
+needs. With a checkpoint directory it resumes from the newest checkpoint there and saves one every
+``checkpoint_every`` steps and at the end, through :class:`~sword_jax.world_model.checkpoint.Checkpointer`
+(with ``checkpoint_meta(step)``'s JSON facts, e.g. the data position, RNG root and config). ``place``
+puts each host batch on the mesh (global arrays) on the loop's thread.
 
 The host reads a log step's metrics after the next step was dispatched, so the device never waits
 on it. Every step's metrics go through a small device-side check that remembers the first step
 with a non-finite value; it is read with the metrics and before each checkpoint, so a checkpoint
 is written only once its step's loss was read finite, and a non-finite loss stops the run with
-:class:`NonFiniteLoss` naming the step, the last good checkpoint left as it was.
+:class:`NonFiniteLoss` naming the step, the last good checkpoint left as it was (``on_nonfinite="skip"``
+goes on instead, for a step that skips a non-finite update itself).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from typing import Any
@@ -23,6 +27,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from sword_jax import sharding as shd
 from sword_jax.prefetch import prefetched
 from sword_jax.world_model import checkpoint
 
@@ -54,14 +59,20 @@ class LoopResult:
     first_step: int
 
 
-@jax.jit
-def _note_nonfinite(first_bad: jax.Array, step: jax.Array, metrics: dict[str, jax.Array]) -> jax.Array:
-    """``first_bad``, or ``step`` if it is still -1 and a floating metric of this step is non-finite."""
+def all_finite(metrics: dict[str, jax.Array]) -> jax.Array:
+    """True when every floating metric is finite (the default finite test of :func:`run_steps`)."""
     finite = jnp.bool_(True)
     for value in jax.tree.leaves(metrics):
         if jnp.issubdtype(value.dtype, jnp.floating):
             finite = finite & jnp.all(jnp.isfinite(value))
-    return jnp.where((first_bad < 0) & ~finite, step, first_bad).astype(jnp.int32)
+    return finite
+
+
+@functools.partial(jax.jit, static_argnames="metrics_finite")
+def _note_nonfinite(first_bad: jax.Array, step: jax.Array, metrics: dict[str, jax.Array], *,
+                    metrics_finite: Callable[[dict[str, jax.Array]], jax.Array] = all_finite) -> jax.Array:
+    """``first_bad``, or ``step`` if it is still -1 and ``metrics_finite(metrics)`` is False."""
+    return jnp.where((first_bad < 0) & ~metrics_finite(metrics), step, first_bad).astype(jnp.int32)
 
 
 def differing_keys(saved: dict[str, Any], current: dict[str, Any]) -> list[str]:
@@ -94,6 +105,13 @@ def run_steps(
     log: Callable[[str], Any] = print,
     on_start: Callable[[int, Any], Any] | None = None,
     at_checkpoint: Callable[[int, Any], None] | None = None,
+    place: Callable[[Any], Any] | None = None,
+    checkpoint_meta: Callable[[int], dict[str, Any]] | None = None,
+    keep_checkpoints: int = 2,
+    metrics_finite: Callable[[dict[str, jax.Array]], jax.Array] = all_finite,
+    on_nonfinite: str = "stop",
+    settle: bool = False,
+    on_first_step: Callable[[], Any] | None = None,
 ) -> LoopResult:
     """Runs steps ``first_step .. steps - 1`` (0-based) of ``step`` from ``state``.
 
@@ -120,21 +138,38 @@ def run_steps(
       at_checkpoint: ``at_checkpoint(step_done, state)`` at every checkpoint step (every ``checkpoint_every``
         steps and the last; also without a checkpoint directory), once that step's metrics were read finite
         and before its checkpoint is written (GRPO evaluates the policy there).
+      place: ``place(host_batch) -> batch`` on the loop's thread before the step (e.g. global arrays
+        with the step's input shardings); None = the batch as ``batch_at`` made it.
+      checkpoint_meta: ``checkpoint_meta(step_done) -> dict`` of further JSON facts saved with each
+        checkpoint (data position, RNG root, config); they may not use the loop's own keys.
+      keep_checkpoints: how many checkpoints stay (the newest).
+      metrics_finite: ``metrics_finite(metrics) -> bool scalar``, traced: whether a step was finite
+        (default: every floating metric is, see :func:`all_finite`).
+      on_nonfinite: ``"stop"`` raises :class:`NonFiniteLoss`; ``"skip"`` goes on (for a step that
+        leaves its state unchanged when non-finite) and keeps saving checkpoints.
+      settle: pass the state (initial or restored) through :func:`sword_jax.sharding.settle` before the
+        first step, so a step with explicit shardings traces once.
+      on_first_step: called once the first step of this call has finished (the loop waits for it),
+        e.g. to log the compile time apart from the step rate.
 
     Raises:
       NonFiniteLoss: a step's metrics held a non-finite value (the message names the 0-based step and
         the last good checkpoint).
       ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id``: an
-        :class:`AnotherRunsCheckpoint`, or structure).
+        :class:`AnotherRunsCheckpoint`, or structure), or ``on_nonfinite`` is neither ``"stop"`` nor ``"skip"``.
     """
-    ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=2) if checkpoint_dir else None
+    if on_nonfinite not in ("stop", "skip"):
+        raise ValueError(f"{name}: on_nonfinite must be 'stop' or 'skip', got {on_nonfinite!r}")
+    ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=keep_checkpoints) if checkpoint_dir else None
     first_step, history, batches = 0, [], None
     try:
         if ckpt is not None and ckpt.latest_step() is not None:
             state, meta = ckpt.restore(checkpoint.abstract_like(state))
             _check_same_run(name, ckpt.directory, meta.get("run"), run_id)
-            first_step, history = int(meta["step"]), list(meta["history"])
+            first_step, history = int(meta["step"]), list(meta.get("history", []))  # none before this loop
             log(f"{name}: resumed from step {first_step} in {ckpt.directory}")
+        if settle:
+            state = shd.settle(state)
         if on_start is not None:
             state = on_start(first_step, state)
         first_bad = jnp.full((), -1, jnp.int32)
@@ -143,7 +178,7 @@ def run_steps(
 
         def stop_if_nonfinite(bad: jax.Array) -> None:
             bad_step = int(jax.device_get(bad))
-            if bad_step >= 0:
+            if bad_step >= 0 and on_nonfinite == "stop":
                 last = None if ckpt is None else ckpt.latest_step()
                 kept = ("no checkpoints (no checkpoint directory)" if ckpt is None else
                         f"last good checkpoint: {'none' if last is None else f'step {last}'} in {ckpt.directory}")
@@ -158,9 +193,12 @@ def run_steps(
 
         batches = prefetched(batch_at, range(first_step, steps))
         for i, batch in enumerate(batches, start=first_step):
-            state, metrics = step(state, batch, key)
-            first_bad = _note_nonfinite(first_bad, i, metrics)
+            state, metrics = step(state, batch if place is None else place(batch), key)
+            first_bad = _note_nonfinite(first_bad, i, metrics, metrics_finite=metrics_finite)
             dispatched = i + 1
+            if on_first_step is not None and i == first_step:
+                jax.block_until_ready(metrics)
+                on_first_step()
             if pending is not None:  # the previous log step: the device already has this step queued
                 read(*pending)
                 pending = None
@@ -175,7 +213,8 @@ def run_steps(
                 if at_checkpoint is not None:
                     at_checkpoint(dispatched, state)
                 if ckpt is not None:
-                    ckpt.save(dispatched, state, {"step": dispatched, "history": history, "run": run_id})
+                    extra = checkpoint_meta(dispatched) if checkpoint_meta is not None else {}
+                    ckpt.save(dispatched, state, {**extra, "step": dispatched, "history": history, "run": run_id})
         if pending is not None:
             read(*pending)
         stop_if_nonfinite(first_bad)

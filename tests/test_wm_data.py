@@ -41,6 +41,18 @@ def test_sampler_visits_every_segment_once_per_epoch_and_resumes_exactly():
         resumed.restore({"epoch": 0, "index": 99})
 
 
+@pytest.mark.parametrize("batch_size", [4, 5, 35])  # 15 segments: crossing, meeting, spanning epoch ends
+def test_sampler_batch_of_a_step_equals_the_sequential_batch(batch_size):
+    sequential = data.SegmentSampler(5, 6, 1, 2, batch_size, seed=3)
+    pure = data.SegmentSampler(5, 6, 1, 2, batch_size, seed=3)
+    for step in range(8):
+        assert pure.position_at(step) == sequential.position
+        np.testing.assert_array_equal(np.stack(pure.indices_at(step)), np.stack(sequential.next_indices()))
+    np.testing.assert_array_equal(np.stack(pure.indices_at(5)), np.stack(data.SegmentSampler(
+        5, 6, 1, 2, batch_size, seed=3).indices_at(5)))  # out of order, from a fresh sampler: the same batch
+    assert pure.position_at(8) == sequential.position
+
+
 def test_loader_batches_are_global_and_sharded():
     mesh = full_mesh()
     ds = tiny_dataset()

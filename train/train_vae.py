@@ -9,8 +9,10 @@ Usage::
 Clips of ``1 + 4k`` frames (``k`` = 2 by default) are cut at random from the episodes' agentview
 frames; with ``vae.train_styles`` (default) a ``vae.styled_fraction`` share of them is restyled in
 *training* styles (:mod:`sword_jax.vae.data`; held-out styles and held-out episodes never reach the VAE). The state (params, latent statistics, optimiser state, step) is an orbax checkpoint under
-``<workdir>/checkpoints``; the run auto-resumes from it. ``<workdir>/vae/`` holds the final
-pure-dict VAE state that ``train.evaluate`` and the pipeline load.
+``<workdir>/checkpoints``; the run auto-resumes from it. The loop is :func:`sword_jax.train_loop.run_steps`:
+metrics one log step late to ``<workdir>/metrics.jsonl`` and TensorBoard, and a non-finite loss stops the
+run naming the step, the last good checkpoint kept. ``<workdir>/vae/`` holds the final pure-dict VAE
+state that ``train.evaluate`` and the pipeline load.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
 from sword_jax.load import load_vae_params
-from sword_jax.prefetch import prefetched
+from sword_jax.train_loop import NonFiniteLoss, run_steps
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
 from sword_jax.world_model import checkpoint
@@ -92,15 +94,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
     mesh = shd.make_mesh(cfg.mesh)
     graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
                                                  rules=cfg.mesh.rules)
-    ckpt = checkpoint.Checkpointer(os.path.join(args.workdir, "checkpoints"), max_to_keep=1)
-    shardings = jax.tree.map(lambda x: x.sharding, state)
-    start = 0
-    if ckpt.latest_step() is not None:
-        state, meta = ckpt.restore(checkpoint.abstract_like(state, shardings))
-        start = int(meta["step"])
-        if is_main:
-            print(f"[train_vae] resumed from step {start}")
-    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     perceptual_fn = None
     if cfg.vae.perceptual_weight > 0:  # LPIPS with the evaluation's weights (published AlexNet by default)
         from sword_jax.vae.perceptual import lpips_loss
@@ -111,34 +104,36 @@ def main(argv: Sequence[str] | None = None) -> dict:
     step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
                                           perceptual_fn=perceptual_fn, max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
-    batch_sharding = {"video": shd.batch_sharding(mesh, 5, cfg.mesh.rules)}
-    logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1), first_step=start,
+    video_sharding = shd.batch_sharding(mesh, 5, cfg.mesh.rules)
+    logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1),
                                      jsonl_path=os.path.join(args.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(args.workdir, "tensorboard"))
-    # Batches are a pure function of the step (exact resume), made one step ahead on a host thread.
-    batches = prefetched(sampler.batch, range(start + 1, cfg.vae.train_steps + 1)) if sampler is not None else None
-    for step in range(start + 1, cfg.vae.train_steps + 1):
-        if batches is not None:
-            host = next(batches)
-        else:
-            side = cfg.data.image_size
-            host = np.asarray(vae_train.moving_squares(key=jax.random.key(step), batch=cfg.vae.batch_size,
-                                                       frames=frames, size=side))
-        batch = {"video": shd.put(host, batch_sharding["video"])}
-        state, metrics = step_fn(state, batch, root)
-        if step == start + 1 and is_main:  # compile (and autotuning) time, separate from the step rate
-            jax.block_until_ready(metrics)
+
+    def batch_at(step: int) -> np.ndarray:  # 0-based step; the clip draws count from 1
+        if sampler is not None:
+            return sampler.batch(step + 1)
+        return np.asarray(vae_train.moving_squares(key=jax.random.key(step + 1), batch=cfg.vae.batch_size,
+                                                   frames=frames, size=cfg.data.image_size))
+
+    def first_step_done() -> None:  # compile (and autotuning) time, separate from the step rate
+        if is_main:
             print(f"[train_vae] first step (compile included) done {time.perf_counter() - loaded:.1f} s after "
                   "loading began", flush=True)
-        logger.push(step, metrics)
-        if step % cfg.trainer.checkpoint_every == 0 or step == cfg.vae.train_steps:
-            logger.flush()
-            ckpt.save(step, state, {"step": step})
-    logger.close()
-    ckpt.close()
+
+    try:
+        result = run_steps(
+            step_fn, state, batch_at, key=root, steps=cfg.vae.train_steps, log_every=max(cfg.trainer.log_every, 1),
+            name="train_vae", report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta),
+            place=lambda video: {"video": shd.put(video, video_sharding)},
+            checkpoint_dir=os.path.join(args.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
+            keep_checkpoints=1, settle=True, on_first_step=first_step_done,
+            log=print if is_main else lambda _line: None)
+    finally:
+        logger.close()
+    state = result.state
     save_vae(final_path, graphdef, state.params, state.constants)
-    last = logger.history[-1] if logger.history else {}
-    first = logger.history[0] if logger.history else {}
+    last = result.history[-1] if result.history else {}
+    first = result.history[0] if result.history else {}
     return {"steps": cfg.vae.train_steps, "first_loss": first.get("loss"), "final_loss": last.get("loss"),
             "path": final_path, "styled_fraction": sampler.styled_fraction if sampler is not None else 0.0,
             "styled_clips": sampler.styled_clips if sampler is not None else 0}
@@ -147,4 +142,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 if __name__ == "__main__":
     from sword_jax.cli import run
 
-    run(main)
+    run(main, runtime_errors=(NonFiniteLoss,))

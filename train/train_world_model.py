@@ -7,16 +7,16 @@ Usage::
 
 The latent dataset comes from ``--data.path`` (``.npz``/``.h5`` with ``latents [E, L, h, w, c]`` and
 ``actions [E, 1 + 4(L-1), a]``) or, with ``--synthetic``, from action-dependent synthetic latents.
-The run auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position,
+The loop is :func:`sword_jax.train_loop.run_steps`; the batch of a step is a pure function of it. The
+run auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position,
 RNG root, config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl`` and
 TensorBoard event files in ``<workdir>/tensorboard``.
 A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
-checkpoint stays, and the faulty step's update was never applied.
+checkpoint stays, and the faulty step's update was never applied (``skip`` goes on without it).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import sys
@@ -31,14 +31,9 @@ from configs.base import ExperimentConfig
 from sword_jax import sharding as shd
 from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb import cache as dlb_cache
-from sword_jax.train_loop import differing_keys
+from sword_jax.train_loop import NonFiniteLoss, differing_keys, run_steps
 from sword_jax.world_model import checkpoint, data, train_state, train_step
 from train import distributed
-
-
-class NonFiniteLoss(RuntimeError):
-    """Raised when the loss or gradient became non-finite and ``trainer.on_nonfinite=stop``."""
-
 
 def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
     parser = configs.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -120,55 +115,30 @@ def main(argv: Sequence[str] | None = None) -> dict:
     sampler = data.SegmentSampler(dataset.shape[0], dataset.shape[1], num_context, num_future,
                                   cfg.data.batch_size, seed=cfg.seed)
     loader = data.SegmentLoader(dataset, sampler, num_context, num_future, mesh, rules)
-    root_key = jax.random.key(cfg.seed)
-    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=cfg.trainer.keep_checkpoints)
-    start_step = 0
-    if ckpt.latest_step() is not None:
-        state, meta = ckpt.restore(checkpoint.abstract_like(state, shardings))
-        loader.restore(meta["data_position"])
-        root_key = jax.random.wrap_key_data(np.asarray(meta["rng_root"], np.uint32))
-        start_step = int(meta["step"])
-        if is_main:
-            print(f"[train_world_model] resumed from step {start_step} in {workdir}")
-
-    state = shd.settle(state)  # step input types = output types: one trace (see sharding.settle)
     step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
                                          num_context=num_context, num_episodes=dataset.shape[0])
     step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
-    root_key = shd.put(root_key, shd.replicated(mesh))
-    logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every, first_step=start_step,
+    root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
+    rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
+    logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,
                                      jsonl_path=os.path.join(workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(workdir, "tensorboard"))
 
-    def meta_for(step_done: int) -> dict:
-        return {"step": step_done, "data_position": loader.position,
-                "rng_root": np.asarray(jax.random.key_data(root_key)).tolist(), "config": cfg_dict}
-
-    def check_finite(step_done: int) -> None:
-        first_bad = int(jax.device_get(state.first_nonfinite_step))
-        if first_bad >= 0 and cfg.trainer.on_nonfinite == "stop":
-            last = ckpt.latest_step()
-            raise NonFiniteLoss(f"train_world_model: non-finite loss/gradient at step {first_bad} (0-based; "
-                                f"update skipped); stopping at step {step_done}. Last good checkpoint: "
-                                f"{'step ' + str(last) if last is not None else 'none'} in {ckpt.directory}")
-
-    step_done = start_step
     try:
-        for step_done in range(start_step + 1, cfg.trainer.steps + 1):
-            state, metrics = step(state, loader.next(), root_key)
-            row = logger.push(step_done, metrics)
-            if row is not None and row["first_nonfinite_step"] >= 0:
-                check_finite(step_done)
-            if step_done % cfg.trainer.checkpoint_every == 0 or step_done == cfg.trainer.steps:
-                logger.flush()
-                check_finite(step_done)
-                ckpt.save(step_done, state, meta_for(step_done))
-        logger.close()
-        check_finite(step_done)
+        result = run_steps(
+            step, state, loader.host_batch_at, key=shd.put(root_key, shd.replicated(mesh)), steps=cfg.trainer.steps,
+            log_every=cfg.trainer.log_every, name="train_world_model",
+            report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta), place=loader.place,
+            checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
+            keep_checkpoints=cfg.trainer.keep_checkpoints,
+            checkpoint_meta=lambda done: {"data_position": sampler.position_at(done), "rng_root": rng_root,
+                                          "config": cfg_dict},
+            metrics_finite=lambda metrics: metrics["nonfinite"] == 0, on_nonfinite=cfg.trainer.on_nonfinite,
+            settle=True, log=print if is_main else lambda _line: None)
     finally:
-        ckpt.close()
-    last = logger.history[-1] if logger.history else {}
-    return {"step": step_done, "metrics": last, "workdir": workdir}
+        logger.close()
+    last = result.history[-1] if result.history else {}
+    return {"step": max(result.first_step, cfg.trainer.steps), "metrics": last, "workdir": workdir}
 
 
 if __name__ == "__main__":

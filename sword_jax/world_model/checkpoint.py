@@ -144,10 +144,14 @@ class MetricLogger:
             return None
         step, metrics = self.pending
         self.pending = None
-        values = {name: float(np.asarray(v)) for name, v in jax.device_get(metrics).items()}
+        return self.write(step, {name: float(np.asarray(v)) for name, v in jax.device_get(metrics).items()})
+
+    def write(self, step: int, values: dict[str, float], *, eta_s: float | None = None) -> dict[str, float]:
+        """Logs host ``values`` of ``step`` now and returns the row: what :meth:`flush` does, for a loop that
+        reads its metrics itself (:func:`sword_jax.train_loop.run_steps`, which also knows the ETA)."""
         elapsed = time.perf_counter() - self.start_time
         done = max(step - self.start_step, 1)
-        eta = elapsed / done * max(self.total_steps - step, 0)
+        eta = elapsed / done * max(self.total_steps - step, 0) if eta_s is None else eta_s
         row = {"step": step, **values, "elapsed_s": elapsed, "eta_s": eta}
         self.history.append(row)
         if jax.process_index() == 0:

@@ -10,7 +10,9 @@ future latents it holds
 * actions ``[actions[e, 0], actions[e, 4 start - 3 : 4 (start + k + p - 1) + 1]]`` (``1 + 4(k + p)``).
 
 The DLB cache indexes the same ``(episode, latent frame)`` slots. The sampler is a pure function
-of ``(seed, epoch, index)``; that position is its whole state, so checkpoints resume exactly.
+of ``(seed, epoch, index)``; that position is its whole state, so checkpoints resume exactly. With a
+fixed batch size the position after ``s`` batches is a function of ``s`` alone, so the batch of a
+step can also be made directly (:meth:`SegmentSampler.indices_at`, :meth:`SegmentLoader.host_batch_at`).
 """
 
 from __future__ import annotations
@@ -143,6 +145,7 @@ class SegmentSampler:
         self.epoch = 0
         self.index = 0
         self._order = self._permutation(0)
+        self._order_at: tuple[int, np.ndarray] = (0, self._order)  # indices_at's last epoch (one per step)
 
     def _permutation(self, epoch: int) -> np.ndarray:
         return np.random.default_rng([self.seed, epoch]).permutation(len(self.slots))
@@ -157,6 +160,28 @@ class SegmentSampler:
             raise ValueError(f"segment sampler: invalid position {position} for {len(self.slots)} segments")
         self.epoch, self.index = epoch, index
         self._order = self._permutation(epoch)
+
+    def position_at(self, step: int) -> dict[str, int]:
+        """The ``position`` after ``step`` batches from the start (what ``next_indices`` leaves it at)."""
+        taken = step * self.batch_size
+        epoch, index = divmod(taken, len(self.slots))
+        if taken and not index:  # next_indices moves to the next epoch only when it needs a segment from it
+            epoch, index = epoch - 1, len(self.slots)
+        return {"epoch": int(epoch), "index": int(index)}
+
+    def indices_at(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(episodes [B], starts [B])`` of batch ``step`` (0-based): the batch ``next_indices`` returns
+        after ``step`` earlier calls from the start, made without the sampler's position."""
+        taken = step * self.batch_size + np.arange(self.batch_size)
+        epochs, index = np.divmod(taken, len(self.slots))
+        order = np.empty(self.batch_size, np.int64)
+        for epoch in np.unique(epochs).tolist():
+            if self._order_at[0] != epoch:
+                self._order_at = (epoch, self._permutation(epoch))
+            picked = epochs == epoch
+            order[picked] = self._order_at[1][index[picked]]
+        slots = self.slots[order]
+        return slots[:, 0].astype(np.int32), slots[:, 1].astype(np.int32)
 
     def next_indices(self) -> tuple[np.ndarray, np.ndarray]:
         """The next batch's ``(episodes [B], starts [B])``."""
@@ -208,4 +233,12 @@ class SegmentLoader:
 
     def next(self) -> dict[str, jax.Array]:
         episodes, starts = self.sampler.next_indices()
-        return to_global(self.dataset.segment(episodes, starts, self.num_context, self.num_future), self.shardings)
+        return self.place(self.dataset.segment(episodes, starts, self.num_context, self.num_future))
+
+    def host_batch_at(self, step: int) -> dict[str, np.ndarray]:
+        """The host batch of step ``step`` (0-based), a pure function of it (see ``SegmentSampler.indices_at``)."""
+        return self.dataset.segment(*self.sampler.indices_at(step), self.num_context, self.num_future)
+
+    def place(self, batch: dict[str, np.ndarray]) -> dict[str, jax.Array]:
+        """Host batch -> global arrays with this loader's shardings."""
+        return to_global(batch, self.shardings)

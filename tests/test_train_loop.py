@@ -1,0 +1,74 @@
+"""``train_loop.run_steps`` options the VAE and world-model trainers use, on a toy step: placed batches,
+extra checkpoint facts, how many checkpoints stay, which metrics decide "finite", and ``skip``."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sword_jax.train_loop import NonFiniteLoss, run_steps
+from sword_jax.world_model import checkpoint
+
+STEPS = 5
+
+
+@jax.jit
+def _step(state, batch, key):
+    """Adds the batch to ``w`` unless it is non-finite (a step that skips a bad update itself);
+    ``probe`` is NaN by design on even steps, as the world model's off-log-step metrics are."""
+    finite = jnp.isfinite(batch["x"])
+    w = jnp.where(finite, state["w"] + batch["x"], state["w"])
+    metrics = {"loss": batch["x"], "nonfinite": (~finite).astype(jnp.int32),
+               "probe": jnp.where(state["step"] % 2 == 0, jnp.nan, 1.0)}
+    return {"w": w, "step": state["step"] + 1}, metrics
+
+
+def _run(directory, *, poison_at=-1, **options):
+    placed, first = [], []
+
+    def place(host):
+        placed.append(host)
+        return {"x": jnp.asarray(host)}
+
+    state = {"w": jnp.zeros((), jnp.float32), "step": jnp.zeros((), jnp.int32)}
+    result = run_steps(_step, state, lambda i: np.float32(np.nan if i == poison_at else i + 1), key=jax.random.key(0),
+                       steps=STEPS, log_every=1, name="toy", report=lambda done, m, _o, _eta: {"step": done, **m},
+                       checkpoint_dir=directory, place=place, checkpoint_meta=lambda done: {"position": 10 * done},
+                       keep_checkpoints=3, metrics_finite=lambda m: m["nonfinite"] == 0,
+                       on_first_step=lambda: first.append(len(placed)), log=lambda line: None, **options)
+    return result, placed, first
+
+
+def _meta(directory):
+    ckpt = checkpoint.Checkpointer(directory)
+    try:
+        return ckpt.latest_step(), ckpt.restore(checkpoint.abstract_like(
+            {"w": jnp.zeros(()), "step": jnp.zeros((), jnp.int32)}))[1]
+    finally:
+        ckpt.close()
+
+
+def test_run_steps_places_batches_keeps_checkpoint_facts_and_uses_the_given_finite_test(tmp_path):
+    directory = str(tmp_path / "ok")
+    result, placed, first = _run(directory)
+    assert float(result.state["w"]) == sum(range(1, STEPS + 1)) and len(placed) == STEPS
+    assert first == [1]  # once, after the first step
+    saved = sorted(int(d) for d in os.listdir(directory) if d.isdigit())
+    assert saved == [STEPS - 2, STEPS - 1, STEPS]  # keep_checkpoints=3
+    step, meta = _meta(directory)
+    assert step == STEPS and meta["position"] == 10 * STEPS and meta["step"] == STEPS
+    assert [p["step"] for p in meta["history"]] == list(range(1, STEPS + 1))  # the NaN probe stopped nothing
+
+
+def test_run_steps_stop_or_skip_on_a_nonfinite_step(tmp_path):
+    with pytest.raises(NonFiniteLoss, match=r"toy: non-finite loss or gradient at step 2 \(0-based\).*"
+                                            r"last good checkpoint: step 2"):
+        _run(str(tmp_path / "stop"), poison_at=2)
+    assert _meta(str(tmp_path / "stop"))[0] == 2
+    result, _, _ = _run(str(tmp_path / "skip"), poison_at=2, on_nonfinite="skip")
+    assert float(result.state["w"]) == sum(range(1, STEPS + 1)) - 3  # step 2's update was skipped, the run went on
+    assert _meta(str(tmp_path / "skip"))[0] == STEPS
+    with pytest.raises(ValueError, match="on_nonfinite"):
+        _run(str(tmp_path / "bad"), on_nonfinite="ignore")
