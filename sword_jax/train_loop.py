@@ -1,4 +1,4 @@
-"""The step loop of every trainer (VAE, world model, SFT, reward model, GRPO): resume, late metrics, finite stop, checkpoints.
+"""The step loop of every trainer (VAE, world model, SFT, reward model, GRPO): resume, late metrics, checkpoints.
 
 :func:`run_steps` drives a jitted ``step(state, batch, key) -> (state, metrics)`` whose batch is a
 pure function of the step (``batch_at(step)``, e.g. drawn from ``rng.stream_rng(seed, name, step)``),
