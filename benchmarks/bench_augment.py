@@ -32,7 +32,7 @@ from sword_jax.augment.transforms import augment_batch, to_signed_range
 
 
 def dit_params(model_cfg) -> int:
-    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.dit.action_dit import WorldModel
 
     with nnx.use_eager_sharding(False):
         abstract = nnx.eval_shape(lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)))

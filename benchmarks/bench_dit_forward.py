@@ -21,8 +21,8 @@ from flax import nnx
 
 from benchmarks import common
 from sword_jax import sharding
+from sword_jax.dit.action_dit import WorldModel, num_video_frames, world_model_apply
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.world_model import WorldModel, num_video_frames, world_model_apply
 
 
 def forward_flops(cfg: DiTConfig, batch: int, frames: int, hw: tuple[int, int]) -> float:

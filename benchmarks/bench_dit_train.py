@@ -12,17 +12,15 @@ on the same model, batch and data, so their ratio is not disturbed by drift betw
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
 from benchmarks import common
 from sword_jax import sharding as shd
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import train_state, train_step
@@ -91,7 +89,8 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
             raise RuntimeError(f"{label}/{name}: non-finite loss {loss}")
         if name == "dlb":
             row["cache_mib_per_device"] = dlb_cache.cache_bytes_per_device(cache_cfg, dataset_shape, mesh) / 2**20
-        del holder, state
+        holder.clear()  # frees the train state before the next variant
+        del state
     flops = 3 * forward_flops(model_cfg, batch, 4, hw, 13)
     row.update(tf_step_s=times["tf"], model_tflops=flops / times["tf"] / 1e12,
                mfu=flops / times["tf"] / 1e12 / peak_tflops, peak_mem_gb=common.peak_memory_gb())

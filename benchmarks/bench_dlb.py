@@ -40,7 +40,7 @@ from flax import nnx
 import configs
 from benchmarks import common
 from sword_jax import sharding as shd
-from sword_jax.dit.world_model import WorldModel
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import fidelity
 from sword_jax.dlb.config import CacheConfig

@@ -27,13 +27,13 @@ from flax import nnx
 import configs
 from benchmarks import common
 from sword_jax import sharding as shd
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.world_model import WorldModel
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import StartState
 from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
 from sword_jax.rl.reward_model import SuccessDetector, as_reward_model
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
-from sword_jax.rl.simulator import StartState
 from sword_jax.rl.world_model_sim import world_model_simulator
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.model import WanVAE

@@ -21,8 +21,8 @@ from flax import nnx
 from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops
 from sword_jax import sharding as shd
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig

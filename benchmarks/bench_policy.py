@@ -108,8 +108,8 @@ def run_sft(cfg, args) -> dict:
     from sim.lockstep import lockstep_evaluation
     from sword_jax.rl import data as rl_data
     from sword_jax.rl.env_rollout import make_act_fns
-    from sword_jax.rl.evaluate import evaluate_in_sim
     from sword_jax.rl.policy import build_policy
+    from sword_jax.rl.policy_success import evaluate_in_sim
     from sword_jax.rl.proprio_reckoning import save_reckoning
     from sword_jax.rl.sft import train_sft
     from train.grpo import sim_reckoning
@@ -176,8 +176,8 @@ def run_eval(cfg, args) -> dict:
     """Evaluates a saved policy under each execution mode of ``--execute`` (no training)."""
     from sim.lockstep import lockstep_evaluation
     from sword_jax.rl.env_rollout import make_act_fns
-    from sword_jax.rl.evaluate import evaluate_in_sim
     from sword_jax.rl.policy import build_policy
+    from sword_jax.rl.policy_success import evaluate_in_sim
 
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params = load_npz(args.policy, params)

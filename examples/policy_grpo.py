@@ -28,7 +28,7 @@ import sword_jax
 from _tiny_run import tiny_run
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.simulator import RewardModel
+from sword_jax.rl.learned_simulator import RewardModel
 
 
 class MyPolicy(nnx.Module):

@@ -259,7 +259,7 @@ class LockstepEnvs:
 
 def lockstep_evaluation(tasks: Sequence[int], episodes_per_task: int, *, resolution: int, max_steps: int = 220,
                         renderer: str = "jax", workers: int = 0) -> dict[str, Any]:
-    """``episodes``, ``envs_factory`` and ``max_steps`` of ``sword_jax.rl.evaluate.evaluate_in_sim``:
+    """``episodes``, ``envs_factory`` and ``max_steps`` of ``sword_jax.rl.policy_success.evaluate_in_sim``:
     each task's first ``episodes_per_task`` fixed evaluation initial states on :class:`LockstepEnvs`.
 
     Usage: ``evaluate_in_sim(graphdef, params, rl, **lockstep_evaluation([0, 1], 10, resolution=128))``.

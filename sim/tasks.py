@@ -216,7 +216,7 @@ def split_init_states(task_id: int, split: str, count: int, *, start: int = 0, s
 
 def evaluation_episodes(tasks: Sequence[int], episodes_per_task: int) -> list[tuple[int, np.ndarray]]:
     """``(task, qpos)`` of each task's first ``episodes_per_task`` fixed evaluation initial states
-    (the ``episodes`` of ``sword_jax.rl.evaluate.evaluate_in_sim`` and ``sim.lockstep.LockstepEnvs``)."""
+    (the ``episodes`` of ``sword_jax.rl.policy_success.evaluate_in_sim`` and ``sim.lockstep.LockstepEnvs``)."""
     if not 1 <= episodes_per_task <= NUM_INIT_STATES:
         raise ValueError(f"episodes_per_task must be in 1..{NUM_INIT_STATES}, got {episodes_per_task}")
     return [(int(t), q) for t in tasks for q in split_init_states(int(t), "eval", episodes_per_task)]

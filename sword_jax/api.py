@@ -45,7 +45,7 @@ from jaxtyping import Array, Float, Int
 from sword_jax import load
 from sword_jax.dit.config import DiTConfig
 from sword_jax.load import CheckpointError
-from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.vae.config import VAEConfig
 from sword_jax.world_model.config import DataConfig, FlowConfig
 
@@ -488,7 +488,7 @@ def learned_simulator(
     proprio_dim: int = 8,
     proprio_reckoning: Any = None,
 ) -> LearnedSimulator:
-    """The world model + VAE as a :class:`~sword_jax.rl.simulator.LearnedSimulator` (one trajectory).
+    """The world model + VAE as a :class:`~sword_jax.rl.learned_simulator.LearnedSimulator` (one trajectory).
 
     ``sim.init(start) -> state``; ``sim.step(state, chunk [4p, a], key=key) -> (state, frames
     [E, H, W, 3])`` with ``E = 4 * execute_latents`` (default the whole chunk); ``sim.observe(state)

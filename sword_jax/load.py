@@ -217,7 +217,7 @@ def load_world_model_params(
       ``(graphdef, (params, buffers), step)``; ``(params, buffers)`` are pure dicts of float32
       arrays, the state :func:`sword_jax.world_model.sampler.model_fn_from_state` takes.
     """
-    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.dit.action_dit import WorldModel
 
     step = checkpoint_step(checkpoint_dir, step)
     graphdef, abstract_params, abstract_rest = nnx.split(
@@ -303,7 +303,7 @@ def experiment_world_model(cfg: Any, workdir: str | None) -> tuple[nnx.GraphDef,
         graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), seed=cfg.seed,
                                                      mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
         return graphdef, state
-    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.dit.action_dit import WorldModel
 
     graphdef, params, rest = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), nnx.Param, ...)
     return graphdef, (params, rest)

@@ -4,7 +4,7 @@
 pure function of the step (``batch_at(step)``, e.g. drawn from ``rng.stream_rng(seed, name, step)``),
 so the train state alone (params, optimizer state, step, the latent cache) is all an exact resume
 needs. With a checkpoint directory it resumes from the newest checkpoint there and saves one every
-``checkpoint_every`` steps and at the end, through :class:`~sword_jax.world_model.checkpoint.Checkpointer`
+``checkpoint_every`` steps and at the end, through :class:`~sword_jax.checkpoint.Checkpointer`
 (with ``checkpoint_meta(step)``'s JSON facts, e.g. the data position, RNG root and config). ``place``
 puts each host batch on the mesh (global arrays) on the loop's thread.
 
@@ -27,9 +27,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from sword_jax import checkpoint
 from sword_jax import sharding as shd
 from sword_jax.prefetch import prefetched
-from sword_jax.world_model import checkpoint
 
 StepFn = Callable[[Any, Any, jax.Array], tuple[Any, dict[str, jax.Array]]]
 

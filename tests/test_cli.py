@@ -21,7 +21,7 @@ BAD_ARGS = {
     "train.gen_data": ["--task", "12", "--out", "unused.hdf5"],
     "train.train_vae": ["--trainer.steps=abc"],
     "train.train_world_model": ["--synthetic", "--no-such-flag"],
-    "train.evaluate": ["--config", "sword:huge"],
+    "train.evaluate_world_model": ["--config", "sword:huge"],
     "train.train_policy": ["--model.num_layers=0"],
     "train.train_reward": ["--demos"],
     "train.grpo": ["--simulator", "real"],
@@ -62,10 +62,10 @@ def test_entry_point_main_block_goes_through_run(module_name):
 
 
 def test_missing_checkpoint_is_one_line_and_status_1(capsys, tmp_path, monkeypatch):
-    from train import evaluate
+    from train import evaluate_world_model
 
     monkeypatch.chdir(tmp_path)
-    code, _, err = _run(evaluate.main, ["--synthetic", "--model", f"m={tmp_path / 'no_run'}"], capsys)
+    code, _, err = _run(evaluate_world_model.main, ["--synthetic", "--model", f"m={tmp_path / 'no_run'}"], capsys)
     assert code == 1 and "Traceback" not in err, err
     assert err.strip() == f"{cli._prog()}: error: checkpoint directory {tmp_path / 'no_run' / 'checkpoints'} does not exist"
     assert not (tmp_path / "no_run").exists()  # reading never creates directories

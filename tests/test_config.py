@@ -112,7 +112,7 @@ def configs_get(variant):
 def test_vae_geometry_is_read_from_the_vae_config():
     """Frames per latent and the spatial stride come from ``VAEConfig`` wherever a config is at hand."""
     from sword_jax.api import WorldModelSpec
-    from train import evaluate, train_world_model
+    from train import evaluate_world_model, train_world_model
 
     cfg = configs.get("sword:tiny")
     assert (cfg.vae.temporal_factor, cfg.vae.spatial_factor) == (4, 16)
@@ -124,6 +124,6 @@ def test_vae_geometry_is_read_from_the_vae_config():
     assert train_world_model.latent_grid(odd) == (1 + (cfg.data.episode_frames - 1) // 2, side, side, vae.z_dim)
     k, p = cfg.data.context_frames // 2, cfg.data.predict_frames // 2
     n = (cfg.eval.horizon_frames - 1 - 2 * k) // (2 * p)
-    assert evaluate.effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)
+    assert evaluate_world_model.effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)
     spec = WorldModelSpec(model=cfg.model, flow=cfg.flow, vae=vae, image_size=64, num_context=1, num_future=2)
     assert (spec.given_frames, spec.frames_per_chunk, spec.latent_size, spec.num_actions(3)) == (3, 4, 8, 15)

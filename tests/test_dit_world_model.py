@@ -17,7 +17,7 @@ from sword_jax.convert import wan22_dit
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dit.model import WanDiT
 from sword_jax.convert.wan22_dit import load_official_into_world_model
-from sword_jax.dit.world_model import WorldModel, action_chunks, num_video_frames, world_model_apply
+from sword_jax.dit.action_dit import WorldModel, action_chunks, num_video_frames, world_model_apply
 
 CFG = dataclasses.replace(configs.get("sword:tiny").model, compute_dtype="float32")
 apply = jax.jit(world_model_apply, static_argnums=0)

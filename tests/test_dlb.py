@@ -6,10 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sword_jax import checkpoint
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import schedule
 from sword_jax.dlb.config import CacheConfig
-from sword_jax.world_model import checkpoint
 from tests.test_wm_common import ProbeWorldModel, build, full_mesh, single_device_mesh, tiny_dataset
 
 F32_CACHE = dict(dtype="float32")

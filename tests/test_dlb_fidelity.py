@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 import configs
+from sword_jax import checkpoint
 from sword_jax.dlb import fidelity, schedule
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rng import stream_key
-from sword_jax.world_model import checkpoint, sampler, train_step
+from sword_jax.world_model import sampler, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from tests.test_wm_common import build, single_device_mesh
 

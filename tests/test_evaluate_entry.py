@@ -5,13 +5,13 @@ import os
 
 import pytest
 
-from train import evaluate
+from train import evaluate_world_model
 
 
 @pytest.mark.slow
 def test_evaluate_entry_point_writes_report(tmp_path):
     out = tmp_path / "eval"
-    path = evaluate.main([
+    path = evaluate_world_model.main([
         "--config", "sword:tiny", "--out", str(out), "--synthetic", "--metrics", "lpips,psnr,ssim",
         "--eval.allow_random_weights=true", "--eval.num_episodes=1", "--eval.horizon_frames=13",
         "--eval.report_videos=1",
@@ -33,9 +33,9 @@ def test_effective_horizon_fits_rollout_layout():
     import configs
 
     cfg = configs.get("sword:tiny")
-    assert evaluate.effective_horizon(cfg, 33) == (29, 1, 2)  # 1 + 4 + 8n <= 33
+    assert evaluate_world_model.effective_horizon(cfg, 33) == (29, 1, 2)  # 1 + 4 + 8n <= 33
     with pytest.raises(SystemExit, match="cannot hold"):
-        evaluate.effective_horizon(cfg, 9)
+        evaluate_world_model.effective_horizon(cfg, 9)
 
 
 def test_model_config_comes_from_the_workdir(tmp_path):
@@ -48,10 +48,10 @@ def test_model_config_comes_from_the_workdir(tmp_path):
     other = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_layers=1),
                                 flow=dataclasses.replace(cfg.flow, sample_steps=3))
     json.dump(to_dict(other), open(tmp_path / "config.json", "w"))
-    loaded = evaluate.model_config(cfg, str(tmp_path))
+    loaded = evaluate_world_model.model_config(cfg, str(tmp_path))
     assert loaded.model.num_layers == 1 and loaded.flow.sample_steps == 3
     assert loaded.model == other.model
-    assert evaluate.model_config(cfg, None) is cfg
+    assert evaluate_world_model.model_config(cfg, None) is cfg
 
 
 @pytest.mark.slow
@@ -64,7 +64,7 @@ def test_rollout_videos_honours_pixel_round_trip():
     from flax import nnx
 
     import configs
-    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.dit.action_dit import WorldModel
     from sword_jax.evaluation.harness import rollout_videos
     from sword_jax.vae import api as vae_api
 

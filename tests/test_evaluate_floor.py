@@ -63,11 +63,11 @@ def test_reconstruction_is_the_whole_sequence_encode_decode():
 
 @pytest.mark.slow
 def test_tiny_evaluation_writes_floor_intervals_and_timing(tmp_path):
-    from train import evaluate
+    from train import evaluate_world_model
 
     out = tmp_path / "eval"
-    evaluate.main(["--config", "sword:tiny", "--out", str(out), "--synthetic", "--metrics", "lpips,psnr",
-                   "--eval.num_episodes=3", "--eval.horizon_frames=13", "--eval.report_videos=1"])
+    evaluate_world_model.main(["--config", "sword:tiny", "--out", str(out), "--synthetic", "--metrics", "lpips,psnr",
+                               "--eval.num_episodes=3", "--eval.horizon_frames=13", "--eval.report_videos=1"])
     results = json.load(open(out / "results.json"))
     assert results["settings"]["episodes"] == {"original": 3, "mixed": 3}
     for split in ("original", "mixed"):

@@ -10,9 +10,9 @@ import pytest
 
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
-from sword_jax.rl.simulator import toy_reward_model, toy_simulator, toy_start_states
 
 
 def test_group_advantages_hand_computed():

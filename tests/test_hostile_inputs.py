@@ -13,11 +13,12 @@ from flax import nnx
 
 import configs
 from configs.cli import ConfigError
+from sword_jax import checkpoint
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.dit.world_model import WorldModel
 from sword_jax.dlb.config import CacheConfig
 from sword_jax import sharding as shd
-from sword_jax.world_model import checkpoint, train_state
+from sword_jax.world_model import train_state
 from sword_jax.world_model.config import TrainerConfig
 from sword_jax.world_model.data import LatentDataset
 

@@ -84,7 +84,7 @@ def _forbidden(found: list[tuple[int, str, str, bool]]) -> list[str]:
 def test_scan_sees_imports_inside_functions():
     source = "def f():\n    from sim.env import make_env\n    import train.grpo\n\nimport simple\n"
     found, relative = _imports_fresh(((source, "sword_jax.x", False),
-                                      ("def f():\n    from ..convert import wan22_dit\n", "sword_jax.dit.world_model",
+                                      ("def f():\n    from ..convert import wan22_dit\n", "sword_jax.dit.action_dit",
                                        False)))
     assert _forbidden(found) == ["line 2: sim.env", "line 3: train.grpo"]
     assert relative == [(2, "sword_jax.convert", "wan22_dit", True)]

@@ -9,7 +9,7 @@ import sys
 import jax.numpy as jnp
 import pytest
 
-from sword_jax.world_model import checkpoint
+from sword_jax import checkpoint
 
 
 def _tensorboard_scalars(logdir: str) -> dict[str, list[tuple[int, float]]]:

@@ -71,7 +71,7 @@ def test_grpo_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     """Start states, sampling keys and the update are functions of (seed, step): 2 + 2 steps == 4 steps."""
     import jax
 
-    from sword_jax.world_model import checkpoint
+    from sword_jax import checkpoint
     from train import grpo as grpo_main
 
     def run(workdir, *steps):

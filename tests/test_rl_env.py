@@ -6,8 +6,8 @@ import numpy as np
 from gymnasium.utils.env_checker import check_env
 
 from sword_jax.rl.env import ImaginedEnv, ImaginedGymEnv, ImaginedVectorEnv
+from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import tokenize_instructions
-from sword_jax.rl.simulator import toy_reward_model, toy_simulator, toy_start_states
 
 
 def _env(max_chunks=3):

@@ -186,7 +186,7 @@ def test_default_execution_re_plans_every_step_and_ensembles_only_greedy_rollout
 
 
 def test_evaluate_in_sim_runs_the_given_episodes_in_the_given_envs():
-    from sword_jax.rl.evaluate import evaluate_in_sim
+    from sword_jax.rl.policy_success import evaluate_in_sim
 
     cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
                    action_bins=16, execute_steps=2, action_ensemble=False)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sword_jax import checkpoint
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
@@ -29,7 +30,6 @@ from sword_jax.rl.policy import build_policy
 from sword_jax.rl.reward_model import build_detector, train_detector
 from sword_jax.rl.sft import train_sft
 from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
-from sword_jax.world_model import checkpoint
 from tests.conftest import REPO, example_env
 from tests.test_optim import _reward_batches
 from tests.test_rl_entrypoints import TINY_RL, _write_demos

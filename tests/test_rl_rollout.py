@@ -9,10 +9,10 @@ import numpy as np
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.env import ImaginedEnv
+from sword_jax.rl.learned_simulator import (ToyState, instruction_target, toy_render, toy_reward_model,
+                                            toy_simulator, toy_start_states)
 from sword_jax.rl.policy import build_policy, tokenize_instructions, tokens_to_actions
 from sword_jax.rl.rollout import expand_groups, group_view, imagined_rollout
-from sword_jax.rl.simulator import (ToyState, instruction_target, toy_render, toy_reward_model, toy_simulator,
-                                   toy_start_states)
 
 CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
                action_bins=8, proprio_dim=4, proprio_encoding="raw", max_chunks=4, group_size=4)

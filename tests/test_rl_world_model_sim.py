@@ -8,15 +8,15 @@ from flax import nnx
 
 import configs
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import StartState, toy_reward_model
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
-from sword_jax.rl.simulator import StartState, toy_reward_model
 from sword_jax.rl.world_model_sim import encode_keyframes, world_model_simulator
 
 
 def _tiny_models():
     """``(cfg, wm_graphdef, wm_state, vae_graphdef, vae_state)``: the tiny world model and VAE, random weights."""
-    from sword_jax.dit.world_model import WorldModel
+    from sword_jax.dit.action_dit import WorldModel
     from sword_jax.vae import api as vae_api
 
     cfg = configs.get("sword:tiny")

@@ -7,7 +7,7 @@ import pytest
 from flax import nnx
 
 import configs
-from sword_jax.dit.world_model import WorldModel
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.world_model import rollout, sampler
 from sword_jax.world_model.config import FlowConfig
 from tests.test_wm_common import MixerWorldModel

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sword_jax import checkpoint
 from sword_jax.train_loop import NonFiniteLoss, run_steps
-from sword_jax.world_model import checkpoint
 
 STEPS = 5
 

@@ -14,7 +14,7 @@ import numpy as np
 from flax import nnx
 
 from sword_jax import sharding as shd
-from sword_jax.dit.world_model import action_chunks
+from sword_jax.dit.action_dit import action_chunks
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import data, train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig

@@ -11,7 +11,7 @@ from flax import nnx
 
 import configs
 from sword_jax import sharding as shd
-from sword_jax.dit.world_model import WorldModel
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import data, flow, train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig

@@ -43,13 +43,13 @@ from sword_jax import tracing
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.env_rollout import make_act_fns
-from sword_jax.rl.evaluate import evaluate_in_sim
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.learned_simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.params_io import load_params
 from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.reward_model import as_reward_model, build_detector
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
-from sword_jax.rl.simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rng import stream_key, stream_rng
 from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
 

@@ -65,7 +65,7 @@ def stage_probe(ctx: Context) -> dict:
 
 
 def stage_evaluate(ctx: Context) -> dict:
-    from train import evaluate, pipeline_data
+    from train import evaluate_world_model, pipeline_data
 
     splits = pipeline_data.write_eval_splits(ctx)
     out = ctx.path("eval", "x")[:-2]
@@ -76,7 +76,7 @@ def stage_evaluate(ctx: Context) -> dict:
             argv += [flag, ctx.results[stage]["path"]]
     for split, path in splits.items():
         argv += ["--episodes", f"{split}={path}"]
-    report = evaluate.main(argv)
+    report = evaluate_world_model.main(argv)
     return {"report": report, "splits": splits, "metrics": pipeline_data.read_eval_results(out)}
 
 

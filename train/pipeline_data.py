@@ -165,7 +165,7 @@ def encode_training_latents(ctx: Context) -> dict:
 
 
 def write_eval_splits(ctx: Context) -> dict[str, str]:
-    """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate``
+    """LIBERO-Original / LIBERO-Mixed from the held-out episodes, as ``.npz`` files for ``train.evaluate_world_model``
     (with each episode's true state ``targets`` and ``rewards`` for the action-following metrics)."""
     from sword_jax.augment.eval_splits import build_eval_splits
     from sword_jax.augment.pipeline import seg_classes_from_config
@@ -191,7 +191,7 @@ def write_eval_splits(ctx: Context) -> dict[str, str]:
 
 
 def read_eval_results(out_dir: str) -> dict:
-    """The overall metrics per split and model from ``train.evaluate``'s ``results.json``."""
+    """The overall metrics per split and model from ``train.evaluate_world_model``'s ``results.json``."""
     path = os.path.join(out_dir, "results.json")
     if not os.path.exists(path):
         return {}

@@ -72,7 +72,7 @@ def hash_vae(cfg, path: str) -> str:
 
 def hash_checkpoint(path: str) -> str:
     """Hash of the arrays in an orbax parameter checkpoint (reward model, policy), restored as saved."""
-    from sword_jax.world_model import checkpoint
+    from sword_jax import checkpoint
 
     ckpt = checkpoint.Checkpointer(path)
     try:

@@ -25,9 +25,9 @@ import numpy as np
 import configs
 from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
-from sword_jax.rl.evaluate import evaluate_in_sim
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
+from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.sft import train_sft
 from sword_jax.train_loop import NonFiniteLoss
 

@@ -6,7 +6,7 @@ Targets come from the recorded simulator state: ``ee_states[:, :3]``, the finger
 ``gripper_states[:, 0] - gripper_states[:, 1]`` and the target bowl's free-joint position in
 ``states`` (a root body's free-joint qpos is its world position). A random ``--holdout`` share of
 episodes (seeded) is held out and the probe's error there is reported next to a constant predictor's (the
-training mean). Writes ``<out>/probe.npz`` (default ``<workdir>/probe``) for ``train.evaluate --probe``.
+training mean). Writes ``<out>/probe.npz`` (default ``<workdir>/probe``) for ``train.evaluate_world_model --probe``.
 """
 
 from __future__ import annotations

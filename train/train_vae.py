@@ -12,7 +12,7 @@ frames; with ``vae.train_styles`` (default) a ``vae.styled_fraction`` share of t
 ``<workdir>/checkpoints``; the run auto-resumes from it. The loop is :func:`sword_jax.train_loop.run_steps`:
 metrics one log step late to ``<workdir>/metrics.jsonl`` and TensorBoard, and a non-finite loss stops the
 run naming the step, the last good checkpoint kept. ``<workdir>/vae/`` holds the final pure-dict VAE
-state that ``train.evaluate`` and the pipeline load.
+state that ``train.evaluate_world_model`` and the pipeline load.
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ from flax import nnx
 import configs
 from train.distributed import ENTRY_MAX_TRACES
 from configs.base import ExperimentConfig
+from sword_jax import checkpoint
 from sword_jax import sharding as shd
 from sword_jax.load import load_vae_params
 from sword_jax.train_loop import NonFiniteLoss, run_steps
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
-from sword_jax.world_model import checkpoint
 from train import distributed
 
 

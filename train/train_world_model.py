@@ -28,11 +28,12 @@ from flax import nnx
 
 import configs
 from configs.base import ExperimentConfig
+from sword_jax import checkpoint
 from sword_jax import sharding as shd
-from sword_jax.dit.world_model import WorldModel
+from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.train_loop import NonFiniteLoss, differing_keys, run_steps
-from sword_jax.world_model import checkpoint, data, train_state, train_step
+from sword_jax.world_model import data, train_state, train_step
 from train import distributed
 
 def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:

@@ -5,7 +5,7 @@
   transposed to ``[in, out]``, the Conv3d patch embedding ``[dim, c, pt, ph, pw]`` becomes
   channels-last ``(pt, ph, pw, c, dim)``, and per-block keys ``blocks.N.*`` are stacked on the
   leading ``layers`` axis of the scanned block parameters.
-* ``load_official_into_world_model(path, cfg)``: a :class:`sword_jax.dit.world_model.WorldModel`
+* ``load_official_into_world_model(path, cfg)``: a :class:`sword_jax.dit.action_dit.WorldModel`
   whose DiT is the official checkpoint and whose action branches are fresh.
 * ``run_reference_cases(ref_dir)`` runs every ``dit_*.npz`` case of a reference directory (the
   official model's inputs, outputs and intermediates) through the port and compares.
@@ -25,10 +25,10 @@ import numpy as np
 from flax import nnx
 
 from sword_jax.convert import CaseResult
+from sword_jax.dit.action_dit import ARCH_FIELDS, ActionConditioner, WorldModel
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dit.layers import timestep_sinusoid
 from sword_jax.dit.model import WanDiT
-from sword_jax.dit.world_model import ARCH_FIELDS, ActionConditioner, WorldModel
 
 _CONFIG_FIELDS = ("in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers", "text_dim",
                   "text_len", "eps", "qk_norm", "cross_attn_norm")

@@ -30,8 +30,8 @@ import numpy as np
 from flax import struct
 from gymnasium.vector import AutoresetMode
 
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.rollout import chunk_outcome
-from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
 
 
 @struct.dataclass

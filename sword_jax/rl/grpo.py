@@ -30,9 +30,9 @@ from jaxtyping import Array, Float
 from sword_jax import optim, tracing
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import token_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
-from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
 
 SIGNAL_EPS = 1e-6
 

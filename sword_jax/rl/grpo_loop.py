@@ -26,7 +26,7 @@ import jax
 
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.evaluate import SuccessCurve
+from sword_jax.rl.policy_success import SuccessCurve
 from sword_jax.train_loop import LoopResult, StepFn, run_steps
 
 # RL config keys that shape a GRPO run's train state: a resumed run must share them with its checkpoint.

@@ -7,8 +7,8 @@ from typing import Any
 
 from flax import nnx
 
+from sword_jax import checkpoint
 from sword_jax.rl.config import RLConfig
-from sword_jax.world_model import checkpoint
 
 
 def save_params(path: str, params: nnx.State, cfg: RLConfig, *, kind: str, step: int = 0, **meta: Any) -> None:

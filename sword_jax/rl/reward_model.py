@@ -4,7 +4,7 @@ Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_
 (``rl.reward_labels``: by default the task's success predicate on each frame's state). An imagined
 trajectory succeeds once a frame scores at least the threshold (0.9); a chunk's reward is the change
 of the score, and the GRPO return follows ``rl.imagined_return`` (by default success alone). :func:`as_reward_model` wraps trained params in the
-:class:`~sword_jax.rl.simulator.RewardModel` protocol.
+:class:`~sword_jax.rl.learned_simulator.RewardModel` protocol.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from jaxtyping import Array, Float
 from sword_jax import optim
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import RewardModel
 from sword_jax.rl.policy import resize_frames
-from sword_jax.rl.simulator import RewardModel
 
 
 class SuccessDetector(nnx.Module):

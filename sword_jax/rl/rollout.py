@@ -22,8 +22,8 @@ from flax import nnx
 from jaxtyping import Array, Bool, Float, Int
 
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import resize_frames, sample_chunk, tokens_to_actions
-from sword_jax.rl.simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.sharding import constrain
 
 
@@ -142,7 +142,7 @@ def imagined_rollout(
 
     Args:
       graphdef / policy_params: the split :class:`~sword_jax.rl.policy.VLAPolicy`.
-      simulator: the learned simulator (protocol in :mod:`sword_jax.rl.simulator`).
+      simulator: the learned simulator (protocol in :mod:`sword_jax.rl.learned_simulator`).
       reward_model: per-frame success scorer.
       start: start states with leading axis N (already expanded to groups).
       cfg: RL config (threshold, chunk limit, temperature, success bonus).

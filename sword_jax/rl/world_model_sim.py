@@ -1,4 +1,4 @@
-"""The world model + VAE as a :class:`~sword_jax.rl.simulator.LearnedSimulator`.
+"""The world model + VAE as a :class:`~sword_jax.rl.learned_simulator.LearnedSimulator`.
 
 Per step (one action chunk of 8 actions = 2 latent frames):
 
@@ -29,14 +29,13 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 from flax import nnx
 from jaxtyping import Array, Float
 
-from sword_jax.dit.world_model import FRAMES_PER_LATENT  # the world model's actions per latent
+from sword_jax.dit.action_dit import FRAMES_PER_LATENT  # the world model's actions per latent
+from sword_jax.rl.learned_simulator import LearnedSimulator, StartState
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
-from sword_jax.rl.simulator import LearnedSimulator, StartState
 from sword_jax.vae import api as vae_api
 from sword_jax.world_model import sampler as wm_sampler
 from sword_jax.world_model.config import FlowConfig
@@ -115,7 +114,7 @@ def world_model_simulator(
     """Builds the learned simulator from a split WorldModel and a split WanVAE.
 
     Args:
-      wm_graphdef / wm_state: ``nnx.split`` of :class:`sword_jax.dit.world_model.WorldModel`.
+      wm_graphdef / wm_state: ``nnx.split`` of :class:`sword_jax.dit.action_dit.WorldModel`.
       vae_graphdef / vae_state: ``nnx.split`` of the VAE.
       flow_cfg: flow-matching settings (shift, prediction type, guidance; ``pixel_round_trip`` makes
         each next context the VAE's re-encoding of the decoded chunk, as in evaluation).

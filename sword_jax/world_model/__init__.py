@@ -7,5 +7,7 @@ Modules (import them directly; importing this package has no side effects):
 * ``rollout``: autoregressive latent rollouts (one jit), WoVR pixel round trip, streaming decode.
 * ``data``: the pre-encoded latent dataset, the resumable segment sampler and sharded loader.
 * ``train_state`` / ``train_step``: the pure ``step(state, batch, key)`` (teacher forcing or DLB).
-* ``checkpoint``: orbax checkpointer (state + cache + data position + RNG) and the metric logger.
+
+The model itself is :mod:`sword_jax.dit.action_dit`; checkpoints and metric logging, shared by every
+trainer, are :mod:`sword_jax.checkpoint`.
 """

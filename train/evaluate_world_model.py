@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m train.evaluate --config sword:tiny --out DIR --synthetic
-    python -m train.evaluate --config sword:base --out DIR \
+    python -m train.evaluate_world_model --config sword:tiny --out DIR --synthetic
+    python -m train.evaluate_world_model --config sword:base --out DIR \
         --model baseline=runs/wm_tf --model sword=runs/wm_dlb \
         --episodes original=heldout_original.hdf5 --episodes mixed=heldout_mixed.hdf5 [--vae-checkpoint DIR]
 
@@ -18,7 +18,7 @@ with ``frames [E, T, H, W, 3]`` (uint8 or [0, 1]) and ``actions [E, T, a]``. ``-
 generates both splits (moving textures; "mixed" re-styled) and, without ``--model``, evaluates a
 randomly initialised world model: a smoke run of the whole pipeline. Models: a world-model
 workdir (``<workdir>/checkpoints``, EMA params when present). VAE: ``--vae-checkpoint`` (an orbax
-checkpoint of the VAE's pure-dict state written by ``world_model.checkpoint.Checkpointer``) or a
+checkpoint of the VAE's pure-dict state written by ``sword_jax.checkpoint.Checkpointer``) or a
 random initialisation, which the report then states.
 
 Action-following fidelity (optional): ``--probe PATH`` (``train.train_probe``'s ``probe.npz``) adds
@@ -149,8 +149,10 @@ def _fidelity(cfg: ExperimentConfig, probe_path: str, reward_path: str):
         params, _ = load_params(reward_path, params, kind="reward_model")
         score = jax.jit(as_reward_model(graphdef, params).score)
 
-        def success_score(frames):
+        def score_frames(frames):
             return np.concatenate([np.asarray(score(jnp.asarray(frames[i:i + 256]))) for i in range(0, len(frames), 256)])
+
+        success_score = score_frames
 
     kwargs = {"success_score": success_score, "success_threshold": cfg.rl.success_threshold}
     return FidelityScorer.from_probe_file(probe_path, **kwargs) if probe_path else FidelityScorer(**kwargs)
