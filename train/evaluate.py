@@ -290,6 +290,6 @@ def run(cfg: ExperimentConfig, inputs: EvalInputs) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main)
+    cli.run(main)

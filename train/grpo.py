@@ -333,6 +333,6 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))
+    cli.run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))

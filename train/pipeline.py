@@ -200,6 +200,6 @@ def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str]
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main)
+    cli.run(main)

@@ -88,6 +88,6 @@ def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int 
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

@@ -98,6 +98,6 @@ def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

@@ -152,6 +152,6 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

@@ -151,6 +151,6 @@ def run(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run as cli_run
+    from sword_jax import cli
 
-    cli_run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))
