@@ -1,5 +1,7 @@
 """The pipeline's stage runner: --stop-after, resuming after it, and the stage order."""
 
+import os
+
 from train import pipeline
 from train.stagerunner import Stage
 
@@ -31,3 +33,60 @@ def test_policy_work_is_resumable_stages_around_the_world_model():
     assert names.index("data") < names.index("sft_policy") < names.index("policy_data") < names.index("latents")
     # The probe and the success detector score action following inside the evaluation.
     assert names.index("probe") < names.index("evaluate") and names.index("reward_model") < names.index("evaluate")
+
+
+def test_stages_call_entry_points_run_with_the_config_their_command_line_would_parse(tmp_path, monkeypatch):
+    """Each stage hands its entry point's ``run`` the pipeline's typed config (work dir and data path
+    set for the stage): the config ``python -m train.X`` parses from the same flags. ``--seed 3`` (two
+    tokens) once fell out of the argv the pipeline rebuilt for its entry points."""
+    import configs
+    from train import evaluate_world_model, grpo, pipeline_data, pipeline_policy, train_policy, train_probe
+    from train import train_reward
+    from train import train_vae, train_world_model
+    from train.stagerunner import Context
+
+    base = ["--config", "sword:tiny", "--seed", "3", "--model.num_layers=1", f"--workdir={tmp_path}"]
+    cfg, _ = configs.from_argv(base)
+    ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", results={
+        "data": {"train": {"path": "train.hdf5"}, "demos": {"path": "demos.hdf5"}},
+        "vae": {"path": "vae_dir"}, "latents": {"path": "latents.npz"}, "world_model": {"workdir": "wm_dir"},
+        "probe": {"path": "probe.npz"}, "reward_model": {"path": "rm_dir"}, "sft_policy": {"path": "sft_dir"}})
+    calls = {}
+
+    def stub(name, result):
+        def run(cfg, *args, **kwargs):
+            calls[name] = (cfg, args, kwargs)
+            return dict(result)
+        return run
+
+    monkeypatch.setattr(train_vae, "run", stub("vae", {"steps": 0}))
+    monkeypatch.setattr(train_world_model, "run", stub("world_model", {"step": 2, "metrics": {}}))
+    monkeypatch.setattr(train_probe, "run", stub("probe", {"path": "probe.npz"}))
+    monkeypatch.setattr(evaluate_world_model, "run", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))
+    monkeypatch.setattr(pipeline_data, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})
+    monkeypatch.setattr(train_reward, "run", stub("reward_model", {"path": "rm_dir"}))
+    monkeypatch.setattr(train_policy, "run", stub("sft_policy", {"path": "sft_dir"}))
+    monkeypatch.setattr(grpo, "run", stub("policy", {"curve": [{"step": 0, "mean": 0.5}], "workdir": "grpo_dir"}))
+    for stage in (pipeline.stage_vae, pipeline.stage_world_model, pipeline.stage_probe, pipeline.stage_evaluate,
+                  pipeline_policy.reward_model, pipeline_policy.sft_policy, pipeline_policy.grpo_in_world_model):
+        stage(ctx)
+
+    def parsed(*flags):
+        return configs.from_argv(base + list(flags))[0]
+
+    vae_dir, wm_dir = str(tmp_path / "vae_run"), str(tmp_path / "world_model")
+    assert calls["vae"] == (parsed("--workdir", vae_dir), (["train.hdf5"],), {})
+    assert calls["world_model"] == (parsed("--workdir", wm_dir, "--data.path=latents.npz"), (), {})
+    assert calls["vae"][0].seed == 3 and calls["vae"][0].model.num_layers == 1
+    assert os.path.isdir(vae_dir) and os.path.isdir(wm_dir)  # made for the stage, as the entry points expect
+    assert calls["probe"] == (cfg, (["train.hdf5"], str(tmp_path / "probe"), train_probe.probe_config(cfg)), {})
+    eval_cfg, (inputs,), _ = calls["evaluate"]
+    assert eval_cfg == cfg and inputs == evaluate_world_model.EvalInputs(
+        models={cfg.name: "wm_dir"}, episodes={"original": "o.npz", "mixed": "m.npz"}, out=str(tmp_path / "eval"),
+        vae_checkpoint="vae_dir", probe="probe.npz", reward_model="rm_dir")
+    assert calls["reward_model"][:2] == (cfg, (["demos.hdf5", "train.hdf5"],))  # state labels: + fixed-length
+    assert calls["sft_policy"][:2] == (cfg, (["demos.hdf5"],))
+    grpo_cfg, (grpo_inputs,), grpo_kwargs = calls["policy"]
+    assert grpo_cfg == cfg and grpo_kwargs["simulator"] == "world_model"
+    assert grpo_inputs == grpo.GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir",
+                                          policy="sft_dir", reward="rm_dir")

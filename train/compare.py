@@ -322,9 +322,15 @@ def _stage_names(run: str, *, policy: bool = True) -> list[str]:
     return names if _needs_policy(run) and policy else names[:names.index("evaluate") + 1]
 
 
-def _run_argv(run: str, size: str, seed: int, workdir: str, overrides: Sequence[str]) -> tuple[str, list[str]]:
+def _run_config(run: str, size: str, seed: int, workdir: str,
+                overrides: Sequence[str]) -> tuple[str, "configs.ExperimentConfig", list[str]]:
+    """``(config name, typed config, its dotted overrides)`` of ``run`` at ``seed`` in ``workdir``."""
+    import configs
+
     config, extra = runs_for(size)[run]
-    return config, ["--config", config, f"--seed={seed}", f"--workdir={workdir}", *extra, *overrides]
+    dotted = [f"--seed={seed}", *extra, *overrides]
+    cfg, _ = configs.from_argv(["--config", config, dotted[0], f"--workdir={workdir}", *dotted[1:]])
+    return config, cfg, dotted
 
 
 def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str],
@@ -336,13 +342,11 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     """
     import glob
 
-    import configs
     from configs.cli import to_dict
     from train import pipeline, stagerunner
 
     shared_dir = os.path.join(out, "shared", run)
-    config, argv = _run_argv(run, size, shared_seed, shared_dir, overrides)
-    cfg, _ = configs.from_argv(argv)
+    config, cfg, dotted = _run_config(run, size, shared_seed, shared_dir, overrides)
     stagerunner.check_workdir_config(cfg, shared_dir)
     wanted = [name for name in _stage_names(run, policy=policy) if name in SHAREABLE]
     for other in sorted(glob.glob(os.path.join(out, "shared", "*", "config.json"))):
@@ -352,7 +356,7 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
                 adopt_stages(shared_dir, donor, cfg, json.load(f), wanted)
     stages = [s for s in pipeline.STAGES if s.name in wanted]
     done = {s.name for s in stages if os.path.exists(os.path.join(shared_dir, "stages", f"{s.name}.json"))}
-    ctx = stagerunner.Context(cfg=cfg, workdir=shared_dir, cfg_name=config, overrides=[argv[2], *argv[4:]])  # seed, extra
+    ctx = stagerunner.Context(cfg=cfg, workdir=shared_dir, cfg_name=config, overrides=dotted)
     stagerunner.run_stages(stages, ctx)
     return shared_dir, to_dict(cfg), [s.name for s in stages if s.name not in done]
 
@@ -398,14 +402,12 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
 
     ``policy=False`` stops a comparison-3 run after its evaluation (no supervised policy, no GRPO): a
     slice for comparisons 1 and 2 only, recorded as such."""
-    import configs
     from train import pipeline
 
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     start = time.perf_counter()
     workdir = os.path.join(out, run, f"seed{seed}")
-    config, argv = _run_argv(run, size, seed, workdir, overrides)
-    cfg, _ = configs.from_argv(argv)
+    config, cfg, dotted = _run_config(run, size, seed, workdir, overrides)
     shared: dict = {"seed": seed, "workdir": None, "built_here": [], "adopted": []}
     if share:
         shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides,
@@ -413,7 +415,7 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
         adopted = adopt_stages(workdir, shared_dir, cfg, shared_cfg)
         shared.update(seed=shared_seed, workdir=shared_dir, built_here=built, adopted=adopted)
     shared_seconds = time.perf_counter() - start
-    stages = pipeline.main(argv + ["--stop-after", _stage_names(run, policy=policy)[-1]])
+    stages = pipeline.run(cfg, stop_after=_stage_names(run, policy=policy)[-1], cfg_name=config, overrides=dotted)
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
     shared["hashes"] = shared_hashes(cfg, stages)

@@ -36,7 +36,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import jax
 import numpy as np
@@ -201,19 +201,43 @@ def latent_notes(results) -> list[str]:
     return lines
 
 
+@dataclasses.dataclass(frozen=True)
+class EvalInputs:
+    """What :func:`run` evaluates and where the report goes (the command line's flags, typed)."""
+
+    models: Mapping[str, str] = dataclasses.field(default_factory=dict)  # name -> world-model workdir
+    episodes: Mapping[str, str] = dataclasses.field(default_factory=dict)  # split -> HDF5 / npz path
+    out: str = ""  # report directory (default: eval.report_dir, else <workdir>/eval)
+    vae_checkpoint: str = ""  # empty: a randomly initialised VAE (the report says so)
+    synthetic: bool = False  # synthetic splits, and a random-init world model when ``models`` is empty
+    metrics: tuple[str, ...] = ()  # subset of ALL_METRICS (default: eval.metrics)
+    probe: str = ""  # train.train_probe's probe.npz
+    reward_model: str = ""  # train.train_reward's reward_model dir
+
+
 def main(argv: Sequence[str] | None = None) -> str:
     args, cfg = _parse(sys.argv[1:] if argv is None else argv)
+    inputs = EvalInputs(models=dict(item.split("=", 1) for item in args.model),
+                        episodes=dict(item.partition("=")[::2] for item in args.episodes), out=args.out,
+                        vae_checkpoint=args.vae_checkpoint, synthetic=args.synthetic,
+                        metrics=tuple(m for m in args.metrics.split(",") if m), probe=args.probe,
+                        reward_model=args.reward_model)
+    return run(cfg, inputs)["report"]
+
+
+def run(cfg: ExperimentConfig, inputs: EvalInputs) -> dict:
+    """Rolls every model out on every split, scores and writes the report; returns
+    ``{"report": path of report.md, "out": the report directory}``."""
     start = time.time()
     splits = {}
-    if args.synthetic:
+    if inputs.synthetic:
         splits = {s: synthetic_split(cfg, s, seed=stream_seed(cfg.seed, f"evaluate/synthetic/{s}"))
                   for s in cfg.eval.splits}
-    for item in args.episodes:
-        split, _, path = item.partition("=")
+    for split, path in inputs.episodes.items():
         splits[split] = load_split(path, cfg.eval.num_episodes)
     if not splits:
         raise SystemExit("evaluate: give --episodes SPLIT=PATH (or --synthetic)")
-    models = dict(item.split("=", 1) for item in args.model) or ({"random-init": None} if args.synthetic else {})
+    models = dict(inputs.models) or ({"random-init": None} if inputs.synthetic else {})
     if not models:
         raise SystemExit("evaluate: give --model NAME=WORKDIR (or --synthetic for a random-init smoke run)")
     available = min(s["frames"].shape[1] for s in splits.values())
@@ -222,9 +246,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     notes = [f"Horizon: {horizon} frames (first frame + {given - 1} context frames given, {horizon - given} predicted; "
              f"metrics over the predicted frames {given}..{horizon - 1}), {cfg.eval.num_episodes} episodes per split, "
              f"{cfg.flow.sample_steps} Euler steps per chunk."]
-    if not args.vae_checkpoint:
+    if not inputs.vae_checkpoint:
         notes.append("VAE: random initialisation (no --vae-checkpoint): decoded frames are not meaningful.")
-    vae_graphdef, vae_state = experiment_vae(cfg, args.vae_checkpoint)
+    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae_checkpoint)
     gt = {s: v["frames"][:, :horizon] for s, v in splits.items()}
     predictions: dict[str, dict[str, np.ndarray]] = {}
     latent: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # model -> split -> latent_errors()
@@ -243,12 +267,12 @@ def main(argv: Sequence[str] | None = None) -> str:
             print(f"[evaluate] rolled out {name} on {split}: {gt[split].shape[0]} episodes x {horizon} frames "
                   f"in {time.time() - t0:.1f} s", flush=True)
     rollout_s = time.time() - start  # data, models and rollouts
-    suite = MetricSuite(cfg.eval, metrics=tuple(m for m in args.metrics.split(",") if m) or cfg.eval.metrics)
+    suite = MetricSuite(cfg.eval, metrics=inputs.metrics or cfg.eval.metrics)
     truth = {s: {key: v[key][:, :horizon] for key in ("targets", "rewards") if key in v} for s, v in splits.items()}
     results = evaluate_videos(suite, gt, predictions, given_frames=given, horizon_window=cfg.eval.horizon_window,
                               settings={"horizon": horizon, "given_frames": given, "config": cfg.name,
-                                        "probe": args.probe, "reward_model": args.reward_model},
-                              fidelity=_fidelity(cfg, args.probe, args.reward_model), truth_by_split=truth)
+                                        "probe": inputs.probe, "reward_model": inputs.reward_model},
+                              fidelity=_fidelity(cfg, inputs.probe, inputs.reward_model), truth_by_split=truth)
     add_latent_errors(results, latent, given_frames=given, horizon=horizon)
     notes += fidelity_notes(results) + latent_notes(results)
     metrics_s = time.time() - start - rollout_s
@@ -260,14 +284,14 @@ def main(argv: Sequence[str] | None = None) -> str:
                       "vae_floor_s": floor_s, "total_s": time.time() - start}  # write_report adds report_s
     videos = {s: {"ground truth": gt[s][: cfg.eval.report_videos],
                   **{m: predictions[m][s][: cfg.eval.report_videos] for m in predictions}} for s in gt}
-    out = args.out or cfg.eval.report_dir or os.path.join(cfg.workdir, "eval")
+    out = inputs.out or cfg.eval.report_dir or os.path.join(cfg.workdir, "eval")
     path = write_report(out, results, videos, title=f"World-model evaluation: {cfg.name}", notes=notes,
                         max_episodes=cfg.eval.report_videos)
     print(f"[evaluate] report written to {path} ({time.time() - start:.1f} s)", flush=True)
-    return path
+    return {"report": path, "out": out}
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main)
+    cli.run(main)

@@ -54,6 +54,7 @@ from sword_jax.rng import stream_key, stream_rng
 from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
 
 log = functools.partial(print, flush=True)
+SIMULATORS = ("world_model", "env", "toy")
 
 
 def _toy_setup(cfg, rl):
@@ -88,18 +89,18 @@ def sim_reckoning(episodes):
     return cfg
 
 
-def _world_model_setup(cfg, rl, args):
+def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
     from sim.dataset import read_dataset
     from sword_jax.load import experiment_vae, experiment_world_model
     from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
-    episodes = rl_data.load_episodes(args.demos, read=read_dataset)
+    episodes = rl_data.load_episodes(inputs.demos, read=read_dataset)
     if rl.imagined_proprio == "reckoned" and rl.proprio_dim != 8:
         raise ValueError(f"rl.imagined_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                          f"{rl.proprio_dim} (use --rl.imagined_proprio=missing)")
     reckoning = sim_reckoning(episodes) if rl.imagined_proprio == "reckoned" else None
-    wm_graphdef, wm_state = experiment_world_model(cfg, args.world_model)
-    vae_graphdef, vae_state = experiment_vae(cfg, args.vae)
+    wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
+    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     tf = cfg.vae.temporal_factor  # frames per latent
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
@@ -109,7 +110,7 @@ def _world_model_setup(cfg, rl, args):
                                 execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // tf,
                                 proprio_reckoning=reckoning)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
-    det_params, _ = load_params(args.reward, det_params, kind="reward_model")
+    det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
 
     def starts(key, step):
@@ -208,10 +209,22 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     return {"curve": curve, "workdir": workdir, "history": result.history}
 
 
+@dataclasses.dataclass(frozen=True)
+class GRPOInputs:
+    """The checkpoints and demonstrations GRPO starts from (``--simulator world_model`` needs
+    ``world_model``, ``reward`` and ``demos``; ``env`` reads ``demos`` only to fit the proprio reckoning)."""
+
+    demos: tuple[str, ...] = ()  # LIBERO-layout HDF5 whose frames are the start keyframes
+    world_model: str = ""  # train_world_model work dir
+    vae: str = ""  # VAE checkpoint directory (train_vae)
+    policy: str = ""  # SFT policy checkpoint (train_policy); empty: from scratch
+    reward: str = ""  # reward model checkpoint (train_reward)
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--simulator", choices=("world_model", "env", "toy"), default="world_model")
+    parser.add_argument("--simulator", choices=SIMULATORS, default="world_model")
     parser.add_argument("--env-workers", type=int, default=0, help="C-engine processes (--simulator env, evaluation)")
     parser.add_argument("--renderer", choices=("jax", "gl"), default="jax",
                         help="frames of the C-engine episodes: the renderer the demonstrations were made with")
@@ -222,35 +235,51 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.eval_episodes_per_task")
     args = parser.parse_args(rest)
+    inputs = GRPOInputs(demos=tuple(args.demos), world_model=args.world_model, vae=args.vae, policy=args.policy,
+                        reward=args.reward)
+    return run(cfg, inputs, simulator=args.simulator, env_workers=args.env_workers, renderer=args.renderer,
+               eval_episodes=args.eval_episodes)
+
+
+def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers: int = 0, renderer: str = "jax",
+        eval_episodes: int = 0) -> dict:
+    """GRPO in ``simulator`` (``world_model``, ``env`` or ``toy``), resuming from ``<cfg.workdir>/rl/grpo``.
+
+    ``eval_episodes`` (per task) overrides ``rl.eval_episodes_per_task``; ``env_workers`` are the C-engine
+    processes of the evaluations (and of the episodes with ``simulator="env"``). Returns
+    ``{"curve": evaluation points, "workdir"}`` (plus ``"history"`` with ``simulator="env"``).
+    """
+    if simulator not in SIMULATORS:
+        raise ValueError(f"train.grpo: simulator {simulator!r} is none of {SIMULATORS}")
     rl = cfg.rl
-    if args.simulator == "toy":
+    if simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
-    elif args.simulator == "env":
+    elif simulator == "env":
         pass
-    elif not (args.world_model and args.reward and args.demos):
+    elif not (inputs.world_model and inputs.reward and inputs.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
     workdir = os.path.join(cfg.workdir, "rl", "grpo")
     os.makedirs(workdir, exist_ok=True)
 
     graphdef, params = build_policy(rl, seed=cfg.seed)
-    if args.policy:
-        params, _ = load_params(args.policy, params, kind="policy")
-    if args.simulator == "env":
-        if rl.env_proprio == "reckoned" and not args.demos:
+    if inputs.policy:
+        params, _ = load_params(inputs.policy, params, kind="policy")
+    if simulator == "env":
+        if rl.env_proprio == "reckoned" and not inputs.demos:
             raise SystemExit("train.grpo --simulator env --rl.env_proprio=reckoned needs --demos (the reckoning's "
                              "gains are fitted to them)")
         reckoning = None
         if rl.env_proprio == "reckoned":
             from sim.dataset import read_dataset
 
-            reckoning = sim_reckoning(rl_data.load_episodes(args.demos, read=read_dataset))
+            reckoning = sim_reckoning(rl_data.load_episodes(inputs.demos, read=read_dataset))
         return run_in_env(cfg, rl, graphdef, params, workdir,
-                          episodes_per_task=args.eval_episodes or rl.eval_episodes_per_task,
-                          workers=args.env_workers, renderer=args.renderer, reckoning=reckoning)
-    if args.simulator == "toy":
+                          episodes_per_task=eval_episodes or rl.eval_episodes_per_task,
+                          workers=env_workers, renderer=renderer, reckoning=reckoning)
+    if simulator == "toy":
         sim, reward_model, starts, eval_start = _toy_setup(cfg, rl)
     else:
-        sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, args)
+        sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, inputs)
 
     # The step runs on the config's mesh, where the world model already lives; the policy state and the
     # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
@@ -259,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES, mesh=mesh, rules=cfg.mesh.rules)
     root = jax.random.key(cfg.seed)
-    episodes = args.eval_episodes or rl.eval_episodes_per_task
+    episodes = eval_episodes or rl.eval_episodes_per_task
 
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
@@ -269,7 +298,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     def evaluate(step, params):
         extra = {}
-        if args.simulator == "toy":
+        if simulator == "toy":
             success = np.asarray(greedy(params))
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
                       "episodes": int(success.size), "where": "imagined (toy)"}
@@ -277,8 +306,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
             from sim.lockstep import lockstep_evaluation
 
             kwargs = dict(lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
-                                              max_steps=cfg.sim.max_steps, renderer=args.renderer,
-                                              workers=args.env_workers), act=act)
+                                              max_steps=cfg.sim.max_steps, renderer=renderer,
+                                              workers=env_workers), act=act)
             result = evaluate_in_sim(graphdef, params, rl, **kwargs)
             result["where"] = "mujoco"
             if rl.eval_masked_proprio:
@@ -297,13 +326,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f} eta {eta:.0f}s")
 
-    run_id = grpo_run_id(rl, seed=cfg.seed, simulator=args.simulator, **{"sim.tasks": cfg.sim.tasks})
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     _, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl, workdir=workdir,
                           evaluate=evaluate, run_id=run_id, progress=progress, log=log)
     return {"curve": curve, "workdir": workdir}
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))
+    cli.run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))

@@ -15,14 +15,15 @@ finished stages stay, so a later run continues from there). Writes ``report.md``
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import configs
 from sword_jax.cli import UsageError
-from train import stagerunner
+from train import distributed, stagerunner
 from train.stagerunner import Context, Stage
 
 
@@ -35,8 +36,8 @@ def stage_data(ctx: Context) -> dict:
 def stage_vae(ctx: Context) -> dict:
     from train import train_vae
 
-    workdir = ctx.path("vae_run", "x")[:-2]
-    summary = train_vae.main(ctx.entry_argv("--workdir", workdir, "--episodes", ctx.results["data"]["train"]["path"]))
+    workdir = ctx.stage_dir("vae_run")
+    summary = train_vae.run(ctx.cfg_in(workdir), [ctx.results["data"]["train"]["path"]])
     summary["path"] = os.path.join(workdir, "vae")
     return summary
 
@@ -50,9 +51,9 @@ def stage_latents(ctx: Context) -> dict:
 def stage_world_model(ctx: Context) -> dict:
     from train import train_world_model
 
-    workdir = ctx.path("world_model", "x")[:-2]
-    latents = ctx.results["latents"]
-    summary = train_world_model.main(ctx.entry_argv("--workdir", workdir, f"--data.path={latents['path']}"))
+    workdir = ctx.stage_dir("world_model")
+    data = dataclasses.replace(ctx.cfg.data, path=ctx.results["latents"]["path"])
+    summary = train_world_model.run(ctx.cfg_in(workdir, data=data))
     return {"workdir": workdir, "final_step": summary["step"], "final_metrics": summary["metrics"],
             "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}
 
@@ -60,24 +61,20 @@ def stage_world_model(ctx: Context) -> dict:
 def stage_probe(ctx: Context) -> dict:
     from train import train_probe
 
-    return train_probe.main(ctx.entry_argv("--demos", ctx.results["data"]["train"]["path"],
-                                           "--out", ctx.path("probe", "x")[:-2]))
+    return train_probe.run(ctx.cfg, [ctx.results["data"]["train"]["path"]], ctx.stage_dir("probe"),
+                           train_probe.probe_config(ctx.cfg))
 
 
 def stage_evaluate(ctx: Context) -> dict:
     from train import evaluate_world_model, pipeline_data
 
     splits = pipeline_data.write_eval_splits(ctx)
-    out = ctx.path("eval", "x")[:-2]
-    argv = ctx.entry_argv("--out", out, "--model", f"{ctx.cfg.name}={ctx.results['world_model']['workdir']}",
-                     "--vae-checkpoint", ctx.results["vae"]["path"])
-    for flag, stage in (("--probe", "probe"), ("--reward-model", "reward_model")):
-        if ctx.results.get(stage, {}).get("path"):
-            argv += [flag, ctx.results[stage]["path"]]
-    for split, path in splits.items():
-        argv += ["--episodes", f"{split}={path}"]
-    report = evaluate_world_model.main(argv)
-    return {"report": report, "splits": splits, "metrics": pipeline_data.read_eval_results(out)}
+    inputs = evaluate_world_model.EvalInputs(models={ctx.cfg.name: ctx.results["world_model"]["workdir"]}, episodes=splits,
+                                 out=ctx.stage_dir("eval"), vae_checkpoint=ctx.results["vae"]["path"],
+                                 probe=ctx.results.get("probe", {}).get("path") or "",  # skipped stages: none
+                                 reward_model=ctx.results.get("reward_model", {}).get("path") or "")
+    summary = evaluate_world_model.run(ctx.cfg, inputs)
+    return {"report": summary["report"], "splits": splits, "metrics": pipeline_data.read_eval_results(summary["out"])}
 
 
 def stage_reward_model(ctx: Context) -> dict:
@@ -158,33 +155,51 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if unknown:
         raise UsageError(f"--skip: unknown stage(s) {', '.join(sorted(unknown))}; stages: "
                          f"{', '.join(s.name for s in STAGES)}")
+    distributed.initialize(cfg.mesh)  # once for every stage (their entry points' run() leave process setup to main)
+    # what the report names as the config: its experiment:variant and the dotted overrides given
     name = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"),
                 next((a.split("=", 1)[1] for a in argv if a.startswith("--config=")), configs.DEFAULT))
     overrides = [a for a in argv if a.startswith("--") and a.split("=", 1)[0][2:].split(".")[0]
                  in cfg.__dataclass_fields__ and "=" in a and not a.startswith("--workdir")]
+    return run(cfg, stop_after=args.stop_after, skip=skip, only=set(args.only.split(",")) if args.only else None,
+               restart=args.restart, cfg_name=name, overrides=overrides)
+
+
+def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str] | None = None,
+        restart: bool = False, cfg_name: str = configs.DEFAULT, overrides: Sequence[str] = ()) -> dict:
+    """Runs the stages in ``cfg.workdir`` (finished ones are skipped); returns every stage's results.
+
+    Args:
+      cfg: the experiment config.
+      stop_after: the last stage to run (empty: all).
+      skip: stages left out of this run.
+      only: the stages that may run now (others must be done already); ``None``: any.
+      restart: discard the work dir's finished stages first.
+      cfg_name, overrides: the ``experiment:variant`` and dotted overrides the config came from, for the report.
+    """
     workdir = cfg.workdir
-    if args.restart and os.path.isdir(os.path.join(workdir, "stages")):
+    if restart and os.path.isdir(os.path.join(workdir, "stages")):
         import shutil
 
         shutil.rmtree(workdir)
     stagerunner.check_workdir_config(cfg, workdir)
-    ctx = Context(cfg=cfg, workdir=workdir, cfg_name=name, overrides=overrides)
+    ctx = Context(cfg=cfg, workdir=workdir, cfg_name=cfg_name, overrides=list(overrides))
     start = time.perf_counter()
     stages = STAGES
-    if args.stop_after:
-        stages = STAGES[:[s.name for s in STAGES].index(args.stop_after) + 1]
+    if stop_after:
+        stages = STAGES[:[s.name for s in STAGES].index(stop_after) + 1]
     if skip:
         stages = [s for s in stages if s.name not in skip]
-    results = stagerunner.run_stages(stages, ctx, only=set(args.only.split(",")) if args.only else None)
+    results = stagerunner.run_stages(stages, ctx, only=only)
     if stages is STAGES:
         print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
               f"report: {os.path.join(workdir, 'report.md')}")
     else:
-        print(f"[pipeline] {cfg.name}: stages up to {args.stop_after} done in {time.perf_counter() - start:.1f} s")
+        print(f"[pipeline] {cfg.name}: stages up to {stop_after} done in {time.perf_counter() - start:.1f} s")
     return results
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main)
+    cli.run(main)

@@ -1,10 +1,10 @@
 """Pipeline stages: reward model, supervised policy, then GRPO inside the world model with simulator evaluation.
 
 Each part is its own entry point (``train.train_reward``, ``train.train_policy``, ``train.grpo``),
-run here on the pipeline's config with its work dir. They are three stages so that each resumes on
-its own and so that runs which differ only in the world model (``train.compare``) can share the
-reward model and the supervised policy. The success curve (before and during GRPO, in the MuJoCo
-environments) lands in ``<workdir>/rl/grpo/success_curve.{json,png}``.
+whose ``run`` is called here with the pipeline's typed config and work dir. They are three stages so
+that each resumes on its own and so that runs which differ only in the world model
+(``train.compare``) can share the reward model and the supervised policy. The success curve (before
+and during GRPO, in the MuJoCo environments) lands in ``<workdir>/rl/grpo/success_curve.{json,png}``.
 """
 
 from __future__ import annotations
@@ -41,32 +41,29 @@ def reward_model(ctx: Context) -> dict:
     that episodes ending at their success never show."""
     from train import train_reward
 
-    files = ["--demos", _demos(ctx)]
+    files = [_demos(ctx)]
     train_file = ctx.results["data"]["train"]["path"]
-    if ctx.cfg.rl.reward_labels == "state" and train_file != files[1]:
-        files += ["--demos", train_file]
+    if ctx.cfg.rl.reward_labels == "state" and train_file != files[0]:
+        files.append(train_file)
     rollouts = ctx.results.get("policy_data", {}).get("path")
     if rollouts:
-        files += ["--demos", rollouts]
-    return _scalars(train_reward.main(ctx.entry_argv(f"--workdir={ctx.workdir}", *files)))
+        files.append(rollouts)
+    return _scalars(train_reward.run(ctx.cfg_in(ctx.workdir), files))
 
 
 def sft_policy(ctx: Context) -> dict:
     from train import train_policy
 
-    return _scalars(train_policy.main(
-        ctx.entry_argv(f"--workdir={ctx.workdir}", "--demos", _demos(ctx))))
+    return _scalars(train_policy.run(ctx.cfg_in(ctx.workdir), [_demos(ctx)]))
 
 
 def grpo_in_world_model(ctx: Context) -> dict:
     from train import grpo
 
-    result = grpo.main(ctx.entry_argv(
-        f"--workdir={ctx.workdir}", "--simulator", "world_model", "--demos", _demos(ctx),
-        "--world-model", ctx.results["world_model"]["workdir"], "--vae", ctx.results["vae"]["path"],
-        "--policy", ctx.results["sft_policy"]["path"], "--reward", ctx.results["reward_model"]["path"],
-        "--env-workers", str(cpu_workers()),
-    ))
+    inputs = grpo.GRPOInputs(demos=(_demos(ctx),), world_model=ctx.results["world_model"]["workdir"],
+                             vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
+                             reward=ctx.results["reward_model"]["path"])
+    result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     drop = ("seconds", "path")
     return {

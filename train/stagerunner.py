@@ -31,18 +31,26 @@ class Context:
     cfg: Any
     workdir: str
     results: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
-    cfg_name: str = "sword:tiny"  # experiment:variant the config came from
-    overrides: list[str] = dataclasses.field(default_factory=list)  # dotted overrides, forwarded to entry points
+    cfg_name: str = "sword:tiny"  # experiment:variant the config came from (for the report)
+    overrides: list[str] = dataclasses.field(default_factory=list)  # its dotted overrides (for the report)
     is_main: bool = True  # process 0
 
-    def entry_argv(self, *extra: str) -> list[str]:
-        """argv that reproduces the pipeline's config for a sub entry point (plus ``extra``)."""
-        return ["--config", self.cfg_name, *self.overrides, *extra]
-
     def path(self, *parts: str) -> str:
+        """A file under the work dir; its folder is made."""
         full = os.path.join(self.workdir, *parts)
         os.makedirs(os.path.dirname(full), exist_ok=True)
         return full
+
+    def stage_dir(self, *parts: str) -> str:
+        """A folder under the work dir (made), e.g. the work dir a stage's trainer writes into."""
+        full = os.path.join(self.workdir, *parts)
+        os.makedirs(full, exist_ok=True)
+        return full
+
+    def cfg_in(self, workdir: str, **sections) -> Any:
+        """The pipeline's config with ``workdir`` (and whole sections in ``sections``) replaced: what a
+        stage hands an entry point's ``run``."""
+        return dataclasses.replace(self.cfg, workdir=workdir, **sections)
 
 
 def write_json_atomic(path: str, payload: Any) -> None:

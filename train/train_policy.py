@@ -33,8 +33,6 @@ from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    from sim.dataset import read_dataset
-
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 demos (repeatable)")
@@ -44,14 +42,24 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="evaluation renderer: the one the demonstrations were rendered with")
     parser.add_argument("--holdout", type=float, default=0.1, help="fraction of demonstrations held out")
     args = parser.parse_args(rest)
-    rl = cfg.rl
+    return run(cfg, args.demos, eval_episodes=args.eval_episodes, eval_workers=args.eval_workers,
+               renderer=args.renderer, holdout=args.holdout)
+
+
+def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0, renderer: str = "jax",
+        holdout: float = 0.1) -> dict:
+    """Behaviour-clones (or resumes) the policy on ``demos`` in ``<cfg.workdir>/rl``; with ``eval_episodes``
+    per task, measures its success in the simulator. Returns the summary (also in ``sft_result.json``)."""
+    from sim.dataset import read_dataset
+
+    demos, rl = list(demos), cfg.rl
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.successful(rl_data.load_episodes(args.demos, read=read_dataset))
+    episodes = rl_data.successful(rl_data.load_episodes(demos, read=read_dataset))
     episodes = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio[..., : rl.proprio_dim],
                                   episodes.lengths, episodes.success, episodes.instructions)
-    train_eps, held_out = rl_data.split_holdout(episodes, args.holdout, rng)
+    train_eps, held_out = rl_data.split_holdout(episodes, holdout, rng)
     train_eps = rl_data.per_task_subset(train_eps, rl.sft_episodes_per_task, rng)
     print(f"train_policy: {train_eps.num_episodes} demonstrations ({0 if held_out is None else held_out.num_episodes}"
           f" held out), {len(set(train_eps.instructions))} instructions")
@@ -67,12 +75,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
               "final_loss": history[-1]["loss"], "seconds": round(time.time() - start, 1),
               "heldout_loss": history[-1].get("heldout_loss"), "heldout_token_accuracy":
               history[-1].get("heldout_token_accuracy")}
-    if args.eval_episodes:
+    if eval_episodes:
         from sim.lockstep import lockstep_evaluation
 
         result["eval"] = evaluate_in_sim(graphdef, params, rl, **lockstep_evaluation(
-            cfg.sim.tasks, args.eval_episodes, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
-            renderer=args.renderer, workers=args.eval_workers))
+            cfg.sim.tasks, eval_episodes, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+            renderer=renderer, workers=eval_workers))
         print("ground-truth success:", json.dumps(result["eval"]))
     with open(os.path.join(workdir, "sft_result.json"), "w") as f:
         json.dump(dict(result, history=history), f, indent=1)
@@ -80,6 +88,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

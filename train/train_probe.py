@@ -50,6 +50,12 @@ def _errors(pred: np.ndarray, truth: np.ndarray, closed_below: float) -> dict[st
     return {"ee_cm": float(ee), "bowl_cm": float(bowl), "gripper_acc": float(grip)}
 
 
+def probe_config(cfg, steps: int = probe_lib.ProbeConfig.steps) -> probe_lib.ProbeConfig:
+    """The probe's settings for an experiment config: its seed, frames no larger than the config's."""
+    return dataclasses.replace(probe_lib.ProbeConfig(), steps=steps, seed=cfg.seed,
+                               image_size=min(probe_lib.ProbeConfig.image_size, cfg.data.image_size)).validate()
+
+
 def run(cfg, demos: Sequence[str], out: str, probe_cfg: probe_lib.ProbeConfig, *, holdout: float = 0.2) -> dict:
     """Trains on ``demos``, reports held-out error, saves; returns the summary."""
     from sim.dataset import read_dataset
@@ -86,9 +92,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=probe_lib.ProbeConfig.steps)
     parser.add_argument("--holdout", type=float, default=0.2, help="share of episodes held out")
     args = parser.parse_args(rest)
-    probe_cfg = dataclasses.replace(probe_lib.ProbeConfig(), steps=args.steps, seed=cfg.seed,
-                                    image_size=min(probe_lib.ProbeConfig.image_size, cfg.data.image_size)).validate()
-    return run(cfg, args.demos, args.out or os.path.join(cfg.workdir, "probe"), probe_cfg, holdout=args.holdout)
+    return run(cfg, args.demos, args.out or os.path.join(cfg.workdir, "probe"), probe_config(cfg, args.steps),
+               holdout=args.holdout)
 
 
 if __name__ == "__main__":

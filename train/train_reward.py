@@ -34,27 +34,33 @@ from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    from sim.dataset import read_dataset
-
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = configs.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demos", action="append", required=True, help="LIBERO-layout HDF5 episodes (repeatable)")
     parser.add_argument("--holdout", type=float, default=0.2, help="fraction of episodes held out")
     args = parser.parse_args(rest)
-    rl = cfg.rl
+    return run(cfg, args.demos, holdout=args.holdout)
+
+
+def run(cfg, demos: Sequence[str], *, holdout: float = 0.2) -> dict:
+    """Trains (or resumes) the success detector on ``demos`` in ``<cfg.workdir>/rl``; returns the summary
+    (also written to ``<cfg.workdir>/rl/reward_result.json``)."""
+    from sim.dataset import read_dataset
+
+    demos, rl = list(demos), cfg.rl
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.load_episodes(args.demos, read=read_dataset, stop_at_success=rl.reward_labels == "tail")
+    episodes = rl_data.load_episodes(demos, read=read_dataset, stop_at_success=rl.reward_labels == "tail")
     order = rng.permutation(episodes.num_episodes)
-    n_hold = int(round(args.holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
+    n_hold = int(round(holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
     labels = rl_data.success_labels(train_eps, rl.positive_tail, rl.reward_labels)
     if not (labels == 1).any():
         raise ValueError(f"reward model data: no positive frame under rl.reward_labels={rl.reward_labels} in "
-                         f"{args.demos}: " + ("no episode shows a solved state (episodes that end at their "
-                                              "success never do; add fixed-length episodes that go on after it)"
-                                              if rl.reward_labels == "state" else "no episode succeeded"))
+                         f"{demos}: " + ("no episode shows a solved state (episodes that end at their "
+                                         "success never do; add fixed-length episodes that go on after it)"
+                                         if rl.reward_labels == "state" else "no episode succeeded"))
     graphdef, params = build_detector(rl, seed=cfg.seed)
     key = jax.random.key(cfg.seed)
 
@@ -92,6 +98,6 @@ def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

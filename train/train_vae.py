@@ -76,18 +76,30 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--clip-latents", type=int, default=2, help="k of the 1+4k-frame training clips")
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(rest)
-    args.workdir = cfg.workdir  # --workdir is the config's top-level field
     distributed.initialize(cfg.mesh)
+    return run(cfg, args.episodes, synthetic=args.synthetic, clip_latents=args.clip_latents)
+
+
+def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool = False,
+        clip_latents: int = 2) -> dict:
+    """Trains (or resumes) the VAE in ``cfg.workdir``, or validates ``vae.checkpoint``; returns the summary.
+
+    Args:
+      cfg: the experiment config; ``cfg.workdir`` is this run's work dir.
+      episodes: LIBERO-layout HDF5 files of training episodes.
+      synthetic: train on moving squares instead (when ``episodes`` is empty).
+      clip_latents: ``k`` of the ``1 + 4k``-frame training clips.
+    """
     is_main = jax.process_index() == 0
-    final_path = os.path.join(args.workdir, "vae")
+    final_path = os.path.join(cfg.workdir, "vae")
     if cfg.vae.checkpoint:
         load_vae_params(cfg.vae, final_path)  # validates the official file now
         return {"source": cfg.vae.checkpoint, "steps": 0}
-    if not args.episodes and not args.synthetic:
+    if not episodes and not synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
     loaded = time.perf_counter()
-    frames = 1 + cfg.vae.temporal_factor * args.clip_latents
-    sampler = clip_sampler(cfg, load_clips(args.episodes), frames) if args.episodes else None
+    frames = 1 + cfg.vae.temporal_factor * clip_latents
+    sampler = clip_sampler(cfg, load_clips(episodes), frames) if episodes else None
     if sampler is not None and is_main:
         print(f"[train_vae] {len(sampler.clips.frames)} training episodes loaded in "
               f"{time.perf_counter() - loaded:.1f} s", flush=True)
@@ -106,8 +118,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
     video_sharding = shd.batch_sharding(mesh, 5, cfg.mesh.rules)
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1),
-                                     jsonl_path=os.path.join(args.workdir, "metrics.jsonl"),
-                                     tensorboard_dir=os.path.join(args.workdir, "tensorboard"))
+                                     jsonl_path=os.path.join(cfg.workdir, "metrics.jsonl"),
+                                     tensorboard_dir=os.path.join(cfg.workdir, "tensorboard"))
 
     def batch_at(step: int) -> np.ndarray:  # 0-based step; the clip draws count from 1
         if sampler is not None:
@@ -125,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             step_fn, state, batch_at, key=root, steps=cfg.vae.train_steps, log_every=max(cfg.trainer.log_every, 1),
             name="train_vae", report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta),
             place=lambda video: {"video": shd.put(video, video_sharding)},
-            checkpoint_dir=os.path.join(args.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
+            checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
             keep_checkpoints=1, settle=True, on_first_step=first_step_done,
             log=print if is_main else lambda _line: None)
     finally:
@@ -140,6 +152,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))

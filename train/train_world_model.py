@@ -92,8 +92,17 @@ def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
 
 def main(argv: Sequence[str] | None = None) -> dict:
     """Runs (or resumes) training; returns a summary (final step, last logged metrics)."""
-    cfg, workdir, synthetic = _parse(sys.argv[1:] if argv is None else argv)
+    cfg, _, synthetic = _parse(sys.argv[1:] if argv is None else argv)
     distributed.initialize(cfg.mesh)
+    return run(cfg, synthetic=synthetic)
+
+
+def run(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
+    """Trains (or resumes) the world model in ``cfg.workdir`` on ``cfg.data.path`` (or synthetic latents).
+
+    Returns ``{"step", "metrics" (the last logged), "workdir"}``.
+    """
+    workdir = cfg.workdir
     cfg_dict = configs.to_dict(cfg)
     cfg_dict["synthetic"] = synthetic
     _check_config_matches(workdir, cfg_dict)
@@ -143,6 +152,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main, runtime_errors=(NonFiniteLoss,))
