@@ -36,6 +36,8 @@ RUNTIME_ERRORS = (
     "sword_jax.load.CheckpointError",
     "sword_jax.metrics.networks.MissingWeightsError",
     "sword_jax.metrics.torch_io.WeightFileError",
+    "sword_jax.train_loop.AnotherRunsCheckpoint",
+    "sword_jax.train_loop.NonFiniteLoss",
 )
 
 

@@ -6,6 +6,7 @@ import os
 import numpy as np
 import pytest
 
+from tests.conftest import example_env
 from train import compare, shared_inputs
 
 FAKE_HASHES = {"data": "d" * 64, "vae": "v" * 64}
@@ -268,8 +269,9 @@ def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
 
     hashes = []
     for attempt in ("a", "b"):
+        # one CPU device, as a user's run has (the suite's 8 fake devices cannot split a tiny batch of 2)
         done = subprocess.run([sys.executable, "-c", _BUILD_AND_HASH, str(tmp_path / attempt)], cwd=compare.REPO,
-                              capture_output=True, text=True, check=True)
+                              capture_output=True, text=True, check=True, env=example_env())
         hashes.append(json.loads(done.stdout.rsplit("HASHES ", 1)[1]))
     assert {"data", "vae", "latents[augment=on]", "reward_model"} <= set(hashes[0])
     assert hashes[0] == hashes[1]

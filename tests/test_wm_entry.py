@@ -56,7 +56,7 @@ def test_nonfinite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     np.savez(path, latents=huge, actions=ds.actions)
     workdir = str(tmp_path / "run")
     args = [a for a in ARGS if a != "--synthetic"] + ["--workdir", workdir, "--trainer.steps=3", f"--data.path={path}"]
-    with pytest.raises(train_world_model.NonFiniteLoss, match="step 0"):
+    with pytest.raises(train_loop.NonFiniteLoss, match="step 0"):
         train_world_model.main(args)
     assert not os.path.exists(os.path.join(workdir, "checkpoints", "2"))
 

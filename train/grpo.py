@@ -51,7 +51,6 @@ from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.reward_model import as_reward_model, build_detector
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rng import stream_key, stream_rng
-from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
 
 log = functools.partial(print, flush=True)
 SIMULATORS = ("world_model", "env", "toy")
@@ -335,4 +334,4 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
 if __name__ == "__main__":
     from sword_jax import cli
 
-    cli.run(main, runtime_errors=(NonFiniteLoss, AnotherRunsCheckpoint))
+    cli.run(main)

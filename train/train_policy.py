@@ -29,7 +29,6 @@ from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.sft import train_sft
-from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -90,4 +89,4 @@ def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int 
 if __name__ == "__main__":
     from sword_jax import cli
 
-    cli.run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main)

@@ -30,7 +30,6 @@ from sword_jax.rl.params_io import save_params
 from sword_jax.rl.reward_model import (as_reward_model, build_detector, detector_report, score_episodes,
                                       train_detector)
 from sword_jax.rng import stream_rng
-from sword_jax.train_loop import NonFiniteLoss
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -100,4 +99,4 @@ def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
 if __name__ == "__main__":
     from sword_jax import cli
 
-    cli.run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main)

@@ -32,7 +32,7 @@ from configs.base import ExperimentConfig
 from sword_jax import checkpoint
 from sword_jax import sharding as shd
 from sword_jax.load import load_vae_params
-from sword_jax.train_loop import NonFiniteLoss, run_steps
+from sword_jax.train_loop import run_steps
 from sword_jax.vae import data as vae_data
 from sword_jax.vae import train as vae_train
 from train import distributed
@@ -154,4 +154,4 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
 if __name__ == "__main__":
     from sword_jax import cli
 
-    cli.run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main)

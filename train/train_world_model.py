@@ -32,7 +32,7 @@ from sword_jax import checkpoint
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
-from sword_jax.train_loop import NonFiniteLoss, differing_keys, run_steps
+from sword_jax.train_loop import differing_keys, run_steps
 from sword_jax.world_model import data, train_state, train_step
 from train import distributed
 
@@ -154,4 +154,4 @@ def run(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
 if __name__ == "__main__":
     from sword_jax import cli
 
-    cli.run(main, runtime_errors=(NonFiniteLoss,))
+    cli.run(main)
