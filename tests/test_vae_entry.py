@@ -42,3 +42,30 @@ def test_train_vae_resumed_equals_uninterrupted(tmp_path, capsys):
     assert _rows(split) == _rows(straight) and [r["step"] for r in _rows(split)] == [1, 2, 3]
     assert resumed["first_loss"] == summary["first_loss"] and resumed["final_loss"] == summary["final_loss"]
     assert os.path.isdir(os.path.join(split, "vae"))
+
+
+def test_a_checkpoint_of_another_vae_run_is_refused_naming_the_keys_and_kept(tmp_path):
+    """Resuming a VAE work dir with another learning rate is refused before any step, naming the key;
+    the checkpoint there is left as it was. A longer run (more ``vae.train_steps``) is the same run."""
+    import configs
+    from sword_jax import checkpoint
+    from sword_jax import sharding as shd
+    from sword_jax.train_loop import AnotherRunsCheckpoint
+    from sword_jax.vae import train as vae_train
+
+    workdir = str(tmp_path / "vae_run")
+    cfg, _ = configs.from_argv(ARGS[:1] + ARGS[1:2] + ARGS[4:] + ["--workdir", workdir, "--vae.train_steps=2"])
+    _, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=shd.make_mesh(cfg.mesh),
+                                          rules=cfg.mesh.rules)
+    saved_id = train_vae.vae_run_id(cfg, clip_latents=1, synthetic=True)
+    assert train_vae.vae_run_id(configs.from_argv(ARGS[:2] + ["--vae.train_steps=9"])[0], clip_latents=1,
+                                synthetic=True)["vae.learning_rate"] == saved_id["vae.learning_rate"]
+    saved_id["vae.learning_rate"] = cfg.vae.learning_rate * 10
+    ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=1)
+    ckpt.save(1, state, {"step": 1, "history": [], "run": saved_id})
+    ckpt.close()
+    before = sorted(os.listdir(os.path.join(workdir, "checkpoints")))
+    with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['vae.learning_rate'\]"):
+        train_vae.run(cfg, synthetic=True, clip_latents=1)
+    assert sorted(os.listdir(os.path.join(workdir, "checkpoints"))) == before
+    assert not os.path.exists(os.path.join(workdir, "vae"))

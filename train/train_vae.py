@@ -17,6 +17,8 @@ state that ``train.evaluate_world_model`` and the pipeline load.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import sys
 import time
@@ -67,6 +69,15 @@ def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nn
     ckpt = checkpoint.Checkpointer(path, max_to_keep=1)
     ckpt.save(0, state, {"kind": "vae"})
     ckpt.close()
+
+
+def vae_run_id(cfg: ExperimentConfig, *, clip_latents: int, synthetic: bool) -> dict:
+    """What a resumed VAE run must share with its checkpoint (JSON, flat ``vae.<key>`` names): the VAE
+    section but ``train_steps`` (a run may be extended), the seed, the frame size and the training clips."""
+    vae = {f"vae.{k}": v for k, v in dataclasses.asdict(cfg.vae).items() if k != "train_steps"}
+    run = {"seed": cfg.seed, "data.image_size": cfg.data.image_size, "clip_latents": clip_latents,
+           "synthetic": synthetic, **vae}
+    return json.loads(json.dumps(run))  # tuples as lists, as a checkpoint's JSON gives them back
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -139,6 +150,7 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
             place=lambda video: {"video": shd.put(video, video_sharding)},
             checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
             keep_checkpoints=1, settle=True, on_first_step=first_step_done,
+            run_id=vae_run_id(cfg, clip_latents=clip_latents, synthetic=sampler is None),
             log=print if is_main else lambda _line: None)
     finally:
         logger.close()
