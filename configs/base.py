@@ -6,7 +6,7 @@ import dataclasses
 
 from sim.config import SimConfig
 from sword_jax.augment.config import AugmentConfig
-from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.config import FRAMES_PER_LATENT, DiTConfig
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.rl.config import RLConfig
@@ -46,6 +46,12 @@ class ExperimentConfig:
             raise ValueError(
                 f"data.image_size={self.data.image_size} must be a multiple of {stride}*patch={spatial} "
                 f"(VAE stride {stride} times the DiT patch)"
+            )
+        if self.vae.temporal_factor != FRAMES_PER_LATENT:
+            raise ValueError(
+                f"vae.temporal_downsample={self.vae.temporal_downsample} compresses time by {self.vae.temporal_factor}, "
+                f"but the action DiT groups {FRAMES_PER_LATENT} actions per latent frame (Wan 2.2's VAE: two "
+                "temporal downsamples)"
             )
         if self.model.in_dim != self.vae.z_dim or self.model.out_dim != self.vae.z_dim:
             raise ValueError(

@@ -125,5 +125,8 @@ def test_vae_geometry_is_read_from_the_vae_config():
     k, p = cfg.data.context_frames // 2, cfg.data.predict_frames // 2
     n = (cfg.eval.horizon_frames - 1 - 2 * k) // (2 * p)
     assert evaluate_world_model.effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)
+    # the action DiT groups 4 actions per latent frame: an experiment with this VAE is refused, naming it
+    with pytest.raises(ValueError, match=r"vae.temporal_downsample=\(False, True\) compresses time by 2"):
+        odd.validate()
     spec = WorldModelSpec(model=cfg.model, flow=cfg.flow, vae=vae, image_size=64, num_context=1, num_future=2)
     assert (spec.given_frames, spec.frames_per_chunk, spec.latent_size, spec.num_actions(3)) == (3, 4, 8, 15)

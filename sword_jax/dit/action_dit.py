@@ -26,12 +26,11 @@ import jax.numpy as jnp
 from flax import nnx
 from jaxtyping import Array, Float
 
-from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.config import FRAMES_PER_LATENT, DiTConfig
 from sword_jax.dit.layers import check_shape, check_values, dtype_of, linear, timestep_sinusoid
 from sword_jax.dit.model import WanDiT
 
 ACTION_INDEX_DIM = 32  # width of the video-frame-index sinusoid fed with each action token
-FRAMES_PER_LATENT = 4  # temporal compression of the Wan 2.2 VAE
 # fields an official checkpoint fixes (the rest are options: action switches, remat, dtypes)
 ARCH_FIELDS = ("patch_size", "in_dim", "out_dim", "dim", "ffn_dim", "freq_dim", "num_heads", "num_layers",
                "text_dim", "text_len", "eps", "qk_norm", "cross_attn_norm")

@@ -5,6 +5,12 @@ import dataclasses
 REMAT_POLICIES = ("none", "full", "dots", "dots_acts")
 
 
+# Video frames (= actions) per latent frame after the first: the action DiT groups the actions of each latent
+# frame into one token of FRAMES_PER_LATENT x action_dim (Wan 2.2's VAE compresses time by 4). The experiment
+# config checks it against the VAE's ``temporal_factor``.
+FRAMES_PER_LATENT = 4
+
+
 @dataclasses.dataclass(frozen=True)
 class DiTConfig:
     """Wan 2.2 TI2V diffusion transformer with dual action conditioning.

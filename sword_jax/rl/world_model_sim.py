@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from flax import nnx
 from jaxtyping import Array, Float
 
-from sword_jax.dit.action_dit import FRAMES_PER_LATENT  # the world model's actions per latent
+from sword_jax.dit.config import FRAMES_PER_LATENT  # the world model's actions per latent
 from sword_jax.rl.learned_simulator import LearnedSimulator, StartState
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
 from sword_jax.vae import api as vae_api
