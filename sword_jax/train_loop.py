@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import time
 from collections.abc import Callable
 from typing import Any
@@ -130,7 +131,8 @@ def run_steps(
         step may donate it (e.g. held-out metrics); read with that step's metrics.
       checkpoint_dir: where checkpoints live; None = no checkpoints and no resume.
       checkpoint_every: steps between checkpoints (the last step is always saved).
-      run_id: JSON facts a resumed run must share with the checkpoint (seed, batch size, ...).
+      run_id: JSON-able facts a resumed run must share with the checkpoint (seed, batch size, ...); compared
+        as JSON gives them back (a tuple equals the list the checkpoint stored).
       log: where the resume line goes.
       on_start: ``on_start(first_step, state) -> state``, called once after any resume and before the first
         step; the loop runs from the state it returns (GRPO settles it, forgets evaluations a killed run
@@ -160,6 +162,8 @@ def run_steps(
     """
     if on_nonfinite not in ("stop", "skip"):
         raise ValueError(f"{name}: on_nonfinite must be 'stop' or 'skip', got {on_nonfinite!r}")
+    if run_id is not None:  # as a checkpoint's JSON gives it back (tuples as lists), so a resume compares equal
+        run_id = json.loads(json.dumps(run_id))
     ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=keep_checkpoints) if checkpoint_dir else None
     first_step, history, batches = 0, [], None
     try:

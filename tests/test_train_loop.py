@@ -72,3 +72,16 @@ def test_run_steps_stop_or_skip_on_a_nonfinite_step(tmp_path):
     assert _meta(str(tmp_path / "skip"))[0] == STEPS
     with pytest.raises(ValueError, match="on_nonfinite"):
         _run(str(tmp_path / "bad"), on_nonfinite="ignore")
+
+
+def test_a_run_id_holding_tuples_resumes_and_another_is_refused(tmp_path):
+    """The checkpoint stores ``run_id`` as JSON (tuples come back as lists); the loop compares in that form,
+    so the same run resumes and a different value is still refused, naming its key."""
+    from sword_jax.train_loop import AnotherRunsCheckpoint
+
+    directory = str(tmp_path / "ids")
+    _run(directory, run_id={"seed": 0, "sim.tasks": (0, 1)})
+    resumed, placed, _ = _run(directory, run_id={"seed": 0, "sim.tasks": (0, 1)})
+    assert resumed.first_step == STEPS and placed == []
+    with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['sim.tasks'\]"):
+        _run(directory, run_id={"seed": 0, "sim.tasks": (0, 2)})

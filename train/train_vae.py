@@ -18,7 +18,6 @@ state that ``train.evaluate_world_model`` and the pipeline load.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -72,12 +71,11 @@ def save_vae(path: str, graphdef: nnx.GraphDef, params: nnx.State, constants: nn
 
 
 def vae_run_id(cfg: ExperimentConfig, *, clip_latents: int, synthetic: bool) -> dict:
-    """What a resumed VAE run must share with its checkpoint (JSON, flat ``vae.<key>`` names): the VAE
+    """What a resumed VAE run must share with its checkpoint (flat ``vae.<key>`` names): the VAE
     section but ``train_steps`` (a run may be extended), the seed, the frame size and the training clips."""
     vae = {f"vae.{k}": v for k, v in dataclasses.asdict(cfg.vae).items() if k != "train_steps"}
-    run = {"seed": cfg.seed, "data.image_size": cfg.data.image_size, "clip_latents": clip_latents,
-           "synthetic": synthetic, **vae}
-    return json.loads(json.dumps(run))  # tuples as lists, as a checkpoint's JSON gives them back
+    return {"seed": cfg.seed, "data.image_size": cfg.data.image_size, "clip_latents": clip_latents,
+            "synthetic": synthetic, **vae}
 
 
 def main(argv: Sequence[str] | None = None) -> dict:

@@ -17,7 +17,6 @@ the keys that differ.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable
 from typing import Any
@@ -42,7 +41,7 @@ Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
 
 
 def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dict[str, Any]:
-    """The identity a resumed GRPO run must share with its checkpoint, as the checkpoint stores it (JSON).
+    """The identity a resumed GRPO run must share with its checkpoint (``run_steps``' ``run_id``).
 
     Args:
       rl: the run's RL config (``GRPO_RUN_KEYS`` enter as ``rl.<key>``).
@@ -50,8 +49,7 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
       simulator: ``toy``, ``world_model`` or ``env``.
       **facts: more facts under their config names, e.g. ``**{"sim.tasks": (0, 1)}``.
     """
-    run = {"seed": seed, "simulator": simulator, **{f"rl.{k}": getattr(rl, k) for k in GRPO_RUN_KEYS}, **facts}
-    return json.loads(json.dumps(run))  # tuples as lists, as a checkpoint's JSON gives them back
+    return {"seed": seed, "simulator": simulator, **{f"rl.{k}": getattr(rl, k) for k in GRPO_RUN_KEYS}, **facts}
 
 
 def train_grpo(
