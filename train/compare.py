@@ -329,7 +329,7 @@ def _run_config(run: str, size: str, seed: int, workdir: str,
 
     config, extra = runs_for(size)[run]
     dotted = [f"--seed={seed}", *extra, *overrides]
-    cfg, _ = configs.from_argv(["--config", config, dotted[0], f"--workdir={workdir}", *dotted[1:]])
+    cfg, _ = configs.from_argv(["--config", config, f"--workdir={workdir}", *dotted])
     return config, cfg, dotted
 
 

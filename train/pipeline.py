@@ -69,10 +69,11 @@ def stage_evaluate(ctx: Context) -> dict:
     from train import evaluate_world_model, pipeline_data
 
     splits = pipeline_data.write_eval_splits(ctx)
-    inputs = evaluate_world_model.EvalInputs(models={ctx.cfg.name: ctx.results["world_model"]["workdir"]}, episodes=splits,
-                                 out=ctx.stage_dir("eval"), vae_checkpoint=ctx.results["vae"]["path"],
-                                 probe=ctx.results.get("probe", {}).get("path") or "",  # skipped stages: none
-                                 reward_model=ctx.results.get("reward_model", {}).get("path") or "")
+    inputs = evaluate_world_model.EvalInputs(
+        models={ctx.cfg.name: ctx.results["world_model"]["workdir"]}, episodes=splits, out=ctx.stage_dir("eval"),
+        vae_checkpoint=ctx.results["vae"]["path"],
+        probe=ctx.results.get("probe", {}).get("path") or "",  # skipped stages: none
+        reward_model=ctx.results.get("reward_model", {}).get("path") or "")
     summary = evaluate_world_model.run(ctx.cfg, inputs)
     return {"report": summary["report"], "splits": splits, "metrics": pipeline_data.read_eval_results(summary["out"])}
 

@@ -3,8 +3,9 @@
 Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_jax.rl.data.success_labels`
 (``rl.reward_labels``: by default the task's success predicate on each frame's state). An imagined
 trajectory succeeds once a frame scores at least the threshold (0.9); a chunk's reward is the change
-of the score, and the GRPO return follows ``rl.imagined_return`` (by default success alone). :func:`as_reward_model` wraps trained params in the
-:class:`~sword_jax.rl.learned_simulator.RewardModel` protocol.
+of the score, and the GRPO return follows ``rl.imagined_return`` (by default success alone).
+:func:`as_reward_model` wraps trained params in the :class:`~sword_jax.rl.learned_simulator.RewardModel`
+protocol.
 """
 
 from __future__ import annotations
