@@ -1,6 +1,7 @@
 """The real pipeline end to end on the tiny config (no stage monkeypatched): data, SFT, policy rollouts,
 VAE, latents, world model, success detector on state labels, then GRPO inside the world model with its
-real-environment evaluations in both proprio modes (issue 22, item 10). About 3 minutes on 2 cores."""
+real-environment evaluations in both proprio modes and the replay of the evaluated episodes in the world
+model (issue 22, item 10; issue 17). About 3 minutes on 2 cores."""
 
 import json
 import os
@@ -33,4 +34,8 @@ def test_tiny_pipeline_runs_every_stage_through_grpo_in_the_world_model(tmp_path
     for point in points:  # real-environment success, with the mode GRPO trained (proprio masked) beside it
         assert 0.0 <= point["mean"] <= 1.0 and point["episodes"] == 2
         assert point["proprio_masked"]["proprio"] == "missing" and point["proprio_masked"]["episodes"] == 2
+        # the evaluated episodes replayed in the world model from frame 4, judged by the detector
+        replay = point["replay"]
+        assert replay["episodes"] + replay["left_out"] == 2 and sum(replay["counts"].values()) == replay["episodes"]
+        assert replay["real_success"] == (None if not replay["episodes"] else sum(replay["real_success_flags"]) / replay["episodes"])
     assert set(policy["success"]) == {"grpo step 0", "grpo step 2"}

@@ -70,7 +70,7 @@ def _toy_setup(cfg, rl):
     eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
     eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=eval_key, frame_size=size,
                                                 proprio_dim=rl.proprio_dim), 2)
-    return sim, reward_model, starts, eval_start
+    return sim, reward_model, starts, eval_start, None
 
 
 def sim_reckoning(episodes):
@@ -111,17 +111,24 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
+    if rl.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
+        raise ValueError(f"rl.eval_replay_episodes replays real episodes rendered at sim.resolution={cfg.sim.resolution} "
+                         f"in a world model of data.image_size={cfg.data.image_size}; make them equal or pass "
+                         "--rl.eval_replay_episodes=0")
+
+    def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
+        return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
 
     def starts(key, step):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
         pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step))
         unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
-        latents = encode_history(vae_graphdef, vae_state, unit(pick["first_frame"]), unit(pick["history"]))
+        latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
         return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
                           jnp.asarray(tokenize_instructions(pick["instructions"], rl.max_instruction_bytes)),
                           (latents, jnp.asarray(pick["actions"], jnp.float32)))
 
-    return sim, reward_model, starts, None
+    return sim, reward_model, starts, None, encode
 
 
 def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, **eval_kwargs) -> dict:
@@ -208,6 +215,43 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     return {"curve": curve, "workdir": workdir, "history": result.history}
 
 
+class _Replayer:
+    """Replays traced real evaluation episodes in the learned simulator (``rl.eval_replay_episodes``;
+    :mod:`sword_jax.rl.sim_agreement`), with one compile for the run."""
+
+    def __init__(self, cfg, rl, sim, reward_model, encode, root):
+        from sword_jax.rl import sim_agreement
+
+        self.cfg, self.rl, self.sim, self.reward_model, self.encode = cfg, rl, sim, reward_model, encode
+        self.key = stream_key(root, "grpo/replay")
+        self.tf = cfg.vae.temporal_factor
+        self.k = cfg.data.context_frames // self.tf
+        self.agreement = sim_agreement
+        self.fn = jax.jit(lambda s, r, st, a, n, key: sim_agreement.replay_actions(
+            s, r, st, a, n, success_threshold=rl.success_threshold, key=key))
+
+    def trace(self):
+        return self.agreement.EpisodeTrace(self.tf * self.k)
+
+    def report(self, step: int, trace) -> dict:
+        traced = trace.result()
+        traced = self.agreement.select(traced, self.agreement.spread(len(traced.lengths), self.rl.eval_replay_episodes))
+        out = self.agreement.replay_report(
+            traced, self.sim, self.reward_model, self.encode, success_threshold=self.rl.success_threshold,
+            key=jax.random.fold_in(self.key, step), batch=self.rl.rollout_batch * self.rl.group_size,
+            num_context=self.k, frames_per_latent=self.tf, proprio_dim=self.rl.proprio_dim,
+            max_instruction_bytes=self.rl.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
+        def rate(name):
+            r = out[name]
+            return "n/a" if r["rate"] is None else f"{r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] of {r['of']}"
+
+        if out["episodes"]:
+            log(f"eval step {step}, {out['episodes']} real episodes replayed in the learned simulator: imagined "
+                f"success {out['imagined_success']:.3f} vs real {out['real_success']:.3f}; false success "
+                f"{rate('false_success')}; missed success {rate('missed_success')}")
+        return out
+
+
 @dataclasses.dataclass(frozen=True)
 class GRPOInputs:
     """The checkpoints and demonstrations GRPO starts from (``--simulator world_model`` needs
@@ -276,9 +320,9 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
                           episodes_per_task=eval_episodes or rl.eval_episodes_per_task,
                           workers=env_workers, renderer=renderer, reckoning=reckoning)
     if simulator == "toy":
-        sim, reward_model, starts, eval_start = _toy_setup(cfg, rl)
+        sim, reward_model, starts, eval_start, encode = _toy_setup(cfg, rl)
     else:
-        sim, reward_model, starts, eval_start = _world_model_setup(cfg, rl, inputs)
+        sim, reward_model, starts, eval_start, encode = _world_model_setup(cfg, rl, inputs)
 
     # The step runs on the config's mesh, where the world model already lives; the policy state and the
     # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
@@ -294,6 +338,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
                                                     key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
 
     act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
+    replay = _Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.eval_replay_episodes else None
 
     def evaluate(step, params):
         extra = {}
@@ -307,10 +352,13 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
             kwargs = dict(lockstep_evaluation(cfg.sim.tasks, episodes, resolution=cfg.sim.resolution,
                                               max_steps=cfg.sim.max_steps, renderer=renderer,
                                               workers=env_workers), act=act)
-            result = evaluate_in_sim(graphdef, params, rl, **kwargs)
+            trace = replay.trace() if replay else None
+            result = evaluate_in_sim(graphdef, params, rl, trace=trace, **kwargs)
             result["where"] = "mujoco"
             if rl.eval_masked_proprio:
                 extra = {"proprio_masked": _mode_point(graphdef, params, rl, step, "missing", **kwargs)}
+            if replay:
+                extra["replay"] = replay.report(step, trace)
         log(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
         return result, extra
 

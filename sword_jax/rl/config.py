@@ -76,6 +76,12 @@ class RLConfig:
         each), stored as ``proprio_masked`` in the success curve: with ``imagined_proprio=missing``
         that is the mode GRPO trained, so it measures the update free of the input-mode shift, and
         the true-proprio curve beside it measures how much of it carries over. On by default.
+      eval_replay_episodes: at every real-environment evaluation of GRPO in the learned simulator,
+        this many of the evaluated episodes (spread over the tasks) are replayed in the learned
+        simulator: their executed actions, open loop, from the same start (frame 4 k, the real
+        history before it), scored by the success detector (:mod:`sword_jax.rl.sim_agreement`).
+        Stored as ``replay`` in the success curve: how often the simulator calls a real failure a
+        success (``false_success``, what GRPO can exploit) or misses a real success. 0 = off.
       env_proprio: what the policy reads as proprio in GRPO rollouts in the ground-truth environments
         (``train.grpo --simulator env``): ``true`` (default), the environment's; ``reckoned``, dead-reckoned
         from the executed actions as the learned simulator does (``imagined_proprio=reckoned``);
@@ -137,6 +143,7 @@ class RLConfig:
     imagined_execute_steps: int | None = None  # None = chunk_len (whole chunks)
     imagined_proprio: str = "missing"  # missing | reckoned
     eval_masked_proprio: bool = True  # also evaluate GRPO-in-the-world-model policies with proprio masked
+    eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
     env_proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
     update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     ensemble_decay: float = 0.1
@@ -216,3 +223,5 @@ class RLConfig:
             raise ValueError(f"rl.reward_labels must be state|tail, got {self.reward_labels!r}")
         if self.positive_tail < 1:
             raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")
+        if self.eval_replay_episodes < 0:
+            raise ValueError(f"rl.eval_replay_episodes must be >= 0 (0 = no replay), got {self.eval_replay_episodes}")

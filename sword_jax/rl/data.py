@@ -167,23 +167,35 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
     episodes (WoVR keyframes), with the real history a world model conditions on.
 
     A keyframe is frame ``t = 4 s`` (``s >= num_context``), the last frame of latent ``s``. Returns
-    ``frame``/``proprio`` at ``t``, the episode's ``first_frame``, ``history`` (the ``4 (k + 1)``
-    frames up to ``t``, the oldest clamped at frame 0), ``actions`` (``[1 + 4k, A]``: the first
-    frame's action then the context frames', as a training segment lays them out) and
-    ``instructions``.
+    :func:`keyframe_window` at those frames plus ``instructions``.
     """
     k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
     last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
     s = k + (rng.random(count) * (last - k + 1)).astype(np.int64)
     t = np.minimum(f * s, episodes.lengths[ep] - 1)
+    window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=k,
+                             frames_per_latent=f)
+    return dict(window, instructions=[episodes.instructions[i] for i in ep])
+
+
+def keyframe_window(frames: np.ndarray, actions: np.ndarray, proprio: np.ndarray, ep: np.ndarray, t: np.ndarray, *,
+                    num_context: int = 1, frames_per_latent: int = 4) -> dict[str, np.ndarray]:
+    """What a world model starting at frame ``t`` of episode ``ep`` conditions on, laid out as a training
+    segment: ``frame``/``proprio`` at ``t``, the episode's ``first_frame``, ``history`` (the ``4 (k + 1)``
+    frames up to ``t``, the oldest clamped at frame 0) and ``actions`` (``[1 + 4k, A]``: the first frame's
+    action then the context frames').
+
+    Args:
+      frames / actions / proprio: ``[E, T, ...]`` episodes (frame t is seen before action t).
+      ep / t: ``[n]`` episode indices and keyframes.
+    """
+    k, f = num_context, frames_per_latent
     hist_idx = np.maximum(t[:, None] - f * (k + 1) + 1 + np.arange(f * (k + 1))[None], 0)
-    act_idx = np.concatenate([np.zeros((count, 1), np.int64),
+    act_idx = np.concatenate([np.zeros((len(ep), 1), np.int64),
                               np.maximum(t[:, None] - f * k + 1 + np.arange(f * k)[None], 0)], axis=1)
-    return {"episode": ep, "t": t, "frame": episodes.frames[ep, t], "proprio": episodes.proprio[ep, t],
-            "first_frame": episodes.frames[ep, 0], "history": episodes.frames[ep[:, None], hist_idx],
-            "actions": episodes.actions[ep[:, None], act_idx],
-            "instructions": [episodes.instructions[i] for i in ep]}
+    return {"episode": ep, "t": t, "frame": frames[ep, t], "proprio": proprio[ep, t], "first_frame": frames[ep, 0],
+            "history": frames[ep[:, None], hist_idx], "actions": actions[ep[:, None], act_idx]}
 
 
 def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequence[Any]]] | None = None,

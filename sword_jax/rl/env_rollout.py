@@ -100,6 +100,7 @@ def run_policy(
     episodes: Any = None,
     proprio: str = "true",
     reckoning: ReckoningConfig | None = None,
+    trace: Any = None,
 ) -> Rollout:
     """Runs the policy in ``envs`` until every episode succeeds or reaches ``max_steps``.
 
@@ -119,6 +120,9 @@ def run_policy(
         ``missing``, the policy's "missing proprio" input. The rollout records what was read, so GRPO
         trains that input mode; the environment itself is the same in all three.
       reckoning: the action convention for ``proprio="reckoned"``.
+      trace: a :class:`sword_jax.rl.sim_agreement.EpisodeTrace` to record every executed action and
+        the head's frames in (its first ``head_steps`` actions are then executed one environment
+        step at a time; the episodes are the same).
 
     Returns:
       A :class:`Rollout` with ``C = max_decisions(cfg, max_steps)``; ``success``/``returns`` are the
@@ -132,6 +136,8 @@ def run_policy(
     n, k = envs.n, cfg.execute_steps
     ensemble = cfg.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
     obs = envs.reset() if episodes is None else envs.reset(episodes)
+    if trace is not None:
+        trace.start(obs, envs.language)
     read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)  # what the policy reads as proprio
     valid_in = jnp.full((n,), 0.0 if proprio == "missing" else 1.0, jnp.float32)
     tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
@@ -157,7 +163,7 @@ def run_policy(
             rec["tokens"].append(np.asarray(chunk)[:, :k])
             rec["log_probs"].append(np.asarray(logp)[:, :k])
             rec["valid"].append((~done).astype(np.float32))
-        obs = envs.step(step_actions)
+        obs = _step(envs, step_actions, trace)
         success |= obs["success"]
         done = obs["done"]
         if proprio == "reckoned":  # an episode that ended mid-chunk is done: its proprio is never read again
@@ -187,6 +193,26 @@ def run_policy(
         instruction_tokens=np.asarray(tokens_text), tokens=stack("tokens"), log_probs=stack("log_probs"),
         valid=valid, rewards=rewards, scores=np.cumsum(rewards, 1), success=success, returns=returns,
         frames=np.zeros((0,), np.float32))
+
+
+def _step(envs: Any, actions: np.ndarray, trace: Any) -> dict[str, np.ndarray]:
+    """``envs.step(actions)``, recorded in ``trace``; inside its head one action at a time (the
+    outcomes are merged, so the caller sees one step)."""
+    if trace is None:
+        return envs.step(actions)
+    success = np.zeros(envs.n, bool)
+    executed = np.zeros(envs.n, np.int64)
+    j = 0
+    while j < actions.shape[1]:
+        block = actions[:, j: j + 1] if trace.in_head else actions[:, j:]  # the rest of the block in one step
+        obs = envs.step(block)
+        trace.record(block, obs)
+        success |= np.asarray(obs["success"], bool)
+        executed += np.asarray(obs["executed"], np.int64)
+        j += block.shape[1]
+        if np.all(obs["done"]):
+            break
+    return dict(obs, success=success, executed=executed)
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:

@@ -37,6 +37,7 @@ def evaluate_in_sim(
     act: Any = None,
     proprio: str = "true",
     reckoning: Any = None,
+    trace: Any = None,
 ) -> dict[str, Any]:
     """Runs the policy greedily from each evaluation episode's initial state.
 
@@ -55,6 +56,8 @@ def evaluate_in_sim(
       max_steps: environment step limit (LIBERO-Spatial: 220).
       act: a :func:`~sword_jax.rl.env_rollout.make_act_fns` result to reuse (one compile per process).
       proprio / reckoning: the policy's proprio input mode (:func:`~sword_jax.rl.env_rollout.run_policy`).
+      trace: a :class:`sword_jax.rl.sim_agreement.EpisodeTrace` recording the episodes (for a replay
+        in the learned simulator).
 
     Returns:
       ``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}``.
@@ -72,7 +75,7 @@ def evaluate_in_sim(
     envs = envs_factory(episodes)
     try:
         rollout = run_policy(act, params, envs, cfg, key=jax.random.key(0), greedy=True, max_steps=max_steps,
-                             record=False, proprio=proprio, reckoning=reckoning)
+                             record=False, proprio=proprio, reckoning=reckoning, trace=trace)
     finally:
         envs.close()
     success = np.asarray(rollout.success)

@@ -1,0 +1,280 @@
+"""Does the learned simulator agree with the real environment about the policy's own episodes?
+
+GRPO inside a learned simulator can only lift real success where the simulator's verdict on a
+trajectory (the success detector on imagined frames) follows the real outcome of the same
+actions. A simulator that turns the policy's real failures into imagined successes is one GRPO
+learns to fool. This module measures that directly:
+
+1. :class:`EpisodeTrace` records real episodes as :func:`~sword_jax.rl.env_rollout.run_policy`
+   runs them: every executed action, the outcome, and the frames and proprio of the first
+   ``head_steps`` environment steps (stepped one action at a time so each frame is seen).
+2. :func:`replay_starts` turns the traced heads into learned-simulator start states at frame
+   ``t0 = 4 k`` (``k`` context latents), laid out exactly as GRPO's keyframe starts
+   (:func:`sword_jax.rl.data.keyframe_window`).
+3. :func:`replay_actions` feeds each episode's remaining executed actions, open loop, through the
+   simulator and scores every imagined frame with the success detector (pure; jit it).
+4. :func:`agreement` compares imagined and real outcomes: how often the simulator calls a real
+   failure a success (``false_success``) and a real success a failure (``missed_success``), with
+   95% Wilson intervals.
+
+:func:`replay_report` runs 2-4 for a traced evaluation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from sword_jax.rl.data import keyframe_window
+from sword_jax.rl.env_rollout import wilson_interval
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.rl.policy import tokenize_instructions
+
+
+class TracedEpisodes(NamedTuple):
+    """Real episodes as executed (``n`` episodes, ``h = head_steps``).
+
+    Attributes:
+      frames: ``[n, 1 + h, H, W, 3]`` uint8, frame ``j`` seen before action ``j`` (an episode done
+        inside the head repeats its last frame).
+      proprio: ``[n, 1 + h, P]`` at the same frames.
+      actions: ``[n, T, A]`` the executed actions, zero after ``lengths``.
+      lengths: ``[n]`` actions executed.
+      success: ``[n]`` the real outcome.
+      language: the ``n`` instructions.
+    """
+
+    frames: np.ndarray
+    proprio: np.ndarray
+    actions: np.ndarray
+    lengths: np.ndarray
+    success: np.ndarray
+    language: tuple[str, ...]
+
+
+class EpisodeTrace:
+    """Recorder :func:`~sword_jax.rl.env_rollout.run_policy` fills (its ``trace`` argument).
+
+    ``run_policy`` calls :meth:`start` after the reset and :meth:`record` after every environment
+    step, and steps the first ``head_steps`` actions one at a time so their frames are kept.
+    """
+
+    def __init__(self, head_steps: int):
+        if head_steps < 1:
+            raise ValueError(f"EpisodeTrace: head_steps must be >= 1, got {head_steps}")
+        self.head_steps = int(head_steps)
+        self._frames: list[np.ndarray] = []
+        self._proprio: list[np.ndarray] = []
+        self._actions: list[list[np.ndarray]] = []
+        self._success = np.zeros(0, bool)
+        self._language: tuple[str, ...] = ()
+        self.steps = 0  # environment steps recorded so far (the longest episode's actions)
+
+    def start(self, obs: dict[str, np.ndarray], language: Sequence[str]) -> None:
+        n = len(obs["frames"])
+        self._frames, self._proprio = [np.asarray(obs["frames"]).copy()], [np.asarray(obs["proprio"]).copy()]
+        self._actions = [[] for _ in range(n)]
+        self._success = np.zeros(n, bool)
+        self._language = tuple(language)
+        self.steps = 0
+
+    @property
+    def in_head(self) -> bool:
+        """Whether the next environment step still falls in the head (one action at a time)."""
+        return self.steps < self.head_steps
+
+    def record(self, actions: np.ndarray, obs: dict[str, np.ndarray]) -> None:
+        """One environment step: ``actions [n, b, A]`` were offered, ``obs["executed"]`` of them ran."""
+        actions = np.asarray(actions, np.float32)
+        executed = np.asarray(obs["executed"], np.int64)
+        for i in np.flatnonzero(executed):
+            self._actions[i].append(actions[i, : executed[i]])
+        self._success |= np.asarray(obs["success"], bool)
+        if self.in_head:
+            if actions.shape[1] != 1:
+                raise ValueError(f"EpisodeTrace: the head is recorded one action at a time, got {actions.shape[1]}")
+            self._frames.append(np.asarray(obs["frames"]).copy())
+            self._proprio.append(np.asarray(obs["proprio"]).copy())
+        self.steps += actions.shape[1]
+
+    def result(self) -> TracedEpisodes:
+        if not self._frames:
+            raise ValueError("EpisodeTrace: nothing recorded (run_policy(..., trace=...) fills it)")
+        head = len(self._frames)
+        frames = np.stack(self._frames + [self._frames[-1]] * (1 + self.head_steps - head), axis=1)
+        proprio = np.stack(self._proprio + [self._proprio[-1]] * (1 + self.head_steps - head), axis=1)
+        lengths = np.asarray([sum(len(a) for a in acts) for acts in self._actions], np.int64)
+        dim = next((a.shape[-1] for acts in self._actions for a in acts), 7)
+        actions = np.zeros((len(lengths), max(int(lengths.max(initial=0)), 1), dim), np.float32)
+        for i, acts in enumerate(self._actions):
+            if acts:
+                actions[i, : lengths[i]] = np.concatenate(acts)
+        return TracedEpisodes(frames, proprio, actions, lengths, self._success.copy(), self._language)
+
+
+def select(traced: TracedEpisodes, idx: Sequence[int] | np.ndarray) -> TracedEpisodes:
+    """The traced episodes at ``idx``."""
+    idx = np.asarray(idx, np.int64)
+    return TracedEpisodes(traced.frames[idx], traced.proprio[idx], traced.actions[idx], traced.lengths[idx],
+                          traced.success[idx], tuple(traced.language[i] for i in idx))
+
+
+def spread(total: int, count: int) -> np.ndarray:
+    """``min(count, total)`` indices spread evenly over ``range(total)`` (every task of a task-major list)."""
+    return np.unique(np.linspace(0, total - 1, min(count, total)).round().astype(np.int64)) if total else np.zeros(0, int)
+
+
+def replay_starts(traced: TracedEpisodes, encode: Callable[[Any, Any], Any], *, num_context: int = 1,
+                  frames_per_latent: int = 4, proprio_dim: int = 8,
+                  max_instruction_bytes: int = 96) -> tuple[StartState, np.ndarray, np.ndarray]:
+    """Learned-simulator starts at frame ``t0 = frames_per_latent * num_context`` of each traced episode.
+
+    Args:
+      traced: from :meth:`EpisodeTrace.result`, with ``head_steps >= t0``.
+      encode: ``(first_frames [n,H,W,3], history [n,4(k+1),H,W,3]) -> latents``, both in [0, 1] (e.g.
+        :func:`sword_jax.rl.world_model_sim.encode_history` with the VAE bound); its result becomes
+        ``StartState.latents`` beside the start actions, as GRPO's keyframe starts lay them out.
+
+    Returns:
+      ``(start, actions [n, T - t0, A], lengths [n])``: the actions still to replay from ``t0`` and
+      how many of them each episode executed (<= 0 where it ended inside the head).
+    """
+    t0 = frames_per_latent * num_context
+    head = traced.frames.shape[1] - 1
+    if head < t0:
+        raise ValueError(f"replay_starts: the traced head holds {head} steps; a start at frame {t0} needs {t0}")
+    n = len(traced.lengths)
+    padded = np.zeros((n, max(traced.actions.shape[1], t0 + 1), traced.actions.shape[2]), np.float32)
+    padded[:, : traced.actions.shape[1]] = traced.actions
+    window = keyframe_window(traced.frames, padded, traced.proprio, np.arange(n), np.full(n, t0, np.int64),
+                             num_context=num_context, frames_per_latent=frames_per_latent)
+    unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
+    latents = encode(unit(window["first_frame"]), unit(window["history"]))
+    start = StartState(unit(window["frame"]), jnp.asarray(window["proprio"][:, :proprio_dim], jnp.float32),
+                       jnp.asarray(tokenize_instructions(list(traced.language), max_instruction_bytes)),
+                       (latents, jnp.asarray(window["actions"], jnp.float32)))
+    return start, padded[:, t0:], traced.lengths - t0
+
+
+class ReplayOutcome(NamedTuple):
+    """The success detector on replayed trajectories.
+
+    Attributes:
+      success: ``[n]`` some replayed frame scored at least the threshold.
+      first_success: ``[n]`` index of the first such action (its frame is the one after it), -1 if none.
+      scores: ``[n, T]`` the detector's score of the frame after each replayed action (0 past ``lengths``).
+    """
+
+    success: Bool[Array, " n"]
+    first_success: Int[Array, " n"]
+    scores: Float[Array, "n t"]
+
+
+def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
+                   actions: Float[Array, "n t a"], lengths: Int[Array, " n"], *, success_threshold: float,
+                   key: jax.Array) -> ReplayOutcome:
+    """Feeds fixed action sequences, open loop, through the learned simulator and scores each frame.
+
+    Step ``c`` offers the simulator the window ``actions[c E : c E + chunk_len]`` (``E`` = its
+    ``frames_per_step``; actions past the end repeat the last), so every action is executed once
+    and conditions the frames it produced exactly as in an imagined rollout. Frames after
+    ``lengths`` (the real episode had ended) are not scored.
+    """
+    n, total, dim = actions.shape
+    if dim != simulator.action_dim:
+        raise ValueError(f"replay_actions: actions must have {simulator.action_dim} dims, got {actions.shape}")
+    e, window = simulator.frames_per_step, simulator.chunk_len
+    chunks = -(-total // e)
+    pad = chunks * e + window - e - total
+    actions = jnp.asarray(actions, jnp.float32)
+    if pad > 0:
+        actions = jnp.concatenate([actions, jnp.repeat(actions[:, -1:], pad, axis=1)], axis=1)
+    keys = jax.random.split(key, chunks)
+
+    def step(state, c):
+        chunk = jax.lax.dynamic_slice_in_dim(actions, c * e, window, axis=1)
+        state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(state, chunk,
+                                                                            jax.random.split(keys[c], n))
+        scores = reward_model.score(frames.reshape((n * e,) + frames.shape[2:])).reshape(n, e)
+        return state, scores
+
+    _, scores = jax.lax.scan(step, jax.vmap(simulator.init)(start), jnp.arange(chunks))
+    scores = jnp.swapaxes(scores, 0, 1).reshape(n, chunks * e)[:, :total]
+    valid = jnp.arange(total)[None] < jnp.asarray(lengths)[:, None]
+    scores = jnp.where(valid, scores, 0.0)
+    hit = valid & (scores >= jnp.float32(success_threshold))
+    success = jnp.any(hit, axis=1)
+    return ReplayOutcome(success, jnp.where(success, jnp.argmax(hit, axis=1), -1).astype(jnp.int32), scores)
+
+
+def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
+    """Imagined vs real outcomes of the same episodes, with 95% Wilson intervals.
+
+    ``false_success`` = P(imagined success | real failure): what GRPO can exploit.
+    ``missed_success`` = P(imagined failure | real success): real successes GRPO cannot see.
+    """
+    real, imagined = np.asarray(real, bool), np.asarray(imagined, bool)
+    if real.shape != imagined.shape or real.ndim != 1:
+        raise ValueError(f"agreement: real {real.shape} and imagined {imagined.shape} must be equal 1-D shapes")
+    tp, fp = int(np.sum(real & imagined)), int(np.sum(~real & imagined))
+    fn, tn = int(np.sum(real & ~imagined)), int(np.sum(~real & ~imagined))
+
+    def rate(hits: int, of: int) -> dict[str, Any]:
+        return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
+
+    n = real.size
+    return {"episodes": n, "real_success": float(real.mean()) if n else None,
+            "imagined_success": float(imagined.mean()) if n else None, "agreement": rate(tp + tn, n),
+            "false_success": rate(fp, fp + tn), "missed_success": rate(fn, tp + fn),
+            "counts": {"real_and_imagined": tp, "imagined_only": fp, "real_only": fn, "neither": tn}}
+
+
+def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_model: RewardModel,
+                  encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array, batch: int = 64,
+                  num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
+                  max_instruction_bytes: int = 96, max_steps: int | None = None,
+                  replay_fn: Callable | None = None) -> dict[str, Any]:
+    """Replays traced real episodes in the learned simulator and reports :func:`agreement`.
+
+    Episodes that ended inside the head (before the simulator's start frame) are left out. The
+    replay runs ``batch`` episodes per call (the last batch padded), so one compile serves any
+    count, and the actions are padded to ``max_steps`` (the episodes' step limit) so every evaluation
+    has the same shapes; pass ``replay_fn`` (``jax.jit`` of :func:`replay_actions` with ``success_threshold``
+    bound) to reuse one compile across reports.
+
+    Returns :func:`agreement` plus ``left_out`` and ``imagined_first_success`` / ``real_lengths``
+    (per replayed episode, counted from the start frame).
+    """
+    start, actions, lengths = replay_starts(traced, encode, num_context=num_context,
+                                            frames_per_latent=frames_per_latent, proprio_dim=proprio_dim,
+                                            max_instruction_bytes=max_instruction_bytes)
+    keep = np.flatnonzero(lengths > 0)
+    if max_steps is not None:
+        t0 = frames_per_latent * num_context
+        if max_steps - t0 < actions.shape[1]:
+            raise ValueError(f"replay_report: episodes executed {actions.shape[1] + t0} actions, more than "
+                             f"max_steps={max_steps}")
+        actions = np.pad(actions, ((0, 0), (0, max_steps - t0 - actions.shape[1]), (0, 0)))
+    replay_fn = replay_fn or jax.jit(lambda sim, rm, s, a, l, k: replay_actions(
+        sim, rm, s, a, l, success_threshold=success_threshold, key=k))
+    imagined, first = [], []
+    for b, lo in enumerate(range(0, len(keep), batch)):
+        idx = keep[lo: lo + batch]
+        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - len(idx))])  # one shape for every call
+        take = lambda x: jax.tree.map(lambda y: jnp.asarray(y)[idx], x)  # noqa: E731
+        out = replay_fn(simulator, reward_model, take(start), jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]),
+                        jax.random.fold_in(key, b))
+        count = min(batch, len(keep) - lo)
+        imagined.append(np.asarray(out.success)[:count])
+        first.append(np.asarray(out.first_success)[:count])
+    imagined_success = np.concatenate(imagined) if imagined else np.zeros(0, bool)
+    report = agreement(traced.success[keep], imagined_success)
+    report.update(left_out=int(len(lengths) - len(keep)),
+                  imagined_first_success=np.concatenate(first).tolist() if first else [],
+                  real_lengths=lengths[keep].tolist(), real_success_flags=traced.success[keep].astype(int).tolist())
+    return report

@@ -1,0 +1,187 @@
+"""Replaying real episodes in a learned simulator: the trace, the start layout, the replay and the agreement."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sword_jax.rl import sim_agreement as sa
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.env_rollout import make_act_fns, run_policy
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState, instruction_target
+from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+
+
+class _StepEnvs:
+    """Lockstep envs whose frame shows the number of actions executed; episode i succeeds after
+    ``solve_at[i]`` actions. Records the action blocks it is given."""
+
+    def __init__(self, solve_at, max_steps: int):
+        self.solve_at, self.max_steps = np.asarray(solve_at), max_steps
+        self.n = len(self.solve_at)
+        self.language = [f"task {i}" for i in range(self.n)]
+        self.blocks, self.received = [], [[] for _ in range(self.n)]
+
+    def _obs(self):
+        frames = np.broadcast_to(self.steps[:, None, None, None].astype(np.uint8), (self.n, 8, 8, 3)).copy()
+        proprio = np.repeat(self.steps[:, None].astype(np.float32), 8, axis=1)
+        return {"frames": frames, "proprio": proprio}
+
+    def reset(self):
+        self.steps, self.done = np.zeros(self.n, np.int64), np.zeros(self.n, bool)
+        self.received = [[] for _ in range(self.n)]
+        return self._obs()
+
+    def step(self, actions):
+        self.blocks.append(actions.shape[1])
+        success, executed = np.zeros(self.n, bool), np.zeros(self.n, np.int64)
+        for i in np.flatnonzero(~self.done):
+            for j in range(actions.shape[1]):
+                if self.steps[i] >= self.max_steps:
+                    break
+                self.received[i].append(actions[i, j].copy())
+                self.steps[i] += 1
+                executed[i] += 1
+                if self.steps[i] >= self.solve_at[i]:
+                    success[i] = True
+                    break
+        self.done |= success | (self.steps >= self.max_steps)
+        return dict(self._obs(), success=success, executed=executed, done=self.done.copy())
+
+    def close(self):
+        pass
+
+
+def _policy(execute_steps=3):
+    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
+                   action_bins=16, execute_steps=execute_steps, action_ensemble=False)
+    graphdef, params = build_policy(cfg, seed=0)
+    return cfg, make_act_fns(graphdef, cfg), params
+
+
+def test_trace_records_the_head_frame_by_frame_and_every_executed_action_without_changing_the_episodes():
+    cfg, act, params = _policy(execute_steps=3)
+    plain, traced_envs = _StepEnvs([2, 9, 100], 20), _StepEnvs([2, 9, 100], 20)
+    a = run_policy(act, params, plain, cfg, key=jax.random.key(0), greedy=False, max_steps=20)
+    trace = sa.EpisodeTrace(4)
+    b = run_policy(act, params, traced_envs, cfg, key=jax.random.key(0), greedy=False, max_steps=20, trace=trace)
+    # the same episodes: outcomes, tokens and every action each env executed
+    np.testing.assert_array_equal(a.success, b.success)
+    np.testing.assert_array_equal(a.tokens, b.tokens)
+    for x, y in zip(plain.received, traced_envs.received):
+        np.testing.assert_array_equal(np.stack(x), np.stack(y))
+    # the head (4 actions) was stepped one action at a time, the rest of its decision at once, then blocks of 3
+    assert traced_envs.blocks[:5] == [1, 1, 1, 1, 2] and set(traced_envs.blocks[5:]) == {3}
+    assert set(plain.blocks) == {3}
+    out = trace.result()
+    assert out.frames.shape == (3, 5, 8, 8, 3) and out.proprio.shape == (3, 5, 8)
+    # frame j shows j actions executed (the episode solved after 2 holds its last frame)
+    np.testing.assert_array_equal(out.frames[:, :, 0, 0, 0], [[0, 1, 2, 2, 2], [0, 1, 2, 3, 4], [0, 1, 2, 3, 4]])
+    np.testing.assert_array_equal(out.lengths, [2, 9, 20])
+    np.testing.assert_array_equal(out.success, [True, True, False])
+    for i, received in enumerate(traced_envs.received):
+        np.testing.assert_array_equal(out.actions[i, : out.lengths[i]], np.stack(received))
+        assert not out.actions[i, out.lengths[i]:].any()
+    assert out.language == ("task 0", "task 1", "task 2")
+
+
+def test_replay_starts_lay_out_the_real_history_as_grpo_keyframes_do():
+    n, t, a = 2, 12, 7
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 255, (n, 5, 4, 4, 3)).astype(np.uint8)
+    actions = rng.normal(size=(n, t, a)).astype(np.float32)
+    traced = sa.TracedEpisodes(frames, rng.normal(size=(n, 5, 8)).astype(np.float32), actions, np.array([12, 3]),
+                               np.array([True, False]), ("a", "b"))
+    seen = {}
+
+    def encode(first, history):
+        seen["first"], seen["history"] = np.asarray(first), np.asarray(history)
+        return jnp.zeros((n, 2, 1, 1, 4))
+
+    start, rest, lengths = sa.replay_starts(traced, encode, num_context=1, frames_per_latent=4, proprio_dim=8)
+    np.testing.assert_allclose(seen["first"] * 255, frames[:, 0], atol=1e-3)
+    # the 8 frames up to frame 4, the oldest clamped at frame 0
+    np.testing.assert_allclose(seen["history"] * 255, frames[:, [0, 0, 0, 0, 1, 2, 3, 4]], atol=1e-3)
+    np.testing.assert_allclose(np.asarray(start.frame) * 255, frames[:, 4], atol=1e-3)
+    np.testing.assert_allclose(start.proprio, traced.proprio[:, 4])
+    np.testing.assert_array_equal(np.asarray(start.latents[1]), actions[:, [0, 1, 2, 3, 4]])  # a_0, then a_1..a_4
+    np.testing.assert_array_equal(rest, actions[:, 4:])
+    np.testing.assert_array_equal(lengths, [8, -1])
+    with pytest.raises(ValueError, match="head holds 2 steps"):
+        sa.replay_starts(traced._replace(frames=frames[:, :3], proprio=traced.proprio[:, :3]), encode)
+
+
+def _summing_simulator(chunk_len: int, execute_len: int) -> LearnedSimulator:
+    """State = running sum of action dim 0; each executed action's frame shows the sum after it."""
+
+    def init_fn(params, start):
+        return start.proprio[0]
+
+    def step_fn(params, state, chunk, key):
+        sums = state + jnp.cumsum(chunk[:execute_len, 0])
+        return sums[-1], jnp.broadcast_to(sums[:, None, None, None], (execute_len, 2, 2, 3))
+
+    return LearnedSimulator(params={}, init_fn=init_fn, step_fn=step_fn, observe_fn=lambda p, s: (jnp.zeros(2), 0.0),
+                            chunk_len=chunk_len, frame_size=2, execute_len=execute_len)
+
+
+@pytest.mark.parametrize("chunk_len, execute_len", [(8, 8), (8, 4)])
+def test_replay_executes_each_action_once_and_scores_the_frame_after_it(chunk_len, execute_len):
+    sim = _summing_simulator(chunk_len, execute_len)
+    detector = RewardModel(params={}, score_fn=lambda p, frames: frames[:, 0, 0, 0])
+    actions = np.zeros((3, 13, 7), np.float32)
+    actions[:, :, 0] = 0.1
+    actions[1, :, 0] = -0.1
+    lengths = np.array([13, 13, 5])
+    start = StartState(jnp.zeros((3, 2, 2, 3)), jnp.zeros((3, 8)), jnp.zeros((3, 4), jnp.int32))
+    out = jax.jit(lambda s, a, n: sa.replay_actions(sim, detector, s, a, n, success_threshold=0.75,
+                                                    key=jax.random.key(0)))(start, actions, lengths)
+    expected = np.cumsum(actions[:, :, 0], axis=1) * (np.arange(13)[None] < lengths[:, None])
+    np.testing.assert_allclose(out.scores, expected, atol=1e-6)
+    # 0.8 >= 0.75 is first reached after action 8 (index 7); episode 2 stopped after 5 actions
+    np.testing.assert_array_equal(out.success, [True, False, False])
+    np.testing.assert_array_equal(out.first_success, [7, -1, -1])
+
+
+def test_replay_in_the_toy_world_tells_reaching_from_leaving():
+    sim, detector = toy_simulator(frame_size=16, chunk_len=8), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(["go left", "go right", "go up", "go down"], 16))
+    targets = np.asarray(jax.vmap(instruction_target)(tokens))
+    steps = 40
+    towards = targets / np.linalg.norm(targets, axis=1, keepdims=True)
+    actions = np.zeros((4, steps, 7), np.float32)
+    actions[:2, :, :2] = towards[:2, None] * 0.25  # 40 x 0.08 x 0.25 = 0.8 along the way: passes the goal at 0.6
+    actions[2:, :, :2] = -towards[2:, None] * 0.25  # away from it
+    # traced episodes whose proprio (the toy gripper position) is 0 at the start frame
+    traced = sa.TracedEpisodes(np.zeros((4, 5, 16, 16, 3), np.uint8), np.zeros((4, 5, 8), np.float32),
+                               np.concatenate([np.zeros((4, 4, 7), np.float32), actions], axis=1),
+                               np.full(4, steps + 4), np.array([True, False, False, True]),
+                               ("go left", "go right", "go up", "go down"))
+    report = sa.replay_report(traced, sim, detector, lambda f, h: jnp.zeros((4, 2, 1, 1, 4)),
+                              success_threshold=0.9, key=jax.random.key(0), batch=3, max_instruction_bytes=16,
+                              max_steps=60)
+    assert report["imagined_first_success"][2:] == [-1, -1] and min(report["imagined_first_success"][:2]) > 0
+    assert report["counts"] == {"real_and_imagined": 1, "imagined_only": 1, "real_only": 1, "neither": 1}
+    assert report["false_success"]["rate"] == 0.5 and report["missed_success"]["rate"] == 0.5
+    assert report["left_out"] == 0 and report["real_lengths"] == [steps] * 4
+
+
+def test_agreement_counts_and_rates():
+    real = np.array([1, 1, 1, 0, 0, 0, 0, 0], bool)
+    imagined = np.array([1, 1, 0, 1, 0, 0, 0, 0], bool)
+    out = sa.agreement(real, imagined)
+    assert out["counts"] == {"real_and_imagined": 2, "imagined_only": 1, "real_only": 1, "neither": 4}
+    assert out["agreement"]["rate"] == 6 / 8 and out["false_success"]["rate"] == 1 / 5
+    assert out["missed_success"]["rate"] == 1 / 3 and out["real_success"] == 3 / 8 and out["imagined_success"] == 3 / 8
+    lo, hi = out["false_success"]["ci95"]
+    assert lo < 0.2 < hi
+    assert sa.agreement(np.zeros(3, bool), np.zeros(3, bool))["missed_success"]["rate"] is None
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        sa.agreement(real, imagined[:4])
+
+
+def test_spread_covers_every_task_of_a_task_major_list():
+    picked = sa.spread(200, 100)
+    assert len(picked) == 100 and set(picked // 20) == set(range(10))
+    np.testing.assert_array_equal(sa.spread(3, 10), [0, 1, 2])
