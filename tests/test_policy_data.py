@@ -40,10 +40,10 @@ def test_policy_rollouts_are_fixed_length_replayable_episodes(tmp_path):
         env = sim.load("libero_spatial", task_id=episode.task_id, backend="cpu", resolution=16, max_steps=10)
         qpos = gen_data.init_states(gen, episode.task_id)[0]
         state = env.reset_to(qpos)
-        replayed, done = [gen_data._flat_state(state.data)], []
+        replayed, done = [gen_data.flat_state(state.data)], []
         for action in episode.actions:
             state = env.step(state, action)
-            replayed.append(gen_data._flat_state(state.data))
+            replayed.append(gen_data.flat_state(state.data))
             done.append(float(state.done))
         np.testing.assert_allclose(np.stack(replayed[:-1]), episode.states, atol=1e-9)
         np.testing.assert_array_equal(np.asarray(done), episode.rewards)

@@ -4,12 +4,14 @@ import glob
 import json
 import os
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sword_jax.world_model import data
 from sword_jax import train_loop
-from train import train_world_model
+from tests.test_wm_common import MixerWorldModel
+from train import distributed, train_world_model
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--model.num_layers=1", "--trainer.log_every=1",
         "--trainer.checkpoint_every=2"]
@@ -73,3 +75,25 @@ def test_config_checks_name_the_same_differing_sections(tmp_path):
     with pytest.raises(ValueError, match=r"differs in \['data', 'model', 'trainer', 'workdir'\]"):
         train_loop._check_same_run("x", str(tmp_path), saved, current)
     train_loop._check_same_run("x", str(tmp_path), saved, dict(saved))  # the same run passes
+
+
+def test_a_step_that_retraces_past_the_entry_bound_stops_the_run(tmp_path, monkeypatch):
+    """Latents of another dtype every step make the step trace again; the trace past
+    ``ENTRY_MAX_TRACES`` stops the run naming the step (unguarded, it would recompile every step)."""
+    dtypes = (np.float32, np.float16, jnp.bfloat16)[:distributed.ENTRY_MAX_TRACES + 1]
+    assert len(dtypes) == distributed.ENTRY_MAX_TRACES + 1
+    batch_at = data.SegmentLoader.host_batch_at
+
+    def drifting_batch_at(loader, step):
+        batch = batch_at(loader, step)
+        return {**batch, "latents": batch["latents"].astype(dtypes[step % len(dtypes)])}
+
+    monkeypatch.setattr(data.SegmentLoader, "host_batch_at", drifting_batch_at)
+    # the stand-in compiles in a blink; the guard is about the step, not the model
+    monkeypatch.setattr(train_world_model, "WorldModel",
+                        lambda cfg, *, rngs: MixerWorldModel(cfg.in_dim, cfg.action_dim, rngs=rngs))
+    args = ARGS + ["--workdir", str(tmp_path / "run"), f"--trainer.steps={len(dtypes)}",
+                   "--trainer.checkpoint_every=100", "--cache.log_inference_distance=false"]
+    with pytest.raises(RuntimeError, match=f"step was traced {len(dtypes)} times .at most "
+                                           f"{distributed.ENTRY_MAX_TRACES} allowed"):
+        train_world_model.main(args)

@@ -54,7 +54,8 @@ _CHUNK = 16  # frames per JAX render call (fixed, so there is one compile per ca
 _SCENES: dict[tuple[str, float], Any] = {}  # one RenderScene per scene model: jit caches key on it
 
 
-def _render_scene(env: Any) -> Any:
+def render_scene(env: Any) -> Any:
+    """The JAX renderer's ``RenderScene`` of ``env``'s scene model, built once per model and timestep."""
     from sim import render
 
     key = (type(env).__name__, float(env.config.physics_dt))
@@ -151,12 +152,12 @@ def init_states(cfg: GenDataConfig, task: int) -> np.ndarray:
     return tasks.split_init_states(task, cfg.init_split, cfg.episodes, start=cfg.init_start, seed=cfg.init_seed)
 
 
-def _flat_state(data: Any) -> np.ndarray:
+def flat_state(data: Any) -> np.ndarray:
     """LIBERO/robosuite's flattened sim state: [time, qpos, qvel]."""
     return np.concatenate([[float(data.time)], np.asarray(data.qpos), np.asarray(data.qvel)])
 
 
-class _JaxFrames:
+class JaxFrames:
     """Chunked JAX rendering of a list of ``MjData`` (one compile per camera and size)."""
 
     def __init__(self, scene: Any, resolution: int):
@@ -191,7 +192,7 @@ class _GLFrames:
 def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqdm):
     from sim import expert
 
-    xml = _model_xml(env)
+    xml = model_xml(env)
     for i, qpos in enumerate(init_states(cfg, task)):
         rng = np.random.default_rng([cfg.seed, task, i])
         clean = not noisy(cfg, i)
@@ -207,16 +208,16 @@ def _cpu_episodes(cfg: GenDataConfig, task: int, env: Any, frames: Any, bar: tqd
         wrist = frames(seen, "eye_in_hand")["rgb"] if cfg.wrist_camera else None
         proprio = np.stack([np.asarray(s.obs["proprio"]) for s in states[:-1]])
         after = np.asarray([float(s.done) for s in states[1:]])
-        flat = np.stack([_flat_state(d) for d in seen])
-        yield _episode(cfg, task, i, env, xml, actions=out["actions"], executed=out["executed"], after=after,
-                       flat=flat, agent=agent, wrist=wrist, proprio=proprio,
-                       joints=np.stack([np.asarray(d.qpos[:7]) for d in seen])), bool(out["success"])
+        flat = np.stack([flat_state(d) for d in seen])
+        yield make_episode(cfg, task, i, env, xml, actions=out["actions"], executed=out["executed"], after=after,
+                           flat=flat, agent=agent, wrist=wrist, proprio=proprio,
+                           joints=np.stack([np.asarray(d.qpos[:7]) for d in seen])), bool(out["success"])
         bar.update(1)
 
 
-def _episode(cfg: GenDataConfig, task: int, index: int, env: Any, xml: str, *, actions: np.ndarray,
-             executed: np.ndarray, after: np.ndarray, flat: np.ndarray, agent: dict[str, np.ndarray],
-             wrist: np.ndarray | None, proprio: np.ndarray, joints: np.ndarray) -> Any:
+def make_episode(cfg: GenDataConfig, task: int, index: int, env: Any, xml: str, *, actions: np.ndarray,
+                 executed: np.ndarray, after: np.ndarray, flat: np.ndarray, agent: dict[str, np.ndarray],
+                 wrist: np.ndarray | None, proprio: np.ndarray, joints: np.ndarray) -> Any:
     """One ``Episode`` from the recorded arrays (T steps; ``after[t]`` = success after action t)."""
     from sim.dataset import Episode
 
@@ -239,7 +240,7 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
 
     from sim import expert, render
 
-    xml = _model_xml(env)
+    xml = model_xml(env)
     res = cfg.resolution
     agent_view = render.make_renderer(scene, "agentview", height=res, width=res)
     wrist_view = render.make_renderer(scene, "eye_in_hand", height=res, width=res)
@@ -268,15 +269,16 @@ def _mjx_episodes(cfg: GenDataConfig, task: int, env: Any, scene: Any, bar: tqdm
         done = np.asarray(records["done"][i]) > 0
         length = int(np.argmax(done)) + 1 if done.any() and cfg.stop_at_success else cfg.max_steps
         take = {k: np.asarray(v[i][:length]) for k, v in records.items()}
-        yield _episode(cfg, task, i, env, xml, actions=take["actions"], executed=take["executed"],
-                       after=take["done"].astype(np.float64), flat=take["flat"],
-                       agent={k: take[k] for k in ("rgb", "depth", "seg")},
-                       wrist=take["wrist"] if cfg.wrist_camera else None, proprio=take["proprio"],
-                       joints=take["joints"]), bool(done.any())
+        yield make_episode(cfg, task, i, env, xml, actions=take["actions"], executed=take["executed"],
+                           after=take["done"].astype(np.float64), flat=take["flat"],
+                           agent={k: take[k] for k in ("rgb", "depth", "seg")},
+                           wrist=take["wrist"] if cfg.wrist_camera else None, proprio=take["proprio"],
+                           joints=take["joints"]), bool(done.any())
         bar.update(1)
 
 
-def _model_xml(env: Any) -> str:
+def model_xml(env: Any) -> str:
+    """The scene's MJCF as stored in each episode's ``model_file`` (``env``'s physics timestep)."""
     from sim import scene
 
     return scene.scene_xml(timestep=env.config.physics_dt)
@@ -310,7 +312,7 @@ def _generate_parallel(cfg: GenDataConfig, workers: int, progress: bool) -> str:
         context = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(min(workers, len(parts)), mp_context=context) as pool:
             files = list(pool.map(_generate_task_file, parts))
-        info = _dataset_info(cfg, read_info(files[0]).seg_class_names)
+        info = dataset_info(cfg, read_info(files[0]).seg_class_names)
         written = 0
         with DatasetWriter(cfg.out, info, overwrite=cfg.overwrite) as writer:
             for path in files:  # stored chunks copied as they are (no decompress / compress again)
@@ -322,7 +324,7 @@ def _generate_parallel(cfg: GenDataConfig, workers: int, progress: bool) -> str:
     return cfg.out
 
 
-def _dataset_info(cfg: GenDataConfig, seg_class_names):
+def dataset_info(cfg: GenDataConfig, seg_class_names):
     """The file's LIBERO-layout attributes for ``cfg`` (the renderer resolved)."""
     import sim
     from sim import tasks
@@ -371,7 +373,7 @@ def generate(cfg: GenDataConfig, *, progress: bool = True, workers: int = 0) -> 
     import sim
     from sim.dataset import DatasetWriter
 
-    info = _dataset_info(cfg, None)
+    info = dataset_info(cfg, None)
     renderer = info.env_args["env_kwargs"]["renderer"]
     successes = 0
     written = 0
@@ -380,11 +382,11 @@ def generate(cfg: GenDataConfig, *, progress: bool = True, workers: int = 0) -> 
         for task in cfg.tasks:
             env = sim.load("libero_spatial", task_id=task, backend=cfg.backend, resolution=cfg.resolution,
                            max_steps=cfg.max_steps)
-            scene = _render_scene(env)
+            scene = render_scene(env)
             info.seg_class_names = scene.class_names
             if cfg.backend == "cpu":
                 frames = (_GLFrames(env.mj_model, scene, cfg.resolution, ("agentview", "eye_in_hand"))
-                          if renderer == "gl" else _JaxFrames(scene, cfg.resolution))
+                          if renderer == "gl" else JaxFrames(scene, cfg.resolution))
                 episodes = _cpu_episodes(cfg, task, env, frames, bar)
             else:
                 episodes = _mjx_episodes(cfg, task, env, scene, bar)

@@ -57,7 +57,7 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
                 envs[task] = sim.load("libero_spatial", task_id=task, backend="cpu", resolution=gen.resolution,
                                       max_steps=gen.max_steps)
         if frames is None:
-            frames = gen_data._JaxFrames(gen_data._render_scene(envs[group[0][0]]), gen.resolution)
+            frames = gen_data.JaxFrames(gen_data.render_scene(envs[group[0][0]]), gen.resolution)
         states = [[envs[task].reset_to(qpos)] for task, _, qpos in group]
         actions: list[list[np.ndarray]] = [[] for _ in group]
         text = jnp.asarray(tokenize_instructions([tasks.LANGUAGE[task] for task, _, _ in group],
@@ -78,9 +78,9 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
         for i, (task, index, _) in enumerate(group):
             env, seen = envs[task], [s.data for s in states[i][:-1]]
             after = np.asarray([float(s.done) for s in states[i][1:]])
-            episode = gen_data._episode(
-                gen, task, index, env, gen_data._model_xml(env), actions=np.stack(actions[i]),
-                executed=np.stack(actions[i]), after=after, flat=np.stack([gen_data._flat_state(d) for d in seen]),
+            episode = gen_data.make_episode(
+                gen, task, index, env, gen_data.model_xml(env), actions=np.stack(actions[i]),
+                executed=np.stack(actions[i]), after=after, flat=np.stack([gen_data.flat_state(d) for d in seen]),
                 agent=frames(seen, "agentview"), wrist=None,
                 proprio=np.stack([np.asarray(s.obs["proprio"]) for s in states[i][:-1]]),
                 joints=np.stack([np.asarray(d.qpos[:7]) for d in seen]))
@@ -96,9 +96,9 @@ def write_policy_episodes(path: str, act: Any, params: Any, rl_cfg: Any, gen: ge
     """
     from sim.dataset import DatasetWriter
 
-    info = gen_data._dataset_info(dataclasses.replace(gen, renderer="jax"), None)
+    info = gen_data.dataset_info(dataclasses.replace(gen, renderer="jax"), None)
     info.env_args["env_kwargs"]["source"] = "supervised policy, sampled actions"
-    info.seg_class_names = gen_data._render_scene(_any_env(gen)).class_names
+    info.seg_class_names = gen_data.render_scene(_any_env(gen)).class_names
     written = successes = 0
     with DatasetWriter(path, info, overwrite=gen.overwrite) as writer:
         for episode, success in record_policy_episodes(act, params, rl_cfg, gen, key=key):

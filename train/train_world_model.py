@@ -30,6 +30,7 @@ import configs
 from configs.base import ExperimentConfig
 from sword_jax import checkpoint
 from sword_jax import sharding as shd
+from sword_jax import tracing
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.train_loop import differing_keys, run_steps
@@ -127,7 +128,9 @@ def run(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     loader = data.SegmentLoader(dataset, sampler, num_context, num_future, mesh, rules)
     step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
                                          num_context=num_context, num_episodes=dataset.shape[0])
-    step = train_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
+    # A retrace (a batch or state whose shape, dtype or structure changed) is a bug; the guard names the step.
+    step = train_step.compile_train_step(tracing.max_traces(step_fn, n=distributed.ENTRY_MAX_TRACES), shardings,
+                                         loader.shardings, mesh, rules)
     root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
     rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,
