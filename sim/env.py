@@ -152,6 +152,23 @@ class CpuEnv(_Common):
             self._physics(data, SETTLE_ACTION)
         return self._state(data, info={})
 
+    def restore(self, flat_state: np.ndarray) -> State:
+        """An episode continued from a recorded state: a dataset's flattened ``states[t]`` (``[time, qpos,
+        qvel]``, LIBERO's layout), with no settling. The controller keeps no state of its own, so the
+        next ``step`` acts exactly as it did in the recorded episode, up to the solver's warm start."""
+        flat = np.asarray(flat_state, np.float64)
+        if flat.shape != (1 + self.nq + self.nv,) or not np.all(np.isfinite(flat)):
+            raise ValueError(f"flat state must be finite with shape ({1 + self.nq + self.nv},) = [time, qpos ({self.nq}), "
+                             f"qvel ({self.nv})], got {flat.shape}")
+        data = mujoco.MjData(self.mj_model)
+        data.time = flat[0]
+        data.qpos[:] = flat[1: 1 + self.nq]
+        data.qvel[:] = flat[1 + self.nq:]
+        data.ctrl[:7] = data.qpos[:7]  # rewritten by the controller at the first step
+        data.ctrl[7:] = panda.FINGER_OPEN
+        mujoco.mj_forward(self.mj_model, data)
+        return self._state(data, info={})
+
     def _physics(self, data: mujoco.MjData, action: np.ndarray) -> None:
         mujoco.mj_jacSite(self.mj_model, data, self._jacp, self._jacr, self.site_id)
         data.ctrl[:] = ctl.servo_targets(np.asarray(action, np.float64), data.qpos[:7].copy(),

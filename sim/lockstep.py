@@ -1,6 +1,7 @@
 """Many C-engine episodes advanced in lockstep, for batched policy evaluation and GRPO rollouts.
 
-``LockstepEnvs`` owns N episodes (task id + initial ``qpos`` each) on MuJoCo's C engine, split
+``LockstepEnvs`` owns N episodes (task id + initial ``qpos``, or a recorded flat state ``[time, qpos,
+qvel]`` to continue from, each) on MuJoCo's C engine, split
 over ``workers`` processes (0 = in this process). Each call advances every active episode by
 up to ``k`` actions (stopping at success or the step limit) and returns what a policy needs:
 the agentview frame and the 8-D proprio. Frames are rendered in ONE batched call of
@@ -54,7 +55,9 @@ class _Shard:
     def reset(self, episodes: Sequence[tuple[int, np.ndarray]] | None = None) -> dict[str, np.ndarray]:
         if episodes is not None:
             self._assign(episodes)
-        self.states = [self.envs[t].reset_to(q) for t, q in zip(self.task_of, self.qpos)]
+        # an initial qpos is settled into a new episode; a recorded flat state [time, qpos, qvel] is continued
+        self.states = [self.envs[t].reset_to(q) if len(q) == self.envs[t].nq else self.envs[t].restore(q)
+                       for t, q in zip(self.task_of, self.qpos)]
         self.steps[:] = 0
         return self.observe(np.ones(len(self.states), bool))
 
@@ -131,7 +134,8 @@ class LockstepEnvs:
     """N LIBERO-Spatial episodes on the C engine, advanced together (see the module docstring).
 
     Args:
-      episodes: ``(task_id, initial qpos)`` per episode.
+      episodes: ``(task_id, initial qpos)`` per episode, or ``(task_id, flat state)``: a dataset's
+        ``states[t]`` (``[time, qpos, qvel]``), continued with no settling (``CpuEnv.restore``).
       resolution: rendered frame size.
       max_steps: step limit per episode (LIBERO-Spatial: 220).
       renderer: ``jax`` (batched ray caster, the MJX data's look) or ``gl`` (MuJoCo's OpenGL).

@@ -185,3 +185,109 @@ def test_spread_covers_every_task_of_a_task_major_list():
     picked = sa.spread(200, 100)
     assert len(picked) == 100 and set(picked // 20) == set(range(10))
     np.testing.assert_array_equal(sa.spread(3, 10), [0, 1, 2])
+
+
+def _episodes_with_states(e=3, t=40, s=5):
+    from sword_jax.rl import data as rl_data
+
+    rng = np.random.default_rng(0)
+    return rl_data.EpisodeSet(np.zeros((e, t, 4, 4, 3), np.uint8), np.zeros((e, t, 7), np.float32),
+                              np.zeros((e, t, 8), np.float32), np.array([40, 30, 20]), np.ones(e, bool),
+                              ("a", "b", "c"), states=rng.normal(size=(e, t, s)), tasks=np.array([4, 5, 6]))
+
+
+def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_as_recorded_states():
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rng import stream_rng
+    from train.grpo import keyframe_env_starts, keyframe_horizon
+
+    episodes = _episodes_with_states()
+    rl = RLConfig(rollout_batch=4, group_size=3, max_chunks=16, chunk_len=8)
+    starts = keyframe_env_starts(episodes, rl, seed=7, step=2)
+    pick = rl_data.keyframe_starts(episodes, 4, stream_rng(7, "grpo/env_keyframes", 2))
+    assert len(starts) == 12
+    for j, (task, state) in enumerate(starts):  # start-major groups of 3
+        e, t = pick["episode"][j // 3], pick["t"][j // 3]
+        assert task == episodes.tasks[e] and t % 4 == 0 and t < episodes.lengths[e] // 2 + 4
+        np.testing.assert_array_equal(state, episodes.states[e, t])
+    again = keyframe_env_starts(episodes, rl, seed=7, step=2)  # a function of (seed, step)
+    assert [x[0] for x in again] == [x[0] for x in starts]
+    assert all(np.array_equal(x[1], y[1]) for x, y in zip(again, starts))
+    assert keyframe_horizon(rl) == 128 and keyframe_horizon(RLConfig(max_chunks=16, imagined_execute_steps=4)) == 64
+    sub = episodes.subset(np.array([2, 0]))
+    np.testing.assert_array_equal(sub.states, episodes.states[[2, 0]])
+    np.testing.assert_array_equal(sub.tasks, [6, 4])
+    stateless = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio, episodes.lengths,
+                                   episodes.success, episodes.instructions)
+    with pytest.raises(ValueError, match="no states or task ids"):
+        keyframe_env_starts(stateless, rl, seed=7, step=0)
+    with pytest.raises(ValueError, match="rl.env_starts must be initial"):
+        RLConfig(env_starts="middle").validate()
+
+
+def test_episode_sets_keep_the_recorded_states_and_task_ids():
+    from types import SimpleNamespace
+
+    from sword_jax.rl import data as rl_data
+
+    def episode(task, n, solved_at):
+        rewards = np.zeros(n)
+        rewards[solved_at:] = 1.0
+        return SimpleNamespace(agentview_rgb=np.zeros((n, 4, 4, 3), np.uint8), actions=np.zeros((n, 7)),
+                               ee_states=np.zeros((n, 6)), gripper_states=np.zeros((n, 2)), rewards=rewards,
+                               num_samples=n, language_instruction=f"task {task}", task_id=task,
+                               states=np.arange(n * 3, dtype=np.float64).reshape(n, 3) + 100 * task)
+
+    eps = rl_data.from_sim_episodes([episode(2, 10, 6), episode(7, 12, 9)])
+    np.testing.assert_array_equal(eps.tasks, [2, 7])
+    assert eps.states.shape == (2, 10, 3)  # padded to the longest episode up to its first success
+    np.testing.assert_array_equal(eps.states[0, :7], np.arange(21).reshape(7, 3) + 200)
+    np.testing.assert_array_equal(eps.states[0, 7:], np.repeat(eps.states[0, 6:7], 3, axis=0))  # padding repeats
+
+
+@pytest.mark.slow
+def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path):
+    """Tiny end to end: GRPO in the C-engine envs from expert keyframe states (about a minute)."""
+    import dataclasses
+
+    import configs
+    from sim import expert
+    from sim.config import SimConfig
+    from sim.env import CpuEnv
+    from sword_jax.rl import data as rl_data
+    from train.gen_data import flat_state
+    from train.grpo import run_in_env
+
+    cfg = configs.get("sword:tiny")
+    states, tasks, lengths = [], [], []
+    for task in cfg.sim.tasks:
+        env = CpuEnv(SimConfig(), task)
+        out = expert.rollout_cpu(env, env.init_states[0], record=True, max_steps=60)
+        n = len(out["actions"])
+        states.append(np.stack([flat_state(s.data) for s in out["states"][:n]])[:40])
+        tasks.append(task)
+        lengths.append(min(n, 40))
+    t = max(lengths)
+    pad = lambda x: np.concatenate([x, np.repeat(x[-1:], t - len(x), axis=0)])  # noqa: E731
+    e = len(tasks)
+    episodes = rl_data.EpisodeSet(np.zeros((e, t, 4, 4, 3), np.uint8), np.zeros((e, t, 7), np.float32),
+                                  np.zeros((e, t, 8), np.float32), np.asarray(lengths), np.ones(e, bool),
+                                  tuple(f"task {k}" for k in tasks), states=np.stack([pad(s) for s in states]),
+                                  tasks=np.asarray(tasks))
+    rl = dataclasses.replace(cfg.rl, env_starts="keyframes", env_proprio="missing", grpo_steps=1, eval_every=1,
+                             max_chunks=2, execute_steps=4, action_ensemble=False)
+    graphdef, params = build_policy(rl, seed=0)
+    result = run_in_env(dataclasses.replace(cfg, rl=rl), rl, graphdef, params, str(tmp_path), episodes_per_task=1,
+                        keyframes=episodes)
+    assert [p["step"] for p in result["curve"]] == [0, 1]
+    assert result["curve"][0]["train_mode"]["proprio"] == "missing"
+    assert len(result["history"]) == 1 and 0.0 <= result["history"][0]["rollout_success"] <= 1.0
+
+
+def test_ground_truth_grpo_from_keyframes_needs_the_demonstrations(tmp_path):
+    from train import grpo as grpo_main
+
+    with pytest.raises(SystemExit, match="env_starts=keyframes needs --demos"):
+        grpo_main.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "env",
+                        "--rl.env_starts=keyframes", "--rl.policy_width=16", "--rl.policy_heads=2",
+                        "--rl.policy_layers=1"])

@@ -140,13 +140,35 @@ def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *
     return dict(proprio=proprio, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
 
 
+def keyframe_horizon(rl) -> int:
+    """Actions an imagined rollout executes at most: ``max_chunks`` decisions of the simulator's execution."""
+    return rl.max_chunks * (rl.imagined_execute_steps or rl.chunk_len)
+
+
+def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
+    """GRPO step ``step``'s ground-truth start states with ``rl.env_starts=keyframes``: ``(task, flat state)``
+    of the demonstrations at the keyframes GRPO in the learned simulator draws (the same sampler; a
+    function of (seed, step)), each repeated ``group_size`` times."""
+    if episodes.states is None or episodes.tasks is None:
+        raise ValueError("rl.env_starts=keyframes continues demonstrations from their recorded states; these "
+                         "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
+    pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
+                                   num_context=num_context)
+    return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
+            for _ in range(rl.group_size)]
+
+
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
-               renderer: str = "jax", reckoning=None) -> dict:
+               renderer: str = "jax", reckoning=None, keyframes=None) -> dict:
     """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
 
     The policy reads proprio as ``rl.env_proprio`` says (``reckoning``: the action convention for
     ``reckoned``, e.g. :func:`sim_reckoning`); unless it is ``true``, each evaluation also measures
-    that mode, stored as ``train_mode`` beside the true-proprio success.
+    that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env_starts=keyframes``
+    the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
+    as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
+    ``rl.imagined_execute_steps or chunk_len`` actions per decision as the learned simulator does;
+    evaluations still start at rest and execute ``rl.execute_steps``.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
     """
@@ -175,7 +197,17 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
             f"({result['episodes']} episodes, {result['seconds']}s)")
         return result, extra
 
+    horizon, rollout_rl = cfg.sim.max_steps, rl
+    if rl.env_starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
+        if keyframes is None:
+            raise ValueError("rl.env_starts=keyframes needs the demonstrations (train.grpo: --demos)")
+        horizon = keyframe_horizon(rl)
+        rollout_rl = dataclasses.replace(rl, execute_steps=rl.imagined_execute_steps or rl.chunk_len)
+        keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=0)  # refuses episodes without states now
+
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
+        if rl.env_starts == "keyframes":
+            return keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step)
         pick = stream_rng(cfg.seed, "grpo/env_starts", step).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
                                                                       (rl.rollout_batch, 2))
         return [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
@@ -185,10 +217,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     def step_in_env(state, starts, rollout_key):
         # not one jitted function: the episodes run in the C engine, then the jitted update trains on them
         if not envs:
-            envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
+            envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=horizon,
                                      renderer=renderer, workers=workers))
-        rollout = run_policy(act, state.params, envs[0], rl, key=jax.random.fold_in(rollout_key, state.step),
-                             greedy=False, max_steps=cfg.sim.max_steps, episodes=starts, proprio=mode,
+        rollout = run_policy(act, state.params, envs[0], rollout_rl, key=jax.random.fold_in(rollout_key, state.step),
+                             greedy=False, max_steps=horizon, episodes=starts, proprio=mode,
                              reckoning=reckoning)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
         return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
@@ -200,7 +232,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
         "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
-        "sim.resolution": cfg.sim.resolution})
+        "sim.resolution": cfg.sim.resolution, "keyframe_episodes": 0 if keyframes is None else keyframes.num_episodes})
     try:
         result, curve = train_grpo(step_in_env, grpo.init_state(params, rl), starts_at,
                                    key=stream_key(jax.random.key(cfg.seed), "grpo/env_rollouts"), rl=rl,
@@ -298,7 +330,9 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     if simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
     elif simulator == "env":
-        pass
+        if rl.env_starts == "keyframes" and not inputs.demos:
+            raise SystemExit("train.grpo --simulator env --rl.env_starts=keyframes needs --demos (the rollouts start "
+                             "from their recorded states)")
     elif not (inputs.world_model and inputs.reward and inputs.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
     workdir = os.path.join(cfg.workdir, "rl", "grpo")
@@ -311,14 +345,16 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
         if rl.env_proprio == "reckoned" and not inputs.demos:
             raise SystemExit("train.grpo --simulator env --rl.env_proprio=reckoned needs --demos (the reckoning's "
                              "gains are fitted to them)")
-        reckoning = None
-        if rl.env_proprio == "reckoned":
+        reckoning = keyframes = None
+        if rl.env_proprio == "reckoned" or rl.env_starts == "keyframes":
             from sim.dataset import read_dataset
 
-            reckoning = sim_reckoning(rl_data.load_episodes(inputs.demos, read=read_dataset))
+            demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
+            reckoning = sim_reckoning(demos) if rl.env_proprio == "reckoned" else None
+            keyframes = demos if rl.env_starts == "keyframes" else None
         return run_in_env(cfg, rl, graphdef, params, workdir,
                           episodes_per_task=eval_episodes or rl.eval_episodes_per_task,
-                          workers=env_workers, renderer=renderer, reckoning=reckoning)
+                          workers=env_workers, renderer=renderer, reckoning=reckoning, keyframes=keyframes)
     if simulator == "toy":
         sim, reward_model, starts, eval_start, encode = _toy_setup(cfg, rl)
     else:

@@ -88,6 +88,15 @@ class RLConfig:
         ``missing``, the "missing proprio" input (``imagined_proprio=missing``). The environment and
         reward stay true, so a GRPO run in it isolates the input mode from world-model error; every
         evaluation then also measures that mode beside the true-proprio success.
+      env_starts: where GRPO rollouts in the ground-truth environments start. ``initial`` (default):
+        training-split initial states at rest, for ``sim.max_steps``. ``keyframes``: the
+        demonstrations' recorded states at the keyframes GRPO in the learned simulator starts from
+        (the first half of each, latent-aligned: :func:`sword_jax.rl.data.keyframe_starts`), for the
+        learned simulator's horizon (``max_chunks`` decisions of ``imagined_execute_steps or
+        chunk_len`` actions, executed as it executes them; evaluations keep ``execute_steps``). With
+        ``env_proprio=missing``, GRPO in the real environments then has the learned simulator's
+        setting with true dynamics and true success: whether that setting can lift success from
+        rest, free of world-model error.
       update_microbatch: trajectories per forward/backward pass of the GRPO update (0 = the whole
         batch at once); gradients are summed over the micro-batches, so the update is the same up to
         float summation order while activation memory falls by batch / micro-batch (the whole
@@ -145,6 +154,7 @@ class RLConfig:
     eval_masked_proprio: bool = True  # also evaluate GRPO-in-the-world-model policies with proprio masked
     eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
     env_proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
+    env_starts: str = "initial"  # initial | keyframes: where ground-truth GRPO rollouts start
     update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     ensemble_decay: float = 0.1
     sft_lr_end_fraction: float = 0.1
@@ -223,5 +233,7 @@ class RLConfig:
             raise ValueError(f"rl.reward_labels must be state|tail, got {self.reward_labels!r}")
         if self.positive_tail < 1:
             raise ValueError(f"rl.positive_tail must be >= 1, got {self.positive_tail}")
+        if self.env_starts not in ("initial", "keyframes"):
+            raise ValueError(f"rl.env_starts must be initial|keyframes, got {self.env_starts!r}")
         if self.eval_replay_episodes < 0:
             raise ValueError(f"rl.eval_replay_episodes must be >= 0 (0 = no replay), got {self.eval_replay_episodes}")

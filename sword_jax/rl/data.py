@@ -29,6 +29,9 @@ class EpisodeSet:
       instructions: E language instructions.
       frame_success: ``[E, T]`` bool, the task's success predicate on the state frame t shows (the
         state after action ``t - 1``; False at t = 0), or None where unknown.
+      states: ``[E, T, S]`` the simulator's flattened state at frame t (``[time, qpos, qvel]``: an
+        environment can continue the episode from it), or None where unknown.
+      tasks: ``[E]`` int task ids, or None where unknown.
     """
 
     frames: np.ndarray
@@ -38,6 +41,8 @@ class EpisodeSet:
     success: np.ndarray
     instructions: tuple[str, ...]
     frame_success: np.ndarray | None = None
+    states: np.ndarray | None = None
+    tasks: np.ndarray | None = None
 
     def __post_init__(self):
         e = self.frames.shape[0]
@@ -55,6 +60,10 @@ class EpisodeSet:
         if self.frame_success is not None and (self.frame_success.shape != (e, t) or self.frame_success.dtype != bool):
             raise ValueError(f"episodes: frame_success must be [E, T] = {(e, t)} bool, got "
                              f"{self.frame_success.shape} {self.frame_success.dtype}")
+        if self.states is not None and (self.states.ndim != 3 or self.states.shape[:2] != (e, t)):
+            raise ValueError(f"episodes: states must be [E, T, S] with (E, T) = {(e, t)}, got {self.states.shape}")
+        if self.tasks is not None and np.shape(self.tasks) != (e,):
+            raise ValueError(f"episodes: tasks must hold one id per episode ({e}), got shape {np.shape(self.tasks)}")
 
     @property
     def num_episodes(self) -> int:
@@ -62,9 +71,10 @@ class EpisodeSet:
 
     def subset(self, index: np.ndarray) -> "EpisodeSet":
         index = np.asarray(index)
+        take = lambda x: None if x is None else x[index]  # noqa: E731
         return EpisodeSet(self.frames[index], self.actions[index], self.proprio[index], self.lengths[index],
-                          self.success[index], tuple(self.instructions[i] for i in index),
-                          None if self.frame_success is None else self.frame_success[index])
+                          self.success[index], tuple(self.instructions[i] for i in index), take(self.frame_success),
+                          take(self.states), take(self.tasks))
 
 
 def success_length(episode: Any) -> int:
@@ -100,7 +110,13 @@ def from_sim_episodes(episodes: Sequence[Any], *, success: Sequence[bool] | None
         raise ValueError("from_sim_episodes: every episode needs a language_instruction")
     solved = np.stack([pad(np.concatenate([[False], np.asarray(ep.rewards)[:-1] > 0]), n)
                        for ep, n in zip(episodes, lengths)])
-    return EpisodeSet(frames, actions, proprio, lengths, np.asarray(success, bool), instructions, solved)
+    states = None
+    if all(getattr(ep, "states", None) is not None and len(ep.states) for ep in episodes):
+        states = np.stack([pad(np.asarray(ep.states, np.float64), n) for ep, n in zip(episodes, lengths)])
+    tasks = None
+    if all(getattr(ep, "task_id", None) is not None for ep in episodes):
+        tasks = np.asarray([int(ep.task_id) for ep in episodes])
+    return EpisodeSet(frames, actions, proprio, lengths, np.asarray(success, bool), instructions, solved, states, tasks)
 
 
 def sample_bc_batch(
