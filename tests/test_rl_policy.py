@@ -147,9 +147,11 @@ def test_load_episodes_reads_every_file_with_the_given_reader():
     def episode(text, t, success_at):
         rewards = np.zeros(t)
         rewards[success_at:] = 1
+        task = TEXTS.index(text)
         return SimpleNamespace(agentview_rgb=np.zeros((t, 8, 8, 3), np.uint8), actions=np.zeros((t, 7)),
                                ee_states=np.zeros((t, 6)), gripper_states=np.zeros((t, 2)), rewards=rewards,
-                               num_samples=t, language_instruction=text)
+                               num_samples=t, language_instruction=text, task_id=task,
+                               states=np.arange(t * 3, dtype=np.float64).reshape(t, 3) + 100 * task)
 
     files = {"a.hdf5": [episode(TEXTS[0], 6, 3)], "b.hdf5": [episode(TEXTS[1], 5, 9), episode(TEXTS[0], 4, 1)]}
     read = []
@@ -158,5 +160,9 @@ def test_load_episodes_reads_every_file_with_the_given_reader():
     assert episodes.instructions == (TEXTS[0], TEXTS[1], TEXTS[0])
     assert episodes.lengths.tolist() == [4, 5, 2] and episodes.success.tolist() == [True, False, True]
     assert episodes.proprio.shape == (3, 5, 8)
+    # the recorded states (padded as the rest: the last kept step repeats) and task ids come along
+    assert episodes.tasks.tolist() == [0, 1, 0] and episodes.states.shape == (3, 5, 3)
+    np.testing.assert_array_equal(episodes.states[0], np.concatenate([np.arange(12).reshape(4, 3)] + [[[9, 10, 11]]]))
+    np.testing.assert_array_equal(episodes.subset(np.array([1])).states[0], np.arange(15).reshape(5, 3) + 100)
     with pytest.raises(ValueError, match=r"read=sim\.dataset\.read_dataset"):
         rl_data.load_episodes(["a.hdf5"])

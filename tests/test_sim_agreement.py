@@ -225,26 +225,6 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
         RLConfig(env_starts="middle").validate()
 
 
-def test_episode_sets_keep_the_recorded_states_and_task_ids():
-    from types import SimpleNamespace
-
-    from sword_jax.rl import data as rl_data
-
-    def episode(task, n, solved_at):
-        rewards = np.zeros(n)
-        rewards[solved_at:] = 1.0
-        return SimpleNamespace(agentview_rgb=np.zeros((n, 4, 4, 3), np.uint8), actions=np.zeros((n, 7)),
-                               ee_states=np.zeros((n, 6)), gripper_states=np.zeros((n, 2)), rewards=rewards,
-                               num_samples=n, language_instruction=f"task {task}", task_id=task,
-                               states=np.arange(n * 3, dtype=np.float64).reshape(n, 3) + 100 * task)
-
-    eps = rl_data.from_sim_episodes([episode(2, 10, 6), episode(7, 12, 9)])
-    np.testing.assert_array_equal(eps.tasks, [2, 7])
-    assert eps.states.shape == (2, 10, 3)  # padded to the longest episode up to its first success
-    np.testing.assert_array_equal(eps.states[0, :7], np.arange(21).reshape(7, 3) + 200)
-    np.testing.assert_array_equal(eps.states[0, 7:], np.repeat(eps.states[0, 6:7], 3, axis=0))  # padding repeats
-
-
 @pytest.mark.slow
 def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path):
     """Tiny end to end: GRPO in the C-engine envs from expert keyframe states (about a minute)."""
