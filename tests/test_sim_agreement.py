@@ -165,6 +165,13 @@ def test_replay_in_the_toy_world_tells_reaching_from_leaving():
     assert report["counts"] == {"real_and_imagined": 1, "imagined_only": 1, "real_only": 1, "neither": 1}
     assert report["false_success"]["rate"] == 0.5 and report["missed_success"]["rate"] == 0.5
     assert report["left_out"] == 0 and report["real_lengths"] == [steps] * 4
+    # a noiseless world: the same actions end the same way under any noise draw
+    assert report["resample_disagreement"]["rate"] == 0.0 and report["imagined_success_repeats"] == [0.5, 0.5]
+    # a world whose motion is mostly noise: the outcome of the same actions follows the draw
+    noisy = sa.replay_report(traced._replace(actions=traced.actions * 0.3), toy_simulator(frame_size=16, noise=1.0),
+                             detector, lambda f, h: jnp.zeros((4, 2, 1, 1, 4)), success_threshold=0.9,
+                             key=jax.random.key(0), batch=4, max_instruction_bytes=16, max_steps=60, repeats=3)
+    assert noisy["resample_disagreement"]["rate"] > 0 and len(noisy["imagined_success_repeats"]) == 3
 
 
 def test_agreement_counts_and_rates():

@@ -280,7 +280,8 @@ class _Replayer:
         if out["episodes"]:
             log(f"eval step {step}, {out['episodes']} real episodes replayed in the learned simulator: imagined "
                 f"success {out['imagined_success']:.3f} vs real {out['real_success']:.3f}; false success "
-                f"{rate('false_success')}; missed success {rate('missed_success')}")
+                f"{rate('false_success')}; missed success {rate('missed_success')}; another noise draw ends "
+                f"differently {rate('resample_disagreement')}")
         return out
 
 

@@ -15,7 +15,8 @@ learns to fool. This module measures that directly:
    simulator and scores every imagined frame with the success detector (pure; jit it).
 4. :func:`agreement` compares imagined and real outcomes: how often the simulator calls a real
    failure a success (``false_success``) and a real success a failure (``missed_success``), with
-   95% Wilson intervals.
+   95% Wilson intervals; replaying twice with other simulator noise tells how often the outcome
+   follows the noise rather than the actions (``resample_disagreement``).
 
 :func:`replay_report` runs 2-4 for a traced evaluation.
 """
@@ -237,7 +238,7 @@ def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
 def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_model: RewardModel,
                   encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array, batch: int = 64,
                   num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
-                  max_instruction_bytes: int = 96, max_steps: int | None = None,
+                  max_instruction_bytes: int = 96, max_steps: int | None = None, repeats: int = 2,
                   replay_fn: Callable | None = None) -> dict[str, Any]:
     """Replays traced real episodes in the learned simulator and reports :func:`agreement`.
 
@@ -247,9 +248,18 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     has the same shapes; pass ``replay_fn`` (``jax.jit`` of :func:`replay_actions` with ``success_threshold``
     bound) to reuse one compile across reports.
 
-    Returns :func:`agreement` plus ``left_out`` and ``imagined_first_success`` / ``real_lengths``
-    (per replayed episode, counted from the start frame).
+    Each episode is replayed ``repeats`` times with other simulator noise (a flow-matching world
+    model samples its futures): the agreement is the first replay's, and ``resample_disagreement``
+    is how often two replays of the same actions end differently. Inside GRPO every trajectory of
+    a group draws its own noise, so outcomes that follow the noise rather than the actions are a
+    spread in the group's returns that no action explains.
+
+    Returns :func:`agreement` plus ``left_out``, ``resample_disagreement`` (with ``repeats >= 2``),
+    ``imagined_success_repeats`` and, per replayed episode counted from the start frame,
+    ``imagined_first_success`` / ``real_lengths`` / ``real_success_flags``.
     """
+    if repeats < 1:
+        raise ValueError(f"replay_report: repeats must be >= 1, got {repeats}")
     start, actions, lengths = replay_starts(traced, encode, num_context=num_context,
                                             frames_per_latent=frames_per_latent, proprio_dim=proprio_dim,
                                             max_instruction_bytes=max_instruction_bytes)
@@ -262,19 +272,27 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
         actions = np.pad(actions, ((0, 0), (0, max_steps - t0 - actions.shape[1]), (0, 0)))
     replay_fn = replay_fn or jax.jit(lambda sim, rm, s, a, l, k: replay_actions(
         sim, rm, s, a, l, success_threshold=success_threshold, key=k))
-    imagined, first = [], []
-    for b, lo in enumerate(range(0, len(keep), batch)):
-        idx = keep[lo: lo + batch]
-        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - len(idx))])  # one shape for every call
-        take = lambda x: jax.tree.map(lambda y: jnp.asarray(y)[idx], x)  # noqa: E731
-        out = replay_fn(simulator, reward_model, take(start), jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]),
-                        jax.random.fold_in(key, b))
-        count = min(batch, len(keep) - lo)
-        imagined.append(np.asarray(out.success)[:count])
-        first.append(np.asarray(out.first_success)[:count])
-    imagined_success = np.concatenate(imagined) if imagined else np.zeros(0, bool)
-    report = agreement(traced.success[keep], imagined_success)
+    outcomes, first = [], []
+    for r in range(repeats):
+        imagined = []
+        for b, lo in enumerate(range(0, len(keep), batch)):
+            idx = keep[lo: lo + batch]
+            idx = np.concatenate([idx, np.repeat(idx[-1:], batch - len(idx))])  # one shape for every call
+            take = lambda x: jax.tree.map(lambda y: jnp.asarray(y)[idx], x)  # noqa: E731
+            out = replay_fn(simulator, reward_model, take(start), jnp.asarray(actions[idx]),
+                            jnp.asarray(lengths[idx]), jax.random.fold_in(jax.random.fold_in(key, r), b))
+            count = min(batch, len(keep) - lo)
+            imagined.append(np.asarray(out.success)[:count])
+            if r == 0:
+                first.append(np.asarray(out.first_success)[:count])
+        outcomes.append(np.concatenate(imagined) if imagined else np.zeros(0, bool))
+    report = agreement(traced.success[keep], outcomes[0])
+    flips = int(np.sum(outcomes[0] != outcomes[1])) if repeats >= 2 else 0
     report.update(left_out=int(len(lengths) - len(keep)),
+                  imagined_success_repeats=[float(o.mean()) if o.size else None for o in outcomes],
                   imagined_first_success=np.concatenate(first).tolist() if first else [],
                   real_lengths=lengths[keep].tolist(), real_success_flags=traced.success[keep].astype(int).tolist())
+    if repeats >= 2:
+        report["resample_disagreement"] = {"rate": flips / len(keep) if len(keep) else None,
+                                           "ci95": list(wilson_interval(flips, len(keep))), "of": int(len(keep))}
     return report
