@@ -158,11 +158,11 @@ def test_vector_env_passes_gymnasium_checks(model):
 
 
 def test_reward_model_loads_from_its_checkpoint(tiny_run, model, tmp_path):
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import RewardModelConfig, RLConfig
     from sword_jax.rl.params_io import save_params
     from sword_jax.rl.reward_model import build_detector
 
-    rl = RLConfig(image_size=32, reward_width=8)
+    rl = RLConfig(image_size=32, reward_model=RewardModelConfig(width=8))
     graphdef, params = build_detector(rl, seed=3)
     path = str(tmp_path / "reward_model")
     save_params(path, params, rl, kind="reward_model", step=7)

@@ -72,8 +72,8 @@ def test_impossible_settings_rejected(override, needle):
     (["--rl.action_dim=6"], "rl.action_dim"),
     (["--rl.chunk_len=4"], "rl.chunk_len"),
     (["--flow.pixel_round_trip=true", "--data.context_frames=12"], "pixel_round_trip"),
-    (["--flow.pixel_round_trip=true", "--data.context_frames=8", "--rl.imagined_execute_steps=4"],
-     "imagined_execute_steps"),
+    (["--flow.pixel_round_trip=true", "--data.context_frames=8", "--rl.imagined.execute_steps=4"],
+     "rl.imagined.execute_steps"),
     (["--sim.resolution=64"], "sim.resolution"),
 ])
 def test_validate_cross_checks_sections(overrides, match):
