@@ -29,7 +29,7 @@ from benchmarks import common
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import PolicyConfig, RewardModelConfig, RLConfig
 from sword_jax.rl.learned_simulator import StartState
 from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
 from sword_jax.rl.reward_model import SuccessDetector, as_reward_model
@@ -63,11 +63,13 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
         frame=jax.random.uniform(jax.random.key(0), (starts, frame_size, frame_size, 3), jnp.float32),
         proprio=jnp.zeros((starts, rl.proprio_dim), jnp.float32),
         instruction_tokens=jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate"] * starts,
-                                                             rl.max_instruction_bytes)),
+                                                             rl.policy.max_instruction_bytes)),
         latents=jax.random.normal(jax.random.key(1), (starts, 2, hl, hl, vae.z_dim), jnp.float32),
     )
     start = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), expand_groups(start, group))
-    cfg = dataclasses.replace(rl, max_chunks=chunks, group_size=group, success_threshold=1.0)  # never stop early
+    cfg = dataclasses.replace(rl, success_threshold=1.0,  # never stop early
+                              grpo=dataclasses.replace(rl.grpo, group_size=group),
+                              imagined=dataclasses.replace(rl.imagined, max_chunks=chunks))
 
     @jax.jit
     def rollout(policy_params, sim, reward_model, start, key):
@@ -101,8 +103,8 @@ def main(argv=None) -> None:
     rows = []
     if args.tiny:
         tiny = configs.get("sword:tiny")
-        rl = RLConfig(image_size=16, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=48,
-                      action_bins=16, reward_width=4)
+        rl = RLConfig(image_size=16, action_bins=16, policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=48),
+                      reward_model=RewardModelConfig(width=4))
         rows.append(run_case("tiny", tiny.model, tiny.vae, 32, starts=1, group=2, chunks=2, sample_steps=2, rl=rl,
                              iters=1))
     else:

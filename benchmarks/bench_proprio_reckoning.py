@@ -1,4 +1,4 @@
-"""Accuracy of the proprio that imagined rollouts dead-reckon from actions (rl.imagined_proprio=reckoned).
+"""Accuracy of the proprio that imagined rollouts dead-reckon from actions (rl.imagined.proprio=reckoned).
 
 Runs the noisy expert (DART noise 0.1, fixed length, C engine) from ``--per-task`` train-split
 initial states of each task, fits the per-axis gains (:func:`sword_jax.rl.proprio_reckoning.fit_gains`)

@@ -1,4 +1,4 @@
-"""What the success detector learns from each labelling (``rl.reward_labels``), against true success.
+"""What the success detector learns from each labelling (``rl.reward_model.labels``), against true success.
 
 An imagined rollout succeeds at the first frame the detector scores >= ``rl.success_threshold``
 (:func:`sword_jax.rl.rollout.chunk_outcome`), so a detector that fires before the bowl has landed
@@ -65,13 +65,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--per-task", type=int, default=10)
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--steps", type=int, default=129)
-    parser.add_argument("--detector-steps", type=int, default=None, help="default: the config's rl.reward_model_steps")
+    parser.add_argument("--detector-steps", type=int, default=None, help="default: the config's rl.reward_model.steps")
     parser.add_argument("--data-dir", default="runs/bench_reward_labels")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", default=OUT)
     args = parser.parse_args(argv)
     cfg = configs.get(args.config)
-    rl = cfg.rl if args.detector_steps is None else dataclasses.replace(cfg.rl, reward_model_steps=args.detector_steps)
+    rl = cfg.rl if args.detector_steps is None else dataclasses.replace(
+        cfg.rl, reward_model=dataclasses.replace(cfg.rl.reward_model, steps=args.detector_steps))
     tasks = tuple(int(t) for t in args.tasks.split(","))
     os.makedirs(args.data_dir, exist_ok=True)
     t0 = time.perf_counter()
@@ -80,17 +81,17 @@ def main(argv=None) -> dict:
     heldout = rl_data.load_episodes([paths["heldout"]], read=read_dataset, stop_at_success=False)
     results = {"command": "python -m benchmarks.bench_reward_labels " + " ".join(argv or []), "config": args.config,
                "tasks": list(tasks), "per_task": args.per_task, "resolution": args.resolution,
-               "detector_steps": rl.reward_model_steps, "threshold": rl.success_threshold,
+               "detector_steps": rl.reward_model.steps, "threshold": rl.success_threshold,
                "generate_s": round(gen_s, 1), "heldout_episodes": heldout.num_episodes, "labels": {}}
     for labels in ("tail", "state"):
         t0 = time.perf_counter()
         train = rl_data.load_episodes([paths["fixed"], paths["demos"]], read=read_dataset,
                                       stop_at_success=labels == "tail")
-        train_labels = rl_data.success_labels(train, rl.positive_tail, labels)
+        train_labels = rl_data.success_labels(train, rl.reward_model.positive_tail, labels)
         graphdef, params = build_detector(rl, seed=0)
 
         def batch_at(step: int, train=train, train_labels=train_labels) -> dict:
-            return rl_data.sample_reward_batch(train, train_labels, rl.reward_model_batch_size,
+            return rl_data.sample_reward_batch(train, train_labels, rl.reward_model.batch_size,
                                                stream_rng(0, "reward/batches", step))
 
         state, _ = train_detector(graphdef, params, rl, batch_at, key=jax.random.key(0), log=lambda line: None)
@@ -113,7 +114,7 @@ def main(argv=None) -> dict:
             frame_recall={"state": state["frame_recall"], "tail": tail["frame_recall"]},
             heldout_episodes=results["heldout_episodes"],
             note="share of held-out failed episodes (noisy expert) in which the success detector fires on some "
-                 "frame, i.e. an imagined rollout would count a false success; value = rl.reward_labels=state, "
+                 "frame, i.e. an imagined rollout would count a false success; value = rl.reward_model.labels=state, "
                  "tail_labels = the earlier labels (frames before the first success). Data: "
                  "benchmarks/results/policy/reward_labels.json")})
     return results

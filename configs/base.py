@@ -83,11 +83,11 @@ class ExperimentConfig:
                 f"flow.pixel_round_trip re-encodes one predicted chunk ({self.data.predict_frames} frames) as the next "
                 f"context, which needs data.context_frames={self.data.context_frames} <= data.predict_frames"
             )
-        executed = self.rl.imagined_execute_steps or self.rl.chunk_len
+        executed = self.rl.imagined.execute_steps or self.rl.chunk_len
         if self.flow.pixel_round_trip and self.data.context_frames > executed:
             raise ValueError(
                 f"flow.pixel_round_trip: GRPO's learned simulator re-encodes the {executed} executed frames "
-                f"(rl.imagined_execute_steps) as the next context, which needs data.context_frames="
+                f"(rl.imagined.execute_steps) as the next context, which needs data.context_frames="
                 f"{self.data.context_frames} <= {executed}"
             )
         return self

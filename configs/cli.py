@@ -68,6 +68,9 @@ def set_path(cfg: Any, dotted: str, text: str, _prefix: str = "") -> Any:
     if not dataclasses.is_dataclass(cfg):
         raise ConfigError(f"config key {full!r}: {type(cfg).__name__} has no fields")
     names = {f.name for f in dataclasses.fields(cfg)}
+    renamed = getattr(type(cfg), "renamed_fields", {})  # a section's keys of earlier versions -> their new paths
+    if head not in names and head in renamed:
+        raise ConfigError(f"{full} is now {_prefix}{renamed[head]}")
     if head not in names:
         raise ConfigError(
             f"unknown config key {full!r} ({head!r} is not a field of {type(cfg).__name__}; "

@@ -8,7 +8,7 @@ from configs.base import ExperimentConfig
 from sim.config import SimConfig
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dlb.config import CacheConfig
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RewardModelConfig, RLConfig, SFTConfig
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.vae.config import VAEConfig
 from sword_jax.world_model.config import DataConfig, TrainerConfig
@@ -50,9 +50,12 @@ def small() -> ExperimentConfig:
         # temporal ensembling (the best of the execution modes measured), GRPO rollouts re-plan every step.
         # Imagined rollouts run 16 chunks (128 actions): the expert needs up to 80, the policy more.
         # The GRPO update runs 16 of the 64 trajectories at a time (all at once asked for 47 GiB on an H100).
-        rl=RLConfig(grpo_steps=100, eval_every=50, eval_episodes_per_task=50, sft_steps=4000, sft_batch_size=64,
-                    sft_learning_rate=1e-3, policy_width=128, policy_layers=4, learning_rate=1e-4,
-                    rollout_batch=8, max_chunks=16, reward_model_steps=1000, update_microbatch=16),
+        rl=RLConfig(policy=PolicyConfig(width=128, layers=4),
+                    sft=SFTConfig(steps=4000, batch_size=64, learning_rate=1e-3),
+                    reward_model=RewardModelConfig(steps=1000),
+                    grpo=GRPOConfig(steps=100, rollout_batch=8, learning_rate=1e-4, update_microbatch=16,
+                                    eval_every=50, eval_episodes_per_task=50),
+                    imagined=ImaginedConfig(max_chunks=16)),
         cache=CacheConfig(schedule_steps=5000),
     )
 
@@ -67,14 +70,15 @@ def tiny() -> ExperimentConfig:
         vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
         data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
-        # 96 steps: the expert solves tasks 0 and 1 in 36-77, so the data shows solved frames (rl.reward_labels=state).
+        # 96 steps: the expert solves tasks 0 and 1 in 36-77, so the data shows solved frames (rl.reward_model.labels=state).
         sim=SimConfig(backend="cpu", resolution=32, episodes_per_task=1, tasks=(0, 1), max_steps=120, episode_steps=96),
         eval=EvalConfig(horizon_frames=33, num_episodes=2, allow_random_weights_for=("fid",)),  # published LPIPS/FVD: ~2 s more on CPU
         # The read schedule completes within the tiny run, so the cache is really read.
         cache=CacheConfig(schedule_steps=20, warmup_steps=2),
-        rl=RLConfig(group_size=4, grpo_steps=4, eval_every=2, eval_episodes_per_task=1, rollout_batch=2,
-                    max_chunks=2, sft_steps=60, sft_batch_size=8, reward_model_steps=60, reward_model_batch_size=16,
-                    policy_width=32, policy_layers=1, image_size=32, reward_width=8),
+        rl=RLConfig(image_size=32, policy=PolicyConfig(width=32, layers=1), sft=SFTConfig(steps=60, batch_size=8),
+                    reward_model=RewardModelConfig(steps=60, batch_size=16, width=8),
+                    grpo=GRPOConfig(steps=4, rollout_batch=2, group_size=4, eval_every=2, eval_episodes_per_task=1),
+                    imagined=ImaginedConfig(max_chunks=2)),
     )
 
 

@@ -9,8 +9,9 @@ sword-jax: any ``nnx.Module`` mapping ``(frames [N, s, s, 3] in [0, 1], instruct
 ``bins`` action bins in [-1, 1] fits :func:`sword_jax.rl.grpo.make_train_step`. So does the
 reward: a function of the imagined frames with values in [0, 1] (here "light on the right side
 of the picture"; a pipeline run also has its trained success detector, ``model.reward_model``).
-A shaped reward like this one is paid as its summed change per chunk (``imagined_return="score"``);
-the default return, ``"success"``, pays only reaching the success threshold. Each GRPO step rolls ``rollout_batch x group_size`` trajectories out inside the world model
+A shaped reward like this one is paid as its summed change per chunk (``rl.imagined.return_rule="score"``);
+the default return, ``"success"``, pays only reaching the success threshold. Each GRPO step rolls
+``rl.grpo.rollout_batch x rl.grpo.group_size`` trajectories out inside the world model
 (one jit: policy, world model, VAE decoder, reward) and updates the policy from the
 group-normalised returns.
 """
@@ -27,7 +28,7 @@ from flax import nnx
 import sword_jax
 from _tiny_run import tiny_run
 from sword_jax.rl import grpo
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, RLConfig
 from sword_jax.rl.learned_simulator import RewardModel
 
 
@@ -68,16 +69,16 @@ def main(argv=None) -> dict:
     model = sword_jax.load_world_model(tiny_run(args.run, workdir=args.workdir, steps=args.train_steps))
     spec = model.spec
     rl = RLConfig(chunk_len=spec.frames_per_chunk, action_dim=spec.action_dim, image_size=spec.image_size,
-                  group_size=4, rollout_batch=2, max_chunks=2, learning_rate=1e-3, grpo_steps=args.steps,
-                  imagined_return="score")
+                  grpo=GRPOConfig(steps=args.steps, rollout_batch=2, group_size=4, learning_rate=1e-3),
+                  imagined=ImaginedConfig(max_chunks=2, return_rule="score"))
     graphdef, params = nnx.split(MyPolicy(rl, rngs=nnx.Rngs(args.seed)))
 
     from sword_jax.vae.train import moving_squares  # start frames: what the tiny VAE saw
 
-    keyframes = (moving_squares(key=jax.random.key(args.seed), batch=rl.rollout_batch, frames=1,
+    keyframes = (moving_squares(key=jax.random.key(args.seed), batch=rl.grpo.rollout_batch, frames=1,
                                 size=spec.image_size)[:, 0] + 1.0) / 2.0
-    starts = sword_jax.start_states(model, keyframes, ["move the light to the right"] * rl.rollout_batch,
-                                    max_instruction_bytes=rl.max_instruction_bytes)
+    starts = sword_jax.start_states(model, keyframes, ["move the light to the right"] * rl.grpo.rollout_batch,
+                                    max_instruction_bytes=rl.policy.max_instruction_bytes)
     simulator = sword_jax.learned_simulator(model)
     reward = RewardModel(params=None, score_fn=lambda _, frames: light_on_the_right(frames))
 

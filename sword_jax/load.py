@@ -125,12 +125,34 @@ def _section_value(value: Any, annotation: Any) -> Any:
     return value
 
 
+def _nest_renamed(cls: type, values: dict[str, Any]) -> dict[str, Any]:
+    # keys an earlier version kept flat (``cls.renamed_fields``: old -> "section.key") moved into their sections
+    renamed = getattr(cls, "renamed_fields", {})
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in values.items() if k not in renamed}
+    for key in renamed.keys() & values.keys():
+        *path, leaf = renamed[key].split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node.setdefault(leaf, values[key])  # a key saved under its new path wins over its old flat one
+    return out
+
+
 def section_from_dict(cls: type, values: dict[str, Any]) -> Any:
-    """A frozen config section ``cls`` from its saved JSON dict; unknown keys are ignored, missing
-    ones keep their defaults (a checkpoint from an older version still loads)."""
+    """A frozen config section ``cls`` from its saved JSON dict, nested sections included; unknown
+    keys are ignored, missing ones keep their defaults and keys an earlier version kept flat move to
+    their sections (``cls.renamed_fields``), so a checkpoint from an older version still loads."""
     hints = typing.get_type_hints(cls)
-    known = {f.name for f in dataclasses.fields(cls)}
-    kwargs = {k: _section_value(v, hints.get(k)) for k, v in values.items() if k in known}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in _nest_renamed(cls, values).items():
+        if key not in fields:
+            continue
+        section = hints.get(key)
+        if dataclasses.is_dataclass(section) and isinstance(value, dict):
+            kwargs[key] = section_from_dict(section, value)
+        else:
+            kwargs[key] = _section_value(value, section)
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as err:

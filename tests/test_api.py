@@ -158,11 +158,11 @@ def test_vector_env_passes_gymnasium_checks(model):
 
 
 def test_reward_model_loads_from_its_checkpoint(tiny_run, model, tmp_path):
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import RewardModelConfig, RLConfig
     from sword_jax.rl.params_io import save_params
     from sword_jax.rl.reward_model import build_detector
 
-    rl = RLConfig(image_size=32, reward_width=8)
+    rl = RLConfig(image_size=32, reward_model=RewardModelConfig(width=8))
     graphdef, params = build_detector(rl, seed=3)
     path = str(tmp_path / "reward_model")
     save_params(path, params, rl, kind="reward_model", step=7)
@@ -176,6 +176,24 @@ def test_reward_model_loads_from_its_checkpoint(tiny_run, model, tmp_path):
     with pytest.raises(CheckpointError, match="expected 'reward_model'"):
         save_params(str(tmp_path / "policy"), params, rl, kind="policy")
         sword_jax.load_reward_model(str(tmp_path / "policy"))
+
+
+def test_a_reward_model_saved_with_the_flat_rl_config_of_earlier_versions_loads(tmp_path):
+    from flax import nnx
+
+    from sword_jax import checkpoint
+    from sword_jax.rl.config import RewardModelConfig, RLConfig
+    from sword_jax.rl.reward_model import build_detector
+
+    rl = RLConfig(image_size=32, reward_model=RewardModelConfig(width=8))
+    _, params = build_detector(rl, seed=3)
+    path = str(tmp_path / "reward_model")
+    ckpt = checkpoint.Checkpointer(path, max_to_keep=1)  # as save_params wrote it before rl had sections
+    ckpt.save(0, nnx.to_pure_dict(params), {"kind": "reward_model", "rl": {"image_size": 32, "reward_width": 8}})
+    ckpt.close()
+    loaded = sword_jax.load_reward_model(path)  # the width moved to rl.reward_model.width: the same network
+    for a, b in zip(jax.tree.leaves(loaded.params), jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_missing_and_corrupt_checkpoints_are_named(tiny_run, tmp_path):

@@ -11,13 +11,15 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from sword_jax import sharding as shd
 from sword_jax.rl import grpo
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RewardModelConfig, RLConfig
 from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.sft import make_sft_step
 
-CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-               action_bins=8, chunk_len=4, proprio_dim=4, proprio_encoding="raw", reward_width=4, group_size=2, max_chunks=2, ppo_epochs=1)
+CFG = RLConfig(image_size=8, action_bins=8, chunk_len=4, proprio_dim=4,
+               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16, proprio_encoding="raw"),
+               reward_model=RewardModelConfig(width=4), grpo=GRPOConfig(group_size=2, ppo_epochs=1),
+               imagined=ImaginedConfig(max_chunks=2))
 BATCH_AXES = ("data", "fsdp")
 
 

@@ -4,7 +4,7 @@ import re
 import pytest
 
 import configs
-from configs.cli import ConfigError
+from configs.cli import ConfigError, flatten
 
 
 @pytest.mark.parametrize("name", ["sword:tiny", "sword:small", "sword:paper", "cache_ablation:linear-direct-all",
@@ -47,6 +47,8 @@ def test_dotted_overrides_are_typed():
         ("--nosection.x=1", "nosection.x"),
         ("--model.num_layers=four", "model.num_layers"),
         ("--cache.schedule=exp", "cache.schedule"),
+        ("--rl.sft.stepz=5", "rl.sft.stepz"),
+        ("--rl.grpo.group_size=1", "rl.grpo.group_size"),
     ],
 )
 def test_bad_override_names_the_key(override, needle):
@@ -72,13 +74,57 @@ def test_impossible_settings_rejected(override, needle):
     (["--rl.action_dim=6"], "rl.action_dim"),
     (["--rl.chunk_len=4"], "rl.chunk_len"),
     (["--flow.pixel_round_trip=true", "--data.context_frames=12"], "pixel_round_trip"),
-    (["--flow.pixel_round_trip=true", "--data.context_frames=8", "--rl.imagined_execute_steps=4"],
-     "imagined_execute_steps"),
+    (["--flow.pixel_round_trip=true", "--data.context_frames=8", "--rl.imagined.execute_steps=4"],
+     "rl.imagined.execute_steps"),
     (["--sim.resolution=64"], "sim.resolution"),
 ])
 def test_validate_cross_checks_sections(overrides, match):
     with pytest.raises(ConfigError, match=match):
         configs.from_argv(["--config", "sword:tiny", *overrides])
+
+
+def test_rl_settings_are_set_in_their_sections():
+    cfg, _ = configs.from_argv(["--rl.sft.steps=5", "--rl.grpo.group_size=3", "--rl.env.action_ensemble=false",
+                                "--rl.env.execute_steps=4", "--rl.imagined.execute_steps=4", "--rl.policy.width=48",
+                                "--rl.chunk_len=8"])
+    tiny = configs.get("sword:tiny").rl
+    assert (cfg.rl.sft.steps, cfg.rl.grpo.group_size, cfg.rl.policy.width) == (5, 3, 48)
+    assert (cfg.rl.env.execute_steps, cfg.rl.env.action_ensemble, cfg.rl.imagined.execute_steps) == (4, False, 4)
+    # the rest of each section keeps the variant's values
+    assert cfg.rl.sft.batch_size == tiny.sft.batch_size and cfg.rl.grpo.steps == tiny.grpo.steps
+    assert cfg.rl.policy.layers == tiny.policy.layers and cfg.rl.imagined.max_chunks == tiny.imagined.max_chunks
+    assert flatten(cfg)["rl.sft.steps"] == 5 and "rl.sft_steps" not in flatten(cfg)
+    with pytest.raises(ConfigError, match=r"rl\.policy' is a section"):
+        configs.from_argv(["--rl.policy=3"])
+
+
+def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
+    from sword_jax.rl.config import RENAMED, RLConfig
+
+    for old, new in RENAMED.items():
+        with pytest.raises(ConfigError, match=f"^{re.escape(f'rl.{old} is now rl.{new}')}$"):
+            configs.from_argv([f"--rl.{old}=1"])
+    # every new key exists, and every RL key is either one of them or kept its name at the top of rl
+    leaves = {key[len("rl."):] for key in flatten(configs.get("sword:tiny")) if key.startswith("rl.")}
+    assert set(RENAMED.values()) <= leaves
+    assert leaves - set(RENAMED.values()) == {f.name for f in dataclasses.fields(RLConfig)
+                                              if not dataclasses.is_dataclass(f.default)}
+
+
+@pytest.mark.parametrize("variant", ["tiny", "small", "paper"])
+def test_rl_configs_saved_flat_by_earlier_versions_load_into_their_sections(variant):
+    """Policy and reward-model checkpoints store the RL config; one saved before the split still loads."""
+    import json
+    import operator
+
+    from sword_jax.load import section_from_dict
+    from sword_jax.rl.config import RENAMED, RLConfig
+
+    rl = configs.get(f"sword:{variant}").rl
+    kept = {f.name: getattr(rl, f.name) for f in dataclasses.fields(rl) if not dataclasses.is_dataclass(f.default)}
+    flat = {**kept, **{old: operator.attrgetter(new)(rl) for old, new in RENAMED.items()}}
+    assert section_from_dict(RLConfig, json.loads(json.dumps(flat))) == rl
+    assert section_from_dict(RLConfig, json.loads(json.dumps(dataclasses.asdict(rl)))) == rl
 
 
 def test_augment_settings_no_pipeline_reads_are_gone():

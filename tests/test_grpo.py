@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sword_jax.rl import grpo
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
@@ -29,7 +29,7 @@ def test_group_advantages_hand_computed():
 
 
 def test_grpo_loss_hand_computed():
-    cfg = RLConfig(clip_low=0.2, clip_high=0.28)
+    cfg = RLConfig(grpo=GRPOConfig(clip_low=0.2, clip_high=0.28))
     # two trajectories, 2 chunks, 1 action x 1 dim; trajectory 1 is done after chunk 0
     old = jnp.log(jnp.asarray([[0.5, 0.5], [0.5, 0.5]], jnp.float32))[:, :, None, None]
     new = jnp.log(jnp.asarray([[0.6, 0.75], [0.3, 0.9]], jnp.float32))[:, :, None, None]
@@ -41,11 +41,11 @@ def test_grpo_loss_hand_computed():
     # traj 1 (A=-1): ratio 0.6 -> -min(-0.6, -0.8) = 0.8; chunk 1 masked -> 0.8
     np.testing.assert_allclose(float(loss), (-1.24 + 0.8) / 2, rtol=1e-5)
     np.testing.assert_allclose(float(metrics["clip_fraction"]), 2 / 3, rtol=1e-5)  # 1.5 (A>0) and 0.6 (A<0)
-    token_cfg = RLConfig(loss_norm="token")
+    token_cfg = RLConfig(grpo=GRPOConfig(loss_norm="token"))
     loss_tok, _ = grpo.grpo_loss(new, old, None, adv, valid, keep, token_cfg)
     np.testing.assert_allclose(float(loss_tok), (-1.2 - 1.28 + 0.8) / 3, rtol=1e-5)
     # KL (k3) to a reference equal to the old policy
-    kl_cfg = RLConfig(kl_coef=0.5)
+    kl_cfg = RLConfig(grpo=GRPOConfig(kl_coef=0.5))
     loss_kl, m_kl = grpo.grpo_loss(new, old, old, adv, valid, keep, kl_cfg)
     k3 = lambda p_new: 0.5 / p_new - math.log(0.5 / p_new) - 1  # noqa: E731
     kl_vals = [k3(0.6), k3(0.75), k3(0.3)]
@@ -72,11 +72,11 @@ def test_clipping_zeroes_gradient_on_the_right_side(ratio, advantage, zero_grad)
         assert np.sign(g) == -np.sign(advantage)  # descent raises log-prob iff A > 0
 
 
-def _toy_cfg(**kw):
-    base = dict(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                action_bins=8, proprio_dim=4, proprio_encoding="raw", max_chunks=3, group_size=8, learning_rate=1e-2, ppo_epochs=2)
-    base.update(kw)
-    return RLConfig(**base)
+def _toy_cfg(max_chunks=3, **grpo_kw):
+    grpo_cfg = {"group_size": 8, "learning_rate": 1e-2, "ppo_epochs": 2, **grpo_kw}
+    return RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+                    policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+                    grpo=GRPOConfig(**grpo_cfg), imagined=ImaginedConfig(max_chunks=max_chunks))
 
 
 def test_grpo_improves_policy_on_toy_simulator():
@@ -110,7 +110,7 @@ def test_a_non_finite_batch_skips_the_update():
 
     cfg = _toy_cfg(ppo_epochs=1, max_chunks=2)
     graphdef, params = build_policy(cfg, seed=0)
-    n, c, t, a = cfg.group_size, cfg.max_chunks, cfg.chunk_len, cfg.action_dim
+    n, c, t, a = cfg.grpo.group_size, cfg.imagined.max_chunks, cfg.chunk_len, cfg.action_dim
     rng = np.random.default_rng(0)
     tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl"] * n, 32))
     rollout = Rollout(
@@ -134,13 +134,13 @@ def test_a_non_finite_batch_skips_the_update():
 
 @pytest.mark.parametrize("loss_norm,kl_coef", [("trajectory", 0.0), ("token", 0.1)])
 def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
-    """rl.update_microbatch sums the gradients of micro-batches of trajectories; the token weights come
+    """rl.grpo.update_microbatch sums the gradients of micro-batches of trajectories; the token weights come
     from the whole batch, so the update (and its metrics) match the one-shot update."""
     from sword_jax.rl.rollout import Rollout
 
     cfg = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4, loss_norm=loss_norm, kl_coef=kl_coef)
     graphdef, params = build_policy(cfg, seed=0)
-    n, c, t, a = 2 * cfg.group_size, cfg.max_chunks, cfg.chunk_len, cfg.action_dim
+    n, c, t, a = 2 * cfg.grpo.group_size, cfg.imagined.max_chunks, cfg.chunk_len, cfg.action_dim
     rng = np.random.default_rng(1)
     valid = np.ones((n, c), np.float32)
     valid[1, 1:] = 0.0
@@ -155,7 +155,7 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
         returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
     results = {}
     for micro in (0, 2):
-        mcfg = dataclasses.replace(cfg, update_microbatch=micro)
+        mcfg = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, update_microbatch=micro))
         results[micro] = jax.jit(lambda p, b, mcfg=mcfg: grpo.grpo_gradients(graphdef, mcfg, p, b, ref_params=p))(
             params, rollout._replace(log_probs=rollout.log_probs))
     whole_loss, whole_metrics, whole_grads = results[0]
@@ -171,10 +171,11 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
     # the micro-batched objective is grpo_loss's
     from sword_jax.rl.grpo import _rollout_log_probs
 
-    adv, keep = grpo.group_advantages(rollout.returns.reshape(-1, cfg.group_size))
+    adv, keep = grpo.group_advantages(rollout.returns.reshape(-1, cfg.grpo.group_size))
     ref = _rollout_log_probs(graphdef, params, rollout)
     direct, _ = grpo.grpo_loss(ref, rollout.log_probs, ref, adv.reshape(-1), rollout.valid,
-                               jnp.repeat(keep, cfg.group_size), cfg)
+                               jnp.repeat(keep, cfg.grpo.group_size), cfg)
     np.testing.assert_allclose(float(whole_loss), float(direct), rtol=1e-5, atol=1e-7)
     with pytest.raises(ValueError, match="update_microbatch"):
-        grpo.grpo_update(graphdef, dataclasses.replace(cfg, update_microbatch=3), grpo.init_state(params, cfg), rollout)
+        odd = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, update_microbatch=3))
+        grpo.grpo_update(graphdef, odd, grpo.init_state(params, cfg), rollout)

@@ -67,9 +67,9 @@ def _old_sft_optimizer(schedule):
 
 def _old_sft_schedule(cfg, total_steps):
     steps = max(int(total_steps), 1)
-    warmup = min(cfg.sft_warmup_steps, steps // 10)
-    peak = cfg.sft_learning_rate
-    return optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=peak * cfg.sft_lr_end_fraction)
+    warmup = min(cfg.sft.warmup_steps, steps // 10)
+    peak = cfg.sft.learning_rate
+    return optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=peak * cfg.sft.lr_end_fraction)
 
 
 def _old_update_inside(tx, grads, opt_state, params):
@@ -155,19 +155,19 @@ def test_vae_optimizer_is_unchanged(variant):
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_grpo_optimizer_is_unchanged(variant):
     cfg = configs.get(f"sword:{variant}").rl
-    old = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(cfg.learning_rate, weight_decay=0.0))
+    old = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(cfg.grpo.learning_rate, weight_decay=0.0))
     _assert_same_updates(grpo.make_optimizer(cfg), old, _old_update_inside)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_sft_optimizer_is_unchanged(variant):
     cfg = configs.get(f"sword:{variant}").rl
-    for total in (cfg.sft_steps, 1, 7, 60):  # short runs have no warm-up (steps // 10 caps it)
-        steps = _probe_steps(min(cfg.sft_warmup_steps, total // 10), total)
+    for total in (cfg.sft.steps, 1, 7, 60):  # short runs have no warm-up (steps // 10 caps it)
+        steps = _probe_steps(min(cfg.sft.warmup_steps, total // 10), total)
         np.testing.assert_array_equal(_schedule_values(sft_schedule(cfg, total), steps),
                                       _old_schedule_values(_old_sft_schedule(cfg, total), steps))
-    schedule = sft_schedule(cfg, cfg.sft_steps)
-    _assert_same_updates(make_sft_optimizer(schedule), _old_sft_optimizer(_old_sft_schedule(cfg, cfg.sft_steps)),
+    schedule = sft_schedule(cfg, cfg.sft.steps)
+    _assert_same_updates(make_sft_optimizer(schedule), _old_sft_optimizer(_old_sft_schedule(cfg, cfg.sft.steps)),
                          _old_update_inside)
 
 
@@ -185,7 +185,7 @@ def test_sft_masks_weight_decay_on_the_stored_statistics():
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_reward_model_optimizer_is_unchanged(variant):
     cfg = configs.get(f"sword:{variant}").rl
-    old = optax.adamw(cfg.reward_model_learning_rate, weight_decay=1e-4)
+    old = optax.adamw(cfg.reward_model.learning_rate, weight_decay=1e-4)
     # now a one-part chain (was bare AdamW); the reward model's optimizer state is never saved
     _assert_same_updates(make_detector_optimizer(cfg), old, _old_update_inside, same_layout=False)
 
@@ -211,7 +211,8 @@ def _reward_batches(cfg, poison_at=None):
 
 
 def test_reward_model_stops_on_a_non_finite_loss_naming_the_step():
-    cfg = dataclasses.replace(configs.get("sword:tiny").rl, image_size=8, reward_width=4)
+    tiny = configs.get("sword:tiny").rl
+    cfg = dataclasses.replace(tiny, image_size=8, reward_model=dataclasses.replace(tiny.reward_model, width=4))
     graphdef, params = build_detector(cfg)
     with pytest.raises(FloatingPointError, match=r"reward model: non-finite loss or gradient at step 3 \(0-based\)"):
         train_detector(graphdef, params, cfg, _reward_batches(cfg, poison_at=3), key=jax.random.key(0), steps=10,
@@ -223,7 +224,8 @@ def test_reward_model_stops_on_a_non_finite_loss_naming_the_step():
 
 
 def test_reward_model_skips_the_poisoned_update():
-    cfg = dataclasses.replace(configs.get("sword:tiny").rl, image_size=8, reward_width=4)
+    tiny = configs.get("sword:tiny").rl
+    cfg = dataclasses.replace(tiny, image_size=8, reward_model=dataclasses.replace(tiny.reward_model, width=4))
     graphdef, params = build_detector(cfg)
     init, step = make_detector_step(graphdef, cfg)
     batch_at = _reward_batches(cfg, poison_at=1)

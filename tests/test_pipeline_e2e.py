@@ -18,8 +18,8 @@ def test_tiny_pipeline_runs_every_stage_through_grpo_in_the_world_model(tmp_path
     workdir = str(tmp_path / "run")
     # A fresh process with one CPU device, as a user runs it (the suite's 8 fake devices do not divide tiny batches).
     run = subprocess.run([sys.executable, "-m", "train.pipeline", "--config", "sword:tiny", f"--workdir={workdir}",
-                          "--skip", "probe,evaluate", "--stop-after", "policy", "--rl.execute_steps=4",
-                          "--rl.action_ensemble=false", "--rl.grpo_steps=2", "--rl.eval_every=2"],
+                          "--skip", "probe,evaluate", "--stop-after", "policy", "--rl.env.execute_steps=4",
+                          "--rl.env.action_ensemble=false", "--rl.grpo.steps=2", "--rl.grpo.eval_every=2"],
                          cwd=REPO, env=example_env(), capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     with open(os.path.join(workdir, "stages", "policy.json")) as f:

@@ -20,7 +20,7 @@ def test_policy_rollouts_are_fixed_length_replayable_episodes(tmp_path):
     import sim
 
     cfg = sword.get("tiny")
-    rl = dataclasses.replace(cfg.rl, execute_steps=4, action_ensemble=False)
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False))
     graphdef, params = build_policy(rl, seed=0)
     gen = gen_data.GenDataConfig(out=str(tmp_path / "rollouts.hdf5"), tasks=(0, 3), episodes=1, backend="cpu",
                                  resolution=16, max_steps=10, stop_at_success=False, wrist_camera=False,

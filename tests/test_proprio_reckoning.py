@@ -73,26 +73,26 @@ def test_reckoning_tracks_the_c_engine_better_than_holding_the_start_proprio():
 def test_config_names_the_bad_imagined_proprio_setting():
     import pytest
 
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import ImaginedConfig, RLConfig
 
-    with pytest.raises(ValueError, match="imagined_proprio"):
-        RLConfig(imagined_proprio="guess").validate()
-    RLConfig(imagined_proprio="missing").validate()
+    with pytest.raises(ValueError, match=r"rl\.imagined\.proprio"):
+        RLConfig(imagined=ImaginedConfig(proprio="guess")).validate()
+    RLConfig(imagined=ImaginedConfig(proprio="missing")).validate()
     with pytest.raises(ValueError, match="pos_gain"):
         ReckoningConfig(pos_gain=(1.0, 1.0)).validate()
 
 
 def test_masked_proprio_act_runs_the_missing_proprio_mode():
-    """``act(..., proprio_valid=0)`` (rl.eval_masked_proprio, env_proprio=missing) is the policy with proprio
+    """``act(..., proprio_valid=0)`` (rl.imagined.eval_masked_proprio, rl.env.proprio=missing) is the policy with proprio
     marked missing -- the mode GRPO trains in a simulator that reports none -- and differs from the default."""
     from flax import nnx
 
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import PolicyConfig, RLConfig
     from sword_jax.rl.env_rollout import make_act_fns
     from sword_jax.rl.policy import build_policy, resize_frames, tokenize_instructions
 
-    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                  action_bins=8)
+    rl = RLConfig(image_size=8, action_bins=8,
+                  policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32))
     graphdef, params = build_policy(rl, seed=0)
     frames = jax.random.randint(jax.random.key(1), (3, 16, 16, 3), 0, 256).astype(jnp.uint8)
     tokens = jnp.asarray(tokenize_instructions(["a", "b", "c"], 32))
@@ -134,17 +134,18 @@ class _StillArmEnvs:
 
 @pytest.mark.parametrize("mode", ["true", "reckoned", "missing"])
 def test_env_rollouts_feed_the_policy_the_configured_proprio_mode(mode):
-    """rl.env_proprio: ground-truth rollouts read true, dead-reckoned or missing proprio, and record what
+    """rl.env.proprio: ground-truth rollouts read true, dead-reckoned or missing proprio, and record what
     was read, so GRPO's update recomputes the same log-probs (the learned simulator's input modes,
     isolated from world-model error)."""
     from flax import nnx
 
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import EnvConfig, PolicyConfig, RLConfig
     from sword_jax.rl.env_rollout import make_act_fns, run_policy
     from sword_jax.rl.policy import build_policy, resize_frames
 
-    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                  action_bins=8, execute_steps=4, action_ensemble=False, env_proprio=mode)
+    rl = RLConfig(image_size=8, action_bins=8,
+                  policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32),
+                  env=EnvConfig(execute_steps=4, action_ensemble=False, proprio=mode))
     graphdef, params = build_policy(rl, seed=0)
     envs = _StillArmEnvs(n=3, max_steps=12)
     reckoning = ReckoningConfig(pos_gain=(0.9, 0.9, 0.8), rot_gain=(0.9, 0.8, 0.4))
@@ -171,11 +172,11 @@ def test_env_rollouts_feed_the_policy_the_configured_proprio_mode(mode):
 
 
 def test_env_proprio_mode_errors_name_the_setting():
-    from sword_jax.rl.config import RLConfig
+    from sword_jax.rl.config import EnvConfig, RLConfig
     from sword_jax.rl.env_rollout import run_policy
 
-    with pytest.raises(ValueError, match="env_proprio"):
-        RLConfig(env_proprio="guess").validate()
+    with pytest.raises(ValueError, match=r"rl\.env\.proprio"):
+        RLConfig(env=EnvConfig(proprio="guess")).validate()
     with pytest.raises(ValueError, match="ReckoningConfig"):
         run_policy(None, None, _StillArmEnvs(1, 4), RLConfig(), key=jax.random.key(0), greedy=True, max_steps=4,
                    proprio="reckoned")

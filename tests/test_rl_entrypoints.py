@@ -6,8 +6,8 @@ import os
 import numpy as np
 import pytest
 
-TINY_RL = ["--rl.image_size=8", "--rl.policy_width=16", "--rl.policy_heads=2", "--rl.policy_layers=1",
-           "--rl.action_bins=8", "--rl.reward_width=4", "--rl.max_instruction_bytes=48"]
+TINY_RL = ["--rl.image_size=8", "--rl.policy.width=16", "--rl.policy.heads=2", "--rl.policy.layers=1",
+           "--rl.action_bins=8", "--rl.reward_model.width=4", "--rl.policy.max_instruction_bytes=48"]
 
 
 def _write_demos(path, solved_steps=4):
@@ -35,19 +35,19 @@ def test_sft_and_reward_entry_points(tmp_path):
 
     data = _write_demos(str(tmp_path / "demos.hdf5"))
     common = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", data] + TINY_RL
-    result = train_policy.main(common + ["--rl.sft_steps=3", "--rl.sft_batch_size=4"])
+    result = train_policy.main(common + ["--rl.sft.steps=3", "--rl.sft.batch_size=4"])
     assert result["demos"] == 1 and np.isfinite(result["final_loss"])  # 2 successful demonstrations, 1 held out
     assert os.path.isdir(tmp_path / "rl" / "policy_sft")
-    result = train_reward.main(common + ["--rl.reward_model_steps=3", "--rl.reward_model_batch_size=4"])
+    result = train_reward.main(common + ["--rl.reward_model.steps=3", "--rl.reward_model.batch_size=4"])
     assert "holdout" in result and os.path.isdir(tmp_path / "rl" / "reward_model")
     assert result["labels"] == "state" and "fires_on_failed" in result["holdout"]["true_success"]
-    tail = train_reward.main(common + ["--rl.reward_model_steps=3", "--rl.reward_model_batch_size=4",
-                                       "--rl.reward_labels=tail"])
+    tail = train_reward.main(common + ["--rl.reward_model.steps=3", "--rl.reward_model.batch_size=4",
+                                       "--rl.reward_model.labels=tail"])
     assert tail["labels"] == "tail" and tail["holdout"]["positives"] >= 1
     # Episodes that end where they are first solved show no solved frame: a clear error, not a detector of nothing.
     cut = str(tmp_path / "cut.hdf5")
     _write_demos(cut, solved_steps=1)
-    with pytest.raises(ValueError, match="no positive frame under rl.reward_labels=state"):
+    with pytest.raises(ValueError, match="no positive frame under rl.reward_model.labels=state"):
         train_reward.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", cut] + TINY_RL)
 
 
@@ -55,10 +55,10 @@ def test_sft_and_reward_entry_points(tmp_path):
 def test_grpo_entry_point_toy_and_resume(tmp_path):
     from train import grpo as grpo_main
 
-    args = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "toy", "--rl.max_chunks=2",
-            "--rl.rollout_batch=2", "--rl.eval_every=2"] + TINY_RL
-    grpo_main.main(args + ["--rl.grpo_steps=2"])
-    out = grpo_main.main(args + ["--rl.grpo_steps=4"])  # resumes from step 2
+    args = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "toy", "--rl.imagined.max_chunks=2",
+            "--rl.grpo.rollout_batch=2", "--rl.grpo.eval_every=2"] + TINY_RL
+    grpo_main.main(args + ["--rl.grpo.steps=2"])
+    out = grpo_main.main(args + ["--rl.grpo.steps=4"])  # resumes from step 2
     steps = [p["step"] for p in out["curve"]]
     assert steps == [0, 2, 4]
     with open(os.path.join(out["workdir"], "success_curve.json")) as f:
@@ -75,10 +75,10 @@ def test_grpo_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     from train import grpo as grpo_main
 
     def run(workdir, *steps):
-        args = ["--config", "sword:tiny", f"--workdir={workdir}", "--simulator", "toy", "--rl.max_chunks=2",
-                "--rl.rollout_batch=2", "--rl.eval_every=2"] + TINY_RL
+        args = ["--config", "sword:tiny", f"--workdir={workdir}", "--simulator", "toy", "--rl.imagined.max_chunks=2",
+                "--rl.grpo.rollout_batch=2", "--rl.grpo.eval_every=2"] + TINY_RL
         for n in steps:
-            out = grpo_main.main(args + [f"--rl.grpo_steps={n}"])
+            out = grpo_main.main(args + [f"--rl.grpo.steps={n}"])
         ckpt = checkpoint.Checkpointer(os.path.join(out["workdir"], "checkpoints"))
         state, meta = ckpt.restore(None)
         ckpt.close()

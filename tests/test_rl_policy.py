@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 from sword_jax.rl import data as rl_data
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import PolicyConfig, RewardModelConfig, RLConfig, SFTConfig
 from sword_jax.rl.policy import (actions_to_tokens, build_policy, greedy_chunk, policy_logits, tokenize_instructions,
                                  tokens_to_actions)
 from sword_jax.rl.reward_model import as_reward_model, build_detector, make_detector_step
 from sword_jax.rl.sft import make_sft_step
 
-CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=48,
-               action_bins=16, proprio_dim=4, proprio_encoding="raw", sft_learning_rate=3e-3, reward_width=4, reward_model_learning_rate=3e-3)
+CFG = RLConfig(image_size=8, action_bins=16, proprio_dim=4,
+               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=48, proprio_encoding="raw"),
+               sft=SFTConfig(learning_rate=3e-3), reward_model=RewardModelConfig(width=4, learning_rate=3e-3))
 # LIBERO-Spatial instructions differ in a few words only
 TEXTS = ["pick up the black bowl on the plate and place it on the plate",
          "pick up the black bowl on the stove and place it on the plate"]
@@ -111,8 +112,8 @@ def test_state_labels_mark_the_frames_that_show_a_solved_state():
         rl_data.success_labels(eps, 3, "end")
     with pytest.raises(ValueError, match="frame_success"):
         rl_data.success_labels(_episodes(), 3, "state")
-    with pytest.raises(ValueError, match="reward_labels"):
-        dataclasses.replace(CFG, reward_labels="last").validate()
+    with pytest.raises(ValueError, match=r"rl\.reward_model\.labels"):
+        dataclasses.replace(CFG, reward_model=dataclasses.replace(CFG.reward_model, labels="last")).validate()
 
 
 def test_detector_report_reads_scores_as_the_rollout_rule_does():

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import EnvConfig, GRPOConfig, PolicyConfig, RLConfig, SFTConfig
 from sword_jax.rl.env_rollout import make_act_fns, max_decisions, run_policy, wilson_interval
 from sword_jax.rl.policy import (axis_angle_to_matrix, build_policy, compute_proprio_stats, policy_logits,
                                  proprio_features, set_proprio_stats)
@@ -15,7 +15,7 @@ from sword_jax.rl.sft import sft_schedule
 
 
 def test_sft_schedule_warms_up_then_decays_to_a_fraction_of_the_peak():
-    cfg = RLConfig(sft_learning_rate=1e-3, sft_warmup_steps=50, sft_lr_end_fraction=0.1)
+    cfg = RLConfig(sft=SFTConfig(learning_rate=1e-3, warmup_steps=50, lr_end_fraction=0.1))
     lr = sft_schedule(cfg, 1000)
     values = np.asarray([float(lr(s)) for s in range(0, 1001, 10)])
     assert float(lr(0)) == 0.0
@@ -47,8 +47,8 @@ def test_rotation_features_are_continuous_across_the_axis_angle_flip():
 def test_proprio_stats_normalise_and_round_trip_with_the_policy(tmp_path):
     from sword_jax.rl.params_io import load_params, save_params
 
-    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16)
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16))
     graphdef, params = build_policy(cfg, seed=0)
     proprio = np.random.default_rng(0).normal(size=(100, 8)).astype(np.float32) * 0.3 + 2.0
     stats = compute_proprio_stats(proprio, cfg)
@@ -98,8 +98,9 @@ class _CountingEnvs:
 
 @pytest.mark.parametrize("execute_steps", [8, 3, 1])
 def test_replanning_executes_the_configured_number_of_actions(execute_steps):
-    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=execute_steps, action_ensemble=False)
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16),
+                   env=EnvConfig(execute_steps=execute_steps, action_ensemble=False))
     graphdef, params = build_policy(cfg, seed=0)
     envs = _CountingEnvs(n=2, solve_at=1000, max_steps=20)
     rollout = run_policy(make_act_fns(graphdef, cfg), params, envs, cfg, key=jax.random.key(0), greedy=False,
@@ -144,12 +145,13 @@ def test_grpo_against_the_mujoco_environment_improves_the_policy():
     from sim.lockstep import LockstepEnvs
     from sword_jax.rl import grpo
 
-    cfg = RLConfig(image_size=16, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=4, action_ensemble=False, chunk_len=4, group_size=8, rollout_batch=2, learning_rate=3e-3,
-                   clip_low=0.2, clip_high=0.28)
+    cfg = RLConfig(image_size=16, action_bins=16, chunk_len=4,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16),
+                   grpo=GRPOConfig(group_size=8, rollout_batch=2, learning_rate=3e-3, clip_low=0.2, clip_high=0.28),
+                   env=EnvConfig(execute_steps=4, action_ensemble=False))
     graphdef, params = build_policy(cfg, seed=0)
     starts = [(0, q) for q in tasks.split_init_states(0, "train", 2)]
-    episodes = [s for s in starts for _ in range(cfg.group_size)]
+    episodes = [s for s in starts for _ in range(cfg.grpo.group_size)]
     with LockstepEnvs(episodes[:1], resolution=16, max_steps=1, renderer="jax") as probe:
         probe.reset()
         env = probe._local.envs[0]
@@ -173,23 +175,24 @@ def test_grpo_against_the_mujoco_environment_improves_the_policy():
 
 @pytest.mark.parametrize("greedy", [True, False])
 def test_default_execution_re_plans_every_step_and_ensembles_only_greedy_rollouts(greedy):
-    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16)
-    assert cfg.execute_steps == 1 and cfg.action_ensemble  # the mode measured best (README)
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16))
+    assert cfg.env.execute_steps == 1 and cfg.env.action_ensemble  # the mode measured best (README)
     graphdef, params = build_policy(cfg, seed=0)
     envs = _CountingEnvs(n=2, solve_at=1000, max_steps=6)
     rollout = run_policy(make_act_fns(graphdef, cfg), params, envs, cfg, key=jax.random.key(0), greedy=greedy,
                          max_steps=6)
     assert envs.blocks == [1] * 6 and rollout.tokens.shape == (2, 6, 1, 7)
     with pytest.raises(ValueError, match="action_ensemble=false"):
-        dataclasses.replace(cfg, execute_steps=4).validate()
+        dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, execute_steps=4)).validate()
 
 
 def test_evaluate_in_sim_runs_the_given_episodes_in_the_given_envs():
     from sword_jax.rl.policy_success import evaluate_in_sim
 
-    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=2, action_ensemble=False)
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16),
+                   env=EnvConfig(execute_steps=2, action_ensemble=False))
     graphdef, params = build_policy(cfg, seed=0)
     episodes = [(3, np.zeros(2)), (3, np.ones(2)), (1, np.zeros(2)), (1, np.ones(2)), (1, np.ones(2))]
     made = []

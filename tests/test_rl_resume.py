@@ -24,7 +24,7 @@ import pytest
 
 from sword_jax import checkpoint
 from sword_jax.rl import grpo
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, RLConfig
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.reward_model import build_detector, train_detector
@@ -38,11 +38,11 @@ from tests.test_rl_policy import CFG, _episodes
 STEPS, KILL_AT = 8, 3
 ENTRY = {  # entry point, its checkpoint dir under <workdir>/rl, its knobs for a short run checkpointed every step
     "sft": ("train.train_policy", "sft_checkpoints",
-            [f"--rl.sft_steps={STEPS}", "--rl.sft_batch_size=4", "--rl.sft_eval_every=2", "--rl.sft_warmup_steps=2",
-             "--rl.sft_checkpoint_every=1", "--holdout=0.3"]),
+            [f"--rl.sft.steps={STEPS}", "--rl.sft.batch_size=4", "--rl.sft.eval_every=2", "--rl.sft.warmup_steps=2",
+             "--rl.sft.checkpoint_every=1", "--holdout=0.3"]),
     "reward": ("train.train_reward", "reward_checkpoints",
-               [f"--rl.reward_model_steps={STEPS}", "--rl.reward_model_batch_size=4",
-                "--rl.reward_model_checkpoint_every=1"]),
+               [f"--rl.reward_model.steps={STEPS}", "--rl.reward_model.batch_size=4",
+                "--rl.reward_model.checkpoint_every=1"]),
 }
 
 
@@ -114,7 +114,8 @@ def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
 
 def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path):
     # a learning rate this large sends the parameters past float32's range within a few steps
-    cfg = dataclasses.replace(CFG, sft_learning_rate=1e30, sft_warmup_steps=0, sft_eval_every=1, sft_checkpoint_every=1)
+    cfg = dataclasses.replace(CFG, sft=dataclasses.replace(CFG.sft, learning_rate=1e30, warmup_steps=0, eval_every=1,
+                                                           checkpoint_every=1))
     graphdef, params = build_policy(cfg, seed=0)
     directory = str(tmp_path / "sft_checkpoints")
     with pytest.raises(NonFiniteLoss, match=r"SFT: non-finite loss or gradient at step \d+ \(0-based\)") as err:
@@ -129,7 +130,7 @@ def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_check
 
 @pytest.mark.slow  # the stop itself is pinned in the default run by test_optim's reward-model test
 def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes(tmp_path):
-    cfg = dataclasses.replace(CFG, reward_model_checkpoint_every=1)
+    cfg = dataclasses.replace(CFG, reward_model=dataclasses.replace(CFG.reward_model, checkpoint_every=1))
     directory = str(tmp_path / "reward_checkpoints")
     graphdef, params = build_detector(cfg)
     with pytest.raises(NonFiniteLoss, match=r"reward model: non-finite loss or gradient at step 3 \(0-based\).*"
@@ -146,8 +147,9 @@ def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes
         np.testing.assert_array_equal(a, np.asarray(b))
     # the checkpoint belongs to its run: another batch size is refused, naming the key
     graphdef, params = build_detector(cfg)
-    with pytest.raises(ValueError, match="reward_model_batch_size"):
-        train_detector(graphdef, params, dataclasses.replace(cfg, reward_model_batch_size=7),
+    other = dataclasses.replace(cfg, reward_model=dataclasses.replace(cfg.reward_model, batch_size=7))
+    with pytest.raises(ValueError, match=r"rl\.reward_model\.batch_size"):
+        train_detector(graphdef, params, other,
                        _reward_batches(cfg), key=jax.random.key(0), steps=6, log=lambda line: None,
                        checkpoint_dir=directory)
 
@@ -155,8 +157,8 @@ def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes
 GRPO_STEPS, GRPO_KILL_AT = 4, 2
 # the toy simulator, evaluated and checkpointed every other step; XLA's cheapest CPU compile (the same program
 # in every run, so bit-identity still means what it says) keeps the one cold compile of the step short
-GRPO_ARGS = ["--simulator", "toy", "--rl.max_chunks=2", "--rl.rollout_batch=2", "--rl.group_size=2",
-             "--rl.eval_every=2", f"--rl.grpo_steps={GRPO_STEPS}"]
+GRPO_ARGS = ["--simulator", "toy", "--rl.imagined.max_chunks=2", "--rl.grpo.rollout_batch=2", "--rl.grpo.group_size=2",
+             "--rl.grpo.eval_every=2", f"--rl.grpo.steps={GRPO_STEPS}"]
 FAST_COMPILE = " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 
 
@@ -201,17 +203,17 @@ def test_grpo_sigkill_resume_is_bit_identical_and_another_runs_checkpoint_is_ref
     assert curves[0] == curves[1] and [p["step"] for p in curves[0]["points"]] == [0, 2, 4]
 
     # the work dir belongs to its run: another learning rate is refused in one line, naming the key
-    other = subprocess.run(_grpo_cmd(crashed, "--rl.learning_rate=1e-3"), cwd=REPO, env=env, capture_output=True,
+    other = subprocess.run(_grpo_cmd(crashed, "--rl.grpo.learning_rate=1e-3"), cwd=REPO, env=env, capture_output=True,
                            text=True, timeout=300)
     assert other.returncode == 1 and "Traceback" not in other.stderr, other.stderr[-3000:]
-    assert "another run (differs in ['rl.learning_rate'])" in other.stderr, other.stderr[-3000:]
+    assert "another run (differs in ['rl.grpo.learning_rate'])" in other.stderr, other.stderr[-3000:]
 
 
 def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_checkpoint(tmp_path):
     """The loop around GRPO's step (the update's own finite gate is pinned in test_grpo): a non-finite loss
     stops the run with the last evaluation's checkpoint and curve intact; an evaluation a killed run wrote
     after its checkpoint is dropped on resume and recomputed."""
-    rl = RLConfig(grpo_steps=6, eval_every=2)
+    rl = RLConfig(grpo=GRPOConfig(steps=6, eval_every=2))
     workdir = str(tmp_path / "grpo")
     run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
 
@@ -247,10 +249,11 @@ def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_che
     stale["points"].append({"step": 6, "mean": -1.0, "per_task": {}})
     with open(os.path.join(workdir, "success_curve.json"), "w") as f:
         json.dump(stale, f)
-    _, points = run(make_step(bad_step=-1), dataclasses.replace(rl, grpo_steps=4))  # resumes at its end
+    shorter = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, steps=4))
+    _, points = run(make_step(bad_step=-1), shorter)  # resumes at its end
     assert [p["step"] for p in points] == [0, 2, 4] and curve_on_disk() == [(0, 0.0), (2, 3.0), (4, 10.0)]
     result, _ = run(make_step(bad_step=-1), rl)
     assert result.first_step == 4 and curve_on_disk() == [(0, 0.0), (2, 3.0), (4, 10.0), (6, 21.0)]
-    with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['rl.group_size'\]"):
-        run(make_step(bad_step=-1), rl, run_id=grpo_run_id(dataclasses.replace(rl, group_size=4), seed=0,
-                                                           simulator="toy", **{"sim.tasks": (0, 1)}))
+    other = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, group_size=4))
+    with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['rl.grpo.group_size'\]"):
+        run(make_step(bad_step=-1), rl, run_id=grpo_run_id(other, seed=0, simulator="toy", **{"sim.tasks": (0, 1)}))

@@ -7,15 +7,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from sword_jax import sharding as shd
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.env import ImaginedEnv
 from sword_jax.rl.learned_simulator import (ToyState, instruction_target, toy_render, toy_reward_model,
                                             toy_simulator, toy_start_states)
 from sword_jax.rl.policy import build_policy, tokenize_instructions, tokens_to_actions
 from sword_jax.rl.rollout import expand_groups, group_view, imagined_rollout
 
-CFG = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-               action_bins=8, proprio_dim=4, proprio_encoding="raw", max_chunks=4, group_size=4)
+CFG = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+               grpo=GRPOConfig(group_size=4), imagined=ImaginedConfig(max_chunks=4))
 TEXTS = ["pick up the black bowl on the plate", "put the bowl on the stove"]
 
 
@@ -29,7 +30,7 @@ def _setup(noise=0.02):
     proprio = start.proprio.at[1, :2].set(target)
     frames = start.frame.at[1].set(toy_render(ToyState(target, target), 8))
     start = start._replace(proprio=proprio, frame=frames)
-    return graphdef, params, sim, reward_model, expand_groups(start, CFG.group_size)
+    return graphdef, params, sim, reward_model, expand_groups(start, CFG.grpo.group_size)
 
 
 def test_rollout_deterministic_and_respects_done():
@@ -45,7 +46,7 @@ def test_rollout_deterministic_and_respects_done():
     assert np.all(np.diff(valid, axis=1) <= 0), "valid must never switch back on"
     assert np.all(rewards[valid == 0] == 0.0), "no reward after done"
     success = np.asarray(a.success)
-    started_at_goal = np.asarray(group_view(a.success, CFG.group_size))[1]
+    started_at_goal = np.asarray(group_view(a.success, CFG.grpo.group_size))[1]
     assert started_at_goal.all()
     # successful trajectories stop right after the chunk that succeeded; the rest run to the limit
     n_valid = valid.sum(1)
@@ -54,22 +55,22 @@ def test_rollout_deterministic_and_respects_done():
     first_hit = np.argmax(chunk_hit, axis=1)
     np.testing.assert_array_equal(chunk_hit.any(axis=1), success | ~valid.all(axis=1))
     np.testing.assert_array_equal(n_valid[success], first_hit[success] + 1)
-    assert np.all(n_valid[~success] == CFG.max_chunks)
-    np.testing.assert_array_equal(n_valid[CFG.group_size:], 1)  # the on-goal group: one chunk
+    assert np.all(n_valid[~success] == CFG.imagined.max_chunks)
+    np.testing.assert_array_equal(n_valid[CFG.grpo.group_size:], 1)  # the on-goal group: one chunk
     # frozen after done: the score stays put; the return is success alone (as in the real environments)
     scores = np.asarray(a.scores)
     for i in np.flatnonzero(success):
         assert np.all(scores[i, first_hit[i]:] == scores[i, first_hit[i]])
-    assert CFG.imagined_return == "success"
-    np.testing.assert_array_equal(np.asarray(a.returns), success * (1.0 + CFG.success_bonus))
-    # imagined_return=score: the score changes plus the bonus, so failures differ by the detector's score
-    score_cfg = dataclasses.replace(CFG, imagined_return="score")
+    assert CFG.imagined.return_rule == "success"
+    np.testing.assert_array_equal(np.asarray(a.returns), success * (1.0 + CFG.grpo.success_bonus))
+    # rl.imagined.return_rule=score: the score changes plus the bonus, so failures differ by the detector's score
+    score_cfg = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, return_rule="score"))
     s = jax.jit(lambda p, k: imagined_rollout(graphdef, p, sim, reward_model, start, score_cfg, key=k))(
         params, jax.random.key(0))
     np.testing.assert_array_equal(np.asarray(s.success), success)
     np.testing.assert_allclose(np.asarray(s.returns), rewards.sum(1) + success.astype(np.float32), rtol=1e-5)
     assert np.ptp(np.asarray(s.returns)[~success]) > 0 and np.ptp(np.asarray(a.returns)[~success]) == 0
-    assert a.frames.shape == (8, CFG.max_chunks, 8, 8, 8, 3)
+    assert a.frames.shape == (8, CFG.imagined.max_chunks, 8, 8, 8, 3)
 
 
 def test_env_steps_by_the_rollout_rule():
@@ -78,13 +79,13 @@ def test_env_steps_by_the_rollout_rule():
     rollout = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, CFG, key=jax.random.key(4)))(params)
     success = np.asarray(rollout.success)
     assert success.any() and not success.all(), "both endings (success, chunk limit) must be exercised"
-    env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.max_chunks)
+    env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.imagined.max_chunks)
     n = start.frame.shape[0]
     state = jax.vmap(lambda s, k: env.reset(s, key=k))(start, jax.random.split(jax.random.key(1), n))
     actions = tokens_to_actions(rollout.tokens, CFG.action_bins)  # (N, C, T, A): the chunks the rollout executed
     step = jax.jit(jax.vmap(env.step))
     rewards, scores, done = [], [], []
-    for c in range(CFG.max_chunks):
+    for c in range(CFG.imagined.max_chunks):
         state = step(state, actions[:, c])
         rewards.append(state.reward), scores.append(state.info["score"]), done.append(state.done)
     rewards, scores, done = (np.stack(x, axis=1) for x in (rewards, scores, done))  # (N, C)
@@ -95,11 +96,11 @@ def test_env_steps_by_the_rollout_rule():
     np.testing.assert_array_equal(done[:, -1], 1.0)
     np.testing.assert_array_equal(np.asarray(state.info["success"]) > 0, success)
     np.testing.assert_array_equal(np.asarray(state.info["truncation"]) > 0, ~success)
-    # the env's episode return plus the success bonus is the GRPO return of imagined_return=score
-    score_cfg = dataclasses.replace(CFG, imagined_return="score")
+    # the env's episode return plus the success bonus is the GRPO return of rl.imagined.return_rule=score
+    score_cfg = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, return_rule="score"))
     scored = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, score_cfg,
                                                 key=jax.random.key(4)))(params)
-    np.testing.assert_allclose(rewards.sum(1) + CFG.success_bonus * success, np.asarray(scored.returns), atol=1e-5)
+    np.testing.assert_allclose(rewards.sum(1) + CFG.grpo.success_bonus * success, np.asarray(scored.returns), atol=1e-5)
 
 
 def test_rollout_sharded_over_devices_matches_single_device():

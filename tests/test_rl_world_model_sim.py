@@ -7,7 +7,7 @@ import pytest
 from flax import nnx
 
 import configs
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.learned_simulator import StartState, toy_reward_model
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
@@ -34,8 +34,9 @@ def test_world_model_simulator_rollout_deterministic_and_streams_frames():
     assert latents.shape == (2, 2, 2, 2, cfg.vae.z_dim)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
                                 sample_steps=2)
-    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                  action_bins=8, max_chunks=2, group_size=2, success_threshold=1.0)
+    rl = RLConfig(image_size=8, action_bins=8, success_threshold=1.0,
+                  policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32),
+                  grpo=GRPOConfig(group_size=2), imagined=ImaginedConfig(max_chunks=2))
     graphdef, params = build_policy(rl)
     tokens = jnp.asarray(tokenize_instructions(["pick up the bowl", "open the drawer"], 32))
     start = expand_groups(StartState(frames, jnp.zeros((2, 8)), tokens, latents), 2)
@@ -160,8 +161,9 @@ def test_imagined_rollout_replanning_every_latent_records_executed_tokens():
     latents = encode_keyframes(vae_graphdef, vae_state, frames)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
                                 sample_steps=2, execute_latents=1)
-    rl = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=32,
-                  action_bins=8, max_chunks=3, group_size=2, success_threshold=1.0, imagined_execute_steps=4)
+    rl = RLConfig(image_size=8, action_bins=8, success_threshold=1.0,
+                  policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32),
+                  grpo=GRPOConfig(group_size=2), imagined=ImaginedConfig(max_chunks=3, execute_steps=4))
     graphdef, params = build_policy(rl)
     tokens = jnp.asarray(tokenize_instructions(["pick up the bowl", "open the drawer"], 32))
     start = expand_groups(StartState(frames, jnp.zeros((2, 8)), tokens, latents), 2)
@@ -175,8 +177,8 @@ def test_imagined_rollout_replanning_every_latent_records_executed_tokens():
 
 @pytest.mark.parametrize("steps", [2, 6, 12])
 def test_imagined_execute_steps_must_be_whole_latents_dividing_the_chunk(steps):
-    with pytest.raises(ValueError, match="imagined_execute_steps"):
-        RLConfig(imagined_execute_steps=steps).validate()
+    with pytest.raises(ValueError, match=r"rl\.imagined\.execute_steps"):
+        RLConfig(imagined=ImaginedConfig(execute_steps=steps)).validate()
 
 
 def test_reckoned_proprio_follows_the_executed_actions_and_is_valid():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sword_jax.rl import sim_agreement as sa
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import EnvConfig, GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.env_rollout import make_act_fns, run_policy
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState, instruction_target
 from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator
@@ -54,8 +54,9 @@ class _StepEnvs:
 
 
 def _policy(execute_steps=3):
-    cfg = RLConfig(image_size=8, policy_width=16, policy_heads=2, policy_layers=1, max_instruction_bytes=16,
-                   action_bins=16, execute_steps=execute_steps, action_ensemble=False)
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16),
+                   env=EnvConfig(execute_steps=execute_steps, action_ensemble=False))
     graphdef, params = build_policy(cfg, seed=0)
     return cfg, make_act_fns(graphdef, cfg), params
 
@@ -209,7 +210,7 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     from train.grpo import keyframe_env_starts, keyframe_horizon
 
     episodes = _episodes_with_states()
-    rl = RLConfig(rollout_batch=4, group_size=3, max_chunks=16, chunk_len=8)
+    rl = RLConfig(chunk_len=8, grpo=GRPOConfig(rollout_batch=4, group_size=3), imagined=ImaginedConfig(max_chunks=16))
     starts = keyframe_env_starts(episodes, rl, seed=7, step=2)
     pick = rl_data.keyframe_starts(episodes, 4, stream_rng(7, "grpo/env_keyframes", 2))
     assert len(starts) == 12
@@ -220,7 +221,8 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     again = keyframe_env_starts(episodes, rl, seed=7, step=2)  # a function of (seed, step)
     assert [x[0] for x in again] == [x[0] for x in starts]
     assert all(np.array_equal(x[1], y[1]) for x, y in zip(again, starts))
-    assert keyframe_horizon(rl) == 128 and keyframe_horizon(RLConfig(max_chunks=16, imagined_execute_steps=4)) == 64
+    half_chunks = RLConfig(imagined=ImaginedConfig(max_chunks=16, execute_steps=4))
+    assert keyframe_horizon(rl) == 128 and keyframe_horizon(half_chunks) == 64
     sub = episodes.subset(np.array([2, 0]))
     np.testing.assert_array_equal(sub.states, episodes.states[[2, 0]])
     np.testing.assert_array_equal(sub.tasks, [6, 4])
@@ -228,8 +230,8 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
                                    episodes.success, episodes.instructions)
     with pytest.raises(ValueError, match="no states or task ids"):
         keyframe_env_starts(stateless, rl, seed=7, step=0)
-    with pytest.raises(ValueError, match="rl.env_starts must be initial"):
-        RLConfig(env_starts="middle").validate()
+    with pytest.raises(ValueError, match="rl.env.starts must be initial"):
+        RLConfig(env=EnvConfig(starts="middle")).validate()
 
 
 @pytest.mark.slow
@@ -261,8 +263,10 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
                                   np.zeros((e, t, 8), np.float32), np.asarray(lengths), np.ones(e, bool),
                                   tuple(f"task {k}" for k in tasks), states=np.stack([pad(s) for s in states]),
                                   tasks=np.asarray(tasks))
-    rl = dataclasses.replace(cfg.rl, env_starts="keyframes", env_proprio="missing", grpo_steps=1, eval_every=1,
-                             max_chunks=2, execute_steps=4, action_ensemble=False)
+    rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=1, eval_every=1),
+                             imagined=dataclasses.replace(cfg.rl.imagined, max_chunks=2),
+                             env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False, proprio="missing",
+                                                     starts="keyframes"))
     graphdef, params = build_policy(rl, seed=0)
     result = run_in_env(dataclasses.replace(cfg, rl=rl), rl, graphdef, params, str(tmp_path), episodes_per_task=1,
                         keyframes=episodes)
@@ -274,7 +278,7 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
 def test_ground_truth_grpo_from_keyframes_needs_the_demonstrations(tmp_path):
     from train import grpo as grpo_main
 
-    with pytest.raises(SystemExit, match="env_starts=keyframes needs --demos"):
+    with pytest.raises(SystemExit, match="rl.env.starts=keyframes needs --demos"):
         grpo_main.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "env",
-                        "--rl.env_starts=keyframes", "--rl.policy_width=16", "--rl.policy_heads=2",
-                        "--rl.policy_layers=1"])
+                        "--rl.env.starts=keyframes", "--rl.policy.width=16", "--rl.policy.heads=2",
+                        "--rl.policy.layers=1"])

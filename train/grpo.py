@@ -3,18 +3,18 @@
     # the real thing: world model + VAE + SFT policy + reward model, keyframes from demos
     python -m train.grpo --config sword:small --simulator world_model --demos demos.hdf5 \
         --world-model runs/sword-small --vae runs/sword-small/vae --policy runs/sword-small/rl/policy_sft \
-        --reward runs/sword-small/rl/reward_model [--rl.grpo_steps=200 --rl.eval_every=20]
+        --reward runs/sword-small/rl/reward_model [--rl.grpo.steps=200 --rl.grpo.eval_every=20]
     # the ground truth: GRPO in the MuJoCo environments themselves (reward = true success)
     python -m train.grpo --config sword:small --simulator env --policy runs/sword-small/rl/policy_sft \
-        [--env-workers 14] [--rl.grpo_steps=100]
+        [--env-workers 14] [--rl.grpo.steps=100]
     # smoke run: the analytic toy simulator (no checkpoints needed)
-    python -m train.grpo --config sword:tiny --simulator toy --rl.grpo_steps=4
+    python -m train.grpo --config sword:tiny --simulator toy --rl.grpo.steps=4
 
-Each step samples ``rl.rollout_batch`` keyframe start states, G = ``rl.group_size`` imagined
+Each step samples ``rl.grpo.rollout_batch`` keyframe start states, G = ``rl.grpo.group_size`` imagined
 trajectories each, and applies the GRPO update (one jitted, donated step). With ``--simulator env``
 the start states are training-split initial states (never the 50 evaluation states), the
 trajectories run in MuJoCo's C engine (``sim.lockstep``), and the same ``grpo_update`` trains on
-them: this validates the update independently of any world model. Every ``rl.eval_every``
+them: this validates the update independently of any world model. Every ``rl.grpo.eval_every``
 steps (and at step 0) the policy is evaluated in the ground-truth MuJoCo envs (world_model mode)
 or by greedy imagined rollouts (toy mode); the curve goes to ``<workdir>/success_curve.{json,png}``.
 The GRPO state is checkpointed at each evaluation and the run resumes from it exactly (killed and
@@ -60,11 +60,11 @@ def _toy_setup(cfg, rl):
     size = rl.image_size
     sim, reward_model = toy_simulator(frame_size=size, chunk_len=rl.chunk_len, proprio_dim=rl.proprio_dim), toy_reward_model()
     texts = [f"reach the goal of task {t}" for t in range(max(len(cfg.sim.tasks), 2))]
-    tokens = jnp.asarray(tokenize_instructions(texts, rl.max_instruction_bytes))
+    tokens = jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes))
 
     def starts(key, step):
         del step  # the key is already a function of the step
-        pick = jax.random.randint(key, (rl.rollout_batch,), 0, tokens.shape[0])
+        pick = jax.random.randint(key, (rl.grpo.rollout_batch,), 0, tokens.shape[0])
         return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
 
     eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
@@ -94,10 +94,10 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
     from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
 
     episodes = rl_data.load_episodes(inputs.demos, read=read_dataset)
-    if rl.imagined_proprio == "reckoned" and rl.proprio_dim != 8:
-        raise ValueError(f"rl.imagined_proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
-                         f"{rl.proprio_dim} (use --rl.imagined_proprio=missing)")
-    reckoning = sim_reckoning(episodes) if rl.imagined_proprio == "reckoned" else None
+    if rl.imagined.proprio == "reckoned" and rl.proprio_dim != 8:
+        raise ValueError(f"rl.imagined.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
+                         f"{rl.proprio_dim} (use --rl.imagined.proprio=missing)")
+    reckoning = sim_reckoning(episodes) if rl.imagined.proprio == "reckoned" else None
     wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
     vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
@@ -106,26 +106,26 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
                                 frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
                                 num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
                                 action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                                execute_latents=(rl.imagined_execute_steps or rl.chunk_len) // tf,
+                                execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
                                 proprio_reckoning=reckoning)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
-    if rl.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
-        raise ValueError(f"rl.eval_replay_episodes replays real episodes rendered at sim.resolution={cfg.sim.resolution} "
+    if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
+        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution={cfg.sim.resolution} "
                          f"in a world model of data.image_size={cfg.data.image_size}; make them equal or pass "
-                         "--rl.eval_replay_episodes=0")
+                         "--rl.imagined.eval_replay_episodes=0")
 
     def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
         return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
 
     def starts(key, step):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step))
+        pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step))
         unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
         latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
         return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
-                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.max_instruction_bytes)),
+                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
                           (latents, jnp.asarray(pick["actions"], jnp.float32)))
 
     return sim, reward_model, starts, None, encode
@@ -142,33 +142,33 @@ def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *
 
 def keyframe_horizon(rl) -> int:
     """Actions an imagined rollout executes at most: ``max_chunks`` decisions of the simulator's execution."""
-    return rl.max_chunks * (rl.imagined_execute_steps or rl.chunk_len)
+    return rl.imagined.max_chunks * (rl.imagined.execute_steps or rl.chunk_len)
 
 
 def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
-    """GRPO step ``step``'s ground-truth start states with ``rl.env_starts=keyframes``: ``(task, flat state)``
+    """GRPO step ``step``'s ground-truth start states with ``rl.env.starts=keyframes``: ``(task, flat state)``
     of the demonstrations at the keyframes GRPO in the learned simulator draws (the same sampler; a
     function of (seed, step)), each repeated ``group_size`` times."""
     if episodes.states is None or episodes.tasks is None:
-        raise ValueError("rl.env_starts=keyframes continues demonstrations from their recorded states; these "
+        raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
                          "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
-    pick = rl_data.keyframe_starts(episodes, rl.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
+    pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
                                    num_context=num_context)
     return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
-            for _ in range(rl.group_size)]
+            for _ in range(rl.grpo.group_size)]
 
 
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
                renderer: str = "jax", reckoning=None, keyframes=None) -> dict:
     """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
 
-    The policy reads proprio as ``rl.env_proprio`` says (``reckoning``: the action convention for
+    The policy reads proprio as ``rl.env.proprio`` says (``reckoning``: the action convention for
     ``reckoned``, e.g. :func:`sim_reckoning`); unless it is ``true``, each evaluation also measures
-    that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env_starts=keyframes``
+    that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env.starts=keyframes``
     the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
     as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
-    ``rl.imagined_execute_steps or chunk_len`` actions per decision as the learned simulator does;
-    evaluations still start at rest and execute ``rl.execute_steps``.
+    ``rl.imagined.execute_steps or chunk_len`` actions per decision as the learned simulator does;
+    evaluations still start at rest and execute ``rl.env.execute_steps``.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
     """
@@ -184,9 +184,9 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
     eval_kwargs = dict(lockstep_evaluation(tasks, episodes_per_task, resolution=cfg.sim.resolution,
                                            max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers), act=act)
-    mode = rl.env_proprio
+    mode = rl.env.proprio
     if mode == "reckoned" and reckoning is None:
-        raise ValueError("rl.env_proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
+        raise ValueError("rl.env.proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
 
     def evaluate(step, params):
         result = dict(evaluate_in_sim(graphdef, params, rl, **eval_kwargs), where="mujoco")
@@ -198,19 +198,20 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         return result, extra
 
     horizon, rollout_rl = cfg.sim.max_steps, rl
-    if rl.env_starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
+    if rl.env.starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
         if keyframes is None:
-            raise ValueError("rl.env_starts=keyframes needs the demonstrations (train.grpo: --demos)")
+            raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
         horizon = keyframe_horizon(rl)
-        rollout_rl = dataclasses.replace(rl, execute_steps=rl.imagined_execute_steps or rl.chunk_len)
+        rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
+            rl.env, execute_steps=rl.imagined.execute_steps or rl.chunk_len))
         keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=0)  # refuses episodes without states now
 
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
-        if rl.env_starts == "keyframes":
+        if rl.env.starts == "keyframes":
             return keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step)
         pick = stream_rng(cfg.seed, "grpo/env_starts", step).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
-                                                                      (rl.rollout_batch, 2))
-        return [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.group_size)]
+                                                                      (rl.grpo.rollout_batch, 2))
+        return [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.grpo.group_size)]
 
     envs = []  # worker processes live for the whole run; each step re-targets them
 
@@ -226,7 +227,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
 
     def progress(point, eta):
-        return (f"grpo step {point['step']}/{rl.grpo_steps} rollout success {point['rollout_success']:.3f} "
+        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
                 f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
                 f"eta {eta:.0f}s")
 
@@ -248,7 +249,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
 
 class _Replayer:
-    """Replays traced real evaluation episodes in the learned simulator (``rl.eval_replay_episodes``;
+    """Replays traced real evaluation episodes in the learned simulator (``rl.imagined.eval_replay_episodes``;
     :mod:`sword_jax.rl.sim_agreement`), with one compile for the run."""
 
     def __init__(self, cfg, rl, sim, reward_model, encode, root):
@@ -267,12 +268,12 @@ class _Replayer:
 
     def report(self, step: int, trace) -> dict:
         traced = trace.result()
-        traced = self.agreement.select(traced, self.agreement.spread(len(traced.lengths), self.rl.eval_replay_episodes))
+        traced = self.agreement.select(traced, self.agreement.spread(len(traced.lengths), self.rl.imagined.eval_replay_episodes))
         out = self.agreement.replay_report(
             traced, self.sim, self.reward_model, self.encode, success_threshold=self.rl.success_threshold,
-            key=jax.random.fold_in(self.key, step), batch=self.rl.rollout_batch * self.rl.group_size,
+            key=jax.random.fold_in(self.key, step), batch=self.rl.grpo.rollout_batch * self.rl.grpo.group_size,
             num_context=self.k, frames_per_latent=self.tf, proprio_dim=self.rl.proprio_dim,
-            max_instruction_bytes=self.rl.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
+            max_instruction_bytes=self.rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
         def rate(name):
             r = out[name]
             return "n/a" if r["rate"] is None else f"{r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] of {r['of']}"
@@ -309,7 +310,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
     parser.add_argument("--policy", default="", help="SFT policy checkpoint (train_policy); empty = from scratch")
     parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
-    parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.eval_episodes_per_task")
+    parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.grpo.eval_episodes_per_task")
     args = parser.parse_args(rest)
     inputs = GRPOInputs(demos=tuple(args.demos), world_model=args.world_model, vae=args.vae, policy=args.policy,
                         reward=args.reward)
@@ -321,7 +322,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
         eval_episodes: int = 0) -> dict:
     """GRPO in ``simulator`` (``world_model``, ``env`` or ``toy``), resuming from ``<cfg.workdir>/rl/grpo``.
 
-    ``eval_episodes`` (per task) overrides ``rl.eval_episodes_per_task``; ``env_workers`` are the C-engine
+    ``eval_episodes`` (per task) overrides ``rl.grpo.eval_episodes_per_task``; ``env_workers`` are the C-engine
     processes of the evaluations (and of the episodes with ``simulator="env"``). Returns
     ``{"curve": evaluation points, "workdir"}`` (plus ``"history"`` with ``simulator="env"``).
     """
@@ -331,8 +332,8 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     if simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
     elif simulator == "env":
-        if rl.env_starts == "keyframes" and not inputs.demos:
-            raise SystemExit("train.grpo --simulator env --rl.env_starts=keyframes needs --demos (the rollouts start "
+        if rl.env.starts == "keyframes" and not inputs.demos:
+            raise SystemExit("train.grpo --simulator env --rl.env.starts=keyframes needs --demos (the rollouts start "
                              "from their recorded states)")
     elif not (inputs.world_model and inputs.reward and inputs.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
@@ -343,18 +344,18 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     if inputs.policy:
         params, _ = load_params(inputs.policy, params, kind="policy")
     if simulator == "env":
-        if rl.env_proprio == "reckoned" and not inputs.demos:
-            raise SystemExit("train.grpo --simulator env --rl.env_proprio=reckoned needs --demos (the reckoning's "
+        if rl.env.proprio == "reckoned" and not inputs.demos:
+            raise SystemExit("train.grpo --simulator env --rl.env.proprio=reckoned needs --demos (the reckoning's "
                              "gains are fitted to them)")
         reckoning = keyframes = None
-        if rl.env_proprio == "reckoned" or rl.env_starts == "keyframes":
+        if rl.env.proprio == "reckoned" or rl.env.starts == "keyframes":
             from sim.dataset import read_dataset
 
             demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
-            reckoning = sim_reckoning(demos) if rl.env_proprio == "reckoned" else None
-            keyframes = demos if rl.env_starts == "keyframes" else None
+            reckoning = sim_reckoning(demos) if rl.env.proprio == "reckoned" else None
+            keyframes = demos if rl.env.starts == "keyframes" else None
         return run_in_env(cfg, rl, graphdef, params, workdir,
-                          episodes_per_task=eval_episodes or rl.eval_episodes_per_task,
+                          episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
                           workers=env_workers, renderer=renderer, reckoning=reckoning, keyframes=keyframes)
     if simulator == "toy":
         sim, reward_model, starts, eval_start, encode = _toy_setup(cfg, rl)
@@ -368,14 +369,14 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     step_fn = grpo.make_train_step(graphdef, rl, max_traces=ENTRY_MAX_TRACES, mesh=mesh, rules=cfg.mesh.rules)
     root = jax.random.key(cfg.seed)
-    episodes = eval_episodes or rl.eval_episodes_per_task
+    episodes = eval_episodes or rl.grpo.eval_episodes_per_task
 
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
                                                     key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
 
     act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
-    replay = _Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.eval_replay_episodes else None
+    replay = _Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.imagined.eval_replay_episodes else None
 
     def evaluate(step, params):
         extra = {}
@@ -392,7 +393,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
             trace = replay.trace() if replay else None
             result = evaluate_in_sim(graphdef, params, rl, trace=trace, **kwargs)
             result["where"] = "mujoco"
-            if rl.eval_masked_proprio:
+            if rl.imagined.eval_masked_proprio:
                 extra = {"proprio_masked": _mode_point(graphdef, params, rl, step, "missing", **kwargs)}
             if replay:
                 extra["replay"] = replay.report(step, trace)
@@ -406,7 +407,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
         return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
 
     def progress(point, eta):
-        return (f"grpo step {point['step']}/{rl.grpo_steps} imagined success {point['success_rate']:.3f} "
+        return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f} eta {eta:.0f}s")
 

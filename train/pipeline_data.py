@@ -67,7 +67,7 @@ def _policy_demos(ctx: Context, cfg) -> dict:
     from train import gen_data
 
     path = ctx.path("data", "demos.hdf5")
-    per_task = cfg.rl.sft_episodes_per_task or cfg.sim.episodes_per_task
+    per_task = cfg.rl.sft.episodes_per_task or cfg.sim.episodes_per_task
     gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
                                  resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
                                  noisy_share=cfg.sim.noisy_share, seed=stream_seed(cfg.seed, "data/policy_demos"),

@@ -36,14 +36,14 @@ def _demos(ctx: Context) -> str:
 def reward_model(ctx: Context) -> dict:
     """The success detector, on the demonstrations plus the supervised policy's own rollouts where the
     pipeline made them: its failures are the negatives a detector rewarding that policy must know.
-    With ``rl.reward_labels=state`` the world model's fixed-length expert episodes join them: they
+    With ``rl.reward_model.labels=state`` the world model's fixed-length expert episodes join them: they
     keep going after success, so they hold the solved frames (and frames solved and then undone)
     that episodes ending at their success never show."""
     from train import train_reward
 
     files = [_demos(ctx)]
     train_file = ctx.results["data"]["train"]["path"]
-    if ctx.cfg.rl.reward_labels == "state" and train_file != files[0]:
+    if ctx.cfg.rl.reward_model.labels == "state" and train_file != files[0]:
         files.append(train_file)
     rollouts = ctx.results.get("policy_data", {}).get("path")
     if rollouts:
@@ -69,7 +69,7 @@ def grpo_in_world_model(ctx: Context) -> dict:
     return {
         "reward_model": {k: v for k, v in ctx.results["reward_model"].items() if k not in drop},
         "sft": {k: v for k, v in ctx.results["sft_policy"].items() if k not in drop},
-        "grpo": {"steps": ctx.cfg.rl.grpo_steps, "workdir": result["workdir"]},
+        "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"]},
         "success": success,
         "success_curve_png": os.path.join(result["workdir"], "success_curve.png"),
     }

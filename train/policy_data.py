@@ -5,7 +5,7 @@ has never seen an attempt fail and imagines success under any policy; GRPO insid
 learns to please it (measured on `small`: imagined success 0.68 -> 0.92 while real success fell
 0.21 -> 0.07). The paper and WoVR train on policy rollouts. This module records them: the supervised
 policy acts in MuJoCo's C engine from the training initial states, with *sampled* actions (GRPO's
-own behaviour distribution), re-planning every ``rl.execute_steps`` actions, for a fixed number of
+own behaviour distribution), re-planning every ``rl.env.execute_steps`` actions, for a fixed number of
 steps whatever happens (the episode keeps going after a success or a drop), and every step is
 rendered like the expert data (agentview RGB, depth and segmentation, JAX renderer) and written in
 the same LIBERO layout, so the pipeline's latents stage reads both files alike.
@@ -49,7 +49,7 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
     starts = [(task, index, qpos) for task in gen.tasks for index, qpos in enumerate(gen_data.init_states(gen, task))]
     envs: dict[int, Any] = {}
     frames = None
-    k = rl_cfg.execute_steps
+    k = rl_cfg.env.execute_steps
     for b, begin in enumerate(range(0, len(starts), batch)):
         group = starts[begin:begin + batch]
         for task, _, _ in group:
@@ -61,7 +61,7 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
         states = [[envs[task].reset_to(qpos)] for task, _, qpos in group]
         actions: list[list[np.ndarray]] = [[] for _ in group]
         text = jnp.asarray(tokenize_instructions([tasks.LANGUAGE[task] for task, _, _ in group],
-                                                 rl_cfg.max_instruction_bytes))
+                                                 rl_cfg.policy.max_instruction_bytes))
         for c in range(math.ceil(gen.max_steps / k)):
             now = [s[-1] for s in states]
             rgb = frames([s.data for s in now], "agentview")["rgb"]

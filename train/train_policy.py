@@ -1,12 +1,12 @@
 """Behaviour cloning (SFT) of the VLA policy on expert demonstrations: the GRPO starting point.
 
-    python -m train.train_policy --config sword:small --demos demos.hdf5 [--rl.sft_steps=2000]
-        [--rl.sft_episodes_per_task=10] [--workdir DIR] [--eval-episodes 10]
+    python -m train.train_policy --config sword:small --demos demos.hdf5 [--rl.sft.steps=2000]
+        [--rl.sft.episodes_per_task=10] [--workdir DIR] [--eval-episodes 10]
 
-The knobs that set how good the starting policy is: ``rl.sft_steps`` and
-``rl.sft_episodes_per_task`` (demonstrations per instruction). Writes ``<workdir>/rl/policy_sft``
+The knobs that set how good the starting policy is: ``rl.sft.steps`` and
+``rl.sft.episodes_per_task`` (demonstrations per instruction). Writes ``<workdir>/rl/policy_sft``
 (orbax) and, with ``--eval-episodes``, the ground-truth success in the MuJoCo sim. The train state
-is checkpointed to ``<workdir>/rl/sft_checkpoints`` every ``rl.sft_checkpoint_every`` steps and a
+is checkpointed to ``<workdir>/rl/sft_checkpoints`` every ``rl.sft.checkpoint_every`` steps and a
 rerun resumes from there, ending bit-identical to an uninterrupted run; a non-finite loss stops
 the run naming the step, the last good checkpoint kept.
 """
@@ -59,7 +59,7 @@ def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int 
     episodes = rl_data.EpisodeSet(episodes.frames, episodes.actions, episodes.proprio[..., : rl.proprio_dim],
                                   episodes.lengths, episodes.success, episodes.instructions)
     train_eps, held_out = rl_data.split_holdout(episodes, holdout, rng)
-    train_eps = rl_data.per_task_subset(train_eps, rl.sft_episodes_per_task, rng)
+    train_eps = rl_data.per_task_subset(train_eps, rl.sft.episodes_per_task, rng)
     print(f"train_policy: {train_eps.num_episodes} demonstrations ({0 if held_out is None else held_out.num_episodes}"
           f" held out), {len(set(train_eps.instructions))} instructions")
     graphdef, params = build_policy(rl, seed=cfg.seed)
@@ -69,8 +69,8 @@ def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int 
                                 checkpoint_dir=os.path.join(workdir, "sft_checkpoints"), mesh=shd.make_mesh(cfg.mesh),
                                 rules=cfg.mesh.rules)
     path = os.path.join(workdir, "policy_sft")
-    save_params(path, params, rl, kind="policy", step=rl.sft_steps)
-    result = {"steps": rl.sft_steps, "demos": train_eps.num_episodes, "path": path,
+    save_params(path, params, rl, kind="policy", step=rl.sft.steps)
+    result = {"steps": rl.sft.steps, "demos": train_eps.num_episodes, "path": path,
               "final_loss": history[-1]["loss"], "seconds": round(time.time() - start, 1),
               "heldout_loss": history[-1].get("heldout_loss"), "heldout_token_accuracy":
               history[-1].get("heldout_token_accuracy")}

@@ -1,14 +1,14 @@
 """Trains the success detector (reward model) on simulator episodes with success labels.
 
-    python -m train.train_reward --config sword:small --demos episodes.hdf5 [--rl.reward_model_steps=1000]
+    python -m train.train_reward --config sword:small --demos episodes.hdf5 [--rl.reward_model.steps=1000]
 
-Labels follow ``rl.reward_labels``: ``state`` (default) marks each frame whose state solves the task
+Labels follow ``rl.reward_model.labels``: ``state`` (default) marks each frame whose state solves the task
 (the simulator's per-step success, read over whole episodes, so fixed-length episodes that keep
 moving after success give solved and unsolved-again frames); ``tail`` marks the last
-``rl.positive_tail`` frames of successful episodes read up to their first success. Batches are class-balanced, the batch of step ``s`` drawn from its own stream
+``rl.reward_model.positive_tail`` frames of successful episodes read up to their first success. Batches are class-balanced, the batch of step ``s`` drawn from its own stream
 (``reward/batches``, ``s``). Writes ``<workdir>/rl/reward_model`` and a held-out report. The train
 state is checkpointed to ``<workdir>/rl/reward_checkpoints`` every
-``rl.reward_model_checkpoint_every`` steps and a rerun resumes from there, ending bit-identical to
+``rl.reward_model.checkpoint_every`` steps and a rerun resumes from there, ending bit-identical to
 an uninterrupted run; a non-finite loss stops the run naming the step, the last good checkpoint kept.
 """
 
@@ -50,21 +50,21 @@ def run(cfg, demos: Sequence[str], *, holdout: float = 0.2) -> dict:
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    episodes = rl_data.load_episodes(demos, read=read_dataset, stop_at_success=rl.reward_labels == "tail")
+    episodes = rl_data.load_episodes(demos, read=read_dataset, stop_at_success=rl.reward_model.labels == "tail")
     order = rng.permutation(episodes.num_episodes)
     n_hold = int(round(holdout * episodes.num_episodes)) if episodes.num_episodes > 1 else 0
     train_eps, hold_eps = episodes.subset(np.sort(order[n_hold:])), episodes.subset(np.sort(order[:n_hold]))
-    labels = rl_data.success_labels(train_eps, rl.positive_tail, rl.reward_labels)
+    labels = rl_data.success_labels(train_eps, rl.reward_model.positive_tail, rl.reward_model.labels)
     if not (labels == 1).any():
-        raise ValueError(f"reward model data: no positive frame under rl.reward_labels={rl.reward_labels} in "
+        raise ValueError(f"reward model data: no positive frame under rl.reward_model.labels={rl.reward_model.labels} in "
                          f"{demos}: " + ("no episode shows a solved state (episodes that end at their "
                                          "success never do; add fixed-length episodes that go on after it)"
-                                         if rl.reward_labels == "state" else "no episode succeeded"))
+                                         if rl.reward_model.labels == "state" else "no episode succeeded"))
     graphdef, params = build_detector(rl, seed=cfg.seed)
     key = jax.random.key(cfg.seed)
 
     def batch_at(step: int) -> dict:
-        return rl_data.sample_reward_batch(train_eps, labels, rl.reward_model_batch_size,
+        return rl_data.sample_reward_batch(train_eps, labels, rl.reward_model.batch_size,
                                            stream_rng(cfg.seed, "reward/batches", step))
 
     state, _ = train_detector(graphdef, params, rl, batch_at, key=key, log=lambda line: print(line, flush=True),
@@ -72,8 +72,8 @@ def run(cfg, demos: Sequence[str], *, holdout: float = 0.2) -> dict:
                               rules=cfg.mesh.rules)
     path = os.path.join(workdir, "reward_model")
     save_params(path, state.params, rl, kind="reward_model", step=int(state.step))
-    result = {"steps": rl.reward_model_steps, "train_episodes": train_eps.num_episodes, "path": path,
-              "labels": rl.reward_labels}
+    result = {"steps": rl.reward_model.steps, "train_episodes": train_eps.num_episodes, "path": path,
+              "labels": rl.reward_model.labels}
     if n_hold:
         result["holdout"] = holdout_report(as_reward_model(graphdef, state.params).score, hold_eps, rl)
         print("held out:", json.dumps(result["holdout"]))
@@ -84,7 +84,7 @@ def run(cfg, demos: Sequence[str], *, holdout: float = 0.2) -> dict:
 
 def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
     """Agreement of the detector with its own labels and with true success on held-out episodes."""
-    labels = rl_data.success_labels(episodes, rl.positive_tail, rl.reward_labels)
+    labels = rl_data.success_labels(episodes, rl.reward_model.positive_tail, rl.reward_model.labels)
     scores = score_episodes(jax.jit(score), episodes.frames)
     valid = labels >= 0
     truth, pred = labels[valid] == 1, scores[valid] >= rl.success_threshold

@@ -15,7 +15,7 @@ An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1]. A step returns th
 frame as the observation, all predicted frames in ``info['frames']``, the change of the success
 score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit:
 the rule of the GRPO rollouts, :func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed
-rewards are the GRPO return of ``rl.imagined_return=score`` without its ``rl.success_bonus`` (the
+rewards are the GRPO return of ``rl.imagined.return_rule=score`` without its ``rl.grpo.success_bonus`` (the
 default GRPO return, ``success``, pays success alone).
 """
 

@@ -7,9 +7,9 @@ The environment is any object with the lockstep protocol of ``sim.lockstep.Locks
     envs.reset() -> {"frames" [N,H,W,3] uint8, "proprio" [N,P]}
     envs.step(actions [N,k,7]) -> {"frames", "proprio", "success" [N], "executed" [N], "done" [N]}
 
-Every ``cfg.execute_steps`` actions the policy re-plans from the current frame: it predicts a
+Every ``cfg.env.execute_steps`` actions the policy re-plans from the current frame: it predicts a
 chunk of ``chunk_len`` actions and the first ``execute_steps`` are executed (``chunk_len`` =
-open-loop chunks, as OpenVLA-OFT; 1 = closed loop every step). With ``cfg.action_ensemble``
+open-loop chunks, as OpenVLA-OFT; 1 = closed loop every step). With ``cfg.env.action_ensemble``
 each step of a greedy (evaluation) rollout executes the exponentially weighted mean of all chunk
 predictions covering it (ACT's temporal ensembling); sampled (GRPO) rollouts execute each
 decision's own sampled actions, whose log-probabilities the update needs.
@@ -58,7 +58,7 @@ def make_act_fns(graphdef: nnx.GraphDef, cfg: RLConfig):
             chunk = greedy_chunk(logits)
             logp = token_log_probs(logits, chunk)
         else:
-            chunk, logp = sample_chunk(logits, key=key, temperature=cfg.temperature)
+            chunk, logp = sample_chunk(logits, key=key, temperature=cfg.grpo.temperature)
         obs = jnp.clip(jnp.round(small * 255.0), 0, 255).astype(jnp.uint8)
         return obs, chunk, logp, tokens_to_actions(chunk, cfg.action_bins)
 
@@ -73,7 +73,7 @@ def _reckon_chunk(proprio: jax.Array, actions: jax.Array, cfg: ReckoningConfig) 
 
 def max_decisions(cfg: RLConfig, max_steps: int) -> int:
     """Policy calls an episode of ``max_steps`` actions can need."""
-    return math.ceil(max_steps / cfg.execute_steps)
+    return math.ceil(max_steps / cfg.env.execute_steps)
 
 
 def _ensemble(history: list[np.ndarray], decay: float) -> np.ndarray:
@@ -114,7 +114,7 @@ def run_policy(
       max_steps: the episodes' step limit (the decision count is padded to it).
       record: keep observations, tokens and log-probs for GRPO (else only outcomes).
       episodes: new ``(task, qpos)`` start states for ``envs.reset`` (default: its own).
-      proprio: what the policy reads as proprio (``rl.env_proprio``): ``true``, the environment's;
+      proprio: what the policy reads as proprio (``rl.env.proprio``): ``true``, the environment's;
         ``reckoned``, integrated from the episode's first proprio and the actions executed since
         (``reckoning``, the action convention), which is what the learned simulator gives the policy;
         ``missing``, the policy's "missing proprio" input. The rollout records what was read, so GRPO
@@ -133,14 +133,14 @@ def run_policy(
     if proprio == "reckoned" and (reckoning is None or cfg.proprio_dim != 8):
         raise ValueError(f"run_policy: proprio='reckoned' needs a ReckoningConfig and the 8-D proprio "
                          f"(got reckoning={reckoning!r}, rl.proprio_dim={cfg.proprio_dim})")
-    n, k = envs.n, cfg.execute_steps
-    ensemble = cfg.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
+    n, k = envs.n, cfg.env.execute_steps
+    ensemble = cfg.env.action_ensemble and greedy  # sampled rollouts (GRPO) act on each decision's own chunk
     obs = envs.reset() if episodes is None else envs.reset(episodes)
     if trace is not None:
         trace.start(obs, envs.language)
     read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)  # what the policy reads as proprio
     valid_in = jnp.full((n,), 0.0 if proprio == "missing" else 1.0, jnp.float32)
-    tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.max_instruction_bytes))
+    tokens_text = jnp.asarray(tokenize_instructions(envs.language, cfg.policy.max_instruction_bytes))
     c_max = max_decisions(cfg, max_steps)
     done = np.zeros(n, bool)
     success = np.zeros(n, bool)
@@ -154,7 +154,7 @@ def run_policy(
         actions = np.asarray(actions)
         if ensemble:
             history = [actions] + history[: cfg.chunk_len - 1]
-            step_actions = _ensemble(history, cfg.ensemble_decay)[:, None]
+            step_actions = _ensemble(history, cfg.env.ensemble_decay)[:, None]
         else:
             step_actions = actions[:, :k]
         if record:
@@ -170,7 +170,7 @@ def run_policy(
             read = np.asarray(_reckon_chunk(jnp.asarray(read), jnp.asarray(step_actions, jnp.float32), reckoning))
         else:
             read = np.asarray(obs["proprio"][:, : cfg.proprio_dim], np.float32)
-    returns = success.astype(np.float32) * (1.0 + cfg.success_bonus)
+    returns = success.astype(np.float32) * (1.0 + cfg.grpo.success_bonus)
     if not record:
         empty = np.zeros((n, 0), np.float32)
         return Rollout(empty, empty, empty, np.asarray(tokens_text), empty, empty, empty, empty, empty,

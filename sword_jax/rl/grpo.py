@@ -85,11 +85,11 @@ def loss_weights(valid: Float[Array, "n c"], keep: Float[Array, " n"], tokens_pe
 
     They depend only on which chunks are valid and kept, not on the parameters, so the objective
     ``sum(loss * weight)`` is a plain sum over trajectories and its gradient can be accumulated
-    over micro-batches of trajectories (``rl.update_microbatch``) exactly.
+    over micro-batches of trajectories (``rl.grpo.update_microbatch``) exactly.
     """
     mask = valid.astype(jnp.float32) * keep[:, None]
     tokens_per_traj = jnp.sum(mask, axis=1) * jnp.float32(tokens_per_chunk)
-    if cfg.loss_norm == "trajectory":
+    if cfg.grpo.loss_norm == "trajectory":
         kept = jnp.sum((tokens_per_traj > 0).astype(jnp.float32))
         return mask / jnp.maximum(tokens_per_traj, 1.0)[:, None] / jnp.maximum(kept, 1.0)
     return mask / jnp.maximum(jnp.sum(tokens_per_traj), 1.0)
@@ -100,14 +100,14 @@ def _token_terms(new_log_probs, old_log_probs, ref_log_probs, advantages, valid,
     masked sums of the per-token diagnostics (clipped, KL, ratio)."""
     shape = new_log_probs.shape
     adv = jnp.broadcast_to(advantages[:, None, None, None], shape)
-    loss, is_clipped = clipped_token_loss(new_log_probs, old_log_probs, adv, clip_low=cfg.clip_low, clip_high=cfg.clip_high)
+    loss, is_clipped = clipped_token_loss(new_log_probs, old_log_probs, adv, clip_low=cfg.grpo.clip_low, clip_high=cfg.grpo.clip_high)
     kl = jnp.zeros_like(loss)
-    if cfg.kl_coef > 0.0:
+    if cfg.grpo.kl_coef > 0.0:
         if ref_log_probs is None:
-            raise ValueError("rl.kl_coef > 0 needs reference log-probs")
+            raise ValueError("rl.grpo.kl_coef > 0 needs reference log-probs")
         delta = ref_log_probs - new_log_probs
         kl = jnp.exp(delta) - delta - 1.0
-        loss = loss + jnp.float32(cfg.kl_coef) * kl
+        loss = loss + jnp.float32(cfg.grpo.kl_coef) * kl
     mask = jnp.broadcast_to((valid * keep[:, None])[:, :, None, None], shape)
     objective = jnp.sum(loss * weights[:, :, None, None])
     sums = {"clipped": jnp.sum(is_clipped * mask), "kl": jnp.sum(kl * mask),
@@ -160,13 +160,13 @@ class GRPOState:
 
 
 def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
-    """Global-norm clipping at 1, then AdamW at ``cfg.learning_rate`` without weight decay."""
-    return optim.make_optimizer(cfg.learning_rate, weight_decay=0.0, grad_clip=1.0)
+    """Global-norm clipping at 1, then AdamW at ``cfg.grpo.learning_rate`` without weight decay."""
+    return optim.make_optimizer(cfg.grpo.learning_rate, weight_decay=0.0, grad_clip=1.0)
 
 
 def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
     """Train state with the reference policy frozen at ``params`` (the SFT policy)."""
-    ref = jax.tree.map(jnp.copy, params) if cfg.kl_coef > 0.0 else None
+    ref = jax.tree.map(jnp.copy, params) if cfg.grpo.kl_coef > 0.0 else None
     return GRPOState(params=params, opt_state=make_optimizer(cfg).init(params), ref_params=ref, step=jnp.zeros((), jnp.int32))
 
 
@@ -191,15 +191,15 @@ def _split_micro(x: jax.Array, parts: int) -> jax.Array:
 
 def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_params: Any = None):
     """``fn(params) -> (loss, metrics, grads)`` of the GRPO objective on ``batch``, micro-batched by
-    ``cfg.update_microbatch`` (the reference log-probs, when ``kl_coef > 0``, computed once here)."""
-    g = cfg.group_size
+    ``cfg.grpo.update_microbatch`` (the reference log-probs, when ``kl_coef > 0``, computed once here)."""
+    g = cfg.grpo.group_size
     n = batch.valid.shape[0]
-    micro = cfg.update_microbatch or n
+    micro = cfg.grpo.update_microbatch or n
     if n % micro:
-        raise ValueError(f"rl.update_microbatch={cfg.update_microbatch} must divide the {n} trajectories of a "
+        raise ValueError(f"rl.grpo.update_microbatch={cfg.grpo.update_microbatch} must divide the {n} trajectories of a "
                          f"GRPO batch (rollout_batch x group_size)")
     parts = n // micro
-    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.filter_groups)
+    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
     advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
     t, a = batch.tokens.shape[2:]
     valid = batch.valid.astype(jnp.float32)
@@ -216,9 +216,9 @@ def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_para
                               proprio_valid=part["proprio_valid"], instruction_tokens=part["instruction_tokens"],
                               tokens=part["tokens"], valid=part["valid"])
 
-    if cfg.kl_coef > 0.0:  # the frozen reference, once for all epochs
+    if cfg.grpo.kl_coef > 0.0:  # the frozen reference, once for all epochs
         if ref_params is None:
-            raise ValueError("rl.kl_coef > 0 needs the reference policy's parameters")
+            raise ValueError("rl.grpo.kl_coef > 0 needs the reference policy's parameters")
         data["ref_lp"] = jax.lax.stop_gradient(jax.lax.map(
             lambda part: _rollout_log_probs(graphdef, ref_params, as_rollout(part)), data))
 
@@ -250,9 +250,9 @@ def grpo_gradients(graphdef: nnx.GraphDef, cfg: RLConfig, params: Any, batch: Ro
 def grpo_update(
     graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout
 ) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
-    """``cfg.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts.
+    """``cfg.grpo.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts.
 
-    With ``cfg.update_microbatch = m`` the policy's forward and backward run on ``m`` trajectories
+    With ``cfg.grpo.update_microbatch = m`` the policy's forward and backward run on ``m`` trajectories
     at a time (a ``lax.scan``) and the gradients are summed: the objective's token weights are
     fixed by the whole batch (:func:`loss_weights`), so this is the same gradient up to float
     summation order, with the activations of ``m`` trajectories alive instead of all of them.
@@ -270,7 +270,7 @@ def grpo_update(
                        finite=finite.astype(jnp.float32))
         return (params, opt_state), metrics
 
-    (params, opt_state), metrics = jax.lax.scan(epoch, (state.params, state.opt_state), None, length=cfg.ppo_epochs)
+    (params, opt_state), metrics = jax.lax.scan(epoch, (state.params, state.opt_state), None, length=cfg.grpo.ppo_epochs)
     metrics = jax.tree.map(lambda x: x[-1], metrics)
     metrics["param_norm"] = optax.global_norm(params)
     return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
@@ -284,7 +284,7 @@ def make_train_step(
 
     ``batch = (simulator, reward_model, start_states [B])``: the simulator and reward model are
     arguments (not constants) so their weights are not baked into the program. The step
-    expands each start state to ``cfg.group_size`` trajectories, rolls them out with the
+    expands each start state to ``cfg.grpo.group_size`` trajectories, rolls them out with the
     current policy, then updates it. ``state`` is donated.
 
     Compiled by :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device) and
@@ -298,7 +298,7 @@ def make_train_step(
         simulator, reward_model, start = batch
         key = jax.random.fold_in(key, state.step)
         rollout = imagined_rollout(graphdef, state.params, simulator, reward_model,
-                                   expand_groups(start, cfg.group_size), cfg, key=key)
+                                   expand_groups(start, cfg.grpo.group_size), cfg, key=key)
         state, metrics = grpo_update(graphdef, cfg, state, rollout)
         return state, dict(metrics, **rollout_metrics(rollout))
 

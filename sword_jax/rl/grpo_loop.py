@@ -1,12 +1,12 @@
 """The GRPO run: steps through :func:`sword_jax.train_loop.run_steps`, an evaluation and a checkpoint every
-``rl.eval_every`` steps, one success curve that never runs ahead of the checkpoint after a resume.
+``rl.grpo.eval_every`` steps, one success curve that never runs ahead of the checkpoint after a resume.
 
 Whatever the simulator (the toy, the learned world model, the C-engine environments), a GRPO run is a
 step ``step(state, batch, key) -> (state, metrics)`` whose batch, the step's start states, is a pure
 function of the step (``batch_at``), so the train state (:class:`~sword_jax.rl.grpo.GRPOState`) is all an
 exact resume needs: a run killed at any point and rerun in its work dir ends bit-identical to an
 uninterrupted one. The step need not be one jitted function (in the real environments it rolls out in
-the C engine, then applies the jitted update). At step 0 of a fresh run, every ``rl.eval_every`` steps
+the C engine, then applies the jitted update). At step 0 of a fresh run, every ``rl.grpo.eval_every`` steps
 and at the last one, once the step's loss was read finite, the policy is evaluated, the point is
 appended to ``<workdir>/success_curve.{json,png}``, then the state is checkpointed under
 ``<workdir>/checkpoints`` with the run's identity and per-step history. A resume drops the curve's points
@@ -17,6 +17,7 @@ the keys that differ.
 
 from __future__ import annotations
 
+import operator
 import os
 from collections.abc import Callable
 from typing import Any
@@ -28,13 +29,16 @@ from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy_success import SuccessCurve
 from sword_jax.train_loop import LoopResult, StepFn, run_steps
 
-# RL config keys that shape a GRPO run's train state: a resumed run must share them with its checkpoint.
-# Left out: grpo_steps (a run may be extended), the evaluation's settings, the SFT and reward-model knobs.
-GRPO_RUN_KEYS = ("group_size", "clip_low", "clip_high", "kl_coef", "learning_rate", "ppo_epochs", "max_chunks",
-                 "chunk_len", "action_dim", "action_bins", "success_threshold", "filter_groups", "success_bonus",
-                 "imagined_return", "loss_norm", "temperature", "policy_width", "policy_layers", "policy_heads",
-                 "max_instruction_bytes", "image_size", "proprio_dim", "proprio_encoding", "execute_steps",
-                 "imagined_execute_steps", "imagined_proprio", "env_proprio", "update_microbatch", "rollout_batch")
+# RL config keys (paths under ``rl``) that shape a GRPO run's train state: a resumed run must share them with
+# its checkpoint. Left out: grpo.steps (a run may be extended), the evaluation's settings, the SFT and
+# reward-model knobs.
+GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_coef", "grpo.learning_rate",
+                 "grpo.ppo_epochs", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
+                 "success_threshold", "grpo.filter_groups", "grpo.success_bonus", "imagined.return_rule",
+                 "grpo.loss_norm", "grpo.temperature", "policy.width", "policy.layers", "policy.heads",
+                 "policy.max_instruction_bytes", "image_size", "proprio_dim", "policy.proprio_encoding",
+                 "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "env.proprio",
+                 "grpo.update_microbatch", "grpo.rollout_batch")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
@@ -49,7 +53,8 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
       simulator: ``toy``, ``world_model`` or ``env``.
       **facts: more facts under their config names, e.g. ``**{"sim.tasks": (0, 1)}``.
     """
-    return {"seed": seed, "simulator": simulator, **{f"rl.{k}": getattr(rl, k) for k in GRPO_RUN_KEYS}, **facts}
+    return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in GRPO_RUN_KEYS},
+            **facts}
 
 
 def train_grpo(
@@ -66,7 +71,7 @@ def train_grpo(
     curve_label: str = "GRPO in the learned simulator",
     log: Callable[[str], Any] = print,
 ) -> tuple[LoopResult, list[dict[str, Any]]]:
-    """Runs GRPO steps up to ``rl.grpo_steps`` from ``state``, resuming from ``<workdir>/checkpoints``.
+    """Runs GRPO steps up to ``rl.grpo.steps`` from ``state``, resuming from ``<workdir>/checkpoints``.
 
     Args:
       step: ``step(state, batch, key) -> (state, metrics)``; it may donate its state.
@@ -108,7 +113,7 @@ def train_grpo(
         log(progress(point, eta))
         return point
 
-    result = run_steps(step, state, batch_at, key=key, steps=rl.grpo_steps, log_every=1, name="GRPO", report=report,
-                       checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.eval_every,
+    result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
+                       checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
                        run_id=run_id, log=log, on_start=on_start, at_checkpoint=record)
     return result, curve.points

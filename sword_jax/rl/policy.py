@@ -88,7 +88,7 @@ SIM_PROPRIO_DIM = 8  # the simulator's layout: ee xyz (3), ee axis-angle (3), fi
 
 def proprio_feature_dim(cfg: RLConfig) -> int:
     """Width of the policy's proprio features: 11 for ``rot6d`` (xyz, two rotation columns, fingers)."""
-    return 11 if cfg.proprio_encoding == "rot6d" else cfg.proprio_dim
+    return 11 if cfg.policy.proprio_encoding == "rot6d" else cfg.proprio_dim
 
 
 def axis_angle_to_matrix(axis_angle: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
@@ -192,12 +192,12 @@ class VLAPolicy(nnx.Module):
         cfg.validate()
         self.cfg = cfg
         self.use_wrist = use_wrist
-        d = cfg.policy_width
+        d = cfg.policy.width
         n_img = (cfg.image_size // 8) ** 2
         self.image_encoder = ImageEncoder(d, rngs)
         self.wrist_encoder = ImageEncoder(d, rngs) if use_wrist else None
         self.byte_embed = nnx.Embed(257, d, rngs=rngs)
-        self.text_pos = nnx.Param(jax.random.normal(rngs.params(), (cfg.max_instruction_bytes, d), jnp.float32) * 0.02)
+        self.text_pos = nnx.Param(jax.random.normal(rngs.params(), (cfg.policy.max_instruction_bytes, d), jnp.float32) * 0.02)
         n_views = 2 if use_wrist else 1
         self.image_pos = nnx.Param(jax.random.normal(rngs.params(), (n_views * n_img, d), jnp.float32) * 0.02)
         n_feat = max(proprio_feature_dim(cfg), 1)
@@ -207,15 +207,15 @@ class VLAPolicy(nnx.Module):
         self.proprio_proj = _dense(n_feat, d, ("action", "embed"), rngs)
         self.proprio_missing = nnx.Param(jnp.zeros((d,), jnp.float32))
         self.action_queries = nnx.Param(jax.random.normal(rngs.params(), (cfg.chunk_len, d), jnp.float32) * 0.02)
-        self.text_blocks = nnx.List([_Block(d, cfg.policy_heads, rngs) for _ in range(cfg.policy_layers)])
-        self.fusion_blocks = nnx.List([_Block(d, cfg.policy_heads, rngs) for _ in range(cfg.policy_layers)])
+        self.text_blocks = nnx.List([_Block(d, cfg.policy.heads, rngs) for _ in range(cfg.policy.layers)])
+        self.fusion_blocks = nnx.List([_Block(d, cfg.policy.heads, rngs) for _ in range(cfg.policy.layers)])
         self.out_norm = nnx.LayerNorm(d, rngs=rngs)
         self.head = _dense(d, cfg.action_dim * cfg.action_bins, ("embed", "mlp"), rngs, scale=0.1)
 
     def encode_text(self, tokens: Int[Array, "b l"]) -> tuple[Float[Array, "b l d"], Float[Array, "b l"]]:
         """Byte tokens -> contextual text features and their validity mask."""
-        if tokens.shape[-1] != self.cfg.max_instruction_bytes:
-            raise ValueError(f"instruction tokens must have length {self.cfg.max_instruction_bytes}, got {tokens.shape}")
+        if tokens.shape[-1] != self.cfg.policy.max_instruction_bytes:
+            raise ValueError(f"instruction tokens must have length {self.cfg.policy.max_instruction_bytes}, got {tokens.shape}")
         mask = (tokens != PAD_BYTE).astype(jnp.float32)
         x = self.byte_embed(tokens) + self.text_pos[...][None]
         for block in self.text_blocks:
@@ -258,14 +258,14 @@ class VLAPolicy(nnx.Module):
         image = image + self.image_pos[...][None]
         valid = jnp.ones((b,), jnp.float32) if proprio_valid is None else proprio_valid.astype(jnp.float32)
         if cfg.proprio_dim:
-            feats = proprio_features(proprio, cfg.proprio_encoding)
+            feats = proprio_features(proprio, cfg.policy.proprio_encoding)
             mean = jax.lax.stop_gradient(self.proprio_mean[...])
             std = jax.lax.stop_gradient(self.proprio_std[...])
             p_tok = self.proprio_proj((feats - mean) / std)
         else:
-            p_tok = jnp.zeros((b, cfg.policy_width), jnp.float32)
+            p_tok = jnp.zeros((b, cfg.policy.width), jnp.float32)
         p_tok = valid[:, None] * p_tok + (1.0 - valid[:, None]) * self.proprio_missing[...][None]
-        queries = jnp.broadcast_to(self.action_queries[...][None], (b, cfg.chunk_len, cfg.policy_width))
+        queries = jnp.broadcast_to(self.action_queries[...][None], (b, cfg.chunk_len, cfg.policy.width))
         x = jnp.concatenate([text, image, p_tok[:, None], queries], axis=1)  # (B, L + N + 1 + T, D)
         mask = jnp.concatenate([text_mask, jnp.ones((b, x.shape[1] - text.shape[1]), jnp.float32)], axis=1)
         for block in self.fusion_blocks:
@@ -323,7 +323,7 @@ def compute_proprio_stats(proprio: np.ndarray, cfg: RLConfig, *, min_std: float 
     ``min_std`` keeps near-constant features (e.g. a rotation column the task never changes)
     from being blown up into noise.
     """
-    feats = np.asarray(proprio_features(jnp.asarray(proprio.reshape(-1, proprio.shape[-1])), cfg.proprio_encoding))
+    feats = np.asarray(proprio_features(jnp.asarray(proprio.reshape(-1, proprio.shape[-1])), cfg.policy.proprio_encoding))
     return {"mean": feats.mean(0).astype(np.float32), "std": np.maximum(feats.std(0), min_std).astype(np.float32)}
 
 

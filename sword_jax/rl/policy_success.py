@@ -5,8 +5,8 @@ LIBERO; demonstrations come from other initial states), on MuJoCo's C engine. Th
 the episodes and the environments' factory (``sim.lockstep.lockstep_evaluation`` builds both;
 the library does not import ``sim``). All episodes run in lockstep (optionally over worker
 processes) so the policy runs as one batched, jitted call per decision; the policy acts greedily
-(argmax bins) and re-plans every ``rl.execute_steps`` actions (or ensembles,
-``rl.action_ensemble``). Results carry a 95% Wilson interval. :class:`SuccessCurve` appends one point per evaluation to
+(argmax bins) and re-plans every ``rl.env.execute_steps`` actions (or ensembles,
+``rl.env.action_ensemble``). Results carry a 95% Wilson interval. :class:`SuccessCurve` appends one point per evaluation to
 ``success_curve.json`` and redraws ``success_curve.png``.
 """
 

@@ -4,7 +4,7 @@ A video world model predicts frames, not the robot's joint state, yet the policy
 (end-effector position, orientation, fingers). Marking it missing in imagination (the policy's
 learned "missing proprio" embedding) makes GRPO in the world model optimise a different input
 mode from the one the policy is evaluated with in the real environment, where proprio is valid.
-Here proprio is integrated from the actions instead (``rl.imagined_proprio=reckoned``; measured on
+Here proprio is integrated from the actions instead (``rl.imagined.proprio=reckoned``; measured on
 ``small``, the SFT policy reading it in the real environments succeeds less often than with proprio
 missing, 0.160 vs 0.200 of 200 episodes, so ``missing`` is the default; README), by the action
 convention the simulator's controller implements (``sim/controller.py``): position ``+= a[:3] * pos_scale`` (metres), a

@@ -1,9 +1,9 @@
 """Success detector: a small CNN scoring each frame in [0, 1] (WoVR's reward model).
 
 Trained with binary cross-entropy on simulator frames labelled by :func:`~sword_jax.rl.data.success_labels`
-(``rl.reward_labels``: by default the task's success predicate on each frame's state). An imagined
+(``rl.reward_model.labels``: by default the task's success predicate on each frame's state). An imagined
 trajectory succeeds once a frame scores at least the threshold (0.9); a chunk's reward is the change
-of the score, and the GRPO return follows ``rl.imagined_return`` (by default success alone).
+of the score, and the GRPO return follows ``rl.imagined.return_rule`` (by default success alone).
 :func:`as_reward_model` wraps trained params in the :class:`~sword_jax.rl.learned_simulator.RewardModel`
 protocol.
 """
@@ -32,7 +32,7 @@ class SuccessDetector(nnx.Module):
 
     def __init__(self, cfg: RLConfig, *, rngs: nnx.Rngs):
         self.image_size = cfg.image_size
-        w = cfg.reward_width
+        w = cfg.reward_model.width
         chans = (w, 2 * w, 4 * w, 4 * w)
         self.convs = nnx.List()
         cin = 3
@@ -75,7 +75,7 @@ class DetectorState:
 
 def make_detector_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
     """AdamW at a constant ``reward_model_learning_rate`` with weight decay 1e-4, no clipping."""
-    return optim.make_optimizer(cfg.reward_model_learning_rate, weight_decay=1e-4)
+    return optim.make_optimizer(cfg.reward_model.learning_rate, weight_decay=1e-4)
 
 
 def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, mesh=None, rules=shd.DEFAULT_RULES):
@@ -132,10 +132,10 @@ def train_detector(
     mesh=None,
     rules=shd.DEFAULT_RULES,
 ) -> tuple[DetectorState, dict[str, Array]]:
-    """``steps`` (default ``cfg.reward_model_steps``) detector steps; step ``s`` trains on ``batch_at(s)``.
+    """``steps`` (default ``cfg.reward_model.steps``) detector steps; step ``s`` trains on ``batch_at(s)``.
 
     ``batch_at`` must be a pure function of the step (e.g. drawn from ``stream_rng(seed, name, s)``):
-    with ``checkpoint_dir`` the state is saved every ``cfg.reward_model_checkpoint_every`` steps and
+    with ``checkpoint_dir`` the state is saved every ``cfg.reward_model.checkpoint_every`` steps and
     a rerun resumes from it bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Metrics are
     read one step late on about ten log steps and at the end. ``mesh`` / ``rules``: where the step
     runs (see :func:`make_detector_step`).
@@ -150,7 +150,7 @@ def train_detector(
     """
     from sword_jax.train_loop import run_steps
 
-    steps = cfg.reward_model_steps if steps is None else steps
+    steps = cfg.reward_model.steps if steps is None else steps
     init, step = make_detector_step(graphdef, cfg, mesh=mesh, rules=rules)
 
     def report(done: int, metrics: dict[str, float], observed: None, eta: float) -> dict[str, float]:
@@ -158,11 +158,11 @@ def train_detector(
         log(f"reward step {done}/{steps} loss {metrics['loss']:.4f} acc {metrics['accuracy']:.3f}")
         return {"step": done, **metrics}
 
-    run_id = {"reward_model_batch_size": cfg.reward_model_batch_size,
-              "reward_model_learning_rate": cfg.reward_model_learning_rate}
+    run_id = {"rl.reward_model.batch_size": cfg.reward_model.batch_size,
+              "rl.reward_model.learning_rate": cfg.reward_model.learning_rate}
     result = run_steps(step, init(params), batch_at, key=key, steps=steps, log_every=max(steps // 10, 1),
                        name="reward model", report=report, checkpoint_dir=checkpoint_dir,
-                       checkpoint_every=cfg.reward_model_checkpoint_every, run_id=run_id, log=log)
+                       checkpoint_every=cfg.reward_model.checkpoint_every, run_id=run_id, log=log)
     return result.state, result.metrics
 
 

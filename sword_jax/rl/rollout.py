@@ -91,7 +91,7 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
       max_chunks: the step limit, in chunks.
 
     Returns:
-      A :class:`ChunkOutcome`. The trajectory return adds ``rl.success_bonus`` once on success
+      A :class:`ChunkOutcome`. The trajectory return adds ``rl.grpo.success_bonus`` once on success
       (:func:`imagined_rollout`).
     """
     valid = ~done
@@ -105,15 +105,15 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
 
 
 def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"], cfg: RLConfig) -> Float[Array, " n"]:
-    """The GRPO return of imagined trajectories by ``cfg.imagined_return``: ``success``, ``1 +
+    """The GRPO return of imagined trajectories by ``cfg.imagined.return_rule``: ``success``, ``1 +
     success_bonus`` on success and 0 otherwise (as in the ground-truth environments); ``score``, the
     summed per-chunk score changes plus ``success_bonus`` on success."""
-    bonus = jnp.float32(cfg.success_bonus) * success.astype(jnp.float32)
-    if cfg.imagined_return == "success":
+    bonus = jnp.float32(cfg.grpo.success_bonus) * success.astype(jnp.float32)
+    if cfg.imagined.return_rule == "success":
         return success.astype(jnp.float32) + bonus
-    if cfg.imagined_return == "score":
+    if cfg.imagined.return_rule == "score":
         return jnp.sum(rewards, axis=1) + bonus
-    raise ValueError(f"rl.imagined_return must be success|score, got {cfg.imagined_return!r}")
+    raise ValueError(f"rl.imagined.return_rule must be success|score, got {cfg.imagined.return_rule!r}")
 
 
 def expand_groups(start: StartState, group_size: int) -> StartState:
@@ -138,7 +138,7 @@ def imagined_rollout(
     record_frames: bool = False,
     greedy: bool = False,
 ) -> Rollout:
-    """Rolls the policy out in the learned simulator for ``cfg.max_chunks`` chunks.
+    """Rolls the policy out in the learned simulator for ``cfg.imagined.max_chunks`` chunks.
 
     Args:
       graphdef / policy_params: the split :class:`~sword_jax.rl.policy.VLAPolicy`.
@@ -172,7 +172,7 @@ def imagined_rollout(
             tokens = jnp.argmax(logits, axis=-1).astype(jnp.int32)
             log_probs = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), tokens[..., None], -1)[..., 0]
         else:
-            tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.temperature)
+            tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.grpo.temperature)
         actions = tokens_to_actions(tokens, cfg.action_bins)  # (N, T, A)
         new_state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(
             sim_state, actions, jax.random.split(sim_key, n)
@@ -182,7 +182,7 @@ def imagined_rollout(
         tokens, log_probs = tokens[:, :t], log_probs[:, :t]
         scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
         outcome = chunk_outcome(scores, prev_score, done, chunk_index, success_threshold=cfg.success_threshold,
-                                max_chunks=cfg.max_chunks)
+                                max_chunks=cfg.imagined.max_chunks)
         valid = ~done
         # done trajectories keep their state and frame (the rule keeps their score); they earn nothing more
         keep = lambda new, old: jnp.where(valid.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
@@ -195,7 +195,7 @@ def imagined_rollout(
             out["frames"] = frames
         return (sim_state, next_frame, outcome.score, outcome.done), out
 
-    _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.max_chunks))
+    _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.imagined.max_chunks))
     swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - (C, N, ...) -> (N, C, ...)
     success = jnp.any(traj["success"], axis=0)
     rewards = swap(traj["reward"])

@@ -3,13 +3,13 @@
 The loss is the cross-entropy of the expert's binned actions under the policy's per-token
 categoricals (OpenVLA's objective). Proprio is dropped (marked invalid) for a fraction of the
 samples so the policy also acts when a learned simulator cannot report proprio. The starting
-point for GRPO is set by ``rl.sft_steps`` and ``rl.sft_episodes_per_task`` (how many
+point for GRPO is set by ``rl.sft.steps`` and ``rl.sft.episodes_per_task`` (how many
 demonstrations per task it sees).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import operator
 from typing import Any
 
 import jax
@@ -24,8 +24,9 @@ from sword_jax.rl.policy import (actions_to_tokens, resize_frames, token_log_pro
                                  trainable_mask)
 
 PROPRIO_DROPOUT = 0.3
-# RL config keys a resumed SFT run must share with its checkpoint (others may change between runs)
-SFT_RUN_KEYS = ("sft_batch_size", "sft_learning_rate", "sft_warmup_steps", "sft_lr_end_fraction", "chunk_len",
+# RL config keys (paths under ``rl``) a resumed SFT run must share with its checkpoint (others may change
+# between runs)
+SFT_RUN_KEYS = ("sft.batch_size", "sft.learning_rate", "sft.warmup_steps", "sft.lr_end_fraction", "chunk_len",
                 "action_bins", "image_size")
 
 
@@ -43,9 +44,9 @@ def sft_schedule(cfg: RLConfig, total_steps: int) -> optax.Schedule:
     end value: passing 0.1 there once made the rate climb to 0.1 over the run).
     """
     steps = max(int(total_steps), 1)
-    warmup = min(cfg.sft_warmup_steps, steps // 10)
-    return optim.learning_rate_schedule(cfg.sft_learning_rate, warmup_steps=warmup, kind="cosine", total_steps=steps,
-                                        end_fraction=cfg.sft_lr_end_fraction)
+    warmup = min(cfg.sft.warmup_steps, steps // 10)
+    return optim.learning_rate_schedule(cfg.sft.learning_rate, warmup_steps=warmup, kind="cosine", total_steps=steps,
+                                        end_fraction=cfg.sft.lr_end_fraction)
 
 
 def make_sft_optimizer(schedule: optax.Schedule) -> optax.GradientTransformation:
@@ -87,7 +88,7 @@ def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | N
     :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device): the batch split
     over its leading dim, the state donated and kept where it was placed (else replicated).
     """
-    schedule = sft_schedule(cfg, total_steps or cfg.sft_steps)
+    schedule = sft_schedule(cfg, total_steps or cfg.sft.steps)
     optimizer = make_sft_optimizer(schedule)
 
     def init(params) -> SFTState:
@@ -128,9 +129,9 @@ def train_sft(
 
     The proprio normalisation is set from the training demonstrations before the first step. The
     batch of step ``s`` is drawn from ``stream_rng(seed, "sft/batches", s)``, so with
-    ``checkpoint_dir`` the run saves its train state every ``cfg.sft_checkpoint_every`` steps and
+    ``checkpoint_dir`` the run saves its train state every ``cfg.sft.checkpoint_every`` steps and
     resumes from there bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Every
-    ``cfg.sft_eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and action
+    ``cfg.sft.eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and action
     L1 on ``held_out`` demonstrations are logged next to the training batch's, one step late.
 
     ``mesh`` / ``rules``: where the step runs (see :func:`make_sft_step`).
@@ -150,7 +151,7 @@ def train_sft(
     from sword_jax.rng import stream_rng
     from sword_jax.train_loop import run_steps
 
-    steps = steps or cfg.sft_steps
+    steps = steps or cfg.sft.steps
     valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
                                   for e in range(train_episodes.num_episodes)])
     params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
@@ -159,11 +160,11 @@ def train_sft(
     held_batches = []
     if held_out is not None:
         held_rng = stream_rng(seed, "sft/held_out_batches")
-        held_batches = [rl_data.sample_bc_batch(held_out, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
+        held_batches = [rl_data.sample_bc_batch(held_out, cfg.sft.batch_size, cfg.chunk_len, cfg.policy.max_instruction_bytes,
                                                 held_rng) for _ in range(4)]
 
     def batch_at(i: int) -> dict:
-        return rl_data.sample_bc_batch(train_episodes, cfg.sft_batch_size, cfg.chunk_len, cfg.max_instruction_bytes,
+        return rl_data.sample_bc_batch(train_episodes, cfg.sft.batch_size, cfg.chunk_len, cfg.policy.max_instruction_bytes,
                                        stream_rng(seed, "sft/batches", i))
 
     def report(done: int, metrics: dict[str, float], held: list, eta: float) -> dict[str, float]:
@@ -178,9 +179,9 @@ def train_sft(
         return point
 
     run_id = {"seed": seed, "steps": steps, "demonstrations": int(train_episodes.num_episodes),
-              **{k: v for k, v in dataclasses.asdict(cfg).items() if k in SFT_RUN_KEYS}}
+              **{f"rl.{k}": operator.attrgetter(k)(cfg) for k in SFT_RUN_KEYS}}
     result = run_steps(step, init(params), batch_at, key=jax.random.key(seed), steps=steps,
-                       log_every=cfg.sft_eval_every, name="SFT", report=report,
+                       log_every=cfg.sft.eval_every, name="SFT", report=report,
                        observe=lambda state: [evaluate(state.params, hb) for hb in held_batches],
-                       checkpoint_dir=checkpoint_dir, checkpoint_every=cfg.sft_checkpoint_every, run_id=run_id, log=log)
+                       checkpoint_dir=checkpoint_dir, checkpoint_every=cfg.sft.checkpoint_every, run_id=run_id, log=log)
     return result.state.params, result.history
