@@ -232,6 +232,12 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
         keyframe_env_starts(stateless, rl, seed=7, step=0)
     with pytest.raises(ValueError, match="rl.env.starts must be initial"):
         RLConfig(env=EnvConfig(starts="middle")).validate()
+    # a run from keyframes is another run than one from rest: resuming one from the other's checkpoint is refused
+    from sword_jax.rl.grpo_loop import grpo_run_id
+
+    keyed = RLConfig(env=EnvConfig(starts="keyframes"))
+    assert grpo_run_id(keyed, seed=0, simulator="env")["rl.env.starts"] == "keyframes"
+    assert grpo_run_id(RLConfig(), seed=0, simulator="env")["rl.env.starts"] == "initial"
 
 
 @pytest.mark.slow
