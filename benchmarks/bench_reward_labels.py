@@ -23,7 +23,6 @@ import os
 import time
 
 import jax
-import numpy as np
 
 import configs
 from benchmarks.common import merge_results, record

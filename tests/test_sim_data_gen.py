@@ -183,3 +183,20 @@ def test_parallel_generation_writes_the_same_file(tmp_path):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
         assert (a.init_state_id, a.first_success) == (b.init_state_id, b.first_success)
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".gen_data_")], "temporary files are removed"
+
+
+@pytest.mark.slow
+def test_mjx_generation_runs_the_shared_expert_and_agrees_with_the_c_engine(tmp_path):
+    """``--backend mjx`` rolls out ``sim.expert.episode_mjx`` (the one JAX expert, not a copy): its file
+    has the C engine's layout, and its first actions and states agree with the C engine's from the same
+    initial state (float32 physics vs float64: the tolerances of ``test_sim_mjx``). Minutes on a CPU."""
+    files = {}
+    for backend in ("cpu", "mjx"):
+        files[backend] = str(tmp_path / f"{backend}.hdf5")
+        gen_data.main(["--task", "2", "--episodes", "1", "--out", files[backend], "--resolution", "32",
+                       "--max-steps", "4", "--renderer", "jax", "--no-wrist", "--backend", backend])
+    (_, (cpu,)), (_, (mjx,)) = read_dataset(files["cpu"]), read_dataset(files["mjx"])
+    assert mjx.actions.shape == cpu.actions.shape == (4, 7) and mjx.agentview_rgb.shape == (4, 32, 32, 3)
+    np.testing.assert_allclose(mjx.states[0], cpu.states[0], atol=1e-3)  # the same settled initial state (float32 velocities)
+    np.testing.assert_allclose(mjx.actions, cpu.actions, atol=2e-2)
+    np.testing.assert_allclose(mjx.states[:, 1:10], cpu.states[:, 1:10], atol=2e-2)  # arm and fingers
