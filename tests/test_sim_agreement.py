@@ -221,6 +221,15 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     again = keyframe_env_starts(episodes, rl, seed=7, step=2)  # a function of (seed, step)
     assert [x[0] for x in again] == [x[0] for x in starts]
     assert all(np.array_equal(x[1], y[1]) for x, y in zip(again, starts))
+    # keyframe_fraction 0: every start is the first keyframe (frame 4), as the real evaluations start
+    at_rest = RLConfig(chunk_len=8, grpo=GRPOConfig(rollout_batch=4, group_size=3),
+                       imagined=ImaginedConfig(max_chunks=16, keyframe_fraction=0.0))
+    first = rl_data.keyframe_starts(episodes, 4, stream_rng(7, "grpo/env_keyframes", 2), max_fraction=0.0)
+    assert set(first["t"].tolist()) == {4}
+    for j, (task, state) in enumerate(keyframe_env_starts(episodes, at_rest, seed=7, step=2)):
+        np.testing.assert_array_equal(state, episodes.states[first["episode"][j // 3], 4])
+    with pytest.raises(ValueError, match="keyframe_fraction must be in"):
+        RLConfig(imagined=ImaginedConfig(keyframe_fraction=1.5)).validate()
     half_chunks = RLConfig(imagined=ImaginedConfig(max_chunks=16, execute_steps=4))
     assert keyframe_horizon(rl) == 128 and keyframe_horizon(half_chunks) == 64
     sub = episodes.subset(np.array([2, 0]))

@@ -121,7 +121,8 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
 
     def starts(key, step):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step))
+        pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step),
+                                       max_fraction=rl.imagined.keyframe_fraction)
         unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
         latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
         return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
@@ -153,7 +154,7 @@ def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int 
         raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
                          "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
     pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
-                                   num_context=num_context)
+                                   max_fraction=rl.imagined.keyframe_fraction, num_context=num_context)
     return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
             for _ in range(rl.grpo.group_size)]
 

@@ -206,6 +206,12 @@ class ImaginedConfig:
         proprio, 0.200 with it missing and 0.160 with it reckoned (200 episodes each): the reckoning's
         drift (2.4 cm after 8 actions, 5.4 cm after 32) misleads the policy more than no proprio does.
         Either way the imagined mode is not the true-proprio mode, hence ``eval_masked_proprio``.
+      keyframe_fraction: imagined rollouts (and ground-truth ones with ``rl.env.starts=keyframes``)
+        start at latent-aligned keyframes drawn from the first ``keyframe_fraction`` of each
+        demonstration (:func:`sword_jax.rl.data.keyframe_starts`; WoVR's keyframes). 0.5 (default): the
+        first half, so many rollouts start with the task under way. 0: always the first keyframe
+        (frame ``4 k``, the arm barely moved), as the real evaluations start; raise ``max_chunks`` to
+        cover a whole episode then (``small``'s 220 steps: 28 chunks of 8).
       eval_masked_proprio: every real-environment evaluation of GRPO in the learned simulator also
         runs the policy with proprio masked (its "missing proprio" input mode; one more evaluation
         each), stored as ``proprio_masked`` in the success curve: with ``proprio=missing``
@@ -223,12 +229,15 @@ class ImaginedConfig:
     return_rule: str = "success"  # success | score
     execute_steps: int | None = None  # None = rl.chunk_len (whole chunks)
     proprio: str = "missing"  # missing | reckoned
+    keyframe_fraction: float = 0.5  # keyframes from the first this-fraction of each demonstration
     eval_masked_proprio: bool = True  # also evaluate GRPO-in-the-world-model policies with proprio masked
     eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
 
     def validate(self) -> None:
         if self.max_chunks < 1:
             raise ValueError(f"rl.imagined.max_chunks must be >= 1, got {self.max_chunks}")
+        if not 0.0 <= self.keyframe_fraction <= 1.0:
+            raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):
             raise ValueError(f"rl.imagined.return_rule must be success|score, got {self.return_rule!r}")
         if self.proprio not in ("reckoned", "missing"):
