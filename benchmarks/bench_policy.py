@@ -254,31 +254,24 @@ def run_grpo(cfg, args) -> dict:
           f"{last['mean']:.3f} (gain {gain:+.3f} [{interval[0]:+.3f}, {interval[1]:+.3f}])"
           + (f"; in its training mode {summary['train_mode_gain']:+.3f}" if "train_mode_gain" in summary else ""),
           flush=True)
-    if args.record and cfg.rl.env.starts == "keyframes":
-        key = "policy_grpo_ground_truth_from_keyframes_small"
-        common.merge_results({key: common.record(
-            key, gain, None, ci95=list(interval), start=first["mean"], end=last["mean"], episodes=last["episodes"],
-            grpo_steps=last["step"], curve=[[p["step"], p["mean"]] for p in curve],
-            train_mode_curve=[[p["step"], p["train_mode"]["mean"]] for p in curve if "train_mode" in p],
-            seconds=summary["seconds"], learning_rate=cfg.rl.grpo.learning_rate, group_size=cfg.rl.grpo.group_size,
-            rollout_batch=cfg.rl.grpo.rollout_batch, env_proprio=mode, execute_steps=cfg.rl.env.execute_steps,
-            value_is="success gain from rest of GRPO whose real-environment rollouts start at the demonstrations' "
-                     "keyframes for the learned simulator's horizon (its setting, without its errors)")})
-    elif args.record and mode != "true":
-        key = f"policy_grpo_ground_truth_proprio_{mode}_small"
-        common.merge_results({key: common.record(
-            key, gain, None, ci95=list(interval), start=first["mean"], end=last["mean"], episodes=last["episodes"],
-            grpo_steps=last["step"], curve=[[p["step"], p["mean"]] for p in curve],
-            train_mode_curve=[[p["step"], p["train_mode"]["mean"]] for p in curve if "train_mode" in p],
-            seconds=summary["seconds"], learning_rate=cfg.rl.grpo.learning_rate, group_size=cfg.rl.grpo.group_size,
-            rollout_batch=cfg.rl.grpo.rollout_batch,
-            value_is=f"true-proprio success gain of GRPO whose rollouts read proprio '{mode}'")})
-    elif args.record:
-        common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
-            "policy_grpo_ground_truth_gain_small", gain, 0.15, ci95=list(interval), start=first["mean"],
-            end=last["mean"], episodes=last["episodes"], grpo_steps=last["step"],
-            curve=[[p["step"], p["mean"]] for p in curve], seconds=summary["seconds"],
-            learning_rate=cfg.rl.grpo.learning_rate, group_size=cfg.rl.grpo.group_size, rollout_batch=cfg.rl.grpo.rollout_batch)})
+    if args.record:
+        fields = dict(ci95=list(interval), start=first["mean"], end=last["mean"], episodes=last["episodes"],
+                      grpo_steps=last["step"], curve=[[p["step"], p["mean"]] for p in curve], seconds=summary["seconds"],
+                      learning_rate=cfg.rl.grpo.learning_rate, group_size=cfg.rl.grpo.group_size,
+                      rollout_batch=cfg.rl.grpo.rollout_batch)
+        key, target = "policy_grpo_ground_truth_gain_small", 0.15
+        if cfg.rl.env.starts == "keyframes":
+            key, target = "policy_grpo_ground_truth_from_keyframes_small", None
+            fields.update(env_proprio=mode, execute_steps=cfg.rl.env.execute_steps,
+                          value_is="success gain from rest of GRPO whose real-environment rollouts start at the "
+                                   "demonstrations' keyframes for the learned simulator's horizon (its setting, "
+                                   "without its errors)")
+        elif mode != "true":
+            key, target = f"policy_grpo_ground_truth_proprio_{mode}_small", None
+            fields.update(value_is=f"true-proprio success gain of GRPO whose rollouts read proprio '{mode}'")
+        if target is None:  # the diagnostic arms store their training mode's curve too (empty with true proprio)
+            fields.update(train_mode_curve=[[p["step"], p["train_mode"]["mean"]] for p in curve if "train_mode" in p])
+        common.merge_results({key: common.record(key, gain, target, **fields)})
     return summary
 
 

@@ -143,11 +143,7 @@ class CpuEnv(_Common):
         qpos = np.asarray(qpos, np.float64)
         if qpos.shape != (self.nq,) or not np.all(np.isfinite(qpos)):
             raise ValueError(f"qpos must be finite with shape ({self.nq},), got {qpos.shape}")
-        data = mujoco.MjData(self.mj_model)
-        data.qpos[:] = qpos
-        data.ctrl[:7] = qpos[:7]
-        data.ctrl[7:] = panda.FINGER_OPEN
-        mujoco.mj_forward(self.mj_model, data)
+        data = self._data_at(qpos)
         for _ in range(self.config.settle_steps):
             self._physics(data, SETTLE_ACTION)
         return self._state(data, info={})
@@ -158,16 +154,22 @@ class CpuEnv(_Common):
         next ``step`` acts exactly as it did in the recorded episode, up to the solver's warm start."""
         flat = np.asarray(flat_state, np.float64)
         if flat.shape != (1 + self.nq + self.nv,) or not np.all(np.isfinite(flat)):
-            raise ValueError(f"flat state must be finite with shape ({1 + self.nq + self.nv},) = [time, qpos ({self.nq}), "
-                             f"qvel ({self.nv})], got {flat.shape}")
+            raise ValueError(f"flat state must be finite with shape ({1 + self.nq + self.nv},) = [time, "
+                             f"qpos ({self.nq}), qvel ({self.nv})], got {flat.shape}")
+        return self._state(self._data_at(flat[1: 1 + self.nq], flat[1 + self.nq:], flat[0]), info={})
+
+    def _data_at(self, qpos: np.ndarray, qvel: np.ndarray | None = None, time: float = 0.0) -> mujoco.MjData:
+        """Fresh ``MjData`` at ``qpos`` (and ``qvel``, ``time``), the arm's servos holding it, the gripper
+        open (the controller rewrites the controls at every step), kinematics computed."""
         data = mujoco.MjData(self.mj_model)
-        data.time = flat[0]
-        data.qpos[:] = flat[1: 1 + self.nq]
-        data.qvel[:] = flat[1 + self.nq:]
-        data.ctrl[:7] = data.qpos[:7]  # rewritten by the controller at the first step
+        data.time = time
+        data.qpos[:] = qpos
+        if qvel is not None:
+            data.qvel[:] = qvel
+        data.ctrl[:7] = qpos[:7]
         data.ctrl[7:] = panda.FINGER_OPEN
         mujoco.mj_forward(self.mj_model, data)
-        return self._state(data, info={})
+        return data
 
     def _physics(self, data: mujoco.MjData, action: np.ndarray) -> None:
         mujoco.mj_jacSite(self.mj_model, data, self._jacp, self._jacr, self.site_id)

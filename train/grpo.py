@@ -41,7 +41,7 @@ from train.distributed import ENTRY_MAX_TRACES
 from sword_jax import sharding as shd
 from sword_jax import tracing
 from sword_jax.rl import data as rl_data
-from sword_jax.rl import grpo
+from sword_jax.rl import grpo, sim_agreement
 from sword_jax.rl.env_rollout import make_act_fns
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.learned_simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
@@ -112,9 +112,9 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
     det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)
     if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
-        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution={cfg.sim.resolution} "
-                         f"in a world model of data.image_size={cfg.data.image_size}; make them equal or pass "
-                         "--rl.imagined.eval_replay_episodes=0")
+        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution="
+                         f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "
+                         "equal or pass --rl.imagined.eval_replay_episodes=0")
 
     def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
         return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
@@ -146,13 +146,18 @@ def keyframe_horizon(rl) -> int:
     return rl.imagined.max_chunks * (rl.imagined.execute_steps or rl.chunk_len)
 
 
+def check_keyframe_episodes(episodes) -> None:
+    """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue (no recorded states or task ids)."""
+    if episodes.states is None or episodes.tasks is None:
+        raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
+                         "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
+
+
 def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
     """GRPO step ``step``'s ground-truth start states with ``rl.env.starts=keyframes``: ``(task, flat state)``
     of the demonstrations at the keyframes GRPO in the learned simulator draws (the same sampler; a
     function of (seed, step)), each repeated ``group_size`` times."""
-    if episodes.states is None or episodes.tasks is None:
-        raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
-                         "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
+    check_keyframe_episodes(episodes)
     pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
                                    max_fraction=rl.imagined.keyframe_fraction, num_context=num_context)
     return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
@@ -205,7 +210,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         horizon = keyframe_horizon(rl)
         rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
             rl.env, execute_steps=rl.imagined.execute_steps or rl.chunk_len))
-        keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=0)  # refuses episodes without states now
+        check_keyframe_episodes(keyframes)  # now, not after the first evaluation
 
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         if rl.env.starts == "keyframes":
@@ -254,30 +259,31 @@ class _Replayer:
     :mod:`sword_jax.rl.sim_agreement`), with one compile for the run."""
 
     def __init__(self, cfg, rl, sim, reward_model, encode, root):
-        from sword_jax.rl import sim_agreement
-
         self.cfg, self.rl, self.sim, self.reward_model, self.encode = cfg, rl, sim, reward_model, encode
         self.key = stream_key(root, "grpo/replay")
         self.tf = cfg.vae.temporal_factor
         self.k = cfg.data.context_frames // self.tf
-        self.agreement = sim_agreement
         self.fn = jax.jit(lambda s, r, st, a, n, key: sim_agreement.replay_actions(
             s, r, st, a, n, success_threshold=rl.success_threshold, key=key))
 
-    def trace(self):
-        return self.agreement.EpisodeTrace(self.tf * self.k)
+    def trace(self) -> sim_agreement.EpisodeTrace:
+        return sim_agreement.EpisodeTrace(self.tf * self.k)
 
-    def report(self, step: int, trace) -> dict:
-        traced = trace.result()
-        traced = self.agreement.select(traced, self.agreement.spread(len(traced.lengths), self.rl.imagined.eval_replay_episodes))
-        out = self.agreement.replay_report(
-            traced, self.sim, self.reward_model, self.encode, success_threshold=self.rl.success_threshold,
-            key=jax.random.fold_in(self.key, step), batch=self.rl.grpo.rollout_batch * self.rl.grpo.group_size,
-            num_context=self.k, frames_per_latent=self.tf, proprio_dim=self.rl.proprio_dim,
-            max_instruction_bytes=self.rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
+    def report(self, step: int, trace: sim_agreement.EpisodeTrace) -> dict:
+        rl, traced = self.rl, trace.result()
+        picked = sim_agreement.spread(len(traced.lengths), rl.imagined.eval_replay_episodes)
+        traced = sim_agreement.select(traced, picked)
+        out = sim_agreement.replay_report(
+            traced, self.sim, self.reward_model, self.encode, success_threshold=rl.success_threshold,
+            key=jax.random.fold_in(self.key, step), batch=rl.grpo.rollout_batch * rl.grpo.group_size,
+            num_context=self.k, frames_per_latent=self.tf, proprio_dim=rl.proprio_dim,
+            max_instruction_bytes=rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
+
         def rate(name):
             r = out[name]
-            return "n/a" if r["rate"] is None else f"{r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] of {r['of']}"
+            if r["rate"] is None:
+                return "n/a"
+            return f"{r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] of {r['of']}"
 
         if out["episodes"]:
             log(f"eval step {step}, {out['episodes']} real episodes replayed in the learned simulator: imagined "
@@ -290,7 +296,8 @@ class _Replayer:
 @dataclasses.dataclass(frozen=True)
 class GRPOInputs:
     """The checkpoints and demonstrations GRPO starts from (``--simulator world_model`` needs
-    ``world_model``, ``reward`` and ``demos``; ``env`` reads ``demos`` only to fit the proprio reckoning)."""
+    ``world_model``, ``reward`` and ``demos``; ``env`` reads ``demos`` only to fit the proprio reckoning
+    or, with ``rl.env.starts=keyframes``, to start from their recorded states)."""
 
     demos: tuple[str, ...] = ()  # LIBERO-layout HDF5 whose frames are the start keyframes
     world_model: str = ""  # train_world_model work dir

@@ -272,16 +272,18 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
         actions = np.pad(actions, ((0, 0), (0, max_steps - t0 - actions.shape[1]), (0, 0)))
     replay_fn = replay_fn or jax.jit(lambda sim, rm, s, a, l, k: replay_actions(
         sim, rm, s, a, l, success_threshold=success_threshold, key=k))
+    batches = []  # (inputs, real episodes in it), each padded to ``batch`` so one compile serves every call
+    for lo in range(0, len(keep), batch):
+        idx = keep[lo: lo + batch]
+        count = len(idx)
+        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])
+        inputs = (jax.tree.map(lambda y: jnp.asarray(y)[idx], start), jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]))
+        batches.append((inputs, count))
     outcomes, first = [], []
     for r in range(repeats):
         imagined = []
-        for b, lo in enumerate(range(0, len(keep), batch)):
-            idx = keep[lo: lo + batch]
-            idx = np.concatenate([idx, np.repeat(idx[-1:], batch - len(idx))])  # one shape for every call
-            take = lambda x: jax.tree.map(lambda y: jnp.asarray(y)[idx], x)  # noqa: E731
-            out = replay_fn(simulator, reward_model, take(start), jnp.asarray(actions[idx]),
-                            jnp.asarray(lengths[idx]), jax.random.fold_in(jax.random.fold_in(key, r), b))
-            count = min(batch, len(keep) - lo)
+        for b, (inputs, count) in enumerate(batches):
+            out = replay_fn(simulator, reward_model, *inputs, jax.random.fold_in(jax.random.fold_in(key, r), b))
             imagined.append(np.asarray(out.success)[:count])
             if r == 0:
                 first.append(np.asarray(out.first_success)[:count])
