@@ -12,7 +12,7 @@ from sword_jax.rl import grpo
 from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
-from sword_jax.rl.rollout import expand_groups, imagined_rollout
+from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout
 
 
 def test_group_advantages_hand_computed():
@@ -179,3 +179,20 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
     with pytest.raises(ValueError, match="update_microbatch"):
         odd = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, update_microbatch=3))
         grpo.grpo_update(graphdef, odd, grpo.init_state(params, cfg), rollout)
+
+
+def test_behaviour_nll_is_the_mean_sampled_token_nll_over_valid_chunks():
+    """The logged behaviour-policy NLL averages -log p of the sampled tokens over valid chunks only,
+    every trajectory counted (kept groups or not)."""
+    n, c, t, a = 2, 3, 2, 1
+    log_probs = -np.arange(1, n * c * t * a + 1, dtype=np.float32).reshape(n, c, t, a)
+    valid = np.array([[1, 1, 0], [1, 0, 0]], np.float32)
+    zeros = np.zeros((n, c), np.float32)
+    batch = Rollout(obs_frames=np.zeros((n, c, 1, 1, 3), np.float32), proprio=np.zeros((n, c, 8), np.float32),
+                         proprio_valid=zeros, instruction_tokens=np.zeros((n, 4), np.int32),
+                         tokens=np.zeros((n, c, t, a), np.int32), log_probs=log_probs, valid=valid, rewards=zeros,
+                         scores=zeros, success=np.zeros(n, bool), returns=np.zeros(n, np.float32),
+                         frames=np.zeros((0,), np.float32))
+    # valid tokens: trajectory 0 chunks 0-1 -> 1, 2, 3, 4; trajectory 1 chunk 0 -> 7, 8
+    expected = (1 + 2 + 3 + 4 + 7 + 8) / 6
+    assert float(grpo.behaviour_nll(jax.tree.map(jnp.asarray, batch))) == pytest.approx(expected)

@@ -235,7 +235,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
                 f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
-                f"eta {eta:.0f}s")
+                f"nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
         "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
@@ -417,7 +417,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
-                f"kept {point['kept_fraction']:.2f} eta {eta:.0f}s")
+                f"kept {point['kept_fraction']:.2f} nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     _, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl, workdir=workdir,

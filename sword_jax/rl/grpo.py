@@ -247,6 +247,15 @@ def grpo_gradients(graphdef: nnx.GraphDef, cfg: RLConfig, params: Any, batch: Ro
     return _gradient_fn(graphdef, cfg, batch, ref_params)(params)
 
 
+def behaviour_nll(batch: Rollout) -> Float[Array, ""]:
+    """Mean negative log-probability of the sampled tokens under the policy that sampled them, over
+    every valid chunk of the batch (kept groups or not): a Monte Carlo estimate of the behaviour
+    policy's per-token entropy at its sampling temperature. A policy that memorised its
+    demonstrations samples near-deterministic tokens (low), one that is unsure samples wide ones."""
+    mask = jnp.broadcast_to(batch.valid.astype(jnp.float32)[:, :, None, None], batch.log_probs.shape)
+    return -jnp.sum(batch.log_probs * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
 def grpo_update(
     graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout
 ) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
@@ -273,6 +282,7 @@ def grpo_update(
     (params, opt_state), metrics = jax.lax.scan(epoch, (state.params, state.opt_state), None, length=cfg.grpo.ppo_epochs)
     metrics = jax.tree.map(lambda x: x[-1], metrics)
     metrics["param_norm"] = optax.global_norm(params)
+    metrics["behaviour_nll"] = behaviour_nll(batch)
     return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
 
 
