@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import subprocess
 import time
 from collections.abc import Callable
 from typing import Any
@@ -19,9 +20,13 @@ from configs.cli import to_dict
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
+    """One resumable step. ``needs``: the stages whose results it reads when they are part of the run
+    (a stage left out with ``--skip`` is not waited for); they decide what may run side by side."""
+
     name: str
     run: Callable[["Context"], dict[str, Any]]
     description: str = ""
+    needs: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass
@@ -95,25 +100,114 @@ def check_workdir_config(cfg: Any, workdir: str) -> None:
     write_json_atomic(path, current)
 
 
+def _marker(ctx: Context, name: str) -> str:
+    return ctx.path("stages", f"{name}.json")
+
+
+def _load_finished(ctx: Context, name: str) -> bool:
+    """Reads a finished stage's recorded results into ``ctx.results``; False if it has not finished."""
+    marker = _marker(ctx, name)
+    if not os.path.exists(marker):
+        return False
+    with open(marker) as f:
+        ctx.results[name] = json.load(f)["results"]
+    return True
+
+
+def check_needs(stages: list[Stage], ctx: Context, only: set[str] | None) -> None:
+    """Refuses an ``--only`` set one of whose stages needs a stage of this run that has neither
+    finished nor been named in it (naming both)."""
+    if only is None:
+        return
+    names = {s.name for s in stages}
+    for stage in stages:
+        if stage.name not in only or os.path.exists(_marker(ctx, stage.name)):
+            continue
+        for need in stage.needs:
+            if need in names and need not in only and not os.path.exists(_marker(ctx, need)):
+                raise RuntimeError(f"stage {stage.name!r} needs {need!r}, which has not run yet and is not among "
+                                   f"--only {sorted(only)}")
+
+
 def run_stages(stages: list[Stage], ctx: Context, *, only: set[str] | None = None, log=print) -> dict[str, Any]:
-    """Runs the stages in order, skipping finished ones; returns every stage's results."""
+    """Runs the stages in order, skipping finished ones (and, with ``only``, those not named in it,
+    which are left for a later run); returns every finished stage's results."""
+    check_needs(stages, ctx, only)
     for index, stage in enumerate(stages):
-        marker = ctx.path("stages", f"{stage.name}.json")
-        if os.path.exists(marker):
-            with open(marker) as f:
-                ctx.results[stage.name] = json.load(f)["results"]
+        if _load_finished(ctx, stage.name):
             log(f"[{index + 1}/{len(stages)}] {stage.name}: done earlier, skipped")
             continue
         if only is not None and stage.name not in only:
-            raise RuntimeError(f"stage {stage.name!r} has not run yet and is not among --only {sorted(only)}")
+            continue
         log(f"[{index + 1}/{len(stages)}] {stage.name}: {stage.description}")
         start = time.perf_counter()
         results = stage.run(ctx)
         seconds = time.perf_counter() - start
         ctx.results[stage.name] = {**results, "seconds": round(seconds, 2)}
-        write_json_atomic(marker, {"stage": stage.name, "results": ctx.results[stage.name]})
+        write_json_atomic(_marker(ctx, stage.name), {"stage": stage.name, "results": ctx.results[stage.name]})
         log(f"[{index + 1}/{len(stages)}] {stage.name}: finished in {seconds:.1f} s")
     return ctx.results
+
+
+def run_stages_parallel(stages: list[Stage], ctx: Context, launch: Callable[[Stage], subprocess.Popen], *,
+                        max_running: int = 2, poll_s: float = 1.0, log=print) -> dict[str, Any]:
+    """Runs the unfinished stages each in its own process, a stage as soon as the stages of this run
+    it ``needs`` have finished, at most ``max_running`` at a time, in list order where several are
+    ready (e.g. the VAE trains while the policy is cloned and rolled out).
+
+    ``launch(stage)`` starts the process that runs ``stage`` and writes its marker (``train.pipeline
+    --parallel`` re-invokes itself with ``--only STAGE``). A stage counts as finished when its
+    process exits 0 and its marker exists. When one fails, no new stage starts; those running are
+    waited for (what they finish is kept, as with any finished stage) and then ``RuntimeError``
+    names the failed stages. Results do not depend on the schedule: a stage reads only its needs.
+    """
+    if max_running < 1:
+        raise ValueError(f"max_running must be >= 1, got {max_running}")
+    names = [s.name for s in stages]
+    index = {name: i for i, name in enumerate(names)}
+    pending = []
+    for stage in stages:
+        if _load_finished(ctx, stage.name):
+            log(f"[{index[stage.name] + 1}/{len(stages)}] {stage.name}: done earlier, skipped")
+        else:
+            pending.append(stage)
+    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    failed: list[str] = []
+    while pending or running:
+        for stage in list(pending):
+            if failed or len(running) >= max_running:
+                break
+            if all(need not in index or need in ctx.results for need in stage.needs):
+                pending.remove(stage)
+                running[stage.name] = (launch(stage), time.perf_counter())
+                log(f"[{index[stage.name] + 1}/{len(stages)}] {stage.name}: started ({stage.description})")
+        if not running:
+            break  # a failure stopped the rest (a cycle cannot happen: needs are checked against the order)
+        time.sleep(poll_s)
+        for name, (proc, start) in list(running.items()):
+            code = proc.poll()
+            if code is None:
+                continue
+            del running[name]
+            if code == 0 and _load_finished(ctx, name):
+                log(f"[{index[name] + 1}/{len(stages)}] {name}: finished in {time.perf_counter() - start:.1f} s")
+            else:
+                failed.append(name)
+                log(f"[{index[name] + 1}/{len(stages)}] {name}: FAILED (exit code {code})")
+    if failed:
+        left = [s.name for s in pending]
+        raise RuntimeError(f"stage(s) {', '.join(failed)} failed" + (f"; not started: {', '.join(left)}" if left else ""))
+    return ctx.results
+
+
+def check_order(stages: list[Stage]) -> None:
+    """Every stage's needs come earlier in the list (the sequential order is then a valid schedule)."""
+    seen: set[str] = set()
+    for stage in stages:
+        unknown = [n for n in stage.needs if n not in seen]
+        if unknown:
+            raise ValueError(f"stage {stage.name!r} needs {unknown}, which do not come before it")
+        seen.add(stage.name)
 
 
 def cpu_workers() -> int:
