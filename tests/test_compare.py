@@ -107,7 +107,7 @@ def _fake_stages(calls):
     """Pipeline stages that record their calls and write what compare reads (eval results, success curve)."""
     from train.stagerunner import Stage
 
-    def make(name):
+    def make(name, needs):
         def run(ctx):
             calls.append((name, ctx.workdir, ctx.cfg.seed))
             out = {"path": ctx.path(name, "x")}
@@ -140,11 +140,11 @@ def _fake_stages(calls):
                 out = {"success": {"grpo step 0": 0.25, "grpo step 10": 0.5}, "grpo": {"workdir": grpo_dir}}
             return out
 
-        return Stage(name, run, name)
+        return Stage(name, run, name, needs=needs)
 
     from train import pipeline
 
-    return [make(stage.name) for stage in pipeline.STAGES]
+    return [make(stage.name, stage.needs) for stage in pipeline.STAGES]
 
 
 def test_slices_build_shared_stages_once_and_write_their_files(tmp_path, monkeypatch):
@@ -293,3 +293,52 @@ def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
     record = json.loads((results / "sword_seed2.json").read_text())
     assert record["policy_stages"] is False and "success_curve" not in record
     assert record["command"] == "python -m train.compare --size tiny --runs sword --seeds 2 --no-policy"
+
+
+class _Exited:
+    """What a launched stage process looks like once it has exited."""
+
+    def __init__(self, code: int):
+        self.code = code
+
+    def poll(self) -> int:
+        return self.code
+
+
+def test_parallel_slices_launch_each_stage_with_the_slices_command_and_record_the_same(tmp_path, monkeypatch):
+    """--parallel: every stage is launched as ``train.pipeline <the slice's or shared dir's command> --only
+    STAGE`` (here run in this process instead of a new one, so the fake stages apply), and the
+    slice records equal a sequential run's."""
+    from train import pipeline
+
+    calls, launched = [], []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+
+    def launcher(argv, workdir):
+        def launch(stage):
+            launched.append((stage.name, workdir, list(argv)))
+            pipeline.main([*argv, "--only", stage.name])
+            return _Exited(0)
+
+        return launch
+
+    monkeypatch.setattr(pipeline, "stage_launcher", launcher)
+    records = {}
+    for mode, extra in (("sequential", []), ("parallel", ["--parallel", "2"])):
+        results = tmp_path / mode / "results"
+        compare.main(["--size", "tiny", "--runs", "teacher_forcing", "--seeds", "1", f"--out={tmp_path / mode / 'w'}",
+                      f"--results={results}", *extra])
+        records[mode] = json.loads((results / "teacher_forcing_seed1.json").read_text())
+    shared = [(name, argv) for name, workdir, argv in launched if "shared" in workdir]
+    own = [(name, argv) for name, workdir, argv in launched if "shared" not in workdir]
+    assert shared and own
+    assert all("--skip" in argv and "--stop-after" not in argv for _, argv in shared)  # the shared dir's stages only
+    assert all(argv[argv.index("--stop-after") + 1] == "evaluate" for _, argv in own)
+    assert {name for name, _ in own} == {"world_model", "evaluate"}  # the rest adopted from the shared dir
+
+    def science(record):
+        return {k: record[k] for k in ("metrics", "curves", "world_model", "policy_stages")} | {
+            "hashes": record["shared"]["hashes"], "adopted": record["shared"]["adopted"]}
+
+    assert science(records["parallel"]) == science(records["sequential"])

@@ -334,11 +334,12 @@ def _run_config(run: str, size: str, seed: int, workdir: str,
 
 
 def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str],
-                 policy: bool = True) -> tuple[str, dict, list[str]]:
+                 policy: bool = True, parallel: int = 0) -> tuple[str, dict, list[str]]:
     """Builds (or finds) the shared stages ``run`` needs in ``<out>/shared/<run>`` at ``shared_seed``.
 
     Stages another run's shared dir has already made with equal config sections are adopted, not
-    rebuilt. Returns ``(shared dir, its config as a dict, stages built by this call)``.
+    rebuilt. ``parallel`` > 0 runs them as ``train.pipeline --parallel`` does (each in its own
+    process, that many at a time). Returns ``(shared dir, its config as a dict, stages built by this call)``.
     """
     import glob
 
@@ -357,7 +358,13 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     stages = [s for s in pipeline.STAGES if s.name in wanted]
     done = {s.name for s in stages if os.path.exists(os.path.join(shared_dir, "stages", f"{s.name}.json"))}
     ctx = stagerunner.Context(cfg=cfg, workdir=shared_dir, cfg_name=config, overrides=dotted)
-    stagerunner.run_stages(stages, ctx)
+    if parallel:
+        left_out = [s.name for s in pipeline.STAGES if s.name not in wanted]
+        launch = pipeline.stage_launcher(["--config", config, f"--workdir={shared_dir}", *dotted,
+                                          *(["--skip", ",".join(left_out)] if left_out else [])], shared_dir)
+        stagerunner.run_stages_parallel(stages, ctx, launch, max_running=parallel)
+    else:
+        stagerunner.run_stages(stages, ctx)
     return shared_dir, to_dict(cfg), [s.name for s in stages if s.name not in done]
 
 
@@ -397,11 +404,12 @@ def slice_record(run: str, seed: int, stages: dict, workdir: str) -> dict:
 
 
 def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, share: bool,
-              overrides: Sequence[str], policy: bool = True) -> dict:
+              overrides: Sequence[str], policy: bool = True, parallel: int = 0) -> dict:
     """Runs one (run, seed) slice (building the shared stages first where missing); returns its record.
 
     ``policy=False`` stops a comparison-3 run after its evaluation (no supervised policy, no GRPO): a
-    slice for comparisons 1 and 2 only, recorded as such."""
+    slice for comparisons 1 and 2 only, recorded as such. ``parallel`` > 0: stages in their own
+    processes, that many side by side (``train.pipeline --parallel``); the same results."""
     from train import pipeline
 
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
@@ -411,11 +419,17 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     shared: dict = {"seed": seed, "workdir": None, "built_here": [], "adopted": []}
     if share:
         shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides,
-                                                     policy=policy)
+                                                     policy=policy, parallel=parallel)
         adopted = adopt_stages(workdir, shared_dir, cfg, shared_cfg)
         shared.update(seed=shared_seed, workdir=shared_dir, built_here=built, adopted=adopted)
     shared_seconds = time.perf_counter() - start
-    stages = pipeline.run(cfg, stop_after=_stage_names(run, policy=policy)[-1], cfg_name=config, overrides=dotted)
+    last = _stage_names(run, policy=policy)[-1]
+    launch = None
+    if parallel:
+        launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after", last],
+                                         workdir)
+    stages = pipeline.run(cfg, stop_after=last, cfg_name=config, overrides=dotted, launch=launch,
+                          max_running=max(parallel, 1))
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
     shared["hashes"] = shared_hashes(cfg, stages)
@@ -488,6 +502,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--results", default="", help="slice files and table (default benchmarks/results/compare/<size>)")
     parser.add_argument("--shared-seed", type=int, default=0, help="seed of the shared stages (data, VAE, ...)")
     parser.add_argument("--no-share", action="store_true", help="make every stage of every slice from its own seed")
+    parser.add_argument("--parallel", type=int, default=0, metavar="N",
+                        help="stages in their own processes, N side by side where their inputs allow "
+                             "(train.pipeline --parallel); 0: one after another in this process")
     parser.add_argument("--no-policy", action="store_true",
                         help="stop every slice after its world-model evaluation (comparisons 1 and 2 only: no "
                              "supervised policy, no GRPO)")
@@ -495,6 +512,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
     if bad:
         raise UsageError(f"not a dotted config override (--section.key=value): {' '.join(bad)}")
+    if args.parallel < 0:
+        raise UsageError(f"--parallel must be >= 0, got {args.parallel}")
     seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size)
     results_dir = args.results or os.path.join(REPO, "benchmarks", "results", "compare", args.size)
     os.makedirs(results_dir, exist_ok=True)
@@ -502,7 +521,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for seed in seeds:
         for run in runs:
             record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
-                               share=not args.no_share, overrides=overrides, policy=not args.no_policy)
+                               share=not args.no_share, overrides=overrides, policy=not args.no_policy,
+                               parallel=args.parallel)
             record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
                                               share=not args.no_share, overrides=overrides, policy=not args.no_policy)
             record["invocation"] = invocation
