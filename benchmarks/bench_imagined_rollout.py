@@ -12,6 +12,12 @@ Usage::
 
     python -m benchmarks.bench_imagined_rollout            # GPU: both configs, merges results
     python -m benchmarks.bench_imagined_rollout --tiny     # CPU smoke run (tiny shapes)
+
+``--weights compute`` stores the world model's matmul weights in its compute dtype (bf16) before the
+rollout (:func:`sword_jax.precision.store_in_compute_dtype`: bit-identical outputs, half the weight
+memory); ``--weights both`` runs each case that way first and then with float32 weights, side by
+side in one process (first, because the peak-memory reading is the process's running maximum), and
+merges ``imagined_rollout_weights_in_compute_dtype`` (frames/s ratio, both peaks).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from benchmarks import common
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
+from sword_jax.precision import parameter_bytes, store_in_compute_dtype
 from sword_jax.rl.config import PolicyConfig, RewardModelConfig, RLConfig
 from sword_jax.rl.learned_simulator import StartState
 from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
@@ -46,10 +53,12 @@ def _split_sharded(factory, mesh):
 
 
 def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, starts: int, group: int, chunks: int,
-             sample_steps: int, rl: RLConfig, iters: int) -> dict:
+             sample_steps: int, rl: RLConfig, iters: int, weights: str = "param") -> dict:
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     t0 = time.perf_counter()
     wm_graphdef, wm_state = _split_sharded(lambda: WorldModel(dit, rngs=nnx.Rngs(0)), mesh)
+    if weights == "compute":
+        wm_state = store_in_compute_dtype(wm_graphdef, wm_state)
     vae_graphdef, vae_state = _split_sharded(lambda: WanVAE(vae, rngs=nnx.Rngs(1)), mesh)
     policy_graphdef, policy_params = _split_sharded(lambda: VLAPolicy(rl, rngs=nnx.Rngs(2)), mesh)
     det_graphdef, det_params = _split_sharded(lambda: SuccessDetector(rl, rngs=nnx.Rngs(3)), mesh)
@@ -84,7 +93,8 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
                                 warmup=1, iters=iters)
     frames = n * chunks * sim.chunk_len
     fps = frames / timing["median_s"] / jax.device_count()
-    return {"case": name, "frames_per_s_per_device": fps, "trajectories": n, "chunks": chunks, "frames": frames,
+    return {"case": name, "weights": weights, "weight_gb": parameter_bytes(wm_state) / 1e9,
+            "frames_per_s_per_device": fps, "trajectories": n, "chunks": chunks, "frames": frames,
             "rollout_s": timing["median_s"], "compile_s": compile_s, "build_s": build_s, "dit_dim": dit.dim,
             "dit_layers": dit.num_layers, "resolution": frame_size, "sample_steps": sample_steps,
             "peak_gb": common.peak_memory_gb()}
@@ -99,38 +109,55 @@ def main(argv=None) -> None:
     parser.add_argument("--chunks", type=int, default=4)
     parser.add_argument("--sample-steps", type=int, default=5)
     parser.add_argument("--iters", type=int, default=3)
+    parser.add_argument("--weights", choices=("param", "compute", "both"), default="param",
+                        help="world-model weights as stored (float32), in the compute dtype, or both side by side")
     args = parser.parse_args(argv)
+    modes = ["compute", "param"] if args.weights == "both" else [args.weights]
     rows = []
     if args.tiny:
         tiny = configs.get("sword:tiny")
         rl = RLConfig(image_size=16, action_bins=16, policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=48),
                       reward_model=RewardModelConfig(width=4))
-        rows.append(run_case("tiny", tiny.model, tiny.vae, 32, starts=1, group=2, chunks=2, sample_steps=2, rl=rl,
-                             iters=1))
+        for mode in modes:
+            rows.append(run_case("tiny", dataclasses.replace(tiny.model, compute_dtype="bfloat16"), tiny.vae, 32,
+                                 starts=1, group=2, chunks=2, sample_steps=2, rl=rl, iters=1, weights=mode))
     else:
         small = configs.get("sword:small")
         rl = RLConfig()
-        rows.append(run_case("small", dataclasses.replace(small.model, compute_dtype="bfloat16"), small.vae, 128,
-                             starts=args.starts, group=args.group, chunks=args.chunks,
-                             sample_steps=args.sample_steps, rl=rl, iters=args.iters))
+        for mode in modes:
+            rows.append(run_case("small", dataclasses.replace(small.model, compute_dtype="bfloat16"), small.vae, 128,
+                                 starts=args.starts, group=args.group, chunks=args.chunks,
+                                 sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode))
         dit5b = dataclasses.replace(DiTConfig(), num_layers=args.layers, compute_dtype="bfloat16")
         vae = dataclasses.replace(VAEConfig(), compute_dtype="bfloat16")
-        rows.append(run_case("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
-                             sample_steps=args.sample_steps, rl=rl, iters=args.iters))
-    common.print_table(rows, ["case", "frames_per_s_per_device", "trajectories", "chunks", "rollout_s", "compile_s",
-                              "dit_dim", "dit_layers", "resolution", "sample_steps", "peak_gb"])
+        for mode in modes:
+            rows.append(run_case("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
+                                 sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode))
+    common.print_table(rows, ["case", "weights", "weight_gb", "frames_per_s_per_device", "trajectories", "chunks",
+                              "rollout_s", "compile_s", "dit_dim", "dit_layers", "resolution", "sample_steps", "peak_gb"])
     if not args.tiny:
-        by_case = {r["case"]: r for r in rows}
+        keep = "param" if args.weights == "both" else args.weights  # the headline keys: float32 weights unless asked
+        by_case = {r["case"]: r for r in rows if r["weights"] == keep}
         note = (f"policy + DiT dim 3072 x {args.layers} layers (of 30) with a {args.sample_steps}-step sampler + "
                 "full Wan 2.2 VAE streaming decode + reward CNN, 256x256, B*G="
                 f"{by_case['5b_width']['trajectories']}")
         entries = {
             "imagined_frames_per_s_5b_width": common.record(
-                "imagined_frames_per_s_5b_width", by_case["5b_width"]["frames_per_s_per_device"], TARGET_5B, note=note),
+                "imagined_frames_per_s_5b_width", by_case["5b_width"]["frames_per_s_per_device"], TARGET_5B, note=note,
+                weights=keep),
             "imagined_frames_per_s_small": common.record(
                 "imagined_frames_per_s_small", by_case["small"]["frames_per_s_per_device"], None,
-                note="sword:small DiT/VAE, 128x128"),
+                note="sword:small DiT/VAE, 128x128", weights=keep),
         }
+        if args.weights == "both":
+            fast = {r["case"]: r for r in rows if r["weights"] == "compute"}
+            a, b = fast["5b_width"], by_case["5b_width"]
+            entries["imagined_rollout_weights_in_compute_dtype"] = common.record(
+                "imagined_rollout_weights_in_compute_dtype", a["frames_per_s_per_device"] / b["frames_per_s_per_device"],
+                None, note=note, value_is="frames/s with bf16-stored world-model weights / with float32 weights",
+                weight_gb={"compute": a["weight_gb"], "param": b["weight_gb"]},
+                peak_gb={"compute": a["peak_gb"], "param_after_compute": b["peak_gb"]},
+                small_ratio=fast["small"]["frames_per_s_per_device"] / by_case["small"]["frames_per_s_per_device"])
         print("merged into", common.merge_results(entries))
 
 

@@ -239,3 +239,25 @@ def test_parameter_counts(shared_dir):
     world = _count(lambda: WorldModel(full, rngs=nnx.Rngs(0)))
     assert 4.9e9 < dit < 5.1e9, f"TI2V-5B DiT has {dit:,} parameters"
     assert 0 < world - dit < 0.01 * dit, f"action branches add {world - dit:,} parameters"
+
+
+def test_weights_stored_in_the_compute_dtype_give_bit_identical_outputs():
+    """sword_jax.precision: a bf16-compute world model with its matmul weights stored in bf16 gives
+    the same outputs bit for bit, holds fewer bytes, and keeps the float32 parameters it reads in
+    float32 (norms, modulation tables, the patch embedding)."""
+    from sword_jax.precision import parameter_bytes, store_in_compute_dtype
+
+    _, state = _randomized(CFG)
+    graphdef = _graphdef(dataclasses.replace(CFG, compute_dtype="bfloat16"))
+    cast = store_in_compute_dtype(graphdef, state)
+    inputs = _inputs(6)
+    np.testing.assert_array_equal(apply(graphdef, cast, *inputs), apply(graphdef, state, *inputs))
+    dtypes = {jax.tree_util.keystr(path): x.dtype for path, x in jax.tree_util.tree_leaves_with_path(cast)}
+    q = next(k for k in dtypes if "self_attn" in k and "'q'" in k and "kernel" in k)
+    assert dtypes[q] == jnp.bfloat16
+    kept = [k for k in dtypes if "modulation" in k or "patch_kernel" in k or "norm" in k]
+    assert kept and all(dtypes[k] == jnp.float32 for k in kept)
+    assert parameter_bytes(cast) < 0.7 * parameter_bytes(state)
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(state))  # the input is left alone
+    # a float32-compute model has nothing to store differently
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(store_in_compute_dtype(_graphdef(CFG), state)))
