@@ -130,16 +130,24 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
                                      jsonl_path=os.path.join(cfg.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(cfg.workdir, "tensorboard"))
 
+    first_batch_s: list[float] = []  # the first batch's time: the restyling's compile, inside the first step
+
     def batch_at(step: int) -> np.ndarray:  # 0-based step; the clip draws count from 1
+        start = time.perf_counter()
         if sampler is not None:
-            return sampler.batch(step + 1)
-        return np.asarray(vae_train.moving_squares(key=jax.random.key(step + 1), batch=cfg.vae.batch_size,
-                                                   frames=frames, size=cfg.data.image_size))
+            out = sampler.batch(step + 1)
+        else:
+            out = np.asarray(vae_train.moving_squares(key=jax.random.key(step + 1), batch=cfg.vae.batch_size,
+                                                      frames=frames, size=cfg.data.image_size))
+        if not first_batch_s:
+            first_batch_s.append(time.perf_counter() - start)
+        return out
 
     def first_step_done() -> None:  # compile (and autotuning) time, separate from the step rate
         if is_main:
             print(f"[train_vae] first step (compile included) done {time.perf_counter() - loaded:.1f} s after "
-                  "loading began", flush=True)
+                  f"loading began; its batch (clip sampling and the restyling's compile) took "
+                  f"{first_batch_s[0] if first_batch_s else 0.0:.1f} s of it", flush=True)
 
     try:
         result = run_steps(
