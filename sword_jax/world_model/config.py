@@ -81,6 +81,7 @@ class TrainerConfig:
     adam_b1: float = 0.9
     adam_b2: float = 0.999
     adam_eps: float = 1e-8
+    adam_mu_dtype: str = "float32"  # float32 | bfloat16: Adam's first moment (optax mu_dtype); the second stays float32
     grad_clip: float = 1.0  # global-norm clip; 0 = off
     ema_decay: float = 0.0  # 0 = no EMA
     log_every: int = 10
@@ -99,5 +100,7 @@ class TrainerConfig:
             raise ValueError(f"trainer.learning_rate must be > 0 and grad_clip >= 0, got {self.learning_rate}/{self.grad_clip}")
         if self.log_every <= 0 or self.checkpoint_every <= 0 or self.keep_checkpoints <= 0:
             raise ValueError("trainer.log_every, checkpoint_every and keep_checkpoints must be positive")
+        if self.adam_mu_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"trainer.adam_mu_dtype must be float32|bfloat16, got {self.adam_mu_dtype!r}")
         if self.on_nonfinite not in ("stop", "skip"):
             raise ValueError(f"trainer.on_nonfinite must be stop|skip, got {self.on_nonfinite!r}")

@@ -47,7 +47,8 @@ def learning_rate_schedule(cfg: TrainerConfig) -> optax.Schedule:
 def make_optimizer(cfg: TrainerConfig) -> optax.GradientTransformation:
     """Global-norm gradient clipping then AdamW on the warmup schedule."""
     return optim.make_optimizer(learning_rate_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps,
-                                weight_decay=cfg.weight_decay, grad_clip=cfg.grad_clip)
+                                weight_decay=cfg.weight_decay, grad_clip=cfg.grad_clip,
+                                mu_dtype=None if cfg.adam_mu_dtype == "float32" else jnp.dtype(cfg.adam_mu_dtype))
 
 
 def _replicated(mesh: Mesh) -> NamedSharding:
