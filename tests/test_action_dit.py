@@ -261,3 +261,33 @@ def test_weights_stored_in_the_compute_dtype_give_bit_identical_outputs():
     assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(state))  # the input is left alone
     # a float32-compute model has nothing to store differently
     assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(store_in_compute_dtype(_graphdef(CFG), state)))
+
+
+def test_bfloat16_residual_stream_is_close_to_float32_and_carried_in_bfloat16():
+    """model.residual_dtype=bfloat16: the stream between blocks is bf16 (block outputs), the output
+    stays float32 and close to the float32-stream model (both with bf16 compute)."""
+    _, state = _randomized(CFG)
+    bf16 = dataclasses.replace(CFG, compute_dtype="bfloat16")
+    latents, timesteps, actions = _inputs(7)
+    ref = apply(_graphdef(bf16), state, latents, timesteps, actions)
+    low = _graphdef(dataclasses.replace(bf16, residual_dtype="bfloat16"))
+    out = apply(low, state, latents, timesteps, actions)
+    assert out.dtype == jnp.float32
+    rel = _max_diff(out, ref) / float(jnp.max(jnp.abs(ref)))
+    assert 0.0 < rel < 5e-2, rel
+
+    def scan_carries(jaxpr):  # the first carry of every scan, nested jaxprs included
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "scan":
+                yield eqn.outvars[0].aval
+            for value in eqn.params.values():
+                inner = getattr(value, "jaxpr", value)
+                if hasattr(inner, "eqns"):
+                    yield from scan_carries(inner)
+
+    def stream_dtypes(graphdef):
+        closed = jax.make_jaxpr(functools.partial(world_model_apply, graphdef))(state, latents, timesteps, actions)
+        return {a.dtype for a in scan_carries(closed.jaxpr) if a.shape[-1] == CFG.dim}
+
+    assert stream_dtypes(low) == {jnp.dtype(jnp.bfloat16)}
+    assert stream_dtypes(_graphdef(bf16)) == {jnp.dtype(jnp.float32)}

@@ -89,6 +89,7 @@ class WanBlock(nnx.Module):
         kw = dict(compute_dtype=cdt, param_dtype=pdt, rngs=rngs)
         self.eps = cfg.eps
         self.compute_dtype = cdt
+        self.residual_dtype = dtype_of(cfg.residual_dtype)
         self.self_attn = WanAttention(cfg, rngs=rngs)
         self.cross_attn = WanAttention(cfg, rngs=rngs)
         self.norm3 = AffineLayerNorm(cfg.dim, cfg.eps, param_dtype=pdt) if cfg.cross_attn_norm else None
@@ -107,6 +108,7 @@ class WanBlock(nnx.Module):
     ) -> tuple[Float[Array, "b l d"], dict[str, Array]]:
         b, l, d = x.shape
         groups = e0.shape[1]
+        x = x.astype(jnp.float32)  # the stream arrives in cfg.residual_dtype; the block adds in float32
         mod = self.modulation[...].astype(jnp.float32) + e0  # (B, G, 6, D)
         mod = mod[:, :, None]  # (B, G, 1, 6, D): broadcast over each group's tokens
         shift_sa, scale_sa, gate_sa, shift_ff, scale_ff, gate_ff = (mod[..., i, :] for i in range(6))
@@ -131,7 +133,7 @@ class WanBlock(nnx.Module):
         x = x + (grouped(ffn_out.astype(jnp.float32)) * gate_ff).reshape(b, l, d)
         aux = {f"sa_{k}": v for k, v in aux.items()}
         aux.update(self_attn_out=sa_out, cross_attn_out=ca_out, ffn_out=ffn_out)
-        return x, aux
+        return x.astype(self.residual_dtype), aux
 
 
 def _remat_policy(name: str):
@@ -299,6 +301,7 @@ class WanDiT(nnx.Module):
     def _run_blocks(self, x, e0, context, rope, seq_lens, capture: bool):
         cfg = self.cfg
         graphdef, block_state = nnx.split(self.blocks)
+        x = x.astype(dtype_of(cfg.residual_dtype))
 
         def body(carry, params):
             block = nnx.merge(graphdef, params)
