@@ -12,6 +12,7 @@ on the same model, batch and data, so their ratio is not disturbed by drift betw
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import jax
 import numpy as np
@@ -58,15 +59,17 @@ def _batch(cfg: DiTConfig, batch: int, hw: tuple[int, int], num_episodes: int, n
 
 
 def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int], *, peak_tflops: float,
-               iters: int, num_episodes: int = 64, num_latents: int = 32, with_dlb: bool = True) -> dict:
+               iters: int, num_episodes: int = 64, num_latents: int = 32, with_dlb: bool = True,
+               mu_dtype: str = "float32") -> dict:
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
-    trainer_cfg = TrainerConfig(steps=1000, warmup_steps=10)
+    trainer_cfg = TrainerConfig(steps=1000, warmup_steps=10, adam_mu_dtype=mu_dtype)
     flow_cfg = FlowConfig()
     dataset_shape = (num_episodes, num_latents, hw[0], hw[1], model_cfg.in_dim)
     data, data_shardings = _batch(model_cfg, batch, hw, num_episodes, num_latents, mesh)
     key = jax.random.key(0)
     row: dict = {"config": label, "layers": model_cfg.num_layers, "dim": model_cfg.dim, "batch": batch,
-                 "remat": model_cfg.remat, "attention": model_cfg.attention_impl}
+                 "remat": model_cfg.remat, "attention": model_cfg.attention_impl,
+                 "residual": model_cfg.residual_dtype, "adam_mu": mu_dtype}
     times = {}
     variants = [("tf", CacheConfig(enabled=False))]
     if with_dlb:
@@ -99,6 +102,16 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
     return row
 
 
+def _lever_rows(label: str, cfg: DiTConfig, batch: int, hw: tuple[int, int], peak: float, iters: int) -> list[dict]:
+    """The same setting with a bf16 residual stream, bf16 Adam first moments, and both."""
+    bf16 = dataclasses.replace(cfg, residual_dtype="bfloat16")
+    return [run_config(f"{label}+bf16-residual", bf16, batch, hw, peak_tflops=peak, iters=iters, with_dlb=False),
+            run_config(f"{label}+bf16-adam-mu", cfg, batch, hw, peak_tflops=peak, iters=iters, with_dlb=False,
+                       mu_dtype="bfloat16"),
+            run_config(f"{label}+both", bf16, batch, hw, peak_tflops=peak, iters=iters, with_dlb=False,
+                       mu_dtype="bfloat16")]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes")
@@ -110,6 +123,9 @@ def main() -> None:
     parser.add_argument("--attention", default="auto")
     parser.add_argument("--iters", type=int, default=10)
     parser.add_argument("--no-record", action="store_true")
+    parser.add_argument("--levers", action="store_true",
+                        help="after the 5B-width row, the same setting with a bf16 residual stream, bf16 Adam first "
+                             "moments and both, side by side (teacher-forcing step; recorded as dit_train_levers)")
     args = parser.parse_args()
 
     peak = common.measured_matmul_tflops()
@@ -120,6 +136,8 @@ def main() -> None:
         tiny = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
                          compute_dtype="float32")
         rows.append(run_config("tiny", tiny, 4, (4, 4), peak_tflops=peak, iters=2))
+        if args.levers:
+            rows += _lever_rows("tiny", tiny, 4, (4, 4), peak, 2)
     else:
         best = (args.layers, args.batch, args.remat)
         if args.sweep:
@@ -141,12 +159,22 @@ def main() -> None:
         small = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16,
                           attention_impl=args.attention)
         rows.append(run_config("small", small, 64, (8, 8), peak_tflops=peak, iters=args.iters))
-    common.print_table(rows, ["config", "layers", "batch", "remat", "attention", "tf_step_s", "dlb_step_s",
-                              "dlb_overhead", "model_tflops", "mfu", "peak_mem_gb"])
+        if args.levers:
+            rows += _lever_rows("5b-width", wide, batch, (16, 16), peak, args.iters)
+    common.print_table(rows, ["config", "layers", "batch", "remat", "attention", "residual", "adam_mu", "tf_step_s",
+                              "dlb_step_s", "dlb_overhead", "model_tflops", "mfu", "peak_mem_gb"])
     if args.no_record or args.tiny:
         return
     wide = rows[0]
     extra = {"measured_peak_tflops": peak, "copy_gbps": copy_gbps, "rows": rows}
+    levers = {r["config"]: r for r in rows if r["config"].startswith("5b-width+")}
+    if levers:
+        common.merge_results({"dit_train_levers": common.record(
+            "dit_train_levers", max(r["mfu"] for r in levers.values()), 0.65, baseline_mfu=wide["mfu"],
+            mfu={name: r["mfu"] for name, r in levers.items()},
+            peak_mem_gb={name: r["peak_mem_gb"] for name, r in levers.items()}, measured_peak_tflops=peak,
+            value_is="best MFU of the 5B-width setting with the bf16 levers (teacher-forcing step); peak memory "
+                     "is the process's running maximum")})
     common.merge_results({
         "dit_train_mfu_vs_measured_peak": common.record("dit_train_mfu_vs_measured_peak", wide["mfu"], 0.65, **extra),
         "dlb_overhead_ratio": common.record("dlb_overhead_ratio", wide["dlb_overhead"], 0.03,
