@@ -1,0 +1,201 @@
+"""Does GRPO in the learned simulator transfer? Three arms from one supervised policy, side by side.
+
+1. ``world_model``: the pipeline up to GRPO inside the learned simulator (``train.pipeline --stop-after
+   policy``, stages side by side with ``--parallel``), evaluated in the real environments, with the
+   replay diagnostic (real episodes replayed in the simulator: false successes, resample
+   disagreement) at every evaluation.
+2. ``ground_truth``: GRPO with the same update in the real environments from rest (``train.grpo
+   --simulator env``): the control that says whether this policy can be lifted at all.
+3. ``ground_truth_keyframes``: GRPO in the real environments in the learned simulator's setting
+   (its keyframe starts, horizon and execution, proprio missing): whether that setting can lift it.
+
+Arms 2 and 3 start as soon as the pipeline's supervised policy exists and run beside it. At the end
+``<workdir>/transfer.json`` and ``transfer.png`` hold every arm's real success curve with 95%
+intervals, its gain (Newcombe-style normal interval of the difference of two proportions), its
+training rollouts' success per 10 steps, and the world-model arm's replay agreement.
+
+    python -m benchmarks.bench_grpo_transfer --workdir runs/transfer              # GPU: small, ~25 min on an H100
+    python -m benchmarks.bench_grpo_transfer --workdir runs/t --config sword:tiny --steps 2 --eval-every 1 \\
+        --eval-episodes 1 --arm-workers 0                                          # CPU smoke run
+
+Any ``--section.key=value`` is passed to all three arms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+ARMS = ("world_model", "ground_truth", "ground_truth_keyframes")
+
+
+def commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
+    """The three arms' command lines (``python -m ...``)."""
+    py = [sys.executable, "-m"]
+    common = ["--config", args.config, "--seed", str(args.seed), "--rl.env.execute_steps=4",
+              "--rl.env.action_ensemble=false", f"--rl.grpo.steps={args.steps}", f"--rl.grpo.eval_every={args.eval_every}",
+              f"--rl.grpo.eval_episodes_per_task={args.eval_episodes}", *overrides]
+    pipe = os.path.join(args.workdir, "pipeline")
+    env_arm = [*py, "train.grpo", *common, "--simulator", "env", "--policy", os.path.join(pipe, "rl", "policy_sft"),
+               "--env-workers", str(args.arm_workers)]
+    return {
+        "world_model": [*py, "train.pipeline", *common, "--sim.backend=cpu", f"--workdir={pipe}",
+                        "--skip", "probe,evaluate", "--stop-after", "policy", "--parallel", str(args.parallel)],
+        "ground_truth": [*env_arm, "--workdir", os.path.join(args.workdir, "ground_truth")],
+        "ground_truth_keyframes": [*env_arm, "--workdir", os.path.join(args.workdir, "ground_truth_keyframes"),
+                                   "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--rl.env.starts=keyframes",
+                                   "--rl.env.proprio=missing"],
+    }
+
+
+def diff_interval(a: dict, b: dict) -> list[float]:
+    """95% normal interval of ``rate(b) - rate(a)`` for two independent evaluation points."""
+    pa, pb = a["successes"] / a["episodes"], b["successes"] / b["episodes"]
+    se = math.sqrt(pa * (1 - pa) / a["episodes"] + pb * (1 - pb) / b["episodes"])
+    return [pb - pa - 1.96 * se, pb - pa + 1.96 * se]
+
+
+def _blocks(values: Sequence[float], size: int = 10) -> list[float]:
+    return [round(sum(values[i:i + size]) / len(values[i:i + size]), 4) for i in range(0, len(values), size)]
+
+
+def _step_rates(log_text: str, what: str) -> list[float]:
+    """Per-step rollout success from a GRPO log (``grpo step i/N <what> success X``)."""
+    return [float(x) for x in re.findall(rf"grpo step \d+/\d+ {what} success ([\d.]+)", log_text)]
+
+
+def summarize(workdir: str) -> dict:
+    """Every finished arm's curve, gain and per-step rollout success (arms that did not finish are
+    listed under ``missing``)."""
+    out: dict = {"arms": {}, "missing": []}
+    curves = {"world_model": os.path.join(workdir, "pipeline", "rl", "grpo", "success_curve.json"),
+              "ground_truth": os.path.join(workdir, "ground_truth", "rl", "grpo", "success_curve.json"),
+              "ground_truth_keyframes": os.path.join(workdir, "ground_truth_keyframes", "rl", "grpo",
+                                                     "success_curve.json")}
+    logs = {"world_model": os.path.join(workdir, "pipeline", "logs", "policy.log"),
+            **{arm: os.path.join(workdir, f"{arm}.log") for arm in ARMS[1:]}}
+    for arm in ARMS:
+        if not os.path.exists(curves[arm]):
+            out["missing"].append(arm)
+            continue
+        with open(curves[arm]) as f:
+            points = json.load(f)["points"]
+        first, last = points[0], points[-1]
+        entry = {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
+                           for p in points],
+                 "gain": last["mean"] - first["mean"], "gain_ci95": diff_interval(first, last)}
+        mode_key = "proprio_masked" if arm == "world_model" else "train_mode"
+        modes = [p[mode_key] for p in points if mode_key in p]
+        if len(modes) == len(points) and modes:
+            entry["trained_mode_curve"] = [{"step": p["step"], "success": m["mean"], "ci95": m["ci95"]}
+                                           for p, m in zip(points, modes)]
+            entry["trained_mode_gain"] = modes[-1]["mean"] - modes[0]["mean"]
+            entry["trained_mode_gain_ci95"] = diff_interval(modes[0], modes[-1])
+        if arm == "world_model":
+            entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in (
+                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement")}}
+                for p in points if "replay" in p]
+        if os.path.exists(logs[arm]):
+            with open(logs[arm]) as f:
+                rates = _step_rates(f.read(), "imagined" if arm == "world_model" else "rollout")
+            entry["rollout_success_per_10_steps"] = _blocks(rates)
+        out["arms"][arm] = entry
+    return out
+
+
+def plot(summary: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {"world_model": "GRPO in the learned simulator", "ground_truth": "GRPO in the real envs (from rest)",
+              "ground_truth_keyframes": "GRPO in the real envs, simulator's setting"}
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for arm, entry in summary["arms"].items():
+        steps = [p["step"] for p in entry["curve"]]
+        ax.errorbar(steps, [p["success"] for p in entry["curve"]],
+                    yerr=[[p["success"] - p["ci95"][0] for p in entry["curve"]],
+                          [p["ci95"][1] - p["success"] for p in entry["curve"]]],
+                    marker="o", capsize=3, label=labels[arm])
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel("real success (true proprio, 95% interval)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
+    os.makedirs(args.workdir, exist_ok=True)
+    cmds = commands(args, overrides)
+    env = dict(os.environ)
+    env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # three processes share one GPU
+    procs: dict[str, subprocess.Popen] = {}
+    start = time.perf_counter()
+
+    def launch(arm: str) -> None:
+        with open(os.path.join(args.workdir, f"{arm}.log"), "w") as log:
+            procs[arm] = subprocess.Popen(cmds[arm], stdout=log, stderr=subprocess.STDOUT, env=env)
+        print(f"[transfer] {arm}: started ({time.perf_counter() - start:.0f} s): {' '.join(cmds[arm][2:])}", flush=True)
+
+    launch("world_model")
+    marker = os.path.join(args.workdir, "pipeline", "stages", "sft_policy.json")
+    while procs["world_model"].poll() is None and not os.path.exists(marker):
+        time.sleep(poll_s)
+    if os.path.exists(marker):
+        for arm in ARMS[1:]:
+            launch(arm)
+    codes = {}
+    for arm, proc in procs.items():
+        codes[arm] = proc.wait()
+        print(f"[transfer] {arm}: exit {codes[arm]} ({time.perf_counter() - start:.0f} s)", flush=True)
+    summary = {"config": args.config, "seed": args.seed, "steps": args.steps, "exit_codes": codes,
+               "seconds": round(time.perf_counter() - start, 1),
+               "commands": {arm: " ".join(["python", *cmd[1:]]) for arm, cmd in cmds.items()}, **summarize(args.workdir)}
+    with open(os.path.join(args.workdir, "transfer.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    if summary["arms"]:
+        plot(summary, os.path.join(args.workdir, "transfer.png"))
+    for arm, entry in summary["arms"].items():
+        lo, hi = entry["gain_ci95"]
+        print(f"[transfer] {arm}: real success {entry['curve'][0]['success']:.3f} -> {entry['curve'][-1]['success']:.3f} "
+              f"(gain {entry['gain']:+.3f} [{lo:+.3f}, {hi:+.3f}]); rollouts per 10 steps "
+              f"{entry.get('rollout_success_per_10_steps')}", flush=True)
+    failed = [arm for arm, code in codes.items() if code]
+    if failed or summary["missing"]:
+        raise SystemExit(f"bench_grpo_transfer: arms failed or missing: {sorted(set(failed) | set(summary['missing']))} "
+                         f"(logs in {args.workdir})")
+    return summary
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     epilog="Any --section.key=value is passed to all three arms.")
+    parser.add_argument("--workdir", default="runs/grpo_transfer")
+    parser.add_argument("--config", default="cache_ablation:small-linear-direct-all")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=50, help="GRPO steps of every arm")
+    parser.add_argument("--eval-every", type=int, default=25)
+    parser.add_argument("--eval-episodes", type=int, default=20, help="real evaluation episodes per task")
+    parser.add_argument("--arm-workers", type=int, default=4, help="C-engine processes of each ground-truth arm")
+    parser.add_argument("--parallel", type=int, default=2, help="pipeline stages side by side (train.pipeline --parallel)")
+    args, overrides = parser.parse_known_args(argv)
+    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    if bad:
+        raise SystemExit(f"bench_grpo_transfer: not a dotted config override (--section.key=value): {' '.join(bad)}")
+    if args.steps < 1 or args.eval_every < 1 or args.eval_episodes < 1 or args.arm_workers < 0 or args.parallel < 0:
+        raise SystemExit("bench_grpo_transfer: --steps, --eval-every and --eval-episodes must be >= 1, "
+                         "--arm-workers and --parallel >= 0")
+    return run(args, overrides)
+
+
+if __name__ == "__main__":
+    main()
