@@ -11,7 +11,7 @@
 
 Arms 2 and 3 start as soon as the pipeline's supervised policy exists and run beside it. At the end
 ``<workdir>/transfer.json`` and ``transfer.png`` hold every arm's real success curve with 95%
-intervals, its gain (Newcombe-style normal interval of the difference of two proportions), its
+intervals, its gain (with the Newcombe interval of the difference of two proportions), its
 training rollouts' success per 10 steps, and the world-model arm's replay agreement.
 
     python -m benchmarks.bench_grpo_transfer --workdir runs/transfer              # GPU: small, ~25 min on an H100
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import re
 import subprocess
@@ -55,11 +54,12 @@ def commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
     }
 
 
-def diff_interval(a: dict, b: dict) -> list[float]:
-    """95% normal interval of ``rate(b) - rate(a)`` for two independent evaluation points."""
-    pa, pb = a["successes"] / a["episodes"], b["successes"] / b["episodes"]
-    se = math.sqrt(pa * (1 - pa) / a["episodes"] + pb * (1 - pb) / b["episodes"])
-    return [pb - pa - 1.96 * se, pb - pa + 1.96 * se]
+def gain_interval(a: dict, b: dict) -> list[float]:
+    """95% interval of ``rate(b) - rate(a)`` for two evaluation points: the Newcombe interval every
+    GRPO gain in this project is reported with (:func:`benchmarks.bench_policy.diff_interval`)."""
+    from benchmarks.bench_policy import diff_interval
+
+    return list(diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"]))
 
 
 def _blocks(values: Sequence[float], size: int = 10) -> list[float]:
@@ -90,14 +90,14 @@ def summarize(workdir: str) -> dict:
         first, last = points[0], points[-1]
         entry = {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
                            for p in points],
-                 "gain": last["mean"] - first["mean"], "gain_ci95": diff_interval(first, last)}
+                 "gain": last["mean"] - first["mean"], "gain_ci95": gain_interval(first, last)}
         mode_key = "proprio_masked" if arm == "world_model" else "train_mode"
         modes = [p[mode_key] for p in points if mode_key in p]
         if len(modes) == len(points) and modes:
             entry["trained_mode_curve"] = [{"step": p["step"], "success": m["mean"], "ci95": m["ci95"]}
                                            for p, m in zip(points, modes)]
             entry["trained_mode_gain"] = modes[-1]["mean"] - modes[0]["mean"]
-            entry["trained_mode_gain_ci95"] = diff_interval(modes[0], modes[-1])
+            entry["trained_mode_gain_ci95"] = gain_interval(modes[0], modes[-1])
         if arm == "world_model":
             entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in (
                 "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement")}}

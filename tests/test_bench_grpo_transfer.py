@@ -5,6 +5,7 @@ import json
 import pytest
 
 from benchmarks import bench_grpo_transfer as transfer
+from benchmarks import bench_policy
 
 
 def _curve(path, points):
@@ -35,8 +36,9 @@ def test_summary_reads_every_arm_and_names_the_missing(tmp_path):
     assert summary["missing"] == ["ground_truth_keyframes"]
     wm, gt = summary["arms"]["world_model"], summary["arms"]["ground_truth"]
     assert wm["gain"] == pytest.approx(-0.05) and gt["gain"] == pytest.approx(0.2)
-    lo, hi = gt["gain_ci95"]  # 0.2 -> 0.4 on 200 episodes each: se = sqrt(.16/200 + .24/200)
-    assert (hi - lo) / 2 == pytest.approx(1.96 * (0.4 / 200) ** 0.5)
+    # 0.2 -> 0.4 on 200 episodes each: the project's Newcombe interval of the difference
+    assert gt["gain_ci95"] == list(bench_policy.diff_interval(40, 200, 80, 200))
+    assert gt["gain_ci95"][0] < 0.2 < gt["gain_ci95"][1]
     assert wm["trained_mode_gain"] == pytest.approx(-0.05)
     assert wm["replay"][0]["false_success"] == {"rate": 0.1}
     assert wm["rollout_success_per_10_steps"] == [0.0, 0.1]
