@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 from flax import nnx
 
@@ -44,6 +45,4 @@ def store_in_compute_dtype(graphdef: nnx.GraphDef, state: nnx.State) -> nnx.Stat
 
 def parameter_bytes(state: nnx.State) -> int:
     """Bytes of a state's arrays."""
-    import jax
-
     return sum(int(x.size) * x.dtype.itemsize for x in jax.tree.leaves(state) if hasattr(x, "dtype"))
