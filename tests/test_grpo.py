@@ -196,3 +196,50 @@ def test_behaviour_nll_is_the_mean_sampled_token_nll_over_valid_chunks():
     # valid tokens: trajectory 0 chunks 0-1 -> 1, 2, 3, 4; trajectory 1 chunk 0 -> 7, 8
     expected = (1 + 2 + 3 + 4 + 7 + 8) / 6
     assert float(grpo.behaviour_nll(jax.tree.map(jnp.asarray, batch))) == pytest.approx(expected)
+
+
+def test_sampled_tokens_carry_the_tempered_log_probs_whose_score_has_zero_mean():
+    """At temperature T the sampler draws from softmax(z / T) and returns those log-probs, and the
+    update differentiates the same ones: their score has zero mean under the samples, so a batch
+    whose rewards ignore the actions moves the policy nowhere on average. The untempered score the
+    update used before drifts by p_T - p_1 (the collapse at T = 0.7 in the README, issue 17)."""
+    from sword_jax.rl.policy import sample_chunk, sampling_log_probs, token_log_probs
+
+    temperature, bins = 0.6, 12
+    logits = 2.0 * jax.random.normal(jax.random.key(0), (bins,))
+    tokens, logp = sample_chunk(jnp.broadcast_to(logits, (20000, bins)), key=jax.random.key(1),
+                                temperature=temperature)
+    p_t, p_1 = jax.nn.softmax(logits / temperature), jax.nn.softmax(logits)
+    np.testing.assert_allclose(np.asarray(logp), np.asarray(jnp.log(p_t)[tokens]), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.bincount(np.asarray(tokens), minlength=bins) / tokens.size, np.asarray(p_t),
+                               atol=0.015)
+
+    def mean_score(log_prob_fn):  # E_{a ~ p_T}[d log p(a) / d logits], exactly
+        scores = jax.vmap(lambda a: jax.grad(lambda z: log_prob_fn(z, a))(logits))(jnp.arange(bins))
+        return np.asarray(jnp.einsum("a,ab->b", p_t, scores))
+
+    np.testing.assert_allclose(mean_score(lambda z, a: sampling_log_probs(z, a, temperature)), 0.0, atol=1e-6)
+    drift = mean_score(token_log_probs)
+    np.testing.assert_allclose(drift, np.asarray(p_t - p_1), atol=1e-6)
+    assert np.abs(drift).max() > 0.05
+
+
+def test_the_update_scores_rollouts_at_their_sampling_temperature():
+    """A rollout sampled at T = 0.5: the update's recomputed log-probs are the behaviour log-probs
+    (ratio exactly 1 before the step), not the untempered policy's."""
+    from sword_jax.rl.grpo import _rollout_log_probs
+
+    cfg = _toy_cfg(max_chunks=2, temperature=0.5)
+    graphdef, params = build_policy(cfg, seed=0)
+    sim, reward_model = toy_simulator(frame_size=8, step_size=0.08), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl"], 32))
+    start = expand_groups(toy_start_states(jnp.tile(tokens, (2, 1)), key=jax.random.key(7), frame_size=8),
+                          cfg.grpo.group_size)
+    rollout = imagined_rollout(graphdef, params, sim, reward_model, start, cfg, key=jax.random.key(3))
+    mask = np.asarray(rollout.valid, bool)
+    recomputed = np.asarray(_rollout_log_probs(graphdef, params, rollout, 0.5))[mask]
+    np.testing.assert_allclose(recomputed, np.asarray(rollout.log_probs)[mask], rtol=1e-4, atol=1e-4)
+    untempered = np.asarray(_rollout_log_probs(graphdef, params, rollout))[mask]
+    assert np.abs(untempered - recomputed).mean() > 0.1
+    _, metrics, _ = grpo.grpo_gradients(graphdef, cfg, params, rollout)
+    assert float(metrics["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)

@@ -229,3 +229,35 @@ def test_lockstep_evaluation_gives_the_fixed_evaluation_states_and_a_lockstep_fa
     assert factory.keywords == dict(resolution=16, max_steps=9, renderer="gl", workers=2)
     with pytest.raises(ValueError, match="episodes_per_task"):
         lockstep_evaluation((0,), tasks.NUM_INIT_STATES + 1, resolution=16)
+
+
+def test_evaluate_in_sim_can_run_the_sampled_policy():
+    """``greedy=False`` evaluates the policy GRPO trains: identical episodes then act differently
+    (each samples its own tokens), where the greedy evaluation acts identically; a key fixes them."""
+    from sword_jax.rl.policy_success import evaluate_in_sim
+
+    cfg = RLConfig(image_size=8, action_bins=16,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=16),
+                   env=EnvConfig(execute_steps=2, action_ensemble=False))
+    graphdef, params = build_policy(cfg, seed=0)
+    episodes = [(0, np.zeros(2))] * 4
+
+    def actions_of(**kwargs):
+        received = []
+
+        class Envs(_CountingEnvs):
+            def step(self, actions):
+                received.append(np.asarray(actions))
+                return super().step(actions)
+
+        result = evaluate_in_sim(graphdef, params, cfg, episodes=episodes, max_steps=4,
+                                 envs_factory=lambda eps: Envs(n=len(eps), solve_at=100, max_steps=4), **kwargs)
+        assert result["episodes"] == 4
+        return np.concatenate(received, axis=1)  # (episodes, actions, 7)
+
+    greedy = actions_of()
+    assert all(np.array_equal(greedy[0], row) for row in greedy[1:])
+    sampled = actions_of(greedy=False, key=jax.random.key(1))
+    assert not all(np.array_equal(sampled[0], row) for row in sampled[1:])
+    np.testing.assert_array_equal(actions_of(greedy=False, key=jax.random.key(1)), sampled)
+    assert not np.array_equal(actions_of(greedy=False, key=jax.random.key(2)), sampled)

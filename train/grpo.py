@@ -141,6 +141,18 @@ def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *
     return dict(proprio=proprio, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
 
 
+def _sampled_point(graphdef, params, rl, step: int, root, **eval_kwargs) -> dict:
+    """The real-environment evaluation of the sampled policy (``rl.grpo.eval_sampled``: at
+    ``rl.grpo.temperature``, the policy GRPO trains), stored as ``sampled`` beside the greedy success;
+    its sampling key is a function of (root, step)."""
+    key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), step)
+    other = evaluate_in_sim(graphdef, params, rl, greedy=False, key=key, **eval_kwargs)
+    print(f"eval step {step}, sampled at temperature {rl.grpo.temperature:g}: success {other['mean']:.3f} "
+          f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
+    return dict(temperature=rl.grpo.temperature,
+                **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+
+
 def keyframe_horizon(rl) -> int:
     """Actions an imagined rollout executes at most: ``max_chunks`` decisions of the simulator's execution."""
     return rl.imagined.max_chunks * (rl.imagined.execute_steps or rl.chunk_len)
@@ -199,6 +211,8 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         extra = {}
         if mode != "true":
             extra = {"train_mode": _mode_point(graphdef, params, rl, step, mode, reckoning, **eval_kwargs)}
+        if rl.grpo.eval_sampled:
+            extra["sampled"] = _sampled_point(graphdef, params, rl, step, jax.random.key(cfg.seed), **eval_kwargs)
         log(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
             f"({result['episodes']} episodes, {result['seconds']}s)")
         return result, extra
@@ -403,6 +417,8 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
             result["where"] = "mujoco"
             if rl.imagined.eval_masked_proprio:
                 extra = {"proprio_masked": _mode_point(graphdef, params, rl, step, "missing", **kwargs)}
+            if rl.grpo.eval_sampled:
+                extra["sampled"] = _sampled_point(graphdef, params, rl, step, root, **kwargs)
             if replay:
                 extra["replay"] = replay.report(step, trace)
         log(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")

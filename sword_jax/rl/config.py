@@ -138,6 +138,9 @@ class GRPOConfig:
         ``small`` batch, 64 trajectories x 55 decisions, asked for 47 GiB at once on an H100).
       eval_every: GRPO steps between ground-truth evaluations.
       eval_episodes_per_task: initial states per task in ground-truth evaluation (paper: 50).
+      eval_sampled: every ground-truth evaluation also runs the sampled policy (at ``temperature``,
+        the policy the update trains) on the same episodes, stored as ``sampled`` beside the greedy
+        success: whether GRPO lifts the policy it samples but not its argmax (README, issue 17).
     """
 
     steps: int = 10
@@ -155,6 +158,7 @@ class GRPOConfig:
     update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     eval_every: int = 5
     eval_episodes_per_task: int = 50
+    eval_sampled: bool = False
 
     def validate(self) -> None:
         if self.group_size < 2:

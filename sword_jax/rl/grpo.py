@@ -31,7 +31,7 @@ from sword_jax import optim, tracing
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
-from sword_jax.rl.policy import token_log_probs
+from sword_jax.rl.policy import sampling_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
 
 SIGNAL_EPS = 1e-6
@@ -170,9 +170,10 @@ def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
     return GRPOState(params=params, opt_state=make_optimizer(cfg).init(params), ref_params=ref, step=jnp.zeros((), jnp.int32))
 
 
-def _rollout_log_probs(graphdef, params, batch: Rollout) -> Float[Array, "n c t a"]:
-    """Log-probs of the rollout's tokens; a rollout that executed only the first ``k`` actions of
-    each chunk (re-planning, ``tokens [N, C, k, A]``) is scored on those ``k``."""
+def _rollout_log_probs(graphdef, params, batch: Rollout, temperature: float = 1.0) -> Float[Array, "n c t a"]:
+    """Log-probs of the rollout's tokens under the policy at the sampling ``temperature``
+    (:func:`~sword_jax.rl.policy.sampling_log_probs`); a rollout that executed only the first ``k``
+    actions of each chunk (re-planning, ``tokens [N, C, k, A]``) is scored on those ``k``."""
     policy = nnx.merge(graphdef, params)
     n, c = batch.valid.shape
     flat = lambda x: x.reshape((n * c,) + x.shape[2:])  # noqa: E731 - (N, C, ...) -> (N * C, ...)
@@ -182,7 +183,7 @@ def _rollout_log_probs(graphdef, params, batch: Rollout) -> Float[Array, "n c t 
         frames = frames.astype(jnp.float32) / jnp.float32(255.0)
     logits = policy(frames, tokens, flat(batch.proprio), flat(batch.proprio_valid))
     executed = batch.tokens.shape[2]
-    return token_log_probs(logits[:, :executed], flat(batch.tokens)).reshape(batch.tokens.shape)
+    return sampling_log_probs(logits[:, :executed], flat(batch.tokens), temperature).reshape(batch.tokens.shape)
 
 
 def _split_micro(x: jax.Array, parts: int) -> jax.Array:
@@ -220,10 +221,10 @@ def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_para
         if ref_params is None:
             raise ValueError("rl.grpo.kl_coef > 0 needs the reference policy's parameters")
         data["ref_lp"] = jax.lax.stop_gradient(jax.lax.map(
-            lambda part: _rollout_log_probs(graphdef, ref_params, as_rollout(part)), data))
+            lambda part: _rollout_log_probs(graphdef, ref_params, as_rollout(part), cfg.grpo.temperature), data))
 
     def micro_objective(params, part):
-        new_lp = _rollout_log_probs(graphdef, params, as_rollout(part))
+        new_lp = _rollout_log_probs(graphdef, params, as_rollout(part), cfg.grpo.temperature)
         return _token_terms(new_lp, part["old_lp"], part.get("ref_lp"), part["adv"], part["valid"], part["keep"],
                             part["weights"], cfg)
 

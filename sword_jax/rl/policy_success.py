@@ -38,8 +38,10 @@ def evaluate_in_sim(
     proprio: str = "true",
     reckoning: Any = None,
     trace: Any = None,
+    greedy: bool = True,
+    key: jax.Array | None = None,
 ) -> dict[str, Any]:
-    """Runs the policy greedily from each evaluation episode's initial state.
+    """Runs the policy greedily (or sampled) from each evaluation episode's initial state.
 
     ``sim.lockstep.lockstep_evaluation(tasks, episodes_per_task, resolution=..., max_steps=...,
     renderer=..., workers=...)`` gives ``episodes``, ``envs_factory`` and ``max_steps`` for MuJoCo's
@@ -58,6 +60,9 @@ def evaluate_in_sim(
       proprio / reckoning: the policy's proprio input mode (:func:`~sword_jax.rl.env_rollout.run_policy`).
       trace: a :class:`sword_jax.rl.sim_agreement.EpisodeTrace` recording the episodes (for a replay
         in the learned simulator).
+      greedy: argmax actions (the policy's success). ``False`` samples at ``rl.grpo.temperature``:
+        the stochastic policy GRPO trains, whose success its rollouts estimate on training states.
+      key: sampling randomness when not greedy (default ``key(0)``).
 
     Returns:
       ``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}``.
@@ -74,8 +79,8 @@ def evaluate_in_sim(
     start = time.time()
     envs = envs_factory(episodes)
     try:
-        rollout = run_policy(act, params, envs, cfg, key=jax.random.key(0), greedy=True, max_steps=max_steps,
-                             record=False, proprio=proprio, reckoning=reckoning, trace=trace)
+        rollout = run_policy(act, params, envs, cfg, key=jax.random.key(0) if key is None else key, greedy=greedy,
+                             max_steps=max_steps, record=False, proprio=proprio, reckoning=reckoning, trace=trace)
     finally:
         envs.close()
     success = np.asarray(rollout.success)
