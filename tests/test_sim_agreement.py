@@ -145,6 +145,59 @@ def test_replay_executes_each_action_once_and_scores_the_frame_after_it(chunk_le
     np.testing.assert_array_equal(out.first_success, [7, -1, -1])
 
 
+def _lagging_simulator(chunk_len: int, execute_len: int, lag: int = 2) -> LearnedSimulator:
+    """State = the running sums of action dim 0; each frame shows the sum ``lag`` actions earlier
+    (a world model whose scene catches up with the actions a little late); channel 1 shows the
+    executed action's gripper command."""
+
+    def init_fn(params, start):
+        return jnp.zeros(lag + 1)
+
+    def step_fn(params, state, chunk, key):
+        def one(hist, action):
+            hist = jnp.concatenate([hist[:1] + action[0], hist[:-1]])
+            return hist, jnp.stack([hist[-1], action[sa.GRIPPER], 0.0])
+
+        state, shown = jax.lax.scan(one, state, chunk[:execute_len])
+        return state, jnp.broadcast_to(shown[:, None, None, :], (execute_len, 2, 2, 3))
+
+    return LearnedSimulator(params={}, init_fn=init_fn, step_fn=step_fn, observe_fn=lambda p, s: (jnp.zeros(2), 0.0),
+                            chunk_len=chunk_len, frame_size=2, execute_len=execute_len)
+
+
+def test_settle_steps_hold_the_arm_and_let_a_late_scene_show_the_success():
+    """A real episode ended at the action that reached success; in a world model whose scene lags
+    two actions behind, its replay shows the success only after that action. The settle window
+    scores a few more frames, driven by hold actions (zero deltas, the last gripper command)."""
+    sim = _lagging_simulator(chunk_len=8, execute_len=4)
+    detector = RewardModel(params={}, score_fn=lambda p, frames: frames[:, 0, 0, 0])
+    gripper = RewardModel(params={}, score_fn=lambda p, frames: frames[:, 0, 0, 1])
+    actions = np.zeros((2, 16, 7), np.float32)
+    actions[:, :8, 0] = 0.1  # the running sum reaches 0.8 >= 0.75 at action 8 (index 7)
+    actions[:, :8, sa.GRIPPER] = -0.5
+    actions[:, 8:, 0] = 5.0  # what lies beyond the episode's end in the array must not be executed
+    lengths = np.array([8, 16])
+    start = StartState(jnp.zeros((2, 2, 2, 3)), jnp.zeros((2, 8)), jnp.zeros((2, 4), jnp.int32))
+
+    def replay(settle, model=detector):
+        return jax.jit(lambda s, a, n: sa.replay_actions(sim, model, s, a, n, success_threshold=0.75, key=jax.random.key(0),
+                                                         settle_steps=settle))(start, actions, lengths)
+
+    late = replay(0)
+    np.testing.assert_array_equal(late.success, [False, True])  # the 8-action episode ends before its scene shows it
+    settled = replay(3)
+    np.testing.assert_array_equal(settled.success, [True, True])
+    np.testing.assert_array_equal(settled.first_success, [9, 9])  # index 9: two actions after index 7
+    # hold actions: the sum stays at 0.8 (no motion, not the 5.0 in the array) for exactly 3 scored frames
+    np.testing.assert_allclose(np.asarray(settled.scores[0, 8:11]), [0.7, 0.8, 0.8], atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(settled.scores[0, 11:]), 0.0)
+    np.testing.assert_allclose(np.asarray(replay(3, gripper).scores[0, :11]), -0.5, atol=1e-6)  # the last gripper command
+    with pytest.raises(ValueError, match="settle_steps"):
+        replay(-1)
+    with pytest.raises(ValueError, match=r"rl\.imagined\.eval_replay_settle_steps"):
+        RLConfig(imagined=ImaginedConfig(eval_replay_settle_steps=-1)).validate()
+
+
 def test_replay_in_the_toy_world_tells_reaching_from_leaving():
     sim, detector = toy_simulator(frame_size=16, chunk_len=8), toy_reward_model()
     tokens = jnp.asarray(tokenize_instructions(["go left", "go right", "go up", "go down"], 16))

@@ -278,7 +278,8 @@ class _Replayer:
         self.tf = cfg.vae.temporal_factor
         self.k = cfg.data.context_frames // self.tf
         self.fn = jax.jit(lambda s, r, st, a, n, key: sim_agreement.replay_actions(
-            s, r, st, a, n, success_threshold=rl.success_threshold, key=key))
+            s, r, st, a, n, success_threshold=rl.success_threshold, key=key,
+            settle_steps=rl.imagined.eval_replay_settle_steps))
 
     def trace(self) -> sim_agreement.EpisodeTrace:
         return sim_agreement.EpisodeTrace(self.tf * self.k)
@@ -291,7 +292,8 @@ class _Replayer:
             traced, self.sim, self.reward_model, self.encode, success_threshold=rl.success_threshold,
             key=jax.random.fold_in(self.key, step), batch=rl.grpo.rollout_batch * rl.grpo.group_size,
             num_context=self.k, frames_per_latent=self.tf, proprio_dim=rl.proprio_dim,
-            max_instruction_bytes=rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps, replay_fn=self.fn)
+            max_instruction_bytes=rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps,
+            settle_steps=rl.imagined.eval_replay_settle_steps, replay_fn=self.fn)
 
         def rate(name):
             r = out[name]

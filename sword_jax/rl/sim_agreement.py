@@ -176,23 +176,39 @@ class ReplayOutcome(NamedTuple):
     scores: Float[Array, "n t"]
 
 
+GRIPPER = 6  # the gripper command's index in the 7-D action (LIBERO: 6 pose deltas, then the gripper)
+
+
 def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
                    actions: Float[Array, "n t a"], lengths: Int[Array, " n"], *, success_threshold: float,
-                   key: jax.Array) -> ReplayOutcome:
+                   key: jax.Array, settle_steps: int = 0) -> ReplayOutcome:
     """Feeds fixed action sequences, open loop, through the learned simulator and scores each frame.
 
     Step ``c`` offers the simulator the window ``actions[c E : c E + chunk_len]`` (``E`` = its
     ``frames_per_step``; actions past the end repeat the last), so every action is executed once
-    and conditions the frames it produced exactly as in an imagined rollout. Frames after
-    ``lengths`` (the real episode had ended) are not scored.
+    and conditions the frames it produced exactly as in an imagined rollout.
+
+    A real episode that succeeded ended at the action that reached success, so its replay has no
+    frame after that action in which the imagined scene could show it. ``settle_steps`` gives every
+    episode that many more scored frames, driven by *hold* actions (zero pose deltas, the last
+    gripper command: the arm stays still, as it would after success); frames past
+    ``lengths + settle_steps`` are not scored. The window is the same for every episode, whatever
+    its real outcome. ``actions`` must have room for it (``t >= max(lengths) + settle_steps``).
     """
     n, total, dim = actions.shape
     if dim != simulator.action_dim:
         raise ValueError(f"replay_actions: actions must have {simulator.action_dim} dims, got {actions.shape}")
+    if settle_steps < 0:
+        raise ValueError(f"replay_actions: settle_steps must be >= 0, got {settle_steps}")
     e, window = simulator.frames_per_step, simulator.chunk_len
     chunks = -(-total // e)
     pad = chunks * e + window - e - total
     actions = jnp.asarray(actions, jnp.float32)
+    lengths = jnp.asarray(lengths)
+    if settle_steps:
+        last = jnp.take_along_axis(actions, jnp.maximum(lengths - 1, 0)[:, None, None], axis=1)  # (n, 1, a)
+        hold = jnp.zeros_like(last).at[..., GRIPPER].set(last[..., GRIPPER])
+        actions = jnp.where(jnp.arange(total)[None, :, None] >= lengths[:, None, None], hold, actions)
     if pad > 0:
         actions = jnp.concatenate([actions, jnp.repeat(actions[:, -1:], pad, axis=1)], axis=1)
     keys = jax.random.split(key, chunks)
@@ -206,7 +222,7 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
 
     _, scores = jax.lax.scan(step, jax.vmap(simulator.init)(start), jnp.arange(chunks))
     scores = jnp.swapaxes(scores, 0, 1).reshape(n, chunks * e)[:, :total]
-    valid = jnp.arange(total)[None] < jnp.asarray(lengths)[:, None]
+    valid = jnp.arange(total)[None] < lengths[:, None] + settle_steps
     scores = jnp.where(valid, scores, 0.0)
     hit = valid & (scores >= jnp.float32(success_threshold))
     success = jnp.any(hit, axis=1)
@@ -239,14 +255,16 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
                   encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array, batch: int = 64,
                   num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
                   max_instruction_bytes: int = 96, max_steps: int | None = None, repeats: int = 2,
-                  replay_fn: Callable | None = None) -> dict[str, Any]:
+                  settle_steps: int = 0, replay_fn: Callable | None = None) -> dict[str, Any]:
     """Replays traced real episodes in the learned simulator and reports :func:`agreement`.
 
     Episodes that ended inside the head (before the simulator's start frame) are left out. The
     replay runs ``batch`` episodes per call (the last batch padded), so one compile serves any
     count, and the actions are padded to ``max_steps`` (the episodes' step limit) so every evaluation
     has the same shapes; pass ``replay_fn`` (``jax.jit`` of :func:`replay_actions` with ``success_threshold``
-    bound) to reuse one compile across reports.
+    and the same ``settle_steps`` bound) to reuse one compile across reports. ``settle_steps``: hold
+    actions scored after each episode's last action (:func:`replay_actions`), for the imagined scene to
+    show a success the real episode ended on.
 
     Each episode is replayed ``repeats`` times with other simulator noise (a flow-matching world
     model samples its futures): the agreement is the first replay's, and ``resample_disagreement``
@@ -270,8 +288,9 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
             raise ValueError(f"replay_report: episodes executed {actions.shape[1] + t0} actions, more than "
                              f"max_steps={max_steps}")
         actions = np.pad(actions, ((0, 0), (0, max_steps - t0 - actions.shape[1]), (0, 0)))
+    actions = np.pad(actions, ((0, 0), (0, settle_steps), (0, 0)))  # room for the hold actions
     replay_fn = replay_fn or jax.jit(lambda sim, rm, s, a, l, k: replay_actions(
-        sim, rm, s, a, l, success_threshold=success_threshold, key=k))
+        sim, rm, s, a, l, success_threshold=success_threshold, key=k, settle_steps=settle_steps))
     batches = []  # (inputs, real episodes in it), each padded to ``batch`` so one compile serves every call
     for lo in range(0, len(keep), batch):
         idx = keep[lo: lo + batch]
@@ -290,7 +309,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
         outcomes.append(np.concatenate(imagined) if imagined else np.zeros(0, bool))
     report = agreement(traced.success[keep], outcomes[0])
     flips = int(np.sum(outcomes[0] != outcomes[1])) if repeats >= 2 else 0
-    report.update(left_out=int(len(lengths) - len(keep)),
+    report.update(left_out=int(len(lengths) - len(keep)), settle_steps=int(settle_steps),
                   imagined_success_repeats=[float(o.mean()) if o.size else None for o in outcomes],
                   imagined_first_success=np.concatenate(first).tolist() if first else [],
                   real_lengths=lengths[keep].tolist(), real_success_flags=traced.success[keep].astype(int).tolist())
