@@ -100,7 +100,8 @@ def summarize(workdir: str) -> dict:
             entry["trained_mode_gain_ci95"] = gain_interval(modes[0], modes[-1])
         if arm == "world_model":
             entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in (
-                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement")}}
+                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement",
+                "settle_steps", "sustained_success_sweep")}}
                 for p in points if "replay" in p]
         if os.path.exists(logs[arm]):
             with open(logs[arm]) as f:

@@ -228,6 +228,36 @@ def test_replay_in_the_toy_world_tells_reaching_from_leaving():
     assert noisy["resample_disagreement"]["rate"] > 0 and len(noisy["imagined_success_repeats"]) == 3
 
 
+def test_longest_run_and_the_sustained_success_sweep_from_the_replay_scores():
+    np.testing.assert_array_equal(sa.longest_run(np.array([[0, 1, 1, 0, 1, 1, 1], [0, 0, 0, 0, 0, 0, 0],
+                                                          [1, 1, 1, 1, 1, 1, 1]], bool)), [3, 0, 7])
+    steps = 12
+    designed = np.zeros((4, steps), np.float32)  # the detector's scores the "simulator" gives each episode
+    designed[0, 3] = 1.0  # a one-frame flicker on a real failure
+    designed[1, 2:7] = 1.0  # five frames on a real failure
+    designed[3, 1:11] = 1.0  # ten frames on a real success; episode 2 (a real success) never fires
+
+    def replay_fn(sim, rm, start, actions, lengths, key):
+        n = actions.shape[0]
+        scores = jnp.asarray(designed[:n, : actions.shape[1]])
+        hit = scores >= 0.9
+        return sa.ReplayOutcome(jnp.any(hit, 1), jnp.where(jnp.any(hit, 1), jnp.argmax(hit, 1), -1), scores)
+
+    traced = sa.TracedEpisodes(np.zeros((4, 5, 4, 4, 3), np.uint8), np.zeros((4, 5, 8), np.float32),
+                               np.zeros((4, steps + 4, 7), np.float32), np.full(4, steps + 4),
+                               np.array([False, False, True, True]), ("a", "b", "c", "d"))
+    report = sa.replay_report(traced, toy_simulator(frame_size=4), toy_reward_model(),
+                              lambda f, h: jnp.zeros((4, 2, 1, 1, 4)), success_threshold=0.9, key=jax.random.key(0),
+                              batch=4, max_instruction_bytes=16, replay_fn=replay_fn, repeats=1)
+    assert report["imagined_longest_success_run"] == [1, 5, 0, 10]
+    sweep = report["sustained_success_sweep"]
+    assert sorted(sweep, key=int) == ["1", "2", "4", "8"]
+    assert sweep["1"]["false_success"] == report["false_success"]  # k = 1 is the rule in use
+    assert [sweep[k]["false_success"]["rate"] for k in ("1", "2", "4", "8")] == [1.0, 0.5, 0.5, 0.0]
+    assert [sweep[k]["missed_success"]["rate"] for k in ("1", "2", "4", "8")] == [0.5, 0.5, 0.5, 0.5]
+    assert sweep["8"]["agreement"]["rate"] == 0.75
+
+
 def test_agreement_counts_and_rates():
     real = np.array([1, 1, 1, 0, 0, 0, 0, 0], bool)
     imagined = np.array([1, 1, 0, 1, 0, 0, 0, 0], bool)

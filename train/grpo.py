@@ -306,6 +306,13 @@ class _Replayer:
                 f"success {out['imagined_success']:.3f} vs real {out['real_success']:.3f}; false success "
                 f"{rate('false_success')}; missed success {rate('missed_success')}; another noise draw ends "
                 f"differently {rate('resample_disagreement')}")
+            sweep = out["sustained_success_sweep"]
+
+            def short(r):
+                return "n/a" if r["rate"] is None else f"{r['rate']:.3f}"
+
+            log(f"eval step {step}, replay false / missed success if success needed k consecutive frames: " + ", ".join(
+                f"k={k}: {short(v['false_success'])} / {short(v['missed_success'])}" for k, v in sweep.items()))
         return out
 
 

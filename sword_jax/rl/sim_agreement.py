@@ -229,6 +229,20 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     return ReplayOutcome(success, jnp.where(success, jnp.argmax(hit, axis=1), -1).astype(jnp.int32), scores)
 
 
+SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
+
+
+def longest_run(hit: np.ndarray) -> np.ndarray:
+    """``[n]`` longest run of consecutive True along the last axis of ``hit [n, t]``."""
+    hit = np.asarray(hit, bool)
+    best = np.zeros(hit.shape[0], np.int64)
+    current = np.zeros_like(best)
+    for t in range(hit.shape[1]):
+        current = np.where(hit[:, t], current + 1, 0)
+        best = np.maximum(best, current)
+    return best
+
+
 def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
     """Imagined vs real outcomes of the same episodes, with 95% Wilson intervals.
 
@@ -272,9 +286,14 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     a group draws its own noise, so outcomes that follow the noise rather than the actions are a
     spread in the group's returns that no action explains.
 
+    ``sustained_success_sweep[k]`` is the agreement a stricter success rule would have had, one that
+    asks for ``k`` consecutive frames at or above the threshold (:data:`SUSTAIN_SWEEP`), computed
+    from the first replay's scores: whether the simulator's false successes are one-frame flickers
+    such a rule removes or sustained scenes it does not.
+
     Returns :func:`agreement` plus ``left_out``, ``resample_disagreement`` (with ``repeats >= 2``),
     ``imagined_success_repeats`` and, per replayed episode counted from the start frame,
-    ``imagined_first_success`` / ``real_lengths`` / ``real_success_flags``.
+    ``imagined_first_success`` / ``imagined_longest_success_run`` / ``real_lengths`` / ``real_success_flags``.
     """
     if repeats < 1:
         raise ValueError(f"replay_report: repeats must be >= 1, got {repeats}")
@@ -298,7 +317,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
         idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])
         inputs = (jax.tree.map(lambda y: jnp.asarray(y)[idx], start), jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]))
         batches.append((inputs, count))
-    outcomes, first = [], []
+    outcomes, first, runs = [], [], []
     for r in range(repeats):
         imagined = []
         for b, (inputs, count) in enumerate(batches):
@@ -306,8 +325,16 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
             imagined.append(np.asarray(out.success)[:count])
             if r == 0:
                 first.append(np.asarray(out.first_success)[:count])
+                runs.append(longest_run(np.asarray(out.scores)[:count] >= success_threshold))
         outcomes.append(np.concatenate(imagined) if imagined else np.zeros(0, bool))
     report = agreement(traced.success[keep], outcomes[0])
+    run = np.concatenate(runs) if runs else np.zeros(0, np.int64)
+    # what a success rule asking for k consecutive frames would have said, from the same scores
+    report["sustained_success_sweep"] = {
+        str(k): {name: sub for name, sub in agreement(traced.success[keep], run >= k).items()
+                 if name in ("imagined_success", "false_success", "missed_success", "agreement")}
+        for k in SUSTAIN_SWEEP}
+    report["imagined_longest_success_run"] = run.tolist()
     flips = int(np.sum(outcomes[0] != outcomes[1])) if repeats >= 2 else 0
     report.update(left_out=int(len(lengths) - len(keep)), settle_steps=int(settle_steps),
                   imagined_success_repeats=[float(o.mean()) if o.size else None for o in outcomes],
