@@ -532,6 +532,7 @@ def make_env(
     reward_model: RewardModel | Callable | None = None,
     success_threshold: float = 0.9,
     max_chunks: int = 8,
+    success_frames: int = 1,
     **simulator_options: Any,
 ):
     """The learned simulator as a brax-style env (:class:`sword_jax.rl.env.ImaginedPoolEnv`).
@@ -545,14 +546,15 @@ def make_env(
 
     Args:
       reward_model: a :class:`RewardModel`, or a function ``frames [n, H, W, 3] -> [n]`` in [0, 1]
-        (default the run's own). An episode succeeds when a frame scores >= ``success_threshold``.
+        (default the run's own). An episode succeeds when ``success_frames`` consecutive frames
+        (default 1: any frame) score >= ``success_threshold``.
       max_chunks: chunks per episode (then ``info['truncation']``).
       simulator_options: for :func:`learned_simulator`.
     """
     from sword_jax.rl.env import ImaginedEnv, ImaginedPoolEnv
 
     env = ImaginedEnv(learned_simulator(model, **simulator_options), _reward_model(model, reward_model),
-                      success_threshold=success_threshold, max_chunks=max_chunks)
+                      success_threshold=success_threshold, max_chunks=max_chunks, success_frames=success_frames)
     return ImaginedPoolEnv(env, start_pool)
 
 
@@ -564,6 +566,7 @@ def make_vector_env(
     reward_model: RewardModel | Callable | None = None,
     success_threshold: float = 0.9,
     max_chunks: int = 8,
+    success_frames: int = 1,
     **simulator_options: Any,
 ):
     """The learned simulator as a ``gymnasium.vector.VectorEnv`` (:class:`sword_jax.rl.env.ImaginedVectorEnv`).
@@ -577,5 +580,5 @@ def make_vector_env(
     from sword_jax.rl.env import ImaginedEnv, ImaginedVectorEnv
 
     env = ImaginedEnv(learned_simulator(model, **simulator_options), _reward_model(model, reward_model),
-                      success_threshold=success_threshold, max_chunks=max_chunks)
+                      success_threshold=success_threshold, max_chunks=max_chunks, success_frames=success_frames)
     return ImaginedVectorEnv(env, start_pool, num_envs)

@@ -113,3 +113,42 @@ def test_rollout_sharded_over_devices_matches_single_device():
         out = jax.jit(run)(params, sharded_start)
     assert len(out.returns.sharding.device_set) == len(jax.devices())
     np.testing.assert_allclose(np.asarray(out.returns), np.asarray(ref.returns), rtol=1e-4, atol=1e-5)
+
+
+def test_success_frames_needs_consecutive_success_frames_across_chunks():
+    """rl.imagined.success_frames: a detector flicker no longer ends an episode as a success; a run of
+    success frames counts across chunk boundaries; done trajectories keep their run."""
+    import pytest
+
+    from sword_jax.rl.rollout import chunk_outcome
+
+    def outcome(scores, prev_run, done=False, k=3):
+        return chunk_outcome(jnp.asarray(scores, jnp.float32), jnp.float32(0.0), jnp.asarray(done), jnp.int32(0),
+                             success_threshold=0.9, max_chunks=8, prev_run=jnp.int32(prev_run), success_frames=k)
+
+    first = outcome([0.0, 1.0, 0.0, 1.0], 0)  # two flickers: not 3 in a row
+    assert not bool(first.success) and int(first.run) == 1
+    second = outcome([1.0, 1.0, 0.0, 0.0], int(first.run))  # 1 carried + 2 = 3 at the chunk's second frame
+    assert bool(second.success) and int(second.run) == 0
+    assert bool(outcome([0.0, 1.0, 0.0, 1.0], 0, k=1).success)  # k = 1: any frame, the rule so far
+    frozen = outcome([1.0, 1.0, 1.0, 1.0], 2, done=True)
+    assert not bool(frozen.success) and int(frozen.run) == 2
+    with pytest.raises(ValueError, match="success_frames"):
+        outcome([0.0], 0, k=0)
+    with pytest.raises(ValueError, match=r"rl\.imagined\.success_frames"):
+        RLConfig(imagined=ImaginedConfig(success_frames=0)).validate()
+
+    # the rollout and the env read it: a run longer than an episode can show never succeeds
+    graphdef, params, sim, reward_model, start = _setup(noise=0.0)
+    never = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, success_frames=10_000))
+    base = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, CFG, key=jax.random.key(4)))(params)
+    strict = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, never, key=jax.random.key(4)))(params)
+    assert np.asarray(base.success).any() and not np.asarray(strict.success).any()
+    env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.imagined.max_chunks,
+                      success_frames=10_000)
+    n = start.frame.shape[0]
+    state = jax.vmap(lambda s, k: env.reset(s, key=k))(start, jax.random.split(jax.random.key(1), n))
+    actions = tokens_to_actions(base.tokens, CFG.action_bins)
+    for c in range(CFG.imagined.max_chunks):
+        state = jax.jit(jax.vmap(env.step))(state, actions[:, c])
+    assert not (np.asarray(state.info["success"]) > 0).any() and (np.asarray(state.info["run"]) > 0).any()

@@ -194,6 +194,13 @@ def test_settle_steps_hold_the_arm_and_let_a_late_scene_show_the_success():
     np.testing.assert_allclose(np.asarray(replay(3, gripper).scores[0, :11]), -0.5, atol=1e-6)  # the last gripper command
     with pytest.raises(ValueError, match="settle_steps"):
         replay(-1)
+    # rl.imagined.success_frames = 3: episode 0 shows success on 2 scored frames (9, 10) only; episode 1
+    # from index 9 to its end
+    strict = jax.jit(lambda s, a, n, k: sa.replay_actions(sim, detector, s, a, n, success_threshold=0.75, key=k,
+                                                          settle_steps=3, success_frames=3))(start, actions, lengths,
+                                                                                             jax.random.key(0))
+    np.testing.assert_array_equal(strict.success, [False, True])
+    np.testing.assert_array_equal(strict.first_success, [-1, 11])  # the third frame of the run that starts at 9
     with pytest.raises(ValueError, match=r"rl\.imagined\.eval_replay_settle_steps"):
         RLConfig(imagined=ImaginedConfig(eval_replay_settle_steps=-1)).validate()
 

@@ -279,7 +279,7 @@ class _Replayer:
         self.k = cfg.data.context_frames // self.tf
         self.fn = jax.jit(lambda s, r, st, a, n, key: sim_agreement.replay_actions(
             s, r, st, a, n, success_threshold=rl.success_threshold, key=key,
-            settle_steps=rl.imagined.eval_replay_settle_steps))
+            settle_steps=rl.imagined.eval_replay_settle_steps, success_frames=rl.imagined.success_frames))
 
     def trace(self) -> sim_agreement.EpisodeTrace:
         return sim_agreement.EpisodeTrace(self.tf * self.k)

@@ -232,6 +232,10 @@ class ImaginedConfig:
         that reached success, so without them the imagined scene has no frame after it: on `small`
         (2026-11-26) the replay missed 89% of the real successes that took under 60 actions, while
         imagined successes were common later in other episodes. Every episode gets the same window.
+      success_frames: an imagined trajectory succeeds once this many consecutive predicted frames
+        score at or above ``rl.success_threshold`` (counted across chunks; 1 = any frame, the rule so
+        far). The replay's ``sustained_success_sweep`` measures what k = 1/2/4/8 would do to false
+        and missed successes before a run uses it.
     """
 
     max_chunks: int = 8
@@ -242,6 +246,7 @@ class ImaginedConfig:
     eval_masked_proprio: bool = True  # also evaluate GRPO-in-the-world-model policies with proprio masked
     eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
     eval_replay_settle_steps: int = 8  # hold actions scored after each replayed episode's last action
+    success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
 
     def validate(self) -> None:
         if self.max_chunks < 1:
@@ -255,6 +260,8 @@ class ImaginedConfig:
         if self.eval_replay_episodes < 0:
             raise ValueError(f"rl.imagined.eval_replay_episodes must be >= 0 (0 = no replay), got "
                              f"{self.eval_replay_episodes}")
+        if self.success_frames < 1:
+            raise ValueError(f"rl.imagined.success_frames must be >= 1 (1 = any frame), got {self.success_frames}")
         if self.eval_replay_settle_steps < 0:
             raise ValueError(f"rl.imagined.eval_replay_settle_steps must be >= 0, got {self.eval_replay_settle_steps}")
 

@@ -54,6 +54,7 @@ class ImaginedEnv:
     reward_model: RewardModel
     success_threshold: float = struct.field(pytree_node=False, default=0.9)
     max_chunks: int = struct.field(pytree_node=False, default=8)
+    success_frames: int = struct.field(pytree_node=False, default=1)  # consecutive success frames a success needs
 
     def _obs(self, sim_state, frame, tokens):
         proprio, valid = self.simulator.observe(sim_state)
@@ -66,7 +67,7 @@ class ImaginedEnv:
         score = self.reward_model.score(start.frame[None])[0]
         t = self.simulator.frames_per_step
         info = {"key": key, "score": score, "chunk": jnp.zeros((), jnp.int32), "truncation": jnp.zeros((), jnp.float32),
-                "success": jnp.zeros((), jnp.float32),
+                "success": jnp.zeros((), jnp.float32), "run": jnp.zeros((), jnp.int32),
                 "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}
         return EnvState(sim_state, self._obs(sim_state, start.frame.astype(jnp.float32), start.instruction_tokens),
                         jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32), {"score": score}, info)
@@ -79,13 +80,14 @@ class ImaginedEnv:
         scores = self.reward_model.score(frames)
         was_done = state.done > 0
         outcome = chunk_outcome(scores, state.info["score"], was_done, state.info["chunk"],
-                                success_threshold=self.success_threshold, max_chunks=self.max_chunks)
+                                success_threshold=self.success_threshold, max_chunks=self.max_chunks,
+                                prev_run=state.info["run"], success_frames=self.success_frames)
         success, truncation = outcome.success.astype(jnp.float32), outcome.truncated.astype(jnp.float32)
         new = EnvState(
             sim_state, self._obs(sim_state, frames[-1].astype(jnp.float32), state.obs["instruction_tokens"]),
             outcome.reward, outcome.done.astype(jnp.float32), {"score": outcome.score},
             {"key": key, "score": outcome.score, "chunk": state.info["chunk"] + 1, "truncation": truncation,
-             "success": success, "frames": frames.astype(jnp.float32)},
+             "success": success, "run": outcome.run, "frames": frames.astype(jnp.float32)},
         )
         frozen = state.replace(reward=jnp.zeros((), jnp.float32))
         return jax.tree.map(lambda a, b: jnp.where(was_done, a, b), frozen, new)

@@ -37,7 +37,7 @@ GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_
                  "success_threshold", "grpo.filter_groups", "grpo.success_bonus", "imagined.return_rule",
                  "grpo.loss_norm", "grpo.temperature", "policy.width", "policy.layers", "policy.heads",
                  "policy.max_instruction_bytes", "image_size", "proprio_dim", "policy.proprio_encoding",
-                 "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "env.proprio",
+                 "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "imagined.success_frames", "env.proprio",
                  "env.starts", "imagined.keyframe_fraction", "grpo.update_microbatch", "grpo.rollout_batch")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)

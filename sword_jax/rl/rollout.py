@@ -69,6 +69,8 @@ class ChunkOutcome(NamedTuple):
       success: a frame of the chunk scored >= the threshold, and the trajectory was not done before.
       truncated: the chunk was the last one allowed and did not succeed.
       done: done after the chunk (done before, succeeded, or truncated).
+      run: consecutive frames at or above the threshold ending at the chunk's last frame (carried
+        into the next chunk for ``rl.imagined.success_frames``); the previous run where already done.
     """
 
     reward: Float[Array, "..."]
@@ -76,10 +78,12 @@ class ChunkOutcome(NamedTuple):
     success: Bool[Array, "..."]
     truncated: Bool[Array, "..."]
     done: Bool[Array, "..."]
+    run: Int[Array, "..."]
 
 
 def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."], done: Bool[Array, "..."],
-                  chunk_index: Int[Array, "..."], *, success_threshold: float, max_chunks: int) -> ChunkOutcome:
+                  chunk_index: Int[Array, "..."], *, success_threshold: float, max_chunks: int,
+                  prev_run: Int[Array, "..."] | None = None, success_frames: int = 1) -> ChunkOutcome:
     """The reward and termination rule of an imagined trajectory, for one action chunk.
 
     Args:
@@ -87,21 +91,33 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
       prev_score: the score before the chunk (the start frame's, then the last chunk's).
       done: the trajectory was done before this chunk (its state is frozen; it earns nothing).
       chunk_index: 0-based index of this chunk; the chunk ``max_chunks - 1`` is the last.
-      success_threshold: a frame scoring at least this counts as success.
+      success_threshold: a frame scoring at least this counts as a success frame.
       max_chunks: the step limit, in chunks.
+      prev_run: consecutive success frames ending at the previous chunk's last frame (0 at the start).
+      success_frames: success needs this many consecutive success frames, counted across chunks
+        (``rl.imagined.success_frames``; 1 = any frame), so a one-frame flicker of the detector on a
+        hallucinated scene does not end an episode as a success.
 
     Returns:
       A :class:`ChunkOutcome`. The trajectory return adds ``rl.grpo.success_bonus`` once on success
       (:func:`imagined_rollout`).
     """
+    if success_frames < 1:
+        raise ValueError(f"chunk_outcome: success_frames must be >= 1, got {success_frames}")
     valid = ~done
-    success_now = jnp.any(scores >= jnp.float32(success_threshold), axis=-1)
+    hit = scores >= jnp.float32(success_threshold)
+    run = jnp.zeros(hit.shape[:-1], jnp.int32) if prev_run is None else jnp.asarray(prev_run, jnp.int32)
+    success_now = jnp.zeros(hit.shape[:-1], bool)
+    for t in range(hit.shape[-1]):  # a chunk is a few frames: unrolled
+        run = jnp.where(hit[..., t], run + 1, 0)
+        success_now = success_now | (run >= success_frames)
     score = jnp.where(valid, scores[..., -1], prev_score)
     reward = jnp.where(valid, score - prev_score, jnp.float32(0.0))
     success = valid & success_now
     truncated = valid & ~success_now & (chunk_index + 1 >= max_chunks)
+    old_run = jnp.zeros_like(run) if prev_run is None else jnp.asarray(prev_run, jnp.int32)
     return ChunkOutcome(reward=reward, score=score, success=success, truncated=truncated,
-                        done=done | success | truncated)
+                        done=done | success | truncated, run=jnp.where(valid, run, old_run))
 
 
 def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"], cfg: RLConfig) -> Float[Array, " n"]:
@@ -159,10 +175,10 @@ def imagined_rollout(
         raise ValueError(f"start.frame must be [N, H, W, 3], got {start.frame.shape}")
     sim_state = jax.vmap(simulator.init)(start)
     init_score = reward_model.score(start.frame)
-    carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_))
+    carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32))
 
     def chunk_step(carry, chunk_index):
-        sim_state, frame, prev_score, done = carry
+        sim_state, frame, prev_score, done, prev_run = carry
         chunk_key = jax.random.fold_in(key, chunk_index)
         policy_key, sim_key = jax.random.split(chunk_key)
         obs = constrain(resize_frames(frame, cfg.image_size), ("batch", "height", "width", "channels"))
@@ -182,7 +198,8 @@ def imagined_rollout(
         tokens, log_probs = tokens[:, :t], log_probs[:, :t]
         scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
         outcome = chunk_outcome(scores, prev_score, done, chunk_index, success_threshold=cfg.success_threshold,
-                                max_chunks=cfg.imagined.max_chunks)
+                                max_chunks=cfg.imagined.max_chunks, prev_run=prev_run,
+                                success_frames=cfg.imagined.success_frames)
         valid = ~done
         # done trajectories keep their state and frame (the rule keeps their score); they earn nothing more
         keep = lambda new, old: jnp.where(valid.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
@@ -193,7 +210,7 @@ def imagined_rollout(
                    success=outcome.success)
         if record_frames:
             out["frames"] = frames
-        return (sim_state, next_frame, outcome.score, outcome.done), out
+        return (sim_state, next_frame, outcome.score, outcome.done, outcome.run), out
 
     _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.imagined.max_chunks))
     swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731 - (C, N, ...) -> (N, C, ...)

@@ -181,7 +181,7 @@ GRIPPER = 6  # the gripper command's index in the 7-D action (LIBERO: 6 pose del
 
 def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
                    actions: Float[Array, "n t a"], lengths: Int[Array, " n"], *, success_threshold: float,
-                   key: jax.Array, settle_steps: int = 0) -> ReplayOutcome:
+                   key: jax.Array, settle_steps: int = 0, success_frames: int = 1) -> ReplayOutcome:
     """Feeds fixed action sequences, open loop, through the learned simulator and scores each frame.
 
     Step ``c`` offers the simulator the window ``actions[c E : c E + chunk_len]`` (``E`` = its
@@ -194,12 +194,16 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     gripper command: the arm stays still, as it would after success); frames past
     ``lengths + settle_steps`` are not scored. The window is the same for every episode, whatever
     its real outcome. ``actions`` must have room for it (``t >= max(lengths) + settle_steps``).
+    ``success_frames``: the imagined episode succeeds once that many consecutive scored frames reach the
+    threshold (``rl.imagined.success_frames``, the rule GRPO's imagined rollouts use).
     """
     n, total, dim = actions.shape
     if dim != simulator.action_dim:
         raise ValueError(f"replay_actions: actions must have {simulator.action_dim} dims, got {actions.shape}")
     if settle_steps < 0:
         raise ValueError(f"replay_actions: settle_steps must be >= 0, got {settle_steps}")
+    if success_frames < 1:
+        raise ValueError(f"replay_actions: success_frames must be >= 1, got {success_frames}")
     e, window = simulator.frames_per_step, simulator.chunk_len
     chunks = -(-total // e)
     pad = chunks * e + window - e - total
@@ -225,8 +229,15 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     valid = jnp.arange(total)[None] < lengths[:, None] + settle_steps
     scores = jnp.where(valid, scores, 0.0)
     hit = valid & (scores >= jnp.float32(success_threshold))
-    success = jnp.any(hit, axis=1)
-    return ReplayOutcome(success, jnp.where(success, jnp.argmax(hit, axis=1), -1).astype(jnp.int32), scores)
+
+    def count(run, h):  # consecutive success frames ending at each frame
+        run = jnp.where(h, run + 1, 0)
+        return run, run
+
+    _, runs = jax.lax.scan(count, jnp.zeros((n,), jnp.int32), jnp.swapaxes(hit, 0, 1))
+    reached = jnp.swapaxes(runs, 0, 1) >= success_frames
+    success = jnp.any(reached, axis=1)
+    return ReplayOutcome(success, jnp.where(success, jnp.argmax(reached, axis=1), -1).astype(jnp.int32), scores)
 
 
 SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
