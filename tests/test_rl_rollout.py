@@ -138,17 +138,18 @@ def test_success_frames_needs_consecutive_success_frames_across_chunks():
     with pytest.raises(ValueError, match=r"rl\.imagined\.success_frames"):
         RLConfig(imagined=ImaginedConfig(success_frames=0)).validate()
 
-    # the rollout and the env read it: a run longer than an episode can show never succeeds
+    # the rollout and the env read it: a run longer than an episode can show never succeeds, even for the
+    # group that starts on its goal (which the default rule ends as a success in its first chunk)
     graphdef, params, sim, reward_model, start = _setup(noise=0.0)
     never = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, success_frames=10_000))
-    base = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, CFG, key=jax.random.key(4)))(params)
-    strict = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, start, never, key=jax.random.key(4)))(params)
-    assert np.asarray(base.success).any() and not np.asarray(strict.success).any()
-    env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.imagined.max_chunks,
-                      success_frames=10_000)
-    n = start.frame.shape[0]
-    state = jax.vmap(lambda s, k: env.reset(s, key=k))(start, jax.random.split(jax.random.key(1), n))
-    actions = tokens_to_actions(base.tokens, CFG.action_bins)
-    for c in range(CFG.imagined.max_chunks):
-        state = jax.jit(jax.vmap(env.step))(state, actions[:, c])
-    assert not (np.asarray(state.info["success"]) > 0).any() and (np.asarray(state.info["run"]) > 0).any()
+    strict = imagined_rollout(graphdef, params, sim, reward_model, start, never, key=jax.random.key(4))
+    assert not np.asarray(strict.success).any()
+    n, on_goal = start.frame.shape[0], slice(CFG.grpo.group_size, None)
+    still = jnp.zeros((n, CFG.chunk_len, CFG.action_dim))
+    for k, succeeds in ((1, True), (10_000, False)):
+        env = ImaginedEnv(sim, reward_model, success_threshold=CFG.success_threshold, max_chunks=CFG.imagined.max_chunks,
+                          success_frames=k)
+        state = jax.vmap(lambda s, key: env.reset(s, key=key))(start, jax.random.split(jax.random.key(1), n))
+        state = jax.vmap(env.step)(state, still)
+        assert (np.asarray(state.info["success"])[on_goal] > 0).all() == succeeds
+        assert (np.asarray(state.info["run"])[on_goal] > 0).all()
