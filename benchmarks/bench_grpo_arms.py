@@ -11,6 +11,10 @@ behaviour NLL per 10 steps.
     # GPU (small, one H200: two arms of 100 steps side by side in about 10 minutes)
     python -m benchmarks.bench_grpo_arms --policy runs/p/rl/policy_sft --out runs/arms/arms \\
         --arm "t10:" --arm "t07: --rl.grpo.temperature=0.7" --steps 100 --eval-every 50
+    # CPU smoke run (44 s here) from the tiny quick start's policy
+    python -m benchmarks.bench_grpo_arms --config sword:tiny --policy runs/sword-tiny/rl/policy_sft \
+        --out runs/arms_smoke/arms --arm "a:" --arm "b: --rl.grpo.temperature=0.7" --steps 1 --eval-every 1 \
+        --eval-episodes 1 --arm-workers 0
     # summarise arms that already ran (e.g. copied back from a GPU machine)
     python -m benchmarks.bench_grpo_arms --out runs/arms/arms --summarize t10=runs/arms/t10 t07=runs/arms/t07
 
