@@ -32,7 +32,8 @@ import sys
 import time
 from collections.abc import Sequence
 
-from benchmarks.bench_grpo_transfer import _blocks, gain_interval
+from benchmarks.bench_grpo_transfer import _blocks, errorbar_curve, gain_interval
+from sword_jax.cli import not_dotted_overrides
 
 DEFAULT_CONFIG = "cache_ablation:small-linear-direct-all"
 
@@ -111,11 +112,8 @@ def plot(summary: dict, path: str) -> None:
         for i, (name, entry) in enumerate(summary["arms"].items()):
             if kind not in entry:
                 continue
-            pts = entry[kind]
-            x = [p["step"] + 0.6 * i for p in pts]  # side by side, not on top of each other
-            y = [p["success"] for p in pts]
-            ax.errorbar(x, y, yerr=[[v - p["ci95"][0] for v, p in zip(y, pts)], [p["ci95"][1] - v for v, p in zip(y, pts)]],
-                        marker="o", capsize=3, label=name, color=f"C{i % 10}")  # one colour per arm in both panels
+            # side by side, not on top of each other; one colour per arm in both panels
+            errorbar_curve(ax, entry[kind], offset=0.6 * i, label=name, color=f"C{i % 10}")
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("GRPO step (real MuJoCo envs, true success)")
         ax.grid(alpha=0.3)
@@ -191,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         summary = summarize({name: path for name, _, path in pairs})
         write(summary, args.out)
         return summary
-    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    bad = not_dotted_overrides(overrides)
     if bad:
         raise SystemExit(f"bench_grpo_arms: not a dotted config override (--section.key=value): {' '.join(bad)}")
     if not args.policy or not args.arm:

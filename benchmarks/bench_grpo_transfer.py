@@ -32,6 +32,8 @@ import sys
 import time
 from collections.abc import Sequence
 
+from sword_jax.cli import not_dotted_overrides
+
 ARMS = ("world_model", "ground_truth", "ground_truth_keyframes")
 
 
@@ -111,6 +113,15 @@ def summarize(workdir: str) -> dict:
     return out
 
 
+def errorbar_curve(ax, curve: Sequence[dict], *, offset: float = 0.0, **kwargs) -> None:
+    """A success curve (points with ``step``, ``success``, ``ci95``) with its 95% intervals as error
+    bars, shifted right by ``offset`` steps (arms side by side)."""
+    y = [p["success"] for p in curve]
+    ax.errorbar([p["step"] + offset for p in curve], y,
+                yerr=[[v - p["ci95"][0] for v, p in zip(y, curve)], [p["ci95"][1] - v for v, p in zip(y, curve)]],
+                marker="o", capsize=3, **kwargs)
+
+
 def plot(summary: dict, path: str) -> None:
     import matplotlib
 
@@ -121,11 +132,7 @@ def plot(summary: dict, path: str) -> None:
               "ground_truth_keyframes": "GRPO in the real envs, simulator's setting"}
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for arm, entry in summary["arms"].items():
-        steps = [p["step"] for p in entry["curve"]]
-        ax.errorbar(steps, [p["success"] for p in entry["curve"]],
-                    yerr=[[p["success"] - p["ci95"][0] for p in entry["curve"]],
-                          [p["ci95"][1] - p["success"] for p in entry["curve"]]],
-                    marker="o", capsize=3, label=labels[arm])
+        errorbar_curve(ax, entry["curve"], label=labels[arm])
     ax.set_xlabel("GRPO step")
     ax.set_ylabel("real success (true proprio, 95% interval)")
     ax.legend(fontsize=8)
@@ -189,7 +196,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--arm-workers", type=int, default=4, help="C-engine processes of each ground-truth arm")
     parser.add_argument("--parallel", type=int, default=2, help="pipeline stages side by side (train.pipeline --parallel)")
     args, overrides = parser.parse_known_args(argv)
-    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    bad = not_dotted_overrides(overrides)
     if bad:
         raise SystemExit(f"bench_grpo_transfer: not a dotted config override (--section.key=value): {' '.join(bad)}")
     if args.steps < 1 or args.eval_every < 1 or args.eval_episodes < 1 or args.arm_workers < 0 or args.parallel < 0:

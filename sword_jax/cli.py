@@ -63,6 +63,12 @@ class ArgumentParser(argparse.ArgumentParser):
         raise UsageError(f"{message} (see --help)")
 
 
+def not_dotted_overrides(args: Sequence[str]) -> list[str]:
+    """The arguments that are not ``--section.key=value`` config overrides (what an entry point that
+    passes its overrides on to other commands refuses)."""
+    return [a for a in args if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+
+
 def _resolve(names: Sequence[str | type]) -> tuple[type, ...]:
     classes = []
     for name in names:

@@ -236,8 +236,11 @@ def test_replay_in_the_toy_world_tells_reaching_from_leaving():
 
 
 def test_longest_run_and_the_sustained_success_sweep_from_the_replay_scores():
-    np.testing.assert_array_equal(sa.longest_run(np.array([[0, 1, 1, 0, 1, 1, 1], [0, 0, 0, 0, 0, 0, 0],
-                                                          [1, 1, 1, 1, 1, 1, 1]], bool)), [3, 0, 7])
+    from sword_jax.rl.rollout import success_runs
+
+    hit = np.array([[0, 1, 1, 0, 1, 1, 1], [0, 0, 0, 0, 0, 0, 0], [1, 1, 1, 1, 1, 1, 1]], bool)
+    np.testing.assert_array_equal(np.asarray(success_runs(hit)).max(axis=1), [3, 0, 7])
+    np.testing.assert_array_equal(np.asarray(success_runs(hit, jnp.asarray([2, 2, 2])))[:, :2], [[0, 1], [0, 0], [3, 4]])
     steps = 12
     designed = np.zeros((4, steps), np.float32)  # the detector's scores the "simulator" gives each episode
     designed[0, 3] = 1.0  # a one-frame flicker on a real failure

@@ -40,7 +40,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sword_jax.cli import ArgumentParser, UsageError
+from sword_jax.cli import ArgumentParser, UsageError, not_dotted_overrides
 from train.shared_inputs import REPO, code_version, device_info, shared_hashes
 
 # psnr / ssim need no network weights; latent_mse is the world model's error before decoding (no VAE
@@ -509,7 +509,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="stop every slice after its world-model evaluation (comparisons 1 and 2 only: no "
                              "supervised policy, no GRPO)")
     args, overrides = parser.parse_known_args(argv)
-    bad = [a for a in overrides if not (a.startswith("--") and "." in a.split("=", 1)[0] and "=" in a)]
+    bad = not_dotted_overrides(overrides)
     if bad:
         raise UsageError(f"not a dotted config override (--section.key=value): {' '.join(bad)}")
     if args.parallel < 0:

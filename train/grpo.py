@@ -132,13 +132,18 @@ def _world_model_setup(cfg, rl, inputs: "GRPOInputs"):
     return sim, reward_model, starts, None, encode
 
 
+def _extra_point(step: int, what: str, result: dict, **tags) -> dict:
+    """An evaluation stored beside the greedy true-proprio success: logged, and its rates kept with ``tags``."""
+    print(f"eval step {step}, {what}: success {result['mean']:.3f} "
+          f"[{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}]", flush=True)
+    return dict(**tags, **{k: result[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+
+
 def _mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, **eval_kwargs) -> dict:
     """The real-environment evaluation with the policy reading proprio as ``proprio`` (an input mode of
     the learned simulator), as the extra point stored beside the true-proprio success."""
     other = evaluate_in_sim(graphdef, params, rl, proprio=proprio, reckoning=reckoning, **eval_kwargs)
-    print(f"eval step {step}, proprio {proprio}: success {other['mean']:.3f} "
-          f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
-    return dict(proprio=proprio, **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+    return _extra_point(step, f"proprio {proprio}", other, proprio=proprio)
 
 
 def _sampled_point(graphdef, params, rl, step: int, root, **eval_kwargs) -> dict:
@@ -147,10 +152,8 @@ def _sampled_point(graphdef, params, rl, step: int, root, **eval_kwargs) -> dict
     its sampling key is a function of (root, step)."""
     key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), step)
     other = evaluate_in_sim(graphdef, params, rl, greedy=False, key=key, **eval_kwargs)
-    print(f"eval step {step}, sampled at temperature {rl.grpo.temperature:g}: success {other['mean']:.3f} "
-          f"[{other['ci95'][0]:.3f}, {other['ci95'][1]:.3f}]", flush=True)
-    return dict(temperature=rl.grpo.temperature,
-                **{k: other[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+    return _extra_point(step, f"sampled at temperature {rl.grpo.temperature:g}", other,
+                        temperature=rl.grpo.temperature)
 
 
 def keyframe_horizon(rl) -> int:

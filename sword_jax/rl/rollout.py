@@ -81,6 +81,20 @@ class ChunkOutcome(NamedTuple):
     run: Int[Array, "..."]
 
 
+def success_runs(hit: Bool[Array, "... t"], start: Int[Array, "..."] | None = None) -> Int[Array, "... t"]:
+    """Consecutive True values ending at each position of the last axis of ``hit``, continuing a run
+    of ``start`` (default 0) that ended just before it: the count ``rl.imagined.success_frames``
+    compares with."""
+    run = jnp.zeros(hit.shape[:-1], jnp.int32) if start is None else jnp.asarray(start, jnp.int32)
+
+    def count(run, h):
+        run = jnp.where(h, run + 1, 0)
+        return run, run
+
+    _, runs = jax.lax.scan(count, run, jnp.moveaxis(hit, -1, 0))
+    return jnp.moveaxis(runs, 0, -1)
+
+
 def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."], done: Bool[Array, "..."],
                   chunk_index: Int[Array, "..."], *, success_threshold: float, max_chunks: int,
                   prev_run: Int[Array, "..."] | None = None, success_frames: int = 1) -> ChunkOutcome:
@@ -105,19 +119,15 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
     if success_frames < 1:
         raise ValueError(f"chunk_outcome: success_frames must be >= 1, got {success_frames}")
     valid = ~done
-    hit = scores >= jnp.float32(success_threshold)
-    run = jnp.zeros(hit.shape[:-1], jnp.int32) if prev_run is None else jnp.asarray(prev_run, jnp.int32)
-    success_now = jnp.zeros(hit.shape[:-1], bool)
-    for t in range(hit.shape[-1]):  # a chunk is a few frames: unrolled
-        run = jnp.where(hit[..., t], run + 1, 0)
-        success_now = success_now | (run >= success_frames)
+    prev_run = jnp.zeros(scores.shape[:-1], jnp.int32) if prev_run is None else jnp.asarray(prev_run, jnp.int32)
+    runs = success_runs(scores >= jnp.float32(success_threshold), prev_run)
+    success_now = jnp.any(runs >= success_frames, axis=-1)
     score = jnp.where(valid, scores[..., -1], prev_score)
     reward = jnp.where(valid, score - prev_score, jnp.float32(0.0))
     success = valid & success_now
     truncated = valid & ~success_now & (chunk_index + 1 >= max_chunks)
-    old_run = jnp.zeros_like(run) if prev_run is None else jnp.asarray(prev_run, jnp.int32)
     return ChunkOutcome(reward=reward, score=score, success=success, truncated=truncated,
-                        done=done | success | truncated, run=jnp.where(valid, run, old_run))
+                        done=done | success | truncated, run=jnp.where(valid, runs[..., -1], prev_run))
 
 
 def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"], cfg: RLConfig) -> Float[Array, " n"]:

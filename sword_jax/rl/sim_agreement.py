@@ -35,6 +35,7 @@ from sword_jax.rl.data import keyframe_window
 from sword_jax.rl.env_rollout import wilson_interval
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import tokenize_instructions
+from sword_jax.rl.rollout import success_runs
 
 
 class TracedEpisodes(NamedTuple):
@@ -228,30 +229,12 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     scores = jnp.swapaxes(scores, 0, 1).reshape(n, chunks * e)[:, :total]
     valid = jnp.arange(total)[None] < lengths[:, None] + settle_steps
     scores = jnp.where(valid, scores, 0.0)
-    hit = valid & (scores >= jnp.float32(success_threshold))
-
-    def count(run, h):  # consecutive success frames ending at each frame
-        run = jnp.where(h, run + 1, 0)
-        return run, run
-
-    _, runs = jax.lax.scan(count, jnp.zeros((n,), jnp.int32), jnp.swapaxes(hit, 0, 1))
-    reached = jnp.swapaxes(runs, 0, 1) >= success_frames
+    reached = success_runs(valid & (scores >= jnp.float32(success_threshold))) >= success_frames
     success = jnp.any(reached, axis=1)
     return ReplayOutcome(success, jnp.where(success, jnp.argmax(reached, axis=1), -1).astype(jnp.int32), scores)
 
 
 SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
-
-
-def longest_run(hit: np.ndarray) -> np.ndarray:
-    """``[n]`` longest run of consecutive True along the last axis of ``hit [n, t]``."""
-    hit = np.asarray(hit, bool)
-    best = np.zeros(hit.shape[0], np.int64)
-    current = np.zeros_like(best)
-    for t in range(hit.shape[1]):
-        current = np.where(hit[:, t], current + 1, 0)
-        best = np.maximum(best, current)
-    return best
 
 
 def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
@@ -336,7 +319,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
             imagined.append(np.asarray(out.success)[:count])
             if r == 0:
                 first.append(np.asarray(out.first_success)[:count])
-                runs.append(longest_run(np.asarray(out.scores)[:count] >= success_threshold))
+                runs.append(np.asarray(success_runs(out.scores[:count] >= success_threshold)).max(axis=1, initial=0))
         outcomes.append(np.concatenate(imagined) if imagined else np.zeros(0, bool))
     report = agreement(traced.success[keep], outcomes[0])
     run = np.concatenate(runs) if runs else np.zeros(0, np.int64)
