@@ -199,7 +199,14 @@ def test_merge_counts_seeds_per_cell(tmp_path):
     assert written["seeds"] == [0, 1, 2] and written["shared_input_mismatches"] == {}
     text = (tmp_path / "comparison.md").read_text()
     assert "0.2 ± 0.1 (n=3)" in text and "0.2 ± 0 (n=2)" in text and "WARNING" not in text
-    assert "| teacher_forcing | 1 | NVIDIA H100 | 100 + 300 | abc123 |" in text
+    assert "| teacher_forcing | 1 | NVIDIA H100 | 100 + 300 | 1 | abc123 | dddddddddddd | vvvvvvvvvvvv |" in text
+    # Paired by seed where both runs finished (seeds 0 and 1): lower is better, higher for psnr.
+    lpips = written["paired"]["sword vs teacher_forcing"]["original/lpips"]
+    assert lpips["seeds"] == [0, 1] and np.allclose(lpips["diffs"], [-0.1, 0.0]) and lpips["ours_better"] == 1
+    psnr = written["paired"]["sword vs teacher_forcing"]["mixed/psnr"]
+    assert np.allclose(psnr["diffs"], [-0.5, 0.0]) and psnr["ours_better"] == 0 and psnr["n"] == 2
+    assert "| original/lpips | -0.1 (s0), +0 (s1) | -0.05 | 1/2 seeds |" in text
+    assert written["paired"]["sword vs no_augmentation"] == {}  # no no_augmentation slices
 
 
 def test_merge_refuses_slices_from_different_shared_inputs(tmp_path):
@@ -342,3 +349,58 @@ def test_parallel_slices_launch_each_stage_with_the_slices_command_and_record_th
             "hashes": record["shared"]["hashes"], "adopted": record["shared"]["adopted"]}
 
     assert science(records["parallel"]) == science(records["sequential"])
+
+
+def test_slices_at_once_build_shared_stages_first_then_run_each_slice_as_a_child(tmp_path, monkeypatch):
+    """--slices-at-once N: the parent builds every run's shared stages, then starts one ``train.compare``
+    child per (run, seed) with the parent's arguments less its run/seed/concurrency flags (here run in
+    this process, so the fake stages apply); the records equal a sequential run's and say how many
+    slices shared the device. A failed child stops new ones and is named with its log."""
+    from train import pipeline
+
+    calls, children = [], []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+
+    def launch(argv, log_path, env, fail=()):
+        children.append(list(argv))
+        with monkeypatch.context() as m:
+            m.setenv(compare.SLICES_AT_ONCE_ENV, env[compare.SLICES_AT_ONCE_ENV])
+            if any(f"sword --seeds {seed}" in " ".join(argv) for seed in fail):
+                return _Exited(3)
+            compare.main(argv)
+        return _Exited(0)
+
+    monkeypatch.setattr(compare, "launch_slice", launch)
+    records = {}
+    for mode, extra in (("sequential", []), ("side_by_side", ["--slices-at-once", "2"])):
+        results = tmp_path / mode / "results"
+        compare.main(["--size", "tiny", "--runs", "sword,teacher_forcing", "--seeds", "1,2", "--no-policy",
+                      f"--out={tmp_path / mode / 'w'}", f"--results={results}", *extra, "--trainer.steps=3"])
+        records[mode] = {f.name: json.loads(f.read_text()) for f in sorted(results.glob("*_seed*.json"))}
+    assert [c[c.index("--runs") + 1:c.index("--runs") + 4] for c in children] == [
+        ["sword", "--seeds", "1"], ["teacher_forcing", "--seeds", "1"], ["sword", "--seeds", "2"],
+        ["teacher_forcing", "--seeds", "2"]]
+    assert all("--slices-at-once" not in c and c.count("--runs") == 1 and "--no-policy" in c
+               and "--trainer.steps=3" in c for c in children)
+    # No child built a shared stage: the parent did, before the first child started.
+    assert all(built == [] for built in (r["shared"]["built_here"] for r in records["side_by_side"].values()))
+    assert [r["slices_at_once"] for r in records["side_by_side"].values()] == [2] * 4
+    assert [r["slices_at_once"] for r in records["sequential"].values()] == [1] * 4
+
+    def science(record):
+        return {k: record[k] for k in ("metrics", "curves", "world_model", "command")} | {
+            "hashes": record["shared"]["hashes"], "adopted": record["shared"]["adopted"]}
+
+    assert records["side_by_side"].keys() == records["sequential"].keys()
+    assert all(science(records["side_by_side"][k]) == science(records["sequential"][k]) for k in records["sequential"])
+    assert "| 2 |" in (tmp_path / "side_by_side" / "results" / "comparison.md").read_text()
+
+    children.clear()
+    monkeypatch.setattr(compare, "launch_slice", lambda argv, log, env: launch(argv, log, env, fail=(3,)))
+    with pytest.raises(RuntimeError, match=r"slices failed: sword seed 3 \(.*\); not started: sword seed 4, teacher_forcing seed 4$"):
+        compare.main(["--size", "tiny", "--runs", "sword,teacher_forcing", "--seeds", "3,4", "--no-policy",
+                      f"--out={tmp_path / 'side_by_side' / 'w'}", f"--results={tmp_path / 'fail'}",
+                      "--slices-at-once", "2", "--trainer.steps=3"])
+    assert len(children) == 2  # sword 3 failed, teacher_forcing 3 was already running and finished; nothing new
+    assert (tmp_path / "fail" / "teacher_forcing_seed3.json").exists()

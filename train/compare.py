@@ -2,6 +2,8 @@
 
     python -m train.compare --size small --runs sword --seeds 0               # one slice, one GPU session
     python -m train.compare --size small --runs sword,wovr --seeds 1          # two slices, same shared stages
+    python -m train.compare --size small --runs sword,teacher_forcing,no_augmentation --seeds 0,1,2 \
+        --no-policy --parallel 2 --slices-at-once 4   # shared stages once, then 9 slices, 4 side by side on one GPU
     python -m train.compare merge benchmarks/results/compare/small            # table from the slices there
     python -m train.compare --size tiny --seeds 0 --out /tmp/compare --results /tmp/compare/slices  # CPU smoke
     python -m train.compare --size small --runs sword --seeds 0 --trainer.steps=2000   # overrides: every run
@@ -45,7 +47,9 @@ from train.shared_inputs import REPO, code_version, device_info, shared_hashes
 
 # psnr / ssim need no network weights; latent_mse is the world model's error before decoding (no VAE
 # error in it), probe_ee_cm the state probe's end-effector error on predicted frames (action following)
-METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim", "latent_mse", "probe_ee_cm")
+METRICS = ("lpips", "fid", "fvd", "flolpips", "psnr", "ssim", "latent_mse", "probe_ee_cm", "probe_gripper_agree",
+           "reward_agree")
+HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "probe_gripper_agree", "reward_agree"})
 SLICE_FORMAT = "sword-compare-slice/1"
 
 
@@ -136,6 +140,28 @@ def aggregate(results: dict[str, list[dict]]) -> dict:
     return table
 
 
+def paired(results: dict[str, list[dict]], ours: str, baseline: str, splits: Sequence[str]) -> dict:
+    """Per metric, ``ours - baseline`` at every seed both runs finished (the slices share their inputs,
+    so a seed's two runs differ only in the compared choice and the seed's own draws): the differences,
+    their mean, and at how many seeds ``ours`` was better (lower, or higher for :data:`HIGHER_IS_BETTER`)."""
+    by_seed = {run: {r["seed"]: r for r in results.get(run, [])} for run in (ours, baseline)}
+    seeds = sorted(set(by_seed[ours]) & set(by_seed[baseline]))
+    out = {}
+    for split in splits:
+        for metric in METRICS:
+            pairs = [(seed, by_seed[ours][seed]["metrics"].get(split, {}).get(metric),
+                      by_seed[baseline][seed]["metrics"].get(split, {}).get(metric)) for seed in seeds]
+            pairs = [(seed, a, b) for seed, a, b in pairs if a is not None and b is not None]
+            if not pairs:
+                continue
+            diffs = [a - b for _, a, b in pairs]
+            sign = 1.0 if metric in HIGHER_IS_BETTER else -1.0
+            out[f"{split}/{metric}"] = {"seeds": [seed for seed, _, _ in pairs], "diffs": diffs,
+                                        "mean": float(np.mean(diffs)), "ours_better": sum(sign * d > 0 for d in diffs),
+                                        "n": len(diffs)}
+    return out
+
+
 def _cell(entry: dict, fmt: str) -> str:
     text = fmt.format(entry["mean"])
     if entry["n"] > 1:
@@ -144,7 +170,7 @@ def _cell(entry: dict, fmt: str) -> str:
 
 
 def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = None,
-                slices: Sequence[dict] = ()) -> str:
+                slices: Sequence[dict] = (), pairs: dict | None = None) -> str:
     lines = []
     if mismatches:
         lines += ["> **WARNING: the slices below were not made from the same shared inputs** (data, VAE, latents,",
@@ -158,12 +184,21 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
     for title, ours, baseline, splits in COMPARISONS:
         lines += [f"## {title}", ""]
         if splits:
-            keys = [f"{s}/{m}" for s in splits for m in METRICS]
+            keys = [f"{s}/{m}" for s in splits for m in METRICS
+                    if any(f"{s}/{m}" in table.get(run, {}).get("metrics", {}) for run in (ours, baseline))]
             lines += ["| run | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
             for run in (ours, baseline):
                 cells = [_cell(table[run]["metrics"][k], "{:.4g}")
                          if k in table.get(run, {}).get("metrics", {}) else "" for k in keys]
                 lines.append(f"| {run} | " + " | ".join(cells) + " |")
+            diffs = (pairs or {}).get(f"{ours} vs {baseline}", {})
+            if diffs:
+                lines += ["", f"Paired by seed, `{ours}` minus `{baseline}` (better: lower, except "
+                          f"{', '.join(sorted(HIGHER_IS_BETTER))}):", "",
+                          "| metric | per seed | mean | `" + ours + "` better at |", "|---|---|---|---|"]
+                for key, d in diffs.items():
+                    per_seed = ", ".join(f"{v:+.4g} (s{seed})" for seed, v in zip(d["seeds"], d["diffs"]))
+                    lines.append(f"| {key} | {per_seed} | {d['mean']:+.4g} | {d['ours_better']}/{d['n']} seeds |")
         else:
             labels = sorted({l for run in (ours, baseline) for l in table.get(run, {}).get("success", {})},
                             key=lambda l: int(l.rsplit(" ", 1)[-1]))
@@ -174,14 +209,15 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                     _cell(success[l], "{:.3f}") if l in success else "" for l in labels) + " |")
         lines.append("")
     if slices:
-        lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | commit | data |",
-                  "|---|---|---|---|---|---|"]
+        lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | slices at once "
+                  "| commit | data | VAE |", "|---|---|---|---|---|---|---|---|"]
         for s in slices:
             wall = s.get("wall_seconds", {})
             commit = (s.get("code", {}).get("commit") or "?")[:10] + ("+" if s.get("code", {}).get("dirty") else "")
             lines.append(f"| {s['run']} | {s['seed']} | {s.get('device', {}).get('kind', '?')} | "
-                         f"{wall.get('shared', 0):.0f} + {wall.get('slice', 0):.0f} | {commit} | "
-                         f"{s.get('shared', {}).get('hashes', {}).get('data', '?')[:12]} |")
+                         f"{wall.get('shared', 0):.0f} + {wall.get('slice', 0):.0f} | {s.get('slices_at_once', 1)} | "
+                         f"{commit} | {s.get('shared', {}).get('hashes', {}).get('data', '?')[:12]} | "
+                         f"{s.get('shared', {}).get('hashes', {}).get('vae', '?')[:12]} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -190,13 +226,15 @@ def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int],
                  slices: Sequence[dict] = (), **extra) -> dict:
     """Writes ``comparison.{json,md}`` in ``out`` for the runs finished so far."""
     table = aggregate(results)
+    pairs = {f"{ours} vs {baseline}": paired(results, ours, baseline, splits)
+             for _, ours, baseline, splits in COMPARISONS if splits}
     os.makedirs(out, exist_ok=True)
     finished = {run: len(per_seed) for run, per_seed in results.items()}
     with open(os.path.join(out, "comparison.json"), "w") as f:
         json.dump({"seeds": list(seeds), "finished_seeds_per_run": finished, **extra,
-                   "shared_input_mismatches": mismatches or {}, "runs": table}, f, indent=1)
+                   "shared_input_mismatches": mismatches or {}, "runs": table, "paired": pairs}, f, indent=1)
     with open(os.path.join(out, "comparison.md"), "w") as f:
-        f.write(to_markdown(table, seeds, mismatches=mismatches, slices=slices))
+        f.write(to_markdown(table, seeds, mismatches=mismatches, slices=slices, pairs=pairs))
     return table
 
 
@@ -300,10 +338,13 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     seeds = sorted({s["seed"] for s in slices})
     agreed = {k: v for s in slices for k, v in s.get("shared", {}).get("hashes", {}).items() if k not in mismatches}
     listing = [{"file": s["file"], "run": s["run"], "seed": s["seed"], "device": s.get("device", {}).get("kind"),
-                "wall_seconds": s.get("wall_seconds"), "commit": s.get("code", {}).get("commit")} for s in slices]
+                "wall_seconds": s.get("wall_seconds"), "slices_at_once": s.get("slices_at_once", 1), "commit": s.get("code", {}).get("commit")} for s in slices]
     table = write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],
                          shared_input_hashes=agreed, slice_files=listing)
     plot_horizon_curves(slices, os.path.join(directory, "dlb_vs_teacher_forcing.png"))
+    if any(s["run"] == "no_augmentation" for s in slices):
+        plot_horizon_curves(slices, os.path.join(directory, "augmentation_vs_none.png"),
+                            runs=("sword", "no_augmentation"), splits=("mixed",))
     return table
 
 
@@ -445,6 +486,76 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     }
 
 
+SLICES_AT_ONCE_ENV = "SWORD_COMPARE_SLICES_AT_ONCE"  # set by the parent: each slice records how crowded its device was
+
+
+def _without_flag(argv: Sequence[str], flag: str, takes_value: bool) -> list[str]:
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == flag:
+            skip = takes_value
+        elif not arg.startswith(flag + "="):
+            out.append(arg)
+    return out
+
+
+def launch_slice(argv: Sequence[str], log_path: str, env: dict):
+    """Starts ``python -m train.compare ARGV`` (one slice) with its output in ``log_path``."""
+    import subprocess
+
+    with open(log_path, "w") as log:
+        return subprocess.Popen([sys.executable, "-m", "train.compare", *argv], stdout=log,
+                                stderr=subprocess.STDOUT, env=env)
+
+
+def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Sequence[int], args, overrides, *,
+                            poll_s: float = 2.0) -> None:
+    """``--slices-at-once N``: every run's shared stages first (here, so no two slices build them at
+    once), then each (run, seed) slice as ``python -m train.compare ... --runs RUN --seeds K`` in its
+    own process, N at a time, in seed-major order. The children find the shared stages finished and
+    only adopt them. A failed slice starts no new ones; the running ones finish; then ``RuntimeError``
+    names the failed slices and their logs (a rerun skips every finished stage)."""
+    if not args.no_share:
+        for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
+            build_shared(run, args.size, out=args.out, shared_seed=args.shared_seed, overrides=overrides,
+                         policy=not args.no_policy, parallel=args.parallel)
+    base = argv
+    for flag, takes_value in (("--slices-at-once", True), ("--runs", True), ("--seeds", True)):
+        base = _without_flag(base, flag, takes_value)
+    logs = os.path.join(args.out, "logs")
+    os.makedirs(logs, exist_ok=True)
+    env = {**os.environ, SLICES_AT_ONCE_ENV: str(args.slices_at_once)}
+    env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # several JAX processes share one device
+    pending = [(run, seed) for seed in seeds for run in runs]
+    running: dict[tuple[str, int], tuple] = {}
+    failed: list[str] = []
+    while pending or running:
+        while pending and not failed and len(running) < args.slices_at_once:
+            run, seed = pending.pop(0)
+            log_path = os.path.join(logs, f"{run}_seed{seed}.log")
+            proc = launch_slice([*base, "--runs", run, "--seeds", str(seed)], log_path, env)
+            running[(run, seed)] = (proc, log_path, time.perf_counter())
+            print(f"[compare] slice {run} seed {seed}: started (log {log_path})", flush=True)
+        if not running:
+            break
+        time.sleep(poll_s)
+        for key, (proc, log_path, start) in list(running.items()):
+            code = proc.poll()
+            if code is None:
+                continue
+            del running[key]
+            status = "done" if code == 0 else f"FAILED (exit {code}, see {log_path})"
+            print(f"[compare] slice {key[0]} seed {key[1]}: {status} after {time.perf_counter() - start:.0f} s",
+                  flush=True)
+            if code != 0:
+                failed.append(f"{key[0]} seed {key[1]} ({log_path})")
+    if failed:
+        raise RuntimeError(f"train.compare: slices failed: {'; '.join(failed)}; "
+                           f"not started: {', '.join(f'{r} seed {k}' for r, k in pending) or 'none'}")
+
+
 def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bool, overrides: Sequence[str],
                   policy: bool = True) -> str:
     """The command that reruns exactly this slice."""
@@ -505,6 +616,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--parallel", type=int, default=0, metavar="N",
                         help="stages in their own processes, N side by side where their inputs allow "
                              "(train.pipeline --parallel); 0: one after another in this process")
+    parser.add_argument("--slices-at-once", type=int, default=1, metavar="N",
+                        help="build every run's shared stages first, then run the slices as child processes, N "
+                             "side by side on the same device (a small model leaves most of a large GPU idle); "
+                             "each child's output goes to <out>/logs/<run>_seed<k>.log")
     parser.add_argument("--no-policy", action="store_true",
                         help="stop every slice after its world-model evaluation (comparisons 1 and 2 only: no "
                              "supervised policy, no GRPO)")
@@ -514,10 +629,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise UsageError(f"not a dotted config override (--section.key=value): {' '.join(bad)}")
     if args.parallel < 0:
         raise UsageError(f"--parallel must be >= 0, got {args.parallel}")
+    if args.slices_at_once < 1:
+        raise UsageError(f"--slices-at-once must be >= 1, got {args.slices_at_once}")
     seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size)
     results_dir = args.results or os.path.join(REPO, "benchmarks", "results", "compare", args.size)
     os.makedirs(results_dir, exist_ok=True)
     invocation = shlex.join(["python", "-m", "train.compare", *argv])
+    if args.slices_at_once > 1 and len(seeds) * len(runs) > 1:
+        run_slices_side_by_side(argv, runs, seeds, args, overrides)
+        return _finish(results_dir)
+    at_once = int(os.environ.get(SLICES_AT_ONCE_ENV, "1"))
     for seed in seeds:
         for run in runs:
             record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
@@ -526,6 +647,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
                                               share=not args.no_share, overrides=overrides, policy=not args.no_policy)
             record["invocation"] = invocation
+            record["slices_at_once"] = at_once
             path = os.path.join(results_dir, f"{run}_seed{seed}.json")
             from train.stagerunner import write_json_atomic
 
@@ -533,7 +655,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
             wall = record["wall_seconds"]
             print(f"[compare] slice {run} seed {seed}: {wall['shared']:.0f} s shared stages + {wall['slice']:.0f} s "
                   f"slice -> {path}")
-            table = merge(results_dir, allow_mismatch=True)  # after every slice: a cut-off session leaves a table
+            if at_once == 1:
+                merge(results_dir, allow_mismatch=True)  # after every slice: a cut-off session leaves a table
+    if at_once > 1:  # a child of --slices-at-once: its parent merges once every slice is done (one writer)
+        return {}
+    return _finish(results_dir)
+
+
+def _finish(results_dir: str) -> dict:
+    table = merge(results_dir, allow_mismatch=True)
     mismatches = hash_mismatches(load_slices(results_dir))
     if mismatches:
         print(f"[compare] WARNING: slices in {results_dir} disagree on shared inputs {sorted(mismatches)}; "
