@@ -184,6 +184,74 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
     return summary
 
 
+def compare_world_model_arms(arms: dict[str, str]) -> dict:
+    """GRPO-in-the-learned-simulator runs side by side (e.g. two success rules from one pipeline):
+    ``{name: folder holding success_curve.json}`` -> each run's real success curve, gain with its
+    Newcombe interval, and per evaluation the replay's agreement, its k-frame sweep and imagined
+    success by action h among real successes vs real failures (recomputed from the stored
+    per-episode first successes, so runs logged before that key existed are covered too)."""
+    import numpy as np
+
+    from sword_jax.rl.sim_agreement import success_by_horizon
+
+    out = {}
+    for name, folder in arms.items():
+        path = os.path.join(folder, "success_curve.json")
+        if not os.path.exists(path):
+            raise SystemExit(f"bench_grpo_transfer --compare: {name}: no success_curve.json in {folder}")
+        with open(path) as f:
+            points = json.load(f)["points"]
+        replay = []
+        for p in points:
+            r = p.get("replay")
+            if not r:
+                continue
+            by_h = success_by_horizon(np.asarray(r["real_success_flags"], bool), np.asarray(r["imagined_first_success"]))
+            replay.append({"step": p["step"], **{k: r.get(k) for k in (
+                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement",
+                "sustained_success_sweep")}, "imagined_success_by_horizon": by_h})
+        out[name] = {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
+                               for p in points],
+                     "gain": points[-1]["mean"] - points[0]["mean"], "gain_ci95": gain_interval(points[0], points[-1]),
+                     "replay": replay}
+    return out
+
+
+def plot_world_model_arms(summary: dict, path: str) -> None:
+    """Left: real success of each run; right: the replay's imagined success by action h at step 0 of
+    the first run, real successes vs real failures (the simulator's discrimination by horizon)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for i, (name, entry) in enumerate(summary.items()):
+        errorbar_curve(left, entry["curve"], offset=0.6 * i, label=name)
+    left.set_xlabel("GRPO step")
+    left.set_ylabel("real success (95% interval)")
+    left.legend(fontsize=8)
+    name, entry = next(iter(summary.items()))
+    if entry["replay"]:
+        by_h = entry["replay"][0]["imagined_success_by_horizon"]
+        labels = list(by_h)
+        x = list(range(len(labels)))
+        for j, (group, colour, label) in enumerate((("real_success", "tab:green", "real successes"),
+                                                    ("real_failure", "tab:red", "real failures"))):
+            rates = [by_h[h][group]["rate"] or 0.0 for h in labels]
+            lo = [r - by_h[h][group]["ci95"][0] for r, h in zip(rates, labels)]
+            hi = [by_h[h][group]["ci95"][1] - r for r, h in zip(rates, labels)]
+            right.bar([v + 0.38 * j for v in x], rates, width=0.38, color=colour, yerr=[lo, hi], capsize=3,
+                      label=label)
+        right.set_xticks([v + 0.19 for v in x], [f"by action {h}" if h != "all" else "whole replay" for h in labels])
+        right.set_ylabel("imagined success (replay)")
+        right.set_title(f"{name}, step {entry['replay'][0]['step']}: does the simulator tell them apart?", fontsize=9)
+        right.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      epilog="Any --section.key=value is passed to all three arms.")
@@ -195,7 +263,24 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--eval-episodes", type=int, default=20, help="real evaluation episodes per task")
     parser.add_argument("--arm-workers", type=int, default=4, help="C-engine processes of each ground-truth arm")
     parser.add_argument("--parallel", type=int, default=2, help="pipeline stages side by side (train.pipeline --parallel)")
+    parser.add_argument("--compare", nargs="+", metavar="NAME=DIR", default=None,
+                        help="only summarise finished GRPO-in-the-simulator runs (DIR holds success_curve.json) into "
+                             "--out.json/.png; nothing is run")
+    parser.add_argument("--out", default="", help="with --compare: output path without extension")
     args, overrides = parser.parse_known_args(argv)
+    if args.compare is not None:
+        pairs = [item.split("=", 1) for item in args.compare]
+        if any(len(p) != 2 or not p[0] for p in pairs) or not args.out:
+            raise SystemExit("bench_grpo_transfer --compare takes NAME=DIR ... and --out PATH")
+        summary = compare_world_model_arms(dict(pairs))
+        with open(args.out + ".json", "w") as f:
+            json.dump(summary, f, indent=1)
+        plot_world_model_arms(summary, args.out + ".png")
+        for name, entry in summary.items():
+            lo, hi = entry["gain_ci95"]
+            print(f"[transfer] {name}: " + " -> ".join(f"{p['success']:.3f}" for p in entry["curve"]) +
+                  f" (gain {entry['gain']:+.3f} [{lo:+.3f}, {hi:+.3f}])")
+        return summary
     bad = not_dotted_overrides(overrides)
     if bad:
         raise SystemExit(f"bench_grpo_transfer: not a dotted config override (--section.key=value): {' '.join(bad)}")

@@ -39,5 +39,6 @@ def test_tiny_pipeline_runs_every_stage_through_grpo_in_the_world_model(tmp_path
         assert replay["episodes"] + replay["left_out"] == 2 and sum(replay["counts"].values()) == replay["episodes"]
         assert replay["real_success"] == (None if not replay["episodes"] else sum(replay["real_success_flags"]) / replay["episodes"])
         assert replay["settle_steps"] == 8 and sorted(replay["sustained_success_sweep"], key=int) == ["1", "2", "4", "8"]
+        assert list(replay["imagined_success_by_horizon"]) == ["24", "48", "96", "all"]
         assert len(replay["imagined_longest_success_run"]) == replay["episodes"]
     assert set(policy["success"]) == {"grpo step 0", "grpo step 2"}

@@ -266,6 +266,26 @@ def test_longest_run_and_the_sustained_success_sweep_from_the_replay_scores():
     assert [sweep[k]["false_success"]["rate"] for k in ("1", "2", "4", "8")] == [1.0, 0.5, 0.5, 0.0]
     assert [sweep[k]["missed_success"]["rate"] for k in ("1", "2", "4", "8")] == [0.5, 0.5, 0.5, 0.5]
     assert sweep["8"]["agreement"]["rate"] == 0.75
+    by_h = report["imagined_success_by_horizon"]
+    assert list(by_h) == ["24", "48", "96", "all"]
+    assert by_h["all"]["real_failure"] == report["false_success"]  # the whole replay: the rule in use
+    assert by_h["all"]["real_success"]["rate"] == 1 - report["missed_success"]["rate"]
+
+
+def test_success_by_horizon_compares_successes_and_failures_at_common_horizons():
+    # Real successes (short episodes) imagined as successes early; real failures only late, after the
+    # successes' episodes have ended: the whole-episode rates agree, the early ones separate the groups.
+    real = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0], bool)
+    first = np.array([10, 30, -1, 20, 150, 90, -1, -1, 5])
+    out = sa.success_by_horizon(real, first, horizons=(24, 100))
+    assert out["24"]["real_success"]["rate"] == 0.5 and out["24"]["real_failure"]["rate"] == 0.2
+    assert out["100"]["real_success"]["rate"] == 0.75 and out["100"]["real_failure"]["rate"] == 0.4
+    assert out["all"]["real_success"]["rate"] == 0.75 and out["all"]["real_failure"]["rate"] == 0.6
+    assert out["24"]["real_failure"]["of"] == 5 and out["24"]["real_success"]["ci95"][0] < 0.5
+    empty = sa.success_by_horizon(np.zeros(3, bool), np.array([1, -1, 4]), horizons=(2,))
+    assert empty["2"]["real_success"]["rate"] is None and empty["2"]["real_failure"]["rate"] == 1 / 3
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        sa.success_by_horizon(real, first[:3])
 
 
 def test_agreement_counts_and_rates():

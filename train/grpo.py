@@ -316,6 +316,9 @@ class _Replayer:
 
             log(f"eval step {step}, replay false / missed success if success needed k consecutive frames: " + ", ".join(
                 f"k={k}: {short(v['false_success'])} / {short(v['missed_success'])}" for k, v in sweep.items()))
+            log(f"eval step {step}, replay imagined success by action h, real successes / real failures: " + ", ".join(
+                f"h={h}: {short(v['real_success'])} / {short(v['real_failure'])}"
+                for h, v in out["imagined_success_by_horizon"].items()))
         return out
 
 

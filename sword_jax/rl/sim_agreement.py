@@ -235,6 +235,34 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
 
 
 SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
+HORIZON_SWEEP = (24, 48, 96)  # actions from the start frame: imagined success that early, real successes vs failures
+
+
+def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
+                       horizons: tuple[int, ...] = HORIZON_SWEEP) -> dict[str, dict[str, Any]]:
+    """Imagined success by action ``h`` of the replay, among real successes and among real failures.
+
+    A real failure runs to the step limit while a real success ends soon after it succeeds, so the
+    whole-episode ``false_success`` gives failures many more frames in which to hallucinate success.
+    At a common horizon the two groups are compared on equal footing: a simulator whose outcomes
+    follow the actions calls real successes successes more often than real failures at every ``h``.
+    ``first_success`` is -1 where the imagined episode never succeeded. Keys: ``str(h)`` and ``"all"``.
+    """
+    real, first = np.asarray(real, bool), np.asarray(first_success)
+    if real.shape != first.shape or real.ndim != 1:
+        raise ValueError(f"success_by_horizon: real {real.shape} and first_success {first.shape} must be equal 1-D shapes")
+
+    out = {}
+    for label, h in [*((str(h), h) for h in horizons), ("all", None)]:
+        hit = (first >= 0) if h is None else (first >= 0) & (first < h)
+        out[label] = {"real_success": _rate(int(hit[real].sum()), int(real.sum())),
+                      "real_failure": _rate(int(hit[~real].sum()), int((~real).sum()))}
+    return out
+
+
+def _rate(hits: int, of: int) -> dict[str, Any]:
+    """``hits / of`` with its 95% Wilson interval (``None`` rate where ``of`` is 0)."""
+    return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
 
 
 def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
@@ -249,9 +277,7 @@ def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
     tp, fp = int(np.sum(real & imagined)), int(np.sum(~real & imagined))
     fn, tn = int(np.sum(real & ~imagined)), int(np.sum(~real & ~imagined))
 
-    def rate(hits: int, of: int) -> dict[str, Any]:
-        return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
-
+    rate = _rate
     n = real.size
     return {"episodes": n, "real_success": float(real.mean()) if n else None,
             "imagined_success": float(imagined.mean()) if n else None, "agreement": rate(tp + tn, n),
@@ -283,7 +309,8 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     ``sustained_success_sweep[k]`` is the agreement a stricter success rule would have had, one that
     asks for ``k`` consecutive frames at or above the threshold (:data:`SUSTAIN_SWEEP`), computed
     from the first replay's scores: whether the simulator's false successes are one-frame flickers
-    such a rule removes or sustained scenes it does not.
+    such a rule removes or sustained scenes it does not. ``imagined_success_by_horizon``
+    (:func:`success_by_horizon`) compares real successes and failures at common horizons.
 
     Returns :func:`agreement` plus ``left_out``, ``resample_disagreement`` (with ``repeats >= 2``),
     ``imagined_success_repeats`` and, per replayed episode counted from the start frame,
@@ -329,6 +356,8 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
                  if name in ("imagined_success", "false_success", "missed_success", "agreement")}
         for k in SUSTAIN_SWEEP}
     report["imagined_longest_success_run"] = run.tolist()
+    report["imagined_success_by_horizon"] = success_by_horizon(
+        traced.success[keep], np.concatenate(first) if first else np.zeros(0, np.int32))
     flips = int(np.sum(outcomes[0] != outcomes[1])) if repeats >= 2 else 0
     report.update(left_out=int(len(lengths) - len(keep)), settle_steps=int(settle_steps),
                   imagined_success_repeats=[float(o.mean()) if o.size else None for o in outcomes],
