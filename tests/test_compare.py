@@ -404,3 +404,4 @@ def test_slices_at_once_build_shared_stages_first_then_run_each_slice_as_a_child
                       "--slices-at-once", "2", "--trainer.steps=3"])
     assert len(children) == 2  # sword 3 failed, teacher_forcing 3 was already running and finished; nothing new
     assert (tmp_path / "fail" / "teacher_forcing_seed3.json").exists()
+    assert "| teacher_forcing | 3 |" in (tmp_path / "fail" / "comparison.md").read_text()  # merged what finished

@@ -636,7 +636,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     os.makedirs(results_dir, exist_ok=True)
     invocation = shlex.join(["python", "-m", "train.compare", *argv])
     if args.slices_at_once > 1 and len(seeds) * len(runs) > 1:
-        run_slices_side_by_side(argv, runs, seeds, args, overrides)
+        try:
+            run_slices_side_by_side(argv, runs, seeds, args, overrides)
+        except RuntimeError:
+            if load_slices(results_dir):  # the slices that finished still make a table
+                merge(results_dir, allow_mismatch=True)
+            raise
         return _finish(results_dir)
     at_once = int(os.environ.get(SLICES_AT_ONCE_ENV, "1"))
     for seed in seeds:
