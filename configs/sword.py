@@ -25,7 +25,8 @@ def paper() -> ExperimentConfig:
         trainer=TrainerConfig(steps=20000, learning_rate=1e-4, warmup_steps=500, ema_decay=0.999,
                               log_every=50, checkpoint_every=1000),
         sim=SimConfig(backend="mjx", resolution=256, episodes_per_task=150),
-        eval=EvalConfig(horizon_frames=129, num_episodes=50, allow_random_weights_for=("fid",)),
+        eval=EvalConfig(horizon_frames=129, num_episodes=50, allow_random_weights_for=("fid",),
+                        floor_metrics=("lpips", "flolpips", "psnr", "ssim", "fid", "fvd")),
         cache=CacheConfig(schedule_steps=20000),
     )
 
@@ -44,7 +45,9 @@ def small() -> ExperimentConfig:
         # 100 held-out episodes x 64 predicted frames (1 + 4 context + 8 x 8), scored with bootstrap intervals.
         # FID is left out: its InceptionV3 has no published weights here, and a random-weight FID cost 85 s of
         # each slice's 125 s of metrics (H100); LPIPS and FVD use the published networks.
-        eval=EvalConfig(horizon_frames=69, num_episodes=100, metrics=("lpips", "flolpips", "psnr", "ssim", "fvd")),
+        # The VAE floor is scored with FVD and FloLPIPS too: how much of a model's FVD the VAE alone causes.
+        eval=EvalConfig(horizon_frames=69, num_episodes=100, metrics=("lpips", "flolpips", "psnr", "ssim", "fvd"),
+                        floor_metrics=("lpips", "flolpips", "psnr", "ssim", "fvd")),
         # Policy and GRPO settings measured in benchmarks/bench_policy.py (README: "A policy that learns"):
         # width 128 x 4 layers at 64 px, 4000 SFT steps at peak 1e-3; evaluation re-plans every step with
         # temporal ensembling (the best of the execution modes measured), GRPO rollouts re-plan every step.

@@ -126,7 +126,7 @@ def _fake_stages(calls):
                              for split in ("original", "mixed")}
                 os.makedirs(ctx.path("eval"), exist_ok=True)
                 with open(ctx.path("eval", "results.json"), "w") as f:
-                    json.dump({"models": per_split}, f)
+                    json.dump({"models": per_split, "vae_floor": {"original": {"overall": {"lpips": 0.12}}}}, f)
                 out = {"metrics": {s: {m: r["overall"] for m, r in p.items()} for s, p in per_split.items()}}
             elif name in ("probe", "reward_model", "sft_policy"):
                 out = {"loss": 0.5}
@@ -177,6 +177,8 @@ def test_slices_build_shared_stages_once_and_write_their_files(tmp_path, monkeyp
     assert set(sword["shared"]["stage_seconds"]) == set(shareable)
     assert sword["metrics"]["original"] == {"lpips": 0.15, "psnr": 20.0}
     assert sword["curves"]["mixed"]["lpips"]["mean"] == [0.1, 0.2]  # rounded to 6 digits
+    assert sword["vae_floor"] == {"original": {"lpips": 0.12}}
+    assert "| VAE floor (mean over slices) | 0.12 |" in (results / "comparison.md").read_text()
     assert [p["step"] for p in sword["success_curve"]] == [0, 10] and "success_curve" not in tf
     assert sword["device"]["platform"] == "cpu" and len(sword["code"]["source_hash"]) == 64
     hashes = sword["shared"]["hashes"]

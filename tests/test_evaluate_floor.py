@@ -31,6 +31,13 @@ def test_vae_floor_is_the_encode_decode_and_reaches_results_and_report(tmp_path)
     expected = np.mean([[10 * np.log10(1 / np.mean((r[t] - g[t]) ** 2)) for t in range(5, 9)]
                         for r, g in zip(recon, gt["original"])])
     assert floor["original"].overall["psnr"] == pytest.approx(expected, rel=1e-4)
+    # eval.floor_metrics chooses among the evaluation's metrics (small and paper add FVD/FloLPIPS)
+    chosen, _ = vae_floor(EvalConfig(allow_random_weights=True, floor_metrics=("ssim", "psnr")), ("psnr", "lpips", "ssim"),
+                          graphdef, state, {"original": gt["original"]}, num_context=1, num_future=2, given_frames=5)
+    assert set(chosen["original"].overall) == {"psnr", "ssim"}
+    assert chosen["original"].overall["psnr"] == pytest.approx(floor["original"].overall["psnr"], rel=1e-5)
+    with pytest.raises(ValueError, match="eval.floor_metrics"):
+        EvalConfig(floor_metrics=("psnr", "nope")).validate()
 
     suite = MetricSuite(eval_cfg, metrics=("psnr",))
     results = evaluate_videos(suite, gt, {"m": {s: np.clip(v + 0.2, 0, 1) for s, v in gt.items()}}, given_frames=5,

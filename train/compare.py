@@ -191,6 +191,14 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                 cells = [_cell(table[run]["metrics"][k], "{:.4g}")
                          if k in table.get(run, {}).get("metrics", {}) else "" for k in keys]
                 lines.append(f"| {run} | " + " | ".join(cells) + " |")
+            floors = [s["vae_floor"] for s in slices if s.get("vae_floor")]
+            if floors:  # the shared VAE's encode-decode of each slice's ground truth, scored like a prediction
+                cells = []
+                for k in keys:
+                    split, metric = k.split("/")
+                    values = [f[split][metric] for f in floors if metric in f.get(split, {})]
+                    cells.append(f"{np.mean(values):.4g}" if values else "")
+                lines.append("| VAE floor (mean over slices) | " + " | ".join(cells) + " |")
             diffs = (pairs or {}).get(f"{ours} vs {baseline}", {})
             if diffs:
                 lines += ["", f"Paired by seed, `{ours}` minus `{baseline}` (better: lower, except "
@@ -423,13 +431,15 @@ def slice_record(run: str, seed: int, stages: dict, workdir: str) -> dict:
     """The science of one finished slice: overall metrics, per-horizon curves, success curve, losses."""
     evaluate = stages.get("evaluate", {})
     metrics = {split: next(iter(per_model.values())) for split, per_model in evaluate.get("metrics", {}).items()}
-    curves = {}
+    curves, floor = {}, {}
     eval_results = os.path.join(workdir, "eval", "results.json")
     if os.path.exists(eval_results):
         with open(eval_results) as f:
-            models = json.load(f).get("models", {})
-        curves = {split: next(iter(per_model.values())).get("curves", {}) for split, per_model in models.items()}
-    record = {"run": run, "seed": seed, "metrics": metrics, "curves": curves}
+            saved = json.load(f)
+        curves = {split: next(iter(per_model.values())).get("curves", {})
+                  for split, per_model in saved.get("models", {}).items()}
+        floor = {split: r.get("overall", {}) for split, r in saved.get("vae_floor", {}).items()}
+    record = {"run": run, "seed": seed, "metrics": metrics, "curves": curves, "vae_floor": floor}
     world_model = stages.get("world_model", {})
     record["world_model"] = {"steps": world_model.get("final_step"), "first_loss": world_model.get("first_loss"),
                              "final_metrics": world_model.get("final_metrics", {})}

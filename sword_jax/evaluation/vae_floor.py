@@ -23,10 +23,6 @@ from jaxtyping import Float
 from sword_jax.evaluation.results import ModelResult
 from sword_jax.metrics.config import EvalConfig
 
-# Metrics of the floor: per-frame ones (no set statistics over a handful of reconstructions needed).
-FLOOR_METRICS = ("lpips", "psnr", "ssim")
-
-
 @functools.lru_cache(maxsize=4)
 def _reconstruct_fn(vae_graphdef: nnx.GraphDef, latents_per_chunk: int):
     """One compiled encode -> streaming decode per (VAE graph, decode chunk)."""
@@ -70,8 +66,11 @@ def vae_floor(eval_cfg: EvalConfig, metrics: tuple[str, ...], vae_graphdef: nnx.
     """The reconstruction floor per split, on the same scored frames as the predictions.
 
     Args:
-      eval_cfg: metric-network weights (the networks are shared with the main suite: compiled once).
-      metrics: the evaluation's metrics; the floor scores those among :data:`FLOOR_METRICS`.
+      eval_cfg: metric-network weights (the networks are shared with the main suite: compiled once),
+        and ``floor_metrics``.
+      metrics: the evaluation's metrics; the floor scores those among ``eval_cfg.floor_metrics``. Its set
+        statistics (FVD, FID) are over the same episodes as the predictions', so a model's FVD reads
+        against the FVD of perfect latents.
       vae_graphdef, vae_state: the VAE the predictions were decoded with.
       gt_by_split: ``{split: [B, T, H, W, 3]}`` ground truth in [0, 1] (the evaluated horizon).
       num_context, num_future: the rollout's latents of context / prediction per chunk (decode chunking).
@@ -85,7 +84,7 @@ def vae_floor(eval_cfg: EvalConfig, metrics: tuple[str, ...], vae_graphdef: nnx.
     from sword_jax.metrics.suite import MetricSuite
 
     start = time.perf_counter()
-    names = tuple(m for m in FLOOR_METRICS if m in metrics)
+    names = tuple(m for m in metrics if m in eval_cfg.floor_metrics)
     if not names:
         return {}, 0.0
     suite = MetricSuite(eval_cfg, metrics=names)

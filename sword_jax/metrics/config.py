@@ -42,6 +42,10 @@ class EvalConfig:
     # has no installable published weights: a config without them may leave "fid" out rather than pay for a
     # random-weight number (on `small` it was 60% of the metric time).
     metrics: tuple[str, ...] = ALL_METRICS
+    # Metrics the VAE's reconstruction floor is also scored with (those of ``metrics`` among them). The
+    # per-frame ones are cheap; FVD/FloLPIPS of the floor say how much of a model's FVD/FloLPIPS the VAE
+    # alone causes, at the cost of their networks on the reconstructions and ground truth once more.
+    floor_metrics: tuple[str, ...] = ("lpips", "psnr", "ssim")
 
     def validate(self) -> None:
         if (self.horizon_frames - 1) % 4:
@@ -52,6 +56,8 @@ class EvalConfig:
             raise ValueError(f"eval.num_episodes must be >= 1, got {self.num_episodes}")
         if not self.metrics or set(self.metrics) - set(ALL_METRICS) or len(set(self.metrics)) < len(self.metrics):
             raise ValueError(f"eval.metrics must be distinct names among {ALL_METRICS}, got {self.metrics}")
+        if set(self.floor_metrics) - set(ALL_METRICS) or len(set(self.floor_metrics)) < len(self.floor_metrics):
+            raise ValueError(f"eval.floor_metrics must be distinct names among {ALL_METRICS}, got {self.floor_metrics}")
         if self.lpips_net not in ("alex", "vgg"):
             raise ValueError(f"eval.lpips_net must be 'alex' or 'vgg', got {self.lpips_net!r}")
         if set(self.allow_random_weights_for) - set(RANDOM_WEIGHT_METRICS):
