@@ -232,6 +232,8 @@ def test_merge_refuses_slices_from_different_shared_inputs(tmp_path):
     (["--seed=3"], "not a dotted config override"),  # not an abbreviation of --seeds
     (["--size", "huge"], "invalid choice: 'huge'"),
     (["merge"], "the following arguments are required: dir"),
+    (["--runs", "sword,teacher_forcing", "--no-evaluate"], "--no-evaluate is for comparison-3 slices"),
+    (["--runs", "wovr", "--no-evaluate", "--no-policy"], "with --no-policy"),
 ])
 def test_bad_command_lines_are_one_line_errors(argv, message, capsys):
     from sword_jax import cli
@@ -302,6 +304,26 @@ def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
     record = json.loads((results / "sword_seed2.json").read_text())
     assert record["policy_stages"] is False and "success_curve" not in record
     assert record["command"] == "python -m train.compare --size tiny --runs sword --seeds 2 --no-policy"
+
+
+def test_no_evaluate_slices_train_grpo_without_the_world_model_evaluation(tmp_path, monkeypatch):
+    """--no-evaluate (comparison 3): no probe, no evaluation, no report, in the slice or its shared dir;
+    the GRPO success curve is recorded and the slice says it was not evaluated."""
+    from train import pipeline
+
+    calls = []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+    results = tmp_path / "results"
+    compare.main(["--size", "tiny", "--runs", "wovr", "--seeds", "1", "--no-evaluate", f"--out={tmp_path / 'w'}",
+                  f"--results={results}"])
+    names = [stage.name for stage in pipeline.STAGES]
+    ran = [name for name, _, _ in calls]
+    assert set(ran) == set(names) - {"probe", "evaluate", "report"} and "policy" in ran
+    record = json.loads((results / "wovr_seed1.json").read_text())
+    assert record["evaluated"] is False and record["metrics"] == {} and record["curves"] == {}
+    assert [p["step"] for p in record["success_curve"]] == [0, 10]
+    assert record["command"] == "python -m train.compare --size tiny --runs wovr --seeds 1 --no-evaluate"
 
 
 class _Exited:

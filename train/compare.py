@@ -362,12 +362,18 @@ def _needs_policy(run: str) -> bool:
     return any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS if not splits)
 
 
-def _stage_names(run: str, *, policy: bool = True) -> list[str]:
+EVALUATION_ONLY = ("probe", "evaluate", "report")  # left out by --no-evaluate (the report needs the evaluation)
+
+
+def _stage_names(run: str, *, policy: bool = True, evaluate: bool = True) -> list[str]:
     """The pipeline stages a slice of ``run`` goes through (up to the evaluation outside comparison 3, or
-    without ``policy``)."""
+    without ``policy``; without ``evaluate``, comparison 3's GRPO stages without the world-model
+    evaluation, its probe and the report)."""
     from train import pipeline
 
     names = [stage.name for stage in pipeline.STAGES]
+    if not evaluate:
+        return [n for n in names if n not in EVALUATION_ONLY]
     return names if _needs_policy(run) and policy else names[:names.index("evaluate") + 1]
 
 
@@ -383,7 +389,7 @@ def _run_config(run: str, size: str, seed: int, workdir: str,
 
 
 def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str],
-                 policy: bool = True, parallel: int = 0) -> tuple[str, dict, list[str]]:
+                 policy: bool = True, parallel: int = 0, evaluate: bool = True) -> tuple[str, dict, list[str]]:
     """Builds (or finds) the shared stages ``run`` needs in ``<out>/shared/<run>`` at ``shared_seed``.
 
     Stages another run's shared dir has already made with equal config sections are adopted, not
@@ -398,7 +404,7 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     shared_dir = os.path.join(out, "shared", run)
     config, cfg, dotted = _run_config(run, size, shared_seed, shared_dir, overrides)
     stagerunner.check_workdir_config(cfg, shared_dir)
-    wanted = [name for name in _stage_names(run, policy=policy) if name in SHAREABLE]
+    wanted = [name for name in _stage_names(run, policy=policy, evaluate=evaluate) if name in SHAREABLE]
     for other in sorted(glob.glob(os.path.join(out, "shared", "*", "config.json"))):
         donor = os.path.dirname(other)
         if os.path.abspath(donor) != os.path.abspath(shared_dir):
@@ -455,11 +461,13 @@ def slice_record(run: str, seed: int, stages: dict, workdir: str) -> dict:
 
 
 def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, share: bool,
-              overrides: Sequence[str], policy: bool = True, parallel: int = 0) -> dict:
+              overrides: Sequence[str], policy: bool = True, parallel: int = 0, evaluate: bool = True) -> dict:
     """Runs one (run, seed) slice (building the shared stages first where missing); returns its record.
 
     ``policy=False`` stops a comparison-3 run after its evaluation (no supervised policy, no GRPO): a
-    slice for comparisons 1 and 2 only, recorded as such. ``parallel`` > 0: stages in their own
+    slice for comparisons 1 and 2 only, recorded as such. ``evaluate=False`` leaves out the
+    world-model evaluation (and its probe and the report): a comparison-3 slice that only trains
+    GRPO and measures real success, recorded as such. ``parallel`` > 0: stages in their own
     processes, that many side by side (``train.pipeline --parallel``); the same results."""
     from train import pipeline
 
@@ -470,16 +478,17 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     shared: dict = {"seed": seed, "workdir": None, "built_here": [], "adopted": []}
     if share:
         shared_dir, shared_cfg, built = build_shared(run, size, out=out, shared_seed=shared_seed, overrides=overrides,
-                                                     policy=policy, parallel=parallel)
+                                                     policy=policy, parallel=parallel, evaluate=evaluate)
         adopted = adopt_stages(workdir, shared_dir, cfg, shared_cfg)
         shared.update(seed=shared_seed, workdir=shared_dir, built_here=built, adopted=adopted)
     shared_seconds = time.perf_counter() - start
-    last = _stage_names(run, policy=policy)[-1]
+    last = _stage_names(run, policy=policy, evaluate=evaluate)[-1]
+    skip = () if evaluate else tuple(n for n in EVALUATION_ONLY if n != "report")  # report: after `last`
     launch = None
     if parallel:
-        launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after", last],
-                                         workdir)
-    stages = pipeline.run(cfg, stop_after=last, cfg_name=config, overrides=dotted, launch=launch,
+        launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after", last,
+                                          *(["--skip", ",".join(skip)] if skip else [])], workdir)
+    stages = pipeline.run(cfg, stop_after=last, skip=skip, cfg_name=config, overrides=dotted, launch=launch,
                           max_running=max(parallel, 1))
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
@@ -490,7 +499,7 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
         "format": SLICE_FORMAT, "size": size, "config": config, "overrides": list(overrides), "started": started,
         **slice_record(run, seed, stages, workdir),
         "stage_seconds": own, "shared": shared, "device": device_info(), "code": code_version(),
-        "policy_stages": policy or not _needs_policy(run),
+        "policy_stages": policy or not _needs_policy(run), "evaluated": evaluate,
         "wall_seconds": {"shared": round(shared_seconds, 1), "slice": round(slice_seconds, 1),
                          "hashing": round(time.perf_counter() - hash_start, 1)},
     }
@@ -530,7 +539,7 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     if not args.no_share:
         for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
             build_shared(run, args.size, out=args.out, shared_seed=args.shared_seed, overrides=overrides,
-                         policy=not args.no_policy, parallel=args.parallel)
+                         policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
     base = argv
     for flag, takes_value in (("--slices-at-once", True), ("--runs", True), ("--seeds", True)):
         base = _without_flag(base, flag, takes_value)
@@ -567,9 +576,10 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
 
 
 def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bool, overrides: Sequence[str],
-                  policy: bool = True) -> str:
+                  policy: bool = True, evaluate: bool = True) -> str:
     """The command that reruns exactly this slice."""
-    argv = ["--size", size, "--runs", run, "--seeds", str(seed), *([] if policy else ["--no-policy"])]
+    argv = ["--size", size, "--runs", run, "--seeds", str(seed), *([] if policy else ["--no-policy"]),
+            *([] if evaluate else ["--no-evaluate"])]
     argv += [f"--shared-seed={shared_seed}"] if share and shared_seed else []
     return shlex.join(["python", "-m", "train.compare", *argv, *([] if share else ["--no-share"]), *overrides])
 
@@ -630,6 +640,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="build every run's shared stages first, then run the slices as child processes, N "
                              "side by side on the same device (a small model leaves most of a large GPU idle); "
                              "each child's output goes to <out>/logs/<run>_seed<k>.log")
+    parser.add_argument("--no-evaluate", action="store_true",
+                        help="comparison 3 only (sword, wovr): leave out the world-model evaluation, its probe and "
+                             "the report; the slice trains GRPO and measures real success. Write these slices to "
+                             "their own --results folder (the comparison-1 files of the same run and seed live "
+                             "elsewhere)")
     parser.add_argument("--no-policy", action="store_true",
                         help="stop every slice after its world-model evaluation (comparisons 1 and 2 only: no "
                              "supervised policy, no GRPO)")
@@ -642,6 +657,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.slices_at_once < 1:
         raise UsageError(f"--slices-at-once must be >= 1, got {args.slices_at_once}")
     seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size)
+    if args.no_evaluate and (args.no_policy or not all(_needs_policy(r) for r in runs)):
+        raise UsageError("--no-evaluate is for comparison-3 slices (runs sword, wovr, with their policy stages): "
+                         f"got --runs {','.join(runs)}" + (" with --no-policy" if args.no_policy else ""))
     results_dir = args.results or os.path.join(REPO, "benchmarks", "results", "compare", args.size)
     os.makedirs(results_dir, exist_ok=True)
     invocation = shlex.join(["python", "-m", "train.compare", *argv])
@@ -658,9 +676,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         for run in runs:
             record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
                                share=not args.no_share, overrides=overrides, policy=not args.no_policy,
-                               parallel=args.parallel)
+                               parallel=args.parallel, evaluate=not args.no_evaluate)
             record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
-                                              share=not args.no_share, overrides=overrides, policy=not args.no_policy)
+                                              share=not args.no_share, overrides=overrides, policy=not args.no_policy,
+                                              evaluate=not args.no_evaluate)
             record["invocation"] = invocation
             record["slices_at_once"] = at_once
             path = os.path.join(results_dir, f"{run}_seed{seed}.json")
