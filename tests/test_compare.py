@@ -288,20 +288,24 @@ def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
     assert hashes[0] == hashes[1]
 
 
-def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
-    """--no-policy: a comparison-3 run builds no supervised policy and runs no GRPO, and says so."""
+def _one_fake_slice(tmp_path, monkeypatch, run: str, seed: int, flag: str):
+    """One tiny slice with ``flag`` on the fake stages: (every stage name, the stages that ran, its record)."""
     from train import pipeline
 
     calls = []
     monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
     results = tmp_path / "results"
-    compare.main(["--size", "tiny", "--runs", "sword", "--seeds", "2", "--no-policy", f"--out={tmp_path / 'w'}",
+    compare.main(["--size", "tiny", "--runs", run, "--seeds", str(seed), flag, f"--out={tmp_path / 'w'}",
                   f"--results={results}"])
     names = [stage.name for stage in pipeline.STAGES]
-    ran = {name for name, _, _ in calls}
+    return names, {name for name, _, _ in calls}, json.loads((results / f"{run}_seed{seed}.json").read_text())
+
+
+def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
+    """--no-policy: a comparison-3 run builds no supervised policy and runs no GRPO, and says so."""
+    names, ran, record = _one_fake_slice(tmp_path, monkeypatch, "sword", 2, "--no-policy")
     assert ran == set(names[:names.index("evaluate") + 1]) and "policy" not in ran
-    record = json.loads((results / "sword_seed2.json").read_text())
     assert record["policy_stages"] is False and "success_curve" not in record
     assert record["command"] == "python -m train.compare --size tiny --runs sword --seeds 2 --no-policy"
 
@@ -309,18 +313,8 @@ def test_no_policy_slices_stop_after_the_evaluation(tmp_path, monkeypatch):
 def test_no_evaluate_slices_train_grpo_without_the_world_model_evaluation(tmp_path, monkeypatch):
     """--no-evaluate (comparison 3): no probe, no evaluation, no report, in the slice or its shared dir;
     the GRPO success curve is recorded and the slice says it was not evaluated."""
-    from train import pipeline
-
-    calls = []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
-    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
-    results = tmp_path / "results"
-    compare.main(["--size", "tiny", "--runs", "wovr", "--seeds", "1", "--no-evaluate", f"--out={tmp_path / 'w'}",
-                  f"--results={results}"])
-    names = [stage.name for stage in pipeline.STAGES]
-    ran = [name for name, _, _ in calls]
-    assert set(ran) == set(names) - {"probe", "evaluate", "report"} and "policy" in ran
-    record = json.loads((results / "wovr_seed1.json").read_text())
+    names, ran, record = _one_fake_slice(tmp_path, monkeypatch, "wovr", 1, "--no-evaluate")
+    assert ran == set(names) - {"probe", "evaluate", "report"} and "policy" in ran
     assert record["evaluated"] is False and record["metrics"] == {} and record["curves"] == {}
     assert [p["step"] for p in record["success_curve"]] == [0, 10]
     assert record["command"] == "python -m train.compare --size tiny --runs wovr --seeds 1 --no-evaluate"
