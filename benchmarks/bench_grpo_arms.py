@@ -32,7 +32,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from benchmarks.bench_grpo_transfer import _blocks, errorbar_curve, gain_interval
+from benchmarks.bench_grpo_transfer import _blocks, errorbar_curve, gain_interval, name_dir_pairs
 from sword_jax.cli import not_dotted_overrides
 
 DEFAULT_CONFIG = "cache_ablation:small-linear-direct-all"
@@ -183,10 +183,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--arm-workers", type=int, default=7, help="C-engine processes of each arm")
     args, overrides = parser.parse_known_args(argv)
     if args.summarize is not None:
-        pairs = [s.partition("=") for s in args.summarize]
-        if any(not sep or not name or not path for name, sep, path in pairs):
-            raise SystemExit(f"bench_grpo_arms: --summarize takes NAME=WORKDIR pairs, got {args.summarize}")
-        summary = summarize({name: path for name, _, path in pairs})
+        summary = summarize(name_dir_pairs(args.summarize, "bench_grpo_arms --summarize", "WORKDIR"))
         write(summary, args.out)
         return summary
     bad = not_dotted_overrides(overrides)

@@ -68,6 +68,25 @@ def _blocks(values: Sequence[float], size: int = 10) -> list[float]:
     return [round(sum(values[i:i + size]) / len(values[i:i + size]), 4) for i in range(0, len(values), size)]
 
 
+REPLAY_KEYS = ("imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement",
+               "settle_steps", "sustained_success_sweep")  # what a summary keeps of each evaluation's replay
+
+
+def curve_and_gain(points: Sequence[dict]) -> dict:
+    """A GRPO success curve's points, and its gain from the first to the last with the Newcombe interval."""
+    return {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
+                      for p in points],
+            "gain": points[-1]["mean"] - points[0]["mean"], "gain_ci95": gain_interval(points[0], points[-1])}
+
+
+def name_dir_pairs(items: Sequence[str], flag: str, value: str = "DIR") -> dict[str, str]:
+    """``["a=DIR", ...]`` -> ``{"a": "DIR"}``; ``SystemExit`` naming ``flag`` (and ``NAME=<value>``) on anything else."""
+    pairs = [item.partition("=") for item in items]
+    if any(not sep or not name or not path for name, sep, path in pairs):
+        raise SystemExit(f"{flag} takes NAME={value} pairs, got {list(items)}")
+    return {name: path for name, _, path in pairs}
+
+
 def _step_rates(log_text: str, what: str) -> list[float]:
     """Per-step rollout success from a GRPO log (``grpo step i/N <what> success X``)."""
     return [float(x) for x in re.findall(rf"grpo step \d+/\d+ {what} success ([\d.]+)", log_text)]
@@ -89,10 +108,7 @@ def summarize(workdir: str) -> dict:
             continue
         with open(curves[arm]) as f:
             points = json.load(f)["points"]
-        first, last = points[0], points[-1]
-        entry = {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
-                           for p in points],
-                 "gain": last["mean"] - first["mean"], "gain_ci95": gain_interval(first, last)}
+        entry = curve_and_gain(points)
         mode_key = "proprio_masked" if arm == "world_model" else "train_mode"
         modes = [p[mode_key] for p in points if mode_key in p]
         if len(modes) == len(points) and modes:
@@ -101,10 +117,8 @@ def summarize(workdir: str) -> dict:
             entry["trained_mode_gain"] = modes[-1]["mean"] - modes[0]["mean"]
             entry["trained_mode_gain_ci95"] = gain_interval(modes[0], modes[-1])
         if arm == "world_model":
-            entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in (
-                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement",
-                "settle_steps", "sustained_success_sweep")}}
-                for p in points if "replay" in p]
+            entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in REPLAY_KEYS}}
+                               for p in points if "replay" in p]
         if os.path.exists(logs[arm]):
             with open(logs[arm]) as f:
                 rates = _step_rates(f.read(), "imagined" if arm == "world_model" else "rollout")
@@ -201,19 +215,12 @@ def compare_world_model_arms(arms: dict[str, str]) -> dict:
             raise SystemExit(f"bench_grpo_transfer --compare: {name}: no success_curve.json in {folder}")
         with open(path) as f:
             points = json.load(f)["points"]
-        replay = []
-        for p in points:
-            r = p.get("replay")
-            if not r:
-                continue
-            by_h = success_by_horizon(np.asarray(r["real_success_flags"], bool), np.asarray(r["imagined_first_success"]))
-            replay.append({"step": p["step"], **{k: r.get(k) for k in (
-                "imagined_success", "real_success", "false_success", "missed_success", "resample_disagreement",
-                "sustained_success_sweep")}, "imagined_success_by_horizon": by_h})
-        out[name] = {"curve": [{"step": p["step"], "success": p["mean"], "ci95": p["ci95"], "episodes": p["episodes"]}
-                               for p in points],
-                     "gain": points[-1]["mean"] - points[0]["mean"], "gain_ci95": gain_interval(points[0], points[-1]),
-                     "replay": replay}
+        replay = [{"step": p["step"], **{k: p["replay"].get(k) for k in REPLAY_KEYS},
+                   "imagined_success_by_horizon": success_by_horizon(
+                       np.asarray(p["replay"]["real_success_flags"], bool),
+                       np.asarray(p["replay"]["imagined_first_success"]))}
+                  for p in points if p.get("replay")]
+        out[name] = {**curve_and_gain(points), "replay": replay}
     return out
 
 
@@ -269,10 +276,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--out", default="", help="with --compare: output path without extension")
     args, overrides = parser.parse_known_args(argv)
     if args.compare is not None:
-        pairs = [item.split("=", 1) for item in args.compare]
-        if any(len(p) != 2 or not p[0] for p in pairs) or not args.out:
-            raise SystemExit("bench_grpo_transfer --compare takes NAME=DIR ... and --out PATH")
-        summary = compare_world_model_arms(dict(pairs))
+        if not args.out:
+            raise SystemExit("bench_grpo_transfer --compare needs --out PATH")
+        summary = compare_world_model_arms(name_dir_pairs(args.compare, "bench_grpo_transfer --compare"))
         with open(args.out + ".json", "w") as f:
             json.dump(summary, f, indent=1)
         plot_world_model_arms(summary, args.out + ".png")

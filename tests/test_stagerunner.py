@@ -120,7 +120,7 @@ def test_every_pipeline_stage_needs_only_earlier_stages():
 
 def test_parallel_children_get_the_command_without_parallel_only_or_restart():
     argv = ["--config", "sword:small", "--parallel", "2", "--only=vae", "--restart", "--seed", "1", "--parallel=3"]
-    assert pipeline._without(argv, {"--parallel": True, "--only": True, "--restart": False}) == [
+    assert pipeline.without_flags(argv, {"--parallel": True, "--only": True, "--restart": False}) == [
         "--config", "sword:small", "--seed", "1"]
 
 

@@ -508,18 +508,6 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
 SLICES_AT_ONCE_ENV = "SWORD_COMPARE_SLICES_AT_ONCE"  # set by the parent: each slice records how crowded its device was
 
 
-def _without_flag(argv: Sequence[str], flag: str, takes_value: bool) -> list[str]:
-    out, skip = [], False
-    for arg in argv:
-        if skip:
-            skip = False
-        elif arg == flag:
-            skip = takes_value
-        elif not arg.startswith(flag + "="):
-            out.append(arg)
-    return out
-
-
 def launch_slice(argv: Sequence[str], log_path: str, env: dict):
     """Starts ``python -m train.compare ARGV`` (one slice) with its output in ``log_path``."""
     import subprocess
@@ -540,9 +528,9 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
         for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
             build_shared(run, args.size, out=args.out, shared_seed=args.shared_seed, overrides=overrides,
                          policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
-    base = argv
-    for flag, takes_value in (("--slices-at-once", True), ("--runs", True), ("--seeds", True)):
-        base = _without_flag(base, flag, takes_value)
+    from train.pipeline import without_flags
+
+    base = without_flags(argv, {"--slices-at-once": True, "--runs": True, "--seeds": True})
     logs = os.path.join(args.out, "logs")
     os.makedirs(logs, exist_ok=True)
     env = {**os.environ, SLICES_AT_ONCE_ENV: str(args.slices_at_once)}

@@ -195,7 +195,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                overrides=overrides, launch=launch, max_running=args.parallel)
 
 
-def _without(argv: Sequence[str], flags: dict[str, bool]) -> list[str]:
+def without_flags(argv: Sequence[str], flags: dict[str, bool]) -> list[str]:
     """``argv`` less the given flags (``flag: takes a value``), in ``--flag v`` or ``--flag=v`` form."""
     out, skip_next = [], False
     for arg in argv:
@@ -215,7 +215,7 @@ def stage_launcher(argv: Sequence[str], workdir: str):
     output to ``<workdir>/logs/<stage>.log``). Each process is its own JAX runtime, so a GPU is shared
     by allocating on demand (``XLA_PYTHON_CLIENT_PREALLOCATE=false`` unless set) instead of each
     process reserving 75% of it."""
-    base = _without(argv, {"--parallel": True, "--only": True, "--restart": False})
+    base = without_flags(argv, {"--parallel": True, "--only": True, "--restart": False})
 
     def launch(stage: Stage) -> subprocess.Popen:
         os.makedirs(os.path.join(workdir, "logs"), exist_ok=True)

@@ -277,11 +277,10 @@ def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
     tp, fp = int(np.sum(real & imagined)), int(np.sum(~real & imagined))
     fn, tn = int(np.sum(real & ~imagined)), int(np.sum(~real & ~imagined))
 
-    rate = _rate
     n = real.size
     return {"episodes": n, "real_success": float(real.mean()) if n else None,
-            "imagined_success": float(imagined.mean()) if n else None, "agreement": rate(tp + tn, n),
-            "false_success": rate(fp, fp + tn), "missed_success": rate(fn, tp + fn),
+            "imagined_success": float(imagined.mean()) if n else None, "agreement": _rate(tp + tn, n),
+            "false_success": _rate(fp, fp + tn), "missed_success": _rate(fn, tp + fn),
             "counts": {"real_and_imagined": tp, "imagined_only": fp, "real_only": fn, "neither": tn}}
 
 
