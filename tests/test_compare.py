@@ -234,6 +234,9 @@ def test_merge_refuses_slices_from_different_shared_inputs(tmp_path):
     (["merge"], "the following arguments are required: dir"),
     (["--runs", "sword,teacher_forcing", "--no-evaluate"], "--no-evaluate is for comparison-3 slices"),
     (["--runs", "wovr", "--no-evaluate", "--no-policy"], "with --no-policy"),
+    (["--runs", "ground_truth", "--no-policy"], "cannot run with --no-policy"),
+    (["--shared-seed", "each"], "--shared-seed takes a non-negative integer or 'slice', got 'each'"),
+    (["--shared-seed", "-1"], "--shared-seed takes a non-negative integer or 'slice'"),
 ])
 def test_bad_command_lines_are_one_line_errors(argv, message, capsys):
     from sword_jax import cli
@@ -423,3 +426,98 @@ def test_slices_at_once_build_shared_stages_first_then_run_each_slice_as_a_child
     assert len(children) == 2  # sword 3 failed, teacher_forcing 3 was already running and finished; nothing new
     assert (tmp_path / "fail" / "teacher_forcing_seed3.json").exists()
     assert "| teacher_forcing | 3 |" in (tmp_path / "fail" / "comparison.md").read_text()  # merged what finished
+
+
+def _fake_ground_truth_grpo(calls):
+    """Stands in for GRPO against MuJoCo: records the call, writes a success curve like grpo.run's."""
+    from train import pipeline_policy
+
+    def grpo_in_ground_truth(ctx):
+        calls.append(("ground_truth_grpo", ctx.workdir, ctx.cfg.seed, sorted(ctx.results)))
+        grpo_dir = ctx.path("rl", "grpo")
+        os.makedirs(grpo_dir, exist_ok=True)
+        points = [{"step": 0, "mean": 0.25, "ci95": [0.2, 0.3]}, {"step": 10, "mean": 0.5 + 0.01 * ctx.cfg.seed,
+                                                                  "ci95": [0.45, 0.55]}]
+        with open(os.path.join(grpo_dir, "success_curve.json"), "w") as f:
+            json.dump({"points": points}, f)
+        return pipeline_policy._policy_result(ctx, {"curve": points, "workdir": grpo_dir})
+
+    return grpo_in_ground_truth
+
+
+def test_shared_seed_slice_replicates_each_seed_and_ground_truth_is_the_reference(tmp_path, monkeypatch):
+    """--shared-seed slice: every seed builds its own shared stages at that seed, in its own folder, and
+    that seed's runs (sword, wovr and the ground-truth reference) adopt them; merge checks hashes within
+    a shared seed only, and comparison 3 shows each run's success per step, the reference and the
+    per-seed gains, with a figure. The ground-truth run makes no world model and no detector."""
+    from train import pipeline, pipeline_policy
+
+    calls = []
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(pipeline_policy, "grpo_in_ground_truth", _fake_ground_truth_grpo(calls))
+    monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
+    results, out = tmp_path / "results", tmp_path / "w"
+    compare.main(["--size", "tiny", "--runs", "sword,wovr,ground_truth", "--seeds", "1,2", "--no-evaluate",
+                  "--shared-seed", "slice", f"--out={out}", f"--results={results}"])
+    roots = [(os.path.relpath(workdir, out).split(os.sep)[0], seed) for _, workdir, seed, *rest in calls]
+    shared = sorted({(root, seed) for root, seed in roots if root.startswith("shared")})
+    assert shared == [("shared-seed1", 1), ("shared-seed2", 2)]
+    gt_calls = [c for c in calls if "ground_truth/seed" in c[1]]
+    assert [c[0] for c in gt_calls] == ["ground_truth_grpo", "ground_truth_grpo"]
+    assert all(c[3] == ["data", "sft_policy"] for c in gt_calls)  # no world model, detector or VAE
+    records = {f.name: json.loads(f.read_text()) for f in results.glob("*_seed*.json")}
+    assert len(records) == 6
+    for name, record in records.items():
+        assert record["shared"]["seed"] == record["seed"]
+        assert record["command"].endswith(f"--shared-seed={record['seed']}")
+    gt = records["ground_truth_seed2.json"]
+    assert gt["shared"]["adopted"] == ["data", "sft_policy"] and set(gt["stage_seconds"]) == {"policy"}
+    assert gt["shared"]["workdir"] == str(out / "shared-seed2" / "ground_truth")
+    assert gt["shared"]["hashes"]["data"] == records["sword_seed2.json"]["shared"]["hashes"]["data"]
+    assert "vae" not in gt["shared"]["hashes"]
+    assert [p["mean"] for p in gt["success_curve"]] == [0.25, 0.52]
+    # Data differs between seeds (the fake frames hold the seed), yet nothing is flagged: different replicates.
+    assert records["sword_seed1.json"]["shared"]["hashes"]["data"] != records["sword_seed2.json"]["shared"]["hashes"]["data"]
+    written = json.loads((results / "comparison.json").read_text())
+    assert written["shared_input_mismatches"] == {}
+    assert set(written["shared_input_hashes"]) == {"shared seed 1", "shared seed 2"}
+    gains = written["paired"]["sword vs wovr"]
+    assert gains["seeds"] == [1, 2] and gains["n"] == 2 and np.allclose(gains["sword"], [0.25, 0.25])
+    text = (results / "comparison.md").read_text()
+    assert "| ground_truth (GRPO in MuJoCo: reference) | 0.250 ± 0 (n=2) | 0.515 ± 0.0071 (n=2) |" in text
+    assert "gained more at 0/2 seeds" in text and "WARNING" not in text
+    assert (results / "grpo_sword_vs_wovr.png").stat().st_size > 0
+
+
+def test_hash_checks_stay_within_a_shared_seed():
+    a = {**_record("sword", 0, 0.1, (0.1, 0.2)), "file": "a"}
+    b = {**_record("wovr", 0, 0.1, (0.1, 0.2), hashes={"data": "x" * 64, "vae": "v" * 64}), "file": "b"}
+    c = {**_record("sword", 1, 0.1, (0.1, 0.2), hashes={"data": "y" * 64, "vae": "w" * 64}), "file": "c"}
+    c["shared"]["seed"] = 1
+    assert compare.hash_mismatches([a, c]) == {}
+    assert compare.hash_mismatches([a, b]) == {"data": {"d" * 64: ["a"], "x" * 64: ["b"]}}
+    assert compare.hash_mismatches([a, b, c]) == {"data (shared seed 0)": {"d" * 64: ["a"], "x" * 64: ["b"]}}
+    assert compare.agreed_hashes([a, b, c], compare.hash_mismatches([a, b, c])) == {
+        "shared seed 0": {"vae": "v" * 64}, "shared seed 1": {"data": "y" * 64, "vae": "w" * 64}}
+
+
+def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_policy(tmp_path, monkeypatch):
+    import configs
+    from train import grpo, pipeline_policy
+    from train.stagerunner import Context
+
+    seen = {}
+
+    def fake_run(cfg, inputs, *, simulator, env_workers):
+        seen.update(simulator=simulator, inputs=inputs, workdir=cfg.workdir)
+        return {"curve": [{"step": 0, "mean": 0.3}, {"step": 5, "mean": 0.4}], "workdir": "g"}
+
+    monkeypatch.setattr(grpo, "run", fake_run)
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--workdir={tmp_path}"])
+    ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])
+    ctx.results.update(data={"demos": {"path": "demos.hdf5"}, "train": {"path": "train.hdf5"}},
+                       sft_policy={"path": "policy_sft", "loss": 1.5, "seconds": 3.0})
+    out = pipeline_policy.grpo_in_ground_truth(ctx)
+    assert seen["simulator"] == "env" and seen["inputs"].policy == "policy_sft"
+    assert seen["inputs"].demos == ("demos.hdf5",) and not seen["inputs"].world_model
+    assert out["success"] == {"grpo step 0": 0.3, "grpo step 5": 0.4} and out["sft"] == {"loss": 1.5}

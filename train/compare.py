@@ -7,12 +7,16 @@
     python -m train.compare merge benchmarks/results/compare/small            # table from the slices there
     python -m train.compare --size tiny --seeds 0 --out /tmp/compare --results /tmp/compare/slices  # CPU smoke
     python -m train.compare --size small --runs sword --seeds 0 --trainer.steps=2000   # overrides: every run
+    python -m train.compare --size small --runs sword,wovr,ground_truth --seeds 1 --shared-seed slice \
+        --no-evaluate --slices-at-once 3   # comparison 3, one seed (its own shared stages) per device lease
 
 1. DLB (linear, direct, all) vs teacher forcing: long-horizon LPIPS / FID / FVD / FloLPIPS on
    LIBERO-Original and LIBERO-Mixed.
 2. Style augmentation vs none: the same metrics on LIBERO-Mixed.
 3. GRPO inside the Sword world model vs inside a WoVR-config world model (teacher forcing +
-   context noise, no augmentation): policy success in the simulator over GRPO steps.
+   context noise, no augmentation): real-environment success of the policy over GRPO steps, with
+   GRPO against the MuJoCo environments themselves from the same supervised policy (run
+   ``ground_truth``: no world model) as the upper reference.
 
 A slice is one run at one seed: ``train.pipeline`` in ``<out>/<run>/seed<k>`` (resumable), then
 one small file ``<results>/<run>_seed<k>.json`` (default ``benchmarks/results/compare/<size>/``):
@@ -29,6 +33,12 @@ to be deterministic functions of the config and that seed, so that a slice run l
 machine rebuilds the same inputs; every slice file records their hashes (``train.shared_inputs``),
 and ``merge`` refuses slices whose hashes disagree. ``--no-share`` makes every stage of every slice
 from the slice's own seed.
+
+``--shared-seed slice`` builds the shared stages once per seed, at that seed (in
+``<out>/shared-seed<k>/``), and every run of the seed adopts them: each seed is then a whole,
+independent replicate of the pipeline, its runs still paired. A comparison whose seeds cannot all
+run in one device lease (GPU runs need not rebuild bit-identical VAEs) is replicated this way, one
+seed per lease; ``merge`` checks the hashes among the slices of each shared seed.
 """
 
 from __future__ import annotations
@@ -61,7 +71,13 @@ def runs_for(size: str) -> dict[str, tuple[str, list[str]]]:
         "teacher_forcing": (f"cache_ablation:{prefix}tf", []),
         "no_augmentation": (f"cache_ablation:{prefix}linear-direct-all", ["--augment.enabled=false"]),
         "wovr": (f"cache_ablation:{prefix}wovr", []),
+        # comparison 3's upper reference: GRPO against the MuJoCo environments, from the same supervised policy
+        "ground_truth": (f"cache_ablation:{prefix}linear-direct-all", []),
     }
+
+
+GROUND_TRUTH = "ground_truth"
+GROUND_TRUTH_STAGES = ("data", "sft_policy", "policy")  # the policy stage runs GRPO in MuJoCo, not a world model
 
 
 # Stage -> the config sections its result depends on (beyond the seed, which is --shared-seed for all).
@@ -208,13 +224,22 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                     per_seed = ", ".join(f"{v:+.4g} (s{seed})" for seed, v in zip(d["seeds"], d["diffs"]))
                     lines.append(f"| {key} | {per_seed} | {d['mean']:+.4g} | {d['ours_better']}/{d['n']} seeds |")
         else:
-            labels = sorted({l for run in (ours, baseline) for l in table.get(run, {}).get("success", {})},
-                            key=lambda l: int(l.rsplit(" ", 1)[-1]))
-            lines += ["| run | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
-            for run in (ours, baseline):
+            shown = [run for run in (ours, baseline, GROUND_TRUTH) if run in (ours, baseline) or run in table]
+            labels = sorted({l for run in shown for l in table.get(run, {}).get("success", {})}, key=_step)
+            lines += ["Real-environment success of the policy (greedy, MuJoCo) at each GRPO step:", "",
+                      "| run | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+            for run in shown:
                 success = table.get(run, {}).get("success", {})
-                lines.append(f"| {run} | " + " | ".join(
+                name = f"{run} (GRPO in MuJoCo: reference)" if run == GROUND_TRUTH else run
+                lines.append(f"| {name} | " + " | ".join(
                     _cell(success[l], "{:.3f}") if l in success else "" for l in labels) + " |")
+            gains = (pairs or {}).get(f"{ours} vs {baseline}", {})
+            if gains:
+                per_seed = ", ".join(f"{a:+.3f} vs {b:+.3f} (s{seed})"
+                                     for seed, a, b in zip(gains["seeds"], gains[ours], gains[baseline]))
+                lines += ["", f"GRPO gain (last evaluation minus step 0), paired by seed, `{ours}` vs `{baseline}`: "
+                          f"{per_seed}; difference {gains['mean']:+.3f} on average, `{ours}` gained more at "
+                          f"{gains['ours_better']}/{gains['n']} seeds."]
         lines.append("")
     if slices:
         lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | slices at once "
@@ -234,8 +259,8 @@ def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int],
                  slices: Sequence[dict] = (), **extra) -> dict:
     """Writes ``comparison.{json,md}`` in ``out`` for the runs finished so far."""
     table = aggregate(results)
-    pairs = {f"{ours} vs {baseline}": paired(results, ours, baseline, splits)
-             for _, ours, baseline, splits in COMPARISONS if splits}
+    pairs = {f"{ours} vs {baseline}": paired(results, ours, baseline, splits) if splits
+             else paired_gains(results, ours, baseline) for _, ours, baseline, splits in COMPARISONS}
     os.makedirs(out, exist_ok=True)
     finished = {run: len(per_seed) for run, per_seed in results.items()}
     with open(os.path.join(out, "comparison.json"), "w") as f:
@@ -262,13 +287,106 @@ def load_slices(directory: str) -> list[dict]:
     return sorted(slices, key=lambda s: (order.index(s["run"]) if s["run"] in order else len(order), s["seed"]))
 
 
-def hash_mismatches(slices: Sequence[dict]) -> dict[str, dict[str, list[str]]]:
-    """Shared-input keys whose hash differs between slices: ``{key: {hash: [slice files]}}``."""
-    seen: dict[str, dict[str, list[str]]] = {}
+def _by_shared_seed(slices: Sequence[dict]) -> dict[int, list[dict]]:
+    groups: dict[int, list[dict]] = {}
     for s in slices:
-        for key, digest in s.get("shared", {}).get("hashes", {}).items():
-            seen.setdefault(key, {}).setdefault(digest, []).append(s["file"])
-    return {key: groups for key, groups in seen.items() if len(groups) > 1}
+        groups.setdefault(int(s.get("shared", {}).get("seed") or 0), []).append(s)
+    return groups
+
+
+def hash_mismatches(slices: Sequence[dict]) -> dict[str, dict[str, list[str]]]:
+    """Shared-input keys whose hash differs between slices made from the same shared seed:
+    ``{key: {hash: [slice files]}}`` (the key names the shared seed where the slices have several;
+    slices of different shared seeds are different replicates and are not compared)."""
+    groups = _by_shared_seed(slices)
+    out = {}
+    for shared_seed, members in groups.items():
+        seen: dict[str, dict[str, list[str]]] = {}
+        for s in members:
+            for key, digest in s.get("shared", {}).get("hashes", {}).items():
+                seen.setdefault(key, {}).setdefault(digest, []).append(s["file"])
+        for key, by_digest in seen.items():
+            if len(by_digest) > 1:
+                out[key if len(groups) == 1 else f"{key} (shared seed {shared_seed})"] = by_digest
+    return out
+
+
+def agreed_hashes(slices: Sequence[dict], mismatches: dict) -> dict:
+    """The shared-input hashes the slices agree on; per shared seed (``{"shared seed K": {...}}``) where
+    the slices have several."""
+    groups = _by_shared_seed(slices)
+    per_seed = {shared_seed: {k: v for s in members for k, v in s.get("shared", {}).get("hashes", {}).items()
+                              if k not in mismatches and f"{k} (shared seed {shared_seed})" not in mismatches}
+                for shared_seed, members in groups.items()}
+    if len(per_seed) == 1:
+        return next(iter(per_seed.values()))
+    return {f"shared seed {k}": v for k, v in sorted(per_seed.items())}
+
+
+def _step(label: str) -> int:
+    return int(label.rsplit(" ", 1)[-1])
+
+
+def gain_of(record: dict) -> float | None:
+    """Real success at the last GRPO evaluation minus at the first (step 0), or ``None`` without two."""
+    success = record.get("success", {})
+    if len(success) < 2:
+        return None
+    labels = sorted(success, key=_step)
+    return success[labels[-1]] - success[labels[0]]
+
+
+def paired_gains(results: dict[str, list[dict]], ours: str, baseline: str) -> dict:
+    """Comparison 3 by seed: each run's GRPO gain (last evaluation minus step 0, the same supervised
+    policy at both runs' step 0), ``ours - baseline``, and at how many seeds ``ours`` gained more."""
+    by_seed = {run: {r["seed"]: gain_of(r) for r in results.get(run, [])} for run in (ours, baseline)}
+    seeds = sorted(s for s in set(by_seed[ours]) & set(by_seed[baseline])
+                   if by_seed[ours][s] is not None and by_seed[baseline][s] is not None)
+    if not seeds:
+        return {}
+    diffs = [by_seed[ours][s] - by_seed[baseline][s] for s in seeds]
+    return {"seeds": seeds, ours: [by_seed[ours][s] for s in seeds], baseline: [by_seed[baseline][s] for s in seeds],
+            "diffs": diffs, "mean": float(np.mean(diffs)), "ours_better": sum(d > 0 for d in diffs), "n": len(diffs)}
+
+
+def plot_success_curves(slices: Sequence[dict], path: str,
+                        runs: Sequence[str] = ("sword", "wovr", GROUND_TRUTH)) -> str | None:
+    """Comparison 3: real success against GRPO steps, per run (mean over seeds, each seed a thin line,
+    the first seed's 95% interval shaded) -> ``path`` (PNG); ``None`` when no slice has a curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per_run = {run: [s for s in slices if s["run"] == run and s.get("success_curve")] for run in runs}
+    if not any(per_run.values()):
+        return None
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    colours = {"sword": "tab:red", "wovr": "tab:blue", GROUND_TRUTH: "k"}
+    for run, members in per_run.items():
+        if not members:
+            continue
+        colour = colours.get(run, None)
+        steps = [p["step"] for p in members[0]["success_curve"]]
+        curves = [[p["mean"] for p in m["success_curve"]] for m in members
+                  if [p["step"] for p in m["success_curve"]] == steps]
+        for curve in curves if len(curves) > 1 else ():
+            ax.plot(steps, curve, color=colour, lw=0.6, alpha=0.45)
+        ci = [p.get("ci95") for p in members[0]["success_curve"]]
+        if all(ci):
+            ax.fill_between(steps, [c[0] for c in ci], [c[1] for c in ci], color=colour, alpha=0.12, lw=0)
+        label = f"{run} (n={len(curves)})" + (": GRPO in MuJoCo, reference" if run == GROUND_TRUTH else "")
+        ax.plot(steps, np.mean(curves, axis=0), color=colour, lw=2, marker="o", ls="--" if run == GROUND_TRUTH else "-",
+                label=label)
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel("real-environment success")
+    ax.set_title("GRPO in the Sword vs the WoVR world model")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 CURVE_METRICS = (("latent_mse", "latent MSE (no VAE error)"), ("lpips", "LPIPS"), ("probe_ee_cm", "end-effector error (cm)"))
@@ -344,7 +462,7 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     for s in slices:
         results.setdefault(s["run"], []).append(s)
     seeds = sorted({s["seed"] for s in slices})
-    agreed = {k: v for s in slices for k, v in s.get("shared", {}).get("hashes", {}).items() if k not in mismatches}
+    agreed = agreed_hashes(slices, mismatches)
     listing = [{"file": s["file"], "run": s["run"], "seed": s["seed"], "device": s.get("device", {}).get("kind"),
                 "wall_seconds": s.get("wall_seconds"), "slices_at_once": s.get("slices_at_once", 1), "commit": s.get("code", {}).get("commit")} for s in slices]
     table = write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],
@@ -353,13 +471,15 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     if any(s["run"] == "no_augmentation" for s in slices):
         plot_horizon_curves(slices, os.path.join(directory, "augmentation_vs_none.png"),
                             runs=("sword", "no_augmentation"), splits=("mixed",))
+    plot_success_curves(slices, os.path.join(directory, "grpo_sword_vs_wovr.png"))
     return table
 
 
 # ---- running slices ----
 
 def _needs_policy(run: str) -> bool:
-    return any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS if not splits)
+    return run == GROUND_TRUTH or any(run in (ours, baseline) for _, ours, baseline, splits in COMPARISONS
+                                      if not splits)
 
 
 EVALUATION_ONLY = ("probe", "evaluate", "report")  # left out by --no-evaluate (the report needs the evaluation)
@@ -371,6 +491,8 @@ def _stage_names(run: str, *, policy: bool = True, evaluate: bool = True) -> lis
     evaluation, its probe and the report)."""
     from train import pipeline
 
+    if run == GROUND_TRUTH:
+        return list(GROUND_TRUTH_STAGES)
     names = [stage.name for stage in pipeline.STAGES]
     if not evaluate:
         return [n for n in names if n not in EVALUATION_ONLY]
@@ -388,6 +510,27 @@ def _run_config(run: str, size: str, seed: int, workdir: str,
     return config, cfg, dotted
 
 
+def shared_dir_of(out: str, run: str, shared_seed: int) -> str:
+    """Where ``run``'s shared stages at ``shared_seed`` live: ``<out>/shared/<run>`` at seed 0 (the
+    default), ``<out>/shared-seed<k>/<run>`` otherwise. Runs adopt each other's stages only within one
+    such root, so stages built at different seeds never mix."""
+    root = "shared" if shared_seed == 0 else f"shared-seed{shared_seed}"
+    return os.path.join(out, root, run)
+
+
+def ground_truth_stages() -> list:
+    """The ``ground_truth`` run's stages: the pipeline's data and supervised policy (shared), then GRPO
+    against the MuJoCo environments from that policy (:func:`train.pipeline_policy.grpo_in_ground_truth`)."""
+    from train import pipeline, pipeline_policy
+    from train.stagerunner import Stage
+
+    by_name = {stage.name: stage for stage in pipeline.STAGES}
+    return [by_name["data"], by_name["sft_policy"],
+            Stage("policy", lambda ctx: pipeline_policy.grpo_in_ground_truth(ctx),
+                  "GRPO against the MuJoCo environments (no world model): comparison 3's upper reference",
+                  needs=("data", "sft_policy"))]
+
+
 def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: Sequence[str],
                  policy: bool = True, parallel: int = 0, evaluate: bool = True) -> tuple[str, dict, list[str]]:
     """Builds (or finds) the shared stages ``run`` needs in ``<out>/shared/<run>`` at ``shared_seed``.
@@ -401,11 +544,11 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     from configs.cli import to_dict
     from train import pipeline, stagerunner
 
-    shared_dir = os.path.join(out, "shared", run)
+    shared_dir = shared_dir_of(out, run, shared_seed)
     config, cfg, dotted = _run_config(run, size, shared_seed, shared_dir, overrides)
     stagerunner.check_workdir_config(cfg, shared_dir)
     wanted = [name for name in _stage_names(run, policy=policy, evaluate=evaluate) if name in SHAREABLE]
-    for other in sorted(glob.glob(os.path.join(out, "shared", "*", "config.json"))):
+    for other in sorted(glob.glob(os.path.join(os.path.dirname(shared_dir), "*", "config.json"))):
         donor = os.path.dirname(other)
         if os.path.abspath(donor) != os.path.abspath(shared_dir):
             with open(other) as f:
@@ -468,8 +611,10 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     slice for comparisons 1 and 2 only, recorded as such. ``evaluate=False`` leaves out the
     world-model evaluation (and its probe and the report): a comparison-3 slice that only trains
     GRPO and measures real success, recorded as such. ``parallel`` > 0: stages in their own
-    processes, that many side by side (``train.pipeline --parallel``); the same results."""
-    from train import pipeline
+    processes, that many side by side (``train.pipeline --parallel``); the same results. The
+    ``ground_truth`` run adopts the data and supervised policy and runs GRPO against MuJoCo in this
+    process (one stage; ``parallel`` does not apply to it)."""
+    from train import pipeline, stagerunner
 
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     start = time.perf_counter()
@@ -484,12 +629,17 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     shared_seconds = time.perf_counter() - start
     last = _stage_names(run, policy=policy, evaluate=evaluate)[-1]
     skip = () if evaluate else tuple(n for n in EVALUATION_ONLY if n != "report")  # report: after `last`
-    launch = None
-    if parallel:
-        launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after", last,
-                                          *(["--skip", ",".join(skip)] if skip else [])], workdir)
-    stages = pipeline.run(cfg, stop_after=last, skip=skip, cfg_name=config, overrides=dotted, launch=launch,
-                          max_running=max(parallel, 1))
+    if run == GROUND_TRUTH:
+        stagerunner.check_workdir_config(cfg, workdir)
+        stages = stagerunner.run_stages(ground_truth_stages(), stagerunner.Context(
+            cfg=cfg, workdir=workdir, cfg_name=config, overrides=dotted))
+    else:
+        launch = None
+        if parallel:
+            launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after",
+                                              last, *(["--skip", ",".join(skip)] if skip else [])], workdir)
+        stages = pipeline.run(cfg, stop_after=last, skip=skip, cfg_name=config, overrides=dotted, launch=launch,
+                              max_running=max(parallel, 1))
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
     shared["hashes"] = shared_hashes(cfg, stages)
@@ -525,9 +675,10 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     only adopt them. A failed slice starts no new ones; the running ones finish; then ``RuntimeError``
     names the failed slices and their logs (a rerun skips every finished stage)."""
     if not args.no_share:
-        for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
-            build_shared(run, args.size, out=args.out, shared_seed=args.shared_seed, overrides=overrides,
-                         policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
+        for shared_seed in sorted({shared_seed_of(args.shared_seed, seed) for seed in seeds}):
+            for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
+                build_shared(run, args.size, out=args.out, shared_seed=shared_seed, overrides=overrides,
+                             policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
     from train.pipeline import without_flags
 
     base = without_flags(argv, {"--slices-at-once": True, "--runs": True, "--seeds": True})
@@ -572,10 +723,11 @@ def slice_command(run: str, seed: int, *, size: str, shared_seed: int, share: bo
     return shlex.join(["python", "-m", "train.compare", *argv, *([] if share else ["--no-share"]), *overrides])
 
 
-def parse_runs(text: str, size: str) -> list[str]:
+def parse_runs(text: str, size: str, *, policy: bool = True) -> list[str]:
+    """``--runs``; empty: every run (without ``policy``, every run but ``ground_truth``, which is all policy)."""
     known = runs_for(size)
     if not text:
-        return list(known)
+        return [run for run in known if policy or run != GROUND_TRUTH]
     names = text.split(",")
     unknown = [n for n in names if n not in known]
     if unknown:
@@ -583,6 +735,26 @@ def parse_runs(text: str, size: str) -> list[str]:
     if len(set(names)) < len(names):
         raise UsageError(f"--runs: a run is listed twice in {text!r}")
     return names
+
+
+def parse_shared_seed(text: str) -> int | str:
+    """``--shared-seed``: a non-negative integer, or ``slice`` (each seed's shared stages at that seed)."""
+    if text == "slice":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"--shared-seed takes a non-negative integer or 'slice', got {text!r}")
+    return value
+
+
+def shared_seed_of(shared_seed: int | str, seed: int) -> int:
+    """The seed of the shared stages a slice at ``seed`` uses (``--shared-seed``, parsed)."""
+    return seed if shared_seed == "slice" else int(shared_seed)
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -619,7 +791,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--runs", default="", help=f"comma-separated runs (default: all of {', '.join(runs_for('tiny'))})")
     parser.add_argument("--out", default="runs/compare", help="work dirs: <out>/<run>/seed<k>, <out>/shared/<run>")
     parser.add_argument("--results", default="", help="slice files and table (default benchmarks/results/compare/<size>)")
-    parser.add_argument("--shared-seed", type=int, default=0, help="seed of the shared stages (data, VAE, ...)")
+    parser.add_argument("--shared-seed", type=parse_shared_seed, default=0,
+                        help="seed of the shared stages (data, VAE, ...); 'slice': each seed's own, built at that "
+                             "seed (each seed a whole replicate of the pipeline, its runs still paired)")
     parser.add_argument("--no-share", action="store_true", help="make every stage of every slice from its own seed")
     parser.add_argument("--parallel", type=int, default=0, metavar="N",
                         help="stages in their own processes, N side by side where their inputs allow "
@@ -644,10 +818,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise UsageError(f"--parallel must be >= 0, got {args.parallel}")
     if args.slices_at_once < 1:
         raise UsageError(f"--slices-at-once must be >= 1, got {args.slices_at_once}")
-    seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size)
+    seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size, policy=not args.no_policy)
     if args.no_evaluate and (args.no_policy or not all(_needs_policy(r) for r in runs)):
-        raise UsageError("--no-evaluate is for comparison-3 slices (runs sword, wovr, with their policy stages): "
-                         f"got --runs {','.join(runs)}" + (" with --no-policy" if args.no_policy else ""))
+        raise UsageError("--no-evaluate is for comparison-3 slices (runs sword, wovr, ground_truth, with their policy "
+                         f"stages): got --runs {','.join(runs)}" + (" with --no-policy" if args.no_policy else ""))
+    if args.no_policy and GROUND_TRUTH in runs:
+        raise UsageError(f"--runs {GROUND_TRUTH} is GRPO against the environments (comparison 3's reference): it "
+                         "cannot run with --no-policy")
     results_dir = args.results or os.path.join(REPO, "benchmarks", "results", "compare", args.size)
     os.makedirs(results_dir, exist_ok=True)
     invocation = shlex.join(["python", "-m", "train.compare", *argv])
@@ -662,10 +839,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     at_once = int(os.environ.get(SLICES_AT_ONCE_ENV, "1"))
     for seed in seeds:
         for run in runs:
-            record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=args.shared_seed,
+            shared_seed = shared_seed_of(args.shared_seed, seed)
+            record = run_slice(run, seed, size=args.size, out=args.out, shared_seed=shared_seed,
                                share=not args.no_share, overrides=overrides, policy=not args.no_policy,
                                parallel=args.parallel, evaluate=not args.no_evaluate)
-            record["command"] = slice_command(run, seed, size=args.size, shared_seed=args.shared_seed,
+            record["command"] = slice_command(run, seed, size=args.size, shared_seed=shared_seed,
                                               share=not args.no_share, overrides=overrides, policy=not args.no_policy,
                                               evaluate=not args.no_evaluate)
             record["invocation"] = invocation

@@ -1,4 +1,5 @@
-"""Pipeline stages: reward model, supervised policy, then GRPO inside the world model with simulator evaluation.
+"""Pipeline stages: reward model, supervised policy, then GRPO inside the world model with simulator evaluation
+(and GRPO against the ground truth, the reference ``train.compare`` runs beside it).
 
 Each part is its own entry point (``train.train_reward``, ``train.train_policy``, ``train.grpo``),
 whose ``run`` is called here with the pipeline's typed config and work dir. They are three stages so
@@ -64,10 +65,27 @@ def grpo_in_world_model(ctx: Context) -> dict:
                              vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
                              reward=ctx.results["reward_model"]["path"])
     result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
+    drop = ("seconds", "path")
+    return {"reward_model": {k: v for k, v in ctx.results["reward_model"].items() if k not in drop},
+            **_policy_result(ctx, result)}
+
+
+def grpo_in_ground_truth(ctx: Context) -> dict:
+    """GRPO against the MuJoCo environments themselves, from the same supervised policy: the upper
+    reference for GRPO in a learned simulator (``train.compare``'s ``ground_truth`` run). It needs only
+    the demonstrations and the supervised policy; rollouts follow ``rl.env``."""
+    from train import grpo
+
+    inputs = grpo.GRPOInputs(demos=(_demos(ctx),), policy=ctx.results["sft_policy"]["path"])
+    result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="env", env_workers=cpu_workers())
+    return _policy_result(ctx, result)
+
+
+def _policy_result(ctx: Context, result: dict) -> dict:
+    """A GRPO stage's record: the supervised policy it started from, its run and real success per step."""
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     drop = ("seconds", "path")
     return {
-        "reward_model": {k: v for k, v in ctx.results["reward_model"].items() if k not in drop},
         "sft": {k: v for k, v in ctx.results["sft_policy"].items() if k not in drop},
         "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"]},
         "success": success,
