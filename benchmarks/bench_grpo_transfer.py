@@ -58,10 +58,10 @@ def commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
 
 def gain_interval(a: dict, b: dict) -> list[float]:
     """95% interval of ``rate(b) - rate(a)`` for two evaluation points: the Newcombe interval every
-    GRPO gain in this project is reported with (:func:`benchmarks.bench_policy.diff_interval`)."""
-    from benchmarks.bench_policy import diff_interval
+    GRPO gain in this project is reported with (:func:`sword_jax.rl.env_rollout.difference_interval`)."""
+    from sword_jax.rl.env_rollout import difference_interval
 
-    return list(diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"]))
+    return list(difference_interval(a["successes"], a["episodes"], b["successes"], b["episodes"]))
 
 
 def _blocks(values: Sequence[float], size: int = 10) -> list[float]:

@@ -29,7 +29,6 @@ import argparse
 import dataclasses
 import glob
 import json
-import math
 import os
 import subprocess
 import sys
@@ -39,6 +38,7 @@ import numpy as np
 
 import configs
 from benchmarks import common
+from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
 
 def _gen_demos(out: str, tasks: list[int], per_task: int, resolution: int, noise: float, noisy_share: float,
@@ -96,17 +96,6 @@ def _flatten(tree, prefix=()):
             yield from _flatten(v, prefix + (k,))
         else:
             yield prefix + (k,), v
-
-
-def diff_interval(a: int, n: int, b: int, m: int) -> tuple[float, float]:
-    """95% Newcombe (Wilson-based) interval of the difference of two success rates b/m - a/n."""
-    from sword_jax.rl.env_rollout import wilson_interval
-
-    p1, p2 = a / n, b / m
-    l1, u1 = wilson_interval(a, n)
-    l2, u2 = wilson_interval(b, m)
-    d = p2 - p1
-    return (d - math.sqrt((p2 - l2) ** 2 + (u1 - p1) ** 2), d + math.sqrt((u2 - p2) ** 2 + (p1 - l1) ** 2))
 
 
 def run_sft(cfg, args) -> dict:

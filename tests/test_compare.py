@@ -436,8 +436,9 @@ def _fake_ground_truth_grpo(calls):
         calls.append(("ground_truth_grpo", ctx.workdir, ctx.cfg.seed, sorted(ctx.results)))
         grpo_dir = ctx.path("rl", "grpo")
         os.makedirs(grpo_dir, exist_ok=True)
-        points = [{"step": 0, "mean": 0.25, "ci95": [0.2, 0.3]}, {"step": 10, "mean": 0.5 + 0.01 * ctx.cfg.seed,
-                                                                  "ci95": [0.45, 0.55]}]
+        points = [{"step": 0, "mean": 0.25, "ci95": [0.2, 0.3], "successes": 25, "episodes": 100},
+                  {"step": 10, "mean": 0.5 + 0.01 * ctx.cfg.seed, "ci95": [0.45, 0.55],
+                   "successes": 50 + ctx.cfg.seed, "episodes": 100}]
         with open(os.path.join(grpo_dir, "success_curve.json"), "w") as f:
             json.dump({"points": points}, f)
         return pipeline_policy._policy_result(ctx, {"curve": points, "workdir": grpo_dir})
@@ -485,7 +486,11 @@ def test_shared_seed_slice_replicates_each_seed_and_ground_truth_is_the_referenc
     assert gains["seeds"] == [1, 2] and gains["n"] == 2 and np.allclose(gains["sword"], [0.25, 0.25])
     text = (results / "comparison.md").read_text()
     assert "| ground_truth (GRPO in MuJoCo: reference) | 0.250 ± 0 (n=2) | 0.515 ± 0.0071 (n=2) |" in text
-    assert "gained more at 0/2 seeds" in text and "WARNING" not in text
+    assert "gained more than `wovr` at 0/2 seeds" in text and "WARNING" not in text
+    from sword_jax.rl.env_rollout import difference_interval
+
+    low, high = difference_interval(25, 100, 52, 100)
+    assert f"| 2 | +0.250 | +0.250 | +0.270 [{low:+.3f}, {high:+.3f}] | +0.000 |" in text
     assert (results / "grpo_sword_vs_wovr.png").stat().st_size > 0
 
 
@@ -521,3 +526,31 @@ def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_po
     assert seen["simulator"] == "env" and seen["inputs"].policy == "policy_sft"
     assert seen["inputs"].demos == ("demos.hdf5",) and not seen["inputs"].world_model
     assert out["success"] == {"grpo step 0": 0.3, "grpo step 5": 0.4} and out["sft"] == {"loss": 1.5}
+
+
+def test_table_names_missing_comparisons_and_slices_run_with_other_overrides(tmp_path):
+    a = {**_record("wovr", 0, 0.1, (0.3, 0.2)), "overrides": ["--x=1", "--y=2"]}
+    b = {**_record("sword", 0, 0.1, (0.3, 0.4)), "overrides": ["--x=1"]}
+    _write(tmp_path, a)
+    _write(tmp_path, b)
+    compare.merge(str(tmp_path))
+    text = (tmp_path / "comparison.md").read_text()
+    assert "> - `--y=2` in wovr_seed0.json only" in text and "`--x=1`" not in text
+    assert "No evaluated slices" not in text  # the fake records have metrics
+    assert compare.override_differences([a, {**a, "file": "c"}]) == {}
+    assert "gained more than `wovr` at 1/1 seeds" in text  # sword +0.1 vs wovr -0.1
+    only = tmp_path / "only_wovr"
+    _write(only, a)
+    compare.merge(str(only))
+    assert "No evaluated slices of `sword` or `teacher_forcing` here." in (only / "comparison.md").read_text()
+
+
+def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
+    rate = lambda r, of: {"rate": r, "of": of, "ci95": [0.0, 1.0]}  # noqa: E731
+    replay = {"imagined_success_by_horizon": {"48": {"real_success": rate(0.4, 43), "real_failure": rate(0.19, 57)},
+                                              "all": {"real_success": rate(0.5, 43), "real_failure": rate(0.6, 57)}},
+              "resample_disagreement": rate(0.2, 100)}
+    lines = compare.replay_lines([{"run": "wovr", "seed": 0, "success_curve": [{"step": 0, "replay": replay}]},
+                                  {"run": "sword", "seed": 0, "success_curve": [{"step": 0}]}])
+    assert lines[-1] == "| wovr | 0 | 0.40 / 0.19 (of 43 / 57) | 0.50 / 0.60 (of 43 / 57) | 0.20 |"
+    assert compare.replay_lines([{"run": "sword", "seed": 0}]) == []

@@ -195,6 +195,11 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
             lines.append(f"> - `{key}`: " + "; ".join(f"{digest[:12]} in {', '.join(names)}"
                                                       for digest, names in groups.items()))
         lines.append("")
+    differing = override_differences(slices)
+    if differing:
+        lines += ["> **Note: the slices were run with different overrides** (each slice's `command` has them all):", ">"]
+        lines += [f"> - `{o}` in {', '.join(names)} only" for o, names in differing.items()]
+        lines.append("")
     lines += [f"# Sword comparisons (seeds {', '.join(map(str, seeds))}; mean ± std over the seeds finished, "
               "n = seeds in the cell)", ""]
     for title, ours, baseline, splits in COMPARISONS:
@@ -202,6 +207,9 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
         if splits:
             keys = [f"{s}/{m}" for s in splits for m in METRICS
                     if any(f"{s}/{m}" in table.get(run, {}).get("metrics", {}) for run in (ours, baseline))]
+            if not keys:
+                lines += [f"No evaluated slices of `{ours}` or `{baseline}` here.", ""]
+                continue
             lines += ["| run | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
             for run in (ours, baseline):
                 cells = [_cell(table[run]["metrics"][k], "{:.4g}")
@@ -226,6 +234,9 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
         else:
             shown = [run for run in (ours, baseline, GROUND_TRUTH) if run in (ours, baseline) or run in table]
             labels = sorted({l for run in shown for l in table.get(run, {}).get("success", {})}, key=_step)
+            if not labels:
+                lines += [f"No GRPO slices of `{ours}` or `{baseline}` here.", ""]
+                continue
             lines += ["Real-environment success of the policy (greedy, MuJoCo) at each GRPO step:", "",
                       "| run | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
             for run in shown:
@@ -235,11 +246,18 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                     _cell(success[l], "{:.3f}") if l in success else "" for l in labels) + " |")
             gains = (pairs or {}).get(f"{ours} vs {baseline}", {})
             if gains:
-                per_seed = ", ".join(f"{a:+.3f} vs {b:+.3f} (s{seed})"
-                                     for seed, a, b in zip(gains["seeds"], gains[ours], gains[baseline]))
-                lines += ["", f"GRPO gain (last evaluation minus step 0), paired by seed, `{ours}` vs `{baseline}`: "
-                          f"{per_seed}; difference {gains['mean']:+.3f} on average, `{ours}` gained more at "
-                          f"{gains['ours_better']}/{gains['n']} seeds."]
+                runs = [r for r in (ours, baseline, GROUND_TRUTH) if any(g is not None for g in gains.get(r, []))]
+                lines += ["", "GRPO gain (last evaluation minus step 0; 95% Newcombe interval) by seed:", "",
+                          "| seed | " + " | ".join(runs) + f" | `{ours}` - `{baseline}` |", "|---|" + "---|" * (len(runs) + 1)]
+                for i, seed in enumerate(gains["seeds"]):
+                    cells = []
+                    for run in runs:
+                        gain, ci = gains[run][i], gains.get("gain_ci95", {}).get(run, [None] * (i + 1))[i]
+                        cells.append("" if gain is None else f"{gain:+.3f}" + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else ""))
+                    lines.append(f"| {seed} | " + " | ".join(cells) + f" | {gains['diffs'][i]:+.3f} |")
+                lines += ["", f"`{ours}` gained more than `{baseline}` at {gains['ours_better']}/{gains['n']} seeds "
+                          f"(mean difference {gains['mean']:+.3f})."]
+            lines += replay_lines([s for s in slices if s["run"] in (ours, baseline)])
         lines.append("")
     if slices:
         lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | slices at once "
@@ -253,6 +271,41 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                          f"{s.get('shared', {}).get('hashes', {}).get('vae', '?')[:12]} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def replay_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]:
+    """Markdown: can each learned simulator tell the supervised policy's real successes from its real
+    failures? From the replay at the first GRPO evaluation (the same real episodes for every run of a
+    seed): imagined success of real successes / real failures by action ``horizon`` and over the whole
+    replay, and how often another noise draw changes the verdict."""
+    rows = []
+    for s in slices:
+        replay = (s.get("success_curve") or [{}])[0].get("replay") or {}
+        by_h = replay.get("imagined_success_by_horizon", {})
+        if not by_h:
+            continue
+        cells = [f"{by_h[h]['real_success']['rate']:.2f} / {by_h[h]['real_failure']['rate']:.2f} "
+                 f"(of {by_h[h]['real_success']['of']} / {by_h[h]['real_failure']['of']})" if h in by_h else ""
+                 for h in (horizon, "all")]
+        rows.append(f"| {s['run']} | {s['seed']} | " + " | ".join(cells) +
+                    f" | {replay.get('resample_disagreement', {}).get('rate', float('nan')):.2f} |")
+    if not rows:
+        return []
+    return ["", "Replay of the supervised policy's real evaluation episodes in each learned simulator (step 0): "
+            "imagined success of real successes / real failures:", "",
+            f"| run | seed | by action {horizon} | whole replay | another noise draw disagrees |", "|---|---|---|---|---|",
+            *rows]
+
+
+def override_differences(slices: Sequence[dict]) -> dict[str, list[str]]:
+    """Overrides that some slices ran with and others did not: ``{override: [slice files with it]}``."""
+    sets = {s.get("file", f"{s['run']}_seed{s['seed']}"): set(s.get("overrides", [])) for s in slices}
+    every = set.intersection(*sets.values()) if sets else set()
+    out: dict[str, list[str]] = {}
+    for name, overrides in sets.items():
+        for o in sorted(overrides - every):
+            out.setdefault(o, []).append(name)
+    return out
 
 
 def write_tables(out: str, results: dict[str, list[dict]], seeds: Sequence[int], *, mismatches: dict | None = None,
@@ -336,17 +389,36 @@ def gain_of(record: dict) -> float | None:
     return success[labels[-1]] - success[labels[0]]
 
 
-def paired_gains(results: dict[str, list[dict]], ours: str, baseline: str) -> dict:
+def gain_interval_of(record: dict) -> list[float] | None:
+    """The 95% Newcombe interval of :func:`gain_of` from the success curve's counts, where it has them."""
+    from sword_jax.rl.env_rollout import difference_interval
+
+    points = record.get("success_curve") or []
+    if len(points) < 2 or not all("successes" in p and "episodes" in p for p in (points[0], points[-1])):
+        return None
+    first, last = points[0], points[-1]
+    return [round(x, 4) for x in difference_interval(first["successes"], first["episodes"], last["successes"],
+                                                     last["episodes"])]
+
+
+def paired_gains(results: dict[str, list[dict]], ours: str, baseline: str,
+                 reference: str = GROUND_TRUTH) -> dict:
     """Comparison 3 by seed: each run's GRPO gain (last evaluation minus step 0, the same supervised
-    policy at both runs' step 0), ``ours - baseline``, and at how many seeds ``ours`` gained more."""
-    by_seed = {run: {r["seed"]: gain_of(r) for r in results.get(run, [])} for run in (ours, baseline)}
+    policy at both runs' step 0) with its 95% interval, ``ours - baseline``, and at how many seeds
+    ``ours`` gained more; the ``reference`` run's gains (GRPO in MuJoCo) where it ran at those seeds."""
+    records = {run: {r["seed"]: r for r in results.get(run, [])} for run in (ours, baseline, reference)}
+    by_seed = {run: {seed: gain_of(r) for seed, r in per_seed.items()} for run, per_seed in records.items()}
     seeds = sorted(s for s in set(by_seed[ours]) & set(by_seed[baseline])
                    if by_seed[ours][s] is not None and by_seed[baseline][s] is not None)
     if not seeds:
         return {}
     diffs = [by_seed[ours][s] - by_seed[baseline][s] for s in seeds]
-    return {"seeds": seeds, ours: [by_seed[ours][s] for s in seeds], baseline: [by_seed[baseline][s] for s in seeds],
-            "diffs": diffs, "mean": float(np.mean(diffs)), "ours_better": sum(d > 0 for d in diffs), "n": len(diffs)}
+    out = {"seeds": seeds, ours: [by_seed[ours][s] for s in seeds], baseline: [by_seed[baseline][s] for s in seeds],
+           "diffs": diffs, "mean": float(np.mean(diffs)), "ours_better": sum(d > 0 for d in diffs), "n": len(diffs),
+           "gain_ci95": {run: [gain_interval_of(records[run][s]) if s in records[run] else None for s in seeds]
+                         for run in (ours, baseline, reference)}}
+    out[reference] = [by_seed[reference].get(s) for s in seeds]
+    return out
 
 
 def plot_success_curves(slices: Sequence[dict], path: str,

@@ -224,3 +224,13 @@ def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float
     centre = (p + z * z / (2 * trials)) / denom
     half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denom
     return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def difference_interval(a: int, n: int, b: int, m: int) -> tuple[float, float]:
+    """95% Newcombe (Wilson-based) interval of the difference of two success rates ``b/m - a/n`` (every
+    GRPO gain in this project is reported with it)."""
+    p1, p2 = a / n, b / m
+    l1, u1 = wilson_interval(a, n)
+    l2, u2 = wilson_interval(b, m)
+    d = p2 - p1
+    return (d - math.sqrt((p2 - l2) ** 2 + (u1 - p1) ** 2), d + math.sqrt((u2 - p2) ** 2 + (p1 - l1) ** 2))
