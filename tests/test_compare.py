@@ -552,5 +552,13 @@ def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
               "resample_disagreement": rate(0.2, 100)}
     lines = compare.replay_lines([{"run": "wovr", "seed": 0, "success_curve": [{"step": 0, "replay": replay}]},
                                   {"run": "sword", "seed": 0, "success_curve": [{"step": 0}]}])
-    assert lines[-1] == "| wovr | 0 | 0.40 / 0.19 (of 43 / 57) | 0.50 / 0.60 (of 43 / 57) | 0.20 |"
+    assert lines[-1] == "| wovr | 0 | 0.40 / 0.19 (of 43 / 57) | 0.50 / 0.60 (of 43 / 57) |  | 0.20 |"
     assert compare.replay_lines([{"run": "sword", "seed": 0}]) == []
+    # Two runs replayed the same episodes: each run's separation and their paired difference.
+    real = [1, 1, 0, 0]
+    blind = {**replay, "real_success_flags": real, "imagined_first_success": [30, -1, 30, -1]}
+    seeing = {**replay, "real_success_flags": real, "imagined_first_success": [30, 40, -1, -1]}
+    lines = compare.replay_lines([{"run": "sword", "seed": 3, "success_curve": [{"replay": blind}]},
+                                  {"run": "wovr", "seed": 3, "success_curve": [{"replay": seeing}]}])
+    assert "| +0.00 [" in lines[-4] and "| +1.00 [+1.00, +1.00] |" in lines[-3]
+    assert lines[-1].startswith("- seed 3: `wovr` minus `sword` separation by action 48: +1.00 [")

@@ -410,3 +410,24 @@ def test_ground_truth_grpo_from_keyframes_needs_the_demonstrations(tmp_path):
         grpo_main.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "env",
                         "--rl.env.starts=keyframes", "--rl.policy.width=16", "--rl.policy.heads=2",
                         "--rl.policy.layers=1"])
+
+
+def test_separation_is_paired_over_the_same_episodes_and_refuses_one_sided_data():
+    from sword_jax.rl.sim_agreement import separation
+
+    real = np.array([1] * 40 + [0] * 60, bool)
+    blind = np.where(np.arange(100) % 5 == 0, 30, -1)  # 20% of each group, whatever the outcome
+    seeing = np.where(real, np.where(np.arange(100) % 2 == 0, 30, -1), np.where(np.arange(100) % 10 == 0, 30, -1))
+    late = np.where(real, 200, -1)  # separates perfectly, but only after the horizon
+    out = separation(real, [blind, seeing], 48, resamples=500)
+    (b, s) = out["per_simulator"]
+    assert b["separation"] == 0.0 and np.isclose(s["separation"], 0.5 - 0.1)
+    assert b["ci95"][0] < 0 < b["ci95"][1] and s["ci95"][0] > 0.1
+    assert np.isclose(out["difference"]["separation"], 0.4) and out["difference"]["ci95"][0] > 0.1
+    assert separation(real, [late], 48)["per_simulator"][0]["separation"] == 0.0
+    assert separation(real, [late], None)["per_simulator"][0]["separation"] == 1.0
+    assert "difference" not in separation(real, [late], None)
+    with pytest.raises(ValueError, match="both real successes and real failures"):
+        separation(np.ones(4, bool), [np.zeros(4)], 48)
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        separation(real, [blind[:10]], 48)

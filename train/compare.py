@@ -277,24 +277,47 @@ def replay_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]:
     """Markdown: can each learned simulator tell the supervised policy's real successes from its real
     failures? From the replay at the first GRPO evaluation (the same real episodes for every run of a
     seed): imagined success of real successes / real failures by action ``horizon`` and over the whole
-    replay, and how often another noise draw changes the verdict."""
-    rows = []
+    replay, the separation (the difference of the two) by ``horizon`` with its 95% bootstrap interval
+    (:func:`sword_jax.rl.sim_agreement.separation`), how often another noise draw changes the verdict,
+    and per seed the paired difference of two runs' separations."""
+    from sword_jax.rl.sim_agreement import separation
+
+    rows, diffs = [], []
+    by_seed: dict[int, list[tuple[dict, dict]]] = {}
     for s in slices:
         replay = (s.get("success_curve") or [{}])[0].get("replay") or {}
-        by_h = replay.get("imagined_success_by_horizon", {})
-        if not by_h:
-            continue
-        cells = [f"{by_h[h]['real_success']['rate']:.2f} / {by_h[h]['real_failure']['rate']:.2f} "
-                 f"(of {by_h[h]['real_success']['of']} / {by_h[h]['real_failure']['of']})" if h in by_h else ""
-                 for h in (horizon, "all")]
-        rows.append(f"| {s['run']} | {s['seed']} | " + " | ".join(cells) +
-                    f" | {replay.get('resample_disagreement', {}).get('rate', float('nan')):.2f} |")
+        if replay.get("imagined_success_by_horizon"):
+            by_seed.setdefault(s["seed"], []).append((s, replay))
+    for seed, members in sorted(by_seed.items()):
+        flags = [tuple(r.get("real_success_flags") or ()) for _, r in members]
+        paired = len(set(flags)) == 1 and flags[0] and all(r.get("imagined_first_success") for _, r in members)
+        seps = None
+        if paired and 0 < sum(flags[0]) < len(flags[0]):
+            seps = separation(np.asarray(flags[0]), [r["imagined_first_success"] for _, r in members], int(horizon))
+        for i, (s, replay) in enumerate(members):
+            by_h = replay["imagined_success_by_horizon"]
+            cells = [f"{by_h[h]['real_success']['rate']:.2f} / {by_h[h]['real_failure']['rate']:.2f} "
+                     f"(of {by_h[h]['real_success']['of']} / {by_h[h]['real_failure']['of']})" if h in by_h else ""
+                     for h in (horizon, "all")]
+            if seps:
+                sep = seps["per_simulator"][i]
+                cells.append(f"{sep['separation']:+.2f} [{sep['ci95'][0]:+.2f}, {sep['ci95'][1]:+.2f}]")
+            else:
+                cells.append("")
+            rows.append(f"| {s['run']} | {seed} | " + " | ".join(cells) +
+                        f" | {replay.get('resample_disagreement', {}).get('rate', float('nan')):.2f} |")
+        if seps and "difference" in seps:
+            d = seps["difference"]
+            diffs.append(f"- seed {seed}: `{members[1][0]['run']}` minus `{members[0][0]['run']}` separation by action "
+                         f"{horizon}: {d['separation']:+.2f} [{d['ci95'][0]:+.2f}, {d['ci95'][1]:+.2f}] (paired bootstrap "
+                         "over the same episodes)")
     if not rows:
         return []
     return ["", "Replay of the supervised policy's real evaluation episodes in each learned simulator (step 0): "
-            "imagined success of real successes / real failures:", "",
-            f"| run | seed | by action {horizon} | whole replay | another noise draw disagrees |", "|---|---|---|---|---|",
-            *rows]
+            "imagined success of real successes / real failures, and their difference (separation: 0 = the "
+            "verdict ignores the actions):", "",
+            f"| run | seed | by action {horizon} | whole replay | separation by action {horizon} (95%) | "
+            "another noise draw disagrees |", "|---|---|---|---|---|---|", *rows, *([""] + diffs if diffs else [])]
 
 
 def override_differences(slices: Sequence[dict]) -> dict[str, list[str]]:

@@ -260,6 +260,41 @@ def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
     return out
 
 
+def separation(real: np.ndarray, first_success: Sequence[np.ndarray], horizon: int | None = 48, *,
+               resamples: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """How well replays separate real outcomes by action ``horizon`` (``None``: the whole replay).
+
+    Separation = P(imagined success by ``horizon`` | real success) - P(... | real failure): 0 for a
+    simulator whose verdicts ignore the actions, 1 for a perfect one. ``first_success`` holds one or
+    more simulators' first imagined successes (-1: never) on the **same** real episodes, so their
+    difference is paired: the 95% intervals come from one bootstrap over episodes (resampled within
+    real successes and within real failures, keeping both groups' sizes). Returns per simulator
+    ``{"separation", "ci95"}`` in ``"per_simulator"`` and, for two, ``"difference"`` (second minus first)
+    with its interval."""
+    real = np.asarray(real, bool)
+    firsts = [np.asarray(f) for f in first_success]
+    if real.ndim != 1 or any(f.shape != real.shape for f in firsts):
+        raise ValueError(f"separation: real {real.shape} and every first_success must be equal 1-D shapes")
+    if real.all() or not real.any():
+        raise ValueError("separation needs both real successes and real failures among the episodes")
+    hits = np.stack([(f >= 0) if horizon is None else (f >= 0) & (f < horizon) for f in firsts]).astype(np.float64)
+    wins, losses = np.flatnonzero(real), np.flatnonzero(~real)
+
+    def sep(win_idx, loss_idx):
+        return hits[:, win_idx].mean(1) - hits[:, loss_idx].mean(1)
+
+    rng = np.random.default_rng(seed)
+    boot = np.stack([sep(rng.choice(wins, wins.size), rng.choice(losses, losses.size)) for _ in range(resamples)])
+    point = sep(wins, losses)
+    out: dict[str, Any] = {"horizon": horizon, "real_successes": int(wins.size), "real_failures": int(losses.size),
+                           "per_simulator": [{"separation": float(p), "ci95": np.percentile(boot[:, i], [2.5, 97.5]).tolist()}
+                                             for i, p in enumerate(point)]}
+    if len(firsts) == 2:
+        diff = boot[:, 1] - boot[:, 0]
+        out["difference"] = {"separation": float(point[1] - point[0]), "ci95": np.percentile(diff, [2.5, 97.5]).tolist()}
+    return out
+
+
 def _rate(hits: int, of: int) -> dict[str, Any]:
     """``hits / of`` with its 95% Wilson interval (``None`` rate where ``of`` is 0)."""
     return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
