@@ -562,3 +562,56 @@ def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
                                   {"run": "wovr", "seed": 3, "success_curve": [{"replay": seeing}]}])
     assert "| +0.00 [" in lines[-4] and "| +1.00 [+1.00, +1.00] |" in lines[-3]
     assert lines[-1].startswith("- seed 3: `wovr` minus `sword` separation by action 48: +1.00 [")
+
+
+def test_slices_start_as_soon_as_their_runs_shared_stages_are_built(tmp_path, monkeypatch):
+    """Each run's slices start once the parent has built that run's shared stages, before the next
+    run's are built; a failed build starts nothing new, lets the running slices finish, and is named."""
+    events = []
+    real_build = compare.build_shared
+
+    def build(run, size, **kwargs):
+        events.append(("build", run))
+        if run == "wovr" and kwargs["out"].endswith("fail"):
+            raise RuntimeError("disk full")
+        return real_build(run, size, **kwargs)
+
+    def launch(argv, log_path, env):
+        events.append(("launch", argv[argv.index("--runs") + 1]))
+        return _Exited(0)
+
+    from train import pipeline
+
+    monkeypatch.setattr(pipeline, "STAGES", _fake_stages([]))
+    monkeypatch.setattr(compare, "build_shared", build)
+    monkeypatch.setattr(compare, "launch_slice", launch)
+    argv = ["--size", "tiny", "--runs", "sword,wovr,ground_truth", "--seeds", "1", "--no-evaluate", "--shared-seed",
+            "slice", "--slices-at-once", "3", f"--results={tmp_path / 'r'}"]
+    with pytest.raises(SystemExit, match="no slice files"):  # the fake children write none
+        compare.main([*argv, f"--out={tmp_path / 'ok'}"])
+    assert events == [("build", "sword"), ("launch", "sword"), ("build", "wovr"), ("launch", "wovr"),
+                      ("build", "ground_truth"), ("launch", "ground_truth")]
+    events.clear()
+    with pytest.raises(RuntimeError, match=r"shared stages of wovr at seed 1 \(RuntimeError: disk full\); not started: "
+                                           r"wovr seed 1, ground_truth seed 1$"):
+        compare.main([*argv, f"--out={tmp_path / 'fail'}"])
+    assert events == [("build", "sword"), ("launch", "sword"), ("build", "wovr")]
+
+
+def test_shared_hashes_are_cached_per_file_until_the_file_changes(tmp_path, monkeypatch):
+    path = tmp_path / "x.npz"
+    np.savez(path, a=np.arange(3))
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return shared_inputs.hash_npz(str(path))
+
+    cache = str(tmp_path / "cache")
+    first = shared_inputs.cached_hash(cache, "npz", str(path), compute)
+    assert shared_inputs.cached_hash(cache, "npz", str(path), compute) == first and len(calls) == 1
+    assert shared_inputs.cached_hash(cache, "other kind", str(path), compute) == first and len(calls) == 2
+    np.savez(path, a=np.arange(4))
+    os.utime(path, ns=(1, 1))  # a rewrite changes the stamp even within the clock's resolution
+    assert shared_inputs.cached_hash(cache, "npz", str(path), compute) != first and len(calls) == 3
+    assert shared_inputs.cached_hash(None, "npz", str(path), compute) and len(calls) == 4  # no cache: always computed

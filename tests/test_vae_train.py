@@ -84,6 +84,8 @@ def test_vae_clips_are_raw_plus_training_styles(monkeypatch):
         styled_any |= bool(changed.any())
         np.testing.assert_array_equal(video, sampler.batch(step))  # a pure function of the step
     assert styled_any and raw_only.styled_clips == 0 and sampler.styled_clips > 0
+    # The first batch's time is split into clip sampling and restyling (its compile), and kept after it.
+    assert set(sampler.first_batch_seconds) == {"sample", "restyle"} and sampler.first_batch_seconds["restyle"] > 0
     assert seen and all(style_lib.style_split(jax.tree.map(lambda x, i=i: x[i], s)) == "train"
                         for s in seen for i in range(4))
 

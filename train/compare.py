@@ -737,7 +737,8 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
                               max_running=max(parallel, 1))
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
-    shared["hashes"] = shared_hashes(cfg, stages)
+    # the slices of one --out hash each shared file once between them (the later ones read the cache)
+    shared["hashes"] = shared_hashes(cfg, stages, cache_dir=os.path.join(out, "hash_cache") if share else None)
     shared["stage_seconds"] = {name: stages[name].get("seconds") for name in shared["adopted"]}
     own = {name: r.get("seconds") for name, r in stages.items() if name not in shared["adopted"]}
     return {
@@ -764,16 +765,14 @@ def launch_slice(argv: Sequence[str], log_path: str, env: dict):
 
 def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Sequence[int], args, overrides, *,
                             poll_s: float = 2.0) -> None:
-    """``--slices-at-once N``: every run's shared stages first (here, so no two slices build them at
-    once), then each (run, seed) slice as ``python -m train.compare ... --runs RUN --seeds K`` in its
-    own process, N at a time, in seed-major order. The children find the shared stages finished and
-    only adopt them. A failed slice starts no new ones; the running ones finish; then ``RuntimeError``
-    names the failed slices and their logs (a rerun skips every finished stage)."""
-    if not args.no_share:
-        for shared_seed in sorted({shared_seed_of(args.shared_seed, seed) for seed in seeds}):
-            for run in runs:  # in order: a later run adopts the earlier runs' stages where the sections agree
-                build_shared(run, args.size, out=args.out, shared_seed=shared_seed, overrides=overrides,
-                             policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
+    """``--slices-at-once N``: the parent builds the shared stages (here, so no two slices build them at
+    once), run by run, and starts each (run, seed) slice as ``python -m train.compare ... --runs RUN
+    --seeds K`` in its own process as soon as that run's shared stages are built, N at a time, in
+    seed-major order (a slice never starts before one listed ahead of it, so a cut-off lease leaves
+    whole seeds). While the parent builds the next run's stages (e.g. latents without augmentation)
+    the earlier runs' slices already train. The children find the shared stages finished and only
+    adopt them. A failed slice or shared build starts no new slices; the running ones finish; then
+    ``RuntimeError`` names what failed and the logs (a rerun skips every finished stage)."""
     from train.pipeline import without_flags
 
     base = without_flags(argv, {"--slices-at-once": True, "--runs": True, "--seeds": True})
@@ -781,16 +780,34 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     os.makedirs(logs, exist_ok=True)
     env = {**os.environ, SLICES_AT_ONCE_ENV: str(args.slices_at_once)}
     env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # several JAX processes share one device
+    # in order: a later run adopts the earlier runs' stages where the sections agree
+    builds = [] if args.no_share else [(shared_seed, run) for shared_seed in
+                                        sorted({shared_seed_of(args.shared_seed, seed) for seed in seeds})
+                                        for run in runs]
+    built: set[tuple[int, str]] = set()
     pending = [(run, seed) for seed in seeds for run in runs]
     running: dict[tuple[str, int], tuple] = {}
     failed: list[str] = []
-    while pending or running:
-        while pending and not failed and len(running) < args.slices_at_once:
+
+    def ready(run: str, seed: int) -> bool:
+        return args.no_share or (shared_seed_of(args.shared_seed, seed), run) in built
+
+    while pending or running or (builds and not failed):
+        while pending and not failed and len(running) < args.slices_at_once and ready(*pending[0]):
             run, seed = pending.pop(0)
             log_path = os.path.join(logs, f"{run}_seed{seed}.log")
             proc = launch_slice([*base, "--runs", run, "--seeds", str(seed)], log_path, env)
             running[(run, seed)] = (proc, log_path, time.perf_counter())
             print(f"[compare] slice {run} seed {seed}: started (log {log_path})", flush=True)
+        if builds and not failed:
+            shared_seed, run = builds.pop(0)
+            try:
+                build_shared(run, args.size, out=args.out, shared_seed=shared_seed, overrides=overrides,
+                             policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
+                built.add((shared_seed, run))
+            except Exception as error:  # the running slices still finish and are merged
+                failed.append(f"shared stages of {run} at seed {shared_seed} ({type(error).__name__}: {error})")
+            continue
         if not running:
             break
         time.sleep(poll_s)

@@ -82,29 +82,63 @@ def hash_checkpoint(path: str) -> str:
     return _hash_tree(tree)
 
 
-def shared_hashes(cfg, stages: dict) -> dict[str, str]:
+def cached_hash(cache_dir: str | None, kind: str, path: str, compute) -> str:
+    """``compute()``, remembered in ``cache_dir`` for ``(kind, path)`` as long as the path's size and
+    modification time stay (a stage's outputs are written once). Slices that adopted the same shared
+    stages then hash each input once between them; ``None``: no cache."""
+    if not cache_dir or not os.path.exists(path):  # nothing to stamp: computed every time
+        return compute()
+    import json
+
+    from train.stagerunner import write_json_atomic
+
+    stat = os.stat(path)
+    stamp = {"kind": kind, "path": os.path.abspath(path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    entry = os.path.join(cache_dir, hashlib.sha256(json.dumps(stamp, sort_keys=True).encode()).hexdigest()[:24] + ".json")
+    try:
+        with open(entry) as f:
+            saved = json.load(f)
+        if {k: saved.get(k) for k in stamp} == stamp:
+            return saved["hash"]
+    except (OSError, ValueError, KeyError):
+        pass
+    digest = compute()
+    os.makedirs(cache_dir, exist_ok=True)
+    write_json_atomic(entry, {**stamp, "hash": digest})
+    return digest
+
+
+def shared_hashes(cfg, stages: dict, *, cache_dir: str | None = None) -> dict[str, str]:
     """Hashes of the shared inputs a slice used, keyed so that equal keys must hold equal hashes.
 
     Latents depend on the augmentation setting, so their key names it. Parameters saved as ``.npz``
     (the probe) are hashed array by array, orbax directories (reward model, policy) as restored.
+    ``cache_dir``: remember each file's hash there (:func:`cached_hash`).
     """
+    def cached(kind, path, compute):
+        return cached_hash(cache_dir, kind, path, compute)
+
     hashes = {}
     if "data" in stages:
         for split in ("train", "heldout"):
-            hashes[f"data/{split}"] = hash_episodes(stages["data"][split]["path"])
+            path = stages["data"][split]["path"]
+            hashes[f"data/{split}"] = cached("episodes", path, lambda: hash_episodes(path))
         hashes["data"] = hashlib.sha256((hashes["data/train"] + hashes["data/heldout"]).encode()).hexdigest()
     if stages.get("policy_data", {}).get("path"):
-        hashes["data/policy_rollouts"] = hash_episodes(stages["policy_data"]["path"])
+        path = stages["policy_data"]["path"]
+        hashes["data/policy_rollouts"] = cached("episodes", path, lambda: hash_episodes(path))
     if "vae" in stages:
-        hashes["vae"] = hash_vae(cfg, stages["vae"]["path"])
+        path = stages["vae"]["path"]
+        hashes["vae"] = cached(f"vae:{cfg.vae.checkpoint}", path, lambda: hash_vae(cfg, path))
     if "latents" in stages:
-        hashes[f"latents[augment={'on' if cfg.augment.enabled else 'off'}]"] = hash_npz(stages["latents"]["path"])
+        path = stages["latents"]["path"]
+        hashes[f"latents[augment={'on' if cfg.augment.enabled else 'off'}]"] = cached("npz", path, lambda: hash_npz(path))
     for stage in ("probe", "reward_model", "sft_policy"):
         path = stages.get(stage, {}).get("path")
         if path and path.endswith(".npz"):
-            hashes[stage] = hash_npz(path)
+            hashes[stage] = cached("npz", path, lambda: hash_npz(path))
         elif path:
-            hashes[stage] = hash_checkpoint(path)
+            hashes[stage] = cached("checkpoint", path, lambda: hash_checkpoint(path))
     return hashes
 
 

@@ -145,9 +145,12 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
 
     def first_step_done() -> None:  # compile (and autotuning) time, separate from the step rate
         if is_main:
+            parts = getattr(sampler, "first_batch_seconds", {})
+            split = (f" (clip sampling {parts['sample']:.1f} s, restyling with its compile on "
+                     f"{jax.default_backend()} {parts['restyle']:.1f} s)" if parts else "")
             print(f"[train_vae] first step (compile included) done {time.perf_counter() - loaded:.1f} s after "
-                  f"loading began; its batch (clip sampling and the restyling's compile) took "
-                  f"{first_batch_s[0] if first_batch_s else 0.0:.1f} s of it", flush=True)
+                  f"loading began; its batch took {first_batch_s[0] if first_batch_s else 0.0:.1f} s of it{split}",
+                  flush=True)
 
     try:
         result = run_steps(

@@ -17,6 +17,7 @@ restyled on device by one jitted, vmapped :func:`~sword_jax.augment.transforms.a
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -126,12 +127,16 @@ class ClipSampler:
         self.styled_fraction, self.intensity = float(styled_fraction), float(intensity)
         self.classes, self.fov_deg = classes, float(fov_deg)
         self.styled_clips = 0  # running count, for the run summary
+        self.first_batch_seconds: dict[str, float] = {}  # clip sampling and restyling of the first batch (compile in it)
 
     def batch(self, step: int) -> np.ndarray:
+        first = not self.first_batch_seconds
+        start = time.perf_counter()
         rng = stream_rng(self.seed, "vae/clips", step)
         styling = self.styled_fraction > 0
         video, depth, seg = sample_clips(self.clips, self.batch_size, self.frames, rng, with_geometry=styling)
         unit = video.astype(np.float32) / np.float32(255.0)
+        sampled = time.perf_counter()
         if styling:
             styled = rng.random(self.batch_size) < self.styled_fraction
             if styled.any():
@@ -140,4 +145,6 @@ class ClipSampler:
                 unit = np.asarray(restyle(unit, depth, seg, styles, styled, intensity=np.float32(self.intensity),
                                           classes=self.classes, fov_deg=self.fov_deg))
                 self.styled_clips += int(styled.sum())
+        if first:  # what a slow first batch waited on: the sampling, or the restyling's compile on the device
+            self.first_batch_seconds = {"sample": sampled - start, "restyle": time.perf_counter() - sampled}
         return unit * np.float32(2.0) - np.float32(1.0)
