@@ -1,7 +1,9 @@
 """Renderer speed on the LIBERO scene: JAX ray caster vs mjx.ray (depth only) vs mujoco.Renderer.
 
 Prints ms per frame per env for a batch of envs at the given resolutions and merges the
-figures into benchmarks/results/latest.json under ``sim.render.*``.
+figures into benchmarks/results/latest.json under ``sim.render.*``. It also times ``render_batch``
+with and without the static-geometry split (a fixed camera's static geoms intersected once per
+batch; identical frames) side by side, recorded as the ratio ``sim.render.<scene>.static_split_speedup_*``.
 
   python benchmarks/render_speed.py --tiny            # CPU check: 2 envs, 32 px
   python benchmarks/render_speed.py --envs 16 --res 64 128
@@ -10,8 +12,6 @@ figures into benchmarks/results/latest.json under ``sim.render.*``.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
 import sys
 import time
@@ -27,7 +27,6 @@ from mujoco import mjx  # noqa: E402
 sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..")))
 from sim import render as R  # noqa: E402
 
-RESULTS = os.path.join(os.path.dirname(__file__), "results", "latest.json")
 
 # A 13-geom arm-on-a-table scene (the issue's measured scale); a material so mjx.ray runs.
 SCENE_XML = """
@@ -101,7 +100,7 @@ def main(argv=None) -> None:
     batch = jax.tree.map(lambda *xs: jnp.stack(xs), *[mjx.put_data(model, d) for d in datas])
     cam_id, fovy = scene.cameras["agentview"]
     device = jax.devices()[0].device_kind
-    rows = {}
+    rows, splits = {}, {}
     for res in args.res:
         jax_fn = jax.jit(jax.vmap(R.make_renderer(scene, "agentview", height=res, width=res)))
         t_jax = _time(lambda: jax_fn(batch), args.repeats) / args.envs
@@ -134,23 +133,36 @@ def main(argv=None) -> None:
             print(f"mujoco.Renderer unavailable: {err}")
         rows[res] = (t_jax, t_ray, t_gl)
 
+        poses = [np.stack([getattr(d, name) for d in datas]).astype(np.float32) for name in ("geom_xpos", "geom_xmat")]
+        cams = [np.stack([getattr(d, name)[cam_id] for d in datas]).astype(np.float32) for name in ("cam_xpos", "cam_xmat")]
+        whole_s, split_s = (_time(lambda s=s: R.render_batch(scene, *poses, *cams, fovy=fovy, height=res, width=res,
+                                                             static_camera=s), args.repeats) / args.envs
+                            for s in (False, True))
+        splits[res] = (whole_s, split_s)
+
     print(f"device: {device}, envs: {args.envs}, geoms drawn: {len(scene.geom_ids)}")
     print(f"{'res':>5} {'jax rgb+depth+seg':>18} {'mjx.ray depth':>14} {'mujoco.Renderer rgb':>20}  (ms/frame/env)")
     for res, (a, b, c) in rows.items():
         print(f"{res:>5} {a * 1e3:>18.3f} {b * 1e3:>14.3f} {c * 1e3:>20.3f}")
+    static = int(np.sum(scene.static)) if scene.static is not None else 0
+    print(f"render_batch, agentview, every geom per frame vs the {static} static geoms once per batch "
+          "(ms/frame/env, side by side):")
+    for res, (whole_s, split_s) in splits.items():
+        print(f"{res:>5} {whole_s * 1e3:>10.3f} {split_s * 1e3:>10.3f}   speedup {whole_s / split_s:.2f}x")
     if args.no_write:
         return
-    results = json.load(open(RESULTS)) if os.path.exists(RESULTS) else {}
-    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d")
-    cmd = "python benchmarks/render_speed.py " + " ".join(argv or sys.argv[1:])
-    for res, (a, b, c) in rows.items():
+    from benchmarks import common
+
+    entries = {}
+    for res, (a, b, c) in rows.items() if jax.default_backend() != "cpu" else ():  # CPU: ratios only
         for name, val in (("jax", a), ("mjx_ray_depth", b), ("mujoco_gl", c)):
-            results[f"sim.render.{args.scene}.{name}_ms_per_frame_{res}px_{args.envs}env"] = {
-                "value": round(val * 1e3, 4), "target": None, "device": device, "date": date, "command": cmd,
-            }
-    os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
-    with open(RESULTS, "w") as f:
-        json.dump(results, f, indent=2, sort_keys=True)
+            entries[f"sim.render.{args.scene}.{name}_ms_per_frame_{res}px_{args.envs}env"] = common.record(
+                "", round(val * 1e3, 4), None)
+    for res, (whole_s, split_s) in splits.items():
+        entries[f"sim.render.{args.scene}.static_split_speedup_{res}px_{args.envs}env"] = common.record(
+            "", round(whole_s / split_s, 3), None, static_geoms=static, drawn_geoms=len(scene.geom_ids),
+            note="render_batch with static_camera vs without, same poses, identical frames")
+    common.merge_results(entries)
 
 
 if __name__ == "__main__":

@@ -202,7 +202,8 @@ class LockstepEnvs:
         padded = -(-n // _RENDER_BUCKET) * _RENDER_BUCKET if n > _RENDER_BUCKET else n
         pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - n, 0)]) if padded > n else x  # noqa: E731
         frame = render.render_batch(self._scene, pad(out["geom_xpos"]), pad(out["geom_xmat"]), pad(out["cam_pos"]),
-                                    pad(out["cam_mat"]), fovy=fovy, height=self.resolution, width=self.resolution)
+                                    pad(out["cam_mat"]), fovy=fovy, height=self.resolution, width=self.resolution,
+                                    static_camera="agentview" in self._scene.static_cameras)
         return np.asarray(frame.rgb[:n], np.uint8)
 
     def reset(self, episodes: Sequence[tuple[int, np.ndarray]] | None = None) -> dict[str, np.ndarray]:

@@ -92,6 +92,10 @@ class RenderScene:
         light_diffuse: their diffuse intensities (L,); ambient: ambient intensity;
         headlight: diffuse intensity of MuJoCo's headlight (along the view ray).
       background: RGB in [0, 1] where nothing is hit; far: depth there (metres).
+      static: drawn geoms that never move (their body and its ancestors have no joint and are not
+        mocap), (n,) bool; static_cameras: names of cameras that never move (fixed mode on such a
+        body). A batch seen by a static camera shares the static geoms' nearest hits, which
+        ``render_batch`` computes once instead of once per frame (identical output).
     """
 
     geom_ids: np.ndarray
@@ -108,6 +112,8 @@ class RenderScene:
     headlight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # MuJoCo with no skybox
     far: float = 10.0
+    static: np.ndarray | None = None  # None: treat every geom as moving
+    static_cameras: frozenset[str] = frozenset()
 
 
 def _geom_rgba(model: mujoco.MjModel, geom: int) -> np.ndarray:
@@ -117,6 +123,16 @@ def _geom_rgba(model: mujoco.MjModel, geom: int) -> np.ndarray:
     if matid >= 0 and np.allclose(rgba, _DEFAULT_RGBA):
         rgba = np.asarray(model.mat_rgba[matid], np.float32)
     return rgba
+
+
+def _static_bodies(model: mujoco.MjModel) -> np.ndarray:
+    """(nbody,) bool: bodies fixed in the world (no joint and no mocap on them or any ancestor)."""
+    static = np.zeros(model.nbody, bool)
+    static[0] = True
+    for body in range(1, model.nbody):  # parents come before their children in MuJoCo's order
+        parent = int(model.body_parentid[body])
+        static[body] = static[parent] and model.body_jntnum[body] == 0 and model.body_mocapid[body] < 0
+    return static
 
 
 def build_scene(
@@ -175,10 +191,13 @@ def build_scene(
     if not ids:
         raise ValueError(f"no geom of the model is visible in geom groups {geomgroups}")
     geom_class, class_names = segmentation_classes(model, overrides=class_overrides)
-    cameras = {}
+    cameras, static_cameras = {}, set()
+    static_body = _static_bodies(model)
     for cam in range(model.ncam):
         name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam) or f"camera{cam}"
         cameras[name] = (cam, float(model.cam_fovy[cam]))
+        if static_body[model.cam_bodyid[cam]] and int(model.cam_mode[cam]) == int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED):
+            static_cameras.add(name)
     if light_dir is not None or model.nlight == 0:
         light = np.asarray(light_dir if light_dir is not None else (0.3, -0.4, 1.0), np.float32)
         light_dirs = (light / np.linalg.norm(light))[None, :]
@@ -205,6 +224,8 @@ def build_scene(
         ambient=ambient,
         headlight=headlight,
         far=float(far),
+        static=static_body[model.geom_bodyid[np.asarray(ids)]],
+        static_cameras=frozenset(static_cameras),
     )
 
 
@@ -313,37 +334,63 @@ def _local_normal(gtype, p, size):
     return normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
 
 
-def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs):
-    """Nearest hit of rays (r, 3) from origins (r|1, 3) over every drawn geom.
+def _hit_order(scene: RenderScene) -> np.ndarray:
+    """Drawn-geom indices in the order ``_nearest_hits`` tests them (by type, then index): a geom's
+    position in it is its rank, and of equally near hits the lowest rank wins."""
+    return np.concatenate([np.nonzero(scene.geom_type == gtype)[0] for gtype in _HIT]).astype(np.int32)
 
-    A ``lax.scan`` over the geoms of each type keeps a running (t, index) minimum, so the
+
+def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.ndarray | None = None, start=None):
+    """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms ``which`` selects (bool (n,);
+    ``None``: all), as (t (r,), rank (r,)): the ray parameter (+inf on a miss) and the winner's rank
+    in :func:`_hit_order` (n on a miss). ``start``: a (t, rank) pair to continue from, e.g. the nearest
+    hits of the other geoms; the result is the same as testing all of them at once.
+
+    A ``lax.scan`` over the geoms of each type keeps a running (t, rank) minimum, so the
     memory is O(rays) rather than O(geoms * rays) and each step stays in cache.
-
-    Returns:
-      (t (r,) ray parameter of the nearest hit, +inf on a miss; index (r,) into the
-      scene's drawn-geom arrays).
     """
-    best_t = jnp.full(dirs.shape[:1], jnp.inf, jnp.float32)
-    best_i = jnp.zeros(dirs.shape[:1], jnp.int32)
+    order = _hit_order(scene)
+    if start is None:
+        best_t = jnp.full(dirs.shape[:1], jnp.inf, jnp.float32)
+        best_r = jnp.full(dirs.shape[:1], len(order), jnp.int32)
+    else:
+        best_t, best_r = start
     for gtype, hit in _HIT.items():
-        idx = np.nonzero(scene.geom_type == gtype)[0]
-        if idx.size == 0:
+        ranks = np.nonzero(scene.geom_type[order] == gtype)[0]
+        if which is not None:
+            ranks = ranks[which[order[ranks]]]
+        if ranks.size == 0:
             continue
+        idx = order[ranks]
 
         def step(carry, geom, hit=hit):
-            best_t, best_i = carry
-            index, geom_pos, geom_mat, size, offset = geom
+            best_t, best_r = carry
+            rank, geom_pos, geom_mat, size, offset = geom
             # Local frame: p_local = R^T (p - x) - offset, written row-wise as (p - x) R.
             local_o = (origins - geom_pos) @ geom_mat - offset
             local_d = dirs @ geom_mat
             t = hit(local_o, local_d, size)
-            closer = t < best_t
-            return (jnp.where(closer, t, best_t), jnp.where(closer, index, best_i)), None
+            # Ties go to the lower rank, so the winner does not depend on which geoms were tested first.
+            closer = (t < best_t) | ((t == best_t) & (rank < best_r) & jnp.isfinite(t))
+            return (jnp.where(closer, t, best_t), jnp.where(closer, rank, best_r)), None
 
-        geoms = (jnp.asarray(idx, jnp.int32), pos[idx], mat[idx], jnp.asarray(scene.size[idx]),
+        geoms = (jnp.asarray(ranks, jnp.int32), pos[idx], mat[idx], jnp.asarray(scene.size[idx]),
                  jnp.asarray(scene.offset[idx]))
-        (best_t, best_i), _ = jax.lax.scan(step, (best_t, best_i), geoms)
-    return best_t, best_i
+        (best_t, best_r), _ = jax.lax.scan(step, (best_t, best_r), geoms)
+    return best_t, best_r
+
+
+def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, which: np.ndarray | None = None):
+    """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms (``which``/``start``: see
+    :func:`_nearest_ranked`).
+
+    Returns:
+      (t (r,) ray parameter of the nearest hit, +inf on a miss; index (r,) into the
+      scene's drawn-geom arrays, 0 on a miss).
+    """
+    best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start)
+    index_of_rank = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)
+    return best_t, index_of_rank[best_r]
 
 
 def render(
@@ -357,6 +404,7 @@ def render(
     height: int,
     width: int,
     shadows: bool = False,
+    static_hits: tuple[Any, Any] | None = None,
 ) -> Frame:
     """Renders one camera view of one state (vmap for batches).
 
@@ -368,6 +416,9 @@ def render(
         backward, as MuJoCo's ``cam_xmat``), (3, 3) or (9,).
       fovy: vertical field of view in degrees. height, width: image size in pixels.
       shadows: cast a shadow ray per pixel towards the light (about twice the cost).
+      static_hits: the nearest hits of the scene's static geoms from this camera
+        (:func:`static_nearest`, the same for every state a static camera sees); only the moving
+        geoms are then tested per frame. The output is identical to testing them all.
 
     Returns:
       ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
@@ -385,20 +436,13 @@ def render(
     if np.size(cam_pos) != 3 or np.size(cam_mat) != 9:
         raise ValueError(f"camera pose must be (3,) and (3, 3), got {np.shape(cam_pos)} and {np.shape(cam_mat)}")
     ids = scene.geom_ids
-    pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
-    mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]
-    cam_pos = jnp.asarray(cam_pos, jnp.float32).reshape(3)
-    cam_mat = jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
-
-    tan_half = np.tan(np.deg2rad(fovy) / 2.0)
-    xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
-    ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
-    grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
-    # Camera-frame directions with unit forward component, so t is the planar depth.
-    cam_dirs = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
-    dirs = jnp.asarray(cam_dirs) @ cam_mat.T  # (R, 3)
-
-    depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
+    pos, mat, cam_pos, dirs = _view(scene, geom_xpos, geom_xmat, cam_pos, cam_mat, fovy=fovy, height=height,
+                                    width=width)
+    if static_hits is None:
+        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
+    else:
+        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs, start=static_hits,
+                                       which=~np.asarray(scene.static, bool))
     hit = jnp.isfinite(depth)
     depth = jnp.where(hit, depth, jnp.float32(scene.far))
 
@@ -436,6 +480,40 @@ def render(
         geom_id=geom_id.reshape(height, width).astype(jnp.int32),
         seg=seg.reshape(height, width).astype(jnp.int32),
     )
+
+
+def _view(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int, width: int):
+    """The drawn geoms' poses (n, 3), (n, 3, 3), the camera position (3,) and one ray direction per pixel (R, 3)."""
+    ids = scene.geom_ids
+    pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
+    mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]
+    cam_pos = jnp.asarray(cam_pos, jnp.float32).reshape(3)
+    cam_mat = jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
+
+    tan_half = np.tan(np.deg2rad(fovy) / 2.0)
+    xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
+    ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
+    grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
+    # Camera-frame directions with unit forward component, so t is the planar depth.
+    cam_dirs = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
+    return pos, mat, cam_pos, jnp.asarray(cam_dirs) @ cam_mat.T
+
+
+def static_nearest(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int,
+                   width: int) -> tuple[Any, Any]:
+    """The nearest hits of the scene's static geoms, one per pixel, as ``render(static_hits=...)`` takes
+    them: valid for every state seen by the same static camera (the static geoms and the camera do not
+    move), so a batch computes them once.
+
+    Raises:
+      ValueError: a scene without static-geom information (built before it existed).
+    """
+    if scene.static is None:
+        raise ValueError("static_nearest: this RenderScene does not say which geoms are static (rebuild it "
+                         "with build_scene)")
+    pos, mat, cam_pos, dirs = _view(scene, geom_xpos, geom_xmat, cam_pos, cam_mat, fovy=fovy, height=height,
+                                    width=width)
+    return _nearest_ranked(scene, pos, mat, cam_pos[None, :], dirs, which=np.asarray(scene.static, bool))
 
 
 def camera_pose(data: Any, camera_id: int) -> tuple[Any, Any]:
@@ -476,7 +554,7 @@ def make_renderer(
     return render_data
 
 
-@functools.partial(jax.jit, static_argnames=("scene", "fovy", "height", "width", "shadows"))
+@functools.partial(jax.jit, static_argnames=("scene", "fovy", "height", "width", "shadows", "static_camera"))
 def render_batch(
     scene: RenderScene,
     geom_xpos: Float[Array, "b ngeom 3"],
@@ -488,10 +566,19 @@ def render_batch(
     height: int,
     width: int,
     shadows: bool = False,
+    static_camera: bool = False,
 ) -> Frame:
-    """Jitted, vmapped ``render`` over a leading batch axis (numpy or JAX inputs)."""
+    """Jitted, vmapped ``render`` over a leading batch axis (numpy or JAX inputs).
+
+    ``static_camera``: the camera is one of ``scene.static_cameras`` (the same pose in every frame), so
+    the static geoms' nearest hits are computed once, from the first frame, and each frame tests only
+    the moving geoms (:func:`static_nearest`; the same output)."""
     fn = functools.partial(render, scene, fovy=fovy, height=height, width=width, shadows=shadows)
-    return jax.vmap(fn)(geom_xpos, geom_xmat, cam_pos, cam_mat)
+    if not (static_camera and scene.static is not None and np.any(scene.static)):
+        return jax.vmap(fn)(geom_xpos, geom_xmat, cam_pos, cam_mat)
+    shared = static_nearest(scene, geom_xpos[0], geom_xmat[0], cam_pos[0], cam_mat[0], fovy=fovy, height=height,
+                            width=width)
+    return jax.vmap(lambda *pose: fn(*pose, static_hits=shared))(geom_xpos, geom_xmat, cam_pos, cam_mat)
 
 
 def render_mjdata(
@@ -517,7 +604,8 @@ def render_mjdata(
     cpos = np.stack([d.cam_xpos[cam_id] for d in datas]).astype(np.float32)
     cmat = np.stack([d.cam_xmat[cam_id] for d in datas]).astype(np.float32)
     return render_batch(
-        scene, xpos, xmat, cpos, cmat, fovy=fovy, height=height, width=width, shadows=shadows
+        scene, xpos, xmat, cpos, cmat, fovy=fovy, height=height, width=width, shadows=shadows,
+        static_camera=camera in scene.static_cameras,
     )
 
 
