@@ -287,7 +287,9 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
 
     scene_ = render.build_scene(mj_model)
     cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
-    draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution) for cam in cameras}
+    # a fixed camera's static geoms are intersected once, here, not in every frame (sim/render.py)
+    draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution, model=mj_model)
+             for cam in cameras}
 
     def renderer(data: Any) -> dict[str, Any]:
         out = {}
