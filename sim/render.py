@@ -27,8 +27,9 @@ geoms, 16 envs, agentview, shadows off, on the 2-core CPU while ~8 other jobs sh
   * Static geometry once: the geoms that never move (27 of the 85 here: table, walls, fixtures,
     the robot's base) are intersected once per batch for a fixed camera (``render_batch(static_camera=
     True)``) or once per renderer (``make_renderer(model=...)``), and each frame tests only the moving
-    ones, continuing from those hits; ties go to the same geom either way, so the frames are
-    identical. Side by side on this CPU (16 envs, ``benchmarks/render_speed.py``): 1.46x at 64 px,
+    ones, continuing from those hits; ties go to the same geom either way, so the frames are the
+    same up to float rounding (LIBERO rollouts, 32-128 px: geom ids, classes and colours identical,
+    depth within 4e-6 m). Side by side on this CPU (16 envs, ``benchmarks/render_speed.py``): 1.46x at 64 px,
     1.32x at 128 px.
   * ``mujoco.Renderer`` (OpenGL via EGL) cannot run under ``jit`` on the accelerator; on an
     idle CPU it takes ~1.8 ms per 128x128 frame (issue 6), so CPU data generation uses it
@@ -101,7 +102,7 @@ class RenderScene:
       static: drawn geoms that never move (their body and its ancestors have no joint and are not
         mocap), (n,) bool; static_cameras: names of cameras that never move (fixed mode on such a
         body). A batch seen by a static camera shares the static geoms' nearest hits, which
-        ``render_batch`` computes once instead of once per frame (identical output).
+        ``render_batch`` computes once instead of once per frame (the same output up to float rounding).
     """
 
     geom_ids: np.ndarray
@@ -424,7 +425,8 @@ def render(
       shadows: cast a shadow ray per pixel towards the light (about twice the cost).
       static_hits: the nearest hits of the scene's static geoms from this camera
         (:func:`static_nearest`, the same for every state a static camera sees); only the moving
-        geoms are then tested per frame. The output is identical to testing them all.
+        geoms are then tested per frame. The output is that of testing them all, up to float
+        rounding (another XLA program computes the static hits).
 
     Returns:
       ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
@@ -559,9 +561,9 @@ def make_renderer(
       scene: from ``build_scene``. camera: camera name in the model.
       height, width: image size. shadows: see ``render``.
       model: the scene's ``MjModel``; with it, a fixed camera's static-geom hits are computed once,
-        here (:func:`static_hits_of_model`), and each frame tests only the moving geoms. From
-        C-engine states the frames are identical; from MJX states, whose float32 kinematics place the
-        static geoms within rounding of MuJoCo's, they agree but for rounding at silhouettes.
+        here (:func:`static_hits_of_model`), and each frame tests only the moving geoms. The frames
+        are those of testing every geom up to float rounding (MJX's float32 kinematics place the
+        static geoms within 5e-8 m of MuJoCo's, from which the hits are computed).
 
     Raises:
       KeyError: unknown camera. ValueError: non-positive image size.
@@ -602,7 +604,7 @@ def render_batch(
 
     ``static_camera``: the camera is one of ``scene.static_cameras`` (the same pose in every frame), so
     the static geoms' nearest hits are computed once, from the first frame, and each frame tests only
-    the moving geoms (:func:`static_nearest`; the same output)."""
+    the moving geoms (:func:`static_nearest`; the same output up to float rounding)."""
     fn = functools.partial(render, scene, fovy=fovy, height=height, width=width, shadows=shadows)
     if not (static_camera and scene.static is not None and np.any(scene.static)):
         return jax.vmap(fn)(geom_xpos, geom_xmat, cam_pos, cam_mat)
