@@ -3,7 +3,7 @@
 Prints ms per frame per env for a batch of envs at the given resolutions and merges the
 figures into benchmarks/results/latest.json under ``sim.render.*``. It also times ``render_batch``
 with and without the static-geometry split (a fixed camera's static geoms intersected once per
-batch; identical frames) side by side, recorded as the ratio ``sim.render.<scene>.static_split_speedup_*``.
+batch; the same frames up to float rounding) side by side, recorded as the ratio ``sim.render.<scene>.static_split_speedup_*``.
 
   python benchmarks/render_speed.py --tiny            # CPU check: 2 envs, 32 px
   python benchmarks/render_speed.py --envs 16 --res 64 128
@@ -161,7 +161,7 @@ def main(argv=None) -> None:
     for res, (whole_s, split_s) in splits.items():
         entries[f"sim.render.{args.scene}.static_split_speedup_{res}px_{args.envs}env"] = common.record(
             "", round(whole_s / split_s, 3), None, static_geoms=static, drawn_geoms=len(scene.geom_ids),
-            note="render_batch with static_camera vs without, same poses, identical frames")
+            note="render_batch with static_camera vs without, same poses; frames equal up to float rounding")
     common.merge_results(entries)
 
 

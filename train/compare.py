@@ -252,7 +252,7 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                 for i, seed in enumerate(gains["seeds"]):
                     cells = []
                     for run in runs:
-                        gain, ci = gains[run][i], gains.get("gain_ci95", {}).get(run, [None] * (i + 1))[i]
+                        gain, ci = gains[run][i], gains["gain_ci95"][run][i]
                         cells.append("" if gain is None else f"{gain:+.3f}" + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else ""))
                     lines.append(f"| {seed} | " + " | ".join(cells) + f" | {gains['diffs'][i]:+.3f} |")
                 lines += ["", f"`{ours}` gained more than `{baseline}` at {gains['ours_better']}/{gains['n']} seeds "
@@ -363,40 +363,34 @@ def load_slices(directory: str) -> list[dict]:
     return sorted(slices, key=lambda s: (order.index(s["run"]) if s["run"] in order else len(order), s["seed"]))
 
 
-def _by_shared_seed(slices: Sequence[dict]) -> dict[int, list[dict]]:
-    groups: dict[int, list[dict]] = {}
+def _hashes_by_shared_seed(slices: Sequence[dict]) -> dict[int, dict[str, dict[str, list[str]]]]:
+    """Per shared seed, each shared-input key's hashes and the slice files holding them:
+    ``{shared seed: {key: {hash: [files]}}}`` (slices of different shared seeds are different
+    replicates, so their hashes are never compared)."""
+    out: dict[int, dict[str, dict[str, list[str]]]] = {}
     for s in slices:
-        groups.setdefault(int(s.get("shared", {}).get("seed") or 0), []).append(s)
-    return groups
+        seen = out.setdefault(int(s.get("shared", {}).get("seed") or 0), {})
+        for key, digest in s.get("shared", {}).get("hashes", {}).items():
+            seen.setdefault(key, {}).setdefault(digest, []).append(s["file"])
+    return out
 
 
 def hash_mismatches(slices: Sequence[dict]) -> dict[str, dict[str, list[str]]]:
     """Shared-input keys whose hash differs between slices made from the same shared seed:
-    ``{key: {hash: [slice files]}}`` (the key names the shared seed where the slices have several;
-    slices of different shared seeds are different replicates and are not compared)."""
-    groups = _by_shared_seed(slices)
-    out = {}
-    for shared_seed, members in groups.items():
-        seen: dict[str, dict[str, list[str]]] = {}
-        for s in members:
-            for key, digest in s.get("shared", {}).get("hashes", {}).items():
-                seen.setdefault(key, {}).setdefault(digest, []).append(s["file"])
-        for key, by_digest in seen.items():
-            if len(by_digest) > 1:
-                out[key if len(groups) == 1 else f"{key} (shared seed {shared_seed})"] = by_digest
-    return out
+    ``{key: {hash: [slice files]}}`` (the key names the shared seed where the slices have several)."""
+    per_seed = _hashes_by_shared_seed(slices)
+    return {key if len(per_seed) == 1 else f"{key} (shared seed {seed})": by_digest
+            for seed, seen in sorted(per_seed.items()) for key, by_digest in seen.items() if len(by_digest) > 1}
 
 
-def agreed_hashes(slices: Sequence[dict], mismatches: dict) -> dict:
+def agreed_hashes(slices: Sequence[dict]) -> dict:
     """The shared-input hashes the slices agree on; per shared seed (``{"shared seed K": {...}}``) where
     the slices have several."""
-    groups = _by_shared_seed(slices)
-    per_seed = {shared_seed: {k: v for s in members for k, v in s.get("shared", {}).get("hashes", {}).items()
-                              if k not in mismatches and f"{k} (shared seed {shared_seed})" not in mismatches}
-                for shared_seed, members in groups.items()}
+    per_seed = {seed: {key: next(iter(by_digest)) for key, by_digest in seen.items() if len(by_digest) == 1}
+                for seed, seen in _hashes_by_shared_seed(slices).items()}
     if len(per_seed) == 1:
         return next(iter(per_seed.values()))
-    return {f"shared seed {k}": v for k, v in sorted(per_seed.items())}
+    return {f"shared seed {seed}": entries for seed, entries in sorted(per_seed.items())}
 
 
 def _step(label: str) -> int:
@@ -557,7 +551,7 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
     for s in slices:
         results.setdefault(s["run"], []).append(s)
     seeds = sorted({s["seed"] for s in slices})
-    agreed = agreed_hashes(slices, mismatches)
+    agreed = agreed_hashes(slices)
     listing = [{"file": s["file"], "run": s["run"], "seed": s["seed"], "device": s.get("device", {}).get("kind"),
                 "wall_seconds": s.get("wall_seconds"), "slices_at_once": s.get("slices_at_once", 1), "commit": s.get("code", {}).get("commit")} for s in slices]
     table = write_tables(directory, results, seeds, mismatches=mismatches, slices=slices, size=sizes[0],

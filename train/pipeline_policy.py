@@ -65,9 +65,7 @@ def grpo_in_world_model(ctx: Context) -> dict:
                              vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
                              reward=ctx.results["reward_model"]["path"])
     result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
-    drop = ("seconds", "path")
-    return {"reward_model": {k: v for k, v in ctx.results["reward_model"].items() if k not in drop},
-            **_policy_result(ctx, result)}
+    return {"reward_model": _summary(ctx.results["reward_model"]), **_policy_result(ctx, result)}
 
 
 def grpo_in_ground_truth(ctx: Context) -> dict:
@@ -81,12 +79,16 @@ def grpo_in_ground_truth(ctx: Context) -> dict:
     return _policy_result(ctx, result)
 
 
+def _summary(stage_result: dict) -> dict:
+    """An earlier stage's result as a GRPO record keeps it: without its time and checkpoint path."""
+    return {k: v for k, v in stage_result.items() if k not in ("seconds", "path")}
+
+
 def _policy_result(ctx: Context, result: dict) -> dict:
     """A GRPO stage's record: the supervised policy it started from, its run and real success per step."""
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
-    drop = ("seconds", "path")
     return {
-        "sft": {k: v for k, v in ctx.results["sft_policy"].items() if k not in drop},
+        "sft": _summary(ctx.results["sft_policy"]),
         "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"]},
         "success": success,
         "success_curve_png": os.path.join(result["workdir"], "success_curve.png"),

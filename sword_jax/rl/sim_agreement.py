@@ -238,6 +238,11 @@ SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a s
 HORIZON_SWEEP = (24, 48, 96)  # actions from the start frame: imagined success that early, real successes vs failures
 
 
+def _succeeded_by(first_success: np.ndarray, horizon: int | None) -> np.ndarray:
+    """Imagined success within the first ``horizon`` actions (``None``: at all); -1 = never."""
+    return (first_success >= 0) if horizon is None else (first_success >= 0) & (first_success < horizon)
+
+
 def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
                        horizons: tuple[int, ...] = HORIZON_SWEEP) -> dict[str, dict[str, Any]]:
     """Imagined success by action ``h`` of the replay, among real successes and among real failures.
@@ -254,7 +259,7 @@ def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
 
     out = {}
     for label, h in [*((str(h), h) for h in horizons), ("all", None)]:
-        hit = (first >= 0) if h is None else (first >= 0) & (first < h)
+        hit = _succeeded_by(first, h)
         out[label] = {"real_success": _rate(int(hit[real].sum()), int(real.sum())),
                       "real_failure": _rate(int(hit[~real].sum()), int((~real).sum()))}
     return out
@@ -277,7 +282,7 @@ def separation(real: np.ndarray, first_success: Sequence[np.ndarray], horizon: i
         raise ValueError(f"separation: real {real.shape} and every first_success must be equal 1-D shapes")
     if real.all() or not real.any():
         raise ValueError("separation needs both real successes and real failures among the episodes")
-    hits = np.stack([(f >= 0) if horizon is None else (f >= 0) & (f < horizon) for f in firsts]).astype(np.float64)
+    hits = np.stack([_succeeded_by(f, horizon) for f in firsts]).astype(np.float64)
     wins, losses = np.flatnonzero(real), np.flatnonzero(~real)
 
     def sep(win_idx, loss_idx):
