@@ -50,7 +50,9 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
 
     Returns ``env_steps_per_s`` (physics + render in one jit when ``render``) and, to show where the
     time goes, ``physics_steps_per_s`` (the same env without a renderer) and ``render_frames_per_s``
-    (the renderer alone on the batch's states), all at this batch.
+    (the renderer alone on the batch's states), all at this batch. Beside the last, timed in turn on
+    the same states: ``render_frames_per_s_every_geom``, the renderer without the static-geometry
+    split (every geom tested in every frame), and their ratio ``render_static_split_speedup``.
     """
     import jax
     import jax.numpy as jnp
@@ -79,16 +81,23 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
         out["env_steps_per_s"], _ = steps_per_s(renderer)
     out["physics_steps_per_s"], state = steps_per_s(None)
     if render:
-        draw = jax.jit(jax.vmap(renderer))
-        frames = common.block(draw(state.data))
-        for key in ("agentview_rgb", "agentview_depth", "agentview_seg"):
-            if key not in frames:
-                raise RuntimeError(f"renderer output lacks {key}")
-        start = time.perf_counter()
-        for _ in range(steps):
-            frames = draw(state.data)
-        common.block(frames)
-        out["render_frames_per_s"] = batch * steps / (time.perf_counter() - start)
+        def frames_per_s(draw_one) -> float:
+            draw = jax.jit(jax.vmap(draw_one))
+            frames = common.block(draw(state.data))
+            for key in ("agentview_rgb", "agentview_depth", "agentview_seg"):
+                if key not in frames:
+                    raise RuntimeError(f"renderer output lacks {key}")
+            start = time.perf_counter()
+            for _ in range(steps):
+                frames = draw(state.data)
+            common.block(frames)
+            return batch * steps / (time.perf_counter() - start)
+
+        out["render_frames_per_s"] = frames_per_s(renderer)
+        every_geom = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution,
+                                     depth_and_seg=True, static_split=False)
+        out["render_frames_per_s_every_geom"] = frames_per_s(every_geom)
+        out["render_static_split_speedup"] = out["render_frames_per_s"] / out["render_frames_per_s_every_geom"]
     else:
         out["env_steps_per_s"] = out["physics_steps_per_s"]
     return out
@@ -151,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
             sweep.append({"batch": batch, **figures})
             for name, value in figures.items():
                 rows.append({"figure": f"{name} (batch {batch}, {args.resolution}px RGB + depth + seg)", "value": value})
-            print(f"batch {batch}: " + ", ".join(f"{k} {v:.0f}" for k, v in figures.items()), flush=True)
+            print(f"batch {batch}: " + ", ".join(f"{k} {v:.4g}" for k, v in figures.items()), flush=True)
         if not sweep:
             raise SystemExit("bench_sim: every MJX batch size failed")
         best = max(sweep, key=lambda r: r["env_steps_per_s"])

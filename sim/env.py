@@ -277,18 +277,21 @@ def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
 
 
 def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
-                    depth_and_seg: bool = False) -> Renderer:
+                    depth_and_seg: bool = False, static_split: bool = True) -> Renderer:
     """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
 
     Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
     ``agentview_rgb`` (and ``eye_in_hand_rgb``), plus ``*_depth`` / ``*_seg`` on request.
+    ``static_split=False`` tests every geom in every frame (the same frames up to float rounding;
+    for benchmarks that time the split).
     """
     from sim import render
 
     scene_ = render.build_scene(mj_model)
     cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
     # a fixed camera's static geoms are intersected once, here, not in every frame (sim/render.py)
-    draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution, model=mj_model)
+    draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution,
+                                       model=mj_model if static_split else None)
              for cam in cameras}
 
     def renderer(data: Any) -> dict[str, Any]:

@@ -217,6 +217,13 @@ def test_jit_vmap_determinism_and_traces(episode):
     single = augment(episode["frames"], episode["depth"], episode["seg"],
                      jax.tree.map(lambda x: x[1], st.sample_styles(jax.random.key(0), 3, "train")))
     np.testing.assert_allclose(single, a[1], atol=1e-5)
+    # Per-episode intensity; and the texture switch stays a conditional (vmapped, it becomes every
+    # texture at every pixel, which XLA's GPU compiler takes minutes over).
+    styles = st.sample_styles(jax.random.key(0), 3, "train")
+    mixed = augment_batch(frames, depth, seg, styles, intensity=jnp.array([0.0, 1.0, 1.0]))
+    np.testing.assert_allclose(mixed[0], frames[0], atol=1e-5)
+    np.testing.assert_allclose(mixed[1], a[1], atol=1e-5)
+    assert " cond[" in str(jax.make_jaxpr(lambda f, d, g, s: augment_batch(f, d, g, s))(frames, depth, seg, styles))
     # The optional key re-seeds textures only.
     style = st.sample_style(jax.random.key(2), "train")._replace(table=st.sample_style(jax.random.key(2)).table._replace(texture=jnp.int32(3)))
     k1 = augment(episode["frames"], episode["depth"], episode["seg"], style, key=jax.random.key(1))

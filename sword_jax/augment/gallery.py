@@ -62,9 +62,9 @@ def build_gallery(
     for split in ("train", "heldout"):
         styles = sample_styles(stream_key(jax.random.key(seed), f"gallery/{split}_styles"), num_styles, split)
         # Inputs are arguments, not closed-over constants, so XLA does not constant-fold them.
-        styled = jax.jit(jax.vmap(
-            lambda f, d, g, s: augment(f, d, g, s, intensity=intensity, classes=classes, fov_deg=fov_deg),
-            in_axes=(None, None, None, 0)))(frames, depth, seg, styles)
+        styled = jax.jit(lambda f, d, g, styles: jax.lax.map(  # mapped, not vmapped: see augment_batch
+            lambda s: augment(f, d, g, s, intensity=intensity, classes=classes, fov_deg=fov_deg), styles))(
+            frames, depth, seg, styles)
         scores = jax.jit(jax.vmap(lambda f, out, g: structure_scores(f, out, g, classes), in_axes=(None, 0, None)))(
             jnp.asarray(frames), styled, jnp.asarray(seg))
         if split == "train":

@@ -53,7 +53,7 @@ from jaxtyping import Array, Float, Int
 from sword_jax.augment.config import AugmentConfig
 from sword_jax.augment.episodes import Episodes, as_episodes
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
-from sword_jax.augment.transforms import augment, to_signed_range
+from sword_jax.augment.transforms import augment, augment_batch, to_signed_range
 
 
 def seg_classes_from_config(cfg: AugmentConfig) -> SegClasses:
@@ -93,10 +93,7 @@ def make_step_augmenter(
             styled_mask = jnp.zeros_like(styled_mask)
         intensity = jnp.where(styled_mask, jnp.float32(cfg.intensity), jnp.float32(0.0))
 
-        def one(f, d, s, st, amount):
-            return augment(f, d, s, st, intensity=amount, classes=classes, fov_deg=cfg.fov_deg)
-
-        styled = jax.vmap(one)(frames, depth, seg, styles, intensity)
+        styled = augment_batch(frames, depth, seg, styles, intensity=intensity, classes=classes, fov_deg=cfg.fov_deg)
         # Intensity 0 is the identity up to rounding; pass raw episodes through bit-exactly.
         styled = jnp.where(styled_mask[:, None, None, None, None], styled, frames.astype(jnp.float32))
         return styled, styles, styled_mask
@@ -142,9 +139,9 @@ def _copy_keys(key: jax.Array, episode_ids: np.ndarray, n_copies: int) -> jax.Ar
 def _style_episode(frames, depth, seg, episode_key, intensity, *, n_copies: int, classes: SegClasses, fov_deg: float):
     """``n_copies`` training styles of one episode: ``([C, T, H, W, 3], Style[C])``."""
     styles = sample_styles(episode_key, n_copies, "train")
-    styled = jax.vmap(
-        lambda st: augment(frames, depth, seg, st, intensity=intensity, classes=classes, fov_deg=fov_deg)
-    )(styles)
+    # mapped, not vmapped: see augment_batch (a vmapped texture switch compiles for minutes on GPU)
+    styled = jax.lax.map(
+        lambda st: augment(frames, depth, seg, st, intensity=intensity, classes=classes, fov_deg=fov_deg), styles)
     return styled, styles
 
 

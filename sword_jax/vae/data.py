@@ -11,7 +11,7 @@ Held-out styles cannot reach the VAE from here: styles are drawn with
 *episodes* (``init_split == "heldout"``) are refused when the clips are built from simulator data.
 
 Clips are cut on the host from uint8 episodes (a pure function of the step: exact resume), then
-restyled on device by one jitted, vmapped :func:`~sword_jax.augment.transforms.augment`.
+restyled on device by one jitted :func:`~sword_jax.augment.transforms.augment_batch`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
-from sword_jax.augment.transforms import augment
+from sword_jax.augment.transforms import augment_batch
 from sword_jax.rng import stream_key, stream_rng
 
 
@@ -99,10 +99,7 @@ def restyle(frames: Float[Array, "b t h w 3"], depth: Float[Array, "b t h w"], s
             styled: Array, *, intensity: float | Array = 1.0, classes: SegClasses = DEFAULT_CLASSES,
             fov_deg: float = 45.0) -> Float[Array, "b t h w 3"]:
     """Restyles the clips where ``styled [B]`` is set; the others pass through bit-exactly. Output in [0, 1]."""
-    def one(f, d, s, style):
-        return augment(f, d, s, style, intensity=intensity, classes=classes, fov_deg=fov_deg)
-
-    out = jax.vmap(one)(frames, depth, seg, styles)
+    out = augment_batch(frames, depth, seg, styles, intensity=intensity, classes=classes, fov_deg=fov_deg)
     return jnp.where(styled[:, None, None, None, None], out, frames)
 
 
