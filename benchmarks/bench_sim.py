@@ -23,15 +23,16 @@ import numpy as np
 from benchmarks import common
 
 
-def expert_success_cpu(episodes: int, task_ids: list[int], noise: float) -> tuple[dict[int, float], float]:
-    """Success rate per task on the C backend and the env-steps/s it ran at."""
+def expert_success_cpu(episodes: int, task_ids: list[int], noise: float, **sim_overrides
+                       ) -> tuple[dict[int, float], float]:
+    """Success rate per task on the C backend and the env-steps/s it ran at (``SimConfig`` overrides)."""
     from sim import expert
     from sim.config import SimConfig
     from sim.env import CpuEnv
 
     rates, steps, seconds = {}, 0, 0.0
     for task_id in task_ids:
-        env = CpuEnv(SimConfig(), task_id)
+        env = CpuEnv(SimConfig(**sim_overrides), task_id)
         rng = np.random.default_rng(task_id)
         wins = 0
         for i in range(episodes):
@@ -45,14 +46,16 @@ def expert_success_cpu(episodes: int, task_ids: list[int], noise: float) -> tupl
     return rates, steps / max(seconds, 1e-9)
 
 
-def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = True) -> dict[str, float]:
+def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = True, render_alone: bool = True,
+                   **sim_overrides) -> dict[str, float]:
     """Vmapped, jitted MJX env-steps/s, with the agentview camera rendered (RGB + depth + segmentation).
 
     Returns ``env_steps_per_s`` (physics + render in one jit when ``render``) and, to show where the
     time goes, ``physics_steps_per_s`` (the same env without a renderer) and ``render_frames_per_s``
     (the renderer alone on the batch's states), all at this batch. Beside the last, timed in turn on
     the same states: ``render_frames_per_s_every_geom``, the renderer without the static-geometry
-    split (every geom tested in every frame), and their ratio ``render_static_split_speedup``.
+    split (every geom tested in every frame), and their ratio ``render_static_split_speedup``
+    (``render_alone=False`` skips the renderer-alone figures). ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
     import jax.numpy as jnp
@@ -62,7 +65,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     from sim.env import camera_renderer
 
     def steps_per_s(renderer) -> tuple[float, object]:
-        env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer), 220)
+        env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer,
+                                                  **sim_overrides), 220)
         keys = jax.random.split(jax.random.key(0), batch)
         state = jax.jit(env.reset)(keys)
         step = jax.jit(env.step)
@@ -80,7 +84,7 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
         renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution, depth_and_seg=True)
         out["env_steps_per_s"], _ = steps_per_s(renderer)
     out["physics_steps_per_s"], state = steps_per_s(None)
-    if render:
+    if render and render_alone:
         def frames_per_s(draw_one) -> float:
             draw = jax.jit(jax.vmap(draw_one))
             frames = common.block(draw(state.data))
@@ -98,12 +102,12 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
                                      depth_and_seg=True, static_split=False)
         out["render_frames_per_s_every_geom"] = frames_per_s(every_geom)
         out["render_static_split_speedup"] = out["render_frames_per_s"] / out["render_frames_per_s_every_geom"]
-    else:
+    elif not render:
         out["env_steps_per_s"] = out["physics_steps_per_s"]
     return out
 
 
-def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int) -> dict[int, float]:
+def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int, **sim_overrides) -> dict[int, float]:
     """Vmapped expert rollouts (one ``lax.scan`` in one jit) on MJX from each task's first
     ``episodes`` fixed initial states. The tasks share one model, so all run as one batch."""
     import jax
@@ -112,7 +116,7 @@ def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int) -> dict
     import sim
     from sim import expert, tasks
 
-    env = sim.load("libero_spatial", backend="mjx")
+    env = sim.load("libero_spatial", backend="mjx", **sim_overrides)
     qpos = np.concatenate([tasks.fixed_init_states(t)[:episodes] for t in task_ids])
     rollout = jax.jit(lambda qpos, key: expert.rollout_mjx(env, qpos, key, horizon)[0])
     solved = np.asarray(rollout(jnp.asarray(qpos, jnp.float32), jax.random.key(0))).reshape(len(task_ids), episodes)
@@ -134,6 +138,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-sweep", default="", help="more batch sizes for the MJX throughput, e.g. 4096,8192")
     parser.add_argument("--noise", type=float, default=0.0)
     parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
+    parser.add_argument("--solver-variants", default="",
+                        help="constraint-solver settings to compare with the default, ITER,LS;ITER,LS (e.g. 4,4): "
+                             "MJX env-steps/s at --batch and the expert's success on both engines for each")
     args = parser.parse_args(argv)
     task_ids = [int(t) for t in args.tasks.split(",")]
     episodes = args.episodes if args.episodes is not None else (5 if args.tiny else 50)
@@ -173,8 +180,43 @@ def main(argv: list[str] | None = None) -> None:
             rows.append({"figure": f"expert success task {task_id} (MJX)", "value": rate})
         entries["sim_expert_success_min_mjx"] = common.record(
             "sim_expert_success_min_mjx", min(mjx_rates.values()), 0.9, per_task={str(k): v for k, v in mjx_rates.items()})
+    if args.solver_variants and not args.tiny:
+        entries["sim_solver_variants"] = solver_variants(args, episodes, task_ids, sweep, rows)
     common.print_table(rows, ["figure", "value"])
     print("wrote", common.merge_results(entries))
+
+
+def solver_variants(args, episodes: int, task_ids: list[int], sweep: list[dict], rows: list[dict]) -> dict:
+    """The solver lever, side by side with the default run above: per ``ITER,LS`` setting, MJX
+    env-steps/s (with the renderer) and physics-only at ``--batch``, and the scripted expert's lowest
+    per-task success on the C engine and (unless ``--no-expert``) on MJX, over the same initial states."""
+    from sim.config import SimConfig
+
+    default = SimConfig()
+    base = next((r for r in sweep if r["batch"] == args.batch), None)
+    variants = [{"solver_iterations": default.solver_iterations, "ls_iterations": default.ls_iterations,
+                 "env_steps_per_s": base and base["env_steps_per_s"],
+                 "physics_steps_per_s": base and base["physics_steps_per_s"]}]
+    for spec in args.solver_variants.split(";"):
+        try:
+            iterations, ls_iterations = (int(x) for x in spec.split(","))
+        except ValueError:
+            raise SystemExit(f"--solver-variants: expected ITER,LS;ITER,LS, got {spec!r}") from None
+        overrides = {"solver_iterations": iterations, "ls_iterations": ls_iterations}
+        SimConfig(**overrides).validate()
+        row = {**overrides, **mjx_throughput(args.batch, args.resolution, args.steps, render_alone=False, **overrides)}
+        cpu_rates, _ = expert_success_cpu(episodes, task_ids, args.noise, **overrides)
+        row["expert_success_min_cpu"] = min(cpu_rates.values())
+        if not args.no_expert:
+            row["expert_success_min_mjx"] = min(expert_success_mjx(episodes, task_ids, args.horizon, **overrides).values())
+        variants.append(row)
+        print(f"solver {iterations},{ls_iterations}: " + ", ".join(f"{k} {v:.4g}" for k, v in row.items()), flush=True)
+        for name, value in row.items():
+            rows.append({"figure": f"solver {iterations},{ls_iterations}: {name} (batch {args.batch})", "value": value})
+    best = max(variants[1:], key=lambda r: r["env_steps_per_s"])
+    return common.record("sim_solver_variants", best["env_steps_per_s"], 20000, batch=args.batch,
+                         resolution=args.resolution, episodes_per_task=episodes, variants=variants,
+                         note="first row: the default settings, measured above in the same run")
 
 
 if __name__ == "__main__":

@@ -70,7 +70,8 @@ class _Common:
         self.language = tasks.LANGUAGE[self.task_id]
         self.controller = controller
         self.renderer = renderer
-        self.mj_model = scene.build_model(timestep=config.physics_dt)
+        self.mj_model = scene.build_model(timestep=config.physics_dt, iterations=config.solver_iterations,
+                                          ls_iterations=config.ls_iterations)
         steps = 1.0 / (config.control_hz * config.physics_dt)
         if abs(steps - round(steps)) > 1e-6:
             raise ValueError(f"1/(control_hz*physics_dt) must be an integer, got {steps}")
