@@ -7,8 +7,9 @@ The batch of worlds is reset and stepped with random actions for ``--warmup`` co
 objects rest and contacts exist). Then every stage of ``mjx.step`` (``fwd_position``'s kinematics
 ... constraint assembly, ``fwd_velocity``, ``fwd_actuation``, ``fwd_acceleration``, the
 constraint solver, the integrator) is jitted and vmapped alone and timed on the states the stages
-before it produced. Beside them, in the same run: the whole ``mjx.step`` (the stages' sum less what
-XLA fuses across them), and ``mjx.step`` with fewer solver (line-search) iterations, for the cost
+before it produced. Beside them, in the same run: the env's whole physics step (``sim.env.mjx_step``:
+``mjx.forward`` and the implicit update as the C engine does it; the stages' sum less what XLA fuses
+across them), and that step with fewer solver (line-search) iterations, for the cost
 side of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
 comparison's question, not this file's). An env-step is ``substeps`` physics steps.
 
@@ -52,6 +53,7 @@ def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tup
     from mujoco import mjx
 
     import sim
+    from sim.env import mjx_step
 
     env = sim.load("libero_spatial", backend="mjx")
     keys = jax.random.split(jax.random.key(0), batch)
@@ -68,11 +70,11 @@ def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tup
         fn = getattr(mjx, name)
         seconds, d = _timed(jax.jit(jax.vmap(lambda x, fn=fn: fn(model, x))), d, repeats)
         stages[name] = seconds * per
-    whole, _ = _timed(jax.jit(jax.vmap(lambda x: mjx.step(model, x))), data, repeats)
+    whole, _ = _timed(jax.jit(jax.vmap(lambda x: mjx_step(model, x))), data, repeats)
     variants = {}
     for iterations, ls_iterations in solver_variants:
         m = model.replace(opt=model.opt.replace(iterations=iterations, ls_iterations=ls_iterations))
-        seconds, _ = _timed(jax.jit(jax.vmap(lambda x, m=m: mjx.step(m, x))), data, repeats)
+        seconds, _ = _timed(jax.jit(jax.vmap(lambda x, m=m: mjx_step(m, x))), data, repeats)
         variants[f"iterations {iterations}, ls_iterations {ls_iterations}"] = seconds * per
     return {"stages_us": stages, "stage_sum_us": sum(stages.values()), "step_us": whole * per,
             "solver_variants_step_us": variants, "substeps": env.substeps,
@@ -96,12 +98,12 @@ def main(argv: list[str] | None = None) -> None:
                   solver_variants=((6, 8), (4, 4), (2, 4)) if not args.tiny else ((2, 4),))
     rows = [{"stage": k, "us_per_world_step": v, "share": v / out["stage_sum_us"]} for k, v in out["stages_us"].items()]
     rows.append({"stage": "sum of stages", "us_per_world_step": out["stage_sum_us"], "share": 1.0})
-    rows.append({"stage": "mjx.step (one jit)", "us_per_world_step": out["step_us"], "share": out["step_us"] / out["stage_sum_us"]})
+    rows.append({"stage": "sim.env.mjx_step (one jit)", "us_per_world_step": out["step_us"], "share": out["step_us"] / out["stage_sum_us"]})
     for name, value in out["solver_variants_step_us"].items():
-        rows.append({"stage": f"mjx.step, {name}", "us_per_world_step": value, "share": value / out["stage_sum_us"]})
+        rows.append({"stage": f"sim.env.mjx_step, {name}", "us_per_world_step": value, "share": value / out["stage_sum_us"]})
     common.print_table(rows, ["stage", "us_per_world_step", "share"])
     print(f"substeps per env-step {out['substeps']}; contacts {out['ncon']}, constraint rows {out['nefc']}; "
-          f"physics-only env-steps/s implied by mjx.step: {1e6 / (out['step_us'] * out['substeps']):.0f}", flush=True)
+          f"physics-only env-steps/s implied by the step: {1e6 / (out['step_us'] * out['substeps']):.0f}", flush=True)
     if not args.tiny:
         key = f"sim.mjx_physics_profile_{args.batch}"
         print("wrote", common.merge_results({key: common.record(key, out["step_us"], None, batch=args.batch, **{
