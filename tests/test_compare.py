@@ -545,6 +545,20 @@ def test_table_names_missing_comparisons_and_slices_run_with_other_overrides(tmp
     assert "No evaluated slices of `sword` or `teacher_forcing` here." in (only / "comparison.md").read_text()
 
 
+def test_exploitation_lines_compare_first_and_last_replays():
+    def at(step, mean, fail, ok):
+        by_h = {"48": {"real_failure": {"rate": fail, "of": 50}, "real_success": {"rate": ok, "of": 50}}}
+        return {"step": step, "mean": mean, "replay": {"imagined_success_by_horizon": by_h}}
+
+    lines = compare.exploitation_lines([
+        {"run": "sword", "seed": 1, "success_curve": [at(0, 0.30, 0.07, 0.34), at(25, 0.33, 0.15, 0.32), at(50, 0.23, 0.16, 0.28)]},
+        {"run": "wovr", "seed": 1, "success_curve": [at(0, 0.30, 0.03, 0.24), at(50, 0.35, 0.02, 0.30)]},
+        {"run": "wovr", "seed": 2, "success_curve": [at(0, 0.30, 0.03, 0.24)]}])  # one evaluation: no row
+    assert "| sword | 1 | 0 -> 50 | 0.07 -> 0.16 | 0.34 -> 0.28 | 0.300 -> 0.230 |" in lines
+    assert lines[-1] == "False success rose at 1/2 slices; real success fell at 1/2."
+    assert compare.exploitation_lines([{"run": "sword", "seed": 0}]) == []
+
+
 def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
     rate = lambda r, of: {"rate": r, "of": of, "ci95": [0.0, 1.0]}  # noqa: E731
     replay = {"imagined_success_by_horizon": {"48": {"real_success": rate(0.4, 43), "real_failure": rate(0.19, 57)},

@@ -258,6 +258,7 @@ def to_markdown(table: dict, seeds: Sequence[int], *, mismatches: dict | None = 
                 lines += ["", f"`{ours}` gained more than `{baseline}` at {gains['ours_better']}/{gains['n']} seeds "
                           f"(mean difference {gains['mean']:+.3f})."]
             lines += replay_lines([s for s in slices if s["run"] in (ours, baseline)])
+            lines += exploitation_lines([s for s in slices if s["run"] in (ours, baseline)])
         lines.append("")
     if slices:
         lines += ["## Slices", "", "| run | seed | device | seconds (shared stages built here + slice) | slices at once "
@@ -318,6 +319,36 @@ def replay_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]:
             "verdict ignores the actions):", "",
             f"| run | seed | by action {horizon} | whole replay | separation by action {horizon} (95%) | "
             "another noise draw disagrees |", "|---|---|---|---|---|---|", *rows, *([""] + diffs if diffs else [])]
+
+
+def exploitation_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]:
+    """Markdown: did GRPO learn to fool its simulator? Per world-model slice, from the replays at its
+    first and last GRPO evaluations (each replays that step's policy's own real episodes): the share of
+    real failures the simulator calls successes by action ``horizon`` (false success), of real successes
+    it calls successes, and the real success rate (greedy, all evaluation episodes), first -> last.
+    False success rising while real success falls is the signature of exploitation."""
+    rows, fooled, fell, n = [], 0, 0, 0
+    for s in sorted(slices, key=lambda s: (s["run"], s["seed"])):
+        curve = [c for c in s.get("success_curve") or [] if (c.get("replay") or {}).get("imagined_success_by_horizon", {}).get(horizon)]
+        if len(curve) < 2:
+            continue
+        first, last = curve[0], curve[-1]
+        rate = lambda c, kind: c["replay"]["imagined_success_by_horizon"][horizon][kind]["rate"]  # noqa: E731
+        n += 1
+        fooled += rate(last, "real_failure") > rate(first, "real_failure")
+        fell += last["mean"] < first["mean"]
+        rows.append(f"| {s['run']} | {s['seed']} | {first.get('step', 0)} -> {last.get('step', '?')} | "
+                    f"{rate(first, 'real_failure'):.2f} -> {rate(last, 'real_failure'):.2f} | "
+                    f"{rate(first, 'real_success'):.2f} -> {rate(last, 'real_success'):.2f} | "
+                    f"{first['mean']:.3f} -> {last['mean']:.3f} |")
+    if not rows:
+        return []
+    return ["", f"Did GRPO learn to fool its simulator? The replay at each evaluation of that step's policy's own "
+            f"real episodes, first -> last evaluation: imagined success by action {horizon} of real failures "
+            "(false success) and of real successes, and real success:", "",
+            f"| run | seed | GRPO steps | false success by action {horizon} | imagined success of real successes | "
+            "real success |", "|---|---|---|---|---|---|", *rows, "",
+            f"False success rose at {fooled}/{n} slices; real success fell at {fell}/{n}."]
 
 
 def override_differences(slices: Sequence[dict]) -> dict[str, list[str]]:
