@@ -223,6 +223,16 @@ def mjx_step(model: Any, data: Any) -> Any:
     the arm's joint velocities up to 0.31 rad/s apart, and the scripted expert, 100% on the C
     engine, solved 64-84% of tasks 0, 6, 7 and 9 on MJX. This step runs ``mjx.forward`` and then
     MJX's implicit update with the clamped actuators' terms removed, as the C engine does.
+
+    Args:
+      model: an ``mjx.Model`` whose integrator is implicitfast (the scene's).
+      data: an ``mjx.Data`` of it (vmap over a batch).
+
+    Returns:
+      The ``mjx.Data`` one physics step (``model.opt.timestep``) later.
+
+    Raises:
+      ValueError: another integrator.
     """
     with _mjx_promotion():  # MJX's internals mix Python floats and bools
         return _mjx_step(model, data)
