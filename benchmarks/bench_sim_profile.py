@@ -13,8 +13,15 @@ across them), and that step with fewer solver (line-search) iterations, for the 
 side of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
 comparison's question, not this file's). An env-step is ``substeps`` physics steps.
 
+The renderer, on the same states (agentview, ``--resolution`` px, with the static-geometry split
+the env uses): ray generation, the moving geoms' intersection by geom type (each type's scan alone),
+and the whole frame; what is left of the whole is the nearest-geom normal, shading and the
+RGB / depth / segmentation outputs (less what XLA fuses across stages: at tiny batches, where each
+separate jit's overhead dominates, the remainder can come out negative).
+
 Records ``sim.mjx_physics_profile_<batch>`` in ``benchmarks/results/latest.json``: microseconds per
-world per physics step for each stage, the whole step, and the solver variants.
+world per physics step for each stage, the whole step, and the solver variants; and
+``sim.render_profile_<resolution>px_<batch>``: microseconds per frame for each renderer stage.
 """
 
 from __future__ import annotations
@@ -45,7 +52,8 @@ def _timed(fn, arg, repeats: int) -> tuple[float, object]:
     return (time.perf_counter() - start) / repeats, out
 
 
-def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tuple[int, int], ...]) -> dict:
+def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tuple[int, int], ...],
+            resolution: int = 128) -> dict:
     """Microseconds per world per physics step: per stage, the whole step, and ``(iterations,
     ls_iterations)`` solver variants; plus the scene's contact and constraint counts."""
     import jax
@@ -76,11 +84,47 @@ def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tup
         m = model.replace(opt=model.opt.replace(iterations=iterations, ls_iterations=ls_iterations))
         seconds, _ = _timed(jax.jit(jax.vmap(lambda x, m=m: mjx_step(m, x))), data, repeats)
         variants[f"iterations {iterations}, ls_iterations {ls_iterations}"] = seconds * per
-    return {"stages_us": stages, "stage_sum_us": sum(stages.values()), "step_us": whole * per,
+    return {"render_us": render_profile(data, env.mj_model, resolution=resolution, repeats=repeats),
+            "stages_us": stages, "stage_sum_us": sum(stages.values()), "step_us": whole * per,
             "solver_variants_step_us": variants, "substeps": env.substeps,
             "solver": {"iterations": int(model.opt.iterations), "ls_iterations": int(model.opt.ls_iterations)},
             "ncon": int(data._impl.contact.dist.shape[-1]) if hasattr(data, "_impl") else None,
             "nefc": int(data._impl.efc_J.shape[-2]) if hasattr(data, "_impl") else None}
+
+
+def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
+    """Microseconds per frame of the renderer's stages on a batch of ``mjx.Data`` (agentview)."""
+    import jax
+    import numpy as np
+
+    from sim import render
+
+    scene = render.build_scene(mj_model)
+    cam_id, fovy = scene.cameras["agentview"]
+    batch = data.qpos.shape[0]
+    per = 1e6 / batch
+    geom_xpos, geom_xmat = data.geom_xpos, data.geom_xmat
+    cam_pos, cam_mat = data.cam_xpos[:, cam_id], data.cam_xmat[:, cam_id]
+    view = jax.jit(jax.vmap(lambda p, m, cp, cm: render._view(scene, p, m, cp, cm, fovy=fovy, height=resolution,
+                                                              width=resolution)))
+    seconds, (pos, mat, origin, dirs) = _timed(lambda a: view(*a), (geom_xpos, geom_xmat, cam_pos, cam_mat), repeats)
+    out = {"rays": seconds * per}
+    moving = ~np.asarray(scene.static, bool) if scene.static is not None else np.ones(len(scene.geom_ids), bool)
+    names = {v: k for k, v in vars(render).items() if k.startswith("_") and k[1:].isupper() and isinstance(v, int)}
+    for gtype in render._HIT:
+        which = moving & (scene.geom_type == gtype)
+        if not which.any():
+            continue
+        hits = jax.jit(jax.vmap(lambda p, m, o, d, which=which: render._nearest_ranked(scene, p, m, o[None, :], d,
+                                                                                         which=which)))
+        seconds, _ = _timed(lambda a, hits=hits: hits(*a), (pos, mat, origin, dirs), repeats)
+        out[f"hit {names.get(gtype, gtype).lower().strip('_')} x{int(which.sum())}"] = seconds * per
+    whole = jax.jit(jax.vmap(render.make_renderer(scene, "agentview", height=resolution, width=resolution,
+                                                  model=mj_model)))
+    seconds, _ = _timed(whole, data, repeats)
+    out["whole frame"] = seconds * per
+    out["rest (normal, shading, outputs)"] = out["whole frame"] - sum(v for k, v in out.items() if k != "whole frame")
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -88,13 +132,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch", type=int, default=4096)
     parser.add_argument("--warmup", type=int, default=5, help="control steps before timing")
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--resolution", type=int, default=128, help="renderer profile image size")
     parser.add_argument("--tiny", action="store_true", help="CPU check: batch 2, 1 repeat, no results file")
     args = parser.parse_args(argv)
     if args.tiny:
         args.batch, args.warmup, args.repeats = 2, 1, 1
     if args.batch < 1 or args.repeats < 1 or args.warmup < 0:
         raise SystemExit("--batch and --repeats must be >= 1, --warmup >= 0")
-    out = profile(args.batch, warmup=args.warmup, repeats=args.repeats,
+    if args.tiny:
+        args.resolution = 32
+    out = profile(args.batch, warmup=args.warmup, repeats=args.repeats, resolution=args.resolution,
                   solver_variants=((6, 8), (4, 4), (2, 4)) if not args.tiny else ((2, 4),))
     rows = [{"stage": k, "us_per_world_step": v, "share": v / out["stage_sum_us"]} for k, v in out["stages_us"].items()]
     rows.append({"stage": "sum of stages", "us_per_world_step": out["stage_sum_us"], "share": 1.0})
@@ -102,12 +149,19 @@ def main(argv: list[str] | None = None) -> None:
     for name, value in out["solver_variants_step_us"].items():
         rows.append({"stage": f"sim.env.mjx_step, {name}", "us_per_world_step": value, "share": value / out["stage_sum_us"]})
     common.print_table(rows, ["stage", "us_per_world_step", "share"])
+    frame = out["render_us"]["whole frame"]
+    common.print_table([{"renderer stage": k, "us_per_frame": v, "share": v / frame} for k, v in out["render_us"].items()],
+                       ["renderer stage", "us_per_frame", "share"])
     print(f"substeps per env-step {out['substeps']}; contacts {out['ncon']}, constraint rows {out['nefc']}; "
           f"physics-only env-steps/s implied by the step: {1e6 / (out['step_us'] * out['substeps']):.0f}", flush=True)
     if not args.tiny:
         key = f"sim.mjx_physics_profile_{args.batch}"
-        print("wrote", common.merge_results({key: common.record(key, out["step_us"], None, batch=args.batch, **{
-            k: v for k, v in out.items() if k != "step_us"})}))
+        render_key = f"sim.render_profile_{args.resolution}px_{args.batch}"
+        print("wrote", common.merge_results({
+            key: common.record(key, out["step_us"], None, batch=args.batch, **{
+                k: v for k, v in out.items() if k not in ("step_us", "render_us")}),
+            render_key: common.record(render_key, frame, None, batch=args.batch, resolution=args.resolution,
+                                      camera="agentview", stages_us=out["render_us"])}))
 
 
 if __name__ == "__main__":
