@@ -546,15 +546,21 @@ def test_table_names_missing_comparisons_and_slices_run_with_other_overrides(tmp
 
 
 def test_exploitation_lines_compare_first_and_last_replays():
+    from train import grpo
+
     def at(step, mean, fail, ok):
         by_h = {"48": {"real_failure": {"rate": fail, "of": 50}, "real_success": {"rate": ok, "of": 50}}}
         return {"step": step, "mean": mean, "replay": {"imagined_success_by_horizon": by_h}}
 
     lines = compare.exploitation_lines([
-        {"run": "sword", "seed": 1, "success_curve": [at(0, 0.30, 0.07, 0.34), at(25, 0.33, 0.15, 0.32), at(50, 0.23, 0.16, 0.28)]},
+        {"run": "sword", "seed": 1, "success_curve": [at(0, 0.30, 0.07, 0.34), at(25, 0.33, 0.15, 0.32), at(50, 0.23, 0.16, 0.28)],
+         "policy": {"grpo": {"training_success": grpo.training_success(
+             [{"step": k + 1, "success_rate": 0.1 if k < 10 else 0.5} for k in range(50)])}}},
         {"run": "wovr", "seed": 1, "success_curve": [at(0, 0.30, 0.03, 0.24), at(50, 0.35, 0.02, 0.30)]},
         {"run": "wovr", "seed": 2, "success_curve": [at(0, 0.30, 0.03, 0.24)]}])  # one evaluation: no row
-    assert "| sword | 1 | 0 -> 50 | 0.07 -> 0.16 | 0.34 -> 0.28 | 0.300 -> 0.230 |" in lines
+    assert "| sword | 1 | 0 -> 50 | 0.10 -> 0.50 | 0.07 -> 0.16 | 0.34 -> 0.28 | 0.300 -> 0.230 |" in lines
+    assert "| wovr | 1 | 0 -> 50 | | 0.03 -> 0.02 | 0.24 -> 0.30 | 0.300 -> 0.350 |" in lines  # no history: empty cell
+    assert grpo.training_success([{"step": 1, "loss": 0.0}]) == {}
     assert lines[-1] == "False success rose at 1/2 slices; real success fell at 1/2."
     assert compare.exploitation_lines([{"run": "sword", "seed": 0}]) == []
 

@@ -64,6 +64,13 @@ def test_grpo_entry_point_toy_and_resume(tmp_path):
     with open(os.path.join(out["workdir"], "success_curve.json")) as f:
         assert len(json.load(f)["points"]) == 3
     assert os.path.exists(os.path.join(out["workdir"], "success_curve.png"))
+    # The whole run's history (restored steps included), and its training-rollout summary.
+    with open(os.path.join(out["workdir"], "train_history.jsonl")) as f:
+        history = [json.loads(line) for line in f]
+    assert [p["step"] for p in history] == [1, 2, 3, 4] and history == out["history"]
+    summary = grpo_main.training_success(history, window=2)
+    assert summary["metric"] == "success_rate" and summary["steps"] == 4
+    assert summary["first"] == (history[0]["success_rate"] + history[1]["success_rate"]) / 2
 
 
 @pytest.mark.slow

@@ -337,17 +337,21 @@ def exploitation_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]
         n += 1
         fooled += rate(last, "real_failure") > rate(first, "real_failure")
         fell += last["mean"] < first["mean"]
+        training = s.get("policy", {}).get("grpo", {}).get("training_success") or {}
         rows.append(f"| {s['run']} | {s['seed']} | {first.get('step', 0)} -> {last.get('step', '?')} | "
-                    f"{rate(first, 'real_failure'):.2f} -> {rate(last, 'real_failure'):.2f} | "
+                    + (f"{training['first']:.2f} -> {training['last']:.2f} | " if training else "| ")
+                    + f"{rate(first, 'real_failure'):.2f} -> {rate(last, 'real_failure'):.2f} | "
                     f"{rate(first, 'real_success'):.2f} -> {rate(last, 'real_success'):.2f} | "
                     f"{first['mean']:.3f} -> {last['mean']:.3f} |")
     if not rows:
         return []
-    return ["", f"Did GRPO learn to fool its simulator? The replay at each evaluation of that step's policy's own "
-            f"real episodes, first -> last evaluation: imagined success by action {horizon} of real failures "
-            "(false success) and of real successes, and real success:", "",
-            f"| run | seed | GRPO steps | false success by action {horizon} | imagined success of real successes | "
-            "real success |", "|---|---|---|---|---|---|", *rows, "",
+    return ["", "Did GRPO learn to fool its simulator? Its imagined training rollouts' success (first -> last 10 "
+            "steps; empty for slices run before it was recorded: their GRPO logs have it), and the replay at "
+            f"each evaluation of that step's policy's own real episodes, first -> last evaluation: imagined "
+            f"success by action {horizon} of real failures (false success) and of real successes, and real "
+            "success:", "",
+            f"| run | seed | GRPO steps | imagined training rollouts | false success by action {horizon} | "
+            "imagined success of real successes | real success |", "|---|---|---|---|---|---|---|", *rows, "",
             f"False success rose at {fooled}/{n} slices; real success fell at {fell}/{n}."]
 
 

@@ -265,10 +265,26 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     finally:
         for env in envs:
             env.close()
-    with open(os.path.join(workdir, "train_history.jsonl"), "w") as f:  # the whole run's, restored steps included
-        for point in result.history:
-            f.write(json.dumps(point) + "\n")
+    save_history(workdir, result.history)
     return {"curve": curve, "workdir": workdir, "history": result.history}
+
+
+def save_history(workdir: str, history: Sequence[dict]) -> None:
+    """``<workdir>/train_history.jsonl``: the whole run's per-step metrics, restored steps included."""
+    with open(os.path.join(workdir, "train_history.jsonl"), "w") as f:
+        for point in history:
+            f.write(json.dumps(point) + "\n")
+
+
+def training_success(history: Sequence[dict], window: int = 10) -> dict:
+    """The success of GRPO's own training rollouts (imagined in a world model, real in the env) over its
+    first and last ``window`` steps: ``{"metric", "first", "last", "steps"}``, ``{}`` without any."""
+    metric = next((k for k in ("success_rate", "rollout_success") if history and k in history[0]), None)
+    if metric is None:
+        return {}
+    values = [float(p[metric]) for p in history if metric in p]
+    return {"metric": metric, "first": sum(values[:window]) / len(values[:window]),
+            "last": sum(values[-window:]) / len(values[-window:]), "steps": len(values), "window": window}
 
 
 class _Replayer:
@@ -361,7 +377,8 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
 
     ``eval_episodes`` (per task) overrides ``rl.grpo.eval_episodes_per_task``; ``env_workers`` are the C-engine
     processes of the evaluations (and of the episodes with ``simulator="env"``). Returns
-    ``{"curve": evaluation points, "workdir"}`` (plus ``"history"`` with ``simulator="env"``).
+    ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}`` (the history
+    is also written to ``<workdir>/train_history.jsonl``).
     """
     if simulator not in SIMULATORS:
         raise ValueError(f"train.grpo: simulator {simulator!r} is none of {SIMULATORS}")
@@ -451,9 +468,10 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
                 f"kept {point['kept_fraction']:.2f} nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
-    _, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl, workdir=workdir,
-                          evaluate=evaluate, run_id=run_id, progress=progress, log=log)
-    return {"curve": curve, "workdir": workdir}
+    result, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl,
+                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=log)
+    save_history(workdir, result.history)
+    return {"curve": curve, "workdir": workdir, "history": result.history}
 
 
 if __name__ == "__main__":

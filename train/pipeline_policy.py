@@ -86,10 +86,13 @@ def _summary(stage_result: dict) -> dict:
 
 def _policy_result(ctx: Context, result: dict) -> dict:
     """A GRPO stage's record: the supervised policy it started from, its run and real success per step."""
+    from train import grpo
+
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     return {
         "sft": _summary(ctx.results["sft_policy"]),
-        "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"]},
+        "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"],
+                 "training_success": grpo.training_success(result.get("history", []))},
         "success": success,
         "success_curve_png": os.path.join(result["workdir"], "success_curve.png"),
     }
