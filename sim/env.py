@@ -329,13 +329,14 @@ def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
 
 
 def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
-                    depth_and_seg: bool = False, static_split: bool = True) -> Renderer:
+                    depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool = 1) -> Renderer:
     """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
 
     Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
     ``agentview_rgb`` (and ``eye_in_hand_rgb``), plus ``*_depth`` / ``*_seg`` on request.
     ``static_split=False`` tests every geom in every frame (the same frames up to float rounding;
-    for benchmarks that time the split).
+    for benchmarks that time the split). ``unroll``: geoms per step of the renderer's scans
+    (``sim.render.render``; the same frames).
     """
     from sim import render
 
@@ -343,7 +344,7 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
     cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
     # a fixed camera's static geoms are intersected once, here, not in every frame (sim/render.py)
     draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution,
-                                       model=mj_model if static_split else None)
+                                       model=mj_model if static_split else None, unroll=unroll)
              for cam in cameras}
 
     def renderer(data: Any) -> dict[str, Any]:

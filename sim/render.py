@@ -347,14 +347,17 @@ def _hit_order(scene: RenderScene) -> np.ndarray:
     return np.concatenate([np.nonzero(scene.geom_type == gtype)[0] for gtype in _HIT]).astype(np.int32)
 
 
-def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.ndarray | None = None, start=None):
+def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.ndarray | None = None, start=None,
+                    unroll: int | bool = 1):
     """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms ``which`` selects (bool (n,);
     ``None``: all), as (t (r,), rank (r,)): the ray parameter (+inf on a miss) and the winner's rank
     in :func:`_hit_order` (n on a miss). ``start``: a (t, rank) pair to continue from, e.g. the nearest
     hits of the other geoms; the result is the same as testing all of them at once.
 
     A ``lax.scan`` over the geoms of each type keeps a running (t, rank) minimum, so the
-    memory is O(rays) rather than O(geoms * rays) and each step stays in cache.
+    memory is O(rays) rather than O(geoms * rays) and each step stays in cache. ``unroll`` geoms per
+    scan step (``True``: all of a type in one step) let XLA fuse their tests into one pass over the
+    rays instead of reading and writing the running minimum once per geom; the result is the same.
     """
     order = _hit_order(scene)
     if start is None:
@@ -383,11 +386,12 @@ def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.nd
 
         geoms = (jnp.asarray(ranks, jnp.int32), pos[idx], mat[idx], jnp.asarray(scene.size[idx]),
                  jnp.asarray(scene.offset[idx]))
-        (best_t, best_r), _ = jax.lax.scan(step, (best_t, best_r), geoms)
+        (best_t, best_r), _ = jax.lax.scan(step, (best_t, best_r), geoms, unroll=unroll)
     return best_t, best_r
 
 
-def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, which: np.ndarray | None = None):
+def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, which: np.ndarray | None = None,
+                  unroll: int | bool = 1):
     """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms (``which``/``start``: see
     :func:`_nearest_ranked`).
 
@@ -395,7 +399,7 @@ def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, wh
       (t (r,) ray parameter of the nearest hit, +inf on a miss; index (r,) into the
       scene's drawn-geom arrays, 0 on a miss).
     """
-    best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start)
+    best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start, unroll=unroll)
     index_of_rank = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)
     return best_t, index_of_rank[best_r]
 
@@ -412,6 +416,7 @@ def render(
     width: int,
     shadows: bool = False,
     static_hits: tuple[Any, Any] | None = None,
+    unroll: int | bool = 1,
 ) -> Frame:
     """Renders one camera view of one state (vmap for batches).
 
@@ -427,6 +432,8 @@ def render(
         (:func:`static_nearest`, the same for every state a static camera sees); only the moving
         geoms are then tested per frame. The output is that of testing them all, up to float
         rounding (another XLA program computes the static hits).
+      unroll: geoms tested per step of the per-type scans (``True``: all of a type at once); the same
+        frames, another schedule (see ``_nearest_ranked``).
 
     Returns:
       ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
@@ -447,10 +454,10 @@ def render(
     pos, mat, cam_pos, dirs = _view(scene, geom_xpos, geom_xmat, cam_pos, cam_mat, fovy=fovy, height=height,
                                     width=width)
     if static_hits is None:
-        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs)
+        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs, unroll=unroll)
     else:
         depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs, start=static_hits,
-                                       which=~np.asarray(scene.static, bool))
+                                       which=~np.asarray(scene.static, bool), unroll=unroll)
     hit = jnp.isfinite(depth)
     depth = jnp.where(hit, depth, jnp.float32(scene.far))
 
@@ -554,6 +561,7 @@ def make_renderer(
     width: int,
     shadows: bool = False,
     model: mujoco.MjModel | None = None,
+    unroll: int | bool = 1,
 ) -> Callable[[Any], Frame]:
     """A pure ``data -> Frame`` function for one camera (jit/vmap it over ``mjx.Data``).
 
@@ -564,6 +572,7 @@ def make_renderer(
         here (:func:`static_hits_of_model`), and each frame tests only the moving geoms. The frames
         are those of testing every geom up to float rounding (MJX's float32 kinematics place the
         static geoms within 5e-8 m of MuJoCo's, from which the hits are computed).
+      unroll: see ``render``.
 
     Raises:
       KeyError: unknown camera. ValueError: non-positive image size.
@@ -580,7 +589,7 @@ def make_renderer(
         return render(
             scene, data.geom_xpos, data.geom_xmat, cam_pos, cam_mat,
             fovy=fovy, height=height, width=width, shadows=shadows,
-            static_hits=None if static is None else (jnp.asarray(static[0]), jnp.asarray(static[1])),
+            static_hits=None if static is None else (jnp.asarray(static[0]), jnp.asarray(static[1])), unroll=unroll,
         )
 
     return render_data

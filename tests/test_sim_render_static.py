@@ -104,12 +104,16 @@ def test_per_state_renderer_with_the_models_static_hits_draws_the_same_frames():
     model, scene = env.mj_model, render.build_scene(env.mj_model)
     assert render.static_hits_of_model(scene, model, "eye_in_hand", height=8, width=8) is None  # it moves
     hook = jax.jit(camera_renderer(model, resolution=32, depth_and_seg=True))
+    unrolled = jax.jit(camera_renderer(model, resolution=32, depth_and_seg=True, unroll=3))  # 43 boxes: a remainder
     plain = {"agentview": jax.jit(render.make_renderer(scene, "agentview", height=32, width=32))}
     mx = mjx.put_model(model)
     kinematics = jax.jit(lambda d: mjx.camlight(mx, mjx.kinematics(mx, d)))
     for state in (out["states"][0], out["states"][-1]):
         c_poses = mjx.put_data(model, state.data)  # MuJoCo's own poses, as float32
         images = jax.tree.map(np.asarray, hook(c_poses))
+        # Unrolling the per-type scans changes the schedule, not the frames.
+        for key, value in jax.tree.map(np.asarray, unrolled(c_poses)).items():
+            np.testing.assert_array_equal(value, images[key], err_msg=key)
         for cam, draw in plain.items():
             ref = jax.tree.map(np.asarray, draw(c_poses))
             np.testing.assert_allclose(images[f"{cam}_depth"], ref.depth, rtol=0, atol=1e-5)
