@@ -57,8 +57,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     split (every geom tested in every frame), and their ratio ``render_static_split_speedup``; and
     ``render_frames_per_s_unroll_4`` / ``_all`` with each geom type's scan unrolled 4 geoms a step / all
     at once (fewer passes over the rays' running minimum; on a 2-core CPU, 16 envs: 1.14-1.23x and
-    0.47-0.59x of the default at 64 and 128 px)
-    (``render_alone=False`` skips the renderer-alone figures). ``sim_overrides``: ``SimConfig`` fields.
+    0.47-0.59x of the default at 64 and 128 px). ``render_alone=False`` skips the renderer-alone
+    figures. ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
     import jax.numpy as jnp
@@ -84,7 +84,12 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     out = {}
     renderer = None
     if render:
-        renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution, depth_and_seg=True)
+        mj_model = sim.load("libero_spatial").mj_model
+
+        def renderer_with(**options):
+            return camera_renderer(mj_model, resolution=resolution, depth_and_seg=True, **options)
+
+        renderer = renderer_with()
         out["env_steps_per_s"], _ = steps_per_s(renderer)
     out["physics_steps_per_s"], state = steps_per_s(None)
     if render and render_alone:
@@ -101,14 +106,10 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
             return batch * steps / (time.perf_counter() - start)
 
         out["render_frames_per_s"] = frames_per_s(renderer)
-        every_geom = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution,
-                                     depth_and_seg=True, static_split=False)
-        out["render_frames_per_s_every_geom"] = frames_per_s(every_geom)
+        out["render_frames_per_s_every_geom"] = frames_per_s(renderer_with(static_split=False))
         out["render_static_split_speedup"] = out["render_frames_per_s"] / out["render_frames_per_s_every_geom"]
         for name, unroll in (("4", 4), ("all", True)):
-            unrolled = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution,
-                                       depth_and_seg=True, unroll=unroll)
-            out[f"render_frames_per_s_unroll_{name}"] = frames_per_s(unrolled)
+            out[f"render_frames_per_s_unroll_{name}"] = frames_per_s(renderer_with(unroll=unroll))
     elif not render:
         out["env_steps_per_s"] = out["physics_steps_per_s"]
     return out

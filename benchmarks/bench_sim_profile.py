@@ -95,6 +95,7 @@ def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tup
 def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
     """Microseconds per frame of the renderer's stages on a batch of ``mjx.Data`` (agentview)."""
     import jax
+    import mujoco
     import numpy as np
 
     from sim import render
@@ -110,7 +111,6 @@ def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
     seconds, (pos, mat, origin, dirs) = _timed(lambda a: view(*a), (geom_xpos, geom_xmat, cam_pos, cam_mat), repeats)
     out = {"rays": seconds * per}
     moving = ~np.asarray(scene.static, bool) if scene.static is not None else np.ones(len(scene.geom_ids), bool)
-    names = {v: k for k, v in vars(render).items() if k.startswith("_") and k[1:].isupper() and isinstance(v, int)}
     for gtype in render._HIT:
         which = moving & (scene.geom_type == gtype)
         if not which.any():
@@ -118,7 +118,8 @@ def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
         hits = jax.jit(jax.vmap(lambda p, m, o, d, which=which: render._nearest_ranked(scene, p, m, o[None, :], d,
                                                                                          which=which)))
         seconds, _ = _timed(lambda a, hits=hits: hits(*a), (pos, mat, origin, dirs), repeats)
-        out[f"hit {names.get(gtype, gtype).lower().strip('_')} x{int(which.sum())}"] = seconds * per
+        name = mujoco.mjtGeom(gtype).name.removeprefix("mjGEOM_").lower()
+        out[f"hit {name} x{int(which.sum())}"] = seconds * per
     whole = jax.jit(jax.vmap(render.make_renderer(scene, "agentview", height=resolution, width=resolution,
                                                   model=mj_model)))
     seconds, _ = _timed(whole, data, repeats)

@@ -10,7 +10,7 @@ from sword_jax.augment import style as st
 from sword_jax.augment.structure import edge_map, segmentation_boundaries, structure_scores
 from sword_jax.augment.synthetic import synthetic_episode
 from sword_jax.augment.textures import depth_normals, texture
-from sword_jax.augment.transforms import augment, augment_batch, color_adjust
+from sword_jax.augment.transforms import augment, augment_batch, augment_styles, color_adjust
 
 SIZE, FRAMES = 32, 2
 
@@ -224,6 +224,8 @@ def test_jit_vmap_determinism_and_traces(episode):
     np.testing.assert_allclose(mixed[0], frames[0], atol=1e-5)
     np.testing.assert_allclose(mixed[1], a[1], atol=1e-5)
     assert " cond[" in str(jax.make_jaxpr(lambda f, d, g, s: augment_batch(f, d, g, s))(frames, depth, seg, styles))
+    # One episode under each style: the batch's rows, since its episodes are copies of that one.
+    np.testing.assert_allclose(augment_styles(frames[0], depth[0], seg[0], styles), a, atol=1e-5)
     # The optional key re-seeds textures only.
     style = st.sample_style(jax.random.key(2), "train")._replace(table=st.sample_style(jax.random.key(2)).table._replace(texture=jnp.int32(3)))
     k1 = augment(episode["frames"], episode["depth"], episode["seg"], style, key=jax.random.key(1))

@@ -329,7 +329,8 @@ def exploitation_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]
     False success rising while real success falls is the signature of exploitation."""
     rows, fooled, fell, n = [], 0, 0, 0
     for s in sorted(slices, key=lambda s: (s["run"], s["seed"])):
-        curve = [c for c in s.get("success_curve") or [] if (c.get("replay") or {}).get("imagined_success_by_horizon", {}).get(horizon)]
+        curve = [c for c in s.get("success_curve") or []
+                 if (c.get("replay") or {}).get("imagined_success_by_horizon", {}).get(horizon)]
         if len(curve) < 2:
             continue
         first, last = curve[0], curve[-1]

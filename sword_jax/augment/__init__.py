@@ -11,7 +11,8 @@ Modules:
       ``identity_style``; the disjoint training / held-out split (``assert_training_style``,
       ``split_violations``, ``style_split``, ``HeldOutStyleError``); ``SegClasses``.
   ``transforms``: ``augment(frames, depth, seg, style, *, key, intensity, classes, fov_deg)``
-      (pure, jittable, vmappable), ``augment_batch``, the individual transforms.
+      (pure, jittable, vmappable), ``augment_batch`` (many episodes) and ``augment_styles`` (one episode,
+      many styles), both mapped, and the individual transforms.
   ``textures``: depth -> camera points / normals; procedural textures.
   ``structure``: edge-F1, segmentation-boundary and depth-edge recall (``structure_scores``).
   ``pipeline``: ``make_step_augmenter`` (per step, on device), ``make_styled_copies`` /

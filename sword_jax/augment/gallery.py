@@ -26,7 +26,7 @@ from sword_jax import cli
 from sword_jax.augment.style import DEFAULT_CLASSES, TEXTURES, SegClasses, sample_styles
 from sword_jax.augment.structure import structure_scores
 from sword_jax.augment.synthetic import synthetic_episode
-from sword_jax.augment.transforms import augment
+from sword_jax.augment.transforms import augment_styles
 from sword_jax.rng import stream_key
 
 # (frames [1, H, W, 3] in [0, 1], depth [1, H, W], seg [1, H, W], classes, vertical fov in degrees)
@@ -62,9 +62,8 @@ def build_gallery(
     for split in ("train", "heldout"):
         styles = sample_styles(stream_key(jax.random.key(seed), f"gallery/{split}_styles"), num_styles, split)
         # Inputs are arguments, not closed-over constants, so XLA does not constant-fold them.
-        styled = jax.jit(lambda f, d, g, styles: jax.lax.map(  # mapped, not vmapped: see augment_batch
-            lambda s: augment(f, d, g, s, intensity=intensity, classes=classes, fov_deg=fov_deg), styles))(
-            frames, depth, seg, styles)
+        styled = jax.jit(lambda f, d, g, st: augment_styles(f, d, g, st, intensity=intensity, classes=classes,
+                                                            fov_deg=fov_deg))(frames, depth, seg, styles)
         scores = jax.jit(jax.vmap(lambda f, out, g: structure_scores(f, out, g, classes), in_axes=(None, 0, None)))(
             jnp.asarray(frames), styled, jnp.asarray(seg))
         if split == "train":

@@ -53,7 +53,7 @@ from jaxtyping import Array, Float, Int
 from sword_jax.augment.config import AugmentConfig
 from sword_jax.augment.episodes import Episodes, as_episodes
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
-from sword_jax.augment.transforms import augment, augment_batch, to_signed_range
+from sword_jax.augment.transforms import augment_batch, augment_styles, to_signed_range
 
 
 def seg_classes_from_config(cfg: AugmentConfig) -> SegClasses:
@@ -139,9 +139,7 @@ def _copy_keys(key: jax.Array, episode_ids: np.ndarray, n_copies: int) -> jax.Ar
 def _style_episode(frames, depth, seg, episode_key, intensity, *, n_copies: int, classes: SegClasses, fov_deg: float):
     """``n_copies`` training styles of one episode: ``([C, T, H, W, 3], Style[C])``."""
     styles = sample_styles(episode_key, n_copies, "train")
-    # mapped, not vmapped: see augment_batch (a vmapped texture switch compiles for minutes on GPU)
-    styled = jax.lax.map(
-        lambda st: augment(frames, depth, seg, st, intensity=intensity, classes=classes, fov_deg=fov_deg), styles)
+    styled = augment_styles(frames, depth, seg, styles, intensity=intensity, classes=classes, fov_deg=fov_deg)
     return styled, styles
 
 
