@@ -635,3 +635,19 @@ def test_shared_hashes_are_cached_per_file_until_the_file_changes(tmp_path, monk
     os.utime(path, ns=(1, 1))  # a rewrite changes the stamp even within the clock's resolution
     assert shared_inputs.cached_hash(cache, "npz", str(path), compute) != first and len(calls) == 3
     assert shared_inputs.cached_hash(None, "npz", str(path), compute) and len(calls) == 4  # no cache: always computed
+
+
+def test_merge_reads_training_success_from_the_grpo_log_beside_an_older_slice(tmp_path):
+    record = {"run": "wovr", "seed": 0, "policy": {"grpo": {"steps": 12}}}
+    assert compare.with_logged_training_success(record, str(tmp_path)) is record  # no log: unchanged
+    lines = [f"grpo step {k + 1}/12 imagined success {0.1 if k < 10 else 0.7:.3f} return 0.2 loss 0.0\n"
+             for k in range(12)]
+    (tmp_path / "grpo_wovr_seed0.log").write_text("[8/8] policy: started\n" + "".join(lines) + "done\n")
+    out = compare.with_logged_training_success(record, str(tmp_path))
+    training = out["policy"]["grpo"]["training_success"]
+    assert (training["steps"], training["source"]) == (12, "grpo_wovr_seed0.log")
+    assert abs(training["first"] - 0.1) < 1e-9
+    assert abs(training["last"] - (8 * 0.1 + 2 * 0.7) / 10) < 1e-9 and out["policy"]["grpo"]["steps"] == 12
+    assert "training_success" not in record["policy"]["grpo"]  # the loaded record is not modified
+    recorded = {**record, "policy": {"grpo": {"training_success": {"first": 0.5, "last": 0.5}}}}
+    assert compare.with_logged_training_success(recorded, str(tmp_path)) is recorded  # recorded wins

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import sys
 import time
@@ -347,7 +348,7 @@ def exploitation_lines(slices: Sequence[dict], horizon: str = "48") -> list[str]
     if not rows:
         return []
     return ["", "Did GRPO learn to fool its simulator? Its imagined training rollouts' success (first -> last 10 "
-            "steps; empty for slices run before it was recorded: their GRPO logs have it), and the replay at "
+            "steps; from the GRPO log beside the slice where the slice predates recording it), and the replay at "
             f"each evaluation of that step's policy's own real episodes, first -> last evaluation: imagined "
             f"success by action {horizon} of real failures (false success) and of real successes, and real "
             "success:", "",
@@ -397,6 +398,29 @@ def load_slices(directory: str) -> list[dict]:
             slices.append({**record, "file": name})
     order = list(runs_for("tiny"))
     return sorted(slices, key=lambda s: (order.index(s["run"]) if s["run"] in order else len(order), s["seed"]))
+
+
+GRPO_LOG_LINE = re.compile(r"grpo step (\d+)/\d+ (imagined|rollout) success ([0-9.]+)")
+
+
+def with_logged_training_success(record: dict, directory: str) -> dict:
+    """``record`` with ``policy.grpo.training_success`` read from ``grpo_<run>_seed<seed>.log`` beside it
+    (the GRPO log's per-step success lines) where the slice predates recording it; unchanged otherwise."""
+    from train import grpo
+
+    path = os.path.join(directory, f"grpo_{record['run']}_seed{record['seed']}.log")
+    if (record.get("policy", {}).get("grpo", {}).get("training_success") or not os.path.isfile(path)):
+        return record
+    with open(path) as f:
+        matches = [GRPO_LOG_LINE.match(line) for line in f]
+    history = [{"step": int(m.group(1)), "success_rate" if m.group(2) == "imagined" else "rollout_success":
+                float(m.group(3))} for m in matches if m]
+    training = grpo.training_success(history)
+    if not training:
+        return record
+    policy = record.get("policy", {})
+    grpo_record = {**policy.get("grpo", {}), "training_success": {**training, "source": os.path.basename(path)}}
+    return {**record, "policy": {**policy, "grpo": grpo_record}}
 
 
 def _hashes_by_shared_seed(slices: Sequence[dict]) -> dict[int, dict[str, dict[str, list[str]]]]:
@@ -583,6 +607,7 @@ def merge(directory: str, *, allow_mismatch: bool = False) -> dict:
         raise SystemExit(f"train.compare merge: slices in {directory} were made from different shared inputs "
                          f"({detail}); rerun them from the same config and --shared-seed, or pass --allow-mismatch "
                          "to write a table flagged as unpaired")
+    slices = [with_logged_training_success(s, directory) for s in slices]
     results: dict[str, list[dict]] = {}
     for s in slices:
         results.setdefault(s["run"], []).append(s)
