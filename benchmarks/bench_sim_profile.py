@@ -9,12 +9,14 @@ objects rest and contacts exist). Then every stage of ``mjx.step`` (``fwd_positi
 constraint solver, the integrator) is jitted and vmapped alone and timed on the states the stages
 before it produced. Beside them, in the same run: the env's whole physics step (``sim.env.mjx_step``:
 ``mjx.forward`` and the implicit update as the C engine does it; the stages' sum less what XLA fuses
-across them), and that step with fewer solver (line-search) iterations, for the cost
+across them), MJX's own ``mjx.step`` (what that correction costs), and the env's step with fewer solver
+(line-search) iterations, for the cost
 side of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
 comparison's question, not this file's). An env-step is ``substeps`` physics steps.
 
 The renderer, on the same states (agentview, ``--resolution`` px, with the static-geometry split
-the env uses): ray generation, the moving geoms' intersection by geom type (each type's scan alone),
+the env uses): the poses, the moving geoms' intersection by geom type (each type's scan alone, its rays
+the camera-frame constants ``render`` uses),
 and the whole frame; what is left of the whole is the nearest-geom normal, shading and the
 RGB / depth / segmentation outputs (less what XLA fuses across stages: at tiny batches, where each
 separate jit's overhead dominates, the remainder can come out negative).
@@ -79,13 +81,14 @@ def profile(batch: int, *, warmup: int, repeats: int, solver_variants: tuple[tup
         seconds, d = _timed(jax.jit(jax.vmap(lambda x, fn=fn: fn(model, x))), d, repeats)
         stages[name] = seconds * per
     whole, _ = _timed(jax.jit(jax.vmap(lambda x: mjx_step(model, x))), data, repeats)
+    plain, _ = _timed(jax.jit(jax.vmap(lambda x: mjx.step(model, x))), data, repeats)
     variants = {}
     for iterations, ls_iterations in solver_variants:
         m = model.replace(opt=model.opt.replace(iterations=iterations, ls_iterations=ls_iterations))
         seconds, _ = _timed(jax.jit(jax.vmap(lambda x, m=m: mjx_step(m, x))), data, repeats)
         variants[f"iterations {iterations}, ls_iterations {ls_iterations}"] = seconds * per
     return {"render_us": render_profile(data, env.mj_model, resolution=resolution, repeats=repeats),
-            "stages_us": stages, "stage_sum_us": sum(stages.values()), "step_us": whole * per,
+            "stages_us": stages, "stage_sum_us": sum(stages.values()), "step_us": whole * per, "mjx_step_us": plain * per,
             "solver_variants_step_us": variants, "substeps": env.substeps,
             "solver": {"iterations": int(model.opt.iterations), "ls_iterations": int(model.opt.ls_iterations)},
             "ncon": int(data._impl.contact.dist.shape[-1]) if hasattr(data, "_impl") else None,
@@ -106,18 +109,18 @@ def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
     per = 1e6 / batch
     geom_xpos, geom_xmat = data.geom_xpos, data.geom_xmat
     cam_pos, cam_mat = data.cam_xpos[:, cam_id], data.cam_xmat[:, cam_id]
-    view = jax.jit(jax.vmap(lambda p, m, cp, cm: render._view(scene, p, m, cp, cm, fovy=fovy, height=resolution,
-                                                              width=resolution)))
-    seconds, (pos, mat, origin, dirs) = _timed(lambda a: view(*a), (geom_xpos, geom_xmat, cam_pos, cam_mat), repeats)
-    out = {"rays": seconds * per}
+    poses = jax.jit(jax.vmap(lambda p, m, cp, cm: render._poses(scene, p, m, cp, cm)))
+    seconds, (pos, mat, origin, frame) = _timed(lambda a: poses(*a), (geom_xpos, geom_xmat, cam_pos, cam_mat), repeats)
+    out = {"poses": seconds * per}
+    dirs = jax.numpy.asarray(render._camera_dirs(fovy, resolution, resolution))  # camera frame, as render() uses them
     moving = ~np.asarray(scene.static, bool) if scene.static is not None else np.ones(len(scene.geom_ids), bool)
     for gtype in render._HIT:
         which = moving & (scene.geom_type == gtype)
         if not which.any():
             continue
-        hits = jax.jit(jax.vmap(lambda p, m, o, d, which=which: render._nearest_ranked(scene, p, m, o[None, :], d,
-                                                                                         which=which)))
-        seconds, _ = _timed(lambda a, hits=hits: hits(*a), (pos, mat, origin, dirs), repeats)
+        hits = jax.jit(jax.vmap(lambda p, m, o, f, which=which: render._nearest_ranked(
+            scene, p, m, o[None, :], dirs, which=which, dir_frame=f)))
+        seconds, _ = _timed(lambda a, hits=hits: hits(*a), (pos, mat, origin, frame), repeats)
         name = mujoco.mjtGeom(gtype).name.removeprefix("mjGEOM_").lower()
         out[f"hit {name} x{int(which.sum())}"] = seconds * per
     whole = jax.jit(jax.vmap(render.make_renderer(scene, "agentview", height=resolution, width=resolution,
@@ -147,6 +150,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = [{"stage": k, "us_per_world_step": v, "share": v / out["stage_sum_us"]} for k, v in out["stages_us"].items()]
     rows.append({"stage": "sum of stages", "us_per_world_step": out["stage_sum_us"], "share": 1.0})
     rows.append({"stage": "sim.env.mjx_step (one jit)", "us_per_world_step": out["step_us"], "share": out["step_us"] / out["stage_sum_us"]})
+    rows.append({"stage": "mjx.step (MJX's own implicit; one jit)", "us_per_world_step": out["mjx_step_us"],
+                 "share": out["mjx_step_us"] / out["stage_sum_us"]})
     for name, value in out["solver_variants_step_us"].items():
         rows.append({"stage": f"sim.env.mjx_step, {name}", "us_per_world_step": value, "share": value / out["stage_sum_us"]})
     common.print_table(rows, ["stage", "us_per_world_step", "share"])

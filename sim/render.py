@@ -272,9 +272,9 @@ def _hit_plane(o, d, size):
 
 
 def _hit_box(o, d, half):
-    safe_d = jnp.where(jnp.abs(d) > 1e-12, d, jnp.float32(1e-12))
-    t1 = (-half - o) / safe_d
-    t2 = (half - o) / safe_d
+    inv_d = 1.0 / jnp.where(jnp.abs(d) > 1e-12, d, jnp.float32(1e-12))  # one division per axis, not two
+    t1 = (-half - o) * inv_d
+    t2 = (half - o) * inv_d
     t_near = jnp.max(jnp.minimum(t1, t2), -1)
     t_far = jnp.min(jnp.maximum(t1, t2), -1)
     return jnp.where((t_near <= t_far) & (t_near > _EPS), t_near, jnp.inf)
@@ -341,6 +341,14 @@ def _local_normal(gtype, p, size):
     return normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
 
 
+def _rotate_rows(v, m):
+    """``v @ m`` for row vectors v (..., 3) and a matrix m (3, 3) (or (..., 3, 3) matching v), written as
+    three broadcast multiply-adds. A matrix product with a contraction of 3 would be a dot, which XLA's GPU
+    backend emits as its own kernel writing its (rays, 3) result to memory; this stays elementwise and
+    fuses into the intersection test that uses it."""
+    return v[..., 0:1] * m[..., 0, :] + v[..., 1:2] * m[..., 1, :] + v[..., 2:3] * m[..., 2, :]
+
+
 def _hit_order(scene: RenderScene) -> np.ndarray:
     """Drawn-geom indices in the order ``_nearest_hits`` tests them (by type, then index): a geom's
     position in it is its rank, and of equally near hits the lowest rank wins."""
@@ -348,11 +356,16 @@ def _hit_order(scene: RenderScene) -> np.ndarray:
 
 
 def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.ndarray | None = None, start=None,
-                    unroll: int | bool = 1):
+                    unroll: int | bool = 1, dir_frame=None):
     """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms ``which`` selects (bool (n,);
     ``None``: all), as (t (r,), rank (r,)): the ray parameter (+inf on a miss) and the winner's rank
     in :func:`_hit_order` (n on a miss). ``start``: a (t, rank) pair to continue from, e.g. the nearest
     hits of the other geoms; the result is the same as testing all of them at once.
+
+    ``dir_frame``: a rotation (3, 3) the directions are given in (world directions ``dirs @ dir_frame.T``),
+    e.g. a camera's frame, where a camera's ray directions are the same constants for every pose; each
+    geom's rotation then absorbs it (one 3x3 product per geom, not per ray), so a batch of frames reads
+    no per-frame direction array.
 
     A ``lax.scan`` over the geoms of each type keeps a running (t, rank) minimum, so the
     memory is O(rays) rather than O(geoms * rays) and each step stays in cache. ``unroll`` geoms per
@@ -372,34 +385,36 @@ def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.nd
         if ranks.size == 0:
             continue
         idx = order[ranks]
+        dir_mat = mat[idx] if dir_frame is None else jnp.einsum("ji,njk->nik", dir_frame, mat[idx])
 
         def step(carry, geom, hit=hit):
             best_t, best_r = carry
-            rank, geom_pos, geom_mat, size, offset = geom
+            rank, geom_pos, geom_mat, dir_mat, size, offset = geom
             # Local frame: p_local = R^T (p - x) - offset, written row-wise as (p - x) R.
-            local_o = (origins - geom_pos) @ geom_mat - offset
-            local_d = dirs @ geom_mat
+            local_o = _rotate_rows(origins - geom_pos, geom_mat) - offset
+            local_d = _rotate_rows(dirs, dir_mat)
             t = hit(local_o, local_d, size)
             # Ties go to the lower rank, so the winner does not depend on which geoms were tested first.
             closer = (t < best_t) | ((t == best_t) & (rank < best_r) & jnp.isfinite(t))
             return (jnp.where(closer, t, best_t), jnp.where(closer, rank, best_r)), None
 
-        geoms = (jnp.asarray(ranks, jnp.int32), pos[idx], mat[idx], jnp.asarray(scene.size[idx]),
+        geoms = (jnp.asarray(ranks, jnp.int32), pos[idx], mat[idx], dir_mat, jnp.asarray(scene.size[idx]),
                  jnp.asarray(scene.offset[idx]))
         (best_t, best_r), _ = jax.lax.scan(step, (best_t, best_r), geoms, unroll=unroll)
     return best_t, best_r
 
 
 def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, which: np.ndarray | None = None,
-                  unroll: int | bool = 1):
-    """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms (``which``/``start``: see
-    :func:`_nearest_ranked`).
+                  unroll: int | bool = 1, dir_frame=None):
+    """Nearest hit of rays (r, 3) from origins (r|1, 3) over the drawn geoms (``which``/``start``/``dir_frame``:
+    see :func:`_nearest_ranked`).
 
     Returns:
       (t (r,) ray parameter of the nearest hit, +inf on a miss; index (r,) into the
       scene's drawn-geom arrays, 0 on a miss).
     """
-    best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start, unroll=unroll)
+    best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start, unroll=unroll,
+                                     dir_frame=dir_frame)
     index_of_rank = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)
     return best_t, index_of_rank[best_r]
 
@@ -451,28 +466,29 @@ def render(
     if np.size(cam_pos) != 3 or np.size(cam_mat) != 9:
         raise ValueError(f"camera pose must be (3,) and (3, 3), got {np.shape(cam_pos)} and {np.shape(cam_mat)}")
     ids = scene.geom_ids
-    pos, mat, cam_pos, dirs = _view(scene, geom_xpos, geom_xmat, cam_pos, cam_mat, fovy=fovy, height=height,
-                                    width=width)
+    pos, mat, cam_pos, cam_mat = _poses(scene, geom_xpos, geom_xmat, cam_pos, cam_mat)
+    cam_dirs = jnp.asarray(_camera_dirs(fovy, height, width))  # the same constants for every pose
     if static_hits is None:
-        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs, unroll=unroll)
+        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], cam_dirs, unroll=unroll, dir_frame=cam_mat)
     else:
-        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], dirs, start=static_hits,
-                                       which=~np.asarray(scene.static, bool), unroll=unroll)
+        depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], cam_dirs, start=static_hits,
+                                       which=~np.asarray(scene.static, bool), unroll=unroll, dir_frame=cam_mat)
+    dirs = _rotate_rows(cam_dirs, cam_mat.T)
     hit = jnp.isfinite(depth)
     depth = jnp.where(hit, depth, jnp.float32(scene.far))
 
     # Normal of the winning geom only, from the hit point in its local frame.
     hit_mat = mat[nearest]  # (R, 3, 3)
     points = cam_pos[None, :] + depth[:, None] * dirs
-    p_local = jnp.einsum("ri,rij->rj", points - pos[nearest], hit_mat) - jnp.asarray(scene.offset)[nearest]
+    p_local = _rotate_rows(points - pos[nearest], hit_mat) - jnp.asarray(scene.offset)[nearest]
     n_local = _local_normal(
         jnp.asarray(scene.geom_type)[nearest], p_local, jnp.asarray(scene.size)[nearest]
     )
-    normal = jnp.einsum("rij,rj->ri", hit_mat, n_local)
+    normal = _rotate_rows(n_local, jnp.swapaxes(hit_mat, -1, -2))
     view = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     normal = jnp.where(jnp.sum(normal * view, -1, keepdims=True) > 0, -normal, normal)
 
-    lambert = jnp.maximum(normal @ jnp.asarray(scene.light_dirs).T, 0.0)  # (R, L)
+    lambert = jnp.maximum(jnp.sum(normal[:, None, :] * jnp.asarray(scene.light_dirs), -1), 0.0)  # (R, L)
     if shadows:  # hard shadows from the strongest light
         strongest = int(np.argmax(scene.light_diffuse))
         light = jnp.asarray(scene.light_dirs[strongest])
@@ -482,7 +498,7 @@ def render(
         lambert = lambert.at[:, strongest].set(jnp.where(occluded, 0.0, lambert[:, strongest]))
     base = jnp.asarray(scene.rgb)[nearest]
     facing = jnp.maximum(-jnp.sum(normal * view, -1), 0.0)
-    shade = (jnp.float32(scene.ambient) + lambert @ jnp.asarray(scene.light_diffuse)
+    shade = (jnp.float32(scene.ambient) + jnp.sum(lambert * jnp.asarray(scene.light_diffuse), -1)
              + jnp.float32(scene.headlight) * facing)
     colour = jnp.where(hit[:, None], base * shade[:, None], jnp.asarray(scene.background, jnp.float32))
     rgb = jnp.round(jnp.clip(colour, 0.0, 1.0) * 255.0).astype(jnp.uint8)
@@ -497,21 +513,32 @@ def render(
     )
 
 
-def _view(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int, width: int):
-    """The drawn geoms' poses (n, 3), (n, 3, 3), the camera position (3,) and one ray direction per pixel (R, 3)."""
+def _poses(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat):
+    """The drawn geoms' poses (n, 3), (n, 3, 3) and the camera's (3,), (3, 3), as float32."""
     ids = scene.geom_ids
     pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
     mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]
-    cam_pos = jnp.asarray(cam_pos, jnp.float32).reshape(3)
-    cam_mat = jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
+    return pos, mat, jnp.asarray(cam_pos, jnp.float32).reshape(3), jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
 
+
+@functools.lru_cache(maxsize=32)
+def _camera_dirs(fovy: float, height: int, width: int) -> np.ndarray:
+    """One ray direction per pixel (R, 3) in the camera's frame (x right, y up, looking down -z), row 0
+    at the top, with unit forward component so that the ray parameter t is the planar depth."""
     tan_half = np.tan(np.deg2rad(fovy) / 2.0)
     xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
     ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
     grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
-    # Camera-frame directions with unit forward component, so t is the planar depth.
-    cam_dirs = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
-    return pos, mat, cam_pos, jnp.asarray(cam_dirs) @ cam_mat.T
+    out = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
+def _view(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int, width: int):
+    """The drawn geoms' poses (n, 3), (n, 3, 3), the camera position (3,) and one world ray direction per
+    pixel (R, 3)."""
+    pos, mat, cam_pos, cam_mat = _poses(scene, geom_xpos, geom_xmat, cam_pos, cam_mat)
+    return pos, mat, cam_pos, _rotate_rows(jnp.asarray(_camera_dirs(fovy, height, width)), cam_mat.T)
 
 
 def static_nearest(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int,
@@ -526,9 +553,9 @@ def static_nearest(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *
     if scene.static is None:
         raise ValueError("static_nearest: this RenderScene does not say which geoms are static (rebuild it "
                          "with build_scene)")
-    pos, mat, cam_pos, dirs = _view(scene, geom_xpos, geom_xmat, cam_pos, cam_mat, fovy=fovy, height=height,
-                                    width=width)
-    return _nearest_ranked(scene, pos, mat, cam_pos[None, :], dirs, which=np.asarray(scene.static, bool))
+    pos, mat, cam_pos, cam_mat = _poses(scene, geom_xpos, geom_xmat, cam_pos, cam_mat)
+    return _nearest_ranked(scene, pos, mat, cam_pos[None, :], jnp.asarray(_camera_dirs(fovy, height, width)),
+                           which=np.asarray(scene.static, bool), dir_frame=cam_mat)
 
 
 def camera_pose(data: Any, camera_id: int) -> tuple[Any, Any]:
