@@ -55,9 +55,9 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     (the renderer alone on the batch's states), all at this batch. Beside the last, timed in turn on
     the same states: ``render_frames_per_s_every_geom``, the renderer without the static-geometry
     split (every geom tested in every frame), and their ratio ``render_static_split_speedup``; and
-    ``render_frames_per_s_unroll_4`` / ``_all`` with each geom type's scan unrolled 4 geoms a step / all
-    at once (fewer passes over the rays' running minimum; on a 2-core CPU, 16 envs: 1.14-1.23x and
-    0.47-0.59x of the default at 64 and 128 px). ``render_alone=False`` skips the renderer-alone
+    ``render_frames_per_s_unroll_1`` / ``_4`` / ``_all`` with each geom type's scan testing 1 / 4 geoms a
+    step / all at once (fewer passes over the rays' running minimum; the default is 4 on a GPU, 1
+    elsewhere: ``sim.env.camera_renderer``). ``render_alone=False`` skips the renderer-alone
     figures. ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
@@ -108,7 +108,7 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
         out["render_frames_per_s"] = frames_per_s(renderer)
         out["render_frames_per_s_every_geom"] = frames_per_s(renderer_with(static_split=False))
         out["render_static_split_speedup"] = out["render_frames_per_s"] / out["render_frames_per_s_every_geom"]
-        for name, unroll in (("4", 4), ("all", True)):
+        for name, unroll in (("1", 1), ("4", 4), ("all", True)):
             out[f"render_frames_per_s_unroll_{name}"] = frames_per_s(renderer_with(unroll=unroll))
     elif not render:
         out["env_steps_per_s"] = out["physics_steps_per_s"]

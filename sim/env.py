@@ -329,16 +329,20 @@ def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
 
 
 def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
-                    depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool = 1) -> Renderer:
+                    depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool | None = None) -> Renderer:
     """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
 
     Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
     ``agentview_rgb`` (and ``eye_in_hand_rgb``), plus ``*_depth`` / ``*_seg`` on request.
     ``static_split=False`` tests every geom in every frame (the same frames up to float rounding;
     for benchmarks that time the split). ``unroll``: geoms per step of the renderer's scans
-    (``sim.render.render``; the same frames).
+    (``sim.render.render``; the same frames); ``None``: 4 on a GPU, 1 elsewhere, as measured (128 px,
+    render-only: H100 1.32-1.34x at batch 1024-4096 and 1.00x at 8192; on a 2-core CPU 0.94x).
     """
     from sim import render
+
+    if unroll is None:
+        unroll = 4 if jax.default_backend() == "gpu" else 1
 
     scene_ = render.build_scene(mj_model)
     cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
