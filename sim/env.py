@@ -214,15 +214,23 @@ def _mjx():
 
 
 def mjx_step(model: Any, data: Any) -> Any:
-    """One MJX physics step that integrates like MuJoCo's C engine (implicitfast).
+    """One MJX physics step that integrates and places box-box contacts like MuJoCo's C engine.
 
-    MuJoCo's implicit integrators leave an actuator whose force sits at its ``forcerange`` bound
-    out of the velocity derivative (``mjd_actuator_vel``: its force no longer depends on velocity).
-    MJX's JAX ``implicit`` (mujoco-mjx 3.17) keeps every actuator's ``kv``, so a saturated arm servo
-    is damped in MJX and not in the C engine: from the same state and controls one 5 ms step left
-    the arm's joint velocities up to 0.31 rad/s apart, and the scripted expert, 100% on the C
-    engine, solved 64-84% of tasks 0, 6, 7 and 9 on MJX. This step runs ``mjx.forward`` and then
-    MJX's implicit update with the clamped actuators' terms removed, as the C engine does.
+    Two departures of MJX's JAX backend (mujoco-mjx 3.17) from the C engine are undone here:
+
+    * MuJoCo's implicit integrators leave an actuator whose force sits at its ``forcerange`` bound
+      out of the velocity derivative (``mjd_actuator_vel``: its force no longer depends on velocity).
+      MJX's ``implicit`` keeps every actuator's ``kv``, so a saturated arm servo is damped in MJX and
+      not in the C engine: from the same state and controls one 5 ms step left the arm's joint
+      velocities up to 0.31 rad/s apart, and the scripted expert, 100% on the C engine, solved
+      64-84% of tasks 0, 6, 7 and 9 on MJX. The implicit update here removes the clamped actuators'
+      terms, as the C engine does.
+    * MJX's box-box collider puts each contact on the reference face, the C engine halfway between
+      the two surfaces (:func:`_midpoint_box_contacts`). The friction rows' Jacobian is taken at the
+      contact point, so in a pinch grasp the two engines gave the held bowl's friction a lever arm
+      half a penetration depth apart (2.9 mm at 5.8 mm depth; the bowl's net constraint force 4%
+      apart, in float32 and float64 alike), and on task 7 the bowl slipped from the fingers in MJX
+      where it held in the C engine.
 
     Args:
       model: an ``mjx.Model`` whose integrator is implicitfast (the scene's).
@@ -242,10 +250,9 @@ def _mjx_step(model: Any, data: Any) -> Any:
     from mujoco.mjx._src import derivative, support
     from mujoco.mjx._src import forward as mjx_forward
 
-    mjx = _mjx()
     if int(model.opt.integrator) != int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
         raise ValueError(f"mjx_step integrates implicitfast models only, got integrator {model.opt.integrator}")
-    data = mjx.forward(model, data)
+    data = _mjx_forward(model, data)
     qderiv = derivative.deriv_smooth_vel(model, data)
     if qderiv is not None and model.nu:
         force, forcerange = data.actuator_force, jnp.asarray(model.actuator_forcerange)
@@ -263,6 +270,51 @@ def _mjx_step(model: Any, data: Any) -> Any:
         factor = jax.scipy.linalg.cho_factor(qm - model.opt.timestep * qderiv)
         qacc = jax.scipy.linalg.cho_solve(factor, data.qfrc_smooth + data.qfrc_constraint)
     return mjx_forward._advance(model, data, data.act_dot, qacc)
+
+
+def _mjx_forward(model: Any, data: Any) -> Any:
+    """``mjx.forward`` (the stages of mujoco-mjx 3.17's JAX backend, in its order) with box-box contacts
+    moved to the C engine's midpoint between collision and constraint assembly."""
+    from mujoco.mjx._src import collision_driver, constraint, sensor, smooth, solver
+    from mujoco.mjx._src import forward as mjx_forward
+
+    d = data
+    for stage in (smooth.kinematics, smooth.com_pos, smooth.camlight, smooth.tendon, smooth.crb,
+                  smooth.tendon_armature, smooth.factor_m, collision_driver.collision):
+        d = stage(model, d)
+    d = _midpoint_box_contacts(model, d)
+    for stage in (constraint.make_constraint, smooth.transmission, sensor.sensor_pos, mjx_forward.fwd_velocity,
+                  sensor.sensor_vel, mjx_forward.fwd_actuation, mjx_forward.fwd_acceleration):
+        d = stage(model, d)
+    if d._impl.efc_J.size == 0:
+        return d.replace(qacc=d.qacc_smooth)
+    return sensor.sensor_acc(model, solver.solve(model, d))
+
+
+def _midpoint_box_contacts(model: Any, data: Any) -> Any:
+    """Moves every box-box contact from the face MJX's collider put it on to halfway between the two
+    boxes' surfaces along the contact normal, where MuJoCo's C engine puts it (``mjc_BoxBox``).
+
+    The point lies on the reference face of one box, and that box is found by which surface it is on
+    (its signed distance to that box is ~0, to the other about the depth). Along the normal (from
+    geom 1 towards geom 2) the midpoint is then ``dist / 2`` further on from geom 1's surface, and
+    ``dist / 2`` back from geom 2's. Depth, normal and frame are unchanged."""
+    contact = data._impl.contact
+    if contact.pos.shape[0] == 0:
+        return data
+    geom_type = jnp.asarray(model.geom_type)
+    box = int(mujoco.mjtGeom.mjGEOM_BOX)
+    g1, g2 = contact.geom[:, 0], contact.geom[:, 1]
+    box_box = (geom_type[g1] == box) & (geom_type[g2] == box)
+
+    def surface_distance(g):
+        local = jnp.einsum("ci,cij->cj", contact.pos - data.geom_xpos[g], data.geom_xmat[g])
+        return jnp.max(jnp.abs(local) - jnp.asarray(model.geom_size)[g], axis=-1)
+
+    on_first = jnp.abs(surface_distance(g1)) <= jnp.abs(surface_distance(g2))
+    shift = jnp.where(on_first, 0.5, -0.5) * contact.dist
+    pos = contact.pos + jnp.where(box_box, shift, 0.0)[:, None] * contact.frame[:, 0, :]
+    return data.tree_replace({"_impl.contact.pos": pos})
 
 
 class MjxEnv(_Common):
@@ -295,7 +347,7 @@ class MjxEnv(_Common):
         mjx = _mjx()
         with _mjx_promotion():
             data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
-            data = mjx.forward(self.mjx_model, data)
+            data = _mjx_forward(self.mjx_model, data)  # as mjx_step's forward: the C engine's contact points
         settle = jnp.asarray(SETTLE_ACTION)
         data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
         return self._state(data, info={})

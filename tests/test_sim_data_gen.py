@@ -197,6 +197,13 @@ def test_mjx_generation_runs_the_shared_expert_and_agrees_with_the_c_engine(tmp_
                        "--max-steps", "4", "--renderer", "jax", "--no-wrist", "--backend", backend])
     (_, (cpu,)), (_, (mjx,)) = read_dataset(files["cpu"]), read_dataset(files["mjx"])
     assert mjx.actions.shape == cpu.actions.shape == (4, 7) and mjx.agentview_rgb.shape == (4, 32, 32, 3)
-    np.testing.assert_allclose(mjx.states[0], cpu.states[0], atol=1e-3)  # the same settled initial state (float32 velocities)
+    # The same settled initial state ([time, qpos, qvel]): positions within 0.1 mm. Velocities within 5e-3: in
+    # float32 a box resting on four corner contacts rocks at noise level (here up to 1.3e-3 rad/s after the
+    # settle steps, 8.6e-3 at its peak; 0 in float64 MJX and in the C engine).
+    import sim
+
+    nq = sim.load("libero_spatial").mj_model.nq
+    np.testing.assert_allclose(mjx.states[0][:1 + nq], cpu.states[0][:1 + nq], atol=1e-4)
+    np.testing.assert_allclose(mjx.states[0][1 + nq:], cpu.states[0][1 + nq:], atol=5e-3)
     np.testing.assert_allclose(mjx.actions, cpu.actions, atol=2e-2)
     np.testing.assert_allclose(mjx.states[:, 1:10], cpu.states[:, 1:10], atol=2e-2)  # arm and fingers

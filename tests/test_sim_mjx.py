@@ -113,6 +113,46 @@ def test_mjx_step_integrates_a_saturated_servo_like_the_c_engine():
 
 
 @pytest.mark.slow
+def test_mjx_step_places_box_contacts_and_their_forces_like_the_c_engine():
+    """A pinch grasp (task 7, state 3, the C expert's step 45: both finger pads on one bowl wall, 5-6 mm
+    deep): MJX's box-box collider puts contacts on a reference face, half a depth from the C engine's
+    midpoints, which moved the held bowl's constraint force 4%; at the midpoints it matches."""
+    import mujoco
+    from mujoco import mjx
+
+    from sim.env import _midpoint_box_contacts, _mjx_forward, _mjx_promotion
+
+    env = CpuEnv(SimConfig(), 7)
+    run = expert.rollout_cpu(env, env.init_states[3], cfg=expert.ExpertConfig(noise=0.0), max_steps=46, record=True,
+                             stop_at_success=False)
+    data = run["states"][45].data
+    mujoco.mj_forward(env.mj_model, data)
+    model, mjx_data = mjx.put_model(env.mj_model), mjx.put_data(env.mj_model, data)
+    with _mjx_promotion():
+        collided = jax.jit(lambda d: mjx.collision(model, mjx.kinematics(model, d)))(mjx_data)
+        moved = jax.jit(lambda d: _midpoint_box_contacts(model, d))(collided)
+        plain, ours = jax.jit(mjx.forward)(model, mjx_data), jax.jit(_mjx_forward)(model, mjx_data)
+    contact, midpoint = collided._impl.contact, moved._impl.contact
+    geom, dist = np.asarray(contact.geom), np.asarray(contact.dist)
+    deep = 0
+    for c in data.contact[:data.ncon]:
+        if c.dist > -1e-3:
+            continue  # shallow resting contacts: several share a depth, so the match below is ambiguous
+        j = int(np.argmin(np.where((geom == sorted((c.geom1, c.geom2))).all(1) | (geom == [c.geom1, c.geom2]).all(1),
+                                   np.abs(dist - c.dist), np.inf)))
+        assert abs(dist[j] - c.dist) < 1e-5
+        off = np.asarray(contact.pos)[j] - c.pos
+        assert abs(abs(off @ c.frame[:3]) - 0.5 * abs(c.dist)) < 2e-4  # MJX: on a face, half a depth away
+        np.testing.assert_allclose(np.asarray(midpoint.pos)[j], c.pos, atol=2e-4)
+        deep += 1
+    assert deep == 8  # four contacts of each finger pad on the bowl wall
+    bowl = env.mj_model.jnt_dofadr[env.mj_model.body_jntadr[env.bowl_body]]
+    c_force = data.qfrc_constraint[bowl:bowl + 6]
+    assert np.abs(np.asarray(plain.qfrc_constraint)[bowl:bowl + 6] - c_force).max() > 0.03  # the departure
+    np.testing.assert_allclose(np.asarray(ours.qfrc_constraint)[bowl:bowl + 6], c_force, atol=5e-3)
+
+
+@pytest.mark.slow
 def test_vmapped_jax_expert_solves_the_task_on_mjx():
     from sim.env import MjxEnv
 
