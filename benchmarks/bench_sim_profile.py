@@ -8,8 +8,9 @@ objects rest and contacts exist). Then every stage of ``mjx.step`` (``fwd_positi
 ... constraint assembly, ``fwd_velocity``, ``fwd_actuation``, ``fwd_acceleration``, the
 constraint solver, the integrator) is jitted and vmapped alone and timed on the states the stages
 before it produced. Beside them, in the same run: the env's whole physics step (``sim.env.mjx_step``:
-``mjx.forward`` and the implicit update as the C engine does it; the stages' sum less what XLA fuses
-across them), MJX's own ``mjx.step`` (what that correction costs), and the env's step with fewer solver
+MJX's forward stages with box-box contacts at the C engine's midpoints, and the implicit update as the
+C engine does it; the stages' sum less what XLA fuses across them), MJX's own ``mjx.step`` (what those
+corrections cost), and the env's step with fewer solver
 (line-search) iterations, for the cost
 side of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
 comparison's question, not this file's). An env-step is ``substeps`` physics steps.
