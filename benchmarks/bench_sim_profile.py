@@ -10,17 +10,16 @@ constraint solver, the integrator) is jitted and vmapped alone and timed on the 
 before it produced. Beside them, in the same run: the env's whole physics step (``sim.env.mjx_step``:
 MJX's forward stages with box-box contacts at the C engine's midpoints, and the implicit update as the
 C engine does it; the stages' sum less what XLA fuses across them), MJX's own ``mjx.step`` (what those
-corrections cost), and the env's step with fewer solver
-(line-search) iterations, for the cost
-side of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
+corrections cost), and the env's step with fewer solver (line-search) iterations, for the cost side
+of the solver lever (whether the expert still succeeds is ``bench_sim``'s and the C-engine
 comparison's question, not this file's). An env-step is ``substeps`` physics steps.
 
 The renderer, on the same states (agentview, ``--resolution`` px, with the static-geometry split
 the env uses): the poses, the moving geoms' intersection by geom type (each type's scan alone, its rays
-the camera-frame constants ``render`` uses),
-and the whole frame; what is left of the whole is the nearest-geom normal, shading and the
-RGB / depth / segmentation outputs (less what XLA fuses across stages: at tiny batches, where each
-separate jit's overhead dominates, the remainder can come out negative).
+the camera-frame constants ``render`` uses), and the whole frame; what is left of the whole is the
+nearest-geom normal, shading and the RGB / depth / segmentation outputs (less what XLA fuses across
+stages: at tiny batches, where each separate jit's overhead dominates, the remainder can come out
+negative).
 
 Records ``sim.mjx_physics_profile_<batch>`` in ``benchmarks/results/latest.json``: microseconds per
 world per physics step for each stage, the whole step, and the solver variants; and
