@@ -18,6 +18,13 @@ rollout (:func:`sword_jax.precision.store_in_compute_dtype`: bit-identical outpu
 memory); ``--weights both`` runs each case that way first and then with float32 weights, side by
 side in one process (first, because the peak-memory reading is the process's running maximum), and
 merges ``imagined_rollout_weights_in_compute_dtype`` (frames/s ratio, both peaks).
+
+``--layers 30`` is the full TI2V-5B depth: its figure is written as ``imagined_frames_per_s_5b_full``
+(``imagined_frames_per_s_5b_width`` otherwise). Each row carries the FLOPs of one imagined frame (the
+DiT's sampler steps, counted as in ``bench_dit_train``, plus the VAE's streaming decode from XLA's cost
+analysis; the policy and reward CNN are left out) and ``ceiling_frames_per_s``, the rate at the bf16
+matmul peak measured in the same process. ``--vae-form CAUSAL_CONV/UPSAMPLE`` picks the decoder's
+convolution forms (``bench_vae``). A case that runs out of memory is reported and the others go on.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from flax import nnx
 
 import configs
 from benchmarks import common
+from benchmarks.bench_dit_train import forward_flops
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
@@ -42,6 +50,7 @@ from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
 from sword_jax.rl.reward_model import SuccessDetector, as_reward_model
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rl.world_model_sim import world_model_simulator
+from sword_jax.vae import api as vae_api
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.model import WanVAE
 
@@ -53,7 +62,7 @@ def _split_sharded(factory, mesh):
 
 
 def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, starts: int, group: int, chunks: int,
-             sample_steps: int, rl: RLConfig, iters: int, weights: str = "param") -> dict:
+             sample_steps: int, rl: RLConfig, iters: int, weights: str = "param", peak_tflops: float | None = None) -> dict:
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     t0 = time.perf_counter()
     wm_graphdef, wm_state = _split_sharded(lambda: WorldModel(dit, rngs=nnx.Rngs(0)), mesh)
@@ -93,7 +102,21 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
                                 warmup=1, iters=iters)
     frames = n * chunks * sim.chunk_len
     fps = frames / timing["median_s"] / jax.device_count()
-    return {"case": name, "weights": weights, "weight_gb": parameter_bytes(wm_state) / 1e9,
+    # One imagined frame: the DiT over [first, context, 2 future] latents per sampler step, for the chunk's frames,
+    # and the decoder's share of one streamed 2-latent chunk.
+    dit_flops = sample_steps * forward_flops(dit, 1, 4, (hl, hl), 13) / sim.chunk_len
+    cache = vae_api.init_decode_cache(vae_graphdef, vae_state, 1, hl, hl)
+    _, cache = vae_api.decode_chunk(vae_graphdef, vae_state, start.latents[:1], cache, check_values=False)
+    cost = jax.jit(lambda s, z, c: vae_api.decode_chunk(vae_graphdef, s, z, c, check_values=False)[0]).lower(
+        vae_state, start.latents[:1], cache).cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    decode_flops = float(cost["flops"]) / (2 * vae.temporal_factor)
+    flops = dit_flops + decode_flops
+    return {"case": name, "weights": weights, "vae_form": f"{vae.causal_conv}/{vae.upsample}",
+            "gflop_per_frame": flops / 1e9, "dit_gflop_per_frame": dit_flops / 1e9,
+            "decode_gflop_per_frame": decode_flops / 1e9,
+            "ceiling_frames_per_s": peak_tflops * 1e12 / flops if peak_tflops else None,
+            "weight_gb": parameter_bytes(wm_state) / 1e9,
             "frames_per_s_per_device": fps, "trajectories": n, "chunks": chunks, "frames": frames,
             "rollout_s": timing["median_s"], "compile_s": compile_s, "build_s": build_s, "dit_dim": dit.dim,
             "dit_layers": dit.num_layers, "resolution": frame_size, "sample_steps": sample_steps,
@@ -111,53 +134,82 @@ def main(argv=None) -> None:
     parser.add_argument("--iters", type=int, default=3)
     parser.add_argument("--weights", choices=("param", "compute", "both"), default="param",
                         help="world-model weights as stored (float32), in the compute dtype, or both side by side")
+    parser.add_argument("--vae-form", default="conv3d/repeat", help="the VAE's CAUSAL_CONV/UPSAMPLE forms (bench_vae)")
+    parser.add_argument("--skip-small", action="store_true", help="only the 5B-width case")
     args = parser.parse_args(argv)
     modes = ["compute", "param"] if args.weights == "both" else [args.weights]
+    causal_conv, upsample = args.vae_form.split("/")
+    peak = common.measured_matmul_tflops()
+    print(f"{common.device_name()}: measured bf16 matmul peak {peak:.1f} TFLOP/s")
     rows = []
+
+    def attempt(*a, **kw):
+        try:
+            rows.append(run_case(*a, **kw, peak_tflops=peak))
+        except Exception as err:  # noqa: BLE001 - out of memory: report it, keep the other cases
+            if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
+                raise
+            print(f"{a[0]} weights={kw.get('weights')}: out of memory ({str(err).splitlines()[0][:160]})")
+
     if args.tiny:
         tiny = configs.get("sword:tiny")
         rl = RLConfig(image_size=16, action_bins=16, policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=48),
                       reward_model=RewardModelConfig(width=4))
         for mode in modes:
-            rows.append(run_case("tiny", dataclasses.replace(tiny.model, compute_dtype="bfloat16"), tiny.vae, 32,
-                                 starts=1, group=2, chunks=2, sample_steps=2, rl=rl, iters=1, weights=mode))
+            attempt("tiny", dataclasses.replace(tiny.model, compute_dtype="bfloat16"),
+                    dataclasses.replace(tiny.vae, causal_conv=causal_conv, upsample=upsample), 32,
+                    starts=1, group=2, chunks=2, sample_steps=2, rl=rl, iters=1, weights=mode)
     else:
         small = configs.get("sword:small")
         rl = RLConfig()
-        for mode in modes:
-            rows.append(run_case("small", dataclasses.replace(small.model, compute_dtype="bfloat16"), small.vae, 128,
-                                 starts=args.starts, group=args.group, chunks=args.chunks,
-                                 sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode))
+        for mode in [] if args.skip_small else modes:
+            attempt("small", dataclasses.replace(small.model, compute_dtype="bfloat16"),
+                    dataclasses.replace(small.vae, causal_conv=causal_conv, upsample=upsample), 128,
+                    starts=args.starts, group=args.group, chunks=args.chunks,
+                    sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode)
         dit5b = dataclasses.replace(DiTConfig(), num_layers=args.layers, compute_dtype="bfloat16")
-        vae = dataclasses.replace(VAEConfig(), compute_dtype="bfloat16")
+        vae = dataclasses.replace(VAEConfig(), compute_dtype="bfloat16", causal_conv=causal_conv, upsample=upsample)
         for mode in modes:
-            rows.append(run_case("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
-                                 sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode))
-    common.print_table(rows, ["case", "weights", "weight_gb", "frames_per_s_per_device", "trajectories", "chunks",
-                              "rollout_s", "compile_s", "dit_dim", "dit_layers", "resolution", "sample_steps", "peak_gb"])
+            attempt("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
+                    sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode)
+    common.print_table(rows, ["case", "weights", "vae_form", "weight_gb", "frames_per_s_per_device", "trajectories",
+                              "chunks", "rollout_s", "compile_s", "dit_layers", "resolution", "sample_steps",
+                              "gflop_per_frame", "decode_gflop_per_frame", "ceiling_frames_per_s", "peak_gb"])
     if not args.tiny:
-        keep = "param" if args.weights == "both" else args.weights  # the headline keys: float32 weights unless asked
+        # The headline: float32 weights unless asked, or whichever mode ran when the other ran out of memory.
+        keep = "param" if args.weights == "both" else args.weights
         by_case = {r["case"]: r for r in rows if r["weights"] == keep}
+        if "5b_width" not in by_case:
+            by_case = {r["case"]: r for r in rows}
+            keep = by_case["5b_width"]["weights"] if "5b_width" in by_case else keep
+        if "5b_width" not in by_case:
+            raise SystemExit("bench_imagined_rollout: no 5B-width case ran; nothing recorded")
+        wide = by_case["5b_width"]
+        full = args.layers == DiTConfig().num_layers
         note = (f"policy + DiT dim 3072 x {args.layers} layers (of 30) with a {args.sample_steps}-step sampler + "
                 "full Wan 2.2 VAE streaming decode + reward CNN, 256x256, B*G="
-                f"{by_case['5b_width']['trajectories']}")
-        entries = {
-            "imagined_frames_per_s_5b_width": common.record(
-                "imagined_frames_per_s_5b_width", by_case["5b_width"]["frames_per_s_per_device"], TARGET_5B, note=note,
-                weights=keep),
-            "imagined_frames_per_s_small": common.record(
+                f"{wide['trajectories']}")
+        key = "imagined_frames_per_s_5b_full" if full else "imagined_frames_per_s_5b_width"
+        entries = {key: common.record(
+            key, wide["frames_per_s_per_device"], TARGET_5B, note=note, weights=keep, measured_peak_tflops=peak,
+            **{k: wide[k] for k in ("vae_form", "gflop_per_frame", "dit_gflop_per_frame", "decode_gflop_per_frame",
+                                    "ceiling_frames_per_s", "peak_gb", "trajectories")},
+            rows=rows)}
+        if "small" in by_case:
+            entries["imagined_frames_per_s_small"] = common.record(
                 "imagined_frames_per_s_small", by_case["small"]["frames_per_s_per_device"], None,
-                note="sword:small DiT/VAE, 128x128", weights=keep),
-        }
-        if args.weights == "both":
-            fast = {r["case"]: r for r in rows if r["weights"] == "compute"}
-            a, b = fast["5b_width"], by_case["5b_width"]
+                note="sword:small DiT/VAE, 128x128", weights=keep)
+        fast = {r["case"]: r for r in rows if r["weights"] == "compute"}
+        slow = {r["case"]: r for r in rows if r["weights"] == "param"}
+        if args.weights == "both" and "5b_width" in fast and "5b_width" in slow:
+            a, b = fast["5b_width"], slow["5b_width"]
             entries["imagined_rollout_weights_in_compute_dtype"] = common.record(
                 "imagined_rollout_weights_in_compute_dtype", a["frames_per_s_per_device"] / b["frames_per_s_per_device"],
                 None, note=note, value_is="frames/s with bf16-stored world-model weights / with float32 weights",
                 weight_gb={"compute": a["weight_gb"], "param": b["weight_gb"]},
                 peak_gb={"compute": a["peak_gb"], "param_after_compute": b["peak_gb"]},
-                small_ratio=fast["small"]["frames_per_s_per_device"] / by_case["small"]["frames_per_s_per_device"])
+                small_ratio=(fast["small"]["frames_per_s_per_device"] / slow["small"]["frames_per_s_per_device"]
+                             if "small" in fast and "small" in slow else None))
         print("merged into", common.merge_results(entries))
 
 

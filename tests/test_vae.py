@@ -1,5 +1,6 @@
 """Wan 2.2 VAE: fp32 parity with the official reference, streaming == whole sequence, bad inputs, sizes."""
 
+import dataclasses
 import json
 import os
 
@@ -37,6 +38,48 @@ def test_reference_parity_fp32(shared_dir):
         assert required in outputs
     worst = max(results, key=lambda r: r.max_abs)
     assert worst.max_abs < 1e-4, worst
+
+
+@pytest.mark.parametrize("causal_conv, upsample", [("conv2d", "subpixel")])
+def test_reference_parity_fp32_fast_convolutions(shared_dir, causal_conv, upsample):
+    """The time-stacked 2-D causal convs and the sub-pixel upsampling match the official outputs as closely."""
+    results = wan22_vae.run_reference_cases(os.path.join(shared_dir, REF), causal_conv=causal_conv, upsample=upsample)
+    assert {r.output for r in results} >= {"decoded", "dec_up0_out", "decoded[streamed 1 latent/chunk]", "mu"}
+    worst = max(results, key=lambda r: r.max_abs)
+    assert worst.max_abs < 1e-4, worst
+
+
+@pytest.mark.parametrize("causal_conv, upsample", [("conv2d", "repeat"), ("conv3d", "subpixel")])
+def test_conv_forms_agree(causal_conv, upsample):
+    """Each convolution form equals the reference form in float32 (whole and streamed, non-square frames)
+    and stays within bf16's own rounding of it in bf16."""
+    latents = jax.random.normal(jax.random.key(11), (2, 3, 2, 3, 48), jnp.float32)
+    video = jax.random.uniform(jax.random.key(7), (2, 9, 32, 48, 3), jnp.float32, -1.0, 1.0)
+    out = {}
+    for form in (("conv3d", "repeat"), (causal_conv, upsample)):
+        cfg = dataclasses.replace(vae.tiny_config(), causal_conv=form[0], upsample=form[1])
+        graphdef, state = nnx.split(vae.create_vae(cfg, key=jax.random.key(3)))
+        cache = vae.init_decode_cache(graphdef, state, 2, 2, 3)
+        out[form] = {
+            "decode": vae.decode(graphdef, state, latents),
+            "streamed": _streamed(vae.decode_chunk, graphdef, state, latents, [1, 2], cache),
+            "encode": vae.encode(graphdef, state, video),
+            "decode_bf16": vae.decode(graphdef, state, latents, compute_dtype="bfloat16"),
+        }
+    ref, new = out[("conv3d", "repeat")], out[(causal_conv, upsample)]
+    for name in ("decode", "streamed", "encode"):
+        np.testing.assert_allclose(new[name], ref[name], atol=2e-5, err_msg=name)
+    scale = float(jnp.max(jnp.abs(ref["decode"])))
+    assert scale > 0.1
+    own_rounding = float(jnp.max(jnp.abs(ref["decode_bf16"] - ref["decode"])))
+    assert float(jnp.max(jnp.abs(new["decode_bf16"] - ref["decode"]))) < 2 * own_rounding + 1e-6
+
+
+def test_conv_form_names_checked():
+    with pytest.raises(ValueError, match="vae.causal_conv"):
+        dataclasses.replace(vae.tiny_config(), causal_conv="conv1d").validate()
+    with pytest.raises(ValueError, match="vae.upsample"):
+        dataclasses.replace(vae.tiny_config(), upsample="bilinear").validate()
 
 
 def _streamed(step, graphdef, state, x, chunks, cache):

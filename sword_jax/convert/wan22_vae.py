@@ -21,7 +21,7 @@ from sword_jax.convert import CaseResult
 from sword_jax.convert.safetensors_io import CheckpointError, read_config, read_safetensors, torch_to_jax_layout
 from sword_jax.vae import api
 from sword_jax.vae.config import VAEConfig
-from sword_jax.vae.model import default_latent_stats
+from sword_jax.vae.model import default_latent_stats, set_conv_impl
 
 _RES_BLOCK = {"norm1": "residual.0", "conv1": "residual.2", "norm2": "residual.3", "conv2": "residual.6",
               "shortcut": "shortcut"}
@@ -204,8 +204,10 @@ def case_files(ref_dir: str) -> list[str]:
     return cases
 
 
-def run_reference_cases(ref_dir: str) -> list[CaseResult]:
+def run_reference_cases(ref_dir: str, *, causal_conv: str = "conv3d", upsample: str = "repeat") -> list[CaseResult]:
     """Runs every VAE reference case of ``ref_dir`` through the JAX port (float32).
+
+    ``causal_conv`` / ``upsample`` pick the convolution forms (``VAEConfig``'s fields of those names).
 
     Compares ``mu``, ``decoded`` (unclamped decode of the stored ``mu``), ``mu_first_frame_only``,
     ``decoded_first_chunk``, every stored intermediate, and the streaming path (encode in chunks
@@ -216,6 +218,10 @@ def run_reference_cases(ref_dir: str) -> list[CaseResult]:
         return []
     norm_path = os.path.join(ref_dir, "vae_latent_norm.npz")
     graphdef, state, _ = load_vae(_find_weights(ref_dir), latent_norm_path=norm_path if os.path.isfile(norm_path) else None)
+    if (causal_conv, upsample) != ("conv3d", "repeat"):
+        model = nnx.merge(graphdef, state)
+        set_conv_impl(model, causal_conv=causal_conv, upsample=upsample)
+        graphdef, state = nnx.split(model)
     results: list[CaseResult] = []
     for path in cases:
         name = os.path.splitext(os.path.basename(path))[0]

@@ -26,6 +26,12 @@ class VAEConfig:
       train_styles: train on raw plus training-style frames (``sword_jax.vae.data``); held-out
         styles (LIBERO-Mixed) never reach the VAE.
       styled_fraction: with ``train_styles``, the share of training clips restyled.
+      causal_conv: how the 3x3x3 causal convolutions run: ``conv3d`` (one 3-D convolution) or
+        ``conv2d`` (the three time taps stacked as channels, one 2-D convolution per frame). The
+        same sums in another order: outputs agree to rounding.
+      upsample: the decoder's x2 upsampling conv: ``repeat`` (nearest x2, then the 3x3 conv, as
+        the official code) or ``subpixel`` (the same result from the low-resolution frame with 4/9
+        of the multiply-adds; agrees to rounding).
     """
 
     z_dim: int = 48
@@ -47,6 +53,8 @@ class VAEConfig:
     grad_clip: float = 1.0
     train_styles: bool = True
     styled_fraction: float = 0.5
+    causal_conv: str = "conv3d"
+    upsample: str = "repeat"
 
     def validate(self) -> None:
         if self.z_dim <= 0 or self.dim <= 0 or self.dec_dim <= 0:
@@ -64,6 +72,10 @@ class VAEConfig:
             raise ValueError(f"vae.compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
         if min(self.kl_weight, self.l1_weight, self.l2_weight, self.perceptual_weight, self.weight_decay) < 0:
             raise ValueError("vae: loss weights and weight_decay must be >= 0")
+        if self.causal_conv not in ("conv3d", "conv2d"):
+            raise ValueError(f"vae.causal_conv must be 'conv3d' or 'conv2d', got {self.causal_conv!r}")
+        if self.upsample not in ("repeat", "subpixel"):
+            raise ValueError(f"vae.upsample must be 'repeat' or 'subpixel', got {self.upsample!r}")
         if not 0.0 <= self.styled_fraction <= 1.0:
             raise ValueError(f"vae.styled_fraction must be in [0, 1], got {self.styled_fraction}")
         # AvgDown3D / DupUp3D regroup channels: in*factor must divide evenly into out groups.

@@ -17,6 +17,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 from jax import lax
 from jaxtyping import Array, Float
@@ -62,6 +63,9 @@ class CausalConv3d(nnx.Module):
         self.bias = nnx.Param(nnx.with_partitioning(nnx.initializers.zeros, ("conv_out",))(rngs.params(), (out_dim,)))
         self.kt = kernel[0]
         self.spatial_pad = spatial_pad
+        # "conv3d": one 3-D convolution. "conv2d": the kt time taps stacked as channels and one 2-D
+        # convolution per output frame (the same sums; a layout some GPU conv libraries run faster).
+        self.impl = "conv3d"
 
     def __call__(self, x: Float[Array, "b t h w ci"], cache, *, dtype) -> tuple[Array, object]:
         if self.kt == 1:
@@ -69,8 +73,23 @@ class CausalConv3d(nnx.Module):
         context = _zeros_frames(x, self.kt - 1) if cache is None else cache.astype(x.dtype)
         seq = jnp.concatenate([context, x], axis=1)  # (B, kt-1+T, H, W, C)
         pad = (self.spatial_pad, self.spatial_pad)
-        y = _conv(seq, self.kernel[...], self.bias[...], spatial_pad=pad, dtype=dtype)
+        if self.impl == "conv2d":
+            y = _time_stacked_conv(seq, self.kernel[...], self.bias[...], spatial_pad=pad, dtype=dtype)
+        else:
+            y = _conv(seq, self.kernel[...], self.bias[...], spatial_pad=pad, dtype=dtype)
         return y, seq[:, -(self.kt - 1):]
+
+
+def _time_stacked_conv(seq: Array, kernel: Array, bias: Array, *, spatial_pad, dtype) -> Array:
+    """A valid-in-time 3-D conv as one 2-D conv: output frame t sees frames t..t+kt-1 stacked as channels."""
+    kt, kh, kw, c_in, c_out = kernel.shape
+    b, frames, h, w, _ = seq.shape
+    t = frames - kt + 1
+    stacked = jnp.concatenate([seq[:, k:k + t] for k in range(kt)], axis=-1)  # (B, T, H, W, kt*C), tap-major
+    stacked = stacked.reshape(b * t, 1, h, w, kt * c_in)
+    kernel2d = kernel.transpose(1, 2, 0, 3, 4).reshape(1, kh, kw, kt * c_in, c_out)
+    y = _conv(stacked, kernel2d, bias, spatial_pad=spatial_pad, dtype=dtype)  # (B*T, 1, H', W', out)
+    return y.reshape(b, t, *y.shape[2:])
 
 
 class RMSNorm(nnx.Module):
@@ -158,12 +177,18 @@ class Resample(nnx.Module):
             self.time_conv = CausalConv3d(dim, 2 * dim, (3, 1, 1), spatial_pad=0, rngs=rngs)
         else:
             self.time_conv = None
+        # "repeat": nearest x2, then the 3x3 conv (the official order). "subpixel": the same result
+        # computed on the low-resolution frame: each of the four output phases sees a 2x2 neighbourhood
+        # whose taps are sums of the 3x3 kernel's, so the conv does 4/9 of the multiply-adds.
+        self.upsample_impl = "repeat"
 
     def _spatial(self, x, *, dtype):
         kernel = self.conv_kernel[...][None]  # (1, 3, 3, C, C)
         if self.mode.startswith("down"):
             x = jnp.pad(x, ((0, 0), (0, 0), (0, 1), (0, 1), (0, 0)))
             return _conv(x, kernel, self.conv_bias[...], stride=(1, 2, 2), dtype=dtype)
+        if self.upsample_impl == "subpixel":
+            return _subpixel_upsample_conv(x, self.conv_kernel[...], self.conv_bias[...], dtype=dtype)
         x = jnp.repeat(jnp.repeat(x, 2, axis=2), 2, axis=3)
         return _conv(x, kernel, self.conv_bias[...], spatial_pad=(1, 1), dtype=dtype)
 
@@ -197,6 +222,28 @@ class Resample(nnx.Module):
         if self.mode == "downsample3d":
             return self._time_down(x, cache, first, dtype=dtype)
         return x, ()
+
+
+# Row taps of the 3x3 kernel that land on low-resolution rows (i - 1 + a, i + a) for output row 2i + a:
+# phase 0 reads row i-1 with tap 0 and row i with taps 1 and 2; phase 1 row i with taps 0 and 1, row i+1 with tap 2.
+_PHASE_TAPS = np.array([[[1, 0, 0], [0, 1, 1]], [[1, 1, 0], [0, 0, 1]]], np.float32)  # (phase, 2 rows, 3 taps)
+
+
+def _subpixel_upsample_conv(x: Float[Array, "b t h w c"], kernel: Array, bias: Array, *, dtype) -> Array:
+    """``conv3x3(nearest_x2(x))`` with zero padding 1, computed as one 2x2 conv to 4 phases, then depth-to-space."""
+    b, t, h, w, c = x.shape
+    c_out = kernel.shape[-1]
+    taps = jnp.asarray(_PHASE_TAPS)
+    # (a, rows, b, cols, C, out): the 2x2 kernel of output phase (a, b); sums taken in float32.
+    phases = jnp.einsum("aiy,bjx,yxco->ijcabo", taps, taps, kernel.astype(jnp.float32))
+    phase_kernel = phases.reshape(1, 2, 2, c, 4 * c_out)
+    padded = jnp.pad(x, ((0, 0), (0, 0), (1, 1), (1, 1), (0, 0)))
+    y = _conv(padded, phase_kernel, jnp.tile(bias, 4), dtype=dtype)  # (B, T, H+1, W+1, 4*out)
+    y = y.reshape(b, t, h + 1, w + 1, 2, 2, c_out)
+    # Output (2i + a, 2j + b) is y[i + a, j + b, a, b].
+    rows = jnp.stack([y[:, :, a:a + h, :, a] for a in range(2)], axis=3)  # (B, T, H, 2, W+1, 2, out)
+    out = jnp.stack([rows[:, :, :, :, p:p + w, p] for p in range(2)], axis=5)  # (B, T, H, 2, W, 2, out)
+    return out.reshape(b, t, 2 * h, 2 * w, c_out)
 
 
 def avg_down_3d(x: Float[Array, "b t h w ci"], out_dim: int, factor_t: int, factor_s: int, *, first: bool) -> Array:

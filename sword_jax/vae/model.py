@@ -199,6 +199,16 @@ class Decoder3d(nnx.Module):
         return x, (c_in, c_mid, tuple(level_caches), c_head)
 
 
+def set_conv_impl(model: nnx.Module, *, causal_conv: str, upsample: str) -> None:
+    """Selects how ``model``'s causal convolutions and upsampling convs run (``VAEConfig.causal_conv`` /
+    ``upsample``); the parameters are untouched, so a loaded VAE can switch before ``nnx.split``."""
+    for _, module in nnx.iter_modules(model):
+        if isinstance(module, CausalConv3d):
+            module.impl = causal_conv
+        elif isinstance(module, Resample):
+            module.upsample_impl = upsample
+
+
 class WanVAE(nnx.Module):
     """``WanVAE_``: encoder, ``conv1`` (2z -> 2z, gives mu | log_var), ``conv2`` (z -> z), decoder.
 
@@ -219,6 +229,7 @@ class WanVAE(nnx.Module):
         mean, inv_std = default_latent_stats(cfg.z_dim)
         self.latent_mean = LatentStat(jnp.asarray(mean))
         self.latent_inv_std = LatentStat(jnp.asarray(inv_std))
+        set_conv_impl(self, causal_conv=cfg.causal_conv, upsample=cfg.upsample)
 
     def encode_moments(self, frames, cache, *, first: bool, dtype, taps: dict | None = None):
         """Patchified frames ``[B, T, H/2, W/2, 12]`` -> raw ``(mu, log_var)`` float32, new cache."""
