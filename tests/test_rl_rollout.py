@@ -153,3 +153,41 @@ def test_success_frames_needs_consecutive_success_frames_across_chunks():
         state = jax.vmap(env.step)(state, still)
         assert (np.asarray(state.info["success"])[on_goal] > 0).all() == succeeds
         assert (np.asarray(state.info["run"])[on_goal] > 0).all()
+
+
+def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
+    """rl.imagined.sim_microbatches=S runs the simulator over S interleaved slices: the same rollout as one
+    vmapped step (sharded too), a slice count that does not divide the trajectories is refused."""
+    import pytest
+
+    graphdef, params, sim, reward_model, start = _setup()
+    n = start.frame.shape[0]  # 8 trajectories
+
+    def rollout(slices, s=start):
+        cfg = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, sim_microbatches=slices))
+        return jax.jit(lambda p, st: imagined_rollout(graphdef, p, sim, reward_model, st, cfg, key=jax.random.key(2),
+                                                      record_frames=True))(params, s)
+
+    ref = rollout(1)
+    for slices in (2, 4):
+        out = rollout(slices)
+        np.testing.assert_array_equal(np.asarray(out.tokens), np.asarray(ref.tokens))
+        np.testing.assert_allclose(np.asarray(out.frames), np.asarray(ref.frames), atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(out.success), np.asarray(ref.success))
+    # The slices really are sequential: one scan of length S over vmapped slices of n / S, row j in slice j % S.
+    from sword_jax.rl.rollout import map_in_slices
+
+    rows = jnp.arange(n, dtype=jnp.float32)
+    jaxpr = str(jax.make_jaxpr(lambda x: map_in_slices(lambda r: r * 2.0, (x,), 4))(rows))
+    assert "scan" in jaxpr and "length=4" in jaxpr
+    np.testing.assert_array_equal(np.asarray(map_in_slices(lambda r: r * 2.0, (rows,), 4)), 2.0 * np.arange(n))
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1))
+    sharded = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), start)
+    with shd.use_mesh(mesh):
+        out = rollout(2, sharded)
+    assert len(out.returns.sharding.device_set) == len(jax.devices())
+    np.testing.assert_allclose(np.asarray(out.returns), np.asarray(ref.returns), atol=1e-5)
+    with pytest.raises(ValueError, match="sim_microbatches=3 does not divide the 8"):
+        rollout(3)
+    with pytest.raises(ValueError, match=r"rl\.imagined\.sim_microbatches"):
+        RLConfig(imagined=ImaginedConfig(sim_microbatches=0)).validate()

@@ -236,6 +236,11 @@ class ImaginedConfig:
         score at or above ``rl.success_threshold`` (counted across chunks; 1 = any frame, the rule so
         far). The replay's ``sustained_success_sweep`` measures what k = 1/2/4/8 would do to false
         and missed successes before a run uses it.
+      sim_microbatches: the learned simulator's step runs over the trajectories in this many
+        slices, one after another (each slice vmapped), so its activations -- the VAE decoder's
+        full-resolution features above all -- are held for ``1/sim_microbatches`` of them at a
+        time. 1 (default) = all at once. The trajectory count must divide evenly; each slice takes
+        every ``sim_microbatches``-th trajectory, so a data-sharded batch stays spread over devices.
     """
 
     max_chunks: int = 8
@@ -247,10 +252,13 @@ class ImaginedConfig:
     eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
     eval_replay_settle_steps: int = 8  # hold actions scored after each replayed episode's last action
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
+    sim_microbatches: int = 1  # simulator step over trajectories in this many sequential slices
 
     def validate(self) -> None:
         if self.max_chunks < 1:
             raise ValueError(f"rl.imagined.max_chunks must be >= 1, got {self.max_chunks}")
+        if self.sim_microbatches < 1:
+            raise ValueError(f"rl.imagined.sim_microbatches must be >= 1, got {self.sim_microbatches}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:
             raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):

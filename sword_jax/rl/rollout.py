@@ -14,7 +14,7 @@ logical axis; :func:`group_view` reshapes to ``[B, G, ...]``.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -152,6 +152,23 @@ def group_view(x: Array, group_size: int) -> Array:
     return x.reshape((x.shape[0] // group_size, group_size) + x.shape[1:])
 
 
+def map_in_slices(fn: Callable, args: Any, slices: int) -> Any:
+    """``jax.vmap(fn)(*args)`` computed over ``slices`` interleaved slices of the leading axis, one at a time.
+
+    Slice ``j`` holds rows ``j, j + slices, ...``: the leading axis is viewed as ``[n / slices, slices]``
+    and the second axis is scanned, so a leading axis sharded in contiguous blocks stays sharded
+    within every slice.
+    """
+    if slices == 1:
+        return jax.vmap(fn)(*args)
+    n = jax.tree.leaves(args)[0].shape[0]
+    if n % slices:
+        raise ValueError(f"rl.imagined.sim_microbatches={slices} does not divide the {n} trajectories")
+    split = lambda x: jnp.swapaxes(x.reshape((n // slices, slices) + x.shape[1:]), 0, 1)  # noqa: E731 - (S, n/S, ...)
+    out = jax.lax.map(lambda sliced: jax.vmap(fn)(*sliced), jax.tree.map(split, args))
+    return jax.tree.map(lambda y: jnp.swapaxes(y, 0, 1).reshape((n,) + y.shape[2:]), out)
+
+
 def imagined_rollout(
     graphdef: nnx.GraphDef,
     policy_params: nnx.State,
@@ -200,9 +217,9 @@ def imagined_rollout(
         else:
             tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.grpo.temperature)
         actions = tokens_to_actions(tokens, cfg.action_bins)  # (N, T, A)
-        new_state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(
-            sim_state, actions, jax.random.split(sim_key, n)
-        )
+        new_state, frames = map_in_slices(lambda s, a, k: simulator.step(s, a, key=k),
+                                          (sim_state, actions, jax.random.split(sim_key, n)),
+                                          cfg.imagined.sim_microbatches)
         frames = constrain(frames, ("batch", "time", "height", "width", "channels"))
         t = frames.shape[1]  # actions executed (= frames predicted) this step; the policy re-plans after them
         tokens, log_probs = tokens[:, :t], log_probs[:, :t]
