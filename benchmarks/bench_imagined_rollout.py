@@ -20,9 +20,10 @@ side in one process (first, because the peak-memory reading is the process's run
 merges ``imagined_rollout_weights_in_compute_dtype`` (frames/s ratio, both peaks).
 
 ``--layers 30`` is the full TI2V-5B depth: its figure is written as ``imagined_frames_per_s_5b_full``
-(``imagined_frames_per_s_5b_width`` otherwise). Each row carries the FLOPs of one imagined frame (the
-DiT's sampler steps, counted as in ``bench_dit_train``, plus the VAE's streaming decode from XLA's cost
-analysis; the policy and reward CNN are left out) and ``ceiling_frames_per_s``, the rate at the bf16
+(``imagined_frames_per_s_5b_width`` otherwise). Each row carries the matmul and convolution FLOPs of
+one imagined frame, counted on the rollout's jaxpr (``common.jaxpr_flops``: policy, sampler steps,
+decode, reward CNN), with the DiT's (as ``bench_dit_train`` counts) and the decoder's shares beside
+them, and ``ceiling_frames_per_s``, the rate at the bf16
 matmul peak measured in the same process. ``--vae-form CAUSAL_CONV/UPSAMPLE`` picks the decoder's
 convolution forms (``bench_vae``). A case that runs out of memory is reported and the others go on.
 """
@@ -104,16 +105,15 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
                                 warmup=1, iters=iters)
     frames = n * chunks * sim.chunk_len
     fps = frames / timing["median_s"] / jax.device_count()
-    # One imagined frame: the DiT over [first, context, 2 future] latents per sampler step, for the chunk's frames,
-    # and the decoder's share of one streamed 2-latent chunk.
+    # One imagined frame: the whole rollout's matmul and convolution FLOPs counted on its jaxpr (policy, DiT
+    # sampler steps, decode, reward CNN), and the decoder's share from one streamed 2-latent chunk.
+    flops = common.jaxpr_flops(lambda *a: rollout(*a), policy_params, sim, reward_model, start,
+                               jax.random.key(1)) / frames
     dit_flops = sample_steps * forward_flops(dit, 1, 4, (hl, hl), 13) / sim.chunk_len
     cache = vae_api.init_decode_cache(vae_graphdef, vae_state, 1, hl, hl)
     _, cache = vae_api.decode_chunk(vae_graphdef, vae_state, start.latents[:1], cache, check_values=False)
-    cost = jax.jit(lambda s, z, c: vae_api.decode_chunk(vae_graphdef, s, z, c, check_values=False)[0]).lower(
-        vae_state, start.latents[:1], cache).cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    decode_flops = float(cost["flops"]) / (2 * vae.temporal_factor)
-    flops = dit_flops + decode_flops
+    decode_flops = common.jaxpr_flops(lambda s, z, c: vae_api.decode_chunk(vae_graphdef, s, z, c, check_values=False)[0],
+                                      vae_state, start.latents[:1], cache) / (2 * vae.temporal_factor)
     return {"case": name, "weights": weights, "vae_form": f"{vae.causal_conv}/{vae.upsample}",
             "sim_microbatches": sim_microbatches,
             "gflop_per_frame": flops / 1e9, "dit_gflop_per_frame": dit_flops / 1e9,

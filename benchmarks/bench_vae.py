@@ -14,7 +14,7 @@ computation; ``conv2d`` stacks the causal conv's time taps as channels, ``subpix
 upsampling conv on the low-resolution frame (4/9 of its multiply-adds). Every form's decode is
 compared with the first form's on the same weights and latents (max abs difference, in [-1, 1]
 units) and with the first form's float32 decode (so each form's error sits beside bf16's own rounding),
-and each case's FLOPs per frame come from XLA's cost analysis of the lowered call, with
+and each case's FLOPs per frame are counted on its jaxpr (``common.jaxpr_flops``), with
 the bf16 matmul peak measured in the same process, so ``ceiling_frames_per_s`` is the rate at 100%
 of that peak. Writes ``vae_encode_frames_per_s``, ``vae_decode_frames_per_s`` and
 ``vae_decode_chunk_frames_per_s`` for the fastest form at the first batch size, with every row beside them.
@@ -33,13 +33,6 @@ from benchmarks import common
 from sword_jax import vae
 
 
-def _flops(fn, *args) -> float | None:
-    # The lowered program's count: a GPU executable's analysis leaves out convolutions run as library calls.
-    cost = jax.jit(fn).lower(*args).cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    return float(cost["flops"]) if cost and "flops" in cost else None
-
-
 def run(cfg: vae.VAEConfig, *, batch: int, frames: int, size: int, warmup: int, iters: int,
         peak_tflops: float, with_float32: bool = False) -> tuple[list[dict], jax.Array, jax.Array | None]:
     graphdef, state = nnx.split(vae.create_vae(cfg, key=jax.random.key(0)))
@@ -54,7 +47,7 @@ def run(cfg: vae.VAEConfig, *, batch: int, frames: int, size: int, warmup: int, 
     def add(case: str, fn, args, frames_per_call: int) -> None:
         jitted = jax.jit(fn)
         timing = common.time_fn(lambda: jitted(*args), warmup=warmup, iters=iters)
-        flops = _flops(fn, *args)
+        flops = common.jaxpr_flops(fn, *args)
         per_frame = flops / (batch * frames_per_call) if flops else None
         fps = batch * frames_per_call / timing["median_s"]
         rows.append({"case": case, "form": form, "batch": batch, "frames": frames_per_call, "size": size,

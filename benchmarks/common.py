@@ -116,3 +116,45 @@ def _fmt(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
     return "" if value is None else str(value)
+
+
+def jaxpr_flops(fn: Callable[..., Any], *args: Any) -> float:
+    """Matmul and convolution FLOPs (multiply-add = 2) of ``fn(*args)``, counted on its jaxpr.
+
+    Backend-independent (XLA's GPU cost analysis leaves out convolutions run as library calls).
+    Scans count ``length`` times their body, conds their costliest branch; while loops, whose trip
+    count is unknown, once. Elementwise work is not counted.
+    """
+    return _jaxpr_flops(jax.make_jaxpr(fn)(*args).jaxpr)
+
+
+def _jaxpr_flops(jaxpr) -> float:
+    import math
+
+    total = 0.0
+    for eqn in jaxpr.eqns:
+        name, params = eqn.primitive.name, eqn.params
+        if name == "dot_general":
+            (lhs_contract, _), (lhs_batch, _) = params["dimension_numbers"]
+            lhs, out = eqn.invars[0].aval.shape, eqn.outvars[0].aval.shape
+            total += 2.0 * math.prod(out) * math.prod(lhs[d] for d in lhs_contract)
+        elif name == "conv_general_dilated":
+            lhs_spec, rhs_spec, _ = params["dimension_numbers"]
+            rhs = eqn.invars[1].aval.shape
+            out = eqn.outvars[0].aval.shape
+            window = math.prod(rhs[d] for d in rhs_spec[2:])
+            in_per_group = rhs[rhs_spec[1]]
+            total += 2.0 * math.prod(out) * window * in_per_group
+        elif name == "scan":
+            total += params["length"] * _jaxpr_flops(params["jaxpr"].jaxpr)
+        elif name == "cond":
+            total += max(_jaxpr_flops(branch.jaxpr) for branch in params["branches"])
+        else:
+            for value in params.values():
+                for sub in value if isinstance(value, (tuple, list)) else (value,):
+                    inner = getattr(sub, "jaxpr", None)
+                    if inner is not None and hasattr(inner, "eqns"):
+                        total += _jaxpr_flops(inner)
+                    elif hasattr(sub, "eqns"):
+                        total += _jaxpr_flops(sub)
+    return total

@@ -236,10 +236,10 @@ class ImaginedConfig:
         score at or above ``rl.success_threshold`` (counted across chunks; 1 = any frame, the rule so
         far). The replay's ``sustained_success_sweep`` measures what k = 1/2/4/8 would do to false
         and missed successes before a run uses it.
-      sim_microbatches: the learned simulator's step runs over the trajectories in this many
-        slices, one after another (each slice vmapped), so its activations -- the VAE decoder's
-        full-resolution features above all -- are held for ``1/sim_microbatches`` of them at a
-        time. 1 (default) = all at once. The trajectory count must divide evenly; each slice takes
+      sim_microbatches: the learned simulator's init and step run over the trajectories in this
+        many slices, one after another (each slice vmapped), so their activations -- the VAE
+        decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
+        at a time. 1 (default) = all at once. The trajectory count must divide evenly; each slice takes
         every ``sim_microbatches``-th trajectory, so a data-sharded batch stays spread over devices.
     """
 

@@ -152,21 +152,39 @@ def group_view(x: Array, group_size: int) -> Array:
     return x.reshape((x.shape[0] // group_size, group_size) + x.shape[1:])
 
 
-def map_in_slices(fn: Callable, args: Any, slices: int) -> Any:
-    """``jax.vmap(fn)(*args)`` computed over ``slices`` interleaved slices of the leading axis, one at a time.
+def to_slices(tree: Any, slices: int) -> Any:
+    """Leading axis ``n`` -> ``[slices, n / slices]``; slice ``j`` holds rows ``j, j + slices, ...``.
 
-    Slice ``j`` holds rows ``j, j + slices, ...``: the leading axis is viewed as ``[n / slices, slices]``
-    and the second axis is scanned, so a leading axis sharded in contiguous blocks stays sharded
+    Interleaved, so a leading axis sharded in contiguous blocks stays spread over the devices
     within every slice.
     """
-    if slices == 1:
-        return jax.vmap(fn)(*args)
-    n = jax.tree.leaves(args)[0].shape[0]
+    n = jax.tree.leaves(tree)[0].shape[0]
     if n % slices:
         raise ValueError(f"rl.imagined.sim_microbatches={slices} does not divide the {n} trajectories")
-    split = lambda x: jnp.swapaxes(x.reshape((n // slices, slices) + x.shape[1:]), 0, 1)  # noqa: E731 - (S, n/S, ...)
-    out = jax.lax.map(lambda sliced: jax.vmap(fn)(*sliced), jax.tree.map(split, args))
-    return jax.tree.map(lambda y: jnp.swapaxes(y, 0, 1).reshape((n,) + y.shape[2:]), out)
+    if slices == 1:
+        return jax.tree.map(lambda x: x[None], tree)
+    return jax.tree.map(lambda x: jnp.swapaxes(x.reshape((n // slices, slices) + x.shape[1:]), 0, 1), tree)
+
+
+def from_slices(tree: Any) -> Any:
+    """Inverse of :func:`to_slices`."""
+    def merge(y):
+        if y.shape[0] == 1:
+            return y[0]
+        return jnp.swapaxes(y, 0, 1).reshape((y.shape[0] * y.shape[1],) + y.shape[2:])
+    return jax.tree.map(merge, tree)
+
+
+def map_over_slices(fn: Callable, sliced_args: Any) -> Any:
+    """``fn`` vmapped over each slice of :func:`to_slices`-laid-out arguments, one slice at a time."""
+    if jax.tree.leaves(sliced_args)[0].shape[0] == 1:
+        return jax.tree.map(lambda y: y[None], jax.vmap(fn)(*jax.tree.map(lambda x: x[0], sliced_args)))
+    return jax.lax.map(lambda args: jax.vmap(fn)(*args), sliced_args)
+
+
+def map_in_slices(fn: Callable, args: Any, slices: int) -> Any:
+    """``jax.vmap(fn)(*args)`` computed over ``slices`` interleaved slices of the leading axis, one at a time."""
+    return from_slices(map_over_slices(fn, to_slices(args, slices)))
 
 
 def imagined_rollout(
@@ -200,7 +218,10 @@ def imagined_rollout(
     n = start.frame.shape[0]
     if start.frame.ndim != 4 or start.frame.shape[-1] != 3:
         raise ValueError(f"start.frame must be [N, H, W, 3], got {start.frame.shape}")
-    sim_state = jax.vmap(simulator.init)(start)
+    slices = cfg.imagined.sim_microbatches
+    # The simulator's state stays in the sliced layout for the whole rollout (no per-step relayout of its
+    # decoder cache); only the per-step inputs and outputs are sliced and merged.
+    sim_state = map_over_slices(simulator.init, to_slices((start,), slices))
     init_score = reward_model.score(start.frame)
     carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32))
 
@@ -209,7 +230,7 @@ def imagined_rollout(
         chunk_key = jax.random.fold_in(key, chunk_index)
         policy_key, sim_key = jax.random.split(chunk_key)
         obs = constrain(resize_frames(frame, cfg.image_size), ("batch", "height", "width", "channels"))
-        proprio, proprio_valid = jax.vmap(simulator.observe)(sim_state)
+        proprio, proprio_valid = from_slices(map_over_slices(simulator.observe, (sim_state,)))
         logits = policy(obs, start.instruction_tokens, proprio, proprio_valid)
         if greedy:
             tokens = jnp.argmax(logits, axis=-1).astype(jnp.int32)
@@ -217,9 +238,9 @@ def imagined_rollout(
         else:
             tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.grpo.temperature)
         actions = tokens_to_actions(tokens, cfg.action_bins)  # (N, T, A)
-        new_state, frames = map_in_slices(lambda s, a, k: simulator.step(s, a, key=k),
-                                          (sim_state, actions, jax.random.split(sim_key, n)),
-                                          cfg.imagined.sim_microbatches)
+        new_state, frames = map_over_slices(lambda s, a, k: simulator.step(s, a, key=k),
+                                            (sim_state,) + to_slices((actions, jax.random.split(sim_key, n)), slices))
+        frames = from_slices(frames)
         frames = constrain(frames, ("batch", "time", "height", "width", "channels"))
         t = frames.shape[1]  # actions executed (= frames predicted) this step; the policy re-plans after them
         tokens, log_probs = tokens[:, :t], log_probs[:, :t]
@@ -229,9 +250,10 @@ def imagined_rollout(
                                 success_frames=cfg.imagined.success_frames)
         valid = ~done
         # done trajectories keep their state and frame (the rule keeps their score); they earn nothing more
-        keep = lambda new, old: jnp.where(valid.reshape((n,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
-        sim_state = jax.tree.map(keep, new_state, sim_state)
-        next_frame = keep(frames[:, -1], frame)
+        keep = lambda mask: lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - mask.ndim)),  # noqa: E731
+                                                       new, old)
+        sim_state = jax.tree.map(keep(to_slices(valid, slices)), new_state, sim_state)
+        next_frame = keep(valid)(frames[:, -1], frame)
         out = dict(obs=obs, proprio=proprio, proprio_valid=proprio_valid.astype(jnp.float32), tokens=tokens,
                    log_probs=log_probs, valid=valid.astype(jnp.float32), reward=outcome.reward, score=outcome.score,
                    success=outcome.success)
