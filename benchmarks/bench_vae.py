@@ -32,6 +32,9 @@ from flax import nnx
 from benchmarks import common
 from sword_jax import vae
 
+# Issue 20: twice the 318 frames/s whole-clip decode measured on an H100 on 2026-11-23 (batch 1, 17 frames).
+DECODE_TARGET = 2 * 318.35
+
 
 def run(cfg: vae.VAEConfig, *, batch: int, frames: int, size: int, warmup: int, iters: int,
         peak_tflops: float, with_float32: bool = False) -> tuple[list[dict], jax.Array, jax.Array | None]:
@@ -123,7 +126,7 @@ def main(argv=None) -> None:
         best = max(same, key=lambda r: r["frames_per_s"])
         key = f"vae_{case}_frames_per_s"
         entries[key] = common.record(
-            key, best["frames_per_s"], None, **{k: best[k] for k in ("form", "batch", "frames", "size", "ms",
+            key, best["frames_per_s"], DECODE_TARGET if case == "decode" else None, **{k: best[k] for k in ("form", "batch", "frames", "size", "ms",
                                                                      "gflop_per_frame", "ceiling_frames_per_s",
                                                                      "decode_max_diff", "decode_diff_vs_float32",
                                                                      "peak_mem_gb")},

@@ -12,7 +12,8 @@ from benchmarks.common import RESULTS
 
 README = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "README.md")
 START, END = "<!-- benchmarks:start -->", "<!-- benchmarks:end -->"
-HEADLINE = ("dit_train_mfu_vs_measured_peak", "dlb_overhead_ratio", "vae_decode_frames_per_s",
+HEADLINE = ("imagined_frames_per_s_5b_full", "dit_train_mfu_5b_full_h200", "dit_train_mfu_vs_measured_peak",
+            "dit_train_levers", "dlb_overhead_ratio", "vae_decode_frames_per_s", "vae_decode_chunk_frames_per_s",
             "vae_encode_frames_per_s", "imagined_frames_per_s_5b_width", "mjx_env_steps_per_s_128px",
             "latent_cache_gb_paper_dataset")
 
