@@ -19,8 +19,12 @@ class SimConfig:
     wrist_camera: bool = False
     physics_dt: float = 0.005  # s; control_hz * physics_dt * substeps = 1 (10 substeps at 20 Hz)
     control_hz: float = 20.0
-    solver_iterations: int = 6  # MuJoCo's constraint-solver iterations (opt.iterations), both engines
+    solver_iterations: int = 6  # the C engine's constraint-solver iterations (opt.iterations)
     ls_iterations: int = 8  # its line-search iterations (opt.ls_iterations)
+    # MJX's own: 4/4 measured 1.14x the env-steps/s of 6/8 with the scripted expert at >= 0.96 on every task
+    # and contacts as close to the C engine's (README); the C engine keeps 6/8, so its data do not change.
+    mjx_solver_iterations: int = 4
+    mjx_ls_iterations: int = 4
     init: str = "fixed"  # fixed: one of the task's 50 seeded initial states | random: fresh sample
     init_seed: int = 0  # seed of the 50 fixed initial states per task
 
@@ -47,8 +51,9 @@ class SimConfig:
                 f"sim: 1/(control_hz*physics_dt) must be a positive integer, got "
                 f"control_hz={self.control_hz}, physics_dt={self.physics_dt}"
             )
-        if self.solver_iterations < 1 or self.ls_iterations < 1:
-            raise ValueError(f"sim.solver_iterations and sim.ls_iterations must be >= 1, got "
-                             f"{self.solver_iterations}, {self.ls_iterations}")
+        if min(self.solver_iterations, self.ls_iterations, self.mjx_solver_iterations, self.mjx_ls_iterations) < 1:
+            raise ValueError(f"sim.solver_iterations, sim.ls_iterations, sim.mjx_solver_iterations and "
+                             f"sim.mjx_ls_iterations must be >= 1, got {self.solver_iterations}, {self.ls_iterations}, "
+                             f"{self.mjx_solver_iterations}, {self.mjx_ls_iterations}")
         if self.init not in ("fixed", "random"):
             raise ValueError(f"sim.init must be fixed|random, got {self.init!r}")

@@ -323,7 +323,10 @@ class MjxEnv(_Common):
     def __init__(self, config: SimConfig = SimConfig(backend="mjx"), task_id: int = 0, **kwargs):
         super().__init__(config, task_id, **kwargs)
         mjx = _mjx()
-        self.mjx_model = mjx.put_model(self.mj_model)
+        # MJX's solver settings are its own (sim.mjx_solver_iterations); mj_model keeps the C engine's.
+        model = scene.build_model(timestep=config.physics_dt, iterations=config.mjx_solver_iterations,
+                                  ls_iterations=config.mjx_ls_iterations)
+        self.mjx_model = mjx.put_model(model)
         self._init_states_j = jnp.asarray(self.init_states, jnp.float32)
 
     def _draws_to_qpos(self, draws: Any, xp: Any) -> Any:

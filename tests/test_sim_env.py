@@ -172,6 +172,20 @@ def test_registry_load_and_errors():
         sim.load("libero_spatial", physics_dt=0.003)
 
 
+def test_solver_settings_are_per_engine():
+    """MJX solves with sim.mjx_solver_iterations/mjx_ls_iterations (4/4), the C engine keeps 6/8 (its data
+    behind the comparisons do not change); each pair is set on its own and checked."""
+    cpu_env, mjx_env = sim.load("libero_spatial"), sim.load("libero_spatial", backend="mjx")
+    assert (cpu_env.mj_model.opt.iterations, cpu_env.mj_model.opt.ls_iterations) == (6, 8)
+    assert (int(mjx_env.mjx_model.opt.iterations), int(mjx_env.mjx_model.opt.ls_iterations)) == (4, 4)
+    assert (mjx_env.mj_model.opt.iterations, mjx_env.mj_model.opt.ls_iterations) == (6, 8)
+    tuned = sim.load("libero_spatial", backend="mjx", mjx_solver_iterations=6, mjx_ls_iterations=8, solver_iterations=3)
+    assert (int(tuned.mjx_model.opt.iterations), int(tuned.mjx_model.opt.ls_iterations)) == (6, 8)
+    assert sim.load("libero_spatial", solver_iterations=3).mj_model.opt.iterations == 3
+    with pytest.raises(ValueError, match="sim.mjx_ls_iterations must be >= 1"):
+        SimConfig(mjx_ls_iterations=0).validate()
+
+
 def test_initial_layouts_never_overlap():
     """Footprints (circles; the cookie box by its half-diagonal) keep >= 3 mm apart, and
     table-level objects stay clear of the stove and of the cabinet with its open drawer."""
