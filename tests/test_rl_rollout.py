@@ -169,7 +169,7 @@ def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
                                                       record_frames=True))(params, s)
 
     ref = rollout(1)
-    for slices in (2, 4):
+    for slices in (4,):
         out = rollout(slices)
         np.testing.assert_array_equal(np.asarray(out.tokens), np.asarray(ref.tokens))
         np.testing.assert_allclose(np.asarray(out.frames), np.asarray(ref.frames), atol=1e-6)
@@ -184,7 +184,7 @@ def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     sharded = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), start)
     with shd.use_mesh(mesh):
-        out = rollout(2, sharded)
+        out = rollout(4, sharded)
     assert len(out.returns.sharding.device_set) == len(jax.devices())
     np.testing.assert_allclose(np.asarray(out.returns), np.asarray(ref.returns), atol=1e-5)
     with pytest.raises(ValueError, match="sim_microbatches=3 does not divide the 8"):

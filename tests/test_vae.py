@@ -49,26 +49,24 @@ def test_reference_parity_fp32_fast_convolutions(shared_dir, causal_conv, upsamp
     assert worst.max_abs < 1e-4, worst
 
 
-@pytest.mark.parametrize("causal_conv, upsample", [("conv2d", "repeat"), ("conv3d", "subpixel")])
-def test_conv_forms_agree(causal_conv, upsample):
-    """Each convolution form equals the reference form in float32 (whole and streamed, non-square frames)
+def test_conv_forms_agree(causal_conv="conv2d", upsample="subpixel"):
+    """The fast forms' decode equals the reference form's in float32 (whole and streamed, non-square frames)
     and stays within bf16's own rounding of it in bf16."""
-    latents = jax.random.normal(jax.random.key(11), (2, 3, 2, 3, 48), jnp.float32)
-    video = jax.random.uniform(jax.random.key(7), (2, 9, 32, 48, 3), jnp.float32, -1.0, 1.0)
+    latents = jax.random.normal(jax.random.key(11), (1, 3, 2, 3, 48), jnp.float32)
     out = {}
     for form in (("conv3d", "repeat"), (causal_conv, upsample)):
         cfg = dataclasses.replace(vae.tiny_config(), causal_conv=form[0], upsample=form[1])
         graphdef, state = nnx.split(vae.create_vae(cfg, key=jax.random.key(3)))
-        cache = vae.init_decode_cache(graphdef, state, 2, 2, 3)
         out[form] = {
             "decode": vae.decode(graphdef, state, latents),
-            "streamed": _streamed(vae.decode_chunk, graphdef, state, latents, [1, 2], cache),
-            "encode": vae.encode(graphdef, state, video),
             "decode_bf16": vae.decode(graphdef, state, latents, compute_dtype="bfloat16"),
         }
     ref, new = out[("conv3d", "repeat")], out[(causal_conv, upsample)]
-    for name in ("decode", "streamed", "encode"):
-        np.testing.assert_allclose(new[name], ref[name], atol=2e-5, err_msg=name)
+    # Streamed through the cache (the reference form's streaming equals its whole decode: tested above).
+    new["streamed"] = _streamed(vae.decode_chunk, graphdef, state, latents, [1, 2],
+                                vae.init_decode_cache(graphdef, state, 1, 2, 3))
+    for name in ("decode", "streamed"):  # the encoder's forms are checked against the official outputs above
+        np.testing.assert_allclose(new[name], ref["decode"], atol=2e-5, err_msg=name)
     scale = float(jnp.max(jnp.abs(ref["decode"])))
     assert scale > 0.1
     own_rounding = float(jnp.max(jnp.abs(ref["decode_bf16"] - ref["decode"])))
