@@ -49,6 +49,7 @@ def test_reference_parity_fp32_fast_convolutions(shared_dir, causal_conv, upsamp
     assert worst.max_abs < 1e-4, worst
 
 
+@pytest.mark.slow  # ~20 s; the default suite checks the same forms against the official outputs above
 def test_conv_forms_agree(causal_conv="conv2d", upsample="subpixel"):
     """The fast forms' decode equals the reference form's in float32 (whole and streamed, non-square frames)
     and stays within bf16's own rounding of it in bf16."""
