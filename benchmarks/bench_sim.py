@@ -47,7 +47,7 @@ def expert_success_cpu(episodes: int, task_ids: list[int], noise: float, **sim_o
 
 
 def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = True, render_alone: bool = True,
-                   **sim_overrides) -> dict[str, float]:
+                   render_variants: bool = True, **sim_overrides) -> dict[str, float]:
     """Vmapped, jitted MJX env-steps/s, with the agentview camera rendered (RGB + depth + segmentation).
 
     Returns ``env_steps_per_s`` (physics + render in one jit when ``render``) and, to show where the
@@ -58,7 +58,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     ``render_frames_per_s_unroll_1`` / ``_4`` / ``_all`` with each geom type's scan testing 1 / 4 geoms a
     step / all at once (fewer passes over the rays' running minimum; the default is 4 on a GPU, 1
     elsewhere: ``sim.env.camera_renderer``). ``render_alone=False`` skips the renderer-alone
-    figures. ``sim_overrides``: ``SimConfig`` fields.
+    figures, ``render_variants=False`` the variants beside them (five more compilations and
+    timings per batch size). ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
     import jax.numpy as jnp
@@ -106,6 +107,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
             return batch * steps / (time.perf_counter() - start)
 
         out["render_frames_per_s"] = frames_per_s(renderer)
+        if not render_variants:
+            return out
         out["render_frames_per_s_every_geom"] = frames_per_s(renderer_with(static_split=False))
         out["render_static_split_speedup"] = out["render_frames_per_s"] / out["render_frames_per_s_every_geom"]
         for name, unroll in (("1", 1), ("4", 4), ("all", True)):
@@ -143,6 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--no-expert", action="store_true", help="skip the MJX expert rollouts (throughput only)")
+    parser.add_argument("--no-render-variants", action="store_true",
+                        help="time the renderer alone in its default form only (no static-split / unroll variants)")
     parser.add_argument("--batch-sweep", default="", help="more batch sizes for the MJX throughput, e.g. 4096,8192")
     parser.add_argument("--noise", type=float, default=0.0)
     parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
@@ -168,7 +173,8 @@ def main(argv: list[str] | None = None) -> None:
         sweep = []
         for batch in sorted({args.batch, *(int(b) for b in args.batch_sweep.split(",") if b)}):
             try:
-                figures = mjx_throughput(batch, args.resolution, args.steps)
+                figures = mjx_throughput(batch, args.resolution, args.steps,
+                                         render_variants=not args.no_render_variants)
             except Exception as err:  # noqa: BLE001 - out of memory at a large batch: report and go on
                 print(f"batch {batch}: failed ({type(err).__name__}: {str(err)[:160]})", flush=True)
                 continue
