@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 import statistics
 import sys
@@ -129,8 +130,6 @@ def jaxpr_flops(fn: Callable[..., Any], *args: Any) -> float:
 
 
 def _jaxpr_flops(jaxpr) -> float:
-    import math
-
     total = 0.0
     for eqn in jaxpr.eqns:
         name, params = eqn.primitive.name, eqn.params

@@ -170,12 +170,16 @@ def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
 
     ref = rollout(1)
     # The slices really are sequential: one scan of length S over vmapped slices of n / S.
-    from sword_jax.rl.rollout import map_in_slices
+    from sword_jax.rl.rollout import from_slices, map_over_slices, to_slices
+
+    def doubled_in_slices(x):
+        return from_slices(map_over_slices(lambda r: r * 2.0, to_slices((x,), 4)))
 
     rows = jnp.arange(n, dtype=jnp.float32)
-    jaxpr = str(jax.make_jaxpr(lambda x: map_in_slices(lambda r: r * 2.0, (x,), 4))(rows))
+    jaxpr = str(jax.make_jaxpr(doubled_in_slices)(rows))
     assert "scan" in jaxpr and "length=4" in jaxpr
-    np.testing.assert_array_equal(np.asarray(map_in_slices(lambda r: r * 2.0, (rows,), 4)), 2.0 * np.arange(n))
+    np.testing.assert_array_equal(np.asarray(doubled_in_slices(rows)), 2.0 * np.arange(n))
+    np.testing.assert_array_equal(np.asarray(to_slices(rows, 4))[1], np.arange(n)[1::4])  # slice j: rows j, j + S, ...
     # Four slices of a data-sharded batch: the same rollout, still spread over every device.
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     sharded = jax.tree.map(lambda x: jax.device_put(x, shd.batch_sharding(mesh, x.ndim)), start)

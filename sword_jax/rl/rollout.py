@@ -182,11 +182,6 @@ def map_over_slices(fn: Callable, sliced_args: Any) -> Any:
     return jax.lax.map(lambda args: jax.vmap(fn)(*args), sliced_args)
 
 
-def map_in_slices(fn: Callable, args: Any, slices: int) -> Any:
-    """``jax.vmap(fn)(*args)`` computed over ``slices`` interleaved slices of the leading axis, one at a time."""
-    return from_slices(map_over_slices(fn, to_slices(args, slices)))
-
-
 def imagined_rollout(
     graphdef: nnx.GraphDef,
     policy_params: nnx.State,
