@@ -65,18 +65,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int, UInt8
 
 from sim.render_classes import segmentation_classes
+from sim.render_hits import _BOX, _HIT, _MESH, _SUPPORTED, _local_normal, _rotate_rows, hit_order
 
-_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX, _MESH = (
-    int(mujoco.mjtGeom.mjGEOM_PLANE),
-    int(mujoco.mjtGeom.mjGEOM_SPHERE),
-    int(mujoco.mjtGeom.mjGEOM_CAPSULE),
-    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID),
-    int(mujoco.mjtGeom.mjGEOM_CYLINDER),
-    int(mujoco.mjtGeom.mjGEOM_BOX),
-    int(mujoco.mjtGeom.mjGEOM_MESH),
-)
-_SUPPORTED = (_PLANE, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _BOX, _MESH)
-_EPS = 1e-4
 _DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)
 
 
@@ -242,123 +232,11 @@ def build_scene(
     )
 
 
-# ---------------------------------------------------------------- intersections (local frame)
-# Each takes local origins/directions (..., 3) and sizes (..., 3) broadcastable to them and
-# returns the ray parameter of the first hit in front of the origin, +inf on a miss.
-
-
-def _first_root(b, a, c):
-    """Smallest root > eps of a t^2 + 2 b t + c = 0, else inf."""
-    disc = b * b - a * c
-    safe_a = jnp.where(jnp.abs(a) > 1e-12, a, jnp.float32(1e-12))
-    sq = jnp.sqrt(jnp.maximum(disc, 0.0))
-    t = (-b - sq) / safe_a
-    return jnp.where((disc >= 0) & (t > _EPS) & (jnp.abs(a) > 1e-12), t, jnp.inf)
-
-
-def _hit_sphere(o, d, radius):
-    return _first_root(jnp.sum(o * d, -1), jnp.sum(d * d, -1), jnp.sum(o * o, -1) - radius**2)
-
-
-def _hit_ellipsoid(o, d, radii):
-    o, d = o / radii, d / radii
-    return _hit_sphere(o, d, jnp.float32(1.0))
-
-
-def _hit_plane(o, d, size):
-    dz = d[..., 2]
-    safe = jnp.where(dz < -1e-12, dz, jnp.float32(-1e-12))
-    t = -o[..., 2] / safe
-    p = o + t[..., None] * d
-    inside = ((size[..., 0] <= 0) | (jnp.abs(p[..., 0]) <= size[..., 0])) & (
-        (size[..., 1] <= 0) | (jnp.abs(p[..., 1]) <= size[..., 1])
-    )
-    # Only the front side (+z) of a plane is drawn, as in MuJoCo.
-    return jnp.where((dz < -1e-12) & (o[..., 2] > 0) & (t > _EPS) & inside, t, jnp.inf)
-
-
-def _hit_box(o, d, half):
-    inv_d = 1.0 / jnp.where(jnp.abs(d) > 1e-12, d, jnp.float32(1e-12))  # one division per axis, not two
-    t1 = (-half - o) * inv_d
-    t2 = (half - o) * inv_d
-    t_near = jnp.max(jnp.minimum(t1, t2), -1)
-    t_far = jnp.min(jnp.maximum(t1, t2), -1)
-    return jnp.where((t_near <= t_far) & (t_near > _EPS), t_near, jnp.inf)
-
-
-def _hit_tube(o, d, radius, half):
-    """Side of a z-aligned cylinder of the given radius, |z| <= half."""
-    o2, d2 = o[..., :2], d[..., :2]
-    t = _first_root(jnp.sum(o2 * d2, -1), jnp.sum(d2 * d2, -1), jnp.sum(o2 * o2, -1) - radius**2)
-    z = o[..., 2] + jnp.where(jnp.isfinite(t), t, 0.0) * d[..., 2]
-    return jnp.where(jnp.abs(z) <= half, t, jnp.inf)
-
-
-def _hit_capsule(o, d, size):
-    radius, half = size[..., 0], size[..., 1]
-    cap = jnp.stack([jnp.zeros_like(half), jnp.zeros_like(half), half], -1)
-    return jnp.minimum(
-        _hit_tube(o, d, radius, half),
-        jnp.minimum(_hit_sphere(o - cap, d, radius), _hit_sphere(o + cap, d, radius)),
-    )
-
-
-def _hit_cylinder(o, d, size):
-    radius, half = size[..., 0], size[..., 1]
-    safe = jnp.where(jnp.abs(d[..., 2]) > 1e-12, d[..., 2], jnp.float32(1e-12))
-    best = _hit_tube(o, d, radius, half)
-    for sign in (-1.0, 1.0):
-        t = (jnp.float32(sign) * half - o[..., 2]) / safe
-        p = o + t[..., None] * d
-        ok = (t > _EPS) & (jnp.sum(p[..., :2] ** 2, -1) <= radius**2)
-        best = jnp.minimum(best, jnp.where(ok, t, jnp.inf))
-    return best
-
-
-_HIT = {
-    _PLANE: _hit_plane,
-    _SPHERE: lambda o, d, s: _hit_sphere(o, d, s[..., 0]),
-    _CAPSULE: _hit_capsule,
-    _ELLIPSOID: _hit_ellipsoid,
-    _CYLINDER: _hit_cylinder,
-    _BOX: _hit_box,
-}
-
-
-def _local_normal(gtype, p, size):
-    """Outward normal at local hit points p (r, 3) of geoms of types gtype (r,)."""
-    unit_z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], jnp.float32), p.shape)
-    sphere = p
-    ellipsoid = p / jnp.maximum(size, 1e-9) ** 2
-    half = size[..., 1:2]
-    capsule = p - jnp.concatenate([jnp.zeros_like(p[..., :2]), jnp.clip(p[..., 2:], -half, half)], -1)
-    radial = jnp.concatenate([p[..., :2], jnp.zeros_like(p[..., 2:])], -1)
-    on_cap = (jnp.abs(p[..., 2]) - size[..., 1]) > (jnp.linalg.norm(p[..., :2], axis=-1) - size[..., 0])
-    cylinder = jnp.where(on_cap[..., None], unit_z * jnp.sign(p[..., 2:]), radial)
-    rel = jnp.abs(p) / jnp.maximum(size, 1e-9)
-    axis = jax.nn.one_hot(jnp.argmax(rel, -1), 3, dtype=p.dtype)
-    box = axis * jnp.sign(p)
-    gt = gtype[..., None]
-    normal = jnp.where(gt == _SPHERE, sphere, unit_z)
-    normal = jnp.where(gt == _ELLIPSOID, ellipsoid, normal)
-    normal = jnp.where(gt == _CAPSULE, capsule, normal)
-    normal = jnp.where(gt == _CYLINDER, cylinder, normal)
-    normal = jnp.where(gt == _BOX, box, normal)
-    return normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
-
-
-def _rotate_rows(v, m):
-    """``v @ m`` for row vectors v (..., 3) and a matrix m (3, 3) (or (..., 3, 3) matching v), written as
-    three broadcast multiply-adds. A matrix product with a contraction of 3 would be a dot, which XLA's GPU
-    backend emits as its own kernel writing its (rays, 3) result to memory; this stays elementwise and
-    fuses into the intersection test that uses it."""
-    return v[..., 0:1] * m[..., 0, :] + v[..., 1:2] * m[..., 1, :] + v[..., 2:3] * m[..., 2, :]
 
 
 def _hit_order(scene: RenderScene) -> np.ndarray:
-    """Drawn-geom indices in the order ``_nearest_hits`` tests them (by type, then index): a geom's
-    position in it is its rank, and of equally near hits the lowest rank wins."""
-    return np.concatenate([np.nonzero(scene.geom_type == gtype)[0] for gtype in _HIT]).astype(np.int32)
+    """Drawn-geom indices in the order ``_nearest_hits`` tests them (:func:`sim.render_hits.hit_order`)."""
+    return hit_order(scene.geom_type)
 
 
 def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.ndarray | None = None, start=None,
