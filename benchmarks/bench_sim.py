@@ -47,7 +47,8 @@ def expert_success_cpu(episodes: int, task_ids: list[int], noise: float, **sim_o
 
 
 def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = True, render_alone: bool = True,
-                   render_variants: bool = True, **sim_overrides) -> dict[str, float]:
+                   render_variants: bool = True, renderer_options: dict | None = None,
+                   tile_variants: tuple[tuple[int, int], ...] = (), **sim_overrides) -> dict[str, float]:
     """Vmapped, jitted MJX env-steps/s, with the agentview camera rendered (RGB + depth + segmentation).
 
     Returns ``env_steps_per_s`` (physics + render in one jit when ``render``) and, to show where the
@@ -59,7 +60,10 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     step / all at once (fewer passes over the rays' running minimum; the default is 4 on a GPU, 1
     elsewhere: ``sim.env.camera_renderer``). ``render_alone=False`` skips the renderer-alone
     figures, ``render_variants=False`` the variants beside them (five more compilations and
-    timings per batch size). ``sim_overrides``: ``SimConfig`` fields.
+    timings per batch size). ``renderer_options``: ``camera_renderer`` keywords for the env's renderer
+    (e.g. ``tile``, ``chunk``). ``tile_variants``: (tile, chunk) pairs, each timed renderer-alone as
+    ``render_frames_per_s_tile{tile}_chunk{chunk}`` (tile culling, ``sim/render_cull.py``), with
+    ``render_frames_per_s_dense`` (no culling) beside them. ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
     import jax.numpy as jnp
@@ -88,7 +92,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
         mj_model = sim.load("libero_spatial").mj_model
 
         def renderer_with(**options):
-            return camera_renderer(mj_model, resolution=resolution, depth_and_seg=True, **options)
+            return camera_renderer(mj_model, resolution=resolution, depth_and_seg=True,
+                                   **{**(renderer_options or {}), **options})
 
         renderer = renderer_with()
         out["env_steps_per_s"], _ = steps_per_s(renderer)
@@ -107,6 +112,10 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
             return batch * steps / (time.perf_counter() - start)
 
         out["render_frames_per_s"] = frames_per_s(renderer)
+        if tile_variants:
+            out["render_frames_per_s_dense"] = frames_per_s(renderer_with(tile=None))
+        for tile, chunk in tile_variants:
+            out[f"render_frames_per_s_tile{tile}_chunk{chunk}"] = frames_per_s(renderer_with(tile=tile, chunk=chunk))
         if not render_variants:
             return out
         out["render_frames_per_s_every_geom"] = frames_per_s(renderer_with(static_split=False))
@@ -148,6 +157,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-expert", action="store_true", help="skip the MJX expert rollouts (throughput only)")
     parser.add_argument("--no-render-variants", action="store_true",
                         help="time the renderer alone in its default form only (no static-split / unroll variants)")
+    parser.add_argument("--tile", default="default",
+                        help="the env renderer's tile culling: a tile side in pixels, 'none' for every geom in every "
+                             "frame, or 'default' (sim.env.camera_renderer's)")
+    parser.add_argument("--chunk", type=int, default=None, help="tiles per step of the culled loop (with --tile)")
+    parser.add_argument("--tile-variants", default="",
+                        help="renderer-alone timings of tile culling, TILE:CHUNK,... (e.g. 8:16,16:16), beside no culling")
     parser.add_argument("--batch-sweep", default="", help="more batch sizes for the MJX throughput, e.g. 4096,8192")
     parser.add_argument("--noise", type=float, default=0.0)
     parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
@@ -159,6 +174,14 @@ def main(argv: list[str] | None = None) -> None:
     episodes = args.episodes if args.episodes is not None else (5 if args.tiny else 50)
     if not 1 <= episodes <= 50:
         raise SystemExit(f"--episodes must be in 1..50, got {episodes}")
+    renderer_options = {}
+    if args.tile != "default":
+        renderer_options["tile"] = None if args.tile == "none" else int(args.tile)
+    if args.chunk is not None:
+        renderer_options["chunk"] = args.chunk
+    tile_variants = tuple(tuple(int(v) for v in pair.split(":")) for pair in args.tile_variants.split(",") if pair)
+    if any(len(pair) != 2 or min(pair) <= 0 for pair in tile_variants):
+        raise SystemExit(f"--tile-variants wants positive TILE:CHUNK pairs, got {args.tile_variants!r}")
     entries, rows = {}, []
     rates, cpu_sps = expert_success_cpu(episodes, task_ids, args.noise)
     rows.append({"figure": "cpu_env_steps_per_s (C engine, 1 thread, expert)", "value": cpu_sps})
@@ -174,7 +197,8 @@ def main(argv: list[str] | None = None) -> None:
         for batch in sorted({args.batch, *(int(b) for b in args.batch_sweep.split(",") if b)}):
             try:
                 figures = mjx_throughput(batch, args.resolution, args.steps,
-                                         render_variants=not args.no_render_variants)
+                                         render_variants=not args.no_render_variants,
+                                         renderer_options=renderer_options, tile_variants=tile_variants)
             except Exception as err:  # noqa: BLE001 - out of memory at a large batch: report and go on
                 print(f"batch {batch}: failed ({type(err).__name__}: {str(err)[:160]})", flush=True)
                 continue
@@ -186,7 +210,8 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit("bench_sim: every MJX batch size failed")
         best = max(sweep, key=lambda r: r["env_steps_per_s"])
         entries[key] = common.record(key, best["env_steps_per_s"], 20000, batch=best["batch"], rendered=True,
-                                     outputs="agentview RGB + depth + segmentation", sweep=sweep)
+                                     outputs="agentview RGB + depth + segmentation", sweep=sweep,
+                                     renderer_options=renderer_options or "default")
         common.merge_results(entries)  # keep the throughput even if the MJX expert run below is cut short
     if not args.tiny and not args.no_expert:
         mjx_rates = expert_success_mjx(episodes, task_ids, args.horizon)

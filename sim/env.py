@@ -384,7 +384,8 @@ def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
 
 
 def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
-                    depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool | None = None) -> Renderer:
+                    depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool | None = None,
+                    tile: int | None = 8, chunk: int = 16) -> Renderer:
     """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
 
     Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
@@ -393,6 +394,8 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
     for benchmarks that time the split). ``unroll``: geoms per step of the renderer's scans
     (``sim.render.render``; the same frames); ``None``: 4 on a GPU, 1 elsewhere, as measured (128 px,
     render-only: H100 1.32-1.34x at batch 1024-4096 and 1.00x at 8192; on a 2-core CPU 0.94x).
+    ``tile``/``chunk``: tile culling (``sim/render_cull.py``: each ray tests only the geoms whose projected
+    bound covers its ``tile`` x ``tile`` pixel tile; the same frames); ``tile=None`` tests every geom.
     """
     from sim import render
 
@@ -403,7 +406,8 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
     cameras = ("agentview", "eye_in_hand") if wrist_camera else ("agentview",)
     # a fixed camera's static geoms are intersected once, here, not in every frame (sim/render.py)
     draws = {cam: render.make_renderer(scene_, cam, height=resolution, width=resolution,
-                                       model=mj_model if static_split else None, unroll=unroll)
+                                       model=mj_model if static_split else None, unroll=unroll, tile=tile,
+                                       chunk=chunk)
              for cam in cameras}
 
     def renderer(data: Any) -> dict[str, Any]:

@@ -64,8 +64,10 @@ import mujoco
 import numpy as np
 from jaxtyping import Array, Float, Int, UInt8
 
+from sim import render_cull
 from sim.render_classes import segmentation_classes
 from sim.render_hits import _BOX, _HIT, _MESH, _SUPPORTED, _local_normal, _rotate_rows, hit_order
+from sim.render_hits import camera_dirs as _camera_dirs
 
 _DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)
 
@@ -316,6 +318,8 @@ def render(
     shadows: bool = False,
     static_hits: tuple[Any, Any] | None = None,
     unroll: int | bool = 1,
+    tile: int | None = None,
+    chunk: int = 16,
 ) -> Frame:
     """Renders one camera view of one state (vmap for batches).
 
@@ -333,6 +337,9 @@ def render(
         rounding (another XLA program computes the static hits).
       unroll: geoms tested per step of the per-type scans (``True``: all of a type at once); the same
         frames, another schedule (see ``_nearest_ranked``).
+      tile: cull by ``tile x tile`` pixel tiles: each camera ray tests only the geoms whose projected
+        bounding box covers its tile (``sim/render_cull.py``; the same frames). ``None``: every ray tests
+        every geom. chunk: tiles per step of the culled loop.
 
     Returns:
       ``Frame`` with rgb (h, w, 3) uint8, depth (h, w) float32 metres, geom_id (h, w)
@@ -352,7 +359,13 @@ def render(
     ids = scene.geom_ids
     pos, mat, cam_pos, cam_mat = _poses(scene, geom_xpos, geom_xmat, cam_pos, cam_mat)
     cam_dirs = jnp.asarray(_camera_dirs(fovy, height, width))  # the same constants for every pose
-    if static_hits is None:
+    if tile is not None:
+        depth, rank = render_cull.nearest_culled(
+            scene.geom_type, scene.size, scene.offset, pos, mat, cam_pos, cam_mat, fovy=fovy, height=height,
+            width=width, tile=tile, chunk=chunk, start=static_hits,
+            which=None if static_hits is None else ~np.asarray(scene.static, bool))
+        nearest = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)[rank]
+    elif static_hits is None:
         depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], cam_dirs, unroll=unroll, dir_frame=cam_mat)
     else:
         depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], cam_dirs, start=static_hits,
@@ -403,19 +416,6 @@ def _poses(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat):
     pos = jnp.asarray(geom_xpos, jnp.float32)[ids]
     mat = jnp.asarray(geom_xmat, jnp.float32).reshape(-1, 3, 3)[ids]
     return pos, mat, jnp.asarray(cam_pos, jnp.float32).reshape(3), jnp.asarray(cam_mat, jnp.float32).reshape(3, 3)
-
-
-@functools.lru_cache(maxsize=32)
-def _camera_dirs(fovy: float, height: int, width: int) -> np.ndarray:
-    """One ray direction per pixel (R, 3) in the camera's frame (x right, y up, looking down -z), row 0
-    at the top, with unit forward component so that the ray parameter t is the planar depth."""
-    tan_half = np.tan(np.deg2rad(fovy) / 2.0)
-    xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
-    ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
-    grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
-    out = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
-    out.setflags(write=False)
-    return out
 
 
 def _view(scene: RenderScene, geom_xpos, geom_xmat, cam_pos, cam_mat, *, fovy: float, height: int, width: int):
@@ -473,6 +473,8 @@ def make_renderer(
     shadows: bool = False,
     model: mujoco.MjModel | None = None,
     unroll: int | bool = 1,
+    tile: int | None = None,
+    chunk: int = 16,
 ) -> Callable[[Any], Frame]:
     """A pure ``data -> Frame`` function for one camera (jit/vmap it over ``mjx.Data``).
 
@@ -483,15 +485,17 @@ def make_renderer(
         here (:func:`static_hits_of_model`), and each frame tests only the moving geoms. The frames
         are those of testing every geom up to float rounding (MJX's float32 kinematics place the
         static geoms within 5e-8 m of MuJoCo's, from which the hits are computed).
-      unroll: see ``render``.
+      unroll, tile, chunk: see ``render``.
 
     Raises:
-      KeyError: unknown camera. ValueError: non-positive image size.
+      KeyError: unknown camera. ValueError: non-positive image size, tile or chunk.
     """
     if camera not in scene.cameras:
         raise KeyError(f"camera {camera!r} not in the model; cameras: {sorted(scene.cameras)}")
     if height <= 0 or width <= 0:
         raise ValueError(f"image size must be positive, got {height}x{width}")
+    if (tile is not None and tile <= 0) or chunk <= 0:
+        raise ValueError(f"tile and chunk must be positive, got tile {tile} and chunk {chunk}")
     cam_id, fovy = scene.cameras[camera]
     static = static_hits_of_model(scene, model, camera, height=height, width=width) if model is not None else None
 
@@ -501,6 +505,7 @@ def make_renderer(
             scene, data.geom_xpos, data.geom_xmat, cam_pos, cam_mat,
             fovy=fovy, height=height, width=width, shadows=shadows,
             static_hits=None if static is None else (jnp.asarray(static[0]), jnp.asarray(static[1])), unroll=unroll,
+            tile=tile, chunk=chunk,
         )
 
     return render_data

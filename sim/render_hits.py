@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -136,3 +138,16 @@ def hit_order(geom_type: np.ndarray) -> np.ndarray:
     """Drawn-geom indices in the order the renderer tests them (by type as in ``_HIT``, then index): a
     geom's position in it is its rank, and of equally near hits the lowest rank wins."""
     return np.concatenate([np.nonzero(geom_type == gtype)[0] for gtype in _HIT]).astype(np.int32)
+
+
+@functools.lru_cache(maxsize=32)
+def camera_dirs(fovy: float, height: int, width: int) -> np.ndarray:
+    """One ray direction per pixel (R, 3) in the camera's frame (x right, y up, looking down -z), row 0
+    at the top, with unit forward component so that the ray parameter t is the planar depth."""
+    tan_half = np.tan(np.deg2rad(fovy) / 2.0)
+    xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tan_half * (width / height)
+    ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_half
+    grid_x, grid_y = np.meshgrid(xs, ys)  # (H, W)
+    out = np.stack([grid_x, grid_y, -np.ones_like(grid_x)], -1).reshape(-1, 3).astype(np.float32)
+    out.setflags(write=False)
+    return out

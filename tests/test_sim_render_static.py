@@ -105,7 +105,8 @@ def test_per_state_renderer_with_the_models_static_hits_draws_the_same_frames():
     assert render.static_hits_of_model(scene, model, "eye_in_hand", height=8, width=8) is None  # it moves
     hook = jax.jit(camera_renderer(model, resolution=32, depth_and_seg=True))
     unrolled = jax.jit(camera_renderer(model, resolution=32, depth_and_seg=True, unroll=3))  # 43 boxes: a remainder
-    plain = {"agentview": jax.jit(render.make_renderer(scene, "agentview", height=32, width=32))}
+    # the hook culls by 8-px tiles (sim/render_cull.py, tested on its own); so does the plain renderer here
+    plain = {"agentview": jax.jit(render.make_renderer(scene, "agentview", height=32, width=32, tile=8))}
     mx = mjx.put_model(model)
     kinematics = jax.jit(lambda d: mjx.camlight(mx, mjx.kinematics(mx, d)))
     for state in (out["states"][0], out["states"][-1]):

@@ -1,0 +1,213 @@
+"""Tile culling for ``sim/render.py``'s camera rays: each ray tests only the geoms whose screen-space
+bound covers its pixel tile, and the work done follows how many (tile, geom) pairs overlap, not the
+worst tile.
+
+Per frame, every drawn geom's local bounding box (a capsule's, a cylinder's, a mesh stand-in's) is
+projected through the camera; the rectangle of its 8 projected corners contains everything of it a
+camera ray can hit (a perspective projection maps the box's convex hull into its corners' hull). A
+geom with a corner at or behind the camera's near limit covers every tile; one wholly behind the
+camera covers none (no hit has ray parameter, the planar depth, below ``_EPS``). The image is cut
+into ``tile x tile`` pixel tiles; a tile's rays test a geom only if their directions' rectangle meets
+the geom's.
+
+The schedule, per geom type (one ``lax.while_loop``, so it runs under ``jit`` and ``vmap``):
+
+* each tile's overlapping geoms are listed in rank order; ``level k`` is the set of tiles with more
+  than k of them, which, with the tiles sorted by count, is a prefix of that order;
+* each loop step takes ``chunk`` tiles of one level, gathers their rays' running nearest hit, tests
+  each tile's k-th geom, and scatters the result back. A tile appears once per level, so a step's
+  tiles are distinct and the update needs no atomics;
+* the loop runs sum_k ceil(level_k / chunk) steps: the overlapping pairs, not (tiles x geoms). Under
+  ``vmap`` a batched ``while_loop`` runs to the batch's longest frame.
+
+Ties between equally near geoms go to the lower rank as in the dense test (``sim/render.py``), and the
+same arithmetic computes each ray's ray parameter, so the frames are those of testing every geom.
+
+Measured on LIBERO agentview states (27 rollout states of tasks 0/4/7, 128 px, 8-px tiles): a tile
+overlaps on average 0.67 of the 43 moving boxes and 0.46 of the 13 capsules; the busiest tile 15 and 9.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sim.render_hits import (_BOX, _CAPSULE, _CYLINDER, _ELLIPSOID, _EPS, _HIT, _PLANE, _SPHERE, _rotate_rows,
+                             camera_dirs, hit_order)
+
+_NEAR = 1e-3  # a geom with a bounding-box corner closer than this (planar depth, m) covers every tile
+_MARGIN = 1e-4  # tan-space slack on every overlap test (a pixel is 2 tan(fovy/2) / height, ~6.5e-3 at 128 px)
+
+_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float32)  # (8, 3)
+
+
+class TileLayout(NamedTuple):
+    """Camera rays regrouped into square pixel tiles (edge tiles padded by repeating an edge pixel).
+
+    Attributes:
+      dirs: camera-frame ray directions in tile order, (T, P, 3), P = tile * tile.
+      pixel_slot: each pixel's index into the flattened (T * P) tile order, (R,).
+      slot_pixel: each slot's pixel, (T * P,).
+      rect: the tile's ray directions' x/y range in the camera frame (x_lo, x_hi, y_lo, y_hi), (T, 4).
+    """
+
+    dirs: np.ndarray
+    pixel_slot: np.ndarray
+    slot_pixel: np.ndarray
+    rect: np.ndarray
+
+
+@functools.lru_cache(maxsize=32)
+def tile_layout(fovy: float, height: int, width: int, tile: int) -> TileLayout:
+    """The tiling of a ``height x width`` camera image into ``tile x tile`` pixel tiles.
+
+    Raises:
+      ValueError: a non-positive tile or image size.
+    """
+    if tile <= 0 or height <= 0 or width <= 0:
+        raise ValueError(f"tile and image size must be positive, got tile {tile} for {height}x{width}")
+    dirs = camera_dirs(fovy, height, width)
+    rows, cols = -(-height // tile), -(-width // tile)
+    tile_row, tile_col, in_row, in_col = np.meshgrid(np.arange(rows), np.arange(cols), np.arange(tile),
+                                                     np.arange(tile), indexing="ij")
+    y = np.minimum(tile_row * tile + in_row, height - 1)  # (rows, cols, tile, tile)
+    x = np.minimum(tile_col * tile + in_col, width - 1)
+    slot_pixel = (y * width + x).reshape(-1)
+    real = (tile_row * tile + in_row < height) & (tile_col * tile + in_col < width)
+    pixel_slot = np.empty(height * width, np.int64)
+    pixel_slot[slot_pixel[real.reshape(-1)]] = np.nonzero(real.reshape(-1))[0]
+    tiled = dirs[slot_pixel].reshape(rows * cols, tile * tile, 3)
+    rect = np.stack([tiled[..., 0].min(1), tiled[..., 0].max(1), tiled[..., 1].min(1), tiled[..., 1].max(1)], -1)
+    out = TileLayout(tiled, pixel_slot.astype(np.int32), slot_pixel.astype(np.int32), rect.astype(np.float32))
+    for array in out:
+        array.setflags(write=False)
+    return out
+
+
+def bound_half_extents(geom_type: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Half extents (n, 3) of a box in each geom's local frame (about its ``offset``) that contains it;
+    ``inf`` for an infinite plane (size 0 along an axis)."""
+    half = np.array(size, np.float32, copy=True)
+    for i, gtype in enumerate(geom_type):
+        radius, length = size[i, 0], size[i, 1]
+        if gtype == _SPHERE:
+            half[i] = radius
+        elif gtype == _CAPSULE:
+            half[i] = (radius, radius, length + radius)
+        elif gtype == _CYLINDER:
+            half[i] = (radius, radius, length)
+        elif gtype == _PLANE:
+            half[i] = (size[i, 0] if size[i, 0] > 0 else np.inf, size[i, 1] if size[i, 1] > 0 else np.inf, 0.0)
+        elif gtype not in (_BOX, _ELLIPSOID):
+            raise ValueError(f"no bound for geom type {gtype}")
+    return half
+
+
+def geom_rects(pos, mat, offset: np.ndarray, half: np.ndarray, cam_pos, cam_mat):
+    """Each geom's screen-space bound (x_lo, x_hi, y_lo, y_hi), (n, 4), in the camera frame's tangent
+    units (a ray direction (x, y, -1) can hit the geom only if x and y fall inside): the range of its
+    bounding box's projected corners; everything where a corner is nearer than ``_NEAR`` or the bound is
+    infinite, nothing where the whole box is behind ``_EPS``."""
+    local = jnp.asarray(offset)[:, None, :] + jnp.asarray(np.where(np.isfinite(half), half, 0.0))[:, None, :] * _CORNERS
+    world = pos[:, None, :] + _rotate_rows(local, jnp.swapaxes(mat, -1, -2)[:, None])  # mat @ v, row-wise v @ mat^T
+    camera = _rotate_rows(world - cam_pos, cam_mat)  # (n, 8, 3): x right, y up, -z forward
+    depth = -camera[..., 2]
+    safe = jnp.where(depth > _NEAR, depth, jnp.float32(1.0))
+    x, y = camera[..., 0] / safe, camera[..., 1] / safe
+    rect = jnp.stack([x.min(1), x.max(1), y.min(1), y.max(1)], -1)
+    everything = jnp.asarray([-jnp.inf, jnp.inf, -jnp.inf, jnp.inf], jnp.float32)
+    nothing = jnp.asarray([jnp.inf, -jnp.inf, jnp.inf, -jnp.inf], jnp.float32)
+    infinite = jnp.asarray(~np.all(np.isfinite(half), -1))[:, None]
+    rect = jnp.where(infinite | jnp.any(depth <= _NEAR, 1, keepdims=True), everything, rect)
+    return jnp.where(jnp.all(depth <= _EPS, 1, keepdims=True) & ~infinite, nothing, rect)
+
+
+def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, pos, mat, cam_pos, cam_mat, *,
+                   fovy: float, height: int, width: int, tile: int = 8, chunk: int = 16,
+                   which: np.ndarray | None = None, start: tuple[Any, Any] | None = None):
+    """Nearest hit of every camera ray over the geoms ``which`` selects, testing each ray only against the
+    geoms whose bound covers its tile (module docstring). The same result as
+    ``sim.render._nearest_ranked(..., dir_frame=cam_mat)`` on the camera's rays.
+
+    Args:
+      geom_type, size, offset: the scene's drawn geoms (``RenderScene`` fields), (n,), (n, 3), (n, 3).
+      pos, mat: their world poses, (n, 3), (n, 3, 3). cam_pos, cam_mat: the camera's, (3,), (3, 3).
+      fovy, height, width: the camera image. tile: tile side in pixels. chunk: tiles per loop step.
+      which: bool (n,) geoms to test (``None``: all). start: (t (R,), rank (R,)) to continue from.
+
+    Returns:
+      (t (R,), rank (R,)) per pixel, row-major: the nearest ray parameter (+inf on a miss) and the
+      winner's rank in ``hit_order`` (n on a miss).
+
+    Raises:
+      ValueError: a non-positive tile or chunk.
+    """
+    if chunk <= 0:
+        raise ValueError(f"chunk must be positive, got {chunk}")
+    order = hit_order(geom_type)
+    layout = tile_layout(fovy, height, width, tile)
+    n_tiles, per_tile = layout.dirs.shape[:2]
+    if start is None:
+        best_t = jnp.full((n_tiles, per_tile), jnp.inf, jnp.float32)
+        best_r = jnp.full((n_tiles, per_tile), len(order), jnp.int32)
+    else:
+        best_t = start[0][layout.slot_pixel].reshape(n_tiles, per_tile)
+        best_r = start[1][layout.slot_pixel].reshape(n_tiles, per_tile)
+    # one spare row that the steps' unused slots write to
+    best_t = jnp.concatenate([best_t, jnp.zeros((1, per_tile), jnp.float32)])
+    best_r = jnp.concatenate([best_r, jnp.zeros((1, per_tile), jnp.int32)])
+    rects = geom_rects(pos, mat, offset, bound_half_extents(geom_type, size), cam_pos, cam_mat)  # (n, 4)
+    tile_rect = jnp.asarray(layout.rect)
+    tile_dirs = jnp.asarray(layout.dirs)
+    for gtype, hit in _HIT.items():
+        ranks = np.nonzero(geom_type[order] == gtype)[0]
+        if which is not None:
+            ranks = ranks[which[order[ranks]]]
+        if ranks.size == 0:
+            continue
+        idx = order[ranks]
+        n_type = len(idx)
+        rect = rects[idx]
+        overlap = ((rect[None, :, 0] <= tile_rect[:, 1:2] + _MARGIN) & (rect[None, :, 1] >= tile_rect[:, 0:1] - _MARGIN)
+                   & (rect[None, :, 2] <= tile_rect[:, 3:4] + _MARGIN) & (rect[None, :, 3] >= tile_rect[:, 2:3] - _MARGIN))
+        count = overlap.sum(1, dtype=jnp.int32)  # (T,)
+        # slots[tile, k]: the tile's k-th overlapping geom (index into idx), in rank order
+        position = jnp.where(overlap, jnp.cumsum(overlap, 1, dtype=jnp.int32) - 1, n_type)
+        slots = jnp.zeros((n_tiles, n_type), jnp.int32).at[jnp.arange(n_tiles)[:, None], position].set(
+            jnp.broadcast_to(jnp.arange(n_type, dtype=jnp.int32), (n_tiles, n_type)), mode="drop")
+        tile_order = jnp.argsort(-count, stable=True).astype(jnp.int32)  # {count > k} is a prefix of it
+        level_size = jnp.sum(count[None, :] > jnp.arange(n_type)[:, None], 1, dtype=jnp.int32)  # (n_type,)
+        level_end = jnp.cumsum(-(-level_size // chunk))  # loop steps up to and including each level
+        geom_o = _rotate_rows(cam_pos[None, :] - pos[idx], mat[idx]) - jnp.asarray(offset[idx])  # camera, local frame
+        geom_d = jnp.einsum("ji,njk->nik", cam_mat, mat[idx])  # camera-frame directions -> local frame
+        geom_size = jnp.asarray(size[idx])
+        geom_rank = jnp.asarray(ranks, jnp.int32)
+
+        def step(carry, hit=hit, n_type=n_type, slots=slots, tile_order=tile_order, level_size=level_size,
+                 level_end=level_end, geom_o=geom_o, geom_d=geom_d, geom_size=geom_size, geom_rank=geom_rank):
+            j, best_t, best_r = carry
+            level = jnp.minimum(jnp.searchsorted(level_end, j, side="right"), n_type - 1)
+            first = jnp.where(level > 0, level_end[jnp.maximum(level - 1, 0)], 0)
+            slot = (j - first) * chunk + jnp.arange(chunk)  # (C,) positions in the level's tile prefix
+            valid = slot < level_size[level]
+            tiles = tile_order[jnp.minimum(slot, n_tiles - 1)]
+            geom = slots[tiles, level]  # (C,)
+            target = jnp.where(valid, tiles, n_tiles)
+            local_d = _rotate_rows(tile_dirs[tiles], geom_d[geom][:, None])  # (C, P, 3)
+            t = hit(geom_o[geom][:, None, :], local_d, geom_size[geom][:, None, :])  # (C, P)
+            rank = geom_rank[geom][:, None]
+            cur_t, cur_r = best_t[target], best_r[target]
+            closer = valid[:, None] & ((t < cur_t) | ((t == cur_t) & (rank < cur_r) & jnp.isfinite(t)))
+            best_t = best_t.at[target].set(jnp.where(closer, t, cur_t))
+            best_r = best_r.at[target].set(jnp.where(closer, rank, cur_r))
+            return j + 1, best_t, best_r
+
+        total = level_end[-1]
+        _, best_t, best_r = jax.lax.while_loop(lambda carry, total=total: carry[0] < total, step,
+                                               (jnp.int32(0), best_t, best_r))
+    slot_of_pixel = jnp.asarray(layout.pixel_slot)
+    return best_t[:-1].reshape(-1)[slot_of_pixel], best_r[:-1].reshape(-1)[slot_of_pixel]
