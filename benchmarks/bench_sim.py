@@ -63,7 +63,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     timings per batch size). ``renderer_options``: ``camera_renderer`` keywords for the env's renderer
     (e.g. ``tile``, ``chunk``). ``tile_variants``: (tile, chunk) pairs, each timed renderer-alone as
     ``render_frames_per_s_tile{tile}_chunk{chunk}`` (tile culling, ``sim/render_cull.py``), with
-    ``render_frames_per_s_dense`` (no culling) beside them. ``sim_overrides``: ``SimConfig`` fields.
+    ``render_frames_per_s_dense`` (no culling) and ``env_steps_per_s_dense`` (the env-step figure without
+    culling) beside them. ``sim_overrides``: ``SimConfig`` fields.
     """
     import jax
     import jax.numpy as jnp
@@ -97,6 +98,8 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
 
         renderer = renderer_with()
         out["env_steps_per_s"], _ = steps_per_s(renderer)
+        if tile_variants:  # the env-step figure without culling, side by side
+            out["env_steps_per_s_dense"], _ = steps_per_s(renderer_with(tile=None))
     out["physics_steps_per_s"], state = steps_per_s(None)
     if render and render_alone:
         def frames_per_s(draw_one) -> float:
@@ -124,6 +127,43 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
             out[f"render_frames_per_s_unroll_{name}"] = frames_per_s(renderer_with(unroll=unroll))
     elif not render:
         out["env_steps_per_s"] = out["physics_steps_per_s"]
+    return out
+
+
+def batch_layout(batch: int, resolution: int, steps: int) -> dict[str, float]:
+    """Env-steps/s of the raw MJX env step (no episode wrappers) vmapped with the batch axis first (as
+    ``wrappers.VmapWrapper``) and last (``in_axes=-1, out_axes=-1``: every state leaf stored batch-
+    innermost between steps), physics alone and with the agentview camera rendered (RGB + depth + seg).
+    XLA lays out each program's intermediates itself; this measures whether the state's layout between
+    steps pays."""
+    import jax
+    import jax.numpy as jnp
+
+    import sim
+    from sim.env import camera_renderer
+
+    out = {}
+    for name, renderer in (("physics", None), ("rendered", "camera")):
+        if renderer is not None:
+            renderer = camera_renderer(sim.load("libero_spatial").mj_model, resolution=resolution, depth_and_seg=True)
+        env = sim.load("libero_spatial", backend="mjx", renderer=renderer)
+        keys = jax.random.split(jax.random.key(0), batch)
+        first = jax.jit(jax.vmap(env.reset))(keys)
+        actions = jax.random.uniform(jax.random.key(1), (batch, 7), jnp.float32, -0.3, 0.3)
+        for axis in (0, -1):
+            state = first if axis == 0 else jax.tree.map(lambda x: jnp.moveaxis(x, 0, -1), first)
+            act = actions if axis == 0 else actions.T
+            step = jax.jit(jax.vmap(env.step, in_axes=axis, out_axes=axis))
+            state = common.block(step(state, act))
+            start = time.perf_counter()
+            for _ in range(steps):
+                state = step(state, act)
+            common.block(state.obs)
+            out[f"{name}_steps_per_s_batch_{'first' if axis == 0 else 'last'}"] = batch * steps / (
+                time.perf_counter() - start)
+        out[f"{name}_batch_last_vs_first"] = out[f"{name}_steps_per_s_batch_last"] / out[f"{name}_steps_per_s_batch_first"]
+        print(f"batch layout, {name}: " + ", ".join(f"{k} {v:.4g}" for k, v in out.items() if k.startswith(name)),
+              flush=True)
     return out
 
 
@@ -163,6 +203,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--chunk", type=int, default=None, help="tiles per step of the culled loop (with --tile)")
     parser.add_argument("--tile-variants", default="",
                         help="renderer-alone timings of tile culling, TILE:CHUNK,... (e.g. 8:16,16:16), beside no culling")
+    parser.add_argument("--batch-layout", action="store_true",
+                        help="also time the raw env step vmapped batch-first vs batch-last at --batch")
     parser.add_argument("--batch-sweep", default="", help="more batch sizes for the MJX throughput, e.g. 4096,8192")
     parser.add_argument("--noise", type=float, default=0.0)
     parser.add_argument("--horizon", type=int, default=220, help="MJX expert rollout steps")
@@ -213,6 +255,13 @@ def main(argv: list[str] | None = None) -> None:
                                      outputs="agentview RGB + depth + segmentation", sweep=sweep,
                                      renderer_options=renderer_options or "default")
         common.merge_results(entries)  # keep the throughput even if the MJX expert run below is cut short
+    if args.batch_layout and not args.tiny:
+        layout = batch_layout(args.batch, args.resolution, args.steps)
+        for name, value in layout.items():
+            rows.append({"figure": f"{name} (batch {args.batch})", "value": value})
+        entries["sim.mjx_batch_layout"] = common.record("sim.mjx_batch_layout", layout["rendered_batch_last_vs_first"],
+                                                        None, batch=args.batch, **layout)
+        common.merge_results(entries)
     if not args.tiny and not args.no_expert:
         mjx_rates = expert_success_mjx(episodes, task_ids, args.horizon)
         for task_id, rate in mjx_rates.items():

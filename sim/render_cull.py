@@ -126,6 +126,70 @@ def geom_rects(pos, mat, offset: np.ndarray, half: np.ndarray, cam_pos, cam_mat)
     return jnp.where(jnp.all(depth <= _EPS, 1, keepdims=True) & ~infinite, nothing, rect)
 
 
+class _Plan(NamedTuple):
+    """One frame's culled schedule for one geom type (n of its geoms, T tiles)."""
+
+    slots: Any  # (T, n): each tile's overlapping geoms (indices into the type's geoms), in rank order
+    tile_order: Any  # (T,): tiles by overlap count, descending; level k is its first level_size[k]
+    level_size: Any  # (n,): tiles with more than k overlapping geoms
+    level_end: Any  # (n,): loop steps up to and including level k
+    geom_o: Any  # (n, 3): the camera position in each geom's local frame
+    geom_d: Any  # (n, 3, 3): camera-frame ray directions -> local frame
+    geom_size: Any  # (n, 3)
+    geom_rank: Any  # (n,): rank in hit_order
+
+
+def _culled_step(hit, chunk: int, tile_dirs, plan: _Plan, j, best_t, best_r):
+    """Loop step j of one frame: ``chunk`` tiles of one level test their level's geom. A step past the
+    frame's schedule changes nothing (every slot writes to the spare row)."""
+    n_tiles, n_type = plan.slots.shape
+    level = jnp.minimum(jnp.searchsorted(plan.level_end, j, side="right"), n_type - 1)
+    first = jnp.where(level > 0, plan.level_end[jnp.maximum(level - 1, 0)], 0)
+    slot = (j - first) * chunk + jnp.arange(chunk)  # (C,) positions in the level's tile prefix
+    valid = slot < plan.level_size[level]
+    tiles = plan.tile_order[jnp.minimum(slot, n_tiles - 1)]
+    geom = plan.slots[tiles, level]  # (C,)
+    target = jnp.where(valid, tiles, n_tiles)
+    local_d = _rotate_rows(jnp.asarray(tile_dirs)[tiles], plan.geom_d[geom][:, None])  # (C, P, 3)
+    t = hit(plan.geom_o[geom][:, None, :], local_d, plan.geom_size[geom][:, None, :])  # (C, P)
+    rank = plan.geom_rank[geom][:, None]
+    cur_t, cur_r = best_t[target], best_r[target]
+    closer = valid[:, None] & ((t < cur_t) | ((t == cur_t) & (rank < cur_r) & jnp.isfinite(t)))
+    return best_t.at[target].set(jnp.where(closer, t, cur_t)), best_r.at[target].set(jnp.where(closer, rank, cur_r))
+
+
+def _culled_loop(hit, chunk: int, tile_dirs: np.ndarray, plan: _Plan, best_t, best_r):
+    """Runs one frame's schedule. Under ``vmap`` the loop runs to the batch's longest schedule with one
+    predicate for the whole batch: a ``while_loop`` whose predicate differs per frame would instead
+    select every frame's running nearest hit (the whole carry, 512 MB at 4096 x 128 px) on every
+    step, which measured 2.3x slower than testing every geom on an H100. Steps past a frame's own
+    schedule change nothing, so the result is the same."""
+
+    def run(plan, best_t, best_r, total):
+        def body(carry):
+            j, best_t, best_r = carry
+            return (j + 1, *jax.vmap(functools.partial(_culled_step, hit, chunk, tile_dirs), (0, None, 0, 0))(
+                plan, j, best_t, best_r))
+
+        _, best_t, best_r = jax.lax.while_loop(lambda carry: carry[0] < total, body, (jnp.int32(0), best_t, best_r))
+        return best_t, best_r
+
+    @jax.custom_batching.custom_vmap
+    def one_frame(plan, best_t, best_r):
+        lead = lambda x: x[None]  # noqa: E731
+        best_t, best_r = run(jax.tree.map(lead, plan), best_t[None], best_r[None], plan.level_end[-1])
+        return best_t[0], best_r[0]
+
+    @one_frame.def_vmap
+    def batched(axis_size, in_batched, plan, best_t, best_r):
+        spread = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *x.shape))  # noqa: E731
+        plan = jax.tree.map(spread, plan, _Plan(*in_batched[0]))
+        best_t, best_r = spread(best_t, in_batched[1]), spread(best_r, in_batched[2])
+        return run(plan, best_t, best_r, jnp.max(plan.level_end[:, -1])), (True, True)
+
+    return one_frame(plan, best_t, best_r)
+
+
 def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, pos, mat, cam_pos, cam_mat, *,
                    fovy: float, height: int, width: int, tile: int = 8, chunk: int = 16,
                    which: np.ndarray | None = None, start: tuple[Any, Any] | None = None):
@@ -162,7 +226,6 @@ def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, 
     best_r = jnp.concatenate([best_r, jnp.zeros((1, per_tile), jnp.int32)])
     rects = geom_rects(pos, mat, offset, bound_half_extents(geom_type, size), cam_pos, cam_mat)  # (n, 4)
     tile_rect = jnp.asarray(layout.rect)
-    tile_dirs = jnp.asarray(layout.dirs)
     for gtype, hit in _HIT.items():
         ranks = np.nonzero(geom_type[order] == gtype)[0]
         if which is not None:
@@ -181,33 +244,10 @@ def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, 
             jnp.broadcast_to(jnp.arange(n_type, dtype=jnp.int32), (n_tiles, n_type)), mode="drop")
         tile_order = jnp.argsort(-count, stable=True).astype(jnp.int32)  # {count > k} is a prefix of it
         level_size = jnp.sum(count[None, :] > jnp.arange(n_type)[:, None], 1, dtype=jnp.int32)  # (n_type,)
-        level_end = jnp.cumsum(-(-level_size // chunk))  # loop steps up to and including each level
-        geom_o = _rotate_rows(cam_pos[None, :] - pos[idx], mat[idx]) - jnp.asarray(offset[idx])  # camera, local frame
-        geom_d = jnp.einsum("ji,njk->nik", cam_mat, mat[idx])  # camera-frame directions -> local frame
-        geom_size = jnp.asarray(size[idx])
-        geom_rank = jnp.asarray(ranks, jnp.int32)
-
-        def step(carry, hit=hit, n_type=n_type, slots=slots, tile_order=tile_order, level_size=level_size,
-                 level_end=level_end, geom_o=geom_o, geom_d=geom_d, geom_size=geom_size, geom_rank=geom_rank):
-            j, best_t, best_r = carry
-            level = jnp.minimum(jnp.searchsorted(level_end, j, side="right"), n_type - 1)
-            first = jnp.where(level > 0, level_end[jnp.maximum(level - 1, 0)], 0)
-            slot = (j - first) * chunk + jnp.arange(chunk)  # (C,) positions in the level's tile prefix
-            valid = slot < level_size[level]
-            tiles = tile_order[jnp.minimum(slot, n_tiles - 1)]
-            geom = slots[tiles, level]  # (C,)
-            target = jnp.where(valid, tiles, n_tiles)
-            local_d = _rotate_rows(tile_dirs[tiles], geom_d[geom][:, None])  # (C, P, 3)
-            t = hit(geom_o[geom][:, None, :], local_d, geom_size[geom][:, None, :])  # (C, P)
-            rank = geom_rank[geom][:, None]
-            cur_t, cur_r = best_t[target], best_r[target]
-            closer = valid[:, None] & ((t < cur_t) | ((t == cur_t) & (rank < cur_r) & jnp.isfinite(t)))
-            best_t = best_t.at[target].set(jnp.where(closer, t, cur_t))
-            best_r = best_r.at[target].set(jnp.where(closer, rank, cur_r))
-            return j + 1, best_t, best_r
-
-        total = level_end[-1]
-        _, best_t, best_r = jax.lax.while_loop(lambda carry, total=total: carry[0] < total, step,
-                                               (jnp.int32(0), best_t, best_r))
+        plan = _Plan(slots, tile_order, level_size, jnp.cumsum(-(-level_size // chunk)),
+                     _rotate_rows(cam_pos[None, :] - pos[idx], mat[idx]) - jnp.asarray(offset[idx]),  # camera, local
+                     jnp.einsum("ji,njk->nik", cam_mat, mat[idx]),  # camera-frame directions -> local frame
+                     jnp.asarray(size[idx]), jnp.asarray(ranks, jnp.int32))
+        best_t, best_r = _culled_loop(hit, chunk, layout.dirs, plan, best_t, best_r)
     slot_of_pixel = jnp.asarray(layout.pixel_slot)
     return best_t[:-1].reshape(-1)[slot_of_pixel], best_r[:-1].reshape(-1)[slot_of_pixel]
