@@ -129,7 +129,7 @@ def geom_rects(pos, mat, offset: np.ndarray, half: np.ndarray, cam_pos, cam_mat)
 class _Plan(NamedTuple):
     """One frame's culled schedule for one geom type (n of its geoms, T tiles)."""
 
-    slots: Any  # (T, n): each tile's overlapping geoms (indices into the type's geoms), in rank order
+    overlap: Any  # (T, n) bool: the tile's rays can hit the geom (the type's geoms in rank order)
     tile_order: Any  # (T,): tiles by overlap count, descending; level k is its first level_size[k]
     level_size: Any  # (n,): tiles with more than k overlapping geoms
     level_end: Any  # (n,): loop steps up to and including level k
@@ -142,13 +142,15 @@ class _Plan(NamedTuple):
 def _culled_step(hit, chunk: int, tile_dirs, plan: _Plan, j, best_t, best_r):
     """Loop step j of one frame: ``chunk`` tiles of one level test their level's geom. A step past the
     frame's schedule changes nothing (every slot writes to the spare row)."""
-    n_tiles, n_type = plan.slots.shape
-    level = jnp.minimum(jnp.searchsorted(plan.level_end, j, side="right"), n_type - 1)
+    n_tiles, n_type = plan.overlap.shape
+    # (a compare and a sum: jnp.searchsorted lowers to a loop of its own, one more per step on a GPU)
+    level = jnp.minimum(jnp.sum(plan.level_end <= j, dtype=jnp.int32), n_type - 1)
     first = jnp.where(level > 0, plan.level_end[jnp.maximum(level - 1, 0)], 0)
     slot = (j - first) * chunk + jnp.arange(chunk)  # (C,) positions in the level's tile prefix
     valid = slot < plan.level_size[level]
     tiles = plan.tile_order[jnp.minimum(slot, n_tiles - 1)]
-    geom = plan.slots[tiles, level]  # (C,)
+    # each tile's level-th overlapping geom: the first whose running overlap count passes the level
+    geom = jnp.argmax(jnp.cumsum(plan.overlap[tiles], -1, dtype=jnp.int32) > level, -1)  # (C,)
     target = jnp.where(valid, tiles, n_tiles)
     local_d = _rotate_rows(jnp.asarray(tile_dirs)[tiles], plan.geom_d[geom][:, None])  # (C, P, 3)
     t = hit(plan.geom_o[geom][:, None, :], local_d, plan.geom_size[geom][:, None, :])  # (C, P)
@@ -238,13 +240,9 @@ def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, 
         overlap = ((rect[None, :, 0] <= tile_rect[:, 1:2] + _MARGIN) & (rect[None, :, 1] >= tile_rect[:, 0:1] - _MARGIN)
                    & (rect[None, :, 2] <= tile_rect[:, 3:4] + _MARGIN) & (rect[None, :, 3] >= tile_rect[:, 2:3] - _MARGIN))
         count = overlap.sum(1, dtype=jnp.int32)  # (T,)
-        # slots[tile, k]: the tile's k-th overlapping geom (index into idx), in rank order
-        position = jnp.where(overlap, jnp.cumsum(overlap, 1, dtype=jnp.int32) - 1, n_type)
-        slots = jnp.zeros((n_tiles, n_type), jnp.int32).at[jnp.arange(n_tiles)[:, None], position].set(
-            jnp.broadcast_to(jnp.arange(n_type, dtype=jnp.int32), (n_tiles, n_type)), mode="drop")
         tile_order = jnp.argsort(-count, stable=True).astype(jnp.int32)  # {count > k} is a prefix of it
         level_size = jnp.sum(count[None, :] > jnp.arange(n_type)[:, None], 1, dtype=jnp.int32)  # (n_type,)
-        plan = _Plan(slots, tile_order, level_size, jnp.cumsum(-(-level_size // chunk)),
+        plan = _Plan(overlap, tile_order, level_size, jnp.cumsum(-(-level_size // chunk)),
                      _rotate_rows(cam_pos[None, :] - pos[idx], mat[idx]) - jnp.asarray(offset[idx]),  # camera, local
                      jnp.einsum("ji,njk->nik", cam_mat, mat[idx]),  # camera-frame directions -> local frame
                      jnp.asarray(size[idx]), jnp.asarray(ranks, jnp.int32))
