@@ -66,7 +66,7 @@ from jaxtyping import Array, Float, Int, UInt8
 
 from sim import render_cull
 from sim.render_classes import segmentation_classes
-from sim.render_hits import _BOX, _HIT, _MESH, _SUPPORTED, _local_normal, _rotate_rows, hit_order
+from sim.render_hits import _BOX, _HIT, _MESH, _SUPPORTED, _dot3, _local_normal, _rotate_rows, hit_order
 from sim.render_hits import camera_dirs as _camera_dirs
 
 _DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)
@@ -382,20 +382,22 @@ def render(
         jnp.asarray(scene.geom_type)[nearest], p_local, jnp.asarray(scene.size)[nearest]
     )
     normal = _rotate_rows(n_local, jnp.swapaxes(hit_mat, -1, -2))
-    view = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
-    normal = jnp.where(jnp.sum(normal * view, -1, keepdims=True) > 0, -normal, normal)
+    # Per-component dot products (``_dot3``), not sums over the last axis: on a GPU each such reduction
+    # wrote a whole (batch, pixels, 3) array; without them the shading fuses (sim/render_hits.py).
+    view = dirs / jnp.sqrt(_dot3(dirs, dirs))[:, None]
+    normal = jnp.where(_dot3(normal, view)[:, None] > 0, -normal, normal)
 
-    lambert = jnp.maximum(jnp.sum(normal[:, None, :] * jnp.asarray(scene.light_dirs), -1), 0.0)  # (R, L)
+    lights = [jnp.maximum(_dot3(normal, jnp.asarray(light)), 0.0) for light in scene.light_dirs]  # L x (R,)
     if shadows:  # hard shadows from the strongest light
         strongest = int(np.argmax(scene.light_diffuse))
         light = jnp.asarray(scene.light_dirs[strongest])
         starts = points + normal * jnp.float32(1e-3)
         t_shadow, _ = _nearest_hits(scene, pos, mat, starts, jnp.broadcast_to(light, dirs.shape))
-        occluded = jnp.isfinite(t_shadow)
-        lambert = lambert.at[:, strongest].set(jnp.where(occluded, 0.0, lambert[:, strongest]))
+        lights[strongest] = jnp.where(jnp.isfinite(t_shadow), 0.0, lights[strongest])
     base = jnp.asarray(scene.rgb)[nearest]
-    facing = jnp.maximum(-jnp.sum(normal * view, -1), 0.0)
-    shade = (jnp.float32(scene.ambient) + jnp.sum(lambert * jnp.asarray(scene.light_diffuse), -1)
+    facing = jnp.maximum(-_dot3(normal, view), 0.0)
+    shade = (jnp.float32(scene.ambient) + sum(lambert * jnp.float32(diffuse)
+                                             for lambert, diffuse in zip(lights, scene.light_diffuse))
              + jnp.float32(scene.headlight) * facing)
     colour = jnp.where(hit[:, None], base * shade[:, None], jnp.asarray(scene.background, jnp.float32))
     rgb = jnp.round(jnp.clip(colour, 0.0, 1.0) * 255.0).astype(jnp.uint8)

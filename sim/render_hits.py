@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 
-import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -104,26 +103,37 @@ _HIT = {
 }
 
 
+def _dot3(a, b):
+    """Row-wise dot product of (..., 3) vectors, written per component: a ``sum(-1)`` over an axis of 3 is a
+    reduction, which ends an XLA GPU fusion and writes its whole per-pixel input to memory."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def _local_normal(gtype, p, size):
-    """Outward normal at local hit points p (r, 3) of geoms of types gtype (r,)."""
-    unit_z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], jnp.float32), p.shape)
-    sphere = p
-    ellipsoid = p / jnp.maximum(size, 1e-9) ** 2
-    half = size[..., 1:2]
-    capsule = p - jnp.concatenate([jnp.zeros_like(p[..., :2]), jnp.clip(p[..., 2:], -half, half)], -1)
-    radial = jnp.concatenate([p[..., :2], jnp.zeros_like(p[..., 2:])], -1)
-    on_cap = (jnp.abs(p[..., 2]) - size[..., 1]) > (jnp.linalg.norm(p[..., :2], axis=-1) - size[..., 0])
-    cylinder = jnp.where(on_cap[..., None], unit_z * jnp.sign(p[..., 2:]), radial)
-    rel = jnp.abs(p) / jnp.maximum(size, 1e-9)
-    axis = jax.nn.one_hot(jnp.argmax(rel, -1), 3, dtype=p.dtype)
-    box = axis * jnp.sign(p)
-    gt = gtype[..., None]
-    normal = jnp.where(gt == _SPHERE, sphere, unit_z)
-    normal = jnp.where(gt == _ELLIPSOID, ellipsoid, normal)
-    normal = jnp.where(gt == _CAPSULE, capsule, normal)
-    normal = jnp.where(gt == _CYLINDER, cylinder, normal)
-    normal = jnp.where(gt == _BOX, box, normal)
-    return normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+    """Outward unit normal at local hit points p (r, 3) of geoms of types gtype (r,), per component (no
+    reductions, so the per-pixel shading stays one elementwise fusion on a GPU)."""
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    sx, sy, sz = (jnp.maximum(size[..., i], 1e-9) for i in range(3))
+    zero = jnp.zeros_like(x)
+    radius, half = size[..., 0], size[..., 1]
+    on_cap = (jnp.abs(z) - half) > (jnp.sqrt(x * x + y * y) - radius)
+    rx, ry, rz = jnp.abs(x) / sx, jnp.abs(y) / sy, jnp.abs(z) / sz
+    along_x = (rx >= ry) & (rx >= rz)  # the box face's axis: the first largest, as argmax picks
+    along_y = ~along_x & (ry >= rz)
+    along_z = ~along_x & ~along_y
+    candidates = {  # type -> (nx, ny, nz); anything else (a plane) faces +z
+        _SPHERE: (x, y, z),
+        _ELLIPSOID: (x / sx**2, y / sy**2, z / sz**2),
+        _CAPSULE: (x, y, z - jnp.clip(z, -half, half)),
+        _CYLINDER: (jnp.where(on_cap, zero, x), jnp.where(on_cap, zero, y), jnp.where(on_cap, jnp.sign(z), zero)),
+        _BOX: (jnp.where(along_x, jnp.sign(x), zero), jnp.where(along_y, jnp.sign(y), zero),
+               jnp.where(along_z, jnp.sign(z), zero)),
+    }
+    normal = (zero, zero, jnp.ones_like(x))
+    for gt, candidate in candidates.items():
+        normal = tuple(jnp.where(gtype == gt, c, n) for c, n in zip(candidate, normal))
+    length = jnp.maximum(jnp.sqrt(normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]), 1e-9)
+    return jnp.stack([c / length for c in normal], -1)
 
 
 def _rotate_rows(v, m):
