@@ -254,6 +254,15 @@ def main(argv: list[str] | None = None) -> None:
         entries[key] = common.record(key, best["env_steps_per_s"], 20000, batch=best["batch"], rendered=True,
                                      outputs="agentview RGB + depth + segmentation", sweep=sweep,
                                      renderer_options=renderer_options or "default")
+        at_batch = next((r for r in sweep if r["batch"] == args.batch and "render_frames_per_s_dense" in r), None)
+        if at_batch is not None:  # culled vs every geom, side by side in this run
+            entries["sim.render_cull_128px" if args.resolution == 128 else f"sim.render_cull_{args.resolution}px"] = (
+                common.record("sim.render_cull", at_batch["render_frames_per_s"] / at_batch["render_frames_per_s_dense"],
+                              None, batch=args.batch, renderer_options=renderer_options or "default",
+                              env_steps_per_s=at_batch["env_steps_per_s"],
+                              env_steps_per_s_dense=at_batch["env_steps_per_s_dense"],
+                              env_step_speedup=at_batch["env_steps_per_s"] / at_batch["env_steps_per_s_dense"],
+                              **{k: v for k, v in at_batch.items() if k.startswith("render_frames_per_s")}))
         common.merge_results(entries)  # keep the throughput even if the MJX expert run below is cut short
     if args.batch_layout and not args.tiny:
         layout = batch_layout(args.batch, args.resolution, args.steps)
