@@ -136,7 +136,7 @@ def main(argv=None) -> None:
         poses = [np.stack([getattr(d, name) for d in datas]).astype(np.float32) for name in ("geom_xpos", "geom_xmat")]
         cams = [np.stack([getattr(d, name)[cam_id] for d in datas]).astype(np.float32) for name in ("cam_xpos", "cam_xmat")]
         whole_s, split_s = (_time(lambda s=s: R.render_batch(scene, *poses, *cams, fovy=fovy, height=res, width=res,
-                                                             static_camera=s), args.repeats) / args.envs
+                                                             static_camera=s, tile=None), args.repeats) / args.envs
                             for s in (False, True))
         splits[res] = (whole_s, split_s)
 
