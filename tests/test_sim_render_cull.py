@@ -60,6 +60,14 @@ def test_culled_frames_equal_testing_every_geom_on_libero_states(camera, tile, s
     culled = _frames(scene, poses, height=30, width=44, tile=tile, static_hits=static)
     _assert_identical(culled, dense)
     assert len(np.unique(dense.geom_id)) > 8  # a real view: table, fixtures, objects, robot
+    if split:  # vmap of vmap: the inner batch goes through the loop's custom_vmap rule, the outer through
+        # ordinary batching of it; the frames must be the flat batch's
+        xpos, xmat, cpos, cmat, fovy = poses
+        draw = functools.partial(render.render, scene, fovy=fovy, height=30, width=44, tile=tile, chunk=4,
+                                 static_hits=static)
+        pairs = lambda x: x[:4].reshape(2, 2, *x.shape[1:])  # noqa: E731
+        nested = jax.jit(jax.vmap(jax.vmap(draw)))(pairs(xpos), pairs(xmat), pairs(cpos), pairs(cmat))
+        np.testing.assert_array_equal(np.asarray(nested.geom_id).reshape(4, 30, 44), culled.geom_id[:4])
 
 
 def test_every_hit_lies_inside_its_geoms_projected_bound():
