@@ -262,8 +262,9 @@ def main(argv: list[str] | None = None) -> None:
                                      renderer_options=renderer_options or "default")
         at_batch = next((r for r in sweep if r["batch"] == args.batch and "render_frames_per_s_dense" in r), None)
         if at_batch is not None:  # culled vs every geom, side by side in this run
-            entries["sim.render_cull_128px" if args.resolution == 128 else f"sim.render_cull_{args.resolution}px"] = (
-                common.record("sim.render_cull", at_batch["render_frames_per_s"] / at_batch["render_frames_per_s_dense"],
+            cull_key = f"sim.render_cull_{args.resolution}px"
+            entries[cull_key] = (
+                common.record(cull_key, at_batch["render_frames_per_s"] / at_batch["render_frames_per_s_dense"],
                               None, batch=args.batch, renderer_options=renderer_options or "default",
                               env_steps_per_s=at_batch["env_steps_per_s"],
                               env_steps_per_s_dense=at_batch["env_steps_per_s_dense"],

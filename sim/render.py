@@ -74,7 +74,8 @@ from jaxtyping import Array, Float, Int, UInt8
 
 from sim import render_cull
 from sim.render_classes import segmentation_classes
-from sim.render_hits import _BOX, _HIT, _MESH, _SUPPORTED, _dot3, _local_normal, _rotate_rows, hit_order
+from sim.render_hits import (_BOX, _HIT, _MESH, _SUPPORTED, _dot3, _local_normal, _rotate_rows, hit_order,
+                             ranks_of_type)
 from sim.render_hits import camera_dirs as _camera_dirs
 
 _DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)
@@ -273,12 +274,9 @@ def _nearest_ranked(scene: RenderScene, pos, mat, origins, dirs, *, which: np.nd
     else:
         best_t, best_r = start
     for gtype, hit in _HIT.items():
-        ranks = np.nonzero(scene.geom_type[order] == gtype)[0]
-        if which is not None:
-            ranks = ranks[which[order[ranks]]]
+        ranks, idx = ranks_of_type(order, scene.geom_type, gtype, which)
         if ranks.size == 0:
             continue
-        idx = order[ranks]
         dir_mat = mat[idx] if dir_frame is None else jnp.einsum("ji,njk->nik", dir_frame, mat[idx])
 
         def step(carry, geom, hit=hit):
@@ -309,8 +307,12 @@ def _nearest_hits(scene: RenderScene, pos, mat, origins, dirs, *, start=None, wh
     """
     best_t, best_r = _nearest_ranked(scene, pos, mat, origins, dirs, which=which, start=start, unroll=unroll,
                                      dir_frame=dir_frame)
-    index_of_rank = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)
-    return best_t, index_of_rank[best_r]
+    return best_t, _geom_of_rank(scene, best_r)
+
+
+def _geom_of_rank(scene: RenderScene, rank):
+    """Drawn-geom index of each rank in :func:`_hit_order` (0 for the miss rank n)."""
+    return jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)[rank]
 
 
 def render(
@@ -372,7 +374,7 @@ def render(
             scene.geom_type, scene.size, scene.offset, pos, mat, cam_pos, cam_mat, fovy=fovy, height=height,
             width=width, tile=tile, chunk=chunk, start=static_hits,
             which=None if static_hits is None else ~np.asarray(scene.static, bool))
-        nearest = jnp.asarray(np.append(_hit_order(scene), 0), jnp.int32)[rank]
+        nearest = _geom_of_rank(scene, rank)
     elif static_hits is None:
         depth, nearest = _nearest_hits(scene, pos, mat, cam_pos[None, :], cam_dirs, unroll=unroll, dir_frame=cam_mat)
     else:

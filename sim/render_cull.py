@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sim.render_hits import (_BOX, _CAPSULE, _CYLINDER, _ELLIPSOID, _EPS, _HIT, _PLANE, _SPHERE, _rotate_rows,
-                             camera_dirs, hit_order)
+                             camera_dirs, hit_order, ranks_of_type)
 
 _NEAR = 1e-3  # a geom with a bounding-box corner closer than this (planar depth, m) covers every tile
 _MARGIN = 1e-4  # tan-space slack on every overlap test (a pixel is 2 tan(fovy/2) / height, ~6.5e-3 at 128 px)
@@ -233,12 +233,9 @@ def nearest_culled(geom_type: np.ndarray, size: np.ndarray, offset: np.ndarray, 
     rects = geom_rects(pos, mat, offset, bound_half_extents(geom_type, size), cam_pos, cam_mat)  # (n, 4)
     tile_rect = jnp.asarray(layout.rect)
     for gtype, hit in _HIT.items():
-        ranks = np.nonzero(geom_type[order] == gtype)[0]
-        if which is not None:
-            ranks = ranks[which[order[ranks]]]
+        ranks, idx = ranks_of_type(order, geom_type, gtype, which)
         if ranks.size == 0:
             continue
-        idx = order[ranks]
         n_type = len(idx)
         rect = rects[idx]
         overlap = ((rect[None, :, 0] <= tile_rect[:, 1:2] + _MARGIN) & (rect[None, :, 1] >= tile_rect[:, 0:1] - _MARGIN)

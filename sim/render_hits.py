@@ -150,6 +150,16 @@ def hit_order(geom_type: np.ndarray) -> np.ndarray:
     return np.concatenate([np.nonzero(geom_type == gtype)[0] for gtype in _HIT]).astype(np.int32)
 
 
+def ranks_of_type(order: np.ndarray, geom_type: np.ndarray, gtype: int,
+                  which: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The ranks in ``order`` (:func:`hit_order`) of the drawn geoms of type ``gtype`` that ``which`` (bool (n,);
+    ``None``: all) selects, and their drawn-geom indices: the geoms one type's test runs over."""
+    ranks = np.nonzero(geom_type[order] == gtype)[0]
+    if which is not None:
+        ranks = ranks[which[order[ranks]]]
+    return ranks, order[ranks]
+
+
 @functools.lru_cache(maxsize=32)
 def camera_dirs(fovy: float, height: int, width: int) -> np.ndarray:
     """One ray direction per pixel (R, 3) in the camera's frame (x right, y up, looking down -z), row 0
