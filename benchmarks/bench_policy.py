@@ -183,6 +183,8 @@ def run_eval(cfg, args) -> dict:
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params = load_npz(args.policy, params)
     results = {"policy": args.policy, "eval": {}}
+    if args.backend == "mjx":
+        return _eval_mjx(cfg, args, graphdef, params, results)
     for mode in args.execute.split(","):
         rl_eval = _execution(cfg.rl, mode)
         result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
@@ -193,6 +195,36 @@ def run_eval(cfg, args) -> dict:
         print(f"execute {mode}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
               f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
         with open(os.path.join(args.out, f"eval_results{args.tag}.json"), "w") as f:
+            json.dump(results, f, indent=1)
+    return results
+
+
+def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
+    """``eval --backend mjx``: the same evaluation episodes and execution modes on MJX (the engine GRPO's
+    MJX backend trains and evaluates on), greedy, in slices of ``rl.grpo.rollout_batch x group_size``."""
+    import jax
+
+    from sim import tasks as sim_tasks
+    from sim.mjx_batch import MjxEpisodes, episode_starts
+    from sword_jax.rl.jax_env_grpo import EnvGRPO
+    from sword_jax.rl.policy import tokenize_instructions
+
+    episodes = sim_tasks.evaluation_episodes(list(cfg.sim.tasks), args.eval_episodes)
+    qpos, text = episode_starts(episodes)
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    for mode in args.execute.split(","):
+        rl_eval = _execution(cfg.rl, mode)
+        runner = EnvGRPO(graphdef, rl_eval, env, max_steps=cfg.sim.max_steps, starts_at=None, eval_starts=qpos,
+                         eval_tokens=tokenize_instructions(text, rl_eval.policy.max_instruction_bytes),
+                         eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
+        start = time.time()
+        success, _ = runner.run_episodes(params, greedy=True, ensemble=rl_eval.env.action_ensemble, key=jax.random.key(0))
+        result = dict(runner.summarize(success, time.time() - start), backend="mjx")
+        results["eval"][mode] = result
+        print(f"execute {mode} on MJX: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+              f"({result['episodes']} episodes, {result['seconds']}s, compile included) {json.dumps(result['per_task'])}",
+              flush=True)
+        with open(os.path.join(args.out, f"eval_results{args.tag}_mjx.json"), "w") as f:
             json.dump(results, f, indent=1)
     return results
 
@@ -225,8 +257,12 @@ def run_grpo(cfg, args) -> dict:
     workdir = os.path.join(args.out, "grpo_env" if mode == "true" else f"grpo_env_proprio_{mode}")
     if cfg.rl.env.starts != "initial":
         workdir += f"_starts_{cfg.rl.env.starts}"
-    result = grpo_entry.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
-                                   workers=args.workers, renderer="jax", reckoning=reckoning, keyframes=keyframes)
+    if cfg.rl.env.backend == "mjx":
+        workdir += "_mjx"
+        result = grpo_entry.run_in_mjx(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes)
+    else:
+        result = grpo_entry.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
+                                       workers=args.workers, renderer="jax", reckoning=reckoning, keyframes=keyframes)
     curve = result["curve"]
     first, last = curve[0], curve[-1]
     gain = last["mean"] - first["mean"]
@@ -243,7 +279,10 @@ def run_grpo(cfg, args) -> dict:
           f"{last['mean']:.3f} (gain {gain:+.3f} [{interval[0]:+.3f}, {interval[1]:+.3f}])"
           + (f"; in its training mode {summary['train_mode_gain']:+.3f}" if "train_mode_gain" in summary else ""),
           flush=True)
-    if args.record:
+    if args.record and cfg.rl.env.backend == "mjx":
+        print("grpo --rl.env.backend=mjx: the seeds stage records policy_grpo_ground_truth_gain_small over the seeds' "
+              "work dirs", flush=True)
+    elif args.record:
         fields = dict(ci95=list(interval), start=first["mean"], end=last["mean"], episodes=last["episodes"],
                       grpo_steps=last["step"], curve=[[p["step"], p["mean"]] for p in curve], seconds=summary["seconds"],
                       learning_rate=cfg.rl.grpo.learning_rate, group_size=cfg.rl.grpo.group_size,
@@ -264,10 +303,91 @@ def run_grpo(cfg, args) -> dict:
     return summary
 
 
+def run_seeds(args) -> dict:
+    """``seeds``: the ground-truth GRPO runs of several seeds (``--runs``, their work dirs), each gain from
+    step 0 to the last evaluation with its Newcombe 95% interval, the step costs from their histories,
+    the difference of two repeats of one seed (``--repeat A,B``) at ``--repeat-step``; one figure of
+    every curve (``<out>/grpo_ground_truth_seeds.png``); ``--record``: ``policy_grpo_ground_truth_gain_small``."""
+    runs = [d for d in args.runs.split(",") if d]
+    if not runs:
+        raise SystemExit("seeds needs --runs DIR[,DIR...] (GRPO work dirs holding success_curve.json)")
+    per_seed, curves = {}, {}
+    for d in runs:
+        curve_path, history_path = os.path.join(d, "success_curve.json"), os.path.join(d, "train_history.jsonl")
+        if not os.path.exists(curve_path):
+            raise SystemExit(f"seeds: {curve_path} does not exist")
+        with open(curve_path) as f:
+            points = json.load(f)["points"]
+        history = []
+        if os.path.exists(history_path):
+            with open(history_path) as f:
+                history = [json.loads(line) for line in f if line.strip()]
+        first, last = points[0], points[-1]
+        interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
+        mean = lambda k: float(np.mean([h[k] for h in history if k in h])) if history else None  # noqa: E731
+        per_seed[d] = {"gain": last["mean"] - first["mean"], "ci95": list(interval), "start": first["mean"],
+                       "end": last["mean"], "steps": last["step"], "episodes": last["episodes"],
+                       "sampled": [[p["step"], p["sampled"]["mean"]] for p in points if "sampled" in p],
+                       "rollouts_per_step": mean("trajectories_sampled"), "env_steps_per_grpo_step": mean("env_steps"),
+                       "seconds_per_grpo_step": mean("step_seconds"), "clip_fraction": mean("clip_fraction")}
+        curves[d] = [[p["step"], p["mean"], p["ci95"]] for p in points]
+        print(f"{d}: {first['mean']:.3f} -> {last['mean']:.3f} at step {last['step']} (gain {per_seed[d]['gain']:+.3f} "
+              f"[{interval[0]:+.3f}, {interval[1]:+.3f}])", flush=True)
+    gains = [r["gain"] for r in per_seed.values()]
+    summary = {"per_seed": per_seed, "curves": curves, "min_gain": min(gains), "mean_gain": float(np.mean(gains))}
+    if args.repeat:
+        a, b = args.repeat.split(",")
+        at = {}
+        for d in (a, b):
+            with open(os.path.join(d, "success_curve.json")) as f:
+                at[d] = {p["step"]: p["mean"] for p in json.load(f)["points"]}
+        if args.repeat_step in at[a] and args.repeat_step in at[b]:
+            summary["repeat"] = {"runs": [a, b], "step": args.repeat_step,
+                                 "difference": abs(at[a][args.repeat_step] - at[b][args.repeat_step])}
+            print(f"repeats of one seed at step {args.repeat_step}: {at[a][args.repeat_step]:.3f} vs "
+                  f"{at[b][args.repeat_step]:.3f}", flush=True)
+    _plot_seeds(curves, os.path.join(args.out, "grpo_ground_truth_seeds.png"))
+    with open(os.path.join(args.out, "grpo_ground_truth_seeds.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    if args.record:
+        any_run = next(iter(per_seed.values()))
+        common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
+            "policy_grpo_ground_truth_gain_small", summary["min_gain"], 0.15,
+            value_is="smallest greedy-success gain over seeds, step 0 to the last evaluation, 500 MJX episodes",
+            per_seed={os.path.basename(os.path.dirname(d.rstrip("/"))) or d: {k: r[k] for k in
+                      ("gain", "ci95", "start", "end", "steps")} for d, r in per_seed.items()},
+            mean=summary["mean_gain"], steps=any_run["steps"], rollouts_per_step=any_run["rollouts_per_step"],
+            env_steps_per_grpo_step=any_run["env_steps_per_grpo_step"],
+            seconds_per_grpo_step=any_run["seconds_per_grpo_step"], repeat=summary.get("repeat"),
+            command=" ".join(sys.argv))})
+    return summary
+
+
+def _plot_seeds(curves: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, points in curves.items():
+        steps = [p[0] for p in points]
+        label = os.path.basename(os.path.dirname(name.rstrip("/"))) or name
+        line, = ax.plot(steps, [p[1] for p in points], "o-", lw=1.8, label=label)
+        ax.fill_between(steps, [p[2][0] for p in points], [p[2][1] for p in points], color=line.get_color(), alpha=0.12)
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel("greedy success, 500 evaluation episodes")
+    ax.set_title("Ground-truth GRPO (MJX), one curve per seed, 95% Wilson bands")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv=None) -> None:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("stage", choices=("sft", "grpo", "eval"))
+    parser.add_argument("stage", choices=("sft", "grpo", "eval", "seeds"))
     parser.add_argument("--out", required=True)
     parser.add_argument("--demos-per-task", default="25")
     parser.add_argument("--record-amount", type=int, default=0, help="the data amount whose success is recorded")
@@ -277,6 +397,8 @@ def main(argv=None) -> None:
     parser.add_argument("--execute", default="8", help="comma list of execute_steps to evaluate ('ens' = ensembling)")
     parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation states per task")
     parser.add_argument("--workers", type=int, default=0)
+    parser.add_argument("--backend", choices=("cpu", "mjx"), default="cpu",
+                        help="eval: the engine of the evaluation episodes (grpo: --rl.env.backend)")
     parser.add_argument("--policy", default="", help="npz of an SFT policy (grpo stage)")
     parser.add_argument("--reckoning", default="", help="grpo with --rl.env.proprio=reckoned: the reckoning JSON "
                                                         "(default: the one the sft stage saved beside --policy)")
@@ -285,10 +407,16 @@ def main(argv=None) -> None:
     parser.add_argument("--gen-procs-per-task", type=int, default=1, help="demonstration processes per task")
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")
+    parser.add_argument("--runs", default="", help="seeds: comma list of GRPO work dirs")
+    parser.add_argument("--repeat", default="", help="seeds: two work dirs of the same seed (A,B)")
+    parser.add_argument("--repeat-step", type=int, default=50, help="seeds: the step the repeats are compared at")
     args = parser.parse_args(rest)
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "sft":
         run_sft(cfg, args)
+        return
+    if args.stage == "seeds":
+        run_seeds(args)
         return
     if not args.policy:
         parser.error(f"{args.stage} needs --policy")

@@ -243,3 +243,35 @@ def test_the_update_scores_rollouts_at_their_sampling_temperature():
     assert np.abs(untempered - recomputed).mean() > 0.1
     _, metrics, _ = grpo.grpo_gradients(graphdef, cfg, params, rollout)
     assert float(metrics["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)
+
+
+def test_minibatch_updates_move_the_ratio_and_bind_the_clip_on_a_designed_batch():
+    """One pass in one step: the ratio is 1 and nothing is clipped (REINFORCE). Four minibatch steps over
+    two passes: from the second step on the policy that scores a minibatch moved, so the ratio leaves
+    1 and, with a large step, the clip binds; every step is counted and the metrics are their means."""
+    from sword_jax.rl.grpo import _rollout_log_probs
+
+    cfg = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
+    cfg = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, learning_rate=3e-2, update_microbatch=0))
+    graphdef, params = build_policy(cfg, seed=0)
+    n, c, t, a = 4 * cfg.grpo.group_size, cfg.imagined.max_chunks, cfg.chunk_len, cfg.action_dim
+    rng = np.random.default_rng(2)
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
+        proprio_valid=jnp.ones((n, c)),
+        instruction_tokens=jnp.asarray(tokenize_instructions(["pick up the black bowl"] * n, 32)),
+        tokens=jnp.asarray(rng.integers(0, cfg.action_bins, (n, c, t, a)), jnp.int32),
+        log_probs=jnp.zeros((n, c, t, a)), valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)),
+        success=jnp.zeros((n,), bool), returns=jnp.asarray(np.tile([2.0, 0.0, 0.0, 0.0], n // 4), jnp.float32),
+        frames=jnp.zeros((0,)))
+    rollout = rollout._replace(log_probs=_rollout_log_probs(graphdef, params, rollout))  # sampled by this policy
+    one = grpo.grpo_update(graphdef, cfg, grpo.init_state(jax.tree.map(jnp.copy, params), cfg), rollout)[1]
+    assert float(one["updates"]) == 1.0
+    assert float(one["clip_fraction"]) == 0.0 and abs(float(one["ratio_mean"]) - 1.0) < 1e-5
+    many_cfg = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, minibatches=4, ppo_epochs=2))
+    state, many = jax.jit(lambda s, b, k: grpo.grpo_update(graphdef, many_cfg, s, b, k))(
+        grpo.init_state(jax.tree.map(jnp.copy, params), many_cfg), rollout, jax.random.key(0))
+    assert float(many["updates"]) == 8.0 and int(state.step) == 1
+    assert float(many["clip_fraction"]) > 0.0 and abs(float(many["ratio_mean"]) - 1.0) > 1e-3
+    with pytest.raises(ValueError, match="minibatches"):
+        dataclasses.replace(cfg.grpo, minibatches=3).validate()

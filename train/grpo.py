@@ -195,9 +195,13 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     """
     from sim import tasks as sim_tasks
     from sim.lockstep import LockstepEnvs, lockstep_evaluation
+    from sim.mjx_batch import stratified_train_starts
     from sword_jax.rl.env_rollout import run_policy
+    from sword_jax.rl.grpo import UPDATE_KEY_SALT
 
-    update = jax.jit(tracing.max_traces(lambda s, batch: grpo.grpo_update(graphdef, rl, s, batch),
+    if rl.grpo.max_sample_rounds > 1:
+        raise ValueError("rl.grpo.max_sample_rounds > 1 (dynamic sampling) runs on rl.env.backend=mjx only")
+    update = jax.jit(tracing.max_traces(lambda s, batch, key: grpo.grpo_update(graphdef, rl, s, batch, key),
                                         n=ENTRY_MAX_TRACES), donate_argnums=(0,))
     act = make_act_fns(graphdef, rl)
     os.makedirs(workdir, exist_ok=True)
@@ -232,9 +236,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         if rl.env.starts == "keyframes":
             return keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step)
-        pick = stream_rng(cfg.seed, "grpo/env_starts", step).integers(0, [len(tasks), sim_tasks.TRAIN_RESERVE],
-                                                                      (rl.grpo.rollout_batch, 2))
-        return [(tasks[a], pool[tasks[a]][b]) for a, b in pick for _ in range(rl.grpo.group_size)]
+        # stratified over the tasks, as the MJX backend draws them (sim.mjx_batch.stratified_train_starts)
+        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/env_starts", step),
+                                         pool=pool)
+        return [start for start in picked for _ in range(rl.grpo.group_size)]
 
     envs = []  # worker processes live for the whole run; each step re-targets them
 
@@ -243,10 +248,11 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         if not envs:
             envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=horizon,
                                      renderer=renderer, workers=workers))
-        rollout = run_policy(act, state.params, envs[0], rollout_rl, key=jax.random.fold_in(rollout_key, state.step),
+        step_key = jax.random.fold_in(rollout_key, state.step)
+        rollout = run_policy(act, state.params, envs[0], rollout_rl, key=step_key,
                              greedy=False, max_steps=horizon, episodes=starts, proprio=mode,
                              reckoning=reckoning)
-        state, metrics = update(state, jax.tree.map(jnp.asarray, rollout))
+        state, metrics = update(state, jax.tree.map(jnp.asarray, rollout), jax.random.fold_in(step_key, UPDATE_KEY_SALT))
         return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
 
     def progress(point, eta):
@@ -265,6 +271,69 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     finally:
         for env in envs:
             env.close()
+    save_history(workdir, result.history)
+    return {"curve": curve, "workdir": workdir, "history": result.history}
+
+
+def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int) -> dict:
+    """GRPO against the ground-truth environments on MJX (``rl.env.backend=mjx``), rollouts and
+    evaluations on the accelerator (:mod:`sword_jax.rl.jax_env_grpo`); resumes from ``workdir``.
+
+    Each sampling round's ``rl.grpo.rollout_batch`` start states are training-split initial states
+    stratified over the tasks (:func:`sim.mjx_batch.stratified_train_starts`, a function of (seed, step,
+    round)); evaluations run the tasks' fixed evaluation states. Returns as :func:`run_in_env`.
+    """
+    from sim import tasks as sim_tasks
+    from sim.mjx_batch import MjxEpisodes, episode_starts, stratified_train_starts
+    from sword_jax.rl.jax_env_grpo import EnvGRPO
+
+    if rl.env.starts != "initial" or rl.env.proprio != "true":
+        raise ValueError(f"rl.env.backend=mjx runs GRPO from initial states with true proprio; got rl.env.starts="
+                         f"{rl.env.starts}, rl.env.proprio={rl.env.proprio}")
+    tasks = list(cfg.sim.tasks)
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
+    eval_qpos, eval_text = episode_starts(eval_episodes)
+    max_bytes = rl.policy.max_instruction_bytes
+
+    def starts_at(step, round_):  # a function of (seed, step, round), so a resumed run draws the same ones
+        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/mjx_starts", step,
+                                                                                  round_), pool=pool)
+        qpos, text = episode_starts(picked)
+        return qpos, tokenize_instructions(text, max_bytes)
+
+    root = jax.random.key(cfg.seed)
+    runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
+                     eval_tokens=tokenize_instructions(eval_text, max_bytes),
+                     eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log)
+    os.makedirs(workdir, exist_ok=True)
+    runner.start_probe(params, os.path.join(workdir, "probe"))
+
+    def evaluate(step, params):
+        point, extra = runner.evaluate(params, step=step, sampled=rl.grpo.eval_sampled)
+        sampled = extra.get("sampled")
+        log(f"eval step {step}: success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}] "
+            f"({point['episodes']} episodes on MJX, {point['seconds']}s)"
+            + (f"; sampled T={rl.grpo.temperature:g} {sampled['mean']:.3f}" if sampled else "")
+            + f"; probe flips vs start {extra['probe']['flip_rate_vs_start']:.3f}, top-1 margin "
+              f"{extra['probe']['top1_margin']:.3f}")
+        return point, extra
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
+                f"mixed {point['mixed_fraction']:.2f} rounds {point['sample_rounds']:.0f} loss {point['loss']:.4f} "
+                f"clip {point['clip_fraction']:.3f} ratio {point['ratio_mean']:.3f} kept {point['kept_fraction']:.2f} "
+                f"nll {point['behaviour_nll']:.3f} {point['step_seconds']:.1f}s/step "
+                f"(rollout {point['rollout_seconds']:.1f}s) eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
+        "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
+        "sim.resolution": cfg.sim.resolution})
+    result, curve = train_grpo(runner.step, grpo.init_state(params, rl), lambda step: step,
+                               key=stream_key(root, "grpo/mjx_rollouts"), rl=rl, workdir=workdir, evaluate=evaluate,
+                               run_id=run_id, progress=progress, curve_label="GRPO in the ground-truth MJX environments",
+                               log=log)
     save_history(workdir, result.history)
     return {"curve": curve, "workdir": workdir, "history": result.history}
 
@@ -408,6 +477,9 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
             demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
             reckoning = sim_reckoning(demos) if rl.env.proprio == "reckoned" else None
             keyframes = demos if rl.env.starts == "keyframes" else None
+        if rl.env.backend == "mjx":
+            return run_in_mjx(cfg, rl, graphdef, params, workdir,
+                              episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task)
         return run_in_env(cfg, rl, graphdef, params, workdir,
                           episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
                           workers=env_workers, renderer=renderer, reckoning=reckoning, keyframes=keyframes)

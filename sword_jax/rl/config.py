@@ -126,7 +126,18 @@ class GRPOConfig:
       learning_rate: GRPO learning rate.
       clip_low / clip_high: PPO ratio clip range ``[1 - clip_low, 1 + clip_high]`` (DAPO clip-higher).
       kl_coef: weight of the k3 KL estimate to the reference (SFT) policy; 0 = off.
-      ppo_epochs: gradient steps per batch of rollouts (1 = on-policy GRPO).
+      ppo_epochs: passes over each batch of rollouts (each ``minibatches`` gradient steps).
+      minibatches: gradient steps per pass, each on an equal share of the batch's trajectories
+        (shuffled per pass), its objective normalised within the share. With ``ppo_epochs = minibatches
+        = 1`` the update is on-policy (the ratio is 1 and the clip never binds: REINFORCE with a group
+        baseline); from the second step of a batch on the ratio moves and the clip is a trust region
+        (SimpleVLA-RL and RLinf take about 4 steps per batch).
+      max_sample_rounds: dynamic sampling (DAPO; SimpleVLA-RL, RLinf): a step samples ``rollout_batch``
+        groups, and while fewer than ``rollout_batch`` of the groups sampled so far have mixed outcomes
+        (some successes and some failures: the only ones with a learning signal) it samples another
+        ``rollout_batch``, up to this many rounds; the update batch is ``rollout_batch`` groups, the mixed
+        ones first, then (if the rounds ran out) groups without signal, which ``filter_groups`` masks.
+        1 = one round, no resampling. Ground-truth GRPO on the MJX backend only.
       loss_norm: 'trajectory' averages token losses within each trajectory (normalising by its
         length) and then over trajectories (GRPO); 'token' averages over all valid tokens (DAPO).
       filter_groups: drop groups whose rewards are all equal (no learning signal).
@@ -151,6 +162,8 @@ class GRPOConfig:
     clip_high: float = 0.28
     kl_coef: float = 0.0
     ppo_epochs: int = 1
+    minibatches: int = 1
+    max_sample_rounds: int = 1
     loss_norm: str = "trajectory"  # trajectory | token
     filter_groups: bool = True
     success_bonus: float = 1.0
@@ -170,6 +183,11 @@ class GRPOConfig:
             raise ValueError(f"rl.grpo.kl_coef must be >= 0, got {self.kl_coef}")
         if self.ppo_epochs < 1:
             raise ValueError(f"rl.grpo.ppo_epochs must be >= 1, got {self.ppo_epochs}")
+        if self.minibatches < 1 or (self.rollout_batch * self.group_size) % self.minibatches:
+            raise ValueError(f"rl.grpo.minibatches={self.minibatches} must be >= 1 and divide rl.grpo.rollout_batch x "
+                             f"rl.grpo.group_size = {self.rollout_batch * self.group_size}")
+        if self.max_sample_rounds < 1:
+            raise ValueError(f"rl.grpo.max_sample_rounds must be >= 1 (1 = no resampling), got {self.max_sample_rounds}")
         if self.temperature <= 0.0:
             raise ValueError(f"rl.grpo.temperature must be > 0, got {self.temperature}")
         if self.loss_norm not in ("trajectory", "token"):
@@ -177,9 +195,10 @@ class GRPOConfig:
         if self.update_microbatch < 0:
             raise ValueError(f"rl.grpo.update_microbatch must be >= 0 (0 = the whole batch), got "
                              f"{self.update_microbatch}")
-        if self.update_microbatch and (self.rollout_batch * self.group_size) % self.update_microbatch:
-            raise ValueError(f"rl.grpo.update_microbatch={self.update_microbatch} must divide rl.grpo.rollout_batch x "
-                             f"rl.grpo.group_size = {self.rollout_batch * self.group_size}")
+        share = self.rollout_batch * self.group_size // max(self.minibatches, 1)
+        if self.update_microbatch and share % self.update_microbatch:
+            raise ValueError(f"rl.grpo.update_microbatch={self.update_microbatch} must divide the trajectories of one "
+                             f"minibatch, rl.grpo.rollout_batch x rl.grpo.group_size / rl.grpo.minibatches = {share}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,6 +299,11 @@ class EnvConfig:
     (``train.policy_data``) and GRPO there (``train.grpo --simulator env``; :mod:`sword_jax.rl.env_rollout`).
 
     Attributes:
+      backend: the engine of ground-truth GRPO rollouts and of their evaluations. ``cpu`` (default):
+        MuJoCo's C engine in worker processes (:mod:`sim.lockstep`), the policy batched on the device.
+        ``mjx``: MJX on the accelerator, every episode of a GRPO step (or an evaluation) one ``lax.scan``
+        with the JAX renderer (:mod:`sword_jax.rl.scan_rollout`, :mod:`sim.mjx_batch`): the same frames,
+        proprio, action clipping and success as the C engine. On a CPU MJX is unusably slow.
       execute_steps: actions of each predicted chunk executed before the policy re-plans
         (``rl.chunk_len`` = open-loop chunks; 1 = re-plan every step).
       action_ensemble: ACT-style temporal ensembling when re-planning every step: each step of a
@@ -305,6 +329,7 @@ class EnvConfig:
         rest, free of world-model error.
     """
 
+    backend: str = "cpu"  # cpu | mjx
     execute_steps: int = 1
     action_ensemble: bool = True
     ensemble_decay: float = 0.1
@@ -322,6 +347,8 @@ class EnvConfig:
             raise ValueError(f"rl.env.proprio must be true|reckoned|missing, got {self.proprio!r}")
         if self.starts not in ("initial", "keyframes"):
             raise ValueError(f"rl.env.starts must be initial|keyframes, got {self.starts!r}")
+        if self.backend not in ("cpu", "mjx"):
+            raise ValueError(f"rl.env.backend must be cpu|mjx, got {self.backend!r}")
 
 
 # The flat keys of earlier versions -> where they live now (relative to ``rl``): the command line

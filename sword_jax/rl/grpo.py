@@ -35,6 +35,7 @@ from sword_jax.rl.policy import sampling_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
 
 SIGNAL_EPS = 1e-6
+UPDATE_KEY_SALT = 0x5EED  # the update's shuffle key is fold_in(the step's key, UPDATE_KEY_SALT)
 
 
 def group_advantages(
@@ -190,18 +191,23 @@ def _split_micro(x: jax.Array, parts: int) -> jax.Array:
     return x.reshape((parts, x.shape[0] // parts) + x.shape[1:])
 
 
-def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_params: Any = None):
+def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_params: Any = None, *,
+                 advantages: jax.Array | None = None, keep: jax.Array | None = None):
     """``fn(params) -> (loss, metrics, grads)`` of the GRPO objective on ``batch``, micro-batched by
-    ``cfg.grpo.update_microbatch`` (the reference log-probs, when ``kl_coef > 0``, computed once here)."""
+    ``cfg.grpo.update_microbatch`` (the reference log-probs, when ``kl_coef > 0``, computed once here).
+
+    ``advantages`` / ``keep`` (per trajectory): given when ``batch`` is a minibatch of a larger batch whose
+    groups they were normalised over; by default they are computed from ``batch.returns`` by group."""
     g = cfg.grpo.group_size
     n = batch.valid.shape[0]
-    micro = cfg.grpo.update_microbatch or n
+    micro = min(cfg.grpo.update_microbatch or n, n)
     if n % micro:
         raise ValueError(f"rl.grpo.update_microbatch={cfg.grpo.update_microbatch} must divide the {n} trajectories of a "
-                         f"GRPO batch (rollout_batch x group_size)")
+                         f"GRPO (mini)batch")
     parts = n // micro
-    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
-    advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
+    if advantages is None:
+        adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
+        advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
     t, a = batch.tokens.shape[2:]
     valid = batch.valid.astype(jnp.float32)
     weights = loss_weights(valid, keep, t * a, cfg)
@@ -258,21 +264,42 @@ def behaviour_nll(batch: Rollout) -> Float[Array, ""]:
 
 
 def grpo_update(
-    graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout
+    graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout, key: jax.Array | None = None
 ) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
-    """``cfg.grpo.ppo_epochs`` gradient steps of the GRPO objective on one batch of rollouts.
+    """``cfg.grpo.ppo_epochs`` passes over one batch of rollouts, each ``cfg.grpo.minibatches`` gradient steps.
+
+    Advantages are normalised over the whole batch's groups first; each pass then splits the trajectories
+    into ``minibatches`` equal parts (shuffled per pass when ``key`` is given) and takes one optimizer step
+    on each, its objective normalised within the minibatch. From the second step on, the policy that
+    scores a minibatch is no longer the one that sampled it, so the ratio leaves 1 and the clip can bind
+    (PPO / GRPO as SimpleVLA-RL and RLinf run it). The metrics are means over every step
+    (``loss``/``grad_norm``/``clip_fraction`` ...), ``updates`` the number of steps.
 
     With ``cfg.grpo.update_microbatch = m`` the policy's forward and backward run on ``m`` trajectories
     at a time (a ``lax.scan``) and the gradients are summed: the objective's token weights are
-    fixed by the whole batch (:func:`loss_weights`), so this is the same gradient up to float
+    fixed by the (mini)batch (:func:`loss_weights`), so this is the same gradient up to float
     summation order, with the activations of ``m`` trajectories alive instead of all of them.
     """
-    loss_and_grads = _gradient_fn(graphdef, cfg, batch, state.ref_params)
     optimizer = make_optimizer(cfg)
+    n, g, parts = batch.valid.shape[0], cfg.grpo.group_size, cfg.grpo.minibatches
+    if n % parts:
+        raise ValueError(f"rl.grpo.minibatches={parts} must divide the {n} trajectories of a GRPO batch")
+    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
+    advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
+    size = n // parts
 
-    def epoch(carry, _):
+    def order(epoch):
+        if key is None or parts == 1:
+            return jnp.arange(n)
+        return jax.random.permutation(jax.random.fold_in(key, epoch), n)
+
+    def one_update(carry, index):
         params, opt_state = carry
-        loss, metrics, grads = loss_and_grads(params)
+        epoch, part = index // parts, index % parts
+        idx = jax.lax.dynamic_slice_in_dim(order(epoch), part * size, size)
+        sub = jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), batch)
+        loss, metrics, grads = _gradient_fn(graphdef, cfg, sub, state.ref_params, advantages=advantages[idx],
+                                            keep=keep[idx])(params)
         grad_norm = optax.global_norm(grads)
         # a non-finite loss or gradient skips the update: NaN never reaches the parameters or a checkpoint
         updates, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, opt_state, params)
@@ -280,8 +307,13 @@ def grpo_update(
                        finite=finite.astype(jnp.float32))
         return (params, opt_state), metrics
 
-    (params, opt_state), metrics = jax.lax.scan(epoch, (state.params, state.opt_state), None, length=cfg.grpo.ppo_epochs)
-    metrics = jax.tree.map(lambda x: x[-1], metrics)
+    steps = cfg.grpo.ppo_epochs * parts
+    (params, opt_state), metrics = jax.lax.scan(one_update, (state.params, state.opt_state), jnp.arange(steps))
+    finite = jnp.min(metrics["finite"])
+    metrics = jax.tree.map(lambda x: jnp.mean(x), metrics)
+    metrics["finite"] = finite
+    metrics["kept_fraction"] = jnp.mean(keep)
+    metrics["updates"] = jnp.float32(steps)
     metrics["param_norm"] = optax.global_norm(params)
     metrics["behaviour_nll"] = behaviour_nll(batch)
     return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
@@ -310,7 +342,7 @@ def make_train_step(
         key = jax.random.fold_in(key, state.step)
         rollout = imagined_rollout(graphdef, state.params, simulator, reward_model,
                                    expand_groups(start, cfg.grpo.group_size), cfg, key=key)
-        state, metrics = grpo_update(graphdef, cfg, state, rollout)
+        state, metrics = grpo_update(graphdef, cfg, state, rollout, jax.random.fold_in(key, UPDATE_KEY_SALT))
         return state, dict(metrics, **rollout_metrics(rollout))
 
     mesh = shd.default_mesh(mesh)

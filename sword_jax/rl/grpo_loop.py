@@ -33,7 +33,7 @@ from sword_jax.train_loop import LoopResult, StepFn, run_steps
 # its checkpoint. Left out: grpo.steps (a run may be extended), the evaluation's settings, the SFT and
 # reward-model knobs.
 GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_coef", "grpo.learning_rate",
-                 "grpo.ppo_epochs", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
+                 "grpo.ppo_epochs", "grpo.minibatches", "grpo.max_sample_rounds", "env.backend", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
                  "success_threshold", "grpo.filter_groups", "grpo.success_bonus", "imagined.return_rule",
                  "grpo.loss_norm", "grpo.temperature", "policy.width", "policy.layers", "policy.heads",
                  "policy.max_instruction_bytes", "image_size", "proprio_dim", "policy.proprio_encoding",
@@ -102,7 +102,9 @@ def train_grpo(
     def on_start(first_step: int, state: Any) -> Any:
         # every array committed to its device, as a restored state's are: a resumed run then compiles the
         # same program as a fresh one (a cache hit), and the step's input types = output types (one trace)
-        state = shd.settle(jax.device_put(state, jax.tree.map(lambda x: x.sharding, state)))
+        # (parameters loaded from a file arrive as numpy arrays, which have no sharding: the default device's)
+        state = shd.settle(jax.device_put(state, jax.tree.map(
+            lambda x: x.sharding if isinstance(x, jax.Array) else jax.devices()[0], state)))
         curve.drop_after(first_step)
         if first_step == 0:
             record(0, state)

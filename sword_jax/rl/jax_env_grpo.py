@@ -1,0 +1,236 @@
+"""Ground-truth GRPO in a pure JAX environment (MJX on the accelerator), at the batch sizes peers use.
+
+One GRPO step (:meth:`EnvGRPO.step`):
+
+1. **Sampling rounds** (dynamic sampling, DAPO / SimpleVLA-RL / RLinf): ``rl.grpo.rollout_batch`` start
+   states (stratified over the tasks by the caller's ``starts_at``), ``group_size`` sampled episodes each,
+   all in one compiled :func:`~sword_jax.rl.scan_rollout.scan_rollout`. While fewer than ``rollout_batch``
+   of the groups sampled so far have mixed outcomes, another round is sampled, up to
+   ``rl.grpo.max_sample_rounds``.
+2. **The update batch**: ``rollout_batch`` groups, the mixed ones first (:func:`select_groups`).
+3. **The update**: :func:`~sword_jax.rl.grpo.grpo_update` with ``ppo_epochs x minibatches`` gradient steps.
+
+The start states of round ``r`` of step ``s`` and every sampling key are functions of (seed, s, r), so the
+train state is all an exact resume needs (:mod:`sword_jax.rl.grpo_loop`).
+
+Evaluations (:meth:`EnvGRPO.evaluate`) run the same compiled rollout on the fixed evaluation episodes:
+greedy with temporal ensembling (the deployed policy), and sampled at ``rl.grpo.temperature`` (the policy
+the update trains), and measure on a fixed set of states how many action tokens' argmax changed since the
+start (``flip_rate``) and the mean gap between the best and second-best bin's log-probability
+(``top1_margin``): the argmax is what is deployed, and where the top bins nearly tie, small updates flip it.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from sword_jax.rl import grpo
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.env_rollout import wilson_interval
+from sword_jax.rl.grpo import SIGNAL_EPS, UPDATE_KEY_SALT
+from sword_jax.rl.policy import resize_frames
+from sword_jax.rl.rollout import Rollout
+from sword_jax.rl.scan_rollout import JaxEnv, scan_rollout
+
+
+def mixed_groups(returns: jax.Array, group_size: int) -> jax.Array:
+    """``[B] bool``: the groups of ``returns [B * G]`` whose returns are not all equal."""
+    grouped = returns.reshape(-1, group_size).astype(jnp.float32)
+    return jnp.std(grouped, axis=1) > jnp.float32(SIGNAL_EPS)
+
+
+def select_groups(rollout: Rollout, group_size: int, groups: int) -> Rollout:
+    """The first ``groups`` groups of ``rollout`` in the order: mixed ones, then the rest (each part in
+    sampling order). ``rollout`` holds ``>= groups`` groups of ``group_size`` consecutive trajectories."""
+    n = rollout.valid.shape[0]
+    if n % group_size or n // group_size < groups:
+        raise ValueError(f"select_groups: {n} trajectories hold fewer than {groups} groups of {group_size}")
+    mixed = mixed_groups(rollout.returns, group_size)
+    order = jnp.argsort(jnp.where(mixed, 0, 1), stable=True)[:groups]
+    idx = (order[:, None] * group_size + jnp.arange(group_size)[None]).reshape(-1)
+    return jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), rollout)
+
+
+def _concat(rollouts: Sequence[Rollout]) -> Rollout:
+    if len(rollouts) == 1:
+        return rollouts[0]
+    return jax.tree.map(lambda *xs: xs[0] if xs[0].ndim == 0 or xs[0].shape[0] == 0 else jnp.concatenate(xs), *rollouts)
+
+
+def argmax_probe(graphdef: nnx.GraphDef, params: Any, frames: jax.Array, proprio: jax.Array, tokens: jax.Array,
+                 image_size: int) -> tuple[jax.Array, jax.Array]:
+    """``(argmax tokens [n, L, A], top-1 margin [n, L, A])`` of the policy on fixed states: the margin is
+    ``log p(best bin) - log p(second best)`` at temperature 1."""
+    logits = nnx.merge(graphdef, params)(resize_frames(frames, image_size), tokens, proprio)
+    logp = jax.nn.log_softmax(logits, axis=-1)
+    top2 = jax.lax.top_k(logp, 2)[0]
+    return jnp.argmax(logits, axis=-1).astype(jnp.int32), top2[..., 0] - top2[..., 1]
+
+
+class EnvGRPO:
+    """GRPO and its evaluations against a pure JAX environment (module docstring).
+
+    Args:
+      graphdef: the policy's graph.
+      rl: the RL config (GRPO, chunking, temperature, ensembling).
+      env: the environment (:class:`~sword_jax.rl.scan_rollout.JaxEnv`); ``env.reset`` takes ``[n, ...]`` arrays.
+      max_steps: the episodes' action limit.
+      starts_at: ``starts_at(step, round) -> (starts [B, ...] np, instruction tokens [B, L] np)``: the
+        ``rollout_batch`` start states of a sampling round, a pure function of (step, round).
+      eval_starts / eval_tokens / eval_tasks: the fixed evaluation episodes (``[E, ...]``, ``[E, L]``, ``[E]``).
+      key: the root of every sampling key.
+      log: where progress lines go.
+    """
+
+    def __init__(self, graphdef: nnx.GraphDef, rl: RLConfig, env: JaxEnv, *, max_steps: int,
+                 starts_at: Callable[[int, int], tuple[np.ndarray, np.ndarray]], eval_starts: np.ndarray,
+                 eval_tokens: np.ndarray, eval_tasks: Sequence[int], key: jax.Array,
+                 log: Callable[[str], Any] = print):
+        rl.validate()
+        self.graphdef, self.rl, self.env, self.max_steps = graphdef, rl, env, max_steps
+        self.starts_at, self.key, self.log = starts_at, key, log
+        self.eval_starts, self.eval_tokens = np.asarray(eval_starts), np.asarray(eval_tokens)
+        self.eval_tasks = np.asarray(eval_tasks)
+        self.batch = rl.grpo.rollout_batch * rl.grpo.group_size  # trajectories per compiled rollout
+        self.rollout = jax.jit(functools.partial(self._rollout_impl))
+        self.update = jax.jit(lambda state, batch, key: grpo.grpo_update(graphdef, rl, state, batch, key),
+                              donate_argnums=(0,))
+        self.select = jax.jit(select_groups, static_argnums=(1, 2))
+        self.probe_fn = jax.jit(functools.partial(argmax_probe, graphdef, image_size=rl.image_size))
+        self.probe: dict[str, np.ndarray] | None = None
+        self.probe_dir, self.reference_tokens = "", None
+
+    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble):
+        return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl, key=key, greedy=greedy,
+                            ensemble=ensemble, max_steps=self.max_steps)
+
+    # ---- training -------------------------------------------------------------------------------------
+    def step(self, state: grpo.GRPOState, step: int, key: jax.Array) -> tuple[grpo.GRPOState, dict[str, jax.Array]]:
+        """One GRPO step (``batch`` of the loop = the step index); ``key`` is the loop's root key."""
+        rl = self.rl
+        g, want = rl.grpo.group_size, rl.grpo.rollout_batch
+        t0 = time.perf_counter()
+        step_key = jax.random.fold_in(key, step)
+        rounds, steps_taken, mixed, sampled_success = [], 0, 0, []
+        for r in range(rl.grpo.max_sample_rounds):
+            starts, tokens = self.starts_at(step, r)
+            starts = np.repeat(np.asarray(starts), g, axis=0)
+            tokens = np.repeat(np.asarray(tokens), g, axis=0)
+            rollout, steps = self.rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
+                                          jax.random.fold_in(step_key, r), False, False)
+            rounds.append(rollout)
+            steps_taken += int(jnp.sum(steps))
+            sampled_success.append(np.asarray(rollout.success))
+            mixed += int(jnp.sum(mixed_groups(rollout.returns, g)))
+            if mixed >= want:
+                break
+        batch = self.select(_concat(rounds), g, want) if len(rounds) > 1 else rounds[0]
+        t1 = time.perf_counter()
+        state, metrics = self.update(state, batch, jax.random.fold_in(step_key, UPDATE_KEY_SALT))
+        jax.block_until_ready(metrics["loss"])
+        t2 = time.perf_counter()
+        success = np.concatenate(sampled_success)
+        extra = {"rollout_success": float(success.mean()), "sample_rounds": float(len(rounds)),
+                 "trajectories_sampled": float(success.size), "mixed_groups": float(mixed),
+                 "mixed_fraction": float(mixed) / float(success.size // g),
+                 "batch_success": jnp.mean(batch.success.astype(jnp.float32)), "env_steps": float(steps_taken),
+                 "rollout_seconds": t1 - t0, "update_seconds": t2 - t1, "step_seconds": t2 - t0}
+        return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
+
+    # ---- evaluation -----------------------------------------------------------------------------------
+    def run_episodes(self, params: Any, *, greedy: bool, ensemble: bool, key: jax.Array,
+                     slices: int | None = None) -> tuple[np.ndarray, dict]:
+        """The evaluation episodes, in slices of the rollout's batch (the last padded by repeating
+        episodes; ``slices``: only the first this-many): ``(success [E] bool, what the first slice recorded)``."""
+        e = len(self.eval_starts)
+        success = np.zeros(e, bool)
+        first = None
+        for lo in list(range(0, e, self.batch))[:slices]:
+            idx = np.arange(lo, lo + self.batch) % e
+            rollout, _ = self.rollout(params, jnp.asarray(self.eval_starts[idx]), jnp.asarray(self.eval_tokens[idx]),
+                                      jax.random.fold_in(key, lo), greedy, ensemble)
+            hi = min(lo + self.batch, e)
+            success[lo:hi] = np.asarray(rollout.success)[: hi - lo]
+            if first is None:
+                first = {"obs": rollout.obs_frames, "proprio": rollout.proprio, "valid": rollout.valid,
+                         "tokens": rollout.instruction_tokens}
+        return success, first
+
+    def summarize(self, success: np.ndarray, seconds: float) -> dict[str, Any]:
+        """``{"per_task", "mean", "episodes", "successes", "ci95", "seconds"}`` (as ``evaluate_in_sim``)."""
+        tasks = dict.fromkeys(int(t) for t in self.eval_tasks)
+        wins = int(success.sum())
+        return {"per_task": {str(t): float(np.mean(success[self.eval_tasks == t])) for t in tasks},
+                "mean": float(np.mean(success)), "episodes": int(success.size), "successes": wins,
+                "ci95": list(wilson_interval(wins, int(success.size))), "seconds": round(seconds, 1)}
+
+    def set_probe(self, recorded: dict, *, states: int = 1024, stride: int = 10) -> None:
+        """Fixes the probe states: every ``stride``-th valid decision of a recorded evaluation slice."""
+        valid = np.asarray(recorded["valid"]) > 0
+        rows, cols = np.nonzero(valid[:, ::stride])
+        cols = cols * stride
+        keep = np.linspace(0, len(rows) - 1, min(states, len(rows))).astype(int)
+        rows, cols = rows[keep], cols[keep]
+        rows, cols = jnp.asarray(rows), jnp.asarray(cols)  # gathered on the device: the slice's frames stay there
+        self.probe = {"frames": np.asarray(recorded["obs"][rows, cols]),
+                      "proprio": np.asarray(recorded["proprio"][rows, cols]),
+                      "tokens": np.asarray(recorded["tokens"][rows])}
+
+    def probe_tokens(self, params: Any) -> tuple[np.ndarray, float]:
+        """``(argmax tokens, mean top-1 margin)`` on the probe states."""
+        p = self.probe
+        tokens, margin = self.probe_fn(params, jnp.asarray(p["frames"]), jnp.asarray(p["proprio"]), jnp.asarray(p["tokens"]))
+        return np.asarray(tokens), float(jnp.mean(margin))
+
+    def start_probe(self, initial_params: Any, directory: str) -> None:
+        """Fixes the probe states from the initial policy's greedy episodes (the first slice of the
+        evaluation episodes) and keeps every evaluation's probe argmax under ``directory``, so a resumed
+        run measures its flips against the same states and tokens as an uninterrupted one."""
+        _, recorded = self.run_episodes(initial_params, greedy=True, ensemble=self.rl.env.action_ensemble,
+                                        key=jax.random.key(0), slices=1)
+        self.set_probe(recorded)
+        self.probe_dir = directory
+        os.makedirs(directory, exist_ok=True)
+        self.reference_tokens, _ = self.probe_tokens(initial_params)
+
+    def _probe_file(self, step: int) -> str:
+        return os.path.join(self.probe_dir, f"probe_argmax_step{step:06d}.npy")
+
+    def _previous_probe(self, step: int) -> np.ndarray | None:
+        done = sorted(int(f[len("probe_argmax_step"):-4]) for f in os.listdir(self.probe_dir)
+                      if f.startswith("probe_argmax_step") and int(f[len("probe_argmax_step"):-4]) < step)
+        return np.load(self._probe_file(done[-1])) if done else None
+
+    def evaluate(self, params: Any, *, step: int, sampled: bool = True) -> tuple[dict, dict]:
+        """Greedy (ensembled when ``rl.env.action_ensemble``) success on the evaluation episodes, with the
+        sampled policy's and the probe's figures beside it: ``(point, extra)``. Needs :meth:`start_probe`."""
+        if self.probe is None:
+            raise RuntimeError("EnvGRPO.evaluate: call start_probe(initial_params, directory) first")
+        t0 = time.perf_counter()
+        success, _ = self.run_episodes(params, greedy=True, ensemble=self.rl.env.action_ensemble, key=jax.random.key(0))
+        point = dict(self.summarize(success, time.perf_counter() - t0), where="mjx")
+        reference_tokens, previous_tokens = self.reference_tokens, self._previous_probe(step)
+        extra: dict[str, Any] = {}
+        if sampled:
+            t1 = time.perf_counter()
+            s_success, _ = self.run_episodes(params, greedy=False, ensemble=False,
+                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 20), step))
+            extra["sampled"] = dict(self.summarize(s_success, time.perf_counter() - t1),
+                                    temperature=self.rl.grpo.temperature)
+        tokens, margin = self.probe_tokens(params)
+        probe = {"states": int(tokens.shape[0]), "top1_margin": margin,
+                 "flip_rate_vs_start": float(np.mean(tokens != reference_tokens))}
+        if previous_tokens is not None:
+            probe["flip_rate_vs_previous"] = float(np.mean(tokens != previous_tokens))
+        np.save(self._probe_file(step), tokens.astype(np.uint8 if self.rl.action_bins <= 256 else np.int32))
+        extra["probe"] = probe
+        return point, extra

@@ -1,0 +1,154 @@
+"""Policy episodes in a pure JAX environment (MJX) as one ``lax.scan``: GRPO's ground-truth rollouts and
+its evaluations on the accelerator.
+
+The environment is any object with two pure functions (``sim.mjx_batch.MjxEpisodes`` is the MJX one; the
+library does not import ``sim``)::
+
+    env.reset(starts)          -> (env_state, obs)            obs: frames [N,H,W,3] uint8, proprio [N,P]
+    env.step(env_state, a[N,7]) -> (env_state, obs, success [N] bool)
+
+:func:`scan_rollout` runs the policy from ``starts`` for ``max_steps`` actions: every
+``rl.env.execute_steps`` actions it predicts a chunk from the current frame and proprio (greedy or
+sampled at ``rl.grpo.temperature``) and executes its first ``execute_steps`` actions; with ``ensemble``
+(``execute_steps = 1``) each action is the exponentially weighted mean of every chunk's prediction for
+that step (ACT's temporal ensembling), exactly as :func:`sword_jax.rl.env_rollout.run_policy` does on the
+C engine. An episode ends at success or at ``max_steps``; later decisions are recorded as invalid.
+``greedy`` and ``ensemble`` are traced flags, so GRPO's sampled rollouts and the greedy, ensembled
+evaluation run ONE compiled program (its compilation, with the physics inside, dominates start-up).
+
+The result is the :class:`~sword_jax.rl.rollout.Rollout` that :func:`~sword_jax.rl.grpo.grpo_update` trains on
+(frames kept at the policy's size as uint8), plus the actions each episode executed.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+from jaxtyping import Array, Bool, Float, Int
+
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.policy import resize_frames, sampling_log_probs, tokens_to_actions
+from sword_jax.rl.rollout import Rollout
+
+
+class JaxEnv(Protocol):
+    def reset(self, starts: Any) -> tuple[Any, dict[str, jax.Array]]: ...
+
+    def step(self, state: Any, actions: jax.Array) -> tuple[Any, dict[str, jax.Array], jax.Array]: ...
+
+
+def decisions(cfg: RLConfig, max_steps: int) -> int:
+    """Policy decisions an episode of ``max_steps`` actions can need."""
+    return math.ceil(max_steps / cfg.env.execute_steps)
+
+
+def ensemble_weights(cfg: RLConfig) -> Float[Array, " L"]:
+    """``exp(-decay * age)`` for the ages ``0 .. chunk_len - 1`` of the chunks that predict a step."""
+    return jnp.exp(-jnp.float32(cfg.env.ensemble_decay) * jnp.arange(cfg.chunk_len, dtype=jnp.float32))
+
+
+def ensembled_action(history: Float[Array, "n L L a"], made: Int[Array, ""], weights: Float[Array, " L"]
+                     ) -> Float[Array, "n a"]:
+    """The current step's action from the chunk ``history`` (``history[:, age]`` = the chunk predicted
+    ``age`` decisions ago, so its entry ``age`` is its prediction for now); only the ``made`` chunks
+    predicted so far count."""
+    size = history.shape[1]
+    ages = jnp.arange(size)
+    w = jnp.where(ages < made, weights, 0.0)
+    diagonal = history[:, ages, ages]  # (N, L, A): each chunk's prediction for the current step
+    return jnp.einsum("l,nla->na", w / jnp.sum(w), diagonal)
+
+
+def scan_rollout(
+    graphdef: nnx.GraphDef,
+    params: nnx.State,
+    env: JaxEnv,
+    starts: Any,
+    instruction_tokens: Int[Array, "n l"],
+    cfg: RLConfig,
+    *,
+    key: jax.Array,
+    greedy: Bool[Array, ""] | bool,
+    ensemble: Bool[Array, ""] | bool,
+    max_steps: int,
+    proprio_valid: Float[Array, " n"] | None = None,
+) -> tuple[Rollout, Int[Array, " n"]]:
+    """Runs the policy in ``env`` (module docstring); pure, jit it.
+
+    Args:
+      graphdef / params: the split policy.
+      env: the environment's pure functions (:class:`JaxEnv`).
+      starts: what ``env.reset`` takes for the ``n`` episodes (MJX: initial ``qpos [n, nq]``).
+      instruction_tokens: each episode's instruction (:func:`~sword_jax.rl.policy.tokenize_instructions`).
+      cfg: chunk size, bins, image size, ``env.execute_steps``, ``env.ensemble_decay``, ``grpo.temperature``.
+      key: sampling randomness (decision ``c`` uses ``fold_in(key, c)``).
+      greedy: argmax tokens instead of samples (may be traced).
+      ensemble: temporal ensembling of the executed action; needs ``execute_steps = 1`` (may be traced).
+      max_steps: the episodes' action limit.
+      proprio_valid: ``[n]``, 0 where the policy reads its "missing proprio" input (default all 1).
+
+    Returns:
+      ``(rollout, steps [n])``: the rollout with ``C = decisions(cfg, max_steps)`` decisions of
+      ``execute_steps`` tokens each, returns ``1 + success_bonus`` on success; and the actions each
+      episode executed.
+    """
+    k = cfg.env.execute_steps
+    if isinstance(ensemble, bool) and ensemble and k != 1:
+        raise ValueError(f"scan_rollout: ensembling needs rl.env.execute_steps=1, got {k}")
+    n = instruction_tokens.shape[0]
+    c_max = decisions(cfg, max_steps)
+    policy = nnx.merge(graphdef, params)
+    valid_in = jnp.ones((n,), jnp.float32) if proprio_valid is None else jnp.asarray(proprio_valid, jnp.float32)
+    weights = ensemble_weights(cfg)
+    greedy = jnp.asarray(greedy, jnp.bool_)
+    ensemble = jnp.asarray(ensemble, jnp.bool_) & (k == 1)
+    state, obs = env.reset(starts)
+    size, a_dim = cfg.chunk_len, cfg.action_dim
+
+    def decide(carry, c):
+        state, obs, done, success, steps, history = carry
+        small = resize_frames(obs["frames"], cfg.image_size)
+        proprio = obs["proprio"][:, : cfg.proprio_dim].astype(jnp.float32)
+        logits = policy(small, instruction_tokens, proprio, valid_in)
+        sampled = jax.random.categorical(jax.random.fold_in(key, c), logits / jnp.float32(cfg.grpo.temperature), axis=-1)
+        chunk = jnp.where(greedy, jnp.argmax(logits, axis=-1), sampled).astype(jnp.int32)  # (N, L, A)
+        log_probs = sampling_log_probs(logits, chunk, cfg.grpo.temperature)
+        actions = tokens_to_actions(chunk, cfg.action_bins)
+        history = jnp.concatenate([actions[:, None], history[:, :-1]], axis=1)
+        smoothed = ensembled_action(history, jnp.minimum(c + 1, size), weights)[:, None]
+        executed = jnp.where(ensemble, smoothed, actions[:, :k]) if k == 1 else actions[:, :k]
+        valid = ~done
+
+        def act(inner, j):
+            state, obs, done, success, steps = inner
+            active = ~done
+            state, obs, reached = env.step(state, executed[:, j])
+            reached = reached & active
+            steps = steps + active.astype(jnp.int32)
+            success = success | reached
+            done = done | reached | (steps >= max_steps)
+            return (state, obs, done, success, steps), None
+
+        (state, obs, done, success, steps), _ = jax.lax.scan(act, (state, obs, done, success, steps), jnp.arange(k))
+        record = {"obs": jnp.clip(jnp.round(small * 255.0), 0, 255).astype(jnp.uint8), "proprio": proprio,
+                  "tokens": chunk[:, :k], "log_probs": log_probs[:, :k], "valid": valid.astype(jnp.float32)}
+        return (state, obs, done, success, steps, history), record
+
+    init = (state, obs, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32),
+            jnp.zeros((n, size, size, a_dim), jnp.float32))
+    (_, _, _, success, steps, _), rec = jax.lax.scan(decide, init, jnp.arange(c_max))
+    rec = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), rec)  # (N, C, ...)
+    valid = rec["valid"]
+    last = jnp.maximum(jnp.sum(valid, axis=1).astype(jnp.int32) - 1, 0)
+    rewards = jax.nn.one_hot(last, c_max, dtype=jnp.float32) * success[:, None].astype(jnp.float32)
+    returns = success.astype(jnp.float32) * jnp.float32(1.0 + cfg.grpo.success_bonus)
+    rollout = Rollout(obs_frames=rec["obs"], proprio=rec["proprio"],
+                      proprio_valid=jnp.broadcast_to(valid_in[:, None], valid.shape), instruction_tokens=instruction_tokens,
+                      tokens=rec["tokens"], log_probs=rec["log_probs"], valid=valid, rewards=rewards,
+                      scores=jnp.cumsum(rewards, axis=1), success=success, returns=returns,
+                      frames=jnp.zeros((0,), jnp.float32))
+    return rollout, steps

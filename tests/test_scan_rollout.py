@@ -1,0 +1,195 @@
+"""Policy episodes in a pure JAX env as one scan (sword_jax.rl.scan_rollout) and ground-truth GRPO on it
+(sword_jax.rl.jax_env_grpo): against the C-engine path's semantics, on a tiny analytic env (MJX itself
+compiles for minutes on a CPU; its adapter's observations are checked against the C engine in
+tests/test_sim_mjx_batch.py)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import configs
+from sword_jax.rl import grpo
+from sword_jax.rl.env_rollout import run_policy, make_act_fns
+from sword_jax.rl.jax_env_grpo import EnvGRPO, mixed_groups, select_groups
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.scan_rollout import ensembled_action, ensemble_weights, scan_rollout
+
+SIZE = 32
+
+
+class SlideEnv:
+    """A point pushed by the first action dimension towards 1.0; success once past it. Frames show
+    the position as brightness; proprio is the position (pure jnp, both protocols)."""
+
+    goal = 0.35
+
+    def _obs(self, pos):
+        n = pos.shape[0]
+        level = jnp.clip(jnp.round((pos + 1.0) * 100.0), 0, 255).astype(jnp.uint8)
+        frames = jnp.broadcast_to(level[:, None, None, None], (n, SIZE, SIZE, 3))
+        proprio = jnp.concatenate([pos[:, None], jnp.zeros((n, 7), jnp.float32)], axis=1)
+        return {"frames": frames, "proprio": proprio}
+
+    def reset(self, starts):
+        pos = jnp.asarray(starts, jnp.float32)[:, 0]
+        return pos, self._obs(pos)
+
+    def step(self, pos, actions):
+        pos = pos + 0.1 * jnp.clip(actions[:, 0], -1.0, 1.0)
+        return pos, self._obs(pos), pos > self.goal
+
+
+class LockstepSlide:
+    """The same env with the C engine's lockstep protocol (host numpy), for run_policy."""
+
+    def __init__(self, starts, texts, max_steps):
+        self.starts, self.language, self.n, self.max_steps = np.asarray(starts, np.float32), texts, len(texts), max_steps
+        self.env = SlideEnv()
+
+    def reset(self):
+        self.pos, obs = self.env.reset(self.starts)
+        self.done = np.zeros(self.n, bool)
+        self.steps = np.zeros(self.n, int)
+        return {k: np.asarray(v) for k, v in obs.items()}
+
+    def step(self, actions):
+        success = np.zeros(self.n, bool)
+        executed = np.zeros(self.n, int)
+        pos = np.asarray(self.pos).copy()
+        for j in range(actions.shape[1]):
+            active = ~self.done & ~success & (self.steps < self.max_steps)
+            new, _, reached = self.env.step(jnp.asarray(pos), jnp.asarray(actions[:, j]))
+            pos = np.where(active, np.asarray(new), pos)
+            self.steps += active
+            executed += active
+            success |= np.asarray(reached) & active
+        self.pos = jnp.asarray(pos)
+        self.done |= success | (self.steps >= self.max_steps)
+        obs = self.env._obs(self.pos)
+        return {"frames": np.asarray(obs["frames"]), "proprio": np.asarray(obs["proprio"]), "success": success,
+                "executed": executed, "done": self.done.copy()}
+
+    def close(self):
+        pass
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, grpo=dataclasses.replace(cfg.rl.grpo, rollout_batch=2, group_size=4,
+                                                                                 temperature=1.0))
+    graphdef, params = build_policy(rl, seed=0)
+    return rl, graphdef, params
+
+
+def _rollout(rl, graphdef, params, starts, tokens, *, greedy, ensemble, max_steps, key=0):
+    fn = jax.jit(lambda p, s, t, k, g, e: scan_rollout(graphdef, p, SlideEnv(), s, t, rl, key=k, greedy=g, ensemble=e,
+                                                       max_steps=max_steps))
+    return fn(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.key(key), greedy, ensemble)
+
+
+@pytest.mark.parametrize("ensemble,execute", [(True, 1), (False, 1), (False, 3)])
+def test_greedy_scan_rollout_matches_the_lockstep_path(setup, ensemble, execute):
+    """Greedy episodes (ensembled, every step, open-loop chunks of 3): the scan and run_policy on the C
+    engine's protocol execute the same actions, so success, decisions and tokens agree."""
+    rl, graphdef, params = setup
+    rl = dataclasses.replace(rl, env=dataclasses.replace(rl.env, execute_steps=execute, action_ensemble=ensemble))
+    starts = np.array([[0.3], [0.0], [-0.5], [0.33]], np.float32)
+    texts = ["push it", "push it", "slide right", "push it"]
+    tokens = tokenize_instructions(texts, rl.policy.max_instruction_bytes)
+    max_steps = 7
+    scan, steps = _rollout(rl, graphdef, params, starts, tokens, greedy=True, ensemble=ensemble, max_steps=max_steps)
+    ref = run_policy(make_act_fns(graphdef, rl), params, LockstepSlide(starts, texts, max_steps), rl,
+                     key=jax.random.key(0), greedy=True, max_steps=max_steps)
+    np.testing.assert_array_equal(np.asarray(scan.success), ref.success)
+    np.testing.assert_array_equal(np.asarray(scan.valid), ref.valid)
+    mask = ref.valid > 0
+    np.testing.assert_array_equal(np.asarray(scan.tokens)[mask], ref.tokens[mask])
+    np.testing.assert_allclose(np.asarray(scan.log_probs)[mask], ref.log_probs[mask], atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(scan.obs_frames)[mask], ref.obs_frames[mask])
+    np.testing.assert_allclose(np.asarray(scan.returns), ref.returns)
+    np.testing.assert_allclose(np.asarray(scan.rewards), ref.rewards)
+    assert np.asarray(steps).max() <= max_steps
+
+
+def test_sampled_rollout_is_sampled_and_keyed(setup):
+    rl, graphdef, params = setup
+    starts = np.zeros((4, 1), np.float32)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+    a, _ = _rollout(rl, graphdef, params, starts, tokens, greedy=False, ensemble=False, max_steps=4, key=1)
+    b, _ = _rollout(rl, graphdef, params, starts, tokens, greedy=False, ensemble=False, max_steps=4, key=1)
+    c, _ = _rollout(rl, graphdef, params, starts, tokens, greedy=False, ensemble=False, max_steps=4, key=2)
+    np.testing.assert_array_equal(np.asarray(a.tokens), np.asarray(b.tokens))
+    assert not np.array_equal(np.asarray(a.tokens), np.asarray(c.tokens))
+    # identical episodes sample different tokens (a fresh draw per episode), at negative log-probs
+    assert not np.array_equal(np.asarray(a.tokens)[0], np.asarray(a.tokens)[1])
+    assert float(jnp.max(a.log_probs)) < 0.0
+
+
+def test_ensembled_action_weights_only_chunks_made():
+    history = jnp.zeros((1, 3, 3, 1)).at[0, 0, 0, 0].set(1.0).at[0, 1, 1, 0].set(4.0).at[0, 2, 2, 0].set(100.0)
+    w = jnp.exp(-0.5 * jnp.arange(3.0))
+    one = ensembled_action(history, jnp.asarray(1), w)
+    two = ensembled_action(history, jnp.asarray(2), w)
+    np.testing.assert_allclose(np.asarray(one), [[1.0]])
+    np.testing.assert_allclose(np.asarray(two), [[(1.0 + 4.0 * np.exp(-0.5)) / (1 + np.exp(-0.5))]], rtol=1e-6)
+    cfg = configs.get("sword:tiny").rl
+    assert ensemble_weights(cfg).shape == (cfg.chunk_len,)
+
+
+def test_select_groups_puts_mixed_groups_first():
+    from sword_jax.rl.rollout import Rollout
+
+    returns = jnp.asarray([0, 2, 2, 0, 2, 2, 2, 2, 0, 2, 0, 0], jnp.float32)  # groups of 2: mixed, mixed, none ...
+    g = 2
+    n = returns.shape[0]
+    ids = jnp.arange(n, dtype=jnp.float32)
+    ro = Rollout(ids[:, None, None, None, None], ids[:, None, None], ids[:, None], ids[:, None].astype(jnp.int32),
+                 ids[:, None, None, None].astype(jnp.int32), ids[:, None, None, None], ids[:, None], ids[:, None],
+                 ids[:, None], returns > 0, returns, jnp.zeros((0,)))
+    np.testing.assert_array_equal(np.asarray(mixed_groups(returns, g)), [True, True, False, False, True, False])
+    picked = select_groups(ro, g, 4)
+    # mixed groups 0, 1, 4 (in order), then the first group without signal (2)
+    np.testing.assert_array_equal(np.asarray(picked.returns), [0, 2, 2, 0, 0, 2, 2, 2])
+    np.testing.assert_array_equal(np.asarray(picked.valid)[:, 0], [0, 1, 2, 3, 8, 9, 4, 5])
+    with pytest.raises(ValueError, match="fewer than"):
+        select_groups(ro, g, 7)
+
+
+def test_env_grpo_steps_resample_and_resume_exactly(setup, tmp_path):
+    """Dynamic sampling resamples until enough mixed groups (or the round limit), the update takes
+    minibatch steps whose ratio leaves 1, and a step is a pure function of (state, step, key)."""
+    rl, graphdef, params = setup
+    rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, max_sample_rounds=3, minibatches=2, ppo_epochs=1,
+                                                            learning_rate=1e-3, update_microbatch=0))
+    tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
+
+    def starts_at(step, round_):
+        rng = np.random.default_rng([step, round_])
+        return rng.uniform(0.1, 0.34, (2, 1)).astype(np.float32), tokens
+
+    eval_starts = np.array([[0.3], [0.0], [0.33]], np.float32)
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=3, starts_at=starts_at, eval_starts=eval_starts,
+                     eval_tokens=tokenize_instructions(["push it"] * 3, rl.policy.max_instruction_bytes),
+                     eval_tasks=[0, 0, 1], key=jax.random.key(3))
+    state = grpo.init_state(jax.tree.map(jnp.copy, params), rl)
+    copy = jax.tree.map(jnp.copy, state)
+    s1, m1 = runner.step(state, 5, jax.random.key(7))
+    s2, m2 = runner.step(copy, 5, jax.random.key(7))
+    for a, b in zip(jax.tree.leaves(s1.params), jax.tree.leaves(s2.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert 1 <= float(m1["sample_rounds"]) <= 3
+    assert float(m1["trajectories_sampled"]) == 8 * float(m1["sample_rounds"])
+    assert float(m1["sample_rounds"]) == 3 or float(m1["mixed_groups"]) >= 2
+    assert float(m1["updates"]) == 2.0
+    if float(m1["kept_fraction"]) > 0:  # a second minibatch step is taken by a moved policy
+        assert abs(float(m1["ratio_mean"]) - 1.0) > 0.0
+    runner.start_probe(params, str(tmp_path / "probe"))
+    point, extra = runner.evaluate(s1.params, step=1)
+    assert point["episodes"] == 3 and set(point["per_task"]) == {"0", "1"}
+    assert 0.0 <= extra["probe"]["flip_rate_vs_start"] <= 1.0 and "sampled" in extra
+    point2, extra2 = runner.evaluate(s1.params, step=2)
+    assert extra2["probe"]["flip_rate_vs_previous"] == 0.0 and point2["mean"] == point["mean"]
