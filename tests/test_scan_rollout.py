@@ -112,7 +112,40 @@ def test_greedy_scan_rollout_matches_the_lockstep_path(setup, ensemble, execute)
     np.testing.assert_array_equal(np.asarray(scan.obs_frames)[mask], ref.obs_frames[mask])
     np.testing.assert_allclose(np.asarray(scan.returns), ref.returns)
     np.testing.assert_allclose(np.asarray(scan.rewards), ref.rewards)
-    assert np.asarray(steps).max() <= max_steps
+    assert np.asarray(steps.steps).max() <= max_steps and not np.asarray(steps.broken).any()
+
+
+class BreakingSlideEnv(SlideEnv):
+    """SlideEnv whose physics goes non-finite below -0.3."""
+
+    def step(self, pos, actions):
+        pos, obs, reached = super().step(pos, actions)
+        broken = pos < -0.3
+        obs = dict(obs, proprio=jnp.where(broken[:, None], jnp.nan, obs["proprio"]))
+        return jnp.where(broken, jnp.nan, pos), obs, reached
+
+
+def test_an_episode_whose_physics_breaks_ends_as_a_failure_and_leaves_nothing_non_finite(setup):
+    """Episodes pushed into a region where the env returns NaN end there (failed, counted as broken);
+    every record after an episode ended is zero, so the GRPO update on the batch stays finite."""
+    rl, graphdef, params = setup
+    starts = np.array([[-0.29], [-0.29], [0.3], [0.0]], np.float32)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+    fn = jax.jit(lambda p, s, t, k: scan_rollout(graphdef, p, BreakingSlideEnv(), s, t, rl, key=k, greedy=False,
+                                                 ensemble=False, max_steps=6))
+    rollout, stats = fn(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.key(4))
+    broken = np.asarray(stats.broken)
+    assert broken.any(), "the designed start should break within 6 actions"
+    assert not np.asarray(rollout.success)[broken].any()
+    for name in ("obs_frames", "proprio", "log_probs", "tokens", "valid", "returns"):
+        assert np.all(np.isfinite(np.asarray(getattr(rollout, name), np.float32))), name
+    ended = np.asarray(rollout.valid) == 0
+    assert ended.any() and np.all(np.asarray(rollout.log_probs)[ended] == 0) and np.all(np.asarray(rollout.proprio)[ended] == 0)
+    grpo_rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, rollout_batch=1, group_size=4, update_microbatch=0))
+    returns = jnp.asarray([0.0, 0.0, 2.0, 0.0])  # a designed signal: the update must run over the broken ones
+    _, metrics = grpo.grpo_update(graphdef, grpo_rl, grpo.init_state(jax.tree.map(jnp.copy, params), grpo_rl),
+                                  rollout._replace(returns=returns))
+    assert float(metrics["finite"]) == 1.0 and np.isfinite(float(metrics["loss"]))
 
 
 def test_sampled_rollout_is_sampled_and_keyed(setup):

@@ -110,7 +110,9 @@ def _token_terms(new_log_probs, old_log_probs, ref_log_probs, advantages, valid,
         kl = jnp.exp(delta) - delta - 1.0
         loss = loss + jnp.float32(cfg.grpo.kl_coef) * kl
     mask = jnp.broadcast_to((valid * keep[:, None])[:, :, None, None], shape)
-    objective = jnp.sum(loss * weights[:, :, None, None])
+    # masked tokens weigh 0; ``where`` keeps a non-finite value there (a token never trained on) out of the sum
+    weight = jnp.broadcast_to(weights[:, :, None, None], shape)
+    objective = jnp.sum(jnp.where(weight > 0, loss * weight, 0.0))
     sums = {"clipped": jnp.sum(is_clipped * mask), "kl": jnp.sum(kl * mask),
             "ratio": jnp.sum(jnp.exp(new_log_probs - old_log_probs) * mask)}
     return objective, sums

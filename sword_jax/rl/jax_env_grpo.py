@@ -6,7 +6,7 @@ One GRPO step (:meth:`EnvGRPO.step`):
    states (stratified over the tasks by the caller's ``starts_at``), ``group_size`` sampled episodes each,
    all in one compiled :func:`~sword_jax.rl.scan_rollout.scan_rollout`. While fewer than ``rollout_batch``
    of the groups sampled so far have mixed outcomes, another round is sampled, up to
-   ``rl.grpo.max_sample_rounds``.
+   ``rl.grpo.max_sample_rounds``, unless ``rl.grpo.min_mixed_fraction`` of them already are.
 2. **The update batch**: ``rollout_batch`` groups, the mixed ones first (:func:`select_groups`).
 3. **The update**: :func:`~sword_jax.rl.grpo.grpo_update` with ``ppo_epochs x minibatches`` gradient steps.
 
@@ -23,6 +23,7 @@ start (``flip_rate``) and the mean gap between the best and second-best bin's lo
 from __future__ import annotations
 
 import functools
+import math
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -120,18 +121,20 @@ class EnvGRPO:
         g, want = rl.grpo.group_size, rl.grpo.rollout_batch
         t0 = time.perf_counter()
         step_key = jax.random.fold_in(key, step)
-        rounds, steps_taken, mixed, sampled_success = [], 0, 0, []
+        rounds, steps_taken, broken, mixed, sampled_success = [], 0, 0, 0, []
+        enough = math.ceil(rl.grpo.min_mixed_fraction * want)
         for r in range(rl.grpo.max_sample_rounds):
             starts, tokens = self.starts_at(step, r)
             starts = np.repeat(np.asarray(starts), g, axis=0)
             tokens = np.repeat(np.asarray(tokens), g, axis=0)
-            rollout, steps = self.rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
+            rollout, stats = self.rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
                                           jax.random.fold_in(step_key, r), False, False)
             rounds.append(rollout)
-            steps_taken += int(jnp.sum(steps))
+            steps_taken += int(jnp.sum(stats.steps))
+            broken += int(jnp.sum(stats.broken))
             sampled_success.append(np.asarray(rollout.success))
             mixed += int(jnp.sum(mixed_groups(rollout.returns, g)))
-            if mixed >= want:
+            if mixed >= enough:
                 break
         batch = self.select(_concat(rounds), g, want) if len(rounds) > 1 else rounds[0]
         t1 = time.perf_counter()
@@ -143,6 +146,7 @@ class EnvGRPO:
                  "trajectories_sampled": float(success.size), "mixed_groups": float(mixed),
                  "mixed_fraction": float(mixed) / float(success.size // g),
                  "batch_success": jnp.mean(batch.success.astype(jnp.float32)), "env_steps": float(steps_taken),
+                 "broken_episodes": float(broken),
                  "rollout_seconds": t1 - t0, "update_seconds": t2 - t1, "step_seconds": t2 - t0}
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 

@@ -23,7 +23,7 @@ The result is the :class:`~sword_jax.rl.rollout.Rollout` that :func:`~sword_jax.
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +33,14 @@ from jaxtyping import Array, Bool, Float, Int
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import resize_frames, sampling_log_probs, tokens_to_actions
 from sword_jax.rl.rollout import Rollout
+
+
+class EpisodeStats(NamedTuple):
+    """Per episode: ``steps`` the actions it executed; ``broken`` its physics state went non-finite (the
+    episode then ended as a failure at that action)."""
+
+    steps: Int[Array, " n"]
+    broken: Bool[Array, " n"]
 
 
 class JaxEnv(Protocol):
@@ -76,7 +84,7 @@ def scan_rollout(
     ensemble: Bool[Array, ""] | bool,
     max_steps: int,
     proprio_valid: Float[Array, " n"] | None = None,
-) -> tuple[Rollout, Int[Array, " n"]]:
+) -> tuple[Rollout, EpisodeStats]:
     """Runs the policy in ``env`` (module docstring); pure, jit it.
 
     Args:
@@ -92,9 +100,10 @@ def scan_rollout(
       proprio_valid: ``[n]``, 0 where the policy reads its "missing proprio" input (default all 1).
 
     Returns:
-      ``(rollout, steps [n])``: the rollout with ``C = decisions(cfg, max_steps)`` decisions of
-      ``execute_steps`` tokens each, returns ``1 + success_bonus`` on success; and the actions each
-      episode executed.
+      ``(rollout, stats)``: the rollout with ``C = decisions(cfg, max_steps)`` decisions of
+      ``execute_steps`` tokens each, returns ``1 + success_bonus`` on success, and everything recorded
+      after an episode ended zeroed (an ended episode also executes zero actions); and
+      :class:`EpisodeStats`. An episode whose physics goes non-finite ends there as a failure.
     """
     k = cfg.env.execute_steps
     if isinstance(ensemble, bool) and ensemble and k != 1:
@@ -110,7 +119,7 @@ def scan_rollout(
     size, a_dim = cfg.chunk_len, cfg.action_dim
 
     def decide(carry, c):
-        state, obs, done, success, steps, history = carry
+        state, obs, done, success, steps, broken, history = carry
         small = resize_frames(obs["frames"], cfg.image_size)
         proprio = obs["proprio"][:, : cfg.proprio_dim].astype(jnp.float32)
         logits = policy(small, instruction_tokens, proprio, valid_in)
@@ -122,25 +131,33 @@ def scan_rollout(
         smoothed = ensembled_action(history, jnp.minimum(c + 1, size), weights)[:, None]
         executed = jnp.where(ensemble, smoothed, actions[:, :k]) if k == 1 else actions[:, :k]
         valid = ~done
+        executed = jnp.where(valid[:, None, None], executed, 0.0)  # an ended episode holds still
 
         def act(inner, j):
-            state, obs, done, success, steps = inner
+            state, obs, done, success, steps, broken = inner
             active = ~done
             state, obs, reached = env.step(state, executed[:, j])
-            reached = reached & active
+            # a physics state gone non-finite ends its episode as a failure, counted in ``broken``
+            bad = ~jnp.all(jnp.isfinite(obs["proprio"]), axis=-1) & active
+            reached = reached & active & ~bad
             steps = steps + active.astype(jnp.int32)
             success = success | reached
-            done = done | reached | (steps >= max_steps)
-            return (state, obs, done, success, steps), None
+            broken = broken | bad
+            done = done | reached | bad | (steps >= max_steps)
+            return (state, obs, done, success, steps, broken), None
 
-        (state, obs, done, success, steps), _ = jax.lax.scan(act, (state, obs, done, success, steps), jnp.arange(k))
-        record = {"obs": jnp.clip(jnp.round(small * 255.0), 0, 255).astype(jnp.uint8), "proprio": proprio,
-                  "tokens": chunk[:, :k], "log_probs": log_probs[:, :k], "valid": valid.astype(jnp.float32)}
-        return (state, obs, done, success, steps, history), record
+        (state, obs, done, success, steps, broken), _ = jax.lax.scan(
+            act, (state, obs, done, success, steps, broken), jnp.arange(k))
+        keep = valid[:, None]
+        # what an ended episode's decision saw is never trained on; zeros keep it finite for the masked update
+        record = {"obs": jnp.where(keep[:, :, None, None], jnp.clip(jnp.round(small * 255.0), 0, 255), 0).astype(jnp.uint8),
+                  "proprio": jnp.where(keep, proprio, 0.0), "tokens": jnp.where(keep[:, :, None], chunk[:, :k], 0),
+                  "log_probs": jnp.where(keep[:, :, None], log_probs[:, :k], 0.0), "valid": valid.astype(jnp.float32)}
+        return (state, obs, done, success, steps, broken, history), record
 
     init = (state, obs, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32),
-            jnp.zeros((n, size, size, a_dim), jnp.float32))
-    (_, _, _, success, steps, _), rec = jax.lax.scan(decide, init, jnp.arange(c_max))
+            jnp.zeros((n,), jnp.bool_), jnp.zeros((n, size, size, a_dim), jnp.float32))
+    (_, _, _, success, steps, broken, _), rec = jax.lax.scan(decide, init, jnp.arange(c_max))
     rec = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), rec)  # (N, C, ...)
     valid = rec["valid"]
     last = jnp.maximum(jnp.sum(valid, axis=1).astype(jnp.int32) - 1, 0)
@@ -151,4 +168,4 @@ def scan_rollout(
                       tokens=rec["tokens"], log_probs=rec["log_probs"], valid=valid, rewards=rewards,
                       scores=jnp.cumsum(rewards, axis=1), success=success, returns=returns,
                       frames=jnp.zeros((0,), jnp.float32))
-    return rollout, steps
+    return rollout, EpisodeStats(steps=steps, broken=broken)
