@@ -354,12 +354,10 @@ def run_seeds(args) -> dict:
         common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
             "policy_grpo_ground_truth_gain_small", summary["min_gain"], 0.15,
             value_is="smallest greedy-success gain over seeds, step 0 to the last evaluation, 500 MJX episodes",
-            per_seed={os.path.basename(os.path.dirname(d.rstrip("/"))) or d: {k: r[k] for k in
-                      ("gain", "ci95", "start", "end", "steps")} for d, r in per_seed.items()},
+            per_seed={d: {k: r[k] for k in ("gain", "ci95", "start", "end", "steps")} for d, r in per_seed.items()},
             mean=summary["mean_gain"], steps=any_run["steps"], rollouts_per_step=any_run["rollouts_per_step"],
             env_steps_per_grpo_step=any_run["env_steps_per_grpo_step"],
-            seconds_per_grpo_step=any_run["seconds_per_grpo_step"], repeat=summary.get("repeat"),
-            command=" ".join(sys.argv))})
+            seconds_per_grpo_step=any_run["seconds_per_grpo_step"], repeat=summary.get("repeat"))})
     return summary
 
 
@@ -372,7 +370,7 @@ def _plot_seeds(curves: dict, path: str) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, points in curves.items():
         steps = [p[0] for p in points]
-        label = os.path.basename(os.path.dirname(name.rstrip("/"))) or name
+        label = name.rstrip("/")[-40:]
         line, = ax.plot(steps, [p[1] for p in points], "o-", lw=1.8, label=label)
         ax.fill_between(steps, [p[2][0] for p in points], [p[2][1] for p in points], color=line.get_color(), alpha=0.12)
     ax.set_xlabel("GRPO step")

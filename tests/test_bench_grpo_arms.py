@@ -93,3 +93,80 @@ def test_command_line_refuses_missing_policy_and_plain_arguments(tmp_path):
         arms.main(["--out", str(tmp_path / "s"), "--policy", "p", "--arm", "a:", "stray"])
     with pytest.raises(SystemExit, match="'name: overrides'"):
         arms.main(["--out", str(tmp_path / "s"), "--policy", "p", "--arm", "nocolon"])
+
+
+def test_seeds_stage_reports_every_seed_the_repeat_and_records_the_smallest_gain(tmp_path, monkeypatch):
+    """bench_policy seeds: per-seed gains with Newcombe intervals, the repeat's difference at its step, the
+    step costs from the histories, one figure, and the latest.json record of the smallest gain."""
+    recorded = {}
+    monkeypatch.setattr(bench_policy.common, "merge_results", recorded.update)
+    history = [{"trajectories_sampled": 512.0 * (1 + i % 2), "env_steps": 9e4, "step_seconds": 20.0,
+                "clip_fraction": 0.05} for i in range(4)]
+    dirs = {name: _arm(tmp_path, name, points, history) for name, points in {
+        "s0": [_point(0, 350), _point(50, 420), _point(100, 450)],
+        "s1": [_point(0, 340), _point(50, 400), _point(100, 430, sampled=300)],
+        "s0b": [_point(0, 350), _point(50, 410), _point(100, 440)]}.items()}
+    grpo_dir = {k: v + "/rl/grpo" for k, v in dirs.items()}
+    args = SimpleNamespace(runs=",".join([grpo_dir["s0"], grpo_dir["s1"]]), repeat=f"{grpo_dir['s0']},{grpo_dir['s0b']}",
+                           repeat_step=50, out=str(tmp_path), record=True)
+    summary = bench_policy.run_seeds(args)
+    gains = {d: r["gain"] for d, r in summary["per_seed"].items()}
+    assert gains[grpo_dir["s0"]] == pytest.approx(0.2) and gains[grpo_dir["s1"]] == pytest.approx(0.18)
+    assert summary["min_gain"] == pytest.approx(0.18) and summary["repeat"]["difference"] == pytest.approx(0.02)
+    s1 = summary["per_seed"][grpo_dir["s1"]]
+    assert s1["ci95"] == list(bench_policy.diff_interval(340, 500, 430, 500)) and s1["sampled"] == [[100, 0.6]]
+    assert s1["rollouts_per_step"] == 768.0 and s1["seconds_per_grpo_step"] == 20.0
+    record = recorded["policy_grpo_ground_truth_gain_small"]
+    assert record["value"] == pytest.approx(0.18) and set(record["per_seed"]) == {grpo_dir["s0"], grpo_dir["s1"]}
+    assert record["repeat"]["step"] == 50 and record["rollouts_per_step"] == 768.0
+    assert (tmp_path / "grpo_ground_truth_seeds.png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="does not exist"):
+        bench_policy.run_seeds(SimpleNamespace(runs=str(tmp_path / "nope"), repeat="", repeat_step=50,
+                                               out=str(tmp_path), record=False))
+
+
+@pytest.mark.slow  # ~60 s of CPU (the C engine's renderer and the update compile); the loop's part is below
+def test_grpo_stage_runs_from_a_saved_npz_policy(tmp_path):
+    """The documented ground-truth command from a saved policy: parameters arrive from the .npz as numpy
+    arrays, which the GRPO loop places on the device before its first step (it once read their sharding)."""
+    import configs
+    from sword_jax.rl.policy import build_policy
+
+    cfg = configs.get("sword:tiny")
+    _, params = build_policy(cfg.rl, seed=0)
+    path = str(tmp_path / "policy.npz")
+    bench_policy.save_npz(path, params)
+    out = tmp_path / "out"
+    bench_policy.main(["grpo", "--config", "sword:tiny", "--out", str(out), "--policy", path, "--eval-episodes", "1",
+                       "--rl.grpo.steps=1", "--rl.grpo.eval_every=1", "--sim.max_steps=4", "--rl.grpo.rollout_batch=1",
+                       "--rl.grpo.group_size=2", "--rl.grpo.minibatches=2"])
+    result = json.loads((out / "grpo_env_results.json").read_text())
+    assert [p["step"] for p in result["curve"]] == [0, 1] and len(result["history"]) == 1
+    assert result["history"][0]["updates"] == 2.0
+
+
+def test_the_grpo_loop_places_host_parameters_before_its_first_step(tmp_path):
+    """A state whose parameters are numpy arrays (a policy read from an .npz) starts the GRPO loop: the
+    loop puts them on the device (the cause of the documented command's crash, in seconds)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import configs
+    from sword_jax.rl import grpo, grpo_loop
+
+    rl = configs.get("sword:tiny").rl
+    state = grpo.GRPOState(params={"w": np.ones((3,), np.float32)}, opt_state={"m": np.zeros((3,), np.float32)},
+                           ref_params=None, step=np.zeros((), np.int32))
+
+    def step(state, batch, key):
+        del batch, key
+        return state.replace(params={"w": state.params["w"] * 2.0}, step=state.step + 1), {"loss": jnp.float32(0.0)}
+
+    seen = []
+    result, _ = grpo_loop.train_grpo(
+        step, state, lambda i: i, key=jax.random.key(0), rl=rl, workdir=str(tmp_path),
+        evaluate=lambda done, params: (seen.append(type(params["w"])) or {"mean": 0.0, "per_task": {}}, {}),
+        run_id={"x": 1}, progress=lambda point, eta: "", log=lambda *_: None)
+    assert seen and all(issubclass(t, jax.Array) for t in seen)
+    assert float(result.state.params["w"][0]) == 2.0 ** rl.grpo.steps
