@@ -370,6 +370,66 @@ def run_seeds(args) -> dict:
     return summary
 
 
+# NVLink multicast stays off in every process started here (a program using it can take a shared host's GPUs down)
+_NO_MULTICAST = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
+
+
+def seed_commands(args, overrides: list[str]) -> list[tuple[str, list[str], dict[str, str]]]:
+    """``grpo-seeds``: ``(work dir, command, environment)`` of one ``grpo`` process per seed (and one
+    repeat of ``--repeat-seed``), placed round-robin on ``--gpus`` (``CUDA_VISIBLE_DEVICES``); several
+    processes may share a GPU, each then limited to its share of the memory."""
+    seeds = [int(x) for x in args.seeds.split(",") if x != ""]
+    runs = [(f"s{seed}", seed) for seed in seeds]
+    if args.repeat_seed is not None:
+        runs.append((f"s{args.repeat_seed}_repeat", args.repeat_seed))
+    gpus = [g for g in args.gpus.split(",") if g != ""]
+    if not seeds or not gpus:
+        raise SystemExit("grpo-seeds needs --seeds (e.g. 0,1,2) and --gpus (e.g. 0,1,2,3)")
+    per_gpu = -(-len(runs) // len(gpus))
+    out = []
+    for i, (name, seed) in enumerate(runs):
+        env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[i % len(gpus)], **_NO_MULTICAST)
+        if per_gpu > 1:
+            env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / per_gpu:.2f}"
+        cmd = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config_name, "--seed",
+               str(seed), "--out", os.path.join(args.out, name), "--policy", args.policy,
+               "--eval-episodes", str(args.eval_episodes), *overrides]
+        out.append((os.path.join(args.out, name, "grpo_env_mjx"), cmd, env))
+    return out
+
+
+def run_grpo_seeds(args, overrides: list[str]) -> dict:
+    """``grpo-seeds``: the seeds' GRPO runs side by side (:func:`seed_commands`), each logging to
+    ``<out>/<name>.log`` and resuming from its work dir, then the ``seeds`` summary over them."""
+    if not args.policy:
+        raise SystemExit("grpo-seeds needs --policy (an SFT policy .npz)")
+    commands = seed_commands(args, overrides)
+    procs = []
+    for workdir, cmd, env in commands:
+        os.makedirs(os.path.dirname(workdir), exist_ok=True)
+        log = open(os.path.dirname(workdir) + ".log", "a")
+        procs.append((workdir, subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
+        print(f"started {' '.join(cmd[2:])} on GPU {env['CUDA_VISIBLE_DEVICES']}", flush=True)
+    failed = []
+    for workdir, proc, log in procs:
+        if proc.wait():
+            failed.append(workdir)
+        log.close()
+    if failed:
+        print(f"grpo-seeds: {len(failed)} run(s) failed (see their .log): {failed}", flush=True)
+    done = [w for w, _, _ in commands if w not in failed]
+    repeat = [w for w, _, _ in commands if w.rstrip("/").endswith("_repeat/grpo_env_mjx")]
+    firsts = [w for w in done if w not in repeat]
+    if not firsts:
+        raise SystemExit("grpo-seeds: no run finished")
+    pair = ""
+    if repeat and repeat[0] in done:
+        original = repeat[0].replace("_repeat/grpo_env_mjx", "/grpo_env_mjx")
+        pair = f"{original},{repeat[0]}" if original in done else ""
+    return run_seeds(argparse.Namespace(runs=",".join(firsts), repeat=pair, repeat_step=args.repeat_step, out=args.out,
+                                        record=args.record))
+
+
 def _plot_seeds(curves: dict, path: str) -> None:
     import matplotlib
 
@@ -391,10 +451,20 @@ def _plot_seeds(curves: dict, path: str) -> None:
     plt.close(fig)
 
 
+def _config_name(argv) -> str:
+    args = sys.argv[1:] if argv is None else list(argv)
+    for i, a in enumerate(args):
+        if a == "--config" and i + 1 < len(args):
+            return args[i + 1]
+        if a.startswith("--config="):
+            return a.split("=", 1)[1]
+    return configs.DEFAULT
+
+
 def main(argv=None) -> None:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("stage", choices=("sft", "grpo", "eval", "seeds"))
+    parser.add_argument("stage", choices=("sft", "grpo", "eval", "seeds", "grpo-seeds"))
     parser.add_argument("--out", required=True)
     parser.add_argument("--demos-per-task", default="25")
     parser.add_argument("--record-amount", type=int, default=0, help="the data amount whose success is recorded")
@@ -417,6 +487,9 @@ def main(argv=None) -> None:
     parser.add_argument("--runs", default="", help="seeds: comma list of GRPO work dirs")
     parser.add_argument("--repeat", default="", help="seeds: two work dirs of the same seed (A,B)")
     parser.add_argument("--repeat-step", type=int, default=50, help="seeds: the step the repeats are compared at")
+    parser.add_argument("--seeds", default="0,1,2", help="grpo-seeds: the seeds run side by side")
+    parser.add_argument("--repeat-seed", type=int, default=None, help="grpo-seeds: run this seed a second time")
+    parser.add_argument("--gpus", default="0", help="grpo-seeds: GPUs the runs are placed on, round-robin")
     args = parser.parse_args(rest)
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "sft":
@@ -424,6 +497,11 @@ def main(argv=None) -> None:
         return
     if args.stage == "seeds":
         run_seeds(args)
+        return
+    if args.stage == "grpo-seeds":  # every config override is passed on to each seed's run
+        args.config_name = _config_name(argv)
+        run_grpo_seeds(args, [a for a in (sys.argv[1:] if argv is None else list(argv)) if a.startswith("--rl.")
+                              or a.startswith("--sim.")])
         return
     if not args.policy:
         parser.error(f"{args.stage} needs --policy")

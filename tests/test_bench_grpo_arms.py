@@ -170,3 +170,19 @@ def test_the_grpo_loop_places_host_parameters_before_its_first_step(tmp_path):
         run_id={"x": 1}, progress=lambda point, eta: "", log=lambda *_: None)
     assert seen and all(issubclass(t, jax.Array) for t in seen)
     assert float(result.state.params["w"][0]) == 2.0 ** rl.grpo.steps
+
+
+def test_grpo_seeds_places_one_run_per_gpu_with_multicast_off_and_passes_the_overrides(tmp_path):
+    args = SimpleNamespace(seeds="0,1,2", repeat_seed=0, gpus="0,1,2,3", out=str(tmp_path), policy="p.npz",
+                           eval_episodes=50, config_name="sword:small")
+    commands = bench_policy.seed_commands(args, ["--rl.env.backend=mjx", "--rl.grpo.steps=60"])
+    assert [c[0] for c in commands] == [str(tmp_path / n / "grpo_env_mjx") for n in ("s0", "s1", "s2", "s0_repeat")]
+    assert [c[2]["CUDA_VISIBLE_DEVICES"] for c in commands] == ["0", "1", "2", "3"]
+    assert all(c[2]["NCCL_NVLS_ENABLE"] == "0" and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in c[2] for c in commands)
+    cmd = commands[3][1]
+    assert cmd[cmd.index("--seed") + 1] == "0" and cmd[-2:] == ["--rl.env.backend=mjx", "--rl.grpo.steps=60"]
+    shared = bench_policy.seed_commands(SimpleNamespace(**{**vars(args), "gpus": "0,1"}), [])
+    assert [c[2]["CUDA_VISIBLE_DEVICES"] for c in shared] == ["0", "1", "0", "1"]
+    assert all(c[2]["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.45" for c in shared)
+    with pytest.raises(SystemExit, match="--seeds"):
+        bench_policy.seed_commands(SimpleNamespace(**{**vars(args), "seeds": ""}), [])
