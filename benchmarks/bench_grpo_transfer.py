@@ -32,6 +32,7 @@ import sys
 import time
 from collections.abc import Sequence
 
+from benchmarks import common
 from sword_jax.cli import not_dotted_overrides
 
 ARMS = ("world_model", "ground_truth", "ground_truth_keyframes")
@@ -147,12 +148,7 @@ def plot(summary: dict, path: str) -> None:
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for arm, entry in summary["arms"].items():
         errorbar_curve(ax, entry["curve"], label=labels[arm])
-    ax.set_xlabel("GRPO step")
-    ax.set_ylabel("real success (true proprio, 95% interval)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    common.finish_figure(fig, ax, path, xlabel="GRPO step", ylabel="real success (true proprio, 95% interval)")
 
 
 def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:

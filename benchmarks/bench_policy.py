@@ -436,19 +436,14 @@ def _plot_seeds(curves: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from benchmarks.bench_grpo_transfer import errorbar_curve
+
     fig, ax = plt.subplots(figsize=(6, 4))
-    for name, points in curves.items():
-        steps = [p[0] for p in points]
-        label = name.rstrip("/")[-40:]
-        line, = ax.plot(steps, [p[1] for p in points], "o-", lw=1.8, label=label)
-        ax.fill_between(steps, [p[2][0] for p in points], [p[2][1] for p in points], color=line.get_color(), alpha=0.12)
-    ax.set_xlabel("GRPO step")
-    ax.set_ylabel("greedy success, 500 evaluation episodes")
-    ax.set_title("Ground-truth GRPO (MJX), one curve per seed, 95% Wilson bands")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    for i, (name, points) in enumerate(curves.items()):
+        errorbar_curve(ax, [{"step": p[0], "success": p[1], "ci95": p[2]} for p in points], offset=0.6 * i,
+                       label=name.rstrip("/")[-40:])
+    common.finish_figure(fig, ax, path, xlabel="GRPO step", ylabel="greedy success, 500 evaluation episodes",
+                         title="Ground-truth GRPO (MJX), one curve per seed, 95% intervals", legend_size=7)
 
 
 def _config_name(argv) -> str:

@@ -157,3 +157,18 @@ def _jaxpr_flops(jaxpr) -> float:
                     elif hasattr(sub, "eqns"):
                         total += _jaxpr_flops(sub)
     return total
+
+
+def finish_figure(fig: Any, ax: Any, path: str, *, xlabel: str, ylabel: str, title: str | None = None,
+                  legend_size: int = 8) -> None:
+    """Labels ``ax``, draws its legend, writes ``fig`` to ``path`` (PNG, 120 dpi) and closes it."""
+    import matplotlib.pyplot as plt
+
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.legend(fontsize=legend_size)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
