@@ -275,3 +275,33 @@ def test_minibatch_updates_move_the_ratio_and_bind_the_clip_on_a_designed_batch(
     assert float(many["clip_fraction"]) > 0.0 and abs(float(many["ratio_mean"]) - 1.0) > 1e-3
     with pytest.raises(ValueError, match="minibatches"):
         dataclasses.replace(cfg.grpo, minibatches=3).validate()
+
+
+def test_shared_group_noise_is_one_draw_per_group():
+    """rl.imagined.shared_group_noise: the simulator's noise keys are equal within a group and differ across
+    groups; greedy members of a group from one start then see the same frames, while per-trajectory
+    noise makes them differ."""
+    from sword_jax.rl.rollout import simulator_keys
+
+    cfg = _toy_cfg(group_size=4)
+    shared = dataclasses.replace(cfg, imagined=dataclasses.replace(cfg.imagined, shared_group_noise=True))
+    data = jax.random.key_data(simulator_keys(jax.random.key(0), 8, shared)).reshape(2, 4, -1)
+    assert bool(jnp.all(data == data[:, :1])) and not bool(jnp.all(data[0] == data[1]))
+    own = jax.random.key_data(simulator_keys(jax.random.key(0), 8, cfg)).reshape(8, -1)
+    assert len({tuple(np.asarray(k)) for k in own}) == 8
+    with pytest.raises(ValueError, match="whole groups"):
+        simulator_keys(jax.random.key(0), 6, shared)
+    graphdef, params = build_policy(cfg, seed=0)
+    sim, reward_model = toy_simulator(frame_size=8, noise=0.05), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl"], 32))
+    start = expand_groups(toy_start_states(jnp.tile(tokens, (2, 1)), key=jax.random.key(1), frame_size=8), 4)
+    start = start._replace(frame=jnp.broadcast_to(start.frame[:1], start.frame.shape),
+                           proprio=jnp.broadcast_to(start.proprio[:1], start.proprio.shape))
+    frames = {}
+    for name, c in (("shared", shared), ("own", cfg)):
+        out = imagined_rollout(graphdef, params, sim, reward_model, start, c, key=jax.random.key(2), greedy=True,
+                               record_frames=True)
+        frames[name] = np.asarray(out.frames).reshape((2, 4) + out.frames.shape[1:])
+    assert np.array_equal(frames["shared"][:, 0], frames["shared"][:, 3]) and not np.array_equal(
+        frames["shared"][0], frames["shared"][1])
+    assert not np.array_equal(frames["own"][:, 0], frames["own"][:, 3])

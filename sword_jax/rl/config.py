@@ -261,6 +261,11 @@ class ImaginedConfig:
         score at or above ``rl.success_threshold`` (counted across chunks; 1 = any frame, the rule so
         far). The replay's ``sustained_success_sweep`` measures what k = 1/2/4/8 would do to false
         and missed successes before a run uses it.
+      shared_group_noise: the learned simulator's sampling noise is drawn once per GRPO group and shared by
+        its members (:func:`sword_jax.rl.rollout.simulator_keys`), so within a group only the actions
+        differ; off (default): every trajectory draws its own (on `small` a second noise draw changed
+        19-31% of replayed real episodes' verdicts, and a lone noise-made success in a group takes a large
+        advantage).
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
@@ -278,6 +283,7 @@ class ImaginedConfig:
     eval_replay_settle_steps: int = 8  # hold actions scored after each replayed episode's last action
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
     sim_microbatches: int = 1  # simulator step over trajectories in this many sequential slices
+    shared_group_noise: bool = False  # one simulator noise draw per GRPO group
 
     def validate(self) -> None:
         if self.max_chunks < 1:

@@ -33,12 +33,14 @@ from sword_jax.train_loop import LoopResult, StepFn, run_steps
 # its checkpoint. Left out: grpo.steps (a run may be extended), the evaluation's settings, the SFT and
 # reward-model knobs.
 GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_coef", "grpo.learning_rate",
-                 "grpo.ppo_epochs", "grpo.minibatches", "grpo.max_sample_rounds", "grpo.min_mixed_fraction", "env.backend", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
+                 "grpo.ppo_epochs", "grpo.minibatches", "grpo.max_sample_rounds", "grpo.min_mixed_fraction",
+                 "env.backend", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
                  "success_threshold", "grpo.filter_groups", "grpo.success_bonus", "imagined.return_rule",
                  "grpo.loss_norm", "grpo.temperature", "policy.width", "policy.layers", "policy.heads",
                  "policy.max_instruction_bytes", "image_size", "proprio_dim", "policy.proprio_encoding",
-                 "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "imagined.success_frames", "env.proprio",
-                 "env.starts", "imagined.keyframe_fraction", "grpo.update_microbatch", "grpo.rollout_batch")
+                 "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "imagined.success_frames",
+                 "imagined.shared_group_noise", "env.proprio", "env.starts", "imagined.keyframe_fraction",
+                 "grpo.update_microbatch", "grpo.rollout_batch")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]

@@ -142,6 +142,19 @@ def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"],
     raise ValueError(f"rl.imagined.return_rule must be success|score, got {cfg.imagined.return_rule!r}")
 
 
+def simulator_keys(key: jax.Array, n: int, cfg: RLConfig) -> jax.Array:
+    """The simulator's noise key of each of ``n`` trajectories for one chunk: one per trajectory, or with
+    ``rl.imagined.shared_group_noise`` one per group of ``rl.grpo.group_size`` consecutive trajectories (the
+    layout :func:`expand_groups` makes), so the members of a group differ only by their actions and a
+    group's advantages do not reward the noise draw that happened to favour one member."""
+    if not cfg.imagined.shared_group_noise:
+        return jax.random.split(key, n)
+    g = cfg.grpo.group_size
+    if n % g:
+        raise ValueError(f"rl.imagined.shared_group_noise needs whole groups: {n} trajectories are not groups of {g}")
+    return jnp.repeat(jax.random.split(key, n // g), g, axis=0)
+
+
 def expand_groups(start: StartState, group_size: int) -> StartState:
     """Repeats each start state ``group_size`` times: leading ``[B]`` -> ``[B * G]`` (start-major)."""
     return jax.tree.map(lambda x: jnp.repeat(x, group_size, axis=0), start)
@@ -234,7 +247,7 @@ def imagined_rollout(
             tokens, log_probs = sample_chunk(logits, key=policy_key, temperature=cfg.grpo.temperature)
         actions = tokens_to_actions(tokens, cfg.action_bins)  # (N, T, A)
         new_state, frames = map_over_slices(lambda s, a, k: simulator.step(s, a, key=k),
-                                            (sim_state,) + to_slices((actions, jax.random.split(sim_key, n)), slices))
+                                            (sim_state,) + to_slices((actions, simulator_keys(sim_key, n, cfg)), slices))
         frames = from_slices(frames)
         frames = constrain(frames, ("batch", "time", "height", "width", "channels"))
         t = frames.shape[1]  # actions executed (= frames predicted) this step; the policy re-plans after them
