@@ -431,3 +431,24 @@ def test_separation_is_paired_over_the_same_episodes_and_refuses_one_sided_data(
         separation(np.ones(4, bool), [np.zeros(4)], 48)
     with pytest.raises(ValueError, match="equal 1-D shapes"):
         separation(real, [blind[:10]], 48)
+
+
+def test_threshold_calibration_keeps_false_successes_within_the_bound_and_recall_highest():
+    from sword_jax.rl.sim_agreement import calibrate_threshold
+
+    rng = np.random.default_rng(0)
+    real = np.r_[np.ones(60, bool), np.zeros(140, bool)]
+    scores = np.r_[rng.uniform(0.6, 1.0, 60), rng.uniform(0.0, 0.8, 140)]  # the classes overlap on [0.6, 0.8]
+    out = calibrate_threshold(scores, real, max_false_success=0.05)
+    fails = scores[~real]
+    assert np.sum(fails >= out["threshold"]) <= 7 and out["false_success"]["rate"] <= 0.05
+    # the next lower failure score would let one failure too many through: the threshold is the lowest allowed
+    assert np.sum(fails >= np.sort(fails)[::-1][7]) == 8
+    assert out["missed_success"]["rate"] == pytest.approx(np.mean(scores[real] < out["threshold"]))
+    strict = calibrate_threshold(scores, real, max_false_success=0.0)
+    assert strict["false_success"]["rate"] == 0.0 and strict["threshold"] > fails.max()
+    assert strict["missed_success"]["rate"] >= out["missed_success"]["rate"]
+    with pytest.raises(ValueError, match="no real failure"):
+        calibrate_threshold(scores[:60], real[:60])
+    with pytest.raises(ValueError, match="must be finite"):
+        calibrate_threshold(np.r_[np.nan, scores[1:]], real)

@@ -305,6 +305,39 @@ def _rate(hits: int, of: int) -> dict[str, Any]:
     return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
 
 
+def calibrate_threshold(scores: np.ndarray, real: np.ndarray, *, max_false_success: float = 0.05) -> dict[str, Any]:
+    """The lowest success threshold whose false-success rate on these episodes is at most ``max_false_success``.
+
+    Args:
+      scores: ``[n]`` each replayed episode's decisive detector score (e.g. its best score over the frames,
+        or over runs of ``rl.imagined.success_frames`` frames): the episode is imagined a success when the
+        score is at or above the threshold.
+      real: ``[n]`` bool, the episodes' real outcomes.
+      max_false_success: the bound on P(imagined success | real failure).
+
+    Returns:
+      ``{"threshold", "false_success", "missed_success", ...}`` (:func:`agreement` at that threshold): the
+      threshold lets through at most ``floor(max_false_success * failures)`` real failures, the largest
+      recall on real successes any threshold with that bound has. Calibrate on held-out replays and
+      report it on others.
+
+    Raises:
+      ValueError: mismatched or empty inputs, no real failure, or a bound outside [0, 1).
+    """
+    scores, real = np.asarray(scores, np.float64), np.asarray(real, bool)
+    if scores.shape != real.shape or scores.ndim != 1 or not np.all(np.isfinite(scores)):
+        raise ValueError(f"calibrate_threshold: scores {scores.shape} must be finite and match real {real.shape} (1-D)")
+    if not 0.0 <= max_false_success < 1.0:
+        raise ValueError(f"calibrate_threshold: max_false_success must be in [0, 1), got {max_false_success}")
+    failures = np.sort(scores[~real])[::-1]
+    if failures.size == 0:
+        raise ValueError("calibrate_threshold: no real failure among the episodes: the false-success rate is undefined")
+    allowed = int(np.floor(max_false_success * failures.size + 1e-9))
+    # just above the (allowed + 1)-th highest failure score: that one and every lower one stay failures
+    threshold = float(np.nextafter(failures[allowed], np.inf))
+    return {"threshold": threshold, "max_false_success": max_false_success, **agreement(real, scores >= threshold)}
+
+
 def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
     """Imagined vs real outcomes of the same episodes, with 95% Wilson intervals.
 
