@@ -31,6 +31,7 @@ def _vae_copy(src: str, dst: str, *, perturb: str | None = None, truncate: bool 
     return dst
 
 
+@pytest.mark.slow  # 70 s on 2 cores; test_vae checks the same parity, the perturbed case below the command line
 def test_verify_vae_reference_passes(shared_dir, tmp_path, capsys):
     good = _vae_copy(os.path.join(shared_dir, REF), str(tmp_path / "good"))
     assert wan22.main(["verify", good]) == 0

@@ -125,29 +125,6 @@ class BreakingSlideEnv(SlideEnv):
         return jnp.where(broken, jnp.nan, pos), obs, reached
 
 
-def test_an_episode_whose_physics_breaks_ends_as_a_failure_and_leaves_nothing_non_finite(setup):
-    """Episodes pushed into a region where the env returns NaN end there (failed, counted as broken);
-    every record after an episode ended is zero, so the GRPO update on the batch stays finite."""
-    rl, graphdef, params = setup
-    starts = np.array([[-0.29], [-0.29], [0.3], [0.0]], np.float32)
-    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
-    fn = jax.jit(lambda p, s, t, k: scan_rollout(graphdef, p, BreakingSlideEnv(), s, t, rl, key=k, greedy=False,
-                                                 ensemble=False, max_steps=6))
-    rollout, stats = fn(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.key(4))
-    broken = np.asarray(stats.broken)
-    assert broken.any(), "the designed start should break within 6 actions"
-    assert not np.asarray(rollout.success)[broken].any()
-    for name in ("obs_frames", "proprio", "log_probs", "tokens", "valid", "returns"):
-        assert np.all(np.isfinite(np.asarray(getattr(rollout, name), np.float32))), name
-    ended = np.asarray(rollout.valid) == 0
-    assert ended.any() and np.all(np.asarray(rollout.log_probs)[ended] == 0) and np.all(np.asarray(rollout.proprio)[ended] == 0)
-    grpo_rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, rollout_batch=1, group_size=4, update_microbatch=0))
-    returns = jnp.asarray([0.0, 0.0, 2.0, 0.0])  # a designed signal: the update must run over the broken ones
-    _, metrics = grpo.grpo_update(graphdef, grpo_rl, grpo.init_state(jax.tree.map(jnp.copy, params), grpo_rl),
-                                  rollout._replace(returns=returns))
-    assert float(metrics["finite"]) == 1.0 and np.isfinite(float(metrics["loss"]))
-
-
 def test_sampled_rollout_is_sampled_and_keyed(setup):
     rl, graphdef, params = setup
     starts = np.zeros((4, 1), np.float32)
@@ -192,28 +169,41 @@ def test_select_groups_puts_mixed_groups_first():
         select_groups(ro, g, 7)
 
 
-def test_env_grpo_steps_resample_and_resume_exactly(setup, tmp_path):
-    """Dynamic sampling resamples until enough mixed groups (or the round limit), the update takes
-    minibatch steps whose ratio leaves 1, and a step is a pure function of (state, step, key)."""
+def test_env_grpo_steps_resample_survive_broken_physics_and_are_pure(setup, tmp_path):
+    """Dynamic sampling resamples until enough mixed groups (or the round limit); an episode whose env goes
+    non-finite ends as a failure with every record after it zero, so the update stays finite; the update
+    takes minibatch steps whose ratio leaves 1; a step is a pure function of (state, step, key)."""
     rl, graphdef, params = setup
     rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, max_sample_rounds=3, minibatches=2, ppo_epochs=1,
-                                                            learning_rate=1e-3, update_microbatch=0))
+                                                            learning_rate=1e-3, update_microbatch=0,
+                                                            min_mixed_fraction=1.0))
     tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
 
-    def starts_at(step, round_):
+    def starts_at(step, round_):  # one start near success, one near the region where the env breaks
         rng = np.random.default_rng([step, round_])
-        return rng.uniform(0.1, 0.34, (2, 1)).astype(np.float32), tokens
+        return np.array([[rng.uniform(0.2, 0.34)], [rng.uniform(-0.3, -0.25)]], np.float32), tokens
 
     eval_starts = np.array([[0.3], [0.0], [0.33]], np.float32)
-    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=3, starts_at=starts_at, eval_starts=eval_starts,
+    runner = EnvGRPO(graphdef, rl, BreakingSlideEnv(), max_steps=4, starts_at=starts_at, eval_starts=eval_starts,
                      eval_tokens=tokenize_instructions(["push it"] * 3, rl.policy.max_instruction_bytes),
                      eval_tasks=[0, 0, 1], key=jax.random.key(3))
+    starts, _ = starts_at(5, 0)
+    rollout, stats = runner.rollout(params, jnp.asarray(np.repeat(starts, 4, 0)), jnp.asarray(np.repeat(tokens, 4, 0)),
+                                    jax.random.key(4), False, False)
+    broken = np.asarray(stats.broken)
+    assert broken[4:].any() and not np.asarray(rollout.success)[broken].any()
+    for name in ("obs_frames", "proprio", "log_probs", "tokens", "valid", "returns"):
+        assert np.all(np.isfinite(np.asarray(getattr(rollout, name), np.float32))), name
+    ended = np.asarray(rollout.valid) == 0
+    assert ended.any() and np.all(np.asarray(rollout.log_probs)[ended] == 0) and np.all(np.asarray(rollout.proprio)[ended] == 0)
+
     state = grpo.init_state(jax.tree.map(jnp.copy, params), rl)
     copy = jax.tree.map(jnp.copy, state)
     s1, m1 = runner.step(state, 5, jax.random.key(7))
     s2, m2 = runner.step(copy, 5, jax.random.key(7))
     for a, b in zip(jax.tree.leaves(s1.params), jax.tree.leaves(s2.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(m1["finite"]) == 1.0 and float(m1["broken_episodes"]) > 0
     assert 1 <= float(m1["sample_rounds"]) <= 3
     assert float(m1["trajectories_sampled"]) == 8 * float(m1["sample_rounds"])
     assert float(m1["sample_rounds"]) == 3 or float(m1["mixed_groups"]) >= 2
