@@ -69,14 +69,15 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
     import jax
     import jax.numpy as jnp
 
+    from brax.envs.wrappers import training
+
     import sim
-    from sim import wrappers
     from sim.env import camera_renderer
 
     def steps_per_s(renderer) -> tuple[float, object]:
-        env = wrappers.wrap_for_training(sim.load("libero_spatial", backend="mjx", renderer=renderer,
-                                                  **sim_overrides), 220)
-        keys = jax.random.split(jax.random.key(0), batch)
+        env = training.wrap(sim.load("libero_spatial", backend="mjx", renderer=renderer, **sim_overrides),
+                            episode_length=220)
+        keys = jax.random.split(jax.random.PRNGKey(0), batch)  # brax's wrappers take raw keys
         state = jax.jit(env.reset)(keys)
         step = jax.jit(env.step)
         actions = jax.random.uniform(jax.random.key(1), (batch, 7), jnp.float32, -0.3, 0.3)
@@ -132,7 +133,7 @@ def mjx_throughput(batch: int, resolution: int, steps: int, *, render: bool = Tr
 
 def batch_layout(batch: int, resolution: int, steps: int) -> dict[str, float]:
     """Env-steps/s of the raw MJX env step (no episode wrappers) vmapped with the batch axis first (as
-    ``wrappers.VmapWrapper``) and last (``in_axes=-1, out_axes=-1``: every state leaf stored batch-
+    brax's ``VmapWrapper``) and last (``in_axes=-1, out_axes=-1``: every state leaf stored batch-
     innermost between steps), physics alone and with the agentview camera rendered (RGB + depth + seg).
     XLA lays out each program's intermediates itself; this measures whether the state's layout between
     steps pays."""

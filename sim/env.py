@@ -2,7 +2,8 @@
 
 Two backends over ONE model (``sim/scene.py``) and ONE controller (``sim/controller.py``):
 
-* ``MjxEnv``: MJX (JAX), jit/vmap-able, for accelerators. ``State.data`` is an ``mjx.Data``.
+* ``MjxEnv`` (``sim/mjx_env.py``): MJX (JAX), jit/vmap-able, for accelerators; a brax ``Env`` whose
+  states are brax's ``envs.State`` with an ``mjx.Data`` as ``pipeline_state`` (also read as ``data``).
 * ``CpuEnv``: MuJoCo's C engine, numpy in and out, for CPU work (tests, data generation).
   ``State.data`` is a ``mujoco.MjData`` that ``step`` copies, never mutates, so the API stays
   pure. MJX's JAX implementation is far too slow on a CPU for an arm (~0.4 s per physics step
@@ -11,8 +12,9 @@ Two backends over ONE model (``sim/scene.py``) and ONE controller (``sim/control
 Both share the observation, reward and success code (``_Common``, written for ``xp`` =
 numpy or jax.numpy). One control step (20 Hz) = controller once + ``substeps`` physics steps.
 ``reset`` places the objects (one of the task's 50 fixed initial states, or a fresh sample)
-and runs the 10 settle steps (zero motion, gripper open) as LIBERO does. Episode limits and
-auto-reset live in ``sim/wrappers.py``, not here.
+and runs the 10 settle steps (zero motion, gripper open) as LIBERO does. Batching, episode limits and
+auto-reset are wrappers, not here: brax's training wrappers for ``MjxEnv``, the host-side ones of
+``sim/wrappers.py`` for ``CpuEnv``.
 """
 
 from __future__ import annotations
@@ -37,10 +39,11 @@ SETTLE_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], np.float32)
 
 @struct.dataclass
 class State:
-    """Environment state (mujoco_playground style).
+    """The C engine's environment state (brax's ``envs.State`` fields, with ``data`` for
+    ``pipeline_state``; the MJX backend's is brax's own, ``sim.mjx_env.MjxState``).
 
     Attributes:
-      data: ``mjx.Data`` (MJX backend) or ``mujoco.MjData`` (C backend).
+      data: ``mujoco.MjData``.
       obs: dict with ``proprio`` (8,) and any images the renderer adds.
       reward: () 1.0 when the task is solved in this state.
       done: () 1.0 when the task is solved (time limits are a wrapper's business).
@@ -118,7 +121,7 @@ class _Common:
 
 
 class CpuEnv(_Common):
-    """C-engine backend (numpy state). Same API as ``MjxEnv``."""
+    """C-engine backend (numpy state). Same ``reset``/``step`` API as ``MjxEnv``."""
 
     def __init__(self, config: SimConfig = SimConfig(), task_id: int = 0, **kwargs):
         super().__init__(config, task_id, **kwargs)
@@ -317,79 +320,24 @@ def _midpoint_box_contacts(model: Any, data: Any) -> Any:
     return data.tree_replace({"_impl.contact.pos": pos})
 
 
-class MjxEnv(_Common):
-    """MJX backend: ``reset``/``step`` are pure JAX functions (jit them; vmap via wrappers)."""
+def make_env(config: SimConfig, task_id: int, **kwargs) -> Any:
+    """The backend ``config.backend`` names: a ``CpuEnv`` or an ``MjxEnv`` (``sim/mjx_env.py``)."""
+    if config.backend == "mjx":
+        from sim.mjx_env import MjxEnv  # imports brax and MJX: seconds the C backend does not spend
 
-    def __init__(self, config: SimConfig = SimConfig(backend="mjx"), task_id: int = 0, **kwargs):
-        super().__init__(config, task_id, **kwargs)
-        mjx = _mjx()
-        # MJX's solver settings are its own (sim.mjx_solver_iterations); mj_model keeps the C engine's.
-        model = scene.build_model(timestep=config.physics_dt, iterations=config.mjx_solver_iterations,
-                                  ls_iterations=config.mjx_ls_iterations)
-        self.mjx_model = mjx.put_model(model)
-        self._init_states_j = jnp.asarray(self.init_states, jnp.float32)
-
-    def _draws_to_qpos(self, draws: Any, xp: Any) -> Any:
-        if self.config.init == "fixed":
-            idx = jnp.minimum((draws[-1] * tasks.NUM_INIT_STATES).astype(jnp.int32), tasks.NUM_INIT_STATES - 1)
-            return self._init_states_j[idx]
-        return tasks.init_qpos(self.task_id, draws[:-1], xp=jnp)
-
-    def initial_qpos(self, key: jax.Array) -> jax.Array:
-        """The ``(nq,)`` qpos a reset from ``key`` starts from, before the settle steps (pure)."""
-        return self._draws_to_qpos(jax.random.uniform(key, (tasks.NUM_DRAWS + 1,)), jnp)
-
-    def reset(self, key: jax.Array) -> State:
-        """New episode (pure). ``key``: a jax PRNG key."""
-        return self.reset_to(self.initial_qpos(key))
-
-    def reset_to(self, qpos: jax.Array) -> State:
-        """New episode from a given initial qpos (nq,), then the settle steps (pure)."""
-        qpos = jnp.asarray(qpos, jnp.float32)
-        ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
-        mjx = _mjx()
-        with _mjx_promotion():
-            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
-            data = _mjx_forward(self.mjx_model, data)  # as mjx_step's forward: the C engine's contact points
-        settle = jnp.asarray(SETTLE_ACTION)
-        data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
-        return self._state(data, info={})
-
-    def _physics(self, data: Any, action: jax.Array) -> Any:
-        from mujoco.mjx._src import support
-
-        with _mjx_promotion():
-            jacp, jacr = support.jac(self.mjx_model, data, data.site_xpos[self.site_id], self.hand_body)  # (nv, 3)
-        ctrl = ctl.servo_targets(action.astype(jnp.float32), data.qpos[:7], jacp[:7].T, jacr[:7].T,
-                                 self.controller, xp=jnp)
-        data = data.replace(ctrl=ctrl)
-        with _mjx_promotion():
-            return jax.lax.fori_loop(0, self.substeps, lambda _, d: mjx_step(self.mjx_model, d), data)
-
-    def _state(self, data: Any, info: dict[str, Any]) -> State:
-        solved = self._success(data, jnp).astype(jnp.float32)
-        return State(data=data, obs=self._obs(data, jnp), reward=solved, done=solved,
-                     metrics={"success": solved}, info=info)
-
-    def step(self, state: State, action: jax.Array) -> State:
-        """One 20 Hz control step (pure; jit it)."""
-        self._check_action(action)
-        data = self._physics(state.data, jnp.asarray(action, jnp.float32))
-        return self._state(data, info=dict(state.info))
-
-
-def make_env(config: SimConfig, task_id: int, **kwargs) -> CpuEnv | MjxEnv:
-    """The backend ``config.backend`` names."""
-    return (MjxEnv if config.backend == "mjx" else CpuEnv)(config, task_id, **kwargs)
+        return MjxEnv(config, task_id, **kwargs)
+    return CpuEnv(config, task_id, **kwargs)
 
 
 def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_camera: bool = False,
                     depth_and_seg: bool = False, static_split: bool = True, unroll: int | bool | None = None,
-                    tile: int | None = 8, chunk: int = 16) -> Renderer:
+                    tile: int | None = 8, chunk: int = 16, pixels: bool = False) -> Renderer:
     """An observation renderer (``data -> dict``) built on ``sim/render.py``'s JAX ray caster.
 
     Works on ``mjx.Data`` under jit/vmap (the MJX backend) and on ``mujoco.MjData``. Keys:
     ``agentview_rgb`` (and ``eye_in_hand_rgb``), plus ``*_depth`` / ``*_seg`` on request.
+    ``pixels=True``: the RGB frames alone, as brax's vision PPO reads them: float32 in [0, 1] under
+    ``pixels/agentview_rgb`` (and ``pixels/eye_in_hand_rgb``), the keys its CNN runs on.
     ``static_split=False`` tests every geom in every frame (the same frames up to float rounding;
     for benchmarks that time the split). ``unroll``: geoms per step of the renderer's scans
     (``sim.render.render``; the same frames); ``None``: 4 on a GPU, 1 elsewhere, as measured (128 px,
@@ -399,6 +347,8 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
     """
     from sim import render
 
+    if pixels and depth_and_seg:
+        raise ValueError("pixels=True gives the RGB frames alone (brax's CNN input); depth_and_seg needs pixels=False")
     if unroll is None:
         unroll = 4 if jax.default_backend() == "gpu" else 1
 
@@ -414,6 +364,9 @@ def camera_renderer(mj_model: mujoco.MjModel, *, resolution: int = 128, wrist_ca
         out = {}
         for cam, draw in draws.items():
             frame = draw(data)
+            if pixels:
+                out[f"pixels/{cam}_rgb"] = frame.rgb.astype(jnp.float32) / 255.0
+                continue
             out[f"{cam}_rgb"] = frame.rgb
             if depth_and_seg:
                 out[f"{cam}_depth"] = frame.depth

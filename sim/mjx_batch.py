@@ -2,7 +2,7 @@
 scan rollouts drive (:class:`sword_jax.rl.scan_rollout.JaxEnv`).
 
 Every task shares one scene and one success predicate (the target bowl on the plate); a task is its
-initial states and its instruction. So one :class:`~sim.env.MjxEnv` serves every episode of a batch, each
+initial states and its instruction. So one :class:`~sim.mjx_env.MjxEnv` serves every episode of a batch, each
 reset from its own initial ``qpos``, and a batch may mix tasks freely.
 
 What the policy sees is what :class:`sim.lockstep.LockstepEnvs` (the C engine) gives it: the agentview
@@ -34,7 +34,8 @@ class MjxEpisodes:
 
     def __init__(self, config: SimConfig = SimConfig(backend="mjx"), *, resolution: int | None = None):
         from sim import scene
-        from sim.env import MjxEnv, camera_renderer
+        from sim.env import camera_renderer
+        from sim.mjx_env import MjxEnv
 
         resolution = config.resolution if resolution is None else resolution
         config = dataclasses.replace(config, backend="mjx", resolution=resolution)

@@ -535,14 +535,16 @@ def make_env(
     success_frames: int = 1,
     **simulator_options: Any,
 ):
-    """The learned simulator as a brax-style env (:class:`sword_jax.rl.env.ImaginedPoolEnv`).
+    """The learned simulator as a brax ``Env`` (:class:`sword_jax.rl.env.ImaginedPoolEnv`).
 
     Pure and jittable, one environment: ``state = env.reset(rng)`` starts from a start state drawn
     from ``start_pool`` (:func:`start_states`), ``state = env.step(state, chunk)`` advances one
-    action chunk ``[4p, a]``. ``state`` is an ``EnvState`` pytree laid out like brax's
-    (``obs`` = ``{frame [H, W, 3], proprio, proprio_valid, instruction_tokens}``, ``reward`` = the
-    change of the success score, ``done``, ``info['frames']`` = the predicted frames). Batch with
-    ``jax.vmap(env.reset)(keys)`` / ``jax.vmap(env.step)(states, chunks)``.
+    action chunk, ``[4p, a]`` or flat ``[4p * a]`` (``env.action_size``, as brax's trainers give it).
+    ``state`` is a brax ``envs.State`` (``obs`` = ``{"pixels/frame": [H, W, 3], "proprio",
+    "proprio_valid", "instruction_tokens"}``, the ``pixels/`` key being the one brax's vision PPO runs
+    its CNN on; ``reward`` = the change of the success score, ``done``, ``info['frames']`` = the
+    predicted frames). Batch with ``jax.vmap(env.reset)(keys)`` / ``jax.vmap(env.step)(states, chunks)``,
+    or hand it to brax (``brax.envs.wrappers.training.wrap``, ``brax.training.agents.ppo.train``).
 
     Args:
       reward_model: a :class:`RewardModel`, or a function ``frames [n, H, W, 3] -> [n]`` in [0, 1]

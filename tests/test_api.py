@@ -102,25 +102,26 @@ def _brightness(frames):
     return jnp.mean(frames, axis=(1, 2, 3))
 
 
-def test_brax_style_env_is_jittable_and_vmappable(model):
+def test_learned_simulator_brax_env_is_jittable_and_vmappable(model):
     pool = sword_jax.start_states(model, _given(model, 3)[:, 0], ["pick up the bowl", "open the drawer", "wait"])
     assert pool.latents.shape == (3, 2, 2, 2, 48) and pool.instruction_tokens.dtype == jnp.int32
     env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2)
-    assert env.action_size == (8, 7) and env.observation_size["frame"] == (32, 32, 3)
+    assert env.action_size == 8 * 7 and env.action_shape == (8, 7) and env.observation_size["pixels/frame"] == (32, 32, 3)
     reset = jax.jit(jax.vmap(env.reset))
     step = jax.jit(tracing.max_traces(jax.vmap(env.step), n=1))  # one compile for every step
     state = reset(jax.random.split(jax.random.key(0), 4))
-    assert state.obs["frame"].shape == (4, 32, 32, 3) and state.obs["proprio_valid"].shape == (4,)
+    assert state.obs["pixels/frame"].shape == (4, 32, 32, 3) and state.obs["proprio_valid"].shape == (4, 1)
     actions = jax.random.uniform(jax.random.key(1), (4, 8, 7), minval=-1.0, maxval=1.0)
     first = step(state, actions)
     second = step(first, actions)
     assert first.info["frames"].shape == (4, 8, 32, 32, 3) and first.reward.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(first.reward), np.asarray(_brightness(first.info["frames"][:, -1])
-                                                                    - _brightness(state.obs["frame"])), atol=1e-5)
+                                                                    - _brightness(state.obs["pixels/frame"])), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(second.done), 1.0)  # the 2-chunk limit
     # an env of the batch equals that env stepped alone
-    single = jax.jit(env.step)(jax.tree.map(lambda x: x[1], state), actions[1])
-    np.testing.assert_allclose(np.asarray(single.obs["frame"]), np.asarray(first.obs["frame"][1]), atol=1e-4)
+    single = jax.jit(env.step)(jax.tree.map(lambda x: x[1], state), actions[1].reshape(-1))  # flat, as brax's
+    np.testing.assert_allclose(np.asarray(single.obs["pixels/frame"]), np.asarray(first.obs["pixels/frame"][1]),
+                               atol=1e-4)
     with pytest.raises(ValueError, match="no reward model"):
         sword_jax.make_env(model, pool)
 

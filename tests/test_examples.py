@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from tests.conftest import REPO, example_env
 
@@ -63,3 +64,30 @@ def test_score_video_folders_reads_pairs_by_name(tmp_path):
         assert "unpaired: ['video2']" in str(err)
     else:
         raise AssertionError("an unpaired video must be refused")
+
+
+TINY_PPO = ["--num-envs", "2", "--unroll-length", "2", "--iterations", "2", "--episode-length", "2", "--hidden", "16",
+            "--cnn-channels", "4"]
+
+
+@pytest.mark.slow  # ~14 s on a 2-core CPU, most of it compilation (brax inits its networks op by op)
+def test_brax_ppo_trains_two_iterations_inside_the_learned_simulator():
+    """The example's brax PPO call on the learned simulator's brax env over the toy world, tiny shapes, in
+    this process (its imports shared with the other tests; brax's wrappers under standard promotion)."""
+    import jax
+
+    sys.path.insert(0, os.path.join(REPO, "examples"))
+    try:
+        import brax_ppo
+    finally:
+        sys.path.pop(0)
+    with jax.numpy_dtype_promotion("standard"):
+        result = brax_ppo.main(["--env", "toy", *TINY_PPO])
+    assert result["env"] == "toy" and [it["env_steps"] for it in result["iterations"]] == [4, 8]
+    assert all(np.isfinite(it["policy_loss"]) and it["steps_per_s"] > 0 for it in result["iterations"])
+
+
+@pytest.mark.slow
+def test_brax_ppo_trains_inside_a_world_model(tiny_run):
+    printed = _example("brax_ppo.py", "--env", "learned", "--run", tiny_run, *TINY_PPO)
+    assert "backend learned_simulator): action_size 56" in printed and "ppo iteration 2/2: 8 env steps" in printed

@@ -1,4 +1,4 @@
-"""The learned simulator as an environment: brax-style functional env and gymnasium wrappers."""
+"""The learned simulator as an environment: the functional brax-state env and the gymnasium wrappers."""
 
 import jax
 import jax.numpy as jnp
@@ -30,7 +30,7 @@ def test_functional_env_vmaps_and_truncates():
     np.testing.assert_array_equal(np.asarray(state.info["truncation"]), 1.0)
     after = step(state, jnp.ones((3, 8, 7)))  # done envs are frozen: no reward, same obs
     np.testing.assert_array_equal(np.asarray(after.reward), 0.0)
-    np.testing.assert_array_equal(np.asarray(after.obs["frame"]), np.asarray(state.obs["frame"]))
+    np.testing.assert_array_equal(np.asarray(after.obs["pixels/frame"]), np.asarray(state.obs["pixels/frame"]))
 
 
 def test_gym_env_passes_env_checker():

@@ -152,7 +152,7 @@ def test_success_frames_needs_consecutive_success_frames_across_chunks():
         state = jax.vmap(lambda s, key: env.reset(s, key=key))(start, jax.random.split(jax.random.key(1), n))
         state = jax.vmap(env.step)(state, still)
         assert (np.asarray(state.info["success"])[on_goal] > 0).all() == succeeds
-        assert (np.asarray(state.info["run"])[on_goal] > 0).all()
+        assert (np.asarray(state.pipeline_state.run)[on_goal] > 0).all()
 
 
 def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():

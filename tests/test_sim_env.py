@@ -158,7 +158,7 @@ def test_registry_load_and_errors():
     env = sim.load("libero_spatial_4")
     assert isinstance(env, CpuEnv) and env.task_id == 4
     assert sim.load("libero_spatial", task_id=1, init="random").config.init == "random"
-    from sim.env import MjxEnv
+    from sim.mjx_env import MjxEnv
 
     mjx_env = sim.load("libero_spatial", task_id=9, backend="mjx")  # the scene converts to MJX
     assert isinstance(mjx_env, MjxEnv) and mjx_env.substeps == 10

@@ -1,4 +1,4 @@
-"""Gymnasium registration, check_env, the vector env, and the wrappers on the C backend."""
+"""Gymnasium registration, check_env, the vector env, and the host-side wrappers of the C backend."""
 
 import os
 import subprocess
@@ -90,8 +90,8 @@ def test_make_vec_gives_a_numpy_vector_env():
     venv.close()
 
 
-def test_episode_and_autoreset_wrappers_on_the_cpu_backend():
-    env = wrappers.AutoResetWrapper(wrappers.EpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=2))
+def test_host_episode_and_autoreset_wrappers_on_the_cpu_backend():
+    env = wrappers.HostAutoResetWrapper(wrappers.HostEpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=2))
     state = env.reset(np.random.default_rng(0))
     first_qpos = state.data.qpos.copy()
     action = np.array([0.5, 0, 0, 0, 0, 0, -1.0])
@@ -102,47 +102,9 @@ def test_episode_and_autoreset_wrappers_on_the_cpu_backend():
     assert state.done == 1 and state.info["truncation"] == 1
     np.testing.assert_array_equal(state.data.qpos, first_qpos)  # auto-reset to the first state
     assert state.info["steps"] == 0
+    state = env.step(state, action)  # the next episode steps a copy: the stored first state stays as it was
+    assert state.info["steps"] == 1 and not np.allclose(state.data.qpos, first_qpos)
+    np.testing.assert_array_equal(state.info["first_data"].qpos, first_qpos)
     with pytest.raises(ValueError, match="episode_length"):
-        wrappers.EpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=0)
+        wrappers.HostEpisodeWrapper(CpuEnv(SimConfig(), 0), episode_length=0)
 
-
-class _CounterEnv:
-    """A pure-JAX stand-in env (MJX compiles in minutes on CPU): done after 3 steps."""
-
-    def reset(self, key):
-        import jax
-        import jax.numpy as jnp
-
-        from sim.env import State
-
-        start = jax.random.uniform(key, ())
-        return State(data=jnp.stack([start, jnp.float32(0)]), obs={"proprio": jnp.full((8,), start)},
-                     reward=jnp.float32(0), done=jnp.float32(0), metrics={}, info={})
-
-    def step(self, state, action):
-        import jax.numpy as jnp
-
-        data = state.data + jnp.stack([action[0], jnp.float32(1)])
-        done = (data[1] >= 3).astype(jnp.float32)
-        return state.replace(data=data, obs={"proprio": jnp.full((8,), data[0])}, reward=done, done=done)
-
-
-def test_jax_wrappers_vmap_episode_limit_and_autoreset():
-    import jax
-    import jax.numpy as jnp
-
-    env = wrappers.wrap_for_training(_CounterEnv(), episode_length=2)
-    state = jax.jit(env.reset)(jax.random.split(jax.random.key(0), 3))
-    first = state.data
-    step = jax.jit(env.step)
-    actions = jnp.ones((3, 7), jnp.float32)
-    state = step(state, actions)
-    np.testing.assert_allclose(state.data[:, 0], first[:, 0] + 1)
-    np.testing.assert_array_equal(state.info["steps"], [1, 1, 1])
-    state = step(state, actions)  # hits the 2-step limit: done, truncated, back to the first state
-    np.testing.assert_array_equal(state.done, [1, 1, 1])
-    np.testing.assert_array_equal(state.info["truncation"], [1, 1, 1])
-    np.testing.assert_allclose(state.data, first)
-    np.testing.assert_array_equal(state.info["steps"], [0, 0, 0])
-    with pytest.raises(ValueError, match=r"\(B, 7\)"):
-        env.step(state, jnp.ones((7,), jnp.float32))

@@ -68,7 +68,7 @@ def test_init_sampling_success_and_expert_match_under_jit(cpu_state):
 
 @pytest.mark.slow
 def test_mjx_and_c_backends_agree_on_a_short_trajectory():
-    from sim.env import MjxEnv
+    from sim.mjx_env import MjxEnv
 
     config = SimConfig(settle_steps=0)
     mjx_env = MjxEnv(config, 2)
@@ -154,7 +154,7 @@ def test_mjx_step_places_box_contacts_and_their_forces_like_the_c_engine():
 
 @pytest.mark.slow
 def test_vmapped_jax_expert_solves_the_task_on_mjx():
-    from sim.env import MjxEnv
+    from sim.mjx_env import MjxEnv
 
     env = MjxEnv(SimConfig(backend="mjx"), 2)
     qpos = jnp.asarray(env.init_states[:2], jnp.float32)

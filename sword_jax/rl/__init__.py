@@ -4,7 +4,7 @@ Modules: ``config`` (RLConfig), ``policy`` (VLAPolicy, byte-level instructions, 
 chunks), ``learned_simulator`` (LearnedSimulator / RewardModel protocols, toy world), ``world_model_sim``
 (WorldModel + streaming VAE as a LearnedSimulator), ``rollout`` (imagined rollouts, one jit),
 ``grpo`` (advantages, clipped loss, jitted update), ``sft`` (behaviour cloning), ``reward_model``
-(success detector), ``data`` (episodes and samplers), ``env`` (brax-style and gymnasium envs),
+(success detector), ``data`` (episodes and samplers), ``env`` (brax and gymnasium envs),
 ``policy_success`` (success in the ground-truth MuJoCo environments and the curve), ``params_io``
 (checkpoints). The ground-truth environments themselves are the top-level ``sim`` package.
 """

@@ -1,22 +1,30 @@
-"""The learned simulator as an environment: a brax-style functional env and gymnasium wrappers.
+"""The learned simulator as an environment: a brax ``Env`` and gymnasium wrappers.
 
-* :class:`ImaginedEnv` — pure ``reset(start, key) -> EnvState`` / ``step(state, action_chunk)
-  -> EnvState`` for ONE environment, with ``EnvState`` laid out like brax's ``envs.State``
-  (``pipeline_state, obs, reward, done, metrics, info``); ``jax.vmap`` batches it, auto-reset
-  and episode limits stay outside ``step`` (brax / mujoco_playground convention, except that
-  the chunk limit is part of the task and reported as ``info['truncation']``).
-* :class:`ImaginedPoolEnv` — brax's ``Env`` signature over a pool of start states: pure
-  ``reset(rng) -> EnvState`` (a start drawn from the pool by ``rng``) and ``step(state, action)``.
+* :class:`ImaginedEnv` — pure ``reset(start, key) -> State`` / ``step(state, action_chunk) -> State``
+  for ONE environment; ``State`` is brax's ``envs.State``. Its ``pipeline_state``
+  (:class:`ImaginedPipelineState`) holds the simulator state and the episode's progress (last
+  score, chunks taken, success run), so brax's ``AutoResetWrapper``, which restores
+  ``pipeline_state`` and ``obs``, restarts an episode whole. ``jax.vmap`` batches it, auto-reset and
+  episode limits stay outside ``step`` (brax / mujoco_playground convention, except that the chunk
+  limit is part of the task and reported as ``info['truncation']``).
+* :class:`ImaginedPoolEnv` — a brax ``Env`` over a pool of start states: pure ``reset(rng) -> State``
+  (a start drawn from the pool by ``rng``) and ``step(state, action)``, ``action_size`` /
+  ``observation_size`` / ``backend`` as brax defines them, so brax's training wrappers
+  (``brax.envs.wrappers.training.wrap``) and trainers (``brax.training.agents.ppo``) take it.
 * :class:`ImaginedVectorEnv` — a ``gymnasium.vector.VectorEnv`` over a pool of start states
   (dataset keyframes + instructions), next-step auto-reset, numpy in / numpy out.
 * :class:`ImaginedGymEnv` — the single-env ``gymnasium.Env`` (what ``check_env`` checks).
 
-An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1]. A step returns the last predicted
-frame as the observation, all predicted frames in ``info['frames']``, the change of the success
-score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit:
-the rule of the GRPO rollouts, :func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed
-rewards are the GRPO return of ``rl.imagined.return_rule=score`` without its ``rl.grpo.success_bonus`` (the
-default GRPO return, ``success``, pays success alone).
+An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1] (flat ``[chunk_len * action_dim]`` for
+brax's trainers). Observations are a dict: the frame under ``pixels/frame`` (the ``pixels/`` keys brax's
+vision PPO runs its CNN on; the gymnasium envs call it ``frame``), ``proprio``, ``proprio_valid`` (``[1]``,
+as brax's observation normalizer wants every other leaf a vector; a scalar in the gymnasium envs),
+``instruction_tokens``. A step returns the last predicted frame as the observation, all predicted frames
+in ``info['frames']``, the change of the success score as reward, ``terminated`` on success (score >=
+threshold) and ``truncated`` at the chunk limit: the rule of the GRPO rollouts,
+:func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed rewards are the GRPO return of
+``rl.imagined.return_rule=score`` without its ``rl.grpo.success_bonus`` (the default GRPO return,
+``success``, pays success alone).
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ import gymnasium as gym
 import jax
 import jax.numpy as jnp
 import numpy as np
+from brax.envs.base import Env, State
 from flax import struct
 from gymnasium.vector import AutoresetMode
 
@@ -34,16 +43,24 @@ from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartS
 from sword_jax.rl.rollout import chunk_outcome
 
 
-@struct.dataclass
-class EnvState:
-    """brax ``envs.State`` layout: ``pipeline_state`` is the simulator state."""
+FRAME_KEY = "pixels/frame"  # brax's vision networks run their CNN on the observation keys starting "pixels/"
 
-    pipeline_state: Any
-    obs: dict[str, jax.Array]
-    reward: jax.Array
-    done: jax.Array
-    metrics: dict[str, jax.Array]
-    info: dict[str, Any]
+
+@struct.dataclass
+class ImaginedPipelineState:
+    """What an episode restarts from: the simulator state and the episode's progress so far.
+
+    Attributes:
+      simulator: the learned simulator's state.
+      score: () the success score of the last frame (the next reward's baseline).
+      chunk: () int32 action chunks taken.
+      run: () int32 consecutive success frames at the end of the last chunk.
+    """
+
+    simulator: Any
+    score: jax.Array
+    chunk: jax.Array
+    run: jax.Array
 
 
 @struct.dataclass
@@ -58,48 +75,56 @@ class ImaginedEnv:
 
     def _obs(self, sim_state, frame, tokens):
         proprio, valid = self.simulator.observe(sim_state)
-        return {"frame": frame, "proprio": proprio.astype(jnp.float32), "proprio_valid": valid.astype(jnp.float32),
+        return {FRAME_KEY: frame, "proprio": proprio.astype(jnp.float32),
+                "proprio_valid": jnp.reshape(valid, (1,)).astype(jnp.float32),  # brax's obs leaves are vectors
                 "instruction_tokens": tokens}
 
-    def reset(self, start: StartState, *, key: jax.Array) -> EnvState:
+    def reset(self, start: StartState, *, key: jax.Array) -> State:
         """Starts from one keyframe/instruction; ``key`` seeds the simulator's noise."""
         sim_state = self.simulator.init(start)
         score = self.reward_model.score(start.frame[None])[0]
         t = self.simulator.frames_per_step
-        info = {"key": key, "score": score, "chunk": jnp.zeros((), jnp.int32), "truncation": jnp.zeros((), jnp.float32),
-                "success": jnp.zeros((), jnp.float32), "run": jnp.zeros((), jnp.int32),
-                "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}
-        return EnvState(sim_state, self._obs(sim_state, start.frame.astype(jnp.float32), start.instruction_tokens),
-                        jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32), {"score": score}, info)
+        pipeline_state = ImaginedPipelineState(sim_state, score, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+        info = {"key": key, "score": score, "truncation": jnp.zeros((), jnp.float32),
+                "success": jnp.zeros((), jnp.float32), "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}
+        return State(pipeline_state, self._obs(sim_state, start.frame.astype(jnp.float32), start.instruction_tokens),
+                     jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32), {"score": score}, info)
 
-    def step(self, state: EnvState, action_chunk: jax.Array) -> EnvState:
+    def step(self, state: State, action_chunk: jax.Array) -> State:
         """Advances one action chunk ``[chunk_len, action_dim]``; a done env is left unchanged."""
         key, step_key = jax.random.split(state.info["key"])
+        progress = state.pipeline_state
         actions = jnp.clip(action_chunk.astype(jnp.float32), -1.0, 1.0)
-        sim_state, frames = self.simulator.step(state.pipeline_state, actions, key=step_key)
+        sim_state, frames = self.simulator.step(progress.simulator, actions, key=step_key)
         scores = self.reward_model.score(frames)
         was_done = state.done > 0
-        outcome = chunk_outcome(scores, state.info["score"], was_done, state.info["chunk"],
+        outcome = chunk_outcome(scores, progress.score, was_done, progress.chunk,
                                 success_threshold=self.success_threshold, max_chunks=self.max_chunks,
-                                prev_run=state.info["run"], success_frames=self.success_frames)
+                                prev_run=progress.run, success_frames=self.success_frames)
         success, truncation = outcome.success.astype(jnp.float32), outcome.truncated.astype(jnp.float32)
-        new = EnvState(
-            sim_state, self._obs(sim_state, frames[-1].astype(jnp.float32), state.obs["instruction_tokens"]),
+        new = State(
+            ImaginedPipelineState(sim_state, outcome.score, progress.chunk + 1, outcome.run),
+            self._obs(sim_state, frames[-1].astype(jnp.float32), state.obs["instruction_tokens"]),
             outcome.reward, outcome.done.astype(jnp.float32), {"score": outcome.score},
-            {"key": key, "score": outcome.score, "chunk": state.info["chunk"] + 1, "truncation": truncation,
-             "success": success, "run": outcome.run, "frames": frames.astype(jnp.float32)},
+            {**state.info, "key": key, "score": outcome.score, "truncation": truncation, "success": success,
+             "frames": frames.astype(jnp.float32)},  # keys that wrappers added to info ride along
         )
         frozen = state.replace(reward=jnp.zeros((), jnp.float32))
         return jax.tree.map(lambda a, b: jnp.where(was_done, a, b), frozen, new)
 
 
 @struct.dataclass
-class ImaginedPoolEnv:
-    """brax-style env: ``reset(rng)`` starts from a start state drawn uniformly from ``pool``.
+class ImaginedPoolEnv(Env):
+    """brax ``Env``: ``reset(rng)`` starts from a start state drawn uniformly from ``pool``.
 
-    One environment, pure and jittable; batch it with ``jax.vmap(env.reset)(keys)`` and
-    ``jax.vmap(env.step)(states, actions)`` as brax envs (auto-reset and episode limits stay
-    outside ``step``; the chunk limit ``env.max_chunks`` ends an episode with ``info['truncation']``).
+    One environment, pure and jittable. brax's training wrappers batch it, limit its episodes and
+    reset them (``brax.envs.wrappers.training.wrap(env, episode_length=...)``, raw ``jax.random.PRNGKey`` keys
+    as brax uses), or ``jax.vmap(env.reset)(keys)`` / ``jax.vmap(env.step)(states, actions)`` by hand.
+    The env ends an episode itself after ``env.max_chunks`` chunks (``info['truncation']``, which
+    brax's ``EpisodeWrapper`` rewrites to mark its own ``episode_length`` limit): with
+    ``episode_length < max_chunks`` brax's limit comes first and its trainers see it as a truncation.
+    brax's ``AutoResetWrapper`` restarts an episode from its own first state (not a new draw from the
+    pool), the simulator's noise key running on.
 
     Attributes:
       env: the functional env (simulator, reward model, threshold, chunk limit).
@@ -120,19 +145,32 @@ class ImaginedPoolEnv:
         return {name: tuple(value.shape) for name, value in obs.items()}
 
     @property
-    def action_size(self) -> tuple[int, int]:
-        """``(chunk_len, action_dim)``: one action is a whole chunk, each entry in [-1, 1]."""
+    def action_size(self) -> int:
+        """``chunk_len * action_dim``: one action is a whole chunk, flat as brax's trainers give it."""
+        return self.env.simulator.chunk_len * self.env.simulator.action_dim
+
+    @property
+    def action_shape(self) -> tuple[int, int]:
+        """``(chunk_len, action_dim)``: the chunk a flat action is reshaped to."""
         return self.env.simulator.chunk_len, self.env.simulator.action_dim
 
-    def reset(self, rng: jax.Array) -> EnvState:
+    @property
+    def backend(self) -> str:
+        return "learned_simulator"
+
+    def reset(self, rng: jax.Array) -> State:
         """A new episode from ``pool[randint(rng)]``; the rest of ``rng`` seeds the simulator."""
         pick_key, env_key = jax.random.split(rng)
         index = jax.random.randint(pick_key, (), 0, self.pool_size)
         return self.env.reset(_index(self.pool, index), key=env_key)
 
-    def step(self, state: EnvState, action: jax.Array) -> EnvState:
-        """One action chunk ``[chunk_len, action_dim]`` (clipped to [-1, 1]); done episodes stay frozen."""
-        return self.env.step(state, action)
+    def step(self, state: State, action: jax.Array) -> State:
+        """One action chunk, ``[chunk_len * action_dim]`` or ``[chunk_len, action_dim]`` (clipped to
+        [-1, 1]); done episodes stay frozen."""
+        if np.size(action) != self.action_size:
+            raise ValueError(f"an action must hold {self.action_shape} = {self.action_size} values, got shape "
+                             f"{np.shape(action)}")
+        return self.env.step(state, jnp.reshape(action, self.action_shape))
 
 
 def _index(tree, i):
@@ -175,7 +213,7 @@ class ImaginedVectorEnv(gym.vector.VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self._reset_fn, self._step_fn, self._select = _batched_reset, _batched_step, _select_envs
-        self._state: EnvState | None = None
+        self._state: State | None = None
         self._needs_reset = np.zeros(self.num_envs, bool)
 
     def _draw(self, count: int, start_index=None) -> tuple[StartState, jax.Array]:
@@ -188,8 +226,12 @@ class ImaginedVectorEnv(gym.vector.VectorEnv):
         keys = jax.vmap(jax.random.key)(jnp.asarray(seeds, jnp.uint32))
         return _index(self.pool, jnp.asarray(start_index)), keys
 
-    def _numpy_obs(self, state: EnvState) -> dict[str, np.ndarray]:
+    def _numpy_obs(self, state: State) -> dict[str, np.ndarray]:
+        """The gymnasium layout of the brax observations: ``frame`` for ``pixels/frame``, ``proprio_valid``
+        one number per env."""
         obs = jax.device_get(state.obs)
+        obs["frame"] = obs.pop(FRAME_KEY)
+        obs["proprio_valid"] = obs["proprio_valid"][..., 0]
         return {k: np.asarray(v, self.single_observation_space[k].dtype) for k, v in obs.items()}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
