@@ -71,6 +71,9 @@ def _final_state(directory: str, like=None) -> tuple[list[np.ndarray], dict]:
     return [np.asarray(leaf) for leaf in jax.tree.leaves(state)], meta
 
 
+# The step loop (sword_jax.train_loop) is every trainer's: its exact resume is checked in the default run for the
+# world model (test_reliability) and GRPO (below); the SFT and reward-model runs of it are slow-marked (70 s).
+@pytest.mark.slow
 @pytest.mark.parametrize("trainer", ["sft", "reward"])
 def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
     env = _env(tmp_path)

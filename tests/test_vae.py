@@ -40,6 +40,7 @@ def test_reference_parity_fp32(shared_dir):
     assert worst.max_abs < 1e-4, worst
 
 
+@pytest.mark.slow  # 30 s; the conv2d form is not the default (slower than cuDNN's 3-D conv on an H100)
 @pytest.mark.parametrize("causal_conv, upsample", [("conv2d", "subpixel")])
 def test_reference_parity_fp32_fast_convolutions(shared_dir, causal_conv, upsample):
     """The time-stacked 2-D causal convs and the sub-pixel upsampling match the official outputs as closely."""

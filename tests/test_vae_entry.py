@@ -44,6 +44,7 @@ def test_train_vae_resumed_equals_uninterrupted(tmp_path, capsys):
     assert os.path.isdir(os.path.join(split, "vae"))
 
 
+@pytest.mark.slow  # 37 s; the loop's refusal of another run's checkpoint is checked in the default run by GRPO's
 def test_a_checkpoint_of_another_vae_run_is_refused_naming_the_keys_and_kept(tmp_path):
     """Resuming a VAE work dir with another learning rate is refused before any step, naming the key;
     the checkpoint there is left as it was. A longer run (more ``vae.train_steps``) is the same run."""

@@ -297,11 +297,15 @@ def grpo_update(
 
     def one_update(carry, index):
         params, opt_state = carry
-        epoch, part = index // parts, index % parts
-        idx = jax.lax.dynamic_slice_in_dim(order(epoch), part * size, size)
-        sub = jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), batch)
-        loss, metrics, grads = _gradient_fn(graphdef, cfg, sub, state.ref_params, advantages=advantages[idx],
-                                            keep=keep[idx])(params)
+        if parts == 1:  # the whole batch every step: no gather
+            sub, sub_adv, sub_keep = batch, advantages, keep
+        else:
+            epoch, part = index // parts, index % parts
+            idx = jax.lax.dynamic_slice_in_dim(order(epoch), part * size, size)
+            sub = jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), batch)
+            sub_adv, sub_keep = advantages[idx], keep[idx]
+        loss, metrics, grads = _gradient_fn(graphdef, cfg, sub, state.ref_params, advantages=sub_adv,
+                                            keep=sub_keep)(params)
         grad_norm = optax.global_norm(grads)
         # a non-finite loss or gradient skips the update: NaN never reaches the parameters or a checkpoint
         updates, opt_state, params, finite = optim.apply_finite_update(optimizer, loss, grads, opt_state, params)
