@@ -29,6 +29,7 @@ def test_a_retrace_names_the_function_and_the_bound():
         step(jnp.ones(4))
 
 
+@pytest.mark.slow  # 35-45 s on 2 cores; the per-build trace count is checked by the tests above
 def test_vae_step_built_twice_in_one_process_trains():
     from sword_jax.vae import train as vae_train
     from sword_jax.vae.config import VAEConfig

@@ -51,6 +51,7 @@ def _leaves(tree):
     return [np.asarray(x) for x in jax.tree.leaves(tree)]
 
 
+@pytest.mark.slow  # test_reliability checks the same stop in the default run, with a finite last checkpoint
 def test_nonfinite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     ds = data.synthetic_latent_dataset(8, 9, 2, 2, 48, seed=0)
     huge = ds.latents * np.float32(1e30)  # finite, but the squared error overflows

@@ -281,7 +281,8 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     Each sampling round's ``rl.grpo.rollout_batch`` start states are training-split initial states
     stratified over the tasks (:func:`sim.mjx_batch.stratified_train_starts`, a function of (seed, step,
-    round)); evaluations run the tasks' fixed evaluation states. Returns as :func:`run_in_env`.
+    round)); evaluations run the tasks' fixed evaluation states, the greedy (deployed) and the sampled policy
+    each time, with the probe's argmax flips and top-1 margin. Returns as :func:`run_in_env`.
     """
     from sim import tasks as sim_tasks
     from sim.mjx_batch import MjxEpisodes, episode_starts, stratified_train_starts
@@ -311,7 +312,7 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=rl.grpo.eval_sampled)
+        point, extra = runner.evaluate(params, step=step, sampled=True)  # greedy and sampled, every time
         sampled = extra.get("sampled")
         log(f"eval step {step}: success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}] "
             f"({point['episodes']} episodes on MJX, {point['seconds']}s)"
