@@ -32,10 +32,15 @@ from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import sampling_log_probs
-from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics
+from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics, take_trajectories
 
 SIGNAL_EPS = 1e-6
 UPDATE_KEY_SALT = 0x5EED  # the update's shuffle key is fold_in(the step's key, UPDATE_KEY_SALT)
+
+
+def group_has_signal(returns: Float[Array, "b g"]) -> jax.Array:
+    """``[b] bool``: the groups whose returns are not all equal (mixed outcomes: the only ones with a signal)."""
+    return jnp.std(returns.astype(jnp.float32), axis=1) > jnp.float32(SIGNAL_EPS)
 
 
 def group_advantages(
@@ -54,7 +59,7 @@ def group_advantages(
     returns = returns.astype(jnp.float32)
     mean = jnp.mean(returns, axis=1, keepdims=True)
     std = jnp.std(returns, axis=1, keepdims=True)
-    has_signal = std[:, 0] > jnp.float32(SIGNAL_EPS)
+    has_signal = group_has_signal(returns)
     # a group with no signal has zero advantages (never 0/0), kept or not
     safe_std = jnp.where(has_signal[:, None], std, jnp.float32(1.0))
     adv = jnp.where(has_signal[:, None], (returns - mean) / (safe_std + jnp.float32(eps)), jnp.float32(0.0))
@@ -302,7 +307,7 @@ def grpo_update(
         else:
             epoch, part = index // parts, index % parts
             idx = jax.lax.dynamic_slice_in_dim(order(epoch), part * size, size)
-            sub = jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), batch)
+            sub = take_trajectories(batch, idx)
             sub_adv, sub_keep = advantages[idx], keep[idx]
         loss, metrics, grads = _gradient_fn(graphdef, cfg, sub, state.ref_params, advantages=sub_adv,
                                             keep=sub_keep)(params)

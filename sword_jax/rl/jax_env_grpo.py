@@ -36,17 +36,16 @@ from flax import nnx
 
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.env_rollout import wilson_interval
-from sword_jax.rl.grpo import SIGNAL_EPS, UPDATE_KEY_SALT
+from sword_jax.rl.grpo import UPDATE_KEY_SALT, group_has_signal
 from sword_jax.rl.policy import resize_frames
-from sword_jax.rl.rollout import Rollout
+from sword_jax.rl.policy_success import success_summary
+from sword_jax.rl.rollout import Rollout, take_trajectories
 from sword_jax.rl.scan_rollout import JaxEnv, scan_rollout
 
 
 def mixed_groups(returns: jax.Array, group_size: int) -> jax.Array:
     """``[B] bool``: the groups of ``returns [B * G]`` whose returns are not all equal."""
-    grouped = returns.reshape(-1, group_size).astype(jnp.float32)
-    return jnp.std(grouped, axis=1) > jnp.float32(SIGNAL_EPS)
+    return group_has_signal(returns.reshape(-1, group_size))
 
 
 def select_groups(rollout: Rollout, group_size: int, groups: int) -> Rollout:
@@ -58,7 +57,7 @@ def select_groups(rollout: Rollout, group_size: int, groups: int) -> Rollout:
     mixed = mixed_groups(rollout.returns, group_size)
     order = jnp.argsort(jnp.where(mixed, 0, 1), stable=True)[:groups]
     idx = (order[:, None] * group_size + jnp.arange(group_size)[None]).reshape(-1)
-    return jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), rollout)
+    return take_trajectories(rollout, idx)
 
 
 def _concat(rollouts: Sequence[Rollout]) -> Rollout:
@@ -102,7 +101,7 @@ class EnvGRPO:
         self.eval_starts, self.eval_tokens = np.asarray(eval_starts), np.asarray(eval_tokens)
         self.eval_tasks = np.asarray(eval_tasks)
         self.batch = rl.grpo.rollout_batch * rl.grpo.group_size  # trajectories per compiled rollout
-        self.rollout = jax.jit(functools.partial(self._rollout_impl))
+        self.rollout = jax.jit(self._rollout_impl)
         self.update = jax.jit(lambda state, batch, key: grpo.grpo_update(graphdef, rl, state, batch, key),
                               donate_argnums=(0,))
         self.select = jax.jit(select_groups, static_argnums=(1, 2))
@@ -170,12 +169,8 @@ class EnvGRPO:
         return success, first
 
     def summarize(self, success: np.ndarray, seconds: float) -> dict[str, Any]:
-        """``{"per_task", "mean", "episodes", "successes", "ci95", "seconds"}`` (as ``evaluate_in_sim``)."""
-        tasks = dict.fromkeys(int(t) for t in self.eval_tasks)
-        wins = int(success.sum())
-        return {"per_task": {str(t): float(np.mean(success[self.eval_tasks == t])) for t in tasks},
-                "mean": float(np.mean(success)), "episodes": int(success.size), "successes": wins,
-                "ci95": list(wilson_interval(wins, int(success.size))), "seconds": round(seconds, 1)}
+        """The evaluation episodes' summary, as ``evaluate_in_sim`` gives it (:func:`success_summary`)."""
+        return success_summary(success, self.eval_tasks, seconds)
 
     def set_probe(self, recorded: dict, *, states: int = 1024, stride: int = 10) -> None:
         """Fixes the probe states: every ``stride``-th valid decision of a recorded evaluation slice."""
@@ -210,9 +205,10 @@ class EnvGRPO:
         return os.path.join(self.probe_dir, f"probe_argmax_step{step:06d}.npy")
 
     def _previous_probe(self, step: int) -> np.ndarray | None:
-        done = sorted(int(f[len("probe_argmax_step"):-4]) for f in os.listdir(self.probe_dir)
-                      if f.startswith("probe_argmax_step") and int(f[len("probe_argmax_step"):-4]) < step)
-        return np.load(self._probe_file(done[-1])) if done else None
+        saved = (int(f[len("probe_argmax_step"):-len(".npy")]) for f in os.listdir(self.probe_dir)
+                 if f.startswith("probe_argmax_step") and f.endswith(".npy"))
+        earlier = [s for s in saved if s < step]
+        return np.load(self._probe_file(max(earlier))) if earlier else None
 
     def evaluate(self, params: Any, *, step: int, sampled: bool = True) -> tuple[dict, dict]:
         """Greedy (ensembled when ``rl.env.action_ensemble``) success on the evaluation episodes, with the

@@ -83,13 +83,18 @@ def evaluate_in_sim(
                              max_steps=max_steps, record=False, proprio=proprio, reckoning=reckoning, trace=trace)
     finally:
         envs.close()
-    success = np.asarray(rollout.success)
-    task_of = np.asarray([t for t, _ in episodes])
-    tasks = dict.fromkeys(int(t) for t, _ in episodes)  # first-seen order
-    per_task = {str(t): float(np.mean(success[task_of == t])) for t in tasks}
+    return success_summary(np.asarray(rollout.success), [t for t, _ in episodes], time.time() - start)
+
+
+def success_summary(success: np.ndarray, task_of: Sequence[int], seconds: float) -> dict[str, Any]:
+    """``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}`` of episode
+    outcomes ``success [E]`` whose tasks are ``task_of [E]`` (tasks in first-seen order, 95% Wilson interval)."""
+    success, task_of = np.asarray(success, bool), np.asarray(task_of)
+    tasks = dict.fromkeys(int(t) for t in task_of)
     wins = int(success.sum())
-    return {"per_task": per_task, "mean": float(np.mean(success)), "episodes": len(episodes), "successes": wins,
-            "ci95": list(wilson_interval(wins, len(episodes))), "seconds": round(time.time() - start, 1)}
+    return {"per_task": {str(t): float(np.mean(success[task_of == t])) for t in tasks}, "mean": float(np.mean(success)),
+            "episodes": int(success.size), "successes": wins, "ci95": list(wilson_interval(wins, int(success.size))),
+            "seconds": round(seconds, 1)}
 
 
 class SuccessCurve:

@@ -155,6 +155,12 @@ def simulator_keys(key: jax.Array, n: int, cfg: RLConfig) -> jax.Array:
     return jnp.repeat(jax.random.split(key, n // g), g, axis=0)
 
 
+def take_trajectories(rollout: Rollout, idx: Int[Array, " m"]) -> Rollout:
+    """The trajectories ``idx`` of ``rollout`` (every per-trajectory field; the empty ``frames`` stays)."""
+    n = rollout.valid.shape[0]
+    return jax.tree.map(lambda x: x if x.ndim == 0 or x.shape[0] != n else jnp.take(x, idx, axis=0), rollout)
+
+
 def expand_groups(start: StartState, group_size: int) -> StartState:
     """Repeats each start state ``group_size`` times: leading ``[B]`` -> ``[B * G]`` (start-major)."""
     return jax.tree.map(lambda x: jnp.repeat(x, group_size, axis=0), start)

@@ -17,7 +17,7 @@ C engine. An episode ends at success or at ``max_steps``; later decisions are re
 evaluation run ONE compiled program (its compilation, with the physics inside, dominates start-up).
 
 The result is the :class:`~sword_jax.rl.rollout.Rollout` that :func:`~sword_jax.rl.grpo.grpo_update` trains on
-(frames kept at the policy's size as uint8), plus the actions each episode executed.
+(frames kept at the policy's size as uint8), with :class:`EpisodeStats` (actions executed, physics broken).
 """
 
 from __future__ import annotations
