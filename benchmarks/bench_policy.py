@@ -42,6 +42,7 @@ import os
 import subprocess
 import sys
 import time
+from typing import Sequence
 
 import numpy as np
 
@@ -153,6 +154,7 @@ def run_sft(cfg, args) -> dict:
         for mode in modes:
             rl_eval = _execution(rl, mode)
             result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
+                                     greedy=mode != "sample",
                                      **lockstep_evaluation(tasks, args.eval_episodes, resolution=cfg.sim.resolution,
                                                            max_steps=cfg.sim.max_steps, workers=args.workers))
             run["eval"][mode] = result
@@ -176,9 +178,13 @@ def run_sft(cfg, args) -> dict:
 
 
 def _execution(rl, mode: str):
-    """``rl`` executing as ``--execute`` mode ``mode`` says: ``ens`` = ensembling, a number = actions per
-    chunk (``1`` = every step, no ensembling)."""
-    env = dataclasses.replace(rl.env, execute_steps=1 if mode == "ens" else int(mode), action_ensemble=mode == "ens")
+    """``rl`` executing as ``--execute`` mode ``mode`` says: ``ens`` = greedy with ensembling, a number =
+    greedy actions per chunk (``1`` = every step, no ensembling), ``sample`` = sampled at
+    ``rl.grpo.temperature`` every step without ensembling (the policy GRPO trains)."""
+    if mode not in ("ens", "sample") and not mode.isdigit():
+        raise SystemExit(f"--execute: {mode!r} is not 'ens', 'sample' or a number of actions per chunk")
+    steps = 1 if mode in ("ens", "sample") else int(mode)
+    env = dataclasses.replace(rl.env, execute_steps=steps, action_ensemble=mode == "ens")
     return dataclasses.replace(rl, env=env)
 
 
@@ -197,6 +203,7 @@ def run_eval(cfg, args) -> dict:
     for mode in args.execute.split(","):
         rl_eval = _execution(cfg.rl, mode)
         result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
+                                 greedy=mode != "sample",
                                  **lockstep_evaluation(list(cfg.sim.tasks), args.eval_episodes,
                                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                                        workers=args.workers))
@@ -210,7 +217,7 @@ def run_eval(cfg, args) -> dict:
 
 def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
     """``eval --backend mjx``: the same evaluation episodes and execution modes on MJX (the engine GRPO's
-    MJX backend trains and evaluates on), greedy, in slices of ``rl.grpo.rollout_batch x group_size``."""
+    MJX backend trains and evaluates on), in slices of ``rl.grpo.rollout_batch x group_size``."""
     import jax
 
     from sim import tasks as sim_tasks
@@ -227,7 +234,8 @@ def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
                          eval_tokens=tokenize_instructions(text, rl_eval.policy.max_instruction_bytes),
                          eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
         start = time.time()
-        success, _ = runner.run_episodes(params, greedy=True, ensemble=rl_eval.env.action_ensemble, key=jax.random.key(0))
+        success, _ = runner.run_episodes(params, greedy=mode != "sample", ensemble=rl_eval.env.action_ensemble,
+                                         key=jax.random.key(0))
         result = dict(runner.summarize(success, time.time() - start), backend="mjx")
         results["eval"][mode] = result
         print(f"execute {mode} on MJX: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
@@ -312,61 +320,113 @@ def run_grpo(cfg, args) -> dict:
     return summary
 
 
+POLICIES = ("greedy", "sampled")  # how a GRPO evaluation runs the policy: argmax (+ensembling), or sampled
+
+
+def _policy_point(point: dict, policy: str) -> dict | None:
+    """The evaluation ``point``'s figures for ``policy``: the greedy (ensembled) run is the point itself,
+    the sampled run its ``sampled`` entry (None when that evaluation ran no sampled policy)."""
+    return point if policy == "greedy" else point.get("sampled")
+
+
+def _gain(first: dict, last: dict) -> dict:
+    interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
+    return {"gain": last["mean"] - first["mean"], "ci95": list(interval), "start": first["mean"], "end": last["mean"]}
+
+
 def run_seeds(args) -> dict:
-    """``seeds``: the ground-truth GRPO runs of several seeds (``--runs``, their work dirs), each gain from
-    step 0 to the last evaluation with its Newcombe 95% interval, the step costs from their histories,
-    the difference of two repeats of one seed (``--repeat A,B``) at ``--repeat-step``; one figure of
-    every curve (``<out>/grpo_ground_truth_seeds.png``); ``--record``: ``policy_grpo_ground_truth_gain_small``."""
+    """``seeds``: the ground-truth GRPO runs of several seeds (``--runs``, their work dirs). For each run and
+    for both ways of running the policy (greedy with the configured ensembling; sampled at the run's
+    temperature): the gain from step 0 to the last evaluation with its Newcombe 95% interval; the gain of
+    the better of the two at the start to the better of the two at the end; the step costs from the
+    histories. ``--deployed`` names the policy whose gains are the headline (``gain``, ``min_gain``, the
+    repeat's difference, the record). The difference of two repeats of one seed (``--repeat A,B``) at
+    ``--repeat-step``; one figure with a panel per policy (``<out>/grpo_ground_truth_seeds.png``);
+    ``--record``: ``policy_grpo_ground_truth_gain_small``."""
+    deployed = getattr(args, "deployed", "greedy")
+    if deployed not in POLICIES:
+        raise SystemExit(f"seeds: --deployed must be one of {POLICIES}, got {deployed!r}")
     runs = [d for d in args.runs.split(",") if d]
     if not runs:
         raise SystemExit("seeds needs --runs DIR[,DIR...] (GRPO work dirs holding success_curve.json)")
-    per_seed, curves = {}, {}
-    for d in runs:
-        curve_path, history_path = os.path.join(d, "success_curve.json"), os.path.join(d, "train_history.jsonl")
+    repeat = [d for d in args.repeat.split(",") if d] if args.repeat else []
+    if args.repeat and len(repeat) != 2:
+        raise SystemExit(f"seeds: --repeat takes two work dirs A,B, got {args.repeat!r}")
+    points_of = {}
+    for d in dict.fromkeys(runs + repeat):
+        curve_path = os.path.join(d, "success_curve.json")
         if not os.path.exists(curve_path):
             raise SystemExit(f"seeds: {curve_path} does not exist")
         with open(curve_path) as f:
-            points = json.load(f)["points"]
+            points_of[d] = json.load(f)["points"]
+    per_seed, temperature = {}, None
+    for d in runs:
+        points, history_path = points_of[d], os.path.join(d, "train_history.jsonl")
         history = []
         if os.path.exists(history_path):
             with open(history_path) as f:
                 history = [json.loads(line) for line in f if line.strip()]
         first, last = points[0], points[-1]
-        interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
         mean = lambda k: float(np.mean([h[k] for h in history if k in h])) if history else None  # noqa: E731
-        per_seed[d] = {"gain": last["mean"] - first["mean"], "ci95": list(interval), "start": first["mean"],
-                       "end": last["mean"], "steps": last["step"], "episodes": last["episodes"],
-                       "sampled": [[p["step"], p["sampled"]["mean"]] for p in points if "sampled" in p],
-                       "rollouts_per_step": mean("trajectories_sampled"), "env_steps_per_grpo_step": mean("env_steps"),
-                       "seconds_per_grpo_step": mean("step_seconds"), "clip_fraction": mean("clip_fraction")}
-        curves[d] = [[p["step"], p["mean"], p["ci95"]] for p in points]
-        print(f"{d}: {first['mean']:.3f} -> {last['mean']:.3f} at step {last['step']} (gain {per_seed[d]['gain']:+.3f} "
-              f"[{interval[0]:+.3f}, {interval[1]:+.3f}])", flush=True)
+        entry = {"steps": last["step"], "episodes": last["episodes"]}
+        for policy in POLICIES:
+            a, b = _policy_point(first, policy), _policy_point(last, policy)
+            entry[policy] = _gain(a, b) if a is not None and b is not None else None
+        if entry[deployed] is None:
+            raise SystemExit(f"seeds: {d}'s first or last evaluation has no {deployed} figure (run GRPO with "
+                             f"rl.grpo.eval_sampled=true, or --deployed greedy)")
+        if entry["sampled"] is not None:
+            start = max(first, first["sampled"], key=lambda p: p["mean"])
+            end = max(last, last["sampled"], key=lambda p: p["mean"])
+            entry["best"] = dict(_gain(start, end), start_policy="greedy" if start is first else "sampled",
+                                 end_policy="greedy" if end is last else "sampled")
+            temperature = first["sampled"].get("temperature", temperature)
+        entry.update({k: entry[deployed][k] for k in ("gain", "ci95", "start", "end")})
+        entry.update({"sampled_curve": [[p["step"], p["sampled"]["mean"]] for p in points if "sampled" in p],
+                      "rollouts_per_step": mean("trajectories_sampled"), "env_steps_per_grpo_step": mean("env_steps"),
+                      "seconds_per_grpo_step": mean("step_seconds"), "clip_fraction": mean("clip_fraction")})
+        per_seed[d] = entry
+        line = ", ".join(f"{p} {entry[p]['start']:.3f} -> {entry[p]['end']:.3f} ({entry[p]['gain']:+.3f} "
+                         f"[{entry[p]['ci95'][0]:+.3f}, {entry[p]['ci95'][1]:+.3f}])" for p in POLICIES if entry[p])
+        print(f"{d} at step {last['step']}: {line}", flush=True)
     gains = [r["gain"] for r in per_seed.values()]
-    summary = {"per_seed": per_seed, "curves": curves, "min_gain": min(gains), "mean_gain": float(np.mean(gains))}
-    if args.repeat:
-        a, b = args.repeat.split(",")
-        at = {}
-        for d in (a, b):
-            with open(os.path.join(d, "success_curve.json")) as f:
-                at[d] = {p["step"]: p["mean"] for p in json.load(f)["points"]}
-        if args.repeat_step in at[a] and args.repeat_step in at[b]:
-            summary["repeat"] = {"runs": [a, b], "step": args.repeat_step,
-                                 "difference": abs(at[a][args.repeat_step] - at[b][args.repeat_step])}
-            print(f"repeats of one seed at step {args.repeat_step}: {at[a][args.repeat_step]:.3f} vs "
-                  f"{at[b][args.repeat_step]:.3f}", flush=True)
-    _plot_seeds(curves, os.path.join(args.out, "grpo_ground_truth_seeds.png"))
+    summary = {"deployed": deployed, "temperature": temperature, "per_seed": per_seed,
+               "curves": {d: {p: [[q["step"], _policy_point(q, p)["mean"], _policy_point(q, p)["ci95"]]
+                                  for q in points if _policy_point(q, p) is not None] for p in POLICIES}
+                          for d, points in points_of.items()},
+               "min_gain": min(gains), "mean_gain": float(np.mean(gains))}
+    for policy in POLICIES:
+        of = [r[policy]["gain"] for r in per_seed.values() if r[policy] is not None]
+        if len(of) == len(per_seed):
+            summary[f"{policy}_min_gain"], summary[f"{policy}_mean_gain"] = min(of), float(np.mean(of))
+    if all("best" in r for r in per_seed.values()):
+        summary["best_min_gain"] = min(r["best"]["gain"] for r in per_seed.values())
+    if repeat:
+        a, b = repeat
+        at = {d: {p["step"]: _policy_point(p, deployed) for p in points_of[d]} for d in (a, b)}
+        pa, pb = at[a].get(args.repeat_step), at[b].get(args.repeat_step)
+        if pa is not None and pb is not None:
+            summary["repeat"] = {"runs": [a, b], "step": args.repeat_step, "policy": deployed,
+                                 "difference": abs(pa["mean"] - pb["mean"]), "successes": [pa["mean"], pb["mean"]]}
+            print(f"repeats of one seed at step {args.repeat_step} ({deployed}): {pa['mean']:.3f} vs {pb['mean']:.3f}",
+                  flush=True)
+    _plot_seeds(summary["curves"], os.path.join(args.out, "grpo_ground_truth_seeds.png"), repeat=repeat[1:],
+                temperature=temperature)
     with open(os.path.join(args.out, "grpo_ground_truth_seeds.json"), "w") as f:
         json.dump(summary, f, indent=1)
     if args.record:
         any_run = next(iter(per_seed.values()))
+        policy = "greedy" if deployed == "greedy" else f"sampled at T={temperature}"
         common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
             "policy_grpo_ground_truth_gain_small", summary["min_gain"], 0.15,
-            value_is="smallest greedy-success gain over seeds, step 0 to the last evaluation, 500 MJX episodes",
-            per_seed={d: {k: r[k] for k in ("gain", "ci95", "start", "end", "steps")} for d, r in per_seed.items()},
+            value_is=f"smallest gain over seeds of the deployed policy ({policy}), step 0 to the last evaluation, "
+                     f"500 MJX episodes",
+            deployed=deployed, per_seed={d: {k: r[k] for k in ("gain", "ci95", "start", "end", "steps", *POLICIES,
+                                                                "best") if k in r} for d, r in per_seed.items()},
             mean=summary["mean_gain"], steps=any_run["steps"], rollouts_per_step=any_run["rollouts_per_step"],
             env_steps_per_grpo_step=any_run["env_steps_per_grpo_step"],
-            seconds_per_grpo_step=any_run["seconds_per_grpo_step"], repeat=summary.get("repeat"))})
+            seconds_per_grpo_step=any_run["seconds_per_grpo_step"], repeat=summary.get("repeat"),
+            **{k: summary[k] for k in ("greedy_min_gain", "sampled_min_gain", "best_min_gain") if k in summary})})
     return summary
 
 
@@ -427,10 +487,11 @@ def run_grpo_seeds(args, overrides: list[str]) -> dict:
         original = repeat[0].replace("_repeat/grpo_env_mjx", "/grpo_env_mjx")
         pair = f"{original},{repeat[0]}" if original in done else ""
     return run_seeds(argparse.Namespace(runs=",".join(firsts), repeat=pair, repeat_step=args.repeat_step, out=args.out,
-                                        record=args.record))
+                                        deployed=args.deployed, record=args.record))
 
 
-def _plot_seeds(curves: dict, path: str) -> None:
+def _plot_seeds(curves: dict, path: str, *, repeat: Sequence[str] = (), temperature: float | None = None) -> None:
+    """One panel per policy (greedy, sampled), one curve per run with its 95% intervals (repeats dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -438,12 +499,23 @@ def _plot_seeds(curves: dict, path: str) -> None:
 
     from benchmarks.bench_grpo_transfer import errorbar_curve
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for i, (name, points) in enumerate(curves.items()):
-        errorbar_curve(ax, [{"step": p[0], "success": p[1], "ci95": p[2]} for p in points], offset=0.6 * i,
-                       label=name.rstrip("/")[-40:])
-    common.finish_figure(fig, ax, path, xlabel="GRPO step", ylabel="greedy success, 500 evaluation episodes",
-                         title="Ground-truth GRPO (MJX), one curve per seed, 95% intervals", legend_size=7)
+    panels = [p for p in POLICIES if any(c[p] for c in curves.values())]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 4.2), sharey=True, squeeze=False)
+    titles = {"greedy": "greedy (deployed with ensembling)", "sampled": f"sampled at T={temperature}"}
+    for ax, policy in zip(axes[0], panels):
+        for i, (name, by_policy) in enumerate(curves.items()):
+            points = by_policy[policy]
+            if points:
+                errorbar_curve(ax, [{"step": p[0], "success": p[1], "ci95": p[2]} for p in points], offset=0.6 * i,
+                               label=_run_label(name), linestyle="--" if name in repeat else "-")
+        common.finish_figure(fig, ax, path, xlabel="GRPO step", ylabel="success, 500 evaluation episodes (MJX)",
+                             title=f"Ground-truth GRPO: {titles[policy]}", legend_size=7, save=policy == panels[-1])
+
+
+def _run_label(workdir: str) -> str:
+    """A run's name in a figure: the folder above its GRPO work dir (``.../s0/grpo_env_mjx`` -> ``s0``)."""
+    parts = [p for p in workdir.rstrip("/").split("/") if p]
+    return parts[-2] if len(parts) > 1 and parts[-1].startswith("grpo") else parts[-1][-40:]
 
 
 def _config_name(argv) -> str:
@@ -466,7 +538,8 @@ def main(argv=None) -> None:
     parser.add_argument("--holdout-per-task", type=int, default=2)
     parser.add_argument("--noise", type=float, default=0.0, help="DART noise of the demonstrations")
     parser.add_argument("--noisy-share", type=float, default=0.5, help="fraction of demonstrations with noise")
-    parser.add_argument("--execute", default="8", help="comma list of execute_steps to evaluate ('ens' = ensembling)")
+    parser.add_argument("--execute", default="8",
+                        help="comma list of execution modes to evaluate: 'ens' (greedy, ensembling), a number (greedy, actions per chunk), 'sample' (sampled at rl.grpo.temperature)")
     parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation states per task")
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--backend", choices=("cpu", "mjx"), default="cpu",
@@ -482,6 +555,8 @@ def main(argv=None) -> None:
     parser.add_argument("--runs", default="", help="seeds: comma list of GRPO work dirs")
     parser.add_argument("--repeat", default="", help="seeds: two work dirs of the same seed (A,B)")
     parser.add_argument("--repeat-step", type=int, default=50, help="seeds: the step the repeats are compared at")
+    parser.add_argument("--deployed", choices=POLICIES, default="sampled",
+                        help="seeds: the policy whose gains are the headline (README: which policy is deployed)")
     parser.add_argument("--seeds", default="0,1,2", help="grpo-seeds: the seeds run side by side")
     parser.add_argument("--repeat-seed", type=int, default=None, help="grpo-seeds: run this seed a second time")
     parser.add_argument("--gpus", default="0", help="grpo-seeds: GPUs the runs are placed on, round-robin")

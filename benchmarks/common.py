@@ -160,8 +160,9 @@ def _jaxpr_flops(jaxpr) -> float:
 
 
 def finish_figure(fig: Any, ax: Any, path: str, *, xlabel: str, ylabel: str, title: str | None = None,
-                  legend_size: int = 8) -> None:
-    """Labels ``ax``, draws its legend, writes ``fig`` to ``path`` (PNG, 120 dpi) and closes it."""
+                  legend_size: int = 8, save: bool = True) -> None:
+    """Labels ``ax``, draws its legend and, with ``save``, writes ``fig`` to ``path`` (PNG, 120 dpi) and closes
+    it (a figure of several panels finishes each and saves with the last)."""
     import matplotlib.pyplot as plt
 
     ax.set_xlabel(xlabel)
@@ -169,6 +170,8 @@ def finish_figure(fig: Any, ax: Any, path: str, *, xlabel: str, ylabel: str, tit
     if title:
         ax.set_title(title)
     ax.legend(fontsize=legend_size)
+    if not save:
+        return
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import pytest
 
+import configs
 from benchmarks import bench_grpo_arms as arms
 from benchmarks import bench_policy
 
@@ -114,7 +115,7 @@ def test_seeds_stage_reports_every_seed_the_repeat_and_records_the_smallest_gain
     assert gains[grpo_dir["s0"]] == pytest.approx(0.2) and gains[grpo_dir["s1"]] == pytest.approx(0.18)
     assert summary["min_gain"] == pytest.approx(0.18) and summary["repeat"]["difference"] == pytest.approx(0.02)
     s1 = summary["per_seed"][grpo_dir["s1"]]
-    assert s1["ci95"] == list(bench_policy.diff_interval(340, 500, 430, 500)) and s1["sampled"] == [[100, 0.6]]
+    assert s1["ci95"] == list(bench_policy.diff_interval(340, 500, 430, 500)) and s1["sampled_curve"] == [[100, 0.6]]
     assert s1["rollouts_per_step"] == 768.0 and s1["seconds_per_grpo_step"] == 20.0
     record = recorded["policy_grpo_ground_truth_gain_small"]
     assert record["value"] == pytest.approx(0.18) and set(record["per_seed"]) == {grpo_dir["s0"], grpo_dir["s1"]}
@@ -123,6 +124,39 @@ def test_seeds_stage_reports_every_seed_the_repeat_and_records_the_smallest_gain
     with pytest.raises(SystemExit, match="does not exist"):
         bench_policy.run_seeds(SimpleNamespace(runs=str(tmp_path / "nope"), repeat="", repeat_step=50,
                                                out=str(tmp_path), record=False))
+
+
+def test_seeds_stage_with_the_sampled_policy_deployed(tmp_path, monkeypatch):
+    """--deployed sampled: the headline gains, the repeat and the record are the sampled policy's; both
+    policies' gains and the better-of-the-two gain (greedy at the start, sampled at the end here) stay beside."""
+    recorded = {}
+    monkeypatch.setattr(bench_policy.common, "merge_results", recorded.update)
+    dirs = {name: _arm(tmp_path, name, points) + "/rl/grpo" for name, points in {
+        "s0": [_point(0, 350, sampled=250), _point(50, 340, sampled=380), _point(70, 345, sampled=390)],
+        "s1": [_point(0, 355, sampled=270), _point(50, 400, sampled=390), _point(70, 398, sampled=392)],
+        "s0b": [_point(0, 340, sampled=248), _point(50, 310, sampled=375)]}.items()}
+    args = SimpleNamespace(runs=f"{dirs['s0']},{dirs['s1']}", repeat=f"{dirs['s0']},{dirs['s0b']}", repeat_step=50,
+                           out=str(tmp_path), record=True, deployed="sampled")
+    summary = bench_policy.run_seeds(args)
+    s0, s1 = summary["per_seed"][dirs["s0"]], summary["per_seed"][dirs["s1"]]
+    assert s0["gain"] == pytest.approx(0.28) and s0["greedy"]["gain"] == pytest.approx(-0.01)
+    assert s0["ci95"] == list(bench_policy.diff_interval(250, 500, 390, 500))
+    assert s0["best"]["gain"] == pytest.approx(0.08) and (s0["best"]["start_policy"], s0["best"]["end_policy"]) == (
+        "greedy", "sampled")
+    assert s1["best"]["end_policy"] == "greedy" and s1["best"]["gain"] == pytest.approx(0.086)
+    assert summary["min_gain"] == pytest.approx(0.244) and summary["greedy_min_gain"] == pytest.approx(-0.01)
+    assert summary["best_min_gain"] == pytest.approx(0.08) and summary["temperature"] == 0.7
+    assert summary["repeat"]["difference"] == pytest.approx(0.01) and summary["repeat"]["policy"] == "sampled"
+    assert set(summary["curves"]) == set(dirs.values()) and len(summary["curves"][dirs["s0b"]]["sampled"]) == 2
+    record = recorded["policy_grpo_ground_truth_gain_small"]
+    assert record["value"] == pytest.approx(0.244) and record["deployed"] == "sampled"
+    assert "sampled at T=0.7" in record["value_is"] and record["best_min_gain"] == pytest.approx(0.08)
+    assert (tmp_path / "grpo_ground_truth_seeds.png").stat().st_size > 0
+    (tmp_path / "s2" / "rl" / "grpo").mkdir(parents=True)
+    (tmp_path / "s2" / "rl" / "grpo" / "success_curve.json").write_text(json.dumps({"points": [_point(0, 1), _point(5, 2)]}))
+    with pytest.raises(SystemExit, match="no sampled figure"):
+        bench_policy.run_seeds(SimpleNamespace(**{**vars(args), "runs": str(tmp_path / "s2" / "rl" / "grpo"),
+                                                  "repeat": "", "record": False}))
 
 
 @pytest.mark.slow  # ~60 s of CPU (the C engine's renderer and the update compile); the loop's part is below
@@ -186,3 +220,15 @@ def test_grpo_seeds_places_one_run_per_gpu_with_multicast_off_and_passes_the_ove
     assert all(c[2]["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.45" for c in shared)
     with pytest.raises(SystemExit, match="--seeds"):
         bench_policy.seed_commands(SimpleNamespace(**{**vars(args), "seeds": ""}), [])
+
+
+def test_execution_modes_of_the_policy_evaluations():
+    """--execute: 'ens' ensembles greedy chunks every step, a number executes that many greedy actions per
+    chunk, 'sample' runs the trained (sampled) policy every step without ensembling; anything else is refused."""
+    rl = configs.get("sword:tiny").rl
+    ens, four, sample = (bench_policy._execution(rl, m) for m in ("ens", "4", "sample"))
+    assert (ens.env.execute_steps, ens.env.action_ensemble) == (1, True)
+    assert (four.env.execute_steps, four.env.action_ensemble) == (4, False)
+    assert (sample.env.execute_steps, sample.env.action_ensemble) == (1, False)
+    with pytest.raises(SystemExit, match="'greedy' is not"):
+        bench_policy._execution(rl, "greedy")
