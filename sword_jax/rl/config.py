@@ -266,6 +266,10 @@ class ImaginedConfig:
         differ; off (default): every trajectory draws its own (on `small` a second noise draw changed
         19-31% of replayed real episodes' verdicts, and a lone noise-made success in a group takes a large
         advantage).
+      guard_margin: the exploitation guard (:mod:`sword_jax.rl.sim_guard`): at each evaluation that replays
+        real episodes in the learned simulator, a false-success rate above step 0's by more than this rolls
+        the policy back to the last evaluation that passed; 0 (default) = off.
+      guard_min_failures: real failures a replay must hold before the guard judges it.
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
@@ -284,12 +288,17 @@ class ImaginedConfig:
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
     sim_microbatches: int = 1  # simulator step over trajectories in this many sequential slices
     shared_group_noise: bool = False  # one simulator noise draw per GRPO group
+    guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
+    guard_min_failures: int = 20  # real failures a replay needs before the guard judges it
 
     def validate(self) -> None:
         if self.max_chunks < 1:
             raise ValueError(f"rl.imagined.max_chunks must be >= 1, got {self.max_chunks}")
         if self.sim_microbatches < 1:
             raise ValueError(f"rl.imagined.sim_microbatches must be >= 1, got {self.sim_microbatches}")
+        if not 0.0 <= self.guard_margin < 1.0 or self.guard_min_failures < 1:
+            raise ValueError(f"rl.imagined.guard_margin must be in [0, 1) (0 = off) and guard_min_failures >= 1, got "
+                             f"{self.guard_margin}, {self.guard_min_failures}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:
             raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):

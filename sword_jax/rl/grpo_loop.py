@@ -13,10 +13,19 @@ appended to ``<workdir>/success_curve.{json,png}``, then the state is checkpoint
 after the checkpoint (evaluations a killed run made before it could save), so they are recomputed, never
 duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming
 the keys that differ.
+
+With ``rl.imagined.guard_margin > 0`` and evaluations that replay real episodes in the learned simulator
+(their ``replay`` entry), the exploitation guard (:class:`~sword_jax.rl.sim_guard.FalseSuccessGuard`) judges
+every evaluation: when the replay's false-success rate exceeds step 0's by more than the margin, the policy
+and its optimizer state go back to the last evaluation that passed (the last checkpoint, kept on the host),
+the step counter goes on, and the point records the rollback (``guard``). A resumed run takes the baseline
+from step 0's point and the restored checkpoint as the last state that passed, so it rolls back exactly as
+an uninterrupted run does.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import operator
 import os
 from collections.abc import Callable
@@ -27,6 +36,7 @@ import jax
 from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy_success import SuccessCurve
+from sword_jax.rl.sim_guard import FalseSuccessGuard
 from sword_jax.train_loop import LoopResult, StepFn, run_steps
 
 # RL config keys (paths under ``rl``) that shape a GRPO run's train state: a resumed run must share them with
@@ -40,7 +50,8 @@ GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_
                  "policy.max_instruction_bytes", "image_size", "proprio_dim", "policy.proprio_encoding",
                  "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "imagined.success_frames",
                  "imagined.shared_group_noise", "env.proprio", "env.starts", "imagined.keyframe_fraction",
-                 "grpo.update_microbatch", "grpo.rollout_batch")
+                 "grpo.update_microbatch", "grpo.rollout_batch", "imagined.guard_margin",
+                 "imagined.guard_min_failures")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
@@ -96,10 +107,35 @@ def train_grpo(
       ValueError: the checkpoint in the work dir is another run's.
     """
     curve = SuccessCurve(workdir, label=curve_label)
+    guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
+             if rl.imagined.guard_margin > 0 else None)
+    passed: dict[str, Any] = {}  # the last state the guard passed, on the host, and its step
 
-    def record(done: int, state: Any) -> None:
+    def keep_passed(done: int, state: Any) -> None:
+        passed.update(step=done, params=jax.device_get(state.params), opt_state=jax.device_get(state.opt_state))
+
+    def roll_back(state: Any) -> Any:
+        like = jax.tree.map(lambda x: x.sharding, (state.params, state.opt_state))
+        params, opt_state = jax.device_put((passed["params"], passed["opt_state"]), like)
+        return dataclasses.replace(state, params=params, opt_state=opt_state)
+
+    def record(done: int, state: Any) -> Any:
         point, extra = evaluate(done, state.params)
+        restored = None
+        if guard is not None:
+            decision = guard.observe(extra.get("replay"))
+            verdict = {"trip": decision.trip, "false_success": decision.rate, "baseline": decision.baseline,
+                       "reason": decision.reason}
+            if decision.trip:
+                restored = roll_back(state)
+                verdict["rolled_back_to"] = passed["step"]
+                log(f"GRPO step {done}: exploitation guard tripped ({decision.reason}); policy rolled back to "
+                    f"step {passed['step']}")
+            else:
+                keep_passed(done, state)
+            extra = dict(extra, guard=verdict)
         curve.add(done, point, **extra)
+        return restored
 
     def on_start(first_step: int, state: Any) -> Any:
         # every array committed to its device, as a restored state's are: a resumed run then compiles the
@@ -110,6 +146,12 @@ def train_grpo(
         curve.drop_after(first_step)
         if first_step == 0:
             record(0, state)
+        elif guard is not None:  # as the uninterrupted run stood after this checkpoint
+            for p in curve.points:
+                if p["step"] <= first_step and guard.baseline is None:
+                    guard.observe(p.get("replay"))
+            at = next((p for p in curve.points if p["step"] == first_step), {}).get("guard", {})
+            keep_passed(at.get("rolled_back_to", first_step), state)  # a rolled-back checkpoint holds that state
         return state
 
     def report(done: int, metrics: dict[str, float], _: Any, eta: float) -> dict[str, float]:
