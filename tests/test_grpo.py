@@ -103,6 +103,22 @@ def test_grpo_improves_policy_on_toy_simulator():
     assert after > before + 0.2, (before, after)
 
 
+def test_the_step_with_confirmed_successes_reports_what_the_second_draw_dropped():
+    """rl.imagined.confirm_success in the compiled step: in a noiseless world every success is confirmed
+    (the rule's semantics are tested in test_sim_agreement)."""
+    base = _toy_cfg(max_chunks=2)
+    cfg = dataclasses.replace(base, imagined=dataclasses.replace(base.imagined, confirm_success=True))
+    graphdef, params = build_policy(cfg, seed=0)
+    sim, reward_model = toy_simulator(frame_size=8, step_size=0.3), toy_reward_model()
+    tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate", "put the bowl on the stove"], 32))
+    start = toy_start_states(tokens, key=jax.random.key(3), frame_size=8)
+    _, metrics = grpo.make_train_step(graphdef, cfg, donate=False)(grpo.init_state(params, cfg),
+                                                                   (sim, reward_model, start), jax.random.key(0))
+    assert 0.0 < float(metrics["success_rate"]) < 1.0 and np.isfinite(float(metrics["loss"]))
+    assert float(metrics["unconfirmed_fraction"]) == 0.0
+    assert float(metrics["imagined_success_unconfirmed"]) == float(metrics["success_rate"])
+
+
 def test_a_non_finite_batch_skips_the_update():
     """A NaN behaviour log-prob makes the loss non-finite: the update is skipped, so NaN never reaches a
     checkpoint. (NaN returns alone are already harmless: their group has no finite spread and is filtered.)"""

@@ -1,5 +1,7 @@
 """Replaying real episodes in a learned simulator: the trace, the start layout, the replay and the agreement."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +11,7 @@ from sword_jax.rl import sim_agreement as sa
 from sword_jax.rl.config import EnvConfig, GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.env_rollout import make_act_fns, run_policy
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState, instruction_target
-from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator
+from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 
 
@@ -233,6 +235,10 @@ def test_replay_in_the_toy_world_tells_reaching_from_leaving():
                              detector, lambda f, h: jnp.zeros((4, 2, 1, 1, 4)), success_threshold=0.9,
                              key=jax.random.key(0), batch=4, max_instruction_bytes=16, max_steps=60, repeats=3)
     assert noisy["resample_disagreement"]["rate"] > 0 and len(noisy["imagined_success_repeats"]) == 3
+    # rl.imagined.confirm_success's rule on the same replays: an imagined success needs both draws
+    assert report["confirmed_by_second_replay"]["imagined_success"] == 0.5  # noiseless: nothing changes
+    both = noisy["confirmed_by_second_replay"]["imagined_success"]
+    assert both <= min(noisy["imagined_success_repeats"][:2])
 
 
 def test_longest_run_and_the_sustained_success_sweep_from_the_replay_scores():
@@ -452,3 +458,58 @@ def test_threshold_calibration_keeps_false_successes_within_the_bound_and_recall
         calibrate_threshold(scores[:60], real[:60])
     with pytest.raises(ValueError, match="must be finite"):
         calibrate_threshold(np.r_[np.nan, scores[1:]], real)
+
+
+def _coin_world(frame_size: int = 4, chunk_len: int = 2):
+    """A simulator whose every frame is one uniform draw of its noise key, and a detector that reads it:
+    an outcome made by the noise alone."""
+    def init_fn(params, start):
+        return jnp.zeros(())
+
+    def step_fn(params, state, chunk, key):
+        value = jax.random.uniform(key, ())
+        return state, jnp.full((chunk.shape[0], frame_size, frame_size, 3), value, jnp.float32)
+
+    sim = LearnedSimulator(params={}, init_fn=init_fn, step_fn=step_fn,
+                           observe_fn=lambda params, state: (jnp.zeros((4,), jnp.float32), jnp.float32(1.0)),
+                           chunk_len=chunk_len, frame_size=frame_size)
+    return sim, RewardModel(params={}, score_fn=lambda params, frames: jnp.mean(frames, axis=(1, 2, 3)))
+
+
+def test_confirm_successes_keeps_what_the_actions_made_and_drops_what_the_noise_made():
+    """rl.imagined.confirm_success: in a noiseless world the second imagination reproduces every outcome;
+    in a world whose outcome is a coin flip of the noise, about half of the successes are dropped, never
+    added, and the returns follow the confirmed successes."""
+    from sword_jax.rl.rollout import expand_groups, imagined_rollout
+
+    cfg = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+                   policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+                   grpo=GRPOConfig(group_size=8), imagined=ImaginedConfig(max_chunks=3, confirm_success=True))
+    graphdef, params = build_policy(cfg, seed=0)
+    tokens = jnp.asarray(tokenize_instructions(["go left", "go right", "go up", "go down"], 32))
+    start = expand_groups(toy_start_states(tokens, key=jax.random.key(1), frame_size=8), cfg.grpo.group_size)
+
+    def run(sim, detector, threshold):
+        c = dataclasses.replace(cfg, success_threshold=threshold)
+
+        @jax.jit
+        def both(sim, detector):
+            rollout = imagined_rollout(graphdef, params, sim, detector, start, c, key=jax.random.key(0))
+            return rollout, *sa.confirm_successes(rollout, sim, detector, start, c, key=jax.random.key(1))
+
+        rollout, confirmed, unconfirmed = both(sim, detector)
+        return rollout, confirmed, float(unconfirmed)
+
+    sim, detector = toy_simulator(frame_size=8, step_size=0.3), toy_reward_model()
+    rollout, confirmed, unconfirmed = run(sim, detector, 0.5)
+    assert 0 < int(rollout.success.sum()) < 32 and unconfirmed == 0.0
+    np.testing.assert_array_equal(confirmed.success, rollout.success)
+    np.testing.assert_array_equal(confirmed.returns, rollout.returns)
+
+    coin = _coin_world(frame_size=8, chunk_len=cfg.chunk_len)
+    rollout, confirmed, unconfirmed = run(*coin, 0.8)  # a chunk of 2 frames succeeds with p = 1 - 0.8^2 = 0.36
+    first, kept = np.asarray(rollout.success), np.asarray(confirmed.success)
+    assert first.sum() >= 10 and np.all(kept <= first) and 0 < kept.sum() < first.sum()
+    assert unconfirmed == pytest.approx((first & ~kept).mean())
+    np.testing.assert_allclose(confirmed.returns, kept * (1.0 + cfg.grpo.success_bonus))
+    np.testing.assert_array_equal(confirmed.tokens, rollout.tokens)

@@ -266,6 +266,10 @@ class ImaginedConfig:
         differ; off (default): every trajectory draws its own (on `small` a second noise draw changed
         19-31% of replayed real episodes' verdicts, and a lone noise-made success in a group takes a large
         advantage).
+      confirm_success: an imagined success counts only when a second, independent imagination of the
+        trajectory's executed actions (other simulator noise, same start) succeeds too
+        (:func:`sword_jax.rl.sim_agreement.confirm_successes`; its effect on real episodes is the replay's
+        ``confirmed_by_second_replay``); doubles the simulator's work per step. Off by default.
       guard_margin: the exploitation guard (:mod:`sword_jax.rl.sim_guard`): at each evaluation that replays
         real episodes in the learned simulator, a false-success rate above step 0's by more than this rolls
         the policy back to the last evaluation that passed; 0 (default) = off.
@@ -288,6 +292,7 @@ class ImaginedConfig:
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
     sim_microbatches: int = 1  # simulator step over trajectories in this many sequential slices
     shared_group_noise: bool = False  # one simulator noise draw per GRPO group
+    confirm_success: bool = False  # a success counts only if a second imagination of its actions succeeds
     guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
     guard_min_failures: int = 20  # real failures a replay needs before the guard judges it
 

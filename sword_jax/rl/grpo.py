@@ -33,9 +33,11 @@ from sword_jax.rl.config import RLConfig
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import sampling_log_probs
 from sword_jax.rl.rollout import Rollout, expand_groups, imagined_rollout, rollout_metrics, take_trajectories
+from sword_jax.rl.sim_agreement import confirm_successes
 
 SIGNAL_EPS = 1e-6
 UPDATE_KEY_SALT = 0x5EED  # the update's shuffle key is fold_in(the step's key, UPDATE_KEY_SALT)
+CONFIRM_KEY_SALT = 0xC0F1  # rl.imagined.confirm_success's second draw: fold_in(the step's key, CONFIRM_KEY_SALT)
 
 
 def group_has_signal(returns: Float[Array, "b g"]) -> jax.Array:
@@ -351,10 +353,15 @@ def make_train_step(
     def step(state: GRPOState, batch, key):
         simulator, reward_model, start = batch
         key = jax.random.fold_in(key, state.step)
-        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model,
-                                   expand_groups(start, cfg.grpo.group_size), cfg, key=key)
+        starts = expand_groups(start, cfg.grpo.group_size)
+        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, starts, cfg, key=key)
+        extra = {}
+        if cfg.imagined.confirm_success:
+            extra["imagined_success_unconfirmed"] = jnp.mean(rollout.success.astype(jnp.float32))
+            rollout, extra["unconfirmed_fraction"] = confirm_successes(
+                rollout, simulator, reward_model, starts, cfg, key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
         state, metrics = grpo_update(graphdef, cfg, state, rollout, jax.random.fold_in(key, UPDATE_KEY_SALT))
-        return state, dict(metrics, **rollout_metrics(rollout))
+        return state, dict(metrics, **rollout_metrics(rollout), **extra)
 
     mesh = shd.default_mesh(mesh)
 

@@ -51,7 +51,7 @@ GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_
                  "env.execute_steps", "imagined.execute_steps", "imagined.proprio", "imagined.success_frames",
                  "imagined.shared_group_noise", "env.proprio", "env.starts", "imagined.keyframe_fraction",
                  "grpo.update_microbatch", "grpo.rollout_batch", "imagined.guard_margin",
-                 "imagined.guard_min_failures")
+                 "imagined.guard_min_failures", "imagined.confirm_success")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]

@@ -34,8 +34,9 @@ from jaxtyping import Array, Bool, Float, Int
 from sword_jax.rl.data import keyframe_window
 from sword_jax.rl.env_rollout import wilson_interval
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
-from sword_jax.rl.policy import tokenize_instructions
-from sword_jax.rl.rollout import success_runs
+from sword_jax.rl.policy import tokenize_instructions, tokens_to_actions
+from sword_jax.rl.config import RLConfig
+from sword_jax.rl.rollout import Rollout, success_runs, trajectory_returns
 
 
 class TracedEpisodes(NamedTuple):
@@ -234,6 +235,34 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     return ReplayOutcome(success, jnp.where(success, jnp.argmax(reached, axis=1), -1).astype(jnp.int32), scores)
 
 
+def confirm_successes(rollout: Rollout, simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
+                      cfg: RLConfig, *, key: jax.Array) -> tuple[Rollout, Float[Array, ""]]:
+    """``rl.imagined.confirm_success``: an imagined success counts only when a second, independent
+    imagination of the same trajectory -- its executed actions fed open loop from the same start with
+    other simulator noise (:func:`replay_actions`) -- succeeds too. A success the noise made rarely
+    survives a second draw; one the actions made does (``replay_report``'s ``confirmed_by_second_replay``
+    measures the rule on real episodes). Costs a second pass of the simulator over every trajectory.
+
+    Args:
+      rollout: an :func:`~sword_jax.rl.rollout.imagined_rollout` from ``start`` (``[N]``, expanded to groups).
+      simulator / reward_model / cfg: as the rollout used them (threshold, ``success_frames``).
+      key: the second draw's noise.
+
+    Returns:
+      ``(rollout, unconfirmed)``: the rollout with ``success`` and ``returns`` under the rule (the
+      recorded decisions and rewards unchanged), and the fraction of trajectories whose success the
+      second draw did not confirm.
+    """
+    n, c, t, a = rollout.tokens.shape
+    actions = tokens_to_actions(rollout.tokens, cfg.action_bins).reshape(n, c * t, a)
+    lengths = (jnp.sum(rollout.valid, axis=1) * t).astype(jnp.int32)
+    again = replay_actions(simulator, reward_model, start, actions, lengths, success_threshold=cfg.success_threshold,
+                           key=key, success_frames=cfg.imagined.success_frames)
+    success = rollout.success & again.success
+    unconfirmed = jnp.mean((rollout.success & ~again.success).astype(jnp.float32))
+    return rollout._replace(success=success, returns=trajectory_returns(rollout.rewards, success, cfg)), unconfirmed
+
+
 SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
 HORIZON_SWEEP = (24, 48, 96)  # actions from the start frame: imagined success that early, real successes vs failures
 
@@ -384,6 +413,10 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     such a rule removes or sustained scenes it does not. ``imagined_success_by_horizon``
     (:func:`success_by_horizon`) compares real successes and failures at common horizons.
 
+    ``confirmed_by_second_replay`` (with ``repeats >= 2``) is the agreement of the rule
+    ``rl.imagined.confirm_success`` applies in GRPO: an episode counts as an imagined success only when
+    both independent replays succeed.
+
     Returns :func:`agreement` plus ``left_out``, ``resample_disagreement`` (with ``repeats >= 2``),
     ``imagined_success_repeats`` and, per replayed episode counted from the start frame,
     ``imagined_first_success`` / ``imagined_longest_success_run`` / ``real_lengths`` / ``real_success_flags``.
@@ -435,7 +468,10 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
                   imagined_success_repeats=[float(o.mean()) if o.size else None for o in outcomes],
                   imagined_first_success=np.concatenate(first).tolist() if first else [],
                   real_lengths=lengths[keep].tolist(), real_success_flags=traced.success[keep].astype(int).tolist())
-    if repeats >= 2:
+    if repeats >= 2:  # what rl.imagined.confirm_success would say: both independent replays succeed
+        report["confirmed_by_second_replay"] = {
+            name: sub for name, sub in agreement(traced.success[keep], outcomes[0] & outcomes[1]).items()
+            if name in ("imagined_success", "false_success", "missed_success", "agreement")}
         report["resample_disagreement"] = {"rate": flips / len(keep) if len(keep) else None,
                                            "ci95": list(wilson_interval(flips, len(keep))), "of": int(len(keep))}
     return report
