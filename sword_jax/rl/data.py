@@ -177,6 +177,21 @@ def sample_reward_batch(
     return {"frames": episodes.frames[pick[:, 0], pick[:, 1]], "labels": labels[pick[:, 0], pick[:, 1]].astype(np.float32)}
 
 
+def sample_mixed_reward_batch(sources: Sequence[tuple[EpisodeSet, np.ndarray, float]], batch_size: int,
+                              rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """A detector batch drawn from several labelled frame sources ``(episodes, labels, share)`` (e.g. real
+    frames and the learned simulator's replays of real episodes, :func:`sword_jax.rl.sim_agreement.replay_labels`):
+    each source gives ``round(share * batch_size)`` frames (the last source the rest), class-balanced
+    within it (:func:`sample_reward_batch`)."""
+    shares = np.asarray([share for _, _, share in sources], np.float64)
+    if not len(sources) or np.any(shares < 0) or not np.isclose(shares.sum(), 1.0):
+        raise ValueError(f"sample_mixed_reward_batch: shares must be >= 0 and sum to 1, got {shares.tolist()}")
+    counts = np.round(shares * batch_size).astype(int)
+    counts[-1] = batch_size - counts[:-1].sum()
+    parts = [sample_reward_batch(eps, labels, int(n), rng) for (eps, labels, _), n in zip(sources, counts) if n > 0]
+    return {k: np.concatenate([p[k] for p in parts]) for k in ("frames", "labels")}
+
+
 def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
                     num_context: int = 1, frames_per_latent: int = 4) -> dict[str, Any]:
     """Start states for imagined rollouts at latent-aligned keyframes of the first ``max_fraction`` of

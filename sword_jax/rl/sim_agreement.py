@@ -31,10 +31,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from sword_jax.rl.data import keyframe_window
+from sword_jax.rl.data import EpisodeSet, keyframe_window
 from sword_jax.rl.env_rollout import wilson_interval
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import tokenize_instructions, tokens_to_actions
+from sword_jax.rl.reward_model import score_episodes
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.rollout import Rollout, success_runs, trajectory_returns
 
@@ -171,11 +172,13 @@ class ReplayOutcome(NamedTuple):
       success: ``[n]`` some replayed frame scored at least the threshold.
       first_success: ``[n]`` index of the first such action (its frame is the one after it), -1 if none.
       scores: ``[n, T]`` the detector's score of the frame after each replayed action (0 past ``lengths``).
+      frames: with ``record_frames``, ``[n, T, H, W, 3]`` uint8 those frames (else empty).
     """
 
     success: Bool[Array, " n"]
     first_success: Int[Array, " n"]
     scores: Float[Array, "n t"]
+    frames: Any = ()  # with record_frames: [n, T, H, W, 3] uint8, the frame after each replayed action
 
 
 GRIPPER = 6  # the gripper command's index in the 7-D action (LIBERO: 6 pose deltas, then the gripper)
@@ -183,7 +186,8 @@ GRIPPER = 6  # the gripper command's index in the 7-D action (LIBERO: 6 pose del
 
 def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
                    actions: Float[Array, "n t a"], lengths: Int[Array, " n"], *, success_threshold: float,
-                   key: jax.Array, settle_steps: int = 0, success_frames: int = 1) -> ReplayOutcome:
+                   key: jax.Array, settle_steps: int = 0, success_frames: int = 1,
+                   record_frames: bool = False) -> ReplayOutcome:
     """Feeds fixed action sequences, open loop, through the learned simulator and scores each frame.
 
     Step ``c`` offers the simulator the window ``actions[c E : c E + chunk_len]`` (``E`` = its
@@ -197,7 +201,8 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
     ``lengths + settle_steps`` are not scored. The window is the same for every episode, whatever
     its real outcome. ``actions`` must have room for it (``t >= max(lengths) + settle_steps``).
     ``success_frames``: the imagined episode succeeds once that many consecutive scored frames reach the
-    threshold (``rl.imagined.success_frames``, the rule GRPO's imagined rollouts use).
+    threshold (``rl.imagined.success_frames``, the rule GRPO's imagined rollouts use). ``record_frames``
+    also returns the frames (uint8), e.g. to train the detector on imagined frames (:func:`replayed_episodes`).
     """
     n, total, dim = actions.shape
     if dim != simulator.action_dim:
@@ -224,15 +229,77 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
         state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(state, chunk,
                                                                             jax.random.split(keys[c], n))
         scores = reward_model.score(frames.reshape((n * e,) + frames.shape[2:])).reshape(n, e)
-        return state, scores
+        kept = jnp.clip(jnp.round(frames * 255.0), 0, 255).astype(jnp.uint8) if record_frames else ()
+        return state, (scores, kept)
 
-    _, scores = jax.lax.scan(step, jax.vmap(simulator.init)(start), jnp.arange(chunks))
+    _, (scores, frames) = jax.lax.scan(step, jax.vmap(simulator.init)(start), jnp.arange(chunks))
+    if record_frames:  # (C, n, E, H, W, 3) -> (n, T, H, W, 3)
+        frames = jnp.swapaxes(frames, 0, 1).reshape((n, chunks * e) + frames.shape[3:])[:, :total]
     scores = jnp.swapaxes(scores, 0, 1).reshape(n, chunks * e)[:, :total]
     valid = jnp.arange(total)[None] < lengths[:, None] + settle_steps
     scores = jnp.where(valid, scores, 0.0)
     reached = success_runs(valid & (scores >= jnp.float32(success_threshold))) >= success_frames
     success = jnp.any(reached, axis=1)
-    return ReplayOutcome(success, jnp.where(success, jnp.argmax(reached, axis=1), -1).astype(jnp.int32), scores)
+    return ReplayOutcome(success, jnp.where(success, jnp.argmax(reached, axis=1), -1).astype(jnp.int32), scores,
+                         frames)
+
+
+def replayed_episodes(traced: TracedEpisodes, simulator: LearnedSimulator, reward_model: RewardModel,
+                      encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array,
+                      batch: int = 64, num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
+                      max_instruction_bytes: int = 96, settle_steps: int = 0) -> tuple[EpisodeSet, np.ndarray]:
+    """Real episodes as the learned simulator imagines them: each traced episode's actions replayed from
+    its start frame (:func:`replay_starts`, :func:`replay_actions` with ``settle_steps`` hold actions),
+    its imagined frames kept, labelled with the REAL outcome: what a success detector that must be honest
+    on imagined frames trains and is calibrated on (:func:`replay_labels`).
+
+    Episodes that ended inside the head are left out. Returns ``(episodes, real_lengths)``: an
+    :class:`~sword_jax.rl.data.EpisodeSet` whose frame ``t`` is the imagined frame after replayed action
+    ``t``, ``lengths`` = actions replayed + ``settle_steps``, ``success`` = the real outcome (actions and
+    proprio are zeros: only frames and labels are meant to be read), and each kept episode's real action
+    count from the start frame.
+    """
+    start, actions, lengths = replay_starts(traced, encode, num_context=num_context, frames_per_latent=frames_per_latent,
+                                            proprio_dim=proprio_dim, max_instruction_bytes=max_instruction_bytes)
+    keep = np.flatnonzero(lengths > 0)
+    if keep.size == 0:
+        raise ValueError("replayed_episodes: every traced episode ended inside the head; nothing to replay")
+    used = int(lengths[keep].max())
+    actions = np.pad(actions[:, :used], ((0, 0), (0, settle_steps), (0, 0)))
+    replay = jax.jit(lambda sim, rm, s, a, n, k: replay_actions(sim, rm, s, a, n, success_threshold=success_threshold,
+                                                                 key=k, settle_steps=settle_steps, record_frames=True))
+    frames = []
+    for b, lo in enumerate(range(0, keep.size, batch)):
+        idx = keep[lo: lo + batch]
+        count = idx.size
+        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])  # one compile for every batch
+        out = replay(simulator, reward_model, jax.tree.map(lambda y: jnp.asarray(y)[idx], start),
+                     jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]), jax.random.fold_in(key, b))
+        frames.append(np.asarray(out.frames)[:count])
+    frames = np.concatenate(frames)
+    e, t = frames.shape[:2]
+    episodes = EpisodeSet(frames=frames, actions=np.zeros((e, t, actions.shape[-1]), np.float32),
+                          proprio=np.zeros((e, t, proprio_dim), np.float32),
+                          lengths=(lengths[keep] + settle_steps).astype(np.int64),
+                          success=np.asarray(traced.success, bool)[keep],
+                          instructions=tuple(traced.language[i] for i in keep))
+    return episodes, lengths[keep].astype(np.int64)
+
+
+def replay_labels(episodes: EpisodeSet, real_lengths: np.ndarray, positive_tail: int) -> np.ndarray:
+    """``[E, T]`` detector labels of :func:`replayed_episodes` from the real outcome: 1 on the last
+    ``positive_tail`` replayed actions' frames and the settle frames of real successes (the scene the
+    real episode ended on), 0 on every frame of real failures, -1 elsewhere (earlier frames of real
+    successes, which may or may not show the task done, and padding)."""
+    if positive_tail < 1:
+        raise ValueError(f"replay_labels: positive_tail must be >= 1, got {positive_tail}")
+    t = np.arange(episodes.frames.shape[1])[None]
+    end, real_end = episodes.lengths[:, None], np.asarray(real_lengths)[:, None]
+    success = episodes.success[:, None]
+    labels = np.full(episodes.frames.shape[:2], -1, np.int32)
+    labels[(t < end) & ~success] = 0
+    labels[(t >= real_end - positive_tail) & (t < end) & success] = 1
+    return labels
 
 
 def confirm_successes(rollout: Rollout, simulator: LearnedSimulator, reward_model: RewardModel, start: StartState,
@@ -261,6 +328,55 @@ def confirm_successes(rollout: Rollout, simulator: LearnedSimulator, reward_mode
     success = rollout.success & again.success
     unconfirmed = jnp.mean((rollout.success & ~again.success).astype(jnp.float32))
     return rollout._replace(success=success, returns=trajectory_returns(rollout.rewards, success, cfg)), unconfirmed
+
+
+def decisive_scores(scores: np.ndarray, lengths: np.ndarray, success_frames: int = 1) -> np.ndarray:
+    """``[E]`` each episode's decisive detector score under the imagined-success rule: the best, over its
+    first ``lengths`` frames, of the lowest score in any ``success_frames`` consecutive frames. The episode
+    is an imagined success at threshold ``c`` exactly when its decisive score is ``>= c`` (what
+    :func:`calibrate_threshold` takes)."""
+    scores, lengths = np.asarray(scores, np.float64), np.asarray(lengths)
+    if scores.ndim != 2 or lengths.shape != scores.shape[:1] or success_frames < 1:
+        raise ValueError(f"decisive_scores: scores [E, T] with lengths [E] and success_frames >= 1, got "
+                         f"{scores.shape}, {lengths.shape}, {success_frames}")
+    valid = np.arange(scores.shape[1])[None] < lengths[:, None]
+    masked = np.where(valid, scores, -np.inf)
+    k = success_frames
+    if k > 1:  # lowest score of each window of k frames ending at t
+        windows = np.lib.stride_tricks.sliding_window_view(masked, k, axis=1)
+        masked = windows.min(axis=-1)
+    return masked.max(axis=1)
+
+
+def calibrated_detector_report(score: Callable[[Any], Any], replayed: EpisodeSet, real_lengths: np.ndarray, *,
+                               positive_tail: int, calibrate: np.ndarray, max_false_success: float = 0.05,
+                               success_frames: int = 1) -> dict[str, Any]:
+    """The detector's success threshold set on held-out replays, and how it reads imagined frames.
+
+    ``replayed`` (:func:`replayed_episodes`) is split by the boolean mask ``calibrate``: the threshold is
+    the lowest whose imagined false-success rate on the calibration episodes is at most
+    ``max_false_success`` (:func:`calibrate_threshold` on :func:`decisive_scores`); the other episodes
+    report, at that threshold, the episode-level agreement (false and missed success) and the frame-level
+    precision and recall against :func:`replay_labels`.
+    """
+    calibrate = np.asarray(calibrate, bool)
+    if calibrate.shape != replayed.success.shape or calibrate.all() or not calibrate.any():
+        raise ValueError("calibrated_detector_report: calibrate must mark some but not all replayed episodes")
+    frame_scores = score_episodes(jax.jit(score), replayed.frames)
+    decisive = decisive_scores(frame_scores, replayed.lengths, success_frames)
+    chosen = calibrate_threshold(decisive[calibrate], replayed.success[calibrate], max_false_success=max_false_success)
+    threshold, held = chosen["threshold"], ~calibrate
+    labels = replay_labels(replayed, real_lengths, positive_tail)[held]
+    fire, labelled = frame_scores[held] >= threshold, labels >= 0
+    truth = labels == 1
+    tp = float((fire & truth & labelled).sum())
+    return {"threshold": threshold, "max_false_success": max_false_success, "calibration_episodes": int(calibrate.sum()),
+            "calibration": {k: chosen[k] for k in ("false_success", "missed_success", "imagined_success")},
+            "held_out_episodes": int(held.sum()),
+            "held_out": {k: v for k, v in agreement(replayed.success[held], decisive[held] >= threshold).items()
+                         if k in ("false_success", "missed_success", "imagined_success", "real_success", "agreement")},
+            "frame_precision": tp / max(float((fire & labelled).sum()), 1.0),
+            "frame_recall": tp / max(float(truth.sum()), 1.0)}
 
 
 SUSTAIN_SWEEP = (1, 2, 4, 8)  # consecutive frames at or above the threshold a stricter success rule would ask for
