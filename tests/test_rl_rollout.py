@@ -194,3 +194,25 @@ def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
         rollout(3)
     with pytest.raises(ValueError, match=r"rl\.imagined\.sim_microbatches"):
         RLConfig(imagined=ImaginedConfig(sim_microbatches=0)).validate()
+
+
+def test_a_group_s_simulator_start_up_runs_once_and_is_broadcast():
+    """group_size: the simulator is initialised once per start state and its state broadcast to the
+    group; the rollout equals the one from the expanded start states, and init runs on B, not B x G."""
+    graphdef, params, sim, reward_model, start = _setup()
+    distinct = jax.tree.map(lambda x: x[:: CFG.grpo.group_size], start)
+    calls = []
+    counting = dataclasses.replace(sim, init_fn=lambda p, s: (calls.append(s.frame.shape), sim.init_fn(p, s))[1])
+    cfg = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, sim_microbatches=2))  # sliced layout
+
+    @jax.jit
+    def both(p):
+        expanded = imagined_rollout(graphdef, p, sim, reward_model, start, cfg, key=jax.random.key(0))
+        grouped = imagined_rollout(graphdef, p, counting, reward_model, distinct, cfg, key=jax.random.key(0),
+                                   group_size=CFG.grpo.group_size)
+        return expanded, grouped
+
+    expanded, grouped = both(params)
+    for x, y in zip(jax.tree.leaves(expanded), jax.tree.leaves(grouped)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert calls and all(shape == distinct.frame.shape[1:] for shape in calls)  # vmapped over the 2 starts

@@ -49,6 +49,12 @@ def test_world_model_simulator_rollout_deterministic_and_streams_frames():
     c = run(params, sim, jax.random.key(1))
     assert not np.allclose(np.asarray(a.frames), np.asarray(c.frames))
     np.testing.assert_array_equal(np.asarray(a.proprio_valid), 0.0)  # the world model reports no proprio
+    # one start-up decode per start state, broadcast to its group: the same rollout
+    starts = StartState(frames, jnp.zeros((2, 8)), tokens, latents)
+    grouped = jax.jit(lambda p, s, k: imagined_rollout(graphdef, p, s, toy_reward_model(), starts, rl, key=k,
+                                                       record_frames=True, group_size=2))(params, sim, jax.random.key(0))
+    np.testing.assert_array_equal(np.asarray(grouped.tokens), np.asarray(a.tokens))
+    np.testing.assert_allclose(np.asarray(grouped.frames), np.asarray(a.frames), atol=1e-5)
 
 
 def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatch):

@@ -353,8 +353,9 @@ def make_train_step(
     def step(state: GRPOState, batch, key):
         simulator, reward_model, start = batch
         key = jax.random.fold_in(key, state.step)
+        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, cfg, key=key,
+                                   group_size=cfg.grpo.group_size)  # one simulator start-up per start state
         starts = expand_groups(start, cfg.grpo.group_size)
-        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, starts, cfg, key=key)
         extra = {}
         if cfg.imagined.confirm_success:
             extra["imagined_success_unconfirmed"] = jnp.mean(rollout.success.astype(jnp.float32))

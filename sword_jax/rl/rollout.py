@@ -212,6 +212,7 @@ def imagined_rollout(
     key: jax.Array,
     record_frames: bool = False,
     greedy: bool = False,
+    group_size: int = 1,
 ) -> Rollout:
     """Rolls the policy out in the learned simulator for ``cfg.imagined.max_chunks`` chunks.
 
@@ -219,24 +220,35 @@ def imagined_rollout(
       graphdef / policy_params: the split :class:`~sword_jax.rl.policy.VLAPolicy`.
       simulator: the learned simulator (protocol in :mod:`sword_jax.rl.learned_simulator`).
       reward_model: per-frame success scorer.
-      start: start states with leading axis N (already expanded to groups).
+      start: start states with leading axis N (already expanded to groups), or with ``group_size`` G > 1
+        the N / G distinct start states of the groups: the simulator is then initialised once per start
+        state (a world model's start-up decode of the start latents) and its state broadcast to the G
+        members, the same rollout as from :func:`expand_groups` of them for G times less start-up work.
       cfg: RL config (threshold, chunk limit, temperature, success bonus).
       key: rollout randomness (policy sampling and simulator noise); same key, same rollout.
       record_frames: also return every predicted frame (for videos; memory heavy).
       greedy: take the argmax action instead of sampling (evaluation).
+      group_size: see ``start``.
 
     Returns:
-      A :class:`Rollout`.
+      A :class:`Rollout` of N trajectories (start-major).
     """
     policy = nnx.merge(graphdef, policy_params)
-    n = start.frame.shape[0]
+    if group_size < 1:
+        raise ValueError(f"imagined_rollout: group_size must be >= 1, got {group_size}")
+    n = start.frame.shape[0] * group_size
     if start.frame.ndim != 4 or start.frame.shape[-1] != 3:
         raise ValueError(f"start.frame must be [N, H, W, 3], got {start.frame.shape}")
     slices = cfg.imagined.sim_microbatches
     # The simulator's state stays in the sliced layout for the whole rollout (no per-step relayout of its
     # decoder cache); only the per-step inputs and outputs are sliced and merged.
-    sim_state = map_over_slices(simulator.init, to_slices((start,), slices))
-    init_score = reward_model.score(start.frame)
+    if group_size == 1:
+        sim_state = map_over_slices(simulator.init, to_slices((start,), slices))
+        init_score = reward_model.score(start.frame)
+    else:  # one start-up per start state, broadcast to its group
+        sim_state = to_slices(expand_groups(jax.vmap(simulator.init)(start), group_size), slices)
+        init_score = jnp.repeat(reward_model.score(start.frame), group_size, axis=0)
+        start = expand_groups(start, group_size)
     carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32))
 
     def chunk_step(carry, chunk_index):
