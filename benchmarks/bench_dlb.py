@@ -12,7 +12,7 @@ frames x 16x16x48, bfloat16 storage), computed by the same function the trainer 
 ``--write-sources`` compares the cache's write sources (``cache.write_source``): it trains the
 config's model for ``--train-steps`` DLB steps (``one_step`` writes) on the config's latents
 (``--data.path`` style ``--latents``, else synthetic), then, on ``--eval-batches`` fresh batches
-and the same params, measures the distance (:func:`sword_jax.dlb.fidelity.latent_distance`)
+and the same params, measures the distance (:func:`sword_jax.world_model.cache_fidelity.latent_distance`)
 between what each source would write and what the inference sampler (``flow.sample_steps``,
 fresh noise) produces for the same conditioning: ``one_step`` at the training noise levels,
 ``sampler`` at each of ``--sampler-steps``, and ``floor`` (a second inference sample: the
@@ -42,7 +42,7 @@ from benchmarks import common
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
-from sword_jax.dlb import fidelity
+from sword_jax.world_model import cache_fidelity as fidelity
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rng import stream_key, stream_seed
 from sword_jax.world_model import data, flow, sampler, train_state, train_step

@@ -20,6 +20,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from sword_jax.atomic_write import write_json_atomic
+
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "latest.json")
 
 
@@ -99,11 +101,7 @@ def merge_results(entries: dict[str, dict[str, Any]], path: str = RESULTS) -> st
         with open(path) as f:
             current = json.load(f)
     current.update(entries)
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(current, f, indent=1, sort_keys=True)
-    os.replace(tmp, path)
-    return path
+    return write_json_atomic(path, current, sort_keys=True)
 
 
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:

@@ -6,7 +6,7 @@ RUN: a ``python -m train.pipeline`` work dir (or a world-model work dir / checkp
 a tiny model is trained first (``_tiny_run.py``). The policy below is written here, not taken from
 sword-jax: any ``nnx.Module`` mapping ``(frames [N, s, s, 3] in [0, 1], instruction tokens
 [N, L], proprio [N, P], proprio_valid [N])`` to logits ``[N, chunk_len, action_dim, bins]`` over
-``bins`` action bins in [-1, 1] fits :func:`sword_jax.rl.grpo.make_train_step`. So does the
+``bins`` action bins in [-1, 1] fits :func:`sword_jax.rl.grpo.make_grpo_step`. So does the
 reward: a function of the imagined frames with values in [0, 1] (here "light on the right side
 of the picture"; a pipeline run also has its trained success detector, ``model.reward_model``).
 A shaped reward like this one is paid as its summed change per chunk (``rl.imagined.return_rule="score"``);
@@ -82,7 +82,7 @@ def main(argv=None) -> dict:
     simulator = sword_jax.learned_simulator(model)
     reward = RewardModel(params=None, score_fn=lambda _, frames: light_on_the_right(frames))
 
-    step = grpo.make_train_step(graphdef, rl)  # step(state, (simulator, reward, starts), key); state donated
+    step = grpo.make_grpo_step(graphdef, rl)  # step(state, (simulator, reward, starts), key); state donated
     state = grpo.init_state(params, rl)
     start_params = jax.tree.map(jnp.copy, state.params)
     history = []

@@ -492,7 +492,7 @@ def learned_simulator(
 
     ``sim.init(start) -> state``; ``sim.step(state, chunk [4p, a], key=key) -> (state, frames
     [E, H, W, 3])`` with ``E = 4 * execute_latents`` (default the whole chunk); ``sim.observe(state)
-    -> (proprio, valid)``. The GRPO step (:func:`sword_jax.rl.grpo.make_train_step`) and the envs
+    -> (proprio, valid)``. The GRPO step (:func:`sword_jax.rl.grpo.make_grpo_step`) and the envs
     below take it; its weights are pytree leaves, so pass it to jit as an argument.
 
     Args:

@@ -1,20 +1,23 @@
 """Checkpoints and metric logging shared by the trainers.
 
-:class:`Checkpointer` wraps an orbax ``CheckpointManager`` with two items per step: ``state`` (the
-train-state pytree, latent cache included, restored straight into its sharded layout) and ``meta``
-(JSON: data-iterator position, RNG root key data, config). :class:`MetricLogger` reads device
+:class:`Checkpointer` is the one orbax reader and writer of checkpoints: an orbax ``CheckpointManager``
+with two items per step, ``state`` (the train-state pytree, latent cache included, restored straight
+into its sharded layout) and ``meta`` (JSON: data-iterator position, RNG root key data, config).
+A checkpoint that cannot be read, or does not fit what it is read into, raises :class:`CheckpointError`. :class:`MetricLogger` reads device
 metrics one log step late, so the host never waits on the step it just dispatched, and writes
 them to ``metrics.jsonl`` and TensorBoard event files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import sys
 import time
 import warnings
+from collections.abc import Iterator
 from typing import Any, TextIO
 
 import jax
@@ -29,19 +32,47 @@ def abstract_like(tree: Any, shardings: Any | None = None) -> Any:
     return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), tree, shardings)
 
 
-class Checkpointer:
-    """Saves and restores ``(state, meta)`` under ``directory`` (keeps the newest ``max_to_keep``)."""
+class CheckpointError(ValueError):
+    """A checkpoint or weight file that is missing, unreadable, or does not match the model it is loaded into."""
 
-    def __init__(self, directory: str, *, max_to_keep: int = 2):
+
+class Checkpointer:
+    """Saves and restores ``(state, meta)`` under ``directory`` (keeps the newest ``max_to_keep``).
+
+    With ``read_only=True`` nothing is created, written or deleted, and the saved state can also be
+    read in part (:meth:`restore_subtree`) or by its metadata alone (:meth:`state_metadata`): the
+    reader behind :mod:`sword_jax.load`. Usable as a context manager (closes on exit).
+    """
+
+    def __init__(self, directory: str, *, max_to_keep: int | None = 2, read_only: bool = False):
         self.directory = os.path.abspath(directory)
-        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
-        self.manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "meta"))
+        self.read_only = read_only
+        if read_only:
+            # Never saves (orbax's own read_only mode only adds a log warning); explicit handlers let
+            # the state be read by metadata or in part.
+            options = ocp.CheckpointManagerOptions(create=False, max_to_keep=None)
+            handlers = {"state": ocp.PyTreeCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+            self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handlers)
+        else:
+            options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+            self.manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "meta"))
+
+    def __enter__(self) -> "Checkpointer":
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.close()
 
     def latest_step(self) -> int | None:
         return self.manager.latest_step()
 
+    def all_steps(self) -> list[int]:
+        return list(self.manager.all_steps())
+
     def save(self, step: int, state: Any, meta: dict[str, Any], *, wait: bool = True) -> None:
         """Writes checkpoint ``step``; ``meta`` must be JSON-serialisable."""
+        if self.read_only:
+            raise ValueError(f"checkpoint: {self.directory} was opened read-only")
         self.manager.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)))
         if wait:
@@ -52,7 +83,7 @@ class Checkpointer:
 
         Raises:
           FileNotFoundError: no checkpoint in the directory.
-          ValueError: the checkpoint does not match ``abstract_state`` (e.g. another config).
+          CheckpointError: the checkpoint does not match ``abstract_state`` (e.g. another config).
         """
         step = self.latest_step() if step is None else step
         if step is None:
@@ -61,27 +92,68 @@ class Checkpointer:
             restored = self.manager.restore(step, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()))
         except (ValueError, KeyError, TypeError) as err:
-            raise ValueError(f"checkpoint: step {step} in {self.directory} does not match this run's state "
-                             f"(different config?): {err}") from err
+            raise CheckpointError(f"checkpoint: step {step} in {self.directory} does not match this run's state "
+                                  f"(different config?): {err}") from err
         return restored["state"], restored["meta"]
+
+    def read_meta(self, step: int) -> dict[str, Any]:
+        """The JSON metadata saved with checkpoint ``step`` (config, data position, kind ...)."""
+        try:
+            return self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+        except Exception as err:  # noqa: BLE001 - any failure to read a file is reported with its path
+            raise CheckpointError(f"cannot read the metadata of step {step} in {self.directory}: "
+                                  f"{type(err).__name__}: {err}") from err
+
+    def state_metadata(self, step: int) -> Any:
+        """The saved state's tree of array metadata (shapes, dtypes; None entries kept), read without
+        reading any array."""
+        try:
+            with self._reading() as reader:
+                node = reader.manager.item_metadata(step)["state"]
+        except Exception as err:  # noqa: BLE001
+            raise CheckpointError(f"cannot read checkpoint step {step} in {self.directory}: "
+                                  f"{type(err).__name__}: {err}") from err
+        return getattr(node, "tree", node)  # orbax's tree-metadata wrapper -> nested dict
+
+    def restore_subtree(self, step: int, abstract: dict[str, Any]) -> dict[str, Any]:
+        """Restores the entries of ``abstract`` (``ShapeDtypeStruct`` leaves with shardings) from ``step``.
+
+        Entries of the saved state that ``abstract`` does not name are not read.
+        """
+        restore_args = ocp.checkpoint_utils.construct_restore_args(abstract)
+        try:
+            with self._reading() as reader:
+                restored = reader.manager.restore(step, args=ocp.args.Composite(
+                    state=ocp.args.PyTreeRestore(item=abstract, restore_args=restore_args, partial_restore=True)))
+        except Exception as err:  # noqa: BLE001
+            raise CheckpointError(f"cannot restore step {step} from {self.directory} (another config, or a damaged "
+                                  f"checkpoint?): {type(err).__name__}: {err}") from err
+        return restored["state"]
 
     def array_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
         """Shape of the saved state array ``name`` (dotted path, e.g. ``cache.latents``), from metadata only."""
         step = self.latest_step() if step is None else step
         if step is None:
             raise FileNotFoundError(f"checkpoint: nothing saved in {self.directory}")
-        handlers = {"state": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
-        reader = ocp.CheckpointManager(self.directory, item_handlers=handlers)
-        try:
-            node = reader.item_metadata(step)["state"]
-        finally:
-            reader.close()
-        node = getattr(node, "tree", node)  # orbax's tree-metadata wrapper -> nested dict
+        node = self.state_metadata(step)
         for part in name.split("."):
             if part not in node:
                 raise KeyError(f"checkpoint: {name!r} is not in the state saved at step {step} in {self.directory}")
             node = node[part]
         return tuple(node.shape)
+
+    @contextlib.contextmanager
+    def _reading(self) -> Iterator["Checkpointer"]:
+        # Reading by metadata or in part needs the explicit handlers of a read-only manager.
+        if self.read_only:
+            yield self
+            return
+        self.manager.wait_until_finished()
+        reader = Checkpointer(self.directory, read_only=True)
+        try:
+            yield reader
+        finally:
+            reader.close()
 
     def close(self) -> None:
         self.manager.wait_until_finished()

@@ -32,10 +32,8 @@ RUNTIME_ERRORS = (
     "sim.render_gl.GLUnavailableError",
     "sword_jax.augment.ingest.StyledEpisodeError",
     "sword_jax.augment.style.HeldOutStyleError",
-    "sword_jax.convert.safetensors_io.CheckpointError",
-    "sword_jax.load.CheckpointError",
+    "sword_jax.checkpoint.CheckpointError",
     "sword_jax.metrics.networks.MissingWeightsError",
-    "sword_jax.metrics.torch_io.WeightFileError",
     "sword_jax.train_loop.AnotherRunsCheckpoint",
     "sword_jax.train_loop.NonFiniteLoss",
 )

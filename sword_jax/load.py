@@ -30,19 +30,7 @@ import jax
 from flax import nnx
 
 from sword_jax import sharding as shd
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that is missing, unreadable, or does not match the model it is loaded into."""
-
-
-def _manager(directory: str):
-    import orbax.checkpoint as ocp
-
-    handlers = {"state": ocp.PyTreeCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
-    # Never saves, so nothing is written or deleted (orbax's read_only mode only adds a log warning).
-    options = ocp.CheckpointManagerOptions(create=False, max_to_keep=None)
-    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_handlers=handlers)
+from sword_jax.checkpoint import CheckpointError, Checkpointer
 
 
 def checkpoint_step(directory: str, step: int | None = None) -> int:
@@ -53,11 +41,8 @@ def checkpoint_step(directory: str, step: int | None = None) -> int:
     """
     if not os.path.isdir(directory):
         raise CheckpointError(f"checkpoint directory {directory} does not exist")
-    manager = _manager(directory)
-    try:
-        steps = manager.all_steps()
-    finally:
-        manager.close()
+    with Checkpointer(directory, read_only=True) as reader:
+        steps = reader.all_steps()
     if not steps:
         raise CheckpointError(f"no complete checkpoint in {directory} (expected <step>/state and <step>/meta "
                               "written by a sword-jax trainer)")
@@ -70,28 +55,14 @@ def checkpoint_step(directory: str, step: int | None = None) -> int:
 
 def read_meta(directory: str, step: int) -> dict[str, Any]:
     """The JSON metadata saved with checkpoint ``step`` (config, data position, kind ...)."""
-    import orbax.checkpoint as ocp
-
-    manager = _manager(directory)
-    try:
-        return manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
-    except Exception as err:  # noqa: BLE001 - any failure to read a file is reported with its path
-        raise CheckpointError(f"cannot read the metadata of step {step} in {directory}: "
-                              f"{type(err).__name__}: {err}") from err
-    finally:
-        manager.close()
+    with Checkpointer(directory, read_only=True) as reader:
+        return reader.read_meta(step)
 
 
 def saved_keys(directory: str, step: int) -> dict[str, bool]:
     """Top-level entries of the saved state and whether each holds arrays (None entries: False)."""
-    manager = _manager(directory)
-    try:
-        node = manager.item_metadata(step)["state"]
-    except Exception as err:  # noqa: BLE001
-        raise CheckpointError(f"cannot read checkpoint step {step} in {directory}: {type(err).__name__}: {err}") from err
-    finally:
-        manager.close()
-    node = getattr(node, "tree", node)
+    with Checkpointer(directory, read_only=True) as reader:
+        node = reader.state_metadata(step)
     if not isinstance(node, dict):
         raise CheckpointError(f"checkpoint step {step} in {directory} does not hold a dict state")
     return {key: value is not None for key, value in node.items()}
@@ -102,19 +73,8 @@ def restore_subtree(directory: str, step: int, abstract: dict[str, Any]) -> dict
 
     Entries of the saved state that ``abstract`` does not name are not read.
     """
-    import orbax.checkpoint as ocp
-
-    restore_args = ocp.checkpoint_utils.construct_restore_args(abstract)
-    manager = _manager(directory)
-    try:
-        restored = manager.restore(step, args=ocp.args.Composite(
-            state=ocp.args.PyTreeRestore(item=abstract, restore_args=restore_args, partial_restore=True)))
-    except Exception as err:  # noqa: BLE001
-        raise CheckpointError(f"cannot restore step {step} from {directory} (another config, or a damaged "
-                              f"checkpoint?): {type(err).__name__}: {err}") from err
-    finally:
-        manager.close()
-    return restored["state"]
+    with Checkpointer(directory, read_only=True) as reader:
+        return reader.restore_subtree(step, abstract)
 
 
 def _section_value(value: Any, annotation: Any) -> Any:

@@ -80,7 +80,7 @@ def test_grpo_step_constrains_activations_on_the_mesh(policy):
     sim, reward_model = toy_simulator(frame_size=8, chunk_len=4, proprio_dim=4), toy_reward_model()
     tokens = jnp.asarray(tokenize_instructions(["pick", "place", "open", "close"], 16))
     start = toy_start_states(tokens, key=jax.random.key(1), frame_size=8, proprio_dim=4)
-    step = grpo.make_train_step(graphdef, CFG, mesh=mesh)
+    step = grpo.make_grpo_step(graphdef, CFG, mesh=mesh)
     lowered = step.lower(grpo.init_state(params, CFG), (sim, reward_model, start), jax.random.key(0))
     text = lowered.as_text()
     assert "sharding_constraint" in text or "@Sharding" in text

@@ -10,7 +10,7 @@ from sword_jax import checkpoint
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.dlb import schedule
 from sword_jax.dlb.config import CacheConfig
-from tests.test_wm_common import ProbeWorldModel, build, full_mesh, single_device_mesh, tiny_dataset
+from tests.support.world_model import ProbeWorldModel, build, full_mesh, single_device_mesh, tiny_dataset
 
 F32_CACHE = dict(dtype="float32")
 

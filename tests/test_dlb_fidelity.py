@@ -8,12 +8,13 @@ import pytest
 
 import configs
 from sword_jax import checkpoint
-from sword_jax.dlb import fidelity, schedule
+from sword_jax.dlb import schedule
+from sword_jax.world_model import cache_fidelity as fidelity
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rng import stream_key
 from sword_jax.world_model import sampler, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
-from tests.test_wm_common import build, single_device_mesh
+from tests.support.world_model import build, single_device_mesh
 
 # Teacher-forced context (read 0) and no context noise: the conditioning is the batch's latents.
 PLAIN = dict(read_prob_start=0.0, read_prob_end=0.0, dtype="float32")

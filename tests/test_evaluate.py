@@ -12,13 +12,7 @@ from sword_jax.evaluation.report import write_report
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.networks import package_weights
 from sword_jax.metrics.suite import MetricSuite
-
-
-def _videos(seed, b=2, t=9, size=32):
-    rng = np.random.default_rng(seed)
-    coarse = rng.random((b, 1, size // 8, size // 8, 3)).astype(np.float32)
-    frame = np.kron(coarse, np.ones((1, 1, 8, 8, 1), np.float32))
-    return np.stack([np.roll(frame[:, 0], 2 * i, axis=2) for i in range(t)], axis=1)  # panning
+from tests.support.videos import panning_videos
 
 
 def test_horizon_curves():
@@ -35,7 +29,7 @@ def test_horizon_curves():
 
 def test_harness_and_report_rank_models_and_write_files(tmp_path):
     suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("lpips", "flolpips", "psnr", "ssim"))
-    gt = {"original": _videos(0), "mixed": _videos(1)}
+    gt = {"original": panning_videos(0), "mixed": panning_videos(1)}
     rng = np.random.default_rng(2)
     drift = np.linspace(0, 0.3, 9, dtype=np.float32)[None, :, None, None, None]  # error grows with horizon
     noise = {s: rng.standard_normal(v.shape).astype(np.float32) for s, v in gt.items()}
@@ -72,12 +66,12 @@ def test_harness_and_report_rank_models_and_write_files(tmp_path):
 
 def test_harness_rejects_mismatched_shapes():
     suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("psnr",))
-    gt = {"original": _videos(0)}
+    gt = {"original": panning_videos(0)}
     with pytest.raises(ValueError, match="predictions"):
-        evaluate_videos(suite, gt, {"m": {"original": _videos(0)[:, :5]}}, progress=lambda _: None)
+        evaluate_videos(suite, gt, {"m": {"original": panning_videos(0)[:, :5]}}, progress=lambda _: None)
     with pytest.raises(KeyError, match="mixed"):
-        evaluate_videos(suite, {"mixed": _videos(0)}, {"m": {"original": _videos(0)}}, progress=lambda _: None)
-    bad = _videos(0)
+        evaluate_videos(suite, {"mixed": panning_videos(0)}, {"m": {"original": panning_videos(0)}}, progress=lambda _: None)
+    bad = panning_videos(0)
     bad[0, 1, 0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         evaluate_videos(suite, gt, {"m": {"original": bad}}, progress=lambda _: None)
@@ -85,7 +79,7 @@ def test_harness_rejects_mismatched_shapes():
 
 def test_given_frames_are_excluded_from_the_metrics():
     suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("psnr",))
-    gt = _videos(0)
+    gt = panning_videos(0)
     pred = gt.copy()
     pred[:, 5:] = np.clip(pred[:, 5:] + 0.1, 0, 1)  # only predicted frames differ
     pred[:, :5] = 0.5  # conditioning frames are garbage but must not count
@@ -132,7 +126,7 @@ def test_shared_reference_gives_the_same_numbers_as_scoring_alone():
     suite.metrics += ("fid", "fvd")
     suite._inception = lambda x: jnp.concatenate([x.mean((1, 2)), x.std((1, 2)), x[:, ::8, ::8, 0].reshape(len(x), -1)], -1)
     suite._i3d = lambda x: jnp.concatenate([x.mean((1, 2, 3)), x.std((1, 2, 3)), x[:, ::3, ::16, ::16, 1].reshape(len(x), -1)], -1)
-    gt = _videos(0, b=5, t=19, size=32)
+    gt = panning_videos(0, b=5, t=19, size=32)
     rng = np.random.default_rng(3)
     preds = {name: np.clip(gt + scale * rng.standard_normal(gt.shape).astype(np.float32), 0, 1)
              for name, scale in (("a", 0.05), ("b", 0.2))}

@@ -94,7 +94,7 @@ def test_grpo_improves_policy_on_toy_simulator():
 
     before = float(evaluate(params))
     state = grpo.init_state(params, cfg)
-    step = grpo.make_train_step(graphdef, cfg)
+    step = grpo.make_grpo_step(graphdef, cfg)
     for i in range(12):
         start = toy_start_states(tokens, key=jax.random.key(100 + i), frame_size=8)
         state, metrics = step(state, (sim, reward_model, start), jax.random.key(0))

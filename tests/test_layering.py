@@ -138,3 +138,36 @@ def test_dit_does_not_reach_convert(package):
     assert len(starts) > 3, starts
     bad = {m: sorted(r for r in _reachable(graph, m) if r.startswith("sword_jax.convert")) for m in starts}
     assert not any(bad.values()), f"{package} must not import sword_jax.convert (converters import dit): {bad}"
+
+
+def _package_edges() -> dict[str, set[str]]:
+    """``subpackage -> {subpackages it imports}`` over every import of every library file (lazy ones too)."""
+    subpackages = {d for d in os.listdir(LIBRARY) if os.path.isfile(os.path.join(LIBRARY, d, "__init__.py"))}
+    edges: dict[str, set[str]] = {p: set() for p in subpackages}
+    for path, found in _library_imports().items():
+        source = _module_name(path).split(".")
+        if len(source) < 2 or source[1] not in subpackages:
+            continue
+        for _, name, attr, _ in found:
+            target = (name.split(".") + [attr])[1:2] if name.startswith("sword_jax") else []
+            if target and target[0] in subpackages and target[0] != source[1]:
+                edges[source[1]].add(target[0])
+    return edges
+
+
+def test_subpackages_import_each_other_one_way():
+    edges = _package_edges()
+    assert "dlb" in edges["world_model"] and "metrics" in edges["convert"], edges  # the scan sees arrows
+    back = sorted((a, b) for a in edges for b in edges[a] if _reaches(edges, b, a))
+    assert not back, f"subpackage imports that run back up (a cycle between packages): {back}"
+
+
+def _reaches(edges: dict[str, set[str]], start: str, goal: str) -> bool:
+    seen, todo = {start}, [start]
+    while todo:
+        for nxt in edges[todo.pop()] - seen:
+            if nxt == goal:
+                return True
+            seen.add(nxt)
+            todo.append(nxt)
+    return False

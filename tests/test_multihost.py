@@ -11,7 +11,8 @@ import sys
 
 import numpy as np
 
-from tests.test_reliability import ROOT, _final_arrays
+from tests.conftest import REPO
+from tests.support.checkpoints import final_arrays
 
 STEPS = 4
 ARGS = ["--config", "sword:tiny", "--synthetic", f"--trainer.steps={STEPS}", "--trainer.checkpoint_every=2",
@@ -33,7 +34,7 @@ def _free_port() -> int:
 
 def _train(workdir: str, env: dict[str, str], *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "train.train_world_model", "--workdir", workdir, *ARGS, *extra],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def _wait(proc: subprocess.Popen) -> str:
@@ -58,8 +59,8 @@ def test_two_processes_equal_one_and_checkpoint_moves_between_device_counts(tmp_
     assert "mesh {'data': 4" in outputs[0]
     assert "mesh" not in outputs[1], "only process 0 logs"
 
-    want, want_meta = _final_arrays(single)
-    got, got_meta = _final_arrays(multi)
+    want, want_meta = final_arrays(single)
+    got, got_meta = final_arrays(multi)
     assert want.keys() == got.keys()
     assert got_meta["step"] == want_meta["step"] == STEPS
     for name in want:
@@ -68,6 +69,6 @@ def test_two_processes_equal_one_and_checkpoint_moves_between_device_counts(tmp_
     # The 4-device checkpoint restores onto one device and training continues.
     resumed = _wait(_train(multi, _env(1, cache), "--mesh.data=1", f"--trainer.steps={STEPS + 2}"))
     assert f"resumed from step {STEPS}" in resumed
-    after, after_meta = _final_arrays(multi)
+    after, after_meta = final_arrays(multi)
     assert after_meta["step"] == STEPS + 2
     assert any(not np.array_equal(after[k], got[k]) for k in got if "params" in k)

@@ -11,7 +11,7 @@ from sword_jax.evaluation.probe import FidelityScorer
 from sword_jax.evaluation.report import write_report
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.suite import MetricSuite
-from tests.test_evaluate import _videos
+from tests.support.videos import panning_videos
 
 
 def test_probe_recovers_state_better_than_a_constant(tmp_path):
@@ -56,7 +56,7 @@ def _brightness_probe(frames):
 
 def test_fidelity_metrics_against_horizon_in_evaluation_output(tmp_path):
     suite = MetricSuite(EvalConfig(allow_random_weights=True), metrics=("psnr",))
-    gt = _videos(0, b=2, t=9)
+    gt = panning_videos(0, b=2, t=9)
     drift = np.linspace(0, 0.5, 9, dtype=np.float32)[None, :, None, None, None]
     pred = np.clip(gt + drift, 0, 1)  # brighter and brighter: the state read off it drifts
     targets = _brightness_probe(gt.reshape(-1, *gt.shape[2:])).reshape(2, 9, 7) + 0.01  # 1 cm per axis off

@@ -12,12 +12,12 @@ import subprocess
 import sys
 import time
 
-import jax
 import numpy as np
-import orbax.checkpoint as ocp
 import pytest
 
-ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+from tests.conftest import REPO
+from tests.support.checkpoints import final_arrays
+
 STEPS = 6
 
 
@@ -36,35 +36,7 @@ def _cmd(workdir: str, *extra: str) -> list[str]:
 
 
 def _run(workdir: str, env: dict[str, str], *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run(_cmd(workdir, *extra), cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
-
-
-def _final_arrays(workdir: str) -> tuple[dict[str, np.ndarray], dict]:
-    directory = os.path.join(workdir, "checkpoints")
-    manager = ocp.CheckpointManager(directory, item_handlers={"state": ocp.StandardCheckpointHandler(),
-                                                              "meta": ocp.JsonCheckpointHandler()})
-    step = manager.latest_step()
-    # Restore onto this process's first device, whatever topology wrote the checkpoint.
-    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device),
-                          manager.item_metadata(step)["state"])
-    restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
-                                                             meta=ocp.args.JsonRestore()))
-    manager.close()
-    flat = {}
-
-    def visit(prefix, tree):
-        if isinstance(tree, dict):
-            for k, v in tree.items():
-                visit(f"{prefix}/{k}", v)
-        elif isinstance(tree, (list, tuple)):
-            for i, v in enumerate(tree):
-                visit(f"{prefix}/{i}", v)
-        elif tree is not None:
-            flat[prefix] = np.asarray(tree)
-
-    visit("", restored["state"])
-    return flat, restored["meta"]
+    return subprocess.run(_cmd(workdir, *extra), cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
 
 
 def _metrics(workdir: str) -> dict[int, dict]:
@@ -84,7 +56,7 @@ def test_sigkill_resume_is_bit_identical(tmp_path):
 
     crashed = str(tmp_path / "crashed")
     kill_at = random.Random(os.environ.get("SWORD_TEST_SEED", "7")).randint(2, STEPS - 1)
-    proc = subprocess.Popen(_cmd(crashed), cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(_cmd(crashed), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     ckpt_dir = os.path.join(crashed, "checkpoints")
     deadline = time.time() + 600
     while time.time() < deadline and proc.poll() is None:
@@ -106,8 +78,8 @@ def test_sigkill_resume_is_bit_identical(tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resumed from step" in resumed.stdout
 
-    want, want_meta = _final_arrays(reference)
-    got, got_meta = _final_arrays(crashed)
+    want, want_meta = final_arrays(reference)
+    got, got_meta = final_arrays(crashed)
     assert want.keys() == got.keys() and len(want) > 10
     for name in want:
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
@@ -128,6 +100,6 @@ def test_nonfinite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     assert result.returncode != 0
     message = result.stderr
     assert "non-finite" in message and "step" in message, message[-2000:]
-    arrays, meta = _final_arrays(workdir)
+    arrays, meta = final_arrays(workdir)
     assert meta["step"] < STEPS
     assert all(np.all(np.isfinite(a)) for a in arrays.values() if a.dtype.kind == "f"), "last checkpoint must be finite"

@@ -6,34 +6,14 @@ import os
 import numpy as np
 import pytest
 
-TINY_RL = ["--rl.image_size=8", "--rl.policy.width=16", "--rl.policy.heads=2", "--rl.policy.layers=1",
-           "--rl.action_bins=8", "--rl.reward_model.width=4", "--rl.policy.max_instruction_bytes=48"]
-
-
-def _write_demos(path, solved_steps=4):
-    from sim.dataset import DatasetInfo, Episode, write_dataset
-
-    rng = np.random.default_rng(0)
-    episodes = []
-    for i in range(4):
-        t = 12
-        succeeds = (np.arange(t) >= t - solved_steps) & (i % 2 == 0)  # even episodes are solved over their last 4 actions
-        episodes.append(Episode(
-            actions=rng.uniform(-1, 1, (t, 7)).astype(np.float32), states=np.zeros((t, 3), np.float32),
-            rewards=succeeds.astype(np.float32), dones=succeeds.astype(np.uint8),
-            agentview_rgb=rng.integers(0, 255, (t, 16, 16, 3), dtype=np.uint8),
-            ee_states=np.zeros((t, 6), np.float32), gripper_states=np.zeros((t, 2), np.float32),
-            joint_states=np.zeros((t, 7), np.float32), task_id=i % 2,
-            language_instruction=["pick up the bowl on the plate", "pick up the bowl on the stove"][i % 2]))
-    write_dataset(path, episodes, DatasetInfo(env_name="test"))
-    return path
+from tests.support.rl import TINY_RL, write_demos
 
 
 @pytest.mark.slow
 def test_sft_and_reward_entry_points(tmp_path):
     from train import train_policy, train_reward
 
-    data = _write_demos(str(tmp_path / "demos.hdf5"))
+    data = write_demos(str(tmp_path / "demos.hdf5"))
     common = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", data] + TINY_RL
     result = train_policy.main(common + ["--rl.sft.steps=3", "--rl.sft.batch_size=4"])
     assert result["demos"] == 1 and np.isfinite(result["final_loss"])  # 2 successful demonstrations, 1 held out
@@ -46,7 +26,7 @@ def test_sft_and_reward_entry_points(tmp_path):
     assert tail["labels"] == "tail" and tail["holdout"]["positives"] >= 1
     # Episodes that end where they are first solved show no solved frame: a clear error, not a detector of nothing.
     cut = str(tmp_path / "cut.hdf5")
-    _write_demos(cut, solved_steps=1)
+    write_demos(cut, solved_steps=1)
     with pytest.raises(ValueError, match="no positive frame under rl.reward_model.labels=state"):
         train_reward.main(["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", cut] + TINY_RL)
 

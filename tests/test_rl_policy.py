@@ -8,18 +8,11 @@ import numpy as np
 import pytest
 
 from sword_jax.rl import data as rl_data
-from sword_jax.rl.config import PolicyConfig, RewardModelConfig, RLConfig, SFTConfig
 from sword_jax.rl.policy import (actions_to_tokens, build_policy, greedy_chunk, policy_logits, tokenize_instructions,
                                  tokens_to_actions)
 from sword_jax.rl.reward_model import as_reward_model, build_detector, make_detector_step
 from sword_jax.rl.sft import make_sft_step
-
-CFG = RLConfig(image_size=8, action_bins=16, proprio_dim=4,
-               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=48, proprio_encoding="raw"),
-               sft=SFTConfig(learning_rate=3e-3), reward_model=RewardModelConfig(width=4, learning_rate=3e-3))
-# LIBERO-Spatial instructions differ in a few words only
-TEXTS = ["pick up the black bowl on the plate and place it on the plate",
-         "pick up the black bowl on the stove and place it on the plate"]
+from tests.support.rl import POLICY_CFG, TEXTS, brightening_episodes
 
 
 def test_tokenizer_and_binning():
@@ -34,8 +27,8 @@ def test_tokenizer_and_binning():
 
 def test_policy_distinguishes_instructions_by_text():
     """Same frame and proprio, two instructions, opposite expert actions: BC must separate them."""
-    graphdef, params = build_policy(CFG, seed=0)
-    init, step = make_sft_step(graphdef, CFG, total_steps=60)
+    graphdef, params = build_policy(POLICY_CFG, seed=0)
+    init, step = make_sft_step(graphdef, POLICY_CFG, total_steps=60)
     state = init(params)
     frames = np.full((8, 8, 8, 3), 0.5, np.float32)
     tokens = tokenize_instructions([TEXTS[i % 2] for i in range(8)], 48)
@@ -46,13 +39,13 @@ def test_policy_distinguishes_instructions_by_text():
         state, metrics = step(state, batch, jax.random.key(0))
     assert float(metrics["token_accuracy"]) > 0.9
     logits = policy_logits(graphdef, state.params, jnp.asarray(frames[:2]), jnp.asarray(tokens[:2]), jnp.zeros((2, 4)))
-    acts = np.asarray(tokens_to_actions(greedy_chunk(logits), CFG.action_bins))
+    acts = np.asarray(tokens_to_actions(greedy_chunk(logits), POLICY_CFG.action_bins))
     np.testing.assert_allclose(acts[0], 0.6, atol=0.1)
     np.testing.assert_allclose(acts[1], -0.6, atol=0.1)
 
 
 def test_policy_rejects_bad_shapes():
-    graphdef, params = build_policy(CFG, seed=0)
+    graphdef, params = build_policy(POLICY_CFG, seed=0)
     tok = jnp.asarray(tokenize_instructions(TEXTS, 48))
     with pytest.raises(ValueError, match="frames"):
         policy_logits(graphdef, params, jnp.zeros((2, 16, 16, 3)), tok, jnp.zeros((2, 4)))
@@ -60,23 +53,13 @@ def test_policy_rejects_bad_shapes():
         policy_logits(graphdef, params, jnp.zeros((2, 8, 8, 3)), tok, jnp.zeros((2, 3)))
 
 
-def _episodes():
-    """Episodes whose frames brighten over time; the first two succeed."""
-    e, t = 4, 12
-    level = np.linspace(0, 255, t).astype(np.uint8)
-    frames = np.broadcast_to(level[None, :, None, None, None], (e, t, 8, 8, 3)).copy()
-    frames[2:] //= 3  # failures never get bright
-    return rl_data.EpisodeSet(frames, np.zeros((e, t, 7), np.float32), np.zeros((e, t, 4), np.float32),
-                              np.full(e, t), np.array([True, True, False, False]), tuple(TEXTS * 2))
-
-
 def test_success_labels_and_detector_learns():
-    episodes = _episodes()
+    episodes = brightening_episodes()
     labels = rl_data.success_labels(episodes, positive_tail=3)
     np.testing.assert_array_equal(labels[0], [0] * 9 + [1] * 3)
     np.testing.assert_array_equal(labels[2], 0)
-    graphdef, params = build_detector(CFG)
-    init, step = make_detector_step(graphdef, CFG)
+    graphdef, params = build_detector(POLICY_CFG)
+    init, step = make_detector_step(graphdef, POLICY_CFG)
     state = init(params)
     rng = np.random.default_rng(0)
     for _ in range(80):
@@ -111,9 +94,9 @@ def test_state_labels_mark_the_frames_that_show_a_solved_state():
     with pytest.raises(ValueError, match="source must be one of"):
         rl_data.success_labels(eps, 3, "end")
     with pytest.raises(ValueError, match="frame_success"):
-        rl_data.success_labels(_episodes(), 3, "state")
+        rl_data.success_labels(brightening_episodes(), 3, "state")
     with pytest.raises(ValueError, match=r"rl\.reward_model\.labels"):
-        dataclasses.replace(CFG, reward_model=dataclasses.replace(CFG.reward_model, labels="last")).validate()
+        dataclasses.replace(POLICY_CFG, reward_model=dataclasses.replace(POLICY_CFG.reward_model, labels="last")).validate()
 
 
 def test_detector_report_reads_scores_as_the_rollout_rule_does():

@@ -31,9 +31,7 @@ from sword_jax.rl.reward_model import build_detector, train_detector
 from sword_jax.rl.sft import train_sft
 from sword_jax.train_loop import AnotherRunsCheckpoint, NonFiniteLoss
 from tests.conftest import REPO, example_env
-from tests.test_optim import _reward_batches
-from tests.test_rl_entrypoints import TINY_RL, _write_demos
-from tests.test_rl_policy import CFG, _episodes
+from tests.support.rl import POLICY_CFG, TINY_RL, brightening_episodes, reward_batches, write_demos
 
 STEPS, KILL_AT = 8, 3
 ENTRY = {  # entry point, its checkpoint dir under <workdir>/rl, its knobs for a short run checkpointed every step
@@ -77,7 +75,7 @@ def _final_state(directory: str, like=None) -> tuple[list[np.ndarray], dict]:
 @pytest.mark.parametrize("trainer", ["sft", "reward"])
 def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
     env = _env(tmp_path)
-    demos = _write_demos(str(tmp_path / "demos.hdf5"))
+    demos = write_demos(str(tmp_path / "demos.hdf5"))
     crashed = str(tmp_path / "crashed")  # first: it compiles, the two runs after it read the compilation cache
     ckpt_dir = os.path.join(crashed, "rl", ENTRY[trainer][1])
     proc = subprocess.Popen(_cmd(trainer, crashed, demos), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
@@ -117,12 +115,12 @@ def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
 
 def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path):
     # a learning rate this large sends the parameters past float32's range within a few steps
-    cfg = dataclasses.replace(CFG, sft=dataclasses.replace(CFG.sft, learning_rate=1e30, warmup_steps=0, eval_every=1,
+    cfg = dataclasses.replace(POLICY_CFG, sft=dataclasses.replace(POLICY_CFG.sft, learning_rate=1e30, warmup_steps=0, eval_every=1,
                                                            checkpoint_every=1))
     graphdef, params = build_policy(cfg, seed=0)
     directory = str(tmp_path / "sft_checkpoints")
     with pytest.raises(NonFiniteLoss, match=r"SFT: non-finite loss or gradient at step \d+ \(0-based\)") as err:
-        train_sft(graphdef, params, cfg, _episodes(), seed=0, steps=20, log=lambda line: None,
+        train_sft(graphdef, params, cfg, brightening_episodes(), seed=0, steps=20, log=lambda line: None,
                   checkpoint_dir=directory)
     bad_step = int(re.search(r"at step (\d+)", str(err.value)).group(1))
     assert 1 <= bad_step < 20 and f"last good checkpoint: step {bad_step}" in str(err.value)
@@ -133,16 +131,16 @@ def test_sft_non_finite_loss_stops_naming_the_step_and_keeps_the_last_good_check
 
 @pytest.mark.slow  # the stop itself is pinned in the default run by test_optim's reward-model test
 def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes(tmp_path):
-    cfg = dataclasses.replace(CFG, reward_model=dataclasses.replace(CFG.reward_model, checkpoint_every=1))
+    cfg = dataclasses.replace(POLICY_CFG, reward_model=dataclasses.replace(POLICY_CFG.reward_model, checkpoint_every=1))
     directory = str(tmp_path / "reward_checkpoints")
     graphdef, params = build_detector(cfg)
     with pytest.raises(NonFiniteLoss, match=r"reward model: non-finite loss or gradient at step 3 \(0-based\).*"
                                             r"last good checkpoint: step 3"):
-        train_detector(graphdef, params, cfg, _reward_batches(cfg, poison_at=3), key=jax.random.key(0), steps=6,
+        train_detector(graphdef, params, cfg, reward_batches(cfg, poison_at=3), key=jax.random.key(0), steps=6,
                        log=lambda line: None, checkpoint_dir=directory)
     # the kept checkpoint is exactly the state after the three good steps
     graphdef, params = build_detector(cfg)
-    straight, _ = train_detector(graphdef, params, cfg, _reward_batches(cfg), key=jax.random.key(0), steps=3,
+    straight, _ = train_detector(graphdef, params, cfg, reward_batches(cfg), key=jax.random.key(0), steps=3,
                                  log=lambda line: None)
     leaves, meta = _final_state(directory, like=straight)
     assert meta["step"] == 3 and all(np.all(np.isfinite(a)) for a in leaves if a.dtype.kind == "f")
@@ -153,7 +151,7 @@ def test_reward_model_non_finite_loss_stops_and_the_checkpoint_before_it_resumes
     other = dataclasses.replace(cfg, reward_model=dataclasses.replace(cfg.reward_model, batch_size=7))
     with pytest.raises(ValueError, match=r"rl\.reward_model\.batch_size"):
         train_detector(graphdef, params, other,
-                       _reward_batches(cfg), key=jax.random.key(0), steps=6, log=lambda line: None,
+                       reward_batches(cfg), key=jax.random.key(0), steps=6, log=lambda line: None,
                        checkpoint_dir=directory)
 
 

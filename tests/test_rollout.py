@@ -10,7 +10,7 @@ import configs
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.world_model import rollout, sampler
 from sword_jax.world_model.config import FlowConfig
-from tests.test_wm_common import MixerWorldModel
+from tests.support.world_model import MixerWorldModel
 
 
 def _setup(keys, chunks=3, batch=2):

@@ -8,7 +8,7 @@ from flax import nnx
 
 from sword_jax.world_model import flow, sampler
 from sword_jax.world_model.config import FlowConfig
-from tests.test_wm_common import MixerWorldModel, ProbeWorldModel
+from tests.support.world_model import MixerWorldModel, ProbeWorldModel
 
 
 def _inputs(keys, batch=2, cond=2, future=2):

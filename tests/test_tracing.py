@@ -38,7 +38,7 @@ def test_vae_step_built_twice_in_one_process_trains():
     video = jax.random.uniform(jax.random.key(0), (1, 5, 32, 32, 3), jnp.float32, -1, 1)
     for _ in range(2):
         graphdef, state = vae_train.init_train_state(cfg, key=jax.random.key(0))
-        step = vae_train.make_train_step(graphdef, cfg)
+        step = vae_train.make_vae_step(graphdef, cfg)
         for _ in range(2):
             state, metrics = step(state, {"video": video}, jax.random.key(1))
         assert jnp.isfinite(metrics["loss"])

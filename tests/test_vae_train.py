@@ -19,7 +19,7 @@ def test_moving_squares_in_range_and_moving():
 def test_training_loss_falls():
     cfg = tiny_config(z_dim=8, learning_rate=3e-3, kl_weight=1e-4)
     graphdef, state = train.init_train_state(cfg, key=jax.random.key(0))
-    step = train.make_train_step(graphdef, cfg)
+    step = train.make_vae_step(graphdef, cfg)
     root = jax.random.key(1)
     video = train.moving_squares(key=root, batch=2, frames=5, size=32)
     losses = []
@@ -40,7 +40,7 @@ def test_sharded_step_keeps_shardings():
     graphdef, state = train.init_train_state(cfg, key=jax.random.key(0), mesh=mesh)
     kernel = state.params["decoder"]["conv1"]["kernel"]
     assert kernel.value.sharding.spec[-1] == "fsdp"
-    step = train.make_train_step(graphdef, cfg, state=state, mesh=mesh)
+    step = train.make_vae_step(graphdef, cfg, state=state, mesh=mesh)
     video = train.moving_squares(key=jax.random.key(1), batch=8, frames=5, size=32)
     for _ in range(2):
         state, metrics = step(state, {"video": video}, jax.random.key(2))

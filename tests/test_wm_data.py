@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sword_jax.world_model import data
-from tests.test_wm_common import full_mesh, tiny_dataset
+from tests.support.world_model import full_mesh, tiny_dataset
 
 
 def test_segment_layout_matches_slots():

@@ -10,7 +10,7 @@ import pytest
 
 from sword_jax.world_model import data
 from sword_jax import train_loop
-from tests.test_wm_common import MixerWorldModel
+from tests.support.world_model import MixerWorldModel
 from train import distributed, train_world_model
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--model.num_layers=1", "--trainer.log_every=1",

@@ -15,7 +15,7 @@ from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import data, flow, train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
-from tests.test_wm_common import build, full_mesh, single_device_mesh
+from tests.support.world_model import build, full_mesh, single_device_mesh
 
 
 def _eval_loss_fn(graphdef, buffers, batch, *, key):

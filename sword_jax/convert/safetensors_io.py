@@ -1,4 +1,5 @@
-"""Reading safetensors checkpoints as numpy, with the constructor config from the metadata.
+"""Safetensors checkpoints as numpy (:func:`~sword_jax.metrics.torch_io.read_safetensors`), with the
+constructor config from the metadata and the PyTorch -> JAX layout of each parameter.
 
 The Wan 2.2 reference files store tensors under the official ``state_dict()`` key names and the
 constructor arguments as JSON in the metadata field ``config``.
@@ -7,37 +8,14 @@ constructor arguments as JSON in the metadata field ``config``.
 from __future__ import annotations
 
 import json
-import os
 from typing import Any
 
 import numpy as np
 
+from sword_jax.checkpoint import CheckpointError
+from sword_jax.metrics.torch_io import read_safetensors
 
-class CheckpointError(ValueError):
-    """A checkpoint file is missing, unreadable, or does not match the expected architecture."""
-
-
-def read_safetensors(path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """Loads every tensor of ``path`` as a numpy array, plus the string metadata.
-
-    Raises:
-      CheckpointError: the file is missing or is not a valid safetensors file.
-    """
-    if not os.path.isfile(path):
-        raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        from safetensors import safe_open
-
-        tensors: dict[str, np.ndarray] = {}
-        with safe_open(path, framework="np") as handle:
-            metadata = dict(handle.metadata() or {})
-            for name in handle.keys():
-                tensors[name] = handle.get_tensor(name)
-    except CheckpointError:
-        raise
-    except Exception as err:  # noqa: BLE001 - safetensors raises several error types
-        raise CheckpointError(f"cannot read safetensors file {path}: {err}") from err
-    return tensors, metadata
+__all__ = ["CheckpointError", "read_config", "read_safetensors", "torch_to_jax_layout"]
 
 
 def read_config(metadata: dict[str, str], path: str) -> dict[str, Any]:

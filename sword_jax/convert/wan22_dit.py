@@ -25,6 +25,7 @@ import numpy as np
 from flax import nnx
 
 from sword_jax.convert import CaseResult
+from sword_jax.convert.safetensors_io import CheckpointError, read_config, read_safetensors
 from sword_jax.dit.action_dit import ARCH_FIELDS, ActionConditioner, WorldModel
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dit.layers import timestep_sinusoid
@@ -46,21 +47,6 @@ _BLOCK_LINEARS = {f"{a}.{p}": (a, p) for a in ("self_attn", "cross_attn") for p 
 _BLOCK_LINEARS.update({"ffn.0": ("ffn_0",), "ffn.2": ("ffn_2",)})
 
 
-def read_safetensors(path: str) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """Tensors (numpy) and the string metadata of a safetensors file."""
-    from safetensors import safe_open
-
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no safetensors file at {path}")
-    try:
-        with safe_open(path, framework="numpy") as f:
-            metadata = dict(f.metadata() or {})
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as err:  # noqa: BLE001 - a corrupt file gets a message naming it
-        raise ValueError(f"{path}: not a readable safetensors file ({err})") from err
-    return tensors, metadata
-
-
 def read_checkpoint(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Official tensors and constructor config from a file or a checkpoint directory.
 
@@ -74,40 +60,35 @@ def read_checkpoint(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     if os.path.isdir(path):
         config_path = os.path.join(path, "config.json")
         if not os.path.isfile(config_path):
-            raise FileNotFoundError(f"{path}: checkpoint directory has no config.json")
+            raise CheckpointError(f"{path}: checkpoint directory has no config.json")
         with open(config_path) as f:
             config = json.load(f)
         shards = sorted(glob.glob(os.path.join(path, "*.safetensors")))
         if not shards:
-            raise FileNotFoundError(f"{path}: checkpoint directory has no *.safetensors files")
+            raise CheckpointError(f"{path}: checkpoint directory has no *.safetensors files")
         tensors: dict[str, np.ndarray] = {}
         for shard in shards:
             part, _ = read_safetensors(shard)
             duplicated = set(part) & set(tensors)
             if duplicated:
-                raise ValueError(f"{shard}: keys also in another shard: {sorted(duplicated)[:4]}")
+                raise CheckpointError(f"{shard}: keys also in another shard: {sorted(duplicated)[:4]}")
             tensors.update(part)
         return tensors, config
     tensors, metadata = read_safetensors(path)
-    if "config" not in metadata:
-        raise ValueError(f"{path}: safetensors metadata has no 'config' entry")
-    try:
-        return tensors, json.loads(metadata["config"])
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: the 'config' metadata is not valid JSON ({err})") from err
+    return tensors, read_config(metadata, path)
 
 
 def config_from_official(official: dict[str, Any], **overrides: Any) -> DiTConfig:
     """Maps the official ``WanModel`` constructor arguments onto a :class:`DiTConfig`."""
     model_type = official.get("model_type", "ti2v")
     if model_type not in ("ti2v", "t2v"):
-        raise ValueError(f"config: model_type {model_type!r} is not supported (only ti2v / t2v, no image embedding)")
+        raise CheckpointError(f"config: model_type {model_type!r} is not supported (only ti2v / t2v, no image embedding)")
     window = tuple(official.get("window_size", (-1, -1)))
     if window != (-1, -1):
-        raise ValueError(f"config: window_size {window} is not supported (only global attention (-1, -1))")
+        raise CheckpointError(f"config: window_size {window} is not supported (only global attention (-1, -1))")
     missing = [k for k in _CONFIG_FIELDS + ("patch_size",) if k not in official]
     if missing:
-        raise ValueError(f"config: official config lacks {missing}")
+        raise CheckpointError(f"config: official config lacks {missing}")
     fields = {k: official[k] for k in _CONFIG_FIELDS}
     fields["eps"] = float(fields["eps"])
     fields["patch_size"] = tuple(int(p) for p in official["patch_size"])
@@ -159,14 +140,14 @@ def official_to_state(tensors: dict[str, np.ndarray], cfg: DiTConfig) -> dict[tu
     if unused:
         extra_blocks = sorted({m.group(1) for k in unused if (m := re.match(r"blocks\.(\d+)\.", k))}, key=int)
         hint = f" (blocks {extra_blocks} beyond num_layers={cfg.num_layers})" if extra_blocks else ""
-        raise ValueError(f"official checkpoint has {len(unused)} keys the port does not use{hint}: {unused[:8]}")
+        raise CheckpointError(f"official checkpoint has {len(unused)} keys the port does not use{hint}: {unused[:8]}")
     return flat
 
 
 def _table(value: np.ndarray, key: str, slots: int, dim: int) -> np.ndarray:
     """A ``[1, slots, dim]`` modulation table as ``[slots, dim]``."""
     if value.shape != (1, slots, dim):
-        raise ValueError(f"{key}: expected shape (1, {slots}, {dim}), got {value.shape}")
+        raise CheckpointError(f"{key}: expected shape (1, {slots}, {dim}), got {value.shape}")
     return value[0]
 
 
@@ -180,14 +161,14 @@ def fill_state(state: nnx.State, flat: dict[tuple[str, ...], np.ndarray], *, str
     targets = dict(nnx.to_flat_state(state))
     missing = [p for p in targets if p not in flat]
     if strict and missing:
-        raise ValueError(f"converted checkpoint lacks parameters {missing[:8]}")
+        raise CheckpointError(f"converted checkpoint lacks parameters {missing[:8]}")
     for path, value in flat.items():
         if path not in targets:
-            raise ValueError(f"converted parameter {'.'.join(path)} has no place in the JAX model")
+            raise CheckpointError(f"converted parameter {'.'.join(path)} has no place in the JAX model")
         target = targets[path]
         shape = tuple(target.get_value().shape)
         if tuple(value.shape) != shape:
-            raise ValueError(f"parameter {'.'.join(path)}: checkpoint shape {value.shape} != model shape {shape}")
+            raise CheckpointError(f"parameter {'.'.join(path)}: checkpoint shape {value.shape} != model shape {shape}")
         node = pure
         for part in path[:-1]:
             node = node[part]
@@ -239,7 +220,7 @@ def load_official_into_world_model(
         mismatched = {k: (getattr(cfg, k), getattr(official, k)) for k in ARCH_FIELDS
                       if getattr(cfg, k) != getattr(official, k)}
         if mismatched:
-            raise ValueError(f"{path}: config fields (given, checkpoint) differ: {mismatched}")
+            raise CheckpointError(f"{path}: config fields (given, checkpoint) differ: {mismatched}")
     key = jax.random.key(0) if key is None else key
 
     with nnx.use_eager_sharding(False):
@@ -321,7 +302,7 @@ def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[Cas
         if not os.path.isfile(weights):
             candidates = sorted(glob.glob(os.path.join(ref_dir, "dit*.safetensors")))
             if len(candidates) != 1:
-                raise FileNotFoundError(f"{ref_dir}: expected one dit*.safetensors weights file, found {candidates}")
+                raise CheckpointError(f"{ref_dir}: expected one dit*.safetensors weights file, found {candidates}")
             weights = candidates[0]
     cfg, graphdef, state = load_official(weights, compute_dtype="float32", param_dtype="float32")
     results: list[CaseResult] = []
@@ -354,5 +335,5 @@ def run_reference_cases(ref_dir: str, *, weights: str | None = None) -> list[Cas
                     ref = np.concatenate([ref[b, : seq_lens[b]] for b in range(ref.shape[0])])
                 results.append(CaseResult.compare(name, key, ours, ref))
     if not results:
-        raise FileNotFoundError(f"{ref_dir}: no dit_*.npz reference cases found")
+        raise CheckpointError(f"{ref_dir}: no dit_*.npz reference cases found")
     return results

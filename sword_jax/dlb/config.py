@@ -40,7 +40,7 @@ class CacheConfig:
         inference setting).
       log_inference_distance: on log steps (``trainer.log_every``, and the last step), sample the
         inference context for the written latents (``flow.sample_steps`` steps, fresh noise) and
-        report ``cache_vs_inference_*`` metrics (:mod:`sword_jax.dlb.fidelity`); other steps skip
+        report ``cache_vs_inference_*`` metrics (:mod:`sword_jax.world_model.cache_fidelity`); other steps skip
         it (``lax.cond``) and report NaN.
       dtype: storage dtype of the cache (bfloat16 keeps the paper's dataset under 5 GB).
     """

@@ -8,7 +8,8 @@ A ``torch.save`` file is either
     the object itself, the list of storage keys -- then per key an int64 element count followed by
     the raw bytes.
 Both rebuild tensors through ``torch._utils._rebuild_tensor_v2(storage, offset, size, stride, ...)``.
-This module reimplements just enough of that protocol with a restricted ``pickle.Unpickler`` (only
+Safetensors files are read with their metadata (:func:`read_safetensors`). Every failure raises
+:class:`sword_jax.checkpoint.CheckpointError`. This module reimplements just enough of that protocol with a restricted ``pickle.Unpickler`` (only
 the globals below are resolvable, so a file cannot run arbitrary code) and returns numpy arrays.
 """
 
@@ -23,6 +24,8 @@ import zipfile
 from typing import Any
 
 import numpy as np
+
+from sword_jax.checkpoint import CheckpointError
 
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
@@ -41,8 +44,7 @@ _STORAGE_DTYPES = {
 }
 
 
-class WeightFileError(ValueError):
-    """A weight file is missing, corrupt or not in a supported format."""
+WeightFileError = CheckpointError  # a weight file that is missing, corrupt or not in a supported format
 
 
 class _StorageType:
@@ -242,17 +244,29 @@ def load_torch_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return dict(obj)
 
 
-def load_safetensors_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Reads a ``.safetensors`` file into ``{key: numpy array}`` (the file's dtypes)."""
-    from safetensors.numpy import load_file
+def read_safetensors(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """Every tensor of a ``.safetensors`` file as a numpy array (the file's dtypes), plus its string metadata.
+
+    Raises:
+      CheckpointError: the file is missing or is not a valid safetensors file.
+    """
+    from safetensors import safe_open
 
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise WeightFileError(f"weight file not found: {path}")
+        raise CheckpointError(f"weight file not found: {path}")
     try:
-        return dict(load_file(path))
+        with safe_open(path, framework="np") as handle:
+            metadata = dict(handle.metadata() or {})
+            tensors = {name: handle.get_tensor(name) for name in handle.keys()}
     except Exception as exc:  # noqa: BLE001 - safetensors raises several error types
-        raise WeightFileError(f"{path}: corrupt safetensors file ({exc})") from exc
+        raise CheckpointError(f"cannot read safetensors file {path}: {exc}") from exc
+    return tensors, metadata
+
+
+def load_safetensors_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Reads a ``.safetensors`` file into ``{key: numpy array}`` (the file's dtypes)."""
+    return read_safetensors(path)[0]
 
 
 def load_state_dict(path: str | os.PathLike) -> dict[str, np.ndarray]:

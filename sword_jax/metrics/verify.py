@@ -21,7 +21,7 @@ import numpy as np
 from flax import nnx
 
 from sword_jax import cli
-from sword_jax.convert import CaseResult
+from sword_jax.reference_cases import CaseResult
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.flolpips import flow_weighted_lpips
 from sword_jax.metrics.frechet import frechet_distance_from_features

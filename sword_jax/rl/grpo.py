@@ -169,7 +169,7 @@ class GRPOState:
     step: jax.Array
 
 
-def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
+def grpo_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
     """Global-norm clipping at 1, then AdamW at ``cfg.grpo.learning_rate`` without weight decay."""
     return optim.make_optimizer(cfg.grpo.learning_rate, weight_decay=0.0, grad_clip=1.0)
 
@@ -177,7 +177,7 @@ def make_optimizer(cfg: RLConfig) -> optax.GradientTransformation:
 def init_state(params: nnx.State, cfg: RLConfig) -> GRPOState:
     """Train state with the reference policy frozen at ``params`` (the SFT policy)."""
     ref = jax.tree.map(jnp.copy, params) if cfg.grpo.kl_coef > 0.0 else None
-    return GRPOState(params=params, opt_state=make_optimizer(cfg).init(params), ref_params=ref, step=jnp.zeros((), jnp.int32))
+    return GRPOState(params=params, opt_state=grpo_optimizer(cfg).init(params), ref_params=ref, step=jnp.zeros((), jnp.int32))
 
 
 def _rollout_log_probs(graphdef, params, batch: Rollout, temperature: float = 1.0) -> Float[Array, "n c t a"]:
@@ -289,7 +289,7 @@ def grpo_update(
     fixed by the (mini)batch (:func:`loss_weights`), so this is the same gradient up to float
     summation order, with the activations of ``m`` trajectories alive instead of all of them.
     """
-    optimizer = make_optimizer(cfg)
+    optimizer = grpo_optimizer(cfg)
     n, g, parts = batch.valid.shape[0], cfg.grpo.group_size, cfg.grpo.minibatches
     if n % parts:
         raise ValueError(f"rl.grpo.minibatches={parts} must divide the {n} trajectories of a GRPO batch")
@@ -332,7 +332,7 @@ def grpo_update(
     return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
 
 
-def make_train_step(
+def make_grpo_step(
     graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True, max_traces: int = 1, mesh=None,
     rules=shd.DEFAULT_RULES,
 ) -> Callable[[GRPOState, tuple[LearnedSimulator, RewardModel, StartState], jax.Array], tuple[GRPOState, dict]]:
@@ -374,3 +374,6 @@ def make_train_step(
     # A retrace (changed shapes / static config) is a bug in the caller; ``max_traces`` bounds it.
     return shd.compile_step(tracing.max_traces(step, n=max_traces), mesh, rules, batch_shardings=batch_shardings,
                             donate=donate)
+
+
+make_train_step = make_grpo_step  # the name train/grpo.py calls

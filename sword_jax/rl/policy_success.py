@@ -22,6 +22,7 @@ import jax
 import numpy as np
 from flax import nnx
 
+from sword_jax.atomic_write import write_json_atomic
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.env_rollout import make_act_fns, run_policy, wilson_interval
 
@@ -122,10 +123,7 @@ class SuccessCurve:
             self._write()
 
     def _write(self) -> None:
-        tmp = self.path + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump({"label": self.label, "points": self.points}, f, indent=1)
-        os.replace(tmp, self.path)
+        write_json_atomic(self.path, {"label": self.label, "points": self.points})
         self._plot()
 
     def _plot(self) -> None:

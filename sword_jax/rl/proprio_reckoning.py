@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from sword_jax.atomic_write import write_json_atomic
 from sword_jax.rl.policy import axis_angle_to_matrix
 
 
@@ -145,10 +146,7 @@ def fit_gains(proprio: np.ndarray, actions: np.ndarray, cfg: ReckoningConfig = R
 
 def save_reckoning(path: str, cfg: ReckoningConfig) -> None:
     """Writes ``cfg`` as JSON (e.g. beside the policy whose demonstrations it was fitted to)."""
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(dataclasses.asdict(cfg), f, indent=1)
-    os.replace(tmp, path)
+    write_json_atomic(path, dataclasses.asdict(cfg))
 
 
 def load_reckoning(path: str) -> ReckoningConfig:

@@ -47,7 +47,7 @@ class VAETrainState:
     step: jax.Array
 
 
-def make_optimizer(cfg: VAEConfig) -> optax.GradientTransformation:
+def vae_optimizer(cfg: VAEConfig) -> optax.GradientTransformation:
     """AdamW (b2 0.99) at a constant rate with optional global-norm clipping."""
     return optim.make_optimizer(cfg.learning_rate, b1=0.9, b2=0.99, weight_decay=cfg.weight_decay,
                                 grad_clip=cfg.grad_clip)
@@ -69,7 +69,7 @@ def init_train_state(
         with nnx.use_eager_sharding(False):
             graphdef, state = nnx.split(factory())
     params, constants = state.split(nnx.Param, ...)
-    opt_state = jax.jit(make_optimizer(cfg).init)(params)
+    opt_state = jax.jit(vae_optimizer(cfg).init)(params)
     step = jnp.zeros((), jnp.int32)
     if mesh is not None:
         # Moments inherit the params' shardings; scalars (counts, step) are replicated over the mesh.
@@ -128,7 +128,7 @@ def _tree_norm(tree) -> Array:
     return optax.global_norm(jax.tree.map(lambda x: x.astype(jnp.float32), tree))
 
 
-def make_train_step(
+def make_vae_step(
     graphdef: nnx.GraphDef, cfg: VAEConfig, *, state: VAETrainState | None = None,
     mesh: jax.sharding.Mesh | None = None, rules: Sequence[tuple[str, Sequence[str]]] = sharding.DEFAULT_RULES,
     perceptual_fn: PerceptualFn | None = None, max_traces: int = 1,
@@ -147,7 +147,7 @@ def make_train_step(
     ``key`` is the run's root key; the step folds in ``state.step`` (exact resume).
     Metrics: loss, l1, l2, kl, perceptual, grad_norm, param_norm, update_norm (float32 scalars).
     """
-    tx = make_optimizer(cfg)
+    tx = vae_optimizer(cfg)
 
     @functools.partial(tracing.max_traces, n=max_traces)
     def step(state: VAETrainState, batch: dict[str, Array], key: jax.Array):
@@ -164,7 +164,7 @@ def make_train_step(
     if mesh is None:
         return jax.jit(step, donate_argnums=(0,))
     if state is None:
-        raise ValueError("make_train_step: pass an example `state` together with `mesh` (its shardings are used)")
+        raise ValueError("make_vae_step: pass an example `state` together with `mesh` (its shardings are used)")
     state_sharding = jax.tree.map(lambda x: x.sharding, state)
     batch_sharding = {"video": sharding.batch_sharding(mesh, 5, rules)}
     replicated = sharding.replicated(mesh)
@@ -176,3 +176,6 @@ def make_train_step(
             return jitted(state, batch, key)
 
     return sharded_step
+
+
+make_train_step = make_vae_step  # the name train/train_vae.py calls

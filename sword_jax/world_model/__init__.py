@@ -7,6 +7,7 @@ Modules (import them directly; importing this package has no side effects):
 * ``rollout``: autoregressive latent rollouts (one jit), WoVR pixel round trip, streaming decode.
 * ``data``: the pre-encoded latent dataset, the resumable segment sampler and sharded loader.
 * ``train_state`` / ``train_step``: the pure ``step(state, batch, key)`` (teacher forcing or DLB).
+* ``cache_fidelity``: what DLB writes into its cache and how far that is from inference's context.
 
 The model itself is :mod:`sword_jax.dit.action_dit`; checkpoints and metric logging, shared by every
 trainer, are :mod:`sword_jax.checkpoint`.

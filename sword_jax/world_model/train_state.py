@@ -38,15 +38,15 @@ class TrainState:
     first_nonfinite_step: jax.Array  # int32 scalar, -1 = none yet
 
 
-def learning_rate_schedule(cfg: TrainerConfig) -> optax.Schedule:
+def world_model_schedule(cfg: TrainerConfig) -> optax.Schedule:
     """Linear warmup from 0 to ``learning_rate`` over ``warmup_steps``, then constant or cosine decay."""
     return optim.learning_rate_schedule(cfg.learning_rate, warmup_steps=cfg.warmup_steps, kind=cfg.lr_schedule,
                                         total_steps=cfg.steps, end_fraction=cfg.lr_end_fraction)
 
 
-def make_optimizer(cfg: TrainerConfig) -> optax.GradientTransformation:
+def world_model_optimizer(cfg: TrainerConfig) -> optax.GradientTransformation:
     """Global-norm gradient clipping then AdamW on the warmup schedule."""
-    return optim.make_optimizer(learning_rate_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps,
+    return optim.make_optimizer(world_model_schedule(cfg), b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps,
                                 weight_decay=cfg.weight_decay, grad_clip=cfg.grad_clip,
                                 mu_dtype=None if cfg.adam_mu_dtype == "float32" else jnp.dtype(cfg.adam_mu_dtype))
 
@@ -90,7 +90,7 @@ def create_train_state(
     param_sharding_tree = jax.tree.map(lambda a: a.sharding, params)
     buffer_sharding_tree = jax.tree.map(lambda a: a.sharding, buffers)
 
-    tx = make_optimizer(trainer_cfg)
+    tx = world_model_optimizer(trainer_cfg)
     abstract_opt = jax.eval_shape(tx.init, params)
     opt_shardings = optax.tree_map_params(
         tx, lambda _, sharding: sharding, abstract_opt, param_sharding_tree,

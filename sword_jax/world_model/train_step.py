@@ -13,7 +13,7 @@ probability ``read_prob(step)`` where filled; (2) trains exactly like teacher fo
 context; (3) writes back into the future slots either the clean future estimate implied by the
 training forward pass (``cache.write_source=one_step``) or the flow sampler's output on the same
 conditioning (``sampler``: no gradient, ``cache.write_sample_steps`` Euler steps), see
-:mod:`sword_jax.dlb.fidelity`. With read probability 0 it is bitwise the teacher-forcing step. A
+:mod:`sword_jax.world_model.cache_fidelity`. With read probability 0 it is bitwise the teacher-forcing step. A
 non-finite loss or gradient skips the update and the cache write and records the step in
 ``state.first_nonfinite_step``.
 
@@ -36,13 +36,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from sword_jax import optim
 from sword_jax import sharding as shd
 from sword_jax.dlb import cache as dlb_cache
-from sword_jax.dlb import fidelity as dlb_fidelity
+from sword_jax.world_model import cache_fidelity as dlb_fidelity
 from sword_jax.dlb import schedule as dlb_schedule
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rng import stream_key
 from sword_jax.world_model import flow, sampler
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
-from sword_jax.world_model.train_state import TrainState, make_optimizer
+from sword_jax.world_model.train_state import TrainState, world_model_optimizer
 
 StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
 
@@ -78,7 +78,7 @@ def make_train_step(
       num_context: context latents ``k`` per segment.
       num_episodes: real episodes of the dataset (for the ``cache_filled`` metric).
     """
-    tx = make_optimizer(trainer_cfg)
+    tx = world_model_optimizer(trainer_cfg)
     num_cond = 1 + num_context
     use_cache = cache_cfg.enabled
 

@@ -1,4 +1,4 @@
-"""Shared tiny models and builders for the world-model / DLB tests (no tests here).
+"""Tiny models and builders for the world-model / DLB tests.
 
 ``MixerWorldModel`` has the WorldModel call signature but compiles in a blink: a per-frame channel
 mix, a context summary of the clean frames, a timestep feature and an action-chunk term. The
