@@ -112,7 +112,7 @@ def test_the_step_with_confirmed_successes_reports_what_the_second_draw_dropped(
     sim, reward_model = toy_simulator(frame_size=8, step_size=0.3), toy_reward_model()
     tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl on the plate", "put the bowl on the stove"], 32))
     start = toy_start_states(tokens, key=jax.random.key(3), frame_size=8)
-    _, metrics = grpo.make_train_step(graphdef, cfg, donate=False)(grpo.init_state(params, cfg),
+    _, metrics = grpo.make_grpo_step(graphdef, cfg, donate=False)(grpo.init_state(params, cfg),
                                                                    (sim, reward_model, start), jax.random.key(0))
     assert 0.0 < float(metrics["success_rate"]) < 1.0 and np.isfinite(float(metrics["loss"]))
     assert float(metrics["unconfirmed_fraction"]) == 0.0
