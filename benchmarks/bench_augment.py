@@ -17,7 +17,6 @@ frames at ``data.image_size``) it reports:
 
 from __future__ import annotations
 
-import argparse
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +25,7 @@ from flax import nnx
 
 import configs
 from benchmarks.common import merge_results, print_table, record, time_fn
+from sword_jax import cli
 from sword_jax.augment.style import sample_styles
 from sword_jax.augment.synthetic import synthetic_episodes
 from sword_jax.augment.transforms import augment_batch, to_signed_range
@@ -51,7 +51,7 @@ def encode_flops(vae_cfg, batch: int, frames: int, size: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tiny", action="store_true", help="the tiny variant on CPU")
     parser.add_argument("--variant", default="small", choices=("tiny", "small", "paper"))
     parser.add_argument("--flops-only", action="store_true", help="skip the timings (any machine, any size)")
@@ -101,4 +101,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    cli.run(main)

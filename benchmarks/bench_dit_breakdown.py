@@ -26,6 +26,7 @@ import jax.numpy as jnp
 
 from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops, run_config
+from sword_jax import cli
 from sword_jax.dit.config import DiTConfig
 from sword_jax.dit.layers import attention
 
@@ -81,15 +82,15 @@ def attention_only(cfg: DiTConfig, batch: int, length: int):
     return fn, (q, k, v), 3.0 * forward
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tiny", action="store_true")
     parser.add_argument("--layers", type=int, default=8)
     parser.add_argument("--batch", type=int, default=96)
     parser.add_argument("--remat", default="dots")
     parser.add_argument("--iters", type=int, default=5)
     parser.add_argument("--no-record", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     peak = common.measured_matmul_tflops()
     if args.tiny:
         cfg = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
@@ -125,4 +126,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

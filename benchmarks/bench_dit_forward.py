@@ -11,7 +11,6 @@ against a bf16 matmul peak measured in the same process.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import jax
@@ -20,6 +19,7 @@ import numpy as np
 from flax import nnx
 
 from benchmarks import common
+from sword_jax import cli
 from sword_jax import sharding
 from sword_jax.dit.action_dit import WorldModel, num_video_frames, world_model_apply
 from sword_jax.dit.config import DiTConfig
@@ -75,7 +75,7 @@ def run(cfg: DiTConfig, cases: list[tuple[str, int, int, tuple[int, int]]], impl
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tiny", action="store_true", help="tiny config on CPU (smoke run, no results file)")
     parser.add_argument("--layers", type=int, default=None, help="override num_layers (default: config's)")
     parser.add_argument("--iters", type=int, default=10)
@@ -107,4 +107,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

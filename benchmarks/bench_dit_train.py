@@ -11,7 +11,6 @@ on the same model, batch and data, so their ratio is not disturbed by drift betw
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import jax
@@ -19,6 +18,7 @@ import numpy as np
 from flax import nnx
 
 from benchmarks import common
+from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
@@ -112,8 +112,8 @@ def _lever_rows(label: str, cfg: DiTConfig, batch: int, hw: tuple[int, int], pea
                        mu_dtype="bfloat16")]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes")
     parser.add_argument("--layers", type=int, default=8, help="layers at 5B width (as many as fit one GPU)")
     parser.add_argument("--batch", type=int, default=64)
@@ -131,7 +131,7 @@ def main() -> None:
     parser.add_argument("--levers", action="store_true",
                         help="after the 5B-width row, the same setting with a bf16 residual stream, bf16 Adam first "
                              "moments and both, side by side (teacher-forcing step; recorded as dit_train_levers)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     peak = common.measured_matmul_tflops()
     copy_gbps = common.measured_copy_gbps()
@@ -200,4 +200,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -26,7 +26,6 @@ teacher forcing, and the extra cost of one log step's distance metric. Results g
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import statistics
 import sys
@@ -39,6 +38,7 @@ from flax import nnx
 
 import configs
 from benchmarks import common
+from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
@@ -201,8 +201,8 @@ def write_sources(args, cfg, mesh) -> None:
         print(f"merged into {path}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tiny", action="store_true", help="CPU check with the tiny config")
     parser.add_argument("--config", default=None, help="experiment config (default sword:small, tiny with --tiny); "
                         "dotted overrides such as --data.batch_size=8 apply to it")
@@ -216,7 +216,7 @@ def main() -> None:
     parser.add_argument("--sampler-steps", default="1,2,5", help="--write-sources: sampler source step counts")
     parser.add_argument("--eval-batches", type=int, default=4, help="--write-sources: batches the distances average")
     parser.add_argument("--latents", default=None, help="--write-sources: latent dataset (.npz/.h5); default synthetic")
-    argv = sys.argv[1:]
+    argv = sys.argv[1:] if argv is None else list(argv)
     cfg, rest = configs.from_argv(argv, default="sword:tiny" if "--tiny" in argv else "sword:small")
     args = parser.parse_args(rest)  # --config and dotted overrides (--model.dim=64) went to the config
     if args.write_sources:
@@ -263,4 +263,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

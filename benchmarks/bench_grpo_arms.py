@@ -23,7 +23,6 @@ Any other ``--section.key=value`` is passed to every arm.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shlex
@@ -33,6 +32,7 @@ import time
 from collections.abc import Sequence
 
 from benchmarks.bench_grpo_transfer import _blocks, errorbar_curve, gain_interval, name_dir_pairs
+from sword_jax import cli
 from sword_jax.cli import not_dotted_overrides
 
 DEFAULT_CONFIG = "cache_ablation:small-linear-direct-all"
@@ -168,7 +168,7 @@ def run(args, arms, overrides: Sequence[str]) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0],
                                      epilog="Any other --section.key=value is passed to every arm.")
     parser.add_argument("--out", required=True, help="<out>.json / <out>.png; arms run in dirname(out)/<name>")
     parser.add_argument("--policy", default="", help="the SFT policy every arm starts from")
@@ -201,4 +201,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

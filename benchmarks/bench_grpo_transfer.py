@@ -23,7 +23,6 @@ Any ``--section.key=value`` is passed to all three arms.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -33,6 +32,7 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
+from sword_jax import cli
 from sword_jax.cli import not_dotted_overrides
 
 ARMS = ("world_model", "ground_truth", "ground_truth_keyframes")
@@ -256,7 +256,7 @@ def plot_world_model_arms(summary: dict, path: str) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0],
                                      epilog="Any --section.key=value is passed to all three arms.")
     parser.add_argument("--workdir", default="runs/grpo_transfer")
     parser.add_argument("--config", default="cache_ablation:small-linear-direct-all")
@@ -293,4 +293,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

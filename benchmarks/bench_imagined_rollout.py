@@ -30,7 +30,6 @@ convolution forms (``bench_vae``). A case that runs out of memory is reported an
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import time
 
@@ -41,6 +40,7 @@ from flax import nnx
 import configs
 from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops
+from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
@@ -128,7 +128,7 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run with tiny shapes (no results merged)")
     parser.add_argument("--layers", type=int, default=4, help="DiT blocks at 5B width (memory / time knob)")
     parser.add_argument("--starts", type=int, default=4)
@@ -229,4 +229,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -11,13 +11,13 @@ evaluation split (50 episodes x 128 predicted frames).
 
 from __future__ import annotations
 
-import argparse
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
 from benchmarks.common import merge_results, print_table, record, time_fn
+from sword_jax import cli
 from sword_jax.metrics.i3d import InceptionI3d
 from sword_jax.metrics.inception import FIDInceptionV3
 from sword_jax.metrics.lpips import LPIPS
@@ -32,7 +32,7 @@ def _compiled(factory, fn):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tiny", action="store_true")
     parser.add_argument("--size", type=int, default=256, help="frame side for LPIPS")
     parser.add_argument("--batch", type=int, default=32)
@@ -69,4 +69,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    cli.run(main)

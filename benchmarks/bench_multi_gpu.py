@@ -12,7 +12,6 @@ parallel) and reports the scaling efficiency ``t_1 / t_N`` (1.0 = linear).
 
 from __future__ import annotations
 
-import argparse
 
 import jax
 import numpy as np
@@ -20,6 +19,7 @@ from flax import nnx
 
 from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops
+from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
@@ -62,13 +62,13 @@ def time_dlb_step(model_cfg: DiTConfig, mesh, batch: int, hw: tuple[int, int], i
             "flops": 3 * forward_flops(model_cfg, batch, 4, hw, 13)}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true")
     parser.add_argument("--batch-per-device", type=int, default=8)
     parser.add_argument("--layers", type=int, default=30)
     parser.add_argument("--iters", type=int, default=5)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     devices = jax.devices()
     n = len(devices)
     peak = common.measured_matmul_tflops()
@@ -107,4 +107,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -48,6 +48,7 @@ import numpy as np
 
 import configs
 from benchmarks import common
+from sword_jax import cli
 from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
 
@@ -530,7 +531,7 @@ def _config_name(argv) -> str:
 
 def main(argv=None) -> None:
     cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv))
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("stage", choices=("sft", "grpo", "eval", "seeds", "grpo-seeds"))
     parser.add_argument("--out", required=True)
     parser.add_argument("--demos-per-task", default="25")
@@ -561,6 +562,8 @@ def main(argv=None) -> None:
     parser.add_argument("--repeat-seed", type=int, default=None, help="grpo-seeds: run this seed a second time")
     parser.add_argument("--gpus", default="0", help="grpo-seeds: GPUs the runs are placed on, round-robin")
     args = parser.parse_args(rest)
+    if args.policy and not os.path.isfile(args.policy):
+        parser.error(f"--policy {args.policy}: no such file")
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "sft":
         run_sft(cfg, args)
@@ -579,4 +582,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

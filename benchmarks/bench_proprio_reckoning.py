@@ -12,7 +12,6 @@ proprio. Writes ``benchmarks/results/policy/proprio_reckoning.json``. CPU only (
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
@@ -20,6 +19,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
+from sword_jax import cli
 from sword_jax.rl.policy import axis_angle_to_matrix
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains, reckon
 
@@ -64,12 +64,12 @@ def errors(episodes, cfg: ReckoningConfig, horizons=HORIZONS) -> dict[int, dict[
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--per-task", type=int, default=3, help="train-split initial states per task")
     parser.add_argument("--steps", type=int, default=128, help="actions per episode")
     parser.add_argument("--out", default=OUT)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     start = time.perf_counter()
     episodes = expert_episodes(range(10), args.per_task, args.steps)
     fit, held = episodes[0::2], episodes[1::2]
@@ -89,4 +89,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -26,6 +26,7 @@ import jax
 
 import configs
 from benchmarks.common import merge_results, record
+from sword_jax import cli
 from sword_jax.rl import data as rl_data
 from sword_jax.rl.reward_model import as_reward_model, build_detector, detector_report, score_episodes, train_detector
 from sword_jax.rng import stream_rng
@@ -58,7 +59,7 @@ def generate(out_dir: str, tasks: tuple[int, ...], per_task: int, resolution: in
 def main(argv=None) -> dict:
     from sim.dataset import read_dataset
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--tasks", default="0,1,2,3,4,5,6,7,8,9")
     parser.add_argument("--per-task", type=int, default=10)
@@ -120,4 +121,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

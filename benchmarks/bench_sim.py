@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from benchmarks import common
+from sword_jax import cli
 
 
 def expert_success_cpu(episodes: int, task_ids: list[int], noise: float, **sim_overrides
@@ -188,7 +189,7 @@ def expert_success_mjx(episodes: int, task_ids: list[int], horizon: int, **sim_o
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tiny", action="store_true", help="CPU: C-backend figures only")
     parser.add_argument("--episodes", type=int, default=None, help="init states per task for the expert (<= 50)")
     parser.add_argument("--tasks", type=str, default="0,1,2,3,4,5,6,7,8,9")
@@ -329,4 +330,4 @@ def solver_variants(args, episodes: int, task_ids: list[int], sweep: list[dict],
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

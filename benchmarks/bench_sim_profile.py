@@ -36,6 +36,7 @@ import time
 sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..")))
 
 from benchmarks import common  # noqa: E402
+from sword_jax import cli  # noqa: E402
 
 # mjx.step for this scene's implicitfast integrator, in its order (mujoco/mjx/_src/forward.py).
 STAGES = ("kinematics", "com_pos", "camlight", "tendon", "crb", "tendon_armature", "factor_m", "collision",
@@ -132,7 +133,7 @@ def render_profile(data, mj_model, *, resolution: int, repeats: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch", type=int, default=4096)
     parser.add_argument("--warmup", type=int, default=5, help="control steps before timing")
     parser.add_argument("--repeats", type=int, default=20)
@@ -171,4 +172,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -22,7 +22,6 @@ of that peak. Writes ``vae_encode_frames_per_s``, ``vae_decode_frames_per_s`` an
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import jax
@@ -30,6 +29,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from benchmarks import common
+from sword_jax import cli
 from sword_jax import vae
 
 # Issue 20: twice the 318 frames/s whole-clip decode measured on an H100 on 2026-11-23 (batch 1, 17 frames).
@@ -78,7 +78,7 @@ def run(cfg: vae.VAEConfig, *, batch: int, frames: int, size: int, warmup: int, 
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tiny", action="store_true", help="tiny VAE on CPU (smoke run, no results file)")
     parser.add_argument("--batch", default="1", help="comma-separated batch sizes; the first is the headline")
     parser.add_argument("--frames", type=int, default=17, help="video frames, 1 + 4k")
@@ -136,4 +136,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

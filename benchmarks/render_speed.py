@@ -11,7 +11,6 @@ batch; the same frames up to float rounding) side by side, recorded as the ratio
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -26,6 +25,7 @@ from mujoco import mjx  # noqa: E402
 
 sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..")))
 from sim import render as R  # noqa: E402
+from sword_jax import cli  # noqa: E402
 
 
 # A 13-geom arm-on-a-table scene (the measured scale); a material so mjx.ray runs.
@@ -63,7 +63,7 @@ def _time(fn, repeats: int) -> float:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--envs", type=int, default=16)
     parser.add_argument("--res", type=int, nargs="+", default=[64, 128])
     parser.add_argument("--repeats", type=int, default=5)
@@ -166,4 +166,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -9,10 +9,11 @@ benchmark is reported and the others still run.
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import time
+
+from sword_jax import cli
 
 BENCHMARKS = {
     "dit": ["benchmarks.bench_dit_train", "--layers", "8", "--batch", "96", "--remat", "dots", "--levers",
@@ -30,11 +31,11 @@ BENCHMARKS = {
 }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default=",".join(BENCHMARKS))
     parser.add_argument("--timeout", type=int, default=600, help="seconds per benchmark")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     for name in args.only.split(","):
         start = time.time()
         print(f"=== {name}", flush=True)
@@ -47,4 +48,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main)

@@ -1,5 +1,6 @@
 """benchmarks.bench_grpo_transfer: the three arms' commands and the summary it writes from their files."""
 
+import argparse
 import json
 
 import pytest
@@ -46,7 +47,7 @@ def test_summary_reads_every_arm_and_names_the_missing(tmp_path):
 
 
 def test_commands_share_the_policy_and_settings():
-    args = transfer.argparse.Namespace(workdir="w", config="sword:tiny", seed=3, steps=4, eval_every=2, eval_episodes=5,
+    args = argparse.Namespace(workdir="w", config="sword:tiny", seed=3, steps=4, eval_every=2, eval_episodes=5,
                                        arm_workers=2, parallel=2)
     cmds = transfer.commands(args, ["--rl.grpo.learning_rate=1e-4"])
     for arm in transfer.ARMS:
