@@ -70,17 +70,35 @@ TINY_PPO = ["--num-envs", "2", "--unroll-length", "2", "--iterations", "2", "--e
             "--cnn-channels", "4"]
 
 
-@pytest.mark.slow  # ~14 s on a 2-core CPU, most of it compilation (brax inits its networks op by op)
-def test_brax_ppo_trains_two_iterations_inside_the_learned_simulator():
-    """The example's brax PPO call on the learned simulator's brax env over the toy world, tiny shapes, in
-    this process (its imports shared with the other tests; brax's wrappers under standard promotion)."""
+def _brax_ppo(monkeypatch):
+    """The example as a module, with ``examples/`` on the path while the test runs (it imports its siblings)."""
+    monkeypatch.syspath_prepend(os.path.join(REPO, "examples"))
+    import brax_ppo
+
+    return brax_ppo
+
+
+def test_brax_ppo_trains_two_iterations_inside_a_world_model(tiny_run, monkeypatch):
+    """What CI runs of the example: the same brax PPO call, two iterations on tiny shapes, against the learned
+    simulator's brax env over the tiny trained world model, in this process (its imports shared with the
+    other tests; brax's wrappers under standard promotion). The MJX env's side of the swap is checked by
+    ``tests/test_brax_envs.py`` (brax's wrappers step it); PPO on it is ``-m slow`` (MJX compiles for
+    minutes on a CPU)."""
     import jax
 
-    sys.path.insert(0, os.path.join(REPO, "examples"))
-    try:
-        import brax_ppo
-    finally:
-        sys.path.pop(0)
+    brax_ppo = _brax_ppo(monkeypatch)
+    with jax.numpy_dtype_promotion("standard"):
+        result = brax_ppo.main(["--env", "learned", "--run", tiny_run, *TINY_PPO])
+    assert result["env"] == "learned" and [it["env_steps"] for it in result["iterations"]] == [4, 8]
+    assert all(np.isfinite(it["policy_loss"]) and it["steps_per_s"] > 0 for it in result["iterations"])
+
+
+@pytest.mark.slow  # ~14 s on a 2-core CPU, most of it compilation (brax inits its networks op by op)
+def test_brax_ppo_trains_two_iterations_over_the_toy_world(monkeypatch):
+    """The example's brax PPO call on the learned simulator's brax env over the analytic toy world."""
+    import jax
+
+    brax_ppo = _brax_ppo(monkeypatch)
     with jax.numpy_dtype_promotion("standard"):
         result = brax_ppo.main(["--env", "toy", *TINY_PPO])
     assert result["env"] == "toy" and [it["env_steps"] for it in result["iterations"]] == [4, 8]
@@ -88,6 +106,7 @@ def test_brax_ppo_trains_two_iterations_inside_the_learned_simulator():
 
 
 @pytest.mark.slow
-def test_brax_ppo_trains_inside_a_world_model(tiny_run):
+def test_brax_ppo_runs_as_a_user_runs_it(tiny_run):
+    """``python examples/brax_ppo.py --env learned`` in its own process, as the README gives it."""
     printed = _example("brax_ppo.py", "--env", "learned", "--run", tiny_run, *TINY_PPO)
     assert "backend learned_simulator): action_size 56" in printed and "ppo iteration 2/2: 8 env steps" in printed
