@@ -10,8 +10,8 @@ model is a static constant, so ``render`` runs under ``jit`` and ``vmap`` on any
 poses of MJX's ``Data`` or, as numpy arrays, of MuJoCo's C-engine ``MjData`` alike.
 
 Why this design (measured with ``benchmarks/render_speed.py`` on the LIBERO scene, 85 drawn
-geoms, 16 envs, agentview, shadows off, on the 2-core CPU while ~8 other jobs shared it (load
-~17), so absolute figures are pessimistic; ms per frame per env):
+geoms, 16 envs, agentview, shadows off, on a 2-core CPU under a load of about 17 (other
+processes), so absolute figures are pessimistic; ms per frame per env):
 
     resolution   this renderer (RGB+depth+seg)   mjx.ray (depth+id only)   mujoco.Renderer (RGB)
         64                  23                            151                        62

@@ -1,6 +1,6 @@
 """The paper's three comparisons, each over several seeds, in (run, seed) slices merged into one table.
 
-    python -m train.compare --size small --runs sword --seeds 0               # one slice, one GPU session
+    python -m train.compare --size small --runs sword --seeds 0               # one slice
     python -m train.compare --size small --runs sword,wovr --seeds 1          # two slices, same shared stages
     python -m train.compare --size small --runs sword,teacher_forcing,no_augmentation --seeds 0,1,2 \
         --no-policy --parallel 2 --slices-at-once 4   # shared stages once, then 9 slices, 4 side by side on one GPU
@@ -8,7 +8,7 @@
     python -m train.compare --size tiny --seeds 0 --out /tmp/compare --results /tmp/compare/slices  # CPU smoke
     python -m train.compare --size small --runs sword --seeds 0 --trainer.steps=2000   # overrides: every run
     python -m train.compare --size small --runs sword,wovr,ground_truth --seeds 1 --shared-seed slice \
-        --no-evaluate --slices-at-once 3   # comparison 3, one seed (its own shared stages) per device lease
+        --no-evaluate --slices-at-once 3   # comparison 3, one seed with its own shared stages
 
 1. DLB (linear, direct, all) vs teacher forcing: long-horizon LPIPS / FID / FVD / FloLPIPS on
    LIBERO-Original and LIBERO-Mixed.
@@ -36,9 +36,9 @@ from the slice's own seed.
 
 ``--shared-seed slice`` builds the shared stages once per seed, at that seed (in
 ``<out>/shared-seed<k>/``), and every run of the seed adopts them: each seed is then a whole,
-independent replicate of the pipeline, its runs still paired. A comparison whose seeds cannot all
-run in one device lease (GPU runs need not rebuild bit-identical VAEs) is replicated this way, one
-seed per lease; ``merge`` checks the hashes among the slices of each shared seed.
+independent replicate of the pipeline, its runs still paired. A comparison whose seeds run as separate
+jobs (GPU runs need not rebuild bit-identical VAEs) is replicated this way, one seed per job;
+``merge`` checks the hashes among the slices of each shared seed.
 """
 
 from __future__ import annotations
@@ -823,7 +823,7 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     """``--slices-at-once N``: the parent builds the shared stages (here, so no two slices build them at
     once), run by run, and starts each (run, seed) slice as ``python -m train.compare ... --runs RUN
     --seeds K`` in its own process as soon as that run's shared stages are built, N at a time, in
-    seed-major order (a slice never starts before one listed ahead of it, so a cut-off lease leaves
+    seed-major order (a slice never starts before one listed ahead of it, so a run stopped early leaves
     whole seeds). While the parent builds the next run's stages (e.g. latents without augmentation)
     the earlier runs' slices already train. The children find the shared stages finished and only
     adopt them. A failed slice or shared build starts no new slices; the running ones finish; then
@@ -1023,7 +1023,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             print(f"[compare] slice {run} seed {seed}: {wall['shared']:.0f} s shared stages + {wall['slice']:.0f} s "
                   f"slice -> {path}")
             if at_once == 1:
-                merge(results_dir, allow_mismatch=True)  # after every slice: a cut-off session leaves a table
+                merge(results_dir, allow_mismatch=True)  # after every slice: a run stopped early leaves a table
     if at_once > 1:  # a child of --slices-at-once: its parent merges once every slice is done (one writer)
         return {}
     return _finish(results_dir)
