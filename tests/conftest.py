@@ -66,11 +66,11 @@ def example_env() -> dict:
 
 def _tiny_run_root(tmp_path_factory):
     base = tmp_path_factory.getbasetemp()
-    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the session's dir, shared
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the test run's dir, shared
 
 
 def _start_tiny_run(root) -> None:
-    """Starts building the tiny run in the background, unless a process of this session already did."""
+    """Starts building the tiny run in the background, unless a process of this test run already did."""
     import subprocess
     import sys
 

@@ -273,7 +273,7 @@ print("HASHES " + json.dumps(shared_inputs.shared_hashes(cfg, stages)))
 
 @pytest.mark.slow
 def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
-    """What lets slices run in different sessions: the same config and shared seed give the same inputs.
+    """What lets slices run in different jobs: the same config and shared seed give the same inputs.
 
     Teacher forcing's shared stages (data, VAE, latents, probe, reward model: about 5 minutes on 2
     CPU cores); the supervised policy is the only shared stage it leaves out.

@@ -1,0 +1,115 @@
+"""The README and docs/RESULTS.md: their generated tables agree with the committed JSON, their links lead
+somewhere, the README stays what a newcomer reads, and no file narrates how the work was scheduled."""
+
+import glob
+import json
+import os
+import re
+import shutil
+import subprocess
+
+from benchmarks import report
+from tests.conftest import REPO
+
+# Wording that narrates how a result was obtained rather than stating its run, device, limit and date.
+NARRATION = re.compile(r"|".join([
+    r"\bthis session\b", r"\bthe session'?s?\b", r"\bsession device", r"\bGPU session\b", r"\bcut-off session\b",
+    r"\bdevice[- ]time\b", r"\bdevice lease\b", r"\bleases?\b", r"\bleased\b", r"\bmachine loans?\b", r"\bloaned\b",
+    r"\bwork periods?\b", r"\btime budgets?\b", r"\bbudget_left", r"\bmachine runs?\b", r"\bmachine time\b",
+    r"\bthe machine was held\b", r"\bwarm machine\b", r"\bheld \d+ (?:s|minutes)\b",
+]), re.I)
+
+
+def _tracked(*patterns: str) -> list[str]:
+    out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", *patterns], cwd=REPO,
+                         capture_output=True, text=True, check=True).stdout.split()
+    return [path for path in out if os.path.exists(os.path.join(REPO, path))]
+
+
+def _strings(tree):
+    if isinstance(tree, dict):
+        for value in tree.values():
+            yield from _strings(value)
+    elif isinstance(tree, list):
+        for value in tree:
+            yield from _strings(value)
+    elif isinstance(tree, str):
+        yield tree
+
+
+def test_generated_tables_agree_with_the_json():
+    assert report.stale() == [], "run python -m benchmarks.report"
+    text = open(os.path.join(REPO, "docs", "RESULTS.md")).read()
+    names = re.findall(r"<!-- table:([\w-]+) -->", text) + re.findall(
+        r"<!-- table:([\w-]+) -->", open(os.path.join(REPO, "README.md")).read())
+    assert sorted(names) == sorted(report.TABLES)  # every generator has its place, once
+
+
+def test_a_table_that_disagrees_with_its_json_is_found(tmp_path):
+    for name in report.DOCUMENTS:
+        os.makedirs(tmp_path / os.path.dirname(name), exist_ok=True)
+        shutil.copy(os.path.join(REPO, name), tmp_path / name)
+    assert report.stale(str(tmp_path)) == []
+    results = tmp_path / "docs" / "RESULTS.md"
+    text = results.read_text()
+    assert "| Original, DLB | 0.183 ± 0.005 |" in text  # claim 1's latent MSE, from compare/small/comparison.json
+    results.write_text(text.replace("| Original, DLB | 0.183 ± 0.005 |", "| Original, DLB | 0.150 ± 0.005 |"))
+    assert report.stale(str(tmp_path)) == [os.path.join("docs", "RESULTS.md")]
+    readme = tmp_path / "README.md"
+    readme.write_text(readme.read_text().replace("<!-- /table:readme-results -->", "| extra | row |\n"
+                                                 "<!-- /table:readme-results -->"))
+    assert report.stale(str(tmp_path)) == ["README.md", os.path.join("docs", "RESULTS.md")]
+
+
+def _anchors(path: str) -> set[str]:
+    """GitHub's anchors of a markdown file's headings."""
+    return {re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+            for heading in re.findall(r"^#+ (.*)$", open(path).read(), re.M)}
+
+
+def test_readme_is_short_and_its_links_lead_somewhere():
+    lines = open(os.path.join(REPO, "README.md")).read().splitlines()
+    assert len(lines) <= 300 and max(len(line) for line in lines) <= 300
+    for name in ("README.md", os.path.join("docs", "RESULTS.md")):
+        for target in re.findall(r"\]\(([^)\s]+)\)", open(os.path.join(REPO, name)).read()):
+            if target.startswith("http"):
+                continue
+            path, _, anchor = target.partition("#")
+            resolved = os.path.normpath(os.path.join(REPO, os.path.dirname(name), path or os.path.basename(name)))
+            assert os.path.exists(resolved), f"{name}: link to a missing {target}"
+            assert not anchor or anchor in _anchors(resolved), f"{name}: no section #{anchor} in {path or name}"
+
+
+def test_the_readme_commands_are_those_ci_runs():
+    readme = open(os.path.join(REPO, "README.md")).read()
+    ci = open(os.path.join(REPO, ".ci", "run")).read().splitlines()
+    install = re.search(r"## Install\n\n```bash\n(.*?)\n```", readme, re.S).group(1)
+    assert [step for step in install.split(" && ") if step not in ci] == []  # CI installs as the README says
+    quick = re.search(r"## Quick start\n\n```bash\n(.*?)\n```", readme, re.S).group(1).splitlines()
+    assert len(quick) == 2 and quick[0].startswith("python -m train.pipeline ")
+    assert quick[1].split("#")[0].strip() in ci  # and runs the README's test command
+
+
+def test_no_file_narrates_how_the_work_was_scheduled():
+    found = []
+    for path in _tracked("README.md", "docs/*", "*.py", "benchmarks/results/*.md"):
+        if path == "tests/test_results_doc.py":
+            continue
+        for number, line in enumerate(open(os.path.join(REPO, path), errors="replace"), 1):
+            if NARRATION.search(line):
+                found.append(f"{path}:{number}: {line.strip()[:120]}")
+    for path in _tracked("benchmarks/results/*.json"):
+        for text in _strings(json.load(open(os.path.join(REPO, path)))):
+            if NARRATION.search(text):
+                found.append(f"{path}: {NARRATION.search(text).group(0)!r} in {text[:120]!r}")
+    assert found == []
+
+
+def test_the_narration_check_catches_what_it_is_for():
+    for text in ("cut off by the session's device time", "one H200 lease each", "the machine was held 33 minutes",
+                 "one 30-minute machine run holds", "within this session", "a time budget of 30 minutes"):
+        assert NARRATION.search(text), text
+    for text in ("built once per test session", "scope='session'", "start_new_session=True", "released weights",
+                 "stopped by the run's 30-minute time limit", "a 25-minute run on 4 x H100"):
+        assert not NARRATION.search(text), text
+    assert len(glob.glob(os.path.join(REPO, "benchmarks", "results", "**", "*.json"), recursive=True)) > 10
