@@ -69,6 +69,7 @@ def readme_results() -> str:
     dlb = latest["world_model_dlb_vs_teacher_forcing_small"]["value"]
     aug = latest["world_model_augmentation_vs_none_mixed_small"]["value"]
     arms = latest["policy_grpo_sword_vs_wovr_small"]["value"]
+    gt = latest["policy_grpo_ground_truth_gain_small"]
     rows = [
         ("Claim 1: DLB vs teacher forcing, `small`, 3 seeds",
          f"latent MSE {dlb['original_latent_mse'][0]:.3f} vs {dlb['original_latent_mse'][1]:.3f} (Original), "
@@ -90,10 +91,10 @@ def readme_results() -> str:
         ("Supervised policy of the pipeline (500 episodes)",
          f"success {latest['policy_sft_success_pipeline_small']['value']:.3f}", "policy_sft_success_pipeline_small",
          f"[section]({doc}#policies-in-the-ground-truth-environments)"),
-        ("GRPO against the ground truth, from that policy",
-         f"{_pct(latest['policy_grpo_ground_truth_gain_small']['value'])} points in 100 steps (best of 3 runs)",
-         "policy_grpo_ground_truth_gain_small",
-         f"[figure](benchmarks/results/policy/grpo_arms_small_h200.png), "
+        ("Ground-truth GRPO on MJX, 3 seeds",
+         f"sampled policy {_pct(gt['sampled_min_gain'])} points or more in {gt['steps']} steps; greedy "
+         f"{_pct(gt['greedy_min_gain'])} or more", "policy_grpo_ground_truth_gain_small",
+         f"[figure]({gt['data'].split('{')[0]}grpo_ground_truth_seeds.png), "
          f"[section]({doc}#policies-in-the-ground-truth-environments)"),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
@@ -220,14 +221,14 @@ def benchmarks() -> str:
     """Every recorded GPU figure of ``latest.json``: value, target, device, date and the command that made it."""
     results = _load("latest.json")
     keys = [k for k in HEADLINE if k in results] + sorted(
-        k for k in results if k not in HEADLINE and "cpu" not in str(results[k].get("device", "")).lower())
+        k for k in results if k not in HEADLINE and "(cpu)" not in str(results[k].get("device", "")))
     rows = []
     for key in keys:
         entry = results[key]
         value = entry.get("value")
         rows.append([f"`{key}`", _fmt(value) if not isinstance(value, (dict, list)) else "see JSON",
                      _fmt(entry.get("target")), _device(entry), str(entry.get("date", "")),
-                     f"`{entry.get('command', '')}`"])
+                     f"`{entry.get('command') or entry.get('run_command', '')}`"])
     return _table(["figure", "value", "target", "device", "date", "command"], rows)
 
 
