@@ -49,6 +49,9 @@ def test_dotted_overrides_are_typed():
         ("--cache.schedule=exp", "cache.schedule"),
         ("--rl.sft.stepz=5", "rl.sft.stepz"),
         ("--rl.grpo.group_size=1", "rl.grpo.group_size"),
+        ("--rl.grpo.steps=-1", "rl.grpo.steps"),
+        ("--rl.grpo.eval_every=0", "rl.grpo.steps must be >= 0 and rollout_batch, eval_every"),
+        ("--rl.grpo.learning_rate=0", "rl.grpo.learning_rate"),
     ],
 )
 def test_bad_override_names_the_key(override, needle):

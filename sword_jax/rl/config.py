@@ -178,6 +178,12 @@ class GRPOConfig:
     eval_sampled: bool = False
 
     def validate(self) -> None:
+        if self.steps < 0 or self.rollout_batch < 1 or self.eval_every < 1 or self.eval_episodes_per_task < 1:
+            raise ValueError(f"rl.grpo.steps must be >= 0 and rollout_batch, eval_every, eval_episodes_per_task >= 1, "
+                             f"got steps={self.steps}, rollout_batch={self.rollout_batch}, eval_every={self.eval_every}, "
+                             f"eval_episodes_per_task={self.eval_episodes_per_task}")
+        if not self.learning_rate > 0.0:
+            raise ValueError(f"rl.grpo.learning_rate must be > 0, got {self.learning_rate}")
         if self.group_size < 2:
             raise ValueError(f"rl.grpo.group_size must be >= 2 for group-normalised advantages, got {self.group_size}")
         if not 0.0 <= self.clip_low < 1.0 or self.clip_high < 0.0:
