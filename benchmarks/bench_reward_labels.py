@@ -36,7 +36,7 @@ OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "polic
 
 def generate(out_dir: str, tasks: tuple[int, ...], per_task: int, resolution: int, steps: int, workers: int) -> dict:
     """The three episode files (skipped where they exist): train fixed-length, demos, held-out."""
-    from train import gen_data
+    from sim import datagen
 
     specs = {
         "fixed": dict(episodes=per_task, stop_at_success=False, init_split="train", init_start=0, noise=0.1,
@@ -50,7 +50,7 @@ def generate(out_dir: str, tasks: tuple[int, ...], per_task: int, resolution: in
     for name, spec in specs.items():
         paths[name] = os.path.join(out_dir, f"{name}.hdf5")
         if not os.path.exists(paths[name]):
-            gen_data.generate(gen_data.GenDataConfig(out=paths[name], tasks=tasks, backend="cpu", resolution=resolution,
+            datagen.generate(datagen.GenDataConfig(out=paths[name], tasks=tasks, backend="cpu", resolution=resolution,
                                                      wrist_camera=False, overwrite=True, renderer="jax", **spec),
                               progress=False, workers=workers)
     return paths

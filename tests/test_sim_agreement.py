@@ -378,7 +378,7 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
     from sim.config import SimConfig
     from sim.env import CpuEnv
     from sword_jax.rl import data as rl_data
-    from train.gen_data import flat_state
+    from sim.datagen import flat_state
     from train.grpo import run_in_env
 
     cfg = configs.get("sword:tiny")

@@ -1,9 +1,10 @@
-"""``python -m train.gen_data`` smoke test: one tiny expert episode at 32x32 on the C engine."""
+"""Expert data: ``python -m train.gen_data`` and :mod:`sim.datagen` on tiny episodes."""
 
 import os
 import numpy as np
 import pytest
 
+from sim import datagen
 from sim.dataset import Episode, read_dataset
 from sword_jax.cli import UsageError
 from train import gen_data
@@ -37,11 +38,11 @@ def test_gen_data_writes_a_readable_libero_file(tmp_path):
 
 def test_gen_data_config_errors(tmp_path):
     with pytest.raises(ValueError, match="tasks"):
-        gen_data.GenDataConfig(out=str(tmp_path / "a.hdf5"), tasks=(12,)).validate()
+        datagen.GenDataConfig(out=str(tmp_path / "a.hdf5"), tasks=(12,)).validate()
     with pytest.raises(ValueError, match="renderer=gl needs backend=cpu"):
-        gen_data.GenDataConfig(out=str(tmp_path / "a.hdf5"), backend="mjx", renderer="gl").validate()
+        datagen.GenDataConfig(out=str(tmp_path / "a.hdf5"), backend="mjx", renderer="gl").validate()
     with pytest.raises(ValueError, match="hdf5"):
-        gen_data.GenDataConfig(out=str(tmp_path / "a.txt")).validate()
+        datagen.GenDataConfig(out=str(tmp_path / "a.txt")).validate()
     with pytest.raises(UsageError, match="--task"):
         gen_data.main(["--task", "seven", "--out", str(tmp_path / "a.hdf5")])
 
@@ -49,12 +50,12 @@ def test_gen_data_config_errors(tmp_path):
 def test_config_from_sim_section(tmp_path):
     from sim.config import SimConfig
 
-    cfg = gen_data.config_from_sim(SimConfig(tasks=(1, 4), episodes_per_task=3, resolution=64, expert_noise=0.1),
+    cfg = datagen.config_from_sim(SimConfig(tasks=(1, 4), episodes_per_task=3, resolution=64, expert_noise=0.1),
                                    str(tmp_path / "d.hdf5"), seed=5)
     cfg.validate()
     assert cfg.tasks == (1, 4) and cfg.episodes == 3 and cfg.resolution == 64 and cfg.noise == 0.1 and cfg.seed == 5
     assert cfg.stop_at_success and cfg.init_split == "train"
-    fixed = gen_data.config_from_sim(SimConfig(), str(tmp_path / "d.hdf5"), episode_steps=129, init_split="heldout")
+    fixed = datagen.config_from_sim(SimConfig(), str(tmp_path / "d.hdf5"), episode_steps=129, init_split="heldout")
     assert not fixed.stop_at_success and fixed.max_steps == 129 and fixed.init_split == "heldout"
 
 
@@ -68,7 +69,7 @@ def test_gen_data_gl_renderer_matches_jax_labels(tmp_path):
     paths = {}
     for renderer in ("gl", "jax"):
         paths[renderer] = str(tmp_path / f"{renderer}.hdf5")
-        gen_data.generate(gen_data.GenDataConfig(out=paths[renderer], tasks=(0,), resolution=32, max_steps=2,
+        datagen.generate(datagen.GenDataConfig(out=paths[renderer], tasks=(0,), resolution=32, max_steps=2,
                                                  renderer=renderer), progress=False)
     (_, [gl]), (_, [jx]) = read_dataset(paths["gl"]), read_dataset(paths["jax"])
     np.testing.assert_array_equal(gl.actions, jx.actions)
@@ -107,7 +108,7 @@ def test_world_model_data_has_few_near_identical_frames_on_several_tasks(tmp_pat
     was chased out of view).
     """
     out = str(tmp_path / "wm.hdf5")
-    gen_data.generate(gen_data.GenDataConfig(out=out, tasks=(1, 3, 4, 7, 9), resolution=32, max_steps=129,
+    datagen.generate(datagen.GenDataConfig(out=out, tasks=(1, 3, 4, 7, 9), resolution=32, max_steps=129,
                                              wrist_camera=False, renderer="jax"), progress=False)
     _, episodes = read_dataset(out)
     assert all(ep.num_samples == 129 and ep.first_success >= 0 for ep in episodes)
@@ -122,15 +123,15 @@ def test_stop_at_success_demos_are_the_default_expert(tmp_path):
     import sim
     from sim import expert
 
-    cfg = gen_data.GenDataConfig(out=str(tmp_path / "sft.hdf5"), tasks=(2,), episodes=2, resolution=16, noise=0.1,
+    cfg = datagen.GenDataConfig(out=str(tmp_path / "sft.hdf5"), tasks=(2,), episodes=2, resolution=16, noise=0.1,
                                  noisy_share=0.5, stop_at_success=True, wrist_camera=False, renderer="jax")
-    gen_data.generate(cfg, progress=False)
+    datagen.generate(cfg, progress=False)
     _, episodes = read_dataset(cfg.out)
     env = sim.load("libero_spatial", task_id=2, backend="cpu", resolution=16, max_steps=cfg.max_steps)
     recorded = ((40, [4.25143, 2.074, -4.83815, 0.01782, -0.11857, -0.02963, 6.0]),
                 (38, [4.13541, 1.81883, -4.18697, 0.073, -0.01762, -0.01508, 6.0]))
-    for i, (ep, qpos, (steps, action_sums)) in enumerate(zip(episodes, gen_data.init_states(cfg, 2), recorded, strict=True)):
-        noise = cfg.noise if gen_data.noisy(cfg, i) else 0.0
+    for i, (ep, qpos, (steps, action_sums)) in enumerate(zip(episodes, datagen.init_states(cfg, 2), recorded, strict=True)):
+        noise = cfg.noise if datagen.noisy(cfg, i) else 0.0
         runs = {cycle: expert.rollout_cpu(env, qpos, cfg=expert.ExpertConfig(noise=noise, cycle=cycle),
                                           rng=np.random.default_rng([cfg.seed, 2, i]), max_steps=steps, record=True,
                                           stop_at_success=not cycle) for cycle in (False, True)}
@@ -170,7 +171,7 @@ def test_parallel_generation_writes_the_same_file(tmp_path):
     paths = {}
     for workers in (0, 2):
         paths[workers] = str(tmp_path / f"w{workers}.hdf5")
-        gen_data.generate(gen_data.GenDataConfig(out=paths[workers], tasks=(0, 3), episodes=2, resolution=16,
+        datagen.generate(datagen.GenDataConfig(out=paths[workers], tasks=(0, 3), episodes=2, resolution=16,
                                                  max_steps=6, renderer="jax", noise=0.1, noisy_share=0.5,
                                                  wrist_camera=False, seed=3),
                           progress=False, workers=workers)

@@ -55,7 +55,7 @@ def test_an_episode_continued_from_a_recorded_state_follows_the_recording():
     executed actions reproduce the recorded trajectory and its success (GRPO's keyframe starts in the
     real environments rely on it)."""
     from sim.lockstep import LockstepEnvs
-    from train.gen_data import flat_state
+    from sim.datagen import flat_state
 
     env = CpuEnv(SimConfig(), 0)
     out = expert.rollout_cpu(env, env.init_states[3], record=True)

@@ -107,9 +107,9 @@ def stage_report(ctx: Context) -> dict:
 
 
 def stage_policy_data(ctx: Context) -> dict:
-    from train import policy_data
+    from train import pipeline_data
 
-    return policy_data.generate(ctx)
+    return pipeline_data.generate_policy_rollouts(ctx)
 
 
 STAGES = [

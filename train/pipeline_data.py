@@ -34,8 +34,8 @@ def generate_expert_data(ctx: Context) -> dict:
     evaluation states per task by construction of ``sim.tasks.split_init_states``).
     """
     from sim import tasks
+    from sim.datagen import GenDataConfig, generate
     from sim.dataset import read_dataset
-    from train import gen_data
 
     cfg = ctx.cfg
     results, init = {}, {}
@@ -43,13 +43,13 @@ def generate_expert_data(ctx: Context) -> dict:
     for split, per_task in (("train", cfg.sim.episodes_per_task), ("heldout", heldout_per_task)):
         seed = stream_seed(cfg.seed, f"data/{split}_episodes")  # expert-noise stream of each file
         path = ctx.path("data", f"{split}.hdf5")
-        gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
-                                     resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
-                                     noisy_share=cfg.sim.noisy_share, seed=seed, max_steps=episode_steps(cfg),
-                                     stop_at_success=False, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
-                                     renderer="jax",  # one look on every backend (and no GL context per process)
-                                     init_split=split, init_seed=cfg.sim.init_seed)
-        gen_data.generate(gen, progress=ctx.is_main, workers=cpu_workers())
+        gen = GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
+                            resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
+                            noisy_share=cfg.sim.noisy_share, seed=seed, max_steps=episode_steps(cfg),
+                            stop_at_success=False, wrist_camera=cfg.sim.wrist_camera, overwrite=True,
+                            renderer="jax",  # one look on every backend (and no GL context per process)
+                            init_split=split, init_seed=cfg.sim.init_seed)
+        generate(gen, progress=ctx.is_main, workers=cpu_workers())
         _, episodes = read_dataset(path)
         init[split] = {task: start_qpos(episodes, task) for task in cfg.sim.tasks}
         success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
@@ -63,18 +63,18 @@ def generate_expert_data(ctx: Context) -> dict:
 def _policy_demos(ctx: Context, cfg) -> dict:
     """Demonstrations for the policy and the success detector: episodes that end at their first
     success (within ``sim.max_steps``), from the train split after the world model's episodes."""
+    from sim.datagen import GenDataConfig, generate
     from sim.dataset import read_dataset
-    from train import gen_data
 
     path = ctx.path("data", "demos.hdf5")
     per_task = cfg.rl.sft.episodes_per_task or cfg.sim.episodes_per_task
-    gen = gen_data.GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
-                                 resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
-                                 noisy_share=cfg.sim.noisy_share, seed=stream_seed(cfg.seed, "data/policy_demos"),
-                                 max_steps=cfg.sim.max_steps,
-                                 stop_at_success=True, wrist_camera=False, overwrite=True, renderer="jax",
-                                 init_split="train", init_start=cfg.sim.episodes_per_task, init_seed=cfg.sim.init_seed)
-    gen_data.generate(gen, progress=ctx.is_main, workers=cpu_workers())
+    gen = GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=per_task, backend=cfg.sim.backend,
+                        resolution=cfg.data.image_size, noise=cfg.sim.expert_noise,
+                        noisy_share=cfg.sim.noisy_share, seed=stream_seed(cfg.seed, "data/policy_demos"),
+                        max_steps=cfg.sim.max_steps,
+                        stop_at_success=True, wrist_camera=False, overwrite=True, renderer="jax",
+                        init_split="train", init_start=cfg.sim.episodes_per_task, init_seed=cfg.sim.init_seed)
+    generate(gen, progress=ctx.is_main, workers=cpu_workers())
     _, episodes = read_dataset(path)
     success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
     return {"path": path, "episodes": len(episodes), "success_rate": success}
@@ -151,8 +151,8 @@ def encode_training_latents(ctx: Context) -> dict:
     if cfg.augment.enabled and cfg.augment.styled_copies > 0:
         copies = cfg.augment.styled_copies
         styled = encode_styled_copies(episodes, copies, stream_key(jax.random.key(cfg.seed), "augment/styled_copies"),
-                                      encode, intensity=cfg.augment.intensity,
-                                      classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
+                             encode, intensity=cfg.augment.intensity,
+                             classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
         styled_latents, styled_actions, _ = styled.flatten()
         latents.append(styled_latents)
         actions.append(styled_actions)
@@ -198,3 +198,31 @@ def read_eval_results(out_dir: str) -> dict:
     with open(path) as f:
         results = json.load(f)
     return {split: {model: r["overall"] for model, r in per.items()} for split, per in results.get("models", {}).items()}
+
+
+def generate_policy_rollouts(ctx: Context) -> dict:
+    """Pipeline stage: ``data.policy_rollouts_per_task`` episodes per task of the supervised policy, as
+    long as the world model's expert episodes, from the same training initial states."""
+    from sim.datagen import GenDataConfig
+    from sim.policy_rollouts import write_policy_episodes
+    from sword_jax.rl.env_rollout import make_act_fns
+    from sword_jax.rl.params_io import load_params
+    from sword_jax.rl.policy import build_policy
+
+    cfg = ctx.cfg
+    per_task = cfg.data.policy_rollouts_per_task
+    if per_task == 0:
+        return {"path": "", "episodes": 0, "success_rate": 0.0}
+    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+    params, _ = load_params(ctx.results["sft_policy"]["path"], params, kind="policy")
+    gen = GenDataConfig(out=ctx.path("data", "policy_rollouts.hdf5"), tasks=tuple(cfg.sim.tasks),
+                        episodes=per_task, backend="cpu", resolution=cfg.data.image_size,
+                        max_steps=episode_steps(cfg), stop_at_success=False, wrist_camera=False,
+                        overwrite=True, renderer="jax", init_split="train", init_start=0,
+                        init_seed=cfg.sim.init_seed)
+    summary = write_policy_episodes(gen.out, make_act_fns(graphdef, cfg.rl), params, cfg.rl, gen,
+                           key=stream_key(jax.random.key(cfg.seed), "data/policy_rollouts"))
+    if ctx.is_main:
+        print(f"[policy_data] {summary['episodes']} policy episodes ({summary['success_rate']:.0%} successful) "
+              f"-> {gen.out}", flush=True)
+    return summary

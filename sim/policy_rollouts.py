@@ -1,4 +1,4 @@
-"""World-model training episodes in which the supervised policy acts: successes and failures.
+"""World-model training episodes in which a policy acts (successes and failures), recorded like the expert's.
 
 Expert episodes are almost all successful (98% on `small`), so a world model trained on them alone
 has never seen an attempt fail and imagines success under any policy; GRPO inside such a simulator
@@ -24,10 +24,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from train import gen_data
+import sim
+from sim import tasks
+from sim.datagen import (GenDataConfig, JaxFrames, dataset_info, flat_state, init_states, make_episode, model_xml,
+                         render_scene)
+from sim.dataset import DatasetWriter
+from sword_jax.rl.policy import tokenize_instructions
 
 
-def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.GenDataConfig, *,
+def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: GenDataConfig, *,
                            key: jax.Array, batch: int = 32) -> Iterator[tuple[Any, bool]]:
     """``(Episode, success)`` for each of ``gen.episodes`` training initial states of each task in ``gen.tasks``.
 
@@ -42,11 +47,7 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
 
     The recorded action is the one executed (there is no separate label), success is the simulator's.
     """
-    import sim
-    from sim import tasks
-    from sword_jax.rl.policy import tokenize_instructions
-
-    starts = [(task, index, qpos) for task in gen.tasks for index, qpos in enumerate(gen_data.init_states(gen, task))]
+    starts = [(task, index, qpos) for task in gen.tasks for index, qpos in enumerate(init_states(gen, task))]
     envs: dict[int, Any] = {}
     frames = None
     k = rl_cfg.env.execute_steps
@@ -57,7 +58,7 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
                 envs[task] = sim.load("libero_spatial", task_id=task, backend="cpu", resolution=gen.resolution,
                                       max_steps=gen.max_steps)
         if frames is None:
-            frames = gen_data.JaxFrames(gen_data.render_scene(envs[group[0][0]]), gen.resolution)
+            frames = JaxFrames(render_scene(envs[group[0][0]]), gen.resolution)
         states = [[envs[task].reset_to(qpos)] for task, _, qpos in group]
         actions: list[list[np.ndarray]] = [[] for _ in group]
         text = jnp.asarray(tokenize_instructions([tasks.LANGUAGE[task] for task, _, _ in group],
@@ -78,27 +79,25 @@ def record_policy_episodes(act: Any, params: Any, rl_cfg: Any, gen: gen_data.Gen
         for i, (task, index, _) in enumerate(group):
             env, seen = envs[task], [s.data for s in states[i][:-1]]
             after = np.asarray([float(s.done) for s in states[i][1:]])
-            episode = gen_data.make_episode(
-                gen, task, index, env, gen_data.model_xml(env), actions=np.stack(actions[i]),
-                executed=np.stack(actions[i]), after=after, flat=np.stack([gen_data.flat_state(d) for d in seen]),
+            episode = make_episode(
+                gen, task, index, env, model_xml(env), actions=np.stack(actions[i]),
+                executed=np.stack(actions[i]), after=after, flat=np.stack([flat_state(d) for d in seen]),
                 agent=frames(seen, "agentview"), wrist=None,
                 proprio=np.stack([np.asarray(s.obs["proprio"]) for s in states[i][:-1]]),
                 joints=np.stack([np.asarray(d.qpos[:7]) for d in seen]))
             yield episode, bool(after.max() > 0)
 
 
-def write_policy_episodes(path: str, act: Any, params: Any, rl_cfg: Any, gen: gen_data.GenDataConfig, *,
+def write_policy_episodes(path: str, act: Any, params: Any, rl_cfg: Any, gen: GenDataConfig, *,
                           key: jax.Array) -> dict:
     """Records :func:`record_policy_episodes` into ``path`` (LIBERO layout); returns a summary.
 
     Raises:
       FileExistsError: ``path`` exists and ``gen.overwrite`` is False (nothing is touched).
     """
-    from sim.dataset import DatasetWriter
-
-    info = gen_data.dataset_info(dataclasses.replace(gen, renderer="jax"), None)
+    info = dataset_info(dataclasses.replace(gen, renderer="jax"), None)
     info.env_args["env_kwargs"]["source"] = "supervised policy, sampled actions"
-    info.seg_class_names = gen_data.render_scene(_any_env(gen)).class_names
+    info.seg_class_names = render_scene(_any_env(gen)).class_names
     written = successes = 0
     with DatasetWriter(path, info, overwrite=gen.overwrite) as writer:
         for episode, success in record_policy_episodes(act, params, rl_cfg, gen, key=key):
@@ -108,36 +107,6 @@ def write_policy_episodes(path: str, act: Any, params: Any, rl_cfg: Any, gen: ge
     return {"path": path, "episodes": written, "success_rate": successes / max(written, 1)}
 
 
-def _any_env(gen: gen_data.GenDataConfig) -> Any:
-    import sim
-
+def _any_env(gen: GenDataConfig) -> Any:
     return sim.load("libero_spatial", task_id=gen.tasks[0], backend="cpu", resolution=gen.resolution,
                     max_steps=gen.max_steps)
-
-
-def generate(ctx: Any) -> dict:
-    """Pipeline stage: ``data.policy_rollouts_per_task`` episodes per task of the supervised policy, as
-    long as the world model's expert episodes, from the same training initial states."""
-    from sword_jax.rl.env_rollout import make_act_fns
-    from sword_jax.rl.params_io import load_params
-    from sword_jax.rl.policy import build_policy
-    from sword_jax.rng import stream_key
-    from train.pipeline_data import episode_steps
-
-    cfg = ctx.cfg
-    per_task = cfg.data.policy_rollouts_per_task
-    if per_task == 0:
-        return {"path": "", "episodes": 0, "success_rate": 0.0}
-    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
-    params, _ = load_params(ctx.results["sft_policy"]["path"], params, kind="policy")
-    gen = gen_data.GenDataConfig(out=ctx.path("data", "policy_rollouts.hdf5"), tasks=tuple(cfg.sim.tasks),
-                                 episodes=per_task, backend="cpu", resolution=cfg.data.image_size,
-                                 max_steps=episode_steps(cfg), stop_at_success=False, wrist_camera=False,
-                                 overwrite=True, renderer="jax", init_split="train", init_start=0,
-                                 init_seed=cfg.sim.init_seed)
-    summary = write_policy_episodes(gen.out, make_act_fns(graphdef, cfg.rl), params, cfg.rl, gen,
-                                    key=stream_key(jax.random.key(cfg.seed), "data/policy_rollouts"))
-    if ctx.is_main:
-        print(f"[policy_data] {summary['episodes']} policy episodes ({summary['success_rate']:.0%} successful) "
-              f"-> {gen.out}", flush=True)
-    return summary
