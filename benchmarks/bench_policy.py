@@ -118,7 +118,7 @@ def run_sft(cfg, args) -> dict:
     from sword_jax.rl.policy_success import evaluate_in_sim
     from sword_jax.rl.proprio_reckoning import save_reckoning
     from sword_jax.rl.sft import train_sft
-    from train.grpo import sim_reckoning
+    from sim.grpo_env import sim_reckoning
 
     rl = cfg.rl
     tasks = list(cfg.sim.tasks)
@@ -255,7 +255,7 @@ def reckoning_path(policy_path: str) -> str:
 def run_grpo(cfg, args) -> dict:
     from sword_jax.rl.policy import build_policy
     from sword_jax.rl.proprio_reckoning import load_reckoning
-    from train import grpo as grpo_entry
+    from sim import grpo_env
 
     mode = cfg.rl.env.proprio
     reckoning = load_reckoning(args.reckoning or reckoning_path(args.policy)) if mode == "reckoned" else None
@@ -277,10 +277,10 @@ def run_grpo(cfg, args) -> dict:
         workdir += f"_starts_{cfg.rl.env.starts}"
     if cfg.rl.env.backend == "mjx":
         workdir += "_mjx"
-        result = grpo_entry.run_in_mjx(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes)
+        result = grpo_env.run_in_mjx(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes)
     else:
-        result = grpo_entry.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
-                                       workers=args.workers, renderer="jax", reckoning=reckoning, keyframes=keyframes)
+        result = grpo_env.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
+                                     workers=args.workers, renderer="jax", reckoning=reckoning, keyframes=keyframes)
     curve = result["curve"]
     first, last = curve[0], curve[-1]
     gain = last["mean"] - first["mean"]

@@ -105,7 +105,7 @@ def run_steps(
     run_id: dict[str, Any] | None = None,
     log: Callable[[str], Any] = print,
     on_start: Callable[[int, Any], Any] | None = None,
-    at_checkpoint: Callable[[int, Any], Any] | None = None,
+    at_checkpoint: Callable[[int, Any, list[dict[str, Any]]], Any] | None = None,
     place: Callable[[Any], Any] | None = None,
     checkpoint_meta: Callable[[int], dict[str, Any]] | None = None,
     keep_checkpoints: int = 2,
@@ -137,10 +137,11 @@ def run_steps(
       on_start: ``on_start(first_step, state) -> state``, called once after any resume and before the first
         step; the loop runs from the state it returns (GRPO settles it, forgets evaluations a killed run
         recorded after its checkpoint, and evaluates step 0 of a fresh run).
-      at_checkpoint: ``at_checkpoint(step_done, state) -> state | None`` at every checkpoint step (every
-        ``checkpoint_every`` steps and the last; also without a checkpoint directory), once that step's metrics
-        were read finite and before its checkpoint is written (GRPO evaluates the policy there). A state it
-        returns replaces the loop's (GRPO's exploitation guard rolls the policy back); None keeps it.
+      at_checkpoint: ``at_checkpoint(step_done, state, history) -> state | None`` at every checkpoint step
+        (every ``checkpoint_every`` steps and the last; also without a checkpoint directory), once that step's
+        metrics were read finite and before its checkpoint is written, with the run's history up to that step
+        (GRPO evaluates the policy and writes the history there). A state it returns replaces the loop's
+        (GRPO's exploitation guard rolls the policy back); None keeps it.
       place: ``place(host_batch) -> batch`` on the loop's thread before the step (e.g. global arrays
         with the step's input shardings); None = the batch as ``batch_at`` made it.
       checkpoint_meta: ``checkpoint_meta(step_done) -> dict`` of further JSON facts saved with each
@@ -216,7 +217,7 @@ def run_steps(
                     pending = None
                 stop_if_nonfinite(first_bad)  # only a step read finite is saved
                 if at_checkpoint is not None:
-                    replaced = at_checkpoint(dispatched, state)
+                    replaced = at_checkpoint(dispatched, state, history)
                     state = state if replaced is None else replaced
                 if ckpt is not None:
                     extra = checkpoint_meta(dispatched) if checkpoint_meta is not None else {}

@@ -6,14 +6,16 @@ import os
 import numpy as np
 import pytest
 
+from sword_jax.pipeline import compare as compare_lib
+from sword_jax.pipeline import inputs as shared_inputs
 from tests.conftest import example_env
-from train import compare, shared_inputs
+from train import compare
 
 FAKE_HASHES = {"data": "d" * 64, "vae": "v" * 64}
 
 
 def _record(run, seed, lpips, success, hashes=FAKE_HASHES, file=None):
-    metrics = {m: lpips * (i + 1) for i, m in enumerate(compare.METRICS)}
+    metrics = {m: lpips * (i + 1) for i, m in enumerate(compare_lib.METRICS)}
     return {"format": compare.SLICE_FORMAT, "size": "small", "run": run, "seed": seed,
             "metrics": {"original": metrics, "mixed": metrics},
             "success": {"grpo step 0": success[0], "grpo step 10": success[1]},
@@ -30,11 +32,11 @@ def _write(directory, record):
 def test_aggregate_means_and_spreads_and_markdown():
     results = {run: [_record(run, s, 0.1 + 0.1 * s, (0.2, 0.4 + 0.1 * s)) for s in range(3)]
                for run in ("sword", "teacher_forcing", "no_augmentation", "wovr")}
-    table = compare.aggregate(results)
+    table = compare_lib.aggregate(results)
     lpips = table["sword"]["metrics"]["original/lpips"]
     assert np.isclose(lpips["mean"], 0.2) and np.isclose(lpips["std"], 0.1) and lpips["n"] == 3
     assert np.isclose(table["wovr"]["success"]["grpo step 10"]["mean"], 0.5)
-    text = compare.to_markdown(table, [0, 1, 2])
+    text = compare_lib.to_markdown(table, [0, 1, 2])
     assert "DLB vs teacher forcing" in text and "0.2 ± 0.1 (n=3)" in text
     assert text.index("grpo step 0") < text.index("grpo step 10")
 
@@ -44,7 +46,7 @@ def test_runs_cover_the_three_comparisons():
     assert runs["teacher_forcing"][0] == "cache_ablation:small-tf"
     assert runs["wovr"][0] == "cache_ablation:small-wovr"
     assert "--augment.enabled=false" in runs["no_augmentation"][1]
-    for _, ours, baseline, _ in compare.COMPARISONS:
+    for _, ours, baseline, _ in compare_lib.COMPARISONS:
         assert ours in runs and baseline in runs
 
 
@@ -105,7 +107,7 @@ def test_data_hash_sees_frames_and_actions_not_the_file_layout(tmp_path):
 
 def _fake_stages(calls):
     """Pipeline stages that record their calls and write what compare reads (eval results, success curve)."""
-    from train.stagerunner import Stage
+    from sword_jax.pipeline.stages import Stage
 
     def make(name, needs):
         def run(ctx):
@@ -259,7 +261,8 @@ def test_merge_of_an_empty_folder_is_a_one_line_runtime_error(tmp_path, capsys):
 _BUILD_AND_HASH = """
 import json, os, sys
 import configs
-from train import compare, shared_inputs
+from sword_jax.pipeline import inputs as shared_inputs
+from train import compare
 out = sys.argv[1]
 shared_dir, _, _ = compare.build_shared("teacher_forcing", "tiny", out=out, shared_seed=0, overrides=[])
 stages = {}
@@ -499,17 +502,17 @@ def test_hash_checks_stay_within_a_shared_seed():
     b = {**_record("wovr", 0, 0.1, (0.1, 0.2), hashes={"data": "x" * 64, "vae": "v" * 64}), "file": "b"}
     c = {**_record("sword", 1, 0.1, (0.1, 0.2), hashes={"data": "y" * 64, "vae": "w" * 64}), "file": "c"}
     c["shared"]["seed"] = 1
-    assert compare.hash_mismatches([a, c]) == {}
-    assert compare.hash_mismatches([a, b]) == {"data": {"d" * 64: ["a"], "x" * 64: ["b"]}}
-    assert compare.hash_mismatches([a, b, c]) == {"data (shared seed 0)": {"d" * 64: ["a"], "x" * 64: ["b"]}}
-    assert compare.agreed_hashes([a, b, c]) == {
+    assert compare_lib.hash_mismatches([a, c]) == {}
+    assert compare_lib.hash_mismatches([a, b]) == {"data": {"d" * 64: ["a"], "x" * 64: ["b"]}}
+    assert compare_lib.hash_mismatches([a, b, c]) == {"data (shared seed 0)": {"d" * 64: ["a"], "x" * 64: ["b"]}}
+    assert compare_lib.agreed_hashes([a, b, c]) == {
         "shared seed 0": {"vae": "v" * 64}, "shared seed 1": {"data": "y" * 64, "vae": "w" * 64}}
 
 
 def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_policy(tmp_path, monkeypatch):
     import configs
+    from sword_jax.pipeline.stages import Context
     from train import grpo, pipeline_policy
-    from train.stagerunner import Context
 
     seen = {}
 
@@ -537,7 +540,7 @@ def test_table_names_missing_comparisons_and_slices_run_with_other_overrides(tmp
     text = (tmp_path / "comparison.md").read_text()
     assert "> - `--y=2` in wovr_seed0.json only" in text and "`--x=1`" not in text
     assert "No evaluated slices" not in text  # the fake records have metrics
-    assert compare.override_differences([a, {**a, "file": "c"}]) == {}
+    assert compare_lib.override_differences([a, {**a, "file": "c"}]) == {}
     assert "gained more than `wovr` at 1/1 seeds" in text  # sword +0.1 vs wovr -0.1
     only = tmp_path / "only_wovr"
     _write(only, a)
@@ -546,23 +549,23 @@ def test_table_names_missing_comparisons_and_slices_run_with_other_overrides(tmp
 
 
 def test_exploitation_lines_compare_first_and_last_replays():
-    from train import grpo
+    from sword_jax.pipeline import grpo as pipeline_grpo
 
     def at(step, mean, fail, ok):
         by_h = {"48": {"real_failure": {"rate": fail, "of": 50}, "real_success": {"rate": ok, "of": 50}}}
         return {"step": step, "mean": mean, "replay": {"imagined_success_by_horizon": by_h}}
 
-    lines = compare.exploitation_lines([
+    lines = compare_lib.exploitation_lines([
         {"run": "sword", "seed": 1, "success_curve": [at(0, 0.30, 0.07, 0.34), at(25, 0.33, 0.15, 0.32), at(50, 0.23, 0.16, 0.28)],
-         "policy": {"grpo": {"training_success": grpo.training_success(
+         "policy": {"grpo": {"training_success": pipeline_grpo.training_success(
              [{"step": k + 1, "success_rate": 0.1 if k < 10 else 0.5} for k in range(50)])}}},
         {"run": "wovr", "seed": 1, "success_curve": [at(0, 0.30, 0.03, 0.24), at(50, 0.35, 0.02, 0.30)]},
         {"run": "wovr", "seed": 2, "success_curve": [at(0, 0.30, 0.03, 0.24)]}])  # one evaluation: no row
     assert "| sword | 1 | 0 -> 50 | 0.10 -> 0.50 | 0.07 -> 0.16 | 0.34 -> 0.28 | 0.300 -> 0.230 |" in lines
     assert "| wovr | 1 | 0 -> 50 | | 0.03 -> 0.02 | 0.24 -> 0.30 | 0.300 -> 0.350 |" in lines  # no history: empty cell
-    assert grpo.training_success([{"step": 1, "loss": 0.0}]) == {}
+    assert pipeline_grpo.training_success([{"step": 1, "loss": 0.0}]) == {}
     assert lines[-1] == "False success rose at 1/2 slices; real success fell at 1/2."
-    assert compare.exploitation_lines([{"run": "sword", "seed": 0}]) == []
+    assert compare_lib.exploitation_lines([{"run": "sword", "seed": 0}]) == []
 
 
 def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
@@ -570,15 +573,15 @@ def test_replay_lines_show_whether_each_simulator_separates_real_outcomes():
     replay = {"imagined_success_by_horizon": {"48": {"real_success": rate(0.4, 43), "real_failure": rate(0.19, 57)},
                                               "all": {"real_success": rate(0.5, 43), "real_failure": rate(0.6, 57)}},
               "resample_disagreement": rate(0.2, 100)}
-    lines = compare.replay_lines([{"run": "wovr", "seed": 0, "success_curve": [{"step": 0, "replay": replay}]},
+    lines = compare_lib.replay_lines([{"run": "wovr", "seed": 0, "success_curve": [{"step": 0, "replay": replay}]},
                                   {"run": "sword", "seed": 0, "success_curve": [{"step": 0}]}])
     assert lines[-1] == "| wovr | 0 | 0.40 / 0.19 (of 43 / 57) | 0.50 / 0.60 (of 43 / 57) |  | 0.20 |"
-    assert compare.replay_lines([{"run": "sword", "seed": 0}]) == []
+    assert compare_lib.replay_lines([{"run": "sword", "seed": 0}]) == []
     # Two runs replayed the same episodes: each run's separation and their paired difference.
     real = [1, 1, 0, 0]
     blind = {**replay, "real_success_flags": real, "imagined_first_success": [30, -1, 30, -1]}
     seeing = {**replay, "real_success_flags": real, "imagined_first_success": [30, 40, -1, -1]}
-    lines = compare.replay_lines([{"run": "sword", "seed": 3, "success_curve": [{"replay": blind}]},
+    lines = compare_lib.replay_lines([{"run": "sword", "seed": 3, "success_curve": [{"replay": blind}]},
                                   {"run": "wovr", "seed": 3, "success_curve": [{"replay": seeing}]}])
     assert "| +0.00 [" in lines[-4] and "| +1.00 [+1.00, +1.00] |" in lines[-3]
     assert lines[-1].startswith("- seed 3: `wovr` minus `sword` separation by action 48: +1.00 [")
@@ -637,17 +640,24 @@ def test_shared_hashes_are_cached_per_file_until_the_file_changes(tmp_path, monk
     assert shared_inputs.cached_hash(None, "npz", str(path), compute) and len(calls) == 4  # no cache: always computed
 
 
-def test_merge_reads_training_success_from_the_grpo_log_beside_an_older_slice(tmp_path):
-    record = {"run": "wovr", "seed": 0, "policy": {"grpo": {"steps": 12}}}
-    assert compare.with_logged_training_success(record, str(tmp_path)) is record  # no log: unchanged
-    lines = [f"grpo step {k + 1}/12 imagined success {0.1 if k < 10 else 0.7:.3f} return 0.2 loss 0.0\n"
-             for k in range(12)]
-    (tmp_path / "grpo_wovr_seed0.log").write_text("[8/8] policy: started\n" + "".join(lines) + "done\n")
-    out = compare.with_logged_training_success(record, str(tmp_path))
-    training = out["policy"]["grpo"]["training_success"]
-    assert (training["steps"], training["source"]) == (12, "grpo_wovr_seed0.log")
-    assert abs(training["first"] - 0.1) < 1e-9
-    assert abs(training["last"] - (8 * 0.1 + 2 * 0.7) / 10) < 1e-9 and out["policy"]["grpo"]["steps"] == 12
-    assert "training_success" not in record["policy"]["grpo"]  # the loaded record is not modified
-    recorded = {**record, "policy": {"grpo": {"training_success": {"first": 0.5, "last": 0.5}}}}
-    assert compare.with_logged_training_success(recorded, str(tmp_path)) is recorded  # recorded wins
+def test_grpo_stage_records_training_success_from_the_runs_history(tmp_path, monkeypatch):
+    """The slice's training success is computed from the per-step history GRPO returns (data), and every
+    committed comparison-3 slice carries it, so merging reads no log."""
+    import configs
+    from sword_jax.pipeline.grpo import training_success
+    from sword_jax.pipeline.stages import Context
+    from train import grpo, pipeline_policy
+
+    history = [{"step": k + 1, "rollout_success": 0.1 if k < 10 else 0.7} for k in range(12)]
+    monkeypatch.setattr(grpo, "run", lambda cfg, inputs, *, simulator, env_workers: {
+        "curve": [{"step": 0, "mean": 0.3}], "workdir": "g", "history": history})
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--workdir={tmp_path}"])
+    ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])
+    ctx.results.update(data={"demos": {"path": "demos.hdf5"}, "train": {"path": "train.hdf5"}},
+                       sft_policy={"path": "policy_sft", "seconds": 3.0})
+    training = pipeline_policy.grpo_in_ground_truth(ctx)["grpo"]["training_success"]
+    assert training == training_success(history) and training["metric"] == "rollout_success"
+    assert abs(training["first"] - 0.1) < 1e-9 and abs(training["last"] - (8 * 0.1 + 2 * 0.7) / 10) < 1e-9
+    committed = compare_lib.load_slices(os.path.join(compare.REPO, "benchmarks", "results", "compare", "small_grpo"))
+    assert len(committed) == 9
+    assert all(s["policy"]["grpo"]["training_success"]["steps"] == 50 for s in committed)

@@ -1,4 +1,5 @@
-"""Layering: ``sword_jax`` imports neither ``sim`` nor ``train``; ``sword_jax.dit`` does not reach ``convert``.
+"""Layering: ``sword_jax`` imports neither ``sim`` nor ``train``; ``sword_jax.dit`` does not reach ``convert``;
+``benchmarks/``, ``examples/`` and ``sim/`` import no entry point; no ``train/`` module exceeds 300 lines.
 
 The scan reads the source (every import statement, including those inside functions, and literal
 ``importlib.import_module`` / ``__import__`` names), so a lazy import cannot slip through.
@@ -171,3 +172,27 @@ def _reaches(edges: dict[str, set[str]], start: str, goal: str) -> bool:
             seen.add(nxt)
             todo.append(nxt)
     return False
+
+
+def _files_under(folder: str) -> list[str]:
+    return sorted(os.path.join(d, f) for d, _, files in os.walk(os.path.join(REPO, folder)) for f in files
+                  if f.endswith(".py"))
+
+
+@pytest.mark.parametrize("folder", ["benchmarks", "examples", "sim"])
+def test_benchmarks_examples_and_sim_import_no_entry_point(folder):
+    """They use the library, the simulators and the orchestration (``sword_jax.pipeline``); an entry point's
+    work is reached through the orchestration or its command line, never by importing ``train``."""
+    files = _files_under(folder)
+    assert len(files) > 3, files
+    found = _imports_fresh(tuple((_read(p), _module_name(p), p.endswith("__init__.py")) for p in files))
+    offenders = {os.path.relpath(p, REPO): bad for p, imports in zip(files, found)
+                 if (bad := [f"line {line}: {name}" for line, name, _, _ in imports if name.split(".")[0] == "train"])}
+    assert not offenders, f"{folder}/ must not import train: {offenders}"
+
+
+def test_train_modules_have_at_most_300_lines():
+    files = [p for p in _files_under("train") if not p.endswith("__init__.py")]
+    assert len(files) > 10, files
+    too_long = {os.path.relpath(p, REPO): n for p in files if (n := len(_read(p).splitlines())) > 300}
+    assert not too_long, f"train/ holds entry points of at most 300 lines (orchestration: sword_jax.pipeline): {too_long}"

@@ -3,7 +3,7 @@
 import os
 
 from train import pipeline
-from train.stagerunner import Stage
+from sword_jax.pipeline.stages import Stage
 
 
 def test_stop_after_then_resume(tmp_path, monkeypatch):
@@ -43,7 +43,7 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     from train import evaluate_world_model, grpo, pipeline_data, pipeline_policy, train_policy, train_probe
     from train import train_reward
     from train import train_vae, train_world_model
-    from train.stagerunner import Context
+    from sword_jax.pipeline.stages import Context
 
     base = ["--config", "sword:tiny", "--seed", "3", "--model.num_layers=1", f"--workdir={tmp_path}"]
     cfg, _ = configs.from_argv(base)

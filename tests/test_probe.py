@@ -16,6 +16,7 @@ from tests.support.videos import panning_videos
 
 def test_probe_recovers_state_better_than_a_constant(tmp_path):
     from sim.dataset import read_dataset
+    from sim.probe_targets import episode_targets
     from train import gen_data, train_probe
 
     demos = str(tmp_path / "demos.hdf5")
@@ -32,7 +33,7 @@ def test_probe_recovers_state_better_than_a_constant(tmp_path):
     scorer = FidelityScorer.from_probe_file(summary["path"])
     episode = read_dataset(demos)[1][0]
     video = episode.agentview_rgb[None].astype(np.float32) / 255.0
-    per_frame, _ = scorer.score(video, video, targets=train_probe.episode_targets(episode)[None])
+    per_frame, _ = scorer.score(video, video, targets=episode_targets(episode)[None])
     assert np.all(per_frame["probe_ee_cm"] == 0) and np.all(per_frame["probe_gripper_agree"] == 1)
     assert 0 < per_frame["probe_floor_ee_cm"].mean() < summary["holdout_constant_ee_cm"]
     # The bowl target (its free joint's qpos) is the body's world position by forward kinematics.
@@ -44,7 +45,7 @@ def test_probe_recovers_state_better_than_a_constant(tmp_path):
     data = mujoco.MjData(model)
     data.qpos[:] = episode.states[-1, 1:1 + model.nq]
     mujoco.mj_kinematics(model, data)
-    np.testing.assert_allclose(train_probe.episode_targets(episode)[-1, 4:7], data.xpos[model.body(scene.TARGET_BOWL).id],
+    np.testing.assert_allclose(episode_targets(episode)[-1, 4:7], data.xpos[model.body(scene.TARGET_BOWL).id],
                                atol=1e-6)
 
 

@@ -33,6 +33,7 @@ def test_sft_and_reward_entry_points(tmp_path):
 
 @pytest.mark.slow
 def test_grpo_entry_point_toy_and_resume(tmp_path):
+    from sword_jax.pipeline.grpo import training_success
     from train import grpo as grpo_main
 
     args = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--simulator", "toy", "--rl.imagined.max_chunks=2",
@@ -48,7 +49,7 @@ def test_grpo_entry_point_toy_and_resume(tmp_path):
     with open(os.path.join(out["workdir"], "train_history.jsonl")) as f:
         history = [json.loads(line) for line in f]
     assert [p["step"] for p in history] == [1, 2, 3, 4] and history == out["history"]
-    summary = grpo_main.training_success(history, window=2)
+    summary = training_success(history, window=2)
     assert summary["metric"] == "success_rate" and summary["steps"] == 4
     assert summary["first"] == (history[0]["success_rate"] + history[1]["success_rate"]) / 2
 

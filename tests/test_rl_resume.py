@@ -258,3 +258,42 @@ def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_che
     other = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, group_size=4))
     with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['rl.grpo.group_size'\]"):
         run(make_step(bad_step=-1), rl, run_id=grpo_run_id(other, seed=0, simulator="toy", **{"sim.tasks": (0, 1)}))
+
+
+def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
+    """``train_history.jsonl`` is written at every checkpoint, not only at the end: a run killed during the
+    evaluation of step 4 leaves the history of its checkpoint at step 2, and a resumed run the whole one."""
+    rl = RLConfig(grpo=GRPOConfig(steps=6, eval_every=2))
+    workdir = str(tmp_path / "grpo")
+    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
+
+    class Killed(Exception):
+        pass
+
+    @jax.jit
+    def step(state, batch, key):
+        params = {"w": state.params["w"] + batch}
+        return state.replace(params=params, step=state.step + 1), {"loss": jnp.sum(params["w"])}
+
+    def run(kill_at: int):
+        def evaluate(done, params):
+            if done == kill_at:
+                raise Killed(done)
+            return {"mean": float(params["w"][0]), "per_task": {}}, {}
+
+        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
+        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
+                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+
+    def history_on_disk():
+        with open(os.path.join(workdir, "train_history.jsonl")) as f:
+            return [json.loads(line) for line in f]
+
+    with pytest.raises(Killed):
+        run(kill_at=4)
+    _, meta = _final_state(os.path.join(workdir, "checkpoints"))
+    assert meta["step"] == 2 and history_on_disk() == meta["history"]
+    assert [(p["step"], p["loss"]) for p in history_on_disk()] == [(1, 2.0), (2, 6.0)]  # w = 1, then 1 + 2
+    result, _ = run(kill_at=-1)
+    assert result.first_step == 2 and history_on_disk() == result.history
+    assert [p["step"] for p in history_on_disk()] == [1, 2, 3, 4, 5, 6]

@@ -326,7 +326,7 @@ def _episodes_with_states(e=3, t=40, s=5):
 def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_as_recorded_states():
     from sword_jax.rl import data as rl_data
     from sword_jax.rng import stream_rng
-    from train.grpo import keyframe_env_starts, keyframe_horizon
+    from sim.grpo_env import keyframe_env_starts, keyframe_horizon
 
     episodes = _episodes_with_states()
     rl = RLConfig(chunk_len=8, grpo=GRPOConfig(rollout_batch=4, group_size=3), imagined=ImaginedConfig(max_chunks=16))
@@ -379,7 +379,7 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
     from sim.env import CpuEnv
     from sword_jax.rl import data as rl_data
     from sim.datagen import flat_state
-    from train.grpo import run_in_env
+    from sim.grpo_env import run_in_env
 
     cfg = configs.get("sword:tiny")
     states, tasks, lengths = [], [], []

@@ -6,8 +6,9 @@ import sys
 
 import pytest
 
-from train import pipeline, stagerunner
-from train.stagerunner import Context, Stage
+from sword_jax.pipeline import stages as stagerunner
+from sword_jax.pipeline.stages import Context, Stage
+from train import pipeline
 
 # A stand-in for ``train.pipeline --only STAGE``: sleeps, then writes the stage's marker with its
 # start and end times (or exits with an error code and writes nothing).

@@ -13,14 +13,7 @@ import os
 import jax
 
 from sword_jax.sharding import MeshConfig
-
-# Entry points let a jitted step trace twice before the retrace guard fires. On the GPU image
-# (jax 0.11.2) the VAE step traced a second time because avals there record the mesh of a jit's
-# output sharding, so a state made outside such a jit changed type after one step; entry points now
-# pass their state through ``sharding.settle`` first, and the margin of one trace is kept for type
-# changes of that kind that the CPU tests (jax 0.10.2) cannot show. A step that retraces on every
-# call still fails at its third trace, naming the function.
-ENTRY_MAX_TRACES = 2
+from sword_jax.tracing import ENTRY_MAX_TRACES  # noqa: F401  (the entry points' retrace margin)
 
 
 def initialize(mesh_cfg: MeshConfig) -> None:

@@ -107,7 +107,7 @@ def load_split(path: str, num_episodes: int) -> dict[str, np.ndarray]:
         length = min(len(ep.actions) for ep in episodes[:num_episodes])
         frames = np.stack([ep.agentview_rgb[:length] for ep in episodes[:num_episodes]])
         actions = np.stack([ep.actions[:length] for ep in episodes[:num_episodes]])
-        from train.train_probe import episode_targets
+        from sim.probe_targets import episode_targets
 
         truth = {"targets": np.stack([episode_targets(ep)[:length] for ep in episodes[:num_episodes]]),
                  "rewards": np.stack([ep.rewards[:length] for ep in episodes[:num_episodes]])}

@@ -75,6 +75,6 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
+    from sword_jax import cli
 
-    run(main, runtime_errors=(FileExistsError,))
+    cli.run(main, runtime_errors=(FileExistsError,))

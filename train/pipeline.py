@@ -27,8 +27,9 @@ from collections.abc import Collection, Sequence
 
 import configs
 from sword_jax.cli import UsageError
-from train import distributed, stagerunner
-from train.stagerunner import Context, Stage
+from sword_jax.pipeline.stages import (Context, Stage, check_order, check_workdir_config, run_stages,
+                                       run_stages_parallel, without_flags)
+from train import distributed
 
 
 def stage_data(ctx: Context) -> dict:
@@ -101,9 +102,9 @@ def stage_policy(ctx: Context) -> dict:
 
 
 def stage_report(ctx: Context) -> dict:
-    from train import pipeline_report
+    from sword_jax.pipeline import report
 
-    return pipeline_report.write(ctx)
+    return report.write(ctx)
 
 
 def stage_policy_data(ctx: Context) -> dict:
@@ -137,7 +138,7 @@ STAGES = [
           needs=("data", "sft_policy", "policy_data", "vae", "latents", "world_model", "probe", "reward_model",
                  "evaluate", "policy")),
 ]
-stagerunner.check_order(STAGES)
+check_order(STAGES)
 
 
 def _first_logged(path: str, key: str):
@@ -195,21 +196,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
                overrides=overrides, launch=launch, max_running=args.parallel)
 
 
-def without_flags(argv: Sequence[str], flags: dict[str, bool]) -> list[str]:
-    """``argv`` less the given flags (``flag: takes a value``), in ``--flag v`` or ``--flag=v`` form."""
-    out, skip_next = [], False
-    for arg in argv:
-        if skip_next:
-            skip_next = False
-            continue
-        name = arg.split("=", 1)[0]
-        if name in flags:
-            skip_next = flags[name] and "=" not in arg
-            continue
-        out.append(arg)
-    return out
-
-
 def stage_launcher(argv: Sequence[str], workdir: str):
     """``launch(stage) -> Popen`` for ``--parallel``: this command again with ``--only STAGE`` (its
     output to ``<workdir>/logs/<stage>.log``). Each process is its own JAX runtime, so a GPU is shared
@@ -241,7 +227,7 @@ def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str]
         them); ``None``: all.
       launch: ``launch(stage) -> subprocess.Popen`` (:func:`stage_launcher`): run each stage in its own
         process, ``max_running`` at a time, as soon as its needs are done
-        (:func:`train.stagerunner.run_stages_parallel`); ``None``: in this process, in order.
+        (:func:`train.run_stages_parallel`); ``None``: in this process, in order.
       restart: discard the work dir's finished stages first.
       cfg_name, overrides: the ``experiment:variant`` and dotted overrides the config came from, for the report.
     """
@@ -250,7 +236,7 @@ def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str]
         import shutil
 
         shutil.rmtree(workdir)
-    stagerunner.check_workdir_config(cfg, workdir)
+    check_workdir_config(cfg, workdir)
     ctx = Context(cfg=cfg, workdir=workdir, cfg_name=cfg_name, overrides=list(overrides))
     start = time.perf_counter()
     stages = STAGES
@@ -261,9 +247,9 @@ def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str]
     if launch is not None:
         if only is not None:
             raise ValueError("run: give either only or launch (each launched process runs one stage with --only)")
-        results = stagerunner.run_stages_parallel(stages, ctx, launch, max_running=max_running)
+        results = run_stages_parallel(stages, ctx, launch, max_running=max_running)
     else:
-        results = stagerunner.run_stages(stages, ctx, only=only)
+        results = run_stages(stages, ctx, only=only)
     if stages is STAGES:
         print(f"[pipeline] {cfg.name}: all stages done in {time.perf_counter() - start:.1f} s; "
               f"report: {os.path.join(workdir, 'report.md')}")

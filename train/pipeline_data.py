@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from sword_jax.rng import stream_key, stream_seed
-from train.stagerunner import Context, cpu_workers
+from sword_jax.pipeline.stages import Context, cpu_workers
 
 
 def episode_steps(cfg) -> int:
@@ -169,7 +169,7 @@ def write_eval_splits(ctx: Context) -> dict[str, str]:
     (with each episode's true state ``targets`` and ``rewards`` for the action-following metrics)."""
     from sword_jax.augment.eval_splits import build_eval_splits
     from sword_jax.augment.pipeline import seg_classes_from_config
-    from train.train_probe import episode_targets
+    from sim.probe_targets import episode_targets
 
     cfg = ctx.cfg
     sim_episodes, episodes = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)

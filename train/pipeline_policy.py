@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 
-from train.stagerunner import Context, cpu_workers
+from sword_jax.pipeline.grpo import GRPOInputs, training_success
+from sword_jax.pipeline.stages import Context, cpu_workers
 
 
 def _scalars(result: dict) -> dict:
@@ -61,7 +62,7 @@ def sft_policy(ctx: Context) -> dict:
 def grpo_in_world_model(ctx: Context) -> dict:
     from train import grpo
 
-    inputs = grpo.GRPOInputs(demos=(_demos(ctx),), world_model=ctx.results["world_model"]["workdir"],
+    inputs = GRPOInputs(demos=(_demos(ctx),), world_model=ctx.results["world_model"]["workdir"],
                              vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
                              reward=ctx.results["reward_model"]["path"])
     result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
@@ -74,7 +75,7 @@ def grpo_in_ground_truth(ctx: Context) -> dict:
     the demonstrations and the supervised policy; rollouts follow ``rl.env``."""
     from train import grpo
 
-    inputs = grpo.GRPOInputs(demos=(_demos(ctx),), policy=ctx.results["sft_policy"]["path"])
+    inputs = GRPOInputs(demos=(_demos(ctx),), policy=ctx.results["sft_policy"]["path"])
     result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="env", env_workers=cpu_workers())
     return _policy_result(ctx, result)
 
@@ -86,13 +87,11 @@ def _summary(stage_result: dict) -> dict:
 
 def _policy_result(ctx: Context, result: dict) -> dict:
     """A GRPO stage's record: the supervised policy it started from, its run and real success per step."""
-    from train import grpo
-
     success = {f"grpo step {p['step']}": p["mean"] for p in result["curve"]}
     return {
         "sft": _summary(ctx.results["sft_policy"]),
         "grpo": {"steps": ctx.cfg.rl.grpo.steps, "workdir": result["workdir"],
-                 "training_success": grpo.training_success(result.get("history", []))},
+                 "training_success": training_success(result.get("history", []))},
         "success": success,
         "success_curve_png": os.path.join(result["workdir"], "success_curve.png"),
     }

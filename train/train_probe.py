@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import os
 import sys
 from collections.abc import Sequence
@@ -21,26 +20,10 @@ from collections.abc import Sequence
 import numpy as np
 
 import configs
+from sim.probe_targets import episode_targets
 from sword_jax.evaluation import probe as probe_lib
 
 MAX_TRAIN_FRAMES = 20000  # frames are strided down to at most this many
-
-
-@functools.lru_cache(maxsize=1)
-def _bowl_qpos_slice() -> slice:
-    from sim import scene
-
-    model = scene.build_model()
-    joint = model.body(scene.TARGET_BOWL).jntadr[0]
-    adr = 1 + int(model.jnt_qposadr[joint])  # states = [time, qpos, qvel]
-    return slice(adr, adr + 3)
-
-
-def episode_targets(episode) -> np.ndarray:
-    """``[T, 7]`` probe targets (``probe.TARGET_NAMES``, metres) of one :class:`sim.dataset.Episode`."""
-    gripper = episode.gripper_states[:, 0] - episode.gripper_states[:, 1]
-    return np.concatenate([episode.ee_states[:, :3], gripper[:, None], episode.states[:, _bowl_qpos_slice()]],
-                          axis=1).astype(np.float32)
 
 
 def _errors(pred: np.ndarray, truth: np.ndarray, closed_below: float) -> dict[str, float]:

@@ -328,7 +328,7 @@ class ImaginedConfig:
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Acting in the ground-truth (MuJoCo) environments: every evaluation, the policy's own rollouts
-    (``train.policy_data``) and GRPO there (``train.grpo --simulator env``; :mod:`sword_jax.rl.env_rollout`).
+    (``sim.policy_rollouts``) and GRPO there (``train.grpo --simulator env``; :mod:`sword_jax.rl.env_rollout`).
 
     Attributes:
       backend: the engine of ground-truth GRPO rollouts and of their evaluations. ``cpu`` (default):

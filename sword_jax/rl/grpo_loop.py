@@ -8,8 +8,9 @@ exact resume needs: a run killed at any point and rerun in its work dir ends bit
 uninterrupted one. The step need not be one jitted function (in the real environments it rolls out in
 the C engine, then applies the jitted update). At step 0 of a fresh run, every ``rl.grpo.eval_every`` steps
 and at the last one, once the step's loss was read finite, the policy is evaluated, the point is
-appended to ``<workdir>/success_curve.{json,png}``, then the state is checkpointed under
-``<workdir>/checkpoints`` with the run's identity and per-step history. A resume drops the curve's points
+appended to ``<workdir>/success_curve.{json,png}``, the per-step history so far is written to
+``<workdir>/train_history.jsonl`` (so a killed run leaves it), then the state is checkpointed under
+``<workdir>/checkpoints`` with the run's identity and that history. A resume drops the curve's points
 after the checkpoint (evaluations a killed run made before it could save), so they are recomputed, never
 duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming
 the keys that differ.
@@ -26,9 +27,10 @@ an uninterrupted run does.
 from __future__ import annotations
 
 import dataclasses
+import json
 import operator
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -137,6 +139,11 @@ def train_grpo(
         curve.add(done, point, **extra)
         return restored
 
+    def at_checkpoint(done: int, state: Any, history: list[dict[str, Any]]) -> Any:
+        restored = record(done, state)
+        save_history(workdir, history)
+        return restored
+
     def on_start(first_step: int, state: Any) -> Any:
         # every array committed to its device, as a restored state's are: a resumed run then compiles the
         # same program as a fresh one (a cache hit), and the step's input types = output types (one trace)
@@ -161,5 +168,17 @@ def train_grpo(
 
     result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
                        checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
-                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=record)
+                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint)
+    save_history(workdir, result.history)  # also when no step ran (a finished run resumed, zero steps)
     return result, curve.points
+
+
+def save_history(workdir: str, history: Sequence[dict[str, Any]]) -> None:
+    """``<workdir>/train_history.jsonl``: the run's per-step metrics, restored steps included (replaced
+    atomically, so a run killed while writing leaves the previous checkpoint's)."""
+    path = os.path.join(workdir, "train_history.jsonl")
+    tmp = f"{path}.tmp.{os.getpid()}"
+    with open(tmp, "w") as f:
+        for point in history:
+            f.write(json.dumps(point) + "\n")
+    os.replace(tmp, path)

@@ -1,4 +1,4 @@
-"""Hashes of the inputs slices of ``train.compare`` share, and where and with what code a slice ran.
+"""Hashes of the inputs the slices of a comparison (``train.compare``) share, and where and with what code a slice ran.
 
 Every hash is sha256 over named arrays (name, dtype, shape, little-endian C-order bytes), so the same
 data or parameters give the same hash on any machine, whatever file layout holds them. A slice
@@ -13,7 +13,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the checkout
 
 
 DATA_HASH_KEYS = ("actions", "executed_actions", "rewards", "obs/agentview_rgb", "obs/eye_in_hand_rgb")
@@ -90,7 +90,7 @@ def cached_hash(cache_dir: str | None, kind: str, path: str, compute) -> str:
         return compute()
     import json
 
-    from train.stagerunner import write_json_atomic
+    from sword_jax.atomic_write import write_json_atomic
 
     stat = os.stat(path)
     stamp = {"kind": kind, "path": os.path.abspath(path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
@@ -104,7 +104,7 @@ def cached_hash(cache_dir: str | None, kind: str, path: str, compute) -> str:
         pass
     digest = compute()
     os.makedirs(cache_dir, exist_ok=True)
-    write_json_atomic(entry, {**stamp, "hash": digest})
+    write_json_atomic(entry, {**stamp, "hash": digest}, sort_keys=True)
     return digest
 
 

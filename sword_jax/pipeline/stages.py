@@ -1,4 +1,4 @@
-"""Resumable stages for the pipeline entry point.
+"""Resumable stages: what the pipeline (``python -m train.pipeline``) and the comparison run.
 
 Each stage writes ``<workdir>/stages/<name>.json`` (atomically) when it finishes; a rerun skips
 finished stages and reuses their recorded results. The config a workdir was made with is stored in
@@ -12,10 +12,11 @@ import json
 import os
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from configs.cli import to_dict
+from sword_jax.atomic_write import write_json_atomic
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,24 +58,6 @@ class Context:
         stage hands an entry point's ``run``."""
         return dataclasses.replace(self.cfg, workdir=workdir, **sections)
 
-
-def write_json_atomic(path: str, payload: Any) -> None:
-    tmp = f"{path}.tmp.{os.getpid()}"
-    with open(tmp, "w") as f:
-        json.dump(payload, f, indent=1, sort_keys=True, default=_json_default)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _json_default(value: Any) -> Any:
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    if dataclasses.is_dataclass(value):
-        return dataclasses.asdict(value)
-    return str(value)
-
-
 def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     if isinstance(a, dict) and isinstance(b, dict):
         keys = sorted(set(a) | set(b))
@@ -97,7 +80,7 @@ def check_workdir_config(cfg: Any, workdir: str) -> None:
                 "use a new --workdir, or --restart to discard that run's stages"
             )
         return
-    write_json_atomic(path, current)
+    write_json_atomic(path, current, sort_keys=True)
 
 
 def _marker(ctx: Context, name: str) -> str:
@@ -144,7 +127,8 @@ def run_stages(stages: list[Stage], ctx: Context, *, only: set[str] | None = Non
         results = stage.run(ctx)
         seconds = time.perf_counter() - start
         ctx.results[stage.name] = {**results, "seconds": round(seconds, 2)}
-        write_json_atomic(_marker(ctx, stage.name), {"stage": stage.name, "results": ctx.results[stage.name]})
+        write_json_atomic(_marker(ctx, stage.name), {"stage": stage.name, "results": ctx.results[stage.name]},
+                          sort_keys=True)
         log(f"[{index + 1}/{len(stages)}] {stage.name}: finished in {seconds:.1f} s")
     return ctx.results
 
@@ -214,3 +198,18 @@ def cpu_workers() -> int:
     """Worker processes for C-engine work (data generation, real-environment evaluation): all cores
     but two, at most 14; 0 = in this process. Results do not depend on it (episodes are independent)."""
     return min(14, max(0, (os.cpu_count() or 1) - 2))
+
+
+def without_flags(argv: Sequence[str], flags: dict[str, bool]) -> list[str]:
+    """``argv`` less the given flags (``flag: takes a value``), in ``--flag v`` or ``--flag=v`` form."""
+    out, skip_next = [], False
+    for arg in argv:
+        if skip_next:
+            skip_next = False
+            continue
+        name = arg.split("=", 1)[0]
+        if name in flags:
+            skip_next = flags[name] and "=" not in arg
+            continue
+        out.append(arg)
+    return out

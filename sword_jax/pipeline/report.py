@@ -8,7 +8,8 @@ import os
 import shutil
 
 from configs.cli import to_dict
-from train.stagerunner import Context, write_json_atomic
+from sword_jax.atomic_write import write_json_atomic
+from sword_jax.pipeline.stages import Context
 
 
 def _fmt(value) -> str:
@@ -88,7 +89,8 @@ def write(ctx: Context) -> dict:
     with open(os.path.join(ctx.workdir, "report.html"), "w") as f:
         f.write("<html><body><pre style='font-family:monospace'>" + html.escape("\n".join(lines)) + "</pre></body></html>")
     results_json = os.path.join(ctx.workdir, "results.json")
-    write_json_atomic(results_json, {"config": to_dict(cfg), "config_name": ctx.cfg_name, "stages": results})
+    write_json_atomic(results_json, {"config": to_dict(cfg), "config_name": ctx.cfg_name, "stages": results},
+                      sort_keys=True)
     if evaluation.get("report") and os.path.exists(os.path.join(ctx.workdir, "eval")):
         shutil.copyfile(os.path.join(ctx.workdir, "eval", "results.json"), os.path.join(ctx.workdir, "eval_results.json")) \
             if os.path.exists(os.path.join(ctx.workdir, "eval", "results.json")) else None

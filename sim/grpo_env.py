@@ -1,0 +1,217 @@
+"""GRPO against the ground-truth environments: in MuJoCo's C engine (:class:`sim.lockstep.LockstepEnvs`)
+or on MJX (:class:`sim.mjx_batch.MjxEpisodes`), from the training split's initial states or the
+demonstrations' keyframes, and the simulator's action convention for reckoned proprio.
+
+The same ``grpo_update`` trains on these rollouts as on imagined ones, so this validates the update
+independently of any world model (``python -m train.grpo --simulator env`` is the command line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+
+from sim import controller, panda
+from sim import tasks as sim_tasks
+from sim.lockstep import LockstepEnvs, lockstep_evaluation
+from sim.mjx_batch import MjxEpisodes, episode_starts, stratified_train_starts
+from sword_jax import tracing
+from sword_jax.pipeline.grpo import log, mode_point, sampled_point
+from sword_jax.rl import data as rl_data
+from sword_jax.rl import grpo
+from sword_jax.rl.env_rollout import make_act_fns, run_policy
+from sword_jax.rl.grpo import UPDATE_KEY_SALT
+from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.jax_env_grpo import EnvGRPO
+from sword_jax.rl.policy import tokenize_instructions
+from sword_jax.rl.policy_success import evaluate_in_sim
+from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains
+from sword_jax.rng import stream_key, stream_rng
+
+
+def sim_reckoning(episodes):
+    """The simulator controller's action convention as a proprio ReckoningConfig, with the realised
+    fraction of each commanded axis fitted to ``episodes`` (an ``rl.data.EpisodeSet``)."""
+    ctl = controller.ControllerConfig()
+    base = ReckoningConfig(pos_scale=ctl.pos_scale, rot_scale=ctl.rot_scale, finger_open=panda.FINGER_OPEN,
+                           finger_closed_target=panda.FINGER_CLOSED_TARGET)
+    cfg = fit_gains(episodes.proprio, episodes.actions, base, lengths=episodes.lengths)
+    print(f"grpo: imagined proprio reckoned from actions, gains pos {[round(g, 3) for g in cfg.pos_gain]} "
+          f"rot {[round(g, 3) for g in cfg.rot_gain]} (fitted to {len(episodes.lengths)} demonstrations)")
+    return cfg
+
+
+def keyframe_horizon(rl) -> int:
+    """Actions an imagined rollout executes at most: ``max_chunks`` decisions of the simulator's execution."""
+    return rl.imagined.max_chunks * (rl.imagined.execute_steps or rl.chunk_len)
+
+
+def check_keyframe_episodes(episodes) -> None:
+    """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue (no recorded states or task ids)."""
+    if episodes.states is None or episodes.tasks is None:
+        raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
+                         "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
+
+
+def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
+    """GRPO step ``step``'s ground-truth start states with ``rl.env.starts=keyframes``: ``(task, flat state)``
+    of the demonstrations at the keyframes GRPO in the learned simulator draws (the same sampler; a
+    function of (seed, step)), each repeated ``group_size`` times."""
+    check_keyframe_episodes(episodes)
+    pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
+                                   max_fraction=rl.imagined.keyframe_fraction, num_context=num_context)
+    return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
+            for _ in range(rl.grpo.group_size)]
+
+
+def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
+               renderer: str = "jax", reckoning=None, keyframes=None,
+               max_traces: int = tracing.ENTRY_MAX_TRACES) -> dict:
+    """GRPO against the ground-truth environments (see the module docstring); resumes from ``workdir``.
+
+    The policy reads proprio as ``rl.env.proprio`` says (``reckoning``: the action convention for
+    ``reckoned``, e.g. :func:`sim_reckoning`); unless it is ``true``, each evaluation also measures
+    that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env.starts=keyframes``
+    the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
+    as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
+    ``rl.imagined.execute_steps or chunk_len`` actions per decision as the learned simulator does;
+    evaluations still start at rest and execute ``rl.env.execute_steps``. ``max_traces``: traces of the
+    jitted update before the retrace guard fails.
+
+    Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
+    """
+    if rl.grpo.max_sample_rounds > 1:
+        raise ValueError("rl.grpo.max_sample_rounds > 1 (dynamic sampling) runs on rl.env.backend=mjx only")
+    update = jax.jit(tracing.max_traces(lambda s, batch, key: grpo.grpo_update(graphdef, rl, s, batch, key),
+                                        n=max_traces), donate_argnums=(0,))
+    act = make_act_fns(graphdef, rl)
+    os.makedirs(workdir, exist_ok=True)
+    tasks = list(cfg.sim.tasks)
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    eval_kwargs = dict(lockstep_evaluation(tasks, episodes_per_task, resolution=cfg.sim.resolution,
+                                           max_steps=cfg.sim.max_steps, renderer=renderer, workers=workers), act=act)
+    mode = rl.env.proprio
+    if mode == "reckoned" and reckoning is None:
+        raise ValueError("rl.env.proprio=reckoned needs the action convention (train.grpo: --demos to fit it)")
+
+    def evaluate(step, params):
+        result = dict(evaluate_in_sim(graphdef, params, rl, **eval_kwargs), where="mujoco")
+        extra = {}
+        if mode != "true":
+            extra = {"train_mode": mode_point(graphdef, params, rl, step, mode, reckoning, **eval_kwargs)}
+        if rl.grpo.eval_sampled:
+            extra["sampled"] = sampled_point(graphdef, params, rl, step, jax.random.key(cfg.seed), **eval_kwargs)
+        log(f"eval step {step}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+            f"({result['episodes']} episodes, {result['seconds']}s)")
+        return result, extra
+
+    horizon, rollout_rl = cfg.sim.max_steps, rl
+    if rl.env.starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
+        if keyframes is None:
+            raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
+        horizon = keyframe_horizon(rl)
+        rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
+            rl.env, execute_steps=rl.imagined.execute_steps or rl.chunk_len))
+        check_keyframe_episodes(keyframes)  # now, not after the first evaluation
+
+    def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
+        if rl.env.starts == "keyframes":
+            return keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step)
+        # stratified over the tasks, as the MJX backend draws them (sim.mjx_batch.stratified_train_starts)
+        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/env_starts", step),
+                                         pool=pool)
+        return [start for start in picked for _ in range(rl.grpo.group_size)]
+
+    envs = []  # worker processes live for the whole run; each step re-targets them
+
+    def step_in_env(state, starts, rollout_key):
+        # not one jitted function: the episodes run in the C engine, then the jitted update trains on them
+        if not envs:
+            envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=horizon,
+                                     renderer=renderer, workers=workers))
+        step_key = jax.random.fold_in(rollout_key, state.step)
+        rollout = run_policy(act, state.params, envs[0], rollout_rl, key=step_key,
+                             greedy=False, max_steps=horizon, episodes=starts, proprio=mode,
+                             reckoning=reckoning)
+        state, metrics = update(state, jax.tree.map(jnp.asarray, rollout), jax.random.fold_in(step_key, UPDATE_KEY_SALT))
+        return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
+                f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
+                f"nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
+        "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
+        "sim.resolution": cfg.sim.resolution, "keyframe_episodes": 0 if keyframes is None else keyframes.num_episodes})
+    try:
+        result, curve = train_grpo(step_in_env, grpo.init_state(params, rl), starts_at,
+                                   key=stream_key(jax.random.key(cfg.seed), "grpo/env_rollouts"), rl=rl,
+                                   workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
+                                   curve_label="GRPO in the ground-truth MuJoCo environments", log=log)
+    finally:
+        for env in envs:
+            env.close()
+    return {"curve": curve, "workdir": workdir, "history": result.history}
+
+
+def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int) -> dict:
+    """GRPO against the ground-truth environments on MJX (``rl.env.backend=mjx``), rollouts and
+    evaluations on the accelerator (:mod:`sword_jax.rl.jax_env_grpo`); resumes from ``workdir``.
+
+    Each sampling round's ``rl.grpo.rollout_batch`` start states are training-split initial states
+    stratified over the tasks (:func:`sim.mjx_batch.stratified_train_starts`, a function of (seed, step,
+    round)); evaluations run the tasks' fixed evaluation states, the greedy (deployed) and the sampled policy
+    each time, with the probe's argmax flips and top-1 margin. Returns as :func:`run_in_env`.
+    """
+    if rl.env.starts != "initial" or rl.env.proprio != "true":
+        raise ValueError(f"rl.env.backend=mjx runs GRPO from initial states with true proprio; got rl.env.starts="
+                         f"{rl.env.starts}, rl.env.proprio={rl.env.proprio}")
+    tasks = list(cfg.sim.tasks)
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
+    eval_qpos, eval_text = episode_starts(eval_episodes)
+    max_bytes = rl.policy.max_instruction_bytes
+
+    def starts_at(step, round_):  # a function of (seed, step, round), so a resumed run draws the same ones
+        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/mjx_starts", step,
+                                                                                  round_), pool=pool)
+        qpos, text = episode_starts(picked)
+        return qpos, tokenize_instructions(text, max_bytes)
+
+    root = jax.random.key(cfg.seed)
+    runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
+                     eval_tokens=tokenize_instructions(eval_text, max_bytes),
+                     eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log)
+    os.makedirs(workdir, exist_ok=True)
+    runner.start_probe(params, os.path.join(workdir, "probe"))
+
+    def evaluate(step, params):
+        point, extra = runner.evaluate(params, step=step, sampled=True)  # greedy and sampled, every time
+        sampled = extra.get("sampled")
+        log(f"eval step {step}: success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}] "
+            f"({point['episodes']} episodes on MJX, {point['seconds']}s)"
+            + (f"; sampled T={rl.grpo.temperature:g} {sampled['mean']:.3f}" if sampled else "")
+            + f"; probe flips vs start {extra['probe']['flip_rate_vs_start']:.3f}, top-1 margin "
+              f"{extra['probe']['top1_margin']:.3f}")
+        return point, extra
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
+                f"mixed {point['mixed_fraction']:.2f} rounds {point['sample_rounds']:.0f} loss {point['loss']:.4f} "
+                f"clip {point['clip_fraction']:.3f} ratio {point['ratio_mean']:.3f} kept {point['kept_fraction']:.2f} "
+                f"nll {point['behaviour_nll']:.3f} {point['step_seconds']:.1f}s/step "
+                f"(rollout {point['rollout_seconds']:.1f}s) eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
+        "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
+        "sim.resolution": cfg.sim.resolution})
+    result, curve = train_grpo(runner.step, grpo.init_state(params, rl), lambda step: step,
+                               key=stream_key(root, "grpo/mjx_rollouts"), rl=rl, workdir=workdir, evaluate=evaluate,
+                               run_id=run_id, progress=progress, curve_label="GRPO in the ground-truth MJX environments",
+                               log=log)
+    return {"curve": curve, "workdir": workdir, "history": result.history}

@@ -1,0 +1,278 @@
+"""GRPO's orchestration: the learned simulator's setup, the evaluation points beside the success, the
+replay of real episodes in the learned simulator, and the run in it (``python -m train.grpo`` is the
+command line; GRPO in the ground-truth environments is :mod:`sim.grpo_env`).
+
+Nothing here imports a simulator: demonstrations arrive as an ``rl.data.EpisodeSet``, the ground-truth
+evaluation as ``evaluate_in_sim``'s keyword arguments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sword_jax import sharding as shd
+from sword_jax.rl import data as rl_data
+from sword_jax.rl import grpo, sim_agreement
+from sword_jax.rl.env_rollout import make_act_fns
+from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.learned_simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
+from sword_jax.rl.params_io import load_params
+from sword_jax.rl.policy import tokenize_instructions
+from sword_jax.rl.policy_success import evaluate_in_sim
+from sword_jax.rl.reward_model import as_reward_model, build_detector
+from sword_jax.rl.rollout import expand_groups, imagined_rollout
+from sword_jax.rng import stream_key, stream_rng
+
+log = functools.partial(print, flush=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class GRPOInputs:
+    """The checkpoints and demonstrations GRPO starts from (``--simulator world_model`` needs
+    ``world_model``, ``reward`` and ``demos``; ``env`` reads ``demos`` only to fit the proprio reckoning
+    or, with ``rl.env.starts=keyframes``, to start from their recorded states)."""
+
+    demos: tuple[str, ...] = ()  # LIBERO-layout HDF5 whose frames are the start keyframes
+    world_model: str = ""  # train_world_model work dir
+    vae: str = ""  # VAE checkpoint directory (train_vae)
+    policy: str = ""  # SFT policy checkpoint (train_policy); empty: from scratch
+    reward: str = ""  # reward model checkpoint (train_reward)
+
+
+
+
+class Setup(NamedTuple):
+    """What a GRPO run in a learned simulator needs: the simulator and reward model, ``starts(key, step)``
+    (a step's start states), the toy's fixed evaluation starts and the real history's encoder (for replays)."""
+
+    sim: Any
+    reward_model: Any
+    starts: Callable[[jax.Array, int], StartState]
+    eval_start: StartState | None = None
+    encode: Callable[..., Any] | None = None
+
+
+def toy_setup(cfg, rl) -> Setup:
+    """The analytic toy simulator and reward (no checkpoints): a smoke run of the whole GRPO path."""
+    size = rl.image_size
+    sim, reward_model = toy_simulator(frame_size=size, chunk_len=rl.chunk_len, proprio_dim=rl.proprio_dim), toy_reward_model()
+    texts = [f"reach the goal of task {t}" for t in range(max(len(cfg.sim.tasks), 2))]
+    tokens = jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes))
+
+    def starts(key, step):
+        del step  # the key is already a function of the step
+        pick = jax.random.randint(key, (rl.grpo.rollout_batch,), 0, tokens.shape[0])
+        return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
+
+    eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
+    eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=eval_key, frame_size=size,
+                                                proprio_dim=rl.proprio_dim), 2)
+    return Setup(sim, reward_model, starts, eval_start)
+
+
+def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) -> Setup:
+    """The learned simulator (world model + VAE), the reward model and keyframe starts from ``episodes``
+    (an ``rl.data.EpisodeSet`` of the demonstrations); ``reckoning``: the proprio ReckoningConfig when
+    ``rl.imagined.proprio=reckoned`` (the simulator's action convention, fitted to the demonstrations)."""
+    from sword_jax.load import experiment_vae, experiment_world_model
+    from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
+
+    if rl.imagined.proprio == "reckoned" and rl.proprio_dim != 8:
+        raise ValueError(f"rl.imagined.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
+                         f"{rl.proprio_dim} (use --rl.imagined.proprio=missing)")
+    if rl.imagined.proprio == "reckoned" and reckoning is None:
+        raise ValueError("rl.imagined.proprio=reckoned needs the action convention (reckoning)")
+    wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
+    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
+    # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
+    tf = cfg.vae.temporal_factor  # frames per latent
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
+                                frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
+                                num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
+                                action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
+                                execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
+                                proprio_reckoning=reckoning)
+    det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
+    det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
+    reward_model = as_reward_model(det_graphdef, det_params)
+    if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
+        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution="
+                         f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "
+                         "equal or pass --rl.imagined.eval_replay_episodes=0")
+
+    def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
+        return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
+
+    def starts(key, step):
+        del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
+        pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step),
+                                       max_fraction=rl.imagined.keyframe_fraction)
+        unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
+        latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
+        return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
+                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
+                          (latents, jnp.asarray(pick["actions"], jnp.float32)))
+
+    return Setup(sim, reward_model, starts, None, encode)
+
+
+def extra_point(step: int, what: str, result: dict, **tags) -> dict:
+    """An evaluation stored beside the greedy true-proprio success: logged, and its rates kept with ``tags``."""
+    print(f"eval step {step}, {what}: success {result['mean']:.3f} "
+          f"[{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}]", flush=True)
+    return dict(**tags, **{k: result[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+
+
+def mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, **eval_kwargs) -> dict:
+    """The real-environment evaluation with the policy reading proprio as ``proprio`` (an input mode of
+    the learned simulator), as the extra point stored beside the true-proprio success."""
+    other = evaluate_in_sim(graphdef, params, rl, proprio=proprio, reckoning=reckoning, **eval_kwargs)
+    return extra_point(step, f"proprio {proprio}", other, proprio=proprio)
+
+
+def sampled_point(graphdef, params, rl, step: int, root, **eval_kwargs) -> dict:
+    """The real-environment evaluation of the sampled policy (``rl.grpo.eval_sampled``: at
+    ``rl.grpo.temperature``, the policy GRPO trains), stored as ``sampled`` beside the greedy success;
+    its sampling key is a function of (root, step)."""
+    key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), step)
+    other = evaluate_in_sim(graphdef, params, rl, greedy=False, key=key, **eval_kwargs)
+    return extra_point(step, f"sampled at temperature {rl.grpo.temperature:g}", other,
+                        temperature=rl.grpo.temperature)
+
+
+def training_success(history: Sequence[dict], window: int = 10) -> dict:
+    """The success of GRPO's own training rollouts (imagined in a world model, real in the env) over its
+    first and last ``window`` steps: ``{"metric", "first", "last", "steps"}``, ``{}`` without any."""
+    metric = next((k for k in ("success_rate", "rollout_success") if history and k in history[0]), None)
+    if metric is None:
+        return {}
+    values = [float(p[metric]) for p in history if metric in p]
+    return {"metric": metric, "first": sum(values[:window]) / len(values[:window]),
+            "last": sum(values[-window:]) / len(values[-window:]), "steps": len(values), "window": window}
+
+
+class Replayer:
+    """Replays traced real evaluation episodes in the learned simulator (``rl.imagined.eval_replay_episodes``;
+    :mod:`sword_jax.rl.sim_agreement`), with one compile for the run."""
+
+    def __init__(self, cfg, rl, sim, reward_model, encode, root):
+        self.cfg, self.rl, self.sim, self.reward_model, self.encode = cfg, rl, sim, reward_model, encode
+        self.key = stream_key(root, "grpo/replay")
+        self.tf = cfg.vae.temporal_factor
+        self.k = cfg.data.context_frames // self.tf
+        self.fn = jax.jit(lambda s, r, st, a, n, key: sim_agreement.replay_actions(
+            s, r, st, a, n, success_threshold=rl.success_threshold, key=key,
+            settle_steps=rl.imagined.eval_replay_settle_steps, success_frames=rl.imagined.success_frames))
+
+    def trace(self) -> sim_agreement.EpisodeTrace:
+        return sim_agreement.EpisodeTrace(self.tf * self.k)
+
+    def report(self, step: int, trace: sim_agreement.EpisodeTrace) -> dict:
+        rl, traced = self.rl, trace.result()
+        picked = sim_agreement.spread(len(traced.lengths), rl.imagined.eval_replay_episodes)
+        traced = sim_agreement.select(traced, picked)
+        out = sim_agreement.replay_report(
+            traced, self.sim, self.reward_model, self.encode, success_threshold=rl.success_threshold,
+            key=jax.random.fold_in(self.key, step), batch=rl.grpo.rollout_batch * rl.grpo.group_size,
+            num_context=self.k, frames_per_latent=self.tf, proprio_dim=rl.proprio_dim,
+            max_instruction_bytes=rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps,
+            settle_steps=rl.imagined.eval_replay_settle_steps, replay_fn=self.fn)
+
+        def rate(name):
+            r = out[name]
+            if r["rate"] is None:
+                return "n/a"
+            return f"{r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}] of {r['of']}"
+
+        if out["episodes"]:
+            log(f"eval step {step}, {out['episodes']} real episodes replayed in the learned simulator: imagined "
+                f"success {out['imagined_success']:.3f} vs real {out['real_success']:.3f}; false success "
+                f"{rate('false_success')}; missed success {rate('missed_success')}; another noise draw ends "
+                f"differently {rate('resample_disagreement')}")
+            sweep = out["sustained_success_sweep"]
+
+            def short(r):
+                return "n/a" if r["rate"] is None else f"{r['rate']:.3f}"
+
+            log(f"eval step {step}, replay false / missed success if success needed k consecutive frames: " + ", ".join(
+                f"k={k}: {short(v['false_success'])} / {short(v['missed_success'])}" for k, v in sweep.items()))
+            log(f"eval step {step}, replay imagined success by action h, real successes / real failures: " + ", ".join(
+                f"h={h}: {short(v['real_success'])} / {short(v['real_failure'])}"
+                for h, v in out["imagined_success_by_horizon"].items()))
+        return out
+
+
+def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Setup, *, simulator: str,
+                             env_eval: dict | None, max_traces: int) -> dict:
+    """GRPO in ``setup``'s simulator (``simulator``: ``world_model`` or ``toy``, the run's identity), resuming
+    from ``workdir``.
+
+    Args:
+      env_eval: ``episodes``, ``envs_factory`` and ``max_steps`` of the ground-truth evaluation
+        (:func:`sword_jax.rl.policy_success.evaluate_in_sim`; e.g. ``sim.lockstep.lockstep_evaluation``);
+        ``None``: greedy imagined rollouts from ``setup.eval_start`` (the toy).
+      max_traces: traces of the jitted step before the retrace guard fails.
+
+    Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}`` (the
+    history is also in ``<workdir>/train_history.jsonl``).
+    """
+    sim, reward_model, starts, eval_start, encode = setup
+
+    # The step runs on the config's mesh, where the world model already lives; the policy state and the
+    # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
+    mesh = shd.make_mesh(cfg.mesh)
+    sim, reward_model = shd.place((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
+    state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
+    step_fn = grpo.make_train_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    root = jax.random.key(cfg.seed)
+    if eval_start is not None:
+        greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
+                                                    key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
+
+    act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
+    replay = (Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.imagined.eval_replay_episodes
+              else None)
+
+    def evaluate(step, params):
+        extra = {}
+        if env_eval is None:
+            success = np.asarray(greedy(params))
+            result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
+                      "episodes": int(success.size), "where": "imagined (toy)"}
+        else:
+            kwargs = dict(env_eval, act=act)
+            trace = replay.trace() if replay else None
+            result = evaluate_in_sim(graphdef, params, rl, trace=trace, **kwargs)
+            result["where"] = "mujoco"
+            if rl.imagined.eval_masked_proprio:
+                extra = {"proprio_masked": mode_point(graphdef, params, rl, step, "missing", **kwargs)}
+            if rl.grpo.eval_sampled:
+                extra["sampled"] = sampled_point(graphdef, params, rl, step, root, **kwargs)
+            if replay:
+                extra["replay"] = replay.report(step, trace)
+        log(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
+        return result, extra
+
+    # named streams of the root; the start states' is folded with the step (the update folds in state.step itself)
+    starts_key = stream_key(root, "grpo/starts")
+
+    def batch_at(step):
+        return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
+                f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
+                f"kept {point['kept_fraction']:.2f} nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
+    result, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl,
+                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=log)
+    return {"curve": curve, "workdir": workdir, "history": result.history}
