@@ -51,12 +51,12 @@ import time
 from collections.abc import Sequence
 
 from sword_jax.cli import ArgumentParser, UsageError, not_dotted_overrides
-from sword_jax.pipeline.compare import (EVALUATION_ONLY, GROUND_TRUTH, GROUND_TRUTH_STAGES, SHAREABLE,
-                                        SLICE_FORMAT, SLICES_AT_ONCE_ENV, adopt_stages, finish, load_slices, merge,
-                                        needs_policy, parse_runs, parse_seeds, parse_shared_seed,
-                                        run_slices_side_by_side, runs_for, shared_dir_of, shared_seed_of,
-                                        slice_command, slice_record)
+from sword_jax.pipeline.compare import (GROUND_TRUTH, GROUND_TRUTH_STAGES, SHAREABLE, SLICE_FORMAT, adopt_stages,
+                                        finish, load_slices, merge, runs_for)
 from sword_jax.pipeline.inputs import REPO, code_version, device_info, shared_hashes
+from sword_jax.pipeline.slices import (EVALUATION_ONLY, SLICES_AT_ONCE_ENV, needs_policy, parse_runs, parse_seeds,
+                                       parse_shared_seed, run_slices_side_by_side, shared_dir_of, shared_seed_of,
+                                       slice_command, slice_record)
 from sword_jax.atomic_write import write_json_atomic
 from sword_jax.pipeline.stages import Context, Stage, check_workdir_config, run_stages, run_stages_parallel
 
