@@ -27,7 +27,6 @@ an uninterrupted run does.
 from __future__ import annotations
 
 import dataclasses
-import json
 import operator
 import os
 from collections.abc import Callable, Sequence
@@ -36,6 +35,7 @@ from typing import Any
 import jax
 
 from sword_jax import sharding as shd
+from sword_jax.atomic_write import write_jsonl_atomic
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy_success import SuccessCurve
 from sword_jax.rl.sim_guard import FalseSuccessGuard
@@ -176,9 +176,4 @@ def train_grpo(
 def save_history(workdir: str, history: Sequence[dict[str, Any]]) -> None:
     """``<workdir>/train_history.jsonl``: the run's per-step metrics, restored steps included (replaced
     atomically, so a run killed while writing leaves the previous checkpoint's)."""
-    path = os.path.join(workdir, "train_history.jsonl")
-    tmp = f"{path}.tmp.{os.getpid()}"
-    with open(tmp, "w") as f:
-        for point in history:
-            f.write(json.dumps(point) + "\n")
-    os.replace(tmp, path)
+    write_jsonl_atomic(os.path.join(workdir, "train_history.jsonl"), history)
