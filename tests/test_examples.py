@@ -78,12 +78,11 @@ def _brax_ppo(monkeypatch):
     return brax_ppo
 
 
+@pytest.mark.slow  # ~50 s in the suite (the tiny run's world model inside the env); the toy world's runs by default
 def test_brax_ppo_trains_two_iterations_inside_a_world_model(tiny_run, monkeypatch):
-    """What CI runs of the example: the same brax PPO call, two iterations on tiny shapes, against the learned
-    simulator's brax env over the tiny trained world model, in this process (its imports shared with the
-    other tests; brax's wrappers under standard promotion). The MJX env's side of the swap is checked by
-    ``tests/test_brax_envs.py`` (brax's wrappers step it); PPO on it is ``-m slow`` (MJX compiles for
-    minutes on a CPU)."""
+    """The example's brax PPO call against the learned simulator's brax env over the tiny trained world model,
+    in this process (brax's wrappers under standard promotion). PPO on the MJX env is ``-m slow`` too (MJX
+    compiles for minutes on a CPU)."""
     import jax
 
     brax_ppo = _brax_ppo(monkeypatch)
@@ -93,9 +92,11 @@ def test_brax_ppo_trains_two_iterations_inside_a_world_model(tiny_run, monkeypat
     assert all(np.isfinite(it["policy_loss"]) and it["steps_per_s"] > 0 for it in result["iterations"])
 
 
-@pytest.mark.slow  # ~14 s on a 2-core CPU, most of it compilation (brax inits its networks op by op)
 def test_brax_ppo_trains_two_iterations_over_the_toy_world(monkeypatch):
-    """The example's brax PPO call on the learned simulator's brax env over the analytic toy world."""
+    """What CI runs of the example: the same brax PPO call, two iterations on tiny shapes, against the learned
+    simulator's brax env (``ImaginedPoolEnv``) over the analytic toy world, in this process (~14 s on a 2-core
+    CPU, most of it compilation). The env over the tiny trained world model is ``-m slow``; the MJX env's side
+    of the swap is checked by ``tests/test_brax_envs.py`` (brax's wrappers step it)."""
     import jax
 
     brax_ppo = _brax_ppo(monkeypatch)

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from tests.conftest import REPO
+from tests.conftest import FAST_COMPILE, REPO
 from tests.support.checkpoints import final_arrays
 
 STEPS = 4
@@ -21,7 +21,7 @@ ARGS = ["--config", "sword:tiny", "--synthetic", f"--trainer.steps={STEPS}", "--
 
 def _env(devices: int, cache_dir: str, **extra: str) -> dict[str, str]:
     env = dict(os.environ)
-    env.update(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu",
+    env.update(XLA_FLAGS=f"{FAST_COMPILE} --xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu",
                JAX_COMPILATION_CACHE_DIR=cache_dir, PYTHONUNBUFFERED="1", **extra)
     return env
 

@@ -125,8 +125,9 @@ def test_world_model_optimizer_follows_its_config(variant):
         rate = lambda t, cfg=cfg: _expected_rate(t, peak=cfg.learning_rate, warmup=cfg.warmup_steps,  # noqa: E731
                                                   kind=cfg.lr_schedule, total=cfg.steps, end_fraction=cfg.lr_end_fraction)
         steps = _probe_steps(cfg.warmup_steps, cfg.steps)
+        # float32 schedule arithmetic: off by a few float32 ulps of the peak rate where the rate is small
         np.testing.assert_allclose(_schedule_values(world_model_schedule(cfg), steps), [rate(s) for s in steps],
-                                   rtol=1e-5, atol=1e-12)
+                                   rtol=1e-5, atol=1e-6 * cfg.learning_rate)
         _assert_matches(world_model_optimizer(cfg),
                         _adamw_reference(rate, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps,
                                          weight_decay=cfg.weight_decay, grad_clip=cfg.grad_clip))
@@ -166,7 +167,8 @@ def test_sft_schedule_and_optimizer(variant):
         steps = _probe_steps(warmup, total)
         expected = [_expected_rate(s, peak=cfg.sft.learning_rate, warmup=warmup, kind="cosine", total=max(total, 1),
                                    end_fraction=cfg.sft.lr_end_fraction) for s in steps]
-        np.testing.assert_allclose(_schedule_values(sft_schedule(cfg, total), steps), expected, rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(_schedule_values(sft_schedule(cfg, total), steps), expected, rtol=1e-5,
+                                   atol=1e-6 * max(expected))  # float32 arithmetic, as above
     warmup = min(cfg.sft.warmup_steps, cfg.sft.steps // 10)
     rate = lambda t: _expected_rate(t, peak=cfg.sft.learning_rate, warmup=warmup, kind="cosine",  # noqa: E731
                                     total=cfg.sft.steps, end_fraction=cfg.sft.lr_end_fraction)
@@ -195,6 +197,7 @@ def test_reward_model_optimizer_is_unclipped_adamw(variant):
                                      weight_decay=1e-4))
 
 
+@pytest.mark.slow  # the shared loop's stop: test_reliability and test_rl_resume (SFT) check it by default
 def test_reward_model_stops_on_a_non_finite_loss_naming_the_step():
     tiny = configs.get("sword:tiny").rl
     cfg = dataclasses.replace(tiny, image_size=8, reward_model=dataclasses.replace(tiny.reward_model, width=4))

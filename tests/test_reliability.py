@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import FAST_COMPILE, REPO
 from tests.support.checkpoints import final_arrays
 
 STEPS = 6
@@ -23,7 +23,7 @@ STEPS = 6
 
 def _env(cache_dir: str) -> dict[str, str]:
     env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)  # one CPU device per process: fast start
+    env["XLA_FLAGS"] = FAST_COMPILE  # one CPU device per process: fast start
     env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=cache_dir,
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", PYTHONUNBUFFERED="1")
     return env
