@@ -98,3 +98,40 @@ def test_load_split_carries_the_true_state(tmp_path):
 def test_probe_config_rejects_bad_sizes():
     with pytest.raises(ValueError, match="power of two"):
         probe_lib.ProbeConfig(image_size=48).validate()
+
+
+def test_probe_training_resumes_exactly_and_refuses_another_probe_s_checkpoint(tmp_path):
+    """The probe trains on the shared loop: a run stopped after its step-3 checkpoint and rerun ends where an
+    uninterrupted run ends; a checkpoint of another probe (another learning rate) is refused, naming the key."""
+    import dataclasses
+
+    import jax
+
+    from sword_jax.evaluation import probe as probe_lib
+
+    class Killed(Exception):
+        pass
+
+    def dies_at_step_5(line):
+        if "step 5/6" in line:
+            raise Killed
+
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (40, 16, 16, 3), dtype=np.uint8)
+    targets = rng.normal(size=(40, 7)).astype(np.float32)
+    cfg = probe_lib.ProbeConfig(image_size=8, width=4, steps=6, batch_size=8)
+    _, whole, _, _ = probe_lib.train_probe(frames, targets, cfg, checkpoint_dir=str(tmp_path / "a"),
+                                           progress=lambda line: None, checkpoint_every=3)
+    with pytest.raises(Killed):
+        probe_lib.train_probe(frames, targets, cfg, checkpoint_dir=str(tmp_path / "b"), progress=dies_at_step_5,
+                              checkpoint_every=3)
+    lines = []
+    _, resumed, _, metrics = probe_lib.train_probe(frames, targets, cfg, checkpoint_dir=str(tmp_path / "b"),
+                                                   progress=lines.append, checkpoint_every=3)
+    assert any("resumed from step 3" in line for line in lines)
+    for x, y in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert np.isfinite(metrics["loss"])
+    with pytest.raises(ValueError, match="learning_rate"):
+        probe_lib.train_probe(frames, targets, dataclasses.replace(cfg, learning_rate=1e-3),
+                              checkpoint_dir=str(tmp_path / "b"), progress=lambda line: None, checkpoint_every=3)

@@ -7,6 +7,8 @@ Targets come from the recorded simulator state: ``ee_states[:, :3]``, the finger
 ``states`` (a root body's free-joint qpos is its world position). A random ``--holdout`` share of
 episodes (seeded) is held out and the probe's error there is reported next to a constant predictor's (the
 training mean). Writes ``<out>/probe.npz`` (default ``<workdir>/probe``) for ``train.evaluate_world_model --probe``.
+Training checkpoints go to ``<out>/probe_checkpoints``; a rerun resumes there and ends bit-identical to an
+uninterrupted run.
 """
 
 from __future__ import annotations
@@ -51,8 +53,9 @@ def run(cfg, demos: Sequence[str], out: str, probe_cfg: probe_lib.ProbeConfig, *
     targets = np.concatenate([episode_targets(ep) for ep in train_eps])
     stride = -(-len(frames) // MAX_TRAIN_FRAMES)
     frames, targets = frames[::stride], targets[::stride]
-    graphdef, params, stats, metrics = probe_lib.train_probe(frames, targets, probe_cfg)
     os.makedirs(out, exist_ok=True)
+    graphdef, params, stats, metrics = probe_lib.train_probe(frames, targets, probe_cfg,
+                                                             checkpoint_dir=os.path.join(out, "probe_checkpoints"))
     path = probe_lib.save_probe(os.path.join(out, "probe.npz"), params, stats, probe_cfg, demos=list(demos))
     summary = {"path": path, "steps": probe_cfg.steps, "train_frames": int(len(frames)), "final_loss": metrics["loss"]}
     if hold_eps:

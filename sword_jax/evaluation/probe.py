@@ -32,6 +32,8 @@ from flax import nnx, struct
 from jaxtyping import Array, Float
 
 from sword_jax import optim
+from sword_jax.rng import stream_rng
+from sword_jax.train_loop import run_steps
 
 TARGET_NAMES = ("ee_x", "ee_y", "ee_z", "gripper_opening", "bowl_x", "bowl_y", "bowl_z")
 EE, GRIPPER, BOWL = slice(0, 3), 3, slice(4, 7)
@@ -166,8 +168,14 @@ def make_probe_step(graphdef: nnx.GraphDef, cfg: ProbeConfig):
 
 
 def train_probe(frames: np.ndarray, targets: Float[np.ndarray, "n 7"], cfg: ProbeConfig, *,
-                progress: Callable[[str], None] = print) -> tuple[nnx.GraphDef, Any, Any, dict]:
+                progress: Callable[[str], None] = print, checkpoint_dir: str | None = None,
+                checkpoint_every: int = 100) -> tuple[nnx.GraphDef, Any, Any, dict]:
     """Trains a probe on ground-truth frames ``[N, H, W, 3]`` (uint8 or [0, 1]) and their state.
+
+    The loop is :func:`sword_jax.train_loop.run_steps`: the batch of step ``s`` is drawn from its own stream
+    (``probe/batches``, ``s``), so with ``checkpoint_dir`` a rerun resumes from the last checkpoint (every
+    ``checkpoint_every`` steps) and ends bit-identical to an uninterrupted run; a checkpoint of another
+    probe (config, its step count included, or training set size) is refused. A non-finite step is skipped (its update not applied).
 
     Returns:
       ``(graphdef, params, stats, metrics)`` with the last step's loss.
@@ -183,17 +191,21 @@ def train_probe(frames: np.ndarray, targets: Float[np.ndarray, "n 7"], cfg: Prob
                             for i in range(0, len(frames), 256)])
     small = (small * 255.0 + 0.5).astype(np.uint8)  # the training set at probe size, on the host
     init, step = make_probe_step(graphdef, cfg)
-    state = init(params, stats)
-    rng = np.random.default_rng(cfg.seed)
-    key = jax.random.key(cfg.seed)
-    metrics: dict = {}
-    for i in range(cfg.steps):
-        idx = rng.integers(0, len(small), cfg.batch_size)
-        batch = {"frames": small[idx].astype(np.float32) / np.float32(255.0), "targets": targets[idx]}
-        state, metrics = step(state, batch, key)
-        if (i + 1) % max(cfg.steps // 5, 1) == 0:
-            progress(f"[probe] step {i + 1}/{cfg.steps} loss {float(metrics['loss']):.4f}")
-    return graphdef, state.params, state.stats, {k: float(v) for k, v in metrics.items()}
+
+    def batch_at(i: int) -> dict[str, np.ndarray]:
+        idx = stream_rng(cfg.seed, "probe/batches", i).integers(0, len(small), cfg.batch_size)
+        return {"frames": small[idx].astype(np.float32) / np.float32(255.0), "targets": targets[idx]}
+
+    def report(done: int, metrics: dict[str, float], _: Any, eta: float) -> dict[str, float]:
+        progress(f"[probe] step {done}/{cfg.steps} loss {metrics['loss']:.4f}")
+        return {"step": done, **metrics}
+
+    run_id = {**dataclasses.asdict(cfg), "train_frames": int(len(small))}  # steps too: they shape the schedule
+    result = run_steps(step, init(params, stats), batch_at, key=jax.random.key(cfg.seed), steps=cfg.steps,
+                       log_every=max(cfg.steps // 5, 1), name="probe", report=report, checkpoint_dir=checkpoint_dir,
+                       checkpoint_every=checkpoint_every, run_id=run_id, log=progress, on_nonfinite="skip")
+    metrics = result.history[-1] if result.history else {}
+    return graphdef, result.state.params, result.state.stats, {k: float(v) for k, v in metrics.items() if k != "step"}
 
 
 @functools.partial(jax.jit, static_argnums=1)
