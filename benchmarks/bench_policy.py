@@ -153,9 +153,9 @@ def run_sft(cfg, args) -> dict:
         run = {"demos_per_task": amount, "demos": train.num_episodes, "sft_seconds": round(sft_seconds, 1),
                "history": history, "eval": {}}
         for mode in modes:
-            rl_eval = _execution(rl, mode)
+            rl_eval, greedy = _execution(rl, mode)
             result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
-                                     greedy=mode != "sample",
+                                     greedy=greedy,
                                      **lockstep_evaluation(tasks, args.eval_episodes, resolution=cfg.sim.resolution,
                                                            max_steps=cfg.sim.max_steps, workers=args.workers))
             run["eval"][mode] = result
@@ -179,14 +179,14 @@ def run_sft(cfg, args) -> dict:
 
 
 def _execution(rl, mode: str):
-    """``rl`` executing as ``--execute`` mode ``mode`` says: ``ens`` = greedy with ensembling, a number =
-    greedy actions per chunk (``1`` = every step, no ensembling), ``sample`` = sampled at
+    """``(rl, greedy)`` executing as ``--execute`` mode ``mode`` says: ``ens`` = greedy with ensembling, a
+    number = greedy actions per chunk (``1`` = every step, no ensembling), ``sample`` = sampled at
     ``rl.grpo.temperature`` every step without ensembling (the policy GRPO trains)."""
     if mode not in ("ens", "sample") and not mode.isdigit():
         raise SystemExit(f"--execute: {mode!r} is not 'ens', 'sample' or a number of actions per chunk")
     steps = 1 if mode in ("ens", "sample") else int(mode)
     env = dataclasses.replace(rl.env, execute_steps=steps, action_ensemble=mode == "ens")
-    return dataclasses.replace(rl, env=env)
+    return dataclasses.replace(rl, env=env), mode != "sample"
 
 
 def run_eval(cfg, args) -> dict:
@@ -202,9 +202,9 @@ def run_eval(cfg, args) -> dict:
     if args.backend == "mjx":
         return _eval_mjx(cfg, args, graphdef, params, results)
     for mode in args.execute.split(","):
-        rl_eval = _execution(cfg.rl, mode)
+        rl_eval, greedy = _execution(cfg.rl, mode)
         result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
-                                 greedy=mode != "sample",
+                                 greedy=greedy,
                                  **lockstep_evaluation(list(cfg.sim.tasks), args.eval_episodes,
                                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                                        workers=args.workers))
@@ -230,12 +230,12 @@ def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
     qpos, text = episode_starts(episodes)
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
     for mode in args.execute.split(","):
-        rl_eval = _execution(cfg.rl, mode)
+        rl_eval, greedy = _execution(cfg.rl, mode)
         runner = EnvGRPO(graphdef, rl_eval, env, max_steps=cfg.sim.max_steps, starts_at=None, eval_starts=qpos,
                          eval_tokens=tokenize_instructions(text, rl_eval.policy.max_instruction_bytes),
                          eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
         start = time.time()
-        success, _ = runner.run_episodes(params, greedy=mode != "sample", ensemble=rl_eval.env.action_ensemble,
+        success, _ = runner.run_episodes(params, greedy=greedy, ensemble=rl_eval.env.action_ensemble,
                                          key=jax.random.key(0))
         result = dict(runner.summarize(success, time.time() - start), backend="mjx")
         results["eval"][mode] = result
@@ -540,7 +540,8 @@ def main(argv=None) -> None:
     parser.add_argument("--noise", type=float, default=0.0, help="DART noise of the demonstrations")
     parser.add_argument("--noisy-share", type=float, default=0.5, help="fraction of demonstrations with noise")
     parser.add_argument("--execute", default="8",
-                        help="comma list of execution modes to evaluate: 'ens' (greedy, ensembling), a number (greedy, actions per chunk), 'sample' (sampled at rl.grpo.temperature)")
+                        help="comma list of execution modes to evaluate: 'ens' (greedy, ensembling), a number "
+                             "(greedy, actions per chunk), 'sample' (sampled at rl.grpo.temperature)")
     parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation states per task")
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--backend", choices=("cpu", "mjx"), default="cpu",

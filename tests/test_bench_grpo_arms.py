@@ -226,7 +226,9 @@ def test_execution_modes_of_the_policy_evaluations():
     """--execute: 'ens' ensembles greedy chunks every step, a number executes that many greedy actions per
     chunk, 'sample' runs the trained (sampled) policy every step without ensembling; anything else is refused."""
     rl = configs.get("sword:tiny").rl
-    ens, four, sample = (bench_policy._execution(rl, m) for m in ("ens", "4", "sample"))
+    (ens, ens_greedy), (four, four_greedy), (sample, sample_greedy) = (
+        bench_policy._execution(rl, m) for m in ("ens", "4", "sample"))
+    assert (ens_greedy, four_greedy, sample_greedy) == (True, True, False)
     assert (ens.env.execute_steps, ens.env.action_ensemble) == (1, True)
     assert (four.env.execute_steps, four.env.action_ensemble) == (4, False)
     assert (sample.env.execute_steps, sample.env.action_ensemble) == (1, False)

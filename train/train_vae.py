@@ -122,7 +122,7 @@ def run(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool 
         perceptual_fn, source = lpips_loss(cfg.eval)
         if is_main:
             print(f"[train_vae] perceptual loss: LPIPS x {cfg.vae.perceptual_weight} ({source})")
-    step_fn = vae_train.make_train_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
+    step_fn = vae_train.make_vae_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
                                           perceptual_fn=perceptual_fn, max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
     video_sharding = shd.batch_sharding(mesh, 5, cfg.mesh.rules)

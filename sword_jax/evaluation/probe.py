@@ -175,7 +175,8 @@ def train_probe(frames: np.ndarray, targets: Float[np.ndarray, "n 7"], cfg: Prob
     The loop is :func:`sword_jax.train_loop.run_steps`: the batch of step ``s`` is drawn from its own stream
     (``probe/batches``, ``s``), so with ``checkpoint_dir`` a rerun resumes from the last checkpoint (every
     ``checkpoint_every`` steps) and ends bit-identical to an uninterrupted run; a checkpoint of another
-    probe (config, its step count included, or training set size) is refused. A non-finite step is skipped (its update not applied).
+    probe (config, its step count included, or training set size) is refused. A non-finite step is skipped
+    (its update not applied).
 
     Returns:
       ``(graphdef, params, stats, metrics)`` with the last step's loss.

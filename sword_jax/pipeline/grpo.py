@@ -231,7 +231,7 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     mesh = shd.make_mesh(cfg.mesh)
     sim, reward_model = shd.place((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    step_fn = grpo.make_train_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
     root = jax.random.key(cfg.seed)
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,

@@ -355,12 +355,12 @@ def make_grpo_step(
         key = jax.random.fold_in(key, state.step)
         rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, cfg, key=key,
                                    group_size=cfg.grpo.group_size)  # one simulator start-up per start state
-        starts = expand_groups(start, cfg.grpo.group_size)
         extra = {}
         if cfg.imagined.confirm_success:
             extra["imagined_success_unconfirmed"] = jnp.mean(rollout.success.astype(jnp.float32))
             rollout, extra["unconfirmed_fraction"] = confirm_successes(
-                rollout, simulator, reward_model, starts, cfg, key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
+                rollout, simulator, reward_model, expand_groups(start, cfg.grpo.group_size), cfg,
+                key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
         state, metrics = grpo_update(graphdef, cfg, state, rollout, jax.random.fold_in(key, UPDATE_KEY_SALT))
         return state, dict(metrics, **rollout_metrics(rollout), **extra)
 
@@ -375,5 +375,3 @@ def make_grpo_step(
     return shd.compile_step(tracing.max_traces(step, n=max_traces), mesh, rules, batch_shardings=batch_shardings,
                             donate=donate)
 
-
-make_train_step = make_grpo_step  # the name train/grpo.py calls

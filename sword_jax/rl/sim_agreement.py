@@ -244,6 +244,21 @@ def replay_actions(simulator: LearnedSimulator, reward_model: RewardModel, start
                          frames)
 
 
+def _replay_batches(start: StartState, actions: np.ndarray, lengths: np.ndarray, keep: np.ndarray,
+                    batch: int) -> list[tuple[tuple[Any, jax.Array, jax.Array], int]]:
+    """The episodes ``keep`` as :func:`replay_actions` inputs ``(start, actions, lengths)`` in slices of
+    ``batch``, each with the count of real episodes in it; the last slice is padded by repeating its last
+    episode, so one compile serves every call."""
+    out = []
+    for lo in range(0, len(keep), batch):
+        idx = keep[lo: lo + batch]
+        count = len(idx)
+        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])
+        out.append(((jax.tree.map(lambda y: jnp.asarray(y)[idx], start), jnp.asarray(actions[idx]),
+                     jnp.asarray(lengths[idx])), count))
+    return out
+
+
 def replayed_episodes(traced: TracedEpisodes, simulator: LearnedSimulator, reward_model: RewardModel,
                       encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array,
                       batch: int = 64, num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
@@ -269,12 +284,8 @@ def replayed_episodes(traced: TracedEpisodes, simulator: LearnedSimulator, rewar
     replay = jax.jit(lambda sim, rm, s, a, n, k: replay_actions(sim, rm, s, a, n, success_threshold=success_threshold,
                                                                  key=k, settle_steps=settle_steps, record_frames=True))
     frames = []
-    for b, lo in enumerate(range(0, keep.size, batch)):
-        idx = keep[lo: lo + batch]
-        count = idx.size
-        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])  # one compile for every batch
-        out = replay(simulator, reward_model, jax.tree.map(lambda y: jnp.asarray(y)[idx], start),
-                     jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]), jax.random.fold_in(key, b))
+    for b, (inputs, count) in enumerate(_replay_batches(start, actions, lengths, keep, batch)):
+        out = replay(simulator, reward_model, *inputs, jax.random.fold_in(key, b))
         frames.append(np.asarray(out.frames)[:count])
     frames = np.concatenate(frames)
     e, t = frames.shape[:2]
@@ -373,8 +384,7 @@ def calibrated_detector_report(score: Callable[[Any], Any], replayed: EpisodeSet
     return {"threshold": threshold, "max_false_success": max_false_success, "calibration_episodes": int(calibrate.sum()),
             "calibration": {k: chosen[k] for k in ("false_success", "missed_success", "imagined_success")},
             "held_out_episodes": int(held.sum()),
-            "held_out": {k: v for k, v in agreement(replayed.success[held], decisive[held] >= threshold).items()
-                         if k in ("false_success", "missed_success", "imagined_success", "real_success", "agreement")},
+            "held_out": _agreement_summary(replayed.success[held], decisive[held] >= threshold, "real_success"),
             "frame_precision": tp / max(float((fire & labelled).sum()), 1.0),
             "frame_recall": tp / max(float(truth.sum()), 1.0)}
 
@@ -483,6 +493,12 @@ def calibrate_threshold(scores: np.ndarray, real: np.ndarray, *, max_false_succe
     return {"threshold": threshold, "max_false_success": max_false_success, **agreement(real, scores >= threshold)}
 
 
+def _agreement_summary(real: np.ndarray, imagined: np.ndarray, *more: str) -> dict[str, Any]:
+    """:func:`agreement`'s imagined success, false and missed success and agreement (and ``more`` of its keys)."""
+    keep = ("imagined_success", "false_success", "missed_success", "agreement", *more)
+    return {name: sub for name, sub in agreement(real, imagined).items() if name in keep}
+
+
 def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
     """Imagined vs real outcomes of the same episodes, with 95% Wilson intervals.
 
@@ -552,13 +568,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     actions = np.pad(actions, ((0, 0), (0, settle_steps), (0, 0)))  # room for the hold actions
     replay_fn = replay_fn or jax.jit(lambda sim, rm, s, a, l, k: replay_actions(
         sim, rm, s, a, l, success_threshold=success_threshold, key=k, settle_steps=settle_steps))
-    batches = []  # (inputs, real episodes in it), each padded to ``batch`` so one compile serves every call
-    for lo in range(0, len(keep), batch):
-        idx = keep[lo: lo + batch]
-        count = len(idx)
-        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - count)])
-        inputs = (jax.tree.map(lambda y: jnp.asarray(y)[idx], start), jnp.asarray(actions[idx]), jnp.asarray(lengths[idx]))
-        batches.append((inputs, count))
+    batches = _replay_batches(start, actions, lengths, keep, batch)
     outcomes, first, runs = [], [], []
     for r in range(repeats):
         imagined = []
@@ -573,8 +583,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     run = np.concatenate(runs) if runs else np.zeros(0, np.int64)
     # what a success rule asking for k consecutive frames would have said, from the same scores
     report["sustained_success_sweep"] = {
-        str(k): {name: sub for name, sub in agreement(traced.success[keep], run >= k).items()
-                 if name in ("imagined_success", "false_success", "missed_success", "agreement")}
+        str(k): _agreement_summary(traced.success[keep], run >= k)
         for k in SUSTAIN_SWEEP}
     report["imagined_longest_success_run"] = run.tolist()
     report["imagined_success_by_horizon"] = success_by_horizon(
@@ -585,9 +594,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
                   imagined_first_success=np.concatenate(first).tolist() if first else [],
                   real_lengths=lengths[keep].tolist(), real_success_flags=traced.success[keep].astype(int).tolist())
     if repeats >= 2:  # what rl.imagined.confirm_success would say: both independent replays succeed
-        report["confirmed_by_second_replay"] = {
-            name: sub for name, sub in agreement(traced.success[keep], outcomes[0] & outcomes[1]).items()
-            if name in ("imagined_success", "false_success", "missed_success", "agreement")}
+        report["confirmed_by_second_replay"] = _agreement_summary(traced.success[keep], outcomes[0] & outcomes[1])
         report["resample_disagreement"] = {"rate": flips / len(keep) if len(keep) else None,
                                            "ci95": list(wilson_interval(flips, len(keep))), "of": int(len(keep))}
     return report

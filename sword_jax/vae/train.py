@@ -176,6 +176,3 @@ def make_vae_step(
             return jitted(state, batch, key)
 
     return sharded_step
-
-
-make_train_step = make_vae_step  # the name train/train_vae.py calls
