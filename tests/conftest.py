@@ -3,7 +3,7 @@
 import os
 
 # The suite compiles hundreds of small programs and runs each a few times: LLVM's optimisation passes cost
-# more than they save (the GRPO tests take 40% less time without them). Child processes inherit the flags.
+# more compile time than they save in run time. Child processes inherit the flags.
 FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + f" {FAST_COMPILE} --xla_force_host_platform_device_count=8"
