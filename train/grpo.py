@@ -55,10 +55,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
     parser.add_argument("--policy", default="", help="SFT policy checkpoint (train_policy); empty = from scratch")
     parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
+    parser.add_argument("--latents", default="", help="the world model's training latents (.npz; rl.refresh needs them)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.grpo.eval_episodes_per_task")
     args = parser.parse_args(rest)
     inputs = GRPOInputs(demos=tuple(args.demos), world_model=args.world_model, vae=args.vae, policy=args.policy,
-                        reward=args.reward)
+                        reward=args.reward, latents=args.latents)
     return run(cfg, inputs, simulator=args.simulator, env_workers=args.env_workers, renderer=args.renderer,
                eval_episodes=args.eval_episodes)
 
@@ -111,6 +112,16 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
         demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
         reckoning = grpo_env.sim_reckoning(demos) if rl.imagined.proprio == "reckoned" else None
         setup = world_model_setup(cfg, rl, inputs, demos, reckoning=reckoning)
+        if rl.refresh.every:
+            from sim.grpo_refresh import run_refreshed_in_mjx
+            from sword_jax.load import experiment_vae
+
+            if not inputs.latents:
+                raise SystemExit("train.grpo --rl.refresh.every > 0 needs --latents (the world model's training latents)")
+            return run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir, setup, vae=experiment_vae(cfg, inputs.vae),
+                                        latents=inputs.latents,
+                                        episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
+                                        max_traces=ENTRY_MAX_TRACES)
         env_eval = lockstep_evaluation(cfg.sim.tasks, eval_episodes or rl.grpo.eval_episodes_per_task,
                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps, renderer=renderer,
                                        workers=env_workers)

@@ -45,6 +45,7 @@ class GRPOInputs:
     vae: str = ""  # VAE checkpoint directory (train_vae)
     policy: str = ""  # SFT policy checkpoint (train_policy); empty: from scratch
     reward: str = ""  # reward model checkpoint (train_reward)
+    latents: str = ""  # the world model's training latents (.npz): what a refresh fine-tunes it on besides
 
 
 
@@ -115,13 +116,18 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
         pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step),
                                        max_fraction=rl.imagined.keyframe_fraction)
-        unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
-        latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
-        return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim]),
-                          jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
-                          (latents, jnp.asarray(pick["actions"], jnp.float32)))
+        return start_state(pick, encode, rl)
 
     return Setup(sim, reward_model, starts, None, encode)
+
+
+def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:
+    """Imagined-rollout start states from :func:`~sword_jax.rl.data.keyframe_window`-laid-out picks."""
+    unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
+    latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
+    return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim], jnp.float32),
+                      jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
+                      (latents, jnp.asarray(pick["actions"], jnp.float32)))
 
 
 def extra_point(step: int, what: str, result: dict, **tags) -> dict:

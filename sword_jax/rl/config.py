@@ -326,6 +326,69 @@ class ImaginedConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class RefreshConfig:
+    """Keeping the learned simulator honest while GRPO moves the policy (:mod:`sword_jax.rl.refresh`).
+
+    Every ``every`` GRPO steps (and at step 0) ``episodes`` real episodes of the current policy are
+    collected in the ground-truth environments (MJX), the world model is fine-tuned on them (its DLB
+    cache refreshed) and the success detector on their real frames and on the world model's replays of
+    them labelled with the real outcome; its threshold is set on held-out replays so that at most
+    ``max_false_success`` of the real failures are imagined successes. With ``branch`` the next imagined
+    rollouts start from the new real episodes' states, every phase of them (MBPO's branched rollouts).
+
+    Attributes:
+      every: GRPO steps between refreshes, a multiple of ``rl.grpo.eval_every``; 0 = never (off).
+      episodes: real episodes collected per refresh.
+      budget: real episodes the whole run may collect (evaluation episodes not counted); a refresh takes
+        what is left of it, none once it is spent (the models are then kept as they are).
+      episode_steps: actions of each collected episode (the policy keeps acting after a success); 0 =
+        ``sim.max_steps``. At least ``data.episode_frames`` (the world model's training windows).
+      world_model_steps / world_model_learning_rate: the fine-tune of the world model per refresh, on the
+        run's training latents plus every refresh's episodes so far (repeated to about as many, so half of
+        its segments show what the moving policy really did).
+      detector_steps: the fine-tune of the detector per refresh.
+      replay_share: share of each detector batch taken from the world model's replays of real episodes
+        (the rest from the real frames, labelled by the task's success predicate).
+      calibrate_fraction: share of a refresh's episodes whose replays set the threshold (and are not
+        trained on); the others' replays train the detector.
+      max_false_success: the bound on imagined success among real failures that sets the threshold.
+      branch: imagined rollouts start at the latest refresh's real states (else at the demonstrations'
+        keyframes).
+    """
+
+    every: int = 0
+    episodes: int = 64
+    budget: int = 0
+    episode_steps: int = 0
+    world_model_steps: int = 200
+    world_model_learning_rate: float = 3e-5
+    detector_steps: int = 200
+    replay_share: float = 0.5
+    calibrate_fraction: float = 0.5
+    max_false_success: float = 0.05
+    branch: bool = True
+
+    def validate(self) -> None:
+        if self.every < 0:
+            raise ValueError(f"rl.refresh.every must be >= 0 (0 = off), got {self.every}")
+        if not self.every:
+            return
+        if self.episodes < 2 or self.budget < self.episodes:
+            raise ValueError(f"rl.refresh: episodes must be >= 2 and budget >= episodes (the real episodes a run may "
+                             f"use), got episodes={self.episodes}, budget={self.budget}")
+        if self.episode_steps < 0 or self.world_model_steps < 1 or self.detector_steps < 1:
+            raise ValueError(f"rl.refresh: episode_steps must be >= 0, world_model_steps and detector_steps >= 1, got "
+                             f"{self.episode_steps}, {self.world_model_steps}, {self.detector_steps}")
+        if self.world_model_learning_rate <= 0:
+            raise ValueError(f"rl.refresh.world_model_learning_rate must be > 0, got {self.world_model_learning_rate}")
+        if not 0.0 <= self.replay_share <= 1.0 or not 0.0 < self.calibrate_fraction < 1.0:
+            raise ValueError(f"rl.refresh: replay_share must be in [0, 1] and calibrate_fraction in (0, 1), got "
+                             f"{self.replay_share}, {self.calibrate_fraction}")
+        if not 0.0 <= self.max_false_success < 1.0:
+            raise ValueError(f"rl.refresh.max_false_success must be in [0, 1), got {self.max_false_success}")
+
+
+@dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Acting in the ground-truth (MuJoCo) environments: every evaluation, the policy's own rollouts
     (``sim.policy_rollouts``) and GRPO there (``train.grpo --simulator env``; :mod:`sword_jax.rl.env_rollout`).
@@ -428,6 +491,7 @@ class RLConfig:
       grpo: the GRPO update, its rollouts and evaluations (:class:`GRPOConfig`).
       imagined: rollouts in the learned simulator (:class:`ImaginedConfig`).
       env: acting in the ground-truth environments (:class:`EnvConfig`).
+      refresh: refreshing the learned simulator on the moving policy's real episodes (:class:`RefreshConfig`).
     """
 
     renamed_fields: ClassVar[dict[str, str]] = RENAMED
@@ -444,6 +508,7 @@ class RLConfig:
     grpo: GRPOConfig = GRPOConfig()
     imagined: ImaginedConfig = ImaginedConfig()
     env: EnvConfig = EnvConfig()
+    refresh: RefreshConfig = RefreshConfig()
 
     def validate(self) -> None:
         """Checks each section, then the settings that span sections."""

@@ -65,6 +65,27 @@ def as_reward_model(graphdef: nnx.GraphDef, params: nnx.State) -> RewardModel:
     return RewardModel(params=params, score_fn=score_fn)
 
 
+def threshold_shift(threshold: float, success_threshold: float) -> float:
+    """The logit shift that makes the detector's score reach ``success_threshold`` exactly where it reached
+    ``threshold`` before (``logit(threshold) - logit(success_threshold)``; thresholds clipped into (0, 1):
+    one at or above 1 lets no frame succeed)."""
+    eps = 1e-7
+    c = min(max(float(threshold), eps), 1.0 - eps)
+    t = min(max(float(success_threshold), eps), 1.0 - eps)
+    return float(np.log(c / (1.0 - c)) - np.log(t / (1.0 - t)))
+
+
+def shifted_reward_model(graphdef: nnx.GraphDef, params: nnx.State, shift: float = 0.0) -> RewardModel:
+    """The detector with its logit lowered by ``shift`` (:func:`threshold_shift`): a calibrated threshold
+    applied under the run's fixed ``rl.success_threshold``. The shift is a leaf of the reward model's
+    params, so a new calibration changes an argument of the compiled step, not the program."""
+
+    def score_fn(params, frames):
+        return jax.nn.sigmoid(nnx.merge(graphdef, params["net"])(frames) - params["shift"])
+
+    return RewardModel(params={"net": params, "shift": jnp.asarray(shift, jnp.float32)}, score_fn=score_fn)
+
+
 @struct.dataclass
 class DetectorState:
     params: Any

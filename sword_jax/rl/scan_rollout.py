@@ -169,3 +169,80 @@ def scan_rollout(
                       scores=jnp.cumsum(rewards, axis=1), success=success, returns=returns,
                       frames=jnp.zeros((0,), jnp.float32))
     return rollout, EpisodeStats(steps=steps, broken=broken)
+
+
+class RecordedEpisodes(NamedTuple):
+    """Policy episodes recorded whole (:func:`record_episodes`): ``n`` episodes of ``T`` actions.
+
+    Attributes:
+      frames: ``[n, T + 1, H, W, 3]`` uint8 at the environment's resolution; frame ``t`` is seen before
+        action ``t`` (the last one after the last action).
+      proprio: ``[n, T + 1, P]`` at the same frames.
+      actions: ``[n, T, A]`` the executed actions.
+      success: ``[n, T]`` the task's success predicate on the state after action ``t``.
+      broken: ``[n]`` the physics went non-finite (from then on the episode holds its last frame).
+    """
+
+    frames: jax.Array
+    proprio: jax.Array
+    actions: jax.Array
+    success: jax.Array
+    broken: jax.Array
+
+
+def record_episodes(
+    graphdef: nnx.GraphDef,
+    params: nnx.State,
+    env: JaxEnv,
+    starts: Any,
+    instruction_tokens: Int[Array, "n l"],
+    cfg: RLConfig,
+    *,
+    key: jax.Array,
+    steps: int,
+) -> RecordedEpisodes:
+    """The policy's own episodes as training data for the learned simulator and its success detector.
+
+    The policy acts for exactly ``steps`` actions, sampled at ``rl.grpo.temperature`` (GRPO's behaviour
+    distribution), re-planning every ``rl.env.execute_steps`` actions, and keeps acting after a success
+    (a world model must see what follows it, a detector solved scenes that stay solved); every frame is
+    kept at the environment's resolution. Decision ``c`` samples with ``fold_in(key, c)``. Pure; jit it.
+    """
+    k = cfg.env.execute_steps
+    if steps < 1:
+        raise ValueError(f"record_episodes: steps must be >= 1, got {steps}")
+    policy = nnx.merge(graphdef, params)
+    n = instruction_tokens.shape[0]
+    state, obs = env.reset(starts)
+
+    def decide(carry, c):
+        state, obs, broken = carry
+        small = resize_frames(obs["frames"], cfg.image_size)
+        proprio = obs["proprio"][:, : cfg.proprio_dim].astype(jnp.float32)
+        logits = policy(small, instruction_tokens, proprio, jnp.ones((n,), jnp.float32))
+        chunk = jax.random.categorical(jax.random.fold_in(key, c), logits / jnp.float32(cfg.grpo.temperature), axis=-1)
+        actions = tokens_to_actions(chunk.astype(jnp.int32), cfg.action_bins)[:, :k]
+
+        def act(inner, j):
+            state, obs, broken = inner
+            new_state, new_obs, reached = env.step(state, actions[:, j])
+            bad = broken | ~jnp.all(jnp.isfinite(new_obs["proprio"]), axis=-1)
+            # a broken episode holds its last good observation (its later steps are not physics)
+            keep = lambda new, old: jnp.where(bad.reshape((-1,) + (1,) * (new.ndim - 1)), old, new)  # noqa: E731
+            new_obs = jax.tree.map(keep, new_obs, obs)
+            record = {"frames": obs["frames"].astype(jnp.uint8), "proprio": obs["proprio"].astype(jnp.float32),
+                      "actions": actions[:, j], "success": reached & ~bad}
+            return (new_state, new_obs, bad), record
+
+        (state, obs, broken), record = jax.lax.scan(act, (state, obs, broken), jnp.arange(k))
+        return (state, obs, broken), record
+
+    decisions_needed = math.ceil(steps / k)
+    (_, last_obs, broken), rec = jax.lax.scan(decide, (state, obs, jnp.zeros((n,), jnp.bool_)),
+                                              jnp.arange(decisions_needed))
+    # (C, k, n, ...) -> (n, C k, ...); frame t of the whole scan is the one before action t, so the frame
+    # after action ``steps - 1`` is frame ``steps`` (the final observation when the scan ends there)
+    rec = jax.tree.map(lambda x: jnp.moveaxis(x.reshape((-1,) + x.shape[2:]), 0, 1), rec)
+    frames = jnp.concatenate([rec["frames"], last_obs["frames"].astype(jnp.uint8)[:, None]], axis=1)[:, : steps + 1]
+    proprio = jnp.concatenate([rec["proprio"], last_obs["proprio"].astype(jnp.float32)[:, None]], axis=1)[:, : steps + 1]
+    return RecordedEpisodes(frames, proprio, rec["actions"][:, :steps], rec["success"][:, :steps], broken)

@@ -1,0 +1,87 @@
+"""GRPO in the learned simulator refreshed on the policy's real episodes, with MJX as the ground truth
+(``train.grpo --simulator world_model --rl.refresh.every=K --rl.env.backend=mjx``).
+
+The real episodes of each refresh start from training-split initial states stratified over the tasks
+(never an evaluation state); the evaluations are the ground-truth GRPO's (:class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`:
+the greedy, ensembled policy and the sampled one on the tasks' fixed evaluation states, on MJX), so the
+curve compares with ground-truth GRPO's point for point. The loop is
+:func:`sword_jax.pipeline.grpo_refresh.run_refreshed`.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import numpy as np
+
+from sim import tasks as sim_tasks
+from sim.mjx_batch import MjxEpisodes, episode_starts, stratified_train_starts
+from sword_jax.pipeline.grpo import log
+from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
+from sword_jax.rl.jax_env_grpo import EnvGRPO
+from sword_jax.rl.policy import tokenize_instructions
+from sword_jax.rl.reward_model import build_detector
+from sword_jax.rng import stream_key
+
+
+def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae, latents: str,
+                         episodes_per_task: int, max_traces: int) -> dict:
+    """GRPO in ``setup``'s learned simulator (:func:`sword_jax.pipeline.grpo.world_model_setup`), refreshed every
+    ``rl.refresh.every`` steps on MJX episodes of the current policy; ``vae``: the run's ``(graphdef, state)``;
+    ``latents``: the world model's training latents (``.npz``). Returns as :func:`run_refreshed`."""
+    from sword_jax.vae import api as vae_api
+    from sword_jax.world_model.data import load_latent_dataset
+
+    if rl.env.backend != "mjx":
+        raise ValueError(f"rl.refresh collects real episodes on MJX; got rl.env.backend={rl.env.backend}")
+    if cfg.sim.resolution != cfg.data.image_size:
+        raise ValueError(f"rl.refresh trains the world model on real frames: sim.resolution={cfg.sim.resolution} must "
+                         f"equal data.image_size={cfg.data.image_size}")
+    tasks = list(cfg.sim.tasks)
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+
+    def pool_starts(n, rng):
+        picked = stratified_train_starts(tasks, n, rng, pool=pool)
+        qpos, text = episode_starts(picked)
+        return qpos, text, np.asarray([t for t, _ in picked])
+
+    eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
+    eval_qpos, eval_text = episode_starts(eval_episodes)
+    max_bytes = rl.policy.max_instruction_bytes
+
+    def no_training_starts(step, round_):
+        raise RuntimeError("the refreshed run trains in the learned simulator; EnvGRPO only evaluates here")
+
+    runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=no_training_starts,
+                     eval_starts=eval_qpos, eval_tokens=tokenize_instructions(eval_text, max_bytes),
+                     eval_tasks=[t for t, _ in eval_episodes],
+                     key=stream_key(jax.random.key(cfg.seed), "grpo/mjx_eval"), log=log)
+    os.makedirs(workdir, exist_ok=True)
+    runner.start_probe(params, os.path.join(workdir, "probe"))
+
+    def evaluate_real(step, params):
+        point, extra = runner.evaluate(params, step=step, sampled=True)
+        log(f"eval step {step}: MJX success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}]"
+            f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f} ({point['episodes']} episodes)")
+        return point, extra
+
+    vae_graphdef, vae_state = vae
+    encoder = vae_api.encoder(vae_graphdef, vae_state)
+    batch = max(cfg.vae.batch_size, 1)
+
+    def encode_frames(frames):  # [n, F, H, W, 3] in [0, 1] -> the world model's training latents
+        return np.concatenate([np.asarray(encoder(frames[i:i + batch] * np.float32(2.0) - np.float32(1.0)))
+                               for i in range(0, len(frames), batch)])
+
+    wm_state, vae_params = setup.sim.params
+    det_graphdef, _ = build_detector(rl, seed=cfg.seed)
+    return run_refreshed(cfg, rl, graphdef, params, workdir, setup=setup, wm_state=wm_state,
+                         make_simulator=lambda state: setup.sim.replace(params=(state, vae_params)),
+                         encode_frames=encode_frames, detector=(det_graphdef, setup.reward_model.params),
+                         base=load_latent_dataset(latents), env=env,
+                         collect_starts=stratified_collect_starts(pool_starts, cfg.seed), evaluate_real=evaluate_real,
+                         max_traces=max_traces, facts={"sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed,
+                                                       "sim.max_steps": cfg.sim.max_steps,
+                                                       "sim.resolution": cfg.sim.resolution})

@@ -1,0 +1,129 @@
+"""GRPO in the learned simulator with refreshes (:mod:`sword_jax.rl.refresh`): the run's loop.
+
+Every ``rl.refresh.every`` steps (at an evaluation, step 0 included) the policy is first evaluated in the
+ground-truth environments, then the simulator is refreshed on real episodes of the current policy; the
+exploitation guard judges the refresh's replay (real episodes the simulator had not seen, in the simulator
+GRPO trained in). A GRPO step reads the simulator, the calibrated detector and its start states (branched
+from the latest refresh's real episodes) from the refresh its step follows, so a resumed run, which
+loads the refreshes from disk, ends as an uninterrupted one does.
+
+Nothing here imports a simulator: the environment is a pure JAX one (:class:`~sword_jax.rl.scan_rollout.JaxEnv`,
+MJX in ``sim.grpo_refresh``), its start states come from ``collect_starts``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sword_jax import sharding as shd
+from sword_jax.pipeline.grpo import log, start_state
+from sword_jax.rl import grpo
+from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.policy import tokenize_instructions
+from sword_jax.rl.refresh import RealEpisodes, Refresher
+from sword_jax.rl.scan_rollout import JaxEnv, record_episodes
+from sword_jax.rng import stream_key, stream_rng
+
+REFRESH_RUN_KEYS = ("every", "episodes", "budget", "episode_steps", "world_model_steps", "world_model_learning_rate",
+                    "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "branch")
+
+
+def make_collect(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple], *, seed: int,
+                 steps: int) -> Callable[[Any, int, int], RealEpisodes]:
+    """``collect(params, step, n)``: ``n`` real episodes of the policy (:func:`record_episodes`, sampled at
+    ``rl.grpo.temperature``) from ``collect_starts(step, n) -> (env starts, instructions, tasks)``; the
+    sampling key is a function of (seed, step)."""
+    record = jax.jit(lambda params, starts, tokens, key: record_episodes(graphdef, params, env, starts, tokens, rl,
+                                                                         key=key, steps=steps))
+    root = stream_key(jax.random.key(seed), "refresh/collect")
+
+    def collect(params, step, n):
+        starts, instructions, tasks = collect_starts(step, n)
+        tokens = jnp.asarray(tokenize_instructions(list(instructions), rl.policy.max_instruction_bytes))
+        rec = record(params, jnp.asarray(starts), tokens, jax.random.fold_in(root, step))
+        return RealEpisodes.from_recorded(jax.device_get(rec), instructions, tasks)
+
+    return collect
+
+
+def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *, setup: Any, wm_state: Any,
+                  make_simulator: Callable[[Any], Any], encode_frames: Callable[[np.ndarray], np.ndarray],
+                  detector: tuple[Any, Any], base: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple],
+                  evaluate_real: Callable[[int, Any], tuple[dict, dict]], max_traces: int,
+                  facts: dict[str, Any] | None = None) -> dict:
+    """GRPO in the learned simulator with refreshes, resuming from ``workdir``.
+
+    Args:
+      setup: the run's :class:`~sword_jax.pipeline.grpo.Setup` (its ``starts`` are the demonstrations'
+        keyframes, used until a refresh gives real states to branch from, and its ``encode``).
+      wm_state / make_simulator / encode_frames / detector / base: as :class:`~sword_jax.rl.refresh.Refresher` takes them.
+      env / collect_starts: the ground-truth environment and ``(step, n) -> (starts, instructions, tasks)``.
+      evaluate_real: ``(step, params) -> (point, extra)``, the ground-truth evaluation.
+      facts: more identity facts of the run (its tasks, the environment's settings).
+
+    Returns ``{"curve", "workdir", "history", "refreshes"}``.
+    """
+    rl.validate()
+    if rl.refresh.every % rl.grpo.eval_every:
+        raise ValueError(f"rl.refresh.every={rl.refresh.every} must be a multiple of rl.grpo.eval_every="
+                         f"{rl.grpo.eval_every} (a refresh follows an evaluation)")
+    mesh = shd.make_mesh(cfg.mesh)
+    steps = rl.refresh.episode_steps or cfg.sim.max_steps
+    collect = make_collect(graphdef, rl, env, collect_starts, seed=cfg.seed, steps=steps)
+    refresher = Refresher(cfg, rl, wm_state=wm_state, make_simulator=make_simulator, encode=setup.encode,
+                          encode_frames=encode_frames, detector=detector, base=base, collect=collect,
+                          directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log)
+    state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
+    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
+
+    def step(state, index, key):
+        refresher.at(index)  # the refresh this step follows (a resumed run loads it)
+        pick = refresher.branch_pick(index, rl.grpo.rollout_batch)
+        starts = (setup.starts(jax.random.fold_in(starts_key, index), index) if pick is None
+                  else start_state(pick, setup.encode, rl))
+        sim, reward_model = refresher.simulator(), refresher.reward_model()
+        sim, reward_model = jax.device_put((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
+        state, metrics = step_fn(state, (sim, reward_model, starts), key)
+        return state, dict(metrics, real_episodes_used=jnp.float32(refresher.used))
+
+    def evaluate(index, params):
+        point, extra = evaluate_real(index, params)
+        if refresher.due(index):
+            record = refresher.refresh(index, params)
+            extra = dict(extra, refresh=record)
+            if "replay" in record:
+                extra["replay"] = record["replay"]
+        point["real_episodes_used"] = refresher.used
+        log(f"eval step {index}: success {point['mean']:.3f}, real episodes used {refresher.used}/{rl.refresh.budget}")
+        return point, extra
+
+    def progress(point, eta):
+        return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
+                f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
+                f"real episodes used {point['real_episodes_used']:.0f} eta {eta:.0f}s")
+
+    run_id = grpo_run_id(rl, seed=cfg.seed, simulator="world_model_refreshed", **(facts or {}),
+                         **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in REFRESH_RUN_KEYS})
+    result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
+                               rl=rl, workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
+                               curve_label="GRPO in the refreshed learned simulator", log=log)
+    refreshes = [r for r in refresher.records]
+    with open(os.path.join(workdir, "refreshes.json"), "w") as f:
+        json.dump(refreshes, f, indent=1)
+    return {"curve": curve, "workdir": workdir, "history": result.history, "refreshes": refreshes,
+            "real_episodes_used": refresher.used}
+
+
+def stratified_collect_starts(pool_starts: Callable[[int, np.random.Generator], tuple], seed: int
+                              ) -> Callable[[int, int], tuple]:
+    """``collect_starts(step, n)`` from ``pool_starts(n, rng) -> (starts, instructions, tasks)``, its rng a
+    function of (seed, step)."""
+    return lambda step, n: pool_starts(n, stream_rng(seed, "refresh/starts", step))

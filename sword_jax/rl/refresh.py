@@ -1,0 +1,488 @@
+"""Keeping the learned simulator honest while GRPO moves the policy: refresh it on the policy's real episodes.
+
+GRPO inside a world model that never sees the moving policy's consequences learns what the simulator and
+its success detector call success (measured on `small`: real success fell in all six world-model slices
+while imagined success rose). Peers refit the model on the evolving policy's own rollouts (WoVR's PACE,
+WMPO, MBPO) and branch short imagined rollouts from real states (MBPO). A :class:`Refresher` does this
+every ``rl.refresh.every`` GRPO steps (:class:`~sword_jax.rl.config.RefreshConfig`):
+
+1. **Collect** ``rl.refresh.episodes`` real episodes of the current policy (``collect``, e.g. MJX through
+   :func:`~sword_jax.rl.scan_rollout.record_episodes`), within the run's budget of real episodes.
+2. **Measure** before changing anything: the new episodes' actions replayed open loop in the simulator
+   GRPO trained in, scored by its detector: ``replay`` (false and missed success, imagined success by
+   horizon), what the exploitation guard (:mod:`sword_jax.rl.sim_guard`) judges.
+3. **World model**: fine-tuned on the run's training latents plus every refresh's episodes so far, its
+   DLB cache refreshed (a new cache over the new dataset, its schedule run again over the fine-tune).
+4. **Detector**: fine-tuned on the real frames (the task's success predicate as label) and on the new
+   world model's replays of the real episodes labelled with their real outcome
+   (:func:`~sword_jax.rl.sim_agreement.replay_labels`); its threshold is then set on replays of held-out
+   episodes so that at most ``max_false_success`` of their real failures are imagined successes
+   (:func:`~sword_jax.rl.sim_agreement.calibrate_threshold`), applied as a logit shift
+   (:func:`~sword_jax.rl.reward_model.shifted_reward_model`). Precision and recall are reported on the
+   held-out episodes' imagined and real frames.
+5. **Branch**: the next imagined rollouts start from the new real episodes' states, every phase before
+   their success (``rl.refresh.branch``).
+
+Each refresh is saved under ``<directory>/step_XXXXXX`` (world model, detector, shift, the round's latents
+and real episodes, a ``record.json`` written last), so a resumed GRPO run loads the refresh its
+checkpoint followed (:meth:`Refresher.at`) and ends as an uninterrupted one does; a refresh already on
+disk is loaded, not recollected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from sword_jax import sharding as shd
+from sword_jax.atomic_write import write_json_atomic
+from sword_jax.rl import data as rl_data
+from sword_jax.rl import sim_agreement
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel
+from sword_jax.rl.reward_model import detector_report, score_episodes, shifted_reward_model, threshold_shift, train_detector
+from sword_jax.rl.scan_rollout import RecordedEpisodes
+from sword_jax.rng import stream_rng
+
+
+@dataclasses.dataclass(frozen=True)
+class RealEpisodes:
+    """Real episodes of fixed length ``T`` recorded whole (host arrays).
+
+    Attributes:
+      frames: ``[n, T + 1, H, W, 3]`` uint8, frame ``t`` seen before action ``t``.
+      proprio: ``[n, T + 1, P]``.
+      actions: ``[n, T, A]`` executed.
+      success: ``[n, T]`` bool, the success predicate after action ``t``.
+      instructions: the ``n`` instructions.
+      tasks: ``[n]`` task ids.
+    """
+
+    frames: np.ndarray
+    proprio: np.ndarray
+    actions: np.ndarray
+    success: np.ndarray
+    instructions: tuple[str, ...]
+    tasks: np.ndarray
+
+    def __post_init__(self):
+        n, t = self.actions.shape[:2]
+        if self.frames.shape[:2] != (n, t + 1) or self.frames.dtype != np.uint8 or self.success.shape != (n, t):
+            raise ValueError(f"RealEpisodes: frames [n, T + 1, H, W, 3] uint8 and success [n, T] for actions "
+                             f"{self.actions.shape}, got {self.frames.shape} {self.frames.dtype}, {self.success.shape}")
+        if len(self.instructions) != n or self.tasks.shape != (n,):
+            raise ValueError("RealEpisodes: one instruction and task per episode")
+
+    @classmethod
+    def from_recorded(cls, rec: RecordedEpisodes, instructions, tasks) -> "RealEpisodes":
+        return cls(np.asarray(rec.frames, np.uint8), np.asarray(rec.proprio, np.float32),
+                   np.asarray(rec.actions, np.float32), np.asarray(rec.success, bool), tuple(instructions),
+                   np.asarray(tasks, np.int64))
+
+    @property
+    def num(self) -> int:
+        return int(self.actions.shape[0])
+
+    @property
+    def solved(self) -> np.ndarray:
+        """``[n]`` whether the task was solved at some action (the episode's real outcome)."""
+        return self.success.any(axis=1)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """``[n]`` actions up to and including the first success (``T`` where none): the episode as an
+        evaluation that stops at success would have run it."""
+        t = self.actions.shape[1]
+        return np.where(self.solved, np.argmax(self.success, axis=1) + 1, t).astype(np.int64)
+
+    def episode_set(self) -> rl_data.EpisodeSet:
+        """Every frame before an action, with the success predicate of the state each frame shows."""
+        n, t = self.actions.shape[:2]
+        frame_success = np.concatenate([np.zeros((n, 1), bool), self.success[:, :-1]], axis=1)
+        return rl_data.EpisodeSet(frames=self.frames[:, :t], actions=self.actions, proprio=self.proprio[:, :t],
+                                  lengths=np.full(n, t, np.int64), success=self.solved,
+                                  instructions=self.instructions, frame_success=frame_success, tasks=self.tasks)
+
+    def branch_set(self) -> rl_data.EpisodeSet:
+        """The states before each episode's first success, where imagined rollouts may branch off."""
+        return dataclasses.replace(self.episode_set(), lengths=self.lengths)
+
+    def traced(self, head_steps: int) -> sim_agreement.TracedEpisodes:
+        """The episodes as :mod:`~sword_jax.rl.sim_agreement` replays them: stopped at their first success."""
+        lengths = self.lengths
+        actions = np.where(np.arange(self.actions.shape[1])[None, :, None] < lengths[:, None, None], self.actions, 0.0)
+        return sim_agreement.TracedEpisodes(self.frames[:, : head_steps + 1], self.proprio[:, : head_steps + 1],
+                                            actions.astype(np.float32), lengths, self.solved, self.instructions)
+
+    def subset(self, idx: np.ndarray) -> "RealEpisodes":
+        return RealEpisodes(self.frames[idx], self.proprio[idx], self.actions[idx], self.success[idx],
+                            tuple(self.instructions[i] for i in idx), self.tasks[idx])
+
+    def save(self, path: str) -> None:
+        np.savez(path, frames=self.frames, proprio=self.proprio, actions=self.actions, success=self.success,
+                 instructions=np.asarray(self.instructions), tasks=self.tasks)
+
+    @classmethod
+    def load(cls, path: str) -> "RealEpisodes":
+        with np.load(path) as f:
+            return cls(f["frames"], f["proprio"], f["actions"], f["success"], tuple(str(s) for s in f["instructions"]),
+                       f["tasks"])
+
+
+Collect = Callable[[Any, int, int], RealEpisodes]  # (policy params, GRPO step, episodes) -> real episodes
+
+
+def _save_tree(path: str, tree: Any) -> None:
+    np.savez(path, *[np.asarray(x) for x in jax.tree.leaves(jax.device_get(tree))])
+
+
+def _load_tree(path: str, like: Any) -> Any:
+    leaves, treedef = jax.tree.flatten(like)
+    with np.load(path) as f:
+        loaded = [f[f"arr_{i}"] for i in range(len(leaves))]
+    for old, new in zip(leaves, loaded):
+        if np.shape(old) != new.shape:
+            raise ValueError(f"refresh: a saved array has shape {new.shape}, the model's {np.shape(old)} ({path})")
+    placed = [jax.device_put(new.astype(np.asarray(old).dtype if not isinstance(old, jax.Array) else old.dtype),
+                             old.sharding if isinstance(old, jax.Array) else None) for old, new in zip(leaves, loaded)]
+    return jax.tree.unflatten(treedef, placed)
+
+
+def stratified_split(outcome: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """``[n]`` bool: ``fraction`` of the successes and of the failures (at least one of each where there are
+    two or more), drawn by ``rng``."""
+    outcome = np.asarray(outcome, bool)
+    mask = np.zeros(outcome.shape, bool)
+    for value in (True, False):
+        idx = np.flatnonzero(outcome == value)
+        take = int(round(fraction * idx.size))
+        if idx.size >= 2:
+            take = min(max(take, 1), idx.size - 1)
+        mask[rng.permutation(idx)[:take]] = True
+    return mask
+
+
+def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, steps: int, learning_rate: float,
+                         seed: int, mesh=None, log: Callable[[str], Any] = print) -> tuple[tuple[Any, Any], dict]:
+    """``steps`` world-model steps from ``wm_state`` (``(params, buffers)``) on ``dataset``
+    (:class:`~sword_jax.world_model.data.LatentDataset`), at a constant ``learning_rate`` after a short
+    warmup, fresh AdamW moments and, with DLB, a fresh cache whose schedule runs over the fine-tune.
+    Returns ``((params, buffers), last metrics)``."""
+    from sword_jax.dit.action_dit import WorldModel
+    from sword_jax.train_loop import run_steps
+    from sword_jax.world_model import data as wm_data
+    from sword_jax.world_model import train_step as wm_step
+    from sword_jax.world_model.train_state import create_train_state
+
+    mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
+    rules = cfg.mesh.rules
+    warmup = min(cfg.trainer.warmup_steps, max(steps // 10, 1))
+    trainer = dataclasses.replace(cfg.trainer, steps=steps, learning_rate=learning_rate, warmup_steps=warmup,
+                                  lr_schedule="constant", ema_decay=0.0, log_every=max(steps // 4, 1))
+    cache = (dataclasses.replace(cfg.cache, schedule_steps=steps, warmup_steps=min(cfg.cache.warmup_steps, warmup))
+             if cfg.cache.enabled else cfg.cache)
+    k, f = cfg.data.context_frames // cfg.vae.temporal_factor, cfg.data.predict_frames // cfg.vae.temporal_factor
+    graphdef, state, shardings = create_train_state(lambda: WorldModel(cfg.model, rngs=nnx.Rngs(seed)), trainer, cache,
+                                                    dataset.shape, mesh, rules)
+    params, buffers = wm_state
+    state = state.replace(params=jax.device_put(params, shardings.params),
+                          buffers=jax.device_put(buffers, shardings.buffers))
+    sampler = wm_data.SegmentSampler(dataset.shape[0], dataset.shape[1], k, f, cfg.data.batch_size, seed=seed)
+    loader = wm_data.SegmentLoader(dataset, sampler, k, f, mesh, rules)
+    step_fn = wm_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=trainer, cache_cfg=cache,
+                                      num_context=k, num_episodes=dataset.shape[0])
+    step = wm_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
+
+    def report(done, metrics, _observed, _eta):
+        log(f"world model refresh step {done}/{steps} loss {metrics.get('loss', float('nan')):.4f}")
+        return {"step": done, **metrics}
+
+    result = run_steps(step, state, loader.host_batch_at, key=shd.put(jax.random.key(seed), shd.replicated(mesh)),
+                       steps=steps, log_every=trainer.log_every, name="world model refresh", report=report,
+                       place=loader.place, settle=True, log=log)
+    return (result.state.params, result.state.buffers), (result.history[-1] if result.history else {})
+
+
+class Refresher:
+    """The refreshes of one GRPO run (module docstring).
+
+    Args:
+      cfg: the experiment config (world model, data, DLB, mesh, seed); ``cfg.rl`` is not read, ``rl`` is.
+      rl: the run's RL config (``rl.refresh``, the detector, the imagined-success rule).
+      wm_state: the world model's ``(params, buffers)`` at the start of the run.
+      make_simulator: ``wm_state -> LearnedSimulator`` (the VAE bound in).
+      encode: ``(first_frames, history) -> start latents`` (:func:`~sword_jax.rl.world_model_sim.encode_history`).
+      encode_frames: ``frames [n, F, H, W, 3] in [0, 1] -> latents [n, L, h, w, c]``: the training latents
+        of the world model (the VAE's encoder as the run's latents were made).
+      detector: ``(graphdef, params)`` of the success detector at the start of the run.
+      base: the world model's training latents (:class:`~sword_jax.world_model.data.LatentDataset`).
+      collect: ``collect(policy params, step, n) -> RealEpisodes``.
+      directory: where the refreshes are saved.
+    """
+
+    def __init__(self, cfg: Any, rl: Any, *, wm_state: Any, make_simulator: Callable[[Any], LearnedSimulator],
+                 encode: Callable[..., Any], encode_frames: Callable[[np.ndarray], np.ndarray],
+                 detector: tuple[Any, Any], base: Any, collect: Collect, directory: str, mesh=None,
+                 log: Callable[[str], Any] = print):
+        rl.refresh.validate()
+        if not rl.refresh.every:
+            raise ValueError("Refresher: rl.refresh.every is 0 (refresh off)")
+        self.cfg, self.rl, self.conf = cfg, rl, rl.refresh
+        self.make_simulator, self.encode, self.encode_frames = make_simulator, encode, encode_frames
+        self.mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
+        self.det_graphdef, self.det_params = detector[0], jax.device_put(detector[1], shd.replicated(self.mesh))
+        self.initial = (wm_state, self.det_params)
+        self.wm_state, self.shift = wm_state, 0.0
+        # one reward model whose params change (new closures would make every compiled step trace again)
+        self._reward_model = shifted_reward_model(self.det_graphdef, self.det_params, 0.0)
+        self.base, self.collect, self.directory, self.log = base, collect, directory, log
+        self.tf = cfg.vae.temporal_factor
+        self.k = cfg.data.context_frames // self.tf
+        self.window = cfg.data.episode_frames
+        self.rounds: list[tuple[np.ndarray, np.ndarray]] = []  # each refresh's (latents, actions) so far
+        self.branch: rl_data.EpisodeSet | None = None
+        self.used, self.loaded, self.records = 0, None, []
+        settle = rl.imagined.eval_replay_settle_steps
+        self._replay_fn = jax.jit(lambda sim, rm, start, actions, lengths, key, record: sim_agreement.replay_actions(
+            sim, rm, start, actions, lengths, success_threshold=rl.success_threshold, key=key, settle_steps=settle,
+            success_frames=rl.imagined.success_frames, record_frames=record), static_argnums=(6,))
+        os.makedirs(directory, exist_ok=True)
+
+    # ---- what GRPO reads -------------------------------------------------------------------------------
+    def simulator(self) -> LearnedSimulator:
+        return self.make_simulator(self.wm_state)
+
+    def reward_model(self) -> RewardModel:
+        return self._reward_model.replace(params={"net": self.det_params, "shift": jnp.asarray(self.shift, jnp.float32)})
+
+    def due(self, step: int) -> bool:
+        return step % self.conf.every == 0
+
+    def branch_pick(self, step: int, count: int) -> dict[str, Any] | None:
+        """``count`` start states of step ``step`` branched from the latest refresh's real episodes (every
+        latent-aligned frame before their success; a function of (seed, step)), or None without branching."""
+        if not self.conf.branch or self.branch is None:
+            return None
+        return rl_data.keyframe_starts(self.branch, count, stream_rng(self.cfg.seed, "grpo/branch", step),
+                                       max_fraction=1.0, num_context=self.k, frames_per_latent=self.tf)
+
+    # ---- persistence -------------------------------------------------------------------------------------
+    def _dir(self, step: int) -> str:
+        return os.path.join(self.directory, f"step_{step:06d}")
+
+    def done_steps(self) -> list[int]:
+        out = []
+        for name in os.listdir(self.directory):
+            if name.startswith("step_") and os.path.exists(os.path.join(self.directory, name, "record.json")):
+                out.append(int(name[len("step_"):]))
+        return sorted(out)
+
+    def at(self, step: int) -> None:
+        """Makes the models those of the latest refresh at or before ``step`` (a resumed run's state)."""
+        done = [s for s in self.done_steps() if s <= step]
+        want = done[-1] if done else None
+        if want == self.loaded:
+            return
+        self.wm_state, self.det_params = self.initial
+        self.shift, self.rounds, self.branch, self.used, self.records = 0.0, [], None, 0, []
+        for s in done:
+            self._load(s)
+        self.loaded = want
+
+    def _load(self, step: int) -> dict:
+        d = self._dir(step)
+        with open(os.path.join(d, "record.json")) as f:
+            record = json.load(f)
+        self.used = int(record["real_episodes_used"])
+        self.records.append(record)
+        if record.get("skipped"):
+            return record
+        self.wm_state = _load_tree(os.path.join(d, "world_model.npz"), self.wm_state)
+        self.det_params = _load_tree(os.path.join(d, "detector.npz"), self.det_params)
+        self.shift = float(record["detector"]["shift"])
+        with np.load(os.path.join(d, "latents.npz")) as f:
+            self.rounds.append((f["latents"], f["actions"]))
+        self.branch = RealEpisodes.load(os.path.join(d, "episodes.npz")).branch_set()
+        return record
+
+    # ---- one refresh ---------------------------------------------------------------------------------
+    def refresh(self, step: int, policy_params: Any) -> dict[str, Any]:
+        """The refresh at GRPO step ``step`` with the current policy (module docstring); returns its record
+        (also ``<directory>/step_XXXXXX/record.json``). One saved already is loaded instead."""
+        self.at(step - 1)  # the models as the steps before this one trained in
+        if step in self.done_steps():
+            record = self._load(step)
+            self.loaded = step
+            return record
+        t0 = time.perf_counter()
+        conf = self.conf
+        n = min(conf.episodes, conf.budget - self.used)
+        d = self._dir(step)
+        shutil.rmtree(d, ignore_errors=True)  # a killed refresh's leftovers
+        os.makedirs(d)
+        if n < 2:
+            record = {"step": step, "skipped": f"the budget of {conf.budget} real episodes is spent",
+                      "real_episodes": 0, "real_episodes_used": self.used}
+            write_json_atomic(os.path.join(d, "record.json"), record)
+            self.records.append(record)
+            self.loaded = step
+            self.log(f"refresh at step {step}: skipped ({record['skipped']})")
+            return record
+        real = self.collect(policy_params, step, n)
+        self.used += real.num
+        solved = real.solved
+        key = jax.random.fold_in(jax.random.key(self.cfg.seed), step)
+        # 1. before anything changes: the simulator GRPO trained in, on the policy's new real episodes
+        before = self._replay_report(real, self.simulator(), self.reward_model(), jax.random.fold_in(key, 1))
+        # 2. the world model, on its training latents and every refresh's episodes
+        latents = self._latents(real)
+        self.rounds.append(latents)
+        wm_metrics = self._finetune_world_model(step)
+        # 3. the detector, on real frames and on the new world model's replays of the real episodes
+        rng = stream_rng(self.cfg.seed, "refresh/split", step)
+        calibrate = stratified_split(solved, conf.calibrate_fraction, rng)
+        detector = self._refresh_detector(step, real, calibrate, jax.random.fold_in(key, 2))
+        self.branch = real.branch_set()
+        record = {"step": step, "real_episodes": real.num, "real_episodes_used": self.used,
+                  "budget": conf.budget, "real_success": float(solved.mean()), "replay": before,
+                  "world_model": {"steps": conf.world_model_steps, "training_episodes": int(self.base.latents.shape[0]),
+                                  "real_episodes": int(sum(r[0].shape[0] for r in self.rounds)),
+                                  "last": {k: float(v) for k, v in wm_metrics.items() if np.isscalar(v)}},
+                  "detector": detector, "seconds": round(time.perf_counter() - t0, 1)}
+        _save_tree(os.path.join(d, "world_model.npz"), self.wm_state)
+        _save_tree(os.path.join(d, "detector.npz"), self.det_params)
+        np.savez(os.path.join(d, "latents.npz"), latents=latents[0], actions=latents[1])
+        real.save(os.path.join(d, "episodes.npz"))
+        write_json_atomic(os.path.join(d, "record.json"), record)  # last: the refresh is complete
+        self.records.append(record)
+        self.loaded = step
+        fs = before["false_success"]
+        self.log(f"refresh at step {step}: {real.num} real episodes (used {self.used}/{conf.budget}), real success "
+                 f"{solved.mean():.3f}; before it the simulator called {fs['rate'] if fs['rate'] is not None else 'n/a'} "
+                 f"of {fs['of']} real failures successes; detector threshold {detector['threshold']:.4f} "
+                 f"({record['seconds']} s)")
+        return record
+
+    def _latents(self, real: RealEpisodes) -> tuple[np.ndarray, np.ndarray]:
+        w = self.window
+        if real.actions.shape[1] < w:
+            raise ValueError(f"refresh: episodes of {real.actions.shape[1]} actions are shorter than the world model's "
+                             f"training windows (data.episode_frames={w}); raise rl.refresh.episode_steps")
+        frames = real.frames[:, :w].astype(np.float32) / np.float32(255.0)
+        return np.asarray(self.encode_frames(frames), np.float32), real.actions[:, :w].astype(np.float32)
+
+    def _finetune_world_model(self, step: int) -> dict:
+        from sword_jax.world_model.data import LatentDataset
+
+        real_latents = np.concatenate([r[0] for r in self.rounds])
+        real_actions = np.concatenate([r[1] for r in self.rounds])
+        # the policy's episodes repeated to about as many as the training latents: half of the fine-tune's
+        # segments come from what the moving policy really did, however few refreshes there were so far
+        reps = max(1, int(round(self.base.latents.shape[0] / real_latents.shape[0])))
+        latents = np.concatenate([self.base.latents, *([real_latents] * reps)])
+        actions = np.concatenate([self.base.actions, *([real_actions] * reps)])
+        self.wm_state, metrics = finetune_world_model(
+            self.cfg, self.wm_state, LatentDataset(latents, actions), steps=self.conf.world_model_steps,
+            learning_rate=self.conf.world_model_learning_rate, seed=self.cfg.seed + 1 + step, mesh=self.mesh,
+            log=self.log)
+        return dict(metrics, real_repeats=reps)
+
+    def _replay(self, real: RealEpisodes, sim, rm, key, *, record: bool):
+        traced = real.traced(self.tf * self.k)
+        start, actions, lengths = sim_agreement.replay_starts(
+            traced, self.encode, num_context=self.k, frames_per_latent=self.tf, proprio_dim=self.rl.proprio_dim,
+            max_instruction_bytes=self.rl.policy.max_instruction_bytes)
+        settle = self.rl.imagined.eval_replay_settle_steps
+        actions = np.pad(actions, ((0, 0), (0, settle), (0, 0)))
+        lengths = np.maximum(lengths, 1)
+        mesh = self.mesh
+        sim, rm = jax.device_put((sim, rm), shd.shardings_on((sim, rm), mesh))
+        start, actions, lengths, key = jax.device_put((start, jnp.asarray(actions), jnp.asarray(lengths), key),
+                                                      shd.replicated(mesh))
+        out = self._replay_fn(sim, rm, start, actions, lengths, key, record)
+        return jax.device_get(out), lengths
+
+    def _replay_report(self, real: RealEpisodes, sim, rm, key) -> dict[str, Any]:
+        out, _ = self._replay(real, sim, rm, key, record=False)
+        imagined = np.asarray(out.success, bool)
+        report = sim_agreement.agreement(real.solved, imagined)
+        report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(real.solved,
+                                                                                 np.asarray(out.first_success))
+        return report
+
+    def _refresh_detector(self, step: int, real: RealEpisodes, calibrate: np.ndarray, key) -> dict[str, Any]:
+        conf, rl = self.conf, self.rl
+        out, lengths = self._replay(real, self.simulator(), self.reward_model(), key, record=True)
+        frames = np.asarray(out.frames)
+        e, t = frames.shape[:2]
+        settle = rl.imagined.eval_replay_settle_steps
+        replayed = rl_data.EpisodeSet(frames=frames, actions=np.zeros((e, t, rl.action_dim), np.float32),
+                                      proprio=np.zeros((e, t, rl.proprio_dim), np.float32),
+                                      lengths=(lengths + settle).astype(np.int64), success=real.solved,
+                                      instructions=real.instructions)
+        replay_labels = sim_agreement.replay_labels(replayed, lengths, rl.reward_model.positive_tail)
+        real_set = real.episode_set()
+        real_labels = rl_data.success_labels(real_set, rl.reward_model.positive_tail, "state")
+        train = np.flatnonzero(~calibrate)
+        sources = []
+        train_real = real_set.subset(train)
+        if (real_labels[train] == 0).any():
+            sources.append((train_real, real_labels[train], 1.0 - conf.replay_share))
+        train_replay = replayed.subset(train)
+        if (replay_labels[train] == 0).any() and conf.replay_share > 0:
+            sources.append((train_replay, replay_labels[train], conf.replay_share))
+        total = sum(share for *_, share in sources)
+        sources = [(a, b, share / total) for a, b, share in sources if share > 0]
+
+        def batch_at(s):
+            return rl_data.sample_mixed_reward_batch(sources, rl.reward_model.batch_size,
+                                                     stream_rng(self.cfg.seed, "refresh/detector", step, s))
+
+        metrics = {}
+        if sources:
+            state, metrics = train_detector(self.det_graphdef, self.det_params, rl, batch_at,
+                                            key=jax.random.fold_in(key, 3), steps=conf.detector_steps,
+                                            log=lambda line: None, mesh=self.mesh)
+            self.det_params = state.params
+        unshifted = self._reward_model.replace(params={"net": self.det_params, "shift": jnp.zeros((), jnp.float32)})
+        score = jax.jit(unshifted.score_fn)
+        score = functools.partial(score, unshifted.params)
+        held = np.flatnonzero(calibrate)
+        out_report: dict[str, Any] = {"loss": float(metrics.get("loss", np.nan)), "train_episodes": int(train.size),
+                                      "calibration_episodes": int(held.size)}
+        if held.size == 0:  # too few episodes of each outcome to hold any out: the run's threshold stays
+            self.shift = 0.0
+            out_report.update(calibration="no held-out episode: threshold kept", threshold=float(rl.success_threshold),
+                              shift=0.0)
+            return out_report
+        scores = score_episodes(score, frames[held])
+        decisive = sim_agreement.decisive_scores(scores, replayed.lengths[held], rl.imagined.success_frames)
+        if (~real.solved[held]).any():
+            chosen = sim_agreement.calibrate_threshold(decisive, real.solved[held],
+                                                       max_false_success=conf.max_false_success)
+            threshold = chosen["threshold"]
+            out_report["calibration"] = {k: chosen[k] for k in ("false_success", "missed_success", "imagined_success")}
+        else:  # no real failure to bound: keep the run's threshold
+            threshold = rl.success_threshold
+            out_report["calibration"] = "no real failure among the calibration episodes: threshold kept"
+        self.shift = threshold_shift(threshold, rl.success_threshold)
+        fire = scores >= threshold
+        labels = replay_labels[held]
+        truth, labelled = labels == 1, labels >= 0
+        tp = float((fire & truth & labelled).sum())
+        out_report["imagined_frames"] = {"precision": tp / max(float((fire & labelled).sum()), 1.0),
+                                         "recall": tp / max(float(truth.sum()), 1.0)}
+        real_scores = score_episodes(score, real_set.frames[held])
+        out_report["real_frames"] = detector_report(real_scores, real_set.subset(held), threshold)
+        out_report.update(threshold=float(threshold), shift=float(self.shift))
+        return out_report

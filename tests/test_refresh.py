@@ -1,0 +1,208 @@
+"""GRPO in the learned simulator refreshed on the policy's real episodes (sword_jax.rl.refresh,
+sword_jax.pipeline.grpo_refresh): the policy's recorded episodes, the refresh's effect on the world model and
+the detector, the real-episode budget, and an exact resume across refreshes, on the tiny run's VAE and world
+model with a toy pure-JAX environment standing in for MJX (MJX compiles for minutes on a CPU)."""
+
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import configs
+from sword_jax.load import experiment_vae
+from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
+from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
+from sword_jax.rl.config import RefreshConfig
+from sword_jax.rl.params_io import save_params
+from sword_jax.rl.policy import build_policy
+from sword_jax.rl.policy_success import success_summary
+from sword_jax.rl.refresh import RealEpisodes, stratified_split
+from sword_jax.rl.reward_model import build_detector, shifted_reward_model, threshold_shift
+from sword_jax.rl.scan_rollout import record_episodes
+from sword_jax.world_model.data import LatentDataset
+
+SIZE = 32
+TEXTS = ("put the bowl on the plate", "put the bowl in the drawer")
+
+
+class Slide:
+    """A square that the first action dimension moves right; success once it is past the goal. Frames at
+    ``SIZE`` px, proprio 8-D (position first)."""
+
+    goal = 0.3
+
+    def _obs(self, pos):
+        n = pos.shape[0]
+        cols = jnp.arange(SIZE, dtype=jnp.float32)[None] / SIZE
+        x = (pos[:, None] + 1.0) / 2.0
+        column = (jnp.abs(cols - x) < 0.12).astype(jnp.float32)  # [n, W]
+        img = jnp.broadcast_to(column[:, None, :, None], (n, SIZE, SIZE, 3)) * jnp.asarray([200.0, 80.0, 40.0])
+        proprio = jnp.concatenate([pos[:, None], jnp.zeros((n, 7), jnp.float32)], axis=1)
+        return {"frames": (img + 20.0).astype(jnp.uint8), "proprio": proprio}
+
+    def reset(self, starts):
+        pos = jnp.asarray(starts, jnp.float32)[:, 0]
+        return pos, self._obs(pos)
+
+    def step(self, pos, actions):
+        pos = jnp.clip(pos + 0.08 * jnp.clip(actions[:, 0], -1.0, 1.0), -1.0, 1.0)
+        return pos, self._obs(pos), pos > self.goal
+
+
+def _cfg(workdir):
+    cfg = configs.get("sword:tiny")
+    rl = cfg.rl
+    rl = dataclasses.replace(
+        rl, env=dataclasses.replace(rl.env, execute_steps=4, action_ensemble=False, backend="mjx"),
+        grpo=dataclasses.replace(rl.grpo, steps=2, eval_every=1, rollout_batch=2, group_size=2),
+        imagined=dataclasses.replace(rl.imagined, max_chunks=2, execute_steps=4, eval_replay_settle_steps=2),
+        reward_model=dataclasses.replace(rl.reward_model, batch_size=8),
+        refresh=RefreshConfig(every=1, episodes=4, budget=6, episode_steps=cfg.data.episode_frames, world_model_steps=2,
+                              detector_steps=2, replay_share=0.5, calibrate_fraction=0.5))
+    return dataclasses.replace(cfg, workdir=str(workdir), model=dataclasses.replace(cfg.model, num_layers=1), rl=rl)
+
+
+def _pool_starts(n, rng):
+    tasks = np.arange(n) % 2
+    return rng.uniform(-0.4, 0.2, (n, 1)).astype(np.float32), [TEXTS[t] for t in tasks], tasks
+
+
+def _run(cfg, tiny_run, workdir, steps):
+    rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=steps))
+    graphdef, params = build_policy(rl, seed=0)
+    det_graphdef, det_params = build_detector(rl, seed=0)
+    reward = os.path.join(workdir, "detector")
+    if not os.path.exists(reward):
+        save_params(reward, det_params, rl, kind="reward_model", step=0)
+    vae = experiment_vae(cfg, os.path.join(tiny_run, "vae_run", "vae"))
+    env = Slide()
+    first = jax.jit(lambda p, s, t, k: record_episodes(graphdef, p, env, s, t, rl, key=k, steps=cfg.data.episode_frames))
+    from sword_jax.rl.policy import tokenize_instructions
+
+    starts, texts, tasks = _pool_starts(4, np.random.default_rng(5))
+    rec = first(params, jnp.asarray(starts), jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes)),
+                jax.random.key(3))
+    demos = RealEpisodes.from_recorded(jax.device_get(rec), texts, tasks)
+    inputs = GRPOInputs(world_model=os.path.join(tiny_run, "world_model"), vae=os.path.join(tiny_run, "vae_run", "vae"),
+                        reward=reward)
+    setup = world_model_setup(cfg, rl, inputs, demos.episode_set())
+    from sword_jax.vae import api as vae_api
+
+    encoder = vae_api.encoder(*vae)
+
+    def encode_frames(frames):
+        return np.asarray(encoder(frames * np.float32(2.0) - np.float32(1.0)))
+
+    base = LatentDataset(encode_frames(demos.frames[:, : cfg.data.episode_frames].astype(np.float32) / 255.0),
+                         demos.actions[:, : cfg.data.episode_frames])
+
+    def evaluate_real(step, p):
+        rec = first(p, jnp.asarray(starts), jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes)),
+                    jax.random.key(7))
+        return success_summary(np.asarray(rec.success).any(1), tasks, 0.0), {}
+
+    wm_state, vae_params = setup.sim.params
+    return run_refreshed(cfg, rl, graphdef, params, os.path.join(workdir, "grpo"), setup=setup, wm_state=wm_state,
+                         make_simulator=lambda s: setup.sim.replace(params=(s, vae_params)), encode_frames=encode_frames,
+                         detector=(det_graphdef, setup.reward_model.params), base=base, env=env,
+                         collect_starts=stratified_collect_starts(_pool_starts, cfg.seed), evaluate_real=evaluate_real,
+                         max_traces=1)
+
+
+def _leaves(path):
+    with np.load(path) as f:
+        return [f[k] for k in sorted(f.files, key=lambda k: int(k.split("_")[1]))]
+
+
+@pytest.mark.slow  # ~3.5 min on 2 cores: three short runs, each compiling the GRPO step, the fine-tunes and the replays
+def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_run, tmp_path):
+    cfg = _cfg(tmp_path / "a")
+    whole = _run(cfg, tiny_run, str(tmp_path / "a"), steps=2)
+    records = whole["refreshes"]
+    # refreshes at steps 0, 1 and 2: 4 + 2 real episodes, then the budget of 6 is spent
+    assert [r["step"] for r in records] == [0, 1, 2]
+    assert [r["real_episodes"] for r in records] == [4, 2, 0] and "budget" in records[2]["skipped"]
+    assert whole["real_episodes_used"] == 6 and [h["real_episodes_used"] for h in whole["history"]] == [4, 6]
+    # the world model and the detector changed at each refresh
+    ref = os.path.join(str(tmp_path / "a"), "grpo", "refresh")
+    wm0, wm2 = _leaves(os.path.join(ref, "step_000000", "world_model.npz")), _leaves(
+        os.path.join(ref, "step_000001", "world_model.npz"))
+    det0, det2 = _leaves(os.path.join(ref, "step_000000", "detector.npz")), _leaves(
+        os.path.join(ref, "step_000001", "detector.npz"))
+    assert any(not np.array_equal(a, b) for a, b in zip(wm0, wm2))
+    assert any(not np.array_equal(a, b) for a, b in zip(det0, det2))
+    first = records[0]
+    assert first["world_model"]["real_episodes"] == 4 and records[1]["world_model"]["real_episodes"] == 6
+    assert {"false_success", "missed_success", "imagined_success_by_horizon"} <= set(first["replay"])
+    assert {"threshold", "shift", "imagined_frames", "real_frames"} <= set(first["detector"])
+    # stopped after the refresh at step 1 and rerun: bit-identical to the uninterrupted run
+    cfg_b = _cfg(tmp_path / "b")
+    _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=1)
+    resumed = _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=2)
+    for key in ("loss", "success_rate", "real_episodes_used"):
+        assert [h[key] for h in resumed["history"]] == [h[key] for h in whole["history"]], key
+    ref_b = os.path.join(str(tmp_path / "b"), "grpo", "refresh")
+    for name in ("world_model.npz", "detector.npz"):
+        for a, b in zip(_leaves(os.path.join(ref, "step_000001", name)), _leaves(os.path.join(ref_b, "step_000001", name))):
+            np.testing.assert_array_equal(a, b)
+    with open(os.path.join(str(tmp_path / "a"), "grpo", "success_curve.json")) as f:
+        curve_a = json.load(f)["points"]
+    with open(os.path.join(str(tmp_path / "b"), "grpo", "success_curve.json")) as f:
+        curve_b = json.load(f)["points"]
+    assert [p["mean"] for p in curve_a] == [p["mean"] for p in curve_b]
+
+
+def test_recorded_episodes_keep_every_frame_and_go_on_after_success():
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=3, action_ensemble=False))
+    graphdef, params = build_policy(rl, seed=0)
+    env = Slide()
+    from sword_jax.rl.policy import tokenize_instructions
+
+    starts = jnp.asarray([[0.29], [-0.5]], jnp.float32)
+    tokens = jnp.asarray(tokenize_instructions(list(TEXTS), rl.policy.max_instruction_bytes))
+    rec = record_episodes(graphdef, params, env, starts, tokens, rl, key=jax.random.key(0), steps=7)
+    assert rec.frames.shape == (2, 8, SIZE, SIZE, 3) and rec.actions.shape == (2, 7, 7) and rec.success.shape == (2, 7)
+    # replaying the recorded actions in the env gives the recorded frames and success, step by step
+    pos, obs = env.reset(starts)
+    for t in range(7):
+        np.testing.assert_array_equal(np.asarray(obs["frames"]), np.asarray(rec.frames[:, t]))
+        pos, obs, reached = env.step(pos, rec.actions[:, t])
+        np.testing.assert_array_equal(np.asarray(reached), np.asarray(rec.success[:, t]))
+    np.testing.assert_array_equal(np.asarray(obs["frames"]), np.asarray(rec.frames[:, 7]))
+    real = RealEpisodes.from_recorded(jax.device_get(rec), TEXTS, np.asarray([0, 1]))
+    lengths = real.lengths
+    assert np.all((lengths == 7) | real.solved) and np.all(lengths[real.solved] == np.argmax(real.success, 1)[real.solved] + 1)
+    branch = real.branch_set()
+    assert np.array_equal(branch.lengths, lengths) and branch.frame_success[:, 0].sum() == 0
+
+
+def test_a_threshold_shift_moves_the_detector_threshold_exactly():
+    rl = configs.get("sword:tiny").rl
+    graphdef, params = build_detector(rl, seed=0)
+    frames = jax.random.uniform(jax.random.key(1), (16, SIZE, SIZE, 3))
+    plain = np.asarray(shifted_reward_model(graphdef, params, 0.0).score(frames))
+    c = float(np.median(plain))
+    shifted = np.asarray(shifted_reward_model(graphdef, params, threshold_shift(c, rl.success_threshold)).score(frames))
+    np.testing.assert_array_equal(shifted >= rl.success_threshold - 1e-6, plain >= c - 1e-6)
+    assert threshold_shift(1.5, 0.9) > 0 and np.isfinite(threshold_shift(1.5, 0.9))
+
+
+def test_stratified_split_takes_a_share_of_each_outcome():
+    outcome = np.asarray([True] * 6 + [False] * 10)
+    mask = stratified_split(outcome, 0.5, np.random.default_rng(0))
+    assert mask[outcome].sum() == 3 and mask[~outcome].sum() == 5
+    two = stratified_split(np.asarray([True, False, False]), 0.1, np.random.default_rng(0))
+    assert two[1:].sum() == 1 and not two[0]  # one failure at least, never all of a kind
+
+
+@pytest.mark.parametrize("bad, message", [(dict(every=2, episodes=4, budget=2), "budget"),
+                                          (dict(every=-1), "every"),
+                                          (dict(every=2, episodes=4, budget=8, calibrate_fraction=1.0), "calibrate")])
+def test_refresh_config_refuses_bad_settings(bad, message):
+    with pytest.raises(ValueError, match=message):
+        RefreshConfig(**bad).validate()
