@@ -49,6 +49,7 @@ import numpy as np
 import configs
 from benchmarks import common
 from sword_jax import cli
+from sword_jax.rl.params_io import load_params_npz, save_params_npz
 from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
 
@@ -80,33 +81,8 @@ def _gen_demos(out: str, tasks: list[int], per_task: int, resolution: int, noise
     return paths
 
 
-def save_npz(path: str, params) -> None:
-    from flax import nnx
-
-    flat = {"/".join(map(str, k)): np.asarray(v) for k, v in _flatten(nnx.to_pure_dict(params))}
-    np.savez(path, **flat)
-
-
-def load_npz(path: str, params):
-    from flax import nnx
-
-    data = np.load(path)
-    pure = nnx.to_pure_dict(params)
-    for key, _ in _flatten(pure):
-        node = pure
-        for k in key[:-1]:
-            node = node[k]
-        node[key[-1]] = data["/".join(map(str, key))]
-    nnx.replace_by_pure_dict(params, pure)
-    return params
-
-
-def _flatten(tree, prefix=()):
-    for k, v in tree.items():
-        if isinstance(v, dict):
-            yield from _flatten(v, prefix + (k,))
-        else:
-            yield prefix + (k,), v
+save_npz = save_params_npz  # the policies this benchmark writes and reads
+load_npz = load_params_npz
 
 
 def run_sft(cfg, args) -> dict:

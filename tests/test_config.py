@@ -102,7 +102,7 @@ def test_rl_settings_are_set_in_their_sections():
 
 
 def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
-    from sword_jax.rl.config import RENAMED, RLConfig
+    from sword_jax.rl.config import RENAMED, RefreshConfig, RLConfig
 
     for old, new in RENAMED.items():
         with pytest.raises(ConfigError, match=f"^{re.escape(f'rl.{old} is now rl.{new}')}$"):
@@ -112,7 +112,8 @@ def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
                              "imagined.success_frames", "imagined.sim_microbatches", "grpo.minibatches",
                              "grpo.max_sample_rounds", "grpo.min_mixed_fraction", "env.backend",
                              "imagined.shared_group_noise", "imagined.guard_margin", "imagined.guard_min_failures",
-                             "imagined.confirm_success"}
+                             "imagined.confirm_success",
+                             *(f"refresh.{f.name}" for f in dataclasses.fields(RefreshConfig))}
     leaves = {key[len("rl."):] for key in flatten(configs.get("sword:tiny")) if key.startswith("rl.")}
     assert set(RENAMED.values()) <= leaves and added_after_the_split <= leaves
     assert leaves - set(RENAMED.values()) - added_after_the_split == {

@@ -206,3 +206,21 @@ def test_stratified_split_takes_a_share_of_each_outcome():
 def test_refresh_config_refuses_bad_settings(bad, message):
     with pytest.raises(ValueError, match=message):
         RefreshConfig(**bad).validate()
+
+
+def test_policy_npz_files_round_trip_and_refuse_another_architecture(tmp_path):
+    from sword_jax.rl.params_io import load_params, save_params_npz
+
+    rl = configs.get("sword:tiny").rl
+    _, params = build_policy(rl, seed=0)
+    path = str(tmp_path / "policy.npz")
+    save_params_npz(path, params)
+    _, fresh = build_policy(rl, seed=1)
+    loaded, meta = load_params(path, fresh, kind="policy")
+    for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert meta["format"] == "npz"
+    wider = dataclasses.replace(rl, policy=dataclasses.replace(rl.policy, width=rl.policy.width * 2))
+    _, other = build_policy(wider, seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        load_params(path, other, kind="policy")

@@ -53,7 +53,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--demos", action="append", default=[], help="demos whose frames are the start keyframes")
     parser.add_argument("--world-model", default="", help="world-model workdir (train_world_model)")
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae)")
-    parser.add_argument("--policy", default="", help="SFT policy checkpoint (train_policy); empty = from scratch")
+    parser.add_argument("--policy", default="", help="SFT policy: a train_policy checkpoint or an .npz of benchmarks.bench_policy; empty = from scratch")
     parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
     parser.add_argument("--latents", default="", help="the world model's training latents (.npz; rl.refresh needs them)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.grpo.eval_episodes_per_task")
@@ -88,7 +88,7 @@ def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers:
     os.makedirs(workdir, exist_ok=True)
 
     graphdef, params = build_policy(rl, seed=cfg.seed)
-    if inputs.policy:
+    if inputs.policy:  # an orbax directory (train_policy) or an .npz file (benchmarks.bench_policy)
         params, _ = load_params(inputs.policy, params, kind="policy")
     if simulator == "env":
         if rl.env.proprio == "reckoned" and not inputs.demos:
