@@ -344,8 +344,8 @@ class RefreshConfig:
       episode_steps: actions of each collected episode (the policy keeps acting after a success); 0 =
         ``sim.max_steps``. At least ``data.episode_frames`` (the world model's training windows).
       world_model_steps / world_model_learning_rate: the fine-tune of the world model per refresh, on the
-        run's training latents plus every refresh's episodes so far (repeated to about as many, so half of
-        its segments show what the moving policy really did).
+        run's training latents plus as many of the policy's episodes, drawn from every refresh so far (half
+        of its segments show what the moving policy really did).
       detector_steps: the fine-tune of the detector per refresh.
       replay_share: share of each detector batch taken from the world model's replays of real episodes
         (the rest from the real frames, labelled by the task's success predicate).

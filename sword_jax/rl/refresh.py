@@ -50,7 +50,8 @@ from sword_jax.atomic_write import write_json_atomic
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import sim_agreement
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel
-from sword_jax.rl.reward_model import detector_report, score_episodes, shifted_reward_model, threshold_shift, train_detector
+from sword_jax.rl.reward_model import (detector_report, make_detector_step, score_episodes, shifted_reward_model,
+                                      threshold_shift, train_detector)
 from sword_jax.rl.scan_rollout import RecordedEpisodes
 from sword_jax.rng import stream_rng
 
@@ -173,11 +174,14 @@ def stratified_split(outcome: np.ndarray, fraction: float, rng: np.random.Genera
 
 
 def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, steps: int, learning_rate: float,
-                         seed: int, mesh=None, log: Callable[[str], Any] = print) -> tuple[tuple[Any, Any], dict]:
+                         seed: int, mesh=None, log: Callable[[str], Any] = print,
+                         compiled: dict | None = None) -> tuple[tuple[Any, Any], dict]:
     """``steps`` world-model steps from ``wm_state`` (``(params, buffers)``) on ``dataset``
     (:class:`~sword_jax.world_model.data.LatentDataset`), at a constant ``learning_rate`` after a short
     warmup, fresh AdamW moments and, with DLB, a fresh cache whose schedule runs over the fine-tune.
-    Returns ``((params, buffers), last metrics)``."""
+    ``compiled``: a dict kept between calls; the compiled step is stored there and reused while the
+    dataset's shape stays the same (a refresh's fine-tunes then compile once). Returns
+    ``((params, buffers), last metrics)``."""
     from sword_jax.dit.action_dit import WorldModel
     from sword_jax.train_loop import run_steps
     from sword_jax.world_model import data as wm_data
@@ -199,9 +203,13 @@ def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, s
                           buffers=jax.device_put(buffers, shardings.buffers))
     sampler = wm_data.SegmentSampler(dataset.shape[0], dataset.shape[1], k, f, cfg.data.batch_size, seed=seed)
     loader = wm_data.SegmentLoader(dataset, sampler, k, f, mesh, rules)
-    step_fn = wm_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=trainer, cache_cfg=cache,
-                                      num_context=k, num_episodes=dataset.shape[0])
-    step = wm_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules)
+    compiled = {} if compiled is None else compiled
+    if compiled.get("shape") != tuple(dataset.shape):
+        step_fn = wm_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=trainer, cache_cfg=cache,
+                                          num_context=k, num_episodes=dataset.shape[0])
+        compiled.update(shape=tuple(dataset.shape),
+                        step=wm_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules))
+    step = compiled["step"]
 
     def report(done, metrics, _observed, _eta):
         log(f"world model refresh step {done}/{steps} loss {metrics.get('loss', float('nan')):.4f}")
@@ -252,6 +260,8 @@ class Refresher:
         self.rounds: list[tuple[np.ndarray, np.ndarray]] = []  # each refresh's (latents, actions) so far
         self.branch: rl_data.EpisodeSet | None = None
         self.used, self.loaded, self.records = 0, None, []
+        self._wm_compiled: dict = {}  # the world model's fine-tune step, compiled once
+        self._det_compiled = make_detector_step(self.det_graphdef, rl, mesh=self.mesh)
         settle = rl.imagined.eval_replay_settle_steps
         self._replay_fn = jax.jit(lambda sim, rm, start, actions, lengths, key, record: sim_agreement.replay_actions(
             sim, rm, start, actions, lengths, success_threshold=rl.success_threshold, key=key, settle_steps=settle,
@@ -386,16 +396,18 @@ class Refresher:
 
         real_latents = np.concatenate([r[0] for r in self.rounds])
         real_actions = np.concatenate([r[1] for r in self.rounds])
-        # the policy's episodes repeated to about as many as the training latents: half of the fine-tune's
-        # segments come from what the moving policy really did, however few refreshes there were so far
-        reps = max(1, int(round(self.base.latents.shape[0] / real_latents.shape[0])))
-        latents = np.concatenate([self.base.latents, *([real_latents] * reps)])
-        actions = np.concatenate([self.base.actions, *([real_actions] * reps)])
+        # as many of the policy's episodes (every refresh's so far, drawn with replacement) as training
+        # latents: half of the fine-tune's segments show what the moving policy really did, and the dataset
+        # keeps one shape, so every refresh reuses the compiled step
+        e = self.base.latents.shape[0]
+        pick = stream_rng(self.cfg.seed, "refresh/world_model_mix", step).integers(0, real_latents.shape[0], e)
+        latents = np.concatenate([self.base.latents, real_latents[pick]])
+        actions = np.concatenate([self.base.actions, real_actions[pick]])
         self.wm_state, metrics = finetune_world_model(
             self.cfg, self.wm_state, LatentDataset(latents, actions), steps=self.conf.world_model_steps,
             learning_rate=self.conf.world_model_learning_rate, seed=self.cfg.seed + 1 + step, mesh=self.mesh,
-            log=self.log)
-        return dict(metrics, real_repeats=reps)
+            log=self.log, compiled=self._wm_compiled)
+        return metrics
 
     def _replay(self, real: RealEpisodes, sim, rm, key, *, record: bool):
         traced = real.traced(self.tf * self.k)
@@ -452,7 +464,7 @@ class Refresher:
         if sources:
             state, metrics = train_detector(self.det_graphdef, self.det_params, rl, batch_at,
                                             key=jax.random.fold_in(key, 3), steps=conf.detector_steps,
-                                            log=lambda line: None, mesh=self.mesh)
+                                            log=lambda line: None, mesh=self.mesh, compiled=self._det_compiled)
             self.det_params = state.params
         unshifted = self._reward_model.replace(params={"net": self.det_params, "shift": jnp.zeros((), jnp.float32)})
         score = jax.jit(unshifted.score_fn)

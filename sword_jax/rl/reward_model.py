@@ -152,6 +152,7 @@ def train_detector(
     checkpoint_dir: str | None = None,
     mesh=None,
     rules=shd.DEFAULT_RULES,
+    compiled: tuple[Callable, Callable] | None = None,
 ) -> tuple[DetectorState, dict[str, Array]]:
     """``steps`` (default ``cfg.reward_model.steps``) detector steps; step ``s`` trains on ``batch_at(s)``.
 
@@ -159,7 +160,8 @@ def train_detector(
     with ``checkpoint_dir`` the state is saved every ``cfg.reward_model.checkpoint_every`` steps and
     a rerun resumes from it bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Metrics are
     read one step late on about ten log steps and at the end. ``mesh`` / ``rules``: where the step
-    runs (see :func:`make_detector_step`).
+    runs (see :func:`make_detector_step`); ``compiled``: its ``(init, step)`` from an earlier call, so
+    repeated fine-tunes (:mod:`sword_jax.rl.refresh`) compile once.
 
     Returns:
       ``(state, metrics)``: the final state and the last step's metrics (empty if no step ran).
@@ -172,7 +174,7 @@ def train_detector(
     from sword_jax.train_loop import run_steps
 
     steps = cfg.reward_model.steps if steps is None else steps
-    init, step = make_detector_step(graphdef, cfg, mesh=mesh, rules=rules)
+    init, step = compiled if compiled is not None else make_detector_step(graphdef, cfg, mesh=mesh, rules=rules)
 
     def report(done: int, metrics: dict[str, float], observed: None, eta: float) -> dict[str, float]:
         del observed, eta

@@ -1,0 +1,247 @@
+"""GRPO in the learned simulator refreshed on the policy's real episodes, against ground-truth GRPO, by real
+episodes consumed (issue 41's experiment, one command on a machine of several GPUs).
+
+``run``: one pipeline builds the world model, VAE and success detector (``train.pipeline --stop-after
+reward_model`` on the first GPU), then GRPO runs in it from the same supervised policy, one process per GPU
+(``CUDA_VISIBLE_DEVICES``), side by side: ``refreshed`` at every seed (``rl.refresh`` every
+``--refresh-every`` steps within ``--budget`` real episodes) and ``once`` at the first seed (one refresh at
+step 0, then the budget is spent: the simulator adapted to the supervised policy, never again). Every run is
+evaluated on MJX as ground-truth GRPO is (the greedy, ensembled policy and the sampled one, 500 episodes).
+
+``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, and
+every refresh's replay (the share of the policy's new real failures the simulator called successes before it
+was refreshed) and detector calibration; the figure plots real success against real episodes consumed for
+ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and the refreshed runs.
+
+    python -m benchmarks.bench_grpo_refresh run --workdir runs/r41 --policy runs/p/policy_d50.npz --gpus 0,1,2,3
+    python -m benchmarks.bench_grpo_refresh summary --workdir runs/r41 \\
+        --ground-truth benchmarks/results/policy/grpo_mjx_seeds_small_4xh100 --out benchmarks/results/policy/grpo_refresh_small
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from benchmarks import common
+from benchmarks.bench_grpo_transfer import errorbar_curve, gain_interval
+from sword_jax import cli
+from sword_jax.cli import not_dotted_overrides
+
+# what ground-truth GRPO's recipe (issue 40) and the refreshed runs share; --section.key=value overrides
+GRPO_FLAGS = ("--rl.env.backend=mjx", "--rl.grpo.rollout_batch=32", "--rl.grpo.group_size=8",
+              "--rl.grpo.minibatches=4", "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5",
+              "--rl.grpo.learning_rate=1e-4", "--rl.grpo.eval_episodes_per_task=50", "--rl.imagined.execute_steps=4",
+              "--rl.imagined.max_chunks=12", "--rl.imagined.shared_group_noise=true", "--rl.imagined.guard_margin=0.1",
+              "--rl.refresh.episodes=64", "--rl.refresh.world_model_steps=200", "--rl.refresh.detector_steps=200")
+# the pipeline up to the detector; no supervised policy or its rollouts (the policy is given; the first
+# refresh collects its episodes), 20 demonstrations per task for the detector
+PIPELINE_FLAGS = ("--stop-after", "reward_model", "--skip", "probe,evaluate,sft_policy,policy_data", "--parallel", "2",
+                  "--data.policy_rollouts_per_task=0", "--rl.sft.episodes_per_task=20")
+
+
+def pipeline_command(args, overrides: Sequence[str]) -> list[str]:
+    return [sys.executable, "-m", "train.pipeline", "--config", args.config, "--seed", str(args.pipeline_seed),
+            "--workdir", os.path.join(args.workdir, "pipeline"), *PIPELINE_FLAGS,
+            f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
+            *[o for o in overrides if not o.startswith("--rl.")]]
+
+
+def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
+    """``{run name: command}``: ``refreshed_seed<k>`` for every seed, ``once_seed<first>``."""
+    pipe = os.path.join(args.workdir, "pipeline")
+    base = [sys.executable, "-m", "train.grpo", "--config", args.config, "--simulator", "world_model",
+            "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
+            "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", os.path.join(pipe, "data", "demos.hdf5"),
+            "--latents", os.path.join(pipe, "data", "latents.npz"), "--policy", args.policy, *GRPO_FLAGS,
+            f"--rl.grpo.steps={args.steps}", f"--rl.grpo.eval_every={args.refresh_every}",
+            f"--rl.refresh.every={args.refresh_every}"]
+    runs = {}
+    for seed in args.seeds:
+        runs[f"refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}", *overrides]
+    if "once" in args.arms:
+        runs[f"once_seed{args.seeds[0]}"] = [*base, "--seed", str(args.seeds[0]), "--rl.refresh.budget=64", *overrides]
+    for name, cmd in runs.items():
+        cmd += ["--workdir", os.path.join(args.workdir, name)]
+    return runs
+
+
+def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
+    os.makedirs(args.workdir, exist_ok=True)
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
+    gpus = [g for g in args.gpus.split(",") if g]
+    start = time.perf_counter()
+
+    def launch(name: str, cmd: list[str], gpu: str) -> subprocess.Popen:
+        print(f"[refresh] {name} on GPU {gpu} ({time.perf_counter() - start:.0f} s): {' '.join(cmd[2:])}", flush=True)
+        with open(os.path.join(args.workdir, f"{name}.log"), "w") as log:
+            return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                    env=dict(env, CUDA_VISIBLE_DEVICES=gpu) if gpu else env)
+
+    if launch("pipeline", pipeline_command(args, overrides), gpus[0] if gpus else "").wait():
+        raise SystemExit(f"bench_grpo_refresh: the pipeline failed (log: {args.workdir}/pipeline.log)")
+    procs = {name: launch(name, cmd, gpus[i % len(gpus)] if gpus else "")
+             for i, (name, cmd) in enumerate(grpo_commands(args, overrides).items())}
+    while any(p.poll() is None for p in procs.values()):
+        time.sleep(poll_s)
+    codes = {name: p.returncode for name, p in procs.items()}
+    summary = dict(summarize(args.workdir, args.ground_truth), exit_codes=codes,
+                   seconds=round(time.perf_counter() - start, 1))
+    with open(os.path.join(args.workdir, "refresh_summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    if any(codes.values()):
+        raise SystemExit(f"bench_grpo_refresh: runs failed: {sorted(n for n, c in codes.items() if c)}")
+    return summary
+
+
+def _gain(points: list[dict], key: str | None) -> dict:
+    """Gain of the greedy (``key`` None) or sampled success from the first evaluation to the last."""
+    a, b = points[0], points[-1]
+    if key is not None:
+        a, b = a[key], b[key]
+    return {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
+
+
+def summarize_run(folder: str) -> dict:
+    """One refreshed run's curves, gains, real episodes used and refreshes (``folder``: its work dir)."""
+    grpo = os.path.join(folder, "rl", "grpo")
+    with open(os.path.join(grpo, "success_curve.json")) as f:
+        points = json.load(f)["points"]
+    out = {"steps": points[-1]["step"], "episodes": points[-1]["episodes"],
+           "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
+           "curve": [{"step": p["step"], "greedy": p["mean"], "sampled": p["sampled"]["mean"],
+                      "sampled_ci95": p["sampled"]["ci95"], "real_episodes_used": p.get("real_episodes_used")}
+                     for p in points],
+           "real_episodes_used": points[-1].get("real_episodes_used"),
+           "guard": [dict(step=p["step"], **p["guard"]) for p in points if "guard" in p]}
+    refreshes = os.path.join(grpo, "refreshes.json")
+    records = []
+    if os.path.exists(refreshes):
+        with open(refreshes) as f:
+            records = json.load(f)
+    else:  # a run stopped early: the records written so far
+        ref = os.path.join(grpo, "refresh")
+        for name in sorted(os.listdir(ref)) if os.path.isdir(ref) else []:
+            path = os.path.join(ref, name, "record.json")
+            if os.path.exists(path):
+                with open(path) as f:
+                    records.append(json.load(f))
+    out["refreshes"] = [{"step": r["step"], "real_episodes": r["real_episodes"], "real_success": r.get("real_success"),
+                         "false_success_before": (r.get("replay") or {}).get("false_success"),
+                         "missed_success_before": (r.get("replay") or {}).get("missed_success"),
+                         "threshold": (r.get("detector") or {}).get("threshold"),
+                         "calibration": (r.get("detector") or {}).get("calibration"),
+                         "skipped": r.get("skipped")} for r in records]
+    return out
+
+
+def ground_truth_curves(folder: str) -> dict:
+    """Ground-truth GRPO's sampled success against real episodes consumed, from a ``bench_policy
+    grpo-seeds`` folder: its runs' success curves and, per step, ``rounds x rollout_batch x group_size``
+    episodes read from the runs' step lines."""
+    with open(os.path.join(folder, "grpo_ground_truth_seeds.json")) as f:
+        seeds = json.load(f)
+    per_round = 64 * 8  # that recipe's rollout_batch x group_size
+    out = {}
+    for run_dir in seeds["per_seed"]:
+        name = os.path.relpath(run_dir, folder).split(os.sep)[0]
+        log = os.path.join(folder, f"{name}.log")
+        with open(log) as f:
+            rounds = {int(s): int(r) for s, r in re.findall(r"grpo step (\d+)/\d+ .*? rounds (\d+)", f.read())}
+        used, total = {0: 0}, 0
+        for step in sorted(rounds):
+            total += rounds[step] * per_round
+            used[step] = total
+        curve = seeds["curves"][run_dir]["sampled"]
+        out[name] = [{"step": s, "sampled": m, "sampled_ci95": ci, "real_episodes_used": used.get(s)}
+                     for s, m, ci in curve if s in used]
+    return out
+
+
+def summarize(workdir: str, ground_truth: str = "") -> dict:
+    runs = {}
+    for name in sorted(os.listdir(workdir)):
+        if os.path.exists(os.path.join(workdir, name, "rl", "grpo", "success_curve.json")):
+            runs[name] = summarize_run(os.path.join(workdir, name))
+    refreshed = {n: r for n, r in runs.items() if n.startswith("refreshed")}
+    out = {"runs": runs}
+    if refreshed:
+        gains = [r["sampled"]["gain"] for r in refreshed.values()]
+        out.update(sampled_min_gain=min(gains), sampled_mean_gain=sum(gains) / len(gains),
+                   greedy_min_gain=min(r["greedy"]["gain"] for r in refreshed.values()),
+                   real_episodes_used=max(r["real_episodes_used"] or 0 for r in refreshed.values()))
+    if ground_truth:
+        out["ground_truth"] = ground_truth_curves(ground_truth)
+    return out
+
+
+def plot(summary: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.4))
+    for name, curve in summary.get("ground_truth", {}).items():
+        pts = [{"step": p["real_episodes_used"], "success": p["sampled"], "ci95": p["sampled_ci95"]} for p in curve]
+        errorbar_curve(ax, pts, label=f"ground-truth GRPO {name}", color="0.6", alpha=0.7)
+    for name, entry in summary["runs"].items():
+        pts = [{"step": p["real_episodes_used"] or 0, "success": p["sampled"], "ci95": p["sampled_ci95"]}
+               for p in entry["curve"]]
+        errorbar_curve(ax, pts, label=f"GRPO in the refreshed world model, {name}")
+    ax.set_xscale("symlog", linthresh=100)
+    common.finish_figure(fig, ax, path, xlabel="real episodes consumed (evaluation episodes not counted)",
+                         ylabel="real success, sampled T 0.5 (95% interval)")
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = cli.ArgumentParser(description=__doc__.splitlines()[0],
+                                epilog="Any --section.key=value is passed to every run (rl.* to the GRPO runs only).")
+    parser.add_argument("mode", choices=("run", "summary"))
+    parser.add_argument("--workdir", default="runs/grpo_refresh")
+    parser.add_argument("--config", default="sword:small")
+    parser.add_argument("--policy", default="", help="the supervised policy (train_policy checkpoint or .npz)")
+    parser.add_argument("--gpus", default="0", help="GPUs the runs take in turn (CUDA_VISIBLE_DEVICES values)")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--arms", default="refreshed,once", help="refreshed (every seed) and once (the first seed)")
+    parser.add_argument("--pipeline-seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--refresh-every", type=int, default=5)
+    parser.add_argument("--budget", type=int, default=3000, help="real episodes each refreshed run may use")
+    parser.add_argument("--vae-steps", type=int, default=1000)
+    parser.add_argument("--world-model-steps", type=int, default=3000)
+    parser.add_argument("--ground-truth", default="", help="a bench_policy grpo-seeds folder to plot against")
+    parser.add_argument("--out", default="", help="summary: output path without extension (.json, .png)")
+    args, overrides = parser.parse_known_args(argv)
+    bad = not_dotted_overrides(overrides)
+    if bad:
+        raise SystemExit(f"bench_grpo_refresh: not a dotted config override (--section.key=value): {' '.join(bad)}")
+    args.seeds = [int(s) for s in args.seeds.split(",") if s]
+    args.arms = {a for a in args.arms.split(",") if a}
+    if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 1 or args.refresh_every < 1 or args.budget < 64:
+        raise SystemExit("bench_grpo_refresh: --seeds needs one seed or more, --arms refreshed and/or once, --steps "
+                         "and --refresh-every >= 1, --budget >= 64 (one refresh)")
+    if args.mode == "summary":
+        summary = summarize(args.workdir, args.ground_truth)
+        if args.out:
+            with open(args.out + ".json", "w") as f:
+                json.dump(summary, f, indent=1)
+            plot(summary, args.out + ".png")
+        for name, entry in summary["runs"].items():
+            g, s = entry["greedy"], entry["sampled"]
+            print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "
+                  f"{g['start']:.3f} -> {g['end']:.3f}; sampled {s['start']:.3f} -> {s['end']:.3f} ({s['gain']:+.3f} "
+                  f"[{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])")
+        return summary
+    if not args.policy:
+        raise SystemExit("bench_grpo_refresh run needs --policy (the supervised policy every run starts from)")
+    return run(args, overrides)
+
+
+if __name__ == "__main__":
+    cli.run(main)

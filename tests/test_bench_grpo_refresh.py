@@ -1,0 +1,70 @@
+"""benchmarks.bench_grpo_refresh: its command lines, its summary of refreshed runs and of ground-truth GRPO by
+real episodes consumed (from the committed ground-truth runs), and its answers to bad arguments."""
+
+import json
+import os
+
+import pytest
+
+from benchmarks import bench_grpo_refresh as bench
+
+GROUND_TRUTH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "benchmarks", "results", "policy",
+                            "grpo_mjx_seeds_small_4xh100")
+
+
+class Args:
+    workdir, config, policy, pipeline_seed = "w", "sword:small", "p.npz", 0
+    seeds, arms, steps, refresh_every, budget, vae_steps, world_model_steps = [0, 1], {"refreshed", "once"}, 50, 5, 900, 10, 20
+
+
+def test_commands_share_one_pipeline_and_differ_in_seed_and_budget():
+    runs = bench.grpo_commands(Args, ["--rl.grpo.learning_rate=3e-5", "--sim.max_steps=200"])
+    assert sorted(runs) == ["once_seed0", "refreshed_seed0", "refreshed_seed1"]
+    flat = {name: " ".join(cmd) for name, cmd in runs.items()}
+    assert all("--world-model w/pipeline/world_model" in c and "--policy p.npz" in c for c in flat.values())
+    assert "--rl.refresh.budget=900" in flat["refreshed_seed1"] and "--seed 1" in flat["refreshed_seed1"]
+    assert "--rl.refresh.budget=64" in flat["once_seed0"] and flat["once_seed0"].endswith("--workdir w/once_seed0")
+    # an override comes after the recipe's flags, so it wins
+    assert flat["refreshed_seed0"].index("learning_rate=1e-4") < flat["refreshed_seed0"].index("learning_rate=3e-5")
+    pipe = " ".join(bench.pipeline_command(Args, ["--rl.grpo.steps=3", "--sim.max_steps=200"]))
+    assert "--stop-after reward_model" in pipe and "--sim.max_steps=200" in pipe and "rl.grpo.steps" not in pipe
+
+
+def _point(step, greedy, sampled, used, **extra):
+    def entry(rate):
+        return {"mean": rate, "ci95": [rate - 0.04, rate + 0.04], "episodes": 500, "successes": int(rate * 500)}
+
+    return dict(step=step, **entry(greedy), sampled=entry(sampled), real_episodes_used=used, **extra)
+
+
+def test_summary_reads_curves_gains_and_refreshes(tmp_path):
+    for name, end in (("refreshed_seed0", 0.60), ("refreshed_seed1", 0.70), ("once_seed0", 0.40)):
+        grpo = tmp_path / name / "rl" / "grpo"
+        grpo.mkdir(parents=True)
+        points = [_point(0, 0.70, 0.50, 64), _point(5, 0.71, end, 128, guard={"trip": False, "reason": "ok"})]
+        (grpo / "success_curve.json").write_text(json.dumps({"label": "x", "points": points}))
+        records = [{"step": 0, "real_episodes": 64, "real_episodes_used": 64, "real_success": 0.5,
+                    "replay": {"false_success": {"rate": 0.2, "of": 32}, "missed_success": {"rate": 0.5, "of": 32}},
+                    "detector": {"threshold": 0.93, "calibration": {"false_success": {"rate": 0.0}}}}]
+        (grpo / "refreshes.json").write_text(json.dumps(records))
+    out = bench.summarize(str(tmp_path), GROUND_TRUTH)
+    assert sorted(out["runs"]) == ["once_seed0", "refreshed_seed0", "refreshed_seed1"]
+    assert out["sampled_min_gain"] == pytest.approx(0.10) and out["sampled_mean_gain"] == pytest.approx(0.15)
+    run = out["runs"]["refreshed_seed0"]
+    assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
+    assert run["guard"][0]["step"] == 5 and run["sampled"]["ci95"][0] < 0.10 < run["sampled"]["ci95"][1]
+    # ground-truth GRPO: 512 episodes per sampling round, read from its step lines
+    gt = out["ground_truth"]["s0"]
+    assert gt[0] == {"step": 0, "sampled": 0.516, "sampled_ci95": gt[0]["sampled_ci95"], "real_episodes_used": 0}
+    assert gt[1]["step"] == 10 and gt[1]["real_episodes_used"] >= 10 * 512
+    bench.plot(out, str(tmp_path / "figure.png"))
+    assert (tmp_path / "figure.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, message", [(["run", "--workdir", "x"], "--policy"),
+                                           (["summary", "--seeds", ""], "--seeds"),
+                                           (["summary", "--budget", "10"], "--budget"),
+                                           (["run", "--policy", "p", "steps=3"], "dotted")])
+def test_bad_arguments_are_one_line_errors(argv, message):
+    with pytest.raises(SystemExit, match=message):
+        bench.main(argv)
