@@ -20,7 +20,7 @@ from sword_jax.rl.config import RefreshConfig
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.policy_success import success_summary
-from sword_jax.rl.refresh import RealEpisodes, stratified_split
+from sword_jax.rl.refresh import RealEpisodes, choose_horizon, first_success, stratified_split
 from sword_jax.rl.reward_model import build_detector, shifted_reward_model, threshold_shift
 from sword_jax.rl.scan_rollout import record_episodes
 from sword_jax.world_model.data import LatentDataset
@@ -62,7 +62,8 @@ def _cfg(workdir):
         imagined=dataclasses.replace(rl.imagined, max_chunks=2, execute_steps=4, eval_replay_settle_steps=2),
         reward_model=dataclasses.replace(rl.reward_model, batch_size=8),
         refresh=RefreshConfig(every=1, episodes=4, budget=6, episode_steps=cfg.data.episode_frames, world_model_steps=2,
-                              detector_steps=2, replay_share=0.5, calibrate_fraction=0.5))
+                              detector_steps=2, replay_share=0.5, calibrate_fraction=0.5,
+                              horizons=(4, 8)))
     return dataclasses.replace(cfg, workdir=str(workdir), model=dataclasses.replace(cfg.model, num_layers=1), rl=rl)
 
 
@@ -139,6 +140,8 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     assert first["world_model"]["real_episodes"] == 4 and records[1]["world_model"]["real_episodes"] == 6
     assert {"false_success", "missed_success", "imagined_success_by_horizon"} <= set(first["replay"])
     assert {"threshold", "shift", "imagined_frames", "real_frames"} <= set(first["detector"])
+    chosen = next(r["horizon"] for r in records if "horizon" in r)  # the first calibrated refresh's choice
+    assert chosen["actions"] in (4, 8) and set(chosen["separation"]) == {"4", "8"}
     # stopped after the refresh at step 1 and rerun: bit-identical to the uninterrupted run
     cfg_b = _cfg(tmp_path / "b")
     _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=1)
@@ -202,7 +205,8 @@ def test_stratified_split_takes_a_share_of_each_outcome():
 
 @pytest.mark.parametrize("bad, message", [(dict(every=2, episodes=4, budget=2), "budget"),
                                           (dict(every=-1), "every"),
-                                          (dict(every=2, episodes=4, budget=8, calibrate_fraction=1.0), "calibrate")])
+                                          (dict(every=2, episodes=4, budget=8, calibrate_fraction=1.0), "calibrate"),
+                                          (dict(every=2, episodes=4, budget=8, horizons=(48, 24)), "horizons")])
 def test_refresh_config_refuses_bad_settings(bad, message):
     with pytest.raises(ValueError, match=message):
         RefreshConfig(**bad).validate()
@@ -224,3 +228,31 @@ def test_policy_npz_files_round_trip_and_refuse_another_architecture(tmp_path):
     _, other = build_policy(wider, seed=0)
     with pytest.raises(ValueError, match="shape"):
         load_params(path, other, kind="policy")
+
+
+def test_first_success_needs_the_run_of_frames_within_the_length():
+    scores = np.asarray([[0.1, 0.95, 0.2, 0.95, 0.96, 0.97], [0.95, 0.95, 0.1, 0.1, 0.1, 0.1], [0.9] * 6])
+    lengths = np.asarray([6, 6, 3])
+    assert first_success(scores, lengths, 0.9, 1).tolist() == [1, 0, 0]
+    assert first_success(scores, lengths, 0.9, 2).tolist() == [4, 1, 1]
+    assert first_success(scores, lengths, 0.9, 3).tolist() == [5, -1, 2]
+    assert first_success(scores, lengths, 0.94, 3).tolist() == [5, -1, -1]
+
+
+def test_choose_horizon_takes_the_longest_trusted_one():
+    def entry(win, loss):
+        return {"real_success": {"rate": win}, "real_failure": {"rate": loss}}
+
+    by_h = {"24": entry(0.3, 0.05), "48": entry(0.6, 0.2), "96": entry(0.7, 0.6)}
+    assert choose_horizon(by_h, (24, 48, 96), 0.2)[0] == 48
+    h, separation = choose_horizon(by_h, (24, 48, 96), 0.5)
+    assert h == 24 and separation["96"] == pytest.approx(0.1)  # none trusted: the shortest
+    assert choose_horizon({"24": entry(None, 0.1)}, (24,), 0.2) == (24, {"24": None})
+
+
+def test_horizons_must_be_whole_imagined_decisions():
+    rl = configs.get("sword:tiny").rl
+    bad = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, execute_steps=4),
+                              refresh=RefreshConfig(every=2, episodes=4, budget=8, horizons=(6, 8)))
+    with pytest.raises(ValueError, match="multiples of the imagined execution"):
+        bad.validate()

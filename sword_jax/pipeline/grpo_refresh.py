@@ -13,6 +13,7 @@ MJX in ``sim.grpo_refresh``), its start states come from ``collect_starts``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Callable
@@ -32,7 +33,8 @@ from sword_jax.rl.scan_rollout import JaxEnv, record_episodes
 from sword_jax.rng import stream_key, stream_rng
 
 REFRESH_RUN_KEYS = ("every", "episodes", "budget", "episode_steps", "world_model_steps", "world_model_learning_rate",
-                    "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "branch")
+                    "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "branch", "horizons",
+                    "min_separation")
 
 
 def make_collect(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple], *, seed: int,
@@ -81,8 +83,19 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                           encode_frames=encode_frames, detector=detector, base=base, collect=collect,
                           directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log)
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
     starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
+    built: dict[str, Any] = {}
+
+    def step_fn(*args):
+        # built at the first step, after the first refresh, which may choose the imagined horizon
+        if "fn" not in built:
+            run_rl, horizon = rl, refresher.horizon()
+            if horizon is not None:
+                per_chunk = rl.imagined.execute_steps or rl.chunk_len
+                run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=horizon // per_chunk))
+                log(f"imagined rollouts of {horizon} actions ({horizon // per_chunk} decisions), chosen by the first refresh")
+            built["fn"] = grpo.make_grpo_step(graphdef, run_rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+        return built["fn"](*args)
 
     def step(state, index, key):
         refresher.at(index)  # the refresh this step follows (a resumed run loads it)

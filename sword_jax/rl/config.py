@@ -354,6 +354,13 @@ class RefreshConfig:
       max_false_success: the bound on imagined success among real failures that sets the threshold.
       branch: imagined rollouts start at the latest refresh's real states (else at the demonstrations'
         keyframes).
+      horizons: candidate lengths of the imagined rollouts, in actions (multiples of the imagined execution,
+        ``rl.imagined.execute_steps``); empty: ``rl.imagined.max_chunks`` as configured. Else the first
+        refresh replays held-out real episodes in the refreshed simulator and the run takes the longest
+        candidate by which the calibrated detector still separates real successes from real failures by
+        ``min_separation`` (imagined success among real successes minus among real failures), or the
+        shortest when none does (MBPO: branch short where the model is trusted).
+      min_separation: see ``horizons``.
     """
 
     every: int = 0
@@ -367,6 +374,8 @@ class RefreshConfig:
     calibrate_fraction: float = 0.5
     max_false_success: float = 0.05
     branch: bool = True
+    horizons: tuple[int, ...] = ()
+    min_separation: float = 0.2
 
     def validate(self) -> None:
         if self.every < 0:
@@ -386,6 +395,10 @@ class RefreshConfig:
                              f"{self.replay_share}, {self.calibrate_fraction}")
         if not 0.0 <= self.max_false_success < 1.0:
             raise ValueError(f"rl.refresh.max_false_success must be in [0, 1), got {self.max_false_success}")
+        if any(h < 1 for h in self.horizons) or list(self.horizons) != sorted(set(self.horizons)):
+            raise ValueError(f"rl.refresh.horizons must be increasing action counts >= 1, got {self.horizons}")
+        if not -1.0 <= self.min_separation <= 1.0:
+            raise ValueError(f"rl.refresh.min_separation must be in [-1, 1], got {self.min_separation}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -531,6 +544,10 @@ class RLConfig:
             raise ValueError(f"rl.env.execute_steps must be in [1, rl.chunk_len={self.chunk_len}], got "
                              f"{self.env.execute_steps}")
         executed = self.imagined.execute_steps
+        per_chunk = executed or self.chunk_len
+        if any(h % per_chunk for h in self.refresh.horizons):
+            raise ValueError(f"rl.refresh.horizons must be multiples of the imagined execution ({per_chunk} actions per "
+                             f"decision), got {self.refresh.horizons}")
         if executed is not None and (executed < 4 or executed % 4 or self.chunk_len % executed):
             raise ValueError(f"rl.imagined.execute_steps must be a multiple of 4 (one latent frame) dividing "
                              f"rl.chunk_len={self.chunk_len}, got {executed}")

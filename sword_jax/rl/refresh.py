@@ -221,6 +221,34 @@ def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, s
     return (result.state.params, result.state.buffers), (result.history[-1] if result.history else {})
 
 
+def first_success(scores: np.ndarray, lengths: np.ndarray, threshold: float, success_frames: int = 1) -> np.ndarray:
+    """``[E]`` the frame at which each replay first completes ``success_frames`` consecutive frames scoring
+    ``>= threshold`` within its first ``lengths`` frames (the imagined-success rule), -1 where it never does."""
+    scores, lengths = np.asarray(scores), np.asarray(lengths)
+    hit = (scores >= threshold) & (np.arange(scores.shape[1])[None] < lengths[:, None])
+    run = np.zeros(hit.shape, np.int64)
+    count = np.zeros(hit.shape[0], np.int64)
+    for t in range(hit.shape[1]):
+        count = np.where(hit[:, t], count + 1, 0)
+        run[:, t] = count
+    reached = run >= success_frames
+    return np.where(reached.any(1), reached.argmax(1), -1)
+
+
+def choose_horizon(by_horizon: dict[str, dict[str, Any]], horizons: tuple[int, ...], min_separation: float
+                   ) -> tuple[int, dict[str, float | None]]:
+    """The longest of ``horizons`` whose separation (imagined success by then among real successes minus
+    among real failures, :func:`~sword_jax.rl.sim_agreement.success_by_horizon`'s entries) is at least
+    ``min_separation``, else the shortest; and every candidate's separation (None where a group is empty)."""
+    separation = {}
+    for h in horizons:
+        entry = by_horizon[str(h)]
+        win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
+        separation[str(h)] = None if win is None or loss is None else float(win - loss)
+    trusted = [h for h in horizons if separation[str(h)] is not None and separation[str(h)] >= min_separation]
+    return (max(trusted) if trusted else min(horizons)), separation
+
+
 class Refresher:
     """The refreshes of one GRPO run (module docstring).
 
@@ -274,6 +302,11 @@ class Refresher:
 
     def reward_model(self) -> RewardModel:
         return self._reward_model.replace(params={"net": self.det_params, "shift": jnp.asarray(self.shift, jnp.float32)})
+
+    def horizon(self) -> int | None:
+        """The imagined rollouts' length in actions chosen by the run's first refresh (``rl.refresh.horizons``),
+        None when it chose none."""
+        return next((r["horizon"]["actions"] for r in self.records if "horizon" in r), None)
 
     def due(self, step: int) -> bool:
         return step % self.conf.every == 0
@@ -363,7 +396,13 @@ class Refresher:
         calibrate = stratified_split(solved, conf.calibrate_fraction, rng)
         detector = self._refresh_detector(step, real, calibrate, jax.random.fold_in(key, 2))
         self.branch = real.branch_set()
-        record = {"step": step, "real_episodes": real.num, "real_episodes_used": self.used,
+        horizon = {}
+        if (conf.horizons and "imagined_success_by_horizon" in detector
+                and not any("horizon" in r for r in self.records)):  # the run's first calibrated refresh chooses
+            chosen, separation = choose_horizon(detector["imagined_success_by_horizon"], tuple(conf.horizons),
+                                                conf.min_separation)
+            horizon = {"horizon": {"actions": chosen, "separation": separation, "min_separation": conf.min_separation}}
+        record = {"step": step, "real_episodes": real.num, **horizon, "real_episodes_used": self.used,
                   "budget": conf.budget, "real_success": float(solved.mean()), "replay": before,
                   "world_model": {"steps": conf.world_model_steps, "training_episodes": int(self.base.latents.shape[0]),
                                   "real_episodes": int(sum(r[0].shape[0] for r in self.rounds)),
@@ -497,4 +536,7 @@ class Refresher:
         real_scores = score_episodes(score, real_set.frames[held])
         out_report["real_frames"] = detector_report(real_scores, real_set.subset(held), threshold)
         out_report.update(threshold=float(threshold), shift=float(self.shift))
+        out_report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(
+            real.solved[held], first_success(scores, replayed.lengths[held], threshold, rl.imagined.success_frames),
+            horizons=tuple(conf.horizons) or sim_agreement.HORIZON_SWEEP)
         return out_report
