@@ -38,7 +38,8 @@ GRPO_FLAGS = ("--rl.env.backend=mjx", "--rl.grpo.rollout_batch=32", "--rl.grpo.g
               "--rl.grpo.minibatches=4", "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5",
               "--rl.grpo.learning_rate=1e-4", "--rl.grpo.eval_episodes_per_task=50", "--rl.imagined.execute_steps=4",
               "--rl.imagined.max_chunks=12", "--rl.imagined.shared_group_noise=true", "--rl.imagined.guard_margin=0.1",
-              "--rl.refresh.episodes=64", "--rl.refresh.world_model_steps=200", "--rl.refresh.detector_steps=200")
+              "--rl.refresh.episodes=64", "--rl.refresh.world_model_steps=200", "--rl.refresh.detector_steps=200",
+              "--rl.refresh.horizons=24,48")
 # the pipeline up to the detector; no supervised policy or its rollouts (the policy is given; the first
 # refresh collects its episodes), 20 demonstrations per task for the detector
 PIPELINE_FLAGS = ("--stop-after", "reward_model", "--skip", "probe,evaluate,sft_policy,policy_data", "--parallel", "2",
