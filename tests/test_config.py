@@ -167,7 +167,8 @@ def configs_get(variant):
 def test_vae_geometry_is_read_from_the_vae_config():
     """Frames per latent and the spatial stride come from ``VAEConfig`` wherever a config is at hand."""
     from sword_jax.api import WorldModelSpec
-    from train import evaluate_world_model, train_world_model
+    from sword_jax.pipeline.world_model import latent_grid
+    from train import evaluate_world_model
 
     cfg = configs.get("sword:tiny")
     assert (cfg.vae.temporal_factor, cfg.vae.spatial_factor) == (4, 16)
@@ -176,7 +177,7 @@ def test_vae_geometry_is_read_from_the_vae_config():
     assert (vae.temporal_factor, vae.spatial_factor) == (2, 8)
     odd = dataclasses.replace(cfg, vae=vae)
     side = cfg.data.image_size // 8
-    assert train_world_model.latent_grid(odd) == (1 + (cfg.data.episode_frames - 1) // 2, side, side, vae.z_dim)
+    assert latent_grid(odd) == (1 + (cfg.data.episode_frames - 1) // 2, side, side, vae.z_dim)
     k, p = cfg.data.context_frames // 2, cfg.data.predict_frames // 2
     n = (cfg.eval.horizon_frames - 1 - 2 * k) // (2 * p)
     assert evaluate_world_model.effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)

@@ -42,7 +42,8 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     import configs
     from train import evaluate_world_model, grpo, pipeline_data, pipeline_policy, train_policy, train_probe
     from train import train_reward
-    from train import train_vae, train_world_model
+    from train import train_vae
+    from sword_jax.pipeline import world_model
     from sword_jax.pipeline.stages import Context
 
     base = ["--config", "sword:tiny", "--seed", "3", "--model.num_layers=1", f"--workdir={tmp_path}"]
@@ -60,7 +61,7 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
         return run
 
     monkeypatch.setattr(train_vae, "run", stub("vae", {"steps": 0}))
-    monkeypatch.setattr(train_world_model, "run", stub("world_model", {"step": 2, "metrics": {}}))
+    monkeypatch.setattr(world_model, "run_world_model", stub("world_model", {"step": 2, "metrics": {}}))
     monkeypatch.setattr(train_probe, "run", stub("probe", {"path": "probe.npz"}))
     monkeypatch.setattr(evaluate_world_model, "run", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))
     monkeypatch.setattr(pipeline_data, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})

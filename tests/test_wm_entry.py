@@ -11,6 +11,7 @@ import pytest
 from sword_jax.world_model import data
 from sword_jax import train_loop
 from tests.support.world_model import MixerWorldModel
+from sword_jax.pipeline import world_model as wm_run
 from train import distributed, train_world_model
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--model.num_layers=1", "--trainer.log_every=1",
@@ -67,12 +68,12 @@ def test_nonfinite_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
 def test_config_checks_name_the_same_differing_sections(tmp_path):
     """The work dir's config.json check and the checkpoint's run check share one diff (top-level sections)."""
     saved = {"data": {"image_size": 32}, "model": {"depth": 2}, "trainer": {"steps": 4}, "workdir": "a", "mesh": {}}
-    train_world_model._check_config_matches(str(tmp_path), saved)  # first use: stored
+    wm_run._check_config_matches(str(tmp_path), saved)  # first use: stored
     current = {**saved, "data": {"image_size": 64}, "model": {"depth": 3}, "trainer": {"steps": 9}, "workdir": "b"}
     assert train_loop.differing_keys(saved, current) == ["data", "model", "trainer", "workdir"]
     # the work dir check ignores resumable trainer keys (steps) and the work dir itself
     with pytest.raises(SystemExit, match=r"sections differ: \['data', 'model'\]"):
-        train_world_model._check_config_matches(str(tmp_path), current)
+        wm_run._check_config_matches(str(tmp_path), current)
     with pytest.raises(ValueError, match=r"differs in \['data', 'model', 'trainer', 'workdir'\]"):
         train_loop._check_same_run("x", str(tmp_path), saved, current)
     train_loop._check_same_run("x", str(tmp_path), saved, dict(saved))  # the same run passes
@@ -91,7 +92,7 @@ def test_a_step_that_retraces_past_the_entry_bound_stops_the_run(tmp_path, monke
 
     monkeypatch.setattr(data.SegmentLoader, "host_batch_at", drifting_batch_at)
     # the stand-in compiles in a blink; the guard is about the step, not the model
-    monkeypatch.setattr(train_world_model, "WorldModel",
+    monkeypatch.setattr(wm_run, "WorldModel",
                         lambda cfg, *, rngs: MixerWorldModel(cfg.in_dim, cfg.action_dim, rngs=rngs))
     args = ARGS + ["--workdir", str(tmp_path / "run"), f"--trainer.steps={len(dtypes)}",
                    "--trainer.checkpoint_every=100", "--cache.log_inference_distance=false"]

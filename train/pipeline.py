@@ -54,11 +54,11 @@ def stage_latents(ctx: Context) -> dict:
 
 
 def stage_world_model(ctx: Context) -> dict:
-    from train import train_world_model
+    from sword_jax.pipeline import world_model
 
     workdir = ctx.stage_dir("world_model")
     data = dataclasses.replace(ctx.cfg.data, path=ctx.results["latents"]["path"])
-    summary = train_world_model.run(ctx.cfg_in(workdir, data=data))
+    summary = world_model.run_world_model(ctx.cfg_in(workdir, data=data))
     return {"workdir": workdir, "final_step": summary["step"], "final_metrics": summary["metrics"],
             "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}
 

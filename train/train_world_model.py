@@ -7,9 +7,10 @@ Usage::
 
 The latent dataset comes from ``--data.path`` (``.npz``/``.h5`` with ``latents [E, L, h, w, c]`` and
 ``actions [E, 1 + 4(L-1), a]``) or, with ``--synthetic``, from action-dependent synthetic latents.
-The loop is :func:`sword_jax.train_loop.run_steps`; the batch of a step is a pure function of it. The
-run auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position,
-RNG root, config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl`` and
+The training is :func:`sword_jax.pipeline.world_model.run_world_model`; its loop is
+:func:`sword_jax.train_loop.run_steps`; the batch of a step is a pure function of it. The run
+auto-resumes from ``<workdir>/checkpoints`` (train state with the DLB cache, data position, RNG root,
+config). Metrics are read one log step late and appended to ``<workdir>/metrics.jsonl`` and
 TensorBoard event files in ``<workdir>/tensorboard``.
 A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
 checkpoint stays, and the faulty step's update was never applied (``skip`` goes on without it).
@@ -17,25 +18,14 @@ checkpoint stays, and the faulty step's update was never applied (``skip`` goes 
 
 from __future__ import annotations
 
-import json
-import os
 import sys
 from collections.abc import Sequence
 
-import jax
-import numpy as np
-from flax import nnx
-
 import configs
 from configs.base import ExperimentConfig
-from sword_jax import checkpoint
-from sword_jax import sharding as shd
-from sword_jax import tracing
-from sword_jax.dit.action_dit import WorldModel
-from sword_jax.dlb import cache as dlb_cache
-from sword_jax.train_loop import differing_keys, run_steps
-from sword_jax.world_model import data, train_state, train_step
+from sword_jax.pipeline.world_model import run_world_model
 from train import distributed
+
 
 def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
     parser = configs.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -43,52 +33,6 @@ def _parse(argv: Sequence[str]) -> tuple[ExperimentConfig, str, bool]:
     cfg, rest = configs.from_argv(argv)
     args = parser.parse_args(rest)
     return cfg, cfg.workdir, args.synthetic
-
-
-def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
-    """``(L, h, w, c)`` of a latent episode for the config's frames and VAE."""
-    side = cfg.data.image_size // cfg.vae.spatial_factor
-    return 1 + (cfg.data.episode_frames - 1) // cfg.vae.temporal_factor, side, side, cfg.vae.z_dim
-
-
-def build_dataset(cfg: ExperimentConfig, synthetic: bool) -> data.LatentDataset:
-    num_latents, height, width, channels = latent_grid(cfg)
-    if synthetic or not cfg.data.path:
-        if not synthetic:
-            raise SystemExit("train_world_model: set --data.path=latents.npz or pass --synthetic")
-        return data.synthetic_latent_dataset(cfg.data.num_episodes, num_latents, height, width, channels,
-                                             seed=cfg.seed, action_dim=cfg.model.action_dim)
-    dataset = data.load_latent_dataset(cfg.data.path)
-    if dataset.shape[2:] != (height, width, channels) or dataset.actions.shape[2] != cfg.model.action_dim:
-        raise SystemExit(f"train_world_model: {cfg.data.path} holds latents {dataset.shape} / actions "
-                         f"{dataset.actions.shape}, but the config expects [E, L, {height}, {width}, {channels}] "
-                         f"and {cfg.model.action_dim}-D actions")
-    return dataset
-
-
-# Trainer keys that may change between a run and its resumption (e.g. extending the run).
-RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", "on_nonfinite")
-
-
-def _comparable(cfg_dict: dict) -> dict:
-    trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
-    # The mesh may change between runs: checkpoints restore onto any device count.
-    return {**cfg_dict, "trainer": trainer, "workdir": None, "mesh": None}
-
-
-def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
-    path = os.path.join(workdir, "config.json")
-    if os.path.exists(path):
-        with open(path) as f:
-            saved = _comparable(json.load(f))
-        current = _comparable(cfg_dict)
-        if saved != current:
-            raise SystemExit(f"train_world_model: {workdir} was made with another config (sections differ: "
-                             f"{differing_keys(saved, current)}); use a new --workdir")
-    elif jax.process_index() == 0:
-        os.makedirs(workdir, exist_ok=True)
-        with open(path, "w") as f:
-            json.dump(cfg_dict, f, indent=1, sort_keys=True)
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -99,59 +43,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 def run(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
-    """Trains (or resumes) the world model in ``cfg.workdir`` on ``cfg.data.path`` (or synthetic latents).
-
-    Returns ``{"step", "metrics" (the last logged), "workdir"}``.
-    """
-    workdir = cfg.workdir
-    cfg_dict = configs.to_dict(cfg)
-    cfg_dict["synthetic"] = synthetic
-    _check_config_matches(workdir, cfg_dict)
-    mesh = shd.make_mesh(cfg.mesh)
-    rules = cfg.mesh.rules
-    num_context, num_future = (cfg.data.context_frames // cfg.vae.temporal_factor,
-                               cfg.data.predict_frames // cfg.vae.temporal_factor)
-    dataset = build_dataset(cfg, synthetic)
-    is_main = jax.process_index() == 0
-    if is_main:
-        print(f"[train_world_model] {cfg.name}: mesh {dict(mesh.shape)}, dataset latents {dataset.shape}, "
-              f"DLB {'on (' + cfg.cache.schedule + ', ' + cfg.cache.replacement + ', ' + cfg.cache.scope + ')' if cfg.cache.enabled else 'off'}")
-        if cfg.cache.enabled:
-            per_device = dlb_cache.cache_bytes_per_device(cfg.cache, dataset.shape, mesh, rules)
-            print(f"[train_world_model] latent cache: {per_device / 2**20:.2f} MiB per device "
-                  f"({cfg.cache.dtype}, {dlb_cache.episode_shards(mesh, rules)} episode shards)")
-
-    graphdef, state, shardings = train_state.create_train_state(
-        lambda: WorldModel(cfg.model, rngs=nnx.Rngs(cfg.seed)), cfg.trainer, cfg.cache, dataset.shape, mesh, rules)
-    sampler = data.SegmentSampler(dataset.shape[0], dataset.shape[1], num_context, num_future,
-                                  cfg.data.batch_size, seed=cfg.seed)
-    loader = data.SegmentLoader(dataset, sampler, num_context, num_future, mesh, rules)
-    step_fn = train_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=cfg.trainer, cache_cfg=cfg.cache,
-                                         num_context=num_context, num_episodes=dataset.shape[0])
-    # A retrace (a batch or state whose shape, dtype or structure changed) is a bug; the guard names the step.
-    step = train_step.compile_train_step(tracing.max_traces(step_fn, n=distributed.ENTRY_MAX_TRACES), shardings,
-                                         loader.shardings, mesh, rules)
-    root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
-    rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
-    logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,
-                                     jsonl_path=os.path.join(workdir, "metrics.jsonl"),
-                                     tensorboard_dir=os.path.join(workdir, "tensorboard"))
-
-    try:
-        result = run_steps(
-            step, state, loader.host_batch_at, key=shd.put(root_key, shd.replicated(mesh)), steps=cfg.trainer.steps,
-            log_every=cfg.trainer.log_every, name="train_world_model",
-            report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta), place=loader.place,
-            checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
-            keep_checkpoints=cfg.trainer.keep_checkpoints,
-            checkpoint_meta=lambda done: {"data_position": sampler.position_at(done), "rng_root": rng_root,
-                                          "config": cfg_dict},
-            metrics_finite=lambda metrics: metrics["nonfinite"] == 0, on_nonfinite=cfg.trainer.on_nonfinite,
-            settle=True, log=print if is_main else lambda _line: None)
-    finally:
-        logger.close()
-    last = result.history[-1] if result.history else {}
-    return {"step": max(result.first_step, cfg.trainer.steps), "metrics": last, "workdir": workdir}
+    """:func:`sword_jax.pipeline.world_model.run_world_model` (process setup is :func:`main`'s)."""
+    return run_world_model(cfg, synthetic=synthetic)
 
 
 if __name__ == "__main__":
