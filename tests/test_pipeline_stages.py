@@ -42,7 +42,7 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     import configs
     from train import evaluate_world_model, grpo, pipeline_data, pipeline_policy, train_policy, train_probe
     from train import train_reward
-    from train import train_vae
+    from sim import vae_training
     from sword_jax.pipeline import world_model
     from sword_jax.pipeline.stages import Context
 
@@ -60,7 +60,7 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
             return dict(result)
         return run
 
-    monkeypatch.setattr(train_vae, "run", stub("vae", {"steps": 0}))
+    monkeypatch.setattr(vae_training, "run_vae", stub("vae", {"steps": 0}))
     monkeypatch.setattr(world_model, "run_world_model", stub("world_model", {"step": 2, "metrics": {}}))
     monkeypatch.setattr(train_probe, "run", stub("probe", {"path": "probe.npz"}))
     monkeypatch.setattr(evaluate_world_model, "run", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))

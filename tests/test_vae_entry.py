@@ -8,6 +8,7 @@ import jax
 import numpy as np
 import pytest
 
+from sim import vae_training
 from train import train_vae
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--clip-latents=1", "--vae.batch_size=2", "--trainer.log_every=1",
@@ -58,15 +59,15 @@ def test_a_checkpoint_of_another_vae_run_is_refused_naming_the_keys_and_kept(tmp
     cfg, _ = configs.from_argv(ARGS[:1] + ARGS[1:2] + ARGS[4:] + ["--workdir", workdir, "--vae.train_steps=2"])
     _, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=shd.make_mesh(cfg.mesh),
                                           rules=cfg.mesh.rules)
-    saved_id = train_vae.vae_run_id(cfg, clip_latents=1, synthetic=True)
-    assert train_vae.vae_run_id(configs.from_argv(ARGS[:2] + ["--vae.train_steps=9"])[0], clip_latents=1,
-                                synthetic=True)["vae.learning_rate"] == saved_id["vae.learning_rate"]
+    saved_id = vae_training.vae_run_id(cfg, clip_latents=1, synthetic=True)
+    assert vae_training.vae_run_id(configs.from_argv(ARGS[:2] + ["--vae.train_steps=9"])[0], clip_latents=1,
+                                    synthetic=True)["vae.learning_rate"] == saved_id["vae.learning_rate"]
     saved_id["vae.learning_rate"] = cfg.vae.learning_rate * 10
     ckpt = checkpoint.Checkpointer(os.path.join(workdir, "checkpoints"), max_to_keep=1)
     ckpt.save(1, state, {"step": 1, "history": [], "run": saved_id})
     ckpt.close()
     before = sorted(os.listdir(os.path.join(workdir, "checkpoints")))
     with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['vae.learning_rate'\]"):
-        train_vae.run(cfg, synthetic=True, clip_latents=1)
+        vae_training.run_vae(cfg, synthetic=True, clip_latents=1)
     assert sorted(os.listdir(os.path.join(workdir, "checkpoints"))) == before
     assert not os.path.exists(os.path.join(workdir, "vae"))

@@ -39,10 +39,10 @@ def stage_data(ctx: Context) -> dict:
 
 
 def stage_vae(ctx: Context) -> dict:
-    from train import train_vae
+    from sim import vae_training
 
     workdir = ctx.stage_dir("vae_run")
-    summary = train_vae.run(ctx.cfg_in(workdir), [ctx.results["data"]["train"]["path"]])
+    summary = vae_training.run_vae(ctx.cfg_in(workdir), [ctx.results["data"]["train"]["path"]])
     summary["path"] = os.path.join(workdir, "vae")
     return summary
 
