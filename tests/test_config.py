@@ -168,7 +168,7 @@ def test_vae_geometry_is_read_from_the_vae_config():
     """Frames per latent and the spatial stride come from ``VAEConfig`` wherever a config is at hand."""
     from sword_jax.api import WorldModelSpec
     from sword_jax.pipeline.world_model import latent_grid
-    from train import evaluate_world_model
+    from sim.world_model_eval import effective_horizon
 
     cfg = configs.get("sword:tiny")
     assert (cfg.vae.temporal_factor, cfg.vae.spatial_factor) == (4, 16)
@@ -180,7 +180,7 @@ def test_vae_geometry_is_read_from_the_vae_config():
     assert latent_grid(odd) == (1 + (cfg.data.episode_frames - 1) // 2, side, side, vae.z_dim)
     k, p = cfg.data.context_frames // 2, cfg.data.predict_frames // 2
     n = (cfg.eval.horizon_frames - 1 - 2 * k) // (2 * p)
-    assert evaluate_world_model.effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)
+    assert effective_horizon(odd, 10_000) == (1 + 2 * k + 2 * p * n, k, p)
     # the action DiT groups 4 actions per latent frame: an experiment with this VAE is refused, naming it
     with pytest.raises(ValueError, match=r"vae.temporal_downsample=\(False, True\) compresses time by 2"):
         odd.validate()

@@ -5,6 +5,7 @@ import os
 
 import pytest
 
+from sim import world_model_eval
 from train import evaluate_world_model
 
 
@@ -33,9 +34,9 @@ def test_effective_horizon_fits_rollout_layout():
     import configs
 
     cfg = configs.get("sword:tiny")
-    assert evaluate_world_model.effective_horizon(cfg, 33) == (29, 1, 2)  # 1 + 4 + 8n <= 33
+    assert world_model_eval.effective_horizon(cfg, 33) == (29, 1, 2)  # 1 + 4 + 8n <= 33
     with pytest.raises(SystemExit, match="cannot hold"):
-        evaluate_world_model.effective_horizon(cfg, 9)
+        world_model_eval.effective_horizon(cfg, 9)
 
 
 def test_model_config_comes_from_the_workdir(tmp_path):
@@ -48,10 +49,10 @@ def test_model_config_comes_from_the_workdir(tmp_path):
     other = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_layers=1),
                                 flow=dataclasses.replace(cfg.flow, sample_steps=3))
     json.dump(to_dict(other), open(tmp_path / "config.json", "w"))
-    loaded = evaluate_world_model.model_config(cfg, str(tmp_path))
+    loaded = world_model_eval.model_config(cfg, str(tmp_path))
     assert loaded.model.num_layers == 1 and loaded.flow.sample_steps == 3
     assert loaded.model == other.model
-    assert evaluate_world_model.model_config(cfg, None) is cfg
+    assert world_model_eval.model_config(cfg, None) is cfg
 
 
 @pytest.mark.slow

@@ -40,9 +40,9 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     set for the stage): the config ``python -m train.X`` parses from the same flags. ``--seed 3`` (two
     tokens) once fell out of the argv the pipeline rebuilt for its entry points."""
     import configs
-    from train import evaluate_world_model, grpo, pipeline_data, pipeline_policy, train_policy, train_probe
+    from train import grpo, pipeline_data, pipeline_policy, train_policy
     from train import train_reward
-    from sim import vae_training
+    from sim import probe_training, vae_training, world_model_eval
     from sword_jax.pipeline import world_model
     from sword_jax.pipeline.stages import Context
 
@@ -62,8 +62,8 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
 
     monkeypatch.setattr(vae_training, "run_vae", stub("vae", {"steps": 0}))
     monkeypatch.setattr(world_model, "run_world_model", stub("world_model", {"step": 2, "metrics": {}}))
-    monkeypatch.setattr(train_probe, "run", stub("probe", {"path": "probe.npz"}))
-    monkeypatch.setattr(evaluate_world_model, "run", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))
+    monkeypatch.setattr(probe_training, "run_probe", stub("probe", {"path": "probe.npz"}))
+    monkeypatch.setattr(world_model_eval, "run_evaluation", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))
     monkeypatch.setattr(pipeline_data, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})
     monkeypatch.setattr(train_reward, "run", stub("reward_model", {"path": "rm_dir"}))
     monkeypatch.setattr(train_policy, "run", stub("sft_policy", {"path": "sft_dir"}))
@@ -80,9 +80,9 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     assert calls["world_model"] == (parsed("--workdir", wm_dir, "--data.path=latents.npz"), (), {})
     assert calls["vae"][0].seed == 3 and calls["vae"][0].model.num_layers == 1
     assert os.path.isdir(vae_dir) and os.path.isdir(wm_dir)  # made for the stage, as the entry points expect
-    assert calls["probe"] == (cfg, (["train.hdf5"], str(tmp_path / "probe"), train_probe.probe_config(cfg)), {})
+    assert calls["probe"] == (cfg, (["train.hdf5"], str(tmp_path / "probe"), probe_training.probe_config(cfg)), {})
     eval_cfg, (inputs,), _ = calls["evaluate"]
-    assert eval_cfg == cfg and inputs == evaluate_world_model.EvalInputs(
+    assert eval_cfg == cfg and inputs == world_model_eval.EvalInputs(
         models={cfg.name: "wm_dir"}, episodes={"original": "o.npz", "mixed": "m.npz"}, out=str(tmp_path / "eval"),
         vae_checkpoint="vae_dir", probe="probe.npz", reward_model="rm_dir")
     assert calls["reward_model"][:2] == (cfg, (["demos.hdf5", "train.hdf5"],))  # state labels: + fixed-length

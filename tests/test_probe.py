@@ -86,12 +86,12 @@ def test_fidelity_metrics_against_horizon_in_evaluation_output(tmp_path):
 
 
 def test_load_split_carries_the_true_state(tmp_path):
-    from train import evaluate_world_model
+    from sim import world_model_eval
 
     path = str(tmp_path / "split.npz")
     np.savez(path, frames=np.zeros((3, 5, 8, 8, 3), np.float32), actions=np.zeros((3, 5, 7), np.float32),
              targets=np.ones((3, 5, 7), np.float32), rewards=np.ones((3, 5), np.float32))
-    split = evaluate_world_model.load_split(path, 2)
+    split = world_model_eval.load_split(path, 2)
     assert split["targets"].shape == (2, 5, 7) and split["rewards"].shape == (2, 5)
 
 

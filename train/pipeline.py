@@ -64,22 +64,23 @@ def stage_world_model(ctx: Context) -> dict:
 
 
 def stage_probe(ctx: Context) -> dict:
-    from train import train_probe
+    from sim import probe_training
 
-    return train_probe.run(ctx.cfg, [ctx.results["data"]["train"]["path"]], ctx.stage_dir("probe"),
-                           train_probe.probe_config(ctx.cfg))
+    return probe_training.run_probe(ctx.cfg, [ctx.results["data"]["train"]["path"]], ctx.stage_dir("probe"),
+                                    probe_training.probe_config(ctx.cfg))
 
 
 def stage_evaluate(ctx: Context) -> dict:
-    from train import evaluate_world_model, pipeline_data
+    from sim import world_model_eval
+    from train import pipeline_data
 
     splits = pipeline_data.write_eval_splits(ctx)
-    inputs = evaluate_world_model.EvalInputs(
+    inputs = world_model_eval.EvalInputs(
         models={ctx.cfg.name: ctx.results["world_model"]["workdir"]}, episodes=splits, out=ctx.stage_dir("eval"),
         vae_checkpoint=ctx.results["vae"]["path"],
         probe=ctx.results.get("probe", {}).get("path") or "",  # skipped stages: none
         reward_model=ctx.results.get("reward_model", {}).get("path") or "")
-    summary = evaluate_world_model.run(ctx.cfg, inputs)
+    summary = world_model_eval.run_evaluation(ctx.cfg, inputs)
     return {"report": summary["report"], "splits": splits, "metrics": pipeline_data.read_eval_results(summary["out"])}
 
 
