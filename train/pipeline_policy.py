@@ -41,7 +41,7 @@ def reward_model(ctx: Context) -> dict:
     With ``rl.reward_model.labels=state`` the world model's fixed-length expert episodes join them: they
     keep going after success, so they hold the solved frames (and frames solved and then undone)
     that episodes ending at their success never show."""
-    from train import train_reward
+    from sim import reward_training
 
     files = [_demos(ctx)]
     train_file = ctx.results["data"]["train"]["path"]
@@ -50,13 +50,13 @@ def reward_model(ctx: Context) -> dict:
     rollouts = ctx.results.get("policy_data", {}).get("path")
     if rollouts:
         files.append(rollouts)
-    return _scalars(train_reward.run(ctx.cfg_in(ctx.workdir), files))
+    return _scalars(reward_training.run_reward_model(ctx.cfg_in(ctx.workdir), files))
 
 
 def sft_policy(ctx: Context) -> dict:
-    from train import train_policy
+    from sim import policy_training
 
-    return _scalars(train_policy.run(ctx.cfg_in(ctx.workdir), [_demos(ctx)]))
+    return _scalars(policy_training.run_sft_policy(ctx.cfg_in(ctx.workdir), [_demos(ctx)]))
 
 
 def grpo_in_world_model(ctx: Context) -> dict:
