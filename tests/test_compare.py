@@ -512,7 +512,8 @@ def test_hash_checks_stay_within_a_shared_seed():
 def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_policy(tmp_path, monkeypatch):
     import configs
     from sword_jax.pipeline.stages import Context
-    from train import grpo, pipeline_policy
+    from sim import grpo_training
+    from train import pipeline_policy
 
     seen = {}
 
@@ -520,7 +521,7 @@ def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_po
         seen.update(simulator=simulator, inputs=inputs, workdir=cfg.workdir)
         return {"curve": [{"step": 0, "mean": 0.3}, {"step": 5, "mean": 0.4}], "workdir": "g"}
 
-    monkeypatch.setattr(grpo, "run", fake_run)
+    monkeypatch.setattr(grpo_training, "run_grpo", fake_run)
     cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--workdir={tmp_path}"])
     ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])
     ctx.results.update(data={"demos": {"path": "demos.hdf5"}, "train": {"path": "train.hdf5"}},
@@ -646,10 +647,11 @@ def test_grpo_stage_records_training_success_from_the_runs_history(tmp_path, mon
     import configs
     from sword_jax.pipeline.grpo import training_success
     from sword_jax.pipeline.stages import Context
-    from train import grpo, pipeline_policy
+    from sim import grpo_training
+    from train import pipeline_policy
 
     history = [{"step": k + 1, "rollout_success": 0.1 if k < 10 else 0.7} for k in range(12)]
-    monkeypatch.setattr(grpo, "run", lambda cfg, inputs, *, simulator, env_workers: {
+    monkeypatch.setattr(grpo_training, "run_grpo", lambda cfg, inputs, *, simulator, env_workers: {
         "curve": [{"step": 0, "mean": 0.3}], "workdir": "g", "history": history})
     cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--workdir={tmp_path}"])
     ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])

@@ -40,8 +40,8 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     set for the stage): the config ``python -m train.X`` parses from the same flags. ``--seed 3`` (two
     tokens) once fell out of the argv the pipeline rebuilt for its entry points."""
     import configs
-    from train import grpo, pipeline_data, pipeline_policy
-    from sim import policy_training, probe_training, reward_training, vae_training, world_model_eval
+    from train import pipeline_data, pipeline_policy
+    from sim import grpo_training, policy_training, probe_training, reward_training, vae_training, world_model_eval
     from sword_jax.pipeline import world_model
     from sword_jax.pipeline.stages import Context
 
@@ -66,7 +66,8 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     monkeypatch.setattr(pipeline_data, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})
     monkeypatch.setattr(reward_training, "run_reward_model", stub("reward_model", {"path": "rm_dir"}))
     monkeypatch.setattr(policy_training, "run_sft_policy", stub("sft_policy", {"path": "sft_dir"}))
-    monkeypatch.setattr(grpo, "run", stub("policy", {"curve": [{"step": 0, "mean": 0.5}], "workdir": "grpo_dir"}))
+    monkeypatch.setattr(grpo_training, "run_grpo",
+                        stub("policy", {"curve": [{"step": 0, "mean": 0.5}], "workdir": "grpo_dir"}))
     for stage in (pipeline.stage_vae, pipeline.stage_world_model, pipeline.stage_probe, pipeline.stage_evaluate,
                   pipeline_policy.reward_model, pipeline_policy.sft_policy, pipeline_policy.grpo_in_world_model):
         stage(ctx)
@@ -88,5 +89,5 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     assert calls["sft_policy"][:2] == (cfg, (["demos.hdf5"],))
     grpo_cfg, (grpo_inputs,), grpo_kwargs = calls["policy"]
     assert grpo_cfg == cfg and grpo_kwargs["simulator"] == "world_model"
-    assert grpo_inputs == grpo.GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir",
+    assert grpo_inputs == grpo_training.GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir",
                                           policy="sft_dir", reward="rm_dir")

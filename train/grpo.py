@@ -25,22 +25,12 @@ checkpoint is refused, naming the config keys that differ. A non-finite loss sto
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import os
 import sys
 from collections.abc import Sequence
 
 import configs
-from sim import grpo_env
-from sim.dataset import read_dataset
-from sim.lockstep import lockstep_evaluation
-from sword_jax.pipeline.grpo import GRPOInputs, run_in_learned_simulator, toy_setup, world_model_setup
-from sword_jax.rl import data as rl_data
-from sword_jax.rl.params_io import load_params
-from sword_jax.rl.policy import build_policy
-from train.distributed import ENTRY_MAX_TRACES
-
-SIMULATORS = ("world_model", "env", "toy")
+from sim.grpo_training import SIMULATORS, run_grpo
+from sword_jax.pipeline.grpo import GRPOInputs
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -66,67 +56,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 def run(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_workers: int = 0, renderer: str = "jax",
         eval_episodes: int = 0) -> dict:
-    """GRPO in ``simulator`` (``world_model``, ``env`` or ``toy``), resuming from ``<cfg.workdir>/rl/grpo``.
-
-    ``eval_episodes`` (per task) overrides ``rl.grpo.eval_episodes_per_task``; ``env_workers`` are the C-engine
-    processes of the evaluations (and of the episodes with ``simulator="env"``). Returns
-    ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}`` (the history
-    is also written to ``<workdir>/train_history.jsonl``).
-    """
-    if simulator not in SIMULATORS:
-        raise ValueError(f"train.grpo: simulator {simulator!r} is none of {SIMULATORS}")
-    rl = cfg.rl
-    if simulator == "toy":
-        rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
-    elif simulator == "env":
-        if rl.env.starts == "keyframes" and not inputs.demos:
-            raise SystemExit("train.grpo --simulator env --rl.env.starts=keyframes needs --demos (the rollouts start "
-                             "from their recorded states)")
-    elif not (inputs.world_model and inputs.reward and inputs.demos):
-        raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
-    workdir = os.path.join(cfg.workdir, "rl", "grpo")
-    os.makedirs(workdir, exist_ok=True)
-
-    graphdef, params = build_policy(rl, seed=cfg.seed)
-    if inputs.policy:  # an orbax directory (train_policy) or an .npz file (benchmarks.bench_policy)
-        params, _ = load_params(inputs.policy, params, kind="policy")
-    if simulator == "env":
-        if rl.env.proprio == "reckoned" and not inputs.demos:
-            raise SystemExit("train.grpo --simulator env --rl.env.proprio=reckoned needs --demos (the reckoning's "
-                             "gains are fitted to them)")
-        reckoning = keyframes = None
-        if rl.env.proprio == "reckoned" or rl.env.starts == "keyframes":
-            demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
-            reckoning = grpo_env.sim_reckoning(demos) if rl.env.proprio == "reckoned" else None
-            keyframes = demos if rl.env.starts == "keyframes" else None
-        if rl.env.backend == "mjx":
-            return grpo_env.run_in_mjx(cfg, rl, graphdef, params, workdir,
-                                       episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task)
-        return grpo_env.run_in_env(cfg, rl, graphdef, params, workdir,
-                                   episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
-                                   workers=env_workers, renderer=renderer, reckoning=reckoning, keyframes=keyframes,
-                                   max_traces=ENTRY_MAX_TRACES)
-    if simulator == "toy":
-        setup, env_eval = toy_setup(cfg, rl), None
-    else:
-        demos = rl_data.load_episodes(inputs.demos, read=read_dataset)
-        reckoning = grpo_env.sim_reckoning(demos) if rl.imagined.proprio == "reckoned" else None
-        setup = world_model_setup(cfg, rl, inputs, demos, reckoning=reckoning)
-        if rl.refresh.every:
-            from sim.grpo_refresh import run_refreshed_in_mjx
-            from sword_jax.load import experiment_vae
-
-            if not inputs.latents:
-                raise SystemExit("train.grpo --rl.refresh.every > 0 needs --latents (the world model's training latents)")
-            return run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir, setup, vae=experiment_vae(cfg, inputs.vae),
-                                        latents=inputs.latents,
-                                        episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
-                                        max_traces=ENTRY_MAX_TRACES)
-        env_eval = lockstep_evaluation(cfg.sim.tasks, eval_episodes or rl.grpo.eval_episodes_per_task,
-                                       resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps, renderer=renderer,
-                                       workers=env_workers)
-    return run_in_learned_simulator(cfg, rl, graphdef, params, workdir, setup, simulator=simulator,
-                                    env_eval=env_eval, max_traces=ENTRY_MAX_TRACES)
+    """:func:`sim.grpo_training.run_grpo`."""
+    return run_grpo(cfg, inputs, simulator=simulator, env_workers=env_workers, renderer=renderer,
+                    eval_episodes=eval_episodes)
 
 
 if __name__ == "__main__":

@@ -60,12 +60,12 @@ def sft_policy(ctx: Context) -> dict:
 
 
 def grpo_in_world_model(ctx: Context) -> dict:
-    from train import grpo
+    from sim import grpo_training
 
     inputs = GRPOInputs(demos=(_demos(ctx),), world_model=ctx.results["world_model"]["workdir"],
                              vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
                              reward=ctx.results["reward_model"]["path"])
-    result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
+    result = grpo_training.run_grpo(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
     return {"reward_model": _summary(ctx.results["reward_model"]), **_policy_result(ctx, result)}
 
 
@@ -73,10 +73,10 @@ def grpo_in_ground_truth(ctx: Context) -> dict:
     """GRPO against the MuJoCo environments themselves, from the same supervised policy: the upper
     reference for GRPO in a learned simulator (``train.compare``'s ``ground_truth`` run). It needs only
     the demonstrations and the supervised policy; rollouts follow ``rl.env``."""
-    from train import grpo
+    from sim import grpo_training
 
     inputs = GRPOInputs(demos=(_demos(ctx),), policy=ctx.results["sft_policy"]["path"])
-    result = grpo.run(ctx.cfg_in(ctx.workdir), inputs, simulator="env", env_workers=cpu_workers())
+    result = grpo_training.run_grpo(ctx.cfg_in(ctx.workdir), inputs, simulator="env", env_workers=cpu_workers())
     return _policy_result(ctx, result)
 
 
