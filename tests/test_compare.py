@@ -144,22 +144,22 @@ def _fake_stages(calls):
 
         return Stage(name, run, name, needs=needs)
 
-    from train import pipeline
+    from sim import pipeline_stages
 
-    return [make(stage.name, stage.needs) for stage in pipeline.STAGES]
+    return [make(stage.name, stage.needs) for stage in pipeline_stages.STAGES]
 
 
 def test_slices_build_shared_stages_once_and_write_their_files(tmp_path, monkeypatch):
-    from train import pipeline
+    from sim import pipeline_stages
 
     calls = []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
     results = tmp_path / "results"
     argv = ["--size", "tiny", "--runs", "sword,teacher_forcing", "--seeds", "1", f"--out={tmp_path / 'w'}",
             f"--results={results}", "--trainer.steps=3"]
     table = compare.main(argv)
-    names = [stage.name for stage in pipeline.STAGES]
+    names = [stage.name for stage in pipeline_stages.STAGES]
     shareable = [name for name in names if name in compare.SHAREABLE]
     shared = [(name, seed) for name, workdir, seed in calls if "/shared/" in workdir]
     # The shared stages run once, at the shared seed (0), not the slice's seed; teacher forcing adopts them
@@ -296,15 +296,15 @@ def test_shared_stages_rebuild_bit_identically_in_a_fresh_process(tmp_path):
 
 def _one_fake_slice(tmp_path, monkeypatch, run: str, seed: int, flag: str):
     """One tiny slice with ``flag`` on the fake stages: (every stage name, the stages that ran, its record)."""
-    from train import pipeline
+    from sim import pipeline_stages
 
     calls = []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
     results = tmp_path / "results"
     compare.main(["--size", "tiny", "--runs", run, "--seeds", str(seed), flag, f"--out={tmp_path / 'w'}",
                   f"--results={results}"])
-    names = [stage.name for stage in pipeline.STAGES]
+    names = [stage.name for stage in pipeline_stages.STAGES]
     return names, {name for name, _, _ in calls}, json.loads((results / f"{run}_seed{seed}.json").read_text())
 
 
@@ -340,10 +340,11 @@ def test_parallel_slices_launch_each_stage_with_the_slices_command_and_record_th
     """--parallel: every stage is launched as ``train.pipeline <the slice's or shared dir's command> --only
     STAGE`` (here run in this process instead of a new one, so the fake stages apply), and the
     slice records equal a sequential run's."""
+    from sim import pipeline_stages
     from train import pipeline
 
     calls, launched = [], []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
 
     def launcher(argv, workdir):
@@ -354,7 +355,7 @@ def test_parallel_slices_launch_each_stage_with_the_slices_command_and_record_th
 
         return launch
 
-    monkeypatch.setattr(pipeline, "stage_launcher", launcher)
+    monkeypatch.setattr(pipeline_stages, "stage_launcher", launcher)
     records = {}
     for mode, extra in (("sequential", []), ("parallel", ["--parallel", "2"])):
         results = tmp_path / mode / "results"
@@ -380,10 +381,10 @@ def test_slices_at_once_build_shared_stages_first_then_run_each_slice_as_a_child
     child per (run, seed) with the parent's arguments less its run/seed/concurrency flags (here run in
     this process, so the fake stages apply); the records equal a sequential run's and say how many
     slices shared the device. A failed child stops new ones and is named with its log."""
-    from train import pipeline
+    from sim import pipeline_stages
 
     calls, children = [], []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
 
     def launch(argv, log_path, env, fail=()):
@@ -432,8 +433,8 @@ def test_slices_at_once_build_shared_stages_first_then_run_each_slice_as_a_child
 
 
 def _fake_ground_truth_grpo(calls):
-    """Stands in for GRPO against MuJoCo: records the call, writes a success curve like grpo.run's."""
-    from train import pipeline_policy
+    """Stands in for GRPO against MuJoCo: records the call, writes a success curve like run_grpo's."""
+    from sim import policy_stages
 
     def grpo_in_ground_truth(ctx):
         calls.append(("ground_truth_grpo", ctx.workdir, ctx.cfg.seed, sorted(ctx.results)))
@@ -444,7 +445,7 @@ def _fake_ground_truth_grpo(calls):
                    "successes": 50 + ctx.cfg.seed, "episodes": 100}]
         with open(os.path.join(grpo_dir, "success_curve.json"), "w") as f:
             json.dump({"points": points}, f)
-        return pipeline_policy._policy_result(ctx, {"curve": points, "workdir": grpo_dir})
+        return policy_stages._policy_result(ctx, {"curve": points, "workdir": grpo_dir})
 
     return grpo_in_ground_truth
 
@@ -454,11 +455,11 @@ def test_shared_seed_slice_replicates_each_seed_and_ground_truth_is_the_referenc
     that seed's runs (sword, wovr and the ground-truth reference) adopt them; merge checks hashes within
     a shared seed only, and comparison 3 shows each run's success per step, the reference and the
     per-seed gains, with a figure. The ground-truth run makes no world model and no detector."""
-    from train import pipeline, pipeline_policy
+    from sim import pipeline_stages, policy_stages
 
     calls = []
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages(calls))
-    monkeypatch.setattr(pipeline_policy, "grpo_in_ground_truth", _fake_ground_truth_grpo(calls))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages(calls))
+    monkeypatch.setattr(policy_stages, "grpo_in_ground_truth", _fake_ground_truth_grpo(calls))
     monkeypatch.setattr(shared_inputs, "hash_vae", lambda cfg, path: "v" * 64)
     results, out = tmp_path / "results", tmp_path / "w"
     compare.main(["--size", "tiny", "--runs", "sword,wovr,ground_truth", "--seeds", "1,2", "--no-evaluate",
@@ -512,8 +513,7 @@ def test_hash_checks_stay_within_a_shared_seed():
 def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_policy(tmp_path, monkeypatch):
     import configs
     from sword_jax.pipeline.stages import Context
-    from sim import grpo_training
-    from train import pipeline_policy
+    from sim import grpo_training, policy_stages
 
     seen = {}
 
@@ -526,7 +526,7 @@ def test_ground_truth_stage_runs_grpo_in_the_environments_from_the_supervised_po
     ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])
     ctx.results.update(data={"demos": {"path": "demos.hdf5"}, "train": {"path": "train.hdf5"}},
                        sft_policy={"path": "policy_sft", "loss": 1.5, "seconds": 3.0})
-    out = pipeline_policy.grpo_in_ground_truth(ctx)
+    out = policy_stages.grpo_in_ground_truth(ctx)
     assert seen["simulator"] == "env" and seen["inputs"].policy == "policy_sft"
     assert seen["inputs"].demos == ("demos.hdf5",) and not seen["inputs"].world_model
     assert out["success"] == {"grpo step 0": 0.3, "grpo step 5": 0.4} and out["sft"] == {"loss": 1.5}
@@ -604,9 +604,9 @@ def test_slices_start_as_soon_as_their_runs_shared_stages_are_built(tmp_path, mo
         events.append(("launch", argv[argv.index("--runs") + 1]))
         return _Exited(0)
 
-    from train import pipeline
+    from sim import pipeline_stages
 
-    monkeypatch.setattr(pipeline, "STAGES", _fake_stages([]))
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages([]))
     monkeypatch.setattr(compare, "build_shared", build)
     monkeypatch.setattr(compare, "launch_slice", launch)
     argv = ["--size", "tiny", "--runs", "sword,wovr,ground_truth", "--seeds", "1", "--no-evaluate", "--shared-seed",
@@ -647,8 +647,7 @@ def test_grpo_stage_records_training_success_from_the_runs_history(tmp_path, mon
     import configs
     from sword_jax.pipeline.grpo import training_success
     from sword_jax.pipeline.stages import Context
-    from sim import grpo_training
-    from train import pipeline_policy
+    from sim import grpo_training, policy_stages
 
     history = [{"step": k + 1, "rollout_success": 0.1 if k < 10 else 0.7} for k in range(12)]
     monkeypatch.setattr(grpo_training, "run_grpo", lambda cfg, inputs, *, simulator, env_workers: {
@@ -657,7 +656,7 @@ def test_grpo_stage_records_training_success_from_the_runs_history(tmp_path, mon
     ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", overrides=[])
     ctx.results.update(data={"demos": {"path": "demos.hdf5"}, "train": {"path": "train.hdf5"}},
                        sft_policy={"path": "policy_sft", "seconds": 3.0})
-    training = pipeline_policy.grpo_in_ground_truth(ctx)["grpo"]["training_success"]
+    training = policy_stages.grpo_in_ground_truth(ctx)["grpo"]["training_success"]
     assert training == training_success(history) and training["metric"] == "rollout_success"
     assert abs(training["first"] - 0.1) < 1e-9 and abs(training["last"] - (8 * 0.1 + 2 * 0.7) / 10) < 1e-9
     committed = compare_lib.load_slices(os.path.join(compare.REPO, "benchmarks", "results", "compare", "small_grpo"))

@@ -2,6 +2,7 @@
 
 import os
 
+from sim import pipeline_stages
 from train import pipeline
 from sword_jax.pipeline.stages import Stage
 
@@ -16,7 +17,7 @@ def test_stop_after_then_resume(tmp_path, monkeypatch):
 
         return Stage(name, run, name)
 
-    monkeypatch.setattr(pipeline, "STAGES", [make("a"), make("b"), make("c")])
+    monkeypatch.setattr(pipeline_stages, "STAGES", [make("a"), make("b"), make("c")])
     workdir = f"--workdir={tmp_path / 'run'}"
     results = pipeline.main([workdir, "--stop-after", "b"])
     assert calls == ["a", "b"] and set(results) == {"a", "b"}
@@ -26,7 +27,7 @@ def test_stop_after_then_resume(tmp_path, monkeypatch):
 
 
 def test_policy_work_is_resumable_stages_around_the_world_model():
-    names = [stage.name for stage in pipeline.STAGES]
+    names = [stage.name for stage in pipeline_stages.STAGES]
     assert names[-2:] == ["policy", "report"]
     assert names.index("world_model") < names.index("policy")
     # The supervised policy's own rollouts (successes and failures) join the world model's data.
@@ -35,13 +36,13 @@ def test_policy_work_is_resumable_stages_around_the_world_model():
     assert names.index("probe") < names.index("evaluate") and names.index("reward_model") < names.index("evaluate")
 
 
-def test_stages_call_entry_points_run_with_the_config_their_command_line_would_parse(tmp_path, monkeypatch):
-    """Each stage hands its entry point's ``run`` the pipeline's typed config (work dir and data path
-    set for the stage): the config ``python -m train.X`` parses from the same flags. ``--seed 3`` (two
-    tokens) once fell out of the argv the pipeline rebuilt for its entry points."""
+def test_stages_call_the_orchestration_with_the_config_their_command_line_would_parse(tmp_path, monkeypatch):
+    """Each stage hands the function its entry point calls (``run_<part>``) the pipeline's typed config (work
+    dir and data path set for the stage): the config ``python -m train.X`` parses from the same flags.
+    ``--seed 3`` (two tokens) once fell out of the argv the pipeline rebuilt for its entry points."""
     import configs
-    from train import pipeline_data, pipeline_policy
-    from sim import grpo_training, policy_training, probe_training, reward_training, vae_training, world_model_eval
+    from sim import (data_stages, grpo_training, policy_stages, policy_training, probe_training, reward_training,
+                     vae_training, world_model_eval)
     from sword_jax.pipeline import world_model
     from sword_jax.pipeline.stages import Context
 
@@ -63,13 +64,14 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     monkeypatch.setattr(world_model, "run_world_model", stub("world_model", {"step": 2, "metrics": {}}))
     monkeypatch.setattr(probe_training, "run_probe", stub("probe", {"path": "probe.npz"}))
     monkeypatch.setattr(world_model_eval, "run_evaluation", stub("evaluate", {"report": "report.md", "out": "eval_dir"}))
-    monkeypatch.setattr(pipeline_data, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})
+    monkeypatch.setattr(data_stages, "write_eval_splits", lambda ctx: {"original": "o.npz", "mixed": "m.npz"})
     monkeypatch.setattr(reward_training, "run_reward_model", stub("reward_model", {"path": "rm_dir"}))
     monkeypatch.setattr(policy_training, "run_sft_policy", stub("sft_policy", {"path": "sft_dir"}))
     monkeypatch.setattr(grpo_training, "run_grpo",
                         stub("policy", {"curve": [{"step": 0, "mean": 0.5}], "workdir": "grpo_dir"}))
-    for stage in (pipeline.stage_vae, pipeline.stage_world_model, pipeline.stage_probe, pipeline.stage_evaluate,
-                  pipeline_policy.reward_model, pipeline_policy.sft_policy, pipeline_policy.grpo_in_world_model):
+    for stage in (pipeline_stages.stage_vae, pipeline_stages.stage_world_model, pipeline_stages.stage_probe,
+                  pipeline_stages.stage_evaluate, policy_stages.reward_model, policy_stages.sft_policy,
+                  policy_stages.grpo_in_world_model):
         stage(ctx)
 
     def parsed(*flags):
@@ -90,4 +92,4 @@ def test_stages_call_entry_points_run_with_the_config_their_command_line_would_p
     grpo_cfg, (grpo_inputs,), grpo_kwargs = calls["policy"]
     assert grpo_cfg == cfg and grpo_kwargs["simulator"] == "world_model"
     assert grpo_inputs == grpo_training.GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir",
-                                          policy="sft_dir", reward="rm_dir")
+                                                   policy="sft_dir", reward="rm_dir")

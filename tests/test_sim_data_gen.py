@@ -151,7 +151,7 @@ def test_stop_at_success_demos_end_at_the_first_success(tmp_path):
 
 
 def test_world_model_episodes_are_never_padded_and_use_executed_actions():
-    from train.pipeline_data import fixed_length
+    from sim.data_stages import fixed_length
 
     steps = 9
     ep = Episode(actions=np.zeros((steps, 7)), states=np.zeros((steps, 5)), rewards=np.r_[np.zeros(6), np.ones(3)],

@@ -8,6 +8,7 @@ import pytest
 
 from sword_jax.pipeline import stages as stagerunner
 from sword_jax.pipeline.stages import Context, Stage
+from sim import pipeline_stages
 from train import pipeline
 
 # A stand-in for ``train.pipeline --only STAGE``: sleeps, then writes the stage's marker with its
@@ -111,8 +112,8 @@ def test_only_runs_its_stages_and_refuses_one_whose_needs_have_not_run(tmp_path)
 
 
 def test_every_pipeline_stage_needs_only_earlier_stages():
-    stagerunner.check_order(pipeline.STAGES)
-    needs = {s.name: set(s.needs) for s in pipeline.STAGES}
+    stagerunner.check_order(pipeline_stages.STAGES)
+    needs = {s.name: set(s.needs) for s in pipeline_stages.STAGES}
     assert {"vae"} <= needs["latents"] and "sft_policy" not in needs["vae"]  # the VAE does not wait for the policy
     assert needs["reward_model"] == {"data", "policy_data"}  # the detector does not wait for the world model
     with pytest.raises(ValueError, match="stage 'b' needs \\['c'\\], which do not come before it"):
@@ -121,7 +122,7 @@ def test_every_pipeline_stage_needs_only_earlier_stages():
 
 def test_parallel_children_get_the_command_without_parallel_only_or_restart():
     argv = ["--config", "sword:small", "--parallel", "2", "--only=vae", "--restart", "--seed", "1", "--parallel=3"]
-    assert pipeline.without_flags(argv, {"--parallel": True, "--only": True, "--restart": False}) == [
+    assert stagerunner.without_flags(argv, {"--parallel": True, "--only": True, "--restart": False}) == [
         "--config", "sword:small", "--seed", "1"]
 
 

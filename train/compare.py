@@ -64,11 +64,11 @@ def _stage_names(run: str, *, policy: bool = True, evaluate: bool = True) -> lis
     """The pipeline stages a slice of ``run`` goes through (up to the evaluation outside comparison 3, or
     without ``policy``; without ``evaluate``, comparison 3's GRPO stages without the world-model
     evaluation, its probe and the report)."""
-    from train import pipeline
+    from sim import pipeline_stages
 
     if run == GROUND_TRUTH:
         return list(GROUND_TRUTH_STAGES)
-    names = [stage.name for stage in pipeline.STAGES]
+    names = [stage.name for stage in pipeline_stages.STAGES]
     if not evaluate:
         return [n for n in names if n not in EVALUATION_ONLY]
     return names if needs_policy(run) and policy else names[:names.index("evaluate") + 1]
@@ -87,12 +87,12 @@ def _run_config(run: str, size: str, seed: int, workdir: str,
 
 def ground_truth_stages() -> list:
     """The ``ground_truth`` run's stages: the pipeline's data and supervised policy (shared), then GRPO
-    against the MuJoCo environments from that policy (:func:`train.pipeline_policy.grpo_in_ground_truth`)."""
-    from train import pipeline, pipeline_policy
+    against the MuJoCo environments from that policy (:func:`sim.policy_stages.grpo_in_ground_truth`)."""
+    from sim import pipeline_stages, policy_stages
 
-    by_name = {stage.name: stage for stage in pipeline.STAGES}
+    by_name = {stage.name: stage for stage in pipeline_stages.STAGES}
     return [by_name["data"], by_name["sft_policy"],
-            Stage("policy", lambda ctx: pipeline_policy.grpo_in_ground_truth(ctx),
+            Stage("policy", lambda ctx: policy_stages.grpo_in_ground_truth(ctx),
                   "GRPO against the MuJoCo environments (no world model): comparison 3's upper reference",
                   needs=("data", "sft_policy"))]
 
@@ -108,7 +108,7 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
     import glob
 
     from configs.cli import to_dict
-    from train import pipeline
+    from sim import pipeline_stages
 
     shared_dir = shared_dir_of(out, run, shared_seed)
     config, cfg, dotted = _run_config(run, size, shared_seed, shared_dir, overrides)
@@ -119,13 +119,13 @@ def build_shared(run: str, size: str, *, out: str, shared_seed: int, overrides: 
         if os.path.abspath(donor) != os.path.abspath(shared_dir):
             with open(other) as f:
                 adopt_stages(shared_dir, donor, cfg, json.load(f), wanted)
-    stages = [s for s in pipeline.STAGES if s.name in wanted]
+    stages = [s for s in pipeline_stages.STAGES if s.name in wanted]
     done = {s.name for s in stages if os.path.exists(os.path.join(shared_dir, "stages", f"{s.name}.json"))}
     ctx = Context(cfg=cfg, workdir=shared_dir, cfg_name=config, overrides=dotted)
     if parallel:
-        left_out = [s.name for s in pipeline.STAGES if s.name not in wanted]
-        launch = pipeline.stage_launcher(["--config", config, f"--workdir={shared_dir}", *dotted,
-                                          *(["--skip", ",".join(left_out)] if left_out else [])], shared_dir)
+        left_out = [s.name for s in pipeline_stages.STAGES if s.name not in wanted]
+        launch = pipeline_stages.stage_launcher(["--config", config, f"--workdir={shared_dir}", *dotted,
+                                                 *(["--skip", ",".join(left_out)] if left_out else [])], shared_dir)
         run_stages_parallel(stages, ctx, launch, max_running=parallel)
     else:
         run_stages(stages, ctx)
@@ -143,7 +143,7 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     processes, that many side by side (``train.pipeline --parallel``); the same results. The
     ``ground_truth`` run adopts the data and supervised policy and runs GRPO against MuJoCo in this
     process (one stage; ``parallel`` does not apply to it)."""
-    from train import pipeline
+    from sim import pipeline_stages
 
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     start = time.perf_counter()
@@ -165,10 +165,11 @@ def run_slice(run: str, seed: int, *, size: str, out: str, shared_seed: int, sha
     else:
         launch = None
         if parallel:
-            launch = pipeline.stage_launcher(["--config", config, f"--workdir={workdir}", *dotted, "--stop-after",
-                                              last, *(["--skip", ",".join(skip)] if skip else [])], workdir)
-        stages = pipeline.run(cfg, stop_after=last, skip=skip, cfg_name=config, overrides=dotted, launch=launch,
-                              max_running=max(parallel, 1))
+            argv = ["--config", config, f"--workdir={workdir}", *dotted, "--stop-after", last,
+                    *(["--skip", ",".join(skip)] if skip else [])]
+            launch = pipeline_stages.stage_launcher(argv, workdir)
+        stages = pipeline_stages.run_pipeline(cfg, stop_after=last, skip=skip, cfg_name=config, overrides=dotted,
+                                              launch=launch, max_running=max(parallel, 1))
     slice_seconds = time.perf_counter() - start - shared_seconds
     hash_start = time.perf_counter()
     # the slices of one --out hash each shared file once between them (the later ones read the cache)

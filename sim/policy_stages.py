@@ -1,8 +1,9 @@
 """Pipeline stages: reward model, supervised policy, then GRPO inside the world model with simulator evaluation
 (and GRPO against the ground truth, the reference ``train.compare`` runs beside it).
 
-Each part is its own entry point (``train.train_reward``, ``train.train_policy``, ``train.grpo``),
-whose ``run`` is called here with the pipeline's typed config and work dir. They are three stages so
+Each part is the function its entry point (``train.train_reward``, ``train.train_policy``, ``train.grpo``)
+calls: :func:`sim.reward_training.run_reward_model`, :func:`sim.policy_training.run_sft_policy` and
+:func:`sim.grpo_training.run_grpo`, called here with the pipeline's typed config and work dir. They are three stages so
 that each resumes on its own and so that runs which differ only in the world model
 (``train.compare``) can share the reward model and the supervised policy. The success curve (before
 and during GRPO, in the MuJoCo environments) lands in ``<workdir>/rl/grpo/success_curve.{json,png}``.
@@ -17,7 +18,7 @@ from sword_jax.pipeline.stages import Context, cpu_workers
 
 
 def _scalars(result: dict) -> dict:
-    """The plain numbers of an entry point's result (nested dicts flattened one level)."""
+    """The plain numbers of a part's result (nested dicts flattened one level)."""
     out = {}
     for key, value in result.items():
         if isinstance(value, (int, float, str, bool)):
