@@ -1,5 +1,6 @@
 """Layering: ``sword_jax`` imports neither ``sim`` nor ``train``; ``sword_jax.dit`` does not reach ``convert``;
-``benchmarks/``, ``examples/`` and ``sim/`` import no entry point; no ``train/`` module exceeds 300 lines.
+``benchmarks/``, ``examples/`` and ``sim/`` import no entry point; an entry point imports no other ``train``
+module but the process setup ``train.distributed``; no ``train/`` module exceeds 300 lines.
 
 The scan reads the source (every import statement, including those inside functions, and literal
 ``importlib.import_module`` / ``__import__`` names), so a lazy import cannot slip through.
@@ -196,3 +197,41 @@ def test_train_modules_have_at_most_300_lines():
     assert len(files) > 10, files
     too_long = {os.path.relpath(p, REPO): n for p in files if (n := len(_read(p).splitlines())) > 300}
     assert not too_long, f"train/ holds entry points of at most 300 lines (orchestration: sword_jax.pipeline): {too_long}"
+
+
+PROCESS_SETUP = "train.distributed"  # the one train module the entry points share
+
+
+def _train_modules_imported(found: list[tuple[int, str, str, bool]]) -> list[tuple[int, str]]:
+    """``(line, train module)`` of every import of a ``train`` module (``from train import x`` names ``train.x``)."""
+    out = []
+    for line, name, attr, _ in found:
+        if name == "train":
+            out.append((line, f"train.{attr}" if attr else "train"))
+        elif name.startswith("train."):
+            out.append((line, name))
+    return out
+
+
+def test_scan_names_the_train_modules_an_entry_point_imports():
+    source = ("from train import distributed, grpo\nimport train.pipeline\n"
+              "def f():\n    from train.train_vae import run\n    from train.distributed import initialize\n")
+    (found,) = _imports_fresh(((source, "train.x", False),))
+    assert _train_modules_imported(found) == [(1, "train.distributed"), (1, "train.grpo"), (2, "train.pipeline"),
+                                              (4, "train.train_vae"), (5, "train.distributed")]
+
+
+def test_entry_points_import_no_other_entry_point():
+    """Each ``train/`` module is an entry point: it parses a command line and calls the orchestration
+    (``sword_jax.pipeline``, or ``sim`` where the simulator is needed); what two entry points share lives
+    there, never in one of them. The process setup (``train.distributed``) is the one exception."""
+    files = [p for p in _files_under("train") if not p.endswith("__init__.py")]
+    assert len(files) > 10, files
+    found = _imports_fresh(tuple((_read(p), _module_name(p), False) for p in files))
+    edges = {os.path.relpath(p, REPO): _train_modules_imported(imports) for p, imports in zip(files, found)}
+    assert any(m == PROCESS_SETUP for imported in edges.values() for _, m in imported), edges  # the scan sees them
+    offenders = {path: [f"line {line}: {m}" for line, m in imported if m != PROCESS_SETUP]
+                 for path, imported in edges.items()}
+    offenders = {path: bad for path, bad in offenders.items() if bad}
+    assert not offenders, (f"train/ modules import no other train module but {PROCESS_SETUP}; call the "
+                           f"orchestration (sword_jax.pipeline, or sim/ where the simulator is needed): {offenders}")
