@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import nnx
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh, NamedSharding
 
 from sword_jax import optim
 from sword_jax import sharding as shd
@@ -179,19 +179,7 @@ def compile_train_step(
     mesh: Mesh,
     rules=shd.DEFAULT_RULES,
 ) -> StepFn:
-    """``jax.jit`` with explicit in/out shardings and the state donated; activations constrained
-    through :func:`sword_jax.sharding.use_mesh` while tracing."""
-    replicated = NamedSharding(mesh, PartitionSpec())
-    jitted = jax.jit(
-        step_fn,
-        in_shardings=(state_shardings, batch_shardings, replicated),
-        out_shardings=(state_shardings, replicated),
-        donate_argnums=(0,),
-    )
-
-    def call(state: TrainState, batch: dict, key: jax.Array) -> tuple[TrainState, dict]:
-        with shd.use_mesh(mesh, rules):
-            return jitted(state, batch, key)
-
-    call.jitted = jitted  # type: ignore[attr-defined]
-    return call
+    """The world model's step through the one compile helper, :func:`sword_jax.sharding.compile_step`:
+    explicit in/out shardings (the train state's and the loader's), the state donated, activations
+    constrained through :func:`sword_jax.sharding.use_mesh` while tracing."""
+    return shd.compile_step(step_fn, mesh, rules, state_shardings=state_shardings, batch_shardings=batch_shardings)
