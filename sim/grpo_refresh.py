@@ -4,7 +4,8 @@
 The real episodes of each refresh start from training-split initial states stratified over the tasks
 (never an evaluation state); the evaluations are the ground-truth GRPO's (:class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`:
 the greedy, ensembled policy and the sampled one on the tasks' fixed evaluation states, on MJX), so the
-curve compares with ground-truth GRPO's point for point. The loop is
+curve compares with ground-truth GRPO's point for point; with ``rl.imagined.eval_masked_proprio`` also the
+sampled policy reading its "missing proprio" input, the mode GRPO trains inside the world model. The loop is
 :func:`sword_jax.pipeline.grpo_refresh.run_refreshed`.
 """
 
@@ -62,9 +63,11 @@ def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae,
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate_real(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=True)
+        point, extra = runner.evaluate(params, step=step, sampled=True, masked=rl.imagined.eval_masked_proprio)
+        masked = extra.get("sampled_proprio_masked")
         log(f"eval step {step}: MJX success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}]"
-            f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f} ({point['episodes']} episodes)")
+            f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f}"
+            + (f", proprio masked {masked['mean']:.3f}" if masked else "") + f" ({point['episodes']} episodes)")
         return point, extra
 
     vae_graphdef, vae_state = vae

@@ -216,3 +216,27 @@ def test_env_grpo_steps_resample_survive_broken_physics_and_are_pure(setup, tmp_
     assert 0.0 <= extra["probe"]["flip_rate_vs_start"] <= 1.0 and "sampled" in extra
     point2, extra2 = runner.evaluate(s1.params, step=2)
     assert extra2["probe"]["flip_rate_vs_previous"] == 0.0 and point2["mean"] == point["mean"]
+
+
+def test_the_masked_evaluation_runs_the_policy_without_proprio(tmp_path):
+    """EnvGRPO.evaluate(masked=True) adds the sampled policy reading its "missing proprio" input: the rollout
+    it runs marks every decision's proprio invalid, the others' valid."""
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, env=dataclasses.replace(cfg.rl.env, execute_steps=1,
+                                                                             action_ensemble=False),
+                             grpo=dataclasses.replace(cfg.rl.grpo, rollout_batch=1, group_size=4))
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=3, starts_at=lambda s, r: None,
+                     eval_starts=np.array([[0.3], [0.0], [0.33], [0.1]], np.float32), eval_tokens=tokens,
+                     eval_tasks=[0, 0, 1, 1], key=jax.random.key(3))
+    kept, _ = runner.run_episodes(params, greedy=True, ensemble=False, key=jax.random.key(0))
+    rollout_kept, _ = runner.rollout(params, jnp.asarray(runner.eval_starts), jnp.asarray(tokens), jax.random.key(0),
+                                     True, False, runner._valid(1.0))
+    rollout_masked, _ = runner.rollout(params, jnp.asarray(runner.eval_starts), jnp.asarray(tokens), jax.random.key(0),
+                                       True, False, runner._valid(0.0))
+    assert np.all(np.asarray(rollout_masked.proprio_valid) == 0) and np.all(np.asarray(rollout_kept.proprio_valid) == 1)
+    runner.start_probe(params, str(tmp_path / "probe"))
+    point, extra = runner.evaluate(params, step=0, sampled=True, masked=True)
+    assert extra["sampled_proprio_masked"]["episodes"] == 4 and "sampled" in extra
+    assert kept.shape == (4,)

@@ -109,9 +109,9 @@ class EnvGRPO:
         self.probe: dict[str, np.ndarray] | None = None
         self.probe_dir, self.reference_tokens = "", None
 
-    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble):
+    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None):
         return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl, key=key, greedy=greedy,
-                            ensemble=ensemble, max_steps=self.max_steps)
+                            ensemble=ensemble, max_steps=self.max_steps, proprio_valid=proprio_valid)
 
     # ---- training -------------------------------------------------------------------------------------
     def step(self, state: grpo.GRPOState, step: int, key: jax.Array) -> tuple[grpo.GRPOState, dict[str, jax.Array]]:
@@ -127,7 +127,7 @@ class EnvGRPO:
             starts = np.repeat(np.asarray(starts), g, axis=0)
             tokens = np.repeat(np.asarray(tokens), g, axis=0)
             rollout, stats = self.rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
-                                          jax.random.fold_in(step_key, r), False, False)
+                                          jax.random.fold_in(step_key, r), False, False, self._valid(1.0))
             rounds.append(rollout)
             steps_taken += int(jnp.sum(stats.steps))
             broken += int(jnp.sum(stats.broken))
@@ -150,8 +150,11 @@ class EnvGRPO:
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 
     # ---- evaluation -----------------------------------------------------------------------------------
+    def _valid(self, value: float) -> jax.Array:
+        return jnp.full((self.batch,), value, jnp.float32)
+
     def run_episodes(self, params: Any, *, greedy: bool, ensemble: bool, key: jax.Array,
-                     slices: int | None = None) -> tuple[np.ndarray, dict]:
+                     slices: int | None = None, proprio: bool = True) -> tuple[np.ndarray, dict]:
         """The evaluation episodes, in slices of the rollout's batch (the last padded by repeating
         episodes; ``slices``: only the first this-many): ``(success [E] bool, what the first slice recorded)``."""
         e = len(self.eval_starts)
@@ -160,7 +163,7 @@ class EnvGRPO:
         for lo in list(range(0, e, self.batch))[:slices]:
             idx = np.arange(lo, lo + self.batch) % e
             rollout, _ = self.rollout(params, jnp.asarray(self.eval_starts[idx]), jnp.asarray(self.eval_tokens[idx]),
-                                      jax.random.fold_in(key, lo), greedy, ensemble)
+                                      jax.random.fold_in(key, lo), greedy, ensemble, self._valid(float(proprio)))
             hi = min(lo + self.batch, e)
             success[lo:hi] = np.asarray(rollout.success)[: hi - lo]
             if first is None:
@@ -210,9 +213,11 @@ class EnvGRPO:
         earlier = [s for s in saved if s < step]
         return np.load(self._probe_file(max(earlier))) if earlier else None
 
-    def evaluate(self, params: Any, *, step: int, sampled: bool = True) -> tuple[dict, dict]:
+    def evaluate(self, params: Any, *, step: int, sampled: bool = True, masked: bool = False) -> tuple[dict, dict]:
         """Greedy (ensembled when ``rl.env.action_ensemble``) success on the evaluation episodes, with the
-        sampled policy's and the probe's figures beside it: ``(point, extra)``. Needs :meth:`start_probe`."""
+        sampled policy's and the probe's figures beside it: ``(point, extra)``. ``masked``: also the sampled
+        policy reading its "missing proprio" input (``sampled_proprio_masked``), the mode GRPO in a learned
+        simulator trains. Needs :meth:`start_probe`."""
         if self.probe is None:
             raise RuntimeError("EnvGRPO.evaluate: call start_probe(initial_params, directory) first")
         t0 = time.perf_counter()
@@ -226,6 +231,12 @@ class EnvGRPO:
                                              key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 20), step))
             extra["sampled"] = dict(self.summarize(s_success, time.perf_counter() - t1),
                                     temperature=self.rl.grpo.temperature)
+        if masked:
+            t1 = time.perf_counter()
+            m_success, _ = self.run_episodes(params, greedy=False, ensemble=False, proprio=False,
+                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 21), step))
+            extra["sampled_proprio_masked"] = dict(self.summarize(m_success, time.perf_counter() - t1),
+                                                   temperature=self.rl.grpo.temperature)
         tokens, margin = self.probe_tokens(params)
         probe = {"states": int(tokens.shape[0]), "top1_margin": margin,
                  "flip_rate_vs_start": float(np.mean(tokens != reference_tokens))}
