@@ -115,8 +115,11 @@ def summarize_run(folder: str) -> dict:
         points = json.load(f)["points"]
     out = {"steps": points[-1]["step"], "episodes": points[-1]["episodes"],
            "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
+           **({"sampled_proprio_masked": _gain(points, "sampled_proprio_masked")}
+              if all("sampled_proprio_masked" in p for p in points) else {}),
            "curve": [{"step": p["step"], "greedy": p["mean"], "sampled": p["sampled"]["mean"],
-                      "sampled_ci95": p["sampled"]["ci95"], "real_episodes_used": p.get("real_episodes_used")}
+                      "sampled_ci95": p["sampled"]["ci95"], "real_episodes_used": p.get("real_episodes_used"),
+                      "sampled_proprio_masked": (p.get("sampled_proprio_masked") or {}).get("mean")}
                      for p in points],
            "real_episodes_used": points[-1].get("real_episodes_used"),
            "guard": [dict(step=p["step"], **p["guard"]) for p in points if "guard" in p]}

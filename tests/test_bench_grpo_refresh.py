@@ -37,11 +37,17 @@ def _point(step, greedy, sampled, used, **extra):
     return dict(step=step, **entry(greedy), sampled=entry(sampled), real_episodes_used=used, **extra)
 
 
+def end_of(run):
+    return run["sampled"]["end"]
+
+
 def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     for name, end in (("refreshed_seed0", 0.60), ("refreshed_seed1", 0.70), ("once_seed0", 0.40)):
         grpo = tmp_path / name / "rl" / "grpo"
         grpo.mkdir(parents=True)
         points = [_point(0, 0.70, 0.50, 64), _point(5, 0.71, end, 128, guard={"trip": False, "reason": "ok"})]
+        for p in points:
+            p["sampled_proprio_masked"] = dict(p["sampled"], mean=p["sampled"]["mean"] - 0.1)
         (grpo / "success_curve.json").write_text(json.dumps({"label": "x", "points": points}))
         records = [{"step": 0, "real_episodes": 64, "real_episodes_used": 64, "real_success": 0.5,
                     "replay": {"false_success": {"rate": 0.2, "of": 32}, "missed_success": {"rate": 0.5, "of": 32}},
@@ -52,6 +58,7 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert out["sampled_min_gain"] == pytest.approx(0.10) and out["sampled_mean_gain"] == pytest.approx(0.15)
     run = out["runs"]["refreshed_seed0"]
     assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
+    assert run["sampled_proprio_masked"]["start"] == pytest.approx(0.40) and run["curve"][1]["sampled_proprio_masked"] == pytest.approx(end_of(run) - 0.1)
     assert run["guard"][0]["step"] == 5 and run["sampled"]["ci95"][0] < 0.10 < run["sampled"]["ci95"][1]
     # ground-truth GRPO: 512 episodes per sampling round, read from its step lines
     gt = out["ground_truth"]["s0"]
