@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import subprocess
 import sys
 import time
@@ -145,25 +144,30 @@ def summarize_run(folder: str) -> dict:
 
 
 def ground_truth_curves(folder: str) -> dict:
-    """Ground-truth GRPO's sampled success against real episodes consumed, from a ``bench_policy
-    grpo-seeds`` folder: its runs' success curves and, per step, ``rounds x rollout_batch x group_size``
-    episodes read from the runs' step lines."""
+    """Ground-truth GRPO's sampled success against real episodes consumed, from a ``bench_policy grpo-seeds``
+    folder: exact from a run's ``train_history.jsonl`` (episodes sampled per step), else approximate from the
+    summary's mean rollouts per step (``costs_from_logs``, runs that predate the history) times the step."""
+    from benchmarks.bench_grpo_transfer import read_history
+
     with open(os.path.join(folder, "grpo_ground_truth_seeds.json")) as f:
         seeds = json.load(f)
-    per_round = 64 * 8  # that recipe's rollout_batch x group_size
     out = {}
     for run_dir in seeds["per_seed"]:
         name = os.path.relpath(run_dir, folder).split(os.sep)[0]
-        log = os.path.join(folder, f"{name}.log")
-        with open(log) as f:
-            rounds = {int(s): int(r) for s, r in re.findall(r"grpo step (\d+)/\d+ .*? rounds (\d+)", f.read())}
-        used, total = {0: 0}, 0
-        for step in sorted(rounds):
-            total += rounds[step] * per_round
-            used[step] = total
+        history = read_history(os.path.join(folder, os.path.relpath(run_dir, folder)))
+        if history:
+            used, total = {0: 0}, 0
+            for point in history:
+                total += int(point["trajectories_sampled"])
+                used[int(point["step"])] = total
+            exact = True
+        else:
+            per_step = (seeds.get("costs_from_logs") or {}).get(name, {}).get("rollouts_per_step")
+            used, exact = ({} if per_step is None else None), False
         curve = seeds["curves"][run_dir]["sampled"]
-        out[name] = [{"step": s, "sampled": m, "sampled_ci95": ci, "real_episodes_used": used.get(s)}
-                     for s, m, ci in curve if s in used]
+        out[name] = [{"step": s, "sampled": m, "sampled_ci95": ci,
+                      "real_episodes_used": (used.get(s) if used is not None else round(s * per_step)),
+                      "episodes_exact": exact} for s, m, ci in curve]
     return out
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import subprocess
 import sys
 import time
@@ -88,9 +87,13 @@ def name_dir_pairs(items: Sequence[str], flag: str, value: str = "DIR") -> dict[
     return {name: path for name, _, path in pairs}
 
 
-def _step_rates(log_text: str, what: str) -> list[float]:
-    """Per-step rollout success from a GRPO log (``grpo step i/N <what> success X``)."""
-    return [float(x) for x in re.findall(rf"grpo step \d+/\d+ {what} success ([\d.]+)", log_text)]
+def read_history(grpo_dir: str) -> list[dict]:
+    """A GRPO run's per-step metrics (``train_history.jsonl``, written at every checkpoint); [] without one."""
+    path = os.path.join(grpo_dir, "train_history.jsonl")
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
 
 
 def summarize(workdir: str) -> dict:
@@ -101,8 +104,6 @@ def summarize(workdir: str) -> dict:
               "ground_truth": os.path.join(workdir, "ground_truth", "rl", "grpo", "success_curve.json"),
               "ground_truth_keyframes": os.path.join(workdir, "ground_truth_keyframes", "rl", "grpo",
                                                      "success_curve.json")}
-    logs = {"world_model": os.path.join(workdir, "pipeline", "logs", "policy.log"),
-            **{arm: os.path.join(workdir, f"{arm}.log") for arm in ARMS[1:]}}
     for arm in ARMS:
         if not os.path.exists(curves[arm]):
             out["missing"].append(arm)
@@ -120,9 +121,9 @@ def summarize(workdir: str) -> dict:
         if arm == "world_model":
             entry["replay"] = [{"step": p["step"], **{k: p["replay"].get(k) for k in REPLAY_KEYS}}
                                for p in points if "replay" in p]
-        if os.path.exists(logs[arm]):
-            with open(logs[arm]) as f:
-                rates = _step_rates(f.read(), "imagined" if arm == "world_model" else "rollout")
+        metric = "success_rate" if arm == "world_model" else "rollout_success"
+        rates = [p[metric] for p in read_history(os.path.dirname(curves[arm])) if metric in p]
+        if rates:
             entry["rollout_success_per_10_steps"] = _blocks(rates)
         out["arms"][arm] = entry
     return out

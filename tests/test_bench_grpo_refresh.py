@@ -60,10 +60,11 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
     assert run["sampled_proprio_masked"]["start"] == pytest.approx(0.40) and run["curve"][1]["sampled_proprio_masked"] == pytest.approx(end_of(run) - 0.1)
     assert run["guard"][0]["step"] == 5 and run["sampled"]["ci95"][0] < 0.10 < run["sampled"]["ci95"][1]
-    # ground-truth GRPO: 512 episodes per sampling round, read from its step lines
+    # ground-truth GRPO: 512 episodes per sampling round, about 570 per step on average (those runs predate the
+    # per-step history, so the count is the summary's mean times the step)
     gt = out["ground_truth"]["s0"]
-    assert gt[0] == {"step": 0, "sampled": 0.516, "sampled_ci95": gt[0]["sampled_ci95"], "real_episodes_used": 0}
-    assert gt[1]["step"] == 10 and gt[1]["real_episodes_used"] >= 10 * 512
+    assert gt[0]["step"] == 0 and gt[0]["sampled"] == 0.516 and gt[0]["real_episodes_used"] == 0
+    assert gt[1]["step"] == 10 and 10 * 512 <= gt[1]["real_episodes_used"] <= 10 * 1024 and not gt[1]["episodes_exact"]
     bench.plot(out, str(tmp_path / "figure.png"))
     assert (tmp_path / "figure.png").stat().st_size > 10_000
 

@@ -28,11 +28,10 @@ def test_summary_reads_every_arm_and_names_the_missing(tmp_path):
            [_point(0, 40, proprio_masked=masked(30), replay=replay), _point(50, 30, proprio_masked=masked(20), replay=replay)])
     _curve(tmp_path / "ground_truth" / "rl" / "grpo" / "success_curve.json",
            [_point(0, 40, train_mode=masked(40)), _point(50, 80, train_mode=masked(80))])
-    (tmp_path / "pipeline" / "logs").mkdir(parents=True)
-    (tmp_path / "pipeline" / "logs" / "policy.log").write_text(
-        "".join(f"grpo step {i}/12 imagined success {0.1 * (i > 10):.3f} return 0\n" for i in range(1, 13)))
-    (tmp_path / "ground_truth.log").write_text("grpo step 1/2 rollout success 0.250 loss 0\n"
-                                               "grpo step 2/2 rollout success 0.500 loss 0\n")
+    (tmp_path / "pipeline" / "rl" / "grpo" / "train_history.jsonl").write_text(
+        "".join(json.dumps({"step": i, "success_rate": 0.1 * (i > 10)}) + "\n" for i in range(1, 13)))
+    (tmp_path / "ground_truth" / "rl" / "grpo" / "train_history.jsonl").write_text(
+        json.dumps({"step": 1, "rollout_success": 0.25}) + "\n" + json.dumps({"step": 2, "rollout_success": 0.5}) + "\n")
     summary = transfer.summarize(str(tmp_path))
     assert summary["missing"] == ["ground_truth_keyframes"]
     wm, gt = summary["arms"]["world_model"], summary["arms"]["ground_truth"]
