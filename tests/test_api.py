@@ -106,7 +106,8 @@ def _brightness(frames):
 def test_learned_simulator_brax_env_is_jittable_and_vmappable(model):
     pool = sword_jax.start_states(model, _given(model, 3)[:, 0], ["pick up the bowl", "open the drawer", "wait"])
     assert pool.latents.shape == (3, 2, 2, 2, 48) and pool.instruction_tokens.dtype == jnp.int32
-    env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2)
+    # the exact float32 simulator: a batched env equals one stepped alone to float32 rounding (bf16's differs by more)
+    env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2, precision="float32")
     assert env.action_size == 8 * 7 and env.action_shape == (8, 7) and env.observation_size["pixels/frame"] == (32, 32, 3)
     reset = jax.jit(jax.vmap(env.reset))
     step = jax.jit(tracing.max_traces(jax.vmap(env.step), n=1))  # one compile for every step
