@@ -13,19 +13,21 @@ Usage::
     python -m benchmarks.bench_imagined_rollout            # GPU: both configs, merges results
     python -m benchmarks.bench_imagined_rollout --tiny     # CPU smoke run (tiny shapes)
 
-``--weights compute`` stores the world model's matmul weights in its compute dtype (bf16) before the
-rollout (:func:`sword_jax.precision.store_in_compute_dtype`: bit-identical outputs, half the weight
-memory); ``--weights both`` runs each case that way first and then with float32 weights, side by
-side in one process (first, because the peak-memory reading is the process's running maximum), and
-merges ``imagined_rollout_weights_in_compute_dtype`` (frames/s ratio, both peaks).
+The simulator is built by :func:`sword_jax.rl.sim_builder.build_simulator`, the builder GRPO and
+``sword_jax.learned_simulator`` use, at ``--precision`` (GRPO's ``rl.imagined.sim_precision``): ``fast``
+(default: bf16 decode with sub-pixel upsampling, weights stored in the compute dtype) or ``float32``
+(the exact decode); ``both`` runs each case fast first and then float32, side by side in one process
+(fast first, because the peak-memory reading is the process's running maximum), and merges
+``imagined_rollout_fast_over_float32`` (frames/s ratio, both peaks). ``--sim-microbatches 0`` (default)
+lets the simulator choose them, as GRPO does (:func:`sword_jax.rl.rollout.microbatches_for`).
 
 ``--layers 30`` is the full TI2V-5B depth: its figure is written as ``imagined_frames_per_s_5b_full``
 (``imagined_frames_per_s_5b_width`` otherwise). Each row carries the matmul and convolution FLOPs of
 one imagined frame, counted on the rollout's jaxpr (``common.jaxpr_flops``: policy, sampler steps,
 decode, reward CNN), with the DiT's (as ``bench_dit_train`` counts) and the decoder's shares beside
 them, and ``ceiling_frames_per_s``, the rate at the bf16
-matmul peak measured in the same process. ``--vae-form CAUSAL_CONV/UPSAMPLE`` picks the decoder's
-convolution forms (``bench_vae``). A case that runs out of memory is reported and the others go on.
+matmul peak measured in the same process. ``--causal-conv`` picks the decoder's causal-convolution
+form (``bench_vae``). A case that runs out of memory is reported and the others go on.
 """
 
 from __future__ import annotations
@@ -44,13 +46,13 @@ from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import DiTConfig
-from sword_jax.precision import parameter_bytes, store_in_compute_dtype
+from sword_jax.precision import parameter_bytes
 from sword_jax.rl.config import PolicyConfig, RewardModelConfig, RLConfig
 from sword_jax.rl.learned_simulator import StartState
 from sword_jax.rl.policy import VLAPolicy, tokenize_instructions
 from sword_jax.rl.reward_model import SuccessDetector, as_reward_model
-from sword_jax.rl.rollout import expand_groups, imagined_rollout
-from sword_jax.rl.world_model_sim import world_model_simulator
+from sword_jax.rl.rollout import expand_groups, imagined_rollout, microbatches_for
+from sword_jax.rl.sim_builder import PRECISIONS, build_simulator, inference_vae
 from sword_jax.vae import api as vae_api
 from sword_jax.vae.config import VAEConfig
 from sword_jax.vae.model import WanVAE
@@ -62,22 +64,30 @@ def _split_sharded(factory, mesh):
     return shd.create_sharded(factory, mesh, shd.DEFAULT_RULES)
 
 
+def simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, *, frame_size: int, sample_steps: int, rl: RLConfig,
+              precision: str):
+    """The measured simulator: GRPO's builder with the tiny config's flow settings."""
+    return build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision=precision,
+                           flow_cfg=configs.get("sword:tiny").flow, frame_size=frame_size, sample_steps=sample_steps,
+                           proprio_dim=rl.proprio_dim)
+
+
 def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, starts: int, group: int, chunks: int,
-             sample_steps: int, rl: RLConfig, iters: int, weights: str = "param", peak_tflops: float | None = None,
-             sim_microbatches: int = 1) -> dict:
+             sample_steps: int, rl: RLConfig, iters: int, precision: str = "fast", peak_tflops: float | None = None,
+             sim_microbatches: int = 0) -> dict:
     mesh = shd.make_mesh(shd.MeshConfig(data=-1))
     t0 = time.perf_counter()
     wm_graphdef, wm_state = _split_sharded(lambda: WorldModel(dit, rngs=nnx.Rngs(0)), mesh)
-    if weights == "compute":
-        wm_state = store_in_compute_dtype(wm_graphdef, wm_state)
     vae_graphdef, vae_state = _split_sharded(lambda: WanVAE(vae, rngs=nnx.Rngs(1)), mesh)
     policy_graphdef, policy_params = _split_sharded(lambda: VLAPolicy(rl, rngs=nnx.Rngs(2)), mesh)
     det_graphdef, det_params = _split_sharded(lambda: SuccessDetector(rl, rngs=nnx.Rngs(3)), mesh)
+    sim = simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, frame_size=frame_size, sample_steps=sample_steps,
+                    rl=rl, precision=precision)
+    wm_state, vae_state = sim.params  # as the simulator holds them (the precision's dtypes)
     build_s = time.perf_counter() - t0
-    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=configs.get("sword:tiny").flow,
-                                frame_size=frame_size, sample_steps=sample_steps, proprio_dim=rl.proprio_dim)
     reward_model = as_reward_model(det_graphdef, det_params)
     n = starts * group
+    sim_microbatches = microbatches_for(n, sim_microbatches, sim.max_slice)
     hl = frame_size // 16
     start = StartState(
         frame=jax.random.uniform(jax.random.key(0), (starts, frame_size, frame_size, 3), jnp.float32),
@@ -110,12 +120,15 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
     flops = common.jaxpr_flops(lambda *a: rollout(*a), policy_params, sim, reward_model, start,
                                jax.random.key(1)) / frames
     dit_flops = sample_steps * forward_flops(dit, 1, 4, (hl, hl), 13) / sim.chunk_len
-    # A later chunk's cache: only its shapes matter to the count, so no decode is run (or compiled) for it.
+    # A later chunk's cache: only its shapes matter to the count, so no decode is run (or compiled) for it. The
+    # decoder as the simulator runs it (the precision's dtype and upsampling form).
+    vae_graphdef = inference_vae(vae_graphdef, vae_state, precision)[0]
     cache = vae_api.init_decode_cache(vae_graphdef, vae_state, 1, hl, hl)
     cache = vae_api.StreamCache(cache.features, started=True)
     decode_flops = common.jaxpr_flops(lambda s, z, c: vae_api.decode_chunk(vae_graphdef, s, z, c, check_values=False)[0],
                                       vae_state, start.latents[:1], cache) / (2 * vae.temporal_factor)
-    return {"case": name, "weights": weights, "vae_form": f"{vae.causal_conv}/{vae.upsample}",
+    upsample = "subpixel" if precision == "fast" else "repeat"
+    return {"case": name, "precision": precision, "vae_form": f"{vae.causal_conv}/{upsample}",
             "sim_microbatches": sim_microbatches,
             "gflop_per_frame": flops / 1e9, "dit_gflop_per_frame": dit_flops / 1e9,
             "decode_gflop_per_frame": decode_flops / 1e9,
@@ -136,15 +149,16 @@ def main(argv=None) -> None:
     parser.add_argument("--chunks", type=int, default=4)
     parser.add_argument("--sample-steps", type=int, default=5)
     parser.add_argument("--iters", type=int, default=3)
-    parser.add_argument("--weights", choices=("param", "compute", "both"), default="param",
-                        help="world-model weights as stored (float32), in the compute dtype, or both side by side")
-    parser.add_argument("--vae-form", default="conv3d/repeat", help="the VAE's CAUSAL_CONV/UPSAMPLE forms (bench_vae)")
+    parser.add_argument("--precision", choices=(*PRECISIONS, "both"), default="fast",
+                        help="the simulator's rl.imagined.sim_precision, or fast and float32 side by side")
+    parser.add_argument("--causal-conv", default="conv3d", choices=("conv3d", "conv2d"),
+                        help="the VAE's causal-convolution form (bench_vae)")
     parser.add_argument("--skip-small", action="store_true", help="only the 5B-width case")
-    parser.add_argument("--sim-microbatches", default="1",
-                        help="comma-separated rl.imagined.sim_microbatches values for the 5B case, side by side")
+    parser.add_argument("--sim-microbatches", default="0",
+                        help="comma-separated rl.imagined.sim_microbatches values for the 5B case, side by side "
+                             "(0: the simulator's choice, as GRPO's default)")
     args = parser.parse_args(argv)
-    modes = ["compute", "param"] if args.weights == "both" else [args.weights]
-    causal_conv, upsample = args.vae_form.split("/")
+    modes = list(PRECISIONS) if args.precision == "both" else [args.precision]
     peak = common.measured_matmul_tflops()
     print(f"{common.device_name()}: measured bf16 matmul peak {peak:.1f} TFLOP/s")
     rows = []
@@ -155,7 +169,7 @@ def main(argv=None) -> None:
         except Exception as err:  # noqa: BLE001 - out of memory: report it, keep the other cases
             if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
                 raise
-            print(f"{a[0]} weights={kw.get('weights')}: out of memory ({str(err).splitlines()[0][:160]})")
+            print(f"{a[0]} precision={kw.get('precision')}: out of memory ({str(err).splitlines()[0][:160]})")
 
     if args.tiny:
         tiny = configs.get("sword:tiny")
@@ -163,29 +177,31 @@ def main(argv=None) -> None:
                       reward_model=RewardModelConfig(width=4))
         for mode in modes:
             attempt("tiny", dataclasses.replace(tiny.model, compute_dtype="bfloat16"),
-                    dataclasses.replace(tiny.vae, causal_conv=causal_conv, upsample=upsample), 32,
-                    starts=1, group=2, chunks=2, sample_steps=2, rl=rl, iters=1, weights=mode)
+                    dataclasses.replace(tiny.vae, causal_conv=args.causal_conv), 32,
+                    starts=1, group=2, chunks=2, sample_steps=2, rl=rl, iters=1, precision=mode)
     else:
         small = configs.get("sword:small")
         rl = RLConfig()
         for mode in [] if args.skip_small else modes:
             attempt("small", dataclasses.replace(small.model, compute_dtype="bfloat16"),
-                    dataclasses.replace(small.vae, causal_conv=causal_conv, upsample=upsample), 128,
+                    dataclasses.replace(small.vae, causal_conv=args.causal_conv), 128,
                     starts=args.starts, group=args.group, chunks=args.chunks,
-                    sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode)
+                    sample_steps=args.sample_steps, rl=rl, iters=args.iters, precision=mode)
         dit5b = dataclasses.replace(DiTConfig(), num_layers=args.layers, compute_dtype="bfloat16")
-        vae = dataclasses.replace(VAEConfig(), compute_dtype="bfloat16", causal_conv=causal_conv, upsample=upsample)
+        vae = dataclasses.replace(VAEConfig(), causal_conv=args.causal_conv)
         for mode in modes:
             for slices in (int(v) for v in args.sim_microbatches.split(",")):
                 attempt("5b_width", dit5b, vae, 256, starts=args.starts, group=args.group, chunks=args.chunks,
-                        sample_steps=args.sample_steps, rl=rl, iters=args.iters, weights=mode,
+                        sample_steps=args.sample_steps, rl=rl, iters=args.iters, precision=mode,
                         sim_microbatches=slices)
-    common.print_table(rows, ["case", "weights", "vae_form", "sim_microbatches", "weight_gb", "frames_per_s_per_device", "trajectories",
-                              "chunks", "rollout_s", "compile_s", "dit_layers", "resolution", "sample_steps",
-                              "gflop_per_frame", "decode_gflop_per_frame", "ceiling_frames_per_s", "peak_gb"])
+    common.print_table(rows, ["case", "precision", "vae_form", "sim_microbatches", "weight_gb", "frames_per_s_per_device",
+                              "trajectories", "chunks", "rollout_s", "compile_s", "dit_layers", "resolution",
+                              "sample_steps", "gflop_per_frame", "decode_gflop_per_frame", "ceiling_frames_per_s",
+                              "peak_gb"])
     if not args.tiny:
-        # The headline: float32 weights unless asked, or whichever mode ran when the other ran out of memory.
-        keep = "param" if args.weights == "both" else args.weights
+        # The headline: the fast path (GRPO's default) unless only float32 ran, or whichever ran when the other
+        # ran out of memory.
+        keep = "fast" if args.precision == "both" else args.precision
 
         def fastest(candidates):  # per case, the fastest row (of the sim_microbatches tried)
             best = {}
@@ -193,36 +209,36 @@ def main(argv=None) -> None:
                 best[r["case"]] = r
             return best
 
-        by_case = fastest(r for r in rows if r["weights"] == keep)
+        by_case = fastest(r for r in rows if r["precision"] == keep)
         if "5b_width" not in by_case:
             by_case = fastest(rows)
-            keep = by_case["5b_width"]["weights"] if "5b_width" in by_case else keep
+            keep = by_case["5b_width"]["precision"] if "5b_width" in by_case else keep
         if "5b_width" not in by_case:
             raise SystemExit("bench_imagined_rollout: no 5B-width case ran; nothing recorded")
         wide = by_case["5b_width"]
         full = args.layers == DiTConfig().num_layers
         note = (f"policy + DiT dim 3072 x {args.layers} layers (of 30) with a {args.sample_steps}-step sampler + "
                 "full Wan 2.2 VAE streaming decode + reward CNN, 256x256, B*G="
-                f"{wide['trajectories']}")
+                f"{wide['trajectories']}, GRPO's simulator builder at precision {keep}")
         key = "imagined_frames_per_s_5b_full" if full else "imagined_frames_per_s_5b_width"
         entries = {key: common.record(
-            key, wide["frames_per_s_per_device"], TARGET_5B, note=note, weights=keep, measured_peak_tflops=peak,
+            key, wide["frames_per_s_per_device"], TARGET_5B, note=note, precision=keep, measured_peak_tflops=peak,
             **{k: wide[k] for k in ("vae_form", "sim_microbatches", "gflop_per_frame", "dit_gflop_per_frame", "decode_gflop_per_frame",
                                     "ceiling_frames_per_s", "peak_gb", "trajectories")},
             rows=rows)}
         if "small" in by_case:
             entries["imagined_frames_per_s_small"] = common.record(
                 "imagined_frames_per_s_small", by_case["small"]["frames_per_s_per_device"], None,
-                note="sword:small DiT/VAE, 128x128", weights=keep)
-        fast = fastest(r for r in rows if r["weights"] == "compute")
-        slow = fastest(r for r in rows if r["weights"] == "param")
-        if args.weights == "both" and "5b_width" in fast and "5b_width" in slow:
+                note="sword:small DiT/VAE, 128x128", precision=keep)
+        fast = fastest(r for r in rows if r["precision"] == "fast")
+        slow = fastest(r for r in rows if r["precision"] == "float32")
+        if args.precision == "both" and "5b_width" in fast and "5b_width" in slow:
             a, b = fast["5b_width"], slow["5b_width"]
-            entries["imagined_rollout_weights_in_compute_dtype"] = common.record(
-                "imagined_rollout_weights_in_compute_dtype", a["frames_per_s_per_device"] / b["frames_per_s_per_device"],
-                None, note=note, value_is="frames/s with bf16-stored world-model weights / with float32 weights",
-                weight_gb={"compute": a["weight_gb"], "param": b["weight_gb"]},
-                peak_gb={"compute": a["peak_gb"], "param_after_compute": b["peak_gb"]},
+            entries["imagined_rollout_fast_over_float32"] = common.record(
+                "imagined_rollout_fast_over_float32", a["frames_per_s_per_device"] / b["frames_per_s_per_device"],
+                None, note=note, value_is="frames/s of the simulator at precision fast / at float32",
+                weight_gb={"fast": a["weight_gb"], "float32": b["weight_gb"]},
+                peak_gb={"fast": a["peak_gb"], "float32_after_fast": b["peak_gb"]},
                 small_ratio=(fast["small"]["frames_per_s_per_device"] / slow["small"]["frames_per_s_per_device"]
                              if "small" in fast and "small" in slow else None))
         print("merged into", common.merge_results(entries))

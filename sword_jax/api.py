@@ -487,6 +487,7 @@ def learned_simulator(
     execute_latents: int | None = None,
     proprio_dim: int = 8,
     proprio_reckoning: Any = None,
+    precision: str = "fast",
 ) -> LearnedSimulator:
     """The world model + VAE as a :class:`~sword_jax.rl.learned_simulator.LearnedSimulator` (one trajectory).
 
@@ -502,14 +503,17 @@ def learned_simulator(
       proprio_reckoning: a :class:`sword_jax.rl.proprio_reckoning.ReckoningConfig` (the
         environment's action convention) to dead-reckon proprio from the executed actions, reported
         valid; None (default) reports it invalid.
+      precision: ``fast`` (default: bfloat16 decode, weights in the compute dtype) or ``float32`` (the
+        exact decode), as GRPO's ``rl.imagined.sim_precision`` (:mod:`sword_jax.rl.sim_builder`, the one
+        builder GRPO and the benchmark use too).
     """
-    from sword_jax.rl.world_model_sim import world_model_simulator
+    from sword_jax.rl.sim_builder import build_simulator
 
     _require_vae(model, "the learned simulator")
     spec = model.spec
-    return world_model_simulator(
+    return build_simulator(
         model.world_model_graphdef, model.world_model_params, model.vae_graphdef, model.vae_params,
-        flow_cfg=spec.flow, frame_size=spec.image_size, num_context=spec.num_context, num_future=spec.num_future,
+        precision=precision, flow_cfg=spec.flow, frame_size=spec.image_size, num_context=spec.num_context, num_future=spec.num_future,
         sample_steps=sample_steps, action_dim=spec.action_dim, latent_size=spec.latent_size,
         proprio_dim=proprio_dim, execute_latents=execute_latents, proprio_reckoning=proprio_reckoning)
 

@@ -28,19 +28,29 @@ def _low_precision(dtype: Any) -> bool:
     return dtype is not None and jnp.issubdtype(jnp.dtype(dtype), jnp.floating) and jnp.dtype(dtype).itemsize < 4
 
 
-def store_in_compute_dtype(graphdef: nnx.GraphDef, state: nnx.State) -> nnx.State:
+def store_in_compute_dtype(graphdef: nnx.GraphDef, state: Any) -> Any:
     """``state`` with each 16-bit-compute layer's weights stored in that dtype (module docstring);
-    the model ``nnx.merge(graphdef, new_state)`` gives bit-identical outputs. Arrays keep their
+    the model ``nnx.merge(graphdef, new_state)`` gives bit-identical outputs. ``state`` is what
+    ``nnx.merge`` takes after the graphdef: one ``nnx.State`` or pure dict, or a tuple of them (e.g. a
+    loaded world model's ``(params, buffers)``); the result has the same layout. Arrays keep their
     sharding; ``state`` itself is not modified."""
-    model = nnx.merge(graphdef, state, copy=True)
-    for _, node in nnx.iter_graph(model):
+    states = state if isinstance(state, tuple) else (state,)
+    model = nnx.merge(graphdef, *states)  # read only: its layers' dtypes and paths
+    cast = {}  # path of each weight stored in its layer's compute dtype -> that dtype
+    for path, node in nnx.iter_graph(model):
         if not isinstance(node, CAST_LAYERS) or not _low_precision(getattr(node, "dtype", None)):
             continue
         for name in CAST_PARAMS:
             param = getattr(node, name, None)
             if isinstance(param, nnx.Param) and param.get_value() is not None:
-                param.set_value(param.get_value().astype(node.dtype))
-    return nnx.split(model)[1]
+                cast[(*path, name)] = node.dtype
+
+    def store(path, leaf):
+        names = tuple(k.key for k in path if isinstance(k, jax.tree_util.DictKey))
+        return leaf.astype(cast[names]) if names in cast else leaf
+
+    stored = tuple(jax.tree_util.tree_map_with_path(store, s) for s in states)
+    return stored if isinstance(state, tuple) else stored[0]
 
 
 def parameter_bytes(state: nnx.State) -> int:

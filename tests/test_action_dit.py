@@ -291,3 +291,24 @@ def test_bfloat16_residual_stream_is_close_to_float32_and_carried_in_bfloat16():
 
     assert stream_dtypes(low) == {jnp.dtype(jnp.bfloat16)}
     assert stream_dtypes(_graphdef(bf16)) == {jnp.dtype(jnp.float32)}
+
+
+@pytest.mark.parametrize("cross_attn, adaln, scan", [(True, True, True), (True, True, False), (False, True, True)])
+def test_conditioned_forward_equals_the_plain_forward(cross_attn, adaln, scan):
+    """Actions conditioned once (cross-attention keys / values per block, AdaLN offset) and applied give the
+    plain forward's predictions, with and without the layer scan and with the null context token."""
+    cfg = dataclasses.replace(CFG, action_cross_attn=cross_attn, action_adaln=adaln, scan_layers=scan)
+    graphdef, state = _randomized(cfg)
+    latents, timesteps, actions = _inputs(3, cfg=cfg)
+    plain = apply(graphdef, state, latents, timesteps, actions)
+
+    @jax.jit
+    def conditioned(state, latents, timesteps, actions):
+        model = nnx.merge(graphdef, state)
+        return model.apply_conditioned(latents, timesteps, model.condition(actions))
+
+    keys, values = jax.jit(lambda s, a: nnx.merge(graphdef, s).condition(a).context_kv)(state, actions)
+    lc = actions.shape[1] if cross_attn else 1
+    assert keys.shape == values.shape == (cfg.num_layers, 2, lc, cfg.num_heads, cfg.dim // cfg.num_heads)
+    np.testing.assert_allclose(np.asarray(conditioned(state, latents, timesteps, actions)), np.asarray(plain),
+                               rtol=1e-5, atol=1e-5)

@@ -1,5 +1,6 @@
 """The public API (sword_jax.api) on a tiny trained run: loading, shapes and dtypes, envs, errors."""
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -105,7 +106,8 @@ def _brightness(frames):
 def test_learned_simulator_brax_env_is_jittable_and_vmappable(model):
     pool = sword_jax.start_states(model, _given(model, 3)[:, 0], ["pick up the bowl", "open the drawer", "wait"])
     assert pool.latents.shape == (3, 2, 2, 2, 48) and pool.instruction_tokens.dtype == jnp.int32
-    env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2)
+    # the exact float32 simulator: a batched env equals one stepped alone to float32 rounding (bf16's differs by more)
+    env = sword_jax.make_env(model, pool, reward_model=_brightness, max_chunks=2, precision="float32")
     assert env.action_size == 8 * 7 and env.action_shape == (8, 7) and env.observation_size["pixels/frame"] == (32, 32, 3)
     reset = jax.jit(jax.vmap(env.reset))
     step = jax.jit(tracing.max_traces(jax.vmap(env.step), n=1))  # one compile for every step
@@ -220,3 +222,50 @@ def test_missing_and_corrupt_checkpoints_are_named(tiny_run, tmp_path):
                 f.write(b"\x00garbage" * (size // 8 + 1))
     with pytest.raises(CheckpointError, match="broken"):
         sword_jax.load_world_model(str(broken))
+
+
+@pytest.mark.parametrize("precision", ["fast", "float32"])
+def test_grpo_the_api_and_the_benchmark_build_the_same_simulator(tiny_run, model, tmp_path, precision):
+    """The three callers of the learned simulator (GRPO's world_model_setup, sword_jax.learned_simulator,
+    bench_imagined_rollout) go through one builder: same settings, same weights in the same dtypes, the same
+    frames from the same start, actions and key."""
+    import configs
+    from benchmarks import bench_imagined_rollout
+    from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
+    from sword_jax.rl.learned_simulator import StartState
+    from sword_jax.rl.params_io import save_params
+    from sword_jax.rl.reward_model import build_detector
+
+    cfg = configs.get("sword:tiny")
+    cfg = dataclasses.replace(cfg, model=model.spec.model)  # as the tiny run was trained (one layer)
+    rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, sim_precision=precision))
+    reward = str(tmp_path / "detector")
+    save_params(reward, build_detector(rl, seed=0)[1], rl, kind="reward_model", step=0)
+    inputs = GRPOInputs(world_model=os.path.join(tiny_run, "world_model"), vae=os.path.join(tiny_run, "vae_run", "vae"),
+                        reward=reward)
+    grpo_sim = world_model_setup(cfg, rl, inputs, None).sim
+    api_sim = sword_jax.learned_simulator(model, precision=precision)
+    bench_sim = bench_imagined_rollout.simulator(model.world_model_graphdef, model.world_model_params,
+                                                 model.vae_graphdef, model.vae_params, frame_size=model.spec.image_size,
+                                                 sample_steps=cfg.flow.sample_steps, rl=rl, precision=precision)
+    sims = {"grpo": grpo_sim, "api": api_sim, "bench": bench_sim}
+    static = {name: (s.chunk_len, s.frame_size, s.execute_len, s.action_dim, s.max_slice) for name, s in sims.items()}
+    assert len(set(static.values())) == 1, static
+    dtypes = {name: tuple(str(x.dtype) for x in jax.tree.leaves(s.params)) for name, s in sims.items()}
+    assert len(set(dtypes.values())) == 1
+    assert ("bfloat16" in dtypes["api"]) == (precision == "fast")
+
+    frames = jax.random.uniform(jax.random.key(2), (2, 32, 32, 3))
+    latents = sword_jax.start_states(model, frames, ["a", "b"]).latents
+    start = StartState(frames, jnp.zeros((2, 8)), jnp.zeros((2, 8), jnp.int32), latents)
+    chunk = jax.random.uniform(jax.random.key(7), (2, api_sim.chunk_len, api_sim.action_dim), minval=-1.0, maxval=1.0)
+
+    @jax.jit
+    def run(sim, key):
+        state = jax.vmap(sim.init)(start)
+        return jax.vmap(lambda s, c, k: sim.step(s, c, key=k)[1])(state, chunk, jax.random.split(key, 2))
+
+    one_device = jax.sharding.SingleDeviceSharding(jax.devices()[0])  # GRPO's world model is on the config's mesh
+    out = {name: np.asarray(run(jax.device_put(s, one_device), jax.random.key(3))) for name, s in sims.items()}
+    np.testing.assert_array_equal(out["grpo"], out["api"])
+    np.testing.assert_array_equal(out["bench"], out["api"])

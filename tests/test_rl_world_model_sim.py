@@ -213,3 +213,78 @@ def test_reckoned_proprio_follows_the_executed_actions_and_is_valid():
     plain = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
                                   sample_steps=1)
     assert float(plain.observe(plain.init(start))[1]) == 0.0
+
+
+def _one_step(sim, latents, frames):
+    """The simulator's start-up and first chunk on fixed inputs: ``(frames [2, T, H, W, 3], proprio_valid)``."""
+    start = StartState(frames, jnp.zeros((2, 8)), jnp.zeros((2, 8), jnp.int32), latents)
+    chunk = jax.random.uniform(jax.random.key(7), (2, sim.chunk_len, sim.action_dim), minval=-1.0, maxval=1.0)
+
+    def run(sim, start, chunk, key):
+        state = jax.vmap(sim.init)(start)
+        _, out = jax.vmap(lambda s, c, k: sim.step(s, c, key=k))(state, chunk, jax.random.split(key, 2))
+        return out
+
+    return np.asarray(jax.jit(run)(sim, start, chunk, jax.random.key(3)))
+
+
+def test_fast_simulator_is_within_tolerance_of_the_float32_path_which_stays_exact():
+    """precision=float32 is the exact path (the simulator as built before the builder, bit for bit); the fast one
+    (bf16 decode with bf16-stored VAE weights, sub-pixel upsampling) differs from it by rounding only."""
+    from sword_jax.rl.sim_builder import FAST_FRAME_TOL, build_simulator
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    frames = jax.random.uniform(jax.random.key(2), (2, 32, 32, 3))
+    latents = encode_keyframes(vae_graphdef, vae_state, frames)
+    kw = dict(flow_cfg=cfg.flow, frame_size=32, sample_steps=2)
+    exact = _one_step(world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, **kw), latents, frames)
+    f32_sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision="float32", **kw)
+    fast_sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, **kw)  # the default
+    np.testing.assert_array_equal(_one_step(f32_sim, latents, frames), exact)
+    fast = _one_step(fast_sim, latents, frames)
+    gap = float(np.abs(fast - exact).max())
+    assert 0.0 < gap <= FAST_FRAME_TOL, gap  # not the same program, and close to it
+    vae_kernels = {x.dtype for x in jax.tree.leaves(fast_sim.params[1]["decoder"]["head_conv"])}
+    assert vae_kernels == {jnp.dtype(jnp.bfloat16)}
+    assert {x.dtype for x in jax.tree.leaves(f32_sim.params)} == {jnp.dtype(jnp.float32)}
+    with pytest.raises(ValueError, match="precision"):
+        build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision="bf16", **kw)
+
+
+def test_fast_simulator_stores_the_world_models_bfloat16_layers_in_bfloat16():
+    """A bf16-compute world model (the default DiT) keeps its matmul weights in bf16 inside the fast simulator,
+    loaded as ``(params, buffers)`` pure dicts or as one state; the float32 path keeps them as loaded."""
+    import dataclasses
+
+    from sword_jax.dit.action_dit import WorldModel
+    from sword_jax.rl.sim_builder import build_simulator
+
+    cfg, _, _, vae_graphdef, vae_state = _tiny_models()
+    model = WorldModel(dataclasses.replace(cfg.model, compute_dtype="bfloat16"), rngs=nnx.Rngs(0))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    kw = dict(flow_cfg=cfg.flow, frame_size=32, sample_steps=2)
+    for state in ((nnx.to_pure_dict(params), nnx.to_pure_dict(rest)), nnx.split(model)[1]):
+        fast = build_simulator(graphdef, state, vae_graphdef, vae_state, **kw).params[0]
+        q_kernel = (fast[0] if isinstance(fast, tuple) else fast)["dit"]["blocks"]["self_attn"]["q"]["kernel"]
+        norm_scale = (fast[0] if isinstance(fast, tuple) else fast)["dit"]["blocks"]["self_attn"]["norm_q"]
+        assert jnp.asarray(q_kernel).dtype == jnp.bfloat16
+        assert {x.dtype for x in jax.tree.leaves(norm_scale)} == {jnp.dtype(jnp.float32)}  # read in float32
+        exact = build_simulator(graphdef, state, vae_graphdef, vae_state, precision="float32", **kw).params[0]
+        assert {x.dtype for x in jax.tree.leaves(exact)} == {jnp.dtype(jnp.float32)}
+
+
+def test_simulator_microbatches_are_chosen_to_fit_the_decoders_features():
+    """rl.imagined.sim_microbatches=0: the fewest slices of at most max_slice trajectories dividing the batch; the
+    rule gives the 5B run's 4 slices of 8 at 256 px with the full Wan 2.2 decoder and one slice for small's."""
+    from sword_jax.rl.rollout import microbatches_for
+    from sword_jax.rl.sim_builder import max_slice_trajectories
+
+    wan = {"decoder": {"head_conv": {"kernel": jax.ShapeDtypeStruct((3, 3, 3, 256, 12), jnp.float32)}}}
+    small = {"decoder": {"head_conv": {"kernel": jax.ShapeDtypeStruct((3, 3, 3, 48, 12), jnp.float32)}}}
+    assert max_slice_trajectories(wan, 256) == 8
+    assert microbatches_for(32, 0, max_slice_trajectories(wan, 256)) == 4
+    assert microbatches_for(64, 0, max_slice_trajectories(small, 128)) == 1
+    assert microbatches_for(12, 0, 5) == 3 and microbatches_for(7, 0, 2) == 7  # slices must divide the batch
+    assert microbatches_for(32, 2, 8) == 2 and microbatches_for(32, 0, None) == 1  # explicit; no limit
+    with pytest.raises(ValueError, match="sim_microbatches"):
+        ImaginedConfig(sim_microbatches=-1).validate()

@@ -86,3 +86,54 @@ def test_sampler_rejects_bad_inputs(keys):
         sampler.sample(model, cond, actions[:, :-1], key=keys[0], num_future=2, cfg=FlowConfig())
     with pytest.raises(ValueError, match="num_steps"):
         sampler.sample(model, cond, actions, key=keys[0], num_future=2, cfg=FlowConfig(), num_steps=51)
+
+
+def _dot_generals(jaxpr) -> int:
+    """``dot_general`` equations of a jaxpr, those of nested jaxprs (scan bodies, pjit) included."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == "dot_general"
+        for sub in jax.core.jaxprs_in_params(eqn.params):
+            count += _dot_generals(sub)
+    return count
+
+
+def _euler_body_dot_generals(jaxpr) -> int:
+    """Matmuls inside the sampler's Euler-step scan (the outermost ``scan``)."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan":
+            return _dot_generals(eqn.params["jaxpr"].jaxpr)
+        for sub in jax.core.jaxprs_in_params(eqn.params):
+            found = _euler_body_dot_generals(sub)
+            if found is not None:
+                return found
+    return None
+
+
+@pytest.mark.parametrize("guidance", [1.0, 2.5])
+def test_actions_conditioned_once_per_chunk_give_the_same_sample(keys, guidance):
+    """The tiny world model sampled with the actions' cross-attention keys / values and AdaLN offset computed once
+    per chunk equals the sample that recomputes them at every Euler step, and the Euler steps no longer hold those
+    matmuls (2 action-token MLP layers, 2 AdaLN layers, the blocks' key and value projections)."""
+    import dataclasses
+
+    import configs
+    from sword_jax.dit.action_dit import WorldModel
+
+    model_cfg = dataclasses.replace(configs.get("sword:tiny").model, compute_dtype="float32")
+    graphdef, state = nnx.split(WorldModel(model_cfg, rngs=nnx.Rngs(0)))
+    state = jax.tree.map(lambda x: x + 0.1 * jax.random.normal(keys[4], x.shape, x.dtype), state)  # non-zero heads
+    cond = jax.random.normal(keys[0], (2, 2, 4, 4, model_cfg.in_dim))
+    actions = jax.random.uniform(keys[1], (2, 1 + 4 * 3, model_cfg.action_dim), minval=-1.0, maxval=1.0)
+    cfg = FlowConfig(shift=3.0, guidance_scale=guidance)
+
+    def run(cache_actions):
+        model_fn = sampler.model_fn_from_state(graphdef, state, cache_actions=cache_actions)
+        return lambda c, a: sampler.sample(model_fn, c, a, key=keys[2], num_future=2, cfg=cfg, num_steps=3)
+
+    cached, plain = run(True), run(False)
+    np.testing.assert_allclose(np.asarray(jax.jit(cached)(cond, actions)), np.asarray(jax.jit(plain)(cond, actions)),
+                               rtol=1e-5, atol=1e-5)
+    in_steps = {name: _euler_body_dot_generals(jax.make_jaxpr(fn)(cond, actions).jaxpr)
+                for name, fn in (("cached", cached), ("plain", plain))}
+    assert in_steps["plain"] - in_steps["cached"] == 2 + 2 + 2  # token MLP, AdaLN MLP, k and v (scanned blocks)

@@ -19,7 +19,7 @@ The official ``text_embedding`` stays inside :class:`WanDiT` so official checkpo
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -90,6 +90,21 @@ class ActionConditioner(nnx.Module):
         return self.chunk_out(hidden).astype(jnp.float32)
 
 
+class ActionConditioning(NamedTuple):
+    """What the world model reads of a segment's actions, computed once for calls that share them
+    (:meth:`WorldModel.condition`): the sampler's Euler steps of one chunk all see the same actions.
+
+    Attributes:
+      context_kv: every block's cross-attention keys and values of the action tokens,
+        ``[layers, b, lc, heads, dh]`` each (:meth:`~sword_jax.dit.model.WanDiT.cross_attention_kv`).
+      time_offset: the AdaLN addition to each latent frame's time embedding ``[b, f, d]`` (None
+        with ``action_adaln`` off).
+    """
+
+    context_kv: tuple[Array, Array]
+    time_offset: Float[Array, "b f d"] | None
+
+
 class WorldModel(nnx.Module):
     """:class:`WanDiT` conditioned on actions through cross-attention tokens and AdaLN."""
 
@@ -125,15 +140,42 @@ class WorldModel(nnx.Module):
         check_values("latents", latents)
         check_values("timesteps", timesteps, 0.0, 1000.0)
         check_values("actions", actions)
-        dit = self.dit
+        return self._forward(latents, timesteps, self.actions.time_offset(actions),
+                             context_emb=self.actions.context(actions))
+
+    def condition(self, actions: Float[Array, "b t a"]) -> ActionConditioning:
+        """The action branches' outputs for ``actions`` (one per video frame), to reuse across
+        :meth:`apply_conditioned` calls: the same predictions as :meth:`__call__` with these actions."""
+        check_shape("actions", actions, (None, None, self.cfg.action_dim))
+        check_values("actions", actions)
+        return ActionConditioning(self.dit.cross_attention_kv(self.actions.context(actions)),
+                                  self.actions.time_offset(actions))
+
+    def apply_conditioned(
+        self,
+        latents: Float[Array, "b f h w c"],
+        timesteps: Float[Array, "b f"],
+        conditioning: ActionConditioning,
+    ) -> Float[Array, "b f h w c"]:
+        """:meth:`__call__` with the actions' work already done (:meth:`condition`)."""
+        b, f = latents.shape[:2]
+        check_shape("latents", latents, (None, None, None, None, self.cfg.in_dim))
+        check_shape("timesteps", timesteps, (b, f))
+        if conditioning.time_offset is not None:
+            check_shape("conditioning.time_offset", conditioning.time_offset, (b, f, self.cfg.dim))
+        check_values("latents", latents)
+        check_values("timesteps", timesteps, 0.0, 1000.0)
+        return self._forward(latents, timesteps, conditioning.time_offset, context_kv=conditioning.context_kv)
+
+    def _forward(self, latents, timesteps, time_offset, *, context_emb=None, context_kv=None):
+        cfg, dit = self.cfg, self.dit
+        b, f, h, w, _ = latents.shape
         grid = (f, h // cfg.patch_size[1], w // cfg.patch_size[2])
         time_emb = dit.embed_time(timesteps)  # (B, F, D)
-        offset = self.actions.time_offset(actions)
-        if offset is not None:
-            time_emb = time_emb + offset
-        out = dit.forward_tokens(
-            dit.patchify(latents), dit.grid_positions(b, grid), time_emb, self.actions.context(actions)
-        )
+        if time_offset is not None:
+            time_emb = time_emb + time_offset
+        out = dit.forward_tokens(dit.patchify(latents), dit.grid_positions(b, grid), time_emb, context_emb,
+                                 context_kv=context_kv)
         return dit.unpatchify(out, grid)
 
 

@@ -56,6 +56,16 @@ class WanAttention(nnx.Module):
         self.norm_q = RMSNorm(cfg.dim, cfg.eps, "heads", param_dtype=pdt) if cfg.qk_norm else None
         self.norm_k = RMSNorm(cfg.dim, cfg.eps, "heads", param_dtype=pdt) if cfg.qk_norm else None
 
+    def project_kv(self, source: Float[Array, "b ls d"]) -> tuple[Float[Array, "b ls n dh"], Float[Array, "b ls n dh"]]:
+        """Keys (q/k-normed) and values of ``source``, split into heads: what cross-attention reads of its
+        context, so a context fixed over several calls is projected once (:meth:`WanDiT.cross_attention_kv`)."""
+        b, ls, d = source.shape
+        k, v = self.k(source), self.v(source)
+        if self.norm_k is not None:
+            k = self.norm_k(k)
+        heads = self.num_heads
+        return k.reshape(b, ls, heads, d // heads), v.reshape(b, ls, heads, d // heads)  # (B, Ls, N, Dh)
+
     def __call__(
         self,
         x: Float[Array, "b l d"],
@@ -63,17 +73,17 @@ class WanAttention(nnx.Module):
         *,
         rope: tuple[Array, Array] | None = None,
         key_lengths: Int[Array, " b"] | None = None,
+        context_kv: tuple[Array, Array] | None = None,
     ) -> tuple[Float[Array, "b l d"], dict[str, Array]]:
-        """Self-attention when ``context`` is None (with RoPE and key masking), else cross-attention."""
-        source = x if context is None else context
+        """Self-attention when ``context`` and ``context_kv`` are None (with RoPE and key masking), else
+        cross-attention to ``context``, or to its keys and values already projected (:meth:`project_kv`)."""
         b, l, d = x.shape
         heads = self.num_heads
-        q, k, v = self.q(x), self.k(source), self.v(source)
+        q = self.q(x)
         if self.norm_q is not None:
-            q, k = self.norm_q(q), self.norm_k(k)
+            q = self.norm_q(q)
         q = q.reshape(b, l, heads, d // heads)  # (B, L, N, Dh)
-        k = k.reshape(b, source.shape[1], heads, d // heads)
-        v = v.reshape(b, source.shape[1], heads, d // heads)
+        k, v = context_kv if context_kv is not None else self.project_kv(x if context is None else context)
         if rope is not None:
             q, k = apply_rope(q, *rope), apply_rope(k, *rope)
         out = checkpoint_name(attention(q, k, v, key_lengths=key_lengths, impl=self.impl), "attention_out")
@@ -102,10 +112,13 @@ class WanBlock(nnx.Module):
         self,
         x: Float[Array, "b l d"],
         e0: Float[Array, "b g 6 d"],
-        context: Float[Array, "b lc d"],
+        context: Float[Array, "b lc d"] | None,
         rope: tuple[Array, Array],
         key_lengths: Int[Array, " b"] | None,
+        context_kv: tuple[Array, Array] | None = None,
     ) -> tuple[Float[Array, "b l d"], dict[str, Array]]:
+        """``context_kv``: this block's cross-attention keys and values of ``context``, projected once for
+        calls that share it (``context`` is then not read)."""
         b, l, d = x.shape
         groups = e0.shape[1]
         x = x.astype(jnp.float32)  # the stream arrives in cfg.residual_dtype; the block adds in float32
@@ -123,7 +136,10 @@ class WanBlock(nnx.Module):
         x = x + (grouped(sa_out.astype(jnp.float32)) * gate_sa).reshape(b, l, d)
 
         normed = self.norm3(x) if self.norm3 is not None else x
-        ca_out, _ = self.cross_attn(normed.astype(cdt), context.astype(cdt))
+        if context_kv is None:
+            ca_out, _ = self.cross_attn(normed.astype(cdt), context.astype(cdt))
+        else:
+            ca_out, _ = self.cross_attn(normed.astype(cdt), context_kv=context_kv)
         x = x + ca_out.astype(jnp.float32)
 
         h = grouped(layer_norm(x, self.eps)) * (1 + scale_ff) + shift_ff
@@ -241,10 +257,11 @@ class WanDiT(nnx.Module):
         patches: Float[Array, "b l p"],
         positions: Int[Array, "b l 3"],
         time_emb: Float[Array, "b g d"],
-        context_emb: Float[Array, "b lc d"],
+        context_emb: Float[Array, "b lc d"] | None,
         seq_lens: Int[Array, " b"] | None = None,
         *,
         capture: bool = False,
+        context_kv: tuple[Array, Array] | None = None,
     ) -> Float[Array, "b l q"] | tuple[Float[Array, "b l q"], dict[str, Array]]:
         """The transformer on patch tokens: patch embed, blocks, modulated head (before unpatchify).
 
@@ -256,6 +273,9 @@ class WanDiT(nnx.Module):
           seq_lens: valid tokens per sample (keys beyond are masked, their RoPE is identity);
             None = all valid.
           capture: also return a dict of intermediates (names as in the reference npz files).
+          context_kv: every block's cross-attention keys and values of the context
+            (:meth:`cross_attention_kv`), for calls that share one context; ``context_emb`` is then
+            not read (pass None).
 
         Returns:
           Head output ``[b, l, prod(patch) * out_dim]`` in float32 (and the intermediates).
@@ -265,7 +285,10 @@ class WanDiT(nnx.Module):
         check_shape("patches", patches, (None, None, math.prod(cfg.patch_size) * cfg.in_dim))
         check_shape("positions", positions, (b, l, 3))
         check_shape("time_emb", time_emb, (b, None, cfg.dim))
-        check_shape("context_emb", context_emb, (b, None, cfg.dim))
+        if context_kv is None:
+            check_shape("context_emb", context_emb, (b, None, cfg.dim))
+        else:
+            check_shape("context_kv keys", context_kv[0], (cfg.num_layers, b, None, cfg.num_heads, None))
         if l % time_emb.shape[1]:
             raise ValueError(f"time_emb: {time_emb.shape[1]} groups do not divide {l} tokens")
         cdt = dtype_of(cfg.compute_dtype)
@@ -281,10 +304,10 @@ class WanDiT(nnx.Module):
         rope = rope_cos_sin(positions, cfg.dim // cfg.num_heads, valid)
         e0 = self.time_projection(jax.nn.silu(time_emb)).astype(jnp.float32)
         e0 = e0.reshape(b, time_emb.shape[1], 6, cfg.dim)
-        context = context_emb.astype(cdt)
+        context = None if context_kv is not None else context_emb.astype(cdt)
         intermediates: dict[str, Array] = {"tokens_in": x, "time_proj": e0} if capture else {}
 
-        x, block_aux = self._run_blocks(x, e0, context, rope, seq_lens, capture)
+        x, block_aux = self._run_blocks(x, e0, context, rope, seq_lens, capture, context_kv)
         if capture:
             intermediates.update(block_aux)
 
@@ -298,14 +321,24 @@ class WanDiT(nnx.Module):
             return out, intermediates
         return out
 
-    def _run_blocks(self, x, e0, context, rope, seq_lens, capture: bool):
+    def cross_attention_kv(self, context_emb: Float[Array, "b lc d"]) -> tuple[Array, Array]:
+        """Every block's cross-attention keys and values of ``context_emb``, ``[layers, b, lc, heads, dh]``
+        each in the compute dtype: computed once, they serve every :meth:`forward_tokens` call with the
+        same context (``context_kv=``), e.g. all sampler steps of one world-model chunk."""
+        check_shape("context_emb", context_emb, (None, None, self.cfg.dim))
+        context = context_emb.astype(dtype_of(self.cfg.compute_dtype))
+        graphdef, block_state = nnx.split(self.blocks)
+        return jax.vmap(lambda params: nnx.merge(graphdef, params).cross_attn.project_kv(context))(block_state)
+
+    def _run_blocks(self, x, e0, context, rope, seq_lens, capture: bool, context_kv=None):
         cfg = self.cfg
         graphdef, block_state = nnx.split(self.blocks)
         x = x.astype(dtype_of(cfg.residual_dtype))
 
-        def body(carry, params):
+        def body(carry, xs):
+            params, layer_kv = xs
             block = nnx.merge(graphdef, params)
-            out, aux = block(carry, e0, context, rope, seq_lens)
+            out, aux = block(carry, e0, context, rope, seq_lens, layer_kv)
             out = sharding.constrain(out, TOKENS)
             ys = (out, {k: aux[k] for k in _BLOCK0_KEYS}) if capture else None
             return out, ys
@@ -313,12 +346,13 @@ class WanDiT(nnx.Module):
         if cfg.remat != "none":
             body = jax.checkpoint(body, policy=_remat_policy(cfg.remat), prevent_cse=not cfg.scan_layers)
 
+        layers = (block_state, context_kv)  # context_kv None: each block projects the context itself
         if cfg.scan_layers:
-            x, ys = jax.lax.scan(body, x, block_state)
+            x, ys = jax.lax.scan(body, x, layers)
         else:
             per_layer = []
             for i in range(cfg.num_layers):
-                x, y = body(x, jax.tree.map(lambda a: a[i], block_state))
+                x, y = body(x, jax.tree.map(lambda a: a[i], layers))
                 per_layer.append(y)
             ys = jax.tree.map(lambda *a: jnp.stack(a), *per_layer) if capture else None
         if not capture:

@@ -84,7 +84,8 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
     (an ``rl.data.EpisodeSet`` of the demonstrations); ``reckoning``: the proprio ReckoningConfig when
     ``rl.imagined.proprio=reckoned`` (the simulator's action convention, fitted to the demonstrations)."""
     from sword_jax.load import experiment_vae, experiment_world_model
-    from sword_jax.rl.world_model_sim import encode_history, world_model_simulator
+    from sword_jax.rl.sim_builder import build_simulator
+    from sword_jax.rl.world_model_sim import encode_history
 
     if rl.imagined.proprio == "reckoned" and rl.proprio_dim != 8:
         raise ValueError(f"rl.imagined.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
@@ -95,12 +96,12 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
     vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     tf = cfg.vae.temporal_factor  # frames per latent
-    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
-                                frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
-                                num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
-                                action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                                execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
-                                proprio_reckoning=reckoning)
+    sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision=rl.imagined.sim_precision,
+                          flow_cfg=cfg.flow, frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
+                          num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
+                          action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
+                          execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
+                          proprio_reckoning=reckoning)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)

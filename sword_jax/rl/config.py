@@ -283,8 +283,13 @@ class ImaginedConfig:
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
-        at a time. 1 (default) = all at once. The trajectory count must divide evenly; each slice takes
+        at a time. 1 = all at once. The trajectory count must divide evenly; each slice takes
         every ``sim_microbatches``-th trajectory, so a data-sharded batch stays spread over devices.
+        0 (default): the fewest slices of at most the simulator's ``max_slice`` trajectories
+        (:func:`sword_jax.rl.rollout.microbatches_for`; one slice for `small`, 4 for the 5B model's 32).
+      sim_precision: how the world-model simulator runs (:mod:`sword_jax.rl.sim_builder`): ``fast``
+        (default: the VAE decodes in bfloat16 with sub-pixel upsampling, weights stored in the compute
+        dtype) or ``float32`` (the exact float32 decode at the highest precision, weights as loaded).
     """
 
     max_chunks: int = 8
@@ -296,7 +301,8 @@ class ImaginedConfig:
     eval_replay_episodes: int = 100  # real evaluation episodes replayed in the learned simulator; 0 = off
     eval_replay_settle_steps: int = 8  # hold actions scored after each replayed episode's last action
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
-    sim_microbatches: int = 1  # simulator step over trajectories in this many sequential slices
+    sim_microbatches: int = 0  # simulator step over trajectories in this many sequential slices; 0 = auto
+    sim_precision: str = "fast"  # fast | float32
     shared_group_noise: bool = False  # one simulator noise draw per GRPO group
     confirm_success: bool = False  # a success counts only if a second imagination of its actions succeeds
     guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
@@ -305,8 +311,10 @@ class ImaginedConfig:
     def validate(self) -> None:
         if self.max_chunks < 1:
             raise ValueError(f"rl.imagined.max_chunks must be >= 1, got {self.max_chunks}")
-        if self.sim_microbatches < 1:
-            raise ValueError(f"rl.imagined.sim_microbatches must be >= 1, got {self.sim_microbatches}")
+        if self.sim_microbatches < 0:
+            raise ValueError(f"rl.imagined.sim_microbatches must be >= 1 (0 = auto), got {self.sim_microbatches}")
+        if self.sim_precision not in ("fast", "float32"):
+            raise ValueError(f"rl.imagined.sim_precision must be fast|float32, got {self.sim_precision!r}")
         if not 0.0 <= self.guard_margin < 1.0 or self.guard_min_failures < 1:
             raise ValueError(f"rl.imagined.guard_margin must be in [0, 1) (0 = off) and guard_min_failures >= 1, got "
                              f"{self.guard_margin}, {self.guard_min_failures}")

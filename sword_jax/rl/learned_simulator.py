@@ -56,6 +56,8 @@ class LearnedSimulator:
     # ``chunk_len``; the policy re-plans after them. None = the whole chunk.
     execute_len: int | None = struct.field(pytree_node=False, default=None)
     action_dim: int = struct.field(pytree_node=False, default=7)  # each action of a chunk [chunk_len, action_dim]
+    # trajectories one simulator microbatch may hold (rl.imagined.sim_microbatches=0 chooses by it); None = no limit
+    max_slice: int | None = struct.field(pytree_node=False, default=None)
 
     @property
     def frames_per_step(self) -> int:

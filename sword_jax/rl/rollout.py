@@ -171,6 +171,16 @@ def group_view(x: Array, group_size: int) -> Array:
     return x.reshape((x.shape[0] // group_size, group_size) + x.shape[1:])
 
 
+def microbatches_for(trajectories: int, requested: int, max_slice: int | None) -> int:
+    """``rl.imagined.sim_microbatches`` resolved: ``requested`` if >= 1, else (0, auto) the fewest slices that
+    divide ``trajectories`` into at most ``max_slice`` each (one slice without a limit)."""
+    if requested >= 1:
+        return requested
+    if max_slice is None:
+        return 1
+    return next(s for s in range(1, trajectories + 1) if trajectories % s == 0 and trajectories // s <= max_slice)
+
+
 def to_slices(tree: Any, slices: int) -> Any:
     """Leading axis ``n`` -> ``[slices, n / slices]``; slice ``j`` holds rows ``j, j + slices, ...``.
 
@@ -239,7 +249,7 @@ def imagined_rollout(
     n = start.frame.shape[0] * group_size
     if start.frame.ndim != 4 or start.frame.shape[-1] != 3:
         raise ValueError(f"start.frame must be [N, H, W, 3], got {start.frame.shape}")
-    slices = cfg.imagined.sim_microbatches
+    slices = microbatches_for(n, cfg.imagined.sim_microbatches, simulator.max_slice)
     # The simulator's state stays in the sliced layout for the whole rollout (no per-step relayout of its
     # decoder cache); only the per-step inputs and outputs are sliced and merged.
     if group_size == 1:

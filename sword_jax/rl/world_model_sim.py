@@ -175,7 +175,7 @@ def world_model_simulator(
         context_actions = state.context_actions.at[:, -1].set(chunk[:, 0])
         future_actions = jnp.concatenate([chunk[:, 1:], chunk[:, -1:]], axis=1)
         actions = jnp.concatenate([state.first_action, context_actions, future_actions], axis=1)
-        model_fn = wm_sampler.model_fn_from_state(wm_graphdef, wm_params)
+        model_fn = wm_sampler.model_fn_from_state(wm_graphdef, wm_params, cache_actions=True)  # actions once per chunk
         future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
                                cfg=flow_cfg, num_steps=sample_steps)
         future = future[:, :execute_latents]  # executed; the rest of the prediction is discarded

@@ -4,12 +4,17 @@ The model is called through a plain function ``model_fn(latents, timesteps, acti
 (see :func:`model_fn_from_state`), so the sampler is independent of how parameters are stored.
 Conditioning latents (episode first frame + context) are re-imposed, clean with ``t = 0``, at every
 step; only the future latents are integrated from sigma = 1 to 0 on Wan's shifted grid.
+
+The actions are the same at every step of a chunk, so a :class:`ConditionedModelFn`
+(``model_fn_from_state(..., cache_actions=True)``) has their work -- the action tokens and every
+block's cross-attention keys and values of them, the AdaLN offset -- done once per chunk, before the
+steps, instead of once per step. The predictions are the same.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,20 +27,42 @@ from sword_jax.world_model.config import FlowConfig
 ModelFn = Callable[[Array, Array, Array], Array]
 
 
-def model_fn_from_state(graphdef: nnx.GraphDef, state: Any) -> ModelFn:
+class ConditionedModelFn(NamedTuple):
+    """A model function whose action conditioning is computed once and reused.
+
+    ``condition(actions) -> conditioning`` (a pytree); ``apply(latents, timesteps, conditioning) ->
+    prediction``. Called as a plain :data:`ModelFn` it does both, so it goes wherever one does;
+    :func:`sample` calls ``condition`` once per chunk and ``apply`` at every Euler step.
+    """
+
+    condition: Callable[[Array], Any]
+    apply: Callable[[Array, Array, Any], Array]
+
+    def __call__(self, latents, timesteps, actions):
+        return self.apply(latents, timesteps, self.condition(actions))
+
+
+def model_fn_from_state(graphdef: nnx.GraphDef, state: Any, *, cache_actions: bool = False) -> ModelFn:
     """Builds ``model_fn(latents, timesteps, actions)`` by merging ``graphdef`` with ``state``.
 
     Args:
       graphdef: static graph of the world model.
       state: what ``nnx.merge`` takes after the graphdef: one state / pure dict, or a tuple of them
         (e.g. ``(params, buffers)``).
+      cache_actions: return a :class:`ConditionedModelFn` (the world model's
+        :meth:`~sword_jax.dit.action_dit.WorldModel.condition` / ``apply_conditioned``), so the sampler
+        works on the actions once per chunk. Off: a plain function (the training path's).
     """
     states = state if isinstance(state, tuple) else (state,)
 
     def model_fn(latents, timesteps, actions):
         return nnx.merge(graphdef, *states)(latents, timesteps, actions)
 
-    return model_fn
+    if not cache_actions:
+        return model_fn
+    return ConditionedModelFn(
+        condition=lambda actions: nnx.merge(graphdef, *states).condition(actions),
+        apply=lambda latents, timesteps, cond: nnx.merge(graphdef, *states).apply_conditioned(latents, timesteps, cond))
 
 
 def null_actions(actions: Float[Array, "b t a"]) -> Float[Array, "b t a"]:
@@ -108,12 +135,19 @@ def sample(
     elif noise.shape != (batch, num_future) + cond.shape[2:]:
         raise ValueError(f"sample: noise shape {noise.shape} != {(batch, num_future) + cond.shape[2:]}")
     sigmas = flow.sampling_sigmas(num_steps, cfg.shift)
+    step_fn = model_fn
+    if isinstance(model_fn, ConditionedModelFn):  # the actions' work once per chunk, not once per step
+        both = actions if guidance_scale == 1.0 else jnp.concatenate([actions, null_actions(actions)], axis=0)
+        conditioning = model_fn.condition(both)  # laid out as guided_velocity batches its model call
+
+        def step_fn(latents, timesteps, _actions):
+            return model_fn.apply(latents, timesteps, conditioning)
 
     def euler_step(future, sigma_pair):
         sigma, sigma_next = sigma_pair[0], sigma_pair[1]
         latents = jnp.concatenate([cond, future], axis=1)  # conditioning re-imposed every step
         timesteps = flow.frame_timesteps(jnp.full((batch,), sigma), num_cond, num_future, cfg)
-        velocity = guided_velocity(model_fn, latents, timesteps, actions, sigma, num_cond, cfg, guidance_scale)
+        velocity = guided_velocity(step_fn, latents, timesteps, actions, sigma, num_cond, cfg, guidance_scale)
         return future + (sigma_next - sigma) * velocity, None
 
     pairs = jnp.stack([sigmas[:-1], sigmas[1:]], axis=1)  # (steps, 2)
