@@ -23,14 +23,17 @@ from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_st
 from sword_jax.rl.jax_env_grpo import EnvGRPO
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.reward_model import build_detector
+from sword_jax.rl.sim_builder import stored_for_simulator
 from sword_jax.rng import stream_key
 
 
-def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae, latents: str,
+def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae, world_model, latents: str,
                          episodes_per_task: int, max_traces: int) -> dict:
     """GRPO in ``setup``'s learned simulator (:func:`sword_jax.pipeline.grpo.world_model_setup`), refreshed every
-    ``rl.refresh.every`` steps on MJX episodes of the current policy; ``vae``: the run's ``(graphdef, state)``;
-    ``latents``: the world model's training latents (``.npz``). Returns as :func:`run_refreshed`."""
+    ``rl.refresh.every`` steps on MJX episodes of the current policy; ``vae`` / ``world_model``: the run's
+    ``(graphdef, state)`` as trained (the world model's float32 weights are what a refresh fine-tunes; the
+    simulator stores them as its builder does, ``rl.imagined.sim_precision``); ``latents``: the world model's
+    training latents (``.npz``). Returns as :func:`run_refreshed`."""
     from sword_jax.vae import api as vae_api
     from sword_jax.world_model.data import load_latent_dataset
 
@@ -78,10 +81,16 @@ def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae,
         return np.concatenate([np.asarray(encoder(frames[i:i + batch] * np.float32(2.0) - np.float32(1.0)))
                                for i in range(0, len(frames), batch)])
 
-    wm_state, vae_params = setup.sim.params
+    wm_graphdef, wm_state = world_model
+    _, vae_params = setup.sim.params
+
+    def make_simulator(state):  # the fine-tuned float32 weights, stored as the simulator's builder stores them
+        return setup.sim.replace(params=(stored_for_simulator(wm_graphdef, state, rl.imagined.sim_precision),
+                                         vae_params))
+
     det_graphdef, _ = build_detector(rl, seed=cfg.seed)
     return run_refreshed(cfg, rl, graphdef, params, workdir, setup=setup, wm_state=wm_state,
-                         make_simulator=lambda state: setup.sim.replace(params=(state, vae_params)),
+                         make_simulator=make_simulator,
                          encode_frames=encode_frames, detector=(det_graphdef, setup.reward_model.params),
                          base=load_latent_dataset(latents), env=env,
                          collect_starts=stratified_collect_starts(pool_starts, cfg.seed), evaluate_real=evaluate_real,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import configs
-from sword_jax.load import experiment_vae
+from sword_jax.load import experiment_vae, experiment_world_model
 from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
 from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
 from sword_jax.rl.config import RefreshConfig
@@ -23,6 +23,7 @@ from sword_jax.rl.policy_success import success_summary
 from sword_jax.rl.refresh import RealEpisodes, choose_horizon, first_success, stratified_split
 from sword_jax.rl.reward_model import build_detector, shifted_reward_model, threshold_shift
 from sword_jax.rl.scan_rollout import record_episodes
+from sword_jax.rl.sim_builder import stored_for_simulator
 from sword_jax.world_model.data import LatentDataset
 
 SIZE = 32
@@ -106,9 +107,13 @@ def _run(cfg, tiny_run, workdir, steps):
                     jax.random.key(7))
         return success_summary(np.asarray(rec.success).any(1), tasks, 0.0), {}
 
-    wm_state, vae_params = setup.sim.params
+    wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)  # float32, as trained
+    _, vae_params = setup.sim.params
+    precision = rl.imagined.sim_precision
     return run_refreshed(cfg, rl, graphdef, params, os.path.join(workdir, "grpo"), setup=setup, wm_state=wm_state,
-                         make_simulator=lambda s: setup.sim.replace(params=(s, vae_params)), encode_frames=encode_frames,
+                         make_simulator=lambda s: setup.sim.replace(params=(stored_for_simulator(wm_graphdef, s, precision),
+                                                                            vae_params)),
+                         encode_frames=encode_frames,
                          detector=(det_graphdef, setup.reward_model.params), base=base, env=env,
                          collect_starts=stratified_collect_starts(_pool_starts, cfg.seed), evaluate_real=evaluate_real,
                          max_traces=1)

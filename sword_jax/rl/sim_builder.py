@@ -76,6 +76,14 @@ def max_slice_trajectories(vae_state: Any, frame_size: int) -> int:
     return max(1, SLICE_FEATURE_BUDGET // (frame_size * frame_size * width))
 
 
+def stored_for_simulator(wm_graphdef: nnx.GraphDef, wm_state: Any, precision: str) -> Any:
+    """The world model's weights as the simulator of ``precision`` holds them (``fast``: each 16-bit-compute
+    layer's in its compute dtype; ``float32``: as given), e.g. a refresh's fine-tuned float32 weights put
+    into a simulator :func:`build_simulator` made."""
+    check_precision(precision)
+    return store_in_compute_dtype(wm_graphdef, wm_state) if precision == "fast" else wm_state
+
+
 def build_simulator(
     wm_graphdef: nnx.GraphDef,
     wm_state: Any,
@@ -100,7 +108,6 @@ def build_simulator(
     """
     check_precision(precision)
     vae_graphdef, vae_state = inference_vae(vae_graphdef, vae_state, precision)
-    if precision == "fast":
-        wm_state = store_in_compute_dtype(wm_graphdef, wm_state)
+    wm_state = stored_for_simulator(wm_graphdef, wm_state, precision)
     sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, **options)
     return sim.replace(max_slice=max_slice_trajectories(vae_state, sim.frame_size))
