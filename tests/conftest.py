@@ -91,10 +91,19 @@ def _start_tiny_run(root) -> None:
                          stderr=subprocess.STDOUT, start_new_session=True)
 
 
+# The longest default tests (30-90 s each on 2 cores), started first so that none of them is left running
+# alone at the end of a parallel run (with --dist worksteal the others fill in around them).
+LONG_FIRST = ("test_multihost.py::", "test_rl_resume.py::test_grpo_sigkill", "test_reliability.py::test_sigkill",
+              "test_grpo.py::test_grpo_improves_policy_on_toy_simulator", "test_sim_render_static.py::",
+              "test_rl_policy_learning.py::test_grpo_against_the_mujoco")
+
+
 def pytest_collection_modifyitems(config, items):
     _skip_gpu(items)
-    # tests on the tiny run go last, so its background build (see _build_tiny_run) overlaps the others
-    items.sort(key=lambda item: "tiny_run" in getattr(item, "fixturenames", ()))
+    # tests on the tiny run go last, so its background build (see _build_tiny_run) overlaps the others;
+    # the longest ones first
+    items.sort(key=lambda item: ("tiny_run" in getattr(item, "fixturenames", ()),
+                                 not any(name in item.nodeid for name in LONG_FIRST)))
 
 
 @pytest.fixture(scope="session", autouse=True)

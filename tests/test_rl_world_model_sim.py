@@ -202,10 +202,10 @@ def test_reckoned_proprio_follows_the_executed_actions_and_is_valid():
     for execute_latents in (1, 2):
         sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32,
                                     sample_steps=1, execute_latents=execute_latents, proprio_reckoning=reck)
-        state = sim.init(start)
+        state = jax.jit(lambda s, x: s.init(x))(sim, start)  # jitted: eager op-by-op dispatch is far slower
         p0, valid0 = sim.observe(state)
         np.testing.assert_allclose(np.asarray(p0), np.asarray(proprio))
-        state, _ = sim.step(state, chunk, key=jax.random.key(4))
+        state, _ = jax.jit(lambda s, st, c, k: s.step(st, c, key=k))(sim, state, chunk, jax.random.key(4))
         p1, valid1 = sim.observe(state)
         assert float(valid0) == float(valid1) == 1.0
         want = reckon(proprio, chunk[:4 * execute_latents], reck)[-1]
