@@ -241,13 +241,17 @@ def test_the_update_scores_rollouts_at_their_sampling_temperature():
     tokens = jnp.asarray(tokenize_instructions(["pick up the black bowl"], 32))
     start = expand_groups(toy_start_states(jnp.tile(tokens, (2, 1)), key=jax.random.key(7), frame_size=8),
                           cfg.grpo.group_size)
-    rollout = imagined_rollout(graphdef, params, sim, reward_model, start, cfg, key=jax.random.key(3))
+    # jitted: eager op-by-op dispatch of the rollout and the update takes several times longer
+    rollout = jax.jit(lambda p, s, r, st, k: imagined_rollout(graphdef, p, s, r, st, cfg, key=k))(
+        params, sim, reward_model, start, jax.random.key(3))
     mask = np.asarray(rollout.valid, bool)
-    recomputed = np.asarray(_rollout_log_probs(graphdef, params, rollout, 0.5))[mask]
+    log_probs = jax.jit(lambda p, r, temperature: _rollout_log_probs(graphdef, p, r, temperature),
+                        static_argnums=(2,))
+    recomputed = np.asarray(log_probs(params, rollout, 0.5))[mask]
     np.testing.assert_allclose(recomputed, np.asarray(rollout.log_probs)[mask], rtol=1e-4, atol=1e-4)
-    untempered = np.asarray(_rollout_log_probs(graphdef, params, rollout))[mask]
+    untempered = np.asarray(log_probs(params, rollout, 1.0))[mask]
     assert np.abs(untempered - recomputed).mean() > 0.1
-    _, metrics, _ = grpo.grpo_gradients(graphdef, cfg, params, rollout)
+    _, metrics, _ = jax.jit(lambda p, r: grpo.grpo_gradients(graphdef, cfg, p, r))(params, rollout)
     assert float(metrics["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)
 
 
@@ -270,8 +274,10 @@ def test_minibatch_updates_move_the_ratio_and_bind_the_clip_on_a_designed_batch(
         log_probs=jnp.zeros((n, c, t, a)), valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)),
         success=jnp.zeros((n,), bool), returns=jnp.asarray(np.tile([2.0, 0.0, 0.0, 0.0], n // 4), jnp.float32),
         frames=jnp.zeros((0,)))
-    rollout = rollout._replace(log_probs=_rollout_log_probs(graphdef, params, rollout))  # sampled by this policy
-    one = grpo.grpo_update(graphdef, cfg, grpo.init_state(jax.tree.map(jnp.copy, params), cfg), rollout)[1]
+    # sampled by this policy (jitted, as the update: eager dispatch takes several times longer)
+    rollout = rollout._replace(log_probs=jax.jit(lambda p, r: _rollout_log_probs(graphdef, p, r))(params, rollout))
+    one = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(
+        grpo.init_state(jax.tree.map(jnp.copy, params), cfg), rollout)[1]
     assert float(one["updates"]) == 1.0
     assert float(one["clip_fraction"]) == 0.0 and abs(float(one["ratio_mean"]) - 1.0) < 1e-5
     many_cfg = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, minibatches=4, ppo_epochs=2))
