@@ -5,7 +5,9 @@ episodes consumed (issue 41's experiment, one command on a machine of several GP
 reward_model`` on the first GPU), then GRPO runs in it from the same supervised policy, one process per GPU
 (``CUDA_VISIBLE_DEVICES``), side by side: ``refreshed`` at every seed (``rl.refresh`` every
 ``--refresh-every`` steps within ``--budget`` real episodes) and ``once`` at the first seed (one refresh at
-step 0, then the budget is spent: the simulator adapted to the supervised policy, never again). Every run is
+step 0, then the budget is spent: the simulator adapted to the supervised policy, never again); with
+``--wovr-config cache_ablation:small-wovr`` a WoVR-config world model is built beside it and refreshed the same
+way at every seed (``wovr_refreshed_seed<k>``; the summary pairs the gains seed by seed). Every run is
 evaluated on MJX as ground-truth GRPO is (the greedy, ensembled policy and the sampled one, 500 episodes).
 
 ``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, and
@@ -45,27 +47,36 @@ PIPELINE_FLAGS = ("--stop-after", "reward_model", "--skip", "probe,evaluate,sft_
                   "--data.policy_rollouts_per_task=0", "--rl.sft.episodes_per_task=20")
 
 
-def pipeline_command(args, overrides: Sequence[str]) -> list[str]:
-    return [sys.executable, "-m", "train.pipeline", "--config", args.config, "--seed", str(args.pipeline_seed),
-            "--workdir", os.path.join(args.workdir, "pipeline"), *PIPELINE_FLAGS,
+def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline") -> list[str]:
+    return [sys.executable, "-m", "train.pipeline", "--config", config or args.config, "--seed", str(args.pipeline_seed),
+            "--workdir", os.path.join(args.workdir, name), *PIPELINE_FLAGS,
             f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
             *[o for o in overrides if not o.startswith("--rl.")]]
 
 
+def pipelines(args) -> dict[str, str]:
+    """``{pipeline folder: config}``: Sword's, and with ``--wovr-config`` the WoVR-config world model's."""
+    return {"pipeline": args.config, **({"pipeline_wovr": args.wovr_config} if args.wovr_config else {})}
+
+
 def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
-    """``{run name: command}``: ``refreshed_seed<k>`` for every seed, ``once_seed<first>``."""
-    pipe = os.path.join(args.workdir, "pipeline")
-    base = [sys.executable, "-m", "train.grpo", "--config", args.config, "--simulator", "world_model",
-            "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
-            "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", os.path.join(pipe, "data", "demos.hdf5"),
-            "--latents", os.path.join(pipe, "data", "latents.npz"), "--policy", args.policy, *GRPO_FLAGS,
-            f"--rl.grpo.steps={args.steps}", f"--rl.grpo.eval_every={args.refresh_every}",
-            f"--rl.refresh.every={args.refresh_every}"]
+    """``{run name: command}``: ``refreshed_seed<k>`` for every seed, ``once_seed<first>``; with ``--wovr-config``
+    also ``wovr_refreshed_seed<k>`` in the WoVR-config world model (same policy, recipe and budget)."""
     runs = {}
-    for seed in args.seeds:
-        runs[f"refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}", *overrides]
-    if "once" in args.arms:
-        runs[f"once_seed{args.seeds[0]}"] = [*base, "--seed", str(args.seeds[0]), "--rl.refresh.budget=64", *overrides]
+    for folder, config in pipelines(args).items():
+        pipe, prefix = os.path.join(args.workdir, folder), ("wovr_" if folder == "pipeline_wovr" else "")
+        base = [sys.executable, "-m", "train.grpo", "--config", config, "--simulator", "world_model",
+                "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
+                "--reward", os.path.join(pipe, "rl", "reward_model"),
+                "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--latents", os.path.join(pipe, "data", "latents.npz"),
+                "--policy", args.policy, *GRPO_FLAGS, f"--rl.grpo.steps={args.steps}",
+                f"--rl.grpo.eval_every={args.refresh_every}", f"--rl.refresh.every={args.refresh_every}"]
+        for seed in args.seeds:
+            runs[f"{prefix}refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
+                                                     *overrides]
+        if "once" in args.arms and not prefix:
+            runs[f"once_seed{args.seeds[0]}"] = [*base, "--seed", str(args.seeds[0]), "--rl.refresh.budget=64",
+                                                 *overrides]
     for name, cmd in runs.items():
         cmd += ["--workdir", os.path.join(args.workdir, name)]
     return runs
@@ -83,8 +94,12 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     env=dict(env, CUDA_VISIBLE_DEVICES=gpu) if gpu else env)
 
-    if launch("pipeline", pipeline_command(args, overrides), gpus[0] if gpus else "").wait():
-        raise SystemExit(f"bench_grpo_refresh: the pipeline failed (log: {args.workdir}/pipeline.log)")
+    building = {folder: launch(folder, pipeline_command(args, overrides, config=config, name=folder),
+                               gpus[i % len(gpus)] if gpus else "")
+                for i, (folder, config) in enumerate(pipelines(args).items())}  # side by side
+    failed = [folder for folder, proc in building.items() if proc.wait()]
+    if failed:
+        raise SystemExit(f"bench_grpo_refresh: pipelines failed: {failed} (logs: {args.workdir}/<name>.log)")
     procs = {name: launch(name, cmd, gpus[i % len(gpus)] if gpus else "")
              for i, (name, cmd) in enumerate(grpo_commands(args, overrides).items())}
     while any(p.poll() is None for p in procs.values()):
@@ -178,6 +193,10 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
             runs[name] = summarize_run(os.path.join(workdir, name))
     refreshed = {n: r for n, r in runs.items() if n.startswith("refreshed")}
     out = {"runs": runs}
+    wovr = {n[len("wovr_"):]: r for n, r in runs.items() if n.startswith("wovr_refreshed")}
+    paired = {n: refreshed[n]["sampled"]["gain"] - wovr[n]["sampled"]["gain"] for n in sorted(refreshed) if n in wovr}
+    if paired:  # Sword's gain minus WoVR's, seed by seed (same policy, recipe and budget)
+        out["sword_minus_wovr_sampled_gain"] = paired
     if refreshed:
         gains = [r["sampled"]["gain"] for r in refreshed.values()]
         out.update(sampled_min_gain=min(gains), sampled_mean_gain=sum(gains) / len(gains),
@@ -218,6 +237,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--arms", default="refreshed,once", help="refreshed (every seed) and once (the first seed)")
     parser.add_argument("--pipeline-seed", type=int, default=0)
+    parser.add_argument("--wovr-config", default="", help="also refresh GRPO in this WoVR-config world model, e.g. "
+                                                          "cache_ablation:small-wovr (its own pipeline, side by side)")
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--refresh-every", type=int, default=5)
     parser.add_argument("--budget", type=int, default=3000, help="real episodes each refreshed run may use")

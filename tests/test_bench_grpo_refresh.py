@@ -13,7 +13,7 @@ GROUND_TRUTH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "benchma
 
 
 class Args:
-    workdir, config, policy, pipeline_seed = "w", "sword:small", "p.npz", 0
+    workdir, config, policy, pipeline_seed, wovr_config = "w", "sword:small", "p.npz", 0, ""
     seeds, arms, steps, refresh_every, budget, vae_steps, world_model_steps = [0, 1], {"refreshed", "once"}, 50, 5, 900, 10, 20
 
 
@@ -26,6 +26,15 @@ def test_commands_share_one_pipeline_and_differ_in_seed_and_budget():
     assert "--rl.refresh.budget=64" in flat["once_seed0"] and flat["once_seed0"].endswith("--workdir w/once_seed0")
     # an override comes after the recipe's flags, so it wins
     assert flat["refreshed_seed0"].index("learning_rate=1e-4") < flat["refreshed_seed0"].index("learning_rate=3e-5")
+    class WithWovr(Args):
+        wovr_config = "cache_ablation:small-wovr"
+
+    both = bench.grpo_commands(WithWovr, [])
+    assert sorted(both) == ["once_seed0", "refreshed_seed0", "refreshed_seed1", "wovr_refreshed_seed0",
+                            "wovr_refreshed_seed1"]
+    wovr = " ".join(both["wovr_refreshed_seed1"])
+    assert "--config cache_ablation:small-wovr" in wovr and "--world-model w/pipeline_wovr/world_model" in wovr
+    assert bench.pipelines(WithWovr) == {"pipeline": "sword:small", "pipeline_wovr": "cache_ablation:small-wovr"}
     pipe = " ".join(bench.pipeline_command(Args, ["--rl.grpo.steps=3", "--sim.max_steps=200"]))
     assert "--stop-after reward_model" in pipe and "--sim.max_steps=200" in pipe and "rl.grpo.steps" not in pipe
 
@@ -42,7 +51,8 @@ def end_of(run):
 
 
 def test_summary_reads_curves_gains_and_refreshes(tmp_path):
-    for name, end in (("refreshed_seed0", 0.60), ("refreshed_seed1", 0.70), ("once_seed0", 0.40)):
+    for name, end in (("refreshed_seed0", 0.60), ("refreshed_seed1", 0.70), ("once_seed0", 0.40),
+                      ("wovr_refreshed_seed0", 0.55)):
         grpo = tmp_path / name / "rl" / "grpo"
         grpo.mkdir(parents=True)
         points = [_point(0, 0.70, 0.50, 64), _point(5, 0.71, end, 128, guard={"trip": False, "reason": "ok"})]
@@ -54,7 +64,8 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
                     "detector": {"threshold": 0.93, "calibration": {"false_success": {"rate": 0.0}}}}]
         (grpo / "refreshes.json").write_text(json.dumps(records))
     out = bench.summarize(str(tmp_path), GROUND_TRUTH)
-    assert sorted(out["runs"]) == ["once_seed0", "refreshed_seed0", "refreshed_seed1"]
+    assert sorted(out["runs"]) == ["once_seed0", "refreshed_seed0", "refreshed_seed1", "wovr_refreshed_seed0"]
+    assert out["sword_minus_wovr_sampled_gain"] == {"refreshed_seed0": pytest.approx(0.05)}
     assert out["sampled_min_gain"] == pytest.approx(0.10) and out["sampled_mean_gain"] == pytest.approx(0.15)
     run = out["runs"]["refreshed_seed0"]
     assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
