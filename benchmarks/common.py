@@ -118,9 +118,11 @@ def _fmt(value: Any) -> str:
 
 
 def jaxpr_flops(fn: Callable[..., Any], *args: Any) -> float:
-    """Matmul and convolution FLOPs (multiply-add = 2) of ``fn(*args)``, counted on its jaxpr.
+    """Matmul, convolution and fused-attention FLOPs (multiply-add = 2) of ``fn(*args)``, counted on its jaxpr.
 
-    Backend-independent (XLA's GPU cost analysis leaves out convolutions run as library calls).
+    Backend-independent (XLA's GPU cost analysis leaves out convolutions run as library calls). cuDNN's fused
+    attention (``jax.nn.dot_product_attention(implementation="cudnn")``, one primitive) counts as the two
+    matmuls it runs, ``Q K^T`` and ``P V`` (its backward as five), as the XLA implementation's are counted.
     Scans count ``length`` times their body, conds their costliest branch; while loops, whose trip
     count is unknown, once. Elementwise work is not counted.
     """
@@ -142,6 +144,10 @@ def _jaxpr_flops(jaxpr) -> float:
             window = math.prod(rhs[d] for d in rhs_spec[2:])
             in_per_group = rhs[rhs_spec[1]]
             total += 2.0 * math.prod(out) * window * in_per_group
+        elif name.startswith("dot_product_attention") and ("fwd" in name or "bwd" in name):
+            batch, q_len, heads, dim = eqn.invars[0].aval.shape  # query [B, T, N, H], key [B, S, K, H]
+            k_len = eqn.invars[1].aval.shape[1]
+            total += (2 if "fwd" in name else 5) * 2.0 * batch * heads * q_len * k_len * dim
         elif name == "scan":
             total += params["length"] * _jaxpr_flops(params["jaxpr"].jaxpr)
         elif name == "cond":
