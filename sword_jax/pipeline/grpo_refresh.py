@@ -85,6 +85,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
     built: dict[str, Any] = {}
+    placed: dict[str, Any] = {}  # the simulator and reward model of the refresh the steps follow, on the mesh
 
     def step_fn(*args):
         # built at the first step, after the first refresh, which may choose the imagined horizon
@@ -102,9 +103,10 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         pick = refresher.branch_pick(index, rl.grpo.rollout_batch)
         starts = (setup.starts(jax.random.fold_in(starts_key, index), index) if pick is None
                   else start_state(pick, setup.encode, rl))
-        sim, reward_model = refresher.simulator(), refresher.reward_model()
-        sim, reward_model = jax.device_put((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
-        state, metrics = step_fn(state, (sim, reward_model, starts), key)
+        if placed.get("refresh", -2) != refresher.loaded:  # once per refresh, not per step: cast and placed
+            models = (refresher.simulator(), refresher.reward_model())
+            placed.update(refresh=refresher.loaded, models=jax.device_put(models, shd.shardings_on(models, mesh)))
+        state, metrics = step_fn(state, (*placed["models"], starts), key)
         return state, dict(metrics, real_episodes_used=jnp.float32(refresher.used))
 
     def evaluate(index, params):
@@ -128,7 +130,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
                                rl=rl, workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
                                curve_label="GRPO in the refreshed learned simulator", log=log)
-    refreshes = [r for r in refresher.records]
+    refreshes = list(refresher.records)
     with open(os.path.join(workdir, "refreshes.json"), "w") as f:
         json.dump(refreshes, f, indent=1)
     return {"curve": curve, "workdir": workdir, "history": result.history, "refreshes": refreshes,

@@ -52,6 +52,7 @@ from sword_jax.rl import sim_agreement
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel
 from sword_jax.rl.reward_model import (detector_report, make_detector_step, score_episodes, shifted_reward_model,
                                       threshold_shift, train_detector)
+from sword_jax.rl.rollout import success_runs
 from sword_jax.rl.scan_rollout import RecordedEpisodes
 from sword_jax.rng import stream_rng
 
@@ -223,15 +224,11 @@ def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, s
 
 def first_success(scores: np.ndarray, lengths: np.ndarray, threshold: float, success_frames: int = 1) -> np.ndarray:
     """``[E]`` the frame at which each replay first completes ``success_frames`` consecutive frames scoring
-    ``>= threshold`` within its first ``lengths`` frames (the imagined-success rule), -1 where it never does."""
+    ``>= threshold`` within its first ``lengths`` frames (the imagined-success rule,
+    :func:`~sword_jax.rl.rollout.success_runs`), -1 where it never does."""
     scores, lengths = np.asarray(scores), np.asarray(lengths)
     hit = (scores >= threshold) & (np.arange(scores.shape[1])[None] < lengths[:, None])
-    run = np.zeros(hit.shape, np.int64)
-    count = np.zeros(hit.shape[0], np.int64)
-    for t in range(hit.shape[1]):
-        count = np.where(hit[:, t], count + 1, 0)
-        run[:, t] = count
-    reached = run >= success_frames
+    reached = np.asarray(success_runs(jnp.asarray(hit))) >= success_frames
     return np.where(reached.any(1), reached.argmax(1), -1)
 
 
@@ -338,11 +335,14 @@ class Refresher:
             return
         self.wm_state, self.det_params = self.initial
         self.shift, self.rounds, self.branch, self.used, self.records = 0.0, [], None, 0, []
-        for s in done:
-            self._load(s)
+        for s in done:  # every refresh's latents; the models and episodes only of the last one that made them
+            self._load(s, models=False)
+        last = next((r["step"] for r in reversed(self.records) if not r.get("skipped")), None)
+        if last is not None:
+            self._load_models(last)
         self.loaded = want
 
-    def _load(self, step: int) -> dict:
+    def _load(self, step: int, *, models: bool = True) -> dict:
         d = self._dir(step)
         with open(os.path.join(d, "record.json")) as f:
             record = json.load(f)
@@ -350,13 +350,19 @@ class Refresher:
         self.records.append(record)
         if record.get("skipped"):
             return record
-        self.wm_state = _load_tree(os.path.join(d, "world_model.npz"), self.wm_state)
-        self.det_params = _load_tree(os.path.join(d, "detector.npz"), self.det_params)
-        self.shift = float(record["detector"]["shift"])
         with np.load(os.path.join(d, "latents.npz")) as f:
             self.rounds.append((f["latents"], f["actions"]))
-        self.branch = RealEpisodes.load(os.path.join(d, "episodes.npz")).branch_set()
+        if models:
+            self._load_models(step)
         return record
+
+    def _load_models(self, step: int) -> None:
+        """The world model, detector, threshold shift and branch episodes a refresh saved."""
+        d = self._dir(step)
+        self.wm_state = _load_tree(os.path.join(d, "world_model.npz"), self.wm_state)
+        self.det_params = _load_tree(os.path.join(d, "detector.npz"), self.det_params)
+        self.shift = float(next(r for r in self.records if r["step"] == step)["detector"]["shift"])
+        self.branch = RealEpisodes.load(os.path.join(d, "episodes.npz")).branch_set()
 
     # ---- one refresh ---------------------------------------------------------------------------------
     def refresh(self, step: int, policy_params: Any) -> dict[str, Any]:
