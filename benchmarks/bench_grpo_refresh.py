@@ -47,9 +47,12 @@ PIPELINE_FLAGS = ("--stop-after", "reward_model", "--skip", "probe,evaluate,sft_
                   "--data.policy_rollouts_per_task=0", "--rl.sft.episodes_per_task=20")
 
 
-def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline") -> list[str]:
+def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline",
+                     stop_after: str = "reward_model") -> list[str]:
+    flags = list(PIPELINE_FLAGS)
+    flags[flags.index("--stop-after") + 1] = stop_after
     return [sys.executable, "-m", "train.pipeline", "--config", config or args.config, "--seed", str(args.pipeline_seed),
-            "--workdir", os.path.join(args.workdir, name), *PIPELINE_FLAGS,
+            "--workdir", os.path.join(args.workdir, name), *flags,
             f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
             *[o for o in overrides if not o.startswith("--rl.")]]
 
@@ -71,7 +74,7 @@ def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
                 "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--latents", os.path.join(pipe, "data", "latents.npz"),
                 "--policy", args.policy, *GRPO_FLAGS, f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.refresh_every}", f"--rl.refresh.every={args.refresh_every}"]
-        for seed in args.seeds:
+        for seed in (getattr(args, "wovr_seeds", None) or args.seeds) if prefix else args.seeds:
             runs[f"{prefix}refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
                                                      *overrides]
         if "once" in args.arms and not prefix:
@@ -82,36 +85,107 @@ def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
     return runs
 
 
+def share_data(args, overrides: Sequence[str]) -> None:
+    """The WoVR-config pipeline reads the episodes Sword's pipeline generated instead of generating them again:
+    its ``data`` stage is marked done with Sword's files (linked under its own ``data/``; its latents, VAE and
+    detector stay its own). Refused unless both configs generate the same episodes (same ``data``, ``sim``,
+    ``seed`` and demonstrations per task)."""
+    import configs
+
+    def data_facts(config):
+        cfg, _ = configs.from_argv(["--config", config, "--seed", str(args.pipeline_seed),
+                                    *[o for o in overrides if not o.startswith("--rl.")], "--rl.sft.episodes_per_task=20"])
+        return repr((cfg.data, cfg.sim, cfg.seed, cfg.rl.sft.episodes_per_task))
+
+    if data_facts(args.config) != data_facts(args.wovr_config):
+        raise SystemExit(f"bench_grpo_refresh: {args.config} and {args.wovr_config} generate different episodes; "
+                         "the WoVR pipeline cannot share Sword's data")
+    src, dst = os.path.join(args.workdir, "pipeline"), os.path.join(args.workdir, "pipeline_wovr")
+    with open(os.path.join(src, "stages", "data.json")) as f:
+        marker = json.load(f)
+    os.makedirs(os.path.join(dst, "data"), exist_ok=True)
+    os.makedirs(os.path.join(dst, "stages"), exist_ok=True)
+    for entry in marker["results"].values():
+        if isinstance(entry, dict) and "path" in entry:
+            link = os.path.join(dst, "data", os.path.basename(entry["path"]))
+            if not os.path.lexists(link):
+                os.symlink(os.path.abspath(entry["path"]), link)
+            entry["path"] = link
+    with open(os.path.join(dst, "stages", "data.json"), "w") as f:
+        json.dump(marker, f, indent=1)
+
+
 def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
+    """The pipelines, then each pipeline's GRPO runs as soon as it is built; with ``--deadline-s`` the runs
+    still going then are stopped and summarised at their last evaluation."""
     os.makedirs(args.workdir, exist_ok=True)
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
     gpus = [g for g in args.gpus.split(",") if g]
+    wovr_gpus = [g for g in (args.wovr_gpus or args.gpus).split(",") if g]
     start = time.perf_counter()
 
     def launch(name: str, cmd: list[str], gpu: str) -> subprocess.Popen:
         print(f"[refresh] {name} on GPU {gpu} ({time.perf_counter() - start:.0f} s): {' '.join(cmd[2:])}", flush=True)
-        with open(os.path.join(args.workdir, f"{name}.log"), "w") as log:
+        with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     env=dict(env, CUDA_VISIBLE_DEVICES=gpu) if gpu else env)
 
+    def placed(folder: str) -> list[str]:
+        return wovr_gpus if folder == "pipeline_wovr" else gpus
+
+    if args.wovr_config:  # the episodes once, on Sword's pipeline; the WoVR pipeline links them
+        if launch("pipeline", pipeline_command(args, overrides, stop_after="data"), gpus[0] if gpus else "").wait():
+            raise SystemExit(f"bench_grpo_refresh: the data stage failed (log: {args.workdir}/pipeline.log)")
+        share_data(args, overrides)
     building = {folder: launch(folder, pipeline_command(args, overrides, config=config, name=folder),
-                               gpus[i % len(gpus)] if gpus else "")
-                for i, (folder, config) in enumerate(pipelines(args).items())}  # side by side
-    failed = [folder for folder, proc in building.items() if proc.wait()]
-    if failed:
-        raise SystemExit(f"bench_grpo_refresh: pipelines failed: {failed} (logs: {args.workdir}/<name>.log)")
-    procs = {name: launch(name, cmd, gpus[i % len(gpus)] if gpus else "")
-             for i, (name, cmd) in enumerate(grpo_commands(args, overrides).items())}
-    while any(p.poll() is None for p in procs.values()):
+                               placed(folder)[0] if placed(folder) else "")
+                for folder, config in pipelines(args).items()}  # side by side
+    commands = grpo_commands(args, overrides)
+    procs: dict[str, subprocess.Popen] = {}
+    stopped: list[str] = []
+    while building or any(p.poll() is None for p in procs.values()):
+        for folder, proc in list(building.items()):
+            if proc.poll() is None:
+                continue
+            del building[folder]
+            if proc.returncode:
+                print(f"[refresh] pipeline {folder} failed (log: {args.workdir}/{folder}.log)", flush=True)
+                continue
+            prefix = "wovr_" if folder == "pipeline_wovr" else ""
+            mine = [n for n in commands if n.startswith(prefix) and (prefix or not n.startswith("wovr_"))]
+            for i, name in enumerate(mine):
+                procs[name] = launch(name, commands[name], placed(folder)[i % len(placed(folder))] if placed(folder) else "")
+        if args.deadline_s and time.perf_counter() - start > args.deadline_s:
+            everything = {**building, **procs}
+            running = stop_all(list(everything.values()))
+            stopped = sorted(n for n, p in everything.items() if any(p is r for r in running))
+            print(f"[refresh] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
+            break
         time.sleep(poll_s)
     codes = {name: p.returncode for name, p in procs.items()}
-    summary = dict(summarize(args.workdir, args.ground_truth), exit_codes=codes,
+    summary = dict(summarize(args.workdir, args.ground_truth), exit_codes=codes, stopped_at_deadline=stopped,
                    seconds=round(time.perf_counter() - start, 1))
     with open(os.path.join(args.workdir, "refresh_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
-    if any(codes.values()):
-        raise SystemExit(f"bench_grpo_refresh: runs failed: {sorted(n for n, c in codes.items() if c)}")
+    failed = sorted(n for n, c in codes.items() if c and n not in stopped)
+    if failed or len(procs) < len(commands) and not stopped:
+        raise SystemExit(f"bench_grpo_refresh: runs failed or never started: {failed or sorted(set(commands) - set(procs))}")
     return summary
+
+
+def stop_all(procs: Sequence[subprocess.Popen], grace_s: float = 20.0) -> list[subprocess.Popen]:
+    """SIGTERM to the processes still running, SIGKILL after ``grace_s``; returns the ones that were running."""
+    running = [p for p in procs if p.poll() is None]
+    for p in running:
+        p.terminate()
+    deadline = time.perf_counter() + grace_s
+    for p in running:
+        try:
+            p.wait(timeout=max(deadline - time.perf_counter(), 0.1))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+    return running
 
 
 def _gain(points: list[dict], key: str | None) -> dict:
@@ -186,6 +260,19 @@ def ground_truth_curves(folder: str) -> dict:
     return out
 
 
+def paired_gain(sword: dict, wovr: dict) -> dict:
+    """Sword's sampled gain minus WoVR's from step 0 to the last evaluated step both runs reached (runs stopped
+    by a deadline may have reached different steps)."""
+    common = sorted({p["step"] for p in sword["curve"]} & {p["step"] for p in wovr["curve"]})
+    at = common[-1]
+
+    def gain(run):
+        by_step = {p["step"]: p["sampled"] for p in run["curve"]}
+        return by_step[at] - by_step[common[0]]
+
+    return {"step": at, "sword": gain(sword), "wovr": gain(wovr), "difference": gain(sword) - gain(wovr)}
+
+
 def summarize(workdir: str, ground_truth: str = "") -> dict:
     runs = {}
     for name in sorted(os.listdir(workdir)):
@@ -194,9 +281,10 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
     refreshed = {n: r for n, r in runs.items() if n.startswith("refreshed")}
     out = {"runs": runs}
     wovr = {n[len("wovr_"):]: r for n, r in runs.items() if n.startswith("wovr_refreshed")}
-    paired = {n: refreshed[n]["sampled"]["gain"] - wovr[n]["sampled"]["gain"] for n in sorted(refreshed) if n in wovr}
-    if paired:  # Sword's gain minus WoVR's, seed by seed (same policy, recipe and budget)
-        out["sword_minus_wovr_sampled_gain"] = paired
+    paired = {n: paired_gain(refreshed[n], wovr[n]) for n in sorted(refreshed) if n in wovr}
+    if paired:  # Sword's gain minus WoVR's, seed by seed (same policy, recipe and budget), at the last step both reached
+        out["sword_minus_wovr_sampled_gain"] = {n: p["difference"] for n, p in paired.items()}
+        out["sword_vs_wovr"] = paired
     if refreshed:
         gains = [r["sampled"]["gain"] for r in refreshed.values()]
         out.update(sampled_min_gain=min(gains), sampled_mean_gain=sum(gains) / len(gains),
@@ -234,6 +322,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--policy", default="", help="the supervised policy (train_policy checkpoint or .npz)")
     parser.add_argument("--gpus", default="0", help="GPUs the runs take in turn (CUDA_VISIBLE_DEVICES values)")
+    parser.add_argument("--wovr-gpus", default="", help="GPUs the WoVR pipeline and its runs take in turn "
+                                                        "(default: --gpus)")
+    parser.add_argument("--wovr-seeds", default="", help="seeds of the WoVR runs (default: --seeds)")
+    parser.add_argument("--deadline-s", type=float, default=0.0,
+                        help="stop the runs still going this many seconds after the start and summarise them "
+                             "at their last evaluation (0: none)")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--arms", default="refreshed,once", help="refreshed (every seed) and once (the first seed)")
     parser.add_argument("--pipeline-seed", type=int, default=0)
@@ -251,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if bad:
         raise SystemExit(f"bench_grpo_refresh: not a dotted config override (--section.key=value): {' '.join(bad)}")
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
+    args.wovr_seeds = [int(s) for s in args.wovr_seeds.split(",") if s]
     args.arms = {a for a in args.arms.split(",") if a}
     if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 1 or args.refresh_every < 1 or args.budget < 64:
         raise SystemExit("bench_grpo_refresh: --seeds needs one seed or more, --arms refreshed and/or once, --steps "

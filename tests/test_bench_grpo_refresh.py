@@ -87,3 +87,48 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
 def test_bad_arguments_are_one_line_errors(argv, message):
     with pytest.raises(SystemExit, match=message):
         bench.main(argv)
+
+
+def test_wovr_pipeline_links_sword_episodes_and_refuses_other_data(tmp_path):
+    class Wovr(Args):
+        workdir, config, wovr_config = str(tmp_path), "sword:tiny", "cache_ablation:tiny-wovr"
+
+    data = tmp_path / "pipeline" / "data"
+    data.mkdir(parents=True)
+    (tmp_path / "pipeline" / "stages").mkdir()
+    results = {name: {"path": str(data / f"{name}.hdf5"), "episodes": 4} for name in ("train", "heldout", "demos")}
+    for entry in results.values():
+        open(entry["path"], "w").write("episodes")
+    (tmp_path / "pipeline" / "stages" / "data.json").write_text(json.dumps({"stage": "data",
+                                                                            "results": dict(results, seconds=1.0)}))
+    bench.share_data(Wovr, [])
+    marker = json.loads((tmp_path / "pipeline_wovr" / "stages" / "data.json").read_text())
+    link = tmp_path / "pipeline_wovr" / "data" / "demos.hdf5"
+    assert marker["results"]["demos"]["path"] == str(link) and link.read_text() == "episodes"
+    assert marker["results"]["seconds"] == 1.0 and not (tmp_path / "pipeline_wovr" / "data" / "latents.npz").exists()
+
+    class Other(Wovr):
+        wovr_config = "sword:small"
+
+    with pytest.raises(SystemExit, match="generate different episodes"):
+        bench.share_data(Other, [])
+
+
+def test_run_launches_each_pipelines_runs_when_built_and_stops_them_at_the_deadline(tmp_path, monkeypatch, capsys):
+    import sys
+
+    class Run(Args):
+        workdir, wovr_config, gpus, wovr_gpus, ground_truth, deadline_s = str(tmp_path), "", "0,1", "", "", 4.0
+
+    monkeypatch.setattr(bench, "pipeline_command", lambda *a, **k: [sys.executable, "-c", "pass"])
+    curve = {"label": "x", "points": [_point(0, 0.7, 0.5, 64)]}
+    write = (f"import json, os, time; d = os.path.join(os.getcwd(), 'rl', 'grpo'); os.makedirs(d, exist_ok=True); "
+             f"json.dump({curve!r}, open(os.path.join(d, 'success_curve.json'), 'w')); time.sleep(600)")
+    runs = {name: [sys.executable, "-c", write.replace("os.getcwd()", repr(str(tmp_path / name)))]
+            for name in ("refreshed_seed0", "refreshed_seed1")}
+    monkeypatch.setattr(bench, "grpo_commands", lambda *a: runs)
+    out = bench.run(Run, [], poll_s=0.2)
+    assert out["stopped_at_deadline"] == ["refreshed_seed0", "refreshed_seed1"]
+    assert sorted(out["runs"]) == ["refreshed_seed0", "refreshed_seed1"] and out["seconds"] < 60
+    printed = capsys.readouterr().out
+    assert "refreshed_seed0 on GPU 0" in printed and "refreshed_seed1 on GPU 1" in printed
