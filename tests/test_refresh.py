@@ -261,3 +261,30 @@ def test_horizons_must_be_whole_imagined_decisions():
                               refresh=RefreshConfig(every=2, episodes=4, budget=8, horizons=(6, 8)))
     with pytest.raises(ValueError, match="multiples of the imagined execution"):
         bad.validate()
+
+
+def test_a_dlb_fine_tune_with_steps_between_log_steps_stays_finite():
+    """The refresh's DLB fine-tune judges a step by its loss and gradient alone: between log steps its
+    ``cache_vs_inference_*`` metrics are NaN by design and must not stop it (they once did, at step 0)."""
+    from flax import nnx
+
+    from sword_jax.rl.refresh import finetune_world_model
+
+    cfg = configs.get("sword:tiny")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_layers=1))
+    assert cfg.cache.enabled and cfg.cache.log_inference_distance
+    _, (params, rest) = experiment_world_model(cfg, None)
+    rng = np.random.default_rng(0)
+    latents = rng.standard_normal((2, cfg.data.episode_frames // cfg.vae.temporal_factor + 1, 4, 4,
+                                   cfg.model.in_dim)).astype(np.float32)
+    actions = rng.uniform(-1, 1, (2, cfg.data.episode_frames, cfg.model.action_dim)).astype(np.float32)
+    before = jax.device_get(nnx.to_pure_dict(params))  # the fine-tune donates the arrays it is given
+    logged = []
+    (new_params, _), last = finetune_world_model(cfg, (nnx.to_pure_dict(params), nnx.to_pure_dict(rest)),
+                                                 LatentDataset(latents, actions), steps=8, learning_rate=1e-3, seed=1,
+                                                 log=logged.append)
+    assert last["step"] == 8 and last["nonfinite"] == 0 and np.isfinite(last["loss"])
+    assert len([line for line in logged if "world model refresh step" in line]) == 4  # log steps 2, 4, 6, 8 only
+    moved = jax.tree.leaves(jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - np.asarray(b)).max()),
+                                         before, new_params))
+    assert max(moved) > 0

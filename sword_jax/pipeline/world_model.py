@@ -125,7 +125,7 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
             keep_checkpoints=cfg.trainer.keep_checkpoints,
             checkpoint_meta=lambda done: {"data_position": sampler.position_at(done), "rng_root": rng_root,
                                           "config": cfg_dict},
-            metrics_finite=lambda metrics: metrics["nonfinite"] == 0, on_nonfinite=cfg.trainer.on_nonfinite,
+            metrics_finite=train_step.step_was_finite, on_nonfinite=cfg.trainer.on_nonfinite,
             settle=True, log=print if is_main else lambda _line: None)
     finally:
         logger.close()

@@ -218,7 +218,7 @@ def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, s
 
     result = run_steps(step, state, loader.host_batch_at, key=shd.put(jax.random.key(seed), shd.replicated(mesh)),
                        steps=steps, log_every=trainer.log_every, name="world model refresh", report=report,
-                       place=loader.place, settle=True, log=log)
+                       place=loader.place, settle=True, log=log, metrics_finite=wm_step.step_was_finite)
     return (result.state.params, result.state.buffers), (result.history[-1] if result.history else {})
 
 

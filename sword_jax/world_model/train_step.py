@@ -172,6 +172,13 @@ def make_train_step(
     return step
 
 
+def step_was_finite(metrics: dict) -> jax.Array:
+    """Whether a step's loss and gradient were finite: its own ``nonfinite`` flag (its other metrics may be
+    NaN by design, e.g. ``cache_vs_inference_*`` between log steps). The ``metrics_finite`` of
+    :func:`sword_jax.train_loop.run_steps` for every world-model training loop."""
+    return metrics["nonfinite"] == 0
+
+
 def compile_train_step(
     step_fn: StepFn,
     state_shardings: TrainState,
