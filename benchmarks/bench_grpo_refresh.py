@@ -295,6 +295,15 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
     return out
 
 
+def run_label(name: str) -> str:
+    """``wovr_refreshed_seed1`` -> "GRPO in the refreshed WoVR-config world model, seed 1"."""
+    model = "WoVR-config" if name.startswith("wovr_") else "Sword"
+    arm, _, seed = name.removeprefix("wovr_").rpartition("_seed")
+    if arm == "refreshed":
+        return f"GRPO in the refreshed {model} world model, seed {seed}"
+    return f"GRPO in the {model} world model adapted once, seed {seed}"
+
+
 def plot(summary: dict, path: str) -> None:
     import matplotlib
 
@@ -308,7 +317,7 @@ def plot(summary: dict, path: str) -> None:
     for name, entry in summary["runs"].items():
         pts = [{"step": p["real_episodes_used"] or 0, "success": p["sampled"], "ci95": p["sampled_ci95"]}
                for p in entry["curve"]]
-        errorbar_curve(ax, pts, label=f"GRPO in the refreshed world model, {name}")
+        errorbar_curve(ax, pts, label=run_label(name))
     ax.set_xscale("symlog", linthresh=100)
     common.finish_figure(fig, ax, path, xlabel="real episodes consumed (evaluation episodes not counted)",
                          ylabel="real success, sampled T 0.5 (95% interval)")

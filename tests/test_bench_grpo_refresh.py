@@ -76,6 +76,8 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     gt = out["ground_truth"]["s0"]
     assert gt[0]["step"] == 0 and gt[0]["sampled"] == 0.516 and gt[0]["real_episodes_used"] == 0
     assert gt[1]["step"] == 10 and 10 * 512 <= gt[1]["real_episodes_used"] <= 10 * 1024 and not gt[1]["episodes_exact"]
+    assert bench.run_label("wovr_refreshed_seed1") == "GRPO in the refreshed WoVR-config world model, seed 1"
+    assert bench.run_label("once_seed0") == "GRPO in the Sword world model adapted once, seed 0"
     bench.plot(out, str(tmp_path / "figure.png"))
     assert (tmp_path / "figure.png").stat().st_size > 10_000
 

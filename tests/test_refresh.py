@@ -119,6 +119,20 @@ def _run(cfg, tiny_run, workdir, steps):
                          max_traces=1)
 
 
+@pytest.mark.slow  # ~1.5 min on 2 cores: one refresh, one GRPO step
+def test_an_untrusted_simulator_leaves_the_policy_unchanged(tiny_run, tmp_path):
+    cfg = _cfg(tmp_path)
+    # a separation of 1 cannot be reached: the first refresh's simulator is untrusted, its steps are paused
+    refresh = dataclasses.replace(cfg.rl.refresh, min_separation=1.0, pause_untrusted=True, budget=4)
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, refresh=refresh))
+    start = jax.device_get(build_policy(cfg.rl, seed=0)[1])
+    out = _run(cfg, tiny_run, str(tmp_path), steps=1)
+    assert out["refreshes"][0]["trust"]["trusted"] is False and out["refreshes"][0]["horizon"]["trusted"] is False
+    assert [h["paused"] for h in out["history"]] == [1.0]
+    for a, b in zip(jax.tree.leaves(start), jax.tree.leaves(jax.device_get(out["params"]))):
+        np.testing.assert_array_equal(a, b)
+
+
 def _leaves(path):
     with np.load(path) as f:
         return [f[k] for k in sorted(f.files, key=lambda k: int(k.split("_")[1]))]
@@ -249,10 +263,36 @@ def test_choose_horizon_takes_the_longest_trusted_one():
         return {"real_success": {"rate": win}, "real_failure": {"rate": loss}}
 
     by_h = {"24": entry(0.3, 0.05), "48": entry(0.6, 0.2), "96": entry(0.7, 0.6)}
-    assert choose_horizon(by_h, (24, 48, 96), 0.2)[0] == 48
-    h, separation = choose_horizon(by_h, (24, 48, 96), 0.5)
-    assert h == 24 and separation["96"] == pytest.approx(0.1)  # none trusted: the shortest
-    assert choose_horizon({"24": entry(None, 0.1)}, (24,), 0.2) == (24, {"24": None})
+    assert choose_horizon(by_h, (24, 48, 96), 0.2)[::2] == (48, True)
+    h, separation, trusted = choose_horizon(by_h, (24, 48, 96), 0.5)
+    # none trusted: the best-separating one, not the shortest
+    assert (h, trusted) == (48, False) and separation["96"] == pytest.approx(0.1)
+    # as measured on GPU: nothing is solved within 24 actions, so the shortest would pay no reward at all
+    measured = {"24": entry(0.0, 0.0), "48": entry(0.06, 0.0)}
+    assert choose_horizon(measured, (24, 48), 0.2)[::2] == (48, False)
+    assert choose_horizon({"24": entry(0.1, 0.1), "48": entry(0.1, 0.1)}, (24, 48), 0.2)[0] == 48  # equals: longest
+    assert choose_horizon({"24": entry(None, 0.1)}, (24,), 0.2) == (24, {"24": None}, False)
+
+
+def test_pause_follows_the_trust_of_the_refresh_the_steps_follow():
+    from types import SimpleNamespace
+
+    from sword_jax.rl.refresh import Refresher
+
+    records = [{"step": 0, "horizon": {"actions": 48}, "trust": {"actions": 48, "separation": 0.3, "trusted": True}},
+               {"step": 5, "trust": {"actions": 48, "separation": 0.05, "trusted": False}},
+               {"step": 10, "skipped": "budget spent"}]
+
+    def paused(loaded, pause=True):
+        return Refresher.paused(SimpleNamespace(conf=RefreshConfig(every=5, episodes=4, budget=8, horizons=(24, 48),
+                                                                   pause_untrusted=pause),
+                                                records=records, loaded=loaded))
+
+    # after the skipped refresh at step 10 the steps still follow the models of step 5
+    assert [paused(0), paused(5), paused(10), paused(-1)] == [False, True, True, False]
+    assert not paused(5, pause=False)
+    with pytest.raises(ValueError, match="pause_untrusted needs rl.refresh.horizons"):
+        RefreshConfig(every=5, episodes=4, budget=8, pause_untrusted=True).validate()
 
 
 def test_horizons_must_be_whole_imagined_decisions():

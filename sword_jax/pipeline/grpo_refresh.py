@@ -34,7 +34,7 @@ from sword_jax.rng import stream_key, stream_rng
 
 REFRESH_RUN_KEYS = ("every", "episodes", "budget", "episode_steps", "world_model_steps", "world_model_learning_rate",
                     "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "branch", "horizons",
-                    "min_separation")
+                    "min_separation", "pause_untrusted")
 
 
 def make_collect(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple], *, seed: int,
@@ -70,7 +70,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
       evaluate_real: ``(step, params) -> (point, extra)``, the ground-truth evaluation.
       facts: more identity facts of the run (its tasks, the environment's settings).
 
-    Returns ``{"curve", "workdir", "history", "refreshes"}``.
+    Returns ``{"curve", "workdir", "history", "refreshes", "real_episodes_used", "params"}`` (the final policy).
     """
     rl.validate()
     if rl.refresh.every % rl.grpo.eval_every:
@@ -106,8 +106,14 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         if placed.get("refresh", -2) != refresher.loaded:  # once per refresh, not per step: cast and placed
             models = (refresher.simulator(), refresher.reward_model())
             placed.update(refresh=refresher.loaded, models=jax.device_put(models, shd.shardings_on(models, mesh)))
-        state, metrics = step_fn(state, (*placed["models"], starts), key)
-        return state, dict(metrics, real_episodes_used=jnp.float32(refresher.used))
+        paused = refresher.paused()
+        if paused:  # the simulator failed its trust test: the rollouts run and are logged, the policy stays
+            kept = jax.tree.map(jnp.copy, state)  # the step donates the state it is given
+            _, metrics = step_fn(state, (*placed["models"], starts), key)
+            state = kept
+        else:
+            state, metrics = step_fn(state, (*placed["models"], starts), key)
+        return state, dict(metrics, real_episodes_used=jnp.float32(refresher.used), paused=jnp.float32(paused))
 
     def evaluate(index, params):
         point, extra = evaluate_real(index, params)
@@ -123,7 +129,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
                 f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
-                f"real episodes used {point['real_episodes_used']:.0f} eta {eta:.0f}s")
+                f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "
+                f"eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="world_model_refreshed", **(facts or {}),
                          **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in REFRESH_RUN_KEYS})
@@ -134,7 +141,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     with open(os.path.join(workdir, "refreshes.json"), "w") as f:
         json.dump(refreshes, f, indent=1)
     return {"curve": curve, "workdir": workdir, "history": result.history, "refreshes": refreshes,
-            "real_episodes_used": refresher.used}
+            "real_episodes_used": refresher.used, "params": result.state.params}
 
 
 def stratified_collect_starts(pool_starts: Callable[[int, np.random.Generator], tuple], seed: int

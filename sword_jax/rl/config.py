@@ -367,8 +367,13 @@ class RefreshConfig:
         refresh replays held-out real episodes in the refreshed simulator and the run takes the longest
         candidate by which the calibrated detector still separates real successes from real failures by
         ``min_separation`` (imagined success among real successes minus among real failures), or the
-        shortest when none does (MBPO: branch short where the model is trusted).
+        best-separating one when none does (MBPO: branch short where the model is trusted; a horizon too
+        short for any success pays no reward). Every later refresh measures the separation at that horizon
+        again (its record's ``trust``).
       min_separation: see ``horizons``.
+      pause_untrusted: GRPO steps after a refresh whose ``trust`` falls below ``min_separation`` leave the
+        policy unchanged (their imagined rollouts still run and are logged, ``paused`` = 1): the policy is
+        not moved by a reward measured not to follow real outcomes. Needs ``horizons``.
     """
 
     every: int = 0
@@ -384,6 +389,7 @@ class RefreshConfig:
     branch: bool = True
     horizons: tuple[int, ...] = ()
     min_separation: float = 0.2
+    pause_untrusted: bool = False
 
     def validate(self) -> None:
         if self.every < 0:
@@ -407,6 +413,9 @@ class RefreshConfig:
             raise ValueError(f"rl.refresh.horizons must be increasing action counts >= 1, got {self.horizons}")
         if not -1.0 <= self.min_separation <= 1.0:
             raise ValueError(f"rl.refresh.min_separation must be in [-1, 1], got {self.min_separation}")
+        if self.pause_untrusted and not self.horizons:
+            raise ValueError("rl.refresh.pause_untrusted needs rl.refresh.horizons (the trust is the separation of "
+                             "real outcomes at the run's horizon)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -233,17 +233,25 @@ def first_success(scores: np.ndarray, lengths: np.ndarray, threshold: float, suc
 
 
 def choose_horizon(by_horizon: dict[str, dict[str, Any]], horizons: tuple[int, ...], min_separation: float
-                   ) -> tuple[int, dict[str, float | None]]:
+                   ) -> tuple[int, dict[str, float | None], bool]:
     """The longest of ``horizons`` whose separation (imagined success by then among real successes minus
     among real failures, :func:`~sword_jax.rl.sim_agreement.success_by_horizon`'s entries) is at least
-    ``min_separation``, else the shortest; and every candidate's separation (None where a group is empty)."""
+    ``min_separation``; when none is, the one that separates best (the longest of equals), since a horizon
+    too short for any task to be solved pays no reward at all; the shortest when no separation is known.
+    Returns ``(horizon, every candidate's separation (None where a group is empty), trusted)``."""
     separation = {}
     for h in horizons:
         entry = by_horizon[str(h)]
         win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
         separation[str(h)] = None if win is None or loss is None else float(win - loss)
-    trusted = [h for h in horizons if separation[str(h)] is not None and separation[str(h)] >= min_separation]
-    return (max(trusted) if trusted else min(horizons)), separation
+    known = [h for h in horizons if separation[str(h)] is not None]
+    trusted = [h for h in known if separation[str(h)] >= min_separation]
+    if trusted:
+        return max(trusted), separation, True
+    if not known:
+        return min(horizons), separation, False
+    best = max(separation[str(h)] for h in known)
+    return max(h for h in known if separation[str(h)] == best), separation, False
 
 
 class Refresher:
@@ -304,6 +312,15 @@ class Refresher:
         """The imagined rollouts' length in actions chosen by the run's first refresh (``rl.refresh.horizons``),
         None when it chose none."""
         return next((r["horizon"]["actions"] for r in self.records if "horizon" in r), None)
+
+    def paused(self) -> bool:
+        """With ``rl.refresh.pause_untrusted``: whether the refresh the steps follow found the simulator not
+        separating real successes from real failures at the run's horizon (its ``trust``); GRPO then leaves
+        the policy as it is until a refresh trusts the simulator again."""
+        if not self.conf.pause_untrusted:
+            return False
+        made = [r for r in self.records if r["step"] <= self.loaded and not r.get("skipped")]  # the models in use
+        return bool(made and "trust" in made[-1] and not made[-1]["trust"]["trusted"])
 
     def due(self, step: int) -> bool:
         return step % self.conf.every == 0
@@ -403,11 +420,20 @@ class Refresher:
         detector = self._refresh_detector(step, real, calibrate, jax.random.fold_in(key, 2))
         self.branch = real.branch_set()
         horizon = {}
-        if (conf.horizons and "imagined_success_by_horizon" in detector
-                and not any("horizon" in r for r in self.records)):  # the run's first calibrated refresh chooses
-            chosen, separation = choose_horizon(detector["imagined_success_by_horizon"], tuple(conf.horizons),
-                                                conf.min_separation)
-            horizon = {"horizon": {"actions": chosen, "separation": separation, "min_separation": conf.min_separation}}
+        by_horizon = detector.get("imagined_success_by_horizon")
+        if conf.horizons and by_horizon and not any("horizon" in r for r in self.records):
+            # the run's first calibrated refresh chooses
+            chosen, separation, trusted = choose_horizon(by_horizon, tuple(conf.horizons), conf.min_separation)
+            horizon = {"horizon": {"actions": chosen, "separation": separation, "min_separation": conf.min_separation,
+                                   "trusted": trusted}}
+        chosen = horizon["horizon"]["actions"] if horizon else self.horizon()
+        if chosen is not None and by_horizon and str(chosen) in by_horizon:
+            # every calibrated refresh: does the simulator still separate real outcomes at the run's horizon?
+            entry = by_horizon[str(chosen)]
+            win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
+            sep = None if win is None or loss is None else float(win - loss)
+            horizon["trust"] = {"actions": chosen, "separation": sep,
+                                "trusted": sep is not None and sep >= conf.min_separation}
         record = {"step": step, "real_episodes": real.num, **horizon, "real_episodes_used": self.used,
                   "budget": conf.budget, "real_success": float(solved.mean()), "replay": before,
                   "world_model": {"steps": conf.world_model_steps, "training_episodes": int(self.base.latents.shape[0]),
