@@ -228,7 +228,19 @@ def summarize_run(folder: str) -> dict:
                          "missed_success_before": (r.get("replay") or {}).get("missed_success"),
                          "threshold": (r.get("detector") or {}).get("threshold"),
                          "calibration": (r.get("detector") or {}).get("calibration"),
-                         "skipped": r.get("skipped")} for r in records]
+                         "separation_before": separations((r.get("replay") or {}).get("imagined_success_by_horizon")),
+                         "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
+                         "trust": r.get("trust"), "skipped": r.get("skipped")} for r in records]
+    return out
+
+
+def separations(by_horizon: dict | None) -> dict[str, float | None]:
+    """``{horizon: imagined success among real successes minus among real failures}`` of a replay's
+    ``imagined_success_by_horizon`` (None where a group is empty)."""
+    out = {}
+    for h, entry in (by_horizon or {}).items():
+        win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
+        out[h] = None if win is None or loss is None else win - loss
     return out
 
 
@@ -295,6 +307,47 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
     return out
 
 
+def results_entries(summary: dict, workdir: str, *, data: str, note: str = "") -> dict[str, dict]:
+    """``latest.json`` entries of a summary: ``policy_grpo_world_model_gain_small`` (Sword's refreshed runs),
+    ``policy_grpo_wovr_world_model_refreshed_gain_small`` (the WoVR-config world model's) and, with both,
+    ``policy_grpo_sword_vs_wovr_small``; each gain the sampled policy's (T 0.5), value the smallest over seeds,
+    with every run's curve, real episodes used and every refresh's replay and trust."""
+    device = common.device_name()
+    gpu = os.path.join(workdir, "gpu.txt")
+    if os.path.exists(gpu):
+        with open(gpu) as f:
+            names = [line.split(",")[0].strip() for line in f.read().splitlines()[1:] if line.strip()]
+        device = f"{names[0]} x{len(names)}" if names else device
+    target = ">= +0.10 at 3 of 3 seeds within 100 steps, <= 10% of ground-truth GRPO's real episodes"
+
+    def entry(prefix: str) -> dict | None:
+        runs = {n: r for n, r in summary["runs"].items() if n.startswith(prefix)}
+        if not runs:
+            return None
+        per_seed = {n: {"steps": r["steps"], "sampled": r["sampled"], "greedy": r["greedy"],
+                        "sampled_proprio_masked": r.get("sampled_proprio_masked"),
+                        "real_episodes_used": r["real_episodes_used"],
+                        "refreshes": r["refreshes"]} for n, r in runs.items()}
+        return common.record("", min(r["sampled"]["gain"] for r in runs.values()), target, per_seed=per_seed,
+                             real_episodes_used=max(r["real_episodes_used"] or 0 for r in runs.values()),
+                             steps=min(r["steps"] for r in runs.values()), device=device, data=data,
+                             unit="real success gain of the sampled policy (T 0.5), 500 MJX episodes per point",
+                             **({"note": note} if note else {}))
+
+    out = {}
+    for key, prefix in (("policy_grpo_world_model_gain_small", "refreshed"),
+                        ("policy_grpo_wovr_world_model_refreshed_gain_small", "wovr_refreshed")):
+        made = entry(prefix)
+        if made is not None:
+            out[key] = made
+    if summary.get("sword_vs_wovr"):
+        pairs = summary["sword_vs_wovr"]
+        out["policy_grpo_sword_vs_wovr_small"] = common.record(
+            "", sum(p["difference"] > 0 for p in pairs.values()), ">= 2 of 3 seeds with Sword's gain >= WoVR's",
+            per_seed=pairs, device=device, data=data, unit="seeds where Sword's sampled gain beats WoVR's")
+    return out
+
+
 def run_label(name: str) -> str:
     """``wovr_refreshed_seed1`` -> "GRPO in the refreshed WoVR-config world model, seed 1"."""
     model = "WoVR-config" if name.startswith("wovr_") else "Sword"
@@ -349,6 +402,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--world-model-steps", type=int, default=3000)
     parser.add_argument("--ground-truth", default="", help="a bench_policy grpo-seeds folder to plot against")
     parser.add_argument("--out", default="", help="summary: output path without extension (.json, .png)")
+    parser.add_argument("--record", action="store_true",
+                        help="summary: write the gains to benchmarks/results/latest.json (the runs' device from the "
+                             "work dir's gpu.txt)")
+    parser.add_argument("--note", default="", help="summary --record: a note stored with the entries")
     args, overrides = parser.parse_known_args(argv)
     bad = not_dotted_overrides(overrides)
     if bad:
@@ -365,6 +422,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
             with open(args.out + ".json", "w") as f:
                 json.dump(summary, f, indent=1)
             plot(summary, args.out + ".png")
+        if args.record:
+            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir, note=args.note))
         for name, entry in summary["runs"].items():
             g, s = entry["greedy"], entry["sampled"]
             print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "

@@ -70,6 +70,7 @@ def readme_results() -> str:
     aug = latest["world_model_augmentation_vs_none_mixed_small"]["value"]
     arms = latest["policy_grpo_sword_vs_wovr_small"]["value"]
     gt = latest["policy_grpo_ground_truth_gain_small"]
+    refreshed = latest.get("policy_grpo_wovr_world_model_refreshed_gain_small")
     rows = [
         ("Claim 1: DLB vs teacher forcing, `small`, 3 seeds",
          f"latent MSE {dlb['original_latent_mse'][0]:.3f} vs {dlb['original_latent_mse'][1]:.3f} (Original), "
@@ -96,6 +97,11 @@ def readme_results() -> str:
          f"{_pct(gt['greedy_min_gain'])} or more", "policy_grpo_ground_truth_gain_small",
          f"[figure]({gt['data'].split('{')[0]}grpo_ground_truth_seeds.png), "
          f"[section]({doc}#policies-in-the-ground-truth-environments)"),
+        *([("GRPO in the refreshed WoVR-config world model, 2 seeds",
+            f"sampled policy {_pct(refreshed['value'])} points or worse in {refreshed['steps']} steps: its replays "
+            "do not separate real outcomes", "policy_grpo_wovr_world_model_refreshed_gain_small",
+            f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)")]
+          if refreshed else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -232,10 +238,71 @@ def benchmarks() -> str:
     return _table(["figure", "value", "target", "device", "date", "command"], rows)
 
 
+REFRESH_SUMMARY = ("policy", "grpo_refresh_small_4xh200", "grpo_refresh_summary.json")
+
+
+def _refresh_label(name: str) -> str:
+    model = "WoVR-config" if name.startswith("wovr_") else "Sword"
+    return f"{model}, seed {name.rpartition('_seed')[2]}"
+
+
+def grpo_refresh_runs() -> str:
+    """GRPO in the refreshed world model: the sampled policy's real success at each evaluation, its gain,
+    the greedy and proprio-masked policies; ground-truth GRPO's step 0 and step 10 for scale."""
+    summary = _load(*REFRESH_SUMMARY)
+    steps = sorted({p["step"] for run in summary["runs"].values() for p in run["curve"]})
+    rows = []
+    for name, run in summary["runs"].items():
+        by_step = {p["step"]: p["sampled"] for p in run["curve"]}
+        s, g, m = run["sampled"], run["greedy"], run.get("sampled_proprio_masked")
+        rows.append([_refresh_label(name)] + [f"{by_step[k]:.3f}" if k in by_step else "" for k in steps]
+                    + [f"{s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}]",
+                       f"{g['start']:.3f} -> {g['end']:.3f}",
+                       f"{m['start']:.3f} -> {m['end']:.3f}" if m else "", str(run["real_episodes_used"])])
+    gt = summary.get("ground_truth") or {}
+    if gt:
+        at = {k: [next((p["sampled"] for p in curve if p["step"] == k), None) for curve in gt.values()] for k in steps}
+        gains = [next(p["sampled"] for p in c if p["step"] == 10) - c[0]["sampled"] for c in gt.values()
+                 if any(p["step"] == 10 for p in c)]
+
+        def span(values):
+            values = [v for v in values if v is not None]
+            return f"{min(values):.3f}-{max(values):.3f}" if values else ""
+
+        rows.append([f"ground-truth GRPO, seeds 0-{len(gt) - 1} (for scale)"] + [span(at[k]) for k in steps]
+                    + [f"{min(gains):+.3f} to {max(gains):+.3f} by step 10" if gains else "", "", "", ""])
+    return _table(["run"] + [f"step {k}" for k in steps]
+                  + ["gain, 95% interval", "greedy", "proprio masked", "real episodes used"], rows)
+
+
+def grpo_refresh_replay() -> str:
+    """Each refresh's replay of the policy's new real episodes in the simulator GRPO trained in, and the
+    refreshed detector's separation of real outcomes on held-out replays."""
+    summary = _load(*REFRESH_SUMMARY)
+    rows = []
+
+    def sep(values: dict, h: str) -> str:
+        v = values.get(h)
+        return "" if v is None else f"{v:+.2f}"
+
+    for name, run in summary["runs"].items():
+        for r in run["refreshes"]:
+            if r.get("skipped"):
+                continue
+            fs, ms = r["false_success_before"], r["missed_success_before"]
+            rows.append([_refresh_label(name), str(r["step"]), f"{r['real_success']:.2f}", f"{fs['rate']:.2f}",
+                         f"{ms['rate']:.2f}", f"{sep(r['separation_before'], '48')} / {sep(r['separation_before'], '96')}",
+                         f"{r['threshold']:.3f}", sep(r["separation_after"], "48")])
+    return _table(["run", "refresh at step", "real success", "real failures imagined successes",
+                   "real successes imagined failures", "separation by 48 / 96 actions (before)", "threshold after",
+                   "separation by 48 actions (after)"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels, "grpo-arms": grpo_arms,
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
+    "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
 }
 
 

@@ -78,6 +78,13 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert gt[1]["step"] == 10 and 10 * 512 <= gt[1]["real_episodes_used"] <= 10 * 1024 and not gt[1]["episodes_exact"]
     assert bench.run_label("wovr_refreshed_seed1") == "GRPO in the refreshed WoVR-config world model, seed 1"
     assert bench.run_label("once_seed0") == "GRPO in the Sword world model adapted once, seed 0"
+    (tmp_path / "gpu.txt").write_text("name, memory.total [MiB]\nNVIDIA H200, 143771 MiB\nNVIDIA H200, 143771 MiB\n")
+    entries = bench.results_entries(out, str(tmp_path), data="d", note="n")
+    sword = entries["policy_grpo_world_model_gain_small"]
+    assert sword["value"] == pytest.approx(0.10) and sword["device"] == "NVIDIA H200 x2" and sword["note"] == "n"
+    assert sorted(sword["per_seed"]) == ["refreshed_seed0", "refreshed_seed1"] and sword["real_episodes_used"] == 128
+    assert entries["policy_grpo_wovr_world_model_refreshed_gain_small"]["value"] == pytest.approx(0.05)
+    assert entries["policy_grpo_sword_vs_wovr_small"]["value"] == 1
     bench.plot(out, str(tmp_path / "figure.png"))
     assert (tmp_path / "figure.png").stat().st_size > 10_000
 
