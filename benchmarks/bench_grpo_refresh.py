@@ -22,8 +22,10 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -47,60 +49,113 @@ PIPELINE_FLAGS = ("--stop-after", "reward_model", "--skip", "probe,evaluate,sft_
                   "--data.policy_rollouts_per_task=0", "--rl.sft.episodes_per_task=20")
 
 
-def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline",
-                     stop_after: str = "reward_model") -> list[str]:
-    flags = list(PIPELINE_FLAGS)
-    flags[flags.index("--stop-after") + 1] = stop_after
-    return [sys.executable, "-m", "train.pipeline", "--config", config or args.config, "--seed", str(args.pipeline_seed),
-            "--workdir", os.path.join(args.workdir, name), *flags,
-            f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
-            *[o for o in overrides if not o.startswith("--rl.")]]
+@dataclasses.dataclass(frozen=True)
+class Pipe:
+    """One pipeline and the GRPO runs in its world model.
+
+    ``folder``: under the work dir; ``overrides``: its own dotted overrides (its pipeline and its runs);
+    ``prefix``: of its runs' names; ``seeds`` / ``gpus``: its runs' seeds and the GPUs they take in turn (its
+    pipeline the first); ``once``: also the adapted-once arm at its first seed."""
+
+    folder: str
+    config: str
+    overrides: tuple[str, ...] = ()
+    prefix: str = ""
+    seeds: tuple[int, ...] = (0,)
+    gpus: tuple[str, ...] = ()
+    once: bool = False
+
+
+def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
+    """``NAME=--section.key=value --section.key=value`` -> ``(NAME, overrides)``."""
+    name, sep, rest = text.partition("=")
+    overrides = tuple(shlex.split(rest))
+    if not sep or not name.isidentifier() or name in ("wovr", "once", "refreshed") or not overrides:
+        raise SystemExit(f"bench_grpo_refresh: --variant wants NAME=OVERRIDES (NAME a word other than wovr, once, "
+                         f"refreshed; OVERRIDES dotted --section.key=value), got {text!r}")
+    bad = not_dotted_overrides(list(overrides))
+    if bad:
+        raise SystemExit(f"bench_grpo_refresh: --variant {name}: not a dotted config override: {' '.join(bad)}")
+    return name, overrides
+
+
+def pipes(args) -> list[Pipe]:
+    """Sword's pipeline; with ``--wovr-config`` the WoVR-config world model's; one per ``--variant`` (Sword's
+    config with the variant's overrides, e.g. a VAE trained with the perceptual loss)."""
+    gpus = tuple(g for g in args.gpus.split(",") if g)
+    out = [Pipe("pipeline", args.config, seeds=tuple(args.seeds), gpus=gpus, once="once" in args.arms)]
+    if args.wovr_config:
+        out.append(Pipe("pipeline_wovr", args.wovr_config, prefix="wovr_",
+                        seeds=tuple(getattr(args, "wovr_seeds", None) or args.seeds),
+                        gpus=tuple(g for g in (getattr(args, "wovr_gpus", "") or args.gpus).split(",") if g)))
+    variant_gpus = tuple(g for g in (getattr(args, "variant_gpus", "") or args.gpus).split(",") if g)
+    for i, text in enumerate(getattr(args, "variant", None) or []):
+        name, overrides = parse_variant(text)
+        out.append(Pipe(f"pipeline_{name}", args.config, overrides, prefix=f"{name}_",
+                        seeds=tuple(getattr(args, "variant_seeds", None) or args.seeds[:1]),
+                        gpus=variant_gpus[i % len(variant_gpus):] + variant_gpus[:i % len(variant_gpus)]))
+    return out
 
 
 def pipelines(args) -> dict[str, str]:
-    """``{pipeline folder: config}``: Sword's, and with ``--wovr-config`` the WoVR-config world model's."""
-    return {"pipeline": args.config, **({"pipeline_wovr": args.wovr_config} if args.wovr_config else {})}
+    """``{pipeline folder: config}`` of :func:`pipes`."""
+    return {pipe.folder: pipe.config for pipe in pipes(args)}
+
+
+def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline",
+                     stop_after: str = "reward_model", own: Sequence[str] = ()) -> list[str]:
+    flags = list(PIPELINE_FLAGS)
+    flags[flags.index("--stop-after") + 1] = stop_after
+    backend = getattr(args, "data_backend", "")
+    return [sys.executable, "-m", "train.pipeline", "--config", config or args.config, "--seed", str(args.pipeline_seed),
+            "--workdir", os.path.join(args.workdir, name), *flags,
+            f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
+            *([f"--sim.backend={backend}"] if backend else []),
+            *[o for o in [*overrides, *own] if not o.startswith("--rl.")]]
 
 
 def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
-    """``{run name: command}``: ``refreshed_seed<k>`` for every seed, ``once_seed<first>``; with ``--wovr-config``
-    also ``wovr_refreshed_seed<k>`` in the WoVR-config world model (same policy, recipe and budget)."""
+    """``{run name: command}``: ``<prefix>refreshed_seed<k>`` for every seed of every pipeline (:func:`pipes`),
+    ``once_seed<first>`` for Sword's (same policy, recipe and budget everywhere)."""
     runs = {}
-    for folder, config in pipelines(args).items():
-        pipe, prefix = os.path.join(args.workdir, folder), ("wovr_" if folder == "pipeline_wovr" else "")
-        base = [sys.executable, "-m", "train.grpo", "--config", config, "--simulator", "world_model",
+    for p in pipes(args):
+        pipe = os.path.join(args.workdir, p.folder)
+        base = [sys.executable, "-m", "train.grpo", "--config", p.config, "--simulator", "world_model",
                 "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
                 "--reward", os.path.join(pipe, "rl", "reward_model"),
                 "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--latents", os.path.join(pipe, "data", "latents.npz"),
                 "--policy", args.policy, *GRPO_FLAGS, f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.refresh_every}", f"--rl.refresh.every={args.refresh_every}"]
-        for seed in (getattr(args, "wovr_seeds", None) or args.seeds) if prefix else args.seeds:
-            runs[f"{prefix}refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
-                                                     *overrides]
-        if "once" in args.arms and not prefix:
-            runs[f"once_seed{args.seeds[0]}"] = [*base, "--seed", str(args.seeds[0]), "--rl.refresh.budget=64",
-                                                 *overrides]
+        for seed in p.seeds:
+            runs[f"{p.prefix}refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
+                                                       *overrides, *p.overrides]
+        if p.once:
+            runs[f"{p.prefix}once_seed{p.seeds[0]}"] = [*base, "--seed", str(p.seeds[0]), "--rl.refresh.budget=64",
+                                                        *overrides, *p.overrides]
     for name, cmd in runs.items():
         cmd += ["--workdir", os.path.join(args.workdir, name)]
     return runs
 
 
-def share_data(args, overrides: Sequence[str]) -> None:
-    """The WoVR-config pipeline reads the episodes Sword's pipeline generated instead of generating them again:
-    its ``data`` stage is marked done with Sword's files (linked under its own ``data/``; its latents, VAE and
-    detector stay its own). Refused unless both configs generate the same episodes (same ``data``, ``sim``,
-    ``seed`` and demonstrations per task)."""
+def share_data(args, overrides: Sequence[str], pipe: Pipe | None = None) -> None:
+    """A second pipeline (default the WoVR-config one) reads the episodes Sword's pipeline generated instead of
+    generating them again: its ``data`` stage is marked done with Sword's files (linked under its own ``data/``;
+    its latents, VAE and detector stay its own). Refused unless both generate the same episodes (same ``data``,
+    ``sim``, ``seed`` and demonstrations per task)."""
     import configs
 
-    def data_facts(config):
+    pipe = pipe or next(p for p in pipes(args) if p.folder == "pipeline_wovr")
+
+    def data_facts(config, own=()):
         cfg, _ = configs.from_argv(["--config", config, "--seed", str(args.pipeline_seed),
-                                    *[o for o in overrides if not o.startswith("--rl.")], "--rl.sft.episodes_per_task=20"])
+                                    *[o for o in [*overrides, *own] if not o.startswith("--rl.")],
+                                    "--rl.sft.episodes_per_task=20"])
         return repr((cfg.data, cfg.sim, cfg.seed, cfg.rl.sft.episodes_per_task))
 
-    if data_facts(args.config) != data_facts(args.wovr_config):
-        raise SystemExit(f"bench_grpo_refresh: {args.config} and {args.wovr_config} generate different episodes; "
-                         "the WoVR pipeline cannot share Sword's data")
-    src, dst = os.path.join(args.workdir, "pipeline"), os.path.join(args.workdir, "pipeline_wovr")
+    if data_facts(args.config) != data_facts(pipe.config, pipe.overrides):
+        raise SystemExit(f"bench_grpo_refresh: {args.config} and {pipe.folder} ({pipe.config} "
+                         f"{' '.join(pipe.overrides)}) generate different episodes; it cannot share Sword's data")
+    src, dst = os.path.join(args.workdir, "pipeline"), os.path.join(args.workdir, pipe.folder)
     with open(os.path.join(src, "stages", "data.json")) as f:
         marker = json.load(f)
     os.makedirs(os.path.join(dst, "data"), exist_ok=True)
@@ -121,7 +176,6 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
     os.makedirs(args.workdir, exist_ok=True)
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
     gpus = [g for g in args.gpus.split(",") if g]
-    wovr_gpus = [g for g in (args.wovr_gpus or args.gpus).split(",") if g]
     start = time.perf_counter()
 
     def launch(name: str, cmd: list[str], gpu: str) -> subprocess.Popen:
@@ -130,17 +184,19 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     env=dict(env, CUDA_VISIBLE_DEVICES=gpu) if gpu else env)
 
-    def placed(folder: str) -> list[str]:
-        return wovr_gpus if folder == "pipeline_wovr" else gpus
-
-    if args.wovr_config:  # the episodes once, on Sword's pipeline; the WoVR pipeline links them
+    every = pipes(args)
+    by_folder = {p.folder: p for p in every}
+    if len(every) > 1:  # the episodes once, on Sword's pipeline; the others link them
         if launch("pipeline", pipeline_command(args, overrides, stop_after="data"), gpus[0] if gpus else "").wait():
             raise SystemExit(f"bench_grpo_refresh: the data stage failed (log: {args.workdir}/pipeline.log)")
-        share_data(args, overrides)
-    building = {folder: launch(folder, pipeline_command(args, overrides, config=config, name=folder),
-                               placed(folder)[0] if placed(folder) else "")
-                for folder, config in pipelines(args).items()}  # side by side
+        for p in every[1:]:
+            share_data(args, overrides, p)
+    building = {p.folder: launch(p.folder, pipeline_command(args, overrides, config=p.config, name=p.folder,
+                                                            own=p.overrides), p.gpus[0] if p.gpus else "")
+                for p in every}  # side by side
     commands = grpo_commands(args, overrides)
+    owner = {name: next(p for p in sorted(every, key=lambda q: -len(q.prefix)) if name.startswith(p.prefix))
+             for name in commands}
     procs: dict[str, subprocess.Popen] = {}
     stopped: list[str] = []
     while building or any(p.poll() is None for p in procs.values()):
@@ -151,10 +207,10 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             if proc.returncode:
                 print(f"[refresh] pipeline {folder} failed (log: {args.workdir}/{folder}.log)", flush=True)
                 continue
-            prefix = "wovr_" if folder == "pipeline_wovr" else ""
-            mine = [n for n in commands if n.startswith(prefix) and (prefix or not n.startswith("wovr_"))]
+            pipe = by_folder[folder]
+            mine = [n for n in commands if owner[n] is pipe]
             for i, name in enumerate(mine):
-                procs[name] = launch(name, commands[name], placed(folder)[i % len(placed(folder))] if placed(folder) else "")
+                procs[name] = launch(name, commands[name], pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
             everything = {**building, **procs}
             running = stop_all(list(everything.values()))
@@ -350,8 +406,9 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "") -
 
 def run_label(name: str) -> str:
     """``wovr_refreshed_seed1`` -> "GRPO in the refreshed WoVR-config world model, seed 1"."""
-    model = "WoVR-config" if name.startswith("wovr_") else "Sword"
-    arm, _, seed = name.removeprefix("wovr_").rpartition("_seed")
+    head, _, seed = name.rpartition("_seed")
+    variant, _, arm = head.rpartition("_")
+    model = {"": "Sword", "wovr": "WoVR-config"}.get(variant, f"Sword ({variant})")
     if arm == "refreshed":
         return f"GRPO in the refreshed {model} world model, seed {seed}"
     return f"GRPO in the {model} world model adapted once, seed {seed}"
@@ -387,6 +444,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--wovr-gpus", default="", help="GPUs the WoVR pipeline and its runs take in turn "
                                                         "(default: --gpus)")
     parser.add_argument("--wovr-seeds", default="", help="seeds of the WoVR runs (default: --seeds)")
+    parser.add_argument("--variant", action="append", default=[],
+                        help="NAME=OVERRIDES: also a pipeline of --config with these dotted overrides (quoted, space "
+                             "separated; e.g. lpips='--vae.perceptual_weight=1.0'), its runs named NAME_refreshed_seed<k>; "
+                             "repeatable")
+    parser.add_argument("--variant-seeds", default="", help="seeds of each variant's runs (default: the first seed)")
+    parser.add_argument("--variant-gpus", default="", help="GPUs the variants take in turn (default: --gpus)")
+    parser.add_argument("--data-backend", default="", help="the data stage's simulator backend (--sim.backend of "
+                                                           "the pipelines only; e.g. cpu: the C engine's workers)")
     parser.add_argument("--deadline-s", type=float, default=0.0,
                         help="stop the runs still going this many seconds after the start and summarise them "
                              "at their last evaluation (0: none)")
@@ -412,6 +477,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise SystemExit(f"bench_grpo_refresh: not a dotted config override (--section.key=value): {' '.join(bad)}")
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.wovr_seeds = [int(s) for s in args.wovr_seeds.split(",") if s]
+    args.variant_seeds = [int(s) for s in args.variant_seeds.split(",") if s]
+    for text in args.variant:
+        parse_variant(text)  # refuses a malformed one before anything runs
     args.arms = {a for a in args.arms.split(",") if a}
     if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 1 or args.refresh_every < 1 or args.budget < 64:
         raise SystemExit("bench_grpo_refresh: --seeds needs one seed or more, --arms refreshed and/or once, --steps "

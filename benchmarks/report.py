@@ -242,8 +242,10 @@ REFRESH_SUMMARY = ("policy", "grpo_refresh_small_4xh200", "grpo_refresh_summary.
 
 
 def _refresh_label(name: str) -> str:
-    model = "WoVR-config" if name.startswith("wovr_") else "Sword"
-    return f"{model}, seed {name.rpartition('_seed')[2]}"
+    head, _, seed = name.rpartition("_seed")
+    variant, _, arm = head.rpartition("_")
+    model = {"": "Sword", "wovr": "WoVR-config"}.get(variant, f"Sword ({variant})")
+    return f"{model}{'' if arm == 'refreshed' else ', adapted once'}, seed {seed}"
 
 
 def grpo_refresh_runs() -> str:

@@ -13,7 +13,7 @@ GROUND_TRUTH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "benchma
 
 
 class Args:
-    workdir, config, policy, pipeline_seed, wovr_config = "w", "sword:small", "p.npz", 0, ""
+    workdir, config, policy, pipeline_seed, wovr_config, gpus = "w", "sword:small", "p.npz", 0, "", "0,1"
     seeds, arms, steps, refresh_every, budget, vae_steps, world_model_steps = [0, 1], {"refreshed", "once"}, 50, 5, 900, 10, 20
 
 
@@ -96,6 +96,28 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
 def test_bad_arguments_are_one_line_errors(argv, message):
     with pytest.raises(SystemExit, match=message):
         bench.main(argv)
+
+
+def test_variants_get_their_own_pipelines_runs_and_gpus():
+    class Variants(Args):
+        arms, variant, variant_gpus, data_backend = {"refreshed"}, ["lpips=--vae.perceptual_weight=1.0",
+                                                                   "long='--trainer.steps=15000' --rl.refresh.every=10"], "2,3", "cpu"
+
+    made = bench.pipes(Variants)
+    assert [p.folder for p in made] == ["pipeline", "pipeline_lpips", "pipeline_long"]
+    assert made[1].overrides == ("--vae.perceptual_weight=1.0",) and made[1].gpus == ("2", "3")
+    assert made[2].gpus == ("3", "2") and made[2].seeds == (0,)  # each variant's pipeline on its own GPU
+    runs = bench.grpo_commands(Variants, [])
+    assert sorted(runs) == ["long_refreshed_seed0", "lpips_refreshed_seed0", "refreshed_seed0", "refreshed_seed1"]
+    long = " ".join(runs["long_refreshed_seed0"])
+    assert "--world-model w/pipeline_long/world_model" in long and long.index("--rl.refresh.every=5") < long.index(
+        "--rl.refresh.every=10")  # a variant's own override wins over the recipe
+    pipe = " ".join(bench.pipeline_command(Variants, [], name="pipeline_long", own=made[2].overrides))
+    assert "--trainer.steps=15000" in pipe and "--sim.backend=cpu" in pipe and "refresh" not in pipe
+    assert bench.run_label("lpips_refreshed_seed0") == "GRPO in the refreshed Sword (lpips) world model, seed 0"
+    for bad in ("wovr=--vae.dim=8", "x", "x=", "x=--not-dotted"):
+        with pytest.raises(SystemExit, match="variant"):
+            bench.parse_variant(bad)
 
 
 def test_wovr_pipeline_links_sword_episodes_and_refuses_other_data(tmp_path):
