@@ -96,7 +96,9 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
         del state
     flops = 3 * forward_flops(model_cfg, batch, 4, hw, 13)
     row.update(tf_step_s=times["tf"], model_tflops=flops / times["tf"] / 1e12,
-               mfu=flops / times["tf"] / 1e12 / peak_tflops, peak_mem_gb=common.peak_memory_gb())
+               mfu=flops / times["tf"] / 1e12 / peak_tflops,
+               mfu_nominal_peak=common.mfu(flops, 1.0 / times["tf"], common.nominal_peak_tflops()),
+               peak_mem_gb=common.peak_memory_gb())
     if with_dlb:
         row.update(dlb_step_s=times["dlb"], dlb_overhead=times["dlb"] / times["tf"] - 1)
     return row

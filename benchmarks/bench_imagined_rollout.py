@@ -133,6 +133,9 @@ def run_case(name: str, dit: DiTConfig, vae: VAEConfig, frame_size: int, *, star
             "gflop_per_frame": flops / 1e9, "dit_gflop_per_frame": dit_flops / 1e9,
             "decode_gflop_per_frame": decode_flops / 1e9,
             "ceiling_frames_per_s": peak_tflops * 1e12 / flops if peak_tflops else None,
+            # the model's FLOPs per frame (attention counted) at the measured rate, against both peaks
+            "mfu_measured_peak": common.mfu(flops, fps, peak_tflops),
+            "mfu_nominal_peak": common.mfu(flops, fps, common.nominal_peak_tflops()),
             "weight_gb": parameter_bytes(wm_state) / 1e9,
             "frames_per_s_per_device": fps, "trajectories": n, "chunks": chunks, "frames": frames,
             "rollout_s": timing["median_s"], "compile_s": compile_s, "build_s": build_s, "dit_dim": dit.dim,
@@ -197,7 +200,7 @@ def main(argv=None) -> None:
     common.print_table(rows, ["case", "precision", "vae_form", "sim_microbatches", "weight_gb", "frames_per_s_per_device",
                               "trajectories", "chunks", "rollout_s", "compile_s", "dit_layers", "resolution",
                               "sample_steps", "gflop_per_frame", "decode_gflop_per_frame", "ceiling_frames_per_s",
-                              "peak_gb"])
+                              "mfu_measured_peak", "mfu_nominal_peak", "peak_gb"])
     if not args.tiny:
         # The headline: the fast path (GRPO's default) unless only float32 ran, or whichever ran when the other
         # ran out of memory.
@@ -224,7 +227,9 @@ def main(argv=None) -> None:
         entries = {key: common.record(
             key, wide["frames_per_s_per_device"], TARGET_5B, note=note, precision=keep, measured_peak_tflops=peak,
             **{k: wide[k] for k in ("vae_form", "sim_microbatches", "gflop_per_frame", "dit_gflop_per_frame", "decode_gflop_per_frame",
-                                    "ceiling_frames_per_s", "peak_gb", "trajectories")},
+                                    "ceiling_frames_per_s", "peak_gb", "trajectories", "mfu_measured_peak",
+                                    "mfu_nominal_peak")},
+            nominal_peak_tflops=common.nominal_peak_tflops(),
             rows=rows)}
         if "small" in by_case:
             entries["imagined_frames_per_s_small"] = common.record(

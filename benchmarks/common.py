@@ -52,6 +52,22 @@ def time_fn(fn: Callable[[], Any], *, warmup: int = 2, iters: int = 10) -> dict[
     return {"median_s": statistics.median(samples), "min_s": min(samples), "iters": iters}
 
 
+# Dense bf16 tensor-core peak (no sparsity) by device kind, from the vendors' datasheets, TFLOP/s.
+NOMINAL_BF16_TFLOPS = (("H100 PCIe", 756.0), ("H100", 989.4), ("H200", 989.4), ("A100", 312.0))
+
+
+def nominal_peak_tflops(device_kind: str | None = None) -> float | None:
+    """The datasheet bf16 dense peak of ``device_kind`` (default device 0's), None for a kind not listed
+    (CPUs included)."""
+    kind = device_kind if device_kind is not None else getattr(jax.devices()[0], "device_kind", "")
+    return next((tflops for name, tflops in NOMINAL_BF16_TFLOPS if name in kind), None)
+
+
+def mfu(flops_per_item: float, items_per_s: float, peak_tflops: float | None) -> float | None:
+    """Model FLOP utilisation: ``flops_per_item * items_per_s`` over ``peak_tflops`` (None without a peak)."""
+    return flops_per_item * items_per_s / (peak_tflops * 1e12) if peak_tflops else None
+
+
 def measured_matmul_tflops(n: int = 8192, dtype=jnp.bfloat16, iters: int = 10) -> float:
     """Peak dense matmul throughput of device 0, measured now (TFLOP/s)."""
     if jax.devices()[0].platform == "cpu":
