@@ -9,6 +9,11 @@ step 0, then the budget is spent: the simulator adapted to the supervised policy
 ``--wovr-config cache_ablation:small-wovr`` a WoVR-config world model is built beside it and refreshed the same
 way at every seed (``wovr_refreshed_seed<k>``; the summary pairs the gains seed by seed). Every run is
 evaluated on MJX as ground-truth GRPO is (the greedy, ensembled policy and the sampled one, 500 episodes).
+``--variant NAME=OVERRIDES`` adds pipelines of Sword's config with other settings (each on its own GPU, its runs
+``NAME_refreshed_seed<k>``): the first refresh's replay measures, before any GRPO step, whether each world model
+separates the policy's real successes from its real failures. Every pipeline after the first links the first
+one's episodes (one data stage); each pipeline's runs start as soon as it is built; ``--deadline-s`` stops the
+runs still going and summarises them at their last evaluation.
 
 ``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, and
 every refresh's replay (the share of the policy's new real failures the simulator called successes before it
@@ -18,6 +23,9 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
     python -m benchmarks.bench_grpo_refresh run --workdir runs/r41 --policy runs/p/policy_d50.npz --gpus 0,1,2,3
     python -m benchmarks.bench_grpo_refresh summary --workdir runs/r41 \\
         --ground-truth benchmarks/results/policy/grpo_mjx_seeds_small_4xh100 --out benchmarks/results/policy/grpo_refresh_small
+    python -m benchmarks.bench_grpo_refresh run --workdir runs/r41v --policy runs/p/policy_d50.npz --gpus 0 --seeds 0 \\
+        --arms refreshed --variant "lpips=--vae.perceptual_weight=1.0" --variant "long=--trainer.steps=15000" \\
+        --variant-gpus 1,2 --data-backend cpu --deadline-s 1450
 """
 
 from __future__ import annotations
