@@ -49,6 +49,7 @@ import numpy as np
 import configs
 from benchmarks import common
 from sword_jax import cli
+from sword_jax.pipeline.launch import NO_MULTICAST  # NVLink multicast off in every process started here
 from sword_jax.rl.params_io import load_params_npz, save_params_npz
 from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
@@ -407,10 +408,6 @@ def run_seeds(args) -> dict:
     return summary
 
 
-# NVLink multicast stays off in every process started here (a program using it can take a shared host's GPUs down)
-_NO_MULTICAST = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
-
-
 def seed_commands(args, overrides: list[str]) -> list[tuple[str, list[str], dict[str, str]]]:
     """``grpo-seeds``: ``(work dir, command, environment)`` of one ``grpo`` process per seed (and one
     repeat of ``--repeat-seed``), placed round-robin on ``--gpus`` (``CUDA_VISIBLE_DEVICES``); several
@@ -425,7 +422,7 @@ def seed_commands(args, overrides: list[str]) -> list[tuple[str, list[str], dict
     per_gpu = -(-len(runs) // len(gpus))
     out = []
     for i, (name, seed) in enumerate(runs):
-        env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[i % len(gpus)], **_NO_MULTICAST)
+        env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[i % len(gpus)], **NO_MULTICAST)
         if per_gpu > 1:
             env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / per_gpu:.2f}"
         cmd = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config_name, "--seed",

@@ -26,6 +26,7 @@ BAD_ARGS = {
     "train.train_reward": ["--demos"],
     "train.grpo": ["--simulator", "real"],
     "train.gallery": ["--out", "unused.png", "--size", "8"],
+    "train.launch": ["--processes", "2", "--", "python", "-m", "train.grpo"],
     "sword_jax.convert.wan22": ["check"],
     "sword_jax.metrics.verify": [],
     "sword_jax.augment.gallery": ["--out", "unused.png", "--intensity", "5"],

@@ -1,16 +1,23 @@
-"""Multi-host: two processes joined by ``jax.distributed`` over loopback (gloo CPU collectives) run
-sharded DLB steps equal to one process with the same global device count; checkpoints restore onto
-a different device count."""
+"""Multi-host: two processes started by ``train.launch`` and joined by ``jax.distributed`` over loopback
+(gloo CPU collectives) run sharded DLB steps equal to one process with the same global device count;
+checkpoints restore onto a different device count; a rank killed mid-run ends the job within the
+launcher's grace and the rerun resumes bit-identical."""
 
 from __future__ import annotations
 
+import json
 import os
-import socket
+import re
+import signal
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
+import pytest
 
+from sword_jax.pipeline.launch import STOP_MARGIN_S
 from tests.conftest import FAST_COMPILE, REPO
 from tests.support.checkpoints import final_arrays
 
@@ -26,20 +33,23 @@ def _env(devices: int, cache_dir: str, **extra: str) -> dict[str, str]:
     return env
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _train(workdir: str, env: dict[str, str], *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "train.train_world_model", "--workdir", workdir, *ARGS, *extra],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _launch(workdir: str, cache_dir: str, *extra: str, grace: float = 5.0) -> subprocess.Popen:
+    """``train.launch``: two ranks of 2 CPU devices each run the trainer on a 4-device mesh."""
+    return subprocess.Popen([sys.executable, "-m", "train.launch", "--processes", "2", "--cpu-devices", "2", "--grace",
+                             str(grace), "--", sys.executable, "-m", "train.train_world_model", "--workdir", workdir,
+                             *ARGS, "--mesh.data=4", "--mesh.distributed=true", *extra],
+                            cwd=REPO, env=_env(2, cache_dir), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
 def _wait(proc: subprocess.Popen) -> str:
     out, err = proc.communicate(timeout=600)
-    assert proc.returncode == 0, err[-3000:]
+    assert proc.returncode == 0, (out or "")[-3000:] + (err or "")[-3000:]
     return out
 
 
@@ -49,15 +59,9 @@ def test_two_processes_equal_one_and_checkpoint_moves_between_device_counts(tmp_
     _wait(_train(single, _env(4, cache), "--mesh.data=4"))
 
     multi = str(tmp_path / "multi")
-    port = _free_port()
-    procs = [
-        _train(multi, _env(2, cache, JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2",
-                           JAX_PROCESS_ID=str(i)), "--mesh.data=4", "--mesh.distributed=true")
-        for i in range(2)
-    ]
-    outputs = [_wait(p) for p in procs]
-    assert "mesh {'data': 4" in outputs[0]
-    assert "mesh" not in outputs[1], "only process 0 logs"
+    output = _wait(_launch(multi, cache))
+    assert "[rank 0] [train_world_model] sword-tiny: mesh {'data': 4" in output
+    assert "[rank 1] [train_world_model]" not in output, "only process 0 logs"
 
     want, want_meta = final_arrays(single)
     got, got_meta = final_arrays(multi)
@@ -72,3 +76,63 @@ def test_two_processes_equal_one_and_checkpoint_moves_between_device_counts(tmp_
     after, after_meta = final_arrays(multi)
     assert after_meta["step"] == STEPS + 2
     assert any(not np.array_equal(after[k], got[k]) for k in got if "params" in k)
+
+
+LONG_STEPS = 8
+
+
+def _metrics(workdir: str) -> dict[int, dict]:
+    rows = {}
+    with open(os.path.join(workdir, "metrics.jsonl")) as f:
+        for line in f:
+            row = json.loads(line)
+            rows[int(row["step"])] = row  # a step run again after the resume replaces the killed run's row
+    return {k: {m: v for m, v in row.items() if m not in ("elapsed_s", "eta_s")} for k, row in rows.items()}
+
+
+# The default run keeps this covered in parts: tests/test_launch.py::test_a_killed_jax_rank_ends_the_job_and_each_
+# rank_reads_only_its_rows (a killed jax.distributed rank ends the job within the grace), tests/test_reliability.py::
+# test_sigkill_resume_is_bit_identical (a killed run resumes bit-identical) and the launched trainer above.
+@pytest.mark.slow
+def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_identical(tmp_path):
+    cache = str(tmp_path / "xla_cache")
+    long_args = (f"--trainer.steps={LONG_STEPS}", "--trainer.checkpoint_every=1", "--trainer.log_every=1")
+    reference = str(tmp_path / "reference")
+    _wait(_launch(reference, cache, *long_args))
+
+    crashed = str(tmp_path / "crashed")
+    grace = 3.0
+    proc = _launch(crashed, cache, *long_args, grace=grace)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+    reader.start()
+    ckpt_dir = os.path.join(crashed, "checkpoints")
+    deadline = time.time() + 600
+    while time.time() < deadline and proc.poll() is None:
+        steps = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
+        if steps and max(steps) >= 2:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    rank1 = int(next(re.search(r"rank 1: pid (\d+)", line).group(1) for line in lines if "rank 1: pid" in line))
+    os.kill(rank1, signal.SIGKILL)  # lands inside a step or a checkpoint write
+    killed = time.monotonic()
+    proc.wait(timeout=grace + 60)
+    stopped = time.monotonic() - killed
+    reader.join(timeout=5)
+    output = "".join(lines)
+    assert proc.returncode == 128 + signal.SIGKILL, output[-3000:]
+    assert "rank 1 failed first (killed by SIGKILL)" in output
+    assert stopped < grace + STOP_MARGIN_S + 1.0, stopped  # + the launcher's own exit
+    print(f"killed rank 1 at checkpoint {max(steps)}; the job ended {stopped:.2f} s later (grace {grace} s)")
+
+    resumed = _wait(_launch(crashed, cache, *long_args))
+    assert "resumed from step" in resumed
+    want, want_meta = final_arrays(reference)
+    got, got_meta = final_arrays(crashed)
+    assert want.keys() == got.keys() and len(want) > 10
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    assert got_meta["step"] == want_meta["step"] == LONG_STEPS
+    assert got_meta["data_position"] == want_meta["data_position"]
+    assert _metrics(crashed) == _metrics(reference)

@@ -5,6 +5,7 @@ import jax
 import numpy as np
 import pytest
 
+from sword_jax import sharding as shd
 from sword_jax.world_model import data
 from tests.support.world_model import full_mesh, tiny_dataset
 
@@ -64,6 +65,20 @@ def test_loader_batches_are_global_and_sharded():
     expected = ds.segment(np.asarray(batch["episode"]), np.asarray(batch["start"]), 1, 2)
     for name, value in expected.items():  # every entry, placed as sharding.put places it
         np.testing.assert_array_equal(np.asarray(batch[name]), value)
+
+
+def test_rows_held_are_the_rows_of_a_process_devices():
+    """A process reads only the rows its devices hold (here a "process" is a subset of the fake devices; the
+    two-process run is ``tests/test_launch.py``'s); on one process the loader reads the whole batch."""
+    mesh = shd.make_mesh(shd.MeshConfig(data=2, tensor=4))
+    sharding = data.batch_shardings(mesh, {"episode": np.zeros(8)})["episode"]
+    first_data_slot = list(mesh.devices[0].flat)  # 4 devices, one row block, replicated over tensor
+    assert data.rows_held(sharding, 8, first_data_slot).tolist() == [0, 1, 2, 3]
+    assert data.rows_held(sharding, 8, list(mesh.devices[1].flat)[:1]).tolist() == [4, 5, 6, 7]
+    odd = data.batch_shardings(mesh, {"episode": np.zeros(5)})["episode"]  # 5 rows: replicated
+    assert data.rows_held(odd, 5, first_data_slot[:1]).tolist() == [0, 1, 2, 3, 4]
+    loader = data.SegmentLoader(tiny_dataset(), data.SegmentSampler(8, 6, 1, 2, 8, seed=0), 1, 2, full_mesh())
+    assert loader.rows.tolist() == list(range(8)) and len(loader.host_batch_at(0)["episode"]) == 8
 
 
 def test_load_npz_and_h5_and_reject_bad_files(tmp_path):
