@@ -101,3 +101,95 @@ class VAEConfig:
     def spatial_factor(self) -> int:
         """Pixels per latent pixel along H and W (16 for the official VAE: 2x2 patchify, three x2 levels)."""
         return 2 * 2 ** (len(self.dim_mult) - 1)
+
+
+TEACHER_PRECISIONS = ("fast", "float32")
+
+
+@dataclasses.dataclass(frozen=True)
+class LightDecoderConfig:
+    """The light rollout decoder (:mod:`sword_jax.vae.light_decoder`) and its distillation from the VAE's decoder
+    (:mod:`sword_jax.vae.light_train`, the pipeline's ``light_decoder`` stage, which runs when
+    ``rl.imagined.decoder=light``).
+
+    Attributes:
+      frame_size: side of the frames it decodes, in pixels; 0 (default) = ``rl.image_size``, the frames the
+        policy and the success detector read. A power-of-two multiple of the latent size
+        (``data.image_size / vae.spatial_factor``), at most ``data.image_size``.
+      width: channels of its latent-resolution stage; each later stage halves them, down to
+        ``max(width / 4, 8)``.
+      blocks: memory blocks per stage (each sees its frame and the previous one: causal in time).
+      train_steps, learning_rate, batch_size: the distillation (AdamW at a constant rate).
+      clip_latents: latents after the first of each training clip: the episode's first latent, then this
+        many consecutive latents from a random position, the layout the learned simulator decodes (start
+        latent, context, predictions).
+      l1_weight, l2_weight: weights of the mean absolute / squared error to the teacher's frames resized to
+        ``frame_size`` (as the policy resizes them).
+      perceptual_weight: weight of LPIPS (``eval`` section's network) between the two; 0 (default) = off.
+      latent_noise: std of Gaussian noise added to a clip's latents before both decoders see them (the world
+        model's predictions are not exactly the encoder's latents); 0 (default) = none.
+      teacher_precision: how the VAE's decoder runs as the teacher: ``fast`` (bfloat16, sub-pixel upsampling;
+        :func:`sword_jax.rl.sim_builder.inference_vae`) or ``float32`` (the exact decode).
+      compute_dtype: the light decoder's convolutions while it trains (the simulator runs it in its own
+        precision, ``rl.imagined.sim_precision``).
+      weight_decay, grad_clip: AdamW weight decay and global-norm clipping (0 disables it).
+    """
+
+    frame_size: int = 0
+    width: int = 128
+    blocks: int = 2
+    train_steps: int = 2000
+    learning_rate: float = 5e-4
+    batch_size: int = 8
+    clip_latents: int = 3
+    l1_weight: float = 1.0
+    l2_weight: float = 1.0
+    perceptual_weight: float = 0.0
+    latent_noise: float = 0.0
+    teacher_precision: str = "fast"
+    compute_dtype: str = "float32"
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+
+    def validate(self) -> None:
+        if self.frame_size < 0:
+            raise ValueError(f"light_decoder.frame_size must be >= 0 (0 = rl.image_size), got {self.frame_size}")
+        if self.width < 1 or self.blocks < 1:
+            raise ValueError(f"light_decoder.width and light_decoder.blocks must be >= 1, got {self.width} and "
+                             f"{self.blocks}")
+        if self.train_steps < 0 or self.batch_size < 1 or self.clip_latents < 1:
+            raise ValueError(f"light_decoder: train_steps must be >= 0, batch_size and clip_latents >= 1, got "
+                             f"{self.train_steps}, {self.batch_size}, {self.clip_latents}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"light_decoder.learning_rate must be > 0, got {self.learning_rate}")
+        if min(self.l1_weight, self.l2_weight, self.perceptual_weight, self.latent_noise, self.weight_decay,
+               self.grad_clip) < 0:
+            raise ValueError("light_decoder: loss weights, latent_noise, weight_decay and grad_clip must be >= 0")
+        if self.l1_weight + self.l2_weight + self.perceptual_weight == 0:
+            raise ValueError("light_decoder: l1_weight, l2_weight and perceptual_weight are all 0: nothing to learn")
+        if self.teacher_precision not in TEACHER_PRECISIONS:
+            raise ValueError(f"light_decoder.teacher_precision must be one of {TEACHER_PRECISIONS}, got "
+                             f"{self.teacher_precision!r}")
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"light_decoder.compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+
+    def output_size(self, policy_size: int) -> int:
+        """The frame side it decodes: ``frame_size``, or the policy's ``policy_size`` when that is 0."""
+        return self.frame_size or policy_size
+
+    def geometry(self, *, image_size: int, spatial_factor: int, policy_size: int) -> tuple[int, int]:
+        """``(latent size, frame size)``: latents of ``image_size`` frames under a VAE of ``spatial_factor``
+        decoded to :meth:`output_size` frames. Raises ValueError when the frame size is not a power-of-two
+        multiple of the latent size or exceeds ``image_size`` (the teacher's frames)."""
+        latent = image_size // spatial_factor
+        frame = self.output_size(policy_size)
+        source = f"light_decoder.frame_size={frame}" if self.frame_size else f"rl.image_size={frame} (light_decoder.frame_size=0)"
+        ratio = frame // latent if latent and frame % latent == 0 else 0
+        if ratio < 1 or ratio & (ratio - 1):
+            raise ValueError(f"{source}: the light decoder upsamples the {latent}x{latent} latents (data.image_size="
+                             f"{image_size} over vae.spatial_factor={spatial_factor}) by a power of two; use "
+                             f"{', '.join(str(latent * 2 ** k) for k in range(1, 5) if latent * 2 ** k <= image_size)}")
+        if frame > image_size:
+            raise ValueError(f"{source} exceeds data.image_size={image_size}: the light decoder learns the VAE's "
+                             "frames resized down to its size, never up")
+        return latent, frame
