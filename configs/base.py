@@ -11,7 +11,7 @@ from sword_jax.dlb.config import CacheConfig
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.rl.config import RLConfig
 from sword_jax.sharding import MeshConfig
-from sword_jax.vae.config import VAEConfig
+from sword_jax.vae.config import LightDecoderConfig, VAEConfig
 from sword_jax.world_model.config import DataConfig, FlowConfig, TrainerConfig
 
 
@@ -25,6 +25,7 @@ class ExperimentConfig:
     model: DiTConfig = DiTConfig()
     flow: FlowConfig = FlowConfig()
     vae: VAEConfig = VAEConfig()
+    light_decoder: LightDecoderConfig = LightDecoderConfig()
     data: DataConfig = DataConfig()
     cache: CacheConfig = CacheConfig()
     trainer: TrainerConfig = TrainerConfig()
@@ -90,4 +91,12 @@ class ExperimentConfig:
                 f"(rl.imagined.execute_steps) as the next context, which needs data.context_frames="
                 f"{self.data.context_frames} <= {executed}"
             )
+        if self.rl.imagined.decoder == "light":
+            self.light_decoder.geometry(image_size=self.data.image_size, spatial_factor=self.vae.spatial_factor,
+                                        policy_size=self.rl.image_size)
+            if self.flow.pixel_round_trip:
+                raise ValueError(
+                    "rl.imagined.decoder=light decodes imagined frames with the light decoder, but flow.pixel_round_trip "
+                    "re-encodes the VAE's full-resolution frames as the next context; use rl.imagined.decoder=full"
+                )
         return self

@@ -10,7 +10,7 @@ from sword_jax.dit.config import DiTConfig
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RewardModelConfig, RLConfig, SFTConfig
 from sword_jax.metrics.config import EvalConfig
-from sword_jax.vae.config import VAEConfig
+from sword_jax.vae.config import LightDecoderConfig, VAEConfig
 from sword_jax.world_model.config import DataConfig, TrainerConfig
 
 
@@ -75,6 +75,8 @@ def tiny() -> ExperimentConfig:
         model=DiTConfig(dim=32, ffn_dim=64, freq_dim=32, num_heads=2, num_layers=2, text_dim=16, text_len=8,
                         compute_dtype="float32"),
         vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
+        light_decoder=LightDecoderConfig(width=16, blocks=1, train_steps=20, batch_size=2, learning_rate=2e-3,
+                                         teacher_precision="float32"),
         data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10),
         # 96 steps: the expert solves tasks 0 and 1 in 36-77, so the data shows solved frames (rl.reward_model.labels=state).

@@ -8,6 +8,8 @@ Layouts read (what the entry points write):
   with the config the run was trained with (``meta["config"]``).
 * VAE (``train.train_vae``): ``<vae_workdir>/vae/0/{state,meta}``, the whole VAE state (params and
   latent statistics) as one pure dict; or official Wan 2.2 weights (``vae.checkpoint``).
+* light rollout decoder (:mod:`sword_jax.pipeline.light_decoder`): ``<workdir>/light_decoder/0/{state,meta}``,
+  its weights as one pure dict, its geometry and config section in ``meta``.
 * reward model / policy (:mod:`sword_jax.rl.params_io`): ``<dir>/<step>/{state,meta}`` with the
   RL config in ``meta["rl"]``.
 * pipeline work dir (``train.pipeline``): ``<run>/world_model``, ``<run>/vae_run/vae``,
@@ -250,6 +252,34 @@ def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | N
                             nnx.to_pure_dict(state))
     nnx.replace_by_pure_dict(state, restore_subtree(path, step, abstract))
     return graphdef, state
+
+
+def load_light_decoder(path: str, *, mesh: jax.sharding.Mesh | None = None) -> tuple[nnx.GraphDef, Any, dict[str, Any]]:
+    """The light rollout decoder the ``light_decoder`` stage saved at ``path`` (``<workdir>/light_decoder``),
+    rebuilt from its own metadata, replicated over ``mesh`` (default: unsharded on the first device).
+
+    Returns:
+      ``(graphdef, state, meta)``; ``meta`` holds ``scale``, ``temporal_factor``, ``z_dim``, ``latent_size``,
+      ``frame_size`` and its config section.
+
+    Raises:
+      CheckpointError: no such checkpoint, or one of another kind.
+    """
+    from sword_jax.vae import light_decoder as light
+    from sword_jax.vae.config import LightDecoderConfig
+
+    step = checkpoint_step(path)
+    meta = read_meta(path, step)
+    if meta.get("kind") != "light_decoder":
+        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, expected 'light_decoder'")
+    cfg = section_from_dict(LightDecoderConfig, meta.get("light_decoder", {}))
+    graphdef, state = nnx.split(light.abstract_light_decoder(cfg, z_dim=meta["z_dim"], scale=meta["scale"],
+                                                             temporal_factor=meta["temporal_factor"]))
+    replicated = _first_device() if mesh is None else shd.replicated(mesh)
+    abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated),
+                            nnx.to_pure_dict(state))
+    nnx.replace_by_pure_dict(state, restore_subtree(path, step, abstract))
+    return graphdef, state, meta
 
 
 def load_rl_params(path: str, *, kind: str, build) -> tuple[nnx.GraphDef, nnx.State, Any]:

@@ -17,6 +17,8 @@ versions (``--rl.sft_steps``) are refused naming the new key (:data:`RENAMED`).
 import dataclasses
 from typing import ClassVar
 
+DECODERS = ("full", "light")  # rl.imagined.decoder
+
 
 @dataclasses.dataclass(frozen=True)
 class PolicyConfig:
@@ -290,6 +292,12 @@ class ImaginedConfig:
       sim_precision: how the world-model simulator runs (:mod:`sword_jax.rl.sim_builder`): ``fast``
         (default: the VAE decodes in bfloat16 with sub-pixel upsampling, weights stored in the compute
         dtype) or ``float32`` (the exact float32 decode at the highest precision, weights as loaded).
+      decoder: what turns the world model's latents into the frames GRPO's policy and success detector read.
+        ``full`` (default): the VAE's decoder at ``data.image_size``. ``light``: the light decoder
+        (:mod:`sword_jax.vae.light_decoder`) distilled from it by the pipeline's ``light_decoder`` stage, at
+        ``light_decoder.frame_size`` (default ``rl.image_size``), a small fraction of the work per frame. The
+        replay of real episodes then runs through it too (it measures the simulator GRPO trains in);
+        evaluations, videos and metrics of the world model keep the full decoder.
     """
 
     max_chunks: int = 8
@@ -303,6 +311,7 @@ class ImaginedConfig:
     success_frames: int = 1  # consecutive detector frames >= the threshold an imagined success needs
     sim_microbatches: int = 0  # simulator step over trajectories in this many sequential slices; 0 = auto
     sim_precision: str = "fast"  # fast | float32
+    decoder: str = "full"  # full | light
     shared_group_noise: bool = False  # one simulator noise draw per GRPO group
     confirm_success: bool = False  # a success counts only if a second imagination of its actions succeeds
     guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
@@ -315,6 +324,8 @@ class ImaginedConfig:
             raise ValueError(f"rl.imagined.sim_microbatches must be >= 1 (0 = auto), got {self.sim_microbatches}")
         if self.sim_precision not in ("fast", "float32"):
             raise ValueError(f"rl.imagined.sim_precision must be fast|float32, got {self.sim_precision!r}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"rl.imagined.decoder must be {'|'.join(DECODERS)}, got {self.decoder!r}")
         if not 0.0 <= self.guard_margin < 1.0 or self.guard_min_failures < 1:
             raise ValueError(f"rl.imagined.guard_margin must be in [0, 1) (0 = off) and guard_min_failures >= 1, got "
                              f"{self.guard_margin}, {self.guard_min_failures}")
