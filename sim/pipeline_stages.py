@@ -43,6 +43,18 @@ def stage_latents(ctx: Context) -> dict:
     return data_stages.encode_training_latents(ctx)
 
 
+def stage_light_decoder(ctx: Context) -> dict:
+    """The light rollout decoder, distilled from the VAE on the world model's training latents, when GRPO's
+    imagined frames come from it (``rl.imagined.decoder=light``); else nothing to do."""
+    if ctx.cfg.rl.imagined.decoder != "light":
+        return {"path": "", "skipped": f"rl.imagined.decoder={ctx.cfg.rl.imagined.decoder}"}
+    from sword_jax.pipeline import light_decoder
+
+    workdir = ctx.stage_dir("light_decoder")
+    return light_decoder.run_light_decoder(ctx.cfg_in(workdir), vae=ctx.results["vae"]["path"],
+                                           latents=ctx.results["latents"]["path"])
+
+
 def stage_world_model(ctx: Context) -> dict:
     from sword_jax.pipeline import world_model
 
@@ -114,6 +126,8 @@ STAGES = [
     Stage("vae", stage_vae, "the video VAE (trained from scratch, or official Wan 2.2 weights)", needs=("data",)),
     Stage("latents", stage_latents, "encode training episodes and their styled copies to latents",
           needs=("data", "policy_data", "vae")),
+    Stage("light_decoder", stage_light_decoder, "distil the light rollout decoder from the VAE (rl.imagined.decoder=light)",
+          needs=("vae", "latents")),
     Stage("world_model", stage_world_model, "train the world model (DLB or the configured variant)",
           needs=("latents",)),
     Stage("probe", stage_probe, "the state probe (frames -> end effector, gripper, bowl) that scores action following",
@@ -124,10 +138,10 @@ STAGES = [
     Stage("evaluate", stage_evaluate, "long-horizon rollouts vs ground truth on LIBERO-Original / LIBERO-Mixed",
           needs=("data", "vae", "world_model", "probe", "reward_model")),
     Stage("policy", stage_policy, "GRPO inside the world model, policy success in the simulator over steps",
-          needs=("data", "sft_policy", "vae", "world_model", "reward_model")),
+          needs=("data", "sft_policy", "vae", "light_decoder", "world_model", "reward_model")),
     Stage("report", stage_report, "report.md and results.json",
-          needs=("data", "sft_policy", "policy_data", "vae", "latents", "world_model", "probe", "reward_model",
-                 "evaluate", "policy")),
+          needs=("data", "sft_policy", "policy_data", "vae", "latents", "light_decoder", "world_model", "probe",
+                 "reward_model", "evaluate", "policy")),
 ]
 check_order(STAGES)
 

@@ -64,8 +64,9 @@ def grpo_in_world_model(ctx: Context) -> dict:
     from sim import grpo_training
 
     inputs = GRPOInputs(demos=(_demos(ctx),), world_model=ctx.results["world_model"]["workdir"],
-                             vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
-                             reward=ctx.results["reward_model"]["path"])
+                        vae=ctx.results["vae"]["path"], policy=ctx.results["sft_policy"]["path"],
+                        reward=ctx.results["reward_model"]["path"],
+                        light_decoder=ctx.results.get("light_decoder", {}).get("path") or "")
     result = grpo_training.run_grpo(ctx.cfg_in(ctx.workdir), inputs, simulator="world_model", env_workers=cpu_workers())
     return {"reward_model": _summary(ctx.results["reward_model"]), **_policy_result(ctx, result)}
 

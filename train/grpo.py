@@ -46,10 +46,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--policy", default="", help="SFT policy: a train_policy checkpoint or an .npz of benchmarks.bench_policy; empty = from scratch")
     parser.add_argument("--reward", default="", help="reward model checkpoint (train_reward)")
     parser.add_argument("--latents", default="", help="the world model's training latents (.npz; rl.refresh needs them)")
+    parser.add_argument("--light-decoder", default="",
+                        help="the light rollout decoder (train_light_decoder; rl.imagined.decoder=light needs it)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.grpo.eval_episodes_per_task")
     args = parser.parse_args(rest)
     inputs = GRPOInputs(demos=tuple(args.demos), world_model=args.world_model, vae=args.vae, policy=args.policy,
-                        reward=args.reward, latents=args.latents)
+                        reward=args.reward, latents=args.latents, light_decoder=args.light_decoder)
     return run(cfg, inputs, simulator=args.simulator, env_workers=args.env_workers, renderer=args.renderer,
                eval_episodes=args.eval_episodes)
 

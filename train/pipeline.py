@@ -6,7 +6,7 @@
 
 Stages (each writes ``<workdir>/stages/<name>.json`` and is skipped when already done):
 expert data (train + held-out) -> VAE (trained, or official Wan 2.2 weights) -> latents (with
-styled copies) -> world model (DLB or the configured variant) -> state probe -> reward model ->
+styled copies) -> light rollout decoder (with ``rl.imagined.decoder=light``) -> world model (DLB or the configured variant) -> state probe -> reward model ->
 long-horizon evaluation on LIBERO-Original / LIBERO-Mixed (pixel metrics, and action following
 read by the probe and the reward model) -> supervised policy -> GRPO inside the world model
 with policy evaluation in the simulator -> report. ``--stop-after STAGE`` ends a run early (the

@@ -46,6 +46,7 @@ class GRPOInputs:
     policy: str = ""  # SFT policy checkpoint (train_policy); empty: from scratch
     reward: str = ""  # reward model checkpoint (train_reward)
     latents: str = ""  # the world model's training latents (.npz): what a refresh fine-tunes it on besides
+    light_decoder: str = ""  # the light rollout decoder (train_light_decoder); rl.imagined.decoder=light needs it
 
 
 
@@ -83,7 +84,7 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
     """The learned simulator (world model + VAE), the reward model and keyframe starts from ``episodes``
     (an ``rl.data.EpisodeSet`` of the demonstrations); ``reckoning``: the proprio ReckoningConfig when
     ``rl.imagined.proprio=reckoned`` (the simulator's action convention, fitted to the demonstrations)."""
-    from sword_jax.load import experiment_vae, experiment_world_model
+    from sword_jax.load import experiment_vae, experiment_world_model, load_light_decoder
     from sword_jax.rl.sim_builder import build_simulator
     from sword_jax.rl.world_model_sim import encode_history
 
@@ -92,6 +93,17 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
                          f"{rl.proprio_dim} (use --rl.imagined.proprio=missing)")
     if rl.imagined.proprio == "reckoned" and reckoning is None:
         raise ValueError("rl.imagined.proprio=reckoned needs the action convention (reckoning)")
+    light_decoder = None
+    if rl.imagined.decoder == "light":
+        if not inputs.light_decoder:
+            raise ValueError("rl.imagined.decoder=light needs the light decoder the pipeline's light_decoder stage trains "
+                             "(train.grpo --light-decoder DIR; train.train_light_decoder makes one)")
+        light_graphdef, light_state, meta = load_light_decoder(inputs.light_decoder)
+        if meta["z_dim"] != cfg.vae.z_dim or meta["latent_size"] != cfg.data.image_size // cfg.vae.spatial_factor:
+            raise ValueError(f"{inputs.light_decoder}: a light decoder of {meta['z_dim']}-channel {meta['latent_size']}"
+                             f"-pixel latents, the world model's are {cfg.vae.z_dim}-channel "
+                             f"{cfg.data.image_size // cfg.vae.spatial_factor}-pixel")
+        light_decoder = (light_graphdef, light_state)
     wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
     vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
@@ -101,7 +113,7 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
                           num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
                           action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
                           execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
-                          proprio_reckoning=reckoning)
+                          proprio_reckoning=reckoning, light_decoder=light_decoder)
     det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
     det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
     reward_model = as_reward_model(det_graphdef, det_params)

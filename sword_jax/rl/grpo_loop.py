@@ -68,8 +68,10 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
       simulator: ``toy``, ``world_model`` or ``env``.
       **facts: more facts under their config names, e.g. ``**{"sim.tasks": (0, 1)}``.
     """
+    # the decoder enters only when it is not the default, so runs from before it was a setting still resume
+    decoder = {"rl.imagined.decoder": rl.imagined.decoder} if rl.imagined.decoder != "full" else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in GRPO_RUN_KEYS},
-            **facts}
+            **decoder, **facts}
 
 
 def train_grpo(

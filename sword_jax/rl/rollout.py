@@ -259,13 +259,16 @@ def imagined_rollout(
         sim_state = to_slices(expand_groups(jax.vmap(simulator.init)(start), group_size), slices)
         init_score = jnp.repeat(reward_model.score(start.frame), group_size, axis=0)
         start = expand_groups(start, group_size)
-    carry = (sim_state, start.frame, init_score, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32))
+    # The policy's view of the latest frame is carried (the start frame and the simulator's frames may differ
+    # in size, e.g. with a light decoder at the policy's resolution).
+    carry = (sim_state, resize_frames(start.frame, cfg.image_size), init_score, jnp.zeros((n,), jnp.bool_),
+             jnp.zeros((n,), jnp.int32))
 
     def chunk_step(carry, chunk_index):
         sim_state, frame, prev_score, done, prev_run = carry
         chunk_key = jax.random.fold_in(key, chunk_index)
         policy_key, sim_key = jax.random.split(chunk_key)
-        obs = constrain(resize_frames(frame, cfg.image_size), ("batch", "height", "width", "channels"))
+        obs = constrain(frame, ("batch", "height", "width", "channels"))
         proprio, proprio_valid = from_slices(map_over_slices(simulator.observe, (sim_state,)))
         logits = policy(obs, start.instruction_tokens, proprio, proprio_valid)
         if greedy:
@@ -289,7 +292,7 @@ def imagined_rollout(
         keep = lambda mask: lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - mask.ndim)),  # noqa: E731
                                                        new, old)
         sim_state = jax.tree.map(keep(to_slices(valid, slices)), new_state, sim_state)
-        next_frame = keep(valid)(frames[:, -1], frame)
+        next_frame = keep(valid)(resize_frames(frames[:, -1], cfg.image_size), frame)
         out = dict(obs=obs, proprio=proprio, proprio_valid=proprio_valid.astype(jnp.float32), tokens=tokens,
                    log_probs=log_probs, valid=valid.astype(jnp.float32), reward=outcome.reward, score=outcome.score,
                    success=outcome.success)

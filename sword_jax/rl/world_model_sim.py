@@ -11,7 +11,9 @@ Per step (one action chunk of 8 actions = 2 latent frames):
    predicted frame's own action is not known yet and holds ``a_4j+7`` until the next chunk's first
    action replaces it;
 2. the causal VAE decoder streams those latents to ``4p`` frames with its feature cache
-   (:func:`sword_jax.vae.api.decode_chunk`), so pixels are produced once per frame;
+   (:func:`sword_jax.vae.api.decode_chunk`), so pixels are produced once per frame; with a light decoder
+   (``light_decoder``, :mod:`sword_jax.vae.light_decoder`) that one streams them instead, at its own
+   resolution, and the simulator's parameters are the world model's and the light decoder's;
 3. the context becomes the last ``k`` predicted latents (the rollout stays in latent space).
 
 State is per trajectory; the VAE / DiT calls inside take a batch of one, and the imagined
@@ -27,6 +29,7 @@ learned "missing proprio" embedding, trained by proprio dropout in SFT).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -37,6 +40,7 @@ from sword_jax.dit.config import FRAMES_PER_LATENT  # the world model's actions 
 from sword_jax.rl.learned_simulator import LearnedSimulator, StartState
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, reckon
 from sword_jax.vae import api as vae_api
+from sword_jax.vae import light_decoder as light
 from sword_jax.world_model import sampler as wm_sampler
 from sword_jax.world_model.config import FlowConfig
 from sword_jax.world_model.rollout import make_pixel_round_trip, predict_chunk
@@ -47,8 +51,30 @@ class WMState(NamedTuple):
     context: Float[Array, "1 k h w c"]
     first_action: Float[Array, "1 1 a"]  # the action of the episode's first frame (training's a_0)
     context_actions: Float[Array, "1 s a"]  # actions of the context latents' video frames
-    decode_cache: Any  # vae_api.StreamCache for a batch of one
+    decode_cache: Any  # the decoder's StreamCache for a batch of one
     proprio: Float[Array, " p"]
+
+
+class StreamDecoder(NamedTuple):
+    """How the simulator turns latents into frames, for a batch of one: ``init(params, h, w) -> cache`` and
+    ``decode(params, latent_chunk, cache) -> (video in [-1, 1], cache)`` (the first chunk holds the stream's
+    first latent), with ``params`` the simulator's second parameter entry."""
+
+    init: Callable[..., Any]
+    decode: Callable[..., Any]
+
+
+def vae_stream_decoder(vae_graphdef: nnx.GraphDef) -> StreamDecoder:
+    """The VAE's own streaming decode (:func:`sword_jax.vae.api.decode_chunk`)."""
+    return StreamDecoder(
+        init=lambda params, h, w: vae_api.init_decode_cache(vae_graphdef, params, 1, h, w),
+        decode=lambda params, z, cache: vae_api.decode_chunk(vae_graphdef, params, z, cache, check_values=False))
+
+
+def light_stream_decoder(graphdef: nnx.GraphDef) -> StreamDecoder:
+    """The light decoder's streaming decode (:func:`sword_jax.vae.light_decoder.decode_chunk`)."""
+    return StreamDecoder(init=lambda params, h, w: light.init_stream_cache(graphdef, params, 1, h, w),
+                         decode=lambda params, z, cache: light.decode_chunk(graphdef, params, z, cache))
 
 
 def to_unit(video: Float[Array, "..."]) -> Float[Array, "..."]:
@@ -110,6 +136,7 @@ def world_model_simulator(
     proprio_dim: int = 8,
     execute_latents: int | None = None,
     proprio_reckoning: ReckoningConfig | None = None,
+    light_decoder: tuple[nnx.GraphDef, Any] | None = None,
 ) -> LearnedSimulator:
     """Builds the learned simulator from a split WorldModel and a split WanVAE.
 
@@ -129,6 +156,10 @@ def world_model_simulator(
         become context, the rest is discarded (the simulator's ``execute_len``).
       proprio_reckoning: the action convention to dead-reckon proprio with (8-D, LIBERO layout); None
         marks proprio invalid.
+      light_decoder: ``(graphdef, state)`` of a light decoder that decodes the frames instead of the VAE
+        (:mod:`sword_jax.vae.light_decoder`); ``frame_size`` is then its output size and ``latent_size``
+        (default ``frame_size`` over its scale) the world model's. The simulator's parameters are
+        ``(wm_state, light_state)``; ``flow_cfg.pixel_round_trip`` (which re-encodes the VAE's frames) is refused.
 
     ``StartState.latents`` is ``[1 + num_context, h, w, z]`` (then every conditioning frame carries
     a zero action, as for a keyframe held still: :func:`encode_keyframes`) or a pair ``(latents,
@@ -148,10 +179,22 @@ def world_model_simulator(
                          f"as the next context, fewer than its num_context={num_context}")
     chunk_len = FRAMES_PER_LATENT * num_future  # actions per call
     execute_len = FRAMES_PER_LATENT * execute_latents  # executed actions (= frames returned) per step
-    hl = latent_size or frame_size // vae_api.factors(vae_graphdef, vae_state)[1]
+    if light_decoder is None:
+        decoder, decoder_state = vae_stream_decoder(vae_graphdef), vae_state
+        scale = vae_api.factors(vae_graphdef, vae_state)[1]
+    else:
+        if flow_cfg.pixel_round_trip:
+            raise ValueError("world-model sim: flow.pixel_round_trip re-encodes the VAE's decoded frames; it needs the "
+                             "full decoder, not a light one")
+        light_graphdef, decoder_state = light_decoder
+        decoder = light_stream_decoder(light_graphdef)
+        scale = light.attributes(light_graphdef, decoder_state)[1]
+    hl = latent_size or frame_size // scale
+    if light_decoder is not None and hl * scale != frame_size:
+        raise ValueError(f"world-model sim: frame_size={frame_size} is not the decoder's {scale} x the latent size {hl}")
 
     def init_fn(params, start: StartState) -> WMState:
-        wm_params, vae_params = params
+        wm_params, decoder_params = params
         if isinstance(start.latents, (tuple, list)):
             latents, actions = start.latents
             actions = jnp.asarray(actions, jnp.float32)
@@ -163,13 +206,13 @@ def world_model_simulator(
         latents = jnp.asarray(latents, jnp.float32)
         if latents.ndim != 4 or latents.shape[0] != 1 + num_context:
             raise ValueError(f"world-model sim: start.latents must be [{1 + num_context}, h, w, z], got {latents.shape}")
-        cache = vae_api.init_decode_cache(vae_graphdef, vae_params, 1, hl, hl)
-        _, cache = vae_api.decode_chunk(vae_graphdef, vae_params, latents[None], cache, check_values=False)
+        cache = decoder.init(decoder_params, hl, hl)
+        _, cache = decoder.decode(decoder_params, latents[None], cache)
         return WMState(latents[None, :1], latents[None, 1:], actions[None, :1], actions[None, 1:], cache,
                        jnp.asarray(start.proprio, jnp.float32))
 
     def step_fn(params, state: WMState, chunk, key):
-        wm_params, vae_params = params
+        wm_params, decoder_params = params
         chunk = chunk.astype(jnp.float32)[None]  # (1, T, A): a_4j .. a_4j+T-1, acting on frame 4j
         # a_4j is the last context frame's action; the predicted frames carry a_4j+1 .. and a placeholder
         context_actions = state.context_actions.at[:, -1].set(chunk[:, 0])
@@ -179,9 +222,9 @@ def world_model_simulator(
         future = predict_chunk(model_fn, state.first_latent, state.context, actions, key=key, num_future=num_future,
                                cfg=flow_cfg, num_steps=sample_steps)
         future = future[:, :execute_latents]  # executed; the rest of the prediction is discarded
-        video, cache = vae_api.decode_chunk(vae_graphdef, vae_params, future, state.decode_cache, check_values=False)
-        if flow_cfg.pixel_round_trip:  # WoVR: the next context is the re-encoded generated pixels
-            context = make_pixel_round_trip(vae_graphdef, vae_params, num_context)(state.first_latent, future)
+        video, cache = decoder.decode(decoder_params, future, state.decode_cache)
+        if flow_cfg.pixel_round_trip:  # WoVR: the next context is the re-encoded generated pixels (full decoder)
+            context = make_pixel_round_trip(vae_graphdef, decoder_params, num_context)(state.first_latent, future)
             context = context.astype(jnp.float32)
         else:
             context = jnp.concatenate([state.context, future], axis=1)[:, -num_context:]
@@ -199,5 +242,5 @@ def world_model_simulator(
         del params
         return state.proprio[:proprio_dim], jnp.float32(0.0 if proprio_reckoning is None else 1.0)
 
-    return LearnedSimulator(params=(wm_state, vae_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
+    return LearnedSimulator(params=(wm_state, decoder_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
                             chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len, action_dim=action_dim)
