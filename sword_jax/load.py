@@ -8,8 +8,8 @@ Layouts read (what the entry points write):
   with the config the run was trained with (``meta["config"]``).
 * VAE (``train.train_vae``): ``<vae_workdir>/vae/0/{state,meta}``, the whole VAE state (params and
   latent statistics) as one pure dict; or official Wan 2.2 weights (``vae.checkpoint``).
-* light rollout decoder (:mod:`sword_jax.pipeline.light_decoder`): ``<workdir>/light_decoder/0/{state,meta}``,
-  its weights as one pure dict, its geometry and config section in ``meta``.
+* light rollout decoder (:mod:`sword_jax.pipeline.light_decoder`): ``<workdir>/checkpoints/<step>/{state,meta}``,
+  the train state (``params``, ``opt_state``, ``step``), the decoder's geometry and config section in ``meta``.
 * reward model / policy (:mod:`sword_jax.rl.params_io`): ``<dir>/<step>/{state,meta}`` with the
   RL config in ``meta["rl"]``.
 * pipeline work dir (``train.pipeline``): ``<run>/world_model``, ``<run>/vae_run/vae``,
@@ -255,8 +255,9 @@ def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | N
 
 
 def load_light_decoder(path: str, *, mesh: jax.sharding.Mesh | None = None) -> tuple[nnx.GraphDef, Any, dict[str, Any]]:
-    """The light rollout decoder the ``light_decoder`` stage saved at ``path`` (``<workdir>/light_decoder``),
-    rebuilt from its own metadata, replicated over ``mesh`` (default: unsharded on the first device).
+    """The light rollout decoder of a ``light_decoder`` run (its work dir or ``checkpoints`` directory; the newest
+    checkpoint), rebuilt from the checkpoint's own metadata; only its weights are read (not the optimizer state),
+    replicated over ``mesh`` (default: unsharded on the first device).
 
     Returns:
       ``(graphdef, state, meta)``; ``meta`` holds ``scale``, ``temporal_factor``, ``z_dim``, ``latent_size``,
@@ -268,17 +269,20 @@ def load_light_decoder(path: str, *, mesh: jax.sharding.Mesh | None = None) -> t
     from sword_jax.vae import light_decoder as light
     from sword_jax.vae.config import LightDecoderConfig
 
+    if os.path.isdir(os.path.join(path, "checkpoints")):
+        path = os.path.join(path, "checkpoints")
     step = checkpoint_step(path)
     meta = read_meta(path, step)
     if meta.get("kind") != "light_decoder":
-        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, expected 'light_decoder'")
+        raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, expected 'light_decoder' (a "
+                              "train_light_decoder run)")
     cfg = section_from_dict(LightDecoderConfig, meta.get("light_decoder", {}))
     graphdef, state = nnx.split(light.abstract_light_decoder(cfg, z_dim=meta["z_dim"], scale=meta["scale"],
                                                              temporal_factor=meta["temporal_factor"]))
     replicated = _first_device() if mesh is None else shd.replicated(mesh)
     abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated),
                             nnx.to_pure_dict(state))
-    nnx.replace_by_pure_dict(state, restore_subtree(path, step, abstract))
+    nnx.replace_by_pure_dict(state, restore_subtree(path, step, {"params": abstract})["params"])
     return graphdef, state, meta
 
 

@@ -8,8 +8,8 @@ Usage::
 The student (:mod:`sword_jax.vae.light_decoder`) decodes the VAE's latents straight to
 ``light_decoder.frame_size`` frames (default the policy's ``rl.image_size``); the target is the VAE's
 decode resized to that size. The run auto-resumes from ``<workdir>/checkpoints`` (exactly: a batch is a
-function of its step); ``<workdir>/light_decoder/`` holds the final weights that ``train.grpo
---light-decoder`` loads with ``--rl.imagined.decoder=light``. The training is
+function of its step); the newest checkpoint there is the trained decoder, which ``train.grpo
+--light-decoder <workdir>`` loads with ``--rl.imagined.decoder=light``. The training is
 :func:`sword_jax.pipeline.light_decoder.run_light_decoder`, the pipeline's ``light_decoder`` stage.
 """
 

@@ -6,8 +6,8 @@ VAE's decoder (``light_decoder.teacher_precision``), the data the world model's 
 (``latents.npz``: raw and styled episodes), the student :mod:`sword_jax.vae.light_decoder` at
 ``light_decoder.frame_size`` (default the policy's ``rl.image_size``). The loop is
 :func:`sword_jax.train_loop.run_steps`: checkpoints under ``<workdir>/checkpoints``, an exact resume
-from them, metrics in ``<workdir>/metrics.jsonl``. At the end ``<workdir>/light_decoder/`` holds the
-decoder's weights with its geometry (:func:`sword_jax.load.load_light_decoder` reads it back), and
+from them, metrics in ``<workdir>/metrics.jsonl``. Each checkpoint carries the decoder's geometry, so the
+newest is the trained decoder (:func:`sword_jax.load.load_light_decoder` reads its weights alone), and
 ``<workdir>/strip.png`` shows a held clip decoded by both decoders, before and after.
 """
 
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import time
 from typing import Any
 
@@ -40,21 +39,20 @@ def light_geometry(cfg: Any) -> tuple[int, int]:
                                       policy_size=cfg.rl.image_size)
 
 
-def save_light_decoder(path: str, params: Any, cfg: Any) -> None:
-    """Writes the light decoder's weights (pure dict) with what rebuilds it: its config section, the latent
-    channels, the scale and the temporal factor."""
+def light_meta(cfg: Any) -> dict:
+    """What rebuilds the light decoder, saved with every checkpoint: its config section, the latent channels, the
+    scale and the temporal factor (:func:`sword_jax.load.load_light_decoder` reads it)."""
     latent, frame = light_geometry(cfg)
-    meta = {"kind": KIND, "light_decoder": dataclasses.asdict(cfg.light_decoder), "z_dim": cfg.vae.z_dim,
+    return {"kind": KIND, "light_decoder": dataclasses.asdict(cfg.light_decoder), "z_dim": cfg.vae.z_dim,
             "scale": frame // latent, "temporal_factor": cfg.vae.temporal_factor, "latent_size": latent,
             "frame_size": frame}
-    # written beside, then swapped in: a run extended later replaces the weights (orbax skips a step it has)
-    partial = path + ".partial"
-    shutil.rmtree(partial, ignore_errors=True)
-    ckpt = checkpoint.Checkpointer(partial, max_to_keep=1)
-    ckpt.save(0, nnx.to_pure_dict(params), meta)
-    ckpt.close()
-    shutil.rmtree(path, ignore_errors=True)
-    os.replace(partial, path)
+
+
+def save_light_decoder(directory: str, params: Any, cfg: Any, *, step: int = 0) -> None:
+    """Writes light-decoder weights as the training's checkpoints hold them (``params`` and :func:`light_meta`),
+    e.g. weights made elsewhere."""
+    with checkpoint.Checkpointer(directory, max_to_keep=1) as ckpt:
+        ckpt.save(step, {"params": nnx.to_pure_dict(params)}, light_meta(cfg))
 
 
 def run_id(cfg: Any, *, latent_shape: tuple[int, ...]) -> dict:
@@ -83,8 +81,10 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
 
     Returns:
       ``{"path", "steps", "frame_size", "latent_size", "params", "first_loss", "final_loss", "eval": {"init_l1",
-      "final_l1", "init_psnr", "final_psnr"}, "strip"}``: eval numbers on a fixed batch of clips (float32,
-      student vs teacher at the student's resolution, PSNR on frames clipped to [0, 1]).
+      "final_l1", "init_psnr", "final_psnr"}, "strip"}``: ``path`` is the checkpoints directory
+      (:func:`sword_jax.load.load_light_decoder`'s input, ``train.grpo --light-decoder``); ``eval`` the numbers
+      on a fixed batch of clips before and after (float32, student vs teacher at the student's resolution,
+      PSNR on frames clipped to [0, 1]).
     """
     from sword_jax.load import load_vae_params
     from sword_jax.rl.sim_builder import inference_vae
@@ -96,12 +96,15 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
     log = print if is_main else (lambda *_a, **_k: None)
     latent_size, frame_size = light_geometry(cfg)
     if not vae and not cfg.vae.checkpoint:
-        raise ValueError("light decoder: the teacher is the run's VAE: give its saved state (train_vae's <workdir>/vae) "
-                         "or vae.checkpoint")
-    dataset = load_latent_dataset(latents).latents
+        raise SystemExit("train_light_decoder: the teacher is the run's VAE: give its saved state (--vae, train_vae's "
+                         "<workdir>/vae) or --vae.checkpoint")
+    try:
+        dataset = load_latent_dataset(latents).latents
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"train_light_decoder: {err}") from None
     want = (latent_size, latent_size, cfg.vae.z_dim)
     if tuple(dataset.shape[2:]) != want:
-        raise ValueError(f"light decoder: {latents} holds latents {dataset.shape}, the config's VAE makes [E, L, "
+        raise SystemExit(f"train_light_decoder: {latents} holds latents {dataset.shape}, the config's VAE makes [E, L, "
                          f"{want[0]}, {want[1]}, {want[2]}] (data.image_size / vae.spatial_factor, vae.z_dim)")
     mesh = shd.make_mesh(cfg.mesh)
     teacher_graphdef, teacher_state = inference_vae(*load_vae_params(cfg.vae, vae, mesh=mesh), ld.teacher_precision)
@@ -110,7 +113,10 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
                                                    temporal_factor=cfg.vae.temporal_factor,
                                                    key=jax.random.key(cfg.seed), mesh=mesh, rules=cfg.mesh.rules)
     params_count = light.param_count(state.params)
-    sampler = light_train.ClipSampler(dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed)
+    try:
+        sampler = light_train.ClipSampler(dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed)
+    except ValueError as err:
+        raise SystemExit(f"train_light_decoder: {err}") from None
     held = light_train.ClipSampler(dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed,
                                    name="light_decoder/eval").batch_at(0)
     perceptual_fn = None
@@ -130,12 +136,13 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
         video = light.decode(graphdef, params, clips, compute_dtype="float32")
         return jnp.mean(jnp.abs(video - target)), light_train.frame_psnr(video, target), video[0], target[0]
 
-    init_l1, init_psnr, init_video, _ = evaluate(teacher_state, state.params, held)
+    clip_sharding = shd.leading_axis_shardings(held, mesh, cfg.mesh.rules)
+    held_clips = shd.put(held, clip_sharding)
+    init_l1, init_psnr, init_video, _ = evaluate(teacher_state, state.params, held_clips)
     log(f"[light_decoder] {params_count / 1e6:.2f}M parameters, {latent_size}x{latent_size} latents -> "
         f"{frame_size}x{frame_size} frames; {dataset.shape[0]} episodes of {dataset.shape[1]} latents; teacher "
         f"{ld.teacher_precision}; init l1 {float(init_l1):.4f}, psnr {float(init_psnr):.2f} dB")
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
-    clip_sharding = shd.leading_axis_shardings(held, mesh, cfg.mesh.rules)
     log_every = max(cfg.trainer.log_every, 1)
     logger = checkpoint.MetricLogger(ld.train_steps, log_every, jsonl_path=os.path.join(cfg.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(cfg.workdir, "tensorboard"))
@@ -144,17 +151,17 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
         result = run_steps(
             step_fn, state, sampler.batch_at, key=root, steps=ld.train_steps, log_every=log_every,
             name="train_light_decoder", report=lambda done, metrics, _obs, eta: logger.write(done, metrics, eta_s=eta),
-            place=lambda clips: {"latents": shd.put(clips, clip_sharding)}, checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"),
-            checkpoint_every=cfg.trainer.checkpoint_every, keep_checkpoints=1, settle=True,
+            place=lambda clips: {"latents": shd.put(clips, clip_sharding)},
+            checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
+            keep_checkpoints=1, settle=True, checkpoint_meta=lambda _done: light_meta(cfg),
             run_id=run_id(cfg, latent_shape=dataset.shape), log=log)
     finally:
         logger.close()
     params = result.state.params
-    final_l1, final_psnr, final_video, target = evaluate(teacher_state, params, held)
-    path = os.path.join(cfg.workdir, KIND)
+    final_l1, final_psnr, final_video, target = evaluate(teacher_state, params, held_clips)
+    path = os.path.join(cfg.workdir, "checkpoints")
     strip = os.path.join(cfg.workdir, "strip.png")
     if is_main:
-        save_light_decoder(path, params, cfg)
         _write_strip(strip, jax.device_get(init_video), jax.device_get(final_video), jax.device_get(target))
     log(f"[light_decoder] {ld.train_steps} steps in {time.perf_counter() - started:.1f} s; held clips: l1 "
         f"{float(init_l1):.4f} -> {float(final_l1):.4f}, psnr {float(init_psnr):.2f} -> {float(final_psnr):.2f} dB")

@@ -191,7 +191,8 @@ def world_model_simulator(
         scale = light.attributes(light_graphdef, decoder_state)[1]
     hl = latent_size or frame_size // scale
     if light_decoder is not None and hl * scale != frame_size:
-        raise ValueError(f"world-model sim: frame_size={frame_size} is not the decoder's {scale} x the latent size {hl}")
+        raise ValueError(f"world-model sim: frame_size={frame_size} is not the light decoder's scale {scale} times "
+                         f"the latent size {hl}")
 
     def init_fn(params, start: StartState) -> WMState:
         wm_params, decoder_params = params

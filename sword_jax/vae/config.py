@@ -157,8 +157,8 @@ class LightDecoderConfig:
         if self.width < 1 or self.blocks < 1:
             raise ValueError(f"light_decoder.width and light_decoder.blocks must be >= 1, got {self.width} and "
                              f"{self.blocks}")
-        if self.train_steps < 0 or self.batch_size < 1 or self.clip_latents < 1:
-            raise ValueError(f"light_decoder: train_steps must be >= 0, batch_size and clip_latents >= 1, got "
+        if self.train_steps < 1 or self.batch_size < 1 or self.clip_latents < 1:
+            raise ValueError(f"light_decoder: train_steps, batch_size and clip_latents must be >= 1, got "
                              f"{self.train_steps}, {self.batch_size}, {self.clip_latents}")
         if not self.learning_rate > 0:
             raise ValueError(f"light_decoder.learning_rate must be > 0, got {self.learning_rate}")
@@ -183,7 +183,8 @@ class LightDecoderConfig:
         multiple of the latent size or exceeds ``image_size`` (the teacher's frames)."""
         latent = image_size // spatial_factor
         frame = self.output_size(policy_size)
-        source = f"light_decoder.frame_size={frame}" if self.frame_size else f"rl.image_size={frame} (light_decoder.frame_size=0)"
+        source = (f"light_decoder.frame_size={frame}" if self.frame_size
+                  else f"rl.image_size={frame} (light_decoder.frame_size=0)")
         ratio = frame // latent if latent and frame % latent == 0 else 0
         if ratio < 1 or ratio & (ratio - 1):
             raise ValueError(f"{source}: the light decoder upsamples the {latent}x{latent} latents (data.image_size="

@@ -57,7 +57,8 @@ def _log2(value: int, what: str) -> int:
     return int(math.log2(value))
 
 
-def stage_plan(cfg: LightDecoderConfig, *, scale: int, temporal_factor: int) -> tuple[list[int], list[tuple[bool, bool]], int]:
+def stage_plan(cfg: LightDecoderConfig, *, scale: int, temporal_factor: int
+               ) -> tuple[list[int], list[tuple[bool, bool]], int]:
     """``(channels per stage, (time grow, spatial x2) per transition, head patch)`` for ``scale`` pixels per
     latent pixel and ``temporal_factor`` frames per latent (both powers of two)."""
     spatial = _log2(scale, "the frame size over the latent size")
@@ -172,7 +173,8 @@ class LightDecoder(nnx.Module):
 
 def create_light_decoder(cfg: LightDecoderConfig, *, z_dim: int, scale: int, temporal_factor: int,
                          key: jax.Array) -> LightDecoder:
-    """A :class:`LightDecoder` with fresh parameters (unsharded; drawn as the VAE's are, :func:`~sword_jax.vae.model.vae_rngs`)."""
+    """A :class:`LightDecoder` with fresh parameters (unsharded; drawn as the VAE's are,
+    :func:`~sword_jax.vae.model.vae_rngs`)."""
     with nnx.use_eager_sharding(False):
         return LightDecoder(cfg, z_dim=z_dim, scale=scale, temporal_factor=temporal_factor, rngs=vae_rngs(key))
 

@@ -40,10 +40,10 @@ LATENT_AXES = ("batch", "time", "height", "width", "channels")
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params", "opt_state", "step"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class LightTrainState:
-    """Everything a distillation step updates: the light decoder's params (float32), the optax state and the
-    int32 step count."""
+    """Everything a distillation step updates: the light decoder's params (float32, a pure dict), the optax state
+    and the int32 step count."""
 
-    params: nnx.State
+    params: dict
     opt_state: optax.OptState
     step: jax.Array
 
@@ -67,6 +67,7 @@ def init_train_state(
     else:
         with nnx.use_eager_sharding(False):
             graphdef, params = nnx.split(factory())
+    params = nnx.to_pure_dict(params)  # plain nested dicts of arrays: what a checkpoint's "params" holds
     opt_state = jax.jit(light_optimizer(cfg).init)(params)
     step = jnp.zeros((), jnp.int32)
     if mesh is not None:  # moments keep the params' shardings; scalars are replicated over the mesh
@@ -175,12 +176,13 @@ class ClipSampler:
     uniformly drawn position ``>= 1``: ``[batch, 1 + clip_latents, h, w, z]``.
     """
 
-    def __init__(self, latents: np.ndarray, *, batch: int, clip_latents: int, seed: int, name: str = "light_decoder/clips"):
+    def __init__(self, latents: np.ndarray, *, batch: int, clip_latents: int, seed: int,
+                 name: str = "light_decoder/clips"):
         if latents.ndim != 5:
             raise ValueError(f"light decoder clips: latents must be [E, L, h, w, z], got shape {latents.shape}")
         if latents.shape[1] < clip_latents + 1:
-            raise ValueError(f"light decoder clips: episodes of {latents.shape[1]} latents cannot hold the first latent "
-                             f"and {clip_latents} more (light_decoder.clip_latents)")
+            raise ValueError(f"light decoder clips: episodes of {latents.shape[1]} latents cannot hold the first "
+                             f"latent and {clip_latents} more (light_decoder.clip_latents)")
         self.latents, self.batch, self.clip_latents, self.seed, self.name = latents, batch, clip_latents, seed, name
 
     def batch_at(self, step: int) -> np.ndarray:
