@@ -26,8 +26,9 @@ stage times, code version and hashes of the shared inputs. ``merge DIR`` builds
 
 What the slices share. The seeds vary what is compared: world-model training (initialisation,
 batch order, DLB reads) and GRPO. Stages that do not depend on the compared choice -- expert data
-and held-out episodes, the VAE, the encoded latents (per augmentation setting), the state probe,
-the reward model and the supervised policy -- are built once in ``<out>/shared/<run>`` at
+and held-out episodes, the VAE, the encoded latents (per augmentation setting), the light rollout
+decoder (with ``rl.imagined.decoder=light``), the state probe, the reward model and the supervised
+policy -- are built once in ``<out>/shared/<run>`` at
 ``--shared-seed`` (default 0), whatever the slice's seed, and adopted by the slice. They are meant
 to be deterministic functions of the config and that seed, so that a slice run later on a fresh
 machine rebuilds the same inputs; every slice file records their hashes (``sword_jax.pipeline.inputs``),

@@ -46,6 +46,7 @@ SHAREABLE = {
     "data": ("sim", "data", "eval"),
     "vae": ("sim", "data", "vae"),
     "latents": ("sim", "data", "vae", "augment", "rl"),  # rl: the policy's rollouts join the data
+    "light_decoder": ("sim", "data", "vae", "augment", "rl", "light_decoder"),  # distilled on those latents
     "policy_data": ("sim", "data", "rl"),
     "probe": ("sim", "data"),  # the state probe that scores action following, where the pipeline has one
     "reward_model": ("sim", "data", "rl"),
