@@ -20,6 +20,7 @@ BAD_ARGS = {
     "train.compare": ["--runs", "nope"],
     "train.gen_data": ["--task", "12", "--out", "unused.hdf5"],
     "train.train_vae": ["--trainer.steps=abc"],
+    "train.train_light_decoder": ["--light_decoder.width=0", "--latents", "unused.npz"],
     "train.train_world_model": ["--synthetic", "--no-such-flag"],
     "train.evaluate_world_model": ["--config", "sword:huge"],
     "train.train_policy": ["--model.num_layers=0"],
@@ -82,7 +83,8 @@ def test_pipeline_command_line_in_a_subprocess():
     out, err = plain.communicate(timeout=120)
     assert plain.returncode == 2 and out == ""
     assert err.strip() == ("train.pipeline: error: unknown config key 'modle.num_layers'; sections are: augment, "
-                           "cache, data, eval, flow, mesh, model, name, rl, seed, sim, trainer, vae, workdir"), err
+                           "cache, data, eval, flow, light_decoder, mesh, model, name, rl, seed, sim, trainer, vae, "
+                           "workdir"), err
     _, err = debug.communicate(timeout=120)
     assert debug.returncode == 2 and "Traceback" in err and err.strip().endswith("workdir"), err
 
