@@ -137,7 +137,7 @@ def test_grpo_setup_decodes_with_the_light_decoder_only_when_configured(tmp_path
 
 def test_the_light_decoder_stage_runs_only_when_enabled_and_its_path_reaches_grpo(tmp_path, monkeypatch):
     from sim import grpo_training, pipeline_stages, policy_stages
-    from sword_jax.pipeline import light_decoder
+    from sword_jax.pipeline import light_decoder, report
     from sword_jax.pipeline.grpo import GRPOInputs
     from sword_jax.pipeline.stages import Context
 
@@ -146,8 +146,10 @@ def test_the_light_decoder_stage_runs_only_when_enabled_and_its_path_reaches_grp
     needs = {s.name: s.needs for s in pipeline_stages.STAGES}
     assert needs["light_decoder"] == ("vae", "latents") and "light_decoder" in needs["policy"]
     calls = []
-    monkeypatch.setattr(light_decoder, "run_light_decoder",
-                        lambda cfg, **kw: calls.append((cfg, kw)) or {"path": str(tmp_path / "ld" / "light_decoder")})
+    trained = {"path": str(tmp_path / "ld" / "checkpoints"), "steps": 2, "frame_size": 32, "params": 10,
+               "eval": {"init_l1": 0.3, "final_l1": 0.2, "init_psnr": 15.0, "final_psnr": 17.5},
+               "strip": str(tmp_path / "ld" / "strip.png")}
+    monkeypatch.setattr(light_decoder, "run_light_decoder", lambda cfg, **kw: calls.append((cfg, kw)) or dict(trained))
     monkeypatch.setattr(grpo_training, "run_grpo",
                         lambda cfg, inputs, **kw: calls.append(inputs) or {"curve": [], "workdir": "grpo_dir"})
     results = {"data": {"train": {"path": "train.hdf5"}, "demos": {"path": "demos.hdf5"}}, "vae": {"path": "vae_dir"},
@@ -160,13 +162,17 @@ def test_the_light_decoder_stage_runs_only_when_enabled_and_its_path_reaches_grp
         ctx = Context(cfg=cfg, workdir=str(tmp_path), results=dict(results))
         ctx.results["light_decoder"] = stage_results[decoder] = pipeline_stages.stage_light_decoder(ctx)
         policy_stages.grpo_in_world_model(ctx)
+        report.write(ctx)  # the report tells what the light decoder reached, when one was trained
+        text = open(os.path.join(str(tmp_path), "report.md")).read()
+        assert ("## Light rollout decoder" in text) == (decoder == "light")
+        assert decoder == "full" or "0.3 -> 0.2, PSNR 15 -> 17.5 dB" in text
     assert stage_results["full"] == {"path": "", "skipped": "rl.imagined.decoder=full"}
     grpo_full, (ld_cfg, ld_kwargs), grpo_light = calls
     assert grpo_full == GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir", policy="sft",
                                    reward="rm_dir", light_decoder="")
     assert ld_cfg.workdir == str(tmp_path / "light_decoder") and os.path.isdir(ld_cfg.workdir)
     assert ld_kwargs == {"vae": "vae_dir", "latents": "latents.npz"}
-    assert grpo_light.light_decoder == str(tmp_path / "ld" / "light_decoder")
+    assert grpo_light.light_decoder == str(tmp_path / "ld" / "checkpoints")
 
 
 def _vae_and_latents(tmp_path):

@@ -56,6 +56,14 @@ def write(ctx: Context) -> dict:
     if vae:
         lines += ["## VAE", "", f"Loss {_fmt(vae.get('first_loss'))} -> {_fmt(vae.get('final_loss'))} "
                   f"over {vae.get('steps')} steps" + (f" (official weights: {vae['source']})" if vae.get("source") else "") + ".", ""]
+    light = results.get("light_decoder", {})
+    if light.get("eval"):
+        ev = light["eval"]
+        strip = os.path.relpath(light["strip"], ctx.workdir) if light.get("strip") else None
+        lines += ["## Light rollout decoder", "", f"Distilled from the VAE at {light.get('frame_size')} px over "
+                  f"{light.get('steps')} steps ({_fmt(light.get('params'))} parameters); on held clips, L1 to the VAE's "
+                  f"frames {_fmt(ev.get('init_l1'))} -> {_fmt(ev.get('final_l1'))}, PSNR {_fmt(ev.get('init_psnr'))} -> "
+                  f"{_fmt(ev.get('final_psnr'))} dB." + (f" Frames: [{strip}]({strip})." if strip else ""), ""]
     wm = results.get("world_model", {})
     if wm:
         final = wm.get("final_metrics", {})
