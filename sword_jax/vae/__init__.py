@@ -16,7 +16,9 @@ Functional API (``graphdef, state = nnx.split(vae)``; channels-last; all jittabl
 
 Construction: ``create_vae(cfg, key=...)``, ``abstract_vae(cfg)``, ``param_count(cfg)``,
 ``tiny_config()``. Official checkpoints: :mod:`sword_jax.convert.wan22_vae`. Training:
-:mod:`sword_jax.vae.train`.
+:mod:`sword_jax.vae.train`. A light causal decoder of the same latents for imagined rollouts
+(``LightDecoderConfig``): :mod:`sword_jax.vae.light_decoder`, distilled from this decoder by
+:mod:`sword_jax.vae.light_train`.
 """
 
 import dataclasses
@@ -38,7 +40,7 @@ from sword_jax.vae.api import (
     param_count,
     reference_taps,
 )
-from sword_jax.vae.config import VAEConfig
+from sword_jax.vae.config import LightDecoderConfig, VAEConfig
 from sword_jax.vae.model import LatentStat, WanVAE
 
 
@@ -51,7 +53,7 @@ def tiny_config(**overrides) -> VAEConfig:
 
 
 __all__ = [
-    "LatentStat", "StreamCache", "VAEConfig", "WanVAE", "abstract_vae", "check_latent_values",
+    "LatentStat", "LightDecoderConfig", "StreamCache", "VAEConfig", "WanVAE", "abstract_vae", "check_latent_values",
     "check_video_values", "create_vae", "decode", "decode_chunk", "decode_raw", "encode", "encode_chunk",
     "encode_moments", "init_decode_cache", "init_encode_cache", "param_count", "reference_taps", "tiny_config",
 ]
