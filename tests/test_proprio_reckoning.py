@@ -101,7 +101,9 @@ def test_masked_proprio_act_runs_the_missing_proprio_mode():
     act = make_act_fns(graphdef, rl)
     _, _, lp_valid, _ = act(params, frames, tokens, proprio, key, greedy=True)
     _, chunk, lp_masked, _ = act(params, frames, tokens, proprio, key, greedy=True, proprio_valid=jnp.zeros((3,)))
-    logits = nnx.merge(graphdef, params)(resize_frames(frames, 8), tokens, 0.0 * proprio, jnp.zeros((3,)))
+    # jitted: eager op-by-op dispatch of the forward pass takes several times longer
+    logits = jax.jit(lambda p: nnx.merge(graphdef, p)(resize_frames(frames, 8), tokens, 0.0 * proprio,
+                                                     jnp.zeros((3,))))(params)
     want = jnp.take_along_axis(jax.nn.log_softmax(logits, -1), chunk[..., None], -1)[..., 0]
     np.testing.assert_allclose(np.asarray(lp_masked), np.asarray(want), atol=1e-5)  # proprio values ignored
     assert not np.allclose(np.asarray(lp_valid), np.asarray(lp_masked))

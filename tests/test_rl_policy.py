@@ -38,7 +38,9 @@ def test_policy_distinguishes_instructions_by_text():
     for _ in range(60):
         state, metrics = step(state, batch, jax.random.key(0))
     assert float(metrics["token_accuracy"]) > 0.9
-    logits = policy_logits(graphdef, state.params, jnp.asarray(frames[:2]), jnp.asarray(tokens[:2]), jnp.zeros((2, 4)))
+    # jitted: eager op-by-op dispatch compiles each of the forward pass's ops on its own, several times slower
+    logits = jax.jit(lambda p, f, t, q: policy_logits(graphdef, p, f, t, q))(
+        state.params, jnp.asarray(frames[:2]), jnp.asarray(tokens[:2]), jnp.zeros((2, 4)))
     acts = np.asarray(tokens_to_actions(greedy_chunk(logits), POLICY_CFG.action_bins))
     np.testing.assert_allclose(acts[0], 0.6, atol=0.1)
     np.testing.assert_allclose(acts[1], -0.6, atol=0.1)

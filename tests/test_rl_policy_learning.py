@@ -168,8 +168,10 @@ def test_grpo_against_the_mujoco_environment_improves_the_policy():
             assert np.isfinite(float(metrics["loss"]))
     assert np.mean(rates[-3:]) > np.mean(rates[:2]) + 0.25, rates
     # the learned behaviour is in the policy: its greedy x-action is now forward
-    logits = policy_logits(graphdef, state.params, jnp.asarray(rollout.obs_frames[:2, 0] / 255.0),
-                           jnp.asarray(rollout.instruction_tokens[:2]), jnp.asarray(rollout.proprio[:2, 0]))
+    # jitted: eager op-by-op dispatch of the forward pass takes several times longer
+    logits = jax.jit(lambda p, f, t, q: policy_logits(graphdef, p, f, t, q))(
+        state.params, jnp.asarray(rollout.obs_frames[:2, 0] / 255.0), jnp.asarray(rollout.instruction_tokens[:2]),
+        jnp.asarray(rollout.proprio[:2, 0]))
     assert np.all(np.asarray(jnp.argmax(logits[:, 0, 0, :], -1)) >= cfg.action_bins // 2)  # first x-action forward
 
 
