@@ -95,7 +95,10 @@ def test_grpo_improves_policy_on_toy_simulator():
         out = imagined_rollout(graphdef, params, sim, reward_model, eval_start, cfg, key=jax.random.key(3))
         return jnp.mean(out.returns)
 
-    before = float(evaluate(params))
+    # both evaluations take parameters committed to one device: the step's mesh placement of its parameters
+    # (or uncommitted ones) would make evaluate compile twice
+    device = jax.devices()[0]
+    before = float(evaluate(jax.device_put(params, device)))
     state = grpo.init_state(params, cfg)
     step = grpo.make_grpo_step(graphdef, cfg)
     for i in range(12):
@@ -104,7 +107,7 @@ def test_grpo_improves_policy_on_toy_simulator():
         assert float(metrics["unconfirmed_fraction"]) == 0.0
         assert float(metrics["imagined_success_unconfirmed"]) == float(metrics["success_rate"])
     assert np.isfinite(float(metrics["loss"]))
-    after = float(evaluate(state.params))
+    after = float(evaluate(jax.device_put(state.params, device)))
     assert after > before + 0.2, (before, after)
 
 
@@ -177,10 +180,14 @@ def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):
     # the micro-batched objective is grpo_loss's
     from sword_jax.rl.grpo import _rollout_log_probs
 
-    adv, keep = grpo.group_advantages(rollout.returns.reshape(-1, cfg.grpo.group_size))
-    ref = _rollout_log_probs(graphdef, params, rollout)
-    direct, _ = grpo.grpo_loss(ref, rollout.log_probs, ref, adv.reshape(-1), rollout.valid,
-                               jnp.repeat(keep, cfg.grpo.group_size), cfg)
+    @jax.jit  # eager op-by-op dispatch of the policy's forward pass takes several times longer
+    def direct_loss(params, rollout):
+        adv, keep = grpo.group_advantages(rollout.returns.reshape(-1, cfg.grpo.group_size))
+        ref = _rollout_log_probs(graphdef, params, rollout)
+        return grpo.grpo_loss(ref, rollout.log_probs, ref, adv.reshape(-1), rollout.valid,
+                              jnp.repeat(keep, cfg.grpo.group_size), cfg)[0]
+
+    direct = direct_loss(params, rollout)
     np.testing.assert_allclose(float(whole_loss), float(direct), rtol=1e-5, atol=1e-7)
     with pytest.raises(ValueError, match="update_microbatch"):
         odd = dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, update_microbatch=3))
