@@ -127,17 +127,24 @@ def _check_video_shape(video, graphdef, state, *, first: bool, name: str = "vide
         raise ValueError(f"a later {name} chunk must have a positive multiple of {tf} frames, got T={t}")
 
 
-def _check_latent_shape(latents, graphdef, state, *, name: str = "latents") -> None:
-    z, _, _, _ = _attrs(graphdef, state)
+def check_latents(latents, z: int, *, name: str = "latents", who: str = "") -> None:
+    """Refuses ``latents`` that are not floating-point ``[B, T, h, w, z]`` with at least one frame and pixel;
+    the message names ``name`` (and ``who``, the decoder it was given to)."""
+    head = f"{who}: {name}" if who else name
     shape = tuple(latents.shape)
     if len(shape) != 5:
-        raise ValueError(f"{name} must be [B, T, h, w, {z}] (channels-last), got shape {shape}")
+        raise ValueError(f"{head} must be [B, T, h, w, {z}] (channels-last), got shape {shape}")
     if shape[-1] != z:
-        raise ValueError(f"{name} must have {z} channels in the last axis, got {shape[-1]} (shape {shape})")
+        raise ValueError(f"{head} must be [B, T, h, w, {z}]: must have {z} channels in the last axis, got "
+                         f"{shape[-1]} (shape {shape})")
     if shape[1] < 1 or shape[2] < 1 or shape[3] < 1:
-        raise ValueError(f"{name} must have at least one frame and pixel, got shape {shape}")
+        raise ValueError(f"{head} must have at least one frame and pixel, got shape {shape}")
     if not jnp.issubdtype(latents.dtype, jnp.floating):
-        raise ValueError(f"{name} must be floating point, got dtype {latents.dtype}")
+        raise ValueError(f"{head} must be floating point, got dtype {latents.dtype}")
+
+
+def _check_latent_shape(latents, graphdef, state, *, name: str = "latents") -> None:
+    check_latents(latents, _attrs(graphdef, state)[0], name=name)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "first", "dtype"))

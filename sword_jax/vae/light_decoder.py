@@ -43,7 +43,7 @@ from flax import nnx
 from jax import lax
 from jaxtyping import Array, Float
 
-from sword_jax.vae.api import StreamCache
+from sword_jax.vae.api import StreamCache, check_latents
 from sword_jax.vae.config import LightDecoderConfig
 from sword_jax.vae.model import vae_rngs
 
@@ -206,14 +206,7 @@ def _dtype(graphdef, state, compute_dtype: str | None) -> str:
 
 
 def _check_latents(latents, graphdef, state, *, name: str = "latents") -> None:
-    z = attributes(graphdef, state)[0]
-    shape = tuple(latents.shape)
-    if len(shape) != 5 or shape[-1] != z:
-        raise ValueError(f"light decoder: {name} must be [B, T, h, w, {z}] (channels-last), got shape {shape}")
-    if min(shape[1:4]) < 1:
-        raise ValueError(f"light decoder: {name} must hold at least one frame and pixel, got shape {shape}")
-    if not jnp.issubdtype(latents.dtype, jnp.floating):
-        raise ValueError(f"light decoder: {name} must be floating point, got dtype {latents.dtype}")
+    check_latents(latents, attributes(graphdef, state)[0], name=name, who="light decoder")
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "first", "dtype"))
