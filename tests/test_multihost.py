@@ -19,7 +19,7 @@ import pytest
 
 from sword_jax.pipeline.launch import STOP_MARGIN_S
 from tests.conftest import FAST_COMPILE, REPO
-from tests.support.checkpoints import final_arrays
+from tests.support.checkpoints import assert_same_final_checkpoint, final_arrays
 
 STEPS = 4
 ARGS = ["--config", "sword:tiny", "--synthetic", f"--trainer.steps={STEPS}", "--trainer.checkpoint_every=2",
@@ -128,11 +128,5 @@ def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_i
 
     resumed = _wait(_launch(crashed, cache, *long_args))
     assert "resumed from step" in resumed
-    want, want_meta = final_arrays(reference)
-    got, got_meta = final_arrays(crashed)
-    assert want.keys() == got.keys() and len(want) > 10
-    for name in want:
-        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
-    assert got_meta["step"] == want_meta["step"] == LONG_STEPS
-    assert got_meta["data_position"] == want_meta["data_position"]
+    assert_same_final_checkpoint(reference, crashed, LONG_STEPS)
     assert _metrics(crashed) == _metrics(reference)

@@ -36,3 +36,16 @@ def final_arrays(workdir: str) -> tuple[dict[str, np.ndarray], dict]:
 
     visit("", restored["state"])
     return flat, restored["meta"]
+
+
+def assert_same_final_checkpoint(reference: str, other: str, steps: int) -> tuple[dict[str, np.ndarray], dict, dict]:
+    """Both runs' newest checkpoints hold bit-identical arrays, ``steps`` steps and the same data position;
+    returns ``(reference arrays, reference meta, other meta)`` for further checks."""
+    want, want_meta = final_arrays(reference)
+    got, got_meta = final_arrays(other)
+    assert want.keys() == got.keys() and len(want) > 10
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    assert got_meta["step"] == want_meta["step"] == steps
+    assert got_meta["data_position"] == want_meta["data_position"]
+    return want, want_meta, got_meta
