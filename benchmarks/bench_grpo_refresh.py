@@ -122,27 +122,28 @@ def pipeline_command(args, overrides: Sequence[str], *, config: str | None = Non
             *[o for o in [*overrides, *own] if not o.startswith("--rl.")]]
 
 
+def pipe_runs(args, overrides: Sequence[str], p: Pipe) -> dict[str, list[str]]:
+    """``{run name: command}`` of the GRPO runs in pipeline ``p``'s world model: ``<prefix>refreshed_seed<k>``
+    for each of its seeds, ``<prefix>once_seed<first>`` with ``p.once`` (same policy, recipe and budget
+    everywhere)."""
+    pipe = os.path.join(args.workdir, p.folder)
+    base = [sys.executable, "-m", "train.grpo", "--config", p.config, "--simulator", "world_model",
+            "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
+            "--reward", os.path.join(pipe, "rl", "reward_model"),
+            "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--latents", os.path.join(pipe, "data", "latents.npz"),
+            "--policy", args.policy, *GRPO_FLAGS, f"--rl.grpo.steps={args.steps}",
+            f"--rl.grpo.eval_every={args.refresh_every}", f"--rl.refresh.every={args.refresh_every}"]
+    runs = {f"{p.prefix}refreshed_seed{seed}": [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
+                                                *overrides, *p.overrides] for seed in p.seeds}
+    if p.once:
+        runs[f"{p.prefix}once_seed{p.seeds[0]}"] = [*base, "--seed", str(p.seeds[0]), "--rl.refresh.budget=64",
+                                                    *overrides, *p.overrides]
+    return {name: [*cmd, "--workdir", os.path.join(args.workdir, name)] for name, cmd in runs.items()}
+
+
 def grpo_commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
-    """``{run name: command}``: ``<prefix>refreshed_seed<k>`` for every seed of every pipeline (:func:`pipes`),
-    ``once_seed<first>`` for Sword's (same policy, recipe and budget everywhere)."""
-    runs = {}
-    for p in pipes(args):
-        pipe = os.path.join(args.workdir, p.folder)
-        base = [sys.executable, "-m", "train.grpo", "--config", p.config, "--simulator", "world_model",
-                "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
-                "--reward", os.path.join(pipe, "rl", "reward_model"),
-                "--demos", os.path.join(pipe, "data", "demos.hdf5"), "--latents", os.path.join(pipe, "data", "latents.npz"),
-                "--policy", args.policy, *GRPO_FLAGS, f"--rl.grpo.steps={args.steps}",
-                f"--rl.grpo.eval_every={args.refresh_every}", f"--rl.refresh.every={args.refresh_every}"]
-        for seed in p.seeds:
-            runs[f"{p.prefix}refreshed_seed{seed}"] = [*base, "--seed", str(seed), f"--rl.refresh.budget={args.budget}",
-                                                       *overrides, *p.overrides]
-        if p.once:
-            runs[f"{p.prefix}once_seed{p.seeds[0]}"] = [*base, "--seed", str(p.seeds[0]), "--rl.refresh.budget=64",
-                                                        *overrides, *p.overrides]
-    for name, cmd in runs.items():
-        cmd += ["--workdir", os.path.join(args.workdir, name)]
-    return runs
+    """Every pipeline's runs (:func:`pipes`, :func:`pipe_runs`), ``{run name: command}``."""
+    return {name: cmd for p in pipes(args) for name, cmd in pipe_runs(args, overrides, p).items()}
 
 
 def share_data(args, overrides: Sequence[str], pipe: Pipe | None = None) -> None:
@@ -203,8 +204,6 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
                                                             own=p.overrides), p.gpus[0] if p.gpus else "")
                 for p in every}  # side by side
     commands = grpo_commands(args, overrides)
-    owner = {name: next(p for p in sorted(every, key=lambda q: -len(q.prefix)) if name.startswith(p.prefix))
-             for name in commands}
     procs: dict[str, subprocess.Popen] = {}
     stopped: list[str] = []
     while building or any(p.poll() is None for p in procs.values()):
@@ -216,9 +215,8 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
                 print(f"[refresh] pipeline {folder} failed (log: {args.workdir}/{folder}.log)", flush=True)
                 continue
             pipe = by_folder[folder]
-            mine = [n for n in commands if owner[n] is pipe]
-            for i, name in enumerate(mine):
-                procs[name] = launch(name, commands[name], pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
+            for i, (name, cmd) in enumerate(pipe_runs(args, overrides, pipe).items()):
+                procs[name] = launch(name, cmd, pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
             everything = {**building, **procs}
             running = stop_all(list(everything.values()))
@@ -301,11 +299,9 @@ def summarize_run(folder: str) -> dict:
 def separations(by_horizon: dict | None) -> dict[str, float | None]:
     """``{horizon: imagined success among real successes minus among real failures}`` of a replay's
     ``imagined_success_by_horizon`` (None where a group is empty)."""
-    out = {}
-    for h, entry in (by_horizon or {}).items():
-        win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
-        out[h] = None if win is None or loss is None else win - loss
-    return out
+    from sword_jax.rl.refresh import separation
+
+    return {h: separation(entry) for h, entry in (by_horizon or {}).items()}
 
 
 def ground_truth_curves(folder: str) -> dict:

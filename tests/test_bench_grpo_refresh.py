@@ -157,7 +157,7 @@ def test_run_launches_each_pipelines_runs_when_built_and_stops_them_at_the_deadl
              f"json.dump({curve!r}, open(os.path.join(d, 'success_curve.json'), 'w')); time.sleep(600)")
     runs = {name: [sys.executable, "-c", write.replace("os.getcwd()", repr(str(tmp_path / name)))]
             for name in ("refreshed_seed0", "refreshed_seed1")}
-    monkeypatch.setattr(bench, "grpo_commands", lambda *a: runs)
+    monkeypatch.setattr(bench, "pipe_runs", lambda *a: runs)
     out = bench.run(Run, [], poll_s=0.2)
     assert out["stopped_at_deadline"] == ["refreshed_seed0", "refreshed_seed1"]
     assert sorted(out["runs"]) == ["refreshed_seed0", "refreshed_seed1"] and out["seconds"] < 60

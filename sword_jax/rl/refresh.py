@@ -232,6 +232,13 @@ def first_success(scores: np.ndarray, lengths: np.ndarray, threshold: float, suc
     return np.where(reached.any(1), reached.argmax(1), -1)
 
 
+def separation(entry: dict[str, Any]) -> float | None:
+    """Imagined success among real successes minus among real failures, of one horizon's entry of
+    :func:`~sword_jax.rl.sim_agreement.success_by_horizon` (None where a group is empty)."""
+    win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
+    return None if win is None or loss is None else float(win - loss)
+
+
 def choose_horizon(by_horizon: dict[str, dict[str, Any]], horizons: tuple[int, ...], min_separation: float
                    ) -> tuple[int, dict[str, float | None], bool]:
     """The longest of ``horizons`` whose separation (imagined success by then among real successes minus
@@ -239,19 +246,15 @@ def choose_horizon(by_horizon: dict[str, dict[str, Any]], horizons: tuple[int, .
     ``min_separation``; when none is, the one that separates best (the longest of equals), since a horizon
     too short for any task to be solved pays no reward at all; the shortest when no separation is known.
     Returns ``(horizon, every candidate's separation (None where a group is empty), trusted)``."""
-    separation = {}
-    for h in horizons:
-        entry = by_horizon[str(h)]
-        win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
-        separation[str(h)] = None if win is None or loss is None else float(win - loss)
-    known = [h for h in horizons if separation[str(h)] is not None]
-    trusted = [h for h in known if separation[str(h)] >= min_separation]
+    seps = {str(h): separation(by_horizon[str(h)]) for h in horizons}
+    known = [h for h in horizons if seps[str(h)] is not None]
+    trusted = [h for h in known if seps[str(h)] >= min_separation]
     if trusted:
-        return max(trusted), separation, True
+        return max(trusted), seps, True
     if not known:
-        return min(horizons), separation, False
-    best = max(separation[str(h)] for h in known)
-    return max(h for h in known if separation[str(h)] == best), separation, False
+        return min(horizons), seps, False
+    best = max(seps[str(h)] for h in known)
+    return max(h for h in known if seps[str(h)] == best), seps, False
 
 
 class Refresher:
@@ -423,15 +426,13 @@ class Refresher:
         by_horizon = detector.get("imagined_success_by_horizon")
         if conf.horizons and by_horizon and not any("horizon" in r for r in self.records):
             # the run's first calibrated refresh chooses
-            chosen, separation, trusted = choose_horizon(by_horizon, tuple(conf.horizons), conf.min_separation)
-            horizon = {"horizon": {"actions": chosen, "separation": separation, "min_separation": conf.min_separation,
+            chosen, seps, trusted = choose_horizon(by_horizon, tuple(conf.horizons), conf.min_separation)
+            horizon = {"horizon": {"actions": chosen, "separation": seps, "min_separation": conf.min_separation,
                                    "trusted": trusted}}
         chosen = horizon["horizon"]["actions"] if horizon else self.horizon()
         if chosen is not None and by_horizon and str(chosen) in by_horizon:
             # every calibrated refresh: does the simulator still separate real outcomes at the run's horizon?
-            entry = by_horizon[str(chosen)]
-            win, loss = entry["real_success"]["rate"], entry["real_failure"]["rate"]
-            sep = None if win is None or loss is None else float(win - loss)
+            sep = separation(by_horizon[str(chosen)])
             horizon["trust"] = {"actions": chosen, "separation": sep,
                                 "trusted": sep is not None and sep >= conf.min_separation}
         record = {"step": step, "real_episodes": real.num, **horizon, "real_episodes_used": self.used,
