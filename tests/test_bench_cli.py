@@ -23,6 +23,8 @@ from tests.conftest import REPO, example_env
      "no such file"),
     (["benchmarks.bench_dlb", "--tiny", "--model.no_such_key=3"], "unknown config key 'model.no_such_key'"),
     (["benchmarks.bench_vae", "--iters", "many"], "argument --iters: invalid int value"),
+    (["benchmarks.bench_brax_ppo", "--envs", "mjx,gym"], "unknown env(s) ['gym']"),
+    (["benchmarks.bench_brax_ppo", "--iterations", "1"], "--iterations must be at least 2"),
 ])
 def test_a_bad_argument_is_one_line_without_a_traceback(argv, expected, tmp_path):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
