@@ -26,6 +26,12 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
     python -m benchmarks.bench_grpo_refresh run --workdir runs/r41v --policy runs/p/policy_d50.npz --gpus 0 --seeds 0 \\
         --arms refreshed --variant "lpips=--vae.perceptual_weight=1.0" --variant "long=--trainer.steps=15000" \\
         --variant-gpus 1,2 --data-backend cpu --deadline-s 1450
+    python -m benchmarks.bench_grpo_refresh run --workdir runs/r41p --policy runs/p/policy_d50.npz --gpus 0,1,2 \
+        --arms refreshed --wovr-config cache_ablation:small-wovr --wovr-gpus 3 --wovr-seeds 0,1 \
+        --policy-rollouts 20 --data-backend cpu --deadline-s 1450
+
+``--policy-rollouts N`` starts every pipeline from ``--policy`` (``rl.sft.init``) and adds N of its episodes per
+task, failures included, to each world model's and detector's training data.
 """
 
 from __future__ import annotations
@@ -114,6 +120,11 @@ def pipeline_command(args, overrides: Sequence[str], *, config: str | None = Non
                      stop_after: str = "reward_model", own: Sequence[str] = ()) -> list[str]:
     flags = list(PIPELINE_FLAGS)
     flags[flags.index("--stop-after") + 1] = stop_after
+    rollouts = getattr(args, "policy_rollouts", 0)
+    if rollouts:  # the given policy's own episodes (its failures too) join the world model's and detector's data
+        flags[flags.index("--skip") + 1] = "probe,evaluate"
+        flags[flags.index("--data.policy_rollouts_per_task=0")] = f"--data.policy_rollouts_per_task={rollouts}"
+        flags.append(f"--rl.sft.init={os.path.abspath(args.policy)}")
     backend = getattr(args, "data_backend", "")
     return [sys.executable, "-m", "train.pipeline", "--config", config or args.config, "--seed", str(args.pipeline_seed),
             "--workdir", os.path.join(args.workdir, name), *flags,
@@ -456,6 +467,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--variant-gpus", default="", help="GPUs the variants take in turn (default: --gpus)")
     parser.add_argument("--data-backend", default="", help="the data stage's simulator backend (--sim.backend of "
                                                            "the pipelines only; e.g. cpu: the C engine's workers)")
+    parser.add_argument("--policy-rollouts", type=int, default=0,
+                        help="episodes per task of --policy itself, successes and failures, added to each world "
+                             "model's and detector's training data (data.policy_rollouts_per_task; 0: expert "
+                             "demonstrations only, the policy's episodes arrive with the first refresh)")
     parser.add_argument("--deadline-s", type=float, default=0.0,
                         help="stop the runs still going this many seconds after the start and summarise them "
                              "at their last evaluation (0: none)")

@@ -300,11 +300,44 @@ def grpo_refresh_replay() -> str:
                    "separation by 48 actions (after)"], rows)
 
 
+CAUSES = ("policy", "grpo_refresh_causes_small_4xh200")
+# each pipeline of the cause test and what it changed against the measured setting
+CAUSE_VARIANTS = (("pipeline", "refreshed_seed0", "as measured (VAE without the perceptual loss, world model 3,000 steps)"),
+                  ("pipeline_lpips", "lpips_refreshed_seed0", "VAE with the perceptual loss"),
+                  ("pipeline_long", "long_refreshed_seed0", "world model 15,000 steps"),
+                  ("pipeline_both", "both_refreshed_seed0", "both"))
+
+
+def grpo_refresh_causes() -> str:
+    """The cause test: Sword at seed 0 on four world models. Per world model: its final training loss, the
+    first refresh's replay of the policy's real episodes before any GRPO step (false successes, separation of
+    real outcomes), the refreshes whose simulator separated outcomes at the run's horizon, and the real gain."""
+    summary = _load(*CAUSES, "grpo_refresh_summary.json")
+    rows = []
+    for folder, run_name, label in CAUSE_VARIANTS:
+        run = summary["runs"][run_name]
+        world_model = _load(*CAUSES, folder, "world_model.json")["results"]
+        first = run["refreshes"][0]
+        done = [r for r in run["refreshes"] if not r.get("skipped")]
+        trusted = sum(bool(r["trust"]["trusted"]) for r in done)
+        sb = first["separation_before"]
+        s, g = run["sampled"], run["greedy"]
+        rows.append([label, f"{world_model['final_metrics']['loss']:.3f}",
+                     f"{first['false_success_before']['rate']:.2f}",
+                     f"{sb.get('48', float('nan')):+.2f} / {sb.get('96', float('nan')):+.2f}",
+                     f"{trusted} of {len(done)}", str(run["steps"]),
+                     f"{s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}]", f"{g['start']:.3f} -> {g['end']:.3f}"])
+    return _table(["world model", "world-model loss (last step)", "first refresh: real failures imagined successes",
+                   "first refresh: separation by 48 / 96 actions", "refreshes trusted", "GRPO steps",
+                   "sampled gain, 95% interval", "greedy"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels, "grpo-arms": grpo_arms,
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
+    "grpo-refresh-causes": grpo_refresh_causes,
 }
 
 

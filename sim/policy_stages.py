@@ -57,6 +57,8 @@ def reward_model(ctx: Context) -> dict:
 def sft_policy(ctx: Context) -> dict:
     from sim import policy_training
 
+    if ctx.cfg.rl.sft.init:
+        return policy_training.given_policy(ctx.cfg_in(ctx.workdir), ctx.cfg.rl.sft.init)
     return _scalars(policy_training.run_sft_policy(ctx.cfg_in(ctx.workdir), [_demos(ctx)]))
 
 

@@ -1,8 +1,8 @@
 """Behaviour cloning (SFT) of the VLA policy on expert demonstrations: the GRPO starting point.
 
 :func:`run_sft_policy` is what ``python -m train.train_policy`` and the pipeline's supervised-policy
-stage run. Writes ``<workdir>/rl/policy_sft`` (orbax) and, with ``eval_episodes``, the ground-truth
-success in the MuJoCo sim. The train state is checkpointed to ``<workdir>/rl/sft_checkpoints`` and a
+stage run (:func:`given_policy` instead, with ``rl.sft.init``). Writes ``<workdir>/rl/policy_sft`` (orbax)
+and, with ``eval_episodes``, the ground-truth success in the MuJoCo sim. The train state is checkpointed to ``<workdir>/rl/sft_checkpoints`` and a
 rerun resumes from there.
 """
 
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from collections.abc import Sequence
 
@@ -18,10 +19,47 @@ import numpy as np
 from sim.dataset import read_dataset
 from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
-from sword_jax.rl.params_io import save_params
+from sword_jax.rl.params_io import load_params, save_params
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.sft import train_sft
+
+
+def given_policy(cfg, source: str) -> dict:
+    """The ``sft_policy`` stage with ``rl.sft.init``: copies the trained policy ``source`` (a
+    ``train.train_policy`` checkpoint directory or ``.npz``) into ``<cfg.workdir>/rl`` and checks that it loads
+    into ``cfg.rl``'s policy. Returns the stage's summary, ``path`` the copy (later stages read it, so the run
+    does not depend on ``source`` staying where it is).
+
+    Raises:
+      FileNotFoundError: ``source`` does not exist.
+      ValueError: it holds another kind of checkpoint or another architecture than ``cfg.rl`` builds.
+    """
+    if not os.path.exists(source):
+        raise FileNotFoundError(f"rl.sft.init: no such policy {source!r} (a train_policy checkpoint directory or .npz)")
+    workdir = os.path.join(cfg.workdir, "rl")
+    os.makedirs(workdir, exist_ok=True)
+    is_npz = source.endswith(".npz")
+    path = os.path.abspath(os.path.join(workdir, "policy_given.npz" if is_npz else "policy_given"))
+    tmp = path[: -len(".npz")] + ".tmp.npz" if is_npz else path + ".tmp"  # load_params tells formats by suffix
+    shutil.rmtree(tmp, ignore_errors=True)
+    if os.path.isfile(tmp):
+        os.remove(tmp)
+    (shutil.copyfile if is_npz else shutil.copytree)(source, tmp)
+    try:
+        graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+        load_params(tmp, params, kind="policy")
+    except ValueError as err:  # CheckpointError (another config) included
+        (os.remove if is_npz else shutil.rmtree)(tmp)
+        raise ValueError(f"rl.sft.init: {source} does not load into this config's policy: {err}") from err
+    if os.path.isdir(path):
+        shutil.rmtree(path)
+    os.replace(tmp, path)
+    result = {"given": os.path.abspath(source), "path": path, "steps": 0, "demos": 0}
+    with open(os.path.join(workdir, "sft_result.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    print(f"sft_policy: starting from the given policy {source}", flush=True)
+    return result
 
 
 def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0,

@@ -163,3 +163,20 @@ def test_run_launches_each_pipelines_runs_when_built_and_stops_them_at_the_deadl
     assert sorted(out["runs"]) == ["refreshed_seed0", "refreshed_seed1"] and out["seconds"] < 60
     printed = capsys.readouterr().out
     assert "refreshed_seed0 on GPU 0" in printed and "refreshed_seed1 on GPU 1" in printed
+
+
+def test_policy_rollouts_put_the_given_policy_in_the_pipeline():
+    """With --policy-rollouts the pipeline starts from the policy GRPO starts from and adds its own episodes
+    to the world model's and detector's data; without, it skips both stages."""
+    plain = bench.pipeline_command(Args, [])
+    assert "--data.policy_rollouts_per_task=0" in plain and "probe,evaluate,sft_policy,policy_data" in plain
+    assert not any(flag.startswith("--rl.sft.init") for flag in plain)
+
+    class WithRollouts(Args):
+        policy_rollouts = 20
+
+    flags = bench.pipeline_command(WithRollouts, ["--rl.grpo.steps=3"])
+    assert "--data.policy_rollouts_per_task=20" in flags and "--data.policy_rollouts_per_task=0" not in flags
+    assert flags[flags.index("--skip") + 1] == "probe,evaluate"
+    assert f"--rl.sft.init={os.path.abspath('p.npz')}" in flags and "--rl.grpo.steps=3" not in flags
+    assert bench.PIPELINE_FLAGS[bench.PIPELINE_FLAGS.index("--skip") + 1] == "probe,evaluate,sft_policy,policy_data"

@@ -59,6 +59,9 @@ class SFTConfig:
       eval_every: SFT steps between teacher-forced metrics on held-out demonstrations.
       checkpoint_every: steps between the train-state checkpoints an SFT run resumes from
         (``train.train_policy``; the last step is always saved).
+      init: a trained policy (a ``train.train_policy`` checkpoint directory or ``.npz``) that the pipeline
+        starts from instead of behaviour cloning one: its ``sft_policy`` stage copies it into the run and
+        checks it loads into this config's policy; "" trains one.
     """
 
     steps: int = 200
@@ -69,8 +72,11 @@ class SFTConfig:
     warmup_steps: int = 50
     eval_every: int = 100
     checkpoint_every: int = 100
+    init: str = ""
 
     def validate(self) -> None:
+        if not isinstance(self.init, str):
+            raise ValueError(f"rl.sft.init must be a path (or \"\" to train a policy), got {self.init!r}")
         if not 0.0 <= self.lr_end_fraction <= 1.0:
             raise ValueError(f"rl.sft.lr_end_fraction must be in [0, 1], got {self.lr_end_fraction}")
         if self.warmup_steps < 0 or self.eval_every < 1:
