@@ -662,3 +662,48 @@ def test_grpo_stage_records_training_success_from_the_runs_history(tmp_path, mon
     committed = compare_lib.load_slices(os.path.join(compare.REPO, "benchmarks", "results", "compare", "small_grpo"))
     assert len(committed) == 9
     assert all(s["policy"]["grpo"]["training_success"]["steps"] == 50 for s in committed)
+
+
+class _RunsFor:
+    """A launched slice that exits 0 after ``polls`` polls."""
+
+    def __init__(self, polls: int, gpu: str):
+        self.left, self.gpu, self.done = polls, gpu, False
+
+    def poll(self):
+        self.left -= 1
+        self.done = self.left < 0
+        return 0 if self.done else None
+
+
+def test_gpus_put_each_slice_on_its_own_gpu(tmp_path):
+    """--gpus: each slice runs with one GPU visible, the one fewest running slices hold, so with as many slices
+    at once as GPUs no two share one; NVLink multicast stays off in every slice."""
+    import argparse
+
+    from sword_jax.pipeline import slices
+    from sword_jax.pipeline.launch import NO_MULTICAST
+
+    started, procs = [], []
+
+    def launch(argv, log_path, env):
+        gpu = env["CUDA_VISIBLE_DEVICES"]
+        assert not [p for p in procs if p.gpu == gpu and not p.done], f"GPU {gpu} already holds a running slice"
+        started.append((argv[argv.index("--seeds") + 1], gpu, env))
+        procs.append(_RunsFor(polls=3 - len(started) % 3, gpu=gpu))  # uneven lengths: GPUs free up out of order
+        return procs[-1]
+
+    args = argparse.Namespace(out=str(tmp_path), slices_at_once=2, no_share=True, shared_seed=0, gpus=["2", "5"])
+    slices.run_slices_side_by_side(["--size", "tiny", "--gpus", "2,5", "--slices-at-once", "2"], ["sword"],
+                                   [0, 1, 2, 3], args, [], build=None, launch=launch, poll_s=0.0)
+    assert [s[1] for s in started[:2]] == ["2", "5"] and sorted(s[1] for s in started) == ["2", "2", "5", "5"]
+    assert all(env[k] == v for _, _, env in started for k, v in NO_MULTICAST.items())
+    assert [s[0] for s in started] == ["0", "1", "2", "3"]
+
+
+@pytest.mark.parametrize("gpus", ["", "0,,1", "0,1,0"])
+def test_a_bad_gpu_list_is_refused(gpus, tmp_path):
+    from sword_jax.cli import UsageError
+
+    with pytest.raises(UsageError, match="--gpus takes comma-separated GPUs"):
+        compare.main(["--size", "tiny", "--gpus", gpus, f"--out={tmp_path}"])

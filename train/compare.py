@@ -54,6 +54,7 @@ from collections.abc import Sequence
 from sword_jax.cli import ArgumentParser, UsageError, not_dotted_overrides
 from sword_jax.pipeline.compare import (GROUND_TRUTH, GROUND_TRUTH_STAGES, SHAREABLE, SLICE_FORMAT, adopt_stages,
                                         finish, load_slices, merge, runs_for)
+from sword_jax.pipeline import launch as launcher
 from sword_jax.pipeline.inputs import REPO, code_version, device_info, shared_hashes
 from sword_jax.pipeline.slices import (EVALUATION_ONLY, SLICES_AT_ONCE_ENV, needs_policy, parse_runs, parse_seeds,
                                        parse_shared_seed, run_slices_side_by_side, shared_dir_of, shared_seed_of,
@@ -231,6 +232,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="build every run's shared stages first, then run the slices as child processes, N "
                              "side by side on the same device (a small model leaves most of a large GPU idle); "
                              "each child's output goes to <out>/logs/<run>_seed<k>.log")
+    parser.add_argument("--gpus", type=launcher.parse_gpus, default=[], metavar="0,1,2,3",
+                        help="run the slices one per GPU of this list (CUDA_VISIBLE_DEVICES), side by side: "
+                             "--slices-at-once defaults to their number")
     parser.add_argument("--no-evaluate", action="store_true",
                         help="comparison 3 only (sword, wovr): leave out the world-model evaluation, its probe and "
                              "the report; the slice trains GRPO and measures real success. Write these slices to "
@@ -247,6 +251,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise UsageError(f"--parallel must be >= 0, got {args.parallel}")
     if args.slices_at_once < 1:
         raise UsageError(f"--slices-at-once must be >= 1, got {args.slices_at_once}")
+    if args.gpus and not any(a == "--slices-at-once" or a.startswith("--slices-at-once=") for a in argv):
+        args.slices_at_once = len(args.gpus)
     seeds, runs = parse_seeds(args.seeds), parse_runs(args.runs, args.size, policy=not args.no_policy)
     if args.no_evaluate and (args.no_policy or not all(needs_policy(r) for r in runs)):
         raise UsageError("--no-evaluate is for comparison-3 slices (runs sword, wovr, ground_truth, with their policy "

@@ -37,7 +37,7 @@ def _parse(argv: Sequence[str]):
     own, command = argv[:split], argv[split + 1:]
     parser = ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--processes", type=int, required=True, help="processes (ranks) to start, one per GPU")
-    parser.add_argument("--gpus", default=None,
+    parser.add_argument("--gpus", type=launcher.parse_gpus, default=None,
                         help="comma-separated GPU of each rank (default: the first --processes GPUs visible)")
     parser.add_argument("--cpu-devices", type=int, default=None,
                         help="run each rank on this many CPU devices instead of one GPU (gloo collectives)")
@@ -58,7 +58,7 @@ def _parse(argv: Sequence[str]):
         # otherwise each rank would train alone in the same work dir
         raise UsageError(f"{module} does not join one multi-process job: run one of {', '.join(JOINING)} "
                          "with --mesh.distributed=true")
-    gpus = [g for g in args.gpus.split(",") if g] if args.gpus else None
+    gpus = args.gpus
     if gpus is not None and len(gpus) < args.processes:
         raise UsageError(f"--gpus names {len(gpus)} GPUs for {args.processes} processes")
     return args, command, gpus

@@ -68,6 +68,21 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def parse_gpus(text: str) -> list[str]:
+    """``"0,1,2,3"`` -> ``["0", "1", "2", "3"]``: ``CUDA_VISIBLE_DEVICES`` values (indices or UUIDs), each once.
+
+    Raises:
+      argparse.ArgumentTypeError: an empty list or entry, or a GPU named twice.
+    """
+    import argparse
+
+    gpus = [g.strip() for g in text.split(",")]
+    if not text.strip() or "" in gpus or len(set(gpus)) < len(gpus):
+        raise argparse.ArgumentTypeError(f"--gpus takes comma-separated GPUs (CUDA_VISIBLE_DEVICES values), each "
+                                         f"once, got {text!r}")
+    return gpus
+
+
 def default_gpus(processes: int, environ: Mapping[str, str] = os.environ) -> list[str]:
     """The GPUs ranks ``0 .. processes-1`` take: the first ``processes`` of this process's
     ``CUDA_VISIBLE_DEVICES`` if it is set, else ``0 .. processes-1``."""

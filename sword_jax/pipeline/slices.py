@@ -137,15 +137,23 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     adopt them. A failed slice or shared build starts no new slices; the running ones finish; then
     ``RuntimeError`` names what failed and the logs (a rerun skips every finished stage).
 
+    With ``args.gpus`` (``--gpus 0,1,2,3``) each slice runs on one GPU of the list
+    (``CUDA_VISIBLE_DEVICES``), the one fewest running slices hold, so ``--slices-at-once`` equal to the
+    number of GPUs puts one slice on each; the parent's shared stages see the GPUs it was started with.
+    NVLink multicast stays off in every slice.
+
     ``build(run, size, *, out, shared_seed, overrides, policy, parallel, evaluate)`` builds a run's shared
     stages; ``launch(argv, log_path, env) -> Popen`` starts one slice.
     """
 
-    base = without_flags(argv, {"--slices-at-once": True, "--runs": True, "--seeds": True})
+    from sword_jax.pipeline.launch import NO_MULTICAST
+
+    base = without_flags(argv, {"--slices-at-once": True, "--runs": True, "--seeds": True, "--gpus": True})
     logs = os.path.join(args.out, "logs")
     os.makedirs(logs, exist_ok=True)
-    env = {**os.environ, SLICES_AT_ONCE_ENV: str(args.slices_at_once)}
+    env = {**os.environ, SLICES_AT_ONCE_ENV: str(args.slices_at_once), **NO_MULTICAST}
     env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # several JAX processes share one device
+    gpus = list(getattr(args, "gpus", None) or [])
     # in order: a later run adopts the earlier runs' stages where the sections agree
     builds = [] if args.no_share else [(shared_seed, run) for shared_seed in
                                         sorted({shared_seed_of(args.shared_seed, seed) for seed in seeds})
@@ -162,9 +170,15 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
         while pending and not failed and len(running) < args.slices_at_once and ready(*pending[0]):
             run, seed = pending.pop(0)
             log_path = os.path.join(logs, f"{run}_seed{seed}.log")
-            proc = launch([*base, "--runs", run, "--seeds", str(seed)], log_path, env)
-            running[(run, seed)] = (proc, log_path, time.perf_counter())
-            print(f"[compare] slice {run} seed {seed}: started (log {log_path})", flush=True)
+            gpu = None
+            if gpus:  # the GPU fewest running slices hold, the earliest listed of those
+                busy = [entry[3] for entry in running.values()]
+                gpu = min(gpus, key=lambda g: (busy.count(g), gpus.index(g)))
+            proc = launch([*base, "--runs", run, "--seeds", str(seed)], log_path,
+                          env if gpu is None else {**env, "CUDA_VISIBLE_DEVICES": gpu})
+            running[(run, seed)] = (proc, log_path, time.perf_counter(), gpu)
+            print(f"[compare] slice {run} seed {seed}: started{'' if gpu is None else f' on GPU {gpu}'} "
+                  f"(log {log_path})", flush=True)
         if builds and not failed:
             shared_seed, run = builds.pop(0)
             try:
@@ -177,7 +191,7 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
         if not running:
             break
         time.sleep(poll_s)
-        for key, (proc, log_path, start) in list(running.items()):
+        for key, (proc, log_path, start, _) in list(running.items()):
             code = proc.poll()
             if code is None:
                 continue
