@@ -6,6 +6,8 @@
     video = sword_jax.rollout(model, given, actions, key=jax.random.key(0))
     env = sword_jax.make_env(model, sword_jax.start_states(model, keyframes, instructions), reward_model=score)
     vec = sword_jax.make_vector_env(model, pool, num_envs=8, reward_model=score)   # gymnasium VectorEnv
+    fast = sword_jax.load_world_model("runs/sword-tiny", light_decoder=True)   # + the run's light decoder
+    env = sword_jax.make_env(fast, pool, reward_model=score, decoder="light")  # frames at its (the policy's) size
 
 This module and the names ``sword_jax`` re-exports are the stable surface; everything else may change.
 
@@ -117,11 +119,12 @@ class LoadedFrom:
     step: int
     vae: str = ""
     reward_model: str = ""
+    light_decoder: str = ""
 
 
 @struct.dataclass
 class LoadedWorldModel:
-    """A trained world model (+ VAE, + reward model where the run has one) as one pytree.
+    """A trained world model (+ VAE, + reward model where the run has one, + light decoder if asked) as one pytree.
 
     Attributes:
       world_model_params: ``(params, buffers)`` pure dicts of the DiT world model (float32).
@@ -129,6 +132,8 @@ class LoadedWorldModel:
       reward_model: the run's success detector as a :class:`RewardModel` (frames -> [0, 1]), or None.
       world_model_graphdef / vae_graphdef: static graphs for ``nnx.merge``.
       spec: :class:`WorldModelSpec`. loaded_from: :class:`LoadedFrom`.
+      light_decoder_params / light_decoder_graphdef: the light rollout decoder
+        (:mod:`sword_jax.vae.light_decoder`) that the envs decode with under ``decoder="light"``, or None.
 
     The methods are the module's functions with the model bound (``model.rollout(...)`` is
     ``rollout(model, ...)``).
@@ -141,6 +146,8 @@ class LoadedWorldModel:
     vae_graphdef: Any = struct.field(pytree_node=False)
     spec: WorldModelSpec = struct.field(pytree_node=False)
     loaded_from: LoadedFrom = struct.field(pytree_node=False)
+    light_decoder_params: Any = None
+    light_decoder_graphdef: Any = struct.field(pytree_node=False, default=None)
 
     def encode(self, frames):
         return encode(self, frames)
@@ -166,6 +173,7 @@ def load_world_model(
     step: int | None = None,
     use_ema: bool = True,
     mesh: jax.sharding.Mesh | None = None,
+    light_decoder: str | bool | None = None,
 ) -> LoadedWorldModel:
     """Loads a trained world model (and its VAE and reward model) for inference.
 
@@ -182,6 +190,10 @@ def load_world_model(
       use_ema: the EMA weights where the run kept them.
       mesh: where the weights go (default unsharded on the first device; over a mesh you give, the
         world model is sharded by its logical axes and the VAE replicated).
+      light_decoder: the light rollout decoder for the envs' frames (:func:`learned_simulator`'s
+        ``decoder="light"``): ``train.train_light_decoder``'s work dir (or its ``checkpoints``), or True
+        for the pipeline run's own ``<run>/light_decoder`` (trained when ``rl.imagined.decoder=light``).
+        Default none. It must decode this world model's latents (channels, size, frames per latent).
 
     Raises:
       CheckpointError: a missing path, no checkpoint, a damaged one, or pieces that do not fit
@@ -220,8 +232,30 @@ def load_world_model(
     if reward_model is None and run and os.path.isdir(os.path.join(run, "rl", "reward_model")):
         reward_model = os.path.join(run, "rl", "reward_model")
     detector = load_reward_model(reward_model) if reward_model else None
+    light_path = _light_decoder_dir(light_decoder, path, run)
+    light_graphdef = light_params = None
+    if light_path:
+        light_graphdef, light_params, _ = load.load_light_decoder(
+            light_path, z_dim=spec.latent_dim, latent_size=spec.latent_size,
+            temporal_factor=spec.vae.temporal_factor, mesh=mesh)
     return LoadedWorldModel(params, vae_params, detector, graphdef, vae_graphdef, spec,
-                            LoadedFrom(workdir, step, vae_path, reward_model or ""))
+                            LoadedFrom(workdir, step, vae_path, reward_model or "", light_path), light_params,
+                            light_graphdef)
+
+
+def _light_decoder_dir(light_decoder: str | bool | None, path: str, run: str | None) -> str:
+    """The light decoder's directory ("" for none); True: the pipeline run's own."""
+    if light_decoder is None or light_decoder is False:
+        return ""
+    if light_decoder is not True:
+        return str(light_decoder)
+    if run is None:
+        raise CheckpointError(f"light_decoder=True looks for the pipeline run's own <run>/light_decoder, and {path} "
+                              "is not in a pipeline work dir: pass light_decoder=<train.train_light_decoder work dir>")
+    if not os.path.isdir(os.path.join(run, "light_decoder", "checkpoints")):
+        raise CheckpointError(f"{run} has no light decoder ({os.path.join(run, 'light_decoder')}: the pipeline trains "
+                              "one with --rl.imagined.decoder=light; train.train_light_decoder makes one)")
+    return os.path.join(run, "light_decoder")
 
 
 def load_reward_model(path: str) -> RewardModel:
@@ -488,13 +522,15 @@ def learned_simulator(
     proprio_dim: int = 8,
     proprio_reckoning: Any = None,
     precision: str = "fast",
+    decoder: str = "full",
 ) -> LearnedSimulator:
     """The world model + VAE as a :class:`~sword_jax.rl.learned_simulator.LearnedSimulator` (one trajectory).
 
     ``sim.init(start) -> state``; ``sim.step(state, chunk [4p, a], key=key) -> (state, frames
-    [E, H, W, 3])`` with ``E = 4 * execute_latents`` (default the whole chunk); ``sim.observe(state)
-    -> (proprio, valid)``. The GRPO step (:func:`sword_jax.rl.grpo.make_grpo_step`) and the envs
-    below take it; its weights are pytree leaves, so pass it to jit as an argument.
+    [E, S, S, 3])`` with ``E = 4 * execute_latents`` (default the whole chunk) and ``S = sim.frame_size``
+    (``H``, or the light decoder's size); ``sim.observe(state) -> (proprio, valid)``. The GRPO step
+    (:func:`sword_jax.rl.grpo.make_grpo_step`) and the envs below take it; its weights are pytree leaves,
+    so pass it to jit as an argument.
 
     Args:
       sample_steps: Euler steps per chunk (default ``spec.flow.sample_steps``).
@@ -506,16 +542,33 @@ def learned_simulator(
       precision: ``fast`` (default: bfloat16 decode, weights in the compute dtype) or ``float32`` (the
         exact decode), as GRPO's ``rl.imagined.sim_precision`` (:mod:`sword_jax.rl.sim_builder`, the one
         builder GRPO and the benchmark use too).
+      decoder: what turns the predicted latents into frames, as GRPO's ``rl.imagined.decoder``: ``full``
+        (default: the VAE's decoder, ``H x H`` frames) or ``light`` (the light decoder loaded with
+        ``load_world_model(..., light_decoder=...)``, frames at its own size, a small fraction of the work).
+
+    Raises:
+      ValueError: an unknown ``decoder``, or ``light`` for a model loaded without a light decoder.
     """
+    from sword_jax.rl.config import DECODERS
     from sword_jax.rl.sim_builder import build_simulator
 
     _require_vae(model, "the learned simulator")
+    if decoder not in DECODERS:
+        raise ValueError(f"decoder must be one of {DECODERS}, got {decoder!r}")
+    light_decoder = None
+    if decoder == "light":
+        if model.light_decoder_graphdef is None:
+            raise ValueError("decoder='light' needs the light decoder, and this world model was loaded without one "
+                             "(pass light_decoder=<train.train_light_decoder work dir>, or True for the pipeline "
+                             "run's own, to load_world_model)")
+        light_decoder = (model.light_decoder_graphdef, model.light_decoder_params)
     spec = model.spec
     return build_simulator(
         model.world_model_graphdef, model.world_model_params, model.vae_graphdef, model.vae_params,
-        precision=precision, flow_cfg=spec.flow, frame_size=spec.image_size, num_context=spec.num_context, num_future=spec.num_future,
-        sample_steps=sample_steps, action_dim=spec.action_dim, latent_size=spec.latent_size,
-        proprio_dim=proprio_dim, execute_latents=execute_latents, proprio_reckoning=proprio_reckoning)
+        precision=precision, light_decoder=light_decoder, flow_cfg=spec.flow, frame_size=spec.image_size,
+        num_context=spec.num_context, num_future=spec.num_future, sample_steps=sample_steps,
+        action_dim=spec.action_dim, latent_size=spec.latent_size, proprio_dim=proprio_dim,
+        execute_latents=execute_latents, proprio_reckoning=proprio_reckoning)
 
 
 def _reward_model(model: LoadedWorldModel, reward_model: RewardModel | Callable | None) -> RewardModel:
@@ -544,18 +597,20 @@ def make_env(
     Pure and jittable, one environment: ``state = env.reset(rng)`` starts from a start state drawn
     from ``start_pool`` (:func:`start_states`), ``state = env.step(state, chunk)`` advances one
     action chunk, ``[4p, a]`` or flat ``[4p * a]`` (``env.action_size``, as brax's trainers give it).
-    ``state`` is a brax ``envs.State`` (``obs`` = ``{"pixels/frame": [H, W, 3], "proprio",
+    ``state`` is a brax ``envs.State`` (``obs`` = ``{"pixels/frame": [S, S, 3], "proprio",
     "proprio_valid", "instruction_tokens"}``, the ``pixels/`` key being the one brax's vision PPO runs
     its CNN on; ``reward`` = the change of the success score, ``done``, ``info['frames']`` = the
-    predicted frames). Batch with ``jax.vmap(env.reset)(keys)`` / ``jax.vmap(env.step)(states, chunks)``,
-    or hand it to brax (``brax.envs.wrappers.training.wrap``, ``brax.training.agents.ppo.train``).
+    predicted frames). ``S`` is the world model's ``H``, or with ``decoder="light"`` the light decoder's
+    frame size (the start frame is resized to it; ``env.observation_size`` tells). Batch with
+    ``jax.vmap(env.reset)(keys)`` / ``jax.vmap(env.step)(states, chunks)``, or hand it to brax
+    (``brax.envs.wrappers.training.wrap``, ``brax.training.agents.ppo.train``).
 
     Args:
       reward_model: a :class:`RewardModel`, or a function ``frames [n, H, W, 3] -> [n]`` in [0, 1]
         (default the run's own). An episode succeeds when ``success_frames`` consecutive frames
         (default 1: any frame) score >= ``success_threshold``.
       max_chunks: chunks per episode (then ``info['truncation']``).
-      simulator_options: for :func:`learned_simulator`.
+      simulator_options: for :func:`learned_simulator` (``precision``, ``decoder``, ``sample_steps`` ...).
     """
     from sword_jax.rl.env import ImaginedEnv, ImaginedPoolEnv
 
@@ -579,9 +634,10 @@ def make_vector_env(
 
     ``num_envs`` imagined episodes stepped by one jitted, vmapped call; numpy in and out; next-step
     auto-reset (gymnasium's ``AutoresetMode.NEXT_STEP``). Actions ``[num_envs, 4p, a]`` float32
-    in [-1, 1]; observations as :func:`make_env`'s, batched; ``info['frames']`` holds the
-    predicted frames. ``reset(seed=...)`` draws starts from ``start_pool`` with the env's
-    ``np_random`` (or ``options={'start_index': [num_envs]}``). Arguments as :func:`make_env`.
+    in [-1, 1]; observations as :func:`make_env`'s, batched (frames ``[num_envs, S, S, 3]``, ``S`` the light
+    decoder's size with ``decoder="light"``); ``info['frames']`` holds the predicted frames.
+    ``reset(seed=...)`` draws starts from ``start_pool`` with the env's ``np_random`` (or
+    ``options={'start_index': [num_envs]}``). Arguments as :func:`make_env`.
     """
     from sword_jax.rl.env import ImaginedEnv, ImaginedVectorEnv
 

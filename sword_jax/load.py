@@ -254,21 +254,44 @@ def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | N
     return graphdef, state
 
 
-def load_light_decoder(path: str, *, mesh: jax.sharding.Mesh | None = None) -> tuple[nnx.GraphDef, Any, dict[str, Any]]:
+def _latent_layout(geometry: dict[str, Any]) -> str:
+    size = geometry.get("latent_size")
+    return f"{geometry.get('z_dim')}-channel {size}x{size} latents of {geometry.get('temporal_factor')} frames each"
+
+
+def load_light_decoder(
+    path: str,
+    *,
+    z_dim: int | None = None,
+    latent_size: int | None = None,
+    temporal_factor: int | None = None,
+    mesh: jax.sharding.Mesh | None = None,
+) -> tuple[nnx.GraphDef, Any, dict[str, Any]]:
     """The light rollout decoder of a ``light_decoder`` run (its work dir or ``checkpoints`` directory; the newest
     checkpoint), rebuilt from the checkpoint's own metadata; only its weights are read (not the optimizer state),
     replicated over ``mesh`` (default: unsharded on the first device).
+
+    Args:
+      path: the run's work dir (``train.train_light_decoder --workdir``, a pipeline's ``<run>/light_decoder``) or
+        its ``checkpoints`` directory.
+      z_dim / latent_size / temporal_factor: the latents the decoder must take (the world model's channels, latent
+        height and width, frames per latent); each one given is checked against the decoder's metadata before
+        any weight is read.
+      mesh: where the weights go.
 
     Returns:
       ``(graphdef, state, meta)``; ``meta`` holds ``scale``, ``temporal_factor``, ``z_dim``, ``latent_size``,
       ``frame_size`` and its config section.
 
     Raises:
-      CheckpointError: no such checkpoint, or one of another kind.
+      CheckpointError: no such directory or checkpoint, one of another kind, or a decoder of other latents (the
+        message names the path and both layouts).
     """
     from sword_jax.vae import light_decoder as light
     from sword_jax.vae.config import LightDecoderConfig
 
+    if not os.path.isdir(path):
+        raise CheckpointError(f"light decoder {path} does not exist")
     if os.path.isdir(os.path.join(path, "checkpoints")):
         path = os.path.join(path, "checkpoints")
     step = checkpoint_step(path)
@@ -276,6 +299,11 @@ def load_light_decoder(path: str, *, mesh: jax.sharding.Mesh | None = None) -> t
     if meta.get("kind") != "light_decoder":
         raise CheckpointError(f"{path} holds a {meta.get('kind')!r} checkpoint, expected 'light_decoder' (a "
                               "train_light_decoder run)")
+    expected = {"z_dim": z_dim, "latent_size": latent_size, "temporal_factor": temporal_factor}
+    wanted = {name: meta.get(name) if value is None else value for name, value in expected.items()}
+    if wanted != {name: meta.get(name) for name in expected}:
+        raise CheckpointError(f"{path}: a light decoder of {_latent_layout(meta)}, the world model's are "
+                              f"{_latent_layout(wanted)} (train one on its latents: train.train_light_decoder)")
     cfg = section_from_dict(LightDecoderConfig, meta.get("light_decoder", {}))
     graphdef, state = nnx.split(light.abstract_light_decoder(cfg, z_dim=meta["z_dim"], scale=meta["scale"],
                                                              temporal_factor=meta["temporal_factor"]))

@@ -98,11 +98,9 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
         if not inputs.light_decoder:
             raise ValueError("rl.imagined.decoder=light needs the light decoder the pipeline's light_decoder stage trains "
                              "(train.grpo --light-decoder DIR; train.train_light_decoder makes one)")
-        light_graphdef, light_state, meta = load_light_decoder(inputs.light_decoder)
-        if meta["z_dim"] != cfg.vae.z_dim or meta["latent_size"] != cfg.data.image_size // cfg.vae.spatial_factor:
-            raise ValueError(f"{inputs.light_decoder}: a light decoder of {meta['z_dim']}-channel {meta['latent_size']}"
-                             f"-pixel latents, the world model's are {cfg.vae.z_dim}-channel "
-                             f"{cfg.data.image_size // cfg.vae.spatial_factor}-pixel")
+        light_graphdef, light_state, _ = load_light_decoder(
+            inputs.light_decoder, z_dim=cfg.vae.z_dim, latent_size=cfg.data.image_size // cfg.vae.spatial_factor,
+            temporal_factor=cfg.vae.temporal_factor)
         light_decoder = (light_graphdef, light_state)
     wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
     vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)

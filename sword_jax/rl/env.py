@@ -19,12 +19,13 @@ An action is one chunk ``[chunk_len, action_dim]`` in [-1, 1] (flat ``[chunk_len
 brax's trainers). Observations are a dict: the frame under ``pixels/frame`` (the ``pixels/`` keys brax's
 vision PPO runs its CNN on; the gymnasium envs call it ``frame``), ``proprio``, ``proprio_valid`` (``[1]``,
 as brax's observation normalizer wants every other leaf a vector; a scalar in the gymnasium envs),
-``instruction_tokens``. A step returns the last predicted frame as the observation, all predicted frames
-in ``info['frames']``, the change of the success score as reward, ``terminated`` on success (score >=
-threshold) and ``truncated`` at the chunk limit: the rule of the GRPO rollouts,
-:func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed rewards are the GRPO return of
-``rl.imagined.return_rule=score`` without its ``rl.grpo.success_bonus`` (the default GRPO return,
-``success``, pays success alone).
+``instruction_tokens``. Every frame is at the simulator's ``frame_size`` (the start frame resized to it, as
+for GRPO's policy: a light decoder's frames may be smaller than the start states'). A step returns the last
+predicted frame as the observation, all predicted frames in ``info['frames']``, the change of the success
+score as reward, ``terminated`` on success (score >= threshold) and ``truncated`` at the chunk limit: the
+rule of the GRPO rollouts, :func:`sword_jax.rl.rollout.chunk_outcome`. An episode's summed rewards are the
+GRPO return of ``rl.imagined.return_rule=score`` without its ``rl.grpo.success_bonus`` (the default GRPO
+return, ``success``, pays success alone).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from flax import struct
 from gymnasium.vector import AutoresetMode
 
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.rollout import chunk_outcome
 
 
@@ -80,14 +82,16 @@ class ImaginedEnv:
                 "instruction_tokens": tokens}
 
     def reset(self, start: StartState, *, key: jax.Array) -> State:
-        """Starts from one keyframe/instruction; ``key`` seeds the simulator's noise."""
+        """Starts from one keyframe/instruction; ``key`` seeds the simulator's noise. The observed frame is the
+        start frame at the simulator's ``frame_size``; the score is the start frame's, as in GRPO's rollouts."""
         sim_state = self.simulator.init(start)
         score = self.reward_model.score(start.frame[None])[0]
+        frame = resize_frames(start.frame, self.simulator.frame_size)  # (S, S, 3)
         t = self.simulator.frames_per_step
         pipeline_state = ImaginedPipelineState(sim_state, score, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
         info = {"key": key, "score": score, "truncation": jnp.zeros((), jnp.float32),
-                "success": jnp.zeros((), jnp.float32), "frames": jnp.zeros((t,) + start.frame.shape, jnp.float32)}
-        return State(pipeline_state, self._obs(sim_state, start.frame.astype(jnp.float32), start.instruction_tokens),
+                "success": jnp.zeros((), jnp.float32), "frames": jnp.zeros((t,) + frame.shape, jnp.float32)}
+        return State(pipeline_state, self._obs(sim_state, frame, start.instruction_tokens),
                      jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32), {"score": score}, info)
 
     def step(self, state: State, action_chunk: jax.Array) -> State:
@@ -199,7 +203,7 @@ class ImaginedVectorEnv(gym.vector.VectorEnv):
     def __init__(self, env: ImaginedEnv, start_pool: StartState, num_envs: int):
         self.env, self.pool, self.num_envs = env, start_pool, int(num_envs)
         self.pool_size = int(start_pool.frame.shape[0])
-        h, w = start_pool.frame.shape[1:3]
+        h = w = env.simulator.frame_size  # the frames observed (a light decoder's may be smaller than the pool's)
         p = start_pool.proprio.shape[-1]
         l = start_pool.instruction_tokens.shape[-1]
         t, a = env.simulator.chunk_len, env.simulator.action_dim
