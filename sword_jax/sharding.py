@@ -421,6 +421,27 @@ def rows_held(sharding: jax.sharding.Sharding, batch_size: int, devices=None) ->
     return np.asarray(sorted(rows), np.int64)
 
 
+def batch_shards(sharding: NamedSharding) -> int:
+    """How many row blocks ``sharding`` splits an array's leading dim into (1: replicated)."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    axes = () if axes is None else (axes,) if isinstance(axes, str) else tuple(axes)
+    return math.prod(sharding.mesh.shape[axis] for axis in axes)
+
+
+def check_batch_divides(sharding: NamedSharding, batch_size: int, name: str) -> None:
+    """Refuses a global batch whose rows do not split evenly over the devices ``sharding`` shards it over.
+
+    Raises:
+      ValueError: naming ``name``, the batch size, the devices it is split over, the mesh and the processes.
+    """
+    shards, processes = batch_shards(sharding), jax.process_count()
+    if batch_size < 1 or batch_size % shards:
+        in_processes = f"{processes} process{'es' if processes > 1 else ''}"
+        raise ValueError(
+            f"{name}={batch_size} does not split over the {shards} devices its rows are sharded over (mesh "
+            f"{dict(sharding.mesh.shape)}, {sharding.mesh.size} devices in {in_processes}): use a multiple of {shards}")
+
+
 def to_global(batch: dict[str, np.ndarray], shardings: dict[str, Any], rows: np.ndarray | None = None,
               batch_size: int | None = None) -> dict[str, jax.Array]:
     """Host batch -> global arrays, each process materialising only its own devices' slices.
