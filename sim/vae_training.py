@@ -84,13 +84,23 @@ def run_vae(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: b
         return {"source": cfg.vae.checkpoint, "steps": 0}
     if not episodes and not synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")
-    loaded = time.perf_counter()
     frames = 1 + cfg.vae.temporal_factor * clip_latents
+    sampler: vae_data.ClipSampler | None = None  # loaded below, once the batch is known to split over the mesh
+
+    def rows_at(step: int, rows: np.ndarray) -> np.ndarray:  # 0-based step; the clip draws count from 1
+        if sampler is not None:
+            return sampler.batch(step + 1, rows)
+        return np.asarray(vae_train.moving_squares(key=jax.random.key(step + 1), batch=cfg.vae.batch_size,
+                                                   frames=frames, size=cfg.data.image_size, rows=rows))
+
+    mesh = shd.make_mesh(cfg.mesh)
+    # each process makes only the rows of a batch its devices hold
+    loader = vae_data.VideoLoader(rows_at, cfg.vae.batch_size, mesh, cfg.mesh.rules)
+    loaded = time.perf_counter()
     sampler = clip_sampler(cfg, load_clips(episodes), frames) if episodes else None
     if sampler is not None and is_main:
         print(f"[train_vae] {len(sampler.clips.frames)} training episodes loaded in "
               f"{time.perf_counter() - loaded:.1f} s", flush=True)
-    mesh = shd.make_mesh(cfg.mesh)
     graphdef, state = vae_train.init_train_state(cfg.vae, key=jax.random.key(cfg.seed), mesh=mesh,
                                                  rules=cfg.mesh.rules)
     perceptual_fn = None
@@ -103,20 +113,15 @@ def run_vae(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: b
     step_fn = vae_train.make_vae_step(graphdef, cfg.vae, state=state, mesh=mesh, rules=cfg.mesh.rules,
                                           perceptual_fn=perceptual_fn, max_traces=ENTRY_MAX_TRACES)
     root = shd.put(jax.random.key(cfg.seed), shd.replicated(mesh))
-    video_sharding = shd.batch_sharding(mesh, 5, cfg.mesh.rules)
     logger = checkpoint.MetricLogger(cfg.vae.train_steps, max(cfg.trainer.log_every, 1),
                                      jsonl_path=os.path.join(cfg.workdir, "metrics.jsonl"),
                                      tensorboard_dir=os.path.join(cfg.workdir, "tensorboard"))
 
     first_batch_s: list[float] = []  # the first batch's time: the restyling's compile, inside the first step
 
-    def batch_at(step: int) -> np.ndarray:  # 0-based step; the clip draws count from 1
+    def batch_at(step: int) -> np.ndarray:
         start = time.perf_counter()
-        if sampler is not None:
-            out = sampler.batch(step + 1)
-        else:
-            out = np.asarray(vae_train.moving_squares(key=jax.random.key(step + 1), batch=cfg.vae.batch_size,
-                                                      frames=frames, size=cfg.data.image_size))
+        out = loader.host_batch_at(step)
         if not first_batch_s:
             first_batch_s.append(time.perf_counter() - start)
         return out
@@ -134,7 +139,7 @@ def run_vae(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: b
         result = run_steps(
             step_fn, state, batch_at, key=root, steps=cfg.vae.train_steps, log_every=max(cfg.trainer.log_every, 1),
             name="train_vae", report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta),
-            place=lambda video: {"video": shd.put(video, video_sharding)},
+            place=loader.place,
             checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
             keep_checkpoints=1, settle=True, on_first_step=first_step_done,
             run_id=vae_run_id(cfg, clip_latents=clip_latents, synthetic=sampler is None),

@@ -8,6 +8,9 @@ Parameters are annotated with ``nnx.with_partitioning(init, ("embed", "mlp"))``;
 below read that metadata (the ``out_sharding`` field of an ``nnx.Variable``), translate it through
 the rules and build ``NamedSharding`` trees, so parameters are born sharded:
 ``jax.eval_shape(init)`` -> shardings -> ``jax.jit(init, out_shardings=...)``.
+
+Batches of a multi-process job are global arrays assembled from each process's rows: a loader
+makes only the rows its devices hold (:func:`rows_held`) and :func:`to_global` places them.
 """
 
 from __future__ import annotations
@@ -405,3 +408,61 @@ def put(value: Any, target: NamedSharding) -> jax.Array:
         return jax.jit(lambda d: jax.random.wrap_key_data(d, impl=impl), out_shardings=target)(data)
     host = np.asarray(value)
     return jax.make_array_from_callback(host.shape, target, lambda index: host[index])
+
+
+def rows_held(sharding: jax.sharding.Sharding, batch_size: int, devices=None) -> np.ndarray:
+    """The rows (ascending) of a ``[batch_size]`` array with ``sharding`` that ``devices`` (default: this
+    process's) hold: all of them on one process, this process's part on several."""
+    held = sharding.addressable_devices if devices is None else set(devices)
+    rows = set()
+    for device, (index,) in sharding.devices_indices_map((batch_size,)).items():
+        if device in held:
+            rows.update(range(*index.indices(batch_size)))
+    return np.asarray(sorted(rows), np.int64)
+
+
+def batch_shards(sharding: NamedSharding) -> int:
+    """How many row blocks ``sharding`` splits an array's leading dim into (1: replicated)."""
+    axes = sharding.spec[0] if len(sharding.spec) else None
+    axes = () if axes is None else (axes,) if isinstance(axes, str) else tuple(axes)
+    return math.prod(sharding.mesh.shape[axis] for axis in axes)
+
+
+def check_batch_divides(sharding: NamedSharding, batch_size: int, name: str) -> None:
+    """Refuses a global batch whose rows do not split evenly over the devices ``sharding`` shards it over.
+
+    Raises:
+      ValueError: naming ``name``, the batch size, the devices it is split over, the mesh and the processes.
+    """
+    shards, processes = batch_shards(sharding), jax.process_count()
+    if batch_size < 1 or batch_size % shards:
+        in_processes = f"{processes} process{'es' if processes > 1 else ''}"
+        raise ValueError(
+            f"{name}={batch_size} does not split over the {shards} devices its rows are sharded over (mesh "
+            f"{dict(sharding.mesh.shape)}, {sharding.mesh.size} devices in {in_processes}): use a multiple of {shards}")
+
+
+def to_global(batch: dict[str, np.ndarray], shardings: dict[str, Any], rows: np.ndarray | None = None,
+              batch_size: int | None = None) -> dict[str, jax.Array]:
+    """Host batch -> global arrays, each process materialising only its own devices' slices.
+
+    Args:
+      batch: the whole batch, or with ``rows`` only those rows of it (what this process holds).
+      shardings: each entry's sharding.
+      rows: the global row of each host row (ascending, :func:`rows_held`); ``None``: all rows.
+      batch_size: the global batch size (with ``rows``).
+    """
+    if rows is None or len(rows) == batch_size:
+        return {name: put(value, shardings[name]) for name, value in batch.items()}
+
+    def local(value: np.ndarray, index: tuple) -> np.ndarray:
+        wanted = np.arange(batch_size)[index[0]]
+        at = np.searchsorted(rows, wanted)
+        if np.any(at >= len(rows)) or np.any(rows[np.minimum(at, len(rows) - 1)] != wanted):
+            raise ValueError(f"to_global: a device of this process needs rows {wanted.tolist()}, "
+                             f"but it holds {rows.tolist()}")
+        return value[at][(slice(None), *index[1:])]
+
+    return {name: jax.make_array_from_callback((batch_size, *value.shape[1:]), shardings[name],
+                                               lambda index, value=value: local(value, index))
+            for name, value in batch.items()}

@@ -1,7 +1,8 @@
 """Multi-host: two processes started by ``train.launch`` and joined by ``jax.distributed`` over loopback
 (gloo CPU collectives) run sharded DLB steps equal to one process with the same global device count;
 checkpoints restore onto a different device count; a rank killed mid-run ends the job within the
-launcher's grace and the rerun resumes bit-identical."""
+launcher's grace and the rerun resumes bit-identical; the VAE, each rank making only its rows of a
+batch, trains as one process does and resumes bit-identical."""
 
 from __future__ import annotations
 
@@ -38,11 +39,12 @@ def _train(workdir: str, env: dict[str, str], *extra: str) -> subprocess.Popen:
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _launch(workdir: str, cache_dir: str, *extra: str, grace: float = 5.0) -> subprocess.Popen:
+def _launch(workdir: str, cache_dir: str, *extra: str, grace: float = 5.0, trainer: str = "train.train_world_model",
+            args: list[str] = ARGS) -> subprocess.Popen:
     """``train.launch``: two ranks of 2 CPU devices each run the trainer on a 4-device mesh."""
     return subprocess.Popen([sys.executable, "-m", "train.launch", "--processes", "2", "--cpu-devices", "2", "--grace",
-                             str(grace), "--", sys.executable, "-m", "train.train_world_model", "--workdir", workdir,
-                             *ARGS, "--mesh.data=4", "--mesh.distributed=true", *extra],
+                             str(grace), "--", sys.executable, "-m", trainer, "--workdir", workdir,
+                             *args, "--mesh.data=4", "--mesh.distributed=true", *extra],
                             cwd=REPO, env=_env(2, cache_dir), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
 
@@ -130,3 +132,45 @@ def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_i
     assert "resumed from step" in resumed
     assert_same_final_checkpoint(reference, crashed, LONG_STEPS)
     assert _metrics(crashed) == _metrics(reference)
+
+
+VAE_STEPS = 3
+VAE_ARGS = ["--config", "sword:tiny", "--synthetic", "--clip-latents=1", "--vae.batch_size=4",
+            "--trainer.log_every=1", "--trainer.checkpoint_every=1"]
+
+
+# The default run checks each rank's VAE rows and their global batch (tests/test_launch.py::test_a_killed_jax_rank_
+# ends_the_job_and_each_rank_reads_only_its_rows) and a resumed VAE run (tests/test_vae_entry.py, also -m slow).
+@pytest.mark.slow
+def test_launched_vae_trains_as_one_process_and_resumes_bit_identical(tmp_path):
+    """``train.train_vae`` as two ranks of 2 CPU devices, each making 2 of the 4 rows of a batch, ends as one
+    process on 4 devices does (params, logged metrics); stopped after 2 steps and rerun it ends bit-identical
+    to an uninterrupted launched run."""
+    cache = str(tmp_path / "xla_cache")
+    single = str(tmp_path / "single")
+    _wait(subprocess.Popen([sys.executable, "-m", "train.train_vae", "--workdir", single, *VAE_ARGS, "--mesh.data=4",
+                            f"--vae.train_steps={VAE_STEPS}"], cwd=REPO, env=_env(4, cache), stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True))
+    straight, split = str(tmp_path / "straight"), str(tmp_path / "split")
+    _wait(_launch(straight, cache, f"--vae.train_steps={VAE_STEPS}", trainer="train.train_vae", args=VAE_ARGS))
+    _wait(_launch(split, cache, "--vae.train_steps=2", trainer="train.train_vae", args=VAE_ARGS))
+    resumed = _wait(_launch(split, cache, f"--vae.train_steps={VAE_STEPS}", trainer="train.train_vae", args=VAE_ARGS))
+    assert "[rank 0] train_vae: resumed from step 2" in resumed, resumed[-3000:]
+
+    want, want_meta = final_arrays(single)
+    got, got_meta = final_arrays(straight)
+    assert want.keys() == got.keys() and len(want) > 10
+    assert got_meta["step"] == want_meta["step"] == VAE_STEPS
+    for name in want:  # gloo's reduction order, through Adam's step on near-zero gradients: a few 1e-6 on weights ~0.05
+        np.testing.assert_allclose(got[name], want[name], rtol=2e-5, atol=1e-5, err_msg=name)
+    want_rows, got_rows = _metrics(single), _metrics(straight)
+    assert sorted(got_rows) == sorted(want_rows) == list(range(1, VAE_STEPS + 1))
+    for step in want_rows:
+        for name, value in want_rows[step].items():
+            np.testing.assert_allclose(got_rows[step][name], value, rtol=1e-4, atol=1e-6, err_msg=f"{step} {name}")
+
+    again, again_meta = final_arrays(split)
+    assert again.keys() == got.keys() and again_meta["step"] == VAE_STEPS
+    for name in got:
+        np.testing.assert_array_equal(again[name], got[name], err_msg=name)
+    assert _metrics(split) == _metrics(straight)

@@ -110,6 +110,52 @@ def test_vae_refuses_held_out_episodes_and_missing_geometry():
     vae_data.ClipSampler(clips, batch=2, frames=5, seed=0, styled_fraction=0.0).batch(1)  # raw only still works
 
 
+def test_vae_loader_makes_only_its_devices_rows_of_the_single_process_batch(monkeypatch):
+    """A process cuts and restyles only the rows of a batch its devices hold, each row the one a single process
+    makes (here a "process" is a subset of the fake devices; two launched processes: tests/test_launch.py)."""
+    from sword_jax.vae import data as vae_data
+
+    clips = vae_data.clips_from_sim(_sim_episodes())
+    mesh = sharding.make_mesh(sharding.MeshConfig(data=4, tensor=2))
+    samplers = [vae_data.ClipSampler(clips, batch=8, frames=5, seed=0, styled_fraction=0.5) for _ in range(2)]
+    raw = vae_data.ClipSampler(clips, batch=8, frames=5, seed=0)
+    whole = vae_data.VideoLoader(samplers[0].batch, 8, mesh)
+    third = vae_data.VideoLoader(samplers[1].batch, 8, mesh, devices=list(mesh.devices[2].flat))
+    assert whole.rows.tolist() == list(range(8)) and third.rows.tolist() == [4, 5]
+    cut, real_cut = [], vae_data._cut
+    monkeypatch.setattr(vae_data, "_cut", lambda video, start, frames: cut.append(start) or real_cut(video, start, frames))
+    restyled = False
+    for step in range(1, 4):
+        cut.clear()
+        part = third.host_batch_at(step)
+        assert part.shape == (2, 5, 32, 32, 3) and len(cut) == 3 * 2  # frames, depth and seg of its 2 clips only
+        full = whole.host_batch_at(step)
+        np.testing.assert_array_equal(part, full[4:6])
+        restyled |= bool(np.abs(part - raw.batch(step, third.rows)).max() > 0.05)
+        placed = whole.place(full)["video"]
+        assert placed.sharding == sharding.batch_sharding(mesh, 5)  # the VAE step's input sharding
+        np.testing.assert_array_equal(np.asarray(placed), full)
+    assert restyled and samplers[1].styled_clips == samplers[0].styled_clips > 0  # the whole batch's count
+
+    squares = jax.random.key(3)
+    np.testing.assert_array_equal(train.moving_squares(key=squares, batch=8, frames=5, size=16, rows=np.array([4, 5])),
+                                  train.moving_squares(key=squares, batch=8, frames=5, size=16)[4:6])
+
+
+def test_a_vae_batch_that_does_not_split_over_the_devices_is_refused_naming_the_numbers(tmp_path):
+    from sword_jax.vae import data as vae_data
+    from train import train_vae
+
+    mesh = sharding.make_mesh(sharding.MeshConfig(data=4, tensor=2))
+    with pytest.raises(ValueError, match=r"vae.batch_size=6 does not split over the 4 devices .* "
+                                         r"8 devices in 1 process\): use a multiple of 4"):
+        vae_data.VideoLoader(lambda step, rows: None, 6, mesh)
+    with pytest.raises(ValueError, match=r"vae.batch_size=3 does not split over the 2 devices"):
+        train_vae.main(["--config", "sword:tiny", "--workdir", str(tmp_path / "vae"), "--synthetic",
+                        "--vae.batch_size=3", "--mesh.data=2", "--mesh.tensor=4"])
+    assert not (tmp_path / "vae" / "checkpoints").exists()
+
+
 @pytest.mark.slow
 def test_train_vae_entry_trains_on_styled_clips(tmp_path):
     from sim.dataset import DatasetInfo, write_dataset

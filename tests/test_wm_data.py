@@ -73,10 +73,10 @@ def test_rows_held_are_the_rows_of_a_process_devices():
     mesh = shd.make_mesh(shd.MeshConfig(data=2, tensor=4))
     sharding = data.batch_shardings(mesh, {"episode": np.zeros(8)})["episode"]
     first_data_slot = list(mesh.devices[0].flat)  # 4 devices, one row block, replicated over tensor
-    assert data.rows_held(sharding, 8, first_data_slot).tolist() == [0, 1, 2, 3]
-    assert data.rows_held(sharding, 8, list(mesh.devices[1].flat)[:1]).tolist() == [4, 5, 6, 7]
+    assert shd.rows_held(sharding, 8, first_data_slot).tolist() == [0, 1, 2, 3]
+    assert shd.rows_held(sharding, 8, list(mesh.devices[1].flat)[:1]).tolist() == [4, 5, 6, 7]
     odd = data.batch_shardings(mesh, {"episode": np.zeros(5)})["episode"]  # 5 rows: replicated
-    assert data.rows_held(odd, 5, first_data_slot[:1]).tolist() == [0, 1, 2, 3, 4]
+    assert shd.rows_held(odd, 5, first_data_slot[:1]).tolist() == [0, 1, 2, 3, 4]
     loader = data.SegmentLoader(tiny_dataset(), data.SegmentSampler(8, 6, 1, 2, 8, seed=0), 1, 2, full_mesh())
     assert loader.rows.tolist() == list(range(8)) and len(loader.host_batch_at(0)["episode"]) == 8
 

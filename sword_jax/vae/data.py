@@ -11,14 +11,16 @@ Held-out styles cannot reach the VAE from here: styles are drawn with
 *episodes* (``init_split == "heldout"``) are refused when the clips are built from simulator data.
 
 Clips are cut on the host from uint8 episodes (a pure function of the step: exact resume), then
-restyled on device by one jitted :func:`~sword_jax.augment.transforms.augment_batch`.
+restyled on device by one jitted :func:`~sword_jax.augment.transforms.augment_batch`. In a job of
+several processes each one cuts and restyles only the rows of a batch its devices hold
+(:class:`VideoLoader`); every draw is made for the whole batch, so a row is the same whichever process makes it.
 """
 
 from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import jax
@@ -27,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from sword_jax.augment.style import DEFAULT_CLASSES, SegClasses, Style, assert_training_style, sample_styles
+from sword_jax import sharding as shd
 from sword_jax.augment.transforms import augment_batch
 from sword_jax.rng import stream_key, stream_rng
 
@@ -72,13 +75,19 @@ def _cut(video: np.ndarray, start: int, frames: int) -> np.ndarray:
     return video[start:start + frames]
 
 
-def sample_clips(clips: VAEClips, batch: int, frames: int, rng: np.random.Generator, *, with_geometry: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """``(frames uint8 [B, T, H, W, 3], depth [B, T, H, W] | None, seg | None)`` at random episodes/offsets."""
+def sample_clips(clips: VAEClips, batch: int, frames: int, rng: np.random.Generator, *, with_geometry: bool,
+                 rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(frames uint8 [R, T, H, W, 3], depth [R, T, H, W] | None, seg | None)`` at random episodes/offsets.
+
+    The episode and offset of all ``batch`` clips are drawn; only ``rows`` of them (default: all, ``R = batch``)
+    are cut, so a row is the same whichever rows are cut.
+    """
     picks = []
     for index in rng.integers(0, len(clips.frames), batch):
         length = max(clips.frames[index].shape[0], frames)
         picks.append((int(index), int(rng.integers(0, length - frames + 1))))
+    if rows is not None:
+        picks = [picks[row] for row in rows]
     video = np.stack([_cut(clips.frames[i], s, frames) for i, s in picks])
     if not with_geometry:
         return video, None, None
@@ -126,22 +135,63 @@ class ClipSampler:
         self.styled_clips = 0  # running count, for the run summary
         self.first_batch_seconds: dict[str, float] = {}  # clip sampling and restyling of the first batch (compile in it)
 
-    def batch(self, step: int) -> np.ndarray:
+    def batch(self, step: int, rows: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``rows`` (default: all) of step ``step``'s batch, ``[R, T, H, W, 3]`` float32 in [-1, 1].
+
+        Only those rows are cut and restyled; the draws (clips, which are styled, styles) are the whole
+        batch's, and ``styled_clips`` counts the whole batch's styled clips.
+        """
         first = not self.first_batch_seconds
         start = time.perf_counter()
         rng = stream_rng(self.seed, "vae/clips", step)
         styling = self.styled_fraction > 0
-        video, depth, seg = sample_clips(self.clips, self.batch_size, self.frames, rng, with_geometry=styling)
+        video, depth, seg = sample_clips(self.clips, self.batch_size, self.frames, rng, with_geometry=styling,
+                                         rows=rows)
         unit = video.astype(np.float32) / np.float32(255.0)
         sampled = time.perf_counter()
         if styling:
             styled = rng.random(self.batch_size) < self.styled_fraction
             if styled.any():
                 key = jax.random.fold_in(stream_key(jax.random.key(self.seed), "vae/styles"), step)
-                styles = training_styles(key, self.batch_size)
-                unit = np.asarray(restyle(unit, depth, seg, styles, styled, intensity=np.float32(self.intensity),
-                                          classes=self.classes, fov_deg=self.fov_deg))
+                styles = training_styles(key, self.batch_size)  # all checked, whichever rows are restyled here
+                held = np.arange(self.batch_size) if rows is None else np.asarray(rows)
+                if styled[held].any():
+                    unit = np.asarray(restyle(unit, depth, seg, jax.tree.map(lambda x: x[held], styles), styled[held],
+                                              intensity=np.float32(self.intensity), classes=self.classes,
+                                              fov_deg=self.fov_deg))
                 self.styled_clips += int(styled.sum())
         if first:  # what a slow first batch waited on: the sampling, or the restyling's compile on the device
             self.first_batch_seconds = {"sample": sampled - start, "restyle": time.perf_counter() - sampled}
         return unit * np.float32(2.0) - np.float32(1.0)
+
+
+class VideoLoader:
+    """The VAE's batches in a job of one or several processes: :meth:`host_batch_at` makes only the rows of a
+    step's batch that this process's devices hold (``rows``), :meth:`place` assembles the global
+    ``{"video": [B, T, H, W, 3]}`` from every process's rows (:func:`sword_jax.sharding.to_global`).
+
+    Args:
+      rows_at: ``rows_at(step, rows) -> [len(rows), T, H, W, 3]`` float32, those rows of the 0-based step's
+        batch; a pure function of both (exact resume), each row the same whichever rows are asked for.
+      batch_size: the global batch size ``B``.
+      mesh, rules: the rows are split over the mesh axes of the ``batch`` logical axis, as the VAE step's input.
+      devices: whose rows to make (default: this process's devices).
+
+    Raises:
+      ValueError: ``batch_size`` does not split evenly over the devices the rows are sharded over.
+    """
+
+    def __init__(self, rows_at: Callable[[int, np.ndarray], np.ndarray], batch_size: int, mesh: jax.sharding.Mesh,
+                 rules=shd.DEFAULT_RULES, *, devices: Sequence[jax.Device] | None = None):
+        self.rows_at, self.batch_size = rows_at, batch_size
+        self.sharding = shd.batch_sharding(mesh, 5, rules)
+        shd.check_batch_divides(self.sharding, batch_size, "vae.batch_size")
+        self.rows = shd.rows_held(self.sharding, batch_size, devices)  # the only rows this process makes
+
+    def host_batch_at(self, step: int) -> np.ndarray:
+        """This process's rows (``rows``) of step ``step``'s batch (0-based); on one process, the whole batch."""
+        return self.rows_at(step, self.rows)
+
+    def place(self, video: np.ndarray) -> dict[str, jax.Array]:
+        """This process's rows (:meth:`host_batch_at`) -> ``{"video": global [B, T, H, W, 3]}``."""
+        return shd.to_global({"video": video}, {"video": self.sharding}, self.rows, self.batch_size)

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx
 from jaxtyping import Array, Float
@@ -81,14 +82,21 @@ def init_train_state(
     return graphdef, VAETrainState(params, constants, opt_state, step)
 
 
-def moving_squares(*, key: jax.Array, batch: int, frames: int, size: int) -> Float[Array, "b t h w 3"]:
-    """Synthetic videos in [-1, 1]: a coloured square moving at constant velocity over a tinted background."""
+def moving_squares(*, key: jax.Array, batch: int, frames: int, size: int,
+                   rows: np.ndarray | None = None) -> Float[Array, "r t h w 3"]:
+    """Synthetic videos in [-1, 1]: a coloured square moving at constant velocity over a tinted background.
+
+    The squares of all ``batch`` videos are drawn; only ``rows`` of them (default: all) are drawn out as
+    pixels, so a row is the same whichever rows are asked for.
+    """
     k_pos, k_vel, k_col, k_bg = jax.random.split(key, 4)
     side = max(size // 4, 2)
     start = jax.random.uniform(k_pos, (batch, 2), minval=0.0, maxval=float(size - side))
     velocity = jax.random.uniform(k_vel, (batch, 2), minval=-2.0, maxval=2.0)
     colour = jax.random.uniform(k_col, (batch, 1, 1, 1, 3), minval=-1.0, maxval=1.0)
     background = jax.random.uniform(k_bg, (batch, 1, 1, 1, 3), minval=-0.5, maxval=0.5)
+    if rows is not None:
+        start, velocity, colour, background = (x[np.asarray(rows)] for x in (start, velocity, colour, background))
     t = jnp.arange(frames, dtype=jnp.float32)
     corner = jnp.mod(start[:, None, :] + velocity[:, None, :] * t[None, :, None], float(size - side))  # (B, T, 2)
     grid = jnp.arange(size, dtype=jnp.float32)

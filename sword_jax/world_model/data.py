@@ -206,43 +206,6 @@ def batch_shardings(mesh: Mesh, batch: dict[str, np.ndarray], rules=shd.DEFAULT_
     }
 
 
-def rows_held(sharding: jax.sharding.Sharding, batch_size: int, devices=None) -> np.ndarray:
-    """The rows (ascending) of a ``[batch_size]`` array with ``sharding`` that ``devices`` (default: this
-    process's) hold: all of them on one process, this process's part on several."""
-    held = sharding.addressable_devices if devices is None else set(devices)
-    rows = set()
-    for device, (index,) in sharding.devices_indices_map((batch_size,)).items():
-        if device in held:
-            rows.update(range(*index.indices(batch_size)))
-    return np.asarray(sorted(rows), np.int64)
-
-
-def to_global(batch: dict[str, np.ndarray], shardings: dict[str, Any], rows: np.ndarray | None = None,
-              batch_size: int | None = None) -> dict[str, jax.Array]:
-    """Host batch -> global arrays, each process materialising only its own devices' slices.
-
-    Args:
-      batch: the whole batch, or with ``rows`` only those rows of it (what this process holds).
-      shardings: each entry's sharding.
-      rows: the global row of each host row (ascending, :func:`rows_held`); ``None``: all rows.
-      batch_size: the global batch size (with ``rows``).
-    """
-    if rows is None or len(rows) == batch_size:
-        return {name: shd.put(value, shardings[name]) for name, value in batch.items()}
-
-    def local(value: np.ndarray, index: tuple) -> np.ndarray:
-        wanted = np.arange(batch_size)[index[0]]
-        at = np.searchsorted(rows, wanted)
-        if np.any(at >= len(rows)) or np.any(rows[np.minimum(at, len(rows) - 1)] != wanted):
-            raise ValueError(f"to_global: a device of this process needs rows {wanted.tolist()}, "
-                             f"but it holds {rows.tolist()}")
-        return value[at][(slice(None), *index[1:])]
-
-    return {name: jax.make_array_from_callback((batch_size, *value.shape[1:]), shardings[name],
-                                               lambda index, value=value: local(value, index))
-            for name, value in batch.items()}
-
-
 class SegmentLoader:
     """Yields sharded global batches of segments; ``position`` / ``restore`` checkpoint it.
 
@@ -259,7 +222,7 @@ class SegmentLoader:
         example = {k: np.repeat(v, sampler.batch_size, axis=0) for k, v in example.items()}
         self.shardings = batch_shardings(mesh, example, rules)
         # the rows of each batch this process's devices hold: the only rows it reads from the dataset
-        self.rows = rows_held(self.shardings["episode"], sampler.batch_size)
+        self.rows = shd.rows_held(self.shardings["episode"], sampler.batch_size)
 
     @property
     def position(self) -> dict[str, int]:
@@ -281,4 +244,4 @@ class SegmentLoader:
 
     def place(self, batch: dict[str, np.ndarray]) -> dict[str, jax.Array]:
         """This process's rows of a batch (:meth:`host_batch_at`) -> global arrays with this loader's shardings."""
-        return to_global(batch, self.shardings, self.rows, self.sampler.batch_size)
+        return shd.to_global(batch, self.shardings, self.rows, self.sampler.batch_size)

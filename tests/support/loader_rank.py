@@ -1,8 +1,10 @@
-"""One rank of a ``train.launch`` job (tests): checks that its world-model loader reads only the rows its
-devices hold and that the global batch equals the one a single process builds; then rank 1 dies by
+"""One rank of a ``train.launch`` job (tests): checks that its world-model and VAE loaders read only the rows
+its devices hold and that each global batch equals the one a single process builds; then rank 1 dies by
 SIGKILL while rank 0 waits in a collective it will never complete.
 
-Prints ``rank R rows [...] read N of B`` per checked step, and ``rank 1 dies at T`` (``time.time()``).
+Prints ``rank R rows [...] read N of B`` per checked world-model step, ``rank R vae rows [...] cut N of B``
+per checked VAE step (clips cut from the episodes, some restyled), ``rank R squares rows [...] drew N of B``
+(the synthetic videos), and ``rank 1 dies at T`` (``time.time()``).
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from sword_jax import sharding as shd
+from sword_jax.augment.synthetic import synthetic_episodes
+from sword_jax.vae import data as vae_data
+from sword_jax.vae.train import moving_squares
 from sword_jax.world_model import data
 from train import distributed
 
@@ -38,6 +43,7 @@ def main() -> None:
         for name in want:
             np.testing.assert_array_equal(got[name], want[name], err_msg=f"rank {rank} step {step} {name}")
         print(f"rank {rank} rows {loader.rows.tolist()} read {len(held['episode'])} of {BATCH}", flush=True)
+    check_vae_loader(rank, mesh, gather)
     multihost_utils.sync_global_devices("checked")
     if rank == 1:
         print(f"rank 1 dies at {time.time()}", flush=True)
@@ -46,6 +52,37 @@ def main() -> None:
     multihost_utils.sync_global_devices("never")
     print("rank 0 passed a collective without rank 1", flush=True)
     sys.exit(5)
+
+
+def check_vae_loader(rank: int, mesh, gather) -> None:
+    episodes = synthetic_episodes(3, num_frames=9, size=16)
+    clips = vae_data.VAEClips([np.rint(f * 255).astype(np.uint8) for f in episodes["frames"]],
+                              list(episodes["depth"]), list(episodes["seg"]))
+    cut = []
+    real_cut = vae_data._cut
+    vae_data._cut = lambda video, start, frames: cut.append(start) or real_cut(video, start, frames)
+    sampler = vae_data.ClipSampler(clips, batch=BATCH, frames=5, seed=0, styled_fraction=0.5)
+    loader = vae_data.VideoLoader(sampler.batch, BATCH, mesh)
+    for step in range(1, 4):
+        want = vae_data.ClipSampler(clips, batch=BATCH, frames=5, seed=0, styled_fraction=0.5).batch(step)
+        cut.clear()
+        held = loader.host_batch_at(step)
+        clips_cut = len(cut) // 3  # frames, depth and seg of each clip
+        got = np.asarray(gather(loader.place(held))["video"])
+        np.testing.assert_array_equal(got, want, err_msg=f"rank {rank} vae step {step}")
+        print(f"rank {rank} vae rows {loader.rows.tolist()} cut {clips_cut} of {BATCH}", flush=True)
+    vae_data._cut = real_cut
+
+    drawn = []
+
+    def squares(step, rows):
+        drawn.append(len(rows))
+        return np.asarray(moving_squares(key=jax.random.key(step), batch=BATCH, frames=5, size=16, rows=rows))
+
+    loader = vae_data.VideoLoader(squares, BATCH, mesh)
+    got = np.asarray(gather(loader.place(loader.host_batch_at(1)))["video"])
+    np.testing.assert_array_equal(got, moving_squares(key=jax.random.key(1), batch=BATCH, frames=5, size=16))
+    print(f"rank {rank} squares rows {loader.rows.tolist()} drew {drawn[0]} of {BATCH}", flush=True)
 
 
 if __name__ == "__main__":
