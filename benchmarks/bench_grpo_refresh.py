@@ -31,7 +31,9 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
         --policy-rollouts 20 --data-backend cpu --deadline-s 1450
 
 ``--policy-rollouts N`` starts every pipeline from ``--policy`` (``rl.sft.init``) and adds N of its episodes per
-task, failures included, to each world model's and detector's training data.
+task, failures included, to each world model's and detector's training data. ``--run-variant NAME=--rl...`` adds
+runs with other GRPO settings in Sword's world model (no pipeline of their own), ``NAME_refreshed_seed<k>`` on
+``--run-variant-gpus``, e.g. ``--run-variant "realdet=--rl.refresh.replay_share=0"``.
 """
 
 from __future__ import annotations
@@ -69,7 +71,8 @@ class Pipe:
 
     ``folder``: under the work dir; ``overrides``: its own dotted overrides (its pipeline and its runs);
     ``prefix``: of its runs' names; ``seeds`` / ``gpus``: its runs' seeds and the GPUs they take in turn (its
-    pipeline the first); ``once``: also the adapted-once arm at its first seed."""
+    pipeline the first); ``once``: also the adapted-once arm at its first seed; ``runs_only``: runs in the
+    pipeline of that folder built by another entry (a ``--run-variant``: its overrides are GRPO's alone)."""
 
     folder: str
     config: str
@@ -78,24 +81,30 @@ class Pipe:
     seeds: tuple[int, ...] = (0,)
     gpus: tuple[str, ...] = ()
     once: bool = False
+    runs_only: bool = False
 
 
-def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
-    """``NAME=--section.key=value --section.key=value`` -> ``(NAME, overrides)``."""
+def parse_variant(text: str, flag: str = "--variant") -> tuple[str, tuple[str, ...]]:
+    """``NAME=--section.key=value --section.key=value`` -> ``(NAME, overrides)``; for ``--run-variant`` every
+    override must be GRPO's (``--rl.``): the runs share Sword's pipeline."""
     name, sep, rest = text.partition("=")
     overrides = tuple(shlex.split(rest))
     if not sep or not name.isidentifier() or name in ("wovr", "once", "refreshed") or not overrides:
-        raise SystemExit(f"bench_grpo_refresh: --variant wants NAME=OVERRIDES (NAME a word other than wovr, once, "
+        raise SystemExit(f"bench_grpo_refresh: {flag} wants NAME=OVERRIDES (NAME a word other than wovr, once, "
                          f"refreshed; OVERRIDES dotted --section.key=value), got {text!r}")
     bad = not_dotted_overrides(list(overrides))
     if bad:
-        raise SystemExit(f"bench_grpo_refresh: --variant {name}: not a dotted config override: {' '.join(bad)}")
+        raise SystemExit(f"bench_grpo_refresh: {flag} {name}: not a dotted config override: {' '.join(bad)}")
+    if flag == "--run-variant" and not all(o.startswith("--rl.") for o in overrides):
+        raise SystemExit(f"bench_grpo_refresh: --run-variant {name}: its runs share Sword's pipeline, so it takes "
+                         f"GRPO's settings (--rl.*) only; use --variant for its own pipeline: {' '.join(overrides)}")
     return name, overrides
 
 
 def pipes(args) -> list[Pipe]:
     """Sword's pipeline; with ``--wovr-config`` the WoVR-config world model's; one per ``--variant`` (Sword's
-    config with the variant's overrides, e.g. a VAE trained with the perceptual loss)."""
+    config with the variant's overrides, e.g. a VAE trained with the perceptual loss); one per ``--run-variant``
+    (more runs in Sword's pipeline with other GRPO settings, ``runs_only``)."""
     gpus = tuple(g for g in args.gpus.split(",") if g)
     out = [Pipe("pipeline", args.config, seeds=tuple(args.seeds), gpus=gpus, once="once" in args.arms)]
     if args.wovr_config:
@@ -108,12 +117,17 @@ def pipes(args) -> list[Pipe]:
         out.append(Pipe(f"pipeline_{name}", args.config, overrides, prefix=f"{name}_",
                         seeds=tuple(getattr(args, "variant_seeds", None) or args.seeds[:1]),
                         gpus=variant_gpus[i % len(variant_gpus):] + variant_gpus[:i % len(variant_gpus)]))
+    run_gpus = tuple(g for g in (getattr(args, "run_variant_gpus", "") or args.gpus).split(",") if g)
+    for text in getattr(args, "run_variant", None) or []:
+        name, overrides = parse_variant(text, "--run-variant")
+        out.append(Pipe("pipeline", args.config, overrides, prefix=f"{name}_", runs_only=True,
+                        seeds=tuple(getattr(args, "run_variant_seeds", None) or args.seeds), gpus=run_gpus))
     return out
 
 
 def pipelines(args) -> dict[str, str]:
-    """``{pipeline folder: config}`` of :func:`pipes`."""
-    return {pipe.folder: pipe.config for pipe in pipes(args)}
+    """``{pipeline folder: config}`` of the pipelines :func:`pipes` builds."""
+    return {pipe.folder: pipe.config for pipe in pipes(args) if not pipe.runs_only}
 
 
 def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline",
@@ -204,8 +218,8 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                     env=dict(env, CUDA_VISIBLE_DEVICES=gpu) if gpu else env)
 
-    every = pipes(args)
-    by_folder = {p.folder: p for p in every}
+    every = [p for p in pipes(args) if not p.runs_only]
+    runs_in = {p.folder: [q for q in pipes(args) if q.folder == p.folder] for p in every}
     if len(every) > 1:  # the episodes once, on Sword's pipeline; the others link them
         if launch("pipeline", pipeline_command(args, overrides, stop_after="data"), gpus[0] if gpus else "").wait():
             raise SystemExit(f"bench_grpo_refresh: the data stage failed (log: {args.workdir}/pipeline.log)")
@@ -225,9 +239,9 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             if proc.returncode:
                 print(f"[refresh] pipeline {folder} failed (log: {args.workdir}/{folder}.log)", flush=True)
                 continue
-            pipe = by_folder[folder]
-            for i, (name, cmd) in enumerate(pipe_runs(args, overrides, pipe).items()):
-                procs[name] = launch(name, cmd, pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
+            for pipe in runs_in[folder]:
+                for i, (name, cmd) in enumerate(pipe_runs(args, overrides, pipe).items()):
+                    procs[name] = launch(name, cmd, pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
             everything = {**building, **procs}
             running = stop_all(list(everything.values()))
@@ -463,6 +477,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="NAME=OVERRIDES: also a pipeline of --config with these dotted overrides (quoted, space "
                              "separated; e.g. lpips='--vae.perceptual_weight=1.0'), its runs named NAME_refreshed_seed<k>; "
                              "repeatable")
+    parser.add_argument("--run-variant", action="append", default=[],
+                        help="NAME=OVERRIDES: more GRPO runs in Sword's world model with other GRPO settings "
+                             "(--rl.* only), named NAME_refreshed_seed<k>; repeatable")
+    parser.add_argument("--run-variant-seeds", default="", help="seeds of each run variant (default: --seeds)")
+    parser.add_argument("--run-variant-gpus", default="", help="GPUs the run variants' runs take in turn "
+                                                               "(default: --gpus)")
     parser.add_argument("--variant-seeds", default="", help="seeds of each variant's runs (default: the first seed)")
     parser.add_argument("--variant-gpus", default="", help="GPUs the variants take in turn (default: --gpus)")
     parser.add_argument("--data-backend", default="", help="the data stage's simulator backend (--sim.backend of "
@@ -497,8 +517,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.wovr_seeds = [int(s) for s in args.wovr_seeds.split(",") if s]
     args.variant_seeds = [int(s) for s in args.variant_seeds.split(",") if s]
+    args.run_variant_seeds = [int(s) for s in args.run_variant_seeds.split(",") if s]
     for text in args.variant:
         parse_variant(text)  # refuses a malformed one before anything runs
+    for text in args.run_variant:
+        parse_variant(text, "--run-variant")
     args.arms = {a for a in args.arms.split(",") if a}
     if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 1 or args.refresh_every < 1 or args.budget < 64:
         raise SystemExit("bench_grpo_refresh: --seeds needs one seed or more, --arms refreshed and/or once, --steps "

@@ -180,3 +180,35 @@ def test_policy_rollouts_put_the_given_policy_in_the_pipeline():
     assert flags[flags.index("--skip") + 1] == "probe,evaluate"
     assert f"--rl.sft.init={os.path.abspath('p.npz')}" in flags and "--rl.grpo.steps=3" not in flags
     assert bench.PIPELINE_FLAGS[bench.PIPELINE_FLAGS.index("--skip") + 1] == "probe,evaluate,sft_policy,policy_data"
+
+
+def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypatch, capsys):
+    """--run-variant NAME=--rl...: more runs in Sword's world model with other GRPO settings, on their own
+    GPUs, started when Sword's one pipeline is built; settings of another section are refused."""
+    import sys
+
+    class Run(Args):
+        workdir, wovr_config, gpus, ground_truth, deadline_s = str(tmp_path), "", "0,1", "", 0.0
+        arms, run_variant, run_variant_gpus = {"refreshed"}, ["nr=--rl.refresh.replay_share=0"], "2,3"
+
+    made = bench.pipes(Run)
+    assert [(p.folder, p.prefix, p.runs_only, p.gpus) for p in made] == [
+        ("pipeline", "", False, ("0", "1")), ("pipeline", "nr_", True, ("2", "3"))]
+    assert bench.pipelines(Run) == {"pipeline": "sword:small"}
+    runs = bench.grpo_commands(Run, [])
+    assert sorted(runs) == ["nr_refreshed_seed0", "nr_refreshed_seed1", "refreshed_seed0", "refreshed_seed1"]
+    nr = " ".join(runs["nr_refreshed_seed1"])
+    assert f"--world-model {tmp_path}/pipeline/world_model" in nr
+    assert nr.endswith(f"--rl.refresh.replay_share=0 --workdir {tmp_path}/nr_refreshed_seed1")
+    assert "replay_share" not in " ".join(runs["refreshed_seed1"])
+
+    builds = []
+    monkeypatch.setattr(bench, "pipeline_command", lambda *a, **k: builds.append(k.get("name")) or [sys.executable, "-c", "pass"])
+    monkeypatch.setattr(bench, "pipe_runs", lambda args, overrides, p: {
+        f"{p.prefix}refreshed_seed{k}": [sys.executable, "-c", "pass"] for k in p.seeds})
+    out = bench.run(Run, [], poll_s=0.05)
+    assert builds == ["pipeline"] and sorted(out["exit_codes"]) == sorted(runs)
+    printed = capsys.readouterr().out
+    assert "nr_refreshed_seed0 on GPU 2" in printed and "nr_refreshed_seed1 on GPU 3" in printed
+    with pytest.raises(SystemExit, match="GRPO's settings"):
+        bench.parse_variant("nr=--trainer.steps=5", "--run-variant")
