@@ -317,6 +317,8 @@ def summarize_run(folder: str) -> dict:
                          "calibration": (r.get("detector") or {}).get("calibration"),
                          "separation_before": separations((r.get("replay") or {}).get("imagined_success_by_horizon")),
                          "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
+                         "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
+                         "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
                          "trust": r.get("trust"), "skipped": r.get("skipped")} for r in records]
     return out
 

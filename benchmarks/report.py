@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import statistics
 from collections.abc import Callable
 
 from sword_jax import cli
@@ -325,13 +326,17 @@ def grpo_refresh_causes() -> str:
         trusted = sum(bool(r["trust"]["trusted"]) for r in done)
         sb = first["separation_before"]
         s, g = run["sampled"], run["greedy"]
+        real = [r["detector_real_frames"] for r in done if r.get("detector_real_frames")]
+        precision = statistics.median(r["frame_precision"] for r in real) if real else float("nan")
+        recall = statistics.median(r["frame_recall"] for r in real) if real else float("nan")
         rows.append([label, f"{world_model['final_metrics']['loss']:.3f}",
                      f"{first['false_success_before']['rate']:.2f}",
                      f"{sb.get('48', float('nan')):+.2f} / {sb.get('96', float('nan')):+.2f}",
-                     f"{trusted} of {len(done)}", str(run["steps"]),
+                     f"{trusted} of {len(done)}", f"{precision:.2f} / {recall:.3f}", str(run["steps"]),
                      f"{s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}]", f"{g['start']:.3f} -> {g['end']:.3f}"])
     return _table(["world model", "world-model loss (last step)", "first refresh: real failures imagined successes",
-                   "first refresh: separation by 48 / 96 actions", "refreshes trusted", "GRPO steps",
+                   "first refresh: separation by 48 / 96 actions", "refreshes trusted",
+                   "refreshed detector on real frames at its threshold: precision / recall (median)", "GRPO steps",
                    "sampled gain, 95% interval", "greedy"], rows)
 
 

@@ -158,7 +158,10 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     first = records[0]
     assert first["world_model"]["real_episodes"] == 4 and records[1]["world_model"]["real_episodes"] == 6
     assert {"false_success", "missed_success", "imagined_success_by_horizon"} <= set(first["replay"])
-    assert {"threshold", "shift", "imagined_frames", "real_frames"} <= set(first["detector"])
+    assert {"threshold", "shift", "imagined_frames", "real_frames", "real_frames_run_threshold"} <= set(first["detector"])
+    # the detector before and after the fine-tune, judged on the same held-out real frames at the run's threshold
+    before, after = first["detector"]["real_frames_run_threshold"]["before"], first["detector"]["real_frames_run_threshold"]["after"]
+    assert before["frames"] == after["frames"] == first["detector"]["real_frames"]["frames"] > 0
     chosen = next(r["horizon"] for r in records if "horizon" in r)  # the first calibrated refresh's choice
     assert chosen["actions"] in (4, 8) and set(chosen["separation"]) == {"4", "8"}
     # stopped after the refresh at step 1 and rerun: bit-identical to the uninterrupted run

@@ -19,7 +19,8 @@ every ``rl.refresh.every`` GRPO steps (:class:`~sword_jax.rl.config.RefreshConfi
    episodes so that at most ``max_false_success`` of their real failures are imagined successes
    (:func:`~sword_jax.rl.sim_agreement.calibrate_threshold`), applied as a logit shift
    (:func:`~sword_jax.rl.reward_model.shifted_reward_model`). Precision and recall are reported on the
-   held-out episodes' imagined and real frames.
+   held-out episodes' imagined and real frames, and on their real frames at the run's threshold with the
+   detector before and after the fine-tune (``real_frames_run_threshold``).
 5. **Branch**: the next imagined rollouts start from the new real episodes' states, every phase before
    their success (``rl.refresh.branch``).
 
@@ -532,6 +533,17 @@ class Refresher:
             return rl_data.sample_mixed_reward_batch(sources, rl.reward_model.batch_size,
                                                      stream_rng(self.cfg.seed, "refresh/detector", step, s))
 
+        held = np.flatnonzero(calibrate)
+        real_held = real_set.subset(held)
+
+        def real_report(params: Any, threshold: float) -> dict[str, Any]:
+            """The detector ``params`` on the held-out episodes' real frames, against each frame's true state."""
+            net = self._reward_model.replace(params={"net": params, "shift": jnp.zeros((), jnp.float32)})
+            scores = score_episodes(functools.partial(jax.jit(net.score_fn), net.params), real_held.frames)
+            return detector_report(scores, real_held, threshold)
+
+        # the detector as it came into this refresh, at the run's threshold: what fine-tuning it changes
+        before = real_report(self.det_params, rl.success_threshold) if held.size else None
         metrics = {}
         if sources:
             state, metrics = train_detector(self.det_graphdef, self.det_params, rl, batch_at,
@@ -541,7 +553,6 @@ class Refresher:
         unshifted = self._reward_model.replace(params={"net": self.det_params, "shift": jnp.zeros((), jnp.float32)})
         score = jax.jit(unshifted.score_fn)
         score = functools.partial(score, unshifted.params)
-        held = np.flatnonzero(calibrate)
         out_report: dict[str, Any] = {"loss": float(metrics.get("loss", np.nan)), "train_episodes": int(train.size),
                                       "calibration_episodes": int(held.size)}
         if held.size == 0:  # too few episodes of each outcome to hold any out: the run's threshold stays
@@ -566,8 +577,11 @@ class Refresher:
         tp = float((fire & truth & labelled).sum())
         out_report["imagined_frames"] = {"precision": tp / max(float((fire & labelled).sum()), 1.0),
                                          "recall": tp / max(float(truth.sum()), 1.0)}
-        real_scores = score_episodes(score, real_set.frames[held])
-        out_report["real_frames"] = detector_report(real_scores, real_set.subset(held), threshold)
+        out_report["real_frames"] = real_report(self.det_params, threshold)
+        # the same real frames at the run's threshold, before and after this refresh's fine-tune: whether the
+        # fine-tune on replays kept the detector's judgement of real scenes, apart from the calibrated threshold
+        out_report["real_frames_run_threshold"] = {"before": before,
+                                                   "after": real_report(self.det_params, rl.success_threshold)}
         out_report.update(threshold=float(threshold), shift=float(self.shift))
         out_report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(
             real.solved[held], first_success(scores, replayed.lengths[held], threshold, rl.imagined.success_frames),
