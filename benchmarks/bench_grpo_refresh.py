@@ -42,6 +42,7 @@ import dataclasses
 import json
 import os
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -284,7 +285,8 @@ def _gain(points: list[dict], key: str | None) -> dict:
 
 
 def summarize_run(folder: str) -> dict:
-    """One refreshed run's curves, gains, real episodes used and refreshes (``folder``: its work dir)."""
+    """One refreshed run's curves, gains, real episodes used and refreshes (``folder``: its work dir); with its
+    ``step_times.jsonl``, the median GRPO step time and imagined frames per second inside its steps."""
     grpo = os.path.join(folder, "rl", "grpo")
     with open(os.path.join(grpo, "success_curve.json")) as f:
         points = json.load(f)["points"]
@@ -298,6 +300,13 @@ def summarize_run(folder: str) -> dict:
                      for p in points],
            "real_episodes_used": points[-1].get("real_episodes_used"),
            "guard": [dict(step=p["step"], **p["guard"]) for p in points if "guard" in p]}
+    times = os.path.join(grpo, "step_times.jsonl")
+    if os.path.exists(times):  # medians: robust to the compiling first step after a start or resume
+        with open(times) as f:
+            rows = [json.loads(line) for line in f if line.strip()]
+        out["step_s"] = statistics.median(r["step_s"] for r in rows) if rows else None
+        fps = [r["imagined_frames_per_s"] for r in rows if "imagined_frames_per_s" in r]
+        out["imagined_frames_per_s"] = statistics.median(fps) if fps else None
     refreshes = os.path.join(grpo, "refreshes.json")
     records = []
     if os.path.exists(refreshes):
@@ -540,7 +549,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
             g, s = entry["greedy"], entry["sampled"]
             print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "
                   f"{g['start']:.3f} -> {g['end']:.3f}; sampled {s['start']:.3f} -> {s['end']:.3f} ({s['gain']:+.3f} "
-                  f"[{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])")
+                  f"[{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])"
+                  + (f"; {entry['imagined_frames_per_s']:.0f} imagined frames/s in its steps"
+                     if entry.get("imagined_frames_per_s") else ""))
         return summary
     if not args.policy:
         raise SystemExit("bench_grpo_refresh run needs --policy (the supervised policy every run starts from)")

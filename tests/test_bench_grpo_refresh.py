@@ -63,11 +63,16 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
                     "replay": {"false_success": {"rate": 0.2, "of": 32}, "missed_success": {"rate": 0.5, "of": 32}},
                     "detector": {"threshold": 0.93, "calibration": {"false_success": {"rate": 0.0}}}}]
         (grpo / "refreshes.json").write_text(json.dumps(records))
+        times = [{"step": 1, "step_s": 30.0, "imagined_frames": 600.0, "imagined_frames_per_s": 20.0}] + [
+            {"step": k, "step_s": 2.0, "imagined_frames": 600.0 + k, "imagined_frames_per_s": 300.0 + k} for k in (2, 3, 4)]
+        (grpo / "step_times.jsonl").write_text("".join(json.dumps(r) + "\n" for r in times))
     out = bench.summarize(str(tmp_path), GROUND_TRUTH)
     assert sorted(out["runs"]) == ["once_seed0", "refreshed_seed0", "refreshed_seed1", "wovr_refreshed_seed0"]
     assert out["sword_minus_wovr_sampled_gain"] == {"refreshed_seed0": pytest.approx(0.05)}
     assert out["sampled_min_gain"] == pytest.approx(0.10) and out["sampled_mean_gain"] == pytest.approx(0.15)
     run = out["runs"]["refreshed_seed0"]
+    # medians of the steps: the first one's compilation does not move them
+    assert run["step_s"] == 2.0 and run["imagined_frames_per_s"] == pytest.approx(302.5)
     assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
     assert run["sampled_proprio_masked"]["start"] == pytest.approx(0.40) and run["curve"][1]["sampled_proprio_masked"] == pytest.approx(end_of(run) - 0.1)
     assert run["guard"][0]["step"] == 5 and run["sampled"]["ci95"][0] < 0.10 < run["sampled"]["ci95"][1]

@@ -295,3 +295,49 @@ def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
     result, _ = run(kill_at=-1)
     assert result.first_step == 2 and history_on_disk() == result.history
     assert [p["step"] for p in history_on_disk()] == [1, 2, 3, 4, 5, 6]
+
+
+def test_grpo_step_times_leave_evaluations_out_and_survive_a_resume(tmp_path):
+    """``step_times.jsonl``: each step once (a resumed run times again the steps after its checkpoint), its
+    time without the evaluations around it, and the imagined frames of a step from its ``mean_chunks``."""
+    import time
+
+    rl = RLConfig(grpo=GRPOConfig(steps=4, eval_every=2, rollout_batch=2, group_size=3))
+    workdir = str(tmp_path / "grpo")
+    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
+
+    class Killed(Exception):
+        pass
+
+    @jax.jit
+    def step(state, batch, key):
+        params = {"w": state.params["w"] + batch}
+        return state.replace(params=params, step=state.step + 1), {"loss": jnp.sum(params["w"]),
+                                                                   "mean_chunks": batch + 1.0}
+
+    def run(kill_at: int):
+        def evaluate(done, params):
+            time.sleep(1.0)  # far longer than a step: a step's time must not include it
+            if done == kill_at:
+                raise Killed(done)
+            return {"mean": float(params["w"][0]), "per_task": {}}, {}
+
+        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
+        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
+                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None,
+                          frames_per_chunk=4)
+
+    def times_on_disk():
+        with open(os.path.join(workdir, "step_times.jsonl")) as f:
+            return [json.loads(line) for line in f]
+
+    with pytest.raises(Killed):
+        run(kill_at=4)
+    assert [r["step"] for r in times_on_disk()] == [1, 2]
+    run(kill_at=-1)
+    rows = times_on_disk()
+    assert [r["step"] for r in rows] == [1, 2, 3, 4]
+    assert all(0.0 <= r["step_s"] < 0.9 for r in rows), rows
+    # 2 starts x 3 members x 4 frames per chunk x mean_chunks (step k's batch is k, so k + 1 chunks)
+    assert [r["imagined_frames"] for r in rows] == [24 * 2, 24 * 3, 24 * 4, 24 * 5]
+    assert all(r["imagined_frames_per_s"] == pytest.approx(r["imagined_frames"] / r["step_s"]) for r in rows)

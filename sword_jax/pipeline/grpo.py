@@ -291,5 +291,6 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     result, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl,
-                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=log)
+                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=log,
+                               frames_per_chunk=setup.sim.chunk_len)
     return {"curve": curve, "workdir": workdir, "history": result.history}

@@ -136,7 +136,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                          **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in REFRESH_RUN_KEYS})
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
                                rl=rl, workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
-                               curve_label="GRPO in the refreshed learned simulator", log=log)
+                               curve_label="GRPO in the refreshed learned simulator", log=log,
+                               frames_per_chunk=setup.sim.chunk_len)
     refreshes = list(refresher.records)
     with open(os.path.join(workdir, "refreshes.json"), "w") as f:
         json.dump(refreshes, f, indent=1)

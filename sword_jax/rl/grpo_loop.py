@@ -15,6 +15,12 @@ after the checkpoint (evaluations a killed run made before it could save), so th
 duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming
 the keys that differ.
 
+Each step's wall time goes to ``<workdir>/step_times.jsonl`` (``step``, ``step_s``: from the previous step's
+metrics read to this one's, evaluations left out; with ``frames_per_chunk``, ``imagined_frames`` and
+``imagined_frames_per_s``: the frames the simulator rendered for the step's ``B x G`` rollouts over its
+time), apart from the history, which stays bit-identical across a resume. The first step after a start or
+resume includes compilation.
+
 With ``rl.imagined.guard_margin > 0`` and evaluations that replay real episodes in the learned simulator
 (their ``replay`` entry), the exploitation guard (:class:`~sword_jax.rl.sim_guard.FalseSuccessGuard`) judges
 every evaluation: when the replay's false-success rate exceeds step 0's by more than the margin, the policy
@@ -27,8 +33,10 @@ an uninterrupted run does.
 from __future__ import annotations
 
 import dataclasses
+import json
 import operator
 import os
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -87,6 +95,7 @@ def train_grpo(
     progress: Callable[[dict[str, float], float], str],
     curve_label: str = "GRPO in the learned simulator",
     log: Callable[[str], Any] = print,
+    frames_per_chunk: int = 0,
 ) -> tuple[LoopResult, list[dict[str, Any]]]:
     """Runs GRPO steps up to ``rl.grpo.steps`` from ``state``, resuming from ``<workdir>/checkpoints``.
 
@@ -102,6 +111,8 @@ def train_grpo(
       progress: ``progress(point, eta_s) -> line``, the log line of a step (``point``: its metrics and ``step``).
       curve_label: the success curve's title.
       log: where progress and resume lines go.
+      frames_per_chunk: frames the simulator renders per imagined chunk (0: not a learned simulator); with
+        the step's ``mean_chunks`` metric it gives ``step_times.jsonl``'s imagined frames per second.
 
     Returns:
       ``(loop result, success-curve points)``; the result's history holds every step's metrics of the run.
@@ -111,6 +122,7 @@ def train_grpo(
       ValueError: the checkpoint in the work dir is another run's.
     """
     curve = SuccessCurve(workdir, label=curve_label)
+    times = StepTimes(workdir, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk)
     guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
              if rl.imagined.guard_margin > 0 else None)
     passed: dict[str, Any] = {}  # the last state the guard passed, on the host, and its step
@@ -144,6 +156,8 @@ def train_grpo(
     def at_checkpoint(done: int, state: Any, history: list[dict[str, Any]]) -> Any:
         restored = record(done, state)
         save_history(workdir, history)
+        times.save()
+        times.restart()  # the evaluation is not the next step's time
         return restored
 
     def on_start(first_step: int, state: Any) -> Any:
@@ -161,10 +175,12 @@ def train_grpo(
                     guard.observe(p.get("replay"))
             at = next((p for p in curve.points if p["step"] == first_step), {}).get("guard", {})
             keep_passed(at.get("rolled_back_to", first_step), state)  # a rolled-back checkpoint holds that state
+        times.drop_after(first_step)  # the clock starts at the first step, the evaluation before it left out
         return state
 
     def report(done: int, metrics: dict[str, float], _: Any, eta: float) -> dict[str, float]:
         point = {"step": done, **metrics}
+        times.add(done, metrics.get("mean_chunks"))
         log(progress(point, eta))
         return point
 
@@ -172,7 +188,46 @@ def train_grpo(
                        checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
                        run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint)
     save_history(workdir, result.history)  # also when no step ran (a finished run resumed, zero steps)
+    times.save()
     return result, curve.points
+
+
+class StepTimes:
+    """Each GRPO step's wall time, kept in ``<workdir>/step_times.jsonl`` (module docstring).
+
+    ``frames_per_chunk_batch``: frames rendered per imagined chunk across the step's rollouts (``B x G x``
+    frames per chunk; 0: no imagined frames). A step's time runs from the previous :meth:`add` (or
+    :meth:`restart`) to its own."""
+
+    def __init__(self, workdir: str, frames_per_chunk_batch: int = 0):
+        self.path = os.path.join(workdir, "step_times.jsonl")
+        self.per_chunk = frames_per_chunk_batch
+        self.rows: list[dict[str, float]] = []
+        if os.path.exists(self.path):
+            with open(self.path) as f:
+                self.rows = [json.loads(line) for line in f if line.strip()]
+        self.last = time.perf_counter()
+
+    def restart(self) -> None:
+        self.last = time.perf_counter()
+
+    def drop_after(self, step: int) -> None:
+        """Forgets steps after ``step`` (a resumed run times them again) and restarts the clock."""
+        self.rows = [r for r in self.rows if r["step"] <= step]
+        self.restart()
+
+    def add(self, step: int, mean_chunks: float | None) -> dict[str, float]:
+        now = time.perf_counter()
+        row = {"step": step, "step_s": now - self.last}
+        if self.per_chunk and mean_chunks is not None:
+            row["imagined_frames"] = self.per_chunk * mean_chunks
+            row["imagined_frames_per_s"] = row["imagined_frames"] / max(row["step_s"], 1e-9)
+        self.rows = [r for r in self.rows if r["step"] != step] + [row]
+        self.last = now
+        return row
+
+    def save(self) -> None:
+        write_jsonl_atomic(self.path, self.rows)
 
 
 def save_history(workdir: str, history: Sequence[dict[str, Any]]) -> None:
