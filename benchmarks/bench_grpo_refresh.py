@@ -33,7 +33,9 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
 ``--policy-rollouts N`` starts every pipeline from ``--policy`` (``rl.sft.init``) and adds N of its episodes per
 task, failures included, to each world model's and detector's training data. ``--run-variant NAME=--rl...`` adds
 runs with other GRPO settings in Sword's world model (no pipeline of their own), ``NAME_refreshed_seed<k>`` on
-``--run-variant-gpus``, e.g. ``--run-variant "realdet=--rl.refresh.replay_share=0"``.
+``--run-variant-gpus``, e.g. ``--run-variant "realdet=--rl.refresh.replay_share=0"``; a run variant with
+``--rl.imagined.decoder=light`` makes its pipeline distil the light rollout decoder and its runs decode with it
+(their replays then measure the simulator through it, their ``step_times.jsonl`` its speed inside GRPO).
 """
 
 from __future__ import annotations
@@ -131,8 +133,19 @@ def pipelines(args) -> dict[str, str]:
     return {pipe.folder: pipe.config for pipe in pipes(args) if not pipe.runs_only}
 
 
+LIGHT = "--rl.imagined.decoder=light"
+
+
+def uses_light_decoder(overrides: Sequence[str], p: Pipe) -> bool:
+    """Whether ``p``'s runs decode their imagined frames with the light decoder (the last setting wins)."""
+    said = [o for o in [*overrides, *p.overrides] if o.startswith("--rl.imagined.decoder=")]
+    return bool(said) and said[-1] == LIGHT
+
+
 def pipeline_command(args, overrides: Sequence[str], *, config: str | None = None, name: str = "pipeline",
-                     stop_after: str = "reward_model", own: Sequence[str] = ()) -> list[str]:
+                     stop_after: str = "reward_model", own: Sequence[str] = (), light: bool = False) -> list[str]:
+    """``train.pipeline`` up to ``stop_after`` for pipeline ``name``; with ``light`` it also distils the light
+    rollout decoder (its ``light_decoder`` stage runs with ``rl.imagined.decoder=light``) for runs that use it."""
     flags = list(PIPELINE_FLAGS)
     flags[flags.index("--stop-after") + 1] = stop_after
     rollouts = getattr(args, "policy_rollouts", 0)
@@ -145,7 +158,7 @@ def pipeline_command(args, overrides: Sequence[str], *, config: str | None = Non
             "--workdir", os.path.join(args.workdir, name), *flags,
             f"--vae.train_steps={args.vae_steps}", f"--trainer.steps={args.world_model_steps}",
             *([f"--sim.backend={backend}"] if backend else []),
-            *[o for o in [*overrides, *own] if not o.startswith("--rl.")]]
+            *[o for o in [*overrides, *own] if not o.startswith("--rl.")], *([LIGHT] if light else [])]
 
 
 def pipe_runs(args, overrides: Sequence[str], p: Pipe) -> dict[str, list[str]]:
@@ -164,6 +177,8 @@ def pipe_runs(args, overrides: Sequence[str], p: Pipe) -> dict[str, list[str]]:
     if p.once:
         runs[f"{p.prefix}once_seed{p.seeds[0]}"] = [*base, "--seed", str(p.seeds[0]), "--rl.refresh.budget=64",
                                                     *overrides, *p.overrides]
+    if uses_light_decoder(overrides, p):  # the decoder its pipeline distilled
+        runs = {name: [*cmd, "--light-decoder", os.path.join(pipe, "light_decoder")] for name, cmd in runs.items()}
     return {name: [*cmd, "--workdir", os.path.join(args.workdir, name)] for name, cmd in runs.items()}
 
 
@@ -226,8 +241,9 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
             raise SystemExit(f"bench_grpo_refresh: the data stage failed (log: {args.workdir}/pipeline.log)")
         for p in every[1:]:
             share_data(args, overrides, p)
-    building = {p.folder: launch(p.folder, pipeline_command(args, overrides, config=p.config, name=p.folder,
-                                                            own=p.overrides), p.gpus[0] if p.gpus else "")
+    building = {p.folder: launch(p.folder, pipeline_command(
+        args, overrides, config=p.config, name=p.folder, own=p.overrides,
+        light=any(uses_light_decoder(overrides, q) for q in runs_in[p.folder])), p.gpus[0] if p.gpus else "")
                 for p in every}  # side by side
     commands = grpo_commands(args, overrides)
     procs: dict[str, subprocess.Popen] = {}

@@ -13,14 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax.envs.wrappers import training
-from flax import nnx
 
 import configs
 import sword_jax
 from sword_jax.api import CheckpointError
 from sword_jax.rl.policy import resize_frames
 from sword_jax.vae import light_decoder as light
-from tests.support.light_decoder import numpy_weights
+from tests.support.light_decoder import save_random_light_decoder
 
 LIGHT_SIZE = 16  # the tiny run's 2x2 latents decoded at 16 px (its VAE's frames are 32 px)
 
@@ -31,26 +30,13 @@ def _light_cfg(**sections):
     return dataclasses.replace(cfg, **sections)
 
 
-def _save_light_decoder(directory, cfg, seed=0):
-    """Random light-decoder weights for ``cfg``'s geometry, saved as the pipeline's stage saves them."""
-    from sword_jax.pipeline.light_decoder import light_geometry, save_light_decoder
-
-    latent_size, frame_size = light_geometry(cfg)
-    _, params = numpy_weights(lambda: light.LightDecoder(cfg.light_decoder, z_dim=cfg.vae.z_dim,
-                                                         scale=frame_size // latent_size,
-                                                         temporal_factor=cfg.vae.temporal_factor, rngs=nnx.Rngs(seed)),
-                              seed=seed)
-    save_light_decoder(str(directory), params, cfg)
-    return params
-
-
 @pytest.fixture(scope="module")
 def light_run(tiny_run, tmp_path_factory):
     """The tiny run (links to its world model and VAE) with a light decoder where the pipeline puts it."""
     run = tmp_path_factory.mktemp("light_run")
     for part in ("world_model", "vae_run"):
         os.symlink(os.path.join(tiny_run, part), run / part)
-    _save_light_decoder(run / "light_decoder" / "checkpoints", _light_cfg())
+    save_random_light_decoder(run / "light_decoder" / "checkpoints", _light_cfg())
     return str(run)
 
 
@@ -163,7 +149,7 @@ def test_a_light_decoder_given_by_path_is_the_runs_and_bad_ones_are_refused_by_n
     wrong = {"channels": (_light_cfg(vae=dataclasses.replace(cfg.vae, z_dim=16)), "16-channel 2x2"),
              "size": (_light_cfg(data=dataclasses.replace(cfg.data, image_size=64)), "48-channel 4x4")}
     for name, (other, match) in wrong.items():
-        _save_light_decoder(tmp_path / name, other)
+        save_random_light_decoder(tmp_path / name, other)
         with pytest.raises(CheckpointError, match=f"{name}: a light decoder of {match} .* the world model's are "
                                                   "48-channel 2x2 latents of 4 frames each"):
             sword_jax.load_world_model(tiny_run, light_decoder=str(tmp_path / name))

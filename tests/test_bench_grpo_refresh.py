@@ -217,3 +217,26 @@ def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypat
     assert "nr_refreshed_seed0 on GPU 2" in printed and "nr_refreshed_seed1 on GPU 3" in printed
     with pytest.raises(SystemExit, match="GRPO's settings"):
         bench.parse_variant("nr=--trainer.steps=5", "--run-variant")
+
+
+def test_a_light_decoder_run_variant_has_its_pipeline_distil_the_decoder_and_its_runs_use_it(tmp_path, monkeypatch):
+    import sys
+
+    class Run(Args):
+        workdir, wovr_config, gpus, ground_truth, deadline_s = str(tmp_path), "", "0", "", 0.0
+        arms, seeds, run_variant = {"refreshed"}, [0], ["light=--rl.imagined.decoder=light"]
+
+    runs = bench.grpo_commands(Run, [])
+    light = runs["light_refreshed_seed0"]
+    assert light[light.index("--light-decoder") + 1] == os.path.join(str(tmp_path), "pipeline", "light_decoder")
+    assert "--light-decoder" not in runs["refreshed_seed0"]
+    # the last decoder setting wins
+    assert not bench.uses_light_decoder([], bench.Pipe("p", "c", ("--rl.imagined.decoder=light", "--rl.imagined.decoder=full")))
+    assert bench.uses_light_decoder(["--rl.imagined.decoder=full"], bench.Pipe("p", "c", ("--rl.imagined.decoder=light",)))
+    assert bench.LIGHT in bench.pipeline_command(Run, [], light=True) and bench.LIGHT not in bench.pipeline_command(Run, [])
+    built = []
+    monkeypatch.setattr(bench, "pipeline_command", lambda *a, **k: built.append(k) or [sys.executable, "-c", "pass"])
+    monkeypatch.setattr(bench, "pipe_runs", lambda args, overrides, p: {
+        f"{p.prefix}refreshed_seed{k}": [sys.executable, "-c", "pass"] for k in p.seeds})
+    bench.run(Run, [], poll_s=0.05)
+    assert [(k["name"], k["light"]) for k in built] == [("pipeline", True)]  # one pipeline, distilling the decoder

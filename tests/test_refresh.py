@@ -73,7 +73,7 @@ def _pool_starts(n, rng):
     return rng.uniform(-0.4, 0.2, (n, 1)).astype(np.float32), [TEXTS[t] for t in tasks], tasks
 
 
-def _run(cfg, tiny_run, workdir, steps):
+def _run(cfg, tiny_run, workdir, steps, light_decoder=""):
     rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=steps))
     graphdef, params = build_policy(rl, seed=0)
     det_graphdef, det_params = build_detector(rl, seed=0)
@@ -90,7 +90,7 @@ def _run(cfg, tiny_run, workdir, steps):
                 jax.random.key(3))
     demos = RealEpisodes.from_recorded(jax.device_get(rec), texts, tasks)
     inputs = GRPOInputs(world_model=os.path.join(tiny_run, "world_model"), vae=os.path.join(tiny_run, "vae_run", "vae"),
-                        reward=reward)
+                        reward=reward, light_decoder=light_decoder)
     setup = world_model_setup(cfg, rl, inputs, demos.episode_set())
     from sword_jax.vae import api as vae_api
 
@@ -331,3 +331,22 @@ def test_a_dlb_fine_tune_with_steps_between_log_steps_stays_finite():
     moved = jax.tree.leaves(jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - np.asarray(b)).max()),
                                          before, new_params))
     assert max(moved) > 0
+
+
+@pytest.mark.slow  # ~1.5 min on 2 cores: one refresh and one GRPO step through the light decoder
+def test_a_refresh_replays_and_recalibrates_through_the_light_decoder(tiny_run, tmp_path):
+    """With ``rl.imagined.decoder=light`` a refresh runs through the light decoder (the fine-tuned world model's
+    simulator keeps it for the replays that train and calibrate the detector), and GRPO's steps are timed with
+    their imagined frames."""
+    from tests.support.light_decoder import save_random_light_decoder
+
+    cfg = _cfg(tmp_path)
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, imagined=dataclasses.replace(
+        cfg.rl.imagined, decoder="light")))
+    save_random_light_decoder(str(tmp_path / "light" / "checkpoints"), cfg)
+    out = _run(cfg, tiny_run, str(tmp_path), steps=1, light_decoder=str(tmp_path / "light"))
+    first = out["refreshes"][0]
+    assert {"imagined_frames", "real_frames", "real_frames_run_threshold"} <= set(first["detector"])
+    with open(os.path.join(str(tmp_path), "grpo", "step_times.jsonl")) as f:
+        rows = [json.loads(line) for line in f]
+    assert [r["step"] for r in rows] == [1] and rows[0]["imagined_frames"] > 0

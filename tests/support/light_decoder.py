@@ -29,3 +29,18 @@ def numpy_weights(factory: Callable[[], nnx.Module], *, seed: int = 0, zeros: bo
         return (rng.standard_normal(leaf.shape) / np.sqrt(np.prod(leaf.shape[:-1]))).astype(leaf.dtype)
 
     return graphdef, jax.tree_util.tree_map_with_path(draw, abstract)
+
+
+def save_random_light_decoder(directory: str, cfg, seed: int = 0) -> nnx.State:
+    """Random light-decoder weights for ``cfg``'s geometry, saved in ``directory`` as the pipeline's stage saves
+    them (``sword_jax.load.load_light_decoder`` reads them back); returns the weights."""
+    from sword_jax.pipeline.light_decoder import light_geometry, save_light_decoder
+    from sword_jax.vae import light_decoder as light
+
+    latent_size, frame_size = light_geometry(cfg)
+    _, params = numpy_weights(lambda: light.LightDecoder(cfg.light_decoder, z_dim=cfg.vae.z_dim,
+                                                         scale=frame_size // latent_size,
+                                                         temporal_factor=cfg.vae.temporal_factor, rngs=nnx.Rngs(seed)),
+                              seed=seed)
+    save_light_decoder(str(directory), params, cfg)
+    return params
