@@ -466,3 +466,38 @@ def to_global(batch: dict[str, np.ndarray], shardings: dict[str, Any], rows: np.
     return {name: jax.make_array_from_callback((batch_size, *value.shape[1:]), shardings[name],
                                                lambda index, value=value: local(value, index))
             for name, value in batch.items()}
+
+
+class RowLoader:
+    """One array's batches in a job of one or several processes: :meth:`host_batch_at` makes only the rows of a
+    step's batch that this process's devices hold (``rows``), :meth:`place` assembles the global
+    ``{field: [B, ...]}`` from every process's rows (:func:`to_global`).
+
+    Args:
+      rows_at: ``rows_at(step, rows) -> [len(rows), ...]``, those rows of the 0-based step's batch; a pure function
+        of both (exact resume), each row the same whichever rows are asked for.
+      batch_size: the global batch size ``B``.
+      mesh, rules: the rows are split over the mesh axes of the ``batch`` logical axis, as the step's input.
+      field, ndim: the batch's one key and its array's rank.
+      name: the setting that gives ``batch_size`` (named by the refusal).
+      devices: whose rows to make (default: this process's devices).
+
+    Raises:
+      ValueError: ``batch_size`` does not split evenly over the devices the rows are sharded over
+        (:func:`check_batch_divides`).
+    """
+
+    def __init__(self, rows_at: Callable[[int, np.ndarray], np.ndarray], batch_size: int, mesh: Mesh,
+                 rules=DEFAULT_RULES, *, field: str, ndim: int, name: str, devices: Sequence[jax.Device] | None = None):
+        self.rows_at, self.batch_size, self.field = rows_at, batch_size, field
+        self.sharding = batch_sharding(mesh, ndim, rules)
+        check_batch_divides(self.sharding, batch_size, name)
+        self.rows = rows_held(self.sharding, batch_size, devices)  # the only rows this process makes
+
+    def host_batch_at(self, step: int) -> np.ndarray:
+        """This process's rows (``rows``) of step ``step``'s batch (0-based); on one process, the whole batch."""
+        return self.rows_at(step, self.rows)
+
+    def place(self, value: np.ndarray) -> dict[str, jax.Array]:
+        """This process's rows (:meth:`host_batch_at`) -> ``{field: global [B, ...]}``."""
+        return to_global({self.field: value}, {self.field: self.sharding}, self.rows, self.batch_size)

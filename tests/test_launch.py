@@ -1,6 +1,7 @@
 """``train.launch``: one process per GPU (here CPU devices, gloo) joined by ``jax.distributed``; each rank's
 output prefixed; a failed or killed rank ends the whole job within the stated grace, naming the rank,
-with no rank left waiting on a collective; each rank's world-model and VAE loaders read only its rows.
+with no rank left waiting on a collective; each rank's world-model, VAE and light-decoder loaders read only its
+rows.
 
 The launcher driving the real ``train.train_world_model`` is ``tests/test_multihost.py``'s."""
 
@@ -94,10 +95,10 @@ def test_a_failed_rank_stops_the_others_within_the_grace(tmp_path):
 
 
 def test_a_killed_jax_rank_ends_the_job_and_each_rank_reads_only_its_rows(tmp_path):
-    """Two ``jax.distributed`` ranks of 2 CPU devices each: each loader (world model, VAE clips, VAE squares)
-    reads 4 of the 8 rows of a batch and the global batch equals a single process's; then rank 1 is SIGKILLed
-    while rank 0 enters a collective (alone, it would wait for JAX's heartbeat timeout): the job ends within the
-    grace, naming rank 1."""
+    """Two ``jax.distributed`` ranks of 2 CPU devices each: each loader (world model, VAE clips, VAE squares,
+    light-decoder clips) reads 4 of the 8 rows of a batch and the global batch equals a single process's; then
+    rank 1 is SIGKILLed while rank 0 enters a collective (alone, it would wait for JAX's heartbeat timeout): the
+    job ends within the grace, naming rank 1."""
     grace = 2.0
     env = dict(os.environ, XLA_FLAGS=FAST_COMPILE)
     proc = subprocess.run([sys.executable, "-m", "train.launch", "--processes", "2", "--cpu-devices", "2", "--grace",
@@ -111,6 +112,7 @@ def test_a_killed_jax_rank_ends_the_job_and_each_rank_reads_only_its_rows(tmp_pa
         assert out.count(f"[rank {rank}] rank {rank} rows {rows} read 4 of 8") == 3, out[-3000:]
         assert out.count(f"[rank {rank}] rank {rank} vae rows {rows} cut 4 of 8") == 3, out[-3000:]
         assert f"[rank {rank}] rank {rank} squares rows {rows} drew 4 of 8" in out, out[-3000:]
+        assert out.count(f"[rank {rank}] rank {rank} light rows {rows} cut 4 of 8") == 3, out[-3000:]
     assert "passed a collective" not in out
     died = float(re.search(r"rank 1 dies at ([\d.]+)", out).group(1))
     assert ended - died < grace + launcher.STOP_MARGIN_S + 1.0  # + the launcher's own exit

@@ -1,6 +1,7 @@
 """The light rollout decoder (sword_jax.vae.light_decoder): causal frames at the chosen size, streaming equal to
 the whole-sequence decode; its distillation from the VAE (sword_jax.vae.light_train, the pipeline's light_decoder
-stage) lowers the loss and resumes exactly; the simulator builder decodes GRPO's frames with it."""
+stage) lowers the loss and resumes exactly, each process cutting only its rows of a batch; the simulator builder
+decodes GRPO's frames with it."""
 
 import dataclasses
 import os
@@ -145,6 +146,47 @@ def test_distillation_lowers_the_loss_and_a_resumed_run_equals_an_uninterrupted_
     assert after < 0.95 * before, (before, after)
     losses = [p["loss"] for p in straight.history]
     assert np.mean(losses[-2:]) < losses[0]
+
+
+def test_clip_loader_cuts_only_its_devices_rows_of_the_single_process_batch(monkeypatch):
+    """A process cuts only the clips of a batch its devices hold, each the one a single process cuts (here a
+    "process" is a subset of the fake devices; two launched processes: tests/test_launch.py)."""
+    latents = np.asarray(jax.random.normal(jax.random.key(0), (5, 6, 2, 2, Z)))
+    mesh = shd.make_mesh(shd.MeshConfig(data=4, tensor=2))
+    sampler = light_train.ClipSampler(latents, batch=8, clip_latents=2, seed=0)
+    whole = light_train.clip_loader(sampler, mesh)
+    third = light_train.clip_loader(sampler, mesh, devices=list(mesh.devices[2].flat))
+    assert whole.rows.tolist() == list(range(8)) and third.rows.tolist() == [4, 5]
+    cut, real_cut = [], light_train.cut_clip
+    monkeypatch.setattr(light_train, "cut_clip", lambda *args: cut.append(args[1:3]) or real_cut(*args))
+    for step in range(3):
+        cut.clear()
+        part = third.host_batch_at(step)
+        assert part.shape == (2, 3, 2, 2, Z) and len(cut) == 2  # its 2 clips only
+        full = whole.host_batch_at(step)
+        np.testing.assert_array_equal(part, full[4:6])
+        placed = whole.place(full)["latents"]
+        assert placed.sharding == shd.batch_sharding(mesh, 5)  # the distillation step's input sharding
+        np.testing.assert_array_equal(np.asarray(placed), full)
+    assert not np.array_equal(whole.host_batch_at(0), whole.host_batch_at(1))
+
+
+def test_a_light_decoder_batch_that_does_not_split_over_the_devices_is_refused_naming_the_numbers(tmp_path):
+    """Refused by the loader, and by the entry point before the teacher is loaded (no VAE is given here)."""
+    from train import train_light_decoder
+
+    sampler = light_train.ClipSampler(np.zeros((2, 4, 2, 2, Z), np.float32), batch=6, clip_latents=2, seed=0)
+    with pytest.raises(ValueError, match=r"light_decoder.batch_size=6 does not split over the 4 devices .* "
+                                         r"8 devices in 1 process\): use a multiple of 4"):
+        light_train.clip_loader(sampler, shd.make_mesh(shd.MeshConfig(data=4, tensor=2)))
+    np.savez(tmp_path / "latents.npz", latents=np.zeros((3, 5, 2, 2, Z), np.float32),
+             actions=np.zeros((3, 17, 7), np.float32))
+    with pytest.raises(SystemExit, match=r"light_decoder.batch_size=3 does not split over the 2 devices"):
+        train_light_decoder.main(["--config", "sword:tiny", "--workdir", str(tmp_path / "run"), "--vae",
+                                  str(tmp_path / "no_vae"), "--latents", str(tmp_path / "latents.npz"),
+                                  "--light_decoder.batch_size=3", "--light_decoder.clip_latents=2", "--mesh.data=2",
+                                  "--mesh.tensor=4"])
+    assert not (tmp_path / "run" / "checkpoints").exists()
 
 
 def test_teacher_frames_are_the_vae_frames_clipped_and_resized_as_the_policy_sees_them():

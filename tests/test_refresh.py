@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import configs
+from sword_jax import sharding as shd
 from sword_jax.load import experiment_vae, experiment_world_model
 from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
 from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
@@ -20,7 +21,7 @@ from sword_jax.rl.config import RefreshConfig
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
 from sword_jax.rl.policy_success import success_summary
-from sword_jax.rl.refresh import RealEpisodes, choose_horizon, first_success, stratified_split
+from sword_jax.rl.refresh import RealEpisodes, Refresher, choose_horizon, first_success, stratified_split
 from sword_jax.rl.reward_model import build_detector, shifted_reward_model, threshold_shift
 from sword_jax.rl.scan_rollout import record_episodes
 from sword_jax.rl.sim_builder import stored_for_simulator
@@ -65,7 +66,9 @@ def _cfg(workdir):
         refresh=RefreshConfig(every=1, episodes=4, budget=6, episode_steps=cfg.data.episode_frames, world_model_steps=2,
                               detector_steps=2, replay_share=0.5, calibrate_fraction=0.5,
                               horizons=(4, 8)))
-    return dataclasses.replace(cfg, workdir=str(workdir), model=dataclasses.replace(cfg.model, num_layers=1), rl=rl)
+    # the world model's fine-tune batch splits over the suite's 8 devices
+    return dataclasses.replace(cfg, workdir=str(workdir), model=dataclasses.replace(cfg.model, num_layers=1), rl=rl,
+                               data=dataclasses.replace(cfg.data, batch_size=8))
 
 
 def _pool_starts(n, rng):
@@ -323,9 +326,10 @@ def test_a_dlb_fine_tune_with_steps_between_log_steps_stays_finite():
     actions = rng.uniform(-1, 1, (2, cfg.data.episode_frames, cfg.model.action_dim)).astype(np.float32)
     before = jax.device_get(nnx.to_pure_dict(params))  # the fine-tune donates the arrays it is given
     logged = []
+    mesh = shd.make_mesh(shd.MeshConfig(data=2, tensor=4))  # the tiny batch of 2 splits over data
     (new_params, _), last = finetune_world_model(cfg, (nnx.to_pure_dict(params), nnx.to_pure_dict(rest)),
                                                  LatentDataset(latents, actions), steps=8, learning_rate=1e-3, seed=1,
-                                                 log=logged.append)
+                                                 mesh=mesh, log=logged.append)
     assert last["step"] == 8 and last["nonfinite"] == 0 and np.isfinite(last["loss"])
     assert len([line for line in logged if "world model refresh step" in line]) == 4  # log steps 2, 4, 6, 8 only
     moved = jax.tree.leaves(jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - np.asarray(b)).max()),
@@ -350,3 +354,13 @@ def test_a_refresh_replays_and_recalibrates_through_the_light_decoder(tiny_run, 
     with open(os.path.join(str(tmp_path), "grpo", "step_times.jsonl")) as f:
         rows = [json.loads(line) for line in f]
     assert [r["step"] for r in rows] == [1] and rows[0]["imagined_frames"] > 0
+
+
+def test_a_world_model_batch_that_does_not_split_over_the_mesh_is_refused_before_grpo_runs(tmp_path):
+    """The refresh fine-tunes the world model on GRPO's mesh: a data.batch_size that does not split over it is
+    refused when the refresher is made, not at the first refresh."""
+    cfg = _cfg(tmp_path)
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, batch_size=2))
+    with pytest.raises(ValueError, match=r"data.batch_size=2 does not split over the 8 devices"):
+        Refresher(cfg, cfg.rl, wm_state=None, make_simulator=None, encode=None, encode_frames=None,
+                  detector=(None, None), base=None, collect=None, directory=str(tmp_path))

@@ -81,6 +81,16 @@ def test_rows_held_are_the_rows_of_a_process_devices():
     assert loader.rows.tolist() == list(range(8)) and len(loader.host_batch_at(0)["episode"]) == 8
 
 
+def test_a_batch_that_does_not_split_over_the_devices_is_refused_naming_the_numbers():
+    """Not replicated: every device would compute the whole batch and every process read all of it."""
+    mesh = shd.make_mesh(shd.MeshConfig(data=4, tensor=2))
+    with pytest.raises(ValueError, match=r"data.batch_size=6 does not split over the 4 devices .*'data': 4.* "
+                                         r"8 devices in 1 process\): use a multiple of 4"):
+        data.SegmentLoader(tiny_dataset(), data.SegmentSampler(8, 6, 1, 2, 6, seed=0), 1, 2, mesh)
+    loader = data.SegmentLoader(tiny_dataset(), data.SegmentSampler(8, 6, 1, 2, 4, seed=0), 1, 2, mesh)
+    assert loader.shardings["latents"].spec[0] == "data"  # 4 rows: one per data slot
+
+
 def test_load_npz_and_h5_and_reject_bad_files(tmp_path):
     ds = tiny_dataset(num_episodes=2, num_latents=3)
     np.savez(tmp_path / "d.npz", latents=ds.latents, actions=ds.actions)

@@ -15,7 +15,7 @@ from sword_jax.pipeline import world_model as wm_run
 from train import distributed, train_world_model
 
 ARGS = ["--config", "sword:tiny", "--synthetic", "--model.num_layers=1", "--trainer.log_every=1",
-        "--trainer.checkpoint_every=2"]
+        "--trainer.checkpoint_every=2", "--mesh.data=2", "--mesh.tensor=4"]  # the tiny batch of 2 splits over data
 
 
 def _params_at(workdir, step):

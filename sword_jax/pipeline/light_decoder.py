@@ -14,6 +14,7 @@ newest is the trained decoder (:func:`sword_jax.load.load_light_decoder` reads i
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from typing import Any
@@ -107,18 +108,21 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
         raise SystemExit(f"train_light_decoder: {latents} holds latents {dataset.shape}, the config's VAE makes [E, L, "
                          f"{want[0]}, {want[1]}, {want[2]}] (data.image_size / vae.spatial_factor, vae.z_dim)")
     mesh = shd.make_mesh(cfg.mesh)
+    try:  # each process cuts only the rows of a batch its devices hold
+        loader = light_train.clip_loader(light_train.ClipSampler(
+            dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed), mesh, cfg.mesh.rules)
+    except ValueError as err:
+        raise SystemExit(f"train_light_decoder: {err}") from None
+    held_loader = light_train.clip_loader(light_train.ClipSampler(
+        dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed, name="light_decoder/eval"),
+        mesh, cfg.mesh.rules)
+    held_clips = held_loader.place(held_loader.host_batch_at(0))["latents"]
     teacher_graphdef, teacher_state = inference_vae(*load_vae_params(cfg.vae, vae, mesh=mesh), ld.teacher_precision)
     scale = frame_size // latent_size
     graphdef, state = light_train.init_train_state(ld, z_dim=cfg.vae.z_dim, scale=scale,
                                                    temporal_factor=cfg.vae.temporal_factor,
                                                    key=jax.random.key(cfg.seed), mesh=mesh, rules=cfg.mesh.rules)
     params_count = light.param_count(state.params)
-    try:
-        sampler = light_train.ClipSampler(dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed)
-    except ValueError as err:
-        raise SystemExit(f"train_light_decoder: {err}") from None
-    held = light_train.ClipSampler(dataset, batch=ld.batch_size, clip_latents=ld.clip_latents, seed=cfg.seed,
-                                   name="light_decoder/eval").batch_at(0)
     perceptual_fn = None
     if ld.perceptual_weight > 0:
         from sword_jax.vae.perceptual import lpips_loss
@@ -127,17 +131,15 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
         log(f"[light_decoder] perceptual loss: LPIPS x {ld.perceptual_weight} ({source})")
     step = light_train.make_distill_step(graphdef, teacher_graphdef, ld, frame_size=frame_size,
                                          perceptual_fn=perceptual_fn)
-    step_fn = light_train.bind_teacher(step, teacher_state, state, {"latents": held}, mesh=mesh, rules=cfg.mesh.rules,
-                                       max_traces=ENTRY_MAX_TRACES)
+    step_fn = light_train.bind_teacher(step, teacher_state, state, {"latents": held_clips}, mesh=mesh,
+                                       rules=cfg.mesh.rules, max_traces=ENTRY_MAX_TRACES)
 
-    @jax.jit
+    @functools.partial(jax.jit, out_shardings=shd.replicated(mesh))  # every process reads them
     def evaluate(teacher_state, params, clips):
         target = light_train.teacher_frames(teacher_graphdef, teacher_state, clips, frame_size=frame_size)
         video = light.decode(graphdef, params, clips, compute_dtype="float32")
         return jnp.mean(jnp.abs(video - target)), light_train.frame_psnr(video, target), video[0], target[0]
 
-    clip_sharding = shd.leading_axis_shardings(held, mesh, cfg.mesh.rules)
-    held_clips = shd.put(held, clip_sharding)
     init_l1, init_psnr, init_video, _ = evaluate(teacher_state, state.params, held_clips)
     log(f"[light_decoder] {params_count / 1e6:.2f}M parameters, {latent_size}x{latent_size} latents -> "
         f"{frame_size}x{frame_size} frames; {dataset.shape[0]} episodes of {dataset.shape[1]} latents; teacher "
@@ -149,9 +151,9 @@ def run_light_decoder(cfg: Any, *, vae: str, latents: str) -> dict:
     started = time.perf_counter()
     try:
         result = run_steps(
-            step_fn, state, sampler.batch_at, key=root, steps=ld.train_steps, log_every=log_every,
+            step_fn, state, loader.host_batch_at, key=root, steps=ld.train_steps, log_every=log_every,
             name="train_light_decoder", report=lambda done, metrics, _obs, eta: logger.write(done, metrics, eta_s=eta),
-            place=lambda clips: {"latents": shd.put(clips, clip_sharding)},
+            place=loader.place,
             checkpoint_dir=os.path.join(cfg.workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
             keep_checkpoints=1, settle=True, checkpoint_meta=lambda _done: light_meta(cfg),
             run_id=run_id(cfg, latent_shape=dataset.shape), log=log)

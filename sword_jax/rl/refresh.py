@@ -285,6 +285,10 @@ class Refresher:
         self.cfg, self.rl, self.conf = cfg, rl, rl.refresh
         self.make_simulator, self.encode, self.encode_frames = make_simulator, encode, encode_frames
         self.mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
+        # the world model's fine-tune batch splits over this mesh (its loader refuses otherwise): checked before GRPO
+        # runs rather than at the first refresh
+        shd.check_batch_divides(shd.batch_sharding(self.mesh, 1, cfg.mesh.rules), cfg.data.batch_size,
+                                "data.batch_size")
         self.det_graphdef, self.det_params = detector[0], jax.device_put(detector[1], shd.replicated(self.mesh))
         self.initial = (wm_state, self.det_params)
         self.wm_state, self.shift = wm_state, 0.0

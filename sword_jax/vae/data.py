@@ -165,10 +165,10 @@ class ClipSampler:
         return unit * np.float32(2.0) - np.float32(1.0)
 
 
-class VideoLoader:
+class VideoLoader(shd.RowLoader):
     """The VAE's batches in a job of one or several processes: :meth:`host_batch_at` makes only the rows of a
     step's batch that this process's devices hold (``rows``), :meth:`place` assembles the global
-    ``{"video": [B, T, H, W, 3]}`` from every process's rows (:func:`sword_jax.sharding.to_global`).
+    ``{"video": [B, T, H, W, 3]}`` from every process's rows (:class:`sword_jax.sharding.RowLoader`).
 
     Args:
       rows_at: ``rows_at(step, rows) -> [len(rows), T, H, W, 3]`` float32, those rows of the 0-based step's
@@ -183,15 +183,5 @@ class VideoLoader:
 
     def __init__(self, rows_at: Callable[[int, np.ndarray], np.ndarray], batch_size: int, mesh: jax.sharding.Mesh,
                  rules=shd.DEFAULT_RULES, *, devices: Sequence[jax.Device] | None = None):
-        self.rows_at, self.batch_size = rows_at, batch_size
-        self.sharding = shd.batch_sharding(mesh, 5, rules)
-        shd.check_batch_divides(self.sharding, batch_size, "vae.batch_size")
-        self.rows = shd.rows_held(self.sharding, batch_size, devices)  # the only rows this process makes
-
-    def host_batch_at(self, step: int) -> np.ndarray:
-        """This process's rows (``rows``) of step ``step``'s batch (0-based); on one process, the whole batch."""
-        return self.rows_at(step, self.rows)
-
-    def place(self, video: np.ndarray) -> dict[str, jax.Array]:
-        """This process's rows (:meth:`host_batch_at`) -> ``{"video": global [B, T, H, W, 3]}``."""
-        return shd.to_global({"video": video}, {"video": self.sharding}, self.rows, self.batch_size)
+        super().__init__(rows_at, batch_size, mesh, rules, field="video", ndim=5, name="vae.batch_size",
+                         devices=devices)

@@ -9,7 +9,9 @@ checkpointed); ``step(state, batch, key)`` is the shared loop's signature once t
 
 Clips (:class:`ClipSampler`): the episode's first latent, then ``clip_latents`` consecutive latents from
 a random position, the layout the learned simulator decodes (start latent, context, predictions). A
-batch is a pure function of the step, so the train state alone makes an exact resume.
+batch is a pure function of the step, so the train state alone makes an exact resume. In a job of several
+processes each one cuts only the rows of a batch its devices hold (:func:`clip_loader`); every draw is made for
+the whole batch, so a row is the same whichever process cuts it.
 """
 
 from __future__ import annotations
@@ -169,6 +171,12 @@ def bind_teacher(step: Callable, teacher_state: Any, state: LightTrainState, bat
     return bound
 
 
+def cut_clip(latents: np.ndarray, episode: int, start: int, clip_latents: int) -> np.ndarray:
+    """Episode ``episode``'s first latent, then its ``clip_latents`` latents from ``start``:
+    ``[1 + clip_latents, h, w, z]``."""
+    return np.concatenate([latents[episode, :1], latents[episode, start:start + clip_latents]])
+
+
 class ClipSampler:
     """Training clips of a latent dataset ``[E, L, h, w, z]``, each a pure function of (seed, step).
 
@@ -185,10 +193,29 @@ class ClipSampler:
                              f"latent and {clip_latents} more (light_decoder.clip_latents)")
         self.latents, self.batch, self.clip_latents, self.seed, self.name = latents, batch, clip_latents, seed, name
 
-    def batch_at(self, step: int) -> np.ndarray:
+    def batch_at(self, step: int, rows: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``rows`` (default: all) of step ``step``'s clips, ``[R, 1 + clip_latents, h, w, z]`` float32.
+
+        The episode and start of all ``batch`` clips are drawn; only ``rows`` of them are cut.
+        """
         rng = stream_rng(self.seed, self.name, step)
         episodes = rng.integers(0, self.latents.shape[0], self.batch)
         starts = rng.integers(1, self.latents.shape[1] - self.clip_latents + 1, self.batch)
-        rows = [np.concatenate([self.latents[e, :1], self.latents[e, s:s + self.clip_latents]])
-                for e, s in zip(episodes, starts)]
-        return np.stack(rows).astype(np.float32)
+        if rows is not None:
+            episodes, starts = episodes[rows], starts[rows]
+        clips = [cut_clip(self.latents, e, s, self.clip_latents) for e, s in zip(episodes, starts)]
+        return np.stack(clips).astype(np.float32)
+
+
+def clip_loader(sampler: ClipSampler, mesh: jax.sharding.Mesh,
+                rules: Sequence[tuple[str, Sequence[str]]] = sharding.DEFAULT_RULES, *,
+                devices: Sequence[jax.Device] | None = None) -> sharding.RowLoader:
+    """``sampler``'s batches ``{"latents": [B, 1 + clip_latents, h, w, z]}`` (the step's input), each process
+    cutting only the rows its devices (or ``devices``) hold.
+
+    Raises:
+      ValueError: ``sampler.batch`` does not split evenly over the devices the rows are sharded over
+        (naming ``light_decoder.batch_size``, the devices and the mesh).
+    """
+    return sharding.RowLoader(sampler.batch_at, sampler.batch, mesh, rules, field="latents", ndim=5,
+                              name="light_decoder.batch_size", devices=devices)

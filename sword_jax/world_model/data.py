@@ -211,6 +211,11 @@ class SegmentLoader:
 
     Each process reads from the dataset only the rows of a batch that its devices hold (``rows``); the
     global array is assembled from every process's rows.
+
+    Raises:
+      ValueError: the sampler's batch size does not split evenly over the devices the rows are sharded over
+        (naming ``data.batch_size``, the devices, the mesh and the processes); replicating it instead would
+        have every device compute the whole batch and every process read all of it.
     """
 
     def __init__(self, dataset: LatentDataset, sampler: SegmentSampler, num_context: int, num_future: int,
@@ -218,6 +223,7 @@ class SegmentLoader:
         self.dataset, self.sampler = dataset, sampler
         self.num_context, self.num_future = num_context, num_future
         self.mesh, self.rules = mesh, rules
+        shd.check_batch_divides(shd.batch_sharding(mesh, 1, rules), sampler.batch_size, "data.batch_size")
         example = dataset.segment(*sampler.slots[:1].T.astype(np.int32), num_context, num_future)
         example = {k: np.repeat(v, sampler.batch_size, axis=0) for k, v in example.items()}
         self.shardings = batch_shardings(mesh, example, rules)
