@@ -121,10 +121,12 @@ def pipes(args) -> list[Pipe]:
                         seeds=tuple(getattr(args, "variant_seeds", None) or args.seeds[:1]),
                         gpus=variant_gpus[i % len(variant_gpus):] + variant_gpus[:i % len(variant_gpus)]))
     run_gpus = tuple(g for g in (getattr(args, "run_variant_gpus", "") or args.gpus).split(",") if g)
-    for text in getattr(args, "run_variant", None) or []:
+    seeds = tuple(getattr(args, "run_variant_seeds", None) or args.seeds)
+    for i, text in enumerate(getattr(args, "run_variant", None) or []):
         name, overrides = parse_variant(text, "--run-variant")
-        out.append(Pipe("pipeline", args.config, overrides, prefix=f"{name}_", runs_only=True,
-                        seeds=tuple(getattr(args, "run_variant_seeds", None) or args.seeds), gpus=run_gpus))
+        shift = i * len(seeds) % len(run_gpus) if run_gpus else 0  # each variant's runs on the next GPUs
+        out.append(Pipe("pipeline", args.config, overrides, prefix=f"{name}_", runs_only=True, seeds=seeds,
+                        gpus=run_gpus[shift:] + run_gpus[:shift]))
     return out
 
 

@@ -218,6 +218,11 @@ def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypat
     with pytest.raises(SystemExit, match="GRPO's settings"):
         bench.parse_variant("nr=--trainer.steps=5", "--run-variant")
 
+    class Two(Run):  # two run variants of one seed each: one GPU each
+        seeds, run_variant = [0], ["a=--rl.refresh.replay_share=0", "b=--rl.imagined.decoder=light"]
+
+    assert [p.gpus[0] for p in bench.pipes(Two)] == ["0", "2", "3"]
+
 
 def test_a_light_decoder_run_variant_has_its_pipeline_distil_the_decoder_and_its_runs_use_it(tmp_path, monkeypatch):
     import sys
