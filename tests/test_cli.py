@@ -28,9 +28,8 @@ BAD_ARGS = {
     "train.grpo": ["--simulator", "real"],
     "train.gallery": ["--out", "unused.png", "--size", "8"],
     "train.launch": ["--processes", "2", "--", "python", "-m", "train.grpo"],
-    "sword_jax.convert.wan22": ["check"],
-    "sword_jax.metrics.verify": [],
-    "sword_jax.augment.gallery": ["--out", "unused.png", "--intensity", "5"],
+    "train.convert_wan22": ["check"],
+    "train.verify_metrics": [],
 }
 
 
