@@ -1,8 +1,8 @@
 """Comparing a port's outputs with the outputs of the reference implementation it ports.
 
 The converters (:mod:`sword_jax.convert`) and the metric networks' check (:mod:`sword_jax.metrics.verify`)
-report one :class:`CaseResult` per compared output array, so their command lines print and threshold
-them the same way.
+report one :class:`CaseResult` per compared output array, so their command lines
+(``train.convert_wan22``, ``train.verify_metrics``) print and threshold them the same way.
 """
 
 from __future__ import annotations

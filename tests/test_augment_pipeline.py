@@ -180,7 +180,7 @@ def test_config_validation():
 
 
 def test_gallery_writes_labelled_png(tmp_path):
-    from sword_jax.augment import gallery
+    from train import gallery
 
     out = tmp_path / "gallery.png"
     assert gallery.main(["--out", str(out), "--source", "synthetic", "--size", "32", "--styles", "2"]) == 0
@@ -189,21 +189,36 @@ def test_gallery_writes_labelled_png(tmp_path):
     assert image.std() > 20  # not blank
 
 
-def test_gallery_of_a_sim_frame_needs_the_renderer_from_train(tmp_path, capsys):
-    from sword_jax import cli
-    from sword_jax.augment import gallery
+def test_gallery_of_a_sim_frame(tmp_path, capsys):
     from train import gallery as sim_gallery
 
     argv = ["--out", str(tmp_path / "sim.png"), "--source", "sim", "--size", "32", "--styles", "1"]
-    with pytest.raises(SystemExit) as exit_info:
-        cli.run(gallery.main, argv)
-    assert exit_info.value.code == 2 and "python -m train.gallery" in capsys.readouterr().err
     assert sim_gallery.main(argv) == 0
     assert "source=sim" in capsys.readouterr().out
     rgb, depth, seg, classes, fov = sim_gallery.sim_frame(32, 0)
     assert rgb.shape == (1, 32, 32, 3) and depth.shape == seg.shape == (1, 32, 32) and fov > 0
     assert len(np.unique(seg)) > 3 and rgb.std() > 0.05  # table, robot and objects in view
     assert classes.fixtures  # the scene's cabinet / stove count as fixtures
+
+
+def test_gallery_falls_back_to_the_synthetic_scene(tmp_path, capsys, monkeypatch):
+    from sword_jax import cli
+    from train import gallery
+
+    def no_renderer(size, seed):
+        raise RuntimeError("no GL")
+
+    monkeypatch.setattr(gallery, "sim_frame", no_renderer)
+    out = tmp_path / "auto.png"
+    assert gallery.main(["--out", str(out), "--size", "32", "--styles", "1"]) == 0  # --source auto
+    captured = capsys.readouterr()
+    assert "sim render unavailable (RuntimeError: no GL)" in captured.err and "source=synthetic" in captured.out
+    assert cv2.imread(str(out)) is not None
+    with pytest.raises(RuntimeError, match="no GL"):  # asked for the sim: no silent substitute
+        gallery.main(["--out", str(out), "--source", "sim", "--size", "32"])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run(gallery.main, ["--out", str(out), "--intensity", "5"])
+    assert exit_info.value.code == 2 and "--intensity must be in [0, 1]" in capsys.readouterr().err
 
 
 def test_episodes_from_sim_dataset_records(episodes):

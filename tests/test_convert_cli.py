@@ -1,4 +1,4 @@
-"""``python -m sword_jax.convert.wan22 verify DIR``: passes on the reference, fails on corrupted copies."""
+"""``python -m train.convert_wan22 verify DIR``: passes on the reference, fails on corrupted copies."""
 
 import os
 import subprocess
@@ -10,6 +10,7 @@ from safetensors import safe_open
 from safetensors.numpy import save_file
 
 from sword_jax.convert import wan22
+from train import convert_wan22
 
 REF = "reference/wan22"
 
@@ -34,7 +35,7 @@ def _vae_copy(src: str, dst: str, *, perturb: str | None = None, truncate: bool 
 @pytest.mark.slow  # 70 s on 2 cores; test_vae checks the same parity, the perturbed case below the command line
 def test_verify_vae_reference_passes(shared_dir, tmp_path, capsys):
     good = _vae_copy(os.path.join(shared_dir, REF), str(tmp_path / "good"))
-    assert wan22.main(["verify", good]) == 0
+    assert convert_wan22.main(["verify", good]) == 0
     out = capsys.readouterr().out
     assert "vae_case:mu " in out and "vae_case:decoded " in out and "largest errors" in out
     assert "[wan22_dit] skipped" in out
@@ -43,7 +44,7 @@ def test_verify_vae_reference_passes(shared_dir, tmp_path, capsys):
 @pytest.mark.slow
 def test_verify_shared_dir_passes(shared_dir, capsys):
     """The whole shared directory: VAE and (when its converter exists) DiT cases."""
-    assert wan22.main(["verify", os.path.join(shared_dir, REF)]) == 0
+    assert convert_wan22.main(["verify", os.path.join(shared_dir, REF)]) == 0
     assert "vae_case:decoded " in capsys.readouterr().out
 
 
@@ -63,7 +64,7 @@ def test_verify_fails_on_truncated_file(shared_dir, tmp_path, capsys):
 
 
 def test_verify_missing_or_empty_dir(tmp_path, capsys):
-    assert wan22.main(["verify", str(tmp_path / "nope")]) == 2
+    assert convert_wan22.main(["verify", str(tmp_path / "nope")]) == 2
     assert "not found" in capsys.readouterr().err
     assert wan22.verify(str(tmp_path)) == 2
     assert "no reference cases" in capsys.readouterr().err
@@ -71,6 +72,6 @@ def test_verify_missing_or_empty_dir(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_cli_subprocess_exit_code(shared_dir):
-    proc = subprocess.run([sys.executable, "-m", "sword_jax.convert.wan22", "verify", os.path.join(shared_dir, REF)],
+    proc = subprocess.run([sys.executable, "-m", "train.convert_wan22", "verify", os.path.join(shared_dir, REF)],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr

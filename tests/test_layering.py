@@ -1,6 +1,7 @@
 """Layering: ``sword_jax`` imports neither ``sim`` nor ``train``; ``sword_jax.dit`` does not reach ``convert``;
 ``benchmarks/``, ``examples/`` and ``sim/`` import no entry point; an entry point imports no other ``train``
-module but the process setup ``train.distributed``; no ``train/`` module exceeds 300 lines.
+module but the process setup ``train.distributed``; no ``train/`` module exceeds 300 lines; command lines
+live in ``train/`` only (no ``if __name__ == "__main__":`` in ``sword_jax/`` or ``sim/``).
 
 The scan reads the source (every import statement, including those inside functions, and literal
 ``importlib.import_module`` / ``__import__`` names), so a lazy import cannot slip through.
@@ -235,3 +236,45 @@ def test_entry_points_import_no_other_entry_point():
     offenders = {path: bad for path, bad in offenders.items() if bad}
     assert not offenders, (f"train/ modules import no other train module but {PROCESS_SETUP}; call the "
                            f"orchestration (sword_jax.pipeline, or sim/ where the simulator is needed): {offenders}")
+
+
+def _main_blocks(source: str) -> list[int]:
+    """Lines of the ``if __name__ == "__main__":`` tests in ``source`` (at any depth, either operand order)."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Compare):
+            operands = [node.test.left, *node.test.comparators]
+            names = {o.id for o in operands if isinstance(o, ast.Name)}
+            constants = {o.value for o in operands if isinstance(o, ast.Constant)}
+            if "__name__" in names and "__main__" in constants:
+                lines.append(node.lineno)
+    return lines
+
+
+def _main_blocks_fresh(sources: tuple[str, ...]) -> list[list[int]]:
+    """:func:`_main_blocks` of each source, parsed in a fresh interpreter (see :func:`_imports_fresh`)."""
+    code = ("import json, sys; from tests.test_layering import _main_blocks; "
+            "print(json.dumps([_main_blocks(s) for s in json.load(sys.stdin)]))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, input=json.dumps(sources), capture_output=True,
+                         text=True, check=True)
+    return json.loads(out.stdout)
+
+
+def test_scan_finds_main_blocks():
+    source = ('"""Run with:\n\n    if __name__ == "__main__":\n        main()\n"""\n'  # a docstring is no block
+              'if "__main__" == __name__:\n    pass\n'
+              'def f():\n    if __name__ == "__main__":\n        f()\n'
+              'if __name__ == "x":\n    pass\n')
+    assert _main_blocks_fresh((source, "x = 1\n")) == [[6, 9], []]
+
+
+@pytest.mark.parametrize("folder", ["sword_jax", "sim"])
+def test_library_and_sim_have_no_command_line(folder):
+    """A command line is a thin entry point in ``train/`` (``main(argv)`` calling the library); a library
+    module has none, so ``python -m sword_jax.<module>`` runs nothing."""
+    files = _files_under(folder)
+    assert len(files) > 20, files
+    found = _main_blocks_fresh(tuple(_read(p) for p in files))
+    offenders = {os.path.relpath(p, REPO): lines for p, lines in zip(files, found) if lines}
+    assert not offenders, (f"{folder}/ has no `if __name__ == \"__main__\":` block (line numbers below); move "
+                           f"the command line to an entry point in train/: {offenders}")

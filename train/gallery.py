@@ -1,18 +1,21 @@
-"""Style gallery of a rendered LIBERO-Spatial-like frame: :mod:`sword_jax.augment.gallery` with the sim.
+"""Style gallery: one frame under several training and several held-out styles, as a labelled PNG grid.
 
     python -m train.gallery --out gallery.png [--source auto|sim|synthetic]
         [--size 128] [--styles 4] [--seed 0] [--intensity 1.0]
 
-``--source sim`` renders task 0's scene from the agent-view camera with ``sim/render.py``;
-``auto`` (the default) falls back to the synthetic tabletop when the render fails.
+``--source sim`` renders a LIBERO-Spatial-like frame with ``sim/render.py`` (agent-view camera, task 0's
+scene); ``synthetic`` uses the synthetic tabletop; ``auto`` (the default) tries sim first and falls back
+to the synthetic tabletop when the render fails. The grid is :func:`sword_jax.augment.gallery.build_gallery`'s.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 
 import numpy as np
 
+from sword_jax import cli
 from sword_jax.augment import gallery
 from sword_jax.augment.style import SegClasses
 
@@ -40,10 +43,33 @@ def sim_frame(size: int, seed: int) -> gallery.Frame:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return gallery.main(None if argv is None else list(argv), sim_frame=sim_frame)
+    parser = cli.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", required=True, help="PNG path")
+    parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto")
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--styles", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--intensity", type=float, default=1.0)
+    args = parser.parse_args(None if argv is None else list(argv))
+    if not 0.0 <= args.intensity <= 1.0:
+        parser.error(f"--intensity must be in [0, 1], got {args.intensity}")
+    if args.size < 16 or args.styles < 1:
+        parser.error("--size must be >= 16 and --styles >= 1")
+    frame, source = None, args.source
+    if source in ("auto", "sim"):
+        try:
+            frame, source = sim_frame(args.size, args.seed), "sim"
+        except Exception as err:  # noqa: BLE001 - auto falls back to the synthetic scene
+            if source == "sim":
+                raise
+            print(f"gallery: sim render unavailable ({type(err).__name__}: {err}); using the synthetic scene",
+                  file=sys.stderr)
+    if frame is None:
+        frame, source = gallery.synthetic_frame(args.size), "synthetic"
+    grid = gallery.write_gallery(args.out, frame, num_styles=args.styles, seed=args.seed, intensity=args.intensity)
+    print(f"gallery: wrote {args.out} ({grid.shape[1]}x{grid.shape[0]}, source={source})")
+    return 0
 
 
 if __name__ == "__main__":
-    from sword_jax.cli import run
-
-    run(main)
+    cli.run(main)

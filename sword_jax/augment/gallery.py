@@ -1,28 +1,20 @@
 """Gallery: one frame under several training and several held-out styles, as a labelled PNG grid.
 
-    python -m train.gallery --out gallery.png [--source auto|sim|synthetic]
-        [--size 128] [--styles 4] [--seed 0] [--intensity 1.0]
-
-``--source sim`` renders a LIBERO-Spatial-like frame with ``sim/render.py`` (agent-view camera,
-task 0's scene); ``synthetic`` uses the synthetic tabletop; ``auto`` tries sim first. The library
-does not import ``sim``: :func:`main` takes the renderer as ``sim_frame`` (``train.gallery``
-passes it); ``python -m sword_jax.augment.gallery`` has none, so it draws the synthetic scene. Row 1:
-the original and training styles; row 2: the structure maps (depth, segmentation) and held-out
-styles. Each tile is labelled with its split and table / background textures and the
-structure-preservation scores against the original.
+The command line is ``python -m train.gallery``, which passes the simulator's rendered frame (the
+library does not import ``sim``); :func:`synthetic_frame` is the synthetic tabletop. Row 1: the
+original and training styles; row 2: the structure maps (depth, segmentation) and held-out styles.
+Each tile is labelled with its split and table / background textures and the structure-preservation
+scores against the original.
 """
 
 from __future__ import annotations
 
 import os
-import sys
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sword_jax import cli
 from sword_jax.augment.style import DEFAULT_CLASSES, TEXTURES, SegClasses, sample_styles
 from sword_jax.augment.structure import structure_scores
 from sword_jax.augment.synthetic import synthetic_episode
@@ -88,57 +80,25 @@ def build_gallery(
     return np.concatenate(rows, axis=0)
 
 
-def main(argv: list[str] | None = None, *, sim_frame: Callable[[int, int], Frame] | None = None) -> int:
-    """Parses ``argv`` and writes the gallery PNG.
+def synthetic_frame(size: int) -> Frame:
+    """The synthetic tabletop's first frame at ``size`` x ``size``, as a :data:`Frame` (45 degree fov)."""
+    episode = synthetic_episode(1, size)
+    return episode["frames"], episode["depth"], episode["seg"], DEFAULT_CLASSES, 45.0
 
-    Args:
-      argv: the command line (default ``sys.argv[1:]``).
-      sim_frame: ``(size, seed) -> Frame``, the simulator's rendered frame for ``--source sim|auto``
-        (``train.gallery.sim_frame``); None: only the synthetic scene is available.
+
+def write_gallery(path: str, frame: Frame, *, num_styles: int = 4, seed: int = 0,
+                  intensity: float = 1.0) -> np.ndarray:
+    """Builds the grid of ``frame`` (:func:`build_gallery`), writes it to ``path`` as a PNG and returns it.
+
+    Raises:
+      OSError: the PNG could not be written.
     """
-    parser = cli.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", required=True, help="PNG path")
-    parser.add_argument("--source", choices=("auto", "sim", "synthetic"), default="auto")
-    parser.add_argument("--size", type=int, default=128)
-    parser.add_argument("--styles", type=int, default=4)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--intensity", type=float, default=1.0)
-    args = parser.parse_args(argv)
-    if not 0.0 <= args.intensity <= 1.0:
-        parser.error(f"--intensity must be in [0, 1], got {args.intensity}")
-    if args.size < 16 or args.styles < 1:
-        parser.error("--size must be >= 16 and --styles >= 1")
-    if args.source == "sim" and sim_frame is None:
-        parser.error("--source sim needs the simulator's renderer: run python -m train.gallery")
-    source = args.source
-    frame = None
-    if source == "auto" and sim_frame is None:
-        print("gallery: no sim renderer here (python -m train.gallery has one); using the synthetic scene",
-              file=sys.stderr)
-    elif source in ("auto", "sim"):
-        try:
-            frame = sim_frame(args.size, args.seed)
-            source = "sim"
-        except Exception as err:  # noqa: BLE001 - auto falls back to the synthetic scene
-            if source == "sim":
-                raise
-            print(f"gallery: sim render unavailable ({type(err).__name__}: {err}); using the synthetic scene",
-                  file=sys.stderr)
-    if frame is None:
-        ep = synthetic_episode(1, args.size)
-        frame = (ep["frames"], ep["depth"], ep["seg"], DEFAULT_CLASSES, 45.0)
-        source = "synthetic"
-    frames, depth, seg, classes, fov = frame
-    grid = build_gallery(frames, depth, seg, classes=classes, fov_deg=fov, num_styles=args.styles,
-                         seed=args.seed, intensity=args.intensity)
     import cv2
 
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    if not cv2.imwrite(args.out, grid[..., ::-1]):
-        raise OSError(f"gallery: could not write {args.out}")
-    print(f"gallery: wrote {args.out} ({grid.shape[1]}x{grid.shape[0]}, source={source})")
-    return 0
-
-
-if __name__ == "__main__":
-    cli.run(main)
+    frames, depth, seg, classes, fov = frame
+    grid = build_gallery(frames, depth, seg, classes=classes, fov_deg=fov, num_styles=num_styles, seed=seed,
+                         intensity=intensity)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    if not cv2.imwrite(path, grid[..., ::-1]):
+        raise OSError(f"gallery: could not write {path}")
+    return grid

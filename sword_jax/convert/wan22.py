@@ -1,14 +1,14 @@
-"""CLI for the Wan 2.2 converters.
+"""Checks the Wan 2.2 converters against reference cases (the command line is ``python -m train.convert_wan22``).
 
-``python -m sword_jax.convert.wan22 verify DIR [--tol 1e-4]`` runs every reference case found in
-DIR (VAE when DIR has ``vae*`` files: ``vae*.npz`` with ``vae_weights.safetensors``; DiT when it
-has ``dit*`` files and ``sword_jax.convert.wan22_dit`` exists: its ``run_reference_cases``) through the
-JAX port in float32, prints the largest absolute and relative error per output and exits
+:func:`verify` runs every reference case found in a directory (VAE when it has ``vae*`` files:
+``vae*.npz`` with ``vae_weights.safetensors``; DiT when it has ``dit*`` files and
+``sword_jax.convert.wan22_dit`` exists: its ``run_reference_cases``) through the JAX port in float32,
+prints the largest absolute and relative error per output and returns the exit status
 
 * 0 when every output is within tolerance (an output fails when both its max abs error and its
-  max error relative to the reference's largest magnitude exceed ``--tol``),
+  max error relative to the reference's largest magnitude exceed ``tol``),
 * 1 when an output is out of tolerance or a runner raised (corrupt file, config mismatch ...),
-* 2 when DIR is missing or holds no reference cases.
+* 2 when the directory is missing or holds no reference cases.
 """
 
 from __future__ import annotations
@@ -19,9 +19,8 @@ import math
 import os
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
-from sword_jax import cli
 from sword_jax.convert import CaseResult
 
 
@@ -94,19 +93,3 @@ def verify(ref_dir: str, tol: float = 1e-4) -> int:
     if failures:
         print(f"FAILED: {len(failures)} of {len(results)} outputs above tolerance {tol:g}", file=sys.stderr)
     return 1 if failures or errors else 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = cli.ArgumentParser(prog="python -m sword_jax.convert.wan22", description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    verify_parser = sub.add_parser("verify", help="run the reference cases of a directory through the JAX port")
-    verify_parser.add_argument("dir", help="directory with *.safetensors weights and *.npz cases")
-    verify_parser.add_argument("--tol", type=float, default=1e-4, help="max abs (and rel) error allowed")
-    args = parser.parse_args(argv)
-    if args.command == "verify":
-        return verify(args.dir, args.tol)
-    return 2
-
-
-if __name__ == "__main__":
-    cli.run(main)

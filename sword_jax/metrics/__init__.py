@@ -14,6 +14,6 @@ Submodules:
   ``flolpips``: FloLPIPS with OpenCV Farneback flow.
   ``image_quality``: PSNR, SSIM.
   ``suite``: :class:`MetricSuite`, every metric on (ground truth, prediction) video batches.
-  ``score``: ``python -m sword_jax.metrics.score {lpips,fvd} A.npy B.npy``, JSON scores of uint8 arrays.
-  ``verify``: ``python -m sword_jax.metrics.verify DIR`` parity check against reference cases.
+  ``score``: LPIPS / FVD of two uint8 arrays or ``.npy`` files (command line: ``train.score_metrics``).
+  ``verify``: parity check against reference cases (command line: ``train.verify_metrics``).
 """

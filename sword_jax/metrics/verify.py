@@ -1,17 +1,17 @@
-"""``python -m sword_jax.metrics.verify DIR``: metric networks vs the reference PyTorch outputs.
+"""Metric networks vs the reference PyTorch outputs (the command line is ``python -m train.verify_metrics DIR``).
 
 Driven by ``DIR/manifest.json`` (see ``shared/reference/metrics/README.md``): for every network and
 case listed there, the weight files are read with the torch-free reader, the inputs run through the
 JAX networks / Frechet code, and every output array is compared as ``max|got - ref| / max|ref|``.
-Prints one line per output and exits 1 if any exceeds the manifest's tolerance (default 1e-4).
-Unknown networks in the manifest are reported and fail the run (nothing is silently skipped).
+:func:`run` prints one line per output; an output fails when it exceeds the manifest's tolerance
+(default 1e-4). Unknown networks in the manifest raise (nothing is silently skipped). Parity needs
+float32 matmuls at full precision: the caller sets ``jax_default_matmul_precision`` to ``highest``.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from typing import Callable, Iterator
 
@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from sword_jax import cli
 from sword_jax.reference_cases import CaseResult
 from sword_jax.metrics.config import EvalConfig
 from sword_jax.metrics.flolpips import flow_weighted_lpips
@@ -140,25 +139,10 @@ def run(directory: str) -> tuple[list[CaseResult], float]:
     return results, tolerance
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = cli.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("directory", help="a reference directory holding manifest.json")
-    args = parser.parse_args(argv)
-    jax.config.update("jax_default_matmul_precision", "highest")
-    try:
-        results, tolerance = run(args.directory)
-    except (OSError, ValueError, KeyError) as exc:  # missing/corrupt files, unknown manifest entries
-        print(f"verify: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 2
-    if not results:
-        print("verify: the manifest lists no cases", file=sys.stderr)
-        return 2
+def summary(results: list[CaseResult], tolerance: float) -> tuple[str, int]:
+    """The closing line of a run (largest relative error, pass or fail) and how many outputs failed."""
     worst = max(results, key=lambda r: r.max_rel)
     failed = [r for r in results if not r.max_rel <= tolerance]
-    print(f"{len(results)} outputs, largest relative error {worst.max_rel:.3e} ({worst.case}:{worst.output}); "
-          f"tolerance {tolerance:.0e}: {'FAILED ' + str(len(failed)) if failed else 'all passed'}")
-    return 1 if failed else 0
-
-
-if __name__ == "__main__":
-    cli.run(main)
+    line = (f"{len(results)} outputs, largest relative error {worst.max_rel:.3e} ({worst.case}:{worst.output}); "
+            f"tolerance {tolerance:.0e}: {'FAILED ' + str(len(failed)) if failed else 'all passed'}")
+    return line, len(failed)
