@@ -233,8 +233,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                              "side by side on the same device (a small model leaves most of a large GPU idle); "
                              "each child's output goes to <out>/logs/<run>_seed<k>.log")
     parser.add_argument("--gpus", type=launcher.parse_gpus, default=[], metavar="0,1,2,3",
-                        help="run the slices one per GPU of this list (CUDA_VISIBLE_DEVICES), side by side: "
-                             "--slices-at-once defaults to their number")
+                        help="the slices one per GPU of this list, side by side (--slices-at-once: their number)")
     parser.add_argument("--no-evaluate", action="store_true",
                         help="comparison 3 only (sword, wovr): leave out the world-model evaluation, its probe and "
                              "the report; the slice trains GRPO and measures real success. Write these slices to "
