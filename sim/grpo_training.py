@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import jax
+
 from sim import grpo_env
 from sim.dataset import read_dataset
 from sim.lockstep import lockstep_evaluation
@@ -43,6 +45,8 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
                              "from their recorded states)")
     elif not (inputs.world_model and inputs.reward and inputs.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
+    if jax.process_count() > 1:
+        refuse_several_processes(rl, simulator)
     workdir = os.path.join(cfg.workdir, "rl", "grpo")
     os.makedirs(workdir, exist_ok=True)
 
@@ -87,3 +91,23 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
                                        workers=env_workers)
     return run_in_learned_simulator(cfg, rl, graphdef, params, workdir, setup, simulator=simulator,
                                     env_eval=env_eval, max_traces=ENTRY_MAX_TRACES)
+
+
+def refuse_several_processes(rl, simulator: str) -> None:
+    """Refuses, in one line naming the setting, what a job of several processes does not run yet (it would
+    otherwise duplicate work on every process or wait on a collective that never comes).
+
+    Raises:
+      SystemExit: ``--simulator env`` (C-engine and MJX rollouts), ``rl.refresh.every > 0`` or, in the world
+        model, ``rl.imagined.eval_replay_episodes > 0``.
+    """
+    drop = "run it in one process (drop --mesh.distributed=true)"
+    if simulator == "env":
+        raise SystemExit(f"train.grpo --simulator env does not run in several processes yet (its C-engine / MJX "
+                         f"rollouts are not split over them): {drop}")
+    if rl.refresh.every:
+        raise SystemExit(f"train.grpo --rl.refresh.every={rl.refresh.every} does not run in several processes yet: "
+                         f"pass --rl.refresh.every=0 or {drop}")
+    if simulator == "world_model" and rl.imagined.eval_replay_episodes:
+        raise SystemExit(f"train.grpo --rl.imagined.eval_replay_episodes={rl.imagined.eval_replay_episodes} does not "
+                         f"run in several processes yet: pass --rl.imagined.eval_replay_episodes=0 or {drop}")

@@ -40,8 +40,8 @@ def test_each_rank_gets_its_gpu_or_cpu_devices_and_multicast_off():
 def test_the_command_line_refuses_a_trainer_that_would_not_join_the_job():
     with pytest.raises(launch_entry.UsageError, match="mesh.distributed=true"):
         launch_entry.main(["--processes", "2", "--", "python", "-m", "train.train_world_model", "--workdir", "w"])
-    with pytest.raises(launch_entry.UsageError, match="train.grpo does not join"):
-        launch_entry.main(["--processes", "2", "--", "python", "-m", "train.grpo", "--mesh.distributed=true"])
+    with pytest.raises(launch_entry.UsageError, match="train.train_policy does not join"):
+        launch_entry.main(["--processes", "2", "--", "python", "-m", "train.train_policy", "--mesh.distributed=true"])
     folder = os.path.join(REPO, "train")
     joining = sorted(f"train.{name[:-3]}" for name in os.listdir(folder) if name.endswith(".py") and
                      name != "distributed.py" and "distributed.initialize(" in open(os.path.join(folder, name)).read())

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 import configs
 from sim.grpo_training import SIMULATORS, run_grpo
 from sword_jax.pipeline.grpo import GRPOInputs
+from train import distributed
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -50,6 +51,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="the light rollout decoder (train_light_decoder; rl.imagined.decoder=light needs it)")
     parser.add_argument("--eval-episodes", type=int, default=0, help="override rl.grpo.eval_episodes_per_task")
     args = parser.parse_args(rest)
+    distributed.initialize(cfg.mesh)
     inputs = GRPOInputs(demos=tuple(args.demos), world_model=args.world_model, vae=args.vae, policy=args.policy,
                         reward=args.reward, latents=args.latents, light_decoder=args.light_decoder)
     return run(cfg, inputs, simulator=args.simulator, env_workers=args.env_workers, renderer=args.renderer,

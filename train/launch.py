@@ -28,7 +28,7 @@ from sword_jax.cli import ArgumentParser, UsageError
 from sword_jax.pipeline import launch as launcher
 
 # The entry points that join a jax.distributed job (their main calls train.distributed.initialize).
-JOINING = ("train.pipeline", "train.train_light_decoder", "train.train_vae", "train.train_world_model")
+JOINING = ("train.grpo", "train.pipeline", "train.train_light_decoder", "train.train_vae", "train.train_world_model")
 
 
 def _parse(argv: Sequence[str]):

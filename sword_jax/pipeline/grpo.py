@@ -52,12 +52,14 @@ class GRPOInputs:
 
 
 class Setup(NamedTuple):
-    """What a GRPO run in a learned simulator needs: the simulator and reward model, ``starts(key, step)``
-    (a step's start states), the toy's fixed evaluation starts and the real history's encoder (for replays)."""
+    """What a GRPO run in a learned simulator needs: the simulator and reward model, ``starts(key, step,
+    rows=None)`` (a step's start states; with ``rows``, only those rows of the ``rl.grpo.rollout_batch``, each
+    the same whichever rows are asked for), the toy's fixed evaluation starts and the real history's encoder
+    (for replays)."""
 
     sim: Any
     reward_model: Any
-    starts: Callable[[jax.Array, int], StartState]
+    starts: Callable[..., StartState]
     eval_start: StartState | None = None
     encode: Callable[..., Any] | None = None
 
@@ -69,10 +71,10 @@ def toy_setup(cfg, rl) -> Setup:
     texts = [f"reach the goal of task {t}" for t in range(max(len(cfg.sim.tasks), 2))]
     tokens = jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes))
 
-    def starts(key, step):
+    def starts(key, step, rows=None):
         del step  # the key is already a function of the step
         pick = jax.random.randint(key, (rl.grpo.rollout_batch,), 0, tokens.shape[0])
-        return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim)
+        return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim, rows=rows)
 
     eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
     eval_start = expand_groups(toy_start_states(jnp.tile(tokens, (4, 1)), key=eval_key, frame_size=size,
@@ -123,10 +125,10 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
     def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
         return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
 
-    def starts(key, step):
+    def starts(key, step, rows=None):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
         pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step),
-                                       max_fraction=rl.imagined.keyframe_fraction)
+                                       max_fraction=rl.imagined.keyframe_fraction, rows=rows)
         return start_state(pick, encode, rl)
 
     return Setup(sim, reward_model, starts, None, encode)
@@ -141,28 +143,28 @@ def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> St
                       (latents, jnp.asarray(pick["actions"], jnp.float32)))
 
 
-def extra_point(step: int, what: str, result: dict, **tags) -> dict:
+def extra_point(step: int, what: str, result: dict, *, log: Callable[[str], Any] = log, **tags) -> dict:
     """An evaluation stored beside the greedy true-proprio success: logged, and its rates kept with ``tags``."""
-    print(f"eval step {step}, {what}: success {result['mean']:.3f} "
-          f"[{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}]", flush=True)
+    log(f"eval step {step}, {what}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}]")
     return dict(**tags, **{k: result[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
 
 
-def mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, **eval_kwargs) -> dict:
+def mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *, log: Callable[[str], Any] = log,
+               **eval_kwargs) -> dict:
     """The real-environment evaluation with the policy reading proprio as ``proprio`` (an input mode of
     the learned simulator), as the extra point stored beside the true-proprio success."""
     other = evaluate_in_sim(graphdef, params, rl, proprio=proprio, reckoning=reckoning, **eval_kwargs)
-    return extra_point(step, f"proprio {proprio}", other, proprio=proprio)
+    return extra_point(step, f"proprio {proprio}", other, proprio=proprio, log=log)
 
 
-def sampled_point(graphdef, params, rl, step: int, root, **eval_kwargs) -> dict:
+def sampled_point(graphdef, params, rl, step: int, root, *, log: Callable[[str], Any] = log, **eval_kwargs) -> dict:
     """The real-environment evaluation of the sampled policy (``rl.grpo.eval_sampled``: at
     ``rl.grpo.temperature``, the policy GRPO trains), stored as ``sampled`` beside the greedy success;
     its sampling key is a function of (root, step)."""
     key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), step)
     other = evaluate_in_sim(graphdef, params, rl, greedy=False, key=key, **eval_kwargs)
     return extra_point(step, f"sampled at temperature {rl.grpo.temperature:g}", other,
-                        temperature=rl.grpo.temperature)
+                       temperature=rl.grpo.temperature, log=log)
 
 
 def training_success(history: Sequence[dict], window: int = 10) -> dict:
@@ -232,6 +234,15 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     """GRPO in ``setup``'s simulator (``simulator``: ``world_model`` or ``toy``, the run's identity), resuming
     from ``workdir``.
 
+    In a job of several processes (``jax.distributed``, one mesh over all their devices) the run is data
+    parallel: a step's start states are one global batch of which each process makes only the rows its
+    devices hold (``setup.starts(key, step, rows)``: the toy draws, the keyframe windows cut and encoded),
+    and the step runs over the global mesh, so the gradients are averaged over every process's rollouts.
+    Evaluations run identically on every process (deterministic, the same replicated params; the
+    real-environment one from a host copy of them), so every process takes the same decisions; only
+    process 0 logs and writes the curve, the history and the step times. Every process takes part in
+    the checkpoints.
+
     Args:
       env_eval: ``episodes``, ``envs_factory`` and ``max_steps`` of the ground-truth evaluation
         (:func:`sword_jax.rl.policy_success.evaluate_in_sim`; e.g. ``sim.lockstep.lockstep_evaluation``);
@@ -242,6 +253,8 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     history is also in ``<workdir>/train_history.jsonl``).
     """
     sim, reward_model, starts, eval_start, encode = setup
+    several = jax.process_count() > 1
+    say = log if jax.process_index() == 0 else (lambda *_args, **_kwargs: None)
 
     # The step runs on the config's mesh, where the world model already lives; the policy state and the
     # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
@@ -252,7 +265,8 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     root = jax.random.key(cfg.seed)
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
-                                                    key=stream_key(root, "grpo/toy_eval"), greedy=True).success)
+                                                    key=stream_key(root, "grpo/toy_eval"), greedy=True).success,
+                         **({"out_shardings": shd.replicated(mesh)} if several else {}))
 
     act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
     replay = (Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.imagined.eval_replay_episodes
@@ -265,24 +279,42 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
                       "episodes": int(success.size), "where": "imagined (toy)"}
         else:
+            if several:  # the C engine's policy calls run on this process's device
+                params = jax.device_get(params)
             kwargs = dict(env_eval, act=act)
             trace = replay.trace() if replay else None
             result = evaluate_in_sim(graphdef, params, rl, trace=trace, **kwargs)
             result["where"] = "mujoco"
             if rl.imagined.eval_masked_proprio:
-                extra = {"proprio_masked": mode_point(graphdef, params, rl, step, "missing", **kwargs)}
+                extra = {"proprio_masked": mode_point(graphdef, params, rl, step, "missing", log=say, **kwargs)}
             if rl.grpo.eval_sampled:
-                extra["sampled"] = sampled_point(graphdef, params, rl, step, root, **kwargs)
+                extra["sampled"] = sampled_point(graphdef, params, rl, step, root, log=say, **kwargs)
             if replay:
                 extra["replay"] = replay.report(step, trace)
-        log(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
+        say(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
         return result, extra
 
     # named streams of the root; the start states' is folded with the step (the update folds in state.step itself)
     starts_key = stream_key(root, "grpo/starts")
+    place = None
+    if several:  # each process makes its rows of the global batch of start states
+        start_sharding = shd.batch_sharding(mesh, 1, cfg.mesh.rules)
+        shd.check_batch_divides(start_sharding, rl.grpo.rollout_batch, "rl.grpo.rollout_batch")
+        rows = shd.rows_held(start_sharding, rl.grpo.rollout_batch)
 
-    def batch_at(step):
-        return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
+        def batch_at(step):
+            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step, rows)
+
+        def place(batch):
+            sim_, reward_model_, held = batch
+            leaves, treedef = jax.tree.flatten(jax.device_get(held))
+            named = {str(i): np.asarray(leaf) for i, leaf in enumerate(leaves)}
+            placed = shd.to_global(named, {name: shd.batch_sharding(mesh, value.ndim, cfg.mesh.rules)
+                                           for name, value in named.items()}, rows, rl.grpo.rollout_batch)
+            return sim_, reward_model_, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
+    else:
+        def batch_at(step):
+            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
 
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
@@ -291,6 +323,6 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     result, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl,
-                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=log,
-                               frames_per_chunk=setup.sim.chunk_len)
+                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=say,
+                               frames_per_chunk=setup.sim.chunk_len, place=place)
     return {"curve": curve, "workdir": workdir, "history": result.history}

@@ -193,18 +193,22 @@ def sample_mixed_reward_batch(sources: Sequence[tuple[EpisodeSet, np.ndarray, fl
 
 
 def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
-                    num_context: int = 1, frames_per_latent: int = 4) -> dict[str, Any]:
+                    num_context: int = 1, frames_per_latent: int = 4, rows: np.ndarray | None = None) -> dict[str, Any]:
     """Start states for imagined rollouts at latent-aligned keyframes of the first ``max_fraction`` of
     episodes (WoVR keyframes), with the real history a world model conditions on.
 
     A keyframe is frame ``t = 4 s`` (``s >= num_context``), the last frame of latent ``s``. Returns
-    :func:`keyframe_window` at those frames plus ``instructions``.
+    :func:`keyframe_window` at those frames plus ``instructions``. ``rows``: cut only these of the ``count``
+    windows (a process's share of a global batch); the keyframes are drawn for all ``count`` first, so each
+    row is the same whichever rows are asked for.
     """
     k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
     last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
     s = k + (rng.random(count) * (last - k + 1)).astype(np.int64)
     t = np.minimum(f * s, episodes.lengths[ep] - 1)
+    if rows is not None:
+        ep, t = ep[rows], t[rows]
     window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=k,
                              frames_per_latent=f)
     return dict(window, instructions=[episodes.instructions[i] for i in ep])

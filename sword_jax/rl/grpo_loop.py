@@ -21,6 +21,9 @@ metrics read to this one's, evaluations left out; with ``frames_per_chunk``, ``i
 time), apart from the history, which stays bit-identical across a resume. The first step after a start or
 resume includes compilation.
 
+In a job of several processes every process runs the loop (the steps and checkpoints are global
+computations) and takes the same decisions; only process 0 writes the curve, the history and the step times.
+
 With ``rl.imagined.guard_margin > 0`` and evaluations that replay real episodes in the learned simulator
 (their ``replay`` entry), the exploitation guard (:class:`~sword_jax.rl.sim_guard.FalseSuccessGuard`) judges
 every evaluation: when the replay's false-success rate exceeds step 0's by more than the margin, the policy
@@ -96,6 +99,7 @@ def train_grpo(
     curve_label: str = "GRPO in the learned simulator",
     log: Callable[[str], Any] = print,
     frames_per_chunk: int = 0,
+    place: Callable[[Any], Any] | None = None,
 ) -> tuple[LoopResult, list[dict[str, Any]]]:
     """Runs GRPO steps up to ``rl.grpo.steps`` from ``state``, resuming from ``<workdir>/checkpoints``.
 
@@ -113,6 +117,8 @@ def train_grpo(
       log: where progress and resume lines go.
       frames_per_chunk: frames the simulator renders per imagined chunk (0: not a learned simulator); with
         the step's ``mean_chunks`` metric it gives ``step_times.jsonl``'s imagined frames per second.
+      place: ``place(host_batch) -> batch`` before each step (:func:`~sword_jax.train_loop.run_steps`; e.g. the
+        global start states assembled from each process's rows); None = the batch as ``batch_at`` made it.
 
     Returns:
       ``(loop result, success-curve points)``; the result's history holds every step's metrics of the run.
@@ -121,8 +127,9 @@ def train_grpo(
       sword_jax.train_loop.NonFiniteLoss: a non-finite loss or gradient (the last good checkpoint is kept).
       ValueError: the checkpoint in the work dir is another run's.
     """
-    curve = SuccessCurve(workdir, label=curve_label)
-    times = StepTimes(workdir, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk)
+    writes = jax.process_index() == 0
+    curve = SuccessCurve(workdir, label=curve_label, writes=writes)
+    times = StepTimes(workdir, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk, writes=writes)
     guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
              if rl.imagined.guard_margin > 0 else None)
     passed: dict[str, Any] = {}  # the last state the guard passed, on the host, and its step
@@ -155,7 +162,8 @@ def train_grpo(
 
     def at_checkpoint(done: int, state: Any, history: list[dict[str, Any]]) -> Any:
         restored = record(done, state)
-        save_history(workdir, history)
+        if writes:
+            save_history(workdir, history)
         times.save()
         times.restart()  # the evaluation is not the next step's time
         return restored
@@ -186,8 +194,9 @@ def train_grpo(
 
     result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
                        checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
-                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint)
-    save_history(workdir, result.history)  # also when no step ran (a finished run resumed, zero steps)
+                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint, place=place)
+    if writes:
+        save_history(workdir, result.history)  # also when no step ran (a finished run resumed, zero steps)
     times.save()
     return result, curve.points
 
@@ -197,11 +206,11 @@ class StepTimes:
 
     ``frames_per_chunk_batch``: frames rendered per imagined chunk across the step's rollouts (``B x G x``
     frames per chunk; 0: no imagined frames). A step's time runs from the previous :meth:`add` (or
-    :meth:`restart`) to its own."""
+    :meth:`restart`) to its own. ``writes=False``: :meth:`save` writes nothing."""
 
-    def __init__(self, workdir: str, frames_per_chunk_batch: int = 0):
+    def __init__(self, workdir: str, frames_per_chunk_batch: int = 0, *, writes: bool = True):
         self.path = os.path.join(workdir, "step_times.jsonl")
-        self.per_chunk = frames_per_chunk_batch
+        self.per_chunk, self.writes = frames_per_chunk_batch, writes
         self.rows: list[dict[str, float]] = []
         if os.path.exists(self.path):
             with open(self.path) as f:
@@ -227,7 +236,8 @@ class StepTimes:
         return row
 
     def save(self) -> None:
-        write_jsonl_atomic(self.path, self.rows)
+        if self.writes:
+            write_jsonl_atomic(self.path, self.rows)
 
 
 def save_history(workdir: str, history: Sequence[dict[str, Any]]) -> None:

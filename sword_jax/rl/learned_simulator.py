@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 from jaxtyping import Array, Float, Int
 
@@ -162,10 +163,18 @@ def toy_reward_model(*, radius: float = 0.25) -> RewardModel:
     return RewardModel(params={}, score_fn=score_fn)
 
 
-def toy_start_states(instruction_tokens: Int[Array, "n l"], *, key: jax.Array, frame_size: int = 16, proprio_dim: int = 4) -> StartState:
-    """Random start positions for the toy world, one per instruction row."""
+def toy_start_states(instruction_tokens: Int[Array, "n l"], *, key: jax.Array, frame_size: int = 16, proprio_dim: int = 4,
+                     rows: np.ndarray | None = None) -> StartState:
+    """Random start positions for the toy world, one per instruction row.
+
+    ``rows``: make only these rows of the ``n`` (a process's share of a global batch); the positions are
+    drawn for all ``n`` first, so each row is the same whichever rows are asked for.
+    """
     n = instruction_tokens.shape[0]
     pos = jax.random.uniform(key, (n, 2), jnp.float32, -0.3, 0.3)
+    if rows is not None:
+        pos, instruction_tokens = pos[rows], instruction_tokens[rows]
+        n = len(rows)
     targets = jax.vmap(instruction_target)(instruction_tokens)
     frames = jax.vmap(lambda p, t: toy_render(ToyState(p, t), frame_size))(pos, targets)
     proprio = jnp.concatenate([pos, jnp.zeros((n, proprio_dim - 2), jnp.float32)], axis=-1)

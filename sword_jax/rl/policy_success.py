@@ -99,10 +99,11 @@ def success_summary(success: np.ndarray, task_of: Sequence[int], seconds: float)
 
 
 class SuccessCurve:
-    """Success-rate curve over training steps, as ``<dir>/success_curve.json`` + ``.png``."""
+    """Success-rate curve over training steps, as ``<dir>/success_curve.json`` + ``.png`` (``writes=False``: kept
+    in memory only, e.g. on the processes of a multi-process job other than process 0)."""
 
-    def __init__(self, directory: str, label: str = "GRPO in the learned simulator"):
-        self.dir, self.label = directory, label
+    def __init__(self, directory: str, label: str = "GRPO in the learned simulator", *, writes: bool = True):
+        self.dir, self.label, self.writes = directory, label, writes
         self.path = os.path.join(directory, "success_curve.json")
         os.makedirs(directory, exist_ok=True)
         self.points: list[dict[str, Any]] = []
@@ -123,6 +124,8 @@ class SuccessCurve:
             self._write()
 
     def _write(self) -> None:
+        if not self.writes:
+            return
         write_json_atomic(self.path, {"label": self.label, "points": self.points})
         self._plot()
 
