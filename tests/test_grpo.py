@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
 from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
@@ -324,3 +325,24 @@ def test_shared_group_noise_is_one_draw_per_group():
     assert np.array_equal(frames["shared"][:, 0], frames["shared"][:, 3]) and not np.array_equal(
         frames["shared"][0], frames["shared"][1])
     assert not np.array_equal(frames["own"][:, 0], frames["own"][:, 3])
+
+
+def test_a_process_makes_only_its_rows_of_the_start_states():
+    """In a job of several processes each makes only its rows of a step's start states (the toy's draws,
+    the keyframe windows): each row equals the whole batch's, whichever rows are asked for."""
+    from tests.support.rl import brightening_episodes
+
+    tokens = jnp.asarray(tokenize_instructions(["a", "b", "c", "d", "e", "f"], 16))
+    whole = toy_start_states(tokens, key=jax.random.key(3), frame_size=8)
+    for rows in (np.array([0, 1, 2]), np.array([3, 4, 5]), np.array([1, 4])):
+        part = toy_start_states(tokens, key=jax.random.key(3), frame_size=8, rows=rows)
+        for got, want in zip(jax.tree.leaves(part), jax.tree.leaves(whole)):
+            assert got.shape[0] == len(rows)
+            np.testing.assert_array_equal(got, np.asarray(want)[rows])
+
+    episodes = brightening_episodes()
+    whole = rl_data.keyframe_starts(episodes, 6, np.random.default_rng(5))
+    part = rl_data.keyframe_starts(episodes, 6, np.random.default_rng(5), rows=np.array([4, 5]))
+    assert part["instructions"] == [whole["instructions"][i] for i in (4, 5)]
+    for name in ("frame", "first_frame", "history", "actions", "proprio"):
+        np.testing.assert_array_equal(part[name], whole[name][[4, 5]], err_msg=name)

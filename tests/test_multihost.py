@@ -2,7 +2,8 @@
 (gloo CPU collectives) run sharded DLB steps equal to one process with the same global device count;
 checkpoints restore onto a different device count; a rank killed mid-run ends the job within the
 launcher's grace and the rerun resumes bit-identical; the VAE, each rank making only its rows of a
-batch, trains as one process does and resumes bit-identical."""
+batch, trains as one process does and resumes bit-identical; so does GRPO in the toy simulator, each rank
+making only its rows of the start states."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import pytest
 from sword_jax.pipeline.launch import STOP_MARGIN_S
 from tests.conftest import FAST_COMPILE, REPO
 from tests.support.checkpoints import assert_same_final_checkpoint, final_arrays
+from tests.support.rl import TINY_RL
 
 STEPS = 4
 ARGS = ["--config", "sword:tiny", "--synthetic", f"--trainer.steps={STEPS}", "--trainer.checkpoint_every=2",
@@ -174,3 +176,78 @@ def test_launched_vae_trains_as_one_process_and_resumes_bit_identical(tmp_path):
     for name in got:
         np.testing.assert_array_equal(again[name], got[name], err_msg=name)
     assert _metrics(split) == _metrics(straight)
+
+
+GRPO_STEPS = 6
+GRPO_ARGS = ["--config", "sword:tiny", "--simulator", "toy", "--rl.imagined.max_chunks=2", "--rl.grpo.rollout_batch=4",
+             "--rl.grpo.eval_every=1", f"--rl.grpo.steps={GRPO_STEPS}", *TINY_RL]
+
+
+def _grpo_history(workdir: str) -> list[dict]:
+    with open(os.path.join(workdir, "rl", "grpo", "train_history.jsonl")) as f:
+        return [json.loads(line) for line in f]
+
+
+# The default run checks each rank's rows of the start states (tests/test_grpo.py::test_a_process_makes_only_its_
+# rows_of_the_start_states) and a resumed single-process GRPO run (tests/test_rl_entrypoints.py, also -m slow).
+@pytest.mark.slow
+def test_launched_grpo_trains_as_one_process_and_a_killed_rank_resumes_bit_identical(tmp_path):
+    """``train.grpo --simulator toy`` as two ranks of 2 CPU devices, each making 2 of the 4 start states of a
+    step, ends as one process on 4 devices does (history, params); only rank 0 logs; rank 1 killed after a
+    checkpoint ends the job within the grace, and the rerun ends bit-identical to an uninterrupted launched run."""
+    cache = str(tmp_path / "xla_cache")
+    single = str(tmp_path / "single")
+    _wait(subprocess.Popen([sys.executable, "-m", "train.grpo", "--workdir", single, *GRPO_ARGS, "--mesh.data=4"],
+                           cwd=REPO, env=_env(4, cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    straight = str(tmp_path / "straight")
+    output = _wait(_launch(straight, cache, trainer="train.grpo", args=GRPO_ARGS))
+    assert f"[rank 0] grpo step {GRPO_STEPS}/{GRPO_STEPS}" in output and "[rank 1] grpo step" not in output
+    assert "[rank 1] eval step" not in output, "only process 0 logs"
+
+    want, got = _grpo_history(single), _grpo_history(straight)
+    assert [p["step"] for p in got] == [p["step"] for p in want] == list(range(1, GRPO_STEPS + 1))
+    for a, b in zip(want, got):
+        assert a.keys() == b.keys()
+        for name in a:  # gloo's reduction order: a few float32 ulps
+            np.testing.assert_allclose(b[name], a[name], rtol=1e-4, atol=1e-6, err_msg=f"{a['step']} {name}")
+    want_arrays, want_meta = final_arrays(os.path.join(single, "rl", "grpo"))
+    got_arrays, got_meta = final_arrays(os.path.join(straight, "rl", "grpo"))
+    assert want_arrays.keys() == got_arrays.keys() and len(want_arrays) > 10
+    assert got_meta["step"] == want_meta["step"] == GRPO_STEPS
+    for name in want_arrays:
+        np.testing.assert_allclose(got_arrays[name], want_arrays[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    with open(os.path.join(straight, "rl", "grpo", "success_curve.json")) as f:
+        assert [p["step"] for p in json.load(f)["points"]] == list(range(GRPO_STEPS + 1))
+
+    crashed = str(tmp_path / "crashed")
+    grace = 3.0
+    proc = _launch(crashed, cache, trainer="train.grpo", args=GRPO_ARGS, grace=grace)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+    reader.start()
+    ckpt_dir = os.path.join(crashed, "rl", "grpo", "checkpoints")
+    deadline = time.time() + 600
+    while time.time() < deadline and proc.poll() is None:
+        steps = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
+        if steps and max(steps) >= 2:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    rank1 = int(next(re.search(r"rank 1: pid (\d+)", line).group(1) for line in lines if "rank 1: pid" in line))
+    os.kill(rank1, signal.SIGKILL)
+    killed = time.monotonic()
+    proc.wait(timeout=grace + 60)
+    stopped = time.monotonic() - killed
+    reader.join(timeout=5)
+    output = "".join(lines)
+    assert proc.returncode == 128 + signal.SIGKILL, output[-3000:]
+    assert "rank 1 failed first (killed by SIGKILL)" in output
+    assert stopped < grace + STOP_MARGIN_S + 1.0, stopped
+
+    resumed = _wait(_launch(crashed, cache, trainer="train.grpo", args=GRPO_ARGS))
+    assert "[rank 0] GRPO: resumed from step" in resumed, resumed[-3000:]
+    again, again_meta = final_arrays(os.path.join(crashed, "rl", "grpo"))
+    assert again.keys() == got_arrays.keys() and again_meta["step"] == GRPO_STEPS
+    for name in got_arrays:
+        np.testing.assert_array_equal(again[name], got_arrays[name], err_msg=name)
+    assert _grpo_history(crashed) == _grpo_history(straight)
