@@ -4,6 +4,8 @@ analytic toy simulator), evaluated in MuJoCo.
 :func:`run_grpo` is what ``python -m train.grpo`` and the pipeline's GRPO stages run: it builds the
 policy, loads its checkpoint and dispatches to :mod:`sim.grpo_env` (``simulator="env"``),
 :mod:`sim.grpo_refresh` (``rl.refresh.every``) or :func:`sword_jax.pipeline.grpo.run_in_learned_simulator`.
+In a job of several processes (``--mesh.distributed=true``) the toy and the world model run data parallel;
+what does not split over processes yet is refused (:func:`refuse_several_processes`).
 """
 
 from __future__ import annotations

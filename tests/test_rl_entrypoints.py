@@ -79,3 +79,24 @@ def test_grpo_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
     assert len(flat_a) == len(flat_b) > 0
     for a, b in zip(flat_a, flat_b):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_grpo_refuses_in_several_processes_what_does_not_split_yet():
+    """In a job of several processes train.grpo refuses, in one line naming the setting, the C-engine / MJX
+    simulator, refreshes and the world model's replays (it would otherwise duplicate them or hang)."""
+    import dataclasses
+
+    from sim.grpo_training import refuse_several_processes
+    from sword_jax.rl.config import RLConfig
+
+    rl = RLConfig()
+    with pytest.raises(SystemExit, match=r"^train.grpo --simulator env does not run in several processes"):
+        refuse_several_processes(rl, "env")
+    refreshed = dataclasses.replace(rl, refresh=dataclasses.replace(rl.refresh, every=5))
+    with pytest.raises(SystemExit, match=r"--rl.refresh.every=5 does not run in several processes.*--rl.refresh.every=0"):
+        refuse_several_processes(refreshed, "world_model")
+    with pytest.raises(SystemExit, match=r"--rl.imagined.eval_replay_episodes=100 does not run in several processes"):
+        refuse_several_processes(rl, "world_model")
+    no_replay = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, eval_replay_episodes=0))
+    refuse_several_processes(no_replay, "world_model")
+    refuse_several_processes(rl, "toy")

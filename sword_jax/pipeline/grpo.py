@@ -296,7 +296,6 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
 
     # named streams of the root; the start states' is folded with the step (the update folds in state.step itself)
     starts_key = stream_key(root, "grpo/starts")
-    place = None
     if several:  # each process makes its rows of the global batch of start states
         start_sharding = shd.batch_sharding(mesh, 1, cfg.mesh.rules)
         shd.check_batch_divides(start_sharding, rl.grpo.rollout_batch, "rl.grpo.rollout_batch")
@@ -306,13 +305,15 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
             return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step, rows)
 
         def place(batch):
-            sim_, reward_model_, held = batch
+            batch_sim, batch_reward_model, held = batch
             leaves, treedef = jax.tree.flatten(jax.device_get(held))
             named = {str(i): np.asarray(leaf) for i, leaf in enumerate(leaves)}
             placed = shd.to_global(named, {name: shd.batch_sharding(mesh, value.ndim, cfg.mesh.rules)
                                            for name, value in named.items()}, rows, rl.grpo.rollout_batch)
-            return sim_, reward_model_, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
+            return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
     else:
+        place = None
+
         def batch_at(step):
             return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
 
