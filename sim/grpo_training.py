@@ -4,8 +4,8 @@ analytic toy simulator), evaluated in MuJoCo.
 :func:`run_grpo` is what ``python -m train.grpo`` and the pipeline's GRPO stages run: it builds the
 policy, loads its checkpoint and dispatches to :mod:`sim.grpo_env` (``simulator="env"``),
 :mod:`sim.grpo_refresh` (``rl.refresh.every``) or :func:`sword_jax.pipeline.grpo.run_in_learned_simulator`.
-In a job of several processes (``--mesh.distributed=true``) the toy simulator runs data parallel; what has
-not run over processes yet is refused (:func:`refuse_several_processes`).
+In a job of several processes (``--mesh.distributed=true``) the toy simulator and the world model (without
+replays) run data parallel; what has not run over processes yet is refused (:func:`refuse_several_processes`).
 """
 
 from __future__ import annotations
@@ -101,8 +101,8 @@ def refuse_several_processes(rl, simulator: str) -> None:
 
     Raises:
       SystemExit: ``--simulator env`` (C-engine and MJX rollouts), ``rl.refresh.every > 0``, or
-        ``--simulator world_model`` (its path splits the start states as the toy's does, but loading the world
-        model and the VAE onto a mesh of several processes has not been run, nor its replays).
+        ``rl.imagined.eval_replay_episodes > 0`` (the world model's replays of real episodes have not been run
+        over processes).
     """
     drop = "run it in one process (drop --mesh.distributed=true)"
     if simulator == "env":
@@ -111,6 +111,6 @@ def refuse_several_processes(rl, simulator: str) -> None:
     if rl.refresh.every:
         raise SystemExit(f"train.grpo --rl.refresh.every={rl.refresh.every} does not run in several processes yet: "
                          f"pass --rl.refresh.every=0 or {drop}")
-    if simulator == "world_model":
-        raise SystemExit(f"train.grpo --simulator world_model does not run in several processes yet (only the toy "
-                         f"simulator's data-parallel run is tested): {drop}")
+    if simulator == "world_model" and rl.imagined.eval_replay_episodes:
+        raise SystemExit(f"train.grpo --rl.imagined.eval_replay_episodes={rl.imagined.eval_replay_episodes} does not "
+                         f"run in several processes yet: pass --rl.imagined.eval_replay_episodes=0 or {drop}")

@@ -353,12 +353,13 @@ def experiment_world_model(cfg: Any, workdir: str | None) -> tuple[nnx.GraphDef,
     return graphdef, (params, rest)
 
 
-def experiment_vae(cfg: Any, path: str = "") -> tuple[nnx.GraphDef, nnx.State]:
+def experiment_vae(cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | None = None
+                   ) -> tuple[nnx.GraphDef, nnx.State]:
     """``(graphdef, state)`` of an experiment's VAE: official weights if ``cfg.vae.checkpoint`` is set,
-    else the state ``train.train_vae`` saved at ``path`` (:func:`load_vae_params`), else (neither) a
-    random initialisation (seed ``cfg.seed``)."""
+    else the state ``train.train_vae`` saved at ``path`` (:func:`load_vae_params`; replicated over ``mesh``
+    if given, else on the first device), else (neither) a random initialisation (seed ``cfg.seed``)."""
     if path or cfg.vae.checkpoint:
-        return load_vae_params(cfg.vae, path)
+        return load_vae_params(cfg.vae, path, mesh=mesh)
     from sword_jax.vae import api as vae_api
 
     return nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(cfg.seed)))

@@ -293,7 +293,11 @@ def leading_axis_shardings(tree: Any, mesh: Mesh, rules=DEFAULT_RULES, leading: 
 
 def place(tree: Any, shardings: Any, *, donate: bool = False) -> Any:
     """``tree`` re-made by a jit with ``out_shardings``: the arrays' types then record the mesh as
-    a compiled step's outputs do (see :func:`settle`)."""
+    a compiled step's outputs do (see :func:`settle`). An array on devices other than its target's
+    (weights restored onto one device, placed over a mesh) goes through the host: a jit takes no mix of
+    arrays committed to different devices."""
+    tree = jax.tree.map(lambda x, s: np.asarray(jax.device_get(x)) if isinstance(x, jax.Array)
+                        and x.sharding.device_set != s.device_set else x, tree, shardings)
     return jax.jit(lambda t: t, out_shardings=shardings, donate_argnums=(0,) if donate else ())(tree)
 
 

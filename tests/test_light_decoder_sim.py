@@ -109,7 +109,7 @@ def test_grpo_setup_decodes_with_the_light_decoder_only_when_configured(tmp_path
 
     _, world_model, vae = _tiny_models(vae_weights=True)
     monkeypatch.setattr(load, "experiment_world_model", lambda cfg, path: world_model)
-    monkeypatch.setattr(load, "experiment_vae", lambda cfg, path: vae)
+    monkeypatch.setattr(load, "experiment_vae", lambda cfg, path, mesh=None: vae)
     flags = ["--config", "sword:tiny", "--model.num_layers=1", f"--rl.image_size={POLICY_SIZE}",
              "--rl.imagined.eval_replay_episodes=0"]
     full = configs.from_argv(flags)[0]

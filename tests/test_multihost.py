@@ -2,8 +2,8 @@
 (gloo CPU collectives) run sharded DLB steps equal to one process with the same global device count;
 checkpoints restore onto a different device count; a rank killed mid-run ends the job within the
 launcher's grace and the rerun resumes bit-identical; the VAE, each rank making only its rows of a
-batch, trains as one process does and resumes bit-identical; so does GRPO in the toy simulator, each rank
-making only its rows of the start states."""
+batch, trains as one process does and resumes bit-identical; so does GRPO in the toy simulator and in the
+world model (evaluated in MuJoCo), each rank making (and encoding) only its rows of the start states."""
 
 from __future__ import annotations
 
@@ -195,17 +195,55 @@ def test_launched_grpo_trains_as_one_process_and_a_killed_rank_resumes_bit_ident
     """``train.grpo --simulator toy`` as two ranks of 2 CPU devices, each making 2 of the 4 start states of a
     step, ends as one process on 4 devices does (history, params); only rank 0 logs; rank 1 killed after a
     checkpoint ends the job within the grace, and the rerun ends bit-identical to an uninterrupted launched run."""
+    _grpo_as_one_process_and_resumed(tmp_path, GRPO_ARGS, GRPO_STEPS, kill_after=2)
+
+
+WM_GRPO_STEPS = 3
+
+
+# ~5 min on 2 cores: four runs of the tiny world model, each evaluated in MuJoCo after every step.
+@pytest.mark.slow
+def test_launched_world_model_grpo_trains_as_one_process_and_a_killed_rank_resumes_bit_identical(tiny_run, tmp_path):
+    """``train.grpo --simulator world_model`` (the tiny run's world model and VAE, keyframes of 32x32 demos, a
+    random reward model whose threshold splits the groups) as two ranks of 2 CPU devices, each cutting and
+    encoding 2 of the 4 start states of a step, with the world model and the VAE on the 4-device mesh of both
+    ranks and a MuJoCo evaluation on each, ends as one process on 4 devices does; rank 1 killed after a
+    checkpoint ends the job, and the rerun ends bit-identical."""
+    import configs
+    from sword_jax.rl.params_io import save_params
+    from sword_jax.rl.reward_model import build_detector
+    from tests.support.rl import write_demos
+
+    demos = write_demos(str(tmp_path / "demos.hdf5"), steps=24, size=32)
+    rl_flags = ["--config", "sword:tiny", "--model.num_layers=1", *TINY_RL]
+    reward = str(tmp_path / "reward_model")
+    rl = configs.from_argv(rl_flags)[0].rl
+    save_params(reward, build_detector(rl, seed=0)[1], rl, kind="reward_model", step=0)
+    args = [*rl_flags, "--simulator", "world_model", "--demos", demos,
+            "--world-model", os.path.join(tiny_run, "world_model"), "--vae", os.path.join(tiny_run, "vae_run", "vae"),
+            "--reward", reward, "--rl.success_threshold=0.5", "--rl.imagined.eval_replay_episodes=0",
+            "--rl.imagined.eval_masked_proprio=false", "--rl.imagined.max_chunks=1", "--rl.grpo.rollout_batch=4",
+            "--rl.grpo.eval_every=1", f"--rl.grpo.steps={WM_GRPO_STEPS}", "--eval-episodes=1", "--sim.max_steps=40"]
+    history = _grpo_as_one_process_and_resumed(tmp_path, args, WM_GRPO_STEPS, kill_after=1)
+    assert any(p["grad_norm"] > 0 for p in history), "every group's rewards were equal: the params never moved"
+
+
+def _grpo_as_one_process_and_resumed(tmp_path, args: list[str], steps: int, kill_after: int) -> list[dict]:
+    """``train.grpo`` with ``args`` as two launched ranks of 2 CPU devices equals one process on 4 devices
+    (history within float tolerance, final params); only rank 0 logs; rank 1 killed once a checkpoint of step
+    ``kill_after`` is written ends the job within the grace, and the rerun ends bit-identical to the
+    uninterrupted launched run. Returns the single process's history."""
     cache = str(tmp_path / "xla_cache")
     single = str(tmp_path / "single")
-    _wait(subprocess.Popen([sys.executable, "-m", "train.grpo", "--workdir", single, *GRPO_ARGS, "--mesh.data=4"],
+    _wait(subprocess.Popen([sys.executable, "-m", "train.grpo", "--workdir", single, *args, "--mesh.data=4"],
                            cwd=REPO, env=_env(4, cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     straight = str(tmp_path / "straight")
-    output = _wait(_launch(straight, cache, trainer="train.grpo", args=GRPO_ARGS))
-    assert f"[rank 0] grpo step {GRPO_STEPS}/{GRPO_STEPS}" in output and "[rank 1] grpo step" not in output
+    output = _wait(_launch(straight, cache, trainer="train.grpo", args=args))
+    assert f"[rank 0] grpo step {steps}/{steps}" in output and "[rank 1] grpo step" not in output
     assert "[rank 1] eval step" not in output, "only process 0 logs"
 
     want, got = _grpo_history(single), _grpo_history(straight)
-    assert [p["step"] for p in got] == [p["step"] for p in want] == list(range(1, GRPO_STEPS + 1))
+    assert [p["step"] for p in got] == [p["step"] for p in want] == list(range(1, steps + 1))
     for a, b in zip(want, got):
         assert a.keys() == b.keys()
         for name in a:  # gloo's reduction order: a few float32 ulps
@@ -213,23 +251,23 @@ def test_launched_grpo_trains_as_one_process_and_a_killed_rank_resumes_bit_ident
     want_arrays, want_meta = final_arrays(os.path.join(single, "rl", "grpo"))
     got_arrays, got_meta = final_arrays(os.path.join(straight, "rl", "grpo"))
     assert want_arrays.keys() == got_arrays.keys() and len(want_arrays) > 10
-    assert got_meta["step"] == want_meta["step"] == GRPO_STEPS
+    assert got_meta["step"] == want_meta["step"] == steps
     for name in want_arrays:
         np.testing.assert_allclose(got_arrays[name], want_arrays[name], rtol=2e-5, atol=1e-6, err_msg=name)
     with open(os.path.join(straight, "rl", "grpo", "success_curve.json")) as f:
-        assert [p["step"] for p in json.load(f)["points"]] == list(range(GRPO_STEPS + 1))
+        assert [p["step"] for p in json.load(f)["points"]] == list(range(steps + 1))
 
     crashed = str(tmp_path / "crashed")
     grace = 3.0
-    proc = _launch(crashed, cache, trainer="train.grpo", args=GRPO_ARGS, grace=grace)
+    proc = _launch(crashed, cache, trainer="train.grpo", args=args, grace=grace)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
     reader.start()
     ckpt_dir = os.path.join(crashed, "rl", "grpo", "checkpoints")
     deadline = time.time() + 600
     while time.time() < deadline and proc.poll() is None:
-        steps = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
-        if steps and max(steps) >= 2:
+        saved = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
+        if saved and max(saved) >= kill_after:
             break
         time.sleep(0.01)
     assert proc.poll() is None, "the run finished before it could be killed"
@@ -244,10 +282,11 @@ def test_launched_grpo_trains_as_one_process_and_a_killed_rank_resumes_bit_ident
     assert "rank 1 failed first (killed by SIGKILL)" in output
     assert stopped < grace + STOP_MARGIN_S + 1.0, stopped
 
-    resumed = _wait(_launch(crashed, cache, trainer="train.grpo", args=GRPO_ARGS))
+    resumed = _wait(_launch(crashed, cache, trainer="train.grpo", args=args))
     assert "[rank 0] GRPO: resumed from step" in resumed, resumed[-3000:]
     again, again_meta = final_arrays(os.path.join(crashed, "rl", "grpo"))
-    assert again.keys() == got_arrays.keys() and again_meta["step"] == GRPO_STEPS
+    assert again.keys() == got_arrays.keys() and again_meta["step"] == steps
     for name in got_arrays:
         np.testing.assert_array_equal(again[name], got_arrays[name], err_msg=name)
     assert _grpo_history(crashed) == _grpo_history(straight)
+    return want

@@ -83,7 +83,8 @@ def test_grpo_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
 
 def test_grpo_refuses_in_several_processes_what_does_not_split_yet():
     """In a job of several processes train.grpo refuses, in one line naming the setting, the C-engine / MJX
-    simulator, refreshes and the world model (not yet run over processes): only the toy runs there."""
+    simulator, refreshes and the learned simulator's replays (not yet run over processes); the toy and the world
+    model without replays run there."""
     import dataclasses
 
     from sim.grpo_training import refuse_several_processes
@@ -95,6 +96,8 @@ def test_grpo_refuses_in_several_processes_what_does_not_split_yet():
     refreshed = dataclasses.replace(rl, refresh=dataclasses.replace(rl.refresh, every=5))
     with pytest.raises(SystemExit, match=r"--rl.refresh.every=5 does not run in several processes.*--rl.refresh.every=0"):
         refuse_several_processes(refreshed, "world_model")
-    with pytest.raises(SystemExit, match=r"^train.grpo --simulator world_model does not run in several processes"):
+    with pytest.raises(SystemExit, match=r"^train.grpo --rl.imagined.eval_replay_episodes=\d+ does not run in several"):
         refuse_several_processes(rl, "world_model")
+    unreplayed = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, eval_replay_episodes=0))
+    refuse_several_processes(unreplayed, "world_model")
     refuse_several_processes(rl, "toy")

@@ -9,7 +9,7 @@
         [--env-workers 14] [--rl.grpo.steps=100]
     # smoke run: the analytic toy simulator (no checkpoints needed)
     python -m train.grpo --config sword:tiny --simulator toy --rl.grpo.steps=4
-    # one process per device, data parallel (the toy so far; see sim.grpo_training.refuse_several_processes)
+    # one process per device, data parallel (toy, or world_model without replays: --rl.imagined.eval_replay_episodes=0)
     python -m train.launch --processes 2 -- python -m train.grpo ... --mesh.distributed=true
 
 Each step samples ``rl.grpo.rollout_batch`` keyframe start states, G = ``rl.grpo.group_size`` imagined

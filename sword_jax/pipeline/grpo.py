@@ -105,7 +105,7 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
             temporal_factor=cfg.vae.temporal_factor)
         light_decoder = (light_graphdef, light_state)
     wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
-    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae)
+    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae, mesh=shd.make_mesh(cfg.mesh))  # beside the world model
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     tf = cfg.vae.temporal_factor  # frames per latent
     sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision=rl.imagined.sim_precision,
@@ -122,8 +122,13 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
                          f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "
                          "equal or pass --rl.imagined.eval_replay_episodes=0")
 
+    # each process encodes only its rows of the start states, with a copy of the VAE on one of its own devices
+    encoder_state = (jax.device_put(jax.device_get(vae_state), jax.local_devices()[0]) if jax.process_count() > 1
+                     else vae_state)
+
     def encode(first_frames, history):  # the real history before a start frame -> the world model's latents
-        return encode_history(vae_graphdef, vae_state, first_frames, history, num_context=cfg.data.context_frames // tf)
+        return encode_history(vae_graphdef, encoder_state, first_frames, history,
+                              num_context=cfg.data.context_frames // tf)
 
     def starts(key, step, rows=None):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
@@ -312,7 +317,10 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
                                            for name, value in named.items()}, rows, rl.grpo.rollout_batch)
             return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
     else:
-        place = None
+        def place(batch):  # start states made elsewhere (the VAE's latents, replicated) move onto the batch's sharding
+            batch_sim, batch_reward_model, held = batch
+            return batch_sim, batch_reward_model, jax.device_put(held, shd.leading_axis_shardings(held, mesh,
+                                                                                                  cfg.mesh.rules))
 
         def batch_at(step):
             return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)

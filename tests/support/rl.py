@@ -19,19 +19,20 @@ TEXTS = ["pick up the black bowl on the plate and place it on the plate",
          "pick up the black bowl on the stove and place it on the plate"]
 
 
-def write_demos(path, solved_steps=4):
-    """Four 12-step demonstrations (16x16 frames) in a dataset file; even ones are solved at the end."""
+def write_demos(path, solved_steps=4, *, steps=12, size=16):
+    """Four ``steps``-step demonstrations (``size`` x ``size`` frames) in a dataset file; even ones are solved at
+    the end."""
     from sim.dataset import DatasetInfo, Episode, write_dataset
 
     rng = np.random.default_rng(0)
     episodes = []
     for i in range(4):
-        t = 12
+        t = steps
         succeeds = (np.arange(t) >= t - solved_steps) & (i % 2 == 0)  # even episodes are solved over their last 4 actions
         episodes.append(Episode(
             actions=rng.uniform(-1, 1, (t, 7)).astype(np.float32), states=np.zeros((t, 3), np.float32),
             rewards=succeeds.astype(np.float32), dones=succeeds.astype(np.uint8),
-            agentview_rgb=rng.integers(0, 255, (t, 16, 16, 3), dtype=np.uint8),
+            agentview_rgb=rng.integers(0, 255, (t, size, size, 3), dtype=np.uint8),
             ee_states=np.zeros((t, 6), np.float32), gripper_states=np.zeros((t, 2), np.float32),
             joint_states=np.zeros((t, 7), np.float32), task_id=i % 2,
             language_instruction=["pick up the bowl on the plate", "pick up the bowl on the stove"][i % 2]))
