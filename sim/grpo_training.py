@@ -100,9 +100,10 @@ def refuse_several_processes(rl, simulator: str) -> None:
     otherwise duplicate work on every process or wait on a collective that never comes).
 
     Raises:
-      SystemExit: ``--simulator env`` (C-engine and MJX rollouts), ``rl.refresh.every > 0``, or
-        ``rl.imagined.eval_replay_episodes > 0`` (the world model's replays of real episodes have not been run
-        over processes).
+      SystemExit: ``--simulator env`` (C-engine and MJX rollouts), ``rl.refresh.every > 0``, or in the world
+        model ``rl.imagined.eval_replay_episodes > 0``, ``rl.imagined.decoder=light`` or
+        ``rl.imagined.proprio=reckoned`` (the replays of real episodes, the light decoder's placement and the
+        proprio reckoning have not been run over processes).
     """
     drop = "run it in one process (drop --mesh.distributed=true)"
     if simulator == "env":
@@ -114,3 +115,7 @@ def refuse_several_processes(rl, simulator: str) -> None:
     if simulator == "world_model" and rl.imagined.eval_replay_episodes:
         raise SystemExit(f"train.grpo --rl.imagined.eval_replay_episodes={rl.imagined.eval_replay_episodes} does not "
                          f"run in several processes yet: pass --rl.imagined.eval_replay_episodes=0 or {drop}")
+    if simulator == "world_model" and rl.imagined.decoder == "light":
+        raise SystemExit(f"train.grpo --rl.imagined.decoder=light does not run in several processes yet: {drop}")
+    if simulator == "world_model" and rl.imagined.proprio == "reckoned":
+        raise SystemExit(f"train.grpo --rl.imagined.proprio=reckoned does not run in several processes yet: {drop}")

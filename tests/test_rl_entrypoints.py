@@ -83,8 +83,8 @@ def test_grpo_resume_is_bit_identical_to_an_uninterrupted_run(tmp_path):
 
 def test_grpo_refuses_in_several_processes_what_does_not_split_yet():
     """In a job of several processes train.grpo refuses, in one line naming the setting, the C-engine / MJX
-    simulator, refreshes and the learned simulator's replays (not yet run over processes); the toy and the world
-    model without replays run there."""
+    simulator, refreshes, and the learned simulator's replays, light decoder and reckoned proprio (not yet run over
+    processes); the toy and the world model without them run there."""
     import dataclasses
 
     from sim.grpo_training import refuse_several_processes
@@ -101,3 +101,7 @@ def test_grpo_refuses_in_several_processes_what_does_not_split_yet():
     unreplayed = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, eval_replay_episodes=0))
     refuse_several_processes(unreplayed, "world_model")
     refuse_several_processes(rl, "toy")
+    for key, value in (("decoder", "light"), ("proprio", "reckoned")):
+        other = dataclasses.replace(unreplayed, imagined=dataclasses.replace(unreplayed.imagined, **{key: value}))
+        with pytest.raises(SystemExit, match=rf"^train.grpo --rl.imagined.{key}={value} does not run in several"):
+            refuse_several_processes(other, "world_model")
