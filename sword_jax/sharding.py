@@ -240,6 +240,19 @@ def create_sharded(
     return graphdef, state
 
 
+def create(
+    factory: Callable[[], nnx.Module],
+    mesh: Mesh | None = None,
+    rules: Sequence[tuple[str, Sequence[str]]] = DEFAULT_RULES,
+) -> tuple[nnx.GraphDef, nnx.State]:
+    """``(graphdef, state)`` of a fresh module: born sharded over ``mesh`` (:func:`create_sharded`), or, without
+    one, created unsharded on the default device."""
+    if mesh is not None:
+        return create_sharded(factory, mesh, rules)
+    with nnx.use_eager_sharding(False):
+        return nnx.split(factory())
+
+
 def active_rules() -> Sequence[tuple[str, Sequence[str]]]:
     """The rules of the innermost :func:`use_mesh` (Flax's ``logical_axis_rules`` context), else
     ``DEFAULT_RULES``."""

@@ -64,11 +64,7 @@ def init_train_state(
     def factory():
         return light.LightDecoder(cfg, z_dim=z_dim, scale=scale, temporal_factor=temporal_factor, rngs=vae_rngs(key))
 
-    if mesh is not None:
-        graphdef, params = sharding.create_sharded(factory, mesh, rules)
-    else:
-        with nnx.use_eager_sharding(False):
-            graphdef, params = nnx.split(factory())
+    graphdef, params = sharding.create(factory, mesh, rules)
     params = nnx.to_pure_dict(params)  # plain nested dicts of arrays: what a checkpoint's "params" holds
     opt_state = jax.jit(light_optimizer(cfg).init)(params)
     step = jnp.zeros((), jnp.int32)

@@ -64,11 +64,7 @@ def init_train_state(
     def factory():
         return WanVAE(cfg, rngs=vae_rngs(key))
 
-    if mesh is not None:
-        graphdef, state = sharding.create_sharded(factory, mesh, rules)
-    else:
-        with nnx.use_eager_sharding(False):
-            graphdef, state = nnx.split(factory())
+    graphdef, state = sharding.create(factory, mesh, rules)
     params, constants = state.split(nnx.Param, ...)
     opt_state = jax.jit(vae_optimizer(cfg).init)(params)
     step = jnp.zeros((), jnp.int32)
