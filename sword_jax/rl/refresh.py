@@ -540,23 +540,22 @@ class Refresher:
         held = np.flatnonzero(calibrate)
         real_held = real_set.subset(held)
 
-        def real_report(params: Any, threshold: float) -> dict[str, Any]:
-            """The detector ``params`` on the held-out episodes' real frames, against each frame's true state."""
+        def scorer(params: Any) -> Callable[[Any], Any]:
+            """The detector ``params``' frame scores, unshifted (no calibrated threshold applied)."""
             net = self._reward_model.replace(params={"net": params, "shift": jnp.zeros((), jnp.float32)})
-            scores = score_episodes(functools.partial(jax.jit(net.score_fn), net.params), real_held.frames)
-            return detector_report(scores, real_held, threshold)
+            return functools.partial(jax.jit(net.score_fn), net.params)
 
-        # the detector as it came into this refresh, at the run's threshold: what fine-tuning it changes
-        before = real_report(self.det_params, rl.success_threshold) if held.size else None
+        # the detector as it came into this refresh, on the held-out real frames at the run's threshold: what the
+        # fine-tune below changes
+        before = (detector_report(score_episodes(scorer(self.det_params), real_held.frames), real_held,
+                                  rl.success_threshold) if held.size else None)
         metrics = {}
         if sources:
             state, metrics = train_detector(self.det_graphdef, self.det_params, rl, batch_at,
                                             key=jax.random.fold_in(key, 3), steps=conf.detector_steps,
                                             log=lambda line: None, mesh=self.mesh, compiled=self._det_compiled)
             self.det_params = state.params
-        unshifted = self._reward_model.replace(params={"net": self.det_params, "shift": jnp.zeros((), jnp.float32)})
-        score = jax.jit(unshifted.score_fn)
-        score = functools.partial(score, unshifted.params)
+        score = scorer(self.det_params)
         out_report: dict[str, Any] = {"loss": float(metrics.get("loss", np.nan)), "train_episodes": int(train.size),
                                       "calibration_episodes": int(held.size)}
         if held.size == 0:  # too few episodes of each outcome to hold any out: the run's threshold stays
@@ -581,11 +580,13 @@ class Refresher:
         tp = float((fire & truth & labelled).sum())
         out_report["imagined_frames"] = {"precision": tp / max(float((fire & labelled).sum()), 1.0),
                                          "recall": tp / max(float(truth.sum()), 1.0)}
-        out_report["real_frames"] = real_report(self.det_params, threshold)
+        real_scores = score_episodes(score, real_held.frames)  # scored once, read at both thresholds
+        out_report["real_frames"] = detector_report(real_scores, real_held, threshold)
         # the same real frames at the run's threshold, before and after this refresh's fine-tune: whether the
         # fine-tune on replays kept the detector's judgement of real scenes, apart from the calibrated threshold
         out_report["real_frames_run_threshold"] = {"before": before,
-                                                   "after": real_report(self.det_params, rl.success_threshold)}
+                                                   "after": detector_report(real_scores, real_held,
+                                                                            rl.success_threshold)}
         out_report.update(threshold=float(threshold), shift=float(self.shift))
         out_report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(
             real.solved[held], first_success(scores, replayed.lengths[held], threshold, rl.imagined.success_frames),
