@@ -47,7 +47,7 @@ def given_policy(cfg, source: str) -> dict:
         os.remove(tmp)
     (shutil.copyfile if is_npz else shutil.copytree)(source, tmp)
     try:
-        graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+        _, params = build_policy(cfg.rl, seed=cfg.seed)
         load_params(tmp, params, kind="policy")
     except ValueError as err:  # CheckpointError (another config) included
         (os.remove if is_npz else shutil.rmtree)(tmp)

@@ -94,27 +94,18 @@ def _metrics(workdir: str) -> dict[int, dict]:
     return {k: {m: v for m, v in row.items() if m not in ("elapsed_s", "eta_s")} for k, row in rows.items()}
 
 
-# The default run keeps this covered in parts: tests/test_launch.py::test_a_killed_jax_rank_ends_the_job_and_each_
-# rank_reads_only_its_rows (a killed jax.distributed rank ends the job within the grace), tests/test_reliability.py::
-# test_sigkill_resume_is_bit_identical (a killed run resumes bit-identical) and the launched trainer above.
-@pytest.mark.slow
-def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_identical(tmp_path):
-    cache = str(tmp_path / "xla_cache")
-    long_args = (f"--trainer.steps={LONG_STEPS}", "--trainer.checkpoint_every=1", "--trainer.log_every=1")
-    reference = str(tmp_path / "reference")
-    _wait(_launch(reference, cache, *long_args))
-
-    crashed = str(tmp_path / "crashed")
-    grace = 3.0
-    proc = _launch(crashed, cache, *long_args, grace=grace)
+def _kill_rank1_after_checkpoint(proc: subprocess.Popen, ckpt_dir: str, at_least: int, grace: float) -> tuple[int, float]:
+    """Waits for a checkpoint of step >= ``at_least`` in ``ckpt_dir``, SIGKILLs rank 1 of the launched job ``proc``
+    and checks the job ends, naming that rank, within the grace; returns (the newest checkpoint step then, seconds
+    from the kill to the job's end)."""
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
     reader.start()
-    ckpt_dir = os.path.join(crashed, "checkpoints")
     deadline = time.time() + 600
+    saved: list[int] = []
     while time.time() < deadline and proc.poll() is None:
-        steps = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
-        if steps and max(steps) >= 2:
+        saved = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
+        if saved and max(saved) >= at_least:
             break
         time.sleep(0.01)
     assert proc.poll() is None, "the run finished before it could be killed"
@@ -128,7 +119,24 @@ def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_i
     assert proc.returncode == 128 + signal.SIGKILL, output[-3000:]
     assert "rank 1 failed first (killed by SIGKILL)" in output
     assert stopped < grace + STOP_MARGIN_S + 1.0, stopped  # + the launcher's own exit
-    print(f"killed rank 1 at checkpoint {max(steps)}; the job ended {stopped:.2f} s later (grace {grace} s)")
+    return max(saved), stopped
+
+
+# The default run keeps this covered in parts: tests/test_launch.py::test_a_killed_jax_rank_ends_the_job_and_each_
+# rank_reads_only_its_rows (a killed jax.distributed rank ends the job within the grace), tests/test_reliability.py::
+# test_sigkill_resume_is_bit_identical (a killed run resumes bit-identical) and the launched trainer above.
+@pytest.mark.slow
+def test_launched_run_with_a_killed_rank_ends_within_the_grace_and_resumes_bit_identical(tmp_path):
+    cache = str(tmp_path / "xla_cache")
+    long_args = (f"--trainer.steps={LONG_STEPS}", "--trainer.checkpoint_every=1", "--trainer.log_every=1")
+    reference = str(tmp_path / "reference")
+    _wait(_launch(reference, cache, *long_args))
+
+    crashed = str(tmp_path / "crashed")
+    grace = 3.0
+    proc = _launch(crashed, cache, *long_args, grace=grace)
+    step, stopped = _kill_rank1_after_checkpoint(proc, os.path.join(crashed, "checkpoints"), 2, grace)
+    print(f"killed rank 1 at checkpoint {step}; the job ended {stopped:.2f} s later (grace {grace} s)")
 
     resumed = _wait(_launch(crashed, cache, *long_args))
     assert "resumed from step" in resumed
@@ -260,27 +268,7 @@ def _grpo_as_one_process_and_resumed(tmp_path, args: list[str], steps: int, kill
     crashed = str(tmp_path / "crashed")
     grace = 3.0
     proc = _launch(crashed, cache, trainer="train.grpo", args=args, grace=grace)
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
-    reader.start()
-    ckpt_dir = os.path.join(crashed, "rl", "grpo", "checkpoints")
-    deadline = time.time() + 600
-    while time.time() < deadline and proc.poll() is None:
-        saved = [int(d) for d in os.listdir(ckpt_dir) if d.isdigit()] if os.path.isdir(ckpt_dir) else []
-        if saved and max(saved) >= kill_after:
-            break
-        time.sleep(0.01)
-    assert proc.poll() is None, "the run finished before it could be killed"
-    rank1 = int(next(re.search(r"rank 1: pid (\d+)", line).group(1) for line in lines if "rank 1: pid" in line))
-    os.kill(rank1, signal.SIGKILL)
-    killed = time.monotonic()
-    proc.wait(timeout=grace + 60)
-    stopped = time.monotonic() - killed
-    reader.join(timeout=5)
-    output = "".join(lines)
-    assert proc.returncode == 128 + signal.SIGKILL, output[-3000:]
-    assert "rank 1 failed first (killed by SIGKILL)" in output
-    assert stopped < grace + STOP_MARGIN_S + 1.0, stopped
+    _kill_rank1_after_checkpoint(proc, os.path.join(crashed, "rl", "grpo", "checkpoints"), kill_after, grace)
 
     resumed = _wait(_launch(crashed, cache, trainer="train.grpo", args=args))
     assert "[rank 0] GRPO: resumed from step" in resumed, resumed[-3000:]

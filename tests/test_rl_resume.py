@@ -258,36 +258,54 @@ def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_che
         run(make_step(bad_step=-1), rl, run_id=grpo_run_id(other, seed=0, simulator="toy", **{"sim.tasks": (0, 1)}))
 
 
-def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
-    """``train_history.jsonl`` is written at every checkpoint, not only at the end: a run killed during the
-    evaluation of step 4 leaves the history of its checkpoint at step 2, and a resumed run the whole one."""
-    rl = RLConfig(grpo=GRPOConfig(steps=6, eval_every=2))
-    workdir = str(tmp_path / "grpo")
-    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
+class _Killed(Exception):
+    pass
 
-    class Killed(Exception):
-        pass
+
+def _killable_grpo(rl: RLConfig, workdir: str, *, eval_pause_s: float = 0.0, frames_per_chunk: int = 0):
+    """``run(kill_at)``: a GRPO run of a one-vector policy (``w += batch`` per step, batch ``k`` at step ``k``,
+    ``mean_chunks`` ``k + 1``) whose evaluation of step ``kill_at`` raises :class:`_Killed`, as a killed run would
+    stop there; each evaluation first waits ``eval_pause_s``."""
+    import time
+
+    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
 
     @jax.jit
     def step(state, batch, key):
         params = {"w": state.params["w"] + batch}
-        return state.replace(params=params, step=state.step + 1), {"loss": jnp.sum(params["w"])}
+        return state.replace(params=params, step=state.step + 1), {"loss": jnp.sum(params["w"]),
+                                                                   "mean_chunks": batch + 1.0}
 
     def run(kill_at: int):
         def evaluate(done, params):
+            time.sleep(eval_pause_s)
             if done == kill_at:
-                raise Killed(done)
+                raise _Killed(done)
             return {"mean": float(params["w"][0]), "per_task": {}}, {}
 
         state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
         return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
-                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None,
+                          frames_per_chunk=frames_per_chunk)
+
+    return run
+
+
+def _jsonl(path: str) -> list[dict]:
+    with open(path) as f:
+        return [json.loads(line) for line in f]
+
+
+def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
+    """``train_history.jsonl`` is written at every checkpoint, not only at the end: a run killed during the
+    evaluation of step 4 leaves the history of its checkpoint at step 2, and a resumed run the whole one."""
+    workdir = str(tmp_path / "grpo")
+    run = _killable_grpo(RLConfig(grpo=GRPOConfig(steps=6, eval_every=2)), workdir)
 
     def history_on_disk():
-        with open(os.path.join(workdir, "train_history.jsonl")) as f:
-            return [json.loads(line) for line in f]
+        return _jsonl(os.path.join(workdir, "train_history.jsonl"))
 
-    with pytest.raises(Killed):
+    with pytest.raises(_Killed):
         run(kill_at=4)
     _, meta = _final_state(os.path.join(workdir, "checkpoints"))
     assert meta["step"] == 2 and history_on_disk() == meta["history"]
@@ -300,38 +318,15 @@ def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
 def test_grpo_step_times_leave_evaluations_out_and_survive_a_resume(tmp_path):
     """``step_times.jsonl``: each step once (a resumed run times again the steps after its checkpoint), its
     time without the evaluations around it, and the imagined frames of a step from its ``mean_chunks``."""
-    import time
-
-    rl = RLConfig(grpo=GRPOConfig(steps=4, eval_every=2, rollout_batch=2, group_size=3))
     workdir = str(tmp_path / "grpo")
-    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
-
-    class Killed(Exception):
-        pass
-
-    @jax.jit
-    def step(state, batch, key):
-        params = {"w": state.params["w"] + batch}
-        return state.replace(params=params, step=state.step + 1), {"loss": jnp.sum(params["w"]),
-                                                                   "mean_chunks": batch + 1.0}
-
-    def run(kill_at: int):
-        def evaluate(done, params):
-            time.sleep(1.0)  # far longer than a step: a step's time must not include it
-            if done == kill_at:
-                raise Killed(done)
-            return {"mean": float(params["w"][0]), "per_task": {}}, {}
-
-        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
-        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
-                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None,
-                          frames_per_chunk=4)
+    rl = RLConfig(grpo=GRPOConfig(steps=4, eval_every=2, rollout_batch=2, group_size=3))
+    # each evaluation far longer than a step: a step's time must not include it
+    run = _killable_grpo(rl, workdir, eval_pause_s=1.0, frames_per_chunk=4)
 
     def times_on_disk():
-        with open(os.path.join(workdir, "step_times.jsonl")) as f:
-            return [json.loads(line) for line in f]
+        return _jsonl(os.path.join(workdir, "step_times.jsonl"))
 
-    with pytest.raises(Killed):
+    with pytest.raises(_Killed):
         run(kill_at=4)
     assert [r["step"] for r in times_on_disk()] == [1, 2]
     run(kill_at=-1)
