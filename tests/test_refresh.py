@@ -341,11 +341,13 @@ def test_a_dlb_fine_tune_with_steps_between_log_steps_stays_finite():
 def test_a_refresh_replays_and_recalibrates_through_the_light_decoder(tiny_run, tmp_path):
     """With ``rl.imagined.decoder=light`` a refresh runs through the light decoder (the fine-tuned world model's
     simulator keeps it for the replays that train and calibrate the detector), and GRPO's steps are timed with
-    their imagined frames."""
+    their imagined frames. The light decoder draws at the policy's size, half the real frames': the detector's
+    fine-tune mixes both at its input size."""
     from tests.support.light_decoder import save_random_light_decoder
 
     cfg = _cfg(tmp_path)
-    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, imagined=dataclasses.replace(
+    assert cfg.data.image_size == 32
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, image_size=16, imagined=dataclasses.replace(
         cfg.rl.imagined, decoder="light")))
     save_random_light_decoder(str(tmp_path / "light" / "checkpoints"), cfg)
     out = _run(cfg, tiny_run, str(tmp_path), steps=1, light_decoder=str(tmp_path / "light"))

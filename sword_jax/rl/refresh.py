@@ -51,12 +51,21 @@ from sword_jax.atomic_write import write_json_atomic
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import sim_agreement
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel
+from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.reward_model import (detector_report, make_detector_step, score_episodes, shifted_reward_model,
                                       threshold_shift, train_detector)
 from sword_jax.rl.rollout import success_runs
 from sword_jax.rl.scan_rollout import RecordedEpisodes
 from sword_jax.rng import stream_rng
 
+
+def detector_sized(frames: np.ndarray, size: int) -> np.ndarray:
+    """uint8 episodes ``[n, T, H, W, 3]`` at ``size x size``, the success detector's input size (the resize it
+    applies to every frame, :func:`~sword_jax.rl.policy.resize_frames`, done once and stored as uint8)."""
+    if frames.shape[2:4] == (size, size):
+        return frames
+    resize = jax.jit(lambda f: jnp.clip(jnp.round(resize_frames(f, size) * 255.0), 0, 255).astype(jnp.uint8))
+    return np.stack([np.asarray(resize(episode)) for episode in frames])
 
 @dataclasses.dataclass(frozen=True)
 class RealEpisodes:
@@ -521,6 +530,10 @@ class Refresher:
                                       instructions=real.instructions)
         replay_labels = sim_agreement.replay_labels(replayed, lengths, rl.reward_model.positive_tail)
         real_set = real.episode_set()
+        if frames.shape[2:4] != real_set.frames.shape[2:4]:  # e.g. the light decoder's frames at the policy's size
+            # both sources at the detector's input size, so its batches mix them (it resizes every frame to it anyway)
+            replayed = dataclasses.replace(replayed, frames=detector_sized(frames, rl.image_size))
+            real_set = dataclasses.replace(real_set, frames=detector_sized(real_set.frames, rl.image_size))
         real_labels = rl_data.success_labels(real_set, rl.reward_model.positive_tail, "state")
         train = np.flatnonzero(~calibrate)
         sources = []
