@@ -26,14 +26,17 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
     python -m benchmarks.bench_grpo_refresh run --workdir runs/r41v --policy runs/p/policy_d50.npz --gpus 0 --seeds 0 \\
         --arms refreshed --variant "lpips=--vae.perceptual_weight=1.0" --variant "long=--trainer.steps=15000" \\
         --variant-gpus 1,2 --data-backend cpu --deadline-s 1450
-    python -m benchmarks.bench_grpo_refresh run --workdir runs/r41p --policy runs/p/policy_d50.npz --gpus 0,1,2 \
-        --arms refreshed --wovr-config cache_ablation:small-wovr --wovr-gpus 3 --wovr-seeds 0,1 \
-        --policy-rollouts 20 --data-backend cpu --deadline-s 1450
+    python -m benchmarks.bench_grpo_refresh run --workdir runs/r41c --policy runs/p/policy_d50.npz --gpus 0 \
+        --seeds 0 --arms refreshed --run-variant "separation=--rl.refresh.calibration=separation" \
+        --run-variant "realdet=--rl.refresh.replay_share=0 --rl.refresh.calibration=separation" \
+        --run-variant-seeds 0 --run-variant-gpus 0 --policy-rollouts 20 --data-backend cpu \
+        --rl.refresh.pause_untrusted=true --deadline-s 1450
 
 ``--policy-rollouts N`` starts every pipeline from ``--policy`` (``rl.sft.init``) and adds N of its episodes per
 task, failures included, to each world model's and detector's training data. ``--run-variant NAME=--rl...`` adds
 runs with other GRPO settings in Sword's world model (no pipeline of their own), ``NAME_refreshed_seed<k>`` on
-``--run-variant-gpus``, e.g. ``--run-variant "realdet=--rl.refresh.replay_share=0"``; a run variant with
+``--run-variant-gpus``, e.g. ``--run-variant "realdet=--rl.refresh.replay_share=0"``; several runs may share a GPU
+(``--gpus 0``: memory is not preallocated). A run variant with
 ``--rl.imagined.decoder=light`` makes its pipeline distil the light rollout decoder and its runs decode with it
 (their replays then measure the simulator through it, their ``step_times.jsonl`` its speed inside GRPO).
 """

@@ -340,12 +340,44 @@ def grpo_refresh_causes() -> str:
                    "sampled gain, 95% interval", "greedy"], rows)
 
 
+POLICY_DATA = ("policy", "grpo_refresh_policy_data_small_h200")
+# the runs of the policy-data test, and the cause test's measured setting (expert data only) beside them
+POLICY_DATA_RUNS = ((CAUSES, "refreshed_seed0", "expert demonstrations only (the cause test's measured setting)", "0.5"),
+                    (POLICY_DATA, "refreshed_seed0", "with 20 rollouts per task of the post-trained policy", "0.5"),
+                    (POLICY_DATA, "realdet_refreshed_seed0", "the same, detector fine-tuned on real frames only", "0"))
+
+
+def grpo_refresh_policy_data() -> str:
+    """The first refresh of Sword's seed 0, with and without the post-trained policy's rollouts in the world
+    model's and detector's data: the replay before the refresh (the pipeline's detector at the run's
+    threshold), the calibration that followed and what it left, and the detector on the policy's real frames
+    at the run's threshold before and after its fine-tune."""
+    rows = []
+    for where, run_name, label, share in POLICY_DATA_RUNS:
+        first = _load(*where, "grpo_refresh_summary.json")["runs"][run_name]["refreshes"][0]
+        sb, sa = first["separation_before"], first["separation_after"]
+        calibration = first["calibration"]
+        both = first.get("detector_real_frames_run_threshold") or {}
+
+        def frames(report):
+            return (f"{report['frame_precision']:.2f} / {report['frame_recall']:.2f} / {report['fires_on_failed']:.2f}"
+                    if report else "not recorded")
+        rows.append([label, share, f"{first['false_success_before']['rate']:.2f}",
+                     f"{sb.get('48', float('nan')):+.2f} / {sb.get('96', float('nan')):+.2f}",
+                     f"{first['threshold']:.4f}", f"{calibration['missed_success']['rate']:.2f}",
+                     f"{sa.get('48', float('nan')):+.2f}", frames(both.get("before")), frames(both.get("after"))])
+    return _table(["world model and detector trained on", "replay share", "replay before: real failures imagined "
+                   "successes (whole replay)", "replay before: separation by 48 / 96 actions",
+                   "calibrated threshold (whole replay, <= 5% false success)", "calibration: real successes missed",
+                   "separation by 48 actions after", "real frames at 0.9, before fine-tune: precision / recall / "
+                   "fires on failed episodes", "the same after"], rows)
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels, "grpo-arms": grpo_arms,
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
-    "grpo-refresh-causes": grpo_refresh_causes,
+    "grpo-refresh-causes": grpo_refresh_causes, "grpo-refresh-policy-data": grpo_refresh_policy_data,
 }
 
 

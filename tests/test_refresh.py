@@ -167,6 +167,10 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     assert before["frames"] == after["frames"] == first["detector"]["real_frames"]["frames"] > 0
     chosen = next(r["horizon"] for r in records if "horizon" in r)  # the first calibrated refresh's choice
     assert chosen["actions"] in (4, 8) and set(chosen["separation"]) == {"4", "8"}
+    calibrated = next(r["detector"] for r in records if "candidates" in r.get("detector", {}))
+    # its threshold was set over the horizon it chose, each candidate at its own threshold
+    assert calibrated["calibration"]["over_actions"] == chosen["actions"]
+    assert set(calibrated["candidates"]) == set(calibrated["calibration"]["thresholds"]) == {"4", "8"}
     # stopped after the refresh at step 1 and rerun: bit-identical to the uninterrupted run
     cfg_b = _cfg(tmp_path / "b")
     _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=1)
@@ -299,6 +303,50 @@ def test_pause_follows_the_trust_of_the_refresh_the_steps_follow():
     assert not paused(5, pause=False)
     with pytest.raises(ValueError, match="pause_untrusted needs rl.refresh.horizons"):
         RefreshConfig(every=5, episodes=4, budget=8, pause_untrusted=True).validate()
+
+
+def test_the_threshold_is_set_over_the_rollout_horizon_each_candidate_at_its_own():
+    from types import SimpleNamespace
+
+    from sword_jax.rl.refresh import Refresher, calibrate_held_out
+
+    # one frame per action: real successes look solved from action 3 (scores 0.6-0.9); real failures drift
+    # into a solved look (0.95) from action 6; one failure's replay scores 0.7 from action 3 on
+    real = np.r_[np.ones(5, bool), np.zeros(5, bool)]
+    scores = np.full((10, 12), 0.1)
+    scores[:5, 3:] = np.linspace(0.6, 0.9, 5)[:, None]
+    scores[5:, 6:] = 0.95
+    scores[5, 3:6] = 0.7
+    lengths = np.full(10, 12)
+    conf = RefreshConfig(every=1, episodes=4, budget=8, horizons=(4, 8), max_false_success=0.0, min_separation=0.5)
+    threshold, report, candidates = calibrate_held_out(scores, lengths, real, [4, 8], conf, 1)
+    # by action 4 (frames 0-3) the 0.7 failure sets the bound: successes above it separate by 0.6; by action 8
+    # every failure's drift is within reach and nothing below 0.95 may fire: none separates. Action 4 is taken.
+    assert report["over_actions"] == 4 and threshold == report["thresholds"]["4"] == pytest.approx(np.nextafter(0.7, 1))
+    assert report["thresholds"]["8"] > 0.95 and report["rule"] == "false_success"
+    assert candidates["4"]["real_success"]["rate"] == pytest.approx(0.6) and candidates["8"]["real_success"]["rate"] == 0
+    assert report["false_success"]["rate"] == 0.0 and report["separation"] == pytest.approx(0.6)
+    # separation: letting the 0.7 failure fire by action 4 keeps every success (5/5 - 1/5 = 0.8 against 0.6)
+    sep_threshold, sep_report, _ = calibrate_held_out(scores, lengths, real, [4],
+                                                      dataclasses.replace(conf, calibration="separation"), 1)
+    assert sep_report["rule"] == "separation" and sep_report["separation"] == pytest.approx(0.8)
+    assert sep_threshold == pytest.approx(0.6) and sep_report["false_success"]["rate"] == pytest.approx(0.2)
+    # without a held-out success only the false-success bound can be set
+    assert calibrate_held_out(scores[5:], lengths[5:], real[5:], [4], dataclasses.replace(
+        conf, calibration="separation"), 1)[1]["rule"] == "false_success"
+
+    def over(**kw):
+        records = kw.pop("records", [])
+        return Refresher._calibration_horizons(SimpleNamespace(
+            conf=RefreshConfig(every=1, episodes=4, budget=8, **kw), records=records,
+            rl=SimpleNamespace(imagined=SimpleNamespace(max_chunks=12, execute_steps=4)),
+            horizon=lambda: next((r["horizon"]["actions"] for r in records if "horizon" in r), None)))
+
+    assert over(horizons=(24, 48)) == [24, 48] and over() == [48] and over(calibrate_over="episode") == [None]
+    assert over(horizons=(24, 48), records=[{"step": 0, "horizon": {"actions": 24}}]) == [24]
+    for bad in (dict(calibration="youden"), dict(calibrate_over="chunk")):
+        with pytest.raises(ValueError, match="calibration must be false_success|separation"):
+            RefreshConfig(every=1, episodes=4, budget=8, **bad).validate()
 
 
 def test_horizons_must_be_whole_imagined_decisions():

@@ -513,3 +513,52 @@ def test_confirm_successes_keeps_what_the_actions_made_and_drops_what_the_noise_
     assert unconfirmed == pytest.approx((first & ~kept).mean())
     np.testing.assert_allclose(confirmed.returns, kept * (1.0 + cfg.grpo.success_bonus))
     np.testing.assert_array_equal(confirmed.tokens, rollout.tokens)
+
+
+def test_separation_calibration_takes_the_threshold_that_separates_outcomes_best():
+    from sword_jax.rl.sim_agreement import calibrate_separation, calibrate_threshold
+
+    # 4 real successes, 6 real failures; one failure's replay looks solved at 0.99
+    real = np.r_[np.ones(4, bool), np.zeros(6, bool)]
+    scores = np.array([0.9, 0.8, 0.7, 0.2, 0.99, 0.6, 0.3, 0.1, 0.1, 0.05])
+    out = calibrate_separation(scores, real)
+    # at 0.7: 3/4 successes and 1/6 failures fire (0.583); at 0.6: 3/4 and 2/6; at 0.99: 0 and 1/6
+    assert out["threshold"] == 0.7 and out["separation"] == pytest.approx(0.75 - 1 / 6)
+    assert out["false_success"]["rate"] == pytest.approx(1 / 6)
+    # the false-success bound must pass the failure at 0.99 and keeps almost no success
+    strict = calibrate_threshold(scores, real, max_false_success=0.05)
+    assert strict["threshold"] > 0.99 and strict["missed_success"]["rate"] == 1.0
+    # ties go to the higher threshold (fewer false successes)
+    tie = calibrate_separation(np.array([0.9, 0.5, 0.4, 0.1]), np.array([True, False, True, False]))
+    assert tie["threshold"] == 0.9 and tie["separation"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="needs real successes and real failures"):
+        calibrate_separation(scores[4:], real[4:])
+    with pytest.raises(ValueError, match="must be finite"):
+        calibrate_separation(np.r_[np.inf, scores[1:]], real)
+
+
+def test_calibrating_over_the_rollout_horizon_ignores_drift_past_it():
+    from sword_jax.rl.sim_agreement import calibrate_replays, roc_points
+
+    # one frame per action, 12 actions; successes score high from action 3 on; failures drift into a solved
+    # look (0.95) only after action 8
+    real = np.r_[np.ones(5, bool), np.zeros(5, bool)]
+    scores = np.full((10, 12), 0.1)
+    scores[:5, 3:] = np.linspace(0.6, 0.9, 5)[:, None]
+    scores[5:, 8:] = 0.95
+    lengths = np.full(10, 12)
+    out = calibrate_replays(scores, lengths, real, horizons=[None, 6], max_false_success=0.0)
+    assert out["all"]["threshold"] > 0.95 and out["all"]["missed_success"]["rate"] == 1.0
+    assert out["6"]["threshold"] == pytest.approx(np.nextafter(0.1, 1.0)) and out["6"]["separation"] == 1.0
+    # a shorter replay reads only its own frames, and the rule's consecutive frames count: successes
+    # replayed for 4 actions show one high frame, for 5 actions two
+    for length, separation in ((4, 0.0), (5, 1.0)):
+        short = calibrate_replays(scores, np.r_[np.full(5, length), np.full(5, 12)], real, horizons=[6],
+                                  success_frames=2, calibration="separation")
+        assert short["6"]["separation"] == separation
+    assert roc_points(np.array([0.9, 0.2, 0.5]), np.array([True, False, False])) == [[0.9, 0.0, 1.0], [0.5, 0.5, 1.0],
+                                                                                      [0.2, 1.0, 1.0]]
+    with pytest.raises(ValueError, match="calibration must be"):
+        calibrate_replays(scores, lengths, real, horizons=[6], calibration="youden")
+    with pytest.raises(ValueError, match="horizons must be >= 1"):
+        calibrate_replays(scores, lengths, real, horizons=[0])

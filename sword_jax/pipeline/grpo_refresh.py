@@ -33,8 +33,8 @@ from sword_jax.rl.scan_rollout import JaxEnv, record_episodes
 from sword_jax.rng import stream_key, stream_rng
 
 REFRESH_RUN_KEYS = ("every", "episodes", "budget", "episode_steps", "world_model_steps", "world_model_learning_rate",
-                    "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "branch", "horizons",
-                    "min_separation", "pause_untrusted")
+                    "detector_steps", "replay_share", "calibrate_fraction", "max_false_success", "calibration",
+                    "calibrate_over", "branch", "horizons", "min_separation", "pause_untrusted")
 
 
 def make_collect(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple], *, seed: int,

@@ -377,6 +377,12 @@ class RefreshConfig:
       calibrate_fraction: share of a refresh's episodes whose replays set the threshold (and are not
         trained on); the others' replays train the detector.
       max_false_success: the bound on imagined success among real failures that sets the threshold.
+      calibration: how the threshold is set on the held-out replays: ``false_success`` (the lowest threshold
+        within ``max_false_success``) or ``separation`` (the one that separates real successes from real
+        failures best: GRPO's learning signal, :func:`~sword_jax.rl.sim_agreement.calibrate_separation`).
+      calibrate_over: what of each held-out replay the threshold is set over: ``rollout`` (its first
+        actions, as many as GRPO's imagined rollouts run: the run's horizon, each of ``horizons`` at the
+        first refresh, else ``rl.imagined.max_chunks x execute_steps``) or ``episode`` (the whole replay).
       branch: imagined rollouts start at the latest refresh's real states (else at the demonstrations'
         keyframes).
       horizons: candidate lengths of the imagined rollouts, in actions (multiples of the imagined execution,
@@ -403,6 +409,8 @@ class RefreshConfig:
     replay_share: float = 0.5
     calibrate_fraction: float = 0.5
     max_false_success: float = 0.05
+    calibration: str = "false_success"  # false_success | separation
+    calibrate_over: str = "rollout"  # rollout | episode
     branch: bool = True
     horizons: tuple[int, ...] = ()
     min_separation: float = 0.2
@@ -426,6 +434,9 @@ class RefreshConfig:
                              f"{self.replay_share}, {self.calibrate_fraction}")
         if not 0.0 <= self.max_false_success < 1.0:
             raise ValueError(f"rl.refresh.max_false_success must be in [0, 1), got {self.max_false_success}")
+        if self.calibration not in ("false_success", "separation") or self.calibrate_over not in ("rollout", "episode"):
+            raise ValueError(f"rl.refresh.calibration must be false_success|separation and calibrate_over "
+                             f"rollout|episode, got {self.calibration!r}, {self.calibrate_over!r}")
         if any(h < 1 for h in self.horizons) or list(self.horizons) != sorted(set(self.horizons)):
             raise ValueError(f"rl.refresh.horizons must be increasing action counts >= 1, got {self.horizons}")
         if not -1.0 <= self.min_separation <= 1.0:

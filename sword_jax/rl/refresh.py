@@ -16,8 +16,10 @@ every ``rl.refresh.every`` GRPO steps (:class:`~sword_jax.rl.config.RefreshConfi
 4. **Detector**: fine-tuned on the real frames (the task's success predicate as label) and on the new
    world model's replays of the real episodes labelled with their real outcome
    (:func:`~sword_jax.rl.sim_agreement.replay_labels`); its threshold is then set on replays of held-out
-   episodes so that at most ``max_false_success`` of their real failures are imagined successes
-   (:func:`~sword_jax.rl.sim_agreement.calibrate_threshold`), applied as a logit shift
+   episodes, over as many actions as GRPO's imagined rollouts run (``rl.refresh.calibrate_over``), so that
+   at most ``max_false_success`` of their real failures are imagined successes
+   (:func:`~sword_jax.rl.sim_agreement.calibrate_threshold`) or so that it separates their real outcomes
+   best (``rl.refresh.calibration=separation``), applied as a logit shift
    (:func:`~sword_jax.rl.reward_model.shifted_reward_model`). Precision and recall are reported on the
    held-out episodes' imagined and real frames, and on their real frames at the run's threshold with the
    detector before and after the fine-tune (``real_frames_run_threshold``).
@@ -267,6 +269,32 @@ def choose_horizon(by_horizon: dict[str, dict[str, Any]], horizons: tuple[int, .
     return max(h for h in known if seps[str(h)] == best), seps, False
 
 
+def calibrate_held_out(scores: np.ndarray, lengths: np.ndarray, solved: np.ndarray, over: list[int | None],
+                       conf: Any, success_frames: int) -> tuple[float, dict[str, Any], dict[str, Any] | None]:
+    """The refreshed detector's threshold from its scores ``[E, T]`` of held-out replays (real outcomes
+    ``solved``, at least one failure), set by ``conf.calibration`` over each of ``over`` (actions, ``None``:
+    the whole replay; :func:`~sword_jax.rl.sim_agreement.calibrate_replays`). With several horizons (the
+    run's first refresh) each is read at its own threshold and the one :func:`choose_horizon` takes sets it.
+
+    Returns ``(threshold, the record's calibration, {str(h): imagined success by h among real successes and
+    failures at h's threshold} with several horizons, else None)``. Separation needs both outcomes: without
+    a held-out success the false-success bound sets it."""
+    mode = conf.calibration if solved.any() else "false_success"
+    per = sim_agreement.calibrate_replays(scores, lengths, solved, horizons=over, calibration=mode,
+                                          max_false_success=conf.max_false_success, success_frames=success_frames)
+    picked, candidates = over[0], None
+    if len(over) > 1:
+        candidates = {key: sim_agreement.success_by_horizon(
+            solved, first_success(scores, lengths, c["threshold"], success_frames), horizons=(h,))[key]
+            for h, (key, c) in zip(over, per.items())}
+        picked = choose_horizon(candidates, tuple(over), conf.min_separation)[0]
+    chosen = per["all" if picked is None else str(picked)]
+    report = {**{key: chosen[key] for key in ("false_success", "missed_success", "imagined_success", "separation")},
+              "rule": mode, "over_actions": picked, "roc": chosen["roc"],
+              "thresholds": {key: c["threshold"] for key, c in per.items()}}
+    return chosen["threshold"], report, candidates
+
+
 class Refresher:
     """The refreshes of one GRPO run (module docstring).
 
@@ -324,6 +352,19 @@ class Refresher:
 
     def reward_model(self) -> RewardModel:
         return self._reward_model.replace(params={"net": self.det_params, "shift": jnp.asarray(self.shift, jnp.float32)})
+
+    def _calibration_horizons(self) -> list[int | None]:
+        """The actions of each held-out replay the detector's threshold is set over (``rl.refresh.calibrate_over``):
+        the whole replay (``[None]``), or as many as GRPO's imagined rollouts run: the run's horizon once chosen,
+        every candidate at the first refresh, else ``max_chunks x execute_steps``."""
+        conf, imagined = self.conf, self.rl.imagined
+        if conf.calibrate_over == "episode":
+            return [None]
+        if self.horizon() is not None:
+            return [self.horizon()]
+        if conf.horizons:
+            return list(conf.horizons)
+        return [imagined.max_chunks * imagined.execute_steps]
 
     def horizon(self) -> int | None:
         """The imagined rollouts' length in actions chosen by the run's first refresh (``rl.refresh.horizons``),
@@ -439,8 +480,9 @@ class Refresher:
         horizon = {}
         by_horizon = detector.get("imagined_success_by_horizon")
         if conf.horizons and by_horizon and not any("horizon" in r for r in self.records):
-            # the run's first calibrated refresh chooses
-            chosen, seps, trusted = choose_horizon(by_horizon, tuple(conf.horizons), conf.min_separation)
+            # the run's first calibrated refresh chooses (among thresholds set per candidate horizon, if it did)
+            chosen, seps, trusted = choose_horizon(detector.get("candidates") or by_horizon, tuple(conf.horizons),
+                                                   conf.min_separation)
             horizon = {"horizon": {"actions": chosen, "separation": seps, "min_separation": conf.min_separation,
                                    "trusted": trusted}}
         chosen = horizon["horizon"]["actions"] if horizon else self.horizon()
@@ -577,12 +619,12 @@ class Refresher:
                               shift=0.0)
             return out_report
         scores = score_episodes(score, frames[held])
-        decisive = sim_agreement.decisive_scores(scores, replayed.lengths[held], rl.imagined.success_frames)
-        if (~real.solved[held]).any():
-            chosen = sim_agreement.calibrate_threshold(decisive, real.solved[held],
-                                                       max_false_success=conf.max_false_success)
-            threshold = chosen["threshold"]
-            out_report["calibration"] = {k: chosen[k] for k in ("false_success", "missed_success", "imagined_success")}
+        solved_held, k = real.solved[held], rl.imagined.success_frames
+        if (~solved_held).any():
+            threshold, out_report["calibration"], candidates = calibrate_held_out(
+                scores, replayed.lengths[held], solved_held, self._calibration_horizons(), conf, k)
+            if candidates:
+                out_report["candidates"] = candidates
         else:  # no real failure to bound: keep the run's threshold
             threshold = rl.success_threshold
             out_report["calibration"] = "no real failure among the calibration episodes: threshold kept"

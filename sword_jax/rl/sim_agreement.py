@@ -493,6 +493,94 @@ def calibrate_threshold(scores: np.ndarray, real: np.ndarray, *, max_false_succe
     return {"threshold": threshold, "max_false_success": max_false_success, **agreement(real, scores >= threshold)}
 
 
+CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
+
+
+def calibrate_separation(scores: np.ndarray, real: np.ndarray) -> dict[str, Any]:
+    """The success threshold that separates these episodes' real outcomes best.
+
+    Separation = P(imagined success | real success) - P(imagined success | real failure) (Youden's J). A
+    GRPO group's expected imagined reward is ``false_success + separation * p`` for a policy that really
+    succeeds with probability ``p`` (while the simulator's errors do not depend on the policy, which the
+    refreshes check), so its learning signal is proportional to the separation; a bound on false success
+    alone (:func:`calibrate_threshold`) can leave almost none of it.
+
+    Args:
+      scores: ``[n]`` each replayed episode's decisive detector score (:func:`decisive_scores`).
+      real: ``[n]`` bool, the episodes' real outcomes; both outcomes present.
+
+    Returns:
+      ``{"threshold", "separation", ...}`` (:func:`agreement` at that threshold): the highest of the
+      thresholds with the largest separation (ties go to fewer false successes).
+
+    Raises:
+      ValueError: mismatched, non-finite or empty inputs, or a real outcome missing.
+    """
+    scores, real = np.asarray(scores, np.float64), np.asarray(real, bool)
+    if scores.shape != real.shape or scores.ndim != 1 or not np.all(np.isfinite(scores)):
+        raise ValueError(f"calibrate_separation: scores {scores.shape} must be finite and match real {real.shape} (1-D)")
+    if real.all() or not real.any():
+        raise ValueError("calibrate_separation: needs real successes and real failures among the episodes, got "
+                         f"{int(real.sum())} of {real.size} successes")
+    cuts = np.r_[np.unique(scores), np.nextafter(scores.max(), np.inf)]  # the last: nothing fires
+    fire = scores[None, :] >= cuts[:, None]
+    seps = fire[:, real].mean(axis=1) - fire[:, ~real].mean(axis=1)
+    best = int(np.flatnonzero(seps == seps.max())[-1])
+    threshold = float(cuts[best])
+    return {"threshold": threshold, "separation": float(seps[best]), **agreement(real, scores >= threshold)}
+
+
+def roc_points(scores: np.ndarray, real: np.ndarray) -> list[list[float]]:
+    """``[[threshold, false success, recall], ...]`` at every decisive score of these episodes (highest
+    threshold first): the trade-off a calibration chose from (recall = P(imagined success | real success))."""
+    scores, real = np.asarray(scores, np.float64), np.asarray(real, bool)
+    out = []
+    for cut in np.unique(scores)[::-1]:
+        fire = scores >= cut
+        out.append([round(float(cut), 6), round(float(fire[~real].mean()), 4) if (~real).any() else None,
+                    round(float(fire[real].mean()), 4) if real.any() else None])
+    return out
+
+
+def calibrate_replays(scores: np.ndarray, lengths: np.ndarray, real: np.ndarray, *,
+                      horizons: Sequence[int | None], calibration: str = "false_success",
+                      max_false_success: float = 0.05, success_frames: int = 1) -> dict[str, dict[str, Any]]:
+    """The detector's threshold set on replays of real episodes, over each of ``horizons``.
+
+    Args:
+      scores: ``[E, T]`` the detector's scores of the replayed frames, one frame per action.
+      lengths: ``[E]`` frames of each replay that count.
+      real: ``[E]`` bool, the real outcomes.
+      horizons: actions of each replay the imagined outcome is read over (``None``: the whole replay). GRPO's
+        imagined rollouts run a few dozen actions: calibrated over whole replays of 200-odd actions, the
+        world model's late drift into a solved-looking scene sets the threshold for rollouts that never
+        reach it.
+      calibration: ``false_success`` (:func:`calibrate_threshold` at ``max_false_success``) or ``separation``
+        (:func:`calibrate_separation`).
+      success_frames: the imagined-success rule's consecutive frames (:func:`decisive_scores`).
+
+    Returns:
+      ``{str(h) or "all": {"threshold", "false_success", "missed_success", ..., "separation", "roc"}}``.
+    """
+    if calibration not in CALIBRATIONS:
+        raise ValueError(f"calibrate_replays: calibration must be {'|'.join(CALIBRATIONS)}, got {calibration!r}")
+    lengths = np.asarray(lengths)
+    real = np.asarray(real, bool)
+    out = {}
+    for h in horizons:
+        if h is not None and h < 1:
+            raise ValueError(f"calibrate_replays: horizons must be >= 1 actions (or None), got {h}")
+        decisive = decisive_scores(scores, lengths if h is None else np.minimum(lengths, h), success_frames)
+        if calibration == "separation":
+            chosen = calibrate_separation(decisive, real)
+        else:
+            chosen = calibrate_threshold(decisive, real, max_false_success=max_false_success)
+            fire = decisive >= chosen["threshold"]
+            chosen["separation"] = float(fire[real].mean() - fire[~real].mean()) if real.any() else None
+        chosen["roc"] = roc_points(decisive, real)
+        out["all" if h is None else str(h)] = chosen
+    return out
+
 def _agreement_summary(real: np.ndarray, imagined: np.ndarray, *more: str) -> dict[str, Any]:
     """:func:`agreement`'s imagined success, false and missed success and agreement (and ``more`` of its keys)."""
     keep = ("imagined_success", "false_success", "missed_success", "agreement", *more)
