@@ -25,6 +25,7 @@ BENCHMARKS = {
     "vae": ["benchmarks.bench_vae", "--batch", "1,4", "--iters", "5", "--forms", "conv3d/repeat,conv3d/subpixel"],
     "rollout": ["benchmarks.bench_imagined_rollout", "--layers", "30", "--skip-small"],
     "rollout_width": ["benchmarks.bench_imagined_rollout"],
+    "grpo_step": ["benchmarks.bench_grpo_step"],  # sword:small's GRPO step: before / fast / light decoder
     "sim": ["benchmarks.bench_sim", "--episodes", "5"],
     "render": ["benchmarks.render_speed", "--envs", "256", "--res", "64", "128"],
 }

@@ -85,10 +85,9 @@ def toy_setup(cfg, rl) -> Setup:
 def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) -> Setup:
     """The learned simulator (world model + VAE), the reward model and keyframe starts from ``episodes``
     (an ``rl.data.EpisodeSet`` of the demonstrations); ``reckoning``: the proprio ReckoningConfig when
-    ``rl.imagined.proprio=reckoned`` (the simulator's action convention, fitted to the demonstrations)."""
+    ``rl.imagined.proprio=reckoned`` (the simulator's action convention, fitted to the demonstrations).
+    The weights are read from ``inputs``, then set up by :func:`setup_from_weights`."""
     from sword_jax.load import experiment_vae, experiment_world_model, load_light_decoder
-    from sword_jax.rl.sim_builder import build_simulator
-    from sword_jax.rl.world_model_sim import encode_history
 
     if rl.imagined.proprio == "reckoned" and rl.proprio_dim != 8:
         raise ValueError(f"rl.imagined.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
@@ -104,8 +103,30 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
             inputs.light_decoder, z_dim=cfg.vae.z_dim, latent_size=cfg.data.image_size // cfg.vae.spatial_factor,
             temporal_factor=cfg.vae.temporal_factor)
         light_decoder = (light_graphdef, light_state)
-    wm_graphdef, wm_state = experiment_world_model(cfg, inputs.world_model)
-    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae, mesh=shd.make_mesh(cfg.mesh))  # beside the world model
+    world_model = experiment_world_model(cfg, inputs.world_model)
+    vae = experiment_vae(cfg, inputs.vae, mesh=shd.make_mesh(cfg.mesh))  # beside the world model
+    det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
+    det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
+    if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
+        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution="
+                         f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "
+                         "equal or pass --rl.imagined.eval_replay_episodes=0")
+    return setup_from_weights(cfg, rl, episodes, world_model=world_model, vae=vae,
+                              detector=(det_graphdef, det_params), light_decoder=light_decoder, reckoning=reckoning)
+
+
+def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: tuple[Any, Any],
+                       detector: tuple[Any, Any], light_decoder: tuple[Any, Any] | None = None,
+                       reckoning=None) -> Setup:
+    """:func:`world_model_setup` from weights in hand: ``world_model``, ``vae``, ``detector`` (the success
+    detector) and ``light_decoder`` as ``(graphdef, state)`` pairs, loaded or (``benchmarks.bench_grpo_step``)
+    freshly initialised. The simulator is built at ``rl.imagined.sim_precision``, with the light decoder when
+    one is given; the start states are keyframes of ``episodes`` encoded by the VAE."""
+    from sword_jax.rl.sim_builder import build_simulator
+    from sword_jax.rl.world_model_sim import encode_history
+
+    wm_graphdef, wm_state = world_model
+    vae_graphdef, vae_state = vae
     # the world model's geometry is the config's (ExperimentConfig.validate checks rl against it)
     tf = cfg.vae.temporal_factor  # frames per latent
     sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision=rl.imagined.sim_precision,
@@ -114,13 +135,7 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
                           action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
                           execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
                           proprio_reckoning=reckoning, light_decoder=light_decoder)
-    det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
-    det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
-    reward_model = as_reward_model(det_graphdef, det_params)
-    if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
-        raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution="
-                         f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "
-                         "equal or pass --rl.imagined.eval_replay_episodes=0")
+    reward_model = as_reward_model(*detector)
 
     # each process encodes only its rows of the start states, with a copy of the VAE on one of its own devices
     encoder_state = (jax.device_put(jax.device_get(vae_state), jax.local_devices()[0]) if jax.process_count() > 1
@@ -234,6 +249,70 @@ class Replayer:
         return out
 
 
+class GRPOStep(NamedTuple):
+    """A GRPO run's step as :func:`~sword_jax.rl.grpo_loop.train_grpo` takes it: step ``i`` is
+    ``state, metrics = step(state, place(batch_at(i)), key)`` from ``state``. ``sim`` and ``reward_model`` are
+    the setup's, placed on ``mesh`` (the batch carries them)."""
+
+    step: Callable[..., Any]
+    state: grpo.GRPOState
+    batch_at: Callable[[int], Any]
+    place: Callable[[Any], Any]
+    key: jax.Array
+    sim: Any
+    reward_model: Any
+    mesh: Any
+
+    @property
+    def frames_per_chunk(self) -> int:
+        """Frames the simulator draws per imagined chunk: the executed actions' (``rl.imagined.execute_steps``),
+        not the whole chunk's; what ``step_times.jsonl`` counts per trajectory and rolled chunk."""
+        return self.sim.frames_per_step
+
+
+def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GRPOStep:
+    """The compiled GRPO step of a run in ``setup``'s simulator from policy ``params``, its initial state and its
+    batches (:func:`run_in_learned_simulator`; ``benchmarks.bench_grpo_step`` times it).
+
+    The step runs on the config's mesh, where the world model already lives; the policy state and the other
+    weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step. In a
+    job of several processes each process makes only its rows of a step's start states (``place`` assembles the
+    global batch). The keys are named streams of the root ``cfg.seed``: the start states' folded with the step,
+    the update's folding in ``state.step`` itself."""
+    mesh = shd.make_mesh(cfg.mesh)
+    sim, reward_model = shd.place((setup.sim, setup.reward_model), shd.shardings_on((setup.sim, setup.reward_model),
+                                                                                   mesh))
+    state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
+    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    root = jax.random.key(cfg.seed)
+    starts, starts_key = setup.starts, stream_key(root, "grpo/starts")
+    if jax.process_count() > 1:  # each process makes its rows of the global batch of start states
+        start_sharding = shd.batch_sharding(mesh, 1, cfg.mesh.rules)
+        shd.check_batch_divides(start_sharding, rl.grpo.rollout_batch, "rl.grpo.rollout_batch")
+        rows = shd.rows_held(start_sharding, rl.grpo.rollout_batch)
+
+        def batch_at(step):
+            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step, rows)
+
+        def place(batch):
+            batch_sim, batch_reward_model, held = batch
+            leaves, treedef = jax.tree.flatten(jax.device_get(held))
+            named = {str(i): np.asarray(leaf) for i, leaf in enumerate(leaves)}
+            placed = shd.to_global(named, {name: shd.batch_sharding(mesh, value.ndim, cfg.mesh.rules)
+                                           for name, value in named.items()}, rows, rl.grpo.rollout_batch)
+            return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
+    else:
+        def place(batch):  # start states made elsewhere (the VAE's latents, replicated) move onto the batch's sharding
+            batch_sim, batch_reward_model, held = batch
+            return batch_sim, batch_reward_model, jax.device_put(held, shd.leading_axis_shardings(held, mesh,
+                                                                                                  cfg.mesh.rules))
+
+        def batch_at(step):
+            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
+
+    return GRPOStep(step_fn, state, batch_at, place, stream_key(root, "grpo/update"), sim, reward_model, mesh)
+
+
 def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Setup, *, simulator: str,
                              env_eval: dict | None, max_traces: int) -> dict:
     """GRPO in ``setup``'s simulator (``simulator``: ``world_model`` or ``toy``, the run's identity), resuming
@@ -257,16 +336,11 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}`` (the
     history is also in ``<workdir>/train_history.jsonl``).
     """
-    sim, reward_model, starts, eval_start, encode = setup
+    eval_start, encode = setup.eval_start, setup.encode
     several = jax.process_count() > 1
     say = log if jax.process_index() == 0 else (lambda *_args, **_kwargs: None)
-
-    # The step runs on the config's mesh, where the world model already lives; the policy state and the
-    # other weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step.
-    mesh = shd.make_mesh(cfg.mesh)
-    sim, reward_model = shd.place((sim, reward_model), shd.shardings_on((sim, reward_model), mesh))
-    state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=max_traces)
+    sim, reward_model, mesh = run.sim, run.reward_model, run.mesh
     root = jax.random.key(cfg.seed)
     if eval_start is not None:
         greedy = jax.jit(lambda p: imagined_rollout(graphdef, p, sim, reward_model, eval_start, rl,
@@ -299,39 +373,13 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
         say(f"eval step {step}: success {result['mean']:.3f} {json.dumps(result['per_task'])}")
         return result, extra
 
-    # named streams of the root; the start states' is folded with the step (the update folds in state.step itself)
-    starts_key = stream_key(root, "grpo/starts")
-    if several:  # each process makes its rows of the global batch of start states
-        start_sharding = shd.batch_sharding(mesh, 1, cfg.mesh.rules)
-        shd.check_batch_divides(start_sharding, rl.grpo.rollout_batch, "rl.grpo.rollout_batch")
-        rows = shd.rows_held(start_sharding, rl.grpo.rollout_batch)
-
-        def batch_at(step):
-            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step, rows)
-
-        def place(batch):
-            batch_sim, batch_reward_model, held = batch
-            leaves, treedef = jax.tree.flatten(jax.device_get(held))
-            named = {str(i): np.asarray(leaf) for i, leaf in enumerate(leaves)}
-            placed = shd.to_global(named, {name: shd.batch_sharding(mesh, value.ndim, cfg.mesh.rules)
-                                           for name, value in named.items()}, rows, rl.grpo.rollout_batch)
-            return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
-    else:
-        def place(batch):  # start states made elsewhere (the VAE's latents, replicated) move onto the batch's sharding
-            batch_sim, batch_reward_model, held = batch
-            return batch_sim, batch_reward_model, jax.device_put(held, shd.leading_axis_shardings(held, mesh,
-                                                                                                  cfg.mesh.rules))
-
-        def batch_at(step):
-            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
-
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f} nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
-    result, curve = train_grpo(step_fn, state, batch_at, key=stream_key(root, "grpo/update"), rl=rl,
-                               workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress, log=say,
-                               frames_per_chunk=setup.sim.chunk_len, place=place)
+    result, curve = train_grpo(run.step, run.state, run.batch_at, key=run.key, rl=rl, workdir=workdir,
+                               evaluate=evaluate, run_id=run_id, progress=progress, log=say,
+                               frames_per_chunk=run.frames_per_chunk, place=run.place)
     return {"curve": curve, "workdir": workdir, "history": result.history}

@@ -137,7 +137,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
                                rl=rl, workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
                                curve_label="GRPO in the refreshed learned simulator", log=log,
-                               frames_per_chunk=setup.sim.chunk_len)
+                               frames_per_chunk=setup.sim.frames_per_step)
     refreshes = list(refresher.records)
     with open(os.path.join(workdir, "refreshes.json"), "w") as f:
         json.dump(refreshes, f, indent=1)

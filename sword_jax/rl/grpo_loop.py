@@ -115,8 +115,9 @@ def train_grpo(
       progress: ``progress(point, eta_s) -> line``, the log line of a step (``point``: its metrics and ``step``).
       curve_label: the success curve's title.
       log: where progress and resume lines go.
-      frames_per_chunk: frames the simulator renders per imagined chunk (0: not a learned simulator); with
-        the step's ``mean_chunks`` metric it gives ``step_times.jsonl``'s imagined frames per second.
+      frames_per_chunk: frames the simulator renders per imagined chunk (0: not a learned simulator): its
+        ``frames_per_step``, the executed actions' frames; with the step's ``mean_chunks`` metric it gives
+        ``step_times.jsonl``'s imagined frames per second.
       place: ``place(host_batch) -> batch`` before each step (:func:`~sword_jax.train_loop.run_steps`; e.g. the
         global start states assembled from each process's rows); None = the batch as ``batch_at`` made it.
 
@@ -206,13 +207,14 @@ class StepTimes:
 
     ``frames_per_chunk_batch``: frames rendered per imagined chunk across the step's rollouts (``B x G x``
     frames per chunk; 0: no imagined frames). A step's time runs from the previous :meth:`add` (or
-    :meth:`restart`) to its own. ``writes=False``: :meth:`save` writes nothing."""
+    :meth:`restart`) to its own. ``writes=False`` or no ``workdir``: :meth:`save` writes nothing (without a
+    ``workdir`` the rows are kept only in memory, e.g. ``benchmarks.bench_grpo_step``'s)."""
 
-    def __init__(self, workdir: str, frames_per_chunk_batch: int = 0, *, writes: bool = True):
-        self.path = os.path.join(workdir, "step_times.jsonl")
-        self.per_chunk, self.writes = frames_per_chunk_batch, writes
+    def __init__(self, workdir: str | None, frames_per_chunk_batch: int = 0, *, writes: bool = True):
+        self.path = os.path.join(workdir, "step_times.jsonl") if workdir else None
+        self.per_chunk, self.writes = frames_per_chunk_batch, writes and self.path is not None
         self.rows: list[dict[str, float]] = []
-        if os.path.exists(self.path):
+        if self.path and os.path.exists(self.path):
             with open(self.path) as f:
                 self.rows = [json.loads(line) for line in f if line.strip()]
         self.last = time.perf_counter()
