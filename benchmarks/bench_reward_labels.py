@@ -205,7 +205,7 @@ def main(argv=None) -> dict:
             tail_labels=tail["fires_on_failed"], fires_early={"state": state["fires_early"], "tail": tail["fires_early"]},
             frame_precision={"state": state["frame_precision"], "tail": tail["frame_precision"]},
             frame_recall={"state": state["frame_recall"], "tail": tail["frame_recall"]},
-            heldout_episodes=results["heldout_episodes"],
+            heldout_episodes=results["heldout_episodes"], resolution=results["resolution"],
             note="share of held-out failed episodes (noisy expert) in which the success detector fires on some "
                  "frame, i.e. an imagined rollout would count a false success; value = rl.reward_model.labels=state, "
                  "tail_labels = the earlier labels (frames before the first success). Data: "
@@ -261,6 +261,7 @@ def policy_record(policy: dict) -> dict:
                   fires_on_failed=pick("fires_on_failed"), misses=pick("misses"),
                   frame_precision=pick("frame_precision"), frame_recall=pick("frame_recall"),
                   separation=pick("separation"), temperature=policy["temperature"], policy=policy["policy"],
+                  resolution=policy["resolution"], steps=policy["steps"],
                   heldout_episodes=policy["episodes"]["policy_heldout"]["episodes"],
                   note="share of held-out failed episodes of the policy (its own real episodes, sampled) in which "
                        "the state-labelled detector trained on experts plus the policy's rollouts fires (k = 1: "
