@@ -127,6 +127,30 @@ def test_detector_report_reads_scores_as_the_rollout_rule_does():
         detector_report(scores[:2], eps, 0.9)
 
 
+def test_detector_report_applies_the_consecutive_frames_rule():
+    from sword_jax.rl.reward_model import detector_report
+
+    # Episode 0 fails with a one-frame spike; episode 1 is solved from frame 5 and scores high from frame 4.
+    solved = np.zeros((2, 10), bool)
+    solved[1, 5:] = True
+    eps = rl_data.EpisodeSet(np.zeros((2, 10, 4, 4, 3), np.uint8), np.zeros((2, 10, 7), np.float32),
+                             np.zeros((2, 10, 4), np.float32), np.array([10, 10]), np.array([False, True]),
+                             tuple(TEXTS), solved)
+    scores = np.zeros((2, 10))
+    scores[0, 3] = 0.99
+    scores[1, 4:] = 0.95
+    one, two = detector_report(scores, eps, 0.9), detector_report(scores, eps, 0.9, success_frames=2)
+    assert one["fires_on_failed"] == 1.0 and two["fires_on_failed"] == 0.0
+    # k=1 fires on frames 3 (ep 0) and 4..9 (ep 1); k=2 on frames 5..9 of episode 1 only, all solved
+    assert one["frame_precision"] == 5 / 7 and two["frame_precision"] == 1.0 and two["frame_recall"] == 1.0
+    assert one["mean_lead_frames"] == 1.0 and two["mean_lead_frames"] == 0.0
+    four = detector_report(scores, eps, 0.9, success_frames=4)
+    assert four["frame_recall"] == 3 / 5 and four["misses"] == 0.0
+    assert detector_report(scores, eps, 0.9, success_frames=11)["misses"] == 1.0
+    with pytest.raises(ValueError, match="success_frames"):
+        detector_report(scores, eps, 0.9, success_frames=0)
+
+
 def test_load_episodes_reads_every_file_with_the_given_reader():
     from types import SimpleNamespace
 

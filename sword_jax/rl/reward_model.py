@@ -25,6 +25,7 @@ from sword_jax import sharding as shd
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.learned_simulator import RewardModel
 from sword_jax.rl.policy import resize_frames
+from sword_jax.rl.rollout import success_runs
 
 
 class SuccessDetector(nnx.Module):
@@ -189,14 +190,18 @@ def train_detector(
     return result.state, result.metrics
 
 
-def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict[str, float]:
+def detector_report(scores: np.ndarray, episodes: Any, threshold: float, success_frames: int = 1) -> dict[str, float]:
     """How a detector's per-frame scores agree with true success, frame by frame and as the
-    imagined-rollout rule reads them (an episode succeeds at its first frame scoring ``>= threshold``).
+    imagined-rollout rule reads them (an episode succeeds at the first frame that completes
+    ``success_frames`` consecutive frames scoring ``>= threshold``).
 
     Args:
       scores: ``[E, T]`` detector scores of ``episodes.frames`` (entries past ``lengths`` are ignored).
       episodes: a :class:`~sword_jax.rl.data.EpisodeSet` with ``frame_success``.
       threshold: the success threshold (``rl.success_threshold``).
+      success_frames: ``rl.imagined.success_frames``: a frame fires once it ends a run of this many
+        frames at or above the threshold (:func:`~sword_jax.rl.rollout.success_runs`), so with more than
+        one an isolated spike never fires and the first ``success_frames - 1`` frames of a run do not.
 
     Returns:
       ``frame_precision``/``frame_recall`` against the success predicate of each frame's state;
@@ -209,8 +214,10 @@ def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict
       the frame metrics only, and ``episodes_unobserved`` says how many there were.
 
     Raises:
-      ValueError: episodes without ``frame_success`` or scores of the wrong shape.
+      ValueError: episodes without ``frame_success``, scores of the wrong shape or ``success_frames < 1``.
     """
+    if success_frames < 1:
+        raise ValueError(f"detector_report: success_frames must be >= 1, got {success_frames}")
     if episodes.frame_success is None:
         raise ValueError("detector_report needs episodes.frame_success (per-frame true success)")
     e, t = episodes.frames.shape[:2]
@@ -219,6 +226,8 @@ def detector_report(scores: np.ndarray, episodes: Any, threshold: float) -> dict
         raise ValueError(f"detector_report: scores must be [E, T] = {(e, t)}, got {scores.shape}")
     valid = np.arange(t)[None] < episodes.lengths[:, None]
     fire = (scores >= threshold) & valid
+    if success_frames > 1:
+        fire = np.asarray(success_runs(jnp.asarray(fire))) >= success_frames
     truth = episodes.frame_success & valid
     tp = float((fire & truth).sum())
     first_fire = np.where(fire.any(1), fire.argmax(1), -1)
