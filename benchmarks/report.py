@@ -203,6 +203,22 @@ def reward_labels() -> str:
                    "fires > 4 frames before the bowl lands", "mean lead (frames)"], rows)
 
 
+def reward_detector_on_policy() -> str:
+    """The state-labelled detector on the post-trained policy's own held-out episodes and on noisy experts',
+    trained on experts alone and with the policy's rollouts, under the k-consecutive-frames success rule."""
+    run = _load("policy", "reward_labels.json")["policy_episodes"]
+    names = {"experts": "expert episodes", "experts_and_policy": "experts + 20 policy episodes per task"}
+    rows = []
+    for name, detector in run["detectors"].items():
+        for k in (str(k) for k in run["success_frames"]):
+            mine, theirs = detector["policy_heldout"][k], detector["expert_heldout"][k]
+            rows.append([names.get(name, name), k, f"{100 * mine['fires_on_failed']:.0f}%", f"{100 * mine['misses']:.0f}%",
+                         f"{mine['frame_precision']:.2f} / {mine['frame_recall']:.2f}", f"{mine['separation']:+.2f}",
+                         f"{100 * theirs['fires_on_failed']:.0f}% / {100 * theirs['misses']:.0f}%"])
+    return _table(["detector trained on", "consecutive frames k", "policy: fires on a failed episode",
+                   "policy: misses a success", "policy: frame precision / recall", "policy: separation",
+                   "noisy experts: fires on failed / misses"], rows)
+
 def grpo_arms() -> str:
     """Ground-truth GRPO from the pipeline's supervised policy: greedy and sampled success per arm."""
     arms = _load("policy", "grpo_arms_small_h200.json")["arms"]
@@ -374,7 +390,8 @@ def grpo_refresh_policy_data() -> str:
 
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
-    "proprio-modes": proprio_modes, "reward-labels": reward_labels, "grpo-arms": grpo_arms,
+    "proprio-modes": proprio_modes, "reward-labels": reward_labels,
+    "reward-detector-on-policy": reward_detector_on_policy, "grpo-arms": grpo_arms,
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
     "grpo-refresh-causes": grpo_refresh_causes, "grpo-refresh-policy-data": grpo_refresh_policy_data,
