@@ -207,7 +207,7 @@ def reward_detector_on_policy() -> str:
     """The state-labelled detector on the post-trained policy's own held-out episodes and on noisy experts',
     trained on experts alone and with the policy's rollouts, under the k-consecutive-frames success rule."""
     run = _load("policy", "reward_labels.json")["policy_episodes"]
-    names = {"experts": "expert episodes", "experts_and_policy": "experts + 20 policy episodes per task"}
+    names = {"experts": "experts", "experts_and_policy": "experts + 20 policy episodes per task"}
     rows = []
     for name, detector in run["detectors"].items():
         for k in (str(k) for k in run["success_frames"]):
@@ -215,9 +215,8 @@ def reward_detector_on_policy() -> str:
             rows.append([names.get(name, name), k, f"{100 * mine['fires_on_failed']:.0f}%", f"{100 * mine['misses']:.0f}%",
                          f"{mine['frame_precision']:.2f} / {mine['frame_recall']:.2f}", f"{mine['separation']:+.2f}",
                          f"{100 * theirs['fires_on_failed']:.0f}% / {100 * theirs['misses']:.0f}%"])
-    return _table(["detector trained on", "consecutive frames k", "policy: fires on a failed episode",
-                   "policy: misses a success", "policy: frame precision / recall", "policy: separation",
-                   "noisy experts: fires on failed / misses"], rows)
+    return _table(["trained on", "k", "policy: fires on failed", "policy: misses", "policy: frame precision / recall",
+                   "policy: separation", "noisy experts: fires on failed / misses"], rows)
 
 def grpo_arms() -> str:
     """Ground-truth GRPO from the pipeline's supervised policy: greedy and sampled success per arm."""
@@ -382,11 +381,10 @@ def grpo_refresh_policy_data() -> str:
                      f"{sb.get('48', float('nan')):+.2f} / {sb.get('96', float('nan')):+.2f}",
                      f"{first['threshold']:.4f}", f"{calibration['missed_success']['rate']:.2f}",
                      f"{sa.get('48', float('nan')):+.2f}", frames(both.get("before")), frames(both.get("after"))])
-    return _table(["world model and detector trained on", "replay share", "replay before: real failures imagined "
-                   "successes (whole replay)", "replay before: separation by 48 / 96 actions",
-                   "calibrated threshold (whole replay, <= 5% false success)", "calibration: real successes missed",
-                   "separation by 48 actions after", "real frames at 0.9, before fine-tune: precision / recall / "
-                   "fires on failed episodes", "the same after"], rows)
+    return _table(["trained on", "replay share", "before: false success (whole replay)",
+                   "before: separation by 48 / 96", "calibrated threshold", "calibration: successes missed",
+                   "after: separation by 48", "real frames before: precision / recall / fires on failed",
+                   "the same after"], rows)
 
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
