@@ -159,8 +159,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--data-dir", default="runs/bench_reward_labels")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--out", default=OUT)
-    args = parser.parse_args(argv)
-    cfg = configs.get(args.config)
+    args, overrides = parser.parse_known_args(argv)
+    cfg = configs.apply_overrides(configs.get(args.config), overrides).validate()  # e.g. --rl.reward_model.image_size=128
     rl = cfg.rl if args.detector_steps is None else dataclasses.replace(
         cfg.rl, reward_model=dataclasses.replace(cfg.rl.reward_model, steps=args.detector_steps))
     if args.temperature is not None:

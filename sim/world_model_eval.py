@@ -105,11 +105,9 @@ def _fidelity(cfg: ExperimentConfig, probe_path: str, reward_path: str):
     if reward_path:
         import jax.numpy as jnp
 
-        from sword_jax.rl.params_io import load_params
-        from sword_jax.rl.reward_model import as_reward_model, build_detector
+        from sword_jax.rl.reward_model import as_reward_model, load_detector
 
-        graphdef, params = build_detector(cfg.rl, seed=cfg.seed)
-        params, _ = load_params(reward_path, params, kind="reward_model")
+        graphdef, params = load_detector(reward_path, cfg.rl, seed=cfg.seed)
         score = jax.jit(as_reward_model(graphdef, params).score)
 
         def score_frames(frames):

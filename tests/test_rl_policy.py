@@ -176,3 +176,35 @@ def test_load_episodes_reads_every_file_with_the_given_reader():
     np.testing.assert_array_equal(episodes.subset(np.array([1])).states[0], np.arange(15).reshape(5, 3) + 100)
     with pytest.raises(ValueError, match=r"read=sim\.dataset\.read_dataset"):
         rl_data.load_episodes(["a.hdf5"])
+
+
+def test_the_detector_reads_its_own_frame_size_and_refuses_a_checkpoint_of_another(tmp_path):
+    """rl.reward_model.image_size sets the size the detector resizes every frame to (scoring and training), apart
+    from the policy's; a detector saved at one size is refused by a config that reads another (its weights fit
+    any size, so nothing else would notice)."""
+    from sword_jax.rl.config import RewardModelConfig
+    from sword_jax.rl.params_io import save_params
+    from sword_jax.rl.policy import resize_frames
+    from sword_jax.rl.reward_model import load_detector
+
+    big = dataclasses.replace(POLICY_CFG, reward_model=dataclasses.replace(POLICY_CFG.reward_model, image_size=16))
+    assert POLICY_CFG.detector_image_size == 8 and big.detector_image_size == 16 and big.image_size == 8
+    graphdef, params = build_detector(big, seed=0)
+    score = jax.jit(as_reward_model(graphdef, params).score)
+    frames = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (3, 32, 32, 3)), jnp.float32)
+    np.testing.assert_allclose(score(frames), score(resize_frames(frames, 16)), rtol=1e-6, atol=1e-6)
+    assert not np.allclose(score(frames), score(resize_frames(frames, 8)), atol=1e-4)
+    init, step = make_detector_step(graphdef, big)  # training reads the same size (the step donates its state)
+    labels = jnp.asarray([1.0, 0.0, 1.0])
+    trained = [step(init(build_detector(big, seed=0)[1]), {"frames": f, "labels": labels}, jax.random.key(0))[1]["loss"]
+               for f in (frames, resize_frames(frames, 16), resize_frames(frames, 8))]
+    assert float(trained[0]) == pytest.approx(float(trained[1]), abs=1e-6) and float(trained[0]) != pytest.approx(
+        float(trained[2]), abs=1e-6)
+    path = str(tmp_path / "detector")
+    save_params(path, params, big, kind="reward_model")
+    _, loaded = load_detector(path, big)
+    np.testing.assert_array_equal(jax.tree.leaves(loaded)[0], jax.tree.leaves(params)[0])
+    with pytest.raises(ValueError, match="trained on 16 px frames, this config's reads 8 px"):
+        load_detector(path, POLICY_CFG)
+    with pytest.raises(ValueError, match="rl.reward_model.image_size must be 0"):
+        RewardModelConfig(image_size=12).validate()

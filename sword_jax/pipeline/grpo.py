@@ -24,10 +24,9 @@ from sword_jax.rl import grpo, sim_agreement
 from sword_jax.rl.env_rollout import make_act_fns
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.learned_simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
-from sword_jax.rl.params_io import load_params
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.policy_success import evaluate_in_sim
-from sword_jax.rl.reward_model import as_reward_model, build_detector
+from sword_jax.rl.reward_model import as_reward_model, load_detector
 from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rng import stream_key, stream_rng
 
@@ -105,8 +104,7 @@ def world_model_setup(cfg, rl, inputs: GRPOInputs, episodes, *, reckoning=None) 
         light_decoder = (light_graphdef, light_state)
     world_model = experiment_world_model(cfg, inputs.world_model)
     vae = experiment_vae(cfg, inputs.vae, mesh=shd.make_mesh(cfg.mesh))  # beside the world model
-    det_graphdef, det_params = build_detector(rl, seed=cfg.seed)
-    det_params, _ = load_params(inputs.reward, det_params, kind="reward_model")
+    det_graphdef, det_params = load_detector(inputs.reward, rl, seed=cfg.seed)
     if rl.imagined.eval_replay_episodes and cfg.sim.resolution != cfg.data.image_size:
         raise ValueError(f"rl.imagined.eval_replay_episodes replays real episodes rendered at sim.resolution="
                          f"{cfg.sim.resolution} in a world model of data.image_size={cfg.data.image_size}; make them "

@@ -100,6 +100,10 @@ class RewardModelConfig:
         frames just *before* the bowl lands (the earlier recipe; see README for what it measured).
       positive_tail: the last this-many frames of a successful episode are positives (``labels=tail``).
       width: base channels of the success-detector CNN.
+      image_size: frame size the detector reads (frames are resized to it); 0 = ``rl.image_size``, the
+        policy's. The task's tolerances (the bowl within 3 cm of the plate's centre, 5 mm above it) span a
+        pixel or two at 64 px; a larger size lets the detector see them (the learned simulator's frames are
+        ``data.image_size``, the light decoder's ``light_decoder.frame_size``).
       checkpoint_every: steps between the train-state checkpoints a reward-model run resumes from
         (``train.train_reward``; the last step is always saved).
     """
@@ -110,6 +114,7 @@ class RewardModelConfig:
     labels: str = "state"  # state | tail
     positive_tail: int = 8
     width: int = 16
+    image_size: int = 0
     checkpoint_every: int = 100
 
     def validate(self) -> None:
@@ -120,6 +125,9 @@ class RewardModelConfig:
         if self.checkpoint_every < 1:
             raise ValueError(f"rl.reward_model.checkpoint_every must be >= 1 (steps between checkpoints), got "
                              f"{self.checkpoint_every}")
+        if self.image_size and (self.image_size < 16 or self.image_size % 8):
+            raise ValueError(f"rl.reward_model.image_size must be 0 (the policy's rl.image_size) or a multiple of 8 "
+                             f">= 16, got {self.image_size}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -567,6 +575,11 @@ class RLConfig:
     imagined: ImaginedConfig = ImaginedConfig()
     env: EnvConfig = EnvConfig()
     refresh: RefreshConfig = RefreshConfig()
+
+    @property
+    def detector_image_size(self) -> int:
+        """The frame size the success detector reads: ``reward_model.image_size``, else the policy's."""
+        return self.reward_model.image_size or self.image_size
 
     def validate(self) -> None:
         """Checks each section, then the settings that span sections."""

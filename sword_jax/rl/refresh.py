@@ -574,8 +574,8 @@ class Refresher:
         real_set = real.episode_set()
         if frames.shape[2:4] != real_set.frames.shape[2:4]:  # e.g. the light decoder's frames at the policy's size
             # both sources at the detector's input size, so its batches mix them (it resizes every frame to it anyway)
-            replayed = dataclasses.replace(replayed, frames=detector_sized(frames, rl.image_size))
-            real_set = dataclasses.replace(real_set, frames=detector_sized(real_set.frames, rl.image_size))
+            replayed = dataclasses.replace(replayed, frames=detector_sized(frames, rl.detector_image_size))
+            real_set = dataclasses.replace(real_set, frames=detector_sized(real_set.frames, rl.detector_image_size))
         real_labels = rl_data.success_labels(real_set, rl.reward_model.positive_tail, "state")
         train = np.flatnonzero(~calibrate)
         sources = []

@@ -32,7 +32,7 @@ class SuccessDetector(nnx.Module):
     """Four stride-2 conv blocks -> global average pool -> MLP -> one logit per frame."""
 
     def __init__(self, cfg: RLConfig, *, rngs: nnx.Rngs):
-        self.image_size = cfg.image_size
+        self.image_size = cfg.detector_image_size
         w = cfg.reward_model.width
         chans = (w, 2 * w, 4 * w, 4 * w)
         self.convs = nnx.List()
@@ -44,7 +44,7 @@ class SuccessDetector(nnx.Module):
         self.out = nnx.Linear(4 * w, 1, rngs=rngs)
 
     def __call__(self, frames: Float[Array, "n h w 3"]) -> Float[Array, " n"]:
-        """Success logits of frames in [0, 1] (any size; resized to ``cfg.image_size``)."""
+        """Success logits of frames in [0, 1] (any size; resized to ``cfg.detector_image_size``)."""
         x = resize_frames(frames, self.image_size) * jnp.float32(2.0) - jnp.float32(1.0)
         for conv in self.convs:
             x = jax.nn.gelu(conv(x))
@@ -56,6 +56,26 @@ def build_detector(cfg: RLConfig, *, seed: int = 0) -> tuple[nnx.GraphDef, nnx.S
     with nnx.use_eager_sharding(False):
         return nnx.split(SuccessDetector(cfg, rngs=nnx.Rngs(seed)))
 
+
+def load_detector(path: str, rl: RLConfig, *, seed: int = 0) -> tuple[nnx.GraphDef, nnx.State]:
+    """``(graphdef, params)`` of the detector saved under ``path`` (``train.train_reward``, the pipeline's
+    ``reward_model`` stage), built from ``rl``. Its weights fit any frame size, so the size it was trained on
+    (saved with it) is checked against the one ``rl`` reads (:attr:`RLConfig.detector_image_size`).
+
+    Raises:
+      ValueError: another kind of checkpoint, another architecture, or another frame size."""
+    from sword_jax.rl.params_io import load_params
+
+    graphdef, params = build_detector(rl, seed=seed)
+    params, meta = load_params(path, params, kind="reward_model")
+    saved = meta.get("rl")
+    if isinstance(saved, dict):
+        size = (saved.get("reward_model") or {}).get("image_size") or saved.get("image_size")
+        if size and int(size) != rl.detector_image_size:
+            raise ValueError(f"{path}: the success detector was trained on {size} px frames, this config's reads "
+                             f"{rl.detector_image_size} px (rl.reward_model.image_size, else rl.image_size): set it "
+                             f"to {size}")
+    return graphdef, params
 
 def as_reward_model(graphdef: nnx.GraphDef, params: nnx.State) -> RewardModel:
     """The detector as a per-frame score in [0, 1] (sigmoid of the logit)."""
@@ -116,7 +136,7 @@ def make_detector_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, mesh=None, rule
 
     def step(state: DetectorState, batch, key):
         key = jax.random.fold_in(key, state.step)
-        frames = resize_frames(batch["frames"], cfg.image_size)
+        frames = resize_frames(batch["frames"], cfg.detector_image_size)
         gain_key, bias_key = jax.random.split(key)
         n = frames.shape[0]
         gain = jax.random.uniform(gain_key, (n, 1, 1, 1), jnp.float32, 0.8, 1.2)
