@@ -20,12 +20,13 @@ one trained on the experts plus the policy's training episodes (the reward-model
 episode set, frames drawn alike) are scored on the held-out policy and expert episodes, under the
 imagined-success rule for ``rl.imagined.success_frames`` k in (1, 2, 4, 8), with the separation
 P(fires | real success) - P(fires | real failure). All episodes are then rendered at ``data.image_size``
-(the detector resizes them to ``rl.image_size``) and are ``episode_steps`` long, as the pipeline's data
-stages make them (unless ``--resolution`` / ``--steps`` say otherwise).
-Results go under ``policy_episodes``.
+(the detector resizes them to ``rl.detector_image_size``) and are ``episode_steps`` long, as the pipeline's
+data stages make them (unless ``--resolution`` / ``--steps`` say otherwise).
+Results go under ``policy_episodes``. Dotted config overrides (``--section.key=value``) apply to every
+detector, e.g. ``--rl.reward_model.image_size=128`` (write those runs elsewhere with ``--out``).
 
   python -m benchmarks.bench_reward_labels                  # 10 tasks, ~6 min on 2 cores
-  python -m benchmarks.bench_reward_labels --policy policy.npz --temperature 0.5
+  python -m benchmarks.bench_reward_labels --policy policy.npz --temperature 0.5     # ~21 min on 2 cores
 """
 
 from __future__ import annotations

@@ -218,6 +218,29 @@ def reward_detector_on_policy() -> str:
     return _table(["trained on", "k", "policy: fires on failed", "policy: misses", "policy: frame precision / recall",
                    "policy: separation", "noisy experts: fires on failed / misses"], rows)
 
+# the detector at other frame sizes and widths, on the same episodes (bench_reward_labels --policy with overrides)
+DETECTOR_SIZES = (("reward_labels.json", "64 px, width 16"), ("reward_labels_detector128.json", "128 px, width 16"),
+                  ("reward_labels_detector128_w32.json", "128 px, width 32"))
+
+
+def reward_detector_sizes() -> str:
+    """The policy's held-out episodes judged by detectors reading 64 or 128 px frames (and a wider one):
+    false and missed successes and separation at k = 1 and 4 consecutive frames."""
+    names = {"experts": "experts", "experts_and_policy": "experts + policy episodes"}
+    rows = []
+    for file, label in DETECTOR_SIZES:
+        if not os.path.exists(os.path.join(RESULTS_DIR, "policy", file)):
+            continue
+        run = _load("policy", file)["policy_episodes"]
+        for name, detector in run["detectors"].items():
+            cells = []
+            for k in ("1", "4"):
+                r = detector["policy_heldout"][k]
+                cells.append(f"{100 * r['fires_on_failed']:.0f}% / {100 * r['misses']:.0f}% / {r['separation']:+.2f}")
+            rows.append([label, names.get(name, name), *cells])
+    return _table(["detector", "trained on", "k = 1: fires on failed / misses / separation",
+                   "k = 4: the same"], rows)
+
 def grpo_arms() -> str:
     """Ground-truth GRPO from the pipeline's supervised policy: greedy and sampled success per arm."""
     arms = _load("policy", "grpo_arms_small_h200.json")["arms"]
@@ -389,7 +412,8 @@ def grpo_refresh_policy_data() -> str:
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
-    "reward-detector-on-policy": reward_detector_on_policy, "grpo-arms": grpo_arms,
+    "reward-detector-on-policy": reward_detector_on_policy, "reward-detector-sizes": reward_detector_sizes,
+    "grpo-arms": grpo_arms,
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
     "grpo-refresh-causes": grpo_refresh_causes, "grpo-refresh-policy-data": grpo_refresh_policy_data,
