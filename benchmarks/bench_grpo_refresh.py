@@ -29,6 +29,7 @@ ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and
     python -m benchmarks.bench_grpo_refresh run --workdir runs/r41c --policy runs/p/policy_d50.npz --gpus 0 \
         --seeds 0 --arms refreshed --run-variant "separation=--rl.refresh.calibration=separation" \
         --run-variant "realdet=--rl.refresh.replay_share=0 --rl.refresh.calibration=separation" \
+        --run-variant "light=--rl.imagined.decoder=light --rl.refresh.calibration=separation" \
         --run-variant-seeds 0 --run-variant-gpus 0 --policy-rollouts 20 --data-backend cpu \
         --rl.refresh.pause_untrusted=true --deadline-s 1450
 
