@@ -65,7 +65,8 @@ def run_reward_model(cfg, demos: Sequence[str], *, holdout: float = 0.2) -> dict
 
 
 def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
-    """Agreement of the detector with its own labels and with true success on held-out episodes."""
+    """Agreement of the detector with its own labels and with true success on held-out episodes (the latter
+    under the imagined-success rule: ``rl.imagined.success_frames`` consecutive frames)."""
     labels = rl_data.success_labels(episodes, rl.reward_model.positive_tail, rl.reward_model.labels)
     scores = score_episodes(jax.jit(score), episodes.frames)
     valid = labels >= 0
@@ -74,5 +75,6 @@ def holdout_report(score, episodes: rl_data.EpisodeSet, rl) -> dict:
               "precision_at_threshold": float((pred & truth).sum() / max(pred.sum(), 1)),
               "recall_at_threshold": float((pred & truth).sum() / max(truth.sum(), 1)),
               "accuracy_at_0.5": float(((scores[valid] >= 0.5) == truth).mean())}
-    report["true_success"] = detector_report(scores, episodes, rl.success_threshold)
+    report["true_success"] = detector_report(scores, episodes, rl.success_threshold,
+                                             success_frames=rl.imagined.success_frames)
     return report

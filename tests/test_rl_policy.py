@@ -208,3 +208,24 @@ def test_the_detector_reads_its_own_frame_size_and_refuses_a_checkpoint_of_anoth
         load_detector(path, POLICY_CFG)
     with pytest.raises(ValueError, match="rl.reward_model.image_size must be 0"):
         RewardModelConfig(image_size=12).validate()
+
+
+def test_the_reward_stage_reports_true_success_under_the_runs_consecutive_frames_rule():
+    """sim.reward_training.holdout_report reads the detector's scores as the run's imagined-success rule does: a
+    one-frame spike on a failed episode is a false success at k = 1, not at k = 2."""
+    from sim.reward_training import holdout_report
+
+    episodes = brightening_episodes()
+    solved = np.zeros((4, 12), bool)
+    solved[:2, 9:] = True  # the successes are solved over their last 3 frames
+    episodes = dataclasses.replace(episodes, frame_success=solved)
+
+    def score(frames):  # bright frames (the successes' last ones) score 1, and so does the failures' last frame
+        level = jnp.mean(frames.astype(jnp.float32), axis=(1, 2, 3))
+        return jnp.where((level > 180) | ((level > 80) & (level < 90)), 1.0, 0.0)
+
+    reports = {k: holdout_report(score, episodes, dataclasses.replace(
+        POLICY_CFG, imagined=dataclasses.replace(POLICY_CFG.imagined, success_frames=k)))["true_success"]
+        for k in (1, 2)}
+    assert reports[1]["fires_on_failed"] == 1.0 and reports[2]["fires_on_failed"] == 0.0
+    assert reports[1]["misses"] == reports[2]["misses"] == 0.0

@@ -602,8 +602,9 @@ class Refresher:
 
         # the detector as it came into this refresh, on the held-out real frames at the run's threshold: what the
         # fine-tune below changes
+        k = rl.imagined.success_frames  # every report reads the frames as the imagined-success rule does
         before = (detector_report(score_episodes(scorer(self.det_params), real_held.frames), real_held,
-                                  rl.success_threshold) if held.size else None)
+                                  rl.success_threshold, success_frames=k) if held.size else None)
         metrics = {}
         if sources:
             state, metrics = train_detector(self.det_graphdef, self.det_params, rl, batch_at,
@@ -619,7 +620,7 @@ class Refresher:
                               shift=0.0)
             return out_report
         scores = score_episodes(score, frames[held])
-        solved_held, k = real.solved[held], rl.imagined.success_frames
+        solved_held = real.solved[held]
         if (~solved_held).any():
             threshold, out_report["calibration"], candidates = calibrate_held_out(
                 scores, replayed.lengths[held], solved_held, self._calibration_horizons(), conf, k)
@@ -636,12 +637,12 @@ class Refresher:
         out_report["imagined_frames"] = {"precision": tp / max(float((fire & labelled).sum()), 1.0),
                                          "recall": tp / max(float(truth.sum()), 1.0)}
         real_scores = score_episodes(score, real_held.frames)  # scored once, read at both thresholds
-        out_report["real_frames"] = detector_report(real_scores, real_held, threshold)
+        out_report["real_frames"] = detector_report(real_scores, real_held, threshold, success_frames=k)
         # the same real frames at the run's threshold, before and after this refresh's fine-tune: whether the
         # fine-tune on replays kept the detector's judgement of real scenes, apart from the calibrated threshold
         out_report["real_frames_run_threshold"] = {"before": before,
                                                    "after": detector_report(real_scores, real_held,
-                                                                            rl.success_threshold)}
+                                                                            rl.success_threshold, success_frames=k)}
         out_report.update(threshold=float(threshold), shift=float(self.shift))
         out_report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(
             real.solved[held], first_success(scores, replayed.lengths[held], threshold, rl.imagined.success_frames),
