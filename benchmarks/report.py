@@ -385,6 +385,13 @@ POLICY_DATA_RUNS = ((CAUSES, "refreshed_seed0", "expert demonstrations only (the
                     (POLICY_DATA, "realdet_refreshed_seed0", "the same, detector fine-tuned on real frames only", "0"))
 
 
+def _real_frames(report: dict | None) -> str:
+    """A detector report on real frames as ``precision / recall / fires on failed episodes``."""
+    if not report:
+        return "not recorded"
+    return f"{report['frame_precision']:.2f} / {report['frame_recall']:.2f} / {report['fires_on_failed']:.2f}"
+
+
 def grpo_refresh_policy_data() -> str:
     """The first refresh of Sword's seed 0, with and without the post-trained policy's rollouts in the world
     model's and detector's data: the replay before the refresh (the pipeline's detector at the run's
@@ -396,18 +403,16 @@ def grpo_refresh_policy_data() -> str:
         sb, sa = first["separation_before"], first["separation_after"]
         calibration = first["calibration"]
         both = first.get("detector_real_frames_run_threshold") or {}
-
-        def frames(report):
-            return (f"{report['frame_precision']:.2f} / {report['frame_recall']:.2f} / {report['fires_on_failed']:.2f}"
-                    if report else "not recorded")
         rows.append([label, share, f"{first['false_success_before']['rate']:.2f}",
                      f"{sb.get('48', float('nan')):+.2f} / {sb.get('96', float('nan')):+.2f}",
                      f"{first['threshold']:.4f}", f"{calibration['missed_success']['rate']:.2f}",
-                     f"{sa.get('48', float('nan')):+.2f}", frames(both.get("before")), frames(both.get("after"))])
+                     f"{sa.get('48', float('nan')):+.2f}", _real_frames(both.get("before")),
+                     _real_frames(both.get("after"))])
     return _table(["trained on", "replay share", "before: false success (whole replay)",
                    "before: separation by 48 / 96", "calibrated threshold", "calibration: successes missed",
                    "after: separation by 48", "real frames before: precision / recall / fires on failed",
                    "the same after"], rows)
+
 
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,

@@ -18,6 +18,7 @@ import dataclasses
 from typing import ClassVar
 
 DECODERS = ("full", "light")  # rl.imagined.decoder
+CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
 
 
 @dataclasses.dataclass(frozen=True)
@@ -442,8 +443,8 @@ class RefreshConfig:
                              f"{self.replay_share}, {self.calibrate_fraction}")
         if not 0.0 <= self.max_false_success < 1.0:
             raise ValueError(f"rl.refresh.max_false_success must be in [0, 1), got {self.max_false_success}")
-        if self.calibration not in ("false_success", "separation") or self.calibrate_over not in ("rollout", "episode"):
-            raise ValueError(f"rl.refresh.calibration must be false_success|separation and calibrate_over "
+        if self.calibration not in CALIBRATIONS or self.calibrate_over not in ("rollout", "episode"):
+            raise ValueError(f"rl.refresh.calibration must be {'|'.join(CALIBRATIONS)} and calibrate_over "
                              f"rollout|episode, got {self.calibration!r}, {self.calibrate_over!r}")
         if any(h < 1 for h in self.horizons) or list(self.horizons) != sorted(set(self.horizons)):
             raise ValueError(f"rl.refresh.horizons must be increasing action counts >= 1, got {self.horizons}")

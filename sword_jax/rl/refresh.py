@@ -61,13 +61,18 @@ from sword_jax.rl.scan_rollout import RecordedEpisodes
 from sword_jax.rng import stream_rng
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _resized_uint8(frames: jax.Array, size: int) -> jax.Array:
+    return jnp.clip(jnp.round(resize_frames(frames, size) * 255.0), 0, 255).astype(jnp.uint8)
+
+
 def detector_sized(frames: np.ndarray, size: int) -> np.ndarray:
     """uint8 episodes ``[n, T, H, W, 3]`` at ``size x size``, the success detector's input size (the resize it
     applies to every frame, :func:`~sword_jax.rl.policy.resize_frames`, done once and stored as uint8)."""
     if frames.shape[2:4] == (size, size):
         return frames
-    resize = jax.jit(lambda f: jnp.clip(jnp.round(resize_frames(f, size) * 255.0), 0, 255).astype(jnp.uint8))
-    return np.stack([np.asarray(resize(episode)) for episode in frames])
+    return np.stack([np.asarray(_resized_uint8(episode, size)) for episode in frames])
+
 
 @dataclasses.dataclass(frozen=True)
 class RealEpisodes:
@@ -357,11 +362,11 @@ class Refresher:
         """The actions of each held-out replay the detector's threshold is set over (``rl.refresh.calibrate_over``):
         the whole replay (``[None]``), or as many as GRPO's imagined rollouts run: the run's horizon once chosen,
         every candidate at the first refresh, else ``max_chunks x execute_steps``."""
-        conf, imagined = self.conf, self.rl.imagined
+        conf, imagined, chosen = self.conf, self.rl.imagined, self.horizon()
         if conf.calibrate_over == "episode":
             return [None]
-        if self.horizon() is not None:
-            return [self.horizon()]
+        if chosen is not None:
+            return [chosen]
         if conf.horizons:
             return list(conf.horizons)
         return [imagined.max_chunks * imagined.execute_steps]
@@ -645,6 +650,6 @@ class Refresher:
                                                                             rl.success_threshold, success_frames=k)}
         out_report.update(threshold=float(threshold), shift=float(self.shift))
         out_report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(
-            real.solved[held], first_success(scores, replayed.lengths[held], threshold, rl.imagined.success_frames),
+            solved_held, first_success(scores, replayed.lengths[held], threshold, k),
             horizons=tuple(conf.horizons) or sim_agreement.HORIZON_SWEEP)
         return out_report

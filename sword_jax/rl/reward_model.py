@@ -77,6 +77,7 @@ def load_detector(path: str, rl: RLConfig, *, seed: int = 0) -> tuple[nnx.GraphD
                              f"to {size}")
     return graphdef, params
 
+
 def as_reward_model(graphdef: nnx.GraphDef, params: nnx.State) -> RewardModel:
     """The detector as a per-frame score in [0, 1] (sigmoid of the logit)."""
 

@@ -36,7 +36,7 @@ from sword_jax.rl.env_rollout import wilson_interval
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import tokenize_instructions, tokens_to_actions
 from sword_jax.rl.reward_model import score_episodes
-from sword_jax.rl.config import RLConfig
+from sword_jax.rl.config import CALIBRATIONS, RLConfig
 from sword_jax.rl.rollout import Rollout, success_runs, trajectory_returns
 
 
@@ -493,9 +493,6 @@ def calibrate_threshold(scores: np.ndarray, real: np.ndarray, *, max_false_succe
     return {"threshold": threshold, "max_false_success": max_false_success, **agreement(real, scores >= threshold)}
 
 
-CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
-
-
 def calibrate_separation(scores: np.ndarray, real: np.ndarray) -> dict[str, Any]:
     """The success threshold that separates these episodes' real outcomes best.
 
@@ -580,6 +577,7 @@ def calibrate_replays(scores: np.ndarray, lengths: np.ndarray, real: np.ndarray,
         chosen["roc"] = roc_points(decisive, real)
         out["all" if h is None else str(h)] = chosen
     return out
+
 
 def _agreement_summary(real: np.ndarray, imagined: np.ndarray, *more: str) -> dict[str, Any]:
     """:func:`agreement`'s imagined success, false and missed success and agreement (and ``more`` of its keys)."""
