@@ -414,6 +414,40 @@ def grpo_refresh_policy_data() -> str:
                    "the same after"], rows)
 
 
+SEPARATION = ("policy", "grpo_refresh_separation_small_h200")
+# the runs of the separation-calibration test: (run, decoder, replay share of the detector's fine-tune)
+SEPARATION_RUNS = (("refreshed_seed0", "full VAE decoder (bfloat16)", "0.5"), ("realdet_refreshed_seed0", "full VAE decoder (bfloat16)", "0"),
+                   ("light_refreshed_seed0", "light, 64 px", "0.5"))
+
+
+def _rate(entry: dict) -> str:
+    """A rate with its 95% interval and count: ``0.21 [0.10, 0.38] of 29``."""
+    return f"{entry['rate']:.2f} [{entry['ci95'][0]:.2f}, {entry['ci95'][1]:.2f}] of {entry['of']}"
+
+
+def grpo_refresh_separation() -> str:
+    """The first refresh of Sword's seed 0 under the separation calibration, through the Wan decoder and the light
+    decoder: the replay before the refresh (the pipeline's detector at 0.9; whole-replay agreement and false
+    success, imagined success by 48 actions among real successes and real failures), the threshold the calibration
+    set over the rollout horizon, and the refreshed detector on held-out replays at that threshold."""
+    rows = []
+    for run_name, decoder, share in SEPARATION_RUNS:
+        record = _load(*SEPARATION, run_name, "rl", "grpo", "refresh", "step_000000", "record.json")
+        replay, detector = record["replay"], record["detector"]
+        at48 = replay["imagined_success_by_horizon"]["48"]
+        chosen = detector["candidates"][str(record["horizon"]["actions"])]
+        rows.append([decoder, share, _rate(replay["agreement"]), _rate(replay["false_success"]),
+                     f"{_rate(at48['real_success'])} / {_rate(at48['real_failure'])}",
+                     f"{at48['real_success']['rate'] - at48['real_failure']['rate']:+.2f}",
+                     f"{detector['threshold']:.4f}",
+                     f"{_rate(chosen['real_success'])} / {_rate(chosen['real_failure'])}",
+                     f"{record['trust']['separation']:+.2f}", _real_frames(detector.get("real_frames"))])
+    return _table(["decoder", "replay share", "before: agreement (whole replay)", "before: false success (whole replay)",
+                   "before: imagined success by 48 actions, real successes / real failures", "before: separation by 48",
+                   "calibrated threshold", "after: imagined success by 48, real successes / real failures",
+                   "after: separation by 48", "real frames at the calibrated threshold: precision / recall / fires on failed"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -422,6 +456,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "mjx-throughput": mjx_throughput, "benchmarks": benchmarks,
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
     "grpo-refresh-causes": grpo_refresh_causes, "grpo-refresh-policy-data": grpo_refresh_policy_data,
+    "grpo-refresh-separation": grpo_refresh_separation,
 }
 
 
