@@ -3,7 +3,8 @@
 :class:`Checkpointer` is the one orbax reader and writer of checkpoints: an orbax ``CheckpointManager``
 with two items per step, ``state`` (the train-state pytree, latent cache included, restored straight
 into its sharded layout) and ``meta`` (JSON: data-iterator position, RNG root key data, config).
-A checkpoint that cannot be read, or does not fit what it is read into, raises :class:`CheckpointError`. :class:`MetricLogger` reads device
+A checkpoint that cannot be read, or does not fit what it is read into, raises :class:`CheckpointError`;
+:func:`read_arrays` reads one back as flat host arrays, to compare runs. :class:`MetricLogger` reads device
 metrics one log step late, so the host never waits on the step it just dispatched, and writes
 them to ``metrics.jsonl`` and TensorBoard event files.
 """
@@ -158,6 +159,53 @@ class Checkpointer:
     def close(self) -> None:
         self.manager.wait_until_finished()
         self.manager.close()
+
+
+def _abstract_from_metadata(node: Any, sharding: jax.sharding.Sharding) -> Any:
+    """The saved state's metadata tree (dicts, lists, array metadata, None) as ``ShapeDtypeStruct`` leaves placed
+    by ``sharding``; walked by hand, since whether orbax's metadata leaves are pytrees differs between versions."""
+    if isinstance(node, dict):
+        return {name: _abstract_from_metadata(value, sharding) for name, value in node.items()}
+    if isinstance(node, (list, tuple)):
+        return type(node)(_abstract_from_metadata(value, sharding) for value in node)
+    if node is None:
+        return None
+    return jax.ShapeDtypeStruct(tuple(node.shape), node.dtype, sharding=sharding)
+
+
+def read_arrays(directory: str, step: int | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Checkpoint ``step`` (default the newest) in ``directory`` as flat host arrays and its JSON meta.
+
+    The state is restored onto this process's first device, whatever device count or process count
+    wrote it, so two runs' checkpoints can be compared bit for bit. Nothing is written.
+
+    Returns:
+      ``({"/path/to/leaf": array}, meta)``; None entries of the state are left out.
+
+    Raises:
+      CheckpointError: no checkpoint, or one that cannot be read.
+    """
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    with Checkpointer(directory, read_only=True) as reader:
+        step = reader.latest_step() if step is None else step
+        if step is None:
+            raise CheckpointError(f"checkpoint: nothing to read in {reader.directory}")
+        target = _abstract_from_metadata(reader.state_metadata(step), device)
+        state, meta = reader.restore_subtree(step, target), reader.read_meta(step)
+    flat: dict[str, np.ndarray] = {}
+
+    def visit(prefix: str, tree: Any) -> None:
+        if isinstance(tree, dict):
+            for name, value in tree.items():
+                visit(f"{prefix}/{name}", value)
+        elif isinstance(tree, (list, tuple)):
+            for i, value in enumerate(tree):
+                visit(f"{prefix}/{i}", value)
+        elif tree is not None:
+            flat[prefix] = np.asarray(tree)
+
+    visit("", state)
+    return flat, meta
 
 
 def _format(value: float) -> str:

@@ -25,6 +25,9 @@ from tests.conftest import REPO, example_env
     (["benchmarks.bench_vae", "--iters", "many"], "argument --iters: invalid int value"),
     (["benchmarks.bench_brax_ppo", "--envs", "mjx,gym"], "unknown env(s) ['gym']"),
     (["benchmarks.bench_brax_ppo", "--iterations", "1"], "--iterations must be at least 2"),
+    (["benchmarks.bench_multiprocess", "--processes", "1", "--cpu-devices", "2"], "--processes must be >= 2"),
+    (["benchmarks.bench_multiprocess", "--processes", "2", "--cpu-devices", "2", "--data.batch_size=6"],
+     "must be multiples of the 4 devices"),
 ])
 def test_a_bad_argument_is_one_line_without_a_traceback(argv, expected, tmp_path):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
