@@ -1,17 +1,59 @@
-"""Multi-GPU: the DLB train step at full TI2V-5B size (FSDP + data), and 1 -> N GPU scaling.
+"""Multi-GPU: data-parallel scaling of the small config, then the DLB train step at full TI2V-5B size under FSDP.
 
-    python -m benchmarks.bench_multi_gpu                    # on a machine with >= 2 GPUs
-    python -m benchmarks.bench_multi_gpu --tiny             # CPU smoke run on fake devices
+    python -m benchmarks.bench_multi_gpu --time-budget-s 420 --out /tmp/mg.json    # 4 x H100 / H200, ~7 min
+    python -m benchmarks.bench_multi_gpu --xla-overlap --time-budget-s 420 --out /tmp/mg_overlap.json
+    XLA_FLAGS=--xla_force_host_platform_device_count=4 python -m benchmarks.bench_multi_gpu --tiny   # CPU smoke run
 
-Part 1 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an
-``fsdp`` axis spanning every device, the latent cache sharded over episodes, and times the DLB
-step (step time, MFU against the per-GPU bf16 peak measured in the same run, memory per device).
-Part 2 times the small config with a fixed per-device batch on 1 and on all devices (pure data
-parallel) and reports the scaling efficiency ``t_1 / t_N`` (1.0 = linear).
+Part 1 (always runs, first) times the small config's DLB step at a fixed per-device batch
+(``--small-batch-per-device``, a comma list) on 1, 2, 4, ... devices (pure data parallel) and reports
+the scaling efficiency ``t_1 / t_k`` (1.0 = linear). Each row has the step time with the host waiting
+for every step (``step_s``) and per step of steps dispatched back to back (``pipelined_step_s``, how the
+train loop runs: it reads metrics one step late); the efficiency recorded is the pipelined one. The
+same step with the DLB cache off on 1 and all devices separates what the cache's cross-device reads and
+writes cost (``cache_cross_device_s``) from the gradient all-reduce and the rest (``dp_overhead_s``);
+one more row on all devices compiles the step with the collective-overlap options below.
+
+Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
+spanning every device (the latent cache sharded over episodes) and times the DLB step for each
+``--sweep`` setting ``BATCHxREMAT[+overlap]`` (per-device batch, remat policy, ``+overlap``: compiled
+with the overlap options), in the order given: step time (median), MFU against the bf16 matmul peak of
+one device measured in this run and against the datasheet peak, compile time, memory per device
+(XLA's compiled estimate and the running peak of the allocator). A setting that runs out of device
+memory is reported as ``oom`` and the sweep goes on; a non-finite loss marks its setting
+``nonfinite`` and the command exits 1 after writing its figures.
+
+``--time-budget-s S``: a 5B setting starts only while fewer than S seconds have passed since the start
+and the last setting's duration still fits before S, so the run ends close to S (the skipped settings
+are listed). ``--out PATH`` rewrites the whole table as JSON after every row, and the results entries are
+merged after every row too, so what was measured survives a run stopped early.
+
+Time on 4 x H100 (estimates; compile dominates): the bf16 peak and the option checks about 15 s; the
+small part 1.5-3 min (six compiles of 10-40 s, the first the longest: later ones reuse its GEMM
+autotuning); the 5B train state 0.5-1 min; each 5B setting 1-2.5 min, 60-120 s of it compiling (a
+setting with the last one's per-device batch compiles faster). ``--time-budget-s 420`` thus measures
+about two 5B settings and ends by about 7.5 min; every further 2 min of it adds about one.
+
+``--xla-overlap`` puts XLA's GPU collective-overlap flags (latency-hiding scheduler, pipelined
+all-gather / reduce-scatter / all-reduce inside the layer scan, while-loop double buffering, larger
+combine thresholds; as in MaxText's and NVIDIA JAX-Toolbox's GPU recipes) into ``XLA_FLAGS``. XLA
+reads ``XLA_FLAGS`` once, when the backend starts: the flag only works when this module's ``main`` runs
+before anything in the process has touched a device (it warns otherwise). Flags this XLA does not know
+(which would abort the process) are found with a short CPU-only subprocess and dropped. Without the flag
+the same options reach the ``+overlap`` rows as per-compile options (``Lowered.compile(compiler_options)``).
+``--mem-fraction`` sets ``XLA_PYTHON_CLIENT_MEM_FRACTION`` (default 0.9 instead of JAX's 0.75) unless the
+environment already does.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import gc
+import os
+import subprocess
+import sys
+import time
+import traceback
+from typing import Any
 
 import jax
 import numpy as np
@@ -21,89 +63,536 @@ from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops
 from sword_jax import cli
 from sword_jax import sharding as shd
+from sword_jax.atomic_write import write_json_atomic
 from sword_jax.dit.action_dit import WorldModel
-from sword_jax.dit.config import DiTConfig
+from sword_jax.dit.config import REMAT_POLICIES, DiTConfig
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.world_model import train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
 
+DEFAULT_SWEEP = "32xdots,32xdots+overlap,24xdots,48xdots,16xnone,24xfull"
+# XLA's GPU collective-overlap options (DebugOptions fields; on other backends they are accepted and unused).
+OVERLAP_OPTIONS: dict[str, bool | int] = {
+    "xla_gpu_enable_latency_hiding_scheduler": True,
+    "xla_gpu_enable_highest_priority_async_stream": True,
+    "xla_gpu_enable_pipelined_all_gather": True,
+    "xla_gpu_enable_pipelined_reduce_scatter": True,
+    "xla_gpu_enable_pipelined_all_reduce": True,
+    "xla_gpu_enable_while_loop_double_buffering": True,
+    "xla_gpu_all_reduce_combine_threshold_bytes": 128 << 20,
+    "xla_gpu_all_gather_combine_threshold_bytes": 128 << 20,
+    "xla_gpu_reduce_scatter_combine_threshold_bytes": 64 << 20,
+}
+NUM_EPISODES, NUM_LATENTS, SEGMENT_LATENTS, ACTION_TOKENS = 64, 32, 4, 13
+TRAINER = TrainerConfig(steps=1000, warmup_steps=10)
+DLB_CACHE = CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5)
 
-def time_dlb_step(model_cfg: DiTConfig, mesh, batch: int, hw: tuple[int, int], iters: int,
-                  num_episodes: int = 64, num_latents: int = 32) -> dict:
-    trainer_cfg = TrainerConfig(steps=1000, warmup_steps=10)
-    cache_cfg = CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5)
-    dataset_shape = (num_episodes, num_latents, hw[0], hw[1], model_cfg.in_dim)
-    graphdef, state, shardings = train_state.create_train_state(
-        lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)), trainer_cfg, cache_cfg, dataset_shape, mesh)
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    per_device_batch: int
+    remat: str
+    overlap: bool = False
+
+    @property
+    def name(self) -> str:
+        return f"{self.per_device_batch}x{self.remat}" + ("+overlap" if self.overlap else "")
+
+
+def parse_sweep(text: str) -> list[Setting]:
+    """``"32xdots,24xnone+overlap"`` -> settings (per-device batch x remat policy, optionally ``+overlap``)."""
+    settings = []
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        base, _, extra = item.partition("+")
+        batch, _, remat = base.partition("x")
+        if not batch.isdigit() or int(batch) < 1 or remat not in REMAT_POLICIES or extra not in ("", "overlap"):
+            raise cli.UsageError(f"--sweep: {item!r} is not BATCHxREMAT[+overlap] with a positive batch and a remat "
+                                 f"of {'|'.join(REMAT_POLICIES)}")
+        settings.append(Setting(int(batch), remat, extra == "overlap"))
+    if not settings:
+        raise cli.UsageError("--sweep: no settings")
+    return settings
+
+
+def parse_batches(text: str) -> list[int]:
+    try:
+        batches = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        batches = []
+    if not batches or min(batches) < 1:
+        raise cli.UsageError(f"--small-batch-per-device: {text!r} is not a comma list of positive integers")
+    return batches
+
+
+def xla_flag_strings(options: dict[str, bool | int]) -> list[str]:
+    return [f"--{name}={str(value).lower() if isinstance(value, bool) else value}" for name, value in options.items()]
+
+
+def usable_xla_flags(flags: list[str], base: str = "") -> tuple[list[str], list[str]]:
+    """``(kept, dropped)``: ``flags`` less those this XLA does not know (an unknown flag in ``XLA_FLAGS``
+    aborts the process), found by starting JAX on the CPU in a subprocess with ``base`` + the flags."""
+    kept, dropped = list(flags), []
+    code = "import jax, jax.numpy as jnp; jax.jit(lambda x: x + 1)(jnp.float32(1)).block_until_ready()"
+    for _ in range(len(flags) + 1):
+        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=" ".join([base, *kept]).strip())
+        try:
+            proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        except subprocess.TimeoutExpired:
+            print("--xla-overlap: JAX did not start in 120 s with the overlap flags; none are set", flush=True)
+            return [], flags
+        if proc.returncode == 0:
+            return kept, dropped
+        unknown = [f for f in kept if any("nknown flag" in line and f in line.split()
+                                          for line in proc.stderr.splitlines())]
+        if not unknown:
+            print(f"--xla-overlap: JAX does not start with the overlap flags ({proc.stderr.strip()[-300:]}); "
+                  "none are set", flush=True)
+            return [], flags
+        kept = [f for f in kept if f not in unknown]
+        dropped += unknown
+    return kept, dropped
+
+
+def backend_started() -> bool:
+    """Whether a JAX backend is up already (XLA_FLAGS would no longer be read); False when this JAX cannot say
+    (a command line's ``main`` runs before any device call)."""
+    try:
+        return bool(jax._src.xla_bridge.backends_are_initialized())
+    except Exception:  # noqa: BLE001 - a private helper that may move
+        return False
+
+
+def configure_backend(xla_overlap: bool, mem_fraction: float) -> dict[str, Any]:
+    """Environment for the backend, set before it starts: the memory fraction and, with ``xla_overlap``,
+    the overlap flags in ``XLA_FLAGS``. Returns what was applied."""
+    started = backend_started()
+    os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", str(mem_fraction))
+    applied: dict[str, Any] = {"xla_overlap_flags": [], "dropped_flags": []}
+    if xla_overlap:
+        base = os.environ.get("XLA_FLAGS", "")
+        kept, applied["dropped_flags"] = usable_xla_flags(xla_flag_strings(OVERLAP_OPTIONS), base)
+        os.environ["XLA_FLAGS"] = " ".join([base, *kept]).strip()
+        applied["xla_overlap_flags"] = kept
+        if applied["dropped_flags"]:
+            print(f"--xla-overlap: this XLA does not know {applied['dropped_flags']}; left out", flush=True)
+        if started:
+            print("--xla-overlap: the backend had already started, XLA_FLAGS is not read again; only the "
+                  "+overlap rows get the options", flush=True)
+            applied["xla_overlap_flags"] = []
+    return applied
+
+
+def usable_compile_options(options: dict[str, bool | int]) -> dict[str, bool | int]:
+    """The options this XLA accepts as per-compile options (each tried on a trivial program)."""
+    usable = {}
+    for name, value in options.items():
+        try:
+            jax.jit(lambda x: x + 1).lower(np.float32(1)).compile(compiler_options={name: value})
+            usable[name] = value
+        except Exception as err:  # noqa: BLE001 - an option this version of XLA does not have
+            print(f"overlap option {name} not accepted ({str(err)[:100]}); left out", flush=True)
+    return usable
+
+
+def is_oom(err: BaseException) -> bool:
+    text = str(err)
+    return "RESOURCE_EXHAUSTED" in text or "out of memory" in text.lower()
+
+
+def free_device_memory() -> None:
+    jax.clear_caches()
+    gc.collect()
+
+
+def make_batch(model_cfg: DiTConfig, batch: int, hw: tuple[int, int], mesh) -> tuple[dict, dict]:
     rng = np.random.default_rng(0)
-    host = {"latents": rng.standard_normal((batch, 4, hw[0], hw[1], model_cfg.in_dim), dtype=np.float32),
-            "actions": rng.uniform(-1, 1, (batch, 13, model_cfg.action_dim)).astype(np.float32),
-            "episode": rng.integers(0, num_episodes, batch).astype(np.int32),
-            "start": rng.integers(1, num_latents - 2, batch).astype(np.int32)}
-    data_shardings = {k: shd.batch_sharding(mesh, v.ndim) for k, v in host.items()}
-    data = {k: shd.put(v, data_shardings[k]) for k, v in host.items()}
-    fn = train_step.make_train_step(graphdef, flow_cfg=FlowConfig(), trainer_cfg=trainer_cfg, cache_cfg=cache_cfg,
-                                    num_context=1, num_episodes=num_episodes)
+    host = {"latents": rng.standard_normal((batch, SEGMENT_LATENTS, hw[0], hw[1], model_cfg.in_dim), dtype=np.float32),
+            "actions": rng.uniform(-1, 1, (batch, ACTION_TOKENS, model_cfg.action_dim)).astype(np.float32),
+            "episode": rng.integers(0, NUM_EPISODES, batch).astype(np.int32),
+            "start": rng.integers(1, NUM_LATENTS - 2, batch).astype(np.int32)}
+    shardings = {k: shd.batch_sharding(mesh, v.ndim) for k, v in host.items()}
+    return {k: shd.put(v, shardings[k]) for k, v in host.items()}, shardings
+
+
+def new_state(model_cfg: DiTConfig, cache_cfg: CacheConfig, hw: tuple[int, int], mesh):
+    """``(graphdef, state, shardings)``, the state placed at its shardings (so the compiled step's input and
+    output types agree)."""
+    dataset_shape = (NUM_EPISODES, NUM_LATENTS, hw[0], hw[1], model_cfg.in_dim)
+    graphdef, state, shardings = train_state.create_train_state(
+        lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)), TRAINER, cache_cfg,
+        dataset_shape, mesh)
+    return graphdef, shd.place(state, shardings, donate=True), shardings
+
+
+def compile_dlb_step(graphdef, cache_cfg: CacheConfig, state, shardings, data, data_shardings, mesh, key,
+                     options: dict | None):
+    """The train step lowered on exactly the arrays it will be called with and compiled (with ``options`` as
+    per-compile XLA options). Returns ``(compiled, compile_s, compiled_gb_per_device)``."""
+    fn = train_step.make_train_step(graphdef, flow_cfg=FlowConfig(), trainer_cfg=TRAINER, cache_cfg=cache_cfg,
+                                    num_context=1, num_episodes=NUM_EPISODES)
     step = train_step.compile_train_step(fn, shardings, data_shardings, mesh)
-    key = shd.put(jax.random.key(0), shd.replicated(mesh))
+    start = time.perf_counter()
+    compiled = step.lower(state, data, key).compile(compiler_options=options or None)
+    compile_s = time.perf_counter() - start
+    try:
+        stats = compiled.memory_analysis()
+        gb = (stats.argument_size_in_bytes + stats.output_size_in_bytes - stats.alias_size_in_bytes
+              + stats.temp_size_in_bytes + stats.generated_code_size_in_bytes) / 1e9
+    except Exception:  # noqa: BLE001 - not every backend reports it
+        gb = None
+    through_jit = []
+
+    def run(state, data, key):
+        if not through_jit:
+            try:
+                return compiled(state, data, key)
+            except (TypeError, ValueError) as err:  # arguments refused before running (nothing donated)
+                print(f"  the compiled step refused its arguments ({str(err)[:200]}); running it through jax.jit "
+                      "instead (compiled again, without per-compile options)", flush=True)
+                through_jit.append(True)
+        return step(state, data, key)
+
+    run.through_jit = through_jit  # type: ignore[attr-defined]
+    return run, compile_s, gb
+
+
+def time_step(step, state, data, key, *, iters: int, pipelined: bool) -> tuple[dict, Any, float]:
+    """Runs the compiled step on the donated state: the median seconds of a step the host waits for and, with
+    ``pipelined``, seconds per step of ``iters`` steps dispatched back to back. Returns ``(timings, state,
+    loss of the last step)``; raises on a non-finite loss."""
     holder = {"state": state}
 
     def one():
         holder["state"], metrics = step(holder["state"], data, key)
         return metrics["loss"]
 
-    seconds = common.time_fn(one, warmup=2, iters=iters)["median_s"]
+    timings = {"step_s": common.time_fn(one, warmup=2, iters=iters)["median_s"]}
+    if pipelined:
+        start = time.perf_counter()
+        for _ in range(iters):
+            loss = one()
+        common.block(loss)
+        timings["pipelined_step_s"] = (time.perf_counter() - start) / iters
     loss = float(one())
     if not np.isfinite(loss):
-        raise RuntimeError(f"non-finite loss {loss}")
-    params = sum(x.size for x in jax.tree.leaves(holder["state"].params))
-    memory = [d.memory_stats().get("peak_bytes_in_use", 0) / 1e9 if d.memory_stats() else None for d in mesh.devices.flat]
-    return {"step_s": seconds, "params": params, "loss": loss, "peak_gb_per_device": memory,
-            "flops": 3 * forward_flops(model_cfg, batch, 4, hw, 13)}
+        raise FloatingPointError(f"non-finite loss {loss}")
+    return timings, holder.pop("state"), loss
 
 
-def main(argv: list[str] | None = None) -> None:
+def failure_row(row: dict, err: BaseException) -> dict:
+    status = "oom" if is_oom(err) else "nonfinite" if isinstance(err, FloatingPointError) else "error"
+    row.update(status=status, error=f"{type(err).__name__}: {str(err)[:300]}")
+    if status == "error":
+        traceback.print_exception(err)
+    print(f"  {row.get('setting', row.get('label'))}: {status.upper()} -- {row['error']}", flush=True)
+    return row
+
+
+def peak_gb(devices) -> list[float | None]:
+    stats = [d.memory_stats() if hasattr(d, "memory_stats") else None for d in devices]
+    return [s.get("peak_bytes_in_use", 0) / 1e9 if s else None for s in stats]
+
+
+def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
+              options: dict | None, iters: int) -> dict:
+    k = len(devices)
+    label = f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
+    row: dict[str, Any] = {"label": label, "devices": k, "per_device_batch": per_device_batch, "cache": cache_on,
+                           "overlap": bool(options), "status": "ok"}
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1), devices=devices)
+    cache_cfg = dataclasses.replace(DLB_CACHE, enabled=cache_on)
+    try:
+        graphdef, state, shardings = new_state(model_cfg, cache_cfg, hw, mesh)
+        data, data_shardings = make_batch(model_cfg, per_device_batch * k, hw, mesh)
+        key = shd.put(jax.random.key(0), shd.replicated(mesh))
+        step, row["compile_s"], row["compiled_gb_per_device"] = compile_dlb_step(
+            graphdef, cache_cfg, state, shardings, data, data_shardings, mesh, key, options)
+        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True)
+        row.update(timings, through_jit=bool(step.through_jit))
+    except Exception as err:  # noqa: BLE001 - reported in the row
+        failure_row(row, err)
+    return row
+
+
+def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
+    """Efficiencies ``t_1 / t_k`` (pipelined and host-waiting) and the cache / all-reduce split of one batch."""
+    def times(cache: bool, overlap: bool, field: str) -> dict[int, float]:
+        return {r["devices"]: r[field] for r in rows if r["per_device_batch"] == per_device_batch
+                and r["status"] == "ok" and r["cache"] == cache and r["overlap"] == overlap}
+
+    on, on_wait = times(True, False, "pipelined_step_s"), times(True, False, "step_s")
+    off = times(False, False, "pipelined_step_s")
+    overlap = times(True, True, "pipelined_step_s")
+    summary: dict[str, Any] = {
+        "per_device_batch": per_device_batch,
+        "pipelined_step_s": {str(k): t for k, t in on.items()}, "step_s": {str(k): t for k, t in on_wait.items()},
+        "efficiency": {str(k): on[1] / t for k, t in on.items()} if 1 in on else {},
+        "waiting_efficiency": {str(k): on_wait[1] / t for k, t in on_wait.items()} if 1 in on_wait else {},
+        "cache_off_pipelined_step_s": {str(k): t for k, t in off.items()},
+        "cache_off_efficiency": off[1] / off[n] if 1 in off and n in off else None,
+        "overlap_pipelined_step_s": overlap.get(n),
+        "overlap_efficiency": on[1] / overlap[n] if 1 in on and n in overlap else None,
+    }
+    if all(k in d for d in (on, off) for k in (1, n)):
+        summary["dp_overhead_s"] = off[n] - off[1]  # gradient all-reduce and the rest, without the cache
+        summary["cache_cross_device_s"] = (on[n] - off[n]) - (on[1] - off[1])  # what the cache costs more on n devices
+    return summary
+
+
+def device_counts(n: int) -> list[int]:
+    counts = [1 << i for i in range(n.bit_length()) if 1 << i <= n]
+    return counts if counts[-1] == n else counts + [n]
+
+
+def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int,
+              overlap_options: dict, overlap_everywhere: bool, report) -> dict:
+    n = len(devices)
+    rows: list[dict] = []
+    print(f"\n== small config ({model_cfg.num_layers} layers, dim {model_cfg.dim}): data-parallel scaling over "
+          f"{device_counts(n)} devices", flush=True)
+    for batch in batches:
+        plan = [(k, True, None) for k in device_counts(n)] + [(1, False, None), (n, False, None)]
+        if n > 1 and not overlap_everywhere:
+            plan.append((n, True, overlap_options))
+        for k, cache_on, options in plan:
+            row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters)
+            rows.append(row)
+            if row["status"] == "ok":
+                print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined "
+                      f"{row['pipelined_step_s'] * 1e3:8.2f} ms  compile {row['compile_s']:.1f} s", flush=True)
+            report(rows=rows)
+            free_device_memory()
+    summaries = {str(b): scaling_summary(rows, b, n) for b in batches}
+    for batch, s in summaries.items():
+        eff = ", ".join(f"k={k}: {e:.3f}" for k, e in s["efficiency"].items())
+        print(f"  {batch}/dev efficiency t_1/t_k (pipelined): {eff}; cache off 1->{n}: "
+              f"{_fmt(s['cache_off_efficiency'])}; overlap: {_fmt(s['overlap_efficiency'])}; all-reduce+rest "
+              f"{_ms(s.get('dp_overhead_s'))}, "
+              f"cache cross-device {_ms(s.get('cache_cross_device_s'))}", flush=True)
+    common.print_table(rows, ["label", "status", "step_s", "pipelined_step_s", "compile_s", "compiled_gb_per_device"])
+    sys.stdout.flush()
+    return {"rows": rows, "by_batch": summaries}
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
+
+
+def _ms(value: float | None) -> str:
+    return "n/a" if value is None else f"{value * 1e3:.2f} ms"
+
+
+def fsdp_row(ctx: dict, setting: Setting, *, iters: int, overlap_options: dict) -> dict:
+    """One 5B setting on the FSDP mesh; reuses (and hands back through ``ctx``) the one train state."""
+    mesh, n, hw = ctx["mesh"], ctx["n"], ctx["hw"]
+    model_cfg = dataclasses.replace(ctx["model_cfg"], remat=setting.remat)
+    row: dict[str, Any] = {"setting": setting.name, "per_device_batch": setting.per_device_batch,
+                           "batch": setting.per_device_batch * n, "remat": setting.remat, "overlap": setting.overlap,
+                           "status": "ok", "params": ctx["params"]}
+    try:
+        graphdef = nnx.split(shd.abstract_module(lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0))), nnx.Param, ...)[0]
+        data, data_shardings = make_batch(model_cfg, row["batch"], hw, mesh)
+        step, row["compile_s"], row["compiled_gb_per_device"] = compile_dlb_step(
+            graphdef, ctx["cache_cfg"], ctx["state"], ctx["shardings"], data, data_shardings, mesh, ctx["key"],
+            overlap_options if setting.overlap else None)
+        timings, ctx["state"], row["loss"] = time_step(step, ctx["state"], data, ctx["key"], iters=iters,
+                                                       pipelined=False)
+        row["through_jit"] = bool(step.through_jit)
+    except Exception as err:  # noqa: BLE001 - reported in the row
+        return failure_row(row, err)
+    flops = 3 * forward_flops(model_cfg, row["batch"], SEGMENT_LATENTS, hw, ACTION_TOKENS)
+    row.update(step_s=timings["step_s"], model_tflops_per_device=flops / timings["step_s"] / 1e12 / n,
+               mfu=flops / timings["step_s"] / 1e12 / (ctx["peak"] * n),
+               mfu_nominal_peak=common.mfu(flops, 1.0 / timings["step_s"], ctx["nominal"] and ctx["nominal"] * n),
+               peak_gb_per_device=peak_gb(mesh.devices.flat))
+    return row
+
+
+def ensure_state(ctx: dict, result: dict) -> bool:
+    """Creates the 5B train state on first use, and again after a failed step consumed it (its buffers were
+    donated). False (and ``result["state_error"]``) when it cannot be made."""
+    if ctx["state"] is not None and not any(x.is_deleted() for x in jax.tree.leaves(ctx["state"])):
+        return True
+    if "state_error" in result:
+        return False
+    ctx["state"] = None
+    free_device_memory()
+    start = time.perf_counter()
+    try:
+        _, ctx["state"], ctx["shardings"] = new_state(ctx["model_cfg"], ctx["cache_cfg"], ctx["hw"], ctx["mesh"])
+    except Exception as err:  # noqa: BLE001 - reported; the small part's figures still count
+        result["state_error"] = failure_row({"setting": "train state"}, err)["error"]
+        return False
+    ctx["params"] = sum(x.size for x in jax.tree.leaves(ctx["state"].params))
+    ctx["key"] = shd.put(jax.random.key(0), shd.replicated(ctx["mesh"]))
+    result.setdefault("state_s", []).append(time.perf_counter() - start)
+    print(f"  train state over {ctx['n']} devices: {ctx['params'] / 1e9:.3f}B params, "
+          f"{result['state_s'][-1]:.1f} s", flush=True)
+    return True
+
+
+FSDP_COLUMNS = ["setting", "status", "step_s", "mfu", "mfu_nominal_peak", "compile_s", "compiled_gb_per_device",
+                "setting_s"]
+
+
+def run_fsdp(model_cfg: DiTConfig, devices, settings: list[Setting], hw: tuple[int, int], *, iters: int, peak: float,
+             overlap_options: dict, overlap_everywhere: bool, budget_s: float | None, started: float, report) -> dict:
+    n = len(devices)
+    mesh = shd.make_mesh(shd.MeshConfig(data=1, fsdp=-1), devices=devices)
+    cache_cfg = DLB_CACHE
+    print(f"\n== {model_cfg.num_layers}-layer dim-{model_cfg.dim} DLB step, FSDP over {n} devices: "
+          f"{', '.join(s.name for s in settings)}", flush=True)
+    rows: list[dict] = []
+    skipped: list[dict] = []
+    ctx: dict[str, Any] = {"mesh": mesh, "n": n, "hw": hw, "model_cfg": model_cfg, "cache_cfg": cache_cfg, "peak": peak,
+                           "nominal": common.nominal_peak_tflops(), "state": None, "params": None}
+    result = {"layers": model_cfg.num_layers, "dim": model_cfg.dim, "devices": n, "rows": rows, "skipped": skipped}
+    last_s = 0.0  # the last setting's seconds: later ones reuse its autotuning, so it predicts them best
+    for setting in settings:
+        elapsed = time.monotonic() - started
+        if setting.overlap and overlap_everywhere:
+            skipped.append({"setting": setting.name, "reason": "--xla-overlap already sets the options everywhere"})
+        elif budget_s is not None and elapsed + last_s >= budget_s:
+            skipped.append({"setting": setting.name, "reason": f"--time-budget-s {budget_s:.0f}: {elapsed:.0f} s "
+                            f"elapsed, the last setting took {last_s:.0f} s"})
+        elif not ensure_state(ctx, result):
+            skipped.append({"setting": setting.name, "reason": f"no train state ({result['state_error']})"})
+        else:
+            setting_start = time.perf_counter()
+            row = fsdp_row(ctx, setting, iters=iters, overlap_options=overlap_options)
+            row["setting_s"] = last_s = time.perf_counter() - setting_start
+            rows.append(row)
+            if row["status"] == "ok":
+                print(f"  {row['setting']:<18} {row['step_s'] * 1e3:8.1f} ms  MFU {row['mfu']:.3f} (nominal "
+                      f"{_fmt(row['mfu_nominal_peak'])})  compile {row['compile_s']:.0f} s  compiled "
+                      f"{_fmt(row['compiled_gb_per_device'])} GB/device  running peak GB {_peak(row)}", flush=True)
+            free_device_memory()
+        if skipped and skipped[-1]["setting"] == setting.name:
+            print(f"  {setting.name:<18} skipped ({skipped[-1]['reason']})", flush=True)
+        report(fsdp=result)
+    ctx.clear()
+    common.print_table(rows, FSDP_COLUMNS)
+    sys.stdout.flush()
+    return result
+
+
+def _peak(row: dict) -> str:
+    values = [v for v in row.get("peak_gb_per_device") or [] if v is not None]
+    return f"{max(values):.1f}" if values else "n/a"
+
+
+def results_entries(summary: dict) -> dict[str, dict]:
+    """The ``latest.json`` entries of a run: the best 5B MFU over the sweep and the small config's scaling."""
+    n, entries = summary["devices"], {}
+    fsdp = summary.get("fsdp") or {}
+    ok = [r for r in fsdp.get("rows", []) if r["status"] == "ok"]
+    if ok:
+        best = max(ok, key=lambda r: r["mfu"])
+        full = fsdp["layers"] == DiTConfig().num_layers
+        key = f"dit_train_mfu_5b_full_{n}gpu" if full else f"dit_train_mfu_5b_{fsdp['layers']}layers_{n}gpu"
+        entries[key] = common.record(
+            key, best["mfu"], 0.55 if n == 4 and full else None, per_device_batch=best["per_device_batch"],
+            remat=best["remat"], overlap=best["overlap"], step_s=best["step_s"],
+            mfu_nominal_peak=best["mfu_nominal_peak"], peak_gb_per_device=best["peak_gb_per_device"],
+            compiled_gb_per_device=best["compiled_gb_per_device"], layers=fsdp["layers"], devices=n,
+            params=best["params"], measured_peak_tflops=summary["measured_peak_tflops"],
+            nominal_peak_tflops=summary["nominal_peak_tflops"], xla_overlap_flags=summary["xla_overlap_flags"],
+            rows=fsdp["rows"], skipped=fsdp["skipped"],
+            value_is="best MFU over the sweep against the bf16 matmul peak of one device measured in the run; "
+                     "peak_gb_per_device is the allocator's running peak of the whole run")
+    small = summary.get("small") or {}
+    headline = small.get("by_batch", {}).get(str(summary["small_batches"][0]), {})
+    efficiency = headline.get("efficiency", {}).get(str(n))
+    if efficiency is not None and n > 1:
+        key = f"dp_scaling_efficiency_small_{n}gpu"
+        entries[key] = common.record(
+            key, efficiency, 0.90 if n == 4 else None, devices=n, per_device_batch=headline["per_device_batch"],
+            pipelined_step_s=headline["pipelined_step_s"], step_s=headline["step_s"],
+            waiting_efficiency=headline["waiting_efficiency"],
+            cache_off_pipelined_step_s=headline["cache_off_pipelined_step_s"],
+            cache_off_efficiency=headline["cache_off_efficiency"], overlap_efficiency=headline["overlap_efficiency"],
+            dp_overhead_s=headline.get("dp_overhead_s"), cache_cross_device_s=headline.get("cache_cross_device_s"),
+            by_batch=small["by_batch"], xla_overlap_flags=summary["xla_overlap_flags"],
+            value_is="t_1 / t_N of the small config's DLB step at a fixed per-device batch, steps dispatched back to "
+                     "back (waiting_efficiency: the host waits for every step)")
+    return entries
+
+
+def main(argv: list[str] | None = None) -> dict:
+    started = time.monotonic()
     parser = cli.ArgumentParser(description=__doc__)
-    parser.add_argument("--tiny", action="store_true")
-    parser.add_argument("--batch-per-device", type=int, default=8)
-    parser.add_argument("--layers", type=int, default=30)
-    parser.add_argument("--iters", type=int, default=5)
+    parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes (records nothing)")
+    parser.add_argument("--sweep", default=None, help=f"5B settings BATCHxREMAT[+overlap],... (per-device batch; remat "
+                        f"of {'|'.join(REMAT_POLICIES)}), most promising first (default {DEFAULT_SWEEP}; --tiny: "
+                        "2xnone,2xdots)")
+    parser.add_argument("--time-budget-s", type=float, default=None,
+                        help="start no 5B setting that would not end within this many seconds of the start")
+    parser.add_argument("--small-batch-per-device", default=None, help="comma list (default 32; --tiny 2); the "
+                        "first is the recorded one")
+    parser.add_argument("--layers", type=int, default=30, help="layers of the 5B-width model")
+    parser.add_argument("--iters", type=int, default=5, help="timed steps per 5B setting")
+    parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row")
+    parser.add_argument("--devices", type=int, default=None, help="use the first N devices (default: all)")
+    parser.add_argument("--xla-overlap", action="store_true", help="XLA's GPU collective-overlap flags in XLA_FLAGS "
+                        "for the whole run (set before the backend starts)")
+    parser.add_argument("--mem-fraction", type=float, default=0.9,
+                        help="XLA_PYTHON_CLIENT_MEM_FRACTION unless the environment sets it")
+    parser.add_argument("--out", default=None, help="write every row as JSON here, rewritten after each row")
     args = parser.parse_args(argv)
+    settings = parse_sweep(args.sweep or ("2xnone,2xdots" if args.tiny else DEFAULT_SWEEP))
+    batches = parse_batches(args.small_batch_per_device or ("2" if args.tiny else "32"))
+    applied = configure_backend(args.xla_overlap, args.mem_fraction)
+
     devices = jax.devices()
+    if args.devices is not None:
+        if not 1 <= args.devices <= len(devices):
+            raise cli.UsageError(f"--devices {args.devices}: {len(devices)} devices are available")
+        devices = devices[:args.devices]
     n = len(devices)
     peak = common.measured_matmul_tflops()
-    print(f"{n} x {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s per device")
-    if args.tiny:
-        full = DiTConfig(dim=64, ffn_dim=128, num_heads=4, num_layers=2, text_dim=16, text_len=8, compute_dtype="float32")
-        small = full
-        hw = (4, 4)
-    else:
-        full = DiTConfig(num_layers=args.layers, remat="full")
-        small = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16)
-        hw = (16, 16)
-    fsdp_mesh = shd.make_mesh(shd.MeshConfig(data=1, fsdp=-1))
-    big = time_dlb_step(full, fsdp_mesh, args.batch_per_device * n, hw, args.iters)
-    big_mfu = big["flops"] / big["step_s"] / 1e12 / (peak * n)
-    print(f"5B DLB step over {n} devices (fsdp={n}): {big['params'] / 1e9:.3f}B params, {big['step_s'] * 1e3:.1f} ms, "
-          f"MFU {big_mfu:.3f}, peak GB per device {big['peak_gb_per_device']}")
+    overlap_options = usable_compile_options(OVERLAP_OPTIONS)
+    summary: dict[str, Any] = {
+        "device": common.device_name(), "devices": n, "measured_peak_tflops": peak,
+        "nominal_peak_tflops": common.nominal_peak_tflops(), "xla_overlap_flags": applied["xla_overlap_flags"],
+        "dropped_xla_flags": applied["dropped_flags"], "overlap_options": overlap_options, "small_batches": batches,
+        "sweep": [s.name for s in settings], "time_budget_s": args.time_budget_s, "command": common.command_line()}
+    print(f"{n} x {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s per device; nominal "
+          f"{summary['nominal_peak_tflops']}; XLA overlap flags {'on' if applied['xla_overlap_flags'] else 'off'}",
+          flush=True)
 
-    small_hw = (8, 8) if not args.tiny else hw
-    per_device = 32 if not args.tiny else 2
-    one = time_dlb_step(small, shd.make_mesh(shd.MeshConfig(data=1), devices=devices[:1]), per_device, small_hw, args.iters)
-    many = time_dlb_step(small, shd.make_mesh(shd.MeshConfig(data=-1)), per_device * n, small_hw, args.iters)
-    efficiency = one["step_s"] / many["step_s"]
-    print(f"small config, {per_device} per device: 1 device {one['step_s'] * 1e3:.2f} ms, {n} devices "
-          f"{many['step_s'] * 1e3:.2f} ms -> scaling efficiency {efficiency:.3f} (1.0 = linear)")
+    def report(**parts):
+        """Keeps what was measured so far: the --out table and (not --tiny) the results entries."""
+        summary.update(parts, elapsed_s=time.monotonic() - started)
+        if args.out:
+            write_json_atomic(args.out, summary)
+        entries = {} if args.tiny else results_entries(summary)
+        if entries:
+            common.merge_results(entries)
+
     if args.tiny:
-        return
-    common.merge_results({
-        "multi_gpu_5b_dlb_step_s": common.record("multi_gpu_5b_dlb_step_s", big["step_s"], None, mfu=big_mfu,
-                                                 params=big["params"], devices=n, batch=args.batch_per_device * n,
-                                                 layers=full.num_layers, peak_gb_per_device=big["peak_gb_per_device"]),
-        "multi_gpu_scaling_efficiency_small": common.record(
-            "multi_gpu_scaling_efficiency_small", efficiency, 0.9, devices=n, per_device_batch=per_device,
-            one_device_step_s=one["step_s"], all_devices_step_s=many["step_s"]),
-    })
+        small_cfg = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
+                              compute_dtype="float32")
+        full_cfg, hw, small_hw = small_cfg, (4, 4), (4, 4)
+    else:
+        small_cfg = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16)
+        full_cfg, hw, small_hw = DiTConfig(num_layers=args.layers), (16, 16), (8, 8)
+    overlap_everywhere = bool(applied["xla_overlap_flags"])
+    small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters,
+                      overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
+                      report=lambda rows: report(small={"rows": rows}))
+    report(small=small)
+    free_device_memory()
+    fsdp = run_fsdp(full_cfg, devices, settings, hw, iters=2 if args.tiny else args.iters, peak=peak,
+                    overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
+                    budget_s=args.time_budget_s, started=started, report=report)
+    report(fsdp=fsdp, done=True)
+    print(f"\ndone in {summary['elapsed_s']:.0f} s" + (f"; table in {args.out}" if args.out else ""), flush=True)
+    if not args.tiny:
+        print(f"recorded {sorted(results_entries(summary))} in {common.RESULTS}", flush=True)
+    nonfinite = [r.get("setting", r.get("label")) for r in small["rows"] + fsdp["rows"] if r["status"] == "nonfinite"]
+    if nonfinite:
+        raise SystemExit(f"non-finite loss in {nonfinite} (the other figures are written)")
+    return summary
 
 
 if __name__ == "__main__":

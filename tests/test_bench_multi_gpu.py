@@ -1,0 +1,184 @@
+"""benchmarks.bench_multi_gpu on 4 of the fake CPU devices: the small config's scaling rows (k = 1, 2, 4, the cache
+off, the overlap options), the 5B-part sweep (rows, an out-of-memory setting reported and passed over, the time
+--time-budget-s), its JSON table and the results entries it would record."""
+
+import dataclasses
+import json
+import math
+
+import jax
+import pytest
+
+from benchmarks import bench_multi_gpu as bench
+from sword_jax.cli import UsageError
+
+
+@pytest.fixture(autouse=True)
+def _isolated(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench.common, "RESULTS", str(tmp_path / "latest.json"))
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.75")  # main sets it only where unset; restored after
+
+
+def _no_fsdp(*args, **kwargs):
+    return {"layers": 2, "dim": 64, "devices": 4, "rows": [], "skipped": []}
+
+
+def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "run_fsdp", _no_fsdp)
+    # the sampled cache-vs-inference metric's branch compiles slowly on a CPU; the sweep test keeps it
+    monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
+    out = tmp_path / "mg.json"
+    summary = bench.main(["--tiny", "--devices", "4", "--out", str(out)])
+    rows = summary["small"]["rows"]
+    assert [(r["devices"], r["cache"], r["overlap"]) for r in rows] == [
+        (1, True, False), (2, True, False), (4, True, False), (1, False, False), (4, False, False), (4, True, True)]
+    for row in rows:
+        assert row["status"] == "ok" and not row["through_jit"], row
+        assert row["step_s"] > 0 and row["pipelined_step_s"] > 0 and row["compile_s"] > 0 and math.isfinite(row["loss"])
+    by_k = {r["devices"]: r for r in rows if r["cache"] and not r["overlap"]}
+    scaling = summary["small"]["by_batch"]["2"]
+    assert set(scaling["efficiency"]) == {"1", "2", "4"} and scaling["efficiency"]["1"] == 1.0
+    assert scaling["efficiency"]["4"] == pytest.approx(by_k[1]["pipelined_step_s"] / by_k[4]["pipelined_step_s"])
+    assert scaling["waiting_efficiency"]["4"] == pytest.approx(by_k[1]["step_s"] / by_k[4]["step_s"])
+    off = {r["devices"]: r["pipelined_step_s"] for r in rows if not r["cache"]}
+    assert scaling["dp_overhead_s"] == pytest.approx(off[4] - off[1])
+    assert scaling["cache_cross_device_s"] == pytest.approx(
+        by_k[4]["pipelined_step_s"] - off[4] - (by_k[1]["pipelined_step_s"] - off[1]))
+    assert scaling["overlap_efficiency"] == pytest.approx(by_k[1]["pipelined_step_s"] / rows[-1]["pipelined_step_s"])
+    assert summary["overlap_options"] == bench.OVERLAP_OPTIONS  # this XLA knows every one
+
+    written = json.loads(out.read_text())
+    assert written["done"] and written["small"]["by_batch"]["2"]["efficiency"] == scaling["efficiency"]
+    assert not (tmp_path / "latest.json").exists()  # --tiny records nothing
+    entries = bench.results_entries(summary)
+    assert list(entries) == ["dp_scaling_efficiency_small_4gpu"]
+    entry = entries["dp_scaling_efficiency_small_4gpu"]
+    assert entry["value"] == scaling["efficiency"]["4"] and entry["target"] == 0.9 and entry["per_device_batch"] == 2
+
+
+def test_sweep_rows_and_an_out_of_memory_setting_passed_over(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench, "run_small", lambda *a, **kw: {"rows": [], "by_batch": {}})
+    real_time_step = bench.time_step
+    calls = []
+
+    def out_of_memory_on_the_second(step, state, data, key, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # the step runs (its state is donated, so gone), then the device is out of memory
+            step(state, data, key)
+            raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 81.20GiB.")
+        return real_time_step(step, state, data, key, **kwargs)
+
+    monkeypatch.setattr(bench, "time_step", out_of_memory_on_the_second)
+    out = tmp_path / "mg.json"
+    summary = bench.main(["--tiny", "--devices", "4", "--sweep", "2xnone,2xdots,2xfull+overlap", "--out", str(out)])
+    fsdp = summary["fsdp"]
+    rows = fsdp["rows"]
+    assert [(r["setting"], r["status"]) for r in rows] == [
+        ("2xnone", "ok"), ("2xdots", "oom"), ("2xfull+overlap", "ok")]
+    assert "RESOURCE_EXHAUSTED" in rows[1]["error"] and "step_s" not in rows[1]
+    assert fsdp["skipped"] == [] and len(fsdp["state_s"]) == 2  # the donated state was made again
+    for row in (rows[0], rows[2]):
+        assert (row["per_device_batch"], row["batch"]) == (2, 8) and not row["through_jit"]
+        assert row["step_s"] > 0 and row["compile_s"] > 0 and row["setting_s"] >= row["compile_s"]
+        assert 0 < row["mfu"] < 1 and row["mfu_nominal_peak"] is None  # no datasheet peak for a CPU
+        assert row["params"] > 0 and len(row["peak_gb_per_device"]) == 4 and math.isfinite(row["loss"])
+        assert row["compiled_gb_per_device"] > 0
+    assert rows[2]["overlap"] and rows[2]["remat"] == "full"
+    assert json.loads(out.read_text())["fsdp"]["rows"][1]["status"] == "oom"
+
+    entries = bench.results_entries(summary)
+    assert list(entries) == ["dit_train_mfu_5b_2layers_4gpu"]  # not the full depth: its own key, no target
+    entry = entries["dit_train_mfu_5b_2layers_4gpu"]
+    best = max((rows[0], rows[2]), key=lambda r: r["mfu"])
+    assert entry["value"] == best["mfu"] and entry["target"] is None and entry["remat"] == best["remat"]
+    assert [r["status"] for r in entry["rows"]] == ["ok", "oom", "ok"]
+
+
+class _Clock:
+    """Seconds that pass only when a fake setting runs."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def monotonic(self):
+        return self.now
+
+    def perf_counter(self):
+        return self.now
+
+
+@pytest.mark.parametrize("limit,ran", [(0, []), (250, ["8xdots", "8xnone"]), (None, ["8xdots", "8xnone", "4xfull"])])
+def test_no_setting_starts_that_would_end_past_the_time_limit(monkeypatch, limit, ran):
+    clock, order = _Clock(), []
+    monkeypatch.setattr(bench, "time", clock)
+
+    def small(*args, **kwargs):
+        order.append("small")
+        return {"rows": [], "by_batch": {}}
+
+    def setting(ctx, setting, **kwargs):
+        order.append(setting.name)
+        clock.now += 100.0
+        return {"setting": setting.name, "status": "ok", "step_s": 1.0, "mfu": 0.5, "mfu_nominal_peak": None,
+                "compile_s": 90.0, "compiled_gb_per_device": 1.0, "peak_gb_per_device": [None]}
+
+    monkeypatch.setattr(bench, "run_small", small)
+    monkeypatch.setattr(bench, "ensure_state", lambda ctx, result: True)
+    monkeypatch.setattr(bench, "fsdp_row", setting)
+    argv = ["--tiny", "--devices", "4", "--sweep", "8xdots,8xnone,4xfull"]
+    summary = bench.main(argv + ([] if limit is None else ["--time-budget-s", str(limit)]))
+    assert order == ["small"] + ran  # the scaling part first, whatever the limit
+    assert [r["setting"] for r in summary["fsdp"]["rows"]] == ran
+    skipped = summary["fsdp"]["skipped"]
+    assert [s["setting"] for s in skipped] == [s for s in ("8xdots", "8xnone", "4xfull") if s not in ran]
+    assert all(s["reason"].startswith(f"--time-budget-s {limit}:") for s in skipped)
+
+
+def test_records_of_a_full_depth_sweep_on_four_and_eight_devices():
+    def row(setting, status, mfu=None):
+        batch, remat = setting.split("x")
+        return {"setting": setting, "status": status, "per_device_batch": int(batch), "remat": remat, "overlap": False,
+                "mfu": mfu, "step_s": 0.5, "mfu_nominal_peak": mfu and mfu * 0.8, "peak_gb_per_device": [40.0] * 4,
+                "compiled_gb_per_device": 38.0, "params": 5e9}
+
+    for n, target in ((4, 0.55), (8, None)):
+        summary = {"devices": n, "measured_peak_tflops": 800.0, "nominal_peak_tflops": 989.4, "xla_overlap_flags": [],
+                   "small_batches": [32, 128], "small": {"by_batch": {
+                       "32": {"per_device_batch": 32, "efficiency": {"1": 1.0, str(n): 0.7}, "pipelined_step_s": {},
+                              "step_s": {}, "waiting_efficiency": {}, "cache_off_pipelined_step_s": {},
+                              "cache_off_efficiency": 0.8, "overlap_efficiency": 0.75},
+                       "128": {"per_device_batch": 128, "efficiency": {"1": 1.0, str(n): 0.9}}}},
+                   "fsdp": {"layers": 30, "rows": [row("24xdots", "ok", 0.5), row("48xdots", "oom"),
+                                                   row("32xdots", "ok", 0.52)], "skipped": []}}
+        entries = bench.results_entries(summary)
+        mfu, scaling = entries[f"dit_train_mfu_5b_full_{n}gpu"], entries[f"dp_scaling_efficiency_small_{n}gpu"]
+        assert (mfu["value"], mfu["target"], mfu["per_device_batch"], mfu["devices"]) == (0.52, target, 32, n)
+        assert scaling["value"] == 0.7 and scaling["per_device_batch"] == 32  # the first per-device batch listed
+        assert scaling["target"] == (0.9 if n == 4 else None) and set(scaling["by_batch"]) == {"32", "128"}
+
+
+@pytest.mark.parametrize("sweep", ["24xbogus", "x", "0xnone", "24xdots+fast", "", "24"])
+def test_a_bad_sweep_is_a_usage_error(sweep):
+    with pytest.raises(UsageError, match="--sweep"):
+        bench.parse_sweep(sweep)
+
+
+def test_sweep_and_batch_lists_parse():
+    assert bench.parse_sweep("32xdots, 24xnone+overlap") == [bench.Setting(32, "dots"), bench.Setting(24, "none", True)]
+    assert bench.parse_batches("32,128") == [32, 128]
+    with pytest.raises(UsageError):
+        bench.parse_batches("32,many")
+    assert bench.device_counts(4) == [1, 2, 4] and bench.device_counts(6) == [1, 2, 4, 6]
+
+
+def test_overlap_flags_this_xla_does_not_know_are_dropped():
+    flags = bench.xla_flag_strings(bench.OVERLAP_OPTIONS)
+    assert "--xla_gpu_enable_latency_hiding_scheduler=true" in flags
+    kept, dropped = bench.usable_xla_flags(flags[:2] + ["--xla_gpu_no_such_flag=true"])
+    assert kept == flags[:2] and dropped == ["--xla_gpu_no_such_flag=true"]
+
+
+def test_out_of_memory_is_told_from_other_failures():
+    assert bench.is_oom(jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate"))
+    assert bench.is_oom(RuntimeError("CUDA_ERROR_OUT_OF_MEMORY: out of memory"))
+    assert not bench.is_oom(ValueError("shapes do not match"))
