@@ -301,6 +301,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     trainer_args = [*cfg_flags, "--synthetic", f"--trainer.steps={steps}", "--trainer.checkpoint_every=1",
                     "--trainer.log_every=1", f"--trainer.keep_checkpoints={steps}"]
     report: dict[str, Any] = {"processes": processes, "devices": devices, "device": device, "config": args.config,
+                              "xla_flags": os.environ.get("XLA_FLAGS", ""),
                               "overrides": [*OVERRIDES.get(args.config, ()), *overrides], "steps": steps,
                               "grace_s": args.grace, "compilation_cache": env["JAX_COMPILATION_CACHE_DIR"]}
 
@@ -419,7 +420,7 @@ def _finish(report: dict[str, Any], save, args, error: str | None) -> int:
         common.merge_results({"multiprocess_resume_exact": common.record(
             "multiprocess_resume_exact", bool(report["resume_exact"]), True, device=report["device"],
             processes=report["processes"], devices=report["devices"], config=report["config"],
-            overrides=report["overrides"], steps=report["steps"], kill_step=crash.get("kill_step"),
+            xla_flags=os.environ.get("XLA_FLAGS", ""), overrides=report["overrides"], steps=report["steps"], kill_step=crash.get("kill_step"),
             seconds_kill_to_end=crash.get("seconds_kill_to_end"), grace_s=report["grace_s"],
             stop_limit_s=crash.get("limit_s"), stopped_within_limit=crash.get("ok"),
             launcher_returncode=crash.get("returncode"), resumed_from=resume.get("resumed_from"),
