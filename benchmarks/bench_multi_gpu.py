@@ -12,6 +12,8 @@ train loop runs: it reads metrics one step late); the efficiency recorded is the
 same step with the DLB cache off on 1 and all devices separates what the cache's cross-device reads and
 writes cost (``cache_cross_device_s``) from the gradient all-reduce and the rest (``dp_overhead_s``);
 one more row on all devices compiles the step with the collective-overlap options below.
+``--small-unrolled`` adds the step with unrolled layers (``model.scan_layers=false``) on 1 and all devices
+(``unrolled_efficiency``): in the scan each layer's gradient all-reduce sits inside the loop's backward pass.
 
 Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
 spanning every device (the latent cache sharded over episodes) and times the DLB step for each
@@ -27,7 +29,9 @@ and the last setting's duration still fits before S, so the run ends close to S 
 are listed). ``--out PATH`` rewrites the whole table as JSON after every row, and the results entries are
 merged after every row too, so what was measured survives a run stopped early.
 
-Time on 4 x H100 (estimates; compile dominates): the bf16 peak and the option checks about 15 s; the
+On 4 x H200 (2026-11-27) the small part took 2.5 min and two 5B settings 50 s after a 7 s train state:
+``--time-budget-s 230 --sweep 32xdots+overlap,32xdots`` ended in 180 s. Estimates before that run, 4 x H100
+(compile dominates): the bf16 peak and the option checks about 15 s; the
 small part 1.5-3 min (six compiles of 10-40 s, the first the longest: later ones reuse its GEMM
 autotuning); the 5B train state 0.5-1 min; each 5B setting 1-2.5 min, 60-120 s of it compiling (a
 setting with the last one's per-device batch compiles faster). ``--time-budget-s 420`` thus measures
@@ -294,11 +298,14 @@ def peak_gb(devices) -> list[float | None]:
 
 
 def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
-              options: dict | None, iters: int) -> dict:
+              options: dict | None, iters: int, unrolled: bool = False) -> dict:
     k = len(devices)
-    label = f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
+    label = (f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
+             + (" unrolled" if unrolled else ""))
     row: dict[str, Any] = {"label": label, "devices": k, "per_device_batch": per_device_batch, "cache": cache_on,
-                           "overlap": bool(options), "status": "ok"}
+                           "overlap": bool(options), "unrolled": unrolled, "status": "ok"}
+    if unrolled:  # the layers as separate ops, so each layer's gradient all-reduce can overlap the backward pass
+        model_cfg = dataclasses.replace(model_cfg, scan_layers=False)
     mesh = shd.make_mesh(shd.MeshConfig(data=-1), devices=devices)
     cache_cfg = dataclasses.replace(DLB_CACHE, enabled=cache_on)
     try:
@@ -316,13 +323,15 @@ def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[in
 
 def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
     """Efficiencies ``t_1 / t_k`` (pipelined and host-waiting) and the cache / all-reduce split of one batch."""
-    def times(cache: bool, overlap: bool, field: str) -> dict[int, float]:
+    def times(cache: bool, overlap: bool, field: str, unrolled: bool = False) -> dict[int, float]:
         return {r["devices"]: r[field] for r in rows if r["per_device_batch"] == per_device_batch
-                and r["status"] == "ok" and r["cache"] == cache and r["overlap"] == overlap}
+                and r["status"] == "ok" and r["cache"] == cache and r["overlap"] == overlap
+                and r.get("unrolled", False) == unrolled}
 
     on, on_wait = times(True, False, "pipelined_step_s"), times(True, False, "step_s")
     off = times(False, False, "pipelined_step_s")
     overlap = times(True, True, "pipelined_step_s")
+    unrolled = times(True, False, "pipelined_step_s", unrolled=True)
     summary: dict[str, Any] = {
         "per_device_batch": per_device_batch,
         "pipelined_step_s": {str(k): t for k, t in on.items()}, "step_s": {str(k): t for k, t in on_wait.items()},
@@ -332,6 +341,9 @@ def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
         "cache_off_efficiency": off[1] / off[n] if 1 in off and n in off else None,
         "overlap_pipelined_step_s": overlap.get(n),
         "overlap_efficiency": on[1] / overlap[n] if 1 in on and n in overlap else None,
+        "unrolled_pipelined_step_s": {str(k): t for k, t in unrolled.items()},
+        # unrolled on 1 device against unrolled on n: the scaling of that program, not a speed-up over the scan
+        "unrolled_efficiency": unrolled[1] / unrolled[n] if 1 in unrolled and n in unrolled else None,
     }
     if all(k in d for d in (on, off) for k in (1, n)):
         summary["dp_overhead_s"] = off[n] - off[1]  # gradient all-reduce and the rest, without the cache
@@ -345,17 +357,20 @@ def device_counts(n: int) -> list[int]:
 
 
 def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int,
-              overlap_options: dict, overlap_everywhere: bool, report) -> dict:
+              overlap_options: dict, overlap_everywhere: bool, report, unrolled: bool = False) -> dict:
     n = len(devices)
     rows: list[dict] = []
     print(f"\n== small config ({model_cfg.num_layers} layers, dim {model_cfg.dim}): data-parallel scaling over "
           f"{device_counts(n)} devices", flush=True)
     for batch in batches:
-        plan = [(k, True, None) for k in device_counts(n)] + [(1, False, None), (n, False, None)]
+        plan = [(k, True, None, False) for k in device_counts(n)] + [(1, False, None, False), (n, False, None, False)]
         if n > 1 and not overlap_everywhere:
-            plan.append((n, True, overlap_options))
-        for k, cache_on, options in plan:
-            row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters)
+            plan.append((n, True, overlap_options, False))
+        if n > 1 and unrolled:
+            plan += [(1, True, None, True), (n, True, None, True)]
+        for k, cache_on, options, unroll in plan:
+            row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters,
+                            unrolled=unroll)
             rows.append(row)
             if row["status"] == "ok":
                 print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined "
@@ -366,7 +381,8 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
     for batch, s in summaries.items():
         eff = ", ".join(f"k={k}: {e:.3f}" for k, e in s["efficiency"].items())
         print(f"  {batch}/dev efficiency t_1/t_k (pipelined): {eff}; cache off 1->{n}: "
-              f"{_fmt(s['cache_off_efficiency'])}; overlap: {_fmt(s['overlap_efficiency'])}; all-reduce+rest "
+              f"{_fmt(s['cache_off_efficiency'])}; overlap: {_fmt(s['overlap_efficiency'])}; unrolled 1->{n}: "
+              f"{_fmt(s['unrolled_efficiency'])}; all-reduce+rest "
               f"{_ms(s.get('dp_overhead_s'))}, "
               f"cache cross-device {_ms(s.get('cache_cross_device_s'))}", flush=True)
     common.print_table(rows, ["label", "status", "step_s", "pipelined_step_s", "compile_s", "compiled_gb_per_device"])
@@ -532,6 +548,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--layers", type=int, default=30, help="layers of the 5B-width model")
     parser.add_argument("--iters", type=int, default=5, help="timed steps per 5B setting")
     parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row")
+    parser.add_argument("--small-unrolled", action="store_true",
+                        help="also the small config with unrolled layers (model.scan_layers=false) on 1 and all "
+                             "devices: whether its gradient all-reduces then overlap the backward pass")
     parser.add_argument("--devices", type=int, default=None, help="use the first N devices (default: all)")
     parser.add_argument("--xla-overlap", action="store_true", help="XLA's GPU collective-overlap flags in XLA_FLAGS "
                         "for the whole run (set before the backend starts)")
@@ -579,7 +598,7 @@ def main(argv: list[str] | None = None) -> dict:
     overlap_everywhere = bool(applied["xla_overlap_flags"])
     small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters,
                       overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
-                      report=lambda rows: report(small={"rows": rows}))
+                      report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled)
     report(small=small)
     free_device_memory()
     fsdp = run_fsdp(full_cfg, devices, settings, hw, iters=2 if args.tiny else args.iters, peak=peak,

@@ -28,14 +28,16 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     # the sampled cache-vs-inference metric's branch compiles slowly on a CPU; the sweep test keeps it
     monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
     out = tmp_path / "mg.json"
-    summary = bench.main(["--tiny", "--devices", "4", "--out", str(out)])
+    summary = bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--out", str(out)])
     rows = summary["small"]["rows"]
-    assert [(r["devices"], r["cache"], r["overlap"]) for r in rows] == [
-        (1, True, False), (2, True, False), (4, True, False), (1, False, False), (4, False, False), (4, True, True)]
+    assert [(r["devices"], r["cache"], r["overlap"], r["unrolled"]) for r in rows] == [
+        (1, True, False, False), (2, True, False, False), (4, True, False, False), (1, False, False, False),
+        (4, False, False, False), (4, True, True, False), (1, True, False, True), (4, True, False, True)]
     for row in rows:
         assert row["status"] == "ok" and not row["through_jit"], row
         assert row["step_s"] > 0 and row["pipelined_step_s"] > 0 and row["compile_s"] > 0 and math.isfinite(row["loss"])
-    by_k = {r["devices"]: r for r in rows if r["cache"] and not r["overlap"]}
+    by_k = {r["devices"]: r for r in rows if r["cache"] and not r["overlap"] and not r["unrolled"]}
+    unrolled = {r["devices"]: r["pipelined_step_s"] for r in rows if r["unrolled"]}
     scaling = summary["small"]["by_batch"]["2"]
     assert set(scaling["efficiency"]) == {"1", "2", "4"} and scaling["efficiency"]["1"] == 1.0
     assert scaling["efficiency"]["4"] == pytest.approx(by_k[1]["pipelined_step_s"] / by_k[4]["pipelined_step_s"])
@@ -44,7 +46,8 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     assert scaling["dp_overhead_s"] == pytest.approx(off[4] - off[1])
     assert scaling["cache_cross_device_s"] == pytest.approx(
         by_k[4]["pipelined_step_s"] - off[4] - (by_k[1]["pipelined_step_s"] - off[1]))
-    assert scaling["overlap_efficiency"] == pytest.approx(by_k[1]["pipelined_step_s"] / rows[-1]["pipelined_step_s"])
+    assert scaling["overlap_efficiency"] == pytest.approx(by_k[1]["pipelined_step_s"] / rows[5]["pipelined_step_s"])
+    assert scaling["unrolled_efficiency"] == pytest.approx(unrolled[1] / unrolled[4])
     assert summary["overlap_options"] == bench.OVERLAP_OPTIONS  # this XLA knows every one
 
     written = json.loads(out.read_text())
