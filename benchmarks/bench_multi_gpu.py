@@ -29,7 +29,7 @@ and the last setting's duration still fits before S, so the run ends close to S 
 are listed). ``--out PATH`` rewrites the whole table as JSON after every row, and the results entries are
 merged after every row too, so what was measured survives a run stopped early.
 
-On 4 x H200 (2026-11-27) the small part took 2.5 min and two 5B settings 50 s after a 7 s train state:
+On 4 x H200 (2026-11-27) the small part took about 2 min and two 5B settings 50 s after a 7 s train state:
 ``--time-budget-s 230 --sweep 32xdots+overlap,32xdots`` ended in 180 s. Estimates before that run, 4 x H100
 (compile dominates): the bf16 peak and the option checks about 15 s; the
 small part 1.5-3 min (six compiles of 10-40 s, the first the longest: later ones reuse its GEMM
