@@ -12,7 +12,10 @@ train loop runs: it reads metrics one step late); the efficiency recorded is the
 same step with the DLB cache off on 1 and all devices separates what the cache's cross-device reads and
 writes cost (``cache_cross_device_s``) from the gradient all-reduce and the rest (``dp_overhead_s``);
 one more row on all devices compiles the step with the collective-overlap options below.
-``--small-unrolled`` adds the step with unrolled layers (``model.scan_layers=false``) on 1 and all devices
+``--profile DIR`` traces the plain step of the first per-device batch on 1 and on all devices (5 steps each,
+perfetto JSON under ``DIR/small_<B>dev_k<k>``) and adds per GPU: kernel time in collectives, in other kernels and
+the span from first kernel to last, per step (``row["profile"]``): whether the 1 -> N overhead is collectives
+or gaps. ``--small-unrolled`` adds the step with unrolled layers (``model.scan_layers=false``) on 1 and all devices
 (``unrolled_efficiency``): in the scan each layer's gradient all-reduce sits inside the loop's backward pass.
 
 Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
@@ -52,7 +55,11 @@ from __future__ import annotations
 
 import dataclasses
 import gc
+import glob
+import gzip
+import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -260,9 +267,65 @@ def compile_dlb_step(graphdef, cache_cfg: CacheConfig, state, shardings, data, d
     return run, compile_s, gb
 
 
-def time_step(step, state, data, key, *, iters: int, pipelined: bool) -> tuple[dict, Any, float]:
+PROFILE_STEPS = 5  # steps traced per profiled row
+# device-trace event names of collectives (NCCL kernels, XLA's collective thunks)
+COLLECTIVE = re.compile(r"nccl|all[-_]?reduce|all[-_]?gather|reduce[-_]?scatter|all[-_]?to[-_]?all|collective|sendrecv",
+                        re.IGNORECASE)
+
+
+def summarize_trace(directory: str, steps: int) -> dict[str, Any]:
+    """Per step, on each GPU of a ``jax.profiler`` trace (its perfetto JSON): milliseconds of collective kernels,
+    of the other kernels, and of the span from the first kernel to the last. A collective that overlaps
+    compute counts in both, so ``collective_ms + compute_ms - span_ms`` is at least the overlap. ``devices``
+    is empty where the trace has no GPU lanes (a CPU run)."""
+    paths = sorted(glob.glob(os.path.join(directory, "**", "*perfetto_trace.json.gz"), recursive=True))
+    if not paths:
+        return {"trace": None, "devices": {}}
+    with gzip.open(paths[-1], "rt") as f:
+        events = json.load(f)
+    events = events.get("traceEvents", []) if isinstance(events, dict) else events
+    lanes = {e["pid"]: e.get("args", {}).get("name", "") for e in events
+             if e.get("ph") == "M" and e.get("name") == "process_name"}
+    gpu = {pid: name for pid, name in lanes.items() if "/device:GPU" in name}
+    threads = {(e["pid"], e.get("tid")): str(e.get("args", {}).get("name", "")) for e in events
+               if e.get("ph") == "M" and e.get("name") == "thread_name" and e.get("pid") in gpu}
+    # kernels only: a GPU lane's "Stream" threads (its XLA-module, XLA-op and step threads repeat the same time)
+    streams = {key for key, name in threads.items() if name.lower().startswith("stream")}
+    spans: dict[int, list[float]] = {}
+    sums: dict[int, dict[str, float]] = {}
+    for e in events:
+        if e.get("ph") != "X" or e.get("pid") not in gpu or (streams and (e["pid"], e.get("tid")) not in streams):
+            continue
+        start, dur = float(e.get("ts", 0.0)), float(e.get("dur", 0.0))
+        kind = "collective_ms" if COLLECTIVE.search(str(e.get("name", ""))) else "compute_ms"
+        sums.setdefault(e["pid"], {"collective_ms": 0.0, "compute_ms": 0.0})[kind] += dur / 1e3
+        lo_hi = spans.setdefault(e["pid"], [start, start + dur])
+        lo_hi[0], lo_hi[1] = min(lo_hi[0], start), max(lo_hi[1], start + dur)
+    devices = {}
+    for pid, name in sorted(gpu.items(), key=lambda item: item[1]):
+        if pid in sums:
+            per = {k: v / steps for k, v in sums[pid].items()}
+            per["span_ms"] = (spans[pid][1] - spans[pid][0]) / 1e3 / steps
+            devices[name] = per
+    return {"trace": paths[-1], "devices": devices}
+
+
+def profile_steps(one, directory: str, steps: int = PROFILE_STEPS) -> dict[str, Any]:
+    """``steps`` calls of ``one`` (a step returning its loss) dispatched back to back under ``jax.profiler``,
+    written to ``directory``; their per-step summary (:func:`summarize_trace`)."""
+    os.makedirs(directory, exist_ok=True)
+    with jax.profiler.trace(directory, create_perfetto_trace=True):
+        for _ in range(steps):
+            loss = one()
+        common.block(loss)
+    return {"steps": steps, **summarize_trace(directory, steps)}
+
+
+def time_step(step, state, data, key, *, iters: int, pipelined: bool,
+              profile_dir: str | None = None) -> tuple[dict, Any, float]:
     """Runs the compiled step on the donated state: the median seconds of a step the host waits for and, with
-    ``pipelined``, seconds per step of ``iters`` steps dispatched back to back. Returns ``(timings, state,
+    ``pipelined``, seconds per step of ``iters`` steps dispatched back to back. With ``profile_dir`` a few more
+    steps are traced there (``timings["profile"]``, :func:`profile_steps`). Returns ``(timings, state,
     loss of the last step)``; raises on a non-finite loss."""
     holder = {"state": state}
 
@@ -277,6 +340,8 @@ def time_step(step, state, data, key, *, iters: int, pipelined: bool) -> tuple[d
             loss = one()
         common.block(loss)
         timings["pipelined_step_s"] = (time.perf_counter() - start) / iters
+    if profile_dir:
+        timings["profile"] = profile_steps(one, profile_dir)
     loss = float(one())
     if not np.isfinite(loss):
         raise FloatingPointError(f"non-finite loss {loss}")
@@ -298,7 +363,7 @@ def peak_gb(devices) -> list[float | None]:
 
 
 def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
-              options: dict | None, iters: int, unrolled: bool = False) -> dict:
+              options: dict | None, iters: int, unrolled: bool = False, profile_dir: str | None = None) -> dict:
     k = len(devices)
     label = (f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
              + (" unrolled" if unrolled else ""))
@@ -314,7 +379,8 @@ def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[in
         key = shd.put(jax.random.key(0), shd.replicated(mesh))
         step, row["compile_s"], row["compiled_gb_per_device"] = compile_dlb_step(
             graphdef, cache_cfg, state, shardings, data, data_shardings, mesh, key, options)
-        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True)
+        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True,
+                                            profile_dir=profile_dir)
         row.update(timings, through_jit=bool(step.through_jit))
     except Exception as err:  # noqa: BLE001 - reported in the row
         failure_row(row, err)
@@ -357,7 +423,8 @@ def device_counts(n: int) -> list[int]:
 
 
 def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int,
-              overlap_options: dict, overlap_everywhere: bool, report, unrolled: bool = False) -> dict:
+              overlap_options: dict, overlap_everywhere: bool, report, unrolled: bool = False,
+              profile: str | None = None) -> dict:
     n = len(devices)
     rows: list[dict] = []
     print(f"\n== small config ({model_cfg.num_layers} layers, dim {model_cfg.dim}): data-parallel scaling over "
@@ -369,12 +436,18 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
         if n > 1 and unrolled:
             plan += [(1, True, None, True), (n, True, None, True)]
         for k, cache_on, options, unroll in plan:
+            # the first batch's plain step on 1 and on all devices is traced with --profile
+            traced = profile and batch == batches[0] and k in (1, n) and cache_on and not options and not unroll
             row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters,
-                            unrolled=unroll)
+                            unrolled=unroll, profile_dir=os.path.join(profile, f"small_{batch}dev_k{k}") if traced
+                            else None)
             rows.append(row)
             if row["status"] == "ok":
                 print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined "
                       f"{row['pipelined_step_s'] * 1e3:8.2f} ms  compile {row['compile_s']:.1f} s", flush=True)
+                for lane, per in (row.get("profile") or {}).get("devices", {}).items():
+                    print(f"    {lane}: per step {per['span_ms']:.2f} ms from first kernel to last, collectives "
+                          f"{per['collective_ms']:.2f} ms, other kernels {per['compute_ms']:.2f} ms", flush=True)
             report(rows=rows)
             free_device_memory()
     summaries = {str(b): scaling_summary(rows, b, n) for b in batches}
@@ -548,6 +621,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--layers", type=int, default=30, help="layers of the 5B-width model")
     parser.add_argument("--iters", type=int, default=5, help="timed steps per 5B setting")
     parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row")
+    parser.add_argument("--profile", default="", metavar="DIR",
+                        help="trace the small config's step on 1 and on all devices (first per-device batch) with "
+                             "jax.profiler into DIR; each row then reports collective and other kernel time per step")
     parser.add_argument("--small-unrolled", action="store_true",
                         help="also the small config with unrolled layers (model.scan_layers=false) on 1 and all "
                              "devices: whether its gradient all-reduces then overlap the backward pass")
@@ -598,7 +674,8 @@ def main(argv: list[str] | None = None) -> dict:
     overlap_everywhere = bool(applied["xla_overlap_flags"])
     small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters,
                       overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
-                      report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled)
+                      report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled,
+                      profile=args.profile or None)
     report(small=small)
     free_device_memory()
     fsdp = run_fsdp(full_cfg, devices, settings, hw, iters=2 if args.tiny else args.iters, peak=peak,

@@ -3,6 +3,7 @@ off, the overlap options), the 5B-part sweep (rows, an out-of-memory setting rep
 --time-budget-s), its JSON table and the results entries it would record."""
 
 import dataclasses
+import gzip
 import json
 import math
 
@@ -28,7 +29,8 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     # the sampled cache-vs-inference metric's branch compiles slowly on a CPU; the sweep test keeps it
     monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
     out = tmp_path / "mg.json"
-    summary = bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--out", str(out)])
+    summary = bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--profile", str(tmp_path / "prof"),
+                          "--out", str(out)])
     rows = summary["small"]["rows"]
     assert [(r["devices"], r["cache"], r["overlap"], r["unrolled"]) for r in rows] == [
         (1, True, False, False), (2, True, False, False), (4, True, False, False), (1, False, False, False),
@@ -38,6 +40,11 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
         assert row["step_s"] > 0 and row["pipelined_step_s"] > 0 and row["compile_s"] > 0 and math.isfinite(row["loss"])
     by_k = {r["devices"]: r for r in rows if r["cache"] and not r["overlap"] and not r["unrolled"]}
     unrolled = {r["devices"]: r["pipelined_step_s"] for r in rows if r["unrolled"]}
+    # --profile traces the plain step on 1 and 4 devices (a CPU trace has no GPU lanes to summarise)
+    assert [r["devices"] for r in rows if "profile" in r] == [1, 4]
+    for k in (1, 4):
+        assert by_k[k]["profile"]["steps"] == bench.PROFILE_STEPS and by_k[k]["profile"]["devices"] == {}
+        assert str(tmp_path / "prof" / f"small_2dev_k{k}") in by_k[k]["profile"]["trace"]
     scaling = summary["small"]["by_batch"]["2"]
     assert set(scaling["efficiency"]) == {"1", "2", "4"} and scaling["efficiency"]["1"] == 1.0
     assert scaling["efficiency"]["4"] == pytest.approx(by_k[1]["pipelined_step_s"] / by_k[4]["pipelined_step_s"])
@@ -185,3 +192,32 @@ def test_out_of_memory_is_told_from_other_failures():
     assert bench.is_oom(jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate"))
     assert bench.is_oom(RuntimeError("CUDA_ERROR_OUT_OF_MEMORY: out of memory"))
     assert not bench.is_oom(ValueError("shapes do not match"))
+
+
+def test_a_trace_is_summarized_per_gpu_and_step_from_its_kernel_streams(tmp_path):
+    """Collective and other kernels per step on each GPU lane's stream threads; the lane's module and op threads
+    (the same time again) and the host are left out."""
+    def meta(pid, name, tid=None):
+        return ({"ph": "M", "pid": pid, "name": "process_name", "args": {"name": name}} if tid is None else
+                {"ph": "M", "pid": pid, "tid": tid, "name": "thread_name", "args": {"name": name}})
+
+    def kernel(pid, tid, name, ts, dur):
+        return {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}
+
+    events = [meta(1, "/host:CPU"), meta(2, "/device:GPU:0"), meta(3, "/device:GPU:1"),
+              meta(2, "Stream #13(Compute)", 7), meta(2, "XLA Modules", 8), meta(3, "Stream #13(Compute)", 7),
+              kernel(1, 1, "python", 0, 10_000),
+              kernel(2, 8, "jit_step", 0, 9_000),  # a module event: not a kernel
+              kernel(2, 7, "fusion.12", 0, 3_000), kernel(2, 7, "ncclDevKernel_AllReduce_Sum_f32_RING_LL", 3_000, 1_000),
+              kernel(2, 7, "all-reduce-start.3", 5_000, 1_000), kernel(2, 7, "gemm_fusion", 7_000, 1_000),
+              kernel(3, 7, "fusion.12", 1_000, 2_000)]
+    run = tmp_path / "plugins" / "profile" / "run"
+    run.mkdir(parents=True)
+    with gzip.open(run / "host.perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    summary = bench.summarize_trace(str(tmp_path), steps=2)
+    assert summary["trace"].endswith("perfetto_trace.json.gz")
+    assert summary["devices"] == {
+        "/device:GPU:0": {"collective_ms": 1.0, "compute_ms": 2.0, "span_ms": 4.0},
+        "/device:GPU:1": {"collective_ms": 0.0, "compute_ms": 1.0, "span_ms": 1.0}}
+    assert bench.summarize_trace(str(tmp_path / "none"), steps=2) == {"trace": None, "devices": {}}
