@@ -196,7 +196,7 @@ def main(argv=None) -> dict:
         try:
             rows.append(run_case(cfg, case, weights, episodes, warmup=args.warmup, steps=args.steps))
         except Exception as err:  # noqa: BLE001 - out of memory: report it, keep the other cases
-            if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
+            if not common.is_oom(err):
                 raise
             print(f"{case}: out of memory ({str(err).splitlines()[0][:160]})")
             continue

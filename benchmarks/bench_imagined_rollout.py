@@ -202,7 +202,7 @@ def main(argv=None) -> None:
         try:
             rows.append(run_case(*a, **kw, peak_tflops=peak))
         except Exception as err:  # noqa: BLE001 - out of memory: report it, keep the other cases
-            if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
+            if not common.is_oom(err):
                 raise
             print(f"{a[0]} precision={kw.get('precision')}: out of memory ({str(err).splitlines()[0][:160]})")
 

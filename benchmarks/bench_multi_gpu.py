@@ -205,11 +205,6 @@ def usable_compile_options(options: dict[str, bool | int]) -> dict[str, bool | i
     return usable
 
 
-def is_oom(err: BaseException) -> bool:
-    text = str(err)
-    return "RESOURCE_EXHAUSTED" in text or "out of memory" in text.lower()
-
-
 def free_device_memory() -> None:
     jax.clear_caches()
     gc.collect()
@@ -349,7 +344,7 @@ def time_step(step, state, data, key, *, iters: int, pipelined: bool,
 
 
 def failure_row(row: dict, err: BaseException) -> dict:
-    status = "oom" if is_oom(err) else "nonfinite" if isinstance(err, FloatingPointError) else "error"
+    status = "oom" if common.is_oom(err) else "nonfinite" if isinstance(err, FloatingPointError) else "error"
     row.update(status=status, error=f"{type(err).__name__}: {str(err)[:300]}")
     if status == "error":
         traceback.print_exception(err)
@@ -358,8 +353,7 @@ def failure_row(row: dict, err: BaseException) -> dict:
 
 
 def peak_gb(devices) -> list[float | None]:
-    stats = [d.memory_stats() if hasattr(d, "memory_stats") else None for d in devices]
-    return [s.get("peak_bytes_in_use", 0) / 1e9 if s else None for s in stats]
+    return [common.peak_memory_gb(d) for d in devices]
 
 
 def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
@@ -491,7 +485,7 @@ def fsdp_row(ctx: dict, setting: Setting, *, iters: int, overlap_options: dict) 
         return failure_row(row, err)
     flops = 3 * forward_flops(model_cfg, row["batch"], SEGMENT_LATENTS, hw, ACTION_TOKENS)
     row.update(step_s=timings["step_s"], model_tflops_per_device=flops / timings["step_s"] / 1e12 / n,
-               mfu=flops / timings["step_s"] / 1e12 / (ctx["peak"] * n),
+               mfu=common.mfu(flops, 1.0 / timings["step_s"], ctx["peak"] * n),
                mfu_nominal_peak=common.mfu(flops, 1.0 / timings["step_s"], ctx["nominal"] and ctx["nominal"] * n),
                peak_gb_per_device=peak_gb(mesh.devices.flat))
     return row

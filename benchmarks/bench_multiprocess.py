@@ -72,7 +72,6 @@ KILL_AFTER = 2  # the crashed run's rank is killed once a checkpoint of this ste
 # batch; averaged into the loss such flips stay far below one ulp, which is the bound.
 RESTORE_RTOL = {"float32": 1e-4, "bfloat16": 1e-2}
 STOP_SLACK_S = 1.0  # beyond the launcher's grace + STOP_MARGIN_S: its own exit
-_DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
 _DISTRIBUTED_VARS = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
 
 
@@ -233,11 +232,8 @@ def single_process_env(env: dict[str, str], devices: int, gpus: Sequence[str] | 
     env = {k: v for k, v in env.items() if k not in _DISTRIBUTED_VARS}
     env.update(PYTHONUNBUFFERED="1", **launcher.NO_MULTICAST)
     if gpus is None:
-        flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith(_DEVICE_COUNT_FLAG)]
-        env.update(JAX_PLATFORMS="cpu", XLA_FLAGS=" ".join([*flags, f"{_DEVICE_COUNT_FLAG}={devices}"]))
-    else:
-        env["CUDA_VISIBLE_DEVICES"] = ",".join(gpus)
-    return env
+        return launcher.with_devices(env, cpu_devices=devices)
+    return launcher.with_devices(env, gpus=",".join(gpus))
 
 
 def crash_and_measure(child: Child, checkpoint_dir: str, rank: int, grace_s: float, timeout_s: float) -> dict[str, Any]:
@@ -420,7 +416,8 @@ def _finish(report: dict[str, Any], save, args, error: str | None) -> int:
         common.merge_results({"multiprocess_resume_exact": common.record(
             "multiprocess_resume_exact", bool(report["resume_exact"]), True, device=report["device"],
             processes=report["processes"], devices=report["devices"], config=report["config"],
-            xla_flags=os.environ.get("XLA_FLAGS", ""), overrides=report["overrides"], steps=report["steps"], kill_step=crash.get("kill_step"),
+            xla_flags=report["xla_flags"], overrides=report["overrides"], steps=report["steps"],
+            kill_step=crash.get("kill_step"),
             seconds_kill_to_end=crash.get("seconds_kill_to_end"), grace_s=report["grace_s"],
             stop_limit_s=crash.get("limit_s"), stopped_within_limit=crash.get("ok"),
             launcher_returncode=crash.get("returncode"), resumed_from=resume.get("resumed_from"),

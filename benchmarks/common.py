@@ -90,11 +90,19 @@ def measured_copy_gbps(num_bytes: int = 2 << 30, iters: int = 10) -> float:
     return 2 * num_bytes / timing["min_s"] / 1e9
 
 
-def peak_memory_gb() -> float | None:
-    stats = jax.devices()[0].memory_stats() if hasattr(jax.devices()[0], "memory_stats") else None
+def peak_memory_gb(device: Any = None) -> float | None:
+    """The allocator's peak of ``device`` (default device 0) so far, GB; None where it keeps no statistics."""
+    device = jax.devices()[0] if device is None else device
+    stats = device.memory_stats() if hasattr(device, "memory_stats") else None
     if not stats:
         return None
     return stats.get("peak_bytes_in_use", 0) / 1e9
+
+
+def is_oom(err: BaseException) -> bool:
+    """Whether ``err`` is the device running out of memory (XLA's RESOURCE_EXHAUSTED, CUDA's out of memory)."""
+    text = str(err)
+    return "RESOURCE_EXHAUSTED" in text or "out of memory" in text.lower()
 
 
 def record(key: str, value: float, target: Any, **extra: Any) -> dict[str, Any]:

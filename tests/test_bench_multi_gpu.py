@@ -189,9 +189,10 @@ def test_overlap_flags_this_xla_does_not_know_are_dropped():
 
 
 def test_out_of_memory_is_told_from_other_failures():
-    assert bench.is_oom(jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate"))
-    assert bench.is_oom(RuntimeError("CUDA_ERROR_OUT_OF_MEMORY: out of memory"))
-    assert not bench.is_oom(ValueError("shapes do not match"))
+    is_oom = bench.common.is_oom
+    assert is_oom(jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate"))
+    assert is_oom(RuntimeError("CUDA_ERROR_OUT_OF_MEMORY: out of memory"))
+    assert not is_oom(ValueError("shapes do not match"))
 
 
 def test_a_trace_is_summarized_per_gpu_and_step_from_its_kernel_streams(tmp_path):

@@ -101,11 +101,17 @@ def rank_env(rank: int, processes: int, coordinator: str, *, gpu: str | None = N
     (``gpu``) or ``cpu_devices`` CPU devices, NVLink multicast off and unbuffered Python output."""
     env = dict(environ, JAX_COORDINATOR_ADDRESS=coordinator, JAX_NUM_PROCESSES=str(processes),
                JAX_PROCESS_ID=str(rank), PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    return with_devices(env, gpus=gpu, cpu_devices=cpu_devices)
+
+
+def with_devices(env: dict[str, str], *, gpus: str | None = None, cpu_devices: int | None = None) -> dict[str, str]:
+    """``env`` set to run a process on ``cpu_devices`` CPU devices (``JAX_PLATFORMS=cpu`` and the host device
+    count in ``XLA_FLAGS``, replacing any count there) or else on ``gpus`` (``CUDA_VISIBLE_DEVICES``)."""
     if cpu_devices is not None:
         flags = [f for f in env.get("XLA_FLAGS", "").split() if not f.startswith(_DEVICE_COUNT_FLAG)]
         env.update(JAX_PLATFORMS="cpu", XLA_FLAGS=" ".join([*flags, f"{_DEVICE_COUNT_FLAG}={cpu_devices}"]))
-    elif gpu is not None:
-        env["CUDA_VISIBLE_DEVICES"] = gpu
+    elif gpus is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpus
     return env
 
 
