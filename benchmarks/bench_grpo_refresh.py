@@ -425,7 +425,7 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
     return out
 
 
-def results_entries(summary: dict, workdir: str, *, data: str, note: str = "") -> dict[str, dict]:
+def results_entries(summary: dict, workdir: str, *, data: str, note: str = "", command: str = "") -> dict[str, dict]:
     """``latest.json`` entries of a summary: ``policy_grpo_world_model_gain_small`` (Sword's refreshed runs),
     ``policy_grpo_wovr_world_model_refreshed_gain_small`` (the WoVR-config world model's) and, with both,
     ``policy_grpo_sword_vs_wovr_small``; each gain the sampled policy's (T 0.5), value the smallest over seeds,
@@ -445,12 +445,12 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "") -
         per_seed = {n: {"steps": r["steps"], "sampled": r["sampled"], "greedy": r["greedy"],
                         "sampled_proprio_masked": r.get("sampled_proprio_masked"),
                         "real_episodes_used": r["real_episodes_used"],
-                        "refreshes": r["refreshes"]} for n, r in runs.items()}
+                        "refreshes": [compact_refresh(x) for x in r["refreshes"]]} for n, r in runs.items()}
         return common.record("", min(r["sampled"]["gain"] for r in runs.values()), target, per_seed=per_seed,
                              real_episodes_used=max(r["real_episodes_used"] or 0 for r in runs.values()),
                              steps=min(r["steps"] for r in runs.values()), device=device, data=data,
                              unit="real success gain of the sampled policy (T 0.5), 500 MJX episodes per point",
-                             **({"note": note} if note else {}))
+                             **({"note": note} if note else {}), **({"command": command} if command else {}))
 
     out = {}
     for key, prefix in (("policy_grpo_world_model_gain_small", "refreshed"),
@@ -462,8 +462,22 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "") -
         pairs = summary["sword_vs_wovr"]
         out["policy_grpo_sword_vs_wovr_small"] = common.record(
             "", sum(p["difference"] > 0 for p in pairs.values()), ">= 2 of 3 seeds with Sword's gain >= WoVR's",
-            per_seed=pairs, device=device, data=data, unit="seeds where Sword's sampled gain beats WoVR's")
+            per_seed=pairs, device=device, data=data, unit="seeds where Sword's sampled gain beats WoVR's",
+            **({"command": command} if command else {}))
     return out
+
+
+def compact_refresh(entry: dict) -> dict:
+    """A summary's refresh entry as ``latest.json`` keeps it: the real success, the replay's false successes and
+    separation by 48 actions before the refresh, the threshold and the separation after (the full entry, with
+    the calibration's trade-off, stays in the summary JSON)."""
+    if entry.get("skipped"):
+        return {"step": entry["step"], "skipped": entry["skipped"]}
+    fs = entry.get("false_success_before") or {}
+    return {"step": entry["step"], "real_success": entry.get("real_success"), "false_success_before": fs.get("rate"),
+            "separation_before_48": (entry.get("separation_before") or {}).get("48"),
+            "threshold": entry.get("threshold"), "separation_after_48": (entry.get("separation_after") or {}).get("48"),
+            "trusted": (entry.get("trust") or {}).get("trusted")}
 
 
 def run_label(name: str) -> str:
@@ -543,6 +557,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="summary: write the gains to benchmarks/results/latest.json (the runs' device from the "
                              "work dir's gpu.txt)")
     parser.add_argument("--note", default="", help="summary --record: a note stored with the entries")
+    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entries")
     args, overrides = parser.parse_known_args(argv)
     bad = not_dotted_overrides(overrides)
     if bad:
@@ -566,7 +581,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                 json.dump(summary, f, indent=1)
             plot(summary, args.out + ".png")
         if args.record:
-            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir, note=args.note))
+            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir, note=args.note,
+                                                 command=args.command))
         for name, entry in summary["runs"].items():
             g, s = entry["greedy"], entry["sampled"]
             print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "

@@ -69,9 +69,9 @@ def readme_results() -> str:
     doc = "docs/RESULTS.md"
     dlb = latest["world_model_dlb_vs_teacher_forcing_small"]["value"]
     aug = latest["world_model_augmentation_vs_none_mixed_small"]["value"]
-    arms = latest["policy_grpo_sword_vs_wovr_small"]["value"]
+    arms = latest["policy_grpo_sword_vs_wovr_unrefreshed_small"]["value"]
     gt = latest["policy_grpo_ground_truth_gain_small"]
-    refreshed = latest.get("policy_grpo_wovr_world_model_refreshed_gain_small")
+    sword, wovr = latest["policy_grpo_world_model_gain_small"], latest["policy_grpo_wovr_world_model_refreshed_gain_small"]
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
     rows = [
         ("Claim 1: DLB vs teacher forcing, `small`, 3 seeds",
@@ -88,7 +88,7 @@ def readme_results() -> str:
          f"[section]({doc}#claim-2-style-augmentation-vs-none)"),
         ("Claim 3: GRPO in Sword vs in WoVR, real success after 50 steps",
          f"mean gain Sword {_pct(arms['sword'])}, WoVR {_pct(arms['wovr'])}, MuJoCo itself "
-         f"{_pct(arms['ground_truth_reference'])} points", "policy_grpo_sword_vs_wovr_small",
+         f"{_pct(arms['ground_truth_reference'])} points", "policy_grpo_sword_vs_wovr_unrefreshed_small",
          f"[figure](benchmarks/results/compare/small_grpo/grpo_sword_vs_wovr.png), "
          f"[section]({doc}#claim-3-grpo-in-sword-vs-in-wovr)"),
         ("Supervised policy of the pipeline (500 episodes)",
@@ -99,11 +99,11 @@ def readme_results() -> str:
          f"{_pct(gt['greedy_min_gain'])} or more", "policy_grpo_ground_truth_gain_small",
          f"[figure]({gt['data'].split('{')[0]}grpo_ground_truth_seeds.png), "
          f"[section]({doc}#policies-in-the-ground-truth-environments)"),
-        *([("GRPO in the refreshed WoVR-config world model, 2 seeds",
-            f"sampled policy {_pct(refreshed['value'])} points or worse in {refreshed['steps']} steps: its replays "
-            "do not separate real outcomes", "policy_grpo_wovr_world_model_refreshed_gain_small",
-            f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)")]
-          if refreshed else []),
+        ("GRPO in the refreshed learned simulators, 3 seeds",
+         f"sampled policy: Sword {', '.join(_pct(r['sampled']['gain']) for r in sword['per_seed'].values())}, WoVR "
+         f"config {', '.join(_pct(r['sampled']['gain']) for r in wovr['per_seed'].values())} points in "
+         f"{sword['steps']}-{max(r['steps'] for r in sword['per_seed'].values())} steps (target +10)",
+         "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -297,10 +297,10 @@ def _refresh_label(name: str) -> str:
     return f"{model}{'' if arm == 'refreshed' else ', adapted once'}, seed {seed}"
 
 
-def grpo_refresh_runs() -> str:
+def grpo_refresh_runs(where: tuple[str, ...] = REFRESH_SUMMARY) -> str:
     """GRPO in the refreshed world model: the sampled policy's real success at each evaluation, its gain,
     the greedy and proprio-masked policies; ground-truth GRPO's step 0 and step 10 for scale."""
-    summary = _load(*REFRESH_SUMMARY)
+    summary = _load(*where)
     steps = sorted({p["step"] for run in summary["runs"].values() for p in run["curve"]})
     rows = []
     for name, run in summary["runs"].items():
@@ -313,15 +313,16 @@ def grpo_refresh_runs() -> str:
     gt = summary.get("ground_truth") or {}
     if gt:
         at = {k: [next((p["sampled"] for p in curve if p["step"] == k), None) for curve in gt.values()] for k in steps}
-        gains = [next(p["sampled"] for p in c if p["step"] == 10) - c[0]["sampled"] for c in gt.values()
-                 if any(p["step"] == 10 for p in c)]
+        last = max(k for k in steps if any(p["step"] == k for c in gt.values() for p in c))
+        gains = [next(p["sampled"] for p in c if p["step"] == last) - c[0]["sampled"] for c in gt.values()
+                 if any(p["step"] == last for p in c)]
 
         def span(values):
             values = [v for v in values if v is not None]
             return f"{min(values):.3f}-{max(values):.3f}" if values else ""
 
         rows.append([f"ground-truth GRPO, seeds 0-{len(gt) - 1} (for scale)"] + [span(at[k]) for k in steps]
-                    + [f"{min(gains):+.3f} to {max(gains):+.3f} by step 10" if gains else "", "", "", ""])
+                    + [f"{min(gains):+.3f} to {max(gains):+.3f} by step {last}" if gains else "", "", "", ""])
     return _table(["run"] + [f"step {k}" for k in steps]
                   + ["gain, 95% interval", "greedy", "proprio masked", "real episodes used"], rows)
 
@@ -458,6 +459,46 @@ def grpo_refresh_separation() -> str:
                    "real frames at the calibrated threshold: precision / recall / fires on failed"], rows)
 
 
+THREE_SEEDS = ("policy", "grpo_refresh_3seeds_small_4xh200")
+
+
+def _imagined_success(run: str) -> list[float]:
+    """A run's imagined success (the detector's verdict on its imagined rollouts) at every GRPO step."""
+    with open(os.path.join(RESULTS_DIR, *THREE_SEEDS, run, "rl", "grpo", "train_history.jsonl")) as f:
+        return [json.loads(line)["success_rate"] for line in f if line.strip()]
+
+
+def grpo_refresh_three_seeds_diagnosis() -> str:
+    """Per run of the three-seed refreshed comparison: the real gain, the imagined success over the first and
+    the last 10 GRPO steps, and what every refresh's replay said of the simulator GRPO had trained in (its
+    false successes on the policy's new real failures, its separation of real outcomes by 48 actions) and of
+    the refreshed one, with the exploitation guard's rollbacks."""
+    summary = _load(*THREE_SEEDS, "grpo_refresh_summary.json")
+    rows = []
+
+    def span(values: list[float], fmt: str = "{:.2f}") -> str:
+        return f"{fmt.format(min(values))} to {fmt.format(max(values))}" if values else ""
+
+    for name, run in summary["runs"].items():
+        done = [r for r in run["refreshes"] if not r.get("skipped")]
+        imagined = _imagined_success(name)[: run["steps"]]
+        trips = [g for g in run.get("guard") or [] if g.get("trip")]
+        s = run["sampled"]
+        rows.append([_refresh_label(name), str(run["steps"]), f"{s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}]",
+                     f"{statistics.mean(imagined[:10]):.2f} -> {statistics.mean(imagined[-10:]):.2f}" if imagined else "",
+                     span([r["real_success"] for r in done]),
+                     span([r["false_success_before"]["rate"] for r in done if r["false_success_before"]["rate"] is not None]),
+                     span([r["separation_before"]["48"] for r in done if r["separation_before"].get("48") is not None],
+                          "{:+.2f}"),
+                     span([r["separation_after"]["48"] for r in done if r["separation_after"].get("48") is not None],
+                          "{:+.2f}"),
+                     ", ".join(f"{g['step']} (to {g['rolled_back_to']})" for g in trips) or "none"])
+    return _table(["run", "GRPO steps", "sampled gain, 95% interval", "imagined success, first -> last 10 steps",
+                   "refreshes: the policy's real success", "before each refresh: real failures imagined successes",
+                   "before: separation by 48 actions", "after: separation by 48 actions",
+                   "guard rollbacks at step (to step)"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -467,6 +508,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-runs": grpo_refresh_runs, "grpo-refresh-replay": grpo_refresh_replay,
     "grpo-refresh-causes": grpo_refresh_causes, "grpo-refresh-policy-data": grpo_refresh_policy_data,
     "grpo-refresh-separation": grpo_refresh_separation,
+    "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
+    "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
 }
 
 

@@ -84,9 +84,13 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert bench.run_label("wovr_refreshed_seed1") == "GRPO in the refreshed WoVR-config world model, seed 1"
     assert bench.run_label("once_seed0") == "GRPO in the Sword world model adapted once, seed 0"
     (tmp_path / "gpu.txt").write_text("name, memory.total [MiB]\nNVIDIA H200, 143771 MiB\nNVIDIA H200, 143771 MiB\n")
-    entries = bench.results_entries(out, str(tmp_path), data="d", note="n")
+    entries = bench.results_entries(out, str(tmp_path), data="d", note="n", command="python -m x")
     sword = entries["policy_grpo_world_model_gain_small"]
     assert sword["value"] == pytest.approx(0.10) and sword["device"] == "NVIDIA H200 x2" and sword["note"] == "n"
+    assert sword["command"] == "python -m x" == entries["policy_grpo_sword_vs_wovr_small"]["command"]
+    # latest.json keeps each refresh's headline figures, not the calibration's trade-off
+    kept = sword["per_seed"]["refreshed_seed0"]["refreshes"][0]
+    assert kept["real_success"] == 0.5 and kept["false_success_before"] == 0.2 and "calibration" not in kept
     assert sorted(sword["per_seed"]) == ["refreshed_seed0", "refreshed_seed1"] and sword["real_episodes_used"] == 128
     assert entries["policy_grpo_wovr_world_model_refreshed_gain_small"]["value"] == pytest.approx(0.05)
     assert entries["policy_grpo_sword_vs_wovr_small"]["value"] == 1
