@@ -15,10 +15,13 @@ separates the policy's real successes from its real failures. Every pipeline aft
 one's episodes (one data stage); each pipeline's runs start as soon as it is built; ``--deadline-s`` stops the
 runs still going and summarises them at their last evaluation.
 
-``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, and
-every refresh's replay (the share of the policy's new real failures the simulator called successes before it
-was refreshed) and detector calibration; the figure plots real success against real episodes consumed for
-ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and the refreshed runs.
+``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, every
+refresh's replay (the share of the policy's new real failures the simulator called successes before it was
+refreshed) and detector calibration, and the guards' verdicts at each evaluation (``guard``: the exploitation
+guard's, and with ``rl.refresh.real_guard_margin`` the real-success guard's under ``real_success``, e.g. from
+``--run-variant "realguard=--rl.refresh.real_guard_margin=0.15"``); the figure plots real success against real
+episodes consumed for ground-truth GRPO (``--ground-truth``: a ``bench_policy grpo-seeds`` folder) and the
+refreshed runs.
 
     python -m benchmarks.bench_grpo_refresh run --workdir runs/r41 --policy runs/p/policy_d50.npz --gpus 0,1,2,3
     python -m benchmarks.bench_grpo_refresh summary --workdir runs/r41 \\

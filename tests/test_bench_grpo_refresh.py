@@ -55,7 +55,9 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
                       ("wovr_refreshed_seed0", 0.55)):
         grpo = tmp_path / name / "rl" / "grpo"
         grpo.mkdir(parents=True)
-        points = [_point(0, 0.70, 0.50, 64), _point(5, 0.71, end, 128, guard={"trip": False, "reason": "ok"})]
+        real = {"trip": True, "rate": 0.3, "baseline": 0.61, "reason": "real success 0.300 < baseline 0.610 - ..."}
+        guard = {"trip": False, "reason": "ok", "real_success": real, "rolled_back_to": 0}
+        points = [_point(0, 0.70, 0.50, 64), _point(5, 0.71, end, 128, guard=guard)]
         for p in points:
             p["sampled_proprio_masked"] = dict(p["sampled"], mean=p["sampled"]["mean"] - 0.1)
         (grpo / "success_curve.json").write_text(json.dumps({"label": "x", "points": points}))
@@ -76,6 +78,7 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert run["real_episodes_used"] == 128 and run["refreshes"][0]["false_success_before"]["rate"] == 0.2
     assert run["sampled_proprio_masked"]["start"] == pytest.approx(0.40) and run["curve"][1]["sampled_proprio_masked"] == pytest.approx(end_of(run) - 0.1)
     assert run["guard"][0]["step"] == 5 and run["sampled"]["ci95"][0] < 0.10 < run["sampled"]["ci95"][1]
+    assert run["guard"][0]["real_success"]["trip"] and run["guard"][0]["rolled_back_to"] == 0  # the real-success guard
     # ground-truth GRPO: 512 episodes per sampling round, about 570 per step on average (those runs predate the
     # per-step history, so the count is the summary's mean times the step)
     gt = out["ground_truth"]["s0"]

@@ -406,6 +406,11 @@ class RefreshConfig:
       pause_untrusted: GRPO steps after a refresh whose ``trust`` falls below ``min_separation`` leave the
         policy unchanged (their imagined rollouts still run and are logged, ``paused`` = 1): the policy is
         not moved by a reward measured not to follow real outcomes. Needs ``horizons``.
+      real_guard_margin: the real-success guard (:class:`~sword_jax.rl.sim_guard.RealSuccessGuard`): a refresh
+        whose real episodes succeed less often than step 0's refresh's by more than this rolls the policy back
+        to the last evaluation that passed; 0 (default) = off. The difference of two shares of 64 episodes
+        each has a standard error of about 0.09, so a margin below ~0.15 trips on noise now and then.
+      real_guard_min_episodes: real episodes a refresh must hold before the real-success guard judges it.
     """
 
     every: int = 0
@@ -424,12 +429,23 @@ class RefreshConfig:
     horizons: tuple[int, ...] = ()
     min_separation: float = 0.2
     pause_untrusted: bool = False
+    real_guard_margin: float = 0.0  # roll back when a refresh's real success falls below step 0's by this; 0 = off
+    real_guard_min_episodes: int = 32  # real episodes a refresh needs before the real-success guard judges it
 
     def validate(self) -> None:
         if self.every < 0:
             raise ValueError(f"rl.refresh.every must be >= 0 (0 = off), got {self.every}")
+        if not 0.0 <= self.real_guard_margin < 1.0 or self.real_guard_min_episodes < 1:
+            raise ValueError(f"rl.refresh.real_guard_margin must be in [0, 1) (0 = off) and real_guard_min_episodes "
+                             f">= 1, got {self.real_guard_margin}, {self.real_guard_min_episodes}")
+        if self.real_guard_margin and not self.every:
+            raise ValueError("rl.refresh.real_guard_margin needs rl.refresh.every > 0 (it judges the refreshes' real "
+                             "episodes)")
         if not self.every:
             return
+        if self.real_guard_margin and self.real_guard_min_episodes > self.episodes:
+            raise ValueError(f"rl.refresh.real_guard_min_episodes={self.real_guard_min_episodes} exceeds "
+                             f"rl.refresh.episodes={self.episodes}: the real-success guard would judge no refresh")
         if self.episodes < 2 or self.budget < self.episodes:
             raise ValueError(f"rl.refresh: episodes must be >= 2 and budget >= episodes (the real episodes a run may "
                              f"use), got episodes={self.episodes}, budget={self.budget}")

@@ -31,6 +31,13 @@ and its optimizer state go back to the last evaluation that passed (the last che
 the step counter goes on, and the point records the rollback (``guard``). A resumed run takes the baseline
 from step 0's point and the restored checkpoint as the last state that passed, so it rolls back exactly as
 an uninterrupted run does.
+
+With ``rl.refresh.real_guard_margin > 0`` and evaluations that refresh the simulator on real episodes of the
+current policy (their ``refresh`` entry), the real-success guard (:class:`~sword_jax.rl.sim_guard.RealSuccessGuard`)
+judges every evaluation too: when a refresh's real success falls below step 0's by more than the margin, the
+policy rolls back the same way. Either guard tripping rolls it back; the point's ``guard`` keeps the
+false-success guard's verdict at its top level and the real-success guard's under ``real_success``. A resumed
+run takes that baseline from the first judged ``refresh`` entry of the curve's points.
 """
 
 from __future__ import annotations
@@ -49,12 +56,12 @@ from sword_jax import sharding as shd
 from sword_jax.atomic_write import write_jsonl_atomic
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy_success import SuccessCurve
-from sword_jax.rl.sim_guard import FalseSuccessGuard
+from sword_jax.rl.sim_guard import FalseSuccessGuard, RealSuccessGuard
 from sword_jax.train_loop import LoopResult, StepFn, run_steps
 
 # RL config keys (paths under ``rl``) that shape a GRPO run's train state: a resumed run must share them with
 # its checkpoint. Left out: grpo.steps (a run may be extended), the evaluation's settings, the SFT and
-# reward-model knobs.
+# reward-model knobs. The real-success guard's keys enter only when it is on (grpo_run_id).
 GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_coef", "grpo.learning_rate",
                  "grpo.ppo_epochs", "grpo.minibatches", "grpo.max_sample_rounds", "grpo.min_mixed_fraction",
                  "env.backend", "imagined.max_chunks", "chunk_len", "action_dim", "action_bins",
@@ -65,6 +72,8 @@ GRPO_RUN_KEYS = ("grpo.group_size", "grpo.clip_low", "grpo.clip_high", "grpo.kl_
                  "imagined.shared_group_noise", "env.proprio", "env.starts", "imagined.keyframe_fraction",
                  "grpo.update_microbatch", "grpo.rollout_batch", "imagined.guard_margin",
                  "imagined.guard_min_failures", "imagined.confirm_success")
+
+REAL_GUARD_KEYS = ("refresh.real_guard_margin", "refresh.real_guard_min_episodes")
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
@@ -81,7 +90,9 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     """
     # the decoder enters only when it is not the default, so runs from before it was a setting still resume
     decoder = {"rl.imagined.decoder": rl.imagined.decoder} if rl.imagined.decoder != "full" else {}
-    return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in GRPO_RUN_KEYS},
+    # likewise the real-success guard, which enters only when it is on
+    keys = GRPO_RUN_KEYS + (REAL_GUARD_KEYS if rl.refresh.real_guard_margin > 0 else ())
+    return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
             **decoder, **facts}
 
 
@@ -131,9 +142,14 @@ def train_grpo(
     writes = jax.process_index() == 0
     curve = SuccessCurve(workdir, label=curve_label, writes=writes)
     times = StepTimes(workdir, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk, writes=writes)
-    guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
-             if rl.imagined.guard_margin > 0 else None)
-    passed: dict[str, Any] = {}  # the last state the guard passed, on the host, and its step
+    false_guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
+                   if rl.imagined.guard_margin > 0 else None)
+    real_guard = (RealSuccessGuard(rl.refresh.real_guard_margin, min_episodes=rl.refresh.real_guard_min_episodes)
+                  if rl.refresh.real_guard_margin > 0 else None)
+    # each guard that is on, the evaluation entry it judges and its name in the log
+    guards = [(g, entry, name) for g, entry, name in ((false_guard, "replay", "exploitation guard"),
+                                                      (real_guard, "refresh", "real-success guard")) if g is not None]
+    passed: dict[str, Any] = {}  # the last state the guards passed, on the host, and its step
 
     def keep_passed(done: int, state: Any) -> None:
         passed.update(step=done, params=jax.device_get(state.params), opt_state=jax.device_get(state.opt_state))
@@ -146,15 +162,24 @@ def train_grpo(
     def record(done: int, state: Any) -> Any:
         point, extra = evaluate(done, state.params)
         restored = None
-        if guard is not None:
-            decision = guard.observe(extra.get("replay"))
-            verdict = {"trip": decision.trip, "false_success": decision.rate, "baseline": decision.baseline,
-                       "reason": decision.reason}
-            if decision.trip:
+        if guards:
+            verdict: dict[str, Any] = {}
+            tripped = []
+            for g, entry, name in guards:
+                decision = g.observe(extra.get(entry))
+                if g is false_guard:
+                    verdict.update(trip=decision.trip, false_success=decision.rate, baseline=decision.baseline,
+                                   reason=decision.reason)
+                else:
+                    verdict["real_success"] = {"trip": decision.trip, "rate": decision.rate,
+                                               "baseline": decision.baseline, "reason": decision.reason}
+                if decision.trip:
+                    tripped.append((name, decision.reason))
+            if tripped:
                 restored = roll_back(state)
                 verdict["rolled_back_to"] = passed["step"]
-                log(f"GRPO step {done}: exploitation guard tripped ({decision.reason}); policy rolled back to "
-                    f"step {passed['step']}")
+                for name, reason in tripped:
+                    log(f"GRPO step {done}: {name} tripped ({reason}); policy rolled back to step {passed['step']}")
             else:
                 keep_passed(done, state)
             extra = dict(extra, guard=verdict)
@@ -178,10 +203,11 @@ def train_grpo(
         curve.drop_after(first_step)
         if first_step == 0:
             record(0, state)
-        elif guard is not None:  # as the uninterrupted run stood after this checkpoint
-            for p in curve.points:
-                if p["step"] <= first_step and guard.baseline is None:
-                    guard.observe(p.get("replay"))
+        elif guards:  # as the uninterrupted run stood after this checkpoint
+            for g, entry, _ in guards:
+                for p in curve.points:
+                    if p["step"] <= first_step and g.baseline is None:
+                        g.observe(p.get(entry))
             at = next((p for p in curve.points if p["step"] == first_step), {}).get("guard", {})
             keep_passed(at.get("rolled_back_to", first_step), state)  # a rolled-back checkpoint holds that state
         times.drop_after(first_step)  # the clock starts at the first step, the evaluation before it left out
