@@ -106,19 +106,21 @@ def run_case(cfg, case: str, weights: dict, episodes: EpisodeSet, *, warmup: int
     run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=1)  # a retrace would be timed: refused
     build_s = time.perf_counter() - t0
     frames_per_chunk, frame_size = run.frames_per_chunk, run.sim.frame_size
-    times = StepTimes(None, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk)
+    times = StepTimes(None, rl.imagined_starts_per_step * rl.grpo.group_size * frames_per_chunk)
     state, warm_s, timed = run.state, [], []
     for index in range(warmup + steps):
         times.restart()
         state, metrics = run.step(state, run.place(run.batch_at(index)), run.key)
         metrics = jax.device_get(metrics)  # blocks on the step, as the loop's read of its metrics does
-        row = times.add(index + 1, float(metrics["mean_chunks"]))
+        # chunks rolled by every trajectory, the oversampled groups the update leaves out included
+        chunks = float(metrics.get("mean_chunks_sampled", metrics["mean_chunks"]))
+        row = times.add(index + 1, chunks)
         if index < warmup:
             warm_s.append(row["step_s"])
         else:
-            timed.append(dict(row, mean_chunks=float(metrics["mean_chunks"]), loss=float(metrics["loss"])))
+            timed.append(dict(row, mean_chunks=chunks, loss=float(metrics["loss"])))
     del state, run, setup
-    trajectories = rl.grpo.rollout_batch * rl.grpo.group_size
+    trajectories = rl.imagined_starts_per_step * rl.grpo.group_size  # rolled out (rl.imagined.oversample included)
     return {"case": case, "precision": rl.imagined.sim_precision, "decoder": rl.imagined.decoder,
             "frame_size": frame_size,
             "step_s": statistics.median(r["step_s"] for r in timed),

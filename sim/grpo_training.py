@@ -42,6 +42,9 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
     if simulator == "toy":
         rl = dataclasses.replace(rl, proprio_dim=max(rl.proprio_dim, 2))
     elif simulator == "env":
+        if rl.imagined.oversample > 1:
+            raise SystemExit("train.grpo --simulator env: rl.imagined.oversample is dynamic sampling in the learned "
+                             "simulator; in the ground-truth environments it is rl.grpo.max_sample_rounds (mjx backend)")
         if rl.env.starts == "keyframes" and not inputs.demos:
             raise SystemExit("train.grpo --simulator env --rl.env.starts=keyframes needs --demos (the rollouts start "
                              "from their recorded states)")

@@ -52,6 +52,7 @@ def test_dotted_overrides_are_typed():
         ("--rl.grpo.steps=-1", "rl.grpo.steps"),
         ("--rl.grpo.eval_every=0", "rl.grpo.steps must be >= 0 and rollout_batch, eval_every"),
         ("--rl.grpo.learning_rate=0", "rl.grpo.learning_rate"),
+        ("--rl.imagined.oversample=0", "rl.imagined.oversample must be >= 1"),
     ],
 )
 def test_bad_override_names_the_key(override, needle):

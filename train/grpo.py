@@ -13,8 +13,9 @@
     python -m train.launch --processes 2 -- python -m train.grpo ... --mesh.distributed=true
 
 Each step samples ``rl.grpo.rollout_batch`` keyframe start states, G = ``rl.grpo.group_size`` imagined
-trajectories each, and applies the GRPO update (one jitted, donated step). With ``--simulator env``
-the start states are training-split initial states (never the 50 evaluation states), the
+trajectories each, and applies the GRPO update (one jitted, donated step); with ``rl.imagined.oversample=k``
+it samples k times as many and updates on ``rollout_batch`` groups of them, the mixed-outcome ones first.
+With ``--simulator env`` the start states are training-split initial states (never the 50 evaluation states), the
 trajectories run in MuJoCo's C engine (``sim.lockstep``), and the same ``grpo_update`` trains on
 them: this validates the update independently of any world model. Every ``rl.grpo.eval_every``
 steps (and at step 0) the policy is evaluated in the ground-truth MuJoCo envs (world_model mode)

@@ -52,9 +52,9 @@ class GRPOInputs:
 
 class Setup(NamedTuple):
     """What a GRPO run in a learned simulator needs: the simulator and reward model, ``starts(key, step,
-    rows=None)`` (a step's start states; with ``rows``, only those rows of the ``rl.grpo.rollout_batch``, each
-    the same whichever rows are asked for), the toy's fixed evaluation starts and the real history's encoder
-    (for replays)."""
+    rows=None)`` (a step's ``rl.imagined_starts_per_step`` start states -- ``rl.grpo.rollout_batch`` times
+    ``rl.imagined.oversample``; with ``rows``, only those rows of them, each the same whichever rows are
+    asked for), the toy's fixed evaluation starts and the real history's encoder (for replays)."""
 
     sim: Any
     reward_model: Any
@@ -72,7 +72,7 @@ def toy_setup(cfg, rl) -> Setup:
 
     def starts(key, step, rows=None):
         del step  # the key is already a function of the step
-        pick = jax.random.randint(key, (rl.grpo.rollout_batch,), 0, tokens.shape[0])
+        pick = jax.random.randint(key, (rl.imagined_starts_per_step,), 0, tokens.shape[0])
         return toy_start_states(tokens[pick], key=key, frame_size=size, proprio_dim=rl.proprio_dim, rows=rows)
 
     eval_key = stream_key(jax.random.key(cfg.seed), "grpo/toy_eval_starts")
@@ -145,7 +145,8 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
 
     def starts(key, step, rows=None):
         del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/keyframes", step),
+        pick = rl_data.keyframe_starts(episodes, rl.imagined_starts_per_step,
+                                       stream_rng(cfg.seed, "grpo/keyframes", step),
                                        max_fraction=rl.imagined.keyframe_fraction, rows=rows)
         return start_state(pick, encode, rl)
 
@@ -159,6 +160,14 @@ def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> St
     return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim], jnp.float32),
                       jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
                       (latents, jnp.asarray(pick["actions"], jnp.float32)))
+
+
+def sampled_mixed(point: dict, rl: Any) -> str:
+    """A progress line's note of the step's mixed share among all the groups it sampled, with
+    ``rl.imagined.oversample > 1`` (its ``kept_fraction`` is then the updated groups'); empty otherwise."""
+    if rl.imagined.oversample == 1:
+        return ""
+    return f" (mixed {point['sampled_mixed_fraction']:.2f} of {rl.imagined.oversample}x sampled)"
 
 
 def extra_point(step: int, what: str, result: dict, *, log: Callable[[str], Any] = log, **tags) -> dict:
@@ -286,8 +295,10 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GR
     starts, starts_key = setup.starts, stream_key(root, "grpo/starts")
     if jax.process_count() > 1:  # each process makes its rows of the global batch of start states
         start_sharding = shd.batch_sharding(mesh, 1, cfg.mesh.rules)
-        shd.check_batch_divides(start_sharding, rl.grpo.rollout_batch, "rl.grpo.rollout_batch")
-        rows = shd.rows_held(start_sharding, rl.grpo.rollout_batch)
+        count = rl.imagined_starts_per_step  # rl.grpo.rollout_batch x rl.imagined.oversample
+        shd.check_batch_divides(start_sharding, count, "rl.grpo.rollout_batch" + (
+            " x rl.imagined.oversample" if rl.imagined.oversample > 1 else ""))
+        rows = shd.rows_held(start_sharding, count)
 
         def batch_at(step):
             return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step, rows)
@@ -297,7 +308,7 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GR
             leaves, treedef = jax.tree.flatten(jax.device_get(held))
             named = {str(i): np.asarray(leaf) for i, leaf in enumerate(leaves)}
             placed = shd.to_global(named, {name: shd.batch_sharding(mesh, value.ndim, cfg.mesh.rules)
-                                           for name, value in named.items()}, rows, rl.grpo.rollout_batch)
+                                           for name, value in named.items()}, rows, count)
             return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
     else:
         def place(batch):  # start states made elsewhere (the VAE's latents, replicated) move onto the batch's sharding
@@ -374,7 +385,8 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
-                f"kept {point['kept_fraction']:.2f} nll {point['behaviour_nll']:.3f} eta {eta:.0f}s")
+                f"kept {point['kept_fraction']:.2f}{sampled_mixed(point, rl)} nll {point['behaviour_nll']:.3f} "
+                f"eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     result, curve = train_grpo(run.step, run.state, run.batch_at, key=run.key, rl=rl, workdir=workdir,

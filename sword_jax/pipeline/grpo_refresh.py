@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sword_jax import sharding as shd
-from sword_jax.pipeline.grpo import log, start_state
+from sword_jax.pipeline.grpo import log, sampled_mixed, start_state
 from sword_jax.rl import grpo
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.policy import tokenize_instructions
@@ -100,7 +100,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
 
     def step(state, index, key):
         refresher.at(index)  # the refresh this step follows (a resumed run loads it)
-        pick = refresher.branch_pick(index, rl.grpo.rollout_batch)
+        pick = refresher.branch_pick(index, rl.imagined_starts_per_step)  # rollout_batch x rl.imagined.oversample
         starts = (setup.starts(jax.random.fold_in(starts_key, index), index) if pick is None
                   else start_state(pick, setup.encode, rl))
         if placed.get("refresh", -2) != refresher.loaded:  # once per refresh, not per step: cast and placed
@@ -128,7 +128,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
 
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
-                f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f} "
+                f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f}"
+                f"{sampled_mixed(point, rl)} "
                 f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "
                 f"eta {eta:.0f}s")
 

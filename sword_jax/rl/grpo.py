@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import nnx, struct
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from sword_jax import optim, tracing
 from sword_jax import sharding as shd
@@ -38,11 +38,44 @@ from sword_jax.rl.sim_agreement import confirm_successes
 SIGNAL_EPS = 1e-6
 UPDATE_KEY_SALT = 0x5EED  # the update's shuffle key is fold_in(the step's key, UPDATE_KEY_SALT)
 CONFIRM_KEY_SALT = 0xC0F1  # rl.imagined.confirm_success's second draw: fold_in(the step's key, CONFIRM_KEY_SALT)
+SELECT_KEY_SALT = 0x5E1E  # rl.imagined.oversample's choice among mixed groups: fold_in(the step's key, SELECT_KEY_SALT)
 
 
 def group_has_signal(returns: Float[Array, "b g"]) -> jax.Array:
     """``[b] bool``: the groups whose returns are not all equal (mixed outcomes: the only ones with a signal)."""
     return jnp.std(returns.astype(jnp.float32), axis=1) > jnp.float32(SIGNAL_EPS)
+
+
+def select_groups(returns: Float[Array, "n g"], keep: int, *, key: jax.Array) -> Int[Array, " keep"]:
+    """``keep`` of the ``n`` sampled groups, those with mixed outcomes first (``rl.imagined.oversample``).
+
+    The groups are shuffled by ``key`` and then stably sorted mixed-before-unmixed, so which mixed groups are
+    kept when more than ``keep`` are mixed is a uniform random choice (not biased toward low start indices),
+    and when fewer are mixed every mixed group is kept and the rest are random groups without signal (which
+    the update's keep mask then masks). Static shapes: jit-friendly.
+
+    Args:
+      returns: trajectory returns grouped by start state.
+      keep: groups to return (``<= n``).
+      key: the random order among equals.
+
+    Returns:
+      ``[keep]`` group indices into ``returns``' first axis, the mixed ones first.
+    """
+    n = returns.shape[0]
+    if not 1 <= keep <= n:
+        raise ValueError(f"select_groups: keep must be in [1, {n}] (the sampled groups), got {keep}")
+    shuffled = jax.random.permutation(key, n)
+    unmixed = jnp.logical_not(group_has_signal(returns))[shuffled]
+    # stable: the shuffled order survives within the mixed and within the unmixed groups
+    ranked = shuffled[jnp.argsort(unmixed, stable=True)]
+    return ranked[:keep]
+
+
+def group_trajectories(groups: Int[Array, " k"], group_size: int) -> Int[Array, " k_g"]:
+    """Trajectory indices of ``groups`` in a group-major batch (:func:`~sword_jax.rl.rollout.expand_groups`):
+    group ``b``'s trajectories are rows ``b * G .. b * G + G - 1``."""
+    return (groups[:, None] * group_size + jnp.arange(group_size)[None, :]).reshape(-1)  # (K * G,)
 
 
 def group_advantages(
@@ -343,26 +376,51 @@ def make_grpo_step(
     expands each start state to ``cfg.grpo.group_size`` trajectories, rolls them out with the
     current policy, then updates it. ``state`` is donated.
 
+    With ``cfg.imagined.oversample = k > 1`` the step is given ``B = k x rl.grpo.rollout_batch`` start
+    states (:attr:`~sword_jax.rl.config.RLConfig.imagined_starts_per_step`), rolls all of them out and
+    updates on ``B / k`` groups of them, mixed ones first (:func:`select_groups`). The update's metrics
+    (``kept_fraction``, ``success_rate``, ``mean_return``, ``mean_chunks``, the confirmation's) are then
+    those of the updated groups; ``sampled_mixed_fraction`` and ``imagined_success_sampled`` (every step)
+    and ``mean_chunks_sampled`` (with ``k > 1``: the chunks actually rendered) are over all sampled ones.
+
     Compiled by :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device) and
     traced inside it, so the rollout's activation constraints shard the trajectories: the start
     states split over their leading dim, the simulator's and reward model's weights and the state
     kept where they were placed on ``mesh`` (else replicated).
     """
     cfg.validate()
+    g, oversample = cfg.grpo.group_size, cfg.imagined.oversample
 
     def step(state: GRPOState, batch, key):
         simulator, reward_model, start = batch
         key = jax.random.fold_in(key, state.step)
         rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, cfg, key=key,
-                                   group_size=cfg.grpo.group_size)  # one simulator start-up per start state
+                                   group_size=g)  # one simulator start-up per start state
         extra = {}
+        unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:
             extra["imagined_success_unconfirmed"] = jnp.mean(rollout.success.astype(jnp.float32))
             rollout, extra["unconfirmed_fraction"] = confirm_successes(
-                rollout, simulator, reward_model, expand_groups(start, cfg.grpo.group_size), cfg,
+                rollout, simulator, reward_model, expand_groups(start, g), cfg,
                 key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
+        sampled_returns = rollout.returns.reshape(-1, g)  # (B, G): trajectories are group-major
+        sampled = {"sampled_mixed_fraction": jnp.mean(group_has_signal(sampled_returns).astype(jnp.float32)),
+                   "imagined_success_sampled": jnp.mean(rollout.success.astype(jnp.float32))}
+        if oversample > 1:
+            groups = sampled_returns.shape[0]
+            if groups % oversample:
+                raise ValueError(f"rl.imagined.oversample={oversample} must divide the step's {groups} start states "
+                                 f"(give it rl.imagined_starts_per_step = oversample x rl.grpo.rollout_batch)")
+            sampled["mean_chunks_sampled"] = rollout_metrics(rollout)["mean_chunks"]
+            chosen = group_trajectories(select_groups(sampled_returns, groups // oversample,
+                                                      key=jax.random.fold_in(key, SELECT_KEY_SALT)), g)
+            rollout = take_trajectories(rollout, chosen)
+            if cfg.imagined.confirm_success:  # the confirmation's metrics of the updated trajectories
+                before = unconfirmed_success[chosen]
+                extra["imagined_success_unconfirmed"] = jnp.mean(before.astype(jnp.float32))
+                extra["unconfirmed_fraction"] = jnp.mean((before & ~rollout.success).astype(jnp.float32))
         state, metrics = grpo_update(graphdef, cfg, state, rollout, jax.random.fold_in(key, UPDATE_KEY_SALT))
-        return state, dict(metrics, **rollout_metrics(rollout), **extra)
+        return state, dict(metrics, **rollout_metrics(rollout), **extra, **sampled)
 
     mesh = shd.default_mesh(mesh)
 

@@ -18,8 +18,9 @@ the keys that differ.
 Each step's wall time goes to ``<workdir>/step_times.jsonl`` (``step``, ``step_s``: from the previous step's
 metrics read to this one's, evaluations left out; with ``frames_per_chunk``, ``imagined_frames`` and
 ``imagined_frames_per_s``: the frames the simulator rendered for the step's ``B x G`` rollouts over its
-time), apart from the history, which stays bit-identical across a resume. The first step after a start or
-resume includes compilation.
+time, the groups ``rl.imagined.oversample`` rolls out beyond the update's included), apart from the
+history, which stays bit-identical across a resume. The first step after a start or resume includes
+compilation.
 
 In a job of several processes every process runs the loop (the steps and checkpoints are global
 computations) and takes the same decisions; only process 0 writes the curve, the history and the step times.
@@ -92,8 +93,10 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     decoder = {"rl.imagined.decoder": rl.imagined.decoder} if rl.imagined.decoder != "full" else {}
     # likewise the real-success guard, which enters only when it is on
     keys = GRPO_RUN_KEYS + (REAL_GUARD_KEYS if rl.refresh.real_guard_margin > 0 else ())
+    # and the learned simulator's oversampling, only when it is on
+    oversample = {"rl.imagined.oversample": rl.imagined.oversample} if rl.imagined.oversample != 1 else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **facts}
+            **decoder, **oversample, **facts}
 
 
 def train_grpo(
@@ -127,8 +130,9 @@ def train_grpo(
       curve_label: the success curve's title.
       log: where progress and resume lines go.
       frames_per_chunk: frames the simulator renders per imagined chunk (0: not a learned simulator): its
-        ``frames_per_step``, the executed actions' frames; with the step's ``mean_chunks`` metric it gives
-        ``step_times.jsonl``'s imagined frames per second.
+        ``frames_per_step``, the executed actions' frames; with the step's ``mean_chunks`` metric (its
+        ``mean_chunks_sampled`` with ``rl.imagined.oversample > 1``: every rolled-out trajectory's, over
+        ``rl.imagined_starts_per_step x G`` of them) it gives ``step_times.jsonl``'s imagined frames per second.
       place: ``place(host_batch) -> batch`` before each step (:func:`~sword_jax.train_loop.run_steps`; e.g. the
         global start states assembled from each process's rows); None = the batch as ``batch_at`` made it.
 
@@ -141,7 +145,8 @@ def train_grpo(
     """
     writes = jax.process_index() == 0
     curve = SuccessCurve(workdir, label=curve_label, writes=writes)
-    times = StepTimes(workdir, rl.grpo.rollout_batch * rl.grpo.group_size * frames_per_chunk, writes=writes)
+    # every rolled-out trajectory's frames, the oversampled groups the update leaves out included
+    times = StepTimes(workdir, rl.imagined_starts_per_step * rl.grpo.group_size * frames_per_chunk, writes=writes)
     false_guard = (FalseSuccessGuard(rl.imagined.guard_margin, min_failures=rl.imagined.guard_min_failures)
                    if rl.imagined.guard_margin > 0 else None)
     real_guard = (RealSuccessGuard(rl.refresh.real_guard_margin, min_episodes=rl.refresh.real_guard_min_episodes)
@@ -215,7 +220,7 @@ def train_grpo(
 
     def report(done: int, metrics: dict[str, float], _: Any, eta: float) -> dict[str, float]:
         point = {"step": done, **metrics}
-        times.add(done, metrics.get("mean_chunks"))
+        times.add(done, metrics.get("mean_chunks_sampled", metrics.get("mean_chunks")))
         log(progress(point, eta))
         return point
 
