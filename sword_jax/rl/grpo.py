@@ -399,10 +399,8 @@ def make_grpo_step(
         extra = {}
         unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:
-            extra["imagined_success_unconfirmed"] = jnp.mean(rollout.success.astype(jnp.float32))
-            rollout, extra["unconfirmed_fraction"] = confirm_successes(
-                rollout, simulator, reward_model, expand_groups(start, g), cfg,
-                key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
+            rollout, _ = confirm_successes(rollout, simulator, reward_model, expand_groups(start, g), cfg,
+                                           key=jax.random.fold_in(key, CONFIRM_KEY_SALT))
         sampled_returns = rollout.returns.reshape(-1, g)  # (B, G): trajectories are group-major
         sampled = {"sampled_mixed_fraction": jnp.mean(group_has_signal(sampled_returns).astype(jnp.float32)),
                    "imagined_success_sampled": jnp.mean(rollout.success.astype(jnp.float32))}
@@ -415,10 +413,10 @@ def make_grpo_step(
             chosen = group_trajectories(select_groups(sampled_returns, groups // oversample,
                                                       key=jax.random.fold_in(key, SELECT_KEY_SALT)), g)
             rollout = take_trajectories(rollout, chosen)
-            if cfg.imagined.confirm_success:  # the confirmation's metrics of the updated trajectories
-                before = unconfirmed_success[chosen]
-                extra["imagined_success_unconfirmed"] = jnp.mean(before.astype(jnp.float32))
-                extra["unconfirmed_fraction"] = jnp.mean((before & ~rollout.success).astype(jnp.float32))
+            unconfirmed_success = unconfirmed_success[chosen]
+        if cfg.imagined.confirm_success:  # the updated trajectories' successes before and after the second draw
+            extra["imagined_success_unconfirmed"] = jnp.mean(unconfirmed_success.astype(jnp.float32))
+            extra["unconfirmed_fraction"] = jnp.mean((unconfirmed_success & ~rollout.success).astype(jnp.float32))
         state, metrics = grpo_update(graphdef, cfg, state, rollout, jax.random.fold_in(key, UPDATE_KEY_SALT))
         return state, dict(metrics, **rollout_metrics(rollout), **extra, **sampled)
 
