@@ -229,6 +229,15 @@ def reckoning_path(policy_path: str) -> str:
     return os.path.splitext(policy_path)[0] + ".reckoning.json"
 
 
+def grpo_dir(rl) -> str:
+    """The ``grpo`` stage's work dir under ``--out``: ``grpo_env`` with the proprio mode, the starts and
+    the backend when they are not the defaults (``grpo_env_mjx``, ``grpo_env_proprio_missing_starts_keyframes_mjx``)."""
+    name = "grpo_env" if rl.env.proprio == "true" else f"grpo_env_proprio_{rl.env.proprio}"
+    if rl.env.starts != "initial":
+        name += f"_starts_{rl.env.starts}"
+    return name + ("_mjx" if rl.env.backend == "mjx" else "")
+
+
 def run_grpo(cfg, args) -> dict:
     from sword_jax.rl.policy import build_policy
     from sword_jax.rl.proprio_reckoning import load_reckoning
@@ -249,12 +258,10 @@ def run_grpo(cfg, args) -> dict:
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params = load_npz(args.policy, params)
     start = time.time()
-    workdir = os.path.join(args.out, "grpo_env" if mode == "true" else f"grpo_env_proprio_{mode}")
-    if cfg.rl.env.starts != "initial":
-        workdir += f"_starts_{cfg.rl.env.starts}"
+    workdir = os.path.join(args.out, grpo_dir(cfg.rl))
     if cfg.rl.env.backend == "mjx":
-        workdir += "_mjx"
-        result = grpo_env.run_in_mjx(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes)
+        result = grpo_env.run_in_mjx(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
+                                     keyframes=keyframes)
     else:
         result = grpo_env.run_in_env(cfg, cfg.rl, graphdef, params, workdir, episodes_per_task=args.eval_episodes,
                                      workers=args.workers, renderer="jax", reckoning=reckoning, keyframes=keyframes)
@@ -298,13 +305,15 @@ def run_grpo(cfg, args) -> dict:
     return summary
 
 
-POLICIES = ("greedy", "sampled")  # how a GRPO evaluation runs the policy: argmax (+ensembling), or sampled
+# how a GRPO evaluation runs the policy: argmax (+ensembling), sampled, or sampled reading its "missing proprio"
+# input (the mode GRPO trains with rl.env.proprio=missing; evaluated only then)
+POLICIES = ("greedy", "sampled", "sampled_proprio_masked")
 
 
 def _policy_point(point: dict, policy: str) -> dict | None:
     """The evaluation ``point``'s figures for ``policy``: the greedy (ensembled) run is the point itself,
-    the sampled run its ``sampled`` entry (None when that evaluation ran no sampled policy)."""
-    return point if policy == "greedy" else point.get("sampled")
+    the others its entry of that name (None when that evaluation did not run that policy)."""
+    return point if policy == "greedy" else point.get(policy)
 
 
 def _gain(first: dict, last: dict) -> dict:
@@ -427,8 +436,8 @@ def seed_commands(args, overrides: list[str]) -> list[tuple[str, list[str], dict
             env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / per_gpu:.2f}"
         cmd = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config_name, "--seed",
                str(seed), "--out", os.path.join(args.out, name), "--policy", args.policy,
-               "--eval-episodes", str(args.eval_episodes), *overrides]
-        out.append((os.path.join(args.out, name, "grpo_env_mjx"), cmd, env))
+               "--eval-episodes", str(args.eval_episodes), *[f"--demos={d}" for d in args.demos], *overrides]
+        out.append((os.path.join(args.out, name, grpo_dir(args.rl)), cmd, env))
     return out
 
 
@@ -452,13 +461,14 @@ def run_grpo_seeds(args, overrides: list[str]) -> dict:
     if failed:
         print(f"grpo-seeds: {len(failed)} run(s) failed (see their .log): {failed}", flush=True)
     done = [w for w, _, _ in commands if w not in failed]
-    repeat = [w for w, _, _ in commands if w.rstrip("/").endswith("_repeat/grpo_env_mjx")]
+    repeat = [w for w, _, _ in commands if os.path.basename(os.path.dirname(w.rstrip("/"))).endswith("_repeat")]
     firsts = [w for w in done if w not in repeat]
     if not firsts:
         raise SystemExit("grpo-seeds: no run finished")
     pair = ""
     if repeat and repeat[0] in done:
-        original = repeat[0].replace("_repeat/grpo_env_mjx", "/grpo_env_mjx")
+        head, run = os.path.split(repeat[0].rstrip("/"))
+        original = os.path.join(head[: -len("_repeat")], run)
         pair = f"{original},{repeat[0]}" if original in done else ""
     return run_seeds(argparse.Namespace(runs=",".join(firsts), repeat=pair, repeat_step=args.repeat_step, out=args.out,
                                         deployed=args.deployed, record=args.record))
@@ -546,7 +556,7 @@ def main(argv=None) -> None:
         run_seeds(args)
         return
     if args.stage == "grpo-seeds":  # every config override is passed on to each seed's run
-        args.config_name = _config_name(argv)
+        args.config_name, args.rl = _config_name(argv), cfg.rl
         run_grpo_seeds(args, [a for a in (sys.argv[1:] if argv is None else list(argv)) if a.startswith("--rl.")
                               or a.startswith("--sim.")])
         return

@@ -13,6 +13,7 @@ import os
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sim import controller, panda
 from sim import tasks as sim_tasks
@@ -56,14 +57,21 @@ def check_keyframe_episodes(episodes) -> None:
                          "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
 
 
-def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
-    """GRPO step ``step``'s ground-truth start states with ``rl.env.starts=keyframes``: ``(task, flat state)``
-    of the demonstrations at the keyframes GRPO in the learned simulator draws (the same sampler; a
-    function of (seed, step)), each repeated ``group_size`` times."""
+def keyframe_picks(episodes, rl, *, seed: int, step: int, round_: int = 0, num_context: int = 1) -> list:
+    """The ``rl.grpo.rollout_batch`` ground-truth start states of GRPO step ``step`` (sampling round
+    ``round_``) with ``rl.env.starts=keyframes``: ``(task, flat state)`` of the demonstrations at the
+    keyframes GRPO in the learned simulator draws (the same sampler; a function of (seed, step, round))."""
     check_keyframe_episodes(episodes)
-    pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, stream_rng(seed, "grpo/env_keyframes", step),
-                                   max_fraction=rl.imagined.keyframe_fraction, num_context=num_context)
-    return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])
+    rng = (stream_rng(seed, "grpo/env_keyframes", step) if round_ == 0
+           else stream_rng(seed, "grpo/env_keyframes", step, round_))
+    pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
+                                   num_context=num_context)
+    return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])]
+
+
+def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
+    """:func:`keyframe_picks` of step ``step``, each repeated ``group_size`` times (the C engine's rollouts)."""
+    return [start for start in keyframe_picks(episodes, rl, seed=seed, step=step, num_context=num_context)
             for _ in range(rl.grpo.group_size)]
 
 
@@ -158,7 +166,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     return {"curve": curve, "workdir": workdir, "history": result.history}
 
 
-def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int) -> dict:
+def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, keyframes=None) -> dict:
     """GRPO against the ground-truth environments on MJX (``rl.env.backend=mjx``), rollouts and
     evaluations on the accelerator (:mod:`sword_jax.rl.jax_env_grpo`); resumes from ``workdir``.
 
@@ -166,10 +174,21 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     stratified over the tasks (:func:`sim.mjx_batch.stratified_train_starts`, a function of (seed, step,
     round)); evaluations run the tasks' fixed evaluation states, the greedy (deployed) and the sampled policy
     each time, with the probe's argmax flips and top-1 margin. Returns as :func:`run_in_env`.
+
+    The learned simulator's setting, one part at a time: ``rl.env.starts=keyframes`` starts the rollouts
+    at ``keyframes``' recorded states (the demonstrations, :func:`keyframe_picks`) for
+    :func:`keyframe_horizon` actions, executing ``rl.imagined.execute_steps or chunk_len`` per decision;
+    ``rl.env.proprio=missing`` has the policy read its "missing proprio" input in the rollouts, and each
+    evaluation then also runs the sampled policy that way (``sampled_proprio_masked``). Evaluations
+    always start at rest with ``rl.env.execute_steps``.
     """
-    if rl.env.starts != "initial" or rl.env.proprio != "true":
-        raise ValueError(f"rl.env.backend=mjx runs GRPO from initial states with true proprio; got rl.env.starts="
-                         f"{rl.env.starts}, rl.env.proprio={rl.env.proprio}")
+    if rl.env.proprio not in ("true", "missing"):
+        raise ValueError(f"rl.env.backend=mjx reads proprio true or missing; got rl.env.proprio={rl.env.proprio} "
+                         "(the C engine's rl.env.backend=cpu reckons it)")
+    if rl.env.starts == "keyframes":
+        if keyframes is None:
+            raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
+        check_keyframe_episodes(keyframes)
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
@@ -178,24 +197,35 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     max_bytes = rl.policy.max_instruction_bytes
 
     def starts_at(step, round_):  # a function of (seed, step, round), so a resumed run draws the same ones
-        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/mjx_starts", step,
-                                                                                  round_), pool=pool)
+        if rl.env.starts == "keyframes":
+            picked = [(t, np.asarray(flat, np.float32)) for t, flat in
+                      keyframe_picks(keyframes, rl, seed=cfg.seed, step=step, round_=round_)]
+        else:
+            picked = stratified_train_starts(tasks, rl.grpo.rollout_batch,
+                                             stream_rng(cfg.seed, "grpo/mjx_starts", step, round_), pool=pool)
         qpos, text = episode_starts(picked)
         return qpos, tokenize_instructions(text, max_bytes)
 
+    setting = {}
+    if rl.env.starts == "keyframes":
+        setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined.execute_steps or rl.chunk_len)
+    masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
                      eval_tokens=tokenize_instructions(eval_text, max_bytes),
-                     eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log)
+                     eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log,
+                     train_proprio=not masked, **setting)
     os.makedirs(workdir, exist_ok=True)
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=True)  # greedy and sampled, every time
+        point, extra = runner.evaluate(params, step=step, sampled=True, masked=masked)  # greedy and sampled
         sampled = extra.get("sampled")
+        trained = extra.get("sampled_proprio_masked")
         log(f"eval step {step}: success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}] "
             f"({point['episodes']} episodes on MJX, {point['seconds']}s)"
             + (f"; sampled T={rl.grpo.temperature:g} {sampled['mean']:.3f}" if sampled else "")
+            + (f"; sampled, proprio masked {trained['mean']:.3f}" if trained else "")
             + f"; probe flips vs start {extra['probe']['flip_rate_vs_start']:.3f}, top-1 margin "
               f"{extra['probe']['top1_margin']:.3f}")
         return point, extra
@@ -209,7 +239,8 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="env", **{
         "sim.tasks": tasks, "sim.init_seed": cfg.sim.init_seed, "sim.max_steps": cfg.sim.max_steps,
-        "sim.resolution": cfg.sim.resolution})
+        "sim.resolution": cfg.sim.resolution},
+        **({"keyframe_episodes": keyframes.num_episodes} if rl.env.starts == "keyframes" else {}))
     result, curve = train_grpo(runner.step, grpo.init_state(params, rl), lambda step: step,
                                key=stream_key(root, "grpo/mjx_rollouts"), rl=rl, workdir=workdir, evaluate=evaluate,
                                run_id=run_id, progress=progress, curve_label="GRPO in the ground-truth MJX environments",

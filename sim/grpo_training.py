@@ -69,7 +69,8 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
             keyframes = demos if rl.env.starts == "keyframes" else None
         if rl.env.backend == "mjx":
             return grpo_env.run_in_mjx(cfg, rl, graphdef, params, workdir,
-                                       episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task)
+                                       episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
+                                       keyframes=keyframes)
         return grpo_env.run_in_env(cfg, rl, graphdef, params, workdir,
                                    episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
                                    workers=env_workers, renderer=renderer, reckoning=reckoning, keyframes=keyframes,

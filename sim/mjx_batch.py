@@ -44,18 +44,23 @@ class MjxEpisodes:
         renderer = camera_renderer(scene.build_model(), resolution=resolution)
         self.env = MjxEnv(config, 0, renderer=renderer)
         self.nq = self.env.nq
+        self.flat_size = 1 + self.env.mjx_model.nq + self.env.mjx_model.nv  # a recorded [time, qpos, qvel]
 
     def _observation(self, state: Any) -> dict[str, jax.Array]:
         return {"frames": state.obs["agentview_rgb"], "proprio": state.obs["proprio"].astype(jnp.float32)}
 
-    def reset(self, qpos: jax.Array) -> tuple[Any, dict[str, jax.Array]]:
-        """``qpos [N, nq]`` initial states (any tasks) -> ``(data, obs)``, after the settle steps (pure).
+    def reset(self, starts: jax.Array) -> tuple[Any, dict[str, jax.Array]]:
+        """Start states (any tasks) -> ``(data, obs)`` (pure): ``[N, nq]`` initial qpos, each settled
+        into a new episode, or ``[N, 1 + nq + nv]`` recorded flat states (``[time, qpos, qvel]``, a
+        dataset's ``states[t]``), each continued without settling, as the C engine's lockstep episodes
+        tell the two apart.
 
         ``obs``: ``frames [N, H, W, 3]`` uint8, ``proprio [N, 8]`` float32.
         """
-        if qpos.ndim != 2 or qpos.shape[1] != self.nq:
-            raise ValueError(f"MjxEpisodes.reset: qpos must be [N, {self.nq}], got {qpos.shape}")
-        state = jax.vmap(self.env.reset_to)(qpos)
+        if starts.ndim != 2 or starts.shape[1] not in (self.nq, self.flat_size):
+            raise ValueError(f"MjxEpisodes.reset: starts must be [N, {self.nq}] initial qpos or [N, {self.flat_size}] "
+                             f"flat states [time, qpos, qvel], got {starts.shape}")
+        state = jax.vmap(self.env.reset_to if starts.shape[1] == self.nq else self.env.restore)(starts)
         return state.data, self._observation(state)
 
     def step(self, data: Any, actions: jax.Array) -> tuple[Any, dict[str, jax.Array], jax.Array]:

@@ -97,6 +97,24 @@ class MjxEnv(_Common, Env):
         data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
         return self._state(data, info={})
 
+    def restore(self, flat_state: jax.Array) -> MjxState:
+        """An episode continued from a recorded state (pure): a dataset's flattened ``states[t]`` (``[time,
+        qpos, qvel]``, LIBERO's layout), with no settling, as :meth:`sim.env.CpuEnv.restore` continues it:
+        the arm's servos hold the recorded pose and the gripper is open until the controller rewrites the
+        controls at the next step."""
+        flat = jnp.asarray(flat_state, jnp.float32)
+        nq, nv = self.mjx_model.nq, self.mjx_model.nv
+        if flat.shape != (1 + nq + nv,):
+            raise ValueError(f"MjxEnv.restore: flat state must have shape ({1 + nq + nv},) = [time, qpos ({nq}), "
+                             f"qvel ({nv})], got {flat.shape}")
+        qpos, qvel = flat[1: 1 + nq], flat[1 + nq:]
+        ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
+        mjx = _mjx()
+        with _mjx_promotion():
+            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, qvel=qvel, ctrl=ctrl, time=flat[0])
+            data = _mjx_forward(self.mjx_model, data)
+        return self._state(data, info={})
+
     def _physics(self, data: Any, action: jax.Array) -> Any:
         from mujoco.mjx._src import support
 

@@ -1,5 +1,6 @@
 """benchmarks.bench_grpo_arms: the arms' commands and the greedy/sampled summary it writes from their files."""
 
+import dataclasses
 import json
 import sys
 from types import SimpleNamespace
@@ -207,8 +208,10 @@ def test_the_grpo_loop_places_host_parameters_before_its_first_step(tmp_path):
 
 
 def test_grpo_seeds_places_one_run_per_gpu_with_multicast_off_and_passes_the_overrides(tmp_path):
+    rl = configs.get("sword:small").rl
+    mjx = dataclasses.replace(rl, env=dataclasses.replace(rl.env, backend="mjx"))
     args = SimpleNamespace(seeds="0,1,2", repeat_seed=0, gpus="0,1,2,3", out=str(tmp_path), policy="p.npz",
-                           eval_episodes=50, config_name="sword:small")
+                           eval_episodes=50, config_name="sword:small", rl=mjx, demos=[])
     commands = bench_policy.seed_commands(args, ["--rl.env.backend=mjx", "--rl.grpo.steps=60"])
     assert [c[0] for c in commands] == [str(tmp_path / n / "grpo_env_mjx") for n in ("s0", "s1", "s2", "s0_repeat")]
     assert [c[2]["CUDA_VISIBLE_DEVICES"] for c in commands] == ["0", "1", "2", "3"]
@@ -220,6 +223,13 @@ def test_grpo_seeds_places_one_run_per_gpu_with_multicast_off_and_passes_the_ove
     assert all(c[2]["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.45" for c in shared)
     with pytest.raises(SystemExit, match="--seeds"):
         bench_policy.seed_commands(SimpleNamespace(**{**vars(args), "seeds": ""}), [])
+    # the learned simulator's setting: the work dir names it, and every run reads the demonstrations
+    setting = dataclasses.replace(mjx, env=dataclasses.replace(mjx.env, starts="keyframes", proprio="missing"))
+    arm = bench_policy.seed_commands(SimpleNamespace(**{**vars(args), "rl": setting, "demos": ["a.hdf5", "b.hdf5"],
+                                                        "repeat_seed": None}), [])
+    assert [c[0] for c in arm] == [str(tmp_path / n / "grpo_env_proprio_missing_starts_keyframes_mjx")
+                                   for n in ("s0", "s1", "s2")]
+    assert all("--demos=a.hdf5" in c[1] and "--demos=b.hdf5" in c[1] for c in arm)
 
 
 def test_execution_modes_of_the_policy_evaluations():

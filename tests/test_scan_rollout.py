@@ -240,3 +240,42 @@ def test_the_masked_evaluation_runs_the_policy_without_proprio(tmp_path):
     point, extra = runner.evaluate(params, step=0, sampled=True, masked=True)
     assert extra["sampled_proprio_masked"]["episodes"] == 4 and "sampled" in extra
     assert kept.shape == (4,)
+
+
+def test_env_grpo_trains_in_the_learned_simulators_setting_and_evaluates_in_the_real_one(tmp_path):
+    """train_max_steps / train_execute_steps / train_proprio: the training rollouts run the learned
+    simulator's horizon and execution with the policy's "missing proprio" input, while the evaluation keeps
+    the episode limit, every-step ensembled execution and true proprio."""
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, grpo=dataclasses.replace(
+        cfg.rl.grpo, rollout_batch=2, group_size=4, minibatches=1, ppo_epochs=1, update_microbatch=0))
+    assert rl.env.execute_steps == 1 and rl.env.action_ensemble and rl.chunk_len % 4 == 0
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
+    far = np.array([[-1.0], [-1.2]], np.float32)  # 8 actions of at most 0.1 cannot reach the goal
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=20, starts_at=lambda s, r: (far, tokens),
+                     eval_starts=np.array([[0.3], [-1.0]], np.float32),
+                     eval_tokens=tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes),
+                     eval_tasks=[0, 1], key=jax.random.key(3), train_max_steps=8, train_execute_steps=4,
+                     train_proprio=False)
+    assert runner.train_rl.env.execute_steps == 4 and not runner.train_rl.env.action_ensemble
+    assert runner.rl.env.execute_steps == 1  # the evaluation's own execution is untouched
+    _, metrics = runner.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
+    assert float(metrics["env_steps"]) == 8 * 8 and float(metrics["rollout_success"]) == 0.0
+    starts = jnp.asarray(np.repeat(far, 4, 0))
+    rollout, _ = runner.train_rollout(params, starts, jnp.asarray(np.repeat(tokens, 4, 0)), jax.random.key(0), False,
+                                      False, runner._valid(0.0))
+    assert rollout.valid.shape[1] == 2 and np.all(np.asarray(rollout.proprio_valid) == 0)  # 2 decisions of 4
+    evaluated, _ = runner.rollout(params, jnp.asarray(runner.eval_starts[[1] * 8]),
+                                  jnp.asarray(runner.eval_tokens[[1] * 8]), jax.random.key(0), True, True,
+                                  runner._valid(1.0))
+    assert evaluated.valid.shape[1] == 20  # the evaluation re-plans every action for its 20
+    plain = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=20, starts_at=lambda s, r: (far, tokens),
+                    eval_starts=runner.eval_starts, eval_tokens=runner.eval_tokens, eval_tasks=[0, 1],
+                    key=jax.random.key(3))
+    assert plain.train_rollout is plain.rollout and plain.train_proprio
+    _, plain_metrics = plain.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
+    assert float(plain_metrics["env_steps"]) == 8 * 20
+    with pytest.raises(ValueError, match="train_max_steps"):
+        EnvGRPO(graphdef, rl, SlideEnv(), max_steps=20, starts_at=lambda s, r: (far, tokens), eval_starts=far,
+                eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(3), train_max_steps=0)

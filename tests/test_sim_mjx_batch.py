@@ -81,3 +81,25 @@ def test_mjx_episodes_follow_the_c_engine_under_the_same_actions():
     np.testing.assert_allclose(np.asarray(obs["proprio"])[:, :3], ref["proprio"][:, :3], atol=5e-3)
     diff = np.abs(np.asarray(obs["frames"]).astype(np.int32) - ref["frames"].astype(np.int32))
     assert diff.mean() < 2.0
+
+
+def test_mjx_episodes_continue_recorded_states_as_the_c_engine_restores_them():
+    """MjxEpisodes.reset of recorded flat states ([time, qpos, qvel], a dataset's states[t]) continues them
+    without settling: the frames and proprio are the C engine's restored ones; a wrong width is refused."""
+    env = CpuEnv(SimConfig(), task_id=5)
+    out = expert.rollout_cpu(env, env.init_states[1], max_steps=60, record=True)
+    chosen = [out["states"][10], out["states"][40]]
+    flat = np.stack([np.concatenate([[s.data.time], s.data.qpos, s.data.qvel]) for s in chosen]).astype(np.float32)
+    batch = MjxEpisodes(SimConfig(), resolution=RES)
+    assert flat.shape[1] == batch.flat_size != batch.nq
+    data, obs = jax.jit(batch.reset)(jnp.asarray(flat))
+    with LockstepEnvs([(5, f) for f in flat.astype(np.float64)], resolution=RES, max_steps=5) as ref_envs:
+        ref = ref_envs.reset()
+    np.testing.assert_allclose(np.asarray(data.qpos), flat[:, 1: 1 + batch.nq], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(data.time), flat[:, 0], atol=1e-6)
+    np.testing.assert_allclose(obs["proprio"], ref["proprio"], atol=2e-4)
+    diff = np.abs(np.asarray(obs["frames"]).astype(np.int32) - ref["frames"].astype(np.int32))
+    assert diff.mean() < 0.3 and np.mean(diff == 0) > 0.97, (diff.mean(), np.mean(diff == 0))
+    assert not np.array_equal(np.asarray(obs["frames"][0]), np.asarray(obs["frames"][1]))  # two different states
+    with pytest.raises(ValueError, match="flat states"):
+        batch.reset(jnp.zeros((2, batch.flat_size + 1)))

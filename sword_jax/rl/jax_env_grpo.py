@@ -22,6 +22,7 @@ start (``flip_rate``) and the mean gap between the best and second-best bin's lo
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import os
@@ -89,12 +90,17 @@ class EnvGRPO:
       eval_starts / eval_tokens / eval_tasks: the fixed evaluation episodes (``[E, ...]``, ``[E, L]``, ``[E]``).
       key: the root of every sampling key.
       log: where progress lines go.
+      train_max_steps / train_execute_steps / train_proprio: the training rollouts' action limit,
+        actions executed per decision and whether the policy reads its proprio (False: its "missing
+        proprio" input); default: the evaluation's (``max_steps``, ``rl.env.execute_steps``, True).
+        The learned simulator's setting is e.g. 48 actions, 4 per decision, proprio missing.
     """
 
     def __init__(self, graphdef: nnx.GraphDef, rl: RLConfig, env: JaxEnv, *, max_steps: int,
                  starts_at: Callable[[int, int], tuple[np.ndarray, np.ndarray]], eval_starts: np.ndarray,
                  eval_tokens: np.ndarray, eval_tasks: Sequence[int], key: jax.Array,
-                 log: Callable[[str], Any] = print):
+                 log: Callable[[str], Any] = print, train_max_steps: int | None = None,
+                 train_execute_steps: int | None = None, train_proprio: bool = True):
         rl.validate()
         self.graphdef, self.rl, self.env, self.max_steps = graphdef, rl, env, max_steps
         self.starts_at, self.key, self.log = starts_at, key, log
@@ -102,6 +108,18 @@ class EnvGRPO:
         self.eval_tasks = np.asarray(eval_tasks)
         self.batch = rl.grpo.rollout_batch * rl.grpo.group_size  # trajectories per compiled rollout
         self.rollout = jax.jit(self._rollout_impl)
+        self.train_max_steps = max_steps if train_max_steps is None else int(train_max_steps)
+        if self.train_max_steps < 1:
+            raise ValueError(f"EnvGRPO: train_max_steps must be >= 1, got {self.train_max_steps}")
+        self.train_rl = rl
+        if train_execute_steps is not None and train_execute_steps != rl.env.execute_steps:
+            self.train_rl = dataclasses.replace(rl, env=dataclasses.replace(
+                rl.env, execute_steps=int(train_execute_steps), action_ensemble=False))
+            self.train_rl.validate()
+        self.train_proprio = bool(train_proprio)
+        same = self.train_max_steps == max_steps and self.train_rl is rl
+        self.train_rollout = self.rollout if same else jax.jit(
+            lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=self.train_max_steps))
         self.update = jax.jit(lambda state, batch, key: grpo.grpo_update(graphdef, rl, state, batch, key),
                               donate_argnums=(0,))
         self.select = jax.jit(select_groups, static_argnums=(1, 2))
@@ -109,9 +127,11 @@ class EnvGRPO:
         self.probe: dict[str, np.ndarray] | None = None
         self.probe_dir, self.reference_tokens = "", None
 
-    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None):
-        return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl, key=key, greedy=greedy,
-                            ensemble=ensemble, max_steps=self.max_steps, proprio_valid=proprio_valid)
+    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None, *, rl=None,
+                      max_steps=None):
+        return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl if rl is None else rl, key=key,
+                            greedy=greedy, ensemble=ensemble, max_steps=self.max_steps if max_steps is None else max_steps,
+                            proprio_valid=proprio_valid)
 
     # ---- training -------------------------------------------------------------------------------------
     def step(self, state: grpo.GRPOState, step: int, key: jax.Array) -> tuple[grpo.GRPOState, dict[str, jax.Array]]:
@@ -126,8 +146,9 @@ class EnvGRPO:
             starts, tokens = self.starts_at(step, r)
             starts = np.repeat(np.asarray(starts), g, axis=0)
             tokens = np.repeat(np.asarray(tokens), g, axis=0)
-            rollout, stats = self.rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
-                                          jax.random.fold_in(step_key, r), False, False, self._valid(1.0))
+            rollout, stats = self.train_rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
+                                                jax.random.fold_in(step_key, r), False, False,
+                                                self._valid(float(self.train_proprio)))
             rounds.append(rollout)
             steps_taken += int(jnp.sum(stats.steps))
             broken += int(jnp.sum(stats.broken))
