@@ -310,6 +310,9 @@ def run_grpo(cfg, args) -> dict:
 POLICIES = ("greedy", "sampled", "sampled_proprio_masked")
 
 
+GROUND_TRUTH_KEY = "policy_grpo_ground_truth_gain_small"  # the seeds stage's record (--record-as names another)
+
+
 def _policy_point(point: dict, policy: str) -> dict | None:
     """The evaluation ``point``'s figures for ``policy``: the greedy (ensembled) run is the point itself,
     the others its entry of that name (None when that evaluation did not run that policy)."""
@@ -404,8 +407,12 @@ def run_seeds(args) -> dict:
     if args.record:
         any_run = next(iter(per_seed.values()))
         policy = "greedy" if deployed == "greedy" else f"sampled at T={temperature}"
-        common.merge_results({"policy_grpo_ground_truth_gain_small": common.record(
-            "policy_grpo_ground_truth_gain_small", summary["min_gain"], 0.15,
+        key = getattr(args, "record_as", "") or GROUND_TRUTH_KEY
+        extra = {"note": args.note} if getattr(args, "note", "") else {}
+        if getattr(args, "device", ""):  # where the runs ran: the summary itself reads their files anywhere
+            extra["device"] = args.device
+        common.merge_results({key: common.record(
+            key, summary["min_gain"], 0.15 if key == GROUND_TRUTH_KEY else None, **extra,
             value_is=f"smallest gain over seeds of the deployed policy ({policy}), step 0 to the last evaluation, "
                      f"500 MJX episodes",
             deployed=deployed, per_seed={d: {k: r[k] for k in ("gain", "ci95", "start", "end", "steps", *POLICIES,
@@ -475,7 +482,8 @@ def run_grpo_seeds(args, overrides: list[str]) -> dict:
 
 
 def _plot_seeds(curves: dict, path: str, *, repeat: Sequence[str] = (), temperature: float | None = None) -> None:
-    """One panel per policy (greedy, sampled), one curve per run with its 95% intervals (repeats dashed)."""
+    """One panel per policy that was evaluated (:data:`POLICIES`), one curve per run with its 95% intervals
+    (repeats dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -485,7 +493,8 @@ def _plot_seeds(curves: dict, path: str, *, repeat: Sequence[str] = (), temperat
 
     panels = [p for p in POLICIES if any(c[p] for c in curves.values())]
     fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 4.2), sharey=True, squeeze=False)
-    titles = {"greedy": "greedy (deployed with ensembling)", "sampled": f"sampled at T={temperature}"}
+    titles = {"greedy": "greedy (deployed with ensembling)", "sampled": f"sampled at T={temperature}",
+              "sampled_proprio_masked": f"sampled at T={temperature}, proprio masked"}
     for ax, policy in zip(axes[0], panels):
         for i, (name, by_policy) in enumerate(curves.items()):
             points = by_policy[policy]
@@ -537,6 +546,12 @@ def main(argv=None) -> None:
     parser.add_argument("--gen-procs-per-task", type=int, default=1, help="demonstration processes per task")
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")
+    parser.add_argument("--record-as", default="",
+                        help=f"seeds: the latest.json key of the record (default {GROUND_TRUTH_KEY}, whose target is "
+                             "0.15; any other key has none), e.g. for runs in another setting")
+    parser.add_argument("--note", default="", help="seeds: a note stored with the record")
+    parser.add_argument("--device", default="", help="seeds: the device the runs ran on, stored with the record "
+                                                     "(default: this machine's)")
     parser.add_argument("--runs", default="", help="seeds: comma list of GRPO work dirs")
     parser.add_argument("--repeat", default="", help="seeds: two work dirs of the same seed (A,B)")
     parser.add_argument("--repeat-step", type=int, default=50, help="seeds: the step the repeats are compared at")

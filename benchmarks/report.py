@@ -499,6 +499,54 @@ def grpo_refresh_three_seeds_diagnosis() -> str:
                    "guard rollbacks at step (to step)"], rows)
 
 
+SETTING_ARMS = ("policy", "grpo_env_setting_arms_mjx_2xh200")
+SETTING_ARM_LABELS = {"A": "the learned simulator's: keyframes, 48 actions by 4, proprio missing",
+                      "B": "keyframes, 48 actions by 4, true proprio", "C": "from rest, 220 actions, proprio missing"}
+GROUND_TRUTH_SEEDS = ("policy", "grpo_mjx_seeds_small_4xh100")
+
+
+def _gain_at(points: list[dict], step: int, policy: str) -> str:
+    """The gain of ``policy`` (``greedy``: the point, else its entry) from step 0 to ``step``, with its
+    Newcombe interval, as ``+0.068 [+0.006, +0.129]``."""
+    from benchmarks.bench_policy import diff_interval
+
+    at = {p["step"]: (p if policy == "greedy" else p.get(policy)) for p in points}
+    a, b = at.get(0), at.get(step)
+    if a is None or b is None:
+        return ""
+    lo, hi = diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"])
+    return f"{b['mean'] - a['mean']:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+
+
+def grpo_setting_arms() -> str:
+    """Ground-truth GRPO on MJX in the learned simulator's setting, one part at a time, per seed at step 20,
+    beside the ground-truth recipe's runs (true proprio from rest) at the same step."""
+    rows = []
+    root = os.path.join(RESULTS_DIR, *SETTING_ARMS)
+    for arm, label in SETTING_ARM_LABELS.items():
+        for seed_dir in sorted(d for d in os.listdir(os.path.join(root, arm)) if re.fullmatch(r"s\d+", d)):
+            run = next(os.path.join(root, arm, seed_dir, d) for d in sorted(os.listdir(os.path.join(root, arm, seed_dir)))
+                       if d.startswith("grpo_env") and os.path.isdir(os.path.join(root, arm, seed_dir, d)))
+            with open(os.path.join(run, "success_curve.json")) as f:
+                points = json.load(f)["points"]
+            with open(os.path.join(run, "train_history.jsonl")) as f:
+                history = [json.loads(line) for line in f if line.strip()]
+            last = points[-1]["step"]
+            rollouts = [h["rollout_success"] for h in history]
+            rows.append([label, seed_dir, str(last), _gain_at(points, last, "sampled"), _gain_at(points, last, "greedy"),
+                         _gain_at(points, last, "sampled_proprio_masked") or "not run",
+                         f"{statistics.median(h['mixed_fraction'] for h in history):.2f}",
+                         f"{statistics.mean(rollouts[:5]):.2f} -> {statistics.mean(rollouts[-5:]):.2f}",
+                         f"{statistics.mean(h['env_steps'] for h in history) / 1000:.0f} k"])
+    for seed_dir in ("s0", "s1", "s2"):
+        points = _load(*GROUND_TRUTH_SEEDS, seed_dir, "grpo_env_mjx", "success_curve.json")["points"]
+        rows.append(["the ground-truth recipe: from rest, 220 actions, true proprio (4 x H100)", seed_dir, "20",
+                     _gain_at(points, 20, "sampled"), _gain_at(points, 20, "greedy"), "not run", "", "", ""])
+    return _table(["rollouts' setting", "seed", "GRPO steps", "sampled gain (true proprio), 95% interval",
+                   "greedy gain", "sampled gain, proprio masked", "groups mixed (median)",
+                   "training rollouts' success, steps 1-5 -> last 5", "env steps a GRPO step"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -510,6 +558,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-separation": grpo_refresh_separation,
     "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
+    "grpo-setting-arms": grpo_setting_arms,
 }
 
 

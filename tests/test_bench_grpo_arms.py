@@ -153,6 +153,21 @@ def test_seeds_stage_with_the_sampled_policy_deployed(tmp_path, monkeypatch):
     assert record["value"] == pytest.approx(0.244) and record["deployed"] == "sampled"
     assert "sampled at T=0.7" in record["value_is"] and record["best_min_gain"] == pytest.approx(0.08)
     assert (tmp_path / "grpo_ground_truth_seeds.png").stat().st_size > 0
+    # rl.env.proprio=missing: the masked sampled policy (the trained mode) gets its gain and its own panel
+    masked = [_point(0, 350, sampled=250), _point(20, 360, sampled=290)]
+    masked[0]["sampled_proprio_masked"] = dict(masked[0]["sampled"], mean=0.45, successes=225)
+    masked[1]["sampled_proprio_masked"] = dict(masked[1]["sampled"], mean=0.55, successes=275)
+    m_dir = _arm(tmp_path / "m", "s0", masked) + "/rl/grpo"
+    m_summary = bench_policy.run_seeds(SimpleNamespace(runs=m_dir, repeat="", repeat_step=50, out=str(tmp_path / "m"),
+                                                       record=True, deployed="sampled", record_as="policy_grpo_x",
+                                                       note="an arm", device="NVIDIA H200 x2"))
+    other = recorded["policy_grpo_x"]  # another setting's record: its own key, no target, where the runs ran
+    assert other["target"] is None and other["device"] == "NVIDIA H200 x2" and other["note"] == "an arm"
+    assert other["value"] == pytest.approx(0.08) and recorded["policy_grpo_ground_truth_gain_small"] is record
+    m_entry = m_summary["per_seed"][m_dir]
+    assert m_entry["sampled_proprio_masked"]["gain"] == pytest.approx(0.1) and m_entry["gain"] == pytest.approx(0.08)
+    assert [p[1] for p in m_summary["curves"][m_dir]["sampled_proprio_masked"]] == [0.45, 0.55]
+    assert s0["sampled_proprio_masked"] is None  # not evaluated: no gain, no panel
     (tmp_path / "s2" / "rl" / "grpo").mkdir(parents=True)
     (tmp_path / "s2" / "rl" / "grpo" / "success_curve.json").write_text(json.dumps({"points": [_point(0, 1), _point(5, 2)]}))
     with pytest.raises(SystemExit, match="no sampled figure"):

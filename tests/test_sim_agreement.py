@@ -360,6 +360,19 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
         keyframe_env_starts(stateless, rl, seed=7, step=0)
     with pytest.raises(ValueError, match="rl.env.starts must be initial"):
         RLConfig(env=EnvConfig(starts="middle")).validate()
+    with pytest.raises(ValueError, match="reckoned runs on rl.env.backend=cpu only"):
+        RLConfig(env=EnvConfig(backend="mjx", proprio="reckoned")).validate()
+    RLConfig(env=EnvConfig(backend="mjx", proprio="missing", starts="keyframes")).validate()
+    # MJX draws a round's starts with the same sampler: round 0 is the C engine's step, a later round another draw
+    from sim.grpo_env import keyframe_picks
+
+    first = keyframe_picks(episodes, rl, seed=7, step=3)
+    again = keyframe_picks(episodes, rl, seed=7, step=3, round_=0)
+    assert [t for t, _ in first] == [t for t, _ in again]
+    assert [t for t, _ in keyframe_env_starts(episodes, rl, seed=7, step=3)][:: rl.grpo.group_size] == [t for t, _ in first]
+    assert len(first) == rl.grpo.rollout_batch and all(f.shape == episodes.states.shape[2:] for _, f in first)
+    other = keyframe_picks(episodes, rl, seed=7, step=3, round_=1)
+    assert any(not np.array_equal(a, b) for (_, a), (_, b) in zip(first, other))
     # a run from keyframes is another run than one from rest: resuming one from the other's checkpoint is refused
     from sword_jax.rl.grpo_loop import grpo_run_id
 

@@ -516,7 +516,8 @@ class EnvConfig:
         or rl.chunk_len`` actions, executed as it executes them; evaluations keep ``execute_steps``). With
         ``proprio=missing``, GRPO in the real environments then has the learned simulator's
         setting with true dynamics and true success: whether that setting can lift success from
-        rest, free of world-model error.
+        rest, free of world-model error. Both backends run every start and the proprio modes ``true``
+        and ``missing``; ``reckoned`` runs on ``cpu`` only.
     """
 
     backend: str = "cpu"  # cpu | mjx
@@ -539,6 +540,9 @@ class EnvConfig:
             raise ValueError(f"rl.env.starts must be initial|keyframes, got {self.starts!r}")
         if self.backend not in ("cpu", "mjx"):
             raise ValueError(f"rl.env.backend must be cpu|mjx, got {self.backend!r}")
+        if self.backend == "mjx" and self.proprio == "reckoned":
+            raise ValueError("rl.env.proprio=reckoned runs on rl.env.backend=cpu only (MJX rollouts read proprio true "
+                             "or missing)")
 
 
 # The flat keys of earlier versions -> where they live now (relative to ``rl``): the command line
