@@ -350,6 +350,7 @@ def summarize_run(folder: str) -> dict:
                          "threshold": (r.get("detector") or {}).get("threshold"),
                          "calibration": (r.get("detector") or {}).get("calibration"),
                          "separation_before": separations((r.get("replay") or {}).get("imagined_success_by_horizon")),
+                         "within_group_before": (r.get("replay") or {}).get("within_group"),
                          "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
                          "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
                          "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
@@ -472,15 +473,26 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "", c
 
 def compact_refresh(entry: dict) -> dict:
     """A summary's refresh entry as ``latest.json`` keeps it: the real success, the replay's false successes and
-    separation by 48 actions before the refresh, the threshold and the separation after (the full entry, with
-    the calibration's trade-off, stays in the summary JSON)."""
+    separation by 48 actions before the refresh (inside the groups too, with grouped episodes), the threshold and
+    the separation after (the full entry, with the calibration's trade-off, stays in the summary JSON)."""
     if entry.get("skipped"):
         return {"step": entry["step"], "skipped": entry["skipped"]}
     fs = entry.get("false_success_before") or {}
     return {"step": entry["step"], "real_success": entry.get("real_success"), "false_success_before": fs.get("rate"),
             "separation_before_48": (entry.get("separation_before") or {}).get("48"),
             "threshold": entry.get("threshold"), "separation_after_48": (entry.get("separation_after") or {}).get("48"),
-            "trusted": (entry.get("trust") or {}).get("trusted")}
+            "trusted": (entry.get("trust") or {}).get("trusted"),
+            **within_group_48(entry.get("within_group_before"))}
+
+
+def within_group_48(within: dict | None) -> dict:
+    """With grouped refresh episodes (``rl.refresh.group_size``): the separation of real outcomes inside the
+    groups by 48 actions and the share of groups the simulator's verdicts leave mixed, before the refresh."""
+    if not within or "48" not in within:
+        return {}
+    return {"within_group_separation_before_48": within["48"]["separation"],
+            "imagined_mixed_groups_before_48": within["48"]["imagined_mixed"],
+            "real_mixed_groups": f"{within['mixed_real_groups']} of {within['groups']}"}
 
 
 def run_label(name: str) -> str:

@@ -55,7 +55,7 @@ class Slide:
         return pos, self._obs(pos), pos > self.goal
 
 
-def _cfg(workdir):
+def _cfg(workdir, group_size=1):
     cfg = configs.get("sword:tiny")
     rl = cfg.rl
     rl = dataclasses.replace(
@@ -65,7 +65,7 @@ def _cfg(workdir):
         reward_model=dataclasses.replace(rl.reward_model, batch_size=8),
         refresh=RefreshConfig(every=1, episodes=4, budget=6, episode_steps=cfg.data.episode_frames, world_model_steps=2,
                               detector_steps=2, replay_share=0.5, calibrate_fraction=0.5,
-                              horizons=(4, 8)))
+                              horizons=(4, 8), group_size=group_size))
     # the world model's fine-tune batch splits over the suite's 8 devices
     return dataclasses.replace(cfg, workdir=str(workdir), model=dataclasses.replace(cfg.model, num_layers=1), rl=rl,
                                data=dataclasses.replace(cfg.data, batch_size=8))
@@ -143,7 +143,9 @@ def _leaves(path):
 
 @pytest.mark.slow  # ~3.5 min on 2 cores: three short runs, each compiling the GRPO step, the fine-tunes and the replays
 def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_run, tmp_path):
-    cfg = _cfg(tmp_path / "a")
+    """Real episodes collected in groups of 2 per start (rl.refresh.group_size): each refresh's replay says how
+    the simulator separates real outcomes inside the groups, and the run resumes exactly."""
+    cfg = _cfg(tmp_path / "a", group_size=2)
     whole = _run(cfg, tiny_run, str(tmp_path / "a"), steps=2)
     records = whole["refreshes"]
     # refreshes at steps 0, 1 and 2: 4 + 2 real episodes, then the budget of 6 is spent
@@ -161,6 +163,9 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     first = records[0]
     assert first["world_model"]["real_episodes"] == 4 and records[1]["world_model"]["real_episodes"] == 6
     assert {"false_success", "missed_success", "imagined_success_by_horizon"} <= set(first["replay"])
+    within = first["replay"]["within_group"]
+    assert (within["groups"], within["group_size"]) == (2, 2) and 0 <= within["mixed_real_groups"] <= 2
+    assert 0.0 <= within["all"]["imagined_mixed"] <= 1.0 and records[1]["replay"]["within_group"]["groups"] == 1
     assert {"threshold", "shift", "imagined_frames", "real_frames", "real_frames_run_threshold"} <= set(first["detector"])
     # the detector before and after the fine-tune, judged on the same held-out real frames at the run's threshold
     before, after = first["detector"]["real_frames_run_threshold"]["before"], first["detector"]["real_frames_run_threshold"]["after"]
@@ -172,7 +177,7 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     assert calibrated["calibration"]["over_actions"] == chosen["actions"]
     assert set(calibrated["candidates"]) == set(calibrated["calibration"]["thresholds"]) == {"4", "8"}
     # stopped after the refresh at step 1 and rerun: bit-identical to the uninterrupted run
-    cfg_b = _cfg(tmp_path / "b")
+    cfg_b = _cfg(tmp_path / "b", group_size=2)
     _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=1)
     resumed = _run(cfg_b, tiny_run, str(tmp_path / "b"), steps=2)
     for key in ("loss", "success_rate", "real_episodes_used"):
@@ -186,6 +191,32 @@ def test_refreshes_update_the_models_within_the_budget_and_resume_exactly(tiny_r
     with open(os.path.join(str(tmp_path / "b"), "grpo", "success_curve.json")) as f:
         curve_b = json.load(f)["points"]
     assert [p["mean"] for p in curve_a] == [p["mean"] for p in curve_b]
+
+
+def test_grouped_collection_rolls_each_start_out_group_size_times():
+    """rl.refresh.group_size=3: 6 episodes are 2 starts x 3 consecutive rollouts that share the start, the
+    instruction and the task, and not the sampled actions; n that is not whole groups is refused."""
+    from sword_jax.pipeline.grpo_refresh import make_collect
+
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False),
+                             grpo=dataclasses.replace(cfg.rl.grpo, temperature=1.0),
+                             refresh=RefreshConfig(every=1, episodes=6, budget=12, group_size=3))
+    graphdef, params = build_policy(rl, seed=0)
+    asked = []
+
+    def collect_starts(step, n):
+        asked.append(n)
+        return _pool_starts(n, np.random.default_rng(step))
+
+    real = make_collect(graphdef, rl, Slide(), collect_starts, seed=0, steps=8)(params, 0, 6)
+    assert asked == [2] and real.num == 6
+    assert list(real.tasks) == [0, 0, 0, 1, 1, 1] and list(real.instructions) == [TEXTS[0]] * 3 + [TEXTS[1]] * 3
+    first = real.frames[:, 0]
+    assert all(np.array_equal(first[0], first[i]) for i in (1, 2)) and not np.array_equal(first[0], first[3])
+    assert not np.array_equal(real.actions[0], real.actions[1])  # one start, different sampled actions
+    with pytest.raises(ValueError, match="whole groups"):
+        make_collect(graphdef, rl, Slide(), collect_starts, seed=0, steps=8)(params, 0, 4)
 
 
 def test_recorded_episodes_keep_every_frame_and_go_on_after_success():
@@ -235,7 +266,10 @@ def test_stratified_split_takes_a_share_of_each_outcome():
 @pytest.mark.parametrize("bad, message", [(dict(every=2, episodes=4, budget=2), "budget"),
                                           (dict(every=-1), "every"),
                                           (dict(every=2, episodes=4, budget=8, calibrate_fraction=1.0), "calibrate"),
-                                          (dict(every=2, episodes=4, budget=8, horizons=(48, 24)), "horizons")])
+                                          (dict(every=2, episodes=4, budget=8, horizons=(48, 24)), "horizons"),
+                                          (dict(every=2, episodes=6, budget=12, group_size=4), "whole groups"),
+                                          (dict(every=2, episodes=4, budget=6, group_size=4), "whole groups"),
+                                          (dict(group_size=0), "group_size")])
 def test_refresh_config_refuses_bad_settings(bad, message):
     with pytest.raises(ValueError, match=message):
         RefreshConfig(**bad).validate()

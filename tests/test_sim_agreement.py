@@ -575,3 +575,31 @@ def test_calibrating_over_the_rollout_horizon_ignores_drift_past_it():
         calibrate_replays(scores, lengths, real, horizons=[6], calibration="youden")
     with pytest.raises(ValueError, match="horizons must be >= 1"):
         calibrate_replays(scores, lengths, real, horizons=[0])
+
+
+def test_within_group_separation_reads_the_actions_not_the_start():
+    """Groups of 4 episodes from one start each: a simulator that follows the actions separates the real
+    outcomes inside every mixed group; one whose verdict follows the start (the same verdict for a whole
+    group) separates them across groups, yet by 0 inside them and leaves no imagined group mixed."""
+    within_group_separation = sa.within_group_separation
+    real = np.array([1, 0, 0, 1,  1, 1, 1, 1,  0, 1, 0, 0], bool)  # groups 0 and 2 mixed, group 1 all successes
+    follows = np.where(real, 10, -1)  # imagined success at action 10 exactly where the real episode succeeded
+    out = within_group_separation(real, follows, 4, horizons=(8, 48))
+    assert (out["groups"], out["mixed_real_groups"], out["group_size"]) == (3, 2, 4)
+    assert out["48"]["separation"] == 1.0 and out["all"]["separation"] == 1.0
+    assert out["8"]["separation"] == 0.0 and out["8"]["imagined_mixed"] == 0.0  # nothing succeeds by action 8
+    assert out["48"]["imagined_mixed"] == pytest.approx(2 / 3)
+    by_start = np.repeat(np.array([20, 20, -1]), 4)  # verdicts by group: the starts of groups 0 and 1 look solvable
+    start = within_group_separation(real, by_start, 4, horizons=(48,))
+    assert start["48"]["separation"] == 0.0 and start["48"]["imagined_mixed"] == 0.0
+    # across episodes the same verdicts look informative: P(imagined | real success) - P(imagined | real failure) > 0
+    across = sa.success_by_horizon(real, by_start, horizons=(48,))["48"]
+    assert across["real_success"]["rate"] - across["real_failure"]["rate"] > 0.3
+    half = np.array([10, -1, 10, -1] * 3)  # a verdict that ignores what happened, but varies inside each group
+    assert within_group_separation(real, half, 4, horizons=(48,))["48"]["separation"] == pytest.approx(
+        np.mean([0.5 - 0.5, 0.0 - 2 / 3]))
+    assert within_group_separation(np.ones(4, bool), np.full(4, 3), 2)["all"]["separation"] is None
+    with pytest.raises(ValueError, match="whole groups"):
+        within_group_separation(real, follows, 5)
+    with pytest.raises(ValueError, match="whole groups"):
+        within_group_separation(real, follows, 1)

@@ -40,14 +40,22 @@ REFRESH_RUN_KEYS = ("every", "episodes", "budget", "episode_steps", "world_model
 def make_collect(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple], *, seed: int,
                  steps: int) -> Callable[[Any, int, int], RealEpisodes]:
     """``collect(params, step, n)``: ``n`` real episodes of the policy (:func:`record_episodes`, sampled at
-    ``rl.grpo.temperature``) from ``collect_starts(step, n) -> (env starts, instructions, tasks)``; the
-    sampling key is a function of (seed, step)."""
+    ``rl.grpo.temperature``) from ``collect_starts(step, m) -> (env starts, instructions, tasks)``; the
+    sampling key is a function of (seed, step). With ``rl.refresh.group_size`` k > 1, ``m = n / k`` starts
+    each rolled out k times, consecutive episodes (a group shares its start, not its sampled actions)."""
     record = jax.jit(lambda params, starts, tokens, key: record_episodes(graphdef, params, env, starts, tokens, rl,
                                                                          key=key, steps=steps))
     root = stream_key(jax.random.key(seed), "refresh/collect")
+    k = rl.refresh.group_size
 
     def collect(params, step, n):
-        starts, instructions, tasks = collect_starts(step, n)
+        if n % k:
+            raise ValueError(f"refresh collect: {n} episodes are not whole groups of rl.refresh.group_size={k}")
+        starts, instructions, tasks = collect_starts(step, n // k)
+        if k > 1:
+            starts = np.repeat(np.asarray(starts), k, axis=0)
+            instructions = [text for text in instructions for _ in range(k)]
+            tasks = np.repeat(np.asarray(tasks), k)
         tokens = jnp.asarray(tokenize_instructions(list(instructions), rl.policy.max_instruction_bytes))
         rec = record(params, jnp.asarray(starts), tokens, jax.random.fold_in(root, step))
         return RealEpisodes.from_recorded(jax.device_get(rec), instructions, tasks)
@@ -133,8 +141,10 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                 f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "
                 f"eta {eta:.0f}s")
 
+    # group_size enters only when it is not 1, so runs from before it was a setting still resume
+    keys = REFRESH_RUN_KEYS + (("group_size",) if rl.refresh.group_size != 1 else ())
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="world_model_refreshed", **(facts or {}),
-                         **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in REFRESH_RUN_KEYS})
+                         **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in keys})
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
                                rl=rl, workdir=workdir, evaluate=evaluate, run_id=run_id, progress=progress,
                                curve_label="GRPO in the refreshed learned simulator", log=log,

@@ -423,6 +423,13 @@ class RefreshConfig:
         to the last evaluation that passed; 0 (default) = off. The difference of two shares of 64 episodes
         each has a standard error of about 0.09, so a margin below ~0.15 trips on noise now and then.
       real_guard_min_episodes: real episodes a refresh must hold before the real-success guard judges it.
+      group_size: real episodes collected per start state (``episodes / group_size`` starts, each rolled
+        out ``group_size`` times with the policy's sampling, as a GRPO group). 1 (default): one per start.
+        Above 1 the world model is fine-tuned on different actions from the same state, and each refresh's
+        replay reports ``within_group``: whether the simulator GRPO trained in ranks the real successes of
+        a group above its real failures (:func:`~sword_jax.rl.sim_agreement.within_group_separation`), the
+        signal GRPO's group advantages need. Separation across episodes can be high while that is zero,
+        when the verdict follows the start state rather than the actions.
     """
 
     every: int = 0
@@ -443,6 +450,7 @@ class RefreshConfig:
     pause_untrusted: bool = False
     real_guard_margin: float = 0.0  # roll back when a refresh's real success falls below step 0's by this; 0 = off
     real_guard_min_episodes: int = 32  # real episodes a refresh needs before the real-success guard judges it
+    group_size: int = 1  # real episodes per start state (a GRPO group of real rollouts); 1 = one each
 
     def validate(self) -> None:
         if self.every < 0:
@@ -453,8 +461,13 @@ class RefreshConfig:
         if self.real_guard_margin and not self.every:
             raise ValueError("rl.refresh.real_guard_margin needs rl.refresh.every > 0 (it judges the refreshes' real "
                              "episodes)")
+        if self.group_size < 1:
+            raise ValueError(f"rl.refresh.group_size must be >= 1 (real episodes per start state), got {self.group_size}")
         if not self.every:
             return
+        if self.episodes % self.group_size or self.budget % self.group_size:
+            raise ValueError(f"rl.refresh.episodes={self.episodes} and budget={self.budget} must be multiples of "
+                             f"rl.refresh.group_size={self.group_size} (whole groups of real episodes)")
         if self.real_guard_margin and self.real_guard_min_episodes > self.episodes:
             raise ValueError(f"rl.refresh.real_guard_min_episodes={self.real_guard_min_episodes} exceeds "
                              f"rl.refresh.episodes={self.episodes}: the real-success guard would judge no refresh")

@@ -455,7 +455,8 @@ class Refresher:
             return record
         t0 = time.perf_counter()
         conf = self.conf
-        n = min(conf.episodes, conf.budget - self.used)
+        k = conf.group_size
+        n = min(conf.episodes, conf.budget - self.used) // k * k  # whole groups
         d = self._dir(step)
         shutil.rmtree(d, ignore_errors=True)  # a killed refresh's leftovers
         os.makedirs(d)
@@ -510,9 +511,13 @@ class Refresher:
         self.records.append(record)
         self.loaded = step
         fs = before["false_success"]
+        within = before.get("within_group")
+        within = (f"; within its groups it separated real outcomes by {within['all']['separation']:+.2f} "
+                  f"({within['mixed_real_groups']} of {within['groups']} groups mixed)"
+                  if within and within["all"]["separation"] is not None else "")
         self.log(f"refresh at step {step}: {real.num} real episodes (used {self.used}/{conf.budget}), real success "
                  f"{solved.mean():.3f}; before it the simulator called {fs['rate'] if fs['rate'] is not None else 'n/a'} "
-                 f"of {fs['of']} real failures successes; detector threshold {detector['threshold']:.4f} "
+                 f"of {fs['of']} real failures successes{within}; detector threshold {detector['threshold']:.4f} "
                  f"({record['seconds']} s)")
         return record
 
@@ -563,6 +568,9 @@ class Refresher:
         report = sim_agreement.agreement(real.solved, imagined)
         report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(real.solved,
                                                                                  np.asarray(out.first_success))
+        if self.conf.group_size > 1:  # the collected episodes come in groups sharing a start state
+            report["within_group"] = sim_agreement.within_group_separation(
+                real.solved, np.asarray(out.first_success), self.conf.group_size)
         return report
 
     def _refresh_detector(self, step: int, real: RealEpisodes, calibrate: np.ndarray, key) -> dict[str, Any]:

@@ -420,6 +420,36 @@ def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
     return out
 
 
+def within_group_separation(real: np.ndarray, first_success: np.ndarray, group_size: int,
+                            horizons: tuple[int, ...] = HORIZON_SWEEP) -> dict[str, Any]:
+    """Separation of real outcomes inside groups of episodes that share a start state: what GRPO's group
+    advantages read, where :func:`success_by_horizon` compares episodes from different starts.
+
+    Episodes ``[g k, (g + 1) k)`` form group ``g`` (``k = group_size``). Per horizon ``h`` (and ``"all"``):
+    ``separation``, over the groups whose real outcomes are mixed, the mean of P(imagined success by ``h``
+    | real success) - P(... | real failure) within the group (0 when the verdict follows the start and
+    not the actions, 1 for a perfect simulator; None without a mixed group); ``imagined_mixed``, the share
+    of all groups whose imagined verdicts by ``h`` differ (the groups that carry a learning signal in the
+    simulator). ``first_success`` is -1 where the imagined episode never succeeded.
+    """
+    real, first = np.asarray(real, bool), np.asarray(first_success)
+    if real.shape != first.shape or real.ndim != 1:
+        raise ValueError(f"within_group_separation: real {real.shape} and first_success {first.shape} must be equal "
+                         f"1-D shapes")
+    k = int(group_size)
+    if k < 2 or real.size % k:
+        raise ValueError(f"within_group_separation: {real.size} episodes are not whole groups of {k} (>= 2)")
+    groups = real.reshape(-1, k)
+    mixed = groups.any(1) & ~groups.all(1)
+    out: dict[str, Any] = {"group_size": k, "groups": int(groups.shape[0]), "mixed_real_groups": int(mixed.sum())}
+    for label, h in [*((str(h), h) for h in horizons), ("all", None)]:
+        hit = _succeeded_by(first, h).reshape(-1, k).astype(np.float64)
+        per_group = [hit[g][groups[g]].mean() - hit[g][~groups[g]].mean() for g in np.flatnonzero(mixed)]
+        out[label] = {"separation": float(np.mean(per_group)) if per_group else None,
+                      "imagined_mixed": float(np.mean(hit.min(1) != hit.max(1)))}
+    return out
+
+
 def separation(real: np.ndarray, first_success: Sequence[np.ndarray], horizon: int | None = 48, *,
                resamples: int = 2000, seed: int = 0) -> dict[str, Any]:
     """How well replays separate real outcomes by action ``horizon`` (``None``: the whole replay).
