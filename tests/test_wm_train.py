@@ -83,6 +83,32 @@ def test_ema_params_follow_the_decay(key):
     assert not np.allclose(params1["frame_mix"], ema0["frame_mix"])
 
 
+def test_action_dropout_trains_the_null_action_branch_and_keeps_its_predictions_out_of_the_cache(key):
+    """flow.action_dropout: the dropped segments are trained on the null (all-zero) actions that guidance
+    contrasts against, and write nothing into the DLB cache. A step that drops every segment is the step of
+    a batch whose actions are zeros, with the same keys; one that drops some writes only the others' slots."""
+    mesh = single_device_mesh()
+    cache_cfg = CacheConfig(dtype="float32", scope="single")
+    _, state0, _, plain, loader = build(mesh=mesh, cache_cfg=cache_cfg)
+    batch = loader.next()
+    zeroed = {**batch, "actions": jnp.zeros_like(batch["actions"])}
+    ref_state, ref = plain(jax.tree.map(jnp.copy, state0), zeroed, key)
+    _, state1, _, nearly_all, _ = build(mesh=mesh, cache_cfg=cache_cfg, flow_cfg=FlowConfig(action_dropout=0.999))
+    out_state, out = nearly_all(state1, batch, key)
+    assert float(out["action_dropped"]) == 1.0
+    assert float(out["loss"]) == float(ref["loss"])  # the same keys draw the same noise: only the actions differ
+    assert not np.any(np.asarray(out_state.cache.filled)) and np.any(np.asarray(ref_state.cache.filled))
+    _, state2, _, half, _ = build(mesh=mesh, cache_cfg=cache_cfg, flow_cfg=FlowConfig(action_dropout=0.5))
+    half_state, half_out = half(state2, batch, key)
+    dropped = float(half_out["action_dropped"])
+    assert 0.0 < dropped < 1.0
+    filled = int(np.sum(np.asarray(half_state.cache.filled)))
+    assert 0 < filled < int(np.sum(np.asarray(ref_state.cache.filled)))
+    assert "action_dropped" not in ref
+    with pytest.raises(ValueError, match="action_dropout"):
+        FlowConfig(action_dropout=1.0).validate()
+
+
 @pytest.mark.slow
 def test_teacher_forcing_step_sharded_equals_single_device(key):
     cfg = CacheConfig(enabled=False)

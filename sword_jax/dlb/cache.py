@@ -154,7 +154,8 @@ def write_predictions(
       predictions: clean future-latent estimates ``[b, p, h, w, c]`` (gradients are stopped here).
       episodes: episode index of each sample ``[b]``.
       first_future_frame: latent-frame index of each sample's first future latent ``[b]``.
-      enabled: scalar gate; False writes nothing (used to skip non-finite steps).
+      enabled: gate, a scalar (False writes nothing: a non-finite step) or one per sample ``[b]`` (False: that
+        sample writes nothing, e.g. one trained without its actions).
 
     Returns:
       The updated cache (same shapes, dtypes and shardings).
@@ -166,7 +167,10 @@ def write_predictions(
     episode_idx, frame_idx = _slot_index(episodes, frames)
     episode_flat, frame_flat = episode_idx.reshape(-1), frame_idx.reshape(-1)
     values = predictions.reshape((-1,) + predictions.shape[2:]).astype(jnp.float32)
-    valid = jnp.broadcast_to(jnp.asarray(enabled, jnp.bool_), episode_flat.shape)
+    enabled = jnp.asarray(enabled, jnp.bool_)
+    if enabled.ndim == 1:  # one gate per sample, for each of its written latents
+        enabled = jnp.broadcast_to(enabled[:, None], episode_idx.shape)
+    valid = jnp.broadcast_to(enabled, episode_idx.shape).reshape(-1)
     keep = last_writer_mask(episode_flat, frame_flat, valid)
     if cfg.replacement == "ema":
         old = cache.latents[episode_flat, frame_flat].astype(jnp.float32)

@@ -14,6 +14,10 @@ class FlowConfig:
     guidance_scale: float = 1.0
     pixel_round_trip: bool = False  # WoVR: decode and re-encode between chunks
     context_noise: float = 0.0  # WoVR context-noise augmentation (std); 0 = off
+    # share of training segments whose actions are replaced by the null actions (all zeros), the unconditional
+    # branch that guidance_scale != 1 contrasts against; 0 = off (the guidance then extrapolates from a branch the
+    # model never trained on). Dropped segments write nothing into the DLB cache.
+    action_dropout: float = 0.0
 
     def validate(self) -> None:
         if self.prediction not in ("velocity", "epsilon"):
@@ -22,6 +26,9 @@ class FlowConfig:
             raise ValueError(f"flow.shift and flow.num_train_timesteps must be positive, got {self.shift}/{self.num_train_timesteps}")
         if self.context_noise < 0:
             raise ValueError(f"flow.context_noise must be >= 0, got {self.context_noise}")
+        if not 0.0 <= self.action_dropout < 1.0:
+            raise ValueError(f"flow.action_dropout must be in [0, 1) (share of segments trained without actions), got "
+                             f"{self.action_dropout}")
         if not 1 <= self.sample_steps <= 50:
             raise ValueError(f"flow.sample_steps must be in [1, 50], got {self.sample_steps}")
 

@@ -50,6 +50,9 @@ StepFn = Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]
 STEP_KEY_NAMES = ("noise", "sigma", "context_noise", "read", "write")
 # the stream of the write key whose noise makes the inference reference of the cache_vs_inference metrics
 INFERENCE_STREAM = "dlb/inference_reference"
+# the stream of the step's key that draws flow.action_dropout's segments (apart from STEP_KEY_NAMES, so a run
+# without it draws every other key as before)
+ACTION_DROPOUT_STREAM = "world_model/action_dropout"
 
 
 def step_keys(root: jax.Array, step: jax.Array | int) -> dict[str, jax.Array]:
@@ -125,9 +128,16 @@ def make_train_step(
         sigma = flow.sample_sigmas(batch_size, flow_cfg, key=sigma_key)
         noise = jax.random.normal(noise_key, future.shape, jnp.float32)
         model_input, timesteps = flow.noisy_segment(segment, noise, sigma, num_cond, flow_cfg)
+        trained_actions, write_enabled = actions, None
+        if flow_cfg.action_dropout > 0:  # classifier-free guidance's unconditional branch, trained on a share
+            dropped = jax.random.bernoulli(stream_key(jax.random.fold_in(key, state.step), ACTION_DROPOUT_STREAM),
+                                           flow_cfg.action_dropout, (batch_size,))
+            trained_actions = jnp.where(dropped[:, None, None], sampler.null_actions(actions), actions)
+            write_enabled = ~dropped
+            metrics["action_dropped"] = jnp.mean(dropped.astype(jnp.float32))
 
         def loss_fn(params):
-            prediction = nnx.merge(graphdef, params, state.buffers)(model_input, timesteps, actions)
+            prediction = nnx.merge(graphdef, params, state.buffers)(model_input, timesteps, trained_actions)
             return flow.flow_loss(prediction, segment, noise, num_cond, flow_cfg), prediction
 
         (loss, prediction), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
@@ -147,7 +157,8 @@ def make_train_step(
                 cache_cfg, flow_cfg, model_fn, cond_latents, actions, key=write_key,
                 prediction_future=prediction[:, num_cond:], noisy_future=model_input[:, num_cond:], sigma=sigma)
             cache = dlb_cache.write_predictions(
-                cache, cache_cfg, written, batch["episode"], batch["start"] + num_context, enabled=finite)
+                cache, cache_cfg, written, batch["episode"], batch["start"] + num_context,
+                enabled=finite if write_enabled is None else finite & write_enabled)
             if cache_cfg.log_inference_distance:
                 metrics.update(_inference_distance(
                     state.step, written, model_fn, cond_latents, actions, key=stream_key(write_key, INFERENCE_STREAM)))
