@@ -73,6 +73,7 @@ def readme_results() -> str:
     gt = latest["policy_grpo_ground_truth_gain_small"]
     sword, wovr = latest["policy_grpo_world_model_gain_small"], latest["policy_grpo_wovr_world_model_refreshed_gain_small"]
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
+    setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     rows = [
         ("Claim 1: DLB vs teacher forcing, `small`, 3 seeds",
          f"latent MSE {dlb['original_latent_mse'][0]:.3f} vs {dlb['original_latent_mse'][1]:.3f} (Original), "
@@ -104,6 +105,10 @@ def readme_results() -> str:
          f"config {', '.join(_pct(r['sampled']['gain']) for r in wovr['per_seed'].values())} points in "
          f"{sword['steps']}-{max(r['steps'] for r in sword['per_seed'].values())} steps (target +10)",
          "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
+        *([("Ground-truth GRPO in the learned simulator's setting, 3 seeds",
+            f"sampled policy {_pct(setting['value'])} points or more in {setting['steps']} steps: the setting carries "
+            "over, the learned reward is what fails", "policy_grpo_ground_truth_learned_setting_gain_small",
+            f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)")] if setting else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
