@@ -219,6 +219,22 @@ def test_grouped_collection_rolls_each_start_out_group_size_times():
         make_collect(graphdef, rl, Slide(), collect_starts, seed=0, steps=8)(params, 0, 4)
 
 
+@pytest.mark.slow  # ~1 min on 2 cores
+def test_a_run_of_zero_steps_measures_the_simulators_signal_and_trains_nothing(tiny_run, tmp_path):
+    """rl.grpo.steps=0 with grouped refresh episodes: the probe of a learned simulator's signal (does its verdict
+    follow the actions from one start?) before any GRPO step: step 0's evaluation and refresh, its replay's
+    within-group separation, and a policy that did not move."""
+    cfg = _cfg(tmp_path, group_size=2)
+    out = _run(cfg, tiny_run, str(tmp_path), steps=0)
+    assert [r["step"] for r in out["refreshes"]] == [0] and out["history"] == []
+    within = out["refreshes"][0]["replay"]["within_group"]
+    assert within["groups"] == 2 and set(within) >= {"4", "8", "all"}
+    assert [p["step"] for p in out["curve"]] == [0] and out["real_episodes_used"] == 4
+    _, initial = build_policy(cfg.rl, seed=0)
+    for a, b in zip(jax.tree.leaves(initial), jax.tree.leaves(out["params"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_recorded_episodes_keep_every_frame_and_go_on_after_success():
     cfg = configs.get("sword:tiny")
     rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=3, action_ensemble=False))

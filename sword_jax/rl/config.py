@@ -429,7 +429,8 @@ class RefreshConfig:
         replay reports ``within_group``: whether the simulator GRPO trained in ranks the real successes of
         a group above its real failures (:func:`~sword_jax.rl.sim_agreement.within_group_separation`), the
         signal GRPO's group advantages need. Separation across episodes can be high while that is zero,
-        when the verdict follows the start state rather than the actions.
+        when the verdict follows the start state rather than the actions. A refreshed run of
+        ``rl.grpo.steps=0`` is the probe: step 0's refresh measures it for the simulator as trained.
     """
 
     every: int = 0
