@@ -94,9 +94,14 @@ class Pipe:
     runs_only: bool = False
 
 
+# how the world model samples, not how it was trained: a run variant may change them in Sword's pipeline
+SAMPLING_FLAGS = ("--flow.guidance_scale", "--flow.sample_steps")
+
+
 def parse_variant(text: str, flag: str = "--variant") -> tuple[str, tuple[str, ...]]:
     """``NAME=--section.key=value --section.key=value`` -> ``(NAME, overrides)``; for ``--run-variant`` every
-    override must be GRPO's (``--rl.``): the runs share Sword's pipeline."""
+    override must be GRPO's (``--rl.``) or the world model's sampling (:data:`SAMPLING_FLAGS`): the runs share
+    Sword's pipeline."""
     name, sep, rest = text.partition("=")
     overrides = tuple(shlex.split(rest))
     if not sep or not name.isidentifier() or name in ("wovr", "once", "refreshed") or not overrides:
@@ -105,9 +110,11 @@ def parse_variant(text: str, flag: str = "--variant") -> tuple[str, tuple[str, .
     bad = not_dotted_overrides(list(overrides))
     if bad:
         raise SystemExit(f"bench_grpo_refresh: {flag} {name}: not a dotted config override: {' '.join(bad)}")
-    if flag == "--run-variant" and not all(o.startswith("--rl.") for o in overrides):
+    if flag == "--run-variant" and not all(o.startswith("--rl.") or o.split("=", 1)[0] in SAMPLING_FLAGS
+                                           for o in overrides):
         raise SystemExit(f"bench_grpo_refresh: --run-variant {name}: its runs share Sword's pipeline, so it takes "
-                         f"GRPO's settings (--rl.*) only; use --variant for its own pipeline: {' '.join(overrides)}")
+                         f"GRPO's settings (--rl.*) and the world model's sampling ({', '.join(SAMPLING_FLAGS)}) only; "
+                         f"use --variant for its own pipeline: {' '.join(overrides)}")
     return name, overrides
 
 
@@ -541,7 +548,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                              "repeatable")
     parser.add_argument("--run-variant", action="append", default=[],
                         help="NAME=OVERRIDES: more GRPO runs in Sword's world model with other GRPO settings "
-                             "(--rl.* only), named NAME_refreshed_seed<k>; repeatable")
+                             "(--rl.*) or sampling (--flow.guidance_scale, --flow.sample_steps), named "
+                             "NAME_refreshed_seed<k>; repeatable")
     parser.add_argument("--run-variant-seeds", default="", help="seeds of each run variant (default: --seeds)")
     parser.add_argument("--run-variant-gpus", default="", help="GPUs the run variants' runs take in turn "
                                                                "(default: --gpus)")

@@ -229,6 +229,11 @@ def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypat
     assert "nr_refreshed_seed0 on GPU 2" in printed and "nr_refreshed_seed1 on GPU 3" in printed
     with pytest.raises(SystemExit, match="GRPO's settings"):
         bench.parse_variant("nr=--trainer.steps=5", "--run-variant")
+    with pytest.raises(SystemExit, match="GRPO's settings"):  # how the world model trained: its own pipeline
+        bench.parse_variant("ad=--flow.action_dropout=0.1", "--run-variant")
+    # how it samples is the runs' own: action guidance in the pipeline's world model
+    assert bench.parse_variant("g2=--flow.guidance_scale=2 --rl.refresh.group_size=8", "--run-variant") == (
+        "g2", ("--flow.guidance_scale=2", "--rl.refresh.group_size=8"))
 
     class Two(Run):  # two run variants of one seed each: one GPU each
         seeds, run_variant = [0], ["a=--rl.refresh.replay_share=0", "b=--rl.imagined.decoder=light"]
