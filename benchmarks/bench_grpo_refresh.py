@@ -569,7 +569,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--pipeline-seed", type=int, default=0)
     parser.add_argument("--wovr-config", default="", help="also refresh GRPO in this WoVR-config world model, e.g. "
                                                           "cache_ablation:small-wovr (its own pipeline, side by side)")
-    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--steps", type=int, default=100,
+                        help="GRPO steps of each run; 0: step 0's evaluation and refresh only, a probe of each "
+                             "simulator's signal (with --rl.refresh.group_size: its within-group separation)")
     parser.add_argument("--refresh-every", type=int, default=5)
     parser.add_argument("--budget", type=int, default=3000, help="real episodes each refreshed run may use")
     parser.add_argument("--vae-steps", type=int, default=1000)
@@ -594,9 +596,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for text in args.run_variant:
         parse_variant(text, "--run-variant")
     args.arms = {a for a in args.arms.split(",") if a}
-    if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 1 or args.refresh_every < 1 or args.budget < 64:
+    if not args.seeds or args.arms - {"refreshed", "once"} or args.steps < 0 or args.refresh_every < 1 or args.budget < 64:
         raise SystemExit("bench_grpo_refresh: --seeds needs one seed or more, --arms refreshed and/or once, --steps "
-                         "and --refresh-every >= 1, --budget >= 64 (one refresh)")
+                         ">= 0, --refresh-every >= 1, --budget >= 64 (one refresh)")
     if args.mode == "summary":
         summary = summarize(args.workdir, args.ground_truth)
         if args.out:

@@ -109,6 +109,7 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
 @pytest.mark.parametrize("argv, message", [(["run", "--workdir", "x"], "--policy"),
                                            (["summary", "--seeds", ""], "--seeds"),
                                            (["summary", "--budget", "10"], "--budget"),
+                                           (["summary", "--steps", "-1"], "--steps"),
                                            (["run", "--policy", "p", "steps=3"], "dotted")])
 def test_bad_arguments_are_one_line_errors(argv, message):
     with pytest.raises(SystemExit, match=message):
@@ -218,6 +219,12 @@ def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypat
     assert f"--world-model {tmp_path}/pipeline/world_model" in nr
     assert nr.endswith(f"--rl.refresh.replay_share=0 --workdir {tmp_path}/nr_refreshed_seed1")
     assert "replay_share" not in " ".join(runs["refreshed_seed1"])
+
+    class Probe(Run):  # --steps 0: each run is step 0's evaluation and refresh, a probe of its simulator
+        steps, run_variant = 0, ["g2=--flow.guidance_scale=2"]
+
+    probe = " ".join(bench.grpo_commands(Probe, ["--rl.refresh.group_size=8"])["g2_refreshed_seed0"])
+    assert "--rl.grpo.steps=0" in probe and "--flow.guidance_scale=2" in probe and "--rl.refresh.group_size=8" in probe
 
     builds = []
     monkeypatch.setattr(bench, "pipeline_command", lambda *a, **k: builds.append(k.get("name")) or [sys.executable, "-c", "pass"])
