@@ -316,13 +316,30 @@ def _gain(points: list[dict], key: str | None) -> dict:
     return {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
 
 
+def pending_evaluation(grpo: str, last_step: int) -> dict | None:
+    """The evaluation a run made after its curve's last point and before the refresh it was stopped inside
+    (``<grpo>/evaluations/step_*.json``, written before each refresh), marked ``refresh_incomplete``; None
+    when there is none."""
+    folder = os.path.join(grpo, "evaluations")
+    later = sorted(f for f in (os.listdir(folder) if os.path.isdir(folder) else [])
+                   if f.startswith("step_") and f.endswith(".json") and int(f[5:-5]) > last_step)
+    if not later:
+        return None
+    with open(os.path.join(folder, later[-1])) as f:
+        return dict(json.load(f), refresh_incomplete=True)
+
+
 def summarize_run(folder: str) -> dict:
     """One refreshed run's curves, gains, real episodes used and refreshes (``folder``: its work dir); with its
     ``step_times.jsonl``, the median GRPO step time and imagined frames per second inside its steps."""
     grpo = os.path.join(folder, "rl", "grpo")
     with open(os.path.join(grpo, "success_curve.json")) as f:
         points = json.load(f)["points"]
+    pending = pending_evaluation(grpo, points[-1]["step"])
+    if pending is not None:  # stopped inside the refresh after its last evaluation: that evaluation still counts
+        points = [*points, pending]
     out = {"steps": points[-1]["step"], "episodes": points[-1]["episodes"],
+           **({"last_refresh_incomplete": True} if pending is not None else {}),
            "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
            **({"sampled_proprio_masked": _gain(points, "sampled_proprio_masked")}
               if all("sampled_proprio_masked" in p for p in points) else {}),

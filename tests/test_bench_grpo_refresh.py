@@ -106,6 +106,24 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert (tmp_path / "figure.png").stat().st_size > 10_000
 
 
+def test_a_run_stopped_inside_a_refresh_keeps_the_evaluation_before_it(tmp_path):
+    """The evaluation written before a refresh (evaluations/step_*.json) counts when the run was stopped inside
+    that refresh, so its curve lacks the point; older ones and a complete curve are left as they are."""
+    grpo = tmp_path / "refreshed_seed0" / "rl" / "grpo"
+    grpo.mkdir(parents=True)
+    points = [_point(0, 0.70, 0.50, 64), _point(10, 0.72, 0.55, 128)]
+    (grpo / "success_curve.json").write_text(json.dumps({"label": "x", "points": points}))
+    (grpo / "evaluations").mkdir()
+    for p in (points[0], points[1], _point(20, 0.74, 0.40, 192)):
+        (grpo / "evaluations" / f"step_{p['step']:06d}.json").write_text(json.dumps(p))
+    run = bench.summarize_run(str(tmp_path / "refreshed_seed0"))
+    assert run["steps"] == 20 and run["last_refresh_incomplete"]
+    assert run["sampled"]["gain"] == pytest.approx(-0.10) and [c["step"] for c in run["curve"]] == [0, 10, 20]
+    (grpo / "evaluations" / "step_000020.json").unlink()
+    whole = bench.summarize_run(str(tmp_path / "refreshed_seed0"))
+    assert whole["steps"] == 10 and "last_refresh_incomplete" not in whole
+
+
 @pytest.mark.parametrize("argv, message", [(["run", "--workdir", "x"], "--policy"),
                                            (["summary", "--seeds", ""], "--seeds"),
                                            (["summary", "--budget", "10"], "--budget"),

@@ -230,6 +230,9 @@ def test_a_run_of_zero_steps_measures_the_simulators_signal_and_trains_nothing(t
     within = out["refreshes"][0]["replay"]["within_group"]
     assert within["groups"] == 2 and set(within) >= {"4", "8", "all"}
     assert [p["step"] for p in out["curve"]] == [0] and out["real_episodes_used"] == 4
+    with open(os.path.join(str(tmp_path), "grpo", "evaluations", "step_000000.json")) as f:
+        kept = json.load(f)  # the evaluation is kept apart before the refresh that follows it
+    assert kept["step"] == 0 and kept["mean"] == out["curve"][0]["mean"]
     _, initial = build_policy(cfg.rl, seed=0)
     for a, b in zip(jax.tree.leaves(initial), jax.tree.leaves(out["params"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

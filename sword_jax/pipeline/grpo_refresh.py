@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sword_jax import sharding as shd
+from sword_jax.atomic_write import write_json_atomic
 from sword_jax.pipeline.grpo import log, sampled_mixed, start_state
 from sword_jax.rl import grpo
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
@@ -126,6 +127,10 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     def evaluate(index, params):
         point, extra = evaluate_real(index, params)
         if refresher.due(index):
+            if jax.process_index() == 0:  # kept apart first: a run stopped inside the refresh (a deadline) keeps it
+                os.makedirs(os.path.join(workdir, "evaluations"), exist_ok=True)
+                write_json_atomic(os.path.join(workdir, "evaluations", f"step_{index:06d}.json"),
+                                  dict(step=int(index), **point, **extra))
             record = refresher.refresh(index, params)
             extra = dict(extra, refresh=record)
             if "replay" in record:
