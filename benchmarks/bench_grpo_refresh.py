@@ -511,10 +511,12 @@ def compact_refresh(entry: dict) -> dict:
 
 def within_group_48(within: dict | None) -> dict:
     """With grouped refresh episodes (``rl.refresh.group_size``): the separation of real outcomes inside the
-    groups by 48 actions and the share of groups the simulator's verdicts leave mixed, before the refresh."""
+    groups by 48 actions, the detector scores' ranking of them (AUC, threshold-free) and the share of groups the
+    simulator's verdicts leave mixed, before the refresh."""
     if not within or "48" not in within:
         return {}
     return {"within_group_separation_before_48": within["48"]["separation"],
+            "within_group_auc_before_48": within["48"].get("auc"),
             "imagined_mixed_groups_before_48": within["48"]["imagined_mixed"],
             "real_mixed_groups": f"{within['mixed_real_groups']} of {within['groups']}"}
 

@@ -96,9 +96,11 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert kept["real_success"] == 0.5 and kept["false_success_before"] == 0.2 and "calibration" not in kept
     assert sorted(sword["per_seed"]) == ["refreshed_seed0", "refreshed_seed1"] and sword["real_episodes_used"] == 128
     assert "within_group_separation_before_48" not in kept  # one episode per start: no groups to read
-    within = {"group_size": 4, "groups": 16, "mixed_real_groups": 9, "48": {"separation": 0.05, "imagined_mixed": 0.2}}
+    within = {"group_size": 4, "groups": 16, "mixed_real_groups": 9,
+              "48": {"separation": 0.05, "imagined_mixed": 0.2, "auc": 0.55}}
     grouped = bench.compact_refresh(dict(run["refreshes"][0], within_group_before=within))
     assert grouped["within_group_separation_before_48"] == 0.05 and grouped["imagined_mixed_groups_before_48"] == 0.2
+    assert grouped["within_group_auc_before_48"] == 0.55
     assert grouped["real_mixed_groups"] == "9 of 16"
     assert entries["policy_grpo_wovr_world_model_refreshed_gain_small"]["value"] == pytest.approx(0.05)
     assert entries["policy_grpo_sword_vs_wovr_small"]["value"] == 1

@@ -229,6 +229,7 @@ def test_a_run_of_zero_steps_measures_the_simulators_signal_and_trains_nothing(t
     assert [r["step"] for r in out["refreshes"]] == [0] and out["history"] == []
     within = out["refreshes"][0]["replay"]["within_group"]
     assert within["groups"] == 2 and set(within) >= {"4", "8", "all"}
+    assert all("auc" in within[h] for h in ("4", "8", "all"))  # the detector scores' ranking, threshold-free
     assert [p["step"] for p in out["curve"]] == [0] and out["real_episodes_used"] == 4
     with open(os.path.join(str(tmp_path), "grpo", "evaluations", "step_000000.json")) as f:
         kept = json.load(f)  # the evaluation is kept apart before the refresh that follows it

@@ -599,6 +599,21 @@ def test_within_group_separation_reads_the_actions_not_the_start():
     assert within_group_separation(real, half, 4, horizons=(48,))["48"]["separation"] == pytest.approx(
         np.mean([0.5 - 0.5, 0.0 - 2 / 3]))
     assert within_group_separation(np.ones(4, bool), np.full(4, 3), 2)["all"]["separation"] is None
+    # scores, threshold-free: a detector that ranks a group's real successes first has AUC 1 inside the groups,
+    # one whose scores follow the start has 0.5 (ties), and the horizon cuts what each episode may show
+    t = np.arange(60)
+    ranked = np.where(real[:, None], 0.2 + 0.01 * t[None], 0.1 + 0.0 * t[None])  # successes score higher, rising
+    scored = within_group_separation(real, follows, 4, horizons=(8, 48), scores=ranked)
+    assert scored["48"]["auc"] == 1.0 and scored["all"]["auc"] == 1.0
+    flat = within_group_separation(real, by_start, 4, horizons=(48,), scores=np.repeat([[0.9], [0.8], [0.1]], 4, 0)
+                                   * np.ones((1, 60)))
+    assert flat["48"]["auc"] == 0.5
+    late = np.where(real[:, None] & (t[None] >= 30), 0.9, 0.1)  # the successes show only after action 30
+    cut = within_group_separation(real, follows, 4, horizons=(8, 48), scores=late)
+    assert cut["8"]["auc"] == 0.5 and cut["48"]["auc"] == 1.0
+    assert "auc" not in within_group_separation(real, follows, 4, horizons=(48,))["48"]
+    with pytest.raises(ValueError, match="scores must be"):
+        within_group_separation(real, follows, 4, scores=np.zeros(12))
     with pytest.raises(ValueError, match="whole groups"):
         within_group_separation(real, follows, 5)
     with pytest.raises(ValueError, match="whole groups"):

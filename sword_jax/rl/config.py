@@ -427,8 +427,9 @@ class RefreshConfig:
         out ``group_size`` times with the policy's sampling, as a GRPO group). 1 (default): one per start.
         Above 1 the world model is fine-tuned on different actions from the same state, and each refresh's
         replay reports ``within_group``: whether the simulator GRPO trained in ranks the real successes of
-        a group above its real failures (:func:`~sword_jax.rl.sim_agreement.within_group_separation`), the
-        signal GRPO's group advantages need. Separation across episodes can be high while that is zero,
+        a group above its real failures (:func:`~sword_jax.rl.sim_agreement.within_group_separation`: by the
+        calibrated verdict, and by the detector's scores, threshold-free), the signal GRPO's group advantages
+        need. Separation across episodes can be high while that is zero,
         when the verdict follows the start state rather than the actions. A refreshed run of
         ``rl.grpo.steps=0`` is the probe: step 0's refresh measures it for the simulator as trained.
     """

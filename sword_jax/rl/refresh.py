@@ -572,7 +572,8 @@ class Refresher:
             run = {self.horizon()} if self.horizon() is not None else set()  # and the run's own horizons
             horizons = tuple(sorted(set(sim_agreement.HORIZON_SWEEP) | set(self.conf.horizons) | run))
             report["within_group"] = sim_agreement.within_group_separation(
-                real.solved, np.asarray(out.first_success), self.conf.group_size, horizons=horizons)
+                real.solved, np.asarray(out.first_success), self.conf.group_size, horizons=horizons,
+                scores=np.asarray(out.scores))
         return report
 
     def _refresh_detector(self, step: int, real: RealEpisodes, calibrate: np.ndarray, key) -> dict[str, Any]:

@@ -420,8 +420,15 @@ def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
     return out
 
 
+def _pair_auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """P(a score of ``pos`` > a score of ``neg``), ties counting half: 0.5 = no ranking."""
+    diff = pos[:, None] - neg[None, :]
+    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
+
+
 def within_group_separation(real: np.ndarray, first_success: np.ndarray, group_size: int,
-                            horizons: tuple[int, ...] = HORIZON_SWEEP) -> dict[str, Any]:
+                            horizons: tuple[int, ...] = HORIZON_SWEEP,
+                            scores: np.ndarray | None = None) -> dict[str, Any]:
     """Separation of real outcomes inside groups of episodes that share a start state: what GRPO's group
     advantages read, where :func:`success_by_horizon` compares episodes from different starts.
 
@@ -430,9 +437,16 @@ def within_group_separation(real: np.ndarray, first_success: np.ndarray, group_s
     | real success) - P(... | real failure) within the group (0 when the verdict follows the start and
     not the actions, 1 for a perfect simulator; None without a mixed group); ``imagined_mixed``, the share
     of all groups whose imagined verdicts by ``h`` differ (the groups that carry a learning signal in the
-    simulator). ``first_success`` is -1 where the imagined episode never succeeded.
+    simulator). ``first_success`` is -1 where the imagined episode never succeeded. With ``scores`` (``[n, T]``,
+    the detector's score after each replayed action) also ``auc``: over the mixed groups, the mean chance that a
+    real success's highest score within ``h`` actions beats a real failure's (0.5 = no ranking). It needs no
+    threshold: it says whether any recalibration of the detector could give GRPO a signal from this simulator.
     """
     real, first = np.asarray(real, bool), np.asarray(first_success)
+    if scores is not None:
+        scores = np.asarray(scores, np.float64)
+        if scores.ndim != 2 or scores.shape[0] != real.size:
+            raise ValueError(f"within_group_separation: scores must be [{real.size}, T], got {scores.shape}")
     if real.shape != first.shape or real.ndim != 1:
         raise ValueError(f"within_group_separation: real {real.shape} and first_success {first.shape} must be equal "
                          f"1-D shapes")
@@ -447,6 +461,10 @@ def within_group_separation(real: np.ndarray, first_success: np.ndarray, group_s
         per_group = [hit[g][groups[g]].mean() - hit[g][~groups[g]].mean() for g in np.flatnonzero(mixed)]
         out[label] = {"separation": float(np.mean(per_group)) if per_group else None,
                       "imagined_mixed": float(np.mean(hit.min(1) != hit.max(1)))}
+        if scores is not None:
+            best = scores[:, : scores.shape[1] if h is None else h].max(1).reshape(-1, k)
+            aucs = [_pair_auc(best[g][groups[g]], best[g][~groups[g]]) for g in np.flatnonzero(mixed)]
+            out[label]["auc"] = float(np.mean(aucs)) if aucs else None
     return out
 
 
