@@ -51,7 +51,10 @@ def keyframe_horizon(rl) -> int:
 
 
 def check_keyframe_episodes(episodes) -> None:
-    """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue (no recorded states or task ids)."""
+    """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue: none given, or without recorded
+    states or task ids."""
+    if episodes is None:
+        raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
     if episodes.states is None or episodes.tasks is None:
         raise ValueError("rl.env.starts=keyframes continues demonstrations from their recorded states; these "
                          "episodes have no states or task ids (LIBERO-layout HDF5 from train.gen_data has both)")
@@ -118,12 +121,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     horizon, rollout_rl = cfg.sim.max_steps, rl
     if rl.env.starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
-        if keyframes is None:
-            raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
+        check_keyframe_episodes(keyframes)  # now, not after the first evaluation
         horizon = keyframe_horizon(rl)
         rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
             rl.env, execute_steps=rl.imagined.execute_steps or rl.chunk_len))
-        check_keyframe_episodes(keyframes)  # now, not after the first evaluation
 
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         if rl.env.starts == "keyframes":
@@ -186,8 +187,6 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         raise ValueError(f"rl.env.backend=mjx reads proprio true or missing; got rl.env.proprio={rl.env.proprio} "
                          "(the C engine's rl.env.backend=cpu reckons it)")
     if rl.env.starts == "keyframes":
-        if keyframes is None:
-            raise ValueError("rl.env.starts=keyframes needs the demonstrations (train.grpo: --demos)")
         check_keyframe_episodes(keyframes)
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}

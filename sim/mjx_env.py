@@ -85,14 +85,18 @@ class MjxEnv(_Common, Env):
         """New episode (pure). ``rng``: a jax PRNG key (raw ``PRNGKey`` under brax's wrappers)."""
         return self.reset_to(self.initial_qpos(rng))
 
-    def reset_to(self, qpos: jax.Array) -> MjxState:
-        """New episode from a given initial qpos (nq,), then the settle steps (pure)."""
-        qpos = jnp.asarray(qpos, jnp.float32)
+    def _data_at(self, qpos: jax.Array, **recorded: jax.Array) -> Any:
+        """Fresh ``mjx.Data`` at ``qpos`` (and a recorded ``qvel``, ``time``), the arm's servos holding it, the
+        gripper open (the controller rewrites the controls at every step), kinematics computed (pure)."""
         ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
         mjx = _mjx()
         with _mjx_promotion():
-            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl)
-            data = _mjx_forward(self.mjx_model, data)  # as mjx_step's forward: the C engine's contact points
+            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=ctrl, **recorded)
+            return _mjx_forward(self.mjx_model, data)  # as mjx_step's forward: the C engine's contact points
+
+    def reset_to(self, qpos: jax.Array) -> MjxState:
+        """New episode from a given initial qpos (nq,), then the settle steps (pure)."""
+        data = self._data_at(jnp.asarray(qpos, jnp.float32))
         settle = jnp.asarray(SETTLE_ACTION)
         data = jax.lax.fori_loop(0, self.config.settle_steps, lambda _, d: self._physics(d, settle), data)
         return self._state(data, info={})
@@ -107,13 +111,7 @@ class MjxEnv(_Common, Env):
         if flat.shape != (1 + nq + nv,):
             raise ValueError(f"MjxEnv.restore: flat state must have shape ({1 + nq + nv},) = [time, qpos ({nq}), "
                              f"qvel ({nv})], got {flat.shape}")
-        qpos, qvel = flat[1: 1 + nq], flat[1 + nq:]
-        ctrl = jnp.concatenate([qpos[:7], jnp.full((2,), panda.FINGER_OPEN, jnp.float32)])
-        mjx = _mjx()
-        with _mjx_promotion():
-            data = mjx.make_data(self.mjx_model).replace(qpos=qpos, qvel=qvel, ctrl=ctrl, time=flat[0])
-            data = _mjx_forward(self.mjx_model, data)
-        return self._state(data, info={})
+        return self._state(self._data_at(flat[1: 1 + nq], qvel=flat[1 + nq:], time=flat[0]), info={})
 
     def _physics(self, data: Any, action: jax.Array) -> Any:
         from mujoco.mjx._src import support

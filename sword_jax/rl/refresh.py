@@ -569,8 +569,9 @@ class Refresher:
         report["imagined_success_by_horizon"] = sim_agreement.success_by_horizon(real.solved,
                                                                                  np.asarray(out.first_success))
         if self.conf.group_size > 1:  # the collected episodes come in groups sharing a start state
-            run = {self.horizon()} if self.horizon() is not None else set()  # and the run's own horizons
-            horizons = tuple(sorted(set(sim_agreement.HORIZON_SWEEP) | set(self.conf.horizons) | run))
+            run = self.horizon()  # and the run's own horizons
+            own = (*self.conf.horizons, *([run] if run is not None else []))
+            horizons = tuple(sorted({*sim_agreement.HORIZON_SWEEP, *own}))
             report["within_group"] = sim_agreement.within_group_separation(
                 real.solved, np.asarray(out.first_success), self.conf.group_size, horizons=horizons,
                 scores=np.asarray(out.scores))

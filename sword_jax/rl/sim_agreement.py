@@ -454,16 +454,16 @@ def within_group_separation(real: np.ndarray, first_success: np.ndarray, group_s
     if k < 2 or real.size % k:
         raise ValueError(f"within_group_separation: {real.size} episodes are not whole groups of {k} (>= 2)")
     groups = real.reshape(-1, k)
-    mixed = groups.any(1) & ~groups.all(1)
-    out: dict[str, Any] = {"group_size": k, "groups": int(groups.shape[0]), "mixed_real_groups": int(mixed.sum())}
+    mixed = np.flatnonzero(groups.any(1) & ~groups.all(1))  # the groups whose real outcomes differ
+    out: dict[str, Any] = {"group_size": k, "groups": int(groups.shape[0]), "mixed_real_groups": int(mixed.size)}
     for label, h in [*((str(h), h) for h in horizons), ("all", None)]:
         hit = _succeeded_by(first, h).reshape(-1, k).astype(np.float64)
-        per_group = [hit[g][groups[g]].mean() - hit[g][~groups[g]].mean() for g in np.flatnonzero(mixed)]
+        per_group = [hit[g][groups[g]].mean() - hit[g][~groups[g]].mean() for g in mixed]
         out[label] = {"separation": float(np.mean(per_group)) if per_group else None,
                       "imagined_mixed": float(np.mean(hit.min(1) != hit.max(1)))}
         if scores is not None:
             best = scores[:, : scores.shape[1] if h is None else h].max(1).reshape(-1, k)
-            aucs = [_pair_auc(best[g][groups[g]], best[g][~groups[g]]) for g in np.flatnonzero(mixed)]
+            aucs = [_pair_auc(best[g][groups[g]], best[g][~groups[g]]) for g in mixed]
             out[label]["auc"] = float(np.mean(aucs)) if aucs else None
     return out
 
