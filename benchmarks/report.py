@@ -464,6 +464,30 @@ def grpo_refresh_separation() -> str:
                    "real frames at the calibrated threshold: precision / recall / fires on failed"], rows)
 
 
+PROBE = ("policy", "grpo_refresh_probe_small_4xh200")
+PROBE_RUNS = (("refreshed_seed0", "Sword", "1"), ("g2_refreshed_seed0", "Sword", "2"),
+              ("g3_refreshed_seed0", "Sword", "3"), ("ad_refreshed_seed0", "Sword, action dropout 0.1", "2"))
+
+
+def grpo_refresh_probe() -> str:
+    """The probe of a simulator's signal at GRPO step 0 (seed 0): the refresh's 64 real episodes, 8 starts rolled
+    out 8 times each, replayed in the world model before it is refreshed. Per horizon, within the groups: the
+    separation of real successes from real failures by the simulator's verdict, and the detector scores' AUC
+    (0.5 = no ranking); then the share of groups the verdicts leave mixed at 48 actions (GRPO's horizon), and
+    after the refresh the calibrated separation by 48 across episodes."""
+    rows = []
+    for run_name, world_model, guidance in PROBE_RUNS:
+        record = _load(*PROBE, run_name, "rl", "grpo", "refresh", "step_000000", "record.json")
+        replay, within = record["replay"], record["replay"]["within_group"]
+        cells = [f"{within[h]['separation']:+.2f} / {within[h]['auc']:.2f}" for h in ("24", "48", "96", "all")]
+        rows.append([world_model, guidance, f"{within['groups']} x {within['group_size']}",
+                     f"{record['real_success']:.2f}", _rate(replay["false_success"]), *cells,
+                     f"{within['48']['imagined_mixed']:.2f}", f"{record['trust']['separation']:+.2f}"])
+    return _table(["world model", "action guidance", "groups", "real success", "before: false success (whole replay)",
+                   "within groups by 24: separation / AUC", "by 48", "by 96", "whole replay",
+                   "groups left mixed by 48", "after the refresh: separation by 48"], rows)
+
+
 THREE_SEEDS = ("policy", "grpo_refresh_3seeds_small_4xh200")
 
 
@@ -563,7 +587,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-separation": grpo_refresh_separation,
     "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
-    "grpo-setting-arms": grpo_setting_arms,
+    "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
 }
 
 
