@@ -378,7 +378,8 @@ def summarize_run(folder: str) -> dict:
                          "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
                          "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
                          "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
-                         "trust": r.get("trust"), "skipped": r.get("skipped")} for r in records]
+                         "trust": r.get("trust"), "skipped": r.get("skipped"), "verify": r.get("verify")}
+                        for r in records]
     return out
 
 
@@ -506,7 +507,18 @@ def compact_refresh(entry: dict) -> dict:
             "separation_before_48": (entry.get("separation_before") or {}).get("48"),
             "threshold": entry.get("threshold"), "separation_after_48": (entry.get("separation_after") or {}).get("48"),
             "trusted": (entry.get("trust") or {}).get("trusted"),
-            **within_group_48(entry.get("within_group_before"))}
+            **within_group_48(entry.get("within_group_before")), **verified(entry.get("verify"))}
+
+
+def verified(check: dict | None) -> dict:
+    """With ``rl.refresh.verify_starts``: the policy's imagined groups before the refresh, their actions executed
+    for real: the share of imagined successes that were real, of real failures imagined as successes, and the
+    separation inside the groups over the whole imagined rollout."""
+    if not check or check.get("skipped"):
+        return {"verify_skipped": check["skipped"]} if check else {}
+    return {"verify_imagined_success": check["imagined_success"], "verify_real_success": check["real_success"],
+            "verify_precision": check["precision"]["rate"], "verify_false_success": check["false_success"]["rate"],
+            "verify_within_group_separation": ((check.get("within_group") or {}).get("all") or {}).get("separation")}
 
 
 def within_group_48(within: dict | None) -> dict:

@@ -102,6 +102,13 @@ def test_summary_reads_curves_gains_and_refreshes(tmp_path):
     assert grouped["within_group_separation_before_48"] == 0.05 and grouped["imagined_mixed_groups_before_48"] == 0.2
     assert grouped["within_group_auc_before_48"] == 0.55
     assert grouped["real_mixed_groups"] == "9 of 16"
+    assert not any(k.startswith("verify") for k in grouped)  # no imagined groups were checked
+    check = {"imagined_success": 0.6, "real_success": 0.3, "precision": {"rate": 0.4}, "false_success": {"rate": 0.5},
+             "within_group": {"all": {"separation": 0.1}}}
+    checked = bench.compact_refresh(dict(run["refreshes"][0], verify=check))
+    assert (checked["verify_precision"], checked["verify_false_success"], checked["verify_within_group_separation"],
+            checked["verify_imagined_success"], checked["verify_real_success"]) == (0.4, 0.5, 0.1, 0.6, 0.3)
+    assert bench.compact_refresh(dict(run["refreshes"][0], verify={"skipped": "b"}))["verify_skipped"] == "b"
     assert entries["policy_grpo_wovr_world_model_refreshed_gain_small"]["value"] == pytest.approx(0.05)
     assert entries["policy_grpo_sword_vs_wovr_small"]["value"] == 1
     bench.plot(out, str(tmp_path / "figure.png"))

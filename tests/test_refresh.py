@@ -225,12 +225,22 @@ def test_a_run_of_zero_steps_measures_the_simulators_signal_and_trains_nothing(t
     follow the actions from one start?) before any GRPO step: step 0's evaluation and refresh, its replay's
     within-group separation, and a policy that did not move."""
     cfg = _cfg(tmp_path, group_size=2)
+    # and the policy's own imagined groups checked in the environment first: 1 start x rl.grpo.group_size=2
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(
+        cfg.rl, refresh=dataclasses.replace(cfg.rl.refresh, verify_starts=1)))
     out = _run(cfg, tiny_run, str(tmp_path), steps=0)
     assert [r["step"] for r in out["refreshes"]] == [0] and out["history"] == []
     within = out["refreshes"][0]["replay"]["within_group"]
     assert within["groups"] == 2 and set(within) >= {"4", "8", "all"}
     assert all("auc" in within[h] for h in ("4", "8", "all"))  # the detector scores' ranking, threshold-free
-    assert [p["step"] for p in out["curve"]] == [0] and out["real_episodes_used"] == 4
+    checked = out["refreshes"][0]["verify"]
+    # 2 imagined rollouts of rl.imagined.max_chunks=2 decisions x 4 actions (no horizon chosen before the first
+    # refresh), executed for real and counted against the budget before the refresh's 4 episodes
+    assert (checked["episodes"], checked["starts"], checked["group_size"], checked["actions"]) == (2, 1, 2, 8)
+    assert 0 < checked["mean_actions"] <= 8 and checked["within_group"]["groups"] == 1
+    assert checked["precision"]["of"] == checked["counts"]["real_and_imagined"] + checked["counts"]["imagined_only"]
+    assert out["refreshes"][0]["real_episodes"] == 4 and out["refreshes"][0]["real_episodes_used"] == 6
+    assert [p["step"] for p in out["curve"]] == [0] and out["real_episodes_used"] == 6
     with open(os.path.join(str(tmp_path), "grpo", "evaluations", "step_000000.json")) as f:
         kept = json.load(f)  # the evaluation is kept apart before the refresh that follows it
     assert kept["step"] == 0 and kept["mean"] == out["curve"][0]["mean"]
@@ -289,10 +299,19 @@ def test_stratified_split_takes_a_share_of_each_outcome():
                                           (dict(every=2, episodes=4, budget=8, horizons=(48, 24)), "horizons"),
                                           (dict(every=2, episodes=6, budget=12, group_size=4), "whole groups"),
                                           (dict(every=2, episodes=4, budget=6, group_size=4), "whole groups"),
-                                          (dict(group_size=0), "group_size")])
+                                          (dict(group_size=0), "group_size"),
+                                          (dict(verify_starts=-1), "verify_starts")])
 def test_refresh_config_refuses_bad_settings(bad, message):
     with pytest.raises(ValueError, match=message):
         RefreshConfig(**bad).validate()
+
+
+def test_a_check_of_imagined_rollouts_needs_an_environment_to_execute_them():
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, refresh=RefreshConfig(every=1, episodes=4, budget=8, verify_starts=2))
+    with pytest.raises(ValueError, match="verify_starts needs verify="):
+        Refresher(cfg, rl, wm_state=None, make_simulator=None, encode=None, encode_frames=None, detector=None,
+                  base=None, collect=None, directory="unused")
 
 
 def test_policy_npz_files_round_trip_and_refuse_another_architecture(tmp_path):

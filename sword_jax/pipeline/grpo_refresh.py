@@ -88,9 +88,14 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     mesh = shd.make_mesh(cfg.mesh)
     steps = rl.refresh.episode_steps or cfg.sim.max_steps
     collect = make_collect(graphdef, rl, env, collect_starts, seed=cfg.seed, steps=steps)
+    verify = None
+    if rl.refresh.verify_starts:
+        verify = make_verify(graphdef, rl, env, collect_starts, setup.encode, seed=cfg.seed,
+                             num_context=cfg.data.context_frames // cfg.vae.temporal_factor,
+                             frames_per_latent=cfg.vae.temporal_factor, mesh=mesh)
     refresher = Refresher(cfg, rl, wm_state=wm_state, make_simulator=make_simulator, encode=setup.encode,
                           encode_frames=encode_frames, detector=detector, base=base, collect=collect,
-                          directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log)
+                          directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log, verify=verify)
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
     built: dict[str, Any] = {}
@@ -146,8 +151,9 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                 f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "
                 f"eta {eta:.0f}s")
 
-    # group_size enters only when it is not 1, so runs from before it was a setting still resume
-    keys = REFRESH_RUN_KEYS + (("group_size",) if rl.refresh.group_size != 1 else ())
+    # group_size and verify_starts enter only when set, so runs from before they were settings still resume
+    keys = (REFRESH_RUN_KEYS + (("group_size",) if rl.refresh.group_size != 1 else ())
+            + (("verify_starts",) if rl.refresh.verify_starts else ()))
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="world_model_refreshed", **(facts or {}),
                          **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in keys})
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
@@ -159,6 +165,54 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         json.dump(refreshes, f, indent=1)
     return {"curve": curve, "workdir": workdir, "history": result.history, "refreshes": refreshes,
             "real_episodes_used": refresher.used, "params": result.state.params}
+
+
+def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple],
+                encode: Callable[..., Any], *, seed: int, num_context: int, frames_per_latent: int, mesh: Any
+                ) -> Callable[..., dict]:
+    """``verify(params, simulator, reward_model, step, decisions) -> report`` for ``rl.refresh.verify_starts``
+    (:mod:`sword_jax.rl.imagined_check`): ``collect_starts(step, verify_starts)`` start states put in ``env``
+    (their settled first frames, held still, start the simulator), each rolled out ``rl.grpo.group_size`` times
+    by the policy in the simulator for ``decisions`` decisions as GRPO samples (a key from (seed, step)), each
+    imagined trajectory's actions executed in ``env`` from the same start; the report of
+    :func:`~sword_jax.rl.imagined_check.report` with ``starts``, ``group_size`` and ``actions`` (the horizon)."""
+    from sword_jax.rl import imagined_check, sim_agreement
+    from sword_jax.rl.rollout import imagined_rollout
+
+    g, per = rl.grpo.group_size, rl.imagined.execute_steps or rl.chunk_len
+    reset = jax.jit(env.reset)
+    root = stream_key(jax.random.key(seed), "refresh/verify")
+    compiled: dict[int, Callable] = {}
+
+    def checked_fn(decisions: int) -> Callable:
+        if decisions not in compiled:  # one compile per horizon (the run's is chosen at its first refresh)
+            run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=decisions))
+
+            def go(params, sim, rm, start, env_starts, key):
+                rollout = imagined_rollout(graphdef, params, sim, rm, start, run_rl, key=key, group_size=g)
+                return imagined_check.check(rollout, env, env_starts, rl.action_bins)
+
+            compiled[decisions] = jax.jit(go)
+        return compiled[decisions]
+
+    def verify(params, sim, rm, step: int, decisions: int) -> dict:
+        starts, instructions, _ = collect_starts(step, rl.refresh.verify_starts)
+        starts = np.asarray(starts)
+        _, obs = reset(jnp.asarray(starts))
+        window = imagined_check.still_window(np.asarray(obs["frames"]), np.asarray(obs["proprio"]), list(instructions),
+                                             num_context=num_context, frames_per_latent=frames_per_latent,
+                                             action_dim=rl.action_dim)
+        start = start_state(window, encode, rl)
+        sim, rm = jax.device_put((sim, rm), shd.shardings_on((sim, rm), mesh))
+        env_starts = jnp.asarray(np.repeat(starts, g, axis=0))
+        out = jax.device_get(checked_fn(decisions)(params, sim, rm, start, env_starts, jax.random.fold_in(root, step)))
+        checked = imagined_check.CheckedRollouts(**{k: np.asarray(v) for k, v in out.items()})
+        actions = decisions * per
+        horizons = tuple(h for h in sim_agreement.HORIZON_SWEEP if h < actions)
+        return dict(imagined_check.report(checked, g, horizons=horizons), starts=len(starts), group_size=g,
+                    actions=actions)
+
+    return verify
 
 
 def stratified_collect_starts(pool_starts: Callable[[int, np.random.Generator], tuple], seed: int

@@ -432,6 +432,14 @@ class RefreshConfig:
         need. Separation across episodes can be high while that is zero,
         when the verdict follows the start state rather than the actions. A refreshed run of
         ``rl.grpo.steps=0`` is the probe: step 0's refresh measures it for the simulator as trained.
+      verify_starts: before each refresh, this many start states of the real environment (drawn as the refresh's
+        are), each rolled out ``rl.grpo.group_size`` times by the current policy in the simulator GRPO trained in
+        (its horizon, from rest: the first frame held still as history), and each imagined trajectory's actions
+        executed open loop in the real environment from the same start (:mod:`~sword_jax.rl.imagined_check`).
+        The record's ``verify`` says how many imagined successes are real (``precision``), how many real failures
+        were paid (``false_success``) and the separation inside the groups: the truth of the rewards GRPO reads,
+        which the replay of real episodes does not give. The executions count as real episodes against
+        ``budget``; a refresh skips the check when the budget cannot pay for it. 0 (default) = off.
     """
 
     every: int = 0
@@ -453,6 +461,7 @@ class RefreshConfig:
     real_guard_margin: float = 0.0  # roll back when a refresh's real success falls below step 0's by this; 0 = off
     real_guard_min_episodes: int = 32  # real episodes a refresh needs before the real-success guard judges it
     group_size: int = 1  # real episodes per start state (a GRPO group of real rollouts); 1 = one each
+    verify_starts: int = 0  # start states whose imagined groups are executed in the real environment; 0 = off
 
     def validate(self) -> None:
         if self.every < 0:
@@ -465,6 +474,8 @@ class RefreshConfig:
                              "episodes)")
         if self.group_size < 1:
             raise ValueError(f"rl.refresh.group_size must be >= 1 (real episodes per start state), got {self.group_size}")
+        if self.verify_starts < 0:
+            raise ValueError(f"rl.refresh.verify_starts must be >= 0 (0 = off), got {self.verify_starts}")
         if not self.every:
             return
         if self.episodes % self.group_size or self.budget % self.group_size:

@@ -315,15 +315,22 @@ class Refresher:
       base: the world model's training latents (:class:`~sword_jax.world_model.data.LatentDataset`).
       collect: ``collect(policy params, step, n) -> RealEpisodes``.
       directory: where the refreshes are saved.
+      verify: with ``rl.refresh.verify_starts``, ``verify(policy params, simulator, reward model, step, decisions)
+        -> report`` (:func:`~sword_jax.pipeline.grpo_refresh.make_verify`): the policy's imagined groups of
+        ``decisions`` decisions, their actions executed in the real environment; ``report["episodes"]`` of them.
     """
 
     def __init__(self, cfg: Any, rl: Any, *, wm_state: Any, make_simulator: Callable[[Any], LearnedSimulator],
                  encode: Callable[..., Any], encode_frames: Callable[[np.ndarray], np.ndarray],
                  detector: tuple[Any, Any], base: Any, collect: Collect, directory: str, mesh=None,
-                 log: Callable[[str], Any] = print):
+                 log: Callable[[str], Any] = print, verify: Callable[..., dict] | None = None):
         rl.refresh.validate()
         if not rl.refresh.every:
             raise ValueError("Refresher: rl.refresh.every is 0 (refresh off)")
+        if rl.refresh.verify_starts and verify is None:
+            raise ValueError("Refresher: rl.refresh.verify_starts needs verify= (the real environment the imagined "
+                             "rollouts' actions are executed in)")
+        self.verify = verify
         self.cfg, self.rl, self.conf = cfg, rl, rl.refresh
         self.make_simulator, self.encode, self.encode_frames = make_simulator, encode, encode_frames
         self.mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
@@ -456,13 +463,16 @@ class Refresher:
         t0 = time.perf_counter()
         conf = self.conf
         k = conf.group_size
-        n = min(conf.episodes, conf.budget - self.used) // k * k  # whole groups
         d = self._dir(step)
         shutil.rmtree(d, ignore_errors=True)  # a killed refresh's leftovers
         os.makedirs(d)
+        # 0. before anything changes: the policy's imagined groups in the simulator GRPO trained in, checked in reality
+        verified = self._verify(step, policy_params)
+        checked = {"verify": verified} if verified is not None else {}
+        n = min(conf.episodes, conf.budget - self.used) // k * k  # whole groups
         if n < 2:
             record = {"step": step, "skipped": f"the budget of {conf.budget} real episodes is spent",
-                      "real_episodes": 0, "real_episodes_used": self.used}
+                      "real_episodes": 0, "real_episodes_used": self.used, **checked}
             write_json_atomic(os.path.join(d, "record.json"), record)
             self.records.append(record)
             self.loaded = step
@@ -498,7 +508,7 @@ class Refresher:
             horizon["trust"] = {"actions": chosen, "separation": sep,
                                 "trusted": sep is not None and sep >= conf.min_separation}
         record = {"step": step, "real_episodes": real.num, **horizon, "real_episodes_used": self.used,
-                  "budget": conf.budget, "real_success": float(solved.mean()), "replay": before,
+                  "budget": conf.budget, "real_success": float(solved.mean()), "replay": before, **checked,
                   "world_model": {"steps": conf.world_model_steps, "training_episodes": int(self.base.latents.shape[0]),
                                   "real_episodes": int(sum(r[0].shape[0] for r in self.rounds)),
                                   "last": {k: float(v) for k, v in wm_metrics.items() if np.isscalar(v)}},
@@ -520,6 +530,30 @@ class Refresher:
                  f"of {fs['of']} real failures successes{within}; detector threshold {detector['threshold']:.4f} "
                  f"({record['seconds']} s)")
         return record
+
+    def _verify(self, step: int, policy_params: Any) -> dict[str, Any] | None:
+        """``rl.refresh.verify_starts``'s check of the policy's imagined groups (None when off); its real
+        executions count against the budget, and a budget that cannot pay for them skips it."""
+        conf = self.conf
+        if not conf.verify_starts:
+            return None
+        count = conf.verify_starts * self.rl.grpo.group_size
+        if conf.budget - self.used < count:
+            return {"skipped": f"{count} real executions exceed what is left of the budget of {conf.budget}"}
+        horizon, per = self.horizon(), self.rl.imagined.execute_steps or self.rl.chunk_len
+        decisions = horizon // per if horizon is not None else self.rl.imagined.max_chunks
+        t0 = time.perf_counter()
+        out = self.verify(policy_params, self.simulator(), self.reward_model(), step, decisions)
+        self.used += int(out["episodes"])
+        out["seconds"] = round(time.perf_counter() - t0, 1)
+        fs, pr = out["false_success"], out["precision"]
+        within = out.get("within_group", {}).get("all", {}).get("separation")
+        self.log(f"refresh at step {step}: the policy's {out['episodes']} imagined rollouts executed for real: "
+                 f"imagined success {out['imagined_success']:.3f}, real {out['real_success']:.3f}; "
+                 f"{pr['rate'] if pr['rate'] is not None else 'n/a'} of {pr['of']} imagined successes real, "
+                 f"{fs['rate'] if fs['rate'] is not None else 'n/a'} of {fs['of']} real failures paid"
+                 + (f", within groups {within:+.2f}" if within is not None else "") + f" ({out['seconds']} s)")
+        return out
 
     def _latents(self, real: RealEpisodes) -> tuple[np.ndarray, np.ndarray]:
         w = self.window

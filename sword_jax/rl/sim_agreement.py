@@ -415,8 +415,8 @@ def success_by_horizon(real: np.ndarray, first_success: np.ndarray,
     out = {}
     for label, h in [*((str(h), h) for h in horizons), ("all", None)]:
         hit = _succeeded_by(first, h)
-        out[label] = {"real_success": _rate(int(hit[real].sum()), int(real.sum())),
-                      "real_failure": _rate(int(hit[~real].sum()), int((~real).sum()))}
+        out[label] = {"real_success": wilson_rate(int(hit[real].sum()), int(real.sum())),
+                      "real_failure": wilson_rate(int(hit[~real].sum()), int((~real).sum()))}
     return out
 
 
@@ -503,7 +503,7 @@ def separation(real: np.ndarray, first_success: Sequence[np.ndarray], horizon: i
     return out
 
 
-def _rate(hits: int, of: int) -> dict[str, Any]:
+def wilson_rate(hits: int, of: int) -> dict[str, Any]:
     """``hits / of`` with its 95% Wilson interval (``None`` rate where ``of`` is 0)."""
     return {"rate": hits / of if of else None, "ci95": list(wilson_interval(hits, of)), "of": of}
 
@@ -647,8 +647,8 @@ def agreement(real: np.ndarray, imagined: np.ndarray) -> dict[str, Any]:
 
     n = real.size
     return {"episodes": n, "real_success": float(real.mean()) if n else None,
-            "imagined_success": float(imagined.mean()) if n else None, "agreement": _rate(tp + tn, n),
-            "false_success": _rate(fp, fp + tn), "missed_success": _rate(fn, tp + fn),
+            "imagined_success": float(imagined.mean()) if n else None, "agreement": wilson_rate(tp + tn, n),
+            "false_success": wilson_rate(fp, fp + tn), "missed_success": wilson_rate(fn, tp + fn),
             "counts": {"real_and_imagined": tp, "imagined_only": fp, "real_only": fn, "neither": tn}}
 
 

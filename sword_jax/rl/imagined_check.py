@@ -1,0 +1,137 @@
+"""The policy's own imagined rollouts checked in the real environment.
+
+The refresh's replay (:mod:`sword_jax.rl.sim_agreement`) feeds *real* episodes' actions through the learned
+simulator: it asks whether the simulator's verdict follows the actions of trajectories the real world made. GRPO
+learns from the other direction: trajectories the policy made *inside* the simulator, rewarded by its verdict.
+Here those are checked: the policy is rolled out in the simulator from start states the real environment can
+also be put in, in groups as GRPO rolls out, and each imagined trajectory's executed actions are then executed
+open loop in the real environment from the same start. Whether the real world succeeds with the same actions is
+the truth of the reward GRPO was given (VLA-RFT's verified rewards, measured rather than trained on). Its share
+of imagined successes that fail in reality rises as a policy learns to exploit the simulator.
+
+The actions are those the simulator executed, decoded from the rollout's tokens (bin centres, as the simulator
+received them), each applied once; a trajectory stops where its imagined rollout stopped (its success, or the
+horizon). An imagined success is placed at the last action of the decision that reached it (the rollout keeps
+one score per decision).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from sword_jax.rl import sim_agreement
+from sword_jax.rl.policy import tokens_to_actions
+from sword_jax.rl.rollout import Rollout
+
+
+class CheckedRollouts(NamedTuple):
+    """Imagined trajectories and the real outcome of their actions (host arrays).
+
+    Attributes:
+      imagined_first: ``[n]`` action index of each imagined success (the last action of its decision), -1 if none.
+      real_first: ``[n]`` action index after which the real environment first reached success with the same
+        actions (within the imagined trajectory's actions), -1 if never.
+      scores: ``[n, T]`` the detector's score of each decision's last frame, repeated over the decision's actions
+        (0 after the imagined trajectory ended).
+      lengths: ``[n]`` actions each imagined trajectory executed.
+    """
+
+    imagined_first: np.ndarray
+    real_first: np.ndarray
+    scores: np.ndarray
+    lengths: np.ndarray
+
+
+def executed_actions(rollout: Rollout, action_bins: int) -> tuple[Float[Array, "n t a"], Int[Array, " n"]]:
+    """``(actions [N, C * E, A], lengths [N])``: the actions the simulator executed (``E`` per decision),
+    decision after decision, and how many of them each trajectory took before it ended."""
+    actions = tokens_to_actions(rollout.tokens, action_bins)  # [N, C, E, A]
+    n, c, e, a = actions.shape
+    lengths = (jnp.sum(rollout.valid, axis=1) * e).astype(jnp.int32)
+    return actions.reshape(n, c * e, a), lengths
+
+
+def imagined_first_success(rollout: Rollout) -> Int[Array, " n"]:
+    """``[N]`` the last action index of the decision at which each imagined trajectory succeeded, -1 if none."""
+    e = rollout.tokens.shape[2]
+    taken = jnp.sum(rollout.valid, axis=1).astype(jnp.int32)
+    return jnp.where(rollout.success, taken * e - 1, -1)
+
+
+def execute_open_loop(env: Any, starts: Any, actions: Float[Array, "n t a"], lengths: Int[Array, " n"]
+                      ) -> Int[Array, " n"]:
+    """Runs fixed action sequences in a pure JAX environment (``reset(starts) -> (state, obs)``,
+    ``step(state, actions [n, A]) -> (state, obs, success [n])``) from ``starts``; returns for each the index
+    of the first action after which it succeeded, among its first ``lengths`` actions, -1 if none."""
+    state, _ = env.reset(starts)
+    n, t = actions.shape[:2]
+
+    def body(carry, i):
+        state, first = carry
+        state, _, success = env.step(state, actions[:, i])
+        first = jnp.where((first < 0) & success & (i < lengths), i, first)
+        return (state, first), None
+
+    (_, first), _ = jax.lax.scan(body, (state, jnp.full((n,), -1, jnp.int32)), jnp.arange(t))
+    return first
+
+
+def decision_scores(rollout: Rollout) -> Float[Array, "n t"]:
+    """``[N, C * E]`` each decision's score (of its last frame) over its ``E`` actions, 0 where it was not taken."""
+    e = rollout.tokens.shape[2]
+    return jnp.repeat(rollout.scores * rollout.valid, e, axis=1)
+
+
+def check(rollout: Rollout, env: Any, env_starts: Any, action_bins: int) -> dict[str, Array]:
+    """Executes ``rollout``'s trajectories in ``env`` from ``env_starts`` (one per trajectory, the states the
+    imagined ones started from); the arrays of :class:`CheckedRollouts` (jit-able)."""
+    actions, lengths = executed_actions(rollout, action_bins)
+    return {"imagined_first": imagined_first_success(rollout),
+            "real_first": execute_open_loop(env, env_starts, actions, lengths),
+            "scores": decision_scores(rollout), "lengths": lengths}
+
+
+def report(checked: CheckedRollouts, group_size: int, horizons: tuple[int, ...] = sim_agreement.HORIZON_SWEEP
+           ) -> dict[str, Any]:
+    """The imagined verdicts against the real outcomes of the same actions.
+
+    :func:`~sword_jax.rl.sim_agreement.agreement` (``false_success``: real failures GRPO was paid for), plus
+    ``precision``: the share of imagined successes that succeed in reality (the share of GRPO's positive rewards
+    that are true), and with ``group_size`` > 1 the separation inside the groups
+    (:func:`~sword_jax.rl.sim_agreement.within_group_separation`: whether the verdict ranks a group's real
+    successes above its real failures, what GRPO's advantages read).
+    """
+    real = np.asarray(checked.real_first) >= 0
+    imagined = np.asarray(checked.imagined_first) >= 0
+    out = sim_agreement.agreement(real, imagined)
+    counts = out["counts"]
+    out["precision"] = sim_agreement.wilson_rate(counts["real_and_imagined"],
+                                          counts["real_and_imagined"] + counts["imagined_only"])
+    out["mean_actions"] = float(np.mean(checked.lengths)) if real.size else None
+    if group_size > 1:
+        out["within_group"] = sim_agreement.within_group_separation(
+            real, np.asarray(checked.imagined_first), group_size, horizons=horizons, scores=np.asarray(checked.scores))
+    return out
+
+
+def still_window(frames: np.ndarray, proprio: np.ndarray, instructions: list[str], *, num_context: int,
+                 frames_per_latent: int, action_dim: int) -> dict[str, Any]:
+    """A start at rest laid out as :func:`~sword_jax.rl.data.keyframe_window` lays out a keyframe: its history
+    is the first frame held still, its actions zero (a scene the environment has just settled)."""
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.dtype != np.uint8:
+        raise ValueError(f"still_window: frames must be [n, H, W, 3] uint8, got {frames.shape} {frames.dtype}")
+    n = frames.shape[0]
+    if len(instructions) != n or proprio.shape[0] != n:
+        raise ValueError(f"still_window: {n} frames need as many proprio rows and instructions, got "
+                         f"{proprio.shape[0]} and {len(instructions)}")
+    history = np.repeat(frames[:, None], frames_per_latent * (num_context + 1), axis=1)
+    return {"frame": frames, "proprio": np.asarray(proprio, np.float32), "first_frame": frames, "history": history,
+            "actions": np.zeros((n, 1 + frames_per_latent * num_context, action_dim), np.float32),
+            "instructions": list(instructions)}
+

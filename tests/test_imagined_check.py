@@ -1,0 +1,144 @@
+"""The policy's imagined rollouts checked in the real environment (sword_jax.rl.imagined_check): fixed actions
+executed open loop, the report against designed outcomes, and the whole check on the toy world, where a
+simulator equal to the environment agrees everywhere and a detector that always fires pays every real failure."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sword_jax.rl import imagined_check
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
+from sword_jax.rl.learned_simulator import (RewardModel, ToyState, instruction_target, toy_render, toy_reward_model,
+                                            toy_simulator, toy_start_states)
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.rollout import imagined_rollout
+
+CFG = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+               grpo=GRPOConfig(group_size=4), imagined=ImaginedConfig(max_chunks=4))
+TEXTS = ["pick up the black bowl on the plate", "put the bowl on the stove", "open the drawer"]
+STEP = 0.05
+
+
+class Line:
+    """A point the first action dimension moves by 0.1 a step; success once past 0.25."""
+
+    def reset(self, starts):
+        pos = jnp.asarray(starts, jnp.float32)[:, 0]
+        return pos, {}
+
+    def step(self, pos, actions):
+        pos = pos + 0.1 * actions[:, 0]
+        return pos, {}, pos > 0.25
+
+
+class ToyEnv:
+    """The toy world as a real environment: starts ``[position xy, target xy]``, success when the toy detector's
+    score of the rendered state passes the threshold (what the imagined verdict reads)."""
+
+    def __init__(self, threshold):
+        self.rm, self.threshold = toy_reward_model(), threshold
+
+    def _frames(self, pos, target):
+        return jax.vmap(lambda p, t: toy_render(ToyState(p, t), 8))(pos, target)
+
+    def reset(self, starts):
+        starts = jnp.asarray(starts, jnp.float32)
+        state = (starts[:, :2], starts[:, 2:])
+        return state, {"frames": self._frames(*state)}
+
+    def step(self, state, actions):
+        pos, target = state
+        pos = jnp.clip(pos + STEP * jnp.clip(actions[:, :2], -1.0, 1.0), -1.0, 1.0)
+        frames = self._frames(pos, target)
+        return (pos, target), {"frames": frames}, self.rm.score(frames) >= self.threshold
+
+
+def test_execute_open_loop_finds_the_first_success_within_each_trajectory():
+    actions = jnp.asarray(np.stack([np.full(6, 1.0), np.full(6, 1.0), np.full(6, -1.0), [0, 0, 0, 1, 1, 1]]),
+                          jnp.float32)[..., None]
+    # from 0: +0.1 a step passes 0.25 after the third action (index 2); the second stops before it
+    first = imagined_check.execute_open_loop(Line(), jnp.zeros((4, 1)), actions, jnp.asarray([6, 2, 6, 6]))
+    np.testing.assert_array_equal(np.asarray(first), [2, -1, -1, 5])
+
+
+def test_report_against_designed_outcomes():
+    # 2 groups of 4: group 0 real [T, T, F, F] imagined [T, F, T, F]; group 1 real [T, F, F, F] imagined [T, F, F, F]
+    real = np.asarray([3, 5, -1, -1, 7, -1, -1, -1])
+    imagined = np.asarray([7, -1, 15, -1, 7, -1, -1, -1])
+    scores = np.zeros((8, 16))
+    scores[[0, 2, 4], 5] = 0.95
+    scores[1, 5] = 0.6
+    checked = imagined_check.CheckedRollouts(imagined, real, scores, np.full(8, 16))
+    out = imagined_check.report(checked, 4, horizons=(8,))
+    assert out["counts"] == {"real_and_imagined": 2, "imagined_only": 1, "real_only": 1, "neither": 4}
+    assert out["precision"]["rate"] == pytest.approx(2 / 3) and out["precision"]["of"] == 3
+    assert out["false_success"]["rate"] == pytest.approx(1 / 5)
+    within = out["within_group"]
+    assert within["mixed_real_groups"] == 2
+    # group 0: 1/2 - 1/2 = 0; group 1: 1 - 0 = 1 (whole trajectories); by 8 actions group 0's imagined success at 15
+    # does not count: 1/2 - 0
+    assert within["all"]["separation"] == pytest.approx(0.5)
+    assert within["8"]["separation"] == pytest.approx(0.75)
+    # scores rank group 0's successes (0.95, 0.6) against its failures (0.95, 0): 2.5 of 4 pairs; group 1: 1
+    assert within["all"]["auc"] == pytest.approx((0.625 + 1.0) / 2)
+
+
+def test_still_window_lays_out_a_start_at_rest_and_refuses_bad_frames():
+    frames = np.random.default_rng(0).integers(0, 255, (2, 8, 8, 3), dtype=np.uint8)
+    w = imagined_check.still_window(frames, np.zeros((2, 8)), ["a", "b"], num_context=1, frames_per_latent=4,
+                                    action_dim=7)
+    assert w["history"].shape == (2, 8, 8, 8, 3) and (w["history"] == frames[:, None]).all()
+    assert w["actions"].shape == (2, 5, 7) and not w["actions"].any()
+    with pytest.raises(ValueError, match="uint8"):
+        imagined_check.still_window(frames.astype(np.float32), np.zeros((2, 8)), ["a", "b"], num_context=1,
+                                    frames_per_latent=4, action_dim=7)
+    with pytest.raises(ValueError, match="instructions"):
+        imagined_check.still_window(frames, np.zeros((2, 8)), ["a"], num_context=1, frames_per_latent=4, action_dim=7)
+
+
+def _toy_check(reward_model):
+    graphdef, params = build_policy(CFG, seed=0)
+    sim = toy_simulator(frame_size=8, step_size=STEP, chunk_len=CFG.chunk_len)
+    tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
+    start = toy_start_states(tokens, key=jax.random.key(5), frame_size=8)
+    targets = jax.vmap(instruction_target)(tokens)
+    # start 1 near its target: some of its group reach it; start 0 far: none do
+    near = targets[1] + jnp.asarray([0.12, 0.0])
+    start = start._replace(proprio=start.proprio.at[1, :2].set(near),
+                           frame=start.frame.at[1].set(toy_render(ToyState(near, targets[1]), 8)))
+    env_starts = jnp.repeat(jnp.concatenate([start.proprio[:, :2], targets], axis=1), CFG.grpo.group_size, axis=0)
+
+    def go(key):
+        rollout = imagined_rollout(graphdef, params, sim, reward_model, start, CFG, key=key,
+                                   group_size=CFG.grpo.group_size)
+        return rollout, imagined_check.check(rollout, ToyEnv(CFG.success_threshold), env_starts, CFG.action_bins)
+
+    rollout, out = jax.jit(go)(jax.random.key(2))
+    return rollout, imagined_check.CheckedRollouts(**{k: np.asarray(v) for k, v in out.items()})
+
+
+def test_a_simulator_equal_to_the_environment_agrees_on_every_trajectory():
+    rollout, checked = _toy_check(toy_reward_model())
+    imagined, real = checked.imagined_first >= 0, checked.real_first >= 0
+    assert imagined.any() and not imagined.all(), "the designed starts give both outcomes"
+    np.testing.assert_array_equal(imagined, real)
+    # the real success falls inside the decision the imagined one was placed at the end of
+    e = rollout.tokens.shape[2]
+    assert np.all(checked.imagined_first[imagined] - checked.real_first[imagined] < e)
+    np.testing.assert_array_equal(checked.lengths, np.asarray(rollout.valid).sum(1) * e)
+    out = imagined_check.report(checked, CFG.grpo.group_size)
+    assert out["agreement"]["rate"] == 1.0 and out["precision"]["rate"] == 1.0 and out["false_success"]["rate"] == 0.0
+
+
+def test_a_detector_that_always_fires_pays_every_real_failure():
+    always = RewardModel(params={}, score_fn=lambda params, frames: jnp.ones(frames.shape[0], jnp.float32))
+    rollout, checked = _toy_check(always)
+    assert (checked.imagined_first >= 0).all()
+    # every trajectory stops after its first decision, so the real world gets only those actions
+    np.testing.assert_array_equal(checked.lengths, rollout.tokens.shape[2])
+    out = imagined_check.report(checked, CFG.grpo.group_size)
+    real = checked.real_first >= 0
+    assert out["false_success"]["rate"] == 1.0 and out["false_success"]["of"] == int((~real).sum()) > 0
+    assert out["precision"]["rate"] == pytest.approx(real.mean())
