@@ -145,6 +145,41 @@ def test_without_a_margin_the_guard_is_off(tmp_path):
     assert float(result.state.params["w"]) == 6.0 and all("guard" not in p for p in points)
 
 
+def _verified_exploitation(w: float) -> dict:
+    """The replay of real episodes stays clean (0.1) while the policy's own imagined groups, executed for real,
+    show the exploitation once w reaches 4: false success 0.1 -> 0.5."""
+    return {"replay": _replay(0.1), "verify": _replay(0.5 if w >= 4 else 0.1)}
+
+
+def test_the_guard_on_verify_reads_the_check_of_imagined_rollouts_and_resumes_the_same(tmp_path):
+    rl = _rl(8, 0.2)
+    rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, guard_on="verify"),
+                             refresh=dataclasses.replace(rl.refresh, verify_starts=8))
+    rl.validate()
+    result, points = _run(str(tmp_path / "a"), rl, extra=_verified_exploitation)
+    assert [(p["step"], p["guard"]["trip"]) for p in points] == [(0, False), (2, False), (4, True), (6, True),
+                                                                  (8, True)]
+    assert float(result.state.params["w"]) == 2.0
+    _run(str(tmp_path / "b"), dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, steps=4)),
+         extra=_verified_exploitation)
+    resumed, resumed_points = _run(str(tmp_path / "b"), rl, extra=_verified_exploitation)
+    assert resumed.first_step == 4 and resumed_points == points
+    # the replay alone would not have tripped
+    _, clean = _run(str(tmp_path / "c"), _rl(8, 0.2), extra=_verified_exploitation)
+    assert not any(p["guard"]["trip"] for p in clean)
+    assert grpo_run_id(rl, seed=0, simulator="toy")["rl.imagined.guard_on"] == "verify"
+    assert "rl.imagined.guard_on" not in grpo_run_id(_rl(8, 0.2), seed=0, simulator="toy")
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(imagined=ImaginedConfig(guard_on="detector")), "guard_on must be replay|verify"),
+    (dict(imagined=ImaginedConfig(guard_on="verify"), refresh=RefreshConfig(every=2, episodes=64, budget=128)),
+     "needs rl.refresh.every > 0 and rl.refresh.verify_starts > 0")])
+def test_the_guard_on_verify_needs_the_check(bad, message):
+    with pytest.raises(ValueError, match=message):
+        RLConfig(**bad).validate()
+
+
 def _real_decline(w: float) -> dict:
     """The replay's false success stays at 0.6 (step 0's, so the exploitation guard cannot trip) while the
     refreshes' real success falls once w reaches 4: 0.61 -> 0.30; the step-0 refresh holds too few episodes

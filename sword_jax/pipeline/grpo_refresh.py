@@ -140,6 +140,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
             extra = dict(extra, refresh=record)
             if "replay" in record:
                 extra["replay"] = record["replay"]
+            if "verify" in record:  # the exploitation guard's input with rl.imagined.guard_on=verify
+                extra["verify"] = record["verify"]
         point["real_episodes_used"] = refresher.used
         log(f"eval step {index}: success {point['mean']:.3f}, real episodes used {refresher.used}/{rl.refresh.budget}")
         return point, extra

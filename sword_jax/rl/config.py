@@ -305,6 +305,9 @@ class ImaginedConfig:
         real episodes in the learned simulator, a false-success rate above step 0's by more than this rolls
         the policy back to the last evaluation that passed; 0 (default) = off.
       guard_min_failures: real failures a replay must hold before the guard judges it.
+      guard_on: what the exploitation guard reads: ``replay`` (the evaluation's replay of real episodes in the
+        simulator) or ``verify`` (the refresh's check of the policy's own imagined groups executed for real,
+        ``rl.refresh.verify_starts``: the real failures GRPO was paid for, the exploitation itself).
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
@@ -340,6 +343,7 @@ class ImaginedConfig:
     oversample: int = 1  # roll out this many times rollout_batch groups, update on rollout_batch (mixed first)
     guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
     guard_min_failures: int = 20  # real failures a replay needs before the guard judges it
+    guard_on: str = "replay"  # replay | verify: the false-success rate the exploitation guard judges
 
     def validate(self) -> None:
         if self.max_chunks < 1:
@@ -353,6 +357,8 @@ class ImaginedConfig:
         if not 0.0 <= self.guard_margin < 1.0 or self.guard_min_failures < 1:
             raise ValueError(f"rl.imagined.guard_margin must be in [0, 1) (0 = off) and guard_min_failures >= 1, got "
                              f"{self.guard_margin}, {self.guard_min_failures}")
+        if self.guard_on not in ("replay", "verify"):
+            raise ValueError(f"rl.imagined.guard_on must be replay|verify, got {self.guard_on!r}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:
             raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):
@@ -674,6 +680,9 @@ class RLConfig:
         if executed is not None and (executed < 4 or executed % 4 or self.chunk_len % executed):
             raise ValueError(f"rl.imagined.execute_steps must be a multiple of 4 (one latent frame) dividing "
                              f"rl.chunk_len={self.chunk_len}, got {executed}")
+        if self.imagined.guard_on == "verify" and not (self.refresh.every and self.refresh.verify_starts):
+            raise ValueError("rl.imagined.guard_on=verify judges the refreshes' checks of imagined rollouts: it needs "
+                             "rl.refresh.every > 0 and rl.refresh.verify_starts > 0")
         if self.env.proprio == "reckoned" and self.proprio_dim != 8:
             raise ValueError(f"rl.env.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                              f"{self.proprio_dim}")

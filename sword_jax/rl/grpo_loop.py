@@ -26,7 +26,9 @@ In a job of several processes every process runs the loop (the steps and checkpo
 computations) and takes the same decisions; only process 0 writes the curve, the history and the step times.
 
 With ``rl.imagined.guard_margin > 0`` and evaluations that replay real episodes in the learned simulator
-(their ``replay`` entry), the exploitation guard (:class:`~sword_jax.rl.sim_guard.FalseSuccessGuard`) judges
+(their ``replay`` entry; with ``rl.imagined.guard_on=verify`` their ``verify`` entry, the refresh's check of the
+policy's own imagined groups executed for real), the exploitation guard
+(:class:`~sword_jax.rl.sim_guard.FalseSuccessGuard`) judges
 every evaluation: when the replay's false-success rate exceeds step 0's by more than the margin, the policy
 and its optimizer state go back to the last evaluation that passed (the last checkpoint, kept on the host),
 the step counter goes on, and the point records the rollback (``guard``). A resumed run takes the baseline
@@ -95,8 +97,10 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     keys = GRPO_RUN_KEYS + (REAL_GUARD_KEYS if rl.refresh.real_guard_margin > 0 else ())
     # and the learned simulator's oversampling, only when it is on
     oversample = {"rl.imagined.oversample": rl.imagined.oversample} if rl.imagined.oversample != 1 else {}
+    # and what the exploitation guard reads, only when it is not the replay
+    guard_on = {"rl.imagined.guard_on": rl.imagined.guard_on} if rl.imagined.guard_on != "replay" else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **facts}
+            **decoder, **oversample, **guard_on, **facts}
 
 
 def train_grpo(
@@ -152,7 +156,7 @@ def train_grpo(
     real_guard = (RealSuccessGuard(rl.refresh.real_guard_margin, min_episodes=rl.refresh.real_guard_min_episodes)
                   if rl.refresh.real_guard_margin > 0 else None)
     # each guard that is on, the evaluation entry it judges and its name in the log
-    guards = [(g, entry, name) for g, entry, name in ((false_guard, "replay", "exploitation guard"),
+    guards = [(g, entry, name) for g, entry, name in ((false_guard, rl.imagined.guard_on, "exploitation guard"),
                                                       (real_guard, "refresh", "real-success guard")) if g is not None]
     passed: dict[str, Any] = {}  # the last state the guards passed, on the host, and its step
 
