@@ -7,8 +7,10 @@
 Part 1 (always runs, first) times the small config's DLB step at a fixed per-device batch
 (``--small-batch-per-device``, a comma list) on 1, 2, 4, ... devices (pure data parallel) and reports
 the scaling efficiency ``t_1 / t_k`` (1.0 = linear). Each row has the step time with the host waiting
-for every step (``step_s``) and per step of steps dispatched back to back (``pipelined_step_s``, how the
-train loop runs: it reads metrics one step late); the efficiency recorded is the pipelined one. The
+for every step (``step_s``, the median of ``--small-iters`` steps) and per step of steps dispatched back to
+back (``pipelined_step_s``, how the train loop runs: it reads metrics one step late): ``--small-blocks``
+blocks of ``--small-iters`` steps each, the median block's seconds per step, every block's in
+``pipelined_blocks_s``. The efficiency recorded is the pipelined one. The
 same step with the DLB cache off on 1 and all devices separates what the cache's cross-device reads and
 writes cost (``cache_cross_device_s``) from the gradient all-reduce and the rest (``dp_overhead_s``);
 one more row on all devices compiles the step with the collective-overlap options below.
@@ -60,6 +62,7 @@ import gzip
 import json
 import os
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -316,25 +319,30 @@ def profile_steps(one, directory: str, steps: int = PROFILE_STEPS) -> dict[str, 
     return {"steps": steps, **summarize_trace(directory, steps)}
 
 
-def time_step(step, state, data, key, *, iters: int, pipelined: bool,
+def time_step(step, state, data, key, *, iters: int, pipelined: bool, blocks: int = 1,
               profile_dir: str | None = None) -> tuple[dict, Any, float]:
-    """Runs the compiled step on the donated state: the median seconds of a step the host waits for and, with
-    ``pipelined``, seconds per step of ``iters`` steps dispatched back to back. With ``profile_dir`` a few more
-    steps are traced there (``timings["profile"]``, :func:`profile_steps`). Returns ``(timings, state,
-    loss of the last step)``; raises on a non-finite loss."""
+    """Runs the compiled step on the donated state: the median seconds of a step the host waits for
+    (``step_s``) and, with ``pipelined``, ``blocks`` blocks of ``iters`` steps dispatched back to back: each
+    block's seconds per step (``pipelined_blocks_s``) and the median block's (``pipelined_step_s``), so one
+    slow block (a hiccup of the host) neither hides nor counts. With ``profile_dir`` a few more steps are traced
+    there (``timings["profile"]``, :func:`profile_steps`). Returns ``(timings, state, loss of the last step)``;
+    raises on a non-finite loss."""
     holder = {"state": state}
 
     def one():
         holder["state"], metrics = step(holder["state"], data, key)
         return metrics["loss"]
 
-    timings = {"step_s": common.time_fn(one, warmup=2, iters=iters)["median_s"]}
+    timings: dict[str, Any] = {"step_s": common.time_fn(one, warmup=2, iters=iters)["median_s"]}
     if pipelined:
-        start = time.perf_counter()
-        for _ in range(iters):
-            loss = one()
-        common.block(loss)
-        timings["pipelined_step_s"] = (time.perf_counter() - start) / iters
+        per_block = []
+        for _ in range(blocks):
+            start = time.perf_counter()
+            for _ in range(iters):
+                loss = one()
+            common.block(loss)
+            per_block.append((time.perf_counter() - start) / iters)
+        timings.update(pipelined_step_s=statistics.median(per_block), pipelined_blocks_s=per_block)
     if profile_dir:
         timings["profile"] = profile_steps(one, profile_dir)
     loss = float(one())
@@ -357,7 +365,8 @@ def peak_gb(devices) -> list[float | None]:
 
 
 def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
-              options: dict | None, iters: int, unrolled: bool = False, profile_dir: str | None = None) -> dict:
+              options: dict | None, iters: int, blocks: int = 1, unrolled: bool = False,
+              profile_dir: str | None = None) -> dict:
     k = len(devices)
     label = (f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
              + (" unrolled" if unrolled else ""))
@@ -373,7 +382,7 @@ def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[in
         key = shd.put(jax.random.key(0), shd.replicated(mesh))
         step, row["compile_s"], row["compiled_gb_per_device"] = compile_dlb_step(
             graphdef, cache_cfg, state, shardings, data, data_shardings, mesh, key, options)
-        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True,
+        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True, blocks=blocks,
                                             profile_dir=profile_dir)
         row.update(timings, through_jit=bool(step.through_jit))
     except Exception as err:  # noqa: BLE001 - reported in the row
@@ -416,7 +425,7 @@ def device_counts(n: int) -> list[int]:
     return counts if counts[-1] == n else counts + [n]
 
 
-def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int,
+def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int, blocks: int,
               overlap_options: dict, overlap_everywhere: bool, report, unrolled: bool = False,
               profile: str | None = None) -> dict:
     n = len(devices)
@@ -432,9 +441,9 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
         for k, cache_on, options, unroll in plan:
             # the first batch's plain step on 1 and on all devices is traced with --profile
             traced = profile and batch == batches[0] and k in (1, n) and cache_on and not options and not unroll
+            profile_dir = os.path.join(profile, f"small_{batch}dev_k{k}") if traced else None
             row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters,
-                            unrolled=unroll, profile_dir=os.path.join(profile, f"small_{batch}dev_k{k}") if traced
-                            else None)
+                            blocks=blocks, unrolled=unroll, profile_dir=profile_dir)
             rows.append(row)
             if row["status"] == "ok":
                 print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined "
@@ -614,7 +623,11 @@ def main(argv: list[str] | None = None) -> dict:
                         "first is the recorded one")
     parser.add_argument("--layers", type=int, default=30, help="layers of the 5B-width model")
     parser.add_argument("--iters", type=int, default=5, help="timed steps per 5B setting")
-    parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row")
+    parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row (and per "
+                        "block of pipelined steps)")
+    parser.add_argument("--small-blocks", type=int, default=None, help="blocks of --small-iters steps dispatched back "
+                        "to back per small-config row, the median block's seconds per step reported (default 5; "
+                        "--tiny 3)")
     parser.add_argument("--profile", default="", metavar="DIR",
                         help="trace the small config's step on 1 and on all devices (first per-device batch) with "
                              "jax.profiler into DIR; each row then reports collective and other kernel time per step")
@@ -630,6 +643,9 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     settings = parse_sweep(args.sweep or ("2xnone,2xdots" if args.tiny else DEFAULT_SWEEP))
     batches = parse_batches(args.small_batch_per_device or ("2" if args.tiny else "32"))
+    blocks = args.small_blocks if args.small_blocks is not None else 3 if args.tiny else 5
+    if blocks < 1:
+        raise cli.UsageError(f"--small-blocks {blocks}: at least one block")
     applied = configure_backend(args.xla_overlap, args.mem_fraction)
 
     devices = jax.devices()
@@ -666,7 +682,7 @@ def main(argv: list[str] | None = None) -> dict:
         small_cfg = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16)
         full_cfg, hw, small_hw = DiTConfig(num_layers=args.layers), (16, 16), (8, 8)
     overlap_everywhere = bool(applied["xla_overlap_flags"])
-    small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters,
+    small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters, blocks=blocks,
                       overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
                       report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled,
                       profile=args.profile or None)

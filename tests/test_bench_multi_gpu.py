@@ -6,8 +6,10 @@ import dataclasses
 import gzip
 import json
 import math
+import statistics
 
 import jax
+import numpy as np
 import pytest
 
 from benchmarks import bench_multi_gpu as bench
@@ -29,8 +31,8 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     # the sampled cache-vs-inference metric's branch compiles slowly on a CPU; the sweep test keeps it
     monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
     out = tmp_path / "mg.json"
-    summary = bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--profile", str(tmp_path / "prof"),
-                          "--out", str(out)])
+    summary = bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--small-blocks", "4", "--profile",
+                          str(tmp_path / "prof"), "--out", str(out)])
     rows = summary["small"]["rows"]
     assert [(r["devices"], r["cache"], r["overlap"], r["unrolled"]) for r in rows] == [
         (1, True, False, False), (2, True, False, False), (4, True, False, False), (1, False, False, False),
@@ -38,6 +40,8 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     for row in rows:
         assert row["status"] == "ok" and not row["through_jit"], row
         assert row["step_s"] > 0 and row["pipelined_step_s"] > 0 and row["compile_s"] > 0 and math.isfinite(row["loss"])
+        assert len(row["pipelined_blocks_s"]) == 4  # --small-blocks
+        assert row["pipelined_step_s"] == statistics.median(row["pipelined_blocks_s"])
     by_k = {r["devices"]: r for r in rows if r["cache"] and not r["overlap"] and not r["unrolled"]}
     unrolled = {r["devices"]: r["pipelined_step_s"] for r in rows if r["unrolled"]}
     # --profile traces the plain step on 1 and 4 devices (a CPU trace has no GPU lanes to summarise)
@@ -165,6 +169,26 @@ def test_records_of_a_full_depth_sweep_on_four_and_eight_devices():
         assert (mfu["value"], mfu["target"], mfu["per_device_batch"], mfu["devices"]) == (0.52, target, 32, n)
         assert scaling["value"] == 0.7 and scaling["per_device_batch"] == 32  # the first per-device batch listed
         assert scaling["target"] == (0.9 if n == 4 else None) and set(scaling["by_batch"]) == {"32", "128"}
+
+
+def test_pipelined_time_is_the_median_block_so_one_slow_block_is_seen_but_not_counted(monkeypatch):
+    """Steps that take 1 ms of a fake clock, except in the third of five blocks (a host hiccup: 10 ms each)."""
+    clock, calls = _Clock(), []
+    monkeypatch.setattr(bench, "time", clock)
+    waiting = 2 + 3  # common.time_fn's warm-up and timed steps come first
+
+    def step(state, data, key):
+        calls.append(1)
+        block = (len(calls) - waiting - 1) // 3
+        clock.now += 0.010 if block == 2 else 0.001
+        return state + 1, {"loss": np.float32(0.5)}
+
+    timings, state, loss = bench.time_step(step, 0, None, None, iters=3, pipelined=True, blocks=5)
+    assert len(calls) == waiting + 5 * 3 + 1 and state == len(calls) and loss == 0.5
+    assert timings["pipelined_blocks_s"] == pytest.approx([0.001, 0.001, 0.010, 0.001, 0.001])
+    assert timings["pipelined_step_s"] == pytest.approx(0.001)  # a mean over the blocks would say 0.0028
+    timings, _, _ = bench.time_step(step, 0, None, None, iters=3, pipelined=False, blocks=5)
+    assert "pipelined_step_s" not in timings and "pipelined_blocks_s" not in timings
 
 
 @pytest.mark.parametrize("sweep", ["24xbogus", "x", "0xnone", "24xdots+fast", "", "24"])
