@@ -7,6 +7,7 @@ import gzip
 import json
 import math
 import statistics
+import time
 
 import jax
 import numpy as np
@@ -38,7 +39,7 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
         (1, True, False, False), (2, True, False, False), (4, True, False, False), (1, False, False, False),
         (4, False, False, False), (4, True, True, False), (1, True, False, True), (4, True, False, True)]
     for row in rows:
-        assert row["status"] == "ok" and not row["through_jit"], row
+        assert row["status"] == "ok" and not row["through_jit"] and row["processes"] == 1, row
         assert row["step_s"] > 0 and row["pipelined_step_s"] > 0 and row["compile_s"] > 0 and math.isfinite(row["loss"])
         assert len(row["pipelined_blocks_s"]) == 4  # --small-blocks
         assert row["pipelined_step_s"] == statistics.median(row["pipelined_blocks_s"])
@@ -68,6 +69,49 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     assert list(entries) == ["dp_scaling_efficiency_small_4gpu"]
     entry = entries["dp_scaling_efficiency_small_4gpu"]
     assert entry["value"] == scaling["efficiency"]["4"] and entry["target"] == 0.9 and entry["per_device_batch"] == 2
+
+
+def test_one_process_per_device_rows_on_two_gloo_processes(monkeypatch):
+    monkeypatch.setattr(bench, "run_fsdp", _no_fsdp)
+    monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
+    summary = bench.main(["--tiny", "--devices", "2", "--small-unrolled", "--small-processes", "--small-blocks", "2"])
+    rows = summary["small"]["rows"]
+    multi = {r["unrolled"]: r for r in rows if r["processes"] > 1}
+    assert [(r["label"], r["devices"], r["processes"]) for r in rows if r["processes"] > 1] == [
+        ("2/dev k=2 2proc", 2, 2), ("2/dev k=2 2proc unrolled", 2, 2)]
+    single = {(r["devices"], r["unrolled"]): r for r in rows
+              if r["processes"] == 1 and r["cache"] and not r["overlap"]}
+    for unrolled, row in multi.items():
+        assert row["status"] == "ok" and math.isfinite(row["loss"]) and row["step_s"] > 0, row
+        assert len(row["pipelined_blocks_s"]) == 2
+        assert row["pipelined_step_s"] == statistics.median(row["pipelined_blocks_s"])
+        assert row["launch_s"] > row["compile_s"] > 0
+        # each process put only its rows of the same global batch: the step one process runs on 2 devices
+        assert row["loss"] == pytest.approx(single[(2, unrolled)]["loss"], rel=1e-5)
+        assert row["loss"] != pytest.approx(single[(1, unrolled)]["loss"], rel=1e-5)  # half that batch
+    scaling = summary["small"]["by_batch"]["2"]
+    assert scaling["processes_pipelined_step_s"] == {"2": multi[False]["pipelined_step_s"]}
+    assert scaling["processes_efficiency"] == {
+        "2": pytest.approx(single[(1, False)]["pipelined_step_s"] / multi[False]["pipelined_step_s"])}
+    assert scaling["unrolled_processes_efficiency"] == {
+        "2": pytest.approx(single[(1, True)]["pipelined_step_s"] / multi[True]["pipelined_step_s"])}
+    # single-process figures leave the per-process rows out
+    assert scaling["pipelined_step_s"]["2"] == single[(2, False)]["pipelined_step_s"]
+
+
+def test_a_failing_or_stuck_rank_gives_an_error_row_quickly(monkeypatch):
+    monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
+    start = time.monotonic()
+    bad = dataclasses.replace(bench.TINY_CFG, num_heads=3)  # does not divide dim 64: no model is built
+    row = bench.process_row(bad, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=False, timeout_s=120, on_cpu=True)
+    assert (row["status"], row["processes"], row["label"]) == ("error", 2, "2/dev k=2 2proc"), row
+    assert "ValueError" in row["error"] and "num_heads=3" in row["error"] and "step_s" not in row
+    # ranks past their time (here before their first step) stop themselves, and the launcher the rest
+    row = bench.process_row(bench.TINY_CFG, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=True, timeout_s=1,
+                            on_cpu=True)
+    assert row["status"] == "error" and row["unrolled"], row
+    assert "status 124" in row["error"] and "not done after 1 s" in row["error"]
+    assert time.monotonic() - start < 60
 
 
 def test_sweep_rows_and_an_out_of_memory_setting_passed_over(tmp_path, monkeypatch):
