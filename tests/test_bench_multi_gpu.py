@@ -68,7 +68,14 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     entries = bench.results_entries(summary)
     assert list(entries) == ["dp_scaling_efficiency_small_4gpu"]
     entry = entries["dp_scaling_efficiency_small_4gpu"]
-    assert entry["value"] == scaling["efficiency"]["4"] and entry["target"] == 0.9 and entry["per_device_batch"] == 2
+    fastest = min(by_k[1]["pipelined_step_s"], unrolled[1])
+    scanned_4 = by_k[4]["pipelined_step_s"]
+    assert entry["efficiency_by_mode"] == pytest.approx({"single_process_scanned": fastest / scanned_4,
+                                                         "single_process_unrolled": fastest / unrolled[4]})
+    assert entry["value"] == max(entry["efficiency_by_mode"].values())
+    assert entry["efficiency_by_mode"][entry["mode"]] == entry["value"]
+    assert entry["efficiency"] == scaling["efficiency"]["4"] and entry["target"] == 0.9
+    assert entry["per_device_batch"] == 2
 
 
 def test_one_process_per_device_rows_on_two_gloo_processes(monkeypatch):
@@ -97,6 +104,11 @@ def test_one_process_per_device_rows_on_two_gloo_processes(monkeypatch):
         "2": pytest.approx(single[(1, True)]["pipelined_step_s"] / multi[True]["pipelined_step_s"])}
     # single-process figures leave the per-process rows out
     assert scaling["pipelined_step_s"]["2"] == single[(2, False)]["pipelined_step_s"]
+    entry = bench.results_entries(summary)["dp_scaling_efficiency_small_2gpu"]
+    fastest = min(single[(1, False)]["pipelined_step_s"], single[(1, True)]["pipelined_step_s"])
+    assert entry["efficiency_by_mode"]["process_per_device_unrolled"] == pytest.approx(
+        fastest / multi[True]["pipelined_step_s"])
+    assert set(entry["efficiency_by_mode"]) == set(bench.MODES)
 
 
 def test_a_failing_or_stuck_rank_gives_an_error_row_quickly(monkeypatch):
@@ -202,7 +214,8 @@ def test_records_of_a_full_depth_sweep_on_four_and_eight_devices():
     for n, target in ((4, 0.55), (8, None)):
         summary = {"devices": n, "measured_peak_tflops": 800.0, "nominal_peak_tflops": 989.4, "xla_overlap_flags": [],
                    "small_batches": [32, 128], "small": {"by_batch": {
-                       "32": {"per_device_batch": 32, "efficiency": {"1": 1.0, str(n): 0.7}, "pipelined_step_s": {},
+                       "32": {"per_device_batch": 32, "efficiency": {"1": 1.0, str(n): 0.7},
+                              "pipelined_step_s": {"1": 0.7, str(n): 1.0},
                               "step_s": {}, "waiting_efficiency": {}, "cache_off_pipelined_step_s": {},
                               "cache_off_efficiency": 0.8, "overlap_efficiency": 0.75},
                        "128": {"per_device_batch": 128, "efficiency": {"1": 1.0, str(n): 0.9}}}},
@@ -233,6 +246,36 @@ def test_pipelined_time_is_the_median_block_so_one_slow_block_is_seen_but_not_co
     assert timings["pipelined_step_s"] == pytest.approx(0.001)  # a mean over the blocks would say 0.0028
     timings, _, _ = bench.time_step(step, 0, None, None, iters=3, pipelined=False, blocks=5)
     assert "pipelined_step_s" not in timings and "pipelined_blocks_s" not in timings
+
+
+def test_the_recorded_scaling_is_the_best_mode_against_the_fastest_one_device_time():
+    """Each mode's n-device time over the fastest one-device time of the run (here unrolled layers): against their
+    own one-device times the scanned modes would look better than they are, and one process per device, scanned,
+    would win (0.010 / 0.011)."""
+    headline = {"per_device_batch": 32, "efficiency": {"1": 1.0, "4": 0.010 / 0.0136},
+                "pipelined_step_s": {"1": 0.010, "2": 0.012, "4": 0.0136}, "step_s": {"1": 0.0095, "4": 0.012},
+                "waiting_efficiency": {"4": 0.79}, "cache_off_pipelined_step_s": {}, "cache_off_efficiency": None,
+                "overlap_efficiency": None, "unrolled_pipelined_step_s": {"1": 0.0064, "4": 0.0139},
+                "processes_pipelined_step_s": {"2": 0.0105, "4": 0.011},
+                "unrolled_processes_pipelined_step_s": {"4": 0.008}}
+    summary = {"devices": 4, "xla_overlap_flags": [], "small_batches": [32],
+               "small": {"by_batch": {"32": headline}}}
+    entry = bench.results_entries(summary)["dp_scaling_efficiency_small_4gpu"]
+    assert entry["efficiency_by_mode"] == pytest.approx({
+        "single_process_scanned": 0.0064 / 0.0136, "single_process_unrolled": 0.0064 / 0.0139,
+        "process_per_device_scanned": 0.0064 / 0.011, "process_per_device_unrolled": 0.0064 / 0.008})
+    assert entry["mode"] == "process_per_device_unrolled" and entry["value"] == pytest.approx(0.8)
+    assert (entry["reference_1dev_pipelined_step_s"], entry["reference_1dev_layers"]) == (0.0064, "unrolled")
+    assert entry["efficiency"] == headline["efficiency"]["4"] and entry["target"] == 0.9  # the fields kept
+
+    # scanned layers fastest on one device, no unrolled or per-process rows: the one mode against its own time
+    for field in ("unrolled_pipelined_step_s", "processes_pipelined_step_s", "unrolled_processes_pipelined_step_s"):
+        headline[field] = {}
+    entry = bench.results_entries(summary)["dp_scaling_efficiency_small_4gpu"]
+    assert entry["efficiency_by_mode"] == {"single_process_scanned": 0.010 / 0.0136}
+    assert entry["mode"] == "single_process_scanned" and entry["reference_1dev_layers"] == "scanned"
+    headline["pipelined_step_s"] = {"1": 0.010}  # nothing on 4 devices: nothing recorded
+    assert bench.results_entries(summary) == {}
 
 
 @pytest.mark.parametrize("sweep", ["24xbogus", "x", "0xnone", "24xdots+fast", "", "24"])
