@@ -2,21 +2,40 @@
 
     python -m benchmarks.bench_multi_gpu --time-budget-s 420 --out /tmp/mg.json    # 4 x H100 / H200, ~7 min
     python -m benchmarks.bench_multi_gpu --xla-overlap --time-budget-s 420 --out /tmp/mg_overlap.json
+    python -m benchmarks.bench_multi_gpu --time-budget-s 1 --small-unrolled --small-processes --out /tmp/mg.json
     XLA_FLAGS=--xla_force_host_platform_device_count=4 python -m benchmarks.bench_multi_gpu --tiny   # CPU smoke run
 
 Part 1 (always runs, first) times the small config's DLB step at a fixed per-device batch
 (``--small-batch-per-device``, a comma list) on 1, 2, 4, ... devices (pure data parallel) and reports
 the scaling efficiency ``t_1 / t_k`` (1.0 = linear). Each row has the step time with the host waiting
-for every step (``step_s``) and per step of steps dispatched back to back (``pipelined_step_s``, how the
-train loop runs: it reads metrics one step late); the efficiency recorded is the pipelined one. The
-same step with the DLB cache off on 1 and all devices separates what the cache's cross-device reads and
-writes cost (``cache_cross_device_s``) from the gradient all-reduce and the rest (``dp_overhead_s``);
-one more row on all devices compiles the step with the collective-overlap options below.
+for every step (``step_s``, the median of ``--small-iters`` steps) and per step of steps dispatched back to
+back (``pipelined_step_s``, how the train loop runs: it reads metrics one step late): ``--small-blocks``
+blocks of ``--small-iters`` steps each, the median block's seconds per step, every block's in
+``pipelined_blocks_s``. Efficiencies are of the pipelined figure. (``--time-budget-s 1``, as in the third
+line above, runs part 1 alone: no 5B setting fits.) The same step with the DLB cache off on 1 and all devices
+separates what the cache's cross-device reads and writes cost (``cache_cross_device_s``) from the gradient
+all-reduce and the rest (``dp_overhead_s``); one more row on all devices compiles the step with the
+collective-overlap options below.
 ``--profile DIR`` traces the plain step of the first per-device batch on 1 and on all devices (5 steps each,
 perfetto JSON under ``DIR/small_<B>dev_k<k>``) and adds per GPU: kernel time in collectives, in other kernels and
 the span from first kernel to last, per step (``row["profile"]``): whether the 1 -> N overhead is collectives
 or gaps. ``--small-unrolled`` adds the step with unrolled layers (``model.scan_layers=false``) on 1 and all devices
 (``unrolled_efficiency``): in the scan each layer's gradient all-reduce sits inside the loop's backward pass.
+``--small-processes`` then times the same step (cache on; scanned and, with ``--small-unrolled``, unrolled layers)
+run by k processes of one device each, for every device count k > 1 (rows ``processes: k``, labelled ``k=4 4proc``;
+the single-process rows have ``processes: 1``): one ``jax.distributed`` job per row, started by
+:func:`sword_jax.pipeline.launch.launch` (process i on GPU i, NVLink multicast off; on a CPU one device each with
+gloo collectives), a ``data`` mesh over every process's device, each process putting only its rows of the batch.
+``processes_efficiency`` (``unrolled_processes_efficiency``) is one process's time on one device over k processes'
+time: whether one host thread driving every GPU is what costs. A job whose rank fails, or that is still running
+after ``--small-processes-timeout-s``, gives a row with status ``error`` and the failed rank's last output. With
+``--small-processes`` the GPUs are not preallocated (``XLA_PYTHON_CLIENT_PREALLOCATE=false`` unless the
+environment sets it), so the ranks find the memory this process is not using.
+
+The recorded ``dp_scaling_efficiency_small_<N>gpu`` is the best of the modes measured (one process driving every
+device or one process per device, scanned or unrolled layers: ``mode``, all in ``efficiency_by_mode``), each
+mode's time on N devices against the fastest one-device time of the run, so no mode gains from a slow one-device
+program of its own.
 
 Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
 spanning every device (the latent cache sharded over episodes) and times the DLB step for each
@@ -60,8 +79,11 @@ import gzip
 import json
 import os
 import re
+import statistics
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 import traceback
 from typing import Any
@@ -78,8 +100,10 @@ from sword_jax.atomic_write import write_json_atomic
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dit.config import REMAT_POLICIES, DiTConfig
 from sword_jax.dlb.config import CacheConfig
+from sword_jax.pipeline import launch as launcher
 from sword_jax.world_model import train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
+from train import distributed
 
 DEFAULT_SWEEP = "32xdots,32xdots+overlap,24xdots,48xdots,16xnone,24xfull"
 # XLA's GPU collective-overlap options (DebugOptions fields; on other backends they are accepted and unused).
@@ -97,6 +121,10 @@ OVERLAP_OPTIONS: dict[str, bool | int] = {
 NUM_EPISODES, NUM_LATENTS, SEGMENT_LATENTS, ACTION_TOKENS = 64, 32, 4, 13
 TRAINER = TrainerConfig(steps=1000, warmup_steps=10)
 DLB_CACHE = CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5)
+# --tiny: both parts on this model at these latent sizes (CPU smoke runs)
+TINY_CFG = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
+                     compute_dtype="float32")
+TINY_HW = (4, 4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,12 +201,16 @@ def backend_started() -> bool:
         return False
 
 
-def configure_backend(xla_overlap: bool, mem_fraction: float) -> dict[str, Any]:
-    """Environment for the backend, set before it starts: the memory fraction and, with ``xla_overlap``,
-    the overlap flags in ``XLA_FLAGS``. Returns what was applied."""
+def configure_backend(xla_overlap: bool, mem_fraction: float, preallocate: bool = True) -> dict[str, Any]:
+    """Environment for the backend, set before it starts: the memory fraction, without ``preallocate`` no
+    preallocation (memory taken as needed, so processes started later find the rest of each GPU free) and, with
+    ``xla_overlap``, the overlap flags in ``XLA_FLAGS``. Returns what was applied."""
     started = backend_started()
     os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", str(mem_fraction))
-    applied: dict[str, Any] = {"xla_overlap_flags": [], "dropped_flags": []}
+    if not preallocate:
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    applied: dict[str, Any] = {"xla_overlap_flags": [], "dropped_flags": [],
+                               "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true")}
     if xla_overlap:
         base = os.environ.get("XLA_FLAGS", "")
         kept, applied["dropped_flags"] = usable_xla_flags(xla_flag_strings(OVERLAP_OPTIONS), base)
@@ -211,13 +243,23 @@ def free_device_memory() -> None:
 
 
 def make_batch(model_cfg: DiTConfig, batch: int, hw: tuple[int, int], mesh) -> tuple[dict, dict]:
-    rng = np.random.default_rng(0)
-    host = {"latents": rng.standard_normal((batch, SEGMENT_LATENTS, hw[0], hw[1], model_cfg.in_dim), dtype=np.float32),
-            "actions": rng.uniform(-1, 1, (batch, ACTION_TOKENS, model_cfg.action_dim)).astype(np.float32),
-            "episode": rng.integers(0, NUM_EPISODES, batch).astype(np.int32),
-            "start": rng.integers(1, NUM_LATENTS - 2, batch).astype(np.int32)}
-    shardings = {k: shd.batch_sharding(mesh, v.ndim) for k, v in host.items()}
-    return {k: shd.put(v, shardings[k]) for k, v in host.items()}, shardings
+    """A random batch of ``batch`` examples as global arrays split over ``mesh``'s batch axes, and their
+    shardings. Each process makes only the rows its devices hold (:func:`sword_jax.sharding.rows_held`); row
+    ``i`` is the same whichever process makes it."""
+    shapes = {"latents": (SEGMENT_LATENTS, hw[0], hw[1], model_cfg.in_dim),
+              "actions": (ACTION_TOKENS, model_cfg.action_dim), "episode": (), "start": ()}
+    shardings = {k: shd.batch_sharding(mesh, 1 + len(shape)) for k, shape in shapes.items()}
+    rows = shd.rows_held(shardings["episode"], batch)
+
+    def example(row: int) -> dict[str, np.ndarray]:
+        rng = np.random.default_rng([0, row])
+        return {"latents": rng.standard_normal(shapes["latents"], dtype=np.float32),
+                "actions": rng.uniform(-1, 1, shapes["actions"]).astype(np.float32),
+                "episode": np.int32(rng.integers(0, NUM_EPISODES)), "start": np.int32(rng.integers(1, NUM_LATENTS - 2))}
+
+    examples = [example(int(row)) for row in rows]
+    host = {k: np.stack([e[k] for e in examples]) for k in shapes}  # (rows held, ...)
+    return shd.to_global(host, shardings, rows, batch), shardings
 
 
 def new_state(model_cfg: DiTConfig, cache_cfg: CacheConfig, hw: tuple[int, int], mesh):
@@ -316,25 +358,30 @@ def profile_steps(one, directory: str, steps: int = PROFILE_STEPS) -> dict[str, 
     return {"steps": steps, **summarize_trace(directory, steps)}
 
 
-def time_step(step, state, data, key, *, iters: int, pipelined: bool,
+def time_step(step, state, data, key, *, iters: int, pipelined: bool, blocks: int = 1,
               profile_dir: str | None = None) -> tuple[dict, Any, float]:
-    """Runs the compiled step on the donated state: the median seconds of a step the host waits for and, with
-    ``pipelined``, seconds per step of ``iters`` steps dispatched back to back. With ``profile_dir`` a few more
-    steps are traced there (``timings["profile"]``, :func:`profile_steps`). Returns ``(timings, state,
-    loss of the last step)``; raises on a non-finite loss."""
+    """Runs the compiled step on the donated state: the median seconds of a step the host waits for
+    (``step_s``) and, with ``pipelined``, ``blocks`` blocks of ``iters`` steps dispatched back to back: each
+    block's seconds per step (``pipelined_blocks_s``) and the median block's (``pipelined_step_s``), so one
+    slow block (a hiccup of the host) neither hides nor counts. With ``profile_dir`` a few more steps are traced
+    there (``timings["profile"]``, :func:`profile_steps`). Returns ``(timings, state, loss of the last step)``;
+    raises on a non-finite loss."""
     holder = {"state": state}
 
     def one():
         holder["state"], metrics = step(holder["state"], data, key)
         return metrics["loss"]
 
-    timings = {"step_s": common.time_fn(one, warmup=2, iters=iters)["median_s"]}
+    timings: dict[str, Any] = {"step_s": common.time_fn(one, warmup=2, iters=iters)["median_s"]}
     if pipelined:
-        start = time.perf_counter()
-        for _ in range(iters):
-            loss = one()
-        common.block(loss)
-        timings["pipelined_step_s"] = (time.perf_counter() - start) / iters
+        per_block = []
+        for _ in range(blocks):
+            start = time.perf_counter()
+            for _ in range(iters):
+                loss = one()
+            common.block(loss)
+            per_block.append((time.perf_counter() - start) / iters)
+        timings.update(pipelined_step_s=statistics.median(per_block), pipelined_blocks_s=per_block)
     if profile_dir:
         timings["profile"] = profile_steps(one, profile_dir)
     loss = float(one())
@@ -357,41 +404,142 @@ def peak_gb(devices) -> list[float | None]:
 
 
 def small_row(model_cfg: DiTConfig, devices, per_device_batch: int, hw: tuple[int, int], *, cache_on: bool,
-              options: dict | None, iters: int, unrolled: bool = False, profile_dir: str | None = None) -> dict:
+              options: dict | None, iters: int, blocks: int = 1, unrolled: bool = False,
+              profile_dir: str | None = None) -> dict:
     k = len(devices)
     label = (f"{per_device_batch}/dev k={k}" + ("" if cache_on else " cache-off") + (" overlap" if options else "")
              + (" unrolled" if unrolled else ""))
-    row: dict[str, Any] = {"label": label, "devices": k, "per_device_batch": per_device_batch, "cache": cache_on,
-                           "overlap": bool(options), "unrolled": unrolled, "status": "ok"}
-    if unrolled:  # the layers as separate ops, so each layer's gradient all-reduce can overlap the backward pass
-        model_cfg = dataclasses.replace(model_cfg, scan_layers=False)
+    row: dict[str, Any] = {"label": label, "devices": k, "processes": 1, "per_device_batch": per_device_batch,
+                           "cache": cache_on, "overlap": bool(options), "unrolled": unrolled, "status": "ok"}
     mesh = shd.make_mesh(shd.MeshConfig(data=-1), devices=devices)
     cache_cfg = dataclasses.replace(DLB_CACHE, enabled=cache_on)
     try:
-        graphdef, state, shardings = new_state(model_cfg, cache_cfg, hw, mesh)
-        data, data_shardings = make_batch(model_cfg, per_device_batch * k, hw, mesh)
-        key = shd.put(jax.random.key(0), shd.replicated(mesh))
-        step, row["compile_s"], row["compiled_gb_per_device"] = compile_dlb_step(
-            graphdef, cache_cfg, state, shardings, data, data_shardings, mesh, key, options)
-        timings, _, row["loss"] = time_step(step, state, data, key, iters=iters, pipelined=True,
-                                            profile_dir=profile_dir)
-        row.update(timings, through_jit=bool(step.through_jit))
+        row.update(measure_small(model_cfg, cache_cfg, mesh, per_device_batch, hw, options=options, iters=iters,
+                                 blocks=blocks, unrolled=unrolled, profile_dir=profile_dir))
     except Exception as err:  # noqa: BLE001 - reported in the row
         failure_row(row, err)
     return row
 
 
+def measure_small(model_cfg: DiTConfig, cache_cfg: CacheConfig, mesh, per_device_batch: int, hw: tuple[int, int], *,
+                  options: dict | None, iters: int, blocks: int, unrolled: bool,
+                  profile_dir: str | None = None) -> dict[str, Any]:
+    """The small config's DLB step on ``mesh`` (pure data parallel, ``per_device_batch`` per device), compiled
+    and timed (:func:`time_step`): its timings, compile seconds, compiled size per device and last loss."""
+    if unrolled:  # the layers as separate ops, so each layer's gradient all-reduce can overlap the backward pass
+        model_cfg = dataclasses.replace(model_cfg, scan_layers=False)
+    graphdef, state, shardings = new_state(model_cfg, cache_cfg, hw, mesh)
+    data, data_shardings = make_batch(model_cfg, per_device_batch * mesh.size, hw, mesh)
+    key = shd.put(jax.random.key(0), shd.replicated(mesh))
+    step, compile_s, compiled_gb = compile_dlb_step(graphdef, cache_cfg, state, shardings, data, data_shardings, mesh,
+                                                    key, options)
+    timings, _, loss = time_step(step, state, data, key, iters=iters, pipelined=True, blocks=blocks,
+                                 profile_dir=profile_dir)
+    return {**timings, "compile_s": compile_s, "compiled_gb_per_device": compiled_gb, "loss": loss,
+            "through_jit": bool(step.through_jit)}
+
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PROCESS_GRACE_S = 5.0  # a process-per-device job: SIGTERM -> SIGKILL of its other ranks once one failed
+LOG_TAIL_CHARS = 600  # of a failed rank's output, kept in its row's error
+
+
+def process_row(model_cfg: DiTConfig, processes: int, per_device_batch: int, hw: tuple[int, int], *, iters: int,
+                blocks: int, unrolled: bool, timeout_s: float, on_cpu: bool) -> dict:
+    """The small config's DLB step (cache on, no per-compile options) timed by ``processes`` processes of one
+    device each, launched by :func:`sword_jax.pipeline.launch.launch` and joined by ``jax.distributed`` (process
+    ``i`` on GPU ``i``, or on one CPU device with gloo collectives when ``on_cpu``), on a ``data`` mesh over
+    every process's device. Each rank runs :func:`worker`; rank 0's figures make the row. A job that fails or
+    runs past ``timeout_s`` (each rank stops itself then) gives a row with status ``error`` and the failed
+    rank's last output."""
+    label = f"{per_device_batch}/dev k={processes} {processes}proc" + (" unrolled" if unrolled else "")
+    row: dict[str, Any] = {"label": label, "devices": processes, "processes": processes,
+                           "per_device_batch": per_device_batch, "cache": True, "overlap": False, "unrolled": unrolled,
+                           "status": "ok"}
+    with tempfile.TemporaryDirectory(prefix="bench_multi_gpu_") as tmp:
+        spec = {"label": label, "model": dataclasses.asdict(model_cfg), "cache": dataclasses.asdict(DLB_CACHE),
+                "per_device_batch": per_device_batch, "hw": list(hw), "iters": iters, "blocks": blocks,
+                "unrolled": unrolled, "timeout_s": timeout_s, "out": os.path.join(tmp, "row.json")}
+        write_json_atomic(os.path.join(tmp, "spec.json"), spec)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (REPO, os.environ.get("PYTHONPATH")) if p))
+        if not on_cpu:  # this process keeps GPU memory of its own rows; the ranks take theirs as they need it
+            env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+        start = time.perf_counter()
+        result = launcher.launch(worker_command(os.path.join(tmp, "spec.json")), processes,
+                                 cpu_devices=1 if on_cpu else None, log_dir=os.path.join(tmp, "logs"),
+                                 grace_s=PROCESS_GRACE_S, environ=env)
+        row["launch_s"] = time.perf_counter() - start
+        if os.path.exists(spec["out"]):
+            with open(spec["out"]) as f:
+                row.update({k: v for k, v in json.load(f).items() if k != "label"})
+        if not os.path.exists(spec["out"]) or (result.returncode and row["status"] == "ok"):
+            rank = result.failed_rank or 0
+            log = os.path.join(tmp, "logs", f"rank{rank}.log")
+            tail = open(log, errors="replace").read()[-LOG_TAIL_CHARS:] if os.path.exists(log) else ""
+            row.update(status="error", error=f"the job ended with status {result.returncode} (rank {rank} failed "
+                                             f"first); its last output: {tail.strip()}")
+    if row["status"] != "ok":
+        print(f"  {label}: {row['status'].upper()} -- {row['error']}", flush=True)
+    return row
+
+
+def worker_command(spec_path: str) -> list[str]:
+    return [sys.executable, "-m", "benchmarks.bench_multi_gpu", "--worker", spec_path]
+
+
+def worker(spec_path: str) -> int:
+    """One rank of a :func:`process_row` job: joins it, times the step (:func:`measure_small`) on a ``data``
+    mesh over every process's devices, each process putting only its rows of the batch, and (rank 0) writes the
+    row's figures or its failure to the spec's ``out``. Exits 124 once the spec's ``timeout_s`` has passed (the
+    launcher then stops the other ranks), 1 when the step failed."""
+    with open(spec_path) as f:
+        spec = json.load(f)
+    watchdog = threading.Timer(spec["timeout_s"], _expire, args=(spec["label"], spec["timeout_s"]))
+    watchdog.daemon = True
+    watchdog.start()
+    distributed.initialize(shd.MeshConfig(distributed=True))
+    model_cfg = DiTConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec["model"].items()})
+    mesh = shd.make_mesh(shd.MeshConfig(data=-1), devices=jax.devices())
+    row: dict[str, Any] = {"label": spec["label"], "status": "ok"}
+    try:
+        row.update(measure_small(model_cfg, CacheConfig(**spec["cache"]), mesh, spec["per_device_batch"],
+                                 tuple(spec["hw"]), options=None, iters=spec["iters"], blocks=spec["blocks"],
+                                 unrolled=spec["unrolled"]))
+    except Exception as err:  # noqa: BLE001 - reported in the row, and by the exit status
+        failure_row(row, err)
+    if jax.process_index() == 0:
+        write_json_atomic(spec["out"], row)
+    watchdog.cancel()
+    return 0 if row["status"] == "ok" else 1
+
+
+def _expire(label: str, timeout_s: float) -> None:
+    print(f"{label}: not done after {timeout_s:g} s, stopping", flush=True)
+    os._exit(124)
+
+
+def worker_main(argv: list[str]) -> int:
+    parser = cli.ArgumentParser(description="one rank of a process-per-device row of benchmarks.bench_multi_gpu")
+    parser.add_argument("--worker", required=True, metavar="SPEC", help="the row's spec (JSON)")
+    return worker(parser.parse_args(argv).worker)
+
+
 def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
-    """Efficiencies ``t_1 / t_k`` (pipelined and host-waiting) and the cache / all-reduce split of one batch."""
-    def times(cache: bool, overlap: bool, field: str, unrolled: bool = False) -> dict[int, float]:
+    """Efficiencies ``t_1 / t_k`` (pipelined and host-waiting) and the cache / all-reduce split of one batch;
+    ``processes_efficiency``: one process's time on one device over that of ``k`` processes of one device each
+    (``unrolled_processes_efficiency`` the same with unrolled layers)."""
+    def times(cache: bool, overlap: bool, field: str, unrolled: bool = False,
+              processes: bool = False) -> dict[int, float]:
         return {r["devices"]: r[field] for r in rows if r["per_device_batch"] == per_device_batch
                 and r["status"] == "ok" and r["cache"] == cache and r["overlap"] == overlap
-                and r.get("unrolled", False) == unrolled}
+                and r.get("unrolled", False) == unrolled and (r.get("processes", 1) > 1) == processes}
 
     on, on_wait = times(True, False, "pipelined_step_s"), times(True, False, "step_s")
     off = times(False, False, "pipelined_step_s")
     overlap = times(True, True, "pipelined_step_s")
     unrolled = times(True, False, "pipelined_step_s", unrolled=True)
+    processes = times(True, False, "pipelined_step_s", processes=True)
+    unrolled_processes = times(True, False, "pipelined_step_s", unrolled=True, processes=True)
     summary: dict[str, Any] = {
         "per_device_batch": per_device_batch,
         "pipelined_step_s": {str(k): t for k, t in on.items()}, "step_s": {str(k): t for k, t in on_wait.items()},
@@ -404,6 +552,11 @@ def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
         "unrolled_pipelined_step_s": {str(k): t for k, t in unrolled.items()},
         # unrolled on 1 device against unrolled on n: the scaling of that program, not a speed-up over the scan
         "unrolled_efficiency": unrolled[1] / unrolled[n] if 1 in unrolled and n in unrolled else None,
+        "processes_pipelined_step_s": {str(k): t for k, t in processes.items()},
+        "processes_efficiency": {str(k): on[1] / t for k, t in processes.items()} if 1 in on else {},
+        "unrolled_processes_pipelined_step_s": {str(k): t for k, t in unrolled_processes.items()},
+        "unrolled_processes_efficiency": ({str(k): unrolled[1] / t for k, t in unrolled_processes.items()}
+                                          if 1 in unrolled else {}),
     }
     if all(k in d for d in (on, off) for k in (1, n)):
         summary["dp_overhead_s"] = off[n] - off[1]  # gradient all-reduce and the rest, without the cache
@@ -416,9 +569,12 @@ def device_counts(n: int) -> list[int]:
     return counts if counts[-1] == n else counts + [n]
 
 
-def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int,
+def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, int], *, iters: int, blocks: int,
               overlap_options: dict, overlap_everywhere: bool, report, unrolled: bool = False,
-              profile: str | None = None) -> dict:
+              profile: str | None = None, processes: bool = False, process_timeout_s: float = 600.0) -> dict:
+    """The rows of part 1 (one process; then, with ``processes``, ``k`` processes of one device each for every
+    ``k > 1`` of :func:`device_counts`, scanned and with ``unrolled`` unrolled layers) and each batch's
+    :func:`scaling_summary`."""
     n = len(devices)
     rows: list[dict] = []
     print(f"\n== small config ({model_cfg.num_layers} layers, dim {model_cfg.dim}): data-parallel scaling over "
@@ -432,18 +588,20 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
         for k, cache_on, options, unroll in plan:
             # the first batch's plain step on 1 and on all devices is traced with --profile
             traced = profile and batch == batches[0] and k in (1, n) and cache_on and not options and not unroll
+            profile_dir = os.path.join(profile, f"small_{batch}dev_k{k}") if traced else None
             row = small_row(model_cfg, devices[:k], batch, hw, cache_on=cache_on, options=options, iters=iters,
-                            unrolled=unroll, profile_dir=os.path.join(profile, f"small_{batch}dev_k{k}") if traced
-                            else None)
+                            blocks=blocks, unrolled=unroll, profile_dir=profile_dir)
             rows.append(row)
-            if row["status"] == "ok":
-                print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined "
-                      f"{row['pipelined_step_s'] * 1e3:8.2f} ms  compile {row['compile_s']:.1f} s", flush=True)
-                for lane, per in (row.get("profile") or {}).get("devices", {}).items():
-                    print(f"    {lane}: per step {per['span_ms']:.2f} ms from first kernel to last, collectives "
-                          f"{per['collective_ms']:.2f} ms, other kernels {per['compute_ms']:.2f} ms", flush=True)
+            _print_small_row(row)
             report(rows=rows)
             free_device_memory()
+        for k in [k for k in device_counts(n) if k > 1] if processes else []:
+            for unroll in (False, True) if unrolled else (False,):
+                row = process_row(model_cfg, k, batch, hw, iters=iters, blocks=blocks, unrolled=unroll,
+                                  timeout_s=process_timeout_s, on_cpu=devices[0].platform == "cpu")
+                rows.append(row)
+                _print_small_row(row)
+                report(rows=rows)
     summaries = {str(b): scaling_summary(rows, b, n) for b in batches}
     for batch, s in summaries.items():
         eff = ", ".join(f"k={k}: {e:.3f}" for k, e in s["efficiency"].items())
@@ -452,9 +610,50 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
               f"{_fmt(s['unrolled_efficiency'])}; all-reduce+rest "
               f"{_ms(s.get('dp_overhead_s'))}, "
               f"cache cross-device {_ms(s.get('cache_cross_device_s'))}", flush=True)
+        if processes:
+            per_process = ", ".join(f"k={k}: {e:.3f}" for k, e in s["processes_efficiency"].items())
+            per_process_unrolled = ", ".join(f"k={k}: {e:.3f}" for k, e in s["unrolled_processes_efficiency"].items())
+            print(f"  {batch}/dev one process per device, t_1/t_k: {per_process or 'n/a'}"
+                  + (f"; unrolled: {per_process_unrolled or 'n/a'}" if unrolled else ""), flush=True)
+        reference, by_mode = mode_efficiencies(s, n)
+        if by_mode:
+            print(f"  {batch}/dev against the fastest 1-device time ({reference[1]} layers, {_ms(reference[0])}): "
+                  + ", ".join(f"{mode} {e:.3f}" for mode, e in by_mode.items()), flush=True)
     common.print_table(rows, ["label", "status", "step_s", "pipelined_step_s", "compile_s", "compiled_gb_per_device"])
     sys.stdout.flush()
     return {"rows": rows, "by_batch": summaries}
+
+
+def _print_small_row(row: dict) -> None:
+    if row["status"] != "ok":
+        return
+    print(f"  {row['label']:<28} waiting {row['step_s'] * 1e3:8.2f} ms  pipelined {row['pipelined_step_s'] * 1e3:8.2f} "
+          f"ms (blocks {', '.join(f'{t * 1e3:.2f}' for t in row['pipelined_blocks_s'])})  compile "
+          f"{row['compile_s']:.1f} s", flush=True)
+    for lane, per in (row.get("profile") or {}).get("devices", {}).items():
+        print(f"    {lane}: per step {per['span_ms']:.2f} ms from first kernel to last, collectives "
+              f"{per['collective_ms']:.2f} ms, other kernels {per['compute_ms']:.2f} ms", flush=True)
+
+
+# How the small step can run on n devices, and the field of scaling_summary holding its pipelined times by k.
+MODES = {"single_process_scanned": "pipelined_step_s", "single_process_unrolled": "unrolled_pipelined_step_s",
+         "process_per_device_scanned": "processes_pipelined_step_s",
+         "process_per_device_unrolled": "unrolled_processes_pipelined_step_s"}
+
+
+def mode_efficiencies(scaling: dict, n: int) -> tuple[tuple[float, str] | None, dict[str, float]]:
+    """``((t_1, layers), {mode: t_1 / t_n})``: ``t_1`` the fastest one-device pipelined time of the run (one
+    process; ``layers`` says whether scanned or unrolled), over each measured mode's (:data:`MODES`) pipelined
+    time on ``n`` devices, so no mode gains from a slow one-device program of its own."""
+    one_device = {layers: (scaling.get(field) or {}).get("1") for layers, field in
+                  (("scanned", "pipelined_step_s"), ("unrolled", "unrolled_pipelined_step_s"))}
+    measured = [(t, layers) for layers, t in one_device.items() if t is not None]
+    if not measured:
+        return None, {}
+    reference = min(measured)
+    by_mode = {mode: reference[0] / (scaling.get(field) or {})[str(n)] for mode, field in MODES.items()
+               if (scaling.get(field) or {}).get(str(n)) is not None}
+    return reference, by_mode
 
 
 def _fmt(value: float | None) -> str:
@@ -585,11 +784,15 @@ def results_entries(summary: dict) -> dict[str, dict]:
                      "peak_gb_per_device is the allocator's running peak of the whole run")
     small = summary.get("small") or {}
     headline = small.get("by_batch", {}).get(str(summary["small_batches"][0]), {})
-    efficiency = headline.get("efficiency", {}).get(str(n))
-    if efficiency is not None and n > 1:
+    reference, by_mode = mode_efficiencies(headline, n)
+    if by_mode and n > 1:
         key = f"dp_scaling_efficiency_small_{n}gpu"
+        mode = max(by_mode, key=by_mode.get)
         entries[key] = common.record(
-            key, efficiency, 0.90 if n == 4 else None, devices=n, per_device_batch=headline["per_device_batch"],
+            key, by_mode[mode], 0.90 if n == 4 else None, mode=mode, efficiency_by_mode=by_mode,
+            reference_1dev_pipelined_step_s=reference[0], reference_1dev_layers=reference[1],
+            efficiency=headline.get("efficiency", {}).get(str(n)), devices=n,
+            per_device_batch=headline["per_device_batch"],
             pipelined_step_s=headline["pipelined_step_s"], step_s=headline["step_s"],
             waiting_efficiency=headline["waiting_efficiency"],
             cache_off_pipelined_step_s=headline["cache_off_pipelined_step_s"],
@@ -597,11 +800,19 @@ def results_entries(summary: dict) -> dict[str, dict]:
             dp_overhead_s=headline.get("dp_overhead_s"), cache_cross_device_s=headline.get("cache_cross_device_s"),
             by_batch=small["by_batch"], xla_overlap_flags=summary["xla_overlap_flags"],
             value_is="t_1 / t_N of the small config's DLB step at a fixed per-device batch, steps dispatched back to "
-                     "back (waiting_efficiency: the host waits for every step)")
+                     "back, for the best of the measured modes (mode; efficiency_by_mode: one process driving the N "
+                     "devices or one process per device, scanned or unrolled layers); t_1 is the fastest one-device "
+                     "time of the run, scanned or unrolled, whatever the mode (efficiency: one process, scanned "
+                     "layers, against its own t_1; waiting_efficiency: the same with the host waiting for every "
+                     "step)")
     return entries
 
 
-def main(argv: list[str] | None = None) -> dict:
+def main(argv: list[str] | None = None) -> dict | int:
+    """Both parts; the summary. With ``--worker SPEC`` first, one rank of a process-per-device row
+    (:func:`worker`); its exit status."""
+    if argv and argv[0] == "--worker":
+        return worker_main(argv)
     started = time.monotonic()
     parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes (records nothing)")
@@ -614,13 +825,24 @@ def main(argv: list[str] | None = None) -> dict:
                         "first is the recorded one")
     parser.add_argument("--layers", type=int, default=30, help="layers of the 5B-width model")
     parser.add_argument("--iters", type=int, default=5, help="timed steps per 5B setting")
-    parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row")
+    parser.add_argument("--small-iters", type=int, default=20, help="timed steps per small-config row (and per "
+                        "block of pipelined steps)")
+    parser.add_argument("--small-blocks", type=int, default=None, help="blocks of --small-iters steps dispatched back "
+                        "to back per small-config row, the median block's seconds per step reported (default 5; "
+                        "--tiny 3)")
     parser.add_argument("--profile", default="", metavar="DIR",
                         help="trace the small config's step on 1 and on all devices (first per-device batch) with "
                              "jax.profiler into DIR; each row then reports collective and other kernel time per step")
     parser.add_argument("--small-unrolled", action="store_true",
                         help="also the small config with unrolled layers (model.scan_layers=false) on 1 and all "
                              "devices: whether its gradient all-reduces then overlap the backward pass")
+    parser.add_argument("--small-processes", action="store_true",
+                        help="also the small config's step run by k processes of one device each (k = each device "
+                             "count > 1), joined by jax.distributed: whether one host thread driving every device "
+                             "is what costs")
+    parser.add_argument("--small-processes-timeout-s", type=float, default=600.0,
+                        help="a process-per-device row still running after this many seconds is stopped and "
+                             "reported as an error (default %(default)s)")
     parser.add_argument("--devices", type=int, default=None, help="use the first N devices (default: all)")
     parser.add_argument("--xla-overlap", action="store_true", help="XLA's GPU collective-overlap flags in XLA_FLAGS "
                         "for the whole run (set before the backend starts)")
@@ -630,7 +852,12 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     settings = parse_sweep(args.sweep or ("2xnone,2xdots" if args.tiny else DEFAULT_SWEEP))
     batches = parse_batches(args.small_batch_per_device or ("2" if args.tiny else "32"))
-    applied = configure_backend(args.xla_overlap, args.mem_fraction)
+    blocks = args.small_blocks if args.small_blocks is not None else 3 if args.tiny else 5
+    if blocks < 1:
+        raise cli.UsageError(f"--small-blocks {blocks}: at least one block")
+    if args.small_processes_timeout_s <= 0:
+        raise cli.UsageError("--small-processes-timeout-s must be positive")
+    applied = configure_backend(args.xla_overlap, args.mem_fraction, preallocate=not args.small_processes)
 
     devices = jax.devices()
     if args.devices is not None:
@@ -643,7 +870,8 @@ def main(argv: list[str] | None = None) -> dict:
     summary: dict[str, Any] = {
         "device": common.device_name(), "devices": n, "measured_peak_tflops": peak,
         "nominal_peak_tflops": common.nominal_peak_tflops(), "xla_overlap_flags": applied["xla_overlap_flags"],
-        "dropped_xla_flags": applied["dropped_flags"], "overlap_options": overlap_options, "small_batches": batches,
+        "dropped_xla_flags": applied["dropped_flags"], "preallocate": applied["preallocate"],
+        "overlap_options": overlap_options, "small_batches": batches,
         "sweep": [s.name for s in settings], "time_budget_s": args.time_budget_s, "command": common.command_line()}
     print(f"{n} x {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s per device; nominal "
           f"{summary['nominal_peak_tflops']}; XLA overlap flags {'on' if applied['xla_overlap_flags'] else 'off'}",
@@ -659,17 +887,16 @@ def main(argv: list[str] | None = None) -> dict:
             common.merge_results(entries)
 
     if args.tiny:
-        small_cfg = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
-                              compute_dtype="float32")
-        full_cfg, hw, small_hw = small_cfg, (4, 4), (4, 4)
+        small_cfg, full_cfg, hw, small_hw = TINY_CFG, TINY_CFG, TINY_HW, TINY_HW
     else:
         small_cfg = DiTConfig(dim=512, ffn_dim=2048, num_heads=8, num_layers=8, text_dim=64, text_len=16)
         full_cfg, hw, small_hw = DiTConfig(num_layers=args.layers), (16, 16), (8, 8)
     overlap_everywhere = bool(applied["xla_overlap_flags"])
-    small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters,
+    small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters, blocks=blocks,
                       overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
                       report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled,
-                      profile=args.profile or None)
+                      profile=args.profile or None, processes=args.small_processes,
+                      process_timeout_s=args.small_processes_timeout_s)
     report(small=small)
     free_device_memory()
     fsdp = run_fsdp(full_cfg, devices, settings, hw, iters=2 if args.tiny else args.iters, peak=peak,
