@@ -120,7 +120,8 @@ def readme_results() -> str:
          "dit_train_mfu_5b_full_h200", f"[section]({doc}#the-full-5b-model)"),
         *([("Several GPUs: 4 of one host",
             f"5B FSDP MFU {latest['dit_train_mfu_5b_full_4gpu']['value']:.3f} (target 0.55); `small` data-parallel "
-            f"scaling {latest['dp_scaling_efficiency_small_4gpu']['value']:.3f} (target 0.90); one process per GPU "
+            f"scaling {latest['dp_scaling_efficiency_small_4gpu']['value']:.3f} of the fastest one-GPU step "
+            f"(target 0.90); one process per GPU "
             f"killed and resumed {'bit-identical' if latest['multiprocess_resume_exact']['value'] else 'NOT exact'}",
             "dit_train_mfu_5b_full_4gpu", f"[section]({doc}#several-gpus)")]
           if all(k in latest for k in ("dit_train_mfu_5b_full_4gpu", "dp_scaling_efficiency_small_4gpu",

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks import bench_multi_gpu as bench
+from benchmarks import multi_gpu_processes as processes
 from sword_jax.cli import UsageError
 
 
@@ -115,11 +116,11 @@ def test_a_failing_or_stuck_rank_gives_an_error_row_quickly(monkeypatch):
     monkeypatch.setattr(bench, "DLB_CACHE", dataclasses.replace(bench.DLB_CACHE, log_inference_distance=False))
     start = time.monotonic()
     bad = dataclasses.replace(bench.TINY_CFG, num_heads=3)  # does not divide dim 64: no model is built
-    row = bench.process_row(bad, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=False, timeout_s=120, on_cpu=True)
+    row = processes.process_row(bad, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=False, timeout_s=120, on_cpu=True)
     assert (row["status"], row["processes"], row["label"]) == ("error", 2, "2/dev k=2 2proc"), row
     assert "ValueError" in row["error"] and "num_heads=3" in row["error"] and "step_s" not in row
     # ranks past their time (here before their first step) stop themselves, and the launcher the rest
-    row = bench.process_row(bench.TINY_CFG, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=True, timeout_s=1,
+    row = processes.process_row(bench.TINY_CFG, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=True, timeout_s=1,
                             on_cpu=True)
     assert row["status"] == "error" and row["unrolled"], row
     assert "status 124" in row["error"] and "not done after 1 s" in row["error"]

@@ -8,10 +8,7 @@ collectives go through gloo, so the same path runs on one machine's loopback.
 
 from __future__ import annotations
 
-import os
-
-import jax
-
+from sword_jax.pipeline import launch
 from sword_jax.sharding import MeshConfig
 from sword_jax.tracing import ENTRY_MAX_TRACES  # noqa: F401  (the entry points' retrace margin)
 
@@ -20,15 +17,8 @@ def initialize(mesh_cfg: MeshConfig) -> None:
     """Joins the multi-process job if the config asks for it; a no-op otherwise."""
     if not mesh_cfg.distributed:
         return
-    kwargs = {}
-    if os.environ.get("JAX_NUM_PROCESSES"):
-        kwargs["num_processes"] = int(os.environ["JAX_NUM_PROCESSES"])
-    if os.environ.get("JAX_PROCESS_ID"):
-        kwargs["process_id"] = int(os.environ["JAX_PROCESS_ID"])
-    if os.environ.get("JAX_PLATFORMS", "").startswith("cpu"):
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
     try:
-        jax.distributed.initialize(**kwargs)
+        launch.join()
     except (ValueError, RuntimeError) as err:
         raise SystemExit(
             f"mesh.distributed=true but the multi-process job could not start ({err}). Launch under SLURM / "

@@ -61,6 +61,27 @@ class LaunchResult:
     stop_seconds: float | None
 
 
+def join(environ: Mapping[str, str] = os.environ) -> None:
+    """Joins the ``jax.distributed`` job this process is a rank of: the one :func:`launch` started (its
+    ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``; the coordinator JAX reads from ``JAX_COORDINATOR_ADDRESS``), or
+    one JAX detects (SLURM, Open MPI, Cloud TPU). On CPU (``JAX_PLATFORMS=cpu``) the collectives go through gloo.
+    The library never calls it: a process joins before it builds a mesh (``train.distributed.initialize``).
+
+    Raises:
+      ValueError / RuntimeError: JAX's, when no job can be joined.
+    """
+    import jax
+
+    kwargs = {}
+    if environ.get("JAX_NUM_PROCESSES"):
+        kwargs["num_processes"] = int(environ["JAX_NUM_PROCESSES"])
+    if environ.get("JAX_PROCESS_ID"):
+        kwargs["process_id"] = int(environ["JAX_PROCESS_ID"])
+    if environ.get("JAX_PLATFORMS", "").startswith("cpu"):
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(**kwargs)
+
+
 def free_port() -> int:
     """A TCP port free on the loopback now (the coordinator binds it a moment later)."""
     with socket.socket() as s:
