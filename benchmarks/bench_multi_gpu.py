@@ -34,7 +34,7 @@ environment sets it), so the ranks find the memory this process is not using.
 
 The recorded ``dp_scaling_efficiency_small_<N>gpu`` is the best of the modes measured (one process driving every
 device or one process per device, scanned or unrolled layers: ``mode``, all in ``efficiency_by_mode``), each
-mode's time on N devices against the fastest one-device time of the run, so no mode gains from a slow one-device
+mode's time on N devices against the fastest one-device step time of the run, so no mode gains from a slow one-device
 program of its own.
 
 Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
@@ -530,7 +530,7 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
                   + (f"; unrolled: {per_process_unrolled or 'n/a'}" if unrolled else ""), flush=True)
         reference, by_mode = mode_efficiencies(s, n)
         if by_mode:
-            print(f"  {batch}/dev against the fastest 1-device time ({reference[1]} layers, {_ms(reference[0])}): "
+            print(f"  {batch}/dev against the fastest 1-device step time ({reference[1]} layers, {_ms(reference[0])}): "
                   + ", ".join(f"{mode} {e:.3f}" for mode, e in by_mode.items()), flush=True)
     common.print_table(rows, ["label", "status", "step_s", "pipelined_step_s", "compile_s", "compiled_gb_per_device"])
     sys.stdout.flush()
@@ -715,7 +715,7 @@ def results_entries(summary: dict) -> dict[str, dict]:
             value_is="t_1 / t_N of the small config's DLB step at a fixed per-device batch, steps dispatched back to "
                      "back, for the best of the measured modes (mode; efficiency_by_mode: one process driving the N "
                      "devices or one process per device, scanned or unrolled layers); t_1 is the fastest one-device "
-                     "time of the run, scanned or unrolled, whatever the mode (efficiency: one process, scanned "
+                     "step time of the run, scanned or unrolled, whatever the mode (efficiency: one process, scanned "
                      "layers, against its own t_1; waiting_efficiency: the same with the host waiting for every "
                      "step)")
     return entries

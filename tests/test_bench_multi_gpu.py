@@ -250,8 +250,8 @@ def test_pipelined_time_is_the_median_block_so_one_slow_block_is_seen_but_not_co
 
 
 def test_the_recorded_scaling_is_the_best_mode_against_the_fastest_one_device_time():
-    """Each mode's n-device time over the fastest one-device time of the run (here unrolled layers): against their
-    own one-device times the scanned modes would look better than they are, and one process per device, scanned,
+    """Each mode's n-device step time over the fastest one-device step time of the run (here unrolled layers): against their
+    own one-device step times the scanned modes would look better than they are, and one process per device, scanned,
     would win (0.010 / 0.011)."""
     headline = {"per_device_batch": 32, "efficiency": {"1": 1.0, "4": 0.010 / 0.0136},
                 "pipelined_step_s": {"1": 0.010, "2": 0.012, "4": 0.0136}, "step_s": {"1": 0.0095, "4": 0.012},
