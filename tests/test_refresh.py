@@ -487,3 +487,32 @@ def test_a_world_model_batch_that_does_not_split_over_the_mesh_is_refused_before
     with pytest.raises(ValueError, match=r"data.batch_size=2 does not split over the 8 devices"):
         Refresher(cfg, cfg.rl, wm_state=None, make_simulator=None, encode=None, encode_frames=None,
                   detector=(None, None), base=None, collect=None, directory=str(tmp_path))
+
+
+def test_the_check_of_imagined_rollouts_runs_at_the_run_horizon_and_only_while_the_budget_pays_for_it():
+    """Refresher._verify: rl.refresh.verify_starts x rl.grpo.group_size executions, counted against the budget, at
+    rl.imagined.max_chunks decisions before a horizon is chosen and at the chosen one's after; skipped, with its
+    reason and nothing counted, once the budget cannot pay for them."""
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, group_size=4),
+                             imagined=dataclasses.replace(cfg.rl.imagined, max_chunks=3, execute_steps=4),
+                             refresh=RefreshConfig(every=1, episodes=4, budget=20, verify_starts=2))
+    calls = []
+
+    def verify(params, sim, rm, step, decisions):
+        calls.append((params, sim, rm, step, decisions))
+        return {"episodes": 8, "imagined_success": 0.5, "real_success": 0.25, "precision": {"rate": 0.5, "of": 4},
+                "false_success": {"rate": 1 / 3, "of": 6}}
+
+    refresher = Refresher.__new__(Refresher)  # only what _verify reads
+    refresher.conf, refresher.rl, refresher.used, refresher.records, refresher.verify = rl.refresh, rl, 0, [], verify
+    refresher.simulator, refresher.reward_model, refresher.log = (lambda: "sim"), (lambda: "rm"), (lambda line: None)
+    first = refresher._verify(0, "policy")
+    assert calls == [("policy", "sim", "rm", 0, 3)] and refresher.used == 8 and first["episodes"] == 8
+    refresher.records = [{"step": 0, "horizon": {"actions": 8}}]  # the first refresh chose 8 actions: 2 decisions
+    refresher._verify(1, "policy")
+    assert calls[-1][3:] == (1, 2) and refresher.used == 16
+    skipped = refresher._verify(2, "policy")  # 4 of the 20 left, 8 asked
+    assert "exceed what is left of the budget of 20" in skipped["skipped"] and refresher.used == 16 and len(calls) == 2
+    refresher.conf = dataclasses.replace(rl.refresh, verify_starts=0)
+    assert refresher._verify(3, "policy") is None
