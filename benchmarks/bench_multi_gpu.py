@@ -74,13 +74,8 @@ from __future__ import annotations
 
 import dataclasses
 import gc
-import glob
-import gzip
-import json
 import os
-import re
 import statistics
-import subprocess
 import sys
 import time
 import traceback
@@ -92,6 +87,8 @@ from flax import nnx
 
 from benchmarks import common
 from benchmarks.bench_dit_train import forward_flops
+from benchmarks.gpu_trace import profile_steps
+from benchmarks.xla_options import OVERLAP_OPTIONS, configure_backend, usable_compile_options
 from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.atomic_write import write_json_atomic
@@ -102,18 +99,6 @@ from sword_jax.world_model import train_state, train_step
 from sword_jax.world_model.config import FlowConfig, TrainerConfig
 
 DEFAULT_SWEEP = "32xdots,32xdots+overlap,24xdots,48xdots,16xnone,24xfull"
-# XLA's GPU collective-overlap options (DebugOptions fields; on other backends they are accepted and unused).
-OVERLAP_OPTIONS: dict[str, bool | int] = {
-    "xla_gpu_enable_latency_hiding_scheduler": True,
-    "xla_gpu_enable_highest_priority_async_stream": True,
-    "xla_gpu_enable_pipelined_all_gather": True,
-    "xla_gpu_enable_pipelined_reduce_scatter": True,
-    "xla_gpu_enable_pipelined_all_reduce": True,
-    "xla_gpu_enable_while_loop_double_buffering": True,
-    "xla_gpu_all_reduce_combine_threshold_bytes": 128 << 20,
-    "xla_gpu_all_gather_combine_threshold_bytes": 128 << 20,
-    "xla_gpu_reduce_scatter_combine_threshold_bytes": 64 << 20,
-}
 NUM_EPISODES, NUM_LATENTS, SEGMENT_LATENTS, ACTION_TOKENS = 64, 32, 4, 13
 TRAINER = TrainerConfig(steps=1000, warmup_steps=10)
 DLB_CACHE = CacheConfig(enabled=True, read_prob_start=0.5, read_prob_end=0.5)
@@ -157,80 +142,6 @@ def parse_batches(text: str) -> list[int]:
     if not batches or min(batches) < 1:
         raise cli.UsageError(f"--small-batch-per-device: {text!r} is not a comma list of positive integers")
     return batches
-
-
-def xla_flag_strings(options: dict[str, bool | int]) -> list[str]:
-    return [f"--{name}={str(value).lower() if isinstance(value, bool) else value}" for name, value in options.items()]
-
-
-def usable_xla_flags(flags: list[str], base: str = "") -> tuple[list[str], list[str]]:
-    """``(kept, dropped)``: ``flags`` less those this XLA does not know (an unknown flag in ``XLA_FLAGS``
-    aborts the process), found by starting JAX on the CPU in a subprocess with ``base`` + the flags."""
-    kept, dropped = list(flags), []
-    code = "import jax, jax.numpy as jnp; jax.jit(lambda x: x + 1)(jnp.float32(1)).block_until_ready()"
-    for _ in range(len(flags) + 1):
-        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=" ".join([base, *kept]).strip())
-        try:
-            proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
-        except subprocess.TimeoutExpired:
-            print("--xla-overlap: JAX did not start in 120 s with the overlap flags; none are set", flush=True)
-            return [], flags
-        if proc.returncode == 0:
-            return kept, dropped
-        unknown = [f for f in kept if any("nknown flag" in line and f in line.split()
-                                          for line in proc.stderr.splitlines())]
-        if not unknown:
-            print(f"--xla-overlap: JAX does not start with the overlap flags ({proc.stderr.strip()[-300:]}); "
-                  "none are set", flush=True)
-            return [], flags
-        kept = [f for f in kept if f not in unknown]
-        dropped += unknown
-    return kept, dropped
-
-
-def backend_started() -> bool:
-    """Whether a JAX backend is up already (XLA_FLAGS would no longer be read); False when this JAX cannot say
-    (a command line's ``main`` runs before any device call)."""
-    try:
-        return bool(jax._src.xla_bridge.backends_are_initialized())
-    except Exception:  # noqa: BLE001 - a private helper that may move
-        return False
-
-
-def configure_backend(xla_overlap: bool, mem_fraction: float, preallocate: bool = True) -> dict[str, Any]:
-    """Environment for the backend, set before it starts: the memory fraction, without ``preallocate`` no
-    preallocation (memory taken as needed, so processes started later find the rest of each GPU free) and, with
-    ``xla_overlap``, the overlap flags in ``XLA_FLAGS``. Returns what was applied."""
-    started = backend_started()
-    os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", str(mem_fraction))
-    if not preallocate:
-        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    applied: dict[str, Any] = {"xla_overlap_flags": [], "dropped_flags": [],
-                               "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true")}
-    if xla_overlap:
-        base = os.environ.get("XLA_FLAGS", "")
-        kept, applied["dropped_flags"] = usable_xla_flags(xla_flag_strings(OVERLAP_OPTIONS), base)
-        os.environ["XLA_FLAGS"] = " ".join([base, *kept]).strip()
-        applied["xla_overlap_flags"] = kept
-        if applied["dropped_flags"]:
-            print(f"--xla-overlap: this XLA does not know {applied['dropped_flags']}; left out", flush=True)
-        if started:
-            print("--xla-overlap: the backend had already started, XLA_FLAGS is not read again; only the "
-                  "+overlap rows get the options", flush=True)
-            applied["xla_overlap_flags"] = []
-    return applied
-
-
-def usable_compile_options(options: dict[str, bool | int]) -> dict[str, bool | int]:
-    """The options this XLA accepts as per-compile options (each tried on a trivial program)."""
-    usable = {}
-    for name, value in options.items():
-        try:
-            jax.jit(lambda x: x + 1).lower(np.float32(1)).compile(compiler_options={name: value})
-            usable[name] = value
-        except Exception as err:  # noqa: BLE001 - an option this version of XLA does not have
-            print(f"overlap option {name} not accepted ({str(err)[:100]}); left out", flush=True)
-    return usable
 
 
 def free_device_memory() -> None:
@@ -298,60 +209,6 @@ def compile_dlb_step(graphdef, cache_cfg: CacheConfig, state, shardings, data, d
 
     run.through_jit = through_jit  # type: ignore[attr-defined]
     return run, compile_s, gb
-
-
-PROFILE_STEPS = 5  # steps traced per profiled row
-# device-trace event names of collectives (NCCL kernels, XLA's collective thunks)
-COLLECTIVE = re.compile(r"nccl|all[-_]?reduce|all[-_]?gather|reduce[-_]?scatter|all[-_]?to[-_]?all|collective|sendrecv",
-                        re.IGNORECASE)
-
-
-def summarize_trace(directory: str, steps: int) -> dict[str, Any]:
-    """Per step, on each GPU of a ``jax.profiler`` trace (its perfetto JSON): milliseconds of collective kernels,
-    of the other kernels, and of the span from the first kernel to the last. A collective that overlaps
-    compute counts in both, so ``collective_ms + compute_ms - span_ms`` is at least the overlap. ``devices``
-    is empty where the trace has no GPU lanes (a CPU run)."""
-    paths = sorted(glob.glob(os.path.join(directory, "**", "*perfetto_trace.json.gz"), recursive=True))
-    if not paths:
-        return {"trace": None, "devices": {}}
-    with gzip.open(paths[-1], "rt") as f:
-        events = json.load(f)
-    events = events.get("traceEvents", []) if isinstance(events, dict) else events
-    lanes = {e["pid"]: e.get("args", {}).get("name", "") for e in events
-             if e.get("ph") == "M" and e.get("name") == "process_name"}
-    gpu = {pid: name for pid, name in lanes.items() if "/device:GPU" in name}
-    threads = {(e["pid"], e.get("tid")): str(e.get("args", {}).get("name", "")) for e in events
-               if e.get("ph") == "M" and e.get("name") == "thread_name" and e.get("pid") in gpu}
-    # kernels only: a GPU lane's "Stream" threads (its XLA-module, XLA-op and step threads repeat the same time)
-    streams = {key for key, name in threads.items() if name.lower().startswith("stream")}
-    spans: dict[int, list[float]] = {}
-    sums: dict[int, dict[str, float]] = {}
-    for e in events:
-        if e.get("ph") != "X" or e.get("pid") not in gpu or (streams and (e["pid"], e.get("tid")) not in streams):
-            continue
-        start, dur = float(e.get("ts", 0.0)), float(e.get("dur", 0.0))
-        kind = "collective_ms" if COLLECTIVE.search(str(e.get("name", ""))) else "compute_ms"
-        sums.setdefault(e["pid"], {"collective_ms": 0.0, "compute_ms": 0.0})[kind] += dur / 1e3
-        lo_hi = spans.setdefault(e["pid"], [start, start + dur])
-        lo_hi[0], lo_hi[1] = min(lo_hi[0], start), max(lo_hi[1], start + dur)
-    devices = {}
-    for pid, name in sorted(gpu.items(), key=lambda item: item[1]):
-        if pid in sums:
-            per = {k: v / steps for k, v in sums[pid].items()}
-            per["span_ms"] = (spans[pid][1] - spans[pid][0]) / 1e3 / steps
-            devices[name] = per
-    return {"trace": paths[-1], "devices": devices}
-
-
-def profile_steps(one, directory: str, steps: int = PROFILE_STEPS) -> dict[str, Any]:
-    """``steps`` calls of ``one`` (a step returning its loss) dispatched back to back under ``jax.profiler``,
-    written to ``directory``; their per-step summary (:func:`summarize_trace`)."""
-    os.makedirs(directory, exist_ok=True)
-    with jax.profiler.trace(directory, create_perfetto_trace=True):
-        for _ in range(steps):
-            loss = one()
-        common.block(loss)
-    return {"steps": steps, **summarize_trace(directory, steps)}
 
 
 def time_step(step, state, data, key, *, iters: int, pipelined: bool, blocks: int = 1,

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks import bench_multi_gpu as bench
+from benchmarks import gpu_trace, xla_options
 from benchmarks import multi_gpu_processes as processes
 from sword_jax.cli import UsageError
 
@@ -49,7 +50,7 @@ def test_small_scaling_rows_efficiencies_and_the_cache_split(tmp_path, monkeypat
     # --profile traces the plain step on 1 and 4 devices (a CPU trace has no GPU lanes to summarise)
     assert [r["devices"] for r in rows if "profile" in r] == [1, 4]
     for k in (1, 4):
-        assert by_k[k]["profile"]["steps"] == bench.PROFILE_STEPS and by_k[k]["profile"]["devices"] == {}
+        assert by_k[k]["profile"]["steps"] == gpu_trace.PROFILE_STEPS and by_k[k]["profile"]["devices"] == {}
         assert str(tmp_path / "prof" / f"small_2dev_k{k}") in by_k[k]["profile"]["trace"]
     scaling = summary["small"]["by_batch"]["2"]
     assert set(scaling["efficiency"]) == {"1", "2", "4"} and scaling["efficiency"]["1"] == 1.0
@@ -294,9 +295,9 @@ def test_sweep_and_batch_lists_parse():
 
 
 def test_overlap_flags_this_xla_does_not_know_are_dropped():
-    flags = bench.xla_flag_strings(bench.OVERLAP_OPTIONS)
+    flags = xla_options.xla_flag_strings(bench.OVERLAP_OPTIONS)
     assert "--xla_gpu_enable_latency_hiding_scheduler=true" in flags
-    kept, dropped = bench.usable_xla_flags(flags[:2] + ["--xla_gpu_no_such_flag=true"])
+    kept, dropped = xla_options.usable_xla_flags(flags[:2] + ["--xla_gpu_no_such_flag=true"])
     assert kept == flags[:2] and dropped == ["--xla_gpu_no_such_flag=true"]
 
 
@@ -328,9 +329,9 @@ def test_a_trace_is_summarized_per_gpu_and_step_from_its_kernel_streams(tmp_path
     run.mkdir(parents=True)
     with gzip.open(run / "host.perfetto_trace.json.gz", "wt") as f:
         json.dump({"traceEvents": events}, f)
-    summary = bench.summarize_trace(str(tmp_path), steps=2)
+    summary = gpu_trace.summarize_trace(str(tmp_path), steps=2)
     assert summary["trace"].endswith("perfetto_trace.json.gz")
     assert summary["devices"] == {
         "/device:GPU:0": {"collective_ms": 1.0, "compute_ms": 2.0, "span_ms": 4.0},
         "/device:GPU:1": {"collective_ms": 0.0, "compute_ms": 1.0, "span_ms": 1.0}}
-    assert bench.summarize_trace(str(tmp_path / "none"), steps=2) == {"trace": None, "devices": {}}
+    assert gpu_trace.summarize_trace(str(tmp_path / "none"), steps=2) == {"trace": None, "devices": {}}
