@@ -639,17 +639,25 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if args.record:
             common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir, note=args.note,
                                                  command=args.command))
-        for name, entry in summary["runs"].items():
-            g, s = entry["greedy"], entry["sampled"]
-            print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "
-                  f"{g['start']:.3f} -> {g['end']:.3f}; sampled {s['start']:.3f} -> {s['end']:.3f} ({s['gain']:+.3f} "
-                  f"[{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])"
-                  + (f"; {entry['imagined_frames_per_s']:.0f} imagined frames/s in its steps"
-                     if entry.get("imagined_frames_per_s") else ""))
+        print_runs(summary)
         return summary
     if not args.policy:
         raise SystemExit("bench_grpo_refresh run needs --policy (the supervised policy every run starts from)")
-    return run(args, overrides)
+    summary = run(args, overrides)
+    print_runs(summary)
+    print(f"[refresh] summary: {os.path.join(args.workdir, 'refresh_summary.json')}", flush=True)
+    return summary
+
+
+def print_runs(summary: dict) -> None:
+    """One line per run: its steps, real episodes, and greedy and sampled success from start to end."""
+    for name, entry in summary["runs"].items():
+        g, s = entry["greedy"], entry["sampled"]
+        print(f"[refresh] {name}: steps {entry['steps']}, real episodes {entry['real_episodes_used']}; greedy "
+              f"{g['start']:.3f} -> {g['end']:.3f}; sampled {s['start']:.3f} -> {s['end']:.3f} ({s['gain']:+.3f} "
+              f"[{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])"
+              + (f"; {entry['imagined_frames_per_s']:.0f} imagined frames/s in its steps"
+                 if entry.get("imagined_frames_per_s") else ""), flush=True)
 
 
 if __name__ == "__main__":

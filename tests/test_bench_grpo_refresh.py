@@ -296,3 +296,15 @@ def test_a_light_decoder_run_variant_has_its_pipeline_distil_the_decoder_and_its
         f"{p.prefix}refreshed_seed{k}": [sys.executable, "-c", "pass"] for k in p.seeds})
     bench.run(Run, [], poll_s=0.05)
     assert [(k["name"], k["light"]) for k in built] == [("pipeline", True)]  # one pipeline, distilling the decoder
+
+
+def test_each_run_is_one_line_of_its_gains(capsys):
+    point = {"start": 0.5, "end": 0.6, "gain": 0.1, "ci95": [-0.02, 0.22]}
+    summary = {"runs": {"refreshed_seed0": {"steps": 10, "real_episodes_used": 128, "greedy": point, "sampled": point,
+                                            "imagined_frames_per_s": 900.0},
+                        "refreshed_seed1": {"steps": 0, "real_episodes_used": 64, "greedy": point, "sampled": point}}}
+    bench.print_runs(summary)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("[refresh] refreshed_seed0: steps 10, real episodes 128")
+    assert "sampled 0.500 -> 0.600 (+0.100 [-0.020, +0.220])" in lines[0] and "900 imagined frames/s" in lines[0]
+    assert "imagined frames" not in lines[1]
