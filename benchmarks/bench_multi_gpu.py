@@ -343,6 +343,8 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
     """The rows of part 1 (one process; then, with ``processes``, ``k`` processes of one device each for every
     ``k > 1`` of :func:`device_counts`, scanned and with ``unrolled`` unrolled layers) and each batch's
     :func:`scaling_summary`."""
+    from benchmarks import multi_gpu_processes  # it imports this module
+
     n = len(devices)
     rows: list[dict] = []
     print(f"\n== small config ({model_cfg.num_layers} layers, dim {model_cfg.dim}): data-parallel scaling over "
@@ -365,10 +367,9 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
             free_device_memory()
         for k in [k for k in device_counts(n) if k > 1] if processes else []:
             for unroll in (False, True) if unrolled else (False,):
-                from benchmarks import multi_gpu_processes  # it imports this module
-
-                row = multi_gpu_processes.process_row(model_cfg, k, batch, hw, iters=iters, blocks=blocks, unrolled=unroll,
-                                  timeout_s=process_timeout_s, on_cpu=devices[0].platform == "cpu")
+                row = multi_gpu_processes.process_row(model_cfg, k, batch, hw, iters=iters, blocks=blocks,
+                                                      unrolled=unroll, timeout_s=process_timeout_s,
+                                                      on_cpu=devices[0].platform == "cpu")
                 rows.append(row)
                 _print_small_row(row)
                 report(rows=rows)

@@ -58,7 +58,6 @@ from sword_jax.atomic_write import write_json_atomic
 from sword_jax.checkpoint import read_arrays
 from sword_jax.pipeline import launch as launcher
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # A batch and dataset small enough that a step is quick; both divisible by 4 devices (and by 2 and 1).
 OVERRIDES = {
     "sword:small": ("--data.batch_size=8", "--data.num_episodes=16"),
@@ -83,8 +82,8 @@ class Child:
         self.name, self.lines = name, []
         self.start = time.monotonic()
         os.makedirs(os.path.dirname(log_path), exist_ok=True)
-        self.proc = subprocess.Popen(list(argv), cwd=REPO, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True, errors="replace")
+        self.proc = subprocess.Popen(list(argv), cwd=common.REPO, env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace")
         self.reader = threading.Thread(target=self._read, args=(log_path,), daemon=True)
         self.reader.start()
 

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 
 from sword_jax.atomic_write import write_json_atomic
 
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checkout the benchmarks run from
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "latest.json")
 
 

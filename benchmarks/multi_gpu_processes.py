@@ -20,6 +20,7 @@ from typing import Any
 import jax
 
 from benchmarks import bench_multi_gpu as bench
+from benchmarks import common
 from sword_jax import cli
 from sword_jax import sharding as shd
 from sword_jax.atomic_write import write_json_atomic
@@ -27,7 +28,6 @@ from sword_jax.dit.config import DiTConfig
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.pipeline import launch as launcher
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PROCESS_GRACE_S = 5.0  # a process-per-device job: SIGTERM -> SIGKILL of its other ranks once one failed
 LOG_TAIL_CHARS = 600  # of a failed rank's output, kept in its row's error
 
@@ -49,7 +49,7 @@ def process_row(model_cfg: DiTConfig, processes: int, per_device_batch: int, hw:
                 "per_device_batch": per_device_batch, "hw": list(hw), "iters": iters, "blocks": blocks,
                 "unrolled": unrolled, "timeout_s": timeout_s, "out": os.path.join(tmp, "row.json")}
         write_json_atomic(os.path.join(tmp, "spec.json"), spec)
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (REPO, os.environ.get("PYTHONPATH")) if p))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (common.REPO, os.environ.get("PYTHONPATH")) if p))
         if not on_cpu:  # this process keeps GPU memory of its own rows; the ranks take theirs as they need it
             env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
         start = time.perf_counter()
@@ -76,9 +76,10 @@ def worker_command(spec_path: str) -> list[str]:
 
 
 def worker(spec_path: str) -> int:
-    """One rank of a :func:`process_row` job: joins it, times the step (:func:`measure_small`) on a ``data``
-    mesh over every process's devices, each process putting only its rows of the batch, and (rank 0) writes the
-    row's figures or its failure to the spec's ``out``. Exits 124 once the spec's ``timeout_s`` has passed (the
+    """One rank of a :func:`process_row` job: joins it, times the step
+    (:func:`benchmarks.bench_multi_gpu.measure_small`) on a ``data`` mesh over every process's devices, each
+    process putting only its rows of the batch, and (rank 0) writes the row's figures or its failure to the
+    spec's ``out``. Exits 124 once the spec's ``timeout_s`` has passed (the
     launcher then stops the other ranks), 1 when the step failed."""
     with open(spec_path) as f:
         spec = json.load(f)
@@ -91,8 +92,8 @@ def worker(spec_path: str) -> int:
     row: dict[str, Any] = {"label": spec["label"], "status": "ok"}
     try:
         row.update(bench.measure_small(model_cfg, CacheConfig(**spec["cache"]), mesh, spec["per_device_batch"],
-                                 tuple(spec["hw"]), options=None, iters=spec["iters"], blocks=spec["blocks"],
-                                 unrolled=spec["unrolled"]))
+                                       tuple(spec["hw"]), options=None, iters=spec["iters"], blocks=spec["blocks"],
+                                       unrolled=spec["unrolled"]))
     except Exception as err:  # noqa: BLE001 - reported in the row, and by the exit status
         bench.failure_row(row, err)
     if jax.process_index() == 0:

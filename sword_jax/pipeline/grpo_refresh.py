@@ -207,8 +207,8 @@ def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[i
         start = start_state(window, encode, rl)
         sim, rm = jax.device_put((sim, rm), shd.shardings_on((sim, rm), mesh))
         env_starts = jnp.asarray(np.repeat(starts, g, axis=0))
-        out = jax.device_get(checked_fn(decisions)(params, sim, rm, start, env_starts, jax.random.fold_in(root, step)))
-        checked = imagined_check.CheckedRollouts(**{k: np.asarray(v) for k, v in out.items()})
+        checked = jax.device_get(checked_fn(decisions)(params, sim, rm, start, env_starts,
+                                                       jax.random.fold_in(root, step)))
         actions = decisions * per
         horizons = tuple(h for h in sim_agreement.HORIZON_SWEEP if h < actions)
         return dict(imagined_check.report(checked, g, horizons=horizons), starts=len(starts), group_size=g,

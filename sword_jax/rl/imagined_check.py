@@ -30,7 +30,7 @@ from sword_jax.rl.rollout import Rollout
 
 
 class CheckedRollouts(NamedTuple):
-    """Imagined trajectories and the real outcome of their actions (host arrays).
+    """Imagined trajectories and the real outcome of their actions (``[n]`` / ``[n, T]`` arrays).
 
     Attributes:
       imagined_first: ``[n]`` action index of each imagined success (the last action of its decision), -1 if none.
@@ -87,13 +87,13 @@ def decision_scores(rollout: Rollout) -> Float[Array, "n t"]:
     return jnp.repeat(rollout.scores * rollout.valid, e, axis=1)
 
 
-def check(rollout: Rollout, env: Any, env_starts: Any, action_bins: int) -> dict[str, Array]:
+def check(rollout: Rollout, env: Any, env_starts: Any, action_bins: int) -> CheckedRollouts:
     """Executes ``rollout``'s trajectories in ``env`` from ``env_starts`` (one per trajectory, the states the
-    imagined ones started from); the arrays of :class:`CheckedRollouts` (jit-able)."""
+    imagined ones started from); jit-able, device arrays (``jax.device_get`` gives the host's)."""
     actions, lengths = executed_actions(rollout, action_bins)
-    return {"imagined_first": imagined_first_success(rollout),
-            "real_first": execute_open_loop(env, env_starts, actions, lengths),
-            "scores": decision_scores(rollout), "lengths": lengths}
+    return CheckedRollouts(imagined_first=imagined_first_success(rollout),
+                           real_first=execute_open_loop(env, env_starts, actions, lengths),
+                           scores=decision_scores(rollout), lengths=lengths)
 
 
 def report(checked: CheckedRollouts, group_size: int, horizons: tuple[int, ...] = sim_agreement.HORIZON_SWEEP
