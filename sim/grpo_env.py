@@ -47,7 +47,7 @@ def sim_reckoning(episodes):
 
 def keyframe_horizon(rl) -> int:
     """Actions an imagined rollout executes at most: ``max_chunks`` decisions of the simulator's execution."""
-    return rl.imagined.max_chunks * (rl.imagined.execute_steps or rl.chunk_len)
+    return rl.imagined.max_chunks * rl.imagined_actions_per_decision
 
 
 def check_keyframe_episodes(episodes) -> None:
@@ -88,7 +88,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env.starts=keyframes``
     the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
     as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
-    ``rl.imagined.execute_steps or chunk_len`` actions per decision as the learned simulator does;
+    ``rl.imagined_actions_per_decision`` actions per decision as the learned simulator does;
     evaluations still start at rest and execute ``rl.env.execute_steps``. ``max_traces``: traces of the
     jitted update before the retrace guard fails.
 
@@ -124,7 +124,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         check_keyframe_episodes(keyframes)  # now, not after the first evaluation
         horizon = keyframe_horizon(rl)
         rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
-            rl.env, execute_steps=rl.imagined.execute_steps or rl.chunk_len))
+            rl.env, execute_steps=rl.imagined_actions_per_decision))
 
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         if rl.env.starts == "keyframes":
@@ -178,7 +178,7 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     The learned simulator's setting, one part at a time: ``rl.env.starts=keyframes`` starts the rollouts
     at ``keyframes``' recorded states (the demonstrations, :func:`keyframe_picks`) for
-    :func:`keyframe_horizon` actions, executing ``rl.imagined.execute_steps or chunk_len`` per decision;
+    :func:`keyframe_horizon` actions, executing ``rl.imagined_actions_per_decision`` per decision;
     ``rl.env.proprio=missing`` has the policy read its "missing proprio" input in the rollouts, and each
     evaluation then also runs the sampled policy that way (``sampled_proprio_masked``). Evaluations
     always start at rest with ``rl.env.execute_steps``.
@@ -207,7 +207,7 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     setting = {}
     if rl.env.starts == "keyframes":
-        setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined.execute_steps or rl.chunk_len)
+        setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined_actions_per_decision)
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,

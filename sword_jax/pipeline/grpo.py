@@ -131,7 +131,7 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
                           flow_cfg=cfg.flow, frame_size=cfg.data.image_size, sample_steps=cfg.flow.sample_steps,
                           num_context=cfg.data.context_frames // tf, num_future=cfg.data.predict_frames // tf,
                           action_dim=cfg.model.action_dim, proprio_dim=rl.proprio_dim,
-                          execute_latents=(rl.imagined.execute_steps or rl.chunk_len) // tf,
+                          execute_latents=rl.imagined_actions_per_decision // tf,
                           proprio_reckoning=reckoning, light_decoder=light_decoder)
     reward_model = as_reward_model(*detector)
 

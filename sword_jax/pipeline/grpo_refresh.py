@@ -104,11 +104,10 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     def step_fn(*args):
         # built at the first step, after the first refresh, which may choose the imagined horizon
         if "fn" not in built:
-            run_rl, horizon = rl, refresher.horizon()
+            run_rl, horizon, decisions = rl, refresher.horizon(), refresher.decisions()
             if horizon is not None:
-                per_chunk = rl.imagined.execute_steps or rl.chunk_len
-                run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=horizon // per_chunk))
-                log(f"imagined rollouts of {horizon} actions ({horizon // per_chunk} decisions), chosen by the first refresh")
+                run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=decisions))
+                log(f"imagined rollouts of {horizon} actions ({decisions} decisions), chosen by the first refresh")
             built["fn"] = grpo.make_grpo_step(graphdef, run_rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
         return built["fn"](*args)
 
@@ -181,7 +180,7 @@ def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[i
     from sword_jax.rl import imagined_check, sim_agreement
     from sword_jax.rl.rollout import imagined_rollout
 
-    g, per = rl.grpo.group_size, rl.imagined.execute_steps or rl.chunk_len
+    g, per = rl.grpo.group_size, rl.imagined_actions_per_decision
     reset = jax.jit(env.reset)
     root = stream_key(jax.random.key(seed), "refresh/verify")
     compiled: dict[int, Callable] = {}

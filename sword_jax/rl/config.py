@@ -647,6 +647,12 @@ class RLConfig:
         return self.reward_model.image_size or self.image_size
 
     @property
+    def imagined_actions_per_decision(self) -> int:
+        """Actions a learned simulator executes per policy decision: ``rl.imagined.execute_steps``, else the
+        whole chunk."""
+        return self.imagined.execute_steps or self.chunk_len
+
+    @property
     def imagined_starts_per_step(self) -> int:
         """Start states (GRPO groups) a step in the learned simulator rolls out: ``rl.imagined.oversample x
         rl.grpo.rollout_batch``; the step updates on ``rl.grpo.rollout_batch`` of them."""
@@ -673,7 +679,7 @@ class RLConfig:
             raise ValueError(f"rl.env.execute_steps must be in [1, rl.chunk_len={self.chunk_len}], got "
                              f"{self.env.execute_steps}")
         executed = self.imagined.execute_steps
-        per_chunk = executed or self.chunk_len
+        per_chunk = self.imagined_actions_per_decision
         if any(h % per_chunk for h in self.refresh.horizons):
             raise ValueError(f"rl.refresh.horizons must be multiples of the imagined execution ({per_chunk} actions per "
                              f"decision), got {self.refresh.horizons}")

@@ -383,6 +383,12 @@ class Refresher:
         None when it chose none."""
         return next((r["horizon"]["actions"] for r in self.records if "horizon" in r), None)
 
+    def decisions(self) -> int:
+        """Decisions of an imagined rollout at the run's horizon (:meth:`horizon`), ``rl.imagined.max_chunks``
+        before one is chosen."""
+        horizon = self.horizon()
+        return self.rl.imagined.max_chunks if horizon is None else horizon // self.rl.imagined_actions_per_decision
+
     def paused(self) -> bool:
         """With ``rl.refresh.pause_untrusted``: whether the refresh the steps follow found the simulator not
         separating real successes from real failures at the run's horizon (its ``trust``); GRPO then leaves
@@ -540,10 +546,8 @@ class Refresher:
         count = conf.verify_starts * self.rl.grpo.group_size
         if conf.budget - self.used < count:
             return {"skipped": f"{count} real executions exceed what is left of the budget of {conf.budget}"}
-        horizon, per = self.horizon(), self.rl.imagined.execute_steps or self.rl.chunk_len
-        decisions = horizon // per if horizon is not None else self.rl.imagined.max_chunks
         t0 = time.perf_counter()
-        out = self.verify(policy_params, self.simulator(), self.reward_model(), step, decisions)
+        out = self.verify(policy_params, self.simulator(), self.reward_model(), step, self.decisions())
         self.used += int(out["episodes"])
         out["seconds"] = round(time.perf_counter() - t0, 1)
         fs, pr = out["false_success"], out["precision"]
