@@ -27,6 +27,39 @@ from sword_jax.rl.sim_builder import stored_for_simulator
 from sword_jax.rng import stream_key
 
 
+def mjx_evaluation(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int):
+    """``(env, evaluate(step, params) -> (point, extra))``: the batched MJX episodes of ``cfg.sim`` and the
+    ground-truth GRPO's evaluation on them (:class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`: the greedy, ensembled
+    policy and the sampled one on the tasks' fixed evaluation states; with ``rl.imagined.eval_masked_proprio``
+    also the sampled policy reading its "missing proprio" input, the mode GRPO trains inside the world model),
+    what a run in the learned simulator is judged by on MJX. ``params``: the starting policy, whose greedy
+    episodes fix the probe states (``<workdir>/probe``)."""
+    tasks = list(cfg.sim.tasks)
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
+    eval_qpos, eval_text = episode_starts(eval_episodes)
+
+    def no_training_starts(step, round_):
+        raise RuntimeError("GRPO trains in the learned simulator here; EnvGRPO only evaluates")
+
+    runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=no_training_starts,
+                     eval_starts=eval_qpos, eval_tokens=tokenize_instructions(eval_text, rl.policy.max_instruction_bytes),
+                     eval_tasks=[t for t, _ in eval_episodes],
+                     key=stream_key(jax.random.key(cfg.seed), "grpo/mjx_eval"), log=log)
+    os.makedirs(workdir, exist_ok=True)
+    runner.start_probe(params, os.path.join(workdir, "probe"))
+
+    def evaluate_real(step, params):
+        point, extra = runner.evaluate(params, step=step, sampled=True, masked=rl.imagined.eval_masked_proprio)
+        masked = extra.get("sampled_proprio_masked")
+        log(f"eval step {step}: MJX success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}]"
+            f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f}"
+            + (f", proprio masked {masked['mean']:.3f}" if masked else "") + f" ({point['episodes']} episodes)")
+        return point, extra
+
+    return env, evaluate_real
+
+
 def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae, world_model, latents: str,
                          episodes_per_task: int, max_traces: int) -> dict:
     """GRPO in ``setup``'s learned simulator (:func:`sword_jax.pipeline.grpo.world_model_setup`), refreshed every
@@ -44,34 +77,12 @@ def run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir: str, setup, *, vae,
                          f"equal data.image_size={cfg.data.image_size}")
     tasks = list(cfg.sim.tasks)
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
-    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    env, evaluate_real = mjx_evaluation(cfg, rl, graphdef, params, workdir, episodes_per_task=episodes_per_task)
 
     def pool_starts(n, rng):
         picked = stratified_train_starts(tasks, n, rng, pool=pool)
         qpos, text = episode_starts(picked)
         return qpos, text, np.asarray([t for t, _ in picked])
-
-    eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)
-    eval_qpos, eval_text = episode_starts(eval_episodes)
-    max_bytes = rl.policy.max_instruction_bytes
-
-    def no_training_starts(step, round_):
-        raise RuntimeError("the refreshed run trains in the learned simulator; EnvGRPO only evaluates here")
-
-    runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=no_training_starts,
-                     eval_starts=eval_qpos, eval_tokens=tokenize_instructions(eval_text, max_bytes),
-                     eval_tasks=[t for t, _ in eval_episodes],
-                     key=stream_key(jax.random.key(cfg.seed), "grpo/mjx_eval"), log=log)
-    os.makedirs(workdir, exist_ok=True)
-    runner.start_probe(params, os.path.join(workdir, "probe"))
-
-    def evaluate_real(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=True, masked=rl.imagined.eval_masked_proprio)
-        masked = extra.get("sampled_proprio_masked")
-        log(f"eval step {step}: MJX success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}]"
-            f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f}"
-            + (f", proprio masked {masked['mean']:.3f}" if masked else "") + f" ({point['episodes']} episodes)")
-        return point, extra
 
     vae_graphdef, vae_state = vae
     encoder = vae_api.encoder(vae_graphdef, vae_state)

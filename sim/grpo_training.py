@@ -92,6 +92,17 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
                                         latents=inputs.latents,
                                         episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
                                         max_traces=ENTRY_MAX_TRACES)
+        if rl.env.backend == "mjx":  # the evaluation (and with rl.imagined.reward=executed, the reward) on MJX
+            from sim.grpo_refresh import mjx_evaluation
+
+            if rl.imagined.reward == "executed" and setup.env_starts is None:
+                raise SystemExit("train.grpo --rl.imagined.reward=executed resets MJX to the keyframes' recorded "
+                                 f"states: the demonstrations {', '.join(inputs.demos)} hold no 'states'")
+            env, evaluate_real = mjx_evaluation(cfg, rl, graphdef, params, workdir,
+                                                episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task)
+            return run_in_learned_simulator(cfg, rl, graphdef, params, workdir, setup, simulator=simulator,
+                                            env_eval=None, max_traces=ENTRY_MAX_TRACES, env=env,
+                                            evaluate_real=evaluate_real)
         env_eval = lockstep_evaluation(cfg.sim.tasks, eval_episodes or rl.grpo.eval_episodes_per_task,
                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps, renderer=renderer,
                                        workers=env_workers)

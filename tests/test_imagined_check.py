@@ -2,17 +2,20 @@
 executed open loop, the report against designed outcomes, and the whole check on the toy world, where a
 simulator equal to the environment agrees everywhere and a detector that always fires pays every real failure."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sword_jax.rl import imagined_check
-from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
+from sword_jax.rl import grpo, imagined_check
+from sword_jax.rl.config import EnvConfig, GRPOConfig, ImaginedConfig, PolicyConfig, RefreshConfig, RLConfig
+from sword_jax.rl.grpo_loop import grpo_run_id
 from sword_jax.rl.learned_simulator import (RewardModel, ToyState, instruction_target, toy_render, toy_reward_model,
                                             toy_simulator, toy_start_states)
 from sword_jax.rl.policy import build_policy, tokenize_instructions
-from sword_jax.rl.rollout import imagined_rollout
+from sword_jax.rl.rollout import Rollout, imagined_rollout
 
 CFG = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
                policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
@@ -141,3 +144,91 @@ def test_a_detector_that_always_fires_pays_every_real_failure():
     real = checked.real_first >= 0
     assert out["false_success"]["rate"] == 1.0 and out["false_success"]["of"] == int((~real).sum()) > 0
     assert out["precision"]["rate"] == pytest.approx(real.mean())
+
+
+# ---- rl.imagined.reward=executed: the real environment pays the imagined actions ----
+
+EXEC = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+                policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+                grpo=GRPOConfig(group_size=4, rollout_batch=3, minibatches=1),
+                imagined=ImaginedConfig(max_chunks=4, reward="executed"), env=EnvConfig(backend="mjx"))
+NEVER = RewardModel(params={}, score_fn=lambda params, frames: jnp.zeros(frames.shape[0], jnp.float32))
+ALWAYS = RewardModel(params={}, score_fn=lambda params, frames: jnp.ones(frames.shape[0], jnp.float32))
+
+
+def test_paid_by_execution_masks_after_the_real_success_and_pays_it():
+    n, c, e = 3, 4, 2
+    rollout = Rollout(obs_frames=jnp.zeros((n, c, 8, 8, 3)), proprio=jnp.zeros((n, c, 4)), proprio_valid=jnp.zeros((n, c)),
+                      instruction_tokens=jnp.zeros((n, 32), jnp.int32), tokens=jnp.zeros((n, c, e, 7), jnp.int32),
+                      log_probs=jnp.zeros((n, c, e, 7)), valid=jnp.ones((n, c)), rewards=jnp.full((n, c), 0.3),
+                      scores=jnp.zeros((n, c)), success=jnp.zeros(n, bool), returns=jnp.zeros(n),
+                      frames=jnp.zeros((0,)))
+    # real success after action 3 (decision 1), never, after action 0 (decision 0)
+    paid = jax.device_get(imagined_check.paid_by_execution(rollout, jnp.asarray([3, -1, 0]), EXEC))
+    np.testing.assert_array_equal(paid.success, [True, False, True])
+    np.testing.assert_array_equal(paid.valid, [[1, 1, 0, 0], [1, 1, 1, 1], [1, 0, 0, 0]])
+    np.testing.assert_array_equal(paid.rewards, [[0, 1, 0, 0], [0, 0, 0, 0], [1, 0, 0, 0]])
+    bonus = EXEC.grpo.success_bonus
+    np.testing.assert_allclose(paid.returns, [1 + bonus, 0, 1 + bonus])
+    score_rule = dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, return_rule="score"))
+    np.testing.assert_allclose(imagined_check.paid_by_execution(rollout, jnp.asarray([3, -1, 0]), score_rule).returns,
+                               paid.returns)
+
+
+def test_detector_metrics_against_designed_verdicts():
+    scores = jnp.asarray([[0.1, 0.95], [0.2, 0.3], [0.99, 0.0], [0.0, 0.0]])
+    rollout = Rollout(*(jnp.zeros(1),) * 8, scores, jnp.zeros(4, bool), jnp.zeros(4), jnp.zeros(1))
+    out = jax.device_get(imagined_check.detector_metrics(rollout, jnp.asarray([True, False, False, False]), 0.9))
+    # said: T, F, T, F; real: T, F, F, F -> agreement 3/4; the one paid failure of three
+    assert out["detector_success"] == pytest.approx(0.5)
+    assert out["detector_agreement"] == pytest.approx(0.75)
+    assert out["detector_false_success"] == pytest.approx(1 / 3)
+    assert np.isnan(imagined_check.detector_metrics(rollout, jnp.ones(4, bool), 0.9)["detector_false_success"])
+
+
+def _executed_step(reward_model):
+    """One GRPO step on the toy world paid by the toy environment (the check's designed starts)."""
+    graphdef, params = build_policy(EXEC, seed=0)
+    sim = toy_simulator(frame_size=8, step_size=STEP, chunk_len=EXEC.chunk_len)
+    tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
+    start = toy_start_states(tokens, key=jax.random.key(5), frame_size=8)
+    targets = jax.vmap(instruction_target)(tokens)
+    near = targets[1] + jnp.asarray([0.12, 0.0])
+    start = start._replace(proprio=start.proprio.at[1, :2].set(near),
+                           frame=start.frame.at[1].set(toy_render(ToyState(near, targets[1]), 8)))
+    env_starts = jnp.concatenate([start.proprio[:, :2], targets], axis=1)
+    step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
+    state = grpo.init_state(params, EXEC)
+    new_state, metrics = step(state, (sim, reward_model, start, env_starts), jax.random.key(3))
+    return state, new_state, jax.device_get(metrics)
+
+
+def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector():
+    state, moved, never = _executed_step(NEVER)
+    _, _, always = _executed_step(ALWAYS)
+    # the detector stops nothing: the same rollouts, paid the same by the environment
+    assert 0.0 < never["success_rate"] < 1.0 and never["success_rate"] == always["success_rate"]
+    assert never["kept_fraction"] > 0 and never["kept_fraction"] == always["kept_fraction"]
+    assert never["detector_success"] == 0.0 and always["detector_success"] == 1.0
+    assert always["detector_false_success"] == 1.0 and never["detector_false_success"] == 0.0
+    assert never["detector_agreement"] == pytest.approx(1 - never["success_rate"])
+    changed = jax.tree.leaves(jax.tree.map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
+                                           state.params, moved.params))
+    assert any(changed), "a mixed group moved the policy"
+
+
+def test_an_executed_reward_is_refused_without_its_environment_or_outside_mjx():
+    graphdef, _ = build_policy(EXEC, seed=0)
+    with pytest.raises(ValueError, match="needs env="):
+        grpo.make_grpo_step(graphdef, EXEC)
+    for bad, what in ((dataclasses.replace(EXEC, env=EnvConfig(backend="cpu")), "backend=mjx"),
+                      (dataclasses.replace(EXEC, refresh=RefreshConfig(every=5, budget=64)), "refresh.every=0"),
+                      (dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, confirm_success=True)),
+                       "confirm_success=false")):
+        with pytest.raises(ValueError, match=what):
+            bad.validate()
+    with pytest.raises(ValueError, match="detector|executed"):
+        ImaginedConfig(reward="oracle").validate()
+    # the run's identity names what pays it only when it is not the detector
+    assert grpo_run_id(EXEC, seed=0, simulator="world_model")["rl.imagined.reward"] == "executed"
+    assert "rl.imagined.reward" not in grpo_run_id(CFG, seed=0, simulator="world_model")

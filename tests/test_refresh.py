@@ -516,3 +516,62 @@ def test_the_check_of_imagined_rollouts_runs_at_the_run_horizon_and_only_while_t
     assert "exceed what is left of the budget of 20" in skipped["skipped"] and refresher.used == 16 and len(calls) == 2
     refresher.conf = dataclasses.replace(rl.refresh, verify_starts=0)
     assert refresher._verify(3, "policy") is None
+
+
+@pytest.mark.slow  # ~1.5 min on 2 cores: two GRPO steps paid by the environment, then a resume
+def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(tiny_run, tmp_path):
+    """rl.imagined.reward=executed: GRPO in the tiny world model from keyframes whose recorded states reset the
+    environment (the Slide's state is its position, what the demonstrations' proprio records), each imagined
+    trajectory paid by the environment's outcome of its actions; the steps log the detector's verdict beside
+    it, and a run stopped after its first step resumes to the uninterrupted run's parameters."""
+    from sword_jax.pipeline.grpo import run_in_learned_simulator
+    from sword_jax.rl.policy import tokenize_instructions
+
+    cfg = _cfg(tmp_path)
+    rl = dataclasses.replace(cfg.rl, refresh=RefreshConfig(), grpo=dataclasses.replace(cfg.rl.grpo, steps=2),
+                             imagined=dataclasses.replace(cfg.rl.imagined, reward="executed", eval_replay_episodes=0))
+    cfg = dataclasses.replace(cfg, rl=rl)
+    graphdef, params = build_policy(rl, seed=0)
+    det_graphdef, det_params = build_detector(rl, seed=0)
+    reward = os.path.join(str(tmp_path), "detector")
+    save_params(reward, det_params, rl, kind="reward_model", step=0)
+    env = Slide()
+    starts, texts, tasks = _pool_starts(4, np.random.default_rng(5))
+    tokens = jnp.asarray(tokenize_instructions(texts, rl.policy.max_instruction_bytes))
+    rec = jax.jit(lambda p, s, t, k: record_episodes(graphdef, p, env, s, t, rl, key=k, steps=cfg.data.episode_frames))(
+        params, jnp.asarray(starts), tokens, jax.random.key(3))
+    demos = RealEpisodes.from_recorded(jax.device_get(rec), texts, tasks).episode_set()
+    inputs = GRPOInputs(world_model=os.path.join(tiny_run, "world_model"), vae=os.path.join(tiny_run, "vae_run", "vae"),
+                        reward=reward)
+    setup = world_model_setup(cfg, rl, inputs, demos)
+    assert setup.env_starts is None  # these episodes hold no simulator states
+    with pytest.raises(ValueError, match="recorded simulator states"):
+        run_in_learned_simulator(cfg, rl, graphdef, params, str(tmp_path / "refused"), setup, simulator="world_model",
+                                 env_eval=None, max_traces=1, env=env, evaluate_real=lambda s, p: ({}, {}))
+    setup = world_model_setup(cfg, rl, inputs, dataclasses.replace(demos, states=demos.proprio[..., :1].copy()))
+    picked = setup.env_starts(0)
+    assert picked.shape == (rl.grpo.rollout_batch, 1)
+
+    def evaluate_real(step, p):
+        out = jax.jit(lambda p, k: record_episodes(graphdef, p, env, jnp.asarray(starts), tokens, rl, key=k,
+                                                   steps=cfg.data.episode_frames))(p, jax.random.key(7))
+        return success_summary(np.asarray(out.success).any(1), tasks, 0.0), {}
+
+    def run(workdir, steps):
+        r = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, steps=steps))
+        _, fresh = build_policy(rl, seed=0)  # a run donates its policy's arrays
+        return run_in_learned_simulator(dataclasses.replace(cfg, rl=r), r, graphdef, fresh, workdir, setup,
+                                        simulator="world_model", env_eval=None, max_traces=1, env=env,
+                                        evaluate_real=evaluate_real)
+
+    whole = run(str(tmp_path / "whole"), 2)
+    assert [p["step"] for p in whole["history"]] == [1, 2]
+    for point in whole["history"]:
+        assert {"detector_success", "detector_agreement", "detector_false_success"} <= set(point)
+        # the whole horizon runs for every trajectory that did not succeed for real
+        assert point["mean_chunks"] <= rl.imagined.max_chunks
+    run(str(tmp_path / "split"), 1)
+    resumed = run(str(tmp_path / "split"), 2)
+    assert [p["step"] for p in resumed["history"]] == [1, 2]
+    for a, b in zip(whole["history"], resumed["history"]):
+        assert a == b

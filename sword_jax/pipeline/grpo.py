@@ -54,13 +54,16 @@ class Setup(NamedTuple):
     """What a GRPO run in a learned simulator needs: the simulator and reward model, ``starts(key, step,
     rows=None)`` (a step's ``rl.imagined_starts_per_step`` start states -- ``rl.grpo.rollout_batch`` times
     ``rl.imagined.oversample``; with ``rows``, only those rows of them, each the same whichever rows are
-    asked for), the toy's fixed evaluation starts and the real history's encoder (for replays)."""
+    asked for), the toy's fixed evaluation starts, the real history's encoder (for replays) and
+    ``env_starts(step, rows=None)``: the recorded simulator states of the same start states (keyframes of
+    episodes with ``states``), what ``rl.imagined.reward=executed`` resets the real environment to."""
 
     sim: Any
     reward_model: Any
     starts: Callable[..., StartState]
     eval_start: StartState | None = None
     encode: Callable[..., Any] | None = None
+    env_starts: Callable[..., np.ndarray] | None = None
 
 
 def toy_setup(cfg, rl) -> Setup:
@@ -143,14 +146,22 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         return encode_history(vae_graphdef, encoder_state, first_frames, history,
                               num_context=cfg.data.context_frames // tf)
 
-    def starts(key, step, rows=None):
-        del key  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        pick = rl_data.keyframe_starts(episodes, rl.imagined_starts_per_step,
+    def pick(step, rows):  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
+        return rl_data.keyframe_starts(episodes, rl.imagined_starts_per_step,
                                        stream_rng(cfg.seed, "grpo/keyframes", step),
                                        max_fraction=rl.imagined.keyframe_fraction, rows=rows)
-        return start_state(pick, encode, rl)
 
-    return Setup(sim, reward_model, starts, None, encode)
+    def starts(key, step, rows=None):
+        del key
+        return start_state(pick(step, rows), encode, rl)
+
+    env_starts = None
+    if episodes.states is not None:
+        def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel]
+            chosen = pick(step, rows)
+            return np.asarray(episodes.states[chosen["episode"], chosen["t"]], np.float32)
+
+    return Setup(sim, reward_model, starts, None, encode, env_starts)
 
 
 def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:
@@ -277,7 +288,7 @@ class GRPOStep(NamedTuple):
         return self.sim.frames_per_step
 
 
-def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GRPOStep:
+def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int, env: Any = None) -> GRPOStep:
     """The compiled GRPO step of a run in ``setup``'s simulator from policy ``params``, its initial state and its
     batches (:func:`run_in_learned_simulator`; ``benchmarks.bench_grpo_step`` times it).
 
@@ -285,12 +296,21 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GR
     weights are placed there once, so the step's inputs and outputs agree and nothing is copied per step. In a
     job of several processes each process makes only its rows of a step's start states (``place`` assembles the
     global batch). The keys are named streams of the root ``cfg.seed``: the start states' folded with the step,
-    the update's folding in ``state.step`` itself."""
+    the update's folding in ``state.step`` itself.
+
+    With ``rl.imagined.reward=executed`` each batch also carries the start states' recorded simulator states
+    (``setup.env_starts``) and ``env`` is the real environment they reset (one process only)."""
+    executed = rl.imagined.reward == "executed"
+    if executed and (env is None or setup.env_starts is None):
+        raise ValueError("rl.imagined.reward=executed needs the real environment and start states with recorded "
+                         "simulator states (demonstrations whose HDF5 holds 'states')")
+    if executed and jax.process_count() > 1:
+        raise ValueError("rl.imagined.reward=executed runs in one process")
     mesh = shd.make_mesh(cfg.mesh)
     sim, reward_model = shd.place((setup.sim, setup.reward_model), shd.shardings_on((setup.sim, setup.reward_model),
                                                                                    mesh))
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules, env=env)
     root = jax.random.key(cfg.seed)
     starts, starts_key = setup.starts, stream_key(root, "grpo/starts")
     if jax.process_count() > 1:  # each process makes its rows of the global batch of start states
@@ -312,18 +332,20 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int) -> GR
             return batch_sim, batch_reward_model, jax.tree.unflatten(treedef, [placed[str(i)] for i in range(len(leaves))])
     else:
         def place(batch):  # start states made elsewhere (the VAE's latents, replicated) move onto the batch's sharding
-            batch_sim, batch_reward_model, held = batch
-            return batch_sim, batch_reward_model, jax.device_put(held, shd.leading_axis_shardings(held, mesh,
-                                                                                                  cfg.mesh.rules))
+            batch_sim, batch_reward_model, *held = batch
+            return (batch_sim, batch_reward_model,
+                    *jax.device_put(held, shd.leading_axis_shardings(held, mesh, cfg.mesh.rules)))
 
         def batch_at(step):
-            return sim, reward_model, starts(jax.random.fold_in(starts_key, step), step)
+            start = starts(jax.random.fold_in(starts_key, step), step)
+            return (sim, reward_model, start) + ((setup.env_starts(step),) if executed else ())
 
     return GRPOStep(step_fn, state, batch_at, place, stream_key(root, "grpo/update"), sim, reward_model, mesh)
 
 
 def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Setup, *, simulator: str,
-                             env_eval: dict | None, max_traces: int) -> dict:
+                             env_eval: dict | None, max_traces: int, env: Any = None,
+                             evaluate_real: Callable[[int, Any], tuple[dict, dict]] | None = None) -> dict:
     """GRPO in ``setup``'s simulator (``simulator``: ``world_model`` or ``toy``, the run's identity), resuming
     from ``workdir``.
 
@@ -341,6 +363,9 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
         (:func:`sword_jax.rl.policy_success.evaluate_in_sim`; e.g. ``sim.lockstep.lockstep_evaluation``);
         ``None``: greedy imagined rollouts from ``setup.eval_start`` (the toy).
       max_traces: traces of the jitted step before the retrace guard fails.
+      env: the real environment that pays imagined actions with ``rl.imagined.reward=executed`` (:func:`grpo_step`).
+      evaluate_real: ``evaluate(step, params) -> (point, extra)`` in place of ``env_eval``'s (e.g. on MJX,
+        ``sim.grpo_refresh.mjx_evaluation``); replays of real episodes need ``env_eval``'s traces.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}`` (the
     history is also in ``<workdir>/train_history.jsonl``).
@@ -348,7 +373,10 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     eval_start, encode = setup.eval_start, setup.encode
     several = jax.process_count() > 1
     say = log if jax.process_index() == 0 else (lambda *_args, **_kwargs: None)
-    run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=max_traces)
+    if evaluate_real is not None and rl.imagined.eval_replay_episodes:
+        raise ValueError("rl.imagined.eval_replay_episodes replays the C engine's evaluation episodes; with this "
+                         "evaluation pass --rl.imagined.eval_replay_episodes=0")
+    run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=max_traces, env=env)
     sim, reward_model, mesh = run.sim, run.reward_model, run.mesh
     root = jax.random.key(cfg.seed)
     if eval_start is not None:
@@ -362,6 +390,8 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
 
     def evaluate(step, params):
         extra = {}
+        if evaluate_real is not None:
+            return evaluate_real(step, params)
         if env_eval is None:
             success = np.asarray(greedy(params))
             result = {"per_task": {"toy": float(success.mean())}, "mean": float(success.mean()),
@@ -383,7 +413,10 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
         return result, extra
 
     def progress(point, eta):
-        return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
+        paid = (f"real success of the imagined actions {point['success_rate']:.3f} (the detector said "
+                f"{point['detector_success']:.3f}, agreeing on {point['detector_agreement']:.2f})"
+                if "detector_success" in point else f"imagined success {point['success_rate']:.3f}")
+        return (f"grpo step {point['step']}/{rl.grpo.steps} {paid} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f}{sampled_mixed(point, rl)} nll {point['behaviour_nll']:.3f} "
                 f"eta {eta:.0f}s")

@@ -18,6 +18,7 @@ import dataclasses
 from typing import ClassVar
 
 DECODERS = ("full", "light")  # rl.imagined.decoder
+IMAGINED_REWARDS = ("detector", "executed")  # rl.imagined.reward
 CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
 
 
@@ -308,6 +309,14 @@ class ImaginedConfig:
       guard_on: what the exploitation guard reads: ``replay`` (the evaluation's replay of real episodes in the
         simulator) or ``verify`` (the refresh's check of the policy's own imagined groups executed for real,
         ``rl.refresh.verify_starts``: the real failures GRPO was paid for, the exploitation itself).
+      reward: what pays an imagined trajectory. ``detector`` (default): the success detector on the simulator's
+        frames, the learned simulator's own reward. ``executed``: the real environment (MJX), given the same
+        actions open loop from the recorded state the imagined rollout started at (its keyframe); the imagined
+        rollout then runs the whole horizon (the detector stops nothing) and its decisions after the real
+        success are masked. The policy still acts on the simulator's frames, so this arm separates what the
+        learned simulator's frames do to GRPO from what its reward does (:mod:`sword_jax.rl.imagined_check`);
+        each step also logs the detector's verdict on the same trajectories against the real outcome. Needs
+        ``rl.env.backend=mjx``, keyframes with recorded states, no refresh and no ``confirm_success``.
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
@@ -344,6 +353,7 @@ class ImaginedConfig:
     guard_margin: float = 0.0  # roll back when replay false success exceeds step 0's by this; 0 = off
     guard_min_failures: int = 20  # real failures a replay needs before the guard judges it
     guard_on: str = "replay"  # replay | verify: the false-success rate the exploitation guard judges
+    reward: str = "detector"  # detector | executed: what pays an imagined trajectory (see above)
 
     def validate(self) -> None:
         if self.max_chunks < 1:
@@ -359,6 +369,8 @@ class ImaginedConfig:
                              f"{self.guard_margin}, {self.guard_min_failures}")
         if self.guard_on not in ("replay", "verify"):
             raise ValueError(f"rl.imagined.guard_on must be replay|verify, got {self.guard_on!r}")
+        if self.reward not in IMAGINED_REWARDS:
+            raise ValueError(f"rl.imagined.reward must be {'|'.join(IMAGINED_REWARDS)}, got {self.reward!r}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:
             raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):
@@ -689,6 +701,12 @@ class RLConfig:
         if self.imagined.guard_on == "verify" and not (self.refresh.every and self.refresh.verify_starts):
             raise ValueError("rl.imagined.guard_on=verify judges the refreshes' checks of imagined rollouts: it needs "
                              "rl.refresh.every > 0 and rl.refresh.verify_starts > 0")
+        if self.imagined.reward == "executed" and (self.env.backend != "mjx" or self.refresh.every
+                                                   or self.imagined.confirm_success):
+            raise ValueError("rl.imagined.reward=executed pays imagined actions by executing them on MJX from the "
+                             "keyframes' recorded states: it needs rl.env.backend=mjx, rl.refresh.every=0 (a "
+                             "refresh's branch starts hold no simulator state) and rl.imagined.confirm_success=false, "
+                             f"got {self.env.backend}, {self.refresh.every}, {self.imagined.confirm_success}")
         if self.env.proprio == "reckoned" and self.proprio_dim != 8:
             raise ValueError(f"rl.env.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                              f"{self.proprio_dim}")

@@ -18,6 +18,7 @@ valid tokens. Groups whose returns are all equal carry no signal and are filtere
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +30,7 @@ from jaxtyping import Array, Float, Int
 
 from sword_jax import optim, tracing
 from sword_jax import sharding as shd
+from sword_jax.rl import imagined_check
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
 from sword_jax.rl.policy import sampling_log_probs
@@ -367,7 +369,7 @@ def grpo_update(
 
 def make_grpo_step(
     graphdef: nnx.GraphDef, cfg: RLConfig, *, donate: bool = True, max_traces: int = 1, mesh=None,
-    rules=shd.DEFAULT_RULES,
+    rules=shd.DEFAULT_RULES, env: Any = None,
 ) -> Callable[[GRPOState, tuple[LearnedSimulator, RewardModel, StartState], jax.Array], tuple[GRPOState, dict]]:
     """The compiled GRPO step ``step(state, batch, key) -> (state, metrics)``.
 
@@ -387,16 +389,34 @@ def make_grpo_step(
     traced inside it, so the rollout's activation constraints shard the trajectories: the start
     states split over their leading dim, the simulator's and reward model's weights and the state
     kept where they were placed on ``mesh`` (else replicated).
+
+    With ``cfg.imagined.reward = "executed"`` the batch is ``(simulator, reward_model, start_states [B],
+    env_starts [B, ...])`` and ``env`` a pure JAX environment (:class:`~sword_jax.rl.scan_rollout.JaxEnv`, e.g.
+    ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
+    imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env``
+    and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
+    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`).
     """
     cfg.validate()
     g, oversample = cfg.grpo.group_size, cfg.imagined.oversample
+    executed = cfg.imagined.reward == "executed"
+    if executed and env is None:
+        raise ValueError("make_grpo_step: rl.imagined.reward=executed needs env= (the real environment that pays "
+                         "the imagined actions)")
+    # the detector stops nothing when the real environment pays: every trajectory runs the whole horizon
+    rollout_cfg = dataclasses.replace(cfg, success_threshold=2.0) if executed else cfg
 
     def step(state: GRPOState, batch, key):
-        simulator, reward_model, start = batch
+        simulator, reward_model, start = batch[:3]
         key = jax.random.fold_in(key, state.step)
-        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, cfg, key=key,
+        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, rollout_cfg, key=key,
                                    group_size=g)  # one simulator start-up per start state
         extra = {}
+        if executed:
+            actions, lengths = imagined_check.executed_actions(rollout, cfg.action_bins)
+            real_first = imagined_check.execute_open_loop(env, jnp.repeat(batch[3], g, axis=0), actions, lengths)
+            extra.update(imagined_check.detector_metrics(rollout, real_first >= 0, cfg.success_threshold))
+            rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
         unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:
             rollout, _ = confirm_successes(rollout, simulator, reward_model, expand_groups(start, g), cfg,
@@ -423,9 +443,9 @@ def make_grpo_step(
     mesh = shd.default_mesh(mesh)
 
     def batch_shardings(batch):
-        simulator, reward_model, start = batch
+        simulator, reward_model, start = batch[:3]
         return (shd.shardings_on(simulator, mesh), shd.shardings_on(reward_model, mesh),
-                shd.leading_axis_shardings(start, mesh, rules))
+                *(shd.leading_axis_shardings(x, mesh, rules) for x in (start, *batch[3:])))
 
     # A retrace (changed shapes / static config) is a bug in the caller; ``max_traces`` bounds it.
     return shd.compile_step(tracing.max_traces(step, n=max_traces), mesh, rules, batch_shardings=batch_shardings,

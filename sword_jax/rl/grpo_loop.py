@@ -99,8 +99,10 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     oversample = {"rl.imagined.oversample": rl.imagined.oversample} if rl.imagined.oversample != 1 else {}
     # and what the exploitation guard reads, only when it is not the replay
     guard_on = {"rl.imagined.guard_on": rl.imagined.guard_on} if rl.imagined.guard_on != "replay" else {}
+    # and what pays the imagined trajectories, only when it is not the detector
+    reward = {"rl.imagined.reward": rl.imagined.reward} if rl.imagined.reward != "detector" else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **guard_on, **facts}
+            **decoder, **oversample, **guard_on, **reward, **facts}
 
 
 def train_grpo(

@@ -22,11 +22,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from sword_jax.rl import sim_agreement
 from sword_jax.rl.policy import tokens_to_actions
-from sword_jax.rl.rollout import Rollout
+from sword_jax.rl.rollout import Rollout, trajectory_returns
 
 
 class CheckedRollouts(NamedTuple):
@@ -94,6 +94,36 @@ def check(rollout: Rollout, env: Any, env_starts: Any, action_bins: int) -> Chec
     return CheckedRollouts(imagined_first=imagined_first_success(rollout),
                            real_first=execute_open_loop(env, env_starts, actions, lengths),
                            scores=decision_scores(rollout), lengths=lengths)
+
+
+def paid_by_execution(rollout: Rollout, real_first: Int[Array, " n"], cfg: Any) -> Rollout:
+    """``rollout`` as the real environment pays it (``rl.imagined.reward=executed``): a trajectory succeeds
+    where its executed actions reached success in reality (``real_first``, the action index, -1 if never);
+    its decisions after the one holding that action are masked, the success is its reward (at that decision),
+    and its return follows ``rl.imagined.return_rule`` as an imagined one's does. Frames, tokens and the
+    detector's scores are kept (the scores are what the detector said, paid for nothing)."""
+    e = rollout.tokens.shape[2]
+    c = rollout.valid.shape[1]
+    success = real_first >= 0
+    last = jnp.where(success, real_first // e, c - 1)  # the decision that holds the real success
+    chunks = jnp.arange(c)[None, :]
+    valid = rollout.valid * (chunks <= last[:, None]).astype(rollout.valid.dtype)
+    rewards = ((chunks == last[:, None]) & success[:, None]).astype(jnp.float32)
+    return rollout._replace(valid=valid, rewards=rewards, success=success,
+                            returns=trajectory_returns(rewards, success, cfg))
+
+
+def detector_metrics(rollout: Rollout, real: Bool[Array, " n"], threshold: float) -> dict[str, Float[Array, ""]]:
+    """The detector's verdict on trajectories the real environment paid (``rl.imagined.reward=executed``):
+    ``detector_success`` (a decision's last frame scored at least ``threshold`` within the rollout),
+    ``detector_agreement`` with the real outcome, and ``detector_false_success``: the real failures it would
+    have paid (NaN with none), the rate GRPO in the detector's reward is exposed to at this step."""
+    said = jnp.any((rollout.scores >= jnp.float32(threshold)), axis=1)
+    failures = jnp.sum((~real).astype(jnp.float32))
+    return {"detector_success": jnp.mean(said.astype(jnp.float32)),
+            "detector_agreement": jnp.mean((said == real).astype(jnp.float32)),
+            "detector_false_success": jnp.sum((said & ~real).astype(jnp.float32)) / jnp.where(failures > 0, failures,
+                                                                                             jnp.nan)}
 
 
 def report(checked: CheckedRollouts, group_size: int, horizons: tuple[int, ...] = sim_agreement.HORIZON_SWEEP
