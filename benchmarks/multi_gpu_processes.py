@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import sys
 import tempfile
 import threading
@@ -57,6 +58,8 @@ def process_row(model_cfg: DiTConfig, processes: int, per_device_batch: int, hw:
                                  cpu_devices=1 if on_cpu else None, log_dir=os.path.join(tmp, "logs"),
                                  grace_s=PROCESS_GRACE_S, environ=env)
         row["launch_s"] = time.perf_counter() - start
+        if result.stop_signal is not None:  # the benchmark was told to stop: it stops, not only this row
+            signal.raise_signal(result.stop_signal)
         if os.path.exists(spec["out"]):
             with open(spec["out"]) as f:
                 row.update({k: v for k, v in json.load(f).items() if k != "label"})

@@ -16,6 +16,7 @@ import pytest
 from benchmarks import bench_multi_gpu as bench
 from benchmarks import gpu_trace, xla_options
 from benchmarks import multi_gpu_processes as processes
+from sword_jax.pipeline import launch as launcher
 from sword_jax.cli import UsageError
 
 
@@ -335,3 +336,26 @@ def test_a_trace_is_summarized_per_gpu_and_step_from_its_kernel_streams(tmp_path
         "/device:GPU:0": {"collective_ms": 1.0, "compute_ms": 2.0, "span_ms": 4.0},
         "/device:GPU:1": {"collective_ms": 0.0, "compute_ms": 1.0, "span_ms": 1.0}}
     assert gpu_trace.summarize_trace(str(tmp_path / "none"), steps=2) == {"trace": None, "devices": {}}
+
+
+def test_a_benchmark_told_to_stop_stops_instead_of_timing_the_next_row(monkeypatch):
+    """A stop signal the launcher received while a per-process row ran is raised again in the benchmark: the
+    sweep ends there (its default action) instead of launching the next row."""
+    import signal
+
+    stopped = launcher.LaunchResult(128 + signal.SIGUSR1, None, (-15, -15), 1.0, signal.SIGUSR1)
+    monkeypatch.setattr(processes.launcher, "launch", lambda *a, **kw: stopped)
+
+    class Stopped(Exception):
+        pass
+
+    def handler(signum, _frame):
+        raise Stopped(signum)
+
+    previous = signal.signal(signal.SIGUSR1, handler)
+    try:
+        with pytest.raises(Stopped):
+            processes.process_row(bench.TINY_CFG, 2, 2, bench.TINY_HW, iters=2, blocks=1, unrolled=False, timeout_s=60,
+                                  on_cpu=True)
+    finally:
+        signal.signal(signal.SIGUSR1, previous)

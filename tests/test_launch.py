@@ -117,3 +117,25 @@ def test_a_killed_jax_rank_ends_the_job_and_each_rank_reads_only_its_rows(tmp_pa
     died = float(re.search(r"rank 1 dies at ([\d.]+)", out).group(1))
     assert ended - died < grace + launcher.STOP_MARGIN_S + 1.0  # + the launcher's own exit
     assert "rank 1 dies at" in (tmp_path / "rank1.log").read_text()
+
+
+def test_a_launcher_told_to_stop_says_by_which_signal_and_restores_its_handlers(tmp_path):
+    """SIGTERM to the launcher stops the ranks; the result names the signal (a caller running several jobs
+    re-raises it) and the caller's own handler is back in place."""
+    import signal
+    import threading
+
+    seen = []
+    previous = signal.signal(signal.SIGTERM, lambda s, _f: seen.append(s))
+    try:
+        timer = threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGTERM))
+        timer.start()
+        result = launcher.launch([sys.executable, "-c", "import time; time.sleep(60)"], 2, cpu_devices=1,
+                                 grace_s=1.0, out=io.StringIO())
+        timer.join()
+        assert result.stop_signal == signal.SIGTERM and result.returncode == 128 + signal.SIGTERM
+        assert result.failed_rank is None and seen == []  # the launcher's handler took it, not the caller's
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert seen == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -53,12 +53,16 @@ class LaunchResult:
       failed_rank: the rank that failed first, ``None`` if none did.
       rank_returncodes: each rank's status as ``subprocess`` reports it (negative: killed by that signal).
       stop_seconds: from the first failure seen to the last rank reaped; ``None`` if nothing failed.
+      stop_signal: the signal (SIGINT / SIGTERM) that stopped the launcher itself, ``None`` if none did. The
+        launcher's own handlers are gone when it returns, so a caller that runs several jobs re-raises it
+        (``signal.raise_signal``) to stop as it was told instead of going on with the next job.
     """
 
     returncode: int
     failed_rank: int | None
     rank_returncodes: tuple[int, ...]
     stop_seconds: float | None
+    stop_signal: int | None = None
 
 
 def join(environ: Mapping[str, str] = os.environ) -> None:
@@ -276,7 +280,7 @@ def launch(command: Sequence[str], processes: int, *, gpus: Sequence[str] | None
                  f"rank {failed_rank} failed first ({_describe(codes[failed_rank])})")
         say(f"job FAILED: {cause}; ranks ended {stop_seconds:.1f} s later "
             f"({', '.join(f'rank {r}: {_describe(c)}' for r, c in enumerate(codes))}); exit status {returncode}")
-    return LaunchResult(returncode, failed_rank, codes, stop_seconds)
+    return LaunchResult(returncode, failed_rank, codes, stop_seconds, stop_signal[0] if stop_signal else None)
 
 
 def _stop(procs: list[subprocess.Popen], grace_s: float, say, failed_rank: int | None,
