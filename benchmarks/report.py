@@ -577,63 +577,6 @@ def grpo_setting_arms() -> str:
                    "training rollouts' success, steps 1-5 -> last 5", "env steps a GRPO step"], rows)
 
 
-REWARD_SOURCE = ("policy", "grpo_reward_source_small_4xh100")
-REWARD_SOURCE_ARMS = (("gt", "real frames, real reward (ground-truth GRPO on MJX)"),
-                      ("exec", "the world model's frames, the real outcome of their actions"),
-                      ("det", "the world model's frames, the detector's reward"))
-
-
-def _history(run: str) -> list[dict]:
-    with open(os.path.join(run, "train_history.jsonl")) as f:
-        return [json.loads(line) for line in f if line.strip()]
-
-
-def reward_source_runs(root: str | None = None) -> list[tuple[str, str, str]]:
-    """``(arm, seed, run dir)`` of the reward-source experiment: ground-truth GRPO's runs under ``gt/s<k>/``,
-    the world-model runs under ``<arm>_s<k>/rl/grpo``."""
-    root = root or os.path.join(RESULTS_DIR, *REWARD_SOURCE)
-    out = []
-    for arm, _ in REWARD_SOURCE_ARMS:
-        if arm == "gt":
-            for seed_dir in sorted(d for d in os.listdir(os.path.join(root, "gt")) if re.fullmatch(r"s\d+", d)):
-                base = os.path.join(root, "gt", seed_dir)
-                out += [(arm, seed_dir, os.path.join(base, d)) for d in sorted(os.listdir(base))
-                        if d.startswith("grpo_env") and os.path.isdir(os.path.join(base, d))]
-        else:
-            out += [(arm, d.split("_")[-1], os.path.join(root, d, "rl", "grpo")) for d in sorted(os.listdir(root))
-                    if re.fullmatch(arm + r"_s\d+", d) and os.path.isdir(os.path.join(root, d, "rl", "grpo"))]
-    return out
-
-
-def grpo_reward_source() -> str:
-    """GRPO in the learned simulator's setting with the frames and the reward each real or the world model's,
-    per seed at its last evaluation: the real gains, what the training rollouts were paid, and for the runs
-    paid by execution, the detector's verdict on the same rollouts."""
-    labels = dict(REWARD_SOURCE_ARMS)
-    rows = []
-    for arm, seed, run in reward_source_runs():
-        with open(os.path.join(run, "success_curve.json")) as f:
-            points = json.load(f)["points"]
-        history = _history(run)
-        last = points[-1]["step"]
-        paid = [h.get("rollout_success", h.get("success_rate")) for h in history]
-        kept = [h.get("mixed_fraction", h.get("kept_fraction")) for h in history]
-        detector = ""
-        if history and "detector_success" in history[0]:
-            false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
-            detector = (f"{statistics.mean(h['detector_success'] for h in history):.2f} / "
-                        f"{statistics.mean(h['detector_agreement'] for h in history):.2f} / "
-                        f"{statistics.mean(false):.2f}" if false else "")
-        rows.append([labels[arm], seed, str(last), _gain_at(points, last, "sampled"), _gain_at(points, last, "greedy"),
-                     _gain_at(points, last, "sampled_proprio_masked"),
-                     f"{statistics.mean(paid[:5]):.2f} -> {statistics.mean(paid[-5:]):.2f}" if paid else "",
-                     f"{statistics.median(kept):.2f}" if kept else "", detector])
-    return _table(["frames, reward", "seed", "GRPO steps", "sampled gain, 95% interval", "greedy gain",
-                   "sampled gain, proprio masked", "training rollouts paid a success, steps 1-5 -> last 5",
-                   "groups mixed (median)", "the detector on the same rollouts: success / agreement / false success"],
-                  rows)
-
-
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -646,7 +589,6 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
     "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
-    "grpo-reward-source": grpo_reward_source,
 }
 
 

@@ -1,0 +1,296 @@
+"""Which half of the learned simulator GRPO cannot use: its frames or its reward.
+
+GRPO in the learned simulator's setting (keyframe starts, 48 actions executed 4 per decision, proprio missing,
+32 start states x 8, T 0.5, lr 1e-4) in three arms that differ in one part each, every arm at each seed:
+
+* ``gt``: ground-truth GRPO on MJX in that setting, the real frames and the real reward;
+* ``exec``: GRPO in Sword's world model, the policy acting on its frames, each imagined trajectory paid by the
+  real outcome of its actions executed on MJX from the keyframe's recorded state (``rl.imagined.reward=executed``,
+  :mod:`sword_jax.rl.imagined_check`); every step also logs what the detector would have paid;
+* ``det``: GRPO in Sword's world model paid by its success detector (``rl.imagined.reward=detector``).
+
+If ``exec`` lifts real success as ``gt`` does and ``det`` does not, the reward is what fails GRPO in the learned
+simulator; if ``exec`` falls with ``det``, the frames do. No refresh runs: the world model and the detector stay
+as the pipeline trained them (from ``--policy``'s own episodes beside the demonstrations). Every run is
+evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with proprio masked)::
+
+    python -m benchmarks.bench_grpo_reward_source run --workdir runs/rs --policy runs/p/policy_d50.npz \\
+        --gpus 0,1,2,3 --seeds 0,1,2 --steps 40 [--deadline-s 1500]
+    python -m benchmarks.bench_grpo_reward_source summary --workdir runs/rs \\
+        --out benchmarks/results/policy/grpo_reward_source_small [--record]
+
+``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs
+start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
+seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
+last evaluation). ``summary`` gives each run's gains with 95% intervals, what its training rollouts were paid,
+and for ``exec`` the detector's success, agreement and false success on the same rollouts; ``--record`` writes
+``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from benchmarks import common
+from benchmarks.bench_grpo_refresh import pipeline_command, stop_all
+from benchmarks.bench_grpo_transfer import gain_interval
+from sword_jax import cli
+from sword_jax.pipeline.launch import NO_MULTICAST
+
+ARMS = ("gt", "exec", "det")
+ARM_LABELS = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
+              "exec": "the world model's frames, the real outcome of their actions",
+              "det": "the world model's frames, the detector's reward"}
+# the learned simulator's setting and the GRPO recipe every arm shares
+RECIPE = ("--rl.env.backend=mjx", "--rl.grpo.rollout_batch=32", "--rl.grpo.group_size=8", "--rl.grpo.minibatches=4",
+          "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5", "--rl.grpo.learning_rate=1e-4",
+          "--rl.imagined.execute_steps=4", "--rl.imagined.max_chunks=12")
+GROUND_TRUTH = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.starts=keyframes",
+                "--rl.env.proprio=missing")
+WORLD_MODEL = ("--rl.grpo.eval_episodes_per_task=50", "--rl.imagined.shared_group_noise=true",
+               "--rl.imagined.eval_replay_episodes=0")
+REWARD = {"exec": ("--rl.imagined.reward=executed",), "det": ()}
+GT_DIR = "grpo_env_proprio_missing_starts_keyframes_mjx"  # bench_policy.grpo_dir of the ground-truth setting
+
+
+def pipeline(args) -> argparse.Namespace:
+    """What :func:`benchmarks.bench_grpo_refresh.pipeline_command` reads: Sword's pipeline with the policy's own
+    episodes (``--policy-rollouts`` per task) in the world model's and detector's data."""
+    return argparse.Namespace(config=args.config, pipeline_seed=0, workdir=args.workdir, policy=args.policy,
+                              policy_rollouts=args.policy_rollouts, data_backend="cpu", vae_steps=args.vae_steps,
+                              world_model_steps=args.world_model_steps)
+
+
+def run_commands(args) -> dict[str, list[str]]:
+    """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
+    (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
+    pipe = os.path.join(args.workdir, "pipeline")
+    demos = os.path.join(pipe, "data", "demos.hdf5")
+    steps = (f"--rl.grpo.steps={args.steps}", f"--rl.grpo.eval_every={args.eval_every}")
+    out = {}
+    for seed in args.seeds:
+        out[f"gt_s{seed}"] = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config,
+                              "--seed", str(seed), "--out", os.path.join(args.workdir, "gt", f"s{seed}"), "--policy",
+                              args.policy, "--eval-episodes", "50", f"--demos={demos}", *RECIPE, *GROUND_TRUTH, *steps]
+    for seed in args.seeds:
+        for arm in ("exec", "det"):
+            name = f"{arm}_s{seed}"
+            out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, "--simulator", "world_model",
+                         "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
+                         "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", demos, "--policy", args.policy,
+                         "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *RECIPE, *WORLD_MODEL,
+                         *REWARD[arm], *steps]
+    return out
+
+
+def placement(args) -> dict[str, str]:
+    """The GPU of each run: the ground-truth runs on the GPUs the pipeline leaves free (all of them with one),
+    the world-model runs round-robin over every GPU, a seed's two arms next to each other."""
+    gpus = args.gpus
+    free = gpus[1:] or gpus
+    out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds)}
+    names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det")]
+    out.update({name: gpus[i % len(gpus)] for i, name in enumerate(names)})
+    return out
+
+
+def run(args, *, poll_s: float = 5.0) -> dict:
+    """The pipeline, then the runs as their inputs are ready (module docstring); the summary at the end."""
+    os.makedirs(args.workdir, exist_ok=True)
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    commands, gpu_of = run_commands(args), placement(args)
+    sharing = {g: sum(1 for n in commands if gpu_of[n] == g and not n.startswith("gt")) for g in args.gpus}
+    start = time.perf_counter()
+
+    def launch(name: str, cmd: list[str], gpu: str) -> subprocess.Popen:
+        print(f"[reward-source] {name} on GPU {gpu} ({time.perf_counter() - start:.0f} s): {' '.join(cmd[2:])}",
+              flush=True)
+        own = dict(env, CUDA_VISIBLE_DEVICES=gpu)
+        if sharing.get(gpu, 1) > 1 and not name.startswith(("gt", "pipeline")):
+            own["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / sharing[gpu]:.2f}"
+        with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
+            return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
+
+    base = pipeline(args)
+    phases = [("pipeline_data", pipeline_command(base, (), stop_after="data"), [n for n in commands if n.startswith("gt")]),
+              ("pipeline", pipeline_command(base, (), stop_after="reward_model"),
+               [n for n in commands if not n.startswith("gt")])]
+    procs: dict[str, subprocess.Popen] = {}
+    stopped: list[str] = []
+    building = None
+    while phases or building is not None or any(p.poll() is None for p in procs.values()):
+        if building is None and phases:
+            name, cmd, _ = phases[0]
+            building = (name, launch(name, cmd, args.gpus[0]))
+        if building is not None and building[1].poll() is not None:
+            name, proc = building
+            _, _, ready = phases.pop(0)
+            building = None
+            if proc.returncode:
+                print(f"[reward-source] {name} failed (log: {args.workdir}/{name}.log)", flush=True)
+                phases = []
+            else:
+                for run_name in ready:
+                    procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
+        if args.deadline_s and time.perf_counter() - start > args.deadline_s:
+            everything = dict(procs, **({building[0]: building[1]} if building else {}))
+            running = stop_all(list(everything.values()))
+            stopped = sorted(n for n, p in everything.items() if any(p is r for r in running))
+            print(f"[reward-source] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
+            break
+        time.sleep(poll_s)
+    summary = dict(summarize(args.workdir), exit_codes={n: p.returncode for n, p in procs.items()},
+                   stopped_at_deadline=stopped, seconds=round(time.perf_counter() - start, 1))
+    with open(os.path.join(args.workdir, "reward_source_summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    failed = sorted(n for n, p in procs.items() if p.returncode and n not in stopped)
+    if failed or len(procs) < len(commands) and not stopped:
+        raise SystemExit(f"bench_grpo_reward_source: runs failed or never started: "
+                         f"{failed or sorted(set(commands) - set(procs))}")
+    return summary
+
+
+def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
+    """``{run name: (arm, seed, GRPO work dir)}`` of the runs under ``workdir`` that left a success curve."""
+    out = {}
+    gt = os.path.join(workdir, "gt")
+    for seed_dir in sorted(os.listdir(gt)) if os.path.isdir(gt) else []:
+        if re.fullmatch(r"s\d+", seed_dir) and os.path.exists(os.path.join(gt, seed_dir, GT_DIR, "success_curve.json")):
+            out[f"gt_{seed_dir}"] = ("gt", int(seed_dir[1:]), os.path.join(gt, seed_dir, GT_DIR))
+    for name in sorted(os.listdir(workdir)):
+        match = re.fullmatch(r"(exec|det)_s(\d+)", name)
+        grpo = os.path.join(workdir, name, "rl", "grpo")
+        if match and os.path.exists(os.path.join(grpo, "success_curve.json")):
+            out[name] = (match.group(1), int(match.group(2)), grpo)
+    return out
+
+
+def _gain(points: list[dict], key: str | None) -> dict | None:
+    a, b = points[0], points[-1]
+    if key is not None:
+        a, b = a.get(key), b.get(key)
+    if a is None or b is None:
+        return None
+    return {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
+
+
+def summarize_run(grpo: str) -> dict:
+    """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked), the
+    success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, and with a
+    reward paid by execution, the detector's verdict on the same rollouts (means over the steps)."""
+    with open(os.path.join(grpo, "success_curve.json")) as f:
+        points = json.load(f)["points"]
+    history = []
+    if os.path.exists(os.path.join(grpo, "train_history.jsonl")):
+        with open(os.path.join(grpo, "train_history.jsonl")) as f:
+            history = [json.loads(line) for line in f if line.strip()]
+    paid = [h.get("rollout_success", h.get("success_rate")) for h in history]
+    mixed = [h.get("mixed_fraction", h.get("kept_fraction")) for h in history]
+    out = {"steps": points[-1]["step"], "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
+           "sampled_proprio_masked": _gain(points, "sampled_proprio_masked"),
+           "paid_success": ({"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])} if paid else None),
+           "mixed_median": statistics.median(mixed) if mixed else None,
+           "curve": [{"step": p["step"], "greedy": p["mean"],
+                      **{k: p[k]["mean"] for k in ("sampled", "sampled_proprio_masked") if k in p}} for p in points]}
+    if history and "detector_success" in history[0]:
+        false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
+        out["detector"] = {"success": statistics.mean(h["detector_success"] for h in history),
+                           "agreement": statistics.mean(h["detector_agreement"] for h in history),
+                           "false_success": statistics.mean(false) if false else None}
+    return out
+
+
+def summarize(workdir: str) -> dict:
+    """Every run (:func:`summarize_run`) and per arm its seeds' sampled gains, smallest and mean."""
+    runs = {name: dict(arm=arm, seed=seed, **summarize_run(grpo)) for name, (arm, seed, grpo) in run_dirs(workdir).items()}
+    arms = {}
+    for arm in ARMS:
+        gains = {r["seed"]: r["sampled"]["gain"] for r in runs.values() if r["arm"] == arm and r["sampled"]}
+        if gains:
+            arms[arm] = {"label": ARM_LABELS[arm], "sampled_gain_per_seed": gains, "smallest": min(gains.values()),
+                         "mean": statistics.mean(gains.values()),
+                         "steps": min(r["steps"] for r in runs.values() if r["arm"] == arm)}
+    return {"runs": runs, "arms": arms}
+
+
+def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
+    """``policy_grpo_reward_source_small``: value the smallest sampled gain over the seeds of GRPO in the world
+    model paid by the real outcome of its actions (``exec``), beside every arm's gains and every run's summary."""
+    if "exec" not in summary["arms"]:
+        raise SystemExit("bench_grpo_reward_source: no run of the exec arm left an evaluation to record")
+    device = common.device_name()
+    gpu = os.path.join(workdir, "gpu.txt")
+    if os.path.exists(gpu):
+        with open(gpu) as f:
+            names = [line.split(",")[0].strip() for line in f.read().splitlines()[1:] if line.strip()]
+        device = f"{names[0]} x{len(names)}" if names else device
+    entry = common.record("", summary["arms"]["exec"]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
+                          device=device, data=data,
+                          unit="real success gain of the sampled policy (T 0.5), 500 MJX episodes per point",
+                          **({"command": command} if command else {}))
+    return {"policy_grpo_reward_source_small": entry}
+
+
+def print_runs(summary: dict) -> None:
+    for name, r in summary["runs"].items():
+        s = r["sampled"]
+        line = (f"[reward-source] {name}: {r['steps']} steps; sampled {s['start']:.3f} -> {s['end']:.3f} "
+                f"({s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])" if s else
+                f"[reward-source] {name}: {r['steps']} steps")
+        if r.get("detector"):
+            d = r["detector"]
+            line += f"; the detector on its rollouts: success {d['success']:.2f}, agreement {d['agreement']:.2f}"
+        print(line, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("mode", choices=("run", "summary"))
+    parser.add_argument("--workdir", required=True)
+    parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
+    parser.add_argument("--config", default="sword:small")
+    parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--steps", type=int, default=40)
+    parser.add_argument("--eval-every", type=int, default=10)
+    parser.add_argument("--policy-rollouts", type=int, default=20,
+                        help="run: the policy's own episodes per task in the world model's and detector's data")
+    parser.add_argument("--vae-steps", type=int, default=1000)
+    parser.add_argument("--world-model-steps", type=int, default=3000)
+    parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
+    parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
+    parser.add_argument("--record", action="store_true", help="summary: write the entry to benchmarks/results/latest.json")
+    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
+    args = parser.parse_args(argv)
+    args.seeds = [int(s) for s in args.seeds.split(",") if s]
+    args.gpus = [g for g in args.gpus.split(",") if g]
+    if not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.policy_rollouts < 0:
+        raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps and "
+                         "--eval-every >= 1, --policy-rollouts >= 0")
+    if args.mode == "summary":
+        summary = summarize(args.workdir)
+        if args.out:
+            with open(args.out + ".json", "w") as f:
+                json.dump(summary, f, indent=1)
+        if args.record:
+            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir,
+                                                 command=args.command))
+        print_runs(summary)
+        return summary
+    if not args.policy:
+        raise SystemExit("bench_grpo_reward_source run needs --policy (the supervised policy every run starts from)")
+    summary = run(args)
+    print_runs(summary)
+    return summary
+
+
+if __name__ == "__main__":
+    cli.run(main)

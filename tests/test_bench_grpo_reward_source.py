@@ -1,0 +1,131 @@
+"""benchmarks.bench_grpo_reward_source: the three arms' commands and GPUs, and the summary of runs it left."""
+
+import argparse
+import json
+import os
+
+import pytest
+
+from benchmarks import bench_grpo_reward_source as rs
+
+
+def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2"):
+    args = argparse.Namespace(
+        workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
+        seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, policy_rollouts=20, vae_steps=1000,
+        world_model_steps=3000, deadline_s=0.0)
+    return args
+
+
+def _flag(cmd, name):
+    return [c for c in cmd if c.startswith(name)]
+
+
+def test_each_arm_differs_from_the_others_in_one_part(tmp_path):
+    commands = rs.run_commands(_args(tmp_path))
+    assert sorted(commands) == sorted(f"{a}_s{s}" for a in rs.ARMS for s in (0, 1, 2))
+    gt, ex, det = commands["gt_s1"], commands["exec_s1"], commands["det_s1"]
+    # the setting and the recipe are the same everywhere
+    for cmd in (gt, ex, det):
+        for flag in rs.RECIPE + ("--rl.grpo.steps=40", "--rl.grpo.eval_every=10"):
+            assert flag in cmd, (flag, cmd)
+        assert cmd[cmd.index("--seed") + 1] == "1"
+    assert gt[2:4] == ["benchmarks.bench_policy", "grpo"] and "--rl.env.starts=keyframes" in gt
+    assert "--rl.env.proprio=missing" in gt and "--rl.grpo.max_sample_rounds=1" in gt
+    # the world-model arms: the pipeline's models, no refresh, and only the reward apart
+    assert ex[2:4] == ["train.grpo", "--config"] and "--rl.imagined.reward=executed" in ex
+    assert [c for c in ex if c != "--rl.imagined.reward=executed"] == [c.replace("det_s1", "exec_s1") for c in det]
+    assert not _flag(ex, "--rl.refresh") and not _flag(det, "--rl.imagined.reward")
+    pipe = os.path.join(str(tmp_path), "pipeline")
+    assert ex[ex.index("--world-model") + 1] == os.path.join(pipe, "world_model")
+    assert f"--demos={os.path.join(pipe, 'data', 'demos.hdf5')}" in gt
+    assert ex[ex.index("--workdir") + 1] == os.path.join(str(tmp_path), "exec_s1")
+
+
+def test_the_runs_are_placed_beside_the_pipeline_then_over_every_gpu(tmp_path):
+    gpu = rs.placement(_args(tmp_path))
+    assert [gpu[f"gt_s{s}"] for s in (0, 1, 2)] == ["1", "2", "3"]  # the pipeline builds on GPU 0 meanwhile
+    assert [gpu[n] for n in ("exec_s0", "det_s0", "exec_s1", "det_s1", "exec_s2", "det_s2")] == ["0", "1", "2", "3", "0", "1"]
+    one = rs.placement(_args(tmp_path, gpus="5"))
+    assert set(one.values()) == {"5"}
+
+
+def _curve(path, points, history):
+    os.makedirs(path, exist_ok=True)
+    with open(os.path.join(path, "success_curve.json"), "w") as f:
+        json.dump({"points": points}, f)
+    with open(os.path.join(path, "train_history.jsonl"), "w") as f:
+        f.write("".join(json.dumps(h) + "\n" for h in history))
+
+
+def _point(step, greedy, sampled, masked=None):
+    out = {"step": step, "mean": greedy, "successes": int(greedy * 500), "episodes": 500,
+           "sampled": {"mean": sampled, "successes": int(sampled * 500), "episodes": 500}}
+    if masked is not None:
+        out["sampled_proprio_masked"] = {"mean": masked, "successes": int(masked * 500), "episodes": 500}
+    return out
+
+
+def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monkeypatch):
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5), _point(20, 0.72, 0.6, 0.56)],
+           [{"rollout_success": 0.4, "mixed_fraction": 0.8}] * 5 + [{"rollout_success": 0.5, "mixed_fraction": 0.9}] * 5)
+    nan = float("nan")
+    _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(20, 0.7, 0.54, 0.5)],
+           [{"success_rate": 0.2, "kept_fraction": 0.5, "detector_success": 0.4, "detector_agreement": 0.6,
+             "detector_false_success": 0.3}] * 9 + [{"success_rate": 0.3, "kept_fraction": 0.7, "detector_success": 0.2,
+                                                  "detector_agreement": 0.8, "detector_false_success": nan}])
+    _curve(tmp_path / "det_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(10, 0.6, 0.4, 0.45)],
+           [{"success_rate": 0.3, "kept_fraction": 0.4}] * 10)
+    os.makedirs(tmp_path / "det_s1" / "rl" / "grpo")  # a run that left no evaluation is not counted
+    summary = rs.summarize(str(tmp_path))
+    assert sorted(summary["runs"]) == ["det_s0", "exec_s0", "gt_s0"]
+    gt, ex, det = (summary["runs"][n] for n in ("gt_s0", "exec_s0", "det_s0"))
+    assert gt["sampled"]["gain"] == pytest.approx(0.1) and gt["sampled"]["ci95"][0] < 0.1 < gt["sampled"]["ci95"][1]
+    assert gt["paid_success"] == {"first": pytest.approx(0.4), "last": pytest.approx(0.5)} and gt["mixed_median"] == pytest.approx(0.85)
+    assert ex["detector"] == {"success": pytest.approx(0.38), "agreement": pytest.approx(0.62),
+                              "false_success": pytest.approx(0.3)}  # the step without failures left out
+    assert "detector" not in gt and "detector" not in det
+    assert det["steps"] == 10 and det["greedy"]["gain"] == pytest.approx(-0.1)
+    assert summary["arms"]["det"]["smallest"] == pytest.approx(-0.1) and summary["arms"]["exec"]["steps"] == 20
+    monkeypatch.setattr(rs.common, "device_name", lambda: "cpu")
+    entry = rs.results_entries(summary, str(tmp_path), data="d")["policy_grpo_reward_source_small"]
+    assert entry["value"] == pytest.approx(0.04) and set(entry["arms"]) == {"gt", "exec", "det"}
+    with pytest.raises(SystemExit, match="exec arm"):
+        rs.results_entries({"runs": {}, "arms": {}}, str(tmp_path), data="d")
+
+
+def test_bad_arguments_are_refused(tmp_path):
+    with pytest.raises(SystemExit, match="--seeds"):
+        rs.main(["summary", "--workdir", str(tmp_path), "--seeds", ""])
+    with pytest.raises(SystemExit, match="--policy"):
+        rs.main(["run", "--workdir", str(tmp_path)])
+
+
+def test_runs_start_once_their_inputs_are_built_and_a_deadline_stops_the_rest(tmp_path, monkeypatch):
+    """The ground-truth runs start after the data stage, the world-model runs after the whole pipeline; each
+    run sees what it needs already there. A deadline stops what is still going."""
+    import sys
+
+    def step(marker):  # a stage that leaves its marker
+        return [sys.executable, "-c", f"open({str(tmp_path / marker)!r}, 'w').close()"]
+
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: step(stop_after))
+
+    def check(needs, name):  # a run that records whether its input was there when it started
+        return [sys.executable, "-c", f"import os; open({str(tmp_path / name)!r}, 'w').write("
+                                      f"str(os.path.exists({str(tmp_path / needs)!r})))"]
+
+    monkeypatch.setattr(rs, "run_commands", lambda args: {
+        "gt_s0": check("data", "gt_s0.seen"), "exec_s0": check("reward_model", "exec_s0.seen"),
+        "det_s0": check("reward_model", "det_s0.seen")})
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+    args = _args(tmp_path, gpus="0,1", seeds="0")
+    summary = rs.run(args, poll_s=0.05)
+    assert summary["exit_codes"] == {"gt_s0": 0, "exec_s0": 0, "det_s0": 0} and summary["stopped_at_deadline"] == []
+    assert all((tmp_path / f"{n}.seen").read_text() == "True" for n in ("gt_s0", "exec_s0", "det_s0"))
+    assert (tmp_path / "reward_source_summary.json").exists()
+    monkeypatch.setattr(rs, "run_commands", lambda args: {"gt_s0": [sys.executable, "-c", "import time; time.sleep(60)"],
+                                                          "exec_s0": step("x"), "det_s0": step("y")})
+    args.deadline_s = 1.0
+    summary = rs.run(args, poll_s=0.05)
+    assert summary["stopped_at_deadline"] == ["gt_s0"] and summary["exit_codes"]["exec_s0"] == 0
