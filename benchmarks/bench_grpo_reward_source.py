@@ -1,7 +1,7 @@
 """Which half of the learned simulator GRPO cannot use: its frames or its reward.
 
 GRPO in the learned simulator's setting (keyframe starts, 48 actions executed 4 per decision, proprio missing,
-32 start states x 8, T 0.5, lr 1e-4) in three arms that differ in one part each, every arm at each seed:
+``--rollout-batch`` start states x 8, T 0.5, lr 1e-4) in three arms that differ in one part each, every arm at each seed:
 
 * ``gt``: ground-truth GRPO on MJX in that setting, the real frames and the real reward;
 * ``exec``: GRPO in Sword's world model, the policy acting on its frames, each imagined trajectory paid by the
@@ -50,7 +50,7 @@ ARM_LABELS = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
               "exec": "the world model's frames, the real outcome of their actions",
               "det": "the world model's frames, the detector's reward"}
 # the learned simulator's setting and the GRPO recipe every arm shares
-RECIPE = ("--rl.env.backend=mjx", "--rl.grpo.rollout_batch=32", "--rl.grpo.group_size=8", "--rl.grpo.minibatches=4",
+RECIPE = ("--rl.env.backend=mjx", "--rl.grpo.group_size=8", "--rl.grpo.minibatches=4",
           "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5", "--rl.grpo.learning_rate=1e-4",
           "--rl.imagined.execute_steps=4", "--rl.imagined.max_chunks=12")
 GROUND_TRUTH = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.starts=keyframes",
@@ -74,7 +74,8 @@ def run_commands(args) -> dict[str, list[str]]:
     (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
     pipe = os.path.join(args.workdir, "pipeline")
     demos = os.path.join(pipe, "data", "demos.hdf5")
-    steps = (f"--rl.grpo.steps={args.steps}", f"--rl.grpo.eval_every={args.eval_every}")
+    steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
+             f"--rl.grpo.eval_every={args.eval_every}")
     out = {}
     for seed in args.seeds:
         out[f"gt_s{seed}"] = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config,
@@ -261,6 +262,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--eval-every", type=int, default=10)
+    parser.add_argument("--rollout-batch", type=int, default=32, help="start states per GRPO step, every arm (x 8)")
     parser.add_argument("--policy-rollouts", type=int, default=20,
                         help="run: the policy's own episodes per task in the world model's and detector's data")
     parser.add_argument("--vae-steps", type=int, default=1000)
@@ -272,9 +274,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]
-    if not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.policy_rollouts < 0:
+    if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.policy_rollouts < 0
+            or args.rollout_batch < 1 or args.rollout_batch % 4):
         raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps and "
-                         "--eval-every >= 1, --policy-rollouts >= 0")
+                         "--eval-every >= 1, --policy-rollouts >= 0, --rollout-batch a multiple of 4 (4 minibatches)")
     if args.mode == "summary":
         summary = summarize(args.workdir)
         if args.out:

@@ -12,7 +12,7 @@ from benchmarks import bench_grpo_reward_source as rs
 def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2"):
     args = argparse.Namespace(
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
-        seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, policy_rollouts=20, vae_steps=1000,
+        seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         world_model_steps=3000, deadline_s=0.0)
     return args
 
@@ -27,7 +27,7 @@ def test_each_arm_differs_from_the_others_in_one_part(tmp_path):
     gt, ex, det = commands["gt_s1"], commands["exec_s1"], commands["det_s1"]
     # the setting and the recipe are the same everywhere
     for cmd in (gt, ex, det):
-        for flag in rs.RECIPE + ("--rl.grpo.steps=40", "--rl.grpo.eval_every=10"):
+        for flag in rs.RECIPE + ("--rl.grpo.steps=40", "--rl.grpo.eval_every=10", "--rl.grpo.rollout_batch=64"):
             assert flag in cmd, (flag, cmd)
         assert cmd[cmd.index("--seed") + 1] == "1"
     assert gt[2:4] == ["benchmarks.bench_policy", "grpo"] and "--rl.env.starts=keyframes" in gt
@@ -97,6 +97,8 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
 def test_bad_arguments_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="--seeds"):
         rs.main(["summary", "--workdir", str(tmp_path), "--seeds", ""])
+    with pytest.raises(SystemExit, match="--rollout-batch"):
+        rs.main(["summary", "--workdir", str(tmp_path), "--rollout-batch", "30"])
     with pytest.raises(SystemExit, match="--policy"):
         rs.main(["run", "--workdir", str(tmp_path)])
 
