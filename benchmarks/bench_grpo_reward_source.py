@@ -103,9 +103,23 @@ def placement(args) -> dict[str, str]:
     return out
 
 
+def record_gpus(path: str) -> None:
+    """The machine's GPUs (``nvidia-smi``'s name and memory per GPU) in ``path``, which the summary's record
+    names as its device; nothing where there is no ``nvidia-smi``."""
+    try:
+        listed = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv"], capture_output=True,
+                                text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return
+    if listed.returncode == 0:
+        with open(path, "w") as f:
+            f.write(listed.stdout)
+
+
 def run(args, *, poll_s: float = 5.0) -> dict:
     """The pipeline, then the runs as their inputs are ready (module docstring); the summary at the end."""
     os.makedirs(args.workdir, exist_ok=True)
+    record_gpus(os.path.join(args.workdir, "gpu.txt"))
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
     commands, gpu_of = run_commands(args), placement(args)
     sharing = {g: sum(1 for n in commands if gpu_of[n] == g and not n.startswith("gt")) for g in args.gpus}

@@ -131,3 +131,19 @@ def test_runs_start_once_their_inputs_are_built_and_a_deadline_stops_the_rest(tm
     args.deadline_s = 1.0
     summary = rs.run(args, poll_s=0.05)
     assert summary["stopped_at_deadline"] == ["gt_s0"] and summary["exit_codes"]["exec_s0"] == 0
+
+
+def test_the_machines_gpus_are_recorded_where_nvidia_smi_answers(tmp_path, monkeypatch):
+    import subprocess
+
+    listed = "name, memory.total [MiB]\nNVIDIA H100 80GB HBM3, 81559 MiB\nNVIDIA H100 80GB HBM3, 81559 MiB\n"
+    monkeypatch.setattr(rs.subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(a, 0, listed, ""))
+    rs.record_gpus(str(tmp_path / "gpu.txt"))
+    assert (tmp_path / "gpu.txt").read_text() == listed
+
+    def missing(*a, **kw):
+        raise FileNotFoundError("nvidia-smi")
+
+    monkeypatch.setattr(rs.subprocess, "run", missing)
+    rs.record_gpus(str(tmp_path / "none.txt"))
+    assert not (tmp_path / "none.txt").exists()
