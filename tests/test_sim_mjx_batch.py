@@ -103,3 +103,33 @@ def test_mjx_episodes_continue_recorded_states_as_the_c_engine_restores_them():
     assert not np.array_equal(np.asarray(obs["frames"][0]), np.asarray(obs["frames"][1]))  # two different states
     with pytest.raises(ValueError, match="flat states"):
         batch.reset(jnp.zeros((2, batch.flat_size + 1)))
+
+
+@pytest.mark.slow  # ~2 min on 2 cores: MJX's physics compiles on the CPU
+def test_a_recorded_state_given_its_recorded_actions_succeeds_where_the_episode_did(tmp_path):
+    """What ``rl.imagined.reward=executed`` pays: MJX restored to a demonstration's recorded state (its dataset's
+    ``states[t]``) 12 actions before its success and given the recorded actions open loop succeeds where the
+    episode did (within one action: MJX and the C engine are not bit-identical); lifting the arm instead, the
+    gripper held as recorded, does not."""
+    from sim.dataset import read_dataset
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.imagined_check import execute_open_loop
+    from train import gen_data
+
+    path = str(tmp_path / "demo.hdf5")
+    gen_data.main(["--task", "0", "--episodes", "1", "--out", path, "--resolution", str(RES), "--stop-at-success",
+                   "--no-wrist"])
+    eps = rl_data.load_episodes([path], read=read_dataset)
+    length = int(eps.lengths[0])
+    assert eps.success[0] and length > 20 and eps.states is not None
+    t = length - 12
+    replay = eps.actions[0, t: length + 4].astype(np.float32)  # padding repeats the last action
+    lift = np.zeros_like(replay)
+    lift[:, 2] = 1.0
+    lift[:, 6] = replay[:, 6]
+    flat = np.repeat(eps.states[0, t][None].astype(np.float32), 2, axis=0)
+    batch = MjxEpisodes(SimConfig(), resolution=RES)
+    first = np.asarray(jax.jit(lambda s, a, n: execute_open_loop(batch, s, a, n))(
+        jnp.asarray(flat), jnp.asarray(np.stack([replay, lift])), jnp.asarray([16, 16])))
+    assert abs(int(first[0]) - 11) <= 1, first  # the episode's last action, 11 after the keyframe, solved it
+    assert first[1] == -1, first
