@@ -156,7 +156,7 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         return start_state(pick(step, rows), encode, rl)
 
     env_starts = None
-    if episodes.states is not None:
+    if episodes is not None and episodes.states is not None:
         def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel]
             chosen = pick(step, rows)
             return np.asarray(episodes.states[chosen["episode"], chosen["t"]], np.float32)
