@@ -308,7 +308,7 @@ def stop_all(procs: Sequence[subprocess.Popen], grace_s: float = 20.0) -> list[s
     return running
 
 
-def _gain(points: list[dict], key: str | None) -> dict:
+def gain_between(points: list[dict], key: str | None) -> dict:
     """Gain of the greedy (``key`` None) or sampled success from the first evaluation to the last."""
     a, b = points[0], points[-1]
     if key is not None:
@@ -340,8 +340,8 @@ def summarize_run(folder: str) -> dict:
         points = [*points, pending]
     out = {"steps": points[-1]["step"], "episodes": points[-1]["episodes"],
            **({"last_refresh_incomplete": True} if pending is not None else {}),
-           "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
-           **({"sampled_proprio_masked": _gain(points, "sampled_proprio_masked")}
+           "greedy": gain_between(points, None), "sampled": gain_between(points, "sampled"),
+           **({"sampled_proprio_masked": gain_between(points, "sampled_proprio_masked")}
               if all("sampled_proprio_masked" in p for p in points) else {}),
            "curve": [{"step": p["step"], "greedy": p["mean"], "sampled": p["sampled"]["mean"],
                       "sampled_ci95": p["sampled"]["ci95"], "real_episodes_used": p.get("real_episodes_used"),
@@ -459,12 +459,7 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "", c
     ``policy_grpo_wovr_world_model_refreshed_gain_small`` (the WoVR-config world model's) and, with both,
     ``policy_grpo_sword_vs_wovr_small``; each gain the sampled policy's (T 0.5), value the smallest over seeds,
     with every run's curve, real episodes used and every refresh's replay and trust."""
-    device = common.device_name()
-    gpu = os.path.join(workdir, "gpu.txt")
-    if os.path.exists(gpu):
-        with open(gpu) as f:
-            names = [line.split(",")[0].strip() for line in f.read().splitlines()[1:] if line.strip()]
-        device = f"{names[0]} x{len(names)}" if names else device
+    device = common.workdir_device(workdir)
     target = ">= +0.10 at 3 of 3 seeds within 100 steps, <= 10% of ground-truth GRPO's real episodes"
 
     def entry(prefix: str) -> dict | None:

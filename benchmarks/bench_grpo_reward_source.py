@@ -40,8 +40,7 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import pipeline_command, stop_all
-from benchmarks.bench_grpo_transfer import gain_interval
+from benchmarks.bench_grpo_refresh import gain_between, pipeline_command, stop_all
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
 
@@ -103,23 +102,10 @@ def placement(args) -> dict[str, str]:
     return out
 
 
-def record_gpus(path: str) -> None:
-    """The machine's GPUs (``nvidia-smi``'s name and memory per GPU) in ``path``, which the summary's record
-    names as its device; nothing where there is no ``nvidia-smi``."""
-    try:
-        listed = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv"], capture_output=True,
-                                text=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return
-    if listed.returncode == 0:
-        with open(path, "w") as f:
-            f.write(listed.stdout)
-
-
 def run(args, *, poll_s: float = 5.0) -> dict:
     """The pipeline, then the runs as their inputs are ready (module docstring); the summary at the end."""
     os.makedirs(args.workdir, exist_ok=True)
-    record_gpus(os.path.join(args.workdir, "gpu.txt"))
+    common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
     commands, gpu_of = run_commands(args), placement(args)
     sharing = {g: sum(1 for n in commands if gpu_of[n] == g and not n.startswith("gt")) for g in args.gpus}
@@ -189,12 +175,8 @@ def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
 
 
 def _gain(points: list[dict], key: str | None) -> dict | None:
-    a, b = points[0], points[-1]
-    if key is not None:
-        a, b = a.get(key), b.get(key)
-    if a is None or b is None:
-        return None
-    return {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
+    """:func:`~benchmarks.bench_grpo_refresh.gain_between`, None where a point lacks ``key``'s evaluation."""
+    return gain_between(points, key) if key is None or all(key in p for p in points) else None
 
 
 def summarize_run(grpo: str) -> dict:
@@ -241,14 +223,8 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     model paid by the real outcome of its actions (``exec``), beside every arm's gains and every run's summary."""
     if "exec" not in summary["arms"]:
         raise SystemExit("bench_grpo_reward_source: no run of the exec arm left an evaluation to record")
-    device = common.device_name()
-    gpu = os.path.join(workdir, "gpu.txt")
-    if os.path.exists(gpu):
-        with open(gpu) as f:
-            names = [line.split(",")[0].strip() for line in f.read().splitlines()[1:] if line.strip()]
-        device = f"{names[0]} x{len(names)}" if names else device
     entry = common.record("", summary["arms"]["exec"]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
-                          device=device, data=data,
+                          device=common.workdir_device(workdir), data=data,
                           unit="real success gain of the sampled policy (T 0.5), 500 MJX episodes per point",
                           **({"command": command} if command else {}))
     return {"policy_grpo_reward_source_small": entry}

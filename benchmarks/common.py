@@ -12,6 +12,7 @@ import json
 import math
 import os
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -204,3 +205,27 @@ def finish_figure(fig: Any, ax: Any, path: str, *, xlabel: str, ylabel: str, tit
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def record_gpus(path: str) -> None:
+    """The machine's GPUs (``nvidia-smi``'s name and memory per GPU) in ``path``, which :func:`workdir_device`
+    reads back; nothing where there is no ``nvidia-smi``."""
+    try:
+        listed = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv"], capture_output=True,
+                                text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return
+    if listed.returncode == 0:
+        with open(path, "w") as f:
+            f.write(listed.stdout)
+
+
+def workdir_device(workdir: str) -> str:
+    """The device a run's work dir was made on, from its ``gpu.txt`` (``NAME xN``); this machine's without one."""
+    gpu = os.path.join(workdir, "gpu.txt")
+    if os.path.exists(gpu):
+        with open(gpu) as f:
+            names = [line.split(",")[0].strip() for line in f.read().splitlines()[1:] if line.strip()]
+        if names:
+            return f"{names[0]} x{len(names)}"
+    return device_name()

@@ -67,9 +67,9 @@ def keyframe_picks(episodes, rl, *, seed: int, step: int, round_: int = 0, num_c
     check_keyframe_episodes(episodes)
     rng = (stream_rng(seed, "grpo/env_keyframes", step) if round_ == 0
            else stream_rng(seed, "grpo/env_keyframes", step, round_))
-    pick = rl_data.keyframe_starts(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
-                                   num_context=num_context)
-    return [(int(episodes.tasks[e]), episodes.states[e, t]) for e, t in zip(pick["episode"], pick["t"])]
+    ep, t = rl_data.keyframe_indices(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
+                                     num_context=num_context)
+    return [(int(episodes.tasks[e]), episodes.states[e, s]) for e, s in zip(ep, t)]
 
 
 def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:

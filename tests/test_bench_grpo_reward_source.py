@@ -137,13 +137,14 @@ def test_the_machines_gpus_are_recorded_where_nvidia_smi_answers(tmp_path, monke
     import subprocess
 
     listed = "name, memory.total [MiB]\nNVIDIA H100 80GB HBM3, 81559 MiB\nNVIDIA H100 80GB HBM3, 81559 MiB\n"
-    monkeypatch.setattr(rs.subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(a, 0, listed, ""))
-    rs.record_gpus(str(tmp_path / "gpu.txt"))
+    monkeypatch.setattr(rs.common.subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(a, 0, listed, ""))
+    rs.common.record_gpus(str(tmp_path / "gpu.txt"))
     assert (tmp_path / "gpu.txt").read_text() == listed
 
     def missing(*a, **kw):
         raise FileNotFoundError("nvidia-smi")
 
-    monkeypatch.setattr(rs.subprocess, "run", missing)
-    rs.record_gpus(str(tmp_path / "none.txt"))
+    monkeypatch.setattr(rs.common.subprocess, "run", missing)
+    rs.common.record_gpus(str(tmp_path / "none.txt"))
     assert not (tmp_path / "none.txt").exists()
+    assert rs.common.workdir_device(str(tmp_path)) == "NVIDIA H100 80GB HBM3 x2"

@@ -101,17 +101,23 @@ def test_still_window_lays_out_a_start_at_rest_and_refuses_bad_frames():
         imagined_check.still_window(frames, np.zeros((2, 8)), ["a"], num_context=1, frames_per_latent=4, action_dim=7)
 
 
-def _toy_check(reward_model):
-    graphdef, params = build_policy(CFG, seed=0)
-    sim = toy_simulator(frame_size=8, step_size=STEP, chunk_len=CFG.chunk_len)
+def _designed(cfg):
+    """The policy, the toy simulator, and the designed starts with their environment states ``[position xy,
+    target xy]``: start 1 near its target (some of its group reach it), start 0 far (none do)."""
+    graphdef, params = build_policy(cfg, seed=0)
+    sim = toy_simulator(frame_size=8, step_size=STEP, chunk_len=cfg.chunk_len)
     tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
     start = toy_start_states(tokens, key=jax.random.key(5), frame_size=8)
     targets = jax.vmap(instruction_target)(tokens)
-    # start 1 near its target: some of its group reach it; start 0 far: none do
     near = targets[1] + jnp.asarray([0.12, 0.0])
     start = start._replace(proprio=start.proprio.at[1, :2].set(near),
                            frame=start.frame.at[1].set(toy_render(ToyState(near, targets[1]), 8)))
-    env_starts = jnp.repeat(jnp.concatenate([start.proprio[:, :2], targets], axis=1), CFG.grpo.group_size, axis=0)
+    return graphdef, params, sim, start, jnp.concatenate([start.proprio[:, :2], targets], axis=1)
+
+
+def _toy_check(reward_model):
+    graphdef, params, sim, start, env_starts = _designed(CFG)
+    env_starts = jnp.repeat(env_starts, CFG.grpo.group_size, axis=0)
 
     def go(key):
         rollout = imagined_rollout(graphdef, params, sim, reward_model, start, CFG, key=key,
@@ -188,15 +194,7 @@ def test_detector_metrics_against_designed_verdicts():
 
 def _executed_step(reward_model):
     """One GRPO step on the toy world paid by the toy environment (the check's designed starts)."""
-    graphdef, params = build_policy(EXEC, seed=0)
-    sim = toy_simulator(frame_size=8, step_size=STEP, chunk_len=EXEC.chunk_len)
-    tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
-    start = toy_start_states(tokens, key=jax.random.key(5), frame_size=8)
-    targets = jax.vmap(instruction_target)(tokens)
-    near = targets[1] + jnp.asarray([0.12, 0.0])
-    start = start._replace(proprio=start.proprio.at[1, :2].set(near),
-                           frame=start.frame.at[1].set(toy_render(ToyState(near, targets[1]), 8)))
-    env_starts = jnp.concatenate([start.proprio[:, :2], targets], axis=1)
+    graphdef, params, sim, start, env_starts = _designed(EXEC)
     step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
     state = grpo.init_state(params, EXEC)
     new_state, metrics = step(state, (sim, reward_model, start, env_starts), jax.random.key(3))

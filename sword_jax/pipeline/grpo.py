@@ -146,20 +146,20 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         return encode_history(vae_graphdef, encoder_state, first_frames, history,
                               num_context=cfg.data.context_frames // tf)
 
-    def pick(step, rows):  # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-        return rl_data.keyframe_starts(episodes, rl.imagined_starts_per_step,
-                                       stream_rng(cfg.seed, "grpo/keyframes", step),
-                                       max_fraction=rl.imagined.keyframe_fraction, rows=rows)
+    # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
+    def draw(sampler, step, rows):
+        return sampler(episodes, rl.imagined_starts_per_step, stream_rng(cfg.seed, "grpo/keyframes", step),
+                       max_fraction=rl.imagined.keyframe_fraction, rows=rows)
 
     def starts(key, step, rows=None):
         del key
-        return start_state(pick(step, rows), encode, rl)
+        return start_state(draw(rl_data.keyframe_starts, step, rows), encode, rl)
 
     env_starts = None
     if episodes is not None and episodes.states is not None:
-        def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel]
-            chosen = pick(step, rows)
-            return np.asarray(episodes.states[chosen["episode"], chosen["t"]], np.float32)
+        def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel], no windows cut
+            ep, t = draw(rl_data.keyframe_indices, step, rows)
+            return np.asarray(episodes.states[ep, t], np.float32)
 
     return Setup(sim, reward_model, starts, None, encode, env_starts)
 

@@ -202,6 +202,18 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
     windows (a process's share of a global batch); the keyframes are drawn for all ``count`` first, so each
     row is the same whichever rows are asked for.
     """
+    ep, t = keyframe_indices(episodes, count, rng, max_fraction=max_fraction, num_context=num_context,
+                             frames_per_latent=frames_per_latent, rows=rows)
+    window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=num_context,
+                             frames_per_latent=frames_per_latent)
+    return dict(window, instructions=[episodes.instructions[i] for i in ep])
+
+
+def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
+                     num_context: int = 1, frames_per_latent: int = 4, rows: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """``(episode [n], frame t [n])`` of the keyframes :func:`keyframe_starts` draws with the same arguments and
+    ``rng`` state, without cutting their windows (e.g. to read the recorded ``states[episode, t]``)."""
     k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
     last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
@@ -209,9 +221,7 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
     t = np.minimum(f * s, episodes.lengths[ep] - 1)
     if rows is not None:
         ep, t = ep[rows], t[rows]
-    window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=k,
-                             frames_per_latent=f)
-    return dict(window, instructions=[episodes.instructions[i] for i in ep])
+    return ep, t
 
 
 def keyframe_window(frames: np.ndarray, actions: np.ndarray, proprio: np.ndarray, ep: np.ndarray, t: np.ndarray, *,
