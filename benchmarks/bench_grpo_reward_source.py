@@ -23,7 +23,8 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
 start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
 seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
 last evaluation). ``summary`` gives each run's gains with 95% intervals, what its training rollouts were paid,
-and for ``exec`` the detector's success, agreement and false success on the same rollouts; ``--record`` writes
+and for ``exec`` the detector's success, agreement, false success and precision (the share of its verdicts of
+success that reality paid too) on the same rollouts; ``--record`` writes
 ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
 """
 
@@ -199,10 +200,21 @@ def summarize_run(grpo: str) -> dict:
                       **{k: p[k]["mean"] for k in ("sampled", "sampled_proprio_masked") if k in p}} for p in points]}
     if history and "detector_success" in history[0]:
         false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
+        said = sum(h["detector_success"] for h in history)
         out["detector"] = {"success": statistics.mean(h["detector_success"] for h in history),
                            "agreement": statistics.mean(h["detector_agreement"] for h in history),
-                           "false_success": statistics.mean(false) if false else None}
+                           "false_success": statistics.mean(false) if false else None,
+                           "precision": sum(_true_paid(h) for h in history) / said if said else None}
     return out
+
+
+def _true_paid(h: dict) -> float:
+    """The share of a step's trajectories the detector would have paid that reality paid too: its verdicts
+    ``detector_success`` less the real failures it paid (``detector_false_success`` x the real failures' share,
+    NaN where every trajectory succeeded in reality)."""
+    real = h.get("imagined_success_sampled", h.get("success_rate"))
+    false = h["detector_false_success"]
+    return h["detector_success"] - (0.0 if false != false else false * (1.0 - real))
 
 
 def summarize(workdir: str) -> dict:
@@ -239,6 +251,8 @@ def print_runs(summary: dict) -> None:
         if r.get("detector"):
             d = r["detector"]
             line += f"; the detector on its rollouts: success {d['success']:.2f}, agreement {d['agreement']:.2f}"
+            if d.get("precision") is not None:
+                line += f", precision {d['precision']:.2f}"
         print(line, flush=True)
 
 

@@ -53,6 +53,12 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines)
 
 
+def _span(values, digits: int = 1) -> str:
+    """``0.2-1.4%``: the smallest and largest of shares, in percent."""
+    values = [100 * v for v in values]
+    return f"{min(values):.{digits}f}-{max(values):.{digits}f}%"
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:+.1f}"
 
@@ -74,6 +80,9 @@ def readme_results() -> str:
     sword, wovr = latest["policy_grpo_world_model_gain_small"], latest["policy_grpo_wovr_world_model_refreshed_gain_small"]
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
+    source = latest.get("policy_grpo_reward_source_small")
+    exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
+                          if source else ([], []))
     rows = [
         ("Claim 1: DLB vs teacher forcing, `small`, 3 seeds",
          f"latent MSE {dlb['original_latent_mse'][0]:.3f} vs {dlb['original_latent_mse'][1]:.3f} (Original), "
@@ -105,10 +114,12 @@ def readme_results() -> str:
          f"config {', '.join(_pct(r['sampled']['gain']) for r in wovr['per_seed'].values())} points in "
          f"{sword['steps']}-{max(r['steps'] for r in sword['per_seed'].values())} steps (target +10)",
          "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
-        *([("Ground-truth GRPO in the learned simulator's setting, 3 seeds",
-            f"{_pct(setting['value'])} points or more in {setting['steps']} steps (sampled): the world model's frames "
-            "or its reward fails, not the setting", "policy_grpo_ground_truth_learned_setting_gain_small",
-            f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)")] if setting else []),
+        *([("GRPO in the learned simulator's setting",
+            f"real frames and reward {_pct(setting['value'])} points or more in {setting['steps']} steps "
+            f"({_device(setting)}, {setting['date']}); the "
+            f"policy's actions on Sword's frames succeed {_span(r['paid_success']['first'] for r in exec_runs)} in "
+            f"reality (real frames {_span([r['paid_success']['first'] for r in gt_runs], 0)}): the frames fail",
+            "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -577,6 +588,27 @@ def grpo_setting_arms() -> str:
                    "training rollouts' success, steps 1-5 -> last 5", "env steps a GRPO step"], rows)
 
 
+def grpo_reward_source() -> str:
+    """The reward-source experiment per arm and seed (``policy_grpo_reward_source_small``): the gains, what
+    the training rollouts were paid, the groups they left mixed, and for the world model paid by reality, the
+    detector's verdicts on the same rollouts."""
+    entry = _load("latest.json")["policy_grpo_reward_source_small"]
+    rows = []
+    for arm in ("gt", "exec", "det"):
+        for name, run in sorted(entry["runs"].items()):
+            if run["arm"] != arm:
+                continue
+            sampled, greedy, paid, det = run["sampled"], run["greedy"], run["paid_success"], run.get("detector")
+            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
+                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
+                         f"{_pct(greedy['gain'])} {_interval(greedy['ci95'])}",
+                         f"{paid['first']:.3f} -> {paid['last']:.3f}", f"{run['mixed_median']:.2f}",
+                         f"{det['success']:.2f} / {det['precision']:.2f}" if det else ""])
+    return _table(["GRPO's frames and reward", "seed", "steps", "sampled gain (points), 95% interval",
+                   "greedy gain", "its rollouts' paid success, steps 1-5 -> last 5", "groups mixed (median)",
+                   "the detector on the same rollouts: success / precision"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -589,6 +621,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
     "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
+    "grpo-reward-source": grpo_reward_source,
 }
 
 

@@ -83,7 +83,9 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
     assert gt["sampled"]["gain"] == pytest.approx(0.1) and gt["sampled"]["ci95"][0] < 0.1 < gt["sampled"]["ci95"][1]
     assert gt["paid_success"] == {"first": pytest.approx(0.4), "last": pytest.approx(0.5)} and gt["mixed_median"] == pytest.approx(0.85)
     assert ex["detector"] == {"success": pytest.approx(0.38), "agreement": pytest.approx(0.62),
-                              "false_success": pytest.approx(0.3)}  # the step without failures left out
+                              "false_success": pytest.approx(0.3),  # the step without failures left out
+                              # 9 steps pay 0.4 of which 0.3 x 0.8 failed; the last step's 0.2 all succeeded
+                              "precision": pytest.approx((9 * (0.4 - 0.3 * 0.8) + 0.2) / 3.8)}
     assert "detector" not in gt and "detector" not in det
     assert det["steps"] == 10 and det["greedy"]["gain"] == pytest.approx(-0.1)
     assert summary["arms"]["det"]["smallest"] == pytest.approx(-0.1) and summary["arms"]["exec"]["steps"] == 20
