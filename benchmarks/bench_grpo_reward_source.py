@@ -24,7 +24,8 @@ start on the other GPUs, and once the pipeline is built the world-model runs tak
 seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
 last evaluation). ``summary`` gives each run's gains with 95% intervals, what its training rollouts were paid,
 and for ``exec`` the detector's success, agreement, false success and precision (the share of its verdicts of
-success that reality paid too) on the same rollouts; ``--record`` writes
+success that reality paid too) on the same rollouts, and per decision where their closed loop left the
+real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps); ``--record`` writes
 ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
 """
 
@@ -205,6 +206,12 @@ def summarize_run(grpo: str) -> dict:
                            "agreement": statistics.mean(h["detector_agreement"] for h in history),
                            "false_success": statistics.mean(false) if false else None,
                            "precision": sum(_true_paid(h) for h in history) / said if said else None}
+    decisions = sorted(int(k.rsplit("_", 1)[1]) for k in (history[0] if history else {})
+                       if k.startswith("closed_loop_frame_error_"))
+    if decisions:  # per decision, the mean over the steps
+        out["closed_loop"] = {"decisions": decisions, **{
+            what: [statistics.mean(h[f"closed_loop_{what}_{k}"] for h in history) for k in decisions]
+            for what in ("frame_error", "action_gap")}}
     return out
 
 
@@ -253,6 +260,11 @@ def print_runs(summary: dict) -> None:
             line += f"; the detector on its rollouts: success {d['success']:.2f}, agreement {d['agreement']:.2f}"
             if d.get("precision") is not None:
                 line += f", precision {d['precision']:.2f}"
+        if r.get("closed_loop"):
+            loop = r["closed_loop"]
+            line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "
+                     f"{loop['frame_error'][0]:.3f} / {loop['frame_error'][-1]:.3f}, greedy action gap "
+                     f"{loop['action_gap'][0]:.3f} / {loop['action_gap'][-1]:.3f}")
         print(line, flush=True)
 
 

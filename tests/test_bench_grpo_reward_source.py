@@ -66,14 +66,21 @@ def _point(step, greedy, sampled, masked=None):
     return out
 
 
+def _loop(x):
+    """A step's closed-loop figures at decisions 1, 2 and 10: frame error k x, action gap k x / 10."""
+    return {f"closed_loop_{what}_{k}": k * x * (1.0 if what == "frame_error" else 0.1)
+            for k in (1, 2, 10) for what in ("frame_error", "action_gap")}
+
+
 def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monkeypatch):
     _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5), _point(20, 0.72, 0.6, 0.56)],
            [{"rollout_success": 0.4, "mixed_fraction": 0.8}] * 5 + [{"rollout_success": 0.5, "mixed_fraction": 0.9}] * 5)
     nan = float("nan")
     _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(20, 0.7, 0.54, 0.5)],
            [{"success_rate": 0.2, "kept_fraction": 0.5, "detector_success": 0.4, "detector_agreement": 0.6,
-             "detector_false_success": 0.3}] * 9 + [{"success_rate": 0.3, "kept_fraction": 0.7, "detector_success": 0.2,
-                                                  "detector_agreement": 0.8, "detector_false_success": nan}])
+             "detector_false_success": 0.3, **_loop(0.1)}] * 9
+           + [{"success_rate": 0.3, "kept_fraction": 0.7, "detector_success": 0.2, "detector_agreement": 0.8,
+               "detector_false_success": nan, **_loop(0.2)}])
     _curve(tmp_path / "det_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(10, 0.6, 0.4, 0.45)],
            [{"success_rate": 0.3, "kept_fraction": 0.4}] * 10)
     os.makedirs(tmp_path / "det_s1" / "rl" / "grpo")  # a run that left no evaluation is not counted
@@ -86,7 +93,10 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
                               "false_success": pytest.approx(0.3),  # the step without failures left out
                               # 9 steps pay 0.4 of which 0.3 x 0.8 failed; the last step's 0.2 all succeeded
                               "precision": pytest.approx((9 * (0.4 - 0.3 * 0.8) + 0.2) / 3.8)}
-    assert "detector" not in gt and "detector" not in det
+    assert "detector" not in gt and "detector" not in det and "closed_loop" not in gt
+    loop = ex["closed_loop"]  # decisions in numeric order (10 after 2), means over the 10 steps
+    assert loop["decisions"] == [1, 2, 10]
+    assert loop["frame_error"] == pytest.approx([0.11, 0.22, 1.1]) and loop["action_gap"] == pytest.approx([0.011, 0.022, 0.11])
     assert det["steps"] == 10 and det["greedy"]["gain"] == pytest.approx(-0.1)
     assert summary["arms"]["det"]["smallest"] == pytest.approx(-0.1) and summary["arms"]["exec"]["steps"] == 20
     monkeypatch.setattr(rs.common, "device_name", lambda: "cpu")

@@ -230,3 +230,76 @@ def test_an_executed_reward_is_refused_without_its_environment_or_outside_mjx():
     # the run's identity names what pays it only when it is not the detector
     assert grpo_run_id(EXEC, seed=0, simulator="world_model")["rl.imagined.reward"] == "executed"
     assert "rl.imagined.reward" not in grpo_run_id(CFG, seed=0, simulator="world_model")
+
+
+# ---- where the closed loop through the simulator leaves the real one ----
+
+def test_execute_observed_keeps_the_real_frame_at_each_decisions_end():
+    env = ToyEnv(CFG.success_threshold)
+    starts = jnp.asarray([[0.0, 0.0, 0.3, 0.0], [0.1, -0.2, -0.5, 0.4], [0.0, 0.5, 0.0, 0.0]])
+    actions = jax.random.uniform(jax.random.key(1), (3, 6, 7), minval=-1.0, maxval=1.0).at[:, :, 0].set(1.0)
+    lengths = jnp.asarray([6, 4, 2])
+    first, frames = jax.jit(lambda s, a, n: imagined_check.execute_observed(env, s, a, n, every=2, rows=2))(
+        starts, actions, lengths)
+    np.testing.assert_array_equal(first, imagined_check.execute_open_loop(env, starts, actions, lengths))
+    assert frames.shape == (2, 3, 8, 8, 3)
+    state, _ = env.reset(starts)
+    for i in range(6):  # the frame after actions 1, 3 and 5: decisions 0, 1, 2 of two actions each
+        state, obs, _ = env.step(state, actions[:, i])
+        if i % 2:
+            np.testing.assert_allclose(frames[:, i // 2], obs["frames"][:2], atol=1e-6)
+    with pytest.raises(ValueError, match="every=4 must divide"):
+        imagined_check.execute_observed(env, starts, actions, lengths, every=4, rows=2)
+    with pytest.raises(ValueError, match="rows=4"):
+        imagined_check.execute_observed(env, starts, actions, lengths, every=2, rows=4)
+
+
+def _fidelity(step_size):
+    """The closed-loop figures of the designed toy starts in a toy simulator moving ``step_size`` a step, checked
+    against the toy environment (``STEP``)."""
+    graphdef, params, _, start, env_starts = _designed(CFG)
+    sim = toy_simulator(frame_size=8, step_size=step_size, chunk_len=CFG.chunk_len)
+    g = CFG.grpo.group_size
+
+    def go(key):
+        rollout = imagined_rollout(graphdef, params, sim, NEVER, start, CFG, key=key, group_size=g)
+        actions, lengths = imagined_check.executed_actions(rollout, CFG.action_bins)
+        _, frames = imagined_check.execute_observed(ToyEnv(CFG.success_threshold), jnp.repeat(env_starts, g, axis=0),
+                                                    actions, lengths, every=rollout.tokens.shape[2], rows=8)
+        return imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=CFG.image_size,
+                                                   action_bins=CFG.action_bins)
+
+    out = jax.device_get(jax.jit(go)(jax.random.key(2)))
+    c = CFG.imagined.max_chunks
+    assert sorted(out) == sorted([f"closed_loop_{what}_{k}" for k in range(1, c) for what in ("frame_error", "action_gap")])
+    return [out[f"closed_loop_frame_error_{k}"] for k in range(1, c)], [out[f"closed_loop_action_gap_{k}"] for k in range(1, c)]
+
+
+def test_a_simulator_equal_to_the_environment_leaves_no_closed_loop_gap():
+    frame_error, action_gap = _fidelity(STEP)
+    np.testing.assert_allclose(frame_error, 0.0, atol=1e-5)
+    np.testing.assert_allclose(action_gap, 0.0, atol=1e-6)
+
+
+def test_a_simulator_that_moves_too_far_drifts_from_the_real_frames_decision_by_decision():
+    frame_error, action_gap = _fidelity(3 * STEP)
+    assert all(e > 1e-3 for e in frame_error), frame_error
+    assert frame_error[-1] > frame_error[0], frame_error  # the drift grows with the decisions
+    assert max(action_gap) > 0.0, "the policy reads the drifted frames differently"
+
+
+def test_an_executed_step_logs_its_closed_loop_and_is_paid_the_same_without_it():
+    _, _, logged = _executed_step(NEVER)
+    c = EXEC.imagined.max_chunks
+    for k in range(1, c):  # the toy simulator equals the toy environment
+        assert logged[f"closed_loop_frame_error_{k}"] == pytest.approx(0.0, abs=1e-5)
+        assert logged[f"closed_loop_action_gap_{k}"] == pytest.approx(0.0, abs=1e-6)
+    off = dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, fidelity_trajectories=0))
+    graphdef, params, sim, start, env_starts = _designed(off)
+    step = grpo.make_grpo_step(graphdef, off, env=ToyEnv(off.success_threshold), donate=False)
+    _, plain = step(grpo.init_state(params, off), (sim, NEVER, start, env_starts), jax.random.key(3))
+    plain = jax.device_get(plain)
+    assert not any(k.startswith("closed_loop") for k in plain)
+    assert plain["success_rate"] == logged["success_rate"] and plain["loss"] == pytest.approx(logged["loss"])
+    with pytest.raises(ValueError, match="fidelity_trajectories"):
+        ImaginedConfig(fidelity_trajectories=-1).validate()

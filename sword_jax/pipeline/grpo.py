@@ -416,6 +416,11 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
         paid = (f"real success of the imagined actions {point['success_rate']:.3f} (the detector said "
                 f"{point['detector_success']:.3f}, agreeing on {point['detector_agreement']:.2f})"
                 if "detector_success" in point else f"imagined success {point['success_rate']:.3f}")
+        last = rl.imagined.max_chunks - 1
+        if f"closed_loop_action_gap_{last}" in point:  # where the closed loop left the real one: decision 1, last
+            paid += (f"; closed loop frame error {point['closed_loop_frame_error_1']:.3f} -> "
+                     f"{point[f'closed_loop_frame_error_{last}']:.3f}, greedy action gap "
+                     f"{point['closed_loop_action_gap_1']:.3f} -> {point[f'closed_loop_action_gap_{last}']:.3f}")
         return (f"grpo step {point['step']}/{rl.grpo.steps} {paid} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f}{sampled_mixed(point, rl)} nll {point['behaviour_nll']:.3f} "

@@ -317,6 +317,12 @@ class ImaginedConfig:
         learned simulator's frames do to GRPO from what its reward does (:mod:`sword_jax.rl.imagined_check`);
         each step also logs the detector's verdict on the same trajectories against the real outcome. Needs
         ``rl.env.backend=mjx``, keyframes with recorded states, no refresh and no ``confirm_success``.
+      fidelity_trajectories: with ``reward=executed``, the first this-many trajectories of each step also keep
+        the real frame at the end of every decision of their execution, and the step logs where the closed loop
+        through the simulator leaves the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`):
+        at each decision ``k`` the frame the policy read against the real frame the same actions reached
+        (``closed_loop_frame_error_k``) and the policy's greedy actions on the two (``closed_loop_action_gap_k``,
+        action units). 0 = off.
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE
         decoder's full-resolution features above all -- are held for ``1/sim_microbatches`` of them
@@ -354,6 +360,7 @@ class ImaginedConfig:
     guard_min_failures: int = 20  # real failures a replay needs before the guard judges it
     guard_on: str = "replay"  # replay | verify: the false-success rate the exploitation guard judges
     reward: str = "detector"  # detector | executed: what pays an imagined trajectory (see above)
+    fidelity_trajectories: int = 64  # with reward=executed: trajectories whose closed loop is compared; 0 = off
 
     def validate(self) -> None:
         if self.max_chunks < 1:
@@ -369,6 +376,8 @@ class ImaginedConfig:
                              f"{self.guard_margin}, {self.guard_min_failures}")
         if self.guard_on not in ("replay", "verify"):
             raise ValueError(f"rl.imagined.guard_on must be replay|verify, got {self.guard_on!r}")
+        if self.fidelity_trajectories < 0:
+            raise ValueError(f"rl.imagined.fidelity_trajectories must be >= 0 (0 = off), got {self.fidelity_trajectories}")
         if self.reward not in IMAGINED_REWARDS:
             raise ValueError(f"rl.imagined.reward must be {'|'.join(IMAGINED_REWARDS)}, got {self.reward!r}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:

@@ -395,7 +395,9 @@ def make_grpo_step(
     ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
     imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env``
     and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
-    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`).
+    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`)
+    and, for the first ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
+    the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`).
     """
     cfg.validate()
     g, oversample = cfg.grpo.group_size, cfg.imagined.oversample
@@ -414,7 +416,16 @@ def make_grpo_step(
         extra = {}
         if executed:
             actions, lengths = imagined_check.executed_actions(rollout, cfg.action_bins)
-            real_first = imagined_check.execute_open_loop(env, jnp.repeat(batch[3], g, axis=0), actions, lengths)
+            env_starts = jnp.repeat(batch[3], g, axis=0)
+            observed = min(cfg.imagined.fidelity_trajectories, actions.shape[0])
+            if observed:  # the real frames at each decision's end too: where the closed loop leaves reality
+                real_first, real_frames = imagined_check.execute_observed(
+                    env, env_starts, actions, lengths, every=rollout.tokens.shape[2], rows=observed)
+                extra.update(imagined_check.closed_loop_fidelity(graphdef, state.params, rollout, real_frames,
+                                                                 image_size=cfg.image_size,
+                                                                 action_bins=cfg.action_bins))
+            else:
+                real_first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
             extra.update(imagined_check.detector_metrics(rollout, real_first >= 0, cfg.success_threshold))
             rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
         unconfirmed_success = rollout.success

@@ -22,10 +22,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import nnx
 from jaxtyping import Array, Bool, Float, Int
 
 from sword_jax.rl import sim_agreement
-from sword_jax.rl.policy import tokens_to_actions
+from sword_jax.rl.policy import resize_frames, tokens_to_actions
 from sword_jax.rl.rollout import Rollout, trajectory_returns
 
 
@@ -63,6 +64,16 @@ def imagined_first_success(rollout: Rollout) -> Int[Array, " n"]:
     return jnp.where(rollout.success, taken * e - 1, -1)
 
 
+def _open_loop_step(env: Any, actions: Float[Array, "n t a"], lengths: Int[Array, " n"]) -> Any:
+    """The scan body of an open-loop execution: ``((state, first), i) -> ((state, first), obs)``."""
+    def body(carry, i):
+        state, first = carry
+        state, obs, success = env.step(state, actions[:, i])
+        first = jnp.where((first < 0) & success & (i < lengths), i, first)
+        return (state, first), obs
+    return body
+
+
 def execute_open_loop(env: Any, starts: Any, actions: Float[Array, "n t a"], lengths: Int[Array, " n"]
                       ) -> Int[Array, " n"]:
     """Runs fixed action sequences in a pure JAX environment (``reset(starts) -> (state, obs)``,
@@ -70,15 +81,72 @@ def execute_open_loop(env: Any, starts: Any, actions: Float[Array, "n t a"], len
     of the first action after which it succeeded, among its first ``lengths`` actions, -1 if none."""
     state, _ = env.reset(starts)
     n, t = actions.shape[:2]
-
-    def body(carry, i):
-        state, first = carry
-        state, _, success = env.step(state, actions[:, i])
-        first = jnp.where((first < 0) & success & (i < lengths), i, first)
-        return (state, first), None
-
-    (_, first), _ = jax.lax.scan(body, (state, jnp.full((n,), -1, jnp.int32)), jnp.arange(t))
+    body = _open_loop_step(env, actions, lengths)
+    (_, first), _ = jax.lax.scan(lambda carry, i: (body(carry, i)[0], None), (state, jnp.full((n,), -1, jnp.int32)),
+                                 jnp.arange(t))
     return first
+
+
+def execute_observed(env: Any, starts: Any, actions: Float[Array, "n t a"], lengths: Int[Array, " n"], *,
+                     every: int, rows: int) -> tuple[Int[Array, " n"], Any]:
+    """:func:`execute_open_loop`, also keeping the real frame (``obs["frames"]``) reached after every ``every``-th
+    action by the first ``rows`` sequences: ``(first [n], frames [rows, t // every, H, W, 3])``, frame ``k`` the
+    one after decision ``k``'s actions (``every`` actions a decision)."""
+    n, t = actions.shape[:2]
+    if every < 1 or t % every or not 1 <= rows <= n:
+        raise ValueError(f"execute_observed: every={every} must divide the {t} actions and rows={rows} be in 1..{n}")
+    state, _ = env.reset(starts)
+    body = _open_loop_step(env, actions, lengths)
+
+    def decision(carry, d):
+        carry, obs = jax.lax.scan(body, carry, d * every + jnp.arange(every))
+        return carry, obs["frames"][-1, :rows]
+
+    (_, first), frames = jax.lax.scan(decision, (state, jnp.full((n,), -1, jnp.int32)), jnp.arange(t // every))
+    return first, jnp.swapaxes(frames, 0, 1)
+
+
+def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_frames: Any, *, image_size: int,
+                         action_bins: int) -> dict[str, Float[Array, ""]]:
+    """Where the closed loop through the simulator leaves the real one, decision by decision.
+
+    ``real_frames [m, C, H, W, 3]`` (:func:`execute_observed`) are the real frames the first ``m`` trajectories'
+    own actions reached by the end of each decision. At decision ``k >= 1`` the policy read the simulator's frame
+    (``rollout.obs_frames[:, k]``); the real world, given the same actions, shows ``real_frames[:, k - 1]``. Per
+    decision, over the trajectories that took it: ``closed_loop_frame_error_k``, the mean absolute difference of
+    the two frames at the policy's size (in [0, 1]); ``closed_loop_action_gap_k``, the mean absolute difference
+    of the policy's greedy actions on the two (action units, over the executed actions of the chunk). Decision 0
+    reads the real start frame in both, so it is left out. A simulator equal to the environment gives 0 at every
+    decision; a gap that appears at decision 1 says the policy misreads the simulator's frames, one that grows
+    with ``k`` says the simulator drifts from where the actions lead."""
+    m, c = real_frames.shape[:2]
+    if rollout.obs_frames.shape[1] != c or m > rollout.obs_frames.shape[0]:
+        raise ValueError(f"closed_loop_fidelity: real frames {real_frames.shape[:2]} do not match the rollout's "
+                         f"{rollout.obs_frames.shape[:2]} decisions")
+    out: dict[str, Float[Array, ""]] = {}
+    if c < 2:
+        return out
+    policy = nnx.merge(graphdef, params)
+    e = rollout.tokens.shape[2]
+    imagined = resize_frames(rollout.obs_frames[:m, 1:], image_size)
+    real = resize_frames(real_frames[:, :-1], image_size)
+    taken = rollout.valid[:m, 1:].astype(jnp.float32)
+    flat = lambda x: x.reshape((m * (c - 1),) + x.shape[2:])  # noqa: E731 - (m, C - 1, ...) -> (m (C - 1), ...)
+    tokens = jnp.repeat(rollout.instruction_tokens[:m], c - 1, axis=0)
+    proprio, valid = flat(rollout.proprio[:m, 1:]), flat(rollout.proprio_valid[:m, 1:])
+
+    def greedy(frames):
+        logits = policy(flat(frames), tokens, proprio, valid)[:, :e]
+        return tokens_to_actions(jnp.argmax(logits, axis=-1), action_bins).reshape(m, c - 1, -1)
+
+    frame_error = jnp.mean(jnp.abs(imagined - real), axis=(2, 3, 4))
+    action_gap = jnp.mean(jnp.abs(greedy(imagined) - greedy(real)), axis=-1)
+    count = jnp.maximum(jnp.sum(taken, axis=0), 1.0)
+    frame_error, action_gap = (jnp.sum(x * taken, axis=0) / count for x in (frame_error, action_gap))
+    for k in range(1, c):
+        out[f"closed_loop_frame_error_{k}"] = frame_error[k - 1]
+        out[f"closed_loop_action_gap_{k}"] = action_gap[k - 1]
+    return out
 
 
 def decision_scores(rollout: Rollout) -> Float[Array, "n t"]:
