@@ -78,12 +78,12 @@ def run_commands(args) -> dict[str, list[str]]:
     steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
              f"--rl.grpo.eval_every={args.eval_every}")
     out = {}
-    for seed in args.seeds:
+    for seed in args.seeds if "gt" in args.arms else ():
         out[f"gt_s{seed}"] = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config,
                               "--seed", str(seed), "--out", os.path.join(args.workdir, "gt", f"s{seed}"), "--policy",
                               args.policy, "--eval-episodes", "50", f"--demos={demos}", *RECIPE, *GROUND_TRUTH, *steps]
     for seed in args.seeds:
-        for arm in ("exec", "det"):
+        for arm in (a for a in ("exec", "det") if a in args.arms):
             name = f"{arm}_s{seed}"
             out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, "--simulator", "world_model",
                          "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
@@ -98,8 +98,8 @@ def placement(args) -> dict[str, str]:
     the world-model runs round-robin over every GPU, a seed's two arms next to each other."""
     gpus = args.gpus
     free = gpus[1:] or gpus
-    out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds)}
-    names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det")]
+    out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds) if "gt" in args.arms}
+    names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det") if arm in args.arms]
     out.update({name: gpus[i % len(gpus)] for i, name in enumerate(names)})
     return out
 
@@ -276,6 +276,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first")
     parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--arms", default=",".join(ARMS), help=f"run: comma list of {', '.join(ARMS)} (e.g. the "
+                        "world-model arms alone, for another world model beside a ground-truth arm already run)")
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--eval-every", type=int, default=10)
     parser.add_argument("--rollout-batch", type=int, default=32, help="start states per GRPO step, every arm (x 8)")
@@ -290,6 +292,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]
+    args.arms = [a for a in args.arms.split(",") if a]
+    if not args.arms or set(args.arms) - set(ARMS):
+        raise SystemExit(f"bench_grpo_reward_source: --arms must name some of {', '.join(ARMS)}, got {args.arms}")
     if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.policy_rollouts < 0
             or args.rollout_batch < 1 or args.rollout_batch % 4):
         raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps and "

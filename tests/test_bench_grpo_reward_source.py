@@ -9,11 +9,11 @@ import pytest
 from benchmarks import bench_grpo_reward_source as rs
 
 
-def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2"):
+def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
     args = argparse.Namespace(
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
-        world_model_steps=3000, deadline_s=0.0)
+        world_model_steps=3000, deadline_s=0.0, arms=list(arms))
     return args
 
 
@@ -48,6 +48,11 @@ def test_the_runs_are_placed_beside_the_pipeline_then_over_every_gpu(tmp_path):
     assert [gpu[n] for n in ("exec_s0", "det_s0", "exec_s1", "det_s1", "exec_s2", "det_s2")] == ["0", "1", "2", "3", "0", "1"]
     one = rs.placement(_args(tmp_path, gpus="5"))
     assert set(one.values()) == {"5"}
+    # the world-model arms alone (another world model beside a ground-truth arm already run) take every GPU
+    wm = rs.placement(_args(tmp_path, arms=("exec", "det")))
+    assert sorted(wm) == sorted(rs.run_commands(_args(tmp_path, arms=("exec", "det"))))
+    assert [wm[n] for n in ("exec_s0", "det_s0", "exec_s1", "det_s1")] == ["0", "1", "2", "3"] and "gt_s0" not in wm
+    assert sorted(rs.run_commands(_args(tmp_path, arms=("exec",)))) == ["exec_s0", "exec_s1", "exec_s2"]
 
 
 def _curve(path, points, history):
@@ -111,6 +116,8 @@ def test_bad_arguments_are_refused(tmp_path):
         rs.main(["summary", "--workdir", str(tmp_path), "--seeds", ""])
     with pytest.raises(SystemExit, match="--rollout-batch"):
         rs.main(["summary", "--workdir", str(tmp_path), "--rollout-batch", "30"])
+    with pytest.raises(SystemExit, match="--arms must name some of gt, exec, det"):
+        rs.main(["summary", "--workdir", str(tmp_path), "--arms", "exec,oracle"])
     with pytest.raises(SystemExit, match="--policy"):
         rs.main(["run", "--workdir", str(tmp_path)])
 
