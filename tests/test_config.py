@@ -111,10 +111,11 @@ def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
     # every new key exists, and every RL key is one of them, kept its name at the top of rl, or came after the split
     added_after_the_split = {"imagined.keyframe_fraction", "grpo.eval_sampled", "imagined.eval_replay_settle_steps",
                              "imagined.success_frames", "imagined.sim_microbatches", "grpo.minibatches",
-                             "grpo.max_sample_rounds", "grpo.min_mixed_fraction", "env.backend",
-                             "imagined.shared_group_noise", "imagined.guard_margin", "imagined.guard_min_failures",
-                             "imagined.confirm_success", "imagined.sim_precision", "imagined.decoder", "sft.init",
-                             "reward_model.image_size", "imagined.oversample", "imagined.guard_on", "imagined.reward",
+                             "grpo.max_sample_rounds", "grpo.min_mixed_fraction", "grpo.min_mixed_groups",
+                             "env.backend", "imagined.shared_group_noise", "imagined.guard_margin",
+                             "imagined.guard_min_failures", "imagined.confirm_success", "imagined.sim_precision",
+                             "imagined.decoder", "sft.init", "reward_model.image_size", "imagined.oversample",
+                             "imagined.guard_on", "imagined.reward",
                              *(f"refresh.{f.name}" for f in dataclasses.fields(RefreshConfig))}
     leaves = {key[len("rl."):] for key in flatten(configs.get("sword:tiny")) if key.startswith("rl.")}
     assert set(RENAMED.values()) <= leaves and added_after_the_split <= leaves

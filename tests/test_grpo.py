@@ -141,6 +141,105 @@ def test_a_non_finite_batch_skips_the_update():
                for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(good_state.params)))
 
 
+ONE_MIXED = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0)  # two groups of 4: the first mixed, the second all failures
+TWO_MIXED = (1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0)
+NONE_MIXED = (0.0,) * 8
+
+
+@pytest.fixture(scope="module")
+def designed():
+    """A tiny policy and a rollout of two groups of 4 whose returns each test sets (the policy is built once:
+    its eager initialisation costs as much as a compile)."""
+    from sword_jax.rl.rollout import Rollout
+
+    cfg = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
+    graphdef, params = build_policy(cfg, seed=0)
+    n, c, t, a = 2 * cfg.grpo.group_size, cfg.imagined.max_chunks, cfg.chunk_len, cfg.action_dim
+    rng = np.random.default_rng(2)
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32),
+        proprio=jnp.asarray(rng.normal(size=(n, c, 4)), jnp.float32), proprio_valid=jnp.ones((n, c)),
+        instruction_tokens=jnp.asarray(tokenize_instructions(["pick up the black bowl"] * n, 32)),
+        tokens=jnp.asarray(rng.integers(0, cfg.action_bins, (n, c, t, a)), jnp.int32),
+        log_probs=jnp.full((n, c, t, a), -np.log(cfg.action_bins), jnp.float32), valid=jnp.ones((n, c)),
+        rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray(ONE_MIXED, jnp.float32), frames=jnp.zeros((0,)))
+    return cfg, graphdef, params, rollout
+
+
+def _with_min_mixed(cfg, groups):
+    return dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, min_mixed_groups=groups))
+
+
+def _leaves_equal(a, b) -> bool:
+    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b),
+                                                                          strict=True))
+
+
+def test_too_few_mixed_groups_apply_no_update(designed):
+    """rl.grpo.min_mixed_groups: a batch with fewer mixed groups leaves the parameters and the optimizer state
+    exactly as they were (the step still counts); at the threshold the batch updates."""
+    cfg, graphdef, params, rollout = designed
+    state = grpo.init_state(params, cfg)
+    update = jax.jit(lambda s, b: grpo.grpo_update(graphdef, _with_min_mixed(cfg, 2), s, b))
+    skipped, metrics = update(state, rollout)
+    assert _leaves_equal(skipped.params, state.params) and _leaves_equal(skipped.opt_state, state.opt_state)
+    assert int(skipped.step) == int(state.step) + 1
+    assert float(metrics["skipped_update"]) == 1.0 and float(metrics["mixed_groups"]) == 1.0
+    assert float(metrics["update_norm"]) == 0.0 and float(metrics["grad_norm"]) > 0.0  # the gradient was there
+    two, metrics = update(state, rollout._replace(returns=jnp.asarray(TWO_MIXED, jnp.float32)))
+    assert float(metrics["skipped_update"]) == 0.0 and float(metrics["mixed_groups"]) == 2.0
+    assert not _leaves_equal(two.params, state.params)
+
+    one, metrics = jax.jit(lambda s, b: grpo.grpo_update(graphdef, _with_min_mixed(cfg, 1), s, b))(state, rollout)
+    assert float(metrics["skipped_update"]) == 0.0 and float(metrics["mixed_groups"]) == 1.0
+    assert float(metrics["update_norm"]) > 0.0
+    assert not _leaves_equal(one.params, state.params) and not _leaves_equal(one.opt_state, state.opt_state)
+
+
+def test_min_mixed_groups_0_updates_as_before_the_option(designed):
+    """rl.grpo.min_mixed_groups=0 (the default) is the update without the option: bitwise the optimizer applied
+    to the objective's gradient, and a batch without any mixed group still takes its (zero-gradient) Adam step."""
+    from sword_jax import optim
+
+    cfg, graphdef, params, rollout = designed
+    assert GRPOConfig().min_mixed_groups == 0
+    state = grpo.init_state(params, cfg)
+    update = jax.jit(lambda s, b: grpo.grpo_update(graphdef, _with_min_mixed(cfg, 0), s, b))
+    off, metrics = update(state, rollout)
+    default, _ = jax.jit(lambda s, b: grpo.grpo_update(graphdef, cfg, s, b))(state, rollout)
+    assert _leaves_equal(off.params, default.params) and _leaves_equal(off.opt_state, default.opt_state)
+    assert float(metrics["skipped_update"]) == 0.0 and float(metrics["mixed_groups"]) == 1.0
+
+    @jax.jit
+    def reference(params, opt_state, batch):  # one on-policy step: the optimizer on the objective's gradient
+        loss, _, grads = grpo.grpo_gradients(graphdef, cfg, params, batch)
+        return optim.apply_finite_update(grpo.grpo_optimizer(cfg), loss, grads, opt_state, params)[1:3]
+
+    opt_state, new_params = reference(state.params, state.opt_state, rollout)
+    assert _leaves_equal(off.params, new_params) and _leaves_equal(off.opt_state, opt_state)
+    assert not _leaves_equal(off.params, state.params)
+
+    none, metrics = update(state, rollout._replace(returns=jnp.asarray(NONE_MIXED, jnp.float32)))
+    assert float(metrics["mixed_groups"]) == 0.0 and float(metrics["skipped_update"]) == 0.0
+    assert not _leaves_equal(none.opt_state, state.opt_state)  # Adam counted the step
+
+
+@pytest.mark.parametrize("groups", [-1, 1.5, True])
+def test_min_mixed_groups_must_be_a_count(groups):
+    with pytest.raises(ValueError, match=r"rl\.grpo\.min_mixed_groups must be an int >= 0"):
+        _with_min_mixed(RLConfig(), groups).validate()
+
+
+def test_min_mixed_groups_enters_the_run_identity_only_when_on():
+    """A resumed run must skip as its checkpoint's did; off, the identity is the one runs from before the
+    option saved, so they still resume."""
+    from sword_jax.rl.grpo_loop import grpo_run_id
+
+    assert "rl.grpo.min_mixed_groups" not in grpo_run_id(RLConfig(), seed=0, simulator="toy")
+    assert grpo_run_id(_with_min_mixed(RLConfig(), 2), seed=0, simulator="toy")["rl.grpo.min_mixed_groups"] == 2
+
+
 @pytest.mark.parametrize("loss_norm,kl_coef", [("trajectory", 0.0),
                                                pytest.param("token", 0.1, marks=pytest.mark.slow)])  # CI time
 def test_micro_batched_update_equals_the_whole_batch_update(loss_norm, kl_coef):

@@ -75,21 +75,32 @@ def _cfg(oversample: int) -> RLConfig:
                     imagined=ImaginedConfig(max_chunks=1, oversample=oversample))
 
 
+def _skip_below(cfg: RLConfig, groups: int) -> RLConfig:
+    return dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, min_mixed_groups=groups))
+
+
 def test_oversampled_step_updates_on_the_mixed_groups():
-    """Starts [never, never, coin, coin]: the plain step on the first rollout_batch=2 has no signal; the
-    oversampled one (k=2) rolls all 4 out and updates on the mixed coin groups."""
+    """Starts [never, never, coin, coin]: the plain step on the first rollout_batch=2 has no signal (and with
+    rl.grpo.min_mixed_groups=1 applies no update); the oversampled one (k=2) rolls all 4 out and updates on the
+    mixed coin groups."""
     sim, reward_model = _coin_world()
-    base = _cfg(1)
+    base = _skip_below(_cfg(1), 1)
     graphdef, params = build_policy(base, seed=0)
     can_succeed = [0, 0, 1, 1]
 
     plain = grpo.make_grpo_step(graphdef, base, donate=False)
-    _, one = plain(grpo.init_state(params, base), (sim, reward_model, _starts(can_succeed[:2])), jax.random.key(0))
+    first = grpo.init_state(params, base)
+    after_one, one = plain(first, (sim, reward_model, _starts(can_succeed[:2])), jax.random.key(0))
     assert float(one["kept_fraction"]) == 0.0 == float(one["sampled_mixed_fraction"])
     assert float(one["imagined_success_sampled"]) == float(one["success_rate"]) == 0.0
     assert "mean_chunks_sampled" not in one  # only oversampling adds it
+    assert float(one["mixed_groups"]) == 0.0 and float(one["skipped_update"]) == 1.0
+    for before, after in zip(jax.tree.leaves((first.params, first.opt_state)),
+                             jax.tree.leaves((after_one.params, after_one.opt_state)), strict=True):
+        np.testing.assert_array_equal(np.asarray(after), np.asarray(before))
+    assert int(after_one.step) == 1
 
-    cfg = _cfg(2)
+    cfg = _skip_below(_cfg(2), 1)
     assert cfg.imagined_starts_per_step == 4
     state = grpo.init_state(params, cfg)
     step = grpo.make_grpo_step(graphdef, cfg, donate=False, max_traces=2)  # the last call is a refused shape
@@ -97,6 +108,7 @@ def test_oversampled_step_updates_on_the_mixed_groups():
     mixed_sampled = round(float(two["sampled_mixed_fraction"]) * 4)
     assert mixed_sampled == 2, two  # both coin groups are mixed (8 fair-ish coins each), the others never
     assert float(two["kept_fraction"]) == min(mixed_sampled, 2) / 2 == 1.0 > float(one["kept_fraction"])
+    assert float(two["mixed_groups"]) == 2.0 and float(two["skipped_update"]) == 0.0  # the updated groups'
     # the sampled success counts all 32 trajectories; the updated 16 are the coin groups' (none of the never-groups)
     assert np.isclose(float(two["imagined_success_sampled"]) * 2, float(two["success_rate"]))
     assert float(two["mean_chunks_sampled"]) == 1.0 and float(two["updates"]) == 1.0

@@ -206,7 +206,10 @@ def test_env_grpo_steps_resample_survive_broken_physics_and_are_pure(setup, tmp_
     assert float(m1["finite"]) == 1.0 and float(m1["broken_episodes"]) > 0
     assert 1 <= float(m1["sample_rounds"]) <= 3
     assert float(m1["trajectories_sampled"]) == 8 * float(m1["sample_rounds"])
-    assert float(m1["sample_rounds"]) == 3 or float(m1["mixed_groups"]) >= 2
+    assert float(m1["sample_rounds"]) == 3 or float(m1["sampled_mixed_groups"]) >= 2
+    # the update batch holds the sampled mixed groups first, up to its 2 groups
+    assert float(m1["mixed_groups"]) == min(float(m1["sampled_mixed_groups"]), 2.0)
+    assert float(m1["skipped_update"]) == 0.0  # rl.grpo.min_mixed_groups = 0: every batch updates
     assert float(m1["updates"]) == 2.0
     if float(m1["kept_fraction"]) > 0:  # a second minibatch step is taken by a moved policy
         assert abs(float(m1["ratio_mean"]) - 1.0) > 0.0

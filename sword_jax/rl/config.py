@@ -159,6 +159,11 @@ class GRPOConfig:
       min_mixed_fraction: with ``max_sample_rounds > 1``, a step stops sampling once this fraction of
         ``rollout_batch`` groups are mixed (1.0 = all; on `small` at temperature 0.5 about 97% of groups are
         mixed, and a second round of 512 episodes to find the missing two doubled the step's time).
+      min_mixed_groups: a step whose update batch holds fewer groups with mixed outcomes than this applies
+        no update (parameters and optimizer state stay as they were; the step still counts). The objective
+        is normalised over the mixed groups and Adam scales its step to the gradient, so one or two groups
+        move the policy as far as a full batch, in a direction set by a few trajectories (DAPO and
+        SimpleVLA-RL never train on an under-filled batch). 0 = off.
       loss_norm: 'trajectory' averages token losses within each trajectory (normalising by its
         length) and then over trajectories (GRPO); 'token' averages over all valid tokens (DAPO).
       filter_groups: drop groups whose rewards are all equal (no learning signal).
@@ -186,6 +191,7 @@ class GRPOConfig:
     minibatches: int = 1
     max_sample_rounds: int = 1
     min_mixed_fraction: float = 0.9
+    min_mixed_groups: int = 0  # fewer mixed groups in the update batch: no update; 0 = off
     loss_norm: str = "trajectory"  # trajectory | token
     filter_groups: bool = True
     success_bonus: float = 1.0
@@ -216,6 +222,9 @@ class GRPOConfig:
                              f"rl.grpo.group_size = {self.rollout_batch * self.group_size}")
         if not 0.0 < self.min_mixed_fraction <= 1.0:
             raise ValueError(f"rl.grpo.min_mixed_fraction must be in (0, 1], got {self.min_mixed_fraction}")
+        groups = self.min_mixed_groups
+        if isinstance(groups, bool) or not isinstance(groups, int) or groups < 0:
+            raise ValueError(f"rl.grpo.min_mixed_groups must be an int >= 0 (0 = every batch updates), got {groups!r}")
         if self.max_sample_rounds < 1:
             raise ValueError(f"rl.grpo.max_sample_rounds must be >= 1 (1 = no resampling), got {self.max_sample_rounds}")
         if self.temperature <= 0.0:

@@ -323,12 +323,19 @@ def grpo_update(
     at a time (a ``lax.scan``) and the gradients are summed: the objective's token weights are
     fixed by the (mini)batch (:func:`loss_weights`), so this is the same gradient up to float
     summation order, with the activations of ``m`` trajectories alive instead of all of them.
+
+    ``mixed_groups`` counts the batch's groups with a signal. With fewer than ``cfg.grpo.min_mixed_groups``
+    the step applies no update (``skipped_update`` 1): the parameters and optimizer state come back as they
+    were, ``state.step`` still advances, and the other metrics are those of the update it did not apply
+    (``update_norm`` 0). With ``min_mixed_groups = 0`` every batch updates, as before the option existed.
     """
     optimizer = grpo_optimizer(cfg)
     n, g, parts = batch.valid.shape[0], cfg.grpo.group_size, cfg.grpo.minibatches
     if n % parts:
         raise ValueError(f"rl.grpo.minibatches={parts} must divide the {n} trajectories of a GRPO batch")
-    adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
+    grouped_returns = batch.returns.reshape(-1, g)  # (B, G): trajectories are group-major
+    mixed_groups = jnp.sum(group_has_signal(grouped_returns).astype(jnp.float32))
+    adv, keep_group = group_advantages(grouped_returns, filter_groups=cfg.grpo.filter_groups)
     advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
     size = n // parts
 
@@ -359,7 +366,16 @@ def grpo_update(
     (params, opt_state), metrics = jax.lax.scan(one_update, (state.params, state.opt_state), jnp.arange(steps))
     finite = jnp.min(metrics["finite"])
     metrics = jax.tree.map(lambda x: jnp.mean(x), metrics)
+    skipped = jnp.zeros((), bool)
+    if cfg.grpo.min_mixed_groups > 0:  # static: with the option off the program is the one before it existed
+        # too few groups with a signal: Adam would still take a full-size step, in a direction set by noise
+        skipped = mixed_groups < jnp.float32(cfg.grpo.min_mixed_groups)
+        keep_old = lambda new, old: jax.tree.map(lambda a, b: jnp.where(skipped, b, a), new, old)  # noqa: E731
+        params, opt_state = keep_old(params, state.params), keep_old(opt_state, state.opt_state)
+        metrics["update_norm"] = jnp.where(skipped, jnp.float32(0.0), metrics["update_norm"])
     metrics["finite"] = finite
+    metrics["mixed_groups"] = mixed_groups
+    metrics["skipped_update"] = skipped.astype(jnp.float32)
     metrics["kept_fraction"] = jnp.mean(keep)
     metrics["updates"] = jnp.float32(steps)
     metrics["param_norm"] = optax.global_norm(params)
@@ -381,9 +397,10 @@ def make_grpo_step(
     With ``cfg.imagined.oversample = k > 1`` the step is given ``B = k x rl.grpo.rollout_batch`` start
     states (:attr:`~sword_jax.rl.config.RLConfig.imagined_starts_per_step`), rolls all of them out and
     updates on ``B / k`` groups of them, mixed ones first (:func:`select_groups`). The update's metrics
-    (``kept_fraction``, ``success_rate``, ``mean_return``, ``mean_chunks``, the confirmation's) are then
-    those of the updated groups; ``sampled_mixed_fraction`` and ``imagined_success_sampled`` (every step)
-    and ``mean_chunks_sampled`` (with ``k > 1``: the chunks actually rendered) are over all sampled ones.
+    (``kept_fraction``, ``mixed_groups``, ``success_rate``, ``mean_return``, ``mean_chunks``, the
+    confirmation's) are then those of the updated groups; ``sampled_mixed_fraction`` and
+    ``imagined_success_sampled`` (every step) and ``mean_chunks_sampled`` (with ``k > 1``: the chunks
+    actually rendered) are over all sampled ones. ``rl.grpo.min_mixed_groups`` counts the updated groups.
 
     Compiled by :func:`sword_jax.sharding.compile_step` over ``mesh`` (default: one device) and
     traced inside it, so the rollout's activation constraints shard the trajectories: the start

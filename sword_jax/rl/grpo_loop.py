@@ -97,12 +97,14 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     keys = GRPO_RUN_KEYS + (REAL_GUARD_KEYS if rl.refresh.real_guard_margin > 0 else ())
     # and the learned simulator's oversampling, only when it is on
     oversample = {"rl.imagined.oversample": rl.imagined.oversample} if rl.imagined.oversample != 1 else {}
+    # and the skip of under-filled batches, only when it is on
+    skip = {"rl.grpo.min_mixed_groups": rl.grpo.min_mixed_groups} if rl.grpo.min_mixed_groups else {}
     # and what the exploitation guard reads, only when it is not the replay
     guard_on = {"rl.imagined.guard_on": rl.imagined.guard_on} if rl.imagined.guard_on != "replay" else {}
     # and what pays the imagined trajectories, only when it is not the detector
     reward = {"rl.imagined.reward": rl.imagined.reward} if rl.imagined.reward != "detector" else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **guard_on, **reward, **facts}
+            **decoder, **oversample, **skip, **guard_on, **reward, **facts}
 
 
 def train_grpo(

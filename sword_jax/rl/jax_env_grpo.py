@@ -8,7 +8,9 @@ One GRPO step (:meth:`EnvGRPO.step`):
    of the groups sampled so far have mixed outcomes, another round is sampled, up to
    ``rl.grpo.max_sample_rounds``, unless ``rl.grpo.min_mixed_fraction`` of them already are.
 2. **The update batch**: ``rollout_batch`` groups, the mixed ones first (:func:`select_groups`).
-3. **The update**: :func:`~sword_jax.rl.grpo.grpo_update` with ``ppo_epochs x minibatches`` gradient steps.
+3. **The update**: :func:`~sword_jax.rl.grpo.grpo_update` with ``ppo_epochs x minibatches`` gradient steps
+   (none when the batch holds fewer than ``rl.grpo.min_mixed_groups`` mixed groups). Its ``mixed_groups`` counts
+   the update batch's mixed groups; ``sampled_mixed_groups`` and ``mixed_fraction`` are over every round's.
 
 The start states of round ``r`` of step ``s`` and every sampling key are functions of (seed, s, r), so the
 train state is all an exact resume needs (:mod:`sword_jax.rl.grpo_loop`).
@@ -163,7 +165,7 @@ class EnvGRPO:
         t2 = time.perf_counter()
         success = np.concatenate(sampled_success)
         extra = {"rollout_success": float(success.mean()), "sample_rounds": float(len(rounds)),
-                 "trajectories_sampled": float(success.size), "mixed_groups": float(mixed),
+                 "trajectories_sampled": float(success.size), "sampled_mixed_groups": float(mixed),
                  "mixed_fraction": float(mixed) / float(success.size // g),
                  "batch_success": jnp.mean(batch.success.astype(jnp.float32)), "env_steps": float(steps_taken),
                  "broken_episodes": float(broken),
