@@ -424,7 +424,7 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
         return (f"grpo step {point['step']}/{rl.grpo.steps} {paid} "
                 f"return {point['mean_return']:.3f} loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} "
                 f"kept {point['kept_fraction']:.2f}{sampled_mixed(point, rl)} nll {point['behaviour_nll']:.3f} "
-                f"eta {eta:.0f}s")
+                f"{'(no update: too few mixed groups) ' if point.get('skipped_update') else ''}eta {eta:.0f}s")
 
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator=simulator, **{"sim.tasks": cfg.sim.tasks})
     result, curve = train_grpo(run.step, run.state, run.batch_at, key=run.key, rl=rl, workdir=workdir,
