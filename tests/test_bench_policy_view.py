@@ -1,0 +1,81 @@
+"""benchmarks.bench_policy_view: the views' degradations, the environment that applies one per episode, and the
+benchmark's refusals (its MJX run is a GPU figure; here a tiny analytic environment stands in)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import configs
+from benchmarks import bench_policy_view as pv
+from sword_jax.rl.jax_env_grpo import EnvGRPO
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from tests.test_scan_rollout import SIZE, SlideEnv
+
+
+def _view(*names):
+    return jnp.asarray([pv.VIEWS[n] for n in names], jnp.float32)
+
+
+def test_each_view_degrades_its_own_rows_as_named():
+    rng = np.random.default_rng(0)
+    frames = jnp.asarray(rng.integers(40, 200, (5, 16, 16, 3)), jnp.uint8)
+    seen = np.asarray(pv.degrade(frames, _view("real", "blur_1px", "blur_2px", "dim_20pct", "noise_8"),
+                                 jax.random.key(0))).astype(np.int32)
+    x = np.asarray(frames).astype(np.int32)
+    np.testing.assert_array_equal(seen[0], x[0])  # the real view is the identity
+    # blurring keeps the mean brightness and removes detail, more with a wider kernel
+    detail = [np.abs(np.diff(seen[i], axis=0)).mean() for i in (0, 1, 2)]
+    assert detail[0] > detail[1] > detail[2]
+    assert abs(seen[1].mean() - x[1].mean()) < 2.0 and abs(seen[2].mean() - x[2].mean()) < 3.0
+    np.testing.assert_allclose(seen[3], np.round(x[3] * 0.8), atol=1)
+    noise = seen[4] - x[4]
+    assert 6.0 < noise.std() < 10.0 and abs(noise.mean()) < 1.0
+    flat = jnp.full((1, 8, 8, 3), 100, jnp.uint8)  # a flat frame stays flat under any blur (edges repeated)
+    np.testing.assert_array_equal(pv.degrade(flat, _view("blur_2px"), jax.random.key(0)), flat)
+    np.testing.assert_allclose(np.asarray(pv.blur_weights(jnp.asarray([0.0, 1.0, 2.0]))).sum(1), 1.0, rtol=1e-6)
+
+
+def test_with_views_lays_every_start_out_once_per_view_and_refuses_unknown_ones():
+    starts = np.asarray([[0.1, 0.2], [0.3, 0.4]], np.float32)
+    out = pv.with_views(starts, ["real", "dim_20pct"])
+    assert out.shape == (4, 2 + pv.VIEW_COLUMNS)
+    np.testing.assert_array_equal(out[:, :2], np.concatenate([starts, starts]))
+    np.testing.assert_array_equal(out[2:, 2:], np.tile(np.float32(pv.VIEWS["dim_20pct"]), (2, 1)))
+    for bad in (["real", "sepia"], []):
+        with pytest.raises(ValueError, match="views must name some of real"):
+            pv.with_views(starts, bad)
+    with pytest.raises(SystemExit, match="--views must name"):
+        pv.main(["--policy", "p.npz", "--out", "o", "--views", "real,sepia"])
+    with pytest.raises(SystemExit, match="--episodes-per-task"):
+        pv.main(["--policy", "p.npz", "--out", "o", "--episodes-per-task", "0"])
+
+
+def test_a_viewed_environment_changes_what_the_policy_sees_and_nothing_else():
+    """In one compiled rollout, episodes seen through the real view get the environment's frames, those seen
+    dimmed get them dimmed, and the physics (proprio, success) is the environment's either way."""
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, env=dataclasses.replace(cfg.rl.env, execute_steps=1,
+                                                                             action_ensemble=False),
+                             grpo=dataclasses.replace(cfg.rl.grpo, rollout_batch=1, group_size=4))
+    graphdef, params = build_policy(rl, seed=0)
+    starts = np.asarray([[0.3], [0.0]], np.float32)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+
+    def run(env, eval_starts):
+        runner = EnvGRPO(graphdef, rl, env, max_steps=3, starts_at=None, eval_starts=eval_starts, eval_tokens=tokens,
+                         eval_tasks=[0, 1, 0, 1], key=jax.random.key(3))
+        rollout, _ = runner.rollout(params, jnp.asarray(eval_starts), jnp.asarray(tokens), jax.random.key(0), True,
+                                    False, runner._valid(1.0))
+        return jax.device_get(rollout)
+
+    plain = run(SlideEnv(), np.concatenate([starts, starts]))
+    viewed = run(pv.ViewedEnv(SlideEnv()), pv.with_views(starts, ["real", "dim_20pct"]))
+    np.testing.assert_array_equal(viewed.obs_frames[:2], plain.obs_frames[:2])
+    first = plain.obs_frames[2:, 0].astype(np.float32)  # the start frames, before any action
+    np.testing.assert_allclose(viewed.obs_frames[2:, 0], np.round(first * 0.8), atol=1)
+    np.testing.assert_array_equal(viewed.proprio[:, 0], plain.proprio[:, 0])
+    with pytest.raises(ValueError, match="the environment's starts, then the view"):
+        pv.ViewedEnv(SlideEnv()).reset(jnp.zeros((2, pv.VIEW_COLUMNS)))
