@@ -8,12 +8,13 @@ actions lead. This benchmark measures the first kind of fragility without a worl
 MJX from the tasks' fixed evaluation states, and each episode's observed frames go through one view
 (:data:`VIEWS`, :func:`degrade`) before the policy reads them. The physics and the success are untouched.
 
-The mode is the one GRPO in the world model trains and is judged by: sampled at ``rl.grpo.temperature``, the
-policy's "missing proprio" input, ``rl.imagined.execute_steps`` actions a decision. Every view's episodes
-run in one compiled rollout: a view's parameters travel with its start states (:class:`ViewedEnv`)::
+The mode is the one GRPO in the world model trains: sampled at ``rl.grpo.temperature``, the policy's "missing
+proprio" input, ``rl.imagined.execute_steps`` actions a decision, here from rest to the episode limit. The
+config's defaults are T 1.0 and whole chunks; the GRPO recipe's runs pass the overrides below. Every view's
+episodes run in one compiled rollout: a view's parameters travel with its start states (:class:`ViewedEnv`)::
 
     python -m benchmarks.bench_policy_view --config sword:small --policy runs/p/policy_d50.npz \\
-        --episodes-per-task 50 --out runs/view
+        --episodes-per-task 50 --out runs/view --rl.grpo.temperature=0.5 --rl.imagined.execute_steps=4
 """
 
 from __future__ import annotations
@@ -143,7 +144,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     success, _ = runner.run_episodes(params, greedy=False, ensemble=False, proprio=False, key=jax.random.key(cfg.seed))
     seconds = time.time() - start
     n = len(episodes)
-    results = {"policy": args.policy, "config": cfg.name, "device": str(jax.devices()[0].device_kind),
+    results = {"policy": args.policy, "config": cfg.name, "argv": list(sys.argv[1:] if argv is None else argv),
+               "device": str(jax.devices()[0].device_kind),
                "mode": f"sampled at T {rl.grpo.temperature}, proprio missing, {rl.env.execute_steps} "
                        f"actions a decision, {cfg.sim.max_steps} actions from rest",
                "seconds_all_views_compile_included": round(seconds, 1), "views": {}}

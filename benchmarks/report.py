@@ -609,6 +609,23 @@ def grpo_reward_source() -> str:
                    "the detector on the same rollouts: success / precision"], rows)
 
 
+def policy_view() -> str:
+    """The policy's real success on MJX per view of its frames (``benchmarks.bench_policy_view``), with the
+    difference from the real view and its 95% interval."""
+    from sword_jax.rl.env_rollout import difference_interval
+
+    views = _load("policy", "policy_view_small_4xh200", "view_results.json")["views"]
+    real = views["real"]
+    rows = []
+    for name, v in views.items():
+        (blur, gain, noise) = (v["parameters"][k] for k in ("blur_sigma_px", "gain", "noise_std"))
+        lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
+        rows.append([name, f"{blur:g}", f"{gain:g}", f"{noise:g}", f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
+                     "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"])
+    return _table(["view", "blur sigma (px of 128)", "brightness gain", "noise std (of 255)",
+                   "success, 500 episodes (95% interval)", "against the real view, points (95% interval)"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -621,7 +638,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-3seeds": lambda: grpo_refresh_runs((*THREE_SEEDS, "grpo_refresh_summary.json")),
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
     "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
-    "grpo-reward-source": grpo_reward_source,
+    "grpo-reward-source": grpo_reward_source, "policy-view": policy_view,
 }
 
 
