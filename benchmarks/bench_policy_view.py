@@ -106,7 +106,8 @@ def with_views(starts: np.ndarray, names: Sequence[str]) -> np.ndarray:
 def main(argv: Sequence[str] | None = None) -> dict:
     import configs
 
-    cfg, rest = configs.from_argv(sys.argv[1:] if argv is None else list(argv), default="sword:small")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    cfg, rest = configs.from_argv(argv, default="sword:small")
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", required=True, help="the policy to evaluate (.npz)")
     parser.add_argument("--episodes-per-task", type=int, default=50)
@@ -121,10 +122,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.episodes_per_task < 1:
         raise SystemExit("bench_policy_view: --episodes-per-task must be >= 1")
 
-    from benchmarks.bench_policy import load_npz
     from sim import tasks as sim_tasks
     from sim.mjx_batch import MjxEpisodes, episode_starts
     from sword_jax.rl.jax_env_grpo import EnvGRPO
+    from sword_jax.rl.params_io import load_params_npz
     from sword_jax.rl.policy import build_policy, tokenize_instructions
     from sword_jax.rl.policy_success import success_summary
 
@@ -132,25 +133,26 @@ def main(argv: Sequence[str] | None = None) -> dict:
     rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=cfg.rl.imagined_actions_per_decision,
                                                              action_ensemble=False))
     graphdef, params = build_policy(rl, seed=cfg.seed)
-    params = load_npz(args.policy, params)
+    params = load_params_npz(args.policy, params)
     episodes = sim_tasks.evaluation_episodes(list(cfg.sim.tasks), args.episodes_per_task)
     qpos, text = episode_starts(episodes)
+    tasks = [t for t, _ in episodes]
     tokens = tokenize_instructions(text, rl.policy.max_instruction_bytes)
     runner = EnvGRPO(graphdef, rl, ViewedEnv(MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution), seed=cfg.seed),
                      max_steps=cfg.sim.max_steps, starts_at=None, eval_starts=with_views(qpos, views),
-                     eval_tokens=np.tile(tokens, (len(views), 1)), eval_tasks=[t for t, _ in episodes] * len(views),
+                     eval_tokens=np.tile(tokens, (len(views), 1)), eval_tasks=tasks * len(views),
                      key=jax.random.key(cfg.seed))
     start = time.time()
     success, _ = runner.run_episodes(params, greedy=False, ensemble=False, proprio=False, key=jax.random.key(cfg.seed))
     seconds = time.time() - start
     n = len(episodes)
-    results = {"policy": args.policy, "config": cfg.name, "argv": list(sys.argv[1:] if argv is None else argv),
+    results = {"policy": args.policy, "config": cfg.name, "argv": argv,
                "device": str(jax.devices()[0].device_kind),
                "mode": f"sampled at T {rl.grpo.temperature}, proprio missing, {rl.env.execute_steps} "
                        f"actions a decision, {cfg.sim.max_steps} actions from rest",
                "seconds_all_views_compile_included": round(seconds, 1), "views": {}}
     for i, view in enumerate(views):
-        summary = success_summary(success[i * n:(i + 1) * n], [t for t, _ in episodes], 0.0)
+        summary = success_summary(success[i * n:(i + 1) * n], tasks, 0.0)
         results["views"][view] = dict(summary, parameters=dict(zip(("blur_sigma_px", "gain", "noise_std"), VIEWS[view])))
         print(f"[view] {view:<13} success {summary['mean']:.3f} [{summary['ci95'][0]:.3f}, {summary['ci95'][1]:.3f}] "
               f"({summary['episodes']} episodes)", flush=True)
