@@ -643,6 +643,56 @@ def closed_loop() -> str:
                    "frame error, decision 1 -> 11", "greedy action gap, decision 1 -> 11"], rows)
 
 
+CLOSED_LOOP_VAE = ("policy", "closed_loop_vae_small_h200")
+
+
+def closed_loop_sampler() -> str:
+    """The closed loop through one world model (12,000 steps) at two Euler step counts per chunk
+    (``bench_grpo_reward_source closed-loop``): what reality paid the imagined actions and the first and last
+    decisions' frame error and greedy action gap."""
+    runs = _load(*CLOSED_LOOP_VAE, "closed_loop.json")["runs"]
+    rows = []
+    for label, r in runs.items():
+        paid = r["paid_success"]
+        rows.append([label, str(r["steps"]),
+                     f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}",
+                     f"{r['detector_success']:.3f}", f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
+                     f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}"])
+    return _table(["sampler", "GRPO steps", "real success of the imagined actions (95% interval)", "the detector said",
+                   "frame error, decision 1 -> 11", "greedy action gap, decision 1 -> 11"], rows)
+
+
+def closed_loop_prev() -> str:
+    """Per decision of the closed loop (the 5-Euler-step run, means over its steps): the frame the policy read
+    and its greedy actions on it against the real frame its actions reached and against the real frame one
+    decision earlier, and the real motion over the decision."""
+    run = _load(*CLOSED_LOOP_VAE, "closed_loop.json")["runs"]["5 Euler steps"]
+    d = run["per_decision"]
+    rows = [[str(k), f"{d['frame_error'][i]:.3f}", f"{d['frame_error_prev'][i]:.3f}", f"{d['motion'][i]:.3f}",
+             f"{d['action_gap'][i]:.3f}", f"{d['action_gap_prev'][i]:.3f}"] for i, k in enumerate(d["decisions"])]
+    return _table(["decision", "frame error to the real frame", "to the real frame a decision earlier",
+                   "real motion over the decision", "greedy action gap to the real frame",
+                   "to the real frame a decision earlier"], rows)
+
+
+def policy_view_vae() -> str:
+    """The policy's real success on MJX reading the real frames, the frame of the decision before, and the real
+    frames round-tripped through the pipeline's VAE (``bench_policy_view --views real,lag_1,vae``)."""
+    from sword_jax.rl.env_rollout import difference_interval
+
+    data = _load(*CLOSED_LOOP_VAE, "view_vae", "view_results.json")
+    views, labels = data["views"], {"real": "the real frame", "lag_1": "the real frame of the decision before",
+                                    "vae": "the real frame round-tripped through the VAE (1,000 steps)"}
+    real = views["real"]
+    rows = []
+    for name, v in views.items():
+        lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
+        rows.append([labels.get(name, name), f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
+                     "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"])
+    return _table(["what the policy reads at each decision", f"real success, {real['episodes']} episodes (95% interval)",
+                   "against the real frame, points (95% interval)"], rows)
+
+
 def action_gap() -> str:
     """How far each view moves the policy's greedy actions and frames, and one decision of real motion
     (``benchmarks.bench_action_gap``): the scale of the closed loop's figures."""
@@ -680,7 +730,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-refresh-3seeds-diagnosis": grpo_refresh_three_seeds_diagnosis,
     "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
-    "action-gap": action_gap, "lag-success": lag_success,
+    "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
+    "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae,
 }
 
 
