@@ -4,6 +4,12 @@
     # each evaluated on the 50 fixed evaluation states of all 10 tasks (500 episodes)
     python -m benchmarks.bench_policy sft --config sword:small --out runs/policy \\
         --demos-per-task 10,25,50 --execute 4,8 --workers 14 [--record]
+    # decoder-aware SFT: fine-tune that policy (rl.sft.init) on the same demonstrations with half of each batch's
+    # frames round-tripped through the world model's VAE (rl.sft.decoded_fraction, --vae); writes policy_dec_d50.npz
+    python -m benchmarks.bench_policy sft --config sword:small --out runs/policy --tag _dec \\
+        --demos-per-task 50 --execute ens --workers 14 --eval-episodes 50 \\
+        --rl.sft.init=runs/policy/policy_d50.npz --rl.sft.decoded_fraction=0.5 \\
+        --vae runs/rsv/pipeline/vae_run/vae --rl.sft.steps=1000
     # a saved policy under other execution modes (re-plan every k actions, 'ens' = temporal ensembling)
     python -m benchmarks.bench_policy eval --config sword:small --out runs/policy \
         --policy runs/policy/policy_d50.npz --execute 2,ens --workers 14
@@ -50,6 +56,7 @@ import configs
 from benchmarks import common
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST  # NVLink multicast off in every process started here
+from sword_jax.rl.decoded_frames import require_vae
 from sword_jax.rl.params_io import load_params_npz, save_params_npz
 from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
@@ -91,11 +98,11 @@ def run_sft(cfg, args) -> dict:
     from sim.lockstep import lockstep_evaluation
     from sword_jax.rl import data as rl_data
     from sword_jax.rl.env_rollout import make_act_fns
-    from sword_jax.rl.policy import build_policy
     from sword_jax.rl.policy_success import evaluate_in_sim
     from sword_jax.rl.proprio_reckoning import save_reckoning
     from sword_jax.rl.sft import train_sft
     from sim.grpo_env import sim_reckoning
+    from sim.policy_training import decoded_training_frames, initial_policy
 
     rl = cfg.rl
     tasks = list(cfg.sim.tasks)
@@ -116,14 +123,16 @@ def run_sft(cfg, args) -> dict:
     held = episodes.subset(np.asarray(held_idx))
     pool = episodes.subset(np.asarray(train_idx))
     results = {"generate_seconds": round(gen_seconds, 1), "demo_expert_success": demo_success, "runs": [],
-               "rl": dataclasses.asdict(rl)}
+               "rl": dataclasses.asdict(rl), **({"vae": os.path.abspath(args.vae)} if args.vae else {})}
     modes = args.execute.split(",")
     for amount in amounts:
         train = rl_data.per_task_subset(pool, amount, np.random.default_rng(cfg.seed))
-        graphdef, params = build_policy(rl, seed=cfg.seed)
+        graphdef, params = initial_policy(cfg)  # rl.sft.init: fine-tune that policy
+        decoded = decoded_training_frames(cfg, args.vae, train) if args.vae else None
         t1 = time.time()
         params, history = train_sft(graphdef, params, rl, train, held, seed=cfg.seed,
-                                    log=lambda m: print(m, flush=True))
+                                    log=lambda m: print(m, flush=True), decoded_frames=decoded,
+                                    fit_proprio_stats=not rl.sft.init)
         sft_seconds = time.time() - t1
         save_npz(os.path.join(args.out, f"policy{args.tag}_d{amount}.npz"), params)
         save_reckoning(reckoning_path(os.path.join(args.out, f"policy{args.tag}_d{amount}.npz")), sim_reckoning(train))
@@ -545,6 +554,8 @@ def main(argv=None) -> None:
                         help="grpo --rl.env.starts=keyframes: demonstration HDF5 (default: the sft stage's in --out)")
     parser.add_argument("--gen-procs-per-task", type=int, default=1, help="demonstration processes per task")
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
+    parser.add_argument("--vae", default="", help="sft: VAE checkpoint directory (train_vae; a pipeline's "
+                        "vae_run/vae) whose round trip rl.sft.decoded_fraction of each batch's frames go through")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")
     parser.add_argument("--record-as", default="",
                         help=f"seeds: the latest.json key of the record (default {GROUND_TRUTH_KEY}, whose target is "
@@ -563,6 +574,13 @@ def main(argv=None) -> None:
     args = parser.parse_args(rest)
     if args.policy and not os.path.isfile(args.policy):
         parser.error(f"--policy {args.policy}: no such file")
+    try:
+        if args.stage == "sft":
+            require_vae(cfg.rl.sft.decoded_fraction, args.vae)
+        elif args.vae:
+            raise ValueError(f"--vae is read by the sft stage only (decoder-aware SFT), not by {args.stage}")
+    except ValueError as err:
+        parser.error(str(err))
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "sft":
         run_sft(cfg, args)

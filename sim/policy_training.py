@@ -3,7 +3,8 @@
 :func:`run_sft_policy` is what ``python -m train.train_policy`` and the pipeline's supervised-policy
 stage run (:func:`given_policy` instead, with ``rl.sft.init``). Writes ``<workdir>/rl/policy_sft`` (orbax)
 and, with ``eval_episodes``, the ground-truth success in the MuJoCo sim. The train state is checkpointed to ``<workdir>/rl/sft_checkpoints`` and a
-rerun resumes from there.
+rerun resumes from there. With ``rl.sft.init`` it fine-tunes that policy; with ``rl.sft.decoded_fraction`` it trains
+on a share of frames round-tripped through a trained VAE (decoder-aware SFT, :mod:`sword_jax.rl.decoded_frames`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,10 @@ def given_policy(cfg, source: str) -> dict:
       FileNotFoundError: ``source`` does not exist.
       ValueError: it holds another kind of checkpoint or another architecture than ``cfg.rl`` builds.
     """
+    if cfg.rl.sft.decoded_fraction > 0:
+        raise ValueError(f"rl.sft.decoded_fraction={cfg.rl.sft.decoded_fraction}: the sft_policy stage with rl.sft.init "
+                         "copies the given policy without training it; fine-tune it on decoded frames with "
+                         "train.train_policy --vae DIR (or benchmarks.bench_policy sft --vae DIR) and pass the result")
     if not os.path.exists(source):
         raise FileNotFoundError(f"rl.sft.init: no such policy {source!r} (a train_policy checkpoint directory or .npz)")
     workdir = os.path.join(cfg.workdir, "rl")
@@ -63,10 +68,21 @@ def given_policy(cfg, source: str) -> dict:
 
 
 def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0,
-                   renderer: str = "jax", holdout: float = 0.1) -> dict:
+                   renderer: str = "jax", holdout: float = 0.1, vae: str = "") -> dict:
     """Behaviour-clones (or resumes) the policy on ``demos`` in ``<cfg.workdir>/rl``; with ``eval_episodes``
-    per task, measures its success in the simulator. Returns the summary (also in ``sft_result.json``)."""
+    per task, measures its success in the simulator. Returns the summary (also in ``sft_result.json``).
+
+    ``rl.sft.init``: start from that trained policy (:func:`initial_policy`). ``vae``: the VAE checkpoint
+    directory whose round trip ``rl.sft.decoded_fraction`` of each batch's frames go through (required exactly
+    when that fraction is above 0); the training episodes are round-tripped once, before the first step.
+
+    Raises:
+      ValueError: ``vae`` missing or superfluous (:func:`sword_jax.rl.decoded_frames.require_vae`).
+    """
+    from sword_jax.rl.decoded_frames import require_vae
+
     demos, rl = list(demos), cfg.rl
+    require_vae(rl.sft.decoded_fraction, vae)
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
@@ -77,18 +93,23 @@ def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_wo
     train_eps = rl_data.per_task_subset(train_eps, rl.sft.episodes_per_task, rng)
     print(f"train_policy: {train_eps.num_episodes} demonstrations ({0 if held_out is None else held_out.num_episodes}"
           f" held out), {len(set(train_eps.instructions))} instructions")
-    graphdef, params = build_policy(rl, seed=cfg.seed)
+    graphdef, params = initial_policy(cfg)
     start = time.time()
+    decoded = decoded_training_frames(cfg, vae, train_eps) if vae else None
     params, history = train_sft(graphdef, params, rl, train_eps, held_out, seed=cfg.seed,
                                 log=lambda m: print(m, flush=True),
                                 checkpoint_dir=os.path.join(workdir, "sft_checkpoints"), mesh=shd.make_mesh(cfg.mesh),
-                                rules=cfg.mesh.rules)
+                                rules=cfg.mesh.rules, decoded_frames=decoded, fit_proprio_stats=not rl.sft.init)
     path = os.path.join(workdir, "policy_sft")
     save_params(path, params, rl, kind="policy", step=rl.sft.steps)
     result = {"steps": rl.sft.steps, "demos": train_eps.num_episodes, "path": path,
               "final_loss": history[-1]["loss"], "seconds": round(time.time() - start, 1),
               "heldout_loss": history[-1].get("heldout_loss"), "heldout_token_accuracy":
               history[-1].get("heldout_token_accuracy")}
+    if rl.sft.init:
+        result["init"] = os.path.abspath(rl.sft.init)
+    if vae:
+        result["decoded"] = {"vae": os.path.abspath(vae), "fraction": rl.sft.decoded_fraction}
     if eval_episodes:
         from sim.lockstep import lockstep_evaluation
 
@@ -99,3 +120,40 @@ def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_wo
     with open(os.path.join(workdir, "sft_result.json"), "w") as f:
         json.dump(dict(result, history=history), f, indent=1)
     return result
+
+
+def initial_policy(cfg):
+    """``(graphdef, params)`` SFT starts from: the trained policy ``rl.sft.init`` (a ``train.train_policy``
+    checkpoint directory or ``.npz``) when set, else a fresh one (seed ``cfg.seed``).
+
+    Raises:
+      FileNotFoundError: ``rl.sft.init`` does not exist.
+      ValueError: it holds another architecture than ``cfg.rl`` builds.
+    """
+    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+    source = cfg.rl.sft.init
+    if not source:
+        return graphdef, params
+    if not os.path.exists(source):
+        raise FileNotFoundError(f"rl.sft.init: no such policy {source!r} (a train_policy checkpoint directory or .npz)")
+    try:
+        params, _ = load_params(source, params, kind="policy")
+    except ValueError as err:
+        raise ValueError(f"rl.sft.init: {source} does not load into this config's policy: {err}") from err
+    print(f"sft: fine-tuning the given policy {source}", flush=True)
+    return graphdef, params
+
+
+def decoded_training_frames(cfg, vae: str, episodes: rl_data.EpisodeSet) -> np.ndarray:
+    """``episodes.frames`` round-tripped through the VAE checkpoint ``vae`` (:func:`sword_jax.load.experiment_vae`
+    with ``cfg.vae``), episode by episode (:func:`sword_jax.rl.decoded_frames.round_trip_episodes`)."""
+    from sword_jax.load import experiment_vae
+    from sword_jax.rl.decoded_frames import round_trip_episodes
+
+    start = time.time()
+    vae_graphdef, vae_state = experiment_vae(cfg, vae)
+    decoded = round_trip_episodes(vae_graphdef, vae_state, episodes.frames, episodes.lengths,
+                                  log=lambda m: print(m, flush=True))
+    print(f"decoder-aware SFT: {episodes.num_episodes} episodes round-tripped through {vae} in "
+          f"{time.time() - start:.0f}s; {cfg.rl.sft.decoded_fraction:.0%} of each batch reads them", flush=True)
+    return decoded

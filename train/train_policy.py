@@ -3,12 +3,21 @@
     python -m train.train_policy --config sword:small --demos demos.hdf5 [--rl.sft.steps=2000]
         [--rl.sft.episodes_per_task=10] [--workdir DIR] [--eval-episodes 10]
 
+    # decoder-aware fine-tuning of a trained policy: half of each batch's frames round-tripped through the VAE
+    python -m train.train_policy --config sword:small --demos demos.hdf5 --rl.sft.init=policy.npz \
+        --rl.sft.decoded_fraction=0.5 --vae runs/<pipeline>/vae_run/vae --rl.sft.steps=1000
+
 The knobs that set how good the starting policy is: ``rl.sft.steps`` and
 ``rl.sft.episodes_per_task`` (demonstrations per instruction). Writes ``<workdir>/rl/policy_sft``
 (orbax) and, with ``--eval-episodes``, the ground-truth success in the MuJoCo sim. The train state
 is checkpointed to ``<workdir>/rl/sft_checkpoints`` every ``rl.sft.checkpoint_every`` steps and a
 rerun resumes from there, ending bit-identical to an uninterrupted run; a non-finite loss stops
 the run naming the step, the last good checkpoint kept.
+
+``--rl.sft.init`` starts from a trained policy (its parameters, a fresh optimizer). ``--rl.sft.decoded_fraction``
+(decoder-aware SFT) replaces that share of each batch's frames by their round trip through the VAE ``--vae`` (the
+whole episode encoded and decoded as one video, as the world model's frames are); ``--vae`` is required with it and
+refused without it.
 """
 
 from __future__ import annotations
@@ -19,6 +28,7 @@ from collections.abc import Sequence
 
 import configs
 from sim.policy_training import run_sft_policy
+from sword_jax.rl.decoded_frames import require_vae
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -30,16 +40,22 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--renderer", choices=("jax", "gl"), default="jax",
                         help="evaluation renderer: the one the demonstrations were rendered with")
     parser.add_argument("--holdout", type=float, default=0.1, help="fraction of demonstrations held out")
+    parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae; a pipeline's vae_run/vae) "
+                        "whose round trip rl.sft.decoded_fraction of each batch's frames go through")
     args = parser.parse_args(rest)
+    try:
+        require_vae(cfg.rl.sft.decoded_fraction, args.vae)
+    except ValueError as err:
+        parser.error(str(err))
     return run(cfg, args.demos, eval_episodes=args.eval_episodes, eval_workers=args.eval_workers,
-               renderer=args.renderer, holdout=args.holdout)
+               renderer=args.renderer, holdout=args.holdout, vae=args.vae)
 
 
 def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0, renderer: str = "jax",
-        holdout: float = 0.1) -> dict:
+        holdout: float = 0.1, vae: str = "") -> dict:
     """:func:`sim.policy_training.run_sft_policy`."""
     return run_sft_policy(cfg, demos, eval_episodes=eval_episodes, eval_workers=eval_workers, renderer=renderer,
-                          holdout=holdout)
+                          holdout=holdout, vae=vae)
 
 
 if __name__ == "__main__":

@@ -63,9 +63,16 @@ class SFTConfig:
         (``train.train_policy``; the last step is always saved).
       init: a trained policy (a ``train.train_policy`` checkpoint directory or ``.npz``) that the pipeline
         starts from instead of behaviour cloning one: its ``sft_policy`` stage copies it into the run and
-        checks it loads into this config's policy; "" trains one.
+        checks it loads into this config's policy; "" trains one. ``train.train_policy`` and
+        ``benchmarks.bench_policy sft`` fine-tune it instead: its parameters (proprio normalisation included)
+        with a fresh optimizer, for ``steps``.
       image_aug: jitter the training frames' brightness, contrast, saturation and hue, and shift them, as VLA
         fine-tuning does (:mod:`sword_jax.rl.image_aug`); off by default.
+      decoded_fraction: decoder-aware SFT: the share of each training batch's samples (``round(fraction x
+        batch_size)`` of them, drawn per step) whose frame is the VAE's video round trip of the same frame (its
+        episode encoded and decoded as one video, :mod:`sword_jax.rl.decoded_frames`), the frames GRPO in the world
+        model shows the policy; held-out metrics stay on real frames. 0 = off (real frames only); > 0 needs a
+        trained VAE (``--vae`` of ``train.train_policy`` and ``benchmarks.bench_policy sft``).
     """
 
     steps: int = 200
@@ -78,8 +85,13 @@ class SFTConfig:
     checkpoint_every: int = 100
     init: str = ""
     image_aug: bool = False
+    decoded_fraction: float = 0.0  # 0 = real frames only
 
     def validate(self) -> None:
+        fraction = self.decoded_fraction
+        if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"rl.sft.decoded_fraction must be a number in [0, 1] (the share of each SFT batch's "
+                             f"frames taken from the VAE's round trip; 0 = off), got {fraction!r}")
         if not isinstance(self.image_aug, bool):
             raise ValueError(f"rl.sft.image_aug must be true or false, got {self.image_aug!r}")
         if not isinstance(self.init, str):

@@ -126,8 +126,19 @@ def sample_bc_batch(
 
     Actions past the end of an episode repeat its last action (the robot holds still).
     """
+    return bc_batch_at(episodes, *bc_batch_index(episodes, batch_size, rng), chunk_len, max_bytes)
+
+
+def bc_batch_index(episodes: EpisodeSet, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``(episode [b], step t [b])`` of the samples :func:`sample_bc_batch` draws with the same ``rng`` state."""
     ep = rng.integers(0, episodes.num_episodes, batch_size)
     t = (rng.random(batch_size) * episodes.lengths[ep]).astype(np.int64)
+    return ep, t
+
+
+def bc_batch_at(episodes: EpisodeSet, ep: np.ndarray, t: np.ndarray, chunk_len: int, max_bytes: int
+                ) -> dict[str, np.ndarray]:
+    """:func:`sample_bc_batch`'s batch of the samples ``(ep, t)`` (from :func:`bc_batch_index`)."""
     idx = np.minimum(t[:, None] + np.arange(chunk_len)[None], episodes.lengths[ep][:, None] - 1)
     return {
         "frames": episodes.frames[ep, t],

@@ -5,6 +5,15 @@ categoricals (OpenVLA's objective). Proprio is dropped (marked invalid) for a fr
 samples so the policy also acts when a learned simulator cannot report proprio. The starting
 point for GRPO is set by ``rl.sft.steps`` and ``rl.sft.episodes_per_task`` (how many
 demonstrations per task it sees).
+
+Decoder-aware SFT (``rl.sft.decoded_fraction``): a share of each batch's frames comes from the episodes
+round-tripped through the world model's VAE (:mod:`sword_jax.rl.decoded_frames`), so the policy also reads the
+frames GRPO in the world model will show it. For example, fine-tuning a trained policy on half decoded frames::
+
+    python -m benchmarks.bench_policy sft --config sword:small --out runs/p --tag _dec --demos-per-task 50 \\
+        --execute ens --workers 14 --eval-episodes 50 \\
+        --rl.sft.init=runs/p/policy_d50.npz --rl.sft.decoded_fraction=0.5 --vae runs/rsv/pipeline/vae_run/vae \\
+        --rl.sft.steps=1000
 """
 
 from __future__ import annotations
@@ -15,14 +24,17 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import optax
+import numpy as np
 from flax import nnx, struct
 
 from sword_jax import optim
 from sword_jax import sharding as shd
+from sword_jax.rl import data as rl_data
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.image_aug import augment_frames
 from sword_jax.rl.policy import (actions_to_tokens, resize_frames, token_log_probs, tokens_to_actions,
                                  trainable_mask)
+from sword_jax.rng import stream_rng
 
 PROPRIO_DROPOUT = 0.3
 # RL config keys (paths under ``rl``) a resumed SFT run must share with its checkpoint (others may change
@@ -115,6 +127,30 @@ def make_sft_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, total_steps: int | N
     return init, shd.compile_step(step, shd.default_mesh(mesh), rules)
 
 
+def decoded_samples(seed: int, step: int, batch_size: int, fraction: float) -> np.ndarray:
+    """``[batch_size]`` bool: which samples of step ``step``'s SFT batch read the VAE's round trip of their frame
+    (``rl.sft.decoded_fraction``): ``round(fraction * batch_size)`` of them, drawn from stream
+    ``sft/decoded_frames`` of ``(seed, step)``, so a resumed run draws the same ones."""
+    chosen = np.zeros(batch_size, bool)
+    count = int(round(fraction * batch_size))
+    if count:
+        chosen[stream_rng(seed, "sft/decoded_frames", step).permutation(batch_size)[:count]] = True
+    return chosen
+
+
+def sft_batch_at(episodes: rl_data.EpisodeSet, cfg: RLConfig, seed: int, step: int,
+                 decoded_frames: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The training batch of 0-based step ``step``: :func:`sword_jax.rl.data.sample_bc_batch` from stream
+    ``sft/batches`` of ``(seed, step)``; with ``decoded_frames`` (``[E, T, H, W, 3]`` like ``episodes.frames``) the
+    samples :func:`decoded_samples` picks take their frame from it (same episode, same step)."""
+    ep, t = rl_data.bc_batch_index(episodes, cfg.sft.batch_size, stream_rng(seed, "sft/batches", step))
+    batch = rl_data.bc_batch_at(episodes, ep, t, cfg.chunk_len, cfg.policy.max_instruction_bytes)
+    if decoded_frames is not None:
+        chosen = decoded_samples(seed, step, cfg.sft.batch_size, cfg.sft.decoded_fraction)
+        batch["frames"] = np.where(chosen[:, None, None, None], decoded_frames[ep, t], batch["frames"])
+    return batch
+
+
 def train_sft(
     graphdef: nnx.GraphDef,
     params: Any,
@@ -128,11 +164,14 @@ def train_sft(
     checkpoint_dir: str | None = None,
     mesh=None,
     rules=shd.DEFAULT_RULES,
+    decoded_frames: np.ndarray | None = None,
+    fit_proprio_stats: bool = True,
 ) -> tuple[Any, list[dict[str, float]]]:
     """Behaviour cloning on ``train_episodes`` (an ``rl.data.EpisodeSet``) from ``params``.
 
-    The proprio normalisation is set from the training demonstrations before the first step. The
-    batch of step ``s`` is drawn from ``stream_rng(seed, "sft/batches", s)``, so with
+    The proprio normalisation is set from the training demonstrations before the first step (unless
+    ``fit_proprio_stats`` is False: fine-tuning a trained policy keeps its own). The
+    batch of step ``s`` is :func:`sft_batch_at` (drawn from ``stream_rng(seed, "sft/batches", s)``), so with
     ``checkpoint_dir`` the run saves its train state every ``cfg.sft.checkpoint_every`` steps and
     resumes from there bit-exactly (see :func:`sword_jax.train_loop.run_steps`). Every
     ``cfg.sft.eval_every`` steps (and at the end) the teacher-forced loss, token accuracy and action
@@ -140,25 +179,38 @@ def train_sft(
 
     ``mesh`` / ``rules``: where the step runs (see :func:`make_sft_step`).
 
+    ``decoded_frames``: ``[E, T, H, W, 3]`` uint8, ``train_episodes.frames`` after the VAE's round trip
+    (:func:`sword_jax.rl.decoded_frames.round_trip_episodes`), read by ``cfg.sft.decoded_fraction`` of each
+    training batch's samples; needed exactly when that fraction is above 0. Held-out metrics use real frames.
+
     Returns:
       ``(params, history)``: the trained parameters and one dict of metrics per log point (those
       before a resume come from the checkpoint).
 
     Raises:
+      ValueError: ``decoded_frames`` missing while ``cfg.sft.decoded_fraction > 0``, given while it is 0, or not
+        shaped like ``train_episodes.frames``.
       sword_jax.train_loop.NonFiniteLoss: a non-finite loss or gradient (a ``FloatingPointError``
         naming the 0-based step; the last good checkpoint is kept).
     """
-    import numpy as np
-
-    from sword_jax.rl import data as rl_data
     from sword_jax.rl.policy import compute_proprio_stats, set_proprio_stats
-    from sword_jax.rng import stream_rng
     from sword_jax.train_loop import run_steps
 
+    fraction = cfg.sft.decoded_fraction
+    if fraction > 0 and decoded_frames is None:
+        raise ValueError(f"train_sft: rl.sft.decoded_fraction={fraction} needs decoded_frames (the training episodes "
+                         "round-tripped through the VAE, sword_jax.rl.decoded_frames.round_trip_episodes)")
+    if decoded_frames is not None:
+        if fraction <= 0:
+            raise ValueError("train_sft: decoded_frames given but rl.sft.decoded_fraction is 0 (they would not be read)")
+        if decoded_frames.shape != train_episodes.frames.shape or decoded_frames.dtype != np.uint8:
+            raise ValueError(f"train_sft: decoded_frames must be uint8 shaped like the training frames "
+                             f"{train_episodes.frames.shape}, got {decoded_frames.shape} {decoded_frames.dtype}")
     steps = steps or cfg.sft.steps
-    valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
-                                  for e in range(train_episodes.num_episodes)])
-    params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
+    if fit_proprio_stats:
+        valid_steps = np.concatenate([train_episodes.proprio[e, : train_episodes.lengths[e]]
+                                      for e in range(train_episodes.num_episodes)])
+        params = set_proprio_stats(params, compute_proprio_stats(valid_steps, cfg))
     init, step = make_sft_step(graphdef, cfg, total_steps=steps, mesh=mesh, rules=rules)
     evaluate = make_sft_eval(graphdef, cfg)
     held_batches = []
@@ -168,8 +220,7 @@ def train_sft(
                                                 held_rng) for _ in range(4)]
 
     def batch_at(i: int) -> dict:
-        return rl_data.sample_bc_batch(train_episodes, cfg.sft.batch_size, cfg.chunk_len, cfg.policy.max_instruction_bytes,
-                                       stream_rng(seed, "sft/batches", i))
+        return sft_batch_at(train_episodes, cfg, seed, i, decoded_frames)
 
     def report(done: int, metrics: dict[str, float], held: list, eta: float) -> dict[str, float]:
         point = {"step": done, **metrics}
@@ -184,7 +235,10 @@ def train_sft(
 
     run_id = {"seed": seed, "steps": steps, "demonstrations": int(train_episodes.num_episodes),
               **{f"rl.{k}": operator.attrgetter(k)(cfg) for k in SFT_RUN_KEYS},
-              **({"rl.sft.image_aug": True} if cfg.sft.image_aug else {})}  # named only when on: older runs resume
+              # named only when on: older runs resume
+              **({"rl.sft.image_aug": True} if cfg.sft.image_aug else {}),
+              **({"rl.sft.decoded_fraction": fraction} if fraction > 0 else {}),
+              **({} if fit_proprio_stats else {"fit_proprio_stats": False})}
     result = run_steps(step, init(params), batch_at, key=jax.random.key(seed), steps=steps,
                        log_every=cfg.sft.eval_every, name="SFT", report=report,
                        observe=lambda state: [evaluate(state.params, hb) for hb in held_batches],
