@@ -23,6 +23,12 @@ episode's frames are not independent)::
         --episodes-per-task 3 --decisions 12 --out runs/action_gap \\
         --rl.imagined.execute_steps=4 --rl.grpo.temperature=0.5
 
+With ``--vae DIR`` (the checkpoint ``train.grpo --vae`` takes) the table adds the view ``vae``: each kept frame
+encoded by that VAE as a still keyframe and decoded back, in [0, 1] as the world model's simulator decodes it
+(:func:`sword_jax.rl.world_model_sim.vae_round_trip`): the floor of the closed-loop gap that GRPO logs as
+``closed_loop_action_gap_vae_k`` beside ``closed_loop_action_gap_k``, the gap a world model with faithful dynamics
+would still cause through that VAE.
+
 With ``--lag-episodes-per-task N`` it also measures what one decision of lag costs in real success: whole
 episodes from rest, sampled at ``rl.grpo.temperature``, once reading the real frames and once reading at each
 decision the frame of the decision before (:class:`LaggedEnvs`: a simulator that shows the scene a decision
@@ -35,7 +41,7 @@ import dataclasses
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -51,8 +57,9 @@ from sword_jax.rl.env_rollout import run_policy
 from sword_jax.rl.imagined_check import greedy_actions
 from sword_jax.rl.policy import resize_frames
 
-# the VAE round trip needs a trained VAE and the lag an episode's history: bench_policy_view has both
+# the VAE round trip needs a trained VAE (--vae) and the lag an episode's history (--lag-episodes-per-task)
 GAP_VIEWS = tuple(v for v in VIEWS if v not in ("vae", "lag_1"))
+VAE_VIEW = "vae"
 BATCH = 32  # frames per compiled gap call (the last batch padded, so one shape compiles)
 RESAMPLES = 2000
 
@@ -151,14 +158,19 @@ def policy_frames(act: Any, params: Any, envs: Any, rl: Any, *, decisions: int, 
 
 def view_gaps(policy: Any, frames: UInt8[Array, "n h w 3"], instruction_tokens: Int[Array, "n l"],
               proprio: Float[Array, "n p"], proprio_valid: Float[Array, " n"], views: Float[Array, "v c"], *,
-              key: jax.Array, image_size: int, executed: int, action_bins: int
+              key: jax.Array, image_size: int, executed: int, action_bins: int,
+              round_trip: Callable[[Array], Array] | None = None
               ) -> tuple[Float[Array, "n ea"], Float[Array, "v n"], Float[Array, "v n"]]:
     """``(real_actions [n, executed x A], frame_error [V, n], action_gap [V, n])`` of real ``frames`` seen
     through each row of ``views`` (:data:`~benchmarks.bench_policy_view.VIEWS`' columns; view ``i``'s noise from
     ``fold_in(key, i)``): the greedy actions on the real frames
     (:func:`~sword_jax.rl.imagined_check.greedy_actions`), and per view and frame the mean absolute difference
     of the two frames at the policy's size and of the two greedy actions, as
-    :func:`~sword_jax.rl.imagined_check.closed_loop_fidelity` measures them."""
+    :func:`~sword_jax.rl.imagined_check.closed_loop_fidelity` measures them.
+
+    ``round_trip`` (frames in [0, 1] -> the same, e.g. :func:`sword_jax.rl.world_model_sim.vae_round_trip`) is
+    what the views whose VAE column is 1 show: the frame at the environment's resolution, round-tripped, not
+    rounded to levels (as the world model's frames are not). Without it that column is not read."""
     n = frames.shape[0]
 
     def greedy(small):
@@ -170,8 +182,11 @@ def view_gaps(policy: Any, frames: UInt8[Array, "n h w 3"], instruction_tokens: 
 
     def one_view(view_and_index):
         view, index = view_and_index
-        seen = resize_frames(degrade(frames, jnp.broadcast_to(view, (n, VIEW_COLUMNS)), jax.random.fold_in(key, index)),
-                             image_size)
+        seen = degrade(frames, jnp.broadcast_to(view, (n, VIEW_COLUMNS)), jax.random.fold_in(key, index))
+        seen = seen.astype(jnp.float32) / jnp.float32(255.0)
+        if round_trip is not None:  # only the VAE view pays for the round trip
+            seen = jax.lax.cond(view[3] > 0, round_trip, lambda f: f, seen)
+        seen = resize_frames(seen, image_size)
         return (jnp.mean(jnp.abs(seen - real), axis=(1, 2, 3)),
                 jnp.mean(jnp.abs(greedy(seen) - real_actions), axis=-1))
 
@@ -208,29 +223,43 @@ def summarize(values: Float[np.ndarray, "n d"], *, seed: int = 0, resamples: int
             "per_decision": [None if np.isnan(m) else round(float(m), 5) for m in per_decision]}
 
 
-def parse_views(text: str) -> list[str]:
-    """The comma list ``text`` as view names, each one of :data:`GAP_VIEWS` (else ``ValueError``)."""
+def parse_views(text: str, *, vae: bool = False) -> list[str]:
+    """The comma list ``text`` as view names, each one of :data:`GAP_VIEWS` (else ``ValueError``); with ``vae``
+    (a VAE was given) the view ``vae`` too, added at the end if ``text`` does not name it."""
     views = [v for v in text.split(",") if v]
-    unknown = [v for v in views if v not in GAP_VIEWS]
+    known = GAP_VIEWS + ((VAE_VIEW,) if vae else ())
+    unknown = [v for v in views if v not in known]
     if unknown or not views:
-        why = " (the VAE round trip and the lag are bench_policy_view's)" if {"vae", "lag_1"} & set(unknown) else ""
-        raise ValueError(f"--views must name some of {', '.join(GAP_VIEWS)}, got {views}{why}")
-    return views
+        why = ""
+        if VAE_VIEW in unknown:
+            why = " (the view vae round-trips the frames through a trained VAE: give it with --vae)"
+        elif "lag_1" in unknown:
+            why = " (the lag costs success, measured by --lag-episodes-per-task)"
+        raise ValueError(f"--views must name some of {', '.join(known)}, got {views}{why}")
+    return views + ([VAE_VIEW] if vae and VAE_VIEW not in views else [])
 
 
 def measure(graphdef: Any, params: Any, frames: np.ndarray, taken: np.ndarray, rollout: Any, views: Sequence[str], *,
-            rl: Any, seed: int) -> dict[str, np.ndarray]:
+            rl: Any, seed: int, vae: tuple[Any, Any] | None = None) -> dict[str, np.ndarray]:
     """Every taken frame through every view, the policy ``(graphdef, params)``, in compiled batches of
     :data:`BATCH`: ``real_actions [n, d, eA]``, ``frame_error`` and ``action_gap`` ``[V, n, d]`` (NaN where no
-    frame), and the real frames at the policy's size, ``small [n, d, s, s, 3]``."""
+    frame), and the real frames at the policy's size, ``small [n, d, s, s, 3]``. ``vae``: the VAE
+    ``(graphdef, state)`` whose round trip the view ``vae`` shows (its weights an argument of the compiled call)."""
+    from sword_jax.rl.world_model_sim import vae_round_trip
+
     n, d = taken.shape
     rows, cols = np.nonzero(taken)
     table = jnp.asarray([VIEWS[v] for v in views], jnp.float32)
+    if VAE_VIEW in views and vae is None:
+        raise ValueError("measure: the view vae needs the VAE (vae=)")
+    vae_graphdef, vae_state = vae if vae is not None else (None, None)
 
     @jax.jit
-    def gaps(params, frames, tokens, proprio, proprio_valid, key):
+    def gaps(params, vae_state, frames, tokens, proprio, proprio_valid, key):
+        round_trip = vae_round_trip(vae_graphdef, vae_state) if vae_state is not None else None
         return view_gaps(nnx.merge(graphdef, params), frames, tokens, proprio, proprio_valid, table, key=key,
-                         image_size=rl.image_size, executed=rl.env.execute_steps, action_bins=rl.action_bins)
+                         image_size=rl.image_size, executed=rl.env.execute_steps, action_bins=rl.action_bins,
+                         round_trip=round_trip)
 
     tokens = np.asarray(rollout.instruction_tokens)
     proprio, proprio_valid = np.asarray(rollout.proprio), np.asarray(rollout.proprio_valid)
@@ -241,7 +270,7 @@ def measure(graphdef: Any, params: Any, frames: np.ndarray, taken: np.ndarray, r
     for b, lo in enumerate(range(0, len(rows), BATCH)):
         idx = np.arange(lo, lo + BATCH) % len(rows)
         r, c = rows[idx], cols[idx]
-        out = jax.device_get(gaps(params, frames[r, c], tokens[r], proprio[r, c], proprio_valid[r, c],
+        out = jax.device_get(gaps(params, vae_state, frames[r, c], tokens[r], proprio[r, c], proprio_valid[r, c],
                                   jax.random.fold_in(root, b)))
         keep = min(BATCH, len(rows) - lo)
         r, c = r[:keep], c[:keep]
@@ -258,11 +287,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(argv, default="sword:small")
     parser = policy_parser(__doc__, episodes_per_task=3, views=GAP_VIEWS, results="action_gap.json")
     parser.add_argument("--decisions", type=int, default=12, help="decisions kept per episode, from rest")
+    parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae; a pipeline's vae_run/vae): "
+                        "adds the view vae, the frames' round trip through it")
     parser.add_argument("--lag-episodes-per-task", type=int, default=0,
                         help="also the real success of whole episodes read with one decision of lag (0 = off)")
     args = parser.parse_args(rest)
     try:
-        views = parse_views(args.views)
+        views = parse_views(args.views, vae=bool(args.vae))
     except ValueError as err:
         raise SystemExit(f"bench_action_gap: {err}") from None
     if args.episodes_per_task < 1 or args.decisions < 1 or args.lag_episodes_per_task < 0:
@@ -272,6 +303,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     from sim import tasks as sim_tasks
     from sim.lockstep import LockstepEnvs
+    from sword_jax.load import experiment_vae
     from sword_jax.rl.env_rollout import make_act_fns
     from sword_jax.rl.params_io import load_params_npz
     from sword_jax.rl.policy import build_policy
@@ -287,7 +319,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         frames, taken, rollout = policy_frames(make_act_fns(graphdef, rl), params, envs, rl, decisions=args.decisions,
                                                key=jax.random.key(cfg.seed))
     episode_seconds = time.time() - start
-    out = measure(graphdef, params, frames, taken, rollout, views, rl=rl, seed=cfg.seed)
+    vae = experiment_vae(cfg, args.vae) if args.vae else None
+    out = measure(graphdef, params, frames, taken, rollout, views, rl=rl, seed=cfg.seed, vae=vae)
     frame_consecutive, gap_consecutive = consecutive(out["real_actions"], out["small"], taken)
     results = {
         "policy": args.policy, "config": cfg.name, "argv": argv, "device": str(jax.devices()[0].device_kind),
@@ -296,6 +329,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "episodes": len(episodes), "frames": int(taken.sum()), "decisions": args.decisions,
         "success_within_decisions": float(np.mean(rollout.success)),
         "interval": f"95% bootstrap over episodes ({RESAMPLES} resamples)",
+        **({"vae": args.vae} if args.vae else {}),
         "views": {view: {"parameters": dict(zip(PARAMETER_NAMES, VIEWS[view])),
                          "action_gap": summarize(out["action_gap"][i], seed=cfg.seed),
                          "frame_error": summarize(out["frame_error"][i], seed=cfg.seed)}

@@ -211,8 +211,10 @@ def summarize_run(grpo: str) -> dict:
     return out
 
 
-# imagined_check.closed_loop_fidelity's figures, and the key that names each decision it recorded
-CLOSED_LOOP = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion")
+# imagined_check.closed_loop_fidelity's figures (the _vae ones where the simulator decoded through its VAE), and
+# the key that names each decision it recorded
+CLOSED_LOOP = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion", "frame_error_vae",
+               "action_gap_vae")
 DECISION_KEY = re.compile(r"closed_loop_frame_error_(\d+)")
 
 
@@ -255,16 +257,18 @@ def summarize(workdir: str) -> dict:
 # a step paid by execution with the closed-loop record, as sword_jax.pipeline.grpo.payment_note writes it
 PROGRESS = re.compile(r"grpo step (\d+)/\d+ real success of the imagined actions ([\d.]+) \(the detector said ([\d.]+), "
                       r"agreeing on ([\d.]+)\); closed loop frame error ([\d.]+) -> ([\d.]+), greedy action gap "
-                      r"([\d.]+) -> ([\d.]+)")
+                      r"([\d.]+) -> ([\d.]+)(?: \(the VAE alone at decision 1: frame error ([\d.]+), gap ([\d.]+)\))?")
+PROGRESS_KEYS = ("paid", "detector_success", "detector_agreement", "frame_error_first", "frame_error_last",
+                 "action_gap_first", "action_gap_last", "frame_error_vae_first", "action_gap_vae_first")
 
 
 def progress_steps(log: str) -> list[dict]:
     """The steps of a run's log that carry the closed-loop record: paid success, the detector's success and
-    agreement, and the frame error and greedy action gap at the first and the last decision."""
-    keys = ("paid", "detector_success", "detector_agreement", "frame_error_first", "frame_error_last",
-            "action_gap_first", "action_gap_last")
+    agreement, the frame error and greedy action gap at the first and the last decision, and where the line has
+    them the VAE round trip's at the first."""
     with open(log) as f:
-        return [{"step": int(m.group(1)), **dict(zip(keys, map(float, m.groups()[1:])))}
+        return [{"step": int(m.group(1)), **{k: float(v) for k, v in zip(PROGRESS_KEYS, m.groups()[1:])
+                                             if v is not None}}
                 for m in map(PROGRESS.search, f) if m]
 
 
@@ -280,7 +284,10 @@ def history_steps(rows: Sequence[dict]) -> list[dict]:
                         "frame_error_first": r[f"closed_loop_frame_error_{first}"],
                         "frame_error_last": r[f"closed_loop_frame_error_{last}"],
                         "action_gap_first": r[f"closed_loop_action_gap_{first}"],
-                        "action_gap_last": r[f"closed_loop_action_gap_{last}"]})
+                        "action_gap_last": r[f"closed_loop_action_gap_{last}"],
+                        **{f"{what}_first": r[f"closed_loop_{what}_{first}"] for what in ("frame_error_vae",
+                                                                                        "action_gap_vae")
+                           if f"closed_loop_{what}_{first}" in r}})
     return out
 
 
@@ -288,7 +295,8 @@ def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dic
     """Per run ``(label, GRPO work dir, log, world-model metrics.jsonl)``: the success its trajectories were
     paid (pooled over the steps, with a 95% Wilson interval over ``trajectories`` a step), the detector's
     verdicts, the closed loop's frame error and greedy action gap at the first and last decision (means over the
-    steps) and per decision, and the world model's loss (the mean of its last 10 logged steps).
+    steps; the VAE round trip's at the first where the run logged it) and per decision, and the world model's
+    loss (the mean of its last 10 logged steps).
 
     The figures come from the run's ``train_history.jsonl``. A run whose history was not kept (its process
     ended before writing it, or it was not copied) is read from its progress lines, which hold every figure
@@ -308,7 +316,8 @@ def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dic
         run = {"steps": len(steps), "source": source, "world_model_steps": logged[-1]["step"],
                "world_model_loss": statistics.mean(r["loss"] for r in logged),
                "paid_success": wilson_rate(paid, trajectories * len(steps)), "per_step": steps,
-               **{k: statistics.mean(s[k] for s in steps) for k in steps[0] if k not in ("step", "paid")}}
+               **{k: statistics.mean(s[k] for s in steps) for k in steps[0]
+                  if k not in ("step", "paid") and all(k in s for s in steps)}}
         if rows:
             run["per_decision"] = per_decision(rows)
         out[label] = run
@@ -343,6 +352,10 @@ def print_runs(summary: dict) -> None:
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "
                      f"{loop['frame_error'][0]:.3f} / {loop['frame_error'][-1]:.3f}, greedy action gap "
                      f"{loop['action_gap'][0]:.3f} / {loop['action_gap'][-1]:.3f}")
+            if "action_gap_vae" in loop:
+                line += (f" (the VAE alone: frame error {loop['frame_error_vae'][0]:.3f} / "
+                         f"{loop['frame_error_vae'][-1]:.3f}, gap {loop['action_gap_vae'][0]:.3f} / "
+                         f"{loop['action_gap_vae'][-1]:.3f})")
         print(line, flush=True)
 
 
@@ -394,7 +407,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         for label, r in result["runs"].items():
             print(f"[closed-loop] {label}: paid {r['paid_success']['rate']:.3f} over {r['steps']} steps; frame error "
                   f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}, greedy action gap "
-                  f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}", flush=True)
+                  f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}" + (
+                      f" (the VAE alone at the first: frame error {r['frame_error_vae_first']:.3f}, gap "
+                      f"{r['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in r else ""), flush=True)
         return result
     if not args.workdir:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")

@@ -88,30 +88,33 @@ def degrade(frames: jax.Array, view: jax.Array, key: jax.Array) -> jax.Array:
     return jnp.clip(jnp.round(x), 0, 255).astype(jnp.uint8)
 
 
-def still_round_trip(codec: Callable[[jax.Array], jax.Array], frames_per_latent: int) -> RoundTrip:
-    """Each frame held still for ``1 + frames_per_latent`` frames (the causal VAE's first latent holds one frame,
-    each later one ``frames_per_latent``; the world model's frames come from later latents), passed through
-    ``codec`` (video ``[n, T, H, W, 3]`` in [-1, 1] -> the same), and the last frame back as uint8."""
+def in_levels(unit_round_trip: Callable[[jax.Array], jax.Array]) -> RoundTrip:
+    """A round trip of frames in [0, 1] as one of uint8 frames: the levels scaled to [0, 1], round-tripped,
+    rounded back to uint8."""
 
     def round_trip(frames: UInt8[Array, "n h w 3"]) -> UInt8[Array, "n h w 3"]:
-        unit = frames.astype(jnp.float32) / jnp.float32(255.0)
-        still = jnp.repeat(unit[:, None] * 2.0 - 1.0, 1 + frames_per_latent, axis=1)  # (n, 1 + F, H, W, 3)
-        last = codec(still)[:, -1]
-        return jnp.clip(jnp.round((last + 1.0) * jnp.float32(127.5)), 0, 255).astype(jnp.uint8)
+        out = unit_round_trip(frames.astype(jnp.float32) / jnp.float32(255.0))
+        return jnp.clip(jnp.round(out * jnp.float32(255.0)), 0, 255).astype(jnp.uint8)
 
     return round_trip
 
 
+def still_round_trip(codec: Callable[[jax.Array], jax.Array], frames_per_latent: int) -> RoundTrip:
+    """:func:`sword_jax.rl.world_model_sim.still_round_trip` of uint8 frames (:func:`in_levels`): each frame held
+    still for ``1 + frames_per_latent`` frames, passed through ``codec`` (video in [-1, 1] -> the same), the last
+    frame kept."""
+    from sword_jax.rl import world_model_sim
+
+    return in_levels(world_model_sim.still_round_trip(codec, frames_per_latent))
+
+
 def vae_round_trip(vae_graphdef: Any, vae_state: Any) -> RoundTrip:
-    """:func:`still_round_trip` through the VAE: :func:`sword_jax.vae.api.encode`, then ``decode`` (clamped), as a
-    still keyframe is encoded for the world model (:func:`sword_jax.rl.world_model_sim.encode_keyframes`)."""
-    from sword_jax.vae import api as vae_api
+    """:func:`sword_jax.rl.world_model_sim.vae_round_trip` of uint8 frames: encoded as a still keyframe is encoded
+    for the world model, decoded (clamped); the round trip GRPO's closed-loop record measures too
+    (``closed_loop_frame_error_vae_k``, there through the simulator's VAE as it decodes, in [0, 1])."""
+    from sword_jax.rl import world_model_sim
 
-    def codec(video: jax.Array) -> jax.Array:
-        latents = vae_api.encode(vae_graphdef, vae_state, video, check_values=False)
-        return vae_api.decode(vae_graphdef, vae_state, latents, clamp=True, check_values=False)
-
-    return still_round_trip(codec, vae_api.factors(vae_graphdef, vae_state)[0])
+    return in_levels(world_model_sim.vae_round_trip(vae_graphdef, vae_state))
 
 
 def round_trip_error(real: np.ndarray, seen: np.ndarray) -> dict[str, Any]:

@@ -70,6 +70,28 @@ def test_each_views_gap_and_frame_error_are_those_of_the_frames_it_makes():
     assert not np.allclose(np.asarray(run(frames, jax.random.key(1))[1][3]), frame_error[3])
 
 
+def test_the_vae_view_shows_the_round_trip_of_the_real_frame_and_the_other_views_do_not():
+    """A round trip that shows every frame at brightness 20 (bin 0): the view vae's frame error is the distance
+    to that flat frame, its gap that of bin 6's actions to bin 0's; the real view stays the real frame."""
+    frames = _flat([200, 20])
+    views = jnp.asarray([pv.VIEWS[v] for v in ("real", "vae", "dim_20pct")], jnp.float32)
+    calls = []
+
+    def to_twenty(unit):
+        calls.append(unit.dtype)
+        return jnp.full_like(unit, 20 / 255)
+
+    real_actions, frame_error, gap = (np.asarray(x) for x in jax.jit(
+        lambda f, k: ag.view_gaps(brightness_policy, f, *_no_inputs(2), views, key=k, image_size=8, executed=2,
+                                  action_bins=BINS, round_trip=to_twenty))(frames, jax.random.key(0)))
+    assert calls == [jnp.float32], "the round trip reads frames in [0, 1]"
+    np.testing.assert_array_equal(frame_error[0], 0.0)
+    np.testing.assert_array_equal(gap[0], 0.0)
+    np.testing.assert_allclose(frame_error[1], [180 / 255, 0.0], atol=1e-6)
+    np.testing.assert_allclose(gap[1], [np.abs(CENTRES[[0, 1, 1, 2]] - CENTRES[[6, 7, 7, 0]]).mean(), 0.0], atol=1e-6)
+    np.testing.assert_allclose(frame_error[2], [40 / 255, 4 / 255], atol=1e-6)  # dimmed, not round-tripped
+
+
 def test_the_kept_frames_are_those_the_policy_read_and_end_with_the_episode():
     cfg = configs.get("sword:tiny")
     rl = dataclasses.replace(cfg.rl, image_size=SIZE, env=dataclasses.replace(cfg.rl.env, execute_steps=2,
@@ -145,11 +167,15 @@ def test_bad_arguments_are_refused_before_anything_runs():
         ag.main(base + ["--decisions", "0"])
     with pytest.raises(SystemExit, match=r"--views must name some of real, blur_1px.*got \['real', 'sepia'\]"):
         ag.main(base + ["--views", "real,sepia"])
-    with pytest.raises(SystemExit, match="the VAE round trip and the lag are bench_policy_view's"):
+    with pytest.raises(SystemExit, match="give it with --vae"):
         ag.main(base + ["--views", "vae"])
+    with pytest.raises(SystemExit, match="--lag-episodes-per-task"):
+        ag.main(base + ["--views", "lag_1"])
     with pytest.raises(SystemExit, match="--lag-episodes-per-task >= 0"):
         ag.main(base + ["--lag-episodes-per-task", "-1"])
     assert ag.parse_views("dim_20pct,real") == ["dim_20pct", "real"]
+    assert ag.parse_views("dim_20pct,real", vae=True) == ["dim_20pct", "real", "vae"]  # --vae adds its view
+    assert ag.parse_views("vae,real", vae=True) == ["vae", "real"]
     assert not {"vae", "lag_1"} & set(ag.GAP_VIEWS) and set(ag.GAP_VIEWS) < set(pv.VIEWS)
 
 
@@ -171,3 +197,30 @@ def test_a_small_run_on_the_c_engine_writes_its_table(tmp_path):
     assert len(dim["action_gap"]["per_decision"]) == 2
     assert results["consecutive_decisions"]["frame_error"]["frames"] == 2
     assert os.path.basename(results["policy"]) == "policy.npz"
+
+
+def test_a_small_run_with_a_vae_adds_its_round_trip_view(tmp_path):
+    """--vae DIR (a tiny random VAE saved as train_vae saves one) adds the view vae to the table: the real frames
+    round-tripped through it, which a random VAE moves."""
+    from flax import nnx
+
+    from sword_jax.checkpoint import Checkpointer
+    from sword_jax.vae import api as vae_api
+
+    cfg = configs.get("sword:tiny")
+    path = str(tmp_path / "policy.npz")
+    save_params_npz(path, build_policy(cfg.rl, seed=cfg.seed)[1])
+    vae_dir = str(tmp_path / "vae")
+    with Checkpointer(vae_dir) as ckpt:
+        ckpt.save(0, nnx.to_pure_dict(nnx.split(vae_api.create_vae(cfg.vae, key=jax.random.key(1)))[1]), {})
+    argv = ["--config", "sword:tiny", "--sim.tasks=0", "--rl.imagined.execute_steps=4", "--policy", path,
+            "--episodes-per-task", "1", "--decisions", "2", "--views", "real", "--vae", vae_dir,
+            "--out", str(tmp_path / "out")]
+    results = ag.main(argv)
+    with open(tmp_path / "out" / "action_gap.json") as f:
+        assert json.load(f) == json.loads(json.dumps(results))
+    assert list(results["views"]) == ["real", "vae"] and results["vae"] == vae_dir
+    vae = results["views"]["vae"]
+    assert vae["parameters"]["vae_round_trip"] == 1.0
+    assert vae["frame_error"]["mean"] > 0.01 and vae["action_gap"]["frames"] == results["frames"] == 2
+    assert results["views"]["real"]["frame_error"]["mean"] == 0.0

@@ -77,10 +77,13 @@ def _point(step, greedy, sampled, masked=None):
     return out
 
 
-def _loop(x):
-    """A step's closed-loop figures at decisions 1, 2 and 10: frame error k x, action gap k x / 10."""
-    return {f"closed_loop_{what}_{k}": k * x * (1.0 if what == "frame_error" else 0.1)
-            for k in (1, 2, 10) for what in ("frame_error", "action_gap")}
+def _loop(x, vae=False):
+    """A step's closed-loop figures at decisions 1, 2 and 10: frame error k x, action gap k x / 10; with ``vae``
+    the VAE round trip's too, half of each."""
+    figures = ("frame_error", "action_gap") + (("frame_error_vae", "action_gap_vae") if vae else ())
+    return {f"closed_loop_{what}_{k}": k * x * (1.0 if what.startswith("frame_error") else 0.1)
+                                        * (0.5 if what.endswith("_vae") else 1.0)
+            for k in (1, 2, 10) for what in figures}
 
 
 def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monkeypatch):
@@ -89,14 +92,18 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
     nan = float("nan")
     _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(20, 0.7, 0.54, 0.5)],
            [{"success_rate": 0.2, "kept_fraction": 0.5, "detector_success": 0.4, "detector_agreement": 0.6,
-             "detector_false_success": 0.3, **_loop(0.1)}] * 9
+             "detector_false_success": 0.3, **_loop(0.1, vae=True)}] * 9
            + [{"success_rate": 0.3, "kept_fraction": 0.7, "detector_success": 0.2, "detector_agreement": 0.8,
-               "detector_false_success": nan, **_loop(0.2)}])
+               "detector_false_success": nan, **_loop(0.2, vae=True)}])
+    # a run of the same arm from before the VAE's share was logged
+    _curve(tmp_path / "exec_s1" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(20, 0.7, 0.56, 0.5)],
+           [{"success_rate": 0.2, "kept_fraction": 0.5, "detector_success": 0.4, "detector_agreement": 0.6,
+             "detector_false_success": 0.3, **_loop(0.1)}] * 10)
     _curve(tmp_path / "det_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5), _point(10, 0.6, 0.4, 0.45)],
            [{"success_rate": 0.3, "kept_fraction": 0.4}] * 10)
     os.makedirs(tmp_path / "det_s1" / "rl" / "grpo")  # a run that left no evaluation is not counted
     summary = rs.summarize(str(tmp_path))
-    assert sorted(summary["runs"]) == ["det_s0", "exec_s0", "gt_s0"]
+    assert sorted(summary["runs"]) == ["det_s0", "exec_s0", "exec_s1", "gt_s0"]
     gt, ex, det = (summary["runs"][n] for n in ("gt_s0", "exec_s0", "det_s0"))
     assert gt["sampled"]["gain"] == pytest.approx(0.1) and gt["sampled"]["ci95"][0] < 0.1 < gt["sampled"]["ci95"][1]
     assert gt["paid_success"] == {"first": pytest.approx(0.4), "last": pytest.approx(0.5)} and gt["mixed_median"] == pytest.approx(0.85)
@@ -108,6 +115,12 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
     loop = ex["closed_loop"]  # decisions in numeric order (10 after 2), means over the 10 steps
     assert loop["decisions"] == [1, 2, 10]
     assert loop["frame_error"] == pytest.approx([0.11, 0.22, 1.1]) and loop["action_gap"] == pytest.approx([0.011, 0.022, 0.11])
+    assert loop["frame_error_vae"] == pytest.approx([0.055, 0.11, 0.55])
+    assert loop["action_gap_vae"] == pytest.approx([0.0055, 0.011, 0.055])
+    older = summary["runs"]["exec_s1"]["closed_loop"]  # still summarised, without the VAE's share
+    assert set(older) == {"decisions", "frame_error", "action_gap"}
+    assert older["frame_error"] == pytest.approx([0.1, 0.2, 1.0])
+    rs.print_runs(summary)
     assert det["steps"] == 10 and det["greedy"]["gain"] == pytest.approx(-0.1)
     assert summary["arms"]["det"]["smallest"] == pytest.approx(-0.1) and summary["arms"]["exec"]["steps"] == 20
     monkeypatch.setattr(rs.common, "device_name", lambda: "cpu")
@@ -177,7 +190,7 @@ def test_the_machines_gpus_are_recorded_where_nvidia_smi_answers(tmp_path, monke
     assert rs.common.workdir_device(str(tmp_path)) == "NVIDIA H100 80GB HBM3 x2"
 
 
-def test_closed_loop_summary_from_a_runs_history_or_its_progress_lines(tmp_path):
+def test_closed_loop_summary_from_a_runs_history_or_its_progress_lines(tmp_path, capsys):
     """The closed-loop summary parses the lines :func:`sword_jax.pipeline.grpo.payment_note` writes, pools the
     paid successes over the steps, averages the first and last decisions' figures, reads every decision from a
     history where there is one, and refuses a log without the record."""
@@ -207,7 +220,7 @@ def test_closed_loop_summary_from_a_runs_history_or_its_progress_lines(tmp_path)
         sum(1.0 / i for i in range(3, 13)) / 10)
     assert run["per_decision"] == {"decisions": [1, 2, 3], "frame_error": pytest.approx([0.02, 0.04, 0.06]),
                                    "action_gap": pytest.approx([0.2, 0.4, 0.6])}
-    assert run["source"] == "history"
+    assert run["source"] == "history" and not any("vae" in k for k in run)  # a run without the VAE's share
     # without the history, the progress lines give the same figures but the decisions in between
     (grpo / "train_history.jsonl").unlink()
     from_log = rs.closed_loop_summary([("wm", str(grpo), str(log), str(metrics))], trajectories=8)["wm"]
@@ -215,6 +228,30 @@ def test_closed_loop_summary_from_a_runs_history_or_its_progress_lines(tmp_path)
     assert from_log["paid_success"] == run["paid_success"]
     for key in ("frame_error_first", "frame_error_last", "action_gap_first", "action_gap_last"):
         assert from_log[key] == pytest.approx(run[key], abs=1e-3)
+    assert not any("vae" in k for k in from_log)
+
+    # a run that logged the VAE round trip's share: its progress lines say it at decision 1, the summary keeps it
+    for p in points:
+        for k in range(1, 4):
+            p[f"closed_loop_frame_error_vae_{k}"] = p[f"closed_loop_frame_error_{k}"] / 2
+            p[f"closed_loop_action_gap_vae_{k}"] = p[f"closed_loop_action_gap_{k}"] / 4
+    note = payment_note(points[1], 3)
+    assert note.endswith("greedy action gap 0.300 -> 0.900 (the VAE alone at decision 1: frame error 0.015, gap 0.075)")
+    log.write_text("".join(f"grpo step {p['step']}/2 {payment_note(p, 3)} return 0.1 loss 0.0 eta 1s\n"
+                           for p in points))
+    (grpo / "train_history.jsonl").write_text("".join(json.dumps(p) + "\n" for p in points))
+    run = rs.closed_loop_summary([("wm", str(grpo), str(log), str(metrics))], trajectories=8)["wm"]
+    assert run["frame_error_vae_first"] == pytest.approx(0.01) and run["action_gap_vae_first"] == pytest.approx(0.05)
+    assert run["per_decision"]["frame_error_vae"] == pytest.approx([0.01, 0.02, 0.03])
+    assert run["per_decision"]["action_gap_vae"] == pytest.approx([0.05, 0.1, 0.15])
+    (grpo / "train_history.jsonl").unlink()
+    from_log = rs.closed_loop_summary([("wm", str(grpo), str(log), str(metrics))], trajectories=8)["wm"]
+    for key in ("frame_error_first", "action_gap_last", "frame_error_vae_first", "action_gap_vae_first"):
+        assert from_log[key] == pytest.approx(run[key], abs=1e-3)
+    out = rs.main(["closed-loop", "--run", "wm", str(grpo), str(log), str(metrics), "--trajectories", "8",
+                   "--out", str(tmp_path / "closed_loop.json")])
+    assert out["runs"]["wm"]["action_gap_vae_first"] == from_log["action_gap_vae_first"]
+    assert "the VAE alone at the first: frame error 0.010, gap 0.050" in capsys.readouterr().out
     (tmp_path / "plain.log").write_text(f"grpo step 1/2 {payment_note({'success_rate': 0.5}, 3)} eta 1s\n")
     with pytest.raises(SystemExit, match="holds no step with the closed-loop record"):
         rs.closed_loop_summary([("wm", str(grpo), str(tmp_path / "plain.log"), str(metrics))], trajectories=8)

@@ -269,12 +269,24 @@ def _lagging(sim):
                                observe_fn=lambda params, state: sim.observe_fn(params, state[0]))
 
 
-def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap")):
+def _shifted(sim, shift):
+    """``sim`` with every frame it returns brightened by ``shift`` (not clipped): faithful dynamics seen through
+    a decoder that adds ``shift``."""
+    def step_fn(params, state, chunk, key):
+        state, frames = sim.step_fn(params, state, chunk, key)
+        return state, frames + shift
+
+    return dataclasses.replace(sim, step_fn=step_fn)
+
+
+def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round_trip=None, shift=0.0):
     """The closed-loop figures of the designed toy starts in a toy simulator moving ``step_size`` a step (shown a
-    step late with ``lag``), checked against the toy environment (``STEP``)."""
+    step late with ``lag``, its frames brightened by ``shift``), checked against the toy environment (``STEP``),
+    with ``round_trip`` given to the check."""
     graphdef, params, _, start, env_starts = _designed(CFG)
     sim = toy_simulator(frame_size=8, step_size=step_size, chunk_len=CFG.chunk_len)
     sim = _lagging(sim) if lag else sim
+    sim = _shifted(sim, shift) if shift else sim
     g = CFG.grpo.group_size
 
     def go(key):
@@ -283,13 +295,15 @@ def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap")):
         _, frames = imagined_check.execute_observed(ToyEnv(CFG.success_threshold), jnp.repeat(env_starts, g, axis=0),
                                                     actions, lengths, every=rollout.tokens.shape[2], rows=8)
         return imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=CFG.image_size,
-                                                   action_bins=CFG.action_bins)
+                                                   action_bins=CFG.action_bins, round_trip=round_trip)
 
     out = jax.device_get(jax.jit(go)(jax.random.key(2)))
     c = CFG.imagined.max_chunks
+    # the VAE's share only with a round trip; without one the keys are those of before
+    vae = ("frame_error_vae", "action_gap_vae") if round_trip is not None else ()
     assert sorted(out) == sorted([f"closed_loop_{what}_{k}" for k in range(1, c)
                                   for what in ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev",
-                                               "motion")])
+                                               "motion") + vae])
     return [[out[f"closed_loop_{what}_{k}"] for k in range(1, c)] for what in figures]
 
 
@@ -314,6 +328,51 @@ def test_a_simulator_a_decision_late_matches_the_real_frame_a_decision_earlier()
     np.testing.assert_allclose(faithful_prev, faithful_motion, atol=1e-5)
 
 
+def test_an_identity_round_trip_leaves_no_vae_share():
+    error, gap = _fidelity(STEP, figures=("frame_error_vae", "action_gap_vae"), round_trip=lambda f: f)
+    np.testing.assert_array_equal(error, 0.0)
+    np.testing.assert_array_equal(gap, 0.0)
+
+
+def test_a_decoder_that_shifts_the_frames_is_the_whole_gap_of_a_faithful_simulator():
+    """A simulator with the environment's dynamics whose frames come out brightened by 0.1, and a round trip that
+    brightens the real frames by the same 0.1: the VAE's share is the shift's frame error, and it is the whole
+    closed-loop gap (frame error and greedy action gap alike), read as a decoder, not dynamics, problem."""
+    shift = 0.1
+    error, gap, vae_error, vae_gap, motion = _fidelity(
+        STEP, figures=("frame_error", "action_gap", "frame_error_vae", "action_gap_vae", "motion"),
+        round_trip=lambda f: f + shift, shift=shift)
+    np.testing.assert_allclose(vae_error, shift, atol=1e-6)  # the shift's frame error at the policy's size
+    np.testing.assert_allclose(error, vae_error, atol=1e-6)
+    np.testing.assert_allclose(gap, vae_gap, atol=1e-6)
+    assert min(motion) > 1e-3  # the scene moves: the figures are of real frames that differ decision by decision
+    # a round trip through the same shift beside a simulator that drifts: the VAE's share stays the shift's
+    drift_error, drift_vae = _fidelity(3 * STEP, figures=("frame_error", "frame_error_vae"),
+                                       round_trip=lambda f: f + shift, shift=shift)
+    np.testing.assert_allclose(drift_vae, shift, atol=1e-6)
+    assert max(abs(a - b) for a, b in zip(drift_error, drift_vae)) > 1e-3, "the drift is the dynamics' share"
+
+
+def test_a_simulators_round_trip_runs_in_slices_at_its_frame_size():
+    sim = toy_simulator(frame_size=8, chunk_len=4)
+    with pytest.raises(ValueError, match="no round trip"):
+        sim.round_trip(jnp.zeros((2, 8, 8, 3)))
+    seen = []
+
+    def halve(params, frames):
+        seen.append(frames.shape)
+        return frames * 0.5
+
+    frames = jax.random.uniform(jax.random.key(0), (7, 8, 8, 3))
+    whole = sim.replace(round_trip_fn=halve)
+    np.testing.assert_allclose(whole.round_trip(frames), frames * 0.5)
+    sliced = sim.replace(round_trip_fn=halve, max_slice=3)  # 3 slices of 3, the last padded
+    np.testing.assert_allclose(jax.jit(sliced.round_trip)(frames), frames * 0.5)
+    assert seen[0] == (7, 8, 8, 3) and seen[-1] == (3, 8, 8, 3)
+    flat = jnp.full((2, 16, 16, 3), 0.4)  # frames of another size are resized to the simulator's first
+    np.testing.assert_allclose(whole.round_trip(flat), jnp.full((2, 8, 8, 3), 0.2), atol=1e-6)
+
+
 def test_a_simulator_that_moves_too_far_drifts_from_the_real_frames_decision_by_decision():
     frame_error, action_gap = _fidelity(3 * STEP)
     assert all(e > 1e-3 for e in frame_error), frame_error
@@ -327,6 +386,17 @@ def test_an_executed_step_logs_its_closed_loop_and_is_paid_the_same_without_it()
     for k in range(1, c):  # the toy simulator equals the toy environment
         assert logged[f"closed_loop_frame_error_{k}"] == pytest.approx(0.0, abs=1e-5)
         assert logged[f"closed_loop_action_gap_{k}"] == pytest.approx(0.0, abs=1e-6)
+    assert not any("_vae_" in k for k in logged), "the toy simulator has no round trip of real frames"
+    # a simulator with a round trip (here the identity) logs the VAE's share too: none
+    graphdef, params, sim, start, env_starts = _designed(EXEC)
+    step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
+    _, with_trip = step(grpo.init_state(params, EXEC), (sim.replace(round_trip_fn=lambda p, f: f), NEVER, start,
+                                                        env_starts), jax.random.key(3))
+    with_trip = jax.device_get(with_trip)
+    for k in range(1, c):
+        assert with_trip[f"closed_loop_frame_error_vae_{k}"] == 0.0
+        assert with_trip[f"closed_loop_action_gap_vae_{k}"] == 0.0
+    assert with_trip["loss"] == pytest.approx(logged["loss"]), "the round trip is measured, not trained on"
     off = dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, fidelity_trajectories=0))
     graphdef, params, sim, start, env_starts = _designed(off)
     step = grpo.make_grpo_step(graphdef, off, env=ToyEnv(off.success_threshold), donate=False)

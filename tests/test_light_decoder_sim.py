@@ -66,6 +66,8 @@ def test_the_builder_decodes_with_the_light_decoder_at_the_policy_resolution_and
                                        sample_steps=1)
             for precision in ("float32", "fast")}
     assert {s.frame_size for s in sims.values()} == {POLICY_SIZE} and sims["fast"].max_slice >= 64
+    # its weights hold no VAE encoder: no round trip of real frames (GRPO's closed loop logs no VAE share)
+    assert all(s.round_trip_fn is None for s in sims.values())
     assert light.attributes(*inference_light_decoder(light_graphdef, light_state, "fast"))[3] == "bfloat16"
     start_latents = jax.random.normal(jax.random.key(3), (2, 2, 2, 48))
     start = StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), start_latents)

@@ -568,9 +568,11 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
     assert [p["step"] for p in whole["history"]] == [1, 2]
     for point in whole["history"]:
         assert {"detector_success", "detector_agreement", "detector_false_success"} <= set(point)
-        # and where the closed loop left the real one, decision by decision (decision 0 reads the real start)
+        # and where the closed loop left the real one, decision by decision (decision 0 reads the real start),
+        # with the share of it the world model's VAE alone causes (its round trip of the real frames)
         assert {f"closed_loop_{what}_{k}" for k in range(1, rl.imagined.max_chunks)
-                for what in ("frame_error", "action_gap")} <= set(point)
+                for what in ("frame_error", "action_gap", "frame_error_vae", "action_gap_vae")} <= set(point)
+        assert point["closed_loop_frame_error_vae_1"] > 0.0  # the tiny VAE changes the frames it round-trips
         # the whole horizon runs for every trajectory that did not succeed for real
         assert point["mean_chunks"] <= rl.imagined.max_chunks
     run(str(tmp_path / "split"), 1)

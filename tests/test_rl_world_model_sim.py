@@ -251,6 +251,34 @@ def test_fast_simulator_is_within_tolerance_of_the_float32_path_which_stays_exac
         build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision="bf16", **kw)
 
 
+def test_the_simulators_round_trip_is_its_vaes_still_keyframe_round_trip():
+    """The frame the simulator shows of a real one: the real frame encoded as a still keyframe and decoded by the
+    simulator's own VAE (float32: the loaded VAE's round trip; fast: the same up to its bfloat16 rounding)."""
+    from sword_jax.rl.sim_builder import FAST_FRAME_TOL, build_simulator
+    from sword_jax.rl.world_model_sim import vae_round_trip
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    frames = jax.random.uniform(jax.random.key(2), (3, 32, 32, 3))
+    expected = np.asarray(jax.jit(vae_round_trip(vae_graphdef, vae_state))(frames))
+    latents = encode_keyframes(vae_graphdef, vae_state, frames)
+    decoded = _decoded_last_frame(vae_graphdef, vae_state, latents)
+    np.testing.assert_allclose(expected, decoded, atol=1e-6)
+    assert np.abs(expected - np.asarray(frames)).mean() > 0.01  # a random VAE does change the frames
+    kw = dict(flow_cfg=cfg.flow, frame_size=32, sample_steps=2)
+    for precision, tol in (("float32", 1e-5), ("fast", FAST_FRAME_TOL)):
+        sim = build_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, precision=precision, **kw)
+        trip = np.asarray(jax.jit(lambda s, f: s.round_trip(f))(sim.replace(max_slice=2), frames))
+        assert trip.shape == frames.shape and float(np.abs(trip - expected).max()) <= tol, precision
+
+
+def _decoded_last_frame(vae_graphdef, vae_state, latents):
+    """The last frame of the VAE's decode of ``latents``, in [0, 1]."""
+    from sword_jax.vae import api as vae_api
+
+    video = vae_api.decode(vae_graphdef, vae_state, latents, clamp=True)[:, -1]
+    return np.clip((np.asarray(video) + 1.0) * 0.5, 0.0, 1.0)
+
+
 def test_fast_simulator_stores_the_world_models_bfloat16_layers_in_bfloat16():
     """A bf16-compute world model (the default DiT) keeps its matmul weights in bf16 inside the fast simulator,
     loaded as ``(params, buffers)`` pure dicts or as one state; the float32 path keeps them as loaded."""

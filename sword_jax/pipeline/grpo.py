@@ -181,7 +181,9 @@ def skipped_note(point: dict) -> str:
 def payment_note(point: dict, last: int) -> str:
     """A learned-simulator step's progress note of what its trajectories were paid: the imagined success, or
     with a reward paid by execution the real success beside the detector's verdict, and with the closed-loop
-    record its frame error and greedy action gap at decision 1 and at decision ``last``."""
+    record its frame error and greedy action gap at decision 1 and at decision ``last``, and where the record has
+    them the same two of the VAE's round trip of the real frame at decision 1 (the floor a world model with faithful
+    dynamics would show: :func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`)."""
     paid = (f"real success of the imagined actions {point['success_rate']:.3f} (the detector said "
             f"{point['detector_success']:.3f}, agreeing on {point['detector_agreement']:.2f})"
             if "detector_success" in point else f"imagined success {point['success_rate']:.3f}")
@@ -189,6 +191,9 @@ def payment_note(point: dict, last: int) -> str:
         paid += (f"; closed loop frame error {point['closed_loop_frame_error_1']:.3f} -> "
                  f"{point[f'closed_loop_frame_error_{last}']:.3f}, greedy action gap "
                  f"{point['closed_loop_action_gap_1']:.3f} -> {point[f'closed_loop_action_gap_{last}']:.3f}")
+        if "closed_loop_action_gap_vae_1" in point:
+            paid += (f" (the VAE alone at decision 1: frame error {point['closed_loop_frame_error_vae_1']:.3f}, "
+                     f"gap {point['closed_loop_action_gap_vae_1']:.3f})")
     return paid
 
 

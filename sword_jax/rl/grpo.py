@@ -414,7 +414,9 @@ def make_grpo_step(
     and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
     the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`)
     and, for the first ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
-    the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`).
+    the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's
+    decoder alone causes where the simulator has a round trip of real frames (the world model decoding with its
+    VAE: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
     """
     cfg.validate()
     g, oversample = cfg.grpo.group_size, cfg.imagined.oversample
@@ -438,9 +440,11 @@ def make_grpo_step(
             if observed:  # the real frames at each decision's end too: where the closed loop leaves reality
                 real_first, real_frames = imagined_check.execute_observed(
                     env, env_starts, actions, lengths, every=rollout.tokens.shape[2], rows=observed)
+                # with the simulator's decoder round trip (the world model's VAE), that decoder's share of it
+                round_trip = simulator.round_trip if getattr(simulator, "round_trip_fn", None) else None
                 extra.update(imagined_check.closed_loop_fidelity(graphdef, state.params, rollout, real_frames,
                                                                  image_size=cfg.image_size,
-                                                                 action_bins=cfg.action_bins))
+                                                                 action_bins=cfg.action_bins, round_trip=round_trip))
             else:
                 real_first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
             extra.update(imagined_check.detector_metrics(rollout, real_first >= 0, cfg.success_threshold))

@@ -17,6 +17,7 @@ one score per decision).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -118,7 +119,8 @@ def greedy_actions(policy: Any, frames: Float[Array, "n s s 3"], instruction_tok
 
 
 def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_frames: Any, *, image_size: int,
-                         action_bins: int) -> dict[str, Float[Array, ""]]:
+                         action_bins: int, round_trip: Callable[[Array], Array] | None = None
+                         ) -> dict[str, Float[Array, ""]]:
     """Where the closed loop through the simulator leaves the real one, decision by decision.
 
     ``real_frames [m, C, H, W, 3]`` (:func:`execute_observed`) are the real frames the first ``m`` trajectories'
@@ -136,7 +138,19 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     frame for ``k = 1``), and ``closed_loop_motion_k``, how far the real frame moved over the decision (the same
     two real frames). A simulator that shows the scene before the actions moved it (a lag of a decision, or a
     scene that does not move) has the ``_prev`` figures near 0 and ``frame_error`` near ``motion``; its image
-    errors (a blur, a colour shift) move the frame error far more than the greedy actions."""
+    errors (a blur, a colour shift) move the frame error far more than the greedy actions.
+
+    ``round_trip`` (frames ``[n, H, W, 3]`` in [0, 1] at the real frames' size -> the frames the simulator's
+    decoder shows of them, at its frame size: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`,
+    the world model's VAE round trip) splits each decision's error into the decoder's share and the dynamics'.
+    It runs on the real frames at their own resolution, before the resize to the policy's size (the simulator
+    decodes at its frame size, the rollout resizes afterwards), and adds per decision
+    ``closed_loop_frame_error_vae_k``, the round-tripped real frame against the real frame (at the policy's size),
+    and ``closed_loop_action_gap_vae_k``, the greedy actions on the two: the floor a world model that predicted
+    the real scene's latents exactly would still show through this decoder. ``frame_error`` near
+    ``frame_error_vae`` and ``action_gap`` near ``action_gap_vae`` say the world model's dynamics are faithful and
+    the VAE is what the policy misreads; the excess over them is the dynamics'. A world model decoding with the
+    light decoder has no round trip (its weights hold no VAE encoder): its runs log no ``_vae`` figures."""
     m, c = real_frames.shape[:2]
     if rollout.obs_frames.shape[1] != c or m > rollout.obs_frames.shape[0]:
         raise ValueError(f"closed_loop_fidelity: real frames {real_frames.shape[:2]} do not match the rollout's "
@@ -160,10 +174,16 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     real_prev = jnp.concatenate([resize_frames(rollout.obs_frames[:m, :1], image_size), real[:, :-1]], axis=1)
     error = lambda a, b: jnp.mean(jnp.abs(a - b), axis=(2, 3, 4))  # noqa: E731 - (m, C - 1, s, s, 3) -> (m, C - 1)
     gap = lambda a, b: jnp.mean(jnp.abs(a - b), axis=-1).reshape(m, c - 1)  # noqa: E731 - greedy actions' gap
-    on_imagined = greedy(imagined)
-    figures = {"frame_error": error(imagined, real), "action_gap": gap(on_imagined, greedy(real)),
+    on_imagined, on_real = greedy(imagined), greedy(real)
+    figures = {"frame_error": error(imagined, real), "action_gap": gap(on_imagined, on_real),
                "frame_error_prev": error(imagined, real_prev), "action_gap_prev": gap(on_imagined, greedy(real_prev)),
                "motion": error(real, real_prev)}
+    if round_trip is not None:  # the real frames through the simulator's decoder, at their own size, then resized
+        seen = real_frames[:, :-1]
+        seen = seen.astype(jnp.float32) / jnp.float32(255.0) if seen.dtype == jnp.uint8 else seen.astype(jnp.float32)
+        tripped = round_trip(seen.reshape((m * (c - 1),) + seen.shape[2:]))
+        tripped = resize_frames(tripped.reshape((m, c - 1) + tripped.shape[1:]), image_size)
+        figures.update(frame_error_vae=error(tripped, real), action_gap_vae=gap(greedy(tripped), on_real))
     count = jnp.maximum(jnp.sum(taken, axis=0), 1.0)
     for name, per_trajectory in figures.items():
         per_decision = jnp.sum(per_trajectory * taken, axis=0) / count

@@ -8,6 +8,10 @@ leaves and three pure functions as static fields, all for ONE trajectory (the ro
   (``T = chunk_len`` actions in, the first ``E = frames_per_step`` of them executed)
 * ``observe_fn(params, sim_state) -> (proprio [P], proprio_valid [])``
 
+and optionally, for a whole batch, ``round_trip_fn(params, frames [n, S, S, 3]) -> frames [n, S, S, 3]``
+(``S = frame_size``, in [0, 1]): a real frame as the simulator's decoder shows it when its latents are the real
+scene's (the world model's VAE round trip), what :meth:`LearnedSimulator.round_trip` runs.
+
 Passing the simulator as a jit *argument* keeps multi-GB world-model weights out of the
 compiled program's constants. The world-model implementation lives in
 :mod:`sword_jax.rl.world_model_sim`; :func:`toy_simulator` implements the same protocol with an
@@ -59,6 +63,8 @@ class LearnedSimulator:
     action_dim: int = struct.field(pytree_node=False, default=7)  # each action of a chunk [chunk_len, action_dim]
     # trajectories one simulator microbatch may hold (rl.imagined.sim_microbatches=0 chooses by it); None = no limit
     max_slice: int | None = struct.field(pytree_node=False, default=None)
+    # frames -> the frames its decoder would show of them (the module docstring); None = the simulator has none
+    round_trip_fn: Callable | None = struct.field(pytree_node=False, default=None)
 
     @property
     def frames_per_step(self) -> int:
@@ -74,6 +80,24 @@ class LearnedSimulator:
 
     def observe(self, sim_state: Any) -> tuple[Float[Array, " p"], Float[Array, ""]]:
         return self.observe_fn(self.params, sim_state)
+
+    def round_trip(self, frames: Float[Array, "n h w 3"]) -> Float[Array, "n s s 3"]:
+        """``frames [n, H, W, 3]`` in [0, 1] as the simulator's decoder shows them (``round_trip_fn``), at its
+        ``frame_size`` (frames of another size are resized to it first), ``max_slice`` frames at a time."""
+        if self.round_trip_fn is None:
+            raise ValueError("this simulator has no round trip of real frames (round_trip_fn)")
+        n, size = frames.shape[0], self.frame_size
+        frames = frames.astype(jnp.float32)
+        if frames.shape[1:3] != (size, size):
+            frames = jax.image.resize(frames, (n, size, size, frames.shape[-1]), method="linear", antialias=True)
+        per_slice = min(self.max_slice or n, n)
+        if per_slice == n:
+            return self.round_trip_fn(self.params, frames)
+        slices = -(-n // per_slice)
+        padded = jnp.concatenate([frames, jnp.repeat(frames[-1:], slices * per_slice - n, axis=0)])
+        out = jax.lax.map(lambda some: self.round_trip_fn(self.params, some),
+                          padded.reshape((slices, per_slice) + frames.shape[1:]))
+        return out.reshape((slices * per_slice,) + out.shape[2:])[:n]
 
 
 @struct.dataclass

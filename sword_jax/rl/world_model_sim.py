@@ -46,6 +46,10 @@ from sword_jax.world_model.config import FlowConfig
 from sword_jax.world_model.rollout import make_pixel_round_trip, predict_chunk
 
 
+# frames [n, H, W, 3] in [0, 1] -> the same frames as a codec shows them
+RoundTrip = Callable[[Float[Array, "n h w 3"]], Float[Array, "n h w 3"]]
+
+
 class WMState(NamedTuple):
     first_latent: Float[Array, "1 1 h w c"]
     context: Float[Array, "1 k h w c"]
@@ -80,6 +84,31 @@ def light_stream_decoder(graphdef: nnx.GraphDef) -> StreamDecoder:
 def to_unit(video: Float[Array, "..."]) -> Float[Array, "..."]:
     """VAE video in [-1, 1] -> frames in [0, 1]."""
     return jnp.clip((video.astype(jnp.float32) + 1.0) * jnp.float32(0.5), 0.0, 1.0)
+
+
+def still_round_trip(codec: Callable[[Array], Array], frames_per_latent: int) -> RoundTrip:
+    """Frames ``[n, H, W, 3]`` in [0, 1] each held still for ``1 + frames_per_latent`` frames (the causal VAE's
+    first latent holds one frame, each later one ``frames_per_latent``; the world model's frames come from later
+    latents), passed through ``codec`` (video ``[n, T, H, W, 3]`` in [-1, 1] -> the same) and the last frame
+    back in [0, 1] (:func:`to_unit`)."""
+
+    def round_trip(frames: Float[Array, "n h w 3"]) -> Float[Array, "n h w 3"]:
+        still = jnp.repeat(frames.astype(jnp.float32)[:, None] * 2.0 - 1.0, 1 + frames_per_latent, axis=1)
+        return to_unit(codec(still)[:, -1])
+
+    return round_trip
+
+
+def vae_round_trip(vae_graphdef: nnx.GraphDef, vae_state: Any) -> RoundTrip:
+    """:func:`still_round_trip` through the VAE: :func:`sword_jax.vae.api.encode` as a still keyframe is encoded
+    for the world model (:func:`encode_keyframes`), then ``decode`` (clamped). The frame the VAE shows of a real
+    one: what a world model that predicted the real scene's latents exactly would show, decoded by this VAE."""
+
+    def codec(video: Array) -> Array:
+        latents = vae_api.encode(vae_graphdef, vae_state, video, check_values=False)
+        return vae_api.decode(vae_graphdef, vae_state, latents, clamp=True, check_values=False)
+
+    return still_round_trip(codec, vae_api.factors(vae_graphdef, vae_state)[0])
 
 
 def encode_keyframes(
@@ -160,6 +189,11 @@ def world_model_simulator(
         (:mod:`sword_jax.vae.light_decoder`); ``frame_size`` is then its output size and ``latent_size``
         (default ``frame_size`` over its scale) the world model's. The simulator's parameters are
         ``(wm_state, light_state)``; ``flow_cfg.pixel_round_trip`` (which re-encodes the VAE's frames) is refused.
+
+    With the VAE's decoder the simulator's ``round_trip`` is :func:`vae_round_trip` through its own VAE weights
+    (as it decodes them, its second parameter entry; the builder's ``fast`` precision encodes in bfloat16 too):
+    the frame it would show of a real one if its latents were the real scene's. With a light decoder it has none
+    (its parameters hold no VAE encoder).
 
     ``StartState.latents`` is ``[1 + num_context, h, w, z]`` (then every conditioning frame carries
     a zero action, as for a keyframe held still: :func:`encode_keyframes`) or a pair ``(latents,
@@ -243,5 +277,9 @@ def world_model_simulator(
         del params
         return state.proprio[:proprio_dim], jnp.float32(0.0 if proprio_reckoning is None else 1.0)
 
+    def round_trip_fn(params, frames):
+        return vae_round_trip(vae_graphdef, params[1])(frames)
+
     return LearnedSimulator(params=(wm_state, decoder_state), init_fn=init_fn, step_fn=step_fn, observe_fn=observe_fn,
-                            chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len, action_dim=action_dim)
+                            chunk_len=chunk_len, frame_size=frame_size, execute_len=execute_len, action_dim=action_dim,
+                            round_trip_fn=round_trip_fn if light_decoder is None else None)
