@@ -32,7 +32,8 @@ would still cause through that VAE.
 With ``--lag-episodes-per-task N`` it also measures what one decision of lag costs in real success: whole
 episodes from rest, sampled at ``rl.grpo.temperature``, once reading the real frames and once reading at each
 decision the frame of the decision before (:class:`LaggedEnvs`: a simulator that shows the scene a decision
-late, or does not move it), on the same evaluation states.
+late, or does not move it), on the same evaluation states. ``--lag-proprio true,missing`` measures it once per
+proprio input: whether a policy that reads the arm's true (or dead-reckoned) state still needs the current frame.
 """
 
 from __future__ import annotations
@@ -120,12 +121,15 @@ class LaggedEnvs(_LockstepView):
         return shown
 
 
-def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, tasks: Sequence[int], key: jax.Array
-                ) -> dict[str, Any]:
-    """Whole episodes in ``envs`` sampled at ``rl.grpo.temperature`` with proprio missing, reading the real frames
-    (``real``) and the frames of the decision before (``lag_1``, :class:`LaggedEnvs`), with the same key;
-    their success (:func:`~sword_jax.rl.policy_success.success_summary`) and the difference lag - real with its
-    95% interval."""
+def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, tasks: Sequence[int], key: jax.Array,
+                proprio: str = "missing", reckoning: Any = None) -> dict[str, Any]:
+    """Whole episodes in ``envs`` sampled at ``rl.grpo.temperature``, reading the real frames (``real``) and the
+    frames of the decision before (``lag_1``, :class:`LaggedEnvs`), with the same key; their success
+    (:func:`~sword_jax.rl.policy_success.success_summary`) and the difference lag - real with its 95% interval.
+
+    ``proprio``: what the policy reads as proprio (:func:`~sword_jax.rl.env_rollout.run_policy`): ``missing`` (the
+    mode GRPO in the world model trains), ``true`` (the environment's, current even when the frame is late) or
+    ``reckoned`` (integrated from the actions with ``reckoning``, what the learned simulator can report)."""
     from sword_jax.rl.env_rollout import difference_interval
     from sword_jax.rl.policy_success import success_summary
 
@@ -133,7 +137,7 @@ def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, ta
     for name, seen in (("real", envs), ("lag_1", LaggedEnvs(envs))):
         start = time.time()
         rollout = run_policy(act, params, seen, rl, key=key, greedy=False, max_steps=max_steps, record=False,
-                             proprio="missing")
+                             proprio=proprio, reckoning=reckoning)
         out[name] = success_summary(np.asarray(rollout.success), tasks, time.time() - start)
     real, lag = out["real"], out["lag_1"]
     out["difference"] = {"mean": lag["mean"] - real["mean"],
@@ -291,11 +295,21 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         "adds the view vae, the frames' round trip through it")
     parser.add_argument("--lag-episodes-per-task", type=int, default=0,
                         help="also the real success of whole episodes read with one decision of lag (0 = off)")
+    parser.add_argument("--lag-proprio", default="missing",
+                        help="comma list of true, reckoned, missing: the lag measured with the policy reading that "
+                        "proprio (reckoned: the policy's .reckoning.json beside it)")
     args = parser.parse_args(rest)
     try:
         views = parse_views(args.views, vae=bool(args.vae))
     except ValueError as err:
         raise SystemExit(f"bench_action_gap: {err}") from None
+    lag_proprio = [m for m in args.lag_proprio.split(",") if m]
+    if not lag_proprio or set(lag_proprio) - {"true", "reckoned", "missing"} or len(set(lag_proprio)) < len(lag_proprio):
+        raise SystemExit(f"bench_action_gap: --lag-proprio must list some of true, reckoned, missing once each, got "
+                         f"{args.lag_proprio!r}")
+    reckoning_file = os.path.splitext(args.policy)[0] + ".reckoning.json"  # where bench_policy sft saves it
+    if "reckoned" in lag_proprio and not os.path.isfile(reckoning_file):
+        raise SystemExit(f"bench_action_gap: --lag-proprio reckoned needs the policy's reckoning {reckoning_file}")
     if args.episodes_per_task < 1 or args.decisions < 1 or args.lag_episodes_per_task < 0:
         raise SystemExit(f"bench_action_gap: --episodes-per-task and --decisions must be >= 1 and "
                          f"--lag-episodes-per-task >= 0, got {args.episodes_per_task}, {args.decisions} and "
@@ -339,15 +353,25 @@ def main(argv: Sequence[str] | None = None) -> dict:
     }
     if args.lag_episodes_per_task:
         lag_episodes = sim_tasks.evaluation_episodes(list(cfg.sim.tasks), args.lag_episodes_per_task)
+        from sword_jax.rl.proprio_reckoning import load_reckoning
+
+        reckoning = load_reckoning(reckoning_file) if "reckoned" in lag_proprio else None
+        by_proprio = {}
         with LockstepEnvs(lag_episodes, resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps) as envs:
-            results["lag"] = lag_success(make_act_fns(graphdef, rl), params, envs, rl, max_steps=cfg.sim.max_steps,
-                                         tasks=[t for t, _ in lag_episodes], key=jax.random.key(cfg.seed))
-        results["lag"]["mode"] = (f"sampled at T {rl.grpo.temperature}, proprio missing, {rl.env.execute_steps} "
-                                  f"actions a decision, {cfg.sim.max_steps} actions from rest")
-        lag = results["lag"]
-        print(f"[gap] success over {lag['real']['episodes']} episodes: real {lag['real']['mean']:.3f}, a decision "
-              f"late {lag['lag_1']['mean']:.3f} ({lag['difference']['mean']:+.3f} [{lag['difference']['ci95'][0]:+.3f}, "
-              f"{lag['difference']['ci95'][1]:+.3f}])", flush=True)
+            for mode in lag_proprio:
+                lag = lag_success(make_act_fns(graphdef, rl), params, envs, rl, max_steps=cfg.sim.max_steps,
+                                  tasks=[t for t, _ in lag_episodes], key=jax.random.key(cfg.seed), proprio=mode,
+                                  reckoning=reckoning)
+                lag["mode"] = (f"sampled at T {rl.grpo.temperature}, proprio {mode}, {rl.env.execute_steps} actions a "
+                               f"decision, {cfg.sim.max_steps} actions from rest")
+                by_proprio[mode] = lag
+                print(f"[gap] success over {lag['real']['episodes']} episodes, proprio {mode}: real "
+                      f"{lag['real']['mean']:.3f}, a decision late {lag['lag_1']['mean']:.3f} "
+                      f"({lag['difference']['mean']:+.3f} [{lag['difference']['ci95'][0]:+.3f}, "
+                      f"{lag['difference']['ci95'][1]:+.3f}])", flush=True)
+        results["lag"] = by_proprio[lag_proprio[0]]  # the first mode listed (missing by default)
+        if len(lag_proprio) > 1:
+            results["lag_by_proprio"] = by_proprio
     results["seconds"] = {"episodes": round(episode_seconds, 1), "all": round(time.time() - start, 1)}
     print(f"[gap] {results['frames']} frames of {len(episodes)} episodes, {results['seconds']['all']}s; "
           f"greedy action gap and frame error (mean [95% interval])", flush=True)

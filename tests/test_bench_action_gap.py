@@ -137,6 +137,12 @@ def test_lagged_environments_show_the_frame_of_the_decision_before():
     assert out["difference"]["mean"] == out["lag_1"]["mean"] - out["real"]["mean"]
     lo, hi = out["difference"]["ci95"]
     assert lo <= out["difference"]["mean"] <= hi
+    with_proprio = ag.lag_success(make_act_fns(graphdef, rl), params, plain, rl, max_steps=8, tasks=[0, 0],
+                                  key=jax.random.key(0), proprio="true")
+    assert with_proprio["real"]["episodes"] == 2
+    with pytest.raises(ValueError, match="proprio"):
+        ag.lag_success(make_act_fns(graphdef, rl), params, plain, rl, max_steps=8, tasks=[0, 0],
+                       key=jax.random.key(0), proprio="reckoned")  # reckoned needs the action convention
 
 
 def test_consecutive_decisions_and_the_summary_over_episodes():
@@ -173,6 +179,12 @@ def test_bad_arguments_are_refused_before_anything_runs():
         ag.main(base + ["--views", "lag_1"])
     with pytest.raises(SystemExit, match="--lag-episodes-per-task >= 0"):
         ag.main(base + ["--lag-episodes-per-task", "-1"])
+    with pytest.raises(SystemExit, match="--lag-proprio must list some of true, reckoned, missing once each"):
+        ag.main(base + ["--lag-proprio", "true,true"])
+    with pytest.raises(SystemExit, match="--lag-proprio must list"):
+        ag.main(base + ["--lag-proprio", "exact"])
+    with pytest.raises(SystemExit, match="needs the policy's reckoning missing.reckoning.json"):
+        ag.main(base + ["--lag-proprio", "missing,reckoned"])
     assert ag.parse_views("dim_20pct,real") == ["dim_20pct", "real"]
     assert ag.parse_views("dim_20pct,real", vae=True) == ["dim_20pct", "real", "vae"]  # --vae adds its view
     assert ag.parse_views("vae,real", vae=True) == ["vae", "real"]
@@ -185,11 +197,16 @@ def test_a_small_run_on_the_c_engine_writes_its_table(tmp_path):
     save_params_npz(path, build_policy(cfg.rl, seed=cfg.seed)[1])
     argv = ["--config", "sword:tiny", "--sim.tasks=0", "--rl.imagined.execute_steps=4",
             "--policy", path, "--episodes-per-task", "2", "--decisions", "2", "--views", "real,dim_20pct",
-            "--out", str(tmp_path / "out")]
+            "--out", str(tmp_path / "out"), "--lag-episodes-per-task", "1", "--lag-proprio", "true,missing",
+            "--sim.max_steps=8"]
     results = ag.main(argv)
     with open(tmp_path / "out" / "action_gap.json") as f:
         assert json.load(f) == json.loads(json.dumps(results))
     assert results["episodes"] == 2 and results["frames"] == 4 and results["argv"] == argv
+    by_proprio = results["lag_by_proprio"]
+    assert list(by_proprio) == ["true", "missing"] and results["lag"] == by_proprio["true"]  # the first listed
+    assert "proprio true" in by_proprio["true"]["mode"] and "proprio missing" in by_proprio["missing"]["mode"]
+    assert all(lag[k]["episodes"] == 1 for lag in by_proprio.values() for k in ("real", "lag_1"))
     assert list(results["views"]) == ["real", "dim_20pct"]
     real, dim = results["views"]["real"], results["views"]["dim_20pct"]
     assert real["action_gap"]["mean"] == 0.0 and real["frame_error"]["mean"] == 0.0
