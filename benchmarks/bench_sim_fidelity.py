@@ -1,0 +1,502 @@
+"""Which VAE lets the policy read the learned simulator's frames: its success on frames round-tripped through
+each VAE variant, and what its actions chosen in each variant's world model earn in reality.
+
+The policy succeeds far less often on frames round-tripped through the pipeline's VAE than on the real ones, and
+its actions chosen on the world model's frames rarely succeed in reality (``bench_policy_view --views real,vae``;
+the ``exec`` arm of :mod:`benchmarks.bench_grpo_reward_source`). This benchmark trains Sword's ``small`` pipeline
+(through the reward model, with ``--policy``'s own episodes in the data) once per VAE variant (:data:`VARIANTS`:
+``base``; ``vae8x``, an 8x spatial VAE with 16x16 latents at 128 px; ``lpips``, a VAE trained with LPIPS beside
+its pixel loss) and measures, per variant:
+
+* ``view_<variant>``: the policy's success on MJX on real frames and on frames round-tripped through that VAE
+  (:mod:`benchmarks.bench_policy_view`, sampled at T 0.5, 4 actions a decision), the difference with its 95%
+  interval, and how far the round trip moves the start frames (0-255 levels);
+* ``exec_<variant>``: GRPO in that variant's world model paid by the real outcome of its imagined actions
+  (:mod:`benchmarks.bench_grpo_reward_source`'s recipe, ``rl.imagined.reward=executed``), for its closed-loop
+  record: what its trajectories were paid, and per decision the frame error and greedy action gap against
+  reality, with the VAE alone's share where logged.
+
+With ``--decoded-sft`` the policy is also fine-tuned on frames of which ``--decoded-fraction`` went through the
+``base`` VAE (``bench_policy sft``, ``rl.sft.decoded_fraction``), and that decoder-aware policy is measured the
+same way in the ``base`` VAE and world model (``view_base_dec``, ``exec_base_dec``)::
+
+    python -m benchmarks.bench_sim_fidelity run --workdir runs/fid --policy runs/p/policy_d50.npz \\
+        --gpus 0,1,2,3 --variants base,vae8x,lpips --decoded-sft --vae-steps 1000 --world-model-steps 12000 \\
+        --exec-steps 2 --rollout-batch 64 --view-episodes-per-task 20 --eval-episodes-per-task 10 \\
+        --sft-steps 1000 --decoded-fraction 0.5 [--deadline-s 1500]
+    python -m benchmarks.bench_sim_fidelity summary --workdir runs/fid \\
+        --out benchmarks/results/policy/sim_fidelity_small [--record]
+
+``run`` places variant i's pipeline on GPU ``i mod n``; its view probe starts there once its VAE is trained
+(``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/reward_model.json``). The
+decoder-aware SFT takes the first GPU no pipeline uses (else the last) once the ``base`` VAE exists, and its
+probe and ``exec`` run follow it there. A job whose input can no longer appear (its maker ended without it) is
+skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
+deadline stops the whole process groups still going. On a shared GPU each process is capped
+(``XLA_PYTHON_CLIENT_MEM_FRACTION``, :func:`memory_fractions`): 90% of the GPU is split in proportion to
+:data:`WEIGHTS` among the jobs that can run there at once, so no set of jobs that can overlap asks for more than
+90%. The world model's training weighs most; a pipeline counts once though its stages run two at a time, the one
+beside the world model being the small success detector (each stage process gets the pipeline's cap).
+
+``summary`` (also written by ``run``, to ``<workdir>/sim_fidelity_summary.json``) gives each variant's VAE and
+world-model losses, its view figures and its closed-loop record (``--rollout-batch`` x 8 trajectories a step, as
+run); parts a run did not leave are named missing. ``--record`` writes ``policy_sim_fidelity_small`` to
+``benchmarks/results/latest.json``: the best success on round-tripped frames, beside every variant's figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import math
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from benchmarks import common
+from benchmarks.bench_grpo_refresh import pipeline_command
+from benchmarks.bench_grpo_reward_source import RECIPE, WORLD_MODEL, closed_loop_summary, pipeline
+from sword_jax import cli
+from sword_jax.pipeline.launch import NO_MULTICAST
+
+# variant -> the config overrides of its VAE, given to every command that trains or loads that VAE
+VARIANTS: dict[str, tuple[str, ...]] = {
+    "base": (),
+    "vae8x": ("--vae.dim_mult=1,4,4", "--vae.temporal_downsample=true,true"),  # 8x spatial: 16x16 latents at 128 px
+    "lpips": ("--vae.perceptual_weight=1.0",),
+}
+VIEW_FLAGS = ("--rl.grpo.temperature=0.5", "--rl.imagined.execute_steps=4")  # the learned simulator's mode
+DECODED = "base_dec"  # the decoder-aware policy's runs: view_base_dec, exec_base_dec (in the base VAE)
+SFT = "policy_dec"
+SFT_POLICY = "policy_d50.npz"  # bench_policy sft --demos-per-task 50, no --tag
+# a job's share of a GPU by kind: the world model's training, GRPO in a world model, the decoder-aware SFT, a probe
+WEIGHTS = {"pipeline": 3.0, "exec": 2.0, "policy": 2.0, "view": 1.0}
+GPU_SHARE = 0.9
+GROUP_SIZE = 8  # RECIPE's --rl.grpo.group_size
+
+
+@dataclasses.dataclass(frozen=True)
+class Need:
+    """A file a job waits for: ``job`` writes it, ``final`` as that job ends (so the two never overlap)."""
+    job: str
+    path: str
+    final: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """One process of the run: its command, its GPU and the files it starts after."""
+    name: str
+    command: tuple[str, ...]
+    gpu: str
+    needs: tuple[Need, ...] = ()
+
+    @property
+    def share(self) -> float:
+        """Its weight (:data:`WEIGHTS`, by the kind its name starts with)."""
+        return WEIGHTS[self.name.split("_")[0]]
+
+
+def pipe_dir(workdir: str, variant: str) -> str:
+    return os.path.join(workdir, f"pipeline_{variant}")
+
+
+def vae_dir(workdir: str, variant: str) -> str:
+    return os.path.join(pipe_dir(workdir, variant), "vae_run", "vae")
+
+
+def sft_policy(workdir: str) -> str:
+    return os.path.join(workdir, SFT, SFT_POLICY)
+
+
+def view_command(args, variant: str, policy: str, out: str) -> tuple[str, ...]:
+    return (sys.executable, "-m", "benchmarks.bench_policy_view", "--config", args.config, *VARIANTS[variant],
+            "--policy", policy, "--views", "real,vae", "--vae", vae_dir(args.workdir, variant),
+            "--episodes-per-task", str(args.view_episodes_per_task), "--out", out, *VIEW_FLAGS)
+
+
+def exec_command(args, variant: str, policy: str, name: str) -> tuple[str, ...]:
+    """``train.grpo`` in ``variant``'s world model paid by execution (bench_grpo_reward_source's ``exec`` arm)."""
+    pipe = pipe_dir(args.workdir, variant)
+    return (sys.executable, "-m", "train.grpo", "--config", args.config, *VARIANTS[variant], "--simulator",
+            "world_model", "--world-model", os.path.join(pipe, "world_model"), "--vae", vae_dir(args.workdir, variant),
+            "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", os.path.join(pipe, "data", "demos.hdf5"),
+            "--policy", policy, "--seed", "0", "--workdir", os.path.join(args.workdir, name), *RECIPE, *WORLD_MODEL,
+            f"--rl.grpo.eval_episodes_per_task={args.eval_episodes_per_task}", "--rl.imagined.reward=executed",
+            f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.exec_steps}",
+            "--rl.grpo.eval_every=100")
+
+
+def sft_command(args, variant: str = "base") -> tuple[str, ...]:
+    """``bench_policy sft``: the policy fine-tuned with ``--decoded-fraction`` of its frames through the VAE."""
+    return (sys.executable, "-m", "benchmarks.bench_policy", "sft", "--config", args.config, *VARIANTS[variant],
+            "--out", os.path.join(args.workdir, SFT), "--demos-per-task", "50", "--execute", "ens", "--workers", "14",
+            "--eval-episodes", "50", "--gen-procs-per-task", "4", f"--rl.sft.init={os.path.abspath(args.policy)}",
+            f"--rl.sft.decoded_fraction={args.decoded_fraction}", f"--rl.sft.steps={args.sft_steps}",
+            "--vae", vae_dir(args.workdir, variant))
+
+
+def sft_gpu(args) -> str:
+    """The decoder-aware SFT's GPU: the first no variant's pipeline uses, else the last."""
+    used = {args.gpus[i % len(args.gpus)] for i in range(len(args.variants))}
+    return next((g for g in args.gpus if g not in used), args.gpus[-1])
+
+
+def plan(args) -> dict[str, Job]:
+    """Every job of the run (module docstring), in launch order where several are ready at once."""
+    policy = os.path.abspath(args.policy)
+    jobs = []
+    for i, variant in enumerate(args.variants):
+        gpu, pipe = args.gpus[i % len(args.gpus)], pipe_dir(args.workdir, variant)
+        vae_done = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False)
+        built = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "reward_model.json"), True)
+        command = pipeline_command(pipeline(args), VARIANTS[variant], name=f"pipeline_{variant}")
+        view = view_command(args, variant, policy, os.path.join(args.workdir, f"view_{variant}"))
+        jobs += [Job(f"pipeline_{variant}", tuple(command), gpu),
+                 Job(f"view_{variant}", view, gpu, (vae_done,)),
+                 Job(f"exec_{variant}", exec_command(args, variant, policy, f"exec_{variant}"), gpu, (built,))]
+    if args.decoded_sft:
+        gpu, pipe, dec = sft_gpu(args), pipe_dir(args.workdir, "base"), sft_policy(args.workdir)
+        saved = Need(SFT, os.path.splitext(dec)[0] + ".reckoning.json", False)  # written after the policy
+        view = view_command(args, "base", dec, os.path.join(args.workdir, f"view_{DECODED}"))
+        jobs += [Job(SFT, sft_command(args), gpu, (Need("pipeline_base", os.path.join(pipe, "stages", "vae.json"), False),)),
+                 Job(f"view_{DECODED}", view, gpu, (saved,)),
+                 Job(f"exec_{DECODED}", exec_command(args, "base", dec, f"exec_{DECODED}"), gpu,
+                     (Need("pipeline_base", os.path.join(pipe, "stages", "reward_model.json"), True),
+                      Need(SFT, os.path.join(args.workdir, SFT, "sft_results.json"), True)))]
+    return {job.name: job for job in jobs}
+
+
+def starts_after_end(jobs: dict[str, Job], later: str, earlier: str) -> bool:
+    """Whether job ``later`` can start only after job ``earlier`` has ended (it needs a file ``earlier`` writes as
+    it ends, or one of a job that starts only then)."""
+    return any((n.job == earlier and n.final) or (n.job in jobs and starts_after_end(jobs, n.job, earlier))
+               for n in jobs[later].needs)
+
+
+def can_overlap(jobs: dict[str, Job], a: str, b: str) -> bool:
+    """Whether jobs ``a`` and ``b`` can run at the same time (neither starts only after the other's end)."""
+    return not (starts_after_end(jobs, a, b) or starts_after_end(jobs, b, a))
+
+
+def memory_fractions(jobs: dict[str, Job]) -> dict[str, float]:
+    """``XLA_PYTHON_CLIENT_MEM_FRACTION`` of each process of the jobs that share a GPU with another: 90% of it times
+    the job's weight over the largest total weight of jobs that can run there at once with it (none follows
+    another's end), so no such set asks for more than 90% together."""
+    out = {}
+    for gpu in dict.fromkeys(j.gpu for j in jobs.values()):
+        here = [n for n in jobs if jobs[n].gpu == gpu]
+        if len(here) < 2:
+            continue
+        together = [c for r in range(1, len(here) + 1) for c in itertools.combinations(here, r)
+                    if all(can_overlap(jobs, a, b) for a, b in itertools.combinations(c, 2))]
+        for name in here:
+            most = max(sum(jobs[n].share for n in c) for c in together if name in c)
+            out[name] = math.floor(1000 * GPU_SHARE * jobs[name].share / most) / 1000  # rounded down: never above
+    return out
+
+
+def stop_groups(procs: Sequence[subprocess.Popen], grace_s: float = 20.0) -> list[subprocess.Popen]:
+    """SIGTERM to the process groups still running (a pipeline's stage processes with it), then SIGKILL to each
+    group once its leader has ended or after ``grace_s`` (what of the group outlived its leader goes too); returns
+    the processes that were running."""
+    running = [p for p in procs if p.poll() is None]
+
+    def signal_group(p: subprocess.Popen, sig: int) -> None:
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    for p in running:
+        signal_group(p, signal.SIGTERM)
+    deadline = time.perf_counter() + grace_s
+    for p in running:
+        try:
+            p.wait(timeout=max(deadline - time.perf_counter(), 0.1))
+        except subprocess.TimeoutExpired:
+            pass
+        signal_group(p, signal.SIGKILL)
+        p.wait()
+    return running
+
+
+def blocked_by(job: Job, procs: dict[str, subprocess.Popen], skipped: dict[str, str]) -> Need | None:
+    """The needed file ``job`` can no longer get (its maker was skipped, or ended without it), if any."""
+    for need in job.needs:
+        ended = need.job in skipped or (need.job in procs and procs[need.job].poll() is not None)  # before the file
+        if ended and not os.path.exists(need.path):
+            return need
+    return None
+
+
+def run(args, *, poll_s: float = 5.0) -> dict:
+    """Every job as its inputs appear (module docstring); the summary at the end."""
+    os.makedirs(args.workdir, exist_ok=True)
+    common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    jobs = plan(args)
+    fractions = memory_fractions(jobs)
+    start = time.perf_counter()
+
+    def launch(job: Job) -> subprocess.Popen:
+        own = dict(env, CUDA_VISIBLE_DEVICES=job.gpu)
+        if job.name in fractions:
+            own["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{fractions[job.name]:.3f}"
+        print(f"[sim-fidelity] {job.name} on GPU {job.gpu} (memory fraction {fractions.get(job.name, 'free')}, "
+              f"{time.perf_counter() - start:.0f} s): {' '.join(job.command[2:])}", flush=True)
+        with open(os.path.join(args.workdir, f"{job.name}.log"), "a") as log:
+            return subprocess.Popen(list(job.command), stdout=log, stderr=subprocess.STDOUT, env=own,
+                                    start_new_session=True)
+
+    pending, procs, skipped, stopped = dict(jobs), {}, {}, []
+    while pending or any(p.poll() is None for p in procs.values()):
+        for name, job in list(pending.items()):
+            lost = blocked_by(job, procs, skipped)
+            if lost:
+                skipped[name] = f"{lost.job} ended without {lost.path}"
+                print(f"[sim-fidelity] {name} skipped: {skipped[name]} (log: {args.workdir}/{lost.job}.log)", flush=True)
+            elif all(os.path.exists(n.path) for n in job.needs):
+                procs[name] = launch(job)
+            else:
+                continue
+            del pending[name]
+        if args.deadline_s and time.perf_counter() - start > args.deadline_s:
+            running = stop_groups(list(procs.values()))
+            stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
+            print(f"[sim-fidelity] deadline of {args.deadline_s:.0f} s: stopped {stopped}, never started "
+                  f"{sorted(pending)}", flush=True)
+            break
+        time.sleep(poll_s)
+    summary = dict(summarize(args.workdir, args.variants, rollout_batch=args.rollout_batch),
+                   exit_codes={n: p.returncode for n, p in procs.items()}, skipped=skipped,
+                   stopped_at_deadline=stopped, not_started=sorted(pending), memory_fractions=fractions,
+                   seconds=round(time.perf_counter() - start, 1))
+    summary["failed"] = sorted(n for n, p in procs.items() if p.returncode and n not in stopped)
+    with open(os.path.join(args.workdir, "sim_fidelity_summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    return summary
+
+
+def _read_json(path: str) -> dict | None:
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def world_model_loss(metrics: str) -> dict | None:
+    """The world model's loss, the mean of its last 10 logged steps (as the closed-loop summary gives it)."""
+    if not os.path.exists(metrics):
+        return None
+    with open(metrics) as f:
+        logged = [json.loads(line) for line in f if line.strip()][-10:]
+    return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
+
+
+def view_summary(path: str) -> dict | None:
+    """The policy's real and VAE-view success with intervals, the difference (vae - real) with its 95% interval,
+    and the round trip's error on the start frames in 0-255 levels."""
+    from sword_jax.rl.env_rollout import difference_interval
+
+    results = _read_json(os.path.join(path, "view_results.json"))
+    if results is None:
+        return None
+    views = results["views"]
+    out = {v: {k: views[v][k] for k in ("mean", "ci95", "successes", "episodes")} for v in ("real", "vae") if v in views}
+    if len(out) == 2:
+        real, vae = out["real"], out["vae"]
+        out["difference"] = {"value": vae["mean"] - real["mean"], "ci95": list(difference_interval(
+            real["successes"], real["episodes"], vae["successes"], vae["episodes"]))}
+    if "vae_round_trip" in results:
+        trip = results["vae_round_trip"]
+        out["round_trip_levels"] = {"mean_abs_error": trip["mean_abs_error"], "mean_shift": trip["mean_shift"]}
+    return out
+
+
+def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int) -> dict | str:
+    """:func:`~benchmarks.bench_grpo_reward_source.closed_loop_summary` of run ``name``: paid success, the first and
+    last decisions' frame error and greedy action gap, the VAE alone's where logged; or why it is missing."""
+    grpo, metrics = os.path.join(workdir, name, "rl", "grpo"), os.path.join(pipe_dir(workdir, variant), "world_model",
+                                                                           "metrics.jsonl")
+    log = os.path.join(workdir, f"{name}.log")
+    if not os.path.exists(os.path.join(grpo, "train_history.jsonl")) and not os.path.exists(log):
+        return "no history or log"
+    if not os.path.exists(metrics):
+        return f"no world-model metrics at {metrics}"
+    try:
+        run = closed_loop_summary([(name, grpo, log, metrics)], rollout_batch * GROUP_SIZE)[name]
+    except SystemExit as err:
+        return str(err)
+    out = {k: run[k] for k in ("steps", "source", "paid_success", "frame_error_first", "frame_error_last",
+                               "action_gap_first", "action_gap_last", "frame_error_vae_first", "action_gap_vae_first")
+           if k in run}
+    loop = run.get("per_decision", {})
+    if loop:
+        out["decisions"] = [loop["decisions"][0], loop["decisions"][-1]]
+        out.update({f"{what}_last": loop[what][-1] for what in ("frame_error_vae", "action_gap_vae") if what in loop})
+    return out
+
+
+def summarize(workdir: str, variants: Sequence[str] = (), *, rollout_batch: int = 64) -> dict:
+    """Per variant (those given, else those with a pipeline, probe or run under ``workdir``) its VAE's training
+    loss, its world model's loss, the view probe and the ``exec`` run's closed loop; likewise the decoder-aware
+    policy where there is one. Parts not there are named in ``missing``."""
+    variants = list(variants) or [v for v in VARIANTS if any(
+        os.path.exists(os.path.join(workdir, f"{kind}_{v}")) for kind in ("pipeline", "view", "exec"))]
+    out: dict = {"variants": {}}
+    for variant in variants:
+        pipe = pipe_dir(workdir, variant)
+        vae = (_read_json(os.path.join(pipe, "stages", "vae.json")) or {}).get("results")
+        entry = {"overrides": list(VARIANTS[variant]),
+                 "vae": {k: vae.get(k) for k in ("steps", "first_loss", "final_loss")} if vae else None,
+                 "world_model": world_model_loss(os.path.join(pipe, "world_model", "metrics.jsonl")),
+                 "view": view_summary(os.path.join(workdir, f"view_{variant}")),
+                 "exec": exec_summary(workdir, f"exec_{variant}", variant, rollout_batch)}
+        out["variants"][variant] = _with_missing(entry)
+    if any(os.path.exists(os.path.join(workdir, d)) for d in (SFT, f"view_{DECODED}", f"exec_{DECODED}")):
+        sft = _read_json(os.path.join(workdir, SFT, "sft_results.json"))
+        ens = sft["runs"][-1]["eval"].get("ens") if sft and sft.get("runs") else None
+        out["decoded"] = _with_missing({
+            "sft": {"mean": ens["mean"], "ci95": ens["ci95"], "episodes": ens["episodes"]} if ens else None,
+            "view": view_summary(os.path.join(workdir, f"view_{DECODED}")),
+            "exec": exec_summary(workdir, f"exec_{DECODED}", "base", rollout_batch)})
+    rows = dict(out["variants"], **({DECODED: out["decoded"]} if "decoded" in out else {}))
+    seen = {v: e["view"]["vae"]["mean"] for v, e in rows.items() if "vae" in e.get("view", {})}
+    out["best_vae_view"] = {"variant": max(seen, key=seen.get), "success": max(seen.values())} if seen else None
+    return out
+
+
+def _with_missing(entry: dict) -> dict:
+    """``entry`` with ``missing``: its parts that are absent (None) or were not summarised (a reason, in place)."""
+    missing = {k: v if isinstance(v, str) else "not there" for k, v in entry.items()
+               if v is None or isinstance(v, str)}
+    return dict({k: v for k, v in entry.items() if k not in missing}, missing=missing)
+
+
+def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
+    """``policy_sim_fidelity_small``: value the best success of the policy on frames round-tripped through a VAE
+    (over the variants and the decoder-aware policy), beside every variant's figures."""
+    best = summary.get("best_vae_view")
+    if not best:
+        raise SystemExit("bench_sim_fidelity: no view probe left a vae success to record")
+    entry = common.record("", best["success"], None, best=best["variant"], variants=summary["variants"],
+                          decoded=summary.get("decoded"), device=common.workdir_device(workdir), data=data,
+                          unit="MJX success of the policy on frames round-tripped through the VAE (sampled at T 0.5, "
+                               "4 actions a decision, proprio missing; episodes: each probe's)",
+                          **({"command": command} if command else {}))
+    return {"policy_sim_fidelity_small": entry}
+
+
+def _interval(figure: dict) -> str:
+    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
+
+
+def print_summary(summary: dict) -> None:
+    rows = dict(summary["variants"], **({DECODED: summary["decoded"]} if "decoded" in summary else {}))
+    if not rows:
+        print("[sim-fidelity] no pipeline, probe or run of a variant here", flush=True)
+    for name, r in rows.items():
+        parts = []
+        if r.get("vae"):
+            parts.append(f"VAE loss {r['vae']['final_loss']:.4f}")
+        if r.get("world_model"):
+            parts.append(f"world model loss {r['world_model']['loss']:.4f}")
+        if r.get("sft"):
+            parts.append(f"SFT (ens) {_interval(r['sft'])}")
+        view = r.get("view") or {}
+        if "real" in view and "vae" in view:
+            d = view["difference"]
+            parts.append(f"real {_interval(view['real'])}, vae {_interval(view['vae'])} ({d['value']:+.3f} "
+                         f"[{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}])")
+        if "round_trip_levels" in view:
+            parts.append(f"round trip |error| {view['round_trip_levels']['mean_abs_error']['all']:.2f} levels")
+        ex = r.get("exec")
+        if ex:
+            paid = ex["paid_success"]
+            parts.append(f"exec paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}], frame error "
+                         f"{ex['frame_error_first']:.3f} -> {ex['frame_error_last']:.3f}, action gap "
+                         f"{ex['action_gap_first']:.3f} -> {ex['action_gap_last']:.3f}" + (
+                             f" (the VAE alone at the first: {ex['frame_error_vae_first']:.3f}, "
+                             f"{ex['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in ex else ""))
+        if r["missing"]:
+            parts.append(f"missing: {', '.join(r['missing'])}")
+        print(f"[sim-fidelity] {name}: " + "; ".join(parts), flush=True)
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("mode", choices=("run", "summary"))
+    parser.add_argument("--workdir", required=True, help="the experiment's folder")
+    parser.add_argument("--policy", default="", help="run: the supervised policy measured (.npz)")
+    parser.add_argument("--config", default="sword:small")
+    parser.add_argument("--gpus", default="0", help="run: comma list; variant i's jobs on the (i mod n)-th")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
+    parser.add_argument("--decoded-sft", action="store_true", help="run: also the decoder-aware policy (base VAE)")
+    parser.add_argument("--vae-steps", type=int, default=1000)
+    parser.add_argument("--world-model-steps", type=int, default=12000)
+    parser.add_argument("--policy-rollouts", type=int, default=20,
+                        help="run: the policy's own episodes per task in the world model's and detector's data")
+    parser.add_argument("--exec-steps", type=int, default=2, help="run: GRPO steps of each exec run")
+    parser.add_argument("--rollout-batch", type=int, default=64, help="start states per exec step (x 8)")
+    parser.add_argument("--view-episodes-per-task", type=int, default=20, help="run: the view probe's, per view")
+    parser.add_argument("--eval-episodes-per-task", type=int, default=10, help="run: the exec runs' evaluations")
+    parser.add_argument("--sft-steps", type=int, default=1000)
+    parser.add_argument("--decoded-fraction", type=float, default=0.5)
+    parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop what is still going after this")
+    parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
+    parser.add_argument("--record", action="store_true", help="summary: write the entry to benchmarks/results/latest.json")
+    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
+    args = parser.parse_args(argv)
+    args.gpus = [g for g in args.gpus.split(",") if g]
+    args.variants = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in args.variants if v not in VARIANTS]
+    if unknown or not args.variants or len(set(args.variants)) < len(args.variants):
+        raise SystemExit(f"bench_sim_fidelity: unknown or repeated variant(s) {unknown or args.variants}; "
+                         f"--variants takes some of {', '.join(VARIANTS)}")
+    if not args.gpus or len(set(args.gpus)) < len(args.gpus):
+        raise SystemExit(f"bench_sim_fidelity: --gpus needs distinct GPUs, got {args.gpus}")
+    counts = ("vae_steps", "world_model_steps", "exec_steps", "view_episodes_per_task", "eval_episodes_per_task",
+              "sft_steps")
+    if any(getattr(args, k) < 1 for k in counts) or args.policy_rollouts < 0 or args.deadline_s < 0:
+        raise SystemExit(f"bench_sim_fidelity: --{', --'.join(k.replace('_', '-') for k in counts)} must be >= 1, "
+                         "--policy-rollouts and --deadline-s >= 0")
+    if args.rollout_batch < 4 or args.rollout_batch % 4:
+        raise SystemExit("bench_sim_fidelity: --rollout-batch must be a multiple of 4 (4 minibatches)")
+    if not 0 < args.decoded_fraction <= 1:
+        raise SystemExit(f"bench_sim_fidelity: --decoded-fraction must be in (0, 1], got {args.decoded_fraction}")
+    if args.decoded_sft and "base" not in args.variants:
+        raise SystemExit("bench_sim_fidelity: --decoded-sft fine-tunes on the base VAE's frames; add base to --variants")
+    if args.mode == "run" and not os.path.isfile(args.policy):
+        raise SystemExit(f"bench_sim_fidelity run needs --policy, the policy .npz (got {args.policy!r})")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    args = parse(argv)
+    if args.mode == "summary":
+        summary = summarize(args.workdir, rollout_batch=args.rollout_batch)
+        if args.out:
+            with open(args.out + ".json", "w") as f:
+                json.dump(summary, f, indent=1)
+        if args.record:
+            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir,
+                                                 command=args.command))
+        print_summary(summary)
+        return summary
+    summary = run(args)
+    print_summary(summary)
+    if summary["failed"] or summary["skipped"]:
+        raise SystemExit(f"bench_sim_fidelity: failed {summary['failed']}, skipped {sorted(summary['skipped'])} "
+                         f"(logs in {args.workdir})")
+    return summary
+
+
+if __name__ == "__main__":
+    cli.run(main)

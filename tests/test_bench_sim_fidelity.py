@@ -1,0 +1,319 @@
+"""benchmarks.bench_sim_fidelity: every job's command, GPU and inputs, the run loop with the processes faked, and
+the summary of the files a run leaves."""
+
+import dataclasses
+import functools
+import itertools
+import json
+import os
+import sys
+import time
+
+import pytest
+
+from benchmarks import bench_grpo_reward_source as rs
+from benchmarks import bench_sim_fidelity as fid
+from sword_jax.rl.env_rollout import difference_interval
+
+
+def _args(tmp_path, *extra, gpus="0,1,2,3", variants="base,vae8x,lpips", decoded=True):
+    policy = tmp_path / "p" / "policy_d50.npz"
+    policy.parent.mkdir(exist_ok=True)
+    policy.touch()
+    return fid.parse(["run", "--workdir", str(tmp_path / "w"), "--policy", str(policy), "--gpus", gpus,
+                      "--variants", variants, *(["--decoded-sft"] if decoded else []), *extra])
+
+
+def _config(cmd):
+    """The experiment config a command builds (what its VAE loader reads), and the flags left to its parser."""
+    import configs
+
+    return configs.from_argv(list(cmd[3:]))
+
+
+def test_every_command_that_loads_a_vae_builds_its_variants_architecture(tmp_path):
+    args = _args(tmp_path, "--exec-steps", "3", "--rollout-batch", "32", "--eval-episodes-per-task", "7",
+                 "--view-episodes-per-task", "11", "--sft-steps", "500", "--decoded-fraction", "0.25")
+    jobs, work, policy = fid.plan(args), str(tmp_path / "w"), str(tmp_path / "p" / "policy_d50.npz")
+    assert sorted(jobs) == sorted([f"{k}_{v}" for k in ("pipeline", "view", "exec") for v in ("base", "vae8x", "lpips")]
+                                  + ["policy_dec", "view_base_dec", "exec_base_dec"])
+    spatial = {"base": 16, "vae8x": 8, "lpips": 16}
+    for variant in fid.VARIANTS:
+        pipe = os.path.join(work, f"pipeline_{variant}")
+        pipeline, view, ex = (jobs[f"{k}_{variant}"].command for k in ("pipeline", "view", "exec"))
+        for cmd in (pipeline, view, ex):
+            cfg, _ = _config(cmd)
+            assert cfg.vae.spatial_factor == spatial[variant] and cfg.name == "sword-small", (variant, cmd)
+            assert cfg.vae.perceptual_weight == (1.0 if variant == "lpips" else 0.0)
+            assert [c for c in cmd if c.startswith("--vae.") and "train_steps" not in c] == list(fid.VARIANTS[variant])
+        # the pipeline: Sword's small pipeline with the policy's own episodes, in its own folder
+        assert pipeline[2:4] == ("train.pipeline", "--config") and pipeline[pipeline.index("--workdir") + 1] == pipe
+        assert "--stop-after" in pipeline and pipeline[pipeline.index("--stop-after") + 1] == "reward_model"
+        for flag in ("--data.policy_rollouts_per_task=20", f"--rl.sft.init={policy}", "--vae.train_steps=1000",
+                     "--trainer.steps=12000"):
+            assert flag in pipeline, (flag, pipeline)
+        # the view probe: real and round-tripped frames through this variant's VAE, in the simulator's mode
+        cfg, rest = _config(view)
+        assert view[2] == "benchmarks.bench_policy_view" and cfg.rl.grpo.temperature == 0.5
+        assert cfg.rl.imagined.execute_steps == 4
+        assert rest == ["--policy", policy, "--views", "real,vae", "--vae", os.path.join(pipe, "vae_run", "vae"),
+                        "--episodes-per-task", "11", "--out", os.path.join(work, f"view_{variant}")]
+        # the exec arm: bench_grpo_reward_source's recipe in this variant's world model, paid by execution
+        for flag in rs.RECIPE + rs.WORLD_MODEL + ("--rl.imagined.reward=executed", "--rl.grpo.steps=3",
+                                                  "--rl.grpo.eval_every=100", "--rl.grpo.rollout_batch=32",
+                                                  "--rl.grpo.eval_episodes_per_task=7"):
+            assert flag in ex, (flag, ex)
+        assert ex[2] == "train.grpo" and ex[ex.index("--seed") + 1] == "0" and ex[ex.index("--policy") + 1] == policy
+        for flag, path in (("--world-model", "world_model"), ("--vae", "vae_run/vae"), ("--reward", "rl/reward_model"),
+                           ("--demos", "data/demos.hdf5")):
+            assert ex[ex.index(flag) + 1] == os.path.join(pipe, path)
+        assert ex[ex.index("--workdir") + 1] == os.path.join(work, f"exec_{variant}")
+    # the decoder-aware policy: fine-tuned from the policy on the base VAE's frames, then measured in that VAE
+    sft = jobs["policy_dec"].command
+    cfg, rest = _config(sft)
+    base_vae = os.path.join(work, "pipeline_base", "vae_run", "vae")
+    assert sft[2:4] == ("benchmarks.bench_policy", "sft") and cfg.vae.spatial_factor == 16
+    assert cfg.rl.sft.init == policy and cfg.rl.sft.decoded_fraction == 0.25 and cfg.rl.sft.steps == 500
+    assert rest[rest.index("--vae") + 1] == base_vae and rest[rest.index("--out") + 1] == os.path.join(work, "policy_dec")
+    assert rest[rest.index("--demos-per-task") + 1] == "50"  # hence policy_d50.npz
+    dec = os.path.join(work, "policy_dec", "policy_d50.npz")
+    view, ex = jobs["view_base_dec"].command, jobs["exec_base_dec"].command
+    assert view[view.index("--policy") + 1] == dec and view[view.index("--vae") + 1] == base_vae
+    assert view[view.index("--out") + 1] == os.path.join(work, "view_base_dec")
+    assert ex[ex.index("--policy") + 1] == dec and ex[ex.index("--workdir") + 1] == os.path.join(work, "exec_base_dec")
+    assert [c for c in ex if c not in (dec, os.path.join(work, "exec_base_dec"))] == [
+        c for c in jobs["exec_base"].command if c not in (policy, os.path.join(work, "exec_base"))]
+
+
+def test_bad_arguments_are_refused(tmp_path):
+    for extra, message in ((("--variants", "base,vae16x"), "unknown or repeated variant.*vae16x.*base, vae8x, lpips"),
+                           (("--variants", "base,base"), "unknown or repeated variant"),
+                           (("--gpus", "0,0"), "distinct GPUs"), (("--rollout-batch", "30"), "multiple of 4"),
+                           (("--decoded-fraction", "0"), r"\(0, 1\]"), (("--decoded-fraction", "1.5"), r"\(0, 1\]"),
+                           (("--exec-steps", "0"), ">= 1"), (("--view-episodes-per-task", "0"), ">= 1"),
+                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "add base to --variants")):
+        with pytest.raises(SystemExit, match=message):
+            _args(tmp_path, *extra)
+    with pytest.raises(SystemExit, match="needs --policy"):
+        fid.main(["run", "--workdir", str(tmp_path), "--policy", str(tmp_path / "none.npz")])
+    assert fid.parse(["summary", "--workdir", str(tmp_path)]).variants == list(fid.VARIANTS)
+
+
+def _overlapping_sets(jobs, gpu):
+    here = [n for n in jobs if jobs[n].gpu == gpu]
+    for r in range(1, len(here) + 1):
+        for names in itertools.combinations(here, r):
+            if all(fid.can_overlap(jobs, a, b) for a, b in itertools.combinations(names, 2)):
+                yield names
+
+
+def test_jobs_are_placed_and_wait_for_what_they_read(tmp_path):
+    jobs = fid.plan(_args(tmp_path))
+    gpu = {n: j.gpu for n, j in jobs.items()}
+    assert [gpu[f"pipeline_{v}"] for v in ("base", "vae8x", "lpips")] == ["0", "1", "2"]  # one GPU each
+    assert all(gpu[f"{k}_{v}"] == gpu[f"pipeline_{v}"] for k in ("view", "exec") for v in fid.VARIANTS)
+    assert gpu["policy_dec"] == gpu["view_base_dec"] == gpu["exec_base_dec"] == "3"  # the GPU no pipeline uses
+    pipe = str(tmp_path / "w" / "pipeline_base")
+    needs = {n: {(x.job, x.path, x.final) for x in j.needs} for n, j in jobs.items()}
+    assert needs["view_base"] == {("pipeline_base", f"{pipe}/stages/vae.json", False)}
+    assert needs["exec_base"] == {("pipeline_base", f"{pipe}/stages/reward_model.json", True)}
+    assert needs["policy_dec"] == needs["view_base"] and not needs["pipeline_vae8x"]
+    assert needs["exec_base_dec"] == {("pipeline_base", f"{pipe}/stages/reward_model.json", True),
+                                      ("policy_dec", str(tmp_path / "w" / "policy_dec" / "sft_results.json"), True)}
+    # the probe starts once the decoded policy is wholly written (its reckoning comes after it)
+    assert needs["view_base_dec"] == {("policy_dec", str(tmp_path / "w" / "policy_dec" / "policy_d50.reckoning.json"),
+                                       False)}
+    assert fid.starts_after_end(jobs, "exec_base", "pipeline_base")
+    assert not fid.starts_after_end(jobs, "view_base", "pipeline_base")
+    assert fid.starts_after_end(jobs, "exec_base_dec", "policy_dec") and fid.can_overlap(jobs, "view_base_dec", "policy_dec")
+    fractions = fid.memory_fractions(jobs)
+    # beside the pipeline, then beside the exec run; the decoder-aware SFT and its probe likewise
+    assert fractions["pipeline_base"] == 0.675 and fractions["view_base"] == 0.225 and fractions["exec_base"] == 0.6
+    assert fractions["policy_dec"] == fractions["exec_base_dec"] == 0.6 and fractions["view_base_dec"] == 0.3
+    for two in (_args(tmp_path, gpus="0,1"), _args(tmp_path, gpus="4,5,6,7,8"), _args(tmp_path)):
+        jobs, fractions = fid.plan(two), fid.memory_fractions(fid.plan(two))
+        for g in two.gpus:  # no set of jobs that can run at once on a GPU asks for more than 90% of it
+            for names in _overlapping_sets(jobs, g):
+                assert sum(fractions[n] for n in names) <= 0.9 + 1e-6, names
+    crowded = fid.plan(_args(tmp_path, gpus="0,1"))
+    assert [crowded[f"pipeline_{v}"].gpu for v in ("base", "vae8x", "lpips")] == ["0", "1", "0"]
+    assert crowded["policy_dec"].gpu == "1"  # none free: the last
+    assert fid.plan(_args(tmp_path, gpus="4,5,6,7,8"))["policy_dec"].gpu == "7"
+    assert "policy_dec" not in fid.plan(_args(tmp_path, decoded=False))
+
+
+def _fake(tmp_path, job, writes=(), code=0, sleep=0.0, child=False):
+    """A process that records, as it starts, which of its inputs exist and its environment, then sleeps, writes
+    ``writes`` in order and exits ``code`` (with ``child``, it first starts a sleeping child and names its pid)."""
+    report = str(tmp_path / "seen" / f"{job.name}.json")
+    needs = [n.path for n in job.needs]
+    script = (f"import json, os, subprocess, sys, time\n"
+              f"json.dump({{'inputs': [os.path.exists(p) for p in {needs!r}], 'gpu': os.environ['CUDA_VISIBLE_DEVICES'],"
+              f" 'fraction': os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION'),"
+              f" 'nvls': os.environ.get('NCCL_NVLS_ENABLE')}}, open({report!r}, 'w'))\n"
+              + (f"c = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+                 f"open({report + '.child'!r}, 'w').write(str(c.pid))\n" if child else "")
+              + f"time.sleep({sleep})\n"
+              f"for p in {list(writes)!r}:\n    os.makedirs(os.path.dirname(p), exist_ok=True); open(p, 'w').write('{{}}')\n"
+              f"sys.exit({code})\n")
+    return dataclasses.replace(job, command=(sys.executable, "-c", script))
+
+
+def _faked_plan(tmp_path, monkeypatch, behaviour):
+    real = fid.plan
+    (tmp_path / "seen").mkdir(exist_ok=True)
+
+    def plan(args):
+        jobs = real(args)
+        made = {}  # each maker writes the files its dependents wait for, in the order they appear
+        for job in jobs.values():
+            for need in job.needs:
+                made.setdefault(need.job, []).append(need.path)
+        return {n: _fake(tmp_path, j, **{"writes": sorted(set(made.get(n, [])), key=lambda p: p.endswith("json") and
+                                                          "reward_model" in p), **behaviour.get(n, {})})
+                for n, j in jobs.items()}
+
+    monkeypatch.setattr(fid, "plan", plan)
+
+
+def _seen(tmp_path, name):
+    return json.loads((tmp_path / "seen" / f"{name}.json").read_text())
+
+
+def test_jobs_start_once_their_inputs_exist_and_a_failure_skips_only_its_dependents(tmp_path, monkeypatch):
+    vae8x = str(tmp_path / "w" / "pipeline_vae8x" / "stages" / "vae.json")
+    _faked_plan(tmp_path, monkeypatch, {
+        "pipeline_base": {"sleep": 0.3},
+        "pipeline_vae8x": {"writes": [vae8x], "code": 1},  # its VAE trained, then it failed
+        "pipeline_lpips": {"writes": [], "code": 1}})  # failed before its VAE
+    args = _args(tmp_path)
+    summary = fid.run(args, poll_s=0.05)
+    ran = {"pipeline_base", "view_base", "exec_base", "pipeline_vae8x", "view_vae8x", "pipeline_lpips", "policy_dec",
+           "view_base_dec", "exec_base_dec"}
+    assert set(summary["exit_codes"]) == ran
+    assert summary["failed"] == ["pipeline_lpips", "pipeline_vae8x"]
+    assert summary["skipped"] == {
+        "exec_vae8x": f"pipeline_vae8x ended without {tmp_path}/w/pipeline_vae8x/stages/reward_model.json",
+        "view_lpips": f"pipeline_lpips ended without {tmp_path}/w/pipeline_lpips/stages/vae.json",
+        "exec_lpips": f"pipeline_lpips ended without {tmp_path}/w/pipeline_lpips/stages/reward_model.json"}
+    assert summary["stopped_at_deadline"] == [] and summary["not_started"] == []
+    fractions = fid.memory_fractions(fid.plan(args))
+    for name in ran:  # each saw its inputs as it started, on its GPU, with its share and multicast off
+        seen = _seen(tmp_path, name)
+        assert all(seen["inputs"]) and seen["gpu"] == fid.plan(args)[name].gpu and seen["nvls"] == "0", name
+        assert seen["fraction"] == f"{fractions[name]:.3f}"
+        assert (tmp_path / "w" / f"{name}.log").exists()
+    # the summary was written, every part the fakes did not make named missing
+    written = json.loads((tmp_path / "w" / "sim_fidelity_summary.json").read_text())
+    assert set(written["variants"]) == {"base", "vae8x", "lpips"} and written["best_vae_view"] is None
+    assert set(written["variants"]["lpips"]["missing"]) == {"vae", "world_model", "view", "exec"}
+    monkeypatch.setattr(fid, "run", functools.partial(fid.run, poll_s=0.05))
+    with pytest.raises(SystemExit, match=r"failed \['pipeline_lpips'\], skipped \['exec_lpips', 'view_lpips'\]"):
+        fid.main(["run", "--workdir", str(tmp_path / "w2"), "--policy", args.policy, "--gpus", "0",
+                  "--variants", "lpips"])
+
+
+def test_a_deadline_stops_every_process_group_still_running(tmp_path, monkeypatch):
+    _faked_plan(tmp_path, monkeypatch, {"pipeline_base": {"sleep": 60, "child": True}})
+    args = _args(tmp_path, "--deadline-s", "3", variants="base,vae8x", gpus="0,1")
+    summary = fid.run(args, poll_s=0.05)
+    assert summary["stopped_at_deadline"] == ["pipeline_base"]
+    assert summary["not_started"] == ["exec_base", "exec_base_dec", "policy_dec", "view_base", "view_base_dec"]
+    assert summary["exit_codes"]["exec_vae8x"] == 0 and summary["failed"] == []
+    child = int((tmp_path / "seen" / "pipeline_base.json.child").read_text())
+
+    def state():  # the pipeline's own child: gone, or dead and waiting to be reaped (Z, X)
+        try:
+            return open(f"/proc/{child}/stat").read().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return "gone"
+
+    for _ in range(50):  # SIGKILLed: dead within moments
+        if state() in ("gone", "Z", "X"):
+            break
+        time.sleep(0.1)
+    assert state() in ("gone", "Z", "X")
+
+
+def _loop_row(step, paid, error):
+    row = {"step": step, "success_rate": paid, "detector_success": 0.5, "detector_agreement": 0.5}
+    for k in (1, 2, 3):
+        row.update({f"closed_loop_frame_error_{k}": error * k, f"closed_loop_action_gap_{k}": error * k / 10,
+                    f"closed_loop_frame_error_vae_{k}": error * k / 2, f"closed_loop_action_gap_vae_{k}": error * k / 20})
+    return row
+
+
+def _write(path, content):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as f:
+        f.write(content if isinstance(content, str) else json.dumps(content))
+
+
+def _view(successes, episodes=200):
+    def rate(s):
+        return {"mean": s / episodes, "successes": s, "episodes": episodes, "ci95": [s / episodes - 0.05, s / episodes + 0.05],
+                "per_task": {}, "seconds": 1.0}
+
+    return {"views": {"real": rate(successes[0]), "vae": rate(successes[1])},
+            "vae_round_trip": {"frames": 200, "mean_abs_error": {"r": 3.0, "g": 2.0, "b": 1.0, "all": 2.0},
+                               "mean_shift": {"r": -1.0, "g": 0.0, "b": 1.0, "all": 0.0}}}
+
+
+def test_summary_of_designed_files_and_of_missing_parts(tmp_path, monkeypatch, capsys):
+    w = str(tmp_path)
+    _write(f"{w}/pipeline_base/stages/vae.json", {"stage": "vae", "results": {"steps": 1000, "first_loss": 0.5,
+                                                                             "final_loss": 0.04, "path": "x"}})
+    _write(f"{w}/pipeline_base/world_model/metrics.jsonl",
+           "".join(json.dumps({"step": 100 * i, "loss": 1.0 / i}) + "\n" for i in range(1, 13)))
+    _write(f"{w}/view_base/view_results.json", _view((65, 26)))
+    _write(f"{w}/exec_base/rl/grpo/train_history.jsonl",
+           json.dumps(_loop_row(1, 2 / 256, 0.1)) + "\n" + json.dumps(_loop_row(2, 4 / 256, 0.3)) + "\n")
+    _write(f"{w}/exec_base.log", "")
+    _write(f"{w}/pipeline_vae8x/stages/vae.json", {"stage": "vae", "results": {"steps": 1000, "final_loss": 0.02}})
+    _write(f"{w}/view_vae8x/view_results.json", _view((64, 50)))
+    _write(f"{w}/exec_vae8x.log", "eval step 0: MJX success 0.3\n")  # it ended before any step
+    _write(f"{w}/policy_dec/sft_results.json", {"runs": [{"eval": {"ens": {"mean": 0.3, "ci95": [0.26, 0.34],
+                                                                           "episodes": 500}}}]})
+    _write(f"{w}/view_base_dec/view_results.json", _view((60, 40)))
+    summary = fid.summarize(w, rollout_batch=32)  # 256 trajectories a step
+    assert sorted(summary["variants"]) == ["base", "vae8x"]  # lpips left nothing
+    base, vae8x = summary["variants"]["base"], summary["variants"]["vae8x"]
+    assert base["missing"] == {} and base["overrides"] == []
+    assert base["vae"] == {"steps": 1000, "first_loss": 0.5, "final_loss": 0.04}
+    assert base["world_model"] == {"steps": 1200, "loss": pytest.approx(sum(1.0 / i for i in range(3, 13)) / 10)}
+    view = base["view"]
+    assert view["real"]["mean"] == pytest.approx(0.325) and view["vae"]["mean"] == pytest.approx(0.13)
+    assert view["difference"]["value"] == pytest.approx(-0.195)
+    assert view["difference"]["ci95"] == pytest.approx(list(difference_interval(65, 200, 26, 200)))
+    assert view["difference"]["ci95"][1] < 0 and view["round_trip_levels"]["mean_abs_error"]["all"] == 2.0
+    ex = base["exec"]
+    assert ex["paid_success"]["rate"] == pytest.approx(6 / 512) and ex["paid_success"]["of"] == 512
+    assert ex["frame_error_first"] == pytest.approx(0.2) and ex["frame_error_last"] == pytest.approx(0.6)
+    assert ex["action_gap_first"] == pytest.approx(0.02) and ex["action_gap_last"] == pytest.approx(0.06)
+    assert ex["frame_error_vae_first"] == pytest.approx(0.1) and ex["frame_error_vae_last"] == pytest.approx(0.3)
+    assert ex["action_gap_vae_first"] == pytest.approx(0.01) and ex["action_gap_vae_last"] == pytest.approx(0.03)
+    assert ex["decisions"] == [1, 3] and ex["source"] == "history"
+    assert vae8x["vae"]["final_loss"] == 0.02 and vae8x["vae"]["first_loss"] is None
+    assert set(vae8x["missing"]) == {"world_model", "exec"} and "exec" not in vae8x
+    decoded = summary["decoded"]
+    assert decoded["sft"]["mean"] == 0.3 and decoded["view"]["vae"]["mean"] == pytest.approx(0.2)
+    assert decoded["missing"] == {"exec": "no history or log"}
+    assert summary["best_vae_view"] == {"variant": "vae8x", "success": pytest.approx(0.25)}
+    fid.print_summary(summary)
+    printed = capsys.readouterr().out
+    assert "[sim-fidelity] base: VAE loss 0.0400" in printed and "missing: world_model, exec" in printed
+    monkeypatch.setattr(fid.common, "device_name", lambda: "cpu")
+    entry = fid.results_entries(summary, w, data="d")["policy_sim_fidelity_small"]
+    assert entry["value"] == pytest.approx(0.25) and entry["best"] == "vae8x" and set(entry["variants"]) == {"base", "vae8x"}
+    assert "round-tripped through the VAE" in entry["unit"]
+    recorded = {}
+    monkeypatch.setattr(fid.common, "merge_results", recorded.update)
+    fid.main(["summary", "--workdir", w, "--rollout-batch", "32", "--out", f"{w}/out", "--record"])
+    assert recorded["policy_sim_fidelity_small"]["value"] == pytest.approx(0.25)
+    assert json.loads(open(f"{w}/out.json").read())["variants"]["base"]["exec"]["steps"] == 2
+    # nothing run at all: every part missing, nothing to record
+    empty = fid.summarize(str(tmp_path / "none"), ["base", "lpips"])
+    assert all(set(e["missing"]) == {"vae", "world_model", "view", "exec"} for e in empty["variants"].values())
+    assert "decoded" not in empty and empty["best_vae_view"] is None
+    with pytest.raises(SystemExit, match="no view probe"):
+        fid.results_entries(empty, w, data="d")
