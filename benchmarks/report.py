@@ -717,6 +717,20 @@ def lag_success() -> str:
                    "(95% interval)", "difference, points"], rows)
 
 
+def lag_proprio() -> str:
+    """The lag's cost in real success per proprio input (``bench_action_gap --lag-proprio``): whether a policy
+    that reads the arm's state still needs the current frame."""
+    data = _load("policy", "lag_proprio_small_cpu", "action_gap.json")["lag_by_proprio"]
+    labels = {"missing": "missing (GRPO in the world model's mode)", "true": "the environment's",
+              "reckoned": "dead-reckoned from the actions (what the world model can report)"}
+    rows = [[labels[mode], f"{lag['real']['mean']:.3f} [{lag['real']['ci95'][0]:.3f}, {lag['real']['ci95'][1]:.3f}]",
+             f"{lag['lag_1']['mean']:.3f} [{lag['lag_1']['ci95'][0]:.3f}, {lag['lag_1']['ci95'][1]:.3f}]",
+             f"{_pct(lag['difference']['mean'])} {_interval(lag['difference']['ci95'])}"] for mode, lag in data.items()]
+    episodes = next(iter(data.values()))["real"]["episodes"]
+    return _table(["proprio the policy reads", f"real frames, {episodes} episodes (95% interval)",
+                   "the frame of the decision before", "difference, points"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -731,7 +745,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-setting-arms": grpo_setting_arms, "grpo-refresh-probe": grpo_refresh_probe,
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
-    "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae,
+    "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
 }
 
 
