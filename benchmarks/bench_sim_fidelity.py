@@ -21,14 +21,15 @@ With ``--decoded-sft`` the policy is also fine-tuned on frames of which ``--deco
 same way in the ``base`` VAE and world model (``view_base_dec``, ``exec_base_dec``)::
 
     python -m benchmarks.bench_sim_fidelity run --workdir runs/fid --policy runs/p/policy_d50.npz \\
-        --gpus 0,1,2,3 --variants base,vae8x,lpips --decoded-sft --vae-steps 1000 --world-model-steps 12000 \\
-        --exec-steps 2 --rollout-batch 64 --view-episodes-per-task 20 --eval-episodes-per-task 10 \\
-        --sft-steps 1000 --decoded-fraction 0.5 [--deadline-s 1500]
+        --gpus 0,1,2,3 --variants base,vae8x,lpips --decoded-sft --vae-steps 1000 --world-model-steps 6000 \\
+        --exec-steps 1 --rollout-batch 64 --view-episodes-per-task 20 --eval-episodes-per-task 10 \\
+        --sft-steps 1000 --decoded-fraction 0.5 --deadline-s 1380
     python -m benchmarks.bench_sim_fidelity summary --workdir runs/fid \\
         --out benchmarks/results/policy/sim_fidelity_small [--record]
 
 ``run`` places variant i's pipeline on GPU ``i mod n``; its view probe starts there once its VAE is trained
-(``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/reward_model.json``). The
+(``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
+``stages/reward_model.json``: the pipeline runs its stages two at a time, so either may end last). The
 decoder-aware SFT takes the first GPU no pipeline uses (else the last) once the ``base`` VAE exists, and its
 probe and ``exec`` run follow it there. A job whose input can no longer appear (its maker ended without it) is
 skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
@@ -148,6 +149,15 @@ def sft_gpu(args) -> str:
     return next((g for g in args.gpus if g not in used), args.gpus[-1])
 
 
+# the stages a pipeline's exec run reads, the last two it builds; with --parallel 2 either may end last
+BUILT = ("world_model.json", "reward_model.json")
+
+
+def built(variant_job: str, pipe: str) -> tuple[Need, ...]:
+    """The files that say pipeline ``variant_job`` is built: its world model's and detector's stage records."""
+    return tuple(Need(variant_job, os.path.join(pipe, "stages", name), True) for name in BUILT)
+
+
 def plan(args) -> dict[str, Job]:
     """Every job of the run (module docstring), in launch order where several are ready at once."""
     policy = os.path.abspath(args.policy)
@@ -155,12 +165,12 @@ def plan(args) -> dict[str, Job]:
     for i, variant in enumerate(args.variants):
         gpu, pipe = args.gpus[i % len(args.gpus)], pipe_dir(args.workdir, variant)
         vae_done = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False)
-        built = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "reward_model.json"), True)
         command = pipeline_command(pipeline(args), VARIANTS[variant], name=f"pipeline_{variant}")
         view = view_command(args, variant, policy, os.path.join(args.workdir, f"view_{variant}"))
         jobs += [Job(f"pipeline_{variant}", tuple(command), gpu),
                  Job(f"view_{variant}", view, gpu, (vae_done,)),
-                 Job(f"exec_{variant}", exec_command(args, variant, policy, f"exec_{variant}"), gpu, (built,))]
+                 Job(f"exec_{variant}", exec_command(args, variant, policy, f"exec_{variant}"), gpu,
+                     built(f"pipeline_{variant}", pipe))]
     if args.decoded_sft:
         gpu, pipe, dec = sft_gpu(args), pipe_dir(args.workdir, "base"), sft_policy(args.workdir)
         saved = Need(SFT, os.path.splitext(dec)[0] + ".reckoning.json", False)  # written after the policy
@@ -168,8 +178,7 @@ def plan(args) -> dict[str, Job]:
         jobs += [Job(SFT, sft_command(args), gpu, (Need("pipeline_base", os.path.join(pipe, "stages", "vae.json"), False),)),
                  Job(f"view_{DECODED}", view, gpu, (saved,)),
                  Job(f"exec_{DECODED}", exec_command(args, "base", dec, f"exec_{DECODED}"), gpu,
-                     (Need("pipeline_base", os.path.join(pipe, "stages", "reward_model.json"), True),
-                      Need(SFT, os.path.join(args.workdir, SFT, "sft_results.json"), True)))]
+                     (*built("pipeline_base", pipe), Need(SFT, os.path.join(args.workdir, SFT, "sft_results.json"), True)))]
     return {job.name: job for job in jobs}
 
 

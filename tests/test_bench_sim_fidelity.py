@@ -116,10 +116,13 @@ def test_jobs_are_placed_and_wait_for_what_they_read(tmp_path):
     pipe = str(tmp_path / "w" / "pipeline_base")
     needs = {n: {(x.job, x.path, x.final) for x in j.needs} for n, j in jobs.items()}
     assert needs["view_base"] == {("pipeline_base", f"{pipe}/stages/vae.json", False)}
-    assert needs["exec_base"] == {("pipeline_base", f"{pipe}/stages/reward_model.json", True)}
+    # the pipeline runs its stages two at a time: the detector may be done before the world model
+    built = {("pipeline_base", f"{pipe}/stages/world_model.json", True),
+             ("pipeline_base", f"{pipe}/stages/reward_model.json", True)}
+    assert needs["exec_base"] == built
     assert needs["policy_dec"] == needs["view_base"] and not needs["pipeline_vae8x"]
-    assert needs["exec_base_dec"] == {("pipeline_base", f"{pipe}/stages/reward_model.json", True),
-                                      ("policy_dec", str(tmp_path / "w" / "policy_dec" / "sft_results.json"), True)}
+    assert needs["exec_base_dec"] == built | {("policy_dec", str(tmp_path / "w" / "policy_dec" / "sft_results.json"),
+                                                True)}
     # the probe starts once the decoded policy is wholly written (its reckoning comes after it)
     assert needs["view_base_dec"] == {("policy_dec", str(tmp_path / "w" / "policy_dec" / "policy_d50.reckoning.json"),
                                        False)}
@@ -193,9 +196,9 @@ def test_jobs_start_once_their_inputs_exist_and_a_failure_skips_only_its_depende
     assert set(summary["exit_codes"]) == ran
     assert summary["failed"] == ["pipeline_lpips", "pipeline_vae8x"]
     assert summary["skipped"] == {
-        "exec_vae8x": f"pipeline_vae8x ended without {tmp_path}/w/pipeline_vae8x/stages/reward_model.json",
+        "exec_vae8x": f"pipeline_vae8x ended without {tmp_path}/w/pipeline_vae8x/stages/world_model.json",
         "view_lpips": f"pipeline_lpips ended without {tmp_path}/w/pipeline_lpips/stages/vae.json",
-        "exec_lpips": f"pipeline_lpips ended without {tmp_path}/w/pipeline_lpips/stages/reward_model.json"}
+        "exec_lpips": f"pipeline_lpips ended without {tmp_path}/w/pipeline_lpips/stages/world_model.json"}
     assert summary["stopped_at_deadline"] == [] and summary["not_started"] == []
     fractions = fid.memory_fractions(fid.plan(args))
     for name in ran:  # each saw its inputs as it started, on its GPU, with its share and multicast off
