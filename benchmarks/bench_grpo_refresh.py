@@ -627,13 +627,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
                          ">= 0, --refresh-every >= 1, --budget >= 64 (one refresh)")
     if args.mode == "summary":
         summary = summarize(args.workdir, args.ground_truth)
+        common.save_summary(summary, args.out, (lambda: results_entries(
+            summary, args.workdir, data=args.out or args.workdir, note=args.note, command=args.command))
+            if args.record else None)
         if args.out:
-            with open(args.out + ".json", "w") as f:
-                json.dump(summary, f, indent=1)
             plot(summary, args.out + ".png")
-        if args.record:
-            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir, note=args.note,
-                                                 command=args.command))
         print_runs(summary)
         return summary
     if not args.policy:

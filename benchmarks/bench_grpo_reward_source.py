@@ -415,12 +415,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")
     if args.mode == "summary":
         summary = summarize(args.workdir)
-        if args.out:
-            with open(args.out + ".json", "w") as f:
-                json.dump(summary, f, indent=1)
-        if args.record:
-            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir,
-                                                 command=args.command))
+        common.save_summary(summary, args.out, (lambda: results_entries(
+            summary, args.workdir, data=args.out or args.workdir, command=args.command)) if args.record else None)
         print_runs(summary)
         return summary
     if not args.policy:

@@ -491,12 +491,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(argv)
     if args.mode == "summary":
         summary = summarize(args.workdir, rollout_batch=args.rollout_batch)
-        if args.out:
-            with open(args.out + ".json", "w") as f:
-                json.dump(summary, f, indent=1)
-        if args.record:
-            common.merge_results(results_entries(summary, args.workdir, data=args.out or args.workdir,
-                                                 command=args.command))
+        common.save_summary(summary, args.out, (lambda: results_entries(
+            summary, args.workdir, data=args.out or args.workdir, command=args.command)) if args.record else None)
         print_summary(summary)
         return summary
     summary = run(args)

@@ -130,6 +130,17 @@ def merge_results(entries: dict[str, dict[str, Any]], path: str = RESULTS) -> st
     return write_json_atomic(path, current, sort_keys=True)
 
 
+def save_summary(summary: dict[str, Any], out: str, entries: Callable[[], dict[str, dict[str, Any]]] | None = None
+                 ) -> None:
+    """A benchmark's ``summary`` mode: the summary to ``out + ".json"`` when ``out`` is given, and with
+    ``entries`` (``--record``) the entries it makes merged into ``latest.json`` (:func:`merge_results`)."""
+    if out:
+        with open(out + ".json", "w") as f:
+            json.dump(summary, f, indent=1)
+    if entries is not None:
+        merge_results(entries())
+
+
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
     widths = {c: max([len(c)] + [len(_fmt(r.get(c))) for r in rows]) for c in columns}
     print("  ".join(c.ljust(widths[c]) for c in columns))
