@@ -81,6 +81,8 @@ def readme_results() -> str:
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     source = latest.get("policy_grpo_reward_source_small")
+    view_run = _load(*CLOSED_LOOP_VAE, "view_vae", "view_results.json")  # the policy through the VAE alone (one GPU)
+    view = view_run["views"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
                           if source else ([], []))
     rows = [
@@ -116,9 +118,10 @@ def readme_results() -> str:
          "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
         *([("GRPO in the learned simulator's setting",
             f"real frames and reward {_pct(setting['value'])} points or more in {setting['steps']} steps "
-            f"({_device(setting)}, {setting['date']}); the "
-            f"policy's actions on Sword's frames succeed {_span(r['paid_success']['first'] for r in exec_runs)} in "
-            f"reality (real frames {_span([r['paid_success']['first'] for r in gt_runs], 0)}): the frames fail",
+            f"({_device(setting)}); acting on Sword's frames, real success "
+            f"{_span(r['paid_success']['first'] for r in exec_runs)} (real frames "
+            f"{_span([r['paid_success']['first'] for r in gt_runs], 0)}); through the VAE "
+            f"{view['vae']['mean']:.3f} vs {view['real']['mean']:.3f} (1 x {view_run['device'].removeprefix('NVIDIA ')})",
             "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
