@@ -140,6 +140,7 @@ def sft_command(args, variant: str = "base") -> tuple[str, ...]:
             "--out", os.path.join(args.workdir, SFT), "--demos-per-task", "50", "--execute", "ens", "--workers", "14",
             "--eval-episodes", "50", "--gen-procs-per-task", "4", f"--rl.sft.init={os.path.abspath(args.policy)}",
             f"--rl.sft.decoded_fraction={args.decoded_fraction}", f"--rl.sft.steps={args.sft_steps}",
+            f"--rl.sft.learning_rate={args.sft_learning_rate}",
             "--vae", vae_dir(args.workdir, variant))
 
 
@@ -457,6 +458,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--view-episodes-per-task", type=int, default=20, help="run: the view probe's, per view")
     parser.add_argument("--eval-episodes-per-task", type=int, default=10, help="run: the exec runs' evaluations")
     parser.add_argument("--sft-steps", type=int, default=1000)
+    parser.add_argument("--sft-learning-rate", type=float, default=3e-4,
+                        help="run: the fine-tune's peak rate (the policy was trained at 1e-3 falling to 1e-4)")
     parser.add_argument("--decoded-fraction", type=float, default=0.5)
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop what is still going after this")
     parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
@@ -478,6 +481,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                          "--policy-rollouts and --deadline-s >= 0")
     if args.rollout_batch < 4 or args.rollout_batch % 4:
         raise SystemExit("bench_sim_fidelity: --rollout-batch must be a multiple of 4 (4 minibatches)")
+    if not 0 < args.sft_learning_rate < 1:
+        raise SystemExit(f"bench_sim_fidelity: --sft-learning-rate must be in (0, 1), got {args.sft_learning_rate}")
     if not 0 < args.decoded_fraction <= 1:
         raise SystemExit(f"bench_sim_fidelity: --decoded-fraction must be in (0, 1], got {args.decoded_fraction}")
     if args.decoded_sft and "base" not in args.variants:

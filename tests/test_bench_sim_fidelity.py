@@ -74,6 +74,7 @@ def test_every_command_that_loads_a_vae_builds_its_variants_architecture(tmp_pat
     base_vae = os.path.join(work, "pipeline_base", "vae_run", "vae")
     assert sft[2:4] == ("benchmarks.bench_policy", "sft") and cfg.vae.spatial_factor == 16
     assert cfg.rl.sft.init == policy and cfg.rl.sft.decoded_fraction == 0.25 and cfg.rl.sft.steps == 500
+    assert cfg.rl.sft.learning_rate == 3e-4  # a fine-tune's rate, below the 1e-3 the policy was trained at
     assert rest[rest.index("--vae") + 1] == base_vae and rest[rest.index("--out") + 1] == os.path.join(work, "policy_dec")
     assert rest[rest.index("--demos-per-task") + 1] == "50"  # hence policy_d50.npz
     dec = os.path.join(work, "policy_dec", "policy_d50.npz")
@@ -91,7 +92,8 @@ def test_bad_arguments_are_refused(tmp_path):
                            (("--gpus", "0,0"), "distinct GPUs"), (("--rollout-batch", "30"), "multiple of 4"),
                            (("--decoded-fraction", "0"), r"\(0, 1\]"), (("--decoded-fraction", "1.5"), r"\(0, 1\]"),
                            (("--exec-steps", "0"), ">= 1"), (("--view-episodes-per-task", "0"), ">= 1"),
-                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "add base to --variants")):
+                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "add base to --variants"),
+                           (("--sft-learning-rate", "0"), r"--sft-learning-rate must be in \(0, 1\)")):
         with pytest.raises(SystemExit, match=message):
             _args(tmp_path, *extra)
     with pytest.raises(SystemExit, match="needs --policy"):
