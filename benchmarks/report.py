@@ -612,19 +612,24 @@ def grpo_reward_source() -> str:
                    "the detector on the same rollouts: success / precision"], rows)
 
 
+def _view_cells(name: str, v: dict, real: dict) -> list[str]:
+    """A view probe's success with its interval, and its difference from the ``real`` view with the 95% interval
+    of that difference (empty for the real view itself)."""
+    from sword_jax.rl.env_rollout import difference_interval
+
+    lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
+    return [f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
+            "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"]
+
+
 def policy_view() -> str:
     """The policy's real success on MJX per view of its frames (``benchmarks.bench_policy_view``), with the
     difference from the real view and its 95% interval."""
-    from sword_jax.rl.env_rollout import difference_interval
-
     views = _load("policy", "policy_view_small_4xh200", "view_results.json")["views"]
-    real = views["real"]
     rows = []
     for name, v in views.items():
         (blur, gain, noise) = (v["parameters"][k] for k in ("blur_sigma_px", "gain", "noise_std"))
-        lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
-        rows.append([name, f"{blur:g}", f"{gain:g}", f"{noise:g}", f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
-                     "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"])
+        rows.append([name, f"{blur:g}", f"{gain:g}", f"{noise:g}", *_view_cells(name, v, views["real"])])
     return _table(["view", "blur sigma (px of 128)", "brightness gain", "noise std (of 255)",
                    "success, 500 episodes (95% interval)", "against the real view, points (95% interval)"], rows)
 
@@ -634,16 +639,22 @@ def closed_loop() -> str:
     (``bench_grpo_reward_source closed-loop``): what reality paid the imagined actions and how far the frames the
     policy read, and its greedy actions on them, were from the real ones at the first and last decision."""
     runs = _load("policy", "closed_loop_small_h200", "closed_loop.json")["runs"]
-    rows = []
-    for r in runs.values():
-        paid = r["paid_success"]
-        rows.append([f"{r['world_model_steps']:,}", f"{r['world_model_loss']:.3f}", str(r["steps"]),
-                     f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}",
-                     f"{r['detector_success']:.3f}", f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
-                     f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}"])
-    return _table(["world model steps", "its loss (last 10 logged)", "GRPO steps",
-                   "real success of the imagined actions (95% interval)", "the detector said",
-                   "frame error, decision 1 -> 11", "greedy action gap, decision 1 -> 11"], rows)
+    rows = [[f"{r['world_model_steps']:,}", f"{r['world_model_loss']:.3f}", *_closed_loop_cells(r)] for r in runs.values()]
+    return _table(["world model steps", "its loss (last 10 logged)", *CLOSED_LOOP_COLUMNS], rows)
+
+
+# a closed-loop run's columns (bench_grpo_reward_source closed-loop): its steps, what reality paid, the detector,
+# and the first and last decisions' frame error and greedy action gap
+CLOSED_LOOP_COLUMNS = ("GRPO steps", "real success of the imagined actions (95% interval)", "the detector said",
+                       "frame error, decision 1 -> 11", "greedy action gap, decision 1 -> 11")
+
+
+def _closed_loop_cells(r: dict) -> list[str]:
+    """:data:`CLOSED_LOOP_COLUMNS` of one run of a ``closed_loop.json``."""
+    paid = r["paid_success"]
+    return [str(r["steps"]), f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}",
+            f"{r['detector_success']:.3f}", f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
+            f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}"]
 
 
 CLOSED_LOOP_VAE = ("policy", "closed_loop_vae_small_h200")
@@ -654,15 +665,7 @@ def closed_loop_sampler() -> str:
     (``bench_grpo_reward_source closed-loop``): what reality paid the imagined actions and the first and last
     decisions' frame error and greedy action gap."""
     runs = _load(*CLOSED_LOOP_VAE, "closed_loop.json")["runs"]
-    rows = []
-    for label, r in runs.items():
-        paid = r["paid_success"]
-        rows.append([label, str(r["steps"]),
-                     f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}",
-                     f"{r['detector_success']:.3f}", f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
-                     f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}"])
-    return _table(["sampler", "GRPO steps", "real success of the imagined actions (95% interval)", "the detector said",
-                   "frame error, decision 1 -> 11", "greedy action gap, decision 1 -> 11"], rows)
+    return _table(["sampler", *CLOSED_LOOP_COLUMNS], [[label, *_closed_loop_cells(r)] for label, r in runs.items()])
 
 
 def closed_loop_prev() -> str:
@@ -681,17 +684,11 @@ def closed_loop_prev() -> str:
 def policy_view_vae() -> str:
     """The policy's real success on MJX reading the real frames, the frame of the decision before, and the real
     frames round-tripped through the pipeline's VAE (``bench_policy_view --views real,lag_1,vae``)."""
-    from sword_jax.rl.env_rollout import difference_interval
-
     data = _load(*CLOSED_LOOP_VAE, "view_vae", "view_results.json")
     views, labels = data["views"], {"real": "the real frame", "lag_1": "the real frame of the decision before",
                                     "vae": "the real frame round-tripped through the VAE (1,000 steps)"}
     real = views["real"]
-    rows = []
-    for name, v in views.items():
-        lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
-        rows.append([labels.get(name, name), f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
-                     "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"])
+    rows = [[labels.get(name, name), *_view_cells(name, v, real)] for name, v in views.items()]
     return _table(["what the policy reads at each decision", f"real success, {real['episodes']} episodes (95% interval)",
                    "against the real frame, points (95% interval)"], rows)
 
