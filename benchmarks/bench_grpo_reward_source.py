@@ -291,6 +291,16 @@ def history_steps(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
+def world_model_loss(metrics: str) -> dict | None:
+    """``{"steps", "loss"}`` of a world model's ``metrics.jsonl``: its last logged step and the mean loss of its
+    last 10 logged steps; None where the file is missing or empty."""
+    if not os.path.exists(metrics):
+        return None
+    with open(metrics) as f:
+        logged = [json.loads(line) for line in f if line.strip()][-10:]
+    return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
+
+
 def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dict:
     """Per run ``(label, GRPO work dir, log, world-model metrics.jsonl)``: the success its trajectories were
     paid (pooled over the steps, with a 95% Wilson interval over ``trajectories`` a step), the detector's
@@ -310,11 +320,12 @@ def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dic
         if not steps:
             where = os.path.join(grpo, "train_history.jsonl") if rows else log
             raise SystemExit(f"bench_grpo_reward_source: {where} holds no step with the closed-loop record")
-        with open(metrics) as f:
-            logged = [json.loads(line) for line in f if line.strip()][-10:]
+        world_model = world_model_loss(metrics)
+        if world_model is None:
+            raise SystemExit(f"bench_grpo_reward_source: {metrics} holds no logged world-model step")
         paid = sum(round(s["paid"] * trajectories) for s in steps)
-        run = {"steps": len(steps), "source": source, "world_model_steps": logged[-1]["step"],
-               "world_model_loss": statistics.mean(r["loss"] for r in logged),
+        run = {"steps": len(steps), "source": source, "world_model_steps": world_model["steps"],
+               "world_model_loss": world_model["loss"],
                "paid_success": wilson_rate(paid, trajectories * len(steps)), "per_step": steps,
                **{k: statistics.mean(s[k] for s in steps) for k in steps[0]
                   if k not in ("step", "paid") and all(k in s for s in steps)}}

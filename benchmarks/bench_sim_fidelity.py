@@ -54,7 +54,6 @@ import json
 import math
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import time
@@ -62,7 +61,7 @@ from collections.abc import Sequence
 
 from benchmarks import common
 from benchmarks.bench_grpo_refresh import pipeline_command
-from benchmarks.bench_grpo_reward_source import RECIPE, WORLD_MODEL, closed_loop_summary, pipeline
+from benchmarks.bench_grpo_reward_source import RECIPE, WORLD_MODEL, closed_loop_summary, pipeline, world_model_loss
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
 
@@ -299,15 +298,6 @@ def _read_json(path: str) -> dict | None:
         return None
     with open(path) as f:
         return json.load(f)
-
-
-def world_model_loss(metrics: str) -> dict | None:
-    """The world model's loss, the mean of its last 10 logged steps (as the closed-loop summary gives it)."""
-    if not os.path.exists(metrics):
-        return None
-    with open(metrics) as f:
-        logged = [json.loads(line) for line in f if line.strip()][-10:]
-    return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
 
 
 def view_summary(path: str) -> dict | None:
