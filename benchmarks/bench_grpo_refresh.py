@@ -51,6 +51,7 @@ import dataclasses
 import json
 import os
 import shlex
+import signal
 import statistics
 import subprocess
 import sys
@@ -294,18 +295,43 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
 
 
 def stop_all(procs: Sequence[subprocess.Popen], grace_s: float = 20.0) -> list[subprocess.Popen]:
-    """SIGTERM to the processes still running, SIGKILL after ``grace_s``; returns the ones that were running."""
+    """SIGTERM to the processes still running, SIGKILL after ``grace_s``; returns the ones that were running.
+
+    A process that leads its own process group (started with ``start_new_session``) is signalled with its whole
+    group, and the group is killed once the leader has ended, so what it started goes too (``train.pipeline
+    --parallel``'s stage processes)."""
     running = [p for p in procs if p.poll() is None]
+    leaders = {p.pid for p in running if _leads_group(p)}
+
+    def send(p: subprocess.Popen, sig: int) -> None:
+        try:
+            if p.pid in leaders:
+                os.killpg(p.pid, sig)
+            else:
+                p.send_signal(sig)
+        except ProcessLookupError:  # the group has ended
+            pass
+
     for p in running:
-        p.terminate()
+        send(p, signal.SIGTERM)
     deadline = time.perf_counter() + grace_s
     for p in running:
         try:
             p.wait(timeout=max(deadline - time.perf_counter(), 0.1))
         except subprocess.TimeoutExpired:
-            p.kill()
+            send(p, signal.SIGKILL)
             p.wait()
+        else:
+            if p.pid in leaders:  # what of its group outlived it
+                send(p, signal.SIGKILL)
     return running
+
+
+def _leads_group(p: subprocess.Popen) -> bool:
+    try:
+        return os.getpgid(p.pid) == p.pid
+    except ProcessLookupError:
+        return False
 
 
 def gain_between(points: list[dict], key: str | None) -> dict:

@@ -53,14 +53,13 @@ import itertools
 import json
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import pipeline_command
+from benchmarks.bench_grpo_refresh import pipeline_command, stop_all
 from benchmarks.bench_grpo_reward_source import RECIPE, WORLD_MODEL, closed_loop_summary, pipeline, world_model_loss
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
@@ -211,31 +210,6 @@ def memory_fractions(jobs: dict[str, Job]) -> dict[str, float]:
     return out
 
 
-def stop_groups(procs: Sequence[subprocess.Popen], grace_s: float = 20.0) -> list[subprocess.Popen]:
-    """SIGTERM to the process groups still running (a pipeline's stage processes with it), then SIGKILL to each
-    group once its leader has ended or after ``grace_s`` (what of the group outlived its leader goes too); returns
-    the processes that were running."""
-    running = [p for p in procs if p.poll() is None]
-
-    def signal_group(p: subprocess.Popen, sig: int) -> None:
-        try:
-            os.killpg(p.pid, sig)
-        except ProcessLookupError:
-            pass
-
-    for p in running:
-        signal_group(p, signal.SIGTERM)
-    deadline = time.perf_counter() + grace_s
-    for p in running:
-        try:
-            p.wait(timeout=max(deadline - time.perf_counter(), 0.1))
-        except subprocess.TimeoutExpired:
-            pass
-        signal_group(p, signal.SIGKILL)
-        p.wait()
-    return running
-
-
 def blocked_by(job: Job, procs: dict[str, subprocess.Popen], skipped: dict[str, str]) -> Need | None:
     """The needed file ``job`` can no longer get (its maker was skipped, or ended without it), if any."""
     for need in job.needs:
@@ -277,7 +251,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
                 continue
             del pending[name]
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
-            running = stop_groups(list(procs.values()))
+            running = stop_all(list(procs.values()))
             stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
             print(f"[sim-fidelity] deadline of {args.deadline_s:.0f} s: stopped {stopped}, never started "
                   f"{sorted(pending)}", flush=True)
