@@ -40,8 +40,7 @@ def given_policy(cfg, source: str) -> dict:
         raise ValueError(f"rl.sft.decoded_fraction={cfg.rl.sft.decoded_fraction}: the sft_policy stage with rl.sft.init "
                          "copies the given policy without training it; fine-tune it on decoded frames with "
                          "train.train_policy --vae DIR (or benchmarks.bench_policy sft --vae DIR) and pass the result")
-    if not os.path.exists(source):
-        raise FileNotFoundError(f"rl.sft.init: no such policy {source!r} (a train_policy checkpoint directory or .npz)")
+    _require_policy(source)
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     is_npz = source.endswith(".npz")
@@ -52,11 +51,10 @@ def given_policy(cfg, source: str) -> dict:
         os.remove(tmp)
     (shutil.copyfile if is_npz else shutil.copytree)(source, tmp)
     try:
-        _, params = build_policy(cfg.rl, seed=cfg.seed)
-        load_params(tmp, params, kind="policy")
-    except ValueError as err:  # CheckpointError (another config) included
+        _load_policy(cfg, source, tmp)
+    except ValueError:
         (os.remove if is_npz else shutil.rmtree)(tmp)
-        raise ValueError(f"rl.sft.init: {source} does not load into this config's policy: {err}") from err
+        raise
     if os.path.isdir(path):
         shutil.rmtree(path)
     os.replace(tmp, path)
@@ -130,17 +128,28 @@ def initial_policy(cfg):
       FileNotFoundError: ``rl.sft.init`` does not exist.
       ValueError: it holds another architecture than ``cfg.rl`` builds.
     """
-    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     source = cfg.rl.sft.init
     if not source:
-        return graphdef, params
+        return build_policy(cfg.rl, seed=cfg.seed)
+    _require_policy(source)
+    graphdef, params = _load_policy(cfg, source)
+    print(f"sft: fine-tuning the given policy {source}", flush=True)
+    return graphdef, params
+
+
+def _require_policy(source: str) -> None:
     if not os.path.exists(source):
         raise FileNotFoundError(f"rl.sft.init: no such policy {source!r} (a train_policy checkpoint directory or .npz)")
+
+
+def _load_policy(cfg, source: str, path: str = ""):
+    """``(graphdef, params)``: the policy ``source`` (read from ``path``, a copy of it, when given) loaded into
+    ``cfg.rl``'s policy; a ValueError naming ``source`` when it holds another kind or architecture."""
+    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     try:
-        params, _ = load_params(source, params, kind="policy")
-    except ValueError as err:
+        params, _ = load_params(path or source, params, kind="policy")
+    except ValueError as err:  # CheckpointError (another config) included
         raise ValueError(f"rl.sft.init: {source} does not load into this config's policy: {err}") from err
-    print(f"sft: fine-tuning the given policy {source}", flush=True)
     return graphdef, params
 
 
