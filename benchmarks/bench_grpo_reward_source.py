@@ -394,9 +394,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--vae-steps", type=int, default=1000)
     parser.add_argument("--world-model-steps", type=int, default=3000)
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
-    parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
-    parser.add_argument("--record", action="store_true", help="summary: write the entry to benchmarks/results/latest.json")
-    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
+    common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]

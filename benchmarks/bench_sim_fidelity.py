@@ -426,9 +426,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: the fine-tune's peak rate (the policy was trained at 1e-3 falling to 1e-4)")
     parser.add_argument("--decoded-fraction", type=float, default=0.5)
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop what is still going after this")
-    parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
-    parser.add_argument("--record", action="store_true", help="summary: write the entry to benchmarks/results/latest.json")
-    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
+    common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.gpus = [g for g in args.gpus.split(",") if g]
     args.variants = [v for v in args.variants.split(",") if v]

@@ -130,6 +130,14 @@ def merge_results(entries: dict[str, dict[str, Any]], path: str = RESULTS) -> st
     return write_json_atomic(path, current, sort_keys=True)
 
 
+def add_summary_options(parser: Any) -> None:
+    """A run-and-summary benchmark's ``summary`` options, which :func:`save_summary` serves: ``--out``,
+    ``--record`` and ``--command``."""
+    parser.add_argument("--out", default="", help="summary: output path without extension (.json)")
+    parser.add_argument("--record", action="store_true", help="summary: write the entry to benchmarks/results/latest.json")
+    parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
+
+
 def save_summary(summary: dict[str, Any], out: str, entries: Callable[[], dict[str, dict[str, Any]]] | None = None
                  ) -> None:
     """A benchmark's ``summary`` mode: the summary to ``out + ".json"`` when ``out`` is given, and with
