@@ -118,10 +118,11 @@ def readme_results() -> str:
          "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
         *([("GRPO in the learned simulator's setting",
             f"real frames and reward {_pct(setting['value'])} points or more in {setting['steps']} steps "
-            f"({_device(setting)}); acting on Sword's frames, real success "
+            f"({_device(setting)}); on Sword's frames real success "
             f"{_span(r['paid_success']['first'] for r in exec_runs)} (real frames "
             f"{_span([r['paid_success']['first'] for r in gt_runs], 0)}); through the VAE "
-            f"{view['vae']['mean']:.3f} vs {view['real']['mean']:.3f} (1 x {view_run['device'].removeprefix('NVIDIA ')})",
+            f"{view['vae']['mean']:.3f} vs {view['real']['mean']:.3f} ({view['real']['episodes']} episodes, 1 x "
+            f"{view_run['device'].removeprefix('NVIDIA ')})",
             "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
