@@ -654,7 +654,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.mode == "summary":
         summary = summarize(args.workdir, args.ground_truth)
         common.save_summary(summary, args.out, (lambda: results_entries(
-            summary, args.workdir, data=args.out or args.workdir, note=args.note, command=args.command))
+            summary, args.workdir, data=common.summary_data(args.out, args.workdir), note=args.note, command=args.command))
             if args.record else None)
         if args.out:
             plot(summary, args.out + ".png")

@@ -425,7 +425,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.mode == "summary":
         summary = summarize(args.workdir)
         common.save_summary(summary, args.out, (lambda: results_entries(
-            summary, args.workdir, data=args.out or args.workdir, command=args.command)) if args.record else None)
+            summary, args.workdir, data=common.summary_data(args.out, args.workdir), command=args.command)) if args.record else None)
         print_runs(summary)
         return summary
     if not args.policy:

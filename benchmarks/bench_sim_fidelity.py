@@ -17,8 +17,11 @@ its pixel loss) and measures, per variant:
   reality, with the VAE alone's share where logged.
 
 With ``--decoded-sft`` the policy is also fine-tuned on frames of which ``--decoded-fraction`` went through the
-``base`` VAE (``bench_policy sft``, ``rl.sft.decoded_fraction``), and that decoder-aware policy is measured the
-same way in the ``base`` VAE and world model (``view_base_dec``, ``exec_base_dec``)::
+``--decoded-variant`` VAE (``base`` by default; ``bench_policy sft``, ``rl.sft.decoded_fraction``), and that
+decoder-aware policy is measured the same way in that variant's VAE and world model (``view_<variant>_dec``,
+``exec_<variant>_dec``). ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
+(``policy_ctl``, ``view_<variant>_ctl``, ``exec_<variant>_ctl``), so that what the decoded frames change is told
+apart from what more training changes::
 
     python -m benchmarks.bench_sim_fidelity run --workdir runs/fid --policy runs/p/policy_d50.npz \\
         --gpus 0,1,2,3 --variants base,vae8x,lpips --decoded-sft --vae-steps 1000 --world-model-steps 6000 \\
@@ -30,8 +33,9 @@ same way in the ``base`` VAE and world model (``view_base_dec``, ``exec_base_dec
 ``run`` places variant i's pipeline on GPU ``i mod n``; its view probe starts there once its VAE is trained
 (``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
 ``stages/reward_model.json``: the pipeline runs its stages two at a time, so either may end last). The
-decoder-aware SFT takes the first GPU no pipeline uses (else the last) once the ``base`` VAE exists, and its
-probe and ``exec`` run follow it there. A job whose input can no longer appear (its maker ended without it) is
+fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the others from the last back): the
+decoder-aware one once its variant's VAE exists, the control at once; each one's probe and ``exec`` run follow it
+there. A job whose input can no longer appear (its maker ended without it) is
 skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
 deadline stops the whole process groups still going. On a shared GPU each process is capped
 (``XLA_PYTHON_CLIENT_MEM_FRACTION``, :func:`memory_fractions`): 90% of the GPU is split in proportion to
@@ -71,8 +75,9 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "lpips": ("--vae.perceptual_weight=1.0",),
 }
 VIEW_FLAGS = ("--rl.grpo.temperature=0.5", "--rl.imagined.execute_steps=4")  # the learned simulator's mode
-DECODED = "base_dec"  # the decoder-aware policy's runs: view_base_dec, exec_base_dec (in the base VAE)
-SFT = "policy_dec"
+# the fine-tuned policies: kind -> (its SFT job and folder, the suffix of its runs view_<variant>_<suffix>,
+# exec_<variant>_<suffix>); "decoded" reads --decoded-fraction of its frames through the VAE, "control" none
+FINE_TUNES = {"decoded": ("policy_dec", "dec"), "control": ("policy_ctl", "ctl")}
 SFT_POLICY = "policy_d50.npz"  # bench_policy sft --demos-per-task 50, no --tag
 # a job's share of a GPU by kind: the world model's training, GRPO in a world model, the decoder-aware SFT, a probe
 WEIGHTS = {"pipeline": 3.0, "exec": 2.0, "policy": 2.0, "view": 1.0}
@@ -110,8 +115,13 @@ def vae_dir(workdir: str, variant: str) -> str:
     return os.path.join(pipe_dir(workdir, variant), "vae_run", "vae")
 
 
-def sft_policy(workdir: str) -> str:
-    return os.path.join(workdir, SFT, SFT_POLICY)
+def sft_policy(workdir: str, kind: str = "decoded") -> str:
+    return os.path.join(workdir, FINE_TUNES[kind][0], SFT_POLICY)
+
+
+def tuned_runs(variant: str, kind: str) -> str:
+    """The name the runs of fine-tune ``kind`` in ``variant`` carry after ``view_`` and ``exec_``."""
+    return f"{variant}_{FINE_TUNES[kind][1]}"
 
 
 def view_command(args, variant: str, policy: str, out: str) -> tuple[str, ...]:
@@ -132,20 +142,30 @@ def exec_command(args, variant: str, policy: str, name: str) -> tuple[str, ...]:
             "--rl.grpo.eval_every=100")
 
 
-def sft_command(args, variant: str = "base") -> tuple[str, ...]:
-    """``bench_policy sft``: the policy fine-tuned with ``--decoded-fraction`` of its frames through the VAE."""
+def sft_command(args, kind: str = "decoded") -> tuple[str, ...]:
+    """``bench_policy sft``: the policy fine-tuned with ``--decoded-fraction`` of its frames through the
+    ``--decoded-variant`` VAE (``decoded``), or the same fine-tune on real frames only (``control``)."""
+    variant = args.decoded_variant
+    decoded = ((f"--rl.sft.decoded_fraction={args.decoded_fraction}", "--vae", vae_dir(args.workdir, variant))
+               if kind == "decoded" else ("--rl.sft.decoded_fraction=0",))
     return (sys.executable, "-m", "benchmarks.bench_policy", "sft", "--config", args.config, *VARIANTS[variant],
-            "--out", os.path.join(args.workdir, SFT), "--demos-per-task", "50", "--execute", "ens", "--workers", "14",
-            "--eval-episodes", "50", "--gen-procs-per-task", "4", f"--rl.sft.init={os.path.abspath(args.policy)}",
-            f"--rl.sft.decoded_fraction={args.decoded_fraction}", f"--rl.sft.steps={args.sft_steps}",
-            f"--rl.sft.learning_rate={args.sft_learning_rate}",
-            "--vae", vae_dir(args.workdir, variant))
+            "--out", os.path.join(args.workdir, FINE_TUNES[kind][0]), "--demos-per-task", "50", "--execute", "ens",
+            "--workers", "14", "--eval-episodes", "50", "--gen-procs-per-task", "4",
+            f"--rl.sft.init={os.path.abspath(args.policy)}", f"--rl.sft.steps={args.sft_steps}",
+            f"--rl.sft.learning_rate={args.sft_learning_rate}", *decoded)
 
 
-def sft_gpu(args) -> str:
-    """The decoder-aware SFT's GPU: the first no variant's pipeline uses, else the last."""
+def fine_tunes(args) -> list[str]:
+    """The fine-tunes the run makes: ``decoded`` with ``--decoded-sft``, then ``control`` with ``--sft-control``."""
+    return ["decoded"] * bool(args.decoded_sft) + ["control"] * bool(args.sft_control)
+
+
+def sft_gpu(args, kind: str = "decoded") -> str:
+    """A fine-tune's GPU, one per fine-tune (:func:`fine_tunes`) in this order: the GPUs no variant's pipeline
+    uses, first to last, then the others from the last back."""
     used = {args.gpus[i % len(args.gpus)] for i in range(len(args.variants))}
-    return next((g for g in args.gpus if g not in used), args.gpus[-1])
+    order = [g for g in args.gpus if g not in used] + [g for g in reversed(args.gpus) if g in used]
+    return order[fine_tunes(args).index(kind) % len(order)]
 
 
 # the stages a pipeline's exec run reads, the last two it builds; with --parallel 2 either may end last
@@ -170,14 +190,18 @@ def plan(args) -> dict[str, Job]:
                  Job(f"view_{variant}", view, gpu, (vae_done,)),
                  Job(f"exec_{variant}", exec_command(args, variant, policy, f"exec_{variant}"), gpu,
                      built(f"pipeline_{variant}", pipe))]
-    if args.decoded_sft:
-        gpu, pipe, dec = sft_gpu(args), pipe_dir(args.workdir, "base"), sft_policy(args.workdir)
-        saved = Need(SFT, os.path.splitext(dec)[0] + ".reckoning.json", False)  # written after the policy
-        view = view_command(args, "base", dec, os.path.join(args.workdir, f"view_{DECODED}"))
-        jobs += [Job(SFT, sft_command(args), gpu, (Need("pipeline_base", os.path.join(pipe, "stages", "vae.json"), False),)),
-                 Job(f"view_{DECODED}", view, gpu, (saved,)),
-                 Job(f"exec_{DECODED}", exec_command(args, "base", dec, f"exec_{DECODED}"), gpu,
-                     (*built("pipeline_base", pipe), Need(SFT, os.path.join(args.workdir, SFT, "sft_results.json"), True)))]
+    variant = args.decoded_variant
+    pipe = pipe_dir(args.workdir, variant)
+    for kind in fine_tunes(args):
+        gpu, tuned, sft, runs = sft_gpu(args, kind), sft_policy(args.workdir, kind), FINE_TUNES[kind][0], tuned_runs(variant, kind)
+        saved = Need(sft, os.path.splitext(tuned)[0] + ".reckoning.json", False)  # written after the policy
+        # the decoder-aware fine-tune reads the VAE; the control starts with the others
+        needs = (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False),) if kind == "decoded" else ()
+        view = view_command(args, variant, tuned, os.path.join(args.workdir, f"view_{runs}"))
+        jobs += [Job(sft, sft_command(args, kind), gpu, needs),
+                 Job(f"view_{runs}", view, gpu, (saved,)),
+                 Job(f"exec_{runs}", exec_command(args, variant, tuned, f"exec_{runs}"), gpu,
+                     (*built(f"pipeline_{variant}", pipe), Need(sft, os.path.join(args.workdir, sft, "sft_results.json"), True)))]
     return {job.name: job for job in jobs}
 
 
@@ -334,14 +358,21 @@ def summarize(workdir: str, variants: Sequence[str] = (), *, rollout_batch: int 
                  "view": view_summary(os.path.join(workdir, f"view_{variant}")),
                  "exec": exec_summary(workdir, f"exec_{variant}", variant, rollout_batch)}
         out["variants"][variant] = _with_missing(entry)
-    if any(os.path.exists(os.path.join(workdir, d)) for d in (SFT, f"view_{DECODED}", f"exec_{DECODED}")):
-        sft = _read_json(os.path.join(workdir, SFT, "sft_results.json"))
+    for kind, (sft_dir, _) in FINE_TUNES.items():
+        runs = [v for v in VARIANTS if any(os.path.exists(os.path.join(workdir, f"{what}_{tuned_runs(v, kind)}"))
+                                           for what in ("view", "exec"))]
+        if not runs and not os.path.exists(os.path.join(workdir, sft_dir)):
+            continue
+        variant = runs[0] if runs else None
+        sft = _read_json(os.path.join(workdir, sft_dir, "sft_results.json"))
         ens = sft["runs"][-1]["eval"].get("ens") if sft and sft.get("runs") else None
-        out["decoded"] = _with_missing({
+        out[kind] = dict(_with_missing({
             "sft": {"mean": ens["mean"], "ci95": ens["ci95"], "episodes": ens["episodes"]} if ens else None,
-            "view": view_summary(os.path.join(workdir, f"view_{DECODED}")),
-            "exec": exec_summary(workdir, f"exec_{DECODED}", "base", rollout_batch)})
-    rows = dict(out["variants"], **({DECODED: out["decoded"]} if "decoded" in out else {}))
+            "view": view_summary(os.path.join(workdir, f"view_{tuned_runs(variant, kind)}")) if variant else None,
+            "exec": exec_summary(workdir, f"exec_{tuned_runs(variant, kind)}", variant, rollout_batch)
+            if variant else None}), variant=variant)
+    rows = dict(out["variants"], **{tuned_runs(out[k]["variant"], k): out[k] for k in FINE_TUNES
+                                    if k in out and out[k]["variant"]})
     seen = {v: e["view"]["vae"]["mean"] for v, e in rows.items() if "vae" in e.get("view", {})}
     out["best_vae_view"] = {"variant": max(seen, key=seen.get), "success": max(seen.values())} if seen else None
     return out
@@ -361,7 +392,7 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     if not best:
         raise SystemExit("bench_sim_fidelity: no view probe left a vae success to record")
     entry = common.record("", best["success"], None, best=best["variant"], variants=summary["variants"],
-                          decoded=summary.get("decoded"), device=common.workdir_device(workdir), data=data,
+                          decoded=summary.get("decoded"), control=summary.get("control"), device=common.workdir_device(workdir), data=data,
                           unit="MJX success of the policy on frames round-tripped through the VAE (sampled at T 0.5, "
                                "4 actions a decision, proprio missing; episodes: each probe's)",
                           **({"command": command} if command else {}))
@@ -373,7 +404,8 @@ def _interval(figure: dict) -> str:
 
 
 def print_summary(summary: dict) -> None:
-    rows = dict(summary["variants"], **({DECODED: summary["decoded"]} if "decoded" in summary else {}))
+    rows = dict(summary["variants"], **{tuned_runs(summary[k].get("variant") or "none", k): summary[k]
+                                        for k in FINE_TUNES if k in summary})
     if not rows:
         print("[sim-fidelity] no pipeline, probe or run of a variant here", flush=True)
     for name, r in rows.items():
@@ -412,7 +444,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; variant i's jobs on the (i mod n)-th")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
-    parser.add_argument("--decoded-sft", action="store_true", help="run: also the decoder-aware policy (base VAE)")
+    parser.add_argument("--decoded-sft", action="store_true", help="run: also the decoder-aware policy")
+    parser.add_argument("--decoded-variant", default="base",
+                        help="run: the variant whose VAE the decoder-aware policy reads and whose world model it runs in")
+    parser.add_argument("--sft-control", action="store_true",
+                        help="run: also the same fine-tune on real frames only, measured in the same variant")
     parser.add_argument("--vae-steps", type=int, default=1000)
     parser.add_argument("--world-model-steps", type=int, default=12000)
     parser.add_argument("--policy-rollouts", type=int, default=20,
@@ -447,8 +483,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit(f"bench_sim_fidelity: --sft-learning-rate must be in (0, 1), got {args.sft_learning_rate}")
     if not 0 < args.decoded_fraction <= 1:
         raise SystemExit(f"bench_sim_fidelity: --decoded-fraction must be in (0, 1], got {args.decoded_fraction}")
-    if args.decoded_sft and "base" not in args.variants:
-        raise SystemExit("bench_sim_fidelity: --decoded-sft fine-tunes on the base VAE's frames; add base to --variants")
+    if (args.decoded_sft or args.sft_control) and args.decoded_variant not in args.variants:
+        raise SystemExit(f"bench_sim_fidelity: the fine-tuned policies run in the {args.decoded_variant!r} variant "
+                         f"(--decoded-variant); add it to --variants (given: {','.join(args.variants)})")
     if args.mode == "run" and not os.path.isfile(args.policy):
         raise SystemExit(f"bench_sim_fidelity run needs --policy, the policy .npz (got {args.policy!r})")
     return args
@@ -459,7 +496,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.mode == "summary":
         summary = summarize(args.workdir, rollout_batch=args.rollout_batch)
         common.save_summary(summary, args.out, (lambda: results_entries(
-            summary, args.workdir, data=args.out or args.workdir, command=args.command)) if args.record else None)
+            summary, args.workdir, data=common.summary_data(args.out, args.workdir), command=args.command)) if args.record else None)
         print_summary(summary)
         return summary
     summary = run(args)

@@ -138,6 +138,12 @@ def add_summary_options(parser: Any) -> None:
     parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
 
 
+def summary_data(out: str, workdir: str) -> str:
+    """What a recorded entry's ``data`` names: the summary file :func:`save_summary` writes (``out + ".json"``),
+    else the run's workdir."""
+    return out + ".json" if out else workdir
+
+
 def save_summary(summary: dict[str, Any], out: str, entries: Callable[[], dict[str, dict[str, Any]]] | None = None
                  ) -> None:
     """A benchmark's ``summary`` mode: the summary to ``out + ".json"`` when ``out`` is given, and with

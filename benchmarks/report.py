@@ -81,8 +81,8 @@ def readme_results() -> str:
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     source = latest.get("policy_grpo_reward_source_small")
-    view_run = _load(*CLOSED_LOOP_VAE, "view_vae", "view_results.json")  # the policy through the VAE alone (one GPU)
-    view = view_run["views"]
+    fidelity = _load(*SIM_FIDELITY, "summary.json")["variants"]  # the policy through each VAE alone (4 GPUs)
+    base, vae8x = fidelity["base"]["view"], fidelity["vae8x"]["view"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
                           if source else ([], []))
     rows = [
@@ -118,11 +118,11 @@ def readme_results() -> str:
          "policy_grpo_world_model_gain_small", f"[section]({doc}#refreshing-the-simulator-while-the-policy-moves)"),
         *([("GRPO in the learned simulator's setting",
             f"real frames and reward {_pct(setting['value'])} points or more in {setting['steps']} steps "
-            f"({_device(setting)}); on Sword's frames real success "
-            f"{_span(r['paid_success']['first'] for r in exec_runs)} (real frames "
+            f"({_device(setting)}); Sword's frames "
+            f"{_span(r['paid_success']['first'] for r in exec_runs)} (real "
             f"{_span([r['paid_success']['first'] for r in gt_runs], 0)}); through the VAE "
-            f"{view['vae']['mean']:.3f} vs {view['real']['mean']:.3f} ({view['real']['episodes']} episodes, 1 x "
-            f"{view_run['device'].removeprefix('NVIDIA ')})",
+            f"{base['vae']['mean']:.3f} vs {base['real']['mean']:.3f}, the 8x VAE {vae8x['vae']['mean']:.3f} vs "
+            f"{vae8x['real']['mean']:.3f} ({base['real']['episodes']} episodes)",
             "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
@@ -732,6 +732,61 @@ def lag_proprio() -> str:
                    "the frame of the decision before", "difference, points"], rows)
 
 
+SIM_FIDELITY = ("policy", "sim_fidelity_small_4xh200")
+SIM_FIDELITY_LABELS = {"base": "base: 16x spatial, 8 x 8 latents", "vae8x": "8x spatial, 16 x 16 latents",
+                       "lpips": "base with LPIPS beside the pixel loss"}
+
+
+def _ci(figure: dict) -> str:
+    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
+
+
+def sim_fidelity() -> str:
+    """Per VAE variant and for the decoder-aware policy (``bench_sim_fidelity``): the policy's MJX success on
+    real and on VAE-round-tripped frames, and what reality paid its actions chosen in that variant's world model,
+    with the first decision's frame error and greedy action gap beside the VAE alone's."""
+    summary = _load(*SIM_FIDELITY, "summary.json")
+    rows = [(SIM_FIDELITY_LABELS.get(v, v), "policy_d50", e, e) for v, e in summary["variants"].items()]
+    for kind, label in (("decoded", "policy_d50 fine-tuned on half decoded frames"),
+                        ("control", "policy_d50 fine-tuned alike on real frames")):
+        if kind in summary:  # in its variant's VAE and world model
+            variant = summary[kind]["variant"]
+            rows.append((SIM_FIDELITY_LABELS[variant], label, summary[kind], summary["variants"][variant]))
+    out = []
+    for vae, policy, e, pipe in rows:
+        view, ex = e["view"], e["exec"]
+        d = view["difference"]
+        out.append([vae, policy, f"{pipe['world_model']['loss']:.3f}", _ci(view["real"]), _ci(view["vae"]),
+                    f"{_pct(d['value'])} {_interval(d['ci95'])}",
+                    f"{view['round_trip_levels']['mean_abs_error']['all']:.1f}",
+                    f"{ex['paid_success']['rate']:.3f} [{ex['paid_success']['ci95'][0]:.3f}, "
+                    f"{ex['paid_success']['ci95'][1]:.3f}] of {ex['paid_success']['of']:,}",
+                    f"{ex['frame_error_first']:.3f} ({ex['frame_error_vae_first']:.3f})",
+                    f"{ex['action_gap_first']:.3f} ({ex['action_gap_vae_first']:.3f})",
+                    f"{ex['frame_error_last']:.3f} / {ex['action_gap_last']:.3f}"])
+    episodes = next(iter(summary["variants"].values()))["view"]["real"]["episodes"]
+    return _table(["VAE", "policy", "world model loss", f"real frames, {episodes} episodes (95% interval)",
+                   "frames through the VAE", "difference, points", "round trip error (of 255)",
+                   "real success of the actions chosen in the world model", "frame error at decision 1 (VAE alone)",
+                   "greedy action gap at decision 1 (VAE alone)", "decision 11: frame error / action gap"], out)
+
+
+def sim_fidelity_decisions() -> str:
+    """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
+    its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
+    with open(os.path.join(RESULTS_DIR, *SIM_FIDELITY, "exec_vae8x", "rl", "grpo", "train_history.jsonl")) as f:
+        history = [json.loads(line) for line in f if line.strip()]
+    decisions = sorted(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+
+    def mean(what: str, k: int) -> str:
+        return f"{statistics.mean(h[f'closed_loop_{what}_{k}'] for h in history):.3f}"
+
+    rows = [[str(k), mean("frame_error", k), mean("frame_error_vae", k), mean("motion", k), mean("action_gap", k),
+             mean("action_gap_vae", k), mean("action_gap_prev", k)] for k in decisions]
+    return _table(["decision", "frame error to the real frame", "the VAE alone", "real motion over the decision",
+                   "greedy action gap to the real frame", "the VAE alone", "to the real frame a decision earlier"], rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -747,6 +802,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
+    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
 }
 
 

@@ -86,13 +86,47 @@ def test_every_command_that_loads_a_vae_builds_its_variants_architecture(tmp_pat
         c for c in jobs["exec_base"].command if c not in (policy, os.path.join(work, "exec_base"))]
 
 
+def test_the_fine_tunes_run_in_the_chosen_variant_beside_a_control(tmp_path):
+    args = _args(tmp_path, "--decoded-variant", "vae8x", "--sft-control", "--decoded-fraction", "0.25",
+                 variants="vae8x")
+    jobs, work, policy = fid.plan(args), str(tmp_path / "w"), str(tmp_path / "p" / "policy_d50.npz")
+    assert sorted(jobs) == sorted(["pipeline_vae8x", "view_vae8x", "exec_vae8x", "policy_dec", "view_vae8x_dec",
+                                   "exec_vae8x_dec", "policy_ctl", "view_vae8x_ctl", "exec_vae8x_ctl"])
+    # one GPU each: the pipeline, the decoder-aware fine-tune, the control
+    assert [jobs[n].gpu for n in ("pipeline_vae8x", "policy_dec", "policy_ctl")] == ["0", "1", "2"]
+    assert jobs["exec_vae8x_ctl"].gpu == jobs["view_vae8x_ctl"].gpu == "2"
+    vae = os.path.join(work, "pipeline_vae8x", "vae_run", "vae")
+    dec, ctl = jobs["policy_dec"].command, jobs["policy_ctl"].command
+    for cmd, fraction in ((dec, 0.25), (ctl, 0.0)):
+        cfg, rest = _config(cmd)
+        assert cfg.vae.spatial_factor == 8 and cfg.rl.sft.decoded_fraction == fraction and cfg.rl.sft.init == policy
+        assert cfg.rl.sft.steps == 1000 and cfg.rl.sft.learning_rate == 3e-4  # the two differ only in the frames
+    assert dec[dec.index("--vae") + 1] == vae and "--vae" not in ctl  # the control reads no VAE
+    assert ctl[ctl.index("--out") + 1] == os.path.join(work, "policy_ctl")
+    needs = {n: {x.path for x in j.needs} for n, j in jobs.items()}
+    assert needs["policy_dec"] == {os.path.join(work, "pipeline_vae8x", "stages", "vae.json")}
+    assert needs["policy_ctl"] == set()  # it starts at once
+    tuned = os.path.join(work, "policy_ctl", "policy_d50.npz")
+    view, ex = jobs["view_vae8x_ctl"].command, jobs["exec_vae8x_ctl"].command
+    assert view[view.index("--policy") + 1] == tuned and view[view.index("--vae") + 1] == vae
+    assert ex[ex.index("--world-model") + 1] == os.path.join(work, "pipeline_vae8x", "world_model")
+    assert [c for c in ex if c not in (tuned, os.path.join(work, "exec_vae8x_ctl"))] == [
+        c for c in jobs["exec_vae8x"].command if c not in (policy, os.path.join(work, "exec_vae8x"))]
+    assert os.path.join(work, "policy_ctl", "sft_results.json") in needs["exec_vae8x_ctl"]
+    # the control alone, and too few free GPUs: the last ones
+    alone = fid.plan(_args(tmp_path, "--sft-control", decoded=False))
+    assert "policy_dec" not in alone and alone["policy_ctl"].gpu == "3" and "exec_base_ctl" in alone
+    both = fid.plan(_args(tmp_path, "--sft-control"))
+    assert both["policy_dec"].gpu == "3" and both["policy_ctl"].gpu == "2"
+
+
 def test_bad_arguments_are_refused(tmp_path):
     for extra, message in ((("--variants", "base,vae16x"), "unknown or repeated variant.*vae16x.*base, vae8x, lpips"),
                            (("--variants", "base,base"), "unknown or repeated variant"),
                            (("--gpus", "0,0"), "distinct GPUs"), (("--rollout-batch", "30"), "multiple of 4"),
                            (("--decoded-fraction", "0"), r"\(0, 1\]"), (("--decoded-fraction", "1.5"), r"\(0, 1\]"),
                            (("--exec-steps", "0"), ">= 1"), (("--view-episodes-per-task", "0"), ">= 1"),
-                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "add base to --variants"),
+                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "run in the .base. variant.*add it to --variants"),
                            (("--sft-learning-rate", "0"), r"--sft-learning-rate must be in \(0, 1\)")):
         with pytest.raises(SystemExit, match=message):
             _args(tmp_path, *extra)
@@ -280,6 +314,9 @@ def test_summary_of_designed_files_and_of_missing_parts(tmp_path, monkeypatch, c
     _write(f"{w}/policy_dec/sft_results.json", {"runs": [{"eval": {"ens": {"mean": 0.3, "ci95": [0.26, 0.34],
                                                                            "episodes": 500}}}]})
     _write(f"{w}/view_base_dec/view_results.json", _view((60, 40)))
+    _write(f"{w}/policy_ctl/sft_results.json", {"runs": [{"eval": {"ens": {"mean": 0.28, "ci95": [0.24, 0.32],
+                                                                           "episodes": 500}}}]})
+    _write(f"{w}/view_base_ctl/view_results.json", _view((61, 30)))
     summary = fid.summarize(w, rollout_batch=32)  # 256 trajectories a step
     assert sorted(summary["variants"]) == ["base", "vae8x"]  # lpips left nothing
     base, vae8x = summary["variants"]["base"], summary["variants"]["vae8x"]
@@ -302,19 +339,25 @@ def test_summary_of_designed_files_and_of_missing_parts(tmp_path, monkeypatch, c
     assert set(vae8x["missing"]) == {"world_model", "exec"} and "exec" not in vae8x
     decoded = summary["decoded"]
     assert decoded["sft"]["mean"] == 0.3 and decoded["view"]["vae"]["mean"] == pytest.approx(0.2)
-    assert decoded["missing"] == {"exec": "no history or log"}
+    assert decoded["missing"] == {"exec": "no history or log"} and decoded["variant"] == "base"
+    control = summary["control"]  # the same fine-tune on real frames, found by its runs' names
+    assert control["variant"] == "base" and control["sft"]["mean"] == 0.28
+    assert control["view"]["vae"]["mean"] == pytest.approx(0.15) and set(control["missing"]) == {"exec"}
     assert summary["best_vae_view"] == {"variant": "vae8x", "success": pytest.approx(0.25)}
     fid.print_summary(summary)
     printed = capsys.readouterr().out
     assert "[sim-fidelity] base: VAE loss 0.0400" in printed and "missing: world_model, exec" in printed
+    assert "[sim-fidelity] base_ctl: SFT (ens) 0.280" in printed
     monkeypatch.setattr(fid.common, "device_name", lambda: "cpu")
     entry = fid.results_entries(summary, w, data="d")["policy_sim_fidelity_small"]
     assert entry["value"] == pytest.approx(0.25) and entry["best"] == "vae8x" and set(entry["variants"]) == {"base", "vae8x"}
     assert "round-tripped through the VAE" in entry["unit"]
+    assert entry["decoded"]["variant"] == entry["control"]["variant"] == "base"
     recorded = {}
     monkeypatch.setattr(fid.common, "merge_results", recorded.update)
     fid.main(["summary", "--workdir", w, "--rollout-batch", "32", "--out", f"{w}/out", "--record"])
     assert recorded["policy_sim_fidelity_small"]["value"] == pytest.approx(0.25)
+    assert recorded["policy_sim_fidelity_small"]["data"] == f"{w}/out.json" and os.path.exists(f"{w}/out.json")
     assert json.loads(open(f"{w}/out.json").read())["variants"]["base"]["exec"]["steps"] == 2
     # nothing run at all: every part missing, nothing to record
     empty = fid.summarize(str(tmp_path / "none"), ["base", "lpips"])
