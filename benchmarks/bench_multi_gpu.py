@@ -35,7 +35,9 @@ environment sets it), so the ranks find the memory this process is not using.
 The recorded ``dp_scaling_efficiency_small_<N>gpu`` is the best of the modes measured (one process driving every
 device or one process per device, scanned or unrolled layers: ``mode``, all in ``efficiency_by_mode``), each
 mode's time on N devices against the fastest one-device step time of the run, so no mode gains from a slow one-device
-program of its own.
+program of its own. Each batch's figures are re-made after every row (``small.by_batch``), so a run stopped before its
+end still records the modes it reached, marked ``complete: false``; ``--from-out FILE`` measures nothing and records
+the entries of an earlier run's ``--out`` file, re-summarised from its rows, with that run's device, command and date.
 
 Part 2 builds the 30-layer, dim-3072 world model with AdamW state born sharded over an ``fsdp`` axis
 spanning every device (the latent cache sharded over episodes) and times the DLB step for each
@@ -51,7 +53,8 @@ and the last setting's duration still fits before S, so the run ends close to S 
 are listed). ``--out PATH`` rewrites the whole table as JSON after every row, and the results entries are
 merged after every row too, so what was measured survives a run stopped early.
 
-On 4 x H200 (2026-11-27) the small part took about 2 min and two 5B settings 50 s after a 7 s train state:
+On 4 x H200 (2026-11-28) the small part with ``--small-unrolled --small-processes`` took over 7 min: each unrolled
+program compiles in about 60 s. On 4 x H200 (2026-11-27) the small part took about 2 min and two 5B settings 50 s after a 7 s train state:
 ``--time-budget-s 230 --sweep 32xdots+overlap,32xdots`` ended in 180 s. Estimates before that run, 4 x H100
 (compile dominates): the bf16 peak and the option checks about 15 s; the
 small part 1.5-3 min (six compiles of 10-40 s, the first the longest: later ones reuse its GEMM
@@ -73,7 +76,9 @@ environment already does.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import gc
+import json
 import os
 import statistics
 import sys
@@ -332,6 +337,12 @@ def scaling_summary(rows: list[dict], per_device_batch: int, n: int) -> dict:
     return summary
 
 
+def small_summary(rows: list[dict], batches: list[int], n: int, *, complete: bool) -> dict:
+    """The small part's record: its rows, each batch's :func:`scaling_summary` of the rows so far, and whether
+    every planned row was measured (``complete``; a run stopped before its end keeps what it measured)."""
+    return {"rows": rows, "by_batch": {str(b): scaling_summary(rows, b, n) for b in batches}, "complete": complete}
+
+
 def device_counts(n: int) -> list[int]:
     counts = [1 << i for i in range(n.bit_length()) if 1 << i <= n]
     return counts if counts[-1] == n else counts + [n]
@@ -363,7 +374,7 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
                             blocks=blocks, unrolled=unroll, profile_dir=profile_dir)
             rows.append(row)
             _print_small_row(row)
-            report(rows=rows)
+            report(small_summary(rows, batches, n, complete=False))
             free_device_memory()
         for k in [k for k in device_counts(n) if k > 1] if processes else []:
             for unroll in (False, True) if unrolled else (False,):
@@ -372,9 +383,9 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
                                                       on_cpu=devices[0].platform == "cpu")
                 rows.append(row)
                 _print_small_row(row)
-                report(rows=rows)
-    summaries = {str(b): scaling_summary(rows, b, n) for b in batches}
-    for batch, s in summaries.items():
+                report(small_summary(rows, batches, n, complete=False))
+    small = small_summary(rows, batches, n, complete=True)
+    for batch, s in small["by_batch"].items():
         eff = ", ".join(f"k={k}: {e:.3f}" for k, e in s["efficiency"].items())
         print(f"  {batch}/dev efficiency t_1/t_k (pipelined): {eff}; cache off 1->{n}: "
               f"{_fmt(s['cache_off_efficiency'])}; overlap: {_fmt(s['overlap_efficiency'])}; unrolled 1->{n}: "
@@ -392,7 +403,7 @@ def run_small(model_cfg: DiTConfig, devices, batches: list[int], hw: tuple[int, 
                   + ", ".join(f"{mode} {e:.3f}" for mode, e in by_mode.items()), flush=True)
     common.print_table(rows, ["label", "status", "step_s", "pipelined_step_s", "compile_s", "compiled_gb_per_device"])
     sys.stdout.flush()
-    return {"rows": rows, "by_batch": summaries}
+    return small
 
 
 def _print_small_row(row: dict) -> None:
@@ -570,12 +581,37 @@ def results_entries(summary: dict) -> dict[str, dict]:
             cache_off_efficiency=headline["cache_off_efficiency"], overlap_efficiency=headline["overlap_efficiency"],
             dp_overhead_s=headline.get("dp_overhead_s"), cache_cross_device_s=headline.get("cache_cross_device_s"),
             by_batch=small["by_batch"], xla_overlap_flags=summary["xla_overlap_flags"],
+            complete=small.get("complete", True),
             value_is="t_1 / t_N of the small config's DLB step at a fixed per-device batch, steps dispatched back to "
                      "back, for the best of the measured modes (mode; efficiency_by_mode: one process driving the N "
                      "devices or one process per device, scanned or unrolled layers); t_1 is the fastest one-device "
                      "step time of the run, scanned or unrolled, whatever the mode (efficiency: one process, scanned "
                      "layers, against its own t_1; waiting_efficiency: the same with the host waiting for every "
-                     "step)")
+                     "step)" + ("; from a run stopped before all its rows (complete: false): the modes it did not "
+                                "reach on N devices are absent from efficiency_by_mode" if not small.get("complete", True)
+                                else ""))
+    return entries
+
+
+def from_out(path: str) -> dict[str, dict]:
+    """The ``latest.json`` entries of a run's ``--out`` file, its small part re-summarised from its rows (a run
+    stopped before its end, e.g. by a time limit, leaves its rows there), stamped with the run's device, command
+    and date. Nothing is measured."""
+    try:
+        with open(path) as f:
+            summary = json.load(f)
+    except (OSError, json.JSONDecodeError) as err:
+        raise cli.UsageError(f"--from-out {path}: not a readable bench_multi_gpu --out file ({err})") from err
+    missing = [k for k in ("devices", "small_batches", "small", "device", "command") if k not in summary]
+    if missing or "rows" not in summary.get("small", {}):
+        raise cli.UsageError(f"--from-out {path}: not a bench_multi_gpu --out file (no {missing or ['small rows']})")
+    small = summary["small"]
+    complete = bool(small.get("complete", summary.get("done", False)))
+    summary["small"] = small_summary(small["rows"], summary["small_batches"], summary["devices"], complete=complete)
+    entries = results_entries(summary)
+    for entry in entries.values():
+        entry.update(device=summary["device"], command=summary["command"], date=summary.get("date", entry["date"]),
+                     summarised_from=path)
     return entries
 
 
@@ -617,7 +653,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--mem-fraction", type=float, default=0.9,
                         help="XLA_PYTHON_CLIENT_MEM_FRACTION unless the environment sets it")
     parser.add_argument("--out", default=None, help="write every row as JSON here, rewritten after each row")
+    parser.add_argument("--from-out", default=None, metavar="FILE",
+                        help="measure nothing: record the entries of a run's --out file, its small part "
+                             "re-summarised from its rows (for a run stopped before its end)")
     args = parser.parse_args(argv)
+    if args.from_out:
+        entries = from_out(args.from_out)
+        if not entries:
+            raise SystemExit(f"bench_multi_gpu --from-out {args.from_out}: its rows give no figure on "
+                             "several devices to record")
+        common.merge_results(entries)
+        for key, entry in entries.items():
+            print(f"recorded {key} = {entry['value']:.4f} ({entry.get('mode', '')}; complete: "
+                  f"{entry.get('complete', True)}) in {common.RESULTS}", flush=True)
+        return entries
     settings = parse_sweep(args.sweep or ("2xnone,2xdots" if args.tiny else DEFAULT_SWEEP))
     batches = parse_batches(args.small_batch_per_device or ("2" if args.tiny else "32"))
     blocks = args.small_blocks if args.small_blocks is not None else 3 if args.tiny else 5
@@ -640,7 +689,8 @@ def main(argv: list[str] | None = None) -> dict:
         "nominal_peak_tflops": common.nominal_peak_tflops(), "xla_overlap_flags": applied["xla_overlap_flags"],
         "dropped_xla_flags": applied["dropped_flags"], "preallocate": applied["preallocate"],
         "overlap_options": overlap_options, "small_batches": batches,
-        "sweep": [s.name for s in settings], "time_budget_s": args.time_budget_s, "command": common.command_line()}
+        "sweep": [s.name for s in settings], "time_budget_s": args.time_budget_s, "command": common.command_line(),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d")}
     print(f"{n} x {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s per device; nominal "
           f"{summary['nominal_peak_tflops']}; XLA overlap flags {'on' if applied['xla_overlap_flags'] else 'off'}",
           flush=True)
@@ -662,7 +712,7 @@ def main(argv: list[str] | None = None) -> dict:
     overlap_everywhere = bool(applied["xla_overlap_flags"])
     small = run_small(small_cfg, devices, batches, small_hw, iters=2 if args.tiny else args.small_iters, blocks=blocks,
                       overlap_options=overlap_options, overlap_everywhere=overlap_everywhere,
-                      report=lambda rows: report(small={"rows": rows}), unrolled=args.small_unrolled,
+                      report=lambda small: report(small=small), unrolled=args.small_unrolled,
                       profile=args.profile or None, processes=args.small_processes,
                       process_timeout_s=args.small_processes_timeout_s)
     report(small=small)

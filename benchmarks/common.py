@@ -119,8 +119,10 @@ def record(key: str, value: float, target: Any, **extra: Any) -> dict[str, Any]:
     }
 
 
-def merge_results(entries: dict[str, dict[str, Any]], path: str = RESULTS) -> str:
-    """Read-modify-write of ``path``: replaces only the given keys; atomic rename."""
+def merge_results(entries: dict[str, dict[str, Any]], path: str | None = None) -> str:
+    """Read-modify-write of ``path`` (:data:`RESULTS` as it is at the call): replaces only the given keys; atomic
+    rename."""
+    path = path or RESULTS
     os.makedirs(os.path.dirname(path), exist_ok=True)
     current: dict[str, Any] = {}
     if os.path.exists(path):

@@ -398,3 +398,58 @@ def test_a_benchmark_told_to_stop_stops_instead_of_timing_the_next_row(monkeypat
                                   on_cpu=True)
     finally:
         signal.signal(signal.SIGUSR1, previous)
+
+
+def test_a_run_stopped_before_its_end_records_the_modes_it_reached(tmp_path, monkeypatch):
+    """The small part's figures are re-made after every row: a run stopped before its last rows (here after the
+    4-device unrolled row) has its scaling and entry in --out and latest.json, marked incomplete; --from-out
+    records the same from such a file without measuring, with the run's device, command and date."""
+    monkeypatch.setattr(bench, "run_fsdp", _no_fsdp)
+    seen = []
+
+    def measure(model_cfg, cache_cfg, mesh, per_device_batch, hw, *, options, iters, blocks, unrolled,
+                profile_dir=None):
+        seen.append((mesh.size, cache_cfg.enabled, bool(options), unrolled))
+        if len(seen) == 8:  # the run is stopped while the last planned row runs
+            raise KeyboardInterrupt
+        step_s = (1.0 + 0.1 * mesh.size) * (0.5 if unrolled else 1.0)
+        return {"step_s": step_s, "pipelined_step_s": step_s, "pipelined_blocks_s": [step_s] * blocks,
+                "compile_s": 1.0, "loss": 0.5, "through_jit": False}
+
+    monkeypatch.setattr(bench, "measure_small", measure)
+    out = str(tmp_path / "mg.json")
+    with pytest.raises(KeyboardInterrupt):
+        bench.main(["--tiny", "--devices", "4", "--small-unrolled", "--out", out])
+    with open(out) as f:
+        partial = json.load(f)
+    small = partial["small"]
+    assert len(small["rows"]) == 7 and small["complete"] is False and "done" not in partial
+    scaling = small["by_batch"]["2"]
+    assert scaling["unrolled_pipelined_step_s"] == {"1": pytest.approx(0.55)}  # the 4-device row never came
+    assert scaling["efficiency"]["4"] == pytest.approx(1.1 / 1.4)
+    # the entry recorded as the rows came: against the fastest one-device time (unrolled, 0.55 s)
+    entry = bench.results_entries(partial)["dp_scaling_efficiency_small_4gpu"]
+    assert entry["efficiency_by_mode"] == {"single_process_scanned": pytest.approx(0.55 / 1.4)}
+    assert entry["complete"] is False and "stopped before all its rows" in entry["value_is"]
+    # --tiny records nothing in latest.json; --from-out on the file does, stamped as the run
+    monkeypatch.setattr(bench.common, "device_name", lambda: "elsewhere")
+    partial.update(device="4 x GPU", command="python -m benchmarks.bench_multi_gpu --out mg.json", date="2026-01-02")
+    del small["by_batch"], small["complete"]  # as a file written before the small part kept its figures
+    with open(out, "w") as f:
+        json.dump(partial, f)
+    entries = bench.main(["--from-out", out])
+    with open(bench.common.RESULTS) as f:
+        recorded = json.load(f)["dp_scaling_efficiency_small_4gpu"]
+    assert recorded == entries["dp_scaling_efficiency_small_4gpu"]
+    assert recorded["value"] == pytest.approx(0.55 / 1.4) and recorded["complete"] is False
+    assert (recorded["device"], recorded["command"], recorded["date"], recorded["summarised_from"]) == (
+        "4 x GPU", "python -m benchmarks.bench_multi_gpu --out mg.json", "2026-01-02", out)
+    # a file that is not an --out file, or whose rows give nothing on several devices, is refused by name
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(UsageError, match="not a bench_multi_gpu --out file"):
+        bench.main(["--from-out", str(tmp_path / "bad.json")])
+    small["rows"] = [r for r in small["rows"] if r["devices"] == 1]
+    with open(out, "w") as f:
+        json.dump(partial, f)
+    with pytest.raises(SystemExit, match="no figure on several devices"):
+        bench.main(["--from-out", out])
