@@ -123,12 +123,13 @@ def run_sft(cfg, args) -> dict:
     held = episodes.subset(np.asarray(held_idx))
     pool = episodes.subset(np.asarray(train_idx))
     results = {"generate_seconds": round(gen_seconds, 1), "demo_expert_success": demo_success, "runs": [],
-               "rl": dataclasses.asdict(rl), **({"vae": os.path.abspath(args.vae)} if args.vae else {})}
+               "rl": dataclasses.asdict(rl), **({"vae": os.path.abspath(args.vae)} if args.vae else {}),
+               **({"world_model": os.path.abspath(args.world_model)} if args.world_model else {})}
     modes = args.execute.split(",")
     for amount in amounts:
         train = rl_data.per_task_subset(pool, amount, np.random.default_rng(cfg.seed))
         graphdef, params = initial_policy(cfg)  # rl.sft.init: fine-tune that policy
-        decoded = decoded_training_frames(cfg, args.vae, train) if args.vae else None
+        decoded = decoded_training_frames(cfg, args.vae, train, world_model=args.world_model) if args.vae else None
         t1 = time.time()
         params, history = train_sft(graphdef, params, rl, train, held, seed=cfg.seed,
                                     log=lambda m: print(m, flush=True), decoded_frames=decoded,
@@ -556,6 +557,8 @@ def main(argv=None) -> None:
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
     parser.add_argument("--vae", default="", help="sft: VAE checkpoint directory (train_vae; a pipeline's "
                         "vae_run/vae) whose round trip rl.sft.decoded_fraction of each batch's frames go through")
+    parser.add_argument("--world-model", default="", help="sft with rl.sft.decoded_source=world_model: the world "
+                        "model (a pipeline's world_model) the episodes' actions are replayed in for the decoded frames")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")
     parser.add_argument("--record-as", default="",
                         help=f"seeds: the latest.json key of the record (default {GROUND_TRUTH_KEY}, whose target is "
@@ -576,9 +579,10 @@ def main(argv=None) -> None:
         parser.error(f"--policy {args.policy}: no such file")
     try:
         if args.stage == "sft":
-            require_vae(cfg.rl.sft.decoded_fraction, args.vae)
-        elif args.vae:
-            raise ValueError(f"--vae is read by the sft stage only (decoder-aware SFT), not by {args.stage}")
+            require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
+        elif args.vae or args.world_model:
+            raise ValueError(f"--vae and --world-model are read by the sft stage only (decoder-aware SFT), not by "
+                             f"{args.stage}")
     except ValueError as err:
         parser.error(str(err))
     os.makedirs(args.out, exist_ok=True)

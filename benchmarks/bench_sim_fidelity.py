@@ -19,7 +19,10 @@ its pixel loss) and measures, per variant:
 With ``--decoded-sft`` the policy is also fine-tuned on frames of which ``--decoded-fraction`` went through the
 ``--decoded-variant`` VAE (``base`` by default; ``bench_policy sft``, ``rl.sft.decoded_fraction``), and that
 decoder-aware policy is measured the same way in that variant's VAE and world model (``view_<variant>_dec``,
-``exec_<variant>_dec``). ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
+``exec_<variant>_dec``). ``--imagined-sft`` fine-tunes it alike on the frames that variant's world model shows when
+the demonstrations' actions are replayed in it from their real frames (``rl.sft.decoded_source=world_model``, windows
+of an imagined rollout's length; ``policy_img``, ``view_<variant>_img``, ``exec_<variant>_img``), once the world
+model is built. ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
 (``policy_ctl``, ``view_<variant>_ctl``, ``exec_<variant>_ctl``), so that what the decoded frames change is told
 apart from what more training changes::
 
@@ -34,7 +37,7 @@ apart from what more training changes::
 (``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
 ``stages/reward_model.json``: the pipeline runs its stages two at a time, so either may end last). The
 fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the others from the last back): the
-decoder-aware one once its variant's VAE exists, the control at once; each one's probe and ``exec`` run follow it
+decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once; each one's probe and ``exec`` run follow it
 there. A job whose input can no longer appear (its maker ended without it) is
 skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
 deadline stops the whole process groups still going. On a shared GPU each process is capped
@@ -76,8 +79,9 @@ VARIANTS: dict[str, tuple[str, ...]] = {
 }
 VIEW_FLAGS = ("--rl.grpo.temperature=0.5", "--rl.imagined.execute_steps=4")  # the learned simulator's mode
 # the fine-tuned policies: kind -> (its SFT job and folder, the suffix of its runs view_<variant>_<suffix>,
-# exec_<variant>_<suffix>); "decoded" reads --decoded-fraction of its frames through the VAE, "control" none
-FINE_TUNES = {"decoded": ("policy_dec", "dec"), "control": ("policy_ctl", "ctl")}
+# exec_<variant>_<suffix>); "decoded" reads --decoded-fraction of its frames through the VAE, "imagined" as the world
+# model imagines them (rl.sft.decoded_source=world_model), "control" none
+FINE_TUNES = {"decoded": ("policy_dec", "dec"), "imagined": ("policy_img", "img"), "control": ("policy_ctl", "ctl")}
 SFT_POLICY = "policy_d50.npz"  # bench_policy sft --demos-per-task 50, no --tag
 # a job's share of a GPU by kind: the world model's training, GRPO in a world model, the decoder-aware SFT, a probe
 WEIGHTS = {"pipeline": 3.0, "exec": 2.0, "policy": 2.0, "view": 1.0}
@@ -144,10 +148,14 @@ def exec_command(args, variant: str, policy: str, name: str) -> tuple[str, ...]:
 
 def sft_command(args, kind: str = "decoded") -> tuple[str, ...]:
     """``bench_policy sft``: the policy fine-tuned with ``--decoded-fraction`` of its frames through the
-    ``--decoded-variant`` VAE (``decoded``), or the same fine-tune on real frames only (``control``)."""
+    ``--decoded-variant`` VAE (``decoded``) or imagined by that variant's world model (``imagined``), or the same
+    fine-tune on real frames only (``control``)."""
     variant = args.decoded_variant
     decoded = ((f"--rl.sft.decoded_fraction={args.decoded_fraction}", "--vae", vae_dir(args.workdir, variant))
-               if kind == "decoded" else ("--rl.sft.decoded_fraction=0",))
+               if kind != "control" else ("--rl.sft.decoded_fraction=0",))
+    if kind == "imagined":
+        decoded += ("--rl.sft.decoded_source=world_model", "--world-model",
+                    os.path.join(pipe_dir(args.workdir, variant), "world_model"))
     return (sys.executable, "-m", "benchmarks.bench_policy", "sft", "--config", args.config, *VARIANTS[variant],
             "--out", os.path.join(args.workdir, FINE_TUNES[kind][0]), "--demos-per-task", "50", "--execute", "ens",
             "--workers", "14", "--eval-episodes", "50", "--gen-procs-per-task", "4",
@@ -156,8 +164,10 @@ def sft_command(args, kind: str = "decoded") -> tuple[str, ...]:
 
 
 def fine_tunes(args) -> list[str]:
-    """The fine-tunes the run makes: ``decoded`` with ``--decoded-sft``, then ``control`` with ``--sft-control``."""
-    return ["decoded"] * bool(args.decoded_sft) + ["control"] * bool(args.sft_control)
+    """The fine-tunes the run makes: ``decoded`` with ``--decoded-sft``, ``imagined`` with ``--imagined-sft``, then
+    ``control`` with ``--sft-control``."""
+    return (["decoded"] * bool(args.decoded_sft) + ["imagined"] * bool(args.imagined_sft)
+            + ["control"] * bool(args.sft_control))
 
 
 def sft_gpu(args, kind: str = "decoded") -> str:
@@ -195,8 +205,10 @@ def plan(args) -> dict[str, Job]:
     for kind in fine_tunes(args):
         gpu, tuned, sft, runs = sft_gpu(args, kind), sft_policy(args.workdir, kind), FINE_TUNES[kind][0], tuned_runs(variant, kind)
         saved = Need(sft, os.path.splitext(tuned)[0] + ".reckoning.json", False)  # written after the policy
-        # the decoder-aware fine-tune reads the VAE; the control starts with the others
-        needs = (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False),) if kind == "decoded" else ()
+        # the decoder-aware fine-tune reads the VAE, the imagined one the world model too; the control starts at once
+        needs = {"decoded": (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False),),
+                 "imagined": (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "world_model.json"), True),),
+                 "control": ()}[kind]
         view = view_command(args, variant, tuned, os.path.join(args.workdir, f"view_{runs}"))
         jobs += [Job(sft, sft_command(args, kind), gpu, needs),
                  Job(f"view_{runs}", view, gpu, (saved,)),
@@ -392,7 +404,8 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     if not best:
         raise SystemExit("bench_sim_fidelity: no view probe left a vae success to record")
     entry = common.record("", best["success"], None, best=best["variant"], variants=summary["variants"],
-                          decoded=summary.get("decoded"), control=summary.get("control"), device=common.workdir_device(workdir), data=data,
+                          **{kind: summary.get(kind) for kind in FINE_TUNES},
+                          device=common.workdir_device(workdir), data=data,
                           unit="MJX success of the policy on frames round-tripped through the VAE (sampled at T 0.5, "
                                "4 actions a decision, proprio missing; episodes: each probe's)",
                           **({"command": command} if command else {}))
@@ -447,6 +460,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--decoded-sft", action="store_true", help="run: also the decoder-aware policy")
     parser.add_argument("--decoded-variant", default="base",
                         help="run: the variant whose VAE the decoder-aware policy reads and whose world model it runs in")
+    parser.add_argument("--imagined-sft", action="store_true",
+                        help="run: also the policy fine-tuned on frames its demonstrations' actions make in the "
+                             "--decoded-variant world model (rl.sft.decoded_source=world_model), measured there")
     parser.add_argument("--sft-control", action="store_true",
                         help="run: also the same fine-tune on real frames only, measured in the same variant")
     parser.add_argument("--vae-steps", type=int, default=1000)
@@ -483,7 +499,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit(f"bench_sim_fidelity: --sft-learning-rate must be in (0, 1), got {args.sft_learning_rate}")
     if not 0 < args.decoded_fraction <= 1:
         raise SystemExit(f"bench_sim_fidelity: --decoded-fraction must be in (0, 1], got {args.decoded_fraction}")
-    if (args.decoded_sft or args.sft_control) and args.decoded_variant not in args.variants:
+    if (args.decoded_sft or args.imagined_sft or args.sft_control) and args.decoded_variant not in args.variants:
         raise SystemExit(f"bench_sim_fidelity: the fine-tuned policies run in the {args.decoded_variant!r} variant "
                          f"(--decoded-variant); add it to --variants (given: {','.join(args.variants)})")
     if args.mode == "run" and not os.path.isfile(args.policy):

@@ -748,6 +748,7 @@ def sim_fidelity() -> str:
     summary = _load(*SIM_FIDELITY, "summary.json")
     rows = [(SIM_FIDELITY_LABELS.get(v, v), "policy_d50", e, e) for v, e in summary["variants"].items()]
     for kind, label in (("decoded", "policy_d50 fine-tuned on half decoded frames"),
+                        ("imagined", "policy_d50 fine-tuned on half imagined frames"),
                         ("control", "policy_d50 fine-tuned alike on real frames")):
         if kind in summary:  # in its variant's VAE and world model
             variant = summary[kind]["variant"]

@@ -15,6 +15,7 @@ import shutil
 import time
 from collections.abc import Sequence
 
+import jax
 import numpy as np
 
 from sim.dataset import read_dataset
@@ -66,13 +67,15 @@ def given_policy(cfg, source: str) -> dict:
 
 
 def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0,
-                   renderer: str = "jax", holdout: float = 0.1, vae: str = "") -> dict:
+                   renderer: str = "jax", holdout: float = 0.1, vae: str = "", world_model: str = "") -> dict:
     """Behaviour-clones (or resumes) the policy on ``demos`` in ``<cfg.workdir>/rl``; with ``eval_episodes``
     per task, measures its success in the simulator. Returns the summary (also in ``sft_result.json``).
 
     ``rl.sft.init``: start from that trained policy (:func:`initial_policy`). ``vae``: the VAE checkpoint
     directory whose round trip ``rl.sft.decoded_fraction`` of each batch's frames go through (required exactly
     when that fraction is above 0); the training episodes are round-tripped once, before the first step.
+    ``world_model``: with ``rl.sft.decoded_source=world_model``, the world model whose replays of the episodes'
+    actions the decoded frames are (:func:`decoded_training_frames`).
 
     Raises:
       ValueError: ``vae`` missing or superfluous (:func:`sword_jax.rl.decoded_frames.require_vae`).
@@ -80,7 +83,7 @@ def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_wo
     from sword_jax.rl.decoded_frames import require_vae
 
     demos, rl = list(demos), cfg.rl
-    require_vae(rl.sft.decoded_fraction, vae)
+    require_vae(rl.sft.decoded_fraction, vae, world_model, rl.sft.decoded_source)
     workdir = os.path.join(cfg.workdir, "rl")
     os.makedirs(workdir, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
@@ -93,7 +96,7 @@ def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_wo
           f" held out), {len(set(train_eps.instructions))} instructions")
     graphdef, params = initial_policy(cfg)
     start = time.time()
-    decoded = decoded_training_frames(cfg, vae, train_eps) if vae else None
+    decoded = decoded_training_frames(cfg, vae, train_eps, world_model=world_model) if vae else None
     params, history = train_sft(graphdef, params, rl, train_eps, held_out, seed=cfg.seed,
                                 log=lambda m: print(m, flush=True),
                                 checkpoint_dir=os.path.join(workdir, "sft_checkpoints"), mesh=shd.make_mesh(cfg.mesh),
@@ -107,7 +110,10 @@ def run_sft_policy(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_wo
     if rl.sft.init:
         result["init"] = os.path.abspath(rl.sft.init)
     if vae:
-        result["decoded"] = {"vae": os.path.abspath(vae), "fraction": rl.sft.decoded_fraction}
+        result["decoded"] = {"vae": os.path.abspath(vae), "fraction": rl.sft.decoded_fraction,
+                             "source": rl.sft.decoded_source,
+                             **({"world_model": os.path.abspath(world_model), "window": rl.sft_decoded_window}
+                                if world_model else {})}
     if eval_episodes:
         from sim.lockstep import lockstep_evaluation
 
@@ -153,16 +159,47 @@ def _load_policy(cfg, source: str, path: str = ""):
     return graphdef, params
 
 
-def decoded_training_frames(cfg, vae: str, episodes: rl_data.EpisodeSet) -> np.ndarray:
+def decoded_training_frames(cfg, vae: str, episodes: rl_data.EpisodeSet, *, world_model: str = "") -> np.ndarray:
     """``episodes.frames`` round-tripped through the VAE checkpoint ``vae`` (:func:`sword_jax.load.experiment_vae`
-    with ``cfg.vae``), episode by episode (:func:`sword_jax.rl.decoded_frames.round_trip_episodes`)."""
+    with ``cfg.vae``), episode by episode (:func:`sword_jax.rl.decoded_frames.round_trip_episodes`); with
+    ``world_model`` (``rl.sft.decoded_source=world_model``) the frames that world model, decoded by that VAE, shows
+    when each episode's actions are replayed in windows of ``rl.sft_decoded_window`` actions from its real frames
+    (:func:`sword_jax.rl.imagined_frames.imagined_episode_frames`, the simulator GRPO builds)."""
     from sword_jax.load import experiment_vae
     from sword_jax.rl.decoded_frames import round_trip_episodes
 
     start = time.time()
     vae_graphdef, vae_state = experiment_vae(cfg, vae)
+    if world_model:
+        return imagined_training_frames(cfg, (vae_graphdef, vae_state), world_model, episodes)
     decoded = round_trip_episodes(vae_graphdef, vae_state, episodes.frames, episodes.lengths,
                                   log=lambda m: print(m, flush=True))
     print(f"decoder-aware SFT: {episodes.num_episodes} episodes round-tripped through {vae} in "
           f"{time.time() - start:.0f}s; {cfg.rl.sft.decoded_fraction:.0%} of each batch reads them", flush=True)
     return decoded
+
+
+def imagined_training_frames(cfg, vae: tuple, world_model: str, episodes: rl_data.EpisodeSet) -> np.ndarray:
+    """:func:`decoded_training_frames` from the world model ``world_model``: its simulator as GRPO builds it
+    (:func:`sword_jax.pipeline.grpo.setup_from_weights`: ``rl.imagined``'s precision, decoder and actions per
+    decision; proprio as the episodes carry it), each episode replayed window by window from its real frames."""
+    from sword_jax.load import experiment_world_model
+    from sword_jax.pipeline.grpo import setup_from_weights
+    from sword_jax.rl.imagined_frames import imagined_episode_frames
+
+    rl, start = cfg.rl, time.time()
+    if episodes.frames.shape[2] != cfg.data.image_size:
+        raise ValueError(f"rl.sft.decoded_source=world_model: the demonstrations are {episodes.frames.shape[2]} px "
+                         f"but the world model's frames are data.image_size={cfg.data.image_size}; render them at "
+                         "that size (sim.resolution)")
+    setup = setup_from_weights(cfg, rl, None, world_model=experiment_world_model(cfg, world_model), vae=vae,
+                               detector=(None, None))
+    window = rl.sft_decoded_window
+    frames = imagined_episode_frames(setup.sim, setup.encode, episodes, window=window,
+                                     key=jax.random.key(cfg.seed), num_context=cfg.data.context_frames //
+                                     cfg.vae.temporal_factor, frames_per_latent=cfg.vae.temporal_factor,
+                                     max_instruction_bytes=rl.policy.max_instruction_bytes,
+                                     log=lambda m: print(m, flush=True))
+    print(f"decoder-aware SFT: {episodes.num_episodes} episodes replayed in {world_model} in windows of {window} "
+          f"actions in {time.time() - start:.0f}s; {rl.sft.decoded_fraction:.0%} of each batch reads them", flush=True)
+    return frames

@@ -427,7 +427,7 @@ def test_a_run_stopped_before_its_end_records_the_modes_it_reached(tmp_path, mon
     scaling = small["by_batch"]["2"]
     assert scaling["unrolled_pipelined_step_s"] == {"1": pytest.approx(0.55)}  # the 4-device row never came
     assert scaling["efficiency"]["4"] == pytest.approx(1.1 / 1.4)
-    # the entry recorded as the rows came: against the fastest one-device time (unrolled, 0.55 s)
+    # the entry recorded from those rows: against the fastest one-device step (unrolled, 0.55 s)
     entry = bench.results_entries(partial)["dp_scaling_efficiency_small_4gpu"]
     assert entry["efficiency_by_mode"] == {"single_process_scanned": pytest.approx(0.55 / 1.4)}
     assert entry["complete"] is False and "stopped before all its rows" in entry["value_is"]

@@ -113,6 +113,17 @@ def test_the_fine_tunes_run_in_the_chosen_variant_beside_a_control(tmp_path):
     assert [c for c in ex if c not in (tuned, os.path.join(work, "exec_vae8x_ctl"))] == [
         c for c in jobs["exec_vae8x"].command if c not in (policy, os.path.join(work, "exec_vae8x"))]
     assert os.path.join(work, "policy_ctl", "sft_results.json") in needs["exec_vae8x_ctl"]
+    # the imagined fine-tune: once the world model is built, on the frames it imagines from the demonstrations
+    img = fid.plan(_args(tmp_path, "--decoded-variant", "vae8x", "--imagined-sft", "--sft-control",
+                         variants="vae8x"))
+    assert [img[n].gpu for n in ("pipeline_vae8x", "policy_dec", "policy_img", "policy_ctl")] == ["0", "1", "2", "3"]
+    cfg, rest = _config(img["policy_img"].command)
+    assert cfg.rl.sft.decoded_source == "world_model" and cfg.rl.sft.decoded_fraction == 0.5
+    assert rest[rest.index("--world-model") + 1] == os.path.join(work, "pipeline_vae8x", "world_model")
+    assert rest[rest.index("--vae") + 1] == vae and cfg.vae.spatial_factor == 8
+    assert {(x.path, x.final) for x in img["policy_img"].needs} == {
+        (os.path.join(work, "pipeline_vae8x", "stages", "world_model.json"), True)}
+    assert img["exec_vae8x_img"].gpu == "2" and "exec_vae8x_img" in img and "view_vae8x_img" in img
     # the control alone, and too few free GPUs: the last ones
     alone = fid.plan(_args(tmp_path, "--sft-control", decoded=False))
     assert "policy_dec" not in alone and alone["policy_ctl"].gpu == "3" and "exec_base_ctl" in alone

@@ -197,3 +197,66 @@ def test_bench_policy_refuses_decoded_fraction_without_vae_before_making_demonst
     with pytest.raises(ValueError, match="read by the sft stage only"):
         bench_policy.main(["seeds", "--config", "sword:tiny", "--out", str(tmp_path / "o"), "--vae", "v"])
     assert not (tmp_path / "o").exists()
+
+
+def test_decoded_source_world_model_needs_the_world_model_and_nothing_else_reads_it():
+    with pytest.raises(ValueError, match="decoded_source must be vae or world_model"):
+        SFTConfig(decoded_source="both").validate()
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="decoded_window must be an integer >= 0"):
+            SFTConfig(decoded_window=bad).validate()
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--rl.sft.decoded_window=0"])
+    assert cfg.rl.sft_decoded_window == cfg.rl.imagined.max_chunks * cfg.rl.imagined_actions_per_decision
+    assert configs.from_argv(["--config", "sword:tiny", "--rl.sft.decoded_window=12"])[0].rl.sft_decoded_window == 12
+    with pytest.raises(ValueError, match="give its checkpoint directory with --world-model"):
+        require_vae(0.5, "v", "", "world_model")
+    with pytest.raises(ValueError, match="--world-model w is read only with rl.sft.decoded_source=world_model"):
+        require_vae(0.5, "v", "w", "vae")
+    with pytest.raises(ValueError, match="--world-model w is read only"):
+        require_vae(0.0, "", "w", "world_model")
+    require_vae(0.5, "v", "w", "world_model")
+
+
+def test_train_policy_fine_tunes_on_frames_the_world_model_imagines(tmp_path, monkeypatch, tiny_vae):
+    """rl.sft.decoded_source=world_model: the training episodes replayed window by window in the world model
+    GRPO would build (here a random tiny one, decoded by a random tiny VAE), their real frames kept at each
+    window's start and imagined elsewhere, and the policy trained on them."""
+    import sword_jax.load
+    import sword_jax.rl.imagined_frames as imagined
+    from train import train_policy
+
+    data = write_demos(str(tmp_path / "demos.hdf5"), size=32)  # the tiny world model's data.image_size
+    common = ["--config", "sword:tiny", f"--workdir={tmp_path}", "--demos", data, *TINY_RL,
+              "--rl.sft.steps=1", "--rl.sft.batch_size=4", "--holdout=0"]
+    with pytest.raises(ValueError, match="with --world-model"):
+        train_policy.main(common + ["--rl.sft.decoded_fraction=1", "--rl.sft.decoded_source=world_model",
+                                    "--vae", "v"])
+    with pytest.raises(ValueError, match="read only with rl.sft.decoded_source=world_model"):
+        train_policy.main(common + ["--rl.sft.decoded_fraction=1", "--vae", "v", "--world-model", "w"])
+    loaded, made = [], []
+    real_world_model = sword_jax.load.experiment_world_model
+    monkeypatch.setattr(sword_jax.load, "experiment_vae", lambda cfg, path, **_: tiny_vae)
+    monkeypatch.setattr(sword_jax.load, "experiment_world_model",
+                        lambda cfg, path: loaded.append(path) or real_world_model(cfg, None))
+    replay = imagined.imagined_episode_frames
+
+    def kept(simulator, encode, episodes, **kwargs):
+        out = replay(simulator, encode, episodes, **kwargs)
+        made.append((episodes, kwargs["window"], out))
+        return out
+
+    monkeypatch.setattr(imagined, "imagined_episode_frames", kept)
+    result = train_policy.main(common + ["--rl.sft.decoded_fraction=1", "--rl.sft.decoded_source=world_model",
+                                         "--rl.sft.decoded_window=4", "--vae", str(tmp_path / "vae"),
+                                         "--world-model", str(tmp_path / "wm")])
+    assert loaded == [str(tmp_path / "wm")]
+    assert result["decoded"] == {"vae": str(tmp_path / "vae"), "fraction": 1, "source": "world_model",
+                                 "world_model": str(tmp_path / "wm"), "window": 4}
+    [(episodes, window, out)] = made
+    assert window == 4 and out.shape == episodes.frames.shape
+    for e, length in enumerate(episodes.lengths):
+        starts = np.arange(0, length, 5)  # each window: its real start and the 4 frames its replay shows
+        np.testing.assert_array_equal(out[e, starts], episodes.frames[e, starts])
+        shown = np.setdiff1d(np.arange(length), starts)
+        assert all(not np.array_equal(out[e, t], episodes.frames[e, t]) for t in shown)  # a random world model's
+    assert np.isfinite(result["final_loss"])

@@ -17,7 +17,13 @@ the run naming the step, the last good checkpoint kept.
 ``--rl.sft.init`` starts from a trained policy (its parameters, a fresh optimizer). ``--rl.sft.decoded_fraction``
 (decoder-aware SFT) replaces that share of each batch's frames by their round trip through the VAE ``--vae`` (the
 whole episode encoded and decoded as one video, as the world model's frames are); ``--vae`` is required with it and
-refused without it.
+refused without it. With ``--rl.sft.decoded_source=world_model`` those frames are the ones the world model
+``--world-model`` shows when each demonstration's actions are replayed in it from its real frames, in windows of
+``rl.sft.decoded_window`` actions (an imagined rollout's by default; :mod:`sword_jax.rl.imagined_frames`)::
+
+    python -m train.train_policy --config sword:small --demos demos.hdf5 --rl.sft.init=policy.npz \
+        --rl.sft.decoded_fraction=0.5 --rl.sft.decoded_source=world_model --vae runs/<pipeline>/vae_run/vae \
+        --world-model runs/<pipeline>/world_model --rl.sft.steps=1000
 """
 
 from __future__ import annotations
@@ -42,20 +48,22 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--holdout", type=float, default=0.1, help="fraction of demonstrations held out")
     parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae; a pipeline's vae_run/vae) "
                         "whose round trip rl.sft.decoded_fraction of each batch's frames go through")
+    parser.add_argument("--world-model", default="", help="with rl.sft.decoded_source=world_model: the world model "
+                        "(a pipeline's world_model) the episodes' actions are replayed in for the decoded frames")
     args = parser.parse_args(rest)
     try:
-        require_vae(cfg.rl.sft.decoded_fraction, args.vae)
+        require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
     except ValueError as err:
         parser.error(str(err))
     return run(cfg, args.demos, eval_episodes=args.eval_episodes, eval_workers=args.eval_workers,
-               renderer=args.renderer, holdout=args.holdout, vae=args.vae)
+               renderer=args.renderer, holdout=args.holdout, vae=args.vae, world_model=args.world_model)
 
 
 def run(cfg, demos: Sequence[str], *, eval_episodes: int = 0, eval_workers: int = 0, renderer: str = "jax",
-        holdout: float = 0.1, vae: str = "") -> dict:
+        holdout: float = 0.1, vae: str = "", world_model: str = "") -> dict:
     """:func:`sim.policy_training.run_sft_policy`."""
     return run_sft_policy(cfg, demos, eval_episodes=eval_episodes, eval_workers=eval_workers, renderer=renderer,
-                          holdout=holdout, vae=vae)
+                          holdout=holdout, vae=vae, world_model=world_model)
 
 
 if __name__ == "__main__":

@@ -73,6 +73,12 @@ class SFTConfig:
         episode encoded and decoded as one video, :mod:`sword_jax.rl.decoded_frames`), the frames GRPO in the world
         model shows the policy; held-out metrics stay on real frames. 0 = off (real frames only); > 0 needs a
         trained VAE (``--vae`` of ``train.train_policy`` and ``benchmarks.bench_policy sft``).
+      decoded_source: where the decoded frames come from: ``vae``, the VAE's round trip of the real frame;
+        ``world_model``, the frame the world model imagines at that step when the episode's own actions are replayed
+        from a real frame up to ``decoded_window`` actions before (:mod:`sword_jax.rl.imagined_frames`), labelled
+        with the demonstration's action there. ``world_model`` also needs the world model (``--world-model``).
+      decoded_window: with ``decoded_source=world_model``, the actions each replay runs from its real start frame;
+        0 = an imagined rollout's, ``rl.imagined.max_chunks x`` the actions executed per decision.
     """
 
     steps: int = 200
@@ -86,12 +92,19 @@ class SFTConfig:
     init: str = ""
     image_aug: bool = False
     decoded_fraction: float = 0.0  # 0 = real frames only
+    decoded_source: str = "vae"  # vae | world_model
+    decoded_window: int = 0  # 0 = rl.imagined.max_chunks x actions per decision
 
     def validate(self) -> None:
         fraction = self.decoded_fraction
         if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0.0 <= fraction <= 1.0:
             raise ValueError(f"rl.sft.decoded_fraction must be a number in [0, 1] (the share of each SFT batch's "
                              f"frames taken from the VAE's round trip; 0 = off), got {fraction!r}")
+        if self.decoded_source not in ("vae", "world_model"):
+            raise ValueError(f"rl.sft.decoded_source must be vae or world_model, got {self.decoded_source!r}")
+        if isinstance(self.decoded_window, bool) or not isinstance(self.decoded_window, int) or self.decoded_window < 0:
+            raise ValueError(f"rl.sft.decoded_window must be an integer >= 0 (actions a replay runs; 0 = an imagined "
+                             f"rollout's), got {self.decoded_window!r}")
         if not isinstance(self.image_aug, bool):
             raise ValueError(f"rl.sft.image_aug must be true or false, got {self.image_aug!r}")
         if not isinstance(self.init, str):
@@ -704,6 +717,12 @@ class RLConfig:
         """Actions a learned simulator executes per policy decision: ``rl.imagined.execute_steps``, else the
         whole chunk."""
         return self.imagined.execute_steps or self.chunk_len
+
+    @property
+    def sft_decoded_window(self) -> int:
+        """Actions each world-model replay of decoder-aware SFT runs: ``rl.sft.decoded_window``, else an imagined
+        rollout's (``rl.imagined.max_chunks x`` :attr:`imagined_actions_per_decision`)."""
+        return self.sft.decoded_window or self.imagined.max_chunks * self.imagined_actions_per_decision
 
     @property
     def imagined_starts_per_step(self) -> int:

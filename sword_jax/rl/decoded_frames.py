@@ -28,19 +28,28 @@ from jaxtyping import Array, Int, UInt8
 from sword_jax.vae import api as vae_api
 
 
-def require_vae(decoded_fraction: float, vae: str) -> None:
+def require_vae(decoded_fraction: float, vae: str, world_model: str = "", source: str = "vae") -> None:
     """Refuses a VAE checkpoint ``vae`` that ``rl.sft.decoded_fraction`` will not read, and a fraction above 0
-    without one (the frames would otherwise come from an untrained VAE, or the VAE would be silently ignored).
+    without one (the frames would otherwise come from an untrained VAE, or the VAE would be silently ignored);
+    likewise the world model ``world_model``, read exactly when the fraction is above 0 and ``source``
+    (``rl.sft.decoded_source``) is ``world_model`` (:mod:`sword_jax.rl.imagined_frames`, whose frames the VAE
+    decodes).
 
     Raises:
-      ValueError: naming ``--vae`` and ``rl.sft.decoded_fraction``.
+      ValueError: naming ``--vae``, ``--world-model`` and the ``rl.sft`` setting.
     """
     if decoded_fraction > 0 and not vae:
-        raise ValueError(f"rl.sft.decoded_fraction={decoded_fraction} trains on frames round-tripped through a trained "
-                         "VAE: give its checkpoint directory with --vae (e.g. runs/<pipeline>/vae_run/vae)")
+        raise ValueError(f"rl.sft.decoded_fraction={decoded_fraction} trains on frames decoded by a trained VAE: give "
+                         "its checkpoint directory with --vae (e.g. runs/<pipeline>/vae_run/vae)")
     if vae and decoded_fraction <= 0:
         raise ValueError(f"--vae {vae} is read only by decoder-aware SFT: set rl.sft.decoded_fraction in (0, 1] "
                          "(e.g. --rl.sft.decoded_fraction=0.5), or leave --vae out")
+    if decoded_fraction > 0 and source == "world_model" and not world_model:
+        raise ValueError("rl.sft.decoded_source=world_model replays the episodes in a trained world model: give its "
+                         "checkpoint directory with --world-model (e.g. runs/<pipeline>/world_model)")
+    if world_model and not (decoded_fraction > 0 and source == "world_model"):
+        raise ValueError(f"--world-model {world_model} is read only with rl.sft.decoded_source=world_model and "
+                         "rl.sft.decoded_fraction in (0, 1]; set both, or leave --world-model out")
 
 
 def padded_length(length: int, temporal_factor: int, bucket_latents: int = 8) -> int:

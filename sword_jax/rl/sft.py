@@ -14,6 +14,10 @@ frames GRPO in the world model will show it. For example, fine-tuning a trained 
         --execute ens --workers 14 --eval-episodes 50 \\
         --rl.sft.init=runs/p/policy_d50.npz --rl.sft.decoded_fraction=0.5 --vae runs/rsv/pipeline/vae_run/vae \\
         --rl.sft.steps=1000
+
+With ``rl.sft.decoded_source=world_model`` those frames are the world model's own: each demonstration's actions
+replayed in it from its real frames (:mod:`sword_jax.rl.imagined_frames`), each frame labelled with the
+demonstration's action at that step.
 """
 
 from __future__ import annotations
