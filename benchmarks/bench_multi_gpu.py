@@ -567,6 +567,7 @@ def results_entries(summary: dict) -> dict[str, dict]:
     small = summary.get("small") or {}
     headline = small.get("by_batch", {}).get(str(summary["small_batches"][0]), {})
     reference, by_mode = mode_efficiencies(headline, n)
+    complete = small.get("complete", True)
     if by_mode and n > 1:
         key = f"dp_scaling_efficiency_small_{n}gpu"
         mode = max(by_mode, key=by_mode.get)
@@ -581,15 +582,14 @@ def results_entries(summary: dict) -> dict[str, dict]:
             cache_off_efficiency=headline["cache_off_efficiency"], overlap_efficiency=headline["overlap_efficiency"],
             dp_overhead_s=headline.get("dp_overhead_s"), cache_cross_device_s=headline.get("cache_cross_device_s"),
             by_batch=small["by_batch"], xla_overlap_flags=summary["xla_overlap_flags"],
-            complete=small.get("complete", True),
+            complete=complete,
             value_is="t_1 / t_N of the small config's DLB step at a fixed per-device batch, steps dispatched back to "
                      "back, for the best of the measured modes (mode; efficiency_by_mode: one process driving the N "
                      "devices or one process per device, scanned or unrolled layers); t_1 is the fastest one-device "
                      "step time of the run, scanned or unrolled, whatever the mode (efficiency: one process, scanned "
                      "layers, against its own t_1; waiting_efficiency: the same with the host waiting for every "
-                     "step)" + ("; from a run stopped before all its rows (complete: false): the modes it did not "
-                                "reach on N devices are absent from efficiency_by_mode" if not small.get("complete", True)
-                                else ""))
+                     "step)" + ("" if complete else "; from a run stopped before all its rows (complete: false): the "
+                                "modes it did not reach on N devices are absent from efficiency_by_mode"))
     return entries
 
 

@@ -196,7 +196,7 @@ def run_eval(cfg, args) -> dict:
                                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                                        workers=args.workers))
         results["eval"][mode] = result
-        print(f"execute {mode}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+        print(f"execute {mode}: success {common.interval_text(result)} "
               f"({result['episodes']} episodes, {result['seconds']}s)", flush=True)
         with open(os.path.join(args.out, f"eval_results{args.tag}.json"), "w") as f:
             json.dump(results, f, indent=1)
@@ -226,7 +226,7 @@ def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
                                          key=jax.random.key(0))
         result = dict(runner.summarize(success, time.time() - start), backend="mjx")
         results["eval"][mode] = result
-        print(f"execute {mode} on MJX: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}] "
+        print(f"execute {mode} on MJX: success {common.interval_text(result)} "
               f"({result['episodes']} episodes, {result['seconds']}s, compile included) {json.dumps(result['per_task'])}",
               flush=True)
         with open(os.path.join(args.out, f"eval_results{args.tag}_mjx.json"), "w") as f:

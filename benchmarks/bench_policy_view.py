@@ -48,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, UInt8
 
+from benchmarks import common
 from sword_jax import cli
 
 # view: (Gaussian blur sigma in pixels of the environment's frames, brightness gain, noise std in 0-255 levels,
@@ -271,7 +272,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for i, view in enumerate(views):
         summary = success_summary(success[i * n:(i + 1) * n], tasks, 0.0)
         results["views"][view] = dict(summary, parameters=dict(zip(PARAMETER_NAMES, VIEWS[view])))
-        print(f"[view] {view:<13} success {summary['mean']:.3f} [{summary['ci95'][0]:.3f}, {summary['ci95'][1]:.3f}] "
+        print(f"[view] {view:<13} success {common.interval_text(summary)} "
               f"({summary['episodes']} episodes)", flush=True)
     if round_trip is not None:
         error = round_trip_error(*start_frames(env, round_trip, qpos, runner.batch))

@@ -383,9 +383,7 @@ def summarize(workdir: str, variants: Sequence[str] = (), *, rollout_batch: int 
             "view": view_summary(os.path.join(workdir, f"view_{tuned_runs(variant, kind)}")) if variant else None,
             "exec": exec_summary(workdir, f"exec_{tuned_runs(variant, kind)}", variant, rollout_batch)
             if variant else None}), variant=variant)
-    rows = dict(out["variants"], **{tuned_runs(out[k]["variant"], k): out[k] for k in FINE_TUNES
-                                    if k in out and out[k]["variant"]})
-    seen = {v: e["view"]["vae"]["mean"] for v, e in rows.items() if "vae" in e.get("view", {})}
+    seen = {v: e["view"]["vae"]["mean"] for v, e in summary_rows(out).items() if "vae" in e.get("view", {})}
     out["best_vae_view"] = {"variant": max(seen, key=seen.get), "success": max(seen.values())} if seen else None
     return out
 
@@ -412,13 +410,15 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     return {"policy_sim_fidelity_small": entry}
 
 
-def _interval(figure: dict) -> str:
-    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
+def summary_rows(summary: dict) -> dict[str, dict]:
+    """Every variant's entry, then every fine-tune's under the name of its runs (``<variant>_<suffix>``; ``none_``
+    where it left no probe or run)."""
+    return dict(summary["variants"], **{tuned_runs(summary[k].get("variant") or "none", k): summary[k]
+                                        for k in FINE_TUNES if k in summary})
 
 
 def print_summary(summary: dict) -> None:
-    rows = dict(summary["variants"], **{tuned_runs(summary[k].get("variant") or "none", k): summary[k]
-                                        for k in FINE_TUNES if k in summary})
+    rows = summary_rows(summary)
     if not rows:
         print("[sim-fidelity] no pipeline, probe or run of a variant here", flush=True)
     for name, r in rows.items():
@@ -428,12 +428,12 @@ def print_summary(summary: dict) -> None:
         if r.get("world_model"):
             parts.append(f"world model loss {r['world_model']['loss']:.4f}")
         if r.get("sft"):
-            parts.append(f"SFT (ens) {_interval(r['sft'])}")
+            parts.append(f"SFT (ens) {common.interval_text(r['sft'])}")
         view = r.get("view") or {}
         if "real" in view and "vae" in view:
             d = view["difference"]
-            parts.append(f"real {_interval(view['real'])}, vae {_interval(view['vae'])} ({d['value']:+.3f} "
-                         f"[{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}])")
+            parts.append(f"real {common.interval_text(view['real'])}, vae {common.interval_text(view['vae'])} "
+                         f"({d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}])")
         if "round_trip_levels" in view:
             parts.append(f"round trip |error| {view['round_trip_levels']['mean_abs_error']['all']:.2f} levels")
         ex = r.get("exec")

@@ -140,6 +140,11 @@ def add_summary_options(parser: Any) -> None:
     parser.add_argument("--command", default="", help="summary --record: the run's command, stored with the entry")
 
 
+def interval_text(figure: dict[str, Any]) -> str:
+    """A success figure (``mean``, ``ci95``) as ``mean [low, high]``, three decimals."""
+    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
+
+
 def summary_data(out: str, workdir: str) -> str:
     """What a recorded entry's ``data`` names: the summary file :func:`save_summary` writes (``out + ".json"``),
     else the run's workdir."""

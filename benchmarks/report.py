@@ -63,6 +63,12 @@ def _pct(x: float) -> str:
     return f"{100 * x:+.1f}"
 
 
+def _ci(figure: dict) -> str:
+    """A success figure (``mean``, ``ci95``) as ``mean [low, high]`` (``benchmarks.common.interval_text``, which
+    this module does not import: it loads jax)."""
+    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
+
+
 def _interval(ci, scale: float = 100.0) -> str:
     return f"[{scale * ci[0]:+.1f}, {scale * ci[1]:+.1f}]"
 
@@ -619,7 +625,7 @@ def _view_cells(name: str, v: dict, real: dict) -> list[str]:
     from sword_jax.rl.env_rollout import difference_interval
 
     lo, hi = difference_interval(v["successes"], v["episodes"], real["successes"], real["episodes"])
-    return [f"{v['mean']:.3f} [{v['ci95'][0]:.3f}, {v['ci95'][1]:.3f}]",
+    return [_ci(v),
             "" if name == "real" else f"{_pct(v['mean'] - real['mean'])} [{-100 * hi:+.1f}, {-100 * lo:+.1f}]"]
 
 
@@ -652,10 +658,14 @@ CLOSED_LOOP_COLUMNS = ("GRPO steps", "real success of the imagined actions (95% 
 
 def _closed_loop_cells(r: dict) -> list[str]:
     """:data:`CLOSED_LOOP_COLUMNS` of one run of a ``closed_loop.json``."""
-    paid = r["paid_success"]
-    return [str(r["steps"]), f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}",
+    return [str(r["steps"]), _paid(r["paid_success"]),
             f"{r['detector_success']:.3f}", f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
             f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}"]
+
+
+def _paid(paid: dict) -> str:
+    """What reality paid a closed-loop run's trajectories: ``rate [low, high] of N``."""
+    return f"{paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']:,}"
 
 
 CLOSED_LOOP_VAE = ("policy", "closed_loop_vae_small_h200")
@@ -698,11 +708,10 @@ def action_gap() -> str:
     """How far each view moves the policy's greedy actions and frames, and one decision of real motion
     (``benchmarks.bench_action_gap``): the scale of the closed loop's figures."""
     data = _load("policy", "action_gap_small_cpu", "action_gap.json")
-    rows = [[name, f"{v['action_gap']['mean']:.3f} [{v['action_gap']['ci95'][0]:.3f}, {v['action_gap']['ci95'][1]:.3f}]",
+    rows = [[name, _ci(v["action_gap"]),
              f"{v['frame_error']['mean']:.3f}"] for name, v in data["views"].items()]
     step = data["consecutive_decisions"]
-    rows.append(["the real frame one decision later", f"{step['action_gap']['mean']:.3f} [{step['action_gap']['ci95'][0]:.3f}, "
-                 f"{step['action_gap']['ci95'][1]:.3f}]", f"{step['frame_error']['mean']:.3f}"])
+    rows.append(["the real frame one decision later", _ci(step["action_gap"]), f"{step['frame_error']['mean']:.3f}"])
     return _table(["the frame the policy reads", f"greedy action gap to the real frame ({data['frames']} frames, 95% "
                    "interval)", "frame error"], rows)
 
@@ -711,7 +720,7 @@ def lag_success() -> str:
     """The policy's real success reading the real frames and reading each decision the frame of the decision
     before (``bench_action_gap --lag-episodes-per-task``)."""
     lag = _load("policy", "action_gap_small_cpu", "action_gap.json")["lag"]
-    rows = [[label, f"{lag[k]['mean']:.3f} [{lag[k]['ci95'][0]:.3f}, {lag[k]['ci95'][1]:.3f}]",
+    rows = [[label, _ci(lag[k]),
              "" if k == "real" else f"{_pct(lag['difference']['mean'])} {_interval(lag['difference']['ci95'])}"]
             for k, label in (("real", "the real frame"), ("lag_1", "the frame of the decision before"))]
     return _table(["what the policy reads at each decision", f"real success, {lag['real']['episodes']} episodes "
@@ -724,8 +733,7 @@ def lag_proprio() -> str:
     data = _load("policy", "lag_proprio_small_cpu", "action_gap.json")["lag_by_proprio"]
     labels = {"missing": "missing (GRPO in the world model's mode)", "true": "the environment's",
               "reckoned": "dead-reckoned from the actions (what the world model can report)"}
-    rows = [[labels[mode], f"{lag['real']['mean']:.3f} [{lag['real']['ci95'][0]:.3f}, {lag['real']['ci95'][1]:.3f}]",
-             f"{lag['lag_1']['mean']:.3f} [{lag['lag_1']['ci95'][0]:.3f}, {lag['lag_1']['ci95'][1]:.3f}]",
+    rows = [[labels[mode], _ci(lag["real"]), _ci(lag["lag_1"]),
              f"{_pct(lag['difference']['mean'])} {_interval(lag['difference']['ci95'])}"] for mode, lag in data.items()]
     episodes = next(iter(data.values()))["real"]["episodes"]
     return _table(["proprio the policy reads", f"real frames, {episodes} episodes (95% interval)",
@@ -735,10 +743,6 @@ def lag_proprio() -> str:
 SIM_FIDELITY = ("policy", "sim_fidelity_small_4xh200")
 SIM_FIDELITY_LABELS = {"base": "base: 16x spatial, 8 x 8 latents", "vae8x": "8x spatial, 16 x 16 latents",
                        "lpips": "base with LPIPS beside the pixel loss"}
-
-
-def _ci(figure: dict) -> str:
-    return f"{figure['mean']:.3f} [{figure['ci95'][0]:.3f}, {figure['ci95'][1]:.3f}]"
 
 
 def sim_fidelity() -> str:
@@ -760,8 +764,7 @@ def sim_fidelity() -> str:
         out.append([vae, policy, f"{pipe['world_model']['loss']:.3f}", _ci(view["real"]), _ci(view["vae"]),
                     f"{_pct(d['value'])} {_interval(d['ci95'])}",
                     f"{view['round_trip_levels']['mean_abs_error']['all']:.1f}",
-                    f"{ex['paid_success']['rate']:.3f} [{ex['paid_success']['ci95'][0]:.3f}, "
-                    f"{ex['paid_success']['ci95'][1]:.3f}] of {ex['paid_success']['of']:,}",
+                    _paid(ex["paid_success"]),
                     f"{ex['frame_error_first']:.3f} ({ex['frame_error_vae_first']:.3f})",
                     f"{ex['action_gap_first']:.3f} ({ex['action_gap_vae_first']:.3f})",
                     f"{ex['frame_error_last']:.3f} / {ex['action_gap_last']:.3f}"])
