@@ -106,9 +106,14 @@ class Job:
     needs: tuple[Need, ...] = ()
 
     @property
+    def share_kind(self) -> str:
+        """Its kind: the key of :data:`WEIGHTS` its name starts with."""
+        return self.name.split("_")[0]
+
+    @property
     def share(self) -> float:
-        """Its weight (:data:`WEIGHTS`, by the kind its name starts with)."""
-        return WEIGHTS[self.name.split("_")[0]]
+        """Its weight (:data:`WEIGHTS`, by its kind)."""
+        return WEIGHTS[self.share_kind]
 
 
 def pipe_dir(workdir: str, variant: str) -> str:
@@ -229,18 +234,21 @@ def can_overlap(jobs: dict[str, Job], a: str, b: str) -> bool:
     return not (starts_after_end(jobs, a, b) or starts_after_end(jobs, b, a))
 
 
-def memory_fractions(jobs: dict[str, Job]) -> dict[str, float]:
+def memory_fractions(jobs: dict[str, Job], given: dict[str, float] | None = None) -> dict[str, float]:
     """``XLA_PYTHON_CLIENT_MEM_FRACTION`` of each process of the jobs that share a GPU with another: 90% of it times
     the job's weight over the largest total weight of jobs that can run there at once with it (none follows
-    another's end), so no such set asks for more than 90% together."""
-    out = {}
+    another's end), so no such set asks for more than 90% together. ``given`` (kind -> fraction, the kinds of
+    :data:`WEIGHTS`) sets every job of a kind its cap instead, alone on its GPU or not: a cap is the most a process
+    may take (none takes memory before it needs it), so jobs known not to run at once can be given more."""
+    given = given or {}
+    out = {name: given[job.share_kind] for name, job in jobs.items() if job.share_kind in given}
     for gpu in dict.fromkeys(j.gpu for j in jobs.values()):
         here = [n for n in jobs if jobs[n].gpu == gpu]
         if len(here) < 2:
             continue
         together = [c for r in range(1, len(here) + 1) for c in itertools.combinations(here, r)
                     if all(can_overlap(jobs, a, b) for a, b in itertools.combinations(c, 2))]
-        for name in here:
+        for name in (n for n in here if n not in out):
             most = max(sum(jobs[n].share for n in c) for c in together if name in c)
             out[name] = math.floor(1000 * GPU_SHARE * jobs[name].share / most) / 1000  # rounded down: never above
     return out
@@ -261,7 +269,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
     jobs = plan(args)
-    fractions = memory_fractions(jobs)
+    fractions = memory_fractions(jobs, args.memory_fraction)
     start = time.perf_counter()
 
     def launch(job: Job) -> subprocess.Popen:
@@ -449,6 +457,23 @@ def print_summary(summary: dict) -> None:
         print(f"[sim-fidelity] {name}: " + "; ".join(parts), flush=True)
 
 
+def memory_fraction_option(text: str) -> dict[str, float]:
+    """``--memory-fraction``'s ``kind=fraction,...`` as a dict, refused by name where a kind is not one of
+    :data:`WEIGHTS`, is repeated, or its fraction is not a number in (0, 1]."""
+    out = {}
+    for part in (p for p in text.split(",") if p):
+        kind, eq, value = part.partition("=")
+        try:
+            fraction = float(value)
+        except ValueError:
+            fraction = -1.0
+        if not eq or kind not in WEIGHTS or kind in out or not 0 < fraction <= 1:
+            raise SystemExit(f"bench_sim_fidelity: --memory-fraction takes kind=fraction with a kind of "
+                             f"{', '.join(WEIGHTS)} (each once) and a fraction in (0, 1]; got {part!r}")
+        out[kind] = fraction
+    return out
+
+
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("mode", choices=("run", "summary"))
@@ -478,9 +503,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: the fine-tune's peak rate (the policy was trained at 1e-3 falling to 1e-4)")
     parser.add_argument("--decoded-fraction", type=float, default=0.5)
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop what is still going after this")
+    parser.add_argument("--memory-fraction", default="", metavar="KIND=F,...",
+                        help=f"run: the GPU memory cap of every job of a kind ({', '.join(WEIGHTS)}) instead of its "
+                             "share of the jobs that can overlap on its GPU, e.g. exec=0.3")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.gpus = [g for g in args.gpus.split(",") if g]
+    args.memory_fraction = memory_fraction_option(args.memory_fraction)
     args.variants = [v for v in args.variants.split(",") if v]
     unknown = [v for v in args.variants if v not in VARIANTS]
     if unknown or not args.variants or len(set(args.variants)) < len(args.variants):

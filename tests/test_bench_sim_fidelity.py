@@ -138,12 +138,35 @@ def test_bad_arguments_are_refused(tmp_path):
                            (("--decoded-fraction", "0"), r"\(0, 1\]"), (("--decoded-fraction", "1.5"), r"\(0, 1\]"),
                            (("--exec-steps", "0"), ">= 1"), (("--view-episodes-per-task", "0"), ">= 1"),
                            (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "run in the .base. variant.*add it to --variants"),
-                           (("--sft-learning-rate", "0"), r"--sft-learning-rate must be in \(0, 1\)")):
+                           (("--sft-learning-rate", "0"), r"--sft-learning-rate must be in \(0, 1\)"),
+                           (("--memory-fraction", "train=0.3"), "--memory-fraction takes.*got 'train=0.3'"),
+                           (("--memory-fraction", "exec=0"), "got 'exec=0'"),
+                           (("--memory-fraction", "exec=1.2"), "got 'exec=1.2'"),
+                           (("--memory-fraction", "exec"), "got 'exec'"),
+                           (("--memory-fraction", "exec=x"), "got 'exec=x'"),
+                           (("--memory-fraction", "exec=0.3,exec=0.4"), "got 'exec=0.4'")):
         with pytest.raises(SystemExit, match=message):
             _args(tmp_path, *extra)
     with pytest.raises(SystemExit, match="needs --policy"):
         fid.main(["run", "--workdir", str(tmp_path), "--policy", str(tmp_path / "none.npz")])
     assert fid.parse(["summary", "--workdir", str(tmp_path)]).variants == list(fid.VARIANTS)
+
+
+def test_a_given_memory_fraction_caps_every_job_of_its_kind(tmp_path):
+    """On one GPU the shares of everything that can overlap are small; --memory-fraction gives a kind its own cap
+    and the other jobs keep theirs."""
+    args = _args(tmp_path, "--imagined-sft", "--sft-control", "--decoded-variant", "vae8x", "--memory-fraction",
+                 "exec=0.3,view=0.05", gpus="0", variants="vae8x", decoded=False)
+    assert args.memory_fraction == {"exec": 0.3, "view": 0.05}
+    jobs = fid.plan(args)
+    computed, given = fid.memory_fractions(jobs), fid.memory_fractions(jobs, args.memory_fraction)
+    assert computed["exec_vae8x"] == 0.2 and computed["pipeline_vae8x"] == 0.385
+    for name, job in jobs.items():
+        expected = {"exec": 0.3, "view": 0.05}.get(job.share_kind, computed[name])
+        assert given[name] == expected, name
+    # a job alone on its GPU is capped too where its kind is given, and free where not
+    alone = {"pipeline_base": fid.plan(_args(tmp_path, gpus="0", variants="base", decoded=False))["pipeline_base"]}
+    assert fid.memory_fractions(alone) == {} and fid.memory_fractions(alone, {"pipeline": 0.5}) == {"pipeline_base": 0.5}
 
 
 def _overlapping_sets(jobs, gpu):
