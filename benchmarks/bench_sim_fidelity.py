@@ -20,9 +20,9 @@ With ``--decoded-sft`` the policy is also fine-tuned on frames of which ``--deco
 ``--decoded-variant`` VAE (``base`` by default; ``bench_policy sft``, ``rl.sft.decoded_fraction``), and that
 decoder-aware policy is measured the same way in that variant's VAE and world model (``view_<variant>_dec``,
 ``exec_<variant>_dec``). ``--imagined-sft`` fine-tunes it alike on the frames that variant's world model shows when
-the demonstrations' actions are replayed in it from their real frames (``rl.sft.decoded_source=world_model``, windows
-of an imagined rollout's length; ``policy_img``, ``view_<variant>_img``, ``exec_<variant>_img``), once the world
-model is built. ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
+the demonstrations' actions are replayed in it from their real frames (``rl.sft.decoded_source=world_model``; the
+world model run as the ``exec`` arm runs it, :data:`IMAGINED`, in windows of its imagined rollout's 48 actions or
+``--imagined-window``; ``policy_img``, ``view_<variant>_img``, ``exec_<variant>_img``), once the world model is built. ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
 (``policy_ctl``, ``view_<variant>_ctl``, ``exec_<variant>_ctl``), so that what the decoded frames change is told
 apart from what more training changes::
 
@@ -37,8 +37,9 @@ apart from what more training changes::
 (``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
 ``stages/reward_model.json``: the pipeline runs its stages two at a time, so either may end last). The
 fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the others from the last back): the
-decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once; each one's probe and ``exec`` run follow it
-there. A job whose input can no longer appear (its maker ended without it) is
+decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once;
+each one's probe follows it there once the variant's VAE exists too, and its ``exec`` run once the pipeline is built.
+``--memory-fraction`` sets a kind's cap instead (below). A job whose input can no longer appear (its maker ended without it) is
 skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
 deadline stops the whole process groups still going. On a shared GPU each process is capped
 (``XLA_PYTHON_CLIENT_MEM_FRACTION``, :func:`memory_fractions`): 90% of the GPU is split in proportion to
@@ -87,6 +88,7 @@ SFT_POLICY = "policy_d50.npz"  # bench_policy sft --demos-per-task 50, no --tag
 WEIGHTS = {"pipeline": 3.0, "exec": 2.0, "policy": 2.0, "view": 1.0}
 GPU_SHARE = 0.9
 GROUP_SIZE = 8  # RECIPE's --rl.grpo.group_size
+IMAGINED = tuple(f for f in RECIPE if f.startswith("--rl.imagined."))  # the exec arm's imagined rollout
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,9 +160,10 @@ def sft_command(args, kind: str = "decoded") -> tuple[str, ...]:
     variant = args.decoded_variant
     decoded = ((f"--rl.sft.decoded_fraction={args.decoded_fraction}", "--vae", vae_dir(args.workdir, variant))
                if kind != "control" else ("--rl.sft.decoded_fraction=0",))
-    if kind == "imagined":
+    if kind == "imagined":  # the world model run as the exec arm runs it: its actions per decision and chunks
         decoded += ("--rl.sft.decoded_source=world_model", "--world-model",
-                    os.path.join(pipe_dir(args.workdir, variant), "world_model"))
+                    os.path.join(pipe_dir(args.workdir, variant), "world_model"), *IMAGINED,
+                    f"--rl.sft.decoded_window={args.imagined_window}")
     return (sys.executable, "-m", "benchmarks.bench_policy", "sft", "--config", args.config, *VARIANTS[variant],
             "--out", os.path.join(args.workdir, FINE_TUNES[kind][0]), "--demos-per-task", "50", "--execute", "ens",
             "--workers", "14", "--eval-episodes", "50", "--gen-procs-per-task", "4",
@@ -215,8 +218,8 @@ def plan(args) -> dict[str, Job]:
                  "imagined": (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "world_model.json"), True),),
                  "control": ()}[kind]
         view = view_command(args, variant, tuned, os.path.join(args.workdir, f"view_{runs}"))
-        jobs += [Job(sft, sft_command(args, kind), gpu, needs),
-                 Job(f"view_{runs}", view, gpu, (saved,)),
+        jobs += [Job(sft, sft_command(args, kind), gpu, needs),  # its probe reads the VAE too
+                 Job(f"view_{runs}", view, gpu, (saved, Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False))),
                  Job(f"exec_{runs}", exec_command(args, variant, tuned, f"exec_{runs}"), gpu,
                      (*built(f"pipeline_{variant}", pipe), Need(sft, os.path.join(args.workdir, sft, "sft_results.json"), True)))]
     return {job.name: job for job in jobs}
@@ -488,6 +491,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--imagined-sft", action="store_true",
                         help="run: also the policy fine-tuned on frames its demonstrations' actions make in the "
                              "--decoded-variant world model (rl.sft.decoded_source=world_model), measured there")
+    parser.add_argument("--imagined-window", type=int, default=0,
+                        help="run: the actions each replay of the imagined fine-tune runs from a real frame "
+                             "(rl.sft.decoded_window; 0 = the exec arm's imagined rollout, 12 chunks x 4)")
     parser.add_argument("--sft-control", action="store_true",
                         help="run: also the same fine-tune on real frames only, measured in the same variant")
     parser.add_argument("--vae-steps", type=int, default=1000)
@@ -519,9 +525,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit(f"bench_sim_fidelity: --gpus needs distinct GPUs, got {args.gpus}")
     counts = ("vae_steps", "world_model_steps", "exec_steps", "view_episodes_per_task", "eval_episodes_per_task",
               "sft_steps")
-    if any(getattr(args, k) < 1 for k in counts) or args.policy_rollouts < 0 or args.deadline_s < 0:
+    if (any(getattr(args, k) < 1 for k in counts) or args.policy_rollouts < 0 or args.deadline_s < 0
+            or args.imagined_window < 0):
         raise SystemExit(f"bench_sim_fidelity: --{', --'.join(k.replace('_', '-') for k in counts)} must be >= 1, "
-                         "--policy-rollouts and --deadline-s >= 0")
+                         "--policy-rollouts, --deadline-s and --imagined-window >= 0")
     if args.rollout_batch < 4 or args.rollout_batch % 4:
         raise SystemExit("bench_sim_fidelity: --rollout-batch must be a multiple of 4 (4 minibatches)")
     if not 0 < args.sft_learning_rate < 1:

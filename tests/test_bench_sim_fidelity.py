@@ -105,7 +105,8 @@ def test_the_fine_tunes_run_in_the_chosen_variant_beside_a_control(tmp_path):
     assert ctl[ctl.index("--out") + 1] == os.path.join(work, "policy_ctl")
     needs = {n: {x.path for x in j.needs} for n, j in jobs.items()}
     assert needs["policy_dec"] == {os.path.join(work, "pipeline_vae8x", "stages", "vae.json")}
-    assert needs["policy_ctl"] == set()  # it starts at once
+    assert needs["policy_ctl"] == set()  # it starts at once, its probe once the VAE it reads exists
+    assert os.path.join(work, "pipeline_vae8x", "stages", "vae.json") in needs["view_vae8x_ctl"]
     tuned = os.path.join(work, "policy_ctl", "policy_d50.npz")
     view, ex = jobs["view_vae8x_ctl"].command, jobs["exec_vae8x_ctl"].command
     assert view[view.index("--policy") + 1] == tuned and view[view.index("--vae") + 1] == vae
@@ -119,6 +120,14 @@ def test_the_fine_tunes_run_in_the_chosen_variant_beside_a_control(tmp_path):
     assert [img[n].gpu for n in ("pipeline_vae8x", "policy_dec", "policy_img", "policy_ctl")] == ["0", "1", "2", "3"]
     cfg, rest = _config(img["policy_img"].command)
     assert cfg.rl.sft.decoded_source == "world_model" and cfg.rl.sft.decoded_fraction == 0.5
+    # the world model run as the exec arm runs it (4 actions a decision, 12 chunks), windows of its 48 actions
+    ex_cfg, _ = _config(img["exec_vae8x_img"].command)
+    assert (cfg.rl.imagined.execute_steps, cfg.rl.imagined.max_chunks) == (ex_cfg.rl.imagined.execute_steps,
+                                                                           ex_cfg.rl.imagined.max_chunks) == (4, 12)
+    assert cfg.rl.sft_decoded_window == ex_cfg.rl.sft_decoded_window == 48
+    short = fid.plan(_args(tmp_path, "--decoded-variant", "vae8x", "--imagined-sft", "--imagined-window", "8",
+                           variants="vae8x"))
+    assert _config(short["policy_img"].command)[0].rl.sft_decoded_window == 8
     assert rest[rest.index("--world-model") + 1] == os.path.join(work, "pipeline_vae8x", "world_model")
     assert rest[rest.index("--vae") + 1] == vae and cfg.vae.spatial_factor == 8
     assert {(x.path, x.final) for x in img["policy_img"].needs} == {
@@ -137,7 +146,7 @@ def test_bad_arguments_are_refused(tmp_path):
                            (("--gpus", "0,0"), "distinct GPUs"), (("--rollout-batch", "30"), "multiple of 4"),
                            (("--decoded-fraction", "0"), r"\(0, 1\]"), (("--decoded-fraction", "1.5"), r"\(0, 1\]"),
                            (("--exec-steps", "0"), ">= 1"), (("--view-episodes-per-task", "0"), ">= 1"),
-                           (("--deadline-s", "-1"), ">= 0"), (("--variants", "vae8x"), "run in the .base. variant.*add it to --variants"),
+                           (("--deadline-s", "-1"), ">= 0"), (("--imagined-window", "-1"), ">= 0"), (("--variants", "vae8x"), "run in the .base. variant.*add it to --variants"),
                            (("--sft-learning-rate", "0"), r"--sft-learning-rate must be in \(0, 1\)"),
                            (("--memory-fraction", "train=0.3"), "--memory-fraction takes.*got 'train=0.3'"),
                            (("--memory-fraction", "exec=0"), "got 'exec=0'"),
@@ -195,7 +204,8 @@ def test_jobs_are_placed_and_wait_for_what_they_read(tmp_path):
                                                 True)}
     # the probe starts once the decoded policy is wholly written (its reckoning comes after it)
     assert needs["view_base_dec"] == {("policy_dec", str(tmp_path / "w" / "policy_dec" / "policy_d50.reckoning.json"),
-                                       False)}
+                                       False), ("pipeline_base", str(tmp_path / "w" / "pipeline_base" / "stages" /
+                                                                     "vae.json"), False)}
     assert fid.starts_after_end(jobs, "exec_base", "pipeline_base")
     assert not fid.starts_after_end(jobs, "view_base", "pipeline_base")
     assert fid.starts_after_end(jobs, "exec_base_dec", "policy_dec") and fid.can_overlap(jobs, "view_base_dec", "policy_dec")
