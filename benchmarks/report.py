@@ -775,6 +775,52 @@ def sim_fidelity() -> str:
                    "greedy action gap at decision 1 (VAE alone)", "decision 11: frame error / action gap"], out)
 
 
+SIM_FIDELITY_IMAGINED = ("policy", "sim_fidelity_imagined_small_h200")
+
+
+def sim_fidelity_fine_tunes(parts: tuple[str, ...] = SIM_FIDELITY_IMAGINED) -> str:
+    """The fine-tunes of a ``bench_sim_fidelity`` run beside the policy they start from (``summary.json`` and each
+    fine-tune's ``sft_results.json``): the frames each trained on, its last training batch's loss and the held-out
+    demonstrations' (real frames, teacher-forced), its own SFT evaluation, the view probe, and what reality paid its
+    actions chosen in the world model, or what stopped that run."""
+    summary = _load(*parts, "summary.json")
+    windows = {}
+    for kind, folder in (("imagined", "policy_img"), ("control", "policy_ctl"), ("decoded", "policy_dec")):
+        if kind in summary:
+            sft = _load(*parts, folder, "sft_results.json")
+            rl, last = sft["rl"], sft["runs"][0]["history"][-1]
+            per_decision = rl["imagined"]["execute_steps"] or rl["chunk_len"]
+            windows[kind] = (rl["sft"], rl["sft"]["decoded_window"] or rl["imagined"]["max_chunks"] * per_decision,
+                             per_decision, last)
+    stopped = _load(*parts, "sim_fidelity_summary.json").get("stopped_at_deadline", [])
+    variant, suffix = next(iter(summary["variants"])), {"imagined": "_img", "control": "_ctl", "decoded": "_dec"}
+    rows = [("policy_d50", "-", None, summary["variants"][variant])]
+    rows += [(f"policy_d50 fine-tuned ({kind})", kind, windows[kind], summary[kind]) for kind in windows]
+    out = []
+    for policy, kind, tuned, e in rows:
+        exec_job = f"exec_{variant}{suffix.get(kind, '')}"
+        if tuned is None:
+            frames, losses = "(the policy the fine-tunes start from)", "-"
+        else:
+            sft, window, per_decision, last = tuned
+            source = {"world_model": f"imagined by the world model in windows of {window} actions, {per_decision} a "
+                                     "decision", "vae": "through the VAE's video round trip"}[sft["decoded_source"]]
+            frames = (f"{sft['decoded_fraction']:.0%} {source}, the rest real" if sft["decoded_fraction"]
+                      else "real only")
+            losses = f"{last['loss']:.3f} / {last['heldout_loss']:.3f} ({last['heldout_action_l1']:.4f})"
+        view = e["view"]
+        d = view["difference"]
+        paid = _paid(e["exec"]["paid_success"]) if "exec" in e else "not measured: " + (
+            "the run's deadline stopped it before its step" if exec_job in stopped else e["missing"]["exec"])
+        out.append([policy, frames, losses, _ci(e["sft"]) if "sft" in e else "-", _ci(view["real"]),
+                    _ci(view["vae"]), f"{_pct(d['value'])} {_interval(d['ci95'])}", paid])
+    episodes = rows[0][3]["view"]["real"]["episodes"]
+    return _table(["policy", "frames it was fine-tuned on", "loss: last batch / held-out real (action L1)",
+                   "greedy with ensembling, 500 MJX episodes", f"real frames, {episodes} episodes, T 0.5",
+                   "frames through the VAE", "difference, points", "real success of the actions chosen in the "
+                   "world model"], out)
+
+
 def sim_fidelity_decisions() -> str:
     """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
     its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
@@ -807,6 +853,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
+    "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes,
 }
 
 
