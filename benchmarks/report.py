@@ -144,15 +144,19 @@ def readme_results() -> str:
             f"scaling {latest['dp_scaling_efficiency_small_4gpu']['value']:.3f} of the fastest one-GPU step "
             f"(target 0.90); one process per GPU "
             f"killed and resumed {'bit-identical' if latest['multiprocess_resume_exact']['value'] else 'NOT exact'}",
-            "dit_train_mfu_5b_full_4gpu", f"[section]({doc}#several-gpus)")]
+            ("dit_train_mfu_5b_full_4gpu", "dp_scaling_efficiency_small_4gpu", "multiprocess_resume_exact"),
+            f"[section]({doc}#several-gpus)")]
           if all(k in latest for k in ("dit_train_mfu_5b_full_4gpu", "dp_scaling_efficiency_small_4gpu",
                                        "multiprocess_resume_exact")) else []),
         ("DLB step overhead vs teacher forcing", f"{100 * latest['dlb_overhead_ratio']['value']:+.1f}% (target 3%)",
          "dlb_overhead_ratio", f"[section]({doc}#the-full-5b-model)"),
     ]
-    return _table(["result", "figure", "run", "details"],
-                  [[what, figure, f"{_device(latest[key])}, {latest[key]['date']}", link]
-                   for what, figure, key, link in rows])
+    def run(keys) -> str:  # a row of several entries: the first one's device, every date they were measured on
+        keys = (keys,) if isinstance(keys, str) else keys
+        return f"{_device(latest[keys[0]])}, {', '.join(sorted({latest[k]['date'] for k in keys}))}"
+
+    return _table(["result", "figure", "run", "details"], [[what, figure, run(keys), link]
+                                                            for what, figure, keys, link in rows])
 
 
 # --- docs/RESULTS.md ------------------------------------------------------------------------------------
