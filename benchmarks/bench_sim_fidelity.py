@@ -39,7 +39,8 @@ apart from what more training changes::
 fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the others from the last back): the
 decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once;
 each one's probe follows it there once the variant's VAE exists too, and its ``exec`` run once the pipeline is built.
-``--memory-fraction`` sets a kind's cap instead (below). A job whose input can no longer appear (its maker ended without it) is
+``--memory-fraction`` sets a kind's cap instead (below); ``--leave-out`` drops jobs no other job waits for (on one
+GPU, ``exec_<variant>`` when only the fine-tunes are compared). A job whose input can no longer appear (its maker ended without it) is
 skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
 deadline stops the whole process groups still going. On a shared GPU each process is capped
 (``XLA_PYTHON_CLIENT_MEM_FRACTION``, :func:`memory_fractions`): 90% of the GPU is split in proportion to
@@ -222,7 +223,22 @@ def plan(args) -> dict[str, Job]:
                  Job(f"view_{runs}", view, gpu, (saved, Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False))),
                  Job(f"exec_{runs}", exec_command(args, variant, tuned, f"exec_{runs}"), gpu,
                      (*built(f"pipeline_{variant}", pipe), Need(sft, os.path.join(args.workdir, sft, "sft_results.json"), True)))]
-    return {job.name: job for job in jobs}
+    return left_out({job.name: job for job in jobs}, args.leave_out)
+
+
+def left_out(jobs: dict[str, Job], names: Sequence[str]) -> dict[str, Job]:
+    """``jobs`` without ``names`` (``--leave-out``), refused by name where one is not a job of the run or another
+    job waits for a file it makes."""
+    unknown = [n for n in names if n not in jobs]
+    if unknown:
+        raise SystemExit(f"bench_sim_fidelity: --leave-out {', '.join(unknown)}: not a job of this run; its jobs are "
+                         f"{', '.join(jobs)}")
+    kept = {n: j for n, j in jobs.items() if n not in names}
+    for name, job in kept.items():
+        needed = sorted({need.job for need in job.needs} & set(names))
+        if needed:
+            raise SystemExit(f"bench_sim_fidelity: --leave-out {', '.join(needed)}: {name} waits for what it makes")
+    return kept
 
 
 def starts_after_end(jobs: dict[str, Job], later: str, earlier: str) -> bool:
@@ -509,6 +525,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: the fine-tune's peak rate (the policy was trained at 1e-3 falling to 1e-4)")
     parser.add_argument("--decoded-fraction", type=float, default=0.5)
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop what is still going after this")
+    parser.add_argument("--leave-out", default="", metavar="JOB,...",
+                        help="run: jobs of the plan not to run, e.g. exec_vae8x (none may be one another job waits for)")
     parser.add_argument("--memory-fraction", default="", metavar="KIND=F,...",
                         help=f"run: the GPU memory cap of every job of a kind ({', '.join(WEIGHTS)}) instead of its "
                              "share of the jobs that can overlap on its GPU, e.g. exec=0.3")
@@ -516,6 +534,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     args.gpus = [g for g in args.gpus.split(",") if g]
     args.memory_fraction = memory_fraction_option(args.memory_fraction)
+    args.leave_out = [j for j in args.leave_out.split(",") if j]
     args.variants = [v for v in args.variants.split(",") if v]
     unknown = [v for v in args.variants if v not in VARIANTS]
     if unknown or not args.variants or len(set(args.variants)) < len(args.variants):
@@ -540,6 +559,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                          f"(--decoded-variant); add it to --variants (given: {','.join(args.variants)})")
     if args.mode == "run" and not os.path.isfile(args.policy):
         raise SystemExit(f"bench_sim_fidelity run needs --policy, the policy .npz (got {args.policy!r})")
+    if args.mode == "run":
+        plan(args)  # a --leave-out that cannot be honoured is refused before anything starts
     return args
 
 

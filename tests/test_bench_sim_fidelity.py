@@ -178,6 +178,26 @@ def test_a_given_memory_fraction_caps_every_job_of_its_kind(tmp_path):
     assert fid.memory_fractions(alone) == {} and fid.memory_fractions(alone, {"pipeline": 0.5}) == {"pipeline_base": 0.5}
 
 
+def test_jobs_left_out_are_not_run_and_a_job_others_wait_for_is_refused(tmp_path):
+    both = ("--imagined-sft", "--sft-control", "--decoded-variant", "vae8x")
+    args = _args(tmp_path, *both, "--leave-out", "exec_vae8x,view_vae8x", gpus="0", variants="vae8x", decoded=False)
+    jobs = fid.plan(args)
+    assert "exec_vae8x" not in jobs and "view_vae8x" not in jobs
+    assert {"pipeline_vae8x", "policy_img", "exec_vae8x_img", "policy_ctl", "exec_vae8x_ctl"} <= set(jobs)
+    # what they would have taken goes to the others, and no set that can overlap asks for more than 90%
+    full = fid.memory_fractions(fid.plan(_args(tmp_path, *both, gpus="0", variants="vae8x", decoded=False)))
+    fractions = fid.memory_fractions(jobs)
+    assert fractions["exec_vae8x_img"] > full["exec_vae8x_img"]
+    assert all(fractions[k] >= full[k] for k in fractions)
+    for names in _overlapping_sets(jobs, "0"):
+        assert sum(fractions[n] for n in names) <= 0.9 + 1e-6, names
+    for leave, message in (("exec_base", "exec_base: not a job of this run"),
+                           ("pipeline_vae8x", "pipeline_vae8x: view_vae8x waits for what it makes"),
+                           ("policy_img", "policy_img: (view|exec)_vae8x_img waits for what it makes")):
+        with pytest.raises(SystemExit, match=message):
+            _args(tmp_path, *both, "--leave-out", leave, gpus="0", variants="vae8x", decoded=False)
+
+
 def _overlapping_sets(jobs, gpu):
     here = [n for n in jobs if jobs[n].gpu == gpu]
     for r in range(1, len(here) + 1):
