@@ -22,9 +22,10 @@ decoder-aware policy is measured the same way in that variant's VAE and world mo
 ``exec_<variant>_dec``). ``--imagined-sft`` fine-tunes it alike on the frames that variant's world model shows when
 the demonstrations' actions are replayed in it from their real frames (``rl.sft.decoded_source=world_model``; the
 world model run as the ``exec`` arm runs it, :data:`IMAGINED`, in windows of its imagined rollout's 48 actions or
-``--imagined-window``; ``policy_img``, ``view_<variant>_img``, ``exec_<variant>_img``), once the world model is built. ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only
-(``policy_ctl``, ``view_<variant>_ctl``, ``exec_<variant>_ctl``), so that what the decoded frames change is told
-apart from what more training changes::
+``--imagined-window``; ``policy_img``, ``view_<variant>_img``, ``exec_<variant>_img``), once the world model is
+built. ``--sft-control`` adds the same fine-tune (steps, rate, data) on real frames only (``policy_ctl``,
+``view_<variant>_ctl``, ``exec_<variant>_ctl``), so that what the decoded frames change is told apart from what more
+training changes::
 
     python -m benchmarks.bench_sim_fidelity run --workdir runs/fid --policy runs/p/policy_d50.npz \\
         --gpus 0,1,2,3 --variants base,vae8x,lpips --decoded-sft --vae-steps 1000 --world-model-steps 6000 \\
@@ -40,8 +41,8 @@ fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the
 decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once;
 each one's probe follows it there once the variant's VAE exists too, and its ``exec`` run once the pipeline is built.
 ``--memory-fraction`` sets a kind's cap instead (below); ``--leave-out`` drops jobs no other job waits for (on one
-GPU, ``exec_<variant>`` when only the fine-tunes are compared). A job whose input can no longer appear (its maker ended without it) is
-skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
+GPU, ``exec_<variant>`` when only the fine-tunes are compared). A job whose input can no longer appear (its maker
+ended without it) is skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
 deadline stops the whole process groups still going. On a shared GPU each process is capped
 (``XLA_PYTHON_CLIENT_MEM_FRACTION``, :func:`memory_fractions`): 90% of the GPU is split in proportion to
 :data:`WEIGHTS` among the jobs that can run there at once, so no set of jobs that can overlap asks for more than
@@ -219,8 +220,9 @@ def plan(args) -> dict[str, Job]:
                  "imagined": (Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "world_model.json"), True),),
                  "control": ()}[kind]
         view = view_command(args, variant, tuned, os.path.join(args.workdir, f"view_{runs}"))
-        jobs += [Job(sft, sft_command(args, kind), gpu, needs),  # its probe reads the VAE too
-                 Job(f"view_{runs}", view, gpu, (saved, Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False))),
+        vae_done = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False)
+        jobs += [Job(sft, sft_command(args, kind), gpu, needs),
+                 Job(f"view_{runs}", view, gpu, (saved, vae_done)),  # the probe reads the VAE too
                  Job(f"exec_{runs}", exec_command(args, variant, tuned, f"exec_{runs}"), gpu,
                      (*built(f"pipeline_{variant}", pipe), Need(sft, os.path.join(args.workdir, sft, "sft_results.json"), True)))]
     return left_out({job.name: job for job in jobs}, args.leave_out)
