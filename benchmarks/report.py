@@ -780,6 +780,21 @@ def sim_fidelity() -> str:
 
 
 SIM_FIDELITY_IMAGINED = ("policy", "sim_fidelity_imagined_small_h200")
+# kind -> (its SFT folder, the suffix of its runs): bench_sim_fidelity.FINE_TUNES, not imported (it loads jax)
+SIM_FIDELITY_TUNES = {"imagined": ("policy_img", "img"), "control": ("policy_ctl", "ctl"),
+                      "decoded": ("policy_dec", "dec")}
+
+
+def _fine_tune_frames(sft_results: dict) -> tuple[str, str]:
+    """A fine-tune's frames (where its decoded share came from, the replay's window) and its last training batch's
+    loss beside the held-out demonstrations' (real frames, teacher-forced) and their action L1."""
+    rl, last = sft_results["rl"], sft_results["runs"][0]["history"][-1]
+    sft, per_decision = rl["sft"], rl["imagined"]["execute_steps"] or rl["chunk_len"]
+    window = sft["decoded_window"] or rl["imagined"]["max_chunks"] * per_decision
+    source = {"world_model": f"imagined by the world model in windows of {window} actions, {per_decision} a decision",
+              "vae": "through the VAE's video round trip"}[sft["decoded_source"]]
+    frames = f"{sft['decoded_fraction']:.0%} {source}, the rest real" if sft["decoded_fraction"] else "real only"
+    return frames, f"{last['loss']:.3f} / {last['heldout_loss']:.3f} ({last['heldout_action_l1']:.4f})"
 
 
 def sim_fidelity_fine_tunes(parts: tuple[str, ...] = SIM_FIDELITY_IMAGINED) -> str:
@@ -788,39 +803,26 @@ def sim_fidelity_fine_tunes(parts: tuple[str, ...] = SIM_FIDELITY_IMAGINED) -> s
     demonstrations' (real frames, teacher-forced), its own SFT evaluation, the view probe, and what reality paid its
     actions chosen in the world model, or what stopped that run."""
     summary = _load(*parts, "summary.json")
-    windows = {}
-    for kind, folder in (("imagined", "policy_img"), ("control", "policy_ctl"), ("decoded", "policy_dec")):
-        if kind in summary:
-            sft = _load(*parts, folder, "sft_results.json")
-            rl, last = sft["rl"], sft["runs"][0]["history"][-1]
-            per_decision = rl["imagined"]["execute_steps"] or rl["chunk_len"]
-            windows[kind] = (rl["sft"], rl["sft"]["decoded_window"] or rl["imagined"]["max_chunks"] * per_decision,
-                             per_decision, last)
     stopped = _load(*parts, "sim_fidelity_summary.json").get("stopped_at_deadline", [])
-    variant, suffix = next(iter(summary["variants"])), {"imagined": "_img", "control": "_ctl", "decoded": "_dec"}
-    rows = [("policy_d50", "-", None, summary["variants"][variant])]
-    rows += [(f"policy_d50 fine-tuned ({kind})", kind, windows[kind], summary[kind]) for kind in windows]
+    variant = next(iter(summary["variants"]))
+    rows = [("policy_d50", "(the policy the fine-tunes start from)", "-", summary["variants"][variant],
+             f"exec_{variant}")]
+    for kind, (folder, suffix) in SIM_FIDELITY_TUNES.items():
+        if kind in summary:
+            tuned = summary[kind]
+            rows.append((f"policy_d50 fine-tuned ({kind})", *_fine_tune_frames(_load(*parts, folder, "sft_results.json")),
+                         tuned, f"exec_{tuned['variant']}_{suffix}"))
     out = []
-    for policy, kind, tuned, e in rows:
-        exec_job = f"exec_{variant}{suffix.get(kind, '')}"
-        if tuned is None:
-            frames, losses = "(the policy the fine-tunes start from)", "-"
-        else:
-            sft, window, per_decision, last = tuned
-            source = {"world_model": f"imagined by the world model in windows of {window} actions, {per_decision} a "
-                                     "decision", "vae": "through the VAE's video round trip"}[sft["decoded_source"]]
-            frames = (f"{sft['decoded_fraction']:.0%} {source}, the rest real" if sft["decoded_fraction"]
-                      else "real only")
-            losses = f"{last['loss']:.3f} / {last['heldout_loss']:.3f} ({last['heldout_action_l1']:.4f})"
-        view = e["view"]
-        d = view["difference"]
+    for policy, frames, losses, e, exec_job in rows:
+        view, d = e["view"], e["view"]["difference"]
         paid = _paid(e["exec"]["paid_success"]) if "exec" in e else "not measured: " + (
             "the run's deadline stopped it before its step" if exec_job in stopped else e["missing"]["exec"])
         out.append([policy, frames, losses, _ci(e["sft"]) if "sft" in e else "-", _ci(view["real"]),
                     _ci(view["vae"]), f"{_pct(d['value'])} {_interval(d['ci95'])}", paid])
     episodes = rows[0][3]["view"]["real"]["episodes"]
+    sft_episodes = next(e["sft"]["episodes"] for *_, e, _ in rows[1:] if e.get("sft"))
     return _table(["policy", "frames it was fine-tuned on", "loss: last batch / held-out real (action L1)",
-                   "greedy with ensembling, 500 MJX episodes", f"real frames, {episodes} episodes, T 0.5",
+                   f"greedy with ensembling, {sft_episodes} MJX episodes", f"real frames, {episodes} episodes, T 0.5",
                    "frames through the VAE", "difference, points", "real success of the actions chosen in the "
                    "world model"], out)
 
