@@ -56,7 +56,7 @@ import configs
 from benchmarks import common
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST  # NVLink multicast off in every process started here
-from sword_jax.rl.decoded_frames import require_vae
+from sword_jax.rl import decoded_frames
 from sword_jax.rl.params_io import load_params_npz, save_params_npz
 from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
 
@@ -555,10 +555,7 @@ def main(argv=None) -> None:
                         help="grpo --rl.env.starts=keyframes: demonstration HDF5 (default: the sft stage's in --out)")
     parser.add_argument("--gen-procs-per-task", type=int, default=1, help="demonstration processes per task")
     parser.add_argument("--tag", default="", help="suffix of this run's output files")
-    parser.add_argument("--vae", default="", help="sft: VAE checkpoint directory (train_vae; a pipeline's "
-                        "vae_run/vae) whose round trip rl.sft.decoded_fraction of each batch's frames go through")
-    parser.add_argument("--world-model", default="", help="sft with rl.sft.decoded_source=world_model: the world "
-                        "model (a pipeline's world_model) the episodes' actions are replayed in for the decoded frames")
+    decoded_frames.add_options(parser, scope="sft: ")
     parser.add_argument("--record", action="store_true", help="merge the figure into benchmarks/results/latest.json")
     parser.add_argument("--record-as", default="",
                         help=f"seeds: the latest.json key of the record (default {GROUND_TRUTH_KEY}, whose target is "
@@ -579,7 +576,7 @@ def main(argv=None) -> None:
         parser.error(f"--policy {args.policy}: no such file")
     try:
         if args.stage == "sft":
-            require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
+            decoded_frames.require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
         elif args.vae or args.world_model:
             raise ValueError(f"--vae and --world-model are read by the sft stage only (decoder-aware SFT), not by "
                              f"{args.stage}")

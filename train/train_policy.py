@@ -34,7 +34,7 @@ from collections.abc import Sequence
 
 import configs
 from sim.policy_training import run_sft_policy
-from sword_jax.rl.decoded_frames import require_vae
+from sword_jax.rl import decoded_frames
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -46,13 +46,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--renderer", choices=("jax", "gl"), default="jax",
                         help="evaluation renderer: the one the demonstrations were rendered with")
     parser.add_argument("--holdout", type=float, default=0.1, help="fraction of demonstrations held out")
-    parser.add_argument("--vae", default="", help="VAE checkpoint directory (train_vae; a pipeline's vae_run/vae) "
-                        "whose round trip rl.sft.decoded_fraction of each batch's frames go through")
-    parser.add_argument("--world-model", default="", help="with rl.sft.decoded_source=world_model: the world model "
-                        "(a pipeline's world_model) the episodes' actions are replayed in for the decoded frames")
+    decoded_frames.add_options(parser)
     args = parser.parse_args(rest)
     try:
-        require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
+        decoded_frames.require_vae(cfg.rl.sft.decoded_fraction, args.vae, args.world_model, cfg.rl.sft.decoded_source)
     except ValueError as err:
         parser.error(str(err))
     return run(cfg, args.demos, eval_episodes=args.eval_episodes, eval_workers=args.eval_workers,

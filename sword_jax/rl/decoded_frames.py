@@ -28,6 +28,15 @@ from jaxtyping import Array, Int, UInt8
 from sword_jax.vae import api as vae_api
 
 
+def add_options(parser, scope: str = "") -> None:
+    """``--vae`` and ``--world-model``, the checkpoints decoder-aware SFT reads (:func:`require_vae` checks them),
+    on an ``argparse`` parser; ``scope`` starts their help (e.g. ``"sft: "`` where other stages ignore them)."""
+    parser.add_argument("--vae", default="", help=f"{scope}VAE checkpoint directory (train_vae; a pipeline's "
+                        "vae_run/vae) whose round trip rl.sft.decoded_fraction of each batch's frames go through")
+    parser.add_argument("--world-model", default="", help=f"{scope}with rl.sft.decoded_source=world_model: the world "
+                        "model (a pipeline's world_model) the episodes' actions are replayed in for the decoded frames")
+
+
 def require_vae(decoded_fraction: float, vae: str, world_model: str = "", source: str = "vae") -> None:
     """Refuses a VAE checkpoint ``vae`` that ``rl.sft.decoded_fraction`` will not read, and a fraction above 0
     without one (the frames would otherwise come from an untrained VAE, or the VAE would be silently ignored);
