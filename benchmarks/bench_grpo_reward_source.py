@@ -291,22 +291,23 @@ def history_steps(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
-def world_model_loss(metrics: str) -> dict | None:
-    """``{"steps", "loss"}`` of a world model's ``metrics.jsonl``: its last logged step and the mean loss of its
-    last 10 logged steps; None where the file is missing or empty."""
+def world_model_loss(metrics: str, upto: int | None = None) -> dict | None:
+    """``{"steps", "loss"}`` of a world model's ``metrics.jsonl``: its last logged step (at or before ``upto`` where
+    given: the checkpoint a run read) and the mean loss of its last 10 logged steps to there; None where the file is
+    missing or logs no such step."""
     if not os.path.exists(metrics):
         return None
     with open(metrics) as f:
-        logged = [json.loads(line) for line in f if line.strip()][-10:]
+        logged = [r for r in (json.loads(line) for line in f if line.strip()) if upto is None or r["step"] <= upto][-10:]
     return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
 
 
-def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dict:
-    """Per run ``(label, GRPO work dir, log, world-model metrics.jsonl)``: the success its trajectories were
-    paid (pooled over the steps, with a 95% Wilson interval over ``trajectories`` a step), the detector's
-    verdicts, the closed loop's frame error and greedy action gap at the first and last decision (means over the
-    steps; the VAE round trip's at the first where the run logged it) and per decision, and the world model's
-    loss (the mean of its last 10 logged steps).
+def closed_loop_summary(runs: Sequence[Sequence], trajectories: int) -> dict:
+    """Per run ``(label, GRPO work dir, log, world-model metrics.jsonl[, the world model's step])``: the success its
+    trajectories were paid (pooled over the steps, with a 95% Wilson interval over ``trajectories`` a step), the
+    detector's verdicts, the closed loop's frame error and greedy action gap at the first and last decision (means
+    over the steps; the VAE round trip's at the first where the run logged it) and per decision, and the world
+    model's loss (the mean of its last 10 logged steps, to the step given where the run read an earlier checkpoint).
 
     The figures come from the run's ``train_history.jsonl``. A run whose history was not kept (its process
     ended before writing it, or it was not copied) is read from its progress lines, which hold every figure
@@ -314,15 +315,16 @@ def closed_loop_summary(runs: Sequence[Sequence[str]], trajectories: int) -> dic
     from sword_jax.rl.sim_agreement import wilson_rate
 
     out = {}
-    for label, grpo, log, metrics in runs:
+    for label, grpo, log, metrics, *upto in runs:
         rows = read_history(grpo)
         steps, source = (history_steps(rows), "history") if rows else (progress_steps(log), "progress lines")
         if not steps:
             where = os.path.join(grpo, "train_history.jsonl") if rows else log
             raise SystemExit(f"bench_grpo_reward_source: {where} holds no step with the closed-loop record")
-        world_model = world_model_loss(metrics)
+        world_model = world_model_loss(metrics, *upto[:1])
         if world_model is None:
-            raise SystemExit(f"bench_grpo_reward_source: {metrics} holds no logged world-model step")
+            raise SystemExit(f"bench_grpo_reward_source: {metrics} holds no logged world-model step"
+                             + (f" at or before {upto[0]}" if upto else ""))
         paid = sum(round(s["paid"] * trajectories) for s in steps)
         run = {"steps": len(steps), "source": source, "world_model_steps": world_model["steps"],
                "world_model_loss": world_model["loss"],

@@ -34,12 +34,23 @@ training changes::
     python -m benchmarks.bench_sim_fidelity summary --workdir runs/fid \\
         --out benchmarks/results/policy/sim_fidelity_small [--record]
 
+``--exec-checkpoints STEP[:K],...`` asks whether the world model's training is what its closed loop lacks: the
+pipeline keeps its checkpoints at those steps (it saves one every greatest common divisor of them and
+``--world-model-steps``, all kept), and the starting policy gets an ``exec`` run in each (``exec_<variant>_at<STEP>``,
+``_s<K>`` where sampled with K flow steps, ``flow.sample_steps``), beside the ``exec`` run in the last::
+
+    python -m benchmarks.bench_sim_fidelity run --workdir runs/fidwm --policy runs/p/policy_d50.npz --gpus 0,1 \\
+        --variants vae8x --world-model-steps 24000 --exec-checkpoints 6000,24000:20 --leave-out view_vae8x \\
+        --vae-steps 1000 --exec-steps 1 --rollout-batch 64 --eval-episodes-per-task 2 --deadline-s 1400
+
 ``run`` places variant i's pipeline on GPU ``i mod n``; its view probe starts there once its VAE is trained
 (``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
 ``stages/reward_model.json``: the pipeline runs its stages two at a time, so either may end last). The
 fine-tunes take the GPUs no pipeline uses, in order (where too few are free, the others from the last back): the
 decoder-aware one once its variant's VAE exists, the imagined one once its world model does, the control at once;
 each one's probe follows it there once the variant's VAE exists too, and its ``exec`` run once the pipeline is built.
+The runs at checkpoints take the first of those GPUs, one after another, each once its checkpoint and the detector
+exist.
 ``--memory-fraction`` sets a kind's cap instead (below); ``--leave-out`` drops jobs no other job waits for (on one
 GPU, ``exec_<variant>`` when only the fine-tunes are compared). A job whose input can no longer appear (its maker
 ended without it) is skipped and the others go on. Each process runs in its own session with its log in ``<workdir>/<job>.log``; a
@@ -95,7 +106,9 @@ IMAGINED = tuple(f for f in RECIPE if f.startswith("--rl.imagined."))  # the exe
 
 @dataclasses.dataclass(frozen=True)
 class Need:
-    """A file a job waits for: ``job`` writes it, ``final`` as that job ends (so the two never overlap)."""
+    """A file a job waits for: ``job`` writes it, ``final`` as that job ends (so the two never overlap). An empty
+    ``path`` waits for ``job`` to end, however it ends (or for it to be skipped or left out): jobs run one after
+    another on a GPU so that neither slows the other, and the later one finds the compilations the earlier one cached."""
     job: str
     path: str
     final: bool
@@ -143,11 +156,15 @@ def view_command(args, variant: str, policy: str, out: str) -> tuple[str, ...]:
             "--episodes-per-task", str(args.view_episodes_per_task), "--out", out, *VIEW_FLAGS)
 
 
-def exec_command(args, variant: str, policy: str, name: str) -> tuple[str, ...]:
-    """``train.grpo`` in ``variant``'s world model paid by execution (bench_grpo_reward_source's ``exec`` arm)."""
+def exec_command(args, variant: str, policy: str, name: str, *, step: int = 0,
+                 sample_steps: int = 0) -> tuple[str, ...]:
+    """``train.grpo`` in ``variant``'s world model paid by execution (bench_grpo_reward_source's ``exec`` arm): its
+    newest checkpoint, or checkpoint ``step``; the world model's sampler at its config's steps or ``sample_steps``."""
     pipe = pipe_dir(args.workdir, variant)
-    return (sys.executable, "-m", "train.grpo", "--config", args.config, *VARIANTS[variant], "--simulator",
-            "world_model", "--world-model", os.path.join(pipe, "world_model"), "--vae", vae_dir(args.workdir, variant),
+    world_model = os.path.join(pipe, "world_model", *(("checkpoints", str(step)) if step else ()))
+    return (sys.executable, "-m", "train.grpo", "--config", args.config, *VARIANTS[variant],
+            *([f"--flow.sample_steps={sample_steps}"] if sample_steps else []), "--simulator",
+            "world_model", "--world-model", world_model, "--vae", vae_dir(args.workdir, variant),
             "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", os.path.join(pipe, "data", "demos.hdf5"),
             "--policy", policy, "--seed", "0", "--workdir", os.path.join(args.workdir, name), *RECIPE, *WORLD_MODEL,
             f"--rl.grpo.eval_episodes_per_task={args.eval_episodes_per_task}", "--rl.imagined.reward=executed",
@@ -180,11 +197,16 @@ def fine_tunes(args) -> list[str]:
             + ["control"] * bool(args.sft_control))
 
 
-def sft_gpu(args, kind: str = "decoded") -> str:
-    """A fine-tune's GPU, one per fine-tune (:func:`fine_tunes`) in this order: the GPUs no variant's pipeline
-    uses, first to last, then the others from the last back."""
+def free_gpus(args) -> list[str]:
+    """The GPUs in the order the jobs that are not a variant's own take them: those no variant's pipeline uses,
+    first to last, then the others from the last back."""
     used = {args.gpus[i % len(args.gpus)] for i in range(len(args.variants))}
-    order = [g for g in args.gpus if g not in used] + [g for g in reversed(args.gpus) if g in used]
+    return [g for g in args.gpus if g not in used] + [g for g in reversed(args.gpus) if g in used]
+
+
+def sft_gpu(args, kind: str = "decoded") -> str:
+    """A fine-tune's GPU, one per fine-tune (:func:`fine_tunes`) in :func:`free_gpus`' order."""
+    order = free_gpus(args)
     return order[fine_tunes(args).index(kind) % len(order)]
 
 
@@ -197,6 +219,37 @@ def built(variant_job: str, pipe: str) -> tuple[Need, ...]:
     return tuple(Need(variant_job, os.path.join(pipe, "stages", name), True) for name in BUILT)
 
 
+def checkpoint_run(variant: str, step: int, sample_steps: int = 0) -> str:
+    """The name of the ``exec`` run in ``variant``'s world model at checkpoint ``step`` (sampled with
+    ``sample_steps``; 0: the config's)."""
+    return f"exec_{variant}_at{step}" + (f"_s{sample_steps}" if sample_steps else "")
+
+
+def checkpoint_flags(args) -> tuple[str, ...]:
+    """The pipeline's trainer flags that keep the world-model checkpoints ``--exec-checkpoints`` reads: a checkpoint
+    every common divisor of their steps and the last step, all of them kept."""
+    if not args.exec_checkpoints:
+        return ()
+    every = math.gcd(args.world_model_steps, *(step for step, _ in args.exec_checkpoints))
+    return (f"--trainer.checkpoint_every={every}", f"--trainer.keep_checkpoints={args.world_model_steps // every}")
+
+
+def checkpoint_jobs(args, variant: str, gpu: str) -> list[Job]:
+    """The ``exec`` runs of the starting policy at ``--exec-checkpoints`` in ``variant``'s world model, one after
+    another on ``gpu`` in the order given; each starts once its checkpoint is saved (the last step: once the
+    pipeline is built) and the detector is trained."""
+    pipe, policy, jobs = pipe_dir(args.workdir, variant), os.path.abspath(args.policy), []
+    for step, sample_steps in args.exec_checkpoints:
+        name = checkpoint_run(variant, step, sample_steps)
+        ready = (built(f"pipeline_{variant}", pipe) if step == args.world_model_steps else (
+            Need(f"pipeline_{variant}", os.path.join(pipe, "world_model", "checkpoints", str(step)), False),
+            Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "reward_model.json"), False)))
+        after = (Need(jobs[-1].name, "", True),) if jobs else ()
+        jobs.append(Job(name, exec_command(args, variant, policy, name, step=step, sample_steps=sample_steps), gpu,
+                        ready + after))
+    return jobs
+
+
 def plan(args) -> dict[str, Job]:
     """Every job of the run (module docstring), in launch order where several are ready at once."""
     policy = os.path.abspath(args.policy)
@@ -204,12 +257,14 @@ def plan(args) -> dict[str, Job]:
     for i, variant in enumerate(args.variants):
         gpu, pipe = args.gpus[i % len(args.gpus)], pipe_dir(args.workdir, variant)
         vae_done = Need(f"pipeline_{variant}", os.path.join(pipe, "stages", "vae.json"), False)
-        command = pipeline_command(pipeline(args), VARIANTS[variant], name=f"pipeline_{variant}")
+        command = pipeline_command(pipeline(args), VARIANTS[variant], name=f"pipeline_{variant}",
+                                   own=checkpoint_flags(args))
         view = view_command(args, variant, policy, os.path.join(args.workdir, f"view_{variant}"))
         jobs += [Job(f"pipeline_{variant}", tuple(command), gpu),
                  Job(f"view_{variant}", view, gpu, (vae_done,)),
                  Job(f"exec_{variant}", exec_command(args, variant, policy, f"exec_{variant}"), gpu,
                      built(f"pipeline_{variant}", pipe))]
+        jobs += checkpoint_jobs(args, variant, free_gpus(args)[i % len(args.gpus)])
     variant = args.decoded_variant
     pipe = pipe_dir(args.workdir, variant)
     for kind in fine_tunes(args):
@@ -235,7 +290,8 @@ def left_out(jobs: dict[str, Job], names: Sequence[str]) -> dict[str, Job]:
     if unknown:
         raise SystemExit(f"bench_sim_fidelity: --leave-out {', '.join(unknown)}: not a job of this run; its jobs are "
                          f"{', '.join(jobs)}")
-    kept = {n: j for n, j in jobs.items() if n not in names}
+    kept = {n: dataclasses.replace(j, needs=tuple(need for need in j.needs if need.path or need.job not in names))
+            for n, j in jobs.items() if n not in names}  # one run after another: the later runs without the earlier
     for name, job in kept.items():
         needed = sorted({need.job for need in job.needs} & set(names))
         if needed:
@@ -277,11 +333,18 @@ def memory_fractions(jobs: dict[str, Job], given: dict[str, float] | None = None
 
 def blocked_by(job: Job, procs: dict[str, subprocess.Popen], skipped: dict[str, str]) -> Need | None:
     """The needed file ``job`` can no longer get (its maker was skipped, or ended without it), if any."""
-    for need in job.needs:
+    for need in (n for n in job.needs if n.path):
         ended = need.job in skipped or (need.job in procs and procs[need.job].poll() is not None)  # before the file
         if ended and not os.path.exists(need.path):
             return need
     return None
+
+
+def met(need: Need, procs: dict[str, subprocess.Popen], skipped: dict[str, str]) -> bool:
+    """Whether ``need`` is there: its file, or (no path) its job's end."""
+    if need.path:
+        return os.path.exists(need.path)
+    return need.job in skipped or (need.job in procs and procs[need.job].poll() is not None)
 
 
 def run(args, *, poll_s: float = 5.0) -> dict:
@@ -310,7 +373,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
             if lost:
                 skipped[name] = f"{lost.job} ended without {lost.path}"
                 print(f"[sim-fidelity] {name} skipped: {skipped[name]} (log: {args.workdir}/{lost.job}.log)", flush=True)
-            elif all(os.path.exists(n.path) for n in job.needs):
+            elif all(met(n, procs, skipped) for n in job.needs):
                 procs[name] = launch(job)
             else:
                 continue
@@ -359,9 +422,10 @@ def view_summary(path: str) -> dict | None:
     return out
 
 
-def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int) -> dict | str:
-    """:func:`~benchmarks.bench_grpo_reward_source.closed_loop_summary` of run ``name``: paid success, the first and
-    last decisions' frame error and greedy action gap, the VAE alone's where logged; or why it is missing."""
+def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int, step: int | None = None) -> dict | str:
+    """:func:`~benchmarks.bench_grpo_reward_source.closed_loop_summary` of run ``name`` (in the world model's
+    checkpoint ``step`` where given): paid success, the first and last decisions' frame error and greedy action gap,
+    the VAE alone's where logged, the world model's loss to its step; or why it is missing."""
     grpo, metrics = os.path.join(workdir, name, "rl", "grpo"), os.path.join(pipe_dir(workdir, variant), "world_model",
                                                                            "metrics.jsonl")
     log = os.path.join(workdir, f"{name}.log")
@@ -370,10 +434,12 @@ def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int) -> d
     if not os.path.exists(metrics):
         return f"no world-model metrics at {metrics}"
     try:
-        run = closed_loop_summary([(name, grpo, log, metrics)], rollout_batch * GROUP_SIZE)[name]
+        run = closed_loop_summary([(name, grpo, log, metrics, *([step] if step else []))],
+                                  rollout_batch * GROUP_SIZE)[name]
     except SystemExit as err:
         return str(err)
-    out = {k: run[k] for k in ("steps", "source", "paid_success", "frame_error_first", "frame_error_last",
+    out = {k: run[k] for k in ("steps", "source", "paid_success", "world_model_steps", "world_model_loss",
+                               "frame_error_first", "frame_error_last",
                                "action_gap_first", "action_gap_last", "frame_error_vae_first", "action_gap_vae_first")
            if k in run}
     loop = run.get("per_decision", {})
@@ -399,6 +465,12 @@ def summarize(workdir: str, variants: Sequence[str] = (), *, rollout_batch: int 
                  "view": view_summary(os.path.join(workdir, f"view_{variant}")),
                  "exec": exec_summary(workdir, f"exec_{variant}", variant, rollout_batch)}
         out["variants"][variant] = _with_missing(entry)
+        runs = checkpoint_runs(workdir, variant)
+        if runs:
+            out["variants"][variant]["checkpoints"] = {
+                name: dict(step=step, sample_steps=sample_steps or None,
+                           exec=exec_summary(workdir, name, variant, rollout_batch, step))
+                for name, (step, sample_steps) in runs.items()}
     for kind, (sft_dir, _) in FINE_TUNES.items():
         runs = [v for v in VARIANTS if any(os.path.exists(os.path.join(workdir, f"{what}_{tuned_runs(v, kind)}"))
                                            for what in ("view", "exec"))]
@@ -415,6 +487,18 @@ def summarize(workdir: str, variants: Sequence[str] = (), *, rollout_batch: int 
     seen = {v: e["view"]["vae"]["mean"] for v, e in summary_rows(out).items() if "vae" in e.get("view", {})}
     out["best_vae_view"] = {"variant": max(seen, key=seen.get), "success": max(seen.values())} if seen else None
     return out
+
+
+def checkpoint_runs(workdir: str, variant: str) -> dict[str, tuple[int, int]]:
+    """The ``exec`` runs at a world-model checkpoint (:func:`checkpoint_run`) that ``workdir`` holds for ``variant``
+    (a folder or a log): name -> (step, sampler steps or 0), by step."""
+    prefix, out = f"exec_{variant}_at", {}
+    for entry in sorted(os.listdir(workdir)) if os.path.isdir(workdir) else ():
+        name = entry[:-len(".log")] if entry.endswith(".log") else entry
+        step, _, sample_steps = name[len(prefix):].partition("_s")
+        if name.startswith(prefix) and step.isdigit() and (not sample_steps or sample_steps.isdigit()):
+            out[name] = (int(step), int(sample_steps or 0))
+    return dict(sorted(out.items(), key=lambda kv: kv[1]))
 
 
 def _with_missing(entry: dict) -> dict:
@@ -465,17 +549,26 @@ def print_summary(summary: dict) -> None:
                          f"({d['value']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}])")
         if "round_trip_levels" in view:
             parts.append(f"round trip |error| {view['round_trip_levels']['mean_abs_error']['all']:.2f} levels")
-        ex = r.get("exec")
-        if ex:
-            paid = ex["paid_success"]
-            parts.append(f"exec paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}], frame error "
-                         f"{ex['frame_error_first']:.3f} -> {ex['frame_error_last']:.3f}, action gap "
-                         f"{ex['action_gap_first']:.3f} -> {ex['action_gap_last']:.3f}" + (
-                             f" (the VAE alone at the first: {ex['frame_error_vae_first']:.3f}, "
-                             f"{ex['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in ex else ""))
+        if r.get("exec"):
+            parts.append("exec " + exec_text(r["exec"]))
         if r["missing"]:
             parts.append(f"missing: {', '.join(r['missing'])}")
         print(f"[sim-fidelity] {name}: " + "; ".join(parts), flush=True)
+        for run, c in r.get("checkpoints", {}).items():
+            sampler = f", {c['sample_steps']} sampler steps" if c["sample_steps"] else ""
+            text = exec_text(c["exec"]) if isinstance(c["exec"], dict) else f"missing: {c['exec']}"
+            print(f"[sim-fidelity] {run} (world model at step {c['step']}{sampler}): {text}", flush=True)
+
+
+def exec_text(ex: dict) -> str:
+    """An ``exec`` run's summary in a line: paid success, frame error and action gap at the first and last decision."""
+    paid = ex["paid_success"]
+    loss = f", world model loss {ex['world_model_loss']:.4f}" if "world_model_loss" in ex else ""
+    return (f"paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}], frame error "
+            f"{ex['frame_error_first']:.3f} -> {ex['frame_error_last']:.3f}, action gap "
+            f"{ex['action_gap_first']:.3f} -> {ex['action_gap_last']:.3f}" + (
+                f" (the VAE alone at the first: {ex['frame_error_vae_first']:.3f}, "
+                f"{ex['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in ex else "") + loss)
 
 
 def memory_fraction_option(text: str) -> dict[str, float]:
@@ -492,6 +585,27 @@ def memory_fraction_option(text: str) -> dict[str, float]:
             raise SystemExit(f"bench_sim_fidelity: --memory-fraction takes kind=fraction with a kind of "
                              f"{', '.join(WEIGHTS)} (each once) and a fraction in (0, 1]; got {part!r}")
         out[kind] = fraction
+    return out
+
+
+def exec_checkpoints_option(text: str, world_model_steps: int) -> list[tuple[int, int]]:
+    """``--exec-checkpoints``' ``STEP[:K],...`` as ``[(step, K or 0)]``, refused by name where a step is not in
+    [1, --world-model-steps], K not in [1, 50], an entry repeats or is the plain exec run (the last step, the
+    config's sampler), or the checkpoints to keep would be more than 8."""
+    out = []
+    for part in (p for p in text.split(",") if p):
+        step, colon, k = part.partition(":")
+        ok = step.isdigit() and 1 <= int(step) <= world_model_steps and (not colon or (k.isdigit() and 1 <= int(k) <= 50))
+        entry = (int(step), int(k or 0)) if ok else None
+        if not ok or entry in out or entry == (world_model_steps, 0):
+            raise SystemExit(f"bench_sim_fidelity: --exec-checkpoints takes STEP[:K],... with each STEP in [1, "
+                             f"--world-model-steps={world_model_steps}] and K (flow sampler steps) in [1, 50], each "
+                             f"once and not {world_model_steps} alone (that is the exec run); got {part!r}")
+        out.append(entry)
+    if out and world_model_steps // math.gcd(world_model_steps, *(s for s, _ in out)) > 8:
+        raise SystemExit(f"bench_sim_fidelity: --exec-checkpoints {text}: the pipeline would keep a checkpoint every "
+                         f"{math.gcd(world_model_steps, *(s for s, _ in out))} steps, more than 8 of them; choose steps "
+                         "with a larger common divisor with --world-model-steps")
     return out
 
 
@@ -519,6 +633,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--policy-rollouts", type=int, default=20,
                         help="run: the policy's own episodes per task in the world model's and detector's data")
     parser.add_argument("--exec-steps", type=int, default=2, help="run: GRPO steps of each exec run")
+    parser.add_argument("--exec-checkpoints", default="", metavar="STEP[:K],...",
+                        help="run: also an exec run of --policy in each variant's world model at each of these "
+                             "training steps (the pipeline keeps those checkpoints), sampled with K flow steps where "
+                             "given (flow.sample_steps), one after another on a GPU no pipeline uses where there is one")
     parser.add_argument("--rollout-batch", type=int, default=64, help="start states per exec step (x 8)")
     parser.add_argument("--view-episodes-per-task", type=int, default=20, help="run: the view probe's, per view")
     parser.add_argument("--eval-episodes-per-task", type=int, default=10, help="run: the exec runs' evaluations")
@@ -537,6 +655,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args.gpus = [g for g in args.gpus.split(",") if g]
     args.memory_fraction = memory_fraction_option(args.memory_fraction)
     args.leave_out = [j for j in args.leave_out.split(",") if j]
+    args.exec_checkpoints = exec_checkpoints_option(args.exec_checkpoints, args.world_model_steps)
     args.variants = [v for v in args.variants.split(",") if v]
     unknown = [v for v in args.variants if v not in VARIANTS]
     if unknown or not args.variants or len(set(args.variants)) < len(args.variants):

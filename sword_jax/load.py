@@ -342,10 +342,12 @@ def load_rl_params(path: str, *, kind: str, build) -> tuple[nnx.GraphDef, nnx.St
 def experiment_world_model(cfg: Any, workdir: str | None) -> tuple[nnx.GraphDef, Any]:
     """``(graphdef, state)`` of an experiment's world model: the one trained in ``workdir`` (EMA weights
     where kept; :func:`load_world_model_params`), placed by ``cfg.mesh``, or a random initialisation of
-    ``cfg.model`` (seed ``cfg.seed``) when ``workdir`` is None."""
+    ``cfg.model`` (seed ``cfg.seed``) when ``workdir`` is None. ``workdir`` is any path :func:`find_run` takes:
+    its newest checkpoint, or the step it names (``<workdir>/checkpoints/<step>``)."""
     if workdir is not None:
-        graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), seed=cfg.seed,
-                                                     mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
+        run_dir, _, step = find_run(workdir, None)
+        graphdef, state, _ = load_world_model_params(cfg.model, os.path.join(run_dir, "checkpoints"), seed=cfg.seed,
+                                                     step=step, mesh=shd.make_mesh(cfg.mesh), rules=cfg.mesh.rules)
         return graphdef, state
     from sword_jax.dit.action_dit import WorldModel
 

@@ -249,9 +249,10 @@ def _fake(tmp_path, job, writes=(), code=0, sleep=0.0, child=False):
     """A process that records, as it starts, which of its inputs exist and its environment, then sleeps, writes
     ``writes`` in order and exits ``code`` (with ``child``, it first starts a sleeping child and names its pid)."""
     report = str(tmp_path / "seen" / f"{job.name}.json")
-    needs = [n.path for n in job.needs]
+    needs = [n.path for n in job.needs if n.path]  # a need without a path is its job's end
     script = (f"import json, os, subprocess, sys, time\n"
               f"json.dump({{'inputs': [os.path.exists(p) for p in {needs!r}], 'gpu': os.environ['CUDA_VISIBLE_DEVICES'],"
+              f" 'started': time.time(),"
               f" 'fraction': os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION'),"
               f" 'nvls': os.environ.get('NCCL_NVLS_ENABLE')}}, open({report!r}, 'w'))\n"
               + (f"c = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
@@ -270,7 +271,7 @@ def _faked_plan(tmp_path, monkeypatch, behaviour):
         jobs = real(args)
         made = {}  # each maker writes the files its dependents wait for, in the order they appear
         for job in jobs.values():
-            for need in job.needs:
+            for need in (n for n in job.needs if n.path):
                 made.setdefault(need.job, []).append(need.path)
         return {n: _fake(tmp_path, j, **{"writes": sorted(set(made.get(n, [])), key=lambda p: p.endswith("json") and
                                                           "reward_model" in p), **behaviour.get(n, {})})
@@ -429,3 +430,74 @@ def test_summary_of_designed_files_and_of_missing_parts(tmp_path, monkeypatch, c
     assert "decoded" not in empty and empty["best_vae_view"] is None
     with pytest.raises(SystemExit, match="no view probe"):
         fid.results_entries(empty, w, data="d")
+
+
+def test_exec_runs_at_world_model_checkpoints_run_one_after_another(tmp_path, monkeypatch):
+    """--exec-checkpoints: the pipeline keeps those checkpoints; each run reads its own, with its sampler, on the GPU
+    no pipeline uses, once its checkpoint and the detector exist and the run before it has ended (however it ended)."""
+    given = ("--world-model-steps", "24000", "--exec-checkpoints", "6000,12000:20,24000:20")
+    args = _args(tmp_path, *given, gpus="0,1", variants="vae8x", decoded=False)
+    assert args.exec_checkpoints == [(6000, 0), (12000, 20), (24000, 20)]
+    jobs = fid.plan(args)
+    pipe = str(tmp_path / "w" / "pipeline_vae8x")
+    assert {"--trainer.steps=24000", "--trainer.checkpoint_every=6000", "--trainer.keep_checkpoints=4"} <= set(
+        jobs["pipeline_vae8x"].command)
+    names = ["exec_vae8x_at6000", "exec_vae8x_at12000_s20", "exec_vae8x_at24000_s20"]
+    assert [n for n in jobs if "_at" in n] == names and {jobs[n].gpu for n in names} == {"1"}
+    needs = {n: {(x.job, x.path, x.final) for x in jobs[n].needs} for n in names}
+    detector = ("pipeline_vae8x", f"{pipe}/stages/reward_model.json", False)
+    assert needs[names[0]] == {("pipeline_vae8x", f"{pipe}/world_model/checkpoints/6000", False), detector}
+    assert needs[names[1]] == {("pipeline_vae8x", f"{pipe}/world_model/checkpoints/12000", False), detector,
+                               (names[0], "", True)}
+    built = {("pipeline_vae8x", f"{pipe}/stages/{name}.json", True) for name in ("world_model", "reward_model")}
+    assert needs[names[2]] == built | {(names[1], "", True)}  # the last step: once the pipeline is built
+    for name, step, sampler in zip(names, (6000, 12000, 24000), (5, 20, 20)):
+        command = jobs[name].command
+        assert command[command.index("--world-model") + 1] == f"{pipe}/world_model/checkpoints/{step}"
+        cfg, _ = _config(command)
+        assert cfg.flow.sample_steps == sampler and cfg.vae.dim_mult == (1, 4, 4)
+    assert fid.can_overlap(jobs, names[0], "pipeline_vae8x") and fid.starts_after_end(jobs, names[1], names[0])
+    assert all(fid.memory_fractions(jobs)[n] == 0.9 for n in names)  # never two at once on GPU 1
+    assert {fid.plan(_args(tmp_path, *given, gpus="0", variants="vae8x", decoded=False))[n].gpu for n in names} == {"0"}
+    # one left out: the next runs without waiting for it
+    kept = fid.plan(_args(tmp_path, *given, "--leave-out", names[0], gpus="0,1", variants="vae8x", decoded=False))
+    assert names[0] not in kept and all(n.path for n in kept[names[1]].needs)
+    for bad, message in (("6000:0", "got '6000:0'"), ("25000", "got '25000'"), ("x", "got 'x'"), ("0", "got '0'"),
+                         ("6000,6000", "got '6000'"), ("24000", "not 24000 alone"), ("6000:51", "got '6000:51'"),
+                         ("500,24000:20", "every 500 steps, more than 8")):
+        with pytest.raises(SystemExit, match=message):
+            _args(tmp_path, "--world-model-steps", "24000", "--exec-checkpoints", bad, variants="vae8x", decoded=False)
+    # the run loop: the first fails after a while; the second still runs, after it, and the third after the second
+    _faked_plan(tmp_path, monkeypatch, {names[0]: {"sleep": 0.5, "code": 1}})
+    summary = fid.run(args, poll_s=0.05)
+    assert summary["failed"] == [names[0]] and summary["skipped"] == {} and set(names) <= set(summary["exit_codes"])
+    first, second, third = (_seen(tmp_path, n) for n in names)
+    assert second["started"] >= first["started"] + 0.5 and third["started"] > second["started"]
+    assert all(_seen(tmp_path, n)["inputs"] for n in names) and first["gpu"] == "1"
+
+
+def test_summary_of_exec_runs_at_world_model_checkpoints(tmp_path, capsys):
+    w = str(tmp_path)
+    _write(f"{w}/pipeline_base/world_model/metrics.jsonl",
+           "".join(json.dumps({"step": 500 * i, "loss": 1.0 / i}) + "\n" for i in range(1, 49)))
+    for name, error in (("exec_base_at6000", 0.2), ("exec_base_at24000_s20", 0.1)):
+        _write(f"{w}/{name}/rl/grpo/train_history.jsonl", json.dumps(_loop_row(1, 8 / 256, error)) + "\n")
+        _write(f"{w}/{name}.log", "")
+    _write(f"{w}/exec_base_at12000.log", "eval step 0: MJX success 0.3\n")  # ended before its step
+    _write(f"{w}/exec_base_atx.log", "")  # not a checkpoint run
+    summary = fid.summarize(w, rollout_batch=32)
+    runs = summary["variants"]["base"]["checkpoints"]
+    assert list(runs) == ["exec_base_at6000", "exec_base_at12000", "exec_base_at24000_s20"]
+    at6000, at24000 = runs["exec_base_at6000"], runs["exec_base_at24000_s20"]
+    assert (at6000["step"], at6000["sample_steps"], at24000["step"], at24000["sample_steps"]) == (6000, None, 24000, 20)
+    # the world model's loss to the checkpoint the run read: the last 10 logged steps to 6000
+    assert at6000["exec"]["world_model_steps"] == 6000
+    assert at6000["exec"]["world_model_loss"] == pytest.approx(sum(1.0 / i for i in range(3, 13)) / 10)
+    assert at24000["exec"]["world_model_steps"] == 24000 and at24000["exec"]["frame_error_first"] == pytest.approx(0.1)
+    assert at6000["exec"]["paid_success"]["rate"] == pytest.approx(8 / 256)
+    assert "holds no step with the closed-loop record" in runs["exec_base_at12000"]["exec"]
+    fid.print_summary(summary)
+    printed = capsys.readouterr().out
+    assert "[sim-fidelity] exec_base_at6000 (world model at step 6000): paid 0.031" in printed
+    assert "exec_base_at24000_s20 (world model at step 24000, 20 sampler steps): paid" in printed
+    assert "exec_base_at12000 (world model at step 12000): missing:" in printed

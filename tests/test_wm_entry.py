@@ -99,3 +99,21 @@ def test_a_step_that_retraces_past_the_entry_bound_stops_the_run(tmp_path, monke
     with pytest.raises(RuntimeError, match=f"step was traced {len(dtypes)} times .at most "
                                            f"{distributed.ENTRY_MAX_TRACES} allowed"):
         train_world_model.main(args)
+
+
+def test_a_checkpoint_step_path_loads_that_steps_weights(tmp_path):
+    """``--world-model <workdir>/checkpoints/<step>`` (GRPO, SFT on imagined frames) loads that step, not the newest."""
+    import configs
+    from sword_jax.load import CheckpointError, experiment_world_model, load_world_model_params
+
+    workdir = str(tmp_path / "wm")
+    train_world_model.main(ARGS + ["--workdir", workdir, "--trainer.steps=4", "--trainer.keep_checkpoints=2"])
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1"])
+    newest = _leaves(experiment_world_model(cfg, workdir)[1])
+    at_2 = _leaves(experiment_world_model(cfg, os.path.join(workdir, "checkpoints", "2"))[1])
+    saved_2 = _leaves(load_world_model_params(cfg.model, os.path.join(workdir, "checkpoints"), step=2)[1])
+    assert len(at_2) == len(newest) == len(saved_2) and any(not np.array_equal(a, b) for a, b in zip(at_2, newest))
+    for a, b in zip(at_2, saved_2):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        experiment_world_model(cfg, os.path.join(workdir, "checkpoints", "3"))
