@@ -37,11 +37,13 @@ training changes::
 ``--exec-checkpoints STEP[:K],...`` asks whether the world model's training is what its closed loop lacks: the
 pipeline keeps its checkpoints at those steps (it saves one every greatest common divisor of them and
 ``--world-model-steps``, all kept), and the starting policy gets an ``exec`` run in each (``exec_<variant>_at<STEP>``,
-``_s<K>`` where sampled with K flow steps, ``flow.sample_steps``), beside the ``exec`` run in the last::
+``_s<K>`` where sampled with K flow steps, ``flow.sample_steps``). They run one after another; on one GPU, list the
+last step too and leave out ``exec_<variant>`` (the same run, which would overlap them)::
 
-    python -m benchmarks.bench_sim_fidelity run --workdir runs/fidwm --policy runs/p/policy_d50.npz --gpus 0,1 \\
-        --variants vae8x --world-model-steps 24000 --exec-checkpoints 6000,24000:20 --leave-out view_vae8x \\
-        --vae-steps 1000 --exec-steps 1 --rollout-batch 64 --eval-episodes-per-task 2 --deadline-s 1400
+    python -m benchmarks.bench_sim_fidelity run --workdir runs/fidwm --policy runs/p/policy_d50.npz --gpus 0 \\
+        --variants vae8x --world-model-steps 18000 --exec-checkpoints 6000,18000,18000:20 \\
+        --leave-out view_vae8x,exec_vae8x --vae-steps 1000 --exec-steps 1 --rollout-batch 64 \\
+        --eval-episodes-per-task 2 --deadline-s 1500
 
 ``run`` places variant i's pipeline on GPU ``i mod n``; its view probe starts there once its VAE is trained
 (``stages/vae.json``) and its ``exec`` run once the pipeline is built (``stages/world_model.json`` and
@@ -590,17 +592,17 @@ def memory_fraction_option(text: str) -> dict[str, float]:
 
 def exec_checkpoints_option(text: str, world_model_steps: int) -> list[tuple[int, int]]:
     """``--exec-checkpoints``' ``STEP[:K],...`` as ``[(step, K or 0)]``, refused by name where a step is not in
-    [1, --world-model-steps], K not in [1, 50], an entry repeats or is the plain exec run (the last step, the
-    config's sampler), or the checkpoints to keep would be more than 8."""
+    [1, --world-model-steps], K not in [1, 50] or an entry repeats, or where the checkpoints to keep would be more
+    than 8."""
     out = []
     for part in (p for p in text.split(",") if p):
         step, colon, k = part.partition(":")
         ok = step.isdigit() and 1 <= int(step) <= world_model_steps and (not colon or (k.isdigit() and 1 <= int(k) <= 50))
         entry = (int(step), int(k or 0)) if ok else None
-        if not ok or entry in out or entry == (world_model_steps, 0):
+        if not ok or entry in out:
             raise SystemExit(f"bench_sim_fidelity: --exec-checkpoints takes STEP[:K],... with each STEP in [1, "
                              f"--world-model-steps={world_model_steps}] and K (flow sampler steps) in [1, 50], each "
-                             f"once and not {world_model_steps} alone (that is the exec run); got {part!r}")
+                             f"once; got {part!r}")
         out.append(entry)
     if out and world_model_steps // math.gcd(world_model_steps, *(s for s, _ in out)) > 8:
         raise SystemExit(f"bench_sim_fidelity: --exec-checkpoints {text}: the pipeline would keep a checkpoint every "
