@@ -426,8 +426,9 @@ def view_summary(path: str) -> dict | None:
 
 def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int, step: int | None = None) -> dict | str:
     """:func:`~benchmarks.bench_grpo_reward_source.closed_loop_summary` of run ``name`` (in the world model's
-    checkpoint ``step`` where given): paid success, the first and last decisions' frame error and greedy action gap,
-    the VAE alone's where logged, the world model's loss to its step; or why it is missing."""
+    checkpoint ``step`` where given): paid success, the detector's success on the same trajectories, the first and
+    last decisions' frame error and greedy action gap, the VAE alone's where logged, the world model's loss to its
+    step; or why it is missing."""
     grpo, metrics = os.path.join(workdir, name, "rl", "grpo"), os.path.join(pipe_dir(workdir, variant), "world_model",
                                                                            "metrics.jsonl")
     log = os.path.join(workdir, f"{name}.log")
@@ -440,8 +441,8 @@ def exec_summary(workdir: str, name: str, variant: str, rollout_batch: int, step
                                   rollout_batch * GROUP_SIZE)[name]
     except SystemExit as err:
         return str(err)
-    out = {k: run[k] for k in ("steps", "source", "paid_success", "world_model_steps", "world_model_loss",
-                               "frame_error_first", "frame_error_last",
+    out = {k: run[k] for k in ("steps", "source", "paid_success", "detector_success", "world_model_steps",
+                               "world_model_loss", "frame_error_first", "frame_error_last",
                                "action_gap_first", "action_gap_last", "frame_error_vae_first", "action_gap_vae_first")
            if k in run}
     loop = run.get("per_decision", {})

@@ -827,6 +827,38 @@ def sim_fidelity_fine_tunes(parts: tuple[str, ...] = SIM_FIDELITY_IMAGINED) -> s
                    "world model"], out)
 
 
+SIM_FIDELITY_STEPS = ("policy", "sim_fidelity_world_model_steps_small_h200")
+
+
+def sim_fidelity_world_model_steps(parts: tuple[str, ...] = SIM_FIDELITY_STEPS) -> str:
+    """The ``exec`` runs of a ``bench_sim_fidelity --exec-checkpoints`` run, one per world-model checkpoint and
+    sampler (``summary.json``): the world model's loss to that step, what reality paid the imagined actions, what
+    the detector said, and the first and last decisions' frame error and greedy action gap beside the VAE alone's;
+    runs the deadline left unstarted are named (``sim_fidelity_summary.json``)."""
+    summary = _load(*parts, "summary.json")
+    not_started = _load(*parts, "sim_fidelity_summary.json").get("not_started", [])
+    out = []
+    for variant, entry in summary["variants"].items():
+        runs = entry.get("checkpoints", {})
+        for name, run in runs.items():
+            ex, sampler = run["exec"], str(run["sample_steps"] or "5 (the config's)")
+            if isinstance(ex, str):
+                out.append([f"{run['step']:,}", "-", sampler, f"not measured: {ex}", "", "", ""])
+                continue
+            out.append([f"{run['step']:,}", f"{ex['world_model_loss']:.3f}", sampler, _paid(ex["paid_success"]),
+                        f"{ex['detector_success']:.3f}",
+                        f"{ex['frame_error_first']:.3f} -> {ex['frame_error_last']:.3f} ({ex['frame_error_vae_first']:.3f})",
+                        f"{ex['action_gap_first']:.3f} -> {ex['action_gap_last']:.3f} ({ex['action_gap_vae_first']:.3f})"])
+        for name in (n for n in not_started if n.startswith(f"exec_{variant}_at") and n not in runs):
+            step, _, sampler = name[len(f"exec_{variant}_at"):].partition("_s")
+            out.append([f"{int(step):,}", "-", sampler or "5 (the config's)",
+                        "not measured: the run's deadline came before it started", "", "", ""])
+    return _table(["world model steps", "its loss (last 10 logged to there)", "flow sampler steps",
+                   "real success of the imagined actions (95% interval)", "the detector said",
+                   "frame error, decision 1 -> 11 (the VAE alone at 1)",
+                   "greedy action gap, decision 1 -> 11 (the VAE alone at 1)"], out)
+
+
 def sim_fidelity_decisions() -> str:
     """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
     its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
@@ -859,7 +891,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
-    "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes,
+    "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
 }
 
 

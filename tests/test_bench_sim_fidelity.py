@@ -494,7 +494,7 @@ def test_summary_of_exec_runs_at_world_model_checkpoints(tmp_path, capsys):
     assert at6000["exec"]["world_model_steps"] == 6000
     assert at6000["exec"]["world_model_loss"] == pytest.approx(sum(1.0 / i for i in range(3, 13)) / 10)
     assert at24000["exec"]["world_model_steps"] == 24000 and at24000["exec"]["frame_error_first"] == pytest.approx(0.1)
-    assert at6000["exec"]["paid_success"]["rate"] == pytest.approx(8 / 256)
+    assert at6000["exec"]["paid_success"]["rate"] == pytest.approx(8 / 256) and at6000["exec"]["detector_success"] == 0.5
     assert "holds no step with the closed-loop record" in runs["exec_base_at12000"]["exec"]
     fid.print_summary(summary)
     printed = capsys.readouterr().out
