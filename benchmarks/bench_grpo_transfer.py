@@ -88,12 +88,10 @@ def name_dir_pairs(items: Sequence[str], flag: str, value: str = "DIR") -> dict[
 
 
 def read_history(grpo_dir: str) -> list[dict]:
-    """A GRPO run's per-step metrics (``train_history.jsonl``, written at every checkpoint); [] without one."""
-    path = os.path.join(grpo_dir, "train_history.jsonl")
-    if not os.path.exists(path):
-        return []
-    with open(path) as f:
-        return [json.loads(line) for line in f if line.strip()]
+    """A GRPO run's per-step metrics (``train_history.jsonl``, written after every step); [] without one."""
+    from sword_jax.rl.grpo_loop import read_history as read
+
+    return read(grpo_dir)
 
 
 def summarize(workdir: str) -> dict:

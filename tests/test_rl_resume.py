@@ -297,8 +297,9 @@ def _jsonl(path: str) -> list[dict]:
 
 
 def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
-    """``train_history.jsonl`` is written at every checkpoint, not only at the end: a run killed during the
-    evaluation of step 4 leaves the history of its checkpoint at step 2, and a resumed run the whole one."""
+    """``train_history.jsonl`` is written after every step, not only at checkpoints: a run killed during the
+    evaluation of step 4 leaves steps 1-4 (its checkpoint holds 1-2), and a resumed run the whole history, each step
+    once."""
     workdir = str(tmp_path / "grpo")
     run = _killable_grpo(RLConfig(grpo=GRPOConfig(steps=6, eval_every=2)), workdir)
 
@@ -308,11 +309,16 @@ def test_grpo_run_stopped_after_a_checkpoint_leaves_its_history(tmp_path):
     with pytest.raises(_Killed):
         run(kill_at=4)
     _, meta = _final_state(os.path.join(workdir, "checkpoints"))
-    assert meta["step"] == 2 and history_on_disk() == meta["history"]
-    assert [(p["step"], p["loss"]) for p in history_on_disk()] == [(1, 2.0), (2, 6.0)]  # w = 1, then 1 + 2
+    assert meta["step"] == 2 and history_on_disk()[:2] == meta["history"]
+    # w = 1, then 1 + 2, ...: the steps after the checkpoint are on disk too
+    assert [(p["step"], p["loss"]) for p in history_on_disk()] == [(1, 2.0), (2, 6.0), (3, 12.0), (4, 20.0)]
     result, _ = run(kill_at=-1)
     assert result.first_step == 2 and history_on_disk() == result.history
     assert [p["step"] for p in history_on_disk()] == [1, 2, 3, 4, 5, 6]
+    # the resumed run's history on disk is an uninterrupted run's
+    uninterrupted = str(tmp_path / "straight")
+    straight, _ = _killable_grpo(RLConfig(grpo=GRPOConfig(steps=6, eval_every=2)), uninterrupted)(kill_at=-1)
+    assert _jsonl(os.path.join(uninterrupted, "train_history.jsonl")) == history_on_disk() == straight.history
 
 
 def test_grpo_step_times_leave_evaluations_out_and_survive_a_resume(tmp_path):

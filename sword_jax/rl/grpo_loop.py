@@ -6,14 +6,15 @@ step ``step(state, batch, key) -> (state, metrics)`` whose batch, the step's sta
 function of the step (``batch_at``), so the train state (:class:`~sword_jax.rl.grpo.GRPOState`) is all an
 exact resume needs: a run killed at any point and rerun in its work dir ends bit-identical to an
 uninterrupted one. The step need not be one jitted function (in the real environments it rolls out in
-the C engine, then applies the jitted update). At step 0 of a fresh run, every ``rl.grpo.eval_every`` steps
-and at the last one, once the step's loss was read finite, the policy is evaluated, the point is
-appended to ``<workdir>/success_curve.{json,png}``, the per-step history so far is written to
-``<workdir>/train_history.jsonl`` (so a killed run leaves it), then the state is checkpointed under
-``<workdir>/checkpoints`` with the run's identity and that history. A resume drops the curve's points
-after the checkpoint (evaluations a killed run made before it could save), so they are recomputed, never
-duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming
-the keys that differ.
+the C engine, then applies the jitted update). The per-step history so far is written to
+``<workdir>/train_history.jsonl`` after every step (so a run killed at any point leaves it, its closed-loop
+record included). At step 0 of a fresh run, every ``rl.grpo.eval_every`` steps and at the last one, once the
+step's loss was read finite, the policy is evaluated, the point is appended to
+``<workdir>/success_curve.{json,png}``, the history is written again as the loop holds it, then the state is
+checkpointed under ``<workdir>/checkpoints`` with the run's identity and that history. A resume drops the
+curve's points and the history's rows after the checkpoint (what a killed run recorded before it could
+save), so they are recomputed, never duplicated; a checkpoint of another run (another seed, simulator,
+learning rate ...) is refused, naming the keys that differ.
 
 Each step's wall time goes to ``<workdir>/step_times.jsonl`` (``step``, ``step_s``: from the previous step's
 metrics read to this one's, evaluations left out; with ``frames_per_chunk``, ``imagined_frames`` and
@@ -163,6 +164,7 @@ def train_grpo(
     guards = [(g, entry, name) for g, entry, name in ((false_guard, rl.imagined.guard_on, "exploitation guard"),
                                                       (real_guard, "refresh", "real-success guard")) if g is not None]
     passed: dict[str, Any] = {}  # the last state the guards passed, on the host, and its step
+    rows: list[dict[str, Any]] = []  # the history as the steps report it, on disk after every step
 
     def keep_passed(done: int, state: Any) -> None:
         passed.update(step=done, params=jax.device_get(state.params), opt_state=jax.device_get(state.opt_state))
@@ -201,6 +203,7 @@ def train_grpo(
 
     def at_checkpoint(done: int, state: Any, history: list[dict[str, Any]]) -> Any:
         restored = record(done, state)
+        rows[:] = history
         if writes:
             save_history(workdir, history)
         times.save()
@@ -214,6 +217,7 @@ def train_grpo(
         state = shd.settle(jax.device_put(state, jax.tree.map(
             lambda x: x.sharding if isinstance(x, jax.Array) else jax.devices()[0], state)))
         curve.drop_after(first_step)
+        rows[:] = [r for r in read_history(workdir) if r["step"] <= first_step]  # the checkpoint's, as it saved them
         if first_step == 0:
             record(0, state)
         elif guards:  # as the uninterrupted run stood after this checkpoint
@@ -230,6 +234,9 @@ def train_grpo(
         point = {"step": done, **metrics}
         times.add(done, metrics.get("mean_chunks_sampled", metrics.get("mean_chunks")))
         log(progress(point, eta))
+        rows[:] = [r for r in rows if r["step"] < done] + [point]
+        if writes:
+            save_history(workdir, rows)
         return point
 
     result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
@@ -279,6 +286,15 @@ class StepTimes:
     def save(self) -> None:
         if self.writes:
             write_jsonl_atomic(self.path, self.rows)
+
+
+def read_history(workdir: str) -> list[dict[str, Any]]:
+    """The rows of ``<workdir>/train_history.jsonl``; none where it is not there."""
+    path = os.path.join(workdir, "train_history.jsonl")
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
 
 
 def save_history(workdir: str, history: Sequence[dict[str, Any]]) -> None:
