@@ -19,6 +19,12 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
     python -m benchmarks.bench_grpo_reward_source summary --workdir runs/rs \\
         --out benchmarks/results/policy/grpo_reward_source_small [--record]
 
+``--horizon N`` rolls every arm out N decisions instead of 12, ``--keyframe-fraction F`` draws its keyframes from the
+first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all)
+and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world-model arms then load. The arms draw
+the same keyframes at a step, so step 1 (before any update) pairs what the real closed loop and the imagined one
+were paid from the same starts.
+
 ``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs
 start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
 seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
@@ -60,6 +66,12 @@ GROUND_TRUTH = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", 
 WORLD_MODEL = ("--rl.imagined.shared_group_noise=true",
                "--rl.imagined.eval_replay_episodes=0")
 REWARD = {"exec": ("--rl.imagined.reward=executed",), "det": ()}
+# VAE variant -> the config overrides of its VAE, given to every command that trains or loads that VAE
+VAE_VARIANTS: dict[str, tuple[str, ...]] = {
+    "base": (),
+    "vae8x": ("--vae.dim_mult=1,4,4", "--vae.temporal_downsample=true,true"),  # 8x spatial: 16x16 latents at 128 px
+    "lpips": ("--vae.perceptual_weight=1.0",),
+}
 GT_DIR = "grpo_env_proprio_missing_starts_keyframes_mjx"  # bench_policy.grpo_dir of the ground-truth setting
 
 
@@ -71,6 +83,15 @@ def pipeline(args) -> argparse.Namespace:
                               world_model_steps=args.world_model_steps)
 
 
+def recipe(args) -> tuple[str, ...]:
+    """:data:`RECIPE` at ``--horizon`` decisions (``rl.imagined.max_chunks``), with keyframes from the first
+    ``--keyframe-fraction`` of each demonstration where given (``rl.imagined.keyframe_fraction``): every arm's."""
+    flags = tuple(f"--rl.imagined.max_chunks={args.horizon}" if f.startswith("--rl.imagined.max_chunks=") else f
+                  for f in RECIPE)
+    fraction = args.keyframe_fraction
+    return flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
+
+
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
     (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
@@ -78,20 +99,20 @@ def run_commands(args) -> dict[str, list[str]]:
     demos = os.path.join(pipe, "data", "demos.hdf5")
     steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
              f"--rl.grpo.eval_every={args.eval_every}")
-    episodes = args.eval_episodes_per_task
+    episodes, shared, vae = args.eval_episodes_per_task, recipe(args), VAE_VARIANTS[args.vae_variant]
     out = {}
     for seed in args.seeds if "gt" in args.arms else ():
         out[f"gt_s{seed}"] = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config,
                               "--seed", str(seed), "--out", os.path.join(args.workdir, "gt", f"s{seed}"), "--policy",
-                              args.policy, "--eval-episodes", str(episodes), f"--demos={demos}", *RECIPE, *GROUND_TRUTH,
+                              args.policy, "--eval-episodes", str(episodes), f"--demos={demos}", *shared, *GROUND_TRUTH,
                               *steps]
     for seed in args.seeds:
         for arm in (a for a in ("exec", "det") if a in args.arms):
             name = f"{arm}_s{seed}"
-            out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, "--simulator", "world_model",
+            out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, *vae, "--simulator", "world_model",
                          "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
                          "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", demos, "--policy", args.policy,
-                         "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *RECIPE, *WORLD_MODEL,
+                         "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *shared, *WORLD_MODEL,
                          f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps]
     return out
 
@@ -125,9 +146,9 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
 
-    base = pipeline(args)
-    phases = [("pipeline_data", pipeline_command(base, (), stop_after="data"), [n for n in commands if n.startswith("gt")]),
-              ("pipeline", pipeline_command(base, (), stop_after="reward_model"),
+    base, vae = pipeline(args), VAE_VARIANTS[args.vae_variant]
+    phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"), [n for n in commands if n.startswith("gt")]),
+              ("pipeline", pipeline_command(base, vae, stop_after="reward_model"),
                [n for n in commands if not n.startswith("gt")])]
     procs: dict[str, subprocess.Popen] = {}
     stopped: list[str] = []
@@ -372,7 +393,8 @@ def print_runs(summary: dict) -> None:
         print(line, flush=True)
 
 
-def main(argv: Sequence[str] | None = None) -> dict:
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command line, refused by name where a value cannot be run."""
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("mode", choices=("run", "summary", "closed-loop"))
     parser.add_argument("--workdir", default="", help="run / summary: the experiment's folder")
@@ -395,6 +417,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="run: the policy's own episodes per task in the world model's and detector's data")
     parser.add_argument("--vae-steps", type=int, default=1000)
     parser.add_argument("--world-model-steps", type=int, default=3000)
+    parser.add_argument("--vae-variant", choices=tuple(VAE_VARIANTS), default="base",
+                        help="run: the pipeline's VAE (vae8x: 8x spatial, 16x16 latents at 128 px), which the "
+                             "world-model arms load too")
+    parser.add_argument("--horizon", type=int, default=12,
+                        help="run: decisions (4 actions each) of every arm's rollouts (rl.imagined.max_chunks)")
+    parser.add_argument("--keyframe-fraction", type=float, default=None,
+                        help="run: every arm starts from keyframes in the first this-fraction of each demonstration "
+                             "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "
+                             "horizons need to reach success at all")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
@@ -408,6 +439,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps, --eval-every "
                          "and --eval-episodes-per-task >= 1, --policy-rollouts >= 0, --rollout-batch a multiple of 4 "
                          "(4 minibatches)")
+    if args.horizon < 1 or (args.keyframe_fraction is not None and not 0 <= args.keyframe_fraction <= 1):
+        raise SystemExit(f"bench_grpo_reward_source: --horizon must be >= 1 and --keyframe-fraction in [0, 1], got "
+                         f"{args.horizon} and {args.keyframe_fraction}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    args = parse(argv)
     if args.mode == "closed-loop":
         if not args.run or not args.out or args.trajectories < 1:
             raise SystemExit("bench_grpo_reward_source closed-loop needs --run (one or more), --out and "

@@ -83,16 +83,12 @@ from collections.abc import Sequence
 
 from benchmarks import common
 from benchmarks.bench_grpo_refresh import pipeline_command, stop_all
-from benchmarks.bench_grpo_reward_source import RECIPE, WORLD_MODEL, closed_loop_summary, pipeline, world_model_loss
+from benchmarks.bench_grpo_reward_source import (RECIPE, VAE_VARIANTS, WORLD_MODEL, closed_loop_summary, pipeline,
+                                                 world_model_loss)
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
 
-# variant -> the config overrides of its VAE, given to every command that trains or loads that VAE
-VARIANTS: dict[str, tuple[str, ...]] = {
-    "base": (),
-    "vae8x": ("--vae.dim_mult=1,4,4", "--vae.temporal_downsample=true,true"),  # 8x spatial: 16x16 latents at 128 px
-    "lpips": ("--vae.perceptual_weight=1.0",),
-}
+VARIANTS = VAE_VARIANTS  # variant -> the config overrides of its VAE (bench_grpo_reward_source.VAE_VARIANTS)
 VIEW_FLAGS = ("--rl.grpo.temperature=0.5", "--rl.imagined.execute_steps=4")  # the learned simulator's mode
 # the fine-tuned policies: kind -> (its SFT job and folder, the suffix of its runs view_<variant>_<suffix>,
 # exec_<variant>_<suffix>); "decoded" reads --decoded-fraction of its frames through the VAE, "imagined" as the world

@@ -14,7 +14,7 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
-        world_model_steps=3000, deadline_s=0.0, arms=list(arms))
+        world_model_steps=3000, deadline_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None)
     return args
 
 
@@ -128,6 +128,35 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
     assert entry["value"] == pytest.approx(0.04) and set(entry["arms"]) == {"gt", "exec", "det"}
     with pytest.raises(SystemExit, match="exec arm"):
         rs.results_entries({"runs": {}, "arms": {}}, str(tmp_path), data="d")
+
+
+def test_a_short_horizon_from_every_phase_in_the_8x_vaes_world_model(tmp_path, monkeypatch):
+    """--horizon, --keyframe-fraction and --vae-variant: every arm rolls out as far from the same keyframes; the
+    pipeline trains the 8x VAE and the world-model arms load it."""
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--horizon", "2",
+                     "--keyframe-fraction", "1.0", "--vae-variant", "vae8x", "--seeds", "0"])
+    commands = rs.run_commands(args)
+    for name, cmd in commands.items():
+        assert _flag(cmd, "--rl.imagined.max_chunks") == ["--rl.imagined.max_chunks=2"], name
+        assert _flag(cmd, "--rl.imagined.keyframe_fraction") == ["--rl.imagined.keyframe_fraction=1.0"], name
+        assert "--rl.imagined.execute_steps=4" in cmd
+    for name in ("exec_s0", "det_s0"):
+        cmd = commands[name]
+        assert cmd[cmd.index("--config") + 2:cmd.index("--simulator")] == list(rs.VAE_VARIANTS["vae8x"])
+    seen = []
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: seen.append(overrides) or [
+        __import__("sys").executable, "-c", "raise SystemExit(1)"])
+    with pytest.raises(SystemExit, match="never started"):
+        rs.run(args, poll_s=0.05)
+    assert seen == [rs.VAE_VARIANTS["vae8x"]] * 2  # the data stage's command and the whole pipeline's
+    default = rs.run_commands(_args(tmp_path))
+    assert all(not _flag(c, "--rl.imagined.keyframe_fraction") and "--rl.imagined.max_chunks=12" in c
+               for c in default.values())
+    assert "--vae.dim_mult=1,4,4" not in default["exec_s0"]
+    for bad, message in ((("--horizon", "0"), "--horizon must be >= 1"),
+                         (("--keyframe-fraction", "1.5"), "--keyframe-fraction in \\[0, 1\\]")):
+        with pytest.raises(SystemExit, match=message):
+            rs.parse(["summary", "--workdir", str(tmp_path), *bad])
 
 
 def test_bad_arguments_are_refused(tmp_path):
