@@ -22,8 +22,8 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
 ``--horizon N`` rolls every arm out N decisions instead of 12, ``--keyframe-fraction F`` draws its keyframes from the
 first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all)
 and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world-model arms then load. The arms draw
-the same keyframes at a step, so step 1 (before any update) pairs what the real closed loop and the imagined one
-were paid from the same starts.
+their keyframes alike (the same demonstrations and rule, their own draws), so their first steps, before any update,
+compare what the real closed loop and the imagined one are paid from like starts.
 
 ``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs
 start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
