@@ -80,7 +80,7 @@ def test_missing_checkpoint_is_one_line_and_status_1(capsys, tmp_path, monkeypat
     monkeypatch.chdir(tmp_path)
     code, _, err = _run(evaluate_world_model.main, ["--synthetic", "--model", f"m={tmp_path / 'no_run'}"], capsys)
     assert code == 1 and "Traceback" not in err, err
-    assert err.strip() == f"{cli._prog()}: error: checkpoint directory {tmp_path / 'no_run' / 'checkpoints'} does not exist"
+    assert err.strip() == f"{cli._prog()}: error: {tmp_path / 'no_run'} does not exist"  # the path as given
     assert not (tmp_path / "no_run").exists()  # reading never creates directories
 
 
