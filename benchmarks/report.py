@@ -859,6 +859,25 @@ def sim_fidelity_world_model_steps(parts: tuple[str, ...] = SIM_FIDELITY_STEPS) 
                    "greedy action gap, decision 1 -> 11 (the VAE alone at 1)"], out)
 
 
+HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
+HORIZON_SIGNAL_GROUPS = 32  # its run.sh's --rl.grpo.rollout_batch: start states (groups of 8) a step
+HORIZON_SIGNAL_STARTS = {2: "every phase", 4: "every phase", 12: "the first half (the learned simulator's setting)"}
+
+
+def grpo_horizon_signal() -> str:
+    """Ground-truth GRPO's first steps at each rollout horizon (``train_history.jsonl`` of ``h<decisions>``): what
+    its rollouts succeeded and how many of its groups had mixed outcomes, the only ones with a learning signal."""
+    rows = []
+    for horizon, starts in HORIZON_SIGNAL_STARTS.items():
+        with open(os.path.join(RESULTS_DIR, *HORIZON_SIGNAL, f"h{horizon}", "train_history.jsonl")) as f:
+            history = [json.loads(line) for line in f if line.strip()]
+        rows.append([f"{horizon} ({4 * horizon} actions)", starts,
+                     ", ".join(f"{h['rollout_success']:.3f}" for h in history),
+                     ", ".join(f"{int(h['mixed_groups'])} of {HORIZON_SIGNAL_GROUPS}" for h in history)])
+    return _table(["horizon, decisions", "keyframes from", "rollout success, steps 1 and 2",
+                   "groups with mixed outcomes"], rows)
+
+
 def sim_fidelity_decisions() -> str:
     """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
     its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
@@ -892,6 +911,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
+    "grpo-horizon-signal": grpo_horizon_signal,
 }
 
 
