@@ -106,7 +106,8 @@ IMAGINED = tuple(f for f in RECIPE if f.startswith("--rl.imagined."))  # the exe
 class Need:
     """A file a job waits for: ``job`` writes it, ``final`` as that job ends (so the two never overlap). An empty
     ``path`` waits for ``job`` to end, however it ends (or for it to be skipped or left out): jobs run one after
-    another on a GPU so that neither slows the other, and the later one finds the compilations the earlier one cached."""
+    another on a GPU so that neither slows the other (and, with a persistent compilation cache, the later one finds the
+    programs the earlier one compiled)."""
     job: str
     path: str
     final: bool
@@ -225,7 +226,7 @@ def checkpoint_run(variant: str, step: int, sample_steps: int = 0) -> str:
 
 def checkpoint_flags(args) -> tuple[str, ...]:
     """The pipeline's trainer flags that keep the world-model checkpoints ``--exec-checkpoints`` reads: a checkpoint
-    every common divisor of their steps and the last step, all of them kept."""
+    every greatest common divisor of their steps and the last step, all of them kept."""
     if not args.exec_checkpoints:
         return ()
     every = math.gcd(args.world_model_steps, *(step for step, _ in args.exec_checkpoints))
