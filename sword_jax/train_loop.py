@@ -113,6 +113,7 @@ def run_steps(
     on_nonfinite: str = "stop",
     settle: bool = False,
     on_first_step: Callable[[], Any] | None = None,
+    on_history: Callable[[list[dict[str, Any]]], Any] | None = None,
 ) -> LoopResult:
     """Runs steps ``first_step .. steps - 1`` (0-based) of ``step`` from ``state``.
 
@@ -155,6 +156,8 @@ def run_steps(
         first step, so a step with explicit shardings traces once.
       on_first_step: called once the first step of this call has finished (the loop waits for it),
         e.g. to log the compile time apart from the step rate.
+      on_history: ``on_history(history)`` after every log step's point joins the history (restored points
+        included), e.g. to keep it on disk so that a run killed between checkpoints leaves it (GRPO).
 
     Raises:
       NonFiniteLoss: a step's metrics held a non-finite value (the message names the 0-based step and
@@ -196,6 +199,8 @@ def run_steps(
             host = {k: float(v) for k, v in jax.device_get(step_metrics).items()}
             eta = (time.perf_counter() - start) / max(dispatched - first_step, 1) * (steps - done)
             history.append(report(done, host, jax.device_get(observed), eta))
+            if on_history is not None:
+                on_history(history)
 
         batches = prefetched(batch_at, range(first_step, steps))
         for i, batch in enumerate(batches, start=first_step):

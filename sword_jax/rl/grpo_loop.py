@@ -10,11 +10,11 @@ the C engine, then applies the jitted update). The per-step history so far is wr
 ``<workdir>/train_history.jsonl`` after every step (so a run killed at any point leaves it, its closed-loop
 record included). At step 0 of a fresh run, every ``rl.grpo.eval_every`` steps and at the last one, once the
 step's loss was read finite, the policy is evaluated, the point is appended to
-``<workdir>/success_curve.{json,png}``, the history is written again as the loop holds it, then the state is
-checkpointed under ``<workdir>/checkpoints`` with the run's identity and that history. A resume drops the
-curve's points and the history's rows after the checkpoint (what a killed run recorded before it could
-save), so they are recomputed, never duplicated; a checkpoint of another run (another seed, simulator,
-learning rate ...) is refused, naming the keys that differ.
+``<workdir>/success_curve.{json,png}``, then the state is checkpointed under ``<workdir>/checkpoints`` with the
+run's identity and the history. A resume drops the curve's points after the checkpoint and writes the history
+from the checkpoint's (what a killed run recorded before it could save), so they are recomputed, never
+duplicated; a checkpoint of another run (another seed, simulator, learning rate ...) is refused, naming the
+keys that differ.
 
 Each step's wall time goes to ``<workdir>/step_times.jsonl`` (``step``, ``step_s``: from the previous step's
 metrics read to this one's, evaluations left out; with ``frames_per_chunk``, ``imagined_frames`` and
@@ -164,7 +164,6 @@ def train_grpo(
     guards = [(g, entry, name) for g, entry, name in ((false_guard, rl.imagined.guard_on, "exploitation guard"),
                                                       (real_guard, "refresh", "real-success guard")) if g is not None]
     passed: dict[str, Any] = {}  # the last state the guards passed, on the host, and its step
-    rows: list[dict[str, Any]] = []  # the history as the steps report it, on disk after every step
 
     def keep_passed(done: int, state: Any) -> None:
         passed.update(step=done, params=jax.device_get(state.params), opt_state=jax.device_get(state.opt_state))
@@ -201,11 +200,8 @@ def train_grpo(
         curve.add(done, point, **extra)
         return restored
 
-    def at_checkpoint(done: int, state: Any, history: list[dict[str, Any]]) -> Any:
+    def at_checkpoint(done: int, state: Any, _history: list[dict[str, Any]]) -> Any:  # on disk already (on_history)
         restored = record(done, state)
-        rows[:] = history
-        if writes:
-            save_history(workdir, history)
         times.save()
         times.restart()  # the evaluation is not the next step's time
         return restored
@@ -217,7 +213,6 @@ def train_grpo(
         state = shd.settle(jax.device_put(state, jax.tree.map(
             lambda x: x.sharding if isinstance(x, jax.Array) else jax.devices()[0], state)))
         curve.drop_after(first_step)
-        rows[:] = [r for r in read_history(workdir) if r["step"] <= first_step]  # the checkpoint's, as it saved them
         if first_step == 0:
             record(0, state)
         elif guards:  # as the uninterrupted run stood after this checkpoint
@@ -234,14 +229,12 @@ def train_grpo(
         point = {"step": done, **metrics}
         times.add(done, metrics.get("mean_chunks_sampled", metrics.get("mean_chunks")))
         log(progress(point, eta))
-        rows[:] = [r for r in rows if r["step"] < done] + [point]
-        if writes:
-            save_history(workdir, rows)
         return point
 
     result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
                        checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
-                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint, place=place)
+                       run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint, place=place,
+                       on_history=(lambda history: save_history(workdir, history)) if writes else None)
     if writes:
         save_history(workdir, result.history)  # also when no step ran (a finished run resumed, zero steps)
     times.save()
