@@ -229,8 +229,13 @@ def checkpoint_flags(args) -> tuple[str, ...]:
     every greatest common divisor of their steps and the last step, all of them kept."""
     if not args.exec_checkpoints:
         return ()
-    every = math.gcd(args.world_model_steps, *(step for step, _ in args.exec_checkpoints))
+    every = checkpoint_period(args.exec_checkpoints, args.world_model_steps)
     return (f"--trainer.checkpoint_every={every}", f"--trainer.keep_checkpoints={args.world_model_steps // every}")
+
+
+def checkpoint_period(checkpoints: Sequence[tuple[int, int]], world_model_steps: int) -> int:
+    """The steps between the pipeline's world-model checkpoints that keep every one of ``checkpoints`` and the last."""
+    return math.gcd(world_model_steps, *(step for step, _ in checkpoints))
 
 
 def checkpoint_jobs(args, variant: str, gpu: str) -> list[Job]:
@@ -602,9 +607,10 @@ def exec_checkpoints_option(text: str, world_model_steps: int) -> list[tuple[int
                              f"--world-model-steps={world_model_steps}] and K (flow sampler steps) in [1, 50], each "
                              f"once; got {part!r}")
         out.append(entry)
-    if out and world_model_steps // math.gcd(world_model_steps, *(s for s, _ in out)) > 8:
+    every = checkpoint_period(out, world_model_steps)
+    if out and world_model_steps // every > 8:
         raise SystemExit(f"bench_sim_fidelity: --exec-checkpoints {text}: the pipeline would keep a checkpoint every "
-                         f"{math.gcd(world_model_steps, *(s for s, _ in out))} steps, more than 8 of them; choose steps "
+                         f"{every} steps, more than 8 of them; choose steps "
                          "with a larger common divisor with --world-model-steps")
     return out
 
