@@ -26,10 +26,11 @@ from sword_jax.rl import grpo
 from sword_jax.rl.env_rollout import make_act_fns, run_policy
 from sword_jax.rl.grpo import UPDATE_KEY_SALT
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
-from sword_jax.rl.jax_env_grpo import EnvGRPO
+from sword_jax.rl.jax_env_grpo import EnvGRPO, start_value
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains
+from sword_jax.rl.value import as_value, build_value
 from sword_jax.rng import stream_key, stream_rng
 
 
@@ -182,6 +183,10 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     ``rl.env.proprio=missing`` has the policy read its "missing proprio" input in the rollouts, and each
     evaluation then also runs the sampled policy that way (``sampled_proprio_masked``). Evaluations
     always start at rest with ``rl.env.execute_steps``.
+
+    With ``rl.value.episodes > 0`` a value fitted to that many real episodes of the starting policy
+    (:func:`~sword_jax.rl.jax_env_grpo.start_value`, saved under ``workdir/value``) pays the training rollouts
+    that reach their horizon without an outcome; the result then has its record as ``value``.
     """
     if rl.env.proprio not in ("true", "missing"):
         raise ValueError(f"rl.env.backend=mjx reads proprio true or missing; got rl.env.proprio={rl.env.proprio} "
@@ -210,11 +215,16 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined_actions_per_decision)
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
+    value_net = build_value(rl, seed=cfg.seed) if rl.value.episodes else None
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
                      eval_tokens=tokenize_instructions(eval_text, max_bytes),
                      eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log,
-                     train_proprio=not masked, **setting)
+                     train_proprio=not masked, value=None if value_net is None else as_value(*value_net), **setting)
     os.makedirs(workdir, exist_ok=True)
+    value_record = None
+    if value_net is not None:  # fitted once, before the first step; a resumed run loads the fit
+        value_record = start_value(runner, value_net[0], params, os.path.join(workdir, "value"), seed=cfg.seed,
+                                   max_steps=cfg.sim.max_steps, log=log)
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate(step, params):
@@ -230,7 +240,9 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         return point, extra
 
     def progress(point, eta):
-        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "
+        paid = (f"value paid {point['terminal_value']:.3f} to {point['truncated_fraction']:.2f} "
+                if "terminal_value" in point else "")
+        return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} {paid}"
                 f"mixed {point['mixed_fraction']:.2f} rounds {point['sample_rounds']:.0f} loss {point['loss']:.4f} "
                 f"clip {point['clip_fraction']:.3f} ratio {point['ratio_mean']:.3f} kept {point['kept_fraction']:.2f} "
                 f"nll {point['behaviour_nll']:.3f} {point['step_seconds']:.1f}s/step "
@@ -244,4 +256,5 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
                                key=stream_key(root, "grpo/mjx_rollouts"), rl=rl, workdir=workdir, evaluate=evaluate,
                                run_id=run_id, progress=progress, curve_label="GRPO in the ground-truth MJX environments",
                                log=log)
-    return {"curve": curve, "workdir": workdir, "history": result.history}
+    return {"curve": curve, "workdir": workdir, "history": result.history,
+            **({"value": value_record} if value_record is not None else {})}

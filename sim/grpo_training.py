@@ -50,6 +50,10 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
                              "from their recorded states)")
     elif not (inputs.world_model and inputs.reward and inputs.demos):
         raise SystemExit("train.grpo --simulator world_model needs --world-model, --reward and --demos (see --help)")
+    if rl.value.episodes and simulator != "env":
+        raise SystemExit(f"train.grpo --simulator {simulator}: rl.value (a fitted value closing short rollouts) runs in "
+                         "ground-truth GRPO on MJX only (--simulator env --rl.env.backend=mjx); set "
+                         "--rl.value.episodes=0")
     if jax.process_count() > 1:
         refuse_several_processes(rl, simulator)
     workdir = os.path.join(cfg.workdir, "rl", "grpo")

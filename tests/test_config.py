@@ -103,7 +103,7 @@ def test_rl_settings_are_set_in_their_sections():
 
 
 def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
-    from sword_jax.rl.config import RENAMED, RefreshConfig, RLConfig
+    from sword_jax.rl.config import RENAMED, RefreshConfig, RLConfig, ValueConfig
 
     for old, new in RENAMED.items():
         with pytest.raises(ConfigError, match=f"^{re.escape(f'rl.{old} is now rl.{new}')}$"):
@@ -117,7 +117,8 @@ def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
                              "imagined.decoder", "sft.init", "reward_model.image_size", "imagined.oversample",
                              "imagined.guard_on", "imagined.reward", "imagined.fidelity_trajectories", "sft.image_aug",
                              "sft.decoded_fraction", "sft.decoded_source", "sft.decoded_window",
-                             *(f"refresh.{f.name}" for f in dataclasses.fields(RefreshConfig))}
+                             *(f"refresh.{f.name}" for f in dataclasses.fields(RefreshConfig)),
+                             *(f"value.{f.name}" for f in dataclasses.fields(ValueConfig))}
     leaves = {key[len("rl."):] for key in flatten(configs.get("sword:tiny")) if key.startswith("rl.")}
     assert set(RENAMED.values()) <= leaves and added_after_the_split <= leaves
     assert leaves - set(RENAMED.values()) - added_after_the_split == {

@@ -9,6 +9,7 @@ detector see, the success threshold); the rest lives where it is used::
     rl.grpo          the GRPO update, its sampled rollouts, evaluations (sword_jax.rl.grpo, train.grpo)
     rl.imagined      rollouts in the learned simulator                  (sword_jax.rl.rollout, train.grpo)
     rl.env           acting in the ground-truth environments            (sword_jax.rl.env_rollout, policy_success)
+    rl.value         the value that closes short GRPO rollouts          (sword_jax.rl.value)
 
 On the command line: ``--rl.sft.steps=2000``, ``--rl.grpo.group_size=8``. The flat keys of earlier
 versions (``--rl.sft_steps``) are refused naming the new key (:data:`RENAMED`).
@@ -582,6 +583,46 @@ class RefreshConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ValueConfig:
+    """A success-probability estimate that closes short GRPO rollouts (:mod:`sword_jax.rl.value`).
+
+    Rollouts short enough for a learned simulator to stay honest rarely reach success, and a success-only return
+    gives most of their groups no learning signal (model-based RL with short branched rollouts, MBPO, closes its
+    horizon with a learned value). With ``episodes > 0`` a value network is fitted before the first GRPO step to
+    ``episodes`` real episodes of the starting policy (sampled at ``rl.grpo.temperature``, acting as GRPO's rollouts
+    do, each run to the episode limit): it reads a frame and the instruction and predicts whether the episode that
+    frame belongs to goes on to succeed. A training rollout that reaches its horizon without success or failure is
+    then paid ``(1 + rl.grpo.success_bonus) x`` the value of its final frame instead of 0; a success is still paid
+    ``1 + success_bonus``. Evaluations are unchanged. Ground-truth GRPO on MJX (``rl.env.backend=mjx``).
+
+    Attributes:
+      episodes: real episodes the value is fitted to (they count as real episodes the run used); 0 = off.
+      steps / batch_size / learning_rate: the fit (AdamW, binary cross-entropy on frames drawn uniformly from
+        the episodes' decisions, so its outputs stay calibrated probabilities).
+      width: base channels of the value network's CNN.
+      holdout: share of the episodes kept out of the fit, on which its calibration is reported.
+    """
+
+    episodes: int = 0  # 0 = off
+    steps: int = 1000
+    batch_size: int = 128
+    learning_rate: float = 1e-3
+    width: int = 16
+    holdout: float = 0.2
+
+    def validate(self) -> None:
+        for name in ("episodes", "steps", "batch_size", "width"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "episodes" else 1):
+                raise ValueError(f"rl.value.{name} must be an integer >= {0 if name == 'episodes' else 1}"
+                                 f"{' (0 = off)' if name == 'episodes' else ''}, got {value!r}")
+        if not self.learning_rate > 0.0:
+            raise ValueError(f"rl.value.learning_rate must be > 0, got {self.learning_rate}")
+        if not 0.0 <= self.holdout < 1.0:
+            raise ValueError(f"rl.value.holdout must be in [0, 1), got {self.holdout}")
+
+
+@dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Acting in the ground-truth (MuJoCo) environments: every evaluation, the policy's own rollouts
     (``sim.policy_rollouts``) and GRPO there (``train.grpo --simulator env``; :mod:`sword_jax.rl.env_rollout`).
@@ -689,6 +730,7 @@ class RLConfig:
       imagined: rollouts in the learned simulator (:class:`ImaginedConfig`).
       env: acting in the ground-truth environments (:class:`EnvConfig`).
       refresh: refreshing the learned simulator on the moving policy's real episodes (:class:`RefreshConfig`).
+      value: the success-probability estimate that closes short GRPO rollouts (:class:`ValueConfig`).
     """
 
     renamed_fields: ClassVar[dict[str, str]] = RENAMED
@@ -706,6 +748,7 @@ class RLConfig:
     imagined: ImaginedConfig = ImaginedConfig()
     env: EnvConfig = EnvConfig()
     refresh: RefreshConfig = RefreshConfig()
+    value: ValueConfig = ValueConfig()
 
     @property
     def detector_image_size(self) -> int:
@@ -767,6 +810,9 @@ class RLConfig:
                              "keyframes' recorded states: it needs rl.env.backend=mjx, rl.refresh.every=0 (a "
                              "refresh's branch starts hold no simulator state) and rl.imagined.confirm_success=false, "
                              f"got {self.env.backend}, {self.refresh.every}, {self.imagined.confirm_success}")
+        if self.value.episodes and self.env.backend != "mjx":
+            raise ValueError("rl.value.episodes > 0 closes ground-truth GRPO's rollouts on MJX with a fitted value: it "
+                             f"needs rl.env.backend=mjx, got {self.env.backend!r}")
         if self.env.proprio == "reckoned" and self.proprio_dim != 8:
             raise ValueError(f"rl.env.proprio=reckoned integrates the simulator's 8-D proprio; got rl.proprio_dim="
                              f"{self.proprio_dim}")

@@ -44,6 +44,7 @@ from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.policy_success import success_summary
 from sword_jax.rl.rollout import Rollout, take_trajectories
 from sword_jax.rl.scan_rollout import JaxEnv, scan_rollout
+from sword_jax.rl.value import Value, ValueData, decision_samples
 
 
 def mixed_groups(returns: jax.Array, group_size: int) -> jax.Array:
@@ -96,13 +97,16 @@ class EnvGRPO:
         actions executed per decision and whether the policy reads its proprio (False: its "missing
         proprio" input); default: the evaluation's (``max_steps``, ``rl.env.execute_steps``, True).
         The learned simulator's setting is e.g. 48 actions, 4 per decision, proprio missing.
+      value: a fitted success-probability value (``rl.value``, :mod:`sword_jax.rl.value`) that pays the training
+        rollouts which reach ``train_max_steps`` with no outcome; evaluations are not affected. Its params are
+        an argument of the compiled rollout: :meth:`set_value` swaps them without recompiling.
     """
 
     def __init__(self, graphdef: nnx.GraphDef, rl: RLConfig, env: JaxEnv, *, max_steps: int,
                  starts_at: Callable[[int, int], tuple[np.ndarray, np.ndarray]], eval_starts: np.ndarray,
                  eval_tokens: np.ndarray, eval_tasks: Sequence[int], key: jax.Array,
                  log: Callable[[str], Any] = print, train_max_steps: int | None = None,
-                 train_execute_steps: int | None = None, train_proprio: bool = True):
+                 train_execute_steps: int | None = None, train_proprio: bool = True, value: Value | None = None):
         rl.validate()
         self.graphdef, self.rl, self.env, self.max_steps = graphdef, rl, env, max_steps
         self.starts_at, self.key, self.log = starts_at, key, log
@@ -119,9 +123,11 @@ class EnvGRPO:
                 rl.env, execute_steps=int(train_execute_steps), action_ensemble=False))
             self.train_rl.validate()
         self.train_proprio = bool(train_proprio)
-        same = self.train_max_steps == max_steps and self.train_rl is rl
+        self.value = value
+        value_fn = None if value is None else value.fn
+        same = self.train_max_steps == max_steps and self.train_rl is rl and value is None
         self.train_rollout = self.rollout if same else jax.jit(
-            lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=self.train_max_steps))
+            lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=self.train_max_steps, value_fn=value_fn))
         self.update = jax.jit(lambda state, batch, key: grpo.grpo_update(graphdef, rl, state, batch, key),
                               donate_argnums=(0,))
         self.select = jax.jit(select_groups, static_argnums=(1, 2))
@@ -129,11 +135,42 @@ class EnvGRPO:
         self.probe: dict[str, np.ndarray] | None = None
         self.probe_dir, self.reference_tokens = "", None
 
-    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None, *, rl=None,
-                      max_steps=None):
+    def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None, value_params=None, *,
+                      rl=None, max_steps=None, value_fn=None):
         return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl if rl is None else rl, key=key,
                             greedy=greedy, ensemble=ensemble, max_steps=self.max_steps if max_steps is None else max_steps,
-                            proprio_valid=proprio_valid)
+                            proprio_valid=proprio_valid,
+                            value=None if value_fn is None else Value(fn=value_fn, params=value_params))
+
+    def set_value(self, params: Any) -> None:
+        """New params for the value the runner was built with (e.g. a refit); the rollout is not recompiled."""
+        if self.value is None:
+            raise ValueError("EnvGRPO.set_value: the runner was built without a value")
+        self.value = self.value._replace(params=params)
+
+    def value_episodes(self, params: Any, episodes: int, *, max_steps: int, key: jax.Array) -> ValueData:
+        """``episodes`` real episodes of the policy ``params`` for fitting the value: drawn from the training
+        starts (``starts_at(0, r)`` for rounds ``r`` counted down from -1, draws no GRPO step takes), sampled and
+        executed as the training rollouts are, each run up to ``max_steps`` actions; every decision labelled
+        with its episode's outcome (:func:`~sword_jax.rl.value.decision_samples`)."""
+        if episodes < 1:
+            raise ValueError(f"EnvGRPO.value_episodes: episodes must be >= 1, got {episodes}")
+        g = self.rl.grpo.group_size
+        rollout = jax.jit(lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=max_steps))
+        parts, have, r = [], 0, 0
+        while have < episodes:
+            r -= 1
+            starts, tokens = self.starts_at(0, r)
+            starts, tokens = np.repeat(np.asarray(starts), g, axis=0), np.repeat(np.asarray(tokens), g, axis=0)
+            out, _ = rollout(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.fold_in(key, -r), False, False,
+                             self._valid(float(self.train_proprio)))
+            take = min(episodes - have, starts.shape[0])
+            parts.append(decision_samples(np.asarray(out.obs_frames)[:take], np.asarray(out.valid)[:take],
+                                          tokens[:take], np.asarray(out.success)[:take]))
+            parts[-1].episode += have
+            have += take
+        return ValueData(*(np.concatenate([getattr(p, f.name) for p in parts])
+                           for f in dataclasses.fields(ValueData)))
 
     # ---- training -------------------------------------------------------------------------------------
     def step(self, state: grpo.GRPOState, step: int, key: jax.Array) -> tuple[grpo.GRPOState, dict[str, jax.Array]]:
@@ -142,7 +179,7 @@ class EnvGRPO:
         g, want = rl.grpo.group_size, rl.grpo.rollout_batch
         t0 = time.perf_counter()
         step_key = jax.random.fold_in(key, step)
-        rounds, steps_taken, broken, mixed, sampled_success = [], 0, 0, 0, []
+        rounds, steps_taken, broken, mixed, sampled_success, terminal = [], 0, 0, 0, [], []
         enough = math.ceil(rl.grpo.min_mixed_fraction * want)
         for r in range(rl.grpo.max_sample_rounds):
             starts, tokens = self.starts_at(step, r)
@@ -150,7 +187,11 @@ class EnvGRPO:
             tokens = np.repeat(np.asarray(tokens), g, axis=0)
             rollout, stats = self.train_rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
                                                 jax.random.fold_in(step_key, r), False, False,
-                                                self._valid(float(self.train_proprio)))
+                                                self._valid(float(self.train_proprio)),
+                                                *(() if self.value is None else (self.value.params,)))
+            if stats.terminal_value is not None:
+                cut = ~np.asarray(rollout.success) & ~np.asarray(stats.broken)
+                terminal.append(np.asarray(stats.terminal_value)[cut])
             rounds.append(rollout)
             steps_taken += int(jnp.sum(stats.steps))
             broken += int(jnp.sum(stats.broken))
@@ -170,6 +211,10 @@ class EnvGRPO:
                  "batch_success": jnp.mean(batch.success.astype(jnp.float32)), "env_steps": float(steps_taken),
                  "broken_episodes": float(broken),
                  "rollout_seconds": t1 - t0, "update_seconds": t2 - t1, "step_seconds": t2 - t0}
+        if self.value is not None:  # what the value paid the rollouts that reached their horizon
+            cut = np.concatenate(terminal)
+            extra.update(truncated_fraction=float(cut.size) / float(success.size),
+                         terminal_value=float(cut.mean()) if cut.size else 0.0)
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 
     # ---- evaluation -----------------------------------------------------------------------------------
@@ -268,3 +313,59 @@ class EnvGRPO:
         np.save(self._probe_file(step), tokens.astype(np.uint8 if self.rl.action_bins <= 256 else np.int32))
         extra["probe"] = probe
         return point, extra
+
+
+def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, directory: str, *, seed: int,
+                max_steps: int, log: Callable[[str], Any] = print) -> dict[str, Any]:
+    """Fits ``rl.value`` to ``rl.value.episodes`` real episodes of the starting policy and gives the runner its
+    params (:meth:`EnvGRPO.set_value`), or, when ``directory`` holds a finished fit, loads that one (a resumed
+    run pays its rollouts as the uninterrupted run did, and collects no episodes again).
+
+    The episodes are :meth:`EnvGRPO.value_episodes` up to ``max_steps`` actions (the episode limit); ``holdout``
+    of them (whole episodes) are kept out of the fit and report its calibration (:func:`~sword_jax.rl.value.
+    calibration`). ``directory`` gets ``value.npz`` (the params) and ``value.json`` (the record returned: real
+    episodes used, the episodes' success, the fit's loss, calibration on fitted and held-out decisions).
+    ``graphdef``: the value network's (:func:`~sword_jax.rl.value.build_value`), the one the runner's value was
+    built from."""
+    from sword_jax.atomic_write import write_json_atomic
+    from sword_jax.rl.params_io import load_params_npz, save_params_npz
+    from sword_jax.rl.value import as_value, calibration, fit_value, predict, split_episodes
+
+    rl = runner.rl
+    if runner.value is None:
+        raise ValueError("start_value: the runner was built without a value (EnvGRPO(..., value=...))")
+    params_path, record_path = os.path.join(directory, "value.npz"), os.path.join(directory, "value.json")
+    if os.path.exists(params_path) and os.path.exists(record_path):
+        import json
+
+        params = load_params_npz(params_path, jax.tree.map(jnp.copy, runner.value.params))
+        with open(record_path) as f:
+            record = json.load(f)
+        log(f"value: loaded the fit in {directory} ({record['real_episodes']} real episodes)")
+        runner.set_value(params)
+        return record
+    t0 = time.perf_counter()
+    data = runner.value_episodes(policy_params, rl.value.episodes, max_steps=max_steps,
+                                 key=jax.random.fold_in(runner.key, 1 << 22))
+    t1 = time.perf_counter()
+    fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(seed))
+    outcome = np.array([data.labels[data.episode == e][0] for e in np.unique(data.episode)])
+    log(f"value: {rl.value.episodes} real episodes ({float(outcome.mean()):.3f} succeeded, {len(data)} decisions, "
+        f"{t1 - t0:.0f} s); fitting on {len(np.unique(fit.episode))}, {len(np.unique(held.episode))} held out")
+    params, metrics = fit_value(graphdef, jax.tree.map(jnp.copy, runner.value.params), rl, fit, seed=seed, log=log)
+    value = as_value(graphdef, params)
+    record = {"real_episodes": int(rl.value.episodes), "episode_success": float(outcome.mean()),
+              "decisions": len(data), "fit_episodes": int(len(np.unique(fit.episode))),
+              "held_out_episodes": int(len(np.unique(held.episode))), "loss": metrics["loss"],
+              "fit": calibration(predict(value, fit), fit.labels),
+              "held_out": calibration(predict(value, held), held.labels) if len(held) else None,
+              "collect_seconds": round(t1 - t0, 1), "fit_seconds": round(time.perf_counter() - t1, 1)}
+    held_record = record["held_out"]
+    if held_record:
+        log(f"value: held-out Brier {held_record['brier']:.4f} (constant {held_record['brier_constant']:.4f}), AUC "
+            f"{held_record['auc'] if held_record['auc'] is None else round(held_record['auc'], 3)}")
+    os.makedirs(directory, exist_ok=True)
+    save_params_npz(params_path, params)
+    write_json_atomic(record_path, record)  # written last: its presence marks a finished fit
+    runner.set_value(params)
+    return record

@@ -33,14 +33,17 @@ from jaxtyping import Array, Bool, Float, Int
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.policy import resize_frames, sampling_log_probs, tokens_to_actions
 from sword_jax.rl.rollout import Rollout
+from sword_jax.rl.value import Value, terminal_returns
 
 
 class EpisodeStats(NamedTuple):
     """Per episode: ``steps`` the actions it executed; ``broken`` its physics state went non-finite (the
-    episode then ended as a failure at that action)."""
+    episode then ended as a failure at that action); ``terminal_value`` with a ``value``, its success
+    probability at the final frame (what a rollout that reached its horizon was paid, over the success return)."""
 
     steps: Int[Array, " n"]
     broken: Bool[Array, " n"]
+    terminal_value: Float[Array, " n"] | None = None
 
 
 class JaxEnv(Protocol):
@@ -84,6 +87,7 @@ def scan_rollout(
     ensemble: Bool[Array, ""] | bool,
     max_steps: int,
     proprio_valid: Float[Array, " n"] | None = None,
+    value: Value | None = None,
 ) -> tuple[Rollout, EpisodeStats]:
     """Runs the policy in ``env`` (module docstring); pure, jit it.
 
@@ -98,6 +102,9 @@ def scan_rollout(
       ensemble: temporal ensembling of the executed action; needs ``execute_steps = 1`` (may be traced).
       max_steps: the episodes' action limit.
       proprio_valid: ``[n]``, 0 where the policy reads its "missing proprio" input (default all 1).
+      value: a fitted success-probability value (:class:`~sword_jax.rl.value.Value`, ``rl.value``): an episode
+        that reaches ``max_steps`` with no outcome is paid ``(1 + success_bonus) x`` its value at the final
+        frame (:func:`~sword_jax.rl.value.terminal_returns`) instead of 0.
 
     Returns:
       ``(rollout, stats)``: the rollout with ``C = decisions(cfg, max_steps)`` decisions of
@@ -157,18 +164,24 @@ def scan_rollout(
 
     init = (state, obs, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32),
             jnp.zeros((n,), jnp.bool_), jnp.zeros((n, size, size, a_dim), jnp.float32))
-    (_, _, _, success, steps, broken, _), rec = jax.lax.scan(decide, init, jnp.arange(c_max))
+    (_, final_obs, _, success, steps, broken, _), rec = jax.lax.scan(decide, init, jnp.arange(c_max))
     rec = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), rec)  # (N, C, ...)
     valid = rec["valid"]
     last = jnp.maximum(jnp.sum(valid, axis=1).astype(jnp.int32) - 1, 0)
-    rewards = jax.nn.one_hot(last, c_max, dtype=jnp.float32) * success[:, None].astype(jnp.float32)
-    returns = success.astype(jnp.float32) * jnp.float32(1.0 + cfg.grpo.success_bonus)
+    unit = success.astype(jnp.float32)  # the return in units of the success return
+    terminal = None
+    if value is not None:
+        # an episode ends at success, broken physics or max_steps: without the first two it reached its horizon
+        terminal = value.fn(value.params, resize_frames(final_obs["frames"], cfg.image_size), instruction_tokens)
+        unit = terminal_returns(success, ~success & ~broken, terminal, 1.0)
+    returns = unit * jnp.float32(1.0 + cfg.grpo.success_bonus)
+    rewards = jax.nn.one_hot(last, c_max, dtype=jnp.float32) * unit[:, None]
     rollout = Rollout(obs_frames=rec["obs"], proprio=rec["proprio"],
                       proprio_valid=jnp.broadcast_to(valid_in[:, None], valid.shape), instruction_tokens=instruction_tokens,
                       tokens=rec["tokens"], log_probs=rec["log_probs"], valid=valid, rewards=rewards,
                       scores=jnp.cumsum(rewards, axis=1), success=success, returns=returns,
                       frames=jnp.zeros((0,), jnp.float32))
-    return rollout, EpisodeStats(steps=steps, broken=broken)
+    return rollout, EpisodeStats(steps=steps, broken=broken, terminal_value=terminal)
 
 
 class RecordedEpisodes(NamedTuple):

@@ -1,0 +1,206 @@
+"""The value that closes short GRPO rollouts (sword_jax.rl.value, rl.value): its returns, its fit and calibration,
+the rollout that pays it, and ground-truth GRPO fitting it once and loading the fit on resume."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import configs
+from sword_jax.rl import grpo
+from sword_jax.rl.config import RLConfig, ValueConfig
+from sword_jax.rl.jax_env_grpo import EnvGRPO, mixed_groups, start_value
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+from sword_jax.rl.scan_rollout import scan_rollout
+from sword_jax.rl.value import (Value, ValueData, as_value, build_value, calibration, decision_samples, fit_value,
+                                predict, split_episodes, terminal_returns)
+from tests.test_scan_rollout import SIZE, BreakingSlideEnv, SlideEnv
+
+
+def _rl(**value):
+    cfg = configs.get("sword:tiny")
+    return dataclasses.replace(cfg.rl, image_size=SIZE, grpo=dataclasses.replace(
+        cfg.rl.grpo, rollout_batch=2, group_size=4, minibatches=1, ppo_epochs=1, update_microbatch=0, temperature=1.0),
+        value=dataclasses.replace(cfg.rl.value, **value), env=dataclasses.replace(cfg.rl.env, backend="mjx"))
+
+
+def test_terminal_returns_pay_success_the_value_at_the_horizon_and_nothing_for_failure():
+    success = jnp.array([True, False, False, True])
+    truncated = jnp.array([False, True, False, True])  # the last: a success is never paid its value on top
+    out = terminal_returns(success, truncated, jnp.array([0.9, 0.25, 0.7, 0.5]), 2.0)
+    np.testing.assert_allclose(np.asarray(out), [2.0, 0.5, 0.0, 2.0])
+    np.testing.assert_allclose(np.asarray(terminal_returns(success, truncated, jnp.array([0, 1.7, 0, 0]), 1.0)),
+                               [1.0, 1.0, 0.0, 1.0])  # a value outside [0, 1] is clipped
+
+
+def test_calibration_on_designed_scores():
+    labels = np.array([0, 0, 1, 1], np.float32)
+    good = calibration(np.array([0.1, 0.2, 0.8, 0.9]), labels, bins=2)
+    assert good["auc"] == 1.0 and good["brier"] == pytest.approx(0.025) and good["brier_constant"] == 0.25
+    assert good["positive_rate"] == 0.5 and [b["count"] for b in good["bins"]] == [2, 2]
+    assert good["bins"][1]["observed"] == 1.0 and good["bins"][1]["predicted"] == pytest.approx(0.85)
+    assert calibration(np.array([0.9, 0.8, 0.2, 0.1]), labels)["auc"] == 0.0
+    assert calibration(np.full(4, 0.5), labels)["auc"] == 0.5  # ties share their rank
+    assert calibration(np.full(3, 0.5), np.ones(3))["auc"] is None  # one class: no ranking to judge
+    with pytest.raises(ValueError, match="equal"):
+        calibration(np.zeros(3), np.zeros(4))
+
+
+def test_decision_samples_label_every_valid_decision_with_its_episode_outcome():
+    frames = np.arange(2 * 3 * 2 * 2 * 3, dtype=np.uint8).reshape(2, 3, 2, 2, 3)
+    valid = np.array([[1, 1, 0], [1, 1, 1]], np.float32)
+    tokens = np.array([[5, 0], [7, 8]], np.int32)
+    data = decision_samples(frames, valid, tokens, np.array([True, False]))
+    assert len(data) == 5 and data.labels.tolist() == [1, 1, 0, 0, 0] and data.episode.tolist() == [0, 0, 1, 1, 1]
+    np.testing.assert_array_equal(data.frames[2], frames[1, 0])
+    np.testing.assert_array_equal(data.tokens[3], tokens[1])
+    fit, held = split_episodes(data, 0.5, np.random.default_rng(0))
+    assert len(fit) + len(held) == 5 and set(fit.episode).isdisjoint(held.episode) and len(set(held.episode)) == 1
+    with pytest.raises(ValueError, match="agree"):
+        decision_samples(frames, valid[:, :2], tokens, np.array([True, False]))
+    with pytest.raises(ValueError, match="no valid decision"):
+        decision_samples(frames, np.zeros_like(valid), tokens, np.array([True, False]))
+
+
+def test_fit_value_learns_what_the_frame_and_the_instruction_say_together():
+    """Designed data: the episode succeeds when the frame is bright for instruction A and dark for instruction B,
+    so neither the frame nor the instruction alone predicts it; held-out Brier far below the constant's."""
+    rl = _rl(steps=300, batch_size=64, learning_rate=3e-3, width=8)
+    rng = np.random.default_rng(0)
+    n = 400
+    bright = rng.random(n) < 0.5
+    which = rng.random(n) < 0.5
+    frames = np.where(bright[:, None, None, None], 200, 40).astype(np.uint8) * np.ones((1, SIZE, SIZE, 3), np.uint8)
+    frames = np.clip(frames.astype(np.int32) + rng.integers(-20, 20, frames.shape), 0, 255).astype(np.uint8)
+    tokens = np.where(which[:, None], tokenize_instructions(["pick a"], 16), tokenize_instructions(["put b"], 16))
+    labels = (bright == which).astype(np.float32)
+    data = ValueData(frames, tokens.astype(np.int32), labels, np.arange(n, dtype=np.int32))
+    fit, held = split_episodes(data, 0.25, np.random.default_rng(1))
+    graphdef, params = build_value(rl, seed=0)
+    params, metrics = fit_value(graphdef, params, rl, fit, seed=0, log=lambda _: None)
+    report = calibration(predict(as_value(graphdef, params), held), held.labels)
+    assert report["brier"] < 0.25 * report["brier_constant"] and report["auc"] > 0.95, report
+    assert np.isfinite(metrics["loss"])
+
+
+def _value_fn(p, frames, tokens):  # a designed value: the final frame's brightness, scaled by p
+    del tokens
+    return jnp.mean(frames, axis=(1, 2, 3)) * p
+
+
+def test_scan_rollout_pays_a_rollout_cut_at_its_horizon_its_final_frames_value():
+    rl = _rl()
+    graphdef, params = build_policy(rl, seed=0)
+    starts = np.array([[0.34], [0.34], [-0.6], [-0.6]], np.float32)  # near the goal, and too far for 4 actions
+    tokens = jnp.asarray(tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes))
+    bonus = 1.0 + rl.grpo.success_bonus
+
+    def run(value, max_steps, env=SlideEnv()):
+        return jax.jit(lambda p, s, k, vp: scan_rollout(
+            graphdef, p, env, s, tokens, rl, key=k, greedy=False, ensemble=False, max_steps=max_steps,
+            value=None if value is None else Value(value, vp)))(params, jnp.asarray(starts), jax.random.key(2),
+                                                              jnp.float32(0.5))
+
+    plain, _ = run(None, 4)
+    valued, stats = run(_value_fn, 4)
+    longer, _ = run(None, 5)  # the same draws: its decision 4 sees the frame the 4-action rollout ended on
+    success = np.asarray(valued.success)
+    np.testing.assert_array_equal(success, np.asarray(plain.success))
+    final = np.asarray(longer.obs_frames)[:, 4].astype(np.float32).mean(axis=(1, 2, 3)) / 255.0
+    expected = np.where(success, bonus, bonus * 0.5 * final)
+    assert (~success).sum() >= 2
+    np.testing.assert_allclose(np.asarray(valued.returns), expected, rtol=1e-5)
+    assert np.all(final[~success] > 0.0)
+    np.testing.assert_allclose(np.asarray(stats.terminal_value)[~success], 0.5 * final[~success], rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(plain.returns), np.where(success, bonus, 0.0))
+    np.testing.assert_allclose(np.asarray(valued.rewards).sum(axis=1), expected / bonus, rtol=1e-5)
+    # a rollout whose physics broke is a failure, whatever its frame is worth
+    broken_starts = np.array([[-0.25], [-0.25], [-0.25], [-0.25]], np.float32)
+    out, b_stats = jax.jit(lambda p, k: scan_rollout(
+        graphdef, p, BreakingSlideEnv(), jnp.asarray(broken_starts), tokens, rl, key=k, greedy=False, ensemble=False,
+        max_steps=8, value=Value(lambda p, f, t: jnp.ones(f.shape[0]), jnp.float32(1.0))))(params, jax.random.key(5))
+    broke = np.asarray(b_stats.broken)
+    assert broke.any() and np.all(np.asarray(out.returns)[broke] == 0.0)
+
+
+def _runner(rl, params, graphdef, value_graphdef, value_params, tmp_starts):
+    tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
+    return EnvGRPO(graphdef, rl, SlideEnv(), max_steps=12, starts_at=lambda s, r: (tmp_starts(s, r), tokens),
+                   eval_starts=np.array([[0.3], [-1.0]], np.float32), eval_tokens=tokens, eval_tasks=[0, 1],
+                   key=jax.random.key(3), train_max_steps=4, train_execute_steps=4, train_proprio=False,
+                   value=as_value(value_graphdef, value_params))
+
+
+def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fit_on_resume(tmp_path):
+    rl = _rl(episodes=12, steps=20, batch_size=16, width=4, holdout=0.25)
+    graphdef, params = build_policy(rl, seed=0)
+    value_graphdef, value_params = build_value(rl, seed=0)
+    drawn = []
+
+    def starts(step, round_):
+        drawn.append((step, round_))
+        return np.array([[-0.2], [0.1]], np.float32)
+
+    runner = _runner(rl, params, graphdef, value_graphdef, value_params, starts)
+    record = start_value(runner, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
+                         log=lambda _: None)
+    assert drawn == [(0, -1), (0, -2)]  # 12 episodes: two rounds of 8, draws no GRPO step takes
+    assert record["real_episodes"] == 12 and record["held_out_episodes"] == 3 and record["fit_episodes"] == 9
+    assert 0.0 <= record["episode_success"] <= 1.0 and record["held_out"]["samples"] > 0
+    fitted = runner.value.params
+    assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(fitted), jax.tree.leaves(value_params)))
+
+    state = grpo.init_state(jax.tree.map(jnp.copy, params), rl)
+    _, metrics = runner.step(state, 0, jax.random.key(1))
+    assert 0.0 < float(metrics["truncated_fraction"]) <= 1.0 and 0.0 < float(metrics["terminal_value"]) < 1.0
+
+    # a resumed run loads the fit: same params, no episodes collected
+    drawn.clear()
+    again = _runner(rl, params, graphdef, value_graphdef, build_value(rl, seed=1)[1], starts)
+    assert start_value(again, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
+                       log=lambda _: None) == record
+    assert drawn == []
+    for a, b in zip(jax.tree.leaves(again.value.params), jax.tree.leaves(fitted)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    _, again_metrics = again.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
+    assert float(again_metrics["terminal_value"]) == pytest.approx(float(metrics["terminal_value"]), rel=1e-5)
+
+
+def test_groups_gain_a_signal_when_the_horizon_cuts_every_rollout():
+    """From starts no 4-action rollout can finish, success alone gives no group a spread; the value gives all."""
+    rl = _rl()
+    graphdef, params = build_policy(rl, seed=0)
+    far = jnp.asarray(np.full((8, 1), -0.6, np.float32))
+    tokens = jnp.asarray(tokenize_instructions(["push it"] * 8, rl.policy.max_instruction_bytes))
+    kwargs = dict(key=jax.random.key(0), greedy=False, ensemble=False, max_steps=4)
+    plain, _ = scan_rollout(graphdef, params, SlideEnv(), far, tokens, rl, **kwargs)
+    valued, _ = scan_rollout(graphdef, params, SlideEnv(), far, tokens, rl, value=Value(_value_fn, 1.0), **kwargs)
+    assert not np.asarray(mixed_groups(plain.returns, 4)).any()
+    assert np.asarray(mixed_groups(valued.returns, 4)).all()
+
+
+def test_value_config_is_checked_and_runs_on_mjx_only():
+    ValueConfig().validate()
+    for bad in (dict(episodes=-1), dict(steps=0), dict(batch_size=0), dict(width=0), dict(learning_rate=0.0),
+                dict(holdout=1.0), dict(holdout=-0.1), dict(episodes=True), dict(steps=2.5)):
+        with pytest.raises(ValueError, match="rl.value"):
+            ValueConfig(**bad).validate()
+    with pytest.raises(ValueError, match="rl.value.episodes > 0 .* rl.env.backend=mjx"):
+        RLConfig(value=ValueConfig(episodes=8)).validate()
+    RLConfig(value=ValueConfig(episodes=8), env=dataclasses.replace(RLConfig().env, backend="mjx")).validate()
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--rl.value.episodes=64", "--rl.env.backend=mjx"])
+    assert cfg.rl.value.episodes == 64
+
+
+def test_start_value_needs_a_runner_built_with_a_value(tmp_path):
+    rl = _rl(episodes=4)
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=4, starts_at=lambda s, r: None, eval_starts=np.zeros((2, 1)),
+                     eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(0))
+    with pytest.raises(ValueError, match="without a value"):
+        start_value(runner, build_value(rl)[0], params, str(tmp_path), seed=0, max_steps=4)
+    with pytest.raises(ValueError, match="without a value"):
+        runner.set_value({})
