@@ -878,6 +878,32 @@ def grpo_horizon_signal() -> str:
                    "groups with mixed outcomes"], rows)
 
 
+def grpo_branched_value() -> str:
+    """Branched short ground-truth GRPO closed by the fitted value against paid by success alone
+    (``policy_grpo_branched_value_small``): per run the gains of the sampled policy with proprio masked (the mode
+    its rollouts train) and with true proprio, what its rollouts were paid, its groups with mixed outcomes, and the
+    value's held-out calibration."""
+    entry = _load("latest.json")["policy_grpo_branched_value_small"]
+    rows = []
+    for arm in ("value", "success"):
+        for _, run in sorted(entry["runs"].items()):
+            if run["arm"] != arm:
+                continue
+            masked, sampled, paid, v = run["sampled_proprio_masked"], run["sampled"], run["paid_success"], run["value"]
+            value_paid = run.get("terminal_value")
+            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
+                         f"{masked['start']:.3f} -> {masked['end']:.3f}, {_pct(masked['gain'])} {_interval(masked['ci95'])}",
+                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
+                         f"{paid['first']:.3f} -> {paid['last']:.3f}"
+                         + (f" (value {value_paid['first']:.3f} -> {value_paid['last']:.3f})" if value_paid else ""),
+                         f"{run['mixed_median']:.2f}",
+                         f"{v['held_out_brier']:.3f} / {v['held_out_brier_constant']:.3f} / {v['held_out_auc']:.2f}"])
+    return _table(["rollouts (4 decisions, branched from the policy's real states)", "seed", "steps",
+                   "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
+                   "paid success, steps 1-5 -> last 5", "groups mixed (median)",
+                   "value held out: Brier / constant's / AUC"], rows)
+
+
 def sim_fidelity_decisions() -> str:
     """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
     its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
@@ -912,6 +938,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal,
+    "grpo-branched-value": grpo_branched_value,
 }
 
 

@@ -26,7 +26,7 @@ from sword_jax.rl import grpo
 from sword_jax.rl.env_rollout import make_act_fns, run_policy
 from sword_jax.rl.grpo import UPDATE_KEY_SALT
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
-from sword_jax.rl.jax_env_grpo import EnvGRPO, start_value
+from sword_jax.rl.jax_env_grpo import EnvGRPO, branch_starts, start_value
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.policy_success import evaluate_in_sim
 from sword_jax.rl.proprio_reckoning import ReckoningConfig, fit_gains
@@ -185,8 +185,10 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     always start at rest with ``rl.env.execute_steps``.
 
     With ``rl.value.episodes > 0`` a value fitted to that many real episodes of the starting policy
-    (:func:`~sword_jax.rl.jax_env_grpo.start_value`, saved under ``workdir/value``) pays the training rollouts
-    that reach their horizon without an outcome; the result then has its record as ``value``.
+    (:func:`~sword_jax.rl.jax_env_grpo.start_value`, saved under ``workdir/value``; the episodes start at rest
+    from training-split states, whatever ``rl.env.starts`` says) pays the training rollouts that reach their
+    horizon without an outcome (unless ``rl.value.bootstrap=false``); the result then has its record as ``value``.
+    ``rl.env.starts=branch`` starts the training rollouts at those episodes' decisions (every phase).
     """
     if rl.env.proprio not in ("true", "missing"):
         raise ValueError(f"rl.env.backend=mjx reads proprio true or missing; got rl.env.proprio={rl.env.proprio} "
@@ -200,7 +202,13 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     eval_qpos, eval_text = episode_starts(eval_episodes)
     max_bytes = rl.policy.max_instruction_bytes
 
-    def starts_at(step, round_):  # a function of (seed, step, round), so a resumed run draws the same ones
+    def value_starts(round_):  # the value's episodes: training-split states at rest, a function of (seed, round)
+        picked = stratified_train_starts(tasks, rl.grpo.rollout_batch,
+                                         stream_rng(cfg.seed, "grpo/value_starts", round_), pool=pool)
+        qpos, text = episode_starts(picked)
+        return qpos, tokenize_instructions(text, max_bytes)
+
+    def listed_starts(step, round_):  # a function of (seed, step, round), so a resumed run draws the same ones
         if rl.env.starts == "keyframes":
             picked = [(t, np.asarray(flat, np.float32)) for t, flat in
                       keyframe_picks(keyframes, rl, seed=cfg.seed, step=step, round_=round_)]
@@ -210,21 +218,31 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         qpos, text = episode_starts(picked)
         return qpos, tokenize_instructions(text, max_bytes)
 
+    decisions = []  # with rl.env.starts=branch: the value episodes' decisions, once start_value has them
+
+    def starts_at(step, round_):
+        if rl.env.starts == "branch":
+            return branch_starts(decisions[0], rl.grpo.rollout_batch,
+                                 stream_rng(cfg.seed, "grpo/mjx_branch", step, round_))
+        return listed_starts(step, round_)
+
     setting = {}
-    if rl.env.starts == "keyframes":
+    if rl.env.starts in ("keyframes", "branch"):
         setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined_actions_per_decision)
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
     value_net = build_value(rl, seed=cfg.seed) if rl.value.episodes else None
+    paid = value_net is not None and rl.value.bootstrap
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
                      eval_tokens=tokenize_instructions(eval_text, max_bytes),
                      eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log,
-                     train_proprio=not masked, value=None if value_net is None else as_value(*value_net), **setting)
+                     train_proprio=not masked, value=as_value(*value_net) if paid else None, **setting)
     os.makedirs(workdir, exist_ok=True)
     value_record = None
     if value_net is not None:  # fitted once, before the first step; a resumed run loads the fit
-        value_record = start_value(runner, value_net[0], params, os.path.join(workdir, "value"), seed=cfg.seed,
-                                   max_steps=cfg.sim.max_steps, log=log)
+        value_record, recorded = start_value(runner, value_net[0], params, os.path.join(workdir, "value"),
+                                             seed=cfg.seed, max_steps=cfg.sim.max_steps, starts_at=value_starts, log=log)
+        decisions.append(recorded)
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate(step, params):

@@ -63,6 +63,12 @@ class MjxEpisodes:
         state = jax.vmap(self.env.reset_to if starts.shape[1] == self.nq else self.env.restore)(starts)
         return state.data, self._observation(state)
 
+    def snapshot(self, data: Any) -> jax.Array:
+        """``[N, 1 + nq + nv]`` flat states ``[time, qpos, qvel]`` of the episodes (pure): what :meth:`reset`
+        continues, as it continues a dataset's recorded ``states[t]``."""
+        return jnp.concatenate([jnp.asarray(data.time, jnp.float32)[:, None], data.qpos.astype(jnp.float32),
+                                data.qvel.astype(jnp.float32)], axis=1)
+
     def step(self, data: Any, actions: jax.Array) -> tuple[Any, dict[str, jax.Array], jax.Array]:
         """One 20 Hz control step of every episode (pure): ``actions [N, 7]`` clipped to [-1, 1].
 

@@ -85,7 +85,8 @@ def test_mjx_episodes_follow_the_c_engine_under_the_same_actions():
 
 def test_mjx_episodes_continue_recorded_states_as_the_c_engine_restores_them():
     """MjxEpisodes.reset of recorded flat states ([time, qpos, qvel], a dataset's states[t]) continues them
-    without settling: the frames and proprio are the C engine's restored ones; a wrong width is refused."""
+    without settling: the frames and proprio are the C engine's restored ones, the snapshot of the restored state is
+    the recorded one; a wrong width is refused."""
     env = CpuEnv(SimConfig(), task_id=5)
     out = expert.rollout_cpu(env, env.init_states[1], max_steps=60, record=True)
     chosen = [out["states"][10], out["states"][40]]
@@ -97,6 +98,8 @@ def test_mjx_episodes_continue_recorded_states_as_the_c_engine_restores_them():
         ref = ref_envs.reset()
     np.testing.assert_allclose(np.asarray(data.qpos), flat[:, 1: 1 + batch.nq], atol=1e-6)
     np.testing.assert_allclose(np.asarray(data.time), flat[:, 0], atol=1e-6)
+    # the snapshot GRPO branches from is the flat state reset continued (sword_jax.rl.jax_env_grpo.branch_starts)
+    np.testing.assert_allclose(np.asarray(jax.jit(batch.snapshot)(data)), flat, atol=1e-6)
     np.testing.assert_allclose(obs["proprio"], ref["proprio"], atol=2e-4)
     diff = np.abs(np.asarray(obs["frames"]).astype(np.int32) - ref["frames"].astype(np.int32))
     assert diff.mean() < 0.3 and np.mean(diff == 0) > 0.97, (diff.mean(), np.mean(diff == 0))

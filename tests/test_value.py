@@ -11,12 +11,19 @@ import pytest
 import configs
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig, ValueConfig
-from sword_jax.rl.jax_env_grpo import EnvGRPO, mixed_groups, start_value
+from sword_jax.rl.jax_env_grpo import EnvGRPO, branch_starts, mixed_groups, start_value
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.scan_rollout import scan_rollout
 from sword_jax.rl.value import (Value, ValueData, as_value, build_value, calibration, decision_samples, fit_value,
                                 predict, split_episodes, terminal_returns)
 from tests.test_scan_rollout import SIZE, BreakingSlideEnv, SlideEnv
+
+
+class SnapshotSlideEnv(SlideEnv):
+    """SlideEnv that can snapshot its state (the position), which reset continues."""
+
+    def snapshot(self, pos):
+        return pos[:, None]
 
 
 def _rl(**value):
@@ -52,7 +59,12 @@ def test_decision_samples_label_every_valid_decision_with_its_episode_outcome():
     frames = np.arange(2 * 3 * 2 * 2 * 3, dtype=np.uint8).reshape(2, 3, 2, 2, 3)
     valid = np.array([[1, 1, 0], [1, 1, 1]], np.float32)
     tokens = np.array([[5, 0], [7, 8]], np.int32)
-    data = decision_samples(frames, valid, tokens, np.array([True, False]))
+    states = np.arange(2 * 3 * 2, dtype=np.float32).reshape(2, 3, 2)
+    data = decision_samples(frames, valid, tokens, np.array([True, False]), states)
+    np.testing.assert_array_equal(data.states[2], states[1, 0])
+    assert decision_samples(frames, valid, tokens, np.array([True, False])).states.shape == (5, 0)
+    both = ValueData.concatenate([data, data])
+    assert len(both) == 10 and both.episode.tolist() == [0, 0, 1, 1, 1, 2, 2, 3, 3, 3]
     assert len(data) == 5 and data.labels.tolist() == [1, 1, 0, 0, 0] and data.episode.tolist() == [0, 0, 1, 1, 1]
     np.testing.assert_array_equal(data.frames[2], frames[1, 0])
     np.testing.assert_array_equal(data.tokens[3], tokens[1])
@@ -76,7 +88,7 @@ def test_fit_value_learns_what_the_frame_and_the_instruction_say_together():
     frames = np.clip(frames.astype(np.int32) + rng.integers(-20, 20, frames.shape), 0, 255).astype(np.uint8)
     tokens = np.where(which[:, None], tokenize_instructions(["pick a"], 16), tokenize_instructions(["put b"], 16))
     labels = (bright == which).astype(np.float32)
-    data = ValueData(frames, tokens.astype(np.int32), labels, np.arange(n, dtype=np.int32))
+    data = ValueData(frames, tokens.astype(np.int32), labels, np.arange(n, dtype=np.int32), np.zeros((n, 0), np.float32))
     fit, held = split_episodes(data, 0.25, np.random.default_rng(1))
     graphdef, params = build_value(rl, seed=0)
     params, metrics = fit_value(graphdef, params, rl, fit, seed=0, log=lambda _: None)
@@ -127,7 +139,7 @@ def test_scan_rollout_pays_a_rollout_cut_at_its_horizon_its_final_frames_value()
 
 def _runner(rl, params, graphdef, value_graphdef, value_params, tmp_starts):
     tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
-    return EnvGRPO(graphdef, rl, SlideEnv(), max_steps=12, starts_at=lambda s, r: (tmp_starts(s, r), tokens),
+    return EnvGRPO(graphdef, rl, SnapshotSlideEnv(), max_steps=12, starts_at=lambda s, r: (tmp_starts(s, r), tokens),
                    eval_starts=np.array([[0.3], [-1.0]], np.float32), eval_tokens=tokens, eval_tasks=[0, 1],
                    key=jax.random.key(3), train_max_steps=4, train_execute_steps=4, train_proprio=False,
                    value=as_value(value_graphdef, value_params))
@@ -139,14 +151,17 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
     value_graphdef, value_params = build_value(rl, seed=0)
     drawn = []
 
-    def starts(step, round_):
-        drawn.append((step, round_))
-        return np.array([[-0.2], [0.1]], np.float32)
+    def starts(round_):
+        drawn.append(round_)
+        return np.array([[-0.2], [0.1]], np.float32), tokenize_instructions(["push it"] * 2, 96)
 
-    runner = _runner(rl, params, graphdef, value_graphdef, value_params, starts)
-    record = start_value(runner, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
-                         log=lambda _: None)
-    assert drawn == [(0, -1), (0, -2)]  # 12 episodes: two rounds of 8, draws no GRPO step takes
+    runner = _runner(rl, params, graphdef, value_graphdef, value_params,
+                     lambda s, r: np.array([[-0.2], [0.1]], np.float32))
+    record, decisions = start_value(runner, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
+                                    starts_at=starts, log=lambda _: None)
+    assert drawn == [0, 1]  # 12 episodes: two rounds of 8
+    assert len(decisions) == record["decisions"] and decisions.states.shape == (len(decisions), 1)
+    assert np.all(decisions.states[decisions.episode == 0][:1] == -0.2)  # the first decision is the start state
     assert record["real_episodes"] == 12 and record["held_out_episodes"] == 3 and record["fit_episodes"] == 9
     assert 0.0 <= record["episode_success"] <= 1.0 and record["held_out"]["samples"] > 0
     fitted = runner.value.params
@@ -158,10 +173,13 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
 
     # a resumed run loads the fit: same params, no episodes collected
     drawn.clear()
-    again = _runner(rl, params, graphdef, value_graphdef, build_value(rl, seed=1)[1], starts)
-    assert start_value(again, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
-                       log=lambda _: None) == record
-    assert drawn == []
+    again = _runner(rl, params, graphdef, value_graphdef, build_value(rl, seed=1)[1],
+                    lambda s, r: np.array([[-0.2], [0.1]], np.float32))
+    record_again, decisions_again = start_value(again, value_graphdef, params, str(tmp_path / "value"), seed=0,
+                                                max_steps=12, starts_at=starts, log=lambda _: None)
+    assert record_again == record and drawn == []
+    np.testing.assert_array_equal(decisions_again.states, decisions.states)
+    np.testing.assert_array_equal(decisions_again.labels, decisions.labels)
     for a, b in zip(jax.tree.leaves(again.value.params), jax.tree.leaves(fitted)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     _, again_metrics = again.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
@@ -189,18 +207,43 @@ def test_value_config_is_checked_and_runs_on_mjx_only():
             ValueConfig(**bad).validate()
     with pytest.raises(ValueError, match="rl.value.episodes > 0 .* rl.env.backend=mjx"):
         RLConfig(value=ValueConfig(episodes=8)).validate()
-    RLConfig(value=ValueConfig(episodes=8), env=dataclasses.replace(RLConfig().env, backend="mjx")).validate()
+    mjx = dataclasses.replace(RLConfig().env, backend="mjx")
+    RLConfig(value=ValueConfig(episodes=8), env=mjx).validate()
+    RLConfig(value=ValueConfig(episodes=8), env=dataclasses.replace(mjx, starts="branch")).validate()
+    with pytest.raises(ValueError, match="rl.env.starts=branch .* rl.value.episodes > 0"):
+        RLConfig(env=dataclasses.replace(mjx, starts="branch")).validate()
+    with pytest.raises(ValueError, match="rl.value.bootstrap"):
+        ValueConfig(bootstrap="yes").validate()
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--rl.value.episodes=64", "--rl.env.backend=mjx"])
     assert cfg.rl.value.episodes == 64
 
 
-def test_start_value_needs_a_runner_built_with_a_value(tmp_path):
-    rl = _rl(episodes=4)
+def test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_where_its_env_snapshots(tmp_path):
+    """rl.value.bootstrap=false: the control arm. The value is fitted and reported, the rollouts are paid success
+    alone; branch starts come from the recorded decisions, and an environment without snapshots has none."""
+    rl = _rl(episodes=8, steps=5, batch_size=8, width=4, bootstrap=False)
     graphdef, params = build_policy(rl, seed=0)
     tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
-    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=4, starts_at=lambda s, r: None, eval_starts=np.zeros((2, 1)),
-                     eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(0))
-    with pytest.raises(ValueError, match="without a value"):
-        start_value(runner, build_value(rl)[0], params, str(tmp_path), seed=0, max_steps=4)
+    far = np.array([[-0.6], [-0.6]], np.float32)
+    runner = EnvGRPO(graphdef, rl, SnapshotSlideEnv(), max_steps=12, starts_at=lambda s, r: (far, tokens),
+                     eval_starts=far, eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(0), train_max_steps=4,
+                     train_execute_steps=4)
+    record, decisions = start_value(runner, build_value(rl)[0], params, str(tmp_path), seed=0, max_steps=12,
+                                    starts_at=lambda r: (far, tokens), log=lambda _: None)
+    assert runner.value is None and record["real_episodes"] == 8
+    _, metrics = runner.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
+    assert "terminal_value" not in metrics and float(metrics["rollout_success"]) == 0.0
+    states, picked_tokens = branch_starts(decisions, 5, np.random.default_rng(0))
+    assert states.shape == (5, 1) and picked_tokens.shape == (5, tokens.shape[1])
+    assert np.all(np.isin(states[:, 0], decisions.states[:, 0]))
     with pytest.raises(ValueError, match="without a value"):
         runner.set_value({})
+    plain = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=12, starts_at=lambda s, r: (far, tokens), eval_starts=far,
+                    eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(0))
+    unsnapped = plain.value_episodes(params, 2, max_steps=4, key=jax.random.key(0), starts_at=lambda r: (far, tokens))
+    assert unsnapped.states.shape == (len(unsnapped), 0)
+    with pytest.raises(ValueError, match="no environment snapshots"):
+        branch_starts(unsnapped, 3, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="record_states needs an environment with snapshot"):
+        scan_rollout(graphdef, params, SlideEnv(), jnp.asarray(far), jnp.asarray(tokens), rl, key=jax.random.key(0),
+                     greedy=True, ensemble=False, max_steps=4, record_states=True)

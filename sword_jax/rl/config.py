@@ -589,8 +589,8 @@ class ValueConfig:
     Rollouts short enough for a learned simulator to stay honest rarely reach success, and a success-only return
     gives most of their groups no learning signal (model-based RL with short branched rollouts, MBPO, closes its
     horizon with a learned value). With ``episodes > 0`` a value network is fitted before the first GRPO step to
-    ``episodes`` real episodes of the starting policy (sampled at ``rl.grpo.temperature``, acting as GRPO's rollouts
-    do, each run to the episode limit): it reads a frame and the instruction and predicts whether the episode that
+    ``episodes`` real episodes of the starting policy (from training-split states at rest, sampled at
+    ``rl.grpo.temperature``, acting as GRPO's rollouts do, each run to the episode limit): it reads a frame and the instruction and predicts whether the episode that
     frame belongs to goes on to succeed. A training rollout that reaches its horizon without success or failure is
     then paid ``(1 + rl.grpo.success_bonus) x`` the value of its final frame instead of 0; a success is still paid
     ``1 + success_bonus``. Evaluations are unchanged. Ground-truth GRPO on MJX (``rl.env.backend=mjx``).
@@ -601,6 +601,8 @@ class ValueConfig:
         the episodes' decisions, so its outputs stay calibrated probabilities).
       width: base channels of the value network's CNN.
       holdout: share of the episodes kept out of the fit, on which its calibration is reported.
+      bootstrap: pay the rollouts cut at their horizon the value (default); false fits and reports it but pays
+        success alone, the control of a run branched from the same episodes (``rl.env.starts=branch``).
     """
 
     episodes: int = 0  # 0 = off
@@ -609,8 +611,11 @@ class ValueConfig:
     learning_rate: float = 1e-3
     width: int = 16
     holdout: float = 0.2
+    bootstrap: bool = True
 
     def validate(self) -> None:
+        if not isinstance(self.bootstrap, bool):
+            raise ValueError(f"rl.value.bootstrap must be true or false, got {self.bootstrap!r}")
         for name in ("episodes", "steps", "batch_size", "width"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "episodes" else 1):
@@ -656,7 +661,10 @@ class EnvConfig:
         ``proprio=missing``, GRPO in the real environments then has the learned simulator's
         setting with true dynamics and true success: whether that setting can lift success from
         rest, free of world-model error. Both backends run every start and the proprio modes ``true``
-        and ``missing``; ``reckoned`` runs on ``cpu`` only.
+        and ``missing``; ``reckoned`` runs on ``cpu`` only. ``branch`` (MJX only, with ``rl.value.episodes``):
+        the states of the starting policy's own real episodes collected for the value, at every decision
+        before their outcome, uniformly (MBPO's branched rollouts; :func:`sword_jax.rl.jax_env_grpo.branch_starts`),
+        for the learned simulator's horizon and execution as ``keyframes`` runs them.
     """
 
     backend: str = "cpu"  # cpu | mjx
@@ -664,7 +672,7 @@ class EnvConfig:
     action_ensemble: bool = True
     ensemble_decay: float = 0.1
     proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
-    starts: str = "initial"  # initial | keyframes: where ground-truth GRPO rollouts start
+    starts: str = "initial"  # initial | keyframes | branch: where ground-truth GRPO rollouts start
 
     def validate(self) -> None:
         if self.action_ensemble and self.execute_steps != 1:
@@ -675,8 +683,8 @@ class EnvConfig:
             raise ValueError(f"rl.env.ensemble_decay must be >= 0, got {self.ensemble_decay}")
         if self.proprio not in ("true", "reckoned", "missing"):
             raise ValueError(f"rl.env.proprio must be true|reckoned|missing, got {self.proprio!r}")
-        if self.starts not in ("initial", "keyframes"):
-            raise ValueError(f"rl.env.starts must be initial|keyframes, got {self.starts!r}")
+        if self.starts not in ("initial", "keyframes", "branch"):
+            raise ValueError(f"rl.env.starts must be initial|keyframes|branch, got {self.starts!r}")
         if self.backend not in ("cpu", "mjx"):
             raise ValueError(f"rl.env.backend must be cpu|mjx, got {self.backend!r}")
         if self.backend == "mjx" and self.proprio == "reckoned":
@@ -810,6 +818,10 @@ class RLConfig:
                              "keyframes' recorded states: it needs rl.env.backend=mjx, rl.refresh.every=0 (a "
                              "refresh's branch starts hold no simulator state) and rl.imagined.confirm_success=false, "
                              f"got {self.env.backend}, {self.refresh.every}, {self.imagined.confirm_success}")
+        if self.env.starts == "branch" and not (self.value.episodes and self.env.backend == "mjx"):
+            raise ValueError("rl.env.starts=branch starts GRPO's rollouts at the states of the real episodes collected "
+                             "for the value: it needs rl.value.episodes > 0 and rl.env.backend=mjx, got "
+                             f"{self.value.episodes} and {self.env.backend!r}")
         if self.value.episodes and self.env.backend != "mjx":
             raise ValueError("rl.value.episodes > 0 closes ground-truth GRPO's rollouts on MJX with a fitted value: it "
                              f"needs rl.env.backend=mjx, got {self.env.backend!r}")

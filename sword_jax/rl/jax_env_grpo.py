@@ -136,10 +136,10 @@ class EnvGRPO:
         self.probe_dir, self.reference_tokens = "", None
 
     def _rollout_impl(self, params, starts, tokens, key, greedy, ensemble, proprio_valid=None, value_params=None, *,
-                      rl=None, max_steps=None, value_fn=None):
+                      rl=None, max_steps=None, value_fn=None, record_states=False):
         return scan_rollout(self.graphdef, params, self.env, starts, tokens, self.rl if rl is None else rl, key=key,
                             greedy=greedy, ensemble=ensemble, max_steps=self.max_steps if max_steps is None else max_steps,
-                            proprio_valid=proprio_valid,
+                            proprio_valid=proprio_valid, record_states=record_states,
                             value=None if value_fn is None else Value(fn=value_fn, params=value_params))
 
     def set_value(self, params: Any) -> None:
@@ -148,29 +148,30 @@ class EnvGRPO:
             raise ValueError("EnvGRPO.set_value: the runner was built without a value")
         self.value = self.value._replace(params=params)
 
-    def value_episodes(self, params: Any, episodes: int, *, max_steps: int, key: jax.Array) -> ValueData:
-        """``episodes`` real episodes of the policy ``params`` for fitting the value: drawn from the training
-        starts (``starts_at(0, r)`` for rounds ``r`` counted down from -1, draws no GRPO step takes), sampled and
-        executed as the training rollouts are, each run up to ``max_steps`` actions; every decision labelled
-        with its episode's outcome (:func:`~sword_jax.rl.value.decision_samples`)."""
+    def value_episodes(self, params: Any, episodes: int, *, max_steps: int, key: jax.Array,
+                       starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> ValueData:
+        """``episodes`` real episodes of the policy ``params`` for fitting the value: round ``r = 0, 1, ...`` starts
+        ``group_size`` episodes at each of ``starts_at(r)``'s states, sampled and executed as the training rollouts
+        are, each run up to ``max_steps`` actions; every decision labelled with its episode's outcome
+        (:func:`~sword_jax.rl.value.decision_samples`), with the environment's snapshot there where it has one (the
+        start states of branched rollouts)."""
         if episodes < 1:
             raise ValueError(f"EnvGRPO.value_episodes: episodes must be >= 1, got {episodes}")
-        g = self.rl.grpo.group_size
-        rollout = jax.jit(lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=max_steps))
+        g, record = self.rl.grpo.group_size, hasattr(self.env, "snapshot")
+        rollout = jax.jit(lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=max_steps,
+                                                           record_states=record))
         parts, have, r = [], 0, 0
         while have < episodes:
-            r -= 1
-            starts, tokens = self.starts_at(0, r)
+            starts, tokens = starts_at(r)
             starts, tokens = np.repeat(np.asarray(starts), g, axis=0), np.repeat(np.asarray(tokens), g, axis=0)
-            out, _ = rollout(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.fold_in(key, -r), False, False,
-                             self._valid(float(self.train_proprio)))
+            out, stats = rollout(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.fold_in(key, r), False,
+                                 False, self._valid(float(self.train_proprio)))
             take = min(episodes - have, starts.shape[0])
             parts.append(decision_samples(np.asarray(out.obs_frames)[:take], np.asarray(out.valid)[:take],
-                                          tokens[:take], np.asarray(out.success)[:take]))
-            parts[-1].episode += have
-            have += take
-        return ValueData(*(np.concatenate([getattr(p, f.name) for p in parts])
-                           for f in dataclasses.fields(ValueData)))
+                                          tokens[:take], np.asarray(out.success)[:take],
+                                          None if stats.states is None else np.asarray(stats.states)[:take]))
+            have, r = have + take, r + 1
+        return ValueData.concatenate(parts)
 
     # ---- training -------------------------------------------------------------------------------------
     def step(self, state: grpo.GRPOState, step: int, key: jax.Array) -> tuple[grpo.GRPOState, dict[str, jax.Array]]:
@@ -316,56 +317,79 @@ class EnvGRPO:
 
 
 def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, directory: str, *, seed: int,
-                max_steps: int, log: Callable[[str], Any] = print) -> dict[str, Any]:
-    """Fits ``rl.value`` to ``rl.value.episodes`` real episodes of the starting policy and gives the runner its
-    params (:meth:`EnvGRPO.set_value`), or, when ``directory`` holds a finished fit, loads that one (a resumed
-    run pays its rollouts as the uninterrupted run did, and collects no episodes again).
+                max_steps: int, starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                log: Callable[[str], Any] = print) -> tuple[dict[str, Any], ValueData]:
+    """Fits ``rl.value`` to ``rl.value.episodes`` real episodes of the starting policy, or, when ``directory``
+    holds a finished fit, loads that one (a resumed run pays and branches its rollouts as the uninterrupted run
+    did, and collects no episodes again). A runner built with a value (:meth:`EnvGRPO.set_value`) is given the
+    fitted params; one built without (``rl.value.bootstrap=false``) keeps paying success alone.
 
-    The episodes are :meth:`EnvGRPO.value_episodes` up to ``max_steps`` actions (the episode limit); ``holdout``
-    of them (whole episodes) are kept out of the fit and report its calibration (:func:`~sword_jax.rl.value.
-    calibration`). ``directory`` gets ``value.npz`` (the params) and ``value.json`` (the record returned: real
-    episodes used, the episodes' success, the fit's loss, calibration on fitted and held-out decisions).
-    ``graphdef``: the value network's (:func:`~sword_jax.rl.value.build_value`), the one the runner's value was
-    built from."""
+    The episodes are :meth:`EnvGRPO.value_episodes` from ``starts_at(round)`` up to ``max_steps`` actions (the
+    episode limit); ``holdout`` of them (whole episodes) are kept out of the fit and report its calibration
+    (:func:`~sword_jax.rl.value.calibration`). ``directory`` gets ``value.npz`` (the params), ``decisions.npz`` (the
+    decisions' snapshots, instructions and labels, where rollouts branch from) and ``value.json`` (the record:
+    real episodes used, their success, the fit's loss, its calibration on fitted and held-out decisions).
+    ``graphdef``: the value network's (:func:`~sword_jax.rl.value.build_value`).
+
+    Returns ``(record, decisions)``: the decisions without their frames (``frames`` empty).
+    """
     from sword_jax.atomic_write import write_json_atomic
     from sword_jax.rl.params_io import load_params_npz, save_params_npz
-    from sword_jax.rl.value import as_value, calibration, fit_value, predict, split_episodes
+    from sword_jax.rl.value import as_value, build_value, calibration, fit_value, predict, split_episodes
 
     rl = runner.rl
-    if runner.value is None:
-        raise ValueError("start_value: the runner was built without a value (EnvGRPO(..., value=...))")
-    params_path, record_path = os.path.join(directory, "value.npz"), os.path.join(directory, "value.json")
-    if os.path.exists(params_path) and os.path.exists(record_path):
+    paths = {k: os.path.join(directory, f) for k, f in (("params", "value.npz"), ("decisions", "decisions.npz"),
+                                                         ("record", "value.json"))}
+    fresh = build_value(rl, seed=seed)[1]
+    if all(os.path.exists(p) for p in paths.values()):
         import json
 
-        params = load_params_npz(params_path, jax.tree.map(jnp.copy, runner.value.params))
-        with open(record_path) as f:
+        params = load_params_npz(paths["params"], fresh)
+        with open(paths["record"]) as f:
             record = json.load(f)
+        with np.load(paths["decisions"]) as z:
+            decisions = ValueData(np.zeros((len(z["labels"]), 0, 0, 3), np.uint8), z["tokens"], z["labels"],
+                                  z["episode"], z["states"])
         log(f"value: loaded the fit in {directory} ({record['real_episodes']} real episodes)")
+    else:
+        t0 = time.perf_counter()
+        data = runner.value_episodes(policy_params, rl.value.episodes, max_steps=max_steps,
+                                     key=jax.random.fold_in(runner.key, 1 << 22), starts_at=starts_at)
+        t1 = time.perf_counter()
+        fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(seed))
+        outcome = np.array([data.labels[data.episode == e][0] for e in np.unique(data.episode)])
+        log(f"value: {rl.value.episodes} real episodes ({float(outcome.mean()):.3f} succeeded, {len(data)} decisions, "
+            f"{t1 - t0:.0f} s); fitting on {len(np.unique(fit.episode))}, {len(np.unique(held.episode))} held out")
+        params, metrics = fit_value(graphdef, fresh, rl, fit, seed=seed, log=log)
+        value = as_value(graphdef, params)
+        record = {"real_episodes": int(rl.value.episodes), "episode_success": float(outcome.mean()),
+                  "decisions": len(data), "fit_episodes": int(len(np.unique(fit.episode))),
+                  "held_out_episodes": int(len(np.unique(held.episode))), "loss": metrics["loss"],
+                  "fit": calibration(predict(value, fit), fit.labels),
+                  "held_out": calibration(predict(value, held), held.labels) if len(held) else None,
+                  "collect_seconds": round(t1 - t0, 1), "fit_seconds": round(time.perf_counter() - t1, 1)}
+        held_record = record["held_out"]
+        if held_record:
+            auc = held_record["auc"]
+            log(f"value: held-out Brier {held_record['brier']:.4f} (constant {held_record['brier_constant']:.4f}), "
+                f"AUC {'n/a' if auc is None else f'{auc:.3f}'}")
+        os.makedirs(directory, exist_ok=True)
+        save_params_npz(paths["params"], params)
+        np.savez(paths["decisions"], tokens=data.tokens, labels=data.labels, episode=data.episode, states=data.states)
+        write_json_atomic(paths["record"], record)  # written last: its presence marks a finished fit
+        decisions = dataclasses.replace(data, frames=np.zeros((len(data), 0, 0, 3), np.uint8))
+    if runner.value is not None:
         runner.set_value(params)
-        return record
-    t0 = time.perf_counter()
-    data = runner.value_episodes(policy_params, rl.value.episodes, max_steps=max_steps,
-                                 key=jax.random.fold_in(runner.key, 1 << 22))
-    t1 = time.perf_counter()
-    fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(seed))
-    outcome = np.array([data.labels[data.episode == e][0] for e in np.unique(data.episode)])
-    log(f"value: {rl.value.episodes} real episodes ({float(outcome.mean()):.3f} succeeded, {len(data)} decisions, "
-        f"{t1 - t0:.0f} s); fitting on {len(np.unique(fit.episode))}, {len(np.unique(held.episode))} held out")
-    params, metrics = fit_value(graphdef, jax.tree.map(jnp.copy, runner.value.params), rl, fit, seed=seed, log=log)
-    value = as_value(graphdef, params)
-    record = {"real_episodes": int(rl.value.episodes), "episode_success": float(outcome.mean()),
-              "decisions": len(data), "fit_episodes": int(len(np.unique(fit.episode))),
-              "held_out_episodes": int(len(np.unique(held.episode))), "loss": metrics["loss"],
-              "fit": calibration(predict(value, fit), fit.labels),
-              "held_out": calibration(predict(value, held), held.labels) if len(held) else None,
-              "collect_seconds": round(t1 - t0, 1), "fit_seconds": round(time.perf_counter() - t1, 1)}
-    held_record = record["held_out"]
-    if held_record:
-        log(f"value: held-out Brier {held_record['brier']:.4f} (constant {held_record['brier_constant']:.4f}), AUC "
-            f"{held_record['auc'] if held_record['auc'] is None else round(held_record['auc'], 3)}")
-    os.makedirs(directory, exist_ok=True)
-    save_params_npz(params_path, params)
-    write_json_atomic(record_path, record)  # written last: its presence marks a finished fit
-    runner.set_value(params)
-    return record
+    return record, decisions
+
+
+def branch_starts(decisions: ValueData, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` start states branched from recorded decisions (every phase of the episodes before their outcome,
+    uniformly): ``(snapshots [count, f], instruction tokens [count, l])``.
+
+    Raises:
+      ValueError: decisions recorded without snapshots (an environment without ``snapshot``), or none."""
+    if len(decisions) == 0 or decisions.states.shape[1] == 0:
+        raise ValueError("branch_starts: the recorded decisions hold no environment snapshots to branch from")
+    pick = rng.integers(0, len(decisions), count)
+    return decisions.states[pick], decisions.tokens[pick]

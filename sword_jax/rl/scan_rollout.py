@@ -39,17 +39,22 @@ from sword_jax.rl.value import Value, terminal_returns
 class EpisodeStats(NamedTuple):
     """Per episode: ``steps`` the actions it executed; ``broken`` its physics state went non-finite (the
     episode then ended as a failure at that action); ``terminal_value`` with a ``value``, its success
-    probability at the final frame (what a rollout that reached its horizon was paid, over the success return)."""
+    probability at the final frame (what a rollout that reached its horizon was paid, over the success return);
+    ``states`` with ``record_states``, the environment's snapshot at each decision (what ``env.reset`` continues)."""
 
     steps: Int[Array, " n"]
     broken: Bool[Array, " n"]
     terminal_value: Float[Array, " n"] | None = None
+    states: Float[Array, "n c f"] | None = None
 
 
 class JaxEnv(Protocol):
     def reset(self, starts: Any) -> tuple[Any, dict[str, jax.Array]]: ...
 
     def step(self, state: Any, actions: jax.Array) -> tuple[Any, dict[str, jax.Array], jax.Array]: ...
+
+    # optional: ``snapshot(state) -> [n, f]`` start states ``reset`` continues from that state (MJX: flat
+    # ``[time, qpos, qvel]``), for rollouts branched from the decisions of recorded episodes (``record_states``)
 
 
 def decisions(cfg: RLConfig, max_steps: int) -> int:
@@ -88,6 +93,7 @@ def scan_rollout(
     max_steps: int,
     proprio_valid: Float[Array, " n"] | None = None,
     value: Value | None = None,
+    record_states: bool = False,
 ) -> tuple[Rollout, EpisodeStats]:
     """Runs the policy in ``env`` (module docstring); pure, jit it.
 
@@ -105,6 +111,8 @@ def scan_rollout(
       value: a fitted success-probability value (:class:`~sword_jax.rl.value.Value`, ``rl.value``): an episode
         that reaches ``max_steps`` with no outcome is paid ``(1 + success_bonus) x`` its value at the final
         frame (:func:`~sword_jax.rl.value.terminal_returns`) instead of 0.
+      record_states: keep ``env.snapshot(state)`` at each decision in the stats (``[n, C, f]``, zeros after the
+        episode ended): start states of rollouts branched from these episodes.
 
     Returns:
       ``(rollout, stats)``: the rollout with ``C = decisions(cfg, max_steps)`` decisions of
@@ -115,6 +123,9 @@ def scan_rollout(
     k = cfg.env.execute_steps
     if isinstance(ensemble, bool) and ensemble and k != 1:
         raise ValueError(f"scan_rollout: ensembling needs rl.env.execute_steps=1, got {k}")
+    if record_states and not hasattr(env, "snapshot"):
+        raise ValueError(f"scan_rollout: record_states needs an environment with snapshot(state); "
+                         f"{type(env).__name__} has none")
     n = instruction_tokens.shape[0]
     c_max = decisions(cfg, max_steps)
     policy = nnx.merge(graphdef, params)
@@ -127,6 +138,7 @@ def scan_rollout(
 
     def decide(carry, c):
         state, obs, done, success, steps, broken, history = carry
+        snap = env.snapshot(state).astype(jnp.float32) if record_states else None  # where this decision is made
         small = resize_frames(obs["frames"], cfg.image_size)
         proprio = obs["proprio"][:, : cfg.proprio_dim].astype(jnp.float32)
         logits = policy(small, instruction_tokens, proprio, valid_in)
@@ -160,6 +172,8 @@ def scan_rollout(
         record = {"obs": jnp.where(keep[:, :, None, None], jnp.clip(jnp.round(small * 255.0), 0, 255), 0).astype(jnp.uint8),
                   "proprio": jnp.where(keep, proprio, 0.0), "tokens": jnp.where(keep[:, :, None], chunk[:, :k], 0),
                   "log_probs": jnp.where(keep[:, :, None], log_probs[:, :k], 0.0), "valid": valid.astype(jnp.float32)}
+        if record_states:
+            record["states"] = jnp.where(keep, snap, 0.0)
         return (state, obs, done, success, steps, broken, history), record
 
     init = (state, obs, jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.bool_), jnp.zeros((n,), jnp.int32),
@@ -181,7 +195,7 @@ def scan_rollout(
                       tokens=rec["tokens"], log_probs=rec["log_probs"], valid=valid, rewards=rewards,
                       scores=jnp.cumsum(rewards, axis=1), success=success, returns=returns,
                       frames=jnp.zeros((0,), jnp.float32))
-    return rollout, EpisodeStats(steps=steps, broken=broken, terminal_value=terminal)
+    return rollout, EpisodeStats(steps=steps, broken=broken, terminal_value=terminal, states=rec.get("states"))
 
 
 class RecordedEpisodes(NamedTuple):

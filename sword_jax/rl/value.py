@@ -94,36 +94,53 @@ def terminal_returns(success: Array, truncated: Array, value: Array, success_ret
 @dataclasses.dataclass
 class ValueData:
     """Decisions of real episodes as value-training samples: ``frames [N, h, w, 3] uint8``, ``tokens [N, l]``,
-    ``labels [N]`` (1.0: the episode succeeded), ``episode [N]`` (which episode each came from)."""
+    ``labels [N]`` (1.0: the episode succeeded), ``episode [N]`` (which episode each came from), ``states [N, f]``
+    (the environment's snapshot at each decision, start states of branched rollouts; ``f = 0`` without one)."""
 
     frames: np.ndarray
     tokens: np.ndarray
     labels: np.ndarray
     episode: np.ndarray
+    states: np.ndarray
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
 
     def take(self, mask: np.ndarray) -> ValueData:
-        return ValueData(self.frames[mask], self.tokens[mask], self.labels[mask], self.episode[mask])
+        return ValueData(*(getattr(self, f.name)[mask] for f in dataclasses.fields(self)))
+
+    @staticmethod
+    def concatenate(parts: list[ValueData]) -> ValueData:
+        """The samples of ``parts`` in order, episode indices renumbered so that they stay distinct."""
+        out, offset = [], 0
+        for p in parts:
+            out.append(dataclasses.replace(p, episode=p.episode + offset))
+            offset += int(p.episode.max()) + 1 if len(p) else 0
+        return ValueData(*(np.concatenate([getattr(p, f.name) for p in out]) for f in dataclasses.fields(ValueData)))
 
 
-def decision_samples(frames: np.ndarray, valid: np.ndarray, tokens: np.ndarray, success: np.ndarray) -> ValueData:
+def decision_samples(frames: np.ndarray, valid: np.ndarray, tokens: np.ndarray, success: np.ndarray,
+                     states: np.ndarray | None = None) -> ValueData:
     """Every valid decision of ``E`` episodes (``frames [E, C, h, w, 3]`` uint8 seen at each decision, ``valid
-    [E, C]``, ``tokens [E, l]``, ``success [E]``), labelled with its episode's outcome.
+    [E, C]``, ``tokens [E, l]``, ``success [E]``, optionally ``states [E, C, f]``), labelled with its episode's
+    outcome.
 
     Raises:
       ValueError: shapes that do not agree, or no valid decision."""
     frames, valid = np.asarray(frames), np.asarray(valid) > 0
     tokens, success = np.asarray(tokens), np.asarray(success).astype(bool)
     e = success.shape[0]
-    if frames.ndim != 5 or frames.shape[:2] != valid.shape or valid.shape[0] != e or tokens.shape[0] != e:
-        raise ValueError(f"decision_samples: frames [E, C, h, w, 3], valid [E, C], tokens [E, l] and success [E] must "
-                         f"agree, got {frames.shape}, {valid.shape}, {tokens.shape}, {success.shape}")
+    states = np.zeros(valid.shape + (0,), np.float32) if states is None else np.asarray(states, np.float32)
+    if (frames.ndim != 5 or frames.shape[:2] != valid.shape or valid.shape[0] != e or tokens.shape[0] != e
+            or states.shape[:2] != valid.shape):
+        raise ValueError(f"decision_samples: frames [E, C, h, w, 3], valid [E, C], tokens [E, l], success [E] and "
+                         f"states [E, C, f] must agree, got {frames.shape}, {valid.shape}, {tokens.shape}, "
+                         f"{success.shape}, {states.shape}")
     rows, cols = np.nonzero(valid)
     if rows.size == 0:
         raise ValueError("decision_samples: the episodes hold no valid decision")
-    return ValueData(frames[rows, cols], tokens[rows], success[rows].astype(np.float32), rows.astype(np.int32))
+    return ValueData(frames[rows, cols], tokens[rows], success[rows].astype(np.float32), rows.astype(np.int32),
+                     states[rows, cols])
 
 
 def split_episodes(data: ValueData, holdout: float, rng: np.random.Generator) -> tuple[ValueData, ValueData]:

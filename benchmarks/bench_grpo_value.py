@@ -1,0 +1,249 @@
+"""Short GRPO rollouts branched from the policy's own real states, closed by a fitted value: does the value give
+them back the learning signal a success-only reward leaves them without?
+
+Rollouts short enough for a learned simulator to stay honest (one or two decisions of its closed loop) seldom
+reach success, so a success-only return gives most GRPO groups no spread. MBPO branches short model rollouts from
+real states and closes them with a learned value; ``rl.value`` does that for GRPO (:mod:`sword_jax.rl.value`).
+This measures it against the ground truth first, so that only the recipe is on trial, not a world model. Two arms
+at each seed, ground-truth GRPO on MJX in the learned simulator's setting (4 actions a decision, proprio missing,
+T 0.5, lr 1e-4, ``--rollout-batch`` starts x 8):
+
+* ``value``: the rollouts start at decisions of ``--value-episodes`` real episodes of the starting policy (every
+  phase before their outcome, ``rl.env.starts=branch``), run ``--horizon`` decisions, and one cut at the horizon is
+  paid ``2 x`` the value of its final frame (``rl.value.bootstrap=true``);
+* ``success``: the same branches and episodes, paid success alone (``rl.value.bootstrap=false``).
+
+Both fit the value to the same episodes (the same draws) and report its calibration on held-out episodes. Every
+run is evaluated on MJX from rest (500 episodes per point: greedy, sampled at T 0.5, sampled with proprio
+masked)::
+
+    python -m benchmarks.bench_grpo_value run --workdir runs/gv --policy runs/p/policy_d50.npz --gpus 0 \\
+        --seeds 0 --steps 60 [--deadline-s 1400]
+    python -m benchmarks.bench_grpo_value summary --workdir runs/gv --out runs/gv/grpo_value [--record]
+
+``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
+each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
+its groups with mixed outcomes, the real episodes it used beyond evaluation and the value's held-out calibration;
+``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from benchmarks import common
+from benchmarks.bench_grpo_refresh import stop_all
+from benchmarks.bench_grpo_reward_source import RECIPE, summarize_run
+from benchmarks.bench_grpo_transfer import read_history
+from sword_jax import cli
+from sword_jax.pipeline.launch import NO_MULTICAST
+
+ARMS = ("value", "success")
+ARM_LABELS = {"value": "branched, paid success or the value at the horizon",
+              "success": "branched, paid success alone"}
+SETTING = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.starts=branch",
+           "--rl.env.proprio=missing")
+GRPO_DIR = "grpo_env_proprio_missing_starts_branch_mjx"  # bench_policy.grpo_dir of this setting
+
+
+def run_commands(args) -> dict[str, list[str]]:
+    """``{run name: command}``: ``<arm>_s<seed>``, each ``bench_policy grpo`` under ``<workdir>/<arm>/s<seed>``."""
+    shared = tuple(f"--rl.imagined.max_chunks={args.horizon}" if f.startswith("--rl.imagined.max_chunks=") else f
+                   for f in RECIPE) + SETTING
+    out = {}
+    for seed in args.seeds:
+        for arm in args.arms:
+            out[f"{arm}_s{seed}"] = [
+                sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config, "--seed", str(seed),
+                "--out", os.path.join(args.workdir, arm, f"s{seed}"), "--policy", args.policy,
+                "--eval-episodes", str(args.eval_episodes_per_task), *shared,
+                f"--rl.value.episodes={args.value_episodes}", f"--rl.value.steps={args.value_steps}",
+                f"--rl.value.bootstrap={'true' if arm == 'value' else 'false'}",
+                f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
+                f"--rl.grpo.eval_every={args.eval_every}"]
+    return out
+
+
+def placement(names: Sequence[str], gpus: Sequence[str]) -> dict[str, str]:
+    """Round-robin over the GPUs, a seed's arms on different GPUs where there are several."""
+    return {name: gpus[i % len(gpus)] for i, name in enumerate(names)}
+
+
+def run(args, *, poll_s: float = 5.0) -> dict:
+    """Every run at once (module docstring); the summary at the end."""
+    os.makedirs(args.workdir, exist_ok=True)
+    common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    commands = run_commands(args)
+    gpu_of = placement(list(commands), args.gpus)
+    sharing = {g: sum(1 for n in commands if gpu_of[n] == g) for g in args.gpus}
+    start = time.perf_counter()
+    procs = {}
+    for name, cmd in commands.items():
+        own = dict(env, CUDA_VISIBLE_DEVICES=gpu_of[name])
+        if sharing[gpu_of[name]] > 1:
+            own["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / sharing[gpu_of[name]]:.2f}"
+        print(f"[grpo-value] {name} on GPU {gpu_of[name]}: {' '.join(cmd[2:])}", flush=True)
+        with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
+            procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
+    stopped: list[str] = []
+    while any(p.poll() is None for p in procs.values()):
+        if args.deadline_s and time.perf_counter() - start > args.deadline_s:
+            running = stop_all(list(procs.values()))
+            stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
+            print(f"[grpo-value] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
+            break
+        time.sleep(poll_s)
+    summary = dict(summarize(args.workdir), exit_codes={n: p.returncode for n, p in procs.items()},
+                   stopped_at_deadline=stopped, seconds=round(time.perf_counter() - start, 1))
+    with open(os.path.join(args.workdir, "grpo_value_summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    failed = sorted(n for n, p in procs.items() if p.returncode and n not in stopped)
+    if failed:
+        raise SystemExit(f"bench_grpo_value: runs failed: {failed} (logs in {args.workdir})")
+    return summary
+
+
+def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
+    """``{run name: (arm, seed, GRPO work dir)}`` of the runs under ``workdir`` that left a success curve."""
+    out = {}
+    for arm in ARMS:
+        folder = os.path.join(workdir, arm)
+        for seed_dir in sorted(os.listdir(folder)) if os.path.isdir(folder) else []:
+            grpo = os.path.join(folder, seed_dir, GRPO_DIR)
+            if seed_dir[:1] == "s" and seed_dir[1:].isdigit() and os.path.exists(os.path.join(grpo, "success_curve.json")):
+                out[f"{arm}_{seed_dir}"] = (arm, int(seed_dir[1:]), grpo)
+    return out
+
+
+def value_summary(grpo: str) -> dict | None:
+    """The value a run fitted (``value/value.json``): real episodes used, their success, held-out calibration."""
+    path = os.path.join(grpo, "value", "value.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        record = json.load(f)
+    held = record.get("held_out") or {}
+    return {"real_episodes": record["real_episodes"], "episode_success": record["episode_success"],
+            "decisions": record["decisions"], "held_out_brier": held.get("brier"),
+            "held_out_brier_constant": held.get("brier_constant"), "held_out_auc": held.get("auc"),
+            "held_out_bins": held.get("bins")}
+
+
+def summarize(workdir: str) -> dict:
+    """Every run (:func:`~benchmarks.bench_grpo_reward_source.summarize_run`, with what the value paid and the
+    value's record) and per arm its seeds' sampled gains (proprio masked: the mode the rollouts train), smallest and
+    mean."""
+    runs = {}
+    for name, (arm, seed, grpo) in run_dirs(workdir).items():
+        run = dict(arm=arm, seed=seed, **summarize_run(grpo), value=value_summary(grpo))
+        history = read_history(grpo)
+        paid = [h["terminal_value"] for h in history if "terminal_value" in h]
+        if paid:
+            run["terminal_value"] = {"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])}
+            run["truncated_fraction"] = statistics.mean(h["truncated_fraction"] for h in history)
+        runs[name] = run
+    arms = {}
+    for arm in ARMS:
+        mine = [r for r in runs.values() if r["arm"] == arm]
+        gains = {r["seed"]: r["sampled_proprio_masked"]["gain"] for r in mine if r["sampled_proprio_masked"]}
+        if gains:
+            arms[arm] = {"label": ARM_LABELS[arm], "masked_gain_per_seed": gains, "smallest": min(gains.values()),
+                         "mean": statistics.mean(gains.values()), "steps": min(r["steps"] for r in mine)}
+    return {"runs": runs, "arms": arms}
+
+
+def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
+    """``policy_grpo_branched_value_small``: the smallest gain over the seeds of the ``value`` arm's sampled policy
+    reading proprio masked (the mode its rollouts train), beside every arm's gains and every run's summary."""
+    if "value" not in summary["arms"]:
+        raise SystemExit("bench_grpo_value: no run of the value arm left an evaluation to record")
+    entry = common.record("", summary["arms"]["value"]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
+                          device=common.workdir_device(workdir), data=data,
+                          unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX",
+                          **({"command": command} if command else {}))
+    return {"policy_grpo_branched_value_small": entry}
+
+
+def print_runs(summary: dict) -> None:
+    for name, r in summary["runs"].items():
+        parts = [f"[grpo-value] {name}: {r['steps']} steps"]
+        for key in ("sampled_proprio_masked", "sampled", "greedy"):
+            g = r.get(key)
+            if g:
+                parts.append(f"{key} {g['start']:.3f} -> {g['end']:.3f} ({g['gain']:+.3f} "
+                             f"[{g['ci95'][0]:+.3f}, {g['ci95'][1]:+.3f}])")
+        if r.get("paid_success"):
+            parts.append(f"paid success {r['paid_success']['first']:.3f} -> {r['paid_success']['last']:.3f}")
+        if r.get("mixed_median") is not None:
+            parts.append(f"mixed groups (median) {r['mixed_median']:.2f}")
+        if r.get("terminal_value"):
+            parts.append(f"value paid {r['terminal_value']['first']:.3f} -> {r['terminal_value']['last']:.3f}")
+        v = r.get("value")
+        if v and v["held_out_brier"] is not None:
+            parts.append(f"value held-out Brier {v['held_out_brier']:.4f} (constant {v['held_out_brier_constant']:.4f})"
+                         f", AUC {v['held_out_auc']}")
+        print("; ".join(parts), flush=True)
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command line, refused by name where a value cannot be run."""
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("mode", choices=("run", "summary"))
+    parser.add_argument("--workdir", required=True, help="the experiment's folder")
+    parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
+    parser.add_argument("--config", default="sword:small")
+    parser.add_argument("--gpus", default="0", help="run: comma list; the runs are spread over them")
+    parser.add_argument("--seeds", default="0")
+    parser.add_argument("--arms", default=",".join(ARMS), help=f"run: comma list of {', '.join(ARMS)}")
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--eval-every", type=int, default=10)
+    parser.add_argument("--eval-episodes-per-task", type=int, default=50,
+                        help="run: real evaluation episodes per task at each evaluation (10 tasks)")
+    parser.add_argument("--rollout-batch", type=int, default=64, help="run: start states per GRPO step (x 8)")
+    parser.add_argument("--horizon", type=int, default=4, help="run: decisions (4 actions each) of every rollout")
+    parser.add_argument("--value-episodes", type=int, default=512,
+                        help="run: real episodes of the starting policy the value is fitted to and the rollouts "
+                             "branch from")
+    parser.add_argument("--value-steps", type=int, default=2000, help="run: steps of the value's fit")
+    parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
+    common.add_summary_options(parser)
+    args = parser.parse_args(argv)
+    args.seeds = [int(s) for s in args.seeds.split(",") if s]
+    args.gpus = [g for g in args.gpus.split(",") if g]
+    args.arms = [a for a in args.arms.split(",") if a]
+    if not args.arms or set(args.arms) - set(ARMS):
+        raise SystemExit(f"bench_grpo_value: --arms must name some of {', '.join(ARMS)}, got {args.arms}")
+    if args.mode == "run" and not args.policy:
+        raise SystemExit("bench_grpo_value run needs --policy (the supervised policy, .npz)")
+    if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.eval_episodes_per_task < 1
+            or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
+            or args.value_steps < 1):
+        raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
+                         "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
+                         "--rollout-batch a multiple of 4 (4 minibatches)")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    args = parse(argv)
+    if args.mode == "run":
+        summary = run(args)
+    else:
+        summary = summarize(args.workdir)
+        common.save_summary(summary, args.out, (lambda: results_entries(
+            summary, args.workdir, data=common.summary_data(args.out, args.workdir), command=args.command))
+            if args.record else None)
+    print_runs(summary)
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,84 @@
+"""benchmarks.bench_grpo_value: the two arms' commands and GPUs, the summary of the runs it left, and what it
+refuses."""
+
+import json
+import os
+
+import pytest
+
+import configs
+from benchmarks import bench_grpo_value as gv
+from benchmarks.bench_grpo_reward_source import RECIPE
+from tests.test_bench_grpo_reward_source import _curve, _point
+
+
+def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
+    args = gv.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--seeds", "0,1",
+                     "--gpus", "0,1", "--horizon", "2", "--value-episodes", "256"])
+    commands = gv.run_commands(args)
+    assert sorted(commands) == ["success_s0", "success_s1", "value_s0", "value_s1"]
+    value, success = commands["value_s1"], commands["success_s1"]
+    assert value[2:4] == ["benchmarks.bench_policy", "grpo"] and value[value.index("--seed") + 1] == "1"
+    for flag in gv.SETTING + ("--rl.imagined.max_chunks=2", "--rl.value.episodes=256", "--rl.grpo.rollout_batch=64"):
+        assert flag in value and flag in success, flag
+    assert not any(f.startswith("--rl.imagined.max_chunks=") and f != "--rl.imagined.max_chunks=2" for f in value)
+    assert [f for f in RECIPE if not f.startswith("--rl.imagined.max_chunks=")] == [
+        f for f in value if f in RECIPE and not f.startswith("--rl.imagined.max_chunks=")]
+    assert "--rl.value.bootstrap=true" in value and "--rl.value.bootstrap=false" in success
+    swap = {"--rl.value.bootstrap=true": "--rl.value.bootstrap=false"}
+    assert [swap.get(c, c).replace(os.path.join("value", "s1"), os.path.join("success", "s1")) for c in value] == success
+    # the command line parses into a config that validates, for either arm
+    for cmd in (value, success):
+        overrides = [c for c in cmd if c.startswith("--rl.")]
+        cfg, _ = configs.from_argv(["--config", "sword:small", *overrides])
+        assert cfg.rl.env.starts == "branch" and cfg.rl.value.episodes == 256
+    assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
+                                                         "success_s1": "1"}
+
+
+def _value_record(path, brier):
+    os.makedirs(os.path.join(path, "value"), exist_ok=True)
+    with open(os.path.join(path, "value", "value.json"), "w") as f:
+        json.dump({"real_episodes": 512, "episode_success": 0.45, "decisions": 20000,
+                   "held_out": {"brier": brier, "brier_constant": 0.247, "auc": 0.81, "bins": []}}, f)
+
+
+def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
+    base = str(tmp_path)
+    for arm, end in (("value", 0.60), ("success", 0.50)):
+        grpo = os.path.join(base, arm, "s0", gv.GRPO_DIR)
+        history = [{"step": s, "rollout_success": 0.3 + 0.01 * s, "mixed_fraction": 0.9 if arm == "value" else 0.2}
+                   for s in range(1, 11)]
+        if arm == "value":
+            for h in history:
+                h.update(terminal_value=0.4 + 0.01 * h["step"], truncated_fraction=0.7)
+        _curve(grpo, [_point(0, 0.7, 0.5, 0.45), _point(10, 0.7, 0.55, end)], history)
+        _value_record(grpo, 0.15)
+    os.makedirs(os.path.join(base, "value", "s1", gv.GRPO_DIR))  # a run that left no curve is not a run
+    summary = gv.summarize(base)
+    assert sorted(summary["runs"]) == ["success_s0", "value_s0"]
+    run = summary["runs"]["value_s0"]
+    assert run["sampled_proprio_masked"]["gain"] == pytest.approx(0.15)
+    assert run["terminal_value"] == {"first": pytest.approx(0.43), "last": pytest.approx(0.48)}
+    assert run["truncated_fraction"] == pytest.approx(0.7) and run["value"]["held_out_brier"] == 0.15
+    assert "terminal_value" not in summary["runs"]["success_s0"]
+    assert summary["arms"]["value"]["smallest"] == pytest.approx(0.15)
+    assert summary["arms"]["success"]["masked_gain_per_seed"] == {0: pytest.approx(0.05)}
+    entries = gv.results_entries(summary, base, data="x.json")
+    assert entries["policy_grpo_branched_value_small"]["value"] == pytest.approx(0.15)
+    gv.print_runs(summary)
+    assert "value paid 0.430 -> 0.480" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no run of the value arm"):
+        gv.results_entries({"arms": {}, "runs": {}}, base, data="x")
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["run", "--arms", "value,full"], "--arms must name"),
+    (["run", "--policy", "p.npz", "--rollout-batch", "30"], "multiple of 4"),
+    (["run", "--policy", "p.npz", "--value-episodes", "1"], "--value-episodes >= 2"),
+    (["run", "--policy", "p.npz", "--horizon", "0"], "--horizon"),
+    (["run"], "needs --policy"),
+])
+def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
+    with pytest.raises(SystemExit, match=message):
+        gv.parse([*argv[:1], "--workdir", str(tmp_path), *argv[1:]])
