@@ -21,7 +21,8 @@ masked)::
         --seeds 0 --steps 60 [--deadline-s 1400]
     python -m benchmarks.bench_grpo_value summary --workdir runs/gv --out runs/gv/grpo_value [--record]
 
-``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
+``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
+``rl.grpo.scale_by_std``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
 each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
 its groups with mixed outcomes, the real episodes it used beyond evaluation and the value's held-out calibration;
 ``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
@@ -67,7 +68,8 @@ def run_commands(args) -> dict[str, list[str]]:
                 f"--rl.value.episodes={args.value_episodes}", f"--rl.value.steps={args.value_steps}",
                 f"--rl.value.bootstrap={'true' if arm == 'value' else 'false'}",
                 f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
-                f"--rl.grpo.eval_every={args.eval_every}"]
+                f"--rl.grpo.eval_every={args.eval_every}",
+                *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",))]
     return out
 
 
@@ -213,9 +215,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: real episodes of the starting policy the value is fitted to and the rollouts "
                              "branch from")
     parser.add_argument("--value-steps", type=int, default=2000, help="run: steps of the value's fit")
+    parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
+                        help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
+                             "Dr. GRPO, rl.grpo.scale_by_std)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
+    args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]
     args.arms = [a for a in args.arms.split(",") if a]

@@ -32,6 +32,10 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
         overrides = [c for c in cmd if c.startswith("--rl.")]
         cfg, _ = configs.from_argv(["--config", "sword:small", *overrides])
         assert cfg.rl.env.starts == "branch" and cfg.rl.value.episodes == 256
+    assert not any("scale_by_std" in c for c in value)
+    centred = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "value",
+                                        "--scale-by-std", "false"]))
+    assert "--rl.grpo.scale_by_std=false" in centred["value_s0"] and sorted(centred) == ["value_s0"]
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
                                                          "success_s1": "1"}
 

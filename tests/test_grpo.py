@@ -27,6 +27,42 @@ def test_group_advantages_hand_computed():
     np.testing.assert_array_equal(np.asarray(keep), [1.0, 0.0, 1.0])
     _, keep_all = grpo.group_advantages(returns, filter_groups=False)
     np.testing.assert_array_equal(np.asarray(keep_all), [1.0, 1.0, 1.0])
+    # Dr. GRPO: centred, not scaled, so a spread of 0.02 stays 100 times smaller than a spread of 2
+    centred, keep_c = grpo.group_advantages(jnp.asarray([[2.0, 0.0], [0.11, 0.09], [1.0, 1.0]]), scale_by_std=False)
+    np.testing.assert_allclose(np.asarray(centred), [[1, -1], [0.01, -0.01], [0, 0]], rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(keep_c), [1.0, 1.0, 0.0])
+    scaled, _ = grpo.group_advantages(jnp.asarray([[2.0, 0.0], [0.11, 0.09]]))
+    np.testing.assert_allclose(np.asarray(scaled), [[1, -1], [1, -1]], rtol=1e-3)  # what the std makes of them
+
+
+def test_the_update_reads_scale_by_std():
+    """grpo_gradients with rl.grpo.scale_by_std: returns shrunk 100-fold give the same gradient under the std
+    (GRPO) and a 100-fold smaller one without it (Dr. GRPO)."""
+    from sword_jax.rl.rollout import Rollout
+
+    with pytest.raises(ValueError, match="rl.grpo.scale_by_std"):
+        GRPOConfig(scale_by_std="no").validate()
+    base = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
+    graphdef, params = build_policy(base, seed=0)
+    n, c, t, a = 2 * base.grpo.group_size, base.imagined.max_chunks, base.chunk_len, base.action_dim
+    rng = np.random.default_rng(3)
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
+        proprio_valid=jnp.ones((n, c)), instruction_tokens=jnp.asarray(tokenize_instructions(["pick it"] * n, 32)),
+        tokens=jnp.asarray(rng.integers(0, base.action_bins, (n, c, t, a)), jnp.int32),
+        log_probs=jnp.asarray(-np.log(base.action_bins) + 0.3 * rng.normal(size=(n, c, t, a)), jnp.float32),
+        valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
+    grads = {}
+    for by_std in (True, False):
+        cfg = dataclasses.replace(base, grpo=dataclasses.replace(base.grpo, scale_by_std=by_std))
+        fn = jax.jit(lambda p, b, cfg=cfg: grpo.grpo_gradients(graphdef, cfg, p, b)[2])
+        grads[by_std] = [fn(params, rollout._replace(returns=rollout.returns * k)) for k in (1.0, 0.01)]
+    for by_std, factor in ((True, 1.0), (False, 0.01)):
+        full, shrunk = grads[by_std]
+        scale = max(float(np.abs(np.asarray(x)).max()) for x in jax.tree.leaves(full))
+        for x, y in zip(jax.tree.leaves(full), jax.tree.leaves(shrunk)):
+            np.testing.assert_allclose(np.asarray(y), factor * np.asarray(x), rtol=0, atol=2e-3 * factor * scale)
 
 
 def test_grpo_loss_hand_computed():

@@ -199,6 +199,10 @@ class GRPOConfig:
         length) and then over trajectories (GRPO); 'token' averages over all valid tokens (DAPO).
       filter_groups: drop groups whose rewards are all equal (no learning signal).
       success_bonus: added to a trajectory's return when it reaches success.
+      scale_by_std: divide each group's centred returns by their std (GRPO, default); false leaves them centred
+        (Dr. GRPO), so a group's advantages keep the size of its returns' spread. With a continuous return
+        (``rl.value``) the std turns a group whose returns differ only by the estimate's noise into advantages
+        as large as a group whose trajectories differ in success; Adam then moves the policy as far for either.
       temperature: sampling temperature of the policy during rollouts.
       update_microbatch: trajectories per forward/backward pass of the GRPO update (0 = the whole
         batch at once); gradients are summed over the micro-batches, so the update is the same up to
@@ -226,6 +230,7 @@ class GRPOConfig:
     loss_norm: str = "trajectory"  # trajectory | token
     filter_groups: bool = True
     success_bonus: float = 1.0
+    scale_by_std: bool = True
     temperature: float = 1.0
     update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     eval_every: int = 5
@@ -260,6 +265,8 @@ class GRPOConfig:
             raise ValueError(f"rl.grpo.max_sample_rounds must be >= 1 (1 = no resampling), got {self.max_sample_rounds}")
         if self.temperature <= 0.0:
             raise ValueError(f"rl.grpo.temperature must be > 0, got {self.temperature}")
+        if not isinstance(self.scale_by_std, bool):
+            raise ValueError(f"rl.grpo.scale_by_std must be true or false, got {self.scale_by_std!r}")
         if self.loss_norm not in ("trajectory", "token"):
             raise ValueError(f"rl.grpo.loss_norm must be trajectory|token, got {self.loss_norm!r}")
         if self.update_microbatch < 0:

@@ -4,6 +4,10 @@ For a group of G trajectories from one start state with returns ``R_1..R_G``::
 
     A_i = (R_i - mean(R)) / (std(R) + eps)        (population std; 0 for a group with no signal)
 
+or, with ``rl.grpo.scale_by_std=false``, ``A_i = R_i - mean(R)`` (Dr. GRPO): a group's advantages keep the size of
+its returns' spread, so a group whose returns differ by a continuous estimate's noise (``rl.value``) weighs that
+little beside one whose trajectories differ in success.
+
 Every valid action token of trajectory i shares ``A_i`` (outcome supervision). The per-token
 surrogate with DAPO's asymmetric ("clip-higher") range is::
 
@@ -81,7 +85,7 @@ def group_trajectories(groups: Int[Array, " k"], group_size: int) -> Int[Array, 
 
 
 def group_advantages(
-    returns: Float[Array, "b g"], *, eps: float = 1e-6, filter_groups: bool = True
+    returns: Float[Array, "b g"], *, eps: float = 1e-6, filter_groups: bool = True, scale_by_std: bool = True
 ) -> tuple[Float[Array, "b g"], Float[Array, " b"]]:
     """Group-normalised advantages and a per-group "has signal" mask.
 
@@ -89,6 +93,7 @@ def group_advantages(
       returns: trajectory returns grouped by start state.
       eps: added to the group std.
       filter_groups: zero the advantages (and the mask) of groups whose returns are all equal.
+      scale_by_std: divide by the group's std (GRPO); False leaves the centred returns (Dr. GRPO).
 
     Returns:
       ``(advantages [b, g], keep [b])`` in float32.
@@ -99,7 +104,8 @@ def group_advantages(
     has_signal = group_has_signal(returns)
     # a group with no signal has zero advantages (never 0/0), kept or not
     safe_std = jnp.where(has_signal[:, None], std, jnp.float32(1.0))
-    adv = jnp.where(has_signal[:, None], (returns - mean) / (safe_std + jnp.float32(eps)), jnp.float32(0.0))
+    scale = (safe_std + jnp.float32(eps)) if scale_by_std else jnp.float32(1.0)
+    adv = jnp.where(has_signal[:, None], (returns - mean) / scale, jnp.float32(0.0))
     keep = has_signal.astype(jnp.float32) if filter_groups else jnp.ones(has_signal.shape, jnp.float32)
     return adv, keep
 
@@ -250,7 +256,8 @@ def _gradient_fn(graphdef: nnx.GraphDef, cfg: RLConfig, batch: Rollout, ref_para
                          f"GRPO (mini)batch")
     parts = n // micro
     if advantages is None:
-        adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups)
+        adv, keep_group = group_advantages(batch.returns.reshape(-1, g), filter_groups=cfg.grpo.filter_groups,
+                                           scale_by_std=cfg.grpo.scale_by_std)
         advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
     t, a = batch.tokens.shape[2:]
     valid = batch.valid.astype(jnp.float32)
@@ -335,7 +342,8 @@ def grpo_update(
         raise ValueError(f"rl.grpo.minibatches={parts} must divide the {n} trajectories of a GRPO batch")
     grouped_returns = batch.returns.reshape(-1, g)  # (B, G): trajectories are group-major
     mixed_groups = jnp.sum(group_has_signal(grouped_returns).astype(jnp.float32))
-    adv, keep_group = group_advantages(grouped_returns, filter_groups=cfg.grpo.filter_groups)
+    adv, keep_group = group_advantages(grouped_returns, filter_groups=cfg.grpo.filter_groups,
+                                       scale_by_std=cfg.grpo.scale_by_std)
     advantages, keep = adv.reshape(-1), jnp.repeat(keep_group, g)
     size = n // parts
 

@@ -104,11 +104,13 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     guard_on = {"rl.imagined.guard_on": rl.imagined.guard_on} if rl.imagined.guard_on != "replay" else {}
     # and what pays the imagined trajectories, only when it is not the detector
     reward = {"rl.imagined.reward": rl.imagined.reward} if rl.imagined.reward != "detector" else {}
+    # and the advantages' scale, only when it is not the group std
+    scale = {"rl.grpo.scale_by_std": False} if not rl.grpo.scale_by_std else {}
     # and the value that closes short rollouts, only when it is on
     value = ({f"rl.value.{f.name}": getattr(rl.value, f.name) for f in dataclasses.fields(rl.value)}
              if rl.value.episodes else {})
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **skip, **guard_on, **reward, **value, **facts}
+            **decoder, **oversample, **skip, **guard_on, **reward, **scale, **value, **facts}
 
 
 def train_grpo(
