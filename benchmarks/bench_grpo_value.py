@@ -24,7 +24,7 @@ masked)::
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
 ``rl.grpo.scale_by_std``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
 each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
-its groups with mixed outcomes, the real episodes it used beyond evaluation and the value's held-out calibration;
+its groups with mixed outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation and the value's held-out calibration;
 ``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
 """
 
@@ -147,6 +147,9 @@ def summarize(workdir: str) -> dict:
     for name, (arm, seed, grpo) in run_dirs(workdir).items():
         run = dict(arm=arm, seed=seed, **summarize_run(grpo), value=value_summary(grpo))
         history = read_history(grpo)
+        shares = [h["success_advantage_share"] for h in history if "success_advantage_share" in h]
+        if shares:  # how much of the update real outcomes carried (runs from before it was logged lack it)
+            run["success_advantage_share"] = statistics.mean(shares)
         paid = [h["terminal_value"] for h in history if "terminal_value" in h]
         if paid:
             run["terminal_value"] = {"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])}
@@ -186,6 +189,8 @@ def print_runs(summary: dict) -> None:
             parts.append(f"paid success {r['paid_success']['first']:.3f} -> {r['paid_success']['last']:.3f}")
         if r.get("mixed_median") is not None:
             parts.append(f"mixed groups (median) {r['mixed_median']:.2f}")
+        if r.get("success_advantage_share") is not None:
+            parts.append(f"advantage mass in groups split by success {r['success_advantage_share']:.2f}")
         if r.get("terminal_value"):
             parts.append(f"value paid {r['terminal_value']['first']:.3f} -> {r['terminal_value']['last']:.3f}")
         v = r.get("value")

@@ -55,7 +55,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
                    for s in range(1, 11)]
         if arm == "value":
             for h in history:
-                h.update(terminal_value=0.4 + 0.01 * h["step"], truncated_fraction=0.7)
+                h.update(terminal_value=0.4 + 0.01 * h["step"], truncated_fraction=0.7, success_advantage_share=0.25)
         _curve(grpo, [_point(0, 0.7, 0.5, 0.45), _point(10, 0.7, 0.55, end)], history)
         _value_record(grpo, 0.15)
     os.makedirs(os.path.join(base, "value", "s1", gv.GRPO_DIR))  # a run that left no curve is not a run
@@ -65,7 +65,8 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     assert run["sampled_proprio_masked"]["gain"] == pytest.approx(0.15)
     assert run["terminal_value"] == {"first": pytest.approx(0.43), "last": pytest.approx(0.48)}
     assert run["truncated_fraction"] == pytest.approx(0.7) and run["value"]["held_out_brier"] == 0.15
-    assert "terminal_value" not in summary["runs"]["success_s0"]
+    assert "terminal_value" not in summary["runs"]["success_s0"] and run["success_advantage_share"] == 0.25
+    assert "success_advantage_share" not in summary["runs"]["success_s0"]  # a run from before it was logged
     assert summary["arms"]["value"]["smallest"] == pytest.approx(0.15)
     assert summary["arms"]["success"]["masked_gain_per_seed"] == {0: pytest.approx(0.05)}
     entries = gv.results_entries(summary, base, data="x.json")

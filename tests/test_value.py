@@ -11,7 +11,7 @@ import pytest
 import configs
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig, ValueConfig
-from sword_jax.rl.jax_env_grpo import EnvGRPO, branch_starts, mixed_groups, start_value
+from sword_jax.rl.jax_env_grpo import EnvGRPO, advantage_sources, branch_starts, mixed_groups, start_value
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl.scan_rollout import scan_rollout
 from sword_jax.rl.value import (Value, ValueData, as_value, build_value, calibration, decision_samples, fit_value,
@@ -170,6 +170,7 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
     state = grpo.init_state(jax.tree.map(jnp.copy, params), rl)
     _, metrics = runner.step(state, 0, jax.random.key(1))
     assert 0.0 < float(metrics["truncated_fraction"]) <= 1.0 and 0.0 < float(metrics["terminal_value"]) < 1.0
+    assert 0.0 <= float(metrics["success_advantage_share"]) <= 1.0 and float(metrics["return_spread"]) > 0.0
 
     # a resumed run loads the fit: same params, no episodes collected
     drawn.clear()
@@ -197,6 +198,23 @@ def test_groups_gain_a_signal_when_the_horizon_cuts_every_rollout():
     valued, _ = scan_rollout(graphdef, params, SlideEnv(), far, tokens, rl, value=Value(_value_fn, 1.0), **kwargs)
     assert not np.asarray(mixed_groups(plain.returns, 4)).any()
     assert np.asarray(mixed_groups(valued.returns, 4)).all()
+
+
+def test_advantage_sources_say_how_much_of_the_update_real_outcomes_carry():
+    """A group split by success and a group of values differing by 0.1: the group std gives them equal weight,
+    centred advantages (Dr. GRPO) give the success group 91% of it."""
+    returns = np.array([2.0, 0.0, 0.0, 0.0, 0.2, 0.4, 0.2, 0.2], np.float32)
+    success = np.array([1, 0, 0, 0, 0, 0, 0, 0], bool)
+    rl = _rl()
+    assert rl.grpo.group_size == 4 and rl.grpo.success_bonus == 1.0
+    by_std = advantage_sources(returns, success, rl)
+    assert by_std["success_advantage_share"] == pytest.approx(0.5, abs=1e-4)
+    assert by_std["return_spread"] == pytest.approx((np.std([2, 0, 0, 0]) + np.std([0.2, 0.4, 0.2, 0.2])) / 2 / 2)
+    centred = advantage_sources(returns, success, dataclasses.replace(
+        rl, grpo=dataclasses.replace(rl.grpo, scale_by_std=False)))
+    assert centred["success_advantage_share"] == pytest.approx(3.0 / 3.3, abs=1e-4)
+    everyone = advantage_sources(returns, np.ones(8, bool), rl)  # a group that all succeeded is not split
+    assert everyone["success_advantage_share"] == 0.0
 
 
 def test_value_config_is_checked_and_runs_on_mjx_only():

@@ -70,6 +70,24 @@ def _concat(rollouts: Sequence[Rollout]) -> Rollout:
     return jax.tree.map(lambda *xs: xs[0] if xs[0].ndim == 0 or xs[0].shape[0] == 0 else jnp.concatenate(xs), *rollouts)
 
 
+def advantage_sources(returns: np.ndarray, success: np.ndarray, rl: RLConfig) -> dict[str, float]:
+    """Where a batch's advantages come from (``returns``/``success`` ``[B * G]``, group-major): ``return_spread``, the
+    groups' mean std of the returns in units of the success return; ``success_advantage_share``, the share of the
+    advantages' absolute mass (as the update weighs them, ``rl.grpo.scale_by_std``) in groups where some trajectory
+    succeeded and some did not. With success alone every mixed group is such a group (share 1); with a value
+    closing the rollouts the rest comes from the value's differences between trajectories."""
+    g = rl.grpo.group_size
+    grouped = returns.reshape(-1, g).astype(np.float32)
+    won = success.reshape(-1, g).astype(bool)
+    adv, _ = grpo.group_advantages(jnp.asarray(grouped), filter_groups=rl.grpo.filter_groups,
+                                   scale_by_std=rl.grpo.scale_by_std)
+    mass = np.abs(np.asarray(adv)).sum(axis=1)
+    split = won.any(axis=1) & ~won.all(axis=1)
+    total, unit = float(mass.sum()), 1.0 + rl.grpo.success_bonus
+    return {"return_spread": float(grouped.std(axis=1).mean()) / (unit if unit else 1.0),
+            "success_advantage_share": float(mass[split].sum()) / total if total > 0 else 0.0}
+
+
 def argmax_probe(graphdef: nnx.GraphDef, params: Any, frames: jax.Array, proprio: jax.Array, tokens: jax.Array,
                  image_size: int) -> tuple[jax.Array, jax.Array]:
     """``(argmax tokens [n, L, A], top-1 margin [n, L, A])`` of the policy on fixed states: the margin is
@@ -216,6 +234,7 @@ class EnvGRPO:
             cut = np.concatenate(terminal)
             extra.update(truncated_fraction=float(cut.size) / float(success.size),
                          terminal_value=float(cut.mean()) if cut.size else 0.0)
+        extra.update(advantage_sources(np.asarray(batch.returns), np.asarray(batch.success), rl))
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 
     # ---- evaluation -----------------------------------------------------------------------------------
