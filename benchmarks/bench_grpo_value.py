@@ -22,7 +22,8 @@ masked)::
     python -m benchmarks.bench_grpo_value summary --workdir runs/gv --out runs/gv/grpo_value [--record]
 
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
-``rl.grpo.scale_by_std``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
+``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
+still open (``rl.value.branch_starts``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
 each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
 its groups with mixed outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation and the value's held-out calibration;
 ``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
@@ -69,7 +70,8 @@ def run_commands(args) -> dict[str, list[str]]:
                 f"--rl.value.bootstrap={'true' if arm == 'value' else 'false'}",
                 f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.eval_every}",
-                *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",))]
+                *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)),
+                *(() if args.branch_starts == "uniform" else (f"--rl.value.branch_starts={args.branch_starts}",))]
     return out
 
 
@@ -223,6 +225,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
                         help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
                              "Dr. GRPO, rl.grpo.scale_by_std)")
+    parser.add_argument("--branch-starts", choices=("uniform", "open"), default="uniform",
+                        help="run: every arm's starts uniform over the decisions, or where the value says the outcome "
+                             "is still open (rl.value.branch_starts)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)

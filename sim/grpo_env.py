@@ -223,7 +223,7 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     def starts_at(step, round_):
         if rl.env.starts == "branch":
             return branch_starts(decisions[0], rl.grpo.rollout_batch,
-                                 stream_rng(cfg.seed, "grpo/mjx_branch", step, round_))
+                                 stream_rng(cfg.seed, "grpo/mjx_branch", step, round_), rl.value.branch_starts)
         return listed_starts(step, round_)
 
     setting = {}

@@ -36,6 +36,9 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     centred = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "value",
                                         "--scale-by-std", "false"]))
     assert "--rl.grpo.scale_by_std=false" in centred["value_s0"] and sorted(centred) == ["value_s0"]
+    opened = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--branch-starts", "open"]))
+    assert all("--rl.value.branch_starts=open" in cmd for cmd in opened.values())
+    assert not any("branch_starts" in c for c in value)
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
                                                          "success_s1": "1"}
 

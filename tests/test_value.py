@@ -181,6 +181,7 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
     assert record_again == record and drawn == []
     np.testing.assert_array_equal(decisions_again.states, decisions.states)
     np.testing.assert_array_equal(decisions_again.labels, decisions.labels)
+    np.testing.assert_array_equal(decisions_again.predicted, decisions.predicted)
     for a, b in zip(jax.tree.leaves(again.value.params), jax.tree.leaves(fitted)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     _, again_metrics = again.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
@@ -198,6 +199,22 @@ def test_groups_gain_a_signal_when_the_horizon_cuts_every_rollout():
     valued, _ = scan_rollout(graphdef, params, SlideEnv(), far, tokens, rl, value=Value(_value_fn, 1.0), **kwargs)
     assert not np.asarray(mixed_groups(plain.returns, 4)).any()
     assert np.asarray(mixed_groups(valued.returns, 4)).all()
+
+
+def test_open_branch_starts_favour_decisions_whose_outcome_the_value_leaves_open():
+    n = 1000
+    decisions = ValueData(np.zeros((n, 0, 0, 3), np.uint8), np.ones((n, 4), np.int32), np.zeros(n, np.float32),
+                          np.arange(n, dtype=np.int32), np.arange(n, dtype=np.float32)[:, None],
+                          np.where(np.arange(n) < 100, 0.5, 0.01).astype(np.float32))
+    states, _ = branch_starts(decisions, 2000, np.random.default_rng(0), "open")
+    share = np.mean(states[:, 0] < 100)  # 100 x 0.2525 against 900 x 0.0124 (1% of 0.25 added): 0.69 of the draws
+    assert 0.65 < share < 0.74, share
+    uniform, _ = branch_starts(decisions, 2000, np.random.default_rng(0))
+    assert np.mean(uniform[:, 0] < 100) < 0.15
+    decided = dataclasses.replace(decisions, predicted=np.ones(n, np.float32))  # every outcome settled: uniform
+    assert len(np.unique(branch_starts(decided, 500, np.random.default_rng(0), "open")[0])) > 300
+    with pytest.raises(ValueError, match="needs the fitted value's prediction"):
+        branch_starts(dataclasses.replace(decisions, predicted=None), 5, np.random.default_rng(0), "open")
 
 
 def test_advantage_sources_say_how_much_of_the_update_real_outcomes_carry():
@@ -232,6 +249,8 @@ def test_value_config_is_checked_and_runs_on_mjx_only():
         RLConfig(env=dataclasses.replace(mjx, starts="branch")).validate()
     with pytest.raises(ValueError, match="rl.value.bootstrap"):
         ValueConfig(bootstrap="yes").validate()
+    with pytest.raises(ValueError, match="rl.value.branch_starts"):
+        ValueConfig(branch_starts="hard").validate()
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--rl.value.episodes=64", "--rl.env.backend=mjx"])
     assert cfg.rl.value.episodes == 64
 
@@ -254,6 +273,9 @@ def test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_wh
     states, picked_tokens = branch_starts(decisions, 5, np.random.default_rng(0))
     assert states.shape == (5, 1) and picked_tokens.shape == (5, tokens.shape[1])
     assert np.all(np.isin(states[:, 0], decisions.states[:, 0]))
+    assert decisions.predicted is not None and decisions.predicted.shape == (len(decisions),)
+    with pytest.raises(ValueError, match="uniform or open"):
+        branch_starts(decisions, 5, np.random.default_rng(0), "hardest")
     with pytest.raises(ValueError, match="without a value"):
         runner.set_value({})
     plain = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=12, starts_at=lambda s, r: (far, tokens), eval_starts=far,

@@ -610,6 +610,10 @@ class ValueConfig:
       holdout: share of the episodes kept out of the fit, on which its calibration is reported.
       bootstrap: pay the rollouts cut at their horizon the value (default); false fits and reports it but pays
         success alone, the control of a run branched from the same episodes (``rl.env.starts=branch``).
+      branch_starts: how ``rl.env.starts=branch`` draws its starts from the episodes' decisions: ``uniform``
+        (default), or ``open``, in proportion to ``p (1 - p)`` of the fitted value's success probability there,
+        where the outcome is still open (:func:`sword_jax.rl.jax_env_grpo.branch_starts`). Uniform draws put most
+        starts in failing episodes, which run to the action limit and hold most decisions.
     """
 
     episodes: int = 0  # 0 = off
@@ -619,10 +623,13 @@ class ValueConfig:
     width: int = 16
     holdout: float = 0.2
     bootstrap: bool = True
+    branch_starts: str = "uniform"  # uniform | open
 
     def validate(self) -> None:
         if not isinstance(self.bootstrap, bool):
             raise ValueError(f"rl.value.bootstrap must be true or false, got {self.bootstrap!r}")
+        if self.branch_starts not in ("uniform", "open"):
+            raise ValueError(f"rl.value.branch_starts must be uniform|open, got {self.branch_starts!r}")
         for name in ("episodes", "steps", "batch_size", "width"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "episodes" else 1):

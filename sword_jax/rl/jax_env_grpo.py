@@ -346,7 +346,7 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
     The episodes are :meth:`EnvGRPO.value_episodes` from ``starts_at(round)`` up to ``max_steps`` actions (the
     episode limit); ``holdout`` of them (whole episodes) are kept out of the fit and report its calibration
     (:func:`~sword_jax.rl.value.calibration`). ``directory`` gets ``value.npz`` (the params), ``decisions.npz`` (the
-    decisions' snapshots, instructions and labels, where rollouts branch from) and ``value.json`` (the record:
+    decisions' snapshots, instructions, labels and the fitted value's prediction, where rollouts branch from) and ``value.json`` (the record:
     real episodes used, their success, the fit's loss, its calibration on fitted and held-out decisions).
     ``graphdef``: the value network's (:func:`~sword_jax.rl.value.build_value`).
 
@@ -368,7 +368,7 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
             record = json.load(f)
         with np.load(paths["decisions"]) as z:
             decisions = ValueData(np.zeros((len(z["labels"]), 0, 0, 3), np.uint8), z["tokens"], z["labels"],
-                                  z["episode"], z["states"])
+                                  z["episode"], z["states"], z["predicted"] if "predicted" in z.files else None)
         log(f"value: loaded the fit in {directory} ({record['real_episodes']} real episodes)")
     else:
         t0 = time.perf_counter()
@@ -381,11 +381,13 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
             f"{t1 - t0:.0f} s); fitting on {len(np.unique(fit.episode))}, {len(np.unique(held.episode))} held out")
         params, metrics = fit_value(graphdef, fresh, rl, fit, seed=seed, log=log)
         value = as_value(graphdef, params)
+        data.predicted = predict(value, data)
         record = {"real_episodes": int(rl.value.episodes), "episode_success": float(outcome.mean()),
                   "decisions": len(data), "fit_episodes": int(len(np.unique(fit.episode))),
                   "held_out_episodes": int(len(np.unique(held.episode))), "loss": metrics["loss"],
-                  "fit": calibration(predict(value, fit), fit.labels),
-                  "held_out": calibration(predict(value, held), held.labels) if len(held) else None,
+                  "fit": calibration(data.predicted[~np.isin(data.episode, held.episode)], fit.labels),
+                  "held_out": calibration(data.predicted[np.isin(data.episode, held.episode)], held.labels)
+                  if len(held) else None,
                   "collect_seconds": round(t1 - t0, 1), "fit_seconds": round(time.perf_counter() - t1, 1)}
         held_record = record["held_out"]
         if held_record:
@@ -394,7 +396,8 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
                 f"AUC {'n/a' if auc is None else f'{auc:.3f}'}")
         os.makedirs(directory, exist_ok=True)
         save_params_npz(paths["params"], params)
-        np.savez(paths["decisions"], tokens=data.tokens, labels=data.labels, episode=data.episode, states=data.states)
+        np.savez(paths["decisions"], tokens=data.tokens, labels=data.labels, episode=data.episode, states=data.states,
+                 predicted=data.predicted)
         write_json_atomic(paths["record"], record)  # written last: its presence marks a finished fit
         decisions = dataclasses.replace(data, frames=np.zeros((len(data), 0, 0, 3), np.uint8))
     if runner.value is not None:
@@ -402,13 +405,28 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
     return record, decisions
 
 
-def branch_starts(decisions: ValueData, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` start states branched from recorded decisions (every phase of the episodes before their outcome,
-    uniformly): ``(snapshots [count, f], instruction tokens [count, l])``.
+def branch_starts(decisions: ValueData, count: int, rng: np.random.Generator, weighting: str = "uniform"
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` start states branched from recorded decisions (every phase of the episodes before their outcome):
+    ``(snapshots [count, f], instruction tokens [count, l])``. ``weighting``: ``uniform`` over the decisions, or
+    ``open``, in proportion to ``p (1 - p)`` of the fitted value's success probability ``p`` there (plus 1% of the
+    largest weight, so no decision is never drawn): where the outcome is still open, so a group's sampled actions
+    can decide it.
 
     Raises:
-      ValueError: decisions recorded without snapshots (an environment without ``snapshot``), or none."""
+      ValueError: decisions recorded without snapshots (an environment without ``snapshot``), none, an unknown
+        weighting, or ``open`` without the value's predictions."""
     if len(decisions) == 0 or decisions.states.shape[1] == 0:
         raise ValueError("branch_starts: the recorded decisions hold no environment snapshots to branch from")
-    pick = rng.integers(0, len(decisions), count)
+    if weighting == "uniform":
+        pick = rng.integers(0, len(decisions), count)
+    elif weighting == "open":
+        if decisions.predicted is None:
+            raise ValueError("branch_starts: weighting 'open' needs the fitted value's prediction at each decision")
+        p = np.clip(np.asarray(decisions.predicted, np.float64), 0.0, 1.0)
+        w = p * (1.0 - p)
+        w = w + 0.01 * max(float(w.max()), 1e-12)
+        pick = rng.choice(len(decisions), count, p=w / w.sum())
+    else:
+        raise ValueError(f"branch_starts: weighting must be uniform or open, got {weighting!r}")
     return decisions.states[pick], decisions.tokens[pick]

@@ -95,28 +95,33 @@ def terminal_returns(success: Array, truncated: Array, value: Array, success_ret
 class ValueData:
     """Decisions of real episodes as value-training samples: ``frames [N, h, w, 3] uint8``, ``tokens [N, l]``,
     ``labels [N]`` (1.0: the episode succeeded), ``episode [N]`` (which episode each came from), ``states [N, f]``
-    (the environment's snapshot at each decision, start states of branched rollouts; ``f = 0`` without one)."""
+    (the environment's snapshot at each decision, start states of branched rollouts; ``f = 0`` without one) and,
+    once a value is fitted, ``predicted [N]`` (its success probability there)."""
 
     frames: np.ndarray
     tokens: np.ndarray
     labels: np.ndarray
     episode: np.ndarray
     states: np.ndarray
+    predicted: np.ndarray | None = None  # the fitted value's success probability at each decision, once known
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
 
     def take(self, mask: np.ndarray) -> ValueData:
-        return ValueData(*(getattr(self, f.name)[mask] for f in dataclasses.fields(self)))
+        return ValueData(*(None if getattr(self, f.name) is None else getattr(self, f.name)[mask]
+                           for f in dataclasses.fields(self)))
 
     @staticmethod
     def concatenate(parts: list[ValueData]) -> ValueData:
-        """The samples of ``parts`` in order, episode indices renumbered so that they stay distinct."""
+        """The samples of ``parts`` in order, episode indices renumbered so that they stay distinct (``predicted``
+        is kept only where every part has it)."""
         out, offset = [], 0
         for p in parts:
             out.append(dataclasses.replace(p, episode=p.episode + offset))
             offset += int(p.episode.max()) + 1 if len(p) else 0
-        return ValueData(*(np.concatenate([getattr(p, f.name) for p in out]) for f in dataclasses.fields(ValueData)))
+        return ValueData(*(None if any(getattr(p, f.name) is None for p in out)
+                           else np.concatenate([getattr(p, f.name) for p in out]) for f in dataclasses.fields(ValueData)))
 
 
 def decision_samples(frames: np.ndarray, valid: np.ndarray, tokens: np.ndarray, success: np.ndarray,
