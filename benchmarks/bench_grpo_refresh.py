@@ -334,6 +334,20 @@ def _leads_group(p: subprocess.Popen) -> bool:
         return False
 
 
+def wait_until_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, start: float, *, tag: str,
+                        poll_s: float = 5.0) -> list[str]:
+    """Waits for the named processes to end; past ``deadline_s`` seconds after ``start`` (``time.perf_counter``;
+    0 = no deadline) stops the ones still running (:func:`stop_all`) and returns their names, sorted."""
+    while any(p.poll() is None for p in procs.values()):
+        if deadline_s and time.perf_counter() - start > deadline_s:
+            running = stop_all(list(procs.values()))
+            stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
+            print(f"[{tag}] deadline of {deadline_s:.0f} s: stopped {stopped}", flush=True)
+            return stopped
+        time.sleep(poll_s)
+    return []
+
+
 def gain_between(points: list[dict], key: str | None) -> dict:
     """Gain of the greedy (``key`` None) or sampled success from the first evaluation to the last."""
     a, b = points[0], points[-1]

@@ -358,16 +358,24 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int) -> dict:
     return out
 
 
+def smallest_gain_entry(summary: dict, arm: str, workdir: str, *, bench: str, unit: str, data: str,
+                        command: str = "") -> dict:
+    """A ``latest.json`` entry of a run-and-summary GRPO benchmark: value the smallest gain over the seeds of
+    ``arm`` (its ``summary["arms"][arm]["smallest"]``), beside every arm's gains and every run's summary, stamped
+    with the device the runs' work dir was made on."""
+    if arm not in summary["arms"]:
+        raise SystemExit(f"{bench}: no run of the {arm} arm left an evaluation to record")
+    return common.record("", summary["arms"][arm]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
+                         device=common.workdir_device(workdir), data=data, unit=unit,
+                         **({"command": command} if command else {}))
+
+
 def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
     """``policy_grpo_reward_source_small``: value the smallest sampled gain over the seeds of GRPO in the world
     model paid by the real outcome of its actions (``exec``), beside every arm's gains and every run's summary."""
-    if "exec" not in summary["arms"]:
-        raise SystemExit("bench_grpo_reward_source: no run of the exec arm left an evaluation to record")
-    entry = common.record("", summary["arms"]["exec"]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
-                          device=common.workdir_device(workdir), data=data,
-                          unit="real success gain of the sampled policy (T 0.5) on MJX (episodes per point: each run's curve)",
-                          **({"command": command} if command else {}))
-    return {"policy_grpo_reward_source_small": entry}
+    return {"policy_grpo_reward_source_small": smallest_gain_entry(
+        summary, "exec", workdir, bench="bench_grpo_reward_source", data=data, command=command,
+        unit="real success gain of the sampled policy (T 0.5) on MJX (episodes per point: each run's curve)")}
 
 
 def print_runs(summary: dict) -> None:

@@ -41,8 +41,8 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import stop_all
-from benchmarks.bench_grpo_reward_source import RECIPE, summarize_run
+from benchmarks.bench_grpo_refresh import wait_until_deadline
+from benchmarks.bench_grpo_reward_source import RECIPE, smallest_gain_entry, summarize_run
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
@@ -97,14 +97,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         print(f"[grpo-value] {name} on GPU {gpu_of[name]}: {' '.join(cmd[2:])}", flush=True)
         with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
             procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
-    stopped: list[str] = []
-    while any(p.poll() is None for p in procs.values()):
-        if args.deadline_s and time.perf_counter() - start > args.deadline_s:
-            running = stop_all(list(procs.values()))
-            stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
-            print(f"[grpo-value] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
-            break
-        time.sleep(poll_s)
+    stopped = wait_until_deadline(procs, args.deadline_s, start, tag="grpo-value", poll_s=poll_s)
     summary = dict(summarize(args.workdir), exit_codes={n: p.returncode for n, p in procs.items()},
                    stopped_at_deadline=stopped, seconds=round(time.perf_counter() - start, 1))
     with open(os.path.join(args.workdir, "grpo_value_summary.json"), "w") as f:
@@ -170,13 +163,9 @@ def summarize(workdir: str) -> dict:
 def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
     """``policy_grpo_branched_value_small``: the smallest gain over the seeds of the ``value`` arm's sampled policy
     reading proprio masked (the mode its rollouts train), beside every arm's gains and every run's summary."""
-    if "value" not in summary["arms"]:
-        raise SystemExit("bench_grpo_value: no run of the value arm left an evaluation to record")
-    entry = common.record("", summary["arms"]["value"]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
-                          device=common.workdir_device(workdir), data=data,
-                          unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX",
-                          **({"command": command} if command else {}))
-    return {"policy_grpo_branched_value_small": entry}
+    return {"policy_grpo_branched_value_small": smallest_gain_entry(
+        summary, "value", workdir, bench="bench_grpo_value", data=data, command=command,
+        unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")}
 
 
 def print_runs(summary: dict) -> None:

@@ -308,3 +308,22 @@ def test_each_run_is_one_line_of_its_gains(capsys):
     assert len(lines) == 2 and lines[0].startswith("[refresh] refreshed_seed0: steps 10, real episodes 128")
     assert "sampled 0.500 -> 0.600 (+0.100 [-0.020, +0.220])" in lines[0] and "900 imagined frames/s" in lines[0]
     assert "imagined frames" not in lines[1]
+
+
+def test_wait_until_deadline_stops_only_what_runs_past_it():
+    import subprocess
+    import sys
+    import time
+
+    from benchmarks.bench_grpo_refresh import wait_until_deadline
+
+    def spawn(seconds):
+        return subprocess.Popen([sys.executable, "-c", f"import time; time.sleep({seconds})"], start_new_session=True)
+
+    start = time.perf_counter()
+    procs = {"long": spawn(60), "short": spawn(0)}
+    assert wait_until_deadline(procs, 1.0, start, tag="t", poll_s=0.1) == ["long"]
+    assert procs["long"].poll() is not None and time.perf_counter() - start < 30
+    quick = {"a": spawn(0), "b": spawn(0.2)}
+    assert wait_until_deadline(quick, 0.0, time.perf_counter(), tag="t", poll_s=0.05) == []
+    assert all(p.returncode == 0 for p in quick.values())

@@ -28,27 +28,37 @@ from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.rollout import success_runs
 
 
+def conv_tower(width: int, rngs: nnx.Rngs) -> nnx.List:
+    """Four 3x3 stride-2 convolutions of ``width, 2 width, 4 width, 4 width`` channels (the detector's and the
+    value's image encoder; :func:`pooled_features` runs it)."""
+    convs, cin = nnx.List(), 3
+    for c in (width, 2 * width, 4 * width, 4 * width):
+        convs.append(nnx.Conv(cin, c, (3, 3), strides=(2, 2), padding="SAME", rngs=rngs))
+        cin = c
+    return convs
+
+
+def pooled_features(convs: nnx.List, frames: Float[Array, "n h w 3"], size: int) -> Float[Array, "n c"]:
+    """Frames in [0, 1] resized to ``size``, through :func:`conv_tower` (GELU after each), averaged over space."""
+    x = resize_frames(frames, size) * jnp.float32(2.0) - jnp.float32(1.0)
+    for conv in convs:
+        x = jax.nn.gelu(conv(x))
+    return jnp.mean(x, axis=(1, 2))
+
+
 class SuccessDetector(nnx.Module):
     """Four stride-2 conv blocks -> global average pool -> MLP -> one logit per frame."""
 
     def __init__(self, cfg: RLConfig, *, rngs: nnx.Rngs):
         self.image_size = cfg.detector_image_size
         w = cfg.reward_model.width
-        chans = (w, 2 * w, 4 * w, 4 * w)
-        self.convs = nnx.List()
-        cin = 3
-        for c in chans:
-            self.convs.append(nnx.Conv(cin, c, (3, 3), strides=(2, 2), padding="SAME", rngs=rngs))
-            cin = c
-        self.hidden = nnx.Linear(cin, 4 * w, rngs=rngs)
+        self.convs = conv_tower(w, rngs)
+        self.hidden = nnx.Linear(4 * w, 4 * w, rngs=rngs)
         self.out = nnx.Linear(4 * w, 1, rngs=rngs)
 
     def __call__(self, frames: Float[Array, "n h w 3"]) -> Float[Array, " n"]:
         """Success logits of frames in [0, 1] (any size; resized to ``cfg.detector_image_size``)."""
-        x = resize_frames(frames, self.image_size) * jnp.float32(2.0) - jnp.float32(1.0)
-        for conv in self.convs:
-            x = jax.nn.gelu(conv(x))
-        x = jnp.mean(x, axis=(1, 2))  # (N, C)
+        x = pooled_features(self.convs, frames, self.image_size)  # (N, C)
         return self.out(jax.nn.gelu(self.hidden(x)))[:, 0].astype(jnp.float32)
 
 

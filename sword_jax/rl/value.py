@@ -28,7 +28,7 @@ from jaxtyping import Array, Float, Int
 
 from sword_jax import optim
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.policy import resize_frames
+from sword_jax.rl.reward_model import conv_tower, pooled_features
 
 VOCAB = 257  # instruction byte tokens 1..256, 0 padding (sword_jax.rl.policy.tokenize_instructions)
 
@@ -40,22 +40,14 @@ class ValueNet(nnx.Module):
     def __init__(self, cfg: RLConfig, *, rngs: nnx.Rngs):
         self.image_size = cfg.image_size
         w = cfg.value.width
-        chans = (w, 2 * w, 4 * w, 4 * w)
-        self.convs = nnx.List()
-        cin = 3
-        for c in chans:
-            self.convs.append(nnx.Conv(cin, c, (3, 3), strides=(2, 2), padding="SAME", rngs=rngs))
-            cin = c
-        self.text = nnx.Embed(VOCAB, cin, rngs=rngs)
-        self.hidden = nnx.Linear(2 * cin, 4 * w, rngs=rngs)
+        self.convs = conv_tower(w, rngs)
+        self.text = nnx.Embed(VOCAB, 4 * w, rngs=rngs)
+        self.hidden = nnx.Linear(8 * w, 4 * w, rngs=rngs)
         self.out = nnx.Linear(4 * w, 1, rngs=rngs)
 
     def __call__(self, frames: Float[Array, "n h w 3"], tokens: Int[Array, "n l"]) -> Float[Array, " n"]:
         """Logits for frames in [0, 1] (any size; resized to ``rl.image_size``) and instruction tokens."""
-        x = resize_frames(frames, self.image_size) * jnp.float32(2.0) - jnp.float32(1.0)
-        for conv in self.convs:
-            x = jax.nn.gelu(conv(x))
-        x = jnp.mean(x, axis=(1, 2))
+        x = pooled_features(self.convs, frames, self.image_size)
         present = (tokens > 0).astype(jnp.float32)[..., None]
         text = jnp.sum(self.text(tokens) * present, axis=1) / jnp.maximum(jnp.sum(present, axis=1), 1.0)
         h = jax.nn.gelu(self.hidden(jnp.concatenate([x, text.astype(x.dtype)], axis=-1)))
