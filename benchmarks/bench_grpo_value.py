@@ -23,7 +23,8 @@ masked)::
 
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
-still open (``rl.value.branch_starts``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
+still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N groups
+of mixed outcomes (``rl.grpo.min_mixed_groups``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
 each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
 its groups with mixed outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation and the value's held-out calibration;
 ``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
@@ -71,7 +72,8 @@ def run_commands(args) -> dict[str, list[str]]:
                 f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.eval_every}",
                 *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)),
-                *(() if args.branch_starts == "uniform" else (f"--rl.value.branch_starts={args.branch_starts}",))]
+                *(() if args.branch_starts == "uniform" else (f"--rl.value.branch_starts={args.branch_starts}",)),
+                *((f"--rl.grpo.min_mixed_groups={args.min_mixed_groups}",) if args.min_mixed_groups else ())]
     return out
 
 
@@ -217,6 +219,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--branch-starts", choices=("uniform", "open"), default="uniform",
                         help="run: every arm's starts uniform over the decisions, or where the value says the outcome "
                              "is still open (rl.value.branch_starts)")
+    parser.add_argument("--min-mixed-groups", type=int, default=0,
+                        help="run: a step whose batch holds fewer groups with mixed outcomes applies no update "
+                             "(rl.grpo.min_mixed_groups; 0 = every step updates)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
@@ -230,10 +235,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit("bench_grpo_value run needs --policy (the supervised policy, .npz)")
     if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.eval_episodes_per_task < 1
             or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
-            or args.value_steps < 1):
+            or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch):
         raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
                          "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
-                         "--rollout-batch a multiple of 4 (4 minibatches)")
+                         "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]")
     return args
 
 

@@ -38,7 +38,9 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     assert "--rl.grpo.scale_by_std=false" in centred["value_s0"] and sorted(centred) == ["value_s0"]
     opened = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--branch-starts", "open"]))
     assert all("--rl.value.branch_starts=open" in cmd for cmd in opened.values())
-    assert not any("branch_starts" in c for c in value)
+    assert not any("branch_starts" in c for c in value) and not any("min_mixed_groups" in c for c in value)
+    skipping = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--min-mixed-groups", "8"]))
+    assert all("--rl.grpo.min_mixed_groups=8" in cmd for cmd in skipping.values())
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
                                                          "success_s1": "1"}
 
@@ -86,6 +88,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     (["run", "--policy", "p.npz", "--value-episodes", "1"], "--value-episodes >= 2"),
     (["run", "--policy", "p.npz", "--horizon", "0"], "--horizon"),
     (["run"], "needs --policy"),
+    (["run", "--policy", "p.npz", "--min-mixed-groups", "65"], "--min-mixed-groups"),
 ])
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):
