@@ -15,6 +15,12 @@ One GRPO step (:meth:`EnvGRPO.step`):
 The start states of round ``r`` of step ``s`` and every sampling key are functions of (seed, s, r), so the
 train state is all an exact resume needs (:mod:`sword_jax.rl.grpo_loop`).
 
+Short rollouts (``rl.value``): :func:`start_value` collects real episodes of the starting policy once, fits the
+value to them (:mod:`sword_jax.rl.value`) and saves both the fit and the episodes' decisions, which a resumed run
+loads; the training rollouts may start at those decisions (:func:`branch_starts`, ``rl.env.starts=branch``), and one
+that reaches its horizon without an outcome is paid the value of its final frame. Each step logs where its
+advantages came from (:func:`advantage_sources`).
+
 Evaluations (:meth:`EnvGRPO.evaluate`) run the same compiled rollout on the fixed evaluation episodes:
 greedy with temporal ensembling (the deployed policy), and sampled at ``rl.grpo.temperature`` (the policy
 the update trains), and measure on a fixed set of states how many action tokens' argmax changed since the
