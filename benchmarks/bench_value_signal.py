@@ -1,0 +1,176 @@
+"""Does a fitted value rank a GRPO group's trajectories by their real outcome, or only different groups?
+
+GRPO closes a short rollout with the value of its final frame (``rl.value``); within a group, only the differences
+between its trajectories' values move the policy. A value can rank episodes well (different start states, different
+phases) and still not rank the trajectories of one group, whose final frames differ by a few actions. This measures
+both, on the MuJoCo C engine (no accelerator needed):
+
+1. ``--value-episodes`` episodes of the policy from training-split states at rest (T, proprio masked, 4 actions a
+   decision, up to the episode limit), every decision labelled with its episode's outcome; the value is fitted to
+   most and its calibration reported on the rest (:mod:`sword_jax.rl.value`).
+2. ``--groups`` keyframes of expert demonstrations, every phase, each rolled out ``--group-size`` times by the
+   sampled policy to the episode limit. Decision ``c`` samples with ``fold_in(key, c)``, so each trajectory's first
+   ``--horizon`` decisions are exactly the short rollout GRPO would have run, and its end says what that short rollout
+   led to. The value is read at the frame after the horizon.
+
+The figure that matters is the within-group AUC: over pairs of trajectories of the same group still running at the
+horizon, one of which went on to succeed and one not, how often the value at the horizon put the successful one
+higher (0.5: the value's differences inside a group are noise to GRPO). Beside it the AUC over every such pair
+across groups, and how much of the value's spread lies within groups::
+
+    python -m benchmarks.bench_value_signal --policy runs/p/policy_d50.npz --demos demos.hdf5 \\
+        --out benchmarks/results/policy/value_signal_small_cpu
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+
+from sword_jax import cli
+
+
+def pair_auc(values: np.ndarray, success: np.ndarray, groups: np.ndarray | None) -> dict:
+    """P(value of a later success > value of a later failure) over pairs (ties count a half), within the same group
+    (``groups`` [n], group ids) or over all pairs (``groups`` None): ``{"auc", "pairs"}``; ``auc`` None without pairs."""
+    values, success = np.asarray(values, np.float64), np.asarray(success, bool)
+    wins = pairs = 0.0
+    ids = [None] if groups is None else np.unique(groups)
+    for g in ids:
+        mask = np.ones(values.size, bool) if g is None else groups == g
+        pos, neg = values[mask & success], values[mask & ~success]
+        if pos.size and neg.size:
+            diff = pos[:, None] - neg[None, :]
+            wins += float(np.sum(diff > 0) + 0.5 * np.sum(diff == 0))
+            pairs += float(diff.size)
+    return {"auc": wins / pairs if pairs else None, "pairs": int(pairs)}
+
+
+def within_share(values: np.ndarray, groups: np.ndarray) -> float:
+    """The share of the values' variance that lies within groups (the mean within-group variance over the total)."""
+    total = float(np.var(values))
+    inner = float(np.mean([np.var(values[groups == g]) for g in np.unique(groups)]))
+    return inner / total if total > 0 else 0.0
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", required=True, help="the supervised policy (.npz)")
+    parser.add_argument("--demos", required=True, help="expert demonstrations with recorded states (train.gen_data)")
+    parser.add_argument("--config", default="sword:small")
+    parser.add_argument("--out", required=True, help="folder for value_signal.json")
+    parser.add_argument("--value-episodes", type=int, default=256)
+    parser.add_argument("--value-steps", type=int, default=1000)
+    parser.add_argument("--groups", type=int, default=32)
+    parser.add_argument("--group-size", type=int, default=8)
+    parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of the short rollout")
+    parser.add_argument("--temperature", type=float, default=0.5)
+    parser.add_argument("--workers", type=int, default=2, help="C-engine processes")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if min(args.value_episodes, args.value_steps, args.groups, args.horizon) < 1 or args.group_size < 2:
+        raise SystemExit("bench_value_signal: --value-episodes, --value-steps, --groups and --horizon must be >= 1, "
+                         "--group-size >= 2")
+
+    import dataclasses
+
+    import configs
+    from sim import tasks as sim_tasks
+    from sim.dataset import read_dataset
+    from sim.grpo_env import keyframe_picks
+    from sim.lockstep import LockstepEnvs
+    from sim.mjx_batch import stratified_train_starts
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.env_rollout import make_act_fns, run_policy
+    from sword_jax.rl.params_io import load_params_npz
+    from sword_jax.rl.policy import build_policy, tokenize_instructions
+    from sword_jax.rl.value import (as_value, build_value, calibration, decision_samples, fit_value, predict,
+                                    split_episodes)
+    from sword_jax.rng import stream_rng
+
+    cfg, _ = configs.from_argv(["--config", args.config])
+    base = cfg.rl
+    rl = dataclasses.replace(
+        base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
+        grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
+                                 rollout_batch=args.groups),
+        imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0),
+        value=dataclasses.replace(base.value, steps=args.value_steps))
+    graphdef, params = build_policy(rl, seed=0)
+    params = load_params_npz(args.policy, params)
+    act = make_act_fns(graphdef, rl)
+    limit = cfg.sim.max_steps
+    tasks = list(cfg.sim.tasks)
+    os.makedirs(args.out, exist_ok=True)
+    key = jax.random.key(args.seed)
+
+    def episodes(starts, name, stream):
+        t0 = time.perf_counter()
+        with LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=limit, renderer="jax",
+                          workers=args.workers) as envs:
+            out = run_policy(act, params, envs, rl, key=jax.random.fold_in(key, stream), greedy=False,
+                             max_steps=limit, episodes=starts, proprio="missing")
+        print(f"[value-signal] {name}: {len(starts)} episodes, success {float(np.mean(out.success)):.3f} "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
+        return out
+
+    # 1. the value, fitted to the policy's own episodes from rest
+    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
+    rest = stratified_train_starts(tasks, args.value_episodes, stream_rng(args.seed, "value_signal/rest"), pool=pool)
+    real = episodes(rest, "value episodes", 1)
+    tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in rest], rl.policy.max_instruction_bytes)
+    data = decision_samples(np.asarray(real.obs_frames), np.asarray(real.valid), tokens, np.asarray(real.success))
+    fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(args.seed))
+    value_graphdef, value_params = build_value(rl, seed=args.seed)
+    value_params, metrics = fit_value(value_graphdef, value_params, rl, fit, seed=args.seed)
+    value = as_value(value_graphdef, value_params)
+    held_report = calibration(predict(value, held), held.labels)
+
+    # 2. groups from keyframes of every phase, each trajectory to the episode limit
+    demos = rl_data.load_episodes([args.demos], read=read_dataset)
+    picks = keyframe_picks(demos, rl, seed=args.seed, step=0)
+    starts = [(t, np.asarray(flat, np.float64)) for t, flat in picks for _ in range(args.group_size)]
+    grouped = episodes(starts, "groups", 2)
+    valid = np.asarray(grouped.valid) > 0
+    decided = valid.sum(axis=1)  # decisions each trajectory made before it ended
+    running = decided > args.horizon  # still going after the short rollout: its frame after the horizon exists
+    g_tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in starts], rl.policy.max_instruction_bytes)
+    frames = np.asarray(grouped.obs_frames)[:, args.horizon]
+    at_horizon = predict(value, decision_samples(frames[:, None], np.ones((len(starts), 1)), g_tokens,
+                                                 np.asarray(grouped.success)))
+    success = np.asarray(grouped.success).astype(bool)
+    group_id = np.repeat(np.arange(args.groups), args.group_size)
+    keep = running
+    result = {
+        "config": args.config, "policy": args.policy, "temperature": args.temperature, "horizon_decisions": args.horizon,
+        "actions_per_decision": 4, "value_episodes": args.value_episodes, "value_episode_success": float(np.mean(real.success)),
+        "value_fit_loss": metrics["loss"], "value_held_out": held_report, "groups": args.groups,
+        "group_size": args.group_size,
+        "succeeded_within_horizon": float(np.mean(success & ~running)),
+        "running_at_horizon": int(keep.sum()), "later_success_of_running": float(np.mean(success[keep])) if keep.any() else None,
+        "value_at_horizon_mean": float(np.mean(at_horizon[keep])) if keep.any() else None,
+        "within_group_auc": pair_auc(at_horizon[keep], success[keep], group_id[keep]),
+        "across_all_auc": pair_auc(at_horizon[keep], success[keep], None),
+        "within_group_variance_share": within_share(at_horizon[keep], group_id[keep]) if keep.any() else None,
+        "groups_split_by_later_outcome": int(sum(1 for g in range(args.groups)
+                                                 if len(set(success[keep & (group_id == g)])) == 2)),
+        "seed": args.seed, "device": "CPU (MuJoCo C engine)",
+    }
+    with open(os.path.join(args.out, "value_signal.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    w, a = result["within_group_auc"], result["across_all_auc"]
+    print(f"[value-signal] value held-out AUC {held_report['auc']}, Brier {held_report['brier']:.4f} "
+          f"(constant {held_report['brier_constant']:.4f}); at the horizon ({keep.sum()} trajectories still running): "
+          f"within-group AUC {w['auc']} over {w['pairs']} pairs, across all {a['auc']} over {a['pairs']}; "
+          f"within-group share of the variance {result['within_group_variance_share']}", flush=True)
+    return result
+
+
+if __name__ == "__main__":
+    main()
