@@ -16,7 +16,8 @@ both, on the MuJoCo C engine (no accelerator needed):
 The figure that matters is the within-group AUC: over pairs of trajectories of the same group still running at the
 horizon, one of which went on to succeed and one not, how often the value at the horizon put the successful one
 higher (0.5: the value's differences inside a group are noise to GRPO). Beside it the AUC over every such pair
-across groups, and how much of the value's spread lies within groups::
+across groups, and how much of the value's spread lies within groups, for each fit of the value (``--value-steps``
+x ``--fit-seeds``, all on the same episodes: how much of the ranking survives another fit)::
 
     python -m benchmarks.bench_value_signal --policy runs/p/policy_d50.npz --demos demos.hdf5 \\
         --out benchmarks/results/policy/value_signal_small_cpu
@@ -66,7 +67,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--out", required=True, help="folder for value_signal.json")
     parser.add_argument("--value-episodes", type=int, default=256)
-    parser.add_argument("--value-steps", type=int, default=1000)
+    parser.add_argument("--value-steps", default="300", help="comma list: one fit of the value per entry and fit seed")
+    parser.add_argument("--fit-seeds", default="0", help="comma list of the fits' seeds (initialisation and batches)")
     parser.add_argument("--groups", type=int, default=32)
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of the short rollout")
@@ -74,7 +76,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--workers", type=int, default=2, help="C-engine processes")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    if min(args.value_episodes, args.value_steps, args.groups, args.horizon) < 1 or args.group_size < 2:
+    try:
+        fit_steps = [int(x) for x in args.value_steps.split(",") if x]
+        fit_seeds = [int(x) for x in args.fit_seeds.split(",") if x]
+    except ValueError:
+        raise SystemExit(f"bench_value_signal: --value-steps and --fit-seeds are comma lists of integers, got "
+                         f"{args.value_steps!r} and {args.fit_seeds!r}") from None
+    if (min(args.value_episodes, args.groups, args.horizon) < 1 or args.group_size < 2 or not fit_steps
+            or not fit_seeds or min(fit_steps) < 1):
         raise SystemExit("bench_value_signal: --value-episodes, --value-steps, --groups and --horizon must be >= 1, "
                          "--group-size >= 2")
 
@@ -100,8 +109,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
         grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
                                  rollout_batch=args.groups),
-        imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0),
-        value=dataclasses.replace(base.value, steps=args.value_steps))
+        imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0))
     graphdef, params = build_policy(rl, seed=0)
     params = load_params_npz(args.policy, params)
     act = make_act_fns(graphdef, rl)
@@ -127,10 +135,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in rest], rl.policy.max_instruction_bytes)
     data = decision_samples(np.asarray(real.obs_frames), np.asarray(real.valid), tokens, np.asarray(real.success))
     fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(args.seed))
-    value_graphdef, value_params = build_value(rl, seed=args.seed)
-    value_params, metrics = fit_value(value_graphdef, value_params, rl, fit, seed=args.seed)
-    value = as_value(value_graphdef, value_params)
-    held_report = calibration(predict(value, held), held.labels)
+    values = {}
+    for steps in fit_steps:
+        for fit_seed in fit_seeds:
+            fit_rl = dataclasses.replace(rl, value=dataclasses.replace(rl.value, steps=steps))
+            value_graphdef, value_params = build_value(fit_rl, seed=fit_seed)
+            value_params, metrics = fit_value(value_graphdef, value_params, fit_rl, fit, seed=fit_seed,
+                                              log=lambda _: None)
+            values[f"steps{steps}_seed{fit_seed}"] = (as_value(value_graphdef, value_params), metrics["loss"])
 
     # 2. groups from keyframes of every phase, each trajectory to the episode limit
     demos = rl_data.load_episodes([args.demos], read=read_dataset)
@@ -142,33 +154,36 @@ def main(argv: Sequence[str] | None = None) -> dict:
     running = decided > args.horizon  # still going after the short rollout: its frame after the horizon exists
     g_tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in starts], rl.policy.max_instruction_bytes)
     frames = np.asarray(grouped.obs_frames)[:, args.horizon]
-    at_horizon = predict(value, decision_samples(frames[:, None], np.ones((len(starts), 1)), g_tokens,
-                                                 np.asarray(grouped.success)))
+    at_frames = decision_samples(frames[:, None], np.ones((len(starts), 1)), g_tokens, np.asarray(grouped.success))
     success = np.asarray(grouped.success).astype(bool)
     group_id = np.repeat(np.arange(args.groups), args.group_size)
     keep = running
+    fits = {}
+    for name, (value, loss) in values.items():
+        at_horizon = predict(value, at_frames)[keep]
+        held_report = calibration(predict(value, held), held.labels)
+        fits[name] = {"fit_loss": loss, "held_out": held_report, "value_at_horizon_mean": float(np.mean(at_horizon)),
+                      "within_group_auc": pair_auc(at_horizon, success[keep], group_id[keep]),
+                      "across_all_auc": pair_auc(at_horizon, success[keep], None),
+                      "within_group_variance_share": within_share(at_horizon, group_id[keep])}
+        w, a = fits[name]["within_group_auc"], fits[name]["across_all_auc"]
+        print(f"[value-signal] {name}: held-out AUC {held_report['auc']:.3f}, Brier {held_report['brier']:.4f} "
+              f"(constant {held_report['brier_constant']:.4f}); at the horizon: within-group AUC {w['auc']:.3f} over "
+              f"{w['pairs']} pairs, across all {a['auc']:.3f} over {a['pairs']}; within-group share of the variance "
+              f"{fits[name]['within_group_variance_share']:.3f}", flush=True)
     result = {
         "config": args.config, "policy": args.policy, "temperature": args.temperature, "horizon_decisions": args.horizon,
-        "actions_per_decision": 4, "value_episodes": args.value_episodes, "value_episode_success": float(np.mean(real.success)),
-        "value_fit_loss": metrics["loss"], "value_held_out": held_report, "groups": args.groups,
-        "group_size": args.group_size,
-        "succeeded_within_horizon": float(np.mean(success & ~running)),
-        "running_at_horizon": int(keep.sum()), "later_success_of_running": float(np.mean(success[keep])) if keep.any() else None,
-        "value_at_horizon_mean": float(np.mean(at_horizon[keep])) if keep.any() else None,
-        "within_group_auc": pair_auc(at_horizon[keep], success[keep], group_id[keep]),
-        "across_all_auc": pair_auc(at_horizon[keep], success[keep], None),
-        "within_group_variance_share": within_share(at_horizon[keep], group_id[keep]) if keep.any() else None,
+        "actions_per_decision": 4, "value_episodes": args.value_episodes,
+        "value_episode_success": float(np.mean(real.success)), "value_fit_episodes": int(len(np.unique(fit.episode))),
+        "groups": args.groups, "group_size": args.group_size,
+        "succeeded_within_horizon": float(np.mean(success & ~running)), "running_at_horizon": int(keep.sum()),
+        "later_success_of_running": float(np.mean(success[keep])) if keep.any() else None,
         "groups_split_by_later_outcome": int(sum(1 for g in range(args.groups)
                                                  if len(set(success[keep & (group_id == g)])) == 2)),
-        "seed": args.seed, "device": "CPU (MuJoCo C engine)",
+        "fits": fits, "seed": args.seed, "device": "CPU (MuJoCo C engine)",
     }
     with open(os.path.join(args.out, "value_signal.json"), "w") as f:
         json.dump(result, f, indent=1)
-    w, a = result["within_group_auc"], result["across_all_auc"]
-    print(f"[value-signal] value held-out AUC {held_report['auc']}, Brier {held_report['brier']:.4f} "
-          f"(constant {held_report['brier_constant']:.4f}); at the horizon ({keep.sum()} trajectories still running): "
-          f"within-group AUC {w['auc']} over {w['pairs']} pairs, across all {a['auc']} over {a['pairs']}; "
-          f"within-group share of the variance {result['within_group_variance_share']}", flush=True)
     return result
 
 

@@ -904,6 +904,26 @@ def grpo_branched_value() -> str:
                    "value held out: Brier / constant's / AUC"], rows)
 
 
+VALUE_SIGNAL = ("policy", "value_signal_small_cpu", "value_signal.json")
+
+
+def value_signal() -> str:
+    """Per fit of the value (``benchmarks.bench_value_signal``): how it ranks held-out episodes, and at the short
+    rollout's horizon how it orders the trajectories of one group by their later outcome against every pair."""
+    with open(os.path.join(RESULTS_DIR, *VALUE_SIGNAL)) as f:
+        probe = json.load(f)
+    rows = []
+    for name, fit in probe["fits"].items():
+        steps, seed = re.fullmatch(r"steps(\d+)_seed(\d+)", name).groups()
+        held, within, across = fit["held_out"], fit["within_group_auc"], fit["across_all_auc"]
+        rows.append([f"{int(steps):,}", seed, f"{held['auc']:.3f}", f"{held['brier']:.3f} / {held['brier_constant']:.3f}",
+                     f"{within['auc']:.3f} ({within['pairs']} pairs)", f"{across['auc']:.3f} ({across['pairs']:,} pairs)",
+                     f"{fit['within_group_variance_share']:.2f}"])
+    return _table(["fit steps", "fit seed", "held-out episodes: AUC", "Brier / constant's",
+                   "at the horizon: within-group AUC", "across all pairs", "share of the value's variance within groups"],
+                  rows)
+
+
 def sim_fidelity_decisions() -> str:
     """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
     its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
@@ -939,6 +959,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal,
     "grpo-branched-value": grpo_branched_value,
+    "value-signal": value_signal,
 }
 
 

@@ -24,7 +24,8 @@ def test_a_value_that_ranks_groups_but_not_their_members_scores_half_within_grou
     assert vs.pair_auc(values, np.ones(8, bool), groups) == {"auc": None, "pairs": 0}
 
 
-@pytest.mark.parametrize("argv", [["--value-episodes", "0"], ["--group-size", "1"], ["--horizon", "0"]])
+@pytest.mark.parametrize("argv", [["--value-episodes", "0"], ["--group-size", "1"], ["--horizon", "0"],
+                                  ["--value-steps", "0"], ["--value-steps", "a"], ["--fit-seeds", ""]])
 def test_bad_command_lines_are_refused(tmp_path, argv):
     with pytest.raises(SystemExit, match="bench_value_signal"):
         vs.main(["--policy", "p.npz", "--demos", "d.hdf5", "--out", str(tmp_path), *argv])
