@@ -53,6 +53,11 @@ def pair_auc(values: np.ndarray, success: np.ndarray, groups: np.ndarray | None)
     return {"auc": wins / pairs if pairs else None, "pairs": int(pairs)}
 
 
+def _auc(auc: float | None) -> str:
+    """An AUC to three decimals, ``n/a`` where there was no pair to judge (one class only)."""
+    return "n/a" if auc is None else f"{auc:.3f}"
+
+
 def within_share(values: np.ndarray, groups: np.ndarray) -> float:
     """The share of the values' variance that lies within groups (the mean within-group variance over the total)."""
     total = float(np.var(values))
@@ -94,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     from sim.dataset import read_dataset
     from sim.grpo_env import keyframe_picks
     from sim.lockstep import LockstepEnvs
-    from sim.mjx_batch import stratified_train_starts
+    from sim.mjx_batch import episode_starts, stratified_train_starts
     from sword_jax.rl import data as rl_data
     from sword_jax.rl.env_rollout import make_act_fns, run_policy
     from sword_jax.rl.params_io import load_params_npz
@@ -132,7 +137,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
     rest = stratified_train_starts(tasks, args.value_episodes, stream_rng(args.seed, "value_signal/rest"), pool=pool)
     real = episodes(rest, "value episodes", 1)
-    tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in rest], rl.policy.max_instruction_bytes)
+    tokens = tokenize_instructions(episode_starts(rest)[1], rl.policy.max_instruction_bytes)
     data = decision_samples(np.asarray(real.obs_frames), np.asarray(real.valid), tokens, np.asarray(real.success))
     fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(args.seed))
     values = {}
@@ -152,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     valid = np.asarray(grouped.valid) > 0
     decided = valid.sum(axis=1)  # decisions each trajectory made before it ended
     running = decided > args.horizon  # still going after the short rollout: its frame after the horizon exists
-    g_tokens = tokenize_instructions([sim_tasks.LANGUAGE[int(t)] for t, _ in starts], rl.policy.max_instruction_bytes)
+    g_tokens = tokenize_instructions(episode_starts(starts)[1], rl.policy.max_instruction_bytes)
     frames = np.asarray(grouped.obs_frames)[:, args.horizon]
     at_frames = decision_samples(frames[:, None], np.ones((len(starts), 1)), g_tokens, np.asarray(grouped.success))
     success = np.asarray(grouped.success).astype(bool)
@@ -167,9 +172,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       "across_all_auc": pair_auc(at_horizon, success[keep], None),
                       "within_group_variance_share": within_share(at_horizon, group_id[keep])}
         w, a = fits[name]["within_group_auc"], fits[name]["across_all_auc"]
-        print(f"[value-signal] {name}: held-out AUC {held_report['auc']:.3f}, Brier {held_report['brier']:.4f} "
-              f"(constant {held_report['brier_constant']:.4f}); at the horizon: within-group AUC {w['auc']:.3f} over "
-              f"{w['pairs']} pairs, across all {a['auc']:.3f} over {a['pairs']}; within-group share of the variance "
+        print(f"[value-signal] {name}: held-out AUC {_auc(held_report['auc'])}, Brier {held_report['brier']:.4f} "
+              f"(constant {held_report['brier_constant']:.4f}); at the horizon: within-group AUC {_auc(w['auc'])} over "
+              f"{w['pairs']} pairs, across all {_auc(a['auc'])} over {a['pairs']}; within-group share of the variance "
               f"{fits[name]['within_group_variance_share']:.3f}", flush=True)
     result = {
         "config": args.config, "policy": args.policy, "temperature": args.temperature, "horizon_decisions": args.horizon,

@@ -232,16 +232,16 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
     value_net = build_value(rl, seed=cfg.seed) if rl.value.episodes else None
-    paid = value_net is not None and rl.value.bootstrap
+    pays_value = value_net is not None and rl.value.bootstrap
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
                      eval_tokens=tokenize_instructions(eval_text, max_bytes),
                      eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log,
-                     train_proprio=not masked, value=as_value(*value_net) if paid else None, **setting)
+                     train_proprio=not masked, value=as_value(*value_net) if pays_value else None, **setting)
     os.makedirs(workdir, exist_ok=True)
     value_record = None
     if value_net is not None:  # fitted once, before the first step; a resumed run loads the fit
-        value_record, recorded = start_value(runner, value_net[0], params, os.path.join(workdir, "value"),
-                                             seed=cfg.seed, max_steps=cfg.sim.max_steps, starts_at=value_starts, log=log)
+        value_record, recorded = start_value(runner, params, os.path.join(workdir, "value"), seed=cfg.seed,
+                                             max_steps=cfg.sim.max_steps, starts_at=value_starts, log=log)
         decisions.append(recorded)
     runner.start_probe(params, os.path.join(workdir, "probe"))
 

@@ -29,3 +29,7 @@ def test_a_value_that_ranks_groups_but_not_their_members_scores_half_within_grou
 def test_bad_command_lines_are_refused(tmp_path, argv):
     with pytest.raises(SystemExit, match="bench_value_signal"):
         vs.main(["--policy", "p.npz", "--demos", "d.hdf5", "--out", str(tmp_path), *argv])
+
+
+def test_an_auc_without_pairs_prints_as_na():
+    assert vs._auc(None) == "n/a" and vs._auc(0.5) == "0.500"

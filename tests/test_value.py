@@ -157,7 +157,7 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
 
     runner = _runner(rl, params, graphdef, value_graphdef, value_params,
                      lambda s, r: np.array([[-0.2], [0.1]], np.float32))
-    record, decisions = start_value(runner, value_graphdef, params, str(tmp_path / "value"), seed=0, max_steps=12,
+    record, decisions = start_value(runner, params, str(tmp_path / "value"), seed=0, max_steps=12,
                                     starts_at=starts, log=lambda _: None)
     assert drawn == [0, 1]  # 12 episodes: two rounds of 8
     assert len(decisions) == record["decisions"] and decisions.states.shape == (len(decisions), 1)
@@ -176,7 +176,7 @@ def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fi
     drawn.clear()
     again = _runner(rl, params, graphdef, value_graphdef, build_value(rl, seed=1)[1],
                     lambda s, r: np.array([[-0.2], [0.1]], np.float32))
-    record_again, decisions_again = start_value(again, value_graphdef, params, str(tmp_path / "value"), seed=0,
+    record_again, decisions_again = start_value(again, params, str(tmp_path / "value"), seed=0,
                                                 max_steps=12, starts_at=starts, log=lambda _: None)
     assert record_again == record and drawn == []
     np.testing.assert_array_equal(decisions_again.states, decisions.states)
@@ -265,7 +265,7 @@ def test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_wh
     runner = EnvGRPO(graphdef, rl, SnapshotSlideEnv(), max_steps=12, starts_at=lambda s, r: (far, tokens),
                      eval_starts=far, eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(0), train_max_steps=4,
                      train_execute_steps=4)
-    record, decisions = start_value(runner, build_value(rl)[0], params, str(tmp_path), seed=0, max_steps=12,
+    record, decisions = start_value(runner, params, str(tmp_path), seed=0, max_steps=12,
                                     starts_at=lambda r: (far, tokens), log=lambda _: None)
     assert runner.value is None and record["real_episodes"] == 8
     _, metrics = runner.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))

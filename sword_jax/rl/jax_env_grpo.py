@@ -341,8 +341,8 @@ class EnvGRPO:
         return point, extra
 
 
-def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, directory: str, *, seed: int,
-                max_steps: int, starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]],
+def start_value(runner: EnvGRPO, policy_params: Any, directory: str, *, seed: int, max_steps: int,
+                starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]],
                 log: Callable[[str], Any] = print) -> tuple[dict[str, Any], ValueData]:
     """Fits ``rl.value`` to ``rl.value.episodes`` real episodes of the starting policy, or, when ``directory``
     holds a finished fit, loads that one (a resumed run pays and branches its rollouts as the uninterrupted run
@@ -351,10 +351,11 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
 
     The episodes are :meth:`EnvGRPO.value_episodes` from ``starts_at(round)`` up to ``max_steps`` actions (the
     episode limit); ``holdout`` of them (whole episodes) are kept out of the fit and report its calibration
-    (:func:`~sword_jax.rl.value.calibration`). ``directory`` gets ``value.npz`` (the params), ``decisions.npz`` (the
-    decisions' snapshots, instructions, labels and the fitted value's prediction, where rollouts branch from) and ``value.json`` (the record:
-    real episodes used, their success, the fit's loss, its calibration on fitted and held-out decisions).
-    ``graphdef``: the value network's (:func:`~sword_jax.rl.value.build_value`).
+    (:func:`~sword_jax.rl.value.calibration`). ``directory`` gets ``value.npz`` (the params), ``decisions.npz``
+    (the decisions' snapshots, instructions, labels and the fitted value's prediction, where rollouts branch from)
+    and ``value.json`` (the record: real episodes used, their success, the fit's loss, its calibration on fitted
+    and held-out decisions). The value network is :func:`~sword_jax.rl.value.build_value`'s for ``rl`` and
+    ``seed``, as the runner's value was built.
 
     Returns ``(record, decisions)``: the decisions without their frames (``frames`` empty).
     """
@@ -365,7 +366,7 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
     rl = runner.rl
     paths = {k: os.path.join(directory, f) for k, f in (("params", "value.npz"), ("decisions", "decisions.npz"),
                                                          ("record", "value.json"))}
-    fresh = build_value(rl, seed=seed)[1]
+    graphdef, fresh = build_value(rl, seed=seed)
     if all(os.path.exists(p) for p in paths.values()):
         import json
 
@@ -382,7 +383,8 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
                                      key=jax.random.fold_in(runner.key, 1 << 22), starts_at=starts_at)
         t1 = time.perf_counter()
         fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(seed))
-        outcome = np.array([data.labels[data.episode == e][0] for e in np.unique(data.episode)])
+        held_out = np.isin(data.episode, held.episode)  # the split, as a mask over ``data``
+        outcome = data.labels[np.unique(data.episode, return_index=True)[1]]  # each episode's, from its first decision
         log(f"value: {rl.value.episodes} real episodes ({float(outcome.mean()):.3f} succeeded, {len(data)} decisions, "
             f"{t1 - t0:.0f} s); fitting on {len(np.unique(fit.episode))}, {len(np.unique(held.episode))} held out")
         params, metrics = fit_value(graphdef, fresh, rl, fit, seed=seed, log=log)
@@ -391,9 +393,8 @@ def start_value(runner: EnvGRPO, graphdef: nnx.GraphDef, policy_params: Any, dir
         record = {"real_episodes": int(rl.value.episodes), "episode_success": float(outcome.mean()),
                   "decisions": len(data), "fit_episodes": int(len(np.unique(fit.episode))),
                   "held_out_episodes": int(len(np.unique(held.episode))), "loss": metrics["loss"],
-                  "fit": calibration(data.predicted[~np.isin(data.episode, held.episode)], fit.labels),
-                  "held_out": calibration(data.predicted[np.isin(data.episode, held.episode)], held.labels)
-                  if len(held) else None,
+                  "fit": calibration(data.predicted[~held_out], fit.labels),
+                  "held_out": calibration(data.predicted[held_out], held.labels) if len(held) else None,
                   "collect_seconds": round(t1 - t0, 1), "fit_seconds": round(time.perf_counter() - t1, 1)}
         held_record = record["held_out"]
         if held_record:

@@ -197,16 +197,15 @@ def fit_value(graphdef: nnx.GraphDef, params: Any, cfg: RLConfig, data: ValueDat
         return params, opt_state, loss
 
     rng = np.random.default_rng(seed)
-    losses = []
+    every, last = max(conf.steps // 5, 1), []
     for s in range(conf.steps):
         pick = rng.integers(0, len(data), conf.batch_size)
         params, opt_state, loss = step(params, opt_state, jnp.asarray(data.frames[pick]),
                                        jnp.asarray(data.tokens[pick]), jnp.asarray(data.labels[pick]))
-        if s >= conf.steps - 10 or (s + 1) % max(conf.steps // 5, 1) == 0:
-            losses.append((s, float(loss)))
-            if (s + 1) % max(conf.steps // 5, 1) == 0:
-                log(f"value step {s + 1}/{conf.steps} loss {float(loss):.4f}")
-    last = [v for s, v in losses if s >= conf.steps - 10]
+        if s >= conf.steps - 10:
+            last.append(float(loss))
+        if (s + 1) % every == 0:
+            log(f"value step {s + 1}/{conf.steps} loss {float(loss):.4f}")
     if not np.all(np.isfinite(last)):
         raise FloatingPointError(f"fit_value: the loss became non-finite ({last})")
     return params, {"loss": float(np.mean(last))}
