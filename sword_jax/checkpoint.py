@@ -27,10 +27,21 @@ import orbax.checkpoint as ocp
 
 
 def abstract_like(tree: Any, shardings: Any | None = None) -> Any:
-    """``ShapeDtypeStruct`` tree of ``tree`` carrying ``shardings`` (default: each array's own)."""
+    """``ShapeDtypeStruct`` tree of ``tree`` carrying ``shardings`` (default: each array's own).
+
+    A host leaf (a NumPy array or a Python scalar, e.g. policy weights read from ``.npz``) has no
+    sharding of its own; it is restored onto the first local device, where its first use would put it.
+    """
     if shardings is None:
-        return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=a.sharding), tree)
-    return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), tree, shardings)
+        host = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        return jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), _dtype(a), sharding=getattr(a, "sharding", host)),
+                            tree)
+    return jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(np.shape(a), _dtype(a), sharding=s), tree, shardings)
+
+
+def _dtype(leaf: Any) -> np.dtype:
+    """A leaf's dtype; a Python scalar's as JAX would store it (float32, int32 without x64)."""
+    return leaf.dtype if hasattr(leaf, "dtype") else jax.numpy.asarray(leaf).dtype
 
 
 class CheckpointError(ValueError):

@@ -85,3 +85,23 @@ def test_a_run_id_holding_tuples_resumes_and_another_is_refused(tmp_path):
     assert resumed.first_step == STEPS and placed == []
     with pytest.raises(AnotherRunsCheckpoint, match=r"differs in \['sim.tasks'\]"):
         _run(directory, run_id={"seed": 0, "sim.tasks": (0, 2)})
+
+
+def test_a_state_with_host_leaves_resumes(tmp_path):
+    """A train state built from weights read off ``.npz`` holds NumPy leaves (no ``.sharding``); a resumed run
+    restores them onto the device and carries on from the checkpoint's step (GRPO from a policy file)."""
+    directory = str(tmp_path / "host")
+    host_state = lambda: {"w": np.zeros((2,), np.float32), "step": np.zeros((), np.int32)}  # noqa: E731
+
+    def go(steps):
+        return run_steps(_step, host_state(), lambda i: np.float32(i + 1), key=jax.random.key(0), steps=steps,
+                         log_every=1, name="host", report=lambda done, m, _o, _eta: {"step": done},
+                         checkpoint_dir=directory, place=lambda b: {"x": jnp.asarray(b)},
+                         metrics_finite=lambda m: m["nonfinite"] == 0, log=lambda line: None)
+
+    go(2)
+    result = go(STEPS)  # resumes at step 2: batches 3..STEPS are added to the restored w
+    np.testing.assert_array_equal(np.asarray(result.state["w"]), np.full((2,), sum(range(1, STEPS + 1)), np.float32))
+    abstract = checkpoint.abstract_like({"a": np.ones((3,), np.float16), "b": 1.5})
+    assert abstract["a"].shape == (3,) and abstract["a"].dtype == np.float16 and abstract["a"].sharding is not None
+    assert abstract["b"].shape == () and abstract["b"].dtype == np.float32
