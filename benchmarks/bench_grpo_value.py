@@ -162,12 +162,20 @@ def summarize(workdir: str) -> dict:
     return {"runs": runs, "arms": arms}
 
 
-def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
-    """``policy_grpo_branched_value_small``: the smallest gain over the seeds of the ``value`` arm's sampled policy
-    reading proprio masked (the mode its rollouts train), beside every arm's gains and every run's summary."""
-    return {"policy_grpo_branched_value_small": smallest_gain_entry(
-        summary, "value", workdir, bench="bench_grpo_value", data=data, command=command,
-        unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")}
+# --record-as: which latest.json entry a summary writes and whose arm's smallest gain is its value
+ENTRIES = {"value": ("policy_grpo_branched_value_small", "value"),  # uniform starts, advantages scaled by the std
+           "open": ("policy_grpo_branched_open_small", "success")}  # open starts, centred advantages
+
+
+def results_entries(summary: dict, workdir: str, *, data: str, command: str = "", record_as: str = "value"
+                    ) -> dict[str, dict]:
+    """One entry (:data:`ENTRIES`): ``policy_grpo_branched_value_small`` (the runs with uniform starts), value the
+    smallest gain over the seeds of the ``value`` arm's sampled policy reading proprio masked (the mode its rollouts
+    train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages), that of the ``success`` arm;
+    beside every arm's gains and every run's summary."""
+    key, arm = ENTRIES[record_as]
+    return {key: smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,
+                                     unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")}
 
 
 def print_runs(summary: dict) -> None:
@@ -223,6 +231,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: a step whose batch holds fewer groups with mixed outcomes applies no update "
                              "(rl.grpo.min_mixed_groups; 0 = every step updates)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
+    parser.add_argument("--record-as", choices=tuple(ENTRIES), default="value",
+                        help="summary --record: the latest.json entry, " + "; ".join(
+                            f"{k}: {key} (the {arm} arm's smallest gain)" for k, (key, arm) in ENTRIES.items()))
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.scale_by_std = args.scale_by_std == "true"
@@ -249,7 +260,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     else:
         summary = summarize(args.workdir)
         common.save_summary(summary, args.out, (lambda: results_entries(
-            summary, args.workdir, data=common.summary_data(args.out, args.workdir), command=args.command))
+            summary, args.workdir, data=common.summary_data(args.out, args.workdir), command=args.command,
+            record_as=args.record_as))
             if args.record else None)
     print_runs(summary)
     return summary

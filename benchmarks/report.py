@@ -904,6 +904,33 @@ def grpo_branched_value() -> str:
                    "value held out: Brier / constant's / AUC"], rows)
 
 
+def grpo_branched_open() -> str:
+    """The same comparison with starts where the value says the outcome is open and centred advantages
+    (``policy_grpo_branched_open_small``): per run the gains of the sampled policy with proprio masked and with true
+    proprio and of the greedy policy, what its rollouts were paid, its groups with mixed outcomes and the share of the
+    advantages' mass in groups split by real success."""
+    entry = _load("latest.json")["policy_grpo_branched_open_small"]
+    rows = []
+    for arm in ("success", "value"):
+        for _, run in sorted(entry["runs"].items()):
+            if run["arm"] != arm:
+                continue
+            masked, sampled, greedy, paid = (run["sampled_proprio_masked"], run["sampled"], run["greedy"],
+                                             run["paid_success"])
+            value_paid = run.get("terminal_value")
+            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
+                         f"{masked['start']:.3f} -> {masked['end']:.3f}, {_pct(masked['gain'])} {_interval(masked['ci95'])}",
+                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
+                         f"{_pct(greedy['gain'])} {_interval(greedy['ci95'])}",
+                         f"{paid['first']:.3f} -> {paid['last']:.3f}"
+                         + (f" (value {value_paid['first']:.3f} -> {value_paid['last']:.3f})" if value_paid else ""),
+                         f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"])
+    return _table(["rollouts (4 decisions from open starts, centred advantages)", "seed", "steps",
+                   "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
+                   "greedy: gain", "paid success, steps 1-5 -> last 5", "groups mixed (median)",
+                   "advantage mass in groups split by success"], rows)
+
+
 VALUE_SIGNAL = ("policy", "value_signal_small_cpu", "value_signal.json")
 
 
@@ -957,7 +984,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
-    "grpo-horizon-signal": grpo_horizon_signal,
+    "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
     "grpo-branched-value": grpo_branched_value,
     "value-signal": value_signal,
 }

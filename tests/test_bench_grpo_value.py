@@ -76,6 +76,9 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     assert summary["arms"]["success"]["masked_gain_per_seed"] == {0: pytest.approx(0.05)}
     entries = gv.results_entries(summary, base, data="x.json")
     assert entries["policy_grpo_branched_value_small"]["value"] == pytest.approx(0.15)
+    open_entry = gv.results_entries(summary, base, data="x.json", record_as="open")  # open starts: the success arm
+    assert list(open_entry) == ["policy_grpo_branched_open_small"]
+    assert open_entry["policy_grpo_branched_open_small"]["value"] == pytest.approx(0.05)
     gv.print_runs(summary)
     assert "value paid 0.430 -> 0.480" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no run of the value arm"):
