@@ -32,9 +32,9 @@ import os
 import time
 from collections.abc import Sequence
 
-import jax
 import numpy as np
 
+from benchmarks.bench_value_signal import Probe, add_probe_options
 from sword_jax import cli
 
 SETTINGS = ("rest", "short", "short_eventual", "full")
@@ -42,82 +42,33 @@ SETTINGS = ("rest", "short", "short_eventual", "full")
 
 def main(argv: Sequence[str] | None = None) -> dict:
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", required=True, help="the supervised policy (.npz)")
-    parser.add_argument("--demos", required=True, help="expert demonstrations with recorded states (train.gen_data)")
-    parser.add_argument("--config", default="sword:small")
-    parser.add_argument("--out", required=True, help="folder for gradient_signal.json")
-    parser.add_argument("--groups", type=int, default=64, help="groups per start distribution")
-    parser.add_argument("--group-size", type=int, default=8)
-    parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of the short rollout")
+    add_probe_options(parser, groups=64)
     parser.add_argument("--batch-groups", type=int, default=64, help="the GRPO batch the cosines are predicted for")
-    parser.add_argument("--temperature", type=float, default=0.5)
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true")
     parser.add_argument("--max-steps", type=int, default=0, help="episode limit in actions (0: the config's)")
-    parser.add_argument("--workers", type=int, default=2, help="C-engine processes")
     parser.add_argument("--bootstrap", type=int, default=1000)
-    parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    if min(args.groups, args.horizon, args.batch_groups) < 1 or args.groups < 2 or args.group_size < 2:
-        raise SystemExit("bench_grpo_gradient_signal: --groups and --group-size must be >= 2, --horizon and "
-                         "--batch-groups >= 1")
+    if min(args.horizon, args.batch_groups, args.bootstrap) < 1 or args.groups < 2 or args.group_size < 2:
+        raise SystemExit("bench_grpo_gradient_signal: --groups and --group-size must be >= 2, --horizon, "
+                         "--batch-groups and --bootstrap >= 1")
     if not os.path.exists(args.demos):
         raise SystemExit(f"bench_grpo_gradient_signal: no demonstrations at {args.demos} (make them with "
                          "python -m train.gen_data ... --stop-at-success)")
 
-    import dataclasses
-
-    import configs
-    from sim import tasks as sim_tasks
-    from sim.dataset import read_dataset
-    from sim.grpo_env import keyframe_picks
-    from sim.lockstep import LockstepEnvs
-    from sim.mjx_batch import stratified_train_starts
-    from sword_jax.rl import data as rl_data
     from sword_jax.rl import gradient_signal as gs
-    from sword_jax.rl.env_rollout import make_act_fns, run_policy
-    from sword_jax.rl.params_io import load_params_npz
-    from sword_jax.rl.policy import build_policy
-    from sword_jax.rng import stream_rng
 
-    cfg, _ = configs.from_argv(["--config", args.config])
-    base = cfg.rl
-    rl = dataclasses.replace(
-        base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
-        grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
-                                 rollout_batch=args.groups, scale_by_std=args.scale_by_std == "true",
-                                 minibatches=1, update_microbatch=0),
-        imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0))
-    graphdef, params = build_policy(rl, seed=0)
-    params = load_params_npz(args.policy, params)
-    act = make_act_fns(graphdef, rl)
-    limit = args.max_steps or cfg.sim.max_steps
-    tasks = list(cfg.sim.tasks)
+    probe = Probe(args, "gradient-signal", max_steps=args.max_steps, scale_by_std=args.scale_by_std == "true",
+                  minibatches=1, update_microbatch=0)
+    rl, graphdef, params = probe.rl, probe.graphdef, probe.params
     os.makedirs(args.out, exist_ok=True)
-    key = jax.random.key(args.seed)
-    timings = {}
-
-    def episodes(starts, name, stream):
-        t0 = time.perf_counter()
-        with LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=limit, renderer="jax",
-                          workers=args.workers) as envs:
-            out = run_policy(act, params, envs, rl, key=jax.random.fold_in(key, stream), greedy=False,
-                             max_steps=limit, episodes=starts, proprio="missing")
-        timings[f"{name}_rollouts_s"] = round(time.perf_counter() - t0, 1)
-        print(f"[gradient-signal] {name}: {len(starts)} episodes, success {float(np.mean(out.success)):.3f} "
-              f"({timings[f'{name}_rollouts_s']:.0f} s)", flush=True)
-        return out
-
-    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
-    rest_starts = stratified_train_starts(tasks, args.groups, stream_rng(args.seed, "gradient_signal/rest"), pool=pool)
-    rest = episodes([s for s in rest_starts for _ in range(args.group_size)], "rest", 1)
-    demos = rl_data.load_episodes([args.demos], read=read_dataset)
-    picks = keyframe_picks(demos, rl, seed=args.seed, step=0)
-    keyframes = episodes([(t, np.asarray(flat, np.float64)) for t, flat in picks for _ in range(args.group_size)],
-                         "keyframes", 2)
-    eventual = keyframes  # every decision, paid the eventual outcome
-    scored = {"rest": rest, "short": gs.first_decisions(keyframes, args.horizon, rl),
-              "short_eventual": gs.first_decisions(keyframes, args.horizon, rl)._replace(
-                  success=keyframes.success, returns=keyframes.returns), "full": eventual}
+    rest = probe.episodes([s for s in probe.rest_starts(args.groups, "gradient_signal/rest")
+                           for _ in range(args.group_size)], "rest", 1)
+    keyframes = probe.episodes([s for s in probe.keyframe_starts() for _ in range(args.group_size)], "keyframes", 2)
+    short = gs.first_decisions(keyframes, args.horizon, rl)
+    scored = {"rest": rest, "short": short,
+              "short_eventual": short._replace(success=keyframes.success, returns=keyframes.returns),
+              "full": keyframes}  # every decision, paid the eventual outcome
+    timings = probe.seconds
     vectors, settings, outcomes, start = [], {}, {}, 0
     for name in SETTINGS:
         t0 = time.perf_counter()
@@ -146,9 +97,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
               f"gradient {_fmt(s['useful'])} {_ci(ci['useful'])}", flush=True)
     result = {
         "config": args.config, "policy": args.policy, "temperature": args.temperature, "proprio": "missing",
-        "actions_per_decision": 4, "horizon_decisions": args.horizon, "max_steps": limit, "groups": args.groups,
+        "actions_per_decision": 4, "horizon_decisions": args.horizon, "groups": args.groups,
         "group_size": args.group_size, "batch_groups": args.batch_groups, "scale_by_std": args.scale_by_std == "true",
-        "loss_norm": rl.grpo.loss_norm, "seed": args.seed, "bootstrap_draws": args.bootstrap,
+        "loss_norm": rl.grpo.loss_norm, "seed": args.seed, "bootstrap_draws": args.bootstrap, "max_steps": probe.limit,
         "outcomes": outcomes, "statistics": stats, "intervals": intervals, "seconds": timings,
         "device": "CPU (MuJoCo C engine)",
         "gram": gram.tolist(), "rows": {n: s.rows.tolist() for n, s in settings.items()},

@@ -65,21 +65,87 @@ def within_share(values: np.ndarray, groups: np.ndarray) -> float:
     return inner / total if total > 0 else 0.0
 
 
-def main(argv: Sequence[str] | None = None) -> dict:
-    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_probe_options(parser: argparse.ArgumentParser, *, groups: int) -> None:
+    """The options every C-engine probe of GRPO's groups shares (this one, ``bench_grpo_gradient_signal``)."""
     parser.add_argument("--policy", required=True, help="the supervised policy (.npz)")
     parser.add_argument("--demos", required=True, help="expert demonstrations with recorded states (train.gen_data)")
     parser.add_argument("--config", default="sword:small")
-    parser.add_argument("--out", required=True, help="folder for value_signal.json")
-    parser.add_argument("--value-episodes", type=int, default=256)
-    parser.add_argument("--value-steps", default="300", help="comma list: one fit of the value per entry and fit seed")
-    parser.add_argument("--fit-seeds", default="0", help="comma list of the fits' seeds (initialisation and batches)")
-    parser.add_argument("--groups", type=int, default=32)
+    parser.add_argument("--out", required=True, help="the folder for the probe's JSON")
+    parser.add_argument("--groups", type=int, default=groups)
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of the short rollout")
     parser.add_argument("--temperature", type=float, default=0.5)
     parser.add_argument("--workers", type=int, default=2, help="C-engine processes")
     parser.add_argument("--seed", type=int, default=0)
+
+
+class Probe:
+    """The policy as GRPO's short rollouts run it on the C engine (T ``--temperature``, proprio masked, 4 actions a
+    decision, no ensembling), its training-split starts at rest and its keyframe starts; :meth:`episodes` rolls
+    start states out to ``max_steps`` (default: the config's episode limit), decision ``c`` sampling with
+    ``fold_in(fold_in(key, stream), c)``. ``grpo``: further ``rl.grpo`` fields."""
+
+    def __init__(self, args: argparse.Namespace, tag: str, *, max_steps: int = 0, **grpo):
+        import dataclasses
+
+        import configs
+        from sim import tasks as sim_tasks
+        from sword_jax.rl.env_rollout import make_act_fns
+        from sword_jax.rl.params_io import load_params_npz
+        from sword_jax.rl.policy import build_policy
+
+        self.cfg, _ = configs.from_argv(["--config", args.config])
+        base = self.cfg.rl
+        self.rl = dataclasses.replace(
+            base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
+            grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
+                                     rollout_batch=args.groups, **grpo),
+            imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0))
+        self.graphdef, params = build_policy(self.rl, seed=0)
+        self.params = load_params_npz(args.policy, params)
+        self.act = make_act_fns(self.graphdef, self.rl)
+        self.limit = max_steps or self.cfg.sim.max_steps
+        self.tasks = list(self.cfg.sim.tasks)
+        self.pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=self.cfg.sim.init_seed)
+                     for t in self.tasks}
+        self.args, self.tag, self.key = args, tag, jax.random.key(args.seed)
+        self.seconds: dict[str, float] = {}
+
+    def rest_starts(self, count: int, stream: str) -> list:
+        """``count`` training-split states at rest, stratified over the tasks."""
+        from sim.mjx_batch import stratified_train_starts
+        from sword_jax.rng import stream_rng
+        return stratified_train_starts(self.tasks, count, stream_rng(self.args.seed, stream), pool=self.pool)
+
+    def keyframe_starts(self) -> list:
+        """``--groups`` keyframes of every phase of the demonstrations (GRPO's sampler at step 0)."""
+        from sim.dataset import read_dataset
+        from sim.grpo_env import keyframe_picks
+        from sword_jax.rl import data as rl_data
+        demos = rl_data.load_episodes([self.args.demos], read=read_dataset)
+        return [(t, np.asarray(flat, np.float64)) for t, flat in keyframe_picks(demos, self.rl, seed=self.args.seed,
+                                                                                 step=0)]
+
+    def episodes(self, starts: list, name: str, stream: int):
+        from sim.lockstep import LockstepEnvs
+        from sword_jax.rl.env_rollout import run_policy
+        t0 = time.perf_counter()
+        with LockstepEnvs(starts, resolution=self.cfg.sim.resolution, max_steps=self.limit, renderer="jax",
+                          workers=self.args.workers) as envs:
+            out = run_policy(self.act, self.params, envs, self.rl, key=jax.random.fold_in(self.key, stream),
+                             greedy=False, max_steps=self.limit, episodes=starts, proprio="missing")
+        self.seconds[f"{name}_rollouts_s"] = round(time.perf_counter() - t0, 1)
+        print(f"[{self.tag}] {name}: {len(starts)} episodes, success {float(np.mean(out.success)):.3f} "
+              f"({self.seconds[f'{name}_rollouts_s']:.0f} s)", flush=True)
+        return out
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_probe_options(parser, groups=32)
+    parser.add_argument("--value-episodes", type=int, default=256)
+    parser.add_argument("--value-steps", default="300", help="comma list: one fit of the value per entry and fit seed")
+    parser.add_argument("--fit-seeds", default="0", help="comma list of the fits' seeds (initialisation and batches)")
     args = parser.parse_args(argv)
     try:
         fit_steps = [int(x) for x in args.value_steps.split(",") if x]
@@ -94,49 +160,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     import dataclasses
 
-    import configs
-    from sim import tasks as sim_tasks
-    from sim.dataset import read_dataset
-    from sim.grpo_env import keyframe_picks
-    from sim.lockstep import LockstepEnvs
-    from sim.mjx_batch import episode_starts, stratified_train_starts
-    from sword_jax.rl import data as rl_data
-    from sword_jax.rl.env_rollout import make_act_fns, run_policy
-    from sword_jax.rl.params_io import load_params_npz
-    from sword_jax.rl.policy import build_policy, tokenize_instructions
+    from sim.mjx_batch import episode_starts
+    from sword_jax.rl.policy import tokenize_instructions
     from sword_jax.rl.value import (as_value, build_value, calibration, decision_samples, fit_value, predict,
                                     split_episodes)
-    from sword_jax.rng import stream_rng
 
-    cfg, _ = configs.from_argv(["--config", args.config])
-    base = cfg.rl
-    rl = dataclasses.replace(
-        base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
-        grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
-                                 rollout_batch=args.groups),
-        imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0))
-    graphdef, params = build_policy(rl, seed=0)
-    params = load_params_npz(args.policy, params)
-    act = make_act_fns(graphdef, rl)
-    limit = cfg.sim.max_steps
-    tasks = list(cfg.sim.tasks)
+    probe = Probe(args, "value-signal")
+    rl = probe.rl
     os.makedirs(args.out, exist_ok=True)
-    key = jax.random.key(args.seed)
-
-    def episodes(starts, name, stream):
-        t0 = time.perf_counter()
-        with LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=limit, renderer="jax",
-                          workers=args.workers) as envs:
-            out = run_policy(act, params, envs, rl, key=jax.random.fold_in(key, stream), greedy=False,
-                             max_steps=limit, episodes=starts, proprio="missing")
-        print(f"[value-signal] {name}: {len(starts)} episodes, success {float(np.mean(out.success)):.3f} "
-              f"({time.perf_counter() - t0:.0f} s)", flush=True)
-        return out
 
     # 1. the value, fitted to the policy's own episodes from rest
-    pool = {t: sim_tasks.split_init_states(t, "train", sim_tasks.TRAIN_RESERVE, seed=cfg.sim.init_seed) for t in tasks}
-    rest = stratified_train_starts(tasks, args.value_episodes, stream_rng(args.seed, "value_signal/rest"), pool=pool)
-    real = episodes(rest, "value episodes", 1)
+    rest = probe.rest_starts(args.value_episodes, "value_signal/rest")
+    real = probe.episodes(rest, "value episodes", 1)
     tokens = tokenize_instructions(episode_starts(rest)[1], rl.policy.max_instruction_bytes)
     data = decision_samples(np.asarray(real.obs_frames), np.asarray(real.valid), tokens, np.asarray(real.success))
     fit, held = split_episodes(data, rl.value.holdout, np.random.default_rng(args.seed))
@@ -150,10 +185,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
             values[f"steps{steps}_seed{fit_seed}"] = (as_value(value_graphdef, value_params), metrics["loss"])
 
     # 2. groups from keyframes of every phase, each trajectory to the episode limit
-    demos = rl_data.load_episodes([args.demos], read=read_dataset)
-    picks = keyframe_picks(demos, rl, seed=args.seed, step=0)
-    starts = [(t, np.asarray(flat, np.float64)) for t, flat in picks for _ in range(args.group_size)]
-    grouped = episodes(starts, "groups", 2)
+    starts = [start for start in probe.keyframe_starts() for _ in range(args.group_size)]
+    grouped = probe.episodes(starts, "groups", 2)
     valid = np.asarray(grouped.valid) > 0
     decided = valid.sum(axis=1)  # decisions each trajectory made before it ended
     running = decided > args.horizon  # still going after the short rollout: its frame after the horizon exists

@@ -15,7 +15,7 @@ import json
 import os
 import re
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from sword_jax import cli
 
@@ -878,26 +878,38 @@ def grpo_horizon_signal() -> str:
                    "groups with mixed outcomes"], rows)
 
 
+def _branched_rows(entry: dict, arms: Sequence[str], cells: Callable[[dict], list[str]]) -> list[list[str]]:
+    """Rows of a ``bench_grpo_value`` entry, arm by arm and seed by seed: label, seed, steps, then ``cells(run)``."""
+    return [[entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]), *cells(run)]
+            for arm in arms for _, run in sorted(entry["runs"].items()) if run["arm"] == arm]
+
+
+def _gain_cell(point: dict) -> str:
+    return f"{_pct(point['gain'])} {_interval(point['ci95'])}"
+
+
+def _masked_cell(run: dict) -> str:
+    masked = run["sampled_proprio_masked"]
+    return f"{masked['start']:.3f} -> {masked['end']:.3f}, {_gain_cell(masked)}"
+
+
+def _paid_cell(run: dict) -> str:
+    paid, value_paid = run["paid_success"], run.get("terminal_value")
+    return (f"{paid['first']:.3f} -> {paid['last']:.3f}"
+            + (f" (value {value_paid['first']:.3f} -> {value_paid['last']:.3f})" if value_paid else ""))
+
+
 def grpo_branched_value() -> str:
     """Branched short ground-truth GRPO closed by the fitted value against paid by success alone
     (``policy_grpo_branched_value_small``): per run the gains of the sampled policy with proprio masked (the mode
     its rollouts train) and with true proprio, what its rollouts were paid, its groups with mixed outcomes, and the
     value's held-out calibration."""
-    entry = _load("latest.json")["policy_grpo_branched_value_small"]
-    rows = []
-    for arm in ("value", "success"):
-        for _, run in sorted(entry["runs"].items()):
-            if run["arm"] != arm:
-                continue
-            masked, sampled, paid, v = run["sampled_proprio_masked"], run["sampled"], run["paid_success"], run["value"]
-            value_paid = run.get("terminal_value")
-            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
-                         f"{masked['start']:.3f} -> {masked['end']:.3f}, {_pct(masked['gain'])} {_interval(masked['ci95'])}",
-                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
-                         f"{paid['first']:.3f} -> {paid['last']:.3f}"
-                         + (f" (value {value_paid['first']:.3f} -> {value_paid['last']:.3f})" if value_paid else ""),
-                         f"{run['mixed_median']:.2f}",
-                         f"{v['held_out_brier']:.3f} / {v['held_out_brier_constant']:.3f} / {v['held_out_auc']:.2f}"])
+    def cells(run):
+        v = run["value"]
+        return [_masked_cell(run), _gain_cell(run["sampled"]), _paid_cell(run), f"{run['mixed_median']:.2f}",
+                f"{v['held_out_brier']:.3f} / {v['held_out_brier_constant']:.3f} / {v['held_out_auc']:.2f}"]
+
+    rows = _branched_rows(_load("latest.json")["policy_grpo_branched_value_small"], ("value", "success"), cells)
     return _table(["rollouts (4 decisions, branched from the policy's real states)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
                    "paid success, steps 1-5 -> last 5", "groups mixed (median)",
@@ -909,22 +921,11 @@ def grpo_branched_open() -> str:
     (``policy_grpo_branched_open_small``): per run the gains of the sampled policy with proprio masked and with true
     proprio and of the greedy policy, what its rollouts were paid, its groups with mixed outcomes and the share of the
     advantages' mass in groups split by real success."""
-    entry = _load("latest.json")["policy_grpo_branched_open_small"]
-    rows = []
-    for arm in ("success", "value"):
-        for _, run in sorted(entry["runs"].items()):
-            if run["arm"] != arm:
-                continue
-            masked, sampled, greedy, paid = (run["sampled_proprio_masked"], run["sampled"], run["greedy"],
-                                             run["paid_success"])
-            value_paid = run.get("terminal_value")
-            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
-                         f"{masked['start']:.3f} -> {masked['end']:.3f}, {_pct(masked['gain'])} {_interval(masked['ci95'])}",
-                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
-                         f"{_pct(greedy['gain'])} {_interval(greedy['ci95'])}",
-                         f"{paid['first']:.3f} -> {paid['last']:.3f}"
-                         + (f" (value {value_paid['first']:.3f} -> {value_paid['last']:.3f})" if value_paid else ""),
-                         f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"])
+    def cells(run):
+        return [_masked_cell(run), _gain_cell(run["sampled"]), _gain_cell(run["greedy"]), _paid_cell(run),
+                f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"]
+
+    rows = _branched_rows(_load("latest.json")["policy_grpo_branched_open_small"], ("success", "value"), cells)
     return _table(["rollouts (4 decisions from open starts, centred advantages)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
                    "greedy: gain", "paid success, steps 1-5 -> last 5", "groups mixed (median)",
