@@ -8,9 +8,37 @@ import platform
 # slower than its elemental emitter. With AVX2's FMA the elemental emitter rounds the same math differently in
 # programs fused differently (test_dlb's read-probability-0 step is then not bitwise the teacher-forcing step);
 # capped at AVX it rounds them the same. Child processes inherit the flags.
-FAST_COMPILE = ("--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-                " --xla_cpu_use_fusion_emitters=false"
-                + (" --xla_cpu_max_isa=AVX" if platform.machine().lower() in ("x86_64", "amd64") else ""))
+# XLA aborts the process on a flag it does not know, and newer jaxlib releases drop some (0.11 has no
+# --xla_cpu_use_fusion_emitters): a flag is kept only where jaxlib's own libraries name it.
+_FAST_FLAGS = ["--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true",
+               "--xla_cpu_use_fusion_emitters=false"]
+if platform.machine().lower() in ("x86_64", "amd64"):
+    _FAST_FLAGS.append("--xla_cpu_max_isa=AVX")
+
+
+def _known_to_xla(flags: list[str]) -> list[str]:
+    """``flags`` whose names appear in jaxlib's shared libraries (all of them where none can be read)."""
+    import importlib.util
+    import mmap
+
+    spec = importlib.util.find_spec("jaxlib")
+    names = {f: f.lstrip("-").split("=", 1)[0].encode() for f in flags}
+    found: set[str] = set()
+    seen_any = False
+    for root, _, files in os.walk(os.path.dirname(spec.origin) if spec and spec.origin else ""):
+        for name in files:
+            if not name.endswith(".so"):
+                continue
+            try:
+                with open(os.path.join(root, name), "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                    seen_any = seen_any or m.find(b"xla_force_host_platform_device_count") >= 0
+                    found.update(flag for flag, key in names.items() if flag not in found and m.find(key) >= 0)
+            except (OSError, ValueError):
+                continue
+    return [f for f in flags if f in found] if seen_any else list(flags)
+
+
+FAST_COMPILE = " ".join(_known_to_xla(_FAST_FLAGS))
 os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + f" {FAST_COMPILE} --xla_force_host_platform_device_count=8"
 ).strip()
