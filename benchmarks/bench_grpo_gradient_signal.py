@@ -37,7 +37,7 @@ import numpy as np
 from benchmarks.bench_value_signal import Probe, add_probe_options
 from sword_jax import cli
 
-SETTINGS = ("rest", "short", "short_eventual", "full")
+SETTINGS = ("short", "short_eventual", "rest", "full")  # the cheap ones first
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -47,9 +47,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true")
     parser.add_argument("--max-steps", type=int, default=0, help="episode limit in actions (0: the config's)")
     parser.add_argument("--bootstrap", type=int, default=1000)
+    parser.add_argument("--rest-groups", type=int, default=0, help="groups at rest (0: --groups)")
+    parser.add_argument("--settings", default=",".join(SETTINGS),
+                        help="comma list of the settings to measure (rest is always measured: the reference)")
     args = parser.parse_args(argv)
-    if min(args.horizon, args.batch_groups, args.bootstrap) < 1 or args.groups < 2 or args.group_size < 2:
-        raise SystemExit("bench_grpo_gradient_signal: --groups and --group-size must be >= 2, --horizon, "
+    asked = [n for n in args.settings.split(",") if n]
+    if set(asked) - set(SETTINGS):
+        raise SystemExit(f"bench_grpo_gradient_signal: --settings names some of {', '.join(SETTINGS)}, got {asked}")
+    args.settings = [n for n in SETTINGS if n == "rest" or n in asked]
+    args.rest_groups = args.rest_groups or args.groups
+    if (min(args.horizon, args.batch_groups, args.bootstrap) < 1 or min(args.groups, args.rest_groups) < 2
+            or args.group_size < 2):
+        raise SystemExit("bench_grpo_gradient_signal: --groups, --rest-groups and --group-size must be >= 2, --horizon, "
                          "--batch-groups and --bootstrap >= 1")
     if not os.path.exists(args.demos):
         raise SystemExit(f"bench_grpo_gradient_signal: no demonstrations at {args.demos} (make them with "
@@ -61,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                   minibatches=1, update_microbatch=0)
     rl, graphdef, params = probe.rl, probe.graphdef, probe.params
     os.makedirs(args.out, exist_ok=True)
-    rest = probe.episodes([s for s in probe.rest_starts(args.groups, "gradient_signal/rest")
+    rest = probe.episodes([s for s in probe.rest_starts(args.rest_groups, "gradient_signal/rest")
                            for _ in range(args.group_size)], "rest", 1)
     keyframes = probe.episodes([s for s in probe.keyframe_starts() for _ in range(args.group_size)], "keyframes", 2)
     short = gs.first_decisions(keyframes, args.horizon, rl)
@@ -70,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
               "full": keyframes}  # every decision, paid the eventual outcome
     timings = probe.seconds
     vectors, settings, outcomes, start = [], {}, {}, 0
-    for name in SETTINGS:
+    for name in args.settings:
         t0 = time.perf_counter()
         batch = scored[name]
         h = gs.group_gradients(graphdef, rl, params, batch)
@@ -78,18 +87,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
         vectors.append(h)
         settings[name] = gs.Setting(np.arange(start, start + len(h)), "" if name == "rest" else "keyframes")
         start += len(h)
-        returns = np.asarray(batch.returns, np.float32).reshape(args.groups, args.group_size)
+        returns = np.asarray(batch.returns, np.float32).reshape(-1, args.group_size)
         outcomes[name] = {"paid_success": float(np.mean(returns > 0)),
                           "mixed_groups": int(np.sum(returns.max(axis=1) > returns.min(axis=1))),
                           "decisions_scored": float(np.mean((np.asarray(batch.valid) > 0).sum(axis=1)))}
         print(f"[gradient-signal] {name}: paid success {outcomes[name]['paid_success']:.3f}, mixed groups "
-              f"{outcomes[name]['mixed_groups']} of {args.groups} ({timings[f'{name}_gradients_s']:.0f} s)", flush=True)
+              f"{outcomes[name]['mixed_groups']} of {len(returns)} ({timings[f'{name}_gradients_s']:.0f} s)", flush=True)
     gram = gs.gram_matrix(np.concatenate(vectors))
     del vectors
     stats = gs.statistics(gram, settings, reference="rest", batch_groups=args.batch_groups)
     intervals = gs.bootstrap(gram, settings, reference="rest", batch_groups=args.batch_groups, draws=args.bootstrap,
                              seed=args.seed)
-    for name in SETTINGS:
+    for name in args.settings:
         s, ci = stats[name], intervals[name]
         print(f"[gradient-signal] {name}: signal fraction {_fmt(s['signal_fraction'])} {_ci(ci['signal_fraction'])}, "
               f"cos of two {args.batch_groups}-group batches {_fmt(s['cos_at_batch'])} {_ci(ci['cos_at_batch'])}, "
@@ -98,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     result = {
         "config": args.config, "policy": args.policy, "temperature": args.temperature, "proprio": "missing",
         "actions_per_decision": 4, "horizon_decisions": args.horizon, "groups": args.groups,
+        "rest_groups": args.rest_groups,
         "group_size": args.group_size, "batch_groups": args.batch_groups, "scale_by_std": args.scale_by_std == "true",
         "loss_norm": rl.grpo.loss_norm, "seed": args.seed, "bootstrap_draws": args.bootstrap, "max_steps": probe.limit,
         "outcomes": outcomes, "statistics": stats, "intervals": intervals, "seconds": timings,

@@ -127,7 +127,9 @@ def test_bootstrap_intervals_cover_the_designed_values():
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--groups", "1"], "--groups and --group-size must be >= 2"),
+    (["--groups", "1"], "--groups, --rest-groups and --group-size must be >= 2"),
+    (["--rest-groups", "1"], "--rest-groups"),
+    (["--settings", "short,long"], "--settings names some of"),
     (["--horizon", "0"], "--horizon"),
     (["--demos", "/nonexistent/demos.hdf5"], "no demonstrations at /nonexistent/demos.hdf5"),
 ])
