@@ -932,6 +932,39 @@ def grpo_branched_open() -> str:
                    "advantage mass in groups split by success"], rows)
 
 
+GRADIENT_SIGNAL = ("policy", "grpo_gradient_signal_small_cpu", "gradient_signal.json")
+GRADIENT_SIGNAL_LABELS = {
+    "rest": "whole episodes from rest, paid success (the recipe that lifts)",
+    "short": "first {h} decisions from keyframes of every phase, paid success within them (GRPO's short rollout)",
+    "short_eventual": "the same decisions, paid the episode's eventual success (a perfect value)",
+    "full": "every decision from those keyframes, paid the eventual success"}
+
+
+def grpo_gradient_signal() -> str:
+    """Per setting of ``benchmarks.bench_grpo_gradient_signal``: its groups, mixed groups, the signal fraction of one
+    group's gradient, the expected cosine of two batches, the alignment of its expected gradient with the from-rest one
+    and one batch's expected cosine with it (95% bootstrap intervals)."""
+    with open(os.path.join(RESULTS_DIR, *GRADIENT_SIGNAL)) as f:
+        probe = json.load(f)
+
+    def value(name: str, key: str, digits: int = 3) -> str:
+        v, (lo, hi) = probe["statistics"][name][key], probe["intervals"][name][key]
+        ends = ", ".join("undefined" if x == float("-inf") else f"{x:.{digits}f}" for x in (lo, hi))
+        return ("undefined" if v is None else f"{v:.{digits}f}") + f" [{ends}]"
+
+    rows = []
+    for name in probe["statistics"]:
+        out = probe["outcomes"][name]
+        rows.append([GRADIENT_SIGNAL_LABELS[name].format(h=probe["horizon_decisions"]), f"{out['paid_success']:.3f}",
+                     f"{out['mixed_groups']} of {probe['statistics'][name]['groups']}",
+                     value(name, "signal_fraction", 4), value(name, "cos_at_batch"),
+                     "1 (the reference)" if name == "rest" else value(name, "alignment"), value(name, "useful")])
+    batch = probe["batch_groups"]
+    return _table(["rollouts", "paid success", "groups mixed", "one group's signal fraction",
+                   f"cosine of two {batch}-group batches", "alignment with the from-rest gradient",
+                   f"one {batch}-group batch's cosine with the from-rest gradient"], rows)
+
+
 VALUE_SIGNAL = ("policy", "value_signal_small_cpu", "value_signal.json")
 
 
@@ -986,6 +1019,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
+    "grpo-gradient-signal": grpo_gradient_signal,
     "grpo-branched-value": grpo_branched_value,
     "value-signal": value_signal,
 }
