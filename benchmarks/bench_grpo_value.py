@@ -48,9 +48,10 @@ from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
 
-ARMS = ("value", "success")
+ARMS = ("value", "success", "shuffled")
 ARM_LABELS = {"value": "branched, paid success or the value at the horizon",
-              "success": "branched, paid success alone"}
+              "success": "branched, paid success alone",
+              "shuffled": "branched, success shuffled within each group (the noise-only control)"}
 SETTING = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.starts=branch",
            "--rl.env.proprio=missing")
 GRPO_DIR = "grpo_env_proprio_missing_starts_branch_mjx"  # bench_policy.grpo_dir of this setting
@@ -69,6 +70,7 @@ def run_commands(args) -> dict[str, list[str]]:
                 "--eval-episodes", str(args.eval_episodes_per_task), *shared,
                 f"--rl.value.episodes={args.value_episodes}", f"--rl.value.steps={args.value_steps}",
                 f"--rl.value.bootstrap={'true' if arm == 'value' else 'false'}",
+                *(("--rl.grpo.shuffle_returns=true",) if arm == "shuffled" else ()),
                 f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.eval_every}",
                 *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)),
@@ -210,7 +212,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; the runs are spread over them")
     parser.add_argument("--seeds", default="0")
-    parser.add_argument("--arms", default=",".join(ARMS), help=f"run: comma list of {', '.join(ARMS)}")
+    parser.add_argument("--arms", default="value,success", help=f"run: comma list of {', '.join(ARMS)} (shuffled: the "
+                        "noise-only control, rl.grpo.shuffle_returns)")
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--eval-every", type=int, default=10)
     parser.add_argument("--eval-episodes-per-task", type=int, default=50,

@@ -925,7 +925,8 @@ def grpo_branched_open() -> str:
         return [_masked_cell(run), _gain_cell(run["sampled"]), _gain_cell(run["greedy"]), _paid_cell(run),
                 f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"]
 
-    rows = _branched_rows(_load("latest.json")["policy_grpo_branched_open_small"], ("success", "value"), cells)
+    rows = _branched_rows(_load("latest.json")["policy_grpo_branched_open_small"], ("success", "shuffled", "value"),
+                          cells)
     return _table(["rollouts (4 decisions from open starts, centred advantages)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
                    "greedy: gain", "paid success, steps 1-5 -> last 5", "groups mixed (median)",

@@ -39,6 +39,12 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     opened = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--branch-starts", "open"]))
     assert all("--rl.value.branch_starts=open" in cmd for cmd in opened.values())
     assert not any("branch_starts" in c for c in value) and not any("min_mixed_groups" in c for c in value)
+    control = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "success,shuffled"]))
+    shuffled = control["shuffled_s0"]
+    assert "--rl.grpo.shuffle_returns=true" in shuffled and "--rl.value.bootstrap=false" in shuffled
+    assert [c for c in shuffled if c != "--rl.grpo.shuffle_returns=true"] == [
+        c.replace(os.path.join("success", "s0"), os.path.join("shuffled", "s0")) for c in control["success_s0"]]
+    assert configs.from_argv(["--config", "sword:small", *[c for c in shuffled if c.startswith("--rl.")]])[0].rl.grpo.shuffle_returns
     skipping = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--min-mixed-groups", "8"]))
     assert all("--rl.grpo.min_mixed_groups=8" in cmd for cmd in skipping.values())
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",

@@ -481,3 +481,38 @@ def test_a_process_makes_only_its_rows_of_the_start_states():
     assert part["instructions"] == [whole["instructions"][i] for i in (4, 5)]
     for name in ("frame", "first_frame", "history", "actions", "proprio"):
         np.testing.assert_array_equal(part[name], whole[name][[4, 5]], err_msg=name)
+
+
+def test_shuffled_returns_keep_each_groups_values_and_lose_their_assignment():
+    """rl.grpo.shuffle_returns (the noise-only control): every group keeps its returns (so its spread and whether it
+    is mixed), assigned to its trajectories by the key; without a key it is refused."""
+    returns = jnp.asarray(np.arange(64, dtype=np.float32).reshape(8, 8))
+    a = grpo.shuffle_within_groups(returns, jax.random.key(0))
+    b = grpo.shuffle_within_groups(returns, jax.random.key(1))
+    np.testing.assert_array_equal(np.sort(np.asarray(a), axis=1), np.asarray(returns))
+    assert not np.array_equal(np.asarray(a), np.asarray(returns)) and not np.array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="needs the update's key"):
+        grpo.shuffle_within_groups(returns, None)
+    with pytest.raises(ValueError, match="rl.grpo.shuffle_returns"):
+        GRPOConfig(shuffle_returns=1).validate()
+    # in the update: the same mixed groups, another gradient than the unshuffled one
+    base = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
+    graphdef, params = build_policy(base, seed=0)
+    n, c, t, act = 2 * base.grpo.group_size, base.imagined.max_chunks, base.chunk_len, base.action_dim
+    rng = np.random.default_rng(5)
+    rollout = Rollout(
+        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
+        proprio_valid=jnp.ones((n, c)), instruction_tokens=jnp.asarray(tokenize_instructions(["pick it"] * n, 32)),
+        tokens=jnp.asarray(rng.integers(0, base.action_bins, (n, c, t, act)), jnp.int32),
+        log_probs=jnp.asarray(-np.log(base.action_bins) + 0.3 * rng.normal(size=(n, c, t, act)), jnp.float32),
+        valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray([2, 0, 0, 0, 2, 2, 0, 0], jnp.float32), frames=jnp.zeros((0,)))
+    out = {}
+    for shuffle in (False, True):
+        cfg = dataclasses.replace(base, grpo=dataclasses.replace(base.grpo, shuffle_returns=shuffle))
+        state, metrics = grpo.grpo_update(graphdef, cfg, grpo.init_state(params, cfg), rollout, jax.random.key(3))
+        out[shuffle] = (state, metrics)
+    assert float(out[True][1]["mixed_groups"]) == float(out[False][1]["mixed_groups"]) == 2.0
+    moved = [float(jnp.abs(x - y).max()) for x, y in zip(jax.tree.leaves(out[True][0].params),
+                                                          jax.tree.leaves(out[False][0].params))]
+    assert max(moved) > 0

@@ -203,6 +203,9 @@ class GRPOConfig:
         (Dr. GRPO), so a group's advantages keep the size of its returns' spread. With a continuous return
         (``rl.value``) the std turns a group whose returns differ only by the estimate's noise into advantages
         as large as a group whose trajectories differ in success; Adam then moves the policy as far for either.
+      shuffle_returns: a control, not a method: each group's returns are permuted among its trajectories before
+        the advantages, with the update's key. The batch keeps its groups, their spreads and the gradient's noise,
+        and loses its expected direction, so a run with it measures what the noise alone does to the policy.
       temperature: sampling temperature of the policy during rollouts.
       update_microbatch: trajectories per forward/backward pass of the GRPO update (0 = the whole
         batch at once); gradients are summed over the micro-batches, so the update is the same up to
@@ -231,6 +234,7 @@ class GRPOConfig:
     filter_groups: bool = True
     success_bonus: float = 1.0
     scale_by_std: bool = True
+    shuffle_returns: bool = False
     temperature: float = 1.0
     update_microbatch: int = 0  # trajectories per forward/backward of the GRPO update; 0 = all
     eval_every: int = 5
@@ -267,6 +271,8 @@ class GRPOConfig:
             raise ValueError(f"rl.grpo.temperature must be > 0, got {self.temperature}")
         if not isinstance(self.scale_by_std, bool):
             raise ValueError(f"rl.grpo.scale_by_std must be true or false, got {self.scale_by_std!r}")
+        if not isinstance(self.shuffle_returns, bool):
+            raise ValueError(f"rl.grpo.shuffle_returns must be true or false, got {self.shuffle_returns!r}")
         if self.loss_norm not in ("trajectory", "token"):
             raise ValueError(f"rl.grpo.loss_norm must be trajectory|token, got {self.loss_norm!r}")
         if self.update_microbatch < 0:

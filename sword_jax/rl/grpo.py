@@ -314,6 +314,18 @@ def behaviour_nll(batch: Rollout) -> Float[Array, ""]:
     return -jnp.sum(batch.log_probs * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
+SHUFFLE_KEY_SALT = 0x5F1E  # the permutations of rl.grpo.shuffle_returns, apart from the minibatch order's keys
+
+
+def shuffle_within_groups(returns: Float[Array, "b g"], key: jax.Array | None) -> Float[Array, "b g"]:
+    """Each group's returns permuted among its trajectories (``rl.grpo.shuffle_returns``): the same values per group,
+    assigned to trajectories independently of what they did."""
+    if key is None:
+        raise ValueError("rl.grpo.shuffle_returns needs the update's key (grpo_update(..., key=...))")
+    keys = jax.random.split(jax.random.fold_in(key, SHUFFLE_KEY_SALT), returns.shape[0])
+    return jax.vmap(lambda k, r: jax.random.permutation(k, r))(keys, returns)
+
+
 def grpo_update(
     graphdef: nnx.GraphDef, cfg: RLConfig, state: GRPOState, batch: Rollout, key: jax.Array | None = None
 ) -> tuple[GRPOState, dict[str, Float[Array, ""]]]:
@@ -341,6 +353,8 @@ def grpo_update(
     if n % parts:
         raise ValueError(f"rl.grpo.minibatches={parts} must divide the {n} trajectories of a GRPO batch")
     grouped_returns = batch.returns.reshape(-1, g)  # (B, G): trajectories are group-major
+    if cfg.grpo.shuffle_returns:  # static: the control run (config docstring)
+        grouped_returns = shuffle_within_groups(grouped_returns, key)
     mixed_groups = jnp.sum(group_has_signal(grouped_returns).astype(jnp.float32))
     adv, keep_group = group_advantages(grouped_returns, filter_groups=cfg.grpo.filter_groups,
                                        scale_by_std=cfg.grpo.scale_by_std)

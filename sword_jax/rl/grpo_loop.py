@@ -106,6 +106,8 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     reward = {"rl.imagined.reward": rl.imagined.reward} if rl.imagined.reward != "detector" else {}
     # and the advantages' scale, only when it is not the group std
     scale = {"rl.grpo.scale_by_std": False} if not rl.grpo.scale_by_std else {}
+    # and the shuffled-returns control, only when it is on
+    scale.update({"rl.grpo.shuffle_returns": True} if rl.grpo.shuffle_returns else {})
     # and the value that closes short rollouts, only when it is on
     value = ({f"rl.value.{f.name}": getattr(rl.value, f.name) for f in dataclasses.fields(rl.value)}
              if rl.value.episodes else {})
