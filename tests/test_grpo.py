@@ -35,24 +35,28 @@ def test_group_advantages_hand_computed():
     np.testing.assert_allclose(np.asarray(scaled), [[1, -1], [1, -1]], rtol=1e-3)  # what the std makes of them
 
 
+def _random_rollout(cfg, rng, returns=None, groups=2):
+    """``groups`` groups of random frames, tokens and behaviour log-probs, every chunk valid; ``returns`` default to
+    uniform draws."""
+    n, c, t, a = groups * cfg.grpo.group_size, cfg.imagined.max_chunks, cfg.chunk_len, cfg.action_dim
+    frames, proprio = rng.random((n, c, 8, 8, 3)), rng.normal(size=(n, c, 4))
+    tokens, noise = rng.integers(0, cfg.action_bins, (n, c, t, a)), rng.normal(size=(n, c, t, a))
+    return Rollout(
+        obs_frames=jnp.asarray(frames, jnp.float32), proprio=jnp.asarray(proprio), proprio_valid=jnp.ones((n, c)),
+        instruction_tokens=jnp.asarray(tokenize_instructions(["pick it"] * n, 32)), tokens=jnp.asarray(tokens, jnp.int32),
+        log_probs=jnp.asarray(-np.log(cfg.action_bins) + 0.3 * noise, jnp.float32), valid=jnp.ones((n, c)),
+        rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
+        returns=jnp.asarray(rng.random(n) if returns is None else returns, jnp.float32), frames=jnp.zeros((0,)))
+
+
 def test_the_update_reads_scale_by_std():
     """grpo_gradients with rl.grpo.scale_by_std: returns shrunk 100-fold give the same gradient under the std
     (GRPO) and a 100-fold smaller one without it (Dr. GRPO)."""
-    from sword_jax.rl.rollout import Rollout
-
     with pytest.raises(ValueError, match="rl.grpo.scale_by_std"):
         GRPOConfig(scale_by_std="no").validate()
     base = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
     graphdef, params = build_policy(base, seed=0)
-    n, c, t, a = 2 * base.grpo.group_size, base.imagined.max_chunks, base.chunk_len, base.action_dim
-    rng = np.random.default_rng(3)
-    rollout = Rollout(
-        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
-        proprio_valid=jnp.ones((n, c)), instruction_tokens=jnp.asarray(tokenize_instructions(["pick it"] * n, 32)),
-        tokens=jnp.asarray(rng.integers(0, base.action_bins, (n, c, t, a)), jnp.int32),
-        log_probs=jnp.asarray(-np.log(base.action_bins) + 0.3 * rng.normal(size=(n, c, t, a)), jnp.float32),
-        valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
-        returns=jnp.asarray(rng.random(n), jnp.float32), frames=jnp.zeros((0,)))
+    rollout = _random_rollout(base, np.random.default_rng(3))
     grads = {}
     for by_std in (True, False):
         cfg = dataclasses.replace(base, grpo=dataclasses.replace(base.grpo, scale_by_std=by_std))
@@ -498,15 +502,7 @@ def test_shuffled_returns_keep_each_groups_values_and_lose_their_assignment():
     # in the update: the same mixed groups, another gradient than the unshuffled one
     base = _toy_cfg(ppo_epochs=1, max_chunks=2, group_size=4)
     graphdef, params = build_policy(base, seed=0)
-    n, c, t, act = 2 * base.grpo.group_size, base.imagined.max_chunks, base.chunk_len, base.action_dim
-    rng = np.random.default_rng(5)
-    rollout = Rollout(
-        obs_frames=jnp.asarray(rng.random((n, c, 8, 8, 3)), jnp.float32), proprio=jnp.asarray(rng.normal(size=(n, c, 4))),
-        proprio_valid=jnp.ones((n, c)), instruction_tokens=jnp.asarray(tokenize_instructions(["pick it"] * n, 32)),
-        tokens=jnp.asarray(rng.integers(0, base.action_bins, (n, c, t, act)), jnp.int32),
-        log_probs=jnp.asarray(-np.log(base.action_bins) + 0.3 * rng.normal(size=(n, c, t, act)), jnp.float32),
-        valid=jnp.ones((n, c)), rewards=jnp.zeros((n, c)), scores=jnp.zeros((n, c)), success=jnp.zeros((n,), bool),
-        returns=jnp.asarray([2, 0, 0, 0, 2, 2, 0, 0], jnp.float32), frames=jnp.zeros((0,)))
+    rollout = _random_rollout(base, np.random.default_rng(5), returns=[2, 0, 0, 0, 2, 2, 0, 0])
     out = {}
     for shuffle in (False, True):
         cfg = dataclasses.replace(base, grpo=dataclasses.replace(base.grpo, shuffle_returns=shuffle))
