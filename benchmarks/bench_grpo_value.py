@@ -24,10 +24,13 @@ masked)::
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
 still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N groups
-of mixed outcomes (``rl.grpo.min_mixed_groups``). ``run`` starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives
-each run's gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid),
-its groups with mixed outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation and the value's held-out calibration;
-``--record`` writes ``policy_grpo_branched_value_small`` to ``benchmarks/results/latest.json``.
+of mixed outcomes (``rl.grpo.min_mixed_groups``). ``--arms shuffled`` adds the noise-only control: success alone,
+each group's returns shuffled among its trajectories (``rl.grpo.shuffle_returns``). ``run`` starts every run at
+once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives each run's gains with 95%
+intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
+outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
+and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as open``:
+``policy_grpo_branched_open_small``) to ``benchmarks/results/latest.json``.
 """
 
 from __future__ import annotations

@@ -278,6 +278,10 @@ def test_min_mixed_groups_enters_the_run_identity_only_when_on():
 
     assert "rl.grpo.min_mixed_groups" not in grpo_run_id(RLConfig(), seed=0, simulator="toy")
     assert grpo_run_id(_with_min_mixed(RLConfig(), 2), seed=0, simulator="toy")["rl.grpo.min_mixed_groups"] == 2
+    # the shuffled-returns control likewise: a control run never resumes as a plain one
+    assert "rl.grpo.shuffle_returns" not in grpo_run_id(RLConfig(), seed=0, simulator="toy")
+    control = RLConfig(grpo=GRPOConfig(shuffle_returns=True))
+    assert grpo_run_id(control, seed=0, simulator="toy")["rl.grpo.shuffle_returns"] is True
 
 
 @pytest.mark.parametrize("loss_norm,kl_coef", [("trajectory", 0.0),

@@ -64,14 +64,16 @@ def _group(batch: Rollout, index: int, size: int) -> Rollout:
 
 
 def _share(batch: Rollout, cfg: RLConfig) -> np.ndarray:
-    """Each group's weight in the batch objective before normalisation: its kept valid tokens (``loss_norm=token``)
-    or its kept trajectories (``trajectory``); a group without reward variance has none."""
+    """Each group's share of the batch objective (summing to 1, or all 0 when no group carries a signal): its chunks'
+    weights (:func:`grpo.loss_weights`, over the groups :func:`grpo.group_advantages` keeps) over all of them."""
     g = cfg.grpo.group_size
-    returns = np.asarray(batch.returns, np.float32).reshape(-1, g)
-    mixed = (returns.max(axis=1) > returns.min(axis=1)) | (not cfg.grpo.filter_groups)
-    valid = (np.asarray(batch.valid) > 0).reshape(returns.shape[0], g, -1)
-    per_group = valid.sum(axis=(1, 2)) if cfg.grpo.loss_norm == "token" else np.full(returns.shape[0], float(g))
-    return np.where(mixed, per_group, 0.0).astype(np.float64)
+    _, keep_group = grpo.group_advantages(jnp.asarray(batch.returns).reshape(-1, g), filter_groups=cfg.grpo.filter_groups,
+                                          scale_by_std=cfg.grpo.scale_by_std)
+    t, a = np.shape(batch.tokens)[2:]
+    weights = grpo.loss_weights(jnp.asarray(batch.valid, jnp.float32), jnp.repeat(keep_group, g), t * a, cfg)
+    per_group = np.asarray(weights, np.float64).reshape(-1, g * weights.shape[1]).sum(axis=1)
+    total = per_group.sum()
+    return per_group / total if total > 0 else per_group
 
 
 def group_gradients(graphdef: nnx.GraphDef, cfg: RLConfig, params: Any, batch: Rollout) -> np.ndarray:
@@ -90,16 +92,13 @@ def group_gradients(graphdef: nnx.GraphDef, cfg: RLConfig, params: Any, batch: R
         _, _, grads = grpo._gradient_fn(graphdef, one, part)(p)
         return ravel_pytree(grads)[0]
 
-    share = _share(batch, cfg)
-    total = share.sum()
+    share = _share(batch, cfg)  # sums to 1 over the groups, or to 0 when none carries a signal
     out = np.zeros((groups, ravel_pytree(params)[0].size), np.float32)
-    if total == 0:
-        return out  # no group carries a signal: the batch gradient is zero
     for i in range(groups):
         if share[i] == 0:
             continue
         part = jax.tree.map(jnp.asarray, _group(batch, i, g))
-        out[i] = np.asarray(gradient(params, part)) * np.float32(groups * share[i] / total)
+        out[i] = np.asarray(gradient(params, part)) * np.float32(groups * share[i])
     return out
 
 

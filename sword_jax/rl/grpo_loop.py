@@ -107,12 +107,12 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     # and the advantages' scale, only when it is not the group std
     scale = {"rl.grpo.scale_by_std": False} if not rl.grpo.scale_by_std else {}
     # and the shuffled-returns control, only when it is on
-    scale.update({"rl.grpo.shuffle_returns": True} if rl.grpo.shuffle_returns else {})
+    shuffle = {"rl.grpo.shuffle_returns": True} if rl.grpo.shuffle_returns else {}
     # and the value that closes short rollouts, only when it is on
     value = ({f"rl.value.{f.name}": getattr(rl.value, f.name) for f in dataclasses.fields(rl.value)}
              if rl.value.episodes else {})
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **skip, **guard_on, **reward, **scale, **value, **facts}
+            **decoder, **oversample, **skip, **guard_on, **reward, **scale, **shuffle, **value, **facts}
 
 
 def train_grpo(
