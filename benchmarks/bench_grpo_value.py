@@ -24,19 +24,22 @@ masked)::
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
 still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N groups
-of mixed outcomes (``rl.grpo.min_mixed_groups``). ``--arms shuffled`` adds the noise-only control: success alone,
+of mixed outcomes (``rl.grpo.min_mixed_groups``); ``--kl-coef K`` anchors every arm to the starting policy by a k3
+KL term of weight K (``rl.grpo.kl_coef``). ``--arms shuffled`` adds the noise-only control: success alone,
 each group's returns shuffled among its trajectories (``rl.grpo.shuffle_returns``). ``run`` starts every run at
 once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives each run's gains with 95%
 intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
 outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
 and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as open``:
-``policy_grpo_branched_open_small``) to ``benchmarks/results/latest.json``.
+``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the open-starts runs
+at ``--rollout-batch 256``) to ``benchmarks/results/latest.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -78,7 +81,8 @@ def run_commands(args) -> dict[str, list[str]]:
                 f"--rl.grpo.eval_every={args.eval_every}",
                 *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)),
                 *(() if args.branch_starts == "uniform" else (f"--rl.value.branch_starts={args.branch_starts}",)),
-                *((f"--rl.grpo.min_mixed_groups={args.min_mixed_groups}",) if args.min_mixed_groups else ())]
+                *((f"--rl.grpo.min_mixed_groups={args.min_mixed_groups}",) if args.min_mixed_groups else ()),
+                *((f"--rl.grpo.kl_coef={args.kl_coef:g}",) if args.kl_coef else ())]
     return out
 
 
@@ -169,15 +173,16 @@ def summarize(workdir: str) -> dict:
 
 # --record-as: which latest.json entry a summary writes and whose arm's smallest gain is its value
 ENTRIES = {"value": ("policy_grpo_branched_value_small", "value"),  # uniform starts, advantages scaled by the std
-           "open": ("policy_grpo_branched_open_small", "success")}  # open starts, centred advantages
+           "open": ("policy_grpo_branched_open_small", "success"),  # open starts, centred advantages
+           "open_b256": ("policy_grpo_branched_open_b256_small", "success")}  # the same with 256 starts a step
 
 
 def results_entries(summary: dict, workdir: str, *, data: str, command: str = "", record_as: str = "value"
                     ) -> dict[str, dict]:
     """One entry (:data:`ENTRIES`): ``policy_grpo_branched_value_small`` (the runs with uniform starts), value the
     smallest gain over the seeds of the ``value`` arm's sampled policy reading proprio masked (the mode its rollouts
-    train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages), that of the ``success`` arm;
-    beside every arm's gains and every run's summary."""
+    train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages; ``..._open_b256_small``: the
+    same at 256 starts a step), that of the ``success`` arm; beside every arm's gains and every run's summary."""
     key, arm = ENTRIES[record_as]
     return {key: smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,
                                      unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")}
@@ -236,6 +241,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--min-mixed-groups", type=int, default=0,
                         help="run: a step whose batch holds fewer groups with mixed outcomes applies no update "
                              "(rl.grpo.min_mixed_groups; 0 = every step updates)")
+    parser.add_argument("--kl-coef", type=float, default=0.0,
+                        help="run: every arm's weight of the k3 KL to the starting policy (rl.grpo.kl_coef; 0 = off)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
     parser.add_argument("--record-as", choices=tuple(ENTRIES), default="value",
                         help="summary --record: the latest.json entry, " + "; ".join(
@@ -252,10 +259,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit("bench_grpo_value run needs --policy (the supervised policy, .npz)")
     if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.eval_episodes_per_task < 1
             or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
-            or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch):
+            or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch
+            or not (args.kl_coef >= 0 and math.isfinite(args.kl_coef))):
         raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
                          "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
-                         "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]")
+                         "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]; "
+                         "--kl-coef a finite number >= 0")
     return args
 
 

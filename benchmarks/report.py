@@ -916,17 +916,24 @@ def grpo_branched_value() -> str:
                    "value held out: Brier / constant's / AUC"], rows)
 
 
+# the open-starts entries and their runs' starts a step (bench_grpo_value --rollout-batch)
+BRANCHED_OPEN = {"policy_grpo_branched_open_small": 64, "policy_grpo_branched_open_b256_small": 256}
+
+
 def grpo_branched_open() -> str:
     """The same comparison with starts where the value says the outcome is open and centred advantages
-    (``policy_grpo_branched_open_small``): per run the gains of the sampled policy with proprio masked and with true
-    proprio and of the greedy policy, what its rollouts were paid, its groups with mixed outcomes and the share of the
-    advantages' mass in groups split by real success."""
+    (``policy_grpo_branched_open_small``, and ``..._open_b256_small`` at 256 starts a step): per run the gains of the
+    sampled policy with proprio masked and with true proprio and of the greedy policy, what its rollouts were paid,
+    its groups with mixed outcomes and the share of the advantages' mass in groups split by real success."""
     def cells(run):
         return [_masked_cell(run), _gain_cell(run["sampled"]), _gain_cell(run["greedy"]), _paid_cell(run),
                 f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"]
 
-    rows = _branched_rows(_load("latest.json")["policy_grpo_branched_open_small"], ("success", "shuffled", "value"),
-                          cells)
+    results, rows = _load("latest.json"), []
+    for key, starts in BRANCHED_OPEN.items():
+        if key in results:
+            rows += [[f"{row[0]}, {starts} starts x 8", *row[1:]]
+                     for row in _branched_rows(results[key], ("success", "shuffled", "value"), cells)]
     return _table(["rollouts (4 decisions from open starts, centred advantages)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
                    "greedy: gain", "paid success, steps 1-5 -> last 5", "groups mixed (median)",

@@ -47,6 +47,11 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     assert configs.from_argv(["--config", "sword:small", *[c for c in shuffled if c.startswith("--rl.")]])[0].rl.grpo.shuffle_returns
     skipping = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--min-mixed-groups", "8"]))
     assert all("--rl.grpo.min_mixed_groups=8" in cmd for cmd in skipping.values())
+    assert not any("kl_coef" in c for c in value)
+    anchored = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--kl-coef", "0.05"]))
+    for cmd in anchored.values():
+        assert "--rl.grpo.kl_coef=0.05" in cmd
+        assert configs.from_argv(["--config", "sword:small", *[c for c in cmd if c.startswith("--rl.")]])[0].rl.grpo.kl_coef == 0.05
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
                                                          "success_s1": "1"}
 
@@ -85,6 +90,9 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     open_entry = gv.results_entries(summary, base, data="x.json", record_as="open")  # open starts: the success arm
     assert list(open_entry) == ["policy_grpo_branched_open_small"]
     assert open_entry["policy_grpo_branched_open_small"]["value"] == pytest.approx(0.05)
+    wide = gv.results_entries(summary, base, data="x.json", record_as="open_b256")  # 256 starts a step, same arm
+    assert list(wide) == ["policy_grpo_branched_open_b256_small"]
+    assert wide["policy_grpo_branched_open_b256_small"]["value"] == pytest.approx(0.05)
     gv.print_runs(summary)
     assert "value paid 0.430 -> 0.480" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no run of the value arm"):
@@ -98,6 +106,8 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     (["run", "--policy", "p.npz", "--horizon", "0"], "--horizon"),
     (["run"], "needs --policy"),
     (["run", "--policy", "p.npz", "--min-mixed-groups", "65"], "--min-mixed-groups"),
+    (["run", "--policy", "p.npz", "--kl-coef", "-0.1"], "--kl-coef"),
+    (["run", "--policy", "p.npz", "--kl-coef", "nan"], "--kl-coef"),
 ])
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):

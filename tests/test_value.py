@@ -287,3 +287,28 @@ def test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_wh
     with pytest.raises(ValueError, match="record_states needs an environment with snapshot"):
         scan_rollout(graphdef, params, SlideEnv(), jnp.asarray(far), jnp.asarray(tokens), rl, key=jax.random.key(0),
                      greedy=True, ensemble=False, max_steps=4, record_states=True)
+
+
+def test_env_grpo_anchored_by_kl_measures_its_distance_from_the_starting_policy():
+    # rl.grpo.kl_coef > 0 (bench_grpo_value --kl-coef): the state keeps the starting policy, whose k3 KL is 0 on the
+    # first step and positive once the policy has moved; the anchor changes the update
+    def run(kl_coef):
+        rl = _rl(episodes=12, steps=20, batch_size=16, width=4, holdout=0.25)
+        rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, kl_coef=kl_coef, learning_rate=1e-2))
+        graphdef, params = build_policy(rl, seed=0)
+        value_graphdef, value_params = build_value(rl, seed=0)
+        runner = _runner(rl, params, graphdef, value_graphdef, value_params,
+                         lambda s, r: np.array([[-0.2], [0.1]], np.float32))
+        state = grpo.init_state(jax.tree.map(jnp.copy, params), rl)
+        kls = []
+        for step in range(3):
+            state, metrics = runner.step(state, step, jax.random.key(1))
+            kls.append(float(metrics["kl"]))
+        return state, kls
+
+    anchored, kls = run(2.0)
+    assert anchored.ref_params is not None
+    assert kls[0] == pytest.approx(0.0, abs=1e-6) and np.isfinite(kls).all() and max(kls[1:]) > 0.0
+    free, free_kls = run(0.0)
+    assert free.ref_params is None and free_kls == [0.0, 0.0, 0.0]
+    assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(anchored.params), jax.tree.leaves(free.params)))

@@ -9,3 +9,5 @@ python3 -m benchmarks.bench_grpo_value run $C --arms success --seeds 0,1,2 &
 python3 -m benchmarks.bench_grpo_value run $C --arms value --seeds 0 &
 wait
 python3 -m benchmarks.bench_grpo_value summary --workdir runs/gv2 --out runs/gv2/grpo_value --record --record-as open
+# the noise-only control, a second run on one H200 (launch: ../grpo_branched_open_b256_small_h200/launch.sh):
+#   --arms shuffled --seeds 0,1,2 --steps 30 --deadline-s 1150; its records under shuffled/, the summary over both
