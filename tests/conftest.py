@@ -9,41 +9,49 @@ import platform
 # programs fused differently (test_dlb's read-probability-0 step is then not bitwise the teacher-forcing step);
 # capped at AVX it rounds them the same. Child processes inherit the flags.
 # XLA aborts the process on a flag it does not know, and newer jaxlib releases drop some (0.11 has no
-# --xla_cpu_use_fusion_emitters): a flag is kept only where jaxlib's own libraries name it.
+# --xla_cpu_use_fusion_emitters, though its libraries still carry the name): a child process starts XLA with the
+# flags first, and each flag it names as unknown is dropped. The result is passed to xdist's workers in XLA_FLAGS.
 _FAST_FLAGS = ["--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true",
                "--xla_cpu_use_fusion_emitters=false"]
 if platform.machine().lower() in ("x86_64", "amd64"):
     _FAST_FLAGS.append("--xla_cpu_max_isa=AVX")
+_PROBED = "SWORD_TEST_XLA_FLAGS"  # set once the flags were probed: workers inherit the result
 
 
-def _known_to_xla(flags: list[str]) -> list[str]:
-    """``flags`` whose names appear in jaxlib's shared libraries (all of them where none can be read)."""
-    import importlib.util
-    import mmap
+def _accepted_by_xla(flags: list[str], base: str = "") -> list[str]:
+    """``flags`` less those XLA refuses: a child process initialises XLA's CPU backend with ``base`` and them, and
+    each flag its abort message names is dropped until it starts (or fails for another reason, which the suite
+    then reports itself)."""
+    import subprocess
+    import sys
 
-    spec = importlib.util.find_spec("jaxlib")
-    names = {f: f.lstrip("-").split("=", 1)[0].encode() for f in flags}
-    found: set[str] = set()
-    seen_any = False
-    for root, _, files in os.walk(os.path.dirname(spec.origin) if spec and spec.origin else ""):
-        for name in files:
-            if not name.endswith(".so"):
-                continue
-            try:
-                with open(os.path.join(root, name), "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                    seen_any = seen_any or m.find(b"xla_force_host_platform_device_count") >= 0
-                    found.update(flag for flag, key in names.items() if flag not in found and m.find(key) >= 0)
-            except (OSError, ValueError):
-                continue
-    return [f for f in flags if f in found] if seen_any else list(flags)
+    kept = list(flags)
+    while kept:
+        env = dict(os.environ, XLA_FLAGS=f"{base} {' '.join(kept)}".strip(), JAX_PLATFORMS="cpu")
+        done = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True,
+                              text=True, timeout=300)
+        if done.returncode == 0:
+            break
+        refused = [f for f in kept if f"Unknown flag in XLA_FLAGS: {f.split('=', 1)[0]}" in done.stderr]
+        if not refused:
+            break
+        kept = [f for f in kept if f not in refused]
+    return kept
 
 
-FAST_COMPILE = " ".join(_known_to_xla(_FAST_FLAGS))
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + f" {FAST_COMPILE} --xla_force_host_platform_device_count=8"
-).strip()
+if os.environ.get(_PROBED) is None:
+    _base = os.environ.get("XLA_FLAGS", "")
+    os.environ[_PROBED] = " ".join(_accepted_by_xla(_FAST_FLAGS, _base))
+    os.environ["XLA_FLAGS"] = f"{_base} {os.environ[_PROBED]} --xla_force_host_platform_device_count=8".strip()
+FAST_COMPILE = os.environ[_PROBED]
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ.setdefault("MUJOCO_GL", "egl")
+if "MUJOCO_GL" not in os.environ:
+    import ctypes.util
+
+    # headless OpenGL where the machine has EGL; unset, mujoco's import leaves the choice to the renderer's first use
+    # (MUJOCO_GL=egl without libEGL makes ``import mujoco`` itself fail)
+    if ctypes.util.find_library("EGL"):
+        os.environ["MUJOCO_GL"] = "egl"
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -80,7 +80,12 @@ def test_small_rows_of_every_kind_compiled_on_two_devices_and_two_gloo_processes
         assert len(row["pipelined_blocks_s"]) == 2  # --small-blocks
         assert row["pipelined_step_s"] == statistics.median(row["pipelined_blocks_s"])
     entry = _scaling_entry(summary, 2)
-    assert summary["overlap_options"] == bench.OVERLAP_OPTIONS  # this XLA knows every one
+    # the options this XLA accepts, every one of them (jaxlib 0.11 no longer has the pipelined-collective ones)
+    kept = summary["overlap_options"]
+    assert kept and kept.items() <= bench.OVERLAP_OPTIONS.items()
+    for name in set(bench.OVERLAP_OPTIONS) - set(kept):
+        with pytest.raises(Exception, match=name):
+            jax.jit(lambda x: x + 1).lower(np.float32(1)).compile(compiler_options={name: bench.OVERLAP_OPTIONS[name]})
     assert set(entry["efficiency_by_mode"]) == set(bench.MODES) and entry["target"] is None
 
     multi = {r["unrolled"]: r for r in rows if r["processes"] > 1}

@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import jax.extend.core as jax_core
 import numpy as np
 import pytest
 from flax import nnx
@@ -93,7 +94,7 @@ def _dot_generals(jaxpr) -> int:
     count = 0
     for eqn in jaxpr.eqns:
         count += eqn.primitive.name == "dot_general"
-        for sub in jax.core.jaxprs_in_params(eqn.params):
+        for sub in jax_core.jaxprs_in_params(eqn.params):
             count += _dot_generals(sub)
     return count
 
@@ -103,7 +104,7 @@ def _euler_body_dot_generals(jaxpr) -> int:
     for eqn in jaxpr.eqns:
         if eqn.primitive.name == "scan":
             return _dot_generals(eqn.params["jaxpr"].jaxpr)
-        for sub in jax.core.jaxprs_in_params(eqn.params):
+        for sub in jax_core.jaxprs_in_params(eqn.params):
             found = _euler_body_dot_generals(sub)
             if found is not None:
                 return found
