@@ -168,7 +168,32 @@ def summarize(workdir: str) -> dict:
         if gains:
             arms[arm] = {"label": ARM_LABELS[arm], "masked_gain_per_seed": gains, "smallest": min(gains.values()),
                          "mean": statistics.mean(gains.values()), "steps": min(r["steps"] for r in mine)}
-    return {"runs": runs, "arms": arms}
+    contrasts = {arm: c for arm in ARMS if arm != CONTROL for c in (contrast(runs, arm),) if c}
+    return {"runs": runs, "arms": arms, **({"contrasts": contrasts} if contrasts else {})}
+
+
+CONTROL = "shuffled"  # the noise-only control every other arm is set against, seed by seed
+MODES = ("sampled_proprio_masked", "sampled", "greedy")  # the evaluation's policies (summarize_run's gains)
+
+
+def contrast(runs: dict, arm: str, control: str = CONTROL) -> dict | None:
+    """``arm``'s real-success gain minus ``control``'s, per evaluated policy (:data:`MODES`): at each seed both ran
+    and their mean over those seeds, with a 95% interval (normal approximation: the runs' evaluations are
+    independent, and each gain's standard error is read from its own 95% interval). None where no seed has both."""
+    seeds = sorted(r["seed"] for r in runs.values() if r["arm"] == arm and f"{control}_s{r['seed']}" in runs)
+    if not seeds:
+        return None
+    out = {"control": control, "seeds": seeds,
+           "steps": min(min(runs[f"{arm}_s{s}"]["steps"], runs[f"{control}_s{s}"]["steps"]) for s in seeds)}
+    for mode in MODES:
+        pairs = [(runs[f"{arm}_s{s}"][mode], runs[f"{control}_s{s}"][mode]) for s in seeds]
+        if any(a is None or b is None for a, b in pairs):
+            continue
+        diffs = [a["gain"] - b["gain"] for a, b in pairs]
+        variance = sum(((g["ci95"][1] - g["ci95"][0]) / (2 * 1.959964)) ** 2 for pair in pairs for g in pair)
+        mean, half = statistics.mean(diffs), 1.959964 * variance ** 0.5 / len(diffs)
+        out[mode] = {"per_seed": dict(zip(seeds, diffs)), "mean": mean, "ci95": [mean - half, mean + half]}
+    return out
 
 
 # --record-as: which latest.json entry a summary writes and whose arm's smallest gain is its value
@@ -184,14 +209,17 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages; ``..._open_b256_small``: the
     same at 256 starts a step), that of the ``success`` arm; beside every arm's gains and every run's summary."""
     key, arm = ENTRIES[record_as]
-    return {key: smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,
-                                     unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")}
+    entry = smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,
+                                unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")
+    if summary.get("contrasts"):
+        entry["contrasts"] = summary["contrasts"]
+    return {key: entry}
 
 
 def print_runs(summary: dict) -> None:
     for name, r in summary["runs"].items():
         parts = [f"[grpo-value] {name}: {r['steps']} steps"]
-        for key in ("sampled_proprio_masked", "sampled", "greedy"):
+        for key in MODES:
             g = r.get(key)
             if g:
                 parts.append(f"{key} {g['start']:.3f} -> {g['end']:.3f} ({g['gain']:+.3f} "
@@ -209,6 +237,13 @@ def print_runs(summary: dict) -> None:
             parts.append(f"value held-out Brier {v['held_out_brier']:.4f} (constant {v['held_out_brier_constant']:.4f})"
                          f", AUC {v['held_out_auc']}")
         print("; ".join(parts), flush=True)
+
+    for arm, c in summary.get("contrasts", {}).items():
+        for mode in MODES:
+            if mode in c:
+                d = c[mode]
+                print(f"[grpo-value] {arm} minus {c['control']}, {mode}, seeds {c['seeds']}: {d['mean']:+.3f} "
+                      f"[{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}]", flush=True)
 
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:

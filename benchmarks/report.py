@@ -940,6 +940,27 @@ def grpo_branched_open() -> str:
                    "advantage mass in groups split by success"], rows)
 
 
+NOISE_CONTROL_MODES = {"sampled_proprio_masked": "sampled, proprio masked", "sampled": "sampled, true proprio",
+                       "greedy": "greedy"}
+
+
+def grpo_noise_control() -> str:
+    """Each arm of ``policy_grpo_branched_open_small`` against the noise-only control (its ``contrasts``): per
+    evaluated policy the mean over seeds of the arm's real-success gain minus the control's, with a 95% interval,
+    and the seeds' own differences."""
+    entry = _load("latest.json")["policy_grpo_branched_open_small"]
+    rows = []
+    for arm, c in entry["contrasts"].items():
+        for mode, label in NOISE_CONTROL_MODES.items():
+            if mode in c:
+                d = c[mode]
+                rows.append([entry["arms"][arm]["label"], label, ", ".join(f"s{s}" for s in c["seeds"]), str(c["steps"]),
+                             f"{_pct(d['mean'])} {_interval(d['ci95'])}",
+                             ", ".join(_pct(d["per_seed"][str(s)]) for s in c["seeds"])])
+    return _table(["arm (4 decisions from open starts, 64 x 8)", "policy evaluated", "seeds", "steps",
+                   "gain minus the control's, mean (points)", "per seed"], rows)
+
+
 GRADIENT_SIGNAL = ("policy", "grpo_gradient_signal_small_cpu", "gradient_signal.json")
 GRADIENT_SIGNAL_LABELS = {
     "rest": "whole episodes from rest, paid success (the recipe that lifts)",
@@ -1027,6 +1048,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
+    "grpo-noise-control": grpo_noise_control,
     "grpo-gradient-signal": grpo_gradient_signal,
     "grpo-branched-value": grpo_branched_value,
     "value-signal": value_signal,

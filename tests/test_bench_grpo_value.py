@@ -93,6 +93,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     wide = gv.results_entries(summary, base, data="x.json", record_as="open_b256")  # 256 starts a step, same arm
     assert list(wide) == ["policy_grpo_branched_open_b256_small"]
     assert wide["policy_grpo_branched_open_b256_small"]["value"] == pytest.approx(0.05)
+    assert "contrasts" not in summary and "contrasts" not in entries["policy_grpo_branched_value_small"]  # no control
     gv.print_runs(summary)
     assert "value paid 0.430 -> 0.480" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no run of the value arm"):
@@ -112,3 +113,24 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):
         gv.parse([*argv[:1], "--workdir", str(tmp_path), *argv[1:]])
+
+
+def test_an_arm_is_set_against_the_noise_only_control_at_the_seeds_both_ran():
+    def run(arm, seed, gain, half, greedy=True):
+        g = {"start": 0.5, "end": 0.5 + gain, "gain": gain, "ci95": [gain - half, gain + half]}
+        return {"arm": arm, "seed": seed, "steps": 30 if arm == "success" else 20, "sampled_proprio_masked": g,
+                "sampled": g, "greedy": g if greedy else None}
+
+    runs = {"success_s0": run("success", 0, 0.05, 0.05), "shuffled_s0": run("shuffled", 0, -0.05, 0.05),
+            "success_s1": run("success", 1, 0.02, 0.05), "shuffled_s1": run("shuffled", 1, -0.08, 0.05, greedy=False),
+            "success_s2": run("success", 2, 0.30, 0.05)}  # no control at seed 2: left out
+    c = gv.contrast(runs, "success")
+    assert c["seeds"] == [0, 1] and c["control"] == "shuffled" and c["steps"] == 20
+    masked = c["sampled_proprio_masked"]
+    assert masked["per_seed"] == {0: pytest.approx(0.10), 1: pytest.approx(0.10)}
+    # four independent gains of standard error 0.05 / 1.96 each: the mean of two differences has half-width 0.05
+    assert masked["mean"] == pytest.approx(0.10) and masked["ci95"] == [pytest.approx(0.05), pytest.approx(0.15)]
+    assert "greedy" not in c  # one run has no greedy evaluation
+    assert gv.contrast(runs, "value") is None
+    assert gv.contrast({"success_s0": runs["success_s0"]}, "success") is None
+
