@@ -87,6 +87,7 @@ def readme_results() -> str:
     full5b, light5b = latest["imagined_frames_per_s_5b_full"], latest["imagined_frames_per_s_5b_full_light_decoder"]
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     source = latest.get("policy_grpo_reward_source_small")
+    noise = latest.get("policy_grpo_branched_open_small", {}).get("contrasts", {}).get("success")
     fidelity = _load(*SIM_FIDELITY, "summary.json")["variants"]  # the policy through each VAE alone (4 GPUs)
     base, vae8x = fidelity["base"]["view"], fidelity["vae8x"]["view"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
@@ -130,6 +131,11 @@ def readme_results() -> str:
             f"{base['vae']['mean']:.3f} vs {base['real']['mean']:.3f}, the 8x VAE {vae8x['vae']['mean']:.3f} vs "
             f"{vae8x['real']['mean']:.3f} ({base['real']['episodes']} episodes)",
             "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
+        *([("Short GRPO rollouts branched from real states (MJX), 3 seeds",
+            f"gain minus a noise-only control's: {_pct(noise['sampled']['mean'])} {_interval(noise['sampled']['ci95'])} "
+            f"(true proprio), {_pct(noise['sampled_proprio_masked']['mean'])} "
+            f"{_interval(noise['sampled_proprio_masked']['ci95'])} (proprio masked) points in {noise['steps']} steps",
+            "policy_grpo_branched_open_small", f"[section]({doc}#frames-or-reward)")] if noise else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
