@@ -25,7 +25,7 @@ masked)::
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
 still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N groups
 of mixed outcomes (``rl.grpo.min_mixed_groups``); ``--kl-coef K`` anchors every arm to the starting policy by a k3
-KL term of weight K (``rl.grpo.kl_coef``). ``--arms shuffled`` adds the noise-only control: success alone,
+KL term of weight K (``rl.grpo.kl_coef``); ``--learning-rate`` replaces the recipe's 1e-4. ``--arms shuffled`` adds the noise-only control: success alone,
 each group's returns shuffled among its trajectories (``rl.grpo.shuffle_returns``). ``run`` starts every run at
 once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives each run's gains with 95%
 intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
@@ -65,8 +65,10 @@ GRPO_DIR = "grpo_env_proprio_missing_starts_branch_mjx"  # bench_policy.grpo_dir
 
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``<arm>_s<seed>``, each ``bench_policy grpo`` under ``<workdir>/<arm>/s<seed>``."""
-    shared = tuple(f"--rl.imagined.max_chunks={args.horizon}" if f.startswith("--rl.imagined.max_chunks=") else f
-                   for f in RECIPE) + SETTING
+    replace = {"--rl.imagined.max_chunks=": f"--rl.imagined.max_chunks={args.horizon}",
+               **({"--rl.grpo.learning_rate=": f"--rl.grpo.learning_rate={args.learning_rate:g}"}
+                  if args.learning_rate else {})}
+    shared = tuple(next((new for prefix, new in replace.items() if f.startswith(prefix)), f) for f in RECIPE) + SETTING
     out = {}
     for seed in args.seeds:
         for arm in args.arms:
@@ -276,6 +278,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--min-mixed-groups", type=int, default=0,
                         help="run: a step whose batch holds fewer groups with mixed outcomes applies no update "
                              "(rl.grpo.min_mixed_groups; 0 = every step updates)")
+    parser.add_argument("--learning-rate", type=float, default=0.0,
+                        help="run: every arm's GRPO learning rate (rl.grpo.learning_rate; 0 = the recipe's, 1e-4)")
     parser.add_argument("--kl-coef", type=float, default=0.0,
                         help="run: every arm's weight of the k3 KL to the starting policy (rl.grpo.kl_coef; 0 = off)")
     parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
@@ -295,11 +299,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.eval_episodes_per_task < 1
             or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
             or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch
-            or not (args.kl_coef >= 0 and math.isfinite(args.kl_coef))):
+            or not (args.kl_coef >= 0 and math.isfinite(args.kl_coef))
+            or not (args.learning_rate >= 0 and math.isfinite(args.learning_rate))):
         raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
                          "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
                          "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]; "
-                         "--kl-coef a finite number >= 0")
+                         "--kl-coef and --learning-rate finite numbers >= 0")
     return args
 
 

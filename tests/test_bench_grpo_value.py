@@ -48,6 +48,11 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     skipping = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--min-mixed-groups", "8"]))
     assert all("--rl.grpo.min_mixed_groups=8" in cmd for cmd in skipping.values())
     assert not any("kl_coef" in c for c in value)
+    assert "--rl.grpo.learning_rate=1e-4" in value  # the recipe's
+    slow = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--learning-rate", "2e-5"]))
+    for cmd in slow.values():
+        assert "--rl.grpo.learning_rate=2e-05" in cmd and not any(c == "--rl.grpo.learning_rate=1e-4" for c in cmd)
+        assert configs.from_argv(["--config", "sword:small", *[c for c in cmd if c.startswith("--rl.")]])[0].rl.grpo.learning_rate == 2e-5
     anchored = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--kl-coef", "0.05"]))
     for cmd in anchored.values():
         assert "--rl.grpo.kl_coef=0.05" in cmd
@@ -109,6 +114,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     (["run", "--policy", "p.npz", "--min-mixed-groups", "65"], "--min-mixed-groups"),
     (["run", "--policy", "p.npz", "--kl-coef", "-0.1"], "--kl-coef"),
     (["run", "--policy", "p.npz", "--kl-coef", "nan"], "--kl-coef"),
+    (["run", "--policy", "p.npz", "--learning-rate=-1e-4"], "--learning-rate"),
 ])
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):
