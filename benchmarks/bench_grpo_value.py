@@ -25,14 +25,15 @@ masked)::
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
 still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N groups
 of mixed outcomes (``rl.grpo.min_mixed_groups``); ``--kl-coef K`` anchors every arm to the starting policy by a k3
-KL term of weight K (``rl.grpo.kl_coef``); ``--learning-rate`` replaces the recipe's 1e-4. ``--arms shuffled`` adds the noise-only control: success alone,
-each group's returns shuffled among its trajectories (``rl.grpo.shuffle_returns``). ``run`` starts every run at
-once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives each run's gains with 95%
-intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
-outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
-and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as open``:
-``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the open-starts runs
-at ``--rollout-batch 256``) to ``benchmarks/results/latest.json``.
+KL term of weight K (``rl.grpo.kl_coef``); ``--learning-rate`` replaces the recipe's 1e-4. ``--arms shuffled`` adds
+the noise-only control: success alone, each group's returns shuffled among its trajectories
+(``rl.grpo.shuffle_returns``); ``summary`` sets every other arm against it seed by seed (``contrasts``). ``run``
+starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). ``summary`` gives each run's
+gains with 95% intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with
+mixed outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond
+evaluation and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small``
+(``--record-as open``: ``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``,
+the open-starts runs at ``--rollout-batch 256``) to ``benchmarks/results/latest.json``.
 """
 
 from __future__ import annotations

@@ -132,8 +132,8 @@ def readme_results() -> str:
             f"{vae8x['real']['mean']:.3f} ({base['real']['episodes']} episodes)",
             "policy_grpo_reward_source_small", f"[section]({doc}#frames-or-reward)")] if setting and source else []),
         *([("Short GRPO rollouts branched from real states (MJX), 3 seeds",
-            f"gain minus a noise-only control's: {_pct(noise['sampled']['mean'])} {_interval(noise['sampled']['ci95'])} "
-            f"(true proprio), {_pct(noise['sampled_proprio_masked']['mean'])} "
+            f"gain minus a noise-only control's: {_pct(noise['sampled']['mean'])} "
+            f"{_interval(noise['sampled']['ci95'])} (true proprio), {_pct(noise['sampled_proprio_masked']['mean'])} "
             f"{_interval(noise['sampled_proprio_masked']['ci95'])} (proprio masked) points in {noise['steps']} steps",
             "policy_grpo_branched_open_small", f"[section]({doc}#frames-or-reward)")] if noise else []),
         ("MJX env-steps/s, 128 px, camera rendered",
@@ -960,8 +960,8 @@ def grpo_noise_control() -> str:
         for mode, label in NOISE_CONTROL_MODES.items():
             if mode in c:
                 d = c[mode]
-                rows.append([entry["arms"][arm]["label"], label, ", ".join(f"s{s}" for s in c["seeds"]), str(c["steps"]),
-                             f"{_pct(d['mean'])} {_interval(d['ci95'])}",
+                rows.append([entry["arms"][arm]["label"], label, ", ".join(f"s{s}" for s in c["seeds"]),
+                             str(c["steps"]), f"{_pct(d['mean'])} {_interval(d['ci95'])}",
                              ", ".join(_pct(d["per_seed"][str(s)]) for s in c["seeds"])])
     return _table(["arm (4 decisions from open starts, 64 x 8)", "policy evaluated", "seeds", "steps",
                    "gain minus the control's, mean (points)", "per seed"], rows)

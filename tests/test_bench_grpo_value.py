@@ -139,4 +139,3 @@ def test_an_arm_is_set_against_the_noise_only_control_at_the_seeds_both_ran():
     assert "greedy" not in c  # one run has no greedy evaluation
     assert gv.contrast(runs, "value") is None
     assert gv.contrast({"success_s0": runs["success_s0"]}, "success") is None
-
