@@ -335,15 +335,33 @@ def _leads_group(p: subprocess.Popen) -> bool:
 
 
 def wait_until_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, start: float, *, tag: str,
-                        poll_s: float = 5.0) -> list[str]:
+                        poll_s: float = 5.0, grace_s: float = 0.0) -> list[str]:
     """Waits for the named processes to end; past ``deadline_s`` seconds after ``start`` (``time.perf_counter``;
-    0 = no deadline) stops the ones still running (:func:`stop_all`) and returns their names, sorted."""
+    0 = no deadline) stops the ones still running and returns their names, sorted. With ``grace_s`` they are first
+    asked to stop (``sword_jax.cli.STOP_SIGNAL``: a run under ``cli.run`` checkpoints its step in flight, GRPO
+    evaluates it, and exits ``cli.STOPPED_EXIT``); those still running ``grace_s`` later are stopped
+    (:func:`stop_all`)."""
     while any(p.poll() is None for p in procs.values()):
         if deadline_s and time.perf_counter() - start > deadline_s:
-            running = stop_all(list(procs.values()))
-            stopped = sorted(n for n, p in procs.items() if any(p is r for r in running))
-            print(f"[{tag}] deadline of {deadline_s:.0f} s: stopped {stopped}", flush=True)
-            return stopped
+            running = {n: p for n, p in procs.items() if p.poll() is None}
+            if grace_s > 0:
+                for p in running.values():
+                    try:
+                        p.send_signal(cli.STOP_SIGNAL)
+                    except ProcessLookupError:  # it has just ended
+                        pass
+                print(f"[{tag}] deadline of {deadline_s:.0f} s: asked {sorted(running)} to stop, "
+                      f"{grace_s:.0f} s to do so", flush=True)
+                end = time.perf_counter() + grace_s
+                while time.perf_counter() < end and any(p.poll() is None for p in running.values()):
+                    time.sleep(min(poll_s, 1.0))
+            killed = stop_all(list(running.values()))
+            if grace_s > 0 and killed:
+                print(f"[{tag}] still running after {grace_s:.0f} s: stopped "
+                      f"{sorted(n for n, p in running.items() if any(p is k for k in killed))}", flush=True)
+            elif grace_s <= 0:
+                print(f"[{tag}] deadline of {deadline_s:.0f} s: stopped {sorted(running)}", flush=True)
+            return sorted(running)
         time.sleep(poll_s)
     return []
 

@@ -13,17 +13,47 @@ traceback: a ``UsageError`` (a bad flag, an unknown config key, an invalid value
 purpose for bad files or weights (``RUNTIME_ERRORS``) exit 1. ``--debug`` anywhere on the
 command line prints the traceback as well. Any other exception is a bug: it propagates with
 its traceback. Nothing here runs at import.
+
+A stop can be asked for from outside: under ``run``, ``SIGUSR1`` (:data:`STOP_SIGNAL`; e.g. a launcher's
+deadline, or SLURM's ``--signal=USR1@300``) sets the process's stop request (:func:`request_stop`). A training
+loop (:func:`sword_jax.train_loop.run_steps`) then finishes the step in flight, checkpoints it as it would at a
+checkpoint step (GRPO evaluates it) and raises :class:`StopRequested`, which ``run`` reports as one line with
+exit status 75 (:data:`STOPPED_EXIT`, "try again"): the same command resumes from that checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 USAGE_EXIT, RUNTIME_EXIT = 2, 1
+STOPPED_EXIT = 75  # EX_TEMPFAIL: stopped on request after a checkpoint; the same command resumes
+STOP_SIGNAL = signal.SIGUSR1
+_stop = threading.Event()
+
+
+class StopRequested(Exception):
+    """A command stopped on request (:func:`request_stop`) after checkpointing its last step."""
+
+
+def request_stop(*_: Any) -> None:
+    """Asks this process's training loops to stop at the end of their step in flight (``STOP_SIGNAL``'s
+    handler under :func:`run`)."""
+    _stop.set()
+
+
+def stop_requested() -> bool:
+    """Whether a stop was asked for (:func:`request_stop`)."""
+    return _stop.is_set()
+
+
+def clear_stop_request() -> None:
+    _stop.clear()
 
 # Errors raised on purpose with a message meant for the user, named rather than imported (a class
 # whose module was never imported cannot have been raised, and importing them all would be slow).
@@ -87,7 +117,8 @@ def _prog() -> str:
 
 def run(main: Callable[[list[str]], Any], argv: Sequence[str] | None = None, *,
         runtime_errors: Sequence[str | type] = ()) -> NoReturn:
-    """Runs ``main(argv)`` as a command and exits.
+    """Runs ``main(argv)`` as a command and exits; while it runs, ``STOP_SIGNAL`` asks its training loops to
+    stop (module docstring), and a :class:`StopRequested` exits ``STOPPED_EXIT``.
 
     Args:
       main: the entry point; an int it returns is the exit status, anything else means 0.
@@ -106,10 +137,17 @@ def run(main: Callable[[list[str]], Any], argv: Sequence[str] | None = None, *,
         print(f"{prog}: error: {message}" if prefix else message, file=sys.stderr)
         sys.exit(status)
 
+    if threading.current_thread() is threading.main_thread():  # signal handlers live in the main thread
+        signal.signal(STOP_SIGNAL, request_stop)
     try:
         result = main(argv)
     except UsageError as err:
         fail(str(err), USAGE_EXIT)
+    except StopRequested as err:
+        if debug:
+            traceback.print_exc()
+        print(f"{prog}: {err}", file=sys.stderr)
+        sys.exit(STOPPED_EXIT)
     except SystemExit as err:
         if isinstance(err.code, str):  # raise SystemExit("message"): a deliberate runtime error
             fail(err.code, RUNTIME_EXIT, prefix=False)  # such messages name their entry point

@@ -28,7 +28,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from sword_jax import checkpoint
+from sword_jax import checkpoint, cli
 from sword_jax import sharding as shd
 from sword_jax.prefetch import prefetched
 
@@ -114,6 +114,7 @@ def run_steps(
     settle: bool = False,
     on_first_step: Callable[[], Any] | None = None,
     on_history: Callable[[list[dict[str, Any]]], Any] | None = None,
+    stop_requested: Callable[[], bool] | None = cli.stop_requested,
 ) -> LoopResult:
     """Runs steps ``first_step .. steps - 1`` (0-based) of ``step`` from ``state``.
 
@@ -158,10 +159,17 @@ def run_steps(
         e.g. to log the compile time apart from the step rate.
       on_history: ``on_history(history)`` after every log step's point joins the history (restored points
         included), e.g. to keep it on disk so that a run killed between checkpoints leaves it (GRPO).
+      stop_requested: read after each step is dispatched (default: the process's stop request,
+        :func:`sword_jax.cli.stop_requested`, which ``SIGUSR1`` sets under :func:`sword_jax.cli.run`); once it
+        says yes, that step is read, treated as a checkpoint step (``at_checkpoint``, then the checkpoint) and
+        :class:`~sword_jax.cli.StopRequested` is raised: the same call later resumes there. Read in
+        single-process runs only (processes would see it at different steps); None = never.
 
     Raises:
       NonFiniteLoss: a step's metrics held a non-finite value (the message names the 0-based step and
         the last good checkpoint).
+      sword_jax.cli.StopRequested: a stop was requested (``stop_requested``); the message names the step
+        checkpointed.
       ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id``: an
         :class:`AnotherRunsCheckpoint`, or structure), or ``on_nonfinite`` is neither ``"stop"`` nor ``"skip"``.
     """
@@ -202,20 +210,22 @@ def run_steps(
             if on_history is not None:
                 on_history(history)
 
+        stoppable = stop_requested is not None and jax.process_count() == 1
         batches = prefetched(batch_at, range(first_step, steps))
         for i, batch in enumerate(batches, start=first_step):
             state, metrics = step(state, batch if place is None else place(batch), key)
             first_bad = _note_nonfinite(first_bad, i, metrics, metrics_finite=metrics_finite)
             dispatched = i + 1
+            stopping = stoppable and dispatched < steps and stop_requested()
             if on_first_step is not None and i == first_step:
                 jax.block_until_ready(metrics)
                 on_first_step()
             if pending is not None:  # the previous log step: the device already has this step queued
                 read(*pending)
                 pending = None
-            if dispatched % log_every == 0 or dispatched == steps:
+            if dispatched % log_every == 0 or dispatched == steps or stopping:
                 pending = (dispatched, metrics, observe(state) if observe else None, first_bad)
-            boundary = dispatched % checkpoint_every == 0 or dispatched == steps
+            boundary = dispatched % checkpoint_every == 0 or dispatched == steps or stopping
             if boundary and (ckpt is not None or at_checkpoint is not None):
                 if pending is not None:
                     read(*pending)
@@ -227,6 +237,13 @@ def run_steps(
                 if ckpt is not None:
                     extra = checkpoint_meta(dispatched) if checkpoint_meta is not None else {}
                     ckpt.save(dispatched, state, {**extra, "step": dispatched, "history": history, "run": run_id})
+            if stopping:
+                if pending is not None:
+                    read(*pending)
+                stop_if_nonfinite(first_bad)
+                kept = ("no checkpoint (no checkpoint directory)" if ckpt is None
+                        else f"checkpoint of step {dispatched} in {ckpt.directory}; the same command resumes from it")
+                raise cli.StopRequested(f"{name}: stopped on request after step {dispatched} of {steps}; {kept}")
         if pending is not None:
             read(*pending)
         stop_if_nonfinite(first_bad)

@@ -327,3 +327,43 @@ def test_wait_until_deadline_stops_only_what_runs_past_it():
     quick = {"a": spawn(0), "b": spawn(0.2)}
     assert wait_until_deadline(quick, 0.0, time.perf_counter(), tag="t", poll_s=0.05) == []
     assert all(p.returncode == 0 for p in quick.values())
+
+
+# a command under cli.run that stops when asked, as a training loop does (tests/test_train_loop.py): exit 75
+_STOPPABLE = """
+import sys, time
+from sword_jax import cli
+def main(argv):
+    print("ready", flush=True)  # cli.run has set its handler
+    while not cli.stop_requested():
+        time.sleep(0.02)
+    raise cli.StopRequested("toy: stopped on request after step 3 of 9")
+cli.run(main)
+"""
+
+
+def test_wait_until_deadline_with_grace_asks_first_and_stops_what_does_not_listen():
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from benchmarks.bench_grpo_refresh import wait_until_deadline
+    from sword_jax import cli
+
+    deaf = ("import signal, time; signal.signal(signal.SIGUSR1, signal.SIG_IGN); print('ready', flush=True); "
+            "time.sleep(60)")
+    procs = {"listens": subprocess.Popen([sys.executable, "-c", _STOPPABLE], stdout=subprocess.PIPE,
+                                         stderr=subprocess.PIPE, text=True, start_new_session=True),
+             "deaf": subprocess.Popen([sys.executable, "-c", deaf], stdout=subprocess.PIPE, text=True,
+                                      start_new_session=True),
+             "done": subprocess.Popen([sys.executable, "-c", "pass"], start_new_session=True)}
+    for name in ("deaf", "listens"):  # their handlers are set before the deadline
+        assert procs[name].stdout.readline().strip() == "ready"
+    start = time.perf_counter()
+    assert wait_until_deadline(procs, 0.5, start, tag="t", poll_s=0.05, grace_s=3.0) == ["deaf", "listens"]
+    took = time.perf_counter() - start
+    assert procs["listens"].returncode == cli.STOPPED_EXIT == 75
+    assert procs["listens"].stderr.read().strip().endswith("toy: stopped on request after step 3 of 9")
+    assert procs["deaf"].returncode == -signal.SIGTERM  # asked, did not stop, stopped after the grace
+    assert 3.0 < took < 30

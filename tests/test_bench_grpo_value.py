@@ -115,6 +115,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     (["run", "--policy", "p.npz", "--kl-coef", "-0.1"], "--kl-coef"),
     (["run", "--policy", "p.npz", "--kl-coef", "nan"], "--kl-coef"),
     (["run", "--policy", "p.npz", "--learning-rate=-1e-4"], "--learning-rate"),
+    (["run", "--policy", "p.npz", "--grace-s=-1"], "--grace-s"),
 ])
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):

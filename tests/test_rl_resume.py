@@ -342,3 +342,42 @@ def test_grpo_step_times_leave_evaluations_out_and_survive_a_resume(tmp_path):
     # 2 starts x 3 members x 4 frames per chunk x mean_chunks (step k's batch is k, so k + 1 chunks)
     assert [r["imagined_frames"] for r in rows] == [24 * 2, 24 * 3, 24 * 4, 24 * 5]
     assert all(r["imagined_frames_per_s"] == pytest.approx(r["imagined_frames"] / r["step_s"]) for r in rows)
+
+
+def test_grpo_stopped_on_request_evaluates_its_step_in_flight_and_resumes_there(tmp_path):
+    """A stop asked for while step 3 runs (SIGUSR1 under cli.run sets the same request): GRPO evaluates step 3
+    although evaluations fall every 4 steps, checkpoints it and raises StopRequested; the resumed run goes on from
+    step 3 to the uninterrupted run's parameters, its curve holding the extra point."""
+    from sword_jax import cli
+
+    rl = RLConfig(grpo=GRPOConfig(steps=6, eval_every=4))
+    workdir = str(tmp_path / "grpo")
+    run_id = grpo_run_id(rl, seed=0, simulator="toy", **{"sim.tasks": (0, 1)})
+    update = jax.jit(lambda state, batch: state.replace(params={"w": state.params["w"] + batch}, step=state.step + 1))
+
+    def run(ask_at: int):
+        def step(state, batch, key):
+            if float(batch) == ask_at:
+                cli.request_stop()
+            state = update(state, batch)
+            return state, {"loss": jnp.sum(state.params["w"])}
+
+        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
+        evaluate = lambda done, params: ({"mean": float(params["w"][0]), "per_task": {}}, {})  # noqa: E731
+        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
+                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+
+    def curve_on_disk():
+        with open(os.path.join(workdir, "success_curve.json")) as f:
+            return [(p["step"], p["mean"]) for p in json.load(f)["points"]]
+
+    try:
+        with pytest.raises(cli.StopRequested, match="GRPO: stopped on request after step 3 of 6; checkpoint of step 3"):
+            run(ask_at=3)
+    finally:
+        cli.clear_stop_request()
+    assert _final_state(os.path.join(workdir, "checkpoints"))[1]["step"] == 3
+    assert curve_on_disk() == [(0, 0.0), (3, 6.0)]  # w after 1 + 2 + 3
+    result, _ = run(ask_at=-1)
+    assert result.first_step == 3 and float(result.state.params["w"][0]) == 21.0  # 1 + ... + 6, as uninterrupted
+    assert curve_on_disk() == [(0, 0.0), (3, 6.0), (4, 10.0), (6, 21.0)]

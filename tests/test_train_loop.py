@@ -105,3 +105,83 @@ def test_a_state_with_host_leaves_resumes(tmp_path):
     abstract = checkpoint.abstract_like({"a": np.ones((3,), np.float16), "b": 1.5})
     assert abstract["a"].shape == (3,) and abstract["a"].dtype == np.float16 and abstract["a"].sharding is not None
     assert abstract["b"].shape == () and abstract["b"].dtype == np.float32
+
+
+def test_a_stop_request_checkpoints_the_step_in_flight_and_the_run_resumes_exactly(tmp_path):
+    """A stop requested after step 2 (e.g. SIGUSR1 under cli.run): that step is read, passed to at_checkpoint
+    and checkpointed although it is no checkpoint step, StopRequested names it, and the same call resumes there
+    to the uninterrupted run's result."""
+    from sword_jax.cli import StopRequested
+
+    directory, seen, seen_steps = str(tmp_path / "stop"), [], []
+    asked = lambda: len(seen_steps) >= 2  # noqa: E731 - asked for once two steps were dispatched
+
+    def step(state, batch, key):
+        seen_steps.append(int(batch["x"]))
+        return _step(state, batch, key)
+
+    def go(stop):
+        return run_steps(step, {"w": jnp.zeros((), jnp.float32), "step": jnp.zeros((), jnp.int32)},
+                         lambda i: np.float32(i + 1), key=jax.random.key(0), steps=STEPS, log_every=2, name="toy",
+                         report=lambda done, m, _o, _eta: {"step": done}, checkpoint_dir=directory, checkpoint_every=4,
+                         place=lambda b: {"x": jnp.asarray(b)}, metrics_finite=lambda m: m["nonfinite"] == 0,
+                         at_checkpoint=lambda done, state, history: seen.append((done, [p["step"] for p in history])),
+                         log=lambda line: None, stop_requested=stop)
+
+    with pytest.raises(StopRequested, match=rf"toy: stopped on request after step 2 of {STEPS}; checkpoint of step 2"):
+        go(asked)
+    assert seen == [(2, [2])]  # step 2 was read and handed over although log_every / checkpoint_every are 2 / 4
+    step_saved, meta = _meta(directory)
+    assert step_saved == 2 and float(meta["history"][-1]["step"]) == 2
+    result = go(lambda: False)
+    assert result.first_step == 2 and float(result.state["w"]) == sum(range(1, STEPS + 1))
+    assert seen[1:] == [(4, [2, 4]), (STEPS, [2, 4, STEPS])]
+    # a request at the last step changes nothing: the run is complete
+    last = run_steps(_step, {"w": jnp.zeros((), jnp.float32), "step": jnp.zeros((), jnp.int32)},
+                     lambda i: np.float32(i + 1), key=jax.random.key(0), steps=1, log_every=1, name="toy",
+                     report=lambda done, m, _o, _eta: {"step": done}, place=lambda b: {"x": jnp.asarray(b)},
+                     metrics_finite=lambda m: m["nonfinite"] == 0, log=lambda line: None, stop_requested=lambda: True)
+    assert float(last.state["w"]) == 1.0
+
+
+_SIGNALLED_RUN = """
+import os, sys
+import jax, jax.numpy as jnp, numpy as np
+from sword_jax import cli
+from sword_jax.train_loop import run_steps
+
+def main(argv):
+    directory, signal_at = argv[0], int(argv[1])
+
+    def step(state, batch, key):  # the signal arrives while step `signal_at` (1-based) is dispatched
+        if int(batch) == signal_at:
+            os.kill(os.getpid(), cli.STOP_SIGNAL)
+        return {"w": state["w"] + batch}, {"loss": jnp.float32(batch)}
+
+    result = run_steps(step, {"w": jnp.zeros((), jnp.float32)}, lambda i: np.float32(i + 1), key=jax.random.key(0),
+                       steps=5, log_every=1, name="toy", report=lambda done, m, _o, _eta: {"step": done},
+                       checkpoint_dir=directory, checkpoint_every=5, log=lambda line: None)
+    print(float(result.state["w"]))
+
+cli.run(main)
+"""
+
+
+def test_the_stop_signal_under_cli_run_checkpoints_and_exits_75_and_the_command_resumes(tmp_path):
+    import subprocess
+    import sys
+
+    from sword_jax import cli
+
+    def command(signal_at):
+        return subprocess.run([sys.executable, "-c", _SIGNALLED_RUN, str(tmp_path / "ckpt"), str(signal_at)],
+                              capture_output=True, text=True, timeout=300)
+
+    stopped = command(2)
+    assert stopped.returncode == cli.STOPPED_EXIT, stopped.stderr
+    assert stopped.stderr.strip().splitlines()[-1].endswith("toy: stopped on request after step 2 of 5; checkpoint "
+                                                             f"of step 2 in {tmp_path / 'ckpt'}; the same command "
+                                                             "resumes from it")
+    resumed = command(0)  # no signal: resumes at step 2 and adds batches 3..5
+    assert resumed.returncode == 0, resumed.stderr
+    assert float(resumed.stdout.strip()) == 15.0
