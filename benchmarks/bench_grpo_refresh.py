@@ -13,7 +13,8 @@ evaluated on MJX as ground-truth GRPO is (the greedy, ensembled policy and the s
 ``NAME_refreshed_seed<k>``): the first refresh's replay measures, before any GRPO step, whether each world model
 separates the policy's real successes from its real failures. Every pipeline after the first links the first
 one's episodes (one data stage); each pipeline's runs start as soon as it is built; ``--deadline-s`` stops the
-runs still going and summarises them at their last evaluation.
+runs still going and summarises them at their last evaluation (with ``--grace-s`` they are asked first: each
+checkpoints its step in flight, GRPO evaluates it, and the same command resumes them).
 
 ``summary``: each run's real success curves and gains (Newcombe intervals), the real episodes it used, every
 refresh's replay (the share of the policy's new real failures the simulator called successes before it was
@@ -47,8 +48,10 @@ runs with other GRPO settings in Sword's world model (no pipeline of their own),
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
+import math
 import os
 import shlex
 import signal
@@ -57,6 +60,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from typing import Any
 
 from benchmarks import common
 from benchmarks.bench_grpo_transfer import errorbar_curve, gain_interval
@@ -277,10 +281,7 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
                 for i, (name, cmd) in enumerate(pipe_runs(args, overrides, pipe).items()):
                     procs[name] = launch(name, cmd, pipe.gpus[i % len(pipe.gpus)] if pipe.gpus else "")
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
-            everything = {**building, **procs}
-            running = stop_all(list(everything.values()))
-            stopped = sorted(n for n, p in everything.items() if any(p is r for r in running))
-            print(f"[refresh] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
+            stopped = stop_at_deadline({**building, **procs}, args.deadline_s, tag="refresh", grace_s=args.grace_s)
             break
         time.sleep(poll_s)
     codes = {name: p.returncode for name, p in procs.items()}
@@ -334,34 +335,64 @@ def _leads_group(p: subprocess.Popen) -> bool:
         return False
 
 
+def seconds_at_least_zero(text: str) -> float:
+    """An argparse type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds >= 0, got {text!r}")
+    return value
+
+
+def add_deadline_options(parser: Any, prefix: str = "") -> None:
+    """``--deadline-s`` and ``--grace-s`` of a launcher that stops its runs at a deadline (:func:`stop_at_deadline`);
+    ``prefix`` starts their help (e.g. ``"run: "``)."""
+    parser.add_argument("--deadline-s", type=seconds_at_least_zero, default=0.0,
+                        help=f"{prefix}stop the runs still going this many seconds after the start and summarise "
+                             "them at their last evaluation (0: no deadline)")
+    parser.add_argument("--grace-s", type=seconds_at_least_zero, default=0.0,
+                        help=f"{prefix}ask the runs still going at --deadline-s to stop first (each checkpoints its "
+                             "step in flight and GRPO evaluates it; the same command resumes them) and stop them "
+                             "outright this many seconds later (0: at the deadline)")
+
+
+def stop_at_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, *, tag: str, grace_s: float = 0.0,
+                     poll_s: float = 1.0) -> list[str]:
+    """The named processes still running at a deadline of ``deadline_s`` s, stopped; their names, sorted. With
+    ``grace_s`` they are first asked to stop (``sword_jax.cli.STOP_SIGNAL``: a command under ``cli.run``
+    checkpoints its step in flight, GRPO evaluates it, and exits ``cli.STOPPED_EXIT``), and those still running
+    ``grace_s`` later are stopped (:func:`stop_all`); without it they are stopped at once."""
+    running = {n: p for n, p in procs.items() if p.poll() is None}
+    if grace_s > 0 and running:
+        for p in running.values():
+            try:
+                p.send_signal(cli.STOP_SIGNAL)
+            except ProcessLookupError:  # it has just ended
+                pass
+        print(f"[{tag}] deadline of {deadline_s:.0f} s: asked {sorted(running)} to stop, {grace_s:.0f} s to do so",
+              flush=True)
+        end = time.perf_counter() + grace_s
+        while time.perf_counter() < end and any(p.poll() is None for p in running.values()):
+            time.sleep(poll_s)
+    killed = stop_all(list(running.values()))
+    if grace_s <= 0:
+        print(f"[{tag}] deadline of {deadline_s:.0f} s: stopped {sorted(running)}", flush=True)
+    elif killed:
+        print(f"[{tag}] still running after {grace_s:.0f} s: stopped "
+              f"{sorted(n for n, p in running.items() if any(p is k for k in killed))}", flush=True)
+    return sorted(running)
+
+
 def wait_until_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, start: float, *, tag: str,
                         poll_s: float = 5.0, grace_s: float = 0.0) -> list[str]:
     """Waits for the named processes to end; past ``deadline_s`` seconds after ``start`` (``time.perf_counter``;
-    0 = no deadline) stops the ones still running and returns their names, sorted. With ``grace_s`` they are first
-    asked to stop (``sword_jax.cli.STOP_SIGNAL``: a run under ``cli.run`` checkpoints its step in flight, GRPO
-    evaluates it, and exits ``cli.STOPPED_EXIT``); those still running ``grace_s`` later are stopped
-    (:func:`stop_all`)."""
+    0 = no deadline) stops the ones still running (:func:`stop_at_deadline`, asking first with ``grace_s``) and
+    returns their names, sorted."""
     while any(p.poll() is None for p in procs.values()):
         if deadline_s and time.perf_counter() - start > deadline_s:
-            running = {n: p for n, p in procs.items() if p.poll() is None}
-            if grace_s > 0:
-                for p in running.values():
-                    try:
-                        p.send_signal(cli.STOP_SIGNAL)
-                    except ProcessLookupError:  # it has just ended
-                        pass
-                print(f"[{tag}] deadline of {deadline_s:.0f} s: asked {sorted(running)} to stop, "
-                      f"{grace_s:.0f} s to do so", flush=True)
-                end = time.perf_counter() + grace_s
-                while time.perf_counter() < end and any(p.poll() is None for p in running.values()):
-                    time.sleep(min(poll_s, 1.0))
-            killed = stop_all(list(running.values()))
-            if grace_s > 0 and killed:
-                print(f"[{tag}] still running after {grace_s:.0f} s: stopped "
-                      f"{sorted(n for n, p in running.items() if any(p is k for k in killed))}", flush=True)
-            elif grace_s <= 0:
-                print(f"[{tag}] deadline of {deadline_s:.0f} s: stopped {sorted(running)}", flush=True)
-            return sorted(running)
+            return stop_at_deadline(procs, deadline_s, tag=tag, grace_s=grace_s, poll_s=min(poll_s, 1.0))
         time.sleep(poll_s)
     return []
 
@@ -645,9 +676,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="episodes per task of --policy itself, successes and failures, added to each world "
                              "model's and detector's training data (data.policy_rollouts_per_task; 0: expert "
                              "demonstrations only, the policy's episodes arrive with the first refresh)")
-    parser.add_argument("--deadline-s", type=float, default=0.0,
-                        help="stop the runs still going this many seconds after the start and summarise them "
-                             "at their last evaluation (0: none)")
+    add_deadline_options(parser)
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--arms", default="refreshed,once", help="refreshed (every seed) and once (the first seed)")
     parser.add_argument("--pipeline-seed", type=int, default=0)

@@ -28,8 +28,8 @@ compare what the real closed loop and the imagined one are paid from like starts
 ``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs
 start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
 seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
-last evaluation). ``summary`` gives each run's gains with 95% intervals, what its training rollouts were paid,
-and for ``exec`` the detector's success, agreement, false success and precision (the share of its verdicts of
+last evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives
+each run's gains with 95% intervals, what its training rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of its verdicts of
 success that reality paid too) on the same rollouts, and per decision where their closed loop left the
 real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps); ``--record`` writes
 ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
@@ -48,7 +48,7 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import gain_between, pipeline_command, stop_all
+from benchmarks.bench_grpo_refresh import add_deadline_options, gain_between, pipeline_command, stop_at_deadline
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST
@@ -168,10 +168,8 @@ def run(args, *, poll_s: float = 5.0) -> dict:
                 for run_name in ready:
                     procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
         if args.deadline_s and time.perf_counter() - start > args.deadline_s:
-            everything = dict(procs, **({building[0]: building[1]} if building else {}))
-            running = stop_all(list(everything.values()))
-            stopped = sorted(n for n, p in everything.items() if any(p is r for r in running))
-            print(f"[reward-source] deadline of {args.deadline_s:.0f} s: stopped {stopped}", flush=True)
+            stopped = stop_at_deadline(dict(procs, **({building[0]: building[1]} if building else {})),
+                                       args.deadline_s, tag="reward-source", grace_s=args.grace_s)
             break
         time.sleep(poll_s)
     summary = dict(summarize(args.workdir), exit_codes={n: p.returncode for n, p in procs.items()},
@@ -434,7 +432,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: every arm starts from keyframes in the first this-fraction of each demonstration "
                              "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "
                              "horizons need to reach success at all")
-    parser.add_argument("--deadline-s", type=float, default=0.0, help="run: stop the runs still going after this")
+    add_deadline_options(parser, "run: ")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.seeds = [int(s) for s in args.seeds.split(",") if s]

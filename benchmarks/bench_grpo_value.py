@@ -29,9 +29,9 @@ a k3 KL term of weight K (``rl.grpo.kl_coef``); ``--learning-rate`` replaces the
 adds the noise-only control: success alone, each group's returns shuffled among its trajectories
 (``rl.grpo.shuffle_returns``); ``summary`` sets every other arm against it seed by seed (``contrasts``). ``run``
 starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). At ``--deadline-s`` the runs
-still going are asked to stop: each evaluates and checkpoints its step in flight within ``--grace-s``
-(:func:`sword_jax.cli.request_stop`), and the same command resumes them. ``summary`` gives each run's gains with 95%
-intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
+still going are stopped; with ``--grace-s`` they are asked first: each checkpoints its step in flight and evaluates
+it (:func:`sword_jax.cli.request_stop`), and the same command resumes them. ``summary`` gives each run's gains with
+95% intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
 outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
 and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as
 open``: ``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the
@@ -51,7 +51,7 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import wait_until_deadline
+from benchmarks.bench_grpo_refresh import add_deadline_options, wait_until_deadline
 from benchmarks.bench_grpo_reward_source import RECIPE, smallest_gain_entry, summarize_run
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
@@ -286,12 +286,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: every arm's GRPO learning rate (rl.grpo.learning_rate; 0 = the recipe's, 1e-4)")
     parser.add_argument("--kl-coef", type=float, default=0.0,
                         help="run: every arm's weight of the k3 KL to the starting policy (rl.grpo.kl_coef; 0 = off)")
-    parser.add_argument("--deadline-s", type=float, default=0.0,
-                        help="run: ask the runs still going to stop after this many seconds (each evaluates and "
-                             "checkpoints its step in flight; the same command resumes them)")
-    parser.add_argument("--grace-s", type=float, default=240.0,
-                        help="run: seconds the runs asked to stop at --deadline-s have before they are stopped "
-                             "outright (0: stopped at the deadline)")
+    add_deadline_options(parser, "run: ")
     parser.add_argument("--record-as", choices=tuple(ENTRIES), default="value",
                         help="summary --record: the latest.json entry, " + "; ".join(
                             f"{k}: {key} (the {arm} arm's smallest gain)" for k, (key, arm) in ENTRIES.items()))
@@ -309,12 +304,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
             or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
             or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch
             or not (args.kl_coef >= 0 and math.isfinite(args.kl_coef))
-            or not (args.learning_rate >= 0 and math.isfinite(args.learning_rate))
-            or not (args.grace_s >= 0 and math.isfinite(args.grace_s))):
+            or not (args.learning_rate >= 0 and math.isfinite(args.learning_rate))):
         raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
                          "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
                          "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]; "
-                         "--kl-coef, --learning-rate and --grace-s finite numbers >= 0")
+                         "--kl-coef and --learning-rate finite numbers >= 0")
     return args
 
 

@@ -194,7 +194,8 @@ def test_run_launches_each_pipelines_runs_when_built_and_stops_them_at_the_deadl
     import sys
 
     class Run(Args):
-        workdir, wovr_config, gpus, wovr_gpus, ground_truth, deadline_s = str(tmp_path), "", "0,1", "", "", 4.0
+        workdir, wovr_config, gpus, wovr_gpus, ground_truth = str(tmp_path), "", "0,1", "", ""
+        deadline_s, grace_s = 4.0, 0.0
 
     monkeypatch.setattr(bench, "pipeline_command", lambda *a, **k: [sys.executable, "-c", "pass"])
     curve = {"label": "x", "points": [_point(0, 0.7, 0.5, 64)]}
@@ -233,7 +234,7 @@ def test_run_variants_add_runs_in_swords_pipeline_built_once(tmp_path, monkeypat
     import sys
 
     class Run(Args):
-        workdir, wovr_config, gpus, ground_truth, deadline_s = str(tmp_path), "", "0,1", "", 0.0
+        workdir, wovr_config, gpus, ground_truth, deadline_s, grace_s = str(tmp_path), "", "0,1", "", 0.0, 0.0
         arms, run_variant, run_variant_gpus = {"refreshed"}, ["nr=--rl.refresh.replay_share=0"], "2,3"
 
     made = bench.pipes(Run)
@@ -279,7 +280,7 @@ def test_a_light_decoder_run_variant_has_its_pipeline_distil_the_decoder_and_its
     import sys
 
     class Run(Args):
-        workdir, wovr_config, gpus, ground_truth, deadline_s = str(tmp_path), "", "0", "", 0.0
+        workdir, wovr_config, gpus, ground_truth, deadline_s, grace_s = str(tmp_path), "", "0", "", 0.0, 0.0
         arms, seeds, run_variant = {"refreshed"}, [0], ["light=--rl.imagined.decoder=light"]
 
     runs = bench.grpo_commands(Run, [])

@@ -14,7 +14,7 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
-        world_model_steps=3000, deadline_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None)
+        world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None)
     return args
 
 

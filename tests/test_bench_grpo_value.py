@@ -115,11 +115,21 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     (["run", "--policy", "p.npz", "--kl-coef", "-0.1"], "--kl-coef"),
     (["run", "--policy", "p.npz", "--kl-coef", "nan"], "--kl-coef"),
     (["run", "--policy", "p.npz", "--learning-rate=-1e-4"], "--learning-rate"),
-    (["run", "--policy", "p.npz", "--grace-s=-1"], "--grace-s"),
 ])
 def test_bad_command_lines_are_refused_by_name(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):
         gv.parse([*argv[:1], "--workdir", str(tmp_path), *argv[1:]])
+
+
+@pytest.mark.parametrize("flag", ["--deadline-s", "--grace-s"])
+@pytest.mark.parametrize("value", ["-1", "nan", "soon"])
+def test_deadline_and_grace_are_seconds_at_least_zero(tmp_path, flag, value):
+    from sword_jax.cli import UsageError
+
+    with pytest.raises(UsageError, match=rf"argument {flag}: must be a finite number of seconds >= 0, got '{value}'"):
+        gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", f"{flag}={value}"])
+    assert gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", f"{flag}=30"]).__dict__[
+        flag[2:].replace("-", "_")] == 30.0
 
 
 def test_an_arm_is_set_against_the_noise_only_control_at_the_seeds_both_ran():
