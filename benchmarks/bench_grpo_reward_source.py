@@ -25,13 +25,14 @@ and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world
 their keyframes alike (the same demonstrations and rule, their own draws), so their first steps, before any update,
 compare what the real closed loop and the imagined one are paid from like starts.
 
-``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs
-start on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a
-seed side by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its
-last evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives
-each run's gains with 95% intervals, what its training rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of its verdicts of
-success that reality paid too) on the same rollouts, and per decision where their closed loop left the
-real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps); ``--record`` writes
+``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs start
+on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a seed side
+by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its last
+evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives each run's
+gains with 95% intervals, what its training rollouts were paid, and for ``exec`` the detector's success, agreement,
+false success and precision (the share of its verdicts of success that reality paid too) on the same rollouts, and
+per decision where their closed loop left the real one (``closed_loop``:
+:func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps); ``--record`` writes
 ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
 """
 
