@@ -208,6 +208,19 @@ def test_grpo_sigkill_resume_is_bit_identical_and_another_runs_checkpoint_is_ref
     assert "another run (differs in ['rl.grpo.learning_rate'])" in other.stderr, other.stderr[-3000:]
 
 
+def _toy_grpo(step, rl: RLConfig, workdir: str, run_id: dict):
+    """GRPO of a one-vector policy from zeros (batch ``k + 1`` at step ``k``), evaluated as its first entry."""
+    state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
+    evaluate = lambda done, params: ({"mean": float(params["w"][0]), "per_task": {}}, {})  # noqa: E731
+    return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
+                      evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+
+
+def _curve_on_disk(workdir: str) -> list[tuple[int, float]]:
+    with open(os.path.join(workdir, "success_curve.json")) as f:
+        return [(p["step"], p["mean"]) for p in json.load(f)["points"]]
+
+
 def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_checkpoint(tmp_path):
     """The loop around GRPO's step (the update's own finite gate is pinned in test_grpo): a non-finite loss
     stops the run with the last evaluation's checkpoint and curve intact; an evaluation a killed run wrote
@@ -226,14 +239,10 @@ def test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_the_che
         return step
 
     def run(step, rl, run_id=run_id):
-        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
-        evaluate = lambda done, params: ({"mean": float(params["w"][0]), "per_task": {}}, {})  # noqa: E731
-        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
-                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
+        return _toy_grpo(step, rl, workdir, run_id)
 
     def curve_on_disk():
-        with open(os.path.join(workdir, "success_curve.json")) as f:
-            return [(p["step"], p["mean"]) for p in json.load(f)["points"]]
+        return _curve_on_disk(workdir)
 
     with pytest.raises(NonFiniteLoss, match=r"GRPO: non-finite loss or gradient at step 4 \(0-based\).*"
                                             r"last good checkpoint: step 4"):
@@ -362,14 +371,7 @@ def test_grpo_stopped_on_request_evaluates_its_step_in_flight_and_resumes_there(
             state = update(state, batch)
             return state, {"loss": jnp.sum(state.params["w"])}
 
-        state = grpo.init_state({"w": jnp.zeros((2,), jnp.float32)}, rl)
-        evaluate = lambda done, params: ({"mean": float(params["w"][0]), "per_task": {}}, {})  # noqa: E731
-        return train_grpo(step, state, lambda i: jnp.float32(i + 1), key=jax.random.key(0), rl=rl, workdir=workdir,
-                          evaluate=evaluate, run_id=run_id, progress=lambda point, eta: "", log=lambda line: None)
-
-    def curve_on_disk():
-        with open(os.path.join(workdir, "success_curve.json")) as f:
-            return [(p["step"], p["mean"]) for p in json.load(f)["points"]]
+        return _toy_grpo(step, rl, workdir, run_id)
 
     try:
         with pytest.raises(cli.StopRequested, match="GRPO: stopped on request after step 3 of 6; checkpoint of step 3"):
@@ -377,7 +379,7 @@ def test_grpo_stopped_on_request_evaluates_its_step_in_flight_and_resumes_there(
     finally:
         cli.clear_stop_request()
     assert _final_state(os.path.join(workdir, "checkpoints"))[1]["step"] == 3
-    assert curve_on_disk() == [(0, 0.0), (3, 6.0)]  # w after 1 + 2 + 3
+    assert _curve_on_disk(workdir) == [(0, 0.0), (3, 6.0)]  # w after 1 + 2 + 3
     result, _ = run(ask_at=-1)
     assert result.first_step == 3 and float(result.state.params["w"][0]) == 21.0  # 1 + ... + 6, as uninterrupted
-    assert curve_on_disk() == [(0, 0.0), (3, 6.0), (4, 10.0), (6, 21.0)]
+    assert _curve_on_disk(workdir) == [(0, 0.0), (3, 6.0), (4, 10.0), (6, 21.0)]
