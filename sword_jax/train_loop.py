@@ -210,7 +210,7 @@ def run_steps(
             if on_history is not None:
                 on_history(history)
 
-        stoppable = stop_requested is not None and jax.process_count() == 1
+        stoppable, stopping = stop_requested is not None and jax.process_count() == 1, False
         batches = prefetched(batch_at, range(first_step, steps))
         for i, batch in enumerate(batches, start=first_step):
             state, metrics = step(state, batch if place is None else place(batch), key)
@@ -238,15 +238,14 @@ def run_steps(
                     extra = checkpoint_meta(dispatched) if checkpoint_meta is not None else {}
                     ckpt.save(dispatched, state, {**extra, "step": dispatched, "history": history, "run": run_id})
             if stopping:
-                if pending is not None:
-                    read(*pending)
-                stop_if_nonfinite(first_bad)
-                kept = ("no checkpoint (no checkpoint directory)" if ckpt is None
-                        else f"checkpoint of step {dispatched} in {ckpt.directory}; the same command resumes from it")
-                raise cli.StopRequested(f"{name}: stopped on request after step {dispatched} of {steps}; {kept}")
+                break
         if pending is not None:
             read(*pending)
         stop_if_nonfinite(first_bad)
+        if stopping:
+            kept = ("no checkpoint (no checkpoint directory)" if ckpt is None
+                    else f"checkpoint of step {dispatched} in {ckpt.directory}; the same command resumes from it")
+            raise cli.StopRequested(f"{name}: stopped on request after step {dispatched} of {steps}; {kept}")
     finally:
         if batches is not None:
             batches.close()

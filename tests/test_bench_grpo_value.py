@@ -12,6 +12,11 @@ from benchmarks.bench_grpo_reward_source import RECIPE
 from tests.test_bench_grpo_reward_source import _curve, _point
 
 
+def _rl_of(cmd):
+    """The RL config a run's command line parses into (it validates)."""
+    return configs.from_argv(["--config", "sword:small", *[c for c in cmd if c.startswith("--rl.")]])[0].rl
+
+
 def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     args = gv.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--seeds", "0,1",
                      "--gpus", "0,1", "--horizon", "2", "--value-episodes", "256"])
@@ -29,9 +34,7 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     assert [swap.get(c, c).replace(os.path.join("value", "s1"), os.path.join("success", "s1")) for c in value] == success
     # the command line parses into a config that validates, for either arm
     for cmd in (value, success):
-        overrides = [c for c in cmd if c.startswith("--rl.")]
-        cfg, _ = configs.from_argv(["--config", "sword:small", *overrides])
-        assert cfg.rl.env.starts == "branch" and cfg.rl.value.episodes == 256
+        assert _rl_of(cmd).env.starts == "branch" and _rl_of(cmd).value.episodes == 256
     assert not any("scale_by_std" in c for c in value)
     centred = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "value",
                                         "--scale-by-std", "false"]))
@@ -44,7 +47,7 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     assert "--rl.grpo.shuffle_returns=true" in shuffled and "--rl.value.bootstrap=false" in shuffled
     assert [c for c in shuffled if c != "--rl.grpo.shuffle_returns=true"] == [
         c.replace(os.path.join("success", "s0"), os.path.join("shuffled", "s0")) for c in control["success_s0"]]
-    assert configs.from_argv(["--config", "sword:small", *[c for c in shuffled if c.startswith("--rl.")]])[0].rl.grpo.shuffle_returns
+    assert _rl_of(shuffled).grpo.shuffle_returns
     skipping = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--min-mixed-groups", "8"]))
     assert all("--rl.grpo.min_mixed_groups=8" in cmd for cmd in skipping.values())
     assert not any("kl_coef" in c for c in value)
@@ -52,11 +55,11 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
     slow = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--learning-rate", "2e-5"]))
     for cmd in slow.values():
         assert "--rl.grpo.learning_rate=2e-05" in cmd and not any(c == "--rl.grpo.learning_rate=1e-4" for c in cmd)
-        assert configs.from_argv(["--config", "sword:small", *[c for c in cmd if c.startswith("--rl.")]])[0].rl.grpo.learning_rate == 2e-5
+        assert _rl_of(cmd).grpo.learning_rate == 2e-5
     anchored = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--kl-coef", "0.05"]))
     for cmd in anchored.values():
         assert "--rl.grpo.kl_coef=0.05" in cmd
-        assert configs.from_argv(["--config", "sword:small", *[c for c in cmd if c.startswith("--rl.")]])[0].rl.grpo.kl_coef == 0.05
+        assert _rl_of(cmd).grpo.kl_coef == 0.05
     assert gv.placement(list(commands), ["0", "1"]) == {"value_s0": "0", "success_s0": "1", "value_s1": "0",
                                                          "success_s1": "1"}
 

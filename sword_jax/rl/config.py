@@ -606,7 +606,8 @@ class ValueConfig:
     ``rl.grpo.temperature``, acting as GRPO's rollouts do, each run to the episode limit): it reads a frame and the
     instruction and predicts whether the episode that frame belongs to goes on to succeed. A training rollout that
     reaches its horizon without success or failure is then paid ``(1 + rl.grpo.success_bonus) x`` the value of its
-    final frame instead of 0; a success is still paid ``1 + success_bonus``. Evaluations are unchanged. Ground-truth GRPO on MJX (``rl.env.backend=mjx``).
+    final frame instead of 0; a success is still paid ``1 + success_bonus``. Evaluations are unchanged.
+    Ground-truth GRPO on MJX (``rl.env.backend=mjx``).
 
     Attributes:
       episodes: real episodes the value is fitted to (they count as real episodes the run used); 0 = off.
