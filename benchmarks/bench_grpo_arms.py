@@ -86,9 +86,8 @@ def summarize(arm_dirs: dict[str, str]) -> dict:
             if kind in entry and len(entry[kind]) > 1:
                 first, last = entry[kind][0], entry[kind][-1]
                 entry[f"{kind}_gain"] = round(last["success"] - first["success"], 4)
-                entry[f"{kind}_gain_ci95"] = [round(x, 4) for x in gain_interval(
-                    {"successes": first["successes"], "episodes": first["episodes"]},
-                    {"successes": last["successes"], "episodes": last["episodes"]})]
+                ends = [p if kind == "greedy" else p["sampled"] for p in (points[0], points[-1])]
+                entry[f"{kind}_gain_ci95"] = [round(x, 4) for x in gain_interval(*ends)]
         history = os.path.join(workdir, "rl", "grpo", "train_history.jsonl")
         if os.path.exists(history):
             with open(history) as f:

@@ -57,11 +57,11 @@ def commands(args, overrides: Sequence[str]) -> dict[str, list[str]]:
 
 
 def gain_interval(a: dict, b: dict) -> list[float]:
-    """95% interval of ``rate(b) - rate(a)`` for two evaluation points: the Newcombe interval every
-    GRPO gain in this project is reported with (:func:`sword_jax.rl.env_rollout.difference_interval`)."""
-    from sword_jax.rl.env_rollout import difference_interval
+    """95% interval of ``rate(b) - rate(a)`` for two evaluation points of one run: paired episode by episode where
+    both kept their outcomes, else Newcombe's (:func:`sword_jax.rl.env_rollout.gain_interval`)."""
+    from sword_jax.rl.env_rollout import gain_interval as interval
 
-    return list(difference_interval(a["successes"], a["episodes"], b["successes"], b["episodes"]))
+    return list(interval(a, b))
 
 
 def _blocks(values: Sequence[float], size: int = 10) -> list[float]:

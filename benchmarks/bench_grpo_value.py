@@ -35,7 +35,8 @@ it (:func:`sword_jax.cli.request_stop`), and the same command resumes them. ``su
 outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
 and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as
 open``: ``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the
-open-starts runs at ``--rollout-batch 256``) to ``benchmarks/results/latest.json``.
+open-starts runs at ``--rollout-batch 256``; ``open_kl``: ``policy_grpo_branched_open_kl_small``, those with
+``--kl-coef``) to ``benchmarks/results/latest.json``.
 """
 
 from __future__ import annotations
@@ -205,7 +206,8 @@ def contrast(runs: dict, arm: str, control: str = CONTROL) -> dict | None:
 # --record-as: which latest.json entry a summary writes and whose arm's smallest gain is its value
 ENTRIES = {"value": ("policy_grpo_branched_value_small", "value"),  # uniform starts, advantages scaled by the std
            "open": ("policy_grpo_branched_open_small", "success"),  # open starts, centred advantages
-           "open_b256": ("policy_grpo_branched_open_b256_small", "success")}  # the same with 256 starts a step
+           "open_b256": ("policy_grpo_branched_open_b256_small", "success"),  # the same with 256 starts a step
+           "open_kl": ("policy_grpo_branched_open_kl_small", "success")}  # 64 starts, anchored by --kl-coef
 
 
 def results_entries(summary: dict, workdir: str, *, data: str, command: str = "", record_as: str = "value"
@@ -213,7 +215,8 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     """One entry (:data:`ENTRIES`): ``policy_grpo_branched_value_small`` (the runs with uniform starts), value the
     smallest gain over the seeds of the ``value`` arm's sampled policy reading proprio masked (the mode its rollouts
     train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages; ``..._open_b256_small``: the
-    same at 256 starts a step), that of the ``success`` arm; beside every arm's gains and every run's summary."""
+    same at 256 starts a step; ``..._open_kl_small``: anchored to the starting policy by a KL term), that of the
+    ``success`` arm; beside every arm's gains and every run's summary."""
     key, arm = ENTRIES[record_as]
     entry = smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,
                                 unit="real success gain of the sampled policy (T 0.5, proprio masked) on MJX")

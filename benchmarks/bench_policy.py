@@ -58,7 +58,7 @@ from sword_jax import cli
 from sword_jax.pipeline.launch import NO_MULTICAST  # NVLink multicast off in every process started here
 from sword_jax.rl import decoded_frames
 from sword_jax.rl.params_io import load_params_npz, save_params_npz
-from sword_jax.rl.env_rollout import difference_interval as diff_interval  # the name its callers and tests use
+from sword_jax.rl.env_rollout import gain_interval
 
 
 def _gen_demos(out: str, tasks: list[int], per_task: int, resolution: int, noise: float, noisy_share: float,
@@ -278,13 +278,13 @@ def run_grpo(cfg, args) -> dict:
     curve = result["curve"]
     first, last = curve[0], curve[-1]
     gain = last["mean"] - first["mean"]
-    interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
+    interval = gain_interval(first, last)
     summary = {"curve": curve, "gain": gain, "gain_ci95": interval, "seconds": round(time.time() - start, 1),
                "env_proprio": mode, "env_starts": cfg.rl.env.starts, "history": result["history"]}
     if mode != "true" and "train_mode" in first and "train_mode" in last:
         a, b = first["train_mode"], last["train_mode"]
         summary["train_mode_gain"] = b["mean"] - a["mean"]
-        summary["train_mode_gain_ci95"] = diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"])
+        summary["train_mode_gain_ci95"] = gain_interval(a, b)
     with open(os.path.join(args.out, f"{os.path.basename(workdir)}_results.json"), "w") as f:
         json.dump(summary, f, indent=1)
     print(f"GRPO in the real envs, policy proprio {mode}: true-proprio success {first['mean']:.3f} -> "
@@ -330,7 +330,7 @@ def _policy_point(point: dict, policy: str) -> dict | None:
 
 
 def _gain(first: dict, last: dict) -> dict:
-    interval = diff_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])
+    interval = gain_interval(first, last)
     return {"gain": last["mean"] - first["mean"], "ci95": list(interval), "start": first["mean"], "end": last["mean"]}
 
 

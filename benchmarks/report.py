@@ -568,14 +568,14 @@ GROUND_TRUTH_SEEDS = ("policy", "grpo_mjx_seeds_small_4xh100")
 
 def _gain_at(points: list[dict], step: int, policy: str) -> str:
     """The gain of ``policy`` (``greedy``: the point, else its entry) from step 0 to ``step``, with its
-    Newcombe interval, as ``+0.068 [+0.006, +0.129]``."""
-    from benchmarks.bench_policy import diff_interval
+    interval (paired where both points kept their outcomes), as ``+0.068 [+0.006, +0.129]``."""
+    from sword_jax.rl.env_rollout import gain_interval
 
     at = {p["step"]: (p if policy == "greedy" else p.get(policy)) for p in points}
     a, b = at.get(0), at.get(step)
     if a is None or b is None:
         return ""
-    lo, hi = diff_interval(a["successes"], a["episodes"], b["successes"], b["episodes"])
+    lo, hi = gain_interval(a, b)
     return f"{b['mean'] - a['mean']:+.3f} [{lo:+.3f}, {hi:+.3f}]"
 
 
@@ -922,13 +922,16 @@ def grpo_branched_value() -> str:
                    "value held out: Brier / constant's / AUC"], rows)
 
 
-# the open-starts entries and their runs' starts a step (bench_grpo_value --rollout-batch)
-BRANCHED_OPEN = {"policy_grpo_branched_open_small": 64, "policy_grpo_branched_open_b256_small": 256}
+# the open-starts entries and how their runs differ: starts a step (bench_grpo_value --rollout-batch), KL anchor
+BRANCHED_OPEN = {"policy_grpo_branched_open_small": "64 starts x 8",
+                 "policy_grpo_branched_open_b256_small": "256 starts x 8",
+                 "policy_grpo_branched_open_kl_small": "64 starts x 8, KL 0.04 to the start"}
 
 
 def grpo_branched_open() -> str:
     """The same comparison with starts where the value says the outcome is open and centred advantages
-    (``policy_grpo_branched_open_small``, and ``..._open_b256_small`` at 256 starts a step): per run the gains of the
+    (``policy_grpo_branched_open_small``, ``..._open_b256_small`` at 256 starts a step and ``..._open_kl_small``
+    anchored by a KL term): per run the gains of the
     sampled policy with proprio masked and with true proprio and of the greedy policy, what its rollouts were paid,
     its groups with mixed outcomes and the share of the advantages' mass in groups split by real success."""
     def cells(run):
@@ -936,9 +939,9 @@ def grpo_branched_open() -> str:
                 f"{run['mixed_median']:.2f}", f"{run['success_advantage_share']:.2f}"]
 
     results, rows = _load("latest.json"), []
-    for key, starts in BRANCHED_OPEN.items():
+    for key, setting in BRANCHED_OPEN.items():
         if key in results:
-            rows += [[f"{row[0]}, {starts} starts x 8", *row[1:]]
+            rows += [[f"{row[0]}, {setting}", *row[1:]]
                      for row in _branched_rows(results[key], ("success", "shuffled", "value"), cells)]
     return _table(["rollouts (4 decisions from open starts, centred advantages)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",

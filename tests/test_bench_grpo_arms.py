@@ -10,6 +10,7 @@ import pytest
 import configs
 from benchmarks import bench_grpo_arms as arms
 from benchmarks import bench_policy
+from sword_jax.rl.env_rollout import difference_interval
 
 
 def _point(step, successes, episodes=500, sampled=None):
@@ -43,8 +44,8 @@ def test_summary_has_greedy_and_sampled_gains_and_rollout_blocks(tmp_path):
     assert sa["greedy_gain"] == pytest.approx(0.2) and sa["sampled_gain"] == pytest.approx(0.2)
     assert sa["temperature"] == 0.7
     # first vs last point, the project's Newcombe interval of a difference of two proportions
-    assert sa["greedy_gain_ci95"] == [round(x, 4) for x in bench_policy.diff_interval(200, 500, 300, 500)]
-    assert sa["sampled_gain_ci95"] == [round(x, 4) for x in bench_policy.diff_interval(100, 500, 200, 500)]
+    assert sa["greedy_gain_ci95"] == [round(x, 4) for x in difference_interval(200, 500, 300, 500)]
+    assert sa["sampled_gain_ci95"] == [round(x, 4) for x in difference_interval(100, 500, 200, 500)]
     assert sa["rollout_success_per_10_steps"] == [0.1, 0.3]
     assert sa["behaviour_nll_per_10_steps"] == [round(sum(2.0 - 0.01 * i for i in range(10)) / 10, 4),
                                                 round((2.0 - 0.1 + 2.0 - 0.11) / 2, 4)]
@@ -116,7 +117,7 @@ def test_seeds_stage_reports_every_seed_the_repeat_and_records_the_smallest_gain
     assert gains[grpo_dir["s0"]] == pytest.approx(0.2) and gains[grpo_dir["s1"]] == pytest.approx(0.18)
     assert summary["min_gain"] == pytest.approx(0.18) and summary["repeat"]["difference"] == pytest.approx(0.02)
     s1 = summary["per_seed"][grpo_dir["s1"]]
-    assert s1["ci95"] == list(bench_policy.diff_interval(340, 500, 430, 500)) and s1["sampled_curve"] == [[100, 0.6]]
+    assert s1["ci95"] == list(difference_interval(340, 500, 430, 500)) and s1["sampled_curve"] == [[100, 0.6]]
     assert s1["rollouts_per_step"] == 768.0 and s1["seconds_per_grpo_step"] == 20.0
     record = recorded["policy_grpo_ground_truth_gain_small"]
     assert record["value"] == pytest.approx(0.18) and set(record["per_seed"]) == {grpo_dir["s0"], grpo_dir["s1"]}
@@ -141,7 +142,7 @@ def test_seeds_stage_with_the_sampled_policy_deployed(tmp_path, monkeypatch):
     summary = bench_policy.run_seeds(args)
     s0, s1 = summary["per_seed"][dirs["s0"]], summary["per_seed"][dirs["s1"]]
     assert s0["gain"] == pytest.approx(0.28) and s0["greedy"]["gain"] == pytest.approx(-0.01)
-    assert s0["ci95"] == list(bench_policy.diff_interval(250, 500, 390, 500))
+    assert s0["ci95"] == list(difference_interval(250, 500, 390, 500))
     assert s0["best"]["gain"] == pytest.approx(0.08) and (s0["best"]["start_policy"], s0["best"]["end_policy"]) == (
         "greedy", "sampled")
     assert s1["best"]["end_policy"] == "greedy" and s1["best"]["gain"] == pytest.approx(0.086)

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from benchmarks import bench_grpo_transfer as transfer
-from benchmarks import bench_policy
+from sword_jax.rl.env_rollout import difference_interval
 
 
 def _curve(path, points):
@@ -37,7 +37,7 @@ def test_summary_reads_every_arm_and_names_the_missing(tmp_path):
     wm, gt = summary["arms"]["world_model"], summary["arms"]["ground_truth"]
     assert wm["gain"] == pytest.approx(-0.05) and gt["gain"] == pytest.approx(0.2)
     # 0.2 -> 0.4 on 200 episodes each: the project's Newcombe interval of the difference
-    assert gt["gain_ci95"] == list(bench_policy.diff_interval(40, 200, 80, 200))
+    assert gt["gain_ci95"] == list(difference_interval(40, 200, 80, 200))
     assert gt["gain_ci95"][0] < 0.2 < gt["gain_ci95"][1]
     assert wm["trained_mode_gain"] == pytest.approx(-0.05)
     assert wm["replay"][0]["false_success"] == {"rate": 0.1}

@@ -243,6 +243,19 @@ def test_the_masked_evaluation_runs_the_policy_without_proprio(tmp_path):
     point, extra = runner.evaluate(params, step=0, sampled=True, masked=True)
     assert extra["sampled_proprio_masked"]["episodes"] == 4 and "sampled" in extra
     assert kept.shape == (4,)
+    assert len(point["outcomes"]) == len(extra["sampled_proprio_masked"]["outcomes"]) == 4
+
+    keys, run = [], runner.run_episodes  # every evaluation draws the same noise: common random numbers
+
+    def recording(p, *, key, **kwargs):
+        keys.append((kwargs["greedy"], kwargs.get("proprio", True), np.asarray(jax.random.key_data(key)).tolist()))
+        return run(p, key=key, **kwargs)
+
+    runner.run_episodes = recording
+    for step in (0, 7):
+        runner.evaluate(params, step=step, sampled=True, masked=True)
+    assert len(keys) == 6 and keys[:3] == keys[3:]  # greedy, sampled, sampled with proprio masked: as at step 0
+    assert len({str(k[2]) for k in keys[:3]}) == 3  # each policy its own noise
 
 
 def test_env_grpo_trains_in_the_learned_simulators_setting_and_evaluates_in_the_real_one(tmp_path):

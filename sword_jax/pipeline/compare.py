@@ -405,15 +405,15 @@ def gain_of(record: dict) -> float | None:
 
 
 def gain_interval_of(record: dict) -> list[float] | None:
-    """The 95% Newcombe interval of :func:`gain_of` from the success curve's counts, where it has them."""
-    from sword_jax.rl.env_rollout import difference_interval
+    """The 95% interval of :func:`gain_of` from the success curve's counts, where it has them (paired episode by
+    episode where both points kept their outcomes, :func:`~sword_jax.rl.env_rollout.gain_interval`)."""
+    from sword_jax.rl.env_rollout import gain_interval
 
     points = record.get("success_curve") or []
     if len(points) < 2 or not all("successes" in p and "episodes" in p for p in (points[0], points[-1])):
         return None
     first, last = points[0], points[-1]
-    return [round(x, 4) for x in difference_interval(first["successes"], first["episodes"], last["successes"],
-                                                     last["episodes"])]
+    return [round(x, 4) for x in gain_interval(first, last)]
 
 
 def paired_gains(results: dict[str, list[dict]], ours: str, baseline: str,

@@ -208,7 +208,8 @@ def sampled_mixed(point: dict, rl: Any) -> str:
 def extra_point(step: int, what: str, result: dict, *, log: Callable[[str], Any] = log, **tags) -> dict:
     """An evaluation stored beside the greedy true-proprio success: logged, and its rates kept with ``tags``."""
     log(f"eval step {step}, {what}: success {result['mean']:.3f} [{result['ci95'][0]:.3f}, {result['ci95'][1]:.3f}]")
-    return dict(**tags, **{k: result[k] for k in ("mean", "ci95", "per_task", "episodes", "successes")})
+    return dict(**tags, **{k: result[k] for k in ("mean", "ci95", "per_task", "episodes", "successes", "outcomes")
+                           if k in result})
 
 
 def mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *, log: Callable[[str], Any] = log,
@@ -221,9 +222,11 @@ def mode_point(graphdef, params, rl, step: int, proprio: str, reckoning=None, *,
 
 def sampled_point(graphdef, params, rl, step: int, root, *, log: Callable[[str], Any] = log, **eval_kwargs) -> dict:
     """The real-environment evaluation of the sampled policy (``rl.grpo.eval_sampled``: at
-    ``rl.grpo.temperature``, the policy GRPO trains), stored as ``sampled`` beside the greedy success;
-    its sampling key is a function of (root, step)."""
-    key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), step)
+    ``rl.grpo.temperature``, the policy GRPO trains), stored as ``sampled`` beside the greedy success.
+    Every evaluation of a run draws the same sampling noise (step 0's key, a function of ``root``): common random
+    numbers, so the gain between two evaluations pairs each episode's outcomes under the same noise
+    (:func:`~sword_jax.rl.env_rollout.gain_interval`)."""
+    key = jax.random.fold_in(stream_key(root, "grpo/eval_sampled"), 0)
     other = evaluate_in_sim(graphdef, params, rl, greedy=False, key=key, **eval_kwargs)
     return extra_point(step, f"sampled at temperature {rl.grpo.temperature:g}", other,
                        temperature=rl.grpo.temperature, log=log)

@@ -227,10 +227,62 @@ def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float
 
 
 def difference_interval(a: int, n: int, b: int, m: int) -> tuple[float, float]:
-    """95% Newcombe (Wilson-based) interval of the difference of two success rates ``b/m - a/n`` (every
-    GRPO gain in this project is reported with it)."""
+    """95% Newcombe (Wilson-based) interval of the difference of two independent success rates ``b/m - a/n``
+    (a gain between two evaluations of one run that kept their outcomes is paired instead: :func:`gain_interval`)."""
     p1, p2 = a / n, b / m
     l1, u1 = wilson_interval(a, n)
     l2, u2 = wilson_interval(b, m)
     d = p2 - p1
     return (d - math.sqrt((p2 - l2) ** 2 + (u1 - p1) ** 2), d + math.sqrt((u2 - p2) ** 2 + (p1 - l1) ** 2))
+
+
+def paired_difference_interval(before: Any, after: Any, z: float = 1.96) -> tuple[float, float]:
+    """95% interval of ``mean(after) - mean(before)`` for two outcomes of each of the same episodes (``before[i]`` and
+    ``after[i]``: episode ``i`` from the same start, e.g. one policy evaluated before and after training): Newcombe's
+    paired square-and-add interval (Stat. Med. 17:2635, 1998, method 10). Each rate's Wilson interval is combined
+    with the correlation ``phi`` of the outcome pairs, so episodes that succeed or fail under both policies narrow
+    it; with ``phi = 0`` it is :func:`difference_interval`."""
+    x, y = np.asarray(before, bool).ravel(), np.asarray(after, bool).ravel()
+    if x.shape != y.shape or x.size == 0:
+        raise ValueError(f"paired_difference_interval: needs two outcomes of each of the same episodes, got "
+                         f"{x.size} and {y.size}")
+    n = x.size
+    both, only_after = int(np.sum(x & y)), int(np.sum(~x & y))
+    only_before, neither = int(np.sum(x & ~y)), int(np.sum(~x & ~y))
+    p1, p2 = (both + only_after) / n, (both + only_before) / n  # after, before
+    l1, u1 = wilson_interval(both + only_after, n, z)
+    l2, u2 = wilson_interval(both + only_before, n, z)
+    margins = (both + only_after) * (only_before + neither) * (both + only_before) * (only_after + neither)
+    phi = (both * neither - only_after * only_before) / math.sqrt(margins) if margins else 0.0
+    d = p1 - p2
+    low = (p1 - l1) ** 2 - 2 * phi * (p1 - l1) * (u2 - p2) + (u2 - p2) ** 2
+    high = (u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2
+    return (d - math.sqrt(max(low, 0.0)), d + math.sqrt(max(high, 0.0)))
+
+
+def outcomes_text(success: Any) -> str:
+    """Episode outcomes as a string of ``0`` and ``1`` in the episodes' order: how an evaluation point keeps them
+    (``outcomes``), so gains between two points of one run pair them episode by episode."""
+    return "".join("1" if s else "0" for s in np.asarray(success, bool).ravel())
+
+
+def point_outcomes(point: dict) -> np.ndarray | None:
+    """An evaluation point's per-episode outcomes (:func:`outcomes_text`), None where it did not keep them."""
+    text = point.get("outcomes")
+    if text is None:
+        return None
+    if set(text) - {"0", "1"} or len(text) != point.get("episodes", len(text)):
+        raise ValueError(f"an evaluation point's outcomes must be {point.get('episodes')} characters 0 or 1, got "
+                         f"{text[:40]!r}{'...' if len(text) > 40 else ''} ({len(text)} characters)")
+    return np.frombuffer(text.encode(), np.uint8) == ord("1")
+
+
+def gain_interval(first: dict, last: dict) -> tuple[float, float]:
+    """95% interval of the gain ``last - first`` between two evaluation points of one run (dicts with
+    ``successes`` and ``episodes``): paired episode by episode (:func:`paired_difference_interval`) where both kept
+    their outcomes of the same number of episodes (a run evaluates the same starts at every point), else Newcombe's
+    interval for two independent rates (:func:`difference_interval`)."""
+    a, b = point_outcomes(first), point_outcomes(last)
+    if a is not None and b is not None and a.size == b.size:
+        return paired_difference_interval(a, b)
+    return difference_interval(first["successes"], first["episodes"], last["successes"], last["episodes"])

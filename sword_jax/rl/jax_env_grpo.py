@@ -311,7 +311,9 @@ class EnvGRPO:
         """Greedy (ensembled when ``rl.env.action_ensemble``) success on the evaluation episodes, with the
         sampled policy's and the probe's figures beside it: ``(point, extra)``. ``masked``: also the sampled
         policy reading its "missing proprio" input (``sampled_proprio_masked``), the mode GRPO in a learned
-        simulator trains. Needs :meth:`start_probe`."""
+        simulator trains. Every evaluation runs the same starts with the same sampling noise (each policy's key is
+        step 0's): common random numbers, so the gain between two evaluations pairs each episode's outcomes
+        (:func:`~sword_jax.rl.env_rollout.gain_interval`). Needs :meth:`start_probe`."""
         if self.probe is None:
             raise RuntimeError("EnvGRPO.evaluate: call start_probe(initial_params, directory) first")
         t0 = time.perf_counter()
@@ -322,13 +324,13 @@ class EnvGRPO:
         if sampled:
             t1 = time.perf_counter()
             s_success, _ = self.run_episodes(params, greedy=False, ensemble=False,
-                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 20), step))
+                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 20), 0))
             extra["sampled"] = dict(self.summarize(s_success, time.perf_counter() - t1),
                                     temperature=self.rl.grpo.temperature)
         if masked:
             t1 = time.perf_counter()
             m_success, _ = self.run_episodes(params, greedy=False, ensemble=False, proprio=False,
-                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 21), step))
+                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 21), 0))
             extra["sampled_proprio_masked"] = dict(self.summarize(m_success, time.perf_counter() - t1),
                                                    temperature=self.rl.grpo.temperature)
         tokens, margin = self.probe_tokens(params)

@@ -24,7 +24,7 @@ from flax import nnx
 
 from sword_jax.atomic_write import write_json_atomic
 from sword_jax.rl.config import RLConfig
-from sword_jax.rl.env_rollout import make_act_fns, run_policy, wilson_interval
+from sword_jax.rl.env_rollout import make_act_fns, outcomes_text, run_policy, wilson_interval
 
 
 def evaluate_in_sim(
@@ -88,14 +88,16 @@ def evaluate_in_sim(
 
 
 def success_summary(success: np.ndarray, task_of: Sequence[int], seconds: float) -> dict[str, Any]:
-    """``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds"}`` of episode
-    outcomes ``success [E]`` whose tasks are ``task_of [E]`` (tasks in first-seen order, 95% Wilson interval)."""
+    """``{"per_task": {task: rate}, "mean", "episodes", "successes", "ci95": [lo, hi], "seconds", "outcomes"}`` of
+    episode outcomes ``success [E]`` whose tasks are ``task_of [E]`` (tasks in first-seen order, 95% Wilson interval;
+    ``outcomes``: each episode's, :func:`~sword_jax.rl.env_rollout.outcomes_text`, which pairs the gains between
+    two evaluations of one run, :func:`~sword_jax.rl.env_rollout.gain_interval`)."""
     success, task_of = np.asarray(success, bool), np.asarray(task_of)
     tasks = dict.fromkeys(int(t) for t in task_of)
     wins = int(success.sum())
     return {"per_task": {str(t): float(np.mean(success[task_of == t])) for t in tasks}, "mean": float(np.mean(success)),
             "episodes": int(success.size), "successes": wins, "ci95": list(wilson_interval(wins, int(success.size))),
-            "seconds": round(seconds, 1)}
+            "seconds": round(seconds, 1), "outcomes": outcomes_text(success)}
 
 
 class SuccessCurve:
