@@ -707,3 +707,117 @@ def test_a_bad_gpu_list_is_refused(gpus, tmp_path):
 
     with pytest.raises(UsageError, match="--gpus takes comma-separated GPUs"):
         compare.main(["--size", "tiny", "--gpus", gpus, f"--out={tmp_path}"])
+
+
+class _Stoppable:
+    """A launched slice that runs until it is sent a signal, then exits ``code`` (75: stopped on request)."""
+
+    def __init__(self, code: int = 75):
+        self.code, self.signals = code, []
+
+    def poll(self):
+        return self.code if self.signals else None
+
+    def send_signal(self, sig):
+        self.signals.append(sig)
+
+
+def _slice_args(tmp_path, at_once=2, no_share=True):
+    import argparse
+
+    return argparse.Namespace(out=str(tmp_path), slices_at_once=at_once, no_share=no_share, shared_seed=0, gpus=[],
+                              size="tiny", no_policy=False, parallel=0, no_evaluate=True)
+
+
+def test_a_stop_request_is_passed_to_the_running_slices_and_starts_no_more(tmp_path):
+    """SIGUSR1 at the parent (its stop request): each running slice is sent the signal once, no pending slice
+    starts, and once the slices have exited 75 StopRequested names them and the ones not started."""
+    from sword_jax import cli
+    from sword_jax.pipeline import slices
+
+    procs = []
+
+    def launch(argv, log_path, env):
+        procs.append(_Stoppable())
+        if len(procs) == 2:  # the request arrives while both slices run
+            cli.request_stop()
+        return procs[-1]
+
+    try:
+        with pytest.raises(cli.StopRequested, match=r"stopped on request: sword seed 0, sword seed 1; not started: "
+                                                    r"sword seed 2; the same command resumes"):
+            slices.run_slices_side_by_side(["--size", "tiny"], ["sword"], [0, 1, 2], _slice_args(tmp_path), [],
+                                           build=None, launch=launch, poll_s=0.0)
+    finally:
+        cli.clear_stop_request()
+    assert len(procs) == 2 and all(p.signals == [cli.STOP_SIGNAL] for p in procs)
+
+
+def test_a_shared_build_that_stops_counts_as_stopped_and_a_failure_still_fails(tmp_path):
+    from sword_jax import cli
+    from sword_jax.pipeline import slices
+
+    launched, built = [], []
+
+    def build(run, size, **kwargs):
+        built.append(run)
+        if run == "wovr":
+            raise cli.StopRequested("GRPO: stopped on request after step 3")
+
+    def launch(argv, log_path, env):
+        launched.append(argv[argv.index("--runs") + 1])
+        return _Stoppable()
+
+    try:
+        with pytest.raises(cli.StopRequested, match=r"stopped on request: shared stages of wovr at seed 0, sword "
+                                                    r"seed 0; not started: wovr seed 0"):
+            slices.run_slices_side_by_side(["--size", "tiny"], ["sword", "wovr"], [0],
+                                           _slice_args(tmp_path, no_share=False), [], build=build, launch=launch,
+                                           poll_s=0.0)
+    finally:
+        cli.clear_stop_request()
+    assert built == ["sword", "wovr"] and launched == ["sword"]
+
+    procs = []  # the request arrives while two slices run; one then fails, the other stops: the failure is raised
+
+    def launch_both(argv, log_path, env):
+        procs.append(_Stoppable(1 if not procs else 75))
+        if len(procs) == 2:
+            cli.request_stop()
+        return procs[-1]
+
+    try:
+        with pytest.raises(RuntimeError, match=r"slices failed: sword seed 0 \(.*\); stopped on request: sword seed 1; "
+                                               r"not started: sword seed 2"):
+            slices.run_slices_side_by_side(["--size", "tiny"], ["sword"], [0, 1, 2], _slice_args(tmp_path), [],
+                                           build=None, launch=launch_both, poll_s=0.0)
+    finally:
+        cli.clear_stop_request()
+
+
+def test_compare_reports_a_stop_in_a_shared_build_as_a_stop(tmp_path, monkeypatch):
+    """train.compare --slices-at-once: a shared build stopped on request ends the command with StopRequested
+    (cli.run: exit 75, the same command resumes), not as a failed build."""
+    from sim import pipeline_stages
+    from sword_jax import cli
+
+    launched = []
+
+    def build(run, size, **kwargs):
+        if run == "wovr":
+            raise cli.StopRequested("GRPO: stopped on request after step 3")
+
+    def launch(argv, log_path, env):
+        launched.append(argv[argv.index("--runs") + 1])
+        return _Exited(cli.STOPPED_EXIT)  # the signal reached the running slice too
+
+    monkeypatch.setattr(pipeline_stages, "STAGES", _fake_stages([]))
+    monkeypatch.setattr(compare, "build_shared", build)
+    monkeypatch.setattr(compare, "launch_slice", launch)
+    try:
+        with pytest.raises(cli.StopRequested, match="shared stages of wovr at seed 1.*not started: wovr seed 1"):
+            compare.main(["--size", "tiny", "--runs", "sword,wovr", "--seeds", "1", "--no-evaluate", "--shared-seed",
+                          "slice", "--slices-at-once", "2", f"--results={tmp_path / 'r'}", f"--out={tmp_path / 'o'}"])
+    finally:
+        cli.clear_stop_request()
+    assert launched == ["sword"]

@@ -51,7 +51,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from sword_jax.cli import ArgumentParser, UsageError, not_dotted_overrides
+from sword_jax.cli import ArgumentParser, StopRequested, UsageError, not_dotted_overrides
 from sword_jax.pipeline.compare import (GROUND_TRUTH, GROUND_TRUTH_STAGES, SHAREABLE, SLICE_FORMAT, adopt_stages,
                                         finish, load_slices, merge, runs_for)
 from sword_jax.pipeline import launch as launcher
@@ -265,7 +265,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.slices_at_once > 1 and len(seeds) * len(runs) > 1:
         try:
             run_slices_side_by_side(argv, runs, seeds, args, overrides, build=build_shared, launch=launch_slice)
-        except RuntimeError:
+        except (RuntimeError, StopRequested):
             if load_slices(results_dir):  # the slices that finished still make a table
                 merge(results_dir, allow_mismatch=True)
             raise

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from sword_jax import cli
 from sword_jax.cli import UsageError
 from sword_jax.pipeline.compare import COMPARISONS, GROUND_TRUTH, runs_for
 from sword_jax.pipeline.stages import without_flags
@@ -137,6 +138,12 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     adopt them. A failed slice or shared build starts no new slices; the running ones finish; then
     ``RuntimeError`` names what failed and the logs (a rerun skips every finished stage).
 
+    A stop request (:func:`sword_jax.cli.request_stop`, ``SIGUSR1`` under ``cli.run``) is passed on to every
+    running slice (each checkpoints its step in flight and exits ``cli.STOPPED_EXIT``); no slice or build starts
+    after it, and once the running slices have ended :class:`~sword_jax.cli.StopRequested` names the slices stopped
+    and those not started (the same command resumes them). A shared build that itself stops on the request counts
+    as stopped, not failed. Slices that failed still raise ``RuntimeError``, which names the stop as well.
+
     With ``args.gpus`` (``--gpus 0,1,2,3``) each slice runs on one GPU of the list
     (``CUDA_VISIBLE_DEVICES``), the one fewest running slices hold, so ``--slices-at-once`` equal to the
     number of GPUs puts one slice on each; the parent's shared stages see the GPUs it was started with.
@@ -162,12 +169,24 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     pending = [(run, seed) for seed in seeds for run in runs]
     running: dict[tuple[str, int], tuple] = {}
     failed: list[str] = []
+    stopped: list[str] = []
+    forwarded = False  # the stop request passed on to the running slices
 
     def ready(run: str, seed: int) -> bool:
         return args.no_share or (shared_seed_of(args.shared_seed, seed), run) in built
 
-    while pending or running or (builds and not failed):
-        while pending and not failed and len(running) < args.slices_at_once and ready(*pending[0]):
+    def halted() -> bool:
+        return bool(failed or stopped or cli.stop_requested())
+
+    while pending or running or (builds and not halted()):
+        if (cli.stop_requested() or stopped) and not forwarded:
+            forwarded = True
+            for proc, *_ in running.values():
+                if proc.poll() is None:
+                    proc.send_signal(cli.STOP_SIGNAL)
+            print(f"[compare] stop requested: asked {len(running)} running slice(s) to stop; no more slices start",
+                  flush=True)
+        while pending and not halted() and len(running) < args.slices_at_once and ready(*pending[0]):
             run, seed = pending.pop(0)
             log_path = os.path.join(logs, f"{run}_seed{seed}.log")
             gpu = None
@@ -179,12 +198,14 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
             running[(run, seed)] = (proc, log_path, time.perf_counter(), gpu)
             print(f"[compare] slice {run} seed {seed}: started{'' if gpu is None else f' on GPU {gpu}'} "
                   f"(log {log_path})", flush=True)
-        if builds and not failed:
+        if builds and not halted():
             shared_seed, run = builds.pop(0)
             try:
                 build(run, args.size, out=args.out, shared_seed=shared_seed, overrides=overrides,
                       policy=not args.no_policy, parallel=args.parallel, evaluate=not args.no_evaluate)
                 built.add((shared_seed, run))
+            except cli.StopRequested:  # checkpointed; passed on to the running slices at the loop's top
+                stopped.append(f"shared stages of {run} at seed {shared_seed}")
             except Exception as error:  # the running slices still finish and are merged
                 failed.append(f"shared stages of {run} at seed {shared_seed} ({type(error).__name__}: {error})")
             continue
@@ -196,11 +217,19 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
             if code is None:
                 continue
             del running[key]
-            status = "done" if code == 0 else f"FAILED (exit {code}, see {log_path})"
+            status = {0: "done", cli.STOPPED_EXIT: "stopped on request (resumes)"}.get(
+                code, f"FAILED (exit {code}, see {log_path})")
             print(f"[compare] slice {key[0]} seed {key[1]}: {status} after {time.perf_counter() - start:.0f} s",
                   flush=True)
-            if code != 0:
+            if code == cli.STOPPED_EXIT:
+                stopped.append(f"{key[0]} seed {key[1]}")
+            elif code != 0:
                 failed.append(f"{key[0]} seed {key[1]} ({log_path})")
+    not_started = ", ".join(f"{r} seed {k}" for r, k in pending) or "none"
     if failed:
         raise RuntimeError(f"train.compare: slices failed: {'; '.join(failed)}; "
-                           f"not started: {', '.join(f'{r} seed {k}' for r, k in pending) or 'none'}")
+                           + (f"stopped on request: {', '.join(stopped)}; " if stopped else "")
+                           + f"not started: {not_started}")
+    if stopped or (cli.stop_requested() and pending):
+        raise cli.StopRequested(f"train.compare: stopped on request: {', '.join(stopped) or 'no slice running'}; "
+                                f"not started: {not_started}; the same command resumes")
