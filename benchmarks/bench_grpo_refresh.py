@@ -398,11 +398,19 @@ def wait_until_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, s
 
 
 def gain_between(points: list[dict], key: str | None) -> dict:
-    """Gain of the greedy (``key`` None) or sampled success from the first evaluation to the last."""
+    """Gain of the greedy (``key`` None) or sampled success from the first evaluation to the last; where both kept
+    their episodes' outcomes, ``paired`` says how many episodes gained and lost success between them (the
+    interval is then paired, :func:`sword_jax.rl.env_rollout.gain_interval`)."""
+    from sword_jax.rl.env_rollout import outcome_changes
+
     a, b = points[0], points[-1]
     if key is not None:
         a, b = a[key], b[key]
-    return {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
+    out = {"start": a["mean"], "end": b["mean"], "gain": b["mean"] - a["mean"], "ci95": gain_interval(a, b)}
+    changes = outcome_changes(a, b)
+    if changes is not None:
+        out["paired"] = changes
+    return out
 
 
 def pending_evaluation(grpo: str, last_step: int) -> dict | None:

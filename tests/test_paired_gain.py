@@ -110,3 +110,27 @@ def test_every_sampled_evaluation_of_a_run_draws_the_same_noise(monkeypatch):
     np.testing.assert_array_equal(keys[0], keys[1])
     np.testing.assert_array_equal(keys[0], keys[2])
     assert not np.array_equal(keys[1], keys[3])
+
+
+def test_a_summarised_gain_says_how_the_episodes_moved(capsys):
+    """bench_grpo_refresh.gain_between (every GRPO launcher's summary): with outcomes, the paired interval and the
+    episodes that gained and lost success; without, the unpaired interval and no ``paired``; and the line
+    bench_grpo_value prints names them."""
+    from benchmarks import bench_grpo_value
+    from benchmarks.bench_grpo_refresh import gain_between
+    from sword_jax.rl.env_rollout import outcome_changes
+
+    tasks = [0] * 8
+    start = success_summary(np.array([1, 1, 0, 0, 0, 0, 1, 0], bool), tasks, 0.0)
+    end = success_summary(np.array([1, 0, 1, 1, 0, 0, 1, 1], bool), tasks, 0.0)
+    assert outcome_changes(start, end) == {"gained": 3, "lost": 1, "episodes": 8}
+    points = [dict(start, step=0, sampled=start), dict(end, step=30, sampled=end)]
+    gain = gain_between(points, "sampled")
+    assert gain["paired"] == {"gained": 3, "lost": 1, "episodes": 8} and gain["gain"] == pytest.approx(0.25)
+    assert gain["ci95"] == pytest.approx(list(paired_difference_interval(point_outcomes(start), point_outcomes(end))))
+    bare = [{k: v for k, v in p.items() if k != "outcomes"} for p in points]
+    assert "paired" not in gain_between(bare, None) and outcome_changes(bare[0], bare[1]) is None
+    run = {"steps": 30, "sampled": gain}
+    bench_grpo_value.print_runs({"runs": {"success_s0": run}})
+    line = capsys.readouterr().out
+    assert "sampled 0.375 -> 0.625 (+0.250 [" in line and ", paired: 3 episodes gained, 1 lost)" in line

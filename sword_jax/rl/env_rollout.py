@@ -277,6 +277,16 @@ def point_outcomes(point: dict) -> np.ndarray | None:
     return np.frombuffer(text.encode(), np.uint8) == ord("1")
 
 
+def outcome_changes(first: dict, last: dict) -> dict | None:
+    """How the episodes' outcomes moved between two evaluation points of one run that both kept them:
+    ``{"gained": failed then succeeded, "lost": succeeded then failed, "episodes"}``; None where they cannot be
+    paired (as :func:`gain_interval` decides)."""
+    a, b = point_outcomes(first), point_outcomes(last)
+    if a is None or b is None or a.size != b.size:
+        return None
+    return {"gained": int(np.sum(~a & b)), "lost": int(np.sum(a & ~b)), "episodes": int(a.size)}
+
+
 def gain_interval(first: dict, last: dict) -> tuple[float, float]:
     """95% interval of the gain ``last - first`` between two evaluation points of one run (dicts with
     ``successes`` and ``episodes``): paired episode by episode (:func:`paired_difference_interval`) where both kept
