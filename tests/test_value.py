@@ -312,3 +312,38 @@ def test_env_grpo_anchored_by_kl_measures_its_distance_from_the_starting_policy(
     free, free_kls = run(0.0)
     assert free.ref_params is None and free_kls == [0.0, 0.0, 0.0]
     assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(anchored.params), jax.tree.leaves(free.params)))
+
+
+def test_evaluations_and_value_episodes_roll_out_no_surplus_of_a_large_training_batch():
+    """A training batch (rollout_batch x group_size trajectories) larger than what is asked for: the evaluation
+    runs its E episodes as one slice of E (not a batch padded by repeats), and the value's episodes roll out only
+    the groups they need; every episode's outcome lands in its own place."""
+    rl = _rl(episodes=5, steps=5, batch_size=8, width=4)
+    rl = dataclasses.replace(rl, grpo=dataclasses.replace(rl.grpo, rollout_batch=4, group_size=4))
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+    starts = np.array([[0.6], [-0.6], [0.6], [-0.6]], np.float32)  # two past the goal whatever they do, two too far
+    runner = EnvGRPO(graphdef, rl, SnapshotSlideEnv(), max_steps=4, starts_at=lambda s, r: (starts, tokens),
+                     eval_starts=starts[:3], eval_tokens=tokens[:3], eval_tasks=[0, 1, 0], key=jax.random.key(0),
+                     train_max_steps=4, train_execute_steps=4)
+    assert runner.batch == 16
+    shapes, rollout = [], runner.rollout
+
+    def recording(params, starts, *args):
+        shapes.append(starts.shape[0])
+        return rollout(params, starts, *args)
+
+    runner.rollout = recording
+    success, first = runner.run_episodes(params, greedy=True, ensemble=False, key=jax.random.key(0))
+    assert shapes == [3] and success.shape == (3,) and np.asarray(first["valid"]).shape[0] == 3
+    assert success.tolist() == [True, False, True]  # each episode's outcome in its own place
+
+    traced, impl = [], runner._rollout_impl
+
+    def tracing(params, starts, *args, **kwargs):
+        traced.append(starts.shape[0])
+        return impl(params, starts, *args, **kwargs)
+
+    runner._rollout_impl = tracing
+    data = runner.value_episodes(params, 5, max_steps=4, key=jax.random.key(0), starts_at=lambda r: (starts, tokens))
+    assert traced == [8] and len(np.unique(data.episode)) == 5  # two groups of 4 rolled out, 5 episodes kept

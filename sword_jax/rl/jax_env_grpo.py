@@ -175,8 +175,8 @@ class EnvGRPO:
     def value_episodes(self, params: Any, episodes: int, *, max_steps: int, key: jax.Array,
                        starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> ValueData:
         """``episodes`` real episodes of the policy ``params`` for fitting the value: round ``r = 0, 1, ...`` starts
-        ``group_size`` episodes at each of ``starts_at(r)``'s states, sampled and executed as the training rollouts
-        are, each run up to ``max_steps`` actions; every decision labelled with its episode's outcome
+        ``group_size`` episodes at each of ``starts_at(r)``'s states (only as many of them as the episodes still
+        wanted need), sampled and executed as the training rollouts are, each run up to ``max_steps`` actions; every decision labelled with its episode's outcome
         (:func:`~sword_jax.rl.value.decision_samples`), with the environment's snapshot there where it has one (the
         start states of branched rollouts)."""
         if episodes < 1:
@@ -187,9 +187,11 @@ class EnvGRPO:
         parts, have, r = [], 0, 0
         while have < episodes:
             starts, tokens = starts_at(r)
-            starts, tokens = np.repeat(np.asarray(starts), g, axis=0), np.repeat(np.asarray(tokens), g, axis=0)
+            need = -(-(episodes - have) // g)  # groups still wanted: a large rollout batch rolls out no surplus
+            starts, tokens = np.asarray(starts)[:need], np.asarray(tokens)[:need]
+            starts, tokens = np.repeat(starts, g, axis=0), np.repeat(tokens, g, axis=0)
             out, stats = rollout(params, jnp.asarray(starts), jnp.asarray(tokens), jax.random.fold_in(key, r), False,
-                                 False, self._valid(float(self.train_proprio)))
+                                 False, self._valid(float(self.train_proprio), starts.shape[0]))
             take = min(episodes - have, starts.shape[0])
             parts.append(decision_samples(np.asarray(out.obs_frames)[:take], np.asarray(out.valid)[:take],
                                           tokens[:take], np.asarray(out.success)[:take],
@@ -244,21 +246,24 @@ class EnvGRPO:
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 
     # ---- evaluation -----------------------------------------------------------------------------------
-    def _valid(self, value: float) -> jax.Array:
-        return jnp.full((self.batch,), value, jnp.float32)
+    def _valid(self, value: float, size: int | None = None) -> jax.Array:
+        return jnp.full((self.batch if size is None else size,), value, jnp.float32)
 
     def run_episodes(self, params: Any, *, greedy: bool, ensemble: bool, key: jax.Array,
                      slices: int | None = None, proprio: bool = True) -> tuple[np.ndarray, dict]:
-        """The evaluation episodes, in slices of the rollout's batch (the last padded by repeating
-        episodes; ``slices``: only the first this-many): ``(success [E] bool, what the first slice recorded)``."""
+        """The evaluation episodes, in slices of the rollout's batch or of all ``E`` episodes where they are fewer
+        (the last slice padded by repeating episodes; ``slices``: only the first this-many): ``(success [E] bool,
+        what the first slice recorded)``. A training batch larger than the evaluation runs no padding: 500
+        episodes cost 500 trajectories, not a 2,048-trajectory batch."""
         e = len(self.eval_starts)
+        size = min(self.batch, e)
         success = np.zeros(e, bool)
         first = None
-        for lo in list(range(0, e, self.batch))[:slices]:
-            idx = np.arange(lo, lo + self.batch) % e
+        for lo in list(range(0, e, size))[:slices]:
+            idx = np.arange(lo, lo + size) % e
             rollout, _ = self.rollout(params, jnp.asarray(self.eval_starts[idx]), jnp.asarray(self.eval_tokens[idx]),
-                                      jax.random.fold_in(key, lo), greedy, ensemble, self._valid(float(proprio)))
-            hi = min(lo + self.batch, e)
+                                      jax.random.fold_in(key, lo), greedy, ensemble, self._valid(float(proprio), size))
+            hi = min(lo + size, e)
             success[lo:hi] = np.asarray(rollout.success)[: hi - lo]
             if first is None:
                 first = {"obs": rollout.obs_frames, "proprio": rollout.proprio, "valid": rollout.valid,
