@@ -231,11 +231,10 @@ def print_runs(summary: dict) -> None:
         for key in MODES:
             g = r.get(key)
             if g:
-                paired = g.get("paired")
+                p = g.get("paired")
+                moved = f", paired: {p['gained']} episodes gained, {p['lost']} lost" if p else ""
                 parts.append(f"{key} {g['start']:.3f} -> {g['end']:.3f} ({g['gain']:+.3f} "
-                             f"[{g['ci95'][0]:+.3f}, {g['ci95'][1]:+.3f}]"
-                             + (f", paired: {paired['gained']} episodes gained, {paired['lost']} lost" if paired else "")
-                             + ")")
+                             f"[{g['ci95'][0]:+.3f}, {g['ci95'][1]:+.3f}]{moved})")
         if r.get("paid_success"):
             parts.append(f"paid success {r['paid_success']['first']:.3f} -> {r['paid_success']['last']:.3f}")
         if r.get("mixed_median") is not None:

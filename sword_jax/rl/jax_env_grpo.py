@@ -176,9 +176,9 @@ class EnvGRPO:
                        starts_at: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> ValueData:
         """``episodes`` real episodes of the policy ``params`` for fitting the value: round ``r = 0, 1, ...`` starts
         ``group_size`` episodes at each of ``starts_at(r)``'s states (only as many of them as the episodes still
-        wanted need), sampled and executed as the training rollouts are, each run up to ``max_steps`` actions; every decision labelled with its episode's outcome
-        (:func:`~sword_jax.rl.value.decision_samples`), with the environment's snapshot there where it has one (the
-        start states of branched rollouts)."""
+        wanted need), sampled and executed as the training rollouts are, each run up to ``max_steps`` actions;
+        every decision labelled with its episode's outcome (:func:`~sword_jax.rl.value.decision_samples`), with the
+        environment's snapshot there where it has one (the start states of branched rollouts)."""
         if episodes < 1:
             raise ValueError(f"EnvGRPO.value_episodes: episodes must be >= 1, got {episodes}")
         g, record = self.rl.grpo.group_size, hasattr(self.env, "snapshot")
