@@ -57,6 +57,27 @@ def compare_repeats(outcomes: Sequence[np.ndarray]) -> dict:
             "differing_share": [d / first.size for d in differing], "gained": gained, "lost": lost}
 
 
+def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
+                       log=lambda line: print(line, flush=True)) -> tuple[dict, list[float]]:
+    """``repeats`` calls of ``runner.evaluate(params, step=0, ...)`` (an :class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`
+    whose probe is started), every one with the same arguments: ``({policy: compare_repeats(...)}, seconds of each
+    repeat)``, for the greedy and sampled policies and, with ``masked``, the sampled one reading proprio masked."""
+    outcomes: dict[str, list[np.ndarray]] = {p: [] for p in POLICIES}
+    seconds = []
+    for repeat in range(repeats):
+        start = time.perf_counter()
+        point, extra = runner.evaluate(params, step=0, sampled=True, masked=masked)
+        seconds.append(round(time.perf_counter() - start, 1))
+        for policy in POLICIES:
+            figures = point if policy == "greedy" else extra.get(policy)
+            if figures is not None:
+                outcomes[policy].append(np.frombuffer(figures["outcomes"].encode(), np.uint8) == ord("1"))
+        log(f"[eval-repeat] repeat {repeat}: greedy {point['mean']:.3f}, sampled {extra['sampled']['mean']:.3f}"
+            + (f", proprio masked {extra['sampled_proprio_masked']['mean']:.3f}" if masked else "")
+            + f" ({seconds[-1]} s)")
+    return {p: compare_repeats(o) for p, o in outcomes.items() if o}, seconds
+
+
 def parse(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser = cli.ArgumentParser(description=__doc__.splitlines()[0],
                                 epilog="Other --rl.section.key=value arguments are config overrides.")
@@ -111,24 +132,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
                      eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
     os.makedirs(args.out, exist_ok=True)
     runner.start_probe(params, os.path.join(args.out, "probe"))
-    masked = rl.env.proprio == "missing"
-    outcomes: dict[str, list[np.ndarray]] = {p: [] for p in POLICIES}
-    seconds = []
-    for repeat in range(args.repeats):
-        start = time.perf_counter()
-        point, extra = runner.evaluate(params, step=0, sampled=True, masked=masked)
-        seconds.append(round(time.perf_counter() - start, 1))
-        for policy in POLICIES:
-            figures = point if policy == "greedy" else extra.get(policy)
-            if figures is not None:
-                outcomes[policy].append(np.frombuffer(figures["outcomes"].encode(), np.uint8) == ord("1"))
-        print(f"[eval-repeat] repeat {repeat}: greedy {point['mean']:.3f}, sampled {extra['sampled']['mean']:.3f}"
-              + (f", proprio masked {extra['sampled_proprio_masked']['mean']:.3f}" if masked else "")
-              + f" ({seconds[-1]} s)", flush=True)
+    comparison, seconds = repeat_evaluations(runner, params, args.repeats, masked=rl.env.proprio == "missing")
     result = {"policy": args.policy, "config": cfg.name, "overrides": overrides, "device": common.device_name(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""), "deterministic": args.deterministic,
               "rollout_batch": rl.grpo.rollout_batch * rl.grpo.group_size, "seconds": seconds,
-              "policies": {p: compare_repeats(o) for p, o in outcomes.items() if o}}
+              "policies": comparison}
     for policy, c in result["policies"].items():
         print(f"[eval-repeat] {policy}: success {', '.join(f'{s:.3f}' for s in c['success'])}; episodes differing "
               f"from the first repeat {', '.join(str(d) for d in c['differing'])} of {c['episodes']}", flush=True)
