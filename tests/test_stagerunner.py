@@ -133,3 +133,48 @@ def test_parallel_refuses_bad_arguments(tmp_path):
         pipeline.main([f"--workdir={tmp_path}", "--parallel", "-1"])
     with pytest.raises(UsageError, match="--only: unknown stage"):
         pipeline.main([f"--workdir={tmp_path}", "--only", "vea"])
+
+
+# A stage that checkpoints and exits 75 when asked to stop (SIGUSR1), as one under cli.run does; it marks itself
+# ready once its handler is installed.
+STOPPABLE_STAGE = """
+import signal, sys, time
+signal.signal(signal.SIGUSR1, lambda *_: sys.exit(75))
+open(sys.argv[1], "w").close()
+time.sleep(60)
+"""
+
+
+def test_parallel_stages_are_asked_to_stop_and_the_run_ends_as_stopped(tmp_path):
+    """A stop request (SIGUSR1 at train.pipeline --parallel) is passed on to the running stages, which exit 75;
+    no more stages start, and StopRequested names the stopped stages and those not started."""
+    import threading
+
+    from sword_jax import cli
+
+    ctx = Context(cfg=None, workdir=str(tmp_path))
+    quick, _ = _launcher(ctx, {"a": 0.1})
+    ready = {name: tmp_path / f"{name}.ready" for name in "bc"}
+
+    def launch(stage):
+        if stage.name in ready:
+            return subprocess.Popen([sys.executable, "-c", STOPPABLE_STAGE, str(ready[stage.name])])
+        return quick(stage)
+
+    def ask_once_both_run():
+        while not all(p.exists() for p in ready.values()):
+            threading.Event().wait(0.02)
+        cli.request_stop()
+
+    asker = threading.Thread(target=ask_once_both_run, daemon=True)
+    asker.start()
+    lines = []
+    try:
+        with pytest.raises(cli.StopRequested, match=r"stopped on request: (b, c|c, b); not started: d; the same "
+                                                    r"command resumes"):
+            stagerunner.run_stages_parallel(_stages(DIAMOND), ctx, launch, max_running=2, poll_s=0.05,
+                                            log=lines.append)
+    finally:
+        cli.clear_stop_request()
+    assert any("asked 2 running stage(s) to stop" in line for line in lines)
+    assert (tmp_path / "stages" / "a.json").exists() and not (tmp_path / "stages" / "d.json").exists()

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from configs.cli import to_dict
+from sword_jax import cli
 from sword_jax.atomic_write import write_json_atomic
 
 
@@ -144,6 +145,11 @@ def run_stages_parallel(stages: list[Stage], ctx: Context, launch: Callable[[Sta
     process exits 0 and its marker exists. When one fails, no new stage starts; those running are
     waited for (what they finish is kept, as with any finished stage) and then ``RuntimeError``
     names the failed stages. Results do not depend on the schedule: a stage reads only its needs.
+
+    A stop request (:func:`sword_jax.cli.request_stop`, ``SIGUSR1`` under ``cli.run``) is passed on once to every
+    running stage (each checkpoints its step in flight and exits ``cli.STOPPED_EXIT``) and starts no more; once they
+    have ended, :class:`~sword_jax.cli.StopRequested` names the stages stopped and those not started (the same
+    command resumes them). Failed stages still raise ``RuntimeError``, which names the stopped ones as well.
     """
     if max_running < 1:
         raise ValueError(f"max_running must be >= 1, got {max_running}")
@@ -157,9 +163,17 @@ def run_stages_parallel(stages: list[Stage], ctx: Context, launch: Callable[[Sta
             pending.append(stage)
     running: dict[str, tuple[subprocess.Popen, float]] = {}
     failed: list[str] = []
+    stopped: list[str] = []
+    forwarded = False  # the stop request passed on to the running stages
     while pending or running:
+        if (cli.stop_requested() or stopped) and not forwarded:
+            forwarded = True
+            for proc, _ in running.values():
+                if proc.poll() is None:
+                    proc.send_signal(cli.STOP_SIGNAL)
+            log(f"stop requested: asked {len(running)} running stage(s) to stop; no more stages start")
         for stage in list(pending):
-            if failed or len(running) >= max_running:
+            if failed or stopped or cli.stop_requested() or len(running) >= max_running:
                 break
             if all(need not in index or need in ctx.results for need in stage.needs):
                 pending.remove(stage)
@@ -175,12 +189,20 @@ def run_stages_parallel(stages: list[Stage], ctx: Context, launch: Callable[[Sta
             del running[name]
             if code == 0 and _load_finished(ctx, name):
                 log(f"[{index[name] + 1}/{len(stages)}] {name}: finished in {time.perf_counter() - start:.1f} s")
+            elif code == cli.STOPPED_EXIT:
+                stopped.append(name)
+                log(f"[{index[name] + 1}/{len(stages)}] {name}: stopped on request (resumes)")
             else:
                 failed.append(name)
                 log(f"[{index[name] + 1}/{len(stages)}] {name}: FAILED (exit code {code})")
+    left = [s.name for s in pending]
     if failed:
-        left = [s.name for s in pending]
-        raise RuntimeError(f"stage(s) {', '.join(failed)} failed" + (f"; not started: {', '.join(left)}" if left else ""))
+        raise RuntimeError(f"stage(s) {', '.join(failed)} failed"
+                           + (f"; stopped on request: {', '.join(stopped)}" if stopped else "")
+                           + (f"; not started: {', '.join(left)}" if left else ""))
+    if stopped or (cli.stop_requested() and left):
+        raise cli.StopRequested(f"stopped on request: {', '.join(stopped) or 'no stage running'}"
+                                + (f"; not started: {', '.join(left)}" if left else "") + "; the same command resumes")
     return ctx.results
 
 
