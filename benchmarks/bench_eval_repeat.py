@@ -62,6 +62,8 @@ def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
     """``repeats`` calls of ``runner.evaluate(params, step=0, ...)`` (an :class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`
     whose probe is started), every one with the same arguments: ``({policy: compare_repeats(...)}, seconds of each
     repeat)``, for the greedy and sampled policies and, with ``masked``, the sampled one reading proprio masked."""
+    from sword_jax.rl.env_rollout import point_outcomes
+
     outcomes: dict[str, list[np.ndarray]] = {p: [] for p in POLICIES}
     seconds = []
     for repeat in range(repeats):
@@ -71,7 +73,7 @@ def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
         for policy in POLICIES:
             figures = point if policy == "greedy" else extra.get(policy)
             if figures is not None:
-                outcomes[policy].append(np.frombuffer(figures["outcomes"].encode(), np.uint8) == ord("1"))
+                outcomes[policy].append(point_outcomes(figures))
         log(f"[eval-repeat] repeat {repeat}: greedy {point['mean']:.3f}, sampled {extra['sampled']['mean']:.3f}"
             + (f", proprio masked {extra['sampled_proprio_masked']['mean']:.3f}" if masked else "")
             + f" ({seconds[-1]} s)")

@@ -366,11 +366,7 @@ def stop_at_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, *, t
     ``grace_s`` later are stopped (:func:`stop_all`); without it they are stopped at once."""
     running = {n: p for n, p in procs.items() if p.poll() is None}
     if grace_s > 0 and running:
-        for p in running.values():
-            try:
-                p.send_signal(cli.STOP_SIGNAL)
-            except ProcessLookupError:  # it has just ended
-                pass
+        cli.ask_to_stop(running.values())
         print(f"[{tag}] deadline of {deadline_s:.0f} s: asked {sorted(running)} to stop, {grace_s:.0f} s to do so",
               flush=True)
         end = time.perf_counter() + grace_s

@@ -55,6 +55,18 @@ def stop_requested() -> bool:
 def clear_stop_request() -> None:
     _stop.clear()
 
+
+def ask_to_stop(procs: Any) -> int:
+    """Passes a stop request on to child processes (``subprocess.Popen``s, each a command under :func:`run`): sends
+    ``STOP_SIGNAL`` to each one still running (one that ends meanwhile is skipped by ``send_signal``); returns how
+    many were asked."""
+    asked = 0
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(STOP_SIGNAL)
+            asked += 1
+    return asked
+
 # Errors raised on purpose with a message meant for the user, named rather than imported (a class
 # whose module was never imported cannot have been raised, and importing them all would be slow).
 RUNTIME_ERRORS = (

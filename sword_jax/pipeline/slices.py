@@ -181,11 +181,8 @@ def run_slices_side_by_side(argv: Sequence[str], runs: Sequence[str], seeds: Seq
     while pending or running or (builds and not halted()):
         if (cli.stop_requested() or stopped) and not forwarded:
             forwarded = True
-            for proc, *_ in running.values():
-                if proc.poll() is None:
-                    proc.send_signal(cli.STOP_SIGNAL)
-            print(f"[compare] stop requested: asked {len(running)} running slice(s) to stop; no more slices start",
-                  flush=True)
+            asked = cli.ask_to_stop(entry[0] for entry in running.values())
+            print(f"[compare] stop requested: asked {asked} running slice(s) to stop; no more slices start", flush=True)
         while pending and not halted() and len(running) < args.slices_at_once and ready(*pending[0]):
             run, seed = pending.pop(0)
             log_path = os.path.join(logs, f"{run}_seed{seed}.log")

@@ -168,10 +168,8 @@ def run_stages_parallel(stages: list[Stage], ctx: Context, launch: Callable[[Sta
     while pending or running:
         if (cli.stop_requested() or stopped) and not forwarded:
             forwarded = True
-            for proc, _ in running.values():
-                if proc.poll() is None:
-                    proc.send_signal(cli.STOP_SIGNAL)
-            log(f"stop requested: asked {len(running)} running stage(s) to stop; no more stages start")
+            asked = cli.ask_to_stop(proc for proc, _ in running.values())
+            log(f"stop requested: asked {asked} running stage(s) to stop; no more stages start")
         for stage in list(pending):
             if failed or stopped or cli.stop_requested() or len(running) >= max_running:
                 break
