@@ -19,8 +19,11 @@ measure what determinism costs and whether it makes the evaluation repeatable. C
     python -m benchmarks.bench_eval_repeat --policy runs/p/policy_d50.npz --out runs/eval_repeat \\
         --rl.grpo.temperature=0.5 --rl.env.proprio=missing [--deterministic] [--record]
 
-``--record`` writes ``mjx_eval_repeat_small`` to ``benchmarks/results/latest.json``: its value is the largest
-share, over the policies and the later repeats, of episodes whose outcome differed from the first repeat's.
+``eval_repeat.json`` is rewritten after every repeat (``"complete": false`` until the last), with each repeat's
+outcomes, so a run cut off mid-way keeps the repeats it finished. ``--record`` writes ``mjx_eval_repeat_small`` to
+``benchmarks/results/latest.json``: its value is the largest share, over the policies and the later repeats, of
+episodes whose outcome differed from the first repeat's. ``--from FILE --record`` records a saved
+``eval_repeat.json`` (a GPU run's, on any machine) without evaluating anything; it needs two repeats or more.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from sword_jax import cli
+from sword_jax.atomic_write import write_json_atomic
 
 DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 POLICIES = ("greedy", "sampled", "sampled_proprio_masked")  # EnvGRPO.evaluate's point and extras
@@ -58,10 +62,12 @@ def compare_repeats(outcomes: Sequence[np.ndarray]) -> dict:
 
 
 def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
-                       log=lambda line: print(line, flush=True)) -> tuple[dict, list[float]]:
+                       log=lambda line: print(line, flush=True), on_repeat=None) -> tuple[dict, list[float]]:
     """``repeats`` calls of ``runner.evaluate(params, step=0, ...)`` (an :class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`
     whose probe is started), every one with the same arguments: ``({policy: compare_repeats(...)}, seconds of each
-    repeat)``, for the greedy and sampled policies and, with ``masked``, the sampled one reading proprio masked."""
+    repeat)``, for the greedy and sampled policies and, with ``masked``, the sampled one reading proprio masked.
+    ``on_repeat(outcomes, seconds)``, if given, is called after every repeat with the outcomes so far
+    (``{policy: [bool array per repeat]}``)."""
     from sword_jax.rl.env_rollout import point_outcomes
 
     outcomes: dict[str, list[np.ndarray]] = {p: [] for p in POLICIES}
@@ -77,21 +83,83 @@ def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
         log(f"[eval-repeat] repeat {repeat}: greedy {point['mean']:.3f}, sampled {extra['sampled']['mean']:.3f}"
             + (f", proprio masked {extra['sampled_proprio_masked']['mean']:.3f}" if masked else "")
             + f" ({seconds[-1]} s)")
+        if on_repeat is not None:
+            on_repeat(outcomes, seconds)
     return {p: compare_repeats(o) for p, o in outcomes.items() if o}, seconds
+
+
+def outcome_strings(outcomes: dict[str, list[np.ndarray]]) -> dict[str, list[str]]:
+    """Each policy's repeats as strings of 0/1 in episode order (as ``success_summary`` keeps them)."""
+    return {p: ["".join("1" if x else "0" for x in np.asarray(o, bool).ravel()) for o in runs]
+            for p, runs in outcomes.items() if runs}
+
+
+def comparison_from_strings(repeats: dict[str, list[str]]) -> dict:
+    """:func:`compare_repeats` per policy from :func:`outcome_strings`'s form."""
+    return {p: compare_repeats([np.array([c == "1" for c in r], bool) for r in runs]) for p, runs in repeats.items()}
+
+
+def load_result(path: str) -> dict:
+    """A saved ``eval_repeat.json``, checked: its policies compared again from its outcomes (where it has them),
+    with at least two repeats. Raises :class:`~sword_jax.cli.UsageError` naming what is wrong."""
+    try:
+        with open(path) as f:
+            result = json.load(f)
+    except OSError as e:
+        raise cli.UsageError(f"--from {path}: cannot read it ({e.strerror or e})") from e
+    except json.JSONDecodeError as e:
+        raise cli.UsageError(f"--from {path}: not JSON ({e})") from e
+    if not isinstance(result, dict) or not isinstance(result.get("policies"), dict):
+        raise cli.UsageError(f"--from {path}: not an eval_repeat.json (no 'policies')")
+    if result.get("outcomes"):
+        try:
+            result["policies"] = comparison_from_strings(result["outcomes"])
+        except ValueError as e:
+            raise cli.UsageError(f"--from {path}: {e}") from e
+    if not result["policies"]:
+        raise cli.UsageError(f"--from {path}: fewer than 2 repeats finished, nothing to compare")
+    return result
+
+
+def record_result(result: dict) -> dict:
+    """The ``mjx_eval_repeat_small`` entry of ``result`` (as :func:`main` writes it) merged into ``latest.json``,
+    stamped with the device and command that ran the evaluation."""
+    from benchmarks import common
+
+    worst = max(s for c in result["policies"].values() for s in c["differing_share"])
+    entry = common.record("mjx_eval_repeat_small", worst, 0.0, unit="largest share of episodes whose outcome "
+                          "differed between repeats of the same evaluation", config=result.get("config"),
+                          deterministic=result.get("deterministic"), policies=result["policies"],
+                          seconds=result.get("seconds"), complete=result.get("complete", True))
+    for stamp in ("device", "command"):  # those of the run that evaluated
+        if result.get(stamp):
+            entry[stamp] = result[stamp]
+    common.merge_results({"mjx_eval_repeat_small": entry})
+    return entry
 
 
 def parse(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser = cli.ArgumentParser(description=__doc__.splitlines()[0],
                                 epilog="Other --rl.section.key=value arguments are config overrides.")
     parser.add_argument("--config", default="sword:small", help="the experiment config (default sword:small)")
-    parser.add_argument("--policy", required=True, help="the policy's parameters (.npz, as bench_policy --policy)")
-    parser.add_argument("--out", required=True, help="folder for eval_repeat.json")
+    parser.add_argument("--policy", help="the policy's parameters (.npz, as bench_policy --policy)")
+    parser.add_argument("--out", help="folder for eval_repeat.json")
+    parser.add_argument("--from", dest="from_file", metavar="FILE",
+                        help="record this saved eval_repeat.json (with --record) instead of evaluating")
     parser.add_argument("--repeats", type=int, default=3, help="evaluations of the same policy (>= 2)")
     parser.add_argument("--episodes-per-task", type=int, default=50, help="evaluation episodes per task (1-50)")
     parser.add_argument("--deterministic", action="store_true",
                         help=f"add {DETERMINISTIC_FLAG} to XLA_FLAGS (GPU) before JAX starts its backend")
     parser.add_argument("--record", action="store_true", help="write mjx_eval_repeat_small to latest.json")
     args, rest = parser.parse_known_args(argv)
+    if args.from_file is not None:
+        if not args.record:
+            raise cli.UsageError("--from only records a saved result: add --record")
+        if args.policy or args.out or rest:
+            raise cli.UsageError("--from evaluates nothing: drop --policy, --out and config overrides")
+        return args, rest
+    if args.policy is None or args.out is None:
+        raise cli.UsageError("--policy and --out are needed to evaluate (or --from FILE --record)")
     if args.repeats < 2:
         raise cli.UsageError(f"--repeats must be >= 2 (a repeat is compared with the first), got {args.repeats}")
     if not 1 <= args.episodes_per_task <= 50:
@@ -108,6 +176,11 @@ def parse(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
 def main(argv: Sequence[str] | None = None) -> dict:
     argv = sys.argv[1:] if argv is None else list(argv)
     args, overrides = parse(argv)
+    if args.from_file is not None:
+        result = load_result(args.from_file)
+        entry = record_result(result)
+        print(f"[eval-repeat] recorded {args.from_file}: largest share of differing episodes {entry['value']:.3f}")
+        return result
     if args.deterministic:  # read when the backend starts: before any JAX computation below
         os.environ["XLA_FLAGS"] = " ".join(f for f in (os.environ.get("XLA_FLAGS", ""), DETERMINISTIC_FLAG) if f)
 
@@ -134,22 +207,24 @@ def main(argv: Sequence[str] | None = None) -> dict:
                      eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
     os.makedirs(args.out, exist_ok=True)
     runner.start_probe(params, os.path.join(args.out, "probe"))
-    comparison, seconds = repeat_evaluations(runner, params, args.repeats, masked=rl.env.proprio == "missing")
     result = {"policy": args.policy, "config": cfg.name, "overrides": overrides, "device": common.device_name(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""), "deterministic": args.deterministic,
-              "rollout_batch": rl.grpo.rollout_batch * rl.grpo.group_size, "seconds": seconds,
-              "policies": comparison}
+              "rollout_batch": rl.grpo.rollout_batch * rl.grpo.group_size, "repeats_asked": args.repeats,
+              "command": common.command_line()}
+    path = os.path.join(args.out, "eval_repeat.json")
+
+    def save(outcomes, seconds):  # after every repeat: a run cut off keeps what it finished
+        kept = outcome_strings(outcomes)
+        result.update(complete=len(seconds) == args.repeats, seconds=list(seconds), outcomes=kept,
+                      policies=comparison_from_strings(kept) if len(seconds) >= 2 else {})
+        write_json_atomic(path, result)
+
+    repeat_evaluations(runner, params, args.repeats, masked=rl.env.proprio == "missing", on_repeat=save)
     for policy, c in result["policies"].items():
         print(f"[eval-repeat] {policy}: success {', '.join(f'{s:.3f}' for s in c['success'])}; episodes differing "
               f"from the first repeat {', '.join(str(d) for d in c['differing'])} of {c['episodes']}", flush=True)
-    with open(os.path.join(args.out, "eval_repeat.json"), "w") as f:
-        json.dump(result, f, indent=1)
     if args.record:
-        worst = max(s for c in result["policies"].values() for s in c["differing_share"])
-        common.merge_results({"mjx_eval_repeat_small": common.record(
-            "mjx_eval_repeat_small", worst, 0.0, unit="largest share of episodes whose outcome differed between "
-            "repeats of the same evaluation", config=cfg.name, deterministic=args.deterministic,
-            policies=result["policies"], seconds=seconds)})
+        record_result(result)
     return result
 
 

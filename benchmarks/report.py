@@ -925,12 +925,13 @@ def grpo_branched_value() -> str:
 # the open-starts entries and how their runs differ: starts a step (bench_grpo_value --rollout-batch), KL anchor
 BRANCHED_OPEN = {"policy_grpo_branched_open_small": "64 starts x 8",
                  "policy_grpo_branched_open_b256_small": "256 starts x 8",
+                 "policy_grpo_branched_open_b1024_small": "1,024 starts x 8",
                  "policy_grpo_branched_open_kl_small": "64 starts x 8, KL 0.04 to the start"}
 
 
 def grpo_branched_open() -> str:
     """The same comparison with starts where the value says the outcome is open and centred advantages
-    (``policy_grpo_branched_open_small``, ``..._open_b256_small`` at 256 starts a step and ``..._open_kl_small``
+    (``policy_grpo_branched_open_small``, ``..._open_b256_small`` at 256 starts a step, ``..._open_b1024_small`` at 1,024 and ``..._open_kl_small``
     anchored by a KL term): per run the gains of the
     sampled policy with proprio masked and with true proprio and of the greedy policy, what its rollouts were paid,
     its groups with mixed outcomes and the share of the advantages' mass in groups split by real success."""

@@ -1,6 +1,8 @@
 """benchmarks.bench_eval_repeat: the comparison of repeated evaluations and the refused command lines (the MJX
 evaluation itself runs on a GPU)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -38,6 +40,44 @@ def test_the_command_line_is_checked_before_anything_is_built(tmp_path):
         repeat.parse(["--policy", str(tmp_path / "missing.npz"), "--out", str(tmp_path)])
     with pytest.raises(UsageError, match="not a dotted config override"):
         repeat.parse(["--policy", str(policy), "--out", str(tmp_path), "--temperature", "0.5"])
+    with pytest.raises(UsageError, match="--policy and --out are needed"):
+        repeat.parse(["--out", str(tmp_path)])
+    with pytest.raises(UsageError, match="add --record"):
+        repeat.parse(["--from", str(tmp_path / "eval_repeat.json")])
+    with pytest.raises(UsageError, match="drop --policy"):
+        repeat.parse(["--from", str(tmp_path / "eval_repeat.json"), "--record", "--policy", str(policy)])
+
+
+def test_a_saved_result_is_checked_and_recorded_with_its_own_device(tmp_path, monkeypatch):
+    from benchmarks import common
+
+    monkeypatch.setattr(common, "RESULTS", str(tmp_path / "latest.json"))
+    kept = repeat.outcome_strings({"greedy": [np.array([1, 0, 1, 1]), np.array([1, 1, 1, 1])],
+                                   "sampled": [np.array([0, 0, 1, 1]), np.array([0, 0, 1, 1])]})
+    assert kept == {"greedy": ["1011", "1111"], "sampled": ["0011", "0011"]}
+    saved = tmp_path / "eval_repeat.json"
+    saved.write_text(json.dumps({"device": "NVIDIA H200 x1 (gpu)", "config": "sword-small", "deterministic": True,
+                                 "seconds": [3.0, 1.0], "outcomes": kept, "policies": {}}))
+    result = repeat.main(["--from", str(saved), "--record"])  # the policies are compared again from the outcomes
+    assert result["policies"]["greedy"]["differing"] == [1] and result["policies"]["sampled"]["differing"] == [0]
+    entry = json.loads((tmp_path / "latest.json").read_text())["mjx_eval_repeat_small"]
+    assert entry["value"] == pytest.approx(0.25) and entry["device"] == "NVIDIA H200 x1 (gpu)"
+    assert entry["deterministic"] is True and entry["complete"] is True
+    one = tmp_path / "one.json"  # cut off after its first repeat: nothing to compare
+    one.write_text(json.dumps({"complete": False, "outcomes": {"greedy": ["1011"]}, "policies": {}}))
+    with pytest.raises(UsageError, match="at least 2 repeats, got 1"):
+        repeat.load_result(str(one))
+    one.write_text(json.dumps({"complete": False, "policies": {}}))
+    with pytest.raises(UsageError, match="fewer than 2 repeats finished"):
+        repeat.load_result(str(one))
+    one.write_text("{")
+    with pytest.raises(UsageError, match="not JSON"):
+        repeat.load_result(str(one))
+    with pytest.raises(UsageError, match="cannot read it"):
+        repeat.load_result(str(tmp_path / "missing.json"))
+    one.write_text("[]")
+    with pytest.raises(UsageError, match="no 'policies'"):
+        repeat.load_result(str(one))
 
 
 def test_repeated_evaluations_of_a_toy_runner_compare_every_policy(tmp_path):
@@ -62,9 +102,11 @@ def test_repeated_evaluations_of_a_toy_runner_compare_every_policy(tmp_path):
                      eval_tokens=tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes),
                      eval_tasks=[0, 0, 1, 1], key=jax.random.key(3))
     runner.start_probe(params, str(tmp_path / "probe"))
-    lines = []
-    comparison, seconds = repeat.repeat_evaluations(runner, params, 3, masked=True, log=lines.append)
+    lines, seen = [], []
+    comparison, seconds = repeat.repeat_evaluations(runner, params, 3, masked=True, log=lines.append,
+                                                    on_repeat=lambda o, s: seen.append((len(o["greedy"]), len(s))))
     assert set(comparison) == set(repeat.POLICIES) and len(seconds) == 3 and len(lines) == 3
+    assert seen == [(1, 1), (2, 2), (3, 3)]  # called after every repeat with what is done so far
     for c in comparison.values():
         assert c["episodes"] == 4 and c["differing"] == [0, 0] and len(set(c["success"])) == 1
     assert comparison["greedy"]["success"][0] >= 0.25  # the start past the goal succeeds whatever the policy does
