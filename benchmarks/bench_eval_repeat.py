@@ -39,8 +39,8 @@ import numpy as np
 
 from sword_jax import cli
 from sword_jax.atomic_write import write_json_atomic
+from sword_jax.pipeline.launch import DETERMINISTIC_OPS as DETERMINISTIC_FLAG
 
-DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 POLICIES = ("greedy", "sampled", "sampled_proprio_masked")  # EnvGRPO.evaluate's point and extras
 
 

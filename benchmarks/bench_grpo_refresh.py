@@ -245,7 +245,7 @@ def run(args, overrides: Sequence[str], *, poll_s: float = 5.0) -> dict:
     """The pipelines, then each pipeline's GRPO runs as soon as it is built; with ``--deadline-s`` the runs
     still going then are stopped and summarised at their last evaluation."""
     os.makedirs(args.workdir, exist_ok=True)
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
+    env = common.launch_env(args.workdir, deterministic=args.deterministic)
     gpus = [g for g in args.gpus.split(",") if g]
     start = time.perf_counter()
 
@@ -356,6 +356,14 @@ def add_deadline_options(parser: Any, prefix: str = "") -> None:
                         help=f"{prefix}ask the runs still going at --deadline-s to stop first (each checkpoints its "
                              "step in flight and GRPO evaluates it; the same command resumes them) and stop them "
                              "outright this many seconds later (0: at the deadline)")
+
+
+def add_deterministic_option(parser: Any, prefix: str = "") -> None:
+    """``--deterministic``: the runs get XLA's deterministic ops (:func:`benchmarks.common.launch_env`)."""
+    parser.add_argument("--deterministic", action="store_true",
+                        help=f"{prefix}start the runs with XLA's deterministic GPU ops, so that an evaluation of the "
+                             "same policy gives the same outcomes every time (written to the work dir's "
+                             "xla_flags.txt and the summary)")
 
 
 def stop_at_deadline(procs: dict[str, subprocess.Popen], deadline_s: float, *, tag: str, grace_s: float = 0.0,
@@ -544,6 +552,7 @@ def summarize(workdir: str, ground_truth: str = "") -> dict:
                    real_episodes_used=max(r["real_episodes_used"] or 0 for r in refreshed.values()))
     if ground_truth:
         out["ground_truth"] = ground_truth_curves(ground_truth)
+    out.update(common.workdir_xla_flags(workdir))
     return out
 
 
@@ -553,6 +562,7 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "", c
     ``policy_grpo_sword_vs_wovr_small``; each gain the sampled policy's (T 0.5), value the smallest over seeds,
     with every run's curve, real episodes used and every refresh's replay and trust."""
     device = common.workdir_device(workdir)
+    launched = {k: summary[k] for k in ("xla_flags", "deterministic") if k in summary}  # older work dirs lack them
     target = ">= +0.10 at 3 of 3 seeds within 100 steps, <= 10% of ground-truth GRPO's real episodes"
 
     def entry(prefix: str) -> dict | None:
@@ -565,7 +575,7 @@ def results_entries(summary: dict, workdir: str, *, data: str, note: str = "", c
                         "refreshes": [compact_refresh(x) for x in r["refreshes"]]} for n, r in runs.items()}
         return common.record("", min(r["sampled"]["gain"] for r in runs.values()), target, per_seed=per_seed,
                              real_episodes_used=max(r["real_episodes_used"] or 0 for r in runs.values()),
-                             steps=min(r["steps"] for r in runs.values()), device=device, data=data,
+                             steps=min(r["steps"] for r in runs.values()), device=device, data=data, **launched,
                              unit="real success gain of the sampled policy (T 0.5), 500 MJX episodes per point",
                              **({"note": note} if note else {}), **({"command": command} if command else {}))
 
@@ -681,6 +691,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                              "model's and detector's training data (data.policy_rollouts_per_task; 0: expert "
                              "demonstrations only, the policy's episodes arrive with the first refresh)")
     add_deadline_options(parser)
+    add_deterministic_option(parser)
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--arms", default="refreshed,once", help="refreshed (every seed) and once (the first seed)")
     parser.add_argument("--pipeline-seed", type=int, default=0)

@@ -49,10 +49,10 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import add_deadline_options, gain_between, pipeline_command, stop_at_deadline
+from benchmarks.bench_grpo_refresh import (add_deadline_options, add_deterministic_option, gain_between, pipeline_command,
+                                          stop_at_deadline)
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
-from sword_jax.pipeline.launch import NO_MULTICAST
 
 ARMS = ("gt", "exec", "det")
 ARM_LABELS = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
@@ -133,7 +133,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     """The pipeline, then the runs as their inputs are ready (module docstring); the summary at the end."""
     os.makedirs(args.workdir, exist_ok=True)
     common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    env = common.launch_env(args.workdir, deterministic=args.deterministic)
     commands, gpu_of = run_commands(args), placement(args)
     sharing = {g: sum(1 for n in commands if gpu_of[n] == g and not n.startswith("gt")) for g in args.gpus}
     start = time.perf_counter()
@@ -271,7 +271,7 @@ def summarize(workdir: str) -> dict:
             arms[arm] = {"label": ARM_LABELS[arm], "sampled_gain_per_seed": gains, "smallest": min(gains.values()),
                          "mean": statistics.mean(gains.values()),
                          "steps": min(r["steps"] for r in runs.values() if r["arm"] == arm)}
-    return {"runs": runs, "arms": arms}
+    return {"runs": runs, "arms": arms, **common.workdir_xla_flags(workdir)}
 
 
 # a step paid by execution with the closed-loop record, as sword_jax.pipeline.grpo.payment_note writes it
@@ -361,11 +361,12 @@ def smallest_gain_entry(summary: dict, arm: str, workdir: str, *, bench: str, un
                         command: str = "") -> dict:
     """A ``latest.json`` entry of a run-and-summary GRPO benchmark: value the smallest gain over the seeds of
     ``arm`` (its ``summary["arms"][arm]["smallest"]``), beside every arm's gains and every run's summary, stamped
-    with the device the runs' work dir was made on."""
+    with the device the runs' work dir was made on and the XLA flags they were started with."""
     if arm not in summary["arms"]:
         raise SystemExit(f"{bench}: no run of the {arm} arm left an evaluation to record")
+    launched = {k: summary[k] for k in ("xla_flags", "deterministic") if k in summary}  # older work dirs lack them
     return common.record("", summary["arms"][arm]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
-                         device=common.workdir_device(workdir), data=data, unit=unit,
+                         device=common.workdir_device(workdir), data=data, unit=unit, **launched,
                          **({"command": command} if command else {}))
 
 
@@ -434,6 +435,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "
                              "horizons need to reach success at all")
     add_deadline_options(parser, "run: ")
+    add_deterministic_option(parser, "run: ")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
     args.seeds = [int(s) for s in args.seeds.split(",") if s]

@@ -30,7 +30,8 @@ adds the noise-only control: success alone, each group's returns shuffled among 
 (``rl.grpo.shuffle_returns``); ``summary`` sets every other arm against it seed by seed (``contrasts``). ``run``
 starts every run at once, spread over ``--gpus`` (runs sharing a GPU split its memory). At ``--deadline-s`` the runs
 still going are stopped; with ``--grace-s`` they are asked first: each checkpoints its step in flight and evaluates
-it (:func:`sword_jax.cli.request_stop`), and the same command resumes them. ``summary`` gives each run's gains with
+it (:func:`sword_jax.cli.request_stop`), and the same command resumes them. ``--deterministic`` starts the runs with
+XLA's deterministic GPU ops (:func:`benchmarks.common.launch_env`). ``summary`` gives each run's gains with
 95% intervals, what its rollouts were paid (success, and the value's mean where it paid), its groups with mixed
 outcomes, the share of its advantages' mass in groups split by success, the real episodes it used beyond evaluation
 and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as
@@ -53,11 +54,10 @@ import time
 from collections.abc import Sequence
 
 from benchmarks import common
-from benchmarks.bench_grpo_refresh import add_deadline_options, wait_until_deadline
+from benchmarks.bench_grpo_refresh import add_deadline_options, add_deterministic_option, wait_until_deadline
 from benchmarks.bench_grpo_reward_source import RECIPE, smallest_gain_entry, summarize_run
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
-from sword_jax.pipeline.launch import NO_MULTICAST
 
 ARMS = ("value", "success", "shuffled")
 ARM_LABELS = {"value": "branched, paid success or the value at the horizon",
@@ -102,7 +102,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     """Every run at once (module docstring); the summary at the end."""
     os.makedirs(args.workdir, exist_ok=True)
     common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    env = common.launch_env(args.workdir, deterministic=args.deterministic)
     commands = run_commands(args)
     gpu_of = placement(list(commands), args.gpus)
     sharing = {g: sum(1 for n in commands if gpu_of[n] == g) for g in args.gpus}
@@ -177,7 +177,8 @@ def summarize(workdir: str) -> dict:
             arms[arm] = {"label": ARM_LABELS[arm], "masked_gain_per_seed": gains, "smallest": min(gains.values()),
                          "mean": statistics.mean(gains.values()), "steps": min(r["steps"] for r in mine)}
     contrasts = {arm: c for arm in ARMS if arm != CONTROL for c in (contrast(runs, arm),) if c}
-    return {"runs": runs, "arms": arms, **({"contrasts": contrasts} if contrasts else {})}
+    return {"runs": runs, "arms": arms, **({"contrasts": contrasts} if contrasts else {}),
+            **common.workdir_xla_flags(workdir)}
 
 
 CONTROL = "shuffled"  # the noise-only control every other arm is set against, seed by seed
@@ -294,6 +295,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--kl-coef", type=float, default=0.0,
                         help="run: every arm's weight of the k3 KL to the starting policy (rl.grpo.kl_coef; 0 = off)")
     add_deadline_options(parser, "run: ")
+    add_deterministic_option(parser, "run: ")
     parser.add_argument("--record-as", choices=tuple(ENTRIES), default="value",
                         help="summary --record: the latest.json entry, " + "; ".join(
                             f"{k}: {key} (the {arm} arm's smallest gain)" for k, (key, arm) in ENTRIES.items()))

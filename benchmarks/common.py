@@ -252,6 +252,44 @@ def record_gpus(path: str) -> None:
             f.write(listed.stdout)
 
 
+XLA_FLAGS_FILE = "xla_flags.txt"
+
+
+def with_flag(flags: str, flag: str) -> str:
+    """``flags`` (an ``XLA_FLAGS`` value) with ``flag`` added once."""
+    words = flags.split()
+    return " ".join(words if flag in words else [*words, flag])
+
+
+def launch_env(workdir: str, *, deterministic: bool = False) -> dict[str, str]:
+    """The environment a launcher starts its GPU runs in: this process's, with XLA taking GPU memory as needed,
+    unbuffered output, NVLink multicast off and, with ``deterministic``, XLA's deterministic ops
+    (:data:`~sword_jax.pipeline.launch.DETERMINISTIC_OPS`) added to ``XLA_FLAGS``. The runs' ``XLA_FLAGS`` is
+    written to ``workdir/xla_flags.txt``, which :func:`workdir_xla_flags` reads back for the summary."""
+    from sword_jax.pipeline.launch import DETERMINISTIC_OPS, NO_MULTICAST
+
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
+    if deterministic:
+        env["XLA_FLAGS"] = with_flag(env.get("XLA_FLAGS", ""), DETERMINISTIC_OPS)
+    os.makedirs(workdir, exist_ok=True)
+    with open(os.path.join(workdir, XLA_FLAGS_FILE), "w") as f:
+        f.write(env.get("XLA_FLAGS", "") + "\n")
+    return env
+
+
+def workdir_xla_flags(workdir: str) -> dict[str, Any]:
+    """What :func:`launch_env` wrote for a work dir's runs: ``{"xla_flags": ..., "deterministic": bool}``, or
+    ``{}`` for a work dir launched before it was written."""
+    from sword_jax.pipeline.launch import DETERMINISTIC_OPS
+
+    path = os.path.join(workdir, XLA_FLAGS_FILE)
+    if not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        flags = f.read().strip()
+    return {"xla_flags": flags, "deterministic": DETERMINISTIC_OPS in flags.split()}
+
+
 def workdir_device(workdir: str) -> str:
     """The device a run's work dir was made on, from its ``gpu.txt`` (``NAME xN``); this machine's without one."""
     gpu = os.path.join(workdir, "gpu.txt")

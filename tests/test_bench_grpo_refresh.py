@@ -15,6 +15,7 @@ GROUND_TRUTH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "benchma
 class Args:
     workdir, config, policy, pipeline_seed, wovr_config, gpus = "w", "sword:small", "p.npz", 0, "", "0,1"
     seeds, arms, steps, refresh_every, budget, vae_steps, world_model_steps = [0, 1], {"refreshed", "once"}, 50, 5, 900, 10, 20
+    deterministic = False
 
 
 def test_commands_share_one_pipeline_and_differ_in_seed_and_budget():

@@ -14,7 +14,8 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
-        world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None)
+        world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None,
+        deterministic=False)
     return args
 
 
@@ -200,6 +201,33 @@ def test_runs_start_once_their_inputs_are_built_and_a_deadline_stops_the_rest(tm
     args.deadline_s = 1.0
     summary = rs.run(args, poll_s=0.05)
     assert summary["stopped_at_deadline"] == ["gt_s0"] and summary["exit_codes"]["exec_s0"] == 0
+
+
+def test_deterministic_runs_start_with_xlas_deterministic_ops_and_the_summary_says_so(tmp_path, monkeypatch):
+    """--deterministic adds the flag to the runs' XLA_FLAGS (once, after the caller's), multicast stays off, and the
+    work dir's xla_flags.txt carries it into the summary and the latest.json entry; without it, nothing is added."""
+    import sys
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: [sys.executable, "-c", "pass"])
+    seen = "import os; open({!r}, 'w').write(os.environ.get('XLA_FLAGS', '') + '|' + os.environ['NCCL_NVLS_ENABLE'])"
+    monkeypatch.setattr(rs, "run_commands", lambda args: {n: [sys.executable, "-c", seen.format(str(tmp_path / n))]
+                                                          for n in ("gt_s0", "exec_s0")})
+    args = _args(tmp_path, gpus="0", seeds="0", arms=("gt", "exec"))
+    args.deterministic = True
+    summary = rs.run(args, poll_s=0.05)
+    flags = "--xla_dump_to=/tmp/x --xla_gpu_deterministic_ops=true"
+    assert (tmp_path / "gt_s0").read_text() == (tmp_path / "exec_s0").read_text() == flags + "|0"
+    assert summary["deterministic"] is True and summary["xla_flags"] == flags
+    assert rs.common.with_flag(flags, "--xla_gpu_deterministic_ops=true") == flags  # added once
+    entry = rs.smallest_gain_entry({**summary, "arms": {"gt": {"smallest": 0.1}}, "runs": {}}, "gt", str(tmp_path),
+                                   bench="x", unit="u", data="d")
+    assert entry["deterministic"] is True
+    plain = tmp_path / "plain"
+    args = _args(plain, gpus="0", seeds="0", arms=("gt", "exec"))
+    assert rs.run(args, poll_s=0.05)["deterministic"] is False
+    assert (plain / "xla_flags.txt").read_text() == "--xla_dump_to=/tmp/x\n"
+    assert rs.common.workdir_xla_flags(str(tmp_path / "never_launched")) == {}  # an older work dir: nothing claimed
 
 
 def test_the_machines_gpus_are_recorded_where_nvidia_smi_answers(tmp_path, monkeypatch):

@@ -36,6 +36,10 @@ from typing import IO
 # shared host's GPUs down).
 NO_MULTICAST = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
 
+# XLA's deterministic ops on GPUs: no atomic adds whose order varies, so a run (and an evaluation repeated on the same
+# policy) gives the same numbers every time
+DETERMINISTIC_OPS = "--xla_gpu_deterministic_ops=true"
+
 DEFAULT_GRACE_S = 10.0  # SIGTERM -> SIGKILL
 POLL_S = 0.1  # how often the ranks' exit statuses are read
 STOP_MARGIN_S = 2.0  # beyond the grace: the poll, the SIGKILL and reaping the ranks
