@@ -1040,6 +1040,23 @@ def sim_fidelity_decisions() -> str:
                    "greedy action gap to the real frame", "the VAE alone", "to the real frame a decision earlier"], rows)
 
 
+def failure_stages() -> str:
+    """Where the policy fails from rest and where short rollouts have mixed outcomes
+    (``policy/failure_phases_small_cpu/failure_phases.json``, ``bench_failure_phases``): per stage, its share of the
+    failures from rest, the branch points at that stage, their groups with mixed outcomes and their paid success."""
+    d = _load("policy", "failure_phases_small_cpu", "failure_phases.json")
+    failed = d["episodes"] - d["episode_stages"]["success"]
+    rows = [[name, f"{d['episode_stages'][name]} ({d['failure_shares'][name]:.2f} of {failed})"]
+            for name in list(d["failure_shares"])]
+    rows.append(["success", f"{d['episode_stages']['success']} of {d['episodes']} ({d['success']:.3f})"])
+    starts = [[name, str(v["starts"]), str(v["mixed_groups"]), "" if v["paid_success"] is None else
+               f"{v['paid_success']:.3f}"] for name, v in d["starts"].items()]
+    size, h = d["group_size"], d["horizon_decisions"]
+    return (_table(["episodes from rest, furthest stage", "episodes"], rows) + "\n\n"
+            + _table([f"branch point's stage (short rollouts of {h} decisions, groups of {size})", "starts",
+                      "groups with mixed outcomes", "paid success"], starts))
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -1062,6 +1079,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-gradient-signal": grpo_gradient_signal,
     "grpo-branched-value": grpo_branched_value,
     "value-signal": value_signal,
+    "failure-stages": failure_stages,
 }
 
 

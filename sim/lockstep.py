@@ -26,6 +26,20 @@ import numpy as np
 _RENDER_BUCKET = 64  # batch sizes are padded to a multiple of this (one compile per bucket)
 
 
+def _pads_touch(env: Any, data: Any) -> bool:
+    """Whether both of the Panda's finger pads are in contact with the target bowl (a grasp)."""
+    model = env.mj_model
+    bowl = np.flatnonzero(model.geom_bodyid == env.bowl_body)
+    pads = [model.geom(f"panda_{side}_finger_pad").id for side in ("left", "right")]
+    pairs = np.stack([data.contact.geom1[: data.ncon], data.contact.geom2[: data.ncon]], -1)
+    touching = set()
+    for a, b in pairs:
+        for pad, other in ((a, b), (b, a)):
+            if pad in pads and other in bowl:
+                touching.add(int(pad))
+    return len(touching) == 2
+
+
 class _Shard:
     """A slice of the episodes, stepped in one process."""
 
@@ -97,6 +111,21 @@ class _Shard:
             out["cam_pos"] = np.stack([d.cam_xpos[self.cam_id] for d in datas]).astype(np.float32)
             out["cam_mat"] = np.stack([d.cam_xmat[self.cam_id] for d in datas]).astype(np.float32)
         return out
+
+    def poses(self) -> dict[str, np.ndarray]:
+        """Per episode, now: the target bowl's origin ``bowl [n, 3]``, its up axis' z ``bowl_up [n]``, the plate's
+        origin ``plate [n, 3]``, whether both finger pads touch the target bowl ``held [n]`` and the flat state
+        ``state [n, 1 + nq + nv]`` (``[time, qpos, qvel]``, what ``reset`` continues from)."""
+        bowl, up, plate, held, state = [], [], [], [], []
+        for t, s in zip(self.task_of, self.states):
+            env, d = self.envs[t], s.data
+            bowl.append(np.array(d.xpos[env.bowl_body]))
+            up.append(float(d.xmat[env.bowl_body].reshape(3, 3)[2, 2]))
+            plate.append(np.array(d.xpos[env.plate_body]))
+            held.append(_pads_touch(env, d))
+            state.append(np.concatenate([[float(d.time)], d.qpos, d.qvel]))
+        return {"bowl": np.stack(bowl), "bowl_up": np.asarray(up), "plate": np.stack(plate), "held": np.asarray(held),
+                "state": np.stack(state)}
 
     def _gl_frame(self, i: int) -> np.ndarray:
         task = self.task_of[i]
@@ -240,6 +269,10 @@ class LockstepEnvs:
         self.done |= out["success"] | out["truncated"]
         return {"frames": self._frames(out), "proprio": out["proprio"], "success": out["success"],
                 "executed": out["executed"], "done": self.done.copy()}
+
+    def poses(self) -> dict[str, np.ndarray]:
+        """Every episode's target bowl, plate and flat state as they are now (:meth:`_Shard.poses`)."""
+        return self._call("poses", [()] * len(self._slices))
 
     def close(self) -> None:
         for conn in self._conns:

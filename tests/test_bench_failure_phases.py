@@ -1,0 +1,119 @@
+"""benchmarks.bench_failure_phases: the stages of designed trajectories, the branch points, the summary, the refused
+command lines, and a tiny run on the C engine end to end."""
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks import bench_failure_phases as fp
+from sword_jax.cli import UsageError
+
+
+def _path(held, xs):
+    """Held at the decisions ``held``, the bowl at x positions ``xs`` (on the table's line y = 0), the plate at the
+    origin."""
+    bowl = np.stack([np.asarray(xs, float), np.zeros(len(xs)), np.full(len(xs), 0.9)], -1)
+    return np.asarray(held, bool), bowl, np.zeros_like(bowl)
+
+
+def test_each_episode_gets_its_furthest_stage():
+    paths = [_path([0, 1, 0], [0.0, 0.0, 0.0]),  # succeeded (success decides, whatever the poses)
+             _path([0, 0, 0], [0.3, 0.0, 0.0]),  # pushed over the plate, never held: never grasped
+             _path([0, 1, 1], [0.3, 0.2, 0.1]),  # held, never within 3 cm of the plate in xy
+             _path([0, 1, 0], [0.3, 0.02, 0.02]),  # held over the plate, let go: not placed
+             _path([1, 0, 0], [0.3, 0.3, 0.02])]  # held away from the plate, over it only once let go
+    held, bowl, plate = (np.stack([p[i] for p in paths]) for i in range(3))
+    stages = fp.episode_stages(held, bowl, plate, np.array([1, 0, 0, 0, 0], bool))
+    assert [fp.EPISODE_STAGES[s] for s in stages] == [
+        "success", "never grasped", "grasped, never over the plate", "over the plate, not placed",
+        "grasped, never over the plate"]
+    assert fp.episode_stages(held, bowl, plate, np.zeros(5, bool), over_m=0.15)[2] == 3  # 10 cm is over at 15 cm
+    with pytest.raises(ValueError, match=r"need held \[n, t\], bowl and plate \[n, t, 3\]"):
+        fp.episode_stages(held[0], bowl[0], plate[0], np.zeros(1, bool))
+
+
+def test_a_start_stage_reads_the_grasp_now_and_whether_there_was_one_before():
+    bowl = np.array([[0.3, 0, 0.9], [0.3, 0, 1.0], [0.01, 0, 1.0], [0.01, 0, 0.9]])
+    stages = fp.start_stages(np.array([0, 1, 1, 0], bool), bowl, np.zeros_like(bowl), np.array([0, 1, 1, 1], bool))
+    assert [fp.START_STAGES[s] for s in stages] == ["before the grasp", "grasped", "over the plate", "after a release"]
+
+
+def test_branch_points_are_decisions_at_which_the_episode_was_running():
+    done = np.array([[0, 0, 1, 1], [0, 1, 1, 1], [1, 1, 1, 1]], bool)  # running at 2, 1 and 0 decisions
+    ep, at = fp.branch_points(done, 10, np.random.default_rng(0))
+    assert sorted(zip(ep.tolist(), at.tolist())) == [(0, 0), (0, 1), (1, 0)]  # all three, none twice
+    ep, at = fp.branch_points(done, 2, np.random.default_rng(1))
+    assert len(ep) == 2 and not done[ep, at].any()
+    with pytest.raises(ValueError, match="no episode was running"):
+        fp.branch_points(np.ones((2, 3), bool), 1, np.random.default_rng(0))
+
+
+def test_the_summary_counts_failures_and_where_the_mixed_groups_start():
+    stages = np.array([0, 1, 1, 1, 2, 0])
+    start_stage = np.array([0, 1, 2, 0])
+    groups = np.array([[0, 0], [0, 1], [1, 1], [1, 0]], bool)  # mixed: starts 1 (grasped) and 3 (before the grasp)
+    s = fp.summarise(stages, start_stage, groups, np.array([5, -1, -1, -1, -1, 9]), np.array([2, -1, -1, -1, 4, 3]))
+    assert s["episodes"] == 6 and s["success"] == pytest.approx(1 / 3)
+    assert s["failure_shares"]["never grasped"] == pytest.approx(0.75)
+    assert s["failure_shares"]["grasped, never over the plate"] == pytest.approx(0.25)
+    assert s["starts"]["before the grasp"] == {"starts": 2, "mixed_groups": 1, "paid_success": 0.25}
+    assert s["starts"]["after a release"] == {"starts": 0, "mixed_groups": 0, "paid_success": None}
+    assert s["mixed_groups"] == 2 and s["mixed_after_the_grasp"] == pytest.approx(0.5)
+    assert s["decisions_from_grasp_to_success"] == pytest.approx([3.75, 4.5, 5.25])  # 3 and 6 decisions
+
+
+def test_bad_command_lines_are_refused(tmp_path):
+    policy = tmp_path / "p.npz"
+    np.savez(policy, w=np.zeros(1))
+    with pytest.raises(UsageError, match="--group-size >= 2"):
+        fp.parse(["--policy", str(policy), "--out", str(tmp_path), "--group-size", "1"])
+    with pytest.raises(UsageError, match="must be > 0"):
+        fp.parse(["--policy", str(policy), "--out", str(tmp_path), "--over-m", "0"])
+    with pytest.raises(UsageError, match="no such file"):
+        fp.parse(["--policy", str(tmp_path / "missing.npz"), "--out", str(tmp_path)])
+
+
+def test_the_grasp_is_read_from_the_finger_pads_contacts_along_an_expert_episode():
+    """The scripted expert on the C engine: the bowl is not held at the start, is held for a stretch of the episode
+    (both pads on it) without letting go, and the episode succeeds (the bowl resting on the plate, still held: an
+    episode ends at its success)."""
+    from sim import expert
+    from sim.config import SimConfig
+    from sim.env import CpuEnv
+    from sim.lockstep import LockstepEnvs
+
+    env = CpuEnv(SimConfig(resolution=16), 4)  # the bowl in the top drawer: carried down to the plate
+    out = expert.rollout_cpu(env, env.init_states[3], record=True)
+    assert out["success"]
+    with LockstepEnvs([(4, env.init_states[3])], resolution=16, max_steps=200) as envs:
+        envs.reset()
+        held = [bool(envs.poses()["held"][0])]
+        for action in out["actions"]:
+            envs.step(action[None, None])
+            held.append(bool(envs.poses()["held"][0]))
+        assert envs.success[0]
+    first, last = held.index(True), len(held) - 1 - held[::-1].index(True)
+    assert not held[0] and held[-1] and last - first >= 10 and all(held[first: last + 1])
+
+
+def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
+    """A random tiny policy, 3 episodes of 16 actions and 2 short groups: every count adds up, the record carries
+    the failure shares."""
+    import configs
+    from benchmarks import common
+    from sword_jax.rl.params_io import save_params_npz
+    from sword_jax.rl.policy import build_policy
+
+    monkeypatch.setattr(common, "RESULTS", str(tmp_path / "latest.json"))
+    _, params = build_policy(configs.get("sword:tiny").rl, seed=0)
+    save_params_npz(str(tmp_path / "p.npz"), params)
+    out = fp.main(["--policy", str(tmp_path / "p.npz"), "--out", str(tmp_path), "--config", "sword:tiny",
+                   "--episodes", "3", "--starts", "2", "--group-size", "2", "--horizon", "1", "--max-steps", "16",
+                   "--record"])
+    assert out["episodes"] == 3 and sum(out["episode_stages"].values()) == 3
+    assert sum(s["starts"] for s in out["starts"].values()) == 2 and out["episode_limit"] == 16
+    saved = json.loads((tmp_path / "failure_phases.json").read_text())
+    assert saved["failure_shares"] == out["failure_shares"]
+    entry = json.loads((tmp_path / "latest.json").read_text())["policy_failure_stages_small"]
+    assert entry["value"] == out["failure_shares"].get("never grasped", entry["value"])
