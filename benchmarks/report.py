@@ -1040,21 +1040,40 @@ def sim_fidelity_decisions() -> str:
                    "greedy action gap to the real frame", "the VAE alone", "to the real frame a decision earlier"], rows)
 
 
+# bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
+# 12-decision ones
+FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h12_small_cpu")
+
+
 def failure_stages() -> str:
-    """Where the policy fails from rest and where short rollouts have mixed outcomes
-    (``policy/failure_phases_small_cpu/failure_phases.json``, ``bench_failure_phases``): per stage, its share of the
-    failures from rest, the branch points at that stage, their groups with mixed outcomes and their paid success."""
-    d = _load("policy", "failure_phases_small_cpu", "failure_phases.json")
+    """Where the policy fails from rest and where short rollouts have mixed outcomes (``bench_failure_phases``'
+    ``policy/<run>/failure_phases.json`` for each of :data:`FAILURE_STAGE_RUNS` there): per stage, its share of the
+    failures from rest; per branch point's stage, the starts and, per rollout length, their groups with mixed
+    outcomes and their paid success. Runs whose episodes or starts differ from the first's are left out."""
+    runs = []
+    for name in FAILURE_STAGE_RUNS:
+        if os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json")):
+            runs.append(_load("policy", name, "failure_phases.json"))
+    d = runs[0]
+    same = [r for r in runs if r["episode_stages"] == d["episode_stages"]
+            and all(r["starts"][k]["starts"] == v["starts"] for k, v in d["starts"].items())]
     failed = d["episodes"] - d["episode_stages"]["success"]
     rows = [[name, f"{d['episode_stages'][name]} ({d['failure_shares'][name]:.2f} of {failed})"]
             for name in list(d["failure_shares"])]
     rows.append(["success", f"{d['episode_stages']['success']} of {d['episodes']} ({d['success']:.3f})"])
-    starts = [[name, str(v["starts"]), str(v["mixed_groups"]), "" if v["paid_success"] is None else
-               f"{v['paid_success']:.3f}"] for name, v in d["starts"].items()]
-    size, h = d["group_size"], d["horizon_decisions"]
+    header = [f"branch point's stage (groups of {d['group_size']})", "starts"]
+    for r in same:
+        header += [f"mixed groups, {r['horizon_decisions']} decisions", f"paid success, {r['horizon_decisions']}"]
+    starts = [[name, str(v["starts"])] for name, v in d["starts"].items()]
+    for row, name in zip(starts, d["starts"]):
+        for r in same:
+            v = r["starts"][name]
+            row += [str(v["mixed_groups"]), "" if v["paid_success"] is None else f"{v['paid_success']:.3f}"]
+    total = ["all", str(sum(v["starts"] for v in d["starts"].values()))]
+    for r in same:
+        total += [str(r["mixed_groups"]), ""]
     return (_table(["episodes from rest, furthest stage", "episodes"], rows) + "\n\n"
-            + _table([f"branch point's stage (short rollouts of {h} decisions, groups of {size})", "starts",
-                      "groups with mixed outcomes", "paid success"], starts))
+            + _table(header, starts + [total]))
 
 
 TABLES: dict[str, Callable[[], str]] = {
