@@ -1041,8 +1041,8 @@ def sim_fidelity_decisions() -> str:
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
-# 12-decision ones
-FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h12_small_cpu")
+# 8- and 12-decision ones
+FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
 
 
 def failure_stages() -> str:
