@@ -40,6 +40,7 @@ import numpy as np
 from sword_jax import cli
 from sword_jax.atomic_write import write_json_atomic
 from sword_jax.pipeline.launch import DETERMINISTIC_OPS as DETERMINISTIC_FLAG
+from sword_jax.pipeline.launch import with_flag
 
 POLICIES = ("greedy", "sampled", "sampled_proprio_masked")  # EnvGRPO.evaluate's point and extras
 
@@ -89,14 +90,19 @@ def repeat_evaluations(runner, params, repeats: int, *, masked: bool,
 
 
 def outcome_strings(outcomes: dict[str, list[np.ndarray]]) -> dict[str, list[str]]:
-    """Each policy's repeats as strings of 0/1 in episode order (as ``success_summary`` keeps them)."""
-    return {p: ["".join("1" if x else "0" for x in np.asarray(o, bool).ravel()) for o in runs]
-            for p, runs in outcomes.items() if runs}
+    """Each policy's repeats as strings of 0/1 in episode order
+    (:func:`~sword_jax.rl.env_rollout.outcomes_text`, as ``success_summary`` keeps them)."""
+    from sword_jax.rl.env_rollout import outcomes_text
+
+    return {p: [outcomes_text(o) for o in runs] for p, runs in outcomes.items() if runs}
 
 
 def comparison_from_strings(repeats: dict[str, list[str]]) -> dict:
-    """:func:`compare_repeats` per policy from :func:`outcome_strings`'s form."""
-    return {p: compare_repeats([np.array([c == "1" for c in r], bool) for r in runs]) for p, runs in repeats.items()}
+    """:func:`compare_repeats` per policy from :func:`outcome_strings`'s form (read back by
+    :func:`~sword_jax.rl.env_rollout.point_outcomes`)."""
+    from sword_jax.rl.env_rollout import point_outcomes
+
+    return {p: compare_repeats([point_outcomes({"outcomes": r}) for r in runs]) for p, runs in repeats.items()}
 
 
 def load_result(path: str) -> dict:
@@ -182,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         print(f"[eval-repeat] recorded {args.from_file}: largest share of differing episodes {entry['value']:.3f}")
         return result
     if args.deterministic:  # read when the backend starts: before any JAX computation below
-        os.environ["XLA_FLAGS"] = " ".join(f for f in (os.environ.get("XLA_FLAGS", ""), DETERMINISTIC_FLAG) if f)
+        os.environ["XLA_FLAGS"] = with_flag(os.environ.get("XLA_FLAGS", ""), DETERMINISTIC_FLAG)
 
     import jax
 

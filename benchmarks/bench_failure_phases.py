@@ -29,7 +29,6 @@ of failures from rest whose bowl was never grasped.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -38,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from sword_jax import cli
+from sword_jax.atomic_write import write_json_atomic
 
 EPISODE_STAGES = ("success", "never grasped", "grasped, never over the plate", "over the plate, not placed")
 START_STAGES = ("before the grasp", "grasped", "over the plate", "after a release")
@@ -74,20 +74,19 @@ def start_stages(held: np.ndarray, bowl: np.ndarray, plate: np.ndarray, held_bef
 class Recording:
     """``envs`` (a :class:`sim.lockstep.LockstepEnvs`) as :func:`sword_jax.rl.env_rollout.run_policy` drives it,
     reading :meth:`~sim.lockstep.LockstepEnvs.poses` after the reset and after every decision (``poses``: one dict
-    per read) with whether each episode was done before that decision (``done``)."""
+    per read)."""
 
     def __init__(self, envs: Any):
-        self.envs, self.poses, self.done = envs, [], []
+        self.envs, self.poses = envs, []
         self.n, self.language = envs.n, envs.language
 
     def reset(self, *args):
         out = self.envs.reset(*args)
         self.language = self.envs.language
-        self.poses, self.done = [self.envs.poses()], [np.zeros(self.n, bool)]
+        self.poses = [self.envs.poses()]
         return out
 
     def step(self, actions):
-        self.done.append(self.envs.done.copy())
         out = self.envs.step(actions)
         self.poses.append(self.envs.poses())
         return out
@@ -113,10 +112,10 @@ def rollouts(probe: Any, starts: list, *, max_steps: int, stream: int, workers: 
     return out, rec
 
 
-def branch_points(stages_done: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def branch_points(done: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``count`` (episode, decision) pairs drawn uniformly without replacement from the decisions at which an
-    episode was still running (``stages_done [n, t]``: done before decision ``t``)."""
-    ep, at = np.nonzero(~np.asarray(stages_done, bool))
+    episode was still running (``done [n, t]``: done before decision ``t``)."""
+    ep, at = np.nonzero(~np.asarray(done, bool))
     if ep.size == 0:
         raise ValueError("branch_points: no episode was running at any decision")
     pick = rng.choice(ep.size, size=min(count, ep.size), replace=False)
@@ -197,9 +196,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     held = rec.stacked("held", steps)
     success = np.asarray(real.success, bool)
     stages = episode_stages(held, bowl, plate, success, over_m=args.over_m)
-    # done before each decision; past the last one taken, every episode had ended (or met the limit)
-    done = np.stack(rec.done + [np.ones(len(rest), bool)] * (steps + 1 - len(rec.done)), axis=1)[:, : steps + 1]
-    decided = np.asarray(real.valid).sum(1).astype(int)  # decisions taken; a success is at the last
+    valid = np.asarray(real.valid) > 0  # [n, steps]: running before each decision (0 past the last one taken)
+    decided = valid.sum(1).astype(int)  # decisions taken; a success is at the last
     success_decision = np.where(success, decided, -1)
     grasp_decision = np.where(held.any(1), held.argmax(1), -1)
     print(f"[failure-phases] {len(rest)} episodes from rest: success {success.mean():.3f}; stages "
@@ -207,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
           + f" ({seconds['rest_s']:.0f} s)", flush=True)
 
     t0 = time.perf_counter()
-    ep, at = branch_points(done[:, :-1], args.starts, np.random.default_rng(args.seed))
+    ep, at = branch_points(~valid, args.starts, np.random.default_rng(args.seed))
     state = rec.stacked("state", steps)
     start_stage = start_stages(held[ep, at], bowl[ep, at], plate[ep, at],
                                np.array([held[e, :a].any() for e, a in zip(ep, at)]), over_m=args.over_m)
@@ -227,8 +225,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                                                  .items())
           + f"; mixed groups starting after the grasp {result['mixed_after_the_grasp']:.2f} of {result['mixed_groups']} "
           f"({seconds['short_s']:.0f} s)", flush=True)
-    with open(os.path.join(args.out, "failure_phases.json"), "w") as f:
-        json.dump(result, f, indent=1)
+    write_json_atomic(os.path.join(args.out, "failure_phases.json"), result)
     if args.record:
         from benchmarks import common
 

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from sword_jax.atomic_write import write_json_atomic
+from sword_jax.pipeline.launch import DETERMINISTIC_OPS, NO_MULTICAST, with_flag
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checkout the benchmarks run from
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "latest.json")
@@ -255,19 +256,11 @@ def record_gpus(path: str) -> None:
 XLA_FLAGS_FILE = "xla_flags.txt"
 
 
-def with_flag(flags: str, flag: str) -> str:
-    """``flags`` (an ``XLA_FLAGS`` value) with ``flag`` added once."""
-    words = flags.split()
-    return " ".join(words if flag in words else [*words, flag])
-
-
 def launch_env(workdir: str, *, deterministic: bool = False) -> dict[str, str]:
     """The environment a launcher starts its GPU runs in: this process's, with XLA taking GPU memory as needed,
     unbuffered output, NVLink multicast off and, with ``deterministic``, XLA's deterministic ops
     (:data:`~sword_jax.pipeline.launch.DETERMINISTIC_OPS`) added to ``XLA_FLAGS``. The runs' ``XLA_FLAGS`` is
     written to ``workdir/xla_flags.txt``, which :func:`workdir_xla_flags` reads back for the summary."""
-    from sword_jax.pipeline.launch import DETERMINISTIC_OPS, NO_MULTICAST
-
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1", **NO_MULTICAST)
     if deterministic:
         env["XLA_FLAGS"] = with_flag(env.get("XLA_FLAGS", ""), DETERMINISTIC_OPS)
@@ -280,8 +273,6 @@ def launch_env(workdir: str, *, deterministic: bool = False) -> dict[str, str]:
 def workdir_xla_flags(workdir: str) -> dict[str, Any]:
     """What :func:`launch_env` wrote for a work dir's runs: ``{"xla_flags": ..., "deterministic": bool}``, or
     ``{}`` for a work dir launched before it was written."""
-    from sword_jax.pipeline.launch import DETERMINISTIC_OPS
-
     path = os.path.join(workdir, XLA_FLAGS_FILE)
     if not os.path.exists(path):
         return {}

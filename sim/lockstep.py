@@ -26,18 +26,18 @@ import numpy as np
 _RENDER_BUCKET = 64  # batch sizes are padded to a multiple of this (one compile per bucket)
 
 
-def _pads_touch(env: Any, data: Any) -> bool:
-    """Whether both of the Panda's finger pads are in contact with the target bowl (a grasp)."""
+def _grasp_geoms(env: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The Panda's two finger-pad geoms and the target bowl's geoms in ``env``'s model."""
     model = env.mj_model
-    bowl = np.flatnonzero(model.geom_bodyid == env.bowl_body)
-    pads = [model.geom(f"panda_{side}_finger_pad").id for side in ("left", "right")]
-    pairs = np.stack([data.contact.geom1[: data.ncon], data.contact.geom2[: data.ncon]], -1)
-    touching = set()
-    for a, b in pairs:
-        for pad, other in ((a, b), (b, a)):
-            if pad in pads and other in bowl:
-                touching.add(int(pad))
-    return len(touching) == 2
+    pads = np.array([model.geom(f"panda_{side}_finger_pad").id for side in ("left", "right")])
+    return pads, np.flatnonzero(model.geom_bodyid == env.bowl_body)
+
+
+def _pads_touch(data: Any, pads: np.ndarray, bowl: np.ndarray) -> bool:
+    """Whether both finger pads ``pads`` are in contact with a geom of the bowl ``bowl`` (a grasp)."""
+    g1, g2 = np.asarray(data.contact.geom1[: data.ncon]), np.asarray(data.contact.geom2[: data.ncon])
+    touching = np.concatenate([g1[np.isin(g2, bowl)], g2[np.isin(g1, bowl)]])
+    return bool(np.all(np.isin(pads, touching)))
 
 
 class _Shard:
@@ -55,6 +55,7 @@ class _Shard:
         self._make_env = lambda t: CpuEnv(SimConfig(backend="cpu", resolution=resolution, max_steps=max_steps), t)
         self.envs: dict[int, Any] = {}
         self._gl: dict[int, Any] = {}
+        self._grasp: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per task: finger-pad and bowl geoms (poses)
         self._assign(episodes)
         any_env = next(iter(self.envs.values()))
         self.cam_id = any_env.mj_model.camera("agentview").id
@@ -119,10 +120,12 @@ class _Shard:
         bowl, up, plate, held, state = [], [], [], [], []
         for t, s in zip(self.task_of, self.states):
             env, d = self.envs[t], s.data
+            if t not in self._grasp:
+                self._grasp[t] = _grasp_geoms(env)
             bowl.append(np.array(d.xpos[env.bowl_body]))
             up.append(float(d.xmat[env.bowl_body].reshape(3, 3)[2, 2]))
             plate.append(np.array(d.xpos[env.plate_body]))
-            held.append(_pads_touch(env, d))
+            held.append(_pads_touch(d, *self._grasp[t]))
             state.append(np.concatenate([[float(d.time)], d.qpos, d.qvel]))
         return {"bowl": np.stack(bowl), "bowl_up": np.asarray(up), "plate": np.stack(plate), "held": np.asarray(held),
                 "state": np.stack(state)}

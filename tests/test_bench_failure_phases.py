@@ -97,9 +97,59 @@ def test_the_grasp_is_read_from_the_finger_pads_contacts_along_an_expert_episode
     assert not held[0] and held[-1] and last - first >= 10 and all(held[first: last + 1])
 
 
+class _EndsAfter:
+    """Lockstep-like episodes: episode ``i`` succeeds in its ``ends[i]``-th decision; ``poses`` reports as ``state``
+    how many decisions it has taken."""
+
+    def __init__(self, ends):
+        self.ends, self.n, self.language = np.asarray(ends), len(ends), ["push it"] * len(ends)
+
+    def _obs(self):
+        return {"frames": np.zeros((self.n, 32, 32, 3), np.uint8), "proprio": np.zeros((self.n, 8), np.float32)}
+
+    def reset(self, episodes=None):
+        self.taken, self.done = np.zeros(self.n, int), np.zeros(self.n, bool)
+        return self._obs()
+
+    def step(self, actions):
+        self.taken += ~self.done
+        success = ~self.done & (self.taken == self.ends)
+        self.done |= success
+        return dict(self._obs(), success=success, executed=np.where(success, 1, 0), done=self.done.copy())
+
+    def poses(self):
+        return {"state": self.taken[:, None].astype(float)}
+
+
+def test_a_recorded_read_lines_up_with_the_decision_it_comes_before():
+    """The state read before decision c is the one run_policy marks valid at c: never the state an episode ended in
+    (the branch points' source, whose misalignment would branch from finished episodes)."""
+    import dataclasses
+
+    import jax
+
+    import configs
+    from sword_jax.rl.env_rollout import make_act_fns, run_policy
+    from sword_jax.rl.policy import build_policy
+
+    rl = configs.get("sword:tiny").rl
+    rl = dataclasses.replace(rl, env=dataclasses.replace(rl.env, execute_steps=1, action_ensemble=False))
+    graphdef, params = build_policy(rl, seed=0)
+    rec = fp.Recording(_EndsAfter([1, 3, 2]))
+    out = run_policy(make_act_fns(graphdef, rl), params, rec, rl, key=jax.random.key(0), greedy=False, max_steps=5,
+                     proprio="missing")
+    valid = np.asarray(out.valid) > 0
+    state = rec.stacked("state", valid.shape[1])[:, :-1, 0]  # the reads before each decision (the last: after all)
+    assert valid.sum(1).tolist() == [1, 3, 2] and out.success.all()
+    assert np.array_equal(state[valid], np.nonzero(valid)[1])  # before decision c, c decisions taken
+    ep, at = fp.branch_points(~valid, 10, np.random.default_rng(0))
+    assert len(ep) == 6 and np.all(state[ep, at] < np.array([1, 3, 2])[ep])  # none from an ended episode
+
+
 def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
-    """A random tiny policy, 3 episodes of 16 actions and 2 short groups: every count adds up, the record carries
-    the failure shares."""
+    """A random tiny policy, 3 episodes of 16 actions (4 decisions each, none succeeds) and as many short groups as
+    there are branch points: every count adds up, only the 12 states before a decision are branched from (never
+    the state an episode ended in), and the record carries the failure shares."""
     import configs
     from benchmarks import common
     from sword_jax.rl.params_io import save_params_npz
@@ -109,10 +159,10 @@ def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
     _, params = build_policy(configs.get("sword:tiny").rl, seed=0)
     save_params_npz(str(tmp_path / "p.npz"), params)
     out = fp.main(["--policy", str(tmp_path / "p.npz"), "--out", str(tmp_path), "--config", "sword:tiny",
-                   "--episodes", "3", "--starts", "2", "--group-size", "2", "--horizon", "1", "--max-steps", "16",
+                   "--episodes", "3", "--starts", "100", "--group-size", "2", "--horizon", "1", "--max-steps", "16",
                    "--record"])
-    assert out["episodes"] == 3 and sum(out["episode_stages"].values()) == 3
-    assert sum(s["starts"] for s in out["starts"].values()) == 2 and out["episode_limit"] == 16
+    assert out["episodes"] == 3 and sum(out["episode_stages"].values()) == 3 and out["success"] == 0
+    assert sum(s["starts"] for s in out["starts"].values()) == 12 and out["episode_limit"] == 16
     saved = json.loads((tmp_path / "failure_phases.json").read_text())
     assert saved["failure_shares"] == out["failure_shares"]
     entry = json.loads((tmp_path / "latest.json").read_text())["policy_failure_stages_small"]

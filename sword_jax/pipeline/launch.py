@@ -40,6 +40,13 @@ NO_MULTICAST = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1"
 # policy) gives the same numbers every time
 DETERMINISTIC_OPS = "--xla_gpu_deterministic_ops=true"
 
+
+def with_flag(flags: str, flag: str) -> str:
+    """``flags`` (an ``XLA_FLAGS`` value) with ``flag`` added once."""
+    words = flags.split()
+    return " ".join(words if flag in words else [*words, flag])
+
+
 DEFAULT_GRACE_S = 10.0  # SIGTERM -> SIGKILL
 POLL_S = 0.1  # how often the ranks' exit statuses are read
 STOP_MARGIN_S = 2.0  # beyond the grace: the poll, the SIGKILL and reaping the ranks
