@@ -20,8 +20,8 @@ measure what determinism costs and whether it makes the evaluation repeatable. C
         --rl.grpo.temperature=0.5 --rl.env.proprio=missing [--deterministic] [--record]
 
 ``eval_repeat.json`` is rewritten after every repeat (``"complete": false`` until the last), with each repeat's
-outcomes, so a run cut off mid-way keeps the repeats it finished. ``--record`` writes ``mjx_eval_repeat_small`` to
-``benchmarks/results/latest.json``: its value is the largest share, over the policies and the later repeats, of
+outcomes, so a run cut off mid-way keeps the repeats it finished. ``--record`` writes ``mjx_eval_repeat_small`` (with
+``--deterministic``: ``mjx_eval_repeat_deterministic_small``) to ``benchmarks/results/latest.json``: its value is the largest share, over the policies and the later repeats, of
 episodes whose outcome differed from the first repeat's. ``--from FILE --record`` records a saved
 ``eval_repeat.json`` (a GPU run's, on any machine) without evaluating anything; it needs two repeats or more.
 """
@@ -127,20 +127,26 @@ def load_result(path: str) -> dict:
     return result
 
 
+def result_key(result: dict) -> str:
+    """``latest.json``'s key for ``result``: one for evaluations with XLA's deterministic ops, one for plain ones."""
+    return "mjx_eval_repeat_deterministic_small" if result.get("deterministic") else "mjx_eval_repeat_small"
+
+
 def record_result(result: dict) -> dict:
-    """The ``mjx_eval_repeat_small`` entry of ``result`` (as :func:`main` writes it) merged into ``latest.json``,
+    """The entry of ``result`` (as :func:`main` writes it; key :func:`result_key`) merged into ``latest.json``,
     stamped with the device and command that ran the evaluation."""
     from benchmarks import common
 
+    key = result_key(result)
     worst = max(s for c in result["policies"].values() for s in c["differing_share"])
-    entry = common.record("mjx_eval_repeat_small", worst, 0.0, unit="largest share of episodes whose outcome "
+    entry = common.record(key, worst, 0.0, unit="largest share of episodes whose outcome "
                           "differed between repeats of the same evaluation", config=result.get("config"),
                           deterministic=result.get("deterministic"), policies=result["policies"],
                           seconds=result.get("seconds"), complete=result.get("complete", True))
     for stamp in ("device", "command"):  # those of the run that evaluated
         if result.get(stamp):
             entry[stamp] = result[stamp]
-    common.merge_results({"mjx_eval_repeat_small": entry})
+    common.merge_results({key: entry})
     return entry
 
 
@@ -156,7 +162,8 @@ def parse(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--episodes-per-task", type=int, default=50, help="evaluation episodes per task (1-50)")
     parser.add_argument("--deterministic", action="store_true",
                         help=f"add {DETERMINISTIC_FLAG} to XLA_FLAGS (GPU) before JAX starts its backend")
-    parser.add_argument("--record", action="store_true", help="write mjx_eval_repeat_small to latest.json")
+    parser.add_argument("--record", action="store_true", help="write mjx_eval_repeat_small (deterministic: "
+                        "mjx_eval_repeat_deterministic_small) to latest.json")
     args, rest = parser.parse_known_args(argv)
     if args.from_file is not None:
         if not args.record:

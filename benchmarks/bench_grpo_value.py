@@ -37,6 +37,7 @@ outcomes, the share of its advantages' mass in groups split by success, the real
 and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched_value_small`` (``--record-as
 open``: ``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the
 open-starts runs at ``--rollout-batch 256``; ``open_b1024``: ``policy_grpo_branched_open_b1024_small``, at 1,024;
+``open_h12``: ``policy_grpo_branched_open_h12_small``, 256 starts with 12-decision rollouts (``--horizon 12``);
 ``open_kl``: ``policy_grpo_branched_open_kl_small``, those with
 ``--kl-coef``) to ``benchmarks/results/latest.json``.
 """
@@ -210,6 +211,7 @@ ENTRIES = {"value": ("policy_grpo_branched_value_small", "value"),  # uniform st
            "open": ("policy_grpo_branched_open_small", "success"),  # open starts, centred advantages
            "open_b256": ("policy_grpo_branched_open_b256_small", "success"),  # the same with 256 starts a step
            "open_b1024": ("policy_grpo_branched_open_b1024_small", "success"),  # 1,024 starts a step
+           "open_h12": ("policy_grpo_branched_open_h12_small", "success"),  # 256 starts, 12-decision rollouts
            "open_kl": ("policy_grpo_branched_open_kl_small", "success")}  # 64 starts, anchored by --kl-coef
 
 
@@ -218,7 +220,8 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
     """One entry (:data:`ENTRIES`): ``policy_grpo_branched_value_small`` (the runs with uniform starts), value the
     smallest gain over the seeds of the ``value`` arm's sampled policy reading proprio masked (the mode its rollouts
     train), or ``policy_grpo_branched_open_small`` (open starts, centred advantages; ``..._open_b256_small``: the
-    same at 256 starts a step, ``..._open_b1024_small`` at 1,024; ``..._open_kl_small``: anchored to the starting policy by a KL term), that of the
+    same at 256 starts a step, ``..._open_b1024_small`` at 1,024, ``..._open_h12_small`` at 256 with 12-decision
+    rollouts; ``..._open_kl_small``: anchored to the starting policy by a KL term), that of the
     ``success`` arm; beside every arm's gains and every run's summary."""
     key, arm = ENTRIES[record_as]
     entry = smallest_gain_entry(summary, arm, workdir, bench="bench_grpo_value", data=data, command=command,

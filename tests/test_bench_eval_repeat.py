@@ -60,9 +60,15 @@ def test_a_saved_result_is_checked_and_recorded_with_its_own_device(tmp_path, mo
                                  "seconds": [3.0, 1.0], "outcomes": kept, "policies": {}}))
     result = repeat.main(["--from", str(saved), "--record"])  # the policies are compared again from the outcomes
     assert result["policies"]["greedy"]["differing"] == [1] and result["policies"]["sampled"]["differing"] == [0]
-    entry = json.loads((tmp_path / "latest.json").read_text())["mjx_eval_repeat_small"]
+    entry = json.loads((tmp_path / "latest.json").read_text())["mjx_eval_repeat_deterministic_small"]
     assert entry["value"] == pytest.approx(0.25) and entry["device"] == "NVIDIA H200 x1 (gpu)"
     assert entry["deterministic"] is True and entry["complete"] is True
+    plain = json.loads(saved.read_text())
+    plain["deterministic"] = False  # a plain evaluation keeps its own entry beside the deterministic one
+    saved.write_text(json.dumps(plain))
+    repeat.main(["--from", str(saved), "--record"])
+    assert set(json.loads((tmp_path / "latest.json").read_text())) >= {"mjx_eval_repeat_small",
+                                                                        "mjx_eval_repeat_deterministic_small"}
     one = tmp_path / "one.json"  # cut off after its first repeat: nothing to compare
     one.write_text(json.dumps({"complete": False, "outcomes": {"greedy": ["1011"]}, "policies": {}}))
     with pytest.raises(UsageError, match="at least 2 repeats, got 1"):

@@ -103,6 +103,8 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     assert wide["policy_grpo_branched_open_b256_small"]["value"] == pytest.approx(0.05)
     widest = gv.results_entries(summary, base, data="x.json", record_as="open_b1024")  # 1,024 starts a step
     assert list(widest) == ["policy_grpo_branched_open_b1024_small"]
+    longer = gv.results_entries(summary, base, data="x.json", record_as="open_h12")  # 12-decision rollouts
+    assert list(longer) == ["policy_grpo_branched_open_h12_small"]
     anchored = gv.results_entries(summary, base, data="x.json", record_as="open_kl")  # anchored by a KL term
     assert list(anchored) == ["policy_grpo_branched_open_kl_small"]
     assert "contrasts" not in summary and "contrasts" not in entries["policy_grpo_branched_value_small"]  # no control
