@@ -23,7 +23,9 @@ masked)::
 
 ``--scale-by-std false`` centres every arm's advantages without dividing by the group's std (Dr. GRPO,
 ``rl.grpo.scale_by_std``); ``--branch-starts open`` draws every arm's starts where the value says the outcome is
-still open (``rl.value.branch_starts``); ``--min-mixed-groups N`` skips the update of a step with fewer than N
+still open (``rl.value.branch_starts``); ``--branch-starts rest`` starts them instead at training-split states at
+rest, as whole-episode GRPO does, still cut at ``--horizon`` (``rl.env.starts=rest``: the starts' share of a short
+rollout's effect, told from the cut's; ``--value-episodes 0`` then fits no value, without the ``value`` arm); ``--min-mixed-groups N`` skips the update of a step with fewer than N
 groups of mixed outcomes (``rl.grpo.min_mixed_groups``); ``--kl-coef K`` anchors every arm to the starting policy by
 a k3 KL term of weight K (``rl.grpo.kl_coef``); ``--learning-rate`` replaces the recipe's 1e-4. ``--arms shuffled``
 adds the noise-only control: success alone, each group's returns shuffled among its trajectories
@@ -38,6 +40,9 @@ and the value's held-out calibration; ``--record`` writes ``policy_grpo_branched
 open``: ``policy_grpo_branched_open_small``; ``open_b256``: ``policy_grpo_branched_open_b256_small``, the
 open-starts runs at ``--rollout-batch 256``; ``open_b1024``: ``policy_grpo_branched_open_b1024_small``, at 1,024;
 ``open_h12``: ``policy_grpo_branched_open_h12_small``, 256 starts with 12-decision rollouts (``--horizon 12``);
+``rest_h12``: ``policy_grpo_rest_h12_small``, the same from rest (``--branch-starts rest``); ``rest_whole``:
+``policy_grpo_rest_whole_small``, from rest to the episode limit (``--horizon 55``), the whole-episode reference in
+this setting;
 ``open_kl``: ``policy_grpo_branched_open_kl_small``, those with
 ``--kl-coef``) to ``benchmarks/results/latest.json``.
 """
@@ -64,9 +69,15 @@ ARMS = ("value", "success", "shuffled")
 ARM_LABELS = {"value": "branched, paid success or the value at the horizon",
               "success": "branched, paid success alone",
               "shuffled": "branched, success shuffled within each group (the noise-only control)"}
-SETTING = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.starts=branch",
-           "--rl.env.proprio=missing")
-GRPO_DIR = "grpo_env_proprio_missing_starts_branch_mjx"  # bench_policy.grpo_dir of this setting
+SETTING = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.proprio=missing")
+# bench_policy.grpo_dir of this setting, by rl.env.starts (--branch-starts rest: rest, otherwise branch)
+GRPO_DIRS = {"branch": "grpo_env_proprio_missing_starts_branch_mjx", "rest": "grpo_env_proprio_missing_starts_rest_mjx"}
+GRPO_DIR = GRPO_DIRS["branch"]
+
+
+def arm_label(arm: str, starts: str = "branch") -> str:
+    """The arm's label (:data:`ARM_LABELS`), said of runs from rest where they start there."""
+    return ARM_LABELS[arm] if starts == "branch" else ARM_LABELS[arm].replace("branched", "from rest, cut at the horizon")
 
 
 def run_commands(args) -> dict[str, list[str]]:
@@ -82,13 +93,14 @@ def run_commands(args) -> dict[str, list[str]]:
                 sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config, "--seed", str(seed),
                 "--out", os.path.join(args.workdir, arm, f"s{seed}"), "--policy", args.policy,
                 "--eval-episodes", str(args.eval_episodes_per_task), *shared,
+                f"--rl.env.starts={'rest' if args.branch_starts == 'rest' else 'branch'}",
                 f"--rl.value.episodes={args.value_episodes}", f"--rl.value.steps={args.value_steps}",
                 f"--rl.value.bootstrap={'true' if arm == 'value' else 'false'}",
                 *(("--rl.grpo.shuffle_returns=true",) if arm == "shuffled" else ()),
                 f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
                 f"--rl.grpo.eval_every={args.eval_every}",
                 *(() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)),
-                *(() if args.branch_starts == "uniform" else (f"--rl.value.branch_starts={args.branch_starts}",)),
+                *((f"--rl.value.branch_starts={args.branch_starts}",) if args.branch_starts == "open" else ()),
                 *((f"--rl.grpo.min_mixed_groups={args.min_mixed_groups}",) if args.min_mixed_groups else ()),
                 *((f"--rl.grpo.kl_coef={args.kl_coef:g}",) if args.kl_coef else ())]
     return out
@@ -129,15 +141,22 @@ def run(args, *, poll_s: float = 5.0) -> dict:
 
 
 def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
-    """``{run name: (arm, seed, GRPO work dir)}`` of the runs under ``workdir`` that left a success curve."""
+    """``{run name: (arm, seed, GRPO work dir)}`` of the runs under ``workdir`` that left a success curve (from
+    branch starts or from rest, :data:`GRPO_DIRS`)."""
     out = {}
     for arm in ARMS:
         folder = os.path.join(workdir, arm)
         for seed_dir in sorted(os.listdir(folder)) if os.path.isdir(folder) else []:
-            grpo = os.path.join(folder, seed_dir, GRPO_DIR)
-            if seed_dir[:1] == "s" and seed_dir[1:].isdigit() and os.path.exists(os.path.join(grpo, "success_curve.json")):
-                out[f"{arm}_{seed_dir}"] = (arm, int(seed_dir[1:]), grpo)
+            for grpo in (os.path.join(folder, seed_dir, d) for d in GRPO_DIRS.values()):
+                if (seed_dir[:1] == "s" and seed_dir[1:].isdigit()
+                        and os.path.exists(os.path.join(grpo, "success_curve.json"))):
+                    out[f"{arm}_{seed_dir}"] = (arm, int(seed_dir[1:]), grpo)
     return out
+
+
+def run_starts(grpo: str) -> str:
+    """Where a run's rollouts started (``branch`` or ``rest``), read from its work dir's name."""
+    return next(k for k, d in GRPO_DIRS.items() if os.path.basename(os.path.normpath(grpo)) == d)
 
 
 def value_summary(grpo: str) -> dict | None:
@@ -160,7 +179,7 @@ def summarize(workdir: str) -> dict:
     mean."""
     runs = {}
     for name, (arm, seed, grpo) in run_dirs(workdir).items():
-        run = dict(arm=arm, seed=seed, **summarize_run(grpo), value=value_summary(grpo))
+        run = dict(arm=arm, seed=seed, starts=run_starts(grpo), **summarize_run(grpo), value=value_summary(grpo))
         history = read_history(grpo)
         shares = [h["success_advantage_share"] for h in history if "success_advantage_share" in h]
         if shares:  # how much of the update real outcomes carried (runs from before it was logged lack it)
@@ -175,7 +194,9 @@ def summarize(workdir: str) -> dict:
         mine = [r for r in runs.values() if r["arm"] == arm]
         gains = {r["seed"]: r["sampled_proprio_masked"]["gain"] for r in mine if r["sampled_proprio_masked"]}
         if gains:
-            arms[arm] = {"label": ARM_LABELS[arm], "masked_gain_per_seed": gains, "smallest": min(gains.values()),
+            starts = {r["starts"] for r in mine}
+            arms[arm] = {"label": arm_label(arm, starts.pop() if len(starts) == 1 else "branch"),
+                         "masked_gain_per_seed": gains, "smallest": min(gains.values()),
                          "mean": statistics.mean(gains.values()), "steps": min(r["steps"] for r in mine)}
     contrasts = {arm: c for arm in ARMS if arm != CONTROL for c in (contrast(runs, arm),) if c}
     return {"runs": runs, "arms": arms, **({"contrasts": contrasts} if contrasts else {}),
@@ -212,6 +233,8 @@ ENTRIES = {"value": ("policy_grpo_branched_value_small", "value"),  # uniform st
            "open_b256": ("policy_grpo_branched_open_b256_small", "success"),  # the same with 256 starts a step
            "open_b1024": ("policy_grpo_branched_open_b1024_small", "success"),  # 1,024 starts a step
            "open_h12": ("policy_grpo_branched_open_h12_small", "success"),  # 256 starts, 12-decision rollouts
+           "rest_h12": ("policy_grpo_rest_h12_small", "success"),  # the same from rest (--branch-starts rest)
+           "rest_whole": ("policy_grpo_rest_whole_small", "success"),  # from rest to the episode limit
            "open_kl": ("policy_grpo_branched_open_kl_small", "success")}  # 64 starts, anchored by --kl-coef
 
 
@@ -287,9 +310,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
                         help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
                              "Dr. GRPO, rl.grpo.scale_by_std)")
-    parser.add_argument("--branch-starts", choices=("uniform", "open"), default="uniform",
+    parser.add_argument("--branch-starts", choices=("uniform", "open", "rest"), default="uniform",
                         help="run: every arm's starts uniform over the decisions, or where the value says the outcome "
-                             "is still open (rl.value.branch_starts)")
+                             "is still open (rl.value.branch_starts), or at training-split states at rest, still cut at "
+                             "--horizon (rl.env.starts=rest)")
     parser.add_argument("--min-mixed-groups", type=int, default=0,
                         help="run: a step whose batch holds fewer groups with mixed outcomes applies no update "
                              "(rl.grpo.min_mixed_groups; 0 = every step updates)")
@@ -313,12 +337,15 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     if args.mode == "run" and not args.policy:
         raise SystemExit("bench_grpo_value run needs --policy (the supervised policy, .npz)")
     if (not args.seeds or not args.gpus or args.steps < 1 or args.eval_every < 1 or args.eval_episodes_per_task < 1
-            or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1 or args.value_episodes < 2
+            or args.rollout_batch < 1 or args.rollout_batch % 4 or args.horizon < 1
+            or (args.value_episodes < 2 and not (args.value_episodes == 0 and args.branch_starts == "rest"
+                                                 and "value" not in args.arms))
             or args.value_steps < 1 or not 0 <= args.min_mixed_groups <= args.rollout_batch
             or not (args.kl_coef >= 0 and math.isfinite(args.kl_coef))
             or not (args.learning_rate >= 0 and math.isfinite(args.learning_rate))):
         raise SystemExit("bench_grpo_value: --seeds and --gpus need one entry or more; --steps, --eval-every, "
-                         "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2; "
+                         "--eval-episodes-per-task, --horizon and --value-steps >= 1; --value-episodes >= 2 (or 0 with "
+                         "--branch-starts rest and no value arm); "
                          "--rollout-batch a multiple of 4 (4 minibatches); --min-mixed-groups in [0, --rollout-batch]; "
                          "--kl-coef and --learning-rate finite numbers >= 0")
     return args

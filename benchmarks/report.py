@@ -927,14 +927,16 @@ BRANCHED_OPEN = {"policy_grpo_branched_open_small": "64 starts x 8, 4 decisions"
                  "policy_grpo_branched_open_b256_small": "256 starts x 8, 4 decisions",
                  "policy_grpo_branched_open_b1024_small": "1,024 starts x 8, 4 decisions",
                  "policy_grpo_branched_open_h12_small": "256 starts x 8, 12 decisions",
+                 "policy_grpo_rest_h12_small": "256 starts x 8, 12 decisions",
+                 "policy_grpo_rest_whole_small": "64 starts x 8, to the episode limit",
                  "policy_grpo_branched_open_kl_small": "64 starts x 8, 4 decisions, KL 0.04 to the start"}
 
 
 def grpo_branched_open() -> str:
     """The same comparison with starts where the value says the outcome is open and centred advantages
     (``policy_grpo_branched_open_small``, ``..._open_b256_small`` at 256 starts a step, ``..._open_b1024_small`` at
-    1,024, ``..._open_h12_small`` at 256 with 12-decision rollouts and ``..._open_kl_small`` anchored by a KL term):
-    per run the gains of the
+    1,024, ``..._open_h12_small`` at 256 with 12-decision rollouts and ``..._open_kl_small`` anchored by a KL term;
+    ``policy_grpo_rest_h12_small`` and ``..._rest_whole_small``: the same setting from rest): per run the gains of the
     sampled policy with proprio masked and with true proprio and of the greedy policy, what its rollouts were paid,
     its groups with mixed outcomes and the share of the advantages' mass in groups split by real success."""
     def cells(run):
@@ -946,7 +948,7 @@ def grpo_branched_open() -> str:
         if key in results:
             rows += [[f"{row[0]}, {setting}", *row[1:]]
                      for row in _branched_rows(results[key], ("success", "shuffled", "value"), cells)]
-    return _table(["rollouts (from open starts, centred advantages)", "seed", "steps",
+    return _table(["rollouts (centred advantages; branched: from open starts)", "seed", "steps",
                    "sampled success, proprio masked: start -> end, gain (points)", "sampled, true proprio: gain",
                    "greedy: gain", "paid success, steps 1-5 -> last 5", "groups mixed (median)",
                    "advantage mass in groups split by success"], rows)

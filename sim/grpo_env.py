@@ -51,6 +51,14 @@ def keyframe_horizon(rl) -> int:
     return rl.imagined.max_chunks * rl.imagined_actions_per_decision
 
 
+def cut_at_horizon(rl) -> bool:
+    """Whether ground-truth GRPO's training rollouts run in the learned simulator's setting: ``rl.env.starts``
+    ``keyframes``, ``branch`` or ``rest`` run :func:`keyframe_horizon` actions at most (never past the episode
+    limit), executing ``rl.imagined_actions_per_decision`` a decision; ``initial`` runs whole episodes with
+    ``rl.env.execute_steps``."""
+    return rl.env.starts in ("keyframes", "branch", "rest")
+
+
 def check_keyframe_episodes(episodes) -> None:
     """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue: none given, or without recorded
     states or task ids."""
@@ -90,7 +98,8 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
     as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
     ``rl.imagined_actions_per_decision`` actions per decision as the learned simulator does;
-    evaluations still start at rest and execute ``rl.env.execute_steps``. ``max_traces``: traces of the
+    evaluations still start at rest and execute ``rl.env.execute_steps``. ``rl.env.starts=rest`` starts them at
+    training-split states at rest, as ``initial`` does, in that same setting (:func:`cut_at_horizon`). ``max_traces``: traces of the
     jitted update before the retrace guard fails.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
@@ -121,9 +130,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         return result, extra
 
     horizon, rollout_rl = cfg.sim.max_steps, rl
-    if rl.env.starts == "keyframes":  # the learned simulator's setting: its starts, horizon and execution
+    if rl.env.starts == "keyframes":
         check_keyframe_episodes(keyframes)  # now, not after the first evaluation
-        horizon = keyframe_horizon(rl)
+    if cut_at_horizon(rl):  # the learned simulator's setting: its horizon and execution
+        horizon = min(keyframe_horizon(rl), cfg.sim.max_steps)
         rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
             rl.env, execute_steps=rl.imagined_actions_per_decision))
 
@@ -188,7 +198,8 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     (:func:`~sword_jax.rl.jax_env_grpo.start_value`, saved under ``workdir/value``; the episodes start at rest
     from training-split states, whatever ``rl.env.starts`` says) pays the training rollouts that reach their
     horizon without an outcome (unless ``rl.value.bootstrap=false``); the result then has its record as ``value``.
-    ``rl.env.starts=branch`` starts the training rollouts at those episodes' decisions (every phase).
+    ``rl.env.starts=branch`` starts the training rollouts at those episodes' decisions (every phase);
+    ``rest`` at training-split states at rest as ``initial`` does, cut at the horizon (:func:`cut_at_horizon`).
     """
     if rl.env.proprio not in ("true", "missing"):
         raise ValueError(f"rl.env.backend=mjx reads proprio true or missing; got rl.env.proprio={rl.env.proprio} "
@@ -227,8 +238,9 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
         return listed_starts(step, round_)
 
     setting = {}
-    if rl.env.starts in ("keyframes", "branch"):
-        setting = dict(train_max_steps=keyframe_horizon(rl), train_execute_steps=rl.imagined_actions_per_decision)
+    if cut_at_horizon(rl):
+        setting = dict(train_max_steps=min(keyframe_horizon(rl), cfg.sim.max_steps),
+                       train_execute_steps=rl.imagined_actions_per_decision)
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)
     value_net = build_value(rl, seed=cfg.seed) if rl.value.episodes else None

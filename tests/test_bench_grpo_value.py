@@ -64,6 +64,25 @@ def test_the_arms_differ_in_what_pays_a_rollout_cut_at_its_horizon(tmp_path):
                                                          "success_s1": "1"}
 
 
+def test_runs_from_rest_keep_the_cut_and_may_fit_no_value(tmp_path):
+    """--branch-starts rest: whole-episode GRPO's starts with the short rollout's horizon and execution."""
+    rest = gv.run_commands(gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "success",
+                                     "--branch-starts", "rest", "--horizon", "12", "--value-episodes", "0"]))
+    cmd = rest["success_s0"]
+    assert "--rl.env.starts=rest" in cmd and "--rl.env.starts=branch" not in cmd and "--rl.value.episodes=0" in cmd
+    assert not any("branch_starts" in c for c in cmd)
+    rl = _rl_of(cmd)
+    assert rl.env.starts == "rest" and rl.value.episodes == 0 and rl.imagined.max_chunks == 12
+    from benchmarks.bench_policy import grpo_dir
+
+    assert grpo_dir(rl) == gv.GRPO_DIRS["rest"] and gv.run_starts(os.path.join("x", gv.GRPO_DIRS["rest"])) == "rest"
+    with pytest.raises(SystemExit, match="or 0 with --branch-starts rest and no value arm"):
+        gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--branch-starts", "rest",
+                  "--value-episodes", "0"])  # the value arm needs a value
+    with pytest.raises(SystemExit, match="--value-episodes >= 2"):
+        gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "success", "--value-episodes", "0"])
+
+
 def _value_record(path, brier):
     os.makedirs(os.path.join(path, "value"), exist_ok=True)
     with open(os.path.join(path, "value", "value.json"), "w") as f:
@@ -85,6 +104,7 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     os.makedirs(os.path.join(base, "value", "s1", gv.GRPO_DIR))  # a run that left no curve is not a run
     summary = gv.summarize(base)
     assert sorted(summary["runs"]) == ["success_s0", "value_s0"]
+    assert summary["arms"]["success"]["label"] == "branched, paid success alone"
     run = summary["runs"]["value_s0"]
     assert run["sampled_proprio_masked"]["gain"] == pytest.approx(0.15)
     assert run["terminal_value"] == {"first": pytest.approx(0.43), "last": pytest.approx(0.48)}
@@ -105,6 +125,16 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     assert list(widest) == ["policy_grpo_branched_open_b1024_small"]
     longer = gv.results_entries(summary, base, data="x.json", record_as="open_h12")  # 12-decision rollouts
     assert list(longer) == ["policy_grpo_branched_open_h12_small"]
+    assert list(gv.results_entries(summary, base, data="x.json", record_as="rest_h12")) == ["policy_grpo_rest_h12_small"]
+    assert list(gv.results_entries(summary, base, data="x.json", record_as="rest_whole")) == [
+        "policy_grpo_rest_whole_small"]
+    # runs from rest (their own work dir) are found and labelled as such; they left no value
+    rested = os.path.join(base, "rested")
+    _curve(os.path.join(rested, "success", "s0", gv.GRPO_DIRS["rest"]),
+           [_point(0, 0.7, 0.5, 0.45), _point(10, 0.7, 0.55, 0.52)], [{"step": 1, "rollout_success": 0.2}])
+    from_rest = gv.summarize(rested)
+    assert from_rest["runs"]["success_s0"]["starts"] == "rest" and from_rest["runs"]["success_s0"]["value"] is None
+    assert from_rest["arms"]["success"]["label"] == "from rest, cut at the horizon, paid success alone"
     anchored = gv.results_entries(summary, base, data="x.json", record_as="open_kl")  # anchored by a KL term
     assert list(anchored) == ["policy_grpo_branched_open_kl_small"]
     assert "contrasts" not in summary and "contrasts" not in entries["policy_grpo_branched_value_small"]  # no control

@@ -363,6 +363,12 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     with pytest.raises(ValueError, match="reckoned runs on rl.env.backend=cpu only"):
         RLConfig(env=EnvConfig(backend="mjx", proprio="reckoned")).validate()
     RLConfig(env=EnvConfig(backend="mjx", proprio="missing", starts="keyframes")).validate()
+    # from rest, cut at the learned simulator's horizon: whole-episode GRPO's starts with a short rollout's cut
+    from sim.grpo_env import cut_at_horizon
+
+    RLConfig(env=EnvConfig(starts="rest")).validate()
+    assert [cut_at_horizon(RLConfig(env=EnvConfig(starts=k))) for k in ("initial", "keyframes", "branch", "rest")] == [
+        False, True, True, True]
     # MJX draws a round's starts with the same sampler: round 0 is the C engine's step, a later round another draw
     from sim.grpo_env import keyframe_picks
 
@@ -379,6 +385,7 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     keyed = RLConfig(env=EnvConfig(starts="keyframes"))
     assert grpo_run_id(keyed, seed=0, simulator="env")["rl.env.starts"] == "keyframes"
     assert grpo_run_id(RLConfig(), seed=0, simulator="env")["rl.env.starts"] == "initial"
+    assert grpo_run_id(RLConfig(env=EnvConfig(starts="rest")), seed=0, simulator="env")["rl.env.starts"] == "rest"
 
 
 @pytest.mark.slow
@@ -420,6 +427,35 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
     assert [p["step"] for p in result["curve"]] == [0, 1]
     assert result["curve"][0]["train_mode"]["proprio"] == "missing"
     assert len(result["history"]) == 1 and 0.0 <= result["history"][0]["rollout_success"] <= 1.0
+
+
+def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tmp_path, monkeypatch):
+    """Tiny end to end (about 20 s): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4 actions from rest."""
+    import dataclasses
+
+    import configs
+    from sim import grpo_env
+
+    made = []
+
+    class Recorded(grpo_env.LockstepEnvs):
+        def __init__(self, starts, **kwargs):
+            made.append((list(starts), kwargs["max_steps"]))
+            super().__init__(starts, **kwargs)
+
+    monkeypatch.setattr(grpo_env, "LockstepEnvs", Recorded)
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=1, eval_every=1),
+                             imagined=dataclasses.replace(cfg.rl.imagined, max_chunks=2),
+                             env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False, proprio="missing",
+                                                     starts="rest"))
+    graphdef, params = build_policy(rl, seed=0)
+    result = grpo_env.run_in_env(dataclasses.replace(cfg, rl=rl), rl, graphdef, params, str(tmp_path),
+                                 episodes_per_task=1)
+    training = [m for m in made if m[1] == 2 * rl.imagined_actions_per_decision]
+    assert len(training) == 1 and len(training[0][0]) == rl.grpo.rollout_batch * rl.grpo.group_size
+    assert all(task in cfg.sim.tasks for task, _ in training[0][0])  # training-split states at rest, by task
+    assert [p["step"] for p in result["curve"]] == [0, 1] and len(result["history"]) == 1
 
 
 def test_ground_truth_grpo_from_keyframes_needs_the_demonstrations(tmp_path):

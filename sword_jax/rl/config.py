@@ -685,7 +685,9 @@ class EnvConfig:
         and ``missing``; ``reckoned`` runs on ``cpu`` only. ``branch`` (MJX only, with ``rl.value.episodes``):
         the states of the starting policy's own real episodes collected for the value, at every decision
         before their outcome, uniformly (MBPO's branched rollouts; :func:`sword_jax.rl.jax_env_grpo.branch_starts`),
-        for the learned simulator's horizon and execution as ``keyframes`` runs them.
+        for the learned simulator's horizon and execution as ``keyframes`` runs them. ``rest``: training-split
+        initial states at rest, as ``initial``, for that same horizon and execution: whole-episode GRPO's starts
+        with a short rollout's cut, which tells the starts' share of a short rollout's effect from the cut's.
     """
 
     backend: str = "cpu"  # cpu | mjx
@@ -693,7 +695,7 @@ class EnvConfig:
     action_ensemble: bool = True
     ensemble_decay: float = 0.1
     proprio: str = "true"  # true | reckoned | missing: the policy's proprio in ground-truth GRPO rollouts
-    starts: str = "initial"  # initial | keyframes | branch: where ground-truth GRPO rollouts start
+    starts: str = "initial"  # initial | keyframes | branch | rest: where ground-truth GRPO rollouts start
 
     def validate(self) -> None:
         if self.action_ensemble and self.execute_steps != 1:
@@ -704,8 +706,8 @@ class EnvConfig:
             raise ValueError(f"rl.env.ensemble_decay must be >= 0, got {self.ensemble_decay}")
         if self.proprio not in ("true", "reckoned", "missing"):
             raise ValueError(f"rl.env.proprio must be true|reckoned|missing, got {self.proprio!r}")
-        if self.starts not in ("initial", "keyframes", "branch"):
-            raise ValueError(f"rl.env.starts must be initial|keyframes|branch, got {self.starts!r}")
+        if self.starts not in ("initial", "keyframes", "branch", "rest"):
+            raise ValueError(f"rl.env.starts must be initial|keyframes|branch|rest, got {self.starts!r}")
         if self.backend not in ("cpu", "mjx"):
             raise ValueError(f"rl.env.backend must be cpu|mjx, got {self.backend!r}")
         if self.backend == "mjx" and self.proprio == "reckoned":
