@@ -88,6 +88,7 @@ def readme_results() -> str:
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     source = latest.get("policy_grpo_reward_source_small")
     noise = latest.get("policy_grpo_branched_open_small", {}).get("contrasts", {}).get("success")
+    longer = latest.get("policy_grpo_branched_open_h12_small", {}).get("arms", {}).get("success")  # 12 decisions
     fidelity = _load(*SIM_FIDELITY, "summary.json")["variants"]  # the policy through each VAE alone (4 GPUs)
     base, vae8x = fidelity["base"]["view"], fidelity["vae8x"]["view"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
@@ -136,6 +137,10 @@ def readme_results() -> str:
             f"{_interval(noise['sampled']['ci95'])} (true proprio), {_pct(noise['sampled_proprio_masked']['mean'])} "
             f"{_interval(noise['sampled_proprio_masked']['ci95'])} (proprio masked) points in {noise['steps']} steps",
             "policy_grpo_branched_open_small", f"[section]({doc}#frames-or-reward)")] if noise else []),
+        *([("12-decision GRPO rollouts branched from open real states (MJX), 3 seeds",
+            f"sampled policy, proprio masked: {', '.join(_pct(g) for g in longer['masked_gain_per_seed'].values())} "
+            f"points in {longer['steps']} steps (mean {_pct(longer['mean'])})", "policy_grpo_branched_open_h12_small",
+            f"[section]({doc}#frames-or-reward)")] if longer else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
