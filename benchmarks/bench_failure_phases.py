@@ -15,6 +15,12 @@ policy as GRPO's rollouts run it (T ``--temperature``, proprio masked, 4 actions
    ``--group-size`` times for ``--horizon`` decisions, as GRPO's branched short rollouts are. Each start has a
    stage (:func:`start_stages`: ``before the grasp``, ``grasped``, ``over the plate``, ``after a release``), and per
    stage the benchmark counts the starts whose group had mixed outcomes, the groups that carry GRPO's signal.
+   ``--branch-from rest`` branches instead from the episodes' first states, at rest (``rl.env.starts=rest``: GRPO
+   from rest cut at the horizon), one start per episode.
+
+Both are also broken down by task (``per_task``): each task's stages from rest and decisions to success, and its
+starts, mixed groups and paid success. A task whose groups rarely mix gets little of an update that moves the
+policy's shared weights for every task.
 
 If many failures from rest come before the grasp and the mixed groups almost all start after it, a short rollout's
 signal is for a part of the task where the policy fails less::
@@ -112,10 +118,15 @@ def rollouts(probe: Any, starts: list, *, max_steps: int, stream: int, workers: 
     return out, rec
 
 
-def branch_points(done: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def branch_points(done: np.ndarray, count: int, rng: np.random.Generator, *, at_rest: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """``count`` (episode, decision) pairs drawn uniformly without replacement from the decisions at which an
-    episode was still running (``done [n, t]``: done before decision ``t``)."""
-    ep, at = np.nonzero(~np.asarray(done, bool))
+    episode was still running (``done [n, t]``: done before decision ``t``); ``at_rest``: only the episodes' first
+    decisions (their start states), so at most one start per episode."""
+    running = ~np.asarray(done, bool)
+    if at_rest:
+        running = running & (np.arange(running.shape[1]) == 0)
+    ep, at = np.nonzero(running)
     if ep.size == 0:
         raise ValueError("branch_points: no episode was running at any decision")
     pick = rng.choice(ep.size, size=min(count, ep.size), replace=False)
@@ -123,8 +134,10 @@ def branch_points(done: np.ndarray, count: int, rng: np.random.Generator) -> tup
 
 
 def summarise(stages: np.ndarray, start_stage: np.ndarray, group_success: np.ndarray,
-              success_decision: np.ndarray, grasp_decision: np.ndarray) -> dict:
-    """Counts and shares of :func:`main`'s two measurements."""
+              success_decision: np.ndarray, grasp_decision: np.ndarray, tasks: np.ndarray | None = None,
+              start_tasks: np.ndarray | None = None) -> dict:
+    """Counts and shares of :func:`main`'s two measurements; with the episodes' ``tasks [n]`` and the starts'
+    ``start_tasks [starts]`` also per task (``per_task``, keyed by the task id)."""
     failed = stages != 0
     episodes = {name: int(np.sum(stages == i)) for i, name in enumerate(EPISODE_STAGES)}
     failures = {name: (int(np.sum(stages == i)) / max(1, int(failed.sum()))) for i, name in enumerate(EPISODE_STAGES)
@@ -141,7 +154,30 @@ def summarise(stages: np.ndarray, start_stage: np.ndarray, group_success: np.nda
             "failure_shares": failures, "starts": per_start, "mixed_groups": int(mixed.sum()),
             "mixed_after_the_grasp": float(np.sum(mixed & (start_stage != 0)) / max(1, int(mixed.sum()))),
             "decisions_to_success": _quartiles(success_decision[ok]),
-            "decisions_from_grasp_to_success": _quartiles(success_decision[grasped_ok] - grasp_decision[grasped_ok])}
+            "decisions_from_grasp_to_success": _quartiles(success_decision[grasped_ok] - grasp_decision[grasped_ok]),
+            **({"per_task": per_task(stages, group_success, success_decision, tasks, start_tasks)}
+               if tasks is not None else {})}
+
+
+def per_task(stages: np.ndarray, group_success: np.ndarray, success_decision: np.ndarray, tasks: np.ndarray,
+             start_tasks: np.ndarray) -> dict[str, dict]:
+    """Per task id (in order): its episodes from rest, their success and furthest stages, the median decisions to a
+    success, and its starts, their mixed groups and paid success."""
+    tasks, start_tasks = np.asarray(tasks), np.asarray(start_tasks)
+    if tasks.shape != stages.shape or start_tasks.shape != group_success.shape[:1]:
+        raise ValueError(f"per_task: need a task per episode {stages.shape} and per start {group_success.shape[:1]}, "
+                         f"got {tasks.shape} and {start_tasks.shape}")
+    mixed = group_success.any(1) & ~group_success.all(1)
+    out = {}
+    for t in sorted(set(tasks.tolist()) | set(start_tasks.tolist())):
+        mine, starts = tasks == t, start_tasks == t
+        won = success_decision[mine & (success_decision >= 0)]
+        out[str(t)] = {"episodes": int(mine.sum()), "success": float(np.mean(stages[mine] == 0)) if mine.any() else None,
+                       "episode_stages": {name: int(np.sum(stages[mine] == i)) for i, name in enumerate(EPISODE_STAGES)},
+                       "decisions_to_success": float(np.median(won)) if won.size else None,
+                       "starts": int(starts.sum()), "mixed_groups": int(np.sum(mixed & starts)),
+                       "paid_success": float(group_success[starts].mean()) if starts.any() else None}
+    return out
 
 
 def _quartiles(x: np.ndarray) -> list[float] | None:
@@ -157,6 +193,8 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--starts", type=int, default=128, help="branch points for the short rollouts")
     parser.add_argument("--group-size", type=int, default=8)
     parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of a short rollout")
+    parser.add_argument("--branch-from", choices=("running", "rest"), default="running",
+                        help="the short rollouts' starts: decisions of the running episodes, or their first states")
     parser.add_argument("--temperature", type=float, default=0.5)
     parser.add_argument("--over-m", type=float, default=0.03, help="bowl within this far of the plate in xy: over it")
     parser.add_argument("--max-steps", type=int, default=0, help="the episode limit in actions (0: the config's)")
@@ -205,7 +243,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
           + f" ({seconds['rest_s']:.0f} s)", flush=True)
 
     t0 = time.perf_counter()
-    ep, at = branch_points(~valid, args.starts, np.random.default_rng(args.seed))
+    ep, at = branch_points(~valid, args.starts, np.random.default_rng(args.seed), at_rest=args.branch_from == "rest")
     state = rec.stacked("state", steps)
     start_stage = start_stages(held[ep, at], bowl[ep, at], plate[ep, at],
                                np.array([held[e, :a].any() for e, a in zip(ep, at)]), over_m=args.over_m)
@@ -215,9 +253,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     seconds["short_s"] = round(time.perf_counter() - t0, 1)
     result = {"config": probe.cfg.name, "policy": args.policy, "temperature": args.temperature, "proprio": "missing",
               "actions_per_decision": k, "episode_limit": limit, "horizon_decisions": args.horizon,
+              "branch_from": args.branch_from,
               "group_size": args.group_size, "over_m": args.over_m, "seed": args.seed,
               "device": "CPU (MuJoCo C engine)", "seconds": seconds,
-              **summarise(stages, start_stage, group_success, success_decision, grasp_decision)}
+              **summarise(stages, start_stage, group_success, success_decision, grasp_decision,
+                          tasks=np.array([int(t) for t, _ in rest]), start_tasks=np.array([int(rest[e][0]) for e in ep]))}
     for name, s in result["starts"].items():
         print(f"[failure-phases] starts {name}: {s['starts']}, mixed groups {s['mixed_groups']}"
               + (f", paid success {s['paid_success']:.3f}" if s["paid_success"] is not None else ""), flush=True)
@@ -225,6 +265,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                                                  .items())
           + f"; mixed groups starting after the grasp {result['mixed_after_the_grasp']:.2f} of {result['mixed_groups']} "
           f"({seconds['short_s']:.0f} s)", flush=True)
+    for t, s in result["per_task"].items():
+        print(f"[failure-phases] task {t}: success {s['success']:.2f} of {s['episodes']}, never grasped "
+              f"{s['episode_stages']['never grasped']}, decisions to success {s['decisions_to_success']}; starts "
+              f"{s['starts']}, mixed {s['mixed_groups']}"
+              + (f", paid {s['paid_success']:.3f}" if s["paid_success"] is not None else ""), flush=True)
     write_json_atomic(os.path.join(args.out, "failure_phases.json"), result)
     if args.record:
         from benchmarks import common

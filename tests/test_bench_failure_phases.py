@@ -47,6 +47,8 @@ def test_branch_points_are_decisions_at_which_the_episode_was_running():
     assert len(ep) == 2 and not done[ep, at].any()
     with pytest.raises(ValueError, match="no episode was running"):
         fp.branch_points(np.ones((2, 3), bool), 1, np.random.default_rng(0))
+    ep, at = fp.branch_points(done[:2], 10, np.random.default_rng(0), at_rest=True)  # the start states alone
+    assert sorted(zip(ep.tolist(), at.tolist())) == [(0, 0), (1, 0)]
 
 
 def test_the_summary_counts_failures_and_where_the_mixed_groups_start():
@@ -61,6 +63,20 @@ def test_the_summary_counts_failures_and_where_the_mixed_groups_start():
     assert s["starts"]["after a release"] == {"starts": 0, "mixed_groups": 0, "paid_success": None}
     assert s["mixed_groups"] == 2 and s["mixed_after_the_grasp"] == pytest.approx(0.5)
     assert s["decisions_from_grasp_to_success"] == pytest.approx([3.75, 4.5, 5.25])  # 3 and 6 decisions
+    assert "per_task" not in s
+    by_task = fp.summarise(stages, start_stage, groups, np.array([5, -1, -1, -1, -1, 9]),
+                           np.array([2, -1, -1, -1, 4, 3]), tasks=np.array([0, 0, 0, 1, 1, 1]),
+                           start_tasks=np.array([1, 1, 0, 2]))["per_task"]
+    assert list(by_task) == ["0", "1", "2"]  # task 2 has a start but no episode
+    assert by_task["0"] == {"episodes": 3, "success": pytest.approx(1 / 3),
+                            "episode_stages": {"success": 1, "never grasped": 2, "grasped, never over the plate": 0,
+                                               "over the plate, not placed": 0},
+                            "decisions_to_success": 5.0, "starts": 1, "mixed_groups": 0, "paid_success": 1.0}
+    assert by_task["1"]["decisions_to_success"] == 9.0 and by_task["1"]["mixed_groups"] == 1
+    assert by_task["1"]["paid_success"] == pytest.approx(0.25)
+    assert by_task["2"]["episodes"] == 0 and by_task["2"]["success"] is None and by_task["2"]["mixed_groups"] == 1
+    with pytest.raises(ValueError, match="need a task per episode"):
+        fp.per_task(stages, groups, np.zeros(6), np.zeros(5), np.zeros(4))
 
 
 def test_bad_command_lines_are_refused(tmp_path):
@@ -163,6 +179,12 @@ def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
                    "--record"])
     assert out["episodes"] == 3 and sum(out["episode_stages"].values()) == 3 and out["success"] == 0
     assert sum(s["starts"] for s in out["starts"].values()) == 12 and out["episode_limit"] == 16
+    assert sum(s["starts"] for s in out["per_task"].values()) == 12 and out["branch_from"] == "running"
+    assert sum(s["episodes"] for s in out["per_task"].values()) == 3
+    rested = fp.main(["--policy", str(tmp_path / "p.npz"), "--out", str(tmp_path / "rest"), "--config", "sword:tiny",
+                      "--episodes", "3", "--starts", "100", "--group-size", "2", "--horizon", "1", "--max-steps", "16",
+                      "--branch-from", "rest"])
+    assert rested["branch_from"] == "rest" and rested["starts"]["before the grasp"]["starts"] == 3  # one per episode
     saved = json.loads((tmp_path / "failure_phases.json").read_text())
     assert saved["failure_shares"] == out["failure_shares"]
     entry = json.loads((tmp_path / "latest.json").read_text())["policy_failure_stages_small"]
