@@ -1085,6 +1085,81 @@ def failure_stages() -> str:
             + _table(header, starts + [total]))
 
 
+# the per-task runs of bench_failure_phases (12 decisions, the same 300 episodes) and where their rollouts branched
+FAILURE_TASK_RUNS = (("failure_phases_h12_small_cpu", "from running decisions"),
+                     ("failure_phases_h12_rest_small_cpu", "from rest"))
+TASK_NAMES = ("between the plate and the ramekin", "next to the ramekin", "table centre", "on the cookie box",
+              "in the top drawer", "on the ramekin", "next to the cookie box", "on the stove", "next to the plate",
+              "on the wooden cabinet")  # sim.tasks.LANGUAGE, shortened
+
+
+# per-task gains of GRPO runs on MJX: (column, run folder under policy/, the runs' seed folders, evaluated policy,
+# step or None for each run's last point)
+PER_TASK_RUNS = (
+    ("12 decisions, step 15: proprio masked", "grpo_branched_open_h12_seeds_small_h200", "success/s{}",
+     "sampled_proprio_masked", 15),
+    ("greedy", "grpo_branched_open_h12_seeds_small_h200", "success/s{}", "greedy", 15),
+    ("4 decisions, 1,024 starts, last step: proprio masked", "grpo_branched_open_b1024_seeds_small_h200", "success/s{}",
+     "sampled_proprio_masked", None),
+    ("whole episodes, step 10: sampled (true proprio)", "grpo_mjx_seeds_small_4xh100", "s{}", "sampled", 10))
+
+
+def _task_success(point: dict, mode: str) -> dict[str, float]:
+    return point["per_task"] if mode == "greedy" else point[mode]["per_task"]
+
+
+def grpo_per_task() -> str:
+    """Per task, each of :data:`PER_TASK_RUNS`' gains (points, seeds 0, 1 and 2) from its own step 0 to the step,
+    for the policy it names, read from the runs' ``success_curve.json``; the first run's step-0 success (seed 0:
+    its first column's policy / greedy) beside them."""
+    columns, start = [], None
+    for label, folder, seed_dir, mode, step in PER_TASK_RUNS:
+        gains = []
+        for seed in range(3):
+            run = os.path.join(RESULTS_DIR, "policy", folder, seed_dir.format(seed))
+            name = next(d for d in sorted(os.listdir(run)) if os.path.exists(os.path.join(run, d, "success_curve.json")))
+            points = _load("policy", folder, seed_dir.format(seed), name, "success_curve.json")["points"]
+            end = points[-1] if step is None else next(p for p in points if p["step"] == step)
+            first, last = _task_success(points[0], mode), _task_success(end, mode)
+            gains.append({t: last[t] - first[t] for t in first})
+            if start is None:
+                start = (_task_success(points[0], mode), points[0]["per_task"])
+        columns.append((label, gains))
+    rows = []
+    for task in sorted(start[0], key=int):
+        name = TASK_NAMES[int(task)] if int(task) < len(TASK_NAMES) else ""
+        rows.append([f"{task}: {name}", f"{start[0][task]:.2f} / {start[1][task]:.2f}",
+                     *(", ".join(f"{100 * g[task]:+.0f}" for g in gains) for _, gains in columns)])
+    return _table(["task (the black bowl ...)", "start (seed 0): sampled, proprio masked / greedy",
+                   *(label for label, _ in columns)], rows)
+
+
+def failure_tasks() -> str:
+    """Per task, from ``bench_failure_phases``' runs with a ``per_task`` breakdown (:data:`FAILURE_TASK_RUNS`, those
+    with the first's episodes): its episodes from rest (success, never grasped, median decisions to a success) and,
+    per run, its starts, their groups with mixed outcomes and their paid success."""
+    runs = [(_load("policy", name, "failure_phases.json"), label) for name, label in FAILURE_TASK_RUNS
+            if os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json"))]
+    runs = [(r, label) for r, label in runs if "per_task" in r and r["episode_stages"] == runs[0][0]["episode_stages"]]
+    first = runs[0][0]
+    header = ["task (the black bowl ...)", "success from rest", "never grasped", "decisions to a success (median)"]
+    for r, label in runs:
+        header += [f"{r['horizon_decisions']} decisions {label}: starts", "mixed groups", "paid success"]
+    rows = []
+    for task, t in first["per_task"].items():
+        name = TASK_NAMES[int(task)] if int(task) < len(TASK_NAMES) else ""
+        won = t["decisions_to_success"]
+        row = [f"{task}: {name}", f"{t['success']:.2f} of {t['episodes']}", str(t["episode_stages"]["never grasped"]),
+               "" if won is None else f"{won:g}"]
+        for r, _ in runs:
+            mine = r["per_task"].get(task)
+            row += ["0", "0", ""] if mine is None else [
+                str(mine["starts"]), str(mine["mixed_groups"]),
+                "" if mine["paid_success"] is None else f"{mine['paid_success']:.3f}"]
+        rows.append(row)
+    return _table(header, rows)
+
+
 TABLES: dict[str, Callable[[], str]] = {
     "readme-results": readme_results, "claim1": claim1, "claim2": claim2, "claim3": claim3,
     "proprio-modes": proprio_modes, "reward-labels": reward_labels,
@@ -1100,7 +1175,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
-    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
+    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks,
+    "grpo-per-task": grpo_per_task,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
     "grpo-noise-control": grpo_noise_control,

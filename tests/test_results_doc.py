@@ -113,3 +113,12 @@ def test_the_narration_check_catches_what_it_is_for():
                  "stopped by the run's 30-minute time limit", "a 25-minute run on 4 x H100"):
         assert not NARRATION.search(text), text
     assert len(glob.glob(os.path.join(REPO, "benchmarks", "results", "**", "*.json"), recursive=True)) > 10
+
+
+def test_the_report_names_the_tasks_as_the_simulator_does():
+    from benchmarks import report
+    from sim.tasks import LANGUAGE
+
+    assert len(report.TASK_NAMES) == len(LANGUAGE)
+    for short, sentence in zip(report.TASK_NAMES, LANGUAGE):
+        assert short.replace("table centre", "table center") in sentence, (short, sentence)
