@@ -1134,6 +1134,30 @@ def grpo_per_task() -> str:
                    *(label for label, _ in columns)], rows)
 
 
+# bench_failure_phases' runs branched from rest (--branch-from rest) at several horizons, the same 300 episodes
+FAILURE_REST_RUNS = ("failure_phases_h8_rest_small_cpu", "failure_phases_h12_rest_small_cpu",
+                     "failure_phases_h16_rest_small_cpu")
+
+
+def failure_rest_horizons() -> str:
+    """Per horizon of :data:`FAILURE_REST_RUNS` (those there): the groups started at rest, those with mixed outcomes,
+    their paid success and the mixed groups per task."""
+    rows = []
+    for name in FAILURE_REST_RUNS:
+        if not os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json")):
+            continue
+        r = _load("policy", name, "failure_phases.json")
+        starts = sum(v["starts"] for v in r["starts"].values())
+        paid = r["starts"]["before the grasp"]["paid_success"]
+        tasks = r["per_task"]
+        rows.append([f"{r['horizon_decisions']} ({r['horizon_decisions'] * r['actions_per_decision']} actions)",
+                     f"{r['mixed_groups']} of {starts} ({r['mixed_groups'] / starts:.2f})",
+                     "" if paid is None else f"{paid:.3f}",
+                     ", ".join(f"{tasks[t]['mixed_groups']}/{tasks[t]['starts']}" for t in sorted(tasks, key=int))])
+    return _table(["decisions from rest", "groups with mixed outcomes", "paid success",
+                   "mixed groups / starts, tasks 0-9"], rows)
+
+
 def failure_tasks() -> str:
     """Per task, from ``bench_failure_phases``' runs with a ``per_task`` breakdown (:data:`FAILURE_TASK_RUNS`, those
     with the first's episodes): its episodes from rest (success, never grasped, median decisions to a success) and,
@@ -1175,7 +1199,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
-    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks,
+    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "grpo-per-task": grpo_per_task,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
