@@ -247,7 +247,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     state = rec.stacked("state", steps)
     start_stage = start_stages(held[ep, at], bowl[ep, at], plate[ep, at],
                                np.array([held[e, :a].any() for e, a in zip(ep, at)]), over_m=args.over_m)
-    branched = [(int(rest[e][0]), state[e, a]) for e, a in zip(ep, at) for _ in range(args.group_size)]
+    tasks = np.array([int(t) for t, _ in rest])  # each episode's task id
+    branched = [(int(tasks[e]), state[e, a]) for e, a in zip(ep, at) for _ in range(args.group_size)]
     short, _ = rollouts(probe, branched, max_steps=args.horizon * k, stream=2, workers=args.workers)
     group_success = np.asarray(short.success, bool).reshape(-1, args.group_size)
     seconds["short_s"] = round(time.perf_counter() - t0, 1)
@@ -257,7 +258,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
               "group_size": args.group_size, "over_m": args.over_m, "seed": args.seed,
               "device": "CPU (MuJoCo C engine)", "seconds": seconds,
               **summarise(stages, start_stage, group_success, success_decision, grasp_decision,
-                          tasks=np.array([int(t) for t, _ in rest]), start_tasks=np.array([int(rest[e][0]) for e in ep]))}
+                          tasks=tasks, start_tasks=tasks[ep])}
     for name, s in result["starts"].items():
         print(f"[failure-phases] starts {name}: {s['starts']}, mixed groups {s['mixed_groups']}"
               + (f", paid success {s['paid_success']:.3f}" if s["paid_success"] is not None else ""), flush=True)

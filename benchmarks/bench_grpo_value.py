@@ -72,7 +72,6 @@ ARM_LABELS = {"value": "branched, paid success or the value at the horizon",
 SETTING = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", "--rl.env.proprio=missing")
 # bench_policy.grpo_dir of this setting, by rl.env.starts (--branch-starts rest: rest, otherwise branch)
 GRPO_DIRS = {"branch": "grpo_env_proprio_missing_starts_branch_mjx", "rest": "grpo_env_proprio_missing_starts_rest_mjx"}
-GRPO_DIR = GRPO_DIRS["branch"]
 
 
 def arm_label(arm: str, starts: str = "branch") -> str:
@@ -140,23 +139,20 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     return summary
 
 
-def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
-    """``{run name: (arm, seed, GRPO work dir)}`` of the runs under ``workdir`` that left a success curve (from
-    branch starts or from rest, :data:`GRPO_DIRS`)."""
+def run_dirs(workdir: str) -> dict[str, tuple[str, int, str, str]]:
+    """``{run name: (arm, seed, GRPO work dir, where its rollouts started)}`` of the runs under ``workdir`` that left
+    a success curve (from branch starts or from rest: the keys of :data:`GRPO_DIRS`)."""
     out = {}
     for arm in ARMS:
         folder = os.path.join(workdir, arm)
         for seed_dir in sorted(os.listdir(folder)) if os.path.isdir(folder) else []:
-            for grpo in (os.path.join(folder, seed_dir, d) for d in GRPO_DIRS.values()):
-                if (seed_dir[:1] == "s" and seed_dir[1:].isdigit()
-                        and os.path.exists(os.path.join(grpo, "success_curve.json"))):
-                    out[f"{arm}_{seed_dir}"] = (arm, int(seed_dir[1:]), grpo)
+            if seed_dir[:1] != "s" or not seed_dir[1:].isdigit():
+                continue
+            for starts, name in GRPO_DIRS.items():
+                grpo = os.path.join(folder, seed_dir, name)
+                if os.path.exists(os.path.join(grpo, "success_curve.json")):
+                    out[f"{arm}_{seed_dir}"] = (arm, int(seed_dir[1:]), grpo, starts)
     return out
-
-
-def run_starts(grpo: str) -> str:
-    """Where a run's rollouts started (``branch`` or ``rest``), read from its work dir's name."""
-    return next(k for k, d in GRPO_DIRS.items() if os.path.basename(os.path.normpath(grpo)) == d)
 
 
 def value_summary(grpo: str) -> dict | None:
@@ -178,8 +174,8 @@ def summarize(workdir: str) -> dict:
     value's record) and per arm its seeds' sampled gains (proprio masked: the mode the rollouts train), smallest and
     mean."""
     runs = {}
-    for name, (arm, seed, grpo) in run_dirs(workdir).items():
-        run = dict(arm=arm, seed=seed, starts=run_starts(grpo), **summarize_run(grpo), value=value_summary(grpo))
+    for name, (arm, seed, grpo, starts) in run_dirs(workdir).items():
+        run = dict(arm=arm, seed=seed, starts=starts, **summarize_run(grpo), value=value_summary(grpo))
         history = read_history(grpo)
         shares = [h["success_advantage_share"] for h in history if "success_advantage_share" in h]
         if shares:  # how much of the update real outcomes carried (runs from before it was logged lack it)

@@ -1054,15 +1054,18 @@ def sim_fidelity_decisions() -> str:
 FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
 
 
+def _failure_runs(names) -> dict[str, dict]:
+    """``bench_failure_phases``' ``policy/<name>/failure_phases.json`` of those of ``names`` that are there, in order."""
+    return {name: _load("policy", name, "failure_phases.json") for name in names
+            if os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json"))}
+
+
 def failure_stages() -> str:
     """Where the policy fails from rest and where short rollouts have mixed outcomes (``bench_failure_phases``'
     ``policy/<run>/failure_phases.json`` for each of :data:`FAILURE_STAGE_RUNS` there): per stage, its share of the
     failures from rest; per branch point's stage, the starts and, per rollout length, their groups with mixed
     outcomes and their paid success. Runs whose episodes or starts differ from the first's are left out."""
-    runs = []
-    for name in FAILURE_STAGE_RUNS:
-        if os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json")):
-            runs.append(_load("policy", name, "failure_phases.json"))
+    runs = list(_failure_runs(FAILURE_STAGE_RUNS).values())
     d = runs[0]
     same = [r for r in runs if r["episode_stages"] == d["episode_stages"]
             and all(r["starts"][k]["starts"] == v["starts"] for k, v in d["starts"].items())]
@@ -1091,6 +1094,11 @@ FAILURE_TASK_RUNS = (("failure_phases_h12_small_cpu", "from running decisions"),
 TASK_NAMES = ("between the plate and the ramekin", "next to the ramekin", "table centre", "on the cookie box",
               "in the top drawer", "on the ramekin", "next to the cookie box", "on the stove", "next to the plate",
               "on the wooden cabinet")  # sim.tasks.LANGUAGE, shortened
+
+
+def _task_label(task: str) -> str:
+    """A task id (as the JSON keys it) with its short name."""
+    return f"{task}: {TASK_NAMES[int(task)]}" if int(task) < len(TASK_NAMES) else task
 
 
 # per-task gains of GRPO runs on MJX: (column, run folder under policy/, the runs' seed folders, evaluated policy,
@@ -1127,8 +1135,7 @@ def grpo_per_task() -> str:
         columns.append((label, gains))
     rows = []
     for task in sorted(start[0], key=int):
-        name = TASK_NAMES[int(task)] if int(task) < len(TASK_NAMES) else ""
-        rows.append([f"{task}: {name}", f"{start[0][task]:.2f} / {start[1][task]:.2f}",
+        rows.append([_task_label(task), f"{start[0][task]:.2f} / {start[1][task]:.2f}",
                      *(", ".join(f"{100 * g[task]:+.0f}" for g in gains) for _, gains in columns)])
     return _table(["task (the black bowl ...)", "start (seed 0): sampled, proprio masked / greedy",
                    *(label for label, _ in columns)], rows)
@@ -1143,10 +1150,7 @@ def failure_rest_horizons() -> str:
     """Per horizon of :data:`FAILURE_REST_RUNS` (those there): the groups started at rest, those with mixed outcomes,
     their paid success and the mixed groups per task."""
     rows = []
-    for name in FAILURE_REST_RUNS:
-        if not os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json")):
-            continue
-        r = _load("policy", name, "failure_phases.json")
+    for r in _failure_runs(FAILURE_REST_RUNS).values():
         starts = sum(v["starts"] for v in r["starts"].values())
         paid = r["starts"]["before the grasp"]["paid_success"]
         tasks = r["per_task"]
@@ -1162,8 +1166,8 @@ def failure_tasks() -> str:
     """Per task, from ``bench_failure_phases``' runs with a ``per_task`` breakdown (:data:`FAILURE_TASK_RUNS`, those
     with the first's episodes): its episodes from rest (success, never grasped, median decisions to a success) and,
     per run, its starts, their groups with mixed outcomes and their paid success."""
-    runs = [(_load("policy", name, "failure_phases.json"), label) for name, label in FAILURE_TASK_RUNS
-            if os.path.exists(os.path.join(RESULTS_DIR, "policy", name, "failure_phases.json"))]
+    found = _failure_runs(name for name, _ in FAILURE_TASK_RUNS)
+    runs = [(found[name], label) for name, label in FAILURE_TASK_RUNS if name in found]
     runs = [(r, label) for r, label in runs if "per_task" in r and r["episode_stages"] == runs[0][0]["episode_stages"]]
     first = runs[0][0]
     header = ["task (the black bowl ...)", "success from rest", "never grasped", "decisions to a success (median)"]
@@ -1171,9 +1175,8 @@ def failure_tasks() -> str:
         header += [f"{r['horizon_decisions']} decisions {label}: starts", "mixed groups", "paid success"]
     rows = []
     for task, t in first["per_task"].items():
-        name = TASK_NAMES[int(task)] if int(task) < len(TASK_NAMES) else ""
         won = t["decisions_to_success"]
-        row = [f"{task}: {name}", f"{t['success']:.2f} of {t['episodes']}", str(t["episode_stages"]["never grasped"]),
+        row = [_task_label(task), f"{t['success']:.2f} of {t['episodes']}", str(t["episode_stages"]["never grasped"]),
                "" if won is None else f"{won:g}"]
         for r, _ in runs:
             mine = r["per_task"].get(task)

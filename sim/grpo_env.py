@@ -59,6 +59,12 @@ def cut_at_horizon(rl) -> bool:
     return rl.env.starts in ("keyframes", "branch", "rest")
 
 
+def training_horizon(rl, episode_limit: int) -> int:
+    """Actions a ground-truth GRPO training rollout runs at most: :func:`keyframe_horizon`, never past
+    ``episode_limit``, where :func:`cut_at_horizon`; else the whole episode."""
+    return min(keyframe_horizon(rl), episode_limit) if cut_at_horizon(rl) else episode_limit
+
+
 def check_keyframe_episodes(episodes) -> None:
     """Refuses demonstrations that ``rl.env.starts=keyframes`` cannot continue: none given, or without recorded
     states or task ids."""
@@ -99,8 +105,8 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
     ``rl.imagined_actions_per_decision`` actions per decision as the learned simulator does;
     evaluations still start at rest and execute ``rl.env.execute_steps``. ``rl.env.starts=rest`` starts them at
-    training-split states at rest, as ``initial`` does, in that same setting (:func:`cut_at_horizon`). ``max_traces``: traces of the
-    jitted update before the retrace guard fails.
+    training-split states at rest, as ``initial`` does, in that same setting (:func:`cut_at_horizon`).
+    ``max_traces``: traces of the jitted update before the retrace guard fails.
 
     Returns ``{"curve": evaluation points, "workdir", "history": per-step metrics of the whole run}``.
     """
@@ -129,11 +135,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
             f"({result['episodes']} episodes, {result['seconds']}s)")
         return result, extra
 
-    horizon, rollout_rl = cfg.sim.max_steps, rl
+    horizon, rollout_rl = training_horizon(rl, cfg.sim.max_steps), rl
     if rl.env.starts == "keyframes":
         check_keyframe_episodes(keyframes)  # now, not after the first evaluation
     if cut_at_horizon(rl):  # the learned simulator's setting: its horizon and execution
-        horizon = min(keyframe_horizon(rl), cfg.sim.max_steps)
         rollout_rl = dataclasses.replace(rl, env=dataclasses.replace(
             rl.env, execute_steps=rl.imagined_actions_per_decision))
 
@@ -239,7 +244,7 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     setting = {}
     if cut_at_horizon(rl):
-        setting = dict(train_max_steps=min(keyframe_horizon(rl), cfg.sim.max_steps),
+        setting = dict(train_max_steps=training_horizon(rl, cfg.sim.max_steps),
                        train_execute_steps=rl.imagined_actions_per_decision)
     masked = rl.env.proprio == "missing"
     root = jax.random.key(cfg.seed)

@@ -75,7 +75,7 @@ def test_runs_from_rest_keep_the_cut_and_may_fit_no_value(tmp_path):
     assert rl.env.starts == "rest" and rl.value.episodes == 0 and rl.imagined.max_chunks == 12
     from benchmarks.bench_policy import grpo_dir
 
-    assert grpo_dir(rl) == gv.GRPO_DIRS["rest"] and gv.run_starts(os.path.join("x", gv.GRPO_DIRS["rest"])) == "rest"
+    assert grpo_dir(rl) == gv.GRPO_DIRS["rest"]
     with pytest.raises(SystemExit, match="or 0 with --branch-starts rest and no value arm"):
         gv.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--branch-starts", "rest",
                   "--value-episodes", "0"])  # the value arm needs a value
@@ -93,7 +93,7 @@ def _value_record(path, brier):
 def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
     base = str(tmp_path)
     for arm, end in (("value", 0.60), ("success", 0.50)):
-        grpo = os.path.join(base, arm, "s0", gv.GRPO_DIR)
+        grpo = os.path.join(base, arm, "s0", gv.GRPO_DIRS["branch"])
         history = [{"step": s, "rollout_success": 0.3 + 0.01 * s, "mixed_fraction": 0.9 if arm == "value" else 0.2}
                    for s in range(1, 11)]
         if arm == "value":
@@ -101,10 +101,11 @@ def test_summary_reads_each_run_its_payments_and_its_value(tmp_path, capsys):
                 h.update(terminal_value=0.4 + 0.01 * h["step"], truncated_fraction=0.7, success_advantage_share=0.25)
         _curve(grpo, [_point(0, 0.7, 0.5, 0.45), _point(10, 0.7, 0.55, end)], history)
         _value_record(grpo, 0.15)
-    os.makedirs(os.path.join(base, "value", "s1", gv.GRPO_DIR))  # a run that left no curve is not a run
+    os.makedirs(os.path.join(base, "value", "s1", gv.GRPO_DIRS["branch"]))  # a run that left no curve is not a run
     summary = gv.summarize(base)
     assert sorted(summary["runs"]) == ["success_s0", "value_s0"]
     assert summary["arms"]["success"]["label"] == "branched, paid success alone"
+    assert {r["starts"] for r in summary["runs"].values()} == {"branch"}
     run = summary["runs"]["value_s0"]
     assert run["sampled_proprio_masked"]["gain"] == pytest.approx(0.15)
     assert run["terminal_value"] == {"first": pytest.approx(0.43), "last": pytest.approx(0.48)}

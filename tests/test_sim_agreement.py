@@ -369,6 +369,12 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     RLConfig(env=EnvConfig(starts="rest")).validate()
     assert [cut_at_horizon(RLConfig(env=EnvConfig(starts=k))) for k in ("initial", "keyframes", "branch", "rest")] == [
         False, True, True, True]
+    from sim.grpo_env import training_horizon
+
+    rest = RLConfig(env=EnvConfig(starts="rest"))
+    assert training_horizon(rest, 220) == rest.imagined.max_chunks * rest.imagined_actions_per_decision < 220
+    whole = dataclasses.replace(rest, imagined=dataclasses.replace(rest.imagined, max_chunks=55))
+    assert training_horizon(whole, 200) == 200 and training_horizon(RLConfig(), 220) == 220  # never past the limit
     # MJX draws a round's starts with the same sampler: round 0 is the C engine's step, a later round another draw
     from sim.grpo_env import keyframe_picks
 
@@ -431,8 +437,6 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
 
 def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tmp_path, monkeypatch):
     """Tiny end to end (about 20 s): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4 actions from rest."""
-    import dataclasses
-
     import configs
     from sim import grpo_env
 
