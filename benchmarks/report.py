@@ -47,6 +47,12 @@ def _device(entry: dict) -> str:
     return f"{match.group(2)} x {match.group(1)}" if match else text
 
 
+def _step_span(entry: dict) -> str:
+    """The steps an entry's runs reached, ``14-17`` (or ``15`` where all reached the same)."""
+    steps = sorted(r["steps"] for r in entry["runs"].values())
+    return f"{steps[0]}-{steps[-1]}" if steps[0] != steps[-1] else str(steps[0])
+
+
 def _table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
@@ -88,7 +94,7 @@ def readme_results() -> str:
     setting = latest.get("policy_grpo_ground_truth_learned_setting_gain_small")
     source = latest.get("policy_grpo_reward_source_small")
     noise = latest.get("policy_grpo_branched_open_small", {}).get("contrasts", {}).get("success")
-    longer = latest.get("policy_grpo_branched_open_h12_small", {}).get("arms", {}).get("success")  # 12 decisions
+    rest = latest.get("policy_grpo_rest_h12_small", {}).get("arms", {}).get("success")  # 12 decisions from rest
     fidelity = _load(*SIM_FIDELITY, "summary.json")["variants"]  # the policy through each VAE alone (4 GPUs)
     base, vae8x = fidelity["base"]["view"], fidelity["vae8x"]["view"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
@@ -137,10 +143,11 @@ def readme_results() -> str:
             f"{_interval(noise['sampled']['ci95'])} (true proprio), {_pct(noise['sampled_proprio_masked']['mean'])} "
             f"{_interval(noise['sampled_proprio_masked']['ci95'])} (proprio masked) points in {noise['steps']} steps",
             "policy_grpo_branched_open_small", f"[section]({doc}#frames-or-reward)")] if noise else []),
-        *([("12-decision GRPO rollouts branched from open real states (MJX), 3 seeds",
-            f"sampled policy, proprio masked: {', '.join(_pct(g) for g in longer['masked_gain_per_seed'].values())} "
-            f"points in {longer['steps']} steps (mean {_pct(longer['mean'])})", "policy_grpo_branched_open_h12_small",
-            f"[section]({doc}#frames-or-reward)")] if longer else []),
+        *([("GRPO rollouts from rest cut at 12 decisions (MJX), 3 seeds",
+            f"sampled policy, proprio masked: {', '.join(_pct(g) for g in rest['masked_gain_per_seed'].values())} "
+            f"points by steps {_step_span(latest['policy_grpo_rest_h12_small'])} (mean {_pct(rest['mean'])}); from "
+            "open starts the same rollouts had "
+            "gained at one seed", "policy_grpo_rest_h12_small", f"[section]({doc}#frames-or-reward)")] if rest else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -1110,18 +1117,28 @@ PER_TASK_RUNS = (
     ("4 decisions, 1,024 starts, last step: proprio masked", "grpo_branched_open_b1024_seeds_small_h200", "success/s{}",
      "sampled_proprio_masked", None),
     ("whole episodes, step 10: sampled (true proprio)", "grpo_mjx_seeds_small_4xh100", "s{}", "sampled", 10))
+# the same from rest, one policy_d50 for both: cut at 12 decisions beside whole episodes, at step 10 and the last step
+REST_PER_TASK_RUNS = (
+    ("12 decisions, step 10: proprio masked", "grpo_rest_h12_seeds_small_2xh200", "success/s{}",
+     "sampled_proprio_masked", 10),
+    ("whole episodes, step 10: proprio masked", "grpo_rest_whole_seeds_small_2xh200", "success/s{}",
+     "sampled_proprio_masked", 10),
+    ("12 decisions, step 10: greedy", "grpo_rest_h12_seeds_small_2xh200", "success/s{}", "greedy", 10),
+    ("whole episodes, step 10: greedy", "grpo_rest_whole_seeds_small_2xh200", "success/s{}", "greedy", 10),
+    ("12 decisions, last step (14-17): proprio masked", "grpo_rest_h12_seeds_small_2xh200", "success/s{}",
+     "sampled_proprio_masked", None))
 
 
 def _task_success(point: dict, mode: str) -> dict[str, float]:
     return point["per_task"] if mode == "greedy" else point[mode]["per_task"]
 
 
-def grpo_per_task() -> str:
-    """Per task, each of :data:`PER_TASK_RUNS`' gains (points, seeds 0, 1 and 2) from its own step 0 to the step,
-    for the policy it names, read from the runs' ``success_curve.json``; the first run's step-0 success (seed 0:
-    its first column's policy / greedy) beside them."""
+def grpo_per_task(runs=PER_TASK_RUNS) -> str:
+    """Per task, each of ``runs``' (:data:`PER_TASK_RUNS`) gains (points, seeds 0, 1 and 2) from its own step 0 to
+    the step, for the policy it names, read from the runs' ``success_curve.json``; the first run's step-0 success
+    (seed 0: its first column's policy / greedy) beside them."""
     columns, start = [], None
-    for label, folder, seed_dir, mode, step in PER_TASK_RUNS:
+    for label, folder, seed_dir, mode, step in runs:
         gains = []
         for seed in range(3):
             run = os.path.join(RESULTS_DIR, "policy", folder, seed_dir.format(seed))
@@ -1203,7 +1220,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
-    "grpo-per-task": grpo_per_task,
+    "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
     "grpo-noise-control": grpo_noise_control,

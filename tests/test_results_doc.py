@@ -122,3 +122,27 @@ def test_the_report_names_the_tasks_as_the_simulator_does():
     assert len(report.TASK_NAMES) == len(LANGUAGE)
     for short, sentence in zip(report.TASK_NAMES, LANGUAGE):
         assert short.replace("table centre", "table center") in sentence, (short, sentence)
+
+
+def test_the_per_task_table_gives_each_run_its_own_gain(tmp_path, monkeypatch):
+    """grpo_per_task: a cell is the run's success at the step minus its own step 0, per seed, in points."""
+    def curve(run, points):
+        path = tmp_path / "policy" / "f" / f"s{run}" / "r"
+        path.mkdir(parents=True)
+        (path / "success_curve.json").write_text(json.dumps({"points": points}))
+
+    for seed in range(3):
+        masked = [{"0": 0.5, "1": 0.2}, {"0": 0.5 + 0.1 * seed, "1": 0.1}, {"0": 0.9, "1": 0.9}]
+        curve(seed, [{"step": s, "per_task": {"0": 0.7, "1": 0.6 - 0.02 * s},
+                      "sampled_proprio_masked": {"per_task": m}} for s, m in zip((0, 10, 15), masked)])
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_per_task((("masked, step 10", "f", "s{}", "sampled_proprio_masked", 10),
+                                  ("greedy, last", "f", "s{}", "greedy", None)))
+    rows = [line.split(" | ") for line in table.splitlines()[2:]]
+    assert rows[0][1:] == ["0.50 / 0.70", "+0, +10, +20", "+0, +0, +0 |"]
+    assert rows[1][1:] == ["0.20 / 0.60", "-10, -10, -10", "-30, -30, -30 |"]
+
+
+def test_step_span_names_the_steps_the_runs_reached():
+    assert report._step_span({"runs": {"a": {"steps": 17}, "b": {"steps": 14}, "c": {"steps": 15}}}) == "14-17"
+    assert report._step_span({"runs": {"a": {"steps": 15}, "b": {"steps": 15}}}) == "15"
