@@ -20,7 +20,9 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
         --out benchmarks/results/policy/grpo_reward_source_small [--record]
 
 ``--horizon N`` rolls every arm out N decisions instead of 12, ``--keyframe-fraction F`` draws its keyframes from the
-first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all)
+first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all;
+0: the first keyframe alone, frame 4, the world model's counterpart of starting at rest), ``--scale-by-std false``
+leaves every arm's advantages centred (the recipe that lifts on MJX from rest)
 and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world-model arms then load. The arms draw
 their keyframes alike (the same demonstrations and rule, their own draws), so their first steps, before any update,
 compare what the real closed loop and the imagined one are paid from like starts.
@@ -86,11 +88,13 @@ def pipeline(args) -> argparse.Namespace:
 
 def recipe(args) -> tuple[str, ...]:
     """:data:`RECIPE` at ``--horizon`` decisions (``rl.imagined.max_chunks``), with keyframes from the first
-    ``--keyframe-fraction`` of each demonstration where given (``rl.imagined.keyframe_fraction``): every arm's."""
+    ``--keyframe-fraction`` of each demonstration where given (``rl.imagined.keyframe_fraction``) and advantages
+    only centred with ``--scale-by-std false`` (``rl.grpo.scale_by_std``): every arm's."""
     flags = tuple(f"--rl.imagined.max_chunks={args.horizon}" if f.startswith("--rl.imagined.max_chunks=") else f
                   for f in RECIPE)
     fraction = args.keyframe_fraction
-    return flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
+    return (flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
+            + (() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)))
 
 
 def run_commands(args) -> dict[str, list[str]]:
@@ -434,10 +438,14 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: every arm starts from keyframes in the first this-fraction of each demonstration "
                              "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "
                              "horizons need to reach success at all")
+    parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
+                        help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
+                             "Dr. GRPO, rl.grpo.scale_by_std)")
     add_deadline_options(parser, "run: ")
     add_deterministic_option(parser, "run: ")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
+    args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]
     args.arms = [a for a in args.arms.split(",") if a]

@@ -4,9 +4,11 @@ import argparse
 import json
 import os
 
+import numpy as np
 import pytest
 
 from benchmarks import bench_grpo_reward_source as rs
+from sword_jax import cli
 
 
 def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
@@ -15,7 +17,7 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
         world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None,
-        deterministic=False)
+        deterministic=False, scale_by_std=True)
     return args
 
 
@@ -158,6 +160,28 @@ def test_a_short_horizon_from_every_phase_in_the_8x_vaes_world_model(tmp_path, m
                          (("--keyframe-fraction", "1.5"), "--keyframe-fraction in \\[0, 1\\]")):
         with pytest.raises(SystemExit, match=message):
             rs.parse(["summary", "--workdir", str(tmp_path), *bad])
+
+
+def test_the_rest_recipe_from_the_first_keyframe_with_centred_advantages(tmp_path):
+    """--keyframe-fraction 0 --scale-by-std false: every arm starts at the demonstrations' first keyframe (frame 4,
+    a latent in) and leaves its advantages centred, as the recipe that lifts on MJX from rest does."""
+    from sword_jax.rl import data as rl_data
+
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--keyframe-fraction", "0",
+                     "--scale-by-std", "false", "--arms", "gt,exec", "--seeds", "0,1"])
+    commands = rs.run_commands(args)
+    assert sorted(commands) == ["exec_s0", "exec_s1", "gt_s0", "gt_s1"]
+    for name, cmd in commands.items():
+        assert _flag(cmd, "--rl.imagined.keyframe_fraction") == ["--rl.imagined.keyframe_fraction=0.0"], name
+        assert _flag(cmd, "--rl.grpo.scale_by_std") == ["--rl.grpo.scale_by_std=false"], name
+    assert not any(_flag(c, "--rl.grpo.scale_by_std") for c in rs.run_commands(_args(tmp_path)).values())
+    episodes = argparse.Namespace(num_episodes=5, lengths=np.array([60, 90, 120, 200, 33]))
+    ep, t = rl_data.keyframe_indices(episodes, 64, np.random.default_rng(0), max_fraction=0.0)
+    assert set(t.tolist()) == {4} and set(ep.tolist()) <= set(range(5))
+    _, later = rl_data.keyframe_indices(episodes, 64, np.random.default_rng(0), max_fraction=1.0)
+    assert later.max() > 4
+    with pytest.raises(cli.UsageError, match="--scale-by-std"):
+        rs.parse(["run", "--workdir", str(tmp_path), "--scale-by-std", "maybe"])
 
 
 def test_bad_arguments_are_refused(tmp_path):
