@@ -1,6 +1,6 @@
 #!/bin/bash
 # 2 x H200 of one host (16 CPU cores each), 2026-11-29. policy_d50 re-made first on GPU 0 by the SFT command below
-# (its log and results in policy_d50/; greedy with ensembling 0.790 [0.728, 0.841] on the C engine's first 20
+# (its weights, log and results in policy_d50/; greedy with ensembling 0.790 [0.728, 0.841] on the C engine's first 20
 # evaluation states per task, 200 episodes). Then two experiments side by side, success alone, centred advantages,
 # XLA's deterministic GPU ops, seeds 0-2 each: from rest cut at 12 decisions (48 actions), 256 starts x 8, on GPU 0
 # (this folder, rest_h12), and from rest to the episode limit, 64 starts x 8, on GPU 1
