@@ -1129,6 +1129,54 @@ REST_PER_TASK_RUNS = (
      "sampled_proprio_masked", None))
 
 
+def _curve_points(folder: str, seed_dir: str) -> list[dict]:
+    """The evaluation points of the GRPO run in ``policy/<folder>/<seed_dir>`` (its ``success_curve.json``)."""
+    run = os.path.join(RESULTS_DIR, "policy", folder, seed_dir)
+    name = next(d for d in sorted(os.listdir(run)) if os.path.exists(os.path.join(run, d, "success_curve.json")))
+    return _load("policy", folder, seed_dir, name, "success_curve.json")["points"]
+
+
+# two recipes from one policy, seeds and evaluation episodes (deterministic ops): (label, folder), the other's
+# label and folder, and the step both reached
+CUT_VS_WHOLE = (("12 decisions", "grpo_rest_h12_seeds_small_2xh200"),
+                ("whole episodes", "grpo_rest_whole_seeds_small_2xh200"), 10)
+
+
+def grpo_rest_cut_vs_whole(pair=CUT_VS_WHOLE, seeds: Sequence[int] = (0, 1, 2)) -> str:
+    """The first recipe's real success minus the second's at the same step, per evaluated policy and seed, paired
+    episode by episode (the same 500 episodes; both runs' step-0 outcomes must be identical, else the table
+    refuses), and the mean over the seeds with a 95% interval (normal approximation from the seeds' intervals)."""
+    from sword_jax.rl.env_rollout import paired_difference_interval, point_outcomes
+
+    (label_a, folder_a), (label_b, folder_b), step = pair
+    rows = []
+    for mode, name in NOISE_CONTROL_MODES.items():
+        diffs, variance, cells = [], 0.0, []
+        for seed in seeds:
+            ends = []
+            for folder in (folder_a, folder_b):
+                points = _curve_points(folder, f"success/s{seed}")
+                pick = (lambda p: p) if mode == "greedy" else (lambda p: p[mode])
+                ends.append((point_outcomes(pick(points[0])),
+                             point_outcomes(pick(next(p for p in points if p["step"] == step)))))
+            (start_a, a), (start_b, b) = ends
+            if any(o is None for pair in ends for o in pair):
+                raise ValueError(f"grpo_rest_cut_vs_whole: seed {seed}'s evaluations ({mode}) kept no per-episode "
+                                 "outcomes; the runs cannot be paired")
+            if start_a.shape != start_b.shape or not (start_a == start_b).all():
+                raise ValueError(f"grpo_rest_cut_vs_whole: seed {seed}'s step-0 outcomes ({mode}) differ between "
+                                 f"{folder_a} and {folder_b}; the runs are not paired")
+            low, high = paired_difference_interval(b, a)
+            diff = float(a.mean() - b.mean())
+            diffs.append(diff)
+            variance += ((high - low) / (2 * 1.959964)) ** 2
+            cells.append(f"{a.mean():.3f} / {b.mean():.3f}, {_pct(diff)} {_interval([low, high])}")
+        mean, half = statistics.mean(diffs), 1.959964 * variance ** 0.5 / len(diffs)
+        rows.append([name, *cells, f"{_pct(mean)} {_interval([mean - half, mean + half])}"])
+    return _table(["policy evaluated", *(f"s{s}: {label_a} / {label_b} at step {step}, difference (points)"
+                                         for s in seeds), "mean difference over the seeds"], rows)
+
+
 def _task_success(point: dict, mode: str) -> dict[str, float]:
     return point["per_task"] if mode == "greedy" else point[mode]["per_task"]
 
@@ -1141,9 +1189,7 @@ def grpo_per_task(runs=PER_TASK_RUNS) -> str:
     for label, folder, seed_dir, mode, step in runs:
         gains = []
         for seed in range(3):
-            run = os.path.join(RESULTS_DIR, "policy", folder, seed_dir.format(seed))
-            name = next(d for d in sorted(os.listdir(run)) if os.path.exists(os.path.join(run, d, "success_curve.json")))
-            points = _load("policy", folder, seed_dir.format(seed), name, "success_curve.json")["points"]
+            points = _curve_points(folder, seed_dir.format(seed))
             end = points[-1] if step is None else next(p for p in points if p["step"] == step)
             first, last = _task_success(points[0], mode), _task_success(end, mode)
             gains.append({t: last[t] - first[t] for t in first})
@@ -1221,6 +1267,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
+    "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
     "grpo-noise-control": grpo_noise_control,

@@ -146,3 +146,31 @@ def test_the_per_task_table_gives_each_run_its_own_gain(tmp_path, monkeypatch):
 def test_step_span_names_the_steps_the_runs_reached():
     assert report._step_span({"runs": {"a": {"steps": 17}, "b": {"steps": 14}, "c": {"steps": 15}}}) == "14-17"
     assert report._step_span({"runs": {"a": {"steps": 15}, "b": {"steps": 15}}}) == "15"
+
+
+def _paired_runs(tmp_path, folder, ends, start="1100"):
+    """Seeds 0-2 of a run in policy/<folder>/success/s<k>: step 0 ``start`` and step 10 ``ends[k]`` for every
+    evaluated policy."""
+    for seed, end in enumerate(ends):
+        path = tmp_path / "policy" / folder / "success" / f"s{seed}" / "r"
+        path.mkdir(parents=True)
+        point = lambda step, text: {"step": step, "episodes": len(text), "outcomes": text, **{
+            m: {"episodes": len(text), "outcomes": text} for m in ("sampled", "sampled_proprio_masked")}}
+        (path / "success_curve.json").write_text(json.dumps({"points": [point(0, start), point(10, end)]}))
+
+
+def test_the_cut_against_whole_episodes_is_paired_episode_by_episode(tmp_path, monkeypatch):
+    import pytest
+
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    _paired_runs(tmp_path, "a", ["1111", "1100", "1110"])
+    _paired_runs(tmp_path, "b", ["1100", "1100", "1100"])
+    table = report.grpo_rest_cut_vs_whole((("cut", "a"), ("whole", "b"), 10))
+    rows = [line.split(" | ") for line in table.splitlines()[2:]]
+    assert [r[0].strip("| ") for r in rows] == ["sampled, proprio masked", "sampled, true proprio", "greedy"]
+    for row in rows:
+        assert row[1].startswith("1.000 / 0.500, +50.0 [") and row[2].startswith("0.500 / 0.500, +0.0 [")
+        assert row[3].startswith("0.750 / 0.500, +25.0 [") and row[4].startswith("+25.0 [")
+    _paired_runs(tmp_path, "c", ["1100", "1100", "1100"], start="0011")
+    with pytest.raises(ValueError, match="step-0 outcomes .* differ"):
+        report.grpo_rest_cut_vs_whole((("cut", "a"), ("other", "c"), 10))
