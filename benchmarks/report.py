@@ -146,8 +146,7 @@ def readme_results() -> str:
         *([("GRPO rollouts from rest cut at 12 decisions (MJX), 3 seeds",
             f"sampled policy, proprio masked: {', '.join(_pct(g) for g in rest['masked_gain_per_seed'].values())} "
             f"points by steps {_step_span(latest['policy_grpo_rest_h12_small'])} (mean {_pct(rest['mean'])}); from "
-            "open starts the same rollouts had "
-            "gained at one seed", "policy_grpo_rest_h12_small", f"[section]({doc}#frames-or-reward)")] if rest else []),
+            "open starts the same rollouts had gained at one seed", "policy_grpo_rest_h12_small", f"[section]({doc}#frames-or-reward)")] if rest else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -1125,7 +1124,7 @@ REST_PER_TASK_RUNS = (
      "sampled_proprio_masked", 10),
     ("12 decisions, step 10: greedy", "grpo_rest_h12_seeds_small_2xh200", "success/s{}", "greedy", 10),
     ("whole episodes, step 10: greedy", "grpo_rest_whole_seeds_small_2xh200", "success/s{}", "greedy", 10),
-    ("12 decisions, last step (14-17): proprio masked", "grpo_rest_h12_seeds_small_2xh200", "success/s{}",
+    ("12 decisions, last step: proprio masked", "grpo_rest_h12_seeds_small_2xh200", "success/s{}",
      "sampled_proprio_masked", None))
 
 
@@ -1152,15 +1151,15 @@ def grpo_rest_cut_vs_whole(pair=CUT_VS_WHOLE, seeds: Sequence[int] = (0, 1, 2)) 
     rows = []
     for mode, name in NOISE_CONTROL_MODES.items():
         diffs, variance, cells = [], 0.0, []
+        pick = (lambda p: p) if mode == "greedy" else (lambda p: p[mode])
         for seed in seeds:
             ends = []
             for folder in (folder_a, folder_b):
                 points = _curve_points(folder, f"success/s{seed}")
-                pick = (lambda p: p) if mode == "greedy" else (lambda p: p[mode])
                 ends.append((point_outcomes(pick(points[0])),
                              point_outcomes(pick(next(p for p in points if p["step"] == step)))))
             (start_a, a), (start_b, b) = ends
-            if any(o is None for pair in ends for o in pair):
+            if any(o is None for run in ends for o in run):
                 raise ValueError(f"grpo_rest_cut_vs_whole: seed {seed}'s evaluations ({mode}) kept no per-episode "
                                  "outcomes; the runs cannot be paired")
             if start_a.shape != start_b.shape or not (start_a == start_b).all():
