@@ -207,6 +207,8 @@ def contrast(runs: dict, arm: str, control: str = CONTROL) -> dict | None:
     """``arm``'s real-success gain minus ``control``'s, per evaluated policy (:data:`MODES`): at each seed both ran
     and their mean over those seeds, with a 95% interval (normal approximation: the runs' evaluations are
     independent, and each gain's standard error is read from its own 95% interval). None where no seed has both."""
+    from sword_jax.rl.env_rollout import mean_interval
+
     seeds = sorted(r["seed"] for r in runs.values() if r["arm"] == arm and f"{control}_s{r['seed']}" in runs)
     if not seeds:
         return None
@@ -217,9 +219,8 @@ def contrast(runs: dict, arm: str, control: str = CONTROL) -> dict | None:
         if any(a is None or b is None for a, b in pairs):
             continue
         diffs = [a["gain"] - b["gain"] for a, b in pairs]
-        variance = sum(((g["ci95"][1] - g["ci95"][0]) / (2 * 1.959964)) ** 2 for pair in pairs for g in pair)
-        mean, half = statistics.mean(diffs), 1.959964 * variance ** 0.5 / len(diffs)
-        out[mode] = {"per_seed": dict(zip(seeds, diffs)), "mean": mean, "ci95": [mean - half, mean + half]}
+        mean, ci95 = mean_interval(diffs, [g["ci95"] for pair in pairs for g in pair])
+        out[mode] = {"per_seed": dict(zip(seeds, diffs)), "mean": mean, "ci95": list(ci95)}
     return out
 
 

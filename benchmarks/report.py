@@ -146,7 +146,8 @@ def readme_results() -> str:
         *([("GRPO rollouts from rest cut at 12 decisions (MJX), 3 seeds",
             f"sampled policy, proprio masked: {', '.join(_pct(g) for g in rest['masked_gain_per_seed'].values())} "
             f"points by steps {_step_span(latest['policy_grpo_rest_h12_small'])} (mean {_pct(rest['mean'])}); from "
-            "open starts the same rollouts had gained at one seed", "policy_grpo_rest_h12_small", f"[section]({doc}#frames-or-reward)")] if rest else []),
+            "open starts the same rollouts had gained at one seed", "policy_grpo_rest_h12_small",
+            f"[section]({doc}#frames-or-reward)")] if rest else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),
@@ -1145,19 +1146,18 @@ def grpo_rest_cut_vs_whole(pair=CUT_VS_WHOLE, seeds: Sequence[int] = (0, 1, 2)) 
     """The first recipe's real success minus the second's at the same step, per evaluated policy and seed, paired
     episode by episode (the same 500 episodes; both runs' step-0 outcomes must be identical, else the table
     refuses), and the mean over the seeds with a 95% interval (normal approximation from the seeds' intervals)."""
-    from sword_jax.rl.env_rollout import paired_difference_interval, point_outcomes
+    from sword_jax.rl.env_rollout import mean_interval, paired_difference_interval, point_outcomes
 
     (label_a, folder_a), (label_b, folder_b), step = pair
     rows = []
     for mode, name in NOISE_CONTROL_MODES.items():
-        diffs, variance, cells = [], 0.0, []
-        pick = (lambda p: p) if mode == "greedy" else (lambda p: p[mode])
+        diffs, intervals, cells = [], [], []
         for seed in seeds:
             ends = []
             for folder in (folder_a, folder_b):
                 points = _curve_points(folder, f"success/s{seed}")
-                ends.append((point_outcomes(pick(points[0])),
-                             point_outcomes(pick(next(p for p in points if p["step"] == step)))))
+                ends.append((point_outcomes(_mode_point(points[0], mode)),
+                             point_outcomes(_mode_point(next(p for p in points if p["step"] == step), mode))))
             (start_a, a), (start_b, b) = ends
             if any(o is None for run in ends for o in run):
                 raise ValueError(f"grpo_rest_cut_vs_whole: seed {seed}'s evaluations ({mode}) kept no per-episode "
@@ -1168,16 +1168,22 @@ def grpo_rest_cut_vs_whole(pair=CUT_VS_WHOLE, seeds: Sequence[int] = (0, 1, 2)) 
             low, high = paired_difference_interval(b, a)
             diff = float(a.mean() - b.mean())
             diffs.append(diff)
-            variance += ((high - low) / (2 * 1.959964)) ** 2
+            intervals.append((low, high))
             cells.append(f"{a.mean():.3f} / {b.mean():.3f}, {_pct(diff)} {_interval([low, high])}")
-        mean, half = statistics.mean(diffs), 1.959964 * variance ** 0.5 / len(diffs)
-        rows.append([name, *cells, f"{_pct(mean)} {_interval([mean - half, mean + half])}"])
+        mean, ci95 = mean_interval(diffs, intervals)
+        rows.append([name, *cells, f"{_pct(mean)} {_interval(ci95)}"])
     return _table(["policy evaluated", *(f"s{s}: {label_a} / {label_b} at step {step}, difference (points)"
                                          for s in seeds), "mean difference over the seeds"], rows)
 
 
+def _mode_point(point: dict, mode: str) -> dict:
+    """An evaluation point's figures for one evaluated policy: the point itself for ``greedy``, else its ``mode``
+    entry (``sampled``, ``sampled_proprio_masked``)."""
+    return point if mode == "greedy" else point[mode]
+
+
 def _task_success(point: dict, mode: str) -> dict[str, float]:
-    return point["per_task"] if mode == "greedy" else point[mode]["per_task"]
+    return _mode_point(point, mode)["per_task"]
 
 
 def grpo_per_task(runs=PER_TASK_RUNS) -> str:

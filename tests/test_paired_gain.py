@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sword_jax.pipeline import grpo as pipeline_grpo
-from sword_jax.rl.env_rollout import (difference_interval, gain_interval, outcomes_text, paired_difference_interval,
-                                      point_outcomes)
+from sword_jax.rl.env_rollout import (difference_interval, gain_interval, mean_interval, outcomes_text,
+                                      paired_difference_interval, point_outcomes)
 from sword_jax.rl.policy_success import success_summary
 
 
@@ -134,3 +134,17 @@ def test_a_summarised_gain_says_how_the_episodes_moved(capsys):
     bench_grpo_value.print_runs({"runs": {"success_s0": run}})
     line = capsys.readouterr().out
     assert "sampled 0.375 -> 0.625 (+0.250 [" in line and ", paired: 3 episodes gained, 1 lost)" in line
+
+
+def test_mean_interval_sums_the_variances_its_intervals_give():
+    """Each 95% interval of half-width 1.96 * sigma gives variance sigma^2; the mean of n estimates has half-width
+    1.96 * sqrt(sum of variances) / n."""
+    z = 1.959964
+    mean, (low, high) = mean_interval([0.1, 0.3], [(-z * 0.03, z * 0.03), (0.3 - z * 0.04, 0.3 + z * 0.04)])
+    assert mean == pytest.approx(0.2) and high - mean == pytest.approx(mean - low)
+    assert high - mean == pytest.approx(z * 0.05 / 2)  # sqrt(0.03^2 + 0.04^2) = 0.05, over 2 values
+    # two intervals per estimate (a difference of two independent gains) add both variances
+    _, (low4, high4) = mean_interval([0.0], [(-z * 0.03, z * 0.03), (-z * 0.04, z * 0.04)])
+    assert high4 == pytest.approx(z * 0.05) and low4 == pytest.approx(-z * 0.05)
+    with pytest.raises(ValueError, match="at least one value"):
+        mean_interval([], [])

@@ -260,6 +260,20 @@ def paired_difference_interval(before: Any, after: Any, z: float = 1.96) -> tupl
     return (d - math.sqrt(max(low, 0.0)), d + math.sqrt(max(high, 0.0)))
 
 
+def mean_interval(values: Any, intervals: Any, z: float = 1.959964) -> tuple[float, tuple[float, float]]:
+    """The mean of independent estimates (``values``, e.g. one gain difference per seed) and its 95% interval by the
+    normal approximation: the variances read from the 95% ``intervals`` (``(low, high)`` pairs; as many as the
+    estimates' independent parts, e.g. both gains of each difference) are summed, so the mean's half-width is
+    ``z * sqrt(sum of variances) / len(values)``."""
+    values = [float(v) for v in values]
+    if not values:
+        raise ValueError("mean_interval: needs at least one value")
+    variance = sum(((high - low) / (2 * z)) ** 2 for low, high in intervals)
+    mean = sum(values) / len(values)
+    half = z * math.sqrt(variance) / len(values)
+    return mean, (mean - half, mean + half)
+
+
 def outcomes_text(success: Any) -> str:
     """Episode outcomes as a string of ``0`` and ``1`` in the episodes' order: how an evaluation point keeps them
     (``outcomes``), so gains between two points of one run pair them episode by episode."""
