@@ -97,6 +97,13 @@ def recipe(args) -> tuple[str, ...]:
             + (() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)))
 
 
+def world_model_overrides(args) -> tuple[str, ...]:
+    """The config overrides of the world model every stage that trains or loads it gets: the VAE variant's
+    (:data:`VAE_VARIANTS`) and ``--world-model-set``'s (e.g. ``trainer.ema_decay=0.999``: the simulator then
+    samples from the EMA weights; ``model.scan_layers=false``: unrolled layers, the same weights)."""
+    return (*VAE_VARIANTS[args.vae_variant], *(f"--{kv}" for kv in getattr(args, "world_model_set", ())))
+
+
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
     (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
@@ -104,7 +111,7 @@ def run_commands(args) -> dict[str, list[str]]:
     demos = os.path.join(pipe, "data", "demos.hdf5")
     steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
              f"--rl.grpo.eval_every={args.eval_every}")
-    episodes, shared, vae = args.eval_episodes_per_task, recipe(args), VAE_VARIANTS[args.vae_variant]
+    episodes, shared, vae = args.eval_episodes_per_task, recipe(args), world_model_overrides(args)
     out = {}
     for seed in args.seeds if "gt" in args.arms else ():
         out[f"gt_s{seed}"] = [sys.executable, "-m", "benchmarks.bench_policy", "grpo", "--config", args.config,
@@ -151,7 +158,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
 
-    base, vae = pipeline(args), VAE_VARIANTS[args.vae_variant]
+    base, vae = pipeline(args), world_model_overrides(args)
     phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"), [n for n in commands if n.startswith("gt")]),
               ("pipeline", pipeline_command(base, vae, stop_after="reward_model"),
                [n for n in commands if not n.startswith("gt")])]
@@ -441,10 +448,26 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
                         help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
                              "Dr. GRPO, rl.grpo.scale_by_std)")
+    parser.add_argument("--world-model-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="run: a config override of the world model's training and loading, given to the "
+                             "pipeline and the world-model arms (repeatable; e.g. trainer.ema_decay=0.999, "
+                             "model.scan_layers=false); rl.* keys are the arms' recipe and are refused")
     add_deadline_options(parser, "run: ")
     add_deterministic_option(parser, "run: ")
     common.add_summary_options(parser)
     args = parser.parse_args(argv)
+    for kv in args.world_model_set:
+        if not re.fullmatch(r"[a-z_]+(\.[a-z_0-9]+)+=\S+", kv) or kv.startswith("rl."):
+            raise SystemExit(f"bench_grpo_reward_source: --world-model-set takes KEY=VALUE with a dotted config key "
+                             f"outside rl.* (e.g. trainer.ema_decay=0.999), got {kv!r}")
+    if args.world_model_set:  # refused here, by name, rather than by every stage it would reach
+        import configs
+        from configs.cli import apply_overrides
+
+        try:
+            apply_overrides(configs.get(args.config), [*VAE_VARIANTS[args.vae_variant], *args.world_model_set]).validate()
+        except (ValueError, KeyError, TypeError) as error:
+            raise SystemExit(f"bench_grpo_reward_source: --world-model-set: {error}") from None
     args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]

@@ -1040,10 +1040,11 @@ def value_signal() -> str:
                   rows)
 
 
-def sim_fidelity_decisions() -> str:
-    """Per decision of the 8x VAE's closed loop (``exec_vae8x``, its step's mean): the frame the policy read and
-    its greedy actions on it against the real frame, the VAE alone's share, and the real motion."""
-    with open(os.path.join(RESULTS_DIR, *SIM_FIDELITY, "exec_vae8x", "rl", "grpo", "train_history.jsonl")) as f:
+def sim_fidelity_decisions(run: tuple[str, ...] = (*SIM_FIDELITY, "exec_vae8x")) -> str:
+    """Per decision of a closed loop paid by execution (``run``: its work dir under the results; by default the 8x
+    VAE's ``exec_vae8x``), the mean over its steps: the frame the policy read and its greedy actions on it against
+    the real frame, the VAE alone's share, and the real motion."""
+    with open(os.path.join(RESULTS_DIR, *run, "rl", "grpo", "train_history.jsonl")) as f:
         history = [json.loads(line) for line in f if line.strip()]
     decisions = sorted(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
 
@@ -1054,6 +1055,51 @@ def sim_fidelity_decisions() -> str:
              mean("action_gap_vae", k), mean("action_gap_prev", k)] for k in decisions]
     return _table(["decision", "frame error to the real frame", "the VAE alone", "real motion over the decision",
                    "greedy action gap to the real frame", "the VAE alone", "to the real frame a decision earlier"], rows)
+
+
+# the reward-source experiment from the demonstrations' first keyframe, 12 decisions, one seed (one H200)
+REWARD_SOURCE_REST = ("policy", "grpo_reward_source_rest_small_h200")
+
+
+def _paid_over_steps(history_path: str) -> dict:
+    """What reality paid every training rollout of a ground-truth GRPO run (``rollout_success`` of each step of its
+    history, times ``trajectories_sampled``): ``{"rate", "ci95", "of"}`` with a Wilson interval."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    with open(history_path) as f:
+        history = [json.loads(line) for line in f if line.strip()]
+    of = sum(int(h["trajectories_sampled"]) for h in history)
+    hits = round(sum(h["rollout_success"] * h["trajectories_sampled"] for h in history))
+    return {"rate": hits / of, "ci95": list(wilson_interval(hits, of)), "of": of}
+
+
+def grpo_reward_source_rest() -> str:
+    """The reward-source experiment from the first keyframe at 12 decisions (``REWARD_SOURCE_REST``): what reality
+    paid every rollout on real frames and on the world model's, the groups left mixed, the gains at step 20 and the
+    detector on the world model's rollouts."""
+    summary = _load(*REWARD_SOURCE_REST, "grpo_reward_source.json")
+    loop = next(iter(_load(*REWARD_SOURCE_REST, "closed_loop.json")["runs"].values()))
+    labels = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
+              "exec": "the world model's frames, the real outcome of their actions"}
+    rows = []
+    for name, run in sorted(summary["runs"].items(), key=lambda kv: list(labels).index(kv[1]["arm"])):
+        if run["arm"] == "gt":
+            gt_dir = os.path.join(RESULTS_DIR, *REWARD_SOURCE_REST, "gt", f"s{run['seed']}")
+            sub = next(d for d in sorted(os.listdir(gt_dir)) if os.path.isdir(os.path.join(gt_dir, d)))
+            paid = _paid_over_steps(os.path.join(gt_dir, sub, "train_history.jsonl"))
+        else:
+            paid = loop["paid_success"]
+        det = run.get("detector")
+        rows.append([labels[run["arm"]], f"s{run['seed']}", str(run["steps"]), _paid(paid),
+                     f"{run['paid_success']['first']:.3f} -> {run['paid_success']['last']:.3f}",
+                     f"{run['mixed_median']:.2f}",
+                     *(f"{run[m]['start']:.2f} -> {run[m]['end']:.2f}, {_pct(run[m]['gain'])} {_interval(run[m]['ci95'])}"
+                       for m in ("sampled_proprio_masked", "greedy")),
+                     f"{det['success']:.2f} / {det['precision']:.2f}" if det else ""])
+    return _table(["GRPO's frames and reward", "seed", "steps", "real success of the rollouts, all steps (95% interval)",
+                   "steps 1-5 -> last 5", "groups mixed (median)",
+                   "sampled, proprio masked: step 0 -> 20, gain (points), 100 episodes", "greedy: the same",
+                   "the detector on the same rollouts: success / precision"], rows)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
@@ -1270,7 +1316,9 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source": grpo_reward_source, "policy-view": policy_view, "closed-loop": closed_loop,
     "action-gap": action_gap, "lag-success": lag_success, "closed-loop-sampler": closed_loop_sampler,
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
-    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions, "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
+    "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
+    "grpo-reward-source-rest": grpo_reward_source_rest,
+    "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")), "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,

@@ -184,6 +184,33 @@ def test_the_rest_recipe_from_the_first_keyframe_with_centred_advantages(tmp_pat
         rs.parse(["run", "--workdir", str(tmp_path), "--scale-by-std", "maybe"])
 
 
+def test_world_model_settings_reach_the_pipeline_and_the_world_model_arms_only(tmp_path, monkeypatch):
+    """--world-model-set: each override goes to both pipeline stages and to the arms that load the world model,
+    after the VAE variant's; the ground-truth arm, which has none, is unchanged. A key that is not the config's, a
+    value it cannot take, or an rl.* key (the arms' recipe) is refused by name before anything starts."""
+    sets = ("trainer.ema_decay=0.999", "model.scan_layers=false")
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--vae-variant", "vae8x",
+                     "--seeds", "0", *(a for kv in sets for a in ("--world-model-set", kv))])
+    wanted = [*rs.VAE_VARIANTS["vae8x"], "--trainer.ema_decay=0.999", "--model.scan_layers=false"]
+    commands = rs.run_commands(args)
+    for name in ("exec_s0", "det_s0"):
+        cmd = commands[name]
+        assert cmd[cmd.index("--config") + 2:cmd.index("--simulator")] == wanted, name
+    assert commands["gt_s0"] == rs.run_commands(argparse.Namespace(**{**vars(args), "world_model_set": []}))["gt_s0"]
+    seen = []
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: seen.append(list(overrides)) or [
+        __import__("sys").executable, "-c", "raise SystemExit(1)"])
+    with pytest.raises(SystemExit, match="never started"):
+        rs.run(args, poll_s=0.05)
+    assert seen == [wanted] * 2  # the data stage's command and the whole pipeline's
+    for kv, message in (("trainer.ema_decy=0.9", "'ema_decy' is not a field of TrainerConfig"),
+                        ("trainer.ema_decay=1.5", "ema_decay must be in \\[0, 1\\)"),
+                        ("model.scan_layers=maybe", "cannot parse 'maybe'"),
+                        ("rl.grpo.steps=3", "outside rl"), ("ema_decay", "KEY=VALUE")):
+        with pytest.raises(SystemExit, match=message):
+            rs.parse(["run", "--workdir", str(tmp_path), "--world-model-set", kv])
+
+
 def test_bad_arguments_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="--seeds"):
         rs.main(["summary", "--workdir", str(tmp_path), "--seeds", ""])

@@ -174,3 +174,41 @@ def test_the_cut_against_whole_episodes_is_paired_episode_by_episode(tmp_path, m
     _paired_runs(tmp_path, "c", ["1100", "1100", "1100"], start="0011")
     with pytest.raises(ValueError, match="step-0 outcomes .* differ"):
         report.grpo_rest_cut_vs_whole((("cut", "a"), ("other", "c"), 10))
+
+
+def test_the_rest_reward_source_table_pays_every_rollout_of_each_arm(tmp_path, monkeypatch):
+    """grpo_reward_source_rest: the real-frame arm's payment is every step's rollout success times its
+    trajectories, with a Wilson interval; the world-model arm's is the closed-loop record's; gains and the
+    detector come from the summary; the per-decision table is the mean over the steps of the run's history."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    record = tmp_path / "policy" / "rest"
+    gt = record / "gt" / "s0" / "grpo_dir"
+    gt.mkdir(parents=True)
+    gt.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
+        {"step": s, "rollout_success": r, "trajectories_sampled": 100}) for s, r in ((1, 0.25), (2, 0.35))) + "\n")
+    gain = {"start": 0.5, "end": 0.6, "gain": 0.1, "ci95": [-0.02, 0.22]}
+    run = {"steps": 2, "paid_success": {"first": 0.25, "last": 0.35}, "mixed_median": 0.75, "seed": 0,
+           "sampled_proprio_masked": gain, "greedy": gain}
+    (record / "grpo_reward_source.json").write_text(json.dumps({"runs": {
+        "exec_s0": {**run, "arm": "exec", "detector": {"success": 0.2, "precision": 0.05}},
+        "gt_s0": {**run, "arm": "gt"}}}))
+    (record / "closed_loop.json").write_text(json.dumps({"runs": {"wm": {
+        "paid_success": {"rate": 0.015, "ci95": [0.01, 0.02], "of": 200}}}}))
+    history = record / "exec_s0" / "rl" / "grpo"
+    history.mkdir(parents=True)
+    history.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
+        {f"closed_loop_{what}_{k}": value + k for what in ("frame_error", "frame_error_vae", "motion", "action_gap",
+                                                            "action_gap_vae", "action_gap_prev") for k in (1, 2)})
+        for value in (0.0, 0.5)) + "\n")
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    monkeypatch.setattr(report, "REWARD_SOURCE_REST", ("policy", "rest"))
+    rows = [line.split(" | ") for line in report.grpo_reward_source_rest().splitlines()[2:]]
+    low, high = wilson_interval(60, 200)
+    assert rows[0][0].startswith("| real frames") and rows[0][3] == f"0.300 [{low:.3f}, {high:.3f}] of 200"
+    assert rows[0][6:8] == ["0.50 -> 0.60, +10.0 [-2.0, +22.0]"] * 2 and rows[0][8] == " |"
+    assert rows[1][0].startswith("| the world model's") and rows[1][3] == "0.015 [0.010, 0.020] of 200"
+    assert rows[1][4:6] == ["0.250 -> 0.350", "0.75"] and rows[1][8] == "0.20 / 0.05 |"
+    decisions = [line.split(" | ") for line in report.sim_fidelity_decisions(("policy", "rest", "exec_s0"))
+                 .splitlines()[2:]]
+    assert [row[1] for row in decisions] == ["1.250", "2.250"]  # means of 1, 1.5 and of 2, 2.5

@@ -1,0 +1,14 @@
+# one H200 (16 CPU cores), 2026-11-29. The policy is the one committed with grpo_rest_h12_seeds_small_2xh200.
+# The launcher below was stopped about 1,390 s after its start, once both runs had started; they ran on to step 20.
+# A second launch of the same command with --arms exec (main_relaunch.log) found the pipeline built and the run
+# finished, and re-evaluated the run's step 0 and step 20 (the last two lines of
+# exec_s0.log). The figures are the first launch's (success_curve.json, train_history.jsonl).
+P=benchmarks/results/policy/grpo_rest_h12_seeds_small_2xh200/policy_d50/policy_d50.npz
+python -m benchmarks.bench_grpo_reward_source run --workdir runs/rs3 --policy $P --gpus 0 --seeds 0 \
+    --arms gt,exec --horizon 12 --keyframe-fraction 0 --vae-variant vae8x --world-model-steps 12000 \
+    --rollout-batch 64 --scale-by-std false --steps 20 --eval-every 10 --eval-episodes-per-task 10 \
+    --deadline-s 1480 --grace-s 45
+python -m benchmarks.bench_grpo_reward_source summary --workdir runs/rs3 --out runs/rs3/grpo_reward_source
+python -m benchmarks.bench_grpo_reward_source closed-loop --run "12,000 steps, from the first frame" \
+    runs/rs3/exec_s0/rl/grpo runs/rs3/exec_s0.log runs/rs3/pipeline/world_model/metrics.jsonl \
+    --trajectories 512 --out runs/rs3/closed_loop.json
