@@ -40,7 +40,10 @@ def small() -> ExperimentConfig:
         vae=VAEConfig(dim=32, dec_dim=48, train_steps=2000, batch_size=8),
         # + 10 rollouts per task of the supervised policy (successes and failures; see DataConfig).
         data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32, policy_rollouts_per_task=10),
-        trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=500),
+        # A checkpoint holds the DLB cache too (0.9 GiB with the 8x VAE's latents): at one every 500 steps, the
+        # blocks after the saves took 80 s of a 12,000-step run's 359 s on one H200
+        # (benchmarks/results/policy/grpo_reward_source_rest_small_h200).
+        trainer=TrainerConfig(steps=5000, learning_rate=2e-4, warmup_steps=200, log_every=50, checkpoint_every=2000),
         sim=SimConfig(backend="mjx", resolution=128, episodes_per_task=20),
         # 100 held-out episodes x 64 predicted frames (1 + 4 context + 8 x 8), scored with bootstrap intervals.
         # FID is left out: its InceptionV3 has no published weights here, and a random-weight FID cost 85 s of
