@@ -4,7 +4,9 @@
 with two items per step, ``state`` (the train-state pytree, latent cache included, restored straight
 into its sharded layout) and ``meta`` (JSON: data-iterator position, RNG root key data, config).
 A checkpoint that cannot be read, or does not fit what it is read into, raises :class:`CheckpointError`;
-:func:`read_arrays` reads one back as flat host arrays, to compare runs. :class:`MetricLogger` reads device
+:func:`read_arrays` reads one back as flat host arrays, to compare runs. :class:`WriterLock` is a trainer's claim
+on the directory it writes, so that a second process started on the same run is refused instead of writing
+beside the first. :class:`MetricLogger` reads device
 metrics one log step late, so the host never waits on the step it just dispatched, and writes
 them to ``metrics.jsonl`` and TensorBoard event files.
 """
@@ -12,9 +14,11 @@ them to ``metrics.jsonl`` and TensorBoard event files.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
+import socket
 import sys
 import time
 import warnings
@@ -46,6 +50,54 @@ def _dtype(leaf: Any) -> np.dtype:
 
 class CheckpointError(ValueError):
     """A checkpoint or weight file that is missing, unreadable, or does not match the model it is loaded into."""
+
+
+class CheckpointInUse(CheckpointError):
+    """A checkpoint directory that another live process is writing (:class:`WriterLock`)."""
+
+
+class WriterLock:
+    """The one writer's claim on a checkpoint directory: an exclusive, non-blocking ``flock`` on
+    ``<directory>/.writer.lock`` (orbax ignores the file), holding the holder's pid, host and start time.
+
+    A second claim while the first is held, from another process or another open in this one, raises
+    :class:`CheckpointInUse` naming the holder, before anything is read or written. The kernel drops the claim
+    when its process ends however it ends, so a killed run leaves no stale lock and the same command resumes.
+    ``flock`` claims hold between processes of one host and on local file systems; a directory shared by
+    several hosts is claimed by the one process that writes it (the trainers claim on process 0).
+    """
+
+    FILE = ".writer.lock"
+
+    def __init__(self, directory: str, owner: str):
+        os.makedirs(directory, exist_ok=True)
+        self.directory = os.path.abspath(directory)
+        self._fd: int | None = os.open(os.path.join(self.directory, self.FILE), os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(self._fd, 512, 0).decode(errors="replace").strip() or "a process that wrote no details"
+            os.close(self._fd)
+            self._fd = None
+            raise CheckpointInUse(f"{owner}: {self.directory} is being written by another live process ({holder}); "
+                                  f"wait for it or stop it (the same command then resumes from its last "
+                                  f"checkpoint), or give this run another work dir") from None
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, f"pid {os.getpid()} on {socket.gethostname()} since "
+                            f"{time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)
+
+    def release(self) -> None:
+        """Gives the claim up (the file stays: removing it could race a process claiming it)."""
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> "WriterLock":
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.release()
 
 
 class Checkpointer:

@@ -172,12 +172,21 @@ def run_steps(
         checkpointed.
       ValueError: the checkpoint in ``checkpoint_dir`` is from another run (``run_id``: an
         :class:`AnotherRunsCheckpoint`, or structure), or ``on_nonfinite`` is neither ``"stop"`` nor ``"skip"``.
+      sword_jax.checkpoint.CheckpointInUse: another live process writes ``checkpoint_dir``
+        (:class:`~sword_jax.checkpoint.WriterLock`, held by process 0 for the whole call).
     """
     if on_nonfinite not in ("stop", "skip"):
         raise ValueError(f"{name}: on_nonfinite must be 'stop' or 'skip', got {on_nonfinite!r}")
     if run_id is not None:  # as a checkpoint's JSON gives it back (tuples as lists), so a resume compares equal
         run_id = json.loads(json.dumps(run_id))
-    ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=keep_checkpoints) if checkpoint_dir else None
+    # one writer per run: a second process started on the same checkpoint directory is refused here
+    lock = checkpoint.WriterLock(checkpoint_dir, name) if checkpoint_dir and jax.process_index() == 0 else None
+    try:
+        ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=keep_checkpoints) if checkpoint_dir else None
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
     first_step, history, batches = 0, [], None
     try:
         if ckpt is not None and ckpt.latest_step() is not None:
@@ -247,8 +256,12 @@ def run_steps(
                     else f"checkpoint of step {dispatched} in {ckpt.directory}; the same command resumes from it")
             raise cli.StopRequested(f"{name}: stopped on request after step {dispatched} of {steps}; {kept}")
     finally:
-        if batches is not None:
-            batches.close()
-        if ckpt is not None:
-            ckpt.close()
+        try:
+            if batches is not None:
+                batches.close()
+            if ckpt is not None:
+                ckpt.close()
+        finally:
+            if lock is not None:
+                lock.release()
     return LoopResult(state, metrics, history, first_step)

@@ -185,3 +185,43 @@ def test_the_stop_signal_under_cli_run_checkpoints_and_exits_75_and_the_command_
     resumed = command(0)  # no signal: resumes at step 2 and adds batches 3..5
     assert resumed.returncode == 0, resumed.stderr
     assert float(resumed.stdout.strip()) == 15.0
+
+
+_HOLDER = """
+import sys, time
+from sword_jax import checkpoint
+lock = checkpoint.WriterLock(sys.argv[1], "holder")
+print("held", flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_second_writer_of_a_run_is_refused_and_a_killed_ones_claim_is_gone(tmp_path):
+    """WriterLock in run_steps: while another live process writes the checkpoint directory, a run on it is refused
+    by name, before it reads or writes anything; once that process is killed (SIGKILL: no clean-up of its own),
+    the same run goes through. In one process, a claim held elsewhere refuses too, and a finished or failed run
+    gives its claim back."""
+    import subprocess
+    import sys
+
+    directory = str(tmp_path / "run")
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, directory], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(checkpoint.CheckpointInUse, match=f"toy: {directory} is being written by another live "
+                                                             f"process \\(pid {holder.pid} on "):
+            _run(directory)
+        assert os.listdir(directory) == [checkpoint.WriterLock.FILE]  # nothing read, nothing written
+    finally:
+        holder.kill()
+        holder.wait(timeout=60)
+    result, _, _ = _run(directory)
+    assert float(result.state["w"]) == sum(range(1, STEPS + 1))
+    with checkpoint.WriterLock(directory, "elsewhere"):
+        with pytest.raises(checkpoint.CheckpointInUse, match="another live process"):
+            _run(directory)
+    with pytest.raises(NonFiniteLoss):
+        _run(str(tmp_path / "bad"), poison_at=2)
+    with checkpoint.WriterLock(str(tmp_path / "bad"), "after the failure"):  # the failed run let go of it
+        pass
+    assert _run(directory)[0].first_step == STEPS  # resumed at the end: nothing left to run
