@@ -465,7 +465,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         from configs.cli import apply_overrides
 
         try:
-            apply_overrides(configs.get(args.config), [*VAE_VARIANTS[args.vae_variant], *args.world_model_set]).validate()
+            overrides = [*VAE_VARIANTS[args.vae_variant], *args.world_model_set]
+            apply_overrides(configs.get(args.config), overrides).validate()
         except (ValueError, KeyError, TypeError) as error:
             raise SystemExit(f"bench_grpo_reward_source: --world-model-set: {error}") from None
     args.scale_by_std = args.scale_by_std == "true"
