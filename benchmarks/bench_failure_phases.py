@@ -4,7 +4,8 @@ GRPO on short rollouts branched from the policy's own states (4 decisions of 4 a
 yet barely lifts success from rest, while whole episodes from rest do. One explanation is where the two put their
 signal: a group of 16-action rollouts can only have mixed outcomes where success is within 16 actions, that is,
 late in the task, while the episodes from rest may fail earlier. This measures both on the MuJoCo C engine, for the
-policy as GRPO's rollouts run it (T ``--temperature``, proprio masked, 4 actions a decision, no ensembling):
+policy as GRPO's rollouts run it (T ``--temperature``, proprio masked, ``--actions-per-decision`` actions a decision
+(4 by default, the recipe's), no ensembling):
 
 1. ``--episodes`` episodes from training-split states at rest, to the episode limit. After every decision the
    target bowl, the plate and whether both finger pads touch the bowl are read
@@ -192,7 +193,10 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--episodes", type=int, default=200, help="episodes from rest (stratified over the tasks)")
     parser.add_argument("--starts", type=int, default=128, help="branch points for the short rollouts")
     parser.add_argument("--group-size", type=int, default=8)
-    parser.add_argument("--horizon", type=int, default=4, help="decisions (4 actions each) of a short rollout")
+    parser.add_argument("--horizon", type=int, default=4, help="decisions of a short rollout")
+    parser.add_argument("--actions-per-decision", type=int, default=4,
+                        help="actions executed per policy call, in the episodes and the short rollouts (4: GRPO's "
+                             "recipe; 8: a whole chunk, as a world model that predicts 8 frames a call would run)")
     parser.add_argument("--branch-from", choices=("running", "rest"), default="running",
                         help="the short rollouts' starts: decisions of the running episodes, or their first states")
     parser.add_argument("--temperature", type=float, default=0.5)
@@ -220,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     probe = Probe(argparse.Namespace(config=args.config, temperature=args.temperature, group_size=args.group_size,
                                      groups=args.starts, policy=args.policy, seed=args.seed, workers=args.workers),
-                  "failure-phases", max_steps=args.max_steps)
+                  "failure-phases", max_steps=args.max_steps, execute_steps=args.actions_per_decision)
     limit, k = probe.limit, probe.rl.env.execute_steps
     os.makedirs(args.out, exist_ok=True)
     seconds = {}

@@ -80,12 +80,15 @@ def add_probe_options(parser: argparse.ArgumentParser, *, groups: int) -> None:
 
 
 class Probe:
-    """The policy as GRPO's short rollouts run it on the C engine (T ``--temperature``, proprio masked, 4 actions a
-    decision, no ensembling), its training-split starts at rest and its keyframe starts; :meth:`episodes` rolls
-    start states out to ``max_steps`` (default: the config's episode limit), decision ``c`` sampling with
-    ``fold_in(fold_in(key, stream), c)``. ``grpo``: further ``rl.grpo`` fields."""
+    """The policy as GRPO's short rollouts run it on the C engine (T ``--temperature``, proprio masked,
+    ``execute_steps`` actions a decision (4, the recipe's), no ensembling), its training-split starts at rest and
+    its keyframe starts; :meth:`episodes` rolls start states out to ``max_steps`` (default: the config's episode
+    limit), decision ``c`` sampling with ``fold_in(fold_in(key, stream), c)``. ``grpo``: further ``rl.grpo`` fields.
 
-    def __init__(self, args: argparse.Namespace, tag: str, *, max_steps: int = 0, **grpo):
+    Raises:
+      sword_jax.cli.UsageError: ``execute_steps`` is not between 1 and the policy's chunk length."""
+
+    def __init__(self, args: argparse.Namespace, tag: str, *, max_steps: int = 0, execute_steps: int = 4, **grpo):
         import dataclasses
 
         import configs
@@ -96,8 +99,11 @@ class Probe:
 
         self.cfg, _ = configs.from_argv(["--config", args.config])
         base = self.cfg.rl
+        if not 1 <= execute_steps <= base.chunk_len:
+            raise cli.UsageError(f"{tag}: actions a decision must be in [1, {base.chunk_len}] (the policy's chunk), "
+                                 f"got {execute_steps}")
         self.rl = dataclasses.replace(
-            base, env=dataclasses.replace(base.env, execute_steps=4, action_ensemble=False),
+            base, env=dataclasses.replace(base.env, execute_steps=execute_steps, action_ensemble=False),
             grpo=dataclasses.replace(base.grpo, temperature=args.temperature, group_size=args.group_size,
                                      rollout_batch=args.groups, **grpo),
             imagined=dataclasses.replace(base.imagined, keyframe_fraction=1.0))

@@ -189,3 +189,13 @@ def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
     assert saved["failure_shares"] == out["failure_shares"]
     entry = json.loads((tmp_path / "latest.json").read_text())["policy_failure_stages_small"]
     assert entry["value"] == out["failure_shares"].get("never grasped", entry["value"])
+    # a whole chunk a decision: 16 actions are 2 decisions, so 6 states before a decision to branch from
+    whole = fp.main(["--policy", str(tmp_path / "p.npz"), "--out", str(tmp_path / "whole"), "--config", "sword:tiny",
+                     "--episodes", "3", "--starts", "100", "--group-size", "2", "--horizon", "1", "--max-steps", "16",
+                     "--actions-per-decision", "8"])
+    assert whole["actions_per_decision"] == 8 and out["actions_per_decision"] == 4
+    assert sum(s["starts"] for s in whole["starts"].values()) == 6
+    for bad in ("0", "9"):
+        with pytest.raises(UsageError, match=f"actions a decision must be in \\[1, 8\\].*got {bad}"):
+            fp.main(["--policy", str(tmp_path / "p.npz"), "--out", str(tmp_path / "bad"), "--config", "sword:tiny",
+                     "--actions-per-decision", bad])
