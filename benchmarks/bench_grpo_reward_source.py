@@ -87,11 +87,13 @@ def pipeline(args) -> argparse.Namespace:
 
 
 def recipe(args) -> tuple[str, ...]:
-    """:data:`RECIPE` at ``--horizon`` decisions (``rl.imagined.max_chunks``), with keyframes from the first
-    ``--keyframe-fraction`` of each demonstration where given (``rl.imagined.keyframe_fraction``) and advantages
-    only centred with ``--scale-by-std false`` (``rl.grpo.scale_by_std``): every arm's."""
-    flags = tuple(f"--rl.imagined.max_chunks={args.horizon}" if f.startswith("--rl.imagined.max_chunks=") else f
-                  for f in RECIPE)
+    """:data:`RECIPE` at ``--horizon`` decisions (``rl.imagined.max_chunks``) of ``--actions-per-decision`` actions
+    (``rl.imagined.execute_steps``), with keyframes from the first ``--keyframe-fraction`` of each demonstration
+    where given (``rl.imagined.keyframe_fraction``) and advantages only centred with ``--scale-by-std false``
+    (``rl.grpo.scale_by_std``): every arm's."""
+    set_to = {"--rl.imagined.max_chunks": args.horizon,
+              "--rl.imagined.execute_steps": getattr(args, "actions_per_decision", 4)}
+    flags = tuple(f"{f.split('=')[0]}={set_to[f.split('=')[0]]}" if f.split("=")[0] in set_to else f for f in RECIPE)
     fraction = args.keyframe_fraction
     return (flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
             + (() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)))
@@ -441,6 +443,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "world-model arms load too")
     parser.add_argument("--horizon", type=int, default=12,
                         help="run: decisions (4 actions each) of every arm's rollouts (rl.imagined.max_chunks)")
+    parser.add_argument("--actions-per-decision", type=int, choices=(4, 8), default=4,
+                        help="run: actions executed per policy decision, every arm (rl.imagined.execute_steps): 4, "
+                             "or 8, a whole chunk, so that the world model is called half as often over a horizon")
     parser.add_argument("--keyframe-fraction", type=float, default=None,
                         help="run: every arm starts from keyframes in the first this-fraction of each demonstration "
                              "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "

@@ -1276,6 +1276,37 @@ def failure_rest_horizons() -> str:
                    "mixed groups / starts, tasks 0-9"], rows)
 
 
+# the same episodes' start states from rest, 48-action rollouts, at 4 actions a decision (the recipe's) and at a
+# whole chunk of 8
+FAILURE_REST_CHUNK_RUNS = ("failure_phases_h12_rest_small_cpu", "failure_phases_h6x8_rest_small_cpu")
+
+
+def failure_rest_chunk() -> str:
+    """Per number of actions a decision (:data:`FAILURE_REST_CHUNK_RUNS`): the episodes from rest (success with a
+    Wilson interval, where the failures stopped, decisions to a success) and the rollouts from their first states
+    cut at 48 actions (groups with mixed outcomes, paid success, mixed groups per task)."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    rows = []
+    for r in _failure_runs(FAILURE_REST_CHUNK_RUNS).values():
+        k, stages, episodes = r["actions_per_decision"], r["episode_stages"], r["episodes"]
+        low, high = wilson_interval(stages["success"], episodes)
+        starts = sum(v["starts"] for v in r["starts"].values())
+        tasks = r["per_task"]
+        rows.append([str(k), f"{r['success']:.3f} [{low:.3f}, {high:.3f}] of {episodes}",
+                     " / ".join(str(stages[s]) for s in ("never grasped", "grasped, never over the plate",
+                                                        "over the plate, not placed")),
+                     ", ".join(f"{q * k:g}" for q in r["decisions_to_success"]),
+                     f"{r['horizon_decisions']} ({r['horizon_decisions'] * k} actions)",
+                     f"{r['mixed_groups']} of {starts} ({r['mixed_groups'] / starts:.2f})",
+                     f"{r['starts']['before the grasp']['paid_success']:.3f}",
+                     ", ".join(f"{tasks[t]['mixed_groups']}/{tasks[t]['starts']}" for t in sorted(tasks, key=int))])
+    return _table(["actions a decision", "episodes from rest: success (95% interval)",
+                   "failures: never grasped / carry failed / not placed", "actions to a success (quartiles)",
+                   "rollouts from rest: decisions", "groups with mixed outcomes", "paid success",
+                   "mixed groups / starts, tasks 0-9"], rows)
+
+
 def failure_tasks() -> str:
     """Per task, from ``bench_failure_phases``' runs with a ``per_task`` breakdown (:data:`FAILURE_TASK_RUNS`, those
     with the first's episodes): its episodes from rest (success, never grasped, median decisions to a success) and,
@@ -1319,6 +1350,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "grpo-reward-source-rest": grpo_reward_source_rest,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")), "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
+    "failure-rest-chunk": failure_rest_chunk,
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,

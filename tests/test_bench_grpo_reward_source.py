@@ -211,6 +211,21 @@ def test_world_model_settings_reach_the_pipeline_and_the_world_model_arms_only(t
             rs.parse(["run", "--workdir", str(tmp_path), "--world-model-set", kv])
 
 
+def test_a_whole_chunk_a_decision_for_every_arm(tmp_path):
+    """--actions-per-decision 8: every arm executes 8 actions a decision (rl.imagined.execute_steps), the rest of the
+    recipe as it was; only 4 and 8 (one or two latents of the world model) are taken."""
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--horizon", "6",
+                     "--actions-per-decision", "8", "--seeds", "0"])
+    four = rs.run_commands(argparse.Namespace(**{**vars(args), "actions_per_decision": 4}))
+    for name, cmd in rs.run_commands(args).items():
+        assert _flag(cmd, "--rl.imagined.execute_steps") == ["--rl.imagined.execute_steps=8"], name
+        assert _flag(cmd, "--rl.imagined.max_chunks") == ["--rl.imagined.max_chunks=6"], name
+        assert [c.replace("execute_steps=8", "execute_steps=4") for c in cmd] == four[name]
+    assert all("--rl.imagined.execute_steps=4" in c for c in rs.run_commands(_args(tmp_path)).values())
+    with pytest.raises(cli.UsageError, match="--actions-per-decision"):
+        rs.parse(["run", "--workdir", str(tmp_path), "--actions-per-decision", "2"])
+
+
 def test_bad_arguments_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="--seeds"):
         rs.main(["summary", "--workdir", str(tmp_path), "--seeds", ""])

@@ -212,3 +212,30 @@ def test_the_rest_reward_source_table_pays_every_rollout_of_each_arm(tmp_path, m
     decisions = [line.split(" | ") for line in report.sim_fidelity_decisions(("policy", "rest", "exec_s0"))
                  .splitlines()[2:]]
     assert [row[1] for row in decisions] == ["1.250", "2.250"]  # means of 1, 1.5 and of 2, 2.5
+
+
+def test_the_chunk_table_reads_each_runs_own_actions_a_decision(tmp_path, monkeypatch):
+    """failure_rest_chunk: decisions to a success become actions at each run's own actions a decision, the
+    episodes' success carries a Wilson interval, and the mixed groups are counted over every start."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    def run(name, k, horizon, success, mixed):
+        (tmp_path / "policy" / name).mkdir(parents=True)
+        (tmp_path / "policy" / name / "failure_phases.json").write_text(json.dumps({
+            "actions_per_decision": k, "horizon_decisions": horizon, "episodes": 20, "success": success / 20,
+            "episode_stages": {"success": success, "never grasped": 2, "grasped, never over the plate": 3,
+                               "over the plate, not placed": 20 - success - 5},
+            "decisions_to_success": [5.0, 6.5, 8.0], "mixed_groups": mixed,
+            "starts": {"before the grasp": {"starts": 16, "mixed_groups": mixed, "paid_success": 0.25}},
+            "per_task": {"1": {"starts": 6, "mixed_groups": 1}, "0": {"starts": 10, "mixed_groups": mixed - 1}}}))
+
+    run("four", 4, 12, 8, 12)
+    run("eight", 8, 6, 6, 9)
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    monkeypatch.setattr(report, "FAILURE_REST_CHUNK_RUNS", ("four", "missing", "eight"))
+    rows = [line.split(" | ") for line in report.failure_rest_chunk().splitlines()[2:]]
+    low, high = wilson_interval(6, 20)
+    assert len(rows) == 2 and rows[0][0] == "| 4" and rows[1][0] == "| 8"
+    assert rows[1][1] == f"0.300 [{low:.3f}, {high:.3f}] of 20" and rows[1][2] == "2 / 3 / 9"
+    assert rows[0][3] == "20, 26, 32" and rows[1][3] == "40, 52, 64"
+    assert rows[1][4:7] == ["6 (48 actions)", "9 of 16 (0.56)", "0.250"] and rows[1][7] == "8/10, 1/6 |"
