@@ -29,7 +29,9 @@ compare what the real closed loop and the imagined one are paid from like starts
 
 ``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs start
 on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a seed side
-by side. Each process runs in its own session (a deadline stops the runs still going; each keeps its last
+by side. With ``--pipeline DIR`` it builds none and starts each run once the stages it reads have finished in
+``DIR`` (:data:`NEEDS`), so a second command, e.g. at another ``--actions-per-decision``, shares the first's world
+model. Each process runs in its own session (a deadline stops the runs still going; each keeps its last
 evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives each run's
 gains with 95% intervals, what its training rollouts were paid, and for ``exec`` the detector's success, agreement,
 false success and precision (the share of its verdicts of success that reality paid too) on the same rollouts, and
@@ -106,10 +108,20 @@ def world_model_overrides(args) -> tuple[str, ...]:
     return (*VAE_VARIANTS[args.vae_variant], *(f"--{kv}" for kv in getattr(args, "world_model_set", ())))
 
 
+# the pipeline's stages each kind of run reads: the ground-truth runs the demonstrations, the world-model runs the
+# VAE, the world model and the detector (train.pipeline writes stages/<name>.json once a stage has finished)
+NEEDS = {"gt": ("data",), "world_model": ("vae", "world_model", "reward_model")}
+
+
+def pipeline_dir(args) -> str:
+    """The pipeline every run reads: ``--pipeline`` (built elsewhere) or ``<workdir>/pipeline`` (built by ``run``)."""
+    return getattr(args, "pipeline", "") or os.path.join(args.workdir, "pipeline")
+
+
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
     (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
-    pipe = os.path.join(args.workdir, "pipeline")
+    pipe = pipeline_dir(args)
     demos = os.path.join(pipe, "data", "demos.hdf5")
     steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
              f"--rl.grpo.eval_every={args.eval_every}")
@@ -161,13 +173,24 @@ def run(args, *, poll_s: float = 5.0) -> dict:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
 
     base, vae = pipeline(args), world_model_overrides(args)
-    phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"), [n for n in commands if n.startswith("gt")]),
-              ("pipeline", pipeline_command(base, vae, stop_after="reward_model"),
-               [n for n in commands if not n.startswith("gt")])]
+    if getattr(args, "pipeline", ""):  # built elsewhere, maybe still being built: each run waits for its stages
+        phases = []
+        waiting = {n: NEEDS["gt" if n.startswith("gt") else "world_model"] for n in commands}
+        print(f"[reward-source] the runs start as {args.pipeline}'s stages finish: {NEEDS}", flush=True)
+    else:
+        phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"),
+                   [n for n in commands if n.startswith("gt")]),
+                  ("pipeline", pipeline_command(base, vae, stop_after="reward_model"),
+                   [n for n in commands if not n.startswith("gt")])]
+        waiting = {}
     procs: dict[str, subprocess.Popen] = {}
     stopped: list[str] = []
     building = None
-    while phases or building is not None or any(p.poll() is None for p in procs.values()):
+    while phases or building is not None or waiting or any(p.poll() is None for p in procs.values()):
+        for run_name, stages in list(waiting.items()):
+            if all(os.path.exists(os.path.join(args.pipeline, "stages", f"{st}.json")) for st in stages):
+                del waiting[run_name]
+                procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
         if building is None and phases:
             name, cmd, _ = phases[0]
             building = (name, launch(name, cmd, args.gpus[0]))
@@ -443,6 +466,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "world-model arms load too")
     parser.add_argument("--horizon", type=int, default=12,
                         help="run: decisions (4 actions each) of every arm's rollouts (rl.imagined.max_chunks)")
+    parser.add_argument("--pipeline", default="",
+                        help="run: a pipeline built elsewhere (e.g. another run's <workdir>/pipeline, with the same "
+                             "--vae-variant and --world-model-set) instead of building <workdir>/pipeline: each run "
+                             "starts once the stages it reads have finished there, so two commands can share one "
+                             "world model")
     parser.add_argument("--actions-per-decision", type=int, choices=(4, 8), default=4,
                         help="run: actions executed per policy decision, every arm (rl.imagined.execute_steps): 4, "
                              "or 8, a whole chunk, so that the world model is called half as often over a horizon")
@@ -474,6 +502,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
             apply_overrides(configs.get(args.config), overrides).validate()
         except (ValueError, KeyError, TypeError) as error:
             raise SystemExit(f"bench_grpo_reward_source: --world-model-set: {error}") from None
+    if args.pipeline and not os.path.isdir(args.pipeline):
+        raise SystemExit(f"bench_grpo_reward_source: --pipeline {args.pipeline}: no such folder (start the command "
+                         f"that builds it first; its runs then start as its stages finish)")
     args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]

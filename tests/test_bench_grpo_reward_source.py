@@ -269,6 +269,47 @@ def test_runs_start_once_their_inputs_are_built_and_a_deadline_stops_the_rest(tm
     assert summary["stopped_at_deadline"] == ["gt_s0"] and summary["exit_codes"]["exec_s0"] == 0
 
 
+def test_a_pipeline_built_elsewhere_is_shared_and_each_run_waits_for_its_stages(tmp_path, monkeypatch):
+    """--pipeline DIR: nothing is built here; the commands read DIR's data and models, the ground-truth run starts
+    once DIR's data stage has finished and the world-model run once its VAE, world model and detector have, as the
+    other command builds them. A folder that is not there is refused by name."""
+    import sys
+    import threading
+    import time
+
+    shared = tmp_path / "first" / "pipeline"
+    (shared / "stages").mkdir(parents=True)
+    monkeypatch.setattr(rs, "pipeline_command", lambda *a, **k: pytest.fail("--pipeline builds nothing"))
+    args = rs.parse(["run", "--workdir", str(tmp_path / "second"), "--policy", "/p/policy_d50.npz", "--seeds", "0",
+                     "--arms", "gt,exec", "--pipeline", str(shared), "--actions-per-decision", "8", "--horizon", "6"])
+    commands = rs.run_commands(args)
+    assert commands["exec_s0"][commands["exec_s0"].index("--world-model") + 1] == str(shared / "world_model")
+    assert f"--demos={shared / 'data' / 'demos.hdf5'}" in commands["gt_s0"]
+    assert commands["exec_s0"][commands["exec_s0"].index("--workdir") + 1] == str(tmp_path / "second" / "exec_s0")
+
+    def seen(name):  # a run that records which of the shared pipeline's stages had finished when it started
+        return [sys.executable, "-c", f"import os; open({str(tmp_path / name)!r}, 'w').write(' '.join(sorted("
+                                      f"os.listdir({str(shared / 'stages')!r}))))"]
+
+    monkeypatch.setattr(rs, "run_commands", lambda a: {"gt_s0": seen("gt"), "exec_s0": seen("exec")})
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+
+    def other_command():  # the stages finishing one after another in the other command's pipeline
+        for stage in ("data", "vae", "world_model", "reward_model"):
+            time.sleep(0.3)
+            (shared / "stages" / f"{stage}.json").write_text("{}")
+
+    builder = threading.Thread(target=other_command)
+    builder.start()
+    summary = rs.run(args, poll_s=0.05)
+    builder.join()
+    assert summary["exit_codes"] == {"gt_s0": 0, "exec_s0": 0}
+    assert "data.json" in (tmp_path / "gt").read_text().split()
+    assert (tmp_path / "exec").read_text().split() == ["data.json", "reward_model.json", "vae.json", "world_model.json"]
+    with pytest.raises(SystemExit, match="--pipeline .*missing: no such folder"):
+        rs.parse(["run", "--workdir", str(tmp_path), "--pipeline", str(tmp_path / "missing")])
+
+
 def test_deterministic_runs_start_with_xlas_deterministic_ops_and_the_summary_says_so(tmp_path, monkeypatch):
     """--deterministic adds the flag to the runs' XLA_FLAGS (once, after the caller's), multicast stays off, and the
     work dir's xla_flags.txt carries it into the summary and the latest.json entry; without it, nothing is added."""
