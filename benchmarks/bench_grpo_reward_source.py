@@ -440,7 +440,7 @@ def print_runs(summary: dict) -> None:
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     """The command line, refused by name where a value cannot be run."""
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("mode", choices=("run", "summary", "closed-loop"))
+    parser.add_argument("mode", choices=("run", "summary", "closed-loop", "figure"))
     parser.add_argument("--workdir", default="", help="run / summary: the experiment's folder")
     parser.add_argument("--run", nargs=4, action="append", default=[],
                         metavar=("LABEL", "GRPO_DIR", "LOG", "WM_METRICS"),
@@ -522,6 +522,52 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+def figure(workdir: str, path: str) -> dict:
+    """Two panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training rollouts
+    at every step (``exec``: the imagined actions executed; dashed, what the detector said of them), and for each
+    ``exec`` run, per decision, the policy's greedy action gap on the world model's frame against the real frame, with
+    what the VAE alone makes and what the real frame of the decision before makes (means over the steps). Returns
+    the plotted series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
+    if not runs:
+        raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
+    series: dict[str, dict] = {}
+    fig, (paid_ax, gap_ax) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for name, (arm, _seed, grpo) in runs.items():
+        history = read_history(grpo)
+        steps = [h["step"] for h in history]
+        paid = [h.get("rollout_success", h.get("success_rate")) for h in history]
+        label = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames"}
+        series[name] = {"steps": steps, "paid": paid}
+        paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {label[arm]}")
+        if arm == "exec" and "detector_success" in history[0]:
+            said = [h["detector_success"] for h in history]
+            series[name]["detector"] = said
+            paid_ax.plot(steps, said, ls="--", label=f"{name}: what the detector said of them (not real)")
+        decisions = sorted(int(k.rsplit("_", 1)[1]) for k in history[0]
+                           if re.fullmatch(r"closed_loop_action_gap_\d+", k))
+        if arm != "exec" or not decisions:
+            continue
+        gaps = {what: [statistics.mean(h[f"closed_loop_action_gap{what}_{k}"] for h in history) for k in decisions]
+                for what in ("", "_vae", "_prev") if f"closed_loop_action_gap{what}_1" in history[0]}
+        series[name]["action_gap"] = {"decisions": decisions, **{what or "world_model": v for what, v in gaps.items()}}
+        names = {"": "the world model's frame", "_vae": "the real frame through the VAE alone",
+                 "_prev": "the real frame of the decision before"}
+        for what, values in gaps.items():
+            gap_ax.plot(decisions, values, marker="o", ms=3, ls="-" if what == "" else ":",
+                        label=f"{name}: {names[what]}")
+    common.finish_figure(fig, paid_ax, path, xlabel="GRPO step", ylabel="success of the training rollouts",
+                         title="what reality paid", save=False)
+    common.finish_figure(fig, gap_ax, path, xlabel="decision", ylabel="greedy action gap to the real frame",
+                         title="where the closed loop leaves the real one")
+    return series
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(argv)
     if args.mode == "closed-loop":
@@ -540,6 +586,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return result
     if not args.workdir:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")
+    if args.mode == "figure":
+        if not args.out:
+            raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
+        return figure(args.workdir, args.out)
     if args.mode == "summary":
         summary = summarize(args.workdir)
         common.save_summary(summary, args.out, (lambda: results_entries(

@@ -133,6 +133,28 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
         rs.results_entries({"runs": {}, "arms": {}}, str(tmp_path), data="d")
 
 
+def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):
+    """figure: each run's paid success per step (the gt run's rollouts, the exec run's imagined actions and what the
+    detector said of them), and per decision of the exec run the action gaps, means over its steps; a work dir
+    without runs is refused."""
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5)],
+           [{"step": s, "rollout_success": 0.3 + 0.01 * s} for s in (1, 2)])
+    prev = {f"closed_loop_action_gap_prev_{k}": 0.2 for k in (1, 2, 10)}
+    _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5)],
+           [{"step": s, "success_rate": 0.01 * s, "detector_success": 0.25, **_loop(0.1 * s, vae=True), **prev}
+            for s in (1, 2)])
+    series = rs.figure(str(tmp_path), str(tmp_path / "f.png"))
+    assert (tmp_path / "f.png").stat().st_size > 0
+    assert series["gt_s0"] == {"steps": [1, 2], "paid": [0.31, 0.32]}
+    ex = series["exec_s0"]
+    assert ex["paid"] == [0.01, 0.02] and ex["detector"] == [0.25, 0.25]
+    assert ex["action_gap"]["decisions"] == [1, 2, 10]
+    assert ex["action_gap"]["world_model"] == pytest.approx([0.015, 0.03, 0.15])  # k x 0.1 x mean(0.1, 0.2)
+    assert ex["action_gap"]["_vae"] == pytest.approx([0.0075, 0.015, 0.075]) and ex["action_gap"]["_prev"] == [0.2] * 3
+    with pytest.raises(SystemExit, match="no runs"):
+        rs.figure(str(tmp_path / "empty"), str(tmp_path / "g.png"))
+
+
 def test_a_short_horizon_from_every_phase_in_the_8x_vaes_world_model(tmp_path, monkeypatch):
     """--horizon, --keyframe-fraction and --vae-variant: every arm rolls out as far from the same keyframes; the
     pipeline trains the 8x VAE and the world-model arms load it."""

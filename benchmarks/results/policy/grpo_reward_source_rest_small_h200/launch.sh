@@ -15,3 +15,4 @@ python -m benchmarks.bench_grpo_reward_source summary --workdir runs/rs3 --out r
 python -m benchmarks.bench_grpo_reward_source closed-loop --run "12,000 steps, from the first frame" \
     runs/rs3/exec_s0/rl/grpo runs/rs3/exec_s0.log runs/rs3/pipeline/world_model/metrics.jsonl \
     --trajectories 512 --out runs/rs3/closed_loop.json
+python -m benchmarks.bench_grpo_reward_source figure --workdir runs/rs3 --out benchmarks/results/policy/grpo_reward_source_rest_small_h200.png
