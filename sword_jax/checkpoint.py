@@ -64,7 +64,8 @@ class WriterLock:
     :class:`CheckpointInUse` naming the holder, before anything is read or written. The kernel drops the claim
     when its process ends however it ends, so a killed run leaves no stale lock and the same command resumes.
     ``flock`` claims hold between processes of one host and on local file systems; a directory shared by
-    several hosts is claimed by the one process that writes it (the trainers claim on process 0).
+    several hosts is claimed by the one process that writes it (the trainers claim on process 0). On a file system
+    without ``flock`` (some network and FUSE mounts) nothing is claimed and a warning says so.
     """
 
     FILE = ".writer.lock"
@@ -75,13 +76,19 @@ class WriterLock:
         self._fd: int | None = os.open(os.path.join(self.directory, self.FILE), os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except BlockingIOError:
             holder = os.pread(self._fd, 512, 0).decode(errors="replace").strip() or "a process that wrote no details"
             os.close(self._fd)
             self._fd = None
             raise CheckpointInUse(f"{owner}: {self.directory} is being written by another live process ({holder}); "
                                   f"wait for it or stop it (the same command then resumes from its last "
                                   f"checkpoint), or give this run another work dir") from None
+        except OSError as error:  # a file system without flock (some network and FUSE mounts): no claim, a warning
+            os.close(self._fd)
+            self._fd = None
+            warnings.warn(f"{owner}: {self.directory} cannot be claimed ({error}); a second process started on this "
+                          f"run would not be refused", stacklevel=2)
+            return
         os.ftruncate(self._fd, 0)
         os.pwrite(self._fd, f"pid {os.getpid()} on {socket.gethostname()} since "
                             f"{time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)

@@ -225,3 +225,18 @@ def test_a_second_writer_of_a_run_is_refused_and_a_killed_ones_claim_is_gone(tmp
     with checkpoint.WriterLock(str(tmp_path / "bad"), "after the failure"):  # the failed run let go of it
         pass
     assert _run(directory)[0].first_step == STEPS  # resumed at the end: nothing left to run
+
+
+def test_a_file_system_without_flock_runs_unclaimed_with_a_warning(tmp_path, monkeypatch):
+    """Where flock is not supported (ENOLCK, as on some network mounts), the run goes on unclaimed and says so;
+    only a claim another process holds (EWOULDBLOCK) refuses."""
+    import errno
+    import fcntl
+
+    def unsupported(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", unsupported)
+    with pytest.warns(UserWarning, match="cannot be claimed .*No locks available"):
+        result, _, _ = _run(str(tmp_path / "run"))
+    assert float(result.state["w"]) == sum(range(1, STEPS + 1))
