@@ -95,7 +95,8 @@ def recipe(args) -> tuple[str, ...]:
     (``rl.grpo.scale_by_std``): every arm's."""
     set_to = {"--rl.imagined.max_chunks": args.horizon,
               "--rl.imagined.execute_steps": getattr(args, "actions_per_decision", 4)}
-    flags = tuple(f"{f.split('=')[0]}={set_to[f.split('=')[0]]}" if f.split("=")[0] in set_to else f for f in RECIPE)
+    keys = [f.partition("=")[0] for f in RECIPE]
+    flags = tuple(f"{key}={set_to[key]}" if key in set_to else f for key, f in zip(keys, RECIPE))
     fraction = args.keyframe_fraction
     return (flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
             + (() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)))
@@ -188,7 +189,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     building = None
     while phases or building is not None or waiting or any(p.poll() is None for p in procs.values()):
         for run_name, stages in list(waiting.items()):
-            if all(os.path.exists(os.path.join(args.pipeline, "stages", f"{st}.json")) for st in stages):
+            if all(os.path.exists(os.path.join(pipeline_dir(args), "stages", f"{st}.json")) for st in stages):
                 del waiting[run_name]
                 procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
         if building is None and phases:
@@ -240,6 +241,12 @@ def _gain(points: list[dict], key: str | None) -> dict | None:
     return gain_between(points, key) if key is None or all(key in p for p in points) else None
 
 
+def paid_per_step(history: Sequence[dict]) -> list[float]:
+    """What reality paid each step's training rollouts: ``rollout_success`` (ground-truth runs) or ``success_rate``
+    (runs in the world model; with a reward paid by execution, the imagined actions' real outcome)."""
+    return [h.get("rollout_success", h.get("success_rate")) for h in history]
+
+
 def summarize_run(grpo: str) -> dict:
     """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked), the
     success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, and with a
@@ -247,7 +254,7 @@ def summarize_run(grpo: str) -> dict:
     with open(os.path.join(grpo, "success_curve.json")) as f:
         points = json.load(f)["points"]
     history = read_history(grpo)
-    paid = [h.get("rollout_success", h.get("success_rate")) for h in history]
+    paid = paid_per_step(history)
     mixed = [h.get("mixed_fraction", h.get("kept_fraction")) for h in history]
     out = {"steps": points[-1]["step"], "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
            "sampled_proprio_masked": _gain(points, "sampled_proprio_masked"),
@@ -465,7 +472,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: the pipeline's VAE (vae8x: 8x spatial, 16x16 latents at 128 px), which the "
                              "world-model arms load too")
     parser.add_argument("--horizon", type=int, default=12,
-                        help="run: decisions (4 actions each) of every arm's rollouts (rl.imagined.max_chunks)")
+                        help="run: decisions (of --actions-per-decision actions) of every arm's rollouts "
+                             "(rl.imagined.max_chunks)")
     parser.add_argument("--pipeline", default="",
                         help="run: a pipeline built elsewhere (e.g. another run's <workdir>/pipeline, with the same "
                              "--vae-variant and --world-model-set) instead of building <workdir>/pipeline: each run "
@@ -522,6 +530,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+# the figure's names of each arm's rollouts and of each greedy action gap (its key's suffix in the closed-loop record)
+FIGURE_ARMS = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames"}
+FIGURE_GAPS = {"": "the world model's frame", "_vae": "the real frame through the VAE alone",
+               "_prev": "the real frame of the decision before"}
+
+
 def figure(workdir: str, path: str) -> dict:
     """Two panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training rollouts
     at every step (``exec``: the imagined actions executed; dashed, what the detector said of them), and for each
@@ -540,27 +554,22 @@ def figure(workdir: str, path: str) -> dict:
     fig, (paid_ax, gap_ax) = plt.subplots(1, 2, figsize=(11, 4.2))
     for name, (arm, _seed, grpo) in runs.items():
         history = read_history(grpo)
-        steps = [h["step"] for h in history]
-        paid = [h.get("rollout_success", h.get("success_rate")) for h in history]
-        label = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames"}
+        steps, paid = [h["step"] for h in history], paid_per_step(history)
         series[name] = {"steps": steps, "paid": paid}
-        paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {label[arm]}")
+        paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {FIGURE_ARMS[arm]}")
         if arm == "exec" and "detector_success" in history[0]:
             said = [h["detector_success"] for h in history]
             series[name]["detector"] = said
             paid_ax.plot(steps, said, ls="--", label=f"{name}: what the detector said of them (not real)")
-        decisions = sorted(int(k.rsplit("_", 1)[1]) for k in history[0]
-                           if re.fullmatch(r"closed_loop_action_gap_\d+", k))
-        if arm != "exec" or not decisions:
+        if arm != "exec" or not closed_loop_decisions(history[0]):
             continue
-        gaps = {what: [statistics.mean(h[f"closed_loop_action_gap{what}_{k}"] for h in history) for k in decisions]
-                for what in ("", "_vae", "_prev") if f"closed_loop_action_gap{what}_1" in history[0]}
-        series[name]["action_gap"] = {"decisions": decisions, **{what or "world_model": v for what, v in gaps.items()}}
-        names = {"": "the world model's frame", "_vae": "the real frame through the VAE alone",
-                 "_prev": "the real frame of the decision before"}
-        for what, values in gaps.items():
-            gap_ax.plot(decisions, values, marker="o", ms=3, ls="-" if what == "" else ":",
-                        label=f"{name}: {names[what]}")
+        loop = per_decision(history)
+        gaps = {suffix: loop[f"action_gap{suffix}"] for suffix in FIGURE_GAPS if f"action_gap{suffix}" in loop}
+        series[name]["action_gap"] = {"decisions": loop["decisions"],
+                                      **{suffix or "world_model": v for suffix, v in gaps.items()}}
+        for suffix, values in gaps.items():
+            gap_ax.plot(loop["decisions"], values, marker="o", ms=3, ls=":" if suffix else "-",
+                        label=f"{name}: {FIGURE_GAPS[suffix]}")
     common.finish_figure(fig, paid_ax, path, xlabel="GRPO step", ylabel="success of the training rollouts",
                          title="what reality paid", save=False)
     common.finish_figure(fig, gap_ax, path, xlabel="decision", ylabel="greedy action gap to the real frame",

@@ -1084,9 +1084,8 @@ def grpo_reward_source_rest() -> str:
     rows = []
     for name, run in sorted(summary["runs"].items(), key=lambda kv: list(labels).index(kv[1]["arm"])):
         if run["arm"] == "gt":
-            gt_dir = os.path.join(RESULTS_DIR, *REWARD_SOURCE_REST, "gt", f"s{run['seed']}")
-            sub = next(d for d in sorted(os.listdir(gt_dir)) if os.path.isdir(os.path.join(gt_dir, d)))
-            paid = _paid_over_steps(os.path.join(gt_dir, sub, "train_history.jsonl"))
+            paid = _paid_over_steps(os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", f"s{run['seed']}"),
+                                                 "train_history.jsonl"))
         else:
             paid = loop["paid_success"]
         det = run.get("detector")
@@ -1175,11 +1174,17 @@ REST_PER_TASK_RUNS = (
      "sampled_proprio_masked", None))
 
 
-def _curve_points(folder: str, seed_dir: str) -> list[dict]:
-    """The evaluation points of the GRPO run in ``policy/<folder>/<seed_dir>`` (its ``success_curve.json``)."""
-    run = os.path.join(RESULTS_DIR, "policy", folder, seed_dir)
+def _run_dir(*parts: str) -> str:
+    """The folder of the GRPO run under ``<results>/<parts>``: the one holding a ``success_curve.json``."""
+    run = os.path.join(RESULTS_DIR, *parts)
     name = next(d for d in sorted(os.listdir(run)) if os.path.exists(os.path.join(run, d, "success_curve.json")))
-    return _load("policy", folder, seed_dir, name, "success_curve.json")["points"]
+    return os.path.join(run, name)
+
+
+def _curve_points(folder: str, seed_dir: str) -> list[dict]:
+    """The evaluation points of the GRPO run under ``policy/<folder>/<seed_dir>`` (its ``success_curve.json``)."""
+    with open(os.path.join(_run_dir("policy", folder, seed_dir), "success_curve.json")) as f:
+        return json.load(f)["points"]
 
 
 # two recipes from one policy, seeds and evaluation episodes (deterministic ops): (label, folder), the other's
@@ -1260,18 +1265,23 @@ FAILURE_REST_RUNS = ("failure_phases_h8_rest_small_cpu", "failure_phases_h12_res
                      "failure_phases_h16_rest_small_cpu")
 
 
+def _rest_rollout_cells(r: dict) -> tuple[str, str, str]:
+    """A ``bench_failure_phases`` run's rollouts: their horizon in decisions and actions, the groups with mixed
+    outcomes over every start, and per task the mixed groups over its starts."""
+    starts, tasks = sum(v["starts"] for v in r["starts"].values()), r["per_task"]
+    return (f"{r['horizon_decisions']} ({r['horizon_decisions'] * r['actions_per_decision']} actions)",
+            f"{r['mixed_groups']} of {starts} ({r['mixed_groups'] / starts:.2f})",
+            ", ".join(f"{tasks[t]['mixed_groups']}/{tasks[t]['starts']}" for t in sorted(tasks, key=int)))
+
+
 def failure_rest_horizons() -> str:
     """Per horizon of :data:`FAILURE_REST_RUNS` (those there): the groups started at rest, those with mixed outcomes,
     their paid success and the mixed groups per task."""
     rows = []
     for r in _failure_runs(FAILURE_REST_RUNS).values():
-        starts = sum(v["starts"] for v in r["starts"].values())
         paid = r["starts"]["before the grasp"]["paid_success"]
-        tasks = r["per_task"]
-        rows.append([f"{r['horizon_decisions']} ({r['horizon_decisions'] * r['actions_per_decision']} actions)",
-                     f"{r['mixed_groups']} of {starts} ({r['mixed_groups'] / starts:.2f})",
-                     "" if paid is None else f"{paid:.3f}",
-                     ", ".join(f"{tasks[t]['mixed_groups']}/{tasks[t]['starts']}" for t in sorted(tasks, key=int))])
+        horizon, mixed, per_task = _rest_rollout_cells(r)
+        rows.append([horizon, mixed, "" if paid is None else f"{paid:.3f}", per_task])
     return _table(["decisions from rest", "groups with mixed outcomes", "paid success",
                    "mixed groups / starts, tasks 0-9"], rows)
 
@@ -1291,16 +1301,12 @@ def failure_rest_chunk() -> str:
     for r in _failure_runs(FAILURE_REST_CHUNK_RUNS).values():
         k, stages, episodes = r["actions_per_decision"], r["episode_stages"], r["episodes"]
         low, high = wilson_interval(stages["success"], episodes)
-        starts = sum(v["starts"] for v in r["starts"].values())
-        tasks = r["per_task"]
+        horizon, mixed, per_task = _rest_rollout_cells(r)
         rows.append([str(k), f"{r['success']:.3f} [{low:.3f}, {high:.3f}] of {episodes}",
                      " / ".join(str(stages[s]) for s in ("never grasped", "grasped, never over the plate",
                                                         "over the plate, not placed")),
-                     ", ".join(f"{q * k:g}" for q in r["decisions_to_success"]),
-                     f"{r['horizon_decisions']} ({r['horizon_decisions'] * k} actions)",
-                     f"{r['mixed_groups']} of {starts} ({r['mixed_groups'] / starts:.2f})",
-                     f"{r['starts']['before the grasp']['paid_success']:.3f}",
-                     ", ".join(f"{tasks[t]['mixed_groups']}/{tasks[t]['starts']}" for t in sorted(tasks, key=int))])
+                     ", ".join(f"{q * k:g}" for q in r["decisions_to_success"]), horizon, mixed,
+                     f"{r['starts']['before the grasp']['paid_success']:.3f}", per_task])
     return _table(["actions a decision", "episodes from rest: success (95% interval)",
                    "failures: never grasped / carry failed / not placed", "actions to a success (quartiles)",
                    "rollouts from rest: decisions", "groups with mixed outcomes", "paid success",
@@ -1349,7 +1355,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "grpo-reward-source-rest": grpo_reward_source_rest,
-    "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")), "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
+    "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
+    "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,

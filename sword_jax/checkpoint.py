@@ -6,9 +6,8 @@ into its sharded layout) and ``meta`` (JSON: data-iterator position, RNG root ke
 A checkpoint that cannot be read, or does not fit what it is read into, raises :class:`CheckpointError`;
 :func:`read_arrays` reads one back as flat host arrays, to compare runs. :class:`WriterLock` is a trainer's claim
 on the directory it writes, so that a second process started on the same run is refused instead of writing
-beside the first. :class:`MetricLogger` reads device
-metrics one log step late, so the host never waits on the step it just dispatched, and writes
-them to ``metrics.jsonl`` and TensorBoard event files.
+beside the first. :class:`MetricLogger` reads device metrics one log step late, so the host never waits on the
+step it just dispatched, and writes them to ``metrics.jsonl`` and TensorBoard event files.
 """
 
 from __future__ import annotations

@@ -181,14 +181,9 @@ def run_steps(
         run_id = json.loads(json.dumps(run_id))
     # one writer per run: a second process started on the same checkpoint directory is refused here
     lock = checkpoint.WriterLock(checkpoint_dir, name) if checkpoint_dir and jax.process_index() == 0 else None
+    ckpt, first_step, history, batches = None, 0, [], None
     try:
         ckpt = checkpoint.Checkpointer(checkpoint_dir, max_to_keep=keep_checkpoints) if checkpoint_dir else None
-    except BaseException:
-        if lock is not None:
-            lock.release()
-        raise
-    first_step, history, batches = 0, [], None
-    try:
         if ckpt is not None and ckpt.latest_step() is not None:
             state, meta = ckpt.restore(checkpoint.abstract_like(state))
             _check_same_run(name, ckpt.directory, meta.get("run"), run_id)

@@ -185,6 +185,7 @@ def test_the_rest_reward_source_table_pays_every_rollout_of_each_arm(tmp_path, m
     record = tmp_path / "policy" / "rest"
     gt = record / "gt" / "s0" / "grpo_dir"
     gt.mkdir(parents=True)
+    gt.joinpath("success_curve.json").write_text(json.dumps({"points": []}))  # what marks the run's folder
     gt.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
         {"step": s, "rollout_success": r, "trajectories_sampled": 100}) for s, r in ((1, 0.25), (2, 0.35))) + "\n")
     gain = {"start": 0.5, "end": 0.6, "gain": 0.1, "ci95": [-0.02, 0.22]}
