@@ -365,7 +365,8 @@ def world_model_loss(metrics: str, upto: int | None = None) -> dict | None:
     return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
 
 
-def closed_loop_summary(runs: Sequence[Sequence], trajectories: int) -> dict:
+def closed_loop_summary(runs: Sequence[Sequence], trajectories: int, *, first_steps: int = 0,
+                        decision_actions: Sequence[int] = ()) -> dict:
     """Per run ``(label, GRPO work dir, log, world-model metrics.jsonl[, the world model's step])``: the success its
     trajectories were paid (pooled over the steps, with a 95% Wilson interval over ``trajectories`` a step), the
     detector's verdicts, the closed loop's frame error and greedy action gap at the first and last decision (means
@@ -374,13 +375,20 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int) -> dict:
 
     The figures come from the run's ``train_history.jsonl``. A run whose history was not kept (its process
     ended before writing it, or it was not copied) is read from its progress lines, which hold every figure
-    but the decisions between the first and the last (``source`` says which)."""
+    but the decisions between the first and the last (``source`` says which). With ``first_steps`` only the steps
+    up to it count, so that runs of different lengths compare over the same steps; ``decision_actions`` (one per
+    run, in order) records the actions each run executed a decision as ``actions_per_decision``."""
     from sword_jax.rl.sim_agreement import wilson_rate
 
+    if decision_actions and len(decision_actions) != len(runs):
+        raise SystemExit(f"bench_grpo_reward_source closed-loop: {len(decision_actions)} --decision-actions for "
+                         f"{len(runs)} --run; give one per run, in order")
     out = {}
-    for label, grpo, log, metrics, *upto in runs:
-        rows = read_history(grpo)
+    for i, (label, grpo, log, metrics, *upto) in enumerate(runs):
+        rows = [r for r in read_history(grpo) if not first_steps or r["step"] <= first_steps]
         steps, source = (history_steps(rows), "history") if rows else (progress_steps(log), "progress lines")
+        if first_steps:
+            steps = [s for s in steps if s["step"] <= first_steps]
         if not steps:
             where = os.path.join(grpo, "train_history.jsonl") if rows else log
             raise SystemExit(f"bench_grpo_reward_source: {where} holds no step with the closed-loop record")
@@ -394,8 +402,10 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int) -> dict:
                "paid_success": wilson_rate(paid, trajectories * len(steps)), "per_step": steps,
                **{k: statistics.mean(s[k] for s in steps) for k in steps[0]
                   if k not in ("step", "paid") and all(k in s for s in steps)}}
+        if decision_actions:
+            run["actions_per_decision"] = int(decision_actions[i])
         if rows:
-            run["per_decision"] = per_decision(rows)
+            run["per_decision"] = per_decision([r for r in rows if closed_loop_decisions(r)])
         out[label] = run
     return out
 
@@ -453,6 +463,16 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         metavar=("LABEL", "GRPO_DIR", "LOG", "WM_METRICS"),
                         help="closed-loop: one run paid by execution, its log and its world model's metrics.jsonl")
     parser.add_argument("--trajectories", type=int, default=512, help="closed-loop: trajectories a step")
+    parser.add_argument("--first-steps", type=int, default=0,
+                        help="closed-loop: only each run's steps up to this one (0: all), so that runs of different "
+                        "lengths compare over the same steps")
+    parser.add_argument("--decision-actions", default="",
+                        help="closed-loop: comma list, the actions each --run executed a decision, in order "
+                        "(e.g. 4,4,8), which figure --closed-loop puts the decisions of each run on")
+    parser.add_argument("--closed-loop", default="",
+                        help="figure: draw closed-loop's JSON (its runs side by side) instead of --workdir's runs")
+    parser.add_argument("--title", default="", help="figure --closed-loop: a line above the panels (the model, "
+                        "batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first")
@@ -577,13 +597,70 @@ def figure(workdir: str, path: str) -> dict:
     return series
 
 
+def closed_loop_figure(source: str, path: str, title: str = "") -> dict:
+    """Three panels from ``closed-loop``'s JSON at ``source`` (PNG at ``path``), its runs side by side: what reality
+    paid each step's rollouts, and against the actions executed (each run's decisions times its
+    ``actions_per_decision``, 4 where not recorded) the frame error to the real frame and the greedy action gap
+    (dotted: the VAE alone), means over the steps; ``title`` above them (the model, batch, device, seeds). Returns
+    the plotted series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    try:
+        with open(source) as f:
+            runs = json.load(f)["runs"]
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"bench_grpo_reward_source figure: {source} is not closed-loop's JSON ({e})") from None
+    missing = [label for label, r in runs.items() if "per_decision" not in r]
+    if not runs or missing:
+        raise SystemExit(f"bench_grpo_reward_source figure: {source} holds no runs with a per-decision record"
+                         + (f" ({', '.join(missing)} read from progress lines)" if missing else ""))
+    series: dict[str, dict] = {}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for i, (label, r) in enumerate(runs.items()):
+        colour = f"C{i}"
+        loop = r["per_decision"]
+        actions = [k * r.get("actions_per_decision", 4) for k in loop["decisions"]]
+        steps = [s["step"] for s in r["per_step"]]
+        series[label] = {"steps": steps, "paid": [s["paid"] for s in r["per_step"]], "actions": actions,
+                         **{what: loop[what] for what in ("frame_error", "action_gap", "frame_error_vae",
+                                                          "action_gap_vae") if what in loop}}
+        axes[0].plot(steps, series[label]["paid"], marker="o", ms=3, color=colour, label=label)
+        for ax, what in ((axes[1], "frame_error"), (axes[2], "action_gap")):
+            ax.plot(actions, loop[what], marker="o", ms=3, color=colour, label=label)
+            if f"{what}_vae" in loop:
+                ax.plot(actions, loop[f"{what}_vae"], ls=":", color=colour,
+                        label="dotted: the real frame through the VAE alone" if i == 0 else None)
+    common.finish_figure(fig, axes[0], path, xlabel="GRPO step", ylabel="real success of the imagined actions",
+                         title="what reality paid", save=False)
+    common.finish_figure(fig, axes[1], path, xlabel="actions executed", ylabel="frame error to the real frame",
+                         title="the world model's frames", save=False, legend_size=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    common.finish_figure(fig, axes[2], path, xlabel="actions executed", ylabel="greedy action gap to the real frame",
+                         title="the policy's actions on them", legend_size=7)
+    return series
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(argv)
     if args.mode == "closed-loop":
-        if not args.run or not args.out or args.trajectories < 1:
-            raise SystemExit("bench_grpo_reward_source closed-loop needs --run (one or more), --out and "
-                             "--trajectories >= 1")
-        result = {"trajectories_per_step": args.trajectories, "runs": closed_loop_summary(args.run, args.trajectories)}
+        if not args.run or not args.out or args.trajectories < 1 or args.first_steps < 0:
+            raise SystemExit("bench_grpo_reward_source closed-loop needs --run (one or more), --out, "
+                             "--trajectories >= 1 and --first-steps >= 0")
+        try:
+            actions = [int(a) for a in args.decision_actions.split(",")] if args.decision_actions else []
+        except ValueError:
+            actions = [0]
+        if any(a < 1 for a in actions):
+            raise SystemExit(f"bench_grpo_reward_source closed-loop: --decision-actions {args.decision_actions!r} "
+                             "is not a comma list of positive integers")
+        result = {"trajectories_per_step": args.trajectories,
+                  **({"first_steps": args.first_steps} if args.first_steps else {}),
+                  "runs": closed_loop_summary(args.run, args.trajectories, first_steps=args.first_steps,
+                                              decision_actions=actions)}
         with open(args.out, "w") as f:
             json.dump(result, f, indent=1)
         for label, r in result["runs"].items():
@@ -593,6 +670,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       f" (the VAE alone at the first: frame error {r['frame_error_vae_first']:.3f}, gap "
                       f"{r['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in r else ""), flush=True)
         return result
+    if args.mode == "figure" and args.closed_loop:
+        if not args.out:
+            raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
+        return closed_loop_figure(args.closed_loop, args.out, args.title)
     if not args.workdir:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")
     if args.mode == "figure":

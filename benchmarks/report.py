@@ -1061,13 +1061,14 @@ def sim_fidelity_decisions(run: tuple[str, ...] = (*SIM_FIDELITY, "exec_vae8x"))
 REWARD_SOURCE_REST = ("policy", "grpo_reward_source_rest_small_h200")
 
 
-def _paid_over_steps(history_path: str) -> dict:
+def _paid_over_steps(history_path: str, upto: int = 0) -> dict:
     """What reality paid every training rollout of a ground-truth GRPO run (``rollout_success`` of each step of its
-    history, times ``trajectories_sampled``): ``{"rate", "ci95", "of"}`` with a Wilson interval."""
+    history, times ``trajectories_sampled``; with ``upto``, its steps to there): ``{"rate", "ci95", "of"}`` with a
+    Wilson interval."""
     from sword_jax.rl.env_rollout import wilson_interval
 
     with open(history_path) as f:
-        history = [json.loads(line) for line in f if line.strip()]
+        history = [h for h in (json.loads(line) for line in f if line.strip()) if not upto or h["step"] <= upto]
     of = sum(int(h["trajectories_sampled"]) for h in history)
     hits = round(sum(h["rollout_success"] * h["trajectories_sampled"] for h in history))
     return {"rate": hits / of, "ci95": list(wilson_interval(hits, of)), "of": of}
@@ -1099,6 +1100,49 @@ def grpo_reward_source_rest() -> str:
                    "steps 1-5 -> last 5", "groups mixed (median)",
                    "sampled, proprio masked: step 0 -> 20, gain (points), 100 episodes", "greedy: the same",
                    "the detector on the same rollouts: success / precision"], rows)
+
+
+# the levers' run: one world model of 20,000 steps with an EMA, read by exec runs at 4 and 8 actions a decision,
+# beside the 12,000-step one of REWARD_SOURCE_REST over the same first steps (closed_loop.json, in that order)
+REWARD_SOURCE_LEVERS = ("policy", "grpo_reward_source_levers_small_h200")
+
+
+def _history_rows(*parts: str, upto: int) -> list[dict]:
+    """The rows of ``<results>/<parts>/train_history.jsonl`` to step ``upto``."""
+    with open(os.path.join(RESULTS_DIR, *parts, "train_history.jsonl")) as f:
+        return [h for h in (json.loads(line) for line in f if line.strip()) if h["step"] <= upto]
+
+
+def grpo_reward_source_levers() -> str:
+    """The world model's levers from the first real frame over the first GRPO steps (``REWARD_SOURCE_LEVERS``'
+    ``closed_loop.json``): per world model and actions a decision, what reality paid the imagined actions (the real
+    frames' ground-truth run over the same steps first), the groups left mixed, what the detector said, the closed
+    loop's first and last decisions and the sampled gain at the last step where the run was evaluated there."""
+    loop = _load(*REWARD_SOURCE_LEVERS, "closed_loop.json")
+    upto = loop["first_steps"]
+    gt = os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", "s0"), "train_history.jsonl")
+    gt_rows = _history_rows(os.path.relpath(os.path.dirname(gt), RESULTS_DIR), upto=upto)
+    rows = [["real frames (ground-truth GRPO on MJX, the 12,000-step run's arm)", "", "4 (12 decisions)",
+             _paid(_paid_over_steps(gt, upto)),
+             f"{statistics.median(h['mixed_groups'] for h in gt_rows):.0f} of 64", "", "", "", ""]]
+    grpo = {0: (*REWARD_SOURCE_REST, "exec_s0", "rl", "grpo"), 1: (*REWARD_SOURCE_LEVERS, "exec_s0", "rl", "grpo"),
+            2: (*REWARD_SOURCE_LEVERS, "chunk", "exec_s0", "rl", "grpo")}
+    summaries = {0: None, 1: _load(*REWARD_SOURCE_LEVERS, "grpo_reward_source.json"),
+                 2: _load(*REWARD_SOURCE_LEVERS, "chunk", "grpo_reward_source.json")}
+    for i, (label, r) in enumerate(loop["runs"].items()):
+        per = r["actions_per_decision"]
+        mixed = statistics.median(h["mixed_groups"] for h in _history_rows(*grpo[i], upto=upto))
+        run = summaries[i] and summaries[i]["runs"]["exec_s0"]
+        gain = (f"{run['sampled']['start']:.2f} -> {run['sampled']['end']:.2f}, {_pct(run['sampled']['gain'])} "
+                f"{_interval(run['sampled']['ci95'])}" if run and run["steps"] == upto else "not evaluated there")
+        rows.append([label, f"{r['world_model_steps']:,}, loss {r['world_model_loss']:.3f}", f"{per} ({48 // per} decisions)",
+                     _paid(r["paid_success"]), f"{mixed:.0f} of 64", f"{r['detector_success']:.2f}",
+                     f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
+                     f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}", gain])
+    return _table(["GRPO's frames", "world model: steps, loss (last 10 logged)", "actions a decision",
+                   f"real success of the rollouts, steps 1-{upto} (95% interval)", "groups mixed (median)",
+                   "the detector said", "frame error: first -> last decision", "greedy action gap: the same",
+                   f"sampled: step 0 -> {upto}, gain (points), 100 episodes"], rows)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
@@ -1355,6 +1399,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-prev": closed_loop_prev, "policy-view-vae": policy_view_vae, "lag-proprio": lag_proprio,
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "grpo-reward-source-rest": grpo_reward_source_rest,
+    "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,

@@ -447,6 +447,56 @@ def test_closed_loop_summary_from_a_runs_history_or_its_progress_lines(tmp_path,
         rs.main(["summary"])
 
 
+def test_closed_loop_runs_compared_over_their_first_steps_and_drawn_side_by_side(tmp_path):
+    """closed-loop --first-steps keeps each run's steps up to it (a longer run compares over the same steps as a
+    shorter one), --decision-actions records each run's actions a decision (one per run, positive), and figure
+    --closed-loop draws the runs against the actions executed; a JSON without per-decision records is refused."""
+    from sword_jax.pipeline.grpo import payment_note
+
+    def point(step, paid, error):
+        p = {"step": step, "success_rate": paid, "detector_success": 0.25, "detector_agreement": 0.75}
+        for k in range(1, 4):
+            p[f"closed_loop_frame_error_{k}"], p[f"closed_loop_action_gap_{k}"] = error * k, 2 * error * k
+        return p
+
+    metrics = tmp_path / "metrics.jsonl"
+    metrics.write_text("".join(json.dumps({"step": 100 * i, "loss": 0.1}) + "\n" for i in range(1, 4)))
+    runs = []
+    for name, points in (("long", [point(s, 0.125 * s, 0.01 * s) for s in (1, 2, 3, 4)]),
+                         ("short", [point(1, 0.5, 0.02), point(2, 0.25, 0.02)])):
+        grpo = tmp_path / name
+        grpo.mkdir()
+        (grpo / "train_history.jsonl").write_text("".join(json.dumps(p) + "\n" for p in points))
+        runs.append((name, str(grpo), str(tmp_path / "none.log"), str(metrics)))
+    out = tmp_path / "closed_loop.json"
+    argv = ["closed-loop", "--trajectories", "8", "--out", str(out)]
+    for r in runs:
+        argv += ["--run", *r]
+    result = rs.main([*argv, "--first-steps", "2", "--decision-actions", "4,8"])
+    long, short = result["runs"]["long"], result["runs"]["short"]
+    assert result["first_steps"] == 2 and long["steps"] == short["steps"] == 2
+    assert long["paid_success"]["rate"] == pytest.approx(3 / 16)  # steps 1-2 alone: 1 + 2 of 16
+    assert long["per_decision"]["frame_error"] == pytest.approx([0.015, 0.03, 0.045])  # mean of steps 1-2
+    assert (long["actions_per_decision"], short["actions_per_decision"]) == (4, 8)
+    assert rs.main(argv)["runs"]["long"]["steps"] == 4 and "first_steps" not in json.loads(out.read_text())
+    for bad in ("4", "4,0", "4,x"):
+        with pytest.raises(SystemExit, match="--decision-actions"):
+            rs.main([*argv, "--decision-actions", bad])
+    rs.main([*argv, "--first-steps", "2", "--decision-actions", "4,8"])
+    series = rs.main(["figure", "--closed-loop", str(out), "--out", str(tmp_path / "f.png"), "--title", "t"])
+    assert (tmp_path / "f.png").stat().st_size > 0
+    assert series["long"]["actions"] == [4, 8, 12] and series["short"]["actions"] == [8, 16, 24]
+    assert series["short"]["paid"] == [0.5, 0.25] and series["long"]["action_gap"] == pytest.approx([0.03, 0.06, 0.09])
+    (grpo / "train_history.jsonl").unlink()  # the short run now read from its (missing) log's progress lines
+    (tmp_path / "none.log").write_text(f"grpo step 1/2 {payment_note(point(1, 0.5, 0.02), 3)} eta 1s\n")
+    rs.main(argv)
+    with pytest.raises(SystemExit, match="short read from progress lines"):
+        rs.main(["figure", "--closed-loop", str(out), "--out", str(tmp_path / "g.png")])
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(SystemExit, match="is not closed-loop's JSON"):
+        rs.main(["figure", "--closed-loop", str(tmp_path / "bad.json"), "--out", str(tmp_path / "g.png")])
+
+
 def test_a_progress_line_names_a_step_that_applied_no_update():
     from sword_jax.pipeline.grpo import skipped_note
 
