@@ -27,9 +27,9 @@ and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world
 their keyframes alike (the same demonstrations and rule, their own draws), so their first steps, before any update,
 compare what the real closed loop and the imagined one are paid from like starts.
 
-``run`` builds Sword's ``small`` pipeline on the first GPU; once its data stage is done the ground-truth runs start
-on the other GPUs, and once the pipeline is built the world-model runs take every GPU, the two arms of a seed side
-by side. With ``--pipeline DIR`` it builds none and starts each run once the stages it reads have finished in
+``run`` builds Sword's ``small`` pipeline on the first GPU (on several with ``--pipeline-gpus``, its trainers
+data-parallel over them); once its data stage is done the ground-truth runs start on the other GPUs, and once the
+pipeline is built the world-model runs take every GPU, the two arms of a seed side by side. With ``--pipeline DIR`` it builds none and starts each run once the stages it reads have finished in
 ``DIR`` (:data:`NEEDS`), so a second command, e.g. at another ``--actions-per-decision``, shares the first's world
 model. Each process runs in its own session (a deadline stops the runs still going; each keeps its last
 evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives each run's
@@ -148,7 +148,8 @@ def placement(args) -> dict[str, str]:
     """The GPU of each run: the ground-truth runs on the GPUs the pipeline leaves free (all of them with one),
     the world-model runs round-robin over every GPU, a seed's two arms next to each other."""
     gpus = args.gpus
-    free = gpus[1:] or gpus
+    building = getattr(args, "pipeline_gpus", None) or gpus[:1]
+    free = [g for g in gpus if g not in building] or gpus
     out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds) if "gt" in args.arms}
     names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det") if arm in args.arms]
     out.update({name: gpus[i % len(gpus)] for i, name in enumerate(names)})
@@ -194,7 +195,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
                 procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
         if building is None and phases:
             name, cmd, _ = phases[0]
-            building = (name, launch(name, cmd, args.gpus[0]))
+            building = (name, launch(name, cmd, ",".join(getattr(args, "pipeline_gpus", None) or args.gpus[:1])))
         if building is not None and building[1].poll() is not None:
             name, proc = building
             _, _, ready = phases.pop(0)
@@ -475,7 +476,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
     parser.add_argument("--config", default="sword:small")
-    parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first")
+    parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first (or those of "
+                        "--pipeline-gpus)")
+    parser.add_argument("--pipeline-gpus", default="",
+                        help="run: comma list, some of --gpus: the pipeline sees these GPUs and its trainers (the VAE, "
+                        "the world model) split each batch over them, data-parallel with the same global batch; the "
+                        "ground-truth runs take the GPUs it leaves (all of them where it takes every one); default: "
+                        "the first of --gpus")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--arms", default=",".join(ARMS), help=f"run: comma list of {', '.join(ARMS)} (e.g. the "
                         "world-model arms alone, for another world model beside a ground-truth arm already run)")
@@ -536,6 +543,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]
+    args.pipeline_gpus = [g for g in args.pipeline_gpus.split(",") if g] or args.gpus[:1]
+    if set(args.pipeline_gpus) - set(args.gpus) or len(set(args.pipeline_gpus)) < len(args.pipeline_gpus):
+        raise SystemExit(f"bench_grpo_reward_source: --pipeline-gpus must name GPUs of --gpus, each once, got "
+                         f"{','.join(args.pipeline_gpus)} for --gpus {','.join(args.gpus)}")
+    if args.pipeline and len(args.pipeline_gpus) > 1:
+        raise SystemExit("bench_grpo_reward_source: --pipeline-gpus places a pipeline this command builds; with "
+                         "--pipeline it builds none")
     args.arms = [a for a in args.arms.split(",") if a]
     if not args.arms or set(args.arms) - set(ARMS):
         raise SystemExit(f"bench_grpo_reward_source: --arms must name some of {', '.join(ARMS)}, got {args.arms}")

@@ -87,11 +87,14 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
         setup = world_model_setup(cfg, rl, inputs, demos, reckoning=reckoning)
         if rl.refresh.every:
             from sim.grpo_refresh import run_refreshed_in_mjx
+            from sword_jax import sharding as shd
             from sword_jax.load import experiment_vae, experiment_world_model
 
             if not inputs.latents:
                 raise SystemExit("train.grpo --rl.refresh.every > 0 needs --latents (the world model's training latents)")
-            return run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir, setup, vae=experiment_vae(cfg, inputs.vae),
+            mesh = shd.make_mesh(cfg.mesh)  # the VAE beside the world model
+            return run_refreshed_in_mjx(cfg, rl, graphdef, params, workdir, setup,
+                                        vae=experiment_vae(cfg, inputs.vae, mesh=mesh),
                                         world_model=experiment_world_model(cfg, inputs.world_model),
                                         latents=inputs.latents,
                                         episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,

@@ -21,6 +21,7 @@ import jax
 import numpy as np
 
 from configs.base import ExperimentConfig
+from sword_jax import sharding as shd
 from sword_jax.evaluation.harness import evaluate_videos, rollout_videos
 from sword_jax.evaluation.horizon import per_frame_curve
 from sword_jax.evaluation.report import write_report
@@ -199,7 +200,8 @@ def run_evaluation(cfg: ExperimentConfig, inputs: EvalInputs) -> dict:
              f"{cfg.flow.sample_steps} Euler steps per chunk."]
     if not inputs.vae_checkpoint:
         notes.append("VAE: random initialisation (no --vae-checkpoint): decoded frames are not meaningful.")
-    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae_checkpoint)
+    # replicated over the mesh the world models are placed on (one jitted rollout reads both)
+    vae_graphdef, vae_state = experiment_vae(cfg, inputs.vae_checkpoint, mesh=shd.make_mesh(cfg.mesh))
     gt = {s: v["frames"][:, :horizon] for s, v in splits.items()}
     predictions: dict[str, dict[str, np.ndarray]] = {}
     latent: dict[str, dict[str, dict[str, np.ndarray]]] = {}  # model -> split -> latent_errors()

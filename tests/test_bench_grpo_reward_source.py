@@ -64,6 +64,37 @@ def test_the_runs_are_placed_beside_the_pipeline_then_over_every_gpu(tmp_path):
     assert sorted(rs.run_commands(_args(tmp_path, arms=("exec",)))) == ["exec_s0", "exec_s1", "exec_s2"]
 
 
+def test_the_pipeline_can_take_several_gpus_and_the_ground_truth_runs_the_rest(tmp_path, monkeypatch):
+    """--pipeline-gpus: the pipeline's commands see those GPUs (CUDA_VISIBLE_DEVICES), the ground-truth runs take
+    the GPUs it leaves, or every GPU where it takes them all; GPUs outside --gpus, a GPU named twice, or several
+    with --pipeline (which builds nothing) are refused by name."""
+    import sys
+
+    base = ["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--seeds", "0,1", "--gpus", "0,1,2"]
+    args = rs.parse([*base, "--pipeline-gpus", "0,1"])
+    assert args.pipeline_gpus == ["0", "1"]
+    gpu = rs.placement(args)
+    assert (gpu["gt_s0"], gpu["gt_s1"]) == ("2", "2")
+    assert [gpu[n] for n in ("exec_s0", "det_s0", "exec_s1", "det_s1")] == ["0", "1", "2", "0"]
+    every = rs.placement(rs.parse([*base, "--pipeline-gpus", "2,0,1"]))
+    assert (every["gt_s0"], every["gt_s1"]) == ("0", "1")
+    assert rs.parse(base).pipeline_gpus == ["0"] and rs.placement(rs.parse(base))["gt_s1"] == "2"
+    for bad, match in ((["--pipeline-gpus", "0,3"], "must name GPUs of --gpus"),
+                       (["--pipeline-gpus", "1,1"], "each once"),
+                       (["--pipeline-gpus", "0,1", "--pipeline", str(tmp_path)], "with --pipeline it builds none")):
+        with pytest.raises(SystemExit, match=match):
+            rs.parse([*base, *bad])
+    # the pipeline's two commands start with the GPUs they were given
+    seen = "import os, sys; open(sys.argv[1], 'a').write(os.environ['CUDA_VISIBLE_DEVICES'] + ';')"
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: [
+        sys.executable, "-c", seen, str(tmp_path / "pipeline_gpus")])
+    monkeypatch.setattr(rs, "run_commands", lambda a: {"gt_s0": [sys.executable, "-c", seen, str(tmp_path / "gt")]})
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+    run = rs.parse([*base, "--seeds", "0", "--arms", "gt", "--pipeline-gpus", "1,2"])
+    assert rs.run(run, poll_s=0.05)["exit_codes"] == {"gt_s0": 0}
+    assert (tmp_path / "pipeline_gpus").read_text() == "1,2;1,2;" and (tmp_path / "gt").read_text() == "0;"
+
+
 def _curve(path, points, history):
     os.makedirs(path, exist_ok=True)
     with open(os.path.join(path, "success_curve.json"), "w") as f:

@@ -55,6 +55,20 @@ def test_model_config_comes_from_the_workdir(tmp_path):
     assert world_model_eval.model_config(cfg, None) is cfg
 
 
+def test_a_trained_world_model_is_evaluated_over_several_devices(tiny_run, tmp_path):
+    """The trained world model is placed on the mesh (here 8 CPU devices) and its VAE beside it: one jitted
+    rollout reads both (the VAE on the first device alone made it refuse its arguments' devices)."""
+    import jax
+
+    assert jax.device_count() > 1
+    path = evaluate_world_model.main([
+        "--config", "sword:tiny", "--model.num_layers=1", "--out", str(tmp_path / "eval"), "--synthetic",
+        "--model", f"tiny={os.path.join(tiny_run, 'world_model')}",
+        "--vae-checkpoint", os.path.join(tiny_run, "vae_run", "vae"), "--metrics", "psnr",
+        "--eval.num_episodes=1", "--eval.horizon_frames=13", "--eval.report_videos=0"])
+    assert "| tiny |" in open(path).read().replace("**", "")
+
+
 @pytest.mark.slow
 def test_rollout_videos_honours_pixel_round_trip():
     """flow.pixel_round_trip used to make evaluation raise (no round-trip function was passed)."""
