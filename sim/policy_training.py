@@ -169,7 +169,8 @@ def decoded_training_frames(cfg, vae: str, episodes: rl_data.EpisodeSet, *, worl
     from sword_jax.rl.decoded_frames import round_trip_episodes
 
     start = time.time()
-    vae_graphdef, vae_state = experiment_vae(cfg, vae)
+    # beside the world model, on its mesh, where the replay's steps read both
+    vae_graphdef, vae_state = experiment_vae(cfg, vae, mesh=shd.make_mesh(cfg.mesh) if world_model else None)
     if world_model:
         return imagined_training_frames(cfg, (vae_graphdef, vae_state), world_model, episodes)
     decoded = round_trip_episodes(vae_graphdef, vae_state, episodes.frames, episodes.lengths,

@@ -260,3 +260,25 @@ def test_train_policy_fine_tunes_on_frames_the_world_model_imagines(tmp_path, mo
         shown = np.setdiff1d(np.arange(length), starts)
         assert all(not np.array_equal(out[e, t], episodes.frames[e, t]) for t in shown)  # a random world model's
     assert np.isfinite(result["final_loss"])
+
+
+def test_a_trained_world_model_replays_the_episodes_over_several_devices(tiny_run, tmp_path):
+    """rl.sft.decoded_source=world_model with a trained world model, placed on the mesh (here 8 CPU devices): the
+    VAE is placed beside it, so the replay's jitted steps read both (on the first device alone they refused)."""
+    import os
+
+    from sim.policy_training import decoded_training_frames
+
+    assert jax.device_count() > 1
+    from configs.cli import apply_overrides
+
+    cfg = apply_overrides(configs.get("sword:tiny"), ["--model.num_layers=1"])
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, sft=dataclasses.replace(
+        cfg.rl.sft, decoded_fraction=1.0, decoded_source="world_model", decoded_window=4)))
+    from sim.dataset import read_dataset
+
+    episodes = rl_data.load_episodes([write_demos(str(tmp_path / "demos.hdf5"), size=32)], read=read_dataset)
+    out = decoded_training_frames(cfg, os.path.join(tiny_run, "vae_run", "vae"), episodes,
+                                  world_model=os.path.join(tiny_run, "world_model"))
+    assert out.shape == episodes.frames.shape
+    np.testing.assert_array_equal(out[:, 0], episodes.frames[:, 0])  # each window's real start is kept
