@@ -216,6 +216,7 @@ def test_a_small_run_on_the_c_engine_writes_its_table(tmp_path):
     assert os.path.basename(results["policy"]) == "policy.npz"
 
 
+@pytest.mark.slow  # the C engine run beside it covers the table in the default run
 def test_a_small_run_with_a_vae_adds_its_round_trip_view(tmp_path):
     """--vae DIR (a tiny random VAE saved as train_vae saves one) adds the view vae to the table: the real frames
     round-tripped through it, which a random VAE moves."""

@@ -162,6 +162,7 @@ def test_a_recorded_read_lines_up_with_the_decision_it_comes_before():
     assert len(ep) == 6 and np.all(state[ep, at] < np.array([1, 3, 2])[ep])  # none from an ended episode
 
 
+@pytest.mark.slow  # an end-to-end run on the C engine; the file's other tests keep its tables in the default run
 def test_a_tiny_run_on_the_c_engine(tmp_path, monkeypatch):
     """A random tiny policy, 3 episodes of 16 actions (4 decisions each, none succeeds) and as many short groups as
     there are branch points: every count adds up, only the 12 states before a decision are branched from (never

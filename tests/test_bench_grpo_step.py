@@ -12,6 +12,7 @@ from sword_jax.cli import UsageError
 from sword_jax.rl.grpo_loop import StepTimes
 
 
+@pytest.mark.slow  # every case compiled end to end; the merge and argument tests stay in the default run
 def test_tiny_run_records_every_case_and_counts_frames_as_grpo_does(tmp_path):
     results = tmp_path / "latest.json"
     results.write_text(json.dumps({"other_key": {"value": 1.0}}))

@@ -59,6 +59,8 @@ def _scaling_entry(summary: dict, n: int) -> dict:
     return entry
 
 
+# nine rows each compiled, two in gloo processes; the plan and profile tests keep the rows' code in the default run
+@pytest.mark.slow
 def test_small_rows_of_every_kind_compiled_on_two_devices_and_two_gloo_processes(tmp_path, monkeypatch):
     """One --tiny run of the small part on 2 devices: k = 1, 2, the cache off, the overlap options, unrolled layers
     and (--small-processes) 2 gloo processes of one device each, scanned and unrolled; every row's step compiled and
@@ -173,6 +175,7 @@ def test_a_failing_or_stuck_rank_gives_an_error_row_quickly(monkeypatch):
     assert time.monotonic() - start < 60
 
 
+@pytest.mark.slow  # a sweep of compiled settings; the plan and profile tests keep the rows' code in the default run
 def test_sweep_rows_and_an_out_of_memory_setting_passed_over(tmp_path, monkeypatch):
     monkeypatch.setattr(bench, "run_small", lambda *a, **kw: {"rows": [], "by_batch": {}})
     real_time_step = bench.time_step

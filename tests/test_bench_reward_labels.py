@@ -37,6 +37,7 @@ def test_rule_reports_read_each_k_as_the_imagined_success_rule():
     assert bench.rule_reports(scores[:2], _episodes([None, None]), 0.9)["1"]["separation"] is None
 
 
+@pytest.mark.slow  # an end-to-end run; the rule-report test stays in the default run
 def test_policy_path_end_to_end(tmp_path, monkeypatch):
     """With --policy the bench records the policy's train and held-out episodes, trains both detectors and
     reports each on both held-out sets for every k; a one-frame spike fires at k=1 and at no larger k."""

@@ -336,6 +336,7 @@ class _Exited:
         return self.code
 
 
+@pytest.mark.slow  # the slices-at-once test launches the stages in the default run
 def test_parallel_slices_launch_each_stage_with_the_slices_command_and_record_the_same(tmp_path, monkeypatch):
     """--parallel: every stage is launched as ``train.pipeline <the slice's or shared dir's command> --only
     STAGE`` (here run in this process instead of a new one, so the fake stages apply), and the

@@ -141,6 +141,7 @@ def test_decoded_fraction_zero_trains_as_before_and_one_trains_on_the_decoded_fr
                                                          jax.tree.leaves(nnx.to_pure_dict(on_real))))
 
 
+@pytest.mark.slow  # the decoded-fraction and world-model tests train on decoded frames in the default run
 def test_train_policy_fine_tunes_the_given_policy_on_decoded_frames(tmp_path, monkeypatch, tiny_vae):
     """--rl.sft.init starts from that policy (its proprio normalisation kept, a fresh optimizer);
     --rl.sft.decoded_fraction with --vae round-trips the training episodes once; the flags refuse each other's

@@ -491,6 +491,7 @@ def test_a_process_makes_only_its_rows_of_the_start_states():
         np.testing.assert_array_equal(part[name], whole[name][[4, 5]], err_msg=name)
 
 
+@pytest.mark.slow  # a control of the toy run; the toy run itself stays in the default run
 def test_shuffled_returns_keep_each_groups_values_and_lose_their_assignment():
     """rl.grpo.shuffle_returns (the noise-only control): every group keeps its returns (so its spread and whether it
     is mixed), assigned to its trajectories by the key; without a key it is refused."""

@@ -79,6 +79,7 @@ def _skip_below(cfg: RLConfig, groups: int) -> RLConfig:
     return dataclasses.replace(cfg, grpo=dataclasses.replace(cfg.grpo, min_mixed_groups=groups))
 
 
+@pytest.mark.slow  # test_oversampled_step_on_a_mesh_matches_one_device runs an oversampled update in the default run
 def test_oversampled_step_updates_on_the_mixed_groups():
     """Starts [never, never, coin, coin]: the plain step on the first rollout_batch=2 has no signal (and with
     rl.grpo.min_mixed_groups=1 applies no update); the oversampled one (k=2) rolls all 4 out and updates on the

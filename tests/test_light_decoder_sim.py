@@ -192,6 +192,7 @@ def _vae_and_latents(tmp_path):
             f"--rl.image_size={POLICY_SIZE}"]
 
 
+@pytest.mark.slow  # test_light_decoder's distillation and resume test trains one in the default run
 def test_train_light_decoder_writes_a_decoder_that_loads_back_and_decodes_at_its_size(tmp_path):
     """The entry point's smoke run: one step on the tiny config; the weights load back with their geometry, the
     held clips' L1 to the teacher fell, the strip is written."""

@@ -145,6 +145,7 @@ def _runner(rl, params, graphdef, value_graphdef, value_params, tmp_starts):
                    value=as_value(value_graphdef, value_params))
 
 
+@pytest.mark.slow  # an env GRPO run with the value; the fit and the branching tests keep the value in the default run
 def test_env_grpo_fits_the_value_once_pays_its_rollouts_with_it_and_loads_the_fit_on_resume(tmp_path):
     rl = _rl(episodes=12, steps=20, batch_size=16, width=4, holdout=0.25)
     graphdef, params = build_policy(rl, seed=0)
@@ -289,6 +290,7 @@ def test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_wh
                      greedy=True, ensemble=False, max_steps=4, record_states=True)
 
 
+@pytest.mark.slow  # an env GRPO run with the KL anchor; test_grpo keeps the KL term in the default run
 def test_env_grpo_anchored_by_kl_measures_its_distance_from_the_starting_policy():
     # rl.grpo.kl_coef > 0 (bench_grpo_value --kl-coef): the state keeps the starting policy, whose k3 KL is 0 on the
     # first step and positive once the policy has moved; the anchor changes the update
