@@ -29,15 +29,15 @@ compare what the real closed loop and the imagined one are paid from like starts
 
 ``run`` builds Sword's ``small`` pipeline on the first GPU (on several with ``--pipeline-gpus``, its trainers
 data-parallel over them); once its data stage is done the ground-truth runs start on the other GPUs, and once the
-pipeline is built the world-model runs take every GPU, the two arms of a seed side by side. With ``--pipeline DIR`` it builds none and starts each run once the stages it reads have finished in
-``DIR`` (:data:`NEEDS`), so a second command, e.g. at another ``--actions-per-decision``, shares the first's world
-model. Each process runs in its own session (a deadline stops the runs still going; each keeps its last
-evaluation; with ``--grace-s`` they are asked first and evaluate their step in flight). ``summary`` gives each run's
-gains with 95% intervals, what its training rollouts were paid, and for ``exec`` the detector's success, agreement,
-false success and precision (the share of its verdicts of success that reality paid too) on the same rollouts, and
-per decision where their closed loop left the real one (``closed_loop``:
-:func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps); ``--record`` writes
-``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
+pipeline is built the world-model runs take every GPU, the two arms of a seed side by side. With ``--pipeline DIR``
+it builds none and starts each run once the stages it reads have finished in ``DIR`` (:data:`NEEDS`), so a second
+command, e.g. at another ``--actions-per-decision``, shares the first's world model. Each process runs in its own
+session (a deadline stops the runs still going; each keeps its last evaluation; with ``--grace-s`` they are asked
+first and evaluate their step in flight). ``summary`` gives each run's gains with 95% intervals, what its training
+rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of
+its verdicts of success that reality paid too) on the same rollouts, and per decision where their closed loop left
+the real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps);
+``--record`` writes ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
 """
 
 from __future__ import annotations
@@ -119,6 +119,11 @@ def pipeline_dir(args) -> str:
     return getattr(args, "pipeline", "") or os.path.join(args.workdir, "pipeline")
 
 
+def pipeline_gpus(args) -> list[str]:
+    """The GPUs the pipeline is built on: ``--pipeline-gpus``, or the first of ``--gpus``."""
+    return getattr(args, "pipeline_gpus", None) or args.gpus[:1]
+
+
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
     (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
@@ -148,7 +153,7 @@ def placement(args) -> dict[str, str]:
     """The GPU of each run: the ground-truth runs on the GPUs the pipeline leaves free (all of them with one),
     the world-model runs round-robin over every GPU, a seed's two arms next to each other."""
     gpus = args.gpus
-    building = getattr(args, "pipeline_gpus", None) or gpus[:1]
+    building = pipeline_gpus(args)
     free = [g for g in gpus if g not in building] or gpus
     out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds) if "gt" in args.arms}
     names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det") if arm in args.arms]
@@ -195,7 +200,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
                 procs[run_name] = launch(run_name, commands[run_name], gpu_of[run_name])
         if building is None and phases:
             name, cmd, _ = phases[0]
-            building = (name, launch(name, cmd, ",".join(getattr(args, "pipeline_gpus", None) or args.gpus[:1])))
+            building = (name, launch(name, cmd, ",".join(pipeline_gpus(args))))
         if building is not None and building[1].poll() is not None:
             name, proc = building
             _, _, ready = phases.pop(0)
@@ -385,11 +390,11 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int, *, first_st
         raise SystemExit(f"bench_grpo_reward_source closed-loop: {len(decision_actions)} --decision-actions for "
                          f"{len(runs)} --run; give one per run, in order")
     out = {}
+    kept = lambda step: not first_steps or step <= first_steps  # noqa: E731 - the steps that count
     for i, (label, grpo, log, metrics, *upto) in enumerate(runs):
-        rows = [r for r in read_history(grpo) if not first_steps or r["step"] <= first_steps]
-        steps, source = (history_steps(rows), "history") if rows else (progress_steps(log), "progress lines")
-        if first_steps:
-            steps = [s for s in steps if s["step"] <= first_steps]
+        rows = [r for r in read_history(grpo) if kept(r["step"])]
+        steps, source = ((history_steps(rows), "history") if rows
+                         else ([s for s in progress_steps(log) if kept(s["step"])], "progress lines"))
         if not steps:
             where = os.path.join(grpo, "train_history.jsonl") if rows else log
             raise SystemExit(f"bench_grpo_reward_source: {where} holds no step with the closed-loop record")
@@ -664,17 +669,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if not args.run or not args.out or args.trajectories < 1 or args.first_steps < 0:
             raise SystemExit("bench_grpo_reward_source closed-loop needs --run (one or more), --out, "
                              "--trajectories >= 1 and --first-steps >= 0")
-        try:
-            actions = [int(a) for a in args.decision_actions.split(",")] if args.decision_actions else []
-        except ValueError:
-            actions = [0]
-        if any(a < 1 for a in actions):
+        listed = [a.strip() for a in args.decision_actions.split(",")] if args.decision_actions else []
+        if not all(a.isdigit() and int(a) >= 1 for a in listed):
             raise SystemExit(f"bench_grpo_reward_source closed-loop: --decision-actions {args.decision_actions!r} "
                              "is not a comma list of positive integers")
         result = {"trajectories_per_step": args.trajectories,
                   **({"first_steps": args.first_steps} if args.first_steps else {}),
                   "runs": closed_loop_summary(args.run, args.trajectories, first_steps=args.first_steps,
-                                              decision_actions=actions)}
+                                              decision_actions=[int(a) for a in listed])}
         with open(args.out, "w") as f:
             json.dump(result, f, indent=1)
         for label, r in result["runs"].items():
@@ -684,15 +686,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       f" (the VAE alone at the first: frame error {r['frame_error_vae_first']:.3f}, gap "
                       f"{r['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in r else ""), flush=True)
         return result
+    if args.mode == "figure" and not args.out:
+        raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
     if args.mode == "figure" and args.closed_loop:
-        if not args.out:
-            raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
         return closed_loop_figure(args.closed_loop, args.out, args.title)
     if not args.workdir:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")
     if args.mode == "figure":
-        if not args.out:
-            raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
         return figure(args.workdir, args.out)
     if args.mode == "summary":
         summary = summarize(args.workdir)

@@ -1061,14 +1061,17 @@ def sim_fidelity_decisions(run: tuple[str, ...] = (*SIM_FIDELITY, "exec_vae8x"))
 REWARD_SOURCE_REST = ("policy", "grpo_reward_source_rest_small_h200")
 
 
-def _paid_over_steps(history_path: str, upto: int = 0) -> dict:
+def _history_rows(history_path: str, upto: int = 0) -> list[dict]:
+    """The rows of a GRPO run's ``train_history.jsonl`` (with ``upto``, those to that step)."""
+    with open(history_path) as f:
+        return [h for h in (json.loads(line) for line in f if line.strip()) if not upto or h["step"] <= upto]
+
+
+def _paid_over_steps(history: list[dict]) -> dict:
     """What reality paid every training rollout of a ground-truth GRPO run (``rollout_success`` of each step of its
-    history, times ``trajectories_sampled``; with ``upto``, its steps to there): ``{"rate", "ci95", "of"}`` with a
-    Wilson interval."""
+    history, times ``trajectories_sampled``): ``{"rate", "ci95", "of"}`` with a Wilson interval."""
     from sword_jax.rl.env_rollout import wilson_interval
 
-    with open(history_path) as f:
-        history = [h for h in (json.loads(line) for line in f if line.strip()) if not upto or h["step"] <= upto]
     of = sum(int(h["trajectories_sampled"]) for h in history)
     hits = round(sum(h["rollout_success"] * h["trajectories_sampled"] for h in history))
     return {"rate": hits / of, "ci95": list(wilson_interval(hits, of)), "of": of}
@@ -1085,8 +1088,8 @@ def grpo_reward_source_rest() -> str:
     rows = []
     for name, run in sorted(summary["runs"].items(), key=lambda kv: list(labels).index(kv[1]["arm"])):
         if run["arm"] == "gt":
-            paid = _paid_over_steps(os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", f"s{run['seed']}"),
-                                                 "train_history.jsonl"))
+            gt = _run_dir(*REWARD_SOURCE_REST, "gt", f"s{run['seed']}")
+            paid = _paid_over_steps(_history_rows(os.path.join(gt, "train_history.jsonl")))
         else:
             paid = loop["paid_success"]
         det = run.get("detector")
@@ -1103,14 +1106,10 @@ def grpo_reward_source_rest() -> str:
 
 
 # the levers' run: one world model of 20,000 steps with an EMA, read by exec runs at 4 and 8 actions a decision,
-# beside the 12,000-step one of REWARD_SOURCE_REST over the same first steps (closed_loop.json, in that order)
+# beside the 12,000-step one of REWARD_SOURCE_REST over the same first steps; per run of its closed_loop.json, in
+# order, its folder (holding exec_s0/rl/grpo) and whether that folder holds the run's summary
 REWARD_SOURCE_LEVERS = ("policy", "grpo_reward_source_levers_small_h200")
-
-
-def _history_rows(*parts: str, upto: int) -> list[dict]:
-    """The rows of ``<results>/<parts>/train_history.jsonl`` to step ``upto``."""
-    with open(os.path.join(RESULTS_DIR, *parts, "train_history.jsonl")) as f:
-        return [h for h in (json.loads(line) for line in f if line.strip()) if h["step"] <= upto]
+LEVERS_RUNS = ((REWARD_SOURCE_REST, False), (REWARD_SOURCE_LEVERS, True), ((*REWARD_SOURCE_LEVERS, "chunk"), True))
 
 
 def grpo_reward_source_levers() -> str:
@@ -1120,22 +1119,18 @@ def grpo_reward_source_levers() -> str:
     loop's first and last decisions and the sampled gain at the last step where the run was evaluated there."""
     loop = _load(*REWARD_SOURCE_LEVERS, "closed_loop.json")
     upto = loop["first_steps"]
-    gt = os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", "s0"), "train_history.jsonl")
-    gt_rows = _history_rows(os.path.relpath(os.path.dirname(gt), RESULTS_DIR), upto=upto)
+    gt_rows = _history_rows(os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", "s0"), "train_history.jsonl"), upto)
     rows = [["real frames (ground-truth GRPO on MJX, the 12,000-step run's arm)", "", "4 (12 decisions)",
-             _paid(_paid_over_steps(gt, upto)),
+             _paid(_paid_over_steps(gt_rows)),
              f"{statistics.median(h['mixed_groups'] for h in gt_rows):.0f} of 64", "", "", "", ""]]
-    grpo = {0: (*REWARD_SOURCE_REST, "exec_s0", "rl", "grpo"), 1: (*REWARD_SOURCE_LEVERS, "exec_s0", "rl", "grpo"),
-            2: (*REWARD_SOURCE_LEVERS, "chunk", "exec_s0", "rl", "grpo")}
-    summaries = {0: None, 1: _load(*REWARD_SOURCE_LEVERS, "grpo_reward_source.json"),
-                 2: _load(*REWARD_SOURCE_LEVERS, "chunk", "grpo_reward_source.json")}
-    for i, (label, r) in enumerate(loop["runs"].items()):
-        per = r["actions_per_decision"]
-        mixed = statistics.median(h["mixed_groups"] for h in _history_rows(*grpo[i], upto=upto))
-        run = summaries[i] and summaries[i]["runs"]["exec_s0"]
+    for (label, r), (folder, summarised) in zip(loop["runs"].items(), LEVERS_RUNS, strict=True):
+        per, decisions = r["actions_per_decision"], r["per_decision"]["decisions"][-1] + 1  # decision 0 not recorded
+        grpo = os.path.join(RESULTS_DIR, *folder, "exec_s0", "rl", "grpo")
+        mixed = statistics.median(h["mixed_groups"] for h in _history_rows(os.path.join(grpo, "train_history.jsonl"), upto))
+        run = summarised and _load(*folder, "grpo_reward_source.json")["runs"]["exec_s0"]
         gain = (f"{run['sampled']['start']:.2f} -> {run['sampled']['end']:.2f}, {_pct(run['sampled']['gain'])} "
                 f"{_interval(run['sampled']['ci95'])}" if run and run["steps"] == upto else "not evaluated there")
-        rows.append([label, f"{r['world_model_steps']:,}, loss {r['world_model_loss']:.3f}", f"{per} ({48 // per} decisions)",
+        rows.append([label, f"{r['world_model_steps']:,}, loss {r['world_model_loss']:.3f}", f"{per} ({decisions} decisions)",
                      _paid(r["paid_success"]), f"{mixed:.0f} of 64", f"{r['detector_success']:.2f}",
                      f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
                      f"{r['action_gap_first']:.3f} -> {r['action_gap_last']:.3f}", gain])
