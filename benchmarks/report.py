@@ -1110,26 +1110,30 @@ def grpo_reward_source_rest() -> str:
 # order, its folder (holding exec_s0/rl/grpo) and whether that folder holds the run's summary
 REWARD_SOURCE_LEVERS = ("policy", "grpo_reward_source_levers_small_h200")
 LEVERS_RUNS = ((REWARD_SOURCE_REST, False), (REWARD_SOURCE_LEVERS, True), ((*REWARD_SOURCE_LEVERS, "chunk"), True))
+# the next world model: 30,000 steps with an EMA at 8 actions a decision, beside the levers' 20,000-step one
+REWARD_SOURCE_LENGTH = ("policy", "grpo_reward_source_30k_small_h200")
+LENGTH_RUNS = (((*REWARD_SOURCE_LEVERS, "chunk"), True), (REWARD_SOURCE_LENGTH, True))
 
 
-def grpo_reward_source_levers() -> str:
-    """The world model's levers from the first real frame over the first GRPO steps (``REWARD_SOURCE_LEVERS``'
-    ``closed_loop.json``): per world model and actions a decision, what reality paid the imagined actions (the real
-    frames' ground-truth run over the same steps first), the groups left mixed, what the detector said, the closed
-    loop's first and last decisions and the sampled gain at the last step where the run was evaluated there."""
-    loop = _load(*REWARD_SOURCE_LEVERS, "closed_loop.json")
+def _world_model_runs(record: tuple[str, ...], runs: tuple) -> str:
+    """World-model exec runs from the first real frame over the same first GRPO steps (``record``'s
+    ``closed_loop.json``, its runs in the order of ``runs``: each one's folder and whether it holds the run's
+    summary): per world model and actions a decision, what reality paid the imagined actions (the real frames'
+    ground-truth run over the same steps first), the groups left mixed, what the detector said, the closed loop's
+    first and last decisions and the sampled gain where the run was last evaluated."""
+    loop = _load(*record, "closed_loop.json")
     upto = loop["first_steps"]
     gt_rows = _history_rows(os.path.join(_run_dir(*REWARD_SOURCE_REST, "gt", "s0"), "train_history.jsonl"), upto)
     rows = [["real frames (ground-truth GRPO on MJX, the 12,000-step run's arm)", "", "4 (12 decisions)",
              _paid(_paid_over_steps(gt_rows)),
              f"{statistics.median(h['mixed_groups'] for h in gt_rows):.0f} of 64", "", "", "", ""]]
-    for (label, r), (folder, summarised) in zip(loop["runs"].items(), LEVERS_RUNS, strict=True):
+    for (label, r), (folder, summarised) in zip(loop["runs"].items(), runs, strict=True):
         per, decisions = r["actions_per_decision"], r["per_decision"]["decisions"][-1] + 1  # decision 0 not recorded
         grpo = os.path.join(RESULTS_DIR, *folder, "exec_s0", "rl", "grpo")
         mixed = statistics.median(h["mixed_groups"] for h in _history_rows(os.path.join(grpo, "train_history.jsonl"), upto))
         run = summarised and _load(*folder, "grpo_reward_source.json")["runs"]["exec_s0"]
-        gain = (f"{run['sampled']['start']:.2f} -> {run['sampled']['end']:.2f}, {_pct(run['sampled']['gain'])} "
-                f"{_interval(run['sampled']['ci95'])}" if run and run["steps"] == upto else "not evaluated there")
+        gain = (f"step {run['steps']}: {run['sampled']['start']:.2f} -> {run['sampled']['end']:.2f}, "
+                f"{_pct(run['sampled']['gain'])} {_interval(run['sampled']['ci95'])}" if run else "its own table: grpo-reward-source-rest")
         rows.append([label, f"{r['world_model_steps']:,}, loss {r['world_model_loss']:.3f}", f"{per} ({decisions} decisions)",
                      _paid(r["paid_success"]), f"{mixed:.0f} of 64", f"{r['detector_success']:.2f}",
                      f"{r['frame_error_first']:.3f} -> {r['frame_error_last']:.3f}",
@@ -1137,7 +1141,19 @@ def grpo_reward_source_levers() -> str:
     return _table(["GRPO's frames", "world model: steps, loss (last 10 logged)", "actions a decision",
                    f"real success of the rollouts, steps 1-{upto} (95% interval)", "groups mixed (median)",
                    "the detector said", "frame error: first -> last decision", "greedy action gap: the same",
-                   f"sampled: step 0 -> {upto}, gain (points), 100 episodes"], rows)
+                   "sampled: step 0 -> the last evaluated, gain (points), 100 episodes"], rows)
+
+
+def grpo_reward_source_levers() -> str:
+    """The world model's levers (``REWARD_SOURCE_LEVERS``): the 12,000-step world model against the 20,000-step
+    one with an EMA, at 4 and 8 actions a decision (:func:`_world_model_runs`)."""
+    return _world_model_runs(REWARD_SOURCE_LEVERS, LEVERS_RUNS)
+
+
+def grpo_reward_source_length() -> str:
+    """The 30,000-step world model with an EMA at 8 actions a decision against the 20,000-step one
+    (``REWARD_SOURCE_LENGTH``, :func:`_world_model_runs`)."""
+    return _world_model_runs(REWARD_SOURCE_LENGTH, LENGTH_RUNS)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
@@ -1395,6 +1411,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "sim-fidelity": sim_fidelity, "sim-fidelity-decisions": sim_fidelity_decisions,
     "grpo-reward-source-rest": grpo_reward_source_rest,
     "grpo-reward-source-levers": grpo_reward_source_levers,
+    "grpo-reward-source-length": grpo_reward_source_length,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,
