@@ -361,14 +361,22 @@ def history_steps(rows: Sequence[dict]) -> list[dict]:
 
 
 def world_model_loss(metrics: str, upto: int | None = None) -> dict | None:
-    """``{"steps", "loss"}`` of a world model's ``metrics.jsonl``: its last logged step (at or before ``upto`` where
-    given: the checkpoint a run read) and the mean loss of its last 10 logged steps to there; None where the file is
-    missing or logs no such step."""
+    """``{"steps", "loss"[, "evaluation"]}`` of a world model's ``metrics.jsonl``: its last logged step (at or before
+    ``upto`` where given: the checkpoint a run read), the mean loss of its last 10 logged steps to there and, where
+    the trainer measured fixed segments (``trainer.eval_every``), its last such measurement (``eval_*`` and its
+    ``step``); None where the file is missing or logs no such step."""
     if not os.path.exists(metrics):
         return None
     with open(metrics) as f:
-        logged = [r for r in (json.loads(line) for line in f if line.strip()) if upto is None or r["step"] <= upto][-10:]
-    return {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged)} if logged else None
+        logged = [r for r in (json.loads(line) for line in f if line.strip()) if upto is None or r["step"] <= upto]
+    if not logged:
+        return None
+    out = {"steps": logged[-1]["step"], "loss": statistics.mean(r["loss"] for r in logged[-10:])}
+    measured = [r for r in logged if any(k.startswith("eval_") for k in r)]
+    if measured:
+        out["evaluation"] = {"step": measured[-1]["step"],
+                             **{k: v for k, v in measured[-1].items() if k.startswith("eval_")}}
+    return out
 
 
 def closed_loop_summary(runs: Sequence[Sequence], trajectories: int, *, first_steps: int = 0,
@@ -405,6 +413,7 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int, *, first_st
         paid = sum(round(s["paid"] * trajectories) for s in steps)
         run = {"steps": len(steps), "source": source, "world_model_steps": world_model["steps"],
                "world_model_loss": world_model["loss"],
+               **({"world_model_evaluation": world_model["evaluation"]} if "evaluation" in world_model else {}),
                "paid_success": wilson_rate(paid, trajectories * len(steps)), "per_step": steps,
                **{k: statistics.mean(s[k] for s in steps) for k in steps[0]
                   if k not in ("step", "paid") and all(k in s for s in steps)}}

@@ -133,7 +133,8 @@ def _vae(ctx: Context):
 
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model: the
-    expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``)."""
+    expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``); and the
+    held-out expert episodes (raw) to ``heldout_latents.npz`` for its held-out evaluation."""
     from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
     from sword_jax.vae import api as vae_api
 
@@ -144,9 +145,13 @@ def encode_training_latents(ctx: Context) -> dict:
     _, episodes = load_episodes(files, cfg.data.episode_frames)
     graphdef, state = _vae(ctx)
     encode = vae_api.encoder(graphdef, state)  # the weights are an argument of the jit, not baked-in constants
-    raw = [np.asarray(encode(episodes.frames[start:start + cfg.vae.batch_size] * np.float32(2.0) - np.float32(1.0)))
-           for start in range(0, episodes.num, max(cfg.vae.batch_size, 1))]
-    latents, actions = [np.concatenate(raw)], [episodes.actions]
+
+    def encoded(frames: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.asarray(encode(frames[start:start + cfg.vae.batch_size] * np.float32(2.0)
+                                                 - np.float32(1.0)))
+                               for start in range(0, len(frames), max(cfg.vae.batch_size, 1))])
+
+    latents, actions = [encoded(episodes.frames)], [episodes.actions]
     copies = 0
     if cfg.augment.enabled and cfg.augment.styled_copies > 0:
         copies = cfg.augment.styled_copies
@@ -160,8 +165,13 @@ def encode_training_latents(ctx: Context) -> dict:
     actions = np.concatenate(actions).astype(np.float32)
     path = ctx.path("data", "latents.npz")
     np.savez(path, latents=latents, actions=actions)
+    # the held-out expert episodes, unstyled, for the world model's held-out evaluation (trainer.eval_every)
+    _, held = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
+    heldout_path = ctx.path("data", "heldout_latents.npz")
+    np.savez(heldout_path, latents=encoded(held.frames).astype(np.float32), actions=held.actions.astype(np.float32))
     return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num), "files": files,
-            "styled_copies": copies, "latent_shape": list(latents.shape[1:])}
+            "styled_copies": copies, "latent_shape": list(latents.shape[1:]), "heldout_path": heldout_path,
+            "heldout_episodes": int(held.num)}
 
 
 def write_eval_splits(ctx: Context) -> dict[str, str]:

@@ -59,7 +59,9 @@ def stage_world_model(ctx: Context) -> dict:
     from sword_jax.pipeline import world_model
 
     workdir = ctx.stage_dir("world_model")
-    data = dataclasses.replace(ctx.cfg.data, path=ctx.results["latents"]["path"])
+    latents = ctx.results["latents"]
+    data = dataclasses.replace(ctx.cfg.data, path=latents["path"],
+                               heldout_path=ctx.cfg.data.heldout_path or latents.get("heldout_path", ""))
     summary = world_model.run_world_model(ctx.cfg_in(workdir, data=data))
     return {"workdir": workdir, "final_step": summary["step"], "final_metrics": summary["metrics"],
             "first_loss": _first_logged(os.path.join(workdir, "metrics.jsonl"), "loss")}

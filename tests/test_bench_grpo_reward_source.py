@@ -491,7 +491,9 @@ def test_closed_loop_runs_compared_over_their_first_steps_and_drawn_side_by_side
         return p
 
     metrics = tmp_path / "metrics.jsonl"
-    metrics.write_text("".join(json.dumps({"step": 100 * i, "loss": 0.1}) + "\n" for i in range(1, 4)))
+    measured = {"eval_train_loss": 0.08, "eval_heldout_loss": 0.12, "eval_heldout_sample_error_5": 0.3}
+    metrics.write_text("".join(json.dumps({"step": 100 * i, "loss": 0.1, **(measured if i == 2 else {})}) + "\n"
+                               for i in range(1, 4)))
     runs = []
     for name, points in (("long", [point(s, 0.125 * s, 0.01 * s) for s in (1, 2, 3, 4)]),
                          ("short", [point(1, 0.5, 0.02), point(2, 0.25, 0.02)])):
@@ -509,6 +511,8 @@ def test_closed_loop_runs_compared_over_their_first_steps_and_drawn_side_by_side
     assert long["paid_success"]["rate"] == pytest.approx(3 / 16)  # steps 1-2 alone: 1 + 2 of 16
     assert long["per_decision"]["frame_error"] == pytest.approx([0.015, 0.03, 0.045])  # mean of steps 1-2
     assert (long["actions_per_decision"], short["actions_per_decision"]) == (4, 8)
+    assert long["world_model_evaluation"] == {"step": 200, **measured}  # the trainer's last measurement
+    assert rs.world_model_loss(str(metrics), 150) == {"steps": 100, "loss": 0.1}  # none yet at the step a run read
     assert rs.main(argv)["runs"]["long"]["steps"] == 4 and "first_steps" not in json.loads(out.read_text())
     for bad in ("4", "4,0", "4,x"):
         with pytest.raises(SystemExit, match="--decision-actions"):

@@ -50,7 +50,8 @@ def test_stages_call_the_orchestration_with_the_config_their_command_line_would_
     cfg, _ = configs.from_argv(base)
     ctx = Context(cfg=cfg, workdir=str(tmp_path), cfg_name="sword:tiny", results={
         "data": {"train": {"path": "train.hdf5"}, "demos": {"path": "demos.hdf5"}},
-        "vae": {"path": "vae_dir"}, "latents": {"path": "latents.npz"}, "world_model": {"workdir": "wm_dir"},
+        "vae": {"path": "vae_dir"}, "latents": {"path": "latents.npz", "heldout_path": "held.npz"},
+        "world_model": {"workdir": "wm_dir"},
         "probe": {"path": "probe.npz"}, "reward_model": {"path": "rm_dir"}, "sft_policy": {"path": "sft_dir"}})
     calls = {}
 
@@ -79,7 +80,8 @@ def test_stages_call_the_orchestration_with_the_config_their_command_line_would_
 
     vae_dir, wm_dir = str(tmp_path / "vae_run"), str(tmp_path / "world_model")
     assert calls["vae"] == (parsed("--workdir", vae_dir), (["train.hdf5"],), {})
-    assert calls["world_model"] == (parsed("--workdir", wm_dir, "--data.path=latents.npz"), (), {})
+    assert calls["world_model"] == (parsed("--workdir", wm_dir, "--data.path=latents.npz",
+                                           "--data.heldout_path=held.npz"), (), {})
     assert calls["vae"][0].seed == 3 and calls["vae"][0].model.num_layers == 1
     assert os.path.isdir(vae_dir) and os.path.isdir(wm_dir)  # made for the stage, as the entry points expect
     assert calls["probe"] == (cfg, (["train.hdf5"], str(tmp_path / "probe"), probe_training.probe_config(cfg)), {})

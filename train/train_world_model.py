@@ -14,6 +14,9 @@ config). Metrics are read one log step late and appended to ``<workdir>/metrics.
 TensorBoard event files in ``<workdir>/tensorboard``.
 A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
 checkpoint stays, and the faulty step's update was never applied (``skip`` goes on without it).
+Every ``trainer.eval_every`` steps the run also logs the flow loss and the sampler's error on fixed segments of
+training and of held-out episodes (``--data.heldout_path``; synthetic ones of another seed with ``--synthetic``),
+:mod:`sword_jax.world_model.heldout`.
 """
 
 from __future__ import annotations

@@ -496,6 +496,7 @@ def plot_horizon_curves(slices: Sequence[dict], path: str, *, runs: tuple[str, s
         return None
     fig, axes = plt.subplots(len(splits), len(CURVE_METRICS), figsize=(5 * len(CURVE_METRICS), 3.6 * len(splits)),
                              squeeze=False)
+    legend_drawn = False
     for row, split in enumerate(splits):
         for col, (metric, label) in enumerate(CURVE_METRICS):
             ax = axes[row][col]
@@ -518,8 +519,9 @@ def plot_horizon_curves(slices: Sequence[dict], path: str, *, runs: tuple[str, s
             ax.set_title(f"{split}: {label}")
             ax.set_xlabel("frame (horizon)")
             ax.grid(alpha=0.3)
-            if row == 0 and col == 0:
+            if not legend_drawn and ax.get_legend_handles_labels()[0]:  # the first panel with curves names them
                 ax.legend(fontsize=8)
+                legend_drawn = True
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -18,6 +18,21 @@ def _fmt(value) -> str:
     return "" if value is None else str(value)
 
 
+def _measured_segments(final: dict) -> str:
+    """The world model's last measurement of fixed segments (``trainer.eval_every``) as a sentence, or ""."""
+    if "eval_train_loss" not in final:
+        return ""
+    splits = [s for s in ("heldout", "train") if f"eval_{s}_loss" in final]
+    names = {"heldout": "held-out", "train": "training"}
+    text = " On fixed segments at the end, flow loss " + " against ".join(
+        f"{_fmt(final[f'eval_{s}_loss'])} {names[s]}" for s in splits)
+    steps = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_sample_error_"))
+    for n in steps:
+        text += f"; the sampler's error at {n} Euler steps " + " against ".join(
+            f"{_fmt(final[f'eval_{s}_sample_error_{n}'])} {names[s]}" for s in splits)
+    return text + "."
+
+
 def _metric_tables(eval_metrics: dict) -> list[str]:
     lines = []
     for split, per_model in eval_metrics.items():
@@ -69,7 +84,7 @@ def write(ctx: Context) -> dict:
         final = wm.get("final_metrics", {})
         lines += ["## World model", "", f"Flow-matching loss {_fmt(wm.get('first_loss'))} -> {_fmt(final.get('loss'))} "
                   f"over {wm.get('final_step')} steps; DLB read probability at the end {_fmt(final.get('read_prob'))}, "
-                  f"cache filled {_fmt(final.get('cache_filled'))}.", ""]
+                  f"cache filled {_fmt(final.get('cache_filled'))}." + _measured_segments(final), ""]
     evaluation = results.get("evaluate", {})
     if evaluation:
         lines += ["## Long-horizon evaluation (LIBERO-Original / LIBERO-Mixed)", "",

@@ -9,6 +9,9 @@ RNG root, config). Metrics are read one log step late and appended to ``<workdir
 TensorBoard event files in ``<workdir>/tensorboard``.
 A non-finite loss stops the run (``trainer.on_nonfinite=stop``) naming the step; the last good
 checkpoint stays, and the faulty step's update was never applied (``skip`` goes on without it).
+Every ``trainer.eval_every`` steps the run also logs the flow loss and the sampler's error on fixed segments of
+training and of held-out episodes (``--data.heldout_path``; synthetic ones of another seed with ``--synthetic``),
+:mod:`sword_jax.world_model.heldout`.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from sword_jax import tracing
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.train_loop import differing_keys, run_steps
-from sword_jax.world_model import data, train_state, train_step
+from sword_jax.world_model import data, heldout, train_state, train_step
 
 
 def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
@@ -53,13 +56,34 @@ def build_dataset(cfg: ExperimentConfig, synthetic: bool) -> data.LatentDataset:
 
 
 # Trainer keys that may change between a run and its resumption (e.g. extending the run).
-RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", "on_nonfinite")
+# The held-out evaluation's settings are among them: it reads the weights and changes nothing.
+RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", "on_nonfinite", "eval_every",
+                  "eval_batches", "eval_sample_steps")
 
 
 def _comparable(cfg_dict: dict) -> dict:
     trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
+    data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items() if k != "heldout_path"}
     # The mesh may change between runs: checkpoints restore onto any device count.
-    return {**cfg_dict, "trainer": trainer, "workdir": None, "mesh": None}
+    return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
+
+
+def build_heldout(cfg: ExperimentConfig, synthetic: bool, dataset: data.LatentDataset) -> data.LatentDataset | None:
+    """The held-out episodes of ``trainer.eval_every``'s evaluation: ``data.heldout_path``, or, with ``synthetic``
+    and no path, synthetic episodes of another seed; None without either (the training segments alone are then
+    measured)."""
+    if cfg.data.heldout_path:
+        held = data.load_latent_dataset(cfg.data.heldout_path)
+        if held.shape[1:] != dataset.shape[1:] or held.actions.shape[1:] != dataset.actions.shape[1:]:
+            raise SystemExit(f"train_world_model: data.heldout_path {cfg.data.heldout_path} holds latents "
+                             f"{held.shape} / actions {held.actions.shape}, but the training data's are "
+                             f"{dataset.shape} / {dataset.actions.shape}")
+        return held
+    if synthetic:
+        num_latents, height, width, channels = dataset.shape[1:]
+        return data.synthetic_latent_dataset(max(dataset.shape[0] // 4, 1), num_latents, height, width, channels,
+                                             seed=cfg.seed + 1, action_dim=cfg.model.action_dim)
+    return None
 
 
 def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
@@ -91,6 +115,7 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     num_context, num_future = (cfg.data.context_frames // cfg.vae.temporal_factor,
                                cfg.data.predict_frames // cfg.vae.temporal_factor)
     dataset = build_dataset(cfg, synthetic)
+    held = build_heldout(cfg, synthetic, dataset) if cfg.trainer.eval_every else None
     is_main = jax.process_index() == 0
     if is_main:
         print(f"[train_world_model] {cfg.name}: mesh {dict(mesh.shape)}, dataset latents {dataset.shape}, "
@@ -110,6 +135,14 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     # A retrace (a batch or state whose shape, dtype or structure changed) is a bug; the guard names the step.
     step = train_step.compile_train_step(tracing.max_traces(step_fn, n=tracing.ENTRY_MAX_TRACES), shardings,
                                          loader.shardings, mesh, rules)
+    if is_main and cfg.trainer.eval_every:
+        print(f"[train_world_model] evaluation every {cfg.trainer.eval_every} steps: "
+              f"{cfg.trainer.eval_batches} x {cfg.data.batch_size} fixed training segments"
+              + (f" and as many of {held.shape[0]} held-out episodes" if held is not None else
+                 "; no held-out episodes (data.heldout_path is not set)"))
+    evaluator = None if not cfg.trainer.eval_every else heldout.HeldOutEvaluator(
+        graphdef, cfg.flow, cfg.trainer, train=dataset, heldout=held, loader=loader, num_context=num_context,
+        num_future=num_future, mesh=mesh, rules=rules, seed=cfg.seed)
     root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
     rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,
@@ -120,7 +153,8 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
         result = run_steps(
             step, state, loader.host_batch_at, key=shd.put(root_key, shd.replicated(mesh)), steps=cfg.trainer.steps,
             log_every=cfg.trainer.log_every, name="train_world_model",
-            report=lambda done, metrics, _observed, eta: logger.write(done, metrics, eta_s=eta), place=loader.place,
+            report=lambda done, metrics, observed, eta: logger.write(
+                done, {**metrics, **heldout.measured(observed)}, eta_s=eta), observe=evaluator, place=loader.place,
             checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=cfg.trainer.checkpoint_every,
             keep_checkpoints=cfg.trainer.keep_checkpoints,
             checkpoint_meta=lambda done: {"data_position": sampler.position_at(done), "rng_root": rng_root,

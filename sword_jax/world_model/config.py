@@ -48,6 +48,9 @@ class DataConfig:
     """
 
     path: str = ""
+    # latents of held-out episodes (the layout of ``path``) for the trainer's held-out evaluation
+    # (``trainer.eval_every``); the pipeline encodes its held-out expert episodes there
+    heldout_path: str = ""
     num_episodes: int = 16
     episode_frames: int = 65  # 1 + 4k
     image_size: int = 32
@@ -95,6 +98,12 @@ class TrainerConfig:
     checkpoint_every: int = 50
     keep_checkpoints: int = 2
     on_nonfinite: str = "stop"  # stop | skip
+    # held-out evaluation (sword_jax.world_model.heldout): every eval_every steps (a multiple of log_every; the
+    # last step too; 0 = off) the flow loss and the sampler's error on eval_batches fixed batches of held-out and
+    # of training segments, the sampler at each of eval_sample_steps Euler steps (empty: flow.sample_steps)
+    eval_every: int = 0
+    eval_batches: int = 2
+    eval_sample_steps: tuple[int, ...] = ()
 
     def validate(self) -> None:
         if self.steps < 0 or self.warmup_steps < 0:
@@ -111,3 +120,12 @@ class TrainerConfig:
             raise ValueError(f"trainer.adam_mu_dtype must be float32|bfloat16, got {self.adam_mu_dtype!r}")
         if self.on_nonfinite not in ("stop", "skip"):
             raise ValueError(f"trainer.on_nonfinite must be stop|skip, got {self.on_nonfinite!r}")
+        if self.eval_every < 0 or (self.eval_every and self.eval_every % self.log_every):
+            raise ValueError(f"trainer.eval_every must be 0 (off) or a positive multiple of trainer.log_every "
+                             f"({self.log_every}): the evaluation is read with a log step's metrics; got {self.eval_every}")
+        if self.eval_batches <= 0:
+            raise ValueError(f"trainer.eval_batches must be positive, got {self.eval_batches}")
+        if any(not 1 <= n <= 50 for n in self.eval_sample_steps) or len(set(self.eval_sample_steps)) != len(
+                self.eval_sample_steps):
+            raise ValueError(f"trainer.eval_sample_steps must be distinct Euler step counts in [1, 50], got "
+                             f"{self.eval_sample_steps}")

@@ -1,0 +1,172 @@
+"""The world model measured while it trains, on fixed segments of held-out and of training episodes.
+
+The training loss is the flow loss of the batch each step trains on, at random noise levels: it says how well the
+model fits what it has seen. Two questions it cannot answer decide whether the model is a better simulator:
+
+* Does it predict episodes it never trained on as well as those it did? ``eval_heldout_loss`` against
+  ``eval_train_loss`` (the gap grows when the model fits its training segments without generalising).
+* Does a better flow loss reach the latents the sampler makes? ``eval_*_sample_error_<n>``: the relative squared
+  error of the future latents the flow sampler makes in ``n`` Euler steps from the true context, against the true
+  future latents (what one world-model call of a rollout gets wrong). Several ``n`` side by side separate the
+  model's error from the sampler's discretisation.
+
+Each split is ``trainer.eval_batches`` batches of ``data.batch_size`` segments, drawn once from a fixed seed; the
+loss uses noise levels spread evenly over the training distribution's quantiles and a fixed noise draw, and the
+sampler a fixed initial noise shared by every ``n``. So two evaluations differ only by the weights: the curves are
+paired across steps and runs. The weights measured are those inference uses: the EMA where the run keeps one.
+Context is the true latents (teacher forcing), never the DLB cache.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from jax.sharding import Mesh
+
+from sword_jax import sharding as shd
+from sword_jax.rng import stream_key, stream_seed
+from sword_jax.world_model import flow, sampler
+from sword_jax.world_model.cache_fidelity import latent_distance
+from sword_jax.world_model.config import FlowConfig, TrainerConfig
+from sword_jax.world_model.data import LatentDataset, SegmentLoader
+from sword_jax.world_model.train_state import TrainState
+
+SPLITS = ("train", "heldout")
+# the streams of the fixed segments (numpy) and of the fixed noise (JAX) under the run's seed
+SEGMENT_STREAM = "world_model/eval_segments"
+NOISE_STREAM = "world_model/eval_noise"
+
+
+def sample_steps(trainer_cfg: TrainerConfig, flow_cfg: FlowConfig) -> tuple[int, ...]:
+    """The Euler step counts of the sample error: ``trainer.eval_sample_steps``, or inference's own
+    (``flow.sample_steps``) when that is empty."""
+    return tuple(trainer_cfg.eval_sample_steps) or (flow_cfg.sample_steps,)
+
+
+def metric_names(steps: tuple[int, ...], splits: tuple[str, ...] = SPLITS) -> tuple[str, ...]:
+    """The names an evaluation reports, per split: its loss, then its sample error per step count."""
+    return tuple(f"eval_{split}_{name}" for split in splits
+                 for name in ("loss", *(f"sample_error_{n}" for n in steps)))
+
+
+def fixed_segments(dataset: LatentDataset, count: int, num_context: int, num_future: int,
+                   seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(episodes, starts)`` of ``count`` segments drawn uniformly from ``dataset``, a function of ``seed``."""
+    num_episodes, num_latents = dataset.shape[:2]
+    last_start = num_latents - num_context - num_future
+    if last_start < 1:
+        raise ValueError(f"held-out evaluation: episodes of {num_latents} latents hold no segment of 1 + "
+                         f"{num_context} + {num_future}")
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, num_episodes, count), rng.integers(1, last_start + 1, count)
+
+
+def quantile_sigmas(batch: int, cfg: FlowConfig) -> jax.Array:
+    """``batch`` noise levels at the midpoints of the training distribution's quantiles
+    (:func:`sword_jax.world_model.flow.sample_sigmas` draws ``s ~ U(1/N, 1)``, then shifts it)."""
+    low = 1.0 / cfg.num_train_timesteps
+    s = low + (1.0 - low) * (jnp.arange(batch, dtype=jnp.float32) + 0.5) / batch
+    return flow.shift_sigma(s, cfg.shift)
+
+
+def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
+                 steps: tuple[int, ...]) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
+    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"...}`` of one batch of segments."""
+    num_cond = 1 + num_context
+
+    def measure(params, buffers, batch, key):
+        latents = batch["latents"].astype(jnp.float32)
+        actions = batch["actions"].astype(jnp.float32)
+        future = latents[:, num_cond:]
+        loss_key, sample_key = jax.random.split(key)
+        noise = jax.random.normal(loss_key, future.shape, jnp.float32)
+        sigma = quantile_sigmas(latents.shape[0], flow_cfg)
+        model_input, timesteps = flow.noisy_segment(latents, noise, sigma, num_cond, flow_cfg)
+        model_fn = sampler.model_fn_from_state(graphdef, (params, buffers))
+        out = {"loss": flow.flow_loss(model_fn(model_input, timesteps, actions), latents, noise, num_cond, flow_cfg)}
+        start = jax.random.normal(sample_key, future.shape, jnp.float32)  # one initial noise for every step count
+        for n in steps:
+            made = sampler.sample(model_fn, latents[:, :num_cond], actions, key=sample_key,
+                                  num_future=future.shape[1], cfg=flow_cfg, num_steps=n, noise=start)
+            out[f"sample_error_{n}"] = latent_distance(made, future)["rel_mse"]
+        return out
+
+    return measure
+
+
+class HeldOutEvaluator:
+    """The ``observe`` of the world model's training loop (:func:`sword_jax.train_loop.run_steps`): on the log
+    steps where ``trainer.eval_every`` falls (and the last), the fixed segments' loss and sample errors; NaN on
+    other log steps (the measurement runs under ``lax.cond``, so they do not pay for it).
+
+    Args:
+      graphdef: the world model's static graph.
+      flow_cfg, trainer_cfg: the run's flow and trainer settings.
+      train, heldout: the training dataset and the held-out episodes' (the same latent layout); without held-out
+        episodes (None) only the training segments are measured.
+      loader: the run's segment loader (its shardings and the rows this process holds).
+      num_context, num_future: latents per segment.
+      mesh, rules: where the model is.
+      seed: the run's seed (the segments and the noise are fixed by it).
+    """
+
+    def __init__(self, graphdef: nnx.GraphDef, flow_cfg: FlowConfig, trainer_cfg: TrainerConfig, *,
+                 train: LatentDataset, heldout: LatentDataset | None, loader: SegmentLoader, num_context: int,
+                 num_future: int, mesh: Mesh, rules=shd.DEFAULT_RULES, seed: int):
+        if heldout is not None and (heldout.shape[1:] != train.shape[1:]
+                                    or heldout.actions.shape[1:] != train.actions.shape[1:]):
+            raise ValueError(f"held-out evaluation: held-out latents {heldout.shape} / actions "
+                             f"{heldout.actions.shape} do not match the training data's {train.shape} / "
+                             f"{train.actions.shape}")
+        self.steps = sample_steps(trainer_cfg, flow_cfg)
+        splits = SPLITS if heldout is not None else SPLITS[:1]
+        self.names = metric_names(self.steps, splits)
+        self.mesh, self.rules = mesh, rules
+        batch_size = loader.sampler.batch_size
+        count = trainer_cfg.eval_batches * batch_size
+        self.batches = {}
+        for split, dataset in zip(splits, (train, heldout)):
+            episodes, starts = fixed_segments(dataset, count, num_context, num_future,
+                                              stream_seed(seed, f"{SEGMENT_STREAM}/{split}"))
+            self.batches[split] = [
+                loader.place(dataset.segment(episodes[i:i + batch_size][loader.rows],
+                                             starts[i:i + batch_size][loader.rows], num_context, num_future))
+                for i in range(0, count, batch_size)]
+        measure = make_measure(graphdef, flow_cfg, num_context, self.steps)
+        every, last = trainer_cfg.eval_every, trainer_cfg.steps
+        root = stream_key(jax.random.key(seed), NOISE_STREAM)
+        names = self.names
+
+        def evaluate(step, params, buffers, batches):
+            def run():
+                # every batch of both splits through one traced measurement (lax.map: one batch in memory at once)
+                flat = [b for split in splits for b in batches[split]]
+                stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *flat)
+                keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(len(flat)))
+                per = jax.lax.map(lambda bk: measure(params, buffers, bk[0], bk[1]), (stacked, keys))
+                count = len(batches[splits[0]])
+                return {f"eval_{split}_{name}": jnp.mean(values[i * count:(i + 1) * count]).astype(jnp.float32)
+                        for i, split in enumerate(splits) for name, values in per.items()}
+
+            def skip():
+                return {name: jnp.float32(jnp.nan) for name in names}
+
+            return jax.lax.cond((step % every == 0) | (step == last), run, skip)
+
+        self._evaluate = jax.jit(evaluate)
+
+    def __call__(self, state: TrainState) -> dict[str, jax.Array]:
+        """Dispatches the measurement of ``state`` (after ``state.step`` steps); device scalars, NaN off its steps."""
+        weights = state.ema_params if state.ema_params is not None else state.params
+        with shd.use_mesh(self.mesh, self.rules):
+            return self._evaluate(state.step, weights, state.buffers, self.batches)
+
+
+def measured(observed: dict | None) -> dict[str, float]:
+    """The values of an evaluation the loop read back, without those of log steps it skipped (NaN)."""
+    return {k: float(v) for k, v in (observed or {}).items() if math.isfinite(float(v))}

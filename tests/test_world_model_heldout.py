@@ -1,0 +1,177 @@
+"""The world model measured while it trains: held-out and training segments' flow loss and sampler error
+(``sword_jax.world_model.heldout``), inside the trainer and on designed models."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+import configs
+from sword_jax import sharding as shd
+from sword_jax.pipeline import world_model as wm_run
+from sword_jax.world_model import data, heldout
+from sword_jax.world_model.config import FlowConfig, TrainerConfig
+from tests.support.world_model import MixerWorldModel
+from train import train_world_model
+
+FLOW = FlowConfig()
+NUM_CONTEXT, NUM_FUTURE = 1, 2
+NUM_COND = 1 + NUM_CONTEXT
+
+
+class Oracle(nnx.Module):
+    """Knows that every future latent is ``value``: the exact velocity of the straight path from noise to it."""
+
+    def __init__(self, value: float):
+        self.value = nnx.Param(jnp.float32(value))
+
+    def __call__(self, latents, timesteps, actions):
+        sigma = (timesteps / FLOW.num_train_timesteps)[:, :, None, None, None]
+        return jnp.where(sigma > 0, (latents - self.value[...]) / jnp.maximum(sigma, 1e-6), 0.0)
+
+
+class Curved(nnx.Module):
+    """Velocity = the noisy latents: the sampler's path curves, so its error depends on the Euler steps."""
+
+    def __init__(self):
+        self.gain = nnx.Param(jnp.float32(1.0))
+
+    def __call__(self, latents, timesteps, actions):
+        return latents * self.gain[...]
+
+
+def _batch(value: float, size: int = 4) -> dict:
+    dataset = data.LatentDataset(np.full((3, 6, 2, 2, 4), value, np.float32),
+                                 np.random.default_rng(0).normal(size=(3, 21, 7)).astype(np.float32))
+    episodes, starts = heldout.fixed_segments(dataset, size, NUM_CONTEXT, NUM_FUTURE, seed=0)
+    return {k: jnp.asarray(v) for k, v in dataset.segment(episodes, starts, NUM_CONTEXT, NUM_FUTURE).items()}
+
+
+def _measure(model, steps, batch, key=0):
+    graphdef, params, buffers = nnx.split(model, nnx.Param, ...)
+    measure = jax.jit(heldout.make_measure(graphdef, FLOW, NUM_CONTEXT, steps))
+    return {k: float(v) for k, v in measure(params, buffers, batch, jax.random.key(key)).items()}
+
+
+def test_a_model_that_knows_the_future_has_no_loss_and_no_sample_error_at_any_step_count():
+    out = _measure(Oracle(0.7), (1, 5), _batch(0.7))
+    assert set(out) == {"loss", "sample_error_1", "sample_error_5"}
+    assert out["loss"] < 1e-8 and out["sample_error_1"] < 1e-8 and out["sample_error_5"] < 1e-8
+    wrong = _measure(Oracle(0.2), (1, 5), _batch(0.7))  # a model that expects another future is charged
+    assert wrong["loss"] > 0.1 and wrong["sample_error_1"] > 0.1 and wrong["sample_error_5"] > 0.1
+
+
+def test_the_sample_error_tells_the_samplers_steps_apart_on_a_curved_path():
+    out = _measure(Curved(), (1, 2, 20), _batch(0.7))
+    # one Euler step from sigma 1 to 0 with velocity x lands on 0: the whole future is missed
+    np.testing.assert_allclose(out["sample_error_1"], 1.0, rtol=1e-6)
+    errors = [out[f"sample_error_{n}"] for n in (1, 2, 20)]
+    assert len({round(e, 6) for e in errors}) == 3
+    # the same key draws the same noise: a measurement is a function of the weights alone
+    assert _measure(Curved(), (1, 2, 20), _batch(0.7)) == out
+    assert _measure(Curved(), (1, 2, 20), _batch(0.7), key=1) != out
+
+
+def test_the_segments_and_noise_levels_are_fixed_and_cover_the_training_range():
+    dataset = data.LatentDataset(np.zeros((5, 9, 2, 2, 4), np.float32), np.zeros((5, 33, 7), np.float32))
+    a = heldout.fixed_segments(dataset, 64, NUM_CONTEXT, NUM_FUTURE, seed=3)
+    b = heldout.fixed_segments(dataset, 64, NUM_CONTEXT, NUM_FUTURE, seed=3)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert a[1].min() >= 1 and a[1].max() <= 9 - NUM_CONTEXT - NUM_FUTURE and len(set(a[0])) == 5
+    sigmas = np.asarray(heldout.quantile_sigmas(8, FLOW))
+    assert np.all(np.diff(sigmas) > 0) and 0 < sigmas[0] and sigmas[-1] < 1
+    with pytest.raises(ValueError, match="hold no segment"):
+        heldout.fixed_segments(data.LatentDataset(np.zeros((2, 3, 2, 2, 4), np.float32),
+                                                  np.zeros((2, 9, 7), np.float32)), 4, 1, 2, seed=0)
+
+
+def test_bad_settings_are_refused_by_name():
+    with pytest.raises(ValueError, match="multiple of trainer.log_every"):
+        TrainerConfig(log_every=10, eval_every=15).validate()
+    with pytest.raises(ValueError, match="eval_sample_steps"):
+        TrainerConfig(eval_sample_steps=(5, 5)).validate()
+    with pytest.raises(ValueError, match="eval_batches"):
+        TrainerConfig(eval_batches=0).validate()
+    assert heldout.sample_steps(TrainerConfig(), FlowConfig(sample_steps=7)) == (7,)
+    assert heldout.sample_steps(TrainerConfig(eval_sample_steps=(5, 20)), FLOW) == (5, 20)
+
+
+ARGS = ["--config", "sword:tiny", "--trainer.log_every=1", "--trainer.checkpoint_every=3", "--mesh.data=2",
+        "--mesh.tensor=4", "--cache.log_inference_distance=false", "--trainer.ema_decay=0.5"]
+
+
+def _rows(workdir):
+    return [json.loads(line) for line in open(os.path.join(workdir, "metrics.jsonl"))]
+
+
+def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_to_the_same_values(
+        tmp_path, monkeypatch, capsys):
+    """Training on real latents from files, over 8 CPU devices: the measurement lands on eval_every's steps and the
+    last, changes no training number, and a resumed run measures what the uninterrupted one did."""
+    monkeypatch.setattr(wm_run, "WorldModel", lambda cfg, *, rngs: MixerWorldModel(cfg.in_dim, cfg.action_dim, rngs=rngs))
+    train, held = (data.synthetic_latent_dataset(n, 9, 2, 2, 48, seed=s) for n, s in ((8, 0), (4, 1)))
+    paths = {}
+    for name, ds in (("train", train), ("held", held)):
+        paths[name] = str(tmp_path / f"{name}.npz")
+        np.savez(paths[name], latents=ds.latents, actions=ds.actions)
+    real = ARGS + [f"--data.path={paths['train']}", f"--data.heldout_path={paths['held']}",
+                   "--trainer.eval_sample_steps=1,3"]
+    off, on, split = (str(tmp_path / n) for n in ("off", "on", "split"))
+    train_world_model.main(real + ["--workdir", off, "--trainer.steps=5", "--trainer.eval_every=0"])
+    train_world_model.main(real + ["--workdir", on, "--trainer.steps=5", "--trainer.eval_every=2"])
+    assert "2 x 2 fixed training segments and as many of 4 held-out episodes" in capsys.readouterr().out
+    plain, measured = _rows(off), _rows(on)
+    names = set(heldout.metric_names((1, 3)))
+    assert [sorted(names & set(r)) for r in measured] == [[], sorted(names), [], sorted(names), sorted(names)]
+    for a, b in zip(plain, measured):
+        assert a["loss"] == b["loss"] and a["grad_norm"] == b["grad_norm"]
+        assert not names & set(a)
+    at_2, at_4 = measured[1], measured[3]
+    assert all(np.isfinite(at_4[n]) for n in names) and any(at_2[n] != at_4[n] for n in names)
+    assert at_4["eval_heldout_loss"] != at_4["eval_train_loss"]
+    # a resumed run (3 steps, then to 5) measures step 4 and 5 as the uninterrupted one did
+    train_world_model.main(real + ["--workdir", split, "--trainer.steps=3", "--trainer.eval_every=2"])
+    train_world_model.main(real + ["--workdir", split, "--trainer.steps=5", "--trainer.eval_every=2"])
+    resumed = {r["step"]: r for r in _rows(split)}
+    for step in (4, 5):
+        assert {n: resumed[step][n] for n in names} == {n: measured[step - 1][n] for n in names}
+
+
+def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_segments_alone(tmp_path, capsys):
+    train = data.synthetic_latent_dataset(8, 9, 2, 2, 48, seed=0)
+    odd = data.synthetic_latent_dataset(2, 7, 2, 2, 48, seed=1)
+    path = str(tmp_path / "odd.npz")
+    np.savez(path, latents=odd.latents, actions=odd.actions)
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--data.heldout_path={path}"])
+    with pytest.raises(SystemExit, match=r"data.heldout_path .*odd.npz holds latents \(2, 7, 2, 2, 48\)"):
+        wm_run.build_heldout(cfg, False, train)
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--mesh.data=2", "--mesh.tensor=4"])
+    assert wm_run.build_heldout(cfg, False, train) is None
+    assert wm_run.build_heldout(cfg, True, train).shape[1:] == train.shape[1:]  # synthetic: another seed's
+    mesh = shd.make_mesh(cfg.mesh)
+    sampler = data.SegmentSampler(8, 9, NUM_CONTEXT, NUM_FUTURE, 2, seed=0)
+    loader = data.SegmentLoader(train, sampler, NUM_CONTEXT, NUM_FUTURE, mesh)
+    graphdef = nnx.graphdef(MixerWorldModel(48, 7, rngs=nnx.Rngs(0)))
+    with pytest.raises(ValueError, match="do not match the training data"):
+        heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=odd, loader=loader,
+                                 num_context=NUM_CONTEXT, num_future=NUM_FUTURE, mesh=mesh, seed=0)
+    alone = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, loader=loader,
+                                     num_context=NUM_CONTEXT, num_future=NUM_FUTURE, mesh=mesh, seed=0)
+    assert alone.names == ("eval_train_loss", f"eval_train_sample_error_{FLOW.sample_steps}")
+
+
+def test_the_pipeline_report_says_the_last_measurement_of_both_splits():
+    from sword_jax.pipeline.report import _measured_segments
+
+    final = {"loss": 0.06, "eval_train_loss": 0.05, "eval_heldout_loss": 0.09, "eval_train_sample_error_5": 0.2,
+             "eval_heldout_sample_error_5": 0.3, "eval_train_sample_error_20": 0.1, "eval_heldout_sample_error_20": 0.25}
+    assert _measured_segments(final) == (
+        " On fixed segments at the end, flow loss 0.09 held-out against 0.05 training; the sampler's error at 5 Euler"
+        " steps 0.3 held-out against 0.2 training; the sampler's error at 20 Euler steps 0.25 held-out against 0.1"
+        " training.")
+    assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing
