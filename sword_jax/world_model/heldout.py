@@ -14,7 +14,9 @@ Each split is ``trainer.eval_batches`` batches of ``data.batch_size`` segments, 
 loss uses noise levels spread evenly over the training distribution's quantiles and a fixed noise draw, and the
 sampler a fixed initial noise shared by every ``n``. So two evaluations differ only by the weights: the curves are
 paired across steps and runs. The weights measured are those inference uses: the EMA where the run keeps one.
-Context is the true latents (teacher forcing), never the DLB cache.
+Context is the true latents (teacher forcing), never the DLB cache. The training segments come from every training
+episode, styled copies included, and the pipeline's held-out episodes are unstyled: read the two curves' trends
+(one flattening while the other falls) rather than the level of the gap between them.
 """
 
 from __future__ import annotations
