@@ -18,6 +18,9 @@ from sim.mjx_batch import MjxEpisodes, episode_starts, stratified_train_starts
 RES = 32
 
 
+# the episodes test below keeps the frames and proprio of restored states in the default run, and
+# test_sim_mjx.py::test_init_sampling_success_and_expert_match_under_jit the success predicate under jit
+@pytest.mark.slow
 def test_mjx_observations_of_c_engine_states_match_the_lockstep_envs():
     """Two tasks' states along an expert episode: the frames the MJX adapter renders from their poses
     equal the lockstep envs' (the same ray caster), proprio and success agree."""
