@@ -486,8 +486,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "(e.g. 4,4,8), which figure --closed-loop puts the decisions of each run on")
     parser.add_argument("--closed-loop", default="",
                         help="figure: draw closed-loop's JSON (its runs side by side) instead of --workdir's runs")
-    parser.add_argument("--title", default="", help="figure --closed-loop: a line above the panels (the model, "
-                        "batch, device, seeds)")
+    parser.add_argument("--world-model", default="",
+                        help="figure: draw a world model's metrics.jsonl (its loss, and its trainer's measurement of "
+                        "fixed training and held-out segments) instead of --workdir's runs")
+    parser.add_argument("--title", default="", help="figure --closed-loop / --world-model: a line above the panels "
+                        "(the model, batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first (or those of "
@@ -672,6 +675,54 @@ def closed_loop_figure(source: str, path: str, title: str = "") -> dict:
     return series
 
 
+def world_model_figure(metrics: str, path: str, title: str = "") -> dict:
+    """Two panels from a world model's ``metrics.jsonl`` at ``metrics`` (PNG at ``path``) whose trainer measured
+    fixed segments (``trainer.eval_every``, :mod:`sword_jax.world_model.heldout`): the flow loss (the logged
+    training loss, and the fixed-noise loss on the training and the held-out segments) and the sampler's error
+    from the true context per split and Euler step count, against the training step, both on a log scale;
+    ``title`` above them. Returns the plotted series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    try:
+        with open(metrics) as f:
+            logged = [json.loads(line) for line in f if line.strip()]
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"bench_grpo_reward_source figure: {metrics} is not a metrics.jsonl ({e})") from None
+    measured = [r for r in logged if any(k.startswith("eval_") for k in r)]
+    if not measured:
+        raise SystemExit(f"bench_grpo_reward_source figure: {metrics} logs no measurement of fixed segments "
+                         "(eval_*: the run had no trainer.eval_every)")
+    names = sorted({k for r in measured for k in r if k.startswith("eval_")})
+    series = {"steps": [r["step"] for r in logged if "loss" in r], "loss": [r["loss"] for r in logged if "loss" in r],
+              "eval_steps": [r["step"] for r in measured],
+              **{name: [r.get(name, float("nan")) for r in measured] for name in names}}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    axes[0].plot(series["steps"], series["loss"], lw=0.6, alpha=0.5, color="0.5", label="training batches (logged)")
+    splits = sorted({name.split("_")[1] for name in names})
+    for i, split in enumerate(splits):
+        colour = f"C{i}"
+        if f"eval_{split}_loss" in series:
+            axes[0].plot(series["eval_steps"], series[f"eval_{split}_loss"], marker="o", ms=3, color=colour,
+                         label=f"{split} segments, fixed noise")
+        errors = sorted((int(n.rsplit("_", 1)[1]), n) for n in names if n.startswith(f"eval_{split}_sample_error_"))
+        for j, (steps, name) in enumerate(errors):
+            axes[1].plot(series["eval_steps"], series[name], marker="o", ms=3, color=colour,
+                         ls=("-", "--", ":", "-.")[j % 4], label=f"{split} segments, {steps} Euler steps")
+    for ax in axes:
+        ax.set_yscale("log")
+    common.finish_figure(fig, axes[0], path, xlabel="world-model training step", ylabel="flow loss",
+                         title="the flow loss", save=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    common.finish_figure(fig, axes[1], path, xlabel="world-model training step",
+                         ylabel="relative squared error of the future latents",
+                         title="one call of the sampler from the true context")
+    return series
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(argv)
     if args.mode == "closed-loop":
@@ -697,8 +748,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return result
     if args.mode == "figure" and not args.out:
         raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
+    if args.mode == "figure" and args.closed_loop and args.world_model:
+        raise SystemExit("bench_grpo_reward_source figure: give --closed-loop or --world-model, not both")
     if args.mode == "figure" and args.closed_loop:
         return closed_loop_figure(args.closed_loop, args.out, args.title)
+    if args.mode == "figure" and args.world_model:
+        return world_model_figure(args.world_model, args.out, args.title)
     if not args.workdir:
         raise SystemExit(f"bench_grpo_reward_source {args.mode} needs --workdir")
     if args.mode == "figure":

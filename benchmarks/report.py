@@ -1156,6 +1156,41 @@ def grpo_reward_source_length() -> str:
     return _world_model_runs(REWARD_SOURCE_LENGTH, LENGTH_RUNS)
 
 
+# the 30,000-step world model again, its trainer measuring fixed held-out and training segments every 1,000 steps
+WORLD_MODEL_HELDOUT = ("policy", "world_model_heldout_30k_small_h200")
+HELDOUT_STEPS = (1000, 2000, 5000, 10000, 20000, 30000)
+
+
+def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tuple[int, ...] = HELDOUT_STEPS) -> str:
+    """The world model measured while it trained (``record``'s ``pipeline/world_model/metrics.jsonl``,
+    :mod:`sword_jax.world_model.heldout`), at ``steps``: the logged training loss (the mean of the 10 logged
+    steps to there), the fixed-noise flow loss on the training and the held-out segments, and the sampler's
+    error from the true context per split at each Euler step count measured; a last row gives each column's
+    change from the second-last step to the last."""
+    path = os.path.join(RESULTS_DIR, *record, "pipeline", "world_model", "metrics.jsonl")
+    with open(path) as f:
+        logged = [json.loads(line) for line in f if line.strip()]
+    measured = {r["step"]: r for r in logged if "eval_heldout_loss" in r}
+    counts = sorted({int(k.rsplit("_", 1)[1]) for r in measured.values() for k in r if "_sample_error_" in k})
+    columns = [("eval_train_loss", "training segments"), ("eval_heldout_loss", "held-out segments")]
+    columns += [(f"eval_{split}_sample_error_{n}", f"{label} segments, {n} Euler steps")
+                for split, label in (("heldout", "held-out"), ("train", "training")) for n in counts]
+
+    def logged_loss(step: int) -> float:
+        upto = [r["loss"] for r in logged if r["step"] <= step and "loss" in r]
+        return statistics.mean(upto[-10:])
+
+    rows = [[f"{step:,}", f"{logged_loss(step):.4f}", *(f"{measured[step][k]:.4f}" for k, _ in columns)]
+            for step in steps]
+    prev, last = steps[-2], steps[-1]
+    change = lambda a, b: f"{100.0 * (b / a - 1.0):+.0f}%"  # noqa: E731 - relative change
+    rows.append([f"{prev:,} -> {last:,}", change(logged_loss(prev), logged_loss(last)),
+                 *(change(measured[prev][k], measured[last][k]) for k, _ in columns)])
+    return _table(["step", "training loss (logged, last 10)",
+                   *(f"fixed-noise loss: {label}" for _, label in columns[:2]),
+                   *(f"sample error: {label}" for _, label in columns[2:])], rows)
+
+
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
 # 8- and 12-decision ones
 FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
@@ -1412,6 +1447,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-rest": grpo_reward_source_rest,
     "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-length": grpo_reward_source_length,
+    "world-model-heldout": world_model_heldout,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,

@@ -537,3 +537,30 @@ def test_a_progress_line_names_a_step_that_applied_no_update():
 
     assert skipped_note({"skipped_update": 1.0}) == "(no update: too few mixed groups) "
     assert skipped_note({"skipped_update": 0.0}) == skipped_note({}) == ""
+
+
+def test_the_world_models_figure_draws_its_trainers_measurements_and_refuses_a_run_without_them(tmp_path):
+    """figure --world-model draws the logged loss and, per split, the fixed-noise loss and the sample error at each
+    Euler step count, at the steps they were measured; a metrics.jsonl with no measurement, one that is not JSON
+    lines, and --world-model beside --closed-loop are refused by name."""
+    metrics = tmp_path / "metrics.jsonl"
+    rows = [{"step": 50 * i, "loss": 1.0 / i} for i in range(1, 7)]
+    for i, r in enumerate(rows[1::2], 1):
+        r.update(eval_train_loss=0.5 / i, eval_heldout_loss=0.6 / i, eval_heldout_sample_error_5=0.2 / i,
+                 eval_heldout_sample_error_20=0.3 / i, eval_train_sample_error_5=0.1 / i)
+    metrics.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "wm.png"
+    series = rs.main(["figure", "--world-model", str(metrics), "--out", str(out), "--title", "t"])
+    assert out.stat().st_size > 0
+    assert series["steps"] == [50, 100, 150, 200, 250, 300] and series["eval_steps"] == [100, 200, 300]
+    assert series["eval_heldout_sample_error_20"] == pytest.approx([0.3, 0.15, 0.1])
+    assert series["eval_train_loss"] == pytest.approx([0.5, 0.25, 0.5 / 3])
+    assert "eval_train_sample_error_20" not in series  # only what the trainer measured
+    metrics.write_text("".join(json.dumps({"step": 50 * i, "loss": 1.0}) + "\n" for i in range(1, 4)))
+    with pytest.raises(SystemExit, match="no measurement of fixed segments"):
+        rs.main(["figure", "--world-model", str(metrics), "--out", str(out)])
+    metrics.write_text("not json\n")
+    with pytest.raises(SystemExit, match="is not a metrics.jsonl"):
+        rs.main(["figure", "--world-model", str(metrics), "--out", str(out)])
+    with pytest.raises(SystemExit, match="not both"):
+        rs.main(["figure", "--world-model", str(metrics), "--closed-loop", str(out), "--out", str(out)])
