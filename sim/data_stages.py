@@ -168,10 +168,18 @@ def encode_training_latents(ctx: Context) -> dict:
     # the held-out expert episodes, unstyled, for the world model's held-out evaluation (trainer.eval_every)
     _, held = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
     heldout_path = ctx.path("data", "heldout_latents.npz")
-    np.savez(heldout_path, latents=encoded(held.frames).astype(np.float32), actions=held.actions.astype(np.float32))
+    arrays = {"latents": encoded(held.frames).astype(np.float32), "actions": held.actions.astype(np.float32)}
+    # and the supervised policy's held-out rollouts (policy_data), the evaluation's "policy" segments
+    policy_held = ctx.results.get("policy_data", {}).get("heldout", {}).get("path")
+    if policy_held:
+        _, rolled = load_episodes(policy_held, cfg.data.episode_frames)
+        arrays.update(policy_latents=encoded(rolled.frames).astype(np.float32),
+                      policy_actions=rolled.actions.astype(np.float32))
+    np.savez(heldout_path, **arrays)
     return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num), "files": files,
             "styled_copies": copies, "latent_shape": list(latents.shape[1:]), "heldout_path": heldout_path,
-            "heldout_episodes": int(held.num)}
+            "heldout_episodes": int(held.num),
+            **({"heldout_policy_episodes": int(rolled.num)} if policy_held else {})}
 
 
 def write_eval_splits(ctx: Context) -> dict[str, str]:
@@ -212,7 +220,9 @@ def read_eval_results(out_dir: str) -> dict:
 
 def generate_policy_rollouts(ctx: Context) -> dict:
     """Pipeline stage: ``data.policy_rollouts_per_task`` episodes per task of the supervised policy, as
-    long as the world model's expert episodes, from the same training initial states."""
+    long as the world model's expert episodes, from the same training initial states; and
+    ``data.heldout_policy_rollouts_per_task`` more from the held-out initial states (those of the held-out
+    expert episodes, first), for the world model's held-out evaluation only (``heldout_path``)."""
     from sim.datagen import GenDataConfig
     from sim.policy_rollouts import write_policy_episodes
     from sword_jax.rl.env_rollout import make_act_fns
@@ -220,19 +230,29 @@ def generate_policy_rollouts(ctx: Context) -> dict:
     from sword_jax.rl.policy import build_policy
 
     cfg = ctx.cfg
-    per_task = cfg.data.policy_rollouts_per_task
-    if per_task == 0:
-        return {"path": "", "episodes": 0, "success_rate": 0.0}
+    per_task, held_per_task = cfg.data.policy_rollouts_per_task, cfg.data.heldout_policy_rollouts_per_task
+    summary: dict = {"path": "", "episodes": 0, "success_rate": 0.0}
+    if per_task == 0 and held_per_task == 0:
+        return summary
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params, _ = load_params(ctx.results["sft_policy"]["path"], params, kind="policy")
-    gen = GenDataConfig(out=ctx.path("data", "policy_rollouts.hdf5"), tasks=tuple(cfg.sim.tasks),
-                        episodes=per_task, backend="cpu", resolution=cfg.data.image_size,
-                        max_steps=episode_steps(cfg), stop_at_success=False, wrist_camera=False,
-                        overwrite=True, renderer="jax", init_split="train", init_start=0,
-                        init_seed=cfg.sim.init_seed)
-    summary = write_policy_episodes(gen.out, make_act_fns(graphdef, cfg.rl), params, cfg.rl, gen,
-                           key=stream_key(jax.random.key(cfg.seed), "data/policy_rollouts"))
-    if ctx.is_main:
-        print(f"[policy_data] {summary['episodes']} policy episodes ({summary['success_rate']:.0%} successful) "
-              f"-> {gen.out}", flush=True)
+    act_fns = make_act_fns(graphdef, cfg.rl)
+
+    def rollouts(name: str, episodes: int, split: str, stream: str) -> dict:
+        gen = GenDataConfig(out=ctx.path("data", name), tasks=tuple(cfg.sim.tasks), episodes=episodes, backend="cpu",
+                            resolution=cfg.data.image_size, max_steps=episode_steps(cfg), stop_at_success=False,
+                            wrist_camera=False, overwrite=True, renderer="jax", init_split=split, init_start=0,
+                            init_seed=cfg.sim.init_seed)
+        made = write_policy_episodes(gen.out, act_fns, params, cfg.rl, gen,
+                                     key=stream_key(jax.random.key(cfg.seed), stream))
+        if ctx.is_main:
+            print(f"[policy_data] {made['episodes']} policy episodes from {split} initial states "
+                  f"({made['success_rate']:.0%} successful) -> {gen.out}", flush=True)
+        return made
+
+    if per_task:
+        summary = rollouts("policy_rollouts.hdf5", per_task, "train", "data/policy_rollouts")
+    if held_per_task:
+        held = rollouts("policy_heldout.hdf5", held_per_task, "heldout", "data/policy_heldout")
+        summary = {**summary, "heldout": {k: held[k] for k in ("path", "episodes", "success_rate")}}
     return summary

@@ -42,3 +42,12 @@ def test_tiny_pipeline_runs_every_stage_through_grpo_in_the_world_model(tmp_path
         assert list(replay["imagined_success_by_horizon"]) == ["24", "48", "96", "all"]
         assert len(replay["imagined_longest_success_run"]) == replay["episodes"]
     assert set(policy["success"]) == {"grpo step 0", "grpo step 2"}
+    # the world model measured on held-out expert episodes and on held-out rollouts of the supervised policy
+    with open(os.path.join(workdir, "stages", "latents.json")) as f:
+        latents = json.load(f)["results"]
+    with open(os.path.join(workdir, "stages", "policy_data.json")) as f:
+        rolled = json.load(f)["results"]
+    assert latents["heldout_policy_episodes"] == rolled["heldout"]["episodes"] > 0
+    with open(os.path.join(workdir, "world_model", "metrics.jsonl")) as f:
+        measured = [r for r in map(json.loads, f) if "eval_policy_loss" in r]
+    assert measured and all(r["eval_policy_loss"] > 0 and r["eval_heldout_loss"] > 0 for r in measured)

@@ -3,6 +3,7 @@
 
 import json
 import os
+import types
 
 import jax
 import jax.numpy as jnp
@@ -114,17 +115,18 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
     """Training on real latents from files, over 8 CPU devices: the measurement lands on eval_every's steps and the
     last, changes no training number, and a resumed run measures what the uninterrupted one did."""
     monkeypatch.setattr(wm_run, "WorldModel", lambda cfg, *, rngs: MixerWorldModel(cfg.in_dim, cfg.action_dim, rngs=rngs))
-    train, held = (data.synthetic_latent_dataset(n, 9, 2, 2, 48, seed=s) for n, s in ((8, 0), (4, 1)))
-    paths = {}
-    for name, ds in (("train", train), ("held", held)):
-        paths[name] = str(tmp_path / f"{name}.npz")
-        np.savez(paths[name], latents=ds.latents, actions=ds.actions)
+    train, held, policy = (data.synthetic_latent_dataset(n, 9, 2, 2, 48, seed=s) for n, s in ((8, 0), (4, 1), (3, 2)))
+    paths = {name: str(tmp_path / f"{name}.npz") for name in ("train", "held")}
+    np.savez(paths["train"], latents=train.latents, actions=train.actions)
+    np.savez(paths["held"], latents=held.latents, actions=held.actions, policy_latents=policy.latents,
+             policy_actions=policy.actions)
     real = ARGS + [f"--data.path={paths['train']}", f"--data.heldout_path={paths['held']}",
                    "--trainer.eval_sample_steps=1,3"]
     off, on, split = (str(tmp_path / n) for n in ("off", "on", "split"))
     train_world_model.main(real + ["--workdir", off, "--trainer.steps=5", "--trainer.eval_every=0"])
     train_world_model.main(real + ["--workdir", on, "--trainer.steps=5", "--trainer.eval_every=2"])
-    assert "2 x 2 fixed training segments and as many of 4 held-out episodes" in capsys.readouterr().out
+    assert ("2 x 2 fixed training segments and as many of 4 held-out episodes and of 3 held-out rollouts of the "
+            "supervised policy") in capsys.readouterr().out
     plain, measured = _rows(off), _rows(on)
     names = set(heldout.metric_names((1, 3)))
     assert [sorted(names & set(r)) for r in measured] == [[], sorted(names), [], sorted(names), sorted(names)]
@@ -133,7 +135,7 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
         assert not names & set(a)
     at_2, at_4 = measured[1], measured[3]
     assert all(np.isfinite(at_4[n]) for n in names) and any(at_2[n] != at_4[n] for n in names)
-    assert at_4["eval_heldout_loss"] != at_4["eval_train_loss"]
+    assert len({at_4["eval_heldout_loss"], at_4["eval_train_loss"], at_4["eval_policy_loss"]}) == 3
     # a resumed run (3 steps, then to 5) measures step 4 and 5 as the uninterrupted one did
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=3", "--trainer.eval_every=2"])
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=5", "--trainer.eval_every=2"])
@@ -148,24 +150,51 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
     path = str(tmp_path / "odd.npz")
     np.savez(path, latents=odd.latents, actions=odd.actions)
     cfg, _ = configs.from_argv(["--config", "sword:tiny", f"--data.heldout_path={path}"])
-    with pytest.raises(SystemExit, match=r"data.heldout_path .*odd.npz holds latents \(2, 7, 2, 2, 48\)"):
+    with pytest.raises(SystemExit, match=r"data.heldout_path .*odd.npz holds heldout latents \(2, 7, 2, 2, 48\)"):
         wm_run.build_heldout(cfg, False, train)
+    # the supervised policy's held-out rollouts beside the expert's: read as the "policy" split, checked alike
+    np.savez(path, latents=train.latents[:2], actions=train.actions[:2], policy_latents=odd.latents,
+             policy_actions=odd.actions)
+    with pytest.raises(SystemExit, match=r"odd.npz holds policy latents \(2, 7, 2, 2, 48\)"):
+        wm_run.build_heldout(cfg, False, train)
+    np.savez(path, latents=train.latents[:2], actions=train.actions[:2], policy_latents=train.latents[2:5])
+    with pytest.raises(ValueError, match="holds policy_latents without its pair"):
+        wm_run.build_heldout(cfg, False, train)
+    np.savez(path, latents=train.latents[:2], actions=train.actions[:2], policy_latents=train.latents[2:5],
+             policy_actions=train.actions[2:5])
+    splits = wm_run.build_heldout(cfg, False, train)
+    assert sorted(splits) == ["heldout", "policy"] and splits["policy"].shape == (3, 9, 2, 2, 48)
+    np.testing.assert_array_equal(splits["policy"].actions, train.actions[2:5])
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--mesh.data=2", "--mesh.tensor=4"])
-    assert wm_run.build_heldout(cfg, False, train) is None
-    assert wm_run.build_heldout(cfg, True, train).shape[1:] == train.shape[1:]  # synthetic: another seed's
+    assert wm_run.build_heldout(cfg, False, train) == {}
+    synthetic = wm_run.build_heldout(cfg, True, train)  # synthetic: another seed's
+    assert list(synthetic) == ["heldout"] and synthetic["heldout"].shape[1:] == train.shape[1:]
     mesh = shd.make_mesh(cfg.mesh)
     sampler = data.SegmentSampler(8, 9, NUM_CONTEXT, NUM_FUTURE, 2, seed=0)
     loader = data.SegmentLoader(train, sampler, NUM_CONTEXT, NUM_FUTURE, mesh)
     graphdef = nnx.graphdef(MixerWorldModel(48, 7, rngs=nnx.Rngs(0)))
-    with pytest.raises(ValueError, match="do not match the training data"):
-        heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=odd, loader=loader,
-                                 num_context=NUM_CONTEXT, num_future=NUM_FUTURE, mesh=mesh, seed=0)
-    alone = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, loader=loader,
-                                     num_context=NUM_CONTEXT, num_future=NUM_FUTURE, mesh=mesh, seed=0)
+    common = dict(loader=loader, num_context=NUM_CONTEXT, num_future=NUM_FUTURE, mesh=mesh, seed=0)
+    with pytest.raises(ValueError, match="the heldout split's latents .* do not match the training data"):
+        heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=odd, **common)
+    with pytest.raises(ValueError, match="the policy split's latents .* do not match the training data"):
+        heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, policy=odd, **common)
+    alone = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, **common)
     assert alone.names == ("eval_train_loss", f"eval_train_sample_error_{FLOW.sample_steps}")
+    # the policy split is measured beside the others and leaves their values as they were without it
+    held, policy = (data.synthetic_latent_dataset(3, 9, 2, 2, 48, seed=s) for s in (1, 2))
+    model = MixerWorldModel(48, 7, rngs=nnx.Rngs(0))
+    _, params, buffers = nnx.split(model, nnx.Param, ...)
+    state = types.SimpleNamespace(step=jnp.int32(cfg.trainer.eval_every), params=params, ema_params=None,
+                                  buffers=buffers)
+    two = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=held, **common)
+    three = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=held, policy=policy, **common)
+    assert three.names == heldout.metric_names((FLOW.sample_steps,))
+    without, beside = ({k: float(v) for k, v in e(state).items()} for e in (two, three))
+    assert {k: beside[k] for k in without} == without
+    assert all(np.isfinite(beside[k]) for k in beside) and beside["eval_policy_loss"] != beside["eval_heldout_loss"]
 
 
-def test_the_pipeline_report_says_the_last_measurement_of_both_splits():
+def test_the_pipeline_report_says_the_last_measurement_of_every_split():
     from sword_jax.pipeline.report import _measured_segments
 
     final = {"loss": 0.06, "eval_train_loss": 0.05, "eval_heldout_loss": 0.09, "eval_train_sample_error_5": 0.2,
@@ -174,4 +203,10 @@ def test_the_pipeline_report_says_the_last_measurement_of_both_splits():
         " On fixed segments at the end, flow loss 0.09 held-out against 0.05 training; the sampler's error at 5 Euler"
         " steps 0.3 held-out against 0.2 training; the sampler's error at 20 Euler steps 0.25 held-out against 0.1"
         " training.")
+    final.update(eval_policy_loss=0.12, eval_policy_sample_error_5=0.4, eval_policy_sample_error_20=0.35)
+    assert _measured_segments(final) == (
+        " On fixed segments at the end, flow loss 0.09 held-out against 0.12 held-out policy rollouts against 0.05"
+        " training; the sampler's error at 5 Euler steps 0.3 held-out against 0.4 held-out policy rollouts against"
+        " 0.2 training; the sampler's error at 20 Euler steps 0.25 held-out against 0.35 held-out policy rollouts"
+        " against 0.1 training.")
     assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing

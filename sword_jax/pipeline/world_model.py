@@ -68,22 +68,25 @@ def _comparable(cfg_dict: dict) -> dict:
     return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
 
 
-def build_heldout(cfg: ExperimentConfig, synthetic: bool, dataset: data.LatentDataset) -> data.LatentDataset | None:
-    """The held-out episodes of ``trainer.eval_every``'s evaluation: ``data.heldout_path``, or, with ``synthetic``
-    and no path, synthetic episodes of another seed; None without either (the training segments alone are then
-    measured)."""
+def build_heldout(cfg: ExperimentConfig, synthetic: bool,
+                  dataset: data.LatentDataset) -> dict[str, data.LatentDataset]:
+    """The held-out splits of ``trainer.eval_every``'s evaluation: ``data.heldout_path``'s (``heldout``, and
+    ``policy`` where the file holds the supervised policy's held-out rollouts:
+    :func:`~sword_jax.world_model.data.load_heldout_splits`), or, with ``synthetic`` and no path, synthetic
+    episodes of another seed; none without either (the training segments alone are then measured)."""
     if cfg.data.heldout_path:
-        held = data.load_latent_dataset(cfg.data.heldout_path)
-        if held.shape[1:] != dataset.shape[1:] or held.actions.shape[1:] != dataset.actions.shape[1:]:
-            raise SystemExit(f"train_world_model: data.heldout_path {cfg.data.heldout_path} holds latents "
-                             f"{held.shape} / actions {held.actions.shape}, but the training data's are "
-                             f"{dataset.shape} / {dataset.actions.shape}")
-        return held
+        splits = data.load_heldout_splits(cfg.data.heldout_path)
+        for split, held in splits.items():
+            if held.shape[1:] != dataset.shape[1:] or held.actions.shape[1:] != dataset.actions.shape[1:]:
+                raise SystemExit(f"train_world_model: data.heldout_path {cfg.data.heldout_path} holds {split} "
+                                 f"latents {held.shape} / actions {held.actions.shape}, but the training data's "
+                                 f"are {dataset.shape} / {dataset.actions.shape}")
+        return splits
     if synthetic:
         num_latents, height, width, channels = dataset.shape[1:]
-        return data.synthetic_latent_dataset(max(dataset.shape[0] // 4, 1), num_latents, height, width, channels,
-                                             seed=cfg.seed + 1, action_dim=cfg.model.action_dim)
-    return None
+        return {"heldout": data.synthetic_latent_dataset(max(dataset.shape[0] // 4, 1), num_latents, height, width,
+                                                         channels, seed=cfg.seed + 1, action_dim=cfg.model.action_dim)}
+    return {}
 
 
 def _check_config_matches(workdir: str, cfg_dict: dict) -> None:
@@ -115,7 +118,8 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     num_context, num_future = (cfg.data.context_frames // cfg.vae.temporal_factor,
                                cfg.data.predict_frames // cfg.vae.temporal_factor)
     dataset = build_dataset(cfg, synthetic)
-    held = build_heldout(cfg, synthetic, dataset) if cfg.trainer.eval_every else None
+    held_splits = build_heldout(cfg, synthetic, dataset) if cfg.trainer.eval_every else {}
+    held, policy_held = held_splits.get("heldout"), held_splits.get("policy")
     is_main = jax.process_index() == 0
     if is_main:
         print(f"[train_world_model] {cfg.name}: mesh {dict(mesh.shape)}, dataset latents {dataset.shape}, "
@@ -139,10 +143,12 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
         print(f"[train_world_model] evaluation every {cfg.trainer.eval_every} steps: "
               f"{cfg.trainer.eval_batches} x {cfg.data.batch_size} fixed training segments"
               + (f" and as many of {held.shape[0]} held-out episodes" if held is not None else
-                 "; no held-out episodes (data.heldout_path is not set)"))
+                 "; no held-out episodes (data.heldout_path is not set)")
+              + (f" and of {policy_held.shape[0]} held-out rollouts of the supervised policy"
+                 if policy_held is not None else ""))
     evaluator = None if not cfg.trainer.eval_every else heldout.HeldOutEvaluator(
         graphdef, cfg.flow, cfg.trainer, train=dataset, heldout=held, loader=loader, num_context=num_context,
-        num_future=num_future, mesh=mesh, rules=rules, seed=cfg.seed)
+        num_future=num_future, mesh=mesh, rules=rules, seed=cfg.seed, policy=policy_held)
     root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
     rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,

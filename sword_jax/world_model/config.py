@@ -49,7 +49,8 @@ class DataConfig:
 
     path: str = ""
     # latents of held-out episodes (the layout of ``path``) for the trainer's held-out evaluation
-    # (``trainer.eval_every``); the pipeline encodes its held-out expert episodes there
+    # (``trainer.eval_every``); the pipeline encodes its held-out expert episodes there, and beside them
+    # (``policy_latents``/``policy_actions``) its held-out rollouts of the supervised policy
     heldout_path: str = ""
     num_episodes: int = 16
     episode_frames: int = 65  # 1 + 4k
@@ -58,6 +59,9 @@ class DataConfig:
     predict_frames: int = 8
     batch_size: int = 4
     policy_rollouts_per_task: int = 0
+    # held-out rollouts per task of the supervised policy, from the held-out initial states, for the trainer's
+    # held-out evaluation (its "policy" segments: the policy's own actions, never trained on); 0 = none
+    heldout_policy_rollouts_per_task: int = 0
 
     def validate(self) -> None:
         if (self.episode_frames - 1) % 4 or self.episode_frames < 1:
@@ -76,6 +80,9 @@ class DataConfig:
             raise ValueError(f"data.batch_size must be positive, got {self.batch_size}")
         if self.policy_rollouts_per_task < 0:
             raise ValueError(f"data.policy_rollouts_per_task must be >= 0, got {self.policy_rollouts_per_task}")
+        if self.heldout_policy_rollouts_per_task < 0:
+            raise ValueError("data.heldout_policy_rollouts_per_task must be >= 0, got "
+                             f"{self.heldout_policy_rollouts_per_task}")
 
 
 @dataclasses.dataclass(frozen=True)

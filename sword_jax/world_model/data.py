@@ -100,6 +100,27 @@ def load_latent_dataset(path: str) -> LatentDataset:
     return LatentDataset(latents.astype(np.float32), actions.astype(np.float32))
 
 
+# the held-out file's optional second split: held-out rollouts of the supervised policy, under these arrays
+POLICY_ARRAYS = ("policy_latents", "policy_actions")
+
+
+def load_heldout_splits(path: str) -> dict[str, LatentDataset]:
+    """The held-out evaluation's episodes in ``path`` (``.npz``): ``{"heldout": latents/actions}`` and, where
+    the file holds ``policy_latents``/``policy_actions`` (the pipeline's held-out rollouts of the supervised
+    policy, ``data.heldout_policy_rollouts_per_task``), ``"policy"`` from them."""
+    splits = {"heldout": load_latent_dataset(path)}
+    if path.endswith(".npz"):
+        with np.load(path) as data:
+            present = [k for k in POLICY_ARRAYS if k in data.files]
+            if len(present) == 1:
+                raise ValueError(f"latent dataset: {path} holds {present[0]} without its pair "
+                                 f"({' and '.join(POLICY_ARRAYS)} go together)")
+            if present:
+                splits["policy"] = LatentDataset(np.asarray(data[POLICY_ARRAYS[0]], np.float32),
+                                                 np.asarray(data[POLICY_ARRAYS[1]], np.float32))
+    return splits
+
+
 def synthetic_latent_dataset(
     num_episodes: int, num_latents: int, height: int, width: int, channels: int, *, seed: int, action_dim: int = 7
 ) -> LatentDataset:

@@ -17,6 +17,11 @@ paired across steps and runs. The weights measured are those inference uses: the
 Context is the true latents (teacher forcing), never the DLB cache. The training segments come from every training
 episode, styled copies included, and the pipeline's held-out episodes are unstyled: read the two curves' trends
 (one flattening while the other falls) rather than the level of the gap between them.
+
+A third split, ``policy``, where the held-out file holds it: held-out rollouts of the supervised policy from the
+held-out initial states (``data.heldout_policy_rollouts_per_task``), the same scenes as the expert's held-out
+episodes acted on by the policy's own sampled actions. It measures what the expert's segments cannot: how well the
+model predicts the consequences of the actions a policy takes (GRPO's imagined rollouts are the policy's).
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from sword_jax.world_model.data import LatentDataset, SegmentLoader
 from sword_jax.world_model.train_state import TrainState
 
-SPLITS = ("train", "heldout")
+SPLITS = ("train", "heldout", "policy")
 # the streams of the fixed segments (numpy) and of the fixed noise (JAX) under the run's seed
 SEGMENT_STREAM = "world_model/eval_segments"
 NOISE_STREAM = "world_model/eval_noise"
@@ -111,6 +116,8 @@ class HeldOutEvaluator:
       flow_cfg, trainer_cfg: the run's flow and trainer settings.
       train, heldout: the training dataset and the held-out episodes' (the same latent layout); without held-out
         episodes (None) only the training segments are measured.
+      policy: held-out rollouts of the supervised policy (the same layout), measured as the ``policy`` split;
+        None: no such split.
       loader: the run's segment loader (its shardings and the rows this process holds).
       num_context, num_future: latents per segment.
       mesh, rules: where the model is.
@@ -119,20 +126,24 @@ class HeldOutEvaluator:
 
     def __init__(self, graphdef: nnx.GraphDef, flow_cfg: FlowConfig, trainer_cfg: TrainerConfig, *,
                  train: LatentDataset, heldout: LatentDataset | None, loader: SegmentLoader, num_context: int,
-                 num_future: int, mesh: Mesh, rules=shd.DEFAULT_RULES, seed: int):
-        if heldout is not None and (heldout.shape[1:] != train.shape[1:]
-                                    or heldout.actions.shape[1:] != train.actions.shape[1:]):
-            raise ValueError(f"held-out evaluation: held-out latents {heldout.shape} / actions "
-                             f"{heldout.actions.shape} do not match the training data's {train.shape} / "
-                             f"{train.actions.shape}")
+                 num_future: int, mesh: Mesh, rules=shd.DEFAULT_RULES, seed: int,
+                 policy: LatentDataset | None = None):
+        datasets = {"train": train, "heldout": heldout, "policy": policy}
+        for split, dataset in datasets.items():
+            if dataset is not None and (dataset.shape[1:] != train.shape[1:]
+                                        or dataset.actions.shape[1:] != train.actions.shape[1:]):
+                raise ValueError(f"held-out evaluation: the {split} split's latents {dataset.shape} / actions "
+                                 f"{dataset.actions.shape} do not match the training data's {train.shape} / "
+                                 f"{train.actions.shape}")
         self.steps = sample_steps(trainer_cfg, flow_cfg)
-        splits = SPLITS if heldout is not None else SPLITS[:1]
+        splits = tuple(split for split in SPLITS if datasets[split] is not None)
         self.names = metric_names(self.steps, splits)
         self.mesh, self.rules = mesh, rules
         batch_size = loader.sampler.batch_size
         count = trainer_cfg.eval_batches * batch_size
         self.batches = {}
-        for split, dataset in zip(splits, (train, heldout)):
+        for split in splits:
+            dataset = datasets[split]
             episodes, starts = fixed_segments(dataset, count, num_context, num_future,
                                               stream_seed(seed, f"{SEGMENT_STREAM}/{split}"))
             self.batches[split] = [
