@@ -124,10 +124,30 @@ def pipeline_gpus(args) -> list[str]:
     return getattr(args, "pipeline_gpus", None) or args.gpus[:1]
 
 
+def needs(args, name: str) -> tuple[str, ...]:
+    """The pipeline's stages run ``name`` waits for (:data:`NEEDS`): with ``--bundle`` the world-model runs read
+    the world model, VAE and detector from it, and need only the demonstrations."""
+    if name.startswith("gt") or getattr(args, "bundle", ""):
+        return NEEDS["gt"]
+    return NEEDS["world_model"]
+
+
+def check_bundle(args) -> None:
+    """``--bundle`` holds what the world-model arms read (``train.bundle unpack``'s layout), or the run is refused
+    by name before anything starts."""
+    wanted = ["world_model/checkpoints", "vae_run/vae"] + (["rl/reward_model"] if "det" in args.arms else [])
+    missing = [w for w in wanted if not os.path.isdir(os.path.join(args.bundle, w))]
+    if missing:
+        raise SystemExit(f"bench_grpo_reward_source: --bundle {args.bundle} lacks {', '.join(missing)} "
+                         "(a folder made by python -m train.bundle unpack)")
+
+
 def run_commands(args) -> dict[str, list[str]]:
     """``{run name: command}``: ``gt_s<k>`` (``bench_policy grpo``) and ``exec_s<k>`` / ``det_s<k>``
-    (``train.grpo`` in the pipeline's world model), each with ``--rl.grpo.steps`` and evaluations every 10 steps."""
+    (``train.grpo`` in the pipeline's world model, or ``--bundle``'s), each with ``--rl.grpo.steps`` and
+    evaluations every ``--eval-every`` steps."""
     pipe = pipeline_dir(args)
+    weights = getattr(args, "bundle", "") or pipe
     demos = os.path.join(pipe, "data", "demos.hdf5")
     steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
              f"--rl.grpo.eval_every={args.eval_every}")
@@ -142,8 +162,10 @@ def run_commands(args) -> dict[str, list[str]]:
         for arm in (a for a in ("exec", "det") if a in args.arms):
             name = f"{arm}_s{seed}"
             out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, *vae, "--simulator", "world_model",
-                         "--world-model", os.path.join(pipe, "world_model"), "--vae", os.path.join(pipe, "vae_run", "vae"),
-                         "--reward", os.path.join(pipe, "rl", "reward_model"), "--demos", demos, "--policy", args.policy,
+                         "--world-model", os.path.join(weights, "world_model"),
+                         "--vae", os.path.join(weights, "vae_run", "vae"),
+                         "--reward", os.path.join(weights, "rl", "reward_model"), "--demos", demos,
+                         "--policy", args.policy,
                          "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *shared, *WORLD_MODEL,
                          f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps]
     return out
@@ -163,6 +185,8 @@ def placement(args) -> dict[str, str]:
 
 def run(args, *, poll_s: float = 5.0) -> dict:
     """The pipeline, then the runs as their inputs are ready (module docstring); the summary at the end."""
+    if getattr(args, "bundle", ""):
+        check_bundle(args)
     os.makedirs(args.workdir, exist_ok=True)
     common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
     env = common.launch_env(args.workdir, deterministic=args.deterministic)
@@ -182,8 +206,13 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     base, vae = pipeline(args), world_model_overrides(args)
     if getattr(args, "pipeline", ""):  # built elsewhere, maybe still being built: each run waits for its stages
         phases = []
-        waiting = {n: NEEDS["gt" if n.startswith("gt") else "world_model"] for n in commands}
-        print(f"[reward-source] the runs start as {args.pipeline}'s stages finish: {NEEDS}", flush=True)
+        waiting = {n: needs(args, n) for n in commands}
+        print(f"[reward-source] the runs start as {args.pipeline}'s stages finish: {waiting}", flush=True)
+    elif getattr(args, "bundle", ""):  # the world model, VAE and detector from a bundle: only the data is built
+        phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"), list(commands))]
+        waiting = {}
+        print(f"[reward-source] the world-model runs read {args.bundle}; the pipeline builds its data only",
+              flush=True)
     else:
         phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"),
                    [n for n in commands if n.startswith("gt")]),
@@ -218,6 +247,13 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         time.sleep(poll_s)
     summary = dict(summarize(args.workdir), exit_codes={n: p.returncode for n, p in procs.items()},
                    stopped_at_deadline=stopped, seconds=round(time.perf_counter() - start, 1))
+    if getattr(args, "bundle", ""):  # where the world model came from (train.bundle's manifest, kept beside it)
+        manifest = os.path.join(args.bundle, "bundle.json")
+        if os.path.exists(manifest):
+            with open(manifest) as f:
+                made = json.load(f)
+            summary["bundle"] = {"path": args.bundle, "source": made.get("source"), "sha256": made.get("sha256"),
+                                 "world_model": made.get("world_model")}
     with open(os.path.join(args.workdir, "reward_source_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     failed = sorted(n for n, p in procs.items() if p.returncode and n not in stopped)
@@ -518,6 +554,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--horizon", type=int, default=12,
                         help="run: decisions (of --actions-per-decision actions) of every arm's rollouts "
                              "(rl.imagined.max_chunks)")
+    parser.add_argument("--bundle", default="",
+                        help="run: the world-model arms read the world model, VAE and detector of this folder "
+                        "(python -m train.bundle unpack's, from an earlier pipeline); the pipeline builds only "
+                        "its data (the demonstrations)")
     parser.add_argument("--pipeline", default="",
                         help="run: a pipeline built elsewhere (e.g. another run's <workdir>/pipeline, with the same "
                              "--vae-variant and --world-model-set) instead of building <workdir>/pipeline: each run "
@@ -554,6 +594,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
             apply_overrides(configs.get(args.config), overrides).validate()
         except (ValueError, KeyError, TypeError) as error:
             raise SystemExit(f"bench_grpo_reward_source: --world-model-set: {error}") from None
+    if args.bundle and not os.path.isdir(args.bundle):
+        raise SystemExit(f"bench_grpo_reward_source: --bundle {args.bundle}: no such folder (python -m train.bundle "
+                         "unpack makes it)")
     if args.pipeline and not os.path.isdir(args.pipeline):
         raise SystemExit(f"bench_grpo_reward_source: --pipeline {args.pipeline}: no such folder (start the command "
                          f"that builds it first; its runs then start as its stages finish)")

@@ -564,3 +564,50 @@ def test_the_world_models_figure_draws_its_trainers_measurements_and_refuses_a_r
         rs.main(["figure", "--world-model", str(metrics), "--out", str(out)])
     with pytest.raises(SystemExit, match="not both"):
         rs.main(["figure", "--world-model", str(metrics), "--closed-loop", str(out), "--out", str(out)])
+
+
+def test_a_bundle_gives_the_world_model_runs_their_weights_and_the_pipeline_builds_only_its_data(tmp_path, monkeypatch):
+    """--bundle DIR (train.bundle unpack's folder): the world-model arms read its world model, VAE and detector and
+    start once the pipeline's data stage has finished, the only stage built; the summary names the bundle's source.
+    A bundle without what the arms read, or no such folder, is refused by name before anything starts."""
+    import sys
+
+    bundle = tmp_path / "bundle"
+    for sub in ("world_model/checkpoints", "vae_run/vae", "rl/reward_model"):
+        (bundle / sub).mkdir(parents=True)
+    (bundle / "bundle.json").write_text(json.dumps({"source": "/elsewhere/run", "sha256": "ab", "world_model": {"step": 9}}))
+    args = _args(tmp_path / "work", seeds="0", arms=("exec", "det"))
+    args.bundle, args.pipeline = str(bundle), ""
+    commands = rs.run_commands(args)
+    for name in ("exec_s0", "det_s0"):
+        cmd = commands[name]
+        assert cmd[cmd.index("--world-model") + 1] == str(bundle / "world_model")
+        assert cmd[cmd.index("--vae") + 1] == str(bundle / "vae_run" / "vae")
+        assert cmd[cmd.index("--reward") + 1] == str(bundle / "rl" / "reward_model")
+        assert cmd[cmd.index("--demos") + 1] == str(tmp_path / "work" / "pipeline" / "data" / "demos.hdf5")
+        assert rs.needs(args, name) == ("data",)
+    built = []
+
+    def step(base, overrides, stop_after):
+        built.append(stop_after)
+        return [sys.executable, "-c", f"open({str(tmp_path / stop_after)!r}, 'w').close()"]
+
+    monkeypatch.setattr(rs, "pipeline_command", step)
+    def seen(name):  # a run that records whether the data stage had finished when it started
+        return [sys.executable, "-c",
+                f"import os; open({str(tmp_path / name)!r}, 'w').write(str(os.path.exists({str(tmp_path / 'data')!r})))"]
+
+    monkeypatch.setattr(rs, "run_commands", lambda a: {n: seen(n) for n in ("exec_s0", "det_s0")})
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+    summary = rs.run(args, poll_s=0.05)
+    assert built == ["data"] and summary["exit_codes"] == {"exec_s0": 0, "det_s0": 0}
+    assert all((tmp_path / n).read_text() == "True" for n in ("exec_s0", "det_s0"))
+    assert summary["bundle"] == {"path": str(bundle), "source": "/elsewhere/run", "sha256": "ab",
+                                 "world_model": {"step": 9}}
+    (bundle / "rl" / "reward_model").rmdir()
+    with pytest.raises(SystemExit, match="--bundle .* lacks rl/reward_model"):
+        rs.run(args, poll_s=0.05)
+    args.arms = ["exec"]
+    rs.check_bundle(args)  # the executed reward reads no detector
+    with pytest.raises(SystemExit, match="--bundle .*nowhere: no such folder"):
+        rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--bundle", str(tmp_path / "nowhere")])
