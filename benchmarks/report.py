@@ -1164,17 +1164,19 @@ HELDOUT_STEPS = (1000, 2000, 5000, 10000, 20000, 30000)
 def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tuple[int, ...] = HELDOUT_STEPS) -> str:
     """The world model measured while it trained (``record``'s ``pipeline/world_model/metrics.jsonl``,
     :mod:`sword_jax.world_model.heldout`), at ``steps``: the logged training loss (the mean of the 10 logged
-    steps to there), the fixed-noise flow loss on the training and the held-out segments, and the sampler's
-    error from the true context per split at each Euler step count measured; a last row gives each column's
-    change from the second-last step to the last."""
+    steps to there), the fixed-noise flow loss per split measured (training, held-out, held-out policy
+    rollouts where there), and the sampler's error from the true context per split at each Euler step count
+    measured; a last row gives each column's change from the second-last step to the last."""
     path = os.path.join(RESULTS_DIR, *record, "pipeline", "world_model", "metrics.jsonl")
     with open(path) as f:
         logged = [json.loads(line) for line in f if line.strip()]
     measured = {r["step"]: r for r in logged if "eval_heldout_loss" in r}
     counts = sorted({int(k.rsplit("_", 1)[1]) for r in measured.values() for k in r if "_sample_error_" in k})
-    columns = [("eval_train_loss", "training segments"), ("eval_heldout_loss", "held-out segments")]
-    columns += [(f"eval_{split}_sample_error_{n}", f"{label} segments, {n} Euler steps")
-                for split, label in (("heldout", "held-out"), ("train", "training")) for n in counts]
+    labels = {"train": "training", "heldout": "held-out", "policy": "held-out policy"}  # heldout.SPLITS' names
+    splits = [split for split in ("train", "heldout", "policy") if f"eval_{split}_loss" in measured[steps[-1]]]
+    losses = [(f"eval_{split}_loss", f"{labels[split]} segments") for split in splits]
+    columns = losses + [(f"eval_{split}_sample_error_{n}", f"{labels[split]} segments, {n} Euler steps")
+                        for split in (*splits[1:], splits[0]) for n in counts]
 
     def logged_loss(step: int) -> float:
         upto = [r["loss"] for r in logged if r["step"] <= step and "loss" in r]
@@ -1187,8 +1189,8 @@ def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tu
     rows.append([f"{prev:,} -> {last:,}", change(logged_loss(prev), logged_loss(last)),
                  *(change(measured[prev][k], measured[last][k]) for k, _ in columns)])
     return _table(["step", "training loss (logged, last 10)",
-                   *(f"fixed-noise loss: {label}" for _, label in columns[:2]),
-                   *(f"sample error: {label}" for _, label in columns[2:])], rows)
+                   *(f"fixed-noise loss: {label}" for _, label in losses),
+                   *(f"sample error: {label}" for _, label in columns[len(losses):])], rows)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,

@@ -240,3 +240,22 @@ def test_the_chunk_table_reads_each_runs_own_actions_a_decision(tmp_path, monkey
     assert rows[1][1] == f"0.300 [{low:.3f}, {high:.3f}] of 20" and rows[1][2] == "2 / 3 / 9"
     assert rows[0][3] == "20, 26, 32" and rows[1][3] == "40, 52, 64"
     assert rows[1][4:7] == ["6 (48 actions)", "9 of 16 (0.56)", "0.250"] and rows[1][7] == "8/10, 1/6 |"
+
+
+def test_the_held_out_table_reads_every_split_the_trainer_measured(tmp_path, monkeypatch):
+    """world-model-heldout: per step, the logged loss (mean of the last 10) and each split's fixed-noise loss and
+    sample errors, the policy split's where the run measured it; the last row is the relative change."""
+    folder = tmp_path / "policy" / "run" / "pipeline" / "world_model"
+    folder.mkdir(parents=True)
+    rows = [{"step": 50 * i, "loss": 1.0} for i in range(1, 5)]
+    for i, scale in ((1, 2.0), (3, 1.0)):  # steps 100 and 200
+        rows[i].update({f"eval_{split}_{name}": scale * base for split, base in (("train", 0.1), ("heldout", 0.2),
+                                                                               ("policy", 0.4))
+                        for name in ("loss", "sample_error_5")})
+    (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.world_model_heldout(("policy", "run"), (100, 200)).splitlines()
+    assert table[0].split(" | ")[2:5] == ["fixed-noise loss: training segments", "fixed-noise loss: held-out segments",
+                                          "fixed-noise loss: held-out policy segments"]
+    assert table[3] == "| 200 | 1.0000 | 0.1000 | 0.2000 | 0.4000 | 0.2000 | 0.4000 | 0.1000 |"
+    assert table[4] == "| 100 -> 200 | +0% | -50% | -50% | -50% | -50% | -50% | -50% |"
