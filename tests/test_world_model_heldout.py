@@ -210,3 +210,16 @@ def test_the_pipeline_report_says_the_last_measurement_of_every_split():
         " 0.2 training; the sampler's error at 20 Euler steps 0.25 held-out against 0.35 held-out policy rollouts"
         " against 0.1 training.")
     assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing
+
+
+def test_what_the_evaluation_reads_does_not_block_a_resume():
+    """A world-model run resumes with other held-out data or evaluation settings, and from a config.json written
+    before those keys existed; a change to what it trains on is still refused."""
+    now = {"data": {"path": "a.npz", "batch_size": 2, "heldout_path": "h.npz", "heldout_policy_rollouts_per_task": 2},
+           "trainer": {"steps": 9, "learning_rate": 1e-3, "eval_every": 5, "eval_sample_steps": [5, 20]},
+           "workdir": "new"}
+    older = {"data": {"path": "a.npz", "batch_size": 2}, "trainer": {"steps": 5, "learning_rate": 1e-3},
+             "workdir": "old"}
+    assert wm_run._comparable(now) == wm_run._comparable(older)
+    older["data"]["batch_size"] = 4
+    assert wm_run._comparable(now) != wm_run._comparable(older)

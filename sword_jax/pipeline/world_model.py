@@ -63,7 +63,9 @@ RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", 
 
 def _comparable(cfg_dict: dict) -> dict:
     trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
-    data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items() if k != "heldout_path"}
+    # what the held-out evaluation reads changes nothing the model trains on
+    data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items()
+                if k not in ("heldout_path", "heldout_policy_rollouts_per_task")}
     # The mesh may change between runs: checkpoints restore onto any device count.
     return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
 
