@@ -45,6 +45,18 @@ if os.environ.get(_PROBED) is None:
     os.environ["XLA_FLAGS"] = f"{_base} {os.environ[_PROBED]} --xla_force_host_platform_device_count=8".strip()
 FAST_COMPILE = os.environ[_PROBED]
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# One persistent compilation cache for the test run (xdist's workers and the child processes inherit it): many
+# tests build the same programs again in fresh jits (each trainer's main(), a second run to resume, a child
+# process of the same config), and a program compiled once is then read back. Removed at the end of the run by
+# the process that made it; a cache the environment names is used and kept.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="sword-tests-xla-cache-")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
+    atexit.register(shutil.rmtree, os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
 if "MUJOCO_GL" not in os.environ:
     import ctypes.util
 
@@ -135,7 +147,9 @@ def _start_tiny_run(root) -> None:
 
 # The longest default tests (30-90 s each on 2 cores), started first so that none of them is left running
 # alone at the end of a parallel run (with --dist worksteal the others fill in around them).
-LONG_FIRST = ("test_multihost.py::", "test_rl_resume.py::test_grpo_sigkill", "test_reliability.py::test_sigkill",
+LONG_FIRST = ("test_multihost.py::", "test_wm_entry.py::test_a_checkpoint_step_path",
+              "test_reliability.py::test_sigkill", "test_sim_mjx_batch.py::test_mjx_episodes_continue",
+              "test_sim_agreement.py::test_ground_truth_grpo_from_rest",
               "test_grpo.py::test_grpo_improves_policy_on_toy_simulator", "test_sim_render_static.py::",
               "test_rl_policy_learning.py::test_grpo_against_the_mujoco",
               "test_bench_multi_gpu.py::test_small_rows_of_every_kind", "test_bench_multi_gpu.py::test_sweep_rows")

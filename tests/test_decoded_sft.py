@@ -19,6 +19,9 @@ from sword_jax.rng import stream_rng
 from tests.support.rl import POLICY_CFG, TINY_RL, brightening_episodes, write_demos
 
 CFG = dataclasses.replace(POLICY_CFG, sft=dataclasses.replace(POLICY_CFG.sft, batch_size=8, warmup_steps=0))
+# the world-model replays below replay write_demos' 12 windows in one call of 16 (the default 64 would replay
+# and encode 52 padding windows on the CPU)
+REPLAY_BATCH = 16
 
 
 @pytest.fixture(scope="module")
@@ -242,7 +245,7 @@ def test_train_policy_fine_tunes_on_frames_the_world_model_imagines(tmp_path, mo
     replay = imagined.imagined_episode_frames
 
     def kept(simulator, encode, episodes, **kwargs):
-        out = replay(simulator, encode, episodes, **kwargs)
+        out = replay(simulator, encode, episodes, **kwargs, batch=REPLAY_BATCH)
         made.append((episodes, kwargs["window"], out))
         return out
 
@@ -263,12 +266,17 @@ def test_train_policy_fine_tunes_on_frames_the_world_model_imagines(tmp_path, mo
     assert np.isfinite(result["final_loss"])
 
 
-def test_a_trained_world_model_replays_the_episodes_over_several_devices(tiny_run, tmp_path):
+def test_a_trained_world_model_replays_the_episodes_over_several_devices(tiny_run, tmp_path, monkeypatch):
     """rl.sft.decoded_source=world_model with a trained world model, placed on the mesh (here 8 CPU devices): the
     VAE is placed beside it, so the replay's jitted steps read both (on the first device alone they refused)."""
+    import functools
     import os
 
+    import sword_jax.rl.imagined_frames as imagined
     from sim.policy_training import decoded_training_frames
+
+    monkeypatch.setattr(imagined, "imagined_episode_frames",
+                        functools.partial(imagined.imagined_episode_frames, batch=REPLAY_BATCH))
 
     assert jax.device_count() > 1
     from configs.cli import apply_overrides

@@ -3,6 +3,7 @@ executed open loop, the report against designed outcomes, and the whole check on
 simulator equal to the environment agrees everywhere and a detector that always fires pays every real failure."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -158,8 +159,16 @@ EXEC = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
                 policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
                 grpo=GRPOConfig(group_size=4, rollout_batch=3, minibatches=1),
                 imagined=ImaginedConfig(max_chunks=4, reward="executed"), env=EnvConfig(backend="mjx"))
-NEVER = RewardModel(params={}, score_fn=lambda params, frames: jnp.zeros(frames.shape[0], jnp.float32))
-ALWAYS = RewardModel(params={}, score_fn=lambda params, frames: jnp.ones(frames.shape[0], jnp.float32))
+
+
+def _constant_score(params, frames):
+    return jnp.full(frames.shape[0], params["score"], jnp.float32)
+
+
+# detectors that never or always fire: one score function (their score is a parameter), so a step compiled for
+# one serves the other
+NEVER = RewardModel(params={"score": np.float32(0.0)}, score_fn=_constant_score)
+ALWAYS = RewardModel(params={"score": np.float32(1.0)}, score_fn=_constant_score)
 
 
 def test_paid_by_execution_masks_after_the_real_success_and_pays_it():
@@ -192,18 +201,31 @@ def test_detector_metrics_against_designed_verdicts():
     assert np.isnan(imagined_check.detector_metrics(rollout, jnp.ones(4, bool), 0.9)["detector_false_success"])
 
 
-def _executed_step(reward_model):
-    """One GRPO step on the toy world paid by the toy environment (the check's designed starts)."""
+@functools.cache
+def _executed_setup():
+    """The check's designed starts and GRPO's step paid by the toy environment, built once for the tests below;
+    the last list receives the shardings the step placed its first state at."""
     graphdef, params, sim, start, env_starts = _designed(EXEC)
     step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
-    state = grpo.init_state(params, EXEC)
-    new_state, metrics = step(state, (sim, reward_model, start, env_starts), jax.random.key(3))
+    return step, grpo.init_state(params, EXEC), sim, start, env_starts, []
+
+
+@functools.cache
+def _executed_step(detector: str):
+    """One GRPO step on the toy world paid by the toy environment, its detector ``never`` or ``always`` firing
+    (each result kept for the tests that read it; the step is not donated, so they are not consumed)."""
+    step, state, sim, start, env_starts, placed = _executed_setup()
+    if placed:  # the state placed where the step placed the first one: the step is traced once
+        state = jax.device_put(state, placed[0])
+    new_state, metrics = step(state, (sim, {"never": NEVER, "always": ALWAYS}[detector], start, env_starts),
+                              jax.random.key(3))
+    placed[:] = [jax.tree.map(lambda x: x.sharding, new_state)]
     return state, new_state, jax.device_get(metrics)
 
 
 def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector():
-    state, moved, never = _executed_step(NEVER)
-    _, _, always = _executed_step(ALWAYS)
+    state, moved, never = _executed_step("never")
+    _, _, always = _executed_step("always")
     # the detector stops nothing: the same rollouts, paid the same by the environment
     assert 0.0 < never["success_rate"] < 1.0 and never["success_rate"] == always["success_rate"]
     assert never["kept_fraction"] > 0 and never["kept_fraction"] == always["kept_fraction"]
@@ -381,7 +403,7 @@ def test_a_simulator_that_moves_too_far_drifts_from_the_real_frames_decision_by_
 
 
 def test_an_executed_step_logs_its_closed_loop_and_is_paid_the_same_without_it():
-    _, _, logged = _executed_step(NEVER)
+    _, _, logged = _executed_step("never")
     c = EXEC.imagined.max_chunks
     for k in range(1, c):  # the toy simulator equals the toy environment
         assert logged[f"closed_loop_frame_error_{k}"] == pytest.approx(0.0, abs=1e-5)

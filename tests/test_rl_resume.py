@@ -69,8 +69,8 @@ def _final_state(directory: str, like=None) -> tuple[list[np.ndarray], dict]:
     return [np.asarray(leaf) for leaf in jax.tree.leaves(state)], meta
 
 
-# The step loop (sword_jax.train_loop) is every trainer's: its exact resume is checked in the default run for the
-# world model (test_reliability) and GRPO (below); the SFT and reward-model runs of it are slow-marked (70 s).
+# The step loop (sword_jax.train_loop) is every trainer's: its exact resume after a SIGKILL is checked in the default
+# run for the world model (test_reliability); the SFT, reward-model and GRPO runs of it are slow-marked (70 s, 50 s).
 @pytest.mark.slow
 @pytest.mark.parametrize("trainer", ["sft", "reward"])
 def test_sigkill_resume_is_bit_identical(tmp_path, trainer):
@@ -167,6 +167,13 @@ def _grpo_cmd(workdir: str, *extra: str) -> list[str]:
             *TINY_RL, *extra]
 
 
+# -m slow (about 50 s of four child processes). The default run keeps its parts: the entry point's kill and exact
+# resume through the same step loop (tests/test_reliability.py::test_sigkill_resume_is_bit_identical), GRPO's loop
+# resumed to the uninterrupted run's history, curve and parameters (test_grpo_run_stopped_after_a_checkpoint_leaves_
+# its_history, test_grpo_stopped_on_request_evaluates_its_step_in_flight_and_resumes_there below) and another run's
+# checkpoint refused by the key that differs (test_grpo_non_finite_loss_stops_and_a_resume_drops_evaluations_after_
+# the_checkpoint below).
+@pytest.mark.slow
 def test_grpo_sigkill_resume_is_bit_identical_and_another_runs_checkpoint_is_refused(tmp_path):
     env = _env(tmp_path)
     crashed = str(tmp_path / "crashed")  # first: it compiles, the runs after it read the compilation cache

@@ -79,7 +79,7 @@ def test_decision_samples_label_every_valid_decision_with_its_episode_outcome():
 def test_fit_value_learns_what_the_frame_and_the_instruction_say_together():
     """Designed data: the episode succeeds when the frame is bright for instruction A and dark for instruction B,
     so neither the frame nor the instruction alone predicts it; held-out Brier far below the constant's."""
-    rl = _rl(steps=300, batch_size=64, learning_rate=3e-3, width=8)
+    rl = _rl(steps=100, batch_size=64, learning_rate=3e-3, width=8)  # Brier ~1e-4 of the constant's at 100 steps
     rng = np.random.default_rng(0)
     n = 400
     bright = rng.random(n) < 0.5

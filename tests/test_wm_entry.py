@@ -109,8 +109,9 @@ def test_a_checkpoint_step_path_and_a_kept_ema_load_the_weights_they_name(tmp_pa
     import configs
     from sword_jax.load import CheckpointError, experiment_world_model, load_world_model_params
 
+    args = ARGS + ["--cache.log_inference_distance=false"]  # what is loaded does not depend on it: a compile less
     plain = str(tmp_path / "plain")
-    train_world_model.main(ARGS + ["--workdir", plain, "--trainer.steps=4", "--trainer.keep_checkpoints=2"])
+    train_world_model.main(args + ["--workdir", plain, "--trainer.steps=4", "--trainer.keep_checkpoints=2"])
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1"])
     newest = _leaves(experiment_world_model(cfg, plain)[1])
     at_2 = _leaves(experiment_world_model(cfg, os.path.join(plain, "checkpoints", "2"))[1])
@@ -127,7 +128,7 @@ def test_a_checkpoint_step_path_and_a_kept_ema_load_the_weights_they_name(tmp_pa
         np.testing.assert_array_equal(a, b)
 
     workdir = str(tmp_path / "ema")
-    train_world_model.main(ARGS + ["--workdir", workdir, "--trainer.steps=3", "--trainer.ema_decay=0.5"])
+    train_world_model.main(args + ["--workdir", workdir, "--trainer.steps=3", "--trainer.ema_decay=0.5"])
     state = _params_at(workdir, 3)
     loaded = experiment_world_model(ema_cfg, workdir)[1][0]
     ema, params = (load_world_model_params(ema_cfg.model, os.path.join(workdir, "checkpoints"), use_ema=use)[1][0]
