@@ -152,7 +152,10 @@ LONG_FIRST = ("test_multihost.py::", "test_wm_entry.py::test_a_checkpoint_step_p
               "test_sim_agreement.py::test_ground_truth_grpo_from_rest",
               "test_grpo.py::test_grpo_improves_policy_on_toy_simulator", "test_sim_render_static.py::",
               "test_rl_policy_learning.py::test_grpo_against_the_mujoco",
-              "test_bench_multi_gpu.py::test_small_rows_of_every_kind", "test_bench_multi_gpu.py::test_sweep_rows")
+              "test_bench_multi_gpu.py::test_small_rows_of_every_kind", "test_bench_multi_gpu.py::test_sweep_rows",
+              # the longest of those on the tiny run, first among them
+              "test_examples.py::test_policy_grpo", "test_decoded_sft.py::test_a_trained_world_model_replays",
+              "test_evaluate_world_model.py::test_a_trained_world_model_is_evaluated")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -23,11 +23,11 @@ def test_training_loss_falls():
     root = jax.random.key(1)
     video = train.moving_squares(key=root, batch=2, frames=5, size=32)
     losses = []
-    for _ in range(25):
+    for _ in range(12):  # the loss is about a quarter of its first by then
         state, metrics = step(state, {"video": video}, root)
         losses.append(metrics["loss"])
     losses = [float(x) for x in losses]
-    assert int(state.step) == 25
+    assert int(state.step) == 12
     assert all(np.isfinite(losses))
     assert np.mean(losses[-5:]) < 0.5 * losses[0], losses
     assert float(metrics["kl"]) > 0 and float(metrics["grad_norm"]) > 0
