@@ -30,6 +30,7 @@ BAD_ARGS = {
     "train.gallery": ["--out", "unused.png", "--size", "8"],
     "train.launch": ["--processes", "2", "--", "python", "-m", "train.grpo"],
     "train.convert_wan22": ["check"],
+    "train.bundle": ["pack", "run", "out", "--part-mib", "many"],
     "train.verify_metrics": [],
 }
 # Every entry point: each module of train/ but the process setup they share.
