@@ -1,7 +1,7 @@
 """A trained pipeline's inference weights as a bundle of size-limited parts, to move between machines.
 
 A pipeline run (``train.pipeline``) keeps its world model as the trainer's whole state: parameters, optimizer
-state, the DLB cache (``small``: 1.2 GiB with the 8x VAE's latents). What GRPO, evaluation and
+state, the DLB cache (``small``: 0.9 GiB with the 8x VAE's latents). What GRPO, evaluation and
 :func:`sword_jax.api.load_world_model` read is far less: the world model's inference weights (its EMA where the
 run kept one), the VAE and the success detector. :func:`pack` writes exactly those, laid out as a pipeline work
 dir, as one tar stream cut into parts of at most ``part_bytes`` (so that each fits a transfer that limits file
@@ -248,12 +248,4 @@ def unpack(folders: Sequence[str] | str, dest: str) -> dict[str, Any]:
     return manifest
 
 
-def params_equal(a: Any, b: Any) -> bool:
-    """Whether two pytrees of arrays are bit-identical (the same structure, shapes, dtypes and values)."""
-    flat_a, flat_b = jax.tree.leaves_with_path(a), jax.tree.leaves_with_path(b)
-    return [p for p, _ in flat_a] == [p for p, _ in flat_b] and all(
-        np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(np.asarray(x), np.asarray(y))
-        for (_, x), (_, y) in zip(flat_a, flat_b, strict=True))
-
-
-__all__ = ["BundleError", "pack", "unpack", "params_equal", "MANIFEST"]
+__all__ = ["BundleError", "pack", "unpack", "MANIFEST"]
