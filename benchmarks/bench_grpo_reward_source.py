@@ -745,15 +745,16 @@ def world_model_figure(metrics: str, path: str, title: str = "") -> dict:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     axes[0].plot(series["steps"], series["loss"], lw=0.6, alpha=0.5, color="0.5", label="training batches (logged)")
     splits = sorted({name.split("_")[1] for name in names})
+    labels = {"train": "training", "heldout": "held-out expert", "policy": "held-out policy"}  # heldout.SPLITS
     for i, split in enumerate(splits):
         colour = f"C{i}"
         if f"eval_{split}_loss" in series:
             axes[0].plot(series["eval_steps"], series[f"eval_{split}_loss"], marker="o", ms=3, color=colour,
-                         label=f"{split} segments, fixed noise")
+                         label=f"{labels.get(split, split)} segments, fixed noise")
         errors = sorted((int(n.rsplit("_", 1)[1]), n) for n in names if n.startswith(f"eval_{split}_sample_error_"))
         for j, (steps, name) in enumerate(errors):
             axes[1].plot(series["eval_steps"], series[name], marker="o", ms=3, color=colour,
-                         ls=("-", "--", ":", "-.")[j % 4], label=f"{split} segments, {steps} Euler steps")
+                         ls=("-", "--", ":", "-.")[j % 4], label=f"{labels.get(split, split)} segments, {steps} Euler steps")
     for ax in axes:
         ax.set_yscale("log")
     common.finish_figure(fig, axes[0], path, xlabel="world-model training step", ylabel="flow loss",

@@ -1172,7 +1172,7 @@ def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tu
         logged = [json.loads(line) for line in f if line.strip()]
     measured = {r["step"]: r for r in logged if "eval_heldout_loss" in r}
     counts = sorted({int(k.rsplit("_", 1)[1]) for r in measured.values() for k in r if "_sample_error_" in k})
-    labels = {"train": "training", "heldout": "held-out", "policy": "held-out policy"}  # heldout.SPLITS' names
+    labels = {"train": "training", "heldout": "held-out expert", "policy": "held-out policy"}  # heldout.SPLITS
     splits = [split for split in ("train", "heldout", "policy") if f"eval_{split}_loss" in measured[steps[-1]]]
     losses = [(f"eval_{split}_loss", f"{labels[split]} segments") for split in splits]
     columns = losses + [(f"eval_{split}_sample_error_{n}", f"{labels[split]} segments, {n} Euler steps")
@@ -1191,6 +1191,16 @@ def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tu
     return _table(["step", "training loss (logged, last 10)",
                    *(f"fixed-noise loss: {label}" for _, label in losses),
                    *(f"sample error: {label}" for _, label in columns[len(losses):])], rows)
+
+
+# the same recipe again, its trainer also measuring the supervised policy's held-out rollouts (the "policy" split)
+WORLD_MODEL_POLICY_SPLIT = ("policy", "world_model_policy_split_30k_small_h200")
+
+
+def world_model_policy_split() -> str:
+    """:func:`world_model_heldout` of the run whose trainer also measured the ``policy`` split
+    (``WORLD_MODEL_POLICY_SPLIT``)."""
+    return world_model_heldout(WORLD_MODEL_POLICY_SPLIT)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
@@ -1450,6 +1460,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-length": grpo_reward_source_length,
     "world-model-heldout": world_model_heldout,
+    "world-model-policy-split": world_model_policy_split,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,

@@ -255,7 +255,7 @@ def test_the_held_out_table_reads_every_split_the_trainer_measured(tmp_path, mon
     (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
     table = report.world_model_heldout(("policy", "run"), (100, 200)).splitlines()
-    assert table[0].split(" | ")[2:5] == ["fixed-noise loss: training segments", "fixed-noise loss: held-out segments",
+    assert table[0].split(" | ")[2:5] == ["fixed-noise loss: training segments", "fixed-noise loss: held-out expert segments",
                                           "fixed-noise loss: held-out policy segments"]
     assert table[3] == "| 200 | 1.0000 | 0.1000 | 0.2000 | 0.4000 | 0.2000 | 0.4000 | 0.1000 |"
     assert table[4] == "| 100 -> 200 | +0% | -50% | -50% | -50% | -50% | -50% | -50% |"
