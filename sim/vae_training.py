@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
 import time
 from collections.abc import Sequence
 
@@ -23,7 +24,7 @@ from configs.base import ExperimentConfig
 from sim.dataset import read_dataset
 from sword_jax import checkpoint
 from sword_jax import sharding as shd
-from sword_jax.load import load_vae_params
+from sword_jax.load import load_vae_params, vae_dir
 from sword_jax.tracing import ENTRY_MAX_TRACES
 from sword_jax.train_loop import run_steps
 from sword_jax.vae import data as vae_data
@@ -67,6 +68,23 @@ def vae_run_id(cfg: ExperimentConfig, *, clip_latents: int, synthetic: bool) -> 
             "synthetic": synthetic, **vae}
 
 
+def _place_trained_vae(source: str, final_path: str) -> None:
+    """A trained VAE reused (``vae.checkpoint`` naming its folder) is copied to where this run keeps its own
+    (``<workdir>/vae``), so that readers of the run (GRPO's ``--vae``, bundles) find it there; a different VAE
+    already there is refused, never replaced."""
+    from sword_jax.pipeline.inputs import hash_checkpoint
+
+    if os.path.exists(final_path):
+        if hash_checkpoint(final_path) != hash_checkpoint(source):
+            raise SystemExit(f"train_vae: {final_path} holds another VAE than --vae.checkpoint={source}; reuse a "
+                             "trained VAE in a new work dir")
+        return
+    staged = f"{final_path}.copying"
+    shutil.rmtree(staged, ignore_errors=True)
+    shutil.copytree(source, staged)
+    os.replace(staged, final_path)
+
+
 def run_vae(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: bool = False,
             clip_latents: int = 2) -> dict:
     """Trains (or resumes) the VAE in ``cfg.workdir``, or validates ``vae.checkpoint``; returns the summary.
@@ -80,7 +98,9 @@ def run_vae(cfg: ExperimentConfig, episodes: Sequence[str] = (), *, synthetic: b
     is_main = jax.process_index() == 0
     final_path = os.path.join(cfg.workdir, "vae")
     if cfg.vae.checkpoint:
-        load_vae_params(cfg.vae, final_path)  # validates the official file now
+        load_vae_params(cfg.vae, final_path)  # validates the official file or the trained VAE's folder now
+        if os.path.isdir(cfg.vae.checkpoint) and is_main:
+            _place_trained_vae(vae_dir(cfg.vae.checkpoint), final_path)
         return {"source": cfg.vae.checkpoint, "steps": 0}
     if not episodes and not synthetic:
         raise SystemExit("train_vae: pass --episodes FILE.hdf5 (repeatable), --synthetic, or --vae.checkpoint=...")

@@ -227,16 +227,19 @@ def load_world_model_params(
 
 def load_vae_params(vae_cfg: Any, path: str = "", *, mesh: jax.sharding.Mesh | None = None
                     ) -> tuple[nnx.GraphDef, nnx.State]:
-    """The VAE of ``vae_cfg``: official Wan 2.2 weights if ``vae_cfg.checkpoint`` is set, else the
-    state ``train.train_vae`` saved at ``path`` (``<vae_workdir>/vae``), replicated over ``mesh``
-    (default: unsharded on the first device).
+    """The VAE of ``vae_cfg``, replicated over ``mesh`` (default: unsharded on the first device): where
+    ``vae_cfg.checkpoint`` names a file, the official Wan 2.2 weights in it; where it names a folder, the state a
+    sword-jax VAE run saved there (``train.train_vae``'s ``<workdir>/vae`` or its work dir, a bundle's
+    ``vae_run/vae``); else the state saved at ``path``.
 
     Raises:
       CheckpointError: no such checkpoint, or one of another architecture.
     """
     from sword_jax.vae import api as vae_api
 
-    if vae_cfg.checkpoint:
+    if vae_cfg.checkpoint and os.path.isdir(vae_cfg.checkpoint):
+        path = vae_dir(vae_cfg.checkpoint)
+    elif vae_cfg.checkpoint:
         from sword_jax.convert import wan22_vae
 
         graphdef, state, official = wan22_vae.load_vae(vae_cfg.checkpoint, compute_dtype=vae_cfg.compute_dtype)

@@ -14,7 +14,9 @@ class VAEConfig:
       dim_mult: width multipliers per resolution level.
       num_res_blocks: residual blocks per level.
       temporal_downsample: which levels halve time (two of them: temporal x4).
-      checkpoint: optional path to official Wan 2.2 VAE safetensors; empty trains from scratch.
+      checkpoint: optional: a file of official Wan 2.2 VAE weights (safetensors), or the folder of a trained
+        sword-jax VAE of this architecture (``train.train_vae``'s, a bundle's ``vae_run/vae``) to reuse; empty
+        trains from scratch.
       compute_dtype: 'float32' or 'bfloat16' (activations/convs; params, norms, softmax and losses
         stay float32).
       train_steps, learning_rate, batch_size: VAE training from scratch (sword_jax.vae.train).
