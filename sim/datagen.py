@@ -157,14 +157,14 @@ class JaxFrames:
         self.scene, self.resolution = scene, resolution
 
     def __call__(self, datas: list[Any], camera: str) -> dict[str, np.ndarray]:
-        parts: dict[str, list[np.ndarray]] = {"rgb": [], "depth": [], "seg": []}
-        for start in range(0, len(datas), _CHUNK):
+        rendered = []  # every chunk is dispatched before any is read back, so the next one's poses are gathered
+        for start in range(0, len(datas), _CHUNK):  # while the device renders this one
             chunk = datas[start:start + _CHUNK]
             padded = chunk + [chunk[-1]] * (_CHUNK - len(chunk))
             frame = render.render_mjdata(self.scene, padded, camera, height=self.resolution, width=self.resolution)
-            for name in parts:
-                parts[name].append(np.asarray(getattr(frame, name))[: len(chunk)])
-        return {name: np.concatenate(values) for name, values in parts.items()}
+            rendered.append((frame, len(chunk)))
+        return {name: np.concatenate([np.asarray(getattr(frame, name))[:n] for frame, n in rendered])
+                for name in ("rgb", "depth", "seg")}
 
 
 class _GLFrames:

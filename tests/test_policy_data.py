@@ -49,3 +49,77 @@ def test_policy_rollouts_are_fixed_length_replayable_episodes(tmp_path):
         np.testing.assert_array_equal(np.asarray(done), episode.rewards)
     with pytest.raises(FileExistsError):  # nothing already written is replaced without overwrite
         policy_rollouts.write_policy_episodes(gen.out, make_act_fns(graphdef, rl), params, rl, gen, key=jax.random.key(1))
+
+
+def _reference_policy_episodes(act, params, rl, gen, *, key, batch):
+    """The recording as first written: pure steps keeping every state, the batch rendered at each decision for
+    the policy, and each episode's frames rendered again, all of them, when it is written."""
+    import sim
+    from sim import tasks
+    from sword_jax.rl.policy import tokenize_instructions
+
+    starts = [(task, i, qpos) for task in gen.tasks for i, qpos in enumerate(datagen.init_states(gen, task))]
+    envs = {task: sim.load("libero_spatial", task_id=task, backend="cpu", resolution=gen.resolution,
+                           max_steps=gen.max_steps) for task in gen.tasks}
+    frames = datagen.JaxFrames(datagen.render_scene(envs[gen.tasks[0]]), gen.resolution)
+    k, out = rl.env.execute_steps, []
+    for b, begin in enumerate(range(0, len(starts), batch)):
+        group = starts[begin:begin + batch]
+        states = [[envs[task].reset_to(qpos)] for task, _, qpos in group]
+        actions = [[] for _ in group]
+        text = jax.numpy.asarray(tokenize_instructions([tasks.LANGUAGE[t] for t, _, _ in group],
+                                                       rl.policy.max_instruction_bytes))
+        for c in range(-(-gen.max_steps // k)):
+            now = [s[-1] for s in states]
+            rgb = frames([s.data for s in now], "agentview")["rgb"]
+            proprio = np.stack([np.asarray(s.obs["proprio"], np.float32) for s in now])[:, : rl.proprio_dim]
+            chunk = act(params, jax.numpy.asarray(rgb), text, jax.numpy.asarray(proprio),
+                        jax.random.fold_in(jax.random.fold_in(key, b), c), False)[3]
+            chunk = np.clip(np.asarray(chunk, np.float64), -1.0, 1.0)
+            for i, (task, _, _) in enumerate(group):
+                for j in range(min(k, gen.max_steps - len(actions[i]))):
+                    states[i].append(envs[task].step(states[i][-1], chunk[i, j]))
+                    actions[i].append(chunk[i, j])
+        for i, (task, index, _) in enumerate(group):
+            seen = [s.data for s in states[i][:-1]]
+            out.append({"task": task, "index": index, "actions": np.stack(actions[i]),
+                        "after": np.asarray([float(s.done) for s in states[i][1:]]),
+                        "states": np.stack([datagen.flat_state(d) for d in seen]),
+                        "proprio": np.stack([np.asarray(s.obs["proprio"]) for s in states[i][:-1]]),
+                        "joints": np.stack([np.asarray(d.qpos[:7]) for d in seen]),
+                        **{f"agentview_{n}": v for n, v in frames(seen, "agentview").items()}})
+    return out
+
+
+def test_policy_rollouts_record_what_rendering_every_decision_and_episode_again_recorded(tmp_path):
+    """Each step's frames rendered once for the whole batch and stepping in place record the same episodes,
+    bit for bit, as rendering the batch at each decision and every episode's frames again at the end with pure
+    steps: the same actions, states, success flags and frames (two batches, the second a partial one; a last
+    chunk cut short)."""
+    cfg = sword.get("tiny")
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=3, action_ensemble=False))
+    graphdef, params = build_policy(rl, seed=0)
+    act = make_act_fns(graphdef, rl)
+    gen = datagen.GenDataConfig(out=str(tmp_path / "rollouts.hdf5"), tasks=(0, 3, 5), episodes=1, backend="cpu",
+                                resolution=16, max_steps=8, stop_at_success=False, wrist_camera=False,
+                                overwrite=False, renderer="jax", init_split="train", init_start=1,
+                                init_seed=cfg.sim.init_seed)
+    key = jax.random.key(5)
+    recorded = list(policy_rollouts.record_policy_episodes(act, params, rl, gen, key=key, batch=2))
+    reference = _reference_policy_episodes(act, params, rl, gen, key=key, batch=2)
+    assert len(recorded) == len(reference) == 3
+    for (episode, success), ref in zip(recorded, reference):
+        assert (episode.task_id, episode.init_state_id) == (ref["task"], gen.init_start + ref["index"])
+        assert success == bool(ref["after"].max() > 0)
+        np.testing.assert_array_equal(episode.actions, ref["actions"])
+        np.testing.assert_array_equal(episode.executed_actions, ref["actions"])
+        np.testing.assert_array_equal(episode.rewards, ref["after"])
+        np.testing.assert_array_equal(episode.states, ref["states"])
+        np.testing.assert_array_equal(episode.ee_states, ref["proprio"][:, :6])
+        np.testing.assert_array_equal(episode.gripper_states, ref["proprio"][:, 6:8])
+        np.testing.assert_array_equal(episode.joint_states, ref["joints"])
+        for name in ("agentview_rgb", "agentview_depth", "agentview_seg"):
+            np.testing.assert_array_equal(getattr(episode, name), ref[name], err_msg=name)
+            assert getattr(episode, name).dtype == ref[name].dtype
+    # the episodes differ from one another, so equal lists are not a coincidence of still arms
+    assert len({e.actions.tobytes() for e, _ in recorded}) == 3 and recorded[0][0].agentview_rgb.std() > 0
