@@ -125,7 +125,8 @@ STAGES = [
     Stage("sft_policy", stage_sft_policy, "the supervised (behaviour-cloned) VLA policy", needs=("data",)),
     Stage("policy_data", stage_policy_data, "the supervised policy's own rollouts for the world model (if enabled)",
           needs=("data", "sft_policy")),
-    Stage("vae", stage_vae, "the video VAE (trained from scratch, or official Wan 2.2 weights)", needs=("data",)),
+    Stage("vae", stage_vae, "the video VAE (trained from scratch; or vae.checkpoint: official Wan 2.2 weights, a "
+                            "trained VAE)", needs=("data",)),
     Stage("latents", stage_latents, "encode training episodes and their styled copies to latents",
           needs=("data", "policy_data", "vae")),
     Stage("light_decoder", stage_light_decoder,
