@@ -105,7 +105,7 @@ def generate_policy(out_dir: str, cfg, rl, policy_path: str, tasks: tuple[int, .
                             overwrite=True, renderer="jax", init_split=split, init_start=0,
                             init_seed=cfg.sim.init_seed)
         t0 = time.perf_counter()
-        summaries[name] = write_policy_episodes(gen.out, act, params, rl, gen,
+        summaries[name] = write_policy_episodes(gen.out, lambda: act, params, rl, gen,
                                                 key=stream_key(jax.random.key(cfg.seed), f"bench/{name}"))
         summaries[name]["seconds"] = round(time.perf_counter() - t0, 1)
         print(name, json.dumps(summaries[name]), flush=True)

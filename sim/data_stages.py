@@ -222,7 +222,10 @@ def generate_policy_rollouts(ctx: Context) -> dict:
     """Pipeline stage: ``data.policy_rollouts_per_task`` episodes per task of the supervised policy, as
     long as the world model's expert episodes, from the same training initial states; and
     ``data.heldout_policy_rollouts_per_task`` more from the held-out initial states (those of the held-out
-    expert episodes, first), for the world model's held-out evaluation only (``heldout_path``)."""
+    expert episodes, first), for the world model's held-out evaluation only (``heldout_path``).
+    ``data.policy_rollout_workers`` processes record them (the same files for any number)."""
+    import functools
+
     from sim.datagen import GenDataConfig
     from sim.policy_rollouts import write_policy_episodes
     from sword_jax.rl.env_rollout import make_act_fns
@@ -236,15 +239,16 @@ def generate_policy_rollouts(ctx: Context) -> dict:
         return summary
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params, _ = load_params(ctx.results["sft_policy"]["path"], params, kind="policy")
-    act_fns = make_act_fns(graphdef, cfg.rl)
+    make_act = functools.partial(make_act_fns, graphdef, cfg.rl)  # built where the episodes are recorded
 
     def rollouts(name: str, episodes: int, split: str, stream: str) -> dict:
         gen = GenDataConfig(out=ctx.path("data", name), tasks=tuple(cfg.sim.tasks), episodes=episodes, backend="cpu",
                             resolution=cfg.data.image_size, max_steps=episode_steps(cfg), stop_at_success=False,
                             wrist_camera=False, overwrite=True, renderer="jax", init_split=split, init_start=0,
                             init_seed=cfg.sim.init_seed)
-        made = write_policy_episodes(gen.out, act_fns, params, cfg.rl, gen,
-                                     key=stream_key(jax.random.key(cfg.seed), stream))
+        made = write_policy_episodes(gen.out, make_act, params, cfg.rl, gen,
+                                     key=stream_key(jax.random.key(cfg.seed), stream),
+                                     workers=cfg.data.policy_rollout_workers)
         if ctx.is_main:
             print(f"[policy_data] {made['episodes']} policy episodes from {split} initial states "
                   f"({made['success_rate']:.0%} successful) -> {gen.out}", flush=True)

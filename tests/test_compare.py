@@ -74,6 +74,9 @@ def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
     # A different simulator section shares nothing; a finished stage is never overwritten.
     other_sim = dataclasses.replace(sword, sim=dataclasses.replace(sword.sim, episodes_per_task=3))
     assert compare.adopt_stages(str(tmp_path / "other"), donor, other_sim, sword) == []
+    # how many processes record the policy's rollouts changes no result
+    spread = dataclasses.replace(sword, data=dataclasses.replace(sword.data, policy_rollout_workers=4))
+    assert compare.adopt_stages(str(tmp_path / "spread"), donor, spread, sword) == list(compare.SHAREABLE)
     _write_markers(str(tmp_path / "mine"), ["vae"])
     assert "vae" not in compare.adopt_stages(str(tmp_path / "mine"), donor, sword, sword)
     with open(tmp_path / "mine" / "stages" / "vae.json") as f:

@@ -67,6 +67,7 @@ def test_bad_override_names_the_key(override, needle):
         ("--model.num_heads=3", "num_heads"),
         ("--data.image_size=48", "image_size"),
         ("--eval.horizon_frames=30", "horizon_frames"),
+        ("--data.policy_rollout_workers=0", "data.policy_rollout_workers must be >= 1"),
     ],
 )
 def test_impossible_settings_rejected(override, needle):

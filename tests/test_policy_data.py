@@ -1,7 +1,11 @@
 """The supervised policy's own rollouts as world-model data (sim/policy_rollouts.py)."""
 
 import dataclasses
+import functools
+import multiprocessing
+import os
 
+import h5py
 import jax
 import numpy as np
 import pytest
@@ -26,8 +30,8 @@ def test_policy_rollouts_are_fixed_length_replayable_episodes(tmp_path):
                                 resolution=16, max_steps=10, stop_at_success=False, wrist_camera=False,
                                 overwrite=False, renderer="jax", init_split="train", init_start=0,
                                 init_seed=cfg.sim.init_seed)
-    summary = policy_rollouts.write_policy_episodes(gen.out, make_act_fns(graphdef, rl), params, rl, gen,
-                                                    key=jax.random.key(1))
+    summary = policy_rollouts.write_policy_episodes(gen.out, functools.partial(make_act_fns, graphdef, rl), params, rl,
+                                                    gen, key=jax.random.key(1))
     assert summary["episodes"] == 2
     info, episodes = read_dataset(gen.out)
     assert [e.task_id for e in episodes] == [0, 3] and info.seg_class_names[0] == "background"
@@ -48,7 +52,8 @@ def test_policy_rollouts_are_fixed_length_replayable_episodes(tmp_path):
         np.testing.assert_allclose(np.stack(replayed[:-1]), episode.states, atol=1e-9)
         np.testing.assert_array_equal(np.asarray(done), episode.rewards)
     with pytest.raises(FileExistsError):  # nothing already written is replaced without overwrite
-        policy_rollouts.write_policy_episodes(gen.out, make_act_fns(graphdef, rl), params, rl, gen, key=jax.random.key(1))
+        policy_rollouts.write_policy_episodes(gen.out, functools.partial(make_act_fns, graphdef, rl), params, rl, gen,
+                                              key=jax.random.key(1))
 
 
 def _reference_policy_episodes(act, params, rl, gen, *, key, batch):
@@ -123,3 +128,85 @@ def test_policy_rollouts_record_what_rendering_every_decision_and_episode_again_
             assert getattr(episode, name).dtype == ref[name].dtype
     # the episodes differ from one another, so equal lists are not a coincidence of still arms
     assert len({e.actions.tobytes() for e, _ in recorded}) == 3 and recorded[0][0].agentview_rgb.std() > 0
+
+
+def _tiny_policy(tmp_path, tasks):
+    cfg = sword.get("tiny")
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=3, action_ensemble=False))
+    graphdef, params = build_policy(rl, seed=0)
+    gen = datagen.GenDataConfig(out=str(tmp_path / "rollouts.hdf5"), tasks=tasks, episodes=1, backend="cpu",
+                                resolution=16, max_steps=6, stop_at_success=False, wrist_camera=False,
+                                overwrite=False, renderer="jax", init_split="train", init_start=0,
+                                init_seed=cfg.sim.init_seed)
+    return rl, graphdef, params, gen
+
+
+def _act_in_a_worker_allocating_as_used(graphdef, rl):
+    """``make_act_fns``, checking that a worker process does not preallocate the accelerator."""
+    if multiprocessing.parent_process() is not None:
+        assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    return make_act_fns(graphdef, rl)
+
+
+def _act_refusing_one_episode_batches(graphdef, rl):
+    act = make_act_fns(graphdef, rl)
+
+    def refusing(params, frames, *args):
+        if frames.shape[0] == 1:
+            raise ValueError("a one-episode batch")
+        return act(params, frames, *args)
+
+    return refusing
+
+
+def _file_contents(path):
+    """Every group's and dataset's attributes and every dataset's dtype, shape, filter and bytes, by name."""
+    contents = {}
+
+    def attrs(obj):
+        return {k: np.asarray(v).tobytes() if isinstance(v, np.ndarray) else v for k, v in obj.attrs.items()}
+
+    def visit(name, obj):
+        contents[name] = attrs(obj)
+        if isinstance(obj, h5py.Dataset):
+            contents[name + ":data"] = (obj.dtype.str, obj.shape, obj.compression, obj[()].tobytes())
+
+    with h5py.File(path, "r") as f:
+        contents["/"] = attrs(f)
+        f.visititems(visit)
+    return contents
+
+
+def test_worker_processes_write_the_file_of_one_process(tmp_path):
+    """Two processes recording alternate batches (three of them, the last a partial one) write the same file as
+    one process: every dataset and attribute bit for bit, the episodes in the same order; the same summary."""
+    rl, graphdef, params, gen = _tiny_policy(tmp_path, tasks=(0, 3, 5, 7, 9))
+    make_act = functools.partial(_act_in_a_worker_allocating_as_used, graphdef, rl)
+    paths, summaries = {}, {}
+    for workers in (1, 2):
+        paths[workers] = str(tmp_path / f"workers{workers}.hdf5")
+        summaries[workers] = policy_rollouts.write_policy_episodes(
+            paths[workers], make_act, params, rl, dataclasses.replace(gen, out=paths[workers]),
+            key=jax.random.key(3), batch=2, workers=workers)
+    assert {k: v for k, v in summaries[2].items() if k != "path"} == {
+        k: v for k, v in summaries[1].items() if k != "path"}
+    assert summaries[1]["episodes"] == 5
+    one, two = _file_contents(paths[1]), _file_contents(paths[2])
+    assert list(one) == list(two)
+    for name in one:
+        assert one[name] == two[name], name
+    _, episodes = read_dataset(paths[2])
+    assert [e.task_id for e in episodes] == [0, 3, 5, 7, 9]
+    assert len({e.actions.tobytes() for e in episodes}) == 5  # distinct episodes: the order is checked
+    assert sorted(os.listdir(tmp_path)) == ["workers1.hdf5", "workers2.hdf5"]  # no temporary files left
+
+
+def test_a_failing_worker_fails_the_recording_naming_it_and_leaves_no_files(tmp_path):
+    rl, graphdef, params, gen = _tiny_policy(tmp_path, tasks=(0, 3, 5))
+    with pytest.raises(RuntimeError, match=r"(?s)policy_data worker 1 of 2 .*a one-episode batch"):
+        policy_rollouts.write_policy_episodes(gen.out, functools.partial(_act_refusing_one_episode_batches, graphdef, rl),
+                                              params, rl, gen, key=jax.random.key(3), batch=2, workers=2)
+    assert os.listdir(tmp_path) == []
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        policy_rollouts.write_policy_episodes(gen.out, functools.partial(make_act_fns, graphdef, rl), params, rl, gen,
+                                              key=jax.random.key(3), workers=0)

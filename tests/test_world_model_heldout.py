@@ -213,9 +213,11 @@ def test_the_pipeline_report_says_the_last_measurement_of_every_split():
 
 
 def test_what_the_evaluation_reads_does_not_block_a_resume():
-    """A world-model run resumes with other held-out data or evaluation settings, and from a config.json written
+    """A world-model run resumes with other held-out data or evaluation settings or another number of processes
+    recording the policy's rollouts, and from a config.json written
     before those keys existed; a change to what it trains on is still refused."""
-    now = {"data": {"path": "a.npz", "batch_size": 2, "heldout_path": "h.npz", "heldout_policy_rollouts_per_task": 2},
+    now = {"data": {"path": "a.npz", "batch_size": 2, "heldout_path": "h.npz", "heldout_policy_rollouts_per_task": 2,
+                    "policy_rollout_workers": 4},
            "trainer": {"steps": 9, "learning_rate": 1e-3, "eval_every": 5, "eval_sample_steps": [5, 20]},
            "workdir": "new"}
     older = {"data": {"path": "a.npz", "batch_size": 2}, "trainer": {"steps": 5, "learning_rate": 1e-3},

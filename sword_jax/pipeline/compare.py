@@ -52,6 +52,8 @@ SHAREABLE = {
     "reward_model": ("sim", "data", "rl"),
     "sft_policy": ("sim", "data", "rl"),
 }
+# Settings of those sections that change no result (how the work is spread over processes).
+NO_RESULT_KEYS = {"data": ("policy_rollout_workers",)}
 
 
 def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:
@@ -74,11 +76,16 @@ def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str]
         target = os.path.join(workdir, "stages", f"{stage}.json")
         if os.path.exists(target) or not os.path.exists(source):
             continue
-        if any(mine[section] != theirs[section] for section in SHAREABLE[stage]):
+        if any(_result_settings(mine, section) != _result_settings(theirs, section) for section in SHAREABLE[stage]):
             continue
         shutil.copyfile(source, target)
         adopted.append(stage)
     return adopted
+
+
+def _result_settings(cfg_dict: dict, section: str) -> dict:
+    """``cfg_dict``'s ``section`` less :data:`NO_RESULT_KEYS` (absent from configs saved before they existed)."""
+    return {k: v for k, v in cfg_dict[section].items() if k not in NO_RESULT_KEYS.get(section, ())}
 
 
 COMPARISONS = (

@@ -63,9 +63,10 @@ RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", 
 
 def _comparable(cfg_dict: dict) -> dict:
     trainer = {k: v for k, v in cfg_dict.get("trainer", {}).items() if k not in RESUMABLE_KEYS}
-    # what the held-out evaluation reads changes nothing the model trains on
+    # what the held-out evaluation reads changes nothing the model trains on, nor how many processes record the
+    # policy's rollouts (the same file for any number)
     data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items()
-                if k not in ("heldout_path", "heldout_policy_rollouts_per_task")}
+                if k not in ("heldout_path", "heldout_policy_rollouts_per_task", "policy_rollout_workers")}
     # The mesh may change between runs: checkpoints restore onto any device count.
     return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
 

@@ -45,6 +45,13 @@ class DataConfig:
     data by the pipeline. Expert episodes alone are ~98% successful, and a world model that never saw
     an attempt fail imagines success under any policy (measured: GRPO inside it then drove real success
     down while imagined success rose). 0 = expert episodes only.
+
+    ``policy_rollout_workers``: processes that record those rollouts (and the held-out ones), each a share
+    of the policy's lockstep batches of 32 episodes (worker ``w`` records batches ``w, w + W, ...``, with
+    the same keys): the C engine steps a batch's envs one after the other in one process, so more
+    processes step more batches at once, and compress their frames side by side. The file is the same,
+    bit for bit, for any number; each shares the accelerator (its memory allocated as used, not
+    preallocated). Beyond the number of batches there is nothing left to share. 1 = in the stage's process.
     """
 
     path: str = ""
@@ -62,6 +69,7 @@ class DataConfig:
     # held-out rollouts per task of the supervised policy, from the held-out initial states, for the trainer's
     # held-out evaluation (its "policy" segments: the policy's own actions, never trained on); 0 = none
     heldout_policy_rollouts_per_task: int = 0
+    policy_rollout_workers: int = 1
 
     def validate(self) -> None:
         if (self.episode_frames - 1) % 4 or self.episode_frames < 1:
@@ -83,6 +91,9 @@ class DataConfig:
         if self.heldout_policy_rollouts_per_task < 0:
             raise ValueError("data.heldout_policy_rollouts_per_task must be >= 0, got "
                              f"{self.heldout_policy_rollouts_per_task}")
+        if self.policy_rollout_workers < 1:
+            raise ValueError(f"data.policy_rollout_workers must be >= 1 (1 = in the stage's process), got "
+                             f"{self.policy_rollout_workers}")
 
 
 @dataclasses.dataclass(frozen=True)
