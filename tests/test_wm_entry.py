@@ -109,7 +109,7 @@ def test_a_checkpoint_step_path_and_a_kept_ema_load_the_weights_they_name(tmp_pa
     import configs
     from sword_jax.load import CheckpointError, experiment_world_model, load_world_model_params
 
-    args = ARGS + ["--cache.log_inference_distance=false"]  # what is loaded does not depend on it: a compile less
+    args = ARGS + ["--cache.log_inference_distance=false", "--trainer.eval_every=0"]  # loading depends on neither
     plain = str(tmp_path / "plain")
     train_world_model.main(args + ["--workdir", plain, "--trainer.steps=4", "--trainer.keep_checkpoints=2"])
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1"])
