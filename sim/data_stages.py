@@ -163,8 +163,16 @@ def encode_training_latents(ctx: Context) -> dict:
         actions.append(styled_actions)
     latents = np.concatenate(latents).astype(np.float32)
     actions = np.concatenate(actions).astype(np.float32)
+    # which episodes are the policy's rollouts (1) and which the expert's (0): the raw ones in file order, then
+    # each one's styled copies after it (the trainer measures the policy's training segments apart)
+    from sim.dataset import read_info
+
+    raw = np.concatenate([np.full(read_info(f).num_demos, int(i > 0), np.uint8) for i, f in enumerate(files)])
+    if len(raw) != episodes.num:
+        raise ValueError(f"latents: the files {files} list {len(raw)} episodes, {episodes.num} were read")
+    sources = np.concatenate([raw, np.repeat(raw, copies)])
     path = ctx.path("data", "latents.npz")
-    np.savez(path, latents=latents, actions=actions)
+    np.savez(path, latents=latents, actions=actions, sources=sources)
     # the held-out expert episodes, unstyled, for the world model's held-out evaluation (trainer.eval_every)
     _, held = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
     heldout_path = ctx.path("data", "heldout_latents.npz")
@@ -177,6 +185,7 @@ def encode_training_latents(ctx: Context) -> dict:
                       policy_actions=rolled.actions.astype(np.float32))
     np.savez(heldout_path, **arrays)
     return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num), "files": files,
+            "policy_episodes": int(sources.sum()),
             "styled_copies": copies, "latent_shape": list(latents.shape[1:]), "heldout_path": heldout_path,
             "heldout_episodes": int(held.num),
             **({"heldout_policy_episodes": int(rolled.num)} if policy_held else {})}

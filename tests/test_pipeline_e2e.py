@@ -51,3 +51,5 @@ def test_tiny_pipeline_runs_every_stage_through_grpo_in_the_world_model(tmp_path
     with open(os.path.join(workdir, "world_model", "metrics.jsonl")) as f:
         measured = [r for r in map(json.loads, f) if "eval_policy_loss" in r]
     assert measured and all(r["eval_policy_loss"] > 0 and r["eval_heldout_loss"] > 0 for r in measured)
+    # and on the training episodes that are the policy's rollouts (the latents file's sources)
+    assert all(r["eval_trainpolicy_loss"] > 0 for r in measured) and latents["policy_episodes"] > 0

@@ -117,7 +117,8 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
     monkeypatch.setattr(wm_run, "WorldModel", lambda cfg, *, rngs: MixerWorldModel(cfg.in_dim, cfg.action_dim, rngs=rngs))
     train, held, policy = (data.synthetic_latent_dataset(n, 9, 2, 2, 48, seed=s) for n, s in ((8, 0), (4, 1), (3, 2)))
     paths = {name: str(tmp_path / f"{name}.npz") for name in ("train", "held")}
-    np.savez(paths["train"], latents=train.latents, actions=train.actions)
+    # the last 4 training episodes marked as the policy's rollouts: measured apart as well ("trainpolicy")
+    np.savez(paths["train"], latents=train.latents, actions=train.actions, sources=np.repeat(np.uint8([0, 1]), 4))
     np.savez(paths["held"], latents=held.latents, actions=held.actions, policy_latents=policy.latents,
              policy_actions=policy.actions)
     real = ARGS + [f"--data.path={paths['train']}", f"--data.heldout_path={paths['held']}",
@@ -126,7 +127,8 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
     train_world_model.main(real + ["--workdir", off, "--trainer.steps=5", "--trainer.eval_every=0"])
     train_world_model.main(real + ["--workdir", on, "--trainer.steps=5", "--trainer.eval_every=2"])
     assert ("2 x 2 fixed training segments and as many of 4 held-out episodes and of 3 held-out rollouts of the "
-            "supervised policy") in capsys.readouterr().out
+            "supervised policy; and training segments of the 4 training episodes that are the policy's rollouts"
+            ) in capsys.readouterr().out
     plain, measured = _rows(off), _rows(on)
     names = set(heldout.metric_names((1, 3)))
     assert [sorted(names & set(r)) for r in measured] == [[], sorted(names), [], sorted(names), sorted(names)]
@@ -135,7 +137,7 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
         assert not names & set(a)
     at_2, at_4 = measured[1], measured[3]
     assert all(np.isfinite(at_4[n]) for n in names) and any(at_2[n] != at_4[n] for n in names)
-    assert len({at_4["eval_heldout_loss"], at_4["eval_train_loss"], at_4["eval_policy_loss"]}) == 3
+    assert len({at_4[f"eval_{split}_loss"] for split in heldout.SPLITS}) == 4
     # a resumed run (3 steps, then to 5) measures step 4 and 5 as the uninterrupted one did
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=3", "--trainer.eval_every=2"])
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=5", "--trainer.eval_every=2"])
@@ -165,6 +167,14 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
     splits = wm_run.build_heldout(cfg, False, train)
     assert sorted(splits) == ["heldout", "policy"] and splits["policy"].shape == (3, 9, 2, 2, 48)
     np.testing.assert_array_equal(splits["policy"].actions, train.actions[2:5])
+    np.savez(path, latents=train.latents, actions=train.actions, sources=np.zeros(7, np.uint8))
+    with pytest.raises(ValueError, match="sources must be 8 values of 0 .* got shape \\(7,\\)"):
+        data.load_sources(path, 8)
+    np.savez(path, latents=train.latents, actions=train.actions, sources=np.full(8, 2, np.uint8))
+    with pytest.raises(ValueError, match="sources must be 8 values of 0"):
+        data.load_sources(path, 8)
+    np.savez(path, latents=train.latents, actions=train.actions)
+    assert data.load_sources(path, 8) is None
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--mesh.data=2", "--mesh.tensor=4"])
     assert wm_run.build_heldout(cfg, False, train) == {}
     synthetic = wm_run.build_heldout(cfg, True, train)  # synthetic: another seed's
@@ -188,10 +198,22 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
                                   buffers=buffers)
     two = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=held, **common)
     three = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=held, policy=policy, **common)
-    assert three.names == heldout.metric_names((FLOW.sample_steps,))
+    assert three.names == heldout.metric_names((FLOW.sample_steps,), ("train", "heldout", "policy"))
     without, beside = ({k: float(v) for k, v in e(state).items()} for e in (two, three))
     assert {k: beside[k] for k in without} == without
     assert all(np.isfinite(beside[k]) for k in beside) and beside["eval_policy_loss"] != beside["eval_heldout_loss"]
+    # and the policy's training rollouts (the training episodes the latents file's sources mark): segments of those
+    # episodes alone, measured after the others, whose values stay as they were
+    four = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=held, policy=policy,
+                                    train_policy=np.array([5, 6, 7]), **common)
+    assert four.names == heldout.metric_names((FLOW.sample_steps,), heldout.SPLITS)
+    assert {int(e) for b in four.batches["trainpolicy"] for e in np.asarray(b["episode"])} <= {5, 6, 7}
+    everything = {k: float(v) for k, v in four(state).items()}
+    assert {k: everything[k] for k in beside} == beside and np.isfinite(everything["eval_trainpolicy_loss"])
+    assert everything["eval_trainpolicy_loss"] != everything["eval_train_loss"]
+    with pytest.raises(ValueError, match=r"train_policy indices must lie in \[0, 8\)"):
+        heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, train_policy=np.array([8]),
+                                 **common)
 
 
 def test_the_pipeline_report_says_the_last_measurement_of_every_split():
@@ -209,6 +231,12 @@ def test_the_pipeline_report_says_the_last_measurement_of_every_split():
         " training; the sampler's error at 5 Euler steps 0.3 held-out against 0.4 held-out policy rollouts against"
         " 0.2 training; the sampler's error at 20 Euler steps 0.25 held-out against 0.35 held-out policy rollouts"
         " against 0.1 training.")
+    final.update(eval_trainpolicy_loss=0.07, eval_trainpolicy_sample_error_5=0.22,
+                 eval_trainpolicy_sample_error_20=0.12)
+    assert _measured_segments(final).startswith(
+        " On fixed segments at the end, flow loss 0.09 held-out against 0.12 held-out policy rollouts against 0.07"
+        " training policy rollouts against 0.05 training; the sampler's error at 5 Euler steps 0.3 held-out against"
+        " 0.4 held-out policy rollouts against 0.22 training policy rollouts against 0.2 training;")
     assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing
 
 

@@ -22,8 +22,9 @@ def _measured_segments(final: dict) -> str:
     """The world model's last measurement of fixed segments (``trainer.eval_every``) as a sentence, or ""."""
     if "eval_train_loss" not in final:
         return ""
-    splits = [s for s in ("heldout", "policy", "train") if f"eval_{s}_loss" in final]
-    names = {"heldout": "held-out", "policy": "held-out policy rollouts", "train": "training"}
+    splits = [s for s in ("heldout", "policy", "trainpolicy", "train") if f"eval_{s}_loss" in final]
+    names = {"heldout": "held-out", "policy": "held-out policy rollouts", "trainpolicy": "training policy rollouts",
+             "train": "training"}
     text = " On fixed segments at the end, flow loss " + " against ".join(
         f"{_fmt(final[f'eval_{s}_loss'])} {names[s]}" for s in splits)
     steps = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_sample_error_"))

@@ -123,6 +123,10 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     dataset = build_dataset(cfg, synthetic)
     held_splits = build_heldout(cfg, synthetic, dataset) if cfg.trainer.eval_every else {}
     held, policy_held = held_splits.get("heldout"), held_splits.get("policy")
+    # the training episodes that are the supervised policy's rollouts (the latents file's sources), measured apart
+    sources = (None if synthetic or not cfg.trainer.eval_every or not cfg.data.path
+               else data.load_sources(cfg.data.path, dataset.shape[0]))
+    train_policy = None if sources is None else np.flatnonzero(sources == 1)
     is_main = jax.process_index() == 0
     if is_main:
         print(f"[train_world_model] {cfg.name}: mesh {dict(mesh.shape)}, dataset latents {dataset.shape}, "
@@ -148,10 +152,12 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
               + (f" and as many of {held.shape[0]} held-out episodes" if held is not None else
                  "; no held-out episodes (data.heldout_path is not set)")
               + (f" and of {policy_held.shape[0]} held-out rollouts of the supervised policy"
-                 if policy_held is not None else ""))
+                 if policy_held is not None else "")
+              + (f"; and training segments of the {len(train_policy)} training episodes that are the policy's "
+                 "rollouts" if train_policy is not None and len(train_policy) else ""))
     evaluator = None if not cfg.trainer.eval_every else heldout.HeldOutEvaluator(
         graphdef, cfg.flow, cfg.trainer, train=dataset, heldout=held, loader=loader, num_context=num_context,
-        num_future=num_future, mesh=mesh, rules=rules, seed=cfg.seed, policy=policy_held)
+        num_future=num_future, mesh=mesh, rules=rules, seed=cfg.seed, policy=policy_held, train_policy=train_policy)
     root_key = jax.random.key(cfg.seed)  # the config check above pins the seed of a resumed run
     rng_root = np.asarray(jax.random.key_data(root_key)).tolist()
     logger = checkpoint.MetricLogger(cfg.trainer.steps, cfg.trainer.log_every,

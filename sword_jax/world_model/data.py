@@ -100,6 +100,22 @@ def load_latent_dataset(path: str) -> LatentDataset:
     return LatentDataset(latents.astype(np.float32), actions.astype(np.float32))
 
 
+def load_sources(path: str, num_episodes: int) -> np.ndarray | None:
+    """The ``sources`` array of a latents ``.npz`` (one entry per episode: 0 the expert's, 1 a rollout of the
+    supervised policy or its styled copy, as the pipeline's latents stage writes it), or None where the file
+    holds none."""
+    if not path.endswith(".npz"):
+        return None
+    with np.load(path) as data:
+        if "sources" not in data.files:
+            return None
+        sources = np.asarray(data["sources"])
+    if sources.shape != (num_episodes,) or not np.isin(sources, (0, 1)).all():
+        raise ValueError(f"latent dataset: {path}'s sources must be {num_episodes} values of 0 (expert) or 1 "
+                         f"(policy rollout), one per episode; got shape {sources.shape}")
+    return sources
+
+
 # the held-out file's optional second split: held-out rollouts of the supervised policy, under these arrays
 POLICY_ARRAYS = ("policy_latents", "policy_actions")
 

@@ -22,6 +22,9 @@ A third split, ``policy``, where the held-out file holds it: held-out rollouts o
 held-out initial states (``data.heldout_policy_rollouts_per_task``), the same scenes as the expert's held-out
 episodes acted on by the policy's own sampled actions. It measures what the expert's segments cannot: how well the
 model predicts the consequences of the actions a policy takes (GRPO's imagined rollouts are the policy's).
+A fourth, ``trainpolicy``, where the training data says which of its episodes are the policy's rollouts
+(``sources`` in the latents file): training segments of those alone. Against ``policy`` it separates a model
+that has learned what the policy's actions do from one that has learned the rollouts it saw.
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ from sword_jax.world_model.config import FlowConfig, TrainerConfig
 from sword_jax.world_model.data import LatentDataset, SegmentLoader
 from sword_jax.world_model.train_state import TrainState
 
-SPLITS = ("train", "heldout", "policy")
+# "trainpolicy" last: the earlier splits keep their batches' noise keys whether or not it is measured
+SPLITS = ("train", "heldout", "policy", "trainpolicy")
 # the streams of the fixed segments (numpy) and of the fixed noise (JAX) under the run's seed
 SEGMENT_STREAM = "world_model/eval_segments"
 NOISE_STREAM = "world_model/eval_noise"
@@ -62,14 +66,17 @@ def metric_names(steps: tuple[int, ...], splits: tuple[str, ...] = SPLITS) -> tu
 
 
 def fixed_segments(dataset: LatentDataset, count: int, num_context: int, num_future: int,
-                   seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(episodes, starts)`` of ``count`` segments drawn uniformly from ``dataset``, a function of ``seed``."""
+                   seed: int, among: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(episodes, starts)`` of ``count`` segments drawn uniformly from ``dataset`` (from its episodes ``among``
+    where given), a function of ``seed``."""
     num_episodes, num_latents = dataset.shape[:2]
     last_start = num_latents - num_context - num_future
     if last_start < 1:
         raise ValueError(f"held-out evaluation: episodes of {num_latents} latents hold no segment of 1 + "
                          f"{num_context} + {num_future}")
     rng = np.random.default_rng(seed)
+    if among is not None:
+        return np.asarray(among)[rng.integers(0, len(among), count)], rng.integers(1, last_start + 1, count)
     return rng.integers(0, num_episodes, count), rng.integers(1, last_start + 1, count)
 
 
@@ -118,6 +125,9 @@ class HeldOutEvaluator:
         episodes (None) only the training segments are measured.
       policy: held-out rollouts of the supervised policy (the same layout), measured as the ``policy`` split;
         None: no such split.
+      train_policy: the indices of the training episodes that are the supervised policy's rollouts (or their
+        styled copies), measured as the ``trainpolicy`` split: beside ``policy`` it says whether the model
+        predicts the policy's rollouts it trained on better than unseen ones. None or empty: no such split.
       loader: the run's segment loader (its shardings and the rows this process holds).
       num_context, num_future: latents per segment.
       mesh, rules: where the model is.
@@ -127,8 +137,15 @@ class HeldOutEvaluator:
     def __init__(self, graphdef: nnx.GraphDef, flow_cfg: FlowConfig, trainer_cfg: TrainerConfig, *,
                  train: LatentDataset, heldout: LatentDataset | None, loader: SegmentLoader, num_context: int,
                  num_future: int, mesh: Mesh, rules=shd.DEFAULT_RULES, seed: int,
-                 policy: LatentDataset | None = None):
-        datasets = {"train": train, "heldout": heldout, "policy": policy}
+                 policy: LatentDataset | None = None, train_policy: np.ndarray | None = None):
+        among = {}
+        if train_policy is not None and len(train_policy):
+            among["trainpolicy"] = np.asarray(train_policy)
+            if among["trainpolicy"].min() < 0 or among["trainpolicy"].max() >= train.shape[0]:
+                raise ValueError(f"held-out evaluation: train_policy indices must lie in [0, {train.shape[0]}), "
+                                 f"the training episodes")
+        datasets = {"train": train, "heldout": heldout, "policy": policy,
+                    "trainpolicy": train if among else None}
         for split, dataset in datasets.items():
             if dataset is not None and (dataset.shape[1:] != train.shape[1:]
                                         or dataset.actions.shape[1:] != train.actions.shape[1:]):
@@ -145,7 +162,7 @@ class HeldOutEvaluator:
         for split in splits:
             dataset = datasets[split]
             episodes, starts = fixed_segments(dataset, count, num_context, num_future,
-                                              stream_seed(seed, f"{SEGMENT_STREAM}/{split}"))
+                                              stream_seed(seed, f"{SEGMENT_STREAM}/{split}"), among.get(split))
             self.batches[split] = [
                 loader.place(dataset.segment(episodes[i:i + batch_size][loader.rows],
                                              starts[i:i + batch_size][loader.rows], num_context, num_future))
