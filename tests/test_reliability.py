@@ -13,7 +13,6 @@ import sys
 import time
 
 import numpy as np
-import pytest
 
 from tests.conftest import FAST_COMPILE, REPO
 from tests.support.checkpoints import assert_same_final_checkpoint, final_arrays

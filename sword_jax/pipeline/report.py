@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import html
-import json
 import os
 import shutil
 
@@ -89,7 +88,7 @@ def write(ctx: Context) -> dict:
     evaluation = results.get("evaluate", {})
     if evaluation:
         lines += ["## Long-horizon evaluation (LIBERO-Original / LIBERO-Mixed)", "",
-                  f"Full evaluation report with plots, strips and videos: [eval/report.md](eval/report.md).", ""]
+                  "Full evaluation report with plots, strips and videos: [eval/report.md](eval/report.md).", ""]
         lines += _metric_tables(evaluation.get("metrics", {}))
     policy = results.get("policy", {})
     if policy:
