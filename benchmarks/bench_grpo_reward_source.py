@@ -729,6 +729,8 @@ def world_model_figure(metrics: str, path: str, title: str = "") -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from sword_jax.world_model.heldout import SPLIT_LABELS as labels
+
     try:
         with open(metrics) as f:
             logged = [json.loads(line) for line in f if line.strip()]
@@ -745,8 +747,6 @@ def world_model_figure(metrics: str, path: str, title: str = "") -> dict:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     axes[0].plot(series["steps"], series["loss"], lw=0.6, alpha=0.5, color="0.5", label="training batches (logged)")
     splits = sorted({name.split("_")[1] for name in names})
-    labels = {"train": "training", "heldout": "held-out expert", "policy": "held-out policy",  # heldout.SPLITS
-              "trainpolicy": "training policy"}
     for i, split in enumerate(splits):
         colour = f"C{i}"
         if f"eval_{split}_loss" in series:

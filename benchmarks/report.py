@@ -1172,8 +1172,8 @@ def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tu
         logged = [json.loads(line) for line in f if line.strip()]
     measured = {r["step"]: r for r in logged if "eval_heldout_loss" in r}
     counts = sorted({int(k.rsplit("_", 1)[1]) for r in measured.values() for k in r if "_sample_error_" in k})
-    labels = {"train": "training", "heldout": "held-out expert", "policy": "held-out policy",  # heldout.SPLITS
-              "trainpolicy": "training policy"}
+    from sword_jax.world_model.heldout import SPLIT_LABELS as labels
+
     splits = [split for split in labels if f"eval_{split}_loss" in measured[steps[-1]]]
     losses = [(f"eval_{split}_loss", f"{labels[split]} segments") for split in splits]
     columns = losses + [(f"eval_{split}_sample_error_{n}", f"{labels[split]} segments, {n} Euler steps")

@@ -15,6 +15,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from sword_jax.world_model.config import DataConfig
+
 
 # psnr / ssim need no network weights; latent_mse is the world model's error before decoding (no VAE
 # error in it), probe_ee_cm the state probe's end-effector error on predicted frames (action following)
@@ -53,7 +55,7 @@ SHAREABLE = {
     "sft_policy": ("sim", "data", "rl"),
 }
 # Settings of those sections that change no result (how the work is spread over processes).
-NO_RESULT_KEYS = {"data": ("policy_rollout_workers",)}
+NO_RESULT_KEYS = {"data": DataConfig.result_free_fields}
 
 
 def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:

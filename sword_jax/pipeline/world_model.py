@@ -32,6 +32,7 @@ from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
 from sword_jax.train_loop import differing_keys, run_steps
 from sword_jax.world_model import data, heldout, train_state, train_step
+from sword_jax.world_model.config import DataConfig
 
 
 def latent_grid(cfg: ExperimentConfig) -> tuple[int, int, int, int]:
@@ -66,7 +67,7 @@ def _comparable(cfg_dict: dict) -> dict:
     # what the held-out evaluation reads changes nothing the model trains on, nor how many processes record the
     # policy's rollouts (the same file for any number)
     data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items()
-                if k not in ("heldout_path", "heldout_policy_rollouts_per_task", "policy_rollout_workers")}
+                if k not in ("heldout_path", "heldout_policy_rollouts_per_task", *DataConfig.result_free_fields)}
     # The mesh may change between runs: checkpoints restore onto any device count.
     return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
 

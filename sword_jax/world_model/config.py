@@ -1,6 +1,7 @@
 """Flow-matching, data and trainer sections of the experiment config (owned by sword_jax.world_model)."""
 
 import dataclasses
+from typing import ClassVar
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +71,9 @@ class DataConfig:
     # held-out evaluation (its "policy" segments: the policy's own actions, never trained on); 0 = none
     heldout_policy_rollouts_per_task: int = 0
     policy_rollout_workers: int = 1
+    # settings that change no result (how the work is spread over processes): a run resumes, and a stage is
+    # reused, whatever their values
+    result_free_fields: ClassVar[tuple[str, ...]] = ("policy_rollout_workers",)
 
     def validate(self) -> None:
         if (self.episode_frames - 1) % 4 or self.episode_frames < 1:

@@ -48,6 +48,9 @@ from sword_jax.world_model.train_state import TrainState
 
 # "trainpolicy" last: the earlier splits keep their batches' noise keys whether or not it is measured
 SPLITS = ("train", "heldout", "policy", "trainpolicy")
+# what tables and figures call each split
+SPLIT_LABELS = {"train": "training", "heldout": "held-out expert", "policy": "held-out policy",
+                "trainpolicy": "training policy"}
 # the streams of the fixed segments (numpy) and of the fixed noise (JAX) under the run's seed
 SEGMENT_STREAM = "world_model/eval_segments"
 NOISE_STREAM = "world_model/eval_noise"
@@ -75,9 +78,9 @@ def fixed_segments(dataset: LatentDataset, count: int, num_context: int, num_fut
         raise ValueError(f"held-out evaluation: episodes of {num_latents} latents hold no segment of 1 + "
                          f"{num_context} + {num_future}")
     rng = np.random.default_rng(seed)
-    if among is not None:
-        return np.asarray(among)[rng.integers(0, len(among), count)], rng.integers(1, last_start + 1, count)
-    return rng.integers(0, num_episodes, count), rng.integers(1, last_start + 1, count)
+    episodes = (rng.integers(0, num_episodes, count) if among is None
+                else np.asarray(among)[rng.integers(0, len(among), count)])
+    return episodes, rng.integers(1, last_start + 1, count)
 
 
 def quantile_sigmas(batch: int, cfg: FlowConfig) -> jax.Array:
