@@ -4,21 +4,12 @@ import json
 import os
 import shutil
 
-import jax
-import numpy as np
 import pytest
 
 import sword_jax
 from sword_jax import bundle
+from tests.support.checkpoints import trees_equal
 from train import bundle as bundle_cli
-
-
-def _equal(a, b):
-    """Two pytrees of arrays bit-identical: the same structure, shapes, dtypes and values."""
-    flat_a, flat_b = jax.tree.leaves_with_path(a), jax.tree.leaves_with_path(b)
-    return [p for p, _ in flat_a] == [p for p, _ in flat_b] and all(
-        np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(np.asarray(x), np.asarray(y))
-        for (_, x), (_, y) in zip(flat_a, flat_b, strict=True))
 
 
 def _reward(run):
@@ -52,7 +43,7 @@ def test_a_bundle_moves_the_inference_weights_in_checked_parts_and_refuses_damag
     assert b.loaded_from.step == a.loaded_from.step == manifest["world_model"]["step"]
     for x, y in ((a.world_model_params, b.world_model_params), (a.vae_params, b.vae_params),
                  (a.reward_model.params, b.reward_model.params)):
-        assert _equal(x, y)
+        assert trees_equal(x, y)
     with open(os.path.join(dest, bundle.MANIFEST)) as f:
         assert json.load(f) == manifest  # where the weights came from, kept beside them
     with open(os.path.join(dest, "world_model", "config.json")) as f:

@@ -216,6 +216,7 @@ def test_a_trained_vae_folder_is_reused_in_place_of_training(tiny_run, tmp_path)
     import configs
     from sword_jax import load
     from sword_jax.checkpoint import CheckpointError, Checkpointer
+    from tests.support.checkpoints import trees_equal
     from train import train_vae
 
     source = os.path.join(tiny_run, "vae_run")
@@ -226,7 +227,7 @@ def test_a_trained_vae_folder_is_reused_in_place_of_training(tiny_run, tmp_path)
     want = nnx.to_pure_dict(want)
     for cfg, path in ((vae_cfg, str(tmp_path / "a" / "vae")), (dataclasses.replace(vae_cfg, checkpoint=source), "")):
         _, got = load.load_vae_params(cfg, path)
-        assert jax.tree.all(jax.tree.map(np.array_equal, want, nnx.to_pure_dict(got)))
+        assert trees_equal(want, nnx.to_pure_dict(got))
     # another VAE where this run's own goes: refused, left as it was
     other = tmp_path / "b" / "vae"
     with Checkpointer(str(other), max_to_keep=1) as writer:

@@ -1,12 +1,22 @@
-"""Reading a finished run's checkpoint back as flat numpy arrays, on whatever devices this process has."""
+"""Reading a finished run's checkpoint back as flat numpy arrays, on whatever devices this process has; and
+comparing restored weights bit for bit."""
 
 from __future__ import annotations
 
 import os
 
+import jax
 import numpy as np
 
 from sword_jax.checkpoint import read_arrays
+
+
+def trees_equal(a, b) -> bool:
+    """Two pytrees of arrays bit-identical: the same structure, shapes, dtypes and values."""
+    flat_a, flat_b = jax.tree.leaves_with_path(a), jax.tree.leaves_with_path(b)
+    return [p for p, _ in flat_a] == [p for p, _ in flat_b] and all(
+        np.asarray(x).dtype == np.asarray(y).dtype and np.array_equal(np.asarray(x), np.asarray(y))
+        for (_, x), (_, y) in zip(flat_a, flat_b, strict=True))
 
 
 def final_arrays(workdir: str) -> tuple[dict[str, np.ndarray], dict]:
