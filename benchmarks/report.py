@@ -1204,6 +1204,38 @@ def world_model_policy_split() -> str:
     return world_model_heldout(WORLD_MODEL_POLICY_SPLIT)
 
 
+# the same recipe with 100 rollouts of the supervised policy per task in the world model's data instead of 20
+WORLD_MODEL_POLICY_SCALING = (WORLD_MODEL_POLICY_SPLIT, ("policy", "world_model_policy_rollouts_100_30k_small_h200"))
+
+
+def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODEL_POLICY_SCALING,
+                               steps: tuple[int, ...] = (5000, 10000, 20000, 30000), euler: int = 5) -> str:
+    """The world models of ``records`` (each ``pipeline/config.json`` and ``pipeline/world_model/metrics.jsonl``),
+    trained alike but on different numbers of the supervised policy's rollouts per task: per record and step of
+    ``steps``, the sampler's error (``euler`` Euler steps, true context) per split measured, and the held-out policy
+    error over the held-out expert one and over the training policy one. A split a record did not measure reads
+    "not measured"."""
+    from sword_jax.world_model.heldout import SPLIT_LABELS as labels
+
+    splits = ("heldout", "policy", "trainpolicy", "train")
+    rows = []
+    for record in records:
+        path = os.path.join(RESULTS_DIR, *record, "pipeline")
+        with open(os.path.join(path, "config.json")) as f:
+            per_task = json.load(f)["data"]["policy_rollouts_per_task"]
+        with open(os.path.join(path, "world_model", "metrics.jsonl")) as f:
+            measured = {r["step"]: r for r in map(json.loads, filter(str.strip, f)) if "eval_heldout_loss" in r}
+        for step in steps:
+            error = {s: measured[step].get(f"eval_{s}_sample_error_{euler}") for s in splits}
+            ratio = lambda a, b: "not measured" if a is None or b is None else f"{a / b:.2f}"  # noqa: E731
+            rows.append([str(per_task), f"{step:,}",
+                         *("not measured" if error[s] is None else f"{error[s]:.4f}" for s in splits),
+                         ratio(error["policy"], error["heldout"]), ratio(error["policy"], error["trainpolicy"])])
+    return _table(["policy rollouts per task", "step",
+                   *(f"sample error: {labels[s]} segments, {euler} Euler steps" for s in splits),
+                   f"{labels['policy']} / {labels['heldout']}", f"{labels['policy']} / {labels['trainpolicy']}"], rows)
+
+
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
 # 8- and 12-decision ones
 FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
@@ -1462,6 +1494,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-length": grpo_reward_source_length,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
+    "world-model-policy-scaling": world_model_policy_scaling,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,

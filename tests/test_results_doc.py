@@ -259,3 +259,26 @@ def test_the_held_out_table_reads_every_split_the_trainer_measured(tmp_path, mon
                                           "fixed-noise loss: held-out policy segments"]
     assert table[3] == "| 200 | 1.0000 | 0.1000 | 0.2000 | 0.4000 | 0.2000 | 0.4000 | 0.1000 |"
     assert table[4] == "| 100 -> 200 | +0% | -50% | -50% | -50% | -50% | -50% | -50% |"
+
+
+def test_the_scaling_table_compares_runs_by_their_policy_rollouts_and_leaves_unmeasured_splits_named(
+        tmp_path, monkeypatch):
+    """world-model-policy-scaling: one row per run and step, the run named by its config's policy rollouts per
+    task; the held-out policy error over the held-out expert one and over the training policy one; a run that did
+    not measure the training policy split says so rather than a number."""
+    for name, per_task, splits in (("a", 20, ("train", "heldout", "policy")),
+                                   ("b", 100, ("train", "heldout", "policy", "trainpolicy"))):
+        folder = tmp_path / "policy" / name / "pipeline"
+        (folder / "world_model").mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps({"data": {"policy_rollouts_per_task": per_task}}))
+        base = {"train": 0.1, "heldout": 0.2, "policy": 0.4, "trainpolicy": 0.25}
+        rows = [{"step": 10, "loss": 1.0}]
+        rows += [{"step": s, "eval_heldout_loss": 1.0, **{f"eval_{k}_sample_error_5": base[k] / (s // 100)
+                                                          for k in splits}} for s in (100, 200)]
+        (folder / "world_model" / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.world_model_policy_scaling((("policy", "a"), ("policy", "b")), (100, 200)).splitlines()
+    assert table[0].split(" | ")[-2:] == ["held-out policy / held-out expert", "held-out policy / training policy |"]
+    assert table[2] == "| 20 | 100 | 0.2000 | 0.4000 | not measured | 0.1000 | 2.00 | not measured |"
+    assert table[5] == "| 100 | 200 | 0.1000 | 0.2000 | 0.1250 | 0.0500 | 2.00 | 1.60 |"
+    assert len(table) == 6
