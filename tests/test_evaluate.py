@@ -109,6 +109,9 @@ def test_bootstrap_interval_matches_the_standard_error_and_narrows_with_episodes
     np.testing.assert_array_equal(one.ci_low, one.mean)
 
 
+# An equivalence of two ways to compute the same numbers (18 s on 2 cores); the default run scores through the
+# shared reference in test_harness_and_report_rank_models_and_write_files.
+@pytest.mark.slow
 def test_shared_reference_gives_the_same_numbers_as_scoring_alone():
     """Ground-truth flows and features computed once per split (evaluate_videos) change no number: every
     metric and curve equals scoring each model on its own, and the FID/FVD curves equal Frechet distances

@@ -120,6 +120,9 @@ def _toy_cfg(max_chunks=3, **grpo_kw):
                     grpo=GRPOConfig(**grpo_cfg), imagined=ImaginedConfig(max_chunks=max_chunks))
 
 
+# A learning property (35 s on 2 cores); the default run keeps GRPO's learning in tests/test_rl_policy_learning.py
+# (the ground-truth update raises the success rate on MuJoCo) and its update rules in the designed-batch tests here.
+@pytest.mark.slow
 def test_grpo_improves_policy_on_toy_simulator():
     """The toy reward depends on the action (move toward the text's goal): GRPO must raise it. The step runs
     with rl.imagined.confirm_success: the toy world is noiseless, so a second imagination confirms every

@@ -14,6 +14,9 @@ from sword_jax.metrics.suite import MetricSuite
 from tests.support.videos import panning_videos
 
 
+# A learning property (17 s on 2 cores); the default run trains, resumes and refuses probes in
+# test_probe_training_resumes_exactly_and_refuses_another_probe_s_checkpoint.
+@pytest.mark.slow
 def test_probe_recovers_state_better_than_a_constant(tmp_path):
     from sim.dataset import read_dataset
     from sim.probe_targets import episode_targets

@@ -436,7 +436,7 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
 
 
 def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tmp_path, monkeypatch):
-    """Tiny end to end (about 20 s): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4 actions from rest."""
+    """Tiny end to end (about 30 s on 2 cores): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4 actions from rest."""
     import configs
     from sim import grpo_env
 
@@ -449,6 +449,7 @@ def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tm
 
     monkeypatch.setattr(grpo_env, "LockstepEnvs", Recorded)
     cfg = configs.get("sword:tiny")
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, max_steps=16))  # short evaluation episodes
     rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=1, eval_every=1),
                              imagined=dataclasses.replace(cfg.rl.imagined, max_chunks=2),
                              env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False, proprio="missing",

@@ -100,6 +100,9 @@ def test_fixed_length_episodes_keep_moving_after_success(tmp_path):
     assert near_identical_share(padded) > 0.5
 
 
+# A property of the expert's episodes over several tasks (12 s on 2 cores); the default run generates data in
+# test_parallel_generation_writes_the_same_file and test_fixed_length_episodes_keep_moving_after_success.
+@pytest.mark.slow
 def test_world_model_data_has_few_near_identical_frames_on_several_tasks(tmp_path):
     """Issue 18: the expert keeps the picture moving while the gripper acts (pipeline renderer, 32 px).
 

@@ -16,6 +16,9 @@ def test_moving_squares_in_range_and_moving():
     assert float(np.abs(np.asarray(video[:, 0]) - np.asarray(video[:, 4])).max()) > 0.1
 
 
+# A learning property (19 s on 2 cores); the default run trains the VAE in
+# test_lpips_perceptual_loss_uses_published_weights_and_trains_the_reconstruction.
+@pytest.mark.slow
 def test_training_loss_falls():
     cfg = tiny_config(z_dim=8, learning_rate=3e-3, kl_weight=1e-4)
     graphdef, state = train.init_train_state(cfg, key=jax.random.key(0))

@@ -76,6 +76,9 @@ def test_decision_samples_label_every_valid_decision_with_its_episode_outcome():
         decision_samples(frames, np.zeros_like(valid), tokens, np.array([True, False]))
 
 
+# A learning property (11 s on 2 cores); the default run fits the value in
+# test_a_runner_without_a_value_fits_it_but_pays_success_alone_and_branches_where_its_env_snapshots.
+@pytest.mark.slow
 def test_fit_value_learns_what_the_frame_and_the_instruction_say_together():
     """Designed data: the episode succeeds when the frame is bright for instruction A and dark for instruction B,
     so neither the frame nor the instruction alone predicts it; held-out Brier far below the constant's."""
