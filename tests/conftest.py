@@ -150,7 +150,7 @@ def _start_tiny_run(root) -> None:
 LONG_FIRST = ("test_multihost.py::", "test_wm_entry.py::test_a_checkpoint_step_path",
               "test_reliability.py::test_sigkill", "test_sim_mjx_batch.py::test_mjx_episodes_continue",
               "test_sim_agreement.py::test_ground_truth_grpo_from_rest",
-              "test_grpo.py::test_grpo_improves_policy_on_toy_simulator", "test_sim_render_static.py::",
+              "test_imagined_check.py::test_an_executed_step", "test_sim_render_static.py::",
               "test_rl_policy_learning.py::test_grpo_against_the_mujoco",
               "test_bench_multi_gpu.py::test_small_rows_of_every_kind", "test_bench_multi_gpu.py::test_sweep_rows",
               # the longest of those on the tiny run, first among them
