@@ -1218,6 +1218,8 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
     from sword_jax.world_model.heldout import SPLIT_LABELS as labels
 
     splits = ("heldout", "policy", "trainpolicy", "train")
+    unmeasured = "not measured"
+    ratio = lambda a, b: unmeasured if a is None or b is None else f"{a / b:.2f}"  # noqa: E731
     rows = []
     for record in records:
         path = os.path.join(RESULTS_DIR, *record, "pipeline")
@@ -1227,9 +1229,8 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
             measured = {r["step"]: r for r in map(json.loads, filter(str.strip, f)) if "eval_heldout_loss" in r}
         for step in steps:
             error = {s: measured[step].get(f"eval_{s}_sample_error_{euler}") for s in splits}
-            ratio = lambda a, b: "not measured" if a is None or b is None else f"{a / b:.2f}"  # noqa: E731
             rows.append([str(per_task), f"{step:,}",
-                         *("not measured" if error[s] is None else f"{error[s]:.4f}" for s in splits),
+                         *(unmeasured if error[s] is None else f"{error[s]:.4f}" for s in splits),
                          ratio(error["policy"], error["heldout"]), ratio(error["policy"], error["trainpolicy"])])
     return _table(["policy rollouts per task", "step",
                    *(f"sample error: {labels[s]} segments, {euler} Euler steps" for s in splits),

@@ -104,35 +104,30 @@ def test_a_step_that_retraces_past_the_entry_bound_stops_the_run(tmp_path, monke
 def test_a_checkpoint_step_path_and_a_kept_ema_load_the_weights_they_name(tmp_path):
     """``--world-model <workdir>/checkpoints/<step>`` (GRPO, SFT on imagined frames) loads that step, not the newest;
     with trainer.ema_decay > 0 the saved EMA weights are what the learned simulator and every evaluation load
-    (``experiment_world_model``), ``use_ema=False`` gives the trained weights, and a run without an EMA loads
-    those. (Two runs serve both, to train as few as possible.)"""
+    (``experiment_world_model``), ``use_ema=False`` gives the trained weights. (One run serves both, to train as
+    little as possible; a run without an EMA: the next test.)"""
     import configs
     from sword_jax.load import CheckpointError, experiment_world_model, load_world_model_params
 
     args = ARGS + ["--cache.log_inference_distance=false", "--trainer.eval_every=0"]  # loading depends on neither
-    plain = str(tmp_path / "plain")
-    train_world_model.main(args + ["--workdir", plain, "--trainer.steps=4", "--trainer.keep_checkpoints=2"])
-    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1"])
-    newest = _leaves(experiment_world_model(cfg, plain)[1])
-    at_2 = _leaves(experiment_world_model(cfg, os.path.join(plain, "checkpoints", "2"))[1])
-    saved_2 = _leaves(load_world_model_params(cfg.model, os.path.join(plain, "checkpoints"), step=2)[1])
-    assert len(at_2) == len(newest) == len(saved_2) and any(not np.array_equal(a, b) for a, b in zip(at_2, newest))
-    for a, b in zip(at_2, saved_2):
-        np.testing.assert_array_equal(a, b)
-    with pytest.raises(CheckpointError, match="does not exist"):
-        experiment_world_model(cfg, os.path.join(plain, "checkpoints", "3"))
-    # a run without an EMA: the trained weights, whatever the loading config's ema_decay
-    ema_cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1", "--trainer.ema_decay=0.5"])
-    assert _params_at(plain, 4).get("ema_params") is None
-    for a, b in zip(_leaves(experiment_world_model(ema_cfg, plain)[1][0]), _leaves(_params_at(plain, 4)["params"])):
-        np.testing.assert_array_equal(a, b)
-
     workdir = str(tmp_path / "ema")
-    train_world_model.main(args + ["--workdir", workdir, "--trainer.steps=3", "--trainer.ema_decay=0.5"])
-    state = _params_at(workdir, 3)
-    loaded = experiment_world_model(ema_cfg, workdir)[1][0]
-    ema, params = (load_world_model_params(ema_cfg.model, os.path.join(workdir, "checkpoints"), use_ema=use)[1][0]
-                   for use in (True, False))
+    train_world_model.main(args + ["--workdir", workdir, "--trainer.steps=4", "--trainer.keep_checkpoints=2",
+                                   "--trainer.ema_decay=0.5"])
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1", "--trainer.ema_decay=0.5"])
+    checkpoints = os.path.join(workdir, "checkpoints")
+    newest = _leaves(experiment_world_model(cfg, workdir)[1])
+    at_2 = _leaves(experiment_world_model(cfg, os.path.join(checkpoints, "2"))[1])
+    saved_2 = _leaves(load_world_model_params(cfg.model, checkpoints, step=2)[1])
+    assert len(at_2) == len(newest) == len(saved_2) and any(not np.array_equal(a, b) for a, b in zip(at_2, newest))
+    for a, b, c in zip(at_2, saved_2, _leaves(_params_at(workdir, 2)["ema_params"])):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(b, c)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        experiment_world_model(cfg, os.path.join(checkpoints, "3"))
+
+    state = _params_at(workdir, 4)
+    loaded = experiment_world_model(cfg, workdir)[1][0]
+    ema, params = (load_world_model_params(cfg.model, checkpoints, use_ema=use)[1][0] for use in (True, False))
     assert len(_leaves(loaded)) == len(_leaves(state["ema_params"])) > 0
     for a, b, c in zip(_leaves(loaded), _leaves(ema), _leaves(state["ema_params"])):
         np.testing.assert_array_equal(a, b)
@@ -140,3 +135,19 @@ def test_a_checkpoint_step_path_and_a_kept_ema_load_the_weights_they_name(tmp_pa
     for a, b in zip(_leaves(params), _leaves(state["params"])):
         np.testing.assert_array_equal(a, b)
     assert any(not np.array_equal(a, b) for a, b in zip(_leaves(ema), _leaves(params)))
+
+
+def test_a_run_without_an_ema_loads_its_trained_weights_whatever_the_loading_configs_ema(tiny_run):
+    """The tiny run trained no EMA: a loading config with trainer.ema_decay > 0 still gets the trained weights."""
+    import configs
+    from sword_jax.load import experiment_world_model
+
+    workdir = os.path.join(tiny_run, "world_model")
+    step = max(int(d) for d in os.listdir(os.path.join(workdir, "checkpoints")) if d.isdigit())
+    state = _params_at(workdir, step)
+    assert state.get("ema_params") is None
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--model.num_layers=1", "--trainer.ema_decay=0.5"])
+    loaded = _leaves(experiment_world_model(cfg, workdir)[1][0])
+    assert len(loaded) == len(_leaves(state["params"])) > 0
+    for a, b in zip(loaded, _leaves(state["params"])):
+        np.testing.assert_array_equal(a, b)
