@@ -202,25 +202,26 @@ def test_detector_metrics_against_designed_verdicts():
 
 
 @functools.cache
-def _executed_setup():
-    """The check's designed starts and GRPO's step paid by the toy environment, built once for the tests below;
-    the last list receives the shardings the step placed its first state at."""
+def _executed_steps():
+    """One GRPO step on the toy world paid by the toy environment, with its detector ``never`` and with it
+    ``always`` firing, from the check's designed starts: ``(state, {detector: (new_state, metrics)})``. Both run
+    here, one after the other, whichever test asks first, so that nothing a test between them changes can make
+    the step trace twice; the second starts from the state placed where the step placed the first one's (the
+    step is not donated, so the results stay readable)."""
     graphdef, params, sim, start, env_starts = _designed(EXEC)
     step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
-    return step, grpo.init_state(params, EXEC), sim, start, env_starts, []
+    state, out = grpo.init_state(params, EXEC), {}
+    for detector, reward in (("never", NEVER), ("always", ALWAYS)):
+        new_state, metrics = step(state, (sim, reward, start, env_starts), jax.random.key(3))
+        out[detector] = (new_state, jax.device_get(metrics))
+        state = jax.device_put(state, jax.tree.map(lambda x: x.sharding, new_state))
+    return state, out
 
 
-@functools.cache
 def _executed_step(detector: str):
-    """One GRPO step on the toy world paid by the toy environment, its detector ``never`` or ``always`` firing
-    (each result kept for the tests that read it; the step is not donated, so they are not consumed)."""
-    step, state, sim, start, env_starts, placed = _executed_setup()
-    if placed:  # the state placed where the step placed the first one: the step is traced once
-        state = jax.device_put(state, placed[0])
-    new_state, metrics = step(state, (sim, {"never": NEVER, "always": ALWAYS}[detector], start, env_starts),
-                              jax.random.key(3))
-    placed[:] = [jax.tree.map(lambda x: x.sharding, new_state)]
-    return state, new_state, jax.device_get(metrics)
+    """``(state, new_state, metrics)`` of :func:`_executed_steps` for ``detector`` (``never`` or ``always``)."""
+    state, out = _executed_steps()
+    return (state, *out[detector])
 
 
 def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector():
