@@ -1161,16 +1161,21 @@ WORLD_MODEL_HELDOUT = ("policy", "world_model_heldout_30k_small_h200")
 HELDOUT_STEPS = (1000, 2000, 5000, 10000, 20000, 30000)
 
 
+def _world_model_metrics(record: tuple[str, ...]) -> tuple[list[dict], dict[int, dict]]:
+    """``record``'s ``pipeline/world_model/metrics.jsonl``: every logged row, and the rows of the steps where the
+    trainer measured its fixed segments (:mod:`sword_jax.world_model.heldout`) by step."""
+    with open(os.path.join(RESULTS_DIR, *record, "pipeline", "world_model", "metrics.jsonl")) as f:
+        logged = [json.loads(line) for line in f if line.strip()]
+    return logged, {r["step"]: r for r in logged if "eval_heldout_loss" in r}
+
+
 def world_model_heldout(record: tuple[str, ...] = WORLD_MODEL_HELDOUT, steps: tuple[int, ...] = HELDOUT_STEPS) -> str:
     """The world model measured while it trained (``record``'s ``pipeline/world_model/metrics.jsonl``,
     :mod:`sword_jax.world_model.heldout`), at ``steps``: the logged training loss (the mean of the 10 logged
     steps to there), the fixed-noise flow loss per split measured (training, held-out, held-out policy
     rollouts where there), and the sampler's error from the true context per split at each Euler step count
     measured; a last row gives each column's change from the second-last step to the last."""
-    path = os.path.join(RESULTS_DIR, *record, "pipeline", "world_model", "metrics.jsonl")
-    with open(path) as f:
-        logged = [json.loads(line) for line in f if line.strip()]
-    measured = {r["step"]: r for r in logged if "eval_heldout_loss" in r}
+    logged, measured = _world_model_metrics(record)
     counts = sorted({int(k.rsplit("_", 1)[1]) for r in measured.values() for k in r if "_sample_error_" in k})
     from sword_jax.world_model.heldout import SPLIT_LABELS as labels
 
@@ -1222,11 +1227,8 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
     ratio = lambda a, b: unmeasured if a is None or b is None else f"{a / b:.2f}"  # noqa: E731
     rows = []
     for record in records:
-        path = os.path.join(RESULTS_DIR, *record, "pipeline")
-        with open(os.path.join(path, "config.json")) as f:
-            per_task = json.load(f)["data"]["policy_rollouts_per_task"]
-        with open(os.path.join(path, "world_model", "metrics.jsonl")) as f:
-            measured = {r["step"]: r for r in map(json.loads, filter(str.strip, f)) if "eval_heldout_loss" in r}
+        per_task = _load(*record, "pipeline", "config.json")["data"]["policy_rollouts_per_task"]
+        _, measured = _world_model_metrics(record)
         for step in steps:
             error = {s: measured[step].get(f"eval_{s}_sample_error_{euler}") for s in splits}
             rows.append([str(per_task), f"{step:,}",
