@@ -191,14 +191,13 @@ def test_paid_by_execution_masks_after_the_real_success_and_pays_it():
 
 
 def test_detector_metrics_against_designed_verdicts():
-    scores = jnp.asarray([[0.1, 0.95], [0.2, 0.3], [0.99, 0.0], [0.0, 0.0]])
-    rollout = Rollout(*(jnp.zeros(1),) * 8, scores, jnp.zeros(4, bool), jnp.zeros(4), jnp.zeros(1))
-    out = jax.device_get(imagined_check.detector_metrics(rollout, jnp.asarray([True, False, False, False]), 0.9))
-    # said: T, F, T, F; real: T, F, F, F -> agreement 3/4; the one paid failure of three
+    said, real = jnp.asarray([True, False, True, False]), jnp.asarray([True, False, False, False])
+    out = jax.device_get(imagined_check.detector_metrics(said, real))
+    # agreement 3/4; the one paid failure of three
     assert out["detector_success"] == pytest.approx(0.5)
     assert out["detector_agreement"] == pytest.approx(0.75)
     assert out["detector_false_success"] == pytest.approx(1 / 3)
-    assert np.isnan(imagined_check.detector_metrics(rollout, jnp.ones(4, bool), 0.9)["detector_false_success"])
+    assert np.isnan(imagined_check.detector_metrics(said, jnp.ones(4, bool))["detector_false_success"])
 
 
 @functools.cache

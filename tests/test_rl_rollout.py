@@ -155,6 +155,31 @@ def test_success_frames_needs_consecutive_success_frames_across_chunks():
         assert (np.asarray(state.pipeline_state.run)[on_goal] > 0).all()
 
 
+def test_a_rollout_that_runs_on_past_success_keeps_the_detectors_verdict_by_its_rule():
+    """stop_on_success=False (the real environment pays, rl.imagined.reward=executed): every trajectory runs the
+    whole horizon, and ``success`` is the verdict the detector's reward would have paid, by its own rule (any
+    frame of a chunk, not only the last)."""
+    from sword_jax.rl.rollout import chunk_outcome
+
+    def outcome(chunk, stop):
+        return chunk_outcome(jnp.asarray([0.0, 1.0, 0.0]), jnp.float32(0.0), jnp.asarray(False), jnp.int32(chunk),
+                             success_threshold=0.9, max_chunks=4, stop_on_success=stop)
+
+    stopped, running, last = outcome(1, True), outcome(1, False), outcome(3, False)
+    assert bool(stopped.success) and bool(stopped.done)  # a success frame mid-chunk, the last frame under it
+    assert bool(running.success) and not bool(running.done) and not bool(running.truncated)
+    assert bool(last.success) and bool(last.done) and bool(last.truncated)
+
+    graphdef, params, sim, reward_model, start = _setup()
+    run = lambda stop: imagined_rollout(graphdef, params, sim, reward_model, start, CFG,  # noqa: E731
+                                        key=jax.random.key(4), stop_on_success=stop)
+    stops, runs_on = jax.device_get(run(True)), jax.device_get(run(False))
+    np.testing.assert_array_equal(runs_on.success, stops.success)
+    assert stops.success.any(), "the group that starts on its goal succeeds"
+    assert (runs_on.valid == 1).all()
+    assert (stops.valid.sum(1)[stops.success] < CFG.imagined.max_chunks).any()  # where it stopped, this one ran on
+
+
 def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():
     """rl.imagined.sim_microbatches=S runs the simulator over S interleaved slices: the same rollout as one
     vmapped step (sharded too), a slice count that does not divide the trajectories is refused."""

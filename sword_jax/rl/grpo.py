@@ -22,7 +22,6 @@ valid tokens. Groups whose returns are all equal carry no signal and are filtere
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -446,14 +445,14 @@ def make_grpo_step(
     if executed and env is None:
         raise ValueError("make_grpo_step: rl.imagined.reward=executed needs env= (the real environment that pays "
                          "the imagined actions)")
-    # the detector stops nothing when the real environment pays: every trajectory runs the whole horizon
-    rollout_cfg = dataclasses.replace(cfg, success_threshold=2.0) if executed else cfg
 
     def step(state: GRPOState, batch, key):
         simulator, reward_model, start = batch[:3]
         key = jax.random.fold_in(key, state.step)
-        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, rollout_cfg, key=key,
-                                   group_size=g)  # one simulator start-up per start state
+        # one simulator start-up per start state; when the real environment pays, the detector stops nothing (every
+        # trajectory runs the whole horizon) and its verdict is kept by its own rule
+        rollout = imagined_rollout(graphdef, state.params, simulator, reward_model, start, cfg, key=key,
+                                   group_size=g, stop_on_success=not executed)
         extra = {}
         if executed:
             actions, lengths = imagined_check.executed_actions(rollout, cfg.action_bins)
@@ -469,7 +468,7 @@ def make_grpo_step(
                                                                  action_bins=cfg.action_bins, round_trip=round_trip))
             else:
                 real_first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
-            extra.update(imagined_check.detector_metrics(rollout, real_first >= 0, cfg.success_threshold))
+            extra.update(imagined_check.detector_metrics(rollout.success, real_first >= 0))
             rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
         unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:

@@ -224,12 +224,16 @@ def paid_by_execution(rollout: Rollout, real_first: Int[Array, " n"], cfg: Any) 
                             returns=trajectory_returns(rewards, success, cfg))
 
 
-def detector_metrics(rollout: Rollout, real: Bool[Array, " n"], threshold: float) -> dict[str, Float[Array, ""]]:
-    """The detector's verdict on trajectories the real environment paid (``rl.imagined.reward=executed``):
-    ``detector_success`` (a decision's last frame scored at least ``threshold`` within the rollout),
-    ``detector_agreement`` with the real outcome, and ``detector_false_success``: the real failures it would
-    have paid (NaN with none), the rate GRPO in the detector's reward is exposed to at this step."""
-    said = jnp.any((rollout.scores >= jnp.float32(threshold)), axis=1)
+def detector_metrics(said: Bool[Array, " n"], real: Bool[Array, " n"]) -> dict[str, Float[Array, ""]]:
+    """The detector's verdict on trajectories the real environment paid (``rl.imagined.reward=executed``).
+
+    ``said`` is the success the detector would have paid each trajectory, by the rule the detector's reward uses
+    (:func:`~sword_jax.rl.rollout.imagined_rollout` with ``stop_on_success=False``: a run of
+    ``rl.imagined.success_frames`` frames at or above the threshold, any frame of any chunk); ``real`` the real
+    outcome. Returns ``detector_success``, ``detector_agreement`` with the real outcome, and
+    ``detector_false_success``: the real failures it would have paid (NaN with none), the rate GRPO in the
+    detector's reward is exposed to at this step."""
+    said, real = jnp.asarray(said, bool), jnp.asarray(real, bool)
     failures = jnp.sum((~real).astype(jnp.float32))
     return {"detector_success": jnp.mean(said.astype(jnp.float32)),
             "detector_agreement": jnp.mean((said == real).astype(jnp.float32)),

@@ -97,7 +97,8 @@ def success_runs(hit: Bool[Array, "... t"], start: Int[Array, "..."] | None = No
 
 def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."], done: Bool[Array, "..."],
                   chunk_index: Int[Array, "..."], *, success_threshold: float, max_chunks: int,
-                  prev_run: Int[Array, "..."] | None = None, success_frames: int = 1) -> ChunkOutcome:
+                  prev_run: Int[Array, "..."] | None = None, success_frames: int = 1,
+                  stop_on_success: bool = True) -> ChunkOutcome:
     """The reward and termination rule of an imagined trajectory, for one action chunk.
 
     Args:
@@ -111,6 +112,9 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
       success_frames: success needs this many consecutive success frames, counted across chunks
         (``rl.imagined.success_frames``; 1 = any frame), so a one-frame flicker of the detector on a
         hallucinated scene does not end an episode as a success.
+      stop_on_success: a success ends the trajectory (the detector's reward). With False the success is
+        recorded and the trajectory runs on to ``max_chunks`` (a reward paid elsewhere, e.g. by executing the
+        actions, with the detector's verdict kept by the same rule).
 
     Returns:
       A :class:`ChunkOutcome`. The trajectory return adds ``rl.grpo.success_bonus`` once on success
@@ -125,9 +129,11 @@ def chunk_outcome(scores: Float[Array, "... t"], prev_score: Float[Array, "..."]
     score = jnp.where(valid, scores[..., -1], prev_score)
     reward = jnp.where(valid, score - prev_score, jnp.float32(0.0))
     success = valid & success_now
-    truncated = valid & ~success_now & (chunk_index + 1 >= max_chunks)
+    last = chunk_index + 1 >= max_chunks
+    truncated = valid & (~success_now & last if stop_on_success else last)
+    ended = success | truncated if stop_on_success else truncated
     return ChunkOutcome(reward=reward, score=score, success=success, truncated=truncated,
-                        done=done | success | truncated, run=jnp.where(valid, runs[..., -1], prev_run))
+                        done=done | ended, run=jnp.where(valid, runs[..., -1], prev_run))
 
 
 def trajectory_returns(rewards: Float[Array, "n c"], success: Bool[Array, " n"], cfg: RLConfig) -> Float[Array, " n"]:
@@ -223,6 +229,7 @@ def imagined_rollout(
     record_frames: bool = False,
     greedy: bool = False,
     group_size: int = 1,
+    stop_on_success: bool = True,
 ) -> Rollout:
     """Rolls the policy out in the learned simulator for ``cfg.imagined.max_chunks`` chunks.
 
@@ -239,6 +246,10 @@ def imagined_rollout(
       record_frames: also return every predicted frame (for videos; memory heavy).
       greedy: take the argmax action instead of sampling (evaluation).
       group_size: see ``start``.
+      stop_on_success: a trajectory ends at the detector's success (its reward). With False every trajectory
+        runs ``max_chunks`` chunks and ``success`` is still the detector's verdict by the same rule (a run of
+        ``rl.imagined.success_frames`` frames at or above ``cfg.success_threshold``, any frame of a chunk): what
+        the detector would have paid a trajectory whose reward comes from elsewhere.
 
     Returns:
       A :class:`Rollout` of N trajectories (start-major).
@@ -286,7 +297,7 @@ def imagined_rollout(
         scores = reward_model.score(frames.reshape((n * t,) + frames.shape[2:])).reshape(n, t)
         outcome = chunk_outcome(scores, prev_score, done, chunk_index, success_threshold=cfg.success_threshold,
                                 max_chunks=cfg.imagined.max_chunks, prev_run=prev_run,
-                                success_frames=cfg.imagined.success_frames)
+                                success_frames=cfg.imagined.success_frames, stop_on_success=stop_on_success)
         valid = ~done
         # done trajectories keep their state and frame (the rule keeps their score); they earn nothing more
         keep = lambda mask: lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (new.ndim - mask.ndim)),  # noqa: E731
