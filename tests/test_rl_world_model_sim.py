@@ -1,5 +1,7 @@
 """The WorldModel + streaming VAE learned simulator inside the imagined rollout (tiny shapes)."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,8 +16,10 @@ from sword_jax.rl.rollout import expand_groups, imagined_rollout
 from sword_jax.rl.world_model_sim import encode_keyframes, world_model_simulator
 
 
+@functools.cache
 def _tiny_models():
-    """``(cfg, wm_graphdef, wm_state, vae_graphdef, vae_state)``: the tiny world model and VAE, random weights."""
+    """``(cfg, wm_graphdef, wm_state, vae_graphdef, vae_state)``: the tiny world model and VAE, random weights,
+    built once per process (their eager initialisation costs 5 s; the tests only read them)."""
     from sword_jax.dit.action_dit import WorldModel
     from sword_jax.vae import api as vae_api
 
