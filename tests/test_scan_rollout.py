@@ -290,8 +290,11 @@ def test_env_grpo_trains_in_the_learned_simulators_setting_and_evaluates_in_the_
                     eval_starts=runner.eval_starts, eval_tokens=runner.eval_tokens, eval_tasks=[0, 1],
                     key=jax.random.key(3))
     assert plain.train_rollout is plain.rollout and plain.train_proprio
-    _, plain_metrics = plain.step(grpo.init_state(jax.tree.map(jnp.copy, params), rl), 0, jax.random.key(1))
-    assert float(plain_metrics["env_steps"]) == 8 * 20
+    # the training rollouts as plain.step samples them (its env_steps sums their steps; the update after them is
+    # the runner's above): the whole episode limit, with true proprio
+    trained, trained_stats = plain.train_rollout(params, starts, jnp.asarray(np.repeat(tokens, 4, 0)),
+                                                 jax.random.key(1), False, False, plain._valid(1.0))
+    assert int(jnp.sum(trained_stats.steps)) == 8 * 20 and np.all(np.asarray(trained.proprio_valid) == 1)
     with pytest.raises(ValueError, match="train_max_steps"):
         EnvGRPO(graphdef, rl, SlideEnv(), max_steps=20, starts_at=lambda s, r: (far, tokens), eval_starts=far,
                 eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(3), train_max_steps=0)
