@@ -49,15 +49,20 @@ def _metrics(workdir: str) -> dict[int, dict]:
     return {k: {m: v for m, v in row.items() if m not in ("elapsed_s", "eta_s")} for k, row in rows.items()}
 
 
+KILL_STEPS = 4  # a checkpoint every step: a kill after step 2 or 3 still leaves steps to resume
+
+
 def test_sigkill_resume_is_bit_identical(tmp_path):
     env = _env(str(tmp_path / "xla_cache"))
+    short = f"--trainer.steps={KILL_STEPS}"
     reference = str(tmp_path / "reference")
-    done = _run(reference, env)
+    done = _run(reference, env, short)
     assert done.returncode == 0, done.stderr[-2000:]
 
     crashed = str(tmp_path / "crashed")
-    kill_at = random.Random(os.environ.get("SWORD_TEST_SEED", "7")).randint(2, STEPS - 1)
-    proc = subprocess.Popen(_cmd(crashed), cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    kill_at = random.Random(os.environ.get("SWORD_TEST_SEED", "7")).randint(2, KILL_STEPS - 1)
+    proc = subprocess.Popen(_cmd(crashed, short), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
     ckpt_dir = os.path.join(crashed, "checkpoints")
     deadline = time.time() + 600
     while time.time() < deadline and proc.poll() is None:
@@ -70,16 +75,16 @@ def test_sigkill_resume_is_bit_identical(tmp_path):
     proc.wait()
 
     # A half-written checkpoint (as left by a kill during a write) must never be picked up.
-    partial = os.path.join(ckpt_dir, f"{STEPS + 5}.orbax-checkpoint-tmp-1234")
+    partial = os.path.join(ckpt_dir, f"{KILL_STEPS + 5}.orbax-checkpoint-tmp-1234")
     os.makedirs(os.path.join(partial, "state"), exist_ok=True)
     with open(os.path.join(partial, "state", "garbage"), "wb") as f:
         f.write(b"\x00" * 100)
 
-    resumed = _run(crashed, env)
+    resumed = _run(crashed, env, short)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "resumed from step" in resumed.stdout
 
-    want, want_meta, got_meta = assert_same_final_checkpoint(reference, crashed, STEPS)
+    want, want_meta, got_meta = assert_same_final_checkpoint(reference, crashed, KILL_STEPS)
     assert got_meta["rng_root"] == want_meta["rng_root"]
     assert _metrics(crashed) == _metrics(reference)
     cache_leaves = [k for k in want if "cache" in k]
