@@ -620,25 +620,44 @@ def grpo_setting_arms() -> str:
                    "training rollouts' success, steps 1-5 -> last 5", "env steps a GRPO step"], rows)
 
 
-def grpo_reward_source() -> str:
-    """The reward-source experiment per arm and seed (``policy_grpo_reward_source_small``): the gains, what
-    the training rollouts were paid, the groups they left mixed, and for the world model paid by reality, the
-    detector's verdicts on the same rollouts."""
-    entry = _load("latest.json")["policy_grpo_reward_source_small"]
+def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
+    """A reward-source summary (``bench_grpo_reward_source summary``) per arm and seed: the gains sampled, sampled
+    with proprio masked and greedy, what the training rollouts were paid, the groups they left mixed (with
+    ``group_of``, as a count of that many groups), and for the world model paid by reality, the detector's
+    verdicts on the same rollouts."""
     rows = []
     for arm in ("gt", "exec", "det"):
-        for name, run in sorted(entry["runs"].items()):
+        for name, run in sorted(summary["runs"].items()):
             if run["arm"] != arm:
                 continue
-            sampled, greedy, paid, det = run["sampled"], run["greedy"], run["paid_success"], run.get("detector")
-            rows.append([entry["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
-                         f"{_pct(sampled['gain'])} {_interval(sampled['ci95'])}",
-                         f"{_pct(greedy['gain'])} {_interval(greedy['ci95'])}",
-                         f"{paid['first']:.3f} -> {paid['last']:.3f}", f"{run['mixed_median']:.2f}",
-                         f"{det['success']:.2f} / {det['precision']:.2f}" if det else ""])
+            paid, det = run["paid_success"], run.get("detector")
+            mixed = run["mixed_median"]
+            rows.append([summary["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
+                         *(f"{_pct(run[m]['gain'])} {_interval(run[m]['ci95'])}" if m in run else "not run"
+                           for m in ("sampled", "sampled_proprio_masked", "greedy")),
+                         f"{paid['first']:.3f} -> {paid['last']:.3f}",
+                         f"{mixed * group_of:.0f} of {group_of}" if group_of else f"{mixed:.2f}",
+                         f"{det['success']:.2f} / {det['agreement']:.2f} / {det['precision']:.2f}" if det else ""])
     return _table(["GRPO's frames and reward", "seed", "steps", "sampled gain (points), 95% interval",
-                   "greedy gain", "its rollouts' paid success, steps 1-5 -> last 5", "groups mixed (median)",
-                   "the detector on the same rollouts: success / precision"], rows)
+                   "sampled, proprio masked", "greedy", "its rollouts' paid success, steps 1-5 -> last 5",
+                   "groups mixed (median)", "the detector on the same rollouts: success / agreement / precision"],
+                  rows)
+
+
+def grpo_reward_source() -> str:
+    """The reward-source experiment per arm and seed (``policy_grpo_reward_source_small``, :func:`_reward_source_table`)."""
+    return _reward_source_table(_load("latest.json")["policy_grpo_reward_source_small"])
+
+
+# the reward-source experiment at 2 decisions of 8 actions from keyframes of every phase, in the 30,000-step world
+# model of world_model_policy_split_30k_small_h200 (its bundle), 32 starts x 8, 3 seeds (2 x H200)
+REWARD_SOURCE_BRANCHED = ("policy", "grpo_reward_source_branched_small_2xh200")
+
+
+def grpo_reward_source_branched() -> str:
+    """The reward-source experiment in short rollouts from every phase (``REWARD_SOURCE_BRANCHED``,
+    :func:`_reward_source_table`), its groups counted of the step's 32."""
+    return _reward_source_table(_load(*REWARD_SOURCE_BRANCHED, "grpo_reward_source.json"), group_of=32)
 
 
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
@@ -1495,6 +1514,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-rest": grpo_reward_source_rest,
     "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-length": grpo_reward_source_length,
+    "grpo-reward-source-branched": grpo_reward_source_branched,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

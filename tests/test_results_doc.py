@@ -282,3 +282,25 @@ def test_the_scaling_table_compares_runs_by_their_policy_rollouts_and_leaves_unm
     assert table[2] == "| 20 | 100 | 0.2000 | 0.4000 | not measured | 0.1000 | 2.00 | not measured |"
     assert table[5] == "| 100 | 200 | 0.1000 | 0.2000 | 0.1250 | 0.0500 | 2.00 | 1.60 |"
     assert len(table) == 6
+
+
+def test_the_reward_source_table_orders_the_arms_and_counts_mixed_groups_of_the_step():
+    """A reward-source summary's table: ground truth, exec, det in that order whatever the runs' names; each gain
+    with its interval, a mode a run did not evaluate named "not run"; the mixed groups as a share, or counted of
+    the step's groups; the detector's verdicts only where reality paid."""
+    def run(arm, seed, masked=True, detector=None):
+        gain = {"gain": -0.05, "ci95": [-0.1, 0.0]}
+        return {"arm": arm, "seed": seed, "steps": 30, "sampled": gain, "greedy": {"gain": 0.1, "ci95": [0.02, 0.18]},
+                **({"sampled_proprio_masked": gain} if masked else {}), "mixed_median": 0.1875,
+                "paid_success": {"first": 0.25, "last": 0.3}, **({"detector": detector} if detector else {})}
+
+    summary = {"arms": {a: {"label": a.upper()} for a in ("gt", "exec", "det")},
+               "runs": {"a": run("det", 1), "b": run("exec", 0, detector={"success": 0.1, "agreement": 0.8,
+                                                                          "precision": 0.75}),
+                        "c": run("gt", 2, masked=False)}}
+    table = report._reward_source_table(summary).splitlines()
+    assert [row.split(" | ")[0] for row in table[2:]] == ["| GT", "| EXEC", "| DET"]
+    assert table[2] == ("| GT | s2 | 30 | -5.0 [-10.0, +0.0] | not run | +10.0 [+2.0, +18.0] | 0.250 -> 0.300 | 0.19 "
+                        "|  |")
+    assert table[3].endswith("| 0.19 | 0.10 / 0.80 / 0.75 |")
+    assert report._reward_source_table(summary, group_of=32).splitlines()[4].endswith("| 6 of 32 |  |")
