@@ -645,7 +645,8 @@ def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
 
 
 def grpo_reward_source() -> str:
-    """The reward-source experiment per arm and seed (``policy_grpo_reward_source_small``, :func:`_reward_source_table`)."""
+    """The reward-source experiment per arm and seed (``policy_grpo_reward_source_small``,
+    :func:`_reward_source_table`)."""
     return _reward_source_table(_load("latest.json")["policy_grpo_reward_source_small"])
 
 
