@@ -631,8 +631,9 @@ FIGURE_GAPS = {"": "the world model's frame", "_vae": "the real frame through th
 
 
 def figure(workdir: str, path: str) -> dict:
-    """Two panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training rollouts
-    at every step (``exec``: the imagined actions executed; dashed, what the detector said of them), and for each
+    """Three panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training
+    rollouts at every step (``exec``: the imagined actions executed; dashed, what the detector said of them); each
+    run's real success at its evaluations (sampled at the GRPO temperature, and greedy, dotted); and for each
     ``exec`` run, per decision, the policy's greedy action gap on the world model's frame against the real frame, with
     what the VAE alone makes and what the real frame of the decision before makes (means over the steps). Returns
     the plotted series."""
@@ -645,12 +646,19 @@ def figure(workdir: str, path: str) -> dict:
     if not runs:
         raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
     series: dict[str, dict] = {}
-    fig, (paid_ax, gap_ax) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (paid_ax, eval_ax, gap_ax) = plt.subplots(1, 3, figsize=(16, 4.2))
     for name, (arm, _seed, grpo) in runs.items():
         history = read_history(grpo)
         steps, paid = [h["step"] for h in history], paid_per_step(history)
-        series[name] = {"steps": steps, "paid": paid}
+        with open(os.path.join(grpo, "success_curve.json")) as f:
+            points = json.load(f)["points"]
+        evaluated = {"steps": [p["step"] for p in points], "greedy": [p["mean"] for p in points],
+                     "sampled": [p["sampled"]["mean"] if "sampled" in p else float("nan") for p in points]}
+        series[name] = {"steps": steps, "paid": paid, "evaluated": evaluated}
         paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {FIGURE_ARMS[arm]}")
+        line, = eval_ax.plot(evaluated["steps"], evaluated["sampled"], marker="o", ms=3, label=f"{name}: sampled")
+        eval_ax.plot(evaluated["steps"], evaluated["greedy"], marker="o", ms=3, ls=":", color=line.get_color(),
+                     label=f"{name}: greedy")
         if arm == "exec" and "detector_success" in history[0]:
             said = [h["detector_success"] for h in history]
             series[name]["detector"] = said
@@ -666,6 +674,8 @@ def figure(workdir: str, path: str) -> dict:
                         label=f"{name}: {FIGURE_GAPS[suffix]}")
     common.finish_figure(fig, paid_ax, path, xlabel="GRPO step", ylabel="success of the training rollouts",
                          title="what reality paid", save=False)
+    common.finish_figure(fig, eval_ax, path, xlabel="GRPO step", ylabel="real success (MJX evaluation)",
+                         title="the policy in the real environment", save=False)
     common.finish_figure(fig, gap_ax, path, xlabel="decision", ylabel="greedy action gap to the real frame",
                          title="where the closed loop leaves the real one")
     return series

@@ -166,9 +166,9 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
 
 def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):
     """figure: each run's paid success per step (the gt run's rollouts, the exec run's imagined actions and what the
-    detector said of them), and per decision of the exec run the action gaps, means over its steps; a work dir
-    without runs is refused."""
-    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5)],
+    detector said of them), its real success at each evaluation, and per decision of the exec run the action gaps,
+    means over its steps; a work dir without runs is refused."""
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5), _point(2, 0.75, 0.55)],
            [{"step": s, "rollout_success": 0.3 + 0.01 * s} for s in (1, 2)])
     prev = {f"closed_loop_action_gap_prev_{k}": 0.2 for k in (1, 2, 10)}
     _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5)],
@@ -176,7 +176,8 @@ def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp
             for s in (1, 2)])
     series = rs.figure(str(tmp_path), str(tmp_path / "f.png"))
     assert (tmp_path / "f.png").stat().st_size > 0
-    assert series["gt_s0"] == {"steps": [1, 2], "paid": [0.31, 0.32]}
+    assert series["gt_s0"] == {"steps": [1, 2], "paid": [0.31, 0.32],
+                               "evaluated": {"steps": [0, 2], "greedy": [0.7, 0.75], "sampled": [0.5, 0.55]}}
     ex = series["exec_s0"]
     assert ex["paid"] == [0.01, 0.02] and ex["detector"] == [0.25, 0.25]
     assert ex["action_gap"]["decisions"] == [1, 2, 10]
