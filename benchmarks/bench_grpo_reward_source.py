@@ -283,6 +283,19 @@ def _gain(points: list[dict], key: str | None) -> dict | None:
     return gain_between(points, key) if key is None or all(key in p for p in points) else None
 
 
+def read_points(grpo: str) -> list[dict]:
+    """The evaluation points of the GRPO run at ``grpo`` (its ``success_curve.json``)."""
+    with open(os.path.join(grpo, "success_curve.json")) as f:
+        return json.load(f)["points"]
+
+
+def evaluation_curve(points: Sequence[dict]) -> list[dict]:
+    """Per evaluation point, its step and real success: greedy, and sampled (with proprio masked too) where
+    evaluated."""
+    return [{"step": p["step"], "greedy": p["mean"],
+             **{k: p[k]["mean"] for k in ("sampled", "sampled_proprio_masked") if k in p}} for p in points]
+
+
 def paid_per_step(history: Sequence[dict]) -> list[float]:
     """What reality paid each step's training rollouts: ``rollout_success`` (ground-truth runs) or ``success_rate``
     (runs in the world model; with a reward paid by execution, the imagined actions' real outcome)."""
@@ -293,8 +306,7 @@ def summarize_run(grpo: str) -> dict:
     """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked), the
     success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, and with a
     reward paid by execution, the detector's verdict on the same rollouts (means over the steps)."""
-    with open(os.path.join(grpo, "success_curve.json")) as f:
-        points = json.load(f)["points"]
+    points = read_points(grpo)
     history = read_history(grpo)
     paid = paid_per_step(history)
     mixed = [h.get("mixed_fraction", h.get("kept_fraction")) for h in history]
@@ -302,8 +314,7 @@ def summarize_run(grpo: str) -> dict:
            "sampled_proprio_masked": _gain(points, "sampled_proprio_masked"),
            "paid_success": ({"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])} if paid else None),
            "mixed_median": statistics.median(mixed) if mixed else None,
-           "curve": [{"step": p["step"], "greedy": p["mean"],
-                      **{k: p[k]["mean"] for k in ("sampled", "sampled_proprio_masked") if k in p}} for p in points]}
+           "curve": evaluation_curve(points)}
     if history and "detector_success" in history[0]:
         false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
         said = sum(h["detector_success"] for h in history)
@@ -650,10 +661,9 @@ def figure(workdir: str, path: str) -> dict:
     for name, (arm, _seed, grpo) in runs.items():
         history = read_history(grpo)
         steps, paid = [h["step"] for h in history], paid_per_step(history)
-        with open(os.path.join(grpo, "success_curve.json")) as f:
-            points = json.load(f)["points"]
-        evaluated = {"steps": [p["step"] for p in points], "greedy": [p["mean"] for p in points],
-                     "sampled": [p["sampled"]["mean"] if "sampled" in p else float("nan") for p in points]}
+        curve = evaluation_curve(read_points(grpo))
+        evaluated = {"steps": [c["step"] for c in curve], "greedy": [c["greedy"] for c in curve],
+                     "sampled": [c.get("sampled", float("nan")) for c in curve]}
         series[name] = {"steps": steps, "paid": paid, "evaluated": evaluated}
         paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {FIGURE_ARMS[arm]}")
         line, = eval_ax.plot(evaluated["steps"], evaluated["sampled"], marker="o", ms=3, label=f"{name}: sampled")
