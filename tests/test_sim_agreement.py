@@ -436,7 +436,8 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
 
 
 def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tmp_path, monkeypatch):
-    """Tiny end to end (about 30 s on 2 cores): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4 actions from rest."""
+    """Tiny end to end (about 30 s on 2 cores): rl.env.starts=rest in the C-engine envs runs 2 decisions of 4
+    actions from rest."""
     import configs
     from sim import grpo_env
 
