@@ -18,6 +18,8 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
         --gpus 0,1,2,3 --seeds 0,1,2 --steps 40 [--deadline-s 1500]
     python -m benchmarks.bench_grpo_reward_source summary --workdir runs/rs \\
         --out benchmarks/results/policy/grpo_reward_source_small [--record]
+    python -m benchmarks.bench_grpo_reward_source horizons --workdirs runs/hz/h1,runs/hz/h2,runs/hz/h4 \\
+        --out benchmarks/results/policy/grpo_horizon_honesty_small_2xh200 [--title T]
 
 ``--horizon N`` rolls every arm out N decisions instead of 12, ``--keyframe-fraction F`` draws its keyframes from the
 first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all;
@@ -38,6 +40,14 @@ rollouts were paid, and for ``exec`` the detector's success, agreement, false su
 its verdicts of success that reality paid too) on the same rollouts, and per decision where their closed loop left
 the real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps);
 ``--record`` writes ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
+
+``horizons`` reads ``run``'s work dirs of one experiment at several horizons: each one's decisions and actions per
+decision from its runs' own commands (``commands.json`` in the work dir, which ``run`` writes, or for a work dir made
+before it, the launcher's lines in ``<workdir>.out``), and per horizon what reality paid the ``gt`` and ``exec``
+arms' training rollouts over every recorded step (pooled, 95% Wilson intervals), the share of it the world model's
+frames kept (exec over gt), the groups with mixed outcomes per step, and the detector on exec's rollouts; it writes
+``horizons.json`` (rows by actions, which the report's ``grpo-horizon-honesty`` table reads) and ``horizons.png``
+to ``--out``.
 """
 
 from __future__ import annotations
@@ -191,6 +201,7 @@ def run(args, *, poll_s: float = 5.0) -> dict:
     common.record_gpus(os.path.join(args.workdir, "gpu.txt"))
     env = common.launch_env(args.workdir, deterministic=args.deterministic)
     commands, gpu_of = run_commands(args), placement(args)
+    record_commands(args.workdir, commands)
     sharing = {g: sum(1 for n in commands if gpu_of[n] == g and not n.startswith("gt")) for g in args.gpus}
     start = time.perf_counter()
 
@@ -316,12 +327,7 @@ def summarize_run(grpo: str) -> dict:
            "mixed_median": statistics.median(mixed) if mixed else None,
            "curve": evaluation_curve(points)}
     if history and "detector_success" in history[0]:
-        false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
-        said = sum(h["detector_success"] for h in history)
-        out["detector"] = {"success": statistics.mean(h["detector_success"] for h in history),
-                           "agreement": statistics.mean(h["detector_agreement"] for h in history),
-                           "false_success": statistics.mean(false) if false else None,
-                           "precision": sum(_true_paid(h) for h in history) / said if said else None}
+        out["detector"] = detector_figures(history)
     if history and closed_loop_decisions(history[0]):  # per decision, the mean over the steps
         out["closed_loop"] = per_decision(history)
     return out
@@ -348,6 +354,18 @@ def per_decision(rows: Sequence[dict]) -> dict:
                                        for what in CLOSED_LOOP if f"closed_loop_{what}_{decisions[0]}" in rows[0]}}
 
 
+def detector_figures(history: Sequence[dict]) -> dict:
+    """What the detector said of the rollouts that reality paid (history rows with ``detector_*``): its success and
+    agreement, its false success (the steps where some trajectory failed in reality) and its precision (the share
+    of its verdicts of success that reality paid too, :func:`_true_paid`), means over the rows."""
+    false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
+    said = sum(h["detector_success"] for h in history)
+    return {"success": statistics.mean(h["detector_success"] for h in history),
+            "agreement": statistics.mean(h["detector_agreement"] for h in history),
+            "false_success": statistics.mean(false) if false else None,
+            "precision": sum(_true_paid(h) for h in history) / said if said else None}
+
+
 def _true_paid(h: dict) -> float:
     """The share of a step's trajectories the detector would have paid that reality paid too: its verdicts
     ``detector_success`` less the real failures it paid (``detector_false_success`` x the real failures' share,
@@ -368,6 +386,146 @@ def summarize(workdir: str) -> dict:
                          "mean": statistics.mean(gains.values()),
                          "steps": min(r["steps"] for r in runs.values() if r["arm"] == arm)}
     return {"runs": runs, "arms": arms, **common.workdir_xla_flags(workdir)}
+
+
+# the runs' commands as ``run`` records them in its work dir, and as its launcher prints each run it starts
+COMMANDS_FILE = "commands.json"
+LAUNCH_LINE = re.compile(r"\[reward-source\] ((?:gt|exec)_s\d+) on GPU \S+ \([\d.]+ s\): (.+)")
+# what a horizon's row reads of its runs' commands: {its name in the row: the flag that sets it}
+SETTING_FLAGS = {"decisions": "--rl.imagined.max_chunks", "actions_per_decision": "--rl.imagined.execute_steps",
+                 "group_size": "--rl.grpo.group_size", "groups_per_step": "--rl.grpo.rollout_batch"}
+# a step's share of groups with mixed outcomes: the ground-truth runs', the sampled groups' in the world model, the
+# updated groups' in runs from before the sampled share was logged
+MIXED_KEYS = ("mixed_fraction", "sampled_mixed_fraction", "kept_fraction")
+
+
+def record_commands(workdir: str, commands: dict[str, list[str]]) -> None:
+    """``commands`` (``{run name: command}``) merged into ``<workdir>/commands.json``, so that a command started
+    again with other arms keeps the earlier runs'; :func:`recorded_commands` reads it back."""
+    path = os.path.join(workdir, COMMANDS_FILE)
+    recorded = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            recorded = json.load(f)
+    with open(path, "w") as f:
+        json.dump({**recorded, **commands}, f, indent=1)
+
+
+def recorded_commands(workdir: str) -> tuple[dict[str, list[str]], str]:
+    """The commands of a work dir's ``gt`` and ``exec`` runs and the file they were read from: its
+    ``commands.json`` (:func:`record_commands`), else for a work dir made before ``run`` wrote one, the launcher's
+    lines ``[reward-source] exec_s0 on GPU 0 (95 s): <command>`` in its output beside the work dir
+    (``<workdir>.out`` or ``.log``) or in it (``*.log``, ``*.out``); ``({}, "")`` where none holds them."""
+    workdir = os.path.normpath(workdir)
+    path = os.path.join(workdir, COMMANDS_FILE)
+    if os.path.exists(path):
+        with open(path) as f:
+            return {n: list(c) for n, c in json.load(f).items() if re.fullmatch(r"(gt|exec)_s\d+", n)}, path
+    inside = sorted(os.path.join(workdir, n) for n in os.listdir(workdir) if n.endswith((".log", ".out")))
+    for log in (workdir + ".out", workdir + ".log", *inside):
+        if os.path.isfile(log):
+            with open(log, errors="replace") as f:
+                found = {m.group(1): m.group(2).split() for m in map(LAUNCH_LINE.match, f) if m}
+            if found:
+                return found, log
+    return {}, ""
+
+
+def rollout_setting(workdir: str) -> dict:
+    """A work dir's rollouts as its runs' own commands set them (:func:`recorded_commands`): ``decisions``
+    (``rl.imagined.max_chunks``) of ``actions_per_decision`` (``rl.imagined.execute_steps``), ``actions``, their
+    product, ``group_size`` and ``groups_per_step`` (``rl.grpo.rollout_batch``), and ``source``, the file read.
+    Refused by the work dir's name where no ``exec`` run's command is recorded, a command lacks one of those
+    flags, or the runs' commands set different rollouts."""
+    commands, source = recorded_commands(workdir)
+    if not any(name.startswith("exec") for name in commands):
+        where = os.path.normpath(workdir)
+        raise SystemExit(f"bench_grpo_reward_source horizons: {workdir} records no exec run's command, so its horizon "
+                         f"is unknown (read: its {COMMANDS_FILE}, else the lines '[reward-source] exec_s<k> on GPU "
+                         f"...' of {where}.out, {where}.log and its own *.log, *.out)")
+    settings = {}
+    for name, command in sorted(commands.items()):
+        flags = dict(arg.partition("=")[::2] for arg in command if arg.startswith("--"))
+        missing = [flag for flag in SETTING_FLAGS.values() if flag not in flags]
+        if missing:
+            raise SystemExit(f"bench_grpo_reward_source horizons: {workdir}: the command of {name} in {source} lacks "
+                             f"{', '.join(missing)}")
+        settings[name] = {key: int(flags[flag]) for key, flag in SETTING_FLAGS.items()}
+    if len({tuple(s.values()) for s in settings.values()}) > 1:
+        raise SystemExit(f"bench_grpo_reward_source horizons: {workdir}: its runs' commands in {source} set different "
+                         f"rollouts: {settings}")
+    setting = next(iter(settings.values()))
+    return {**setting, "actions": setting["decisions"] * setting["actions_per_decision"], "source": source}
+
+
+def rollouts_over_steps(grpos: Sequence[str], setting: dict) -> dict | None:
+    """One arm's training rollouts over every step its runs (GRPO work dirs ``grpos``) recorded: ``steps``, what
+    reality paid them pooled (``successes`` of ``of`` trajectories, the ``rate`` with its 95% Wilson interval; a
+    step's trajectories are its ``trajectories_sampled`` where recorded, else ``setting``'s groups x group size),
+    the median over the steps of the groups with mixed outcomes (``mixed_groups_median``, a count, and
+    ``mixed_share_median``, of the step's groups: :data:`MIXED_KEYS`) and, where recorded, what the detector said
+    of them (:func:`detector_figures`). None where the runs recorded no step."""
+    from sword_jax.rl.sim_agreement import wilson_rate
+
+    rows = [h for grpo in grpos for h in read_history(grpo)]
+    if not rows:
+        return None
+    unmixed = [h.get("step") for h in rows if not any(k in h for k in MIXED_KEYS)]
+    if unmixed:
+        raise SystemExit(f"bench_grpo_reward_source horizons: steps {unmixed} of {', '.join(grpos)} record no share "
+                         f"of mixed groups ({', '.join(MIXED_KEYS)})")
+    per_step = setting["groups_per_step"] * setting["group_size"]
+    trajectories = [int(h.get("trajectories_sampled", per_step)) for h in rows]
+    successes = sum(round(paid * n) for paid, n in zip(paid_per_step(rows), trajectories))
+    groups = [n // setting["group_size"] for n in trajectories]
+    mixed = [round(next(h[k] for k in MIXED_KEYS if k in h) * g) for h, g in zip(rows, groups)]
+    out = {"steps": len(rows), "paid_success": {"successes": successes, **wilson_rate(successes, sum(trajectories))},
+           "mixed_groups_median": statistics.median(mixed),
+           "mixed_share_median": statistics.median(m / g for m, g in zip(mixed, groups))}
+    if "detector_success" in rows[0]:
+        out["detector"] = detector_figures(rows)
+    return out
+
+
+def horizon_row(workdir: str) -> dict:
+    """One work dir of ``run`` at one horizon: its rollouts (:func:`rollout_setting`), per arm (``gt``, ``exec``)
+    its runs and their training rollouts over every recorded step (:func:`rollouts_over_steps`), and
+    ``exec_over_gt``, the share of what reality paid on real frames that the world model's frames kept (exec's paid
+    rate over gt's; None without both arms or where gt was paid nothing)."""
+    workdir = os.path.normpath(workdir)
+    if not os.path.isdir(workdir):
+        raise SystemExit(f"bench_grpo_reward_source horizons: {workdir}: no such folder")
+    setting = rollout_setting(workdir)
+    runs = run_dirs(workdir)
+    arms = {}
+    for arm in ("gt", "exec"):
+        names = sorted(name for name, (of, _, _) in runs.items() if of == arm)
+        pooled = rollouts_over_steps([runs[name][2] for name in names], setting)
+        if pooled is not None:
+            arms[arm] = {"runs": names, **pooled}
+    if not arms:
+        raise SystemExit(f"bench_grpo_reward_source horizons: {workdir}: no gt or exec run recorded a step")
+    gt, ex = (arms[arm]["paid_success"]["rate"] if arm in arms else None for arm in ("gt", "exec"))
+    return {"workdir": workdir, **setting, "arms": arms, "exec_over_gt": ex / gt if gt and ex is not None else None}
+
+
+def horizons_summary(workdirs: Sequence[str]) -> dict:
+    """``{"rows": [...]}``: a :func:`horizon_row` per work dir, by the actions a rollout executes."""
+    return {"rows": sorted((horizon_row(w) for w in workdirs), key=lambda r: (r["actions"], r["decisions"]))}
+
+
+def print_horizons(rows: Sequence[dict]) -> None:
+    for r in rows:
+        cells = []
+        for arm in ("gt", "exec"):
+            if arm in r["arms"]:
+                a = r["arms"][arm]
+                paid = a["paid_success"]
+                cells.append(f"{arm} paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of "
+                             f"{paid['of']}, mixed {a['mixed_groups_median']:g} of {r['groups_per_step']}")
+        kept = r["exec_over_gt"]
+        print(f"[horizons] {r['decisions']} x {r['actions_per_decision']} = {r['actions']} actions: "
+              + "; ".join(cells) + (f"; exec / gt {kept:.2f}" if kept is not None else ""), flush=True)
 
 
 # a step paid by execution with the closed-loop record, as sword_jax.pipeline.grpo.payment_note writes it
@@ -519,7 +677,7 @@ def print_runs(summary: dict) -> None:
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     """The command line, refused by name where a value cannot be run."""
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("mode", choices=("run", "summary", "closed-loop", "figure"))
+    parser.add_argument("mode", choices=("run", "summary", "closed-loop", "figure", "horizons"))
     parser.add_argument("--workdir", default="", help="run / summary: the experiment's folder")
     parser.add_argument("--run", nargs=4, action="append", default=[],
                         metavar=("LABEL", "GRPO_DIR", "LOG", "WM_METRICS"),
@@ -536,8 +694,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--world-model", default="",
                         help="figure: draw a world model's metrics.jsonl (its loss, and its trainer's measurement of "
                         "fixed training and held-out segments) instead of --workdir's runs")
-    parser.add_argument("--title", default="", help="figure --closed-loop / --world-model: a line above the panels "
-                        "(the model, batch, device, seeds)")
+    parser.add_argument("--workdirs", default="",
+                        help="horizons: comma list of run's work dirs, one per horizon (--out: the folder written)")
+    parser.add_argument("--title", default="", help="figure --closed-loop / --world-model, horizons: a line above the "
+                        "panels (the model, batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
     parser.add_argument("--config", default="sword:small")
     parser.add_argument("--gpus", default="0", help="run: comma list; the pipeline takes the first (or those of "
@@ -788,6 +948,51 @@ def world_model_figure(metrics: str, path: str, title: str = "") -> dict:
     return series
 
 
+def horizons_figure(rows: Sequence[dict], path: str, title: str = "") -> dict:
+    """Three panels from :func:`horizons_summary`'s rows (PNG at ``path``) against the actions a rollout executes:
+    what reality paid each arm's training rollouts (95% Wilson intervals), the share of its groups with mixed
+    outcomes (median over the steps), and the share of the real-frame arm's paid success that the world model's
+    frames kept; ``title`` above them. Returns the plotted series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series: dict[str, dict] = {}
+    fig, (paid_ax, mixed_ax, kept_ax) = plt.subplots(1, 3, figsize=(15, 4.2))
+    for i, arm in enumerate(("gt", "exec")):
+        measured = [r for r in rows if arm in r["arms"]]
+        paid = [r["arms"][arm]["paid_success"] for r in measured]
+        series[arm] = {"actions": [r["actions"] for r in measured], "paid": [p["rate"] for p in paid],
+                       "ci95": [p["ci95"] for p in paid],
+                       "mixed_share": [r["arms"][arm]["mixed_share_median"] for r in measured]}
+        below = [p["rate"] - p["ci95"][0] for p in paid]
+        above = [p["ci95"][1] - p["rate"] for p in paid]
+        paid_ax.errorbar(series[arm]["actions"], series[arm]["paid"], yerr=[below, above], marker="o", ms=4,
+                         capsize=3, color=f"C{i}", label=FIGURE_ARMS[arm])
+        mixed_ax.plot(series[arm]["actions"], series[arm]["mixed_share"], marker="o", ms=4, color=f"C{i}",
+                      label=FIGURE_ARMS[arm])
+    kept = [r for r in rows if r["exec_over_gt"] is not None]
+    series["exec_over_gt"] = {"actions": [r["actions"] for r in kept], "ratio": [r["exec_over_gt"] for r in kept]}
+    kept_ax.plot(series["exec_over_gt"]["actions"], series["exec_over_gt"]["ratio"], marker="o", ms=4, color="C1",
+                 label="paid on the world model's frames / on real frames")
+    kept_ax.axhline(1.0, color="0.6", ls=":", label="as much as on real frames")
+    for r in kept:
+        kept_ax.annotate(f"{r['exec_over_gt']:.2f}", (r["actions"], r["exec_over_gt"]), textcoords="offset points",
+                         xytext=(0, 6), ha="center", fontsize=8)
+    for ax in (paid_ax, mixed_ax, kept_ax):
+        ax.set_xticks(sorted({r["actions"] for r in rows}))
+    common.finish_figure(fig, paid_ax, path, xlabel="actions a rollout executes",
+                         ylabel="real success paid to the training rollouts", title="what reality paid", save=False)
+    common.finish_figure(fig, mixed_ax, path, xlabel="actions a rollout executes",
+                         ylabel="groups with mixed outcomes (median share)", title="the learning signal", save=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    common.finish_figure(fig, kept_ax, path, xlabel="actions a rollout executes",
+                         ylabel="share of the real successes kept", title="what the world model's frames keep")
+    return series
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(argv)
     if args.mode == "closed-loop":
@@ -811,6 +1016,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
                       f" (the VAE alone at the first: frame error {r['frame_error_vae_first']:.3f}, gap "
                       f"{r['action_gap_vae_first']:.3f})" if "action_gap_vae_first" in r else ""), flush=True)
         return result
+    if args.mode == "horizons":
+        workdirs = [w for w in args.workdirs.split(",") if w]
+        if not workdirs or not args.out:
+            raise SystemExit("bench_grpo_reward_source horizons needs --workdirs (a comma list of run's work dirs, "
+                             "one per horizon) and --out (the folder of horizons.json and horizons.png)")
+        result = {**({"title": args.title} if args.title else {}), **horizons_summary(workdirs)}
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "horizons.json"), "w") as f:
+            json.dump(result, f, indent=1)
+        series = horizons_figure(result["rows"], os.path.join(args.out, "horizons.png"), args.title)
+        print_horizons(result["rows"])
+        return dict(result, figure=series)
     if args.mode == "figure" and not args.out:
         raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
     if args.mode == "figure" and args.closed_loop and args.world_model:

@@ -661,6 +661,17 @@ def grpo_reward_source_branched() -> str:
     return _reward_source_table(_load(*REWARD_SOURCE_BRANCHED, "grpo_reward_source.json"), group_of=32)
 
 
+# the reward-source experiment at 6 decisions of 8 actions from keyframes of every phase, the ground-truth arm beside
+# the world model paid by reality, the same world model's bundle, 64 starts x 8, 3 seeds (2 x H200)
+REWARD_SOURCE_PHASES = ("policy", "grpo_reward_source_phases_h6_small_2xh200")
+
+
+def grpo_reward_source_phases() -> str:
+    """The reward-source experiment at 48 actions from every phase (``REWARD_SOURCE_PHASES``,
+    :func:`_reward_source_table`), its groups counted of the step's 64."""
+    return _reward_source_table(_load(*REWARD_SOURCE_PHASES, "grpo_reward_source.json"), group_of=64)
+
+
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
     """A view probe's success with its interval, and its difference from the ``real`` view with the 95% interval
     of that difference (empty for the real view itself)."""
@@ -914,6 +925,41 @@ def grpo_horizon_signal() -> str:
                      ", ".join(f"{int(h['mixed_groups'])} of {HORIZON_SIGNAL_GROUPS}" for h in history)])
     return _table(["horizon, decisions", "keyframes from", "rollout success, steps 1 and 2",
                    "groups with mixed outcomes"], rows)
+
+
+# the reward-source experiment's gt and exec arms at several horizons of 8 actions a decision from keyframes of every
+# phase, 64 starts x 8, 4 steps, seed 0 (bench_grpo_reward_source horizons over its work dirs)
+HORIZON_HONESTY = ("policy", "grpo_horizon_honesty_small_2xh200", "horizons.json")
+
+
+def _detector_cell(detector: dict | None) -> str:
+    """The detector's ``success / agreement / precision`` on rollouts that reality paid (precision ``n/a`` where it
+    said no success); empty without it."""
+    if not detector:
+        return ""
+    precision = "n/a" if detector["precision"] is None else f"{detector['precision']:.2f}"
+    return f"{detector['success']:.2f} / {detector['agreement']:.2f} / {precision}"
+
+
+def grpo_horizon_honesty(record: tuple[str, ...] = HORIZON_HONESTY) -> str:
+    """Per horizon of a ``bench_grpo_reward_source horizons`` record (``record``: its ``horizons.json``), by the
+    actions a rollout executes: what reality paid the training rollouts on real frames and on the world model's
+    (pooled over every step, 95% Wilson interval), the share of the first the world model's frames kept, the groups
+    with mixed outcomes per step (median) on each, and the detector on the world model's rollouts."""
+    rows = []
+    for r in _load(*record)["rows"]:
+        gt, ex = (r["arms"].get(arm) for arm in ("gt", "exec"))
+        kept = r["exec_over_gt"]
+        rows.append([f"{r['decisions']} x {r['actions_per_decision']} = {r['actions']}",
+                     *(_paid(a["paid_success"]) if a else "not run" for a in (gt, ex)),
+                     "" if kept is None else f"{kept:.2f}",
+                     *(f"{a['mixed_groups_median']:g} of {r['groups_per_step']}" if a else "" for a in (gt, ex)),
+                     _detector_cell(ex.get("detector") if ex else None)])
+    return _table(["decisions x actions = actions a rollout executes",
+                   "real success paid on real frames, all steps (95% interval)",
+                   "on the world model's frames, its actions executed", "share kept (world model / real)",
+                   "groups mixed a step (median), real frames", "world model's frames",
+                   "the detector on the world model's rollouts: success / agreement / precision"], rows)
 
 
 def _branched_rows(entry: dict, arms: Sequence[str], cells: Callable[[dict], list[str]]) -> list[list[str]]:
@@ -1515,7 +1561,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-rest": grpo_reward_source_rest,
     "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-length": grpo_reward_source_length,
-    "grpo-reward-source-branched": grpo_reward_source_branched,
+    "grpo-reward-source-branched": grpo_reward_source_branched, "grpo-reward-source-phases": grpo_reward_source_phases,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,
@@ -1525,7 +1571,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
-    "grpo-horizon-signal": grpo_horizon_signal, "grpo-branched-open": grpo_branched_open,
+    "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
+    "grpo-branched-open": grpo_branched_open,
     "grpo-noise-control": grpo_noise_control,
     "grpo-gradient-signal": grpo_gradient_signal,
     "grpo-branched-value": grpo_branched_value,

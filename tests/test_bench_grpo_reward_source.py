@@ -612,3 +612,102 @@ def test_a_bundle_gives_the_world_model_runs_their_weights_and_the_pipeline_buil
     rs.check_bundle(args)  # the executed reward reads no detector
     with pytest.raises(SystemExit, match="--bundle .*nowhere: no such folder"):
         rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--bundle", str(tmp_path / "nowhere")])
+
+
+def _launch_line(name, cmd):
+    """The line ``run`` prints as it starts a run (its command without the interpreter)."""
+    return f"[reward-source] {name} on GPU 0 (95 s): {' '.join(cmd[2:])}\n"
+
+
+def test_horizons_pool_each_arms_paid_success_and_mixed_groups_by_the_runs_own_commands(tmp_path):
+    """horizons: each work dir's decisions and actions come from its runs' commands (commands.json, or for an older
+    work dir the launcher's lines beside it); what reality paid is pooled over every step (a ground-truth step's
+    own trajectories where recorded), the ratio is exec's rate over gt's, the mixed groups are medians of counts,
+    the detector's figures are exec's, and the rows come by actions whatever order the work dirs are given in."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    def setting(horizon):
+        args = _args(tmp_path, seeds="0")
+        args.horizon, args.actions_per_decision, args.rollout_batch = horizon, 8, 4  # 4 groups x 8 a step
+        return rs.run_commands(args)
+
+    # 2 decisions of 8: the commands recorded by run (merged: the ground-truth arm's, then exec's)
+    h2 = tmp_path / "hz" / "h2"
+    commands = setting(2)
+    h2.mkdir(parents=True)
+    rs.record_commands(str(h2), {"gt_s0": commands["gt_s0"]})
+    rs.record_commands(str(h2), {"exec_s0": commands["exec_s0"], "det_s0": commands["det_s0"]})
+    _curve(h2 / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5)],
+           [{"step": 1, "rollout_success": 0.25, "trajectories_sampled": 32, "mixed_fraction": 0.5},
+            {"step": 2, "rollout_success": 0.375, "trajectories_sampled": 32, "mixed_fraction": 0.75},
+            {"step": 3, "rollout_success": 0.5, "trajectories_sampled": 64, "mixed_fraction": 0.25}])  # 2 rounds
+    _curve(h2 / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5)],
+           [{"step": 1, "success_rate": 0.125, "sampled_mixed_fraction": 0.25, "kept_fraction": 0.25,
+             "detector_success": 0.25, "detector_agreement": 0.75, "detector_false_success": 0.2},
+            {"step": 2, "success_rate": 0.25, "sampled_mixed_fraction": 0.5, "kept_fraction": 0.25,
+             "detector_success": 0.125, "detector_agreement": 0.875, "detector_false_success": 0.0}])
+    _curve(h2 / "det_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5)], [{"step": 1, "success_rate": 0.9, "kept_fraction": 1}])
+    # 1 decision of 8: a work dir from before commands.json, its launcher's output beside it
+    h1 = tmp_path / "hz" / "h1"
+    commands = setting(1)
+    (tmp_path / "hz" / "h1.out").write_text("[reward-source] the runs start as ...\n" + "".join(
+        _launch_line(n, commands[n]) for n in ("gt_s0", "exec_s0")) + "run rc 0\n")
+    _curve(h1 / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5)],
+           [{"step": 1, "rollout_success": 0.5, "mixed_fraction": 0.5},
+            {"step": 2, "rollout_success": 0.625, "mixed_fraction": 1.0}])
+    _curve(h1 / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5)],
+           [{"step": s, "success_rate": paid, "kept_fraction": mixed}  # a run without the sampled share
+            for s, paid, mixed in ((1, 0.5, 0.75), (2, 0.25, 0.5), (3, 0.375, 0.25))])
+
+    out = tmp_path / "record"
+    result = rs.main(["horizons", "--workdirs", f"{h2},{h1}/", "--out", str(out), "--title", "t"])
+    assert json.loads((out / "horizons.json").read_text()) == {k: v for k, v in result.items() if k != "figure"}
+    assert (out / "horizons.png").stat().st_size > 0 and result["title"] == "t"
+    assert [r["workdir"] for r in result["rows"]] == [str(h1), str(h2)]
+    first, second = result["rows"]
+    assert [r["actions"] for r in result["rows"]] == [8, 16] and (first["decisions"], second["decisions"]) == (1, 2)
+    assert first["source"] == str(tmp_path / "hz" / "h1.out") and second["source"] == str(h2 / "commands.json")
+    for r in result["rows"]:
+        assert (r["actions_per_decision"], r["group_size"], r["groups_per_step"]) == (8, 8, 4)
+    gt, ex = second["arms"]["gt"], second["arms"]["exec"]
+    assert set(second["arms"]) == {"gt", "exec"} and gt["runs"] == ["gt_s0"] and ex["runs"] == ["exec_s0"]
+    assert gt["paid_success"] == {"successes": 52, "rate": 52 / 128, "of": 128,
+                                  "ci95": pytest.approx(list(wilson_interval(52, 128)))}
+    assert ex["paid_success"]["successes"] == 12 and ex["paid_success"]["of"] == 64  # 2 steps of 4 x 8
+    assert second["exec_over_gt"] == pytest.approx((12 / 64) / (52 / 128))
+    assert (gt["steps"], gt["mixed_groups_median"], gt["mixed_share_median"]) == (3, 2, 0.5)  # 2, 3, 2 of 4, 4, 8
+    assert (ex["mixed_groups_median"], ex["mixed_share_median"]) == (1.5, 0.375)  # the sampled share, not the kept
+    # 0.25 - 0.2 x (1 - 0.125) and 0.125 of the detector's 0.375 were real successes
+    assert ex["detector"] == {"success": 0.1875, "agreement": 0.8125, "false_success": pytest.approx(0.1),
+                              "precision": pytest.approx(0.2 / 0.375)} and "detector" not in gt
+    gt, ex = first["arms"]["gt"], first["arms"]["exec"]
+    assert gt["paid_success"]["successes"] == 36 and gt["paid_success"]["of"] == 64
+    assert ex["paid_success"]["successes"] == 36 and ex["paid_success"]["of"] == 96
+    assert first["exec_over_gt"] == pytest.approx(2 / 3)
+    assert (gt["mixed_groups_median"], ex["mixed_groups_median"], ex["steps"]) == (3, 2, 3)
+    series = result["figure"]
+    assert series["gt"]["actions"] == [8, 16] and series["gt"]["paid"] == [36 / 64, 52 / 128]
+    assert series["exec"]["mixed_share"] == [0.5, 0.375]
+    assert series["exec_over_gt"]["ratio"] == pytest.approx([2 / 3, (12 / 64) / (52 / 128)])
+
+
+def test_horizons_refuse_a_work_dir_that_does_not_record_its_runs_commands(tmp_path):
+    """A work dir whose runs' commands are nowhere (no commands.json, no launcher line), whose ground-truth and
+    exec runs were started at different horizons, or that is not there, is refused by its name."""
+    bare = tmp_path / "h3"
+    _curve(bare / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5)], [{"step": 1, "success_rate": 0.5,
+                                                                       "kept_fraction": 0.5}])
+    (bare / "exec_s0.log").write_text("eval step 0: MJX success 0.7\n")  # the run's own log names no horizon
+    with pytest.raises(SystemExit, match=f"{bare} records no exec run's command, so its horizon is unknown"):
+        rs.main(["horizons", "--workdirs", str(bare), "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()
+    args = _args(tmp_path, seeds="0", arms=("gt", "exec"))
+    twelve = rs.run_commands(args)
+    args.horizon = 2
+    rs.record_commands(str(bare), {"gt_s0": twelve["gt_s0"], "exec_s0": rs.run_commands(args)["exec_s0"]})
+    with pytest.raises(SystemExit, match=f"{bare}: its runs' commands in .*commands.json set different rollouts"):
+        rs.horizon_row(str(bare))
+    with pytest.raises(SystemExit, match="nowhere: no such folder"):
+        rs.horizon_row(str(tmp_path / "nowhere"))
+    with pytest.raises(SystemExit, match="horizons needs --workdirs"):
+        rs.main(["horizons", "--out", str(tmp_path / "o")])

@@ -304,3 +304,30 @@ def test_the_reward_source_table_orders_the_arms_and_counts_mixed_groups_of_the_
                         "|  |")
     assert table[3].endswith("| 0.19 | 0.10 / 0.80 / 0.75 |")
     assert report._reward_source_table(summary, group_of=32).splitlines()[4].endswith("| 6 of 32 |  |")
+
+
+def test_the_horizon_honesty_table_reads_its_record_row_by_row(tmp_path, monkeypatch):
+    """grpo-horizon-honesty: per row of a horizons.json, in its order, each arm's paid success with its interval
+    and trajectories, the share kept, the mixed groups counted of the step's groups and the detector's figures; an
+    arm that did not run, a ratio without both arms and a precision without a verdict of success say so."""
+    def arm(rate, ci, of, mixed, detector=None):
+        return {"runs": ["x_s0"], "steps": 4, "mixed_groups_median": mixed, "mixed_share_median": mixed / 64,
+                "paid_success": {"successes": round(rate * of), "rate": rate, "ci95": ci, "of": of},
+                **({"detector": detector} if detector else {})}
+
+    rows = [{"decisions": 1, "actions_per_decision": 8, "actions": 8, "group_size": 8, "groups_per_step": 64,
+             "arms": {"gt": arm(0.5, [0.48, 0.53], 2048, 12.5), "exec": arm(0.25, [0.23, 0.28], 2048, 9, {
+                 "success": 0.125, "agreement": 0.75, "false_success": 0.1, "precision": 0.5})},
+             "exec_over_gt": 0.5},
+            {"decisions": 6, "actions_per_decision": 8, "actions": 48, "group_size": 8, "groups_per_step": 64,
+             "arms": {"exec": arm(0.0625, [0.051, 0.076], 1536, 3, {"success": 0.0, "agreement": 0.9,
+                                                                      "false_success": 0.0, "precision": None})},
+             "exec_over_gt": None}]
+    (tmp_path / "policy" / "hz").mkdir(parents=True)
+    (tmp_path / "policy" / "hz" / "horizons.json").write_text(json.dumps({"rows": rows}))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_horizon_honesty(("policy", "hz", "horizons.json")).splitlines()
+    assert len(table) == 4 and "grpo-horizon-honesty" in report.TABLES
+    assert table[2] == ("| 1 x 8 = 8 | 0.500 [0.480, 0.530] of 2,048 | 0.250 [0.230, 0.280] of 2,048 | 0.50 "
+                        "| 12.5 of 64 | 9 of 64 | 0.12 / 0.75 / 0.50 |")
+    assert table[3] == "| 6 x 8 = 48 | not run | 0.062 [0.051, 0.076] of 1,536 |  |  | 3 of 64 | 0.00 / 0.90 / n/a |"
