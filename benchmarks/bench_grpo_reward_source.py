@@ -354,16 +354,30 @@ def per_decision(rows: Sequence[dict]) -> dict:
                                        for what in CLOSED_LOOP if f"closed_loop_{what}_{decisions[0]}" in rows[0]}}
 
 
+# what an executed step records of how the detector's scores separate the real outcomes whatever its threshold
+# (sword_jax.rl.imagined_check.detector_separation), read without its ``detector_`` prefix
+BOUNDED = ("auc", "threshold_bounded", "recall_bounded", "precision_bounded")
+
+
 def detector_figures(history: Sequence[dict]) -> dict:
     """What the detector said of the rollouts that reality paid (history rows with ``detector_*``): its success and
     agreement, its false success (the steps where some trajectory failed in reality) and its precision (the share
-    of its verdicts of success that reality paid too, :func:`_true_paid`), means over the rows."""
-    false = [h["detector_false_success"] for h in history if h["detector_false_success"] == h["detector_false_success"]]
+    of its verdicts of success that reality paid too, :func:`_true_paid`), means over the rows; where the steps
+    recorded them, also :data:`BOUNDED`: the AUC of its scores against the real outcomes, and at the threshold
+    that pays at most ``rl.refresh.max_false_success`` of the real failures, that threshold, its recall and
+    precision (means over the steps where both outcomes occurred)."""
+    def known(key: str) -> float | None:  # the mean over the rows that hold a number (NaN: an outcome missing)
+        values = [h[key] for h in history if h.get(key) is not None and h[key] == h[key]]
+        return statistics.mean(values) if values else None
+
     said = sum(h["detector_success"] for h in history)
-    return {"success": statistics.mean(h["detector_success"] for h in history),
-            "agreement": statistics.mean(h["detector_agreement"] for h in history),
-            "false_success": statistics.mean(false) if false else None,
-            "precision": sum(_true_paid(h) for h in history) / said if said else None}
+    out = {"success": statistics.mean(h["detector_success"] for h in history),
+           "agreement": statistics.mean(h["detector_agreement"] for h in history),
+           "false_success": known("detector_false_success"),
+           "precision": sum(_true_paid(h) for h in history) / said if said else None}
+    if "detector_auc" in history[0]:  # how its scores rank the real outcomes, and a threshold bounded on them
+        out.update({name: known(f"detector_{name}") for name in BOUNDED})
+    return out
 
 
 def _true_paid(h: dict) -> float:
@@ -662,6 +676,12 @@ def print_runs(summary: dict) -> None:
             line += f"; the detector on its rollouts: success {d['success']:.2f}, agreement {d['agreement']:.2f}"
             if d.get("precision") is not None:
                 line += f", precision {d['precision']:.2f}"
+            if d.get("auc") is not None:
+                line += f", AUC {d['auc']:.2f}"
+                if d.get("recall_bounded") is not None:
+                    line += f" (at its bounded threshold: recall {d['recall_bounded']:.2f}"
+                    line += (f", precision {d['precision_bounded']:.2f})" if d.get("precision_bounded") is not None
+                             else ")")
         if r.get("closed_loop"):
             loop = r["closed_loop"]
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "

@@ -627,7 +627,7 @@ def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
     verdicts on the same rollouts."""
     rows = []
     for arm in ("gt", "exec", "det"):
-        for name, run in sorted(summary["runs"].items()):
+        for _, run in sorted(summary["runs"].items()):
             if run["arm"] != arm:
                 continue
             paid, det = run["paid_success"], run.get("detector")
@@ -637,7 +637,7 @@ def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
                            for m in ("sampled", "sampled_proprio_masked", "greedy")),
                          f"{paid['first']:.3f} -> {paid['last']:.3f}",
                          f"{mixed * group_of:.0f} of {group_of}" if group_of else f"{mixed:.2f}",
-                         f"{det['success']:.2f} / {det['agreement']:.2f} / {det['precision']:.2f}" if det else ""])
+                         _detector_cell(det)])
     return _table(["GRPO's frames and reward", "seed", "steps", "sampled gain (points), 95% interval",
                    "sampled, proprio masked", "greedy", "its rollouts' paid success, steps 1-5 -> last 5",
                    "groups mixed (median)", "the detector on the same rollouts: success / agreement / precision"],
@@ -934,11 +934,14 @@ HORIZON_HONESTY = ("policy", "grpo_horizon_honesty_small_2xh200", "horizons.json
 
 def _detector_cell(detector: dict | None) -> str:
     """The detector's ``success / agreement / precision`` on rollouts that reality paid (precision ``n/a`` where it
-    said no success); empty without it."""
+    said no success), and the AUC of its scores against the real outcomes where the steps recorded it; empty
+    without it."""
     if not detector:
         return ""
     precision = "n/a" if detector["precision"] is None else f"{detector['precision']:.2f}"
-    return f"{detector['success']:.2f} / {detector['agreement']:.2f} / {precision}"
+    auc = detector.get("auc")  # recorded by executed steps since the detector's separation was measured
+    return (f"{detector['success']:.2f} / {detector['agreement']:.2f} / {precision}"
+            + (f"; AUC {auc:.2f}" if auc is not None else ""))
 
 
 def grpo_horizon_honesty(record: tuple[str, ...] = HORIZON_HONESTY) -> str:

@@ -711,3 +711,21 @@ def test_horizons_refuse_a_work_dir_that_does_not_record_its_runs_commands(tmp_p
         rs.horizon_row(str(tmp_path / "nowhere"))
     with pytest.raises(SystemExit, match="horizons needs --workdirs"):
         rs.main(["horizons", "--out", str(tmp_path / "o")])
+
+
+def test_the_detectors_separation_is_averaged_over_the_steps_where_both_outcomes_occurred():
+    """detector_figures: the AUC and the bounded threshold's figures that an executed step records are means over
+    the steps that hold a number (NaN: a step without one of the outcomes, or with nothing paid); rows from before
+    they were recorded give the four verdict figures alone."""
+    nan = float("nan")
+    base = {"success_rate": 0.5, "detector_success": 0.5, "detector_agreement": 0.5, "detector_false_success": 0.25}
+    rows = [dict(base, detector_auc=0.75, detector_threshold_bounded=0.5, detector_recall_bounded=0.5,
+                 detector_precision_bounded=1.0),
+            dict(base, detector_auc=0.5, detector_threshold_bounded=0.25, detector_recall_bounded=0.25,
+                 detector_precision_bounded=nan),
+            dict(base, detector_auc=nan, detector_threshold_bounded=nan, detector_recall_bounded=nan,
+                 detector_precision_bounded=nan)]
+    out = rs.detector_figures(rows)
+    assert out["auc"] == pytest.approx(0.625) and out["threshold_bounded"] == pytest.approx(0.375)
+    assert out["recall_bounded"] == pytest.approx(0.375) and out["precision_bounded"] == 1.0
+    assert set(rs.detector_figures([base])) == {"success", "agreement", "false_success", "precision"}

@@ -200,6 +200,28 @@ def test_detector_metrics_against_designed_verdicts():
     assert np.isnan(imagined_check.detector_metrics(said, jnp.ones(4, bool))["detector_false_success"])
 
 
+def test_detector_separation_against_designed_scores():
+    """The detector's ranking of real outcomes by each trajectory's highest frame score, and the lowest threshold
+    that pays at most the bound's share of real failures, on designed scores."""
+    # highest scores 0.9, 0.6, 0.6 (successes) and 0.7, 0.6, 0.3, 0.2, 0.1, 0.1, 0.0 (failures); chunk by chunk
+    peaks = jnp.asarray([[0.1, 0.9], [0.6, 0.2], [0.6, 0.6], [0.7, 0.0], [0.3, 0.6], [0.3, 0.0], [0.0, 0.2],
+                         [0.1, 0.0], [0.1, 0.1], [0.0, 0.0]])
+    real = jnp.asarray([True, True, True] + [False] * 7)
+    out = jax.device_get(imagined_check.detector_separation(peaks, real, max_false_success=0.15))
+    # success 0.9 beats all 7; each 0.6 beats 5, ties one (half) and loses to 0.7: (7 + 5.5 + 5.5) / 21
+    assert out["detector_auc"] == pytest.approx(18 / 21)
+    # 15% of 7 failures: one may be paid, so a trajectory is paid above the second highest failure (0.6)
+    assert out["detector_threshold_bounded"] == pytest.approx(0.6)
+    assert out["detector_recall_bounded"] == pytest.approx(1 / 3)  # 0.9 alone; the 0.6 successes miss it
+    assert out["detector_precision_bounded"] == pytest.approx(1 / 2)  # 0.9 and the failure's 0.7
+    strict = jax.device_get(imagined_check.detector_separation(peaks, real, max_false_success=0.0))
+    assert strict["detector_threshold_bounded"] == pytest.approx(0.7) and strict["detector_precision_bounded"] == 1.0
+    one_sided = jax.device_get(imagined_check.detector_separation(peaks, jnp.zeros(10, bool)))
+    assert all(np.isnan(v) for v in one_sided.values())
+    with pytest.raises(ValueError, match="max_false_success must be in"):
+        imagined_check.detector_separation(peaks, real, max_false_success=1.0)
+
+
 @functools.cache
 def _executed_steps():
     """One GRPO step on the toy world paid by the toy environment, with its detector ``never`` and with it
@@ -232,6 +254,10 @@ def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector
     assert never["detector_success"] == 0.0 and always["detector_success"] == 1.0
     assert always["detector_false_success"] == 1.0 and never["detector_false_success"] == 0.0
     assert never["detector_agreement"] == pytest.approx(1 - never["success_rate"])
+    # a detector that scores every frame alike ranks no outcome above the other, at any threshold
+    for metrics in (never, always):
+        assert metrics["detector_auc"] == pytest.approx(0.5)
+        assert metrics["detector_recall_bounded"] == 0.0 and np.isnan(metrics["detector_precision_bounded"])
     changed = jax.tree.leaves(jax.tree.map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
                                            state.params, moved.params))
     assert any(changed), "a mixed group moved the policy"

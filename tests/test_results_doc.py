@@ -331,3 +331,6 @@ def test_the_horizon_honesty_table_reads_its_record_row_by_row(tmp_path, monkeyp
     assert table[2] == ("| 1 x 8 = 8 | 0.500 [0.480, 0.530] of 2,048 | 0.250 [0.230, 0.280] of 2,048 | 0.50 "
                         "| 12.5 of 64 | 9 of 64 | 0.12 / 0.75 / 0.50 |")
     assert table[3] == "| 6 x 8 = 48 | not run | 0.062 [0.051, 0.076] of 1,536 |  |  | 3 of 64 | 0.00 / 0.90 / n/a |"
+    # an executed run that recorded how the detector's scores rank the real outcomes
+    assert report._detector_cell({"success": 0.5, "agreement": 0.75, "precision": 0.5, "auc": 0.625,
+                                  "recall_bounded": 0.25}) == "0.50 / 0.75 / 0.50; AUC 0.62"

@@ -178,6 +178,16 @@ def test_a_rollout_that_runs_on_past_success_keeps_the_detectors_verdict_by_its_
     assert stops.success.any(), "the group that starts on its goal succeeds"
     assert (runs_on.valid == 1).all()
     assert (stops.valid.sum(1)[stops.success] < CFG.imagined.max_chunks).any()  # where it stopped, this one ran on
+    # each chunk's highest frame score: with success_frames = 1 the verdict is the highest peak reaching the
+    # threshold, and a chunk after a stop scores nothing
+    assert runs_on.peaks.shape == runs_on.valid.shape
+    np.testing.assert_array_equal(runs_on.peaks.max(1) >= CFG.success_threshold, runs_on.success)
+    assert (stops.peaks[stops.valid == 0] == 0).all()
+    recorded = jax.device_get(imagined_rollout(graphdef, params, sim, reward_model, start, CFG, key=jax.random.key(4),
+                                               stop_on_success=False, record_frames=True))
+    scored = reward_model.score(jnp.asarray(recorded.frames.reshape((-1,) + recorded.frames.shape[3:])))
+    np.testing.assert_allclose(recorded.peaks, np.asarray(scored).reshape(recorded.frames.shape[:3]).max(2),
+                               atol=1e-6)
 
 
 def test_sim_microbatches_equal_one_vmapped_step_and_stay_sharded():

@@ -433,8 +433,9 @@ def make_grpo_step(
     ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
     imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env``
     and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
-    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`)
-    and, for the first ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
+    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
+    its scores rank their real outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them
+    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`) and, for the first ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
     the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's
     decoder alone causes where the simulator has a round trip of real frames (the world model decoding with its
     VAE: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
@@ -469,6 +470,8 @@ def make_grpo_step(
             else:
                 real_first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
             extra.update(imagined_check.detector_metrics(rollout.success, real_first >= 0))
+            extra.update(imagined_check.detector_separation(rollout.peaks, real_first >= 0,
+                                                            max_false_success=cfg.refresh.max_false_success))
             rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
         unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:

@@ -241,6 +241,43 @@ def detector_metrics(said: Bool[Array, " n"], real: Bool[Array, " n"]) -> dict[s
                                                                                              jnp.nan)}
 
 
+def detector_separation(peaks: Float[Array, "n c"], real: Bool[Array, " n"], *, max_false_success: float = 0.05
+                        ) -> dict[str, Float[Array, ""]]:
+    """How well the detector's scores on trajectories that the real environment paid separate their real outcomes,
+    whatever its threshold (``rl.imagined.reward=executed``; read by the rule of ``rl.imagined.success_frames =
+    1``: a trajectory is said to succeed where its highest frame score reaches the threshold).
+
+    ``peaks`` are each chunk's highest frame score (:attr:`~sword_jax.rl.rollout.Rollout.peaks`), ``real`` the
+    real outcomes. Returns ``detector_auc``, the chance that a real success scores above a real failure (ties
+    count half), and, where a trajectory is paid when it scores above ``detector_threshold_bounded`` (the real
+    failure's score that leaves at most ``max_false_success`` of the real failures above it), the real successes
+    paid (``detector_recall_bounded``) and the share of the paid that are real successes
+    (``detector_precision_bounded``). NaN where an outcome is missing, and the precision where nothing is paid.
+    What a threshold calibrated on the policy's own closed loop could give GRPO in the detector's reward."""
+    if not 0.0 <= max_false_success < 1.0:
+        raise ValueError(f"detector_separation: max_false_success must be in [0, 1), got {max_false_success}")
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    top = jnp.max(f32(peaks), axis=1)
+    real = jnp.asarray(real, bool)
+    wins, losses = jnp.sum(f32(real)), jnp.sum(f32(~real))
+    both = (wins > 0) & (losses > 0)
+    above = f32(top[:, None] > top[None, :]) + 0.5 * f32(top[:, None] == top[None, :])
+    auc = jnp.sum(jnp.where(real[:, None] & ~real[None, :], above, 0.0)) / jnp.maximum(wins * losses, 1.0)
+    # the failures' scores from the highest down: at most floor(bound x failures) of them may be paid, so the cut
+    # is the next one, and paid means strictly above it (a step above it would vanish where denormals flush to 0)
+    failing = jnp.sort(jnp.where(real, -jnp.inf, top))[::-1]
+    allowed = jnp.floor(jnp.float32(max_false_success) * losses).astype(jnp.int32)
+    cut = failing[jnp.minimum(allowed, top.shape[0] - 1)]
+    said = top > cut
+    paid = jnp.sum(f32(said & real))
+    nan = jnp.float32(jnp.nan)
+    return {"detector_auc": jnp.where(both, auc, nan),
+            "detector_threshold_bounded": jnp.where(both, cut, nan),
+            "detector_recall_bounded": jnp.where(both, paid / jnp.maximum(wins, 1.0), nan),
+            "detector_precision_bounded": jnp.where(both & jnp.any(said), paid / jnp.maximum(jnp.sum(f32(said)), 1.0),
+                                                    nan)}
+
+
 def report(checked: CheckedRollouts, group_size: int, horizons: tuple[int, ...] = sim_agreement.HORIZON_SWEEP
            ) -> dict[str, Any]:
     """The imagined verdicts against the real outcomes of the same actions.

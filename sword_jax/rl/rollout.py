@@ -44,6 +44,10 @@ class Rollout(NamedTuple):
       success: the score passed the threshold at some frame ``[N]``.
       returns: trajectory return used for advantages ``[N]``.
       frames: all predicted frames ``[N, C, T, H, W, 3]`` when recorded, else an empty array.
+      peaks: the reward model's highest frame score within each chunk ``[N, C]`` (0 after the trajectory was
+        done), where the rollout came from :func:`imagined_rollout`; None otherwise. With
+        ``rl.imagined.success_frames = 1`` a trajectory's detector verdict at any threshold is its highest peak
+        reaching it (:func:`~sword_jax.rl.imagined_check.detector_separation` reads them so).
     """
 
     obs_frames: Float[Array, "n c s s 3"]
@@ -58,6 +62,7 @@ class Rollout(NamedTuple):
     success: Bool[Array, " n"]
     returns: Float[Array, " n"]
     frames: Float[Array, "..."]
+    peaks: Float[Array, "n c"] | None = None
 
 
 class ChunkOutcome(NamedTuple):
@@ -306,7 +311,7 @@ def imagined_rollout(
         next_frame = keep(valid)(resize_frames(frames[:, -1], cfg.image_size), frame)
         out = dict(obs=obs, proprio=proprio, proprio_valid=proprio_valid.astype(jnp.float32), tokens=tokens,
                    log_probs=log_probs, valid=valid.astype(jnp.float32), reward=outcome.reward, score=outcome.score,
-                   success=outcome.success)
+                   success=outcome.success, peak=jnp.where(valid, jnp.max(scores, axis=-1), jnp.float32(0.0)))
         if record_frames:
             out["frames"] = frames
         return (sim_state, next_frame, outcome.score, outcome.done, outcome.run), out
@@ -329,6 +334,7 @@ def imagined_rollout(
         success=success,
         returns=returns,
         frames=swap(traj["frames"]) if record_frames else jnp.zeros((0,), jnp.float32),
+        peaks=swap(traj["peak"]),
     )
 
 
