@@ -7,7 +7,10 @@ GRPO in the learned simulator's setting (keyframe starts, 48 actions executed 4 
 * ``exec``: GRPO in Sword's world model, the policy acting on its frames, each imagined trajectory paid by the
   real outcome of its actions executed on MJX from the keyframe's recorded state (``rl.imagined.reward=executed``,
   :mod:`sword_jax.rl.imagined_check`); every step also logs what the detector would have paid;
-* ``det``: GRPO in Sword's world model paid by its success detector (``rl.imagined.reward=detector``).
+* ``det``: GRPO in Sword's world model paid by its success detector (``rl.imagined.reward=detector``);
+* ``cal`` (not run by default): the first ``--calibrate-steps`` steps as ``exec``, then the detector's reward at the
+  threshold those steps set on the policy's own closed loop (``rl.imagined.reward=calibrated``: just above the
+  median real failure's score that leaves at most ``rl.refresh.max_false_success`` of the real failures paid).
 
 If ``exec`` lifts real success as ``gt`` does and ``det`` does not, the reward is what fails GRPO in the learned
 simulator; if ``exec`` falls with ``det``, the frames do. No refresh runs: the world model and the detector stay
@@ -68,10 +71,11 @@ from benchmarks.bench_grpo_refresh import (add_deadline_options, add_determinist
 from benchmarks.bench_grpo_transfer import read_history
 from sword_jax import cli
 
-ARMS = ("gt", "exec", "det")
+ARMS = ("gt", "exec", "det", "cal")
 ARM_LABELS = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
               "exec": "the world model's frames, the real outcome of their actions",
-              "det": "the world model's frames, the detector's reward"}
+              "det": "the world model's frames, the detector's reward",
+              "cal": "the world model's frames, the real outcome, then the detector's reward at the threshold it set"}
 # the learned simulator's setting and the GRPO recipe every arm shares
 RECIPE = ("--rl.env.backend=mjx", "--rl.grpo.group_size=8", "--rl.grpo.minibatches=4",
           "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5", "--rl.grpo.learning_rate=1e-4",
@@ -80,7 +84,8 @@ GROUND_TRUTH = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", 
                 "--rl.env.proprio=missing")
 WORLD_MODEL = ("--rl.imagined.shared_group_noise=true",
                "--rl.imagined.eval_replay_episodes=0")
-REWARD = {"exec": ("--rl.imagined.reward=executed",), "det": ()}
+REWARD = {"exec": ("--rl.imagined.reward=executed",), "det": (), "cal": ("--rl.imagined.reward=calibrated",)}
+WORLD_MODEL_ARMS = ("exec", "det", "cal")  # the arms that run GRPO in the world model (train.grpo)
 # VAE variant -> the config overrides of its VAE, given to every command that trains or loads that VAE
 VAE_VARIANTS: dict[str, tuple[str, ...]] = {
     "base": (),
@@ -145,7 +150,8 @@ def needs(args, name: str) -> tuple[str, ...]:
 def check_bundle(args) -> None:
     """``--bundle`` holds what the world-model arms read (``train.bundle unpack``'s layout), or the run is refused
     by name before anything starts."""
-    wanted = ["world_model/checkpoints", "vae_run/vae"] + (["rl/reward_model"] if "det" in args.arms else [])
+    wanted = ["world_model/checkpoints", "vae_run/vae"] + (["rl/reward_model"] if {"det", "cal"} & set(args.arms)
+                                                           else [])
     missing = [w for w in wanted if not os.path.isdir(os.path.join(args.bundle, w))]
     if missing:
         raise SystemExit(f"bench_grpo_reward_source: --bundle {args.bundle} lacks {', '.join(missing)} "
@@ -169,7 +175,7 @@ def run_commands(args) -> dict[str, list[str]]:
                               args.policy, "--eval-episodes", str(episodes), f"--demos={demos}", *shared, *GROUND_TRUTH,
                               *steps]
     for seed in args.seeds:
-        for arm in (a for a in ("exec", "det") if a in args.arms):
+        for arm in (a for a in WORLD_MODEL_ARMS if a in args.arms):
             name = f"{arm}_s{seed}"
             out[name] = [sys.executable, "-m", "train.grpo", "--config", args.config, *vae, "--simulator", "world_model",
                          "--world-model", os.path.join(weights, "world_model"),
@@ -177,7 +183,8 @@ def run_commands(args) -> dict[str, list[str]]:
                          "--reward", os.path.join(weights, "rl", "reward_model"), "--demos", demos,
                          "--policy", args.policy,
                          "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *shared, *WORLD_MODEL,
-                         f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps]
+                         f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps,
+                         *((f"--rl.imagined.calibrate_steps={args.calibrate_steps}",) if arm == "cal" else ())]
     return out
 
 
@@ -188,7 +195,7 @@ def placement(args) -> dict[str, str]:
     building = pipeline_gpus(args)
     free = [g for g in gpus if g not in building] or gpus
     out = {f"gt_s{seed}": free[i % len(free)] for i, seed in enumerate(args.seeds) if "gt" in args.arms}
-    names = [f"{arm}_s{seed}" for seed in args.seeds for arm in ("exec", "det") if arm in args.arms]
+    names = [f"{arm}_s{seed}" for seed in args.seeds for arm in WORLD_MODEL_ARMS if arm in args.arms]
     out.update({name: gpus[i % len(gpus)] for i, name in enumerate(names)})
     return out
 
@@ -282,7 +289,7 @@ def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
         if re.fullmatch(r"s\d+", seed_dir) and os.path.exists(os.path.join(gt, seed_dir, GT_DIR, "success_curve.json")):
             out[f"gt_{seed_dir}"] = ("gt", int(seed_dir[1:]), os.path.join(gt, seed_dir, GT_DIR))
     for name in sorted(os.listdir(workdir)):
-        match = re.fullmatch(r"(exec|det)_s(\d+)", name)
+        match = re.fullmatch(r"(exec|det|cal)_s(\d+)", name)
         grpo = os.path.join(workdir, name, "rl", "grpo")
         if match and os.path.exists(os.path.join(grpo, "success_curve.json")):
             out[name] = (match.group(1), int(match.group(2)), grpo)
@@ -326,10 +333,15 @@ def summarize_run(grpo: str) -> dict:
            "paid_success": ({"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])} if paid else None),
            "mixed_median": statistics.median(mixed) if mixed else None,
            "curve": evaluation_curve(points)}
-    if history and "detector_success" in history[0]:
-        out["detector"] = detector_figures(history)
-    if history and closed_loop_decisions(history[0]):  # per decision, the mean over the steps
-        out["closed_loop"] = per_decision(history)
+    executed = [h for h in history if "detector_success" in h]  # the steps paid by execution (cal: its first)
+    if executed:
+        out["detector"] = detector_figures(executed)
+    if executed and closed_loop_decisions(executed[0]):  # per decision, the mean over the steps
+        out["closed_loop"] = per_decision(executed)
+    judged = [h["detector_threshold"] for h in history if "detector_threshold" in h]
+    if judged:  # cal: the threshold its executed steps set, at which the detector paid the later ones
+        out["calibrated_threshold"] = judged[0]
+        out["executed_steps"] = len(executed)
     return out
 
 
@@ -728,7 +740,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "ground-truth runs take the GPUs it leaves (all of them where it takes every one); default: "
                         "the first of --gpus")
     parser.add_argument("--seeds", default="0,1,2")
-    parser.add_argument("--arms", default=",".join(ARMS), help=f"run: comma list of {', '.join(ARMS)} (e.g. the "
+    parser.add_argument("--calibrate-steps", type=int, default=4,
+                        help="run: the cal arm's steps paid by execution, which set the detector's threshold "
+                        "(rl.imagined.calibrate_steps)")
+    parser.add_argument("--arms", default="gt,exec,det", help=f"run: comma list of {', '.join(ARMS)} (e.g. the "
                         "world-model arms alone, for another world model beside a ground-truth arm already run)")
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--eval-every", type=int, default=10)
@@ -809,6 +824,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps, --eval-every "
                          "and --eval-episodes-per-task >= 1, --policy-rollouts >= 0, --rollout-batch a multiple of 4 "
                          "(4 minibatches)")
+    if "cal" in args.arms and not 1 <= args.calibrate_steps < args.steps:
+        raise SystemExit(f"bench_grpo_reward_source: the cal arm needs 1 <= --calibrate-steps < --steps (steps paid by "
+                         f"execution before the detector pays), got {args.calibrate_steps} of {args.steps}")
     if args.horizon < 1 or (args.keyframe_fraction is not None and not 0 <= args.keyframe_fraction <= 1):
         raise SystemExit(f"bench_grpo_reward_source: --horizon must be >= 1 and --keyframe-fraction in [0, 1], got "
                          f"{args.horizon} and {args.keyframe_fraction}")
@@ -816,7 +834,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 # the figure's names of each arm's rollouts and of each greedy action gap (its key's suffix in the closed-loop record)
-FIGURE_ARMS = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames"}
+FIGURE_ARMS = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames",
+               "cal": "the world model's frames, executed, then judged"}
 FIGURE_GAPS = {"": "the world model's frame", "_vae": "the real frame through the VAE alone",
                "_prev": "the real frame of the decision before"}
 

@@ -626,7 +626,7 @@ def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
     ``group_of``, as a count of that many groups), and for the world model paid by reality, the detector's
     verdicts on the same rollouts."""
     rows = []
-    for arm in ("gt", "exec", "det"):
+    for arm in ("gt", "exec", "det", "cal"):
         for _, run in sorted(summary["runs"].items()):
             if run["arm"] != arm:
                 continue

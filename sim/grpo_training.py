@@ -99,12 +99,12 @@ def run_grpo(cfg, inputs: GRPOInputs, *, simulator: str = "world_model", env_wor
                                         latents=inputs.latents,
                                         episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task,
                                         max_traces=ENTRY_MAX_TRACES)
-        if rl.env.backend == "mjx":  # the evaluation (and with rl.imagined.reward=executed, the reward) on MJX
+        if rl.env.backend == "mjx":  # the evaluation (and with a reward paid by execution, the reward) on MJX
             from sim.grpo_refresh import mjx_evaluation
 
-            if rl.imagined.reward == "executed" and setup.env_starts is None:
-                raise SystemExit("train.grpo --rl.imagined.reward=executed resets MJX to the keyframes' recorded "
-                                 f"states: the demonstrations {', '.join(inputs.demos)} hold no 'states'")
+            if rl.imagined.executes and setup.env_starts is None:
+                raise SystemExit(f"train.grpo --rl.imagined.reward={rl.imagined.reward} resets MJX to the keyframes' "
+                                 f"recorded states: the demonstrations {', '.join(inputs.demos)} hold no 'states'")
             env, evaluate_real = mjx_evaluation(cfg, rl, graphdef, params, workdir,
                                                 episodes_per_task=eval_episodes or rl.grpo.eval_episodes_per_task)
             return run_in_learned_simulator(cfg, rl, graphdef, params, workdir, setup, simulator=simulator,

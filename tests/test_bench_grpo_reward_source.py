@@ -11,13 +11,13 @@ from benchmarks import bench_grpo_reward_source as rs
 from sword_jax import cli
 
 
-def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=rs.ARMS):
+def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=("gt", "exec", "det")):
     args = argparse.Namespace(
         workdir=str(tmp_path), policy="/p/policy_d50.npz", config="sword:small", gpus=gpus.split(","),
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
         world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None,
-        deterministic=False, scale_by_std=True)
+        deterministic=False, scale_by_std=True, calibrate_steps=4)
     return args
 
 
@@ -27,7 +27,7 @@ def _flag(cmd, name):
 
 def test_each_arm_differs_from_the_others_in_one_part(tmp_path):
     commands = rs.run_commands(_args(tmp_path))
-    assert sorted(commands) == sorted(f"{a}_s{s}" for a in rs.ARMS for s in (0, 1, 2))
+    assert sorted(commands) == sorted(f"{a}_s{s}" for a in ("gt", "exec", "det") for s in (0, 1, 2))
     gt, ex, det = commands["gt_s1"], commands["exec_s1"], commands["det_s1"]
     # the setting and the recipe are the same everywhere
     for cmd in (gt, ex, det):
@@ -49,6 +49,37 @@ def test_each_arm_differs_from_the_others_in_one_part(tmp_path):
     assert "--rl.grpo.eval_episodes_per_task=5" in few["exec_s0"] and "--rl.grpo.eval_episodes_per_task=5" in few["det_s2"]
     assert few["gt_s0"][few["gt_s0"].index("--eval-episodes") + 1] == "5"
     assert "--rl.grpo.eval_episodes_per_task=50" in ex and gt[gt.index("--eval-episodes") + 1] == "50"
+
+
+def test_the_calibrated_arm_is_the_detectors_arm_paid_by_execution_for_its_first_steps(tmp_path, monkeypatch):
+    """cal: the det arm's command with rl.imagined.reward=calibrated and --calibrate-steps; it reads the detector
+    from a bundle; its summary reads the detector's figures from the executed steps alone and gives the threshold
+    they set; a calibration as long as the run is refused."""
+    commands = rs.run_commands(_args(tmp_path, arms=("det", "cal")))
+    cal, det = commands["cal_s1"], commands["det_s1"]
+    assert [c for c in cal if c not in ("--rl.imagined.reward=calibrated", "--rl.imagined.calibrate_steps=4")] == [
+        c.replace("det_s1", "cal_s1") for c in det]
+    assert "--rl.imagined.reward=calibrated" in cal and "--rl.imagined.calibrate_steps=4" in cal
+    bundle = tmp_path / "bundle"
+    for d in ("world_model/checkpoints", "vae_run/vae"):
+        (bundle / d).mkdir(parents=True)
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--bundle", str(bundle), "--arms", "cal",
+                     "--steps", "10", "--calibrate-steps", "3"])
+    with pytest.raises(SystemExit, match="lacks rl/reward_model"):
+        rs.check_bundle(args)
+    with pytest.raises(SystemExit, match="cal arm needs 1 <= --calibrate-steps < --steps"):
+        rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "cal", "--steps", "3",
+                  "--calibrate-steps", "3"])
+    executed = {"success_rate": 0.25, "kept_fraction": 0.5, "detector_success": 0.5, "detector_agreement": 0.75,
+                "detector_false_success": 0.25, "detector_auc": 0.75, "detector_threshold_bounded": 0.5,
+                "detector_recall_bounded": 0.5, "detector_precision_bounded": 0.5}
+    judged = {"success_rate": 0.375, "kept_fraction": 0.25, "detector_threshold": 0.5000001}
+    _curve(tmp_path / "cal_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5), _point(5, 0.7, 0.52)],
+           [executed, executed, judged, judged, judged])
+    run = rs.summarize(str(tmp_path))["runs"]["cal_s0"]
+    assert run["arm"] == "cal" and run["executed_steps"] == 2 and run["calibrated_threshold"] == 0.5000001
+    assert run["detector"]["auc"] == 0.75 and run["detector"]["success"] == 0.5
+    assert run["paid_success"] == {"first": pytest.approx(0.325), "last": pytest.approx(0.325)}
 
 
 def test_the_runs_are_placed_beside_the_pipeline_then_over_every_gpu(tmp_path):

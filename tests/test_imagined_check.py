@@ -216,8 +216,12 @@ def test_detector_separation_against_designed_scores():
     assert out["detector_precision_bounded"] == pytest.approx(1 / 2)  # 0.9 and the failure's 0.7
     strict = jax.device_get(imagined_check.detector_separation(peaks, real, max_false_success=0.0))
     assert strict["detector_threshold_bounded"] == pytest.approx(0.7) and strict["detector_precision_bounded"] == 1.0
+    # failures alone: the cut is still theirs (the highest, none of 10 may be paid), nothing else is defined
     one_sided = jax.device_get(imagined_check.detector_separation(peaks, jnp.zeros(10, bool)))
-    assert all(np.isnan(v) for v in one_sided.values())
+    assert one_sided["detector_threshold_bounded"] == pytest.approx(0.9)
+    assert all(np.isnan(one_sided[f"detector_{k}"]) for k in ("auc", "recall_bounded", "precision_bounded"))
+    all_won = jax.device_get(imagined_check.detector_separation(peaks, jnp.ones(10, bool)))
+    assert all(np.isnan(v) for v in all_won.values())
     with pytest.raises(ValueError, match="max_false_success must be in"):
         imagined_check.detector_separation(peaks, real, max_false_success=1.0)
 
@@ -261,6 +265,20 @@ def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector
     changed = jax.tree.leaves(jax.tree.map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
                                            state.params, moved.params))
     assert any(changed), "a mixed group moved the policy"
+
+
+def test_a_step_whose_detector_figures_are_undefined_is_still_finite():
+    """An executed step's detector figures are NaN by definition where an outcome is missing; that must not stop
+    the run as a non-finite update does (the GRPO loop's finite test), while a NaN loss still does."""
+    from sword_jax.rl.grpo_loop import grpo_metrics_finite
+
+    nan = jnp.float32(jnp.nan)
+    metrics = {"loss": jnp.float32(0.5), **{k: nan for k in imagined_check.UNDEFINED_AS_NAN}}
+    assert bool(grpo_metrics_finite(metrics))
+    assert not bool(grpo_metrics_finite(dict(metrics, loss=nan)))
+    assert not bool(grpo_metrics_finite(dict(metrics, detector_agreement=nan)))
+    _, _, never = _executed_step("never")  # the toy step's own undefined precision at the bound
+    assert np.isnan(never["detector_precision_bounded"]) and bool(grpo_metrics_finite(never))
 
 
 def test_an_executed_reward_is_refused_without_its_environment_or_outside_mjx():
@@ -457,3 +475,68 @@ def test_an_executed_step_logs_its_closed_loop_and_is_paid_the_same_without_it()
     assert plain["success_rate"] == logged["success_rate"] and plain["loss"] == pytest.approx(logged["loss"])
     with pytest.raises(ValueError, match="fidelity_trajectories"):
         ImaginedConfig(fidelity_trajectories=-1).validate()
+
+
+# ---- rl.imagined.reward=calibrated: paid by execution first, then by the detector at the threshold that set ----
+
+CAL = dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, reward="calibrated", calibrate_steps=1))
+
+
+def test_the_calibrated_threshold_sits_just_above_the_median_cut():
+    assert grpo.calibrated_threshold([0.2, float("nan"), 0.6, 0.4]) == np.nextafter(np.float32(0.4), np.float32(1))
+    assert grpo.calibrated_threshold([0.0]) == np.finfo(np.float32).tiny  # never a subnormal a device flushes to 0
+    with pytest.raises(ValueError, match="none of the 2 steps paid by execution had a real failure"):
+        grpo.calibrated_threshold([float("nan")] * 2)
+
+
+def test_a_calibrated_reward_pays_by_execution_then_by_the_detector_at_the_threshold_it_set():
+    """rl.imagined.reward=calibrated with one calibration step on the toy world: step 1 is the executed step (the
+    environment pays, the detector's bounded cut is logged); step 2 is the detector's step at the threshold just
+    above that cut, the same step as one built with that threshold; a step resumed after the calibration reads the
+    cut from the run's records and pays alike; without them it is refused by name."""
+    graphdef, params, sim, start, env_starts = _designed(CAL)
+    env, detector = ToyEnv(CAL.success_threshold), toy_reward_model()
+    batch = (sim, detector, start, env_starts)
+    state = grpo.init_state(params, CAL)
+    step = grpo.make_calibrated_step(graphdef, CAL, env=env, donate=False)
+    first_state, first = step(state, batch, jax.random.key(3))
+    first = jax.device_get(first)
+    assert {"detector_auc", "detector_threshold_bounded", "detector_success"} <= set(first)
+    assert not np.isnan(first["detector_threshold_bounded"]), "the designed starts give both real outcomes"
+    threshold = grpo.calibrated_threshold([first["detector_threshold_bounded"]])
+    second_state, second = step(first_state, batch, jax.random.key(3))
+    second = jax.device_get(second)
+    assert second["detector_threshold"] == np.float32(threshold) and "detector_success" not in second
+    by_hand = grpo.make_grpo_step(graphdef, dataclasses.replace(
+        CAL, success_threshold=threshold, imagined=dataclasses.replace(CAL.imagined, reward="detector",
+                                                                       calibrate_steps=0)), donate=False)
+    placed = jax.device_put(first_state, jax.tree.map(lambda x: x.sharding, second_state))
+    hand_state, hand = by_hand(placed, batch, jax.random.key(3))
+    assert {k: v for k, v in second.items() if k != "detector_threshold"} == jax.device_get(hand)
+    # resumed after the calibration step: its cut from the records, the same step
+    resumed = grpo.make_calibrated_step(graphdef, CAL, env=env, donate=False,
+                                        history=lambda: [{"step": 1, **{k: float(v) for k, v in first.items()}}])
+    again_state, again = resumed(placed, batch, jax.random.key(3))
+    assert jax.device_get(again) == second
+    for a, b in zip(jax.tree.leaves(again_state.params), jax.tree.leaves(second_state.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    lost = grpo.make_calibrated_step(graphdef, CAL, env=env, donate=False)
+    with pytest.raises(ValueError, match=r"resumed after steps \[1\] paid by execution, but its records hold only"):
+        lost(placed, batch, jax.random.key(3))
+
+
+def test_a_calibrated_reward_is_refused_without_its_steps_or_by_the_plain_step():
+    with pytest.raises(ValueError, match="calibrate_steps .* must be >= 1 with rl.imagined.reward=calibrated"):
+        dataclasses.replace(CAL, imagined=dataclasses.replace(CAL.imagined, calibrate_steps=0)).validate()
+    with pytest.raises(ValueError, match="calibrate_steps .* and 0 otherwise"):
+        dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, calibrate_steps=2)).validate()
+    with pytest.raises(ValueError, match="reward=calibrated pays imagined actions by executing them on MJX"):
+        dataclasses.replace(CAL, env=EnvConfig(backend="cpu")).validate()
+    graphdef, _ = build_policy(CAL, seed=0)
+    with pytest.raises(ValueError, match="build its step with make_calibrated_step"):
+        grpo.make_grpo_step(graphdef, CAL, env=ToyEnv(CAL.success_threshold))
+    with pytest.raises(ValueError, match="reward must be calibrated"):
+        grpo.make_calibrated_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold))
+    run_id = grpo_run_id(CAL, seed=0, simulator="world_model")
+    assert run_id["rl.imagined.calibrate_steps"] == 1 and run_id["rl.refresh.max_false_success"] == 0.05
+    assert "rl.imagined.calibrate_steps" not in grpo_run_id(EXEC, seed=0, simulator="world_model")

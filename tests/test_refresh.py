@@ -17,6 +17,7 @@ from sword_jax import sharding as shd
 from sword_jax.load import experiment_vae, experiment_world_model
 from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
 from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
+from sword_jax.rl import grpo
 from sword_jax.rl.config import RefreshConfig
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
@@ -518,18 +519,22 @@ def test_the_check_of_imagined_rollouts_runs_at_the_run_horizon_and_only_while_t
     assert refresher._verify(3, "policy") is None
 
 
-@pytest.mark.slow  # ~1.5 min on 2 cores: two GRPO steps paid by the environment, then a resume
-def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(tiny_run, tmp_path):
+@pytest.mark.slow  # ~1.5 min on 2 cores each: two GRPO steps paid by the environment, then a resume
+@pytest.mark.parametrize("paid_by", ["executed", "calibrated"])
+def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(tiny_run, tmp_path, paid_by):
     """rl.imagined.reward=executed: GRPO in the tiny world model from keyframes whose recorded states reset the
     environment (the Slide's state is its position, what the demonstrations' proprio records), each imagined
     trajectory paid by the environment's outcome of its actions; the steps log the detector's verdict beside
-    it, and a run stopped after its first step resumes to the uninterrupted run's parameters."""
+    it, and a run stopped after its first step resumes to the uninterrupted run's parameters. With
+    reward=calibrated and one calibration step, the second step is the detector's at the threshold the first
+    set, and the run resumed after the first reads it from its records."""
     from sword_jax.pipeline.grpo import run_in_learned_simulator
     from sword_jax.rl.policy import tokenize_instructions
 
     cfg = _cfg(tmp_path)
     rl = dataclasses.replace(cfg.rl, refresh=RefreshConfig(), grpo=dataclasses.replace(cfg.rl.grpo, steps=2),
-                             imagined=dataclasses.replace(cfg.rl.imagined, reward="executed", eval_replay_episodes=0))
+                             imagined=dataclasses.replace(cfg.rl.imagined, reward=paid_by, eval_replay_episodes=0,
+                                                          calibrate_steps=int(paid_by == "calibrated")))
     cfg = dataclasses.replace(cfg, rl=rl)
     graphdef, params = build_policy(rl, seed=0)
     det_graphdef, det_params = build_detector(rl, seed=0)
@@ -566,7 +571,11 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
 
     whole = run(str(tmp_path / "whole"), 2)
     assert [p["step"] for p in whole["history"]] == [1, 2]
-    for point in whole["history"]:
+    if paid_by == "calibrated":  # the detector paid the second step at the threshold the first one's cut set
+        paid, judged = whole["history"]
+        assert judged["detector_threshold"] == pytest.approx(
+            grpo.calibrated_threshold([paid["detector_threshold_bounded"]])) and "detector_success" not in judged
+    for point in whole["history"][:1 if paid_by == "calibrated" else None]:
         assert {"detector_success", "detector_agreement", "detector_false_success"} <= set(point)
         # and where the closed loop left the real one, decision by decision (decision 0 reads the real start),
         # with the share of it the world model's VAE alone causes (its round trip of the real frames)
@@ -579,4 +588,4 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
     resumed = run(str(tmp_path / "split"), 2)
     assert [p["step"] for p in resumed["history"]] == [1, 2]
     for a, b in zip(whole["history"], resumed["history"]):
-        assert a == b
+        assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN figures equal too

@@ -22,7 +22,7 @@ from sword_jax import sharding as shd
 from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo, sim_agreement
 from sword_jax.rl.env_rollout import make_act_fns
-from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.grpo_loop import grpo_run_id, read_history, train_grpo
 from sword_jax.rl.learned_simulator import StartState, toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.policy_success import evaluate_in_sim
@@ -315,7 +315,8 @@ class GRPOStep(NamedTuple):
         return self.sim.frames_per_step
 
 
-def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int, env: Any = None) -> GRPOStep:
+def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int, env: Any = None,
+              workdir: str | None = None) -> GRPOStep:
     """The compiled GRPO step of a run in ``setup``'s simulator from policy ``params``, its initial state and its
     batches (:func:`run_in_learned_simulator`; ``benchmarks.bench_grpo_step`` times it).
 
@@ -326,18 +327,25 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int, env: 
     the update's folding in ``state.step`` itself.
 
     With ``rl.imagined.reward=executed`` each batch also carries the start states' recorded simulator states
-    (``setup.env_starts``) and ``env`` is the real environment they reset (one process only)."""
-    executed = rl.imagined.reward == "executed"
+    (``setup.env_starts``) and ``env`` is the real environment they reset (one process only); so does
+    ``calibrated``, whose step reads the run's history in ``workdir`` when resumed after its steps paid by
+    execution (:func:`~sword_jax.rl.grpo.make_calibrated_step`)."""
+    executed = rl.imagined.executes
     if executed and (env is None or setup.env_starts is None):
-        raise ValueError("rl.imagined.reward=executed needs the real environment and start states with recorded "
-                         "simulator states (demonstrations whose HDF5 holds 'states')")
+        raise ValueError(f"rl.imagined.reward={rl.imagined.reward} needs the real environment and start states with "
+                         "recorded simulator states (demonstrations whose HDF5 holds 'states')")
     if executed and jax.process_count() > 1:
-        raise ValueError("rl.imagined.reward=executed runs in one process")
+        raise ValueError(f"rl.imagined.reward={rl.imagined.reward} runs in one process")
     mesh = shd.make_mesh(cfg.mesh)
     sim, reward_model = shd.place((setup.sim, setup.reward_model), shd.shardings_on((setup.sim, setup.reward_model),
                                                                                    mesh))
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
-    step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules, env=env)
+    if rl.imagined.reward == "calibrated":  # paid by execution, then by the detector at the threshold that set
+        step_fn = grpo.make_calibrated_step(graphdef, rl, env=env, max_traces=max_traces, mesh=mesh,
+                                            rules=cfg.mesh.rules,
+                                            history=lambda: read_history(workdir) if workdir else ())
+    else:
+        step_fn = grpo.make_grpo_step(graphdef, rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules, env=env)
     root = jax.random.key(cfg.seed)
     starts, starts_key = setup.starts, stream_key(root, "grpo/starts")
     if jax.process_count() > 1:  # each process makes its rows of the global batch of start states
@@ -403,7 +411,7 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
     if evaluate_real is not None and rl.imagined.eval_replay_episodes:
         raise ValueError("rl.imagined.eval_replay_episodes replays the C engine's evaluation episodes; with this "
                          "evaluation pass --rl.imagined.eval_replay_episodes=0")
-    run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=max_traces, env=env)
+    run = grpo_step(cfg, rl, graphdef, params, setup, max_traces=max_traces, env=env, workdir=workdir)
     sim, reward_model, mesh = run.sim, run.reward_model, run.mesh
     root = jax.random.key(cfg.seed)
     if eval_start is not None:

@@ -19,7 +19,7 @@ import dataclasses
 from typing import ClassVar
 
 DECODERS = ("full", "light")  # rl.imagined.decoder
-IMAGINED_REWARDS = ("detector", "executed")  # rl.imagined.reward
+IMAGINED_REWARDS = ("detector", "executed", "calibrated")  # rl.imagined.reward
 CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
 
 
@@ -370,6 +370,13 @@ class ImaginedConfig:
         learned simulator's frames do to GRPO from what its reward does (:mod:`sword_jax.rl.imagined_check`);
         each step also logs the detector's verdict on the same trajectories against the real outcome. Needs
         ``rl.env.backend=mjx``, keyframes with recorded states, no refresh and no ``confirm_success``.
+        ``calibrated``: the first ``calibrate_steps`` steps are paid as ``executed``; from then on the detector
+        pays, at the threshold those steps set on the policy's own closed loop: just above the median of their
+        ``detector_threshold_bounded``, the score that leaves at most ``rl.refresh.max_false_success`` of their
+        real failures paid (:func:`~sword_jax.rl.grpo.make_calibrated_step`; WMPO tunes its reward's threshold,
+        here it is set by the real outcome of the policy's imagined actions). Needs what ``executed`` needs; its
+        real rollouts are the calibration steps' ``rollout_batch x group_size`` each.
+      calibrate_steps: with ``reward=calibrated``, the steps paid by execution before the detector pays.
       fidelity_trajectories: with ``reward=executed``, the first this-many trajectories of each step also keep
         the real frame at the end of every decision of their execution, and the step logs where the closed loop
         through the simulator leaves the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`):
@@ -420,6 +427,12 @@ class ImaginedConfig:
     guard_on: str = "replay"  # replay | verify: the false-success rate the exploitation guard judges
     reward: str = "detector"  # detector | executed: what pays an imagined trajectory (see above)
     fidelity_trajectories: int = 64  # with reward=executed: trajectories whose closed loop is compared; 0 = off
+    calibrate_steps: int = 0  # with reward=calibrated: steps paid by execution that set the detector's threshold
+
+    @property
+    def executes(self) -> bool:
+        """Whether some step's trajectories are paid by executing their actions (``executed``, ``calibrated``)."""
+        return self.reward in ("executed", "calibrated")
 
     def validate(self) -> None:
         if self.max_chunks < 1:
@@ -439,6 +452,10 @@ class ImaginedConfig:
             raise ValueError(f"rl.imagined.fidelity_trajectories must be >= 0 (0 = off), got {self.fidelity_trajectories}")
         if self.reward not in IMAGINED_REWARDS:
             raise ValueError(f"rl.imagined.reward must be {'|'.join(IMAGINED_REWARDS)}, got {self.reward!r}")
+        if (self.reward == "calibrated") != (self.calibrate_steps > 0) or self.calibrate_steps < 0:
+            raise ValueError("rl.imagined.calibrate_steps (the steps paid by execution that set the detector's "
+                             "threshold) must be >= 1 with rl.imagined.reward=calibrated and 0 otherwise, got "
+                             f"{self.calibrate_steps} with reward={self.reward!r}")
         if not 0.0 <= self.keyframe_fraction <= 1.0:
             raise ValueError(f"rl.imagined.keyframe_fraction must be in [0, 1], got {self.keyframe_fraction}")
         if self.return_rule not in ("success", "score"):
@@ -835,11 +852,12 @@ class RLConfig:
         if self.imagined.guard_on == "verify" and not (self.refresh.every and self.refresh.verify_starts):
             raise ValueError("rl.imagined.guard_on=verify judges the refreshes' checks of imagined rollouts: it needs "
                              "rl.refresh.every > 0 and rl.refresh.verify_starts > 0")
-        if self.imagined.reward == "executed" and (self.env.backend != "mjx" or self.refresh.every
-                                                   or self.imagined.confirm_success):
-            raise ValueError("rl.imagined.reward=executed pays imagined actions by executing them on MJX from the "
-                             "keyframes' recorded states: it needs rl.env.backend=mjx, rl.refresh.every=0 (a "
-                             "refresh's branch starts hold no simulator state) and rl.imagined.confirm_success=false, "
+        if self.imagined.executes and (self.env.backend != "mjx" or self.refresh.every
+                                       or self.imagined.confirm_success):
+            raise ValueError(f"rl.imagined.reward={self.imagined.reward} pays imagined actions by executing them on "
+                             "MJX from the keyframes' recorded states: it needs rl.env.backend=mjx, "
+                             "rl.refresh.every=0 (a refresh's branch starts hold no simulator state) and "
+                             "rl.imagined.confirm_success=false, "
                              f"got {self.env.backend}, {self.refresh.every}, {self.imagined.confirm_success}")
         if self.env.starts == "branch" and not (self.value.episodes and self.env.backend == "mjx"):
             raise ValueError("rl.env.starts=branch starts GRPO's rollouts at the states of the real episodes collected "

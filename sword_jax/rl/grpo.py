@@ -22,11 +22,15 @@ valid tokens. Groups whose returns are all equal carry no signal and are filtere
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+import math
+import statistics
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx, struct
 from jaxtyping import Array, Float, Int
@@ -441,6 +445,9 @@ def make_grpo_step(
     VAE: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
     """
     cfg.validate()
+    if cfg.imagined.reward == "calibrated":
+        raise ValueError("make_grpo_step: rl.imagined.reward=calibrated changes its reward during the run: build "
+                         "its step with make_calibrated_step")
     g, oversample = cfg.grpo.group_size, cfg.imagined.oversample
     executed = cfg.imagined.reward == "executed"
     if executed and env is None:
@@ -507,3 +514,74 @@ def make_grpo_step(
     return shd.compile_step(tracing.max_traces(step, n=max_traces), mesh, rules, batch_shardings=batch_shardings,
                             donate=donate)
 
+
+
+def calibrated_threshold(cuts: Sequence[float]) -> float:
+    """The detector's threshold that the executed steps of ``rl.imagined.reward=calibrated`` set: just above the
+    median of their ``detector_threshold_bounded`` (each the real failure's score that leaves at most
+    ``rl.refresh.max_false_success`` of that step's real failures above it;
+    :func:`~sword_jax.rl.imagined_check.detector_separation`), as a float32 a detector's score reaches only by
+    exceeding it. NaN cuts (a step whose trajectories all succeeded for real) are left out; refused where none is
+    left."""
+    known = [float(c) for c in cuts if not math.isnan(float(c))]
+    if not known:
+        raise ValueError(f"rl.imagined.reward=calibrated: none of the {len(cuts)} steps paid by execution had a real "
+                         "failure, so no threshold bounds the detector's false successes; give more "
+                         "rl.imagined.calibrate_steps or a larger rl.grpo.rollout_batch")
+    cut = np.float32(statistics.median(known))
+    # one float32 step above the cut, and never a subnormal (which a device may flush to zero)
+    return float(max(np.nextafter(cut, np.float32(np.inf)), np.finfo(np.float32).tiny))
+
+
+def make_calibrated_step(graphdef: nnx.GraphDef, cfg: RLConfig, *, env: Any,
+                         history: Callable[[], Sequence[dict]] = lambda: (), **kwargs: Any
+                         ) -> Callable[[GRPOState, tuple, jax.Array], tuple[GRPOState, dict]]:
+    """The GRPO step of ``rl.imagined.reward=calibrated``: ``step(state, batch, key) -> (state, metrics)`` with
+    ``batch = (simulator, reward_model, start_states [B], env_starts [B, ...])`` as for ``executed``.
+
+    Steps ``0 .. rl.imagined.calibrate_steps - 1`` (by ``state.step``) are :func:`make_grpo_step`'s with
+    ``reward=executed`` (the real environment ``env`` pays; each logs ``detector_threshold_bounded``). The first
+    step after them sets the detector's threshold from those steps (:func:`calibrated_threshold`) and it and every
+    later one is :func:`make_grpo_step`'s with ``reward=detector`` at that ``success_threshold`` (compiled once,
+    then); their metrics add ``detector_threshold``. The executed steps' cuts are kept as they run; those of a run
+    resumed after some of them are read from ``history()``, the run's per-step records (``step`` 1-based, as
+    :func:`~sword_jax.rl.grpo_loop.read_history` gives them), so the resumed run pays at the same threshold.
+    ``kwargs`` go to :func:`make_grpo_step` (``donate``, ``max_traces``, ``mesh``, ``rules``)."""
+    cfg.validate()
+    if cfg.imagined.reward != "calibrated":
+        raise ValueError(f"make_calibrated_step: rl.imagined.reward must be calibrated, got {cfg.imagined.reward!r}")
+    k = cfg.imagined.calibrate_steps
+    as_reward = lambda reward, **more: dataclasses.replace(  # noqa: E731
+        cfg, **more, imagined=dataclasses.replace(cfg.imagined, reward=reward, calibrate_steps=0))
+    paid = make_grpo_step(graphdef, as_reward("executed"), env=env, **kwargs)
+    # the executed steps' cuts by their 1-based step: those this process ran, as they ran
+    host: dict[str, Any] = {"step": None, "cuts": {}, "detector": None}
+
+    def detector_step() -> tuple[Callable, float]:
+        cuts = {s: float(c) for s, c in jax.device_get(host["cuts"]).items()}
+        missing = [s for s in range(1, k + 1) if s not in cuts]
+        if missing:  # resumed after some of them: their records
+            rows = {int(r["step"]): r for r in history() if int(r["step"]) in missing}
+            if sorted(rows) != missing:
+                raise ValueError(f"rl.imagined.reward=calibrated: the run resumed after steps {missing} paid by "
+                                 f"execution, but its records hold only steps {sorted(rows)} of them: the detector's "
+                                 "threshold cannot be set as the run set it")
+            cuts.update({s: rows[s].get("detector_threshold_bounded", float("nan")) for s in missing})
+        threshold = calibrated_threshold([cuts[s] for s in range(1, k + 1)])
+        return make_grpo_step(graphdef, as_reward("detector", success_threshold=threshold), **kwargs), threshold
+
+    def step(state: GRPOState, batch: tuple, key: jax.Array) -> tuple[GRPOState, dict]:
+        if host["step"] is None:  # read once; then counted here (a roll-back restores parameters, not the step)
+            host["step"] = int(jax.device_get(state.step))
+        at, host["step"] = host["step"], host["step"] + 1
+        if at < k:
+            state, metrics = paid(state, batch, key)
+            host["cuts"][at + 1] = metrics["detector_threshold_bounded"]
+            return state, metrics
+        if host["detector"] is None:
+            host["detector"] = detector_step()
+        fn, threshold = host["detector"]
+        state, metrics = fn(state, batch, key)
+        return state, dict(metrics, detector_threshold=jnp.float32(threshold))
+
+    return step

@@ -59,9 +59,10 @@ import jax
 from sword_jax import sharding as shd
 from sword_jax.atomic_write import write_jsonl_atomic
 from sword_jax.rl.config import RLConfig
+from sword_jax.rl.imagined_check import UNDEFINED_AS_NAN
 from sword_jax.rl.policy_success import SuccessCurve
 from sword_jax.rl.sim_guard import FalseSuccessGuard, RealSuccessGuard
-from sword_jax.train_loop import LoopResult, StepFn, run_steps
+from sword_jax.train_loop import LoopResult, StepFn, all_finite, run_steps
 
 # RL config keys (paths under ``rl``) that shape a GRPO run's train state: a resumed run must share them with
 # its checkpoint. Left out: grpo.steps (a run may be extended), the evaluation's settings, the SFT and
@@ -81,6 +82,13 @@ REAL_GUARD_KEYS = ("refresh.real_guard_margin", "refresh.real_guard_min_episodes
 
 # evaluate(step, params) -> (curve point, extra entries stored beside it)
 Evaluate = Callable[[int, Any], tuple[dict[str, Any], dict[str, Any]]]
+
+
+def grpo_metrics_finite(metrics: dict[str, Any]) -> Any:
+    """Whether a GRPO step was finite: every floating metric but those NaN by definition where an outcome is
+    missing (:data:`~sword_jax.rl.imagined_check.UNDEFINED_AS_NAN`, e.g. the detector's false successes in a step
+    whose trajectories all succeeded for real), which must not stop a run as a non-finite update would."""
+    return all_finite({k: v for k, v in metrics.items() if k not in UNDEFINED_AS_NAN})
 
 
 def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dict[str, Any]:
@@ -104,6 +112,9 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     guard_on = {"rl.imagined.guard_on": rl.imagined.guard_on} if rl.imagined.guard_on != "replay" else {}
     # and what pays the imagined trajectories, only when it is not the detector
     reward = {"rl.imagined.reward": rl.imagined.reward} if rl.imagined.reward != "detector" else {}
+    if rl.imagined.reward == "calibrated":  # and then the steps and the bound that set the detector's threshold
+        reward.update({"rl.imagined.calibrate_steps": rl.imagined.calibrate_steps,
+                       "rl.refresh.max_false_success": rl.refresh.max_false_success})
     # and the advantages' scale, only when it is not the group std
     scale = {"rl.grpo.scale_by_std": False} if not rl.grpo.scale_by_std else {}
     # and the shuffled-returns control, only when it is on
@@ -239,6 +250,7 @@ def train_grpo(
         return point
 
     result = run_steps(step, state, batch_at, key=key, steps=rl.grpo.steps, log_every=1, name="GRPO", report=report,
+                       metrics_finite=grpo_metrics_finite,
                        checkpoint_dir=os.path.join(workdir, "checkpoints"), checkpoint_every=rl.grpo.eval_every,
                        run_id=run_id, log=log, on_start=on_start, at_checkpoint=at_checkpoint, place=place,
                        on_history=(lambda history: save_history(workdir, history)) if writes else None)

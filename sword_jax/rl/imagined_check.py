@@ -224,6 +224,12 @@ def paid_by_execution(rollout: Rollout, real_first: Int[Array, " n"], cfg: Any) 
                             returns=trajectory_returns(rewards, success, cfg))
 
 
+# the metrics of a step paid by execution that are NaN by definition where an outcome is missing (no real failure,
+# no real success, nothing paid at the bound): not a sign of a non-finite update (grpo_loop.grpo_metrics_finite)
+UNDEFINED_AS_NAN = ("detector_false_success", "detector_auc", "detector_threshold_bounded", "detector_recall_bounded",
+                    "detector_precision_bounded")
+
+
 def detector_metrics(said: Bool[Array, " n"], real: Bool[Array, " n"]) -> dict[str, Float[Array, ""]]:
     """The detector's verdict on trajectories the real environment paid (``rl.imagined.reward=executed``).
 
@@ -252,7 +258,8 @@ def detector_separation(peaks: Float[Array, "n c"], real: Bool[Array, " n"], *, 
     count half), and, where a trajectory is paid when it scores above ``detector_threshold_bounded`` (the real
     failure's score that leaves at most ``max_false_success`` of the real failures above it), the real successes
     paid (``detector_recall_bounded``) and the share of the paid that are real successes
-    (``detector_precision_bounded``). NaN where an outcome is missing, and the precision where nothing is paid.
+    (``detector_precision_bounded``). The cut needs real failures alone; the AUC and the recall need both
+    outcomes; NaN where what a figure needs is missing, and the precision where nothing is paid.
     What a threshold calibrated on the policy's own closed loop could give GRPO in the detector's reward."""
     if not 0.0 <= max_false_success < 1.0:
         raise ValueError(f"detector_separation: max_false_success must be in [0, 1), got {max_false_success}")
@@ -272,10 +279,10 @@ def detector_separation(peaks: Float[Array, "n c"], real: Bool[Array, " n"], *, 
     paid = jnp.sum(f32(said & real))
     nan = jnp.float32(jnp.nan)
     return {"detector_auc": jnp.where(both, auc, nan),
-            "detector_threshold_bounded": jnp.where(both, cut, nan),
+            "detector_threshold_bounded": jnp.where(losses > 0, cut, nan),
             "detector_recall_bounded": jnp.where(both, paid / jnp.maximum(wins, 1.0), nan),
-            "detector_precision_bounded": jnp.where(both & jnp.any(said), paid / jnp.maximum(jnp.sum(f32(said)), 1.0),
-                                                    nan)}
+            "detector_precision_bounded": jnp.where((losses > 0) & jnp.any(said),
+                                                    paid / jnp.maximum(jnp.sum(f32(said)), 1.0), nan)}
 
 
 def report(checked: CheckedRollouts, group_size: int, horizons: tuple[int, ...] = sim_agreement.HORIZON_SWEEP
