@@ -439,7 +439,8 @@ def make_grpo_step(
     and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
     the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
     its scores rank their real outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them
-    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`) and, for the first ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
+    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`) and, for the first
+    ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
     the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's
     decoder alone causes where the simulator has a round trip of real frames (the world model decoding with its
     VAE: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
