@@ -338,6 +338,8 @@ def summarize_run(grpo: str) -> dict:
         out["detector"] = detector_figures(executed)
     if executed and closed_loop_decisions(executed[0]):  # per decision, the mean over the steps
         out["closed_loop"] = per_decision(executed)
+    if any("real_rollouts" in h for h in history):  # the real episodes (partial, the rollout's length) it executed
+        out["real_rollouts"] = int(sum(h.get("real_rollouts", 0) for h in history))
     judged = [h["detector_threshold"] for h in history if "detector_threshold" in h]
     if judged:  # cal: the threshold its executed steps set, at which the detector paid the later ones
         out["calibrated_threshold"] = judged[0]

@@ -70,7 +70,8 @@ def test_the_calibrated_arm_is_the_detectors_arm_paid_by_execution_for_its_first
     with pytest.raises(SystemExit, match="cal arm needs 1 <= --calibrate-steps < --steps"):
         rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--arms", "cal", "--steps", "3",
                   "--calibrate-steps", "3"])
-    executed = {"success_rate": 0.25, "kept_fraction": 0.5, "detector_success": 0.5, "detector_agreement": 0.75,
+    executed = {"success_rate": 0.25, "kept_fraction": 0.5, "real_rollouts": 512.0, "detector_success": 0.5,
+                "detector_agreement": 0.75,
                 "detector_false_success": 0.25, "detector_auc": 0.75, "detector_threshold_bounded": 0.5,
                 "detector_recall_bounded": 0.5, "detector_precision_bounded": 0.5}
     judged = {"success_rate": 0.375, "kept_fraction": 0.25, "detector_threshold": 0.5000001}
@@ -78,6 +79,7 @@ def test_the_calibrated_arm_is_the_detectors_arm_paid_by_execution_for_its_first
            [executed, executed, judged, judged, judged])
     run = rs.summarize(str(tmp_path))["runs"]["cal_s0"]
     assert run["arm"] == "cal" and run["executed_steps"] == 2 and run["calibrated_threshold"] == 0.5000001
+    assert run["real_rollouts"] == 1024  # the two executed steps' 512 each; the detector's steps take none
     assert run["detector"]["auc"] == 0.75 and run["detector"]["success"] == 0.5
     assert run["paid_success"] == {"first": pytest.approx(0.325), "last": pytest.approx(0.325)}
 

@@ -258,6 +258,7 @@ def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector
     assert never["detector_success"] == 0.0 and always["detector_success"] == 1.0
     assert always["detector_false_success"] == 1.0 and never["detector_false_success"] == 0.0
     assert never["detector_agreement"] == pytest.approx(1 - never["success_rate"])
+    assert never["real_rollouts"] == EXEC.grpo.rollout_batch * EXEC.grpo.group_size  # 3 starts x 4 executed
     # a detector that scores every frame alike ranks no outcome above the other, at any threshold
     for metrics in (never, always):
         assert metrics["detector_auc"] == pytest.approx(0.5)

@@ -437,7 +437,8 @@ def make_grpo_step(
     ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
     imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env``
     and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
-    the detector's verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
+    ``real_rollouts`` (the trajectories executed: the step's share of a run's real episodes), the detector's
+    verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
     its scores rank their real outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them
     would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`) and, for the first
     ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
@@ -477,7 +478,8 @@ def make_grpo_step(
                                                                  action_bins=cfg.action_bins, round_trip=round_trip))
             else:
                 real_first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
-            extra.update(imagined_check.detector_metrics(rollout.success, real_first >= 0))
+            extra.update(imagined_check.detector_metrics(rollout.success, real_first >= 0),
+                         real_rollouts=jnp.float32(actions.shape[0]))  # what the step took of the real budget
             extra.update(imagined_check.detector_separation(rollout.peaks, real_first >= 0,
                                                             max_false_success=cfg.refresh.max_false_success))
             rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
