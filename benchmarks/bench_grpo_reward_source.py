@@ -289,7 +289,7 @@ def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
         if re.fullmatch(r"s\d+", seed_dir) and os.path.exists(os.path.join(gt, seed_dir, GT_DIR, "success_curve.json")):
             out[f"gt_{seed_dir}"] = ("gt", int(seed_dir[1:]), os.path.join(gt, seed_dir, GT_DIR))
     for name in sorted(os.listdir(workdir)):
-        match = re.fullmatch(r"(exec|det|cal)_s(\d+)", name)
+        match = re.fullmatch(rf"({'|'.join(WORLD_MODEL_ARMS)})_s(\d+)", name)
         grpo = os.path.join(workdir, name, "rl", "grpo")
         if match and os.path.exists(os.path.join(grpo, "success_curve.json")):
             out[name] = (match.group(1), int(match.group(2)), grpo)
