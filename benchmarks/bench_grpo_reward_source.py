@@ -42,7 +42,10 @@ first and evaluate their step in flight). ``summary`` gives each run's gains wit
 rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of
 its verdicts of success that reality paid too) on the same rollouts, and per decision where their closed loop left
 the real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps);
-``--record`` writes ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``.
+``--record`` writes ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``. Each run's
+``real_episodes`` counts the real episodes its GRPO steps consumed (the ground-truth steps' sampled trajectories, the
+world model's executed ones, 0 for ``det``; evaluations not counted), each arm gives them per seed and each
+world-model arm the ratio of its mean to the ``gt`` arm's (``real_episodes_vs_gt``).
 
 ``horizons`` reads ``run``'s work dirs of one experiment at several horizons: each one's decisions and actions per
 decision from its runs' own commands (``commands.json`` in the work dir, which ``run`` writes, or for a work dir made
@@ -320,10 +323,23 @@ def paid_per_step(history: Sequence[dict]) -> list[float]:
     return [h.get("rollout_success", h.get("success_rate")) for h in history]
 
 
+def real_episodes(history: Sequence[dict]) -> int | None:
+    """The real episodes a run's GRPO steps consumed (its evaluations' not counted): on the real simulator the sum
+    of its steps' ``trajectories_sampled``, in the world model the sum of its executed steps' ``real_rollouts`` (0
+    where no step executed any, as with the detector's reward); None for a ground-truth run whose steps did not
+    record how many trajectories they sampled."""
+    if any("trajectories_sampled" in h for h in history):
+        return int(sum(h.get("trajectories_sampled", 0) for h in history))
+    if any("rollout_success" in h for h in history):  # a ground-truth run that did not count its trajectories
+        return None
+    return int(sum(h.get("real_rollouts", 0) for h in history))
+
+
 def summarize_run(grpo: str) -> dict:
     """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked), the
-    success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, and with a
-    reward paid by execution, the detector's verdict on the same rollouts (means over the steps)."""
+    success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, the real
+    episodes its steps consumed (:func:`real_episodes`), and with a reward paid by execution, the detector's
+    verdict on the same rollouts (means over the steps)."""
     points = read_points(grpo)
     history = read_history(grpo)
     paid = paid_per_step(history)
@@ -332,7 +348,7 @@ def summarize_run(grpo: str) -> dict:
            "sampled_proprio_masked": _gain(points, "sampled_proprio_masked"),
            "paid_success": ({"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])} if paid else None),
            "mixed_median": statistics.median(mixed) if mixed else None,
-           "curve": evaluation_curve(points)}
+           "real_episodes": real_episodes(history), "curve": evaluation_curve(points)}
     executed = [h for h in history if "detector_success" in h]  # the steps paid by execution (cal: its first)
     if executed:
         out["detector"] = detector_figures(executed)
@@ -403,16 +419,31 @@ def _true_paid(h: dict) -> float:
     return h["detector_success"] - (0.0 if false != false else false * (1.0 - real))
 
 
+def _mean_known(values) -> float | None:
+    """The mean of the values that are not None; None where none is."""
+    known = [v for v in values if v is not None]
+    return statistics.mean(known) if known else None
+
+
 def summarize(workdir: str) -> dict:
-    """Every run (:func:`summarize_run`) and per arm its seeds' sampled gains, smallest and mean."""
+    """Every run (:func:`summarize_run`) and per arm its seeds' sampled gains, smallest and mean, and the real
+    episodes each seed's GRPO steps consumed; per world-model arm also ``real_episodes_vs_gt``: its mean real
+    episodes over the seeds divided by the ``gt`` arm's (None without a ``gt`` run in ``workdir`` or where its mean
+    is 0 or unknown)."""
     runs = {name: dict(arm=arm, seed=seed, **summarize_run(grpo)) for name, (arm, seed, grpo) in run_dirs(workdir).items()}
+    episodes = {arm: {r["seed"]: r["real_episodes"] for r in runs.values() if r["arm"] == arm} for arm in ARMS}
+    gt_mean = _mean_known(episodes["gt"].values())
     arms = {}
     for arm in ARMS:
         gains = {r["seed"]: r["sampled"]["gain"] for r in runs.values() if r["arm"] == arm and r["sampled"]}
         if gains:
             arms[arm] = {"label": ARM_LABELS[arm], "sampled_gain_per_seed": gains, "smallest": min(gains.values()),
                          "mean": statistics.mean(gains.values()),
-                         "steps": min(r["steps"] for r in runs.values() if r["arm"] == arm)}
+                         "steps": min(r["steps"] for r in runs.values() if r["arm"] == arm),
+                         "real_episodes_per_seed": episodes[arm]}
+            if arm in WORLD_MODEL_ARMS:
+                mean = _mean_known(episodes[arm].values())
+                arms[arm]["real_episodes_vs_gt"] = mean / gt_mean if gt_mean and mean is not None else None
     return {"runs": runs, "arms": arms, **common.workdir_xla_flags(workdir)}
 
 

@@ -197,6 +197,42 @@ def test_summary_gains_payments_and_the_detector_on_designed_runs(tmp_path, monk
         rs.results_entries({"runs": {}, "arms": {}}, str(tmp_path), data="d")
 
 
+def test_every_run_counts_the_real_episodes_its_grpo_steps_consumed(tmp_path):
+    """real_episodes: a ground-truth run's steps' trajectories_sampled, a world-model run's executed real_rollouts
+    (0 for the detector's arm), its evaluations not counted; per arm by seed, and each world-model arm's mean over
+    the gt arm's, None without a gt run or where the gt run did not count its trajectories."""
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(3, 0.72, 0.55)],
+           [{"step": s, "rollout_success": 0.4, "trajectories_sampled": 512.0, "mixed_fraction": 0.5}
+            for s in (1, 2, 3)])
+    executed = {"success_rate": 0.25, "kept_fraction": 0.5, "real_rollouts": 512.0, "detector_success": 0.5,
+                "detector_agreement": 0.75, "detector_false_success": 0.25}
+    judged = {"success_rate": 0.375, "kept_fraction": 0.25, "detector_threshold": 0.5}
+    _curve(tmp_path / "cal_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5), _point(5, 0.7, 0.52)],
+           [executed, executed, judged, judged, judged])
+    _curve(tmp_path / "det_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5), _point(5, 0.7, 0.45)],
+           [{"success_rate": 0.3, "kept_fraction": 0.4}] * 5)
+    summary = rs.summarize(str(tmp_path))
+    runs, arms = summary["runs"], summary["arms"]
+    assert runs["gt_s0"]["real_episodes"] == 1536  # 3 steps of 512
+    assert runs["cal_s0"]["real_episodes"] == 1024  # its 2 executed steps; the detector's steps take none
+    assert runs["cal_s0"]["real_rollouts"] == 1024 and runs["det_s0"]["real_episodes"] == 0
+    assert "real_rollouts" not in runs["det_s0"] and "real_rollouts" not in runs["gt_s0"]
+    assert arms["gt"]["real_episodes_per_seed"] == {0: 1536} and arms["cal"]["real_episodes_per_seed"] == {0: 1024}
+    assert arms["det"]["real_episodes_per_seed"] == {0: 0}
+    assert arms["cal"]["real_episodes_vs_gt"] == 1024 / 1536 and arms["det"]["real_episodes_vs_gt"] == 0.0
+    assert "real_episodes_vs_gt" not in arms["gt"]
+    # without the gt run, or with one that did not count its trajectories, there is nothing to divide by
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(3, 0.72, 0.55)],
+           [{"step": s, "rollout_success": 0.4, "mixed_fraction": 0.5} for s in (1, 2, 3)])
+    summary = rs.summarize(str(tmp_path))
+    assert summary["runs"]["gt_s0"]["real_episodes"] is None
+    assert summary["arms"]["cal"]["real_episodes_vs_gt"] is None
+    (tmp_path / "gt" / "s0" / rs.GT_DIR / "success_curve.json").unlink()
+    arms = rs.summarize(str(tmp_path))["arms"]
+    assert "gt" not in arms
+    assert arms["cal"]["real_episodes_vs_gt"] is None and arms["det"]["real_episodes_vs_gt"] is None
+
+
 def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):
     """figure: each run's paid success per step (the gt run's rollouts, the exec run's imagined actions and what the
     detector said of them), its real success at each evaluation, and per decision of the exec run the action gaps,
