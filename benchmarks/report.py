@@ -620,11 +620,11 @@ def grpo_setting_arms() -> str:
                    "training rollouts' success, steps 1-5 -> last 5", "env steps a GRPO step"], rows)
 
 
-def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
-    """A reward-source summary (``bench_grpo_reward_source summary``) per arm and seed: the gains sampled, sampled
-    with proprio masked and greedy, what the training rollouts were paid, the groups they left mixed (with
-    ``group_of``, as a count of that many groups), and for the world model paid by reality, the detector's
-    verdicts on the same rollouts."""
+def _reward_source_rows(summary: dict, group_of: int | None = None, label: str | None = None) -> list[list[str]]:
+    """The rows of :func:`_reward_source_table`: per arm and seed, the arm's label (or ``label``, the setting that
+    tells apart several summaries' rows in one table), the gains sampled, sampled with proprio masked and greedy,
+    what the training rollouts were paid, the groups they left mixed (with ``group_of``, as a count of that many
+    groups), and for the world model paid by reality, the detector's verdicts on the same rollouts."""
     rows = []
     for arm in ("gt", "exec", "det", "cal"):
         for _, run in sorted(summary["runs"].items()):
@@ -632,16 +632,24 @@ def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
                 continue
             paid, det = run["paid_success"], run.get("detector")
             mixed = run["mixed_median"]
-            rows.append([summary["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
+            rows.append([label or summary["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
                          *(f"{_pct(run[m]['gain'])} {_interval(run[m]['ci95'])}" if m in run else "not run"
                            for m in ("sampled", "sampled_proprio_masked", "greedy")),
                          f"{paid['first']:.3f} -> {paid['last']:.3f}",
                          f"{mixed * group_of:.0f} of {group_of}" if group_of else f"{mixed:.2f}",
                          _detector_cell(det)])
-    return _table(["GRPO's frames and reward", "seed", "steps", "sampled gain (points), 95% interval",
-                   "sampled, proprio masked", "greedy", "its rollouts' paid success, steps 1-5 -> last 5",
-                   "groups mixed (median)", "the detector on the same rollouts: success / agreement / precision"],
-                  rows)
+    return rows
+
+
+REWARD_SOURCE_COLUMNS = ["GRPO's frames and reward", "seed", "steps", "sampled gain (points), 95% interval",
+                         "sampled, proprio masked", "greedy", "its rollouts' paid success, steps 1-5 -> last 5",
+                         "groups mixed (median)", "the detector on the same rollouts: success / agreement / precision"]
+
+
+def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
+    """A reward-source summary (``bench_grpo_reward_source summary``) per arm and seed
+    (:func:`_reward_source_rows`)."""
+    return _table(REWARD_SOURCE_COLUMNS, _reward_source_rows(summary, group_of))
 
 
 def grpo_reward_source() -> str:
@@ -670,6 +678,22 @@ def grpo_reward_source_phases() -> str:
     """The reward-source experiment at 48 actions from every phase (``REWARD_SOURCE_PHASES``,
     :func:`_reward_source_table`), its groups counted of the step's 64."""
     return _reward_source_table(_load(*REWARD_SOURCE_PHASES, "grpo_reward_source.json"), group_of=64)
+
+
+# ground-truth GRPO on MJX from keyframes of the first half of each demonstration at three decision lengths, the
+# same demonstrations, 64 starts x 8, 3 seeds, one H200: {work dir in the record: the setting's row label}
+FIRST_HALF_DECISIONS = ("policy", "grpo_first_half_decisions_small_h200")
+FIRST_HALF_SETTINGS = {"h12x4": "12 decisions x 4 actions = 48", "h6x8": "6 decisions x 8 actions = 48",
+                       "h4x8": "4 decisions x 8 actions = 32"}
+
+
+def grpo_first_half_decisions() -> str:
+    """Ground-truth GRPO from keyframes of the first half per decision length (``FIRST_HALF_DECISIONS``,
+    :func:`_reward_source_rows` of each setting's summary), its groups counted of the step's 64."""
+    rows = [row for folder, label in FIRST_HALF_SETTINGS.items()
+            for row in _reward_source_rows(_load(*FIRST_HALF_DECISIONS, folder, "grpo_reward_source.json"), 64, label)]
+    return _table(["rollouts from keyframes of the first half: decisions x actions", *REWARD_SOURCE_COLUMNS[1:-1]],
+                  [row[:-1] for row in rows])
 
 
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
@@ -1565,6 +1589,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-levers": grpo_reward_source_levers,
     "grpo-reward-source-length": grpo_reward_source_length,
     "grpo-reward-source-branched": grpo_reward_source_branched, "grpo-reward-source-phases": grpo_reward_source_phases,
+    "grpo-first-half-decisions": grpo_first_half_decisions,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

@@ -334,3 +334,28 @@ def test_the_horizon_honesty_table_reads_its_record_row_by_row(tmp_path, monkeyp
     # an executed run that recorded how the detector's scores rank the real outcomes
     assert report._detector_cell({"success": 0.5, "agreement": 0.75, "precision": 0.5, "auc": 0.625,
                                   "recall_bounded": 0.25}) == "0.50 / 0.75 / 0.50; AUC 0.62"
+
+
+def test_the_first_half_table_labels_each_row_by_its_setting_in_the_settings_order(tmp_path, monkeypatch):
+    """grpo-first-half-decisions: one row per ground-truth run of each setting's summary, in FIRST_HALF_SETTINGS'
+    order and labelled by the setting, its groups counted of the step's 64, and no detector column."""
+    def run(seed, sampled, masked):
+        return {"arm": "gt", "seed": seed, "steps": 20, "sampled": {"gain": sampled, "ci95": [sampled - 0.05, 0.0]},
+                "sampled_proprio_masked": {"gain": masked, "ci95": [-0.1, 0.1]},
+                "greedy": {"gain": 0.05, "ci95": [0.0, 0.1]}, "mixed_median": 0.84375,
+                "paid_success": {"first": 0.25, "last": 0.375}}
+
+    root = tmp_path / "policy" / report.FIRST_HALF_DECISIONS[1]
+    for i, folder in enumerate(report.FIRST_HALF_SETTINGS):
+        (root / folder).mkdir(parents=True)
+        runs = {"gt_s1": run(1, -0.01 * i, 0.02), "gt_s0": run(0, 0.0, 0.0)}
+        summary = {"arms": {"gt": {"label": "GT"}}, "runs": runs}
+        (root / folder / "grpo_reward_source.json").write_text(json.dumps(summary))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_first_half_decisions().splitlines()
+    labels = list(report.FIRST_HALF_SETTINGS.values())
+    assert len(table) == 2 + 2 * len(labels) and "grpo-first-half-decisions" in report.TABLES
+    assert [row.split(" | ")[:2] for row in table[2:]] == [[f"| {label}", s] for label in labels for s in ("s0", "s1")]
+    assert table[5] == (f"| {labels[1]} | s1 | 20 | -1.0 [-6.0, +0.0] | +2.0 [-10.0, +10.0] | +5.0 [+0.0, +10.0] "
+                        "| 0.250 -> 0.375 | 54 of 64 |")
+    assert table[0].count("|") == table[2].count("|")  # the detector's column left out of header and rows alike
