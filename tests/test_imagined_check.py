@@ -282,6 +282,29 @@ def test_a_step_whose_detector_figures_are_undefined_is_still_finite():
     assert np.isnan(never["detector_precision_bounded"]) and bool(grpo_metrics_finite(never))
 
 
+def test_every_detector_figure_that_can_be_undefined_is_listed_as_such():
+    """Whatever figure the executed step's detector functions return NaN for when an outcome is missing (every
+    trajectory real successes, every one a real failure, nothing scored above the cut) is in UNDEFINED_AS_NAN, which
+    the GRPO loop's finite test leaves out; a figure added there that can be NaN must be listed, or a run stops."""
+    peaks = jnp.asarray([[0.1, 0.9], [0.2, 0.3], [0.8, 0.7], [0.4, 0.1]], jnp.float32)
+    cases = {"mixed": [True, False, True, False], "all real successes": [True] * 4,
+             "all real failures": [False] * 4}
+    undefined = set()
+    for name, real in cases.items():
+        real = jnp.asarray(real)
+        figures = {**imagined_check.detector_metrics(jnp.asarray([True, True, False, False]), real),
+                   **imagined_check.detector_separation(peaks, real, max_false_success=0.0)}
+        nan = {k for k, v in figures.items() if np.isnan(float(v))}
+        if name == "mixed":
+            assert not nan, f"figures undefined on mixed outcomes: {sorted(nan)}"
+        undefined |= nan
+    flat = imagined_check.detector_separation(jnp.zeros((4, 2), jnp.float32), jnp.asarray([True, False, True, False]))
+    undefined |= {k for k, v in flat.items() if np.isnan(float(v))}  # every score alike: nothing paid at the cut
+    assert undefined and undefined <= set(imagined_check.UNDEFINED_AS_NAN), sorted(
+        undefined - set(imagined_check.UNDEFINED_AS_NAN))
+    assert set(imagined_check.UNDEFINED_AS_NAN) <= undefined  # and nothing listed that is always defined
+
+
 def test_an_executed_reward_is_refused_without_its_environment_or_outside_mjx():
     graphdef, _ = build_policy(EXEC, seed=0)
     with pytest.raises(ValueError, match="needs env="):
