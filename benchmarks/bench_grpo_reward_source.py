@@ -310,11 +310,15 @@ def read_points(grpo: str) -> list[dict]:
         return json.load(f)["points"]
 
 
+# the sampled policies an evaluation point may hold beside the greedy success (sword_jax.rl.jax_env_grpo's extras)
+SAMPLED_POLICIES = ("sampled", "sampled_proprio_masked", "sampled_as_trained")
+
+
 def evaluation_curve(points: Sequence[dict]) -> list[dict]:
-    """Per evaluation point, its step and real success: greedy, and sampled (with proprio masked too) where
-    evaluated."""
-    return [{"step": p["step"], "greedy": p["mean"],
-             **{k: p[k]["mean"] for k in ("sampled", "sampled_proprio_masked") if k in p}} for p in points]
+    """Per evaluation point, its step and real success: greedy, and sampled (with proprio masked, and executed as
+    the training rollouts execute it, too) where evaluated."""
+    return [{"step": p["step"], "greedy": p["mean"], **{k: p[k]["mean"] for k in SAMPLED_POLICIES if k in p}}
+            for p in points]
 
 
 def paid_per_step(history: Sequence[dict]) -> list[float]:
@@ -336,9 +340,9 @@ def real_episodes(history: Sequence[dict]) -> int | None:
 
 
 def summarize_run(grpo: str) -> dict:
-    """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked), the
-    success its training rollouts were paid (first and last 5 steps), its groups with mixed outcomes, the real
-    episodes its steps consumed (:func:`real_episodes`), and with a reward paid by execution, the detector's
+    """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked, sampled
+    as the training rollouts execute it; None where not evaluated), the success its training rollouts were paid
+    (first and last 5 steps), its groups with mixed outcomes, the real episodes its steps consumed (:func:`real_episodes`), and with a reward paid by execution, the detector's
     verdict on the same rollouts (means over the steps)."""
     points = read_points(grpo)
     history = read_history(grpo)
@@ -346,6 +350,7 @@ def summarize_run(grpo: str) -> dict:
     mixed = [h.get("mixed_fraction", h.get("kept_fraction")) for h in history]
     out = {"steps": points[-1]["step"], "greedy": _gain(points, None), "sampled": _gain(points, "sampled"),
            "sampled_proprio_masked": _gain(points, "sampled_proprio_masked"),
+           "sampled_as_trained": _gain(points, "sampled_as_trained"),
            "paid_success": ({"first": statistics.mean(paid[:5]), "last": statistics.mean(paid[-5:])} if paid else None),
            "mixed_median": statistics.median(mixed) if mixed else None,
            "real_episodes": real_episodes(history), "curve": evaluation_curve(points)}
@@ -716,6 +721,9 @@ def print_runs(summary: dict) -> None:
         line = (f"[reward-source] {name}: {r['steps']} steps; sampled {s['start']:.3f} -> {s['end']:.3f} "
                 f"({s['gain']:+.3f} [{s['ci95'][0]:+.3f}, {s['ci95'][1]:+.3f}])" if s else
                 f"[reward-source] {name}: {r['steps']} steps")
+        if r.get("sampled_as_trained"):
+            a = r["sampled_as_trained"]
+            line += f"; sampled as trained {a['start']:.3f} -> {a['end']:.3f} ({a['gain']:+.3f})"
         if r.get("detector"):
             d = r["detector"]
             line += f"; the detector on its rollouts: success {d['success']:.2f}, agreement {d['agreement']:.2f}"

@@ -197,7 +197,9 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     :func:`keyframe_horizon` actions, executing ``rl.imagined_actions_per_decision`` per decision;
     ``rl.env.proprio=missing`` has the policy read its "missing proprio" input in the rollouts, and each
     evaluation then also runs the sampled policy that way (``sampled_proprio_masked``). Evaluations
-    always start at rest with ``rl.env.execute_steps``.
+    always start at rest with ``rl.env.execute_steps``; where the training rollouts execute another number of
+    actions per decision, each evaluation also runs the sampled policy executed and reading proprio as they do
+    (``sampled_as_trained``, :meth:`~sword_jax.rl.jax_env_grpo.EnvGRPO.evaluate`).
 
     With ``rl.value.episodes > 0`` a value fitted to that many real episodes of the starting policy
     (:func:`~sword_jax.rl.jax_env_grpo.start_value`, saved under ``workdir/value``; the episodes start at rest
@@ -263,13 +265,16 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=True, masked=masked)  # greedy and sampled
+        point, extra = runner.evaluate(params, step=step, sampled=True, masked=masked, as_trained=True)
         sampled = extra.get("sampled")
         trained = extra.get("sampled_proprio_masked")
+        executed = extra.get("sampled_as_trained")
         log(f"eval step {step}: success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}] "
             f"({point['episodes']} episodes on MJX, {point['seconds']}s)"
             + (f"; sampled T={rl.grpo.temperature:g} {sampled['mean']:.3f}" if sampled else "")
             + (f"; sampled, proprio masked {trained['mean']:.3f}" if trained else "")
+            + (f"; sampled as trained ({executed['execute_steps']} actions per decision) {executed['mean']:.3f}"
+               if executed else "")
             + f"; probe flips vs start {extra['probe']['flip_rate_vs_start']:.3f}, top-1 margin "
               f"{extra['probe']['top1_margin']:.3f}")
         return point, extra

@@ -136,11 +136,13 @@ def _curve(path, points, history):
         f.write("".join(json.dumps(h) + "\n" for h in history))
 
 
-def _point(step, greedy, sampled, masked=None):
+def _point(step, greedy, sampled, masked=None, as_trained=None):
     out = {"step": step, "mean": greedy, "successes": int(greedy * 500), "episodes": 500,
            "sampled": {"mean": sampled, "successes": int(sampled * 500), "episodes": 500}}
     if masked is not None:
         out["sampled_proprio_masked"] = {"mean": masked, "successes": int(masked * 500), "episodes": 500}
+    if as_trained is not None:
+        out["sampled_as_trained"] = {"mean": as_trained, "successes": int(as_trained * 500), "episodes": 500}
     return out
 
 
@@ -798,3 +800,22 @@ def test_the_detectors_separation_is_averaged_over_the_steps_where_both_outcomes
     assert out["auc"] == pytest.approx(0.625) and out["threshold_bounded"] == pytest.approx(0.375)
     assert out["recall_bounded"] == pytest.approx(0.375) and out["precision_bounded"] == 1.0
     assert set(rs.detector_figures([base])) == {"success", "agreement", "false_success", "precision"}
+
+
+def test_a_run_evaluated_as_trained_has_that_gain_and_curve_and_others_none(tmp_path, capsys):
+    """A run whose evaluations also ran the sampled policy as its training rollouts execute it has that policy's
+    gain and curve beside the others (and its printed line says so); a run without them has None and no curve
+    entry."""
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5, 0.3), _point(20, 0.72, 0.5, 0.5, 0.4)],
+           [{"rollout_success": 0.4, "trajectories_sampled": 512.0, "mixed_fraction": 0.8}] * 20)
+    _curve(tmp_path / "gt" / "s1" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(20, 0.72, 0.55)],
+           [{"rollout_success": 0.4, "trajectories_sampled": 512.0, "mixed_fraction": 0.8}] * 20)
+    runs = rs.summarize(str(tmp_path))["runs"]
+    trained, plain = runs["gt_s0"], runs["gt_s1"]
+    assert trained["sampled_as_trained"]["gain"] == pytest.approx(0.1)
+    assert trained["sampled"]["gain"] == pytest.approx(0.0)  # a different policy's gain
+    assert [c["sampled_as_trained"] for c in trained["curve"]] == [0.3, 0.4]
+    assert plain["sampled_as_trained"] is None and all("sampled_as_trained" not in c for c in plain["curve"])
+    rs.print_runs({"runs": runs})
+    lines = capsys.readouterr().out.splitlines()
+    assert "sampled as trained 0.300 -> 0.400 (+0.100)" in lines[0] and "as trained" not in lines[1]

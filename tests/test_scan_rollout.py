@@ -298,3 +298,47 @@ def test_env_grpo_trains_in_the_learned_simulators_setting_and_evaluates_in_the_
     with pytest.raises(ValueError, match="train_max_steps"):
         EnvGRPO(graphdef, rl, SlideEnv(), max_steps=20, starts_at=lambda s, r: (far, tokens), eval_starts=far,
                 eval_tokens=tokens, eval_tasks=[0, 1], key=jax.random.key(3), train_max_steps=0)
+
+
+def test_the_as_trained_evaluation_executes_the_sampled_policy_as_its_training_rollouts_do(tmp_path):
+    """evaluate(as_trained=True) with training rollouts of 4 actions per decision and proprio missing adds the
+    sampled policy executed that way from the evaluation's starts for their whole episodes: 5 decisions in 20
+    actions, proprio invalid, with its own noise drawn alike at every evaluation; a runner that trains as it
+    evaluates adds nothing."""
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, grpo=dataclasses.replace(
+        cfg.rl.grpo, rollout_batch=1, group_size=4, minibatches=1, ppo_epochs=1, update_microbatch=0))
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 4, rl.policy.max_instruction_bytes)
+    eval_starts = np.array([[0.3], [-1.0], [0.33], [0.1]], np.float32)
+    kwargs = dict(max_steps=20, starts_at=lambda s, r: None, eval_starts=eval_starts, eval_tokens=tokens,
+                  eval_tasks=[0, 0, 1, 1], key=jax.random.key(3))
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), train_max_steps=8, train_execute_steps=4, train_proprio=False,
+                     **kwargs)
+    calls, run = [], runner.run_episodes
+
+    def recording(p, *, key, **kw):
+        calls.append((kw.get("rollout"), kw.get("proprio", True), np.asarray(jax.random.key_data(key)).tolist()))
+        return run(p, key=key, **kw)
+
+    runner.run_episodes = recording
+    runner.start_probe(params, str(tmp_path / "probe"))
+    calls.clear()
+    _, extra = runner.evaluate(params, step=0, as_trained=True)
+    trained = extra["sampled_as_trained"]
+    assert trained["episodes"] == 4 and trained["execute_steps"] == 4 and trained["proprio"] is False
+    assert len(trained["outcomes"]) == 4
+    assert calls[-1][0] is runner.as_trained_rollout and calls[-1][1] is False
+    assert len({str(c[2]) for c in calls}) == len(calls)  # its own noise, not the other policies'
+    rollout, _ = runner.as_trained_rollout(params, jnp.asarray(eval_starts), jnp.asarray(tokens), jax.random.key(0),
+                                           False, False, runner._valid(0.0))
+    assert rollout.valid.shape[1] == 5 and np.all(np.asarray(rollout.proprio_valid) == 0)  # 20 actions, 4 each
+    first = calls[-1]
+    runner.evaluate(params, step=3, as_trained=True)
+    assert calls[-1] == first  # every evaluation draws the same noise: common random numbers
+    _, without = runner.evaluate(params, step=4)
+    assert "sampled_as_trained" not in without
+    plain = EnvGRPO(graphdef, rl, SlideEnv(), **kwargs)
+    plain.start_probe(params, str(tmp_path / "plain"))
+    assert plain.as_trained_rollout is None
+    assert "sampled_as_trained" not in plain.evaluate(params, step=0, as_trained=True)[1]

@@ -152,6 +152,9 @@ class EnvGRPO:
         same = self.train_max_steps == max_steps and self.train_rl is rl and value is None
         self.train_rollout = self.rollout if same else jax.jit(
             lambda *args: self._rollout_impl(*args, rl=self.train_rl, max_steps=self.train_max_steps, value_fn=value_fn))
+        # the sampled policy executed as the training rollouts execute it, for the evaluation's whole episodes
+        self.as_trained_rollout = None if self.train_rl is rl else jax.jit(
+            lambda *args: self._rollout_impl(*args, rl=self.train_rl))
         self.update = jax.jit(lambda state, batch, key: grpo.grpo_update(graphdef, rl, state, batch, key),
                               donate_argnums=(0,))
         self.select = jax.jit(select_groups, static_argnums=(1, 2))
@@ -250,19 +253,21 @@ class EnvGRPO:
         return jnp.full((self.batch if size is None else size,), value, jnp.float32)
 
     def run_episodes(self, params: Any, *, greedy: bool, ensemble: bool, key: jax.Array,
-                     slices: int | None = None, proprio: bool = True) -> tuple[np.ndarray, dict]:
+                     slices: int | None = None, proprio: bool = True, rollout: Any = None) -> tuple[np.ndarray, dict]:
         """The evaluation episodes, in slices of the rollout's batch or of all ``E`` episodes where they are fewer
         (the last slice padded by repeating episodes; ``slices``: only the first this-many): ``(success [E] bool,
         what the first slice recorded)``. A training batch larger than the evaluation runs no padding: 500
-        episodes cost 500 trajectories, not a 2,048-trajectory batch."""
+        episodes cost 500 trajectories, not a 2,048-trajectory batch. ``rollout``: the compiled rollout to run
+        (default the evaluation's, :attr:`rollout`)."""
+        rollout_fn = self.rollout if rollout is None else rollout
         e = len(self.eval_starts)
         size = min(self.batch, e)
         success = np.zeros(e, bool)
         first = None
         for lo in list(range(0, e, size))[:slices]:
             idx = np.arange(lo, lo + size) % e
-            rollout, _ = self.rollout(params, jnp.asarray(self.eval_starts[idx]), jnp.asarray(self.eval_tokens[idx]),
-                                      jax.random.fold_in(key, lo), greedy, ensemble, self._valid(float(proprio), size))
+            rollout, _ = rollout_fn(params, jnp.asarray(self.eval_starts[idx]), jnp.asarray(self.eval_tokens[idx]),
+                                    jax.random.fold_in(key, lo), greedy, ensemble, self._valid(float(proprio), size))
             hi = min(lo + size, e)
             success[lo:hi] = np.asarray(rollout.success)[: hi - lo]
             if first is None:
@@ -312,11 +317,16 @@ class EnvGRPO:
         earlier = [s for s in saved if s < step]
         return np.load(self._probe_file(max(earlier))) if earlier else None
 
-    def evaluate(self, params: Any, *, step: int, sampled: bool = True, masked: bool = False) -> tuple[dict, dict]:
+    def evaluate(self, params: Any, *, step: int, sampled: bool = True, masked: bool = False,
+                 as_trained: bool = False) -> tuple[dict, dict]:
         """Greedy (ensembled when ``rl.env.action_ensemble``) success on the evaluation episodes, with the
-        sampled policy's and the probe's figures beside it: ``(point, extra)``. ``masked``: also the sampled
-        policy reading its "missing proprio" input (``sampled_proprio_masked``), the mode GRPO in a learned
-        simulator trains. Every evaluation runs the same starts with the same sampling noise (each policy's key is
+        sampled policy's and the probe's figures beside it: ``(point, extra)``. The sampled policy re-plans as the
+        evaluation does (``rl.env.execute_steps``, no ensembling). ``masked``: also the sampled policy reading its
+        "missing proprio" input (``sampled_proprio_masked``), the mode GRPO in a learned simulator trains.
+        ``as_trained``: where the training rollouts execute another number of actions per decision
+        (``train_execute_steps``), also the sampled policy executed as they execute it and reading proprio as they
+        read it, from the evaluation's starts for its whole episodes (``sampled_as_trained``): the policy GRPO
+        optimises, where the other two re-plan every action. Every evaluation runs the same starts with the same sampling noise (each policy's key is
         step 0's): common random numbers, so the gain between two evaluations pairs each episode's outcomes
         (:func:`~sword_jax.rl.env_rollout.gain_interval`). Needs :meth:`start_probe`."""
         if self.probe is None:
@@ -338,6 +348,15 @@ class EnvGRPO:
                                              key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 21), 0))
             extra["sampled_proprio_masked"] = dict(self.summarize(m_success, time.perf_counter() - t1),
                                                    temperature=self.rl.grpo.temperature)
+        if as_trained and self.as_trained_rollout is not None:
+            t1 = time.perf_counter()
+            a_success, _ = self.run_episodes(params, greedy=False, ensemble=False, proprio=self.train_proprio,
+                                             rollout=self.as_trained_rollout,
+                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 22), 0))
+            extra["sampled_as_trained"] = dict(self.summarize(a_success, time.perf_counter() - t1),
+                                               temperature=self.rl.grpo.temperature,
+                                               execute_steps=self.train_rl.env.execute_steps,
+                                               proprio=self.train_proprio)
         tokens, margin = self.probe_tokens(params)
         probe = {"states": int(tokens.shape[0]), "top1_margin": margin,
                  "flip_rate_vs_start": float(np.mean(tokens != reference_tokens))}
