@@ -27,12 +27,23 @@ from sword_jax.rl.sim_builder import stored_for_simulator
 from sword_jax.rng import stream_key
 
 
+def imagined_execution(rl) -> dict:
+    """:class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`'s training-execution arguments of GRPO in the learned simulator,
+    which its evaluations read to also run the sampled policy as that GRPO executes it (``sampled_as_trained``):
+    ``rl.imagined_actions_per_decision`` actions per decision, the policy reading its "missing proprio" input. Empty
+    with ``rl.imagined.proprio=reckoned``, whose dead-reckoned proprio the MJX evaluation does not compute."""
+    if rl.imagined.proprio != "missing":
+        return {}
+    return {"train_execute_steps": rl.imagined_actions_per_decision, "train_proprio": False}
+
+
 def mjx_evaluation(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int):
     """``(env, evaluate(step, params) -> (point, extra))``: the batched MJX episodes of ``cfg.sim`` and the
     ground-truth GRPO's evaluation on them (:class:`~sword_jax.rl.jax_env_grpo.EnvGRPO`: the greedy, ensembled
     policy and the sampled one on the tasks' fixed evaluation states; with ``rl.imagined.eval_masked_proprio``
-    also the sampled policy reading its "missing proprio" input, the mode GRPO trains inside the world model),
-    what a run in the learned simulator is judged by on MJX. ``params``: the starting policy, whose greedy
+    also the sampled policy reading its "missing proprio" input, the mode GRPO trains inside the world model; and
+    the sampled policy executed as that GRPO executes it, :func:`imagined_execution`), what a run in the learned
+    simulator is judged by on MJX. ``params``: the starting policy, whose greedy
     episodes fix the probe states (``<workdir>/probe``)."""
     tasks = list(cfg.sim.tasks)
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
@@ -45,16 +56,19 @@ def mjx_evaluation(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=no_training_starts,
                      eval_starts=eval_qpos, eval_tokens=tokenize_instructions(eval_text, rl.policy.max_instruction_bytes),
                      eval_tasks=[t for t, _ in eval_episodes],
-                     key=stream_key(jax.random.key(cfg.seed), "grpo/mjx_eval"), log=log)
+                     key=stream_key(jax.random.key(cfg.seed), "grpo/mjx_eval"), log=log, **imagined_execution(rl))
     os.makedirs(workdir, exist_ok=True)
     runner.start_probe(params, os.path.join(workdir, "probe"))
 
     def evaluate_real(step, params):
-        point, extra = runner.evaluate(params, step=step, sampled=True, masked=rl.imagined.eval_masked_proprio)
-        masked = extra.get("sampled_proprio_masked")
+        point, extra = runner.evaluate(params, step=step, sampled=True, masked=rl.imagined.eval_masked_proprio,
+                                       as_trained=True)
+        masked, executed = extra.get("sampled_proprio_masked"), extra.get("sampled_as_trained")
         log(f"eval step {step}: MJX success {point['mean']:.3f} [{point['ci95'][0]:.3f}, {point['ci95'][1]:.3f}]"
             f"; sampled T={rl.grpo.temperature:g} {extra['sampled']['mean']:.3f}"
-            + (f", proprio masked {masked['mean']:.3f}" if masked else "") + f" ({point['episodes']} episodes)")
+            + (f", proprio masked {masked['mean']:.3f}" if masked else "")
+            + (f", as trained ({executed['execute_steps']} actions per decision) {executed['mean']:.3f}"
+               if executed else "") + f" ({point['episodes']} episodes)")
         return point, extra
 
     return env, evaluate_real

@@ -342,3 +342,25 @@ def test_the_as_trained_evaluation_executes_the_sampled_policy_as_its_training_r
     plain.start_probe(params, str(tmp_path / "plain"))
     assert plain.as_trained_rollout is None
     assert "sampled_as_trained" not in plain.evaluate(params, step=0, as_trained=True)[1]
+
+
+def test_the_learned_simulators_runs_are_evaluated_as_they_execute_the_policy_there():
+    """sim.grpo_refresh.imagined_execution: an MJX evaluation of GRPO in the learned simulator runs its sampled policy
+    as that GRPO executes it (rl.imagined.execute_steps actions per decision, proprio missing); with dead-reckoned
+    proprio, which MJX evaluations do not compute, it adds nothing."""
+    from sim.grpo_refresh import imagined_execution
+
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, image_size=SIZE, imagined=dataclasses.replace(
+        cfg.rl.imagined, execute_steps=4, proprio="missing"))
+    assert imagined_execution(rl) == {"train_execute_steps": 4, "train_proprio": False}
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = tokenize_instructions(["push it"] * 2, rl.policy.max_instruction_bytes)
+    runner = EnvGRPO(graphdef, rl, SlideEnv(), max_steps=8, starts_at=lambda s, r: None,
+                     eval_starts=np.array([[0.3], [0.0]], np.float32), eval_tokens=tokens, eval_tasks=[0, 1],
+                     key=jax.random.key(3), **imagined_execution(rl))
+    assert runner.as_trained_rollout is not None and runner.train_rl.env.execute_steps == 4
+    whole = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, execute_steps=None))
+    assert imagined_execution(whole)["train_execute_steps"] == rl.chunk_len  # whole chunks
+    reckoned = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, proprio="reckoned"))
+    assert imagined_execution(reckoned) == {}
