@@ -359,3 +359,38 @@ def test_the_first_half_table_labels_each_row_by_its_setting_in_the_settings_ord
     assert table[5] == (f"| {labels[1]} | s1 | 20 | -1.0 [-6.0, +0.0] | +2.0 [-10.0, +10.0] | +5.0 [+0.0, +10.0] "
                         "| 0.250 -> 0.375 | 54 of 64 |")
     assert table[0].count("|") == table[2].count("|")  # the detector's column left out of header and rows alike
+
+
+def test_the_as_trained_table_reads_each_runs_curve_at_step_20_and_its_last(tmp_path, monkeypatch):
+    """grpo-first-half-as-trained: one row per run of each advantage rule in FIRST_HALF_AS_TRAINED_ARMS' order, the
+    as-trained gain at step 20 and at the last step with the success between, the other policies' gains at the last
+    step, and the paid success over the first and last 5 steps; a run without a step-20 point leaves that cell
+    empty."""
+    def figure(mean):
+        return {"mean": mean, "successes": int(round(mean * 500)), "episodes": 500}
+
+    def point(step, trained, sampled=0.5, greedy=0.75):
+        return {"step": step, **figure(greedy), "sampled": figure(sampled), "sampled_proprio_masked": figure(sampled),
+                "sampled_as_trained": figure(trained)}
+
+    root = tmp_path / "policy" / report.FIRST_HALF_AS_TRAINED[1]
+    for i, folder in enumerate(report.FIRST_HALF_AS_TRAINED_ARMS):
+        for seed in (1, 0):
+            run = root / folder / "gt" / f"s{seed}" / "grpo_env_proprio_missing_starts_keyframes_mjx"
+            run.mkdir(parents=True)
+            steps = (0, 20, 40) if seed == 0 else (0, 40)
+            points = [point(s, 0.36 + 0.001 * s * (i + 1), sampled=0.5 - 0.001 * s) for s in steps]
+            (run / "success_curve.json").write_text(json.dumps({"points": points}))
+            (run / "train_history.jsonl").write_text("".join(
+                json.dumps({"rollout_success": 0.4 if k < 5 else 0.6}) + "\n" for k in range(40)))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_first_half_as_trained().splitlines()
+    labels = list(report.FIRST_HALF_AS_TRAINED_ARMS.values())
+    assert len(table) == 6 and "grpo-first-half-as-trained" in report.TABLES
+    assert [row.split(" | ")[:2] for row in table[2:]] == [[f"| {label}", s] for label in labels for s in ("s0", "s1")]
+    cells = [c.strip() for c in table[4].strip("|").split("|")]  # scaled by their std, s0: 0.002 a step
+    assert cells[2] == "40" and cells[3].startswith("+4.0 [") and cells[4].startswith("+8.0 [")
+    assert cells[5] == "0.360 -> 0.440" and cells[6].startswith("-4.0 [") and cells[8].startswith("+0.0 [")
+    assert cells[9] == "0.400 -> 0.600"
+    assert [c.strip() for c in table[3].strip("|").split("|")][3] == ""  # s1 was not evaluated at step 20
+    assert table[0].count("|") == table[2].count("|")
