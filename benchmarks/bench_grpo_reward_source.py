@@ -884,7 +884,8 @@ FIGURE_GAPS = {"": "the world model's frame", "_vae": "the real frame through th
 def figure(workdir: str, path: str) -> dict:
     """Three panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training
     rollouts at every step (``exec``: the imagined actions executed; dashed, what the detector said of them); each
-    run's real success at its evaluations (sampled at the GRPO temperature, and greedy, dotted); and for each
+    run's real success at its evaluations (sampled at the GRPO temperature, greedy, dotted, and where evaluated the
+    sampled policy executed as its GRPO executes it, dashed); and for each
     ``exec`` run, per decision, the policy's greedy action gap on the world model's frame against the real frame, with
     what the VAE alone makes and what the real frame of the decision before makes (means over the steps). Returns
     the plotted series."""
@@ -904,11 +905,16 @@ def figure(workdir: str, path: str) -> dict:
         curve = evaluation_curve(read_points(grpo))
         evaluated = {"steps": [c["step"] for c in curve], "greedy": [c["greedy"] for c in curve],
                      "sampled": [c.get("sampled", float("nan")) for c in curve]}
+        if any("sampled_as_trained" in c for c in curve):
+            evaluated["sampled_as_trained"] = [c.get("sampled_as_trained", float("nan")) for c in curve]
         series[name] = {"steps": steps, "paid": paid, "evaluated": evaluated}
         paid_ax.plot(steps, paid, marker="o", ms=3, label=f"{name}: {FIGURE_ARMS[arm]}")
         line, = eval_ax.plot(evaluated["steps"], evaluated["sampled"], marker="o", ms=3, label=f"{name}: sampled")
         eval_ax.plot(evaluated["steps"], evaluated["greedy"], marker="o", ms=3, ls=":", color=line.get_color(),
                      label=f"{name}: greedy")
+        if "sampled_as_trained" in evaluated:
+            eval_ax.plot(evaluated["steps"], evaluated["sampled_as_trained"], marker="s", ms=3, ls="--",
+                         color=line.get_color(), label=f"{name}: sampled as trained")
         if arm == "exec" and "detector_success" in history[0]:
             said = [h["detector_success"] for h in history]
             series[name]["detector"] = said

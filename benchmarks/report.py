@@ -624,8 +624,12 @@ def _reward_source_rows(summary: dict, group_of: int | None = None, label: str |
     """The rows of :func:`_reward_source_table`: per arm and seed, the arm's label (or ``label``, the setting that
     tells apart several summaries' rows in one table), the gains sampled, sampled with proprio masked and greedy,
     what the training rollouts were paid, the groups they left mixed (with ``group_of``, as a count of that many
-    groups), and for the world model paid by reality, the detector's verdicts on the same rollouts."""
+    groups), and for the world model paid by reality, the detector's verdicts on the same rollouts. Where any run
+    was also evaluated as its GRPO executes the sampled policy (``sampled_as_trained``), that gain follows the
+    sampled one (:func:`_reward_source_columns`)."""
     rows = []
+    policies = ("sampled", *(("sampled_as_trained",) if _has_as_trained(summary) else ()), "sampled_proprio_masked",
+                "greedy")
     for arm in ("gt", "exec", "det", "cal"):
         for _, run in sorted(summary["runs"].items()):
             if run["arm"] != arm:
@@ -633,8 +637,8 @@ def _reward_source_rows(summary: dict, group_of: int | None = None, label: str |
             paid, det = run["paid_success"], run.get("detector")
             mixed = run["mixed_median"]
             rows.append([label or summary["arms"][arm]["label"], f"s{run['seed']}", str(run["steps"]),
-                         *(f"{_pct(run[m]['gain'])} {_interval(run[m]['ci95'])}" if m in run else "not run"
-                           for m in ("sampled", "sampled_proprio_masked", "greedy")),
+                         *(f"{_pct(run[m]['gain'])} {_interval(run[m]['ci95'])}" if run.get(m) else "not run"
+                           for m in policies),
                          f"{paid['first']:.3f} -> {paid['last']:.3f}",
                          f"{mixed * group_of:.0f} of {group_of}" if group_of else f"{mixed:.2f}",
                          _detector_cell(det)])
@@ -646,10 +650,23 @@ REWARD_SOURCE_COLUMNS = ["GRPO's frames and reward", "seed", "steps", "sampled g
                          "groups mixed (median)", "the detector on the same rollouts: success / agreement / precision"]
 
 
+def _has_as_trained(summary: dict) -> bool:
+    """Whether any run of a reward-source summary was evaluated as its GRPO executes the sampled policy."""
+    return any(run.get("sampled_as_trained") for run in summary["runs"].values())
+
+
+def _reward_source_columns(summary: dict) -> list[str]:
+    """:data:`REWARD_SOURCE_COLUMNS`, with the sampled policy executed as GRPO executes it after the sampled gain
+    where :func:`_has_as_trained`."""
+    if not _has_as_trained(summary):
+        return list(REWARD_SOURCE_COLUMNS)
+    return [*REWARD_SOURCE_COLUMNS[:4], "sampled as trained (its rollouts' execution)", *REWARD_SOURCE_COLUMNS[4:]]
+
+
 def _reward_source_table(summary: dict, group_of: int | None = None) -> str:
     """A reward-source summary (``bench_grpo_reward_source summary``) per arm and seed
     (:func:`_reward_source_rows`)."""
-    return _table(REWARD_SOURCE_COLUMNS, _reward_source_rows(summary, group_of))
+    return _table(_reward_source_columns(summary), _reward_source_rows(summary, group_of))
 
 
 def grpo_reward_source() -> str:

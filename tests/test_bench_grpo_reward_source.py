@@ -242,7 +242,7 @@ def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp
     _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5), _point(2, 0.75, 0.55)],
            [{"step": s, "rollout_success": 0.3 + 0.01 * s} for s in (1, 2)])
     prev = {f"closed_loop_action_gap_prev_{k}": 0.2 for k in (1, 2, 10)}
-    _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5)],
+    _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5, 0.5, 0.3), _point(2, 0.7, 0.5, 0.5, 0.4)],
            [{"step": s, "success_rate": 0.01 * s, "detector_success": 0.25, **_loop(0.1 * s, vae=True), **prev}
             for s in (1, 2)])
     series = rs.figure(str(tmp_path), str(tmp_path / "f.png"))
@@ -251,6 +251,7 @@ def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp
                                "evaluated": {"steps": [0, 2], "greedy": [0.7, 0.75], "sampled": [0.5, 0.55]}}
     ex = series["exec_s0"]
     assert ex["paid"] == [0.01, 0.02] and ex["detector"] == [0.25, 0.25]
+    assert ex["evaluated"]["sampled_as_trained"] == [0.3, 0.4]  # evaluated as trained: drawn beside the others
     assert ex["action_gap"]["decisions"] == [1, 2, 10]
     assert ex["action_gap"]["world_model"] == pytest.approx([0.015, 0.03, 0.15])  # k x 0.1 x mean(0.1, 0.2)
     assert ex["action_gap"]["_vae"] == pytest.approx([0.0075, 0.015, 0.075]) and ex["action_gap"]["_prev"] == [0.2] * 3

@@ -304,6 +304,15 @@ def test_the_reward_source_table_orders_the_arms_and_counts_mixed_groups_of_the_
                         "|  |")
     assert table[3].endswith("| 0.19 | 0.10 / 0.80 / 0.75 |")
     assert report._reward_source_table(summary, group_of=32).splitlines()[4].endswith("| 6 of 32 |  |")
+    # a summary with a run evaluated as its GRPO executes the sampled policy: that column after the sampled one,
+    # "not run" for the runs without it (a None from the summary, or no entry)
+    summary["runs"]["b"]["sampled_as_trained"] = {"gain": 0.2, "ci95": [0.15, 0.25]}
+    summary["runs"]["a"]["sampled_as_trained"] = None
+    table = report._reward_source_table(summary).splitlines()
+    assert table[0].split(" | ")[4] == "sampled as trained (its rollouts' execution)"
+    assert table[0].count("|") == table[2].count("|")
+    assert table[3].startswith("| EXEC | s0 | 30 | -5.0 [-10.0, +0.0] | +20.0 [+15.0, +25.0] | -5.0 [-10.0, +0.0] |")
+    assert table[2].split(" | ")[4] == table[4].split(" | ")[4] == "not run"
 
 
 def test_the_horizon_honesty_table_reads_its_record_row_by_row(tmp_path, monkeypatch):
