@@ -342,8 +342,9 @@ def real_episodes(history: Sequence[dict]) -> int | None:
 def summarize_run(grpo: str) -> dict:
     """One run: its gains from step 0 to its last evaluation (greedy, sampled, sampled with proprio masked, sampled
     as the training rollouts execute it; None where not evaluated), the success its training rollouts were paid
-    (first and last 5 steps), its groups with mixed outcomes, the real episodes its steps consumed (:func:`real_episodes`), and with a reward paid by execution, the detector's
-    verdict on the same rollouts (means over the steps)."""
+    (first and last 5 steps), its groups with mixed outcomes, the real episodes its steps consumed
+    (:func:`real_episodes`), and with a reward paid by execution, the detector's verdict on the same rollouts
+    (means over the steps)."""
     points = read_points(grpo)
     history = read_history(grpo)
     paid = paid_per_step(history)
@@ -885,10 +886,9 @@ def figure(workdir: str, path: str) -> dict:
     """Three panels from the runs under ``workdir`` (PNG at ``path``): what reality paid each run's training
     rollouts at every step (``exec``: the imagined actions executed; dashed, what the detector said of them); each
     run's real success at its evaluations (sampled at the GRPO temperature, greedy, dotted, and where evaluated the
-    sampled policy executed as its GRPO executes it, dashed); and for each
-    ``exec`` run, per decision, the policy's greedy action gap on the world model's frame against the real frame, with
-    what the VAE alone makes and what the real frame of the decision before makes (means over the steps). Returns
-    the plotted series."""
+    sampled policy executed as its GRPO executes it, dashed); and for each ``exec`` run, per decision, the policy's
+    greedy action gap on the world model's frame against the real frame, with what the VAE alone makes and what the
+    real frame of the decision before makes (means over the steps). Returns the plotted series."""
     import matplotlib
 
     matplotlib.use("Agg")

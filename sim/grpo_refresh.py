@@ -43,8 +43,8 @@ def mjx_evaluation(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task
     policy and the sampled one on the tasks' fixed evaluation states; with ``rl.imagined.eval_masked_proprio``
     also the sampled policy reading its "missing proprio" input, the mode GRPO trains inside the world model; and
     the sampled policy executed as that GRPO executes it, :func:`imagined_execution`), what a run in the learned
-    simulator is judged by on MJX. ``params``: the starting policy, whose greedy
-    episodes fix the probe states (``<workdir>/probe``)."""
+    simulator is judged by on MJX. ``params``: the starting policy, whose greedy episodes fix the probe states
+    (``<workdir>/probe``)."""
     tasks = list(cfg.sim.tasks)
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
     eval_episodes = sim_tasks.evaluation_episodes(tasks, episodes_per_task)

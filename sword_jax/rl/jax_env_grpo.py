@@ -326,9 +326,10 @@ class EnvGRPO:
         ``as_trained``: where the training rollouts execute another number of actions per decision
         (``train_execute_steps``), also the sampled policy executed as they execute it and reading proprio as they
         read it, from the evaluation's starts for its whole episodes (``sampled_as_trained``): the policy GRPO
-        optimises, where the other two re-plan every action. Every evaluation runs the same starts with the same sampling noise (each policy's key is
-        step 0's): common random numbers, so the gain between two evaluations pairs each episode's outcomes
-        (:func:`~sword_jax.rl.env_rollout.gain_interval`). Needs :meth:`start_probe`."""
+        optimises, where the other two re-plan every action. Every evaluation runs the same starts with the same
+        sampling noise (each policy's key is step 0's): common random numbers, so the gain between two evaluations
+        pairs each episode's outcomes (:func:`~sword_jax.rl.env_rollout.gain_interval`). Needs
+        :meth:`start_probe`."""
         if self.probe is None:
             raise RuntimeError("EnvGRPO.evaluate: call start_probe(initial_params, directory) first")
         t0 = time.perf_counter()
