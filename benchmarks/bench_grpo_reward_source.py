@@ -435,7 +435,8 @@ def summarize(workdir: str) -> dict:
     """Every run (:func:`summarize_run`) and per arm its seeds' sampled gains, smallest and mean, and the real
     episodes each seed's GRPO steps consumed; per world-model arm also ``real_episodes_vs_gt``: its mean real
     episodes over the seeds divided by the ``gt`` arm's (None without a ``gt`` run in ``workdir`` or where its mean
-    is 0 or unknown)."""
+    is 0 or unknown); per arm whose runs were evaluated as their GRPO executes the sampled policy, those gains
+    (``as_trained_gain_per_seed``), smallest and mean."""
     runs = {name: dict(arm=arm, seed=seed, **summarize_run(grpo)) for name, (arm, seed, grpo) in run_dirs(workdir).items()}
     episodes = {arm: {r["seed"]: r["real_episodes"] for r in runs.values() if r["arm"] == arm} for arm in ARMS}
     gt_mean = _mean_known(episodes["gt"].values())
@@ -450,6 +451,11 @@ def summarize(workdir: str) -> dict:
             if arm in WORLD_MODEL_ARMS:
                 mean = _mean_known(episodes[arm].values())
                 arms[arm]["real_episodes_vs_gt"] = mean / gt_mean if gt_mean and mean is not None else None
+            trained = {r["seed"]: r["sampled_as_trained"]["gain"] for r in runs.values()
+                       if r["arm"] == arm and r.get("sampled_as_trained")}
+            if trained:  # the sampled policy as the arm's GRPO executes it
+                arms[arm].update(as_trained_gain_per_seed=trained, as_trained_smallest=min(trained.values()),
+                                 as_trained_mean=statistics.mean(trained.values()))
     return {"runs": runs, "arms": arms, **common.workdir_xla_flags(workdir)}
 
 
@@ -709,11 +715,26 @@ def smallest_gain_entry(summary: dict, arm: str, workdir: str, *, bench: str, un
 
 
 def results_entries(summary: dict, workdir: str, *, data: str, command: str = "") -> dict[str, dict]:
-    """``policy_grpo_reward_source_small``: value the smallest sampled gain over the seeds of GRPO in the world
-    model paid by the real outcome of its actions (``exec``), beside every arm's gains and every run's summary."""
-    return {"policy_grpo_reward_source_small": smallest_gain_entry(
-        summary, "exec", workdir, bench="bench_grpo_reward_source", data=data, command=command,
-        unit="real success gain of the sampled policy (T 0.5) on MJX (episodes per point: each run's curve)")}
+    """``policy_grpo_reward_source_small`` where the summary has an ``exec`` arm: value the smallest sampled gain
+    over the seeds of GRPO in the world model paid by the real outcome of its actions, beside every arm's gains and
+    every run's summary. ``policy_grpo_ground_truth_as_trained_small`` where its ``gt`` arm was evaluated as its
+    GRPO executes the sampled policy: value the smallest of those gains over the seeds. Refused with neither."""
+    entries = {}
+    if "exec" in summary["arms"]:
+        entries["policy_grpo_reward_source_small"] = smallest_gain_entry(
+            summary, "exec", workdir, bench="bench_grpo_reward_source", data=data, command=command,
+            unit="real success gain of the sampled policy (T 0.5) on MJX (episodes per point: each run's curve)")
+    gt = summary["arms"].get("gt", {})
+    if "as_trained_smallest" in gt:
+        entry = smallest_gain_entry(
+            summary, "gt", workdir, bench="bench_grpo_reward_source", data=data, command=command,
+            unit="real success gain on MJX of the sampled policy (T 0.5) executed as ground-truth GRPO executes it "
+                 "(its actions per decision, its proprio), from rest for whole episodes")
+        entries["policy_grpo_ground_truth_as_trained_small"] = dict(entry, value=gt["as_trained_smallest"])
+    if not entries:
+        raise SystemExit("bench_grpo_reward_source: no run of the exec arm, and no gt run evaluated as trained, "
+                         "left an evaluation to record")
+    return entries
 
 
 def print_runs(summary: dict) -> None:

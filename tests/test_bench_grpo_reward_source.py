@@ -803,16 +803,25 @@ def test_the_detectors_separation_is_averaged_over_the_steps_where_both_outcomes
     assert set(rs.detector_figures([base])) == {"success", "agreement", "false_success", "precision"}
 
 
-def test_a_run_evaluated_as_trained_has_that_gain_and_curve_and_others_none(tmp_path, capsys):
+def test_a_run_evaluated_as_trained_has_that_gain_and_curve_and_others_none(tmp_path, capsys, monkeypatch):
     """A run whose evaluations also ran the sampled policy as its training rollouts execute it has that policy's
     gain and curve beside the others (and its printed line says so); a run without them has None and no curve
-    entry."""
+    entry. The arm lists the gains of its runs that have one; --record writes the ground-truth arm's smallest as
+    policy_grpo_ground_truth_as_trained_small, and no world-model entry without an exec arm."""
     _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, 0.5, 0.3), _point(20, 0.72, 0.5, 0.5, 0.4)],
            [{"rollout_success": 0.4, "trajectories_sampled": 512.0, "mixed_fraction": 0.8}] * 20)
     _curve(tmp_path / "gt" / "s1" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(20, 0.72, 0.55)],
            [{"rollout_success": 0.4, "trajectories_sampled": 512.0, "mixed_fraction": 0.8}] * 20)
-    runs = rs.summarize(str(tmp_path))["runs"]
+    summary = rs.summarize(str(tmp_path))
+    runs = summary["runs"]
     trained, plain = runs["gt_s0"], runs["gt_s1"]
+    gt = summary["arms"]["gt"]
+    assert gt["as_trained_gain_per_seed"] == {0: pytest.approx(0.1)} and gt["as_trained_smallest"] == pytest.approx(0.1)
+    monkeypatch.setattr(rs.common, "device_name", lambda: "cpu")
+    entries = rs.results_entries(summary, str(tmp_path), data="d")
+    assert set(entries) == {"policy_grpo_ground_truth_as_trained_small"}
+    entry = entries["policy_grpo_ground_truth_as_trained_small"]
+    assert entry["value"] == pytest.approx(0.1) and entry["arms"]["gt"]["smallest"] == pytest.approx(0.0)
     assert trained["sampled_as_trained"]["gain"] == pytest.approx(0.1)
     assert trained["sampled"]["gain"] == pytest.approx(0.0)  # a different policy's gain
     assert [c["sampled_as_trained"] for c in trained["curve"]] == [0.3, 0.4]
