@@ -168,12 +168,17 @@ def run_sft(cfg, args) -> dict:
 def _execution(rl, mode: str):
     """``(rl, greedy)`` executing as ``--execute`` mode ``mode`` says: ``ens`` = greedy with ensembling, a
     number = greedy actions per chunk (``1`` = every step, no ensembling), ``sample`` = sampled at
-    ``rl.grpo.temperature`` every step without ensembling (the policy GRPO trains)."""
-    if mode not in ("ens", "sample") and not mode.isdigit():
-        raise SystemExit(f"--execute: {mode!r} is not 'ens', 'sample' or a number of actions per chunk")
-    steps = 1 if mode in ("ens", "sample") else int(mode)
+    ``rl.grpo.temperature`` every step without ensembling (the policy GRPO trains on whole episodes), ``sampleN`` =
+    sampled, N actions of each chunk (the policy GRPO trains executing N actions per decision, e.g. ``sample4`` for
+    ``rl.imagined.execute_steps=4``)."""
+    sampled = mode.startswith("sample")
+    steps = mode[len("sample"):] if sampled else mode
+    if mode != "ens" and not (steps == "" and sampled) and not (steps.isdigit() and 1 <= int(steps) <= rl.chunk_len):
+        raise SystemExit(f"--execute: {mode!r} is not 'ens', 'sample', 'sampleN' or a number N of actions per chunk "
+                         f"(1 <= N <= rl.chunk_len = {rl.chunk_len})")
+    steps = int(steps) if steps.isdigit() else 1
     env = dataclasses.replace(rl.env, execute_steps=steps, action_ensemble=mode == "ens")
-    return dataclasses.replace(rl, env=env), mode != "sample"
+    return dataclasses.replace(rl, env=env), not sampled
 
 
 def run_eval(cfg, args) -> dict:
@@ -185,13 +190,13 @@ def run_eval(cfg, args) -> dict:
 
     graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
     params = load_npz(args.policy, params)
-    results = {"policy": args.policy, "eval": {}}
+    results = {"policy": args.policy, "eval_proprio": args.eval_proprio, "eval": {}}
     if args.backend == "mjx":
         return _eval_mjx(cfg, args, graphdef, params, results)
     for mode in args.execute.split(","):
         rl_eval, greedy = _execution(cfg.rl, mode)
         result = evaluate_in_sim(graphdef, params, rl_eval, act=make_act_fns(graphdef, rl_eval),
-                                 greedy=greedy,
+                                 greedy=greedy, proprio=args.eval_proprio,
                                  **lockstep_evaluation(list(cfg.sim.tasks), args.eval_episodes,
                                                        resolution=cfg.sim.resolution, max_steps=cfg.sim.max_steps,
                                                        workers=args.workers))
@@ -223,7 +228,7 @@ def _eval_mjx(cfg, args, graphdef, params, results: dict) -> dict:
                          eval_tasks=[t for t, _ in episodes], key=jax.random.key(cfg.seed))
         start = time.time()
         success, _ = runner.run_episodes(params, greedy=greedy, ensemble=rl_eval.env.action_ensemble,
-                                         key=jax.random.key(0))
+                                         key=jax.random.key(0), proprio=args.eval_proprio == "true")
         result = dict(runner.summarize(success, time.time() - start), backend="mjx")
         results["eval"][mode] = result
         print(f"execute {mode} on MJX: success {common.interval_text(result)} "
@@ -543,9 +548,13 @@ def main(argv=None) -> None:
     parser.add_argument("--noisy-share", type=float, default=0.5, help="fraction of demonstrations with noise")
     parser.add_argument("--execute", default="8",
                         help="comma list of execution modes to evaluate: 'ens' (greedy, ensembling), a number "
-                             "(greedy, actions per chunk), 'sample' (sampled at rl.grpo.temperature)")
+                             "(greedy, actions per chunk), 'sample' (sampled at rl.grpo.temperature, a new chunk "
+                             "every action), 'sampleN' (sampled, N actions per chunk)")
     parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation states per task")
     parser.add_argument("--workers", type=int, default=0)
+    parser.add_argument("--eval-proprio", choices=("true", "missing"), default="true",
+                        help="eval: what the policy reads as proprio: the environment's, or its \"missing proprio\" "
+                             "input (as GRPO in a learned simulator trains it, with e.g. --execute sample4)")
     parser.add_argument("--backend", choices=("cpu", "mjx"), default="cpu",
                         help="eval: the engine of the evaluation episodes (grpo: --rl.env.backend)")
     parser.add_argument("--policy", default="", help="npz of an SFT policy (grpo stage)")

@@ -250,13 +250,42 @@ def test_grpo_seeds_places_one_run_per_gpu_with_multicast_off_and_passes_the_ove
 
 def test_execution_modes_of_the_policy_evaluations():
     """--execute: 'ens' ensembles greedy chunks every step, a number executes that many greedy actions per
-    chunk, 'sample' runs the trained (sampled) policy every step without ensembling; anything else is refused."""
+    chunk, 'sample' runs the trained (sampled) policy every step without ensembling, 'sampleN' N sampled actions
+    per chunk; anything else, or N outside 1..chunk_len, is refused."""
     rl = configs.get("sword:tiny").rl
-    (ens, ens_greedy), (four, four_greedy), (sample, sample_greedy) = (
-        bench_policy._execution(rl, m) for m in ("ens", "4", "sample"))
-    assert (ens_greedy, four_greedy, sample_greedy) == (True, True, False)
+    (ens, ens_greedy), (four, four_greedy), (sample, sample_greedy), (chunked, chunked_greedy) = (
+        bench_policy._execution(rl, m) for m in ("ens", "4", "sample", "sample4"))
+    assert (ens_greedy, four_greedy, sample_greedy, chunked_greedy) == (True, True, False, False)
     assert (ens.env.execute_steps, ens.env.action_ensemble) == (1, True)
     assert (four.env.execute_steps, four.env.action_ensemble) == (4, False)
     assert (sample.env.execute_steps, sample.env.action_ensemble) == (1, False)
-    with pytest.raises(SystemExit, match="'greedy' is not"):
-        bench_policy._execution(rl, "greedy")
+    assert (chunked.env.execute_steps, chunked.env.action_ensemble) == (4, False)
+    for bad in ("greedy", "sample0", "samplex", "0", str(rl.chunk_len + 1), f"sample{rl.chunk_len + 1}"):
+        with pytest.raises(SystemExit, match=f"'{bad}' is not"):
+            bench_policy._execution(rl, bad)
+
+
+def test_eval_runs_the_policy_as_chunked_grpo_trains_it(tmp_path, monkeypatch):
+    """bench_policy eval --execute sample4 --eval-proprio missing: the saved policy sampled, 4 actions of each
+    chunk, reading its "missing proprio" input, on the C engine; the file names the proprio mode and every mode."""
+    from sword_jax.rl import policy_success
+    from sword_jax.rl.policy import build_policy
+
+    cfg = configs.get("sword:tiny")
+    _, params = build_policy(cfg.rl, seed=0)
+    path = str(tmp_path / "policy.npz")
+    bench_policy.save_npz(path, params)
+    calls, evaluate = [], policy_success.evaluate_in_sim
+
+    def recording(graphdef, params, rl, **kwargs):
+        calls.append((rl.env.execute_steps, rl.env.action_ensemble, kwargs["greedy"], kwargs["proprio"]))
+        return evaluate(graphdef, params, rl, **kwargs)
+
+    monkeypatch.setattr(policy_success, "evaluate_in_sim", recording)
+    out = tmp_path / "out"
+    bench_policy.main(["eval", "--config", "sword:tiny", "--out", str(out), "--policy", path, "--eval-episodes", "1",
+                       "--execute", "sample4,ens", "--eval-proprio", "missing", "--sim.max_steps=8"])
+    assert calls == [(4, False, False, "missing"), (1, True, True, "missing")]
+    result = json.loads((out / "eval_results.json").read_text())
+    assert result["eval_proprio"] == "missing" and set(result["eval"]) == {"sample4", "ens"}
+    assert all(r["episodes"] == len(cfg.sim.tasks) for r in result["eval"].values())
