@@ -15,7 +15,7 @@ import json
 import os
 import re
 import statistics
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 from sword_jax import cli
 
@@ -586,17 +586,39 @@ SETTING_ARM_LABELS = {"A": "the learned simulator's: keyframes, 48 actions by 4,
 GROUND_TRUTH_SEEDS = ("policy", "grpo_mjx_seeds_small_4xh100")
 
 
-def _gain_at(points: list[dict], step: int, policy: str) -> str:
-    """The gain of ``policy`` (``greedy``: the point, else its entry) from step 0 to ``step``, with its
-    interval (paired where both points kept their outcomes), as ``+0.068 [+0.006, +0.129]``."""
+def _step_gain(points: list[dict], step: int, policy: str) -> tuple[float, tuple[float, float]] | None:
+    """The gain of ``policy`` (``greedy``: the point, else its entry) from step 0 to ``step`` and its 95% interval
+    (paired where both points kept their outcomes); None where either point lacks it."""
     from sword_jax.rl.env_rollout import gain_interval
 
     at = {p["step"]: (p if policy == "greedy" else p.get(policy)) for p in points}
     a, b = at.get(0), at.get(step)
     if a is None or b is None:
+        return None
+    return b["mean"] - a["mean"], gain_interval(a, b)
+
+
+def _gain_at(points: list[dict], step: int, policy: str) -> str:
+    """:func:`_step_gain` as ``+0.068 [+0.006, +0.129]`` (empty where there is none)."""
+    found = _step_gain(points, step, policy)
+    if found is None:
         return ""
-    lo, hi = gain_interval(a, b)
-    return f"{b['mean'] - a['mean']:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+    gain, (lo, hi) = found
+    return f"{gain:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+
+
+def _seed_runs(folder: str) -> Iterator[tuple[str, list[dict], list[dict]]]:
+    """``(seed dir, success-curve points, train history)`` of each ``s<k>`` under ``folder``, in name order: the
+    ``grpo_env*`` run each one holds (``bench_policy grpo``'s layout)."""
+    for seed_dir in sorted(d for d in os.listdir(folder) if re.fullmatch(r"s\d+", d)):
+        here = os.path.join(folder, seed_dir)
+        run = next(os.path.join(here, d) for d in sorted(os.listdir(here))
+                   if d.startswith("grpo_env") and os.path.isdir(os.path.join(here, d)))
+        with open(os.path.join(run, "success_curve.json")) as f:
+            points = json.load(f)["points"]
+        with open(os.path.join(run, "train_history.jsonl")) as f:
+            history = [json.loads(line) for line in f if line.strip()]
+        yield seed_dir, points, history
 
 
 def grpo_setting_arms() -> str:
@@ -605,13 +627,7 @@ def grpo_setting_arms() -> str:
     rows = []
     root = os.path.join(RESULTS_DIR, *SETTING_ARMS)
     for arm, label in SETTING_ARM_LABELS.items():
-        for seed_dir in sorted(d for d in os.listdir(os.path.join(root, arm)) if re.fullmatch(r"s\d+", d)):
-            run = next(os.path.join(root, arm, seed_dir, d) for d in sorted(os.listdir(os.path.join(root, arm, seed_dir)))
-                       if d.startswith("grpo_env") and os.path.isdir(os.path.join(root, arm, seed_dir, d)))
-            with open(os.path.join(run, "success_curve.json")) as f:
-                points = json.load(f)["points"]
-            with open(os.path.join(run, "train_history.jsonl")) as f:
-                history = [json.loads(line) for line in f if line.strip()]
+        for seed_dir, points, history in _seed_runs(os.path.join(root, arm)):
             last = points[-1]["step"]
             rollouts = [h["rollout_success"] for h in history]
             rows.append([label, seed_dir, str(last), _gain_at(points, last, "sampled"), _gain_at(points, last, "greedy"),
@@ -729,16 +745,9 @@ FIRST_HALF_AS_TRAINED_ARMS = {"centred": "centred", "std": "scaled by their std"
 
 
 def _gain_points(points: list[dict], step: int, policy: str) -> str:
-    """The gain of ``policy`` (``greedy``: the point, else its entry) from step 0 to ``step`` in points, with its
-    95% interval (paired where both points kept their outcomes), as ``+12.6 [+6.9, +18.1]``; empty where either
-    point lacks it."""
-    from sword_jax.rl.env_rollout import gain_interval
-
-    at = {p["step"]: (p if policy == "greedy" else p.get(policy)) for p in points}
-    a, b = at.get(0), at.get(step)
-    if a is None or b is None:
-        return ""
-    return f"{_pct(b['mean'] - a['mean'])} {_interval(gain_interval(a, b))}"
+    """:func:`_step_gain` in points, as ``+12.6 [+6.9, +18.1]`` (empty where there is none)."""
+    found = _step_gain(points, step, policy)
+    return "" if found is None else f"{_pct(found[0])} {_interval(found[1])}"
 
 
 def grpo_first_half_as_trained() -> str:
@@ -750,14 +759,8 @@ def grpo_first_half_as_trained() -> str:
     rows = []
     root = os.path.join(RESULTS_DIR, *FIRST_HALF_AS_TRAINED)
     for folder, label in FIRST_HALF_AS_TRAINED_ARMS.items():
-        for seed_dir in sorted(d for d in os.listdir(os.path.join(root, folder, "gt")) if re.fullmatch(r"s\d+", d)):
-            here = os.path.join(root, folder, "gt", seed_dir)
-            run = next(os.path.join(here, d) for d in sorted(os.listdir(here))
-                       if d.startswith("grpo_env") and os.path.isdir(os.path.join(here, d)))
-            with open(os.path.join(run, "success_curve.json")) as f:
-                points = json.load(f)["points"]
-            with open(os.path.join(run, "train_history.jsonl")) as f:
-                paid = [json.loads(line)["rollout_success"] for line in f if line.strip()]
+        for seed_dir, points, history in _seed_runs(os.path.join(root, folder, "gt")):
+            paid = [h["rollout_success"] for h in history]
             last = points[-1]["step"]
             trained = {p["step"]: p["sampled_as_trained"]["mean"] for p in points if "sampled_as_trained" in p}
             rows.append([label, seed_dir, str(last), _gain_points(points, 20, "sampled_as_trained"),
