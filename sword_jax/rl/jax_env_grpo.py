@@ -337,27 +337,21 @@ class EnvGRPO:
         point = dict(self.summarize(success, time.perf_counter() - t0), where="mjx")
         reference_tokens, previous_tokens = self.reference_tokens, self._previous_probe(step)
         extra: dict[str, Any] = {}
+
+        def sampled_policy(stream: int, **kwargs) -> dict:  # the sampled policy's summary, its own noise per stream
+            t1 = time.perf_counter()
+            outcome, _ = self.run_episodes(params, greedy=False, ensemble=False,
+                                           key=jax.random.fold_in(jax.random.fold_in(self.key, stream), 0), **kwargs)
+            return dict(self.summarize(outcome, time.perf_counter() - t1), temperature=self.rl.grpo.temperature)
+
         if sampled:
-            t1 = time.perf_counter()
-            s_success, _ = self.run_episodes(params, greedy=False, ensemble=False,
-                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 20), 0))
-            extra["sampled"] = dict(self.summarize(s_success, time.perf_counter() - t1),
-                                    temperature=self.rl.grpo.temperature)
+            extra["sampled"] = sampled_policy(1 << 20)
         if masked:
-            t1 = time.perf_counter()
-            m_success, _ = self.run_episodes(params, greedy=False, ensemble=False, proprio=False,
-                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 21), 0))
-            extra["sampled_proprio_masked"] = dict(self.summarize(m_success, time.perf_counter() - t1),
-                                                   temperature=self.rl.grpo.temperature)
+            extra["sampled_proprio_masked"] = sampled_policy(1 << 21, proprio=False)
         if as_trained and self.as_trained_rollout is not None:
-            t1 = time.perf_counter()
-            a_success, _ = self.run_episodes(params, greedy=False, ensemble=False, proprio=self.train_proprio,
-                                             rollout=self.as_trained_rollout,
-                                             key=jax.random.fold_in(jax.random.fold_in(self.key, 1 << 22), 0))
-            extra["sampled_as_trained"] = dict(self.summarize(a_success, time.perf_counter() - t1),
-                                               temperature=self.rl.grpo.temperature,
-                                               execute_steps=self.train_rl.env.execute_steps,
-                                               proprio=self.train_proprio)
+            extra["sampled_as_trained"] = dict(
+                sampled_policy(1 << 22, proprio=self.train_proprio, rollout=self.as_trained_rollout),
+                execute_steps=self.train_rl.env.execute_steps, proprio=self.train_proprio)
         tokens, margin = self.probe_tokens(params)
         probe = {"states": int(tokens.shape[0]), "top1_margin": margin,
                  "flip_rate_vs_start": float(np.mean(tokens != reference_tokens))}
