@@ -172,12 +172,11 @@ def _execution(rl, mode: str):
     sampled, N actions of each chunk (the policy GRPO trains executing N actions per decision, e.g. ``sample4`` for
     ``rl.imagined.execute_steps=4``)."""
     sampled = mode.startswith("sample")
-    steps = mode[len("sample"):] if sampled else mode
-    if mode != "ens" and not (steps == "" and sampled) and not (steps.isdigit() and 1 <= int(steps) <= rl.chunk_len):
+    steps = "1" if mode in ("ens", "sample") else mode[len("sample"):] if sampled else mode  # ens, sample: every action
+    if not (steps.isdigit() and 1 <= int(steps) <= rl.chunk_len):
         raise SystemExit(f"--execute: {mode!r} is not 'ens', 'sample', 'sampleN' or a number N of actions per chunk "
                          f"(1 <= N <= rl.chunk_len = {rl.chunk_len})")
-    steps = int(steps) if steps.isdigit() else 1
-    env = dataclasses.replace(rl.env, execute_steps=steps, action_ensemble=mode == "ens")
+    env = dataclasses.replace(rl.env, execute_steps=int(steps), action_ensemble=mode == "ens")
     return dataclasses.replace(rl, env=env), not sampled
 
 
