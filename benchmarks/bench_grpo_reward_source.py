@@ -702,14 +702,15 @@ def closed_loop_summary(runs: Sequence[Sequence], trajectories: int, *, first_st
 
 
 def smallest_gain_entry(summary: dict, arm: str, workdir: str, *, bench: str, unit: str, data: str,
-                        command: str = "") -> dict:
+                        command: str = "", smallest: str = "smallest") -> dict:
     """A ``latest.json`` entry of a run-and-summary GRPO benchmark: value the smallest gain over the seeds of
-    ``arm`` (its ``summary["arms"][arm]["smallest"]``), beside every arm's gains and every run's summary, stamped
-    with the device the runs' work dir was made on and the XLA flags they were started with."""
+    ``arm`` (its ``summary["arms"][arm][smallest]``: the sampled policy's, or e.g. ``as_trained_smallest``), beside
+    every arm's gains and every run's summary, stamped with the device the runs' work dir was made on and the XLA
+    flags they were started with."""
     if arm not in summary["arms"]:
         raise SystemExit(f"{bench}: no run of the {arm} arm left an evaluation to record")
     launched = {k: summary[k] for k in ("xla_flags", "deterministic") if k in summary}  # older work dirs lack them
-    return common.record("", summary["arms"][arm]["smallest"], None, arms=summary["arms"], runs=summary["runs"],
+    return common.record("", summary["arms"][arm][smallest], None, arms=summary["arms"], runs=summary["runs"],
                          device=common.workdir_device(workdir), data=data, unit=unit, **launched,
                          **({"command": command} if command else {}))
 
@@ -726,11 +727,11 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
             unit="real success gain of the sampled policy (T 0.5) on MJX (episodes per point: each run's curve)")
     gt = summary["arms"].get("gt", {})
     if "as_trained_smallest" in gt:
-        entry = smallest_gain_entry(
+        entries["policy_grpo_ground_truth_as_trained_small"] = smallest_gain_entry(
             summary, "gt", workdir, bench="bench_grpo_reward_source", data=data, command=command,
+            smallest="as_trained_smallest",
             unit="real success gain on MJX of the sampled policy (T 0.5) executed as ground-truth GRPO executes it "
                  "(its actions per decision, its proprio), from rest for whole episodes")
-        entries["policy_grpo_ground_truth_as_trained_small"] = dict(entry, value=gt["as_trained_smallest"])
     if not entries:
         raise SystemExit("bench_grpo_reward_source: no run of the exec arm, and no gt run evaluated as trained, "
                          "left an evaluation to record")
