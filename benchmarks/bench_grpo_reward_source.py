@@ -791,7 +791,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="figure: draw a world model's metrics.jsonl (its loss, and its trainer's measurement of "
                         "fixed training and held-out segments) instead of --workdir's runs")
     parser.add_argument("--workdirs", default="",
-                        help="horizons: comma list of run's work dirs, one per horizon (--out: the folder written)")
+                        help="horizons: comma list of run's work dirs, one per horizon (--out: the folder written); "
+                        "figure --episodes: the work dirs whose runs it draws")
+    parser.add_argument("--episodes", action="store_true",
+                        help="figure: each run of --workdirs, its real success against the real episodes consumed")
+    parser.add_argument("--evaluated", default="sampled",
+                        help="figure --episodes: the policy whose success it draws (greedy, sampled, "
+                        "sampled_proprio_masked, sampled_as_trained)")
     parser.add_argument("--title", default="", help="figure --closed-loop / --world-model, horizons: a line above the "
                         "panels (the model, batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
@@ -956,6 +962,63 @@ def figure(workdir: str, path: str) -> dict:
                          title="the policy in the real environment", save=False)
     common.finish_figure(fig, gap_ax, path, xlabel="decision", ylabel="greedy action gap to the real frame",
                          title="where the closed loop leaves the real one")
+    return series
+
+
+def episodes_consumed(history: Sequence[dict]) -> dict[int, int]:
+    """``{step: real episodes consumed up to and including it}`` of a run's GRPO steps (:func:`real_episodes`' count
+    step by step: a ground-truth step's ``trajectories_sampled``, a world-model step's executed ``real_rollouts``);
+    step 0 consumed none. Refused for a ground-truth run that did not count its trajectories."""
+    if any("rollout_success" in h for h in history) and not all("trajectories_sampled" in h for h in history):
+        raise SystemExit("bench_grpo_reward_source figure --episodes: a ground-truth run's steps did not record "
+                         "trajectories_sampled, so the real episodes it consumed are unknown")
+    out, total = {0: 0}, 0
+    for i, h in enumerate(history, 1):
+        total += int(h.get("trajectories_sampled", h.get("real_rollouts", 0)))
+        out[int(h.get("step", i))] = total
+    return out
+
+
+def episodes_figure(workdirs: Sequence[str], path: str, policy: str = "sampled", title: str = "") -> dict:
+    """Each run's real success at its evaluations (``policy``: ``greedy``, or one of :data:`SAMPLED_POLICIES`; 95%
+    Wilson intervals) against the real episodes its GRPO steps had consumed by then (:func:`episodes_consumed`;
+    evaluations not counted), for the runs of every work dir in ``workdirs`` (e.g. ground truth from one, the world
+    model's arms from another), one colour per arm; PNG at ``path``, log x. Returns the plotted series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    if policy not in ("greedy", *SAMPLED_POLICIES):
+        raise SystemExit(f"bench_grpo_reward_source figure --episodes: --evaluated must be greedy or one of "
+                         f"{', '.join(SAMPLED_POLICIES)}, got {policy!r}")
+    series: dict[str, dict] = {}
+    colours = {arm: f"C{i}" for i, arm in enumerate(ARMS)}
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    for workdir in workdirs:
+        runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
+        if not runs:
+            raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
+        for name, (arm, seed, grpo) in runs.items():
+            used = episodes_consumed(read_history(grpo))
+            kept = [p if policy == "greedy" else p.get(policy) for p in read_points(grpo)]
+            points = [(p["step"], e) for p, e in zip(read_points(grpo), kept) if e is not None and p["step"] in used]
+            if not points:
+                raise SystemExit(f"bench_grpo_reward_source figure --episodes: {grpo} has no evaluation of "
+                                 f"{policy} at a step its history records")
+            x = [used[step] for step, _ in points]
+            y = [e["mean"] for _, e in points]
+            ci = [wilson_interval(e["successes"], e["episodes"]) for _, e in points]
+            series[name] = {"arm": arm, "seed": seed, "steps": [s for s, _ in points], "real_episodes": x,
+                            "success": y, "ci95": [list(c) for c in ci]}
+            ax.errorbar(x, y, yerr=[[v - lo for v, (lo, _) in zip(y, ci)], [hi - v for v, (_, hi) in zip(y, ci)]],
+                        marker="osd^v"[seed % 5], capsize=3, color=colours[arm],
+                        label=f"{name}: {FIGURE_ARMS[arm]}")
+    ax.set_xscale("symlog", linthresh=1000)
+    common.finish_figure(fig, ax, path, xlabel="real episodes consumed by GRPO's steps (evaluations not counted)",
+                         ylabel=f"real success, {policy} (95% interval)", title=title or None)
     return series
 
 
@@ -1138,8 +1201,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return dict(result, figure=series)
     if args.mode == "figure" and not args.out:
         raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
-    if args.mode == "figure" and args.closed_loop and args.world_model:
-        raise SystemExit("bench_grpo_reward_source figure: give --closed-loop or --world-model, not both")
+    if args.mode == "figure" and sum(map(bool, (args.closed_loop, args.world_model, args.episodes))) > 1:
+        raise SystemExit("bench_grpo_reward_source figure: give one of --closed-loop, --world-model and --episodes, "
+                         "not more")
+    if args.mode == "figure" and args.episodes:
+        workdirs = [w for w in args.workdirs.split(",") if w]
+        if not workdirs:
+            raise SystemExit("bench_grpo_reward_source figure --episodes needs --workdirs (a comma list of work dirs)")
+        return episodes_figure(workdirs, args.out, args.evaluated, args.title)
     if args.mode == "figure" and args.closed_loop:
         return closed_loop_figure(args.closed_loop, args.out, args.title)
     if args.mode == "figure" and args.world_model:

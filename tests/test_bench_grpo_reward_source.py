@@ -259,6 +259,42 @@ def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp
         rs.figure(str(tmp_path / "empty"), str(tmp_path / "g.png"))
 
 
+def test_the_episodes_figure_puts_each_evaluation_at_the_real_episodes_consumed_by_then(tmp_path):
+    """figure --episodes: runs of two work dirs (ground truth in one, the world model's arms in another); each
+    evaluation at the real episodes its steps had consumed (gt: trajectories sampled; cal: its executed steps only),
+    the chosen policy's success with a Wilson interval; refused for a gt run that did not count its trajectories, a
+    policy no point holds, an unknown policy, and more than one figure kind at once."""
+    gt_dir, wm_dir = tmp_path / "gt_work", tmp_path / "wm_work"
+    _curve(gt_dir / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5, as_trained=0.36), _point(4, 0.7, 0.5, as_trained=0.5)],
+           [{"step": s, "rollout_success": 0.4, "trajectories_sampled": 512.0} for s in (1, 2, 3, 4)])
+    executed = {"success_rate": 0.1, "real_rollouts": 512.0, "detector_success": 0.5}
+    _curve(wm_dir / "cal_s1" / "rl" / "grpo", [_point(0, 0.7, 0.5, as_trained=0.36), _point(4, 0.7, 0.5, as_trained=0.3)],
+           [dict(executed, step=1), dict(executed, step=2)] + [{"step": s, "success_rate": 0.1, "detector_threshold": 0.9}
+                                                               for s in (3, 4)])
+    out = tmp_path / "e.png"
+    series = rs.main(["figure", "--episodes", "--workdirs", f"{gt_dir},{wm_dir}", "--evaluated", "sampled_as_trained",
+                      "--out", str(out)])
+    assert out.stat().st_size > 0
+    assert series["gt_s0"]["real_episodes"] == [0, 2048] and series["gt_s0"]["success"] == [0.36, 0.5]
+    assert series["cal_s1"]["real_episodes"] == [0, 1024] and series["cal_s1"]["success"] == [0.36, 0.3]
+    assert series["cal_s1"]["arm"] == "cal" and series["cal_s1"]["seed"] == 1
+    lo, hi = series["gt_s0"]["ci95"][1]
+    assert lo < 0.5 < hi and hi - lo == pytest.approx(0.087, abs=0.003)  # Wilson at 250 of 500
+    assert rs.episodes_figure([str(wm_dir)], str(tmp_path / "g.png"), "greedy")["cal_s1"]["success"] == [0.7, 0.7]
+    with pytest.raises(SystemExit, match="no evaluation of sampled_proprio_masked"):
+        rs.episodes_figure([str(wm_dir)], str(tmp_path / "g.png"), "sampled_proprio_masked")
+    with pytest.raises(SystemExit, match="--evaluated must be greedy or one of"):
+        rs.episodes_figure([str(wm_dir)], str(tmp_path / "g.png"), "best")
+    with pytest.raises(SystemExit, match="not more"):
+        rs.main(["figure", "--episodes", "--workdirs", str(wm_dir), "--closed-loop", "x.json", "--out", str(out)])
+    with pytest.raises(SystemExit, match="needs --workdirs"):
+        rs.main(["figure", "--episodes", "--out", str(out)])
+    _curve(gt_dir / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(4, 0.7, 0.5)],
+           [{"step": s, "rollout_success": 0.4} for s in (1, 2, 3, 4)])
+    with pytest.raises(SystemExit, match="did not record trajectories_sampled"):
+        rs.episodes_figure([str(gt_dir)], str(tmp_path / "g.png"))
+
+
 def test_a_short_horizon_from_every_phase_in_the_8x_vaes_world_model(tmp_path, monkeypatch):
     """--horizon, --keyframe-fraction and --vae-variant: every arm rolls out as far from the same keyframes; the
     pipeline trains the 8x VAE and the world-model arms load it."""
@@ -635,7 +671,7 @@ def test_the_world_models_figure_draws_its_trainers_measurements_and_refuses_a_r
     metrics.write_text("not json\n")
     with pytest.raises(SystemExit, match="is not a metrics.jsonl"):
         rs.main(["figure", "--world-model", str(metrics), "--out", str(out)])
-    with pytest.raises(SystemExit, match="not both"):
+    with pytest.raises(SystemExit, match="not more"):
         rs.main(["figure", "--world-model", str(metrics), "--closed-loop", str(out), "--out", str(out)])
 
 
