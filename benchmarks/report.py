@@ -81,6 +81,21 @@ def _interval(ci, scale: float = 100.0) -> str:
 
 # --- README ---------------------------------------------------------------------------------------------
 
+def _first_half_world_model_text() -> str:
+    """The README's words for GRPO in Sword's world model from first-half keyframes (``FIRST_HALF_WORLD_MODEL``):
+    the gains of the policy it trains with each rollout paid by reality, at the runs' last evaluation, and ground
+    truth's at the same step; empty where the record is absent."""
+    path = os.path.join(RESULTS_DIR, *FIRST_HALF_WORLD_MODEL, "grpo_reward_source.json")
+    if not os.path.exists(path):
+        return ""
+    arm = _load(*FIRST_HALF_WORLD_MODEL, "grpo_reward_source.json")["arms"]["exec"]
+    step = arm["steps"]
+    truth = [_step_gain(points, step, "sampled_as_trained")[0] for _, points, _ in
+             _seed_runs(os.path.join(RESULTS_DIR, *FIRST_HALF_AS_TRAINED, "centred", "gt"))]
+    gains = ", ".join(_pct(g) for g in arm["as_trained_gain_per_seed"].values())
+    return f" ({_pct(min(truth))} or more in {step}); Sword's world model, paid by reality, {gains} in {step}"
+
+
 def readme_results() -> str:
     """The README's one results table: a headline figure per topic, linked to its section."""
     latest = _load("latest.json")
@@ -150,11 +165,10 @@ def readme_results() -> str:
             f"points by steps {_step_span(latest['policy_grpo_rest_h12_small'])} (mean {_pct(rest['mean'])}); from "
             "open starts the same rollouts had gained at one seed", "policy_grpo_rest_h12_small",
             f"[section]({doc}#frames-or-reward)")] if rest else []),
-        *([("Ground-truth GRPO from first-half keyframes, 12 x 4 actions (MJX), 3 seeds",
-            "the policy it trains (sampled, 4 actions a chunk, proprio masked): "
+        *([("GRPO from first-half keyframes, 12 x 4, 3 seeds",
+            "sampled, as trained (4-action chunks, no proprio): MJX "
             f"{', '.join(_pct(g) for g in first_half['as_trained_gain_per_seed'].values())} points in "
-            f"{first_half['steps']} steps; re-planning every action "
-            f"{', '.join(_pct(g) for g in first_half['sampled_gain_per_seed'].values())}",
+            f"{first_half['steps']} steps" + _first_half_world_model_text(),
             "policy_grpo_ground_truth_as_trained_small", f"[section]({doc}#frames-or-reward)")] if first_half else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
@@ -772,6 +786,64 @@ def grpo_first_half_as_trained() -> str:
                    "as trained: gain at the last step", "as trained: success, step 0 -> last",
                    "sampled, a new chunk every action: gain at the last step", "the same, proprio masked",
                    "greedy, ensembled", "its rollouts' paid success, steps 1-5 -> last 5"], rows)
+
+
+# GRPO in Sword's world model in that setting (first-half keyframes, 12 x 4, 64 x 8, centred, seeds 0-2, 20 steps,
+# 2 x H200): {run dir prefix in the record: the row label}; its summary (grpo_reward_source.json) holds the detector
+FIRST_HALF_WORLD_MODEL = ("policy", "grpo_first_half_world_model_small_2xh200")
+FIRST_HALF_WORLD_MODEL_ARMS = {"exec": "the world model's frames, paid by executing their actions on MJX",
+                               "cal": "the same for 4 steps, then the detector at the threshold they set"}
+
+
+def _read_run(grpo: str) -> tuple[list[dict], list[dict]]:
+    """``(success-curve points, train history)`` of the GRPO run at ``grpo``."""
+    with open(os.path.join(grpo, "success_curve.json")) as f:
+        points = json.load(f)["points"]
+    with open(os.path.join(grpo, "train_history.jsonl")) as f:
+        return points, [json.loads(line) for line in f if line.strip()]
+
+
+def _first_half_row(label: str, seed_dir: str, points: list[dict], history: list[dict], step: int,
+                    detector: dict | None) -> list[str]:
+    """One row of :func:`grpo_first_half_world_model`: a run's figures at ``step`` from its curve and its history's
+    first ``step`` steps (a ground-truth step's real outcome is ``rollout_success``, a world-model step's
+    ``success_rate``, real where the step executed its actions: ``real_rollouts``)."""
+    steps = [h for h in history if h["step"] <= step]
+    real = [h for h in steps if "trajectories_sampled" in h or "real_rollouts" in h]
+    used = sum(int(h.get("trajectories_sampled", h.get("real_rollouts", 0))) for h in steps)
+    paid = statistics.mean(h.get("rollout_success", h.get("success_rate")) for h in real) if real else None
+    trained = {p["step"]: p["sampled_as_trained"]["mean"] for p in points if "sampled_as_trained" in p}
+    cell = "" if paid is None else f"{paid:.3f}" + ("" if len(real) == len(steps) else f" (steps 1-{len(real)})")
+    bounded = "" if not detector or detector.get("recall_bounded") is None else (
+        f"; at its 5% bound: recall {detector['recall_bounded']:.2f}, precision {detector['precision_bounded']:.2f}")
+    return [label, seed_dir, f"{used:,}", _gain_points(points, step, "sampled_as_trained"),
+            f"{trained[0]:.3f} -> {trained[step]:.3f}" if 0 in trained and step in trained else "",
+            _gain_points(points, step, "sampled"), _gain_points(points, step, "greedy"), cell,
+            f"{statistics.median(h['mixed_groups'] for h in steps):.0f} of 64",
+            (_detector_cell(detector) + bounded) if detector else ""]
+
+
+def grpo_first_half_world_model(step: int = 20) -> str:
+    """GRPO from keyframes of the first half, 12 x 4 actions, at ``step``: on real frames (the centred runs of
+    ``FIRST_HALF_AS_TRAINED``) beside Sword's world model (``FIRST_HALF_WORLD_MODEL``), per arm and seed: the real
+    episodes its steps consumed, the gain of the sampled policy executed as trained, re-planning every action and
+    greedy, the real success of its training rollouts' actions, its groups with mixed outcomes, and the detector on
+    the world model's executed rollouts."""
+    rows = []
+    for seed_dir, points, history in _seed_runs(os.path.join(RESULTS_DIR, *FIRST_HALF_AS_TRAINED, "centred", "gt")):
+        rows.append(_first_half_row("real frames, paid by MJX (ground truth)", seed_dir, points, history, step, None))
+    root = os.path.join(RESULTS_DIR, *FIRST_HALF_WORLD_MODEL)
+    runs = _load(*FIRST_HALF_WORLD_MODEL, "grpo_reward_source.json")["runs"]
+    for arm, label in FIRST_HALF_WORLD_MODEL_ARMS.items():
+        for name in sorted(n for n in runs if runs[n]["arm"] == arm):
+            points, history = _read_run(os.path.join(root, name, "rl", "grpo"))
+            rows.append(_first_half_row(label, f"s{runs[name]['seed']}", points, history, step,
+                                        runs[name].get("detector")))
+    return _table(["GRPO's frames and reward", "seed", f"real episodes by step {step}",
+                   f"as trained: gain at step {step} (points), 95% interval", f"as trained: success, step 0 -> {step}",
+                   "sampled, a new chunk every action: gain", "greedy, ensembled: gain",
+                   "real success of its training rollouts' actions", "groups mixed a step (median)",
+                   "the detector on its executed rollouts: success / agreement / precision; AUC"], rows)
 
 
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
@@ -1669,6 +1741,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-reward-source-branched": grpo_reward_source_branched, "grpo-reward-source-phases": grpo_reward_source_phases,
     "grpo-first-half-decisions": grpo_first_half_decisions,
     "grpo-first-half-as-trained": grpo_first_half_as_trained,
+    "grpo-first-half-world-model": grpo_first_half_world_model,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

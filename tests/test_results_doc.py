@@ -403,3 +403,57 @@ def test_the_as_trained_table_reads_each_runs_curve_at_step_20_and_its_last(tmp_
     assert cells[9] == "0.400 -> 0.600"
     assert [c.strip() for c in table[3].strip("|").split("|")][3] == ""  # s1 was not evaluated at step 20
     assert table[0].count("|") == table[2].count("|")
+
+
+def test_the_world_model_table_puts_its_arms_beside_ground_truth_at_step_20(tmp_path, monkeypatch):
+    """grpo-first-half-world-model: ground truth's centred runs then the world model's exec and cal runs, each at
+    step 20 (the later ground-truth steps not counted): the real episodes consumed by then, the as-trained gain and
+    success, what reality paid the training rollouts (cal: only its executed steps), the median mixed groups and
+    the detector from the summary; the README's words give the exec gains and ground truth's smallest."""
+    def figure(mean):
+        return {"mean": mean, "successes": int(round(mean * 500)), "episodes": 500}
+
+    def point(step, trained):
+        return {"step": step, **figure(0.75), "sampled": figure(0.5), "sampled_as_trained": figure(trained)}
+
+    def write(run, points, history):
+        run.mkdir(parents=True)
+        (run / "success_curve.json").write_text(json.dumps({"points": points}))
+        (run / "train_history.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
+
+    gt = tmp_path / "policy" / report.FIRST_HALF_AS_TRAINED[1] / "centred" / "gt"
+    for seed, gain in ((0, 0.1), (1, 0.12)):
+        write(gt / f"s{seed}" / "grpo_env_proprio_missing_starts_keyframes_mjx",
+              [point(0, 0.36), point(20, 0.36 + gain), point(40, 0.6)],
+              [{"step": k, "rollout_success": 0.4 if k <= 20 else 0.9, "trajectories_sampled": 512.0,
+                "mixed_groups": 50 if k <= 20 else 10} for k in range(1, 41)])
+    wm = tmp_path / "policy" / report.FIRST_HALF_WORLD_MODEL[1]
+    write(wm / "exec_s0" / "rl" / "grpo", [point(0, 0.36), point(20, 0.40)],
+          [{"step": k, "success_rate": 0.08, "real_rollouts": 512.0, "mixed_groups": 20} for k in range(1, 21)])
+    write(wm / "cal_s0" / "rl" / "grpo", [point(0, 0.36), point(20, 0.30)],
+          [{"step": k, "success_rate": 0.06, "real_rollouts": 512.0, "mixed_groups": 18} for k in range(1, 5)]
+          + [{"step": k, "success_rate": 0.5, "mixed_groups": 18} for k in range(5, 21)])
+    detector = {"success": 0.45, "agreement": 0.6, "precision": 0.15, "auc": 0.77, "recall_bounded": 0.14,
+                "precision_bounded": 0.19}
+    (wm / "grpo_reward_source.json").write_text(json.dumps({
+        "runs": {"exec_s0": {"arm": "exec", "seed": 0, "detector": detector},
+                 "cal_s0": {"arm": "cal", "seed": 0, "detector": dict(detector, success=0.42)}},
+        "arms": {"exec": {"steps": 20, "as_trained_gain_per_seed": {"0": 0.04}}}}))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_first_half_world_model().splitlines()
+    assert len(table) == 6 and "grpo-first-half-world-model" in report.TABLES
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
+    assert [r[:2] for r in rows] == [[report.FIRST_HALF_WORLD_MODEL_ARMS.get(a, a), s] for a, s in (
+        ("real frames, paid by MJX (ground truth)", "s0"), ("real frames, paid by MJX (ground truth)", "s1"),
+        ("exec", "s0"), ("cal", "s0"))]
+    assert rows[1][2] == "10,240" and rows[1][3].startswith("+12.0 [") and rows[1][4] == "0.360 -> 0.480"
+    assert rows[1][7] == "0.400" and rows[1][8] == "50 of 64" and rows[1][9] == ""  # steps 21-40 not read
+    assert rows[2][2] == "10,240" and rows[2][3].startswith("+4.0 [") and rows[2][7] == "0.080"
+    assert rows[2][9] == "0.45 / 0.60 / 0.15; AUC 0.77; at its 5% bound: recall 0.14, precision 0.19"
+    assert rows[3][2] == "2,048" and rows[3][3].startswith("-6.0 [") and rows[3][7] == "0.060 (steps 1-4)"
+    assert rows[3][8] == "18 of 64" and rows[3][9].startswith("0.42 / 0.60")
+    assert table[0].count("|") == table[2].count("|")
+    assert report._first_half_world_model_text() == (" (+10.0 or more in 20); Sword's world model, paid by reality, "
+                                                      "+4.0 in 20")
+    (wm / "grpo_reward_source.json").unlink()
+    assert report._first_half_world_model_text() == ""
