@@ -795,9 +795,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "figure --episodes: the work dirs whose runs it draws")
     parser.add_argument("--episodes", action="store_true",
                         help="figure: each run of --workdirs, its real success against the real episodes consumed")
-    parser.add_argument("--evaluated", default="sampled",
-                        help="figure --episodes: the policy whose success it draws (greedy, sampled, "
-                        "sampled_proprio_masked, sampled_as_trained)")
+    parser.add_argument("--evaluated", default="sampled", choices=("greedy", *SAMPLED_POLICIES),
+                        help="figure --episodes: the policy whose success it draws")
     parser.add_argument("--title", default="", help="figure --closed-loop / --world-model, horizons: a line above the "
                         "panels (the model, batch, device, seeds)")
     parser.add_argument("--policy", default="", help="run: the supervised policy every run starts from (.npz)")
