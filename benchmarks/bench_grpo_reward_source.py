@@ -41,8 +41,10 @@ session (a deadline stops the runs still going; each keeps its last evaluation; 
 first and evaluate their step in flight). ``summary`` gives each run's gains with 95% intervals, what its training
 rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of
 its verdicts of success that reality paid too) on the same rollouts, and per decision where their closed loop left
-the real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps);
-``--record`` writes ``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``. Each run's
+the real one (``closed_loop``: :func:`sword_jax.rl.imagined_check.closed_loop_fidelity`, means over the steps)
+and, where the steps counted them, the same rollouts pooled by their start's step in its episode (``by_start``:
+the real success, the detector's success and precision per bin, :func:`by_start`); ``--record`` writes
+``policy_grpo_reward_source_small`` to ``benchmarks/results/latest.json``. Each run's
 ``real_episodes`` counts the real episodes its GRPO steps consumed (the ground-truth steps' sampled trajectories, the
 world model's executed ones, 0 for ``det``; evaluations not counted), each arm gives them per seed and each
 world-model arm the ratio of its mean to the ``gt`` arm's (``real_episodes_vs_gt``).
@@ -360,6 +362,8 @@ def summarize_run(grpo: str) -> dict:
         out["detector"] = detector_figures(executed)
     if executed and closed_loop_decisions(executed[0]):  # per decision, the mean over the steps
         out["closed_loop"] = per_decision(executed)
+    if executed and "start_a0_rollouts" in executed[0]:  # where its starts stood, pooled over the executed steps
+        out["by_start"] = by_start(executed)
     if any("real_rollouts" in h for h in history):  # the real episodes (partial, the rollout's length) it executed
         out["real_rollouts"] = int(sum(h.get("real_rollouts", 0) for h in history))
     judged = [h["detector_threshold"] for h in history if "detector_threshold" in h]
@@ -393,6 +397,23 @@ def per_decision(rows: Sequence[dict]) -> dict:
 # what an executed step records of how the detector's scores separate the real outcomes whatever its threshold
 # (sword_jax.rl.imagined_check.detector_separation), read without its ``detector_`` prefix
 BOUNDED = ("auc", "threshold_bounded", "recall_bounded", "precision_bounded")
+
+
+def by_start(rows: Sequence[dict]) -> list[dict]:
+    """The executed trajectories of ``rows`` (a run's steps paid by execution) pooled by where their starts stood
+    in their episodes (:func:`sword_jax.rl.imagined_check.outcomes_by_start`'s counts, summed over the steps):
+    per bin, from its lower edge ``from_step``, the trajectories, their real successes, the detector's verdicts
+    of success and those that reality paid too, with the real success, the detector's success and its precision
+    (None where nothing was there to divide)."""
+    lowers = sorted(int(m.group(1)) for k in rows[0] if (m := re.fullmatch(r"start_a(\d+)_rollouts", k)))
+    out = []
+    for a in lowers:
+        n, real, said, both = (sum(h.get(f"start_a{a}_{k}", 0.0) for h in rows)
+                               for k in ("rollouts", "real", "said", "said_real"))
+        out.append({"from_step": a, "rollouts": int(n), "real": int(real), "said": int(said), "said_real": int(both),
+                     "real_success": real / n if n else None, "detector_success": said / n if n else None,
+                     "precision": both / said if said else None})
+    return out
 
 
 def detector_figures(history: Sequence[dict]) -> dict:
@@ -758,6 +779,10 @@ def print_runs(summary: dict) -> None:
                     line += f" (at its bounded threshold: recall {d['recall_bounded']:.2f}"
                     line += (f", precision {d['precision_bounded']:.2f})" if d.get("precision_bounded") is not None
                              else ")")
+        if r.get("by_start"):
+            line += "; by the start's step: " + ", ".join(
+                f"{b['from_step']}+: {b['rollouts']} rollouts, real {b['real_success']:.2f}, said "
+                f"{b['detector_success']:.2f}" for b in r["by_start"] if b["rollouts"])
         if r.get("closed_loop"):
             loop = r["closed_loop"]
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "

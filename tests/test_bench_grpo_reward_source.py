@@ -235,6 +235,36 @@ def test_every_run_counts_the_real_episodes_its_grpo_steps_consumed(tmp_path):
     assert arms["cal"]["real_episodes_vs_gt"] is None and arms["det"]["real_episodes_vs_gt"] is None
 
 
+def test_the_executed_steps_are_pooled_by_where_their_starts_stood(tmp_path, capsys):
+    """by_start: an exec run's executed steps' counts by the start's step summed per bin, with the real success,
+    the detector's success and its precision (None where nothing divides), and printed with the run; a run whose
+    steps did not count them has none."""
+    def counts(a0, a24):  # (rollouts, real, said, said_real) of the bins from 0 and from 24
+        return {f"start_a{a}_{k}": float(v) for a, c in ((0, a0), (24, a24), (48, (0, 0, 0, 0)))
+                for k, v in zip(("rollouts", "real", "said", "said_real"), c)}
+    executed = {"success_rate": 0.25, "kept_fraction": 0.5, "real_rollouts": 8.0, "detector_success": 0.5,
+                "detector_agreement": 0.75, "detector_false_success": 0.25}
+    _curve(tmp_path / "exec_s0" / "rl" / "grpo", [_point(0, 0.7, 0.5), _point(2, 0.7, 0.52)],
+           [dict(executed, step=1, **counts((4, 1, 3, 1), (4, 2, 1, 1))),
+            dict(executed, step=2, **counts((6, 0, 2, 0), (2, 1, 2, 1)))])
+    _curve(tmp_path / "exec_s1" / "rl" / "grpo", [_point(0, 0.7, 0.5), _point(2, 0.7, 0.52)],
+           [dict(executed, step=1), dict(executed, step=2)])
+    summary = rs.summarize(str(tmp_path))
+    assert summary["runs"]["exec_s0"]["by_start"] == [
+        {"from_step": 0, "rollouts": 10, "real": 1, "said": 5, "said_real": 1, "real_success": 0.1,
+         "detector_success": 0.5, "precision": 0.2},
+        {"from_step": 24, "rollouts": 6, "real": 3, "said": 3, "said_real": 2, "real_success": 0.5,
+         "detector_success": 0.5, "precision": 2 / 3},
+        {"from_step": 48, "rollouts": 0, "real": 0, "said": 0, "said_real": 0, "real_success": None,
+         "detector_success": None, "precision": None}]
+    assert "by_start" not in summary["runs"]["exec_s1"]
+    rs.print_runs(summary)
+    printed = capsys.readouterr().out
+    assert ("by the start's step: 0+: 10 rollouts, real 0.10, said 0.50, 24+: 6 rollouts, real 0.50, said 0.50"
+            in printed)
+    assert "48+" not in printed
+
+
 def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):
     """figure: each run's paid success per step (the gt run's rollouts, the exec run's imagined actions and what the
     detector said of them), its real success at each evaluation, and per decision of the exec run the action gaps,

@@ -268,6 +268,48 @@ def test_an_executed_reward_pays_what_the_environment_says_whatever_the_detector
     assert any(changed), "a mixed group moved the policy"
 
 
+def test_outcomes_by_start_count_each_bin_and_refuse_bad_edges():
+    """Counts per bin of the start's step (the last bin open above, an empty bin 0), real successes and the
+    detector's verdicts among them; edges must start at 0 and rise."""
+    steps = [0, 23, 24, 60, 200, 47]
+    said = [True, False, True, True, True, False]
+    real = [True, True, False, False, True, False]
+    out = jax.device_get(imagined_check.outcomes_by_start(steps, said, real, edges=(0, 24, 48, 96)))
+    assert {k: float(v) for k, v in out.items()} == {
+        "start_a0_rollouts": 2.0, "start_a0_real": 2.0, "start_a0_said": 1.0, "start_a0_said_real": 1.0,
+        "start_a24_rollouts": 2.0, "start_a24_real": 0.0, "start_a24_said": 1.0, "start_a24_said_real": 0.0,
+        "start_a48_rollouts": 1.0, "start_a48_real": 0.0, "start_a48_said": 1.0, "start_a48_said_real": 0.0,
+        "start_a96_rollouts": 1.0, "start_a96_real": 1.0, "start_a96_said": 1.0, "start_a96_said_real": 1.0}
+    assert set(imagined_check.outcomes_by_start([5], [True], [True])) == {
+        f"start_a{a}_{k}" for a in imagined_check.START_STEP_EDGES for k in ("rollouts", "real", "said", "said_real")}
+    for bad in ((), (1, 24), (0, 24, 24)):
+        with pytest.raises(ValueError, match="edges must start at 0 and rise"):
+            imagined_check.outcomes_by_start([0], [True], [True], edges=bad)
+
+
+def test_an_executed_step_given_its_starts_steps_counts_its_outcomes_by_them():
+    """With each start's step in the batch, the executed step counts its trajectories by where their starts stand:
+    a group's trajectories all in its start's bin, the real successes adding up to the step's success rate and
+    the detector's verdicts to its; without them it logs no such count (the other tests' steps)."""
+    graphdef, params, sim, start, env_starts = _designed(EXEC)
+    step = grpo.make_grpo_step(graphdef, EXEC, env=ToyEnv(EXEC.success_threshold), donate=False)
+    start_steps = jnp.asarray([5, 30, 200], jnp.int32)  # one start per bin of 0, 24 and 96
+    _, metrics = step(grpo.init_state(params, EXEC), (sim, ALWAYS, start, env_starts, start_steps), jax.random.key(3))
+    metrics = jax.device_get(metrics)
+    g, n = EXEC.grpo.group_size, EXEC.grpo.rollout_batch * EXEC.grpo.group_size
+    counts = {a: metrics[f"start_a{a}_rollouts"] for a in imagined_check.START_STEP_EDGES}
+    assert counts == {0: g, 24: g, 48: 0, 72: 0, 96: g}
+    real = sum(metrics[f"start_a{a}_real"] for a in imagined_check.START_STEP_EDGES)
+    assert real == pytest.approx(metrics["success_rate"] * n)
+    assert all(0 <= metrics[f"start_a{a}_real"] <= counts[a] for a in counts)
+    # start 1 (bin 24) is the one near its target: its group succeeds most
+    assert metrics["start_a24_real"] >= 1 and metrics["start_a24_real"] >= max(metrics["start_a0_real"],
+                                                                               metrics["start_a96_real"])
+    assert all(metrics[f"start_a{a}_said"] == counts[a] for a in counts)  # a detector that always fires
+    assert all(metrics[f"start_a{a}_said_real"] == metrics[f"start_a{a}_real"] for a in counts)
+    assert "start_a0_rollouts" not in _executed_step("always")[2]
+
+
 def test_a_step_whose_detector_figures_are_undefined_is_still_finite():
     """An executed step's detector figures are NaN by definition where an outcome is missing; that must not stop
     the run as a non-finite update does (the GRPO loop's finite test), while a NaN loss still does."""

@@ -17,7 +17,7 @@ from sword_jax import sharding as shd
 from sword_jax.load import experiment_vae, experiment_world_model
 from sword_jax.pipeline.grpo import GRPOInputs, world_model_setup
 from sword_jax.pipeline.grpo_refresh import run_refreshed, stratified_collect_starts
-from sword_jax.rl import grpo
+from sword_jax.rl import grpo, imagined_check
 from sword_jax.rl.config import RefreshConfig
 from sword_jax.rl.params_io import save_params
 from sword_jax.rl.policy import build_policy
@@ -556,6 +556,9 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
     setup = world_model_setup(cfg, rl, inputs, dataclasses.replace(demos, states=demos.proprio[..., :1].copy()))
     picked = setup.env_starts(0)
     assert picked.shape == (rl.grpo.rollout_batch, 1)
+    at = setup.start_steps(0)  # the same keyframes' steps: t = 4 s, s >= 1, within the episode
+    assert at.shape == (rl.grpo.rollout_batch,) and at.dtype == np.int32
+    assert np.all(at >= 4) and np.all(at < demos.lengths.max())
 
     def evaluate_real(step, p):
         out = jax.jit(lambda p, k: record_episodes(graphdef, p, env, jnp.asarray(starts), tokens, rl, key=k,
@@ -584,6 +587,11 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
         assert point["closed_loop_frame_error_vae_1"] > 0.0  # the tiny VAE changes the frames it round-trips
         # the whole horizon runs for every trajectory that did not succeed for real
         assert point["mean_chunks"] <= rl.imagined.max_chunks
+        # its trajectories counted by where their starts stand, the real successes adding up to the step's
+        edges = imagined_check.START_STEP_EDGES
+        assert sum(point[f"start_a{a}_rollouts"] for a in edges) == point["real_rollouts"]
+        assert sum(point[f"start_a{a}_said"] for a in edges) == pytest.approx(
+            point["detector_success"] * point["real_rollouts"])
     run(str(tmp_path / "split"), 1)
     resumed = run(str(tmp_path / "split"), 2)
     assert [p["step"] for p in resumed["history"]] == [1, 2]

@@ -56,7 +56,9 @@ class Setup(NamedTuple):
     ``rl.imagined.oversample``; with ``rows``, only those rows of them, each the same whichever rows are
     asked for), the toy's fixed evaluation starts, the real history's encoder (for replays) and
     ``env_starts(step, rows=None)``: the recorded simulator states of the same start states (keyframes of
-    episodes with ``states``), what ``rl.imagined.reward=executed`` resets the real environment to."""
+    episodes with ``states``), what ``rl.imagined.reward=executed`` resets the real environment to, and
+    ``start_steps(step, rows=None)``: each of those start states' step in its episode (the keyframe's index),
+    by which an executed step counts its outcomes."""
 
     sim: Any
     reward_model: Any
@@ -64,6 +66,7 @@ class Setup(NamedTuple):
     eval_start: StartState | None = None
     encode: Callable[..., Any] | None = None
     env_starts: Callable[..., np.ndarray] | None = None
+    start_steps: Callable[..., np.ndarray] | None = None
 
 
 def toy_setup(cfg, rl) -> Setup:
@@ -155,13 +158,16 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         del key
         return start_state(draw(rl_data.keyframe_starts, step, rows), encode, rl)
 
-    env_starts = None
+    env_starts = start_steps = None
     if episodes is not None and episodes.states is not None:
         def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel], no windows cut
             ep, t = draw(rl_data.keyframe_indices, step, rows)
             return np.asarray(episodes.states[ep, t], np.float32)
 
-    return Setup(sim, reward_model, starts, None, encode, env_starts)
+        def start_steps(step, rows=None):  # the same keyframes' steps in their episodes
+            return np.asarray(draw(rl_data.keyframe_indices, step, rows)[1], np.int32)
+
+    return Setup(sim, reward_model, starts, None, encode, env_starts, start_steps)
 
 
 def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:
@@ -373,7 +379,8 @@ def grpo_step(cfg, rl, graphdef, params, setup: Setup, *, max_traces: int, env: 
 
         def batch_at(step):
             start = starts(jax.random.fold_in(starts_key, step), step)
-            return (sim, reward_model, start) + ((setup.env_starts(step),) if executed else ())
+            steps = (setup.start_steps(step),) if executed and setup.start_steps is not None else ()
+            return (sim, reward_model, start) + ((setup.env_starts(step), *steps) if executed else ())
 
     return GRPOStep(step_fn, state, batch_at, place, stream_key(root, "grpo/update"), sim, reward_model, mesh)
 

@@ -433,14 +433,16 @@ def make_grpo_step(
     kept where they were placed on ``mesh`` (else replicated).
 
     With ``cfg.imagined.reward = "executed"`` the batch is ``(simulator, reward_model, start_states [B],
-    env_starts [B, ...])`` and ``env`` a pure JAX environment (:class:`~sword_jax.rl.scan_rollout.JaxEnv`, e.g.
-    ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
-    imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env``
-    and the real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
-    ``real_rollouts`` (the trajectories executed: the step's share of a run's real episodes), the detector's
+    env_starts [B, ...][, start_steps [B]])`` and ``env`` a pure JAX environment
+    (:class:`~sword_jax.rl.scan_rollout.JaxEnv`, e.g. ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the
+    start states' recorded simulator states) reset: the imagined trajectories run the whole horizon, their
+    executed actions are executed open loop in ``env`` and the real outcome pays them
+    (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add ``real_rollouts`` (the trajectories executed: the step's share of a run's real episodes), the detector's
     verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
     its scores rank their real outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them
-    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`) and, for the first
+    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`), with ``start_steps`` (each start's step
+    in its episode) the same outcomes counted by where the starts stand
+    (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`) and, for the first
     ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
     the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's
     decoder alone causes where the simulator has a round trip of real frames (the world model decoding with its
@@ -482,6 +484,9 @@ def make_grpo_step(
                          real_rollouts=jnp.float32(actions.shape[0]))  # what the step took of the real budget
             extra.update(imagined_check.detector_separation(rollout.peaks, real_first >= 0,
                                                             max_false_success=cfg.refresh.max_false_success))
+            if len(batch) > 4:  # each start's step in its episode: the outcomes counted by where it stands
+                extra.update(imagined_check.outcomes_by_start(jnp.repeat(batch[4], g, axis=0), rollout.success,
+                                                              real_first >= 0))
             rollout = imagined_check.paid_by_execution(rollout, real_first, cfg)
         unconfirmed_success = rollout.success
         if cfg.imagined.confirm_success:

@@ -247,6 +247,38 @@ def detector_metrics(said: Bool[Array, " n"], real: Bool[Array, " n"]) -> dict[s
                                                                                              jnp.nan)}
 
 
+# where a start stands in its episode, by the actions already taken there (its keyframe's step): the lower edges of
+# the bins :func:`outcomes_by_start` counts executed trajectories in (the last bin open above)
+START_STEP_EDGES = (0, 24, 48, 72, 96)
+
+
+def outcomes_by_start(start_steps: Int[Array, " n"], said: Bool[Array, " n"], real: Bool[Array, " n"],
+                      edges: tuple[int, ...] = START_STEP_EDGES) -> dict[str, Float[Array, ""]]:
+    """Executed trajectories counted by where their start stands in its episode (``rl.imagined.reward=executed``).
+
+    ``start_steps`` is each trajectory's start step (its keyframe's index in the demonstration: the actions
+    already taken there), ``said`` the detector's verdict on its imagined frames, ``real`` its real outcome. For
+    each bin ``[edges[i], edges[i + 1])`` (the last open above), named by its lower edge ``a``: ``start_a<a>_rollouts``
+    (the trajectories from there), ``start_a<a>_real`` (their real successes), ``start_a<a>_said`` (the
+    detector's verdicts of success) and ``start_a<a>_said_real`` (those verdicts that reality paid too), all
+    counts, so that steps pool by summing and an empty bin is 0, not NaN.
+    Where in the task the simulator's closed loop keeps reality's payment, and where its frames show successes
+    that did not happen."""
+    if not edges or edges[0] != 0 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ValueError(f"outcomes_by_start: edges must start at 0 and rise, got {edges}")
+    steps = jnp.asarray(start_steps, jnp.int32)
+    said, real = jnp.asarray(said, bool), jnp.asarray(real, bool)
+    index = jnp.sum(steps[:, None] >= jnp.asarray(edges, jnp.int32)[None, :], axis=1) - 1  # -1: before edge 0
+    out = {}
+    for i, lower in enumerate(edges):
+        here = index == i
+        out[f"start_a{lower}_rollouts"] = jnp.sum(here.astype(jnp.float32))
+        out[f"start_a{lower}_real"] = jnp.sum((here & real).astype(jnp.float32))
+        out[f"start_a{lower}_said"] = jnp.sum((here & said).astype(jnp.float32))
+        out[f"start_a{lower}_said_real"] = jnp.sum((here & said & real).astype(jnp.float32))
+    return out
+
+
 def detector_separation(peaks: Float[Array, "n c"], real: Bool[Array, " n"], *, max_false_success: float = 0.05
                         ) -> dict[str, Float[Array, ""]]:
     """How well the detector's scores on trajectories that the real environment paid separate their real outcomes,
