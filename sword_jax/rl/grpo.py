@@ -432,21 +432,21 @@ def make_grpo_step(
     states split over their leading dim, the simulator's and reward model's weights and the state
     kept where they were placed on ``mesh`` (else replicated).
 
-    With ``cfg.imagined.reward = "executed"`` the batch is ``(simulator, reward_model, start_states [B],
-    env_starts [B, ...][, start_steps [B]])`` and ``env`` a pure JAX environment
-    (:class:`~sword_jax.rl.scan_rollout.JaxEnv`, e.g. ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the
-    start states' recorded simulator states) reset: the imagined trajectories run the whole horizon, their
-    executed actions are executed open loop in ``env`` and the real outcome pays them
-    (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add ``real_rollouts`` (the trajectories executed: the step's share of a run's real episodes), the detector's
-    verdict on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how
-    its scores rank their real outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them
-    would pay (:func:`~sword_jax.rl.imagined_check.detector_separation`), with ``start_steps`` (each start's step
-    in its episode) the same outcomes counted by where the starts stand
+    With ``cfg.imagined.reward = "executed"`` the batch is ``(simulator, reward_model, start_states [B], env_starts
+    [B, ...][, start_steps [B]])`` and ``env`` a pure JAX environment (:class:`~sword_jax.rl.scan_rollout.JaxEnv`,
+    e.g. ``sim.mjx_batch.MjxEpisodes``) that ``env_starts`` (the start states' recorded simulator states) reset: the
+    imagined trajectories run the whole horizon, their executed actions are executed open loop in ``env`` and the
+    real outcome pays them (:func:`~sword_jax.rl.imagined_check.paid_by_execution`); the metrics add
+    ``real_rollouts`` (the trajectories executed: the step's share of a run's real episodes), the detector's verdict
+    on the same trajectories (:func:`~sword_jax.rl.imagined_check.detector_metrics`), how its scores rank their real
+    outcomes and what a threshold bounded by ``rl.refresh.max_false_success`` on them would pay
+    (:func:`~sword_jax.rl.imagined_check.detector_separation`), with ``start_steps`` (each start's step in its
+    episode) the same outcomes counted by where the starts stand
     (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`) and, for the first
-    ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves
-    the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's
-    decoder alone causes where the simulator has a round trip of real frames (the world model decoding with its
-    VAE: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
+    ``rl.imagined.fidelity_trajectories``, where the closed loop through the simulator leaves the real one
+    (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`), with the share of it the simulator's decoder alone
+    causes where the simulator has a round trip of real frames (the world model decoding with its VAE:
+    :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`).
     """
     cfg.validate()
     if cfg.imagined.reward == "calibrated":
