@@ -362,8 +362,9 @@ def summarize_run(grpo: str) -> dict:
         out["detector"] = detector_figures(executed)
     if executed and closed_loop_decisions(executed[0]):  # per decision, the mean over the steps
         out["closed_loop"] = per_decision(executed)
-    if executed and "start_a0_rollouts" in executed[0]:  # where its starts stood, pooled over the executed steps
-        out["by_start"] = by_start(executed)
+    counted = [h for h in history if "start_a0_rollouts" in h]  # ground truth's steps, the world model's executed
+    if counted:  # where their starts stood, pooled over the steps
+        out["by_start"] = by_start(counted)
     if any("real_rollouts" in h for h in history):  # the real episodes (partial, the rollout's length) it executed
         out["real_rollouts"] = int(sum(h.get("real_rollouts", 0) for h in history))
     judged = [h["detector_threshold"] for h in history if "detector_threshold" in h]
@@ -400,19 +401,21 @@ BOUNDED = ("auc", "threshold_bounded", "recall_bounded", "precision_bounded")
 
 
 def by_start(rows: Sequence[dict]) -> list[dict]:
-    """The executed trajectories of ``rows`` (a run's steps paid by execution) pooled by where their starts stood
-    in their episodes (:func:`sword_jax.rl.imagined_check.outcomes_by_start`'s counts, summed over the steps):
-    per bin, from its lower edge ``from_step``, the trajectories, their real successes, the detector's verdicts
-    of success and those that reality paid too, with the real success, the detector's success and its precision
-    (None where nothing was there to divide)."""
+    """The trajectories of ``rows`` (a run's steps that counted them: ground truth's, the world model's paid by
+    execution) pooled by where their starts stood in their episodes
+    (:func:`sword_jax.rl.imagined_check.outcomes_by_start`'s counts, summed over the steps): per bin, from its
+    lower edge ``from_step``, the trajectories and their real successes, and where a detector judged them (the
+    world model's) its verdicts of success and those that reality paid too; with the real success, the
+    detector's success and its precision (None where nothing was there to divide or no detector judged)."""
     lowers = sorted(int(m.group(1)) for k in rows[0] if (m := re.fullmatch(r"start_a(\d+)_rollouts", k)))
+    judged = f"start_a{lowers[0]}_said" in rows[0]
     out = []
     for a in lowers:
         n, real, said, both = (sum(h.get(f"start_a{a}_{k}", 0.0) for h in rows)
                                for k in ("rollouts", "real", "said", "said_real"))
-        out.append({"from_step": a, "rollouts": int(n), "real": int(real), "said": int(said), "said_real": int(both),
-                     "real_success": real / n if n else None, "detector_success": said / n if n else None,
-                     "precision": both / said if said else None})
+        out.append({"from_step": a, "rollouts": int(n), "real": int(real), "real_success": real / n if n else None,
+                    **({"said": int(said), "said_real": int(both), "detector_success": said / n if n else None,
+                        "precision": both / said if said else None} if judged else {})})
     return out
 
 
@@ -781,8 +784,9 @@ def print_runs(summary: dict) -> None:
                              else ")")
         if r.get("by_start"):
             line += "; by the start's step: " + ", ".join(
-                f"{b['from_step']}+: {b['rollouts']} rollouts, real {b['real_success']:.2f}, said "
-                f"{b['detector_success']:.2f}" for b in r["by_start"] if b["rollouts"])
+                f"{b['from_step']}+: {b['rollouts']} rollouts, real {b['real_success']:.2f}"
+                + (f", said {b['detector_success']:.2f}" if "said" in b else "")
+                for b in r["by_start"] if b["rollouts"])
         if r.get("closed_loop"):
             loop = r["closed_loop"]
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "

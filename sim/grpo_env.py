@@ -80,11 +80,23 @@ def keyframe_picks(episodes, rl, *, seed: int, step: int, round_: int = 0, num_c
     ``round_``) with ``rl.env.starts=keyframes``: ``(task, flat state)`` of the demonstrations at the
     keyframes GRPO in the learned simulator draws (the same sampler; a function of (seed, step, round))."""
     check_keyframe_episodes(episodes)
+    ep, t = _keyframe_draw(episodes, rl, seed=seed, step=step, round_=round_, num_context=num_context)
+    return [(int(episodes.tasks[e]), episodes.states[e, s]) for e, s in zip(ep, t)]
+
+
+def _keyframe_draw(episodes, rl, *, seed: int, step: int, round_: int, num_context: int) -> tuple:
+    """``(episode [B], frame t [B])`` of GRPO step ``step``'s keyframes (sampling round ``round_``): a function of
+    (seed, step, round)."""
     rng = (stream_rng(seed, "grpo/env_keyframes", step) if round_ == 0
            else stream_rng(seed, "grpo/env_keyframes", step, round_))
-    ep, t = rl_data.keyframe_indices(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
-                                     num_context=num_context)
-    return [(int(episodes.tasks[e]), episodes.states[e, s]) for e, s in zip(ep, t)]
+    return rl_data.keyframe_indices(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
+                                    num_context=num_context)
+
+
+def keyframe_steps(episodes, rl, *, seed: int, step: int, round_: int = 0, num_context: int = 1) -> np.ndarray:
+    """Each of :func:`keyframe_picks`' start states' step in its demonstration (``[B]`` int32, the same draw)."""
+    return np.asarray(_keyframe_draw(episodes, rl, seed=seed, step=step, round_=round_, num_context=num_context)[1],
+                      np.int32)
 
 
 def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
@@ -194,7 +206,8 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
 
     The learned simulator's setting, one part at a time: ``rl.env.starts=keyframes`` starts the rollouts
     at ``keyframes``' recorded states (the demonstrations, :func:`keyframe_picks`) for
-    :func:`keyframe_horizon` actions, executing ``rl.imagined_actions_per_decision`` per decision;
+    :func:`keyframe_horizon` actions, executing ``rl.imagined_actions_per_decision`` per decision, and each step
+    counts its trajectories and their successes by their keyframe's step (:func:`keyframe_steps`);
     ``rl.env.proprio=missing`` has the policy read its "missing proprio" input in the rollouts, and each
     evaluation then also runs the sampled policy that way (``sampled_proprio_masked``). Evaluations
     always start at rest with ``rl.env.execute_steps``; where the training rollouts execute another number of
@@ -255,7 +268,10 @@ def run_in_mjx(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     runner = EnvGRPO(graphdef, rl, env, max_steps=cfg.sim.max_steps, starts_at=starts_at, eval_starts=eval_qpos,
                      eval_tokens=tokenize_instructions(eval_text, max_bytes),
                      eval_tasks=[t for t, _ in eval_episodes], key=stream_key(root, "grpo/mjx_eval"), log=log,
-                     train_proprio=not masked, value=as_value(*value_net) if pays_value else None, **setting)
+                     train_proprio=not masked, value=as_value(*value_net) if pays_value else None,
+                     start_steps_at=((lambda step, round_: keyframe_steps(keyframes, rl, seed=cfg.seed, step=step,
+                                                                         round_=round_))
+                                     if rl.env.starts == "keyframes" else None), **setting)
     os.makedirs(workdir, exist_ok=True)
     value_record = None
     if value_net is not None:  # fitted once, before the first step; a resumed run loads the fit

@@ -258,11 +258,18 @@ def test_the_executed_steps_are_pooled_by_where_their_starts_stood(tmp_path, cap
         {"from_step": 48, "rollouts": 0, "real": 0, "said": 0, "said_real": 0, "real_success": None,
          "detector_success": None, "precision": None}]
     assert "by_start" not in summary["runs"]["exec_s1"]
+    # ground truth's steps count their trajectories with no detector: no verdicts
+    _curve(tmp_path / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5), _point(2, 0.72, 0.55)],
+           [{"step": s, "rollout_success": 0.5, "trajectories_sampled": 8.0, "mixed_fraction": 0.5,
+             "start_a0_rollouts": 8.0, "start_a0_real": 4.0} for s in (1, 2)])
+    summary = rs.summarize(str(tmp_path))
+    assert summary["runs"]["gt_s0"]["by_start"] == [{"from_step": 0, "rollouts": 16, "real": 8, "real_success": 0.5}]
     rs.print_runs(summary)
     printed = capsys.readouterr().out
     assert ("by the start's step: 0+: 10 rollouts, real 0.10, said 0.50, 24+: 6 rollouts, real 0.50, said 0.50"
             in printed)
-    assert "48+" not in printed
+    assert "48+" not in printed and "gt_s0: 2 steps" in printed and "0+: 16 rollouts, real 0.50; " not in printed
+    assert "by the start's step: 0+: 16 rollouts, real 0.50" in printed
 
 
 def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):

@@ -282,6 +282,8 @@ def test_outcomes_by_start_count_each_bin_and_refuse_bad_edges():
         "start_a96_rollouts": 1.0, "start_a96_real": 1.0, "start_a96_said": 1.0, "start_a96_said_real": 1.0}
     assert set(imagined_check.outcomes_by_start([5], [True], [True])) == {
         f"start_a{a}_{k}" for a in imagined_check.START_STEP_EDGES for k in ("rollouts", "real", "said", "said_real")}
+    truth = jax.device_get(imagined_check.outcomes_by_start(steps, None, real, edges=(0, 24, 48, 96)))
+    assert {k: float(v) for k, v in truth.items()} == {k: float(v) for k, v in out.items() if "said" not in k}
     for bad in ((), (1, 24), (0, 24, 24)):
         with pytest.raises(ValueError, match="edges must start at 0 and rise"):
             imagined_check.outcomes_by_start([0], [True], [True], edges=bad)

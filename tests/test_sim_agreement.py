@@ -323,6 +323,24 @@ def _episodes_with_states(e=3, t=40, s=5):
                               ("a", "b", "c"), states=rng.normal(size=(e, t, s)), tasks=np.array([4, 5, 6]))
 
 
+def test_keyframe_steps_are_the_steps_of_the_keyframes_picked_at_the_same_step_and_round():
+    """keyframe_steps: each picked start's step in its demonstration, the same draw as keyframe_picks' (its
+    recorded state is the episode's state at that step), a function of (seed, step, round)."""
+    from sim.grpo_env import keyframe_picks, keyframe_steps
+
+    episodes = _episodes_with_states()
+    rl = RLConfig(chunk_len=8, grpo=GRPOConfig(rollout_batch=6, group_size=3), imagined=ImaginedConfig(max_chunks=16))
+    for step, round_ in ((2, 0), (2, 1), (5, 0)):
+        picks = keyframe_picks(episodes, rl, seed=7, step=step, round_=round_)
+        steps = keyframe_steps(episodes, rl, seed=7, step=step, round_=round_)
+        assert steps.shape == (6,) and steps.dtype == np.int32 and np.all(steps % 4 == 0) and np.all(steps >= 4)
+        for (task, state), t in zip(picks, steps):
+            e = int(np.flatnonzero(episodes.tasks == task)[0])  # one episode per task here
+            np.testing.assert_array_equal(state, episodes.states[e, t])
+    assert not np.array_equal(keyframe_steps(episodes, rl, seed=7, step=2),
+                              keyframe_steps(episodes, rl, seed=7, step=3))
+
+
 def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_as_recorded_states():
     from sword_jax.rl import data as rl_data
     from sword_jax.rng import stream_rng

@@ -252,9 +252,10 @@ def detector_metrics(said: Bool[Array, " n"], real: Bool[Array, " n"]) -> dict[s
 START_STEP_EDGES = (0, 24, 48, 72, 96)
 
 
-def outcomes_by_start(start_steps: Int[Array, " n"], said: Bool[Array, " n"], real: Bool[Array, " n"],
+def outcomes_by_start(start_steps: Int[Array, " n"], said: Bool[Array, " n"] | None, real: Bool[Array, " n"],
                       edges: tuple[int, ...] = START_STEP_EDGES) -> dict[str, Float[Array, ""]]:
-    """Executed trajectories counted by where their start stands in its episode (``rl.imagined.reward=executed``).
+    """Trajectories counted by where their start stands in its episode: the world model's executed ones
+    (``rl.imagined.reward=executed``), or ground truth's (``said`` None: no detector, no ``_said`` counts).
 
     ``start_steps`` is each trajectory's start step (its keyframe's index in the demonstration: the actions
     already taken there), ``said`` the detector's verdict on its imagined frames, ``real`` its real outcome. For
@@ -266,16 +267,17 @@ def outcomes_by_start(start_steps: Int[Array, " n"], said: Bool[Array, " n"], re
     that did not happen."""
     if not edges or edges[0] != 0 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise ValueError(f"outcomes_by_start: edges must start at 0 and rise, got {edges}")
-    steps = jnp.asarray(start_steps, jnp.int32)
-    said, real = jnp.asarray(said, bool), jnp.asarray(real, bool)
+    steps, real = jnp.asarray(start_steps, jnp.int32), jnp.asarray(real, bool)
     index = jnp.sum(steps[:, None] >= jnp.asarray(edges, jnp.int32)[None, :], axis=1) - 1  # -1: before edge 0
     out = {}
     for i, lower in enumerate(edges):
         here = index == i
         out[f"start_a{lower}_rollouts"] = jnp.sum(here.astype(jnp.float32))
         out[f"start_a{lower}_real"] = jnp.sum((here & real).astype(jnp.float32))
-        out[f"start_a{lower}_said"] = jnp.sum((here & said).astype(jnp.float32))
-        out[f"start_a{lower}_said_real"] = jnp.sum((here & said & real).astype(jnp.float32))
+        if said is not None:
+            verdict = jnp.asarray(said, bool)
+            out[f"start_a{lower}_said"] = jnp.sum((here & verdict).astype(jnp.float32))
+            out[f"start_a{lower}_said_real"] = jnp.sum((here & verdict & real).astype(jnp.float32))
     return out
 
 

@@ -46,6 +46,7 @@ from flax import nnx
 from sword_jax.rl import grpo
 from sword_jax.rl.config import RLConfig
 from sword_jax.rl.grpo import UPDATE_KEY_SALT, group_has_signal
+from sword_jax.rl.imagined_check import outcomes_by_start
 from sword_jax.rl.policy import resize_frames
 from sword_jax.rl.policy_success import success_summary
 from sword_jax.rl.rollout import Rollout, take_trajectories
@@ -124,16 +125,22 @@ class EnvGRPO:
       value: a fitted success-probability value (``rl.value``, :mod:`sword_jax.rl.value`) that pays the training
         rollouts which reach ``train_max_steps`` with no outcome; evaluations are not affected. Its params are
         an argument of the compiled rollout: :meth:`set_value` swaps them without recompiling.
+      start_steps_at: ``start_steps_at(step, round) -> [B]``: each of ``starts_at``'s start states' step in its
+        episode (keyframes of demonstrations); each GRPO step then counts its sampled trajectories and their
+        real successes by where their starts stood
+        (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`, ``start_a<a>_rollouts`` / ``_real``).
     """
 
     def __init__(self, graphdef: nnx.GraphDef, rl: RLConfig, env: JaxEnv, *, max_steps: int,
                  starts_at: Callable[[int, int], tuple[np.ndarray, np.ndarray]], eval_starts: np.ndarray,
                  eval_tokens: np.ndarray, eval_tasks: Sequence[int], key: jax.Array,
                  log: Callable[[str], Any] = print, train_max_steps: int | None = None,
-                 train_execute_steps: int | None = None, train_proprio: bool = True, value: Value | None = None):
+                 train_execute_steps: int | None = None, train_proprio: bool = True, value: Value | None = None,
+                 start_steps_at: Callable[[int, int], np.ndarray] | None = None):
         rl.validate()
         self.graphdef, self.rl, self.env, self.max_steps = graphdef, rl, env, max_steps
         self.starts_at, self.key, self.log = starts_at, key, log
+        self.start_steps_at = start_steps_at  # each start's step in its episode (keyframes), as starts_at's
         self.eval_starts, self.eval_tokens = np.asarray(eval_starts), np.asarray(eval_tokens)
         self.eval_tasks = np.asarray(eval_tasks)
         self.batch = rl.grpo.rollout_batch * rl.grpo.group_size  # trajectories per compiled rollout
@@ -209,12 +216,14 @@ class EnvGRPO:
         g, want = rl.grpo.group_size, rl.grpo.rollout_batch
         t0 = time.perf_counter()
         step_key = jax.random.fold_in(key, step)
-        rounds, steps_taken, broken, mixed, sampled_success, terminal = [], 0, 0, 0, [], []
+        rounds, steps_taken, broken, mixed, sampled_success, terminal, start_steps = [], 0, 0, 0, [], [], []
         enough = math.ceil(rl.grpo.min_mixed_fraction * want)
         for r in range(rl.grpo.max_sample_rounds):
             starts, tokens = self.starts_at(step, r)
             starts = np.repeat(np.asarray(starts), g, axis=0)
             tokens = np.repeat(np.asarray(tokens), g, axis=0)
+            if self.start_steps_at is not None:
+                start_steps.append(np.repeat(np.asarray(self.start_steps_at(step, r)), g))
             rollout, stats = self.train_rollout(state.params, jnp.asarray(starts), jnp.asarray(tokens),
                                                 jax.random.fold_in(step_key, r), False, False,
                                                 self._valid(float(self.train_proprio)),
@@ -245,6 +254,8 @@ class EnvGRPO:
             cut = np.concatenate(terminal)
             extra.update(truncated_fraction=float(cut.size) / float(success.size),
                          terminal_value=float(cut.mean()) if cut.size else 0.0)
+        if start_steps:  # the sampled trajectories counted by where their starts stood
+            extra.update(outcomes_by_start(np.concatenate(start_steps), None, success))
         extra.update(advantage_sources(np.asarray(batch.returns), np.asarray(batch.success), rl))
         return state, dict(metrics, **{k: jnp.asarray(v, jnp.float32) for k, v in extra.items()})
 
