@@ -73,7 +73,7 @@ from collections.abc import Sequence
 from benchmarks import common
 from benchmarks.bench_grpo_refresh import (add_deadline_options, add_deterministic_option, gain_between, pipeline_command,
                                           stop_at_deadline)
-from benchmarks.bench_grpo_transfer import read_history
+from benchmarks.bench_grpo_transfer import errorbar_curve, read_history
 from sword_jax import cli
 
 ARMS = ("gt", "exec", "det", "cal")
@@ -1031,19 +1031,19 @@ def episodes_figure(workdirs: Sequence[str], path: str, policy: str = "sampled",
             raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
         for name, (arm, seed, grpo) in runs.items():
             used = episodes_consumed(read_history(grpo))
-            kept = [p if policy == "greedy" else p.get(policy) for p in read_points(grpo)]
-            points = [(p["step"], e) for p, e in zip(read_points(grpo), kept) if e is not None and p["step"] in used]
+            points = [(p["step"], p if policy == "greedy" else p.get(policy)) for p in read_points(grpo)]
+            points = [(step, e) for step, e in points if e is not None and step in used]
             if not points:
                 raise SystemExit(f"bench_grpo_reward_source figure --episodes: {grpo} has no evaluation of "
                                  f"{policy} at a step its history records")
-            x = [used[step] for step, _ in points]
-            y = [e["mean"] for _, e in points]
-            ci = [wilson_interval(e["successes"], e["episodes"]) for _, e in points]
-            series[name] = {"arm": arm, "seed": seed, "steps": [s for s, _ in points], "real_episodes": x,
-                            "success": y, "ci95": [list(c) for c in ci]}
-            ax.errorbar(x, y, yerr=[[v - lo for v, (lo, _) in zip(y, ci)], [hi - v for v, (_, hi) in zip(y, ci)]],
-                        marker="osd^v"[seed % 5], capsize=3, color=colours[arm],
-                        label=f"{name}: {FIGURE_ARMS[arm]}")
+            curve = [{"step": used[step], "success": e["mean"], "ci95": list(wilson_interval(e["successes"],
+                                                                                            e["episodes"]))}
+                     for step, e in points]
+            series[name] = {"arm": arm, "seed": seed, "steps": [s for s, _ in points],
+                            "real_episodes": [c["step"] for c in curve], "success": [c["success"] for c in curve],
+                            "ci95": [c["ci95"] for c in curve]}
+            errorbar_curve(ax, curve, marker="osd^v"[seed % 5], color=colours[arm],
+                           label=f"{name}: {FIGURE_ARMS[arm]}")
     ax.set_xscale("symlog", linthresh=1000)
     common.finish_figure(fig, ax, path, xlabel="real episodes consumed by GRPO's steps (evaluations not counted)",
                          ylabel=f"real success, {policy} (95% interval)", title=title or None)

@@ -129,11 +129,12 @@ def summarize(workdir: str) -> dict:
 
 def errorbar_curve(ax, curve: Sequence[dict], *, offset: float = 0.0, **kwargs) -> None:
     """A success curve (points with ``step``, ``success``, ``ci95``) with its 95% intervals as error
-    bars, shifted right by ``offset`` steps (arms side by side)."""
+    bars, shifted right by ``offset`` steps (arms side by side); ``kwargs`` go to ``errorbar`` (round markers and
+    caps of 3 unless they say otherwise)."""
     y = [p["success"] for p in curve]
     ax.errorbar([p["step"] + offset for p in curve], y,
                 yerr=[[v - p["ci95"][0] for v, p in zip(y, curve)], [p["ci95"][1] - v for v, p in zip(y, curve)]],
-                marker="o", capsize=3, **kwargs)
+                **{"marker": "o", "capsize": 3, **kwargs})
 
 
 def plot(summary: dict, path: str) -> None:

@@ -769,6 +769,13 @@ def _gain_points(points: list[dict], step: int, policy: str) -> str:
     return "" if found is None else f"{_pct(found[0])} {_interval(found[1])}"
 
 
+def _as_trained_span(points: list[dict], step: int) -> str:
+    """The sampled policy's success executed as trained, from step 0 to ``step``, as ``0.356 -> 0.546`` (empty
+    where either point lacks it)."""
+    trained = {p["step"]: p["sampled_as_trained"]["mean"] for p in points if "sampled_as_trained" in p}
+    return f"{trained[0]:.3f} -> {trained[step]:.3f}" if 0 in trained and step in trained else ""
+
+
 def grpo_first_half_as_trained() -> str:
     """Ground-truth GRPO from keyframes of the first half, 12 x 4 actions (``FIRST_HALF_AS_TRAINED``), per advantage
     rule and seed: the gain of the sampled policy executed as GRPO executes it (4 actions of each sampled chunk,
@@ -781,10 +788,8 @@ def grpo_first_half_as_trained() -> str:
         for seed_dir, points, history in _seed_runs(os.path.join(root, folder, "gt")):
             paid = [h["rollout_success"] for h in history]
             last = points[-1]["step"]
-            trained = {p["step"]: p["sampled_as_trained"]["mean"] for p in points if "sampled_as_trained" in p}
             rows.append([label, seed_dir, str(last), _gain_points(points, 20, "sampled_as_trained"),
-                         _gain_points(points, last, "sampled_as_trained"),
-                         f"{trained[0]:.3f} -> {trained[last]:.3f}" if 0 in trained and last in trained else "",
+                         _gain_points(points, last, "sampled_as_trained"), _as_trained_span(points, last),
                          *(_gain_points(points, last, m) for m in ("sampled", "sampled_proprio_masked", "greedy")),
                          f"{statistics.mean(paid[:5]):.3f} -> {statistics.mean(paid[-5:]):.3f}"])
     return _table(["advantages", "seed", "steps", "as trained: gain at step 20 (points), 95% interval",
@@ -809,12 +814,11 @@ def _first_half_row(label: str, seed_dir: str, points: list[dict], history: list
     real = [h for h in steps if "trajectories_sampled" in h or "real_rollouts" in h]
     used = sum(int(h.get("trajectories_sampled", h.get("real_rollouts", 0))) for h in steps)
     paid = statistics.mean(h.get("rollout_success", h.get("success_rate")) for h in real) if real else None
-    trained = {p["step"]: p["sampled_as_trained"]["mean"] for p in points if "sampled_as_trained" in p}
     cell = "" if paid is None else f"{paid:.3f}" + ("" if len(real) == len(steps) else f" (steps 1-{len(real)})")
     bounded = "" if not detector or detector.get("recall_bounded") is None else (
         f"; at its 5% bound: recall {detector['recall_bounded']:.2f}, precision {detector['precision_bounded']:.2f}")
     return [label, seed_dir, f"{used:,}", _gain_points(points, step, "sampled_as_trained"),
-            f"{trained[0]:.3f} -> {trained[step]:.3f}" if 0 in trained and step in trained else "",
+            _as_trained_span(points, step),
             _gain_points(points, step, "sampled"), _gain_points(points, step, "greedy"), cell,
             f"{statistics.median(h['mixed_groups'] for h in steps):.0f} of 64",
             (_detector_cell(detector) + bounded) if detector else ""]
