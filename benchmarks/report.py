@@ -848,6 +848,52 @@ def grpo_first_half_world_model(step: int = 20) -> str:
                    "that bounds its false success at 5%"], rows)
 
 
+# where the world model's closed loop keeps reality's payment, by the start's step in its demonstration: gt beside
+# exec, 12 x 4 from keyframes of every phase, 64 x 8, seeds 0-1, 4 steps, 1 x H200 (grpo_reward_source.json's by_start)
+BY_START = ("policy", "grpo_by_start_small_h200")
+
+
+def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
+    """A run's ``by_start`` bins with those from ``above`` actions on pooled into one (the last, ``from_step`` =
+    ``above``, ``to_step`` None); the others keep their upper edge as ``to_step``."""
+    out = []
+    for b, nxt in zip(bins, [*bins[1:], None]):
+        if b["from_step"] >= above:
+            break
+        out.append({**b, "to_step": nxt["from_step"] if nxt else None})
+    late = [b for b in bins if b["from_step"] >= above]
+    if late:
+        keys = ("rollouts", "real", "said", "said_real")
+        out.append({"from_step": above, "to_step": None,
+                    **{k: sum(b[k] for b in late) for k in keys if k in late[0]}})
+    return out
+
+
+def grpo_by_start() -> str:
+    """Per bin of the start's step and per seed (``BY_START``): ground truth's rollouts and their real success beside
+    the world model's executed ones (the policy acting on its frames, paid by executing the actions on MJX), the
+    share of reality's payment the world model's frames kept (exec over gt), and what the detector said of
+    exec's rollouts: its success and its precision (the share of its verdicts of success that reality paid)."""
+    runs = _load(*BY_START, "grpo_reward_source.json")["runs"]
+    rows = []
+    for seed in sorted({r["seed"] for r in runs.values()}):
+        gt, ex = (next(_by_start_pooled(r["by_start"]) for r in runs.values() if r["arm"] == arm and r["seed"] == seed)
+                  for arm in ("gt", "exec"))
+        for g, e in zip(gt, ex):
+            if not g["rollouts"] or not e["rollouts"]:
+                continue
+            paid_g, paid_e = g["real"] / g["rollouts"], e["real"] / e["rollouts"]
+            span = f"{g['from_step']}-{g['to_step'] - 1}" if g["to_step"] is not None else f"{g['from_step']}+"
+            rows.append([span, f"s{seed}", f"{g['rollouts']:,}", f"{paid_g:.3f}", f"{e['rollouts']:,}", f"{paid_e:.3f}",
+                         f"{100 * paid_e / paid_g:.0f}%" if paid_g else "", f"{e['said'] / e['rollouts']:.2f}",
+                         f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
+    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
+    return _table(["start's step in its demonstration (actions)", "seed", "ground truth: rollouts",
+                   "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
+                   "kept (world model over ground truth)", "the detector's success on its rollouts",
+                   "the detector's precision"], rows)
+
+
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
     """A view probe's success with its interval, and its difference from the ``real`` view with the 95% interval
     of that difference (empty for the real view itself)."""
@@ -1744,6 +1790,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-first-half-decisions": grpo_first_half_decisions,
     "grpo-first-half-as-trained": grpo_first_half_as_trained,
     "grpo-first-half-world-model": grpo_first_half_world_model,
+    "grpo-by-start": grpo_by_start,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

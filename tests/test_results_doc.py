@@ -7,6 +7,7 @@ import os
 import re
 import shutil
 import subprocess
+from unittest import mock
 
 from benchmarks import report
 from tests.conftest import REPO
@@ -457,3 +458,29 @@ def test_the_world_model_table_puts_its_arms_beside_ground_truth_at_step_20(tmp_
                                                       "+4.0 in 20")
     (wm / "grpo_reward_source.json").unlink()
     assert report._first_half_world_model_text() == ""
+
+
+def test_the_by_start_table_pools_late_starts_and_divides_like_bins():
+    """grpo-by-start: ground truth's and the world model's bins of one seed side by side; the bins from 48 actions
+    on pooled into one; the kept share is exec's real success over gt's; a bin either arm lacks is left out; the
+    detector's precision is blank where it said no success."""
+    def gt(*counts):
+        return [{"from_step": a, "rollouts": n, "real": r} for a, (n, r) in zip((0, 24, 48, 72, 96), counts)]
+
+    def ex(*counts):
+        return [{"from_step": a, "rollouts": n, "real": r, "said": s, "said_real": b}
+                for a, (n, r, s, b) in zip((0, 24, 48, 72, 96), counts)]
+
+    pooled = report._by_start_pooled(gt((10, 4), (20, 16), (6, 3), (2, 2), (0, 0)))
+    assert pooled == [{"from_step": 0, "to_step": 24, "rollouts": 10, "real": 4},
+                      {"from_step": 24, "to_step": 48, "rollouts": 20, "real": 16},
+                      {"from_step": 48, "to_step": None, "rollouts": 8, "real": 5}]
+    summary = {"runs": {"gt_s0": {"arm": "gt", "seed": 0, "by_start": gt((100, 40), (0, 0), (8, 8), (0, 0), (0, 0))},
+                        "exec_s0": {"arm": "exec", "seed": 0, "by_start": ex((100, 5, 40, 4), (4, 2, 0, 0),
+                                                                             (4, 4, 0, 0), (4, 2, 4, 2), (0, 0, 0, 0))}}}
+    with mock.patch.object(report, "_load", return_value=summary):
+        table = report.grpo_by_start().splitlines()
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
+    assert "grpo-by-start" in report.TABLES and table[0].count("|") == table[2].count("|")
+    assert rows == [["0-23", "s0", "100", "0.400", "100", "0.050", "12%", "0.40", "0.10"],  # 24-47: gt had none
+                    ["48+", "s0", "8", "1.000", "8", "0.750", "75%", "0.50", "0.50"]]
