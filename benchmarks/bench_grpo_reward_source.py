@@ -26,8 +26,10 @@ evaluated on MJX (500 episodes per point: greedy, sampled at T 0.5, sampled with
 
 ``--horizon N`` rolls every arm out N decisions instead of 12, ``--keyframe-fraction F`` draws its keyframes from the
 first F of each demonstration (1.0: every phase, which a horizon of a decision or two needs to reach success at all;
-0: the first keyframe alone, frame 4, the world model's counterpart of starting at rest), ``--scale-by-std false``
-leaves every arm's advantages centred (the recipe that lifts on MJX from rest)
+0: the first keyframe alone, frame 4, the world model's counterpart of starting at rest), ``--keyframe-from F``
+draws them from fraction F of each demonstration on (up to the keyframe fraction: the later phases, where the world
+model's closed loop keeps reality's payment), ``--scale-by-std false`` leaves every arm's advantages centred (the
+recipe that lifts on MJX from rest)
 and ``--vae-variant vae8x`` builds the pipeline with the 8x VAE, which the world-model arms then load. The arms draw
 their keyframes alike (the same demonstrations and rule, their own draws), so their first steps, before any update,
 compare what the real closed loop and the imagined one are paid from like starts.
@@ -111,14 +113,15 @@ def pipeline(args) -> argparse.Namespace:
 def recipe(args) -> tuple[str, ...]:
     """:data:`RECIPE` at ``--horizon`` decisions (``rl.imagined.max_chunks``) of ``--actions-per-decision`` actions
     (``rl.imagined.execute_steps``), with keyframes from the first ``--keyframe-fraction`` of each demonstration
-    where given (``rl.imagined.keyframe_fraction``) and advantages only centred with ``--scale-by-std false``
+    where given (``rl.imagined.keyframe_fraction``), from its fraction ``--keyframe-from`` on where given
+    (``rl.imagined.keyframe_from``) and advantages only centred with ``--scale-by-std false``
     (``rl.grpo.scale_by_std``): every arm's."""
     set_to = {"--rl.imagined.max_chunks": args.horizon,
               "--rl.imagined.execute_steps": getattr(args, "actions_per_decision", 4)}
     keys = [f.partition("=")[0] for f in RECIPE]
     flags = tuple(f"{key}={set_to[key]}" if key in set_to else f for key, f in zip(keys, RECIPE))
-    fraction = args.keyframe_fraction
-    return (flags + ((f"--rl.imagined.keyframe_fraction={fraction}",) if fraction is not None else ())
+    window = {"keyframe_fraction": args.keyframe_fraction, "keyframe_from": args.keyframe_from}
+    return (flags + tuple(f"--rl.imagined.{key}={value}" for key, value in window.items() if value is not None)
             + (() if args.scale_by_std else ("--rl.grpo.scale_by_std=false",)))
 
 
@@ -874,6 +877,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: every arm starts from keyframes in the first this-fraction of each demonstration "
                              "(rl.imagined.keyframe_fraction; default the config's); 1.0 = all phases, which short "
                              "horizons need to reach success at all")
+    parser.add_argument("--keyframe-from", type=float, default=None,
+                        help="run: every arm starts from keyframes from this fraction of each demonstration on, up "
+                             "to the keyframe fraction (rl.imagined.keyframe_from; default the config's, 0)")
     parser.add_argument("--scale-by-std", choices=("true", "false"), default="true",
                         help="run: every arm's advantages divided by their group's std (GRPO) or only centred (false: "
                              "Dr. GRPO, rl.grpo.scale_by_std)")
@@ -928,6 +934,15 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     if args.horizon < 1 or (args.keyframe_fraction is not None and not 0 <= args.keyframe_fraction <= 1):
         raise SystemExit(f"bench_grpo_reward_source: --horizon must be >= 1 and --keyframe-fraction in [0, 1], got "
                          f"{args.horizon} and {args.keyframe_fraction}")
+    if args.keyframe_from is not None:  # the upper bound it must stay under: the flag's or the config's
+        import configs
+
+        upper = (args.keyframe_fraction if args.keyframe_fraction is not None
+                 else configs.get(args.config).rl.imagined.keyframe_fraction)
+        if not 0 <= args.keyframe_from <= upper:
+            raise SystemExit(f"bench_grpo_reward_source: --keyframe-from must be in [0, the keyframe fraction "
+                             f"{upper}] (--keyframe-fraction, or the config's rl.imagined.keyframe_fraction), got "
+                             f"{args.keyframe_from}")
     return args
 
 

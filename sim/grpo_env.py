@@ -90,7 +90,7 @@ def _keyframe_draw(episodes, rl, *, seed: int, step: int, round_: int, num_conte
     rng = (stream_rng(seed, "grpo/env_keyframes", step) if round_ == 0
            else stream_rng(seed, "grpo/env_keyframes", step, round_))
     return rl_data.keyframe_indices(episodes, rl.grpo.rollout_batch, rng, max_fraction=rl.imagined.keyframe_fraction,
-                                    num_context=num_context)
+                                    min_fraction=rl.imagined.keyframe_from, num_context=num_context)
 
 
 def keyframe_steps(episodes, rl, *, seed: int, step: int, round_: int = 0, num_context: int = 1) -> np.ndarray:

@@ -17,7 +17,7 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=("gt", "exec", "det")):
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
         world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None,
-        deterministic=False, scale_by_std=True, calibrate_steps=4)
+        keyframe_from=None, deterministic=False, scale_by_std=True, calibrate_steps=4)
     return args
 
 
@@ -360,6 +360,32 @@ def test_a_short_horizon_from_every_phase_in_the_8x_vaes_world_model(tmp_path, m
         with pytest.raises(SystemExit, match=message):
             rs.parse(["summary", "--workdir", str(tmp_path), *bad])
 
+
+
+def test_keyframes_from_a_later_phase_reach_every_arm(tmp_path):
+    """--keyframe-from: every arm draws its keyframes from that fraction of each demonstration on (the phases where
+    the world model's closed loop keeps reality's payment), as a config key its command sets; without it no arm
+    sets it; above the keyframe fraction (the flag's, else the config's 0.5) or below 0 it is refused by name."""
+    import configs
+    from configs.cli import apply_overrides
+
+    args = rs.parse(["run", "--workdir", str(tmp_path), "--policy", "/p/policy_d50.npz", "--keyframe-from", "0.3",
+                     "--keyframe-fraction", "1.0", "--arms", "gt,exec,det,cal", "--seeds", "0"])
+    commands = rs.run_commands(args)
+    assert sorted(commands) == ["cal_s0", "det_s0", "exec_s0", "gt_s0"]
+    for name, cmd in commands.items():
+        assert _flag(cmd, "--rl.imagined.keyframe_from") == ["--rl.imagined.keyframe_from=0.3"], name
+        assert _flag(cmd, "--rl.imagined.keyframe_fraction") == ["--rl.imagined.keyframe_fraction=1.0"], name
+        imagined = apply_overrides(configs.get("sword:small"), _flag(cmd, "--rl.")).validate().rl.imagined
+        assert (imagined.keyframe_from, imagined.keyframe_fraction) == (0.3, 1.0), name
+    under_default = rs.run_commands(rs.parse(["run", "--workdir", str(tmp_path), "--keyframe-from", "0.5"]))
+    assert all(_flag(c, "--rl.imagined.keyframe_from") == ["--rl.imagined.keyframe_from=0.5"]
+               and not _flag(c, "--rl.imagined.keyframe_fraction") for c in under_default.values())
+    assert not any(_flag(c, "--rl.imagined.keyframe_from") for c in rs.run_commands(_args(tmp_path)).values())
+    for bad, upper in ((("--keyframe-from", "0.6"), "0.5"), (("--keyframe-from", "0.6", "--keyframe-fraction", "0.5"),
+                       "0.5"), (("--keyframe-from", "-0.1", "--keyframe-fraction", "1.0"), "1.0")):
+        with pytest.raises(SystemExit, match=rf"--keyframe-from must be in \[0, the keyframe fraction {upper}\]"):
+            rs.parse(["run", "--workdir", str(tmp_path), *bad])
 
 def test_the_rest_recipe_from_the_first_keyframe_with_centred_advantages(tmp_path):
     """--keyframe-fraction 0 --scale-by-std false: every arm starts at the demonstrations' first keyframe (frame 4,

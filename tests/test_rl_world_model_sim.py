@@ -102,6 +102,124 @@ def test_keyframe_starts_are_latent_aligned_with_real_history():
         assert pick["frame"][i, 0, 0, 0] == ti and pick["first_frame"][i, 0, 0, 0] == 0
 
 
+
+def _keyframes_before_the_lower_bound(episodes, count, rng, *, max_fraction, num_context=1, frames_per_latent=4):
+    """keyframe_indices as it drew before rl.imagined.keyframe_from existed (its upper bound alone)."""
+    k, f = num_context, frames_per_latent
+    ep = rng.integers(0, episodes.num_episodes, count)
+    last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
+    s = k + (rng.random(count) * (last - k + 1)).astype(np.int64)
+    return ep, np.minimum(f * s, episodes.lengths[ep] - 1)
+
+
+@pytest.mark.parametrize("max_fraction,num_context", [(0.5, 1), (1.0, 1), (0.0, 1), (0.75, 2)])
+def test_keyframes_from_the_first_keyframe_are_drawn_as_before_the_lower_bound(max_fraction, num_context):
+    """min_fraction 0 (rl.imagined.keyframe_from's default) draws the same keyframes with the same generator calls
+    as the sampler before it had a lower bound, so runs started then resume to the same starts."""
+    import argparse
+
+    from sword_jax.rl import data as rl_data
+
+    episodes = argparse.Namespace(num_episodes=5, lengths=np.array([60, 90, 120, 200, 33]))
+    rng_now, rng_before = np.random.default_rng(11), np.random.default_rng(11)
+    for _ in range(3):  # consecutive draws from one generator: each leaves it where the old draw did
+        ep, t = rl_data.keyframe_indices(episodes, 64, rng_now, max_fraction=max_fraction, min_fraction=0.0,
+                                         num_context=num_context)
+        ep_before, t_before = _keyframes_before_the_lower_bound(episodes, 64, rng_before, max_fraction=max_fraction,
+                                                                num_context=num_context)
+        np.testing.assert_array_equal(ep, ep_before)
+        np.testing.assert_array_equal(t, t_before)
+    assert rng_now.random() == rng_before.random()
+    default = rl_data.keyframe_indices(episodes, 64, np.random.default_rng(3), max_fraction=max_fraction,
+                                       num_context=num_context)
+    explicit = rl_data.keyframe_indices(episodes, 64, np.random.default_rng(3), max_fraction=max_fraction,
+                                        min_fraction=0.0, num_context=num_context)
+    for got, want in zip(explicit, default):
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("min_fraction,max_fraction", [(0.25, 0.5), (0.5, 1.0), (0.375, 0.75), (0.75, 1.0)])
+def test_keyframes_are_drawn_from_every_latent_aligned_frame_of_their_window(min_fraction, max_fraction):
+    """Between fractions min_fraction and max_fraction of each episode (min_fraction = rl.imagined.keyframe_from):
+    each drawn keyframe is a latent-aligned frame inside the window, and every such frame is drawn."""
+    import argparse
+
+    from sword_jax.rl import data as rl_data
+
+    lengths = np.array([60, 90, 121, 200, 33])
+    episodes = argparse.Namespace(num_episodes=len(lengths), lengths=lengths)
+    ep, t = rl_data.keyframe_indices(episodes, 4000, np.random.default_rng(0), max_fraction=max_fraction,
+                                     min_fraction=min_fraction)
+    for e, length in enumerate(lengths):
+        got = set(t[ep == e].tolist())
+        window = [frame for frame in range(4, length, 4)
+                  if min_fraction * (length - 1) <= frame <= max_fraction * (length - 1)]
+        assert window and got == set(window), (e, length, sorted(got), window)
+    # the window's keyframes as rl_data.keyframe_starts cuts them, history included
+    pick = rl_data.keyframe_starts(_counting_episodes(3, 40), 16, np.random.default_rng(0), max_fraction=max_fraction,
+                                   min_fraction=min_fraction)
+    assert np.all(pick["t"] % 4 == 0)
+    assert np.all(pick["t"] >= min_fraction * 39) and np.all(pick["t"] <= max_fraction * 39)
+    assert np.array_equal(pick["frame"][:, 0, 0, 0], pick["t"])
+
+
+def test_a_window_of_one_fraction_draws_each_episodes_one_keyframe_there():
+    """min_fraction == max_fraction: every draw of an episode is its latest keyframe at or before that fraction
+    (the first keyframe where it comes earlier); a lower bound above the upper one is refused by name."""
+    import argparse
+
+    from sword_jax.rl import data as rl_data
+
+    lengths = np.array([60, 90, 121, 200, 3])
+    episodes = argparse.Namespace(num_episodes=len(lengths), lengths=lengths)
+    for fraction in (0.0, 0.3, 0.5, 1.0):
+        ep, t = rl_data.keyframe_indices(episodes, 500, np.random.default_rng(1), max_fraction=fraction,
+                                         min_fraction=fraction)
+        for e, length in enumerate(lengths):
+            only = min(4 * max(int(fraction * (length - 1)) // 4, 1), length - 1)
+            assert set(t[ep == e].tolist()) == {only}, (fraction, length)
+    with pytest.raises(ValueError, match="min_fraction <= max_fraction"):
+        rl_data.keyframe_indices(episodes, 4, np.random.default_rng(0), max_fraction=0.5, min_fraction=0.6)
+    with pytest.raises(ValueError, match="min_fraction"):
+        rl_data.keyframe_indices(episodes, 4, np.random.default_rng(0), max_fraction=0.5, min_fraction=-0.1)
+
+
+
+def test_grpo_in_the_world_model_draws_its_starts_from_the_configured_keyframe_window():
+    """The pipeline's GRPO setup draws each step's keyframes (start states, recorded states, start steps) with
+    rl.imagined.keyframe_from and keyframe_fraction: the keyframes of that window of each demonstration."""
+    import dataclasses
+
+    from sword_jax.pipeline.grpo import setup_from_weights
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.reward_model import build_detector
+    from sword_jax.rng import stream_rng
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    base = _counting_episodes(4, 80)
+    lengths = np.array([80, 64, 50, 41])
+    states = np.broadcast_to(np.arange(80.0)[None, :, None], (4, 80, 3)).copy()  # state i at frame i
+    episodes = dataclasses.replace(base, lengths=lengths, states=states)
+    rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, keyframe_from=0.5,
+                                                                  keyframe_fraction=0.75))
+    setup = setup_from_weights(cfg, rl, episodes, world_model=(wm_graphdef, wm_state),
+                               vae=(vae_graphdef, vae_state), detector=build_detector(rl))
+    for step in (0, 3):
+        rng = stream_rng(cfg.seed, "grpo/keyframes", step)  # the pipeline's keyframe stream
+        ep, t = rl_data.keyframe_indices(episodes, rl.imagined_starts_per_step, rng, max_fraction=0.75,
+                                         min_fraction=0.5)
+        np.testing.assert_array_equal(setup.start_steps(step), t)
+        np.testing.assert_array_equal(setup.env_starts(step)[:, 0], t)
+        assert np.all(t >= 0.5 * (lengths[ep] - 1)) and np.all(t <= 0.75 * (lengths[ep] - 1))
+
+def _counting_episodes(e, t):
+    """``e`` episodes of ``t`` frames whose frame i shows the value i."""
+    from sword_jax.rl import data as rl_data
+
+    frames = np.broadcast_to(np.arange(t, dtype=np.uint8)[None, :, None, None, None], (e, t, 4, 4, 3)).copy()
+    return rl_data.EpisodeSet(frames, np.zeros((e, t, 7), np.float32), np.zeros((e, t, 8), np.float32), np.full(e, t),
+                              np.ones(e, bool), tuple("abcdefgh"[:e]))
+
 def test_pixel_round_trip_sets_the_learned_simulators_next_context(monkeypatch):
     """With flow.pixel_round_trip the next context is the VAE's re-encoding of the decoded chunk
     (as in evaluation's rollout), not the predicted latent itself."""

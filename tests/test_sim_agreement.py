@@ -412,6 +412,36 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     assert grpo_run_id(RLConfig(env=EnvConfig(starts="rest")), seed=0, simulator="env")["rl.env.starts"] == "rest"
 
 
+def test_keyframe_from_bounds_the_ground_truth_and_learned_simulators_keyframes_from_below():
+    """rl.imagined.keyframe_from: the keyframes both simulators start from lie between it and keyframe_fraction of
+    each demonstration; it is set from the command line, refused outside [0, keyframe_fraction] by name, and
+    enters a run's identity only when above 0 (runs from before it still resume)."""
+    import configs
+    from configs.cli import ConfigError
+    from sim.grpo_env import keyframe_picks, keyframe_steps
+    from sword_jax.rl.grpo_loop import grpo_run_id
+
+    episodes = _episodes_with_states()  # lengths 40, 30, 20
+    late = RLConfig(chunk_len=8, grpo=GRPOConfig(rollout_batch=64, group_size=3),
+                    imagined=ImaginedConfig(max_chunks=16, keyframe_fraction=1.0, keyframe_from=0.5))
+    whole = dataclasses.replace(late, imagined=dataclasses.replace(late.imagined, keyframe_from=0.0))
+    lengths = episodes.lengths[[int(np.flatnonzero(episodes.tasks == task)[0])
+                                for task, _ in keyframe_picks(episodes, late, seed=7, step=2)]]
+    steps = keyframe_steps(episodes, late, seed=7, step=2)
+    assert np.all(steps >= 0.5 * (lengths - 1)) and np.all(steps <= lengths - 1) and np.all(steps % 4 == 0)
+    assert np.any(keyframe_steps(episodes, whole, seed=7, step=2) < 0.5 * (lengths - 1))
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--rl.imagined.keyframe_from=0.25"])
+    assert cfg.rl.imagined.keyframe_from == 0.25 and isinstance(cfg.rl.imagined.keyframe_from, float)
+    with pytest.raises(ConfigError, match=r"rl\.imagined\.keyframe_from .*keyframe_fraction=0\.5"):
+        configs.from_argv(["--config", "sword:tiny", "--rl.imagined.keyframe_from=0.7"])
+    for bad in (-0.1, 0.6):
+        with pytest.raises(ValueError, match=r"keyframe_from must be in \[0, rl\.imagined\.keyframe_fraction\]"):
+            ImaginedConfig(keyframe_fraction=0.5, keyframe_from=bad).validate()
+    ImaginedConfig(keyframe_fraction=0.5, keyframe_from=0.5).validate()  # a window of one fraction
+    assert "rl.imagined.keyframe_from" not in grpo_run_id(whole, seed=0, simulator="env")
+    assert grpo_run_id(late, seed=0, simulator="env")["rl.imagined.keyframe_from"] == 0.5
+
+
 @pytest.mark.slow
 def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path):
     """Tiny end to end: GRPO in the C-engine envs from expert keyframe states (about a minute)."""

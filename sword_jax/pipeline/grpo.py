@@ -152,7 +152,8 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
     # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
     def draw(sampler, step, rows):
         return sampler(episodes, rl.imagined_starts_per_step, stream_rng(cfg.seed, "grpo/keyframes", step),
-                       max_fraction=rl.imagined.keyframe_fraction, rows=rows)
+                       max_fraction=rl.imagined.keyframe_fraction, min_fraction=rl.imagined.keyframe_from,
+                       rows=rows)
 
     def starts(key, step, rows=None):
         del key

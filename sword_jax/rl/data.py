@@ -204,31 +204,43 @@ def sample_mixed_reward_batch(sources: Sequence[tuple[EpisodeSet, np.ndarray, fl
 
 
 def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
-                    num_context: int = 1, frames_per_latent: int = 4, rows: np.ndarray | None = None) -> dict[str, Any]:
-    """Start states for imagined rollouts at latent-aligned keyframes of the first ``max_fraction`` of
-    episodes (WoVR keyframes), with the real history a world model conditions on.
+                    min_fraction: float = 0.0, num_context: int = 1, frames_per_latent: int = 4,
+                    rows: np.ndarray | None = None) -> dict[str, Any]:
+    """Start states for imagined rollouts at latent-aligned keyframes between fractions ``min_fraction`` and
+    ``max_fraction`` of episodes (WoVR keyframes), with the real history a world model conditions on.
 
     A keyframe is frame ``t = 4 s`` (``s >= num_context``), the last frame of latent ``s``. Returns
     :func:`keyframe_window` at those frames plus ``instructions``. ``rows``: cut only these of the ``count``
     windows (a process's share of a global batch); the keyframes are drawn for all ``count`` first, so each
     row is the same whichever rows are asked for.
     """
-    ep, t = keyframe_indices(episodes, count, rng, max_fraction=max_fraction, num_context=num_context,
-                             frames_per_latent=frames_per_latent, rows=rows)
+    ep, t = keyframe_indices(episodes, count, rng, max_fraction=max_fraction, min_fraction=min_fraction,
+                             num_context=num_context, frames_per_latent=frames_per_latent, rows=rows)
     window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=num_context,
                              frames_per_latent=frames_per_latent)
     return dict(window, instructions=[episodes.instructions[i] for i in ep])
 
 
 def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
-                     num_context: int = 1, frames_per_latent: int = 4, rows: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     min_fraction: float = 0.0, num_context: int = 1, frames_per_latent: int = 4,
+                     rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(episode [n], frame t [n])`` of the keyframes :func:`keyframe_starts` draws with the same arguments and
-    ``rng`` state, without cutting their windows (e.g. to read the recorded ``states[episode, t]``)."""
+    ``rng`` state, without cutting their windows (e.g. to read the recorded ``states[episode, t]``).
+
+    Latent ``s`` is uniform over ``[first, last]``: ``last`` the latest keyframe at or before fraction
+    ``max_fraction`` of the episode (``(length - 1) * max_fraction``), ``first`` the earliest at or after
+    fraction ``min_fraction``; both at least ``num_context``, and ``first`` at most ``last`` (an episode too
+    short to hold a keyframe in the window starts at ``last``).
+    """
+    if not 0.0 <= min_fraction <= max_fraction:
+        raise ValueError(f"keyframe_indices: need 0 <= min_fraction <= max_fraction, got {min_fraction} and "
+                         f"{max_fraction}")
     k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
     last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
-    s = k + (rng.random(count) * (last - k + 1)).astype(np.int64)
+    # ceil, so no keyframe precedes the window; min_fraction 0 gives first = k
+    first = np.minimum(np.maximum(-(-(episodes.lengths[ep] - 1) * min_fraction // f), k), last).astype(np.int64)
+    s = first + (rng.random(count) * (last - first + 1)).astype(np.int64)
     t = np.minimum(f * s, episodes.lengths[ep] - 1)
     if rows is not None:
         ep, t = ep[rows], t[rows]

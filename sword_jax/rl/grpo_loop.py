@@ -122,8 +122,11 @@ def grpo_run_id(rl: RLConfig, *, seed: int, simulator: str, **facts: Any) -> dic
     # and the value that closes short rollouts, only when it is on
     value = ({f"rl.value.{f.name}": getattr(rl.value, f.name) for f in dataclasses.fields(rl.value)}
              if rl.value.episodes else {})
+    # and the keyframes' lower bound, only when it is above the first keyframe
+    keyframe_from = {"rl.imagined.keyframe_from": rl.imagined.keyframe_from} if rl.imagined.keyframe_from else {}
     return {"seed": seed, "simulator": simulator, **{f"rl.{k}": operator.attrgetter(k)(rl) for k in keys},
-            **decoder, **oversample, **skip, **guard_on, **reward, **scale, **shuffle, **value, **facts}
+            **decoder, **oversample, **skip, **guard_on, **reward, **scale, **shuffle, **value, **keyframe_from,
+            **facts}
 
 
 def train_grpo(
