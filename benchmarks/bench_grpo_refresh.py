@@ -457,6 +457,15 @@ def summarize_run(folder: str) -> dict:
         out["step_s"] = statistics.median(r["step_s"] for r in rows) if rows else None
         fps = [r["imagined_frames_per_s"] for r in rows if "imagined_frames_per_s" in r]
         out["imagined_frames_per_s"] = statistics.median(fps) if fps else None
+    out["refreshes"] = refresh_records(grpo)
+    return out
+
+
+def refresh_records(grpo: str) -> list[dict]:
+    """The refreshes of the GRPO run at ``grpo`` (``refreshes.json``, or for a run stopped early each
+    ``refresh/*/record.json`` written so far), each as the summary reads it: its step, real episodes and their real
+    success, what its replay said before the refresh (false and missed success, separation by horizon, within
+    groups), the detector's threshold and calibration after it, its trust and its verification."""
     refreshes = os.path.join(grpo, "refreshes.json")
     records = []
     if os.path.exists(refreshes):
@@ -469,19 +478,18 @@ def summarize_run(folder: str) -> dict:
             if os.path.exists(path):
                 with open(path) as f:
                     records.append(json.load(f))
-    out["refreshes"] = [{"step": r["step"], "real_episodes": r["real_episodes"], "real_success": r.get("real_success"),
-                         "false_success_before": (r.get("replay") or {}).get("false_success"),
-                         "missed_success_before": (r.get("replay") or {}).get("missed_success"),
-                         "threshold": (r.get("detector") or {}).get("threshold"),
-                         "calibration": (r.get("detector") or {}).get("calibration"),
-                         "separation_before": separations((r.get("replay") or {}).get("imagined_success_by_horizon")),
-                         "within_group_before": (r.get("replay") or {}).get("within_group"),
-                         "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
-                         "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
-                         "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
-                         "trust": r.get("trust"), "skipped": r.get("skipped"), "verify": r.get("verify")}
-                        for r in records]
-    return out
+    return [{"step": r["step"], "real_episodes": r["real_episodes"], "real_success": r.get("real_success"),
+            "false_success_before": (r.get("replay") or {}).get("false_success"),
+            "missed_success_before": (r.get("replay") or {}).get("missed_success"),
+            "threshold": (r.get("detector") or {}).get("threshold"),
+            "calibration": (r.get("detector") or {}).get("calibration"),
+            "separation_before": separations((r.get("replay") or {}).get("imagined_success_by_horizon")),
+            "within_group_before": (r.get("replay") or {}).get("within_group"),
+            "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
+            "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
+            "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
+            "trust": r.get("trust"), "skipped": r.get("skipped"), "verify": r.get("verify")}
+            for r in records]
 
 
 def separations(by_horizon: dict | None) -> dict[str, float | None]:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import os
+import time
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -131,61 +133,190 @@ def _vae(ctx: Context):
     return load_vae_params(ctx.cfg.vae, ctx.results["vae"]["path"])
 
 
+def styled_copies(cfg) -> int:
+    """Styled copies encoded per training episode beside the raw one (0 with ``augment.enabled`` off)."""
+    return cfg.augment.styled_copies if cfg.augment.enabled and cfg.augment.styled_copies > 0 else 0
+
+
+def _encode_frames(encode, frames: np.ndarray, batch_size: int) -> np.ndarray:
+    """Latents of uint8-range ``frames`` [N, T, H, W, 3] in [0, 1], ``batch_size`` episodes per call."""
+    return np.concatenate([np.asarray(encode(frames[start:start + batch_size] * np.float32(2.0) - np.float32(1.0)))
+                           for start in range(0, len(frames), max(batch_size, 1))])
+
+
+def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -> dict[str, np.ndarray]:
+    """The world model's training latents of the episodes in ``files``, as the pipeline's latents stage writes them.
+
+    Every episode is cut to ``data.episode_frames`` frames and encoded raw, then ``augment.styled_copies`` more
+    times in training styles (stream ``augment/styled_copies`` of ``cfg.seed``) where ``augment.enabled``.
+
+    Args:
+      cfg: the experiment config (``data``, ``vae.batch_size``, ``augment``, ``seed``).
+      vae_graphdef: the VAE's graph definition.
+      vae_state: its weights (:func:`sword_jax.load.load_vae_params`).
+      files: LIBERO-layout episode files; the first holds the expert's episodes, the others the supervised
+        policy's rollouts.
+
+    Returns:
+      ``latents`` [E, L, h, w, c] float32, ``actions`` [E, T, A] float32 and ``sources`` [E] uint8 (0 the expert's,
+      1 the policy's): the raw episodes in file order, then each one's styled copies after them (copy-major within
+      an episode), so E = episodes x (1 + styled copies).
+    """
+    from sim.dataset import read_info
+    from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
+    from sword_jax.vae import api as vae_api
+
+    files = list(files)
+    _, episodes = load_episodes(files, cfg.data.episode_frames)
+    encode = vae_api.encoder(vae_graphdef, vae_state)  # the weights are an argument of the jit, not baked-in constants
+    latents, actions = [_encode_frames(encode, episodes.frames, cfg.vae.batch_size)], [episodes.actions]
+    copies = styled_copies(cfg)
+    if copies:
+        styled = encode_styled_copies(episodes, copies, stream_key(jax.random.key(cfg.seed), "augment/styled_copies"),
+                                      encode, intensity=cfg.augment.intensity,
+                                      classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
+        styled_latents, styled_actions, _ = styled.flatten()
+        latents.append(styled_latents)
+        actions.append(styled_actions)
+    # which episodes are the policy's rollouts (1) and which the expert's (0): the raw ones in file order, then
+    # each one's styled copies after it (the trainer measures the policy's training segments apart)
+    raw = np.concatenate([np.full(read_info(f).num_demos, int(i > 0), np.uint8) for i, f in enumerate(files)])
+    if len(raw) != episodes.num:
+        raise ValueError(f"latents: the files {files} list {len(raw)} episodes, {episodes.num} were read")
+    return {"latents": np.concatenate(latents).astype(np.float32),
+            "actions": np.concatenate(actions).astype(np.float32),
+            "sources": np.concatenate([raw, np.repeat(raw, copies)])}
+
+
+def _refuse(problem: str):
+    raise SystemExit(f"train.encode_latents: {problem}")
+
+
+def _vae_of_config(cfg, vae: str):
+    """``(graphdef, state)`` of the VAE saved at ``vae`` (a VAE work dir or its ``vae`` folder; or the one named by
+    ``vae.checkpoint``); refuses a folder that holds no VAE and a VAE of another architecture than ``cfg.vae``."""
+    from flax import nnx
+
+    from sword_jax.checkpoint import CheckpointError, Checkpointer
+    from sword_jax.load import checkpoint_step, load_vae_params, read_meta, vae_dir
+    from sword_jax.vae import api as vae_api
+
+    if not vae and not cfg.vae.checkpoint:
+        _refuse("pass --vae DIR (train.train_vae's <workdir>/vae, a bundle's vae_run/vae) or --vae.checkpoint")
+    if not cfg.vae.checkpoint:
+        vae = vae_dir(vae)
+        try:
+            kind = read_meta(vae, checkpoint_step(vae)).get("kind", "vae")
+        except CheckpointError:
+            kind = None
+        if kind != "vae":
+            _refuse(f"{vae} is not a VAE folder (train.train_vae's <workdir>/vae, a bundle's vae_run/vae)")
+        with Checkpointer(vae, read_only=True) as reader:  # shapes from metadata: no array is read
+            saved = _shapes(reader.state_metadata(checkpoint_step(vae)))
+        wanted = _shapes(nnx.to_pure_dict(nnx.split(vae_api.abstract_vae(cfg.vae))[1]))
+        if saved != wanted:
+            name = next(k for k in sorted(set(saved) | set(wanted)) if saved.get(k) != wanted.get(k))
+            _refuse(f"{vae} holds a VAE of another architecture than the config's (vae.z_dim={cfg.vae.z_dim}, "
+                    f"vae.dim={cfg.vae.dim}, vae.dim_mult={','.join(map(str, cfg.vae.dim_mult))}; {name}: saved "
+                    f"{saved.get(name)}, the config's {wanted.get(name)}): pass the --vae.* overrides it was "
+                    "trained with")
+    return load_vae_params(cfg.vae, vae)
+
+
+def _shapes(tree, prefix: str = "") -> dict[str, tuple]:
+    """``{path: shape}`` of the leaves of a nested dict (or list) of arrays or array metadata."""
+    if isinstance(tree, (dict, list, tuple)):
+        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
+        return {path: shape for key, value in items for path, shape in _shapes(value, f"{prefix}{key}/").items()}
+    return {prefix.rstrip("/"): tuple(tree.shape)}
+
+
+def write_episode_latents(cfg, vae: str, files: Sequence[str], out: str) -> dict:
+    """Writes :func:`encode_episode_latents` of ``files`` with the VAE saved at ``vae`` to the new ``.npz`` file
+    ``out`` (written whole or not at all): the training latents that a world model which travelled without them
+    (a bundle) needs for GRPO's refresh (``train.grpo --rl.refresh.every=K --latents OUT``).
+
+    Returns:
+      ``path``, ``episodes`` (E), ``raw_episodes``, ``policy_episodes``, ``styled_copies``, ``latent_shape``
+      ([L, h, w, c]), ``files`` and ``seconds``.
+
+    Raises:
+      SystemExit: ``out`` exists or does not end in ``.npz``, an input file is missing, ``vae`` is no VAE folder or
+        holds a VAE of another architecture than ``cfg.vae``, or the latents are not of the shape the config
+        gives (frames of another size than ``data.image_size``).
+    """
+    from sword_jax.vae import api as vae_api
+
+    start = time.monotonic()
+    if os.path.exists(out):
+        _refuse(f"{out} exists; name a new file (nothing is replaced)")
+    if not out.endswith(".npz"):
+        _refuse(f"--out {out} must end in .npz (the latents file train.grpo --latents reads)")
+    if not files:
+        _refuse("name at least one episode file")
+    missing = [f for f in files if not os.path.isfile(f)]
+    if missing:
+        _refuse(f"no episode file at {', '.join(missing)}")
+    graphdef, state = _vae_of_config(cfg, vae)
+    temporal, spatial = vae_api.factors(graphdef, state)
+    size = cfg.data.image_size // spatial
+    expected = (1 + (cfg.data.episode_frames - 1) // temporal, size, size, cfg.vae.z_dim)
+    arrays = encode_episode_latents(cfg, graphdef, state, files)
+    latents = arrays["latents"]
+    if latents.shape[1:] != expected:
+        _refuse(f"the latents of {', '.join(files)} are {list(latents.shape[1:])}, the config's world model reads "
+                f"{list(expected)}: frames of data.image_size={cfg.data.image_size} and data.episode_frames="
+                f"{cfg.data.episode_frames} are needed")
+    if os.path.dirname(out):
+        os.makedirs(os.path.dirname(out), exist_ok=True)
+    partial = f"{out}.partial"
+    try:
+        with open(partial, "wb") as f:
+            np.savez(f, **arrays)
+        if os.path.exists(out):
+            _refuse(f"{out} appeared while encoding; name a new file (nothing is replaced)")
+        os.replace(partial, out)
+    finally:
+        if os.path.exists(partial):
+            os.remove(partial)
+    copies = styled_copies(cfg)
+    return {"path": out, "episodes": len(latents), "raw_episodes": len(latents) // (1 + copies),
+            "policy_episodes": int(arrays["sources"].sum()), "styled_copies": copies,
+            "latent_shape": list(latents.shape[1:]), "files": list(files), "seconds": time.monotonic() - start}
+
+
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model: the
     expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``); and the
     held-out expert episodes (raw) to ``heldout_latents.npz`` for its held-out evaluation."""
-    from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
     from sword_jax.vae import api as vae_api
 
     cfg = ctx.cfg
     files = [ctx.results["data"]["train"]["path"]]
     if ctx.results.get("policy_data", {}).get("path"):
         files.append(ctx.results["policy_data"]["path"])
-    _, episodes = load_episodes(files, cfg.data.episode_frames)
     graphdef, state = _vae(ctx)
-    encode = vae_api.encoder(graphdef, state)  # the weights are an argument of the jit, not baked-in constants
+    training = encode_episode_latents(cfg, graphdef, state, files)
+    latents, sources, copies = training["latents"], training["sources"], styled_copies(cfg)
+    path = ctx.path("data", "latents.npz")
+    np.savez(path, **training)
+    encode = vae_api.encoder(graphdef, state)
 
     def encoded(frames: np.ndarray) -> np.ndarray:
-        return np.concatenate([np.asarray(encode(frames[start:start + cfg.vae.batch_size] * np.float32(2.0)
-                                                 - np.float32(1.0)))
-                               for start in range(0, len(frames), max(cfg.vae.batch_size, 1))])
+        return _encode_frames(encode, frames, cfg.vae.batch_size).astype(np.float32)
 
-    latents, actions = [encoded(episodes.frames)], [episodes.actions]
-    copies = 0
-    if cfg.augment.enabled and cfg.augment.styled_copies > 0:
-        copies = cfg.augment.styled_copies
-        styled = encode_styled_copies(episodes, copies, stream_key(jax.random.key(cfg.seed), "augment/styled_copies"),
-                             encode, intensity=cfg.augment.intensity,
-                             classes=seg_classes_from_config(cfg.augment), fov_deg=cfg.augment.fov_deg)
-        styled_latents, styled_actions, _ = styled.flatten()
-        latents.append(styled_latents)
-        actions.append(styled_actions)
-    latents = np.concatenate(latents).astype(np.float32)
-    actions = np.concatenate(actions).astype(np.float32)
-    # which episodes are the policy's rollouts (1) and which the expert's (0): the raw ones in file order, then
-    # each one's styled copies after it (the trainer measures the policy's training segments apart)
-    from sim.dataset import read_info
-
-    raw = np.concatenate([np.full(read_info(f).num_demos, int(i > 0), np.uint8) for i, f in enumerate(files)])
-    if len(raw) != episodes.num:
-        raise ValueError(f"latents: the files {files} list {len(raw)} episodes, {episodes.num} were read")
-    sources = np.concatenate([raw, np.repeat(raw, copies)])
-    path = ctx.path("data", "latents.npz")
-    np.savez(path, latents=latents, actions=actions, sources=sources)
     # the held-out expert episodes, unstyled, for the world model's held-out evaluation (trainer.eval_every)
     _, held = load_episodes(ctx.results["data"]["heldout"]["path"], cfg.data.episode_frames)
     heldout_path = ctx.path("data", "heldout_latents.npz")
-    arrays = {"latents": encoded(held.frames).astype(np.float32), "actions": held.actions.astype(np.float32)}
+    arrays = {"latents": encoded(held.frames), "actions": held.actions.astype(np.float32)}
     # and the supervised policy's held-out rollouts (policy_data), the evaluation's "policy" segments
     policy_held = ctx.results.get("policy_data", {}).get("heldout", {}).get("path")
     if policy_held:
         _, rolled = load_episodes(policy_held, cfg.data.episode_frames)
-        arrays.update(policy_latents=encoded(rolled.frames).astype(np.float32),
-                      policy_actions=rolled.actions.astype(np.float32))
+        arrays.update(policy_latents=encoded(rolled.frames), policy_actions=rolled.actions.astype(np.float32))
     np.savez(heldout_path, **arrays)
-    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": int(episodes.num), "files": files,
-            "policy_episodes": int(sources.sum()),
+    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": len(latents) // (1 + copies),
+            "files": files, "policy_episodes": int(sources.sum()),
             "styled_copies": copies, "latent_shape": list(latents.shape[1:]), "heldout_path": heldout_path,
             "heldout_episodes": int(held.num),
             **({"heldout_policy_episodes": int(rolled.num)} if policy_held else {})}

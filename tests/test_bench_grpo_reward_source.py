@@ -17,7 +17,8 @@ def _args(tmp_path, gpus="0,1,2,3", seeds="0,1,2", arms=("gt", "exec", "det")):
         seeds=[int(s) for s in seeds.split(",")], steps=40, eval_every=10, rollout_batch=64, policy_rollouts=20, vae_steps=1000,
         eval_episodes_per_task=50,
         world_model_steps=3000, deadline_s=0.0, grace_s=0.0, arms=list(arms), vae_variant="base", horizon=12, keyframe_fraction=None,
-        keyframe_from=None, deterministic=False, scale_by_std=True, calibrate_steps=4)
+        keyframe_from=None, deterministic=False, scale_by_std=True, calibrate_steps=4, refresh_every=10,
+        refresh_episodes=64, refresh_budget=256, refresh_set=[], latents="")
     return args
 
 
@@ -783,6 +784,94 @@ def test_a_bundle_gives_the_world_model_runs_their_weights_and_the_pipeline_buil
     rs.check_bundle(args)  # the executed reward reads no detector
     with pytest.raises(SystemExit, match="--bundle .*nowhere: no such folder"):
         rs.parse(["run", "--workdir", str(tmp_path), "--policy", "p.npz", "--bundle", str(tmp_path / "nowhere")])
+
+
+def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_starts(tmp_path, monkeypatch):
+    """ref: train.grpo in the world model with its refresh (every --refresh-every steps, --refresh-episodes each,
+    within --refresh-budget, --refresh-set's settings) and the latents it mixes in; no reward flag (the detector
+    pays, the refresh calibrates it). From a bundle, which carries no latents, run encodes the pipeline's training
+    episodes with the bundle's VAE once the data stage is done and starts ref only then; --latents skips that; with a
+    pipeline its own latents are read. Bad refresh settings are refused by name."""
+    import sys
+
+    bundle = tmp_path / "bundle"
+    for sub in ("world_model/checkpoints", "vae_run/vae", "rl/reward_model"):
+        (bundle / sub).mkdir(parents=True)
+    work = tmp_path / "work"
+    args = _args(work, seeds="0", arms=("exec", "ref"))
+    args.bundle, args.pipeline = str(bundle), ""
+    args.refresh_set = ["rl.refresh.world_model_steps=1000"]
+    commands = rs.run_commands(args)
+    ref, ex = commands["ref_s0"], commands["exec_s0"]
+    assert ["--rl.refresh.every=10", "--rl.refresh.episodes=64", "--rl.refresh.budget=256",
+            "--rl.refresh.world_model_steps=1000"] == _flag(ref, "--rl.refresh")
+    assert ref[ref.index("--latents") + 1] == str(work / "latents.npz") and not _flag(ref, "--rl.imagined.reward")
+    assert not _flag(ex, "--rl.refresh") and "--latents" not in ex
+    assert rs.latents_command(args)[2:] == ["train.encode_latents", "--config", "sword:small", "--vae",
+                                            str(bundle / "vae_run" / "vae"), "--out", str(work / "latents.npz"),
+                                            str(work / "pipeline" / "data" / "train.hdf5")]
+    built = []
+
+    def step(base, overrides, stop_after):
+        built.append(stop_after)
+        return [sys.executable, "-c", f"open({str(tmp_path / stop_after)!r}, 'w').close()"]
+
+    def seen(name):  # a run that records whether the latents had been encoded when it started
+        return [sys.executable, "-c", f"import os; open({str(tmp_path / name)!r}, 'w')"
+                                      f".write(str(os.path.exists({str(tmp_path / 'encoded')!r})))"]
+
+    monkeypatch.setattr(rs, "pipeline_command", step)
+    monkeypatch.setattr(rs, "latents_command", lambda a: [sys.executable, "-c", "import time; time.sleep(0.3); "
+                                                          f"open({str(tmp_path / 'encoded')!r}, 'w').close()"])
+    monkeypatch.setattr(rs, "run_commands", lambda a: {n: seen(n) for n in ("exec_s0", "ref_s0")})
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+    summary = rs.run(args, poll_s=0.05)
+    assert built == ["data"] and summary["exit_codes"] == {"exec_s0": 0, "ref_s0": 0}
+    assert (tmp_path / "ref_s0").read_text() == "True" and (tmp_path / "exec_s0").read_text() == "False"
+    (tmp_path / "encoded").unlink()
+    args.latents = str(tmp_path / "given.npz")  # latents given: none encoded, ref starts after the data
+    assert rs.latents_path(args) == args.latents
+    summary = rs.run(args, poll_s=0.05)
+    assert (tmp_path / "ref_s0").read_text() == "False"
+    args.latents, args.bundle = "", ""
+    assert rs.latents_path(args) == str(work / "pipeline" / "data" / "latents.npz")
+
+    def parse(*extra):
+        return rs.parse(["run", "--workdir", str(work), "--policy", "p.npz", "--arms", "ref", "--steps", "20",
+                         "--eval-every", "5", *extra])
+
+    assert parse("--refresh-every", "10").refresh_every == 10
+    with pytest.raises(SystemExit, match="--refresh-every must be a positive multiple of --eval-every"):
+        parse("--refresh-every", "7")
+    with pytest.raises(SystemExit, match="--refresh-set takes rl.refresh.KEY=VALUE"):
+        parse("--refresh-set", "rl.grpo.steps=3")
+    with pytest.raises(SystemExit, match="the ref arm's refresh: .*budget"):
+        parse("--refresh-episodes", "64", "--refresh-budget", "32")
+    with pytest.raises(SystemExit, match="with --bundle and --pipeline needs --latents"):
+        parse("--bundle", str(bundle), "--pipeline", str(tmp_path))
+
+
+def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_records(tmp_path):
+    """A refreshed run's real episodes are its refreshes' (cumulative real_episodes_used, not summed over steps),
+    step by step in the episodes figure too; its summary carries each refresh's record as bench_grpo_refresh
+    reads it."""
+    history = [{"step": k, "success_rate": 0.9, "kept_fraction": 0.5, "real_episodes_used": used}
+               for k, used in ((1, 64.0), (2, 64.0), (3, 128.0))]
+    assert rs.real_episodes(history) == 128
+    assert rs.episodes_consumed(history) == {0: 0, 1: 64, 2: 64, 3: 128}
+    grpo = tmp_path / "ref_s0" / "rl" / "grpo"
+    grpo.mkdir(parents=True)
+    point = {"step": 0, "mean": 0.5, "successes": 250, "episodes": 500,
+             "sampled": {"mean": 0.4, "successes": 200, "episodes": 500}}
+    (grpo / "success_curve.json").write_text(json.dumps({"points": [point, dict(point, step=3)]}))
+    (grpo / "train_history.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
+    record = {"step": 0, "real_episodes": 64, "real_success": 0.5, "replay": {"false_success": {"rate": 0.6}},
+              "detector": {"threshold": 0.99, "calibration": {"rule": "false_success"}}}
+    (grpo / "refreshes.json").write_text(json.dumps([record]))
+    run = rs.summarize(str(tmp_path))["runs"]["ref_s0"]
+    assert run["arm"] == "ref" and run["real_episodes"] == 128
+    assert [(r["step"], r["false_success_before"], r["threshold"]) for r in run["refreshes"]] == [
+        (0, {"rate": 0.6}, 0.99)]
 
 
 def _launch_line(name, cmd):

@@ -31,6 +31,7 @@ BAD_ARGS = {
     "train.launch": ["--processes", "2", "--", "python", "-m", "train.grpo"],
     "train.convert_wan22": ["check"],
     "train.bundle": ["pack", "run", "out", "--part-mib", "many"],
+    "train.encode_latents": ["--out"],
     "train.verify_metrics": [],
 }
 # Every entry point: each module of train/ but the process setup they share.
