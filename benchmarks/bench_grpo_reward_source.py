@@ -11,10 +11,12 @@ GRPO in the learned simulator's setting (keyframe starts, 48 actions executed 4 
 * ``cal`` (not run by default): the first ``--calibrate-steps`` steps as ``exec``, then the detector's reward at the
   threshold those steps set on the policy's own closed loop (``rl.imagined.reward=calibrated``: just above the
   median real failure's score that leaves at most ``rl.refresh.max_false_success`` of the real failures paid).
-* ``ref`` (not run by default): GRPO in Sword's world model paid by its detector, both refreshed on the current
-  policy's real MJX episodes (``rl.refresh``: every ``--refresh-every`` steps and at step 0, ``--refresh-episodes``
-  each within ``--refresh-budget``; the world model fine-tuned on them, the detector on their replays labelled with
-  their real outcome and its threshold set on held-out replays). Its refreshes mix the world model's training
+* ``ref`` and ``rexec`` (not run by default): GRPO in Sword's world model paid by its detector (``ref``) or, as
+  ``exec``, by its actions executed on MJX (``rexec``: whether a refresh makes the world model keep more of what
+  reality pays, per start bin), the world model and detector refreshed on the current policy's real MJX episodes
+  (``rl.refresh``: every ``--refresh-every`` steps and at step 0, ``--refresh-episodes`` each within
+  ``--refresh-budget``; the world model fine-tuned on them, the detector on their replays labelled with their real
+  outcome and its threshold set on held-out replays). Its refreshes mix the world model's training
   latents into each fine-tune: with ``--bundle``, which carries none, ``run`` encodes the pipeline's training
   episodes with the bundle's VAE first (``python -m train.encode_latents``).
 
@@ -84,12 +86,13 @@ from benchmarks.bench_grpo_refresh import (add_deadline_options, add_determinist
 from benchmarks.bench_grpo_transfer import errorbar_curve, read_history
 from sword_jax import cli
 
-ARMS = ("gt", "exec", "det", "cal", "ref")
+ARMS = ("gt", "exec", "det", "cal", "ref", "rexec")
 ARM_LABELS = {"gt": "real frames, real reward (ground-truth GRPO on MJX)",
               "exec": "the world model's frames, the real outcome of their actions",
               "det": "the world model's frames, the detector's reward",
               "cal": "the world model's frames, the real outcome, then the detector's reward at the threshold it set",
-              "ref": "the world model's frames, the detector's reward, both refreshed on the policy's real episodes"}
+              "ref": "the world model's frames, the detector's reward, both refreshed on the policy's real episodes",
+              "rexec": "the refreshed world model's frames, the real outcome of their actions"}
 # the learned simulator's setting and the GRPO recipe every arm shares
 RECIPE = ("--rl.env.backend=mjx", "--rl.grpo.group_size=8", "--rl.grpo.minibatches=4",
           "--rl.grpo.update_microbatch=8", "--rl.grpo.temperature=0.5", "--rl.grpo.learning_rate=1e-4",
@@ -99,8 +102,9 @@ GROUND_TRUTH = ("--rl.grpo.max_sample_rounds=1", "--rl.grpo.eval_sampled=true", 
 WORLD_MODEL = ("--rl.imagined.shared_group_noise=true",
                "--rl.imagined.eval_replay_episodes=0")
 REWARD = {"exec": ("--rl.imagined.reward=executed",), "det": (), "cal": ("--rl.imagined.reward=calibrated",),
-          "ref": ()}
-WORLD_MODEL_ARMS = ("exec", "det", "cal", "ref")  # the arms that run GRPO in the world model (train.grpo)
+          "ref": (), "rexec": ("--rl.imagined.reward=executed", "--rl.refresh.branch=false")}  # keyframe starts
+WORLD_MODEL_ARMS = ("exec", "det", "cal", "ref", "rexec")  # the arms that run GRPO in the world model (train.grpo)
+REFRESHED_ARMS = ("ref", "rexec")  # the arms whose world model (and detector) are refreshed while they run
 # VAE variant -> the config overrides of its VAE, given to every command that trains or loads that VAE
 VAE_VARIANTS: dict[str, tuple[str, ...]] = {
     "base": (),
@@ -175,9 +179,9 @@ def check_bundle(args) -> None:
 
 
 def latents_path(args) -> str:
-    """The world model's training latents a refreshed run (``ref``) mixes into each fine-tune: ``--latents``; else
-    with ``--bundle`` those ``run`` encodes from the demonstrations with the bundle's VAE (``<workdir>/latents.npz``,
-    :func:`latents_command`); else the pipeline's own (``<pipeline>/data/latents.npz``)."""
+    """The world model's training latents a refreshed run (:data:`REFRESHED_ARMS`) mixes into each fine-tune:
+    ``--latents``; else with ``--bundle`` those ``run`` encodes from the demonstrations with the bundle's VAE
+    (``<workdir>/latents.npz``, :func:`latents_command`); else the pipeline's own (``<pipeline>/data/latents.npz``)."""
     if getattr(args, "latents", ""):
         return args.latents
     if getattr(args, "bundle", ""):
@@ -195,7 +199,7 @@ def latents_command(args) -> list[str]:
 
 
 def refresh_flags(args) -> tuple[str, ...]:
-    """The ``ref`` arm's refresh (``rl.refresh``): every ``--refresh-every`` steps (and at step 0)
+    """A refreshed arm's refresh (``rl.refresh``): every ``--refresh-every`` steps (and at step 0)
     ``--refresh-episodes`` real episodes of the current policy on MJX, within ``--refresh-budget`` for the run,
     ``--refresh-set``'s other settings, and the latents its fine-tunes mix in (:func:`latents_path`)."""
     return (f"--rl.refresh.every={args.refresh_every}", f"--rl.refresh.episodes={args.refresh_episodes}",
@@ -230,7 +234,7 @@ def run_commands(args) -> dict[str, list[str]]:
                          "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *shared, *WORLD_MODEL,
                          f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps,
                          *((f"--rl.imagined.calibrate_steps={args.calibrate_steps}",) if arm == "cal" else ()),
-                         *(refresh_flags(args) if arm == "ref" else ())]
+                         *(refresh_flags(args) if arm in REFRESHED_ARMS else ())]
     return out
 
 
@@ -273,7 +277,8 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         waiting = {n: needs(args, n) for n in commands}
         print(f"[reward-source] the runs start as {args.pipeline}'s stages finish: {waiting}", flush=True)
     elif getattr(args, "bundle", ""):  # the world model, VAE and detector from a bundle: only the data is built
-        refreshed = [] if getattr(args, "latents", "") else [n for n in commands if n.startswith("ref_")]
+        refreshed = [] if getattr(args, "latents", "") else [n for n in commands
+                                                             if n.rpartition("_s")[0] in REFRESHED_ARMS]
         phases = [("pipeline_data", pipeline_command(base, vae, stop_after="data"),
                    [n for n in commands if n not in refreshed])]
         if refreshed:  # and the latents a refresh mixes in, which a bundle does not carry
@@ -377,13 +382,14 @@ def paid_per_step(history: Sequence[dict]) -> list[float]:
 def real_episodes(history: Sequence[dict]) -> int | None:
     """The real episodes a run's GRPO steps consumed (its evaluations' not counted): on the real simulator the sum
     of its steps' ``trajectories_sampled``, in the world model the sum of its executed steps' ``real_rollouts`` (0
-    where no step executed any, as with the detector's reward), for a refreshed run (``ref``) the real episodes its
-    refreshes had collected by its last step (``real_episodes_used``); None for a ground-truth run whose steps did
-    not record how many trajectories they sampled."""
+    where no step executed any, as with the detector's reward), for a refreshed run (``ref``) also the real episodes
+    its refreshes had collected by its last step (``real_episodes_used``); None for a ground-truth run whose steps
+    did not record how many trajectories they sampled."""
     if any("trajectories_sampled" in h for h in history):
         return int(sum(h.get("trajectories_sampled", 0) for h in history))
-    if any("real_episodes_used" in h for h in history):  # a refreshed run: its refreshes' episodes, cumulative
-        return int(max(h.get("real_episodes_used", 0) for h in history))
+    if any("real_episodes_used" in h for h in history):  # a refreshed run: its refreshes' (cumulative), and any
+        return int(max(h.get("real_episodes_used", 0) for h in history)  # executed rollouts' (per step)
+                   + sum(h.get("real_rollouts", 0) for h in history))
     if any("rollout_success" in h for h in history):  # a ground-truth run that did not count its trajectories
         return None
     return int(sum(h.get("real_rollouts", 0) for h in history))
@@ -921,18 +927,20 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="run: actions executed per policy decision, every arm (rl.imagined.execute_steps): 4, "
                              "or 8, a whole chunk, so that the world model is called half as often over a horizon")
     parser.add_argument("--refresh-every", type=int, default=5,
-                        help="run, the ref arm: GRPO steps between refreshes (rl.refresh.every; a multiple of "
-                             "--eval-every; one also at step 0)")
+                        help="run, the ref and rexec arms: GRPO steps between refreshes (rl.refresh.every; a "
+                             "multiple of --eval-every; one also at step 0)")
     parser.add_argument("--refresh-episodes", type=int, default=64,
-                        help="run, the ref arm: real episodes of the current policy each refresh collects on MJX")
+                        help="run, the ref and rexec arms: real episodes of the current policy each refresh "
+                             "collects on MJX")
     parser.add_argument("--refresh-budget", type=int, default=256,
-                        help="run, the ref arm: real episodes each refreshed run may collect in all "
+                        help="run, the ref and rexec arms: real episodes each refreshed run may collect in all "
                              "(rl.refresh.budget)")
     parser.add_argument("--refresh-set", action="append", default=[], metavar="rl.refresh.KEY=VALUE",
-                        help="run, the ref arm: another refresh setting (repeatable; e.g. "
+                        help="run, the ref and rexec arms: another refresh setting (repeatable; e.g. "
                              "rl.refresh.world_model_steps=1000, rl.refresh.branch=true)")
     parser.add_argument("--latents", default="",
-                        help="run, the ref arm: the world model's training latents (.npz) its refreshes mix in; "
+                        help="run, the ref and rexec arms: the world model's training latents (.npz) its refreshes "
+                             "mix in; "
                              "default: with --bundle, the pipeline's training episodes encoded by the bundle's VAE "
                              "(python -m train.encode_latents) into <workdir>/latents.npz, else the pipeline's")
     parser.add_argument("--keyframe-fraction", type=float, default=None,
@@ -990,7 +998,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         raise SystemExit("bench_grpo_reward_source: --seeds and --gpus need one entry or more, --steps, --eval-every "
                          "and --eval-episodes-per-task >= 1, --policy-rollouts >= 0, --rollout-batch a multiple of 4 "
                          "(4 minibatches)")
-    if "ref" in args.arms:
+    if set(REFRESHED_ARMS) & set(args.arms):
         check_refresh(args)
     if "cal" in args.arms and not 1 <= args.calibrate_steps < args.steps:
         raise SystemExit(f"bench_grpo_reward_source: the cal arm needs 1 <= --calibrate-steps < --steps (steps paid by "
@@ -1011,10 +1019,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def check_refresh(args) -> None:
-    """The ``ref`` arm's refresh settings, refused by name before anything starts: a refresh every
-    ``--refresh-every`` steps, a multiple of ``--eval-every`` (a refresh follows an evaluation); ``--refresh-set``
-    keys under ``rl.refresh``; the whole applied to the config and validated; and latents a run can read (a bundle
-    with a pipeline built elsewhere makes none)."""
+    """The refreshed arms' (:data:`REFRESHED_ARMS`) refresh settings, refused by name before anything starts: a
+    refresh every ``--refresh-every`` steps, a multiple of ``--eval-every`` (a refresh follows an evaluation);
+    ``--refresh-set`` keys under ``rl.refresh``; the whole applied to the config and validated; and latents a run
+    can read (a bundle with a pipeline built elsewhere makes none)."""
     bad = [kv for kv in args.refresh_set if not re.fullmatch(r"rl\.refresh\.[a-z_]+=\S+", kv)]
     if bad:
         raise SystemExit(f"bench_grpo_reward_source: --refresh-set takes rl.refresh.KEY=VALUE, got {bad}")
@@ -1022,25 +1030,28 @@ def check_refresh(args) -> None:
         raise SystemExit(f"bench_grpo_reward_source: --refresh-every must be a positive multiple of --eval-every "
                          f"({args.eval_every}: a refresh follows an evaluation), got {args.refresh_every}")
     if args.bundle and args.pipeline and not args.latents:
-        raise SystemExit("bench_grpo_reward_source: the ref arm with --bundle and --pipeline needs --latents (only a "
-                         "command that builds the data encodes them)")
+        raise SystemExit("bench_grpo_reward_source: a refreshed arm with --bundle and --pipeline needs --latents (only "
+                         "a command that builds the data encodes them)")
     import configs
     from configs.cli import apply_overrides
 
-    flags = [f"rl.refresh.every={args.refresh_every}", f"rl.refresh.episodes={args.refresh_episodes}",
-             f"rl.refresh.budget={args.refresh_budget}", *args.refresh_set,
-             f"rl.grpo.eval_every={args.eval_every}", f"rl.grpo.steps={args.steps}",
-             f"rl.grpo.rollout_batch={args.rollout_batch}"]
-    try:
-        apply_overrides(configs.get(args.config), flags).validate()
-    except (ValueError, KeyError, TypeError) as error:
-        raise SystemExit(f"bench_grpo_reward_source: the ref arm's refresh: {error}") from None
+    refresh = [f"--rl.refresh.every={args.refresh_every}", f"--rl.refresh.episodes={args.refresh_episodes}",
+               f"--rl.refresh.budget={args.refresh_budget}", *(f"--{kv}" for kv in args.refresh_set)]
+    steps = [f"--rl.grpo.eval_every={args.eval_every}", f"--rl.grpo.steps={args.steps}",
+             f"--rl.grpo.rollout_batch={args.rollout_batch}"]
+    for arm in (a for a in REFRESHED_ARMS if a in args.arms):  # each as its command sets it
+        try:
+            apply_overrides(configs.get(args.config), [*recipe(args), *WORLD_MODEL, *REWARD[arm], *steps,
+                                                       *refresh]).validate()
+        except (ValueError, KeyError, TypeError) as error:
+            raise SystemExit(f"bench_grpo_reward_source: the {arm} arm's refresh: {error}") from None
 
 
 # the figure's names of each arm's rollouts and of each greedy action gap (its key's suffix in the closed-loop record)
 FIGURE_ARMS = {"gt": "real frames", "exec": "the world model's frames, executed", "det": "the world model's frames",
                "cal": "the world model's frames, executed, then judged",
-               "ref": "the world model's frames, refreshed"}
+               "ref": "the world model's frames, refreshed",
+               "rexec": "the refreshed world model's frames, executed"}
 FIGURE_GAPS = {"": "the world model's frame", "_vae": "the real frame through the VAE alone",
                "_prev": "the real frame of the decision before"}
 
@@ -1109,11 +1120,9 @@ def episodes_consumed(history: Sequence[dict]) -> dict[int, int]:
                          "trajectories_sampled, so the real episodes it consumed are unknown")
     out, total = {0: 0}, 0
     for i, h in enumerate(history, 1):
-        if "real_episodes_used" in h:  # a refreshed run's count is cumulative (its refreshes' episodes so far)
-            total = int(h["real_episodes_used"])
-        else:
-            total += int(h.get("trajectories_sampled", h.get("real_rollouts", 0)))
-        out[int(h.get("step", i))] = total
+        total += int(h.get("trajectories_sampled", h.get("real_rollouts", 0)))
+        # a refreshed run's refreshes count cumulatively (their episodes so far)
+        out[int(h.get("step", i))] = total + int(h.get("real_episodes_used", 0))
     return out
 
 

@@ -798,7 +798,7 @@ def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_st
     for sub in ("world_model/checkpoints", "vae_run/vae", "rl/reward_model"):
         (bundle / sub).mkdir(parents=True)
     work = tmp_path / "work"
-    args = _args(work, seeds="0", arms=("exec", "ref"))
+    args = _args(work, seeds="0", arms=("exec", "ref", "rexec"))
     args.bundle, args.pipeline = str(bundle), ""
     args.refresh_set = ["rl.refresh.world_model_steps=1000"]
     commands = rs.run_commands(args)
@@ -807,6 +807,10 @@ def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_st
             "--rl.refresh.world_model_steps=1000"] == _flag(ref, "--rl.refresh")
     assert ref[ref.index("--latents") + 1] == str(work / "latents.npz") and not _flag(ref, "--rl.imagined.reward")
     assert not _flag(ex, "--rl.refresh") and "--latents" not in ex
+    rexec = commands["rexec_s0"]  # refreshed, and paid by execution as exec is
+    assert _flag(rexec, "--rl.refresh") == ["--rl.refresh.branch=false", *_flag(ref, "--rl.refresh")]
+    assert "--rl.imagined.reward=executed" in rexec  # from the keyframes, whose recorded states it executes from
+    assert rexec[rexec.index("--latents") + 1] == str(work / "latents.npz")
     assert rs.latents_command(args)[2:] == ["train.encode_latents", "--config", "sword:small", "--vae",
                                             str(bundle / "vae_run" / "vae"), "--out", str(work / "latents.npz"),
                                             str(work / "pipeline" / "data" / "train.hdf5")]
@@ -823,11 +827,11 @@ def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_st
     monkeypatch.setattr(rs, "pipeline_command", step)
     monkeypatch.setattr(rs, "latents_command", lambda a: [sys.executable, "-c", "import time; time.sleep(0.3); "
                                                           f"open({str(tmp_path / 'encoded')!r}, 'w').close()"])
-    monkeypatch.setattr(rs, "run_commands", lambda a: {n: seen(n) for n in ("exec_s0", "ref_s0")})
+    monkeypatch.setattr(rs, "run_commands", lambda a: {n: seen(n) for n in ("exec_s0", "ref_s0", "rexec_s0")})
     monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
     summary = rs.run(args, poll_s=0.05)
-    assert built == ["data"] and summary["exit_codes"] == {"exec_s0": 0, "ref_s0": 0}
-    assert (tmp_path / "ref_s0").read_text() == "True" and (tmp_path / "exec_s0").read_text() == "False"
+    assert built == ["data"] and summary["exit_codes"] == {"exec_s0": 0, "ref_s0": 0, "rexec_s0": 0}
+    assert [(tmp_path / n).read_text() for n in ("exec_s0", "ref_s0", "rexec_s0")] == ["False", "True", "True"]
     (tmp_path / "encoded").unlink()
     args.latents = str(tmp_path / "given.npz")  # latents given: none encoded, ref starts after the data
     assert rs.latents_path(args) == args.latents
@@ -847,6 +851,9 @@ def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_st
         parse("--refresh-set", "rl.grpo.steps=3")
     with pytest.raises(SystemExit, match="the ref arm's refresh: .*budget"):
         parse("--refresh-episodes", "64", "--refresh-budget", "32")
+    with pytest.raises(SystemExit, match="the rexec arm's refresh: .*branch"):  # executed from keyframes only
+        parse("--arms", "rexec", "--refresh-set", "rl.refresh.branch=true")
+    assert parse("--arms", "ref,rexec").arms == ["ref", "rexec"]
     with pytest.raises(SystemExit, match="with --bundle and --pipeline needs --latents"):
         parse("--bundle", str(bundle), "--pipeline", str(tmp_path))
 
@@ -859,6 +866,9 @@ def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_
                for k, used in ((1, 64.0), (2, 64.0), (3, 128.0))]
     assert rs.real_episodes(history) == 128
     assert rs.episodes_consumed(history) == {0: 0, 1: 64, 2: 64, 3: 128}
+    executed = [dict(h, real_rollouts=16.0) for h in history]  # paid by execution too: both count
+    assert rs.real_episodes(executed) == 128 + 48
+    assert rs.episodes_consumed(executed) == {0: 0, 1: 80, 2: 96, 3: 176}
     grpo = tmp_path / "ref_s0" / "rl" / "grpo"
     grpo.mkdir(parents=True)
     point = {"step": 0, "mean": 0.5, "successes": 250, "episodes": 500,

@@ -349,18 +349,21 @@ def test_every_detector_figure_that_can_be_undefined_is_listed_as_such():
     assert set(imagined_check.UNDEFINED_AS_NAN) <= undefined  # and nothing listed that is always defined
 
 
-def test_an_executed_reward_is_refused_without_its_environment_or_outside_mjx():
+def test_an_executed_reward_is_refused_without_its_environment_outside_mjx_or_with_a_branching_refresh():
     graphdef, _ = build_policy(EXEC, seed=0)
     with pytest.raises(ValueError, match="needs env="):
         grpo.make_grpo_step(graphdef, EXEC)
     for bad, what in ((dataclasses.replace(EXEC, env=EnvConfig(backend="cpu")), "backend=mjx"),
-                      (dataclasses.replace(EXEC, refresh=RefreshConfig(every=5, budget=64)), "refresh.every=0"),
+                      (dataclasses.replace(EXEC, refresh=RefreshConfig(every=5, budget=64)),
+                       "no refresh that branches"),
                       (dataclasses.replace(EXEC, imagined=dataclasses.replace(EXEC.imagined, confirm_success=True)),
                        "confirm_success=false")):
         with pytest.raises(ValueError, match=what):
             bad.validate()
     with pytest.raises(ValueError, match="detector|executed"):
         ImaginedConfig(reward="oracle").validate()
+    # a refresh from the keyframes (no branch) keeps their recorded states, so the executed reward may refresh
+    dataclasses.replace(EXEC, refresh=RefreshConfig(every=5, budget=64, branch=False)).validate()
     # the run's identity names what pays it only when it is not the detector
     assert grpo_run_id(EXEC, seed=0, simulator="world_model")["rl.imagined.reward"] == "executed"
     assert "rl.imagined.reward" not in grpo_run_id(CFG, seed=0, simulator="world_model")

@@ -77,7 +77,7 @@ def _pool_starts(n, rng):
     return rng.uniform(-0.4, 0.2, (n, 1)).astype(np.float32), [TEXTS[t] for t in tasks], tasks
 
 
-def _run(cfg, tiny_run, workdir, steps, light_decoder=""):
+def _run(cfg, tiny_run, workdir, steps, light_decoder="", states=False):
     rl = dataclasses.replace(cfg.rl, grpo=dataclasses.replace(cfg.rl.grpo, steps=steps))
     graphdef, params = build_policy(rl, seed=0)
     det_graphdef, det_params = build_detector(rl, seed=0)
@@ -95,7 +95,10 @@ def _run(cfg, tiny_run, workdir, steps, light_decoder=""):
     demos = RealEpisodes.from_recorded(jax.device_get(rec), texts, tasks)
     inputs = GRPOInputs(world_model=os.path.join(tiny_run, "world_model"), vae=os.path.join(tiny_run, "vae_run", "vae"),
                         reward=reward, light_decoder=light_decoder)
-    setup = world_model_setup(cfg, rl, inputs, demos.episode_set())
+    episodes = demos.episode_set()
+    if states:  # the slide's state is its position, the first proprio entry: keyframes the real env can reset to
+        episodes = dataclasses.replace(episodes, states=episodes.proprio[..., :1].copy())
+    setup = world_model_setup(cfg, rl, inputs, episodes)
     from sword_jax.vae import api as vae_api
 
     encoder = vae_api.encoder(*vae)
@@ -135,6 +138,35 @@ def test_an_untrusted_simulator_leaves_the_policy_unchanged(tiny_run, tmp_path):
     assert [h["paused"] for h in out["history"]] == [1.0]
     for a, b in zip(jax.tree.leaves(start), jax.tree.leaves(jax.device_get(out["params"]))):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.slow  # ~1.5 min on 2 cores: one refresh, one GRPO step paid by execution
+def test_a_refreshed_run_can_pay_its_rollouts_by_executing_their_actions(tiny_run, tmp_path):
+    """rl.imagined.reward=executed with rl.refresh (keyframe starts, no branch): a step's trajectories are paid by
+    their actions executed from the keyframes' recorded states and counted by where the starts stood, beside the
+    refreshes' real episodes. Keyframes without recorded states, a refresh that branches and the calibrated reward
+    with a refresh are refused."""
+    cfg = _cfg(tmp_path)
+    imagined = dataclasses.replace(cfg.rl.imagined, reward="executed", eval_replay_episodes=0)
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, imagined=imagined,
+                                                          refresh=dataclasses.replace(cfg.rl.refresh, budget=4,
+                                                                                      branch=False)))
+    cfg.rl.validate()
+    for refused in (dataclasses.replace(cfg.rl, refresh=dataclasses.replace(cfg.rl.refresh, branch=True)),
+                    dataclasses.replace(cfg.rl, imagined=dataclasses.replace(imagined, reward="calibrated",
+                                                                             calibrate_steps=1))):
+        with pytest.raises(ValueError, match="pays imagined actions by executing them on MJX"):
+            refused.validate()
+    with pytest.raises(ValueError, match="recorded states"):
+        _run(cfg, tiny_run, str(tmp_path / "no_states"), steps=1)
+    out = _run(cfg, tiny_run, str(tmp_path / "run"), steps=1, states=True)
+    (row,) = out["history"]
+    trajectories = cfg.rl.grpo.rollout_batch * cfg.rl.grpo.group_size
+    assert row["real_rollouts"] == trajectories and row["real_episodes_used"] == 4
+    assert sum(v for k, v in row.items() if k.startswith("start_a") and k.endswith("_rollouts")) == trajectories
+    assert 0.0 <= row["detector_success"] <= 1.0 and 0.0 <= row["success_rate"] <= 1.0
+    assert row["success_rate"] * trajectories == sum(v for k, v in row.items()
+                                                     if k.startswith("start_a") and k.endswith("_real"))
 
 
 def _leaves(path):

@@ -5,7 +5,10 @@ ground-truth environments, then the simulator is refreshed on real episodes of t
 exploitation guard judges the refresh's replay (real episodes the simulator had not seen, in the simulator
 GRPO trained in). A GRPO step reads the simulator, the calibrated detector and its start states (branched
 from the latest refresh's real episodes) from the refresh its step follows, so a resumed run, which
-loads the refreshes from disk, ends as an uninterrupted one does.
+loads the refreshes from disk, ends as an uninterrupted one does. With ``rl.imagined.reward=executed`` (keyframe
+starts, no branch) each imagined trajectory is paid instead by its actions executed from its keyframe's recorded
+state, and counted by where the start stood: whether the refreshes make the policy's closed loop in the world
+model keep more of what reality pays it.
 
 Nothing here imports a simulator: the environment is a pure JAX one (:class:`~sword_jax.rl.scan_rollout.JaxEnv`,
 MJX in ``sim.grpo_refresh``), its start states come from ``collect_starts``.
@@ -82,6 +85,10 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     Returns ``{"curve", "workdir", "history", "refreshes", "real_episodes_used", "params"}`` (the final policy).
     """
     rl.validate()
+    executed = rl.imagined.reward == "executed"  # each trajectory paid by its actions executed in env
+    if executed and setup.env_starts is None:
+        raise ValueError("rl.imagined.reward=executed with rl.refresh resets the real environment to the keyframes' "
+                         "recorded states: the demonstrations hold no 'states'")
     if rl.refresh.every % rl.grpo.eval_every:
         raise ValueError(f"rl.refresh.every={rl.refresh.every} must be a multiple of rl.grpo.eval_every="
                          f"{rl.grpo.eval_every} (a refresh follows an evaluation)")
@@ -108,7 +115,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
             if horizon is not None:
                 run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=decisions))
                 log(f"imagined rollouts of {horizon} actions ({decisions} decisions), chosen by the first refresh")
-            built["fn"] = grpo.make_grpo_step(graphdef, run_rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules)
+            built["fn"] = grpo.make_grpo_step(graphdef, run_rl, max_traces=max_traces, mesh=mesh, rules=cfg.mesh.rules,
+                                              env=env if executed else None)
         return built["fn"](*args)
 
     def step(state, index, key):
@@ -119,13 +127,16 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         if placed.get("refresh", -2) != refresher.loaded:  # once per refresh, not per step: cast and placed
             models = (refresher.simulator(), refresher.reward_model())
             placed.update(refresh=refresher.loaded, models=jax.device_put(models, shd.shardings_on(models, mesh)))
+        batch = (*placed["models"], starts)
+        if executed:  # the keyframes' recorded states, which the actions are executed from, and their steps
+            batch += (setup.env_starts(index),) + ((setup.start_steps(index),) if setup.start_steps else ())
         paused = refresher.paused()
         if paused:  # the simulator failed its trust test: the rollouts run and are logged, the policy stays
             kept = jax.tree.map(jnp.copy, state)  # the step donates the state it is given
-            _, metrics = step_fn(state, (*placed["models"], starts), key)
+            _, metrics = step_fn(state, batch, key)
             state = kept
         else:
-            state, metrics = step_fn(state, (*placed["models"], starts), key)
+            state, metrics = step_fn(state, batch, key)
         return state, dict(metrics, real_episodes_used=jnp.float32(refresher.used), paused=jnp.float32(paused))
 
     def evaluate(index, params):
@@ -146,7 +157,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         return point, extra
 
     def progress(point, eta):
-        return (f"grpo step {point['step']}/{rl.grpo.steps} imagined success {point['success_rate']:.3f} "
+        paid = "real success of the imagined actions" if executed else "imagined success"
+        return (f"grpo step {point['step']}/{rl.grpo.steps} {paid} {point['success_rate']:.3f} "
                 f"loss {point['loss']:.4f} clip {point['clip_fraction']:.3f} kept {point['kept_fraction']:.2f}"
                 f"{sampled_mixed(point, rl)} "
                 f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "

@@ -376,13 +376,16 @@ class ImaginedConfig:
         success are masked. The policy still acts on the simulator's frames, so this arm separates what the
         learned simulator's frames do to GRPO from what its reward does (:mod:`sword_jax.rl.imagined_check`);
         each step also logs the detector's verdict on the same trajectories against the real outcome. Needs
-        ``rl.env.backend=mjx``, keyframes with recorded states, no refresh and no ``confirm_success``.
+        ``rl.env.backend=mjx``, keyframes with recorded states and no ``confirm_success``; with a refresh
+        (``rl.refresh.every``) only one that does not branch (``rl.refresh.branch=false``: the rollouts keep the
+        keyframes' starts), which measures whether the refreshes make the simulator keep more of what reality
+        pays the policy's actions.
         ``calibrated``: the first ``calibrate_steps`` steps are paid as ``executed``; from then on the detector
         pays, at the threshold those steps set on the policy's own closed loop: just above the median of their
         ``detector_threshold_bounded``, the score that leaves at most ``rl.refresh.max_false_success`` of their
         real failures paid (:func:`~sword_jax.rl.grpo.make_calibrated_step`; WMPO tunes its reward's threshold,
         here it is set by the real outcome of the policy's imagined actions). Needs what ``executed`` needs; its
-        real rollouts are the calibration steps' ``rollout_batch x group_size`` each.
+        real rollouts are the calibration steps' ``rollout_batch x group_size`` each, and no refresh.
       calibrate_steps: with ``reward=calibrated``, the steps paid by execution before the detector pays.
       fidelity_trajectories: with ``reward=executed``, the first this-many trajectories of each step also keep
         the real frame at the end of every decision of their execution, and the step logs where the closed loop
@@ -865,13 +868,14 @@ class RLConfig:
         if self.imagined.guard_on == "verify" and not (self.refresh.every and self.refresh.verify_starts):
             raise ValueError("rl.imagined.guard_on=verify judges the refreshes' checks of imagined rollouts: it needs "
                              "rl.refresh.every > 0 and rl.refresh.verify_starts > 0")
-        if self.imagined.executes and (self.env.backend != "mjx" or self.refresh.every
-                                       or self.imagined.confirm_success):
+        refreshed = self.refresh.every and (self.imagined.reward == "calibrated" or self.refresh.branch)
+        if self.imagined.executes and (self.env.backend != "mjx" or refreshed or self.imagined.confirm_success):
             raise ValueError(f"rl.imagined.reward={self.imagined.reward} pays imagined actions by executing them on "
                              "MJX from the keyframes' recorded states: it needs rl.env.backend=mjx, "
-                             "rl.refresh.every=0 (a refresh's branch starts hold no simulator state) and "
-                             "rl.imagined.confirm_success=false, "
-                             f"got {self.env.backend}, {self.refresh.every}, {self.imagined.confirm_success}")
+                             "rl.imagined.confirm_success=false and no refresh that branches (a refresh's branch "
+                             "starts hold no simulator state; calibrated sets its own threshold, so no refresh), "
+                             f"got {self.env.backend}, {self.imagined.confirm_success}, rl.refresh.every="
+                             f"{self.refresh.every} with branch={self.refresh.branch}")
         if self.env.starts == "branch" and not (self.value.episodes and self.env.backend == "mjx"):
             raise ValueError("rl.env.starts=branch starts GRPO's rollouts at the states of the real episodes collected "
                              "for the value: it needs rl.value.episodes > 0 and rl.env.backend=mjx, got "
