@@ -877,9 +877,14 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "fixed training and held-out segments) instead of --workdir's runs")
     parser.add_argument("--workdirs", default="",
                         help="horizons: comma list of run's work dirs, one per horizon (--out: the folder written); "
-                        "figure --episodes: the work dirs whose runs it draws")
+                        "figure --episodes / --by-start: the work dirs whose runs it draws")
     parser.add_argument("--episodes", action="store_true",
                         help="figure: each run of --workdirs, its real success against the real episodes consumed")
+    parser.add_argument("--by-start", action="store_true",
+                        help="figure: each run of --workdirs, its training rollouts' real success by the start's step "
+                             "(and the detector's verdict on the world model's)")
+    parser.add_argument("--min-rollouts", type=int, default=20,
+                        help="figure --by-start: a run's bins of fewer rollouts are left out")
     parser.add_argument("--evaluated", default="sampled", choices=("greedy", *SAMPLED_POLICIES),
                         help="figure --episodes: the policy whose success it draws")
     parser.add_argument("--title", default="", help="figure --closed-loop / --world-model, horizons: a line above the "
@@ -1169,6 +1174,66 @@ def episodes_figure(workdirs: Sequence[str], path: str, policy: str = "sampled",
     return series
 
 
+def by_start_figure(workdirs: Sequence[str], path: str, title: str = "", min_rollouts: int = 20) -> dict:
+    """Where each run's training rollouts stood when reality paid them (:func:`by_start`, pooled over its steps):
+    per bin of the start's step, the real success of the runs of every work dir in ``workdirs`` (95% Wilson
+    intervals; ground truth's on real frames, the world model's on its frames, paid by executing their actions)
+    and, dashed, what the detector said of the world model's rollouts; one colour per arm, a marker per seed; a
+    run's bins of fewer than ``min_rollouts`` rollouts left out (an interval of a few says little); PNG at ``path``.
+    Returns the plotted series (each run named by its work dir's folder where there are several)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    series: dict[str, dict] = {}
+    colours = {arm: f"C{i}" for i, arm in enumerate(ARMS)}
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    edges: list[int] = []  # every bin's lower edge, and those of the bins drawn
+    drawn: set[int] = set()
+    for workdir in workdirs:
+        runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
+        if not runs:
+            raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
+        for name, (arm, seed, grpo) in runs.items():
+            counted = [h for h in read_history(grpo) if "start_a0_rollouts" in h]
+            if not counted:
+                continue
+            every = by_start(counted)
+            edges = sorted({*edges, *(b["from_step"] for b in every)})
+            bins = [b for b in every if b["rollouts"] >= max(min_rollouts, 1)]
+            if not bins:
+                continue
+            label = name if len(workdirs) == 1 else f"{os.path.basename(os.path.normpath(workdir))}/{name}"
+            drawn |= {b["from_step"] for b in bins}
+            intervals = [wilson_interval(b["real"], b["rollouts"]) for b in bins]
+            series[label] = entry = {
+                "arm": arm, "seed": seed, "from_step": [b["from_step"] for b in bins],
+                "rollouts": [b["rollouts"] for b in bins], "real_success": [b["real_success"] for b in bins],
+                "ci95": [list(i) for i in intervals],
+                **({"detector_success": [b["detector_success"] for b in bins]} if "said" in bins[0] else {})}
+            line = ax.errorbar(entry["from_step"], entry["real_success"],
+                               yerr=[[m - lo for m, (lo, _) in zip(entry["real_success"], intervals)],
+                                     [hi - m for m, (_, hi) in zip(entry["real_success"], intervals)]],
+                               marker="osd^v"[seed % 5], ms=5, capsize=3, color=colours[arm],
+                               label=f"{label}: {FIGURE_ARMS[arm]}")[0]
+            if "detector_success" in entry:
+                ax.plot(entry["from_step"], entry["detector_success"], ls="--", marker="osd^v"[seed % 5], ms=3,
+                        color=line.get_color(), alpha=0.6, label=f"{label}: the detector said")
+    if not series:
+        raise SystemExit(f"bench_grpo_reward_source figure --by-start: no run under {', '.join(workdirs)} counted "
+                         f"{min_rollouts} or more of its rollouts in a bin of the start's step (start_a*_rollouts)")
+    upper = dict(zip(edges, edges[1:]))
+    ticks = sorted(drawn)
+    ax.set_xticks(ticks, [f"{a}-{upper[a] - 1}" if a in upper else f"{a}+" for a in ticks])
+    ax.set_ylim(-0.02, 1.02)
+    common.finish_figure(fig, ax, path, xlabel="the start's step in its demonstration (actions)",
+                         ylabel="real success of the training rollouts (95% interval)", title=title or None)
+    return series
+
+
 def closed_loop_figure(source: str, path: str, title: str = "") -> dict:
     """Three panels from ``closed-loop``'s JSON at ``source`` (PNG at ``path``), its runs side by side: what reality
     paid each step's rollouts, and against the actions executed (each run's decisions times its
@@ -1348,13 +1413,17 @@ def main(argv: Sequence[str] | None = None) -> dict:
         return dict(result, figure=series)
     if args.mode == "figure" and not args.out:
         raise SystemExit("bench_grpo_reward_source figure needs --out (the PNG's path)")
-    if args.mode == "figure" and sum(map(bool, (args.closed_loop, args.world_model, args.episodes))) > 1:
-        raise SystemExit("bench_grpo_reward_source figure: give one of --closed-loop, --world-model and --episodes, "
-                         "not more")
-    if args.mode == "figure" and args.episodes:
+    if args.mode == "figure" and sum(map(bool, (args.closed_loop, args.world_model, args.episodes,
+                                                args.by_start))) > 1:
+        raise SystemExit("bench_grpo_reward_source figure: give one of --closed-loop, --world-model, --episodes and "
+                         "--by-start, not more")
+    if args.mode == "figure" and (args.episodes or args.by_start):
         workdirs = [w for w in args.workdirs.split(",") if w]
+        which = "--episodes" if args.episodes else "--by-start"
         if not workdirs:
-            raise SystemExit("bench_grpo_reward_source figure --episodes needs --workdirs (a comma list of work dirs)")
+            raise SystemExit(f"bench_grpo_reward_source figure {which} needs --workdirs (a comma list of work dirs)")
+        if args.by_start:
+            return by_start_figure(workdirs, args.out, args.title, args.min_rollouts)
         return episodes_figure(workdirs, args.out, args.evaluated, args.title)
     if args.mode == "figure" and args.closed_loop:
         return closed_loop_figure(args.closed_loop, args.out, args.title)

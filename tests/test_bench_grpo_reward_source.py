@@ -297,6 +297,37 @@ def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp
         rs.figure(str(tmp_path / "empty"), str(tmp_path / "g.png"))
 
 
+def test_the_by_start_figure_pools_each_runs_rollouts_per_bin_and_leaves_out_thin_bins(tmp_path):
+    """figure --by-start: per run its steps' counts summed per bin of the start's step, the real success with a
+    Wilson interval, the detector's verdict for the world model's run; a bin of fewer than --min-rollouts left out
+    (the 24 bin here), runs named by their work dir where there are several; refused where no run counted."""
+    def counts(a0, a24, said=None):
+        row = {"start_a0_rollouts": 40.0, "start_a0_real": a0, "start_a24_rollouts": 4.0, "start_a24_real": a24}
+        if said is not None:
+            row.update(start_a0_said=said, start_a0_said_real=a0 / 2, start_a24_said=0.0, start_a24_said_real=0.0)
+        return row
+
+    gt_dir, wm_dir = tmp_path / "gt_work", tmp_path / "wm_work"
+    _curve(gt_dir / "gt" / "s0" / rs.GT_DIR, [_point(0, 0.7, 0.5)],
+           [{"step": s, "rollout_success": 0.4, "trajectories_sampled": 44.0, **counts(16.0, 2.0)} for s in (1, 2)])
+    _curve(wm_dir / "exec_s1" / "rl" / "grpo", [_point(0, 0.7, 0.5)],
+           [{"step": s, "success_rate": 0.1, "real_rollouts": 44.0, **counts(4.0, 1.0, said=20.0)} for s in (1, 2)])
+    out = tmp_path / "b.png"
+    series = rs.main(["figure", "--by-start", "--workdirs", f"{gt_dir},{wm_dir}", "--out", str(out)])
+    assert out.stat().st_size > 0 and sorted(series) == ["gt_work/gt_s0", "wm_work/exec_s1"]
+    gt, ex = series["gt_work/gt_s0"], series["wm_work/exec_s1"]
+    assert (gt["from_step"], gt["rollouts"], gt["real_success"]) == ([0], [80], [0.4]) and "detector_success" not in gt
+    assert (ex["arm"], ex["seed"], ex["real_success"], ex["detector_success"]) == ("exec", 1, [0.1], [0.5])
+    lo, hi = gt["ci95"][0]
+    assert lo < 0.4 < hi
+    every = rs.main(["figure", "--by-start", "--workdirs", str(wm_dir), "--min-rollouts", "1", "--out", str(out)])
+    assert every["exec_s1"]["from_step"] == [0, 24] and every["exec_s1"]["real_success"] == [0.1, 0.25]
+    with pytest.raises(SystemExit, match="counted 100 or more"):
+        rs.by_start_figure([str(wm_dir)], str(out), min_rollouts=100)
+    with pytest.raises(SystemExit, match="not more"):
+        rs.main(["figure", "--by-start", "--episodes", "--workdirs", str(wm_dir), "--out", str(out)])
+
+
 def test_the_episodes_figure_puts_each_evaluation_at_the_real_episodes_consumed_by_then(tmp_path):
     """figure --episodes: runs of two work dirs (ground truth in one, the world model's arms in another); each
     evaluation at the real episodes its steps had consumed (gt: trajectories sampled; cal: its executed steps only),
@@ -387,6 +418,7 @@ def test_keyframes_from_a_later_phase_reach_every_arm(tmp_path):
                        "0.5"), (("--keyframe-from", "-0.1", "--keyframe-fraction", "1.0"), "1.0")):
         with pytest.raises(SystemExit, match=rf"--keyframe-from must be in \[0, the keyframe fraction {upper}\]"):
             rs.parse(["run", "--workdir", str(tmp_path), *bad])
+
 
 def test_the_rest_recipe_from_the_first_keyframe_with_centred_advantages(tmp_path):
     """--keyframe-fraction 0 --scale-by-std false: every arm starts at the demonstrations' first keyframe (frame 4,

@@ -19,3 +19,5 @@ python3 -m benchmarks.bench_grpo_reward_source run --workdir $R/N --policy $P --
 # the record: the work dir N (pipeline/: the data stage's config and log only) and its summary
 REC=benchmarks/results/policy/grpo_by_start_small_h200
 python -m benchmarks.bench_grpo_reward_source summary --workdir $REC --out $REC/grpo_reward_source
+python -m benchmarks.bench_grpo_reward_source figure --by-start --workdirs $REC --out $REC.png \
+  --title "small, 30k world model; 12 x 4, 64 x 8; steps 1-4; seeds 0-1; 1 x H200"
