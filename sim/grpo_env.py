@@ -26,6 +26,7 @@ from sword_jax.rl import grpo
 from sword_jax.rl.env_rollout import make_act_fns, run_policy
 from sword_jax.rl.grpo import UPDATE_KEY_SALT
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
+from sword_jax.rl.imagined_check import outcomes_by_start
 from sword_jax.rl.jax_env_grpo import EnvGRPO, branch_starts, start_value
 from sword_jax.rl.policy import tokenize_instructions
 from sword_jax.rl.policy_success import evaluate_in_sim
@@ -115,7 +116,9 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     that mode, stored as ``train_mode`` beside the true-proprio success. With ``rl.env.starts=keyframes``
     the rollouts start from ``keyframes`` (an ``rl.data.EpisodeSet`` with states: the demonstrations)
     as :func:`keyframe_env_starts` draws them, for :func:`keyframe_horizon` actions, executing
-    ``rl.imagined_actions_per_decision`` actions per decision as the learned simulator does;
+    ``rl.imagined_actions_per_decision`` actions per decision as the learned simulator does, and each step
+    counts its trajectories and their successes by their keyframe's step
+    (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`, as :func:`run_in_mjx` does);
     evaluations still start at rest and execute ``rl.env.execute_steps``. ``rl.env.starts=rest`` starts them at
     training-split states at rest, as ``initial`` does, in that same setting (:func:`cut_at_horizon`).
     ``max_traces``: traces of the jitted update before the retrace guard fails.
@@ -155,17 +158,20 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
             rl.env, execute_steps=rl.imagined_actions_per_decision))
 
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
+        # (the start states, one per trajectory; from keyframes also each one's step in its demonstration)
         if rl.env.starts == "keyframes":
-            return keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step)
+            return (keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step),
+                    np.repeat(keyframe_steps(keyframes, rl, seed=cfg.seed, step=step), rl.grpo.group_size))
         # stratified over the tasks, as the MJX backend draws them (sim.mjx_batch.stratified_train_starts)
         picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/env_starts", step),
                                          pool=pool)
-        return [start for start in picked for _ in range(rl.grpo.group_size)]
+        return [start for start in picked for _ in range(rl.grpo.group_size)], None
 
     envs = []  # worker processes live for the whole run; each step re-targets them
 
-    def step_in_env(state, starts, rollout_key):
+    def step_in_env(state, batch, rollout_key):
         # not one jitted function: the episodes run in the C engine, then the jitted update trains on them
+        starts, start_steps = batch
         if not envs:
             envs.append(LockstepEnvs(starts, resolution=cfg.sim.resolution, max_steps=horizon,
                                      renderer=renderer, workers=workers))
@@ -174,7 +180,10 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
                              greedy=False, max_steps=horizon, episodes=starts, proprio=mode,
                              reckoning=reckoning)
         state, metrics = update(state, jax.tree.map(jnp.asarray, rollout), jax.random.fold_in(step_key, UPDATE_KEY_SALT))
-        return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)))
+        # from keyframes, the trajectories and their successes by where their starts stood, as on MJX
+        counted = ({} if start_steps is None else
+                   outcomes_by_start(jnp.asarray(start_steps), None, jnp.asarray(rollout.success, bool)))
+        return state, dict(metrics, rollout_success=jnp.mean(jnp.asarray(rollout.success, jnp.float32)), **counted)
 
     def progress(point, eta):
         return (f"grpo step {point['step']}/{rl.grpo.steps} rollout success {point['rollout_success']:.3f} "

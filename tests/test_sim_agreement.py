@@ -481,6 +481,12 @@ def test_ground_truth_grpo_from_keyframes_runs_in_the_real_environments(tmp_path
     assert [p["step"] for p in result["curve"]] == [0, 1]
     assert result["curve"][0]["train_mode"]["proprio"] == "missing"
     assert len(result["history"]) == 1 and 0.0 <= result["history"][0]["rollout_success"] <= 1.0
+    # the trajectories counted by their keyframe's step, every one in some bin, their successes the rollouts'
+    row, n = result["history"][0], rl.grpo.rollout_batch * rl.grpo.group_size
+    counted = {k: v for k, v in row.items() if k.startswith("start_a")}
+    assert sum(v for k, v in counted.items() if k.endswith("_rollouts")) == n and not any("said" in k for k in counted)
+    assert sum(v for k, v in counted.items() if k.endswith("_real")) == pytest.approx(row["rollout_success"] * n)
+    assert counted["start_a0_rollouts"] == n  # the demonstrations are 40 actions: every keyframe lies before 24
 
 
 def test_ground_truth_grpo_from_rest_is_cut_at_the_learned_simulators_horizon(tmp_path, monkeypatch):
