@@ -851,6 +851,8 @@ def grpo_first_half_world_model(step: int = 20) -> str:
 # where the world model's closed loop keeps reality's payment, by the start's step in its demonstration: gt beside
 # exec, 12 x 4 from keyframes of every phase, 64 x 8, seeds 0-1, 4 steps, 1 x H200 (grpo_reward_source.json's by_start)
 BY_START = ("policy", "grpo_by_start_small_h200")
+# the same world model from the second half of each demonstration only (keyframe_from 0.5), exec alone, step 1
+BY_START_WINDOW = ("policy", "grpo_by_start_window_small_h200")
 
 
 def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
@@ -869,26 +871,39 @@ def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
     return out
 
 
-def grpo_by_start() -> str:
-    """Per bin of the start's step and per seed (``BY_START``): ground truth's rollouts and their real success beside
-    the world model's executed ones (the policy acting on its frames, paid by executing the actions on MJX), the
-    share of reality's payment the world model's frames kept (exec over gt), and what the detector said of
-    exec's rollouts: its success and its precision (the share of its verdicts of success that reality paid)."""
-    runs = _load(*BY_START, "grpo_reward_source.json")["runs"]
+# the world-model arms a by-start record may hold, as its table names them
+BY_START_ARMS = {"exec": "as trained", "rexec": "refreshed"}
+
+
+def grpo_by_start(record: tuple[str, ...] = BY_START) -> str:
+    """Per bin of the start's step, seed and world-model arm of ``record`` (its ``grpo_reward_source.json``'s
+    ``by_start``, :data:`BY_START_ARMS`): ground truth's rollouts and real success (the record's ``gt`` run of that
+    seed; blank without one) beside the world model's rollouts paid by executing their actions, the share of
+    ground truth's real success they kept, and what the detector said of them: its success and its precision (the
+    share of its verdicts of success that reality paid)."""
+    runs = _load(*record, "grpo_reward_source.json")["runs"]
+
+    def bins(arm: str, seed: int) -> list[dict] | None:
+        found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
+        return _by_start_pooled(found[0]["by_start"]) if found else None
+
     rows = []
     for seed in sorted({r["seed"] for r in runs.values()}):
-        gt, ex = (next(_by_start_pooled(r["by_start"]) for r in runs.values() if r["arm"] == arm and r["seed"] == seed)
-                  for arm in ("gt", "exec"))
-        for g, e in zip(gt, ex):
-            if not g["rollouts"] or not e["rollouts"]:
-                continue
-            paid_g, paid_e = g["real"] / g["rollouts"], e["real"] / e["rollouts"]
-            span = f"{g['from_step']}-{g['to_step'] - 1}" if g["to_step"] is not None else f"{g['from_step']}+"
-            rows.append([span, f"s{seed}", f"{g['rollouts']:,}", f"{paid_g:.3f}", f"{e['rollouts']:,}", f"{paid_e:.3f}",
-                         f"{100 * paid_e / paid_g:.0f}%" if paid_g else "", f"{e['said'] / e['rollouts']:.2f}",
-                         f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
+        truth = {b["from_step"]: b for b in bins("gt", seed) or []}
+        for arm, label in BY_START_ARMS.items():
+            for e in bins(arm, seed) or []:
+                g = truth.get(e["from_step"])
+                if not e["rollouts"] or (truth and not (g and g["rollouts"])):
+                    continue
+                paid_e = e["real"] / e["rollouts"]
+                paid_g = g["real"] / g["rollouts"] if g else None
+                span = f"{e['from_step']}-{e['to_step'] - 1}" if e["to_step"] is not None else f"{e['from_step']}+"
+                rows.append([span, f"s{seed}", label, f"{g['rollouts']:,}" if g else "",
+                             f"{paid_g:.3f}" if g else "", f"{e['rollouts']:,}", f"{paid_e:.3f}",
+                             f"{100 * paid_e / paid_g:.0f}%" if paid_g else "", f"{e['said'] / e['rollouts']:.2f}",
+                             f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
     rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
-    return _table(["start's step in its demonstration (actions)", "seed", "ground truth: rollouts",
+    return _table(["start's step in its demonstration (actions)", "seed", "world model", "ground truth: rollouts",
                    "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
                    "kept (world model over ground truth)", "the detector's success on its rollouts",
                    "the detector's precision"], rows)
@@ -1790,7 +1805,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-first-half-decisions": grpo_first_half_decisions,
     "grpo-first-half-as-trained": grpo_first_half_as_trained,
     "grpo-first-half-world-model": grpo_first_half_world_model,
-    "grpo-by-start": grpo_by_start,
+    "grpo-by-start": grpo_by_start, "grpo-by-start-window": lambda: grpo_by_start(BY_START_WINDOW),
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

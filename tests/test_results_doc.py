@@ -478,9 +478,17 @@ def test_the_by_start_table_pools_late_starts_and_divides_like_bins():
     summary = {"runs": {"gt_s0": {"arm": "gt", "seed": 0, "by_start": gt((100, 40), (0, 0), (8, 8), (0, 0), (0, 0))},
                         "exec_s0": {"arm": "exec", "seed": 0, "by_start": ex((100, 5, 40, 4), (4, 2, 0, 0),
                                                                              (4, 4, 0, 0), (4, 2, 4, 2), (0, 0, 0, 0))}}}
+    summary["runs"]["rexec_s0"] = dict(summary["runs"]["exec_s0"], arm="rexec")
     with mock.patch.object(report, "_load", return_value=summary):
         table = report.grpo_by_start().splitlines()
     rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
     assert "grpo-by-start" in report.TABLES and table[0].count("|") == table[2].count("|")
-    assert rows == [["0-23", "s0", "100", "0.400", "100", "0.050", "12%", "0.40", "0.10"],  # 24-47: gt had none
-                    ["48+", "s0", "8", "1.000", "8", "0.750", "75%", "0.50", "0.50"]]
+    exec_rows = [["0-23", "s0", "as trained", "100", "0.400", "100", "0.050", "12%", "0.40", "0.10"],  # 24-47: no gt
+                 ["48+", "s0", "as trained", "8", "1.000", "8", "0.750", "75%", "0.50", "0.50"]]
+    assert rows == [exec_rows[0], [*exec_rows[0][:2], "refreshed", *exec_rows[0][3:]],
+                    exec_rows[1], [*exec_rows[1][:2], "refreshed", *exec_rows[1][3:]]]
+    del summary["runs"]["gt_s0"], summary["runs"]["rexec_s0"]  # no ground truth: its cells and the share blank
+    with mock.patch.object(report, "_load", return_value=summary):
+        rows = [[c.strip() for c in row.strip("|").split("|")] for row in report.grpo_by_start().splitlines()[2:]]
+    assert [r[0] for r in rows] == ["0-23", "24-47", "48+"] and rows[1][3:8] == ["", "", "4", "0.500", ""]
+    assert "grpo-by-start-window" in report.TABLES
