@@ -92,7 +92,8 @@ def test_the_entry_writes_the_latents_the_pipeline_stage_writes(inputs, capsys):
 
 
 def test_the_entry_refuses_an_existing_out_missing_files_and_a_wrong_vae(inputs):
-    """Each refusal is one line naming the problem, before any encoding; an existing --out is left as it was."""
+    """Each refusal is one line naming the problem (episodes too short for the world model too); an existing --out
+    is left as it was."""
     root, files = inputs["root"], inputs["files"]
     kept = root / "kept.npz"
     kept.write_bytes(b"saved before")
@@ -110,4 +111,9 @@ def test_the_entry_refuses_an_existing_out_missing_files_and_a_wrong_vae(inputs)
         encode_latents.main(CONFIG + ["--vae.dim=16", "--vae", inputs["vae"], "--out", fresh, *files])
     with pytest.raises(SystemExit, match="must end in .npz"):
         encode_latents.main(args + ["--out", str(root / "latents.h5"), *files])
+    short = str(root / "short.hdf5")  # episodes shorter than the world model's: not padded, refused
+    write_dataset(short, [_episode(FRAMES - 4, 5)], DatasetInfo(env_name="sword/LiberoSpatial-v0",
+                                                                seg_class_names=("background", "table")))
+    with pytest.raises(SystemExit, match=rf"^train.encode_latents: episode of task 0 has {FRAMES - 4} < {FRAMES}"):
+        encode_latents.main(args + ["--out", fresh, short])
     assert not os.path.exists(fresh) and not os.path.exists(f"{fresh}.partial")

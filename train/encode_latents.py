@@ -36,8 +36,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 def run(cfg, vae: str, files: Sequence[str], out: str) -> dict:
-    """:func:`sim.data_stages.write_episode_latents`, reported in one line."""
-    summary = write_episode_latents(cfg, vae, files, out)
+    """:func:`sim.data_stages.write_episode_latents`, reported in one line; episodes it cannot cut to the config's
+    length (and other bad input it meets while reading them) refused in one line too."""
+    try:
+        summary = write_episode_latents(cfg, vae, files, out)
+    except ValueError as err:
+        raise SystemExit(f"train.encode_latents: {err}") from None
     print(f"[encode_latents] {out}: {summary['episodes']} episodes ({summary['raw_episodes']} raw, "
           f"{summary['styled_copies']} styled copies each, {summary['policy_episodes']} of the policy), latents "
           f"{'x'.join(map(str, summary['latent_shape']))}, {summary['seconds']:.1f} s", flush=True)
