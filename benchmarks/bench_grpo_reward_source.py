@@ -1168,7 +1168,9 @@ def episodes_figure(workdirs: Sequence[str], path: str, policy: str = "sampled",
                             "ci95": [c["ci95"] for c in curve]}
             errorbar_curve(ax, curve, marker="osd^v"[seed % 5], color=colours[arm],
                            label=f"{name}: {FIGURE_ARMS[arm]}")
-    ax.set_xscale("symlog", linthresh=1000)
+    ax.set_xscale("symlog", linthresh=1000)  # linear up to 1,000 episodes (a world-model arm's few), log beyond
+    top = max(max(entry["real_episodes"]) for entry in series.values())
+    ax.set_xticks([0, *(10 ** k for k in range(3, len(str(max(int(top), 1000)))))])  # none inside the linear part
     common.finish_figure(fig, ax, path, xlabel="real episodes consumed by GRPO's steps (evaluations not counted)",
                          ylabel=f"real success, {policy} (95% interval)", title=title or None)
     return series
