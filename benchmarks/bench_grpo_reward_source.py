@@ -819,6 +819,11 @@ def results_entries(summary: dict, workdir: str, *, data: str, command: str = ""
 
 
 def print_runs(summary: dict) -> None:
+    """A line per run: its gains, the detector on its executed rollouts, its rollouts by the start's step (with the
+    share of the same seed's ground-truth success kept where the work dir holds that run), its refreshes and its
+    closed loop."""
+    truth = {r["seed"]: {b["from_step"]: b for b in r["by_start"]}
+             for r in summary["runs"].values() if r["arm"] == "gt" and r.get("by_start")}
     for name, r in summary["runs"].items():
         s = r["sampled"]
         line = (f"[reward-source] {name}: {r['steps']} steps; sampled {s['start']:.3f} -> {s['end']:.3f} "
@@ -839,10 +844,25 @@ def print_runs(summary: dict) -> None:
                     line += (f", precision {d['precision_bounded']:.2f})" if d.get("precision_bounded") is not None
                              else ")")
         if r.get("by_start"):
+            same = truth.get(r["seed"], {}) if r["arm"] != "gt" else {}
+
+            def kept(b: dict) -> str:  # the share of ground truth's real success from the same bin, same seed
+                g = same.get(b["from_step"])
+                return (f", kept {100 * b['real_success'] / g['real_success']:.0f}%"
+                        if g and g.get("real_success") else "")
+
             line += "; by the start's step: " + ", ".join(
-                f"{b['from_step']}+: {b['rollouts']} rollouts, real {b['real_success']:.2f}"
+                f"{b['from_step']}+: {b['rollouts']} rollouts, real {b['real_success']:.2f}" + kept(b)
                 + (f", said {b['detector_success']:.2f}" if "said" in b else "")
                 for b in r["by_start"] if b["rollouts"])
+        for f in r.get("refreshes", []):  # what each refresh met and set
+            false = f.get("false_success_before") or {}
+            line += (f"; refresh at step {f['step']}: {f['real_episodes']} real episodes"
+                     + (f" (real success {f['real_success']:.2f})" if f.get("real_success") is not None else "")
+                     + (f", its replay's false success before {false['rate']:.2f}"
+                        + (f" of {false['of']} real failures" if false.get("of") is not None else "")
+                        if false.get("rate") is not None else "")
+                     + (f", threshold {f['threshold']:.3f}" if f.get("threshold") is not None else ""))
         if r.get("closed_loop"):
             loop = r["closed_loop"]
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "

@@ -267,10 +267,12 @@ def test_the_executed_steps_are_pooled_by_where_their_starts_stood(tmp_path, cap
     assert summary["runs"]["gt_s0"]["by_start"] == [{"from_step": 0, "rollouts": 16, "real": 8, "real_success": 0.5}]
     rs.print_runs(summary)
     printed = capsys.readouterr().out
-    assert ("by the start's step: 0+: 10 rollouts, real 0.10, said 0.50, 24+: 6 rollouts, real 0.50, said 0.50"
-            in printed)
+    # exec's bins beside the same seed's ground truth: the share kept where ground truth has the bin
+    assert ("by the start's step: 0+: 10 rollouts, real 0.10, kept 20%, said 0.50, 24+: 6 rollouts, real 0.50, "
+            "said 0.50" in printed)
     assert "48+" not in printed and "gt_s0: 2 steps" in printed and "0+: 16 rollouts, real 0.50; " not in printed
-    assert "by the start's step: 0+: 16 rollouts, real 0.50" in printed
+    (gt_line,) = [line for line in printed.splitlines() if line.startswith("[reward-source] gt_s0")]
+    assert "by the start's step: 0+: 16 rollouts, real 0.50" in gt_line and "kept" not in gt_line
 
 
 def test_the_figure_plots_what_reality_paid_and_the_closed_loop_per_decision(tmp_path):
@@ -890,7 +892,7 @@ def test_the_refreshed_arm_reads_latents_that_a_bundled_run_encodes_before_it_st
         parse("--bundle", str(bundle), "--pipeline", str(tmp_path))
 
 
-def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_records(tmp_path):
+def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_records(tmp_path, capsys):
     """A refreshed run's real episodes are its refreshes' (cumulative real_episodes_used, not summed over steps),
     step by step in the episodes figure too; its summary carries each refresh's record as bench_grpo_refresh
     reads it."""
@@ -907,13 +909,17 @@ def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_
              "sampled": {"mean": 0.4, "successes": 200, "episodes": 500}}
     (grpo / "success_curve.json").write_text(json.dumps({"points": [point, dict(point, step=3)]}))
     (grpo / "train_history.jsonl").write_text("".join(json.dumps(h) + "\n" for h in history))
-    record = {"step": 0, "real_episodes": 64, "real_success": 0.5, "replay": {"false_success": {"rate": 0.6}},
+    record = {"step": 0, "real_episodes": 64, "real_success": 0.5, "replay": {"false_success": {"rate": 0.6, "of": 30}},
               "detector": {"threshold": 0.99, "calibration": {"rule": "false_success"}}}
     (grpo / "refreshes.json").write_text(json.dumps([record]))
-    run = rs.summarize(str(tmp_path))["runs"]["ref_s0"]
+    summary = rs.summarize(str(tmp_path))
+    run = summary["runs"]["ref_s0"]
     assert run["arm"] == "ref" and run["real_episodes"] == 128
     assert [(r["step"], r["false_success_before"], r["threshold"]) for r in run["refreshes"]] == [
-        (0, {"rate": 0.6}, 0.99)]
+        (0, {"rate": 0.6, "of": 30}, 0.99)]
+    rs.print_runs(summary)
+    assert ("; refresh at step 0: 64 real episodes (real success 0.50), its replay's false success before 0.60 of "
+            "30 real failures, threshold 0.990" in capsys.readouterr().out)
 
 
 def _launch_line(name, cmd):
