@@ -198,13 +198,19 @@ def latents_command(args) -> list[str]:
             os.path.join(pipeline_dir(args), "data", "train.hdf5")]
 
 
-def refresh_flags(args) -> tuple[str, ...]:
+def refresh_settings(args) -> tuple[str, ...]:
     """A refreshed arm's refresh (``rl.refresh``): every ``--refresh-every`` steps (and at step 0)
-    ``--refresh-episodes`` real episodes of the current policy on MJX, within ``--refresh-budget`` for the run,
-    ``--refresh-set``'s other settings, and the latents its fine-tunes mix in (:func:`latents_path`)."""
+    ``--refresh-episodes`` real episodes of the current policy on MJX, within ``--refresh-budget`` for the run, and
+    ``--refresh-set``'s other settings."""
     return (f"--rl.refresh.every={args.refresh_every}", f"--rl.refresh.episodes={args.refresh_episodes}",
-            f"--rl.refresh.budget={args.refresh_budget}", *(f"--{kv}" for kv in args.refresh_set),
-            "--latents", latents_path(args))
+            f"--rl.refresh.budget={args.refresh_budget}", *(f"--{kv}" for kv in args.refresh_set))
+
+
+def step_flags(args) -> tuple[str, ...]:
+    """Every arm's steps: ``--rollout-batch`` starts a step, ``--steps`` of them, an evaluation every
+    ``--eval-every``."""
+    return (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
+            f"--rl.grpo.eval_every={args.eval_every}")
 
 
 def run_commands(args) -> dict[str, list[str]]:
@@ -214,8 +220,7 @@ def run_commands(args) -> dict[str, list[str]]:
     pipe = pipeline_dir(args)
     weights = getattr(args, "bundle", "") or pipe
     demos = os.path.join(pipe, "data", "demos.hdf5")
-    steps = (f"--rl.grpo.rollout_batch={args.rollout_batch}", f"--rl.grpo.steps={args.steps}",
-             f"--rl.grpo.eval_every={args.eval_every}")
+    steps = step_flags(args)
     episodes, shared, vae = args.eval_episodes_per_task, recipe(args), world_model_overrides(args)
     out = {}
     for seed in args.seeds if "gt" in args.arms else ():
@@ -234,7 +239,8 @@ def run_commands(args) -> dict[str, list[str]]:
                          "--seed", str(seed), "--workdir", os.path.join(args.workdir, name), *shared, *WORLD_MODEL,
                          f"--rl.grpo.eval_episodes_per_task={episodes}", *REWARD[arm], *steps,
                          *((f"--rl.imagined.calibrate_steps={args.calibrate_steps}",) if arm == "cal" else ()),
-                         *(refresh_flags(args) if arm in REFRESHED_ARMS else ())]
+                         *((*refresh_settings(args), "--latents", latents_path(args)) if arm in REFRESHED_ARMS
+                           else ())]
     return out
 
 
@@ -334,6 +340,14 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         raise SystemExit(f"bench_grpo_reward_source: runs failed or never started: "
                          f"{failed or sorted(set(commands) - set(procs))}")
     return summary
+
+
+def figure_runs(workdir: str) -> dict[str, tuple[str, int, str]]:
+    """:func:`run_dirs` of a work dir a figure draws, refused by name where it holds none."""
+    runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
+    if not runs:
+        raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
+    return runs
 
 
 def run_dirs(workdir: str) -> dict[str, tuple[str, int, str]]:
@@ -1060,14 +1074,10 @@ def check_refresh(args) -> None:
     import configs
     from configs.cli import apply_overrides
 
-    refresh = [f"--rl.refresh.every={args.refresh_every}", f"--rl.refresh.episodes={args.refresh_episodes}",
-               f"--rl.refresh.budget={args.refresh_budget}", *(f"--{kv}" for kv in args.refresh_set)]
-    steps = [f"--rl.grpo.eval_every={args.eval_every}", f"--rl.grpo.steps={args.steps}",
-             f"--rl.grpo.rollout_batch={args.rollout_batch}"]
     for arm in (a for a in REFRESHED_ARMS if a in args.arms):  # each as its command sets it
         try:
-            apply_overrides(configs.get(args.config), [*recipe(args), *WORLD_MODEL, *REWARD[arm], *steps,
-                                                       *refresh]).validate()
+            apply_overrides(configs.get(args.config), [*recipe(args), *WORLD_MODEL, *REWARD[arm], *step_flags(args),
+                                                       *refresh_settings(args)]).validate()
         except (ValueError, KeyError, TypeError) as error:
             raise SystemExit(f"bench_grpo_reward_source: the {arm} arm's refresh: {error}") from None
 
@@ -1093,9 +1103,7 @@ def figure(workdir: str, path: str) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
-    if not runs:
-        raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
+    runs = figure_runs(workdir)
     series: dict[str, dict] = {}
     fig, (paid_ax, eval_ax, gap_ax) = plt.subplots(1, 3, figsize=(16, 4.2))
     for name, (arm, _seed, grpo) in runs.items():
@@ -1170,10 +1178,7 @@ def episodes_figure(workdirs: Sequence[str], path: str, policy: str = "sampled",
     colours = {arm: f"C{i}" for i, arm in enumerate(ARMS)}
     fig, ax = plt.subplots(figsize=(7.5, 4.6))
     for workdir in workdirs:
-        runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
-        if not runs:
-            raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
-        for name, (arm, seed, grpo) in runs.items():
+        for name, (arm, seed, grpo) in figure_runs(workdir).items():
             used = episodes_consumed(read_history(grpo))
             points = [(p["step"], p if policy == "greedy" else p.get(policy)) for p in read_points(grpo)]
             points = [(step, e) for step, e in points if e is not None and step in used]
@@ -1216,10 +1221,7 @@ def by_start_figure(workdirs: Sequence[str], path: str, title: str = "", min_rol
     edges: list[int] = []  # every bin's lower edge, and those of the bins drawn
     drawn: set[int] = set()
     for workdir in workdirs:
-        runs = run_dirs(workdir) if os.path.isdir(workdir) else {}
-        if not runs:
-            raise SystemExit(f"bench_grpo_reward_source figure: no runs with a success curve under {workdir}")
-        for name, (arm, seed, grpo) in runs.items():
+        for name, (arm, seed, grpo) in figure_runs(workdir).items():
             counted = [h for h in read_history(grpo) if "start_a0_rollouts" in h]
             if not counted:
                 continue
@@ -1230,20 +1232,17 @@ def by_start_figure(workdirs: Sequence[str], path: str, title: str = "", min_rol
                 continue
             label = name if len(workdirs) == 1 else f"{os.path.basename(os.path.normpath(workdir))}/{name}"
             drawn |= {b["from_step"] for b in bins}
-            intervals = [wilson_interval(b["real"], b["rollouts"]) for b in bins]
             series[label] = entry = {
                 "arm": arm, "seed": seed, "from_step": [b["from_step"] for b in bins],
                 "rollouts": [b["rollouts"] for b in bins], "real_success": [b["real_success"] for b in bins],
-                "ci95": [list(i) for i in intervals],
+                "ci95": [list(wilson_interval(b["real"], b["rollouts"])) for b in bins],
                 **({"detector_success": [b["detector_success"] for b in bins]} if "said" in bins[0] else {})}
-            line = ax.errorbar(entry["from_step"], entry["real_success"],
-                               yerr=[[m - lo for m, (lo, _) in zip(entry["real_success"], intervals)],
-                                     [hi - m for m, (_, hi) in zip(entry["real_success"], intervals)]],
-                               marker="osd^v"[seed % 5], ms=5, capsize=3, color=colours[arm],
-                               label=f"{label}: {FIGURE_ARMS[arm]}")[0]
+            errorbar_curve(ax, [{"step": a, "success": m, "ci95": ci} for a, m, ci in
+                                zip(entry["from_step"], entry["real_success"], entry["ci95"])],
+                           marker="osd^v"[seed % 5], ms=5, color=colours[arm], label=f"{label}: {FIGURE_ARMS[arm]}")
             if "detector_success" in entry:
                 ax.plot(entry["from_step"], entry["detector_success"], ls="--", marker="osd^v"[seed % 5], ms=3,
-                        color=line.get_color(), alpha=0.6, label=f"{label}: the detector said")
+                        color=colours[arm], alpha=0.6, label=f"{label}: the detector said")
     if not series:
         raise SystemExit(f"bench_grpo_reward_source figure --by-start: no run under {', '.join(workdirs)} counted "
                          f"{min_rollouts} or more of its rollouts in a bin of the start's step (start_a*_rollouts)")
