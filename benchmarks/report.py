@@ -853,6 +853,8 @@ def grpo_first_half_world_model(step: int = 20) -> str:
 BY_START = ("policy", "grpo_by_start_small_h200")
 # the same world model from the second half of each demonstration only (keyframe_from 0.5), exec alone, step 1
 BY_START_WINDOW = ("policy", "grpo_by_start_window_small_h200")
+# gt beside rexec: the same world model refreshed once at step 0 on 128 MJX episodes of the policy, as BY_START
+BY_START_REFRESH = ("policy", "grpo_by_start_refresh_small_h200")
 
 
 def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
@@ -875,14 +877,24 @@ def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
 BY_START_ARMS = {"exec": "as trained", "rexec": "refreshed"}
 
 
-def grpo_by_start(record: tuple[str, ...] = BY_START) -> str:
-    """Per bin of the start's step, seed and world-model arm of ``record`` (its ``grpo_reward_source.json``'s
-    ``by_start``, :data:`BY_START_ARMS`): ground truth's rollouts and real success (the record's ``gt`` run of that
-    seed; blank without one) beside the world model's rollouts paid by executing their actions, the share of
-    ground truth's real success they kept, and what the detector said of them: its success and its precision (the
-    share of its verdicts of success that reality paid)."""
-    runs = _load(*record, "grpo_reward_source.json")["runs"]
+def grpo_by_start(*records: tuple[str, ...]) -> str:
+    """Per bin of the start's step, seed and world-model arm of each of ``records`` (default :data:`BY_START`; its
+    ``grpo_reward_source.json``'s ``by_start``, :data:`BY_START_ARMS`): ground truth's rollouts and real success
+    (the same record's ``gt`` run of that seed; blank without one) beside the world model's rollouts paid by
+    executing their actions, the share of ground truth's real success they kept, and what the detector said of
+    them: its success and its precision (the share of its verdicts of success that reality paid)."""
+    rows = []
+    for record in records or (BY_START,):
+        rows += _by_start_rows(_load(*record, "grpo_reward_source.json")["runs"])
+    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))  # stable: the records' order kept
+    return _table(["start's step in its demonstration (actions)", "seed", "world model", "ground truth: rollouts",
+                   "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
+                   "kept (world model over ground truth)", "the detector's success on its rollouts",
+                   "the detector's precision"], rows)
 
+
+def _by_start_rows(runs: dict) -> list[list[str]]:
+    """:func:`grpo_by_start`'s rows of one record's ``runs``."""
     def bins(arm: str, seed: int) -> list[dict] | None:
         found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
         return _by_start_pooled(found[0]["by_start"]) if found else None
@@ -902,11 +914,42 @@ def grpo_by_start(record: tuple[str, ...] = BY_START) -> str:
                              f"{paid_g:.3f}" if g else "", f"{e['rollouts']:,}", f"{paid_e:.3f}",
                              f"{100 * paid_e / paid_g:.0f}%" if paid_g else "", f"{e['said'] / e['rollouts']:.2f}",
                              f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
-    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
-    return _table(["start's step in its demonstration (actions)", "seed", "world model", "ground truth: rollouts",
-                   "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
-                   "kept (world model over ground truth)", "the detector's success on its rollouts",
-                   "the detector's precision"], rows)
+    return rows
+
+
+def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = (
+        (BY_START, "exec", "as trained"), (BY_START_REFRESH, "rexec", "refreshed"))) -> str:
+    """Per seed, the world model as trained (:data:`BY_START`'s ``exec`` runs) and refreshed (:data:`BY_START_REFRESH`'s
+    ``rexec``), means over their GRPO steps: what reality paid their rollouts' actions, and where their closed loop
+    left the real one at its first and last decision (frame error and the policy's greedy action gap to the real
+    frame, with the VAE alone's at the last); for a refreshed run, what its refresh fine-tuned on and its last loss."""
+    rows = []
+    for record, arm, label in records:
+        for seed in (0, 1, 2):
+            run = os.path.join(RESULTS_DIR, *record, f"{arm}_s{seed}", "rl", "grpo")
+            if not os.path.isdir(run):
+                continue
+            history = _history_rows(os.path.join(run, "train_history.jsonl"))
+            last = max(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+
+            def mean(key: str) -> str:
+                return f"{statistics.mean(h[key] for h in history):.3f}"
+
+            refresh = ""
+            if os.path.exists(os.path.join(run, "refreshes.json")):
+                with open(os.path.join(run, "refreshes.json")) as f:
+                    wm = json.load(f)[0]["world_model"]
+                refresh = (f"{wm['real_episodes']} real episodes + {wm['training_episodes']} training, "
+                           f"{wm['steps']:,} steps, loss {wm['last']['loss']:.3f}")
+            rows.append([f"s{seed}", label, str(len(history)), mean("success_rate"),
+                         f"{mean('closed_loop_frame_error_1')} / {mean(f'closed_loop_frame_error_{last}')}",
+                         mean(f"closed_loop_frame_error_vae_{last}"),
+                         f"{mean('closed_loop_action_gap_1')} / {mean(f'closed_loop_action_gap_{last}')}",
+                         mean(f"closed_loop_action_gap_vae_{last}"), refresh])
+    rows.sort(key=lambda r: r[0])  # stable: as trained before refreshed
+    return _table(["seed", "world model", "steps", "real success of its rollouts' actions",
+                   "frame error to the real frame, first / last decision", "the VAE alone, last",
+                   "greedy action gap, first / last decision", "the VAE alone, last", "its refresh"], rows)
 
 
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
@@ -1806,6 +1849,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-first-half-as-trained": grpo_first_half_as_trained,
     "grpo-first-half-world-model": grpo_first_half_world_model,
     "grpo-by-start": grpo_by_start, "grpo-by-start-window": lambda: grpo_by_start(BY_START_WINDOW),
+    "grpo-by-start-refresh": lambda: grpo_by_start(BY_START, BY_START_REFRESH),
+    "grpo-refresh-fidelity": grpo_refresh_fidelity,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

@@ -492,3 +492,48 @@ def test_the_by_start_table_pools_late_starts_and_divides_like_bins():
         rows = [[c.strip() for c in row.strip("|").split("|")] for row in report.grpo_by_start().splitlines()[2:]]
     assert [r[0] for r in rows] == ["0-23", "24-47", "48+"] and rows[1][3:8] == ["", "", "4", "0.500", ""]
     assert "grpo-by-start-window" in report.TABLES
+
+
+def test_the_by_start_table_sets_records_side_by_side_each_against_its_own_ground_truth():
+    """grpo_by_start of several records: each world-model arm's kept share is over its own record's gt, and within a
+    bin and seed the rows keep the records' order."""
+    def rec(arm, gt_real, wm_real):
+        return {"runs": {"gt_s0": {"arm": "gt", "seed": 0, "by_start": [{"from_step": 0, "rollouts": 100,
+                                                                         "real": gt_real}]},
+                         f"{arm}_s0": {"arm": arm, "seed": 0, "by_start": [
+                             {"from_step": 0, "rollouts": 100, "real": wm_real, "said": 10, "said_real": 5}]}}}
+
+    loaded = {"a": rec("exec", 40, 10), "b": rec("rexec", 50, 20)}
+    with mock.patch.object(report, "_load", side_effect=lambda *path: loaded[path[1]]):
+        rows = [[c.strip() for c in row.strip("|").split("|")]
+                for row in report.grpo_by_start(("policy", "b"), ("policy", "a")).splitlines()[2:]]
+    assert [r[2] for r in rows] == ["refreshed", "as trained"]
+    assert [(r[4], r[6], r[7]) for r in rows] == [("0.500", "0.200", "40%"), ("0.400", "0.100", "25%")]
+    assert "grpo-by-start-refresh" in report.TABLES
+
+
+def test_the_refresh_fidelity_table_means_each_runs_steps_and_names_its_refresh(tmp_path, monkeypatch):
+    """grpo_refresh_fidelity: per seed the run as trained before the refreshed one, the means over steps of the
+    rollouts' real success and of the closed loop at its first and last decision, and the refresh's fine-tune."""
+    def run(record, arm, seed, base, refresh=None):
+        d = tmp_path / "policy" / record / f"{arm}_s{seed}" / "rl" / "grpo"
+        d.mkdir(parents=True)
+        d.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
+            {"success_rate": base + v, **{f"closed_loop_{what}_{k}": base + v + k for k in (1, 3)
+                                          for what in ("frame_error", "frame_error_vae", "action_gap", "action_gap_vae")}})
+            for v in (0.0, 0.5)) + "\n")
+        if refresh:
+            d.joinpath("refreshes.json").write_text(json.dumps([{"world_model": refresh}]))
+
+    run("a", "exec", 1, 0.0)
+    run("b", "rexec", 1, 0.25, {"real_episodes": 128, "training_episodes": 600, "steps": 1000, "last": {"loss": 0.05}})
+    run("b", "rexec", 0, 0.0)
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_refresh_fidelity(((("policy", "a"), "exec", "as trained"),
+                                          (("policy", "b"), "rexec", "refreshed"))).splitlines()
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
+    assert [r[:3] for r in rows] == [["s0", "refreshed", "2"], ["s1", "as trained", "2"], ["s1", "refreshed", "2"]]
+    assert rows[1][3:8] == ["0.250", "1.250 / 3.250", "3.250", "1.250 / 3.250", "3.250"] and rows[1][8] == ""
+    assert rows[2][3:5] == ["0.500", "1.500 / 3.500"]
+    assert rows[2][8] == "128 real episodes + 600 training, 1,000 steps, loss 0.050"
+    assert "grpo-refresh-fidelity" in report.TABLES and table[0].count("|") == table[2].count("|")
