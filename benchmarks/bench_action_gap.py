@@ -146,6 +146,31 @@ def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, ta
     return out
 
 
+def lag_by_start(act: Any, params: Any, envs: Any, rl: Any, *, draws: Sequence[tuple[list, np.ndarray]],
+                 horizon: int, key: jax.Array) -> dict[str, Any]:
+    """Rollouts from keyframes as ground-truth GRPO draws them (``draws``: per GRPO step, its start states and each
+    one's step in its demonstration, :func:`sim.grpo_env.keyframe_env_starts` / ``keyframe_steps``), ``horizon``
+    actions sampled at ``rl.grpo.temperature`` with the policy's "missing proprio" input and
+    ``rl.env.execute_steps`` actions a decision, each read once on the real frames and once a decision late
+    (:class:`LaggedEnvs`), with the same key per step. Their successes counted by the start's step
+    (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`, summed over the steps): ``{"real": bins, "lag_1":
+    bins}``, each bin ``{"from_step", "rollouts", "real"}``. The by-start figure of a simulator whose frames are a
+    decision late, to set beside the world model's (``bench_grpo_reward_source`` ``by_start``)."""
+    from sword_jax.rl.imagined_check import START_STEP_EDGES, outcomes_by_start
+
+    totals = {name: {lower: [0, 0] for lower in START_STEP_EDGES} for name in ("real", "lag_1")}
+    for step, (starts, steps) in enumerate(draws, start=1):
+        for name, seen in (("real", envs), ("lag_1", LaggedEnvs(envs))):
+            rollout = run_policy(act, params, seen, rl, key=jax.random.fold_in(key, step), greedy=False,
+                                 max_steps=horizon, episodes=starts, record=False, proprio="missing")
+            counted = outcomes_by_start(jnp.asarray(steps), None, jnp.asarray(rollout.success, bool))
+            for lower in START_STEP_EDGES:
+                totals[name][lower][0] += int(counted[f"start_a{lower}_rollouts"])
+                totals[name][lower][1] += int(counted[f"start_a{lower}_real"])
+    return {name: [{"from_step": lower, "rollouts": n, "real": hits} for lower, (n, hits) in bins.items()]
+            for name, bins in totals.items()}
+
+
 def policy_frames(act: Any, params: Any, envs: Any, rl: Any, *, decisions: int, key: jax.Array
                   ) -> tuple[UInt8[np.ndarray, "n d h w 3"], Bool[np.ndarray, "n d"], Any]:
     """Runs the policy greedily in ``envs`` for ``decisions`` decisions of ``rl.env.execute_steps`` actions, its
@@ -284,6 +309,40 @@ def measure(graphdef: Any, params: Any, frames: np.ndarray, taken: np.ndarray, r
     return {"real_actions": real_actions, "frame_error": frame_error, "action_gap": action_gap, "small": small}
 
 
+def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequence[str], steps: int) -> dict:
+    """:func:`lag_by_start` on the start states of ground-truth GRPO's first ``steps`` steps from the keyframes of
+    ``demos`` (``cfg.rl``'s batch, group size and keyframe window; the same draws as ``train.grpo`` and
+    ``bench_policy grpo`` make at ``cfg.seed``), each rolled out for the learned simulator's horizon; the bins with
+    their real success on real and on late frames and the share the late frames kept, printed and returned."""
+    from sim import grpo_env
+    from sim.dataset import read_dataset
+    from sim.lockstep import LockstepEnvs
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.env_rollout import make_act_fns
+
+    keyframes = rl_data.load_episodes(list(demos), read=read_dataset)
+    grpo_env.check_keyframe_episodes(keyframes)
+    draws = [(grpo_env.keyframe_env_starts(keyframes, cfg.rl, seed=cfg.seed, step=step),
+              np.repeat(grpo_env.keyframe_steps(keyframes, cfg.rl, seed=cfg.seed, step=step), cfg.rl.grpo.group_size))
+             for step in range(steps)]
+    horizon = min(grpo_env.keyframe_horizon(cfg.rl), cfg.sim.max_steps)
+    start = time.time()
+    with LockstepEnvs(draws[0][0], resolution=cfg.sim.resolution, max_steps=horizon) as envs:
+        bins = lag_by_start(make_act_fns(graphdef, rl), params, envs, rl, draws=draws, horizon=horizon,
+                            key=jax.random.key(cfg.seed))
+    for real, late in zip(bins["real"], bins["lag_1"]):
+        if real["rollouts"]:
+            share = f", kept {100 * late['real'] / real['real']:.0f}%" if real["real"] else ""
+            print(f"[gap] from step {real['from_step']}+: {real['rollouts']} rollouts, real frames "
+                  f"{real['real'] / real['rollouts']:.3f}, a decision late "
+                  f"{late['real'] / late['rollouts']:.3f}{share}", flush=True)
+    return {"mode": f"sampled at T {rl.grpo.temperature}, proprio missing, {rl.env.execute_steps} actions a decision, "
+                    f"{horizon} actions from keyframes (fractions {cfg.rl.imagined.keyframe_from}-"
+                    f"{cfg.rl.imagined.keyframe_fraction} of each demonstration)",
+            "steps": steps, "starts_per_step": cfg.rl.grpo.rollout_batch, "group_size": cfg.rl.grpo.group_size,
+            "demos": list(demos), "seconds": round(time.time() - start, 1), **bins}
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     import configs
 
@@ -298,7 +357,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--lag-proprio", default="missing",
                         help="comma list of true, reckoned, missing: the lag measured with the policy reading that "
                         "proprio (reckoned: the policy's .reckoning.json beside it)")
+    parser.add_argument("--lag-keyframe-steps", type=int, default=0,
+                        help="also the lag's cost by the start's step: the start states of this many ground-truth "
+                        "GRPO steps from keyframes (--demos), each rolled out on real and on late frames (0 = off)")
+    parser.add_argument("--demos", action="append", default=[],
+                        help="demonstrations with recorded states (LIBERO-layout HDF5) for --lag-keyframe-steps")
     args = parser.parse_args(rest)
+    if args.lag_keyframe_steps < 0 or bool(args.lag_keyframe_steps) != bool(args.demos):
+        raise SystemExit(f"bench_action_gap: --lag-keyframe-steps (>= 1) and --demos go together, got "
+                         f"{args.lag_keyframe_steps} and {len(args.demos)} demonstration files")
+    missing = [d for d in args.demos if not os.path.isfile(d)]
+    if missing:
+        raise SystemExit(f"bench_action_gap: no such demonstration file: {', '.join(missing)}")
     try:
         views = parse_views(args.views, vae=bool(args.vae))
     except ValueError as err:
@@ -372,6 +442,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         results["lag"] = by_proprio[lag_proprio[0]]  # the first mode listed (missing by default)
         if len(lag_proprio) > 1:
             results["lag_by_proprio"] = by_proprio
+    if args.lag_keyframe_steps:
+        results["lag_by_start"] = keyframe_lag(cfg, rl, graphdef, params, demos=args.demos,
+                                               steps=args.lag_keyframe_steps)
     results["seconds"] = {"episodes": round(episode_seconds, 1), "all": round(time.time() - start, 1)}
     print(f"[gap] {results['frames']} frames of {len(episodes)} episodes, {results['seconds']['all']}s; "
           f"greedy action gap and frame error (mean [95% interval])", flush=True)

@@ -185,6 +185,12 @@ def test_bad_arguments_are_refused_before_anything_runs():
         ag.main(base + ["--lag-proprio", "exact"])
     with pytest.raises(SystemExit, match="needs the policy's reckoning missing.reckoning.json"):
         ag.main(base + ["--lag-proprio", "missing,reckoned"])
+    with pytest.raises(SystemExit, match="--lag-keyframe-steps .* and --demos go together, got 2 and 0"):
+        ag.main(base + ["--lag-keyframe-steps", "2"])
+    with pytest.raises(SystemExit, match="go together, got 0 and 1"):
+        ag.main(base + ["--demos", "d.hdf5"])
+    with pytest.raises(SystemExit, match="no such demonstration file: nowhere.hdf5"):
+        ag.main(base + ["--lag-keyframe-steps", "1", "--demos", "nowhere.hdf5"])
     assert ag.parse_views("dim_20pct,real") == ["dim_20pct", "real"]
     assert ag.parse_views("dim_20pct,real", vae=True) == ["dim_20pct", "real", "vae"]  # --vae adds its view
     assert ag.parse_views("vae,real", vae=True) == ["vae", "real"]
@@ -214,6 +220,54 @@ def test_a_small_run_on_the_c_engine_writes_its_table(tmp_path):
     assert len(dim["action_gap"]["per_decision"]) == 2
     assert results["consecutive_decisions"]["frame_error"]["frames"] == 2
     assert os.path.basename(results["policy"]) == "policy.npz"
+
+
+def test_the_lag_by_start_rolls_out_ground_truth_grpos_keyframe_starts_on_real_and_late_frames(tmp_path):
+    """--lag-keyframe-steps with --demos: the start states of ground-truth GRPO's first steps from the
+    demonstrations' keyframes, each rolled out on real and on late frames, counted by the start's step; the real
+    frames' counts are those of the same rollouts run directly with the step's key."""
+    from sim import grpo_env
+    from sim.dataset import read_dataset
+    from sim.lockstep import LockstepEnvs
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.imagined_check import START_STEP_EDGES
+    from train import gen_data
+
+    demos = str(tmp_path / "demos.hdf5")
+    gen_data.main(["--task", "0", "--episodes", "2", "--out", demos, "--resolution", "32", "--max-steps", "60",
+                   "--stop-at-success"])
+    cfg = configs.get("sword:tiny")
+    path = str(tmp_path / "policy.npz")
+    graphdef, params = build_policy(cfg.rl, seed=cfg.seed)
+    save_params_npz(path, params)
+    overrides = ["--sim.tasks=0", "--rl.imagined.execute_steps=4", "--rl.imagined.max_chunks=3",
+                 "--rl.imagined.keyframe_fraction=1.0", "--rl.grpo.rollout_batch=3", "--rl.grpo.group_size=2"]
+    results = ag.main(["--config", "sword:tiny", *overrides, "--policy", path, "--episodes-per-task", "1",
+                       "--decisions", "1", "--views", "real", "--out", str(tmp_path / "out"),
+                       "--lag-keyframe-steps", "2", "--demos", demos])
+    lag = results["lag_by_start"]
+    assert lag["steps"] == 2 and lag["starts_per_step"] == 3 and lag["group_size"] == 2 and lag["demos"] == [demos]
+    assert "12 actions from keyframes" in lag["mode"] and "4 actions a decision" in lag["mode"]
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", *overrides])
+    episodes = rl_data.load_episodes([demos], read=read_dataset)
+    steps = np.concatenate([np.repeat(grpo_env.keyframe_steps(episodes, cfg.rl, seed=cfg.seed, step=k), 2)
+                            for k in range(2)])
+    for view in ("real", "lag_1"):
+        assert [b["from_step"] for b in lag[view]] == list(START_STEP_EDGES)
+        assert sum(b["rollouts"] for b in lag[view]) == 12
+        for b, hi in zip(lag[view], [*START_STEP_EDGES[1:], 10**9]):
+            assert b["rollouts"] == int(np.sum((steps >= b["from_step"]) & (steps < hi)))
+            assert 0 <= b["real"] <= b["rollouts"]
+    rl = dataclasses.replace(cfg.rl, env=dataclasses.replace(cfg.rl.env, execute_steps=4, action_ensemble=False))
+    starts = grpo_env.keyframe_env_starts(episodes, cfg.rl, seed=cfg.seed, step=1)
+    with LockstepEnvs(starts, resolution=32, max_steps=12) as envs:
+        direct = ag.lag_by_start(make_act_fns(graphdef, rl), params, envs, rl, draws=[(starts, steps[6:])], horizon=12,
+                                 key=jax.random.key(cfg.seed))
+        once = ag.run_policy(make_act_fns(graphdef, rl), params, envs, rl, greedy=False, max_steps=12,
+                             key=jax.random.fold_in(jax.random.key(cfg.seed), 1), episodes=starts, record=False,
+                             proprio="missing")
+    assert sum(b["real"] for b in direct["real"]) == int(np.sum(once.success))
+    assert sum(b["rollouts"] for b in direct["lag_1"]) == 6
 
 
 @pytest.mark.slow  # the C engine run beside it covers the table in the default run

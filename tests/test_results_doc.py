@@ -519,8 +519,8 @@ def test_the_refresh_fidelity_table_means_each_runs_steps_and_names_its_refresh(
         d = tmp_path / "policy" / record / f"{arm}_s{seed}" / "rl" / "grpo"
         d.mkdir(parents=True)
         d.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
-            {"success_rate": base + v, **{f"closed_loop_{what}_{k}": base + v + k for k in (1, 3)
-                                          for what in ("frame_error", "frame_error_vae", "action_gap", "action_gap_vae")}})
+            {"success_rate": base + v, **{f"closed_loop_{what}_{k}": base + v + k for k in (1, 3) for what in
+                                          ("frame_error", "frame_error_vae", "action_gap", "action_gap_vae")}})
             for v in (0.0, 0.5)) + "\n")
         if refresh:
             d.joinpath("refreshes.json").write_text(json.dumps([{"world_model": refresh}]))
