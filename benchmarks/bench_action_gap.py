@@ -34,6 +34,13 @@ episodes from rest, sampled at ``rl.grpo.temperature``, once reading the real fr
 decision the frame of the decision before (:class:`LaggedEnvs`: a simulator that shows the scene a decision
 late, or does not move it), on the same evaluation states. ``--lag-proprio true,missing`` measures it once per
 proprio input: whether a policy that reads the arm's true (or dead-reckoned) state still needs the current frame.
+
+With ``--lag-keyframe-steps N --demos FILE`` it measures that cost where GRPO's rollouts start: the start states
+of ground-truth GRPO's first N steps from the demonstrations' keyframes (the config's batch, group size and
+keyframe window; the same draws ``bench_policy grpo`` makes at the seed), each rolled out for the learned
+simulator's horizon on real and on late frames, sampled, proprio missing, and counted by the start's step in its
+demonstration (:func:`lag_by_start`): the by-start figure of a simulator a decision late, to set beside the world
+model's (``bench_grpo_reward_source`` ``by_start``).
 """
 
 from __future__ import annotations
