@@ -952,6 +952,52 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
                    "greedy action gap, first / last decision", "the VAE alone, last", "its refresh"], rows)
 
 
+# the cost of a frame a decision late by the start's step: ground-truth GRPO's keyframe starts of steps 1-4 at seeds
+# 0-1 (the by-start record's draws), the supervised policy on real and on late frames (C engine, 2-core CPU)
+LAG_BY_START = ("policy", "lag_by_start_small_cpu")
+
+
+def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tuple[str, ...] = BY_START) -> str:
+    """Per bin of the start's step and seed: the real success of the rollouts on real frames and on frames a
+    decision late (``record``'s ``s<seed>/action_gap.json``, ``lag_by_start``), the share the late frames kept, and
+    beside it the share the world model's frames kept in ``world_model``'s by-start record (its ``exec`` over its
+    ``gt``, the same seed)."""
+    runs = _load(*world_model, "grpo_reward_source.json")["runs"]
+
+    def kept_by_world_model(seed: int) -> dict[int, str]:
+        pooled = {}
+        for arm in ("gt", "exec"):
+            found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
+            pooled[arm] = {b["from_step"]: b for b in _by_start_pooled(found[0]["by_start"])} if found else {}
+        out = {}
+        for a, g in pooled["gt"].items():
+            e = pooled["exec"].get(a)
+            if e and e["rollouts"] and g["rollouts"] and g["real"]:
+                out[a] = f"{100 * (e['real'] / e['rollouts']) / (g['real'] / g['rollouts']):.0f}%"
+        return out
+
+    rows = []
+    for seed in (0, 1, 2):
+        path = os.path.join(RESULTS_DIR, *record, f"s{seed}", "action_gap.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            lag = json.load(f)["lag_by_start"]
+        wm = kept_by_world_model(seed)
+        for real, late in zip(_by_start_pooled(lag["real"]), _by_start_pooled(lag["lag_1"])):
+            if not real["rollouts"]:
+                continue
+            span = (f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None
+                    else f"{real['from_step']}+")
+            paid, late_paid = real["real"] / real["rollouts"], late["real"] / late["rollouts"]
+            rows.append([span, f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}", f"{late_paid:.3f}",
+                         f"{100 * late_paid / paid:.0f}%" if paid else "", wm.get(real["from_step"], "")])
+    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
+    return _table(["start's step in its demonstration (actions)", "seed", "rollouts", "real success, real frames",
+                   "the frame a decision late", "kept (late over real)",
+                   "kept by the world model's frames (table `grpo-by-start`)"], rows)
+
+
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
     """A view probe's success with its interval, and its difference from the ``real`` view with the 95% interval
     of that difference (empty for the real view itself)."""
@@ -1850,7 +1896,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-first-half-world-model": grpo_first_half_world_model,
     "grpo-by-start": grpo_by_start, "grpo-by-start-window": lambda: grpo_by_start(BY_START_WINDOW),
     "grpo-by-start-refresh": lambda: grpo_by_start(BY_START, BY_START_REFRESH),
-    "grpo-refresh-fidelity": grpo_refresh_fidelity,
+    "grpo-refresh-fidelity": grpo_refresh_fidelity, "lag-by-start": lag_by_start_table,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

@@ -537,3 +537,29 @@ def test_the_refresh_fidelity_table_means_each_runs_steps_and_names_its_refresh(
     assert rows[2][3:5] == ["0.500", "1.500 / 3.500"]
     assert rows[2][8] == "128 real episodes + 600 training, 1,000 steps, loss 0.050"
     assert "grpo-refresh-fidelity" in report.TABLES and table[0].count("|") == table[2].count("|")
+
+
+def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_models(tmp_path, monkeypatch):
+    """lag-by-start: per bin and seed the real and late frames' success pooled from 48 actions on, the late
+    frames' share of the real one, and the world model's own share from its by-start record (blank where its
+    ground truth paid nothing)."""
+    def bins(*counts):
+        return [{"from_step": a, "rollouts": n, "real": r} for a, (n, r) in zip((0, 24, 48, 72, 96), counts)]
+
+    lag = tmp_path / "policy" / "lag" / "s1"
+    lag.mkdir(parents=True)
+    (lag / "action_gap.json").write_text(json.dumps({"lag_by_start": {
+        "real": bins((100, 50), (80, 40), (10, 8), (2, 2), (0, 0)),
+        "lag_1": bins((100, 1), (80, 20), (10, 3), (2, 1), (0, 0))}}))
+    wm = tmp_path / "policy" / "wm"
+    wm.mkdir(parents=True)
+    (wm / "grpo_reward_source.json").write_text(json.dumps({"runs": {
+        "gt_s1": {"arm": "gt", "seed": 1, "by_start": bins((100, 40), (100, 0), (10, 5), (0, 0), (0, 0))},
+        "exec_s1": {"arm": "exec", "seed": 1, "by_start": bins((100, 4), (100, 50), (10, 5), (0, 0), (0, 0))}}}))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.lag_by_start_table(("policy", "lag"), ("policy", "wm")).splitlines()
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
+    assert rows == [["0-23", "s1", "100", "0.500", "0.010", "2%", "10%"],
+                    ["24-47", "s1", "80", "0.500", "0.250", "50%", ""],
+                    ["48+", "s1", "12", "0.833", "0.333", "40%", "100%"]]
+    assert "lag-by-start" in report.TABLES and table[0].count("|") == table[2].count("|")
