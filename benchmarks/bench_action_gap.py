@@ -156,7 +156,7 @@ def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, ta
 def lag_by_start(act: Any, params: Any, envs: Any, rl: Any, *, draws: Sequence[tuple[list, np.ndarray]],
                  horizon: int, key: jax.Array) -> dict[str, Any]:
     """Rollouts from keyframes as ground-truth GRPO draws them (``draws``: per GRPO step, its start states and each
-    one's step in its demonstration, :func:`sim.grpo_env.keyframe_env_starts` / ``keyframe_steps``), ``horizon``
+    one's step in its demonstration, :func:`sim.grpo_env.keyframe_env_draw`), ``horizon``
     actions sampled at ``rl.grpo.temperature`` with the policy's "missing proprio" input and
     ``rl.env.execute_steps`` actions a decision, each read once on the real frames and once a decision late
     (:class:`LaggedEnvs`), with the same key per step. Their successes counted by the start's step
@@ -328,10 +328,7 @@ def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequen
     from sword_jax.rl.env_rollout import make_act_fns
 
     keyframes = rl_data.load_episodes(list(demos), read=read_dataset)
-    grpo_env.check_keyframe_episodes(keyframes)
-    draws = [(grpo_env.keyframe_env_starts(keyframes, cfg.rl, seed=cfg.seed, step=step),
-              np.repeat(grpo_env.keyframe_steps(keyframes, cfg.rl, seed=cfg.seed, step=step), cfg.rl.grpo.group_size))
-             for step in range(steps)]
+    draws = [grpo_env.keyframe_env_draw(keyframes, cfg.rl, seed=cfg.seed, step=step) for step in range(steps)]
     horizon = min(grpo_env.keyframe_horizon(cfg.rl), cfg.sim.max_steps)
     start = time.time()
     with LockstepEnvs(draws[0][0], resolution=cfg.sim.resolution, max_steps=horizon) as envs:

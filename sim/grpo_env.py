@@ -102,8 +102,17 @@ def keyframe_steps(episodes, rl, *, seed: int, step: int, round_: int = 0, num_c
 
 def keyframe_env_starts(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> list:
     """:func:`keyframe_picks` of step ``step``, each repeated ``group_size`` times (the C engine's rollouts)."""
-    return [start for start in keyframe_picks(episodes, rl, seed=seed, step=step, num_context=num_context)
-            for _ in range(rl.grpo.group_size)]
+    return keyframe_env_draw(episodes, rl, seed=seed, step=step, num_context=num_context)[0]
+
+
+def keyframe_env_draw(episodes, rl, *, seed: int, step: int, num_context: int = 1) -> tuple[list, np.ndarray]:
+    """:func:`keyframe_env_starts` of step ``step`` and each one's step in its demonstration (``[B x group_size]``
+    int32, :func:`keyframe_steps` repeated as the starts are), from one draw."""
+    check_keyframe_episodes(episodes)
+    ep, t = _keyframe_draw(episodes, rl, seed=seed, step=step, round_=0, num_context=num_context)
+    g = rl.grpo.group_size
+    starts = [(int(episodes.tasks[e]), episodes.states[e, s]) for e, s in zip(ep, t) for _ in range(g)]
+    return starts, np.repeat(np.asarray(t, np.int32), g)
 
 
 def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: int, workers: int = 0,
@@ -160,8 +169,7 @@ def run_in_env(cfg, rl, graphdef, params, workdir: str, *, episodes_per_task: in
     def starts_at(step):  # a function of (seed, step), so a resumed run draws the same ones
         # (the start states, one per trajectory; from keyframes also each one's step in its demonstration)
         if rl.env.starts == "keyframes":
-            return (keyframe_env_starts(keyframes, rl, seed=cfg.seed, step=step),
-                    np.repeat(keyframe_steps(keyframes, rl, seed=cfg.seed, step=step), rl.grpo.group_size))
+            return keyframe_env_draw(keyframes, rl, seed=cfg.seed, step=step)
         # stratified over the tasks, as the MJX backend draws them (sim.mjx_batch.stratified_train_starts)
         picked = stratified_train_starts(tasks, rl.grpo.rollout_batch, stream_rng(cfg.seed, "grpo/env_starts", step),
                                          pool=pool)

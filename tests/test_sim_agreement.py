@@ -400,6 +400,13 @@ def test_ground_truth_grpo_keyframe_starts_are_the_learned_simulators_keyframes_
     again = keyframe_picks(episodes, rl, seed=7, step=3, round_=0)
     assert [t for t, _ in first] == [t for t, _ in again]
     assert [t for t, _ in keyframe_env_starts(episodes, rl, seed=7, step=3)][:: rl.grpo.group_size] == [t for t, _ in first]
+    from sim.grpo_env import keyframe_env_draw, keyframe_steps
+
+    drawn, at = keyframe_env_draw(episodes, rl, seed=7, step=3)  # the starts and their steps from one draw
+    assert [t for t, _ in drawn] == [t for t, _ in keyframe_env_starts(episodes, rl, seed=7, step=3)]
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(drawn, keyframe_env_starts(episodes, rl, seed=7, step=3)))
+    np.testing.assert_array_equal(at, np.repeat(keyframe_steps(episodes, rl, seed=7, step=3), rl.grpo.group_size))
+    assert at.dtype == np.int32
     assert len(first) == rl.grpo.rollout_batch and all(f.shape == episodes.states.shape[2:] for _, f in first)
     other = keyframe_picks(episodes, rl, seed=7, step=3, round_=1)
     assert any(not np.array_equal(a, b) for (_, a), (_, b) in zip(first, other))
