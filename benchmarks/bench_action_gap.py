@@ -128,6 +128,38 @@ class LaggedEnvs(_LockstepView):
         return shown
 
 
+class LateEnvs:
+    """Lockstep environments whose policy reads, at each decision, the frame ``lag`` actions before the decision's
+    end: a decision's ``k`` actions run as its first ``k - lag`` (whose frame is shown) and its last ``lag``. Proprio,
+    success, the executed count and the physics are the environment's after all ``k``. ``lag`` from 1 to ``k - 1``
+    (``k`` is :class:`LaggedEnvs`)."""
+
+    def __init__(self, envs: Any, lag: int):
+        if lag < 1:
+            raise ValueError(f"LateEnvs: lag must be >= 1 action, got {lag}")
+        self.envs, self.lag = envs, lag
+
+    @property
+    def n(self) -> int:
+        return self.envs.n
+
+    @property
+    def language(self) -> list[str]:
+        return self.envs.language
+
+    def reset(self, *episodes: Any) -> dict[str, np.ndarray]:
+        return self.envs.reset(*episodes)
+
+    def step(self, actions: np.ndarray) -> dict[str, np.ndarray]:
+        k = actions.shape[1]
+        if self.lag >= k:
+            raise ValueError(f"LateEnvs: a lag of {self.lag} actions needs decisions of more actions, got {k}")
+        shown = self.envs.step(actions[:, : k - self.lag])
+        out = self.envs.step(actions[:, k - self.lag:])  # episodes done in the first part execute nothing more
+        return dict(out, frames=shown["frames"], success=np.asarray(shown["success"]) | np.asarray(out["success"]),
+                    executed=np.asarray(shown["executed"]) + np.asarray(out["executed"]))
+
+
 def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, tasks: Sequence[int], key: jax.Array,
                 proprio: str = "missing", reckoning: Any = None) -> dict[str, Any]:
     """Whole episodes in ``envs`` sampled at ``rl.grpo.temperature``, reading the real frames (``real``) and the
@@ -154,20 +186,23 @@ def lag_success(act: Any, params: Any, envs: Any, rl: Any, *, max_steps: int, ta
 
 
 def lag_by_start(act: Any, params: Any, envs: Any, rl: Any, *, draws: Sequence[tuple[list, np.ndarray]],
-                 horizon: int, key: jax.Array) -> dict[str, Any]:
+                 horizon: int, key: jax.Array, late_actions: Sequence[int] = ()) -> dict[str, Any]:
     """Rollouts from keyframes as ground-truth GRPO draws them (``draws``: per GRPO step, its start states and each
     one's step in its demonstration, :func:`sim.grpo_env.keyframe_env_draw`), ``horizon``
     actions sampled at ``rl.grpo.temperature`` with the policy's "missing proprio" input and
     ``rl.env.execute_steps`` actions a decision, each read once on the real frames and once a decision late
     (:class:`LaggedEnvs`), with the same key per step. Their successes counted by the start's step
     (:func:`~sword_jax.rl.imagined_check.outcomes_by_start`, summed over the steps): ``{"real": bins, "lag_1":
-    bins}``, each bin ``{"from_step", "rollouts", "real"}``. The by-start figure of a simulator whose frames are a
-    decision late, to set beside the world model's (``bench_grpo_reward_source`` ``by_start``)."""
+    bins}``, each bin ``{"from_step", "rollouts", "real"}``; with ``late_actions`` also ``late_<j>_actions`` for each
+    ``j``, read ``j`` actions late (:class:`LateEnvs`). The by-start figure of a simulator whose frames are late, to
+    set beside the world model's (``bench_grpo_reward_source`` ``by_start``)."""
     from sword_jax.rl.imagined_check import START_STEP_EDGES, outcomes_by_start
 
-    totals = {name: {lower: [0, 0] for lower in START_STEP_EDGES} for name in ("real", "lag_1")}
+    views = [("real", envs), ("lag_1", LaggedEnvs(envs)), *((f"late_{j}_actions", LateEnvs(envs, j))
+                                                            for j in late_actions)]
+    totals = {name: {lower: [0, 0] for lower in START_STEP_EDGES} for name, _ in views}
     for step, (starts, steps) in enumerate(draws, start=1):
-        for name, seen in (("real", envs), ("lag_1", LaggedEnvs(envs))):
+        for name, seen in views:
             rollout = run_policy(act, params, seen, rl, key=jax.random.fold_in(key, step), greedy=False,
                                  max_steps=horizon, episodes=starts, record=False, proprio="missing")
             counted = outcomes_by_start(jnp.asarray(steps), None, jnp.asarray(rollout.success, bool))
@@ -316,7 +351,8 @@ def measure(graphdef: Any, params: Any, frames: np.ndarray, taken: np.ndarray, r
     return {"real_actions": real_actions, "frame_error": frame_error, "action_gap": action_gap, "small": small}
 
 
-def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequence[str], steps: int) -> dict:
+def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequence[str], steps: int,
+                 late_actions: Sequence[int] = ()) -> dict:
     """:func:`lag_by_start` on the start states of ground-truth GRPO's first ``steps`` steps from the keyframes of
     ``demos`` (``cfg.rl``'s batch, group size and keyframe window; the same draws as ``train.grpo`` and
     ``bench_policy grpo`` make at ``cfg.seed``), each rolled out for the learned simulator's horizon; the bins with
@@ -333,17 +369,21 @@ def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequen
     start = time.time()
     with LockstepEnvs(draws[0][0], resolution=cfg.sim.resolution, max_steps=horizon) as envs:
         bins = lag_by_start(make_act_fns(graphdef, rl), params, envs, rl, draws=draws, horizon=horizon,
-                            key=jax.random.key(cfg.seed))
-    for real, late in zip(bins["real"], bins["lag_1"]):
+                            key=jax.random.key(cfg.seed), late_actions=late_actions)
+    for i, real in enumerate(bins["real"]):
         if real["rollouts"]:
-            share = f", kept {100 * late['real'] / real['real']:.0f}%" if real["real"] else ""
+            lates = [(name.replace("lag_1", "a decision").replace("_", " "), counted[i])
+                     for name, counted in bins.items() if name != "real"]
             print(f"[gap] from step {real['from_step']}+: {real['rollouts']} rollouts, real frames "
-                  f"{real['real'] / real['rollouts']:.3f}, a decision late "
-                  f"{late['real'] / late['rollouts']:.3f}{share}", flush=True)
+                  f"{real['real'] / real['rollouts']:.3f}" + "".join(
+                      f", {name} late {b['real'] / b['rollouts']:.3f}"
+                      + (f" (kept {100 * b['real'] / real['real']:.0f}%)" if real["real"] else "")
+                      for name, b in lates), flush=True)
     return {"mode": f"sampled at T {rl.grpo.temperature}, proprio missing, {rl.env.execute_steps} actions a decision, "
                     f"{horizon} actions from keyframes (fractions {cfg.rl.imagined.keyframe_from}-"
                     f"{cfg.rl.imagined.keyframe_fraction} of each demonstration)",
             "steps": steps, "starts_per_step": cfg.rl.grpo.rollout_batch, "group_size": cfg.rl.grpo.group_size,
+            "late_actions": list(late_actions),
             "demos": list(demos), "seconds": round(time.time() - start, 1), **bins}
 
 
@@ -366,7 +406,20 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         "GRPO steps from keyframes (--demos), each rolled out on real and on late frames (0 = off)")
     parser.add_argument("--demos", action="append", default=[],
                         help="demonstrations with recorded states (LIBERO-layout HDF5) for --lag-keyframe-steps")
+    parser.add_argument("--lag-late-actions", default="",
+                        help="with --lag-keyframe-steps, also these lags in actions (comma list, each 1 to a "
+                        "decision's actions - 1): the frame that many actions before the decision's end")
     args = parser.parse_args(rest)
+    try:
+        late_actions = [int(x) for x in args.lag_late_actions.split(",") if x]
+    except ValueError:
+        raise SystemExit(f"bench_action_gap: --lag-late-actions must be a comma list of ints, got "
+                         f"{args.lag_late_actions!r}") from None
+    k = cfg.rl.imagined_actions_per_decision
+    if any(not 1 <= j < k for j in late_actions) or len(set(late_actions)) < len(late_actions) or (
+            late_actions and not args.lag_keyframe_steps):
+        raise SystemExit(f"bench_action_gap: --lag-late-actions needs --lag-keyframe-steps and distinct lags from 1 "
+                         f"to {k - 1} (a decision is {k} actions), got {args.lag_late_actions!r}")
     if args.lag_keyframe_steps < 0 or bool(args.lag_keyframe_steps) != bool(args.demos):
         raise SystemExit(f"bench_action_gap: --lag-keyframe-steps (>= 1) and --demos go together, got "
                          f"{args.lag_keyframe_steps} and {len(args.demos)} demonstration files")
@@ -448,7 +501,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             results["lag_by_proprio"] = by_proprio
     if args.lag_keyframe_steps:
         results["lag_by_start"] = keyframe_lag(cfg, rl, graphdef, params, demos=args.demos,
-                                               steps=args.lag_keyframe_steps)
+                                               steps=args.lag_keyframe_steps, late_actions=late_actions)
     results["seconds"] = {"episodes": round(episode_seconds, 1), "all": round(time.time() - start, 1)}
     print(f"[gap] {results['frames']} frames of {len(episodes)} episodes, {results['seconds']['all']}s; "
           f"greedy action gap and frame error (mean [95% interval])", flush=True)

@@ -145,6 +145,30 @@ def test_lagged_environments_show_the_frame_of_the_decision_before():
                        key=jax.random.key(0), proprio="reckoned")  # reckoned needs the action convention
 
 
+def test_late_environments_show_the_frame_some_actions_before_the_decisions_end():
+    """Through :class:`LateEnvs` with a lag of j actions the policy reads the frame after a decision's first k - j
+    actions; proprio, success, executed and done are those after all k; a lag outside 1..k-1 is refused."""
+    plain, late = (LockstepSlide([[0.3], [-0.2]], ["push it"] * 2, max_steps=8) for _ in range(2))
+    seen = ag.LateEnvs(late, 1)
+    assert seen.n == 2 and seen.language == ["push it"] * 2
+    np.testing.assert_array_equal(seen.reset()["frames"], plain.reset()["frames"])
+    actions = np.full((2, 3, 7), 0.5, np.float32)
+    for _ in range(2):
+        first = plain.step(actions[:, :2])
+        after = plain.step(actions[:, 2:])
+        shown = seen.step(actions)
+        np.testing.assert_array_equal(shown["frames"], first["frames"])
+        assert not np.array_equal(shown["frames"], after["frames"])
+        np.testing.assert_array_equal(shown["proprio"], after["proprio"])
+        np.testing.assert_array_equal(shown["success"], first["success"] | after["success"])
+        np.testing.assert_array_equal(shown["executed"], first["executed"] + after["executed"])
+        np.testing.assert_array_equal(shown["done"], after["done"])
+    with pytest.raises(ValueError, match="needs decisions of more actions, got 1"):
+        seen.step(actions[:, :1])
+    with pytest.raises(ValueError, match="lag must be >= 1 action, got 0"):
+        ag.LateEnvs(late, 0)
+
+
 def test_consecutive_decisions_and_the_summary_over_episodes():
     taken = np.asarray([[True, True, True], [True, True, False]])
     actions = np.asarray([[[0.0, 0.0], [0.5, -0.5], [0.5, 0.5]], [[1.0, 1.0], [0.0, 1.0], [np.nan, np.nan]]])
@@ -191,6 +215,12 @@ def test_bad_arguments_are_refused_before_anything_runs():
         ag.main(base + ["--demos", "d.hdf5"])
     with pytest.raises(SystemExit, match="no such demonstration file: nowhere.hdf5"):
         ag.main(base + ["--lag-keyframe-steps", "1", "--demos", "nowhere.hdf5"])
+    with pytest.raises(SystemExit, match="--lag-late-actions needs --lag-keyframe-steps and distinct lags from 1 to 3"):
+        ag.main(base + ["--lag-late-actions", "1", "--rl.imagined.execute_steps=4"])
+    with pytest.raises(SystemExit, match="distinct lags from 1 to 3 .* got '1,4'"):
+        ag.main(base + ["--lag-late-actions", "1,4", "--rl.imagined.execute_steps=4", "--lag-keyframe-steps", "1"])
+    with pytest.raises(SystemExit, match="--lag-late-actions must be a comma list of ints, got 'a'"):
+        ag.main(base + ["--lag-late-actions", "a"])
     assert ag.parse_views("dim_20pct,real") == ["dim_20pct", "real"]
     assert ag.parse_views("dim_20pct,real", vae=True) == ["dim_20pct", "real", "vae"]  # --vae adds its view
     assert ag.parse_views("vae,real", vae=True) == ["vae", "real"]
@@ -244,15 +274,16 @@ def test_the_lag_by_start_rolls_out_ground_truth_grpos_keyframe_starts_on_real_a
                  "--rl.imagined.keyframe_fraction=1.0", "--rl.grpo.rollout_batch=3", "--rl.grpo.group_size=2"]
     results = ag.main(["--config", "sword:tiny", *overrides, "--policy", path, "--episodes-per-task", "1",
                        "--decisions", "1", "--views", "real", "--out", str(tmp_path / "out"),
-                       "--lag-keyframe-steps", "2", "--demos", demos])
+                       "--lag-keyframe-steps", "2", "--demos", demos, "--lag-late-actions", "2"])
     lag = results["lag_by_start"]
     assert lag["steps"] == 2 and lag["starts_per_step"] == 3 and lag["group_size"] == 2 and lag["demos"] == [demos]
+    assert lag["late_actions"] == [2]
     assert "12 actions from keyframes" in lag["mode"] and "4 actions a decision" in lag["mode"]
     cfg, _ = configs.from_argv(["--config", "sword:tiny", *overrides])
     episodes = rl_data.load_episodes([demos], read=read_dataset)
     steps = np.concatenate([np.repeat(grpo_env.keyframe_steps(episodes, cfg.rl, seed=cfg.seed, step=k), 2)
                             for k in range(2)])
-    for view in ("real", "lag_1"):
+    for view in ("real", "lag_1", "late_2_actions"):
         assert [b["from_step"] for b in lag[view]] == list(START_STEP_EDGES)
         assert sum(b["rollouts"] for b in lag[view]) == 12
         for b, hi in zip(lag[view], [*START_STEP_EDGES[1:], 10**9]):
