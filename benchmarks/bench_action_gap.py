@@ -372,7 +372,7 @@ def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequen
                             key=jax.random.key(cfg.seed), late_actions=late_actions)
     for i, real in enumerate(bins["real"]):
         if real["rollouts"]:
-            lates = [(name.replace("lag_1", "a decision").replace("_", " "), counted[i])
+            lates = [("a decision" if name == "lag_1" else f"{name.split('_')[1]} action(s)", counted[i])
                      for name, counted in bins.items() if name != "real"]
             print(f"[gap] from step {real['from_step']}+: {real['rollouts']} rollouts, real frames "
                   f"{real['real'] / real['rollouts']:.3f}" + "".join(

@@ -998,6 +998,27 @@ def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tupl
                    "kept by the world model's frames (table `grpo-by-start`)"], rows)
 
 
+def lag_by_start_actions(path: tuple[str, ...] = (*LAG_BY_START, "late_actions_s0", "action_gap.json")) -> str:
+    """Per bin of the start's step (one run of ``bench_action_gap --lag-late-actions``): the real success of the
+    rollouts on real frames and the share of it kept when the policy reads, at each decision, the frame some
+    actions before the decision's end (each of the run's ``late_actions``, then a whole decision, ``lag_1``)."""
+    lag = _load(*path)["lag_by_start"]
+    names = [f"late_{j}_actions" for j in lag["late_actions"]] + ["lag_1"]
+    pooled = {name: _by_start_pooled(lag[name]) for name in ["real", *names]}
+    rows = []
+    for i, real in enumerate(pooled["real"]):
+        if not real["rollouts"]:
+            continue
+        span = f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None else f"{real['from_step']}+"
+        paid = real["real"] / real["rollouts"]
+        rows.append([span, f"{real['rollouts']:,}", f"{paid:.3f}"] + [
+            f"{pooled[n][i]['real'] / pooled[n][i]['rollouts']:.3f} ({100 * pooled[n][i]['real'] / real['real']:.0f}%)"
+            if real["real"] else "" for n in names])
+    late = [f"{j} action{'s' if j > 1 else ''} late" for j in lag["late_actions"]]
+    return _table(["start's step in its demonstration (actions)", "rollouts", "real success, real frames",
+                   *[f"{h} (kept)" for h in late], "a decision late (kept)"], rows)
+
+
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:
     """A view probe's success with its interval, and its difference from the ``real`` view with the 95% interval
     of that difference (empty for the real view itself)."""
@@ -1897,6 +1918,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-by-start": grpo_by_start, "grpo-by-start-window": lambda: grpo_by_start(BY_START_WINDOW),
     "grpo-by-start-refresh": lambda: grpo_by_start(BY_START, BY_START_REFRESH),
     "grpo-refresh-fidelity": grpo_refresh_fidelity, "lag-by-start": lag_by_start_table,
+    "lag-by-start-actions": lag_by_start_actions,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,

@@ -563,3 +563,26 @@ def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_mode
                     ["24-47", "s1", "80", "0.500", "0.250", "50%", ""],
                     ["48+", "s1", "12", "0.833", "0.333", "40%", "100%"]]
     assert "lag-by-start" in report.TABLES and table[0].count("|") == table[2].count("|")
+
+
+def test_the_lag_by_actions_table_reads_each_late_view_as_a_share_of_the_real_frames(tmp_path, monkeypatch):
+    """lag-by-start-actions: per bin (those from 48 actions on pooled) the real frames' success, then each lag in
+    actions and the whole decision's, each with its share of the real success (blank where that is 0)."""
+    def bins(*counts):
+        return [{"from_step": a, "rollouts": n, "real": r} for a, (n, r) in zip((0, 24, 48, 72, 96), counts)]
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "action_gap.json").write_text(json.dumps({"lag_by_start": {
+        "late_actions": [1, 3], "real": bins((100, 40), (50, 0), (4, 2), (4, 2), (0, 0)),
+        "late_1_actions": bins((100, 10), (50, 0), (4, 1), (4, 1), (0, 0)),
+        "late_3_actions": bins((100, 2), (50, 0), (4, 0), (4, 1), (0, 0)),
+        "lag_1": bins((100, 1), (50, 0), (4, 0), (4, 0), (0, 0))}}))
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.lag_by_start_actions(("run", "action_gap.json")).splitlines()
+    assert "1 action late (kept)" in table[0] and "3 actions late (kept)" in table[0] and "a decision late" in table[0]
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
+    assert rows == [["0-23", "100", "0.400", "0.100 (25%)", "0.020 (5%)", "0.010 (2%)"],
+                    ["24-47", "50", "0.000", "", "", ""],
+                    ["48+", "8", "0.500", "0.250 (50%)", "0.125 (25%)", "0.000 (0%)"]]
+    assert "lag-by-start-actions" in report.TABLES

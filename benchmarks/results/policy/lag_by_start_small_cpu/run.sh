@@ -18,3 +18,9 @@ for s in 0 1; do
     --rl.grpo.rollout_batch=64 --lag-keyframe-steps 4 --demos runs/lagpipe/data/demos.hdf5 > runs/lagk_s$s.log 2>&1
 done
 # the record: each seed's action_gap.json and log, the data stage's log and config
+# then, seed 0, steps 1-2, also read 1, 2 and 3 actions late within each 4-action decision (LateEnvs), 600 s:
+python -m benchmarks.bench_action_gap --config sword:small --seed 0 --policy $P --episodes-per-task 1 \
+  --decisions 1 --views real --out runs/lagl_s0 --rl.grpo.group_size=8 --rl.grpo.temperature=0.5 \
+  --rl.imagined.execute_steps=4 --rl.imagined.max_chunks=12 --rl.imagined.keyframe_fraction=1.0 \
+  --rl.grpo.rollout_batch=64 --lag-keyframe-steps 2 --demos runs/lagpipe/data/demos.hdf5 --lag-late-actions 1,2,3 \
+  > runs/lagl_s0.log 2>&1   # the record's late_actions_s0/
