@@ -128,7 +128,7 @@ class LaggedEnvs(_LockstepView):
         return shown
 
 
-class LateEnvs:
+class LateEnvs(_LockstepView):
     """Lockstep environments whose policy reads, at each decision, the frame ``lag`` actions before the decision's
     end: a decision's ``k`` actions run as its first ``k - lag`` (whose frame is shown) and its last ``lag``. Proprio,
     success, the executed count and the physics are the environment's after all ``k``. ``lag`` from 1 to ``k - 1``
@@ -137,18 +137,11 @@ class LateEnvs:
     def __init__(self, envs: Any, lag: int):
         if lag < 1:
             raise ValueError(f"LateEnvs: lag must be >= 1 action, got {lag}")
-        self.envs, self.lag = envs, lag
+        super().__init__(envs)
+        self.lag = lag
 
-    @property
-    def n(self) -> int:
-        return self.envs.n
-
-    @property
-    def language(self) -> list[str]:
-        return self.envs.language
-
-    def reset(self, *episodes: Any) -> dict[str, np.ndarray]:
-        return self.envs.reset(*episodes)
+    def _seen(self, frames: np.ndarray, *, first: bool) -> np.ndarray:
+        return frames  # the reset's frame is the start's; step shows its own
 
     def step(self, actions: np.ndarray) -> dict[str, np.ndarray]:
         k = actions.shape[1]
