@@ -998,25 +998,35 @@ def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tupl
                    "kept by the world model's frames (table `grpo-by-start`)"], rows)
 
 
-def lag_by_start_actions(path: tuple[str, ...] = (*LAG_BY_START, "late_actions_s0", "action_gap.json")) -> str:
-    """Per bin of the start's step (one run of ``bench_action_gap --lag-late-actions``): the real success of the
-    rollouts on real frames and the share of it kept when the policy reads, at each decision, the frame some
-    actions before the decision's end (each of the run's ``late_actions``, then a whole decision, ``lag_1``)."""
-    lag = _load(*path)["lag_by_start"]
-    names = [f"late_{j}_actions" for j in lag["late_actions"]] + ["lag_1"]
-    pooled = {name: _by_start_pooled(lag[name]) for name in ["real", *names]}
-    rows = []
-    for i, real in enumerate(pooled["real"]):
-        if not real["rollouts"]:
+def lag_by_start_actions(record: tuple[str, ...] = LAG_BY_START) -> str:
+    """Per bin of the start's step and seed (``record``'s ``late_actions_s<seed>/action_gap.json``, runs of
+    ``bench_action_gap --lag-late-actions``): the real success of the rollouts on real frames and the share of it
+    kept when the policy reads, at each decision, the frame some actions before the decision's end (each of the
+    run's ``late_actions``, then a whole decision, ``lag_1``)."""
+    rows, header = [], None
+    for seed in (0, 1, 2):
+        path = os.path.join(RESULTS_DIR, *record, f"late_actions_s{seed}", "action_gap.json")
+        if not os.path.exists(path):
             continue
-        span = f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None else f"{real['from_step']}+"
-        paid = real["real"] / real["rollouts"]
-        rows.append([span, f"{real['rollouts']:,}", f"{paid:.3f}"] + [
-            f"{pooled[n][i]['real'] / pooled[n][i]['rollouts']:.3f} ({100 * pooled[n][i]['real'] / real['real']:.0f}%)"
-            if real["real"] else "" for n in names])
-    late = [f"{j} action{'s' if j > 1 else ''} late" for j in lag["late_actions"]]
-    return _table(["start's step in its demonstration (actions)", "rollouts", "real success, real frames",
-                   *[f"{h} (kept)" for h in late], "a decision late (kept)"], rows)
+        with open(path) as f:
+            lag = json.load(f)["lag_by_start"]
+        late = [f"{j} action{'s' if j > 1 else ''} late" for j in lag["late_actions"]]
+        if header not in (None, late):
+            raise ValueError(f"lag-by-start-actions: the runs of {record} read different lags ({header} and {late})")
+        header = late
+        names = [f"late_{j}_actions" for j in lag["late_actions"]] + ["lag_1"]
+        pooled = {name: _by_start_pooled(lag[name]) for name in ["real", *names]}
+        for i, real in enumerate(pooled["real"]):
+            if not real["rollouts"]:
+                continue
+            span = (f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None
+                    else f"{real['from_step']}+")
+            rows.append([span, f"s{seed}", f"{real['rollouts']:,}", f"{real['real'] / real['rollouts']:.3f}"] + [
+                f"{pooled[n][i]['real'] / pooled[n][i]['rollouts']:.3f} "
+                f"({100 * pooled[n][i]['real'] / real['real']:.0f}%)" if real["real"] else "" for n in names])
+    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
+    return _table(["start's step in its demonstration (actions)", "seed", "rollouts", "real success, real frames",
+                   *[f"{h} (kept)" for h in header or []], "a decision late (kept)"], rows)
 
 
 def _view_cells(name: str, v: dict, real: dict) -> list[str]:

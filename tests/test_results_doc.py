@@ -9,6 +9,8 @@ import shutil
 import subprocess
 from unittest import mock
 
+import pytest
+
 from benchmarks import report
 from tests.conftest import REPO
 
@@ -566,23 +568,32 @@ def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_mode
 
 
 def test_the_lag_by_actions_table_reads_each_late_view_as_a_share_of_the_real_frames(tmp_path, monkeypatch):
-    """lag-by-start-actions: per bin (those from 48 actions on pooled) the real frames' success, then each lag in
-    actions and the whole decision's, each with its share of the real success (blank where that is 0)."""
+    """lag-by-start-actions: per bin (those from 48 actions on pooled) and seed the real frames' success, then each
+    lag in actions and the whole decision's, each with its share of the real success (blank where that is 0);
+    runs of different lags are refused."""
     def bins(*counts):
         return [{"from_step": a, "rollouts": n, "real": r} for a, (n, r) in zip((0, 24, 48, 72, 96), counts)]
 
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "action_gap.json").write_text(json.dumps({"lag_by_start": {
-        "late_actions": [1, 3], "real": bins((100, 40), (50, 0), (4, 2), (4, 2), (0, 0)),
-        "late_1_actions": bins((100, 10), (50, 0), (4, 1), (4, 1), (0, 0)),
-        "late_3_actions": bins((100, 2), (50, 0), (4, 0), (4, 1), (0, 0)),
-        "lag_1": bins((100, 1), (50, 0), (4, 0), (4, 0), (0, 0))}}))
+    def run(seed, lags=(1, 3)):
+        d = tmp_path / "rec" / f"late_actions_s{seed}"
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "action_gap.json").write_text(json.dumps({"lag_by_start": {
+            "late_actions": list(lags), "real": bins((100, 40), (50, 0), (4, 2), (4, 2), (0, 0)),
+            "late_1_actions": bins((100, 10), (50, 0), (4, 1), (4, 1), (0, 0)),
+            "late_3_actions": bins((100, 2), (50, 0), (4, 0), (4, 1), (0, 0)),
+            "lag_1": bins((100, 1), (50, 0), (4, 0), (4, 0), (0, 0))}}))
+
+    run(0)
+    run(1)
     monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
-    table = report.lag_by_start_actions(("run", "action_gap.json")).splitlines()
+    table = report.lag_by_start_actions(("rec",)).splitlines()
     assert "1 action late (kept)" in table[0] and "3 actions late (kept)" in table[0] and "a decision late" in table[0]
     rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
-    assert rows == [["0-23", "100", "0.400", "0.100 (25%)", "0.020 (5%)", "0.010 (2%)"],
-                    ["24-47", "50", "0.000", "", "", ""],
-                    ["48+", "8", "0.500", "0.250 (50%)", "0.125 (25%)", "0.000 (0%)"]]
-    assert "lag-by-start-actions" in report.TABLES
+    first = ["100", "0.400", "0.100 (25%)", "0.020 (5%)", "0.010 (2%)"]
+    assert rows[:2] == [["0-23", "s0", *first], ["0-23", "s1", *first]]
+    assert rows[2] == ["24-47", "s0", "50", "0.000", "", "", ""]
+    assert rows[4] == ["48+", "s0", "8", "0.500", "0.250 (50%)", "0.125 (25%)", "0.000 (0%)"]
+    assert "lag-by-start-actions" in report.TABLES and table[0].count("|") == table[2].count("|")
+    run(1, lags=(1,))
+    with pytest.raises(ValueError, match="read different lags"):
+        report.lag_by_start_actions(("rec",))

@@ -24,3 +24,10 @@ python -m benchmarks.bench_action_gap --config sword:small --seed 0 --policy $P 
   --rl.imagined.execute_steps=4 --rl.imagined.max_chunks=12 --rl.imagined.keyframe_fraction=1.0 \
   --rl.grpo.rollout_batch=64 --lag-keyframe-steps 2 --demos runs/lagpipe/data/demos.hdf5 --lag-late-actions 1,2,3 \
   > runs/lagl_s0.log 2>&1   # the record's late_actions_s0/
+# and seed 1 the same way on a machine with one H200 and 16 CPU cores (its GPU ran the renderer and the policy; the
+# C engine in one process), after the same data stage there (late_actions_s1_pipeline_data.log), 208 s:
+python -m benchmarks.bench_action_gap --config sword:small --seed 1 --policy $P --episodes-per-task 1 \
+  --decisions 1 --views real --out runs/lagl_s1 --rl.grpo.group_size=8 --rl.grpo.temperature=0.5 \
+  --rl.imagined.execute_steps=4 --rl.imagined.max_chunks=12 --rl.imagined.keyframe_fraction=1.0 \
+  --rl.grpo.rollout_batch=64 --lag-keyframe-steps 2 --demos runs/lagpipe/data/demos.hdf5 --lag-late-actions 1,2,3 \
+  > runs/lagl_s1.log 2>&1   # the record's late_actions_s1/
