@@ -909,8 +909,7 @@ def _by_start_rows(runs: dict) -> list[list[str]]:
                     continue
                 paid_e = e["real"] / e["rollouts"]
                 paid_g = g["real"] / g["rollouts"] if g else None
-                span = f"{e['from_step']}-{e['to_step'] - 1}" if e["to_step"] is not None else f"{e['from_step']}+"
-                rows.append([span, f"s{seed}", label, f"{g['rollouts']:,}" if g else "",
+                rows.append([_bin_span(e), f"s{seed}", label, f"{g['rollouts']:,}" if g else "",
                              f"{paid_g:.3f}" if g else "", f"{e['rollouts']:,}", f"{paid_e:.3f}",
                              f"{100 * paid_e / paid_g:.0f}%" if paid_g else "", f"{e['said'] / e['rollouts']:.2f}",
                              f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
@@ -957,6 +956,21 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
 LAG_BY_START = ("policy", "lag_by_start_small_cpu")
 
 
+def _lag_runs(record: tuple[str, ...], folder: str) -> Iterator[tuple[int, dict]]:
+    """``(seed, lag_by_start)`` of each seed's ``<folder><seed>/action_gap.json`` under ``record`` (seeds 0-2,
+    those present)."""
+    for seed in (0, 1, 2):
+        path = os.path.join(RESULTS_DIR, *record, f"{folder}{seed}", "action_gap.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                yield seed, json.load(f)["lag_by_start"]
+
+
+def _bin_span(b: dict) -> str:
+    """A pooled by-start bin's span of start steps: ``a-b`` or, the last, ``a+``."""
+    return f"{b['from_step']}-{b['to_step'] - 1}" if b["to_step"] is not None else f"{b['from_step']}+"
+
+
 def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tuple[str, ...] = BY_START) -> str:
     """Per bin of the start's step and seed: the real success of the rollouts on real frames and on frames a
     decision late (``record``'s ``s<seed>/action_gap.json``, ``lag_by_start``), the share the late frames kept, and
@@ -977,20 +991,13 @@ def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tupl
         return out
 
     rows = []
-    for seed in (0, 1, 2):
-        path = os.path.join(RESULTS_DIR, *record, f"s{seed}", "action_gap.json")
-        if not os.path.exists(path):
-            continue
-        with open(path) as f:
-            lag = json.load(f)["lag_by_start"]
+    for seed, lag in _lag_runs(record, "s"):
         wm = kept_by_world_model(seed)
         for real, late in zip(_by_start_pooled(lag["real"]), _by_start_pooled(lag["lag_1"])):
             if not real["rollouts"]:
                 continue
-            span = (f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None
-                    else f"{real['from_step']}+")
             paid, late_paid = real["real"] / real["rollouts"], late["real"] / late["rollouts"]
-            rows.append([span, f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}", f"{late_paid:.3f}",
+            rows.append([_bin_span(real), f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}", f"{late_paid:.3f}",
                          f"{100 * late_paid / paid:.0f}%" if paid else "", wm.get(real["from_step"], "")])
     rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
     return _table(["start's step in its demonstration (actions)", "seed", "rollouts", "real success, real frames",
@@ -1004,12 +1011,7 @@ def lag_by_start_actions(record: tuple[str, ...] = LAG_BY_START) -> str:
     kept when the policy reads, at each decision, the frame some actions before the decision's end (each of the
     run's ``late_actions``, then a whole decision, ``lag_1``)."""
     rows, header = [], None
-    for seed in (0, 1, 2):
-        path = os.path.join(RESULTS_DIR, *record, f"late_actions_s{seed}", "action_gap.json")
-        if not os.path.exists(path):
-            continue
-        with open(path) as f:
-            lag = json.load(f)["lag_by_start"]
+    for seed, lag in _lag_runs(record, "late_actions_s"):
         late = [f"{j} action{'s' if j > 1 else ''} late" for j in lag["late_actions"]]
         if header not in (None, late):
             raise ValueError(f"lag-by-start-actions: the runs of {record} read different lags ({header} and {late})")
@@ -1019,9 +1021,8 @@ def lag_by_start_actions(record: tuple[str, ...] = LAG_BY_START) -> str:
         for i, real in enumerate(pooled["real"]):
             if not real["rollouts"]:
                 continue
-            span = (f"{real['from_step']}-{real['to_step'] - 1}" if real["to_step"] is not None
-                    else f"{real['from_step']}+")
-            rows.append([span, f"s{seed}", f"{real['rollouts']:,}", f"{real['real'] / real['rollouts']:.3f}"] + [
+            paid = real["real"] / real["rollouts"]
+            rows.append([_bin_span(real), f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}"] + [
                 f"{pooled[n][i]['real'] / pooled[n][i]['rollouts']:.3f} "
                 f"({100 * pooled[n][i]['real'] / real['real']:.0f}%)" if real["real"] else "" for n in names])
     rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
