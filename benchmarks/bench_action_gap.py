@@ -345,11 +345,12 @@ def measure(graphdef: Any, params: Any, frames: np.ndarray, taken: np.ndarray, r
 
 
 def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequence[str], steps: int,
-                 late_actions: Sequence[int] = ()) -> dict:
+                 late_actions: Sequence[int] = (), workers: int = 0) -> dict:
     """:func:`lag_by_start` on the start states of ground-truth GRPO's first ``steps`` steps from the keyframes of
     ``demos`` (``cfg.rl``'s batch, group size and keyframe window; the same draws as ``train.grpo`` and
     ``bench_policy grpo`` make at ``cfg.seed``), each rolled out for the learned simulator's horizon; the bins with
-    their real success on real and on late frames and the share the late frames kept, printed and returned."""
+    their real success on real and on late frames and the share the late frames kept, printed and returned.
+    ``workers``: processes the C engine steps in (0 = this one; the outcomes are the same)."""
     from sim import grpo_env
     from sim.dataset import read_dataset
     from sim.lockstep import LockstepEnvs
@@ -360,7 +361,7 @@ def keyframe_lag(cfg: Any, rl: Any, graphdef: Any, params: Any, *, demos: Sequen
     draws = [grpo_env.keyframe_env_draw(keyframes, cfg.rl, seed=cfg.seed, step=step) for step in range(steps)]
     horizon = min(grpo_env.keyframe_horizon(cfg.rl), cfg.sim.max_steps)
     start = time.time()
-    with LockstepEnvs(draws[0][0], resolution=cfg.sim.resolution, max_steps=horizon) as envs:
+    with LockstepEnvs(draws[0][0], resolution=cfg.sim.resolution, max_steps=horizon, workers=workers) as envs:
         bins = lag_by_start(make_act_fns(graphdef, rl), params, envs, rl, draws=draws, horizon=horizon,
                             key=jax.random.key(cfg.seed), late_actions=late_actions)
     for i, real in enumerate(bins["real"]):
@@ -402,7 +403,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--lag-late-actions", default="",
                         help="with --lag-keyframe-steps, also these lags in actions (comma list, each 1 to a "
                         "decision's actions - 1): the frame that many actions before the decision's end")
+    parser.add_argument("--lag-workers", type=int, default=0,
+                        help="with --lag-keyframe-steps: processes the C engine steps in (0 = this one)")
     args = parser.parse_args(rest)
+    if args.lag_workers < 0:
+        raise SystemExit(f"bench_action_gap: --lag-workers must be >= 0, got {args.lag_workers}")
     try:
         late_actions = [int(x) for x in args.lag_late_actions.split(",") if x]
     except ValueError:
@@ -494,7 +499,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
             results["lag_by_proprio"] = by_proprio
     if args.lag_keyframe_steps:
         results["lag_by_start"] = keyframe_lag(cfg, rl, graphdef, params, demos=args.demos,
-                                               steps=args.lag_keyframe_steps, late_actions=late_actions)
+                                               steps=args.lag_keyframe_steps, late_actions=late_actions,
+                                               workers=args.lag_workers)
     results["seconds"] = {"episodes": round(episode_seconds, 1), "all": round(time.time() - start, 1)}
     print(f"[gap] {results['frames']} frames of {len(episodes)} episodes, {results['seconds']['all']}s; "
           f"greedy action gap and frame error (mean [95% interval])", flush=True)

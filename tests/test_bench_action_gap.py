@@ -221,6 +221,8 @@ def test_bad_arguments_are_refused_before_anything_runs():
         ag.main(base + ["--lag-late-actions", "1,4", "--rl.imagined.execute_steps=4", "--lag-keyframe-steps", "1"])
     with pytest.raises(SystemExit, match="--lag-late-actions must be a comma list of ints, got 'a'"):
         ag.main(base + ["--lag-late-actions", "a"])
+    with pytest.raises(SystemExit, match="--lag-workers must be >= 0, got -1"):
+        ag.main(base + ["--lag-workers", "-1"])
     assert ag.parse_views("dim_20pct,real") == ["dim_20pct", "real"]
     assert ag.parse_views("dim_20pct,real", vae=True) == ["dim_20pct", "real", "vae"]  # --vae adds its view
     assert ag.parse_views("vae,real", vae=True) == ["vae", "real"]
@@ -299,6 +301,8 @@ def test_the_lag_by_start_rolls_out_ground_truth_grpos_keyframe_starts_on_real_a
                              proprio="missing")
     assert sum(b["real"] for b in direct["real"]) == int(np.sum(once.success))
     assert sum(b["rollouts"] for b in direct["lag_1"]) == 6
+    spread = ag.keyframe_lag(cfg, rl, graphdef, params, demos=[demos], steps=2, late_actions=[2], workers=2)
+    assert all(spread[view] == lag[view] for view in ("real", "lag_1", "late_2_actions"))  # the same outcomes
 
 
 @pytest.mark.slow  # the C engine run beside it covers the table in the default run
