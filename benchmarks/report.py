@@ -886,7 +886,7 @@ def grpo_by_start(*records: tuple[str, ...]) -> str:
     rows = []
     for record in records or (BY_START,):
         rows += _by_start_rows(_load(*record, "grpo_reward_source.json")["runs"])
-    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))  # stable: the records' order kept
+    rows.sort(key=_bin_and_seed)  # stable: the records' order kept
     return _table(["start's step in its demonstration (actions)", "seed", "world model", "ground truth: rollouts",
                    "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
                    "kept (world model over ground truth)", "the detector's success on its rollouts",
@@ -971,35 +971,30 @@ def _bin_span(b: dict) -> str:
     return f"{b['from_step']}-{b['to_step'] - 1}" if b["to_step"] is not None else f"{b['from_step']}+"
 
 
+def _bin_and_seed(row: list[str]) -> tuple[int, str]:
+    """The sort key of a by-start table's row: its bin's first start step (cell 0, :func:`_bin_span`), its seed
+    (cell 1)."""
+    return int(row[0].rstrip("+").split("-")[0]), row[1]
+
+
 def lag_by_start_table(record: tuple[str, ...] = LAG_BY_START, world_model: tuple[str, ...] = BY_START) -> str:
     """Per bin of the start's step and seed: the real success of the rollouts on real frames and on frames a
     decision late (``record``'s ``s<seed>/action_gap.json``, ``lag_by_start``), the share the late frames kept, and
     beside it the share the world model's frames kept in ``world_model``'s by-start record (its ``exec`` over its
     ``gt``, the same seed)."""
-    runs = _load(*world_model, "grpo_reward_source.json")["runs"]
-
-    def kept_by_world_model(seed: int) -> dict[int, str]:
-        pooled = {}
-        for arm in ("gt", "exec"):
-            found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
-            pooled[arm] = {b["from_step"]: b for b in _by_start_pooled(found[0]["by_start"])} if found else {}
-        out = {}
-        for a, g in pooled["gt"].items():
-            e = pooled["exec"].get(a)
-            if e and e["rollouts"] and g["rollouts"] and g["real"]:
-                out[a] = f"{100 * (e['real'] / e['rollouts']) / (g['real'] / g['rollouts']):.0f}%"
-        return out
-
+    # (bin, seed) -> the world model's kept share: grpo-by-start's cell of its runs as trained
+    kept = {(r[0], r[1]): r[7] for r in _by_start_rows(_load(*world_model, "grpo_reward_source.json")["runs"])
+            if r[2] == BY_START_ARMS["exec"]}
     rows = []
     for seed, lag in _lag_runs(record, "s"):
-        wm = kept_by_world_model(seed)
         for real, late in zip(_by_start_pooled(lag["real"]), _by_start_pooled(lag["lag_1"])):
             if not real["rollouts"]:
                 continue
             paid, late_paid = real["real"] / real["rollouts"], late["real"] / late["rollouts"]
-            rows.append([_bin_span(real), f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}", f"{late_paid:.3f}",
-                         f"{100 * late_paid / paid:.0f}%" if paid else "", wm.get(real["from_step"], "")])
-    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
+            span = _bin_span(real)
+            rows.append([span, f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}", f"{late_paid:.3f}",
+                         f"{100 * late_paid / paid:.0f}%" if paid else "", kept.get((span, f"s{seed}"), "")])
+    rows.sort(key=_bin_and_seed)
     return _table(["start's step in its demonstration (actions)", "seed", "rollouts", "real success, real frames",
                    "the frame a decision late", "kept (late over real)",
                    "kept by the world model's frames (table `grpo-by-start`)"], rows)
@@ -1025,7 +1020,7 @@ def lag_by_start_actions(record: tuple[str, ...] = LAG_BY_START) -> str:
             rows.append([_bin_span(real), f"s{seed}", f"{real['rollouts']:,}", f"{paid:.3f}"] + [
                 f"{pooled[n][i]['real'] / pooled[n][i]['rollouts']:.3f} "
                 f"({100 * pooled[n][i]['real'] / real['real']:.0f}%)" if real["real"] else "" for n in names])
-    rows.sort(key=lambda r: (int(r[0].rstrip("+").split("-")[0]), r[1]))
+    rows.sort(key=_bin_and_seed)
     return _table(["start's step in its demonstration (actions)", "seed", "rollouts", "real success, real frames",
                    *[f"{h} (kept)" for h in header or []], "a decision late (kept)"], rows)
 

@@ -557,7 +557,8 @@ def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_mode
     wm.mkdir(parents=True)
     (wm / "grpo_reward_source.json").write_text(json.dumps({"runs": {
         "gt_s1": {"arm": "gt", "seed": 1, "by_start": bins((100, 40), (100, 0), (10, 5), (0, 0), (0, 0))},
-        "exec_s1": {"arm": "exec", "seed": 1, "by_start": bins((100, 4), (100, 50), (10, 5), (0, 0), (0, 0))}}}))
+        "exec_s1": {"arm": "exec", "seed": 1, "by_start": [  # an executed arm's bins carry the detector's counts too
+            dict(b, said=0, said_real=0) for b in bins((100, 4), (100, 50), (10, 5), (0, 0), (0, 0))]}}}))
     monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
     table = report.lag_by_start_table(("policy", "lag"), ("policy", "wm")).splitlines()
     rows = [[c.strip() for c in row.strip("|").split("|")] for row in table[2:]]
