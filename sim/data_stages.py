@@ -187,6 +187,15 @@ def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -
             "sources": np.concatenate([raw, np.repeat(raw, copies)])}
 
 
+def latents_summary(cfg, arrays: dict[str, np.ndarray]) -> dict:
+    """What :func:`encode_episode_latents`' ``arrays`` hold: ``episodes`` (E), ``raw_episodes``, ``policy_episodes``,
+    ``styled_copies`` and ``latent_shape`` ([L, h, w, c])."""
+    latents, copies = arrays["latents"], styled_copies(cfg)
+    return {"episodes": int(latents.shape[0]), "raw_episodes": len(latents) // (1 + copies),
+            "policy_episodes": int(arrays["sources"].sum()), "styled_copies": copies,
+            "latent_shape": list(latents.shape[1:])}
+
+
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model: the
     expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``); and the
@@ -199,7 +208,6 @@ def encode_training_latents(ctx: Context) -> dict:
         files.append(ctx.results["policy_data"]["path"])
     graphdef, state = _vae(ctx)
     training = encode_episode_latents(cfg, graphdef, state, files)
-    latents, sources, copies = training["latents"], training["sources"], styled_copies(cfg)
     path = ctx.path("data", "latents.npz")
     np.savez(path, **training)
     encode = vae_api.encoder(graphdef, state)
@@ -217,9 +225,7 @@ def encode_training_latents(ctx: Context) -> dict:
         _, rolled = load_episodes(policy_held, cfg.data.episode_frames)
         arrays.update(policy_latents=encoded(rolled.frames), policy_actions=rolled.actions.astype(np.float32))
     np.savez(heldout_path, **arrays)
-    return {"path": path, "episodes": int(latents.shape[0]), "raw_episodes": len(latents) // (1 + copies),
-            "files": files, "policy_episodes": int(sources.sum()),
-            "styled_copies": copies, "latent_shape": list(latents.shape[1:]), "heldout_path": heldout_path,
+    return {"path": path, **latents_summary(cfg, training), "files": files, "heldout_path": heldout_path,
             "heldout_episodes": int(held.num),
             **({"heldout_policy_episodes": int(rolled.num)} if policy_held else {})}
 

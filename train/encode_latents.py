@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 
 import configs
-from sim.data_stages import encode_episode_latents, styled_copies
+from sim.data_stages import encode_episode_latents, latents_summary
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -143,10 +143,7 @@ def write_episode_latents(cfg, vae: str, files: Sequence[str], out: str) -> dict
     finally:
         if os.path.exists(partial):
             os.remove(partial)
-    copies = styled_copies(cfg)
-    return {"path": out, "episodes": len(latents), "raw_episodes": len(latents) // (1 + copies),
-            "policy_episodes": int(arrays["sources"].sum()), "styled_copies": copies,
-            "latent_shape": list(latents.shape[1:]), "files": list(files), "seconds": time.monotonic() - start}
+    return {"path": out, **latents_summary(cfg, arrays), "files": list(files), "seconds": time.monotonic() - start}
 
 
 if __name__ == "__main__":
