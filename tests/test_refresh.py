@@ -169,6 +169,55 @@ def test_a_refreshed_run_can_pay_its_rollouts_by_executing_their_actions(tiny_ru
                                                      if k.startswith("start_a") and k.endswith("_real"))
 
 
+@pytest.mark.slow  # ~1.5 min on 2 cores: one refresh with the closed loop, one GRPO step paid by execution
+def test_a_refresh_fine_tunes_the_world_model_on_its_own_closed_loop_within_the_budget(tiny_run, tmp_path):
+    """rl.refresh.closed_loop_starts: before the fine-tune, keyframe starts (drawn as GRPO's are) are rolled out by
+    the policy in the simulator, their actions executed for real; the executions count against the budget, the
+    segments (the simulator's own context, the real future) enter the fine-tune, and the record says how far the
+    closed loop drifted. A budget that cannot pay for them skips them; keyframes without states are refused."""
+    cfg = _cfg(tmp_path)
+    imagined = dataclasses.replace(cfg.rl.imagined, reward="executed", eval_replay_episodes=0)
+    starts = cfg.rl.imagined_starts_per_step
+    refresh = dataclasses.replace(cfg.rl.refresh, budget=4 + starts * cfg.rl.grpo.group_size, branch=False,
+                                  closed_loop_starts=starts, closed_loop_share=0.5)
+    cfg = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, imagined=imagined, refresh=refresh))
+    cfg.rl.validate()
+    odd = dataclasses.replace(cfg.rl, refresh=dataclasses.replace(refresh, closed_loop_starts=starts + 1))
+    with pytest.raises(ValueError, match="closed_loop_starts=3 must be a multiple"):
+        odd.validate()
+    with pytest.raises(ValueError, match="closed_loop_share"):
+        dataclasses.replace(refresh, closed_loop_share=1.0).validate()
+    with pytest.raises(ValueError, match="recorded states"):
+        _run(cfg, tiny_run, str(tmp_path / "no_states"), steps=1)
+    out = _run(cfg, tiny_run, str(tmp_path / "run"), steps=1, states=True)
+    record = out["refreshes"][0]  # step 1's refresh is skipped: the budget is spent
+    loop = record["closed_loop"]
+    executions = starts * cfg.rl.grpo.group_size
+    decisions = cfg.rl.imagined.max_chunks
+    assert loop["episodes"] == executions and loop["actions"] == decisions * cfg.rl.imagined_actions_per_decision
+    # 2 decisions of one latent, segments of 2 future latents: only the first decision's is whole
+    assert loop["segments"] == executions and len(loop["latent_drift_by_decision"]) == decisions
+    assert all(np.isfinite(v) and v > 0 for v in loop["latent_drift_by_decision"])
+    assert 0.0 <= loop["real_success"] <= 1.0
+    assert record["real_episodes_used"] == out["real_episodes_used"] == 4 + executions
+    assert record["real_episodes"] == 4 and np.isfinite(record["world_model"]["last"]["loss"])
+    # one trajectory's segments held out of the fine-tune, measured before and after it beside training segments
+    fit = loop["fit"]
+    assert fit["held_out_trajectories"] == 1
+    for when in ("before", "after"):
+        assert fit[when]["first_decision"]["segments"] == 1 and fit[when]["closed_loop"] is None
+        assert fit[when]["training"]["segments"] == 128
+        assert all(np.isfinite(fit[when][part][m]) for part in ("first_decision", "training")
+                   for m in ("loss", "sample_error"))
+    assert fit["before"]["training"] != fit["after"]["training"]  # the fine-tune changed the world model
+    # the budget left after the refresh's own episodes does not pay for the closed loop: skipped, nothing spent
+    tight = dataclasses.replace(refresh, budget=4 + executions - 1)
+    cfg2 = dataclasses.replace(cfg, rl=dataclasses.replace(cfg.rl, refresh=tight))
+    out2 = _run(cfg2, tiny_run, str(tmp_path / "tight"), steps=1, states=True)
+    first = out2["refreshes"][0]
+    assert "skipped" in first["closed_loop"] and first["real_episodes_used"] == 4
+
+
 def _leaves(path):
     with np.load(path) as f:
         return [f[k] for k in sorted(f.files, key=lambda k: int(k.split("_")[1]))]

@@ -100,9 +100,18 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         verify = make_verify(graphdef, rl, env, collect_starts, setup.encode, seed=cfg.seed,
                              num_context=cfg.data.context_frames // cfg.vae.temporal_factor,
                              frames_per_latent=cfg.vae.temporal_factor, mesh=mesh)
+    closed_loop = None
+    if rl.refresh.closed_loop_starts:
+        if setup.env_starts is None:
+            raise ValueError("rl.refresh.closed_loop_starts executes the closed loop's actions from the keyframes' "
+                             "recorded states: the demonstrations hold no 'states'")
+        closed_loop = make_closed_loop(graphdef, rl, env, setup, encode_frames, seed=cfg.seed,
+                                       frames_per_latent=cfg.vae.temporal_factor,
+                                       num_future=cfg.data.predict_frames // cfg.vae.temporal_factor, mesh=mesh)
     refresher = Refresher(cfg, rl, wm_state=wm_state, make_simulator=make_simulator, encode=setup.encode,
                           encode_frames=encode_frames, detector=detector, base=base, collect=collect,
-                          directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log, verify=verify)
+                          directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log, verify=verify,
+                          closed_loop=closed_loop)
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
     built: dict[str, Any] = {}
@@ -164,9 +173,11 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                 f"real episodes used {point['real_episodes_used']:.0f}{' (paused: simulator untrusted)' if point.get('paused') else ''} "
                 f"eta {eta:.0f}s")
 
-    # group_size and verify_starts enter only when set, so runs from before they were settings still resume
+    # group_size, verify_starts and the closed loop enter only when set, so runs from before they were settings
+    # still resume
     keys = (REFRESH_RUN_KEYS + (("group_size",) if rl.refresh.group_size != 1 else ())
-            + (("verify_starts",) if rl.refresh.verify_starts else ()))
+            + (("verify_starts",) if rl.refresh.verify_starts else ())
+            + (("closed_loop_starts", "closed_loop_share") if rl.refresh.closed_loop_starts else ()))
     run_id = grpo_run_id(rl, seed=cfg.seed, simulator="world_model_refreshed", **(facts or {}),
                          **{f"rl.refresh.{k}": getattr(rl.refresh, k) for k in keys})
     result, curve = train_grpo(step, state, lambda index: index, key=stream_key(jax.random.key(cfg.seed), "grpo/update"),
@@ -226,6 +237,71 @@ def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[i
                     actions=actions)
 
     return verify
+
+
+# the closed loop's keyframes are drawn as GRPO's step ``CLOSED_LOOP_STEPS + refresh step x draws + r``: steps a run
+# never reaches, so they are not the starts GRPO's own steps are measured on
+CLOSED_LOOP_STEPS = 1 << 30
+
+
+def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_frames: Callable[[np.ndarray], np.ndarray],
+                     *, seed: int, frames_per_latent: int, num_future: int, mesh: Any
+                     ) -> Callable[..., tuple[Any, dict]]:
+    """``closed_loop(params, simulator, step, decisions) -> (segments, report)`` for ``rl.refresh.closed_loop_starts``
+    (:mod:`sword_jax.rl.closed_loop`): keyframe starts of ``setup`` (drawn as GRPO's are, for steps it never
+    reaches: :data:`CLOSED_LOOP_STEPS`), each rolled out ``rl.grpo.group_size`` times by the policy in the simulator
+    over ``decisions`` decisions (a key from (seed, step)), each trajectory's actions executed in ``env`` from its
+    keyframe's recorded state, every frame kept and encoded by ``encode_frames``. The report holds the executions
+    (``episodes``), how often they really succeeded, and the closed loop's drift in latent space by decision
+    (:func:`~sword_jax.rl.closed_loop.drift_by_decision`)."""
+    from sword_jax.rl import closed_loop as cl
+    from sword_jax.rl import imagined_check
+
+    g, per = rl.grpo.group_size, rl.imagined_actions_per_decision
+    draws = rl.refresh.closed_loop_starts // rl.imagined_starts_per_step
+    execute_latents = per // frames_per_latent
+    root = stream_key(jax.random.key(seed), "refresh/closed_loop")
+    reset = jax.jit(lambda starts: env.reset(starts)[1]["frames"].astype(jnp.uint8))
+    compiled: dict[int, Callable] = {}
+
+    def traced(decisions: int) -> Callable:
+        if decisions not in compiled:  # one compile per horizon
+            def go(params, sim, start, env_starts, key):
+                trace = cl.trace_closed_loop(graphdef, params, sim, start, rl, key=key, group_size=g,
+                                             decisions=decisions)
+                n, t = trace.actions.shape[:2]
+                first, frames = imagined_check.execute_observed(env, env_starts, trace.actions,
+                                                                jnp.full((n,), t, jnp.int32), every=1, rows=n)
+                return trace, first, frames.astype(jnp.uint8)
+
+            compiled[decisions] = jax.jit(go)
+        return compiled[decisions]
+
+    def closed_loop(params, sim, step: int, decisions: int):
+        sim = jax.device_put(sim, shd.shardings_on(sim, mesh))
+        parts, solved, drifts = [], [], []
+        for r in range(draws):
+            index = CLOSED_LOOP_STEPS + step * draws + r
+            start = setup.starts(None, index)
+            env_starts = np.repeat(np.asarray(setup.env_starts(index)), g, axis=0)
+            trace, first, frames = jax.device_get(traced(decisions)(params, sim, start, jnp.asarray(env_starts),
+                                                                    jax.random.fold_in(root, index)))
+            start_frames = np.asarray(reset(jnp.asarray(env_starts)))
+            real = cl.real_latents(encode_frames, start_frames, np.asarray(frames), frames_per_latent=frames_per_latent)
+            latents, start_actions = (np.repeat(np.asarray(x), g, axis=0) for x in start.latents)
+            contexts = np.asarray(trace.contexts, np.float32)
+            parts.append(cl.closed_loop_segments(latents, start_actions, contexts, real, np.asarray(trace.actions),
+                                                 num_future=num_future, execute_latents=execute_latents,
+                                                 frames_per_latent=frames_per_latent))
+            drifts.append(cl.drift_by_decision(contexts, real, execute_latents=execute_latents))
+            solved.append(np.asarray(first) >= 0)
+        segments = cl.ClosedLoopSegments.concatenate(parts)
+        episodes = int(sum(len(x) for x in solved))
+        return segments, {"episodes": episodes, "starts": draws * rl.imagined_starts_per_step, "group_size": g,
+                          "actions": decisions * per, "real_success": float(np.concatenate(solved).mean()),
+                          "latent_drift_by_decision": [float(np.mean(x)) for x in zip(*drifts)]}
+
+    return closed_loop
 
 
 def stratified_collect_starts(pool_starts: Callable[[int, np.random.Generator], tuple], seed: int

@@ -558,6 +558,15 @@ class RefreshConfig:
         were paid (``false_success``) and the separation inside the groups: the truth of the rewards GRPO reads,
         which the replay of real episodes does not give. The executions count as real episodes against
         ``budget``; a refresh skips the check when the budget cannot pay for it. 0 (default) = off.
+      closed_loop_starts: the world model's fine-tune also learns from its own closed loop
+        (:mod:`~sword_jax.rl.closed_loop`): this many keyframe starts of the demonstrations (drawn as GRPO's are,
+        for steps GRPO never reaches; a multiple of ``rl.imagined_starts_per_step``), each rolled out
+        ``rl.grpo.group_size`` times by the current policy in the simulator GRPO trained in, over the run's
+        horizon; each trajectory's actions executed from the keyframe's recorded state, and one segment per
+        decision made of the simulator's own context and the real latents the actions reached. The executions count
+        as real episodes against ``budget``; a refresh skips this part when the budget cannot pay for it. Needs
+        keyframes with recorded states. 0 (default) = off.
+      closed_loop_share: share of each fine-tune batch's rows taken from those segments (in (0, 1)).
     """
 
     every: int = 0
@@ -580,6 +589,8 @@ class RefreshConfig:
     real_guard_min_episodes: int = 32  # real episodes a refresh needs before the real-success guard judges it
     group_size: int = 1  # real episodes per start state (a GRPO group of real rollouts); 1 = one each
     verify_starts: int = 0  # start states whose imagined groups are executed in the real environment; 0 = off
+    closed_loop_starts: int = 0  # keyframe starts whose closed loop (imagined vs executed) trains the world model
+    closed_loop_share: float = 0.5  # share of the fine-tune's batch rows from the closed-loop segments
 
     def validate(self) -> None:
         if self.every < 0:
@@ -594,6 +605,9 @@ class RefreshConfig:
             raise ValueError(f"rl.refresh.group_size must be >= 1 (real episodes per start state), got {self.group_size}")
         if self.verify_starts < 0:
             raise ValueError(f"rl.refresh.verify_starts must be >= 0 (0 = off), got {self.verify_starts}")
+        if self.closed_loop_starts < 0 or not 0.0 < self.closed_loop_share < 1.0:
+            raise ValueError(f"rl.refresh.closed_loop_starts must be >= 0 (0 = off) and closed_loop_share in (0, 1), "
+                             f"got {self.closed_loop_starts}, {self.closed_loop_share}")
         if not self.every:
             return
         if self.episodes % self.group_size or self.budget % self.group_size:
@@ -868,6 +882,10 @@ class RLConfig:
         if self.imagined.guard_on == "verify" and not (self.refresh.every and self.refresh.verify_starts):
             raise ValueError("rl.imagined.guard_on=verify judges the refreshes' checks of imagined rollouts: it needs "
                              "rl.refresh.every > 0 and rl.refresh.verify_starts > 0")
+        starts = self.imagined_starts_per_step
+        if self.refresh.every and self.refresh.closed_loop_starts % starts:
+            raise ValueError(f"rl.refresh.closed_loop_starts={self.refresh.closed_loop_starts} must be a multiple of "
+                             f"the starts GRPO draws a step ({starts}): the closed loop's starts are drawn as its are")
         refreshed = self.refresh.every and (self.imagined.reward == "calibrated" or self.refresh.branch)
         if self.imagined.executes and (self.env.backend != "mjx" or refreshed or self.imagined.confirm_success):
             raise ValueError(f"rl.imagined.reward={self.imagined.reward} pays imagined actions by executing them on "

@@ -58,7 +58,7 @@ from sword_jax.rl.reward_model import (detector_report, make_detector_step, scor
                                       threshold_shift, train_detector)
 from sword_jax.rl.rollout import success_runs
 from sword_jax.rl.scan_rollout import RecordedEpisodes
-from sword_jax.rng import stream_rng
+from sword_jax.rng import stream_key, stream_rng, stream_seed
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -193,12 +193,18 @@ def stratified_split(outcome: np.ndarray, fraction: float, rng: np.random.Genera
 
 def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, steps: int, learning_rate: float,
                          seed: int, mesh=None, log: Callable[[str], Any] = print,
-                         compiled: dict | None = None) -> tuple[tuple[Any, Any], dict]:
+                         compiled: dict | None = None, given: Any = None,
+                         given_share: float = 0.0) -> tuple[tuple[Any, Any], dict]:
     """``steps`` world-model steps from ``wm_state`` (``(params, buffers)``) on ``dataset``
     (:class:`~sword_jax.world_model.data.LatentDataset`), at a constant ``learning_rate`` after a short
     warmup, fresh AdamW moments and, with DLB, a fresh cache whose schedule runs over the fine-tune.
     ``compiled``: a dict kept between calls; the compiled step is stored there and reused while the
-    dataset's shape stays the same (a refresh's fine-tunes then compile once). Returns
+    dataset's shape stays the same (a refresh's fine-tunes then compile once).
+
+    ``given``: segments whose context is given (:class:`~sword_jax.rl.closed_loop.ClosedLoopSegments`, the world
+    model's own closed loop against reality); ``given_share`` of every batch's rows (at least one, at most all but
+    one) are drawn from them (with replacement, a function of (seed, step)) in place of the dataset's, trained on
+    as they are (the ``given_context`` rows of the train step: no cache read or write). Returns
     ``((params, buffers), last metrics)``."""
     from sword_jax.dit.action_dit import WorldModel
     from sword_jax.train_loop import run_steps
@@ -221,22 +227,86 @@ def finetune_world_model(cfg: Any, wm_state: tuple[Any, Any], dataset: Any, *, s
                           buffers=jax.device_put(buffers, shardings.buffers))
     sampler = wm_data.SegmentSampler(dataset.shape[0], dataset.shape[1], k, f, cfg.data.batch_size, seed=seed)
     loader = wm_data.SegmentLoader(dataset, sampler, k, f, mesh, rules)
+    host_batch_at, place, batch_shardings = loader.host_batch_at, loader.place, loader.shardings
+    if given is not None:
+        host_batch_at, batch_shardings = given_rows(loader, given, given_share, seed=seed)
+        place = lambda batch: shd.to_global(batch, batch_shardings, loader.rows,  # noqa: E731
+                                            loader.sampler.batch_size)
     compiled = {} if compiled is None else compiled
-    if compiled.get("shape") != tuple(dataset.shape):
+    signature = (tuple(dataset.shape), given is not None)
+    if compiled.get("shape") != signature:
         step_fn = wm_step.make_train_step(graphdef, flow_cfg=cfg.flow, trainer_cfg=trainer, cache_cfg=cache,
                                           num_context=k, num_episodes=dataset.shape[0])
-        compiled.update(shape=tuple(dataset.shape),
-                        step=wm_step.compile_train_step(step_fn, shardings, loader.shardings, mesh, rules))
+        compiled.update(shape=signature,
+                        step=wm_step.compile_train_step(step_fn, shardings, batch_shardings, mesh, rules))
     step = compiled["step"]
 
     def report(done, metrics, _observed, _eta):
         log(f"world model refresh step {done}/{steps} loss {metrics.get('loss', float('nan')):.4f}")
         return {"step": done, **metrics}
 
-    result = run_steps(step, state, loader.host_batch_at, key=shd.put(jax.random.key(seed), shd.replicated(mesh)),
+    result = run_steps(step, state, host_batch_at, key=shd.put(jax.random.key(seed), shd.replicated(mesh)),
                        steps=steps, log_every=trainer.log_every, name="world model refresh", report=report,
-                       place=loader.place, settle=True, log=log, metrics_finite=wm_step.step_was_finite)
+                       place=place, settle=True, log=log, metrics_finite=wm_step.step_was_finite)
     return (result.state.params, result.state.buffers), (result.history[-1] if result.history else {})
+
+
+def given_rows(loader: Any, given: Any, share: float, *, seed: int) -> tuple[Callable[[int], dict], dict]:
+    """``(host_batch_at, shardings)`` of ``loader``'s batches with their last ``round(share x batch)`` rows taken
+    from ``given`` (:class:`~sword_jax.rl.closed_loop.ClosedLoopSegments`) and flagged ``given_context``; which
+    segment fills which row is a function of (seed, step), so a fine-tune's batches are the same wherever it runs."""
+    batch = loader.sampler.batch_size
+    count = int(round(share * batch))
+    if given.num < 1 or not 1 <= count <= batch - 1:
+        raise ValueError(f"world model fine-tune: given segments take {share} of {batch} rows ({count}); they need "
+                         f"at least one row and leave at least one to the dataset, and at least one segment "
+                         f"(got {given.num})")
+    example = loader.host_batch_at(0)
+    if given.latents.shape[1:] != example["latents"].shape[1:] or given.actions.shape[1:] != example["actions"].shape[1:]:
+        raise ValueError(f"world model fine-tune: given segments {given.latents.shape[1:]} / {given.actions.shape[1:]} "
+                         f"do not match the dataset's {example['latents'].shape[1:]} / {example['actions'].shape[1:]}")
+    shardings = dict(loader.shardings, given_context=loader.shardings["episode"])
+    held = loader.rows
+    flagged = np.arange(batch)[held] >= batch - count
+
+    def host_batch_at(step: int) -> dict[str, np.ndarray]:
+        out = loader.host_batch_at(step)
+        pick = stream_rng(seed, "refresh/given_rows", step).integers(0, given.num, batch)[held][flagged]
+        out["latents"][flagged] = given.latents[pick]
+        out["actions"][flagged] = given.actions[pick]
+        out["given_context"] = flagged.copy()
+        return out
+
+    return host_batch_at, shardings
+
+
+def segment_fit(cfg: Any, wm_state: tuple[Any, Any], latents: np.ndarray, actions: np.ndarray, *, seed: int,
+                batch: int = 32) -> dict[str, float]:
+    """The world model's fixed-noise flow loss and the relative squared error of the future it samples in
+    ``flow.sample_steps`` Euler steps from each segment's own context, over segments ``latents [M, 1 + k + p, ...]``
+    with their ``actions`` (:func:`~sword_jax.world_model.heldout.make_measure`, in batches of ``batch`` whose noise
+    levels span the training distribution's quantiles; the means weighted by the batches' sizes). The noise is fixed
+    by ``seed``, so two world models are measured on the same draws."""
+    from sword_jax.dit.action_dit import WorldModel
+    from sword_jax.world_model.heldout import make_measure
+
+    if latents.shape[0] < 1:
+        raise ValueError("segment_fit: no segments")
+    k = cfg.data.context_frames // cfg.vae.temporal_factor
+    graphdef = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg.model, rngs=nnx.Rngs(0))), nnx.Param, ...)[0]
+    n_steps = cfg.flow.sample_steps
+    measure = jax.jit(make_measure(graphdef, cfg.flow, k, (n_steps,)))
+    params, buffers = wm_state
+    root = stream_key(jax.random.key(seed), "refresh/segment_fit")
+    total = {"loss": 0.0, "sample_error": 0.0}
+    for i in range(0, latents.shape[0], batch):
+        seg = {"latents": jnp.asarray(latents[i:i + batch], jnp.float32),
+               "actions": jnp.asarray(actions[i:i + batch], jnp.float32)}
+        out = jax.device_get(measure(params, buffers, seg, jax.random.fold_in(root, i)))
+        size = seg["latents"].shape[0]
+        total["loss"] += float(out["loss"]) * size
+        total["sample_error"] += float(out[f"sample_error_{n_steps}"]) * size
+    return {name: value / latents.shape[0] for name, value in total.items()}
 
 
 def first_success(scores: np.ndarray, lengths: np.ndarray, threshold: float, success_frames: int = 1) -> np.ndarray:
@@ -318,19 +388,27 @@ class Refresher:
       verify: with ``rl.refresh.verify_starts``, ``verify(policy params, simulator, reward model, step, decisions)
         -> report`` (:func:`~sword_jax.pipeline.grpo_refresh.make_verify`): the policy's imagined groups of
         ``decisions`` decisions, their actions executed in the real environment; ``report["episodes"]`` of them.
+      closed_loop: with ``rl.refresh.closed_loop_starts``, ``closed_loop(policy params, simulator, step, decisions)
+        -> (segments, report)`` (:func:`~sword_jax.pipeline.grpo_refresh.make_closed_loop`): the policy's closed
+        loop in the simulator against reality (:class:`~sword_jax.rl.closed_loop.ClosedLoopSegments`), which the
+        world model's fine-tune mixes into its batches; ``report["episodes"]`` real executions.
     """
 
     def __init__(self, cfg: Any, rl: Any, *, wm_state: Any, make_simulator: Callable[[Any], LearnedSimulator],
                  encode: Callable[..., Any], encode_frames: Callable[[np.ndarray], np.ndarray],
                  detector: tuple[Any, Any], base: Any, collect: Collect, directory: str, mesh=None,
-                 log: Callable[[str], Any] = print, verify: Callable[..., dict] | None = None):
+                 log: Callable[[str], Any] = print, verify: Callable[..., dict] | None = None,
+                 closed_loop: Callable[..., tuple[Any, dict]] | None = None):
         rl.refresh.validate()
         if not rl.refresh.every:
             raise ValueError("Refresher: rl.refresh.every is 0 (refresh off)")
         if rl.refresh.verify_starts and verify is None:
             raise ValueError("Refresher: rl.refresh.verify_starts needs verify= (the real environment the imagined "
                              "rollouts' actions are executed in)")
-        self.verify = verify
+        if rl.refresh.closed_loop_starts and closed_loop is None:
+            raise ValueError("Refresher: rl.refresh.closed_loop_starts needs closed_loop= (the real environment the "
+                             "closed loop's actions are executed in)")
+        self.verify, self.closed_loop = verify, closed_loop
         self.cfg, self.rl, self.conf = cfg, rl, rl.refresh
         self.make_simulator, self.encode, self.encode_frames = make_simulator, encode, encode_frames
         self.mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
@@ -476,6 +554,10 @@ class Refresher:
         verified = self._verify(step, policy_params)
         checked = {"verify": verified} if verified is not None else {}
         n = min(conf.episodes, conf.budget - self.used) // k * k  # whole groups
+        # the closed loop's executions only from what the refresh's own episodes leave of the budget
+        given, looped = self._closed_loop(step, policy_params, reserve=n if n >= 2 else None)
+        if looped is not None:
+            checked["closed_loop"] = looped
         if n < 2:
             record = {"step": step, "skipped": f"the budget of {conf.budget} real episodes is spent",
                       "real_episodes": 0, "real_episodes_used": self.used, **checked}
@@ -493,7 +575,22 @@ class Refresher:
         # 2. the world model, on its training latents and every refresh's episodes
         latents = self._latents(real)
         self.rounds.append(latents)
-        wm_metrics = self._finetune_world_model(step)
+        train_given, fit = given, None
+        if given is not None:  # every 8th trajectory's segments held out: the fine-tune's effect where it did not train
+            trajectories = int(given.trajectory.max()) + 1
+            held = given.trajectory % 8 == (7 if trajectories >= 8 else trajectories - 1)
+            train_given, held_out = given.subset(~held), given.subset(held)
+            fit = {"held_out_trajectories": int(np.unique(held_out.trajectory).size),
+                   "before": self._segment_fit(held_out, step)}
+        wm_metrics = self._finetune_world_model(step, train_given)
+        if fit is not None:
+            fit["after"] = self._segment_fit(held_out, step)
+            checked["closed_loop"]["fit"] = fit
+            said = lambda part: (f"{fit['before'][part]['sample_error']:.4f} -> "  # noqa: E731
+                                 f"{fit['after'][part]['sample_error']:.4f}" if fit["before"][part] else "none")
+            self.log(f"refresh at step {step}: the world model's sample error on held-out closed-loop segments "
+                     f"{said('closed_loop')} (its own context), {said('first_decision')} (the real start's); on its "
+                     f"training segments {said('training')}")
         # 3. the detector, on real frames and on the new world model's replays of the real episodes
         rng = stream_rng(self.cfg.seed, "refresh/split", step)
         calibrate = stratified_split(solved, conf.calibrate_fraction, rng)
@@ -559,6 +656,48 @@ class Refresher:
                  + (f", within groups {within:+.2f}" if within is not None else "") + f" ({out['seconds']} s)")
         return out
 
+    def _closed_loop(self, step: int, policy_params: Any, *, reserve: int | None
+                     ) -> tuple[Any, dict[str, Any] | None]:
+        """``rl.refresh.closed_loop_starts``'s segments of the policy's closed loop in the simulator GRPO trained in,
+        against reality (None, None when off); their executions count against the budget, after the ``reserve``
+        episodes the refresh collects (None: the refresh collects none and fine-tunes nothing, so neither is this
+        run), and a budget that cannot pay for them skips them."""
+        conf = self.conf
+        if not conf.closed_loop_starts:
+            return None, None
+        count = conf.closed_loop_starts * self.rl.grpo.group_size
+        if reserve is None or conf.budget - self.used - reserve < count:
+            return None, {"skipped": f"{count} real executions exceed what the refresh's own episodes leave of the "
+                                     f"budget of {conf.budget}"}
+        t0 = time.perf_counter()
+        segments, out = self.closed_loop(policy_params, self.simulator(), step, self.decisions())
+        self.used += int(out["episodes"])
+        out = dict(out, segments=segments.num, share=conf.closed_loop_share, seconds=round(time.perf_counter() - t0, 1))
+        drift = out.get("latent_drift_by_decision") or [float("nan")]
+        self.log(f"refresh at step {step}: the policy's closed loop, {out['episodes']} trajectories executed for real: "
+                 f"{segments.num} segments; latent drift {drift[0]:.4f} after the first decision, {drift[-1]:.4f} after "
+                 f"the last ({out['seconds']} s)")
+        return segments, out
+
+    def _segment_fit(self, held_out: Any, step: int) -> dict[str, dict[str, float] | None]:
+        """:func:`segment_fit` of the current world model on held-out closed-loop segments (the first decision's,
+        whose context is the real start's, apart from the later ones', whose context is the world model's own) and on
+        fixed segments of its training latents (what the fine-tune must not lose)."""
+        from sword_jax.world_model.heldout import fixed_segments
+
+        p = self.cfg.data.predict_frames // self.tf
+        seed = self.cfg.seed + step
+        episodes, starts = fixed_segments(self.base, 128, self.k, p, stream_seed(self.cfg.seed, "refresh/fit", step))
+        training = self.base.segment(episodes, starts, self.k, p)
+        out: dict[str, dict[str, float] | None] = {}
+        for name, mask in (("first_decision", held_out.decision == 0), ("closed_loop", held_out.decision > 0)):
+            part = held_out.subset(mask)
+            out[name] = (dict(segment_fit(self.cfg, self.wm_state, part.latents, part.actions, seed=seed),
+                              segments=part.num) if part.num else None)
+        out["training"] = dict(segment_fit(self.cfg, self.wm_state, training["latents"], training["actions"], seed=seed),
+                               segments=int(training["latents"].shape[0]))
+        return out
+
     def _latents(self, real: RealEpisodes) -> tuple[np.ndarray, np.ndarray]:
         w = self.window
         if real.actions.shape[1] < w:
@@ -567,7 +706,7 @@ class Refresher:
         frames = real.frames[:, :w].astype(np.float32) / np.float32(255.0)
         return np.asarray(self.encode_frames(frames), np.float32), real.actions[:, :w].astype(np.float32)
 
-    def _finetune_world_model(self, step: int) -> dict:
+    def _finetune_world_model(self, step: int, given: Any = None) -> dict:
         from sword_jax.world_model.data import LatentDataset
 
         real_latents = np.concatenate([r[0] for r in self.rounds])
@@ -582,7 +721,7 @@ class Refresher:
         self.wm_state, metrics = finetune_world_model(
             self.cfg, self.wm_state, LatentDataset(latents, actions), steps=self.conf.world_model_steps,
             learning_rate=self.conf.world_model_learning_rate, seed=self.cfg.seed + 1 + step, mesh=self.mesh,
-            log=self.log, compiled=self._wm_compiled)
+            log=self.log, compiled=self._wm_compiled, given=given, given_share=self.conf.closed_loop_share)
         return metrics
 
     def _replay(self, real: RealEpisodes, sim, rm, key, *, record: bool):

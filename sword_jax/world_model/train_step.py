@@ -6,7 +6,9 @@ folds in ``state.step`` and splits named keys, so a resumed run draws the same n
 Batch (global arrays, sharded over ``batch``): ``latents [b, 1 + k + p, h, w, c]`` (first frame,
 k context, p future latents), ``actions [b, 1 + 4(k + p), a]``, ``episode [b]`` and ``start [b]``
 (latent-frame index of the first context latent), as produced by
-:class:`sword_jax.world_model.data.SegmentLoader`.
+:class:`sword_jax.world_model.data.SegmentLoader`. An optional ``given_context [b]`` (bool) marks rows whose
+context is given and must be trained on as it is (the world model's own closed-loop latents,
+:mod:`sword_jax.rl.closed_loop`): the cache neither replaces their context nor takes their predictions.
 
 With the cache enabled the step (1) reads: replaces context latents by cached predictions with
 probability ``read_prob(step)`` where filled; (2) trains exactly like teacher forcing on that
@@ -116,8 +118,13 @@ def make_train_step(
         if use_cache:
             read_prob = dlb_schedule.read_prob(cache_cfg, state.step)
             context_frames = batch["start"][:, None] + jnp.arange(num_context, dtype=jnp.int32)[None, :]
+            given = batch.get("given_context")
+            given_context = context
             context, read_mask = dlb_cache.read_context(
                 state.cache, context, batch["episode"], context_frames, read_prob, key=read_key)
+            if given is not None:  # rows whose context is the point of the segment: never replaced
+                read_mask = read_mask & ~given[:, None]
+                context = jnp.where(given[:, None, None, None, None], given_context, context)
             metrics["read_prob"] = read_prob
             metrics["read_share"] = jnp.mean(jnp.any(read_mask, axis=1).astype(jnp.float32))
         if flow_cfg.context_noise > 0:
@@ -129,11 +136,13 @@ def make_train_step(
         noise = jax.random.normal(noise_key, future.shape, jnp.float32)
         model_input, timesteps = flow.noisy_segment(segment, noise, sigma, num_cond, flow_cfg)
         trained_actions, write_enabled = actions, None
+        if use_cache and batch.get("given_context") is not None:  # their slots are not this dataset's: no write
+            write_enabled = ~batch["given_context"]
         if flow_cfg.action_dropout > 0:  # classifier-free guidance's unconditional branch, trained on a share
             dropped = jax.random.bernoulli(stream_key(jax.random.fold_in(key, state.step), ACTION_DROPOUT_STREAM),
                                            flow_cfg.action_dropout, (batch_size,))
             trained_actions = jnp.where(dropped[:, None, None], sampler.null_actions(actions), actions)
-            write_enabled = ~dropped
+            write_enabled = ~dropped if write_enabled is None else write_enabled & ~dropped
             metrics["action_dropped"] = jnp.mean(dropped.astype(jnp.float32))
 
         def loss_fn(params):

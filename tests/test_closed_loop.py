@@ -1,0 +1,157 @@
+"""The world model's closed loop as training data (sword_jax.rl.closed_loop): segments laid out as the dataset's,
+the train step's given-context rows (no cache read, no cache write), and the fine-tune's mixed batches."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sword_jax.dlb.config import CacheConfig
+from sword_jax.rl import closed_loop as cl
+from sword_jax.rl.refresh import given_rows
+from sword_jax.world_model import data, train_step
+from sword_jax.world_model.config import FlowConfig, TrainerConfig
+from tests.support.world_model import ProbeWorldModel, build, single_device_mesh
+
+
+def _episode(num_latents=9, seed=0):
+    rng = np.random.default_rng(seed)
+    latents = rng.normal(size=(1, num_latents, 2, 2, 3)).astype(np.float32)
+    actions = rng.normal(size=(1, 4 * (num_latents - 1) + 1, 2)).astype(np.float32)
+    return data.LatentDataset(latents, actions)
+
+
+@pytest.mark.parametrize("execute_latents", [1, 2])
+def test_a_faithful_closed_loop_gives_the_datasets_own_segments(execute_latents):
+    """A simulator whose closed loop were reality: its segments are the dataset's segments at the same latents
+    (first frame, context, future and every action), except the last segment's last action, never executed."""
+    ds = _episode()
+    s0, decisions, x, p = 2, 3, execute_latents, 2
+    lat, act = ds.latents[0], ds.actions[0]
+    start_latents = np.stack([lat[0], lat[s0]])[None]
+    start_actions = np.concatenate([act[:1], act[4 * s0 - 3: 4 * s0 + 1]])[None]
+    length = decisions * x
+    executed = act[4 * s0: 4 * s0 + 4 * length][None]  # frame 4 s0 + i carries action i
+    real = lat[s0 + 1: s0 + 1 + length][None]
+    contexts = np.stack([lat[s0 + (d + 1) * x][None] for d in range(decisions)])[None]  # [1, D, k=1, ...]
+    segs = cl.closed_loop_segments(start_latents, start_actions, contexts, real, executed, num_future=p,
+                                   execute_latents=x)
+    kept = [d for d in range(decisions) if d * x + p <= length]
+    assert list(segs.decision) == kept and segs.num == len(kept) and list(segs.trajectory) == [0] * len(kept)
+    both = cl.ClosedLoopSegments.concatenate([segs, segs])
+    assert both.num == 2 * segs.num and list(both.trajectory) == [0] * len(kept) + [1] * len(kept)
+    assert both.subset(both.trajectory == 1).num == segs.num
+    for i, d in enumerate(kept):
+        want = ds.segment(np.array([0]), np.array([s0 + d * x]), 1, p)
+        np.testing.assert_array_equal(segs.latents[i], want["latents"][0])
+        last = d * x + p == length
+        np.testing.assert_array_equal(segs.actions[i][: -1 if last else None],
+                                      want["actions"][0][: -1 if last else None])
+        if last:  # the action after the last executed one repeats it
+            np.testing.assert_array_equal(segs.actions[i][-1], segs.actions[i][-2])
+    # the closed loop's own context goes in where the simulator predicted from it
+    drifted = contexts + 1.0
+    segs = cl.closed_loop_segments(start_latents, start_actions, drifted, real, executed, num_future=p,
+                                   execute_latents=x)
+    np.testing.assert_array_equal(segs.latents[0, 1], lat[s0])  # decision 0: the start's real context
+    for i, d in enumerate(kept[1:], start=1):
+        np.testing.assert_array_equal(segs.latents[i, 1:2], drifted[0, d - 1])
+    drift = cl.drift_by_decision(drifted, real, execute_latents=x)
+    np.testing.assert_allclose(drift, np.ones(decisions))
+    assert cl.drift_by_decision(contexts, real, execute_latents=x) == [0.0] * decisions
+
+
+def test_closed_loop_segments_refuse_mismatched_arrays():
+    z = np.zeros
+    with pytest.raises(ValueError, match="real latents"):
+        cl.closed_loop_segments(z((1, 2, 2, 2, 3)), z((1, 5, 2)), z((1, 3, 1, 2, 2, 3)), z((1, 2, 2, 2, 3)),
+                                z((1, 12, 2)), num_future=2, execute_latents=1)
+    with pytest.raises(ValueError, match="context latents"):
+        cl.closed_loop_segments(z((1, 3, 2, 2, 3)), z((1, 5, 2)), z((1, 3, 1, 2, 2, 3)), z((1, 3, 2, 2, 3)),
+                                z((1, 12, 2)), num_future=2, execute_latents=1)
+    with pytest.raises(ValueError, match="no segment"):
+        cl.closed_loop_segments(z((1, 2, 2, 2, 3)), z((1, 5, 2)), z((1, 1, 1, 2, 2, 3)), z((1, 1, 2, 2, 3)),
+                                z((1, 4, 2)), num_future=2, execute_latents=1)
+
+
+def test_real_latents_drop_the_start_and_its_held_group():
+    seen = []
+
+    def encode(video):  # a stand-in causal encoder: one latent for the first frame, one per 4 after it
+        seen.append(video)
+        n, f = video.shape[:2]
+        groups = video[:, 1:].reshape(n, (f - 1) // 4, 4, *video.shape[2:]).mean(axis=(2, 3, 4, 5))
+        return np.concatenate([video[:, :1].mean(axis=(2, 3, 4)), groups], axis=1)[..., None, None, None]
+
+    start = np.full((3, 2, 2, 3), 255, np.uint8)
+    frames = np.stack([np.full((8, 2, 2, 3), v, np.uint8) for v in (0, 51, 102)])
+    frames[:, 4:] += 51
+    out = cl.real_latents(encode, start, frames, frames_per_latent=4, batch=2)
+    assert out.shape == (3, 2, 1, 1, 1) and len(seen) == 2 and seen[0].shape[1] == 1 + 4 + 8
+    np.testing.assert_allclose(out[:, :, 0, 0, 0], [[0.0, 0.2], [0.2, 0.4], [0.4, 0.6]], atol=1e-6)
+    with pytest.raises(ValueError, match="whole latents"):
+        cl.real_latents(encode, start, frames[:, :7], frames_per_latent=4)
+
+
+F32 = dict(dtype="float32")
+
+
+def test_given_context_rows_are_neither_read_from_nor_written_to_the_cache(key):
+    """Rows flagged ``given_context`` train on their own context even where the cache is filled and read at
+    probability 1, and their predictions are not written into the cache; the other rows read it as before."""
+    mesh = single_device_mesh()
+    cfg = CacheConfig(read_prob_start=1.0, read_prob_end=1.0, **F32)
+    graphdef, state, shardings, _, loader = build(mesh=mesh, cache_cfg=cfg, model_cls=ProbeWorldModel)
+    shape = state.cache.latents.shape
+    values = 100.0 + np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+    state = state.replace(cache=state.cache.replace(
+        latents=jax.device_put(jnp.asarray(values), shardings.cache.latents),
+        filled=jax.device_put(jnp.ones(shape[:2], bool), shardings.cache.filled)))
+    fn = train_step.make_train_step(graphdef, flow_cfg=FlowConfig(),
+                                    trainer_cfg=TrainerConfig(learning_rate=1e-2, warmup_steps=0), cache_cfg=cfg,
+                                    num_context=1, num_episodes=shape[0])
+    batch_shardings = dict(loader.shardings, given_context=loader.shardings["episode"])
+    step = train_step.compile_train_step(fn, shardings, batch_shardings, mesh)
+    host = loader.host_batch_at(0)
+    given = np.arange(len(host["episode"])) % 2 == 1
+    host["given_context"] = given
+    ProbeWorldModel.records.clear()
+    new_state, metrics = step(state, jax.tree.map(jnp.asarray, host), key)
+    jax.block_until_ready(metrics)
+    seen = ProbeWorldModel.records[-1][0][:, 1]
+    for i, (episode, start) in enumerate(zip(host["episode"], host["start"])):
+        want = host["latents"][i, 1] if given[i] else values[episode, start]
+        np.testing.assert_array_equal(seen[i], want)
+    np.testing.assert_allclose(metrics["read_share"], 1.0 - given.mean())
+    after = np.asarray(new_state.cache.latents)
+    written_by_others = {(e, s + 1 + j) for e, s, g in zip(host["episode"], host["start"], given) if not g
+                         for j in range(2)}
+    for e, s, g in zip(host["episode"], host["start"], given):
+        for j in range(2):
+            if g and (e, s + 1 + j) not in written_by_others:
+                np.testing.assert_array_equal(after[e, s + 1 + j], values[e, s + 1 + j])
+
+
+def test_the_fine_tunes_mixed_batches_take_their_share_from_the_given_segments():
+    ds = data.synthetic_latent_dataset(4, 6, 2, 2, 3, seed=0)
+    mesh = single_device_mesh()
+    loader = data.SegmentLoader(ds, data.SegmentSampler(4, 6, 1, 2, 8, seed=0), 1, 2, mesh)
+    example = loader.host_batch_at(0)
+    given = cl.ClosedLoopSegments(np.full((5,) + example["latents"].shape[1:], -7.0, np.float32),
+                                  np.full((5,) + example["actions"].shape[1:], 3.0, np.float32), np.zeros(5, np.int32),
+                                  np.arange(5, dtype=np.int32))
+    host_batch_at, shardings = given_rows(loader, given, 0.25, seed=1)
+    assert set(shardings) == set(loader.shardings) | {"given_context"}
+    a, b = host_batch_at(3), host_batch_at(3)
+    assert list(a["given_context"]) == [False] * 6 + [True] * 2
+    assert np.all(a["latents"][6:] == -7.0) and np.all(a["actions"][6:] == 3.0)
+    base = loader.host_batch_at(3)
+    np.testing.assert_array_equal(a["latents"][:6], base["latents"][:6])
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])  # a function of the step
+    for share in (0.0, 1.0, 0.01):
+        with pytest.raises(ValueError, match="at least one row"):
+            given_rows(loader, given, share, seed=1)
+    wrong = given._replace(latents=given.latents[:, :3])
+    with pytest.raises(ValueError, match="do not match"):
+        given_rows(loader, wrong, 0.5, seed=1)
