@@ -74,7 +74,7 @@ def test_closed_loop_segments_refuse_mismatched_arrays():
                                 z((1, 4, 2)), num_future=2, execute_latents=1)
 
 
-def test_real_latents_drop_the_start_and_its_held_group():
+def test_real_latents_follow_the_keyframes_history_and_drop_it():
     seen = []
 
     def encode(video):  # a stand-in causal encoder: one latent for the first frame, one per 4 after it
@@ -83,14 +83,18 @@ def test_real_latents_drop_the_start_and_its_held_group():
         groups = video[:, 1:].reshape(n, (f - 1) // 4, 4, *video.shape[2:]).mean(axis=(2, 3, 4, 5))
         return np.concatenate([video[:, :1].mean(axis=(2, 3, 4)), groups], axis=1)[..., None, None, None]
 
-    start = np.full((3, 2, 2, 3), 255, np.uint8)
+    first = np.full((3, 2, 2, 3), 255, np.uint8)
+    history = np.full((3, 8, 2, 2, 3), 102, np.uint8)
     frames = np.stack([np.full((8, 2, 2, 3), v, np.uint8) for v in (0, 51, 102)])
     frames[:, 4:] += 51
-    out = cl.real_latents(encode, start, frames, frames_per_latent=4, batch=2)
-    assert out.shape == (3, 2, 1, 1, 1) and len(seen) == 2 and seen[0].shape[1] == 1 + 4 + 8
+    out = cl.real_latents(encode, first, history, frames, frames_per_latent=4, batch=2)
+    assert out.shape == (3, 2, 1, 1, 1) and len(seen) == 2 and seen[0].shape[1] == 1 + 8 + 8
+    np.testing.assert_allclose(seen[0][:, 1:9], 0.4)  # the history, in order, before the executed frames
     np.testing.assert_allclose(out[:, :, 0, 0, 0], [[0.0, 0.2], [0.2, 0.4], [0.4, 0.6]], atol=1e-6)
     with pytest.raises(ValueError, match="whole latents"):
-        cl.real_latents(encode, start, frames[:, :7], frames_per_latent=4)
+        cl.real_latents(encode, first, history, frames[:, :7], frames_per_latent=4)
+    with pytest.raises(ValueError, match="whole latents"):
+        cl.real_latents(encode, first, history[:, :6], frames, frames_per_latent=4)
 
 
 F32 = dict(dtype="float32")

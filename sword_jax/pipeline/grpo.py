@@ -58,7 +58,8 @@ class Setup(NamedTuple):
     ``env_starts(step, rows=None)``: the recorded simulator states of the same start states (keyframes of
     episodes with ``states``), what ``rl.imagined.reward=executed`` resets the real environment to, and
     ``start_steps(step, rows=None)``: each of those start states' step in its episode (the keyframe's index),
-    by which an executed step counts its outcomes."""
+    by which an executed step counts its outcomes, and ``windows(step, rows=None)``: the same keyframes' real
+    windows (:func:`~sword_jax.rl.data.keyframe_window`: first frame, history, actions), which ``starts`` encodes."""
 
     sim: Any
     reward_model: Any
@@ -67,6 +68,7 @@ class Setup(NamedTuple):
     encode: Callable[..., Any] | None = None
     env_starts: Callable[..., np.ndarray] | None = None
     start_steps: Callable[..., np.ndarray] | None = None
+    windows: Callable[..., dict] | None = None
 
 
 def toy_setup(cfg, rl) -> Setup:
@@ -155,9 +157,12 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
                        max_fraction=rl.imagined.keyframe_fraction, min_fraction=rl.imagined.keyframe_from,
                        rows=rows)
 
+    def windows(step, rows=None):
+        return draw(rl_data.keyframe_starts, step, rows)
+
     def starts(key, step, rows=None):
         del key
-        return start_state(draw(rl_data.keyframe_starts, step, rows), encode, rl)
+        return start_state(windows(step, rows), encode, rl)
 
     env_starts = start_steps = None
     if episodes is not None and episodes.states is not None:
@@ -168,7 +173,7 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         def start_steps(step, rows=None):  # the same keyframes' steps in their episodes
             return np.asarray(draw(rl_data.keyframe_indices, step, rows)[1], np.int32)
 
-    return Setup(sim, reward_model, starts, None, encode, env_starts, start_steps)
+    return Setup(sim, reward_model, starts, None, encode, env_starts, start_steps, windows)
 
 
 def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:

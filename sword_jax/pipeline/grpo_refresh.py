@@ -102,7 +102,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
                              frames_per_latent=cfg.vae.temporal_factor, mesh=mesh)
     closed_loop = None
     if rl.refresh.closed_loop_starts:
-        if setup.env_starts is None:
+        if setup.env_starts is None or setup.windows is None:
             raise ValueError("rl.refresh.closed_loop_starts executes the closed loop's actions from the keyframes' "
                              "recorded states: the demonstrations hold no 'states'")
         closed_loop = make_closed_loop(graphdef, rl, env, setup, encode_frames, seed=cfg.seed,
@@ -251,7 +251,8 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
     (:mod:`sword_jax.rl.closed_loop`): keyframe starts of ``setup`` (drawn as GRPO's are, for steps it never
     reaches: :data:`CLOSED_LOOP_STEPS`), each rolled out ``rl.grpo.group_size`` times by the policy in the simulator
     over ``decisions`` decisions (a key from (seed, step)), each trajectory's actions executed in ``env`` from its
-    keyframe's recorded state, every frame kept and encoded by ``encode_frames``. The report holds the executions
+    keyframe's recorded state, every frame kept and encoded by ``encode_frames`` after the keyframe's real history
+    (:func:`~sword_jax.rl.closed_loop.real_latents`). The report holds the executions
     (``episodes``), how often they really succeeded, and the closed loop's drift in latent space by decision
     (:func:`~sword_jax.rl.closed_loop.drift_by_decision`)."""
     from sword_jax.rl import closed_loop as cl
@@ -261,7 +262,6 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
     draws = rl.refresh.closed_loop_starts // rl.imagined_starts_per_step
     execute_latents = per // frames_per_latent
     root = stream_key(jax.random.key(seed), "refresh/closed_loop")
-    reset = jax.jit(lambda starts: env.reset(starts)[1]["frames"].astype(jnp.uint8))
     compiled: dict[int, Callable] = {}
 
     def traced(decisions: int) -> Callable:
@@ -282,12 +282,14 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
         parts, solved, drifts = [], [], []
         for r in range(draws):
             index = CLOSED_LOOP_STEPS + step * draws + r
-            start = setup.starts(None, index)
+            window = setup.windows(index)  # the keyframes GRPO's step `index` would draw, with their real history
+            start = start_state(window, setup.encode, rl)
             env_starts = np.repeat(np.asarray(setup.env_starts(index)), g, axis=0)
             trace, first, frames = jax.device_get(traced(decisions)(params, sim, start, jnp.asarray(env_starts),
                                                                     jax.random.fold_in(root, index)))
-            start_frames = np.asarray(reset(jnp.asarray(env_starts)))
-            real = cl.real_latents(encode_frames, start_frames, np.asarray(frames), frames_per_latent=frames_per_latent)
+            real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
+                                   np.repeat(window["history"], g, axis=0), np.asarray(frames),
+                                   frames_per_latent=frames_per_latent)
             latents, start_actions = (np.repeat(np.asarray(x), g, axis=0) for x in start.latents)
             contexts = np.asarray(trace.contexts, np.float32)
             parts.append(cl.closed_loop_segments(latents, start_actions, contexts, real, np.asarray(trace.actions),

@@ -12,7 +12,7 @@ directly:
    decision: what the world model would predict the next chunk from.
 2. Those actions are executed in the real environment from the same start states
    (:func:`~sword_jax.rl.imagined_check.execute_observed`) and the frames they reach are encoded as the world
-   model's training latents (:func:`real_latents`).
+   model's training latents (:func:`real_latents`), after the keyframe's real history as a training episode's are.
 3. :func:`closed_loop_segments` lays out one training segment per decision: the episode's first-frame latent, the
    world model's own context latents at that decision, and the real latents that the executed actions reached next,
    with the actions laid out as the simulator lays them out at inference.
@@ -116,27 +116,32 @@ def trace_closed_loop(graphdef: nnx.GraphDef, policy_params: Any, simulator: Lea
     return ClosedLoopTrace(actions.reshape((n, -1, actions.shape[-1])), jnp.swapaxes(contexts, 0, 1))
 
 
-def real_latents(encode_frames: Any, start_frames: np.ndarray, frames: np.ndarray, *, frames_per_latent: int,
-                 batch: int = 16) -> np.ndarray:
+def real_latents(encode_frames: Any, first_frames: np.ndarray, history: np.ndarray, frames: np.ndarray, *,
+                 frames_per_latent: int, batch: int = 16) -> np.ndarray:
     """``[n, T / f, h, w, c]`` the training latents of the real frames ``frames [n, T, H, W, 3]`` reached after each
-    of ``T`` executed actions from ``start_frames [n, H, W, 3]`` (uint8 or in [0, 1]); latent ``j`` covers the
-    frames after actions ``f j .. f j + f - 1``, the ones the simulator's ``j``-th executed latent stands for.
+    of ``T`` executed actions from a keyframe; latent ``j`` covers the frames after actions ``f j .. f j + f - 1``,
+    the ones the simulator's ``j``-th executed latent stands for. Frames are uint8 or in [0, 1].
 
     ``encode_frames`` (``[n, F, H, W, 3]`` in [0, 1] -> latents) is the causal encoder the run's latents were made
-    with. The start frame leads the video as its first frame and again, held for ``f`` frames, as the group before
-    the executed frames, so that the first executed group follows a settled one; both latents are dropped."""
+    with. The video it encodes is laid out as the start's own latents were (:func:`~sword_jax.rl.world_model_sim.
+    encode_history`): each episode's first frame, the keyframe's real ``history [n, f (k + 1), H, W, 3]`` (the
+    frames up to and including the keyframe), then the executed frames, so that the first executed latent follows
+    the real motion that led to the keyframe, as a training episode's latents do; the latents of the first frame
+    and of the history are dropped."""
     n, t = frames.shape[:2]
     f = frames_per_latent
-    if t % f or start_frames.shape[0] != n:
-        raise ValueError(f"real_latents: {t} frames must be whole latents of {f}, one start frame per sequence "
-                         f"(got {start_frames.shape[0]} for {n})")
+    if t % f or history.shape[1] % f or first_frames.shape[0] != n or history.shape[0] != n:
+        raise ValueError(f"real_latents: {t} frames and a history of {history.shape[1]} must be whole latents of "
+                         f"{f}, with one first frame and history per sequence (got {first_frames.shape[0]} and "
+                         f"{history.shape[0]} for {n})")
     unit = lambda x: (x.astype(np.float32) / np.float32(255.0) if x.dtype == np.uint8  # noqa: E731
                       else np.asarray(x, np.float32))
+    lead = 1 + history.shape[1] // f
     out = []
     for i in range(0, n, batch):
-        first = unit(start_frames[i:i + batch])[:, None]
-        video = np.concatenate([first, np.repeat(first, f, axis=1), unit(frames[i:i + batch])], axis=1)
-        out.append(np.asarray(encode_frames(video), np.float32)[:, 2:])
+        video = np.concatenate([unit(first_frames[i:i + batch])[:, None], unit(history[i:i + batch]),
+                                unit(frames[i:i + batch])], axis=1)
+        out.append(np.asarray(encode_frames(video), np.float32)[:, lead:])
     return np.concatenate(out)
 
 
@@ -164,8 +169,8 @@ def closed_loop_segments(start_latents: np.ndarray, start_actions: np.ndarray, c
     f, p, x = frames_per_latent, num_future, execute_latents
     length = real.shape[1]
     if length != d_count * x or actions.shape[1] != f * length:
-        raise ValueError(f"closed_loop_segments: {d_count} decisions of {x} latents need {d_count * x} real latents and "
-                         f"{f * d_count * x} actions, got {real.shape[1]} and {actions.shape[1]}")
+        raise ValueError(f"closed_loop_segments: {d_count} decisions of {x} latents need {d_count * x} real latents "
+                         f"and {f * d_count * x} actions, got {real.shape[1]} and {actions.shape[1]}")
     if start_latents.shape[1] != 1 + k or start_actions.shape[1] != 1 + f * k:
         raise ValueError(f"closed_loop_segments: start latents [n, {1 + k}, ...] and actions [n, {1 + f * k}, A] for "
                          f"{k} context latents, got {start_latents.shape} and {start_actions.shape}")

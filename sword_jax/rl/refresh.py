@@ -262,7 +262,8 @@ def given_rows(loader: Any, given: Any, share: float, *, seed: int) -> tuple[Cal
                          f"at least one row and leave at least one to the dataset, and at least one segment "
                          f"(got {given.num})")
     example = loader.host_batch_at(0)
-    if given.latents.shape[1:] != example["latents"].shape[1:] or given.actions.shape[1:] != example["actions"].shape[1:]:
+    if (given.latents.shape[1:], given.actions.shape[1:]) != (example["latents"].shape[1:],
+                                                              example["actions"].shape[1:]):
         raise ValueError(f"world model fine-tune: given segments {given.latents.shape[1:]} / {given.actions.shape[1:]} "
                          f"do not match the dataset's {example['latents'].shape[1:]} / {example['actions'].shape[1:]}")
     shardings = dict(loader.shardings, given_context=loader.shardings["episode"])
@@ -674,8 +675,8 @@ class Refresher:
         self.used += int(out["episodes"])
         out = dict(out, segments=segments.num, share=conf.closed_loop_share, seconds=round(time.perf_counter() - t0, 1))
         drift = out.get("latent_drift_by_decision") or [float("nan")]
-        self.log(f"refresh at step {step}: the policy's closed loop, {out['episodes']} trajectories executed for real: "
-                 f"{segments.num} segments; latent drift {drift[0]:.4f} after the first decision, {drift[-1]:.4f} after "
+        self.log(f"refresh at step {step}: the policy's closed loop, {out['episodes']} trajectories executed for "
+                 f"real: {segments.num} segments; latent drift {drift[0]:.4f} after the first decision, {drift[-1]:.4f} after "
                  f"the last ({out['seconds']} s)")
         return segments, out
 
@@ -694,8 +695,8 @@ class Refresher:
             part = held_out.subset(mask)
             out[name] = (dict(segment_fit(self.cfg, self.wm_state, part.latents, part.actions, seed=seed),
                               segments=part.num) if part.num else None)
-        out["training"] = dict(segment_fit(self.cfg, self.wm_state, training["latents"], training["actions"], seed=seed),
-                               segments=int(training["latents"].shape[0]))
+        fitted = segment_fit(self.cfg, self.wm_state, training["latents"], training["actions"], seed=seed)
+        out["training"] = dict(fitted, segments=int(training["latents"].shape[0]))
         return out
 
     def _latents(self, real: RealEpisodes) -> tuple[np.ndarray, np.ndarray]:
