@@ -855,6 +855,9 @@ BY_START = ("policy", "grpo_by_start_small_h200")
 BY_START_WINDOW = ("policy", "grpo_by_start_window_small_h200")
 # gt beside rexec: the same world model refreshed once at step 0 on 128 MJX episodes of the policy, as BY_START
 BY_START_REFRESH = ("policy", "grpo_by_start_refresh_small_h200")
+# gt beside rexec refreshed once at step 0 on 128 MJX episodes and on its own closed loop (512 trajectories from 64
+# keyframe starts, their actions executed on MJX), 2,000 fine-tune steps at 1e-4, as BY_START
+BY_START_CLOSED_LOOP = ("policy", "grpo_by_start_closed_loop_small_h200")
 
 
 def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
@@ -873,8 +876,9 @@ def _by_start_pooled(bins: list[dict], above: int = 48) -> list[dict]:
     return out
 
 
-# the world-model arms a by-start record may hold, as its table names them
+# the world-model arms a by-start record may hold, as its table names them (a record of RECORD_ARMS names its own)
 BY_START_ARMS = {"exec": "as trained", "rexec": "refreshed"}
+RECORD_ARMS = {BY_START_CLOSED_LOOP: {"rexec": "refreshed on its closed loop"}}
 
 
 def grpo_by_start(*records: tuple[str, ...]) -> str:
@@ -885,7 +889,8 @@ def grpo_by_start(*records: tuple[str, ...]) -> str:
     them: its success and its precision (the share of its verdicts of success that reality paid)."""
     rows = []
     for record in records or (BY_START,):
-        rows += _by_start_rows(_load(*record, "grpo_reward_source.json")["runs"])
+        rows += _by_start_rows(_load(*record, "grpo_reward_source.json")["runs"],
+                               RECORD_ARMS.get(tuple(record), BY_START_ARMS))
     rows.sort(key=_bin_and_seed)  # stable: the records' order kept
     return _table(["start's step in its demonstration (actions)", "seed", "world model", "ground truth: rollouts",
                    "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
@@ -893,8 +898,8 @@ def grpo_by_start(*records: tuple[str, ...]) -> str:
                    "the detector's precision"], rows)
 
 
-def _by_start_rows(runs: dict) -> list[list[str]]:
-    """:func:`grpo_by_start`'s rows of one record's ``runs``."""
+def _by_start_rows(runs: dict, arms: dict[str, str] = BY_START_ARMS) -> list[list[str]]:
+    """:func:`grpo_by_start`'s rows of one record's ``runs``, its world-model arms named by ``arms``."""
     def bins(arm: str, seed: int) -> list[dict] | None:
         found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
         return _by_start_pooled(found[0]["by_start"]) if found else None
@@ -902,7 +907,7 @@ def _by_start_rows(runs: dict) -> list[list[str]]:
     rows = []
     for seed in sorted({r["seed"] for r in runs.values()}):
         truth = {b["from_step"]: b for b in bins("gt", seed) or []}
-        for arm, label in BY_START_ARMS.items():
+        for arm, label in arms.items():
             for e in bins(arm, seed) or []:
                 g = truth.get(e["from_step"])
                 if not e["rollouts"] or (truth and not (g and g["rollouts"])):
@@ -937,9 +942,12 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
             refresh = ""
             if os.path.exists(os.path.join(run, "refreshes.json")):
                 with open(os.path.join(run, "refreshes.json")) as f:
-                    wm = json.load(f)[0]["world_model"]
-                refresh = (f"{wm['real_episodes']} real episodes + {wm['training_episodes']} training, "
-                           f"{wm['steps']:,} steps, loss {wm['last']['loss']:.3f}")
+                    made = json.load(f)[0]
+                wm, loop = made["world_model"], made.get("closed_loop")
+                refresh = (f"{wm['real_episodes']} real episodes + {wm['training_episodes']} training"
+                           + (f" + its closed loop ({loop['episodes']} trajectories, {loop['share']:.0%} of each batch)"
+                              if loop and "episodes" in loop else "")
+                           + f", {wm['steps']:,} steps, loss {wm['last']['loss']:.3f}")
             rows.append([f"s{seed}", label, str(len(history)), mean("success_rate"),
                          f"{mean('closed_loop_frame_error_1')} / {mean(f'closed_loop_frame_error_{last}')}",
                          mean(f"closed_loop_frame_error_vae_{last}"),
@@ -949,6 +957,40 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
     return _table(["seed", "world model", "steps", "real success of its rollouts' actions",
                    "frame error to the real frame, first / last decision", "the VAE alone, last",
                    "greedy action gap, first / last decision", "the VAE alone, last", "its refresh"], rows)
+
+
+def grpo_closed_loop_fit(record: tuple[str, ...] = BY_START_CLOSED_LOOP) -> str:
+    """Per seed, a refresh on the world model's own closed loop (``record``'s ``rexec`` runs, their step-0 refresh):
+    how far its closed loop had drifted from the real latents of the same actions after decisions 1, 2, 6 and 12
+    (mean squared difference, :func:`sword_jax.rl.closed_loop.drift_by_decision`), and on held-out trajectories'
+    segments the sample error (relative squared error, the inference sampler) before and after the fine-tune: from
+    the real start's context (decision 1), from its own closed loop's (decisions 2-11), and on its training
+    segments."""
+    rows = []
+    for seed in (0, 1, 2):
+        path = os.path.join(RESULTS_DIR, *record, f"rexec_s{seed}", "rl", "grpo", "refreshes.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            loop = json.load(f)[0]["closed_loop"]
+        drift, fit = loop["latent_drift_by_decision"], loop["fit"]
+
+        def change(part: str) -> str:
+            before, after = fit["before"][part], fit["after"][part]
+            if not before:
+                return ""
+            b, a = before["sample_error"], after["sample_error"]
+            return f"{b:.4f} -> {a:.4f} ({100 * (a - b) / b:+.0f}%)"
+
+        rows.append([f"s{seed}", f"{loop['episodes']} ({loop['starts']} starts x {loop['group_size']})",
+                     f"{loop['real_success']:.3f}", " / ".join(f"{drift[d - 1]:.3f}" for d in (1, 2, 6, 12)),
+                     f"{fit['held_out_trajectories']}", change("first_decision"), change("closed_loop"),
+                     change("training")])
+    return _table(["seed", "closed-loop trajectories executed", "their real success",
+                   "latent drift after decision 1 / 2 / 6 / 12", "held-out trajectories",
+                   "sample error from the real start's context (decision 1)",
+                   "sample error from its own closed loop's context (decisions 2-11)",
+                   "sample error on its training segments"], rows)
 
 
 # the cost of a frame a decision late by the start's step: ground-truth GRPO's keyframe starts of steps 1-4 at seeds
@@ -1924,6 +1966,11 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-by-start": grpo_by_start, "grpo-by-start-window": lambda: grpo_by_start(BY_START_WINDOW),
     "grpo-by-start-refresh": lambda: grpo_by_start(BY_START, BY_START_REFRESH),
     "grpo-refresh-fidelity": grpo_refresh_fidelity, "lag-by-start": lag_by_start_table,
+    "grpo-by-start-closed-loop": lambda: grpo_by_start(BY_START, BY_START_REFRESH, BY_START_CLOSED_LOOP),
+    "grpo-closed-loop-fidelity": lambda: grpo_refresh_fidelity((
+        (BY_START, "exec", "as trained"), (BY_START_REFRESH, "rexec", "refreshed"),
+        (BY_START_CLOSED_LOOP, "rexec", "refreshed on its closed loop"))),
+    "grpo-closed-loop-fit": grpo_closed_loop_fit,
     "lag-by-start-actions": lag_by_start_actions,
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,

@@ -541,6 +541,41 @@ def test_the_refresh_fidelity_table_means_each_runs_steps_and_names_its_refresh(
     assert "grpo-refresh-fidelity" in report.TABLES and table[0].count("|") == table[2].count("|")
 
 
+def test_the_closed_loop_tables_name_their_record_and_read_its_refresh(tmp_path, monkeypatch):
+    """grpo-by-start names the closed-loop record's rexec by its own label; the fidelity table says what its refresh
+    added; grpo_closed_loop_fit reads each seed's latent drift at decisions 1, 2, 6, 12 and the held-out sample errors
+    before and after the fine-tune, blank where a part held no segment."""
+    loop = {"episodes": 512, "starts": 64, "group_size": 8, "real_success": 0.3, "share": 0.5,
+            "latent_drift_by_decision": [0.1 * (d + 1) for d in range(12)],
+            "fit": {"held_out_trajectories": 64,
+                    "before": {"first_decision": None, "closed_loop": {"sample_error": 0.04},
+                               "training": {"sample_error": 0.002}},
+                    "after": {"first_decision": None, "closed_loop": {"sample_error": 0.03},
+                              "training": {"sample_error": 0.003}}}}
+    d = tmp_path / "policy" / "cl" / "rexec_s1" / "rl" / "grpo"
+    d.mkdir(parents=True)
+    wm = {"real_episodes": 128, "training_episodes": 600, "steps": 2000, "last": {"loss": 0.06}}
+    d.joinpath("refreshes.json").write_text(json.dumps([{"world_model": wm, "closed_loop": loop}]))
+    d.joinpath("train_history.jsonl").write_text(json.dumps(
+        {"success_rate": 0.3, **{f"closed_loop_{w}_{k}": 0.1 for k in (1, 2) for w in
+                                 ("frame_error", "frame_error_vae", "action_gap", "action_gap_vae")}}) + "\n")
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    rows = [[c.strip() for c in row.strip("|").split("|")]
+            for row in report.grpo_closed_loop_fit(("policy", "cl")).splitlines()[2:]]
+    assert rows == [["s1", "512 (64 starts x 8)", "0.300", "0.100 / 0.200 / 0.600 / 1.200", "64", "",
+                     "0.0400 -> 0.0300 (-25%)", "0.0020 -> 0.0030 (+50%)"]]
+    fidelity = report.grpo_refresh_fidelity(((("policy", "cl"), "rexec", "on its loop"),)).splitlines()[2]
+    assert "128 real episodes + 600 training + its closed loop (512 trajectories, 50% of each batch), 2,000 steps" \
+        in fidelity
+    summary = {"runs": {"rexec_s0": {"arm": "rexec", "seed": 0, "by_start": [
+        {"from_step": 0, "rollouts": 10, "real": 1, "said": 0, "said_real": 0}]}}}
+    with mock.patch.object(report, "_load", return_value=summary):
+        rows = [[c.strip() for c in row.strip("|").split("|")]
+                for row in report.grpo_by_start(report.BY_START_CLOSED_LOOP).splitlines()[2:]]
+    assert [r[2] for r in rows] == ["refreshed on its closed loop"]
+    assert {"grpo-by-start-closed-loop", "grpo-closed-loop-fidelity", "grpo-closed-loop-fit"} <= set(report.TABLES)
+
+
 def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_models(tmp_path, monkeypatch):
     """lag-by-start: per bin and seed the real and late frames' success pooled from 48 actions on, the late
     frames' share of the real one, and the world model's own share from its by-start record (blank where its

@@ -12,7 +12,11 @@ every ``rl.refresh.every`` GRPO steps (:class:`~sword_jax.rl.config.RefreshConfi
    GRPO trained in, scored by its detector: ``replay`` (false and missed success, imagined success by
    horizon), what the exploitation guard (:mod:`sword_jax.rl.sim_guard`) judges.
 3. **World model**: fine-tuned on the run's training latents plus every refresh's episodes so far, its
-   DLB cache refreshed (a new cache over the new dataset, its schedule run again over the fine-tune).
+   DLB cache refreshed (a new cache over the new dataset, its schedule run again over the fine-tune). With
+   ``rl.refresh.closed_loop_starts``, a share of every batch's rows are segments of its own closed loop set against
+   reality (:mod:`~sword_jax.rl.closed_loop`: the policy's imagined trajectories from keyframe starts, their actions
+   executed for real), every 8th trajectory's held out and measured before and after (the record's
+   ``closed_loop``).
 4. **Detector**: fine-tuned on the real frames (the task's success predicate as label) and on the new
    world model's replays of the real episodes labelled with their real outcome
    (:func:`~sword_jax.rl.sim_agreement.replay_labels`); its threshold is then set on replays of held-out
