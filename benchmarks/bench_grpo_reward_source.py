@@ -46,7 +46,8 @@ compare what the real closed loop and the imagined one are paid from like starts
 data-parallel over them); once its data stage is done the ground-truth runs start on the other GPUs, and once the
 pipeline is built the world-model runs take every GPU, the two arms of a seed side by side. With ``--pipeline DIR``
 it builds none and starts each run once the stages it reads have finished in ``DIR`` (:data:`NEEDS`), so a second
-command, e.g. at another ``--actions-per-decision``, shares the first's world model. Each process runs in its own
+command, e.g. at another ``--actions-per-decision``, shares the first's world model (``--gpu-share`` splits a GPU's
+memory between the two commands' world-model runs; each command splits its own share). Each process runs in its own
 session (a deadline stops the runs still going; each keeps its last evaluation; with ``--grace-s`` they are asked
 first and evaluate their step in flight). ``summary`` gives each run's gains with 95% intervals, what its training
 rollouts were paid, and for ``exec`` the detector's success, agreement, false success and precision (the share of
@@ -272,8 +273,9 @@ def run(args, *, poll_s: float = 5.0) -> dict:
         print(f"[reward-source] {name} on GPU {gpu} ({time.perf_counter() - start:.0f} s): {' '.join(cmd[2:])}",
               flush=True)
         own = dict(env, CUDA_VISIBLE_DEVICES=gpu)
-        if sharing.get(gpu, 1) > 1 and not name.startswith(("gt", "pipeline")):
-            own["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / sharing[gpu]:.2f}"
+        share = getattr(args, "gpu_share", 1.0)
+        if (sharing.get(gpu, 1) > 1 or share < 1.0) and not name.startswith(("gt", "pipeline")):
+            own["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 * share / max(sharing.get(gpu, 1), 1):.2f}"
         with open(os.path.join(args.workdir, f"{name}.log"), "a") as log:
             return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=own, start_new_session=True)
 
@@ -932,6 +934,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
                         "the world model) split each batch over them, data-parallel with the same global batch; the "
                         "ground-truth runs take the GPUs it leaves (all of them where it takes every one); default: "
                         "the first of --gpus")
+    parser.add_argument("--gpu-share", type=float, default=1.0,
+                        help="run: the share of each GPU this command's world-model runs may take between them (their "
+                        "XLA_PYTHON_CLIENT_MEM_FRACTION: 0.9 x this over the runs on the GPU); below 1 where another "
+                        "command's runs share the GPU (e.g. 0.7 and 0.25 for two commands)")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--calibrate-steps", type=int, default=4,
                         help="run: the cal arm's steps paid by execution, which set the detector's threshold "
@@ -1019,6 +1025,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     if args.pipeline and not os.path.isdir(args.pipeline):
         raise SystemExit(f"bench_grpo_reward_source: --pipeline {args.pipeline}: no such folder (start the command "
                          f"that builds it first; its runs then start as its stages finish)")
+    if not 0.0 < args.gpu_share <= 1.0:
+        raise SystemExit(f"bench_grpo_reward_source: --gpu-share must be in (0, 1], got {args.gpu_share}")
     args.scale_by_std = args.scale_by_std == "true"
     args.seeds = [int(s) for s in args.seeds.split(",") if s]
     args.gpus = [g for g in args.gpus.split(",") if g]

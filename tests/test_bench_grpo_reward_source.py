@@ -529,6 +529,36 @@ def test_runs_start_once_their_inputs_are_built_and_a_deadline_stops_the_rest(tm
     assert summary["stopped_at_deadline"] == ["gt_s0"] and summary["exit_codes"]["exec_s0"] == 0
 
 
+def test_gpu_share_caps_the_world_model_runs_memory_and_leaves_the_ground_truth_alone(tmp_path, monkeypatch):
+    """--gpu-share F: the world-model runs on a GPU split 0.9 x F of its memory between them (their
+    XLA_PYTHON_CLIENT_MEM_FRACTION), alone or several; the ground-truth runs are not capped; a share outside (0, 1]
+    is refused by name."""
+    import sys
+
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+    monkeypatch.setattr(rs, "pipeline_command", lambda base, overrides, stop_after: [sys.executable, "-c", ""])
+
+    def seen(name):  # a run that records the memory cap it was started with
+        return [sys.executable, "-c", f"import os; open({str(tmp_path / name)!r}, 'w').write("
+                                      f"str(os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')))"]
+
+    monkeypatch.setattr(rs, "summarize", lambda workdir: {"runs": {}, "arms": {}})
+    for share, runs, want in ((0.5, ("exec_s0", "exec_s1"), 0.225), (0.25, ("exec_s0",), 0.225), (1.0, ("exec_s0",),
+                                                                                                   None)):
+        monkeypatch.setattr(rs, "run_commands", lambda a, runs=runs: {"gt_s0": seen("gt_s0"),
+                                                                      **{n: seen(n) for n in runs}})
+        args = _args(tmp_path, gpus="0", seeds="0,1", arms=("gt", "exec"))
+        args.gpu_share = share
+        assert rs.run(args, poll_s=0.05)["exit_codes"]["gt_s0"] == 0
+        assert (tmp_path / "gt_s0").read_text() == "None"
+        for n in runs:
+            cap = (tmp_path / n).read_text()
+            assert (cap == "None") if want is None else float(cap) == pytest.approx(want, abs=0.006)
+    for bad in ("0", "1.5"):
+        with pytest.raises(SystemExit, match="--gpu-share must be in"):
+            rs.parse(["run", "--workdir", str(tmp_path), "--gpu-share", bad])
+
+
 def test_a_pipeline_built_elsewhere_is_shared_and_each_run_waits_for_its_stages(tmp_path, monkeypatch):
     """--pipeline DIR: nothing is built here; the commands read DIR's data and models, the ground-truth run starts
     once DIR's data stage has finished and the world-model run once its VAE, world model and detector have, as the
