@@ -1,12 +1,18 @@
 """The world model's closed loop as training data (sword_jax.rl.closed_loop): segments laid out as the dataset's,
 the train step's given-context rows (no cache read, no cache write), and the fine-tune's mixed batches."""
 
+import dataclasses
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sword_jax.dlb.config import CacheConfig
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
+from sword_jax.rl.learned_simulator import toy_simulator, toy_start_states
+from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl import closed_loop as cl
 from sword_jax.rl.refresh import given_rows
 from sword_jax.world_model import data, train_step
@@ -59,6 +65,56 @@ def test_a_faithful_closed_loop_gives_the_datasets_own_segments(execute_latents)
     drift = cl.drift_by_decision(drifted, real, execute_latents=x)
     np.testing.assert_allclose(drift, np.ones(decisions))
     assert cl.drift_by_decision(contexts, real, execute_latents=x) == [0.0] * decisions
+
+
+class _LatentToy(NamedTuple):
+    toy: object
+    context: jax.Array  # (1, k=1, 1, 1, 2): the toy gripper's position as a one-pixel latent
+
+
+def _latent_toy():
+    """The toy point world with a world model's context in its state: the gripper's position after each step."""
+    toy = toy_simulator(frame_size=8, step_size=0.05, noise=0.05)
+
+    def init_fn(params, start):
+        state = toy.init_fn(params, start)
+        return _LatentToy(state, state.position.reshape(1, 1, 1, 1, 2))
+
+    def step_fn(params, state, chunk, key):  # re-plans after 4 actions, as the world model at 4 a decision
+        moved, frames = toy.step_fn(params, state.toy, chunk[:4], key)
+        return _LatentToy(moved, moved.position.reshape(1, 1, 1, 1, 2)), frames
+
+    return toy.replace(init_fn=init_fn, step_fn=step_fn, observe_fn=lambda p, s: toy.observe_fn(p, s.toy),
+                       execute_len=4)
+
+
+def test_the_trace_keeps_each_decisions_actions_and_context_whatever_the_slicing():
+    """trace_closed_loop: the executed actions of every decision (the simulator's execute_len of each chunk) and
+    the context after it; the same trace with the simulator's calls in 2 slices (rl.imagined.sim_microbatches) as in
+    one, group members differing by their sampled actions; a simulator whose state holds no context is refused."""
+    rl = RLConfig(image_size=8, action_bins=8, proprio_dim=4, chunk_len=8,
+                  policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+                  grpo=GRPOConfig(group_size=2), imagined=ImaginedConfig(max_chunks=3))
+    graphdef, params = build_policy(rl, seed=0)
+    tokens = jnp.asarray(tokenize_instructions(["put the bowl on the plate", "open the drawer"], 32))
+    start = toy_start_states(tokens, key=jax.random.key(1), frame_size=8)
+    sim = _latent_toy()
+    traces = []
+    for slices in (1, 2):
+        r = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, sim_microbatches=slices))
+        traces.append(jax.jit(lambda p, r=r: cl.trace_closed_loop(graphdef, p, sim, start, r, key=jax.random.key(3),
+                                                                 group_size=2, decisions=3))(params))
+    one, two = traces
+    assert one.actions.shape == (4, 12, 7) and one.contexts.shape == (4, 3, 1, 1, 1, 2)
+    np.testing.assert_allclose(one.actions, two.actions, atol=1e-6)
+    np.testing.assert_allclose(one.contexts, two.contexts, atol=1e-6)
+    assert not np.allclose(one.actions[0], one.actions[1])  # a group's members sample their own actions
+    # the context after a decision is where its 4 executed actions (and the noise) left the gripper: it moved
+    moved = np.linalg.norm(np.diff(np.asarray(one.contexts)[..., 0, 0, 0, :], axis=1), axis=-1)
+    assert np.all(moved > 0)
+    with pytest.raises(ValueError, match="no context latents"):
+        cl.trace_closed_loop(graphdef, params, toy_simulator(frame_size=8), start, rl, key=jax.random.key(0),
+                             group_size=1, decisions=1)
 
 
 def test_closed_loop_segments_refuse_mismatched_arrays():

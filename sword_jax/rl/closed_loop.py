@@ -34,7 +34,8 @@ from flax import nnx
 
 from sword_jax.rl.learned_simulator import LearnedSimulator, StartState
 from sword_jax.rl.policy import resize_frames, sample_chunk, tokens_to_actions
-from sword_jax.rl.rollout import expand_groups, simulator_keys
+from sword_jax.rl.rollout import (expand_groups, from_slices, map_over_slices, microbatches_for, simulator_keys,
+                                  to_slices)
 
 
 class ClosedLoopTrace(NamedTuple):
@@ -86,29 +87,34 @@ def trace_closed_loop(graphdef: nnx.GraphDef, policy_params: Any, simulator: Lea
                       rl: Any, *, key: jax.Array, group_size: int, decisions: int) -> ClosedLoopTrace:
     """The policy's closed loop in a world-model simulator (:func:`~sword_jax.rl.world_model_sim.world_model_simulator`,
     whose state carries ``context``), ``decisions`` decisions from each of ``start``'s states, ``group_size`` times
-    each (start-major), sampled at ``rl.grpo.temperature`` as GRPO's imagined rollouts are, none stopped at a
-    success. Jit it as a whole."""
+    each (start-major), sampled at ``rl.grpo.temperature`` and with the simulator's calls in
+    ``rl.imagined.sim_microbatches`` slices as GRPO's imagined rollouts are, none stopped at a success. Jit it as a
+    whole."""
     if group_size < 1 or decisions < 1:
         raise ValueError(f"trace_closed_loop: group_size and decisions must be >= 1, got {group_size}, {decisions}")
     policy = nnx.merge(graphdef, policy_params)
-    state = expand_groups(jax.vmap(simulator.init)(start), group_size)
+    n = start.frame.shape[0] * group_size
+    # the simulator's calls sliced as GRPO's imagined rollouts slice them (rl.imagined.sim_microbatches)
+    slices = microbatches_for(n, rl.imagined.sim_microbatches, simulator.max_slice)
+    state = to_slices(expand_groups(jax.vmap(simulator.init)(start), group_size), slices)
     if not hasattr(state, "context"):
         raise ValueError("trace_closed_loop: the simulator's state has no context latents (a world-model simulator "
                          f"is needed, got {type(state).__name__})")
     start = expand_groups(start, group_size)
-    n = start.frame.shape[0]
 
     def decision(carry, index):
         sim_state, frame = carry
         policy_key, sim_key = jax.random.split(jax.random.fold_in(key, index))
-        proprio, proprio_valid = jax.vmap(simulator.observe)(sim_state)
+        proprio, proprio_valid = from_slices(map_over_slices(simulator.observe, (sim_state,)))
         logits = policy(frame, start.instruction_tokens, proprio, proprio_valid)
         tokens, _ = sample_chunk(logits, key=policy_key, temperature=rl.grpo.temperature)
         actions = tokens_to_actions(tokens, rl.action_bins)
-        sim_state, frames = jax.vmap(lambda s, a, k: simulator.step(s, a, key=k))(
-            sim_state, actions, simulator_keys(sim_key, n, rl))
+        sim_state, frames = map_over_slices(lambda s, a, k: simulator.step(s, a, key=k),
+                                            (sim_state,) + to_slices((actions, simulator_keys(sim_key, n, rl)), slices))
+        frames = from_slices(frames)
         executed = actions[:, : frames.shape[1]]
-        return (sim_state, resize_frames(frames[:, -1], rl.image_size)), (executed, sim_state.context[:, 0])
+        context = from_slices(sim_state.context)[:, 0]  # (N, k, h, w, c): what the next decision predicts from
+        return (sim_state, resize_frames(frames[:, -1], rl.image_size)), (executed, context)
 
     _, (actions, contexts) = jax.lax.scan(decision, (state, resize_frames(start.frame, rl.image_size)),
                                           jnp.arange(decisions))
