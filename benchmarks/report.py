@@ -959,6 +959,38 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
                    "greedy action gap, first / last decision", "the VAE alone, last", "its refresh"], rows)
 
 
+CLOSED_LOOP_RUNS = ((BY_START, "exec", "as trained"), (BY_START_REFRESH, "rexec", "refreshed"),
+                    (BY_START_CLOSED_LOOP, "rexec", "refreshed on its closed loop"))
+
+
+def grpo_closed_loop_decisions(records: Sequence[tuple[tuple[str, ...], str, str]] = CLOSED_LOOP_RUNS) -> str:
+    """Per decision of the imagined rollouts, each record's arm (``(record, arm, label)``, seeds 0-2 where present):
+    the frame error to the real frame and the policy's greedy action gap to its actions on the real frame, means over
+    the run's GRPO steps, as ``s0 / s1`` cells (:func:`sword_jax.rl.imagined_check.closed_loop_fidelity`)."""
+    cells: dict[str, dict[int, list[str]]] = {}
+    decisions = 0
+    for record, arm, label in records:
+        for what in ("frame_error", "action_gap"):
+            cells.setdefault(f"{what}:{label}", {})
+        for seed in (0, 1, 2):
+            path = os.path.join(RESULTS_DIR, *record, f"{arm}_s{seed}", "rl", "grpo", "train_history.jsonl")
+            if not os.path.exists(path):
+                continue
+            history = _history_rows(path)
+            last = max(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+            decisions = max(decisions, last)
+            for what in ("frame_error", "action_gap"):
+                for d in range(1, last + 1):
+                    mean = statistics.mean(h[f"closed_loop_{what}_{d}"] for h in history)
+                    cells[f"{what}:{label}"].setdefault(d, []).append(f"{mean:.3f}")
+    labels = [label for _, _, label in records]
+    columns = [f"{what}:{label}" for what in ("frame_error", "action_gap") for label in labels]
+    rows = [[str(d), *(" / ".join(cells[c].get(d, [])) for c in columns)] for d in range(1, decisions + 1)]
+    names = {"frame_error": "frame error", "action_gap": "greedy action gap"}
+    return _table(["decision", *(f"{names[c.split(':')[0]]}, {c.split(':', 1)[1]} (s0 / s1)" for c in columns)],
+                  rows)
+
+
 def grpo_closed_loop_fit(record: tuple[str, ...] = BY_START_CLOSED_LOOP) -> str:
     """Per seed, a refresh on the world model's own closed loop (``record``'s ``rexec`` runs, their step-0 refresh):
     how far its closed loop had drifted from the real latents of the same actions after decisions 1, 2, 6 and 12
@@ -1967,9 +1999,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-by-start-refresh": lambda: grpo_by_start(BY_START, BY_START_REFRESH),
     "grpo-refresh-fidelity": grpo_refresh_fidelity, "lag-by-start": lag_by_start_table,
     "grpo-by-start-closed-loop": lambda: grpo_by_start(BY_START, BY_START_REFRESH, BY_START_CLOSED_LOOP),
-    "grpo-closed-loop-fidelity": lambda: grpo_refresh_fidelity((
-        (BY_START, "exec", "as trained"), (BY_START_REFRESH, "rexec", "refreshed"),
-        (BY_START_CLOSED_LOOP, "rexec", "refreshed on its closed loop"))),
+    "grpo-closed-loop-fidelity": lambda: grpo_refresh_fidelity(CLOSED_LOOP_RUNS),
+    "grpo-closed-loop-decisions": grpo_closed_loop_decisions,
     "grpo-closed-loop-fit": grpo_closed_loop_fit,
     "lag-by-start-actions": lag_by_start_actions,
     "world-model-heldout": world_model_heldout,

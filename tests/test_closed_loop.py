@@ -215,3 +215,33 @@ def test_the_fine_tunes_mixed_batches_take_their_share_from_the_given_segments()
     wrong = given._replace(latents=given.latents[:, :3])
     with pytest.raises(ValueError, match="do not match"):
         given_rows(loader, wrong, 0.5, seed=1)
+
+
+def test_segment_fit_is_a_function_of_the_weights_and_seed_and_keeps_its_compile():
+    """segment_fit: the fixed-noise loss and sample error of a world model over segments, the same for the same
+    weights and seed, other for other weights; the jitted measurement kept in ``compiled`` across calls."""
+    import configs
+    from flax import nnx
+
+    from sword_jax.dit.action_dit import WorldModel
+    from sword_jax.rl.refresh import segment_fit
+
+    cfg = configs.get("sword:tiny")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_layers=1))
+    _, params, rest = nnx.split(WorldModel(cfg.model, rngs=nnx.Rngs(0)), nnx.Param, ...)
+    other = jax.tree.map(lambda x: x + 0.01, params)  # (a fresh model's zero-initialised output ignores its seed)
+    k, p = cfg.data.context_frames // cfg.vae.temporal_factor, cfg.data.predict_frames // cfg.vae.temporal_factor
+    h = cfg.data.image_size // cfg.vae.spatial_factor
+    rng = np.random.default_rng(0)
+    latents = rng.normal(size=(5, 1 + k + p, h, h, cfg.model.in_dim)).astype(np.float32)
+    actions = rng.normal(size=(5, 1 + 4 * (k + p), cfg.model.action_dim)).astype(np.float32)
+    compiled = {}
+    a = segment_fit(cfg, (params, rest), latents, actions, seed=3, batch=4, compiled=compiled)
+    measure = compiled["measure"]
+    b = segment_fit(cfg, (params, rest), latents, actions, seed=3, batch=4, compiled=compiled)
+    c = segment_fit(cfg, (other, rest), latents, actions, seed=3, batch=4, compiled=compiled)
+    assert compiled["measure"] is measure and set(a) == {"loss", "sample_error"}
+    assert a == b and a != c and all(np.isfinite(v) and v > 0 for v in a.values())
+    with pytest.raises(ValueError, match="no segments"):
+        segment_fit(cfg, (params, rest), latents[:0], actions[:0], seed=3)
+

@@ -576,6 +576,27 @@ def test_the_closed_loop_tables_name_their_record_and_read_its_refresh(tmp_path,
     assert {"grpo-by-start-closed-loop", "grpo-closed-loop-fidelity", "grpo-closed-loop-fit"} <= set(report.TABLES)
 
 
+def test_the_closed_loop_decisions_table_means_each_decision_over_steps_per_seed(tmp_path, monkeypatch):
+    """grpo-closed-loop-decisions: per decision, each record's frame error and greedy action gap as means over its
+    steps, one cell per record and figure with its seeds' means as s0 / s1; a seed a record lacks is left out."""
+    def run(record, arm, seed, base):
+        d = tmp_path / "policy" / record / f"{arm}_s{seed}" / "rl" / "grpo"
+        d.mkdir(parents=True)
+        d.joinpath("train_history.jsonl").write_text("\n".join(json.dumps(
+            {f"closed_loop_{w}_{k}": base + k + v for k in (1, 2) for w in ("frame_error", "action_gap")})
+            for v in (0.0, 0.5)) + "\n")
+
+    run("a", "exec", 0, 0.0)
+    run("a", "exec", 1, 10.0)
+    run("b", "rexec", 1, 20.0)
+    monkeypatch.setattr(report, "RESULTS_DIR", str(tmp_path))
+    table = report.grpo_closed_loop_decisions(((("policy", "a"), "exec", "A"), (("policy", "b"), "rexec", "B")))
+    rows = [[c.strip() for c in row.strip("|").split("|")] for row in table.splitlines()[2:]]
+    assert rows == [["1", "1.250 / 11.250", "21.250", "1.250 / 11.250", "21.250"],
+                    ["2", "2.250 / 12.250", "22.250", "2.250 / 12.250", "22.250"]]
+    assert "frame error, B (s0 / s1)" in table.splitlines()[0] and "grpo-closed-loop-decisions" in report.TABLES
+
+
 def test_the_lag_by_start_table_sets_the_late_frames_share_beside_the_world_models(tmp_path, monkeypatch):
     """lag-by-start: per bin and seed the real and late frames' success pooled from 48 actions on, the late
     frames' share of the real one, and the world model's own share from its by-start record (blank where its

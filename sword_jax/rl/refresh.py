@@ -286,21 +286,25 @@ def given_rows(loader: Any, given: Any, share: float, *, seed: int) -> tuple[Cal
 
 
 def segment_fit(cfg: Any, wm_state: tuple[Any, Any], latents: np.ndarray, actions: np.ndarray, *, seed: int,
-                batch: int = 32) -> dict[str, float]:
+                batch: int = 32, compiled: dict | None = None) -> dict[str, float]:
     """The world model's fixed-noise flow loss and the relative squared error of the future it samples in
     ``flow.sample_steps`` Euler steps from each segment's own context, over segments ``latents [M, 1 + k + p, ...]``
     with their ``actions`` (:func:`~sword_jax.world_model.heldout.make_measure`, in batches of ``batch`` whose noise
     levels span the training distribution's quantiles; the means weighted by the batches' sizes). The noise is fixed
-    by ``seed``, so two world models are measured on the same draws."""
+    by ``seed``, so two world models are measured on the same draws. ``compiled``: a dict kept between calls, where
+    the jitted measurement is kept (a refresh's measurements then trace it once per batch shape)."""
     from sword_jax.dit.action_dit import WorldModel
     from sword_jax.world_model.heldout import make_measure
 
     if latents.shape[0] < 1:
         raise ValueError("segment_fit: no segments")
-    k = cfg.data.context_frames // cfg.vae.temporal_factor
-    graphdef = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg.model, rngs=nnx.Rngs(0))), nnx.Param, ...)[0]
     n_steps = cfg.flow.sample_steps
-    measure = jax.jit(make_measure(graphdef, cfg.flow, k, (n_steps,)))
+    compiled = {} if compiled is None else compiled
+    if "measure" not in compiled:
+        k = cfg.data.context_frames // cfg.vae.temporal_factor
+        graphdef = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg.model, rngs=nnx.Rngs(0))), nnx.Param, ...)[0]
+        compiled["measure"] = jax.jit(make_measure(graphdef, cfg.flow, k, (n_steps,)))
+    measure = compiled["measure"]
     params, buffers = wm_state
     root = stream_key(jax.random.key(seed), "refresh/segment_fit")
     total = {"loss": 0.0, "sample_error": 0.0}
@@ -434,6 +438,7 @@ class Refresher:
         self.branch: rl_data.EpisodeSet | None = None
         self.used, self.loaded, self.records = 0, None, []
         self._wm_compiled: dict = {}  # the world model's fine-tune step, compiled once
+        self._fit_compiled: dict = {}  # the closed loop's held-out measurement, traced once per batch shape
         self._det_compiled = make_detector_step(self.det_graphdef, rl, mesh=self.mesh)
         settle = rl.imagined.eval_replay_settle_steps
         self._replay_fn = jax.jit(lambda sim, rm, start, actions, lengths, key, record: sim_agreement.replay_actions(
@@ -697,9 +702,10 @@ class Refresher:
         out: dict[str, dict[str, float] | None] = {}
         for name, mask in (("first_decision", held_out.decision == 0), ("closed_loop", held_out.decision > 0)):
             part = held_out.subset(mask)
-            out[name] = (dict(segment_fit(self.cfg, self.wm_state, part.latents, part.actions, seed=seed),
-                              segments=part.num) if part.num else None)
-        fitted = segment_fit(self.cfg, self.wm_state, training["latents"], training["actions"], seed=seed)
+            out[name] = (dict(segment_fit(self.cfg, self.wm_state, part.latents, part.actions, seed=seed,
+                                          compiled=self._fit_compiled), segments=part.num) if part.num else None)
+        fitted = segment_fit(self.cfg, self.wm_state, training["latents"], training["actions"], seed=seed,
+                             compiled=self._fit_compiled)
         out["training"] = dict(fitted, segments=int(training["latents"].shape[0]))
         return out
 
