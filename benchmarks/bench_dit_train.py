@@ -2,11 +2,17 @@
 
     python -m benchmarks.bench_dit_train                 # 5B width (dim 3072) + small config, on GPU
     python -m benchmarks.bench_dit_train --tiny          # CPU smoke run
+    python -m benchmarks.bench_dit_train --small-sweep 512x8,768x12,1024x16 --skip-wide   # world models to scale to
 
 Model FLOPs are counted the standard way: 3x the forward matmul and attention FLOPs (recomputation
 not counted), over the whole 1 + 1 + 2 latent-frame segment the step runs. MFU is judged against a
 bf16 matmul peak measured in the same process. The teacher-forcing and DLB steps run side by side
 on the same model, batch and data, so their ratio is not disturbed by drift between runs.
+
+``--small-sweep DIMxLAYERS,...`` times world models of other widths and depths at ``small``'s own geometry (the 8x
+VAE's 16 x 16 latents, batch 32, a DLB step as ``small`` trains; heads of 64 channels, FFN 4x), side by side in one
+process: their parameters, step time and what 30,000 steps (``small``'s training) would take, each against the first
+(``dit_train_small_sweep``).
 """
 
 from __future__ import annotations
@@ -68,6 +74,7 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
     data, data_shardings = _batch(model_cfg, batch, hw, num_episodes, num_latents, mesh)
     key = jax.random.key(0)
     row: dict = {"config": label, "layers": model_cfg.num_layers, "dim": model_cfg.dim, "batch": batch,
+                 "params": 0,
                  "remat": model_cfg.remat, "attention": model_cfg.attention_impl,
                  "residual": model_cfg.residual_dtype, "adam_mu": mu_dtype}
     times = {}
@@ -77,6 +84,7 @@ def run_config(label: str, model_cfg: DiTConfig, batch: int, hw: tuple[int, int]
     for name, cache_cfg in variants:
         graphdef, state, shardings = train_state.create_train_state(
             lambda: WorldModel(model_cfg, rngs=nnx.Rngs(0)), trainer_cfg, cache_cfg, dataset_shape, mesh)
+        row["params"] = int(sum(np.prod(x.shape) for x in jax.tree.leaves(state.params)))
         fn = train_step.make_train_step(graphdef, flow_cfg=flow_cfg, trainer_cfg=trainer_cfg, cache_cfg=cache_cfg,
                                         num_context=1, num_episodes=num_episodes)
         step = train_step.compile_train_step(fn, shardings, data_shardings, mesh)
@@ -114,7 +122,33 @@ def _lever_rows(label: str, cfg: DiTConfig, batch: int, hw: tuple[int, int], pea
                        mu_dtype="bfloat16")]
 
 
-def main(argv: list[str] | None = None) -> None:
+SMALL_STEPS = 30_000  # small's world-model training, what the sweep's time per run is for
+
+
+def small_sweep(text: str, *, tiny: bool, peak: float, iters: int, attention: str = "auto") -> list[dict]:
+    """``--small-sweep``'s rows: each ``DIMxLAYERS`` at ``small``'s geometry (``tiny``: the CPU smoke shapes), its
+    DLB step time, parameters, and seconds for :data:`SMALL_STEPS` steps and step time against the first row's."""
+    try:
+        shapes = [tuple(int(v) for v in item.split("x")) for item in text.split(",") if item]
+    except ValueError:
+        shapes = []
+    if not shapes or any(len(sh) != 2 or sh[0] < 64 or sh[0] % 64 or sh[1] < 1 for sh in shapes):
+        raise SystemExit(f"bench_dit_train: --small-sweep takes DIMxLAYERS,... with DIM a multiple of 64, got {text!r}")
+    batch, hw = (8, (4, 4)) if tiny else (32, (16, 16))  # tiny: a batch the test suite's 8 CPU devices split
+    rows = []
+    for dim, layers in shapes:
+        cfg = DiTConfig(dim=dim, ffn_dim=4 * dim, num_heads=dim // 64, num_layers=layers, text_dim=16 if tiny else 64,
+                        text_len=8 if tiny else 16, freq_dim=32 if tiny else 256, attention_impl=attention,
+                        scan_layers=False, compute_dtype="float32" if tiny else "bfloat16")
+        row = run_config(f"small-{dim}x{layers}", cfg, batch, hw, peak_tflops=peak, iters=iters)
+        rows.append(dict(row, s_per_small_run=row["dlb_step_s"] * SMALL_STEPS))
+    for row in rows:
+        row.update(params_vs_first=row["params"] / rows[0]["params"],
+                   step_vs_first=row["dlb_step_s"] / rows[0]["dlb_step_s"])
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = cli.ArgumentParser(description=__doc__)
     parser.add_argument("--tiny", action="store_true", help="CPU smoke run on tiny shapes")
     parser.add_argument("--layers", type=int, default=8, help="layers at 5B width (as many as fit one GPU)")
@@ -130,15 +164,34 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--residual", default="float32", choices=("float32", "bfloat16"),
                         help="residual-stream dtype of every 5B-width row (model.residual_dtype)")
     parser.add_argument("--skip-small", action="store_true", help="no small-config row")
+    parser.add_argument("--skip-wide", action="store_true", help="no 5B-width row (with --small-sweep)")
+    parser.add_argument("--small-sweep", default="", metavar="DIMxLAYERS,...",
+                        help="world models of these widths and depths at small's geometry, side by side (module "
+                             "docstring)")
     parser.add_argument("--levers", action="store_true",
                         help="after the 5B-width row, the same setting with a bf16 residual stream, bf16 Adam first "
                              "moments and both, side by side (teacher-forcing step; recorded as dit_train_levers)")
     args = parser.parse_args(argv)
 
+    if args.skip_wide and not args.small_sweep:
+        raise SystemExit("bench_dit_train: --skip-wide leaves rows only with --small-sweep")
     peak = common.measured_matmul_tflops()
     copy_gbps = common.measured_copy_gbps()
     print(f"device {common.device_name()}: measured bf16 matmul {peak:.1f} TFLOP/s, copy {copy_gbps:.0f} GB/s")
     rows = []
+    if args.small_sweep:
+        swept = small_sweep(args.small_sweep, tiny=args.tiny, peak=peak, iters=2 if args.tiny else args.iters,
+                            attention=args.attention)
+        common.print_table(swept, ["config", "params", "batch", "dlb_step_s", "step_vs_first", "params_vs_first",
+                                   "s_per_small_run", "mfu", "peak_mem_gb"])
+        if not (args.no_record or args.tiny):
+            common.merge_results({"dit_train_small_sweep": common.record(
+                "dit_train_small_sweep", swept[-1]["step_vs_first"], None, rows=swept, steps_per_run=SMALL_STEPS,
+                value_is=f"the last row's DLB step time over the first's ({swept[-1]['config']} against "
+                         f"{swept[0]['config']}), at small's geometry: 16 x 16 latents, batch 32, one device")})
+        if args.skip_wide:
+            return swept
+        rows += swept
     if args.tiny:
         tiny = DiTConfig(dim=64, ffn_dim=128, freq_dim=32, num_heads=4, num_layers=2, text_dim=16, text_len=8,
                          compute_dtype="float32")
@@ -175,7 +228,7 @@ def main(argv: list[str] | None = None) -> None:
     common.print_table(rows, ["config", "layers", "batch", "remat", "attention", "residual", "adam_mu", "tf_step_s",
                               "dlb_step_s", "dlb_overhead", "model_tflops", "mfu", "peak_mem_gb"])
     if args.no_record or args.tiny:
-        return
+        return rows
     wide = rows[0]
     extra = {"measured_peak_tflops": peak, "copy_gbps": copy_gbps, "rows": rows}
     levers = {r["config"]: r for r in rows if r["config"].startswith("5b-width+")}
@@ -193,12 +246,13 @@ def main(argv: list[str] | None = None) -> None:
             "dit_train_mfu_5b_full_h200", wide["mfu"], 0.55, **extra,
             note="full 30-layer TI2V-5B world model, one device; the key names the H200 the target is set on, "
                  "device says where it ran")})
-        return
+        return rows
     common.merge_results({
         "dit_train_mfu_vs_measured_peak": common.record("dit_train_mfu_vs_measured_peak", wide["mfu"], 0.65, **extra),
         "dlb_overhead_ratio": common.record("dlb_overhead_ratio", wide["dlb_overhead"], 0.03,
                                             tf_step_s=wide["tf_step_s"], dlb_step_s=wide["dlb_step_s"]),
     })
+    return rows
 
 
 if __name__ == "__main__":
