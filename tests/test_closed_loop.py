@@ -251,23 +251,10 @@ def test_segments_carry_the_actions_the_simulator_conditioned_each_decision_on(m
     """Against the world-model simulator itself (predict_chunk captured): at each decision the segment's first-frame
     and context actions and the decision's executed actions (the future frames it executes) are those the simulator
     passed the world model; later future frames carry the executed actions where the simulator had the plan."""
-    from sword_jax.rl import world_model_sim
-    from sword_jax.rl.learned_simulator import StartState
-    from tests.test_rl_world_model_sim import _tiny_models
+    from tests.test_rl_world_model_sim import START_ACTIONS, capturing_simulator
 
-    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
-    captured = []
-
-    def fake_predict(model_fn, first, context, actions, *, key, num_future, cfg, num_steps):
-        captured.append(np.asarray(actions[0, :, 0]))
-        return jnp.zeros((1, num_future) + context.shape[2:], jnp.float32)
-
-    monkeypatch.setattr(world_model_sim, "predict_chunk", fake_predict)
-    sim = world_model_sim.world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow,
-                                                frame_size=32, execute_latents=1)
-    latents = jnp.zeros((2, 2, 2, cfg.vae.z_dim))
-    start_actions = jnp.zeros((5, 7)).at[:, 0].set(jnp.asarray([100.0, 1.0, 2.0, 3.0, 4.0]))
-    state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), (latents, start_actions)))
+    sim, state, captured = capturing_simulator(monkeypatch, execute_latents=1)
+    start_actions = START_ACTIONS
     chunks = [jnp.zeros((8, 7)).at[:, 0].set(base + jnp.arange(8.0)) for base in (10.0, 20.0, 30.0)]
     for i, chunk in enumerate(chunks):
         state, _ = sim.step(state, chunk, key=jax.random.key(i))

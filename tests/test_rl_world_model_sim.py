@@ -61,10 +61,13 @@ def test_world_model_simulator_rollout_deterministic_and_streams_frames():
     np.testing.assert_allclose(np.asarray(grouped.frames), np.asarray(a.frames), atol=1e-5)
 
 
-def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatch):
-    """Frame t carries the action taken after seeing it (world_model/data.py). The policy acts on the
-    last context frame, so its first action must fill that frame's slot, not the first predicted
-    frame's; the start's real first/context actions (not zeros) condition the first chunk."""
+START_ACTIONS = jnp.zeros((5, 7)).at[:, 0].set(jnp.asarray([100.0, 1.0, 2.0, 3.0, 4.0]))
+
+
+def capturing_simulator(monkeypatch, **kw):
+    """``(sim, state, captured)``: the tiny world-model simulator (``kw``: its options) whose world model is replaced
+    by a stand-in that records the first action dimension of every call's actions in ``captured`` and predicts zeros,
+    started from zero latents with :data:`START_ACTIONS` (first frame 100, context frames 1-4)."""
     from sword_jax.rl import world_model_sim
 
     cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
@@ -75,10 +78,17 @@ def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatc
         return jnp.zeros((1, num_future) + context.shape[2:], jnp.float32)
 
     monkeypatch.setattr(world_model_sim, "predict_chunk", fake_predict)
-    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32)
+    sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=cfg.flow, frame_size=32, **kw)
     latents = jnp.zeros((2, 2, 2, cfg.vae.z_dim))
-    start_actions = jnp.zeros((5, 7)).at[:, 0].set(jnp.asarray([100.0, 1.0, 2.0, 3.0, 4.0]))
-    state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), (latents, start_actions)))
+    state = sim.init(StartState(jnp.zeros((32, 32, 3)), jnp.zeros(8), jnp.zeros(8, jnp.int32), (latents, START_ACTIONS)))
+    return sim, state, captured
+
+
+def test_policy_actions_condition_the_frames_training_pairs_them_with(monkeypatch):
+    """Frame t carries the action taken after seeing it (world_model/data.py). The policy acts on the
+    last context frame, so its first action must fill that frame's slot, not the first predicted
+    frame's; the start's real first/context actions (not zeros) condition the first chunk."""
+    sim, state, captured = capturing_simulator(monkeypatch)
     chunk = lambda base: jnp.zeros((8, 7)).at[:, 0].set(base + jnp.arange(8.0))  # noqa: E731
     state, _ = sim.step(state, chunk(10.0), key=jax.random.key(0))
     state, _ = sim.step(state, chunk(20.0), key=jax.random.key(1))
