@@ -586,8 +586,8 @@ class Refresher:
         latents = self._latents(real)
         self.rounds.append(latents)
         train_given, fit = given, None
-        if given is not None:  # every 8th trajectory's segments held out: the fine-tune's effect where it did not train
-            trajectories = int(given.trajectory.max()) + 1
+        trajectories = int(given.trajectory.max()) + 1 if given is not None else 0
+        if trajectories >= 2:  # every 8th trajectory's segments held out: the fine-tune's effect where it did not train
             held = given.trajectory % 8 == (7 if trajectories >= 8 else trajectories - 1)
             train_given, held_out = given.subset(~held), given.subset(held)
             fit = {"held_out_trajectories": int(np.unique(held_out.trajectory).size),
@@ -685,8 +685,8 @@ class Refresher:
         out = dict(out, segments=segments.num, share=conf.closed_loop_share, seconds=round(time.perf_counter() - t0, 1))
         drift = out.get("latent_drift_by_decision") or [float("nan")]
         self.log(f"refresh at step {step}: the policy's closed loop, {out['episodes']} trajectories executed for "
-                 f"real: {segments.num} segments; latent drift {drift[0]:.4f} after the first decision, {drift[-1]:.4f} after "
-                 f"the last ({out['seconds']} s)")
+                 f"real: {segments.num} segments; latent drift {drift[0]:.4f} after the first decision, "
+                 f"{drift[-1]:.4f} after the last ({out['seconds']} s)")
         return segments, out
 
     def _segment_fit(self, held_out: Any, step: int) -> dict[str, dict[str, float] | None]:
