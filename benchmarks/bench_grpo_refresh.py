@@ -465,7 +465,8 @@ def refresh_records(grpo: str) -> list[dict]:
     """The refreshes of the GRPO run at ``grpo`` (``refreshes.json``, or for a run stopped early each
     ``refresh/*/record.json`` written so far), each as the summary reads it: its step, real episodes and their real
     success, what its replay said before the refresh (false and missed success, separation by horizon, within
-    groups), the detector's threshold and calibration after it, its trust and its verification."""
+    groups), the detector's threshold and calibration after it, its trust, its verification and its closed loop
+    (``rl.refresh.closed_loop_starts``: the trajectories, their drift and the fine-tune's held-out fit)."""
     refreshes = os.path.join(grpo, "refreshes.json")
     records = []
     if os.path.exists(refreshes):
@@ -488,7 +489,8 @@ def refresh_records(grpo: str) -> list[dict]:
             "separation_after": separations((r.get("detector") or {}).get("imagined_success_by_horizon")),
             "detector_real_frames": (r.get("detector") or {}).get("real_frames"),
             "detector_real_frames_run_threshold": (r.get("detector") or {}).get("real_frames_run_threshold"),
-            "trust": r.get("trust"), "skipped": r.get("skipped"), "verify": r.get("verify")}
+            "trust": r.get("trust"), "skipped": r.get("skipped"), "verify": r.get("verify"),
+             "closed_loop": r.get("closed_loop")}
             for r in records]
 
 

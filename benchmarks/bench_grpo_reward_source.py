@@ -168,6 +168,18 @@ def needs(args, name: str) -> tuple[str, ...]:
     return NEEDS["world_model"]
 
 
+def closed_loop_note(loop: dict | None) -> str:
+    """A refresh's closed loop (``rl.refresh.closed_loop_starts``) as the summary line says it: its trajectories and,
+    where measured, the held-out sample error from the world model's own context before and after the fine-tune."""
+    if not loop or "episodes" not in loop:
+        return ""
+    fit = (loop.get("fit") or {})
+    before, after = ((fit.get(when) or {}).get("closed_loop") for when in ("before", "after"))
+    return (f", its closed loop {loop['episodes']} trajectories"
+            + (f" (held-out sample error from its own context {before['sample_error']:.4f} -> "
+               f"{after['sample_error']:.4f})" if before and after else ""))
+
+
 def check_bundle(args) -> None:
     """``--bundle`` holds what the world-model arms read (``train.bundle unpack``'s layout), or the run is refused
     by name before anything starts."""
@@ -878,7 +890,8 @@ def print_runs(summary: dict) -> None:
                      + (f", its replay's false success before {false['rate']:.2f}"
                         + (f" of {false['of']} real failures" if false.get("of") is not None else "")
                         if false.get("rate") is not None else "")
-                     + (f", threshold {f['threshold']:.3f}" if f.get("threshold") is not None else ""))
+                     + (f", threshold {f['threshold']:.3f}" if f.get("threshold") is not None else "")
+                     + closed_loop_note(f.get("closed_loop")))
         if r.get("closed_loop"):
             loop = r["closed_loop"]
             line += (f"; closed loop at decisions {loop['decisions'][0]} / {loop['decisions'][-1]}: frame error "

@@ -950,6 +950,14 @@ def test_a_refreshed_runs_summary_counts_its_refreshes_episodes_and_reads_their_
     rs.print_runs(summary)
     assert ("; refresh at step 0: 64 real episodes (real success 0.50), its replay's false success before 0.60 of "
             "30 real failures, threshold 0.990" in capsys.readouterr().out)
+    # a refresh on the world model's closed loop: its trajectories and the held-out fit before and after
+    record["closed_loop"] = {"episodes": 512, "fit": {"before": {"closed_loop": {"sample_error": 0.04}},
+                                                      "after": {"closed_loop": {"sample_error": 0.03}}}}
+    (grpo / "refreshes.json").write_text(json.dumps([record]))
+    rs.print_runs(rs.summarize(str(tmp_path)))
+    assert ("threshold 0.990, its closed loop 512 trajectories (held-out sample error from its own context 0.0400 -> "
+            "0.0300)" in capsys.readouterr().out)
+    assert rs.closed_loop_note({"skipped": "budget"}) == "" and rs.closed_loop_note(None) == ""
 
 
 def _launch_line(name, cmd):
