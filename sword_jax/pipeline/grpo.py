@@ -164,16 +164,16 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         del key
         return start_state(windows(step, rows), encode, rl)
 
-    env_starts = start_steps = None
-    if episodes is not None and episodes.states is not None:
-        def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel], no windows cut
-            ep, t = draw(rl_data.keyframe_indices, step, rows)
-            return np.asarray(episodes.states[ep, t], np.float32)
+    def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel], no windows cut
+        ep, t = draw(rl_data.keyframe_indices, step, rows)
+        return np.asarray(episodes.states[ep, t], np.float32)
 
-        def start_steps(step, rows=None):  # the same keyframes' steps in their episodes
-            return np.asarray(draw(rl_data.keyframe_indices, step, rows)[1], np.int32)
+    def start_steps(step, rows=None):  # the same keyframes' steps in their episodes
+        return np.asarray(draw(rl_data.keyframe_indices, step, rows)[1], np.int32)
 
-    return Setup(sim, reward_model, starts, None, encode, env_starts, start_steps, windows)
+    recorded = episodes is not None and episodes.states is not None  # keyframes the real environment can reset to
+    return Setup(sim, reward_model, starts, None, encode, env_starts if recorded else None,
+                 start_steps if recorded else None, windows)
 
 
 def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:
