@@ -11,7 +11,7 @@ import pytest
 
 from sword_jax.dlb.config import CacheConfig
 from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
-from sword_jax.rl.learned_simulator import toy_simulator, toy_start_states
+from sword_jax.rl.learned_simulator import toy_reward_model, toy_simulator, toy_start_states
 from sword_jax.rl.policy import build_policy, tokenize_instructions
 from sword_jax.rl import closed_loop as cl
 from sword_jax.rl.refresh import given_rows
@@ -98,12 +98,13 @@ def test_the_trace_keeps_each_decisions_actions_and_context_whatever_the_slicing
     graphdef, params = build_policy(rl, seed=0)
     tokens = jnp.asarray(tokenize_instructions(["put the bowl on the plate", "open the drawer"], 32))
     start = toy_start_states(tokens, key=jax.random.key(1), frame_size=8)
-    sim = _latent_toy()
+    sim, rm = _latent_toy(), toy_reward_model()
     traces = []
     for slices in (1, 2):
         r = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, sim_microbatches=slices))
-        traces.append(jax.jit(lambda p, r=r: cl.trace_closed_loop(graphdef, p, sim, start, r, key=jax.random.key(3),
-                                                                 group_size=2, decisions=3))(params))
+        traces.append(jax.jit(lambda p, r=r: cl.trace_closed_loop(graphdef, p, sim, rm, start, r,
+                                                                 key=jax.random.key(3), group_size=2,
+                                                                 decisions=3))(params))
     one, two = traces
     assert one.actions.shape == (4, 12, 7) and one.contexts.shape == (4, 3, 1, 1, 1, 2)
     np.testing.assert_allclose(one.actions, two.actions, atol=1e-6)
@@ -113,7 +114,7 @@ def test_the_trace_keeps_each_decisions_actions_and_context_whatever_the_slicing
     moved = np.linalg.norm(np.diff(np.asarray(one.contexts)[..., 0, 0, 0, :], axis=1), axis=-1)
     assert np.all(moved > 0)
     with pytest.raises(ValueError, match="no context latents"):
-        cl.trace_closed_loop(graphdef, params, toy_simulator(frame_size=8), start, rl, key=jax.random.key(0),
+        cl.trace_closed_loop(graphdef, params, toy_simulator(frame_size=8), rm, start, rl, key=jax.random.key(0),
                              group_size=1, decisions=1)
 
 

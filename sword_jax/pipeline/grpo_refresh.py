@@ -247,9 +247,10 @@ CLOSED_LOOP_STEPS = 1 << 30
 def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_frames: Callable[[np.ndarray], np.ndarray],
                      *, seed: int, frames_per_latent: int, num_future: int, mesh: Any
                      ) -> Callable[..., tuple[Any, dict]]:
-    """``closed_loop(params, simulator, step, decisions) -> (segments, report)`` for ``rl.refresh.closed_loop_starts``
-    (:mod:`sword_jax.rl.closed_loop`): keyframe starts of ``setup`` (drawn as GRPO's are, for steps it never
-    reaches: :data:`CLOSED_LOOP_STEPS`), each rolled out ``rl.grpo.group_size`` times by the policy in the simulator
+    """``closed_loop(params, simulator, reward_model, step, decisions) -> (segments, report)`` for
+    ``rl.refresh.closed_loop_starts`` (:mod:`sword_jax.rl.closed_loop`): keyframe starts of ``setup`` (drawn as
+    GRPO's are, for steps it never reaches: :data:`CLOSED_LOOP_STEPS`), each rolled out ``rl.grpo.group_size``
+    times by the policy in the simulator (GRPO's imagined rollout with its detector, none stopped at a success)
     over ``decisions`` decisions (a key from (seed, step)), each trajectory's actions executed in ``env`` from its
     keyframe's recorded state, every frame kept and encoded by ``encode_frames`` after the keyframe's real history
     (:func:`~sword_jax.rl.closed_loop.real_latents`). The report holds the executions
@@ -266,8 +267,8 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
 
     def traced(decisions: int) -> Callable:
         if decisions not in compiled:  # one compile per horizon
-            def go(params, sim, start, env_starts, key):
-                trace = cl.trace_closed_loop(graphdef, params, sim, start, rl, key=key, group_size=g,
+            def go(params, sim, rm, start, env_starts, key):
+                trace = cl.trace_closed_loop(graphdef, params, sim, rm, start, rl, key=key, group_size=g,
                                              decisions=decisions)
                 n, t = trace.actions.shape[:2]
                 first, frames = imagined_check.execute_observed(env, env_starts, trace.actions,
@@ -277,15 +278,15 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
             compiled[decisions] = jax.jit(go)
         return compiled[decisions]
 
-    def closed_loop(params, sim, step: int, decisions: int):
-        sim = jax.device_put(sim, shd.shardings_on(sim, mesh))
+    def closed_loop(params, sim, rm, step: int, decisions: int):
+        sim, rm = jax.device_put((sim, rm), shd.shardings_on((sim, rm), mesh))
         parts, solved, drifts = [], [], []
         for r in range(draws):
             index = CLOSED_LOOP_STEPS + step * draws + r
             window = setup.windows(index)  # the keyframes GRPO's step `index` would draw, with their real history
             start = start_state(window, setup.encode, rl)
             env_starts = np.repeat(np.asarray(setup.env_starts(index)), g, axis=0)
-            trace, first, frames = jax.device_get(traced(decisions)(params, sim, start, jnp.asarray(env_starts),
+            trace, first, frames = jax.device_get(traced(decisions)(params, sim, rm, start, jnp.asarray(env_starts),
                                                                     jax.random.fold_in(root, index)))
             real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
                                    np.repeat(window["history"], g, axis=0), np.asarray(frames),

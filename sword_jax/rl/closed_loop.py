@@ -7,9 +7,9 @@ recorded episodes. Measured on `small`, the closed loop drifts from reality deci
 replays of real episodes does not move that drift. This module builds the training signal that targets it
 directly:
 
-1. :func:`trace_closed_loop` rolls the policy out in the world-model simulator as GRPO samples it (every decision
-   runs, no stop at a success) and keeps the actions it executed and the simulator's context latents after each
-   decision: what the world model would predict the next chunk from.
+1. :func:`trace_closed_loop` rolls the policy out in the world-model simulator as GRPO does (its imagined rollout,
+   every decision run, no stop at a success) and keeps the actions it executed and the simulator's context latents
+   after each decision: what the world model would predict the next chunk from.
 2. Those actions are executed in the real environment from the same start states
    (:func:`~sword_jax.rl.imagined_check.execute_observed`) and the frames they reach are encoded as the world
    model's training latents (:func:`real_latents`), after the keyframe's real history as a training episode's are.
@@ -25,17 +25,16 @@ policy's actions).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from sword_jax.rl.learned_simulator import LearnedSimulator, StartState
-from sword_jax.rl.policy import resize_frames, sample_chunk, tokens_to_actions
-from sword_jax.rl.rollout import (expand_groups, from_slices, map_over_slices, microbatches_for, simulator_keys,
-                                  to_slices)
+from sword_jax.rl.imagined_check import executed_actions
+from sword_jax.rl.learned_simulator import LearnedSimulator, RewardModel, StartState
+from sword_jax.rl.rollout import imagined_rollout
 
 
 class ClosedLoopTrace(NamedTuple):
@@ -83,43 +82,27 @@ class ClosedLoopSegments(NamedTuple):
         return int(self.latents.shape[0])
 
 
-def trace_closed_loop(graphdef: nnx.GraphDef, policy_params: Any, simulator: LearnedSimulator, start: StartState,
-                      rl: Any, *, key: jax.Array, group_size: int, decisions: int) -> ClosedLoopTrace:
+def trace_closed_loop(graphdef: nnx.GraphDef, policy_params: Any, simulator: LearnedSimulator,
+                      reward_model: RewardModel, start: StartState, rl: Any, *, key: jax.Array, group_size: int,
+                      decisions: int) -> ClosedLoopTrace:
     """The policy's closed loop in a world-model simulator (:func:`~sword_jax.rl.world_model_sim.world_model_simulator`,
-    whose state carries ``context``), ``decisions`` decisions from each of ``start``'s states, ``group_size`` times
-    each (start-major), sampled at ``rl.grpo.temperature`` and with the simulator's calls in
-    ``rl.imagined.sim_microbatches`` slices as GRPO's imagined rollouts are, none stopped at a success. Jit it as a
-    whole."""
+    whose state carries ``context``): GRPO's own imagined rollout (:func:`~sword_jax.rl.rollout.imagined_rollout`)
+    of ``decisions`` decisions from each of ``start``'s states, ``group_size`` times each (start-major), none stopped
+    at a success, with the simulator's context recorded after each decision. Jit it as a whole."""
     if group_size < 1 or decisions < 1:
         raise ValueError(f"trace_closed_loop: group_size and decisions must be >= 1, got {group_size}, {decisions}")
-    policy = nnx.merge(graphdef, policy_params)
-    n = start.frame.shape[0] * group_size
-    # the simulator's calls sliced as GRPO's imagined rollouts slice them (rl.imagined.sim_microbatches)
-    slices = microbatches_for(n, rl.imagined.sim_microbatches, simulator.max_slice)
-    state = to_slices(expand_groups(jax.vmap(simulator.init)(start), group_size), slices)
-    if not hasattr(state, "context"):
-        raise ValueError("trace_closed_loop: the simulator's state has no context latents (a world-model simulator "
-                         f"is needed, got {type(state).__name__})")
-    start = expand_groups(start, group_size)
 
-    def decision(carry, index):
-        sim_state, frame = carry
-        policy_key, sim_key = jax.random.split(jax.random.fold_in(key, index))
-        proprio, proprio_valid = from_slices(map_over_slices(simulator.observe, (sim_state,)))
-        logits = policy(frame, start.instruction_tokens, proprio, proprio_valid)
-        tokens, _ = sample_chunk(logits, key=policy_key, temperature=rl.grpo.temperature)
-        actions = tokens_to_actions(tokens, rl.action_bins)
-        sim_state, frames = map_over_slices(lambda s, a, k: simulator.step(s, a, key=k),
-                                            (sim_state,) + to_slices((actions, simulator_keys(sim_key, n, rl)), slices))
-        frames = from_slices(frames)
-        executed = actions[:, : frames.shape[1]]
-        context = from_slices(sim_state.context)[:, 0]  # (N, k, h, w, c): what the next decision predicts from
-        return (sim_state, resize_frames(frames[:, -1], rl.image_size)), (executed, context)
+    def context_of(state):
+        if not hasattr(state, "context"):
+            raise ValueError("trace_closed_loop: the simulator's state has no context latents (a world-model "
+                             f"simulator is needed, got {type(state).__name__})")
+        return state.context
 
-    _, (actions, contexts) = jax.lax.scan(decision, (state, resize_frames(start.frame, rl.image_size)),
-                                          jnp.arange(decisions))
-    actions = jnp.swapaxes(actions, 0, 1)  # (N, D, e, A)
-    return ClosedLoopTrace(actions.reshape((n, -1, actions.shape[-1])), jnp.swapaxes(contexts, 0, 1))
+    run_rl = dataclasses.replace(rl, imagined=dataclasses.replace(rl.imagined, max_chunks=decisions))
+    rollout = imagined_rollout(graphdef, policy_params, simulator, reward_model, start, run_rl, key=key,
+                               group_size=group_size, stop_on_success=False, record_state=context_of)
+    actions, _ = executed_actions(rollout, rl.action_bins)
+    return ClosedLoopTrace(actions, rollout.recorded[:, :, 0])  # per trajectory the state holds [1, k, ...]
 
 
 def real_latents(encode_frames: Any, first_frames: np.ndarray, history: np.ndarray, frames: np.ndarray, *,

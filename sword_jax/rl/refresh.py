@@ -397,10 +397,10 @@ class Refresher:
       verify: with ``rl.refresh.verify_starts``, ``verify(policy params, simulator, reward model, step, decisions)
         -> report`` (:func:`~sword_jax.pipeline.grpo_refresh.make_verify`): the policy's imagined groups of
         ``decisions`` decisions, their actions executed in the real environment; ``report["episodes"]`` of them.
-      closed_loop: with ``rl.refresh.closed_loop_starts``, ``closed_loop(policy params, simulator, step, decisions)
-        -> (segments, report)`` (:func:`~sword_jax.pipeline.grpo_refresh.make_closed_loop`): the policy's closed
-        loop in the simulator against reality (:class:`~sword_jax.rl.closed_loop.ClosedLoopSegments`), which the
-        world model's fine-tune mixes into its batches; ``report["episodes"]`` real executions.
+      closed_loop: with ``rl.refresh.closed_loop_starts``, ``closed_loop(policy params, simulator, reward model,
+        step, decisions) -> (segments, report)`` (:func:`~sword_jax.pipeline.grpo_refresh.make_closed_loop`): the
+        policy's closed loop in the simulator against reality (:class:`~sword_jax.rl.closed_loop.ClosedLoopSegments`),
+        which the world model's fine-tune mixes into its batches; ``report["episodes"]`` real executions.
     """
 
     def __init__(self, cfg: Any, rl: Any, *, wm_state: Any, make_simulator: Callable[[Any], LearnedSimulator],
@@ -680,7 +680,7 @@ class Refresher:
             return None, {"skipped": f"{count} real executions exceed what the refresh's own episodes leave of the "
                                      f"budget of {conf.budget}"}
         t0 = time.perf_counter()
-        segments, out = self.closed_loop(policy_params, self.simulator(), step, self.decisions())
+        segments, out = self.closed_loop(policy_params, self.simulator(), self.reward_model(), step, self.decisions())
         self.used += int(out["episodes"])
         out = dict(out, segments=segments.num, share=conf.closed_loop_share, seconds=round(time.perf_counter() - t0, 1))
         drift = out.get("latent_drift_by_decision") or [float("nan")]

@@ -48,6 +48,8 @@ class Rollout(NamedTuple):
         done), where the rollout came from :func:`imagined_rollout`; None otherwise. With
         ``rl.imagined.success_frames = 1`` a trajectory's detector verdict at any threshold is its highest peak
         reaching it (:func:`~sword_jax.rl.imagined_check.detector_separation` reads them so).
+      recorded: what :func:`imagined_rollout`'s ``record_state`` took of the simulator's state after each chunk,
+        ``[N, C, ...]`` leaves; None when nothing was recorded.
     """
 
     obs_frames: Float[Array, "n c s s 3"]
@@ -63,6 +65,7 @@ class Rollout(NamedTuple):
     returns: Float[Array, " n"]
     frames: Float[Array, "..."]
     peaks: Float[Array, "n c"] | None = None
+    recorded: Any = None
 
 
 class ChunkOutcome(NamedTuple):
@@ -235,6 +238,7 @@ def imagined_rollout(
     greedy: bool = False,
     group_size: int = 1,
     stop_on_success: bool = True,
+    record_state: Callable[[Any], Any] | None = None,
 ) -> Rollout:
     """Rolls the policy out in the learned simulator for ``cfg.imagined.max_chunks`` chunks.
 
@@ -255,6 +259,9 @@ def imagined_rollout(
         runs ``max_chunks`` chunks and ``success`` is still the detector's verdict by the same rule (a run of
         ``rl.imagined.success_frames`` frames at or above ``cfg.success_threshold``, any frame of a chunk): what
         the detector would have paid a trajectory whose reward comes from elsewhere.
+      record_state: a function of the simulator's state (a pytree of its leaves, as the state holds them: in the
+        microbatch layout of :func:`to_slices`) taken after each chunk, returned as ``Rollout.recorded`` with the
+        trajectories merged (e.g. a world model's context latents, :mod:`~sword_jax.rl.closed_loop`).
 
     Returns:
       A :class:`Rollout` of N trajectories (start-major).
@@ -314,6 +321,8 @@ def imagined_rollout(
                    success=outcome.success, peak=jnp.where(valid, jnp.max(scores, axis=-1), jnp.float32(0.0)))
         if record_frames:
             out["frames"] = frames
+        if record_state is not None:
+            out["recorded"] = from_slices(record_state(sim_state))
         return (sim_state, next_frame, outcome.score, outcome.done, outcome.run), out
 
     _, traj = jax.lax.scan(chunk_step, carry, jnp.arange(cfg.imagined.max_chunks))
@@ -335,6 +344,7 @@ def imagined_rollout(
         returns=returns,
         frames=swap(traj["frames"]) if record_frames else jnp.zeros((0,), jnp.float32),
         peaks=swap(traj["peak"]),
+        recorded=jax.tree.map(swap, traj["recorded"]) if record_state is not None else None,
     )
 
 
