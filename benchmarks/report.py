@@ -921,6 +921,19 @@ def _by_start_rows(runs: dict, arms: dict[str, str] = BY_START_ARMS) -> list[lis
     return rows
 
 
+def _grpo_runs(record: tuple[str, ...], arm: str) -> Iterator[tuple[int, str]]:
+    """``(seed, its rl/grpo folder)`` of each of ``record``'s ``<arm>_s<seed>`` runs (seeds 0-2, those present)."""
+    for seed in (0, 1, 2):
+        run = os.path.join(RESULTS_DIR, *record, f"{arm}_s{seed}", "rl", "grpo")
+        if os.path.isdir(run):
+            yield seed, run
+
+
+def _closed_loop_decisions(history: list[dict]) -> list[int]:
+    """The decisions at which a run's history records its closed loop (``closed_loop_frame_error_<k>``), ascending."""
+    return sorted(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+
+
 def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = (
         (BY_START, "exec", "as trained"), (BY_START_REFRESH, "rexec", "refreshed"))) -> str:
     """Per seed, the world model as trained (:data:`BY_START`'s ``exec`` runs) and refreshed (:data:`BY_START_REFRESH`'s
@@ -929,12 +942,9 @@ def grpo_refresh_fidelity(records: Sequence[tuple[tuple[str, ...], str, str]] = 
     frame, with the VAE alone's at the last); for a refreshed run, what its refresh fine-tuned on and its last loss."""
     rows = []
     for record, arm, label in records:
-        for seed in (0, 1, 2):
-            run = os.path.join(RESULTS_DIR, *record, f"{arm}_s{seed}", "rl", "grpo")
-            if not os.path.isdir(run):
-                continue
+        for seed, run in _grpo_runs(record, arm):
             history = _history_rows(os.path.join(run, "train_history.jsonl"))
-            last = max(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+            last = _closed_loop_decisions(history)[-1]
 
             def mean(key: str) -> str:
                 return f"{statistics.mean(h[key] for h in history):.3f}"
@@ -972,12 +982,9 @@ def grpo_closed_loop_decisions(records: Sequence[tuple[tuple[str, ...], str, str
     for record, arm, label in records:
         for what in ("frame_error", "action_gap"):
             cells.setdefault(f"{what}:{label}", {})
-        for seed in (0, 1, 2):
-            path = os.path.join(RESULTS_DIR, *record, f"{arm}_s{seed}", "rl", "grpo", "train_history.jsonl")
-            if not os.path.exists(path):
-                continue
-            history = _history_rows(path)
-            last = max(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+        for _, run in _grpo_runs(record, arm):
+            history = _history_rows(os.path.join(run, "train_history.jsonl"))
+            last = _closed_loop_decisions(history)[-1]
             decisions = max(decisions, last)
             for what in ("frame_error", "action_gap"):
                 for d in range(1, last + 1):
@@ -999,11 +1006,8 @@ def grpo_closed_loop_fit(record: tuple[str, ...] = BY_START_CLOSED_LOOP) -> str:
     the real start's context (decision 1), from its own closed loop's (decisions 2-11), and on its training
     segments."""
     rows = []
-    for seed in (0, 1, 2):
-        path = os.path.join(RESULTS_DIR, *record, f"rexec_s{seed}", "rl", "grpo", "refreshes.json")
-        if not os.path.exists(path):
-            continue
-        with open(path) as f:
+    for seed, run in _grpo_runs(record, "rexec"):
+        with open(os.path.join(run, "refreshes.json")) as f:
             loop = json.load(f)[0]["closed_loop"]
         drift, fit = loop["latent_drift_by_decision"], loop["fit"]
 
@@ -1540,9 +1544,8 @@ def sim_fidelity_decisions(run: tuple[str, ...] = (*SIM_FIDELITY, "exec_vae8x"))
     """Per decision of a closed loop paid by execution (``run``: its work dir under the results; by default the 8x
     VAE's ``exec_vae8x``), the mean over its steps: the frame the policy read and its greedy actions on it against
     the real frame, the VAE alone's share, and the real motion."""
-    with open(os.path.join(RESULTS_DIR, *run, "rl", "grpo", "train_history.jsonl")) as f:
-        history = [json.loads(line) for line in f if line.strip()]
-    decisions = sorted(int(k.rsplit("_", 1)[1]) for k in history[0] if re.fullmatch(r"closed_loop_frame_error_\d+", k))
+    history = _history_rows(os.path.join(RESULTS_DIR, *run, "rl", "grpo", "train_history.jsonl"))
+    decisions = _closed_loop_decisions(history)
 
     def mean(what: str, k: int) -> str:
         return f"{statistics.mean(h[f'closed_loop_{what}_{k}'] for h in history):.3f}"
