@@ -10,9 +10,9 @@ bf16 matmul peak measured in the same process. The teacher-forcing and DLB steps
 on the same model, batch and data, so their ratio is not disturbed by drift between runs.
 
 ``--small-sweep DIMxLAYERS,...`` times world models of other widths and depths at ``small``'s own geometry (the 8x
-VAE's 16 x 16 latents, batch 32, a DLB step as ``small`` trains; heads of 64 channels, FFN 4x), side by side in one
-process: their parameters, step time and what 30,000 steps (``small``'s training) would take, each against the first
-(``dit_train_small_sweep``).
+VAE's 16 x 16 latents, batch 32, a DLB step as ``small`` trains; its model config with heads of 64 channels, FFN 4x
+and unrolled layers), side by side in one process: their parameters, step time and what 30,000 steps (``small``'s
+training) would take, each against the first (``dit_train_small_sweep``).
 """
 
 from __future__ import annotations
@@ -134,12 +134,14 @@ def small_sweep(text: str, *, tiny: bool, peak: float, iters: int, attention: st
         shapes = []
     if not shapes or any(len(sh) != 2 or sh[0] < 64 or sh[0] % 64 or sh[1] < 1 for sh in shapes):
         raise SystemExit(f"bench_dit_train: --small-sweep takes DIMxLAYERS,... with DIM a multiple of 64, got {text!r}")
+    import configs
+
     batch, hw = (8, (4, 4)) if tiny else (32, (16, 16))  # tiny: a batch the test suite's 8 CPU devices split
+    base = configs.get("sword:tiny" if tiny else "sword:small").model  # the rest of the world model as configured
     rows = []
     for dim, layers in shapes:
-        cfg = DiTConfig(dim=dim, ffn_dim=4 * dim, num_heads=dim // 64, num_layers=layers, text_dim=16 if tiny else 64,
-                        text_len=8 if tiny else 16, freq_dim=32 if tiny else 256, attention_impl=attention,
-                        scan_layers=False, compute_dtype="float32" if tiny else "bfloat16")
+        cfg = dataclasses.replace(base, dim=dim, ffn_dim=4 * dim, num_heads=dim // 64, num_layers=layers,
+                                  attention_impl=attention, scan_layers=False)
         row = run_config(f"small-{dim}x{layers}", cfg, batch, hw, peak_tflops=peak, iters=iters)
         rows.append(dict(row, s_per_small_run=row["dlb_step_s"] * SMALL_STEPS))
     for row in rows:
