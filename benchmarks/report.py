@@ -1738,6 +1738,37 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
                    f"{labels['policy']} / {labels['heldout']}", f"{labels['policy']} / {labels['trainpolicy']}"], rows)
 
 
+# the same recipe (20 policy rollouts per task) with the world model widened and deepened, 10,000 steps, one size per GPU
+WORLD_MODEL_SIZES = (WORLD_MODEL_POLICY_SPLIT, ("policy", "world_model_size_10k_small_2xh200", "mid"),
+                     ("policy", "world_model_size_10k_small_2xh200", "big"))
+
+
+def world_model_size(records: tuple[tuple[str, ...], ...] = WORLD_MODEL_SIZES,
+                     steps: tuple[int, ...] = (5000, 10000, 30000), euler: int = 5) -> str:
+    """The world models of ``records``, trained alike but of different widths and depths: per record and step of
+    ``steps`` it measured, its parameters (``dit_train_small_sweep``'s count for that width and depth in
+    ``latest.json``), the sampler's error (``euler`` Euler steps, true context) per split and the held-out policy
+    error over the held-out expert one. A split a record did not measure reads "not measured"."""
+    from sword_jax.world_model.heldout import SPLIT_LABELS as labels
+
+    counted = {(r["dim"], r["layers"]): r["params"] for r in _load("latest.json")["dit_train_small_sweep"]["rows"]}
+    splits = ("heldout", "policy", "trainpolicy", "train")
+    rows = []
+    for record in records:
+        model = _load(*record, "pipeline", "config.json")["model"]
+        params = counted.get((model["dim"], model["num_layers"]))
+        _, measured = _world_model_metrics(record)
+        for step in (s for s in steps if s in measured):
+            error = {s: measured[step].get(f"eval_{s}_sample_error_{euler}") for s in splits}
+            rows.append([f"{model['dim']:,} x {model['num_layers']}",
+                         "not measured" if params is None else f"{params / 1e6:.1f} M", f"{step:,}",
+                         *("not measured" if error[s] is None else f"{error[s]:.4f}" for s in splits),
+                         f"{error['policy'] / error['heldout']:.2f}"])
+    return _table(["world model (width x layers)", "parameters", "step",
+                   *(f"sample error: {labels[s]} segments, {euler} Euler steps" for s in splits),
+                   f"{labels['policy']} / {labels['heldout']}"], rows)
+
+
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
 # 8- and 12-decision ones
 FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
@@ -2009,6 +2040,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "world-model-heldout": world_model_heldout,
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,
+    "world-model-size": world_model_size,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,
