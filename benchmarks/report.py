@@ -1769,6 +1769,39 @@ def world_model_size(records: tuple[tuple[str, ...], ...] = WORLD_MODEL_SIZES,
                    f"{labels['policy']} / {labels['heldout']}"], rows)
 
 
+# GRPO's exec arm, seed 0, from the same keyframe starts: small's 30,000-step world model (BY_START) and the 120 M one
+WORLD_MODEL_SIZE_BY_START = ((BY_START, "36.7 M, 30,000 steps"),
+                             (("policy", "world_model_size_10k_small_2xh200", "mid"), "120.0 M, 10,000 steps"))
+
+
+def world_model_size_by_start(records=WORLD_MODEL_SIZE_BY_START, truth: tuple[str, ...] = BY_START,
+                              seed: int = 0) -> str:
+    """Per bin of the start's step: ground truth's real success (``truth``'s ``gt`` run of ``seed``) and, per world
+    model of ``records`` (each a record with a ``grpo_reward_source.json`` and its label), its ``exec`` run's rollouts
+    of that seed paid by executing their actions, the share of ground truth's real success they kept and the
+    detector's precision on them. The records' runs start from the same keyframes (the sampler's seed and step)."""
+    def bins(record: tuple[str, ...], arm: str) -> list[dict]:
+        runs = _load(*record, "grpo_reward_source.json")["runs"]
+        found = [r for r in runs.values() if r["arm"] == arm and r["seed"] == seed and r.get("by_start")]
+        return _by_start_pooled(found[0]["by_start"]) if found else []
+
+    gt = {b["from_step"]: b for b in bins(truth, "gt")}
+    rows = []
+    for record, label in records:
+        for e in bins(record, "exec"):
+            g = gt.get(e["from_step"])
+            if not e["rollouts"] or not (g and g["rollouts"]):
+                continue
+            paid_e, paid_g = e["real"] / e["rollouts"], g["real"] / g["rollouts"]
+            rows.append([_bin_span(e), label, f"{g['rollouts']:,}", f"{paid_g:.3f}", f"{e['rollouts']:,}",
+                         f"{paid_e:.3f}", f"{100 * paid_e / paid_g:.0f}%",
+                         f"{e['said_real'] / e['said']:.2f}" if e["said"] else ""])
+    rows.sort(key=lambda r: int(r[0].rstrip("+").split("-")[0]))  # stable: the records' order kept
+    return _table(["start's step in its demonstration (actions)", "world model", "ground truth: rollouts",
+                   "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
+                   "kept (world model over ground truth)", "the detector's precision"], rows)
+
+
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
 # 8- and 12-decision ones
 FAILURE_STAGE_RUNS = ("failure_phases_small_cpu", "failure_phases_h8_small_cpu", "failure_phases_h12_small_cpu")
@@ -2041,6 +2074,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "world-model-policy-split": world_model_policy_split,
     "world-model-policy-scaling": world_model_policy_scaling,
     "world-model-size": world_model_size,
+    "world-model-size-by-start": world_model_size_by_start,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,
