@@ -104,8 +104,9 @@ class Recording:
         return np.stack(reads[: steps + 1], axis=1)
 
 
-def rollouts(probe: Any, starts: list, *, max_steps: int, stream: int, workers: int):
-    """The policy from ``starts`` for ``max_steps`` actions; ``(Rollout, Recording)``."""
+def rollouts(probe: Any, starts: list, *, max_steps: int, stream: int, workers: int, recording: type = Recording):
+    """The policy from ``starts`` for ``max_steps`` actions; ``(Rollout, recording)`` (a :class:`Recording` or the
+    subclass given)."""
     import jax
 
     from sim.lockstep import LockstepEnvs
@@ -113,7 +114,7 @@ def rollouts(probe: Any, starts: list, *, max_steps: int, stream: int, workers: 
 
     with LockstepEnvs(starts, resolution=probe.cfg.sim.resolution, max_steps=max_steps, renderer="jax",
                       workers=workers) as envs:
-        rec = Recording(envs)
+        rec = recording(envs)
         out = run_policy(probe.act, probe.params, rec, probe.rl, key=jax.random.fold_in(probe.key, stream),
                          greedy=False, max_steps=max_steps, episodes=starts, proprio="missing")
     return out, rec

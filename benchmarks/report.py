@@ -1738,7 +1738,7 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
                    f"{labels['policy']} / {labels['heldout']}", f"{labels['policy']} / {labels['trainpolicy']}"], rows)
 
 
-# the same recipe (20 policy rollouts per task) with the world model widened and deepened, 10,000 steps, one size per GPU
+# the same recipe (20 policy rollouts per task), the world model widened and deepened, 10,000 steps, a size per GPU
 WORLD_MODEL_SIZES = (WORLD_MODEL_POLICY_SPLIT, ("policy", "world_model_size_10k_small_2xh200", "mid"),
                      ("policy", "world_model_size_10k_small_2xh200", "big"))
 
@@ -1800,6 +1800,28 @@ def world_model_size_by_start(records=WORLD_MODEL_SIZE_BY_START, truth: tuple[st
     return _table(["start's step in its demonstration (actions)", "world model", "ground truth: rollouts",
                    "ground truth: real success", "world model, paid by execution: rollouts", "its real success",
                    "kept (world model over ground truth)", "the detector's precision"], rows)
+
+
+OUTCOME_DETERMINACY = ("policy", "outcome_determinacy_small_cpu")
+
+
+def outcome_determinacy(record: tuple[str, ...] = OUTCOME_DETERMINACY) -> str:
+    """``bench_outcome_determinacy``'s record (``outcome_determinacy.json``): per group of starts (stage, then bin
+    of the start's step in its episode, then all), its starts and reference success, and per perturbation the share
+    of perturbed replays whose outcome flipped, with the share of the reference successes' replays still succeeding
+    (kept) and of the reference failures' succeeding (false). A group with no start is left out."""
+    d = _load(*record, "outcome_determinacy.json")
+    keys = list(d["groups"]["all"]["flipped"])
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    rows = []
+    for name, g in d["groups"].items():
+        if not g["starts"]:
+            continue
+        rows.append([name, str(g["starts"]), f"{g['reference_success']:.3f}",
+                     *(f"{fmt(g['flipped'][k])} ({fmt(g['kept'][k])} / {fmt(g['false_success'][k])})"
+                       if g["measured_starts"][k] else "not moved" for k in keys)])
+    return _table(["starts", "count", "reference success (the recorded actions from the recorded state)",
+                   *(f"{k}: flipped (kept / false)" for k in keys)], rows)
 
 
 # bench_failure_phases' records: the 4-decision rollouts (recorded to latest.json) and, from the same branch points,
@@ -2075,6 +2097,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "world-model-policy-scaling": world_model_policy_scaling,
     "world-model-size": world_model_size,
     "world-model-size-by-start": world_model_size_by_start,
+    "outcome-determinacy": outcome_determinacy,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
     "failure-rest-chunk": failure_rest_chunk,
