@@ -148,8 +148,7 @@ def summarise(groups: dict[str, np.ndarray], reference: np.ndarray, succeeded: d
 
 
 def parse(argv: Sequence[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_outcome_determinacy",
-                                description=__doc__.split("\n")[0])
+    p = cli.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--policy", required=True, help="the supervised policy (.npz)")
     p.add_argument("--config", default="sword:small")
     p.add_argument("--out", required=True, help="folder for outcome_determinacy.json")
@@ -170,12 +169,16 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     try:
         args.scales_px = [float(s) for s in args.scales_px.split(",") if s]
     except ValueError:
-        p.error(f"--scales-px must be a comma list of numbers, got {args.scales_px!r}")
+        raise cli.UsageError(f"--scales-px must be a comma list of numbers, got {args.scales_px!r}") from None
     if (args.episodes < 1 or args.starts < 1 or args.horizon < 1 or args.draws < 1 or args.tiny_m < 0
-            or args.starts_before < 0
-            or any(s <= 0 for s in args.scales_px) or not args.scales_px):
-        p.error("--episodes, --starts, --horizon and --draws must be >= 1, --scales-px positive, --tiny-m and "
-                "--starts-before >= 0")
+            or args.starts_before < 0 or args.workers < 1 or any(s <= 0 for s in args.scales_px)
+            or not args.scales_px):
+        raise cli.UsageError("--episodes, --starts, --horizon, --draws and --workers must be >= 1, --scales-px "
+                             "positive, --tiny-m and --starts-before >= 0")
+    if not 0 < args.temperature or args.over_m <= 0:
+        raise cli.UsageError("--temperature and --over-m must be > 0")
+    if not os.path.isfile(args.policy):
+        raise cli.UsageError(f"--policy {args.policy}: no such file")
     return args
 
 
@@ -273,7 +276,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                    (step >= lo) & (step < (hi if hi else np.inf)) for lo, hi in STEP_BINS})
     groups["all"] = np.ones(len(jobs), bool)
     result = {"config": probe.cfg.name, "policy": args.policy, "temperature": args.temperature, "proprio": "missing",
-              "actions_per_decision": k, "episode_limit": limit, "horizon_decisions": args.horizon,
+              "actions_per_decision": k, "episode_limit": limit, "horizon_decisions": args.horizon, "over_m": args.over_m,
               "starts_before_decision": args.starts_before or None, "episodes": len(tasks),
               "episode_success": float(np.mean(real.success)), "starts": len(jobs),
               "draws": args.draws, "scales_px": args.scales_px, "tiny_m": args.tiny_m, "resolution": resolution,

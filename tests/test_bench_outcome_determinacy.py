@@ -2,12 +2,14 @@
 repeats itself, the flip counts of designed outcomes, the refused command lines, and a tiny run end to end."""
 
 import json
+import re
 
 import mujoco
 import numpy as np
 import pytest
 
 from benchmarks import bench_outcome_determinacy as od
+from sword_jax.cli import UsageError
 
 _CAMERA = """<mujoco><worldbody>
   <camera name="agentview" pos="0 0 0" xyaxes="1 0 0 0 1 0" fovy="90"/>
@@ -79,16 +81,18 @@ def test_directions_are_unit_vectors():
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--scales-px", "0.5,x"], "--scales-px must be a comma list of numbers"),
+    (["--scales-px", "0.5,x"], "--scales-px must be a comma list of numbers, got '0.5,x'"),
     (["--scales-px", "0,1"], "--scales-px positive"),
-    (["--draws", "0"], "--draws must be >= 1"),
+    (["--draws", "0"], "--draws and --workers must be >= 1"),
+    (["--workers", "0"], "--draws and --workers must be >= 1"),
     (["--tiny-m", "-1"], "--tiny-m and --starts-before >= 0"),
     (["--starts-before", "-2"], "--tiny-m and --starts-before >= 0"),
+    (["--over-m", "0"], "--temperature and --over-m must be > 0"),
+    ([], "no such file"),
 ])
-def test_bad_command_lines_are_refused(flags, message, capsys):
-    with pytest.raises(SystemExit):
-        od.parse(["--policy", "p.npz", "--out", "o", *flags])
-    assert message in capsys.readouterr().err
+def test_bad_command_lines_are_refused(flags, message, tmp_path):
+    with pytest.raises(UsageError, match=re.escape(message)):
+        od.parse(["--policy", str(tmp_path / "missing.npz"), "--out", "o", *flags])
 
 
 @pytest.mark.slow  # the policy's episodes rendered on the C engine, then the replays in 2 processes
