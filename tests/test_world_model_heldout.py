@@ -125,7 +125,8 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
                    "--trainer.eval_sample_steps=1,3"]
     off, on, split = (str(tmp_path / n) for n in ("off", "on", "split"))
     train_world_model.main(real + ["--workdir", off, "--trainer.steps=5", "--trainer.eval_every=0"])
-    train_world_model.main(real + ["--workdir", on, "--trainer.steps=5", "--trainer.eval_every=2"])
+    train_world_model.main(real + ["--workdir", on, "--trainer.steps=5", "--trainer.eval_every=2",
+                                   "--trainer.eval_segments=true"])
     assert ("2 x 2 fixed training segments and as many of 4 held-out episodes and of 3 held-out rollouts of the "
             "supervised policy; and training segments of the 4 training episodes that are the policy's rollouts"
             ) in capsys.readouterr().out
@@ -138,6 +139,19 @@ def test_the_trainer_measures_on_its_steps_without_changing_the_run_and_resumes_
     at_2, at_4 = measured[1], measured[3]
     assert all(np.isfinite(at_4[n]) for n in names) and any(at_2[n] != at_4[n] for n in names)
     assert len({at_4[f"eval_{split}_loss"] for split in heldout.SPLITS}) == 4
+    # trainer.eval_segments: each fixed segment measured alone at the end; a batch's figure is its segments'
+    # energy-weighted mean, and the evaluation's the mean of its batches'
+    segments = json.load(open(os.path.join(on, wm_run.SEGMENTS_FILE)))
+    assert segments["step"] == 5 and sorted(segments["splits"]) == sorted(heldout.SPLITS)
+    assert not os.path.exists(os.path.join(off, wm_run.SEGMENTS_FILE))
+    for name, each in segments["splits"].items():
+        assert len(each["episodes"]) == len(each["starts"]) == len(each["energy"]) == 2 * 2  # batches x size
+        for n in (1, 3):
+            error, energy = (np.asarray(each[k]).reshape(2, 2) for k in (f"sample_error_{n}", "energy"))
+            per_batch = (error * energy).sum(1) / energy.sum(1)
+            expected = measured[4][f"eval_{name}_sample_error_{n}"]  # step 5, the last
+            assert per_batch.mean() == pytest.approx(expected, rel=1e-4), (name, n)
+    assert set(segments["splits"]["trainpolicy"]["episodes"]) <= {4, 5, 6, 7}
     # a resumed run (3 steps, then to 5) measures step 4 and 5 as the uninterrupted one did
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=3", "--trainer.eval_every=2"])
     train_world_model.main(real + ["--workdir", split, "--trainer.steps=5", "--trainer.eval_every=2"])
@@ -214,6 +228,31 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
     with pytest.raises(ValueError, match=r"train_policy indices must lie in \[0, 8\)"):
         heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, train_policy=np.array([8]),
                                  **common)
+
+
+def test_a_segment_s_error_is_its_share_of_the_batch_s():
+    from sword_jax.world_model.cache_fidelity import latent_distance
+
+    future = jnp.asarray(np.random.default_rng(0).normal(size=(3, 2, 2, 2, 4)), jnp.float32)
+    future = future * jnp.asarray([1.0, 2.0, 0.5])[:, None, None, None, None]  # segments of unequal energy
+    made = future.at[1].add(0.3).at[2].multiply(0.0)  # segment 0 right, 1 off by 0.3, 2 all zeros
+    error, energy = heldout.segment_errors(made, future)
+    assert error.shape == energy.shape == (3,)
+    assert float(error[0]) == 0.0 and float(error[2]) == pytest.approx(1.0)
+    assert float(error[1]) == pytest.approx(float(0.09 * 32 / energy[1]), rel=1e-5)
+    np.testing.assert_allclose(energy, jnp.sum(jnp.square(future), axis=(1, 2, 3, 4)), rtol=1e-6)
+    assert float(jnp.sum(error * energy) / jnp.sum(energy)) == pytest.approx(
+        float(latent_distance(made, future)["rel_mse"]), rel=1e-5)
+    # a per-segment measure draws the batch measure's noise: the same figure, segment by segment
+    batch = _batch(0.7)
+    graphdef, params, buffers = nnx.split(Oracle(0.2), nnx.Param, ...)
+    each = jax.jit(heldout.make_measure(graphdef, FLOW, NUM_CONTEXT, (1, 5), per_segment=True))(
+        params, buffers, batch, jax.random.key(0))
+    assert set(each) == {"energy", "sample_error_1", "sample_error_5"} and each["energy"].shape == (4,)
+    whole = _measure(Oracle(0.2), (1, 5), batch)
+    for n in (1, 5):
+        weighted = float(jnp.sum(each[f"sample_error_{n}"] * each["energy"]) / jnp.sum(each["energy"]))
+        assert weighted == pytest.approx(whole[f"sample_error_{n}"], rel=1e-5)
 
 
 def test_the_pipeline_report_says_the_last_measurement_of_every_split():

@@ -30,6 +30,7 @@ from sword_jax import sharding as shd
 from sword_jax import tracing
 from sword_jax.dit.action_dit import WorldModel
 from sword_jax.dlb import cache as dlb_cache
+from sword_jax.atomic_write import write_json_atomic
 from sword_jax.train_loop import differing_keys, run_steps
 from sword_jax.world_model import data, heldout, train_state, train_step
 from sword_jax.world_model.config import DataConfig
@@ -56,10 +57,13 @@ def build_dataset(cfg: ExperimentConfig, synthetic: bool) -> data.LatentDataset:
     return dataset
 
 
+# trainer.eval_segments' record: every fixed segment's sample error at the run's end (HeldOutEvaluator.per_segment)
+SEGMENTS_FILE = "heldout_segments.json"
+
 # Trainer keys that may change between a run and its resumption (e.g. extending the run).
 # The held-out evaluation's settings are among them: it reads the weights and changes nothing.
 RESUMABLE_KEYS = ("steps", "log_every", "checkpoint_every", "keep_checkpoints", "on_nonfinite", "eval_every",
-                  "eval_batches", "eval_sample_steps")
+                  "eval_batches", "eval_sample_steps", "eval_segments")
 
 
 def _comparable(cfg_dict: dict) -> dict:
@@ -179,5 +183,13 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
             settle=True, log=print if is_main else lambda _line: None)
     finally:
         logger.close()
+    if evaluator is not None and cfg.trainer.eval_segments:
+        if jax.process_count() > 1:
+            if is_main:
+                print("[train_world_model] trainer.eval_segments: skipped, per-segment errors are measured in a "
+                      "single-process run only")
+        else:
+            write_json_atomic(os.path.join(workdir, SEGMENTS_FILE),
+                              {"step": int(result.state.step), "splits": evaluator.per_segment(result.state)})
     last = result.history[-1] if result.history else {}
     return {"step": max(result.first_step, cfg.trainer.steps), "metrics": last, "workdir": workdir}

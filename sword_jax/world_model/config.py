@@ -126,6 +126,9 @@ class TrainerConfig:
     eval_every: int = 0
     eval_batches: int = 2
     eval_sample_steps: tuple[int, ...] = ()
+    # with eval_every: at the run's end, every fixed segment's own sample error too (heldout_segments.json in the
+    # run's folder; where in the episodes a split's error lies); single-process runs
+    eval_segments: bool = False
 
     def validate(self) -> None:
         if self.steps < 0 or self.warmup_steps < 0:

@@ -25,6 +25,11 @@ model predicts the consequences of the actions a policy takes (GRPO's imagined r
 A fourth, ``trainpolicy``, where the training data says which of its episodes are the policy's rollouts
 (``sources`` in the latents file): training segments of those alone. Against ``policy`` it separates a model
 that has learned what the policy's actions do from one that has learned the rollouts it saw.
+
+A split's figure is a mean over its segments, and a few hard ones can carry it. With ``trainer.eval_segments``
+the run's end also measures every fixed segment alone (:meth:`HeldOutEvaluator.per_segment`, from the same noise:
+a batch's figure is its segments' energy-weighted mean) and the world-model stage writes them, with each segment's
+episode and start, to ``heldout_segments.json``: where in the episodes, and in which episodes, the error lies.
 """
 
 from __future__ import annotations
@@ -91,9 +96,22 @@ def quantile_sigmas(batch: int, cfg: FlowConfig) -> jax.Array:
     return flow.shift_sigma(s, cfg.shift)
 
 
-def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
-                 steps: tuple[int, ...]) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
-    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"...}`` of one batch of segments."""
+def segment_errors(made: jax.Array, future: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Per segment of a batch ``[b, n, h, w, c]``: the relative squared error of ``made`` against ``future`` and
+    ``future``'s energy (its sum of squares). The batch's ``rel_mse`` (:func:`latent_distance`) is their
+    energy-weighted mean."""
+    axes = tuple(range(1, future.ndim))
+    future = future.astype(jnp.float32)
+    energy = jnp.sum(jnp.square(future), axis=axes)
+    error = jnp.sum(jnp.square(made.astype(jnp.float32) - future), axis=axes)
+    return error / jnp.maximum(energy, jnp.float32(1e-12)), energy
+
+
+def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int, steps: tuple[int, ...], *,
+                 per_segment: bool = False) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
+    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"...}`` of one batch of segments; with
+    ``per_segment``, ``{"energy", "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from
+    the same noise."""
     num_cond = 1 + num_context
 
     def measure(params, buffers, batch, key):
@@ -105,12 +123,14 @@ def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
         sigma = quantile_sigmas(latents.shape[0], flow_cfg)
         model_input, timesteps = flow.noisy_segment(latents, noise, sigma, num_cond, flow_cfg)
         model_fn = sampler.model_fn_from_state(graphdef, (params, buffers))
-        out = {"loss": flow.flow_loss(model_fn(model_input, timesteps, actions), latents, noise, num_cond, flow_cfg)}
+        out = ({"energy": segment_errors(future, future)[1]} if per_segment else
+               {"loss": flow.flow_loss(model_fn(model_input, timesteps, actions), latents, noise, num_cond, flow_cfg)})
         start = jax.random.normal(sample_key, future.shape, jnp.float32)  # one initial noise for every step count
         for n in steps:
             made = sampler.sample(model_fn, latents[:, :num_cond], actions, key=sample_key,
                                   num_future=future.shape[1], cfg=flow_cfg, num_steps=n, noise=start)
-            out[f"sample_error_{n}"] = latent_distance(made, future)["rel_mse"]
+            out[f"sample_error_{n}"] = (segment_errors(made, future)[0] if per_segment
+                                        else latent_distance(made, future)["rel_mse"])
         return out
 
     return measure
@@ -161,11 +181,12 @@ class HeldOutEvaluator:
         self.mesh, self.rules = mesh, rules
         batch_size = loader.sampler.batch_size
         count = trainer_cfg.eval_batches * batch_size
-        self.batches = {}
+        self.batches, self.segments = {}, {}
         for split in splits:
             dataset = datasets[split]
             episodes, starts = fixed_segments(dataset, count, num_context, num_future,
                                               stream_seed(seed, f"{SEGMENT_STREAM}/{split}"), among.get(split))
+            self.segments[split] = (episodes, starts)
             self.batches[split] = [
                 loader.place(dataset.segment(episodes[i:i + batch_size][loader.rows],
                                              starts[i:i + batch_size][loader.rows], num_context, num_future))
@@ -192,12 +213,50 @@ class HeldOutEvaluator:
             return jax.lax.cond((step % every == 0) | (step == last), run, skip)
 
         self._evaluate = jax.jit(evaluate)
+        each = make_measure(graphdef, flow_cfg, num_context, self.steps, per_segment=True)
+
+        def per_segment(params, buffers, batches):
+            # the evaluation's batches with its keys, so each segment's error is the one its batch's mean holds
+            flat = [b for split in splits for b in batches[split]]
+            stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *flat)
+            keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(len(flat)))
+            per = jax.lax.map(lambda bk: each(params, buffers, bk[0], bk[1]), (stacked, keys))
+            count = len(batches[splits[0]])
+            return {split: {name: values[i * count:(i + 1) * count] for name, values in per.items()}
+                    for i, split in enumerate(splits)}
+
+        self._per_segment = jax.jit(per_segment)
 
     def __call__(self, state: TrainState) -> dict[str, jax.Array]:
         """Dispatches the measurement of ``state`` (after ``state.step`` steps); device scalars, NaN off its steps."""
         weights = state.ema_params if state.ema_params is not None else state.params
         with shd.use_mesh(self.mesh, self.rules):
             return self._evaluate(state.step, weights, state.buffers, self.batches)
+
+
+    def per_segment(self, state: TrainState) -> dict[str, dict[str, list]]:
+        """Every fixed segment of every split measured alone with ``state``'s inference weights and the
+        evaluation's noise: per split, its ``episodes`` and ``starts`` (the first context latent's index), each
+        segment's ``energy`` and ``sample_error_<n>`` (:func:`segment_errors`; the evaluation's figure of a
+        batch is their energy-weighted mean). Where a run's error lies (early or late in the episodes, which
+        episodes) is read from these.
+
+        Raises:
+          ValueError: in a run of several processes (each holds only its rows of a batch).
+        """
+        if jax.process_count() > 1:
+            raise ValueError("held-out evaluation: per-segment errors are measured in a single-process run only "
+                             f"(this one has {jax.process_count()} processes)")
+        weights = state.ema_params if state.ema_params is not None else state.params
+        with shd.use_mesh(self.mesh, self.rules):
+            per = jax.device_get(self._per_segment(weights, state.buffers, self.batches))
+        out = {}
+        for split, values in per.items():
+            episodes, starts = self.segments[split]
+            row = {"episodes": np.asarray(episodes).tolist(), "starts": np.asarray(starts).tolist()}
+            row.update({name: np.asarray(v, np.float64).reshape(-1).tolist() for name, v in values.items()})
+            out[split] = row
+        return out
 
 
 def measured(observed: dict | None) -> dict[str, float]:
