@@ -1740,33 +1740,68 @@ def world_model_policy_scaling(records: tuple[tuple[str, ...], ...] = WORLD_MODE
 
 # the same recipe (20 policy rollouts per task), the world model widened and deepened, 10,000 steps, a size per GPU
 WORLD_MODEL_SIZES = (WORLD_MODEL_POLICY_SPLIT, ("policy", "world_model_size_10k_small_2xh200", "mid"),
-                     ("policy", "world_model_size_10k_small_2xh200", "big"))
+                     ("policy", "world_model_size_10k_small_2xh200", "big"),
+                     # the 120 M one on 100 of the policy's rollouts per task, its segments measured alone at the end
+                     ("policy", "world_model_segments_120m_100r_10k_small_h200"))
 
 
 def world_model_size(records: tuple[tuple[str, ...], ...] = WORLD_MODEL_SIZES,
                      steps: tuple[int, ...] = (5000, 10000, 30000), euler: int = 5) -> str:
     """The world models of ``records``, trained alike but of different widths and depths: per record and step of
     ``steps`` it measured, its parameters (``dit_train_small_sweep``'s count for that width and depth in
-    ``latest.json``), the sampler's error (``euler`` Euler steps, true context) per split and the held-out policy
-    error over the held-out expert one. A split a record did not measure reads "not measured"."""
+    ``latest.json``), the supervised policy's rollouts per task in its data, the sampler's error (``euler`` Euler
+    steps, true context) per split and the held-out policy error over the held-out expert one. A split a record did
+    not measure reads "not measured"."""
     from sword_jax.world_model.heldout import SPLIT_LABELS as labels
 
     counted = {(r["dim"], r["layers"]): r["params"] for r in _load("latest.json")["dit_train_small_sweep"]["rows"]}
     splits = ("heldout", "policy", "trainpolicy", "train")
     rows = []
     for record in records:
-        model = _load(*record, "pipeline", "config.json")["model"]
+        config = _load(*record, "pipeline", "config.json")
+        model, per_task = config["model"], config["data"]["policy_rollouts_per_task"]
         params = counted.get((model["dim"], model["num_layers"]))
         _, measured = _world_model_metrics(record)
         for step in (s for s in steps if s in measured):
             error = {s: measured[step].get(f"eval_{s}_sample_error_{euler}") for s in splits}
             rows.append([f"{model['dim']:,} x {model['num_layers']}",
-                         "not measured" if params is None else f"{params / 1e6:.1f} M", f"{step:,}",
+                         "not measured" if params is None else f"{params / 1e6:.1f} M", str(per_task), f"{step:,}",
                          *("not measured" if error[s] is None else f"{error[s]:.4f}" for s in splits),
                          f"{error['policy'] / error['heldout']:.2f}"])
-    return _table(["world model (width x layers)", "parameters", "step",
+    return _table(["world model (width x layers)", "parameters", "policy rollouts per task", "step",
                    *(f"sample error: {labels[s]} segments, {euler} Euler steps" for s in splits),
                    f"{labels['policy']} / {labels['heldout']}"], rows)
+
+
+# the 120 M world model on 100 of the policy's rollouts per task: every fixed segment's error at 10,000 steps, joined
+# with its episode's outcome (benchmarks.segment_errors)
+WORLD_MODEL_SEGMENTS = ("policy", "world_model_segments_120m_100r_10k_small_h200")
+SEGMENT_GROUPS = {"heldout": ("all", "first 48 actions", "after 48 actions"),
+                  "policy": ("all", "first 48 actions", "after 48 actions", "before success", "spans success",
+                             "after success", "failed episode", "failed episode, first 48 actions",
+                             "failed episode, after 48 actions"),
+                  "trainpolicy": ("all", "first 48 actions", "after 48 actions"),
+                  "train": ("all", "first 48 actions", "after 48 actions")}
+
+
+def world_model_segments(record: tuple[str, ...] = WORLD_MODEL_SEGMENTS, groups: dict = SEGMENT_GROUPS) -> str:
+    """``record``'s ``segments.json`` (:mod:`benchmarks.segment_errors`): per split and group of ``groups`` that it
+    holds, the segments, their energy-weighted sample error (the evaluation's figure over the group), median, the
+    group's share of the split's figure and the arm's mean translation action over the segments' future (where the
+    split's outcomes were joined)."""
+    from sword_jax.world_model.heldout import SPLIT_LABELS as labels
+
+    joined = _load(*record, "segments.json")
+    rows = []
+    for split, names in groups.items():
+        held = joined["splits"].get(split, {}).get("groups", {})
+        for name in (n for n in names if n in held):
+            g = held[name]
+            rows.append([labels[split], name, str(g["segments"]), f"{g['error']:.4f}", f"{g['median']:.4f}",
+                         f"{g['share']:.0%}", "-" if g.get("motion") is None else f"{g['motion']:.3f}"])
+    return _table(["split", "segments' future", "segments",
+                   f"sample error, {joined['euler']} Euler steps (energy-weighted)", "median",
+                   "share of the split's figure", "arm motion (mean absolute translation action)"], rows)
 
 
 # GRPO's exec arm, seed 0, from the same keyframe starts: small's 30,000-step world model (BY_START) and the 120 M one
@@ -2097,6 +2132,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "world-model-policy-scaling": world_model_policy_scaling,
     "world-model-size": world_model_size,
     "world-model-size-by-start": world_model_size_by_start,
+    "world-model-segments": world_model_segments,
     "outcome-determinacy": outcome_determinacy,
     "grpo-reward-source-rest-decisions": lambda: sim_fidelity_decisions((*REWARD_SOURCE_REST, "exec_s0")),
     "failure-tasks": failure_tasks, "failure-rest-horizons": failure_rest_horizons,
