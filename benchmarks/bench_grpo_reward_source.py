@@ -44,7 +44,8 @@ compare what the real closed loop and the imagined one are paid from like starts
 
 ``run`` builds Sword's ``small`` pipeline on the first GPU (on several with ``--pipeline-gpus``, its trainers
 data-parallel over them); once its data stage is done the ground-truth runs start on the other GPUs, and once the
-pipeline is built the world-model runs take every GPU, the two arms of a seed side by side. With ``--pipeline DIR``
+pipeline is built the world-model runs take every GPU, the two arms of a seed side by side (``--arms gt`` alone
+builds the data stage only). With ``--pipeline DIR``
 it builds none and starts each run once the stages it reads have finished in ``DIR`` (:data:`NEEDS`), so a second
 command, e.g. at another ``--actions-per-decision``, shares the first's world model (``--gpu-share`` splits a GPU's
 memory between the two commands' world-model runs; each command splits its own share). Each process runs in its own
@@ -311,6 +312,8 @@ def run(args, *, poll_s: float = 5.0) -> dict:
                    [n for n in commands if n.startswith("gt")]),
                   ("pipeline", pipeline_command(base, vae, stop_after="reward_model"),
                    [n for n in commands if not n.startswith("gt")])]
+        while phases and not phases[-1][2]:  # the ground-truth arm alone builds no world model, VAE or detector
+            phases.pop()
         waiting = {}
     procs: dict[str, subprocess.Popen] = {}
     stopped: list[str] = []
