@@ -8,8 +8,9 @@ and groups them:
 * ``outcomes``: reads an episode file (HDF5, the pipeline's ``data/policy_heldout.hdf5`` or ``data/heldout.hdf5``)
   in the order the latents stage encoded it and keeps what the join needs, small enough for a record: per episode
   its task, initial state, first success (``-1``: none), per-step rewards and actions (``.npz``).
-* ``join``: per segment of every split, its frames (the future frames it predicts: ``4 start + 1`` to
-  ``4 (start + k + p - 1)`` with ``k`` context and ``p`` future latents), its error at each Euler step count, and
+* ``join``: per segment of every split, its frames (the future frames it predicts: ``f (start + k - 1) + 1`` to
+  ``f (start + k + p - 1)`` with ``k`` context and ``p`` future latents of ``f`` frames each, the VAE's temporal
+  factor), its error at each Euler step count, and
   where an outcomes file is given for its split: whether its episode succeeded, the segment's phase (``before
   success``: its future frames all precede the first success; ``spans success``; ``after success``; ``failed
   episode``), whether its future lies within the first ``--early-actions`` actions (GRPO's imagined horizon from
@@ -74,9 +75,10 @@ def _figure(error: np.ndarray, energy: np.ndarray) -> float | None:
 
 
 def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_latents: int, future_latents: int,
-         euler: int, early_actions: int) -> dict:
+         euler: int, early_actions: int, frames_per_latent: int = 4) -> dict:
     """``record`` (``heldout_segments.json``) per segment and per group (module docstring); ``outcomes`` per split
-    (:func:`episode_outcomes`) where known. ``euler`` picks the error the groups report."""
+    (:func:`episode_outcomes`) where known. ``euler`` picks the error the groups report; ``frames_per_latent`` is
+    the VAE's temporal factor (every latent after the first)."""
     name = f"sample_error_{euler}"
     out: dict = {"step": record.get("step"), "euler": euler, "early_actions": early_actions, "splits": {}}
     for split, rows in record["splits"].items():
@@ -85,8 +87,8 @@ def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_la
                              f"{sorted(k for k in rows if k.startswith('sample_error_'))})")
         episodes, starts = np.asarray(rows["episodes"], np.int64), np.asarray(rows["starts"], np.int64)
         energy, error = np.asarray(rows["energy"], np.float64), np.asarray(rows[name], np.float64)
-        first_frames = 4 * (starts + context_latents - 1) + 1
-        last_frames = 4 * (starts + context_latents + future_latents - 1)
+        first_frames = frames_per_latent * (starts + context_latents - 1) + 1
+        last_frames = frames_per_latent * (starts + context_latents + future_latents - 1)
         known = outcomes.get(split)
         if known is not None and len(episodes) and episodes.max() >= len(known["first_success"]):
             raise ValueError(f"segment errors: split {split!r} names episode {int(episodes.max())}, its outcomes "
@@ -128,10 +130,12 @@ def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_la
     return out
 
 
-def _latents_per_segment(pipeline: str) -> tuple[int, int]:
+def _latents_per_segment(pipeline: str) -> tuple[int, int, int]:
+    """``(context latents, future latents, frames per latent)`` of the pipeline's world model."""
     with open(os.path.join(pipeline, "config.json")) as f:
-        data = json.load(f)["data"]
-    return data["context_frames"] // 4, data["predict_frames"] // 4
+        config = json.load(f)
+    factor = 2 ** sum(bool(d) for d in config["vae"]["temporal_downsample"])
+    return config["data"]["context_frames"] // factor, config["data"]["predict_frames"] // factor, factor
 
 
 def parse(argv: Sequence[str]) -> argparse.Namespace:
@@ -191,10 +195,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     unknown = sorted(set(outcomes) - set(record["splits"]))
     if unknown:
         raise cli.UsageError(f"--outcomes: the record has no split {unknown} (has {sorted(record['splits'])})")
-    context, future = _latents_per_segment(args.pipeline)
+    context, future, factor = _latents_per_segment(args.pipeline)
     try:
         result = join(record, outcomes, context_latents=context, future_latents=future, euler=args.euler,
-                      early_actions=args.early_actions)
+                      early_actions=args.early_actions, frames_per_latent=factor)
     except ValueError as error:
         raise cli.UsageError(str(error)) from None
     write_json_atomic(args.out, result)

@@ -66,9 +66,20 @@ def test_two_processes_equal_one_and_checkpoint_moves_between_device_counts(tmp_
     _wait(_train(single, _env(4, cache), "--mesh.data=4", once, "--trainer.eval_every=0"))
 
     multi = str(tmp_path / "multi")
-    output = _wait(_launch(multi, cache, once))
+    output = _wait(_launch(multi, cache, once, "--trainer.eval_segments=true"))
     assert "[rank 0] [train_world_model] sword-tiny: mesh {'data': 4" in output
     assert "[rank 1] [train_world_model]" not in output, "only process 0 logs"
+    # every fixed segment measured alone, gathered from both ranks: a batch's figure is its segments'
+    # energy-weighted mean, and the evaluation's (its last step) the mean of its batches'
+    with open(os.path.join(multi, "heldout_segments.json")) as f:
+        segments = json.load(f)
+    last = _metrics(multi)[STEPS]
+    assert segments["step"] == STEPS and sorted(segments["splits"]) == ["heldout", "train"]
+    for split, each in segments["splits"].items():
+        assert len(each["episodes"]) == len(each["energy"]) == 2 * 4  # trainer.eval_batches x data.batch_size
+        error, energy = (np.asarray(each[k]).reshape(2, 4) for k in ("sample_error_5", "energy"))
+        figure = ((error * energy).sum(1) / energy.sum(1)).mean()
+        assert figure == pytest.approx(last[f"eval_{split}_sample_error_5"], rel=1e-4), split
 
     want, want_meta = final_arrays(single)
     got, got_meta = final_arrays(multi)

@@ -81,6 +81,12 @@ def test_the_join_places_each_segment_and_weighs_each_group_as_the_evaluation_do
     assert set(held["groups"]) == {"all", "first 16 actions"} and "phase" not in held["segments"][0]
 
 
+def test_a_vae_of_another_temporal_factor_places_the_frames_by_it():
+    out = se.join(_record(), {}, context_latents=1, future_latents=1, euler=5, early_actions=16,
+                  frames_per_latent=8)
+    assert [s["frames"] for s in out["splits"]["policy"]["segments"]] == [[9, 16], [25, 32], [9, 16], [73, 80]]
+
+
 def test_the_join_refuses_a_missing_error_or_an_episode_outside_the_outcomes():
     with pytest.raises(ValueError, match="sample_error_7"):
         se.join(_record(), {}, context_latents=1, future_latents=2, euler=7, early_actions=16)
@@ -92,7 +98,8 @@ def test_the_join_refuses_a_missing_error_or_an_episode_outside_the_outcomes():
 def test_the_command_joins_a_pipeline_record_and_names_bad_input(tmp_path):
     pipeline = tmp_path / "pipeline"
     (pipeline / "world_model").mkdir(parents=True)
-    (pipeline / "config.json").write_text(json.dumps({"data": {"context_frames": 4, "predict_frames": 8}}))
+    (pipeline / "config.json").write_text(json.dumps({"data": {"context_frames": 4, "predict_frames": 8},
+                                                      "vae": {"temporal_downsample": [True, True, False]}}))
     with pytest.raises(UsageError, match="eval_segments=true"):
         se.main(["join", "--pipeline", str(pipeline), "--out", str(tmp_path / "s.json")])
     (pipeline / "world_model" / "heldout_segments.json").write_text(json.dumps(_record()))

@@ -184,12 +184,9 @@ def run_world_model(cfg: ExperimentConfig, *, synthetic: bool = False) -> dict:
     finally:
         logger.close()
     if evaluator is not None and cfg.trainer.eval_segments:
-        if jax.process_count() > 1:
-            if is_main:
-                print("[train_world_model] trainer.eval_segments: skipped, per-segment errors are measured in a "
-                      "single-process run only")
-        else:
+        per_segment = evaluator.per_segment(result.state)  # every process: the segments are gathered
+        if is_main:
             write_json_atomic(os.path.join(workdir, SEGMENTS_FILE),
-                              {"step": int(result.state.step), "splits": evaluator.per_segment(result.state)})
+                              {"step": int(result.state.step), "splits": per_segment})
     last = result.history[-1] if result.history else {}
     return {"step": max(result.first_step, cfg.trainer.steps), "metrics": last, "workdir": workdir}

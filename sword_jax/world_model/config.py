@@ -127,7 +127,7 @@ class TrainerConfig:
     eval_batches: int = 2
     eval_sample_steps: tuple[int, ...] = ()
     # with eval_every: at the run's end, every fixed segment's own sample error too (heldout_segments.json in the
-    # run's folder; where in the episodes a split's error lies); single-process runs
+    # run's folder; where in the episodes a split's error lies)
     eval_segments: bool = False
 
     def validate(self) -> None:

@@ -225,7 +225,8 @@ class HeldOutEvaluator:
             return {split: {name: values[i * count:(i + 1) * count] for name, values in per.items()}
                     for i, split in enumerate(splits)}
 
-        self._per_segment = jax.jit(per_segment)
+        # every process gets every segment (in a run of several, each holds only its rows of a batch)
+        self._per_segment = jax.jit(per_segment, out_shardings=shd.replicated(mesh))
 
     def __call__(self, state: TrainState) -> dict[str, jax.Array]:
         """Dispatches the measurement of ``state`` (after ``state.step`` steps); device scalars, NaN off its steps."""
@@ -239,14 +240,9 @@ class HeldOutEvaluator:
         evaluation's noise: per split, its ``episodes`` and ``starts`` (the first context latent's index), each
         segment's ``energy`` and ``sample_error_<n>`` (:func:`segment_errors`; the evaluation's figure of a
         batch is their energy-weighted mean). Where a run's error lies (early or late in the episodes, which
-        episodes) is read from these.
-
-        Raises:
-          ValueError: in a run of several processes (each holds only its rows of a batch).
+        episodes) is read from these. In a run of several processes every process calls it (the segments are
+        gathered from the processes that hold them) and gets them all.
         """
-        if jax.process_count() > 1:
-            raise ValueError("held-out evaluation: per-segment errors are measured in a single-process run only "
-                             f"(this one has {jax.process_count()} processes)")
         weights = state.ema_params if state.ema_params is not None else state.params
         with shd.use_mesh(self.mesh, self.rules):
             per = jax.device_get(self._per_segment(weights, state.buffers, self.batches))
