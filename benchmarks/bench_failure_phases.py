@@ -209,11 +209,17 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if min(args.episodes, args.starts, args.horizon) < 1 or args.group_size < 2 or args.max_steps < 0:
         raise cli.UsageError("--episodes, --starts and --horizon must be >= 1, --group-size >= 2 and --max-steps >= 0")
+    check_policy_args(args)
+    return args
+
+
+def check_policy_args(args: argparse.Namespace) -> None:
+    """Refuses (``cli.UsageError``) a ``--temperature`` or ``--over-m`` not above 0 and a ``--policy`` that is not a
+    file: the arguments of the benches that run the policy's episodes as this one does."""
     if not 0 < args.temperature or args.over_m <= 0:
         raise cli.UsageError("--temperature and --over-m must be > 0")
     if not os.path.isfile(args.policy):
         raise cli.UsageError(f"--policy {args.policy}: no such file")
-    return args
 
 
 def main(argv: Sequence[str] | None = None) -> dict:

@@ -175,10 +175,9 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
             or not args.scales_px):
         raise cli.UsageError("--episodes, --starts, --horizon, --draws and --workers must be >= 1, --scales-px "
                              "positive, --tiny-m and --starts-before >= 0")
-    if not 0 < args.temperature or args.over_m <= 0:
-        raise cli.UsageError("--temperature and --over-m must be > 0")
-    if not os.path.isfile(args.policy):
-        raise cli.UsageError(f"--policy {args.policy}: no such file")
+    from benchmarks.bench_failure_phases import check_policy_args
+
+    check_policy_args(args)
     return args
 
 
