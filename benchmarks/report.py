@@ -1779,7 +1779,8 @@ WORLD_MODEL_SEGMENTS = ("policy", "world_model_segments_120m_100r_10k_small_h200
 SEGMENT_GROUPS = {"heldout": ("all", "first 48 actions", "after 48 actions"),
                   "policy": ("all", "first 48 actions", "after 48 actions", "before success", "spans success",
                              "after success", "failed episode", "failed episode, first 48 actions",
-                             "failed episode, after 48 actions"),
+                             "failed episode, after 48 actions", "stage: before the grasp", "stage: grasped",
+                             "stage: over the plate", "stage: after a release"),
                   "trainpolicy": ("all", "first 48 actions", "after 48 actions"),
                   "train": ("all", "first 48 actions", "after 48 actions")}
 

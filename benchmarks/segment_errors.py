@@ -7,14 +7,17 @@ and groups them:
 
 * ``outcomes``: reads an episode file (HDF5, the pipeline's ``data/policy_heldout.hdf5`` or ``data/heldout.hdf5``)
   in the order the latents stage encoded it and keeps what the join needs, small enough for a record: per episode
-  its task, initial state, first success (``-1``: none), per-step rewards and actions (``.npz``).
+  its task, initial state, first success (``-1``: none), per-step rewards and actions, and per step the stage its
+  recorded state is in (``stages``: an index into ``bench_failure_phases.START_STAGES``, before the grasp, grasped,
+  over the plate, after a release; read on the C engine from the finger pads' contacts) (``.npz``).
 * ``join``: per segment of every split, its frames (the future frames it predicts: ``f (start + k - 1) + 1`` to
   ``f (start + k + p - 1)`` with ``k`` context and ``p`` future latents of ``f`` frames each, the VAE's temporal
   factor), its error at each Euler step count, and
   where an outcomes file is given for its split: whether its episode succeeded, the segment's phase (``before
   success``: its future frames all precede the first success; ``spans success``; ``after success``; ``failed
-  episode``), whether its future lies within the first ``--early-actions`` actions (GRPO's imagined horizon from
-  rest) and the arm's motion there (mean absolute translation action). Then per split and group: the segments, their
+  episode``), the stage of the state its prediction starts from (the last context frame's), whether its future
+  lies within the first ``--early-actions`` actions (GRPO's imagined horizon from rest) and the arm's motion there
+  (mean absolute translation action). Then per split and group: the segments, their
   energy-weighted error (the evaluation's figure, over that group), median, and the group's share of the split's
   figure. Writes ``segments.json``::
 
@@ -39,13 +42,44 @@ from sword_jax import cli
 from sword_jax.atomic_write import write_json_atomic
 
 PHASES = ("before success", "spans success", "after success", "failed episode")
-OUTCOME_KEYS = ("task_id", "init_state_id", "first_success", "rewards", "actions")
+OUTCOME_KEYS = ("task_id", "init_state_id", "first_success", "rewards", "actions")  # "stages" where read
 
 
-def episode_outcomes(path: str) -> dict[str, np.ndarray]:
+def episode_stages(states: np.ndarray, task_ids: np.ndarray, *, over_m: float = 0.05) -> np.ndarray:
+    """Per episode and step, the stage of the recorded flat state ``states [N, T, 1 + nq + nv]`` of task
+    ``task_ids [N]`` (``int8``, an index into ``bench_failure_phases.START_STAGES``): the state restored on the C
+    engine, the bowl held where both finger pads touch it, over the plate within ``over_m`` in xy, let go where it
+    was held at an earlier step."""
+    from benchmarks.bench_failure_phases import start_stages
+    from sim.config import SimConfig
+    from sim.env import CpuEnv
+    from sim.lockstep import grasp_geoms, pads_touch
+
+    states = np.asarray(states, np.float64)
+    envs: dict[int, CpuEnv] = {}
+    out = np.zeros(states.shape[:2], np.int8)
+    for e, task in enumerate(np.asarray(task_ids, np.int64)):
+        if int(task) not in envs:
+            envs[int(task)] = CpuEnv(SimConfig(resolution=16), int(task))
+        env = envs[int(task)]
+        pads, bowl_geoms = grasp_geoms(env)
+        held, bowl, plate = [], [], []
+        for flat in states[e]:
+            data = env.restore(flat).data
+            held.append(pads_touch(data, pads, bowl_geoms))
+            bowl.append(np.array(data.xpos[env.bowl_body]))
+            plate.append(np.array(data.xpos[env.plate_body]))
+        held = np.asarray(held, bool)
+        before = np.concatenate([[False], np.cumsum(held)[:-1] > 0])
+        out[e] = start_stages(held, np.stack(bowl), np.stack(plate), before, over_m=over_m)
+    return out
+
+
+def episode_outcomes(path: str, *, over_m: float = 0.05) -> dict[str, np.ndarray]:
     """Per episode of the dataset ``path``, in its demo order (the latents stage's): ``task_id``,
     ``init_state_id`` (``-1`` where the file does not say), ``first_success`` (the first step whose reward is
-    set, ``-1``: none), ``rewards`` ``[N, T]`` and ``actions`` ``[N, T, A]`` (cut to the shortest episode)."""
+    set, ``-1``: none), ``rewards`` ``[N, T]``, ``actions`` ``[N, T, A]`` and ``stages`` ``[N, T]``
+    (:func:`episode_stages`; all cut to the shortest episode)."""
     from sim.dataset import read_dataset
 
     _, episodes = read_dataset(path)
@@ -55,7 +89,12 @@ def episode_outcomes(path: str) -> dict[str, np.ndarray]:
     rewards = np.stack([np.asarray(e.rewards[:n], np.uint8) for e in episodes])
     first = np.array([int(np.argmax(r > 0)) if (r > 0).any() else -1 for r in
                       (np.asarray(e.rewards) for e in episodes)], np.int64)
-    return {"task_id": np.array([-1 if e.task_id is None else e.task_id for e in episodes], np.int64),
+    task_ids = np.array([-1 if e.task_id is None else e.task_id for e in episodes], np.int64)
+    if (task_ids < 0).any():
+        raise ValueError(f"segment errors: {path} has episodes without a task_id (their stages cannot be read)")
+    stages = episode_stages(np.stack([np.asarray(e.states[:n], np.float64) for e in episodes]), task_ids,
+                            over_m=over_m)
+    return {"task_id": task_ids, "stages": stages,
             "init_state_id": np.array([-1 if e.init_state_id is None else e.init_state_id for e in episodes], np.int64),
             "first_success": first, "rewards": rewards,
             "actions": np.stack([np.asarray(e.actions[:n], np.float64) for e in episodes])}
@@ -108,6 +147,11 @@ def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_la
                            phase=segment_phase(int(first_frames[i]), int(last_frames[i]), first),
                            motion=float(np.abs(acts).mean()) if acts.size else None)
                 keys.append(seg["phase"])
+                if "stages" in known:  # the state the prediction starts from: the last context frame's
+                    from benchmarks.bench_failure_phases import START_STAGES
+
+                    seg["stage"] = START_STAGES[int(known["stages"][episodes[i], first_frames[i] - 1])]
+                    keys.append(f"stage: {seg['stage']}")
                 if seg["phase"] == "failed episode":
                     keys.append(f"failed episode, {keys[1]}")
             for key in keys:
@@ -144,6 +188,7 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     o = sub.add_parser("outcomes", help="an episode file's outcomes, small enough for a record (.npz)")
     o.add_argument("episodes", help="the episodes (HDF5), in the latents stage's order")
     o.add_argument("out", help="the .npz to write")
+    o.add_argument("--over-m", type=float, default=0.05, help="over the plate: the bowl within this of it in xy")
     j = sub.add_parser("join", help="segments.json: the segments' errors joined with their episodes' outcomes")
     j.add_argument("--pipeline", required=True, help="the pipeline's work dir (config.json, world_model/)")
     j.add_argument("--outcomes", action="append", default=[], metavar="SPLIT=FILE",
@@ -155,6 +200,8 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     if args.command == "outcomes":
         if not os.path.isfile(args.episodes):
             raise cli.UsageError(f"outcomes: {args.episodes}: no such file")
+        if args.over_m <= 0:
+            raise cli.UsageError("--over-m must be > 0")
         return args
     if args.euler < 1 or args.early_actions < 1:
         raise cli.UsageError("--euler and --early-actions must be >= 1")
@@ -176,7 +223,10 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> dict:
     args = parse(sys.argv[1:] if argv is None else list(argv))
     if args.command == "outcomes":
-        made = episode_outcomes(args.episodes)
+        try:
+            made = episode_outcomes(args.episodes, over_m=args.over_m)
+        except ValueError as error:
+            raise cli.UsageError(str(error)) from None
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         np.savez(args.out, **made)
         print(f"[segment-errors] {len(made['first_success'])} episodes ({(made['first_success'] >= 0).mean():.0%} "
@@ -189,7 +239,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             if missing:
                 raise cli.UsageError(f"--outcomes {split}={path}: missing {missing} (write it with the outcomes "
                                      "command)")
-            outcomes[split] = {k: data[k] for k in OUTCOME_KEYS}
+            outcomes[split] = {k: data[k] for k in (*OUTCOME_KEYS, "stages") if k in data.files}
     with open(os.path.join(args.pipeline, "world_model", "heldout_segments.json")) as f:
         record = json.load(f)
     unknown = sorted(set(outcomes) - set(record["splits"]))

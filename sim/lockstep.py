@@ -26,14 +26,14 @@ import numpy as np
 _RENDER_BUCKET = 64  # batch sizes are padded to a multiple of this (one compile per bucket)
 
 
-def _grasp_geoms(env: Any) -> tuple[np.ndarray, np.ndarray]:
+def grasp_geoms(env: Any) -> tuple[np.ndarray, np.ndarray]:
     """The Panda's two finger-pad geoms and the target bowl's geoms in ``env``'s model."""
     model = env.mj_model
     pads = np.array([model.geom(f"panda_{side}_finger_pad").id for side in ("left", "right")])
     return pads, np.flatnonzero(model.geom_bodyid == env.bowl_body)
 
 
-def _pads_touch(data: Any, pads: np.ndarray, bowl: np.ndarray) -> bool:
+def pads_touch(data: Any, pads: np.ndarray, bowl: np.ndarray) -> bool:
     """Whether both finger pads ``pads`` are in contact with a geom of the bowl ``bowl`` (a grasp)."""
     g1, g2 = np.asarray(data.contact.geom1[: data.ncon]), np.asarray(data.contact.geom2[: data.ncon])
     touching = np.concatenate([g1[np.isin(g2, bowl)], g2[np.isin(g1, bowl)]])
@@ -121,11 +121,11 @@ class _Shard:
         for t, s in zip(self.task_of, self.states):
             env, d = self.envs[t], s.data
             if t not in self._grasp:
-                self._grasp[t] = _grasp_geoms(env)
+                self._grasp[t] = grasp_geoms(env)
             bowl.append(np.array(d.xpos[env.bowl_body]))
             up.append(float(d.xmat[env.bowl_body].reshape(3, 3)[2, 2]))
             plate.append(np.array(d.xpos[env.plate_body]))
-            held.append(_pads_touch(d, *self._grasp[t]))
+            held.append(pads_touch(d, *self._grasp[t]))
             state.append(np.concatenate([[float(d.time)], d.qpos, d.qvel]))
         return {"bowl": np.stack(bowl), "bowl_up": np.asarray(up), "plate": np.stack(plate), "held": np.asarray(held),
                 "state": np.stack(state)}

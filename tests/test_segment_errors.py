@@ -11,28 +11,63 @@ from sim.dataset import DatasetInfo, Episode, write_dataset
 from sword_jax.cli import UsageError
 
 
-def _episode(steps, success_at, seed, task_id=0, init_state_id=None):
+@pytest.fixture(scope="module")
+def expert_states():
+    """The scripted expert on the C engine carrying the bowl from the top drawer to the plate (task 4): its flat
+    states ``[time, qpos, qvel]`` and actions, one per step, and the step it succeeds at."""
+    from sim import expert
+    from sim.config import SimConfig
+    from sim.env import CpuEnv
+
+    env = CpuEnv(SimConfig(resolution=16), 4)
+    out = expert.rollout_cpu(env, env.init_states[3], record=True)
+    assert out["success"]
+    flat = np.stack([np.concatenate([[s.data.time], s.data.qpos, s.data.qvel]) for s in out["states"]])
+    return flat[:-1], np.asarray(out["actions"], np.float64), len(out["actions"]) - 1
+
+
+def _episode(states, actions, success_at, seed, task_id=4, init_state_id=None):
     rng = np.random.default_rng(seed)
+    steps = len(actions)
     rewards = np.zeros(steps)
     if success_at is not None:
         rewards[success_at:success_at + 2] = 1  # success need not last (the policy may carry the bowl away)
-    return Episode(actions=rng.uniform(-1, 1, (steps, 7)), states=rng.normal(size=(steps, 5)), rewards=rewards,
+    return Episode(actions=actions, states=states, rewards=rewards,
                    dones=np.zeros(steps), agentview_rgb=rng.integers(0, 256, (steps, 8, 8, 3), dtype=np.uint8),
                    ee_states=rng.normal(size=(steps, 6)), gripper_states=rng.normal(size=(steps, 2)),
                    joint_states=rng.normal(size=(steps, 7)), model_file="<mujoco/>", task_id=task_id,
                    init_state_id=init_state_id, language_instruction="pick up the black bowl")
 
 
-def test_outcomes_read_the_episodes_in_order_with_their_first_success(tmp_path):
+def test_outcomes_read_the_episodes_in_order_with_their_first_success_and_stages(tmp_path, expert_states):
+    states, actions, solved = expert_states
     path = str(tmp_path / "policy.hdf5")
-    episodes = [_episode(20, 7, 0, task_id=1, init_state_id=3), _episode(22, None, 1), _episode(20, 0, 2)]
+    episodes = [_episode(states, actions, 7, 0, init_state_id=3), _episode(states[:-2], actions[:-2], None, 1),
+                _episode(states, actions, 0, 2)]
     write_dataset(path, episodes, DatasetInfo(env_name="sword/LiberoSpatial-v0"))
     out = se.episode_outcomes(path)
     assert out["first_success"].tolist() == [7, -1, 0]
-    assert out["task_id"].tolist() == [1, 0, 0] and out["init_state_id"].tolist() == [3, -1, -1]
-    assert out["rewards"].shape == (3, 20) and out["actions"].shape == (3, 20, 7)  # cut to the shortest
-    np.testing.assert_array_equal(out["actions"][1], episodes[1].actions[:20])
-    np.testing.assert_array_equal(out["rewards"][0], episodes[0].rewards[:20])
+    assert out["task_id"].tolist() == [4, 4, 4] and out["init_state_id"].tolist() == [3, -1, -1]
+    steps = len(actions) - 2  # cut to the shortest
+    assert out["rewards"].shape == (3, steps) and out["actions"].shape == (3, steps, 7)
+    np.testing.assert_array_equal(out["actions"][1], actions[:steps])
+    np.testing.assert_array_equal(out["rewards"][0], episodes[0].rewards[:steps])
+    # the expert's stages in order: not yet grasped at the start, then held, then held over the plate by the end
+    stages = out["stages"][0]
+    assert out["stages"].shape == (3, steps) and stages[0] == 0 and stages[-1] == 2
+    assert (np.diff(stages.astype(int)) >= 0).all() and {0, 1, 2} <= set(stages.tolist())
+    np.testing.assert_array_equal(out["stages"][1], stages)
+
+
+def test_a_stage_is_read_from_the_restored_state_and_a_release_after_a_grasp(expert_states):
+    """A held bowl that the fingers no longer touch reads as let go (stage 3), not as never grasped."""
+    states, _, _ = expert_states
+    stages = se.episode_stages(states[None], np.array([4]))[0]
+    grasped = int(np.argmax(stages == 1))
+    opened = states[grasped].copy()
+    opened[1:] = states[0][1:]  # back at the start pose: the bowl in its drawer, the fingers away from it
+    replayed = se.episode_stages(np.stack([states[grasped], opened])[None], np.array([4]))[0]
+    assert replayed.tolist() == [1, 3]
 
 
 @pytest.mark.parametrize("frames, first, phase", [((5, 12), 13, "before success"), ((5, 12), 12, "spans success"),
@@ -54,8 +89,10 @@ def _record():
 def _outcomes():
     actions = np.zeros((2, 48, 7))
     actions[1, :, :3] = 0.5
+    stages = np.zeros((2, 48), np.int8)
+    stages[0, 8:] = 1  # episode 0 holds the bowl from step 8
     return {"first_success": np.array([10, -1]), "actions": actions, "rewards": np.zeros((2, 48)),
-            "task_id": np.zeros(2, int), "init_state_id": np.zeros(2, int)}
+            "task_id": np.zeros(2, int), "init_state_id": np.zeros(2, int), "stages": stages}
 
 
 def test_the_join_places_each_segment_and_weighs_each_group_as_the_evaluation_does():
@@ -68,11 +105,14 @@ def test_the_join_places_each_segment_and_weighs_each_group_as_the_evaluation_do
     assert [s["phase"] for s in segs] == ["spans success", "after success", "failed episode", "failed episode"]
     assert [s["early"] for s in segs] == [True, False, True, False]
     assert segs[2]["motion"] == pytest.approx(0.5) and segs[0]["motion"] == 0.0
+    # the stage of the state each prediction starts from: the last context frame's (frame 4 s)
+    assert [s["stage"] for s in segs] == ["before the grasp", "grasped", "before the grasp", "before the grasp"]
     groups = policy["groups"]
     # the split's figure: the energy-weighted mean, as the evaluation's batch figure
     assert groups["all"]["error"] == pytest.approx((0.01 + 0.09 + 0.04 + 0.08) / 8)
     assert groups["failed episode"]["error"] == pytest.approx(0.03)
     assert groups["failed episode, first 16 actions"]["segments"] == 1
+    assert groups["stage: grasped"]["segments"] == 1 and groups["stage: grasped"]["error"] == pytest.approx(0.03)
     # the phases partition the split: their shares add up to 1
     assert sum(groups[p]["share"] for p in se.PHASES if p in groups) == pytest.approx(1.0)
     assert groups["first 16 actions"]["share"] + groups["after 16 actions"]["share"] == pytest.approx(1.0)

@@ -13,8 +13,10 @@ python3 -m train.pipeline --config sword:small --seed 0 --workdir $W/pipeline --
   --vae.temporal_downsample=true,true --trainer.ema_decay=0.999 --model.scan_layers=false \
   --data.policy_rollout_workers=12 --model.dim=768 --model.num_layers=12 --model.num_heads=12 --model.ffn_dim=3072 \
   --trainer.eval_segments=true > $W/pipeline.log 2>&1
-# the held-out policy episodes' task, initial state, first success, rewards and actions, in the latents stage's order
-# (this record's policy_outcomes.npz: the same arrays, read from the same file by an equivalent script)
+# the held-out policy episodes' task, initial state, first success, rewards, actions and per-step stage (the recorded
+# states restored on the C engine), in the latents stage's order (this record's policy_outcomes.npz: the same
+# arrays, the first five read from the same file by an equivalent script, the stages by segment_errors.episode_stages
+# from its recorded states)
 python3 -m benchmarks.segment_errors outcomes $W/pipeline/data/policy_heldout.hdf5 $W/policy_outcomes.npz
 # (on the record, CPU) the per-segment errors joined with them: segments.json, report table world-model-segments
 python3 -m benchmarks.segment_errors join --pipeline pipeline --outcomes policy=policy_outcomes.npz --out segments.json
