@@ -38,6 +38,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from benchmarks.bench_failure_phases import START_STAGES, start_stages
 from sword_jax import cli
 from sword_jax.atomic_write import write_json_atomic
 
@@ -45,15 +46,14 @@ PHASES = ("before success", "spans success", "after success", "failed episode")
 OUTCOME_KEYS = ("task_id", "init_state_id", "first_success", "rewards", "actions")  # "stages" where read
 
 
-def episode_stages(states: np.ndarray, task_ids: np.ndarray, *, over_m: float = 0.05) -> np.ndarray:
+def step_stages(states: np.ndarray, task_ids: np.ndarray, *, over_m: float = 0.05) -> np.ndarray:
     """Per episode and step, the stage of the recorded flat state ``states [N, T, 1 + nq + nv]`` of task
     ``task_ids [N]`` (``int8``, an index into ``bench_failure_phases.START_STAGES``): the state restored on the C
     engine, the bowl held where both finger pads touch it, over the plate within ``over_m`` in xy, let go where it
-    was held at an earlier step."""
-    from benchmarks.bench_failure_phases import start_stages
+    was held at an earlier step (``bench_failure_phases.start_stages`` of ``sim.lockstep.pose``)."""
     from sim.config import SimConfig
     from sim.env import CpuEnv
-    from sim.lockstep import grasp_geoms, pads_touch
+    from sim.lockstep import grasp_geoms, pose
 
     states = np.asarray(states, np.float64)
     envs: dict[int, CpuEnv] = {}
@@ -62,13 +62,8 @@ def episode_stages(states: np.ndarray, task_ids: np.ndarray, *, over_m: float = 
         if int(task) not in envs:
             envs[int(task)] = CpuEnv(SimConfig(resolution=16), int(task))
         env = envs[int(task)]
-        pads, bowl_geoms = grasp_geoms(env)
-        held, bowl, plate = [], [], []
-        for flat in states[e]:
-            data = env.restore(flat).data
-            held.append(pads_touch(data, pads, bowl_geoms))
-            bowl.append(np.array(data.xpos[env.bowl_body]))
-            plate.append(np.array(data.xpos[env.plate_body]))
+        grasp = grasp_geoms(env)
+        bowl, _, plate, held = zip(*(pose(env, env.restore(flat).data, grasp) for flat in states[e]))
         held = np.asarray(held, bool)
         before = np.concatenate([[False], np.cumsum(held)[:-1] > 0])
         out[e] = start_stages(held, np.stack(bowl), np.stack(plate), before, over_m=over_m)
@@ -79,7 +74,7 @@ def episode_outcomes(path: str, *, over_m: float = 0.05) -> dict[str, np.ndarray
     """Per episode of the dataset ``path``, in its demo order (the latents stage's): ``task_id``,
     ``init_state_id`` (``-1`` where the file does not say), ``first_success`` (the first step whose reward is
     set, ``-1``: none), ``rewards`` ``[N, T]``, ``actions`` ``[N, T, A]`` and ``stages`` ``[N, T]``
-    (:func:`episode_stages`; all cut to the shortest episode)."""
+    (:func:`step_stages`; all cut to the shortest episode)."""
     from sim.dataset import read_dataset
 
     _, episodes = read_dataset(path)
@@ -92,7 +87,7 @@ def episode_outcomes(path: str, *, over_m: float = 0.05) -> dict[str, np.ndarray
     task_ids = np.array([-1 if e.task_id is None else e.task_id for e in episodes], np.int64)
     if (task_ids < 0).any():
         raise ValueError(f"segment errors: {path} has episodes without a task_id (their stages cannot be read)")
-    stages = episode_stages(np.stack([np.asarray(e.states[:n], np.float64) for e in episodes]), task_ids,
+    stages = step_stages(np.stack([np.asarray(e.states[:n], np.float64) for e in episodes]), task_ids,
                             over_m=over_m)
     return {"task_id": task_ids, "stages": stages,
             "init_state_id": np.array([-1 if e.init_state_id is None else e.init_state_id for e in episodes], np.int64),
@@ -148,8 +143,6 @@ def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_la
                            motion=float(np.abs(acts).mean()) if acts.size else None)
                 keys.append(seg["phase"])
                 if "stages" in known:  # the state the prediction starts from: the last context frame's
-                    from benchmarks.bench_failure_phases import START_STAGES
-
                     seg["stage"] = START_STAGES[int(known["stages"][episodes[i], first_frames[i] - 1])]
                     keys.append(f"stage: {seg['stage']}")
                 if seg["phase"] == "failed episode":
@@ -176,10 +169,15 @@ def join(record: dict, outcomes: dict[str, dict[str, np.ndarray]], *, context_la
 
 def _latents_per_segment(pipeline: str) -> tuple[int, int, int]:
     """``(context latents, future latents, frames per latent)`` of the pipeline's world model."""
+    from sword_jax.load import section_from_dict
+    from sword_jax.vae.config import VAEConfig
+    from sword_jax.world_model.config import DataConfig
+
     with open(os.path.join(pipeline, "config.json")) as f:
         config = json.load(f)
-    factor = 2 ** sum(bool(d) for d in config["vae"]["temporal_downsample"])
-    return config["data"]["context_frames"] // factor, config["data"]["predict_frames"] // factor, factor
+    data = section_from_dict(DataConfig, config["data"])
+    factor = section_from_dict(VAEConfig, config["vae"]).temporal_factor
+    return data.context_frames // factor, data.predict_frames // factor, factor
 
 
 def parse(argv: Sequence[str]) -> argparse.Namespace:

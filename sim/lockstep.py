@@ -33,11 +33,18 @@ def grasp_geoms(env: Any) -> tuple[np.ndarray, np.ndarray]:
     return pads, np.flatnonzero(model.geom_bodyid == env.bowl_body)
 
 
-def pads_touch(data: Any, pads: np.ndarray, bowl: np.ndarray) -> bool:
+def _pads_touch(data: Any, pads: np.ndarray, bowl: np.ndarray) -> bool:
     """Whether both finger pads ``pads`` are in contact with a geom of the bowl ``bowl`` (a grasp)."""
     g1, g2 = np.asarray(data.contact.geom1[: data.ncon]), np.asarray(data.contact.geom2[: data.ncon])
     touching = np.concatenate([g1[np.isin(g2, bowl)], g2[np.isin(g1, bowl)]])
     return bool(np.all(np.isin(pads, touching)))
+
+
+def pose(env: Any, data: Any, grasp: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float, np.ndarray, bool]:
+    """In ``env``'s ``data``: the target bowl's origin, its up axis' z, the plate's origin and whether both finger
+    pads touch the bowl (``grasp``: :func:`grasp_geoms` of ``env``)."""
+    return (np.array(data.xpos[env.bowl_body]), float(data.xmat[env.bowl_body].reshape(3, 3)[2, 2]),
+            np.array(data.xpos[env.plate_body]), _pads_touch(data, *grasp))
 
 
 class _Shard:
@@ -122,10 +129,8 @@ class _Shard:
             env, d = self.envs[t], s.data
             if t not in self._grasp:
                 self._grasp[t] = grasp_geoms(env)
-            bowl.append(np.array(d.xpos[env.bowl_body]))
-            up.append(float(d.xmat[env.bowl_body].reshape(3, 3)[2, 2]))
-            plate.append(np.array(d.xpos[env.plate_body]))
-            held.append(pads_touch(d, *self._grasp[t]))
+            for values, value in zip((bowl, up, plate, held), pose(env, d, self._grasp[t])):
+                values.append(value)
             state.append(np.concatenate([[float(d.time)], d.qpos, d.qvel]))
         return {"bowl": np.stack(bowl), "bowl_up": np.asarray(up), "plate": np.stack(plate), "held": np.asarray(held),
                 "state": np.stack(state)}

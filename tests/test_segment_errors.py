@@ -62,11 +62,11 @@ def test_outcomes_read_the_episodes_in_order_with_their_first_success_and_stages
 def test_a_stage_is_read_from_the_restored_state_and_a_release_after_a_grasp(expert_states):
     """A held bowl that the fingers no longer touch reads as let go (stage 3), not as never grasped."""
     states, _, _ = expert_states
-    stages = se.episode_stages(states[None], np.array([4]))[0]
+    stages = se.step_stages(states[None], np.array([4]))[0]
     grasped = int(np.argmax(stages == 1))
     opened = states[grasped].copy()
     opened[1:] = states[0][1:]  # back at the start pose: the bowl in its drawer, the fingers away from it
-    replayed = se.episode_stages(np.stack([states[grasped], opened])[None], np.array([4]))[0]
+    replayed = se.step_stages(np.stack([states[grasped], opened])[None], np.array([4]))[0]
     assert replayed.tolist() == [1, 3]
 
 

@@ -15,7 +15,7 @@ python3 -m train.pipeline --config sword:small --seed 0 --workdir $W/pipeline --
   --trainer.eval_segments=true > $W/pipeline.log 2>&1
 # the held-out policy episodes' task, initial state, first success, rewards, actions and per-step stage (the recorded
 # states restored on the C engine), in the latents stage's order (this record's policy_outcomes.npz: the same
-# arrays, the first five read from the same file by an equivalent script, the stages by segment_errors.episode_stages
+# arrays, the first five read from the same file by an equivalent script, the stages by segment_errors.step_stages
 # from its recorded states)
 python3 -m benchmarks.segment_errors outcomes $W/pipeline/data/policy_heldout.hdf5 $W/policy_outcomes.npz
 # (on the record, CPU) the per-segment errors joined with them: segments.json, report table world-model-segments
