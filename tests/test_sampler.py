@@ -89,6 +89,41 @@ def test_sampler_rejects_bad_inputs(keys):
         sampler.sample(model, cond, actions, key=keys[0], num_future=2, cfg=FlowConfig(), num_steps=51)
 
 
+def test_noise_scale_scales_the_starting_noise(keys):
+    """``flow.noise_scale`` starts the Euler path from ``scale * noise``, drawn or given: 0 gives one prediction per
+    condition whatever the key, 1 leaves the sample (and its jaxpr) as it was."""
+    import dataclasses
+
+    model = MixerWorldModel(rngs=nnx.Rngs(4))
+    cond, actions, noise = _inputs(keys)
+    base = FlowConfig(shift=3.0)
+    kw = dict(num_future=2, num_steps=3)
+    for scale in (0.5, 0.0, 2.0):
+        cfg = dataclasses.replace(base, noise_scale=scale)
+        scaled = sampler.sample(model, cond, actions, key=keys[3], cfg=cfg, noise=noise, **kw)
+        by_hand = sampler.sample(model, cond, actions, key=keys[3], cfg=base, noise=scale * noise, **kw)
+        np.testing.assert_allclose(scaled, by_hand, rtol=1e-6, atol=1e-6)
+        drawn = sampler.sample(model, cond, actions, key=keys[3], cfg=cfg, **kw)  # the key's draw, scaled
+        first = jax.random.normal(keys[3], noise.shape, jnp.float32)
+        np.testing.assert_allclose(drawn, sampler.sample(model, cond, actions, key=keys[0], cfg=base,
+                                                         noise=scale * first, **kw), rtol=1e-6, atol=1e-6)
+    zero = dataclasses.replace(base, noise_scale=0.0)
+    a, b = (sampler.sample(model, cond, actions, key=k, cfg=zero, **kw) for k in (keys[0], keys[1]))
+    np.testing.assert_array_equal(a, b)
+    warm = sampler.sample(model, cond, actions, key=keys[0], cfg=dataclasses.replace(base, noise_scale=0.5), **kw)
+    cold = sampler.sample(model, cond, actions, key=keys[1], cfg=dataclasses.replace(base, noise_scale=0.5), **kw)
+    assert not np.allclose(warm, cold)  # below 1 and above 0 the key still matters
+    def jaxpr(cfg):
+        return str(jax.make_jaxpr(lambda n: sampler.sample(model, cond, actions, key=keys[0], cfg=cfg, noise=n, **kw))(
+            noise))
+
+    assert jaxpr(dataclasses.replace(base, noise_scale=1.0)) == jaxpr(base)
+    assert jaxpr(dataclasses.replace(base, noise_scale=0.5)) != jaxpr(base)
+    for bad in (-0.1, 4.5, float("nan")):
+        with pytest.raises(ValueError, match="flow.noise_scale"):
+            dataclasses.replace(base, noise_scale=bad).validate()
+
+
 def _dot_generals(jaxpr) -> int:
     """``dot_general`` equations of a jaxpr, those of nested jaxprs (scan bodies, pjit) included."""
     count = 0

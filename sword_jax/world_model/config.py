@@ -19,6 +19,11 @@ class FlowConfig:
     # branch that guidance_scale != 1 contrasts against; 0 = off (the guidance then extrapolates from a branch the
     # model never trained on). Dropped segments write nothing into the DLB cache.
     action_dropout: float = 0.0
+    # the sampler's starting noise as a multiple of the prior's (N(0, 1)): 1 = samples of the learned distribution;
+    # below 1, lower-temperature samples nearer its centre; 0 = one deterministic prediction per condition (the
+    # Euler path from the prior's mean). What a simulator of a deterministic scene may want: every draw of a chunk
+    # is a different plausible future, and in closed loop those draws add up decision after decision.
+    noise_scale: float = 1.0
 
     def validate(self) -> None:
         if self.prediction not in ("velocity", "epsilon"):
@@ -30,6 +35,9 @@ class FlowConfig:
         if not 0.0 <= self.action_dropout < 1.0:
             raise ValueError(f"flow.action_dropout must be in [0, 1) (share of segments trained without actions), got "
                              f"{self.action_dropout}")
+        if not 0.0 <= self.noise_scale <= 4.0:  # also rejects NaN
+            raise ValueError(f"flow.noise_scale must be in [0, 4] (the starting noise's multiple of the prior's), got "
+                             f"{self.noise_scale}")
         if not 1 <= self.sample_steps <= 50:
             raise ValueError(f"flow.sample_steps must be in [1, 50], got {self.sample_steps}")
 

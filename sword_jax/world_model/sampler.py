@@ -115,7 +115,7 @@ def sample(
       cfg: flow settings (prediction type, shift, default steps and guidance).
       num_steps: Euler steps (1..50); default ``cfg.sample_steps``.
       guidance_scale: classifier-free guidance on the actions (1 = off); default ``cfg.guidance_scale``.
-      noise: optional initial noise ``[b, p, h, w, c]``.
+      noise: optional initial noise ``[b, p, h, w, c]``; drawn or given, it is scaled by ``cfg.noise_scale``.
 
     Returns:
       Clean future latents ``[b, p, h, w, c]`` (float32).
@@ -134,6 +134,8 @@ def sample(
         noise = jax.random.normal(key, (batch, num_future) + cond.shape[2:], jnp.float32)
     elif noise.shape != (batch, num_future) + cond.shape[2:]:
         raise ValueError(f"sample: noise shape {noise.shape} != {(batch, num_future) + cond.shape[2:]}")
+    if cfg.noise_scale != 1.0:  # a lower-temperature draw (0: the deterministic path from the prior's mean)
+        noise = noise * jnp.float32(cfg.noise_scale)
     sigmas = flow.sampling_sigmas(num_steps, cfg.shift)
     step_fn = model_fn
     if isinstance(model_fn, ConditionedModelFn):  # the actions' work once per chunk, not once per step
