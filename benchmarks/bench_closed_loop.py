@@ -1,0 +1,322 @@
+"""GRPO's closed loop in one trained world model, measured without training it: several inference settings side by
+side on the same start states, against the policy on MJX's own frames from those starts.
+
+GRPO in the world model trains on what its closed loop pays: the policy acts on the frames the world model
+predicts, and from the second decision on the world model predicts from its own earlier frames under those
+actions. Measured on ``small``, that loop leaves the real one decision by decision (frame error 0.030 -> 0.095 over
+11 decisions from rest) and reality pays the imagined actions about a twentieth of what the same policy earns on
+real frames. The runs that measured it (``bench_grpo_reward_source``'s ``exec`` arm) train the policy and evaluate
+it on MJX, which costs most of their time; the closed loop itself needs neither. This benchmark measures only the
+loop, for each ``--variant`` (an inference setting of the world model: ``flow.*``, e.g. the sampler's starting
+noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps``, action guidance ``flow.guidance_scale``):
+
+* the policy's imagined rollouts as GRPO's first ``--batches`` steps draw them (their start states and sampling
+  keys, at the run's seed; proprio missing, every decision of the horizon run), the same starts
+  and keys in every variant, so the variants differ only by the setting;
+* their actions executed on MJX from the starts' recorded states (:func:`~sword_jax.rl.imagined_check.execute_observed`):
+  what reality paid them (95% Wilson interval) and what the detector said on the same rollouts, with its precision;
+* per decision where the closed loop leaves the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`,
+  over the first ``rl.imagined.fidelity_trajectories`` of each batch, means over the batches): frame error, the
+  policy's greedy action gap, both against the real frame a decision earlier, the real motion, and the VAE's
+  floor of frame error and gap;
+* each variant against the first, trajectory by trajectory (the same start and keys): the difference of what
+  reality paid, with Newcombe's paired interval.
+
+And once, ``real``: the same policy from the same starts on MJX's own frames for the same horizon (sampled at
+``rl.grpo.temperature``, ``rl.imagined_actions_per_decision`` actions a decision, proprio missing as in the
+imagined rollouts): what a simulator faithful to MJX would pay. ::
+
+    python -m benchmarks.bench_closed_loop --pipeline runs/ns/pipeline --policy runs/p/policy_d50.npz \\
+        --batches 4 --out runs/ns/closed_loop --variant n1=flow.noise_scale=1 \\
+        --variant n05=flow.noise_scale=0.5 --variant n0=flow.noise_scale=0 \\
+        --config sword:small --vae.dim_mult=1,4,4 --vae.temporal_downsample=true,true \\
+        --rl.imagined.max_chunks=12 --rl.imagined.execute_steps=4 --rl.imagined.keyframe_fraction=0 ...
+
+``--pipeline`` is a ``train.pipeline`` work dir (its ``world_model``, ``vae_run/vae``, ``rl/reward_model`` and
+``data/demos.hdf5``); the config and its overrides are those the pipeline was built with plus GRPO's recipe (the
+``exec`` arm's command in ``bench_grpo_reward_source``'s ``commands.json`` without ``train.grpo``'s own flags).
+Writes ``closed_loop.json`` to ``--out`` and prints one row per variant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import re
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sword_jax import cli
+from sword_jax.atomic_write import write_json_atomic
+
+VARIANT = re.compile(r"([a-z0-9_]+)=(.+)")
+FIGURES = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion", "frame_error_vae",
+           "action_gap_vae")
+
+
+def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]:
+    """``{name: overrides}`` from ``NAME=KEY=VALUE[,KEY=VALUE...]`` specs, each key a ``flow.*`` key that the config
+    takes (the settings a simulator is built with; the start states, the policy and the detector stay the run's).
+    Raises :class:`~sword_jax.cli.UsageError` naming the spec that is refused."""
+    from configs.cli import apply_overrides
+
+    out: dict[str, tuple[str, ...]] = {}
+    for spec in specs:
+        match = VARIANT.fullmatch(spec)
+        if not match:
+            raise cli.UsageError(f"bench_closed_loop: --variant takes NAME=KEY=VALUE[,KEY=VALUE...] (NAME in a-z, 0-9, "
+                                 f"_), got {spec!r}")
+        name, body = match.groups()
+        if name in out or name == "real":
+            raise cli.UsageError(f"bench_closed_loop: --variant {name!r} is given twice or is the reserved name 'real'")
+        pairs = tuple(p for p in body.split(",") if p)
+        bad = [p for p in pairs if not re.fullmatch(r"flow\.[a-z_]+=\S+", p)]
+        if bad or not pairs:
+            raise cli.UsageError(f"bench_closed_loop: --variant {name}: each setting must be flow.KEY=VALUE (an inference "
+                                 f"setting of the world model), got {', '.join(bad) or 'none'}")
+        try:
+            apply_overrides(cfg, [f"--{p}" for p in pairs]).validate()
+        except (ValueError, KeyError, TypeError) as error:
+            raise cli.UsageError(f"bench_closed_loop: --variant {name}: {error}") from None
+        out[name] = pairs
+    if not out:
+        raise cli.UsageError("bench_closed_loop: give at least one --variant (e.g. n1=flow.noise_scale=1)")
+    return out
+
+
+def pipeline_inputs(pipeline: str) -> dict[str, str]:
+    """The world model, VAE, detector and demonstrations of a ``train.pipeline`` work dir, or a
+    :class:`~sword_jax.cli.UsageError` naming what it lacks."""
+    paths = {"world_model": os.path.join(pipeline, "world_model"), "vae": os.path.join(pipeline, "vae_run", "vae"),
+             "reward": os.path.join(pipeline, "rl", "reward_model"),
+             "demos": os.path.join(pipeline, "data", "demos.hdf5")}
+    missing = [p for key, p in paths.items() if not (os.path.isfile(p) if key == "demos" else os.path.isdir(p))]
+    if missing:
+        raise cli.UsageError(f"bench_closed_loop: --pipeline {pipeline} lacks {', '.join(missing)} (a train.pipeline "
+                             "work dir built up to its reward_model stage)")
+    return paths
+
+
+def make_measure(graphdef: Any, rl: Any, env: Any) -> Callable[..., dict[str, jax.Array]]:
+    """``measure(params, sim, reward_model, start, env_starts, key)`` for one batch of start states: the imagined
+    rollouts (``rl.grpo.group_size`` per start, every decision run), their actions executed in ``env`` from
+    ``env_starts``; returns per trajectory ``real`` (reality's verdict) and ``said`` (the detector's), and the
+    closed loop's per-decision figures. Pure; jit it (the simulator is an argument, its settings are its own)."""
+    from sword_jax.rl import imagined_check
+    from sword_jax.rl.rollout import imagined_rollout
+
+    g = rl.grpo.group_size
+
+    def measure(params, sim, reward_model, start, env_starts, key):
+        rollout = imagined_rollout(graphdef, params, sim, reward_model, start, rl, key=key, group_size=g,
+                                   stop_on_success=False)
+        actions, lengths = imagined_check.executed_actions(rollout, rl.action_bins)
+        rows = min(rl.imagined.fidelity_trajectories, actions.shape[0])
+        env_starts = jnp.repeat(env_starts, g, axis=0)
+        if not rows:  # rl.imagined.fidelity_trajectories=0: what reality paid only
+            first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
+            return {"real": first >= 0, "said": rollout.success}
+        first, frames = imagined_check.execute_observed(env, env_starts, actions, lengths,
+                                                        every=rollout.tokens.shape[2], rows=rows)
+        round_trip = sim.round_trip if getattr(sim, "round_trip_fn", None) else None
+        loop = imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=rl.image_size,
+                                                   action_bins=rl.action_bins, round_trip=round_trip)
+        return {"real": first >= 0, "said": rollout.success, **loop}
+
+    return measure
+
+
+def make_real(graphdef: Any, rl: Any, env: Any, *, max_steps: int) -> Callable[..., jax.Array]:
+    """``real(params, start, env_starts, key) -> success [B x G]``: the policy on ``env``'s own frames from the same
+    starts, ``rl.imagined_actions_per_decision`` actions a decision, sampled at ``rl.grpo.temperature`` for
+    ``max_steps`` actions, reading its missing-proprio input as in the imagined rollouts
+    (``rl.imagined.proprio=missing``)."""
+    from sword_jax.rl.scan_rollout import scan_rollout
+
+    g = rl.grpo.group_size
+    execution = dataclasses.replace(rl, env=dataclasses.replace(rl.env, execute_steps=rl.imagined_actions_per_decision,
+                                                                 action_ensemble=False))
+
+    def real(params, start, env_starts, key):
+        tokens = jnp.repeat(start.instruction_tokens, g, axis=0)
+        valid = jnp.zeros((tokens.shape[0],), jnp.float32)
+        rollout, _ = scan_rollout(graphdef, params, env, jnp.repeat(env_starts, g, axis=0), tokens, execution, key=key,
+                                  greedy=False, ensemble=False, max_steps=max_steps, proprio_valid=valid)
+        return rollout.success
+
+    return real
+
+
+def rate(outcomes: np.ndarray) -> dict[str, Any]:
+    """A success rate with its 95% Wilson interval."""
+    from sword_jax.rl.env_rollout import wilson_interval
+
+    n, k = int(outcomes.size), int(np.sum(outcomes))
+    low, high = wilson_interval(k, n)
+    return {"rate": k / n if n else None, "successes": k, "of": n, "ci95": [low, high]}
+
+
+def summarise(name: str, overrides: Sequence[str], batches: list[dict[str, np.ndarray]], decisions: int,
+              first: np.ndarray | None) -> dict[str, Any]:
+    """One variant's row from its batches' :func:`make_measure` outputs: what reality paid, the detector's verdict
+    and precision, the per-decision closed loop (means over the batches) and, against ``first`` (the first
+    variant's real verdicts on the same trajectories), the paired difference."""
+    from sword_jax.rl.env_rollout import paired_difference_interval
+
+    real = np.concatenate([b["real"] for b in batches]).astype(bool)
+    said = np.concatenate([b["said"] for b in batches]).astype(bool)
+    row: dict[str, Any] = {"name": name, "overrides": list(overrides), "paid": rate(real), "detector": rate(said),
+                           "precision": rate(real[said]) if said.any() else None}
+    per_decision = []
+    for k in range(1, decisions):
+        entry = {"decision": k}
+        for what in FIGURES:
+            key = f"closed_loop_{what}_{k}"
+            if key in batches[0]:
+                entry[what] = float(np.mean([b[key] for b in batches]))
+        if len(entry) > 1:
+            per_decision.append(entry)
+    row["decisions"] = per_decision
+    if first is not None:
+        low, high = paired_difference_interval(first, real)
+        row["vs_first"] = {"difference": float(real.mean() - first.mean()), "ci95": [low, high]}
+    return row
+
+
+def line(row: dict[str, Any]) -> str:
+    """The printed line of a row."""
+    paid = row["paid"]
+    text = (f"[closed-loop] {row['name']} ({', '.join(row.get('overrides', ())) or 'the policy on real frames'}): "
+            f"reality paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']}")
+    if "detector" in row:
+        text += f", the detector said {row['detector']['rate']:.3f}"
+    if row.get("decisions"):
+        a, b = row["decisions"][0], row["decisions"][-1]
+        text += (f"; frame error {a['frame_error']:.3f} -> {b['frame_error']:.3f}, action gap "
+                 f"{a['action_gap']:.3f} -> {b['action_gap']:.3f} (decisions {a['decision']} -> {b['decision']})")
+    if "vs_first" in row:
+        v = row["vs_first"]
+        text += f"; against the first {100 * v['difference']:+.1f} points [{100 * v['ci95'][0]:+.1f}, {100 * v['ci95'][1]:+.1f}]"
+    return text + (f" ({row['seconds']:.0f} s)" if "seconds" in row else "")
+
+
+def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, tuple[Any, Any]], batches: list[tuple],
+                     keys: list[jax.Array], *, env: Any, real_fn: Callable[..., jax.Array] | None = None,
+                     overrides: dict[str, Sequence[str]] | None = None, log: Callable[[str], Any] = print,
+                     on_row: Callable[[dict[str, Any]], Any] | None = None) -> dict[str, Any]:
+    """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs) and ``keys``,
+    and with ``real_fn`` (:func:`make_real`) the ``real`` row on the same starts; ``on_row(out so far)`` after each
+    row (e.g. a run stopped by its time limit keeps the rows measured)."""
+    measure = jax.jit(make_measure(graphdef, rl, env))
+    rows, first = [], None
+    for name, (sim, reward_model) in simulators.items():
+        began = time.perf_counter()
+        outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
+                for (start, env_starts), key in zip(batches, keys)]
+        row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
+        row["seconds"] = time.perf_counter() - began
+        if first is None:
+            first = np.concatenate([o["real"] for o in outs]).astype(bool)
+        log(line(row))
+        rows.append(row)
+        if on_row is not None:
+            on_row({"variants": rows})
+    out: dict[str, Any] = {"variants": rows}
+    if real_fn is not None:
+        began = time.perf_counter()
+        run = jax.jit(real_fn)
+        success = np.concatenate([np.asarray(jax.device_get(run(params, start, env_starts, key)))
+                                  for (start, env_starts), key in zip(batches, keys)]).astype(bool)
+        out["real"] = {"name": "real", "paid": rate(success), "seconds": time.perf_counter() - began}
+        log(line(out["real"]))
+        if on_row is not None:
+            on_row(out)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    import configs
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    cfg, rest = configs.from_argv(argv, default="sword:small")
+    parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--pipeline", required=True, help="a train.pipeline work dir (world model, VAE, detector, demos)")
+    parser.add_argument("--policy", required=True, help="the policy measured (.npz of bench_policy, or train_policy)")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME=flow.KEY=VALUE[,...]",
+                        help="an inference setting of the world model (repeatable; the first is the paired reference)")
+    parser.add_argument("--batches", type=int, default=2, help="GRPO steps' start states measured (x rollout batch x G)")
+    parser.add_argument("--no-real", action="store_true", help="leave out the policy on MJX's own frames")
+    parser.add_argument("--out", required=True, help="folder of closed_loop.json")
+    args = parser.parse_args(rest)
+    if args.batches < 1:
+        raise cli.UsageError(f"bench_closed_loop: --batches must be >= 1, got {args.batches}")
+    if cfg.rl.imagined.proprio == "reckoned":
+        raise cli.UsageError("bench_closed_loop: rl.imagined.proprio=reckoned is not measured here (the real row reads "
+                             "the missing-proprio input); use rl.imagined.proprio=missing")
+    if not os.path.exists(args.policy):
+        raise cli.UsageError(f"bench_closed_loop: --policy {args.policy}: no such file or folder")
+    variants = parse_variants(args.variant, cfg)
+    paths = pipeline_inputs(args.pipeline)
+
+    from configs.cli import apply_overrides
+    from sim.dataset import read_dataset
+    from sim.mjx_batch import MjxEpisodes
+    from sword_jax import sharding as shd
+    from sword_jax.load import experiment_vae, experiment_world_model
+    from sword_jax.pipeline.grpo import setup_from_weights
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.params_io import load_params
+    from sword_jax.rl.policy import build_policy
+    from sword_jax.rl.reward_model import load_detector
+    from sword_jax.rng import stream_key
+
+    began = time.time()
+    rl = cfg.rl
+    graphdef, params = build_policy(rl, seed=cfg.seed)
+    params, _ = load_params(args.policy, params, kind="policy")
+    world_model = experiment_world_model(cfg, paths["world_model"])
+    vae = experiment_vae(cfg, paths["vae"], mesh=shd.make_mesh(cfg.mesh))
+    detector = load_detector(paths["reward"], rl, seed=cfg.seed)
+    episodes = rl_data.load_episodes([paths["demos"]], read=read_dataset)
+    if episodes.states is None:
+        raise cli.UsageError(f"bench_closed_loop: {paths['demos']} holds no recorded states to execute from")
+    simulators, setup = {}, None
+    for name, pairs in variants.items():
+        own = apply_overrides(cfg, [f"--{p}" for p in pairs])
+        setup_v = setup_from_weights(own, rl, episodes, world_model=world_model, vae=vae, detector=detector)
+        setup = setup or setup_v  # the start states are the run's whatever the setting
+        simulators[name] = (setup_v.sim, setup_v.reward_model)
+    root = jax.random.key(cfg.seed)
+    starts_key, update_key = stream_key(root, "grpo/starts"), stream_key(root, "grpo/update")
+    batches = [(setup.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup.env_starts(i)))
+               for i in range(args.batches)]
+    keys = [jax.random.fold_in(update_key, i) for i in range(args.batches)]  # GRPO step i's rollout key
+    env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
+    horizon = rl.imagined.max_chunks * rl.imagined_actions_per_decision
+    real_fn = None if args.no_real else make_real(graphdef, rl, env, max_steps=horizon)
+    about = dict(command=" ".join(["python -m benchmarks.bench_closed_loop", *argv]),
+                 device=jax.devices()[0].device_kind, seed=cfg.seed, batches=args.batches,
+                 starts_per_batch=rl.grpo.rollout_batch, group_size=rl.grpo.group_size,
+                 decisions=rl.imagined.max_chunks, actions_per_decision=rl.imagined_actions_per_decision,
+                 temperature=rl.grpo.temperature, proprio=rl.imagined.proprio)
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "closed_loop.json")
+
+    def save(out):
+        write_json_atomic(path, dict(out, **about, seconds=round(time.time() - began, 1)))
+
+    out = measure_variants(graphdef, params, rl, simulators, batches, keys, env=env, real_fn=real_fn,
+                           overrides=variants, on_row=save)
+    save(out)
+    return dict(out, **about)
+
+
+if __name__ == "__main__":
+    cli.run(main)

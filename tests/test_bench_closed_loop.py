@@ -1,0 +1,140 @@
+"""benchmarks.bench_closed_loop on the toy world: a simulator equal to the environment leaves no closed-loop error
+and its detector agrees with reality on every trajectory, a noisy one drifts, variants are paired trajectory by
+trajectory, the real row runs the policy on the environment's own frames; bad command lines are refused by name."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import configs
+from benchmarks import bench_closed_loop as bench
+from sword_jax import cli
+from sword_jax.rl.config import GRPOConfig, ImaginedConfig, PolicyConfig, RLConfig
+from sword_jax.rl.learned_simulator import (ToyState, instruction_target, toy_render, toy_reward_model, toy_simulator,
+                                            toy_start_states)
+from sword_jax.rl.policy import build_policy, tokenize_instructions
+
+CFG = RLConfig(image_size=8, action_bins=8, proprio_dim=4,
+               policy=PolicyConfig(width=16, heads=2, layers=1, max_instruction_bytes=32, proprio_encoding="raw"),
+               grpo=GRPOConfig(group_size=4, temperature=1.0),
+               imagined=ImaginedConfig(max_chunks=4, fidelity_trajectories=8))
+TEXTS = ["pick up the black bowl on the plate", "put the bowl on the stove", "open the drawer"]
+STEP = 0.08  # the toy simulator's default step, which the environment below moves by
+
+
+class ToyEnv:
+    """The toy world as a real environment (starts ``[position xy, target xy]``), with the proprio the toy
+    simulator reports (the position, padded): success when the toy detector's score passes the threshold."""
+
+    def __init__(self, threshold):
+        self.rm, self.threshold = toy_reward_model(), threshold
+
+    def _obs(self, pos, target):
+        frames = jax.vmap(lambda p, t: toy_render(ToyState(p, t), 8))(pos, target)
+        proprio = jnp.concatenate([pos, jnp.zeros((pos.shape[0], CFG.proprio_dim - 2), jnp.float32)], axis=1)
+        return {"frames": frames, "proprio": proprio}
+
+    def reset(self, starts):
+        starts = jnp.asarray(starts, jnp.float32)
+        state = (starts[:, :2], starts[:, 2:])
+        return state, self._obs(*state)
+
+    def step(self, state, actions):
+        pos, target = state
+        pos = jnp.clip(pos + STEP * jnp.clip(actions[:, :2], -1.0, 1.0), -1.0, 1.0)
+        obs = self._obs(pos, target)
+        return (pos, target), obs, self.rm.score(obs["frames"]) >= self.threshold
+
+
+def _batches(n=2):
+    """``n`` batches of the three instructions' toy starts, one of them placed near its target."""
+    tokens = jnp.asarray(tokenize_instructions(TEXTS, 32))
+    out = []
+    for i in range(n):
+        start = toy_start_states(tokens, key=jax.random.key(10 + i), frame_size=8, proprio_dim=CFG.proprio_dim)
+        targets = jax.vmap(instruction_target)(tokens)
+        near = targets[1] + jnp.asarray([0.1, 0.0])
+        start = start._replace(proprio=start.proprio.at[1, :2].set(near),
+                               frame=start.frame.at[1].set(toy_render(ToyState(near, targets[1]), 8)))
+        out.append((start, jnp.concatenate([start.proprio[:, :2], targets], axis=1)))
+    return out
+
+
+def _measure(simulators, real=True, rl=CFG):
+    graphdef, params = build_policy(rl, seed=0)
+    env = ToyEnv(rl.success_threshold)
+    detector = toy_reward_model()
+    real_fn = bench.make_real(graphdef, rl, env, max_steps=rl.imagined.max_chunks * rl.imagined_actions_per_decision)
+    keys = [jax.random.key(3), jax.random.key(4)]
+    return bench.measure_variants(graphdef, params, rl, {n: (s, detector) for n, s in simulators.items()}, _batches(),
+                                  keys, env=env, real_fn=real_fn if real else None, log=lambda _: None)
+
+
+def test_a_faithful_simulator_leaves_no_gap_and_a_noisy_one_drifts():
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    noisy = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim, noise=0.08)
+    out = _measure({"faithful": faithful, "again": faithful, "noisy": noisy})
+    rows = {r["name"]: r for r in out["variants"]}
+    n = 2 * len(TEXTS) * CFG.grpo.group_size
+    assert [r["name"] for r in out["variants"]] == ["faithful", "again", "noisy"]
+    a, b = rows["faithful"], rows["noisy"]
+    assert a["paid"]["of"] == b["paid"]["of"] == out["real"]["paid"]["of"] == n
+    assert 0 < a["paid"]["successes"] < n, "the designed starts give both outcomes"
+    # equal to the environment: no closed-loop error at any decision, and the detector is reality
+    assert [d["decision"] for d in a["decisions"]] == list(range(1, CFG.imagined.max_chunks))
+    for d in a["decisions"]:
+        assert d["frame_error"] == pytest.approx(0.0, abs=1e-5) and d["action_gap"] == pytest.approx(0.0, abs=1e-6)
+    assert a["detector"]["successes"] == a["paid"]["successes"] and a["precision"]["rate"] == 1.0
+    # the same simulator again: the same trajectories, paired to a difference of exactly 0
+    assert rows["again"]["vs_first"]["difference"] == 0.0 and rows["again"]["paid"] == a["paid"]
+    assert "vs_first" not in a
+    # jitter in the motion: the imagined frames leave the real ones, more so decision after decision
+    errors = [d["frame_error"] for d in b["decisions"]]
+    assert errors[0] > 1e-3 and errors[-1] > errors[0], errors
+    low, high = b["vs_first"]["ci95"]
+    assert low <= b["vs_first"]["difference"] <= high
+    assert "frame_error_vae" not in b["decisions"][0]  # the toy simulator has no decoder round trip
+    assert 0.0 <= out["real"]["paid"]["rate"] <= 1.0 and "decisions" not in out["real"]
+
+
+def test_without_observed_trajectories_only_what_reality_paid():
+    import dataclasses
+
+    rl = dataclasses.replace(CFG, imagined=dataclasses.replace(CFG.imagined, fidelity_trajectories=0))
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    out = _measure({"faithful": faithful}, real=False, rl=rl)
+    (row,) = out["variants"]
+    assert row["decisions"] == [] and "real" not in out
+    assert row["detector"]["successes"] == row["paid"]["successes"]
+
+
+def test_variants_and_pipeline_are_refused_by_name(tmp_path):
+    cfg = configs.get("sword:tiny")
+    assert bench.parse_variants(["n1=flow.noise_scale=1", "n0=flow.noise_scale=0,flow.sample_steps=8"], cfg) == {
+        "n1": ("flow.noise_scale=1",), "n0": ("flow.noise_scale=0", "flow.sample_steps=8")}
+    for specs, what in ((["N1=flow.noise_scale=1"], "NAME"), (["a=rl.grpo.steps=3"], "flow.KEY=VALUE"),
+                        (["a=flow.noise_scale=7"], "flow.noise_scale"), (["a=flow.nothing=1"], "--variant a"),
+                        (["a=flow.noise_scale=1", "a=flow.noise_scale=0"], "twice"),
+                        (["real=flow.noise_scale=1"], "reserved"), ([], "at least one")):
+        with pytest.raises(cli.UsageError, match=what):
+            bench.parse_variants(specs, cfg)
+    (tmp_path / "world_model").mkdir()
+    with pytest.raises(cli.UsageError, match="vae_run"):
+        bench.pipeline_inputs(str(tmp_path))
+
+
+def test_main_refuses_bad_command_lines(tmp_path):
+    policy = tmp_path / "p.npz"
+    np.savez(policy, x=np.zeros(1))
+    base = ["--config", "sword:tiny", "--pipeline", str(tmp_path), "--policy", str(policy), "--out", str(tmp_path / "o")]
+    with pytest.raises(cli.UsageError, match="--batches"):
+        bench.main(base + ["--variant", "a=flow.noise_scale=1", "--batches", "0"])
+    with pytest.raises(cli.UsageError, match="at least one"):
+        bench.main(base)
+    with pytest.raises(cli.UsageError, match="lacks"):
+        bench.main(base + ["--variant", "a=flow.noise_scale=1"])
+    with pytest.raises(cli.UsageError, match="no such file"):
+        bench.main(base[:4] + ["--policy", str(tmp_path / "missing.npz"), "--out", "o", "--variant", "a=flow.noise_scale=1"])
+    with pytest.raises(cli.UsageError, match="reckoned"):
+        bench.main(base + ["--variant", "a=flow.noise_scale=1", "--rl.imagined.proprio=reckoned"])
