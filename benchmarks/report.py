@@ -1339,6 +1339,33 @@ def sim_fidelity_world_model_steps(parts: tuple[str, ...] = SIM_FIDELITY_STEPS) 
                    "greedy action gap, decision 1 -> 11 (the VAE alone at 1)"], out)
 
 
+CLOSED_LOOP_NOISE = ("policy", "closed_loop_noise_small_h200")
+
+
+def closed_loop_noise(record: tuple[str, ...] = CLOSED_LOOP_NOISE, decisions: tuple[int, ...] = (1, 6, 11)) -> str:
+    """``bench_closed_loop``'s variants of one world model (its ``closed_loop.json``): per setting what reality paid
+    the imagined actions, what the detector said and the share of the real failures it called successes, the frame
+    error and greedy action gap at ``decisions``, and the difference of what reality paid against the first
+    setting, paired; then the same policy on MJX's own frames."""
+    out = _load(*record, "closed_loop.json")
+    rows = []
+    for v in out["variants"]:
+        by = {d["decision"]: d for d in v["decisions"]}
+        failures = v["paid"]["of"] - v["paid"]["successes"]
+        false = v["detector"]["successes"] - (v["precision"]["successes"] if v["precision"] else 0)
+        vs = v.get("vs_first")
+        rows.append([", ".join(v["overrides"]), _paid(v["paid"]), f"{v['detector']['rate']:.3f}",
+                     f"{false / failures:.3f} ({false} of {failures})",
+                     " / ".join(f"{by[k]['frame_error']:.3f}" for k in decisions),
+                     " / ".join(f"{by[k]['action_gap']:.3f}" for k in decisions),
+                     f"{_pct(vs['difference'])} {_interval(vs['ci95'])}" if vs else "-"])
+    rows.append(["the policy on MJX's own frames", _paid(out["real"]["paid"]), "", "", "", "", ""])
+    ks = ", ".join(str(k) for k in decisions)
+    return _table(["setting", "real success of the imagined actions (95% interval)", "the detector said",
+                   "real failures it called successes", f"frame error, decisions {ks}",
+                   f"greedy action gap, decisions {ks}", "paid against the first, points (paired 95%)"], rows)
+
+
 HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
 HORIZON_SIGNAL_GROUPS = 32  # its run.sh's --rl.grpo.rollout_batch: start states (groups of 8) a step
 HORIZON_SIGNAL_STARTS = {2: "every phase", 4: "every phase", 12: "the first half (the learned simulator's setting)"}
@@ -2140,6 +2167,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "failure-rest-chunk": failure_rest_chunk,
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
+    "closed-loop-noise": closed_loop_noise,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
     "grpo-branched-open": grpo_branched_open,
