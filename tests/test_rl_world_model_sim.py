@@ -347,6 +347,33 @@ def test_reckoned_proprio_follows_the_executed_actions_and_is_valid():
     assert float(plain.observe(plain.init(start))[1]) == 0.0
 
 
+def test_the_simulators_chunk_follows_its_key_only_through_the_samplers_noise():
+    """``flow.noise_scale`` reaches the learned simulator GRPO imagines in: at 0 a chunk's frames are the same under
+    any key (one deterministic prediction per condition), at 1 two keys give two futures, and at 0.5 the future
+    lies between them and the deterministic one."""
+    import dataclasses
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    frames = jax.random.uniform(jax.random.key(2), (1, 32, 32, 3))
+    latents = encode_keyframes(vae_graphdef, vae_state, frames)
+    start = StartState(frames[0], jnp.zeros((8,)), jnp.zeros((32,), jnp.int32), latents[0])
+    chunk = jax.random.uniform(jax.random.key(3), (8, 7), minval=-1.0, maxval=1.0)
+
+    def chunk_frames(scale, key):
+        flow = dataclasses.replace(cfg.flow, noise_scale=scale)
+        sim = world_model_simulator(wm_graphdef, wm_state, vae_graphdef, vae_state, flow_cfg=flow, frame_size=32,
+                                    sample_steps=2)
+        run = jax.jit(lambda s, x, k: s.step(s.init(x), chunk, key=k)[1])
+        return np.asarray(run(sim, start, jax.random.key(key)))
+
+    still = chunk_frames(0.0, 0)
+    np.testing.assert_array_equal(chunk_frames(0.0, 1), still)
+    a, b = chunk_frames(1.0, 0), chunk_frames(1.0, 1)
+    assert np.abs(a - b).mean() > 1e-4
+    half = chunk_frames(0.5, 0)
+    assert 0 < np.abs(half - still).mean() < np.abs(a - still).mean()
+
+
 def _one_step(sim, latents, frames):
     """The simulator's start-up and first chunk on fixed inputs: ``(frames [2, T, H, W, 3], proprio_valid)``."""
     start = StartState(frames, jnp.zeros((2, 8)), jnp.zeros((2, 8), jnp.int32), latents)
