@@ -35,13 +35,16 @@ imagined rollouts): what a simulator faithful to MJX would pay. ::
 ``--pipeline`` is a ``train.pipeline`` work dir (its ``world_model``, ``vae_run/vae``, ``rl/reward_model`` and
 ``data/demos.hdf5``); the config and its overrides are those the pipeline was built with plus GRPO's recipe (the
 ``exec`` arm's command in ``bench_grpo_reward_source``'s ``commands.json`` without ``train.grpo``'s own flags).
-Writes ``closed_loop.json`` to ``--out`` and prints one row per variant.
+Writes ``closed_loop.json`` to ``--out`` and prints one row per variant. ``--record`` also merges the entry
+``world_model_closed_loop_small`` into ``benchmarks/results/latest.json`` (:func:`results_entry`); ``--from
+closed_loop.json`` makes that entry from a saved run instead of measuring (no ``--pipeline`` or ``--policy``).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import os
 import re
 import sys
@@ -241,20 +244,73 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
     return out
 
 
+RECORD_KEY = "world_model_closed_loop_small"
+
+
+def results_entry(out: dict[str, Any], data: str) -> dict[str, dict[str, Any]]:
+    """``{RECORD_KEY: entry}`` from a ``closed_loop.json``: value the first setting's frame error at the last decision
+    measured; per setting what reality paid, what the detector said, the share of the real failures it called
+    successes, the frame error and greedy action gap at the first and last decisions and the paired difference
+    against the first; what the policy earned on MJX's own frames; the run's device, date, command and ``data``
+    (the file's path). A file without its date (written before the benchmark stamped it) is refused."""
+    if not out.get("variants"):
+        raise cli.UsageError(f"bench_closed_loop: {data} holds no measured setting")
+    if not out.get("date"):
+        raise cli.UsageError(f"bench_closed_loop: {data} holds no date; give the run's date with --date YYYY-MM-DD")
+    settings = {}
+    for v in out["variants"]:
+        paid, said = v["paid"], v["detector"]
+        failures = paid["of"] - paid["successes"]
+        true = v["precision"]["successes"] if v.get("precision") else 0
+        first, last = (v["decisions"][0], v["decisions"][-1]) if v.get("decisions") else ({}, {})
+        settings[v["name"]] = {
+            "overrides": v["overrides"], "paid": paid["rate"], "paid_ci95": paid["ci95"], "trajectories": paid["of"],
+            "detector": said["rate"],
+            "false_success_share": (said["successes"] - true) / failures if failures else None,
+            "frame_error": [first.get("frame_error"), last.get("frame_error")],
+            "action_gap": [first.get("action_gap"), last.get("action_gap")],
+            "decisions": [first.get("decision"), last.get("decision")],
+            **({"vs_first": v["vs_first"]} if "vs_first" in v else {})}
+    reference = settings[out["variants"][0]["name"]]
+    entry = {"value": reference["frame_error"][1], "target": None,
+             "unit": "mean absolute frame error (in [0, 1]) of the closed loop at its last decision, first setting",
+             "device": out.get("device", ""), "date": out["date"], "command": out.get("command", ""), "data": data,
+             "settings": settings, "real": out["real"]["paid"]["rate"] if out.get("real") else None,
+             "seed": out.get("seed"), "group_size": out.get("group_size"),
+             "temperature": out.get("temperature"), "decisions": out.get("decisions")}
+    return {RECORD_KEY: entry}
+
+
 def main(argv: Sequence[str] | None = None) -> dict:
     import configs
 
     argv = sys.argv[1:] if argv is None else list(argv)
     cfg, rest = configs.from_argv(argv, default="sword:small")
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--pipeline", required=True, help="a train.pipeline work dir (world model, VAE, detector, demos)")
-    parser.add_argument("--policy", required=True, help="the policy measured (.npz of bench_policy, or train_policy)")
+    parser.add_argument("--pipeline", help="a train.pipeline work dir (world model, VAE, detector, demos)")
+    parser.add_argument("--policy", help="the policy measured (.npz of bench_policy, or train_policy)")
     parser.add_argument("--variant", action="append", default=[], metavar="NAME=flow.KEY=VALUE[,...]",
                         help="an inference setting of the world model (repeatable; the first is the paired reference)")
     parser.add_argument("--batches", type=int, default=2, help="GRPO steps' start states measured (x rollout batch x G)")
     parser.add_argument("--no-real", action="store_true", help="leave out the policy on MJX's own frames")
-    parser.add_argument("--out", required=True, help="folder of closed_loop.json")
+    parser.add_argument("--out", help="folder of closed_loop.json")
+    parser.add_argument("--record", action="store_true",
+                        help=f"merge the entry {RECORD_KEY} into benchmarks/results/latest.json")
+    parser.add_argument("--from", dest="source", metavar="CLOSED_LOOP_JSON",
+                        help="record a saved run's closed_loop.json instead of measuring (with --record)")
+    parser.add_argument("--date", help="with --from: the run's date (YYYY-MM-DD), for a file that does not hold it")
     args = parser.parse_args(rest)
+    if args.source:
+        return record_saved(args)
+    missing = [flag for flag, value in (("--pipeline", args.pipeline), ("--policy", args.policy), ("--out", args.out))
+               if not value]
+    if missing:
+        raise cli.UsageError(f"bench_closed_loop: {', '.join(missing)} required (or --from a saved closed_loop.json)")
+    if args.date:
+        raise cli.UsageError("bench_closed_loop: --date is for --from (a measured run is stamped with today's date)")
+    if args.record and not cfg.name.endswith("-small"):
+        raise cli.UsageError(f"bench_closed_loop: --record writes {RECORD_KEY}, a figure of `small`; this run is "
+                             f"{cfg.name}")
     if args.batches < 1:
         raise cli.UsageError(f"bench_closed_loop: --batches must be >= 1, got {args.batches}")
     if cfg.rl.imagined.proprio == "reckoned":
@@ -265,6 +321,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     variants = parse_variants(args.variant, cfg)
     paths = pipeline_inputs(args.pipeline)
 
+    from benchmarks.common import device_name
     from configs.cli import apply_overrides
     from sim.dataset import read_dataset
     from sim.mjx_batch import MjxEpisodes
@@ -302,7 +359,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     horizon = rl.imagined.max_chunks * rl.imagined_actions_per_decision
     real_fn = None if args.no_real else make_real(graphdef, rl, env, max_steps=horizon)
     about = dict(command=" ".join(["python -m benchmarks.bench_closed_loop", *argv]),
-                 device=jax.devices()[0].device_kind, seed=cfg.seed, batches=args.batches,
+                 device=device_name(), seed=cfg.seed, batches=args.batches,
+                 date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
                  starts_per_batch=rl.grpo.rollout_batch, group_size=rl.grpo.group_size,
                  decisions=rl.imagined.max_chunks, actions_per_decision=rl.imagined_actions_per_decision,
                  temperature=rl.grpo.temperature, proprio=rl.imagined.proprio)
@@ -315,7 +373,43 @@ def main(argv: Sequence[str] | None = None) -> dict:
     out = measure_variants(graphdef, params, rl, simulators, batches, keys, env=env, real_fn=real_fn,
                            overrides=variants, on_row=save)
     save(out)
+    if args.record:
+        from benchmarks.common import merge_results
+
+        merge_results(results_entry(dict(out, **about), path))
     return dict(out, **about)
+
+
+def record_saved(args: argparse.Namespace) -> dict:
+    """``--from``: a saved ``closed_loop.json``'s rows printed and, with ``--record``, its entry merged into
+    ``latest.json``; the options that measure are refused beside it."""
+    import json
+
+    given = [flag for flag, value in (("--pipeline", args.pipeline), ("--policy", args.policy), ("--out", args.out),
+                                      ("--variant", args.variant), ("--no-real", args.no_real)) if value]
+    if given:
+        raise cli.UsageError(f"bench_closed_loop: --from records a saved run; {', '.join(given)} measure one")
+    if args.date and not re.fullmatch(r"\d{4}-\d{2}-\d{2}", args.date):
+        raise cli.UsageError(f"bench_closed_loop: --date takes YYYY-MM-DD, got {args.date!r}")
+    try:
+        with open(args.source) as f:
+            out = json.load(f)
+    except (OSError, ValueError) as error:
+        raise cli.UsageError(f"bench_closed_loop: --from {args.source}: {error}") from None
+    if not isinstance(out, dict):
+        raise cli.UsageError(f"bench_closed_loop: --from {args.source} is not a closed_loop.json")
+    if args.date:
+        if out.get("date") and out["date"] != args.date:
+            raise cli.UsageError(f"bench_closed_loop: {args.source} was measured on {out['date']}, not {args.date}")
+        out = dict(out, date=args.date)
+    entries = results_entry(out, args.source)
+    for row in [*out["variants"], *([out["real"]] if out.get("real") else [])]:
+        print(line(row))
+    if args.record:
+        from benchmarks.common import merge_results
+
+        merge_results(entries)
+    return out
 
 
 if __name__ == "__main__":

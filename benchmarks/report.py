@@ -97,6 +97,19 @@ def _first_half_world_model_text() -> str:
     return f"{beside}; Sword's world model, paid by reality, {gains} in {step}"
 
 
+def _closed_loop_noise_text(entry: dict) -> str:
+    """The README's figure of a ``world_model_closed_loop_small`` entry: per setting (the reference first, each named
+    by its overrides' values) the frame error at the last decision and the detector's false successes, and what
+    reality paid the imagined actions against the policy on real frames."""
+    settings = sorted(entry["settings"].values(), key=lambda v: ("vs_first" in v, v["overrides"]))
+    keys = ", ".join(o.split("=", 1)[0] for o in settings[0]["overrides"])
+    names = " / ".join(", ".join(o.split("=", 1)[1] for o in v["overrides"]) for v in settings)
+    errors = " / ".join(f"{v['frame_error'][1]:.3f}" for v in settings)
+    false = " / ".join(f"{100 * v['false_success_share']:.1f}%" for v in settings)
+    return (f"`{keys}` {names}: frame error at decision {settings[0]['decisions'][1]} {errors}; false successes "
+            f"{false}; real success {_span([v['paid'] for v in settings])} (on real frames {100 * entry['real']:.1f}%)")
+
+
 def readme_results() -> str:
     """The README's one results table: a headline figure per topic, linked to its section."""
     latest = _load("latest.json")
@@ -113,6 +126,7 @@ def readme_results() -> str:
     rest = latest.get("policy_grpo_rest_h12_small", {}).get("arms", {}).get("success")  # 12 decisions from rest
     # ground truth in the learned simulator's setting, judged by the policy it trains (4 actions a chunk)
     first_half = latest.get("policy_grpo_ground_truth_as_trained_small", {}).get("arms", {}).get("gt")
+    loop = latest.get("world_model_closed_loop_small")  # bench_closed_loop: one world model, several samplers
     fidelity = _load(*SIM_FIDELITY, "summary.json")["variants"]  # the policy through each VAE alone (4 GPUs)
     base, vae8x = fidelity["base"]["view"], fidelity["vae8x"]["view"]
     exec_runs, gt_runs = ([[r for r in source["runs"].values() if r["arm"] == arm] for arm in ("exec", "gt")]
@@ -171,6 +185,9 @@ def readme_results() -> str:
             f"{', '.join(_pct(g) for g in first_half['as_trained_gain_per_seed'].values())} points in "
             f"{first_half['steps']} steps" + _first_half_world_model_text(),
             "policy_grpo_ground_truth_as_trained_small", f"[section]({doc}#frames-or-reward)")] if first_half else []),
+        *([("World model's closed loop, by sampler noise",
+            _closed_loop_noise_text(loop), "world_model_closed_loop_small",
+            f"[table]({doc}#frames-or-reward)")] if loop else []),
         ("MJX env-steps/s, 128 px, camera rendered",
          f"{latest['mjx_env_steps_per_s_128px']['value']:,.0f} (target 20,000)", "mjx_env_steps_per_s_128px",
          f"[section]({doc}#simulator-and-renderer)"),

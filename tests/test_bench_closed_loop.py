@@ -138,3 +138,56 @@ def test_main_refuses_bad_command_lines(tmp_path):
         bench.main(base[:4] + ["--policy", str(tmp_path / "missing.npz"), "--out", "o", "--variant", "a=flow.noise_scale=1"])
     with pytest.raises(cli.UsageError, match="reckoned"):
         bench.main(base + ["--variant", "a=flow.noise_scale=1", "--rl.imagined.proprio=reckoned"])
+
+
+def test_a_saved_run_is_recorded_with_its_false_successes_and_without_touching_other_entries(tmp_path, monkeypatch):
+    import json
+
+    from benchmarks import common
+
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    noisy = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim, noise=0.08)
+    out = dict(_measure({"faithful": faithful, "noisy": noisy}), device="cpu", command="python -m ...", seed=0)
+    saved = tmp_path / "closed_loop.json"
+    saved.write_text(json.dumps(out))
+    latest = tmp_path / "latest.json"
+    latest.write_text(json.dumps({"other": {"value": 1}}))
+    monkeypatch.setattr(common, "RESULTS", str(latest))
+    with pytest.raises(cli.UsageError, match="no date"):  # a file written before the benchmark stamped its date
+        bench.main(["--config", "sword:tiny", "--from", str(saved), "--record"])
+    assert json.loads(latest.read_text()) == {"other": {"value": 1}}, "a refused record leaves latest.json as it was"
+    bench.main(["--config", "sword:tiny", "--from", str(saved), "--record", "--date", "2026-12-02"])
+    written = json.loads(latest.read_text())
+    entry = written[bench.RECORD_KEY]
+    assert written["other"] == {"value": 1} and entry["date"] == "2026-12-02" and entry["data"] == str(saved)
+    rows = {r["name"]: r for r in out["variants"]}
+    a, b = entry["settings"]["faithful"], entry["settings"]["noisy"]
+    assert entry["value"] == a["frame_error"][1] == rows["faithful"]["decisions"][-1]["frame_error"]
+    assert a["false_success_share"] == 0.0 and "vs_first" not in a and b["vs_first"] == rows["noisy"]["vs_first"]
+    said, paid = rows["noisy"]["detector"]["successes"], rows["noisy"]["paid"]
+    true = rows["noisy"]["precision"]["successes"] if rows["noisy"]["precision"] else 0
+    assert b["false_success_share"] == pytest.approx((said - true) / (paid["of"] - paid["successes"]))
+    assert entry["real"] == out["real"]["paid"]["rate"] and b["decisions"] == [1, CFG.imagined.max_chunks - 1]
+
+
+def test_recording_a_saved_run_refuses_what_would_measure_and_bad_dates(tmp_path):
+    import json
+
+    saved = tmp_path / "closed_loop.json"
+    saved.write_text(json.dumps({"variants": [], "date": "2026-12-02"}))
+    base = ["--config", "sword:tiny", "--from", str(saved)]
+    with pytest.raises(cli.UsageError, match="--pipeline"):
+        bench.main(base + ["--pipeline", str(tmp_path)])
+    with pytest.raises(cli.UsageError, match="YYYY-MM-DD"):
+        bench.main(base + ["--date", "2 December"])
+    with pytest.raises(cli.UsageError, match="measured on 2026-12-02"):
+        bench.main(base + ["--date", "2026-12-01"])
+    with pytest.raises(cli.UsageError, match="no measured setting"):
+        bench.main(base)
+    with pytest.raises(cli.UsageError, match="--from"):
+        bench.main(["--config", "sword:tiny", "--from", str(tmp_path / "missing.json")])
+    with pytest.raises(cli.UsageError, match="a figure of `small`; this run is sword-tiny"):
+        bench.main(["--config", "sword:tiny", "--pipeline", str(tmp_path), "--policy", str(saved), "--out", "o",
+                    "--record", "--variant", "a=flow.noise_scale=1"])
+    with pytest.raises(cli.UsageError, match="--pipeline, --policy, --out required"):
+        bench.main(["--config", "sword:tiny", "--variant", "a=flow.noise_scale=1"])
