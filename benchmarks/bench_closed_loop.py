@@ -158,12 +158,11 @@ def make_real(graphdef: Any, rl: Any, env: Any, *, max_steps: int) -> Callable[.
 
 
 def rate(outcomes: np.ndarray) -> dict[str, Any]:
-    """A success rate with its 95% Wilson interval."""
-    from sword_jax.rl.env_rollout import wilson_interval
+    """A success rate with its 95% Wilson interval (:func:`~sword_jax.rl.sim_agreement.wilson_rate`) and its count."""
+    from sword_jax.rl.sim_agreement import wilson_rate
 
-    n, k = int(outcomes.size), int(np.sum(outcomes))
-    low, high = wilson_interval(k, n)
-    return {"rate": k / n if n else None, "successes": k, "of": n, "ci95": [low, high]}
+    k = int(np.sum(outcomes))
+    return {"successes": k, **wilson_rate(k, int(outcomes.size))}
 
 
 def summarise(name: str, overrides: Sequence[str], batches: list[dict[str, np.ndarray]], decisions: int,
