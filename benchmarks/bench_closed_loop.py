@@ -33,8 +33,10 @@ imagined rollouts): what a simulator faithful to MJX would pay. ::
         --rl.imagined.max_chunks=12 --rl.imagined.execute_steps=4 --rl.imagined.keyframe_fraction=0 ...
 
 ``--pipeline`` is a ``train.pipeline`` work dir (its ``world_model``, ``vae_run/vae``, ``rl/reward_model`` and
-``data/demos.hdf5``); the config and its overrides are those the pipeline was built with plus GRPO's recipe (the
-``exec`` arm's command in ``bench_grpo_reward_source``'s ``commands.json`` without ``train.grpo``'s own flags).
+``data/demos.hdf5``); ``--world-model DIR`` measures another world model with them instead of the pipeline's own
+(e.g. one trained by ``train.pipeline --adopt`` on the same latents with another training rule). The config and
+its overrides are those the pipeline was built with plus GRPO's recipe (the ``exec`` arm's command in
+``bench_grpo_reward_source``'s ``commands.json`` without ``train.grpo``'s own flags).
 Writes ``closed_loop.json`` to ``--out`` and prints one row per variant. ``--record`` also merges the entry
 ``world_model_closed_loop_small`` into ``benchmarks/results/latest.json`` (:func:`results_entry`); ``--from
 closed_loop.json`` makes that entry from a saved run instead of measuring (no ``--pipeline`` or ``--policy``).
@@ -94,10 +96,14 @@ def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]
     return out
 
 
-def pipeline_inputs(pipeline: str) -> dict[str, str]:
+def pipeline_inputs(pipeline: str, world_model: str | None = None) -> dict[str, str]:
     """The world model, VAE, detector and demonstrations of a ``train.pipeline`` work dir, or a
-    :class:`~sword_jax.cli.UsageError` naming what it lacks."""
-    paths = {"world_model": os.path.join(pipeline, "world_model"), "vae": os.path.join(pipeline, "vae_run", "vae"),
+    :class:`~sword_jax.cli.UsageError` naming what it lacks. ``world_model``: another run's world model (a
+    ``train.pipeline`` work dir, or its ``world_model`` folder) measured with this pipeline's VAE and detector."""
+    if world_model and os.path.isdir(os.path.join(world_model, "world_model")):
+        world_model = os.path.join(world_model, "world_model")
+    paths = {"world_model": world_model or os.path.join(pipeline, "world_model"),
+             "vae": os.path.join(pipeline, "vae_run", "vae"),
              "reward": os.path.join(pipeline, "rl", "reward_model"),
              "demos": os.path.join(pipeline, "data", "demos.hdf5")}
     missing = [p for key, p in paths.items() if not (os.path.isfile(p) if key == "demos" else os.path.isdir(p))]
@@ -287,6 +293,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     cfg, rest = configs.from_argv(argv, default="sword:small")
     parser = cli.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pipeline", help="a train.pipeline work dir (world model, VAE, detector, demos)")
+    parser.add_argument("--world-model", help="the world model measured, a train.pipeline / train_world_model work dir "
+                                              "(default: --pipeline's own; e.g. one trained with --adopt on its "
+                                              "latents)")
     parser.add_argument("--policy", help="the policy measured (.npz of bench_policy, or train_policy)")
     parser.add_argument("--variant", action="append", default=[], metavar="NAME=flow.KEY=VALUE[,...]",
                         help="an inference setting of the world model (repeatable; the first is the paired reference)")
@@ -318,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if not os.path.exists(args.policy):
         raise cli.UsageError(f"bench_closed_loop: --policy {args.policy}: no such file or folder")
     variants = parse_variants(args.variant, cfg)
-    paths = pipeline_inputs(args.pipeline)
+    paths = pipeline_inputs(args.pipeline, args.world_model)
 
     from benchmarks.common import device_name
     from configs.cli import apply_overrides
@@ -384,7 +393,8 @@ def record_saved(args: argparse.Namespace) -> dict:
     ``latest.json``; the options that measure are refused beside it."""
     import json
 
-    given = [flag for flag, value in (("--pipeline", args.pipeline), ("--policy", args.policy), ("--out", args.out),
+    given = [flag for flag, value in (("--pipeline", args.pipeline), ("--world-model", args.world_model),
+                                      ("--policy", args.policy), ("--out", args.out),
                                       ("--variant", args.variant), ("--no-real", args.no_real)) if value]
     if given:
         raise cli.UsageError(f"bench_closed_loop: --from records a saved run; {', '.join(given)} measure one")

@@ -1383,6 +1383,70 @@ def closed_loop_noise(record: tuple[str, ...] = CLOSED_LOOP_NOISE, decisions: tu
                    f"greedy action gap, decisions {ks}", "paid against the first, points (paired 95%)"], rows)
 
 
+CLOSED_LOOP_WORLD_MODELS = ("policy", "closed_loop_world_models_small_h200")
+# its launch.sh's four world models, one folder each, trained on the same data, VAE and latents
+CLOSED_LOOP_WORLD_MODEL_RUNS = {
+    "a": "DLB as configured (the cache written with the one-step estimate)",
+    "b": "DLB, the cache written with the flow sampler's own samples (5 Euler steps, as inference)",
+    "c": "teacher forcing (DLB off)",
+    "d": "DLB as configured, with WoVR's context noise (std 0.1)",
+}
+
+
+def _world_model_figures(folder: str, last_steps: int = 500) -> dict:
+    """A world-model run's training loss (mean over its last ``last_steps`` logged steps) and its last evaluation's
+    one-call sample error (5 Euler steps, real context) on fixed held-out expert and policy segments."""
+    with open(os.path.join(folder, "world_model_metrics.jsonl")) as f:
+        rows = [json.loads(line) for line in f if line.strip()]
+    end = max(r["step"] for r in rows)
+    losses = [r["loss"] for r in rows if "loss" in r and r["step"] > end - last_steps]
+    evaluated = [r for r in rows if "eval_heldout_sample_error_5" in r][-1]
+    return dict(steps=end, loss=sum(losses) / len(losses), expert=evaluated["eval_heldout_sample_error_5"],
+                policy=evaluated["eval_policy_sample_error_5"])
+
+
+def closed_loop_world_models(record: tuple[str, ...] = CLOSED_LOOP_WORLD_MODELS,
+                             decisions: tuple[int, ...] = (1, 6, 11)) -> str:
+    """Four world models trained on one pipeline's latents (``CLOSED_LOOP_WORLD_MODEL_RUNS``), each measured by
+    ``bench_closed_loop`` on the same starts and keys: its training loss and one-call error on real context, then in
+    GRPO's closed loop the frame error and greedy action gap at ``decisions``, what reality paid the imagined actions
+    and what the detector said; then the policy on MJX's own frames (run ``a``'s ``real`` row)."""
+    rows, real = [], None
+    for run, what in CLOSED_LOOP_WORLD_MODEL_RUNS.items():
+        folder = os.path.join(RESULTS_DIR, *record, run)
+        out = _load(*record, run, "closed_loop.json")
+        real = real or out.get("real")
+        v, fig = out["variants"][0], _world_model_figures(folder)
+        by = {d["decision"]: d for d in v["decisions"]}
+        failures = v["paid"]["of"] - v["paid"]["successes"]
+        false = v["detector"]["successes"] - (v["precision"]["successes"] if v["precision"] else 0)
+        rows.append([what, f"{fig['loss']:.3f}", f"{fig['expert']:.4f} / {fig['policy']:.4f}",
+                     " / ".join(f"{by[k]['frame_error']:.3f}" for k in decisions),
+                     " / ".join(f"{by[k]['action_gap']:.3f}" for k in decisions),
+                     _paid(v["paid"]), f"{v['detector']['rate']:.3f}", f"{false / failures:.3f}"])
+    rows.append(["the policy on MJX's own frames", "", "", "", "", _paid(real["paid"]), "", ""])
+    ks = ", ".join(str(k) for k in decisions)
+    return _table(["world model's training (5,000 steps)", "loss, last 500 steps",
+                   "one-call sample error on real context: held-out expert / policy segments",
+                   f"closed loop: frame error, decisions {ks}", f"greedy action gap, decisions {ks}",
+                   "real success of the imagined actions (95% interval)", "the detector said",
+                   "real failures it called successes"], rows)
+
+
+def closed_loop_world_models_decisions(record: tuple[str, ...] = CLOSED_LOOP_WORLD_MODELS) -> str:
+    """Per decision the closed loop's frame error in each of ``CLOSED_LOOP_WORLD_MODEL_RUNS``' world models (the same
+    starts, actions chosen on each one's own frames), with the real motion and the VAE's floor (run ``a``'s)."""
+    runs = {run: {d["decision"]: d for d in _load(*record, run, "closed_loop.json")["variants"][0]["decisions"]}
+            for run in CLOSED_LOOP_WORLD_MODEL_RUNS}
+    first = runs["a"]
+    rows = [[str(k), *(f"{runs[run][k]['frame_error']:.3f}" for run in runs), f"{first[k]['motion']:.3f}",
+             f"{first[k]['frame_error_vae']:.3f}"] for k in sorted(first)]
+    names = {"a": "DLB (one-step writes)", "b": "DLB (sampler writes)", "c": "teacher forcing",
+             "d": "DLB + context noise"}
+    return _table(["decision", *(f"frame error: {names[run]}" for run in runs), "real motion over the decision",
+                   "the VAE alone"], rows)
+
+
 HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
 HORIZON_SIGNAL_GROUPS = 32  # its run.sh's --rl.grpo.rollout_batch: start states (groups of 8) a step
 HORIZON_SIGNAL_STARTS = {2: "every phase", 4: "every phase", 12: "the first half (the learned simulator's setting)"}
@@ -2185,6 +2249,8 @@ TABLES: dict[str, Callable[[], str]] = {
     "grpo-per-task": grpo_per_task, "grpo-rest-per-task": lambda: grpo_per_task(REST_PER_TASK_RUNS),
     "grpo-rest-cut-vs-whole": grpo_rest_cut_vs_whole,
     "closed-loop-noise": closed_loop_noise,
+    "closed-loop-world-models": closed_loop_world_models,
+    "closed-loop-world-models-decisions": closed_loop_world_models_decisions,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
     "grpo-branched-open": grpo_branched_open,

@@ -180,9 +180,27 @@ def stage_launcher(argv: Sequence[str], workdir: str):
     return launch
 
 
+def _donor_config(donor: str, workdir: str) -> dict:
+    """The config a donor work dir (``--adopt``) was made with, or a :class:`UsageError` naming the problem."""
+    import json
+
+    from sword_jax.cli import UsageError
+
+    if os.path.abspath(donor) == os.path.abspath(workdir):
+        raise UsageError(f"--adopt {donor}: that is this run's own work dir")
+    path = os.path.join(donor, "config.json")
+    if not os.path.isfile(path):
+        raise UsageError(f"--adopt {donor}: no config.json there (not a train.pipeline work dir)")
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except ValueError as error:
+        raise UsageError(f"--adopt {donor}: its config.json is not JSON ({error})") from None
+
+
 def run_pipeline(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str] | None = None,
                  restart: bool = False, cfg_name: str = DEFAULT, overrides: Sequence[str] = (),
-                 launch=None, max_running: int = 2) -> dict:
+                 launch=None, max_running: int = 2, adopt: str = "") -> dict:
     """Runs the stages in ``cfg.workdir`` (finished ones are skipped); returns every stage's results.
 
     Args:
@@ -196,13 +214,21 @@ def run_pipeline(cfg, *, stop_after: str = "", skip: Collection[str] = (), only:
         (:func:`sword_jax.pipeline.stages.run_stages_parallel`); ``None``: in this process, in order.
       restart: discard the work dir's finished stages first.
       cfg_name, overrides: the ``experiment:variant`` and dotted overrides the config came from, for the report.
+      adopt: a donor pipeline work dir: its finished stages whose config sections agree with ``cfg``'s
+        (:func:`sword_jax.pipeline.compare.adopt_stages`) count as this work dir's, their files left where they are.
     """
     workdir = cfg.workdir
+    donor_cfg = _donor_config(adopt, workdir) if adopt else None  # refused before anything is touched
     if restart and os.path.isdir(os.path.join(workdir, "stages")):
         import shutil
 
         shutil.rmtree(workdir)
     check_workdir_config(cfg, workdir)
+    if adopt:
+        from sword_jax.pipeline.compare import adopt_stages
+
+        adopted = adopt_stages(workdir, adopt, cfg, donor_cfg)
+        print(f"[pipeline] adopted from {adopt}: {', '.join(adopted) or 'no stage (none finished there with this config)'}")
     ctx = Context(cfg=cfg, workdir=workdir, cfg_name=cfg_name, overrides=list(overrides))
     start = time.perf_counter()
     stages = STAGES

@@ -191,3 +191,22 @@ def test_recording_a_saved_run_refuses_what_would_measure_and_bad_dates(tmp_path
                     "--record", "--variant", "a=flow.noise_scale=1"])
     with pytest.raises(cli.UsageError, match="--pipeline, --policy, --out required"):
         bench.main(["--config", "sword:tiny", "--variant", "a=flow.noise_scale=1"])
+
+
+def test_another_world_model_is_measured_with_the_pipelines_vae_detector_and_demonstrations(tmp_path):
+    pipeline = tmp_path / "a"
+    for folder in ("world_model", "vae_run/vae", "rl/reward_model", "data"):
+        (pipeline / folder).mkdir(parents=True)
+    (pipeline / "data" / "demos.hdf5").write_bytes(b"")
+    own = bench.pipeline_inputs(str(pipeline))
+    assert own["world_model"] == str(pipeline / "world_model")
+    (tmp_path / "b" / "world_model").mkdir(parents=True)  # a second pipeline work dir (--adopt): its world model
+    for given in (tmp_path / "b", tmp_path / "b" / "world_model"):
+        paths = bench.pipeline_inputs(str(pipeline), str(given))
+        assert paths == dict(own, world_model=str(tmp_path / "b" / "world_model"))
+    with pytest.raises(cli.UsageError, match="lacks .*missing"):
+        bench.pipeline_inputs(str(pipeline), str(tmp_path / "missing"))
+    saved = tmp_path / "closed_loop.json"
+    saved.write_text('{"variants": [], "date": "2026-12-02"}')
+    with pytest.raises(cli.UsageError, match="--world-model"):
+        bench.main(["--config", "sword:tiny", "--from", str(saved), "--world-model", str(tmp_path / "b")])

@@ -95,3 +95,47 @@ def test_stages_call_the_orchestration_with_the_config_their_command_line_would_
     assert grpo_cfg == cfg and grpo_kwargs["simulator"] == "world_model"
     assert grpo_inputs == grpo_training.GRPOInputs(demos=("demos.hdf5",), world_model="wm_dir", vae="vae_dir",
                                                    policy="sft_dir", reward="rm_dir")
+
+
+def test_adopt_takes_over_a_donors_stages_where_their_config_sections_agree(tmp_path, monkeypatch):
+    import json
+
+    import pytest
+
+    from sword_jax import cli
+
+    calls = []
+
+    def make(name):
+        def run(ctx):
+            calls.append((os.path.basename(ctx.workdir), name))
+            return {"made_in": ctx.workdir, "upstream": {k: v.get("made_in") for k, v in sorted(ctx.results.items())}}
+
+        return Stage(name, run, name)
+
+    monkeypatch.setattr(pipeline_stages, "STAGES", [make("data"), make("vae"), make("world_model")])
+    donor = str(tmp_path / "donor")
+    pipeline.main([f"--workdir={donor}"])
+    assert calls == [("donor", "data"), ("donor", "vae"), ("donor", "world_model")]
+    # another world model (DLB off) on the donor's data and VAE: only its own stage runs, reading the donor's files
+    calls.clear()
+    results = pipeline.main([f"--workdir={tmp_path / 'tf'}", "--cache.enabled=false", "--adopt", donor])
+    assert calls == [("tf", "world_model")]
+    assert results["world_model"]["upstream"] == {"data": donor, "vae": donor}
+    with open(tmp_path / "tf" / "config.json") as f:
+        assert json.load(f)["cache"]["enabled"] is False  # the run keeps its own config
+    # a VAE section that differs is not adopted: that stage runs again here, the data is still the donor's
+    calls.clear()
+    results = pipeline.main([f"--workdir={tmp_path / 'vae2'}", "--vae.train_steps=3", "--adopt", donor])
+    assert calls == [("vae2", "vae"), ("vae2", "world_model")]
+    assert results["world_model"]["upstream"] == {"data": donor, "vae": str(tmp_path / "vae2")}
+    # refusals name the problem and touch nothing already made, even beside --restart
+    before = sorted(os.listdir(tmp_path / "tf" / "stages"))
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "config.json").write_text("{not json")
+    for adopt, what in ((str(tmp_path / "tf"), "own work dir"), (str(tmp_path / "empty"), "no config.json"),
+                        (str(tmp_path / "bad"), "not JSON")):
+        with pytest.raises(cli.UsageError, match=what):
+            pipeline.main([f"--workdir={tmp_path / 'tf'}", "--cache.enabled=false", "--restart", "--adopt", adopt])
+    assert sorted(os.listdir(tmp_path / "tf" / "stages")) == before

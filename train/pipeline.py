@@ -14,6 +14,10 @@ finished stages stay, so a later run continues from there). Writes ``report.md``
 ``--parallel 2`` runs each stage in its own process, two at a time, each as soon as the stages it
 reads are done: the VAE trains while the policy is cloned and rolled out, the success detector
 while the world model trains (the same results: a stage reads only the stages it needs).
+``--adopt DONOR`` takes over another work dir's finished stages where the config sections they read agree, so
+that a second world model (another training rule, e.g. ``--cache.enabled=false``) trains on the first's data, VAE
+and latents: ``python -m train.pipeline --config sword:small --cache.enabled=false --workdir runs/tf --adopt
+runs/small --only world_model``.
 """
 
 from __future__ import annotations
@@ -43,6 +47,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--skip", default="",
                         help="comma-separated stages to leave out of this run (e.g. probe,evaluate when only the "
                              "policy is wanted); a later stage that needs one of them fails naming it")
+    parser.add_argument("--adopt", default="", metavar="DONOR",
+                        help="another pipeline work dir whose finished stages this one takes over where the config "
+                             "sections they read agree (data, VAE, latents, policy data, supervised policy, detector: "
+                             "sword_jax.pipeline.compare.SHAREABLE), e.g. a second world model on the first's latents")
     cfg, rest = configs.from_argv(argv)
     args = parser.parse_args(rest)
     skip = {s for s in args.skip.split(",") if s}
@@ -67,16 +75,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise UsageError(f"--only: unknown stage(s) {', '.join(sorted(only - set(names)))}")
     launch = pipeline_stages.stage_launcher(argv, cfg.workdir) if args.parallel else None
     return run(cfg, stop_after=args.stop_after, skip=skip, only=only, restart=args.restart, cfg_name=name,
-               overrides=overrides, launch=launch, max_running=args.parallel)
+               overrides=overrides, launch=launch, max_running=args.parallel, adopt=args.adopt)
 
 
 def run(cfg, *, stop_after: str = "", skip: Collection[str] = (), only: set[str] | None = None,
         restart: bool = False, cfg_name: str = configs.DEFAULT, overrides: Sequence[str] = (),
-        launch=None, max_running: int = 2) -> dict:
+        launch=None, max_running: int = 2, adopt: str = "") -> dict:
     """:func:`sim.pipeline_stages.run_pipeline`: runs the stages in ``cfg.workdir``, returns every stage's results."""
     return pipeline_stages.run_pipeline(cfg, stop_after=stop_after, skip=skip, only=only, restart=restart,
                                         cfg_name=cfg_name, overrides=overrides, launch=launch,
-                                        max_running=max_running)
+                                        max_running=max_running, adopt=adopt)
 
 
 if __name__ == "__main__":
