@@ -18,7 +18,9 @@ noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps``, action guidan
 * per decision where the closed loop leaves the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`,
   over the first ``rl.imagined.fidelity_trajectories`` of each batch, means over the batches): frame error, the
   policy's greedy action gap, both against the real frame a decision earlier, the real motion, and the VAE's
-  floor of frame error and gap;
+  floor of frame error and gap; with ``--probe`` (a state probe: a pipeline's ``probe/probe.npz``) also where the
+  arm, the bowl and the gripper of the simulator's frame are against the real frame's as the probe reads both,
+  beside how far they moved on the real frames: which part of the imagined scene leaves the real one first;
 * each variant against the first, trajectory by trajectory (the same start and keys): the difference of what
   reality paid, with Newcombe's paired interval.
 
@@ -63,7 +65,7 @@ from sword_jax.atomic_write import write_json_atomic
 
 VARIANT = re.compile(r"([a-z0-9_]+)=(.+)")
 FIGURES = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion", "frame_error_vae",
-           "action_gap_vae")
+           "action_gap_vae", "ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm")
 
 
 def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]:
@@ -113,11 +115,13 @@ def pipeline_inputs(pipeline: str, world_model: str | None = None) -> dict[str, 
     return paths
 
 
-def make_measure(graphdef: Any, rl: Any, env: Any) -> Callable[..., dict[str, jax.Array]]:
+def make_measure(graphdef: Any, rl: Any, env: Any, *, read_state: Callable[[jax.Array], jax.Array] | None = None,
+                 gripper_closed_below: float = 0.04) -> Callable[..., dict[str, jax.Array]]:
     """``measure(params, sim, reward_model, start, env_starts, key)`` for one batch of start states: the imagined
     rollouts (``rl.grpo.group_size`` per start, every decision run), their actions executed in ``env`` from
     ``env_starts``; returns per trajectory ``real`` (reality's verdict) and ``said`` (the detector's), and the
-    closed loop's per-decision figures. Pure; jit it (the simulator is an argument, its settings are its own)."""
+    closed loop's per-decision figures, with ``read_state`` (a state probe, :func:`probe_reader`) the arm's, the
+    bowl's and the gripper's too. Pure; jit it (the simulator is an argument, its settings are its own)."""
     from sword_jax.rl import imagined_check
     from sword_jax.rl.rollout import imagined_rollout
 
@@ -136,10 +140,27 @@ def make_measure(graphdef: Any, rl: Any, env: Any) -> Callable[..., dict[str, ja
                                                         every=rollout.tokens.shape[2], rows=rows)
         round_trip = sim.round_trip if getattr(sim, "round_trip_fn", None) else None
         loop = imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=rl.image_size,
-                                                   action_bins=rl.action_bins, round_trip=round_trip)
+                                                   action_bins=rl.action_bins, round_trip=round_trip,
+                                                   read_state=read_state, gripper_closed_below=gripper_closed_below)
         return {"real": first >= 0, "said": rollout.success, **loop}
 
     return measure
+
+
+def probe_reader(path: str) -> tuple[Callable[[jax.Array], jax.Array], float]:
+    """``(read_state, gripper_closed_below)`` of a state probe saved by ``train.train_probe`` (a pipeline's
+    ``probe/probe.npz``): frames ``[n, H, W, 3]`` in [0, 1] -> end effector, gripper opening, bowl (metres); or a
+    :class:`~sword_jax.cli.UsageError` naming what is wrong with the file."""
+    from flax import nnx
+
+    from sword_jax.evaluation import probe
+
+    try:
+        graphdef, params, stats, cfg, _ = probe.load_probe(path)
+    except (OSError, ValueError, KeyError) as error:
+        raise cli.UsageError(f"bench_closed_loop: --probe {path}: {error}") from None
+    model = nnx.merge(graphdef, params, stats)
+    return (lambda frames: model(probe.resize(frames, cfg.image_size))), cfg.gripper_closed_below
 
 
 def make_real(graphdef: Any, rl: Any, env: Any, *, max_steps: int) -> Callable[..., jax.Array]:
@@ -208,7 +229,11 @@ def line(row: dict[str, Any]) -> str:
     if row.get("decisions"):
         a, b = row["decisions"][0], row["decisions"][-1]
         text += (f"; frame error {a['frame_error']:.3f} -> {b['frame_error']:.3f}, action gap "
-                 f"{a['action_gap']:.3f} -> {b['action_gap']:.3f} (decisions {a['decision']} -> {b['decision']})")
+                 f"{a['action_gap']:.3f} -> {b['action_gap']:.3f}")
+        if "ee_cm" in a:
+            text += (f", arm {a['ee_cm']:.1f} -> {b['ee_cm']:.1f} cm, bowl {a['bowl_cm']:.1f} -> {b['bowl_cm']:.1f} cm, "
+                     f"gripper read alike {a['gripper_agree']:.2f} -> {b['gripper_agree']:.2f}")
+        text += f" (decisions {a['decision']} -> {b['decision']})"
     if "vs_first" in row:
         v = row["vs_first"]
         text += f"; against the first {100 * v['difference']:+.1f} points [{100 * v['ci95'][0]:+.1f}, {100 * v['ci95'][1]:+.1f}]"
@@ -218,11 +243,15 @@ def line(row: dict[str, Any]) -> str:
 def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, tuple[Any, Any]], batches: list[tuple],
                      keys: list[jax.Array], *, env: Any, real_fn: Callable[..., jax.Array] | None = None,
                      overrides: dict[str, Sequence[str]] | None = None, log: Callable[[str], Any] = print,
-                     on_row: Callable[[dict[str, Any]], Any] | None = None) -> dict[str, Any]:
+                     on_row: Callable[[dict[str, Any]], Any] | None = None,
+                     read_state: Callable[[jax.Array], jax.Array] | None = None,
+                     gripper_closed_below: float = 0.04) -> dict[str, Any]:
     """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs) and ``keys``,
     and with ``real_fn`` (:func:`make_real`) the ``real`` row on the same starts; ``on_row(out so far)`` after each
-    row (e.g. a run stopped by its time limit keeps the rows measured)."""
-    measure = jax.jit(make_measure(graphdef, rl, env))
+    row (e.g. a run stopped by its time limit keeps the rows measured); ``read_state`` adds the state probe's figures
+    (:func:`make_measure`)."""
+    measure = jax.jit(make_measure(graphdef, rl, env, read_state=read_state,
+                                   gripper_closed_below=gripper_closed_below))
     rows, first = [], None
     for name, (sim, reward_model) in simulators.items():
         began = time.perf_counter()
@@ -296,6 +325,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--world-model", help="the world model measured, a train.pipeline / train_world_model work dir "
                                               "(default: --pipeline's own; e.g. one trained with --adopt on its "
                                               "latents)")
+    parser.add_argument("--probe", help="a state probe (train.train_probe; a pipeline's probe/probe.npz): adds per "
+                                        "decision where the arm, the bowl and the gripper of the simulator's frame "
+                                        "are against the real frame's, read by it")
     parser.add_argument("--policy", help="the policy measured (.npz of bench_policy, or train_policy)")
     parser.add_argument("--variant", action="append", default=[], metavar="NAME=flow.KEY=VALUE[,...]",
                         help="an inference setting of the world model (repeatable; the first is the paired reference)")
@@ -328,6 +360,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise cli.UsageError(f"bench_closed_loop: --policy {args.policy}: no such file or folder")
     variants = parse_variants(args.variant, cfg)
     paths = pipeline_inputs(args.pipeline, args.world_model)
+    if args.probe and not os.path.isfile(args.probe):
+        raise cli.UsageError(f"bench_closed_loop: --probe {args.probe}: no such file")
+    read_state, closed_below = probe_reader(args.probe) if args.probe else (None, 0.04)
 
     from benchmarks.common import device_name
     from configs.cli import apply_overrides
@@ -379,7 +414,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         write_json_atomic(path, dict(out, **about, seconds=round(time.time() - began, 1)))
 
     out = measure_variants(graphdef, params, rl, simulators, batches, keys, env=env, real_fn=real_fn,
-                           overrides=variants, on_row=save)
+                           overrides=variants, on_row=save, read_state=read_state, gripper_closed_below=closed_below)
     save(out)
     if args.record:
         from benchmarks.common import merge_results
@@ -394,7 +429,7 @@ def record_saved(args: argparse.Namespace) -> dict:
     import json
 
     given = [flag for flag, value in (("--pipeline", args.pipeline), ("--world-model", args.world_model),
-                                      ("--policy", args.policy), ("--out", args.out),
+                                      ("--probe", args.probe), ("--policy", args.policy), ("--out", args.out),
                                       ("--variant", args.variant), ("--no-real", args.no_real)) if value]
     if given:
         raise cli.UsageError(f"bench_closed_loop: --from records a saved run; {', '.join(given)} measure one")

@@ -1356,6 +1356,12 @@ def sim_fidelity_world_model_steps(parts: tuple[str, ...] = SIM_FIDELITY_STEPS) 
                    "greedy action gap, decision 1 -> 11 (the VAE alone at 1)"], out)
 
 
+def _false_successes(row: dict) -> tuple[int, int]:
+    """A ``closed_loop.json`` row's real failures that the detector called successes, and its real failures."""
+    true = row["precision"]["successes"] if row["precision"] else 0
+    return row["detector"]["successes"] - true, row["paid"]["of"] - row["paid"]["successes"]
+
+
 CLOSED_LOOP_NOISE = ("policy", "closed_loop_noise_small_h200")
 
 
@@ -1368,8 +1374,7 @@ def closed_loop_noise(record: tuple[str, ...] = CLOSED_LOOP_NOISE, decisions: tu
     rows = []
     for v in out["variants"]:
         by = {d["decision"]: d for d in v["decisions"]}
-        failures = v["paid"]["of"] - v["paid"]["successes"]
-        false = v["detector"]["successes"] - (v["precision"]["successes"] if v["precision"] else 0)
+        false, failures = _false_successes(v)
         vs = v.get("vs_first")
         rows.append([", ".join(v["overrides"]), _paid(v["paid"]), f"{v['detector']['rate']:.3f}",
                      f"{false / failures:.3f} ({false} of {failures})",
@@ -1418,8 +1423,7 @@ def closed_loop_world_models(record: tuple[str, ...] = CLOSED_LOOP_WORLD_MODELS,
         real = real or out.get("real")
         v, fig = out["variants"][0], _world_model_figures(folder)
         by = {d["decision"]: d for d in v["decisions"]}
-        failures = v["paid"]["of"] - v["paid"]["successes"]
-        false = v["detector"]["successes"] - (v["precision"]["successes"] if v["precision"] else 0)
+        false, failures = _false_successes(v)
         rows.append([what, f"{fig['loss']:.3f}", f"{fig['expert']:.4f} / {fig['policy']:.4f}",
                      " / ".join(f"{by[k]['frame_error']:.3f}" for k in decisions),
                      " / ".join(f"{by[k]['action_gap']:.3f}" for k in decisions),

@@ -61,14 +61,15 @@ def _batches(n=2):
     return out
 
 
-def _measure(simulators, real=True, rl=CFG):
+def _measure(simulators, real=True, rl=CFG, read_state=None):
     graphdef, params = build_policy(rl, seed=0)
     env = ToyEnv(rl.success_threshold)
     detector = toy_reward_model()
     real_fn = bench.make_real(graphdef, rl, env, max_steps=rl.imagined.max_chunks * rl.imagined_actions_per_decision)
     keys = [jax.random.key(3), jax.random.key(4)]
     return bench.measure_variants(graphdef, params, rl, {n: (s, detector) for n, s in simulators.items()}, _batches(),
-                                  keys, env=env, real_fn=real_fn if real else None, log=lambda _: None)
+                                  keys, env=env, real_fn=real_fn if real else None, log=lambda _: None,
+                                  read_state=read_state)
 
 
 def test_a_faithful_simulator_leaves_no_gap_and_a_noisy_one_drifts():
@@ -210,3 +211,34 @@ def test_another_world_model_is_measured_with_the_pipelines_vae_detector_and_dem
     saved.write_text('{"variants": [], "date": "2026-12-02"}')
     with pytest.raises(cli.UsageError, match="--world-model"):
         bench.main(["--config", "sword:tiny", "--from", str(saved), "--world-model", str(tmp_path / "b")])
+
+
+def test_a_state_probe_says_where_the_arm_and_the_bowl_of_the_imagined_scene_are(tmp_path):
+    """Per decision the probe's readouts of the simulator's frame against the real frame's: none in a faithful
+    simulator, some in a noisy one; a probe file train.train_probe writes is read into such a reader, a broken
+    one is refused by name."""
+    from sword_jax.evaluation import probe
+
+    def mean_colour(frames):  # a designed probe: the arm is the mean colour, the bowl twice it, the gripper open
+        mean = jnp.mean(frames, axis=(1, 2))
+        return jnp.concatenate([mean, jnp.full_like(mean[:, :1], 0.08), 2.0 * mean], axis=1)
+
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    noisy = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim, noise=0.08)
+    rows = {r["name"]: r for r in _measure({"faithful": faithful, "noisy": noisy}, real=False,
+                                           read_state=mean_colour)["variants"]}
+    for d in rows["faithful"]["decisions"]:
+        assert d["ee_cm"] == pytest.approx(0.0, abs=1e-3) and d["bowl_cm"] == pytest.approx(0.0, abs=1e-3)
+        assert d["gripper_agree"] == 1.0 and d["ee_motion_cm"] > 0
+    noisy_ee = [d["ee_cm"] for d in rows["noisy"]["decisions"]]
+    assert min(noisy_ee) > 0.01, noisy_ee  # the noise averages out in a mean colour, not to 0
+    assert [d["bowl_cm"] for d in rows["noisy"]["decisions"]] == pytest.approx([2 * e for e in noisy_ee], rel=1e-4)
+    assert "ee_cm" not in _measure({"faithful": faithful}, real=False)["variants"][0]["decisions"][0]
+    cfg = probe.ProbeConfig(image_size=8, width=4)
+    graphdef, params, stats = probe.build_probe(cfg, np.zeros(7), np.ones(7))
+    path = probe.save_probe(str(tmp_path / "probe.npz"), params, stats, cfg)
+    read, closed_below = bench.probe_reader(path)
+    assert read(jnp.zeros((3, 16, 16, 3))).shape == (3, 7) and closed_below == cfg.gripper_closed_below
+    (tmp_path / "broken.npz").write_bytes(b"not a probe")
+    with pytest.raises(cli.UsageError, match="--probe .*broken.npz"):
+        bench.probe_reader(str(tmp_path / "broken.npz"))

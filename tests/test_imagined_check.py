@@ -416,7 +416,8 @@ def _shifted(sim, shift):
     return dataclasses.replace(sim, step_fn=step_fn)
 
 
-def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round_trip=None, shift=0.0):
+def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round_trip=None, shift=0.0,
+              read_state=None):
     """The closed-loop figures of the designed toy starts in a toy simulator moving ``step_size`` a step (shown a
     step late with ``lag``, its frames brightened by ``shift``), checked against the toy environment (``STEP``),
     with ``round_trip`` given to the check."""
@@ -432,15 +433,17 @@ def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round
         _, frames = imagined_check.execute_observed(ToyEnv(CFG.success_threshold), jnp.repeat(env_starts, g, axis=0),
                                                     actions, lengths, every=rollout.tokens.shape[2], rows=8)
         return imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=CFG.image_size,
-                                                   action_bins=CFG.action_bins, round_trip=round_trip)
+                                                   action_bins=CFG.action_bins, round_trip=round_trip,
+                                                   read_state=read_state)
 
     out = jax.device_get(jax.jit(go)(jax.random.key(2)))
     c = CFG.imagined.max_chunks
-    # the VAE's share only with a round trip; without one the keys are those of before
+    # the VAE's share only with a round trip, the state readouts only with a probe; without them the keys of before
     vae = ("frame_error_vae", "action_gap_vae") if round_trip is not None else ()
+    probe = ("ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm") if read_state is not None else ()
     assert sorted(out) == sorted([f"closed_loop_{what}_{k}" for k in range(1, c)
                                   for what in ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev",
-                                               "motion") + vae])
+                                               "motion") + vae + probe])
     return [[out[f"closed_loop_{what}_{k}"] for k in range(1, c)] for what in figures]
 
 
@@ -472,6 +475,33 @@ def test_an_identity_round_trip_leaves_no_vae_share():
     error, gap = _fidelity(STEP, figures=("frame_error_vae", "action_gap_vae"), round_trip=lambda f: f)
     np.testing.assert_array_equal(error, 0.0)
     np.testing.assert_array_equal(gap, 0.0)
+
+
+def _designed_probe(frames):
+    """A stand-in state probe: the end effector is the frame's mean colour, the bowl twice it, the gripper closed
+    (0.01 m) where the red channel's mean is above 0.5 (metres, the probe's 7 values)."""
+    mean = jnp.mean(frames, axis=(1, 2))
+    gripper = jnp.where(mean[:, :1] > 0.5, 0.01, 0.08)
+    return jnp.concatenate([mean, gripper, 2.0 * mean], axis=1)
+
+
+def test_the_state_readout_places_the_gap_in_the_arm_or_the_bowl():
+    """Read by a designed probe: a faithful simulator leaves no gap in the arm, the bowl or the gripper; one a
+    decision late is off by exactly the real motion the readout sees; one whose frames are brightened by 0.1 reads
+    every channel 0.1 higher (the arm sqrt(3) x 10 cm off, the bowl twice that)."""
+    ee, bowl, agree, ee_motion, bowl_motion = _fidelity(
+        STEP, figures=("ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm"),
+        read_state=_designed_probe)
+    np.testing.assert_allclose(ee, 0.0, atol=1e-3)
+    np.testing.assert_allclose(bowl, 0.0, atol=1e-3)
+    np.testing.assert_array_equal(agree, 1.0)
+    assert min(ee_motion) > 1e-2, ee_motion  # the real scene's readout moves every decision
+    np.testing.assert_allclose(bowl_motion, 2.0 * np.asarray(ee_motion), rtol=1e-4)
+    late, late_motion = _fidelity(STEP, lag=True, figures=("ee_cm", "ee_motion_cm"), read_state=_designed_probe)
+    np.testing.assert_allclose(late, late_motion, rtol=1e-4, atol=1e-4)
+    shifted = _fidelity(STEP, figures=("ee_cm", "bowl_cm"), shift=0.1, read_state=_designed_probe)
+    np.testing.assert_allclose(shifted[0], 10.0 * np.sqrt(3.0), rtol=1e-4)
+    np.testing.assert_allclose(shifted[1], 20.0 * np.sqrt(3.0), rtol=1e-4)
 
 
 def test_a_decoder_that_shifts_the_frames_is_the_whole_gap_of_a_faithful_simulator():

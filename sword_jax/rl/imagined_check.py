@@ -119,7 +119,8 @@ def greedy_actions(policy: Any, frames: Float[Array, "n s s 3"], instruction_tok
 
 
 def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_frames: Any, *, image_size: int,
-                         action_bins: int, round_trip: Callable[[Array], Array] | None = None
+                         action_bins: int, round_trip: Callable[[Array], Array] | None = None,
+                         read_state: Callable[[Array], Array] | None = None, gripper_closed_below: float = 0.04
                          ) -> dict[str, Float[Array, ""]]:
     """Where the closed loop through the simulator leaves the real one, decision by decision.
 
@@ -150,7 +151,16 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     the real scene's latents exactly would still show through this decoder. ``frame_error`` near
     ``frame_error_vae`` and ``action_gap`` near ``action_gap_vae`` say the world model's dynamics are faithful and
     the VAE is what the policy misreads; the excess over them is the dynamics'. A world model decoding with the
-    light decoder has no round trip (its weights hold no VAE encoder): its runs log no ``_vae`` figures."""
+    light decoder has no round trip (its weights hold no VAE encoder): its runs log no ``_vae`` figures.
+
+    ``read_state`` (frames ``[n, H, W, 3]`` in [0, 1], any size -> ``[n, 7]`` end effector xyz, gripper opening,
+    bowl xyz in metres: the state probe of :mod:`sword_jax.evaluation.probe`) says which part of the scene has left:
+    per decision ``closed_loop_ee_cm`` and ``closed_loop_bowl_cm``, the distance between what it reads on the
+    simulator's frame and on the real frame, ``closed_loop_gripper_agree`` whether both read the gripper closed
+    (opening below ``gripper_closed_below``) or both open, and ``closed_loop_ee_motion_cm`` /
+    ``closed_loop_bowl_motion_cm``, how far the readout moved on the real frames over the decision. An arm that goes
+    where the actions send it has ``ee_cm`` near 0 whatever the bowl does; the readouts share the probe's own error
+    on real frames (its floor, recorded where the probe was trained)."""
     m, c = real_frames.shape[:2]
     if rollout.obs_frames.shape[1] != c or m > rollout.obs_frames.shape[0]:
         raise ValueError(f"closed_loop_fidelity: real frames {real_frames.shape[:2]} do not match the rollout's "
@@ -184,6 +194,23 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
         tripped = round_trip(seen.reshape((m * (c - 1),) + seen.shape[2:]))
         tripped = resize_frames(tripped.reshape((m, c - 1) + tripped.shape[1:]), image_size)
         figures.update(frame_error_vae=error(tripped, real), action_gap_vae=gap(greedy(tripped), on_real))
+    if read_state is not None:  # each frame set read at its own size (the probe resizes): simulator's, real, start
+        from sword_jax.evaluation.probe import BOWL, EE, GRIPPER
+
+        def state(frames):
+            frames = frames.astype(jnp.float32) / jnp.float32(255.0) if frames.dtype == jnp.uint8 else frames
+            n = frames.shape[0] * frames.shape[1]
+            return read_state(frames.reshape((n,) + frames.shape[2:]).astype(jnp.float32)).reshape(
+                frames.shape[:2] + (-1,))
+
+        on_sim, on_env = state(rollout.obs_frames[:m, 1:]), state(real_frames[:, :-1])
+        before = jnp.concatenate([state(rollout.obs_frames[:m, :1]), on_env[:, :-1]], axis=1)
+        cm = lambda a, b: jnp.float32(100.0) * jnp.linalg.norm(a - b, axis=-1)  # noqa: E731 - metres -> cm
+        closed = lambda x: x[..., GRIPPER] < jnp.float32(gripper_closed_below)  # noqa: E731
+        figures.update(ee_cm=cm(on_sim[..., EE], on_env[..., EE]), bowl_cm=cm(on_sim[..., BOWL], on_env[..., BOWL]),
+                       gripper_agree=(closed(on_sim) == closed(on_env)).astype(jnp.float32),
+                       ee_motion_cm=cm(on_env[..., EE], before[..., EE]),
+                       bowl_motion_cm=cm(on_env[..., BOWL], before[..., BOWL]))
     count = jnp.maximum(jnp.sum(taken, axis=0), 1.0)
     for name, per_trajectory in figures.items():
         per_decision = jnp.sum(per_trajectory * taken, axis=0) / count
