@@ -8,7 +8,8 @@ actions. Measured on ``small``, that loop leaves the real one decision by decisi
 real frames. The runs that measured it (``bench_grpo_reward_source``'s ``exec`` arm) train the policy and evaluate
 it on MJX, which costs most of their time; the closed loop itself needs neither. This benchmark measures only the
 loop, for each ``--variant`` (an inference setting of the world model: ``flow.*``, e.g. the sampler's starting
-noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps``, action guidance ``flow.guidance_scale``):
+noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps``, action guidance ``flow.guidance_scale``; or how
+the start latents are encoded, ``rl.imagined.start_encoding``, the same keyframes in every variant):
 
 * the policy's imagined rollouts as GRPO's first ``--batches`` steps draw them (their start states and sampling
   keys, at the run's seed; proprio missing, every decision of the horizon run), the same starts
@@ -70,7 +71,8 @@ FIGURES = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "
 
 def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]:
     """``{name: overrides}`` from ``NAME=KEY=VALUE[,KEY=VALUE...]`` specs, each key a ``flow.*`` key that the config
-    takes (the settings a simulator is built with; the start states, the policy and the detector stay the run's).
+    takes (the settings a simulator is built with) or ``rl.imagined.start_encoding`` (how the same keyframes' start
+    latents are encoded); the keyframes, the policy and the detector stay the run's.
     Raises :class:`~sword_jax.cli.UsageError` naming the spec that is refused."""
     from configs.cli import apply_overrides
 
@@ -84,10 +86,11 @@ def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]
         if name in out or name == "real":
             raise cli.UsageError(f"bench_closed_loop: --variant {name!r} is given twice or is the reserved name 'real'")
         pairs = tuple(p for p in body.split(",") if p)
-        bad = [p for p in pairs if not re.fullmatch(r"flow\.[a-z_]+=\S+", p)]
+        bad = [p for p in pairs if not re.fullmatch(r"(flow\.[a-z_]+|rl\.imagined\.start_encoding)=\S+", p)]
         if bad or not pairs:
             raise cli.UsageError(f"bench_closed_loop: --variant {name}: each setting must be flow.KEY=VALUE (an inference "
-                                 f"setting of the world model), got {', '.join(bad) or 'none'}")
+                                 f"setting of the world model) or rl.imagined.start_encoding=VALUE (how its start "
+                                 f"latents are encoded), got {', '.join(bad) or 'none'}")
         try:
             apply_overrides(cfg, [f"--{p}" for p in pairs]).validate()
         except (ValueError, KeyError, TypeError) as error:
@@ -240,23 +243,26 @@ def line(row: dict[str, Any]) -> str:
     return text + (f" ({row['seconds']:.0f} s)" if "seconds" in row else "")
 
 
-def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, tuple[Any, Any]], batches: list[tuple],
+def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, tuple[Any, Any]],
+                     batches: list[tuple] | dict[str, list[tuple]],
                      keys: list[jax.Array], *, env: Any, real_fn: Callable[..., jax.Array] | None = None,
                      overrides: dict[str, Sequence[str]] | None = None, log: Callable[[str], Any] = print,
                      on_row: Callable[[dict[str, Any]], Any] | None = None,
                      read_state: Callable[[jax.Array], jax.Array] | None = None,
                      gripper_closed_below: float = 0.04) -> dict[str, Any]:
-    """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs) and ``keys``,
+    """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs; or per variant
+    name its own, the same keyframes encoded its way: ``rl.imagined.start_encoding``) and ``keys``,
     and with ``real_fn`` (:func:`make_real`) the ``real`` row on the same starts; ``on_row(out so far)`` after each
     row (e.g. a run stopped by its time limit keeps the rows measured); ``read_state`` adds the state probe's figures
     (:func:`make_measure`)."""
     measure = jax.jit(make_measure(graphdef, rl, env, read_state=read_state,
                                    gripper_closed_below=gripper_closed_below))
+    own_batches = (lambda name: batches[name]) if isinstance(batches, dict) else (lambda name: batches)  # noqa: E731
     rows, first = [], None
     for name, (sim, reward_model) in simulators.items():
         began = time.perf_counter()
         outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
-                for (start, env_starts), key in zip(batches, keys)]
+                for (start, env_starts), key in zip(own_batches(name), keys)]
         row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
         row["seconds"] = time.perf_counter() - began
         if first is None:
@@ -270,7 +276,8 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         began = time.perf_counter()
         run = jax.jit(real_fn)
         success = np.concatenate([np.asarray(jax.device_get(run(params, start, env_starts, key)))
-                                  for (start, env_starts), key in zip(batches, keys)]).astype(bool)
+                                  for (start, env_starts), key in zip(own_batches(next(iter(simulators))),
+                                                                      keys)]).astype(bool)
         out["real"] = {"name": "real", "paid": rate(success), "seconds": time.perf_counter() - began}
         log(line(out["real"]))
         if on_row is not None:
@@ -387,16 +394,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     episodes = rl_data.load_episodes([paths["demos"]], read=read_dataset)
     if episodes.states is None:
         raise cli.UsageError(f"bench_closed_loop: {paths['demos']} holds no recorded states to execute from")
-    simulators, setup = {}, None
-    for name, pairs in variants.items():
-        own = apply_overrides(cfg, [f"--{p}" for p in pairs])
-        setup_v = setup_from_weights(own, rl, episodes, world_model=world_model, vae=vae, detector=detector)
-        setup = setup or setup_v  # the start states are the run's whatever the setting
-        simulators[name] = (setup_v.sim, setup_v.reward_model)
     root = jax.random.key(cfg.seed)
     starts_key, update_key = stream_key(root, "grpo/starts"), stream_key(root, "grpo/update")
-    batches = [(setup.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup.env_starts(i)))
-               for i in range(args.batches)]
+    simulators, batches = {}, {}
+    for name, pairs in variants.items():
+        own = apply_overrides(cfg, [f"--{p}" for p in pairs])
+        setup_v = setup_from_weights(own, own.rl, episodes, world_model=world_model, vae=vae, detector=detector)
+        simulators[name] = (setup_v.sim, setup_v.reward_model)
+        # the same keyframes in every variant (the run's keyframe stream); their latents as the variant encodes them
+        batches[name] = [(setup_v.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup_v.env_starts(i)))
+                         for i in range(args.batches)]
     keys = [jax.random.fold_in(update_key, i) for i in range(args.batches)]  # GRPO step i's rollout key
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
     horizon = rl.imagined.max_chunks * rl.imagined_actions_per_decision

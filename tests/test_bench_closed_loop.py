@@ -114,7 +114,11 @@ def test_variants_and_pipeline_are_refused_by_name(tmp_path):
     cfg = configs.get("sword:tiny")
     assert bench.parse_variants(["n1=flow.noise_scale=1", "n0=flow.noise_scale=0,flow.sample_steps=8"], cfg) == {
         "n1": ("flow.noise_scale=1",), "n0": ("flow.noise_scale=0", "flow.sample_steps=8")}
+    assert bench.parse_variants(["w=rl.imagined.start_encoding=window", "p=rl.imagined.start_encoding=prefix"],
+                                cfg) == {"w": ("rl.imagined.start_encoding=window",),
+                                         "p": ("rl.imagined.start_encoding=prefix",)}
     for specs, what in ((["N1=flow.noise_scale=1"], "NAME"), (["a=rl.grpo.steps=3"], "flow.KEY=VALUE"),
+                        (["a=rl.imagined.start_encoding=whole"], "start_encoding"),
                         (["a=flow.noise_scale=7"], "flow.noise_scale"), (["a=flow.nothing=1"], "--variant a"),
                         (["a=flow.noise_scale=1", "a=flow.noise_scale=0"], "twice"),
                         (["real=flow.noise_scale=1"], "reserved"), ([], "at least one")):
@@ -242,3 +246,21 @@ def test_a_state_probe_says_where_the_arm_and_the_bowl_of_the_imagined_scene_are
     (tmp_path / "broken.npz").write_bytes(b"not a probe")
     with pytest.raises(cli.UsageError, match="--probe .*broken.npz"):
         bench.probe_reader(str(tmp_path / "broken.npz"))
+
+
+def test_variants_may_each_bring_their_own_start_states():
+    """Batches given per variant (the same keyframes encoded each variant's way) are each variant's; given the
+    same batches under each name the rows are those of the shared batches."""
+    graphdef, params = build_policy(CFG, seed=0)
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    env, detector, keys = ToyEnv(CFG.success_threshold), toy_reward_model(), [jax.random.key(3), jax.random.key(4)]
+    sims = {"a": (faithful, detector), "b": (faithful, detector)}
+    shared = bench.measure_variants(graphdef, params, CFG, sims, _batches(), keys, env=env, log=lambda _: None)
+    own = bench.measure_variants(graphdef, params, CFG, sims, {"a": _batches(), "b": _batches()}, keys, env=env,
+                                 log=lambda _: None)
+    for x, y in zip(shared["variants"], own["variants"]):
+        assert x["paid"] == y["paid"] and x["decisions"] == y["decisions"]
+    other = bench.measure_variants(graphdef, params, CFG, sims, {"a": _batches(), "b": _batches(3)[1:]}, keys, env=env,
+                                   log=lambda _: None)
+    assert other["variants"][0]["decisions"] == shared["variants"][0]["decisions"]
+    assert other["variants"][1]["decisions"] != shared["variants"][1]["decisions"], "b measured its own starts"

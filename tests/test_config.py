@@ -119,6 +119,7 @@ def test_flat_rl_keys_of_earlier_versions_name_their_new_key():
                              "imagined.guard_on", "imagined.reward", "imagined.fidelity_trajectories", "sft.image_aug",
                              "sft.decoded_fraction", "sft.decoded_source", "sft.decoded_window", "grpo.scale_by_std",
                              "grpo.shuffle_returns", "imagined.calibrate_steps", "imagined.keyframe_from",
+                             "imagined.start_encoding",
                              *(f"refresh.{f.name}" for f in dataclasses.fields(RefreshConfig)),
                              *(f"value.{f.name}" for f in dataclasses.fields(ValueConfig))}
     leaves = {key[len("rl."):] for key in flatten(configs.get("sword:tiny")) if key.startswith("rl.")}

@@ -139,3 +139,27 @@ def test_adopt_takes_over_a_donors_stages_where_their_config_sections_agree(tmp_
         with pytest.raises(cli.UsageError, match=what):
             pipeline.main([f"--workdir={tmp_path / 'tf'}", "--cache.enabled=false", "--restart", "--adopt", adopt])
     assert sorted(os.listdir(tmp_path / "tf" / "stages")) == before
+
+
+def test_a_work_dir_made_before_a_setting_existed_resumes_while_it_holds_its_default(tmp_path):
+    import json
+
+    import pytest
+
+    import configs
+    from sword_jax.pipeline.stages import check_workdir_config
+
+    cfg = configs.get("sword:tiny")
+    check_workdir_config(cfg, str(tmp_path))
+    path = tmp_path / "config.json"
+    stored = json.loads(path.read_text())
+    del stored["rl"]["imagined"]["start_encoding"], stored["flow"]["noise_scale"]  # as an earlier version saved it
+    path.write_text(json.dumps(stored))
+    check_workdir_config(cfg, str(tmp_path))  # both at their defaults: the behaviour that run had
+    changed = configs.from_argv(["--rl.imagined.start_encoding=prefix"])[0]
+    with pytest.raises(ValueError, match="rl.imagined.start_encoding"):
+        check_workdir_config(changed, str(tmp_path))
+    stored["seed"] = 7  # a stored value that differs is refused as before
+    path.write_text(json.dumps(stored))
+    with pytest.raises(ValueError, match="seed"):
+        check_workdir_config(cfg, str(tmp_path))

@@ -475,3 +475,57 @@ def test_simulator_microbatches_are_chosen_to_fit_the_decoders_features():
     assert microbatches_for(32, 2, 8) == 2 and microbatches_for(32, 0, None) == 1  # explicit; no limit
     with pytest.raises(ValueError, match="sim_microbatches"):
         ImaginedConfig(sim_microbatches=-1).validate()
+
+
+def test_a_keyframes_prefix_is_its_episode_from_frame_0_held_at_the_keyframe():
+    from sword_jax.rl import data as rl_data
+
+    episodes = _counting_episodes(3, 40)
+    s = rl_data.prefix_latents_for(episodes, max_fraction=0.5)
+    assert s == 39 * 0.5 // 4  # the latest keyframe the draw can reach: latent 4 (frame 16)
+    pick = rl_data.keyframe_starts(episodes, 16, np.random.default_rng(0), prefix_latents=s)
+    assert pick["prefix"].shape[1] == 1 + 4 * s
+    for i, t in enumerate(pick["t"]):
+        np.testing.assert_array_equal(pick["prefix"][i, :, 0, 0, 0], np.minimum(np.arange(1 + 4 * s), t))
+        assert pick["latent_index"][i] == t // 4
+    with pytest.raises(ValueError, match="prefix_latents=1"):
+        rl_data.keyframe_window(episodes.frames, episodes.actions, episodes.proprio, np.array([0]), np.array([8]),
+                                prefix_latents=1)
+
+
+def test_prefix_start_latents_are_the_whole_episodes_latents_the_window_ones_are_not():
+    """rl.imagined.start_encoding=prefix: GRPO's start latents (first frame and context) are exactly the latents the
+    latents stage makes by encoding whole episodes; the default window encoding differs from them once the
+    keyframe has a past longer than its window (a random VAE here, whose causal cache reaches back far)."""
+    import dataclasses
+
+    from sword_jax.pipeline.grpo import setup_from_weights
+    from sword_jax.rl import data as rl_data
+    from sword_jax.rl.reward_model import build_detector
+    from sword_jax.vae import api as vae_api
+
+    cfg, wm_graphdef, wm_state, vae_graphdef, vae_state = _tiny_models()
+    e, t, size = 3, 41, cfg.data.image_size
+    frames = np.random.default_rng(0).integers(0, 256, (e, t, size, size, 3), dtype=np.uint8)
+    episodes = rl_data.EpisodeSet(frames, np.zeros((e, t, 7), np.float32), np.zeros((e, t, 8), np.float32),
+                                  np.array([41, 33, 29]), np.ones(e, bool), ("a", "b", "c"))
+    whole = np.asarray(vae_api.encode(vae_graphdef, vae_state, jnp.asarray(frames, jnp.float32) / 127.5 - 1.0,
+                                      check_values=False))  # (e, 1 + 10, ...): the latents stage's encoding
+    errors = {}
+    for encoding in ("prefix", "window"):
+        rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, keyframe_fraction=1.0,
+                                                                      start_encoding=encoding))
+        setup = setup_from_weights(cfg, rl, episodes, world_model=(wm_graphdef, wm_state),
+                                   vae=(vae_graphdef, vae_state), detector=build_detector(rl))
+        pick = setup.windows(2)
+        latents = np.asarray(setup.starts(None, 2).latents[0])
+        truth = np.stack([whole[pick["episode"], 0], whole[pick["episode"], pick["t"] // 4]], axis=1)
+        later = pick["t"] >= 12  # a past longer than the window's 8 frames
+        assert later.any(), pick["t"]
+        norm = lambda x: np.sqrt(np.sum(np.square(x), axis=(2, 3, 4)))  # noqa: E731 - per row and latent
+        errors[encoding] = norm(latents - truth) / norm(truth)
+    np.testing.assert_allclose(errors["prefix"], 0.0, atol=1e-3)
+    np.testing.assert_allclose(errors["window"][:, 0], 0.0, atol=1e-3)  # the first frame's latent is its own
+    assert errors["window"][later, 1].min() > 0.05, errors["window"]
+    with pytest.raises(ValueError, match="start_encoding"):
+        ImaginedConfig(start_encoding="whole").validate()

@@ -129,7 +129,7 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
     freshly initialised. The simulator is built at ``rl.imagined.sim_precision``, with the light decoder when
     one is given; the start states are keyframes of ``episodes`` encoded by the VAE."""
     from sword_jax.rl.sim_builder import build_simulator
-    from sword_jax.rl.world_model_sim import encode_history
+    from sword_jax.rl.world_model_sim import encode_history, encode_prefix
 
     wm_graphdef, wm_state = world_model
     vae_graphdef, vae_state = vae
@@ -151,18 +151,26 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
         return encode_history(vae_graphdef, encoder_state, first_frames, history,
                               num_context=cfg.data.context_frames // tf)
 
+    def encode_from_start(prefix, latent_index):  # rl.imagined.start_encoding=prefix: the episode from frame 0
+        return encode_prefix(vae_graphdef, encoder_state, prefix, latent_index,
+                             num_context=cfg.data.context_frames // tf)
+
+    # rl.imagined.start_encoding=prefix: windows carry each keyframe's episode from frame 0, one length per run
+    prefix_latents = (rl_data.prefix_latents_for(episodes, max_fraction=rl.imagined.keyframe_fraction)
+                      if rl.imagined.start_encoding == "prefix" else None)
+
     # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
-    def draw(sampler, step, rows):
+    def draw(sampler, step, rows, **kwargs):
         return sampler(episodes, rl.imagined_starts_per_step, stream_rng(cfg.seed, "grpo/keyframes", step),
                        max_fraction=rl.imagined.keyframe_fraction, min_fraction=rl.imagined.keyframe_from,
-                       rows=rows)
+                       rows=rows, **kwargs)
 
     def windows(step, rows=None):
-        return draw(rl_data.keyframe_starts, step, rows)
+        return draw(rl_data.keyframe_starts, step, rows, prefix_latents=prefix_latents)
 
     def starts(key, step, rows=None):
         del key
-        return start_state(windows(step, rows), encode, rl)
+        return start_state(windows(step, rows), encode, rl, encode_prefix=encode_from_start)
 
     def env_starts(step, rows=None):  # the same keyframes' recorded [time, qpos, qvel], no windows cut
         ep, t = draw(rl_data.keyframe_indices, step, rows)
@@ -176,10 +184,16 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
                  start_steps if recorded else None, windows)
 
 
-def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any) -> StartState:
-    """Imagined-rollout start states from :func:`~sword_jax.rl.data.keyframe_window`-laid-out picks."""
+def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any, *,
+                encode_prefix: Callable[..., Any] | None = None) -> StartState:
+    """Imagined-rollout start states from :func:`~sword_jax.rl.data.keyframe_window`-laid-out picks: their latents
+    by ``encode(first_frames, history)``, or, where the picks carry a ``prefix`` and ``encode_prefix`` is given, by
+    ``encode_prefix(prefix, latent_index)`` (``rl.imagined.start_encoding=prefix``)."""
     unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
-    latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
+    if "prefix" in pick and encode_prefix is not None:
+        latents = encode_prefix(unit(pick["prefix"]), jnp.asarray(pick["latent_index"], jnp.int32))
+    else:
+        latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
     return StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"][:, : rl.proprio_dim], jnp.float32),
                       jnp.asarray(tokenize_instructions(pick["instructions"], rl.policy.max_instruction_bytes)),
                       (latents, jnp.asarray(pick["actions"], jnp.float32)))

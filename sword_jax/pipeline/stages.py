@@ -66,15 +66,32 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix.rstrip(".")]
 
 
+def _added_at_default(cfg: Any, stored: dict, key: str) -> bool:
+    """Whether dotted ``key`` is absent from a stored config and holds its field's default in ``cfg``: a setting
+    added after that run was made, at the value that keeps the behaviour it ran with."""
+    node, value = stored, cfg
+    for part in key.split("."):
+        if not isinstance(node, dict) or not dataclasses.is_dataclass(value):
+            return False
+        if part not in node:
+            field = next((f for f in dataclasses.fields(value) if f.name == part), None)
+            if field is None or field.default is dataclasses.MISSING:
+                return False
+            return getattr(value, part) == field.default
+        node, value = node[part], getattr(value, part, None)
+    return False
+
+
 def check_workdir_config(cfg: Any, workdir: str) -> None:
-    """Stores the config on first use; refuses a different one later (names differing keys)."""
+    """Stores the config on first use; refuses a different one later (names differing keys). A setting that the
+    stored config lacks (added since) counts as equal when it holds its default."""
     os.makedirs(workdir, exist_ok=True)
     path = os.path.join(workdir, "config.json")
     current = to_dict(cfg)
     if os.path.exists(path):
         with open(path) as f:
             stored = json.load(f)
-        differing = [k for k in _diff(stored, current) if k != "workdir"]
+        differing = [k for k in _diff(stored, current) if k != "workdir" and not _added_at_default(cfg, stored, k)]
         if differing:
             raise ValueError(
                 f"{workdir} was made with a different config (keys: {', '.join(differing[:12])}); "

@@ -20,6 +20,7 @@ from typing import ClassVar
 
 DECODERS = ("full", "light")  # rl.imagined.decoder
 IMAGINED_REWARDS = ("detector", "executed", "calibrated")  # rl.imagined.reward
+START_ENCODINGS = ("window", "prefix")  # rl.imagined.start_encoding
 CALIBRATIONS = ("false_success", "separation")  # rl.refresh.calibration
 
 
@@ -415,6 +416,12 @@ class ImaginedConfig:
         ``light_decoder.frame_size`` (default ``rl.image_size``), a small fraction of the work per frame. The
         replay of real episodes then runs through it too (it measures the simulator GRPO trains in);
         evaluations, videos and metrics of the world model keep the full decoder.
+      start_encoding: how a keyframe's start latents (the first frame's and the context's) are made. ``window``
+        (default): the VAE encodes the first frame and the ``4 (k + 1)`` frames up to the keyframe, the oldest
+        four only warming its causal cache (:func:`~sword_jax.rl.world_model_sim.encode_history`; before frame 0
+        the window repeats it). ``prefix``: it encodes the episode from its first frame to the keyframe
+        (:func:`~sword_jax.rl.world_model_sim.encode_prefix`), as the latents stage encodes whole episodes, so the
+        context is exactly the latent the world model was trained on; the longer video costs more encoding.
     """
 
     max_chunks: int = 8
@@ -439,6 +446,7 @@ class ImaginedConfig:
     reward: str = "detector"  # detector | executed: what pays an imagined trajectory (see above)
     fidelity_trajectories: int = 64  # with reward=executed: trajectories whose closed loop is compared; 0 = off
     calibrate_steps: int = 0  # with reward=calibrated: steps paid by execution that set the detector's threshold
+    start_encoding: str = "window"  # window | prefix: how a keyframe's context latents are encoded (see above)
 
     @property
     def executes(self) -> bool:
@@ -473,6 +481,9 @@ class ImaginedConfig:
             raise ValueError(f"rl.imagined.keyframe_from must be in [0, rl.imagined.keyframe_fraction] (the keyframes' "
                              f"window of each demonstration), got keyframe_from={self.keyframe_from} with "
                              f"keyframe_fraction={self.keyframe_fraction}")
+        if self.start_encoding not in START_ENCODINGS:
+            raise ValueError(f"rl.imagined.start_encoding must be {'|'.join(START_ENCODINGS)}, got "
+                             f"{self.start_encoding!r}")
         if self.return_rule not in ("success", "score"):
             raise ValueError(f"rl.imagined.return_rule must be success|score, got {self.return_rule!r}")
         if self.proprio not in ("reckoned", "missing"):

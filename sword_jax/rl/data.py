@@ -205,7 +205,7 @@ def sample_mixed_reward_batch(sources: Sequence[tuple[EpisodeSet, np.ndarray, fl
 
 def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
                     min_fraction: float = 0.0, num_context: int = 1, frames_per_latent: int = 4,
-                    rows: np.ndarray | None = None) -> dict[str, Any]:
+                    rows: np.ndarray | None = None, prefix_latents: int | None = None) -> dict[str, Any]:
     """Start states for imagined rollouts at latent-aligned keyframes between fractions ``min_fraction`` and
     ``max_fraction`` of episodes (WoVR keyframes), with the real history a world model conditions on.
 
@@ -217,8 +217,17 @@ def keyframe_starts(episodes: EpisodeSet, count: int, rng: np.random.Generator, 
     ep, t = keyframe_indices(episodes, count, rng, max_fraction=max_fraction, min_fraction=min_fraction,
                              num_context=num_context, frames_per_latent=frames_per_latent, rows=rows)
     window = keyframe_window(episodes.frames, episodes.actions, episodes.proprio, ep, t, num_context=num_context,
-                             frames_per_latent=frames_per_latent)
+                             frames_per_latent=frames_per_latent, prefix_latents=prefix_latents)
     return dict(window, instructions=[episodes.instructions[i] for i in ep])
+
+
+def prefix_latents_for(episodes: EpisodeSet, *, max_fraction: float, num_context: int = 1,
+                       frames_per_latent: int = 4) -> int:
+    """The latents after the first that :func:`keyframe_window`'s ``prefix`` must hold so that every keyframe
+    :func:`keyframe_indices` can draw from ``episodes`` (up to fraction ``max_fraction``) lies in it: one fixed
+    length per run, so the encoder compiles once."""
+    last = np.maximum((episodes.lengths - 1) * max_fraction // frames_per_latent, num_context)
+    return int(np.max(last))
 
 
 def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
@@ -248,11 +257,18 @@ def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator,
 
 
 def keyframe_window(frames: np.ndarray, actions: np.ndarray, proprio: np.ndarray, ep: np.ndarray, t: np.ndarray, *,
-                    num_context: int = 1, frames_per_latent: int = 4) -> dict[str, np.ndarray]:
+                    num_context: int = 1, frames_per_latent: int = 4,
+                    prefix_latents: int | None = None) -> dict[str, np.ndarray]:
     """What a world model starting at frame ``t`` of episode ``ep`` conditions on, laid out as a training
     segment: ``frame``/``proprio`` at ``t``, the episode's ``first_frame``, ``history`` (the ``4 (k + 1)``
     frames up to ``t``, the oldest clamped at frame 0) and ``actions`` (``[1 + 4k, A]``: the first frame's
     action then the context frames').
+
+    With ``prefix_latents = S`` also ``prefix`` (``[n, 1 + 4 S, ...]``: the episode from frame 0, the frames after
+    ``t`` repeating frame ``t``) and ``latent_index`` (``[n]``: the latent that ends at ``t``, ``ceil(t / 4)``, at
+    least ``k``): a causal encoder's latents of the prefix up to that index are those of the whole episode
+    (:func:`~sword_jax.rl.world_model_sim.encode_prefix`). ``S`` must hold every ``latent_index``
+    (:func:`prefix_latents_for`).
 
     Args:
       frames / actions / proprio: ``[E, T, ...]`` episodes (frame t is seen before action t).
@@ -262,8 +278,16 @@ def keyframe_window(frames: np.ndarray, actions: np.ndarray, proprio: np.ndarray
     hist_idx = np.maximum(t[:, None] - f * (k + 1) + 1 + np.arange(f * (k + 1))[None], 0)
     act_idx = np.concatenate([np.zeros((len(ep), 1), np.int64),
                               np.maximum(t[:, None] - f * k + 1 + np.arange(f * k)[None], 0)], axis=1)
-    return {"episode": ep, "t": t, "frame": frames[ep, t], "proprio": proprio[ep, t], "first_frame": frames[ep, 0],
-            "history": frames[ep[:, None], hist_idx], "actions": actions[ep[:, None], act_idx]}
+    out = {"episode": ep, "t": t, "frame": frames[ep, t], "proprio": proprio[ep, t], "first_frame": frames[ep, 0],
+           "history": frames[ep[:, None], hist_idx], "actions": actions[ep[:, None], act_idx]}
+    if prefix_latents is not None:
+        index = np.maximum(-(-np.asarray(t) // f), k).astype(np.int64)
+        if np.any(index > prefix_latents):
+            raise ValueError(f"keyframe_window: prefix_latents={prefix_latents} does not hold keyframes up to latent "
+                             f"{int(index.max())}")
+        prefix_idx = np.minimum(np.arange(1 + f * prefix_latents)[None], np.asarray(t)[:, None])
+        out.update(prefix=frames[ep[:, None], prefix_idx], latent_index=index)
+    return out
 
 
 def load_episodes(paths: Sequence[str], *, read: Callable[[str], tuple[Any, Sequence[Any]]] | None = None,

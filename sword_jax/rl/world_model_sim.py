@@ -149,6 +149,33 @@ def encode_history(
     return jnp.concatenate([latents[:, :1], latents[:, 2:]], axis=1)
 
 
+def encode_prefix(
+    vae_graphdef: nnx.GraphDef,
+    vae_state: Any,
+    prefix: Float[Array, "n f h w 3"],
+    latent_index: Any,
+    *,
+    num_context: int = 1,
+) -> Float[Array, "n l hl wl z"]:
+    """Start latents ``[first, k context]`` encoded from each episode's first frame on, as training saw them.
+
+    The latents stage encodes whole episodes with the causal VAE, so a context latent carries everything its
+    encoder cache saw since frame 0; :func:`encode_history`'s short window gives it only four frames of that.
+    Here the VAE encodes ``prefix`` (``[n, 1 + 4 S, H, W, 3]`` in [0, 1], from frame 0;
+    :func:`~sword_jax.rl.data.keyframe_window` with ``prefix_latents``) and each row keeps its latent 0 and the
+    ``k`` latents ending at ``latent_index [n]``. The encoder is causal, so the frames after the keyframe (whatever
+    they are) change none of them: they equal the whole episode's latents there.
+    """
+    index = jnp.asarray(latent_index, jnp.int32)
+    video = jnp.asarray(prefix, jnp.float32) * 2.0 - 1.0
+    latents = vae_api.encode(vae_graphdef, vae_state, video, check_values=False)  # (n, 1 + S, ...)
+    if latents.shape[1] <= int(num_context):
+        raise ValueError(f"encode_prefix: a prefix of {prefix.shape[1]} frames holds no {num_context} context latents")
+    rows = index[:, None] - num_context + 1 + jnp.arange(num_context)[None]  # (n, k): the context latents' indices
+    context = jnp.take_along_axis(latents, rows.reshape(rows.shape + (1,) * (latents.ndim - 2)), axis=1)
+    return jnp.concatenate([latents[:, :1], context], axis=1)
+
+
 def world_model_simulator(
     wm_graphdef: nnx.GraphDef,
     wm_state: Any,
