@@ -22,6 +22,9 @@ the start latents are encoded, ``rl.imagined.start_encoding``, the same keyframe
   floor of frame error and gap; with ``--probe`` (a state probe: a pipeline's ``probe/probe.npz``) also where the
   arm, the bowl and the gripper of the simulator's frame are against the real frame's as the probe reads both,
   beside how far they moved on the real frames: which part of the imagined scene leaves the real one first;
+* how far each variant's start context latents are from the same keyframes encoded from their episodes' first frame
+  (``start_context_error``, relative; 0 with ``rl.imagined.start_encoding=prefix``): what the world model was trained
+  on, since the latents stage encodes whole episodes;
 * each variant against the first, trajectory by trajectory (the same start and keys): the difference of what
   reality paid, with Newcombe's paired interval.
 
@@ -187,6 +190,18 @@ def make_real(graphdef: Any, rl: Any, env: Any, *, max_steps: int) -> Callable[.
     return real
 
 
+def start_context_error(batches: Sequence[tuple], exact: Sequence[tuple]) -> float:
+    """Mean over the start states of their context latents' relative error (norm of the difference over the norm)
+    against ``exact``'s, the same keyframes encoded from their episodes' first frame
+    (``rl.imagined.start_encoding=prefix``, the latents the world model was trained on); 0 for those themselves."""
+    errors = []
+    for (start, _), (truth, _) in zip(batches, exact):
+        ctx, ref = np.asarray(start.latents[0])[:, 1:], np.asarray(truth.latents[0])[:, 1:]
+        axes = tuple(range(1, ctx.ndim))
+        errors.append(np.sqrt(np.sum(np.square(ctx - ref), axis=axes) / np.sum(np.square(ref), axis=axes)))
+    return float(np.mean(np.concatenate(errors)))
+
+
 def rate(outcomes: np.ndarray) -> dict[str, Any]:
     """A success rate with its 95% Wilson interval (:func:`~sword_jax.rl.sim_agreement.wilson_rate`) and its count."""
     from sword_jax.rl.sim_agreement import wilson_rate
@@ -229,6 +244,8 @@ def line(row: dict[str, Any]) -> str:
             f"reality paid {paid['rate']:.3f} [{paid['ci95'][0]:.3f}, {paid['ci95'][1]:.3f}] of {paid['of']}")
     if "detector" in row:
         text += f", the detector said {row['detector']['rate']:.3f}"
+    if "start_context_error" in row:
+        text += f", start context {row['start_context_error']:.3f} from training's encoding"
     if row.get("decisions"):
         a, b = row["decisions"][0], row["decisions"][-1]
         text += (f"; frame error {a['frame_error']:.3f} -> {b['frame_error']:.3f}, action gap "
@@ -249,12 +266,14 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
                      overrides: dict[str, Sequence[str]] | None = None, log: Callable[[str], Any] = print,
                      on_row: Callable[[dict[str, Any]], Any] | None = None,
                      read_state: Callable[[jax.Array], jax.Array] | None = None,
-                     gripper_closed_below: float = 0.04) -> dict[str, Any]:
+                     gripper_closed_below: float = 0.04, start_errors: dict[str, float] | None = None
+                     ) -> dict[str, Any]:
     """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs; or per variant
     name its own, the same keyframes encoded its way: ``rl.imagined.start_encoding``) and ``keys``,
     and with ``real_fn`` (:func:`make_real`) the ``real`` row on the same starts; ``on_row(out so far)`` after each
     row (e.g. a run stopped by its time limit keeps the rows measured); ``read_state`` adds the state probe's figures
-    (:func:`make_measure`)."""
+    (:func:`make_measure`); ``start_errors`` (per variant, :func:`start_context_error`) joins each row as
+    ``start_context_error``."""
     measure = jax.jit(make_measure(graphdef, rl, env, read_state=read_state,
                                    gripper_closed_below=gripper_closed_below))
     own_batches = (lambda name: batches[name]) if isinstance(batches, dict) else (lambda name: batches)  # noqa: E731
@@ -264,6 +283,8 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
                 for (start, env_starts), key in zip(own_batches(name), keys)]
         row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
+        if start_errors and name in start_errors:
+            row["start_context_error"] = start_errors[name]
         row["seconds"] = time.perf_counter() - began
         if first is None:
             first = np.concatenate([o["real"] for o in outs]).astype(bool)
@@ -404,6 +425,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
         # the same keyframes in every variant (the run's keyframe stream); their latents as the variant encodes them
         batches[name] = [(setup_v.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup_v.env_starts(i)))
                          for i in range(args.batches)]
+    # the same keyframes encoded from their episodes' first frame: how far each variant's start context is from them
+    exact_cfg = apply_overrides(cfg, ["--rl.imagined.start_encoding=prefix"])
+    exact_setup = setup_from_weights(exact_cfg, exact_cfg.rl, episodes, world_model=world_model, vae=vae,
+                                     detector=detector)
+    exact = [(exact_setup.starts(jax.random.fold_in(starts_key, i), i), None) for i in range(args.batches)]
+    context_errors = {name: start_context_error(own, exact) for name, own in batches.items()}
     keys = [jax.random.fold_in(update_key, i) for i in range(args.batches)]  # GRPO step i's rollout key
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)
     horizon = rl.imagined.max_chunks * rl.imagined_actions_per_decision
@@ -421,7 +448,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         write_json_atomic(path, dict(out, **about, seconds=round(time.time() - began, 1)))
 
     out = measure_variants(graphdef, params, rl, simulators, batches, keys, env=env, real_fn=real_fn,
-                           overrides=variants, on_row=save, read_state=read_state, gripper_closed_below=closed_below)
+                           overrides=variants, on_row=save, read_state=read_state, gripper_closed_below=closed_below,
+                           start_errors=context_errors)
     save(out)
     if args.record:
         from benchmarks.common import merge_results

@@ -1451,6 +1451,19 @@ def closed_loop_world_models_decisions(record: tuple[str, ...] = CLOSED_LOOP_WOR
                    "the VAE alone"], rows)
 
 
+START_LATENTS = ("policy", "start_latents_tiny_cpu", "start_latents.json")
+
+
+def start_latents(record: tuple[str, ...] = START_LATENTS) -> str:
+    """``bench_start_latents``: per keyframe, how far each way of encoding GRPO's start context is from the whole
+    episode's latent there (relative error, median and largest over the episodes)."""
+    rows = [[f"{r['frame']} (latent {r['latent']})", str(r["episodes"]),
+             *(f"{r[way]['median']:.3f} ({r[way]['max']:.3f})" for way in ("window", "still", "prefix"))]
+            for r in _load(*record)["rows"]]
+    return _table(["keyframe: frame", "episodes", "window (the default): median (largest)",
+                   "the keyframe held still", "from the first frame (start_encoding=prefix)"], rows)
+
+
 HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
 HORIZON_SIGNAL_GROUPS = 32  # its run.sh's --rl.grpo.rollout_batch: start states (groups of 8) a step
 HORIZON_SIGNAL_STARTS = {2: "every phase", 4: "every phase", 12: "the first half (the learned simulator's setting)"}
@@ -2255,6 +2268,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-noise": closed_loop_noise,
     "closed-loop-world-models": closed_loop_world_models,
     "closed-loop-world-models-decisions": closed_loop_world_models_decisions,
+    "start-latents": start_latents,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
     "grpo-branched-open": grpo_branched_open,

@@ -264,3 +264,15 @@ def test_variants_may_each_bring_their_own_start_states():
                                    log=lambda _: None)
     assert other["variants"][0]["decisions"] == shared["variants"][0]["decisions"]
     assert other["variants"][1]["decisions"] != shared["variants"][1]["decisions"], "b measured its own starts"
+
+
+def test_the_start_context_error_is_relative_and_zero_for_the_exact_encoding():
+    from sword_jax.rl.learned_simulator import StartState
+
+    def start(context):
+        latents = jnp.stack([jnp.ones((2, 2, 1)), jnp.asarray(context, jnp.float32)])[None]  # [1, 1 + k, h, w, z]
+        return StartState(jnp.zeros((8, 8, 3)), jnp.zeros(4), jnp.zeros(4, jnp.int32), (latents, jnp.zeros((1, 5, 7))))
+
+    exact = [(start(np.full((2, 2, 1), 2.0)), None)]
+    assert bench.start_context_error(exact, exact) == 0.0
+    assert bench.start_context_error([(start(np.full((2, 2, 1), 2.5)), None)], exact) == pytest.approx(0.25)

@@ -529,3 +529,15 @@ def test_prefix_start_latents_are_the_whole_episodes_latents_the_window_ones_are
     assert errors["window"][later, 1].min() > 0.05, errors["window"]
     with pytest.raises(ValueError, match="start_encoding"):
         ImaginedConfig(start_encoding="whole").validate()
+
+
+def test_prefix_encoding_in_slices_of_rows_is_the_same():
+    from sword_jax.rl.world_model_sim import encode_prefix
+
+    cfg, _, _, vae_graphdef, vae_state = _tiny_models()
+    prefix = jax.random.uniform(jax.random.key(0), (5, 9, cfg.data.image_size, cfg.data.image_size, 3))
+    index = np.array([1, 2, 2, 1, 2])
+    whole = encode_prefix(vae_graphdef, vae_state, prefix, index, frames_per_call=10_000)
+    sliced = encode_prefix(vae_graphdef, vae_state, prefix, index, frames_per_call=18)  # two rows a call
+    np.testing.assert_allclose(np.asarray(sliced), np.asarray(whole), rtol=1e-5, atol=1e-5)
+    assert whole.shape[:2] == (5, 2)

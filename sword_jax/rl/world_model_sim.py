@@ -156,6 +156,7 @@ def encode_prefix(
     latent_index: Any,
     *,
     num_context: int = 1,
+    frames_per_call: int = 2048,
 ) -> Float[Array, "n l hl wl z"]:
     """Start latents ``[first, k context]`` encoded from each episode's first frame on, as training saw them.
 
@@ -164,11 +165,15 @@ def encode_prefix(
     Here the VAE encodes ``prefix`` (``[n, 1 + 4 S, H, W, 3]`` in [0, 1], from frame 0;
     :func:`~sword_jax.rl.data.keyframe_window` with ``prefix_latents``) and each row keeps its latent 0 and the
     ``k`` latents ending at ``latent_index [n]``. The encoder is causal, so the frames after the keyframe (whatever
-    they are) change none of them: they equal the whole episode's latents there.
+    they are) change none of them: they equal the whole episode's latents there. The rows are encoded a slice at a
+    time, at most ``frames_per_call`` frames each (long prefixes of many starts would not fit at once).
     """
     index = jnp.asarray(latent_index, jnp.int32)
-    video = jnp.asarray(prefix, jnp.float32) * 2.0 - 1.0
-    latents = vae_api.encode(vae_graphdef, vae_state, video, check_values=False)  # (n, 1 + S, ...)
+    rows_per_call = max(1, int(frames_per_call) // int(prefix.shape[1]))
+    latents = jnp.concatenate([
+        vae_api.encode(vae_graphdef, vae_state, jnp.asarray(prefix[i:i + rows_per_call], jnp.float32) * 2.0 - 1.0,
+                       check_values=False)
+        for i in range(0, prefix.shape[0], rows_per_call)])  # (n, 1 + S, ...)
     if latents.shape[1] <= int(num_context):
         raise ValueError(f"encode_prefix: a prefix of {prefix.shape[1]} frames holds no {num_context} context latents")
     rows = index[:, None] - num_context + 1 + jnp.arange(num_context)[None]  # (n, k): the context latents' indices
