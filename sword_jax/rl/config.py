@@ -421,7 +421,9 @@ class ImaginedConfig:
         four only warming its causal cache (:func:`~sword_jax.rl.world_model_sim.encode_history`; before frame 0
         the window repeats it). ``prefix``: it encodes the episode from its first frame to the keyframe
         (:func:`~sword_jax.rl.world_model_sim.encode_prefix`), as the latents stage encodes whole episodes, so the
-        context is exactly the latent the world model was trained on; the longer video costs more encoding.
+        context is exactly the latent the world model was trained on; the longer video costs more encoding. It sets
+        the start states of GRPO's steps (and ``bench_closed_loop``'s); the replays of real episodes and the
+        refresh's segments keep the window.
     """
 
     max_chunks: int = 8
