@@ -1398,14 +1398,13 @@ CLOSED_LOOP_WORLD_MODEL_RUNS = {
 }
 
 
-def _world_model_figures(folder: str, last_steps: int = 500) -> dict:
+def _world_model_figures(record: tuple[str, ...], last_steps: int = 500) -> dict:
     """A world-model run's training loss (mean over its last ``last_steps`` logged steps) and its last evaluation's
     one-call sample error (5 Euler steps, real context) on fixed held-out expert and policy segments."""
-    with open(os.path.join(folder, "world_model_metrics.jsonl")) as f:
-        rows = [json.loads(line) for line in f if line.strip()]
+    rows, measured = _world_model_metrics(record, ("world_model_metrics.jsonl",))
     end = max(r["step"] for r in rows)
     losses = [r["loss"] for r in rows if "loss" in r and r["step"] > end - last_steps]
-    evaluated = [r for r in rows if "eval_heldout_sample_error_5" in r][-1]
+    evaluated = measured[max(measured)]
     return dict(steps=end, loss=sum(losses) / len(losses), expert=evaluated["eval_heldout_sample_error_5"],
                 policy=evaluated["eval_policy_sample_error_5"])
 
@@ -1418,10 +1417,9 @@ def closed_loop_world_models(record: tuple[str, ...] = CLOSED_LOOP_WORLD_MODELS,
     and what the detector said; then the policy on MJX's own frames (run ``a``'s ``real`` row)."""
     rows, real = [], None
     for run, what in CLOSED_LOOP_WORLD_MODEL_RUNS.items():
-        folder = os.path.join(RESULTS_DIR, *record, run)
         out = _load(*record, run, "closed_loop.json")
         real = real or out.get("real")
-        v, fig = out["variants"][0], _world_model_figures(folder)
+        v, fig = out["variants"][0], _world_model_figures((*record, run))
         by = {d["decision"]: d for d in v["decisions"]}
         false, failures = _false_successes(v)
         rows.append([what, f"{fig['loss']:.3f}", f"{fig['expert']:.4f} / {fig['policy']:.4f}",
@@ -1785,10 +1783,12 @@ WORLD_MODEL_HELDOUT = ("policy", "world_model_heldout_30k_small_h200")
 HELDOUT_STEPS = (1000, 2000, 5000, 10000, 20000, 30000)
 
 
-def _world_model_metrics(record: tuple[str, ...]) -> tuple[list[dict], dict[int, dict]]:
-    """``record``'s ``pipeline/world_model/metrics.jsonl``: every logged row, and the rows of the steps where the
-    trainer measured its fixed segments (:mod:`sword_jax.world_model.heldout`) by step."""
-    with open(os.path.join(RESULTS_DIR, *record, "pipeline", "world_model", "metrics.jsonl")) as f:
+def _world_model_metrics(record: tuple[str, ...], file: tuple[str, ...] = ("pipeline", "world_model", "metrics.jsonl")
+                         ) -> tuple[list[dict], dict[int, dict]]:
+    """``record``'s world-model metrics (``file`` in it, the pipeline's ``metrics.jsonl`` by default): every logged
+    row, and the rows of the steps where the trainer measured its fixed segments (:mod:`sword_jax.world_model.heldout`)
+    by step."""
+    with open(os.path.join(RESULTS_DIR, *record, *file)) as f:
         logged = [json.loads(line) for line in f if line.strip()]
     return logged, {r["step"]: r for r in logged if "eval_heldout_loss" in r}
 
