@@ -194,12 +194,11 @@ def start_context_error(batches: Sequence[tuple], exact: Sequence[tuple]) -> flo
     """Mean over the start states of their context latents' relative error (norm of the difference over the norm)
     against ``exact``'s, the same keyframes encoded from their episodes' first frame
     (``rl.imagined.start_encoding=prefix``, the latents the world model was trained on); 0 for those themselves."""
-    errors = []
-    for (start, _), (truth, _) in zip(batches, exact):
-        ctx, ref = np.asarray(start.latents[0])[:, 1:], np.asarray(truth.latents[0])[:, 1:]
-        axes = tuple(range(1, ctx.ndim))
-        errors.append(np.sqrt(np.sum(np.square(ctx - ref), axis=axes) / np.sum(np.square(ref), axis=axes)))
-    return float(np.mean(np.concatenate(errors)))
+    from benchmarks.bench_start_latents import relative_error
+
+    return float(np.mean(np.concatenate([
+        relative_error(np.asarray(start.latents[0])[:, 1:], np.asarray(truth.latents[0])[:, 1:])
+        for (start, _), (truth, _) in zip(batches, exact)])))
 
 
 def rate(outcomes: np.ndarray) -> dict[str, Any]:
@@ -276,12 +275,13 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
     ``start_context_error``."""
     measure = jax.jit(make_measure(graphdef, rl, env, read_state=read_state,
                                    gripper_closed_below=gripper_closed_below))
-    own_batches = (lambda name: batches[name]) if isinstance(batches, dict) else (lambda name: batches)  # noqa: E731
+    if not isinstance(batches, dict):  # the same batches for every variant
+        batches = dict.fromkeys(simulators, batches)
     rows, first = [], None
     for name, (sim, reward_model) in simulators.items():
         began = time.perf_counter()
         outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
-                for (start, env_starts), key in zip(own_batches(name), keys)]
+                for (start, env_starts), key in zip(batches[name], keys)]
         row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
         if start_errors and name in start_errors:
             row["start_context_error"] = start_errors[name]
@@ -297,7 +297,7 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         began = time.perf_counter()
         run = jax.jit(real_fn)
         success = np.concatenate([np.asarray(jax.device_get(run(params, start, env_starts, key)))
-                                  for (start, env_starts), key in zip(own_batches(next(iter(simulators))),
+                                  for (start, env_starts), key in zip(batches[next(iter(simulators))],
                                                                       keys)]).astype(bool)
         out["real"] = {"name": "real", "paid": rate(success), "seconds": time.perf_counter() - began}
         log(line(out["real"]))
@@ -358,7 +358,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                         "are against the real frame's, read by it")
     parser.add_argument("--policy", help="the policy measured (.npz of bench_policy, or train_policy)")
     parser.add_argument("--variant", action="append", default=[], metavar="NAME=flow.KEY=VALUE[,...]",
-                        help="an inference setting of the world model (repeatable; the first is the paired reference)")
+                        help="an inference setting of the world model (flow.*) or rl.imagined.start_encoding "
+                             "(repeatable; the first is the paired reference)")
     parser.add_argument("--batches", type=int, default=2, help="GRPO steps' start states measured (x rollout batch x G)")
     parser.add_argument("--no-real", action="store_true", help="leave out the policy on MJX's own frames")
     parser.add_argument("--out", help="folder of closed_loop.json")
@@ -426,10 +427,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         batches[name] = [(setup_v.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup_v.env_starts(i)))
                          for i in range(args.batches)]
     # the same keyframes encoded from their episodes' first frame: how far each variant's start context is from them
-    exact_cfg = apply_overrides(cfg, ["--rl.imagined.start_encoding=prefix"])
-    exact_setup = setup_from_weights(exact_cfg, exact_cfg.rl, episodes, world_model=world_model, vae=vae,
-                                     detector=detector)
-    exact = [(exact_setup.starts(jax.random.fold_in(starts_key, i), i), None) for i in range(args.batches)]
+    # (a variant that encodes them so already holds them)
+    exact = next((batches[name] for name, pairs in variants.items()
+                  if apply_overrides(cfg, [f"--{p}" for p in pairs]).rl.imagined.start_encoding == "prefix"), None)
+    if exact is None:
+        exact_cfg = apply_overrides(cfg, ["--rl.imagined.start_encoding=prefix"])
+        exact_setup = setup_from_weights(exact_cfg, exact_cfg.rl, episodes, world_model=world_model, vae=vae,
+                                         detector=detector)
+        exact = [(exact_setup.starts(jax.random.fold_in(starts_key, i), i), None) for i in range(args.batches)]
     context_errors = {name: start_context_error(own, exact) for name, own in batches.items()}
     keys = [jax.random.fold_in(update_key, i) for i in range(args.batches)]  # GRPO step i's rollout key
     env = MjxEpisodes(cfg.sim, resolution=cfg.sim.resolution)

@@ -41,6 +41,12 @@ from sword_jax.atomic_write import write_json_atomic
 WAYS = ("window", "still", "prefix")
 
 
+def relative_error(latents: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Per row (leading axis), the norm of ``latents - reference`` over the norm of ``reference``."""
+    axes = tuple(range(1, reference.ndim))
+    return np.sqrt(np.sum(np.square(latents - reference), axis=axes) / np.sum(np.square(reference), axis=axes))
+
+
 def relative_errors(vae_graphdef: Any, vae_state: Any, frames: np.ndarray, lengths: np.ndarray, latents: Sequence[int],
                     *, num_context: int = 1, frames_per_latent: int = 4) -> dict[int, dict[str, np.ndarray]]:
     """Per keyframe latent ``s`` in ``latents`` and per way (:data:`WAYS`), the context latent's relative error
@@ -78,18 +84,16 @@ def relative_errors(vae_graphdef: Any, vae_state: Any, frames: np.ndarray, lengt
             "prefix": encode_prefix(vae_graphdef, vae_state, unit(window["prefix"]), window["latent_index"],
                                     num_context=k),
         }
-        axes = tuple(range(1, whole.ndim))
-        norm = np.sqrt(np.sum(np.square(whole), axis=axes))
-        out[s] = {way: np.sqrt(np.sum(np.square(np.asarray(z)[:, -1] - whole), axis=axes)) / norm
-                  for way, z in ways.items()}
+        out[s] = {way: relative_error(np.asarray(z)[:, -1], whole) for way, z in ways.items()}
     return out
 
 
-def summary(errors: dict[int, dict[str, np.ndarray]]) -> list[dict[str, Any]]:
+def summary(errors: dict[int, dict[str, np.ndarray]], frames_per_latent: int = 4) -> list[dict[str, Any]]:
     """One row per keyframe latent: its frame, the episodes measured, and per way the median and largest error."""
     rows = []
     for s, ways in sorted(errors.items()):
-        row: dict[str, Any] = {"latent": s, "frame": 4 * s, "episodes": int(next(iter(ways.values())).size)}
+        row: dict[str, Any] = {"latent": s, "frame": frames_per_latent * s,
+                               "episodes": int(next(iter(ways.values())).size)}
         for way, e in ways.items():
             row[way] = {"median": float(np.median(e)), "max": float(np.max(e))}
         rows.append(row)
@@ -140,7 +144,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     n = min(args.max_episodes, episodes.num_episodes)
     errors = relative_errors(vae_graphdef, vae_state, episodes.frames[:n], episodes.lengths[:n], latents,
                              num_context=k, frames_per_latent=cfg.vae.temporal_factor)
-    rows = summary(errors)
+    rows = summary(errors, cfg.vae.temporal_factor)
     for row in rows:
         print(line(row))
     out = {"rows": rows, "config": cfg.name, "vae": args.vae, "episodes": args.episodes, "device": device_name(),

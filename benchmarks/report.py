@@ -1390,11 +1390,13 @@ def closed_loop_noise(record: tuple[str, ...] = CLOSED_LOOP_NOISE, decisions: tu
 
 CLOSED_LOOP_WORLD_MODELS = ("policy", "closed_loop_world_models_small_h200")
 # its launch.sh's four world models, one folder each, trained on the same data, VAE and latents
+# run -> (its row's words, its column's words)
 CLOSED_LOOP_WORLD_MODEL_RUNS = {
-    "a": "DLB as configured (the cache written with the one-step estimate)",
-    "b": "DLB, the cache written with the flow sampler's own samples (5 Euler steps, as inference)",
-    "c": "teacher forcing (DLB off)",
-    "d": "DLB as configured, with WoVR's context noise (std 0.1)",
+    "a": ("DLB as configured (the cache written with the one-step estimate)", "DLB (one-step writes)"),
+    "b": ("DLB, the cache written with the flow sampler's own samples (5 Euler steps, as inference)",
+          "DLB (sampler writes)"),
+    "c": ("teacher forcing (DLB off)", "teacher forcing"),
+    "d": ("DLB as configured, with WoVR's context noise (std 0.1)", "DLB + context noise"),
 }
 
 
@@ -1416,7 +1418,7 @@ def closed_loop_world_models(record: tuple[str, ...] = CLOSED_LOOP_WORLD_MODELS,
     GRPO's closed loop the frame error and greedy action gap at ``decisions``, what reality paid the imagined actions
     and what the detector said; then the policy on MJX's own frames (run ``a``'s ``real`` row)."""
     rows, real = [], None
-    for run, what in CLOSED_LOOP_WORLD_MODEL_RUNS.items():
+    for run, (what, _) in CLOSED_LOOP_WORLD_MODEL_RUNS.items():
         out = _load(*record, run, "closed_loop.json")
         real = real or out.get("real")
         v, fig = out["variants"][0], _world_model_figures((*record, run))
@@ -1443,9 +1445,8 @@ def closed_loop_world_models_decisions(record: tuple[str, ...] = CLOSED_LOOP_WOR
     first = runs["a"]
     rows = [[str(k), *(f"{runs[run][k]['frame_error']:.3f}" for run in runs), f"{first[k]['motion']:.3f}",
              f"{first[k]['frame_error_vae']:.3f}"] for k in sorted(first)]
-    names = {"a": "DLB (one-step writes)", "b": "DLB (sampler writes)", "c": "teacher forcing",
-             "d": "DLB + context noise"}
-    return _table(["decision", *(f"frame error: {names[run]}" for run in runs), "real motion over the decision",
+    return _table(["decision", *(f"frame error: {CLOSED_LOOP_WORLD_MODEL_RUNS[run][1]}" for run in runs),
+                   "real motion over the decision",
                    "the VAE alone"], rows)
 
 
