@@ -1450,17 +1450,60 @@ def closed_loop_world_models_decisions(record: tuple[str, ...] = CLOSED_LOOP_WOR
                    "the VAE alone"], rows)
 
 
-START_LATENTS = ("policy", "start_latents_tiny_cpu", "start_latents.json")
+# each VAE's run: its row's words -> the record's path
+START_LATENTS = {"small, 8x VAE (600 steps; one H200)": ("policy", "closed_loop_starts_small_h200", "start_latents.json"),
+                 "tiny (2,000 steps; 2-core CPU)": ("policy", "start_latents_tiny_cpu", "start_latents.json")}
 
 
-def start_latents(record: tuple[str, ...] = START_LATENTS) -> str:
-    """``bench_start_latents``: per keyframe, how far each way of encoding GRPO's start context is from the whole
-    episode's latent there (relative error, median and largest over the episodes)."""
-    rows = [[f"{r['frame']} (latent {r['latent']})", str(r["episodes"]),
+def start_latents(records: dict[str, tuple[str, ...]] = START_LATENTS) -> str:
+    """``bench_start_latents`` on each VAE of ``records``: per keyframe, how far each way of encoding GRPO's start
+    context is from the whole episode's latent there (relative error, median and largest over the episodes)."""
+    rows = [[vae, f"{r['frame']} (latent {r['latent']})", str(r["episodes"]),
              *(f"{r[way]['median']:.3f} ({r[way]['max']:.3f})" for way in ("window", "still", "prefix"))]
-            for r in _load(*record)["rows"]]
-    return _table(["keyframe: frame", "episodes", "window (the default): median (largest)",
+            for vae, record in records.items() for r in _load(*record)["rows"]]
+    return _table(["VAE", "keyframe: frame", "episodes", "window (the default): median (largest)",
                    "the keyframe held still", "from the first frame (start_encoding=prefix)"], rows)
+
+
+CLOSED_LOOP_STARTS = ("policy", "closed_loop_starts_small_h200")
+# its launch.sh's closed-loop runs: folder -> (world model's training steps, {variant: its row's words})
+CLOSED_LOOP_STARTS_RUNS = {
+    "loop_5k": ("5,000", {"w": "window starts (the default)", "p": "prefix starts"}),
+    "loop_10k": ("10,000", {"p": "prefix starts"}),
+    "loop_10k_sampler": ("10,000", {"s10": "prefix starts, 10 Euler steps a chunk (5 configured)",
+                                    "n0": "prefix starts, noise scale 0 (one deterministic sample)"}),
+}
+
+
+def closed_loop_starts(record: tuple[str, ...] = CLOSED_LOOP_STARTS, decisions: tuple[int, ...] = (1, 6, 11)) -> str:
+    """GRPO's closed loop through one pipeline's world models (``CLOSED_LOOP_STARTS_RUNS``) from the same keyframes and
+    keys: per setting its start context's error, at ``decisions`` the frame error, the greedy action gap, where the
+    state probe puts the arm against the real frame and how often it reads the gripper alike, then what reality paid
+    the imagined actions, what the detector said and the real failures it called successes; then the policy on MJX's
+    own frames, and the floors (the VAE's frame error and the probe's held-out error on real frames)."""
+    rows, real, vae = [], None, None
+    for folder, (steps, names) in CLOSED_LOOP_STARTS_RUNS.items():
+        out = _load(*record, folder, "closed_loop.json")
+        real = real or out.get("real")
+        for v in out["variants"]:
+            by = {d["decision"]: d for d in v["decisions"]}
+            vae = vae or by
+            false, failures = _false_successes(v)
+            cell = lambda key, form: " / ".join(form.format(by[k][key]) for k in decisions)  # noqa: E731
+            rows.append([steps, names[v["name"]], f"{v['start_context_error']:.3f}", cell("frame_error", "{:.3f}"),
+                         cell("action_gap", "{:.3f}"), cell("ee_cm", "{:.1f}"), cell("gripper_agree", "{:.2f}"),
+                         _paid(v["paid"]), f"{v['detector']['rate']:.3f}", f"{false / failures:.3f}"])
+    probe = _load(*record, "stages", "probe.json")["results"]
+    rows.append(["", "floors: the VAE's round trip of the real frames; the probe on held-out real frames", "",
+                 " / ".join(f"{vae[k]['frame_error_vae']:.3f}" for k in decisions), "",
+                 f"{probe['holdout_ee_cm']:.1f}", f"{probe['holdout_gripper_acc']:.2f}", "", "", ""])
+    rows.append(["", "the policy on MJX's own frames", "", "", "", "", "", _paid(real["paid"]), "", ""])
+    ks = ", ".join(str(k) for k in decisions)
+    return _table(["world model's training steps", "setting", "start context against training's (relative)",
+                   f"frame error, decisions {ks}", f"greedy action gap, decisions {ks}",
+                   f"arm: probe's reading apart, cm, decisions {ks}", f"gripper read alike, decisions {ks}",
+                   "real success of the imagined actions (95% interval)", "the detector said",
+                   "real failures it called successes"], rows)
 
 
 HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
@@ -2270,6 +2313,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-world-models": closed_loop_world_models,
     "closed-loop-world-models-decisions": closed_loop_world_models_decisions,
     "start-latents": start_latents,
+    "closed-loop-starts": closed_loop_starts,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
     "grpo-branched-open": grpo_branched_open,
