@@ -69,7 +69,8 @@ from sword_jax.atomic_write import write_json_atomic
 
 VARIANT = re.compile(r"([a-z0-9_]+)=(.+)")
 FIGURES = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion", "frame_error_vae",
-           "action_gap_vae", "ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm")
+           "action_gap_vae", "ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm", "ee_cm_vae",
+           "bowl_cm_vae", "gripper_agree_vae")
 
 
 def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]:
@@ -252,6 +253,9 @@ def line(row: dict[str, Any]) -> str:
         if "ee_cm" in a:
             text += (f", arm {a['ee_cm']:.1f} -> {b['ee_cm']:.1f} cm, bowl {a['bowl_cm']:.1f} -> {b['bowl_cm']:.1f} cm, "
                      f"gripper read alike {a['gripper_agree']:.2f} -> {b['gripper_agree']:.2f}")
+            if "ee_cm_vae" in a:  # the readouts' floor: the probe on the VAE's round trip of the real frames
+                text += (f" (on the VAE's round trip arm {a['ee_cm_vae']:.1f}, bowl {a['bowl_cm_vae']:.1f} cm, "
+                         f"gripper {a['gripper_agree_vae']:.2f})")
         text += f" (decisions {a['decision']} -> {b['decision']})"
     if "vs_first" in row:
         v = row["vs_first"]

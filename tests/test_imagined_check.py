@@ -441,6 +441,7 @@ def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round
     # the VAE's share only with a round trip, the state readouts only with a probe; without them the keys of before
     vae = ("frame_error_vae", "action_gap_vae") if round_trip is not None else ()
     probe = ("ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm") if read_state is not None else ()
+    probe += ("ee_cm_vae", "bowl_cm_vae", "gripper_agree_vae") if read_state is not None and vae else ()
     assert sorted(out) == sorted([f"closed_loop_{what}_{k}" for k in range(1, c)
                                   for what in ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev",
                                                "motion") + vae + probe])
@@ -502,6 +503,22 @@ def test_the_state_readout_places_the_gap_in_the_arm_or_the_bowl():
     shifted = _fidelity(STEP, figures=("ee_cm", "bowl_cm"), shift=0.1, read_state=_designed_probe)
     np.testing.assert_allclose(shifted[0], 10.0 * np.sqrt(3.0), rtol=1e-4)
     np.testing.assert_allclose(shifted[1], 20.0 * np.sqrt(3.0), rtol=1e-4)
+
+
+def test_the_state_readout_on_the_round_trip_is_the_floor_of_a_faithful_simulator_behind_that_decoder():
+    """A faithful simulator whose frames come out brightened by 0.1, and a round trip that brightens the real frames
+    by the same 0.1: the designed probe reads the round trip exactly as far off as the simulator's frames (the arm
+    sqrt(3) x 10 cm, the bowl twice that), so the whole readout gap is the floor; an identity round trip has none."""
+    ee, bowl, ee_vae, bowl_vae = _fidelity(STEP, figures=("ee_cm", "bowl_cm", "ee_cm_vae", "bowl_cm_vae"), shift=0.1,
+                                           round_trip=lambda f: f + 0.1, read_state=_designed_probe)
+    np.testing.assert_allclose(ee_vae, 10.0 * np.sqrt(3.0), rtol=1e-4)
+    np.testing.assert_allclose(bowl_vae, 20.0 * np.sqrt(3.0), rtol=1e-4)
+    np.testing.assert_allclose(ee, ee_vae, rtol=1e-4)
+    np.testing.assert_allclose(bowl, bowl_vae, rtol=1e-4)
+    ee_vae, agree_vae = _fidelity(STEP, figures=("ee_cm_vae", "gripper_agree_vae"), round_trip=lambda f: f,
+                                  read_state=_designed_probe)
+    np.testing.assert_allclose(ee_vae, 0.0, atol=1e-4)
+    np.testing.assert_array_equal(agree_vae, 1.0)
 
 
 def test_a_decoder_that_shifts_the_frames_is_the_whole_gap_of_a_faithful_simulator():

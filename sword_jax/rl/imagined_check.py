@@ -160,7 +160,11 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     (opening below ``gripper_closed_below``) or both open, and ``closed_loop_ee_motion_cm`` /
     ``closed_loop_bowl_motion_cm``, how far the readout moved on the real frames over the decision. An arm that goes
     where the actions send it has ``ee_cm`` near 0 whatever the bowl does; the readouts share the probe's own error
-    on real frames (its floor, recorded where the probe was trained)."""
+    on real frames (its floor, recorded where the probe was trained). With ``round_trip`` too, the same three on the
+    round-tripped real frames against the real ones, ``closed_loop_ee_cm_vae``, ``closed_loop_bowl_cm_vae`` and
+    ``closed_loop_gripper_agree_vae``: what the readouts show of a world model that predicted the real scene's
+    latents exactly (the probe's error on decoded frames plus the decoder's), the floor its ``ee_cm`` and
+    ``bowl_cm`` are read against."""
     m, c = real_frames.shape[:2]
     if rollout.obs_frames.shape[1] != c or m > rollout.obs_frames.shape[0]:
         raise ValueError(f"closed_loop_fidelity: real frames {real_frames.shape[:2]} do not match the rollout's "
@@ -192,8 +196,9 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
         seen = real_frames[:, :-1]
         seen = seen.astype(jnp.float32) / jnp.float32(255.0) if seen.dtype == jnp.uint8 else seen.astype(jnp.float32)
         tripped = round_trip(seen.reshape((m * (c - 1),) + seen.shape[2:]))
-        tripped = resize_frames(tripped.reshape((m, c - 1) + tripped.shape[1:]), image_size)
-        figures.update(frame_error_vae=error(tripped, real), action_gap_vae=gap(greedy(tripped), on_real))
+        tripped = tripped.reshape((m, c - 1) + tripped.shape[1:])  # at the simulator's frame size
+        at_policy = resize_frames(tripped, image_size)
+        figures.update(frame_error_vae=error(at_policy, real), action_gap_vae=gap(greedy(at_policy), on_real))
     if read_state is not None:  # each frame set read at its own size (the probe resizes): simulator's, real, start
         from sword_jax.evaluation.probe import BOWL, EE, GRIPPER
 
@@ -211,6 +216,11 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
                        gripper_agree=(closed(on_sim) == closed(on_env)).astype(jnp.float32),
                        ee_motion_cm=cm(on_env[..., EE], before[..., EE]),
                        bowl_motion_cm=cm(on_env[..., BOWL], before[..., BOWL]))
+        if round_trip is not None:  # the probe on the decoder's view of the real frames: the readouts' floor
+            on_tripped = state(tripped)
+            figures.update(ee_cm_vae=cm(on_tripped[..., EE], on_env[..., EE]),
+                           bowl_cm_vae=cm(on_tripped[..., BOWL], on_env[..., BOWL]),
+                           gripper_agree_vae=(closed(on_tripped) == closed(on_env)).astype(jnp.float32))
     count = jnp.maximum(jnp.sum(taken, axis=0), 1.0)
     for name, per_trajectory in figures.items():
         per_decision = jnp.sum(per_trajectory * taken, axis=0) / count
