@@ -200,7 +200,7 @@ def imagined_training_frames(cfg, vae: tuple, world_model: str, episodes: rl_dat
                                      key=jax.random.key(cfg.seed), num_context=cfg.data.context_frames //
                                      cfg.vae.temporal_factor, frames_per_latent=cfg.vae.temporal_factor,
                                      max_instruction_bytes=rl.policy.max_instruction_bytes,
-                                     log=lambda m: print(m, flush=True))
+                                     log=lambda m: print(m, flush=True), encode_prefix=setup.encode_prefix)
     print(f"decoder-aware SFT: {episodes.num_episodes} episodes replayed in {world_model} in windows of {window} "
           f"actions in {time.time() - start:.0f}s; {rl.sft.decoded_fraction:.0%} of each batch reads them", flush=True)
     return frames

@@ -267,3 +267,40 @@ def test_segments_carry_the_actions_the_simulator_conditioned_each_decision_on(m
     for d in (0, 1):
         np.testing.assert_array_equal(segs.actions[d, :8, 0], captured[d][:8])
     np.testing.assert_array_equal(segs.actions[0, 8:, 0], [20, 21, 22, 23, 30])  # executed, not the plan 14..17
+
+
+def test_with_the_prefix_the_real_latents_are_the_whole_episodes():
+    """rl.imagined.start_encoding=prefix: the closed loop's start is a keyframe of a demonstration encoded from its
+    frame 0 (``latent_index`` into its ``prefix``), its actions then executed; the real latents of the executed
+    frames are those the latents stage makes of the whole episode, demonstration up to the keyframe then the
+    executed frames, with keyframes at different latents padded to one prefix. The start latents of the same
+    keyframes (keyframe_window, encode_prefix) are that episode's too."""
+    from sword_jax.rl import data as rl_data
+    from sword_jax.vae import api as vae_api
+    from tests.support.vae import encoders, relative_error, tiny_vae, whole_latents
+
+    cfg, vae_graphdef, vae_state = tiny_vae()
+    size = cfg.data.image_size
+    rng = np.random.default_rng(3)
+    demos = rng.integers(0, 256, (3, 17, size, size, 3), dtype=np.uint8)
+    executed = rng.integers(0, 256, (3, 8, size, size, 3), dtype=np.uint8)
+    t = np.array([4, 12, 8])  # keyframes at latents 1, 3 and 2 of a prefix of 3
+    window = rl_data.keyframe_window(demos, np.zeros((3, 17, 7), np.float32), np.zeros((3, 17, 8), np.float32),
+                                     np.arange(3), t, prefix_latents=3)
+    encoder = vae_api.encoder(vae_graphdef, vae_state)
+    real = cl.real_latents(lambda video: encoder(video * np.float32(2.0) - np.float32(1.0)), window["first_frame"],
+                           window["prefix"][:, 1:], executed, frames_per_latent=4, batch=2,
+                           latent_index=window["latent_index"])
+    _, encode_prefix = encoders()
+    start = np.asarray(encode_prefix(jnp.asarray(window["prefix"], jnp.float32) / 255.0, window["latent_index"]))
+    for i, keyframe in enumerate(t):
+        whole = whole_latents(np.concatenate([demos[i, :keyframe + 1], executed[i]])[None])[0]
+        s = keyframe // 4
+        assert relative_error(real[i], whole[s + 1:s + 3]) < 1e-4, i
+        assert relative_error(start[i], whole[[0, s]]) < 1e-4, i
+    held = cl.real_latents(lambda video: encoder(video * np.float32(2.0) - np.float32(1.0)), window["first_frame"],
+                           window["prefix"][:, 1:], executed, frames_per_latent=4)  # every row after the whole prefix
+    assert relative_error(held[0], real[0]) > 0.05  # keyframe 4 held to frame 12 is another episode
+    with pytest.raises(ValueError, match="latent_index"):
+        cl.real_latents(encoder, window["first_frame"], window["prefix"][:, 1:], executed, frames_per_latent=4,
+                        latent_index=np.array([1, 4, 2]))

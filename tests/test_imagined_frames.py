@@ -102,3 +102,52 @@ def test_the_batch_does_not_change_the_frames_and_bad_inputs_are_refused():
         imagined_episode_frames(_simulator(), _encode, bad, window=8, key=jax.random.key(0))
     with pytest.raises(ValueError, match="batch must be >= 1"):
         imagined_episode_frames(_simulator(), _encode, episodes, window=8, key=jax.random.key(0), batch=0)
+
+
+def test_with_the_prefix_each_window_starts_from_the_whole_episodes_latents():
+    """rl.imagined.start_encoding=prefix: every window's start latents are encoded from its episode's frame 0 on
+    (``encode`` is never called), so at a keyframe past the first context latent they are the whole episode's; the
+    frames the replays show are the window run's. With the window they are encode_history's, as before."""
+    from sword_jax.rl.world_model_sim import encode_history
+    from tests.support.vae import encoders, relative_error, tiny_vae, whole_latents
+
+    cfg, vae_graphdef, vae_state = tiny_vae()
+    size, t = cfg.data.image_size, 25
+    rng = np.random.default_rng(1)
+    frames = rng.integers(0, 256, (2, t, size, size, 3), dtype=np.uint8)
+    episodes = rl_data.EpisodeSet(frames=frames, actions=np.zeros((2, t, 7), np.float32),
+                                  proprio=np.zeros((2, t, 2), np.float32), lengths=np.array([25, 18]),
+                                  success=np.ones(2, bool), instructions=("a", "b"))
+    sim = _simulator().replace(frame_size=size)
+    encode, encode_prefix = encoders()
+    seen = {"prefix": [], "window": []}
+
+    def recorded(name, fn):
+        def encode_and_keep(*args):
+            latents = fn(*args)
+            seen[name].append(np.asarray(latents))
+            return latents
+        return encode_and_keep
+
+    def refused(first, history):
+        raise AssertionError("the window encoder was called with start_encoding=prefix")
+
+    window = 7  # windows start at frames 0, 8, 16 (and 24 is the first episode's last frame)
+    out = imagined_episode_frames(sim, refused, episodes, window=window, key=jax.random.key(0), batch=2,
+                                  encode_prefix=recorded("prefix", encode_prefix))
+    same = imagined_episode_frames(sim, recorded("window", encode), episodes, window=window, key=jax.random.key(0),
+                                   batch=2)
+    np.testing.assert_array_equal(out, same)
+    ep, t0 = window_starts(episodes.lengths, window)
+    assert t0.tolist() == [0, 8, 16, 0, 8, 16]
+    got = np.concatenate(seen["prefix"])[: len(ep)]  # batches of 2 windows, in order
+    whole = whole_latents(frames[:, :t])  # (2, 1 + 6, ...)
+    later = t0 >= 4  # at frame 0 the keyframe is held still (keyframe_window's prefix), not the episode's own
+    truth = np.stack([whole[ep, 0], whole[ep, t0 // 4]], axis=1)
+    assert relative_error(got[later], truth[later]) < 1e-4
+    unit = jnp.asarray(frames, jnp.float32) / jnp.float32(255.0)
+    hist = np.maximum(t0[:, None] - 7 + np.arange(8)[None], 0)
+    before = np.concatenate([encode_history(vae_graphdef, vae_state, unit[ep[lo:lo + 2], 0],  # in its batches
+                                            unit[ep[lo:lo + 2, None], hist[lo:lo + 2]]) for lo in range(0, len(ep), 2)])
+    np.testing.assert_array_equal(np.concatenate(seen["window"])[: len(ep)], np.asarray(before))
+    assert relative_error(np.concatenate(seen["window"])[: len(ep)][later], truth[later]) > 0.05

@@ -678,3 +678,95 @@ def test_grpo_paid_by_executing_the_imagined_actions_runs_and_resumes_exactly(ti
     assert [p["step"] for p in resumed["history"]] == [1, 2]
     for a, b in zip(whole["history"], resumed["history"]):
         assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN figures equal too
+
+
+def _prefix_refresher(tmp_path, start_encoding="prefix", encode_prefix=True):
+    """A refresher of ``_cfg``'s run with ``rl.imagined.start_encoding``, the tiny random VAE's start encoders."""
+    from tests.support.vae import encoders
+
+    cfg = _cfg(tmp_path)
+    rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, start_encoding=start_encoding))
+    encode, prefix = encoders()
+    return Refresher(cfg, rl, wm_state=None, make_simulator=None, encode=encode, encode_frames=None,
+                     detector=build_detector(rl, seed=0), base=None, collect=None, directory=str(tmp_path),
+                     encode_prefix=prefix if encode_prefix else None), rl
+
+
+def test_a_refresh_encodes_its_branch_and_replay_starts_from_frame_0_with_the_prefix(tmp_path):
+    """rl.imagined.start_encoding=prefix: the starts GRPO branches from a refresh's real episodes and the starts of
+    the refresh's replays are the latents the latents stage makes of the whole episode at their keyframe; with the
+    window they are encode_history's, as before. A refresh asked for the prefix without its encoder refuses."""
+    from sword_jax.pipeline.grpo import start_state
+    from sword_jax.rl.world_model_sim import encode_history
+    from tests.support.vae import relative_error, tiny_vae, whole_latents
+
+    _, vae_graphdef, vae_state = tiny_vae()
+    n, t = 3, 20
+    rng = np.random.default_rng(0)
+    real = RealEpisodes(rng.integers(0, 256, (n, t + 1, SIZE, SIZE, 3), dtype=np.uint8),
+                        np.zeros((n, t + 1, 8), np.float32), np.zeros((n, t, 7), np.float32),
+                        np.zeros((n, t), bool), TEXTS[:1] * n, np.zeros(n, np.int64))
+    whole = whole_latents(real.frames[:, :t + 1])  # (n, 1 + 5, ...)
+    starts = {}
+    for encoding in ("prefix", "window"):
+        refresher, rl = _prefix_refresher(tmp_path / encoding, encoding)
+        refresher.branch = real.branch_set()
+        pick = refresher.branch_pick(3, 8)
+        branch = start_state(pick, refresher.encode, rl, encode_prefix=refresher.encode_prefix)
+        seen = []
+        refresher._replay_fn = lambda sim, rm, start, *rest: seen.append(start) or ()  # the replay's starts only
+        refresher._replay(real, None, None, jax.random.key(0), record=False)
+        starts[encoding] = (pick, np.asarray(branch.latents[0]), np.asarray(seen[0].latents[0]))
+    pick, branch, replay = starts["prefix"]
+    assert "prefix" in pick and not set(pick["t"] % 4) - {0}
+    later = pick["t"] >= 4
+    assert later.sum() >= 4, pick["t"]
+    truth = np.stack([whole[pick["episode"], 0], whole[pick["episode"], pick["t"] // 4]], axis=1)
+    assert relative_error(branch[later], truth[later]) < 1e-4
+    assert relative_error(replay, whole[:, :2]) < 1e-4  # the replays start at frame 4, latent 1
+    window_pick, window_branch, window_replay = starts["window"]
+    assert "prefix" not in window_pick
+    np.testing.assert_array_equal(window_pick["t"], pick["t"])
+    unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
+    np.testing.assert_array_equal(window_branch, np.asarray(encode_history(
+        vae_graphdef, vae_state, unit(window_pick["first_frame"]), unit(window_pick["history"]))))
+    np.testing.assert_array_equal(window_replay, np.asarray(encode_history(
+        vae_graphdef, vae_state, unit(real.frames[:, 0]), unit(real.frames[:, [0, 0, 0, 0, 1, 2, 3, 4]]))))
+    assert relative_error(window_branch[later][:, 1], truth[later][:, 1]) > 0.05
+    with pytest.raises(ValueError, match="rl.imagined.start_encoding=prefix: the refresh"):
+        _prefix_refresher(tmp_path / "none", encode_prefix=False)
+
+
+def test_the_verify_starts_with_the_prefix_are_the_settled_frames_episode_from_frame_0():
+    """rl.imagined.start_encoding=prefix: a verify start (the settled frame after a reset, its episode's first) is
+    encoded from its prefix, the frame held to the end of the first context latent, i.e. the latents stage's latents
+    of that episode at rest; the window's start is encode_history's, as before."""
+    from sword_jax.pipeline.grpo import start_state
+    from sword_jax.pipeline.grpo_refresh import verify_prefix
+    from tests.support.vae import encoders, relative_error, whole_latents
+
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, start_encoding="prefix"))
+    frames = np.random.default_rng(2).integers(0, 256, (2, SIZE, SIZE, 3), dtype=np.uint8)
+    window = imagined_check.still_window(frames, np.zeros((2, 8), np.float32), list(TEXTS), num_context=1,
+                                         frames_per_latent=4, action_dim=7)
+    encode, encode_prefix = encoders()
+    prefixed = verify_prefix(window, num_context=1, frames_per_latent=4)
+    start = start_state(prefixed, encode, rl, encode_prefix=encode_prefix)
+    at_rest = whole_latents(np.repeat(frames[:, None], 5, axis=1))  # the episode at rest: frames 0..4
+    assert relative_error(start.latents[0], at_rest) < 1e-4
+    still = start_state(window, encode, rl, encode_prefix=encode_prefix)  # no prefix in the window: encode's
+    np.testing.assert_array_equal(np.asarray(still.latents[0]), np.asarray(encode(
+        jnp.asarray(frames, jnp.float32) / 255.0, jnp.asarray(window["history"], jnp.float32) / 255.0)))
+    np.testing.assert_array_equal(np.asarray(start.latents[1]), np.asarray(still.latents[1]))
+
+
+def test_the_replay_of_real_episodes_refuses_the_prefix_without_its_encoder():
+    from sword_jax.pipeline.grpo import Replayer
+
+    cfg = configs.get("sword:tiny")
+    rl = dataclasses.replace(cfg.rl, imagined=dataclasses.replace(cfg.rl.imagined, start_encoding="prefix"))
+    with pytest.raises(ValueError, match=r"rl.imagined.start_encoding=prefix: the replay of real episodes"):
+        Replayer(cfg, rl, None, None, lambda f, h: None, jax.random.key(0))
+    assert Replayer(cfg, cfg.rl, None, None, lambda f, h: None, jax.random.key(0),
+                    encode_prefix=lambda p, i: None).encode_prefix is None  # the window ignores it

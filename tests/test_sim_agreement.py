@@ -721,3 +721,30 @@ def test_within_group_separation_reads_the_actions_not_the_start():
         within_group_separation(real, follows, 5)
     with pytest.raises(ValueError, match="whole groups"):
         within_group_separation(real, follows, 1)
+
+
+def test_replay_starts_with_the_prefix_are_the_whole_episodes_latents_the_window_ones_are_not():
+    """rl.imagined.start_encoding=prefix: a replay's start latents (first frame and context at t0 = 4) are the
+    latents the latents stage makes of the whole episode; with the window (``encode`` alone) they are
+    encode_history's of the same first frame and history, as before, and differ from those."""
+    from sword_jax.rl.world_model_sim import encode_history
+    from tests.support.vae import encoders, relative_error, tiny_vae, whole_latents
+
+    cfg, vae_graphdef, vae_state = tiny_vae()
+    n, size = 3, cfg.data.image_size
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (n, 9, size, size, 3), dtype=np.uint8)  # the episode's first 9 frames
+    traced = sa.TracedEpisodes(frames, np.zeros((n, 9, 8), np.float32), np.zeros((n, 12, 7), np.float32),
+                               np.array([12, 10, 3]), np.array([True, False, False]), ("a", "b", "c"))
+    whole = whole_latents(frames)  # (n, 3, ...): latent 1 ends at t0 = 4
+    truth = whole[:, :2]
+    encode, encode_prefix = encoders()
+    prefix, _, lengths = sa.replay_starts(traced, encode, encode_prefix=encode_prefix, max_instruction_bytes=16)
+    window, _, same_lengths = sa.replay_starts(traced, encode, max_instruction_bytes=16)
+    assert relative_error(prefix.latents[0], truth) < 1e-4
+    np.testing.assert_array_equal(lengths, same_lengths)
+    np.testing.assert_array_equal(np.asarray(prefix.latents[1]), np.asarray(window.latents[1]))
+    unit = jnp.asarray(frames, jnp.float32) / jnp.float32(255.0)
+    before = encode_history(vae_graphdef, vae_state, unit[:, 0], unit[:, [0, 0, 0, 0, 1, 2, 3, 4]])
+    np.testing.assert_array_equal(np.asarray(window.latents[0]), np.asarray(before))  # the window: unchanged
+    assert relative_error(window.latents[0][:, 1], truth[:, 1]) > 0.05

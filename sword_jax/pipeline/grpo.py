@@ -59,7 +59,11 @@ class Setup(NamedTuple):
     episodes with ``states``), what ``rl.imagined.reward=executed`` resets the real environment to, and
     ``start_steps(step, rows=None)``: each of those start states' step in its episode (the keyframe's index),
     by which an executed step counts its outcomes, and ``windows(step, rows=None)``: the same keyframes' real
-    windows (:func:`~sword_jax.rl.data.keyframe_window`: first frame, history, actions), which ``starts`` encodes."""
+    windows (:func:`~sword_jax.rl.data.keyframe_window`: first frame, history, actions), which ``starts`` encodes.
+    ``encode_prefix(prefix, latent_index)``: with ``rl.imagined.start_encoding=prefix`` the prefix encoder
+    (:func:`~sword_jax.rl.world_model_sim.encode_prefix`) every other path that encodes starts from real frames
+    (replays, refreshes, the closed loop) uses in place of ``encode``, and ``windows`` carry the prefix; None with
+    ``window``."""
 
     sim: Any
     reward_model: Any
@@ -69,6 +73,7 @@ class Setup(NamedTuple):
     env_starts: Callable[..., np.ndarray] | None = None
     start_steps: Callable[..., np.ndarray] | None = None
     windows: Callable[..., dict] | None = None
+    encode_prefix: Callable[..., Any] | None = None
 
 
 def toy_setup(cfg, rl) -> Setup:
@@ -156,8 +161,9 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
                              num_context=cfg.data.context_frames // tf)
 
     # rl.imagined.start_encoding=prefix: windows carry each keyframe's episode from frame 0, one length per run
+    prefixed = rl.imagined.start_encoding == "prefix"
     prefix_latents = (rl_data.prefix_latents_for(episodes, max_fraction=rl.imagined.keyframe_fraction)
-                      if rl.imagined.start_encoding == "prefix" else None)
+                      if prefixed and episodes is not None else None)
 
     # keyframes: a host rng that is a function of (seed, step), so a resumed run draws the same
     def draw(sampler, step, rows, **kwargs):
@@ -181,7 +187,7 @@ def setup_from_weights(cfg, rl, episodes, *, world_model: tuple[Any, Any], vae: 
 
     recorded = episodes is not None and episodes.states is not None  # keyframes the real environment can reset to
     return Setup(sim, reward_model, starts, None, encode, env_starts if recorded else None,
-                 start_steps if recorded else None, windows)
+                 start_steps if recorded else None, windows, encode_from_start if prefixed else None)
 
 
 def start_state(pick: dict[str, Any], encode: Callable[..., Any], rl: Any, *,
@@ -271,10 +277,13 @@ def training_success(history: Sequence[dict], window: int = 10) -> dict:
 
 class Replayer:
     """Replays traced real evaluation episodes in the learned simulator (``rl.imagined.eval_replay_episodes``;
-    :mod:`sword_jax.rl.sim_agreement`), with one compile for the run."""
+    :mod:`sword_jax.rl.sim_agreement`), with one compile for the run. ``encode_prefix``: the setup's, which
+    ``rl.imagined.start_encoding=prefix`` needs (the replays' starts encoded from frame 0)."""
 
-    def __init__(self, cfg, rl, sim, reward_model, encode, root):
+    def __init__(self, cfg, rl, sim, reward_model, encode, root, *, encode_prefix=None):
         self.cfg, self.rl, self.sim, self.reward_model, self.encode = cfg, rl, sim, reward_model, encode
+        self.encode_prefix = rl_data.prefix_encoder(rl.imagined.start_encoding, encode_prefix,
+                                                    "the replay of real episodes (rl.imagined.eval_replay_episodes)")
         self.key = stream_key(root, "grpo/replay")
         self.tf = cfg.vae.temporal_factor
         self.k = cfg.data.context_frames // self.tf
@@ -294,7 +303,7 @@ class Replayer:
             key=jax.random.fold_in(self.key, step), batch=rl.grpo.rollout_batch * rl.grpo.group_size,
             num_context=self.k, frames_per_latent=self.tf, proprio_dim=rl.proprio_dim,
             max_instruction_bytes=rl.policy.max_instruction_bytes, max_steps=self.cfg.sim.max_steps,
-            settle_steps=rl.imagined.eval_replay_settle_steps, replay_fn=self.fn)
+            settle_steps=rl.imagined.eval_replay_settle_steps, replay_fn=self.fn, encode_prefix=self.encode_prefix)
 
         def rate(name):
             r = out[name]
@@ -447,8 +456,8 @@ def run_in_learned_simulator(cfg, rl, graphdef, params, workdir: str, setup: Set
                          **({"out_shardings": shd.replicated(mesh)} if several else {}))
 
     act = make_act_fns(graphdef, rl)  # one compile for every evaluation of the run
-    replay = (Replayer(cfg, rl, sim, reward_model, encode, root) if encode and rl.imagined.eval_replay_episodes
-              else None)
+    replay = (Replayer(cfg, rl, sim, reward_model, encode, root, encode_prefix=setup.encode_prefix)
+              if encode and rl.imagined.eval_replay_episodes else None)
 
     def evaluate(step, params):
         extra = {}

@@ -29,6 +29,7 @@ import numpy as np
 from sword_jax import sharding as shd
 from sword_jax.atomic_write import write_json_atomic
 from sword_jax.pipeline.grpo import log, sampled_mixed, start_state
+from sword_jax.rl import data as rl_data
 from sword_jax.rl import grpo
 from sword_jax.rl.grpo_loop import grpo_run_id, train_grpo
 from sword_jax.rl.policy import tokenize_instructions
@@ -76,7 +77,8 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
 
     Args:
       setup: the run's :class:`~sword_jax.pipeline.grpo.Setup` (its ``starts`` are the demonstrations'
-        keyframes, used until a refresh gives real states to branch from, and its ``encode``).
+        keyframes, used until a refresh gives real states to branch from, and its ``encode``, or with
+        ``rl.imagined.start_encoding=prefix`` its ``encode_prefix``, encodes every start from real frames).
       wm_state / make_simulator / encode_frames / detector / base: as :class:`~sword_jax.rl.refresh.Refresher` takes them.
       env / collect_starts: the ground-truth environment and ``(step, n) -> (starts, instructions, tasks)``.
       evaluate_real: ``(step, params) -> (point, extra)``, the ground-truth evaluation.
@@ -95,11 +97,13 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     mesh = shd.make_mesh(cfg.mesh)
     steps = rl.refresh.episode_steps or cfg.sim.max_steps
     collect = make_collect(graphdef, rl, env, collect_starts, seed=cfg.seed, steps=steps)
+    # rl.imagined.start_encoding=prefix: every start below is encoded from its episode's frame 0 on
+    encode_prefix = rl_data.prefix_encoder(rl.imagined.start_encoding, setup.encode_prefix, "GRPO with rl.refresh")
     verify = None
     if rl.refresh.verify_starts:
         verify = make_verify(graphdef, rl, env, collect_starts, setup.encode, seed=cfg.seed,
                              num_context=cfg.data.context_frames // cfg.vae.temporal_factor,
-                             frames_per_latent=cfg.vae.temporal_factor, mesh=mesh)
+                             frames_per_latent=cfg.vae.temporal_factor, mesh=mesh, encode_prefix=encode_prefix)
     closed_loop = None
     if rl.refresh.closed_loop_starts:
         if setup.env_starts is None or setup.windows is None:
@@ -111,7 +115,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
     refresher = Refresher(cfg, rl, wm_state=wm_state, make_simulator=make_simulator, encode=setup.encode,
                           encode_frames=encode_frames, detector=detector, base=base, collect=collect,
                           directory=os.path.join(workdir, "refresh"), mesh=mesh, log=log, verify=verify,
-                          closed_loop=closed_loop)
+                          closed_loop=closed_loop, encode_prefix=encode_prefix)
     state = jax.device_put(grpo.init_state(params, rl), shd.replicated(mesh))
     starts_key = stream_key(jax.random.key(cfg.seed), "grpo/starts")
     built: dict[str, Any] = {}
@@ -132,7 +136,7 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
         refresher.at(index)  # the refresh this step follows (a resumed run loads it)
         pick = refresher.branch_pick(index, rl.imagined_starts_per_step)  # rollout_batch x rl.imagined.oversample
         starts = (setup.starts(jax.random.fold_in(starts_key, index), index) if pick is None
-                  else start_state(pick, setup.encode, rl))
+                  else start_state(pick, setup.encode, rl, encode_prefix=encode_prefix))
         if placed.get("refresh", -2) != refresher.loaded:  # once per refresh, not per step: cast and placed
             models = (refresher.simulator(), refresher.reward_model())
             placed.update(refresh=refresher.loaded, models=jax.device_put(models, shd.shardings_on(models, mesh)))
@@ -192,20 +196,23 @@ def run_refreshed(cfg: Any, rl: Any, graphdef: Any, params: Any, workdir: str, *
 
 
 def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[int, int], tuple],
-                encode: Callable[..., Any], *, seed: int, num_context: int, frames_per_latent: int, mesh: Any
-                ) -> Callable[..., dict]:
+                encode: Callable[..., Any], *, seed: int, num_context: int, frames_per_latent: int, mesh: Any,
+                encode_prefix: Callable[..., Any] | None = None) -> Callable[..., dict]:
     """``verify(params, simulator, reward_model, step, decisions) -> report`` for ``rl.refresh.verify_starts``
     (:mod:`sword_jax.rl.imagined_check`): ``collect_starts(step, verify_starts)`` start states put in ``env``
     (their settled first frames, held still, start the simulator), each rolled out ``rl.grpo.group_size`` times
     by the policy in the simulator for ``decisions`` decisions as GRPO samples (a key from (seed, step)), each
     imagined trajectory's actions executed in ``env`` from the same start; the report of
-    :func:`~sword_jax.rl.imagined_check.report` with ``starts``, ``group_size`` and ``actions`` (the horizon)."""
+    :func:`~sword_jax.rl.imagined_check.report` with ``starts``, ``group_size`` and ``actions`` (the horizon).
+    With ``rl.imagined.start_encoding=prefix`` the starts are encoded by ``encode_prefix`` from their episode's
+    frame 0, the settled frame itself (:func:`verify_prefix`)."""
     from sword_jax.rl import imagined_check, sim_agreement
     from sword_jax.rl.rollout import imagined_rollout
 
     g, per = rl.grpo.group_size, rl.imagined_actions_per_decision
     reset = jax.jit(env.reset)
     root = stream_key(jax.random.key(seed), "refresh/verify")
+    encode_prefix = rl_data.prefix_encoder(rl.imagined.start_encoding, encode_prefix, "rl.refresh.verify_starts")
     compiled: dict[int, Callable] = {}
 
     def checked_fn(decisions: int) -> Callable:
@@ -226,7 +233,9 @@ def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[i
         window = imagined_check.still_window(np.asarray(obs["frames"]), np.asarray(obs["proprio"]), list(instructions),
                                              num_context=num_context, frames_per_latent=frames_per_latent,
                                              action_dim=rl.action_dim)
-        start = start_state(window, encode, rl)
+        if encode_prefix is not None:
+            window = verify_prefix(window, num_context=num_context, frames_per_latent=frames_per_latent)
+        start = start_state(window, encode, rl, encode_prefix=encode_prefix)
         sim, rm = jax.device_put((sim, rm), shd.shardings_on((sim, rm), mesh))
         env_starts = jnp.asarray(np.repeat(starts, g, axis=0))
         checked = jax.device_get(checked_fn(decisions)(params, sim, rm, start, env_starts,
@@ -237,6 +246,18 @@ def make_verify(graphdef: Any, rl: Any, env: JaxEnv, collect_starts: Callable[[i
                     actions=actions)
 
     return verify
+
+
+def verify_prefix(window: dict[str, Any], *, num_context: int, frames_per_latent: int) -> dict[str, Any]:
+    """A start at rest (:func:`~sword_jax.rl.imagined_check.still_window`) with the ``prefix`` and ``latent_index``
+    of :func:`~sword_jax.rl.data.keyframe_window` at frame 0: the settled frame is its episode's first, so its prefix
+    is that frame held to the end of the first context latent."""
+    frames = np.asarray(window["first_frame"])[:, None]  # (n, 1, H, W, 3): the episode so far
+    n = frames.shape[0]
+    at_rest = rl_data.keyframe_window(frames, np.zeros((n, 1, 1), np.float32), np.zeros((n, 1, 1), np.float32),
+                                      np.arange(n), np.zeros(n, np.int64), num_context=num_context,
+                                      frames_per_latent=frames_per_latent, prefix_latents=num_context)
+    return dict(window, prefix=at_rest["prefix"], latent_index=at_rest["latent_index"])
 
 
 # the closed loop's keyframes are drawn as GRPO's step ``CLOSED_LOOP_STEPS + refresh step x draws + r``: steps a run
@@ -253,7 +274,8 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
     times by the policy in the simulator (GRPO's imagined rollout with its detector, none stopped at a success)
     over ``decisions`` decisions (a key from (seed, step)), each trajectory's actions executed in ``env`` from its
     keyframe's recorded state, every frame kept and encoded by ``encode_frames`` after the keyframe's real history
-    (:func:`~sword_jax.rl.closed_loop.real_latents`). The report holds the executions
+    (:func:`~sword_jax.rl.closed_loop.real_latents`; with ``rl.imagined.start_encoding=prefix`` the starts and the
+    real latents both after its episode from frame 0, ``setup.encode_prefix``). The report holds the executions
     (``episodes``), how often they really succeeded, and the closed loop's drift in latent space by decision
     (:func:`~sword_jax.rl.closed_loop.drift_by_decision`)."""
     from sword_jax.rl import closed_loop as cl
@@ -263,6 +285,8 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
     draws = rl.refresh.closed_loop_starts // rl.imagined_starts_per_step
     execute_latents = per // frames_per_latent
     root = stream_key(jax.random.key(seed), "refresh/closed_loop")
+    encode_prefix = rl_data.prefix_encoder(rl.imagined.start_encoding, setup.encode_prefix,
+                                           "rl.refresh.closed_loop_starts")
     compiled: dict[int, Callable] = {}
 
     def traced(decisions: int) -> Callable:
@@ -284,13 +308,22 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
         for r in range(draws):
             index = CLOSED_LOOP_STEPS + step * draws + r
             window = setup.windows(index)  # the keyframes GRPO's step `index` would draw, with their real history
-            start = start_state(window, setup.encode, rl)
+            if encode_prefix is not None and "prefix" not in window:
+                raise ValueError("rl.imagined.start_encoding=prefix: rl.refresh.closed_loop_starts' keyframes carry no "
+                                 "episode from frame 0 (the setup's windows are cut without prefix_latents)")
+            start = start_state(window, setup.encode, rl, encode_prefix=encode_prefix)
             env_starts = np.repeat(np.asarray(setup.env_starts(index)), g, axis=0)
             trace, first, frames = jax.device_get(traced(decisions)(params, sim, rm, start, jnp.asarray(env_starts),
                                                                     jax.random.fold_in(root, index)))
-            real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
-                                   np.repeat(window["history"], g, axis=0), np.asarray(frames),
-                                   frames_per_latent=frames_per_latent)
+            if encode_prefix is None:
+                real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
+                                       np.repeat(window["history"], g, axis=0), np.asarray(frames),
+                                       frames_per_latent=frames_per_latent)
+            else:  # after the episode from frame 0 to the keyframe, as the start latents
+                real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
+                                       np.repeat(window["prefix"][:, 1:], g, axis=0), np.asarray(frames),
+                                       frames_per_latent=frames_per_latent,
+                                       latent_index=np.repeat(window["latent_index"], g))
             latents, start_actions = (np.repeat(np.asarray(x), g, axis=0) for x in start.latents)
             contexts = np.asarray(trace.contexts, np.float32)
             parts.append(cl.closed_loop_segments(latents, start_actions, contexts, real, np.asarray(trace.actions),

@@ -12,7 +12,8 @@ directly:
    after each decision: what the world model would predict the next chunk from.
 2. Those actions are executed in the real environment from the same start states
    (:func:`~sword_jax.rl.imagined_check.execute_observed`) and the frames they reach are encoded as the world
-   model's training latents (:func:`real_latents`), after the keyframe's real history as a training episode's are.
+   model's training latents (:func:`real_latents`), after the keyframe's real history as a training episode's are
+   (with ``rl.imagined.start_encoding=prefix``, after its episode from frame 0, as the start's own latents).
 3. :func:`closed_loop_segments` lays out one training segment per decision: the episode's first-frame latent, the
    world model's own context latents at that decision, and the real latents that the executed actions reached next,
    with the actions laid out as the simulator lays them out at inference.
@@ -106,7 +107,7 @@ def trace_closed_loop(graphdef: nnx.GraphDef, policy_params: Any, simulator: Lea
 
 
 def real_latents(encode_frames: Any, first_frames: np.ndarray, history: np.ndarray, frames: np.ndarray, *,
-                 frames_per_latent: int, batch: int = 16) -> np.ndarray:
+                 frames_per_latent: int, batch: int = 16, latent_index: np.ndarray | None = None) -> np.ndarray:
     """``[n, T / f, h, w, c]`` the training latents of the real frames ``frames [n, T, H, W, 3]`` reached after each
     of ``T`` executed actions from a keyframe; latent ``j`` covers the frames after actions ``f j .. f j + f - 1``,
     the ones the simulator's ``j``-th executed latent stands for. Frames are uint8 or in [0, 1].
@@ -116,7 +117,14 @@ def real_latents(encode_frames: Any, first_frames: np.ndarray, history: np.ndarr
     encode_history`): each episode's first frame, the keyframe's real ``history [n, f (k + 1), H, W, 3]`` (the
     frames up to and including the keyframe), then the executed frames, so that the first executed latent follows
     the real motion that led to the keyframe, as a training episode's latents do; the latents of the first frame
-    and of the history are dropped."""
+    and of the history are dropped.
+
+    With ``latent_index [n]`` (``rl.imagined.start_encoding=prefix``), ``history`` is instead the keyframes' episodes
+    after their first frame (:func:`~sword_jax.rl.data.keyframe_window`'s ``prefix[:, 1:]``, ``f S`` frames) and
+    row ``i``'s executed frames follow its first ``f latent_index[i]`` of them, as the start's own latents were
+    encoded (:func:`~sword_jax.rl.world_model_sim.encode_prefix`): the real latents are then the ones a whole
+    episode's encoding would give. The rows are padded at their end to one length (the encoder is causal: the
+    padding changes none of the latents kept)."""
     n, t = frames.shape[:2]
     f = frames_per_latent
     if t % f or history.shape[1] % f or first_frames.shape[0] != n or history.shape[0] != n:
@@ -126,12 +134,37 @@ def real_latents(encode_frames: Any, first_frames: np.ndarray, history: np.ndarr
     unit = lambda x: (x.astype(np.float32) / np.float32(255.0) if x.dtype == np.uint8  # noqa: E731
                       else np.asarray(x, np.float32))
     lead = 1 + history.shape[1] // f
+    if latent_index is not None:
+        return _real_latents_after(encode_frames, unit(first_frames), unit(history), unit(frames),
+                                   np.asarray(latent_index, np.int64), frames_per_latent=f, batch=batch)
     out = []
     for i in range(0, n, batch):
         video = np.concatenate([unit(first_frames[i:i + batch])[:, None], unit(history[i:i + batch]),
                                 unit(frames[i:i + batch])], axis=1)
         out.append(np.asarray(encode_frames(video), np.float32)[:, lead:])
     return np.concatenate(out)
+
+
+def _real_latents_after(encode_frames: Any, first_frames: np.ndarray, prefix: np.ndarray, frames: np.ndarray,
+                        latent_index: np.ndarray, *, frames_per_latent: int, batch: int) -> np.ndarray:
+    """:func:`real_latents` with ``latent_index``: row ``i`` encodes ``first, prefix[i, :f index_i], frames[i]``, then
+    its last executed frame repeated up to one length for all rows, and keeps latents ``1 + index_i ..``."""
+    f, (n, t) = frames_per_latent, frames.shape[:2]
+    if latent_index.shape != (n,) or np.any(latent_index < 0) or np.any(f * latent_index > prefix.shape[1]):
+        raise ValueError(f"real_latents: latent_index {latent_index.tolist()} must hold one index per sequence "
+                         f"within the {prefix.shape[1] // f} latents of its prefix")
+    total = prefix.shape[1] + t
+    out = []
+    for i in range(0, n, batch):
+        rows = []
+        for j in range(i, min(i + batch, n)):
+            lead = f * int(latent_index[j])
+            row = np.concatenate([prefix[j, :lead], frames[j]])
+            rows.append(np.concatenate([row, np.repeat(row[-1:], total - len(row), axis=0)]))
+        video = np.concatenate([first_frames[i:i + batch, None], np.stack(rows)], axis=1)
+        latents = np.asarray(encode_frames(video), np.float32)
+        out.extend(latents[r, 1 + latent_index[i + r]: 1 + latent_index[i + r] + t // f] for r in range(len(rows)))
+    return np.stack(out)
 
 
 def closed_loop_segments(start_latents: np.ndarray, start_actions: np.ndarray, contexts: np.ndarray,
@@ -141,7 +174,8 @@ def closed_loop_segments(start_latents: np.ndarray, start_actions: np.ndarray, c
 
     Args:
       start_latents: ``[n, 1 + k, h, w, c]`` the start states' first-frame and context latents
-        (:func:`~sword_jax.rl.world_model_sim.encode_history`).
+        (:func:`~sword_jax.rl.world_model_sim.encode_history`, or ``encode_prefix`` with
+        ``rl.imagined.start_encoding=prefix``).
       start_actions: ``[n, 1 + f k, A]`` the actions the first frame and the context frames carried.
       contexts: ``[n, D, k, h, w, c]`` the simulator's context after each decision (:func:`trace_closed_loop`).
       real: ``[n, L, h, w, c]`` the real latents of the executed actions (:func:`real_latents`), ``L = D x``.

@@ -422,8 +422,10 @@ class ImaginedConfig:
         the window repeats it). ``prefix``: it encodes the episode from its first frame to the keyframe
         (:func:`~sword_jax.rl.world_model_sim.encode_prefix`), as the latents stage encodes whole episodes, so the
         context is exactly the latent the world model was trained on; the longer video costs more encoding. It sets
-        the start states of GRPO's steps (and ``bench_closed_loop``'s); the replays of real episodes and the
-        refresh's segments keep the window.
+        every start encoded from real frames, so a run never mixes the two: GRPO's steps (and ``bench_closed_loop``'s),
+        the replays of real episodes (``eval_replay_episodes``, :mod:`~sword_jax.rl.sim_agreement`), the world
+        model's replays for decoder-aware SFT (:mod:`~sword_jax.rl.imagined_frames`), and the refresh's branch and
+        verify starts, replays and closed-loop segments (:mod:`~sword_jax.rl.refresh`; their real latents too).
     """
 
     max_chunks: int = 8

@@ -230,6 +230,21 @@ def prefix_latents_for(episodes: EpisodeSet, *, max_fraction: float, num_context
     return int(np.max(last))
 
 
+def prefix_encoder(start_encoding: str, encode_prefix: Callable[..., Any] | None, user: str
+                   ) -> Callable[..., Any] | None:
+    """The start encoder ``encode_prefix(prefix, latent_index)`` a path that encodes a world model's starts from
+    real frames (``user``, named in the error) uses with ``rl.imagined.start_encoding=prefix``; None with
+    ``window``, whose paths encode :func:`keyframe_window`'s first frame and history. A path asked for the prefix
+    without its encoder refuses rather than falling back to the window (a run never mixes the two)."""
+    if start_encoding != "prefix":
+        return None
+    if encode_prefix is None:
+        raise ValueError(f"rl.imagined.start_encoding=prefix: {user} encodes its starts from real frames and needs "
+                         "the prefix encoder (encode_prefix=, e.g. the GRPO setup's); pass it or use "
+                         "--rl.imagined.start_encoding=window")
+    return encode_prefix
+
+
 def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
                      min_fraction: float = 0.0, num_context: int = 1, frames_per_latent: int = 4,
                      rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,8 @@ ones, which is what makes the real outcome of actions chosen in imagination foll
 
 An episode is cut into windows of ``1 + window`` frames starting at frames ``0, w, 2 w, ...`` (``w = 1 + window``);
 each window starts from the real frame there and the real history before it (:func:`~sword_jax.rl.data.keyframe_window`,
-encoded as GRPO's keyframe starts are) and replays the window's actions through the simulator
+encoded as GRPO's keyframe starts are: with ``rl.imagined.start_encoding=prefix`` the episode from frame 0 to it)
+and replays the window's actions through the simulator
 (:func:`~sword_jax.rl.sim_agreement.replay_actions`). Frame ``t`` of the result is the real frame at a window's
 start (and at every frame of an episode of one frame) and otherwise the frame the simulator showed after action
 ``t - 1``, so the imagined drift ranges over what a
@@ -62,6 +63,7 @@ def imagined_episode_frames(
     max_instruction_bytes: int = 96,
     batch: int = 64,
     log: Callable[[str], object] | None = None,
+    encode_prefix: Callable[[Any, Any], Any] | None = None,
 ) -> np.ndarray:
     """Every episode's frames with each window replayed through ``simulator`` (module docstring).
 
@@ -76,6 +78,10 @@ def imagined_episode_frames(
       key: the simulator's noise; window ``i`` of the run draws ``fold_in(key, i // batch)``'s.
       batch: windows replayed together (the last call is padded, so one program serves every call).
       log: progress lines, if given.
+      encode_prefix: with ``rl.imagined.start_encoding=prefix``, ``(prefix [n, 1 + 4 S, H, W, 3] in [0, 1],
+        latent_index [n]) -> latents`` (:func:`sword_jax.rl.world_model_sim.encode_prefix` with the VAE bound),
+        used instead of ``encode``: each window's episode from frame 0 to its start
+        (:func:`~sword_jax.rl.data.keyframe_window`'s ``prefix``; ``S`` one length for the call, the latest start's).
 
     Returns:
       ``[E, T, H, W, 3]`` uint8.
@@ -104,18 +110,25 @@ def imagined_episode_frames(
         return frames.copy()
     replay = jax.jit(lambda sim, start, acts, count, k: replay_actions(
         sim, _NO_REWARD, start, acts, count, success_threshold=1.0, key=k, record_frames=True).frames)
+    # with the prefix: one length for every window, so the encoder compiles once
+    prefix_latents = (None if encode_prefix is None else
+                      int(max(np.max(-(-t0 // frames_per_latent)), num_context)))
     out = frames.copy()
     unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
     started = time.time()
     for b, lo in enumerate(range(0, n, batch)):
         rows = np.arange(lo, lo + batch) % n  # the last call repeats windows to keep the shape
         pick = rl_data.keyframe_window(frames, episodes.actions, episodes.proprio, ep[rows], t0[rows],
-                                       num_context=num_context, frames_per_latent=frames_per_latent)
+                                       num_context=num_context, frames_per_latent=frames_per_latent,
+                                       prefix_latents=prefix_latents)
+        if encode_prefix is None:
+            latents = encode(unit(pick["first_frame"]), unit(pick["history"]))
+        else:
+            latents = encode_prefix(unit(pick["prefix"]), jnp.asarray(pick["latent_index"], jnp.int32))
         start = StartState(unit(pick["frame"]), jnp.asarray(pick["proprio"], jnp.float32),
                            jnp.asarray(tokenize_instructions([episodes.instructions[e] for e in ep[rows]],
                                                              max_instruction_bytes)),
-                           (encode(unit(pick["first_frame"]), unit(pick["history"])),
-                            jnp.asarray(pick["actions"], jnp.float32)))
+                           (latents, jnp.asarray(pick["actions"], jnp.float32)))
         imagined = np.asarray(jax.device_get(replay(simulator, start, jnp.asarray(actions[rows]),
                                                     jnp.asarray(keep[rows], jnp.int32), jax.random.fold_in(key, b))))
         for row in range(min(batch, n - lo)):

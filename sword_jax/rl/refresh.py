@@ -30,6 +30,9 @@ every ``rl.refresh.every`` GRPO steps (:class:`~sword_jax.rl.config.RefreshConfi
 5. **Branch**: the next imagined rollouts start from the new real episodes' states, every phase before
    their success (``rl.refresh.branch``).
 
+Every start this encodes from real frames (the branch starts, the replays' starts) is encoded as
+``rl.imagined.start_encoding`` says, as GRPO's own keyframe starts are.
+
 Each refresh is saved under ``<directory>/step_XXXXXX`` (world model, detector, shift, the round's latents
 and real episodes, a ``record.json`` written last), so a resumed GRPO run loads the refresh its
 checkpoint followed (:meth:`Refresher.at`) and ends as an uninterrupted one does; a refresh already on
@@ -388,6 +391,10 @@ class Refresher:
       wm_state: the world model's ``(params, buffers)`` at the start of the run.
       make_simulator: ``wm_state -> LearnedSimulator`` (the VAE bound in).
       encode: ``(first_frames, history) -> start latents`` (:func:`~sword_jax.rl.world_model_sim.encode_history`).
+      encode_prefix: ``(prefix, latent_index) -> start latents`` (:func:`~sword_jax.rl.world_model_sim.encode_prefix`),
+        which ``rl.imagined.start_encoding=prefix`` needs (:func:`~sword_jax.rl.data.prefix_encoder`): the branch
+        starts and the replays of real episodes are then encoded from each episode's frame 0 on, as GRPO's own
+        starts; with ``window`` it is not used.
       encode_frames: ``frames [n, F, H, W, 3] in [0, 1] -> latents [n, L, h, w, c]``: the training latents
         of the world model (the VAE's encoder as the run's latents were made).
       detector: ``(graphdef, params)`` of the success detector at the start of the run.
@@ -407,7 +414,8 @@ class Refresher:
                  encode: Callable[..., Any], encode_frames: Callable[[np.ndarray], np.ndarray],
                  detector: tuple[Any, Any], base: Any, collect: Collect, directory: str, mesh=None,
                  log: Callable[[str], Any] = print, verify: Callable[..., dict] | None = None,
-                 closed_loop: Callable[..., tuple[Any, dict]] | None = None):
+                 closed_loop: Callable[..., tuple[Any, dict]] | None = None,
+                 encode_prefix: Callable[..., Any] | None = None):
         rl.refresh.validate()
         if not rl.refresh.every:
             raise ValueError("Refresher: rl.refresh.every is 0 (refresh off)")
@@ -420,6 +428,7 @@ class Refresher:
         self.verify, self.closed_loop = verify, closed_loop
         self.cfg, self.rl, self.conf = cfg, rl, rl.refresh
         self.make_simulator, self.encode, self.encode_frames = make_simulator, encode, encode_frames
+        self.encode_prefix = rl_data.prefix_encoder(rl.imagined.start_encoding, encode_prefix, "the refresh")
         self.mesh = shd.make_mesh(cfg.mesh) if mesh is None else mesh
         # the world model's fine-tune batch splits over this mesh (its loader refuses otherwise): checked before GRPO
         # runs rather than at the first refresh
@@ -491,11 +500,15 @@ class Refresher:
 
     def branch_pick(self, step: int, count: int) -> dict[str, Any] | None:
         """``count`` start states of step ``step`` branched from the latest refresh's real episodes (every
-        latent-aligned frame before their success; a function of (seed, step)), or None without branching."""
+        latent-aligned frame before their success; a function of (seed, step)), or None without branching. With
+        ``rl.imagined.start_encoding=prefix`` each carries its episode from frame 0 (``prefix``, ``latent_index``)."""
         if not self.conf.branch or self.branch is None:
             return None
+        prefix_latents = (None if self.encode_prefix is None else rl_data.prefix_latents_for(
+            self.branch, max_fraction=1.0, num_context=self.k, frames_per_latent=self.tf))
         return rl_data.keyframe_starts(self.branch, count, stream_rng(self.cfg.seed, "grpo/branch", step),
-                                       max_fraction=1.0, num_context=self.k, frames_per_latent=self.tf)
+                                       max_fraction=1.0, num_context=self.k, frames_per_latent=self.tf,
+                                       prefix_latents=prefix_latents)
 
     # ---- persistence -------------------------------------------------------------------------------------
     def _dir(self, step: int) -> str:
@@ -739,7 +752,7 @@ class Refresher:
         traced = real.traced(self.tf * self.k)
         start, actions, lengths = sim_agreement.replay_starts(
             traced, self.encode, num_context=self.k, frames_per_latent=self.tf, proprio_dim=self.rl.proprio_dim,
-            max_instruction_bytes=self.rl.policy.max_instruction_bytes)
+            max_instruction_bytes=self.rl.policy.max_instruction_bytes, encode_prefix=self.encode_prefix)
         settle = self.rl.imagined.eval_replay_settle_steps
         actions = np.pad(actions, ((0, 0), (0, settle), (0, 0)))
         lengths = np.maximum(lengths, 1)

@@ -10,7 +10,8 @@ learns to fool. This module measures that directly:
    ``head_steps`` environment steps (stepped one action at a time so each frame is seen).
 2. :func:`replay_starts` turns the traced heads into learned-simulator start states at frame
    ``t0 = 4 k`` (``k`` context latents), laid out exactly as GRPO's keyframe starts
-   (:func:`sword_jax.rl.data.keyframe_window`).
+   (:func:`sword_jax.rl.data.keyframe_window`), encoded as ``rl.imagined.start_encoding`` says (with ``prefix``
+   the head from frame 0, the latents the world model was trained on).
 3. :func:`replay_actions` feeds each episode's remaining executed actions, open loop, through the
    simulator and scores every imagined frame with the success detector (pure; jit it).
 4. :func:`agreement` compares imagined and real outcomes: how often the simulator calls a real
@@ -134,8 +135,9 @@ def spread(total: int, count: int) -> np.ndarray:
 
 
 def replay_starts(traced: TracedEpisodes, encode: Callable[[Any, Any], Any], *, num_context: int = 1,
-                  frames_per_latent: int = 4, proprio_dim: int = 8,
-                  max_instruction_bytes: int = 96) -> tuple[StartState, np.ndarray, np.ndarray]:
+                  frames_per_latent: int = 4, proprio_dim: int = 8, max_instruction_bytes: int = 96,
+                  encode_prefix: Callable[[Any, Any], Any] | None = None
+                  ) -> tuple[StartState, np.ndarray, np.ndarray]:
     """Learned-simulator starts at frame ``t0 = frames_per_latent * num_context`` of each traced episode.
 
     Args:
@@ -143,6 +145,10 @@ def replay_starts(traced: TracedEpisodes, encode: Callable[[Any, Any], Any], *, 
       encode: ``(first_frames [n,H,W,3], history [n,4(k+1),H,W,3]) -> latents``, both in [0, 1] (e.g.
         :func:`sword_jax.rl.world_model_sim.encode_history` with the VAE bound); its result becomes
         ``StartState.latents`` beside the start actions, as GRPO's keyframe starts lay them out.
+      encode_prefix: with ``rl.imagined.start_encoding=prefix``, ``(prefix [n, 1 + 4k, H, W, 3] in [0, 1],
+        latent_index [n]) -> latents`` (:func:`sword_jax.rl.world_model_sim.encode_prefix` with the VAE bound),
+        used instead of ``encode``: the head from frame 0 to ``t0`` (:func:`~sword_jax.rl.data.keyframe_window`'s
+        ``prefix``), so the start latents are the whole episode's there.
 
     Returns:
       ``(start, actions [n, T - t0, A], lengths [n])``: the actions still to replay from ``t0`` and
@@ -155,10 +161,15 @@ def replay_starts(traced: TracedEpisodes, encode: Callable[[Any, Any], Any], *, 
     n = len(traced.lengths)
     padded = np.zeros((n, max(traced.actions.shape[1], t0 + 1), traced.actions.shape[2]), np.float32)
     padded[:, : traced.actions.shape[1]] = traced.actions
+    # with the prefix: the head itself, frames 0 .. t0 (latent num_context ends at t0)
     window = keyframe_window(traced.frames, padded, traced.proprio, np.arange(n), np.full(n, t0, np.int64),
-                             num_context=num_context, frames_per_latent=frames_per_latent)
+                             num_context=num_context, frames_per_latent=frames_per_latent,
+                             prefix_latents=None if encode_prefix is None else num_context)
     unit = lambda x: jnp.asarray(x, jnp.float32) / jnp.float32(255.0)  # noqa: E731
-    latents = encode(unit(window["first_frame"]), unit(window["history"]))
+    if encode_prefix is None:
+        latents = encode(unit(window["first_frame"]), unit(window["history"]))
+    else:
+        latents = encode_prefix(unit(window["prefix"]), jnp.asarray(window["latent_index"], jnp.int32))
     start = StartState(unit(window["frame"]), jnp.asarray(window["proprio"][:, :proprio_dim], jnp.float32),
                        jnp.asarray(tokenize_instructions(list(traced.language), max_instruction_bytes)),
                        (latents, jnp.asarray(window["actions"], jnp.float32)))
@@ -262,9 +273,11 @@ def _replay_batches(start: StartState, actions: np.ndarray, lengths: np.ndarray,
 def replayed_episodes(traced: TracedEpisodes, simulator: LearnedSimulator, reward_model: RewardModel,
                       encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array,
                       batch: int = 64, num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
-                      max_instruction_bytes: int = 96, settle_steps: int = 0) -> tuple[EpisodeSet, np.ndarray]:
+                      max_instruction_bytes: int = 96, settle_steps: int = 0,
+                      encode_prefix: Callable[[Any, Any], Any] | None = None) -> tuple[EpisodeSet, np.ndarray]:
     """Real episodes as the learned simulator imagines them: each traced episode's actions replayed from
-    its start frame (:func:`replay_starts`, :func:`replay_actions` with ``settle_steps`` hold actions),
+    its start frame (:func:`replay_starts`, with ``encode_prefix`` its prefix encoding; :func:`replay_actions` with
+    ``settle_steps`` hold actions),
     its imagined frames kept, labelled with the REAL outcome: what a success detector that must be honest
     on imagined frames trains and is calibrated on (:func:`replay_labels`).
 
@@ -275,7 +288,8 @@ def replayed_episodes(traced: TracedEpisodes, simulator: LearnedSimulator, rewar
     count from the start frame.
     """
     start, actions, lengths = replay_starts(traced, encode, num_context=num_context, frames_per_latent=frames_per_latent,
-                                            proprio_dim=proprio_dim, max_instruction_bytes=max_instruction_bytes)
+                                            proprio_dim=proprio_dim, max_instruction_bytes=max_instruction_bytes,
+                                            encode_prefix=encode_prefix)
     keep = np.flatnonzero(lengths > 0)
     if keep.size == 0:
         raise ValueError("replayed_episodes: every traced episode ended inside the head; nothing to replay")
@@ -656,7 +670,8 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
                   encode: Callable[[Any, Any], Any], *, success_threshold: float, key: jax.Array, batch: int = 64,
                   num_context: int = 1, frames_per_latent: int = 4, proprio_dim: int = 8,
                   max_instruction_bytes: int = 96, max_steps: int | None = None, repeats: int = 2,
-                  settle_steps: int = 0, replay_fn: Callable | None = None) -> dict[str, Any]:
+                  settle_steps: int = 0, replay_fn: Callable | None = None,
+                  encode_prefix: Callable[[Any, Any], Any] | None = None) -> dict[str, Any]:
     """Replays traced real episodes in the learned simulator and reports :func:`agreement`.
 
     Episodes that ended inside the head (before the simulator's start frame) are left out. The
@@ -665,7 +680,8 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
     has the same shapes; pass ``replay_fn`` (``jax.jit`` of :func:`replay_actions` with ``success_threshold``
     and the same ``settle_steps`` bound) to reuse one compile across reports. ``settle_steps``: hold
     actions scored after each episode's last action (:func:`replay_actions`), for the imagined scene to
-    show a success the real episode ended on.
+    show a success the real episode ended on. ``encode_prefix``: the starts' prefix encoder with
+    ``rl.imagined.start_encoding=prefix`` (:func:`replay_starts`).
 
     Each episode is replayed ``repeats`` times with other simulator noise (a flow-matching world
     model samples its futures): the agreement is the first replay's, and ``resample_disagreement``
@@ -691,7 +707,7 @@ def replay_report(traced: TracedEpisodes, simulator: LearnedSimulator, reward_mo
         raise ValueError(f"replay_report: repeats must be >= 1, got {repeats}")
     start, actions, lengths = replay_starts(traced, encode, num_context=num_context,
                                             frames_per_latent=frames_per_latent, proprio_dim=proprio_dim,
-                                            max_instruction_bytes=max_instruction_bytes)
+                                            max_instruction_bytes=max_instruction_bytes, encode_prefix=encode_prefix)
     keep = np.flatnonzero(lengths > 0)
     if max_steps is not None:
         t0 = frames_per_latent * num_context
