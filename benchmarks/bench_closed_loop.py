@@ -26,7 +26,10 @@ the start latents are encoded, ``rl.imagined.start_encoding``, the same keyframe
   (``start_context_error``, relative; 0 with ``rl.imagined.start_encoding=prefix``): what the world model was trained
   on, since the latents stage encodes whole episodes;
 * each variant against the first, trajectory by trajectory (the same start and keys): the difference of what
-  reality paid, with Newcombe's paired interval.
+  reality paid, with Newcombe's paired interval;
+* with ``--frames K``, the first ``K`` trajectories of the first batch drawn decision by decision, the simulator's
+  frame above the real frame the same actions reached (``frames_<variant>.png``, the arrays in ``.npz``): what the
+  figures above measure, to look at.
 
 And once, ``real``: the same policy from the same starts on MJX's own frames for the same horizon (sampled at
 ``rl.grpo.temperature``, ``rl.imagined_actions_per_decision`` actions a decision, proprio missing as in the
@@ -123,22 +126,28 @@ def pipeline_inputs(pipeline: str, world_model: str | None = None) -> dict[str, 
 
 
 def make_measure(graphdef: Any, rl: Any, env: Any, *, read_state: Callable[[jax.Array], jax.Array] | None = None,
-                 gripper_closed_below: float = 0.04) -> Callable[..., dict[str, jax.Array]]:
+                 gripper_closed_below: float = 0.04, keep_frames: int = 0) -> Callable[..., dict[str, jax.Array]]:
     """``measure(params, sim, reward_model, start, env_starts, key)`` for one batch of start states: the imagined
     rollouts (``rl.grpo.group_size`` per start, every decision run), their actions executed in ``env`` from
     ``env_starts``; returns per trajectory ``real`` (reality's verdict) and ``said`` (the detector's), and the
     closed loop's per-decision figures, with ``read_state`` (a state probe, :func:`probe_reader`) the arm's, the
-    bowl's and the gripper's too. Pure; jit it (the simulator is an argument, its settings are its own)."""
+    bowl's and the gripper's too. With ``keep_frames = k`` also ``frames_imagined`` and ``frames_real`` (uint8
+    ``[k, C, s, s, 3]`` at the policy's size): per decision the frame the policy read in the simulator and the
+    real frame the same actions reached (the start frame at decision 0 in both), of the first ``k`` trajectories.
+    Pure; jit it (the simulator is an argument, its settings are its own)."""
     from sword_jax.rl import imagined_check
+    from sword_jax.rl.policy import resize_frames
     from sword_jax.rl.rollout import imagined_rollout
 
     g = rl.grpo.group_size
+    if keep_frames < 0:
+        raise ValueError(f"make_measure: keep_frames must be >= 0, got {keep_frames}")
 
     def measure(params, sim, reward_model, start, env_starts, key):
         rollout = imagined_rollout(graphdef, params, sim, reward_model, start, rl, key=key, group_size=g,
                                    stop_on_success=False)
         actions, lengths = imagined_check.executed_actions(rollout, rl.action_bins)
-        rows = min(rl.imagined.fidelity_trajectories, actions.shape[0])
+        rows = min(max(rl.imagined.fidelity_trajectories, keep_frames), actions.shape[0])
         env_starts = jnp.repeat(env_starts, g, axis=0)
         if not rows:  # rl.imagined.fidelity_trajectories=0: what reality paid only
             first = imagined_check.execute_open_loop(env, env_starts, actions, lengths)
@@ -146,9 +155,20 @@ def make_measure(graphdef: Any, rl: Any, env: Any, *, read_state: Callable[[jax.
         first, frames = imagined_check.execute_observed(env, env_starts, actions, lengths,
                                                         every=rollout.tokens.shape[2], rows=rows)
         round_trip = sim.round_trip if getattr(sim, "round_trip_fn", None) else None
-        loop = imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames, image_size=rl.image_size,
-                                                   action_bins=rl.action_bins, round_trip=round_trip,
-                                                   read_state=read_state, gripper_closed_below=gripper_closed_below)
+        measured = min(rl.imagined.fidelity_trajectories, actions.shape[0])
+        loop = {}
+        if measured:  # the figures over the first rl.imagined.fidelity_trajectories, as GRPO's executed step
+            loop = imagined_check.closed_loop_fidelity(graphdef, params, rollout, frames[:measured],
+                                                       image_size=rl.image_size, action_bins=rl.action_bins,
+                                                       round_trip=round_trip, read_state=read_state,
+                                                       gripper_closed_below=gripper_closed_below)
+        if keep_frames:  # at the policy's size, as uint8: decision d's imagined frame beside the real one
+            k = min(keep_frames, rows)
+            size = lambda x: resize_frames(x, rl.image_size)  # noqa: E731 - uint8 or [0, 1] -> [0, 1] at its size
+            shown = lambda x: jnp.round(255.0 * jnp.clip(x, 0.0, 1.0)).astype(jnp.uint8)  # noqa: E731
+            imagined = size(rollout.obs_frames[:k])
+            real = jnp.concatenate([imagined[:, :1], size(frames[:k, :-1])], axis=1)
+            loop.update(frames_imagined=shown(imagined), frames_real=shown(real))
         return {"real": first >= 0, "said": rollout.success, **loop}
 
     return measure
@@ -269,16 +289,20 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
                      overrides: dict[str, Sequence[str]] | None = None, log: Callable[[str], Any] = print,
                      on_row: Callable[[dict[str, Any]], Any] | None = None,
                      read_state: Callable[[jax.Array], jax.Array] | None = None,
-                     gripper_closed_below: float = 0.04, start_errors: dict[str, float] | None = None
-                     ) -> dict[str, Any]:
+                     gripper_closed_below: float = 0.04, start_errors: dict[str, float] | None = None,
+                     keep_frames: int = 0, frames_dir: str | None = None) -> dict[str, Any]:
     """Every variant's row (:func:`summarise`) on the same ``batches`` (``(start, env_starts)`` pairs; or per variant
     name its own, the same keyframes encoded its way: ``rl.imagined.start_encoding``) and ``keys``,
     and with ``real_fn`` (:func:`make_real`) the ``real`` row on the same starts; ``on_row(out so far)`` after each
     row (e.g. a run stopped by its time limit keeps the rows measured); ``read_state`` adds the state probe's figures
     (:func:`make_measure`); ``start_errors`` (per variant, :func:`start_context_error`) joins each row as
-    ``start_context_error``."""
+    ``start_context_error``. With ``keep_frames = k`` and ``frames_dir``, each variant's first ``k`` trajectories of
+    the first batch are drawn there, imagined beside real decision by decision (:func:`write_frames`: ``frames_<name>
+    .png`` and ``.npz``)."""
+    if keep_frames and not frames_dir:
+        raise ValueError("measure_variants: keep_frames needs frames_dir (where the frames are drawn)")
     measure = jax.jit(make_measure(graphdef, rl, env, read_state=read_state,
-                                   gripper_closed_below=gripper_closed_below))
+                                   gripper_closed_below=gripper_closed_below, keep_frames=keep_frames))
     if not isinstance(batches, dict):  # the same batches for every variant
         batches = dict.fromkeys(simulators, batches)
     rows, first = [], None
@@ -286,6 +310,9 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         began = time.perf_counter()
         outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
                 for (start, env_starts), key in zip(batches[name], keys)]
+        if keep_frames:
+            shown = [(o.pop("frames_imagined"), o.pop("frames_real")) for o in outs][0]
+            write_frames(os.path.join(frames_dir, f"frames_{name}"), *shown)
         row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
         if start_errors and name in start_errors:
             row["start_context_error"] = start_errors[name]
@@ -308,6 +335,32 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         if on_row is not None:
             on_row(out)
     return out
+
+
+def write_frames(stem: str, imagined: np.ndarray, real: np.ndarray, gap: int = 2) -> str:
+    """Draws ``imagined`` and ``real`` (uint8 ``[k, C, s, s, 3]``, :func:`make_measure`'s ``frames_*``) as one image,
+    ``stem.png``: per trajectory a row of the simulator's frames (decision 0 to C - 1, left to right) above the real
+    frames its actions reached, ``gap`` white pixels between frames and a double gap between trajectories; and both
+    arrays as ``stem.npz``. Returns the image's path."""
+    import cv2
+
+    imagined, real = np.asarray(imagined, np.uint8), np.asarray(real, np.uint8)
+    if imagined.shape != real.shape or imagined.ndim != 5 or imagined.shape[-1] != 3:
+        raise ValueError(f"write_frames: imagined {imagined.shape} and real {real.shape} must both be [k, C, s, s, 3]")
+    k, c, h, w, _ = imagined.shape
+    height, width = k * (2 * h + 3 * gap), c * (w + gap)
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    for i in range(k):
+        for row, frames in enumerate((imagined[i], real[i])):
+            top = i * (2 * h + 3 * gap) + row * (h + gap)
+            for d in range(c):
+                canvas[top:top + h, d * (w + gap):d * (w + gap) + w] = frames[d]
+    os.makedirs(os.path.dirname(stem) or ".", exist_ok=True)
+    np.savez_compressed(stem + ".npz", imagined=imagined, real=real)
+    path = stem + ".png"
+    if not cv2.imwrite(path, canvas[..., ::-1]):  # OpenCV writes BGR
+        raise OSError(f"write_frames: could not write {path}")
+    return path
 
 
 RECORD_KEY = "world_model_closed_loop_small"
@@ -366,6 +419,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                              "(repeatable; the first is the paired reference)")
     parser.add_argument("--batches", type=int, default=2, help="GRPO steps' start states measured (x rollout batch x G)")
     parser.add_argument("--no-real", action="store_true", help="leave out the policy on MJX's own frames")
+    parser.add_argument("--frames", type=int, default=0, metavar="K",
+                        help="draw each variant's first K trajectories (first batch) decision by decision, imagined "
+                             "above real: --out/frames_<variant>.png and .npz")
     parser.add_argument("--out", help="folder of closed_loop.json")
     parser.add_argument("--record", action="store_true",
                         help=f"merge the entry {RECORD_KEY} into benchmarks/results/latest.json")
@@ -386,6 +442,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                              f"{cfg.name}")
     if args.batches < 1:
         raise cli.UsageError(f"bench_closed_loop: --batches must be >= 1, got {args.batches}")
+    if args.frames < 0:
+        raise cli.UsageError(f"bench_closed_loop: --frames must be >= 0 (trajectories drawn), got {args.frames}")
     if cfg.rl.imagined.proprio == "reckoned":
         raise cli.UsageError("bench_closed_loop: rl.imagined.proprio=reckoned is not measured here (the real row reads "
                              "the missing-proprio input); use rl.imagined.proprio=missing")
@@ -458,7 +516,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     out = measure_variants(graphdef, params, rl, simulators, batches, keys, env=env, real_fn=real_fn,
                            overrides=variants, on_row=save, read_state=read_state, gripper_closed_below=closed_below,
-                           start_errors=context_errors)
+                           start_errors=context_errors, keep_frames=args.frames, frames_dir=args.out)
     save(out)
     if args.record:
         from benchmarks.common import merge_results

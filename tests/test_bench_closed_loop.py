@@ -61,7 +61,7 @@ def _batches(n=2):
     return out
 
 
-def _measure(simulators, real=True, rl=CFG, read_state=None):
+def _measure(simulators, real=True, rl=CFG, read_state=None, **kwargs):
     graphdef, params = build_policy(rl, seed=0)
     env = ToyEnv(rl.success_threshold)
     detector = toy_reward_model()
@@ -69,7 +69,7 @@ def _measure(simulators, real=True, rl=CFG, read_state=None):
     keys = [jax.random.key(3), jax.random.key(4)]
     return bench.measure_variants(graphdef, params, rl, {n: (s, detector) for n, s in simulators.items()}, _batches(),
                                   keys, env=env, real_fn=real_fn if real else None, log=lambda _: None,
-                                  read_state=read_state)
+                                  read_state=read_state, **kwargs)
 
 
 def test_a_faithful_simulator_leaves_no_gap_and_a_noisy_one_drifts():
@@ -135,6 +135,8 @@ def test_main_refuses_bad_command_lines(tmp_path):
     base = ["--config", "sword:tiny", "--pipeline", str(tmp_path), "--policy", str(policy), "--out", str(tmp_path / "o")]
     with pytest.raises(cli.UsageError, match="--batches"):
         bench.main(base + ["--variant", "a=flow.noise_scale=1", "--batches", "0"])
+    with pytest.raises(cli.UsageError, match="--frames"):
+        bench.main(base + ["--variant", "a=flow.noise_scale=1", "--frames", "-1"])
     with pytest.raises(cli.UsageError, match="at least one"):
         bench.main(base)
     with pytest.raises(cli.UsageError, match="lacks"):
@@ -276,3 +278,34 @@ def test_the_start_context_error_is_relative_and_zero_for_the_exact_encoding():
     exact = [(start(np.full((2, 2, 1), 2.0)), None)]
     assert bench.start_context_error(exact, exact) == 0.0
     assert bench.start_context_error([(start(np.full((2, 2, 1), 2.5)), None)], exact) == pytest.approx(0.25)
+
+
+def test_the_frames_drawn_are_the_simulators_beside_the_real_ones(tmp_path):
+    """``--frames K``: per variant the first K trajectories' frames, decision by decision. A faithful simulator's
+    imagined frames equal the real ones (both start at the start frame) and the rows' figures are those of a run
+    that draws nothing; a noisy one's differ after the start; the image holds both rows of every trajectory."""
+    import cv2
+
+    faithful = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim)
+    noisy = toy_simulator(frame_size=8, chunk_len=CFG.chunk_len, proprio_dim=CFG.proprio_dim, noise=0.08)
+    k = 3
+    drawn = _measure({"faithful": faithful, "noisy": noisy}, real=False, keep_frames=k, frames_dir=str(tmp_path))
+    plain = _measure({"faithful": faithful, "noisy": noisy}, real=False)
+    timeless = lambda out: [{k: v for k, v in row.items() if k != "seconds"} for row in out["variants"]]  # noqa: E731
+    assert timeless(drawn) == timeless(plain)  # drawing the frames changes no figure
+    c, s = CFG.imagined.max_chunks, CFG.image_size
+    saved = {name: np.load(tmp_path / f"frames_{name}.npz") for name in ("faithful", "noisy")}
+    for arrays in saved.values():
+        assert arrays["imagined"].shape == arrays["real"].shape == (k, c, s, s, 3)
+        assert arrays["imagined"].dtype == np.uint8
+        np.testing.assert_array_equal(arrays["imagined"][:, 0], arrays["real"][:, 0])  # the same start frame
+    assert np.abs(saved["faithful"]["imagined"].astype(int) - saved["faithful"]["real"].astype(int)).max() <= 1
+    assert np.abs(saved["noisy"]["imagined"][:, 1:].astype(int) - saved["noisy"]["real"][:, 1:].astype(int)).max() > 10
+    image = cv2.imread(str(tmp_path / "frames_noisy.png"))[..., ::-1]
+    assert image.shape == (k * (2 * s + 6), c * (s + 2), 3)
+    np.testing.assert_array_equal(image[s + 2:2 * s + 2, :s], saved["noisy"]["real"][0, 0])
+    np.testing.assert_array_equal(image[:s, s + 2:2 * s + 2], saved["noisy"]["imagined"][0, 1])
+    with pytest.raises(ValueError, match="frames_dir"):
+        _measure({"faithful": faithful}, real=False, keep_frames=k)
+    with pytest.raises(ValueError, match="must both be"):
+        bench.write_frames(str(tmp_path / "bad"), saved["noisy"]["imagined"], saved["noisy"]["real"][:1])
