@@ -60,10 +60,39 @@ def _measure(model, steps, batch, key=0):
 
 def test_a_model_that_knows_the_future_has_no_loss_and_no_sample_error_at_any_step_count():
     out = _measure(Oracle(0.7), (1, 5), _batch(0.7))
-    assert set(out) == {"loss", "sample_error_1", "sample_error_5"}
+    assert set(out) == {"loss", "sample_error_1", "sample_error_5", "other_actions_error_1"}
+    assert out["other_actions_error_1"] < 1e-8  # it ignores the actions: another segment's change nothing
     assert out["loss"] < 1e-8 and out["sample_error_1"] < 1e-8 and out["sample_error_5"] < 1e-8
     wrong = _measure(Oracle(0.2), (1, 5), _batch(0.7))  # a model that expects another future is charged
     assert wrong["loss"] > 0.1 and wrong["sample_error_1"] > 0.1 and wrong["sample_error_5"] > 0.1
+
+
+class ActionDriven(nnx.Module):
+    """Knows that a segment's future latents are the mean of its actions from its last context frame on."""
+
+    def __init__(self):
+        self.gain = nnx.Param(jnp.float32(1.0))
+
+    def __call__(self, latents, timesteps, actions):
+        value = self.gain[...] * jnp.mean(actions[:, 4 * NUM_CONTEXT:], axis=(1, 2))[:, None, None, None, None]
+        sigma = (timesteps / FLOW.num_train_timesteps)[:, :, None, None, None]
+        return jnp.where(sigma > 0, (latents - value) / jnp.maximum(sigma, 1e-6), 0.0)
+
+
+def test_a_model_the_actions_drive_is_charged_under_other_segments_actions():
+    """Other segments' actions from the last context frame on: the model whose future the actions decide misses
+    it, the one that ignores them does not; the first frame's and the earlier context actions stay the segment's."""
+    batch = _batch(0.0)
+    target = jnp.mean(batch["actions"][:, 4 * NUM_CONTEXT:], axis=(1, 2))
+    latents = batch["latents"].at[:, NUM_COND:].set(jnp.broadcast_to(target[:, None, None, None, None],
+                                                                      batch["latents"][:, NUM_COND:].shape))
+    batch = dict(batch, latents=latents)
+    out = _measure(ActionDriven(), (2,), batch)
+    assert out["sample_error_2"] < 1e-8 and out["other_actions_error_2"] > 0.1
+    swapped = heldout.other_actions(batch["actions"], NUM_CONTEXT)
+    np.testing.assert_array_equal(swapped[:, :4 * NUM_CONTEXT], batch["actions"][:, :4 * NUM_CONTEXT])
+    np.testing.assert_array_equal(swapped[1:, 4 * NUM_CONTEXT:], batch["actions"][:-1, 4 * NUM_CONTEXT:])
+    np.testing.assert_array_equal(swapped[0, 4 * NUM_CONTEXT:], batch["actions"][-1, 4 * NUM_CONTEXT:])
 
 
 def test_the_sample_error_tells_the_samplers_steps_apart_on_a_curved_path():
@@ -203,7 +232,8 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
     with pytest.raises(ValueError, match="the policy split's latents .* do not match the training data"):
         heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, policy=odd, **common)
     alone = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, **common)
-    assert alone.names == ("eval_train_loss", f"eval_train_sample_error_{FLOW.sample_steps}")
+    assert alone.names == ("eval_train_loss", f"eval_train_sample_error_{FLOW.sample_steps}",
+                           f"eval_train_other_actions_error_{FLOW.sample_steps}")
     # the policy split is measured beside the others and leaves their values as they were without it
     held, policy = (data.synthetic_latent_dataset(3, 9, 2, 2, 48, seed=s) for s in (1, 2))
     model = MixerWorldModel(48, 7, rngs=nnx.Rngs(0))
@@ -276,6 +306,11 @@ def test_the_pipeline_report_says_the_last_measurement_of_every_split():
         " On fixed segments at the end, flow loss 0.09 held-out against 0.12 held-out policy rollouts against 0.07"
         " training policy rollouts against 0.05 training; the sampler's error at 5 Euler steps 0.3 held-out against"
         " 0.4 held-out policy rollouts against 0.22 training policy rollouts against 0.2 training;")
+    final.update(eval_trainpolicy_other_actions_error_5=0.3, eval_train_other_actions_error_5=0.5,
+                 eval_heldout_other_actions_error_5=0.6, eval_policy_other_actions_error_5=0.7)
+    assert _measured_segments(final).endswith(
+        "; under other segments' actions at 5 Euler steps 0.6 held-out against 0.7 held-out policy rollouts against"
+        " 0.3 training policy rollouts against 0.5 training.")
     assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing
 
 

@@ -30,6 +30,11 @@ def _measured_segments(final: dict) -> str:
     for n in steps:
         text += f"; the sampler's error at {n} Euler steps " + " against ".join(
             f"{_fmt(final[f'eval_{s}_sample_error_{n}'])} {names[s]}" for s in splits)
+    other = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_other_actions_error_"))
+    for n in other:  # the same call under other segments' actions: how much the actions decide
+        text += f"; under other segments' actions at {n} Euler steps " + " against ".join(
+            f"{_fmt(final[f'eval_{s}_other_actions_error_{n}'])} {names[s]}" for s in splits
+            if f"eval_{s}_other_actions_error_{n}" in final)
     return text + "."
 
 

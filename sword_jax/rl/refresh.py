@@ -306,7 +306,7 @@ def segment_fit(cfg: Any, wm_state: tuple[Any, Any], latents: np.ndarray, action
     if "measure" not in compiled:
         k = cfg.data.context_frames // cfg.vae.temporal_factor
         graphdef = nnx.split(nnx.eval_shape(lambda: WorldModel(cfg.model, rngs=nnx.Rngs(0))), nnx.Param, ...)[0]
-        compiled["measure"] = jax.jit(make_measure(graphdef, cfg.flow, k, (n_steps,)))
+        compiled["measure"] = jax.jit(make_measure(graphdef, cfg.flow, k, (n_steps,), with_other_actions=False))
     measure = compiled["measure"]
     params, buffers = wm_state
     root = stream_key(jax.random.key(seed), "refresh/segment_fit")

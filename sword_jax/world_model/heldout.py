@@ -9,6 +9,11 @@ model fits what it has seen. Two questions it cannot answer decide whether the m
   error of the future latents the flow sampler makes in ``n`` Euler steps from the true context, against the true
   future latents (what one world-model call of a rollout gets wrong). Several ``n`` side by side separate the
   model's error from the sampler's discretisation.
+* Does the prediction follow the actions? ``eval_*_other_actions_error_<n>``: the same sample error (at the
+  first of the step counts, from the same noise and the same true context) when each segment is given the actions
+  of another segment of its batch from its last context frame on (the actions that move its future; a batch's
+  segments rolled by one). A model that ignores the actions scores the same with either; the ratio of the two is
+  how much of what the model predicts the actions decide, next to how precisely it predicts it.
 
 Each split is ``trainer.eval_batches`` batches of ``data.batch_size`` segments, drawn once from a fixed seed; the
 loss uses noise levels spread evenly over the training distribution's quantiles and a fixed noise draw, and the
@@ -68,9 +73,19 @@ def sample_steps(trainer_cfg: TrainerConfig, flow_cfg: FlowConfig) -> tuple[int,
 
 
 def metric_names(steps: tuple[int, ...], splits: tuple[str, ...] = SPLITS) -> tuple[str, ...]:
-    """The names an evaluation reports, per split: its loss, then its sample error per step count."""
+    """The names an evaluation reports, per split: its loss, its sample error per step count, then the sample error
+    at the first step count under other segments' actions (:func:`make_measure`)."""
     return tuple(f"eval_{split}_{name}" for split in splits
-                 for name in ("loss", *(f"sample_error_{n}" for n in steps)))
+                 for name in ("loss", *(f"sample_error_{n}" for n in steps), f"other_actions_error_{steps[0]}"))
+
+
+def other_actions(actions: jax.Array, num_context: int) -> jax.Array:
+    """``actions [b, 1 + 4 (k + p), a]`` of a batch of segments with each segment's actions from its last context
+    frame on (the one whose action moves the first future frame, as the learned simulator lays a chunk out) taken
+    from the segment before it in the batch (rolled by one); the first frame's and the other context frames'
+    actions stay its own."""
+    keep = 4 * num_context  # the first frame's action and all but the last context frame's
+    return jnp.concatenate([actions[:, :keep], jnp.roll(actions[:, keep:], 1, axis=0)], axis=1)
 
 
 def fixed_segments(dataset: LatentDataset, count: int, num_context: int, num_future: int,
@@ -108,10 +123,12 @@ def segment_errors(made: jax.Array, future: jax.Array) -> tuple[jax.Array, jax.A
 
 
 def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int, steps: tuple[int, ...], *,
-                 per_segment: bool = False) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
-    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"...}`` of one batch of segments; with
-    ``per_segment``, ``{"energy", "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from
-    the same noise."""
+                 per_segment: bool = False, with_other_actions: bool = True
+                 ) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
+    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"..., "other_actions_error_<first n>"}``
+    of one batch of segments (the last under :func:`other_actions`, from the same noise; a batch of one segment has
+    no other and scores its own; left out with ``with_other_actions=False``); with ``per_segment``, ``{"energy",
+    "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from the same noise."""
     num_cond = 1 + num_context
 
     def measure(params, buffers, batch, key):
@@ -131,6 +148,11 @@ def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
                                   num_future=future.shape[1], cfg=flow_cfg, num_steps=n, noise=start)
             out[f"sample_error_{n}"] = (segment_errors(made, future)[0] if per_segment
                                         else latent_distance(made, future)["rel_mse"])
+        if with_other_actions and not per_segment:  # the same call under other segments' actions: what they decide
+            made = sampler.sample(model_fn, latents[:, :num_cond], other_actions(actions, num_context),
+                                  key=sample_key, num_future=future.shape[1], cfg=flow_cfg, num_steps=steps[0],
+                                  noise=start)
+            out[f"other_actions_error_{steps[0]}"] = latent_distance(made, future)["rel_mse"]
         return out
 
     return measure
