@@ -310,9 +310,9 @@ def measure_variants(graphdef: Any, params: Any, rl: Any, simulators: dict[str, 
         began = time.perf_counter()
         outs = [jax.device_get(measure(params, sim, reward_model, start, env_starts, key))
                 for (start, env_starts), key in zip(batches[name], keys)]
-        if keep_frames:
-            shown = [(o.pop("frames_imagined"), o.pop("frames_real")) for o in outs][0]
-            write_frames(os.path.join(frames_dir, f"frames_{name}"), *shown)
+        if keep_frames:  # the first batch's are drawn; no batch's frames go into the row
+            shown = [(o.pop("frames_imagined"), o.pop("frames_real")) for o in outs]
+            write_frames(os.path.join(frames_dir, f"frames_{name}"), *shown[0])
         row = summarise(name, (overrides or {}).get(name, ()), outs, rl.imagined.max_chunks, first)
         if start_errors and name in start_errors:
             row["start_context_error"] = start_errors[name]
@@ -480,7 +480,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise cli.UsageError(f"bench_closed_loop: {paths['demos']} holds no recorded states to execute from")
     root = jax.random.key(cfg.seed)
     starts_key, update_key = stream_key(root, "grpo/starts"), stream_key(root, "grpo/update")
-    simulators, batches = {}, {}
+    simulators, batches, exact = {}, {}, None
     for name, pairs in variants.items():
         own = apply_overrides(cfg, [f"--{p}" for p in pairs])
         setup_v = setup_from_weights(own, own.rl, episodes, world_model=world_model, vae=vae, detector=detector)
@@ -488,10 +488,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         # the same keyframes in every variant (the run's keyframe stream); their latents as the variant encodes them
         batches[name] = [(setup_v.starts(jax.random.fold_in(starts_key, i), i), jnp.asarray(setup_v.env_starts(i)))
                          for i in range(args.batches)]
+        if exact is None and own.rl.imagined.start_encoding == "prefix":
+            exact = batches[name]  # encoded from their episodes' first frame: what every variant's is measured against
     # the same keyframes encoded from their episodes' first frame: how far each variant's start context is from them
-    # (a variant that encodes them so already holds them)
-    exact = next((batches[name] for name, pairs in variants.items()
-                  if apply_overrides(cfg, [f"--{p}" for p in pairs]).rl.imagined.start_encoding == "prefix"), None)
     if exact is None:
         exact_cfg = apply_overrides(cfg, ["--rl.imagined.start_encoding=prefix"])
         exact_setup = setup_from_weights(exact_cfg, exact_cfg.rl, episodes, world_model=world_model, vae=vae,
@@ -532,7 +531,8 @@ def record_saved(args: argparse.Namespace) -> dict:
 
     given = [flag for flag, value in (("--pipeline", args.pipeline), ("--world-model", args.world_model),
                                       ("--probe", args.probe), ("--policy", args.policy), ("--out", args.out),
-                                      ("--variant", args.variant), ("--no-real", args.no_real)) if value]
+                                      ("--variant", args.variant), ("--no-real", args.no_real),
+                                      ("--frames", args.frames)) if value]
     if given:
         raise cli.UsageError(f"bench_closed_loop: --from records a saved run; {', '.join(given)} measure one")
     if args.date and not re.fullmatch(r"\d{4}-\d{2}-\d{2}", args.date):

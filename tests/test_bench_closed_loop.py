@@ -185,6 +185,8 @@ def test_recording_a_saved_run_refuses_what_would_measure_and_bad_dates(tmp_path
     base = ["--config", "sword:tiny", "--from", str(saved)]
     with pytest.raises(cli.UsageError, match="--pipeline"):
         bench.main(base + ["--pipeline", str(tmp_path)])
+    with pytest.raises(cli.UsageError, match="--frames"):
+        bench.main(base + ["--frames", "2"])
     with pytest.raises(cli.UsageError, match="YYYY-MM-DD"):
         bench.main(base + ["--date", "2 December"])
     with pytest.raises(cli.UsageError, match="measured on 2026-12-02"):

@@ -315,15 +315,13 @@ def make_closed_loop(graphdef: Any, rl: Any, env: JaxEnv, setup: Any, encode_fra
             env_starts = np.repeat(np.asarray(setup.env_starts(index)), g, axis=0)
             trace, first, frames = jax.device_get(traced(decisions)(params, sim, rm, start, jnp.asarray(env_starts),
                                                                     jax.random.fold_in(root, index)))
-            if encode_prefix is None:
-                real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
-                                       np.repeat(window["history"], g, axis=0), np.asarray(frames),
-                                       frames_per_latent=frames_per_latent)
-            else:  # after the episode from frame 0 to the keyframe, as the start latents
-                real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
-                                       np.repeat(window["prefix"][:, 1:], g, axis=0), np.asarray(frames),
-                                       frames_per_latent=frames_per_latent,
-                                       latent_index=np.repeat(window["latent_index"], g))
+            # the executed frames after the keyframe's history, or with the prefix after the episode from frame 0
+            # to the keyframe, as the start latents were encoded
+            history, index = ((window["history"], None) if encode_prefix is None
+                              else (window["prefix"][:, 1:], np.repeat(window["latent_index"], g)))
+            real = cl.real_latents(encode_frames, np.repeat(window["first_frame"], g, axis=0),
+                                   np.repeat(history, g, axis=0), np.asarray(frames),
+                                   frames_per_latent=frames_per_latent, latent_index=index)
             latents, start_actions = (np.repeat(np.asarray(x), g, axis=0) for x in start.latents)
             contexts = np.asarray(trace.contexts, np.float32)
             parts.append(cl.closed_loop_segments(latents, start_actions, contexts, real, np.asarray(trace.actions),

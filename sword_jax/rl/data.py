@@ -226,8 +226,7 @@ def prefix_latents_for(episodes: EpisodeSet, *, max_fraction: float, num_context
     """The latents after the first that :func:`keyframe_window`'s ``prefix`` must hold so that every keyframe
     :func:`keyframe_indices` can draw from ``episodes`` (up to fraction ``max_fraction``) lies in it: one fixed
     length per run, so the encoder compiles once."""
-    last = np.maximum((episodes.lengths - 1) * max_fraction // frames_per_latent, num_context)
-    return int(np.max(last))
+    return int(np.max(_last_keyframe_latent(episodes.lengths, max_fraction, num_context, frames_per_latent)))
 
 
 def prefix_encoder(start_encoding: str, encode_prefix: Callable[..., Any] | None, user: str
@@ -243,6 +242,13 @@ def prefix_encoder(start_encoding: str, encode_prefix: Callable[..., Any] | None
                          "the prefix encoder (encode_prefix=, e.g. the GRPO setup's); pass it or use "
                          "--rl.imagined.start_encoding=window")
     return encode_prefix
+
+
+def _last_keyframe_latent(lengths: np.ndarray, max_fraction: float, num_context: int,
+                          frames_per_latent: int) -> np.ndarray:
+    """Per episode of ``lengths`` the latest keyframe latent :func:`keyframe_indices` may draw: the last at or before
+    fraction ``max_fraction`` of the episode, at least ``num_context``."""
+    return np.maximum((np.asarray(lengths) - 1) * max_fraction // frames_per_latent, num_context).astype(np.int64)
 
 
 def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator, *, max_fraction: float = 0.5,
@@ -261,7 +267,7 @@ def keyframe_indices(episodes: EpisodeSet, count: int, rng: np.random.Generator,
                          f"{max_fraction}")
     k, f = num_context, frames_per_latent
     ep = rng.integers(0, episodes.num_episodes, count)
-    last = np.maximum((episodes.lengths[ep] - 1) * max_fraction // f, k).astype(np.int64)
+    last = _last_keyframe_latent(episodes.lengths[ep], max_fraction, k, f)
     # ceil, so no keyframe precedes the window; min_fraction 0 gives first = k
     first = np.minimum(np.maximum(-(-(episodes.lengths[ep] - 1) * min_fraction // f), k), last).astype(np.int64)
     s = first + (rng.random(count) * (last - first + 1)).astype(np.int64)

@@ -192,9 +192,11 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     figures = {"frame_error": error(imagined, real), "action_gap": gap(on_imagined, on_real),
                "frame_error_prev": error(imagined, real_prev), "action_gap_prev": gap(on_imagined, greedy(real_prev)),
                "motion": error(real, real_prev)}
+    # frames as floats in [0, 1] (the environment's may be uint8)
+    as_unit = lambda x: (x.astype(jnp.float32) / jnp.float32(255.0) if x.dtype == jnp.uint8  # noqa: E731
+                         else x.astype(jnp.float32))
     if round_trip is not None:  # the real frames through the simulator's decoder, at their own size, then resized
-        seen = real_frames[:, :-1]
-        seen = seen.astype(jnp.float32) / jnp.float32(255.0) if seen.dtype == jnp.uint8 else seen.astype(jnp.float32)
+        seen = as_unit(real_frames[:, :-1])
         tripped = round_trip(seen.reshape((m * (c - 1),) + seen.shape[2:]))
         tripped = tripped.reshape((m, c - 1) + tripped.shape[1:])  # at the simulator's frame size
         at_policy = resize_frames(tripped, image_size)
@@ -203,10 +205,9 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
         from sword_jax.evaluation.probe import BOWL, EE, GRIPPER
 
         def state(frames):
-            frames = frames.astype(jnp.float32) / jnp.float32(255.0) if frames.dtype == jnp.uint8 else frames
+            frames = as_unit(frames)
             n = frames.shape[0] * frames.shape[1]
-            return read_state(frames.reshape((n,) + frames.shape[2:]).astype(jnp.float32)).reshape(
-                frames.shape[:2] + (-1,))
+            return read_state(frames.reshape((n,) + frames.shape[2:])).reshape(frames.shape[:2] + (-1,))
 
         on_sim, on_env = state(rollout.obs_frames[:m, 1:]), state(real_frames[:, :-1])
         before = jnp.concatenate([state(rollout.obs_frames[:m, :1]), on_env[:, :-1]], axis=1)
