@@ -8,8 +8,9 @@ actions. Measured on ``small``, that loop leaves the real one decision by decisi
 real frames. The runs that measured it (``bench_grpo_reward_source``'s ``exec`` arm) train the policy and evaluate
 it on MJX, which costs most of their time; the closed loop itself needs neither. This benchmark measures only the
 loop, for each ``--variant`` (an inference setting of the world model: ``flow.*``, e.g. the sampler's starting
-noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps``, action guidance ``flow.guidance_scale``; or how
-the start latents are encoded, ``rl.imagined.start_encoding``, the same keyframes in every variant):
+noise ``flow.noise_scale``, its Euler steps ``flow.sample_steps`` and their grid ``flow.sample_shift``, action
+guidance ``flow.guidance_scale``; or how the start latents are encoded, ``rl.imagined.start_encoding``, the same
+keyframes in every variant):
 
 * the policy's imagined rollouts as GRPO's first ``--batches`` steps draw them (their start states and sampling
   keys, at the run's seed; proprio missing, every decision of the horizon run), the same starts
@@ -18,10 +19,11 @@ the start latents are encoded, ``rl.imagined.start_encoding``, the same keyframe
   what reality paid them (95% Wilson interval) and what the detector said on the same rollouts, with its precision;
 * per decision where the closed loop leaves the real one (:func:`~sword_jax.rl.imagined_check.closed_loop_fidelity`,
   over the first ``rl.imagined.fidelity_trajectories`` of each batch, means over the batches): frame error, the
-  policy's greedy action gap, both against the real frame a decision earlier, the real motion, and the VAE's
-  floor of frame error and gap; with ``--probe`` (a state probe: a pipeline's ``probe/probe.npz``) also where the
-  arm, the bowl and the gripper of the simulator's frame are against the real frame's as the probe reads both,
-  beside how far they moved on the real frames: which part of the imagined scene leaves the real one first;
+  policy's greedy action gap, both against the real frame a decision earlier, the real motion, the frame's finest
+  detail against the real frame's (sharpness: below 1, a blur), and the VAE's floor of frame error, gap and
+  sharpness; with ``--probe`` (a state probe: a pipeline's ``probe/probe.npz``) also where the arm, the bowl and
+  the gripper of the simulator's frame are against the real frame's as the probe reads both, beside how far they
+  moved on the real frames: which part of the imagined scene leaves the real one first;
 * how far each variant's start context latents are from the same keyframes encoded from their episodes' first frame
   (``start_context_error``, relative; 0 with ``rl.imagined.start_encoding=prefix``): what the world model was trained
   on, since the latents stage encodes whole episodes;
@@ -73,7 +75,7 @@ from sword_jax.atomic_write import write_json_atomic
 VARIANT = re.compile(r"([a-z0-9_]+)=(.+)")
 FIGURES = ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev", "motion", "frame_error_vae",
            "action_gap_vae", "ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm", "ee_cm_vae",
-           "bowl_cm_vae", "gripper_agree_vae")
+           "bowl_cm_vae", "gripper_agree_vae", "sharpness", "sharpness_vae")
 
 
 def parse_variants(specs: Sequence[str], cfg: Any) -> dict[str, tuple[str, ...]]:
@@ -270,6 +272,10 @@ def line(row: dict[str, Any]) -> str:
         a, b = row["decisions"][0], row["decisions"][-1]
         text += (f"; frame error {a['frame_error']:.3f} -> {b['frame_error']:.3f}, action gap "
                  f"{a['action_gap']:.3f} -> {b['action_gap']:.3f}")
+        if "sharpness" in a:  # the frame's finest detail over the real one's (below 1: a blur)
+            text += f", sharpness {a['sharpness']:.2f} -> {b['sharpness']:.2f}"
+            if "sharpness_vae" in a:
+                text += f" (VAE round trip {a['sharpness_vae']:.2f})"
         if "ee_cm" in a:
             text += (f", arm {a['ee_cm']:.1f} -> {b['ee_cm']:.1f} cm, bowl {a['bowl_cm']:.1f} -> {b['bowl_cm']:.1f} cm, "
                      f"gripper read alike {a['gripper_agree']:.2f} -> {b['gripper_agree']:.2f}")

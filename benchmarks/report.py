@@ -1506,6 +1506,63 @@ def closed_loop_starts(record: tuple[str, ...] = CLOSED_LOOP_STARTS, decisions: 
                    "real failures it called successes"], rows)
 
 
+ACTION_CONDITIONING = ("policy", "action_conditioning_small_h200")
+# its launch.sh's world models (each 5,000 steps on the same latents) and closed-loop runs:
+# folder -> (world model's words, its metrics folder, {variant: its row's words})
+ACTION_CONDITIONING_RUNS = {
+    "loop_base": ("DLB (the pipeline's)", "wm", {"p": "prefix starts"}),
+    "loop_nodlb": ("no DLB cache", "wm_nodlb", {"p": "prefix starts"}),
+    "loop_ad": ("DLB, action dropout 0.1", "wm_ad", {"g1": "prefix starts, no guidance",
+                                                      "g2": "prefix starts, action guidance 2",
+                                                      "g3": "prefix starts, action guidance 3"}),
+}
+
+
+def _last_eval(record: tuple[str, ...], folder: str) -> dict:
+    """The last held-out evaluation a world model's trainer logged (its ``world_model_metrics.jsonl``)."""
+    with open(os.path.join(RESULTS_DIR, *record, folder, "world_model_metrics.jsonl")) as f:
+        rows = [json.loads(line) for line in f if line.strip()]
+    return [r for r in rows if "eval_heldout_sample_error_5" in r][-1]
+
+
+def action_conditioning(record: tuple[str, ...] = ACTION_CONDITIONING, decisions: tuple[int, ...] = (1, 6, 11)
+                        ) -> str:
+    """World models of one pipeline's latents under three training rules (``ACTION_CONDITIONING_RUNS``): the one-call
+    sample error on held-out expert / policy segments at 5 Euler steps and the same call under other segments'
+    actions (the ratio: how much the actions decide the prediction), then GRPO's closed loop from the same starts and
+    keys: at ``decisions`` the frame error, greedy action gap, arm apart and gripper read alike (the state probe),
+    what reality paid the imagined actions, what the detector said and the real failures it called successes; then
+    the floors (the VAE's round trip read by the probe) and the policy on MJX's own frames."""
+    rows, real, floor = [], None, None
+    for folder, (model, metrics, names) in ACTION_CONDITIONING_RUNS.items():
+        out = _load(*record, folder, "closed_loop.json")
+        real = real or out.get("real")
+        ev = _last_eval(record, metrics)
+        one_call = " / ".join(f"{ev[f'eval_{split}_sample_error_5']:.4f}" for split in ("heldout", "policy"))
+        ratio = " / ".join(f"{ev[f'eval_{split}_other_actions_error_5'] / ev[f'eval_{split}_sample_error_5']:.2f}"
+                           for split in ("heldout", "policy"))
+        for v in out["variants"]:
+            by = {d["decision"]: d for d in v["decisions"]}
+            floor = floor or by
+            false, failures = _false_successes(v)
+            cell = lambda key, form: " / ".join(form.format(by[k][key]) for k in decisions)  # noqa: E731
+            rows.append([model, names[v["name"]], one_call, ratio, cell("frame_error", "{:.3f}"),
+                         cell("action_gap", "{:.3f}"), cell("ee_cm", "{:.1f}"), cell("gripper_agree", "{:.2f}"),
+                         _paid(v["paid"]), f"{v['detector']['rate']:.3f}", f"{false / failures:.3f}"])
+    rows.append(["floors", "the real frames through the VAE, read by the same policy and probe", "", "",
+                 " / ".join(f"{floor[k]['frame_error_vae']:.3f}" for k in decisions),
+                 " / ".join(f"{floor[k]['action_gap_vae']:.3f}" for k in decisions),
+                 " / ".join(f"{floor[k]['ee_cm_vae']:.1f}" for k in decisions),
+                 " / ".join(f"{floor[k]['gripper_agree_vae']:.2f}" for k in decisions), "", "", ""])
+    rows.append(["", "the policy on MJX's own frames", "", "", "", "", "", "", _paid(real["paid"]), "", ""])
+    ks = ", ".join(str(k) for k in decisions)
+    return _table(["world model (5,000 steps)", "setting", "one-call error, held-out expert / policy",
+                   "other segments' actions: error ratio, expert / policy", f"frame error, decisions {ks}",
+                   f"greedy action gap, decisions {ks}", f"arm: probe's reading apart, cm, decisions {ks}",
+                   f"gripper read alike, decisions {ks}", "real success of the imagined actions (95% interval)",
+                   "the detector said", "real failures it called successes"], rows)
+
+
 HORIZON_SIGNAL = ("policy", "grpo_horizon_signal_small_cpu")
 HORIZON_SIGNAL_GROUPS = 32  # its run.sh's --rl.grpo.rollout_batch: start states (groups of 8) a step
 HORIZON_SIGNAL_STARTS = {2: "every phase", 4: "every phase", 12: "the first half (the learned simulator's setting)"}
@@ -2314,6 +2371,7 @@ TABLES: dict[str, Callable[[], str]] = {
     "closed-loop-world-models-decisions": closed_loop_world_models_decisions,
     "start-latents": start_latents,
     "closed-loop-starts": closed_loop_starts,
+    "action-conditioning": action_conditioning,
     "sim-fidelity-fine-tunes": sim_fidelity_fine_tunes, "sim-fidelity-world-model-steps": sim_fidelity_world_model_steps,
     "grpo-horizon-signal": grpo_horizon_signal, "grpo-horizon-honesty": grpo_horizon_honesty,
     "grpo-branched-open": grpo_branched_open,

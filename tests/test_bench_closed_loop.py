@@ -86,6 +86,7 @@ def test_a_faithful_simulator_leaves_no_gap_and_a_noisy_one_drifts():
     assert [d["decision"] for d in a["decisions"]] == list(range(1, CFG.imagined.max_chunks))
     for d in a["decisions"]:
         assert d["frame_error"] == pytest.approx(0.0, abs=1e-5) and d["action_gap"] == pytest.approx(0.0, abs=1e-6)
+        assert d["sharpness"] == pytest.approx(1.0, rel=1e-4)  # as sharp as the real frames
     assert a["detector"]["successes"] == a["paid"]["successes"] and a["precision"]["rate"] == 1.0
     # the same simulator again: the same trajectories, paired to a difference of exactly 0
     assert rows["again"]["vs_first"]["difference"] == 0.0 and rows["again"]["paid"] == a["paid"]
@@ -96,6 +97,7 @@ def test_a_faithful_simulator_leaves_no_gap_and_a_noisy_one_drifts():
     low, high = b["vs_first"]["ci95"]
     assert low <= b["vs_first"]["difference"] <= high
     assert "frame_error_vae" not in b["decisions"][0]  # the toy simulator has no decoder round trip
+    assert "sharpness_vae" not in b["decisions"][0] and "sharpness" in bench.line(a)
     assert 0.0 <= out["real"]["paid"]["rate"] <= 1.0 and "decisions" not in out["real"]
 
 
@@ -114,12 +116,14 @@ def test_variants_and_pipeline_are_refused_by_name(tmp_path):
     cfg = configs.get("sword:tiny")
     assert bench.parse_variants(["n1=flow.noise_scale=1", "n0=flow.noise_scale=0,flow.sample_steps=8"], cfg) == {
         "n1": ("flow.noise_scale=1",), "n0": ("flow.noise_scale=0", "flow.sample_steps=8")}
+    assert bench.parse_variants(["u=flow.sample_shift=1"], cfg) == {"u": ("flow.sample_shift=1",)}
     assert bench.parse_variants(["w=rl.imagined.start_encoding=window", "p=rl.imagined.start_encoding=prefix"],
                                 cfg) == {"w": ("rl.imagined.start_encoding=window",),
                                          "p": ("rl.imagined.start_encoding=prefix",)}
     for specs, what in ((["N1=flow.noise_scale=1"], "NAME"), (["a=rl.grpo.steps=3"], "flow.KEY=VALUE"),
                         (["a=rl.imagined.start_encoding=whole"], "start_encoding"),
                         (["a=flow.noise_scale=7"], "flow.noise_scale"), (["a=flow.nothing=1"], "--variant a"),
+                        (["a=flow.sample_shift=-1"], "flow.sample_shift"),
                         (["a=flow.noise_scale=1", "a=flow.noise_scale=0"], "twice"),
                         (["real=flow.noise_scale=1"], "reserved"), ([], "at least one")):
         with pytest.raises(cli.UsageError, match=what):

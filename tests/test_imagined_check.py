@@ -439,12 +439,12 @@ def _fidelity(step_size, lag=False, figures=("frame_error", "action_gap"), round
     out = jax.device_get(jax.jit(go)(jax.random.key(2)))
     c = CFG.imagined.max_chunks
     # the VAE's share only with a round trip, the state readouts only with a probe; without them the keys of before
-    vae = ("frame_error_vae", "action_gap_vae") if round_trip is not None else ()
+    vae = ("frame_error_vae", "action_gap_vae", "sharpness_vae") if round_trip is not None else ()
     probe = ("ee_cm", "bowl_cm", "gripper_agree", "ee_motion_cm", "bowl_motion_cm") if read_state is not None else ()
     probe += ("ee_cm_vae", "bowl_cm_vae", "gripper_agree_vae") if read_state is not None and vae else ()
     assert sorted(out) == sorted([f"closed_loop_{what}_{k}" for k in range(1, c)
                                   for what in ("frame_error", "action_gap", "frame_error_prev", "action_gap_prev",
-                                               "motion") + vae + probe])
+                                               "motion", "sharpness") + vae + probe])
     return [[out[f"closed_loop_{what}_{k}"] for k in range(1, c)] for what in figures]
 
 
@@ -538,6 +538,38 @@ def test_a_decoder_that_shifts_the_frames_is_the_whole_gap_of_a_faithful_simulat
                                        round_trip=lambda f: f + shift, shift=shift)
     np.testing.assert_allclose(drift_vae, shift, atol=1e-6)
     assert max(abs(a - b) for a, b in zip(drift_error, drift_vae)) > 1e-3, "the drift is the dynamics' share"
+
+
+def _box_blur(frames):
+    """Each pixel the mean of its 3 x 3 neighbourhood (wrapping round): the same scene with its finest detail gone."""
+    padded = jnp.pad(frames, [(0, 0)] * (frames.ndim - 3) + [(1, 1), (1, 1), (0, 0)], mode="wrap")
+    h, w = frames.shape[-3:-1]
+    return sum(padded[..., i:i + h, j:j + w, :] for i in range(3) for j in range(3)) / 9.0
+
+
+def test_sharpness_is_one_for_the_same_detail_and_falls_with_a_blur():
+    board = (np.indices((16, 16)).sum(0) % 2).astype(np.float32)[..., None].repeat(3, -1)  # a checkerboard
+    frames = jnp.stack([jnp.asarray(board), jnp.asarray(board) * 0.5 + 0.25])
+    assert float(imagined_check.high_frequency_energy(frames[0])) == pytest.approx(16.0, rel=1e-6)  # (4 x +-1)^2
+    np.testing.assert_allclose(imagined_check.sharpness_ratio(frames, frames), 1.0)
+    np.testing.assert_allclose(imagined_check.sharpness_ratio(frames + 0.1, frames), 1.0, rtol=1e-5)  # brightness
+    # half the contrast is a quarter of the energy; a 3 x 3 blur of a checkerboard leaves a ninth of its amplitude
+    assert float(imagined_check.sharpness_ratio(frames[1], frames[0])) == pytest.approx(0.25, rel=1e-5)
+    assert float(imagined_check.sharpness_ratio(_box_blur(frames[0]), frames[0])) == pytest.approx(1 / 81, rel=1e-4)
+    flat = jnp.full((8, 8, 3), 0.3)
+    assert float(imagined_check.sharpness_ratio(flat, flat)) == pytest.approx(1.0)
+    assert float(imagined_check.sharpness_ratio(flat, frames[0])) < 1e-6
+
+
+def test_a_faithful_simulator_is_as_sharp_as_the_real_frames_and_a_blurring_decoder_is_not():
+    """The closed loop's sharpness: 1 at every decision for a simulator equal to the environment, and for a round
+    trip that only brightens; below 1 for a round trip that blurs (the VAE's floor of it), the simulator's own 1."""
+    sharp, sharp_vae = _fidelity(STEP, figures=("sharpness", "sharpness_vae"), round_trip=lambda f: f + 0.1)
+    np.testing.assert_allclose(sharp, 1.0, rtol=1e-4)
+    np.testing.assert_allclose(sharp_vae, 1.0, rtol=1e-3)
+    sharp, blurred = _fidelity(STEP, figures=("sharpness", "sharpness_vae"), round_trip=_box_blur)
+    np.testing.assert_allclose(sharp, 1.0, rtol=1e-4)
+    assert max(blurred) < 0.9, blurred
 
 
 def test_a_simulators_round_trip_runs_in_slices_at_its_frame_size():

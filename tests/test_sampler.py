@@ -52,6 +52,27 @@ def test_two_steps_hand_computed_and_conditioning_reimposed(keys):
     np.testing.assert_allclose(out, x, rtol=1e-4, atol=1e-4)
 
 
+def test_the_sampling_shift_sets_the_grid_and_defaults_to_the_training_shift(keys):
+    """flow.sample_shift moves the sampler's noise levels (the model is called at the levels of that shift, the
+    training's shift left as it is); 0 keeps the training's, bit for bit."""
+    cond, actions, noise = _inputs(keys)
+    seen = {}
+    for name, cfg in {"default": FlowConfig(shift=5.0), "same": FlowConfig(shift=5.0, sample_shift=5.0),
+                      "uniform": FlowConfig(shift=5.0, sample_shift=1.0)}.items():
+        ProbeWorldModel.records.clear()
+        out = sampler.sample(ProbeWorldModel(rngs=nnx.Rngs(1)), cond, actions, key=keys[3], num_future=2, cfg=cfg,
+                             num_steps=5, noise=noise)
+        seen[name] = (np.asarray(out), [float(t[0, -1]) for _, t in ProbeWorldModel.records[-5:]])
+    np.testing.assert_array_equal(seen["default"][0], seen["same"][0])
+    np.testing.assert_allclose(seen["default"][1], np.asarray(flow.sampling_sigmas(5, 5.0))[:-1] * 1000, rtol=1e-6)
+    np.testing.assert_allclose(seen["uniform"][1], [1000.0, 800.0, 600.0, 400.0, 200.0], rtol=1e-6)
+    assert seen["default"][1][-1] == pytest.approx(1000 * 5 * 0.2 / (1 + 4 * 0.2), rel=1e-6)  # the last step: 0.56
+    assert not np.allclose(seen["uniform"][0], seen["default"][0])
+    for bad in (-1.0, float("nan"), 101.0):
+        with pytest.raises(ValueError, match="flow.sample_shift"):
+            FlowConfig(sample_shift=bad).validate()
+
+
 def test_guidance_combines_conditional_and_null_actions(keys):
     model = MixerWorldModel(rngs=nnx.Rngs(2))
     cond, actions, noise = _inputs(keys)

@@ -118,6 +118,24 @@ def greedy_actions(policy: Any, frames: Float[Array, "n s s 3"], instruction_tok
     return tokens_to_actions(jnp.argmax(logits, axis=-1), action_bins).reshape(frames.shape[0], -1)
 
 
+def high_frequency_energy(frames: Float[Array, "... s s 3"]) -> Float[Array, "..."]:
+    """Per frame (in [0, 1]) the mean squared 4-neighbour Laplacian of its grey image, over the interior pixels:
+    the energy of its finest detail (edges, texture). A blur lowers it, a sharp frame of the same scene keeps it;
+    the ratio of two frames' is the sharpness of :func:`closed_loop_fidelity`."""
+    grey = jnp.mean(frames.astype(jnp.float32), axis=-1)
+    laplacian = (4.0 * grey[..., 1:-1, 1:-1] - grey[..., 2:, 1:-1] - grey[..., :-2, 1:-1] - grey[..., 1:-1, 2:]
+                 - grey[..., 1:-1, :-2])
+    return jnp.mean(jnp.square(laplacian), axis=(-2, -1))
+
+
+def sharpness_ratio(frames: Float[Array, "... s s 3"], reference: Float[Array, "... s s 3"]) -> Float[Array, "..."]:
+    """:func:`high_frequency_energy` of ``frames`` over that of ``reference``, frame by frame: 1 for frames as
+    sharp as the reference, below 1 for blurred ones (the mean of several futures, a ghost of two poses), above 1
+    for noisier ones; two flat frames count as equally sharp."""
+    tiny = jnp.float32(1e-8)
+    return (high_frequency_energy(frames) + tiny) / (high_frequency_energy(reference) + tiny)
+
+
 def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_frames: Any, *, image_size: int,
                          action_bins: int, round_trip: Callable[[Array], Array] | None = None,
                          read_state: Callable[[Array], Array] | None = None, gripper_closed_below: float = 0.04
@@ -140,6 +158,9 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     two real frames). A simulator that shows the scene before the actions moved it (a lag of a decision, or a
     scene that does not move) has the ``_prev`` figures near 0 and ``frame_error`` near ``motion``; its image
     errors (a blur, a colour shift) move the frame error far more than the greedy actions.
+    ``closed_loop_sharpness_k`` tells a blur apart: the simulator's frame's finest detail over the real frame's
+    (:func:`sharpness_ratio`, at the policy's size); a world model that predicts the mean of the futures it cannot
+    tell apart (a smeared arm, a ghost of two poses) scores well below 1 while its frame error stays small.
 
     ``round_trip`` (frames ``[n, H, W, 3]`` in [0, 1] at the real frames' size -> the frames the simulator's
     decoder shows of them, at its frame size: :meth:`~sword_jax.rl.learned_simulator.LearnedSimulator.round_trip`,
@@ -147,7 +168,8 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     It runs on the real frames at their own resolution, before the resize to the policy's size (the simulator
     decodes at its frame size, the rollout resizes afterwards), and adds per decision
     ``closed_loop_frame_error_vae_k``, the round-tripped real frame against the real frame (at the policy's size),
-    and ``closed_loop_action_gap_vae_k``, the greedy actions on the two: the floor a world model that predicted
+    ``closed_loop_action_gap_vae_k``, the greedy actions on the two, and ``closed_loop_sharpness_vae_k``, the
+    round-tripped frame's sharpness against the real one's: the floor a world model that predicted
     the real scene's latents exactly would still show through this decoder. ``frame_error`` near
     ``frame_error_vae`` and ``action_gap`` near ``action_gap_vae`` say the world model's dynamics are faithful and
     the VAE is what the policy misreads; the excess over them is the dynamics'. A world model decoding with the
@@ -191,7 +213,7 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
     on_imagined, on_real = greedy(imagined), greedy(real)
     figures = {"frame_error": error(imagined, real), "action_gap": gap(on_imagined, on_real),
                "frame_error_prev": error(imagined, real_prev), "action_gap_prev": gap(on_imagined, greedy(real_prev)),
-               "motion": error(real, real_prev)}
+               "motion": error(real, real_prev), "sharpness": sharpness_ratio(imagined, real)}
     # frames as floats in [0, 1] (the environment's may be uint8)
     as_unit = lambda x: (x.astype(jnp.float32) / jnp.float32(255.0) if x.dtype == jnp.uint8  # noqa: E731
                          else x.astype(jnp.float32))
@@ -200,7 +222,8 @@ def closed_loop_fidelity(graphdef: Any, params: Any, rollout: Rollout, real_fram
         tripped = round_trip(seen.reshape((m * (c - 1),) + seen.shape[2:]))
         tripped = tripped.reshape((m, c - 1) + tripped.shape[1:])  # at the simulator's frame size
         at_policy = resize_frames(tripped, image_size)
-        figures.update(frame_error_vae=error(at_policy, real), action_gap_vae=gap(greedy(at_policy), on_real))
+        figures.update(frame_error_vae=error(at_policy, real), action_gap_vae=gap(greedy(at_policy), on_real),
+                       sharpness_vae=sharpness_ratio(at_policy, real))
     if read_state is not None:  # each frame set read at its own size (the probe resizes): simulator's, real, start
         from sword_jax.evaluation.probe import BOWL, EE, GRIPPER
 

@@ -112,7 +112,8 @@ def sample(
       actions: per-video-frame actions of the segment, ``[b, 1 + 4 (k + p - 1), a]``.
       key: noise key (ignored when ``noise`` is given).
       num_future: number of future latents ``p`` to sample.
-      cfg: flow settings (prediction type, shift, default steps and guidance).
+      cfg: flow settings (prediction type, the grid's shift ``sample_shift`` or else ``shift``, default steps and
+        guidance).
       num_steps: Euler steps (1..50); default ``cfg.sample_steps``.
       guidance_scale: classifier-free guidance on the actions (1 = off); default ``cfg.guidance_scale``.
       noise: optional initial noise ``[b, p, h, w, c]``; drawn or given, it is scaled by ``cfg.noise_scale``.
@@ -136,7 +137,7 @@ def sample(
         raise ValueError(f"sample: noise shape {noise.shape} != {(batch, num_future) + cond.shape[2:]}")
     if cfg.noise_scale != 1.0:  # a lower-temperature draw (0: the deterministic path from the prior's mean)
         noise = noise * jnp.float32(cfg.noise_scale)
-    sigmas = flow.sampling_sigmas(num_steps, cfg.shift)
+    sigmas = flow.sampling_sigmas(num_steps, cfg.sample_shift or cfg.shift)
     step_fn = model_fn
     if isinstance(model_fn, ConditionedModelFn):  # the actions' work once per chunk, not once per step
         both = actions if guidance_scale == 1.0 else jnp.concatenate([actions, null_actions(actions)], axis=0)
