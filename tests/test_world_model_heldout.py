@@ -60,11 +60,40 @@ def _measure(model, steps, batch, key=0):
 
 def test_a_model_that_knows_the_future_has_no_loss_and_no_sample_error_at_any_step_count():
     out = _measure(Oracle(0.7), (1, 5), _batch(0.7))
-    assert set(out) == {"loss", "sample_error_1", "sample_error_5", "other_actions_error_1"}
+    assert set(out) == {"loss", "sample_error_1", "sample_error_5", "sample_detail_1", "sample_detail_5",
+                        "other_actions_error_1"}
     assert out["other_actions_error_1"] < 1e-8  # it ignores the actions: another segment's change nothing
     assert out["loss"] < 1e-8 and out["sample_error_1"] < 1e-8 and out["sample_error_5"] < 1e-8
     wrong = _measure(Oracle(0.2), (1, 5), _batch(0.7))  # a model that expects another future is charged
     assert wrong["loss"] > 0.1 and wrong["sample_error_1"] > 0.1 and wrong["sample_error_5"] > 0.1
+
+
+class Lands(nnx.Module):
+    """Lands every sample on ``target`` (a whole segment's latents; the straight path from the noise to it)."""
+
+    def __init__(self, target):
+        self.target = nnx.Variable(jnp.asarray(target, jnp.float32))
+
+    def __call__(self, latents, timesteps, actions):
+        sigma = (timesteps / FLOW.num_train_timesteps)[:, :, None, None, None]
+        return jnp.where(sigma > 0, (latents - self.target[...]) / jnp.maximum(sigma, 1e-6), 0.0)
+
+
+def test_the_sample_detail_is_one_for_the_truth_and_falls_for_a_blur():
+    """A sample that lands on the true future has the data's detail (and no error); one that lands on each latent
+    channel's spatial mean (the blur of a mean prediction) has none, and half the contrast about that mean keeps a
+    quarter of it, while the squared error of the half-contrast sample stays small."""
+    batch = _batch(0.0)
+    rng = np.random.default_rng(1)
+    latents = batch["latents"] + jnp.asarray(rng.normal(size=batch["latents"].shape), jnp.float32)
+    batch = dict(batch, latents=latents)
+    mean = jnp.mean(latents, axis=(2, 3), keepdims=True)
+    for target, detail in ((latents, 1.0), (jnp.broadcast_to(mean, latents.shape), 0.0),
+                           (mean + 0.5 * (latents - mean), 0.25)):
+        out = _measure(Lands(target), (2,), batch)
+        assert out["sample_detail_2"] == pytest.approx(detail, abs=1e-4)
+    assert out["sample_error_2"] < 0.25 * 1.01, "the half-contrast sample is near the truth by squared error"
+    assert heldout.latent_detail(jnp.zeros((1, 1, 3, 3, 2)), jnp.zeros((1, 1, 3, 3, 2))) == pytest.approx(1.0)
 
 
 class ActionDriven(nnx.Module):
@@ -233,6 +262,7 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
         heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, policy=odd, **common)
     alone = heldout.HeldOutEvaluator(graphdef, FLOW, cfg.trainer, train=train, heldout=None, **common)
     assert alone.names == ("eval_train_loss", f"eval_train_sample_error_{FLOW.sample_steps}",
+                           f"eval_train_sample_detail_{FLOW.sample_steps}",
                            f"eval_train_other_actions_error_{FLOW.sample_steps}")
     # the policy split is measured beside the others and leaves their values as they were without it
     held, policy = (data.synthetic_latent_dataset(3, 9, 2, 2, 48, seed=s) for s in (1, 2))
@@ -311,6 +341,9 @@ def test_the_pipeline_report_says_the_last_measurement_of_every_split():
     assert _measured_segments(final).endswith(
         "; under other segments' actions at 5 Euler steps 0.6 held-out against 0.7 held-out policy rollouts against"
         " 0.3 training policy rollouts against 0.5 training.")
+    final.update(eval_train_sample_detail_5=0.8, eval_heldout_sample_detail_5=0.6)
+    assert ("; the samples' detail over the data's at 5 Euler steps 0.6 held-out against 0.8 training; under other"
+            in _measured_segments(final))
     assert _measured_segments({"loss": 0.06}) == ""  # a run that measured nothing says nothing
 
 

@@ -30,6 +30,11 @@ def _measured_segments(final: dict) -> str:
     for n in steps:
         text += f"; the sampler's error at {n} Euler steps " + " against ".join(
             f"{_fmt(final[f'eval_{s}_sample_error_{n}'])} {names[s]}" for s in splits)
+    detail = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_sample_detail_"))
+    for n in detail:  # below 1: the samples are smoother than the data (the mean of futures the model cannot tell apart)
+        text += f"; the samples' detail over the data's at {n} Euler steps " + " against ".join(
+            f"{_fmt(final[f'eval_{s}_sample_detail_{n}'])} {names[s]}" for s in splits
+            if f"eval_{s}_sample_detail_{n}" in final)
     other = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_other_actions_error_"))
     for n in other:  # the same call under other segments' actions: how much the actions decide
         text += f"; under other segments' actions at {n} Euler steps " + " against ".join(

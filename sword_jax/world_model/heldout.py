@@ -14,6 +14,10 @@ model fits what it has seen. Two questions it cannot answer decide whether the m
   of another segment of its batch from its last context frame on (the actions that move its future; a batch's
   segments rolled by one). A model that ignores the actions scores the same with either; the ratio of the two is
   how much of what the model predicts the actions decide, next to how precisely it predicts it.
+* Is the sample as detailed as the truth, or the mean of futures the model cannot tell apart?
+  ``eval_*_sample_detail_<n>``: the spatial high-frequency energy of the latents sampled in ``n`` steps over the
+  true future latents' (:func:`latent_detail`): 1 for samples as detailed as the data, below 1 for a blur (a
+  sampler that returns the conditional mean scores a low squared error and a low detail at once).
 
 Each split is ``trainer.eval_batches`` batches of ``data.batch_size`` segments, drawn once from a fixed seed; the
 loss uses noise levels spread evenly over the training distribution's quantiles and a fixed noise draw, and the
@@ -73,10 +77,24 @@ def sample_steps(trainer_cfg: TrainerConfig, flow_cfg: FlowConfig) -> tuple[int,
 
 
 def metric_names(steps: tuple[int, ...], splits: tuple[str, ...] = SPLITS) -> tuple[str, ...]:
-    """The names an evaluation reports, per split: its loss, its sample error per step count, then the sample error
-    at the first step count under other segments' actions (:func:`make_measure`)."""
+    """The names an evaluation reports, per split: its loss, its sample error and detail per step count, then the
+    sample error at the first step count under other segments' actions (:func:`make_measure`)."""
     return tuple(f"eval_{split}_{name}" for split in splits
-                 for name in ("loss", *(f"sample_error_{n}" for n in steps), f"other_actions_error_{steps[0]}"))
+                 for name in ("loss", *(f"sample_error_{n}" for n in steps), *(f"sample_detail_{n}" for n in steps),
+                              f"other_actions_error_{steps[0]}"))
+
+
+def latent_detail(made: jax.Array, future: jax.Array) -> jax.Array:
+    """The high-frequency energy of latents ``made [b, n, h, w, c]`` over that of ``future``: the summed squares of
+    each latent channel's 4-neighbour Laplacian over the spatial grid (wrapping round, so any grid size counts every
+    cell). 1 for latents as detailed as ``future``, below 1 for smoother ones; two flat batches count as alike."""
+    def energy(x):
+        x = x.astype(jnp.float32)
+        lap = 4.0 * x - sum(jnp.roll(x, shift, axis) for shift in (1, -1) for axis in (-3, -2))
+        return jnp.sum(jnp.square(lap))
+
+    tiny = jnp.float32(1e-12)
+    return (energy(made) + tiny) / (energy(future) + tiny)
 
 
 def other_actions(actions: jax.Array, num_context: int) -> jax.Array:
@@ -125,8 +143,8 @@ def segment_errors(made: jax.Array, future: jax.Array) -> tuple[jax.Array, jax.A
 def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int, steps: tuple[int, ...], *,
                  per_segment: bool = False, with_other_actions: bool = True
                  ) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
-    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"..., "other_actions_error_<first n>"}``
-    of one batch of segments (the last under :func:`other_actions`, from the same noise; a batch of one segment has
+    """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"..., "sample_detail_<n>"...,
+    "other_actions_error_<first n>"}`` of one batch of segments (the last under :func:`other_actions`, from the same noise; a batch of one segment has
     no other and scores its own; left out with ``with_other_actions=False``); with ``per_segment``, ``{"energy",
     "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from the same noise."""
     num_cond = 1 + num_context
@@ -148,6 +166,8 @@ def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
                                   num_future=future.shape[1], cfg=flow_cfg, num_steps=n, noise=start)
             out[f"sample_error_{n}"] = (segment_errors(made, future)[0] if per_segment
                                         else latent_distance(made, future)["rel_mse"])
+            if not per_segment:
+                out[f"sample_detail_{n}"] = latent_detail(made, future)
         if with_other_actions and not per_segment:  # the same call under other segments' actions: what they decide
             made = sampler.sample(model_fn, latents[:, :num_cond], other_actions(actions, num_context),
                                   key=sample_key, num_future=future.shape[1], cfg=flow_cfg, num_steps=steps[0],
