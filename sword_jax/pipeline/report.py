@@ -31,7 +31,7 @@ def _measured_segments(final: dict) -> str:
         text += f"; the sampler's error at {n} Euler steps " + " against ".join(
             f"{_fmt(final[f'eval_{s}_sample_error_{n}'])} {names[s]}" for s in splits)
     detail = sorted(int(k.rsplit("_", 1)[1]) for k in final if k.startswith("eval_train_sample_detail_"))
-    for n in detail:  # below 1: the samples are smoother than the data (the mean of futures the model cannot tell apart)
+    for n in detail:  # below 1: the samples are smoother than the data (the mean of futures the model cannot tell)
         text += f"; the samples' detail over the data's at {n} Euler steps " + " against ".join(
             f"{_fmt(final[f'eval_{s}_sample_detail_{n}'])} {names[s]}" for s in splits
             if f"eval_{s}_sample_detail_{n}" in final)

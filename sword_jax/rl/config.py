@@ -398,8 +398,9 @@ class ImaginedConfig:
         decision (``closed_loop_motion_k``), and the frame's finest detail over the real one's
         (``closed_loop_sharpness_k``, below 1 for a blur). With the world model decoding through its VAE, also the
         VAE's round trip of the real frame against the real frame (``closed_loop_frame_error_vae_k``,
-        ``closed_loop_action_gap_vae_k``, ``closed_loop_sharpness_vae_k``): the floor a world model with faithful dynamics would still show through
-        that VAE (each of these real frames is encoded and decoded once more, as a still video).
+        ``closed_loop_action_gap_vae_k``, ``closed_loop_sharpness_vae_k``): the floor a world model with faithful
+        dynamics would still show through that VAE (each of these real frames is encoded and decoded once more, as
+        a still video).
         0 = off.
       sim_microbatches: the learned simulator's init and step run over the trajectories in this
         many slices, one after another (each slice vmapped), so their activations -- the VAE

@@ -144,9 +144,10 @@ def make_measure(graphdef: nnx.GraphDef, flow_cfg: FlowConfig, num_context: int,
                  per_segment: bool = False, with_other_actions: bool = True
                  ) -> Callable[[dict, dict, dict, jax.Array], dict[str, jax.Array]]:
     """``measure(params, buffers, batch, key) -> {"loss", "sample_error_<n>"..., "sample_detail_<n>"...,
-    "other_actions_error_<first n>"}`` of one batch of segments (the last under :func:`other_actions`, from the same noise; a batch of one segment has
-    no other and scores its own; left out with ``with_other_actions=False``); with ``per_segment``, ``{"energy",
-    "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from the same noise."""
+    "other_actions_error_<first n>"}`` of one batch of segments (the last under :func:`other_actions`, from the same
+    noise; a batch of one segment has no other and scores its own; left out with ``with_other_actions=False``); with
+    ``per_segment``, ``{"energy", "sample_error_<n>"...}`` of each segment (``[b]``, :func:`segment_errors`) from the
+    same noise."""
     num_cond = 1 + num_context
 
     def measure(params, buffers, batch, key):
