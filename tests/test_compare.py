@@ -74,6 +74,11 @@ def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
     # A different simulator section shares nothing; a finished stage is never overwritten.
     other_sim = dataclasses.replace(sword, sim=dataclasses.replace(sword.sim, episodes_per_task=3))
     assert compare.adopt_stages(str(tmp_path / "other"), donor, other_sim, sword) == []
+    # how the evaluation scores changes no stage's result here; how many held-out episodes it scores does
+    scoring = dataclasses.replace(sword, eval=dataclasses.replace(sword.eval, metrics=("psnr",), report_videos=1))
+    assert compare.adopt_stages(str(tmp_path / "scoring"), donor, scoring, sword) == list(compare.SHAREABLE)
+    fewer = dataclasses.replace(sword, eval=dataclasses.replace(sword.eval, num_episodes=sword.eval.num_episodes + 1))
+    assert "data" not in compare.adopt_stages(str(tmp_path / "fewer"), donor, fewer, sword)
     # how many processes record the policy's rollouts changes no result
     spread = dataclasses.replace(sword, data=dataclasses.replace(sword.data, policy_rollout_workers=4))
     assert compare.adopt_stages(str(tmp_path / "spread"), donor, spread, sword) == list(compare.SHAREABLE)

@@ -163,3 +163,33 @@ def test_a_work_dir_made_before_a_setting_existed_resumes_while_it_holds_its_def
     path.write_text(json.dumps(stored))
     with pytest.raises(ValueError, match="seed"):
         check_workdir_config(cfg, str(tmp_path))
+
+
+def test_how_the_evaluation_scores_may_change_until_it_has_run(tmp_path):
+    """eval.metrics and the other scoring settings, read by the evaluate stage alone, are taken (and stored) while
+    that stage has not run; once it has, they are refused naming the evaluator that scores with other settings;
+    what the data stage reads of the eval section (the held-out episodes' count) is refused throughout."""
+    import json
+
+    import pytest
+
+    import configs
+    from sword_jax.pipeline.stages import check_workdir_config
+
+    made = configs.get("sword:tiny")
+    check_workdir_config(made, str(tmp_path))
+    other, _ = configs.from_argv(["--config", "sword:tiny", "--eval.metrics=psnr,ssim", "--eval.report_videos=1"])
+    check_workdir_config(other, str(tmp_path))
+    stored = json.loads((tmp_path / "config.json").read_text())
+    assert stored["eval"]["metrics"] == ["psnr", "ssim"] and stored["eval"]["report_videos"] == 1
+    check_workdir_config(other, str(tmp_path))  # now the stored config
+    with pytest.raises(ValueError, match="eval.num_episodes"):
+        check_workdir_config(configs.from_argv(["--config", "sword:tiny", "--eval.metrics=psnr,ssim",
+                                                "--eval.report_videos=1", "--eval.num_episodes=9"])[0], str(tmp_path))
+    with pytest.raises(ValueError, match="seed"):  # a scoring change beside another is refused with it
+        check_workdir_config(configs.from_argv(["--config", "sword:tiny", "--seed", "3"])[0], str(tmp_path))
+    (tmp_path / "stages").mkdir()
+    (tmp_path / "stages" / "evaluate.json").write_text("{}")
+    with pytest.raises(ValueError, match="evaluation already ran with the stored eval.metrics.*evaluate_world_model"):
+        check_workdir_config(made, str(tmp_path))
+    assert json.loads((tmp_path / "config.json").read_text()) == stored, "a refused config changes nothing stored"

@@ -358,5 +358,10 @@ def test_what_the_evaluation_reads_does_not_block_a_resume():
     older = {"data": {"path": "a.npz", "batch_size": 2}, "trainer": {"steps": 5, "learning_rate": 1e-3},
              "workdir": "old"}
     assert wm_run._comparable(now) == wm_run._comparable(older)
+    # how the pipeline's evaluation stage scores is not read by the world model; the held-out episodes' count is
+    scored = {**now, "eval": {"num_episodes": 4, "metrics": ["psnr"], "report_videos": 1}}
+    assert wm_run._comparable(scored) == wm_run._comparable({**now, "eval": {"num_episodes": 4,
+                                                                            "metrics": ["lpips", "psnr"]}})
+    assert wm_run._comparable(scored) != wm_run._comparable({**now, "eval": {"num_episodes": 8, "metrics": ["psnr"]}})
     older["data"]["batch_size"] = 4
     assert wm_run._comparable(now) != wm_run._comparable(older)

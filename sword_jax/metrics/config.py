@@ -1,6 +1,7 @@
 """Eval section of the experiment config (owned by sword_jax.metrics)."""
 
 import dataclasses
+from typing import ClassVar
 
 # Metrics whose networks have weights (FloLPIPS uses the LPIPS network).
 RANDOM_WEIGHT_METRICS = ("lpips", "fid", "fvd")
@@ -38,6 +39,14 @@ class EvalConfig:
     horizon_window: int = 16  # frames per FID window on the metric-vs-horizon curves
     report_dir: str = ""  # default: <workdir>/eval
     report_videos: int = 2  # episodes shown as strips/GIFs per split
+    # How the evaluation stage scores, which no other stage reads: a work dir whose evaluation has not run yet takes
+    # other values of these (the data stage reads horizon_frames, num_episodes and splits to make the held-out
+    # episodes; the VAE and light-decoder stages the LPIPS settings for their perceptual loss).
+    scoring_fields: ClassVar[tuple[str, ...]] = ("inception_weights", "i3d_weights", "fvd_clip_frames",
+                                                 "fvd_resolution", "metric_batch_size", "horizon_window",
+                                                 "report_dir", "report_videos", "metrics", "floor_metrics")
+    # what the data stage reads of this section (it makes the held-out episodes the evaluation scores)
+    data_fields: ClassVar[tuple[str, ...]] = ("horizon_frames", "num_episodes", "splits")
     # Metrics the evaluation computes (a subset of lpips, flolpips, psnr, ssim, fid, fvd). FID's InceptionV3
     # has no installable published weights: a config without them may leave "fid" out rather than pay for a
     # random-weight number (on `small` it was 60% of the metric time).

@@ -8,6 +8,7 @@ results they came from, never a log.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -15,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from sword_jax.metrics.config import EvalConfig
 from sword_jax.world_model.config import DataConfig
 
 
@@ -54,8 +56,10 @@ SHAREABLE = {
     "reward_model": ("sim", "data", "rl"),
     "sft_policy": ("sim", "data", "rl"),
 }
-# Settings of those sections that change no result (how the work is spread over processes).
-NO_RESULT_KEYS = {"data": DataConfig.result_free_fields}
+# Settings of those sections that change no result (how the work is spread over processes; of the eval section,
+# which only the data stage lists, all but what it makes the held-out episodes by).
+NO_RESULT_KEYS = {"data": DataConfig.result_free_fields,
+                  "eval": tuple(f.name for f in dataclasses.fields(EvalConfig) if f.name not in EvalConfig.data_fields)}
 
 
 def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:

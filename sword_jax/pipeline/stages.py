@@ -82,9 +82,17 @@ def _added_at_default(cfg: Any, stored: dict, key: str) -> bool:
     return False
 
 
+def _scoring_keys() -> frozenset[str]:
+    from sword_jax.metrics.config import EvalConfig
+
+    return frozenset(f"eval.{name}" for name in EvalConfig.scoring_fields)
+
+
 def check_workdir_config(cfg: Any, workdir: str) -> None:
     """Stores the config on first use; refuses a different one later (names differing keys). A setting that the
-    stored config lacks (added since) counts as equal when it holds its default."""
+    stored config lacks (added since) counts as equal when it holds its default. How the evaluation scores
+    (``EvalConfig.scoring_fields``, read by the evaluate stage alone) may change until that stage has run: the stored
+    config then takes the new values; once it has run they are refused with the rest."""
     os.makedirs(workdir, exist_ok=True)
     path = os.path.join(workdir, "config.json")
     current = to_dict(cfg)
@@ -92,9 +100,16 @@ def check_workdir_config(cfg: Any, workdir: str) -> None:
         with open(path) as f:
             stored = json.load(f)
         differing = [k for k in _diff(stored, current) if k != "workdir" and not _added_at_default(cfg, stored, k)]
+        evaluated = os.path.exists(os.path.join(workdir, "stages", "evaluate.json"))
+        if differing and not evaluated and set(differing) <= _scoring_keys():
+            write_json_atomic(path, current, sort_keys=True)  # the evaluation, not yet run, scores as now asked
+            return
         if differing:
+            scored = [k for k in differing if k in _scoring_keys()]
+            hint = (f"; the evaluation already ran with the stored {', '.join(scored)} (python -m "
+                    "train.evaluate_world_model scores the run's world model with other settings)" if scored else "")
             raise ValueError(
-                f"{workdir} was made with a different config (keys: {', '.join(differing[:12])}); "
+                f"{workdir} was made with a different config (keys: {', '.join(differing[:12])}){hint}; "
                 "use a new --workdir, or --restart to discard that run's stages"
             )
         return

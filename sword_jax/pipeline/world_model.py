@@ -33,6 +33,7 @@ from sword_jax.dlb import cache as dlb_cache
 from sword_jax.atomic_write import write_json_atomic
 from sword_jax.train_loop import differing_keys, run_steps
 from sword_jax.world_model import data, heldout, train_state, train_step
+from sword_jax.metrics.config import EvalConfig
 from sword_jax.world_model.config import DataConfig
 
 
@@ -72,8 +73,10 @@ def _comparable(cfg_dict: dict) -> dict:
     # policy's rollouts (the same file for any number)
     data_cfg = {k: v for k, v in cfg_dict.get("data", {}).items()
                 if k not in ("heldout_path", "heldout_policy_rollouts_per_task", *DataConfig.result_free_fields)}
+    # how the pipeline's evaluation stage scores is not read here (EvalConfig.scoring_fields)
+    eval_cfg = {k: v for k, v in cfg_dict.get("eval", {}).items() if k not in EvalConfig.scoring_fields}
     # The mesh may change between runs: checkpoints restore onto any device count.
-    return {**cfg_dict, "trainer": trainer, "data": data_cfg, "workdir": None, "mesh": None}
+    return {**cfg_dict, "trainer": trainer, "data": data_cfg, "eval": eval_cfg, "workdir": None, "mesh": None}
 
 
 def build_heldout(cfg: ExperimentConfig, synthetic: bool,
