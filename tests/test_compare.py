@@ -57,6 +57,18 @@ def _write_markers(workdir, stages):
             json.dump({"stage": stage, "results": {"path": f"{workdir}/{stage}"}}, f)
 
 
+def test_every_eval_setting_is_read_by_one_kind_of_stage():
+    """Each eval field is what the data stage reads, what the VAE's perceptual loss reads, or how the evaluation
+    scores: a field added to the section must say which (adoption and a work dir's config check follow it)."""
+    import dataclasses
+
+    from sword_jax.metrics.config import EvalConfig
+
+    kinds = (EvalConfig.data_fields, EvalConfig.perceptual_fields, EvalConfig.scoring_fields)
+    named = [name for kind in kinds for name in kind]
+    assert sorted(named) == sorted(f.name for f in dataclasses.fields(EvalConfig)), "each field in exactly one kind"
+
+
 def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
     import dataclasses
 
@@ -79,6 +91,10 @@ def test_runs_adopt_only_stages_whose_config_sections_agree(tmp_path):
     assert compare.adopt_stages(str(tmp_path / "scoring"), donor, scoring, sword) == list(compare.SHAREABLE)
     fewer = dataclasses.replace(sword, eval=dataclasses.replace(sword.eval, num_episodes=sword.eval.num_episodes + 1))
     assert "data" not in compare.adopt_stages(str(tmp_path / "fewer"), donor, fewer, sword)
+    # another LPIPS network trains another VAE: it and what is made from it are the run's own, the data are shared
+    vgg = dataclasses.replace(sword, eval=dataclasses.replace(sword.eval, lpips_net="vgg"))
+    taken = compare.adopt_stages(str(tmp_path / "vgg"), donor, vgg, sword)
+    assert "data" in taken and not {"vae", "latents", "light_decoder"} & set(taken)
     # how many processes record the policy's rollouts changes no result
     spread = dataclasses.replace(sword, data=dataclasses.replace(sword.data, policy_rollout_workers=4))
     assert compare.adopt_stages(str(tmp_path / "spread"), donor, spread, sword) == list(compare.SHAREABLE)

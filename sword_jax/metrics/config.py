@@ -47,6 +47,10 @@ class EvalConfig:
                                                  "report_dir", "report_videos", "metrics", "floor_metrics")
     # what the data stage reads of this section (it makes the held-out episodes the evaluation scores)
     data_fields: ClassVar[tuple[str, ...]] = ("horizon_frames", "num_episodes", "splits")
+    # what the VAE and light-decoder stages read (the LPIPS network of their perceptual loss)
+    perceptual_fields: ClassVar[tuple[str, ...]] = ("lpips_net", "lpips_weights", "lpips_lin_weights",
+                                                    "allow_random_weights", "allow_random_weights_for",
+                                                    "random_weights_seed")
     # Metrics the evaluation computes (a subset of lpips, flolpips, psnr, ssim, fid, fvd). FID's InceptionV3
     # has no installable published weights: a config without them may leave "fid" out rather than pay for a
     # random-weight number (on `small` it was 60% of the metric time).

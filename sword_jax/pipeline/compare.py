@@ -8,7 +8,6 @@ results they came from, never a log.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import sys
@@ -48,18 +47,21 @@ GROUND_TRUTH_STAGES = ("data", "sft_policy", "policy")  # the policy stage runs 
 # Stage -> the config sections its result depends on (beyond the seed, which is --shared-seed for all).
 SHAREABLE = {
     "data": ("sim", "data", "eval"),
-    "vae": ("sim", "data", "vae"),
-    "latents": ("sim", "data", "vae", "augment", "rl"),  # rl: the policy's rollouts join the data
-    "light_decoder": ("sim", "data", "vae", "augment", "rl", "light_decoder"),  # distilled on those latents
+    "vae": ("sim", "data", "vae", "eval"),
+    "latents": ("sim", "data", "vae", "augment", "rl", "eval"),  # rl: the policy's rollouts join the data
+    "light_decoder": ("sim", "data", "vae", "augment", "rl", "light_decoder", "eval"),  # distilled on those latents
     "policy_data": ("sim", "data", "rl"),
     "probe": ("sim", "data"),  # the state probe that scores action following, where the pipeline has one
     "reward_model": ("sim", "data", "rl"),
     "sft_policy": ("sim", "data", "rl"),
 }
-# Settings of those sections that change no result (how the work is spread over processes; of the eval section,
-# which only the data stage lists, all but what it makes the held-out episodes by).
-NO_RESULT_KEYS = {"data": DataConfig.result_free_fields,
-                  "eval": tuple(f.name for f in dataclasses.fields(EvalConfig) if f.name not in EvalConfig.data_fields)}
+# Settings of those sections that change no result (how the work is spread over processes).
+NO_RESULT_KEYS = {"data": DataConfig.result_free_fields}
+# What a stage reads of the eval section, the rest being how the evaluation scores: the data stage the held-out
+# episodes' count, length and splits; the VAE the LPIPS network of its perceptual loss, and so the stages made from
+# the VAE (the latents it encodes, the light decoder distilled from it).
+EVAL_READ = {"data": EvalConfig.data_fields, "vae": EvalConfig.perceptual_fields,
+             "latents": EvalConfig.perceptual_fields, "light_decoder": EvalConfig.perceptual_fields}
 
 
 def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str] = tuple(SHAREABLE)) -> list[str]:
@@ -82,16 +84,21 @@ def adopt_stages(workdir: str, donor: str, cfg, donor_cfg, stages: Sequence[str]
         target = os.path.join(workdir, "stages", f"{stage}.json")
         if os.path.exists(target) or not os.path.exists(source):
             continue
-        if any(_result_settings(mine, section) != _result_settings(theirs, section) for section in SHAREABLE[stage]):
+        if any(_result_settings(mine, section, stage) != _result_settings(theirs, section, stage)
+               for section in SHAREABLE[stage]):
             continue
         shutil.copyfile(source, target)
         adopted.append(stage)
     return adopted
 
 
-def _result_settings(cfg_dict: dict, section: str) -> dict:
-    """``cfg_dict``'s ``section`` less :data:`NO_RESULT_KEYS` (absent from configs saved before they existed)."""
-    return {k: v for k, v in cfg_dict[section].items() if k not in NO_RESULT_KEYS.get(section, ())}
+def _result_settings(cfg_dict: dict, section: str, stage: str) -> dict:
+    """``cfg_dict``'s ``section`` less :data:`NO_RESULT_KEYS` (absent from configs saved before they existed); of the
+    eval section only what ``stage`` reads (:data:`EVAL_READ`)."""
+    settings = cfg_dict[section]
+    if section == "eval":
+        return {k: v for k, v in settings.items() if k in EVAL_READ.get(stage, ())}
+    return {k: v for k, v in settings.items() if k not in NO_RESULT_KEYS.get(section, ())}
 
 
 COMPARISONS = (
