@@ -186,8 +186,9 @@ def test_how_the_evaluation_scores_may_change_until_it_has_run(tmp_path):
     with pytest.raises(ValueError, match="eval.num_episodes"):
         check_workdir_config(configs.from_argv(["--config", "sword:tiny", "--eval.metrics=psnr,ssim",
                                                 "--eval.report_videos=1", "--eval.num_episodes=9"])[0], str(tmp_path))
-    with pytest.raises(ValueError, match="seed"):  # a scoring change beside another is refused with it
+    with pytest.raises(ValueError, match="seed") as refused:  # a scoring change beside another is refused with it
         check_workdir_config(configs.from_argv(["--config", "sword:tiny", "--seed", "3"])[0], str(tmp_path))
+    assert "already ran" not in str(refused.value), "the evaluation has not run: no hint that it has"
     (tmp_path / "stages").mkdir()
     (tmp_path / "stages" / "evaluate.json").write_text("{}")
     with pytest.raises(ValueError, match="evaluation already ran with the stored eval.metrics.*evaluate_world_model"):

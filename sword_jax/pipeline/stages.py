@@ -105,7 +105,7 @@ def check_workdir_config(cfg: Any, workdir: str) -> None:
             write_json_atomic(path, current, sort_keys=True)  # the evaluation, not yet run, scores as now asked
             return
         if differing:
-            scored = [k for k in differing if k in _scoring_keys()]
+            scored = [k for k in differing if k in _scoring_keys()] if evaluated else []
             hint = (f"; the evaluation already ran with the stored {', '.join(scored)} (python -m "
                     "train.evaluate_world_model scores the run's world model with other settings)" if scored else "")
             raise ValueError(
