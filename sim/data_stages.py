@@ -58,7 +58,30 @@ def generate_expert_data(ctx: Context) -> dict:
     for task in cfg.sim.tasks:
         tasks.assert_disjoint(init["heldout"][task], init["train"][task], f"task {task}: held-out vs training episodes")
     results["demos"] = _policy_demos(ctx, cfg)
+    if cfg.data.exploration_episodes_per_task:
+        results["exploration"] = _exploration_episodes(ctx, cfg)
     return results
+
+
+def _exploration_episodes(ctx: Context, cfg) -> dict:
+    """``data.exploration_episodes_per_task`` fixed-length expert episodes per task with time-correlated noise on the
+    motion (executed and recorded), from the train split after the world model's episodes and the demonstrations,
+    for the world model's training data (``exploration.hdf5``)."""
+    from sim.datagen import GenDataConfig, generate
+    from sim.dataset import read_dataset
+
+    path = ctx.path("data", "exploration.hdf5")
+    after = cfg.sim.episodes_per_task + (cfg.rl.sft.episodes_per_task or cfg.sim.episodes_per_task)
+    gen = GenDataConfig(out=path, tasks=tuple(cfg.sim.tasks), episodes=cfg.data.exploration_episodes_per_task,
+                        backend=cfg.sim.backend, resolution=cfg.data.image_size, noise=cfg.data.exploration_noise,
+                        noisy_share=1.0, noise_correlation=cfg.data.exploration_correlation,
+                        seed=stream_seed(cfg.seed, "data/exploration_episodes"), max_steps=episode_steps(cfg),
+                        stop_at_success=False, wrist_camera=cfg.sim.wrist_camera, overwrite=True, renderer="jax",
+                        init_split="train", init_start=after, init_seed=cfg.sim.init_seed)
+    generate(gen, progress=ctx.is_main, workers=cpu_workers())
+    _, episodes = read_dataset(path)
+    success = sum(bool(e.rewards.max() > 0) for e in episodes) / max(len(episodes), 1)
+    return {"path": path, "episodes": len(episodes), "success_rate": success}
 
 
 def _policy_demos(ctx: Context, cfg) -> dict:
@@ -143,7 +166,12 @@ def _encode_frames(encode, frames: np.ndarray, batch_size: int) -> np.ndarray:
                            for start in range(0, len(frames), max(batch_size, 1))])
 
 
-def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -> dict[str, np.ndarray]:
+# what the latents' ``sources`` say of each training episode
+SOURCES = {"expert": 0, "policy": 1, "exploration": 2}
+
+
+def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str],
+                           kinds: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """The world model's training latents of the episodes in ``files``, as the pipeline's latents stage writes them.
 
     Every episode is cut to ``data.episode_frames`` frames and encoded raw, then ``augment.styled_copies`` more
@@ -154,18 +182,23 @@ def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -
       vae_graphdef: the VAE's graph definition.
       vae_state: its weights (:func:`sword_jax.load.load_vae_params`).
       files: LIBERO-layout episode files; the first holds the expert's episodes, the others the supervised
-        policy's rollouts.
+        policy's rollouts unless ``kinds`` says otherwise.
+      kinds: per file its episodes' source (:data:`SOURCES`); default the expert's for the first, the policy's
+        for the others.
 
     Returns:
       ``latents`` [E, L, h, w, c] float32, ``actions`` [E, T, A] float32 and ``sources`` [E] uint8 (0 the expert's,
-      1 the policy's): the raw episodes in file order, then each one's styled copies after them (copy-major within
-      an episode), so E = episodes x (1 + styled copies).
+      1 the policy's, 2 the exploring expert's): the raw episodes in file order, then each one's styled copies after
+      them (copy-major within an episode), so E = episodes x (1 + styled copies).
     """
     from sim.dataset import read_info
     from sword_jax.augment.pipeline import encode_styled_copies, seg_classes_from_config
     from sword_jax.vae import api as vae_api
 
     files = list(files)
+    kinds = list(kinds) if kinds is not None else ["expert"] + ["policy"] * (len(files) - 1)
+    if len(kinds) != len(files) or set(kinds) - set(SOURCES):
+        raise ValueError(f"latents: kinds {kinds} must name one of {sorted(SOURCES)} for each of the {len(files)} files")
     _, episodes = load_episodes(files, cfg.data.episode_frames)
     encode = vae_api.encoder(vae_graphdef, vae_state)  # the weights are an argument of the jit, not baked-in constants
     latents, actions = [_encode_frames(encode, episodes.frames, cfg.vae.batch_size)], [episodes.actions]
@@ -179,7 +212,7 @@ def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -
         actions.append(styled_actions)
     # which episodes are the policy's rollouts (1) and which the expert's (0): the raw ones in file order, then
     # each one's styled copies after it (the trainer measures the policy's training segments apart)
-    raw = np.concatenate([np.full(read_info(f).num_demos, int(i > 0), np.uint8) for i, f in enumerate(files)])
+    raw = np.concatenate([np.full(read_info(f).num_demos, SOURCES[kind], np.uint8) for f, kind in zip(files, kinds)])
     if len(raw) != episodes.num:
         raise ValueError(f"latents: the files {files} list {len(raw)} episodes, {episodes.num} were read")
     return {"latents": np.concatenate(latents).astype(np.float32),
@@ -188,26 +221,34 @@ def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str]) -
 
 
 def latents_summary(cfg, arrays: dict[str, np.ndarray]) -> dict:
-    """What :func:`encode_episode_latents`' ``arrays`` hold: ``episodes`` (E), ``raw_episodes``, ``policy_episodes``,
-    ``styled_copies`` and ``latent_shape`` ([L, h, w, c])."""
-    latents, copies = arrays["latents"], styled_copies(cfg)
+    """What :func:`encode_episode_latents`' ``arrays`` hold: ``episodes`` (E), ``raw_episodes``, ``policy_episodes``
+    (and ``exploration_episodes`` where there are any; styled copies counted), ``styled_copies`` and
+    ``latent_shape`` ([L, h, w, c])."""
+    latents, copies, sources = arrays["latents"], styled_copies(cfg), arrays["sources"]
+    exploring = int(np.sum(sources == SOURCES["exploration"]))
     return {"episodes": int(latents.shape[0]), "raw_episodes": len(latents) // (1 + copies),
-            "policy_episodes": int(arrays["sources"].sum()), "styled_copies": copies,
+            "policy_episodes": int(np.sum(sources == SOURCES["policy"])),
+            **({"exploration_episodes": exploring} if exploring else {}), "styled_copies": copies,
             "latent_shape": list(latents.shape[1:])}
 
 
 def encode_training_latents(ctx: Context) -> dict:
     """Encodes the training episodes (raw + styled copies) to ``latents.npz`` for the world model: the
-    expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``); and the
+    expert's, then the supervised policy's own rollouts where the pipeline made them (``policy_data``), then the
+    exploring expert's (``data.exploration_episodes_per_task``); and the
     held-out expert episodes (raw) to ``heldout_latents.npz`` for its held-out evaluation."""
     from sword_jax.vae import api as vae_api
 
     cfg = ctx.cfg
-    files = [ctx.results["data"]["train"]["path"]]
+    files, kinds = [ctx.results["data"]["train"]["path"]], ["expert"]
     if ctx.results.get("policy_data", {}).get("path"):
         files.append(ctx.results["policy_data"]["path"])
+        kinds.append("policy")
+    if ctx.results["data"].get("exploration", {}).get("path"):
+        files.append(ctx.results["data"]["exploration"]["path"])
+        kinds.append("exploration")
     graphdef, state = _vae(ctx)
-    training = encode_episode_latents(cfg, graphdef, state, files)
+    training = encode_episode_latents(cfg, graphdef, state, files, kinds)
     path = ctx.path("data", "latents.npz")
     np.savez(path, **training)
     encode = vae_api.encoder(graphdef, state)

@@ -80,6 +80,7 @@ class GenDataConfig:
     overwrite: bool = False
     stop_at_success: bool = False
     noisy_share: float = 1.0
+    noise_correlation: float = 0.0  # the expert noise's step-to-step correlation (ExpertConfig.noise_correlation)
     init_split: str = "train"
     init_start: int = 0
     init_seed: int = 0
@@ -97,6 +98,8 @@ class GenDataConfig:
             raise ValueError(f"noise must be in [0, 1], got {self.noise}")
         if not 0 <= self.noisy_share <= 1:
             raise ValueError(f"noisy_share must be in [0, 1], got {self.noisy_share}")
+        if not 0 <= self.noise_correlation < 1:  # also rejects NaN
+            raise ValueError(f"noise_correlation must be in [0, 1), got {self.noise_correlation}")
         if self.renderer not in ("auto", "jax", "gl"):
             raise ValueError(f"renderer must be auto|jax|gl, got {self.renderer!r}")
         if self.renderer == "gl" and self.backend != "cpu":
@@ -137,7 +140,7 @@ def noisy(cfg: GenDataConfig, index: int) -> bool:
 
 
 def expert_config(cfg: GenDataConfig) -> Any:
-    return expert.ExpertConfig(noise=cfg.noise, cycle=not cfg.stop_at_success)
+    return expert.ExpertConfig(noise=cfg.noise, noise_correlation=cfg.noise_correlation, cycle=not cfg.stop_at_success)
 
 
 def init_states(cfg: GenDataConfig, task: int) -> np.ndarray:
@@ -320,7 +323,8 @@ def dataset_info(cfg: GenDataConfig, seg_class_names):
                   "control_freq": 20, "max_steps": cfg.max_steps, "expert_noise": cfg.noise, "seed": cfg.seed,
                   "renderer": renderer, "stop_at_success": cfg.stop_at_success, "noisy_share": cfg.noisy_share,
                   "init_split": cfg.init_split, "init_start": cfg.init_start,
-                  "init_seed": cfg.init_seed}
+                  "init_seed": cfg.init_seed,
+                  **({"expert_noise_correlation": cfg.noise_correlation} if cfg.noise_correlation else {})}
     info = DatasetInfo(
         env_name=sim.GYM_ID,
         env_args={"type": 1, "env_name": sim.GYM_ID, "problem_name": problem, "bddl_file": "",

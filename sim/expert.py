@@ -56,12 +56,18 @@ class ExpertConfig:
     gain: float = 1.0  # action per (error / action scale)
     max_speed: float = 0.7  # |position action| cap
     noise: float = 0.0  # std of Gaussian noise added to the motion part of the action
+    # the noise's step-to-step correlation (an AR(1) process of unit variance: 0 = independent draws, the DART
+    # default; towards 1 the perturbation holds its direction over many steps, so the arm leaves the expert's path
+    # by centimetres before the expert brings it back, where independent draws average out within a few steps)
+    noise_correlation: float = 0.0
     grip_steps: int = 8  # control steps to close / open the gripper
     cycle: bool = False  # after the retreat, start over: bowl to a table spot, back to the plate, ...
 
     def validate(self) -> None:
         if not 0 <= self.noise <= 1:
             raise ValueError(f"expert noise must be in [0, 1], got {self.noise}")
+        if not 0 <= self.noise_correlation < 1:  # also rejects NaN
+            raise ValueError(f"expert noise_correlation must be in [0, 1), got {self.noise_correlation}")
         if self.gain <= 0 or not 0 < self.max_speed <= 1 or self.grip_steps < 1:
             raise ValueError(f"bad expert gains: {self}")
 
@@ -234,6 +240,15 @@ def act_labelled(priv: dict[str, Any], est: ExpertState, noise: Any, cfg: Expert
     return executed, clean, est.replace(phase=phase, count=count, goal=goal, trips=trips)
 
 
+def correlated(previous: Any, draw: Any, correlation: float, *, xp: Any = np) -> Any:
+    """The next value of a unit-variance AR(1) noise process: ``rho * previous + sqrt(1 - rho^2) * draw`` for a
+    standard-normal ``draw``; exactly ``draw`` for ``rho = 0`` (independent draws)."""
+    if correlation == 0:
+        return draw
+    rho = float(correlation)
+    return rho * previous + float(np.sqrt(1.0 - rho * rho)) * xp.asarray(draw)
+
+
 def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(), rng: np.random.Generator | None = None,
                 max_steps: int | None = None, record: bool = False, stop_at_success: bool = True) -> dict[str, Any]:
     """Runs the expert on the C backend from an initial qpos.
@@ -255,8 +270,9 @@ def rollout_cpu(env: Any, qpos: np.ndarray, *, cfg: ExpertConfig = ExpertConfig(
     actions, executed, states = [], [], [state]
     solved_at_reset, first_success = bool(state.done), -1
     steps = 0
+    noise = np.zeros(6)
     while steps < max_steps and not (stop_at_success and (solved_at_reset or first_success >= 0)):
-        noise = rng.standard_normal(6) if cfg.noise > 0 else np.zeros(6)
+        noise = correlated(noise, rng.standard_normal(6), cfg.noise_correlation) if cfg.noise > 0 else np.zeros(6)
         action, label, est = act_labelled(privileged(env, state.data), est, noise, cfg, xp=np)
         state = env.step(state, action) if record else env.step_inplace(state, action)
         if first_success < 0 and state.done:
@@ -280,7 +296,8 @@ def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
     """(init_fn(state) -> ExpertState, act_fn(state, est, key, noise_gain=1) -> (executed, clean, est)) for MJX.
 
     Both are pure and vmappable (one env each); ``key`` drives the action noise (times
-    ``noise_gain``, 0 for a clean episode). ``executed`` is the noisy action to step with,
+    ``noise_gain``, 0 for a clean episode), or ``noise=`` gives the step's (6,) draws already scaled by the gain
+    (:func:`episode_mjx` passes its correlated ones). ``executed`` is the noisy action to step with,
     ``clean`` the expert's label (DART).
     """
     cfg.validate()
@@ -288,8 +305,9 @@ def jax_policy(env: Any, cfg: ExpertConfig = ExpertConfig()):
     def init_fn(state):
         return init(privileged(env, state.data), xp=jnp)
 
-    def act_fn(state, est, key, noise_gain=1.0):
-        noise = jax.random.normal(key, (6,), jnp.float32) * noise_gain
+    def act_fn(state, est, key=None, noise_gain=1.0, *, noise=None):
+        if noise is None:  # one independent draw of the step's key (a caller with correlated noise passes it)
+            noise = jax.random.normal(key, (6,), jnp.float32) * noise_gain
         return act_labelled(privileged(env, state.data), est, noise, cfg, xp=jnp)
 
     return init_fn, act_fn
@@ -300,7 +318,8 @@ def episode_mjx(env: Any, qpos: Any, keys: jax.Array, cfg: ExpertConfig = Expert
     """One expert episode on MJX from one initial qpos, one step per key (pure, vmappable; jit it).
 
     Args:
-      keys: ``[T]`` PRNG keys, the action noise of each step (times ``noise_gain``; 0 = clean).
+      keys: ``[T]`` PRNG keys, the action noise of each step (times ``noise_gain``; 0 = clean), correlated from
+        step to step by ``cfg.noise_correlation`` (:func:`correlated`).
       observe: ``observe(state) -> dict`` of arrays to record from the state each action is taken in.
 
     Returns:
@@ -312,15 +331,16 @@ def episode_mjx(env: Any, qpos: Any, keys: jax.Array, cfg: ExpertConfig = Expert
     state = env.reset_to(qpos)
 
     def body(carry, step_key):
-        state, est = carry
-        executed, clean, est = act_fn(state, est, step_key, noise_gain)
+        state, est, noise = carry
+        noise = correlated(noise, jax.random.normal(step_key, (6,), jnp.float32), cfg.noise_correlation, xp=jnp)
+        executed, clean, est = act_fn(state, est, noise=noise * noise_gain)
         record = {**(observe(state) if observe is not None else {}), "actions": clean, "executed": executed,
                   "phase": est.phase}
         state = env.step(state, executed)
         record["done"] = state.done
-        return (state, est), record
+        return (state, est, noise), record
 
-    _, records = jax.lax.scan(body, (state, init_fn(state)), keys)
+    _, records = jax.lax.scan(body, (state, init_fn(state), jnp.zeros((6,), jnp.float32)), keys)
     return state, records
 
 

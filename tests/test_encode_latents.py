@@ -91,6 +91,29 @@ def test_the_entry_writes_the_latents_the_pipeline_stage_writes(inputs, capsys):
     assert stage["episodes"] == 9 and stage["raw_episodes"] == 3 and stage["policy_episodes"] == 3
 
 
+def test_the_latents_stage_marks_the_exploring_experts_episodes_apart(inputs):
+    """With exploration episodes (data.exploration_episodes_per_task) the stage encodes them after the expert's and
+    the policy's and marks them 2, so the trainer's training-policy split (sources 1) keeps only the policy's; the
+    summary counts each kind, styled copies included; kinds that do not fit the files are refused."""
+    root, cfg = inputs["root"], inputs["cfg"]
+    expert, policy = inputs["files"]
+    ctx = Context(cfg=cfg, workdir=str(root / "exploring"), results={
+        "data": {"train": {"path": expert}, "heldout": {"path": policy}, "exploration": {"path": policy}},
+        "policy_data": {"path": policy}, "vae": {"path": inputs["vae"]}})
+    stage = data_stages.encode_training_latents(ctx)
+    sources = load_sources(stage["path"], 12)
+    np.testing.assert_array_equal(sources, [0, 0, 1, 2, 0, 0, 0, 0, 1, 1, 2, 2])
+    assert stage["files"] == [expert, policy, policy]
+    assert (stage["episodes"], stage["policy_episodes"], stage["exploration_episodes"]) == (12, 3, 3)
+    from sword_jax.load import load_vae_params
+
+    graphdef, state = load_vae_params(cfg.vae, inputs["vae"])
+    with pytest.raises(ValueError, match="kinds"):
+        data_stages.encode_episode_latents(cfg, graphdef, state, [expert, policy], ["expert"])
+    with pytest.raises(ValueError, match="kinds"):
+        data_stages.encode_episode_latents(cfg, graphdef, state, [expert], ["teacher"])
+
+
 def test_the_entry_refuses_an_existing_out_missing_files_and_a_wrong_vae(inputs):
     """Each refusal is one line naming the problem (episodes too short for the world model too); an existing --out
     is left as it was."""

@@ -211,3 +211,34 @@ def test_mjx_generation_runs_the_shared_expert_and_agrees_with_the_c_engine(tmp_
     np.testing.assert_allclose(mjx.states[0][1 + nq:], cpu.states[0][1 + nq:], atol=5e-3)
     np.testing.assert_allclose(mjx.actions, cpu.actions, atol=2e-2)
     np.testing.assert_allclose(mjx.states[:, 1:10], cpu.states[:, 1:10], atol=2e-2)  # arm and fingers
+
+
+def test_the_data_stage_records_exploring_expert_episodes_from_fresh_training_states(tmp_path):
+    """data.exploration_episodes_per_task: the data stage writes exploration.hdf5, the expert with time-correlated
+    noise executed (recorded as executed_actions beside the clean labels) from the training states after the world
+    model's episodes and the demonstrations; without the setting it writes none."""
+    import configs
+    from sim import data_stages
+    from sword_jax.pipeline.stages import Context
+
+    cfg, _ = configs.from_argv(["--config", "sword:tiny", "--sim.tasks=0", "--sim.episode_steps=33",
+                                "--data.exploration_episodes_per_task=2", "--data.exploration_noise=0.4"])
+    results = data_stages.generate_expert_data(Context(cfg=cfg, workdir=str(tmp_path), results={}))
+    made = results["exploration"]
+    info, episodes = read_dataset(made["path"])
+    assert made["episodes"] == len(episodes) == 2 and made["path"].endswith("exploration.hdf5")
+    kwargs = info.env_args["env_kwargs"]
+    assert kwargs["expert_noise"] == 0.4 and kwargs["expert_noise_correlation"] == 0.9 and kwargs["noisy_share"] == 1.0
+    _, demos = read_dataset(results["demos"]["path"])
+    _, train = read_dataset(results["train"]["path"])
+    taken = {e.init_state_id for e in train} | {e.init_state_id for e in demos}
+    assert [e.init_state_id for e in episodes] == [max(taken) + 1, max(taken) + 2]
+    assert all(e.init_split == "train" and e.executed_actions is not None for e in episodes)
+    assert all(not np.allclose(e.executed_actions, e.actions) for e in episodes)
+    plain, _ = configs.from_argv(["--config", "sword:tiny", "--sim.tasks=0", "--sim.episode_steps=33"])
+    assert "exploration" not in data_stages.generate_expert_data(Context(cfg=plain, workdir=str(tmp_path / "p"),
+                                                                         results={}))
+    with pytest.raises(ValueError, match="data.exploration_correlation"):
+        configs.from_argv(["--config", "sword:tiny", "--data.exploration_correlation=1"])[0].validate()
+    with pytest.raises(ValueError, match="noise_correlation"):
+        datagen.GenDataConfig(out=str(tmp_path / "a.hdf5"), noise_correlation=-0.1).validate()

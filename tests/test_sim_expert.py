@@ -33,6 +33,41 @@ def test_expert_with_noise_still_succeeds_and_differs():
         expert.rollout_cpu(env, env.init_states[3], cfg=expert.ExpertConfig(noise=2.0))
 
 
+def test_correlated_noise_is_a_unit_variance_ar1_process_and_independent_at_zero():
+    draw = np.random.default_rng(0).standard_normal(6)
+    assert expert.correlated(np.ones(6), draw, 0.0) is draw  # rho 0: the draw itself, bit for bit
+    rng, x, xs = np.random.default_rng(1), np.zeros(1), []
+    for _ in range(40000):
+        x = expert.correlated(x, rng.standard_normal(1), 0.9)
+        xs.append(x[0])
+    xs = np.asarray(xs[100:])
+    assert np.var(xs) == pytest.approx(1.0, abs=0.08)
+    assert np.corrcoef(xs[:-1], xs[1:])[0, 1] == pytest.approx(0.9, abs=0.02)
+    with pytest.raises(ValueError, match="noise_correlation"):
+        expert.ExpertConfig(noise=0.1, noise_correlation=1.0).validate()
+
+
+def test_correlated_exploration_noise_holds_its_direction_and_zero_changes_nothing():
+    """The executed actions' departure from the expert's labels keeps its sign from step to step with correlation
+    0.9 (lag-one autocorrelation of the position noise), not with independent draws; correlation 0 is the DART
+    expert of before, bit for bit."""
+    env = CpuEnv(SimConfig(), 0)
+    runs = {}
+    for rho in (0.0, 0.9):
+        out = expert.rollout_cpu(env, env.init_states[3], cfg=expert.ExpertConfig(noise=0.3, noise_correlation=rho),
+                                 rng=np.random.default_rng(5), record=True, max_steps=60, stop_at_success=False)
+        runs[rho] = out
+        d = (out["executed"] - out["actions"])[:, :3]
+        on = np.all(d != 0, axis=1)  # the phases with motion noise
+        pairs = on[:-1] & on[1:]
+        lag1 = np.corrcoef(d[:-1][pairs].ravel(), d[1:][pairs].ravel())[0, 1]
+        assert pairs.sum() > 20
+        assert (lag1 > 0.6) if rho else (lag1 < 0.3), (rho, lag1)
+    default = expert.rollout_cpu(env, env.init_states[3], cfg=expert.ExpertConfig(noise=0.3),
+                                 rng=np.random.default_rng(5), record=True, max_steps=60, stop_at_success=False)
+    np.testing.assert_array_equal(default["executed"], runs[0.0]["executed"])
+
+
 def test_expert_does_not_succeed_without_moving():
     # Sanity: success really needs the placement (zero actions for 30 steps never solve it).
     env = CpuEnv(SimConfig(), 2)

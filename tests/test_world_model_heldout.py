@@ -242,9 +242,11 @@ def test_held_out_data_that_does_not_fit_is_refused_and_none_measures_training_s
     np.savez(path, latents=train.latents, actions=train.actions, sources=np.zeros(7, np.uint8))
     with pytest.raises(ValueError, match="sources must be 8 values of 0 .* got shape \\(7,\\)"):
         data.load_sources(path, 8)
-    np.savez(path, latents=train.latents, actions=train.actions, sources=np.full(8, 2, np.uint8))
+    np.savez(path, latents=train.latents, actions=train.actions, sources=np.full(8, 3, np.uint8))
     with pytest.raises(ValueError, match="sources must be 8 values of 0"):
         data.load_sources(path, 8)
+    np.savez(path, latents=train.latents, actions=train.actions, sources=np.arange(8, dtype=np.uint8) % 3)
+    np.testing.assert_array_equal(data.load_sources(path, 8), np.arange(8) % 3)  # 2: the exploring expert's
     np.savez(path, latents=train.latents, actions=train.actions)
     assert data.load_sources(path, 8) is None
     cfg, _ = configs.from_argv(["--config", "sword:tiny", "--mesh.data=2", "--mesh.tensor=4"])

@@ -102,17 +102,17 @@ def load_latent_dataset(path: str) -> LatentDataset:
 
 def load_sources(path: str, num_episodes: int) -> np.ndarray | None:
     """The ``sources`` array of a latents ``.npz`` (one entry per episode: 0 the expert's, 1 a rollout of the
-    supervised policy or its styled copy, as the pipeline's latents stage writes it), or None where the file
-    holds none."""
+    supervised policy, 2 an episode of the expert with exploration noise, or a styled copy of one, as the pipeline's
+    latents stage writes it), or None where the file holds none."""
     if not path.endswith(".npz"):
         return None
     with np.load(path) as data:
         if "sources" not in data.files:
             return None
         sources = np.asarray(data["sources"])
-    if sources.shape != (num_episodes,) or not np.isin(sources, (0, 1)).all():
-        raise ValueError(f"latent dataset: {path}'s sources must be {num_episodes} values of 0 (expert) or 1 "
-                         f"(policy rollout), one per episode; got shape {sources.shape}")
+    if sources.shape != (num_episodes,) or not np.isin(sources, (0, 1, 2)).all():
+        raise ValueError(f"latent dataset: {path}'s sources must be {num_episodes} values of 0 (expert), 1 "
+                         f"(policy rollout) or 2 (exploring expert), one per episode; got shape {sources.shape}")
     return sources
 
 
