@@ -210,8 +210,8 @@ def encode_episode_latents(cfg, vae_graphdef, vae_state, files: Sequence[str],
         styled_latents, styled_actions, _ = styled.flatten()
         latents.append(styled_latents)
         actions.append(styled_actions)
-    # which episodes are the policy's rollouts (1) and which the expert's (0): the raw ones in file order, then
-    # each one's styled copies after it (the trainer measures the policy's training segments apart)
+    # which episodes are the expert's (0), the policy's rollouts (1) and the exploring expert's (2): the raw ones in
+    # file order, then each one's styled copies after it (the trainer measures the policy's training segments apart)
     raw = np.concatenate([np.full(read_info(f).num_demos, SOURCES[kind], np.uint8) for f, kind in zip(files, kinds)])
     if len(raw) != episodes.num:
         raise ValueError(f"latents: the files {files} list {len(raw)} episodes, {episodes.num} were read")
