@@ -57,8 +57,9 @@ class ExpertConfig:
     max_speed: float = 0.7  # |position action| cap
     noise: float = 0.0  # std of Gaussian noise added to the motion part of the action
     # the noise's step-to-step correlation (an AR(1) process of unit variance: 0 = independent draws, the DART
-    # default; towards 1 the perturbation holds its direction over many steps, so the arm leaves the expert's path
-    # by centimetres before the expert brings it back, where independent draws average out within a few steps)
+    # default; towards 1 the perturbation holds its direction over many steps. Measured on the C engine, tasks 0, 4, 8
+    # x 3 initial states: the tool centre's largest departure from the clean expert's path in the first 40 steps,
+    # median 21 cm at noise 0.3 and correlation 0.9, against 12 cm at DART's independent 0.1)
     noise_correlation: float = 0.0
     grip_steps: int = 8  # control steps to close / open the gripper
     cycle: bool = False  # after the retreat, start over: bowl to a table spot, back to the plate, ...
